@@ -1,0 +1,31 @@
+"""The contract every code-generation backend fulfils."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from sympy.printing.codeprinter import CodePrinter
+
+
+@dataclass(frozen=True)
+class Backend:
+    """A target language.
+
+    Attributes
+    ----------
+    name : str
+        The name users pass to ``--backend``.
+    description : str
+        One line for ``--help``.
+    printer : callable
+        Builds the expression printer (a sympy ``CodePrinter`` subclass).
+    templates : tuple of (str, str)
+        Template path (under ``templates/``) and output file name pattern, where
+        ``{name}`` is the spec's module name.
+    """
+
+    name: str
+    description: str
+    printer: Callable[[], CodePrinter]
+    templates: tuple[tuple[str, str], ...]

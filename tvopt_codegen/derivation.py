@@ -1,0 +1,446 @@
+"""Stage 3: everything the paper derives, as one :class:`Derivation`.
+
+Both the code generators and the report read this object; nothing downstream
+re-derives mathematics. The steps follow the paper: dynamic extension and vector
+relative degree (Lemmas 1-2), padding chains for unequal relative degrees (Section
+IV-B), the gradient jet ``grad^(j) f0`` (Lemma "Gradient Time Differentiation") and the
+implicit law ``y_imp^(k)`` (equation y_kth_derivative_solution) feeding
+``u = alpha + beta R^-1 [v - p]`` (Theorems for uniform and non-uniform degree).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import sympy as sp
+
+from tvopt_codegen import hurwitz
+from tvopt_codegen.errors import AssumptionError, SpecError
+from tvopt_codegen.jet import Program, cse_program, fresh_symbols, total_derivative
+from tvopt_codegen.lie import (
+    Extension,
+    RelativeDegree,
+    Sampler,
+    brunovsky,
+    extend,
+    generic_rank,
+    relative_degree,
+)
+from tvopt_codegen.model import Model, build_model
+from tvopt_codegen.spec import Spec
+
+
+def jet_symbol(name: str, order: int) -> sp.Symbol:
+    """The symbol for the ``order``-th time derivative of ``name`` (y1, y1', y1'', ...).
+
+    The primes cannot occur in user names, so jet symbols never collide with them.
+    """
+    if order == 0:
+        return sp.Symbol(name, real=True)
+    mark = "'" * order if order <= 3 else f"^({order})"
+    return sp.Symbol(f"{name}{mark}", real=True)
+
+
+@dataclass(frozen=True)
+class Convexity:
+    """Evidence for the strong convexity of f0 (paper, Assumption 1).
+
+    Attributes
+    ----------
+    method : str
+        ``"constant Hessian"`` (exact) or ``"sampled"``.
+    m_f : float
+        Smallest Hessian eigenvalue found: a lower bound estimate of the convexity
+        modulus.
+    points : int
+        Number of (y, t) points examined.
+    """
+
+    method: str
+    m_f: float
+    points: int
+
+
+@dataclass(frozen=True)
+class Derivation:
+    """The complete derivation for one spec.
+
+    Attributes
+    ----------
+    spec, model : Spec, Model
+        The inputs of the derivation.
+    extension : Extension
+        The extended plant (equal to the plant when nothing is prolonged).
+    relative_degree : tuple of int
+        ``r_i`` per output, of the extended system.
+    lie : tuple of tuple of sympy.Expr
+        ``lie[i][j] = L_f^j h_i``, ``j = 0 .. r_i``.
+    R, p, phi : sympy.ImmutableMatrix
+        Decoupling matrix (m, m), ``p = col(L_f^{r_i} h_i)`` and coordinates ``Phi``.
+    A, B : sympy.ImmutableMatrix
+        Brunovsky pair of the extended system.
+    k : int
+        ``max r_i``: the order of the error dynamics.
+    padding : tuple of tuple of str
+        Names of the padding states ``xi_<output>_<j>`` per output.
+    state_names : tuple of str
+        Closed-loop state order: plant, extension, padding.
+    states : tuple of sympy.Symbol
+        Symbols of ``state_names``.
+    det_R : sympy.Expr or None
+        ``det R`` factored, when computed symbolically (m <= 3).
+    singular_set : tuple of str
+        Conditions under which ``det R`` vanishes, in words.
+    gradient, hessian : sympy.ImmutableMatrix
+        ``grad_y f0`` (m, 1) and ``grad_yy f0`` (m, m) over ``y``, signals, parameters, t.
+    y_jet : tuple of tuple of sympy.Symbol
+        ``y_jet[i][j]`` is the symbol of ``y_i^(j)``, ``j = 0 .. k``.
+    y_jet_values : tuple of tuple of sympy.Expr
+        ``y_i^(j)`` for ``j < k`` as a function of the closed-loop state.
+    signal_jet : tuple of tuple of sympy.Symbol
+        ``signal_jet[l][q]`` is the symbol of the q-th derivative of signal l.
+    signal_jet_values : tuple of tuple of sympy.Expr
+        Those derivatives as expressions in ``t`` and the parameters.
+    jet_program : Program
+        Straight-line program of the gradient jet (see :mod:`tvopt_codegen.jet`).
+    grad_jet : tuple of tuple of sympy.Expr
+        ``grad^(j) f0`` for ``j = 0 .. k-1`` over the program's symbols.
+    rest_program : Program
+        Extra assignments used by :attr:`rest` only.
+    rest : tuple of sympy.Expr
+        ``grad^(k) f0`` with ``y^(k) = 0``, so ``grad^(k) f0 = Hess y^(k) + rest``.
+    coefficients : tuple of float
+        ``a_0 .. a_{k-1}`` of H.
+    eigenvalues : tuple of complex
+        Eigenvalues of the companion matrix.
+    decay_rate : float
+        ``alpha = -max Re(lambda)``.
+    uniform : bool
+        Whether all relative degrees equal k (no padding).
+    convexity : Convexity
+        Strong convexity evidence.
+    initial_state : tuple of float
+        Default initial state in :attr:`state_names` order.
+    timings : tuple of (str, float)
+        Seconds spent per derivation step.
+    """
+
+    spec: Spec
+    model: Model
+    extension: Extension
+    relative_degree: tuple[int, ...]
+    lie: tuple[tuple[sp.Expr, ...], ...]
+    R: sp.ImmutableMatrix
+    p: sp.ImmutableMatrix
+    phi: sp.ImmutableMatrix
+    A: sp.ImmutableMatrix
+    B: sp.ImmutableMatrix
+    k: int
+    padding: tuple[tuple[str, ...], ...]
+    state_names: tuple[str, ...]
+    states: tuple[sp.Symbol, ...]
+    det_R: sp.Expr | None
+    singular_set: tuple[str, ...]
+    gradient: sp.ImmutableMatrix
+    hessian: sp.ImmutableMatrix
+    y_jet: tuple[tuple[sp.Symbol, ...], ...]
+    y_jet_values: tuple[tuple[sp.Expr, ...], ...]
+    signal_jet: tuple[tuple[sp.Symbol, ...], ...]
+    signal_jet_values: tuple[tuple[sp.Expr, ...], ...]
+    jet_program: Program
+    grad_jet: tuple[tuple[sp.Expr, ...], ...]
+    rest_program: Program
+    rest: tuple[sp.Expr, ...]
+    coefficients: tuple[float, ...]
+    eigenvalues: tuple[complex, ...]
+    decay_rate: float
+    uniform: bool
+    convexity: Convexity
+    initial_state: tuple[float, ...]
+    timings: tuple[tuple[str, float], ...]
+
+
+class _Clock:
+    """Records how long each derivation step takes."""
+
+    def __init__(self) -> None:
+        self.marks: list[tuple[str, float]] = []
+        self.last = time.perf_counter()
+
+    def mark(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.marks.append((stage, now - self.last))
+        self.last = now
+
+
+def _linearizable(model: Model, counts: dict[str, int]) -> bool:
+    """Whether the plant with these input integrators is full-state linearizable."""
+    ext = extend(model.x, model.u, model.f, model.G, counts)
+    sampler = Sampler(ext.x, dict(zip(model.params, model.defaults, strict=True)))
+    rd = relative_degree(ext.f, ext.G, model.h, ext.x, sampler)
+    if rd.R is None:
+        return False
+    degrees = [r for r in rd.r if r is not None]
+    return sum(degrees) == len(ext.x) and generic_rank(rd.R, sampler) == len(model.u)
+
+
+def _suggest_prolongation(model: Model, counts: dict[str, int]) -> str:
+    """Find the smallest single-input prolongation that makes the plant linearizable."""
+    for extra in (1, 2):
+        for uj in model.u:
+            trial = dict(counts)
+            trial[uj.name] = trial.get(uj.name, 0) + extra
+            if _linearizable(model, trial):
+                table = ", ".join(f"{k} = {v}" for k, v in trial.items() if v)
+                return (f"; prolong input {uj.name!r} by {extra} integrator(s): "
+                        f"[extension] integrate = {{ {table} }}")
+    return "; no prolongation of a single input by 1 or 2 integrators makes it linearizable"
+
+
+def _singular_set(det: sp.Expr) -> tuple[str, ...]:
+    """Describe where a factored determinant vanishes, one condition per factor."""
+    if det.is_Number:
+        return () if det != 0 else ("everywhere",)
+    _, factors = sp.factor_list(det)
+    conditions = []
+    for base, _power in factors:
+        if base.is_Number:
+            continue
+        conditions.append(f"{sp.sstr(base)} = 0")
+    return tuple(conditions)
+
+
+def _check_convexity(derivation_inputs: tuple[Model, sp.ImmutableMatrix, Sequence[float],
+                                              float], source: str) -> Convexity:
+    """Estimate the convexity modulus of f0 near the initial outputs, over the horizon."""
+    model, hessian, y0, t_final = derivation_inputs
+    defaults = dict(zip(model.params, model.defaults, strict=True))
+    signal_subs = {s: e for s, e in model.signals}
+    concrete = hessian.xreplace(signal_subs).xreplace({k: sp.Float(v) for k, v in defaults.items()})
+    if not concrete.free_symbols:
+        values = np.linalg.eigvalsh(np.array(concrete.evalf(), dtype=float))
+        m_f = float(values.min())
+        result = Convexity("constant Hessian", m_f, 1)
+    else:
+        rng = np.random.default_rng(7)
+        points = 24
+        func = sp.lambdify([*model.y, model.t], concrete, modules="numpy")
+        smallest = np.inf
+        for _ in range(points):
+            y = np.asarray(y0) + rng.uniform(-0.1, 0.1, size=len(y0))
+            t = rng.uniform(0.0, t_final)
+            with np.errstate(all="ignore"):
+                matrix = np.array(func(*y, t), dtype=float)
+            if np.all(np.isfinite(matrix)):
+                smallest = min(smallest, float(np.linalg.eigvalsh(0.5 * (matrix + matrix.T)).min()))
+        m_f = float(smallest)
+        result = Convexity("sampled", m_f, points)
+    if not result.m_f > 0:
+        raise AssumptionError(
+            source, "objective.f0",
+            f"f0 is not strongly convex in the outputs: the Hessian has eigenvalue {result.m_f:.6g} "
+            "<= 0 (the method needs grad_yy f0 positive definite)",
+        )
+    return result
+
+
+def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivation:
+    """Run the paper's derivation for a spec.
+
+    Parameters
+    ----------
+    spec : Spec
+        A validated spec.
+    progress : callable, optional
+        Called with the name of each step as it starts (for long derivations).
+
+    Returns
+    -------
+    Derivation
+        Everything the code generators and the report need.
+
+    Raises
+    ------
+    AssumptionError
+        When the extended plant has no vector relative degree, is not full-state
+        linearizable, has a decoupling matrix singular everywhere (with a
+        prolongation suggestion), when f0 is not strongly convex, or when the error
+        dynamics are not Hurwitz or have the wrong order.
+    SpecError
+        When generated state names collide with declared names, or the initial state
+        names an unknown state.
+    """
+    say = progress or (lambda _stage: None)
+    clock = _Clock()
+    source = spec.source
+    say("model")
+    model = build_model(spec)
+    clock.mark("model")
+
+    say("relative degree")
+    counts = dict(spec.extension)
+    ext = extend(model.x, model.u, model.f, model.G, counts)
+    declared = {*spec.states, *spec.inputs, *spec.outputs, *(n for n, _ in spec.parameters),
+                *(n for n, _ in spec.signals)}
+    for name in ext.states:
+        if name in declared and name not in spec.inputs:
+            raise SpecError(source, "extension.integrate",
+                            f"extension state {name!r} collides with a declared name")
+    defaults = dict(zip(model.params, model.defaults, strict=True))
+    sampler = Sampler(ext.x, defaults)
+    rd: RelativeDegree = relative_degree(ext.f, ext.G, model.h, ext.x, sampler)
+    m = len(model.u)
+    n_ext = len(ext.x)
+    for name, r in zip(spec.outputs, rd.r, strict=True):
+        if r is None:
+            raise AssumptionError(
+                source, f"system.outputs.{name}",
+                f"output {name!r} has no relative degree: no input reaches it within "
+                f"{n_ext} derivatives",
+            )
+    assert rd.R is not None
+    degrees = tuple(int(r) for r in rd.r if r is not None)
+    rank = generic_rank(rd.R, sampler)
+    if rank < m:
+        suggestion = _suggest_prolongation(model, counts)
+        raise AssumptionError(
+            source, "extension",
+            f"the decoupling matrix R is singular everywhere (generic rank {rank} < {m}; "
+            f"relative degrees {dict(zip(spec.outputs, degrees, strict=True))}){suggestion}",
+        )
+    if sum(degrees) != n_ext:
+        raise AssumptionError(
+            source, "system.outputs",
+            f"not full-state linearizable: the relative degrees "
+            f"{dict(zip(spec.outputs, degrees, strict=True))} sum to {sum(degrees)}, but the "
+            f"extended system has {n_ext} states (internal dynamics of dimension "
+            f"{n_ext - sum(degrees)})",
+        )
+    clock.mark("relative degree")
+
+    say("error dynamics")
+    k = max(degrees)
+    if spec.coefficients is not None:
+        coefficients = spec.coefficients
+        field, given = "error_dynamics.coefficients", len(coefficients)
+    else:
+        assert spec.poles is not None
+        coefficients = hurwitz.coefficients_from_poles(spec.poles)
+        field, given = "error_dynamics.poles", len(spec.poles)
+    if given != k:
+        raise AssumptionError(
+            source, field,
+            f"the error dynamics have order k = {k} (the largest relative degree), so give "
+            f"{k} {'poles' if spec.poles is not None else 'coefficients'}, not {given}",
+        )
+    if spec.poles is not None:
+        # The poles are exact as written; the companion eigenvalues would be rounded.
+        eig = np.array(sorted(spec.poles, key=lambda v: (v.real, v.imag)))
+        alpha = float(-max(v.real for v in spec.poles))
+    else:
+        eig = hurwitz.eigenvalues(coefficients)
+        alpha = hurwitz.decay_rate(coefficients)
+    if not alpha > 0:
+        raise AssumptionError(
+            source, field,
+            f"H is not Hurwitz: eigenvalue {complex(eig[-1]):.6g} has real part >= 0 "
+            "(coefficients a_i are the last row of the companion matrix; for poles -1, -2 "
+            "they are a_0 = -2, a_1 = -3)",
+        )
+
+    padding = tuple(
+        tuple(f"xi_{name}_{j}" for j in range(1, k - r + 1))
+        for name, r in zip(spec.outputs, degrees, strict=True)
+    )
+    pad_names = [n for chain in padding for n in chain]
+    for name in pad_names:
+        if name in declared:
+            raise SpecError(source, "system.outputs", f"padding state {name!r} collides with a declared name")
+    state_names = (*spec.states, *ext.states, *pad_names)
+    states = tuple(sp.Symbol(n, real=True) for n in state_names)
+    initial = _initial_state(spec, state_names, len(spec.states) + len(ext.states))
+    clock.mark("error dynamics")
+
+    say("decoupling matrix")
+    R = rd.R
+    p = sp.ImmutableMatrix([rd.lie[i][degrees[i]] for i in range(m)])
+    phi = sp.ImmutableMatrix([rd.lie[i][j] for i in range(m) for j in range(degrees[i])])
+    A, B = brunovsky(degrees)
+    det_R: sp.Expr | None = None
+    singular: tuple[str, ...] = ()
+    if m <= 3:
+        det_R = sp.factor(sp.simplify(R.det(method="berkowitz")))
+        singular = _singular_set(det_R)
+    clock.mark("decoupling matrix")
+
+    say("objective")
+    gradient = sp.ImmutableMatrix([sp.diff(model.f0, yi) for yi in model.y])
+    hessian = sp.ImmutableMatrix([[sp.diff(g, yj) for yj in model.y] for g in gradient])
+    values = {sym: sp.Float(v) for sym, v in zip(states, initial, strict=True)}
+    values |= {q: sp.Float(v) for q, v in defaults.items()}
+    y0 = [float(h.xreplace(values)) for h in model.h]
+    convexity = _check_convexity((model, hessian, y0, spec.t_final), source)
+    clock.mark("objective")
+
+    say("gradient jet")
+    y_jet = tuple(tuple(jet_symbol(y.name, j) for j in range(k + 1)) for y in model.y)
+    signal_jet = tuple(tuple(jet_symbol(s.name, q) for q in range(k + 1)) for s, _ in model.signals)
+    rates: dict[sp.Symbol, sp.Expr] = {model.t: sp.Integer(1)}
+    for chain in (*y_jet, *signal_jet):
+        for j in range(k):
+            rates[chain[j]] = chain[j + 1]
+    names = fresh_symbols("g")
+    program, current = cse_program(list(gradient), names)
+    grad_jet = [current]
+    rest_program = Program(())
+    for order in range(1, k + 1):
+        new, current, rates = total_derivative(program, current, rates, names)
+        if order < k:
+            program = program + new
+            grad_jet.append(current)
+        else:
+            # grad^(k) is affine in y^(k) with slope Hess: dropping y^(k) leaves the rest.
+            drop = {chain[k]: sp.Integer(0) for chain in y_jet}
+            rest_program = Program(tuple((s, e.xreplace(drop)) for s, e in new.assignments))
+            rest = tuple(e.xreplace(drop) for e in current)
+    signal_values = tuple(
+        tuple(sp.diff(expr, model.t, q) if q else expr for q in range(k + 1))
+        for _, expr in model.signals
+    )
+    state_of = dict(zip(state_names, states, strict=True))
+    y_values = tuple(
+        tuple(rd.lie[i][j] if j < degrees[i] else state_of[padding[i][j - degrees[i]]]
+              for j in range(k))
+        for i in range(m)
+    )
+    clock.mark("gradient jet")
+
+    return Derivation(
+        spec=spec, model=model, extension=ext, relative_degree=degrees, lie=rd.lie,
+        R=R, p=p, phi=phi, A=A, B=B, k=k, padding=padding, state_names=state_names,
+        states=states, det_R=det_R, singular_set=singular, gradient=gradient, hessian=hessian,
+        y_jet=y_jet, y_jet_values=y_values, signal_jet=signal_jet,
+        signal_jet_values=signal_values, jet_program=program, grad_jet=tuple(grad_jet),
+        rest_program=rest_program, rest=rest, coefficients=tuple(coefficients),
+        eigenvalues=tuple(complex(v) for v in eig), decay_rate=alpha,
+        uniform=all(r == k for r in degrees), convexity=convexity, initial_state=initial,
+        timings=tuple(clock.marks),
+    )
+
+
+def _initial_state(spec: Spec, state_names: Sequence[str], required: int) -> tuple[float, ...]:
+    """Order the spec's initial state; plant and extension states must all be given."""
+    given = dict(spec.initial_state)
+    for key in given:
+        if key not in state_names:
+            raise SpecError(spec.source, f"simulation.initial_state.{key}",
+                            f"not a state of the closed loop (states: {', '.join(state_names)})")
+    if given:
+        for name in state_names[:required]:
+            if name not in given:
+                raise SpecError(spec.source, f"simulation.initial_state.{name}",
+                                "missing (every plant and extension state needs a value)")
+    return tuple(float(given.get(name, 0.0)) for name in state_names)

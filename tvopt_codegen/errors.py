@@ -1,0 +1,82 @@
+"""Error types of tvopt-codegen and the CLI exit codes they map to.
+
+Every error a user can cause is one of these; the CLI prints ``str(error)`` on one
+line and exits with :attr:`TvoptError.exit_code`.
+"""
+
+from __future__ import annotations
+
+#: Exit code of a successful run.
+EXIT_OK = 0
+#: Exit code for a spec file that cannot be read or is invalid.
+EXIT_BAD_SPEC = 2
+#: Exit code for a well-formed spec whose system violates the paper's assumptions.
+EXIT_ASSUMPTION = 3
+#: Exit code for output that could not be written (or would overwrite a user's file).
+EXIT_OUTPUT = 4
+
+
+class TvoptError(Exception):
+    """Base class of all errors reported to users.
+
+    Attributes
+    ----------
+    exit_code : int
+        The process exit code the CLI uses for this error.
+    """
+
+    exit_code = 1
+
+
+class SpecError(TvoptError):
+    """A spec file is unreadable, malformed, or refers to something undeclared.
+
+    Parameters
+    ----------
+    source : str
+        The spec file (path or bundled example name).
+    field : str
+        Dotted path of the offending field, e.g. ``system.dynamics.x1``.
+    problem : str
+        What is wrong, in one line.
+    """
+
+    exit_code = EXIT_BAD_SPEC
+
+    def __init__(self, source: str, field: str, problem: str) -> None:
+        self.source = source
+        self.field = field
+        self.problem = problem
+        super().__init__(f"{source}: {field}: {problem}")
+
+
+class AssumptionError(TvoptError):
+    """The system or objective violates an assumption of the method.
+
+    Raised for plants without a vector relative degree, decoupling matrices that are
+    singular everywhere, non-Hurwitz error dynamics, Hessians that are not positive
+    definite, and dimension mismatches found during derivation.
+
+    Parameters
+    ----------
+    source : str
+        The spec file the system came from.
+    field : str
+        The spec field the problem is best attributed to.
+    problem : str
+        What is wrong and, where possible, how to fix it.
+    """
+
+    exit_code = EXIT_ASSUMPTION
+
+    def __init__(self, source: str, field: str, problem: str) -> None:
+        self.source = source
+        self.field = field
+        self.problem = problem
+        super().__init__(f"{source}: {field}: {problem}")
+
+
+class OutputError(TvoptError):
+    """Generated files could not be written, or writing them would lose a user's work."""
+
+    exit_code = EXIT_OUTPUT

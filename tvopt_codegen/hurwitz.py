@@ -1,0 +1,79 @@
+"""The error dynamics ``E' = H E``: companion matrices, poles and coefficients.
+
+The paper writes ``H = companion(a_0, ..., a_{k-1}) kron I_m`` with last row
+``a_0 ... a_{k-1}`` (its equation for H), so the characteristic polynomial is
+``s^k - a_{k-1} s^{k-1} - ... - a_0`` and ``a_i = -c_i`` for the monic polynomial
+``prod (s - lambda)`` = ``s^k + c_{k-1} s^{k-1} + ... + c_0``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from fractions import Fraction
+
+import numpy as np
+
+
+def coefficients_from_poles(poles: Sequence[complex]) -> tuple[float, ...]:
+    """Return ``a_0 .. a_{k-1}`` whose companion matrix has the given eigenvalues.
+
+    The product is expanded in exact rational arithmetic (conjugate pairs as real
+    quadratics) and rounded once, so the coefficients are deterministic and exact to
+    the last digit for poles written as decimals.
+
+    Parameters
+    ----------
+    poles : sequence of complex
+        Eigenvalues; complex ones must come with their conjugates.
+
+    Returns
+    -------
+    tuple of float
+        ``(a_0, ..., a_{k-1})``.
+    """
+    poly = [Fraction(1)]  # coefficients, highest power first
+    pending = sorted((p for p in poles if p.imag != 0), key=lambda p: (p.real, p.imag))
+    positive = [p for p in pending if p.imag > 0]
+    negative = [p for p in pending if p.imag < 0]
+    if len(positive) != len(negative):
+        raise ValueError("complex poles must come in conjugate pairs")
+    factors: list[list[Fraction]] = []
+    for p in poles:
+        if p.imag == 0:
+            factors.append([Fraction(1), -Fraction(p.real)])
+    for p in positive:
+        re, im = Fraction(p.real), Fraction(p.imag)
+        factors.append([Fraction(1), -2 * re, re * re + im * im])
+    for factor in factors:
+        product = [Fraction(0)] * (len(poly) + len(factor) - 1)
+        for i, a in enumerate(poly):
+            for j, b in enumerate(factor):
+                product[i + j] += a * b
+        poly = product
+    monic_low_first = list(reversed(poly[1:]))  # c_0 .. c_{k-1}
+    return tuple(float(-c) for c in monic_low_first)
+
+
+def companion(coefficients: Sequence[float]) -> np.ndarray:
+    """The paper's k x k companion matrix with last row ``a_0 .. a_{k-1}``."""
+    k = len(coefficients)
+    matrix = np.zeros((k, k))
+    matrix[np.arange(k - 1), np.arange(1, k)] = 1.0
+    matrix[k - 1, :] = coefficients
+    return matrix
+
+
+def error_matrix(coefficients: Sequence[float], m: int) -> np.ndarray:
+    """``H = companion(a) kron I_m``, acting on ``E = col(grad f0, ..., grad^(k-1) f0)``."""
+    return np.kron(companion(coefficients), np.eye(m))
+
+
+def eigenvalues(coefficients: Sequence[float]) -> np.ndarray:
+    """Eigenvalues of the companion matrix, sorted by real then imaginary part."""
+    values = np.linalg.eigvals(companion(coefficients))
+    return np.array(sorted(values, key=lambda v: (v.real, v.imag)))
+
+
+def decay_rate(coefficients: Sequence[float]) -> float:
+    """``alpha = -max Re(lambda)``; positive exactly when H is Hurwitz."""
+    return float(-np.max(eigenvalues(coefficients).real))

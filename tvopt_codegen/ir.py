@@ -1,0 +1,322 @@
+"""Stage 4: lower a :class:`~tvopt_codegen.derivation.Derivation` to kernels.
+
+A kernel is a named straight-line program: ordered inputs (arrays addressed by slot),
+CSE'd temporaries, and named outputs of fixed shape. Kernels hold sympy expressions
+only; printing them is the backends' job, laying out files the templates'. User names
+never reach kernel code: states are ``_s0, _s1, ...``, parameters ``_p0, ...``, and so
+on; the names survive only as labels for comments.
+
+The generated controller evaluates the paper's law as a chain of kernels and two
+numerical solves (never a symbolic inverse, ARCHITECTURE.md section 2)::
+
+    jet(t, s, p, a)        -> hessian, jet_rhs    # grad_yy f0 and sum a_i grad^(i) f0 - rest
+    z = solve(hessian, jet_rhs)                   # y_imp^(k), Cholesky
+    decoupling(t, s, p, z) -> R, b                # b = v - p with v_i = xi_i1 or z_i
+    w = solve(R, b)                               # LU with partial pivoting
+    closed_loop(t, s, p, w, z) -> ds, u           # extended vector field and plant input
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+import sympy as sp
+
+from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.jet import Assignment
+
+
+@dataclass(frozen=True)
+class Arg:
+    """One array input of a kernel.
+
+    Attributes
+    ----------
+    name : str
+        The argument's name in generated code (``t``, ``s``, ``p``, ...).
+    symbols : tuple of sympy.Symbol
+        The slot symbols, one per element, in order (empty for the scalar ``t``).
+    labels : tuple of str
+        The user's name for each slot (for comments).
+    doc : str
+        What the argument is.
+    """
+
+    name: str
+    symbols: tuple[sp.Symbol, ...]
+    labels: tuple[str, ...]
+    doc: str
+
+
+@dataclass(frozen=True)
+class Output:
+    """One output array of a kernel: ``shape`` and the row-major element expressions."""
+
+    name: str
+    shape: tuple[int, ...]
+    exprs: tuple[sp.Expr, ...]
+    doc: str
+
+
+@dataclass(frozen=True)
+class Kernel:
+    """A named straight-line program over array inputs.
+
+    Attributes
+    ----------
+    name : str
+        Function name in generated code.
+    doc : str
+        One-line description.
+    inputs : tuple of Arg
+        Inputs in call order.
+    body : tuple of (sympy.Symbol, sympy.Expr)
+        Temporaries ``_t0, _t1, ...`` in evaluation order.
+    outputs : tuple of Output
+        Outputs in return order.
+    ops : int
+        Operation count of the body and outputs (after CSE).
+    ops_before_cse : int
+        Operation count of the same program before CSE.
+    """
+
+    name: str
+    doc: str
+    inputs: tuple[Arg, ...]
+    body: tuple[Assignment, ...]
+    outputs: tuple[Output, ...]
+    ops: int
+    ops_before_cse: int
+
+
+@dataclass(frozen=True)
+class KernelSet:
+    """All kernels of one controller, with the derivation they came from."""
+
+    derivation: Derivation
+    kernels: tuple[Kernel, ...]
+
+    def __getitem__(self, name: str) -> Kernel:
+        for kernel in self.kernels:
+            if kernel.name == name:
+                return kernel
+        raise KeyError(name)
+
+
+def _slots(prefix: str, count: int) -> tuple[sp.Symbol, ...]:
+    return tuple(sp.Symbol(f"_{prefix}{i}", real=True) for i in range(count))
+
+
+def _ops(exprs: Iterable[sp.Expr]) -> int:
+    return int(sum(sp.count_ops(e) for e in exprs))
+
+
+def _drop_aliases(assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
+                  ) -> tuple[list[Assignment], list[sp.Expr]]:
+    """Substitute assignments whose value is a bare symbol or number."""
+    alias: dict[sp.Symbol, sp.Expr] = {}
+    kept: list[Assignment] = []
+    for sym, value in assignments:
+        value = sp.sympify(value).xreplace(alias)
+        if value.is_Symbol or value.is_Number:
+            alias[sym] = value
+        else:
+            kept.append((sym, value))
+    return kept, [sp.sympify(e).xreplace(alias) for e in outputs]
+
+
+def _prune(assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]) -> list[Assignment]:
+    """Drop assignments that no output needs (signal orders a kernel does not use)."""
+    needed: set[sp.Symbol] = set()
+    for e in outputs:
+        needed |= sp.sympify(e).free_symbols
+    kept: list[Assignment] = []
+    for sym, value in reversed(assignments):
+        if sym in needed:
+            kept.append((sym, value))
+            needed |= sp.sympify(value).free_symbols
+    return kept[::-1]
+
+
+def ordered_cse(assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
+                ) -> tuple[tuple[Assignment, ...], tuple[sp.Expr, ...]]:
+    """CSE a straight-line program and its outputs, keeping evaluation order valid.
+
+    One ``sympy.cse`` pass sees every right-hand side and output. A common
+    subexpression found in an assignment only uses symbols defined before it, so each
+    extracted temporary is emitted just before its first use. Temporaries are then
+    renamed ``_t0, _t1, ...`` in emission order, which makes the text deterministic.
+
+    Parameters
+    ----------
+    assignments : sequence of (sympy.Symbol, sympy.Expr)
+        The program; right-hand sides use only earlier symbols and the inputs.
+    outputs : sequence of sympy.Expr
+        Output expressions over the program and the inputs.
+
+    Returns
+    -------
+    body : tuple of (sympy.Symbol, sympy.Expr)
+        The temporaries in evaluation order.
+    outputs : tuple of sympy.Expr
+        The reduced outputs.
+    """
+    kept, outs = _drop_aliases(_prune(assignments, outputs), outputs)
+    exprs = [value for _, value in kept] + outs
+    replacements, reduced = sp.cse(
+        exprs, symbols=sp.numbered_symbols("_cse", real=True), order="canonical"
+    )
+    defined = dict(replacements)
+    order: list[Assignment] = []
+    emitted: set[sp.Symbol] = set()
+
+    def need(expr: sp.Expr) -> None:
+        for sym in sorted(expr.free_symbols & defined.keys() - emitted, key=_cse_index):
+            need(defined[sym])
+            if sym not in emitted:
+                emitted.add(sym)
+                order.append((sym, defined[sym]))
+
+    for (sym, _), value in zip(kept, reduced[: len(kept)], strict=True):
+        need(value)
+        order.append((sym, value))
+    for value in reduced[len(kept):]:
+        need(value)
+    renames: dict[sp.Symbol, sp.Expr] = {}
+    body: list[Assignment] = []
+    for index, (sym, value) in enumerate(order):
+        new = sp.Symbol(f"_t{index}", real=True)
+        body.append((new, value.xreplace(renames)))
+        renames[sym] = new
+    return tuple(body), tuple(e.xreplace(renames) for e in reduced[len(kept):])
+
+
+def _cse_index(sym: sp.Symbol) -> int:
+    return int(sym.name[len("_cse"):])
+
+
+def _kernel(name: str, doc: str, inputs: Sequence[Arg], assignments: Sequence[Assignment],
+            outputs: Sequence[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]],
+            subs: Mapping[sp.Symbol, sp.Expr]) -> Kernel:
+    """Substitute slot symbols, CSE, and package a kernel."""
+    program = [(sym, sp.sympify(value).xreplace(subs)) for sym, value in assignments]
+    flat = [sp.sympify(e).xreplace(subs) for _, _, exprs, _ in outputs for e in exprs]
+    before = _ops([v for _, v in program] + flat)
+    body, reduced = ordered_cse(program, flat)
+    packed: list[Output] = []
+    start = 0
+    for out_name, shape, exprs, out_doc in outputs:
+        packed.append(Output(out_name, shape, reduced[start:start + len(exprs)], out_doc))
+        start += len(exprs)
+    allowed = {s for arg in inputs for s in arg.symbols} | {sym for sym, _ in body}
+    allowed.add(sp.Symbol("t", real=True))
+    for expr in [v for _, v in body] + list(reduced):
+        stray = expr.free_symbols - allowed
+        if stray:
+            raise AssertionError(f"kernel {name}: unbound symbols {sorted(map(str, stray))}")
+    return Kernel(name, doc, tuple(inputs), body, tuple(packed),
+                  _ops([v for _, v in body] + list(reduced)), before)
+
+
+def lower(derivation: Derivation) -> KernelSet:
+    """Lower a derivation to the kernels every backend prints.
+
+    Parameters
+    ----------
+    derivation : Derivation
+        The derived control law.
+
+    Returns
+    -------
+    KernelSet
+        Kernels ``jet``, ``decoupling``, ``closed_loop``, ``optimality``,
+        ``objective``, ``gradient`` and ``hessian``.
+    """
+    d = derivation
+    model = d.model
+    m, k = len(model.u), d.k
+    n = len(d.states)
+    t = model.t
+    s_slots, p_slots = _slots("s", n), _slots("p", len(model.params))
+    a_slots, y_slots = _slots("a", k), _slots("y", m)
+    w_slots, z_slots = _slots("w", m), _slots("z", m)
+    param_names = tuple(q.name for q in model.params)
+    output_names = d.spec.outputs
+    arg_t = Arg("t", (), (), "time")
+    arg_s = Arg("s", s_slots, d.state_names, "closed-loop state")
+    arg_p = Arg("p", p_slots, param_names, "parameters")
+    arg_a = Arg("a", a_slots, tuple(f"a_{i}" for i in range(k)), "Hurwitz coefficients")
+    arg_y = Arg("y", y_slots, output_names, "outputs")
+    arg_w = Arg("w", w_slots, d.extension.inputs, "inputs of the extended plant")
+    arg_z = Arg("z", z_slots, tuple(f"{o}^({k})" for o in output_names), "y_imp^(k)")
+    subs: dict[sp.Symbol, sp.Expr] = dict(zip(d.states, s_slots, strict=True))
+    subs |= dict(zip(model.params, p_slots, strict=True))
+
+    signal_block = [
+        (d.signal_jet[l][q], d.signal_jet_values[l][q])
+        for l in range(len(model.signals)) for q in range(k + 1)
+    ]
+    y_block = [(d.y_jet[i][j], d.y_jet_values[i][j]) for i in range(m) for j in range(k)]
+    jet_block = list(d.jet_program.assignments)
+    hess = [d.hessian[i, j] for i in range(m) for j in range(m)]
+    jet_rhs = [
+        sum((sp.Symbol(f"_a{j}", real=True) * d.grad_jet[j][i] for j in range(k)), sp.Integer(0))
+        - d.rest[i]
+        for i in range(m)
+    ]
+    jet = _kernel(
+        "jet", "Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest",
+        [arg_t, arg_s, arg_p, arg_a],
+        signal_block + y_block + jet_block + list(d.rest_program.assignments),
+        [("hessian", (m, m), hess, "grad_yy f0"),
+         ("jet_rhs", (m,), jet_rhs, "sum_i a_i grad^(i) f0 - rest")],
+        subs,
+    )
+
+    v = []
+    for i in range(m):
+        v.append(subs[d.states[d.state_names.index(d.padding[i][0])]] if d.padding[i] else z_slots[i])
+    decoupling = _kernel(
+        "decoupling", "Decoupling matrix R and b = v - p, so that R w = b linearizes the plant",
+        [arg_t, arg_s, arg_p, arg_z], [],
+        [("R", (m, m), list(d.R), "decoupling matrix"),
+         ("b", (m,), [v[i] - d.p[i] for i in range(m)], "v - p")],
+        subs,
+    )
+
+    ext = d.extension
+    field = ext.f + ext.G * sp.Matrix(w_slots)
+    ds: list[sp.Expr] = list(field)
+    for i, chain in enumerate(d.padding):
+        for j in range(len(chain)):
+            nxt = d.states[d.state_names.index(chain[j + 1])] if j + 1 < len(chain) else z_slots[i]
+            ds.append(nxt)
+    # A prolonged input is a state of the extension; the others are inputs w directly.
+    plant_input = [uj if uj.name in ext.states else w_slots[j] for j, uj in enumerate(model.u)]
+    closed_loop = _kernel(
+        "closed_loop", "Closed-loop vector field and the plant input",
+        [arg_t, arg_s, arg_p, arg_w, arg_z], [],
+        [("ds", (n,), ds, "time derivative of the closed-loop state"),
+         ("u", (m,), plant_input, "plant input")],
+        subs,
+    )
+
+    optimality = _kernel(
+        "optimality", "Optimality error E: row j is grad^(j) f0",
+        [arg_t, arg_s, arg_p],
+        signal_block + y_block + jet_block,
+        [("E", (k, m), [d.grad_jet[j][i] for j in range(k) for i in range(m)],
+          "grad^(j) f0")],
+        subs,
+    )
+
+    y_subs = dict(subs) | dict(zip(model.y, y_slots, strict=True))
+    signal0 = [(d.signal_jet[l][0], d.signal_jet_values[l][0]) for l in range(len(model.signals))]
+    objective = _kernel("objective", "The objective f0(y, t)", [arg_t, arg_y, arg_p], signal0,
+                        [("f0", (), [model.f0], "f0")], y_subs)
+    gradient = _kernel("gradient", "grad_y f0(y, t)", [arg_t, arg_y, arg_p], signal0,
+                       [("grad", (m,), list(d.gradient), "grad_y f0")], y_subs)
+    hessian = _kernel("hessian", "grad_yy f0(y, t)", [arg_t, arg_y, arg_p], signal0,
+                      [("hess", (m, m), hess, "grad_yy f0")], y_subs)
+    return KernelSet(d, (jet, decoupling, closed_loop, optimality, objective, gradient, hessian))

@@ -1,0 +1,264 @@
+"""Pure mathematics of feedback linearization: Lie derivatives, vector relative degree,
+the decoupling matrix, dynamic extension by input integrators, and Brunovsky forms.
+
+Nothing here knows about spec files. "Identically zero" is decided exactly where the
+expression is structurally zero and otherwise by evaluation at random points
+(:class:`Sampler`): symbolic simplification of Lie derivatives is where symbolic
+control tools spend their time, and a nonzero value at a random point is a proof.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import sympy as sp
+
+
+class Sampler:
+    """Evaluates expressions at fixed pseudo-random points of the state space.
+
+    Parameters
+    ----------
+    symbols : sequence of sympy.Symbol
+        The symbols to draw values for (states).
+    fixed : mapping of sympy.Symbol to float
+        Symbols with fixed values (parameters at their defaults).
+    points : int
+        Number of sample points.
+    seed : int
+        Seed of the generator; fixed so that every run decides the same way.
+    """
+
+    def __init__(self, symbols: Sequence[sp.Symbol], fixed: Mapping[sp.Symbol, float],
+                 points: int = 8, seed: int = 20191127) -> None:
+        rng = np.random.default_rng(seed)
+        # Values away from 0 and +-1 avoid the special points of trigonometric and
+        # polynomial expressions that could make a nonzero function vanish by chance.
+        magnitudes = rng.uniform(0.3, 1.7, size=(points, len(symbols)))
+        signs = np.where(rng.uniform(size=(points, len(symbols))) < 0.5, -1.0, 1.0)
+        signs[0] = 1.0  # one all-positive point keeps sqrt/log domains reachable
+        self.symbols = tuple(symbols)
+        self.fixed = dict(fixed)
+        self.values = magnitudes * signs
+
+    def evaluate(self, expr: sp.Expr) -> np.ndarray:
+        """Return the values of ``expr`` at the sample points (NaN where undefined)."""
+        expr = sp.sympify(expr).xreplace({k: sp.Float(v) for k, v in self.fixed.items()})
+        free = sorted(expr.free_symbols, key=lambda s: s.name)
+        unknown = [s for s in free if s not in self.symbols]
+        if unknown:
+            raise ValueError(f"cannot sample {expr}: unknown symbols {unknown}")
+        if not free:
+            value = complex(expr.evalf())
+            return np.full(len(self.values), value.real if value.imag == 0 else np.nan)
+        func = sp.lambdify(free, expr, modules="numpy")
+        index = [self.symbols.index(s) for s in free]
+        with np.errstate(all="ignore"):
+            out = np.asarray(func(*(self.values[:, i] for i in index)), dtype=complex)
+        out = np.broadcast_to(out, (len(self.values),))
+        return np.where(np.abs(out.imag) > 1e-12, np.nan, out.real)
+
+    def is_zero(self, expr: sp.Expr, tol: float = 1e-9) -> bool:
+        """Decide whether ``expr`` is identically zero.
+
+        Structurally zero expressions are zero. Otherwise the expression is zero when
+        it is below ``tol`` at every sample point where it is defined; at least three
+        defined points are required, else exact simplification decides.
+        """
+        if expr == 0:
+            return True
+        if not sp.sympify(expr).free_symbols:
+            return bool(sp.simplify(expr) == 0)
+        values = self.evaluate(expr)
+        finite = values[np.isfinite(values)]
+        if len(finite) < 3:
+            return bool(sp.simplify(expr) == 0)
+        return bool(np.all(np.abs(finite) <= tol))
+
+
+def lie_derivative(expr: sp.Expr, field: sp.MatrixBase, x: Sequence[sp.Symbol]) -> sp.Expr:
+    """Return ``L_field expr = (d expr / dx) field`` without expanding."""
+    total = sp.Integer(0)
+    for xi, fi in zip(x, field, strict=True):
+        if fi != 0:
+            total += sp.diff(expr, xi) * fi
+    return total
+
+
+@dataclass(frozen=True)
+class Extension:
+    """A plant prolonged by integrator chains on some inputs (dynamic extension).
+
+    Attributes
+    ----------
+    states : tuple of str
+        Names of the added states, in input order (``v``, ``v_d1``, ...).
+    inputs : tuple of str
+        Names of the inputs of the extended system (``v_d2`` for ``v`` integrated twice).
+    x : tuple of sympy.Symbol
+        All states of the extended system: plant states, then added states.
+    f, G : sympy.ImmutableMatrix
+        Drift and input matrix of the extended system.
+    counts : tuple of (str, int)
+        The integrators per prolonged input.
+    """
+
+    states: tuple[str, ...]
+    inputs: tuple[str, ...]
+    x: tuple[sp.Symbol, ...]
+    f: sp.ImmutableMatrix
+    G: sp.ImmutableMatrix
+    counts: tuple[tuple[str, int], ...]
+
+
+def extension_state_names(input_name: str, count: int) -> list[str]:
+    """Names of the states that integrate ``input_name`` ``count`` times."""
+    return [input_name] + [f"{input_name}_d{j}" for j in range(1, count)]
+
+
+def extend(x: Sequence[sp.Symbol], u: Sequence[sp.Symbol], f: sp.MatrixBase, G: sp.MatrixBase,
+           counts: Mapping[str, int]) -> Extension:
+    """Prolong inputs by integrator chains (the paper's dynamic extension).
+
+    An input ``v`` with ``q`` integrators becomes the state ``v`` of the chain
+    ``v' = v_d1, ..., v_d{q-1}' = v_d{q}``, and ``v_d{q}`` becomes the new input.
+
+    Parameters
+    ----------
+    x, u : sequence of sympy.Symbol
+        Plant states and inputs.
+    f, G : sympy.MatrixBase
+        Plant drift (n, 1) and input matrix (n, m).
+    counts : mapping of str to int
+        Integrators per input name; inputs not named are not prolonged.
+
+    Returns
+    -------
+    Extension
+        The extended system.
+    """
+    n = len(x)
+    drift = list(f)
+    new_states: list[str] = []
+    new_inputs: list[str] = []
+    chain_rows: list[tuple[list[sp.Expr], int | None]] = []
+    columns: list[int] = []
+    for j, uj in enumerate(u):
+        q = counts.get(uj.name, 0)
+        if q == 0:
+            new_inputs.append(uj.name)
+            columns.append(j)
+            continue
+        names = extension_state_names(uj.name, q)
+        chain = [sp.Symbol(nm, real=True) for nm in names]
+        drift = [d + G[i, j] * chain[0] for i, d in enumerate(drift)]
+        new_states += names
+        new_inputs.append(f"{uj.name}_d{q}")
+        for level in range(q):
+            nxt = chain[level + 1] if level + 1 < q else sp.Integer(0)
+            chain_rows.append(([nxt], j if level + 1 == q else None))
+        columns.append(j)
+    total = n + len(new_states)
+    G_ext = sp.zeros(total, len(u))
+    for i in range(n):
+        for j, uj in enumerate(u):
+            if counts.get(uj.name, 0) == 0:
+                G_ext[i, j] = G[i, j]
+    for offset, (_, col) in enumerate(chain_rows):
+        if col is not None:
+            G_ext[n + offset, col] = 1
+    drift += [row[0] for row, _ in chain_rows]
+    x_ext = tuple(x) + tuple(sp.Symbol(nm, real=True) for nm in new_states)
+    return Extension(
+        states=tuple(new_states),
+        inputs=tuple(new_inputs),
+        x=x_ext,
+        f=sp.ImmutableMatrix(drift),
+        G=sp.ImmutableMatrix(G_ext),
+        counts=tuple((uj.name, counts[uj.name]) for uj in u if counts.get(uj.name, 0) > 0),
+    )
+
+
+@dataclass(frozen=True)
+class RelativeDegree:
+    """Vector relative degree and the objects of the linearizing feedback.
+
+    Attributes
+    ----------
+    r : tuple of int or None
+        Relative degree per output; ``None`` where none exists within ``n``.
+    lie : tuple of tuple of sympy.Expr
+        ``lie[i][j] = L_f^j h_i`` for ``j = 0 .. r_i`` (the last entry is ``p_i``).
+    R : sympy.ImmutableMatrix or None
+        Decoupling matrix (rows ``L_G L_f^{r_i - 1} h_i``); ``None`` if some r_i is None.
+    """
+
+    r: tuple[int | None, ...]
+    lie: tuple[tuple[sp.Expr, ...], ...]
+    R: sp.ImmutableMatrix | None
+
+
+def relative_degree(f: sp.MatrixBase, G: sp.MatrixBase, h: sp.MatrixBase,
+                    x: Sequence[sp.Symbol], sampler: Sampler) -> RelativeDegree:
+    """Compute the vector relative degree (paper, Definition 1) and R, p, Phi.
+
+    Parameters
+    ----------
+    f, G, h : sympy.MatrixBase
+        Drift (n, 1), input matrix (n, m) and outputs (m, 1).
+    x : sequence of sympy.Symbol
+        State symbols.
+    sampler : Sampler
+        Decides which Lie derivatives vanish identically.
+
+    Returns
+    -------
+    RelativeDegree
+        Per-output relative degrees, Lie derivative chains and the decoupling matrix.
+    """
+    n = len(x)
+    degrees: list[int | None] = []
+    chains: list[tuple[sp.Expr, ...]] = []
+    rows: list[list[sp.Expr]] = []
+    for hi in h:
+        chain = [hi if not sampler.is_zero(hi) else sp.Integer(0)]
+        found: int | None = None
+        for order in range(n):
+            row = [lie_derivative(chain[-1], G[:, c], x) for c in range(G.shape[1])]
+            row = [sp.Integer(0) if sampler.is_zero(e) else e for e in row]
+            nxt = lie_derivative(chain[-1], f, x)
+            chain.append(sp.Integer(0) if sampler.is_zero(nxt) else nxt)
+            if any(e != 0 for e in row):
+                found = order + 1
+                rows.append(row)
+                break
+        degrees.append(found)
+        chains.append(tuple(chain))
+    R = sp.ImmutableMatrix(rows) if all(d is not None for d in degrees) else None
+    return RelativeDegree(r=tuple(degrees), lie=tuple(chains), R=R)
+
+
+def brunovsky(degrees: Sequence[int]) -> tuple[sp.ImmutableMatrix, sp.ImmutableMatrix]:
+    """Return the Brunovsky canonical pair (A, B) for chains of the given lengths."""
+    blocks_a = []
+    blocks_b = []
+    for r in degrees:
+        blocks_a.append(sp.Matrix(r, r, lambda i, j: 1 if j == i + 1 else 0))
+        blocks_b.append(sp.Matrix(r, 1, lambda i, _j: 1 if i == r - 1 else 0))
+    return sp.ImmutableMatrix(sp.diag(*blocks_a)), sp.ImmutableMatrix(sp.diag(*blocks_b))
+
+
+def generic_rank(matrix: sp.MatrixBase, sampler: Sampler) -> int:
+    """Generic rank of a matrix function: its largest numerical rank at the samples."""
+    rows, cols = matrix.shape
+    values = np.stack(
+        [np.stack([sampler.evaluate(matrix[i, j]) for j in range(cols)], axis=-1)
+         for i in range(rows)], axis=-2,
+    )
+    best = 0
+    for point in values:
+        if np.all(np.isfinite(point)):
+            best = max(best, int(np.linalg.matrix_rank(point, tol=1e-9 * max(1.0, np.abs(point).max()))))
+    return best

@@ -1,0 +1,104 @@
+"""Rules for the names users give to states, inputs, outputs, parameters and signals.
+
+User names never become identifiers in generated code (values are addressed by array
+slot), but they appear in comments, docstrings, string literals and the report, and
+they name the generated module. These rules keep all of that unambiguous.
+"""
+
+from __future__ import annotations
+
+import keyword
+import re
+import sys
+
+from tvopt_codegen.parse import CONSTANTS, FUNCTIONS
+
+_IDENTIFIER = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
+
+#: Keywords of C99 (and the C11 ones a C99 compiler may reserve).
+C_KEYWORDS = frozenset(
+    "auto break case char const continue default do double else enum extern float for goto if "
+    "inline int long register restrict return short signed sizeof static struct switch typedef "
+    "union unsigned void volatile while _Bool _Complex _Imaginary _Alignas _Alignof _Atomic "
+    "_Generic _Noreturn _Static_assert _Thread_local".split()
+)
+
+#: Names from <math.h> and the C library that a generated C file may see. The POSIX
+#: Bessel functions j0, j1, jn, y0, y1, yn are deliberately absent: y1, y2 are what
+#: control engineers call outputs, and user names never become C identifiers.
+C_LIBRARY_NAMES = frozenset(
+    "acos acosh asin asinh atan atan2 atanh cbrt ceil copysign cos cosh erf erfc exp exp2 expm1 "
+    "fabs fdim floor fma fmax fmin fmod frexp hypot ilogb ldexp lgamma llrint llround log log10 "
+    "log1p log2 logb lrint lround modf nan nearbyint nextafter pow remainder remquo rint round "
+    "scalbln scalbn sin sinh sqrt tan tanh tgamma trunc isfinite isnan isinf "
+    "signbit fpclassify NAN INFINITY HUGE_VAL errno assert abs exit main malloc free memcpy "
+    "memset printf size_t NULL int8_t int16_t int32_t int64_t uint8_t uint16_t uint32_t uint64_t"
+    .split()
+)
+
+#: Names the generated code and the derivation reserve for themselves.
+TOOL_NAMES = frozenset(
+    {"t", "s", "p", "u", "w", "z", "y", "params", "numpy", "np", "math", "out", "status"}
+)
+
+
+def name_problem(name: object) -> str | None:
+    """Say why ``name`` cannot name a state, input, output, parameter or signal.
+
+    Parameters
+    ----------
+    name : object
+        The candidate name as read from the spec.
+
+    Returns
+    -------
+    str or None
+        A one-line reason, or ``None`` when the name is acceptable.
+    """
+    if not isinstance(name, str):
+        return f"names must be strings, got {type(name).__name__}"
+    if not name.isascii():
+        return f"name {name!r} is not ASCII"
+    if name.startswith("_"):
+        return f"name {name!r} starts with an underscore (reserved for generated code)"
+    if not _IDENTIFIER.match(name):
+        return f"name {name!r} is not an identifier (letters, digits, '_'; starts with a letter)"
+    if len(name) > 64:
+        return f"name {name!r} is longer than 64 characters"
+    if keyword.iskeyword(name) or keyword.issoftkeyword(name) or name in {"True", "False", "None"}:
+        return f"name {name!r} is a Python keyword"
+    if name in C_KEYWORDS:
+        return f"name {name!r} is a C keyword"
+    if name in FUNCTIONS or name in CONSTANTS:
+        return f"name {name!r} is a built-in function or constant of spec expressions"
+    if name in C_LIBRARY_NAMES:
+        return f"name {name!r} is a C library or math function name"
+    if name in TOOL_NAMES:
+        return f"name {name!r} is reserved by the generated code"
+    return None
+
+
+def module_name_problem(name: object) -> str | None:
+    """Say why ``name`` cannot name the generated module, or return ``None``.
+
+    Parameters
+    ----------
+    name : object
+        The spec's ``name`` field.
+
+    Returns
+    -------
+    str or None
+        A one-line reason, or ``None`` when the name is acceptable.
+    """
+    problem = name_problem(name)
+    if problem is not None:
+        return problem
+    assert isinstance(name, str)
+    if name != name.lower():
+        return f"module name {name!r} must be lower case (it names files on every platform)"
+    if name in sys.stdlib_module_names or name in sys.builtin_module_names:
+        return f"module name {name!r} shadows the Python standard module of that name"
+    if name in {"numpy", "scipy", "sympy", "jinja2", "tvopt_codegen", "pytest", "setuptools"}:
+        return f"module name {name!r} shadows an installed package"
+    return None

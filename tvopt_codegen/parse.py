@@ -1,0 +1,242 @@
+"""Safe parsing of spec expressions into sympy objects.
+
+Spec text is never handed to ``eval``, ``exec``, ``sympify`` or ``parse_expr``: those
+run Python. Instead :func:`parse_expression` parses with ``ast.parse(mode="eval")``,
+walks an allow-list of node types, and builds sympy objects directly. Size, nesting,
+literal magnitude and exponents are bounded so that no spec can hang the tool.
+"""
+
+from __future__ import annotations
+
+import ast
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+import sympy as sp
+
+#: Longest expression text accepted, in characters.
+MAX_EXPRESSION_LENGTH = 4000
+#: Deepest nesting of operations accepted.
+MAX_DEPTH = 60
+#: Largest magnitude of a numeric literal.
+MAX_LITERAL = 1e12
+#: Smallest nonzero magnitude of a numeric literal.
+MIN_LITERAL = 1e-30
+#: Largest magnitude of a numeric exponent.
+MAX_EXPONENT = 64
+
+_Builder = Callable[..., sp.Expr]
+
+#: The functions a spec may call, with their arity. All are smooth on the interior of
+#: their domain, which the method needs (f0 must be C-infinity).
+FUNCTIONS: Mapping[str, tuple[_Builder, int]] = {
+    "sin": (sp.sin, 1),
+    "cos": (sp.cos, 1),
+    "tan": (sp.tan, 1),
+    "asin": (sp.asin, 1),
+    "acos": (sp.acos, 1),
+    "atan": (sp.atan, 1),
+    "atan2": (sp.atan2, 2),
+    "sinh": (sp.sinh, 1),
+    "cosh": (sp.cosh, 1),
+    "tanh": (sp.tanh, 1),
+    "asinh": (sp.asinh, 1),
+    "acosh": (sp.acosh, 1),
+    "atanh": (sp.atanh, 1),
+    "exp": (sp.exp, 1),
+    "log": (sp.log, 1),
+    "sqrt": (sp.sqrt, 1),
+}
+
+#: Named constants a spec may use.
+CONSTANTS: Mapping[str, sp.Expr] = {"pi": sp.pi}
+
+
+@dataclass(frozen=True)
+class ExpressionError(Exception):
+    """A problem in one expression, with the 1-based column where it was found."""
+
+    column: int
+    message: str
+
+    def __str__(self) -> str:
+        return f"column {self.column}: {self.message}"
+
+
+def _literal(value: object, column: int) -> sp.Expr:
+    """Turn a Python literal from the parse tree into an exact sympy number."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ExpressionError(column, f"unsupported literal {value!r}")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ExpressionError(column, "non-finite number")
+    magnitude = abs(value)
+    if magnitude > MAX_LITERAL:
+        raise ExpressionError(column, f"number {value!r} exceeds {MAX_LITERAL:g} in magnitude")
+    if magnitude and magnitude < MIN_LITERAL:
+        raise ExpressionError(column, f"number {value!r} is below {MIN_LITERAL:g} in magnitude")
+    if isinstance(value, int):
+        return sp.Integer(value)
+    # The shortest repr of a float is the decimal the user wrote (up to trailing
+    # zeros); keeping it as a rational keeps the derivation exact and the report
+    # readable, and printing p/q rounds to the same double as the literal.
+    return sp.Rational(repr(value))
+
+
+def _power(base: sp.Expr, exponent: sp.Expr, column: int) -> sp.Expr:
+    """Build ``base**exponent``, refusing numeric exponents that could explode."""
+    if exponent.is_Number:
+        if abs(exponent) > MAX_EXPONENT:
+            raise ExpressionError(column, f"exponent {exponent} exceeds {MAX_EXPONENT}")
+        if base.is_Number and base == 0 and exponent.is_negative:
+            raise ExpressionError(column, "zero raised to a negative power")
+    elif base.is_Number:
+        # A symbolic exponent on a numeric base (2**x) is smooth; nothing to bound.
+        pass
+    return sp.Pow(base, exponent)
+
+
+class _TreeBuilder:
+    """Walks a parse tree and builds the sympy expression, rejecting anything else."""
+
+    def __init__(self, names: Mapping[str, sp.Expr]) -> None:
+        self.names = names
+
+    def build(self, node: ast.AST, depth: int) -> sp.Expr:
+        column = getattr(node, "col_offset", 0) + 1
+        if depth > MAX_DEPTH:
+            raise ExpressionError(column, f"nesting deeper than {MAX_DEPTH}")
+        if isinstance(node, ast.Constant):
+            return _literal(node.value, column)
+        if isinstance(node, ast.Name):
+            return self.name(node.id, column)
+        if isinstance(node, ast.UnaryOp):
+            operand = self.build(node.operand, depth + 1)
+            if isinstance(node.op, ast.USub):
+                return -operand
+            if isinstance(node.op, ast.UAdd):
+                return operand
+            raise ExpressionError(column, f"operator {type(node.op).__name__} is not allowed")
+        if isinstance(node, ast.BinOp):
+            return self.binop(node, depth, column)
+        if isinstance(node, ast.Call):
+            return self.call(node, depth, column)
+        raise ExpressionError(column, _describe_forbidden(node))
+
+    def name(self, ident: str, column: int) -> sp.Expr:
+        if ident in self.names:
+            return self.names[ident]
+        if ident in CONSTANTS:
+            return CONSTANTS[ident]
+        if ident in FUNCTIONS:
+            raise ExpressionError(column, f"function {ident!r} used without arguments")
+        raise ExpressionError(column, f"unknown name {ident!r}")
+
+    def binop(self, node: ast.BinOp, depth: int, column: int) -> sp.Expr:
+        if isinstance(node.op, ast.BitXor):
+            raise ExpressionError(column, "'^' is not a power; write '**'")
+        left = self.build(node.left, depth + 1)
+        right = self.build(node.right, depth + 1)
+        if isinstance(node.op, ast.Add):
+            return left + right
+        if isinstance(node.op, ast.Sub):
+            return left - right
+        if isinstance(node.op, ast.Mult):
+            return left * right
+        if isinstance(node.op, ast.Div):
+            if right == 0:
+                raise ExpressionError(column, "division by zero")
+            return left / right
+        if isinstance(node.op, ast.Pow):
+            return _power(left, right, column)
+        raise ExpressionError(column, f"operator {type(node.op).__name__} is not allowed")
+
+    def call(self, node: ast.Call, depth: int, column: int) -> sp.Expr:
+        if not isinstance(node.func, ast.Name) or node.func.id not in FUNCTIONS:
+            what = node.func.id if isinstance(node.func, ast.Name) else "this expression"
+            allowed = ", ".join(sorted(FUNCTIONS))
+            raise ExpressionError(column, f"cannot call {what!r}; allowed functions: {allowed}")
+        if node.keywords:
+            raise ExpressionError(column, f"{node.func.id}() takes no keyword arguments")
+        func, arity = FUNCTIONS[node.func.id]
+        if any(isinstance(arg, ast.Starred) for arg in node.args):
+            raise ExpressionError(column, "starred arguments are not allowed")
+        if len(node.args) != arity:
+            raise ExpressionError(
+                column, f"{node.func.id}() takes {arity} argument(s), got {len(node.args)}"
+            )
+        args = [self.build(arg, depth + 1) for arg in node.args]
+        result = func(*args)
+        if result.has(sp.zoo, sp.nan, sp.oo, -sp.oo):
+            raise ExpressionError(column, f"{node.func.id}() is undefined for these arguments")
+        return result
+
+
+def _describe_forbidden(node: ast.AST) -> str:
+    """Explain, in the user's terms, why a syntax element is refused."""
+    kinds = {
+        ast.Attribute: "attribute access is",
+        ast.Subscript: "indexing is",
+        ast.Lambda: "lambda is",
+        ast.IfExp: "conditional expressions are",
+        ast.Compare: "comparisons are",
+        ast.BoolOp: "logical operators are",
+        ast.JoinedStr: "f-strings are",
+        ast.ListComp: "comprehensions are",
+        ast.GeneratorExp: "comprehensions are",
+        ast.DictComp: "comprehensions are",
+        ast.SetComp: "comprehensions are",
+        ast.NamedExpr: "assignment expressions are",
+    }
+    for kind, text in kinds.items():
+        if isinstance(node, kind):
+            return f"{text} not allowed in expressions"
+    return f"{type(node).__name__} is not allowed in expressions"
+
+
+def parse_expression(text: str, names: Mapping[str, sp.Expr]) -> sp.Expr:
+    """Parse one spec expression into sympy without evaluating any Python.
+
+    Parameters
+    ----------
+    text : str
+        The expression as written in the spec, e.g. ``"v*cos(theta)"``.
+    names : Mapping[str, sympy.Expr]
+        The names the expression may use and the sympy objects they stand for.
+
+    Returns
+    -------
+    sympy.Expr
+        The expression, exact (decimal literals become rationals).
+
+    Raises
+    ------
+    ExpressionError
+        For anything outside the allow-list: unknown names, calls other than the
+        functions in :data:`FUNCTIONS`, attribute access, comparisons, ``^``, literals
+        or exponents beyond the bounds, and text that is too long or too deep.
+    """
+    if not isinstance(text, str):
+        raise ExpressionError(1, f"expected an expression string, got {type(text).__name__}")
+    if len(text) > MAX_EXPRESSION_LENGTH:
+        raise ExpressionError(1, f"expression longer than {MAX_EXPRESSION_LENGTH} characters")
+    if not text.isascii():
+        bad = next(i for i, ch in enumerate(text) if not ch.isascii())
+        raise ExpressionError(bad + 1, f"non-ASCII character {text[bad]!r}")
+    if not text.strip():
+        raise ExpressionError(1, "empty expression")
+    if "#" in text:
+        raise ExpressionError(text.index("#") + 1, "comments are not allowed in expressions")
+    try:
+        tree = ast.parse(text.strip(), mode="eval")
+    except SyntaxError as exc:
+        raise ExpressionError(exc.offset or 1, f"syntax error: {exc.msg}") from None
+    except (RecursionError, MemoryError, ValueError):
+        raise ExpressionError(1, "expression too deeply nested") from None
+    try:
+        expr = _TreeBuilder(names).build(tree.body, 0)
+    except RecursionError:
+        raise ExpressionError(1, "expression too deeply nested") from None
+    if expr.has(sp.zoo, sp.nan, sp.oo, -sp.oo):
+        raise ExpressionError(1, "expression is infinite or undefined")
+    return expr

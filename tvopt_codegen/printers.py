@@ -1,0 +1,40 @@
+"""Expression printers: sympy's own, subclassed where generated code needs it."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import sympy as sp
+from sympy.printing.numpy import NumPyPrinter
+from sympy.printing.precedence import PRECEDENCE
+
+
+class PythonPrinter(NumPyPrinter):  # type: ignore[misc]
+    """NumPy printer for kernel bodies, strict about anything it cannot translate.
+
+    Kernel expressions are elementwise over a batch of states, so every function
+    maps to its ``numpy`` ufunc. Strict mode makes an untranslatable node an error at
+    generation time instead of broken code at run time.
+    """
+
+    def __init__(self) -> None:
+        super().__init__({"strict": True, "fully_qualified_modules": True,
+                          "allow_unknown_functions": False})
+
+    def _print_Pow(self, expr: sp.Pow, rational: bool = False) -> str:
+        """Customizations.
+
+        * Negative integer powers print as ``1/x**n``: NumPyPrinter writes
+          ``x**(-1.0)``, which is harder to read and slower than a division.
+        """
+        exp = expr.exp
+        if exp.is_Integer and exp.is_negative:
+            base = self.parenthesize(expr.base, PRECEDENCE["Pow"])
+            return f"1/{base}" if exp == -1 else f"1/{base}**{-int(exp)}"
+        result: str = super()._print_Pow(expr, rational=rational)
+        return result
+
+    def doprint(self, expr: Any, assign_to: Any = None) -> str:
+        """Print one expression (no assignment wrapping)."""
+        text: str = super().doprint(expr, assign_to)
+        return text

@@ -1,0 +1,216 @@
+"""Stage 5: print kernels with a backend's printer and render its templates.
+
+The result is ``{file name: text}``; nothing here touches the disk. Every file
+carries a stamp (tool and sympy versions, spec file name and SHA-256, template) and a
+content hash over the rest of the file, which lets the writer tell an untouched
+generated file from one a person edited.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import re
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path, PurePath
+from typing import Any
+
+import jinja2
+import sympy as sp
+
+from tvopt_codegen import __version__
+from tvopt_codegen.backends import BACKENDS, Backend
+from tvopt_codegen.errors import TvoptError
+from tvopt_codegen.ir import Kernel, KernelSet
+from tvopt_codegen.spec import BUNDLED_SUFFIX
+
+#: Placeholder for the content hash while the hash is computed.
+HASH_PLACEHOLDER = "@@CONTENT_SHA256@@"
+_HASH_LINE = re.compile(r"content sha256: ([0-9a-f]{64}|" + HASH_PLACEHOLDER + ")")
+
+
+class CodegenError(TvoptError):
+    """A template or printer failed: a bug in tvopt-codegen, not in the spec."""
+
+
+def template_dir() -> Path:
+    """The folder holding the templates: the checkout's ``templates/`` or the wheel's copy."""
+    checkout = Path(__file__).resolve().parent.parent / "templates"
+    if checkout.is_dir():
+        return checkout
+    return Path(str(resources.files("tvopt_codegen.templates")))
+
+
+@functools.lru_cache(maxsize=1)
+def environment() -> jinja2.Environment:
+    """The one jinja environment: strict about undefined names, whitespace-exact."""
+    env = jinja2.Environment(
+        loader=jinja2.FileSystemLoader(str(template_dir())),
+        undefined=jinja2.StrictUndefined,
+        trim_blocks=True,
+        lstrip_blocks=True,
+        keep_trailing_newline=True,
+        autoescape=False,
+    )
+    env.filters["comment"] = comment_text
+    env.filters["docstring"] = docstring_text
+    env.filters["pyrepr"] = repr
+    env.filters["pytuple"] = lambda values: repr(tuple(values))
+    return env
+
+
+def comment_text(value: object) -> str:
+    """Make text safe inside a one-line ``#`` or ``//`` comment."""
+    text = " ".join(str(value).split())
+    return "".join(ch if ch.isprintable() else "?" for ch in text).replace("*/", "* /")
+
+
+def docstring_text(value: object) -> str:
+    """Make text safe inside a triple-quoted Python docstring."""
+    lines = str(value).splitlines()
+    cleaned = ["".join(ch if ch.isprintable() else "?" for ch in line).rstrip() for line in lines]
+    return "\n".join(cleaned).replace("\\", "\\\\").replace('"""', '\\"\\"\\"')
+
+
+@dataclass(frozen=True)
+class PrintedSlot:
+    """One unpacked input element: generated name, index, and the user's label."""
+
+    symbol: str
+    index: int
+    label: str
+
+
+@dataclass(frozen=True)
+class PrintedArg:
+    """A kernel argument with the slots the kernel actually reads."""
+
+    name: str
+    doc: str
+    slots: tuple[PrintedSlot, ...]
+
+
+@dataclass(frozen=True)
+class PrintedOutput:
+    """An output array: shape and ``(index, code)`` per element."""
+
+    name: str
+    doc: str
+    shape: tuple[int, ...]
+    elements: tuple[tuple[str, str], ...]
+
+
+@dataclass(frozen=True)
+class PrintedKernel:
+    """A kernel as text fragments for the templates."""
+
+    name: str
+    doc: str
+    args: tuple[PrintedArg, ...]
+    batch_arg: str
+    body: tuple[tuple[str, str], ...]
+    outputs: tuple[PrintedOutput, ...]
+    ops: int
+    ops_before_cse: int
+
+
+def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
+    """Print every expression of a kernel with the backend's printer."""
+    used: set[sp.Symbol] = set()
+    for _, value in kernel.body:
+        used |= value.free_symbols
+    for out in kernel.outputs:
+        for e in out.exprs:
+            used |= sp.sympify(e).free_symbols
+    args = []
+    for arg in kernel.inputs:
+        slots = tuple(
+            PrintedSlot(sym.name, i, label)
+            for i, (sym, label) in enumerate(zip(arg.symbols, arg.labels, strict=True))
+            if sym in used
+        )
+        args.append(PrintedArg(arg.name, arg.doc, slots))
+    batch = next(arg.name for arg in kernel.inputs if arg.name in ("s", "y"))
+    body = tuple((sym.name, printer.doprint(value)) for sym, value in kernel.body)
+    outputs = []
+    for out in kernel.outputs:
+        indices = _indices(out.shape)
+        elements = tuple(
+            (", ".join(map(str, index)) if index else "...", printer.doprint(sp.sympify(e)))
+            for index, e in zip(indices, out.exprs, strict=True)
+        )
+        outputs.append(PrintedOutput(out.name, out.doc, out.shape, elements))
+    return PrintedKernel(kernel.name, kernel.doc, tuple(args), batch, body, tuple(outputs),
+                         kernel.ops, kernel.ops_before_cse)
+
+
+def _indices(shape: tuple[int, ...]) -> list[tuple[int, ...]]:
+    if not shape:
+        return [()]
+    rest = _indices(shape[1:])
+    return [(i, *r) for i in range(shape[0]) for r in rest]
+
+
+def stamp_hash(text: str) -> str:
+    """SHA-256 of a generated file's text with its content hash replaced by the placeholder."""
+    normalized = _HASH_LINE.sub(f"content sha256: {HASH_PLACEHOLDER}", text, count=1)
+    return hashlib.sha256(normalized.encode("utf-8")).hexdigest()
+
+
+def stamped_hash(text: str) -> str | None:
+    """The content hash a generated file claims, or ``None`` if it carries no stamp."""
+    match = _HASH_LINE.search(text)
+    if match is None or match.group(1) == HASH_PLACEHOLDER:
+        return None
+    return match.group(1)
+
+
+def is_pristine(text: str) -> bool:
+    """Whether ``text`` is a generated file nobody has edited since generation."""
+    claimed = stamped_hash(text)
+    return claimed is not None and claimed == stamp_hash(text)
+
+
+def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
+    """Render all files of one backend for one controller.
+
+    Parameters
+    ----------
+    kernels : KernelSet
+        The lowered controller.
+    backend : Backend or str
+        The backend or its name.
+
+    Returns
+    -------
+    dict of str to str
+        File name (relative to the output folder) to file text, in template order.
+    """
+    if isinstance(backend, str):
+        backend = BACKENDS[backend]
+    printer = backend.printer()
+    d = kernels.derivation
+    printed = {k.name: print_kernel(k, printer) for k in kernels.kernels}
+    files: dict[str, str] = {}
+    for template_name, pattern in backend.templates:
+        context = {
+            "d": d,
+            "spec": d.spec,
+            "kernels": printed,
+            "tool_version": __version__,
+            "sympy_version": sp.__version__,
+            "spec_file": PurePath(d.spec.source.removesuffix(BUNDLED_SUFFIX)).name,
+            "template_name": template_name,
+            "content_hash": HASH_PLACEHOLDER,
+            "extension_counts": dict(d.extension.counts),
+            "parameters": dict(d.spec.parameters),
+            "relative_degree": dict(zip(d.spec.outputs, d.relative_degree, strict=True)),
+        }
+        try:
+            text = environment().get_template(template_name).render(context)
+        except jinja2.TemplateError as exc:
+            raise CodegenError(f"template {template_name}: {exc}") from exc
+        text = text.replace(HASH_PLACEHOLDER, stamp_hash(text), 1)
+        files[pattern.format(name=d.spec.name)] = text
+    return files
