@@ -91,7 +91,7 @@ class Derivation:
     states : tuple of sympy.Symbol
         Symbols of ``state_names``.
     det_R : sympy.Expr or None
-        ``det R`` factored, when computed symbolically (m <= 3).
+        ``det R`` factored, when computed symbolically (m <= 4).
     singular_set : tuple of str
         Conditions under which ``det R`` vanishes, in words.
     gradient, hessian : sympy.ImmutableMatrix
@@ -371,7 +371,7 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
     A, B = brunovsky(degrees)
     det_R: sp.Expr | None = None
     singular: tuple[str, ...] = ()
-    if m <= 3:
+    if m <= 4:
         det_R = sp.factor(sp.simplify(R.det(method="berkowitz")))
         singular = _singular_set(det_R)
     clock.mark("decoupling matrix")

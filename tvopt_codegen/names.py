@@ -36,10 +36,9 @@ C_LIBRARY_NAMES = frozenset(
     .split()
 )
 
-#: Names the generated code and the derivation reserve for themselves.
-TOOL_NAMES = frozenset(
-    {"t", "s", "p", "u", "w", "z", "y", "params", "numpy", "np", "math", "out", "status"}
-)
+#: Names the spec language reserves: ``t`` is time in every expression. (Generated code
+#: addresses user values by slot, so no other name needs reserving for it.)
+TOOL_NAMES = frozenset({"t"})
 
 
 def name_problem(name: object) -> str | None:
@@ -74,7 +73,7 @@ def name_problem(name: object) -> str | None:
     if name in C_LIBRARY_NAMES:
         return f"name {name!r} is a C library or math function name"
     if name in TOOL_NAMES:
-        return f"name {name!r} is reserved by the generated code"
+        return f"name {name!r} is reserved (t is time)"
     return None
 
 

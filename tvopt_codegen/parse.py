@@ -103,7 +103,8 @@ class _TreeBuilder:
         self.names = names
 
     def build(self, node: ast.AST, depth: int) -> sp.Expr:
-        column = getattr(node, "col_offset", 0) + 1
+        # The source was wrapped in one pair of parentheses: offsets are already 1-based.
+        column = max(1, getattr(node, "col_offset", 1))
         if depth > MAX_DEPTH:
             raise ExpressionError(column, f"nesting deeper than {MAX_DEPTH}")
         if isinstance(node, ast.Constant):
@@ -153,7 +154,8 @@ class _TreeBuilder:
 
     def call(self, node: ast.Call, depth: int, column: int) -> sp.Expr:
         if not isinstance(node.func, ast.Name) or node.func.id not in FUNCTIONS:
-            what = node.func.id if isinstance(node.func, ast.Name) else "this expression"
+            what = ast.unparse(node.func)
+            what = what if len(what) <= 40 else what[:37] + "..."
             allowed = ", ".join(sorted(FUNCTIONS))
             raise ExpressionError(column, f"cannot call {what!r}; allowed functions: {allowed}")
         if node.keywords:
@@ -227,10 +229,14 @@ def parse_expression(text: str, names: Mapping[str, sp.Expr]) -> sp.Expr:
         raise ExpressionError(1, "empty expression")
     if "#" in text:
         raise ExpressionError(text.index("#") + 1, "comments are not allowed in expressions")
+    # Multi-line TOML strings are welcome: line breaks become spaces (columns keep
+    # their offsets) and the parentheses allow the continuation lines' indentation.
+    flat = text.replace("\r", " ").replace("\n", " ").replace("\t", " ")
     try:
-        tree = ast.parse(text.strip(), mode="eval")
+        tree = ast.parse(f"({flat})", mode="eval")
     except SyntaxError as exc:
-        raise ExpressionError(exc.offset or 1, f"syntax error: {exc.msg}") from None
+        column = max(1, (exc.offset or 2) - 1)
+        raise ExpressionError(column, f"syntax error: {exc.msg}") from None
     except (RecursionError, MemoryError, ValueError):
         raise ExpressionError(1, "expression too deeply nested") from None
     try:

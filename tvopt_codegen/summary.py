@@ -58,10 +58,10 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
     lines.append(f"  padding states: {', '.join(pads) if pads else 'none'}")
     lines.append(f"  closed-loop state: {', '.join(d.state_names)}")
     if d.det_R is not None:
-        where = "; ".join(d.singular_set) if d.singular_set else "nowhere"
-        lines.append(f"  det R = {sp.sstr(d.det_R)}; singular where {where}")
+        where = f"singular where {'; '.join(d.singular_set)}" if d.singular_set else "never singular"
+        lines.append(f"  det R = {sp.sstr(d.det_R)}; {where}")
     else:
-        lines.append("  det R: not expanded symbolically (m > 3); singularity is checked at run "
+        lines.append("  det R: not expanded symbolically (m > 4); singularity is checked at run "
                      "time by pivoting")
     lines.append(f"  f0: strongly convex ({d.convexity.method}, m_f ~ "
                  f"{_number(d.convexity.m_f)} over {d.convexity.points} point(s))")

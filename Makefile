@@ -1,0 +1,47 @@
+# tvopt-codegen developer commands. Every target builds the virtual environment first,
+# so `make demo` and `make test` work on a fresh machine with only Python 3.11+.
+
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+INSTALLED := $(VENV)/.installed
+EXAMPLES := integrator unicycle_switch two_unicycles_barrier
+
+.PHONY: all demo test lint typecheck check regen check-generated update-golden clean
+
+all: test
+
+$(INSTALLED): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(INSTALLED)
+
+## demo: generate the bundled unicycle example into build/demo and show its summary
+demo: $(INSTALLED)
+	mkdir -p build
+	$(PY) -m tvopt_codegen generate unicycle_switch --out build/demo
+
+## test: the whole test suite
+test: $(INSTALLED)
+	$(PY) -m pytest
+
+## lint: ruff and mypy (strict) over the package
+lint: $(INSTALLED)
+	$(PY) -m ruff check tvopt_codegen tests
+	$(PY) -m mypy
+
+## regen: regenerate the committed controllers in generated/ from the bundled examples
+regen: $(INSTALLED)
+	for name in $(EXAMPLES); do \
+	  $(PY) -m tvopt_codegen generate $$name --out generated --quiet || exit 1; \
+	done
+
+## check-generated: fail if generated/ is not what the current code generates
+check-generated: regen
+	git diff --exit-code generated/
+
+check: lint test
+
+clean:
+	rm -rf build .pytest_cache .mypy_cache .ruff_cache

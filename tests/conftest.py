@@ -1,0 +1,68 @@
+"""Shared fixtures: derivations, generated modules, and paths.
+
+Deriving and importing a controller takes a fraction of a second; the cache below
+makes each example's derivation and module shared by every test that needs it.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+from tvopt_codegen.derivation import Derivation, derive
+from tvopt_codegen.ir import KernelSet, lower
+from tvopt_codegen.render import render
+from tvopt_codegen.spec import load_spec
+
+ROOT = Path(__file__).resolve().parent.parent
+SPECS = Path(__file__).resolve().parent / "specs"
+EXAMPLES = ("integrator", "unicycle_switch", "two_unicycles_barrier")
+#: Every spec the closed-loop and oracle tests run: the bundled examples plus test specs.
+ALL_SPECS = (*EXAMPLES, str(SPECS / "nonuniform.toml"))
+
+
+@functools.cache
+def derivation(spec: str) -> Derivation:
+    return derive(load_spec(spec))
+
+
+@functools.cache
+def kernels(spec: str) -> KernelSet:
+    return lower(derivation(spec))
+
+
+_BUILD = Path(__import__("tempfile").mkdtemp(prefix="tvopt-test-modules-"))
+
+
+@functools.cache
+def module(spec: str) -> ModuleType:
+    """Generate the Python backend for ``spec`` into a private folder and import it."""
+    files = render(kernels(spec), "python")
+    (name, text), = files.items()
+    folder = _BUILD / f"m{len(list(_BUILD.iterdir()))}"
+    folder.mkdir()
+    path = folder / name
+    path.write_text(text, encoding="utf-8")
+    mod_name = f"_tvopt_test_{name[:-3]}"
+    loader = importlib.util.spec_from_file_location(mod_name, path)
+    assert loader is not None and loader.loader is not None
+    mod = importlib.util.module_from_spec(loader)
+    sys.modules[mod_name] = mod
+    loader.loader.exec_module(mod)
+    return mod
+
+
+def write_spec(tmp_path: Path, text: str, name: str = "spec.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+@pytest.fixture
+def unicycle_text() -> str:
+    return (ROOT / "tvopt_codegen" / "examples" / "unicycle_switch.toml").read_text()

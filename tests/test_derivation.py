@@ -1,0 +1,186 @@
+"""The derivation against hand-derived ground truth and the paper's formulas."""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+
+import numpy as np
+import pytest
+import sympy as sp
+
+from tvopt_codegen import hurwitz
+from tvopt_codegen.derivation import derive, jet_symbol
+from tvopt_codegen.errors import AssumptionError
+from tvopt_codegen.jet import cse_program, fresh_symbols, total_derivative
+from tvopt_codegen.spec import load_spec
+
+from .conftest import SPECS, derivation, write_spec
+
+theta, v = sp.symbols("theta v", real=True)
+
+
+def test_unicycle_relative_degree_and_decoupling_matrix() -> None:
+    d = derivation("unicycle_switch")
+    assert d.relative_degree == (2, 2)
+    assert d.state_names == ("x1", "x2", "theta", "v")
+    expected = sp.Matrix([[sp.cos(theta), -v * sp.sin(theta)], [sp.sin(theta), v * sp.cos(theta)]])
+    assert sp.simplify(d.R - expected) == sp.zeros(2, 2)
+    assert d.det_R == v
+    assert d.singular_set == ("v = 0",)
+    assert d.p == sp.Matrix([0, 0])
+    x1, x2 = sp.symbols("x1 x2", real=True)
+    assert list(d.phi) == [x1, v * sp.cos(theta), x2, v * sp.sin(theta)]
+    assert d.A == sp.Matrix([[0, 1, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1], [0, 0, 0, 0]])
+    assert d.B == sp.Matrix([[0, 0], [1, 0], [0, 0], [0, 1]])
+    assert d.uniform and d.k == 2 and d.padding == ((), ())
+
+
+def test_raw_unicycle_is_rejected_with_the_prolongation_suggestion(tmp_path: Path,
+                                                                   unicycle_text: str) -> None:
+    text = unicycle_text.replace("integrate = { v = 1 }", "").replace(", v = 1.0 }", " }")
+    with pytest.raises(AssumptionError) as info:
+        derive(load_spec(write_spec(tmp_path, text)))
+    message = str(info.value)
+    assert "decoupling matrix R is singular everywhere" in message
+    assert "prolong input 'v' by 1 integrator(s): [extension] integrate = { v = 1 }" in message
+    assert info.value.exit_code == 3
+
+
+def test_two_unicycles_det_r_is_the_product_of_speeds() -> None:
+    d = derivation("two_unicycles_barrier")
+    va, vb = sp.symbols("va vb", real=True)
+    assert sp.simplify(d.det_R - va * vb) == 0
+    assert set(d.singular_set) == {"va = 0", "vb = 0"}
+
+
+def test_nonuniform_relative_degree_is_padded() -> None:
+    d = derivation(str(SPECS / "nonuniform.toml"))
+    assert d.relative_degree == (1, 2)
+    assert d.k == 2 and not d.uniform
+    assert d.padding == (("xi_y1_1",), ())
+    assert d.state_names == ("x1", "x2", "x3", "xi_y1_1")
+    xi = sp.Symbol("xi_y1_1", real=True)
+    x1, x2, x3 = sp.symbols("x1 x2 x3", real=True)
+    # y1' is the Brunovsky input of channel 1, i.e. the padding state.
+    assert d.y_jet_values == ((x1, xi), (x2, x3))
+
+
+def test_integrator_law_is_prediction_correction() -> None:
+    """k = 1: y_imp' = -Hess^-1 (P grad + grad_t) with P = -a_0 (paper, Example 1)."""
+    d = derivation("integrator")
+    assert d.k == 1 and d.coefficients == (-1.0,)
+    model = d.model
+    subs = dict(model.signals)
+    grad = d.gradient.xreplace(subs)
+    hess = d.hessian.xreplace(subs)
+    grad_t = grad.diff(model.t)
+    expected = -hess.inv() * (1 * grad + grad_t)
+    program = d.jet_program + d.rest_program
+    rest = sp.Matrix([program.inline(e) for e in d.rest])
+    e0 = sp.Matrix([program.inline(e) for e in d.grad_jet[0]])
+    law = hess.inv() * (d.coefficients[0] * e0 - rest)
+    jet = {jet_symbol(s.name, q): sp.diff(e, model.t, q) for s, e in model.signals for q in range(3)}
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        point = {model.t: rng.uniform(0, 10), model.y[0]: rng.normal(), model.y[1]: rng.normal(),
+                 model.params[0]: 2.0}
+        got = law.xreplace(jet).xreplace(point).evalf()
+        want = expected.xreplace(point).evalf()
+        assert np.allclose(np.array(got, dtype=float), np.array(want, dtype=float), rtol=1e-12)
+
+
+def _naive_total_derivative(expr: sp.Expr, t: sp.Symbol, jets: list[list[sp.Symbol]]) -> sp.Expr:
+    out = sp.diff(expr, t)
+    for chain in jets:
+        for j in range(len(chain) - 1):
+            out += sp.diff(expr, chain[j]) * chain[j + 1]
+    return out
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 4])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_jet_program_matches_the_papers_binomial_formula(k: int, seed: int) -> None:
+    """grad^(k) f0 = sum_m C(k-1, m) Hess^(m) y^(k-m) + grad_yt^(k-1) (paper's lemma)."""
+    rng = np.random.default_rng(seed)
+    t = sp.Symbol("t", real=True)
+    y = [sp.Symbol(f"y{i}", real=True) for i in range(2)]
+    jets = [[jet_symbol(yi.name, j) for j in range(k + 1)] for yi in y]
+    c = [sp.Rational(int(v), 10) for v in rng.integers(1, 9, size=6)]
+    # A random strongly convex, genuinely time-varying objective.
+    f0 = (c[0] * (y[0] - sp.sin(c[1] * t)) ** 2 + c[2] * (y[1] - t**2 / 10) ** 2
+          + c[3] * y[0] * y[1] / 10 + sp.cosh(c[4] * y[0] - c[5] * y[1] * sp.cos(t)) / 5)
+    grad = [sp.diff(f0, yi) for yi in y]
+    rates = {t: sp.Integer(1)} | {ch[j]: ch[j + 1] for ch in jets for j in range(k)}
+    names = fresh_symbols("q")
+    program, current = cse_program(grad, names)
+    for _ in range(k):
+        new, current, rates = total_derivative(program, current, rates, names)
+        program = program + new
+    ours = [program.inline(e) for e in current]
+
+    hess = sp.Matrix([[sp.diff(g, yj) for yj in y] for g in grad])
+    hess_derivs = [hess]
+    grad_t = sp.Matrix([sp.diff(g, t) for g in grad])
+    grad_t_derivs = [grad_t]
+    for _ in range(k - 1):
+        hess_derivs.append(hess_derivs[-1].applyfunc(lambda e: _naive_total_derivative(e, t, jets)))
+        grad_t_derivs.append(grad_t_derivs[-1].applyfunc(lambda e: _naive_total_derivative(e, t, jets)))
+    paper = grad_t_derivs[k - 1]
+    for m in range(k):
+        paper += sp.binomial(k - 1, m) * hess_derivs[m] * sp.Matrix([ch[k - m] for ch in jets])
+
+    symbols = [t, *itertools.chain.from_iterable(jets)]
+    for _ in range(5):
+        point = {s: sp.Float(rng.uniform(-1, 1)) for s in symbols}
+        a = np.array([float(e.xreplace(point)) for e in ours])
+        b = np.array([float(e.xreplace(point)) for e in paper])
+        assert np.allclose(a, b, rtol=1e-10, atol=1e-10)
+
+
+def test_rest_is_grad_k_without_the_hessian_term() -> None:
+    """grad^(k) f0 = Hess y^(k) + rest, with rest free of y^(k)."""
+    d = derivation("two_unicycles_barrier")
+    k = d.k
+    program = d.jet_program + d.rest_program
+    for e in d.rest:
+        assert not (program.inline(e).free_symbols & {ch[k] for ch in d.y_jet})
+
+
+@pytest.mark.parametrize(
+    ("poles", "coefficients"),
+    [
+        ([-1.0], (-1.0,)),
+        ([-1.0, -1.5], (-1.5, -2.5)),
+        ([complex(-1, 2), complex(-1, -2)], (-5.0, -2.0)),
+        ([-2.0, -2.0, -2.0, -2.0], (-16.0, -32.0, -24.0, -8.0)),
+    ],
+)
+def test_coefficients_from_poles(poles: list[complex], coefficients: tuple[float, ...]) -> None:
+    assert hurwitz.coefficients_from_poles(poles) == coefficients
+    eig = np.sort_complex(hurwitz.eigenvalues(coefficients))
+    assert np.allclose(eig, np.sort_complex(np.array(poles, dtype=complex)), atol=1e-3)
+
+
+def test_non_hurwitz_coefficients_are_rejected(tmp_path: Path, unicycle_text: str) -> None:
+    text = unicycle_text.replace("poles = [-1.0, -1.5]", "coefficients = [-2.0, 3.0]")
+    with pytest.raises(AssumptionError, match="error_dynamics.coefficients: H is not Hurwitz"):
+        derive(load_spec(write_spec(tmp_path, text)))
+
+
+def test_wrong_number_of_poles_is_rejected(tmp_path: Path, unicycle_text: str) -> None:
+    text = unicycle_text.replace("poles = [-1.0, -1.5]", "poles = [-1.0, [-2.0, 1.0]]")
+    with pytest.raises(AssumptionError, match="order k = 2 .* give 2 poles, not 3"):
+        derive(load_spec(write_spec(tmp_path, text)))
+
+
+def test_non_convex_objective_is_rejected(tmp_path: Path, unicycle_text: str) -> None:
+    text = unicycle_text.replace('f0 = "S*', 'f0 = "-3*y1**2 + S*')
+    with pytest.raises(AssumptionError, match="not strongly convex"):
+        derive(load_spec(write_spec(tmp_path, text)))
+
+
+def test_output_without_relative_degree_is_rejected(tmp_path: Path, unicycle_text: str) -> None:
+    text = unicycle_text.replace('y2 = "x2"', 'y2 = "a"')
+    with pytest.raises(AssumptionError, match="no relative degree"):
+        derive(load_spec(write_spec(tmp_path, text)))

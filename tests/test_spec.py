@@ -1,0 +1,115 @@
+"""Spec validation: each bad spec gives one line naming file, field and problem."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from tvopt_codegen.errors import AssumptionError, SpecError
+from tvopt_codegen.derivation import derive
+from tvopt_codegen.spec import bundled_examples, load_spec
+
+from .conftest import write_spec
+
+
+def _mutate(text: str, old: str, new: str) -> str:
+    assert old in text, old
+    return text.replace(old, new, 1)
+
+
+BAD = [
+    # (old, new, field, message)
+    ('name = "unicycle_switch"', 'name = "os"', "name", "shadows the Python standard module"),
+    ('name = "unicycle_switch"', 'name = "Unicycle"', "name", "must be lower case"),
+    ('states = ["x1", "x2", "theta"]', 'states = ["x1", "x2", "theta", "x1"]', "system.states.x1",
+     "already declared"),
+    ('states = ["x1", "x2", "theta"]', 'states = ["x1", "x2", "_theta"]', "system.states[2]",
+     "underscore"),
+    ('states = ["x1", "x2", "theta"]', 'states = ["x1", "x2", "lambda"]', "system.states[2]",
+     "Python keyword"),
+    ('inputs = ["v", "omega"]', 'inputs = ["v", "double"]', "system.inputs[1]", "C keyword"),
+    ('inputs = ["v", "omega"]', 'inputs = ["v", "sqrt"]', "system.inputs[1]", "built-in function"),
+    ('x1 = "v*cos(theta)"', 'x1 = "v*cos(thetta)"', "system.dynamics.x1",
+     "column 7: unknown name 'thetta'"),
+    ('theta = "omega"', 'theta = "omega**2"', "system.dynamics.theta", "not affine in the inputs"),
+    ('x1 = "v*cos(theta)"', 'x1 = "v*omega"', "system.dynamics.x1", "not affine in the inputs"),
+    ('x1 = "v*cos(theta)"\n', "", "system.dynamics.x1", "missing right-hand side"),
+    ('y1 = "x1"', 'y1 = "v"', "system.outputs.y1", "unknown name 'v'"),
+    ("b = 1.5", 'b = "1.5"', "parameters.b", "expected a number"),
+    ("a = 10.0", "a = nan", "parameters.a", "finite"),
+    ('S = "0.5', 'S = "0.5 + x1*0', "signals.S", "unknown name 'x1'"),
+    ('f0 = "S*', 'f0 = "theta + S*', "objective.f0", "unknown name 'theta'"),
+    ("integrate = { v = 1 }", "integrate = { speed = 1 }", "extension.integrate.speed",
+     "not a declared input"),
+    ("integrate = { v = 1 }", "integrate = { v = 1.5 }", "extension.integrate.v",
+     "whole number"),
+    ("poles = [-1.0, -1.5]", "poles = [[-1.0, 0.0]]", "error_dynamics.poles[0]",
+     "must be positive"),
+    ("poles = [-1.0, -1.5]", "poles = [-1.0]\ncoefficients = [1.0]", "error_dynamics",
+     "exactly one"),
+    ("t_final = 20.0", "t_final = -1.0", "simulation.t_final", "must be positive"),
+    ("t_final = 20.0", "t_final = 20.0\nsolver = 'rk4'", "simulation.solver", "unknown key"),
+    ("[objective]", "[objektive]", "objektive", "unknown key"),
+    ("theta = 0.0, ", "theta = 0.0, phi = 1.0, ", "simulation.initial_state.phi",
+     "not a state of the closed loop"),
+    ("theta = 0.0, ", "", "simulation.initial_state.theta", "missing"),
+]
+
+
+@pytest.mark.parametrize(("old", "new", "field", "message"), BAD)
+def test_bad_spec_names_field_and_problem(tmp_path: Path, unicycle_text: str, old: str, new: str,
+                                          field: str, message: str) -> None:
+    path = write_spec(tmp_path, _mutate(unicycle_text, old, new))
+    with pytest.raises(SpecError) as info:
+        derive(load_spec(path))
+    text = str(info.value)
+    assert text.startswith(f"{path}: {field}: "), text
+    assert message in text, text
+    assert "\n" not in text
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b"", "missing required key"),
+        (b"\x00\x01\x02", "binary file"),
+        (b"\xff\xfe bad", "not UTF-8"),
+        (b"name = [", "TOML syntax error"),
+        (b'name = "a"\nname = "b"', "TOML syntax error"),
+    ],
+)
+def test_unreadable_files(tmp_path: Path, content: bytes, message: str) -> None:
+    path = tmp_path / "broken.toml"
+    path.write_bytes(content)
+    with pytest.raises(SpecError, match=message):
+        load_spec(path)
+
+
+def test_missing_file_lists_examples(tmp_path: Path) -> None:
+    with pytest.raises(SpecError, match="no bundled example of that name") as info:
+        load_spec(tmp_path / "nope.toml")
+    assert "unicycle_switch" in str(info.value)
+
+
+def test_bundled_examples_are_listed_and_load() -> None:
+    examples = bundled_examples()
+    assert set(examples) == {"integrator", "unicycle_switch", "two_unicycles_barrier"}
+    for name in examples:
+        spec = load_spec(name)
+        assert spec.name == name
+        assert spec.source == f"{name}.toml (bundled example)"
+
+
+def test_decimals_stay_exact(unicycle_text: str, tmp_path: Path) -> None:
+    spec = load_spec(write_spec(tmp_path, unicycle_text))
+    signals = dict(spec.signals)
+    assert str(signals["S"]) == "1/2 - tanh(t/b - a/b)/2" or "1/2" in str(signals["S"])
+    assert spec.extension == (("v", 1),)
+    assert spec.poles == (complex(-1, 0), complex(-1.5, 0))
+
+
+def test_non_square_plant_is_an_assumption_error(tmp_path: Path, unicycle_text: str) -> None:
+    text = _mutate(unicycle_text, 'y2 = "x2"', 'y2 = "x2"\ny3 = "theta"')
+    with pytest.raises(AssumptionError, match="2 inputs but 3 outputs"):
+        derive(load_spec(write_spec(tmp_path, text)))
