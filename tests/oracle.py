@@ -1,0 +1,93 @@
+"""An independent evaluation of the paper's law, for checking generated code.
+
+It shares only the Derivation's Lie derivatives with the generator. The gradient jet
+comes from naive repeated total derivatives of the fully substituted f0 (no
+straight-line program, no CSE), the law from numpy's dense solves, and everything is
+evaluated through ``sympy.lambdify``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import sympy as sp
+
+from tvopt_codegen.derivation import Derivation
+
+
+def _total_derivative(expr: sp.Expr, t: sp.Symbol, jets: list[list[sp.Symbol]]) -> sp.Expr:
+    out = sp.diff(expr, t)
+    for chain in jets:
+        for j in range(len(chain) - 1):
+            out += sp.diff(expr, chain[j]) * chain[j + 1]
+    return out
+
+
+class Oracle:
+    """Numerical functions of the law for one derivation, vectorized over states."""
+
+    def __init__(self, d: Derivation) -> None:
+        self.d = d
+        model = d.model
+        t, k, m = model.t, d.k, len(model.y)
+        self.k, self.m = k, m
+        f0 = model.f0.xreplace(dict(model.signals))
+        jets = [[sp.Symbol(f"Y{i}_{j}", real=True) for j in range(k + 1)] for i in range(m)]
+        f0 = f0.xreplace({model.y[i]: jets[i][0] for i in range(m)})
+        grads = [[sp.diff(f0, jets[i][0]) for i in range(m)]]
+        for _ in range(k):
+            grads.append([_total_derivative(g, t, jets) for g in grads[-1]])
+        hess = [sp.diff(g, jets[j][0]) for g in grads[0] for j in range(m)]
+        rest = [g.xreplace({jets[i][k]: 0 for i in range(m)}) for g in grads[k]]
+        state_jet = {jets[i][j]: d.y_jet_values[i][j] for i in range(m) for j in range(k)}
+        w = sp.symbols(f"W0:{m}", real=True)
+        args = [t, *d.states, *model.params, *w]
+        ext = d.extension
+        field = list(ext.f + ext.G * sp.Matrix(w))
+
+        def lam(exprs: Sequence[sp.Expr]) -> Callable[..., list[object]]:
+            return sp.lambdify(args, [sp.sympify(e).xreplace(state_jet) for e in exprs], "numpy")
+
+        self.E = lam([g for j in range(k) for g in grads[j]])
+        self.hess = lam(hess)
+        self.rest = lam(rest)
+        self.R = lam(list(d.R))
+        self.p = lam(list(d.p))
+        self.field = lam(field)
+
+    @staticmethod
+    def _eval(func: Callable[..., list[object]], args: list[object], shape: tuple[int, ...],
+              n: int) -> np.ndarray:
+        values = func(*args)
+        return np.array([np.broadcast_to(np.asarray(v, dtype=float), (n,)) for v in values]
+                        ).reshape(*shape, n)
+
+    def law(self, t: float, s: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return (u, ds) for states ``s`` of shape (n, N) and parameters ``p``."""
+        d, k, m, n = self.d, self.k, self.m, s.shape[1]
+        args: list[object] = [t, *s, *p, *np.zeros(m)]
+        E = self._eval(self.E, args, (k, m), n)
+        hess = self._eval(self.hess, args, (m, m), n)
+        rest = self._eval(self.rest, args, (m,), n)
+        c = sum(d.coefficients[j] * E[j] for j in range(k)) - rest
+        z = np.linalg.solve(np.moveaxis(hess, -1, 0), np.moveaxis(c, -1, 0)[..., None])[..., 0].T
+        v = np.array([s[d.state_names.index(d.padding[i][0])] if d.padding[i] else z[i]
+                      for i in range(m)])
+        R = self._eval(self.R, args, (m, m), n)
+        pv = self._eval(self.p, args, (m,), n)
+        w = np.linalg.solve(np.moveaxis(R, -1, 0), np.moveaxis(v - pv, -1, 0)[..., None])[..., 0].T
+        field = self._eval(self.field, [t, *s, *p, *w], (len(d.extension.x),), n)
+        pad = []
+        for i, chain in enumerate(d.padding):
+            for j in range(len(chain)):
+                pad.append(s[d.state_names.index(chain[j + 1])] if j + 1 < len(chain) else z[i])
+        ds = np.vstack([field, *pad]) if pad else field
+        u = np.array([s[d.state_names.index(uj.name)] if uj.name in d.extension.states else w[j]
+                      for j, uj in enumerate(d.model.u)])
+        return u, ds
+
+    def optimality_error(self, t: float, s: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """E of shape (k, m, N)."""
+        args: list[object] = [t, *s, *p, *np.zeros(self.m)]
+        return self._eval(self.E, args, (self.k, self.m), s.shape[1])
