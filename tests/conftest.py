@@ -43,7 +43,7 @@ _BUILD = Path(__import__("tempfile").mkdtemp(prefix="tvopt-test-modules-"))
 def module(spec: str) -> ModuleType:
     """Generate the Python backend for ``spec`` into a private folder and import it."""
     files = render(kernels(spec), "python")
-    (name, text), = files.items()
+    ((name, text),) = files.items()
     folder = _BUILD / f"m{len(list(_BUILD.iterdir()))}"
     folder.mkdir()
     path = folder / name

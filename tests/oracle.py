@@ -57,11 +57,13 @@ class Oracle:
         self.field = lam(field)
 
     @staticmethod
-    def _eval(func: Callable[..., list[object]], args: list[object], shape: tuple[int, ...],
-              n: int) -> np.ndarray:
+    def _eval(
+        func: Callable[..., list[object]], args: list[object], shape: tuple[int, ...], n: int
+    ) -> np.ndarray:
         values = func(*args)
-        return np.array([np.broadcast_to(np.asarray(v, dtype=float), (n,)) for v in values]
-                        ).reshape(*shape, n)
+        return np.array(
+            [np.broadcast_to(np.asarray(v, dtype=float), (n,)) for v in values]
+        ).reshape(*shape, n)
 
     def law(self, t: float, s: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return (u, ds) for states ``s`` of shape (n, N) and parameters ``p``."""
@@ -72,8 +74,9 @@ class Oracle:
         rest = self._eval(self.rest, args, (m,), n)
         c = sum(d.coefficients[j] * E[j] for j in range(k)) - rest
         z = np.linalg.solve(np.moveaxis(hess, -1, 0), np.moveaxis(c, -1, 0)[..., None])[..., 0].T
-        v = np.array([s[d.state_names.index(d.padding[i][0])] if d.padding[i] else z[i]
-                      for i in range(m)])
+        v = np.array(
+            [s[d.state_names.index(d.padding[i][0])] if d.padding[i] else z[i] for i in range(m)]
+        )
         R = self._eval(self.R, args, (m, m), n)
         pv = self._eval(self.p, args, (m,), n)
         w = np.linalg.solve(np.moveaxis(R, -1, 0), np.moveaxis(v - pv, -1, 0)[..., None])[..., 0].T
@@ -83,8 +86,12 @@ class Oracle:
             for j in range(len(chain)):
                 pad.append(s[d.state_names.index(chain[j + 1])] if j + 1 < len(chain) else z[i])
         ds = np.vstack([field, *pad]) if pad else field
-        u = np.array([s[d.state_names.index(uj.name)] if uj.name in d.extension.states else w[j]
-                      for j, uj in enumerate(d.model.u)])
+        u = np.array(
+            [
+                s[d.state_names.index(uj.name)] if uj.name in d.extension.states else w[j]
+                for j, uj in enumerate(d.model.u)
+            ]
+        )
         return u, ds
 
     def optimality_error(self, t: float, s: np.ndarray, p: np.ndarray) -> np.ndarray:

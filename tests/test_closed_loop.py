@@ -49,8 +49,9 @@ def test_certificate(spec: str) -> None:
     m = len(mod.OUTPUT_NAMES)
     s0 = np.array(mod.DEFAULT_STATE)
     t_final = d.spec.t_final
-    sol = solve_ivp(mod.rhs, (0.0, t_final), s0, method="RK45", rtol=1e-10, atol=1e-12,
-                    dense_output=True)
+    sol = solve_ivp(
+        mod.rhs, (0.0, t_final), s0, method="RK45", rtol=1e-10, atol=1e-12, dense_output=True
+    )
     assert sol.success, sol.message
     ts = np.linspace(0.0, t_final, 121)
     states = sol.sol(ts)
@@ -65,8 +66,9 @@ def test_certificate(spec: str) -> None:
     # y = h(x) along the run, and y* from the minimizer.
     h = sp.lambdify([*d.states, *d.model.params], list(d.model.h), "numpy")
     params = list(mod.PARAMETERS.values())
-    outputs = np.array([np.broadcast_to(np.asarray(v, dtype=float), ts.shape)
-                        for v in h(*states, *params)])
+    outputs = np.array(
+        [np.broadcast_to(np.asarray(v, dtype=float), ts.shape) for v in h(*states, *params)]
+    )
     y_star = _minimizer_path(mod, ts, outputs[:, -1])
     error = np.linalg.norm(outputs - y_star, axis=0)
 
@@ -74,8 +76,10 @@ def test_certificate(spec: str) -> None:
     grid = np.linspace(0.0, 4 * t_final, 801)
     c = max(np.linalg.norm(expm(H * t), 2) * np.exp(alpha * t) for t in grid)
     m_f = min(
-        min(np.linalg.eigvalsh(mod.hessian(t, outputs[:, i])).min(),
-            np.linalg.eigvalsh(mod.hessian(t, y_star[:, i])).min())
+        min(
+            np.linalg.eigvalsh(mod.hessian(t, outputs[:, i])).min(),
+            np.linalg.eigvalsh(mod.hessian(t, y_star[:, i])).min(),
+        )
         for i, t in enumerate(ts)
     )
     bound = c * np.linalg.norm(E0) / m_f * np.exp(-alpha * ts)

@@ -36,8 +36,9 @@ def test_unicycle_relative_degree_and_decoupling_matrix() -> None:
     assert d.uniform and d.k == 2 and d.padding == ((), ())
 
 
-def test_raw_unicycle_is_rejected_with_the_prolongation_suggestion(tmp_path: Path,
-                                                                   unicycle_text: str) -> None:
+def test_raw_unicycle_is_rejected_with_the_prolongation_suggestion(
+    tmp_path: Path, unicycle_text: str
+) -> None:
     text = unicycle_text.replace("integrate = { v = 1 }", "").replace(", v = 1.0 }", " }")
     with pytest.raises(AssumptionError) as info:
         derive(load_spec(write_spec(tmp_path, text)))
@@ -80,11 +81,17 @@ def test_integrator_law_is_prediction_correction() -> None:
     rest = sp.Matrix([program.inline(e) for e in d.rest])
     e0 = sp.Matrix([program.inline(e) for e in d.grad_jet[0]])
     law = hess.inv() * (d.coefficients[0] * e0 - rest)
-    jet = {jet_symbol(s.name, q): sp.diff(e, model.t, q) for s, e in model.signals for q in range(3)}
+    jet = {
+        jet_symbol(s.name, q): sp.diff(e, model.t, q) for s, e in model.signals for q in range(3)
+    }
     rng = np.random.default_rng(1)
     for _ in range(20):
-        point = {model.t: rng.uniform(0, 10), model.y[0]: rng.normal(), model.y[1]: rng.normal(),
-                 model.params[0]: 2.0}
+        point = {
+            model.t: rng.uniform(0, 10),
+            model.y[0]: rng.normal(),
+            model.y[1]: rng.normal(),
+            model.params[0]: 2.0,
+        }
         got = law.xreplace(jet).xreplace(point).evalf()
         want = expected.xreplace(point).evalf()
         assert np.allclose(np.array(got, dtype=float), np.array(want, dtype=float), rtol=1e-12)
@@ -108,8 +115,12 @@ def test_jet_program_matches_the_papers_binomial_formula(k: int, seed: int) -> N
     jets = [[jet_symbol(yi.name, j) for j in range(k + 1)] for yi in y]
     c = [sp.Rational(int(v), 10) for v in rng.integers(1, 9, size=6)]
     # A random strongly convex, genuinely time-varying objective.
-    f0 = (c[0] * (y[0] - sp.sin(c[1] * t)) ** 2 + c[2] * (y[1] - t**2 / 10) ** 2
-          + c[3] * y[0] * y[1] / 10 + sp.cosh(c[4] * y[0] - c[5] * y[1] * sp.cos(t)) / 5)
+    f0 = (
+        c[0] * (y[0] - sp.sin(c[1] * t)) ** 2
+        + c[2] * (y[1] - t**2 / 10) ** 2
+        + c[3] * y[0] * y[1] / 10
+        + sp.cosh(c[4] * y[0] - c[5] * y[1] * sp.cos(t)) / 5
+    )
     grad = [sp.diff(f0, yi) for yi in y]
     rates = {t: sp.Integer(1)} | {ch[j]: ch[j + 1] for ch in jets for j in range(k)}
     names = fresh_symbols("q")
@@ -125,7 +136,9 @@ def test_jet_program_matches_the_papers_binomial_formula(k: int, seed: int) -> N
     grad_t_derivs = [grad_t]
     for _ in range(k - 1):
         hess_derivs.append(hess_derivs[-1].applyfunc(lambda e: _naive_total_derivative(e, t, jets)))
-        grad_t_derivs.append(grad_t_derivs[-1].applyfunc(lambda e: _naive_total_derivative(e, t, jets)))
+        grad_t_derivs.append(
+            grad_t_derivs[-1].applyfunc(lambda e: _naive_total_derivative(e, t, jets))
+        )
     paper = grad_t_derivs[k - 1]
     for m in range(k):
         paper += sp.binomial(k - 1, m) * hess_derivs[m] * sp.Matrix([ch[k - m] for ch in jets])

@@ -29,13 +29,16 @@ def test_control_and_rhs_match_the_oracle(spec: str) -> None:
     states = random_states(spec, 1000)
     for t in (0.0, 3.7, 11.2):
         u_ref, ds_ref = oracle.law(t, states, p)
-        np.testing.assert_allclose(mod.control(t, states), u_ref, rtol=1e-10,
-                                   atol=1e-10 * np.abs(u_ref).max())
-        np.testing.assert_allclose(mod.rhs(t, states), ds_ref, rtol=1e-10,
-                                   atol=1e-10 * np.abs(ds_ref).max())
+        np.testing.assert_allclose(
+            mod.control(t, states), u_ref, rtol=1e-10, atol=1e-10 * np.abs(u_ref).max()
+        )
+        np.testing.assert_allclose(
+            mod.rhs(t, states), ds_ref, rtol=1e-10, atol=1e-10 * np.abs(ds_ref).max()
+        )
         E_ref = oracle.optimality_error(t, states, p)
-        np.testing.assert_allclose(mod.optimality_error(t, states), E_ref, rtol=1e-10,
-                                   atol=1e-10 * np.abs(E_ref).max())
+        np.testing.assert_allclose(
+            mod.optimality_error(t, states), E_ref, rtol=1e-10, atol=1e-10 * np.abs(E_ref).max()
+        )
 
 
 def test_parameters_are_overridable_at_run_time() -> None:
@@ -80,8 +83,12 @@ def test_contract_of_the_unicycle_module() -> None:
         assert callable(getattr(mod, name))
         assert "Parameters" in getattr(mod, name).__doc__
     assert "s[2]  theta" in mod.__doc__
-    for exc in (mod.NonFiniteInputError, mod.SingularDecouplingError,
-                mod.HessianNotPositiveDefiniteError, mod.NonFiniteOutputError):
+    for exc in (
+        mod.NonFiniteInputError,
+        mod.SingularDecouplingError,
+        mod.HessianNotPositiveDefiniteError,
+        mod.NonFiniteOutputError,
+    ):
         assert issubclass(exc, mod.ControllerError)
         assert issubclass(exc, ArithmeticError)
         assert not issubclass(exc, (ZeroDivisionError, FloatingPointError))
@@ -100,8 +107,9 @@ def test_objective_gradient_hessian() -> None:
     t = 2.0
     o1, o2 = 2 + 0.8 * t - 0.05 * t**2, -1 + 0.5 * t + 0.02 * t**2 - 0.001 * t**3
     w = 2.0
-    assert mod.objective(t, y) == pytest.approx(0.5 * (y[0] - o1) ** 2 + 0.5 * w * (y[1] - o2) ** 2,
-                                                rel=1e-14)
+    assert mod.objective(t, y) == pytest.approx(
+        0.5 * (y[0] - o1) ** 2 + 0.5 * w * (y[1] - o2) ** 2, rel=1e-14
+    )
     np.testing.assert_allclose(mod.gradient(t, y), [y[0] - o1, w * (y[1] - o2)], rtol=1e-14)
     np.testing.assert_allclose(mod.hessian(t, y), [[1.0, 0.0], [0.0, w]])
     batch = np.stack([y, y + 1], axis=1)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import sympy as sp
 from hypothesis import given, settings
@@ -17,7 +19,10 @@ NAMES = {"x": x, "y": y}
     ("text", "expected"),
     [
         ("x + 2*y", x + 2 * y),
-        ("0.5 - 0.5*tanh((x - 10)/1.5)", sp.Rational(1, 2) - sp.tanh((x - 10) / sp.Rational(3, 2)) / 2),
+        (
+            "0.5 - 0.5*tanh((x - 10)/1.5)",
+            sp.Rational(1, 2) - sp.tanh((x - 10) / sp.Rational(3, 2)) / 2,
+        ),
         ("x**2 - -y", x**2 + y),
         ("atan2(y, x) + sqrt(x) + pi", sp.atan2(y, x) + sp.sqrt(x) + sp.pi),
         ("1e-8*tan(x*pi/4)**2", sp.Rational(1, 10**8) * sp.tan(x * sp.pi / 4) ** 2),
@@ -84,8 +89,12 @@ _leaves = st.sampled_from(["x", "y", "2", "0.25", "3"])
 _trees = st.recursive(
     _leaves,
     lambda inner: st.one_of(
-        st.tuples(inner, st.sampled_from(["+", "-", "*"]), inner).map(lambda t: f"({t[0]} {t[1]} {t[2]})"),
-        st.tuples(st.sampled_from(["sin", "cos", "exp", "tanh"]), inner).map(lambda t: f"{t[0]}({t[1]})"),
+        st.tuples(inner, st.sampled_from(["+", "-", "*"]), inner).map(
+            lambda t: f"({t[0]} {t[1]} {t[2]})"
+        ),
+        st.tuples(st.sampled_from(["sin", "cos", "exp", "tanh"]), inner).map(
+            lambda t: f"{t[0]}({t[1]})"
+        ),
         inner.map(lambda s: f"-{s}"),
         inner.map(lambda s: f"({s})**2"),
     ),
@@ -97,8 +106,6 @@ _trees = st.recursive(
 @given(_trees, st.floats(-2, 2), st.floats(-2, 2))
 def test_parse_agrees_with_python_arithmetic(text: str, xv: float, yv: float) -> None:
     """The parsed expression evaluates like the same text in plain Python math."""
-    import math
-
     expr = parse_expression(text, NAMES)
     env = {"x": xv, "y": yv, "sin": math.sin, "cos": math.cos, "exp": math.exp, "tanh": math.tanh}
     # eval here runs test-generated text, never spec input: it is the oracle.

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.derivation import derive
+from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.spec import bundled_examples, load_spec
 
 from .conftest import write_spec
@@ -22,16 +22,32 @@ BAD = [
     # (old, new, field, message)
     ('name = "unicycle_switch"', 'name = "os"', "name", "shadows the Python standard module"),
     ('name = "unicycle_switch"', 'name = "Unicycle"', "name", "must be lower case"),
-    ('states = ["x1", "x2", "theta"]', 'states = ["x1", "x2", "theta", "x1"]', "system.states.x1",
-     "already declared"),
-    ('states = ["x1", "x2", "theta"]', 'states = ["x1", "x2", "_theta"]', "system.states[2]",
-     "underscore"),
-    ('states = ["x1", "x2", "theta"]', 'states = ["x1", "x2", "lambda"]', "system.states[2]",
-     "Python keyword"),
+    (
+        'states = ["x1", "x2", "theta"]',
+        'states = ["x1", "x2", "theta", "x1"]',
+        "system.states.x1",
+        "already declared",
+    ),
+    (
+        'states = ["x1", "x2", "theta"]',
+        'states = ["x1", "x2", "_theta"]',
+        "system.states[2]",
+        "underscore",
+    ),
+    (
+        'states = ["x1", "x2", "theta"]',
+        'states = ["x1", "x2", "lambda"]',
+        "system.states[2]",
+        "Python keyword",
+    ),
     ('inputs = ["v", "omega"]', 'inputs = ["v", "double"]', "system.inputs[1]", "C keyword"),
     ('inputs = ["v", "omega"]', 'inputs = ["v", "sqrt"]', "system.inputs[1]", "built-in function"),
-    ('x1 = "v*cos(theta)"', 'x1 = "v*cos(thetta)"', "system.dynamics.x1",
-     "column 7: unknown name 'thetta'"),
+    (
+        'x1 = "v*cos(theta)"',
+        'x1 = "v*cos(thetta)"',
+        "system.dynamics.x1",
+        "column 7: unknown name 'thetta'",
+    ),
     ('theta = "omega"', 'theta = "omega**2"', "system.dynamics.theta", "not affine in the inputs"),
     ('x1 = "v*cos(theta)"', 'x1 = "v*omega"', "system.dynamics.x1", "not affine in the inputs"),
     ('x1 = "v*cos(theta)"\n', "", "system.dynamics.x1", "missing right-hand side"),
@@ -40,26 +56,42 @@ BAD = [
     ("a = 10.0", "a = nan", "parameters.a", "finite"),
     ('S = "0.5', 'S = "0.5 + x1*0', "signals.S", "unknown name 'x1'"),
     ('f0 = "S*', 'f0 = "theta + S*', "objective.f0", "unknown name 'theta'"),
-    ("integrate = { v = 1 }", "integrate = { speed = 1 }", "extension.integrate.speed",
-     "not a declared input"),
-    ("integrate = { v = 1 }", "integrate = { v = 1.5 }", "extension.integrate.v",
-     "whole number"),
-    ("poles = [-1.0, -1.5]", "poles = [[-1.0, 0.0]]", "error_dynamics.poles[0]",
-     "must be positive"),
-    ("poles = [-1.0, -1.5]", "poles = [-1.0]\ncoefficients = [1.0]", "error_dynamics",
-     "exactly one"),
+    (
+        "integrate = { v = 1 }",
+        "integrate = { speed = 1 }",
+        "extension.integrate.speed",
+        "not a declared input",
+    ),
+    ("integrate = { v = 1 }", "integrate = { v = 1.5 }", "extension.integrate.v", "whole number"),
+    (
+        "poles = [-1.0, -1.5]",
+        "poles = [[-1.0, 0.0]]",
+        "error_dynamics.poles[0]",
+        "must be positive",
+    ),
+    (
+        "poles = [-1.0, -1.5]",
+        "poles = [-1.0]\ncoefficients = [1.0]",
+        "error_dynamics",
+        "exactly one",
+    ),
     ("t_final = 20.0", "t_final = -1.0", "simulation.t_final", "must be positive"),
     ("t_final = 20.0", "t_final = 20.0\nsolver = 'rk4'", "simulation.solver", "unknown key"),
     ("[objective]", "[objektive]", "objektive", "unknown key"),
-    ("theta = 0.0, ", "theta = 0.0, phi = 1.0, ", "simulation.initial_state.phi",
-     "not a state of the closed loop"),
+    (
+        "theta = 0.0, ",
+        "theta = 0.0, phi = 1.0, ",
+        "simulation.initial_state.phi",
+        "not a state of the closed loop",
+    ),
     ("theta = 0.0, ", "", "simulation.initial_state.theta", "missing"),
 ]
 
 
 @pytest.mark.parametrize(("old", "new", "field", "message"), BAD)
-def test_bad_spec_names_field_and_problem(tmp_path: Path, unicycle_text: str, old: str, new: str,
-                                          field: str, message: str) -> None:
+def test_bad_spec_names_field_and_problem(
+    tmp_path: Path, unicycle_text: str, old: str, new: str, field: str, message: str
+) -> None:
     path = write_spec(tmp_path, _mutate(unicycle_text, old, new))
     with pytest.raises(SpecError) as info:
         derive(load_spec(path))

@@ -35,10 +35,17 @@ def _parser() -> argparse.ArgumentParser:
     generate = commands.add_parser("generate", help="derive the law and write the controller")
     generate.add_argument("spec", help="spec file, or the name of a bundled example")
     generate.add_argument("--out", default=".", help="output folder (default: current folder)")
-    generate.add_argument("--backend", default="python", choices=sorted(BACKENDS),
-                          help="target language (default: python)")
-    generate.add_argument("--force", action="store_true",
-                          help="replace files that were edited by hand or not generated here")
+    generate.add_argument(
+        "--backend",
+        default="python",
+        choices=sorted(BACKENDS),
+        help="target language (default: python)",
+    )
+    generate.add_argument(
+        "--force",
+        action="store_true",
+        help="replace files that were edited by hand or not generated here",
+    )
     generate.add_argument("--quiet", action="store_true", help="print nothing on success")
 
     check = commands.add_parser("check", help="print the derivation summary; writes nothing")

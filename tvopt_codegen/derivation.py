@@ -195,8 +195,10 @@ def _suggest_prolongation(model: Model, counts: dict[str, int]) -> str:
             trial[uj.name] = trial.get(uj.name, 0) + extra
             if _linearizable(model, trial):
                 table = ", ".join(f"{k} = {v}" for k, v in trial.items() if v)
-                return (f"; prolong input {uj.name!r} by {extra} integrator(s): "
-                        f"[extension] integrate = {{ {table} }}")
+                return (
+                    f"; prolong input {uj.name!r} by {extra} integrator(s): "
+                    f"[extension] integrate = {{ {table} }}"
+                )
     return "; no prolongation of a single input by 1 or 2 integrators makes it linearizable"
 
 
@@ -213,8 +215,9 @@ def _singular_set(det: sp.Expr) -> tuple[str, ...]:
     return tuple(conditions)
 
 
-def _check_convexity(derivation_inputs: tuple[Model, sp.ImmutableMatrix, Sequence[float],
-                                              float], source: str) -> Convexity:
+def _check_convexity(
+    derivation_inputs: tuple[Model, sp.ImmutableMatrix, Sequence[float], float], source: str
+) -> Convexity:
     """Estimate the convexity modulus of f0 near the initial outputs, over the horizon."""
     model, hessian, y0, t_final = derivation_inputs
     defaults = dict(zip(model.params, model.defaults, strict=True))
@@ -240,9 +243,10 @@ def _check_convexity(derivation_inputs: tuple[Model, sp.ImmutableMatrix, Sequenc
         result = Convexity("sampled", m_f, points)
     if not result.m_f > 0:
         raise AssumptionError(
-            source, "objective.f0",
-            f"f0 is not strongly convex in the outputs: the Hessian has eigenvalue {result.m_f:.6g} "
-            "<= 0 (the method needs grad_yy f0 positive definite)",
+            source,
+            "objective.f0",
+            "f0 is not strongly convex in the outputs: the Hessian has eigenvalue "
+            f"{result.m_f:.6g} <= 0 (the method needs grad_yy f0 positive definite)",
         )
     return result
 
@@ -283,12 +287,20 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
     say("relative degree")
     counts = dict(spec.extension)
     ext = extend(model.x, model.u, model.f, model.G, counts)
-    declared = {*spec.states, *spec.inputs, *spec.outputs, *(n for n, _ in spec.parameters),
-                *(n for n, _ in spec.signals)}
+    declared = {
+        *spec.states,
+        *spec.inputs,
+        *spec.outputs,
+        *(n for n, _ in spec.parameters),
+        *(n for n, _ in spec.signals),
+    }
     for name in ext.states:
         if name in declared and name not in spec.inputs:
-            raise SpecError(source, "extension.integrate",
-                            f"extension state {name!r} collides with a declared name")
+            raise SpecError(
+                source,
+                "extension.integrate",
+                f"extension state {name!r} collides with a declared name",
+            )
     defaults = dict(zip(model.params, model.defaults, strict=True))
     sampler = Sampler(ext.x, defaults)
     rd: RelativeDegree = relative_degree(ext.f, ext.G, model.h, ext.x, sampler)
@@ -297,7 +309,8 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
     for name, r in zip(spec.outputs, rd.r, strict=True):
         if r is None:
             raise AssumptionError(
-                source, f"system.outputs.{name}",
+                source,
+                f"system.outputs.{name}",
                 f"output {name!r} has no relative degree: no input reaches it within "
                 f"{n_ext} derivatives",
             )
@@ -307,13 +320,15 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
     if rank < m:
         suggestion = _suggest_prolongation(model, counts)
         raise AssumptionError(
-            source, "extension",
+            source,
+            "extension",
             f"the decoupling matrix R is singular everywhere (generic rank {rank} < {m}; "
             f"relative degrees {dict(zip(spec.outputs, degrees, strict=True))}){suggestion}",
         )
     if sum(degrees) != n_ext:
         raise AssumptionError(
-            source, "system.outputs",
+            source,
+            "system.outputs",
             f"not full-state linearizable: the relative degrees "
             f"{dict(zip(spec.outputs, degrees, strict=True))} sum to {sum(degrees)}, but the "
             f"extended system has {n_ext} states (internal dynamics of dimension "
@@ -332,7 +347,8 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
         field, given = "error_dynamics.poles", len(spec.poles)
     if given != k:
         raise AssumptionError(
-            source, field,
+            source,
+            field,
             f"the error dynamics have order k = {k} (the largest relative degree), so give "
             f"{k} {'poles' if spec.poles is not None else 'coefficients'}, not {given}",
         )
@@ -345,7 +361,8 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
         alpha = hurwitz.decay_rate(coefficients)
     if not alpha > 0:
         raise AssumptionError(
-            source, field,
+            source,
+            field,
             f"H is not Hurwitz: eigenvalue {complex(eig[-1]):.6g} has real part >= 0 "
             "(coefficients a_i are the last row of the companion matrix; for poles -1, -2 "
             "they are a_0 = -2, a_1 = -3)",
@@ -358,7 +375,9 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
     pad_names = [n for chain in padding for n in chain]
     for name in pad_names:
         if name in declared:
-            raise SpecError(source, "system.outputs", f"padding state {name!r} collides with a declared name")
+            raise SpecError(
+                source, "system.outputs", f"padding state {name!r} collides with a declared name"
+            )
     state_names = (*spec.states, *ext.states, *pad_names)
     states = tuple(sp.Symbol(n, real=True) for n in state_names)
     initial = _initial_state(spec, state_names, len(spec.states) + len(ext.states))
@@ -412,21 +431,47 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
     )
     state_of = dict(zip(state_names, states, strict=True))
     y_values = tuple(
-        tuple(rd.lie[i][j] if j < degrees[i] else state_of[padding[i][j - degrees[i]]]
-              for j in range(k))
+        tuple(
+            rd.lie[i][j] if j < degrees[i] else state_of[padding[i][j - degrees[i]]]
+            for j in range(k)
+        )
         for i in range(m)
     )
     clock.mark("gradient jet")
 
     return Derivation(
-        spec=spec, model=model, extension=ext, relative_degree=degrees, lie=rd.lie,
-        R=R, p=p, phi=phi, A=A, B=B, k=k, padding=padding, state_names=state_names,
-        states=states, det_R=det_R, singular_set=singular, gradient=gradient, hessian=hessian,
-        y_jet=y_jet, y_jet_values=y_values, signal_jet=signal_jet,
-        signal_jet_values=signal_values, jet_program=program, grad_jet=tuple(grad_jet),
-        rest_program=rest_program, rest=rest, coefficients=tuple(coefficients),
-        eigenvalues=tuple(complex(v) for v in eig), decay_rate=alpha,
-        uniform=all(r == k for r in degrees), convexity=convexity, initial_state=initial,
+        spec=spec,
+        model=model,
+        extension=ext,
+        relative_degree=degrees,
+        lie=rd.lie,
+        R=R,
+        p=p,
+        phi=phi,
+        A=A,
+        B=B,
+        k=k,
+        padding=padding,
+        state_names=state_names,
+        states=states,
+        det_R=det_R,
+        singular_set=singular,
+        gradient=gradient,
+        hessian=hessian,
+        y_jet=y_jet,
+        y_jet_values=y_values,
+        signal_jet=signal_jet,
+        signal_jet_values=signal_values,
+        jet_program=program,
+        grad_jet=tuple(grad_jet),
+        rest_program=rest_program,
+        rest=rest,
+        coefficients=tuple(coefficients),
+        eigenvalues=tuple(complex(v) for v in eig),
+        decay_rate=alpha,
+        uniform=all(r == k for r in degrees),
+        convexity=convexity,
+        initial_state=initial,
         timings=tuple(clock.marks),
     )
 
@@ -436,11 +481,17 @@ def _initial_state(spec: Spec, state_names: Sequence[str], required: int) -> tup
     given = dict(spec.initial_state)
     for key in given:
         if key not in state_names:
-            raise SpecError(spec.source, f"simulation.initial_state.{key}",
-                            f"not a state of the closed loop (states: {', '.join(state_names)})")
+            raise SpecError(
+                spec.source,
+                f"simulation.initial_state.{key}",
+                f"not a state of the closed loop (states: {', '.join(state_names)})",
+            )
     if given:
         for name in state_names[:required]:
             if name not in given:
-                raise SpecError(spec.source, f"simulation.initial_state.{name}",
-                                "missing (every plant and extension state needs a value)")
+                raise SpecError(
+                    spec.source,
+                    f"simulation.initial_state.{name}",
+                    "missing (every plant and extension state needs a value)",
+                )
     return tuple(float(given.get(name, 0.0)) for name in state_names)

@@ -31,8 +31,10 @@ def _check_target(path: Path, text: str, force: bool) -> bool:
     except (OSError, UnicodeDecodeError) as exc:
         if force:
             return True
-        raise OutputError(f"{path}: exists and cannot be read as generated text ({exc}); "
-                          "use --force to replace it") from None
+        raise OutputError(
+            f"{path}: exists and cannot be read as generated text ({exc}); "
+            "use --force to replace it"
+        ) from None
     if current == text:
         return False
     if force or is_pristine(current):
@@ -70,7 +72,9 @@ def write_files(files: Mapping[str, str], out_dir: str | Path, force: bool = Fal
     """
     folder = Path(out_dir)
     if folder.is_symlink():
-        raise OutputError(f"{folder}: output folder is a symbolic link; refusing to write through it")
+        raise OutputError(
+            f"{folder}: output folder is a symbolic link; refusing to write through it"
+        )
     if folder.exists() and not folder.is_dir():
         raise OutputError(f"{folder}: output path exists and is not a folder")
     if not folder.exists():

@@ -112,13 +112,14 @@ def _ops(exprs: Iterable[sp.Expr]) -> int:
     return int(sum(sp.count_ops(e) for e in exprs))
 
 
-def _drop_aliases(assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
-                  ) -> tuple[list[Assignment], list[sp.Expr]]:
+def _drop_aliases(
+    assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
+) -> tuple[list[Assignment], list[sp.Expr]]:
     """Substitute assignments whose value is a bare symbol or number."""
     alias: dict[sp.Symbol, sp.Expr] = {}
     kept: list[Assignment] = []
-    for sym, value in assignments:
-        value = sp.sympify(value).xreplace(alias)
+    for sym, raw in assignments:
+        value = sp.sympify(raw).xreplace(alias)
         if value.is_Symbol or value.is_Number:
             alias[sym] = value
         else:
@@ -139,8 +140,9 @@ def _prune(assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]) -> lis
     return kept[::-1]
 
 
-def ordered_cse(assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
-                ) -> tuple[tuple[Assignment, ...], tuple[sp.Expr, ...]]:
+def ordered_cse(
+    assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
+) -> tuple[tuple[Assignment, ...], tuple[sp.Expr, ...]]:
     """CSE a straight-line program and its outputs, keeping evaluation order valid.
 
     One ``sympy.cse`` pass sees every right-hand side and output. A common
@@ -181,7 +183,7 @@ def ordered_cse(assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
     for (sym, _), value in zip(kept, reduced[: len(kept)], strict=True):
         need(value)
         order.append((sym, value))
-    for value in reduced[len(kept):]:
+    for value in reduced[len(kept) :]:
         need(value)
     renames: dict[sp.Symbol, sp.Expr] = {}
     body: list[Assignment] = []
@@ -189,16 +191,21 @@ def ordered_cse(assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
         new = sp.Symbol(f"_t{index}", real=True)
         body.append((new, value.xreplace(renames)))
         renames[sym] = new
-    return tuple(body), tuple(e.xreplace(renames) for e in reduced[len(kept):])
+    return tuple(body), tuple(e.xreplace(renames) for e in reduced[len(kept) :])
 
 
 def _cse_index(sym: sp.Symbol) -> int:
-    return int(sym.name[len("_cse"):])
+    return int(sym.name[len("_cse") :])
 
 
-def _kernel(name: str, doc: str, inputs: Sequence[Arg], assignments: Sequence[Assignment],
-            outputs: Sequence[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]],
-            subs: Mapping[sp.Symbol, sp.Expr]) -> Kernel:
+def _kernel(
+    name: str,
+    doc: str,
+    inputs: Sequence[Arg],
+    assignments: Sequence[Assignment],
+    outputs: Sequence[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]],
+    subs: Mapping[sp.Symbol, sp.Expr],
+) -> Kernel:
     """Substitute slot symbols, CSE, and package a kernel."""
     program = [(sym, sp.sympify(value).xreplace(subs)) for sym, value in assignments]
     flat = [sp.sympify(e).xreplace(subs) for _, _, exprs, _ in outputs for e in exprs]
@@ -207,7 +214,7 @@ def _kernel(name: str, doc: str, inputs: Sequence[Arg], assignments: Sequence[As
     packed: list[Output] = []
     start = 0
     for out_name, shape, exprs, out_doc in outputs:
-        packed.append(Output(out_name, shape, reduced[start:start + len(exprs)], out_doc))
+        packed.append(Output(out_name, shape, reduced[start : start + len(exprs)], out_doc))
         start += len(exprs)
     allowed = {s for arg in inputs for s in arg.symbols} | {sym for sym, _ in body}
     allowed.add(sp.Symbol("t", real=True))
@@ -215,8 +222,15 @@ def _kernel(name: str, doc: str, inputs: Sequence[Arg], assignments: Sequence[As
         stray = expr.free_symbols - allowed
         if stray:
             raise AssertionError(f"kernel {name}: unbound symbols {sorted(map(str, stray))}")
-    return Kernel(name, doc, tuple(inputs), body, tuple(packed),
-                  _ops([v for _, v in body] + list(reduced)), before)
+    return Kernel(
+        name,
+        doc,
+        tuple(inputs),
+        body,
+        tuple(packed),
+        _ops([v for _, v in body] + list(reduced)),
+        before,
+    )
 
 
 def lower(derivation: Derivation) -> KernelSet:
@@ -237,7 +251,6 @@ def lower(derivation: Derivation) -> KernelSet:
     model = d.model
     m, k = len(model.u), d.k
     n = len(d.states)
-    t = model.t
     s_slots, p_slots = _slots("s", n), _slots("p", len(model.params))
     a_slots, y_slots = _slots("a", k), _slots("y", m)
     w_slots, z_slots = _slots("w", m), _slots("z", m)
@@ -254,8 +267,9 @@ def lower(derivation: Derivation) -> KernelSet:
     subs |= dict(zip(model.params, p_slots, strict=True))
 
     signal_block = [
-        (d.signal_jet[l][q], d.signal_jet_values[l][q])
-        for l in range(len(model.signals)) for q in range(k + 1)
+        (d.signal_jet[li][q], d.signal_jet_values[li][q])
+        for li in range(len(model.signals))
+        for q in range(k + 1)
     ]
     y_block = [(d.y_jet[i][j], d.y_jet_values[i][j]) for i in range(m) for j in range(k)]
     jet_block = list(d.jet_program.assignments)
@@ -266,22 +280,31 @@ def lower(derivation: Derivation) -> KernelSet:
         for i in range(m)
     ]
     jet = _kernel(
-        "jet", "Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest",
+        "jet",
+        "Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest",
         [arg_t, arg_s, arg_p, arg_a],
         signal_block + y_block + jet_block + list(d.rest_program.assignments),
-        [("hessian", (m, m), hess, "grad_yy f0"),
-         ("jet_rhs", (m,), jet_rhs, "sum_i a_i grad^(i) f0 - rest")],
+        [
+            ("hessian", (m, m), hess, "grad_yy f0"),
+            ("jet_rhs", (m,), jet_rhs, "sum_i a_i grad^(i) f0 - rest"),
+        ],
         subs,
     )
 
     v = []
     for i in range(m):
-        v.append(subs[d.states[d.state_names.index(d.padding[i][0])]] if d.padding[i] else z_slots[i])
+        v.append(
+            subs[d.states[d.state_names.index(d.padding[i][0])]] if d.padding[i] else z_slots[i]
+        )
     decoupling = _kernel(
-        "decoupling", "Decoupling matrix R and b = v - p, so that R w = b linearizes the plant",
-        [arg_t, arg_s, arg_p, arg_z], [],
-        [("R", (m, m), list(d.R), "decoupling matrix"),
-         ("b", (m,), [v[i] - d.p[i] for i in range(m)], "v - p")],
+        "decoupling",
+        "Decoupling matrix R and b = v - p, so that R w = b linearizes the plant",
+        [arg_t, arg_s, arg_p, arg_z],
+        [],
+        [
+            ("R", (m, m), list(d.R), "decoupling matrix"),
+            ("b", (m,), [v[i] - d.p[i] for i in range(m)], "v - p"),
+        ],
         subs,
     )
 
@@ -295,28 +318,52 @@ def lower(derivation: Derivation) -> KernelSet:
     # A prolonged input is a state of the extension; the others are inputs w directly.
     plant_input = [uj if uj.name in ext.states else w_slots[j] for j, uj in enumerate(model.u)]
     closed_loop = _kernel(
-        "closed_loop", "Closed-loop vector field and the plant input",
-        [arg_t, arg_s, arg_p, arg_w, arg_z], [],
-        [("ds", (n,), ds, "time derivative of the closed-loop state"),
-         ("u", (m,), plant_input, "plant input")],
+        "closed_loop",
+        "Closed-loop vector field and the plant input",
+        [arg_t, arg_s, arg_p, arg_w, arg_z],
+        [],
+        [
+            ("ds", (n,), ds, "time derivative of the closed-loop state"),
+            ("u", (m,), plant_input, "plant input"),
+        ],
         subs,
     )
 
     optimality = _kernel(
-        "optimality", "Optimality error E: row j is grad^(j) f0",
+        "optimality",
+        "Optimality error E: row j is grad^(j) f0",
         [arg_t, arg_s, arg_p],
         signal_block + y_block + jet_block,
-        [("E", (k, m), [d.grad_jet[j][i] for j in range(k) for i in range(m)],
-          "grad^(j) f0")],
+        [("E", (k, m), [d.grad_jet[j][i] for j in range(k) for i in range(m)], "grad^(j) f0")],
         subs,
     )
 
     y_subs = dict(subs) | dict(zip(model.y, y_slots, strict=True))
-    signal0 = [(d.signal_jet[l][0], d.signal_jet_values[l][0]) for l in range(len(model.signals))]
-    objective = _kernel("objective", "The objective f0(y, t)", [arg_t, arg_y, arg_p], signal0,
-                        [("f0", (), [model.f0], "f0")], y_subs)
-    gradient = _kernel("gradient", "grad_y f0(y, t)", [arg_t, arg_y, arg_p], signal0,
-                       [("grad", (m,), list(d.gradient), "grad_y f0")], y_subs)
-    hessian = _kernel("hessian", "grad_yy f0(y, t)", [arg_t, arg_y, arg_p], signal0,
-                      [("hess", (m, m), hess, "grad_yy f0")], y_subs)
+    signal0 = [
+        (d.signal_jet[li][0], d.signal_jet_values[li][0]) for li in range(len(model.signals))
+    ]
+    objective = _kernel(
+        "objective",
+        "The objective f0(y, t)",
+        [arg_t, arg_y, arg_p],
+        signal0,
+        [("f0", (), [model.f0], "f0")],
+        y_subs,
+    )
+    gradient = _kernel(
+        "gradient",
+        "grad_y f0(y, t)",
+        [arg_t, arg_y, arg_p],
+        signal0,
+        [("grad", (m,), list(d.gradient), "grad_y f0")],
+        y_subs,
+    )
+    hessian = _kernel(
+        "hessian",
+        "grad_yy f0(y, t)",
+        [arg_t, arg_y, arg_p],
+        signal0,
+        [("hess", (m, m), hess, "grad_yy f0")],
+        y_subs,
+    )
     return KernelSet(d, (jet, decoupling, closed_loop, optimality, objective, gradient, hessian))

@@ -57,9 +57,12 @@ def _derivative(expr: sp.Expr, rates: Mapping[sp.Symbol, sp.Expr]) -> sp.Expr:
     return total
 
 
-def total_derivative(program: Program, outputs: Sequence[sp.Expr],
-                     rates: Mapping[sp.Symbol, sp.Expr],
-                     names: Iterator[sp.Symbol]) -> tuple[Program, tuple[sp.Expr, ...], dict[sp.Symbol, sp.Expr]]:
+def total_derivative(
+    program: Program,
+    outputs: Sequence[sp.Expr],
+    rates: Mapping[sp.Symbol, sp.Expr],
+    names: Iterator[sp.Symbol],
+) -> tuple[Program, tuple[sp.Expr, ...], dict[sp.Symbol, sp.Expr]]:
     """Differentiate a program and its outputs along given rates of its free symbols.
 
     Parameters
@@ -104,7 +107,9 @@ def total_derivative(program: Program, outputs: Sequence[sp.Expr],
     return Program(tuple(new)), derived, moving
 
 
-def cse_program(exprs: Sequence[sp.Expr], names: Iterator[sp.Symbol]) -> tuple[Program, tuple[sp.Expr, ...]]:
+def cse_program(
+    exprs: Sequence[sp.Expr], names: Iterator[sp.Symbol]
+) -> tuple[Program, tuple[sp.Expr, ...]]:
     """Common-subexpression elimination of a list of expressions into a program.
 
     Parameters
@@ -123,8 +128,9 @@ def cse_program(exprs: Sequence[sp.Expr], names: Iterator[sp.Symbol]) -> tuple[P
     return Program(tuple(replacements)), tuple(reduced)
 
 
-def rename(program: Program, outputs: Sequence[sp.Expr],
-           namer: Callable[[], sp.Symbol]) -> tuple[Program, tuple[sp.Expr, ...]]:
+def rename(
+    program: Program, outputs: Sequence[sp.Expr], namer: Callable[[], sp.Symbol]
+) -> tuple[Program, tuple[sp.Expr, ...]]:
     """Rename a program's symbols in order with ``namer`` (for deterministic temporaries)."""
     mapping: dict[sp.Symbol, sp.Expr] = {}
     out: list[Assignment] = []

@@ -1,5 +1,7 @@
-"""Pure mathematics of feedback linearization: Lie derivatives, vector relative degree,
-the decoupling matrix, dynamic extension by input integrators, and Brunovsky forms.
+"""Pure mathematics of feedback linearization.
+
+Lie derivatives, vector relative degree, the decoupling matrix, dynamic extension by
+input integrators, and Brunovsky forms.
 
 Nothing here knows about spec files. "Identically zero" is decided exactly where the
 expression is structurally zero and otherwise by evaluation at random points
@@ -31,8 +33,13 @@ class Sampler:
         Seed of the generator; fixed so that every run decides the same way.
     """
 
-    def __init__(self, symbols: Sequence[sp.Symbol], fixed: Mapping[sp.Symbol, float],
-                 points: int = 8, seed: int = 20191127) -> None:
+    def __init__(
+        self,
+        symbols: Sequence[sp.Symbol],
+        fixed: Mapping[sp.Symbol, float],
+        points: int = 8,
+        seed: int = 20191127,
+    ) -> None:
         rng = np.random.default_rng(seed)
         # Values away from 0 and +-1 avoid the special points of trigonometric and
         # polynomial expressions that could make a nonzero function vanish by chance.
@@ -118,8 +125,13 @@ def extension_state_names(input_name: str, count: int) -> list[str]:
     return [input_name] + [f"{input_name}_d{j}" for j in range(1, count)]
 
 
-def extend(x: Sequence[sp.Symbol], u: Sequence[sp.Symbol], f: sp.MatrixBase, G: sp.MatrixBase,
-           counts: Mapping[str, int]) -> Extension:
+def extend(
+    x: Sequence[sp.Symbol],
+    u: Sequence[sp.Symbol],
+    f: sp.MatrixBase,
+    G: sp.MatrixBase,
+    counts: Mapping[str, int],
+) -> Extension:
     """Prolong inputs by integrator chains (the paper's dynamic extension).
 
     An input ``v`` with ``q`` integrators becomes the state ``v`` of the chain
@@ -200,8 +212,9 @@ class RelativeDegree:
     R: sp.ImmutableMatrix | None
 
 
-def relative_degree(f: sp.MatrixBase, G: sp.MatrixBase, h: sp.MatrixBase,
-                    x: Sequence[sp.Symbol], sampler: Sampler) -> RelativeDegree:
+def relative_degree(
+    f: sp.MatrixBase, G: sp.MatrixBase, h: sp.MatrixBase, x: Sequence[sp.Symbol], sampler: Sampler
+) -> RelativeDegree:
     """Compute the vector relative degree (paper, Definition 1) and R, p, Phi.
 
     Parameters
@@ -246,7 +259,9 @@ def brunovsky(degrees: Sequence[int]) -> tuple[sp.ImmutableMatrix, sp.ImmutableM
     blocks_b = []
     for r in degrees:
         blocks_a.append(sp.Matrix(r, r, lambda i, j: 1 if j == i + 1 else 0))
-        blocks_b.append(sp.Matrix(r, 1, lambda i, _j: 1 if i == r - 1 else 0))
+        column = sp.zeros(r, 1)
+        column[r - 1] = 1
+        blocks_b.append(column)
     return sp.ImmutableMatrix(sp.diag(*blocks_a)), sp.ImmutableMatrix(sp.diag(*blocks_b))
 
 
@@ -254,11 +269,16 @@ def generic_rank(matrix: sp.MatrixBase, sampler: Sampler) -> int:
     """Generic rank of a matrix function: its largest numerical rank at the samples."""
     rows, cols = matrix.shape
     values = np.stack(
-        [np.stack([sampler.evaluate(matrix[i, j]) for j in range(cols)], axis=-1)
-         for i in range(rows)], axis=-2,
+        [
+            np.stack([sampler.evaluate(matrix[i, j]) for j in range(cols)], axis=-1)
+            for i in range(rows)
+        ],
+        axis=-2,
     )
     best = 0
     for point in values:
         if np.all(np.isfinite(point)):
-            best = max(best, int(np.linalg.matrix_rank(point, tol=1e-9 * max(1.0, np.abs(point).max()))))
+            best = max(
+                best, int(np.linalg.matrix_rank(point, tol=1e-9 * max(1.0, np.abs(point).max())))
+            )
     return best

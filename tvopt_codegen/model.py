@@ -90,7 +90,8 @@ def build_model(spec: Spec) -> Model:
     u = tuple(symbol(n) for n in spec.inputs)
     if len(spec.inputs) != len(spec.outputs):
         raise AssumptionError(
-            spec.source, "system.outputs",
+            spec.source,
+            "system.outputs",
             f"the plant has {len(spec.inputs)} inputs but {len(spec.outputs)} outputs; the "
             "method needs as many outputs as inputs",
         )
@@ -102,7 +103,8 @@ def build_model(spec: Spec) -> Model:
             for uk in u:
                 if not _is_zero(sp.diff(gij, uk)):
                     raise SpecError(
-                        spec.source, f"system.dynamics.{state}",
+                        spec.source,
+                        f"system.dynamics.{state}",
                         f"not affine in the inputs: the coefficient of {spec.inputs[j]!r} "
                         f"depends on input {str(uk)!r}",
                     )

@@ -32,8 +32,8 @@ C_LIBRARY_NAMES = frozenset(
     "log1p log2 logb lrint lround modf nan nearbyint nextafter pow remainder remquo rint round "
     "scalbln scalbn sin sinh sqrt tan tanh tgamma trunc isfinite isnan isinf "
     "signbit fpclassify NAN INFINITY HUGE_VAL errno assert abs exit main malloc free memcpy "
-    "memset printf size_t NULL int8_t int16_t int32_t int64_t uint8_t uint16_t uint32_t uint64_t"
-    .split()
+    "memset printf size_t NULL int8_t int16_t int32_t int64_t uint8_t uint16_t uint32_t "
+    "uint64_t".split()
 )
 
 #: Names the spec language reserves: ``t`` is time in every expression. (Generated code

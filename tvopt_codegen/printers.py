@@ -18,8 +18,9 @@ class PythonPrinter(NumPyPrinter):  # type: ignore[misc]
     """
 
     def __init__(self) -> None:
-        super().__init__({"strict": True, "fully_qualified_modules": True,
-                          "allow_unknown_functions": False})
+        super().__init__(
+            {"strict": True, "fully_qualified_modules": True, "allow_unknown_functions": False}
+        )
 
     def _print_Pow(self, expr: sp.Pow, rational: bool = False) -> str:
         """Customizations.

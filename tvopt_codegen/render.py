@@ -141,8 +141,16 @@ def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
             for index, e in zip(indices, out.exprs, strict=True)
         )
         outputs.append(PrintedOutput(out.name, out.doc, out.shape, elements))
-    return PrintedKernel(kernel.name, kernel.doc, tuple(args), batch, body, tuple(outputs),
-                         kernel.ops, kernel.ops_before_cse)
+    return PrintedKernel(
+        kernel.name,
+        kernel.doc,
+        tuple(args),
+        batch,
+        body,
+        tuple(outputs),
+        kernel.ops,
+        kernel.ops_before_cse,
+    )
 
 
 def _indices(shape: tuple[int, ...]) -> list[tuple[int, ...]]:

@@ -140,7 +140,9 @@ def read_spec_bytes(spec: str | Path) -> tuple[str, bytes]:
     if path.is_file():
         size = path.stat().st_size
         if size > MAX_SPEC_BYTES:
-            raise SpecError(str(spec), "(file)", f"file is {size} bytes; the limit is {MAX_SPEC_BYTES}")
+            raise SpecError(
+                str(spec), "(file)", f"file is {size} bytes; the limit is {MAX_SPEC_BYTES}"
+            )
         try:
             return str(spec), path.read_bytes()
         except OSError as exc:
@@ -153,7 +155,9 @@ def read_spec_bytes(spec: str | Path) -> tuple[str, bytes]:
     if name.isidentifier() and candidate.is_file():
         return f"{name}.toml{BUNDLED_SUFFIX}", candidate.read_bytes()
     known = ", ".join(bundled_examples())
-    raise SpecError(str(spec), "(file)", f"no such file, and no bundled example of that name ({known})")
+    raise SpecError(
+        str(spec), "(file)", f"no such file, and no bundled example of that name ({known})"
+    )
 
 
 def load_spec(spec: str | Path) -> Spec:
@@ -223,7 +227,9 @@ class _Reader:
         for key in data:
             if key not in allowed:
                 hint = ", ".join(sorted(allowed))
-                raise self.fail(f"{field}.{key}" if field else key, f"unknown key (expected one of: {hint})")
+                raise self.fail(
+                    f"{field}.{key}" if field else key, f"unknown key (expected one of: {hint})"
+                )
         for key in sorted(required):
             if key not in data:
                 raise self.fail(f"{field}.{key}" if field else key, "missing required key")
@@ -272,8 +278,12 @@ class _Reader:
             raise self.fail("description", "longer than 4000 characters")
 
         system = self.sub(data, "system", "system")
-        self.table(system, "system", {"states", "inputs", "dynamics", "outputs"},
-                   {"states", "inputs", "dynamics", "outputs"})
+        self.table(
+            system,
+            "system",
+            {"states", "inputs", "dynamics", "outputs"},
+            {"states", "inputs", "dynamics", "outputs"},
+        )
         states = self.name_list(system["states"], "system.states")
         inputs = self.name_list(system["inputs"], "system.inputs")
         outputs_table = self.sub(system, "outputs", "system.outputs")
@@ -286,7 +296,8 @@ class _Reader:
                 raise self.fail(f"system.outputs.{out}", problem)
         parameters_table = self.sub(data, "parameters", "parameters")
         parameters = tuple(
-            (key, self.number(value, f"parameters.{key}")) for key, value in parameters_table.items()
+            (key, self.number(value, f"parameters.{key}"))
+            for key, value in parameters_table.items()
         )
         for key, _ in parameters:
             problem = name_problem(key)
@@ -308,7 +319,9 @@ class _Reader:
         dynamics = []
         for state in states:
             if state not in dynamics_table:
-                raise self.fail(f"system.dynamics.{state}", "missing right-hand side for this state")
+                raise self.fail(
+                    f"system.dynamics.{state}", "missing right-hand side for this state"
+                )
             dynamics.append(
                 self.expression(dynamics_table[state], f"system.dynamics.{state}", plant_names)
             )
@@ -329,7 +342,9 @@ class _Reader:
         objective_table = self.sub(data, "objective", "objective")
         self.table(objective_table, "objective", {"f0"}, {"f0"})
         objective_names: dict[str, sp.Expr] = (
-            {"t": TIME} | param_syms | {o: symbol(o) for o in outputs}
+            {"t": TIME}
+            | param_syms
+            | {o: symbol(o) for o in outputs}
             | {key: symbol(key) for key, _ in signals}
         )
         objective = self.expression(objective_table["f0"], "objective.f0", objective_names)
@@ -357,26 +372,37 @@ class _Reader:
             initial_state=initial_state,
         )
 
-    def check_unique(self, states: tuple[str, ...], inputs: tuple[str, ...],
-                     outputs: tuple[str, ...], parameters: Mapping[str, Any],
-                     signals: Mapping[str, Any]) -> None:
+    def check_unique(
+        self,
+        states: tuple[str, ...],
+        inputs: tuple[str, ...],
+        outputs: tuple[str, ...],
+        parameters: Mapping[str, Any],
+        signals: Mapping[str, Any],
+    ) -> None:
         """Every name is declared once across all five kinds (case-insensitively)."""
         seen: dict[str, str] = {}
         groups = [
-            ("system.states", states), ("system.inputs", inputs), ("system.outputs", outputs),
-            ("parameters", tuple(parameters)), ("signals", tuple(signals)),
+            ("system.states", states),
+            ("system.inputs", inputs),
+            ("system.outputs", outputs),
+            ("parameters", tuple(parameters)),
+            ("signals", tuple(signals)),
         ]
         for field, names in groups:
             for name in names:
                 folded = name.casefold()
                 if folded in seen:
                     raise self.fail(
-                        f"{field}.{name}", f"name already declared in {seen[folded]} (names must "
-                        "be unique, ignoring case)"
+                        f"{field}.{name}",
+                        f"name already declared in {seen[folded]} (names must "
+                        "be unique, ignoring case)",
                     )
                 seen[folded] = field
 
-    def read_extension(self, data: Mapping[str, Any], inputs: tuple[str, ...]) -> tuple[tuple[str, int], ...]:
+    def read_extension(
+        self, data: Mapping[str, Any], inputs: tuple[str, ...]
+    ) -> tuple[tuple[str, int], ...]:
         table = self.sub(data, "extension", "extension")
         self.table(table, "extension", {"integrate"}, set())
         integrate = self.sub(table, "integrate", "extension.integrate")
@@ -400,7 +426,9 @@ class _Reader:
         if "coefficients" in table:
             values = table["coefficients"]
             if not isinstance(values, list) or not values:
-                raise self.fail("error_dynamics.coefficients", "expected a non-empty list of numbers")
+                raise self.fail(
+                    "error_dynamics.coefficients", "expected a non-empty list of numbers"
+                )
             return None, tuple(
                 self.number(v, f"error_dynamics.coefficients[{i}]") for i, v in enumerate(values)
             )
@@ -421,7 +449,9 @@ class _Reader:
                 poles.append(complex(self.number(value, field), 0.0))
         return tuple(poles), None
 
-    def read_simulation(self, data: Mapping[str, Any]) -> tuple[float, tuple[tuple[str, float], ...]]:
+    def read_simulation(
+        self, data: Mapping[str, Any]
+    ) -> tuple[float, tuple[tuple[str, float], ...]]:
         table = self.sub(data, "simulation", "simulation")
         self.table(table, "simulation", {"t_final", "initial_state"}, set())
         t_final = self.number(table.get("t_final", 10.0), "simulation.t_final")
@@ -429,5 +459,6 @@ class _Reader:
             raise self.fail("simulation.t_final", "must be positive")
         initial = self.sub(table, "initial_state", "simulation.initial_state")
         return t_final, tuple(
-            (key, self.number(value, f"simulation.initial_state.{key}")) for key, value in initial.items()
+            (key, self.number(value, f"simulation.initial_state.{key}"))
+            for key, value in initial.items()
         )

@@ -43,31 +43,41 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
         f"{len(spec.outputs)} outputs ({', '.join(spec.outputs)})"
     )
     if d.extension.counts:
-        added = "; ".join(
-            f"{name} integrated {count}x" for name, count in d.extension.counts
+        added = "; ".join(f"{name} integrated {count}x" for name, count in d.extension.counts)
+        lines.append(
+            f"  extension: {added}; new states {', '.join(d.extension.states)}; "
+            f"inputs of the extended plant {', '.join(d.extension.inputs)}"
         )
-        lines.append(f"  extension: {added}; new states {', '.join(d.extension.states)}; "
-                     f"inputs of the extended plant {', '.join(d.extension.inputs)}")
     else:
         lines.append("  extension: none (static feedback linearization)")
     degrees = ", ".join(f"{o}: {r}" for o, r in zip(spec.outputs, d.relative_degree, strict=True))
     kind = "uniform" if d.uniform else "non-uniform, padded"
-    lines.append(f"  relative degree: {degrees}  (sum {sum(d.relative_degree)} = n; "
-                 f"{kind}; k = {d.k})")
+    lines.append(
+        f"  relative degree: {degrees}  (sum {sum(d.relative_degree)} = n; {kind}; k = {d.k})"
+    )
     pads = [name for chain in d.padding for name in chain]
     lines.append(f"  padding states: {', '.join(pads) if pads else 'none'}")
     lines.append(f"  closed-loop state: {', '.join(d.state_names)}")
     if d.det_R is not None:
-        where = f"singular where {'; '.join(d.singular_set)}" if d.singular_set else "never singular"
+        where = (
+            f"singular where {'; '.join(d.singular_set)}" if d.singular_set else "never singular"
+        )
         lines.append(f"  det R = {sp.sstr(d.det_R)}; {where}")
     else:
-        lines.append("  det R: not expanded symbolically (m > 4); singularity is checked at run "
-                     "time by pivoting")
-    lines.append(f"  f0: strongly convex ({d.convexity.method}, m_f ~ "
-                 f"{_number(d.convexity.m_f)} over {d.convexity.points} point(s))")
+        lines.append(
+            "  det R: not expanded symbolically (m > 4); singularity is checked at run "
+            "time by pivoting"
+        )
     lines.append(
-        "  error dynamics: poles " + ", ".join(_pole(p) for p in d.eigenvalues)
-        + "; a = (" + ", ".join(_number(a) for a in d.coefficients) + ")"
+        f"  f0: strongly convex ({d.convexity.method}, m_f ~ "
+        f"{_number(d.convexity.m_f)} over {d.convexity.points} point(s))"
+    )
+    lines.append(
+        "  error dynamics: poles "
+        + ", ".join(_pole(p) for p in d.eigenvalues)
+        + "; a = ("
+        + ", ".join(_number(a) for a in d.coefficients)
+        + ")"
         + f"; decay rate alpha = {_number(d.decay_rate)}"
     )
     law = "uniform relative degree theorem" if d.uniform else "non-uniform theorem (xi chains)"

@@ -1,0 +1,155 @@
+"""The command line: outputs, exit codes, and nothing written on failure."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tvopt_codegen.cli import main
+from tvopt_codegen.errors import EXIT_ASSUMPTION, EXIT_BAD_SPEC, EXIT_OUTPUT
+
+from .conftest import ROOT, write_spec
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())} if folder.exists() else {}
+
+
+def test_generate_writes_an_importable_module(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "build"
+    assert main(["generate", "unicycle_switch", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "det R = v; singular where v = 0" in printed
+    assert f"written: {out}/unicycle_switch.py" in printed
+    code = (
+        "import numpy, unicycle_switch as m; from scipy.integrate import solve_ivp; "
+        "r = solve_ivp(m.rhs, (0, 1), m.DEFAULT_STATE); print(r.success)"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=out, capture_output=True, text=True, check=True
+    )
+    assert done.stdout.strip() == "True"
+
+
+def test_check_prints_summary_and_writes_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    before = snapshot(tmp_path)
+    cwd = os.getcwd()
+    os.chdir(tmp_path)
+    try:
+        assert main(["check", "two_unicycles_barrier"]) == 0
+    finally:
+        os.chdir(cwd)
+    text = capsys.readouterr().out
+    assert "relative degree: pa: 2, qa: 2, pb: 2, qb: 2" in text
+    assert "extension: va integrated 1x; vb integrated 1x" in text
+    assert "poles -1.5, -1" in text
+    assert snapshot(tmp_path) == before
+
+
+def test_examples_lists_bundled_specs(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["examples"]) == 0
+    text = capsys.readouterr().out
+    for name in ("integrator", "unicycle_switch", "two_unicycles_barrier"):
+        assert name in text
+
+
+@pytest.mark.parametrize(
+    ("mutation", "code", "message"),
+    [
+        (
+            ('x1 = "v*cos(theta)"', 'x1 = "v*cos(theta"'),
+            EXIT_BAD_SPEC,
+            "system.dynamics.x1: column",
+        ),
+        (('theta = "omega"', 'theta = "omega*v"'), EXIT_BAD_SPEC, "not affine"),
+        (("integrate = { v = 1 }", ""), EXIT_ASSUMPTION, "integrate = { v = 1 }"),
+        (("poles = [-1.0, -1.5]", "poles = [-1.0, 1.5]"), EXIT_ASSUMPTION, "not Hurwitz"),
+    ],
+)
+def test_errors_exit_with_one_line_and_write_nothing(
+    tmp_path: Path,
+    unicycle_text: str,
+    capsys: pytest.CaptureFixture[str],
+    mutation: tuple[str, str],
+    code: int,
+    message: str,
+) -> None:
+    text = unicycle_text.replace(*mutation)
+    if mutation[0].startswith("integrate"):
+        text = text.replace(", v = 1.0 }", " }")
+    spec = write_spec(tmp_path, text)
+    out = tmp_path / "out"
+    assert main(["generate", str(spec), "--out", str(out)]) == code
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0] and lines[0].startswith("tvopt-codegen: error: ")
+    assert not out.exists()
+
+
+def test_edited_file_is_never_overwritten_without_force(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    assert main(["generate", "integrator", "--out", str(out), "--quiet"]) == 0
+    target = out / "integrator.py"
+    assert main(["generate", "integrator", "--out", str(out), "--quiet"]) == 0  # unchanged: fine
+    edited = target.read_text().replace("PIVOT_TOLERANCE = 1e-12", "PIVOT_TOLERANCE = 1e-9")
+    target.write_text(edited)
+    assert main(["generate", "integrator", "--out", str(out), "--quiet"]) == EXIT_OUTPUT
+    assert target.read_text() == edited
+    assert main(["generate", "integrator", "--out", str(out), "--quiet", "--force"]) == 0
+    assert "PIVOT_TOLERANCE = 1e-12" in target.read_text()
+
+
+def test_a_users_own_file_is_never_overwritten(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "integrator.py").write_text("# my own notes\n")
+    assert main(["generate", "integrator", "--out", str(out), "--quiet"]) == EXIT_OUTPUT
+    assert (out / "integrator.py").read_text() == "# my own notes\n"
+    assert [p.name for p in out.iterdir()] == ["integrator.py"]  # no temporary litter
+
+
+def test_symlinked_target_is_refused(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    (out / "integrator.py").symlink_to(victim)
+    assert main(["generate", "integrator", "--out", str(out), "--quiet"]) == EXIT_OUTPUT
+    assert victim.read_text() == "precious"
+
+
+def test_python_dash_m_and_console_script(tmp_path: Path) -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "tvopt_codegen", "check", "integrator"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "k = 1" in done.stdout
+    bad = subprocess.run(
+        [sys.executable, "-m", "tvopt_codegen", "check", "no_such_spec"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        check=False,
+    )
+    assert bad.returncode == EXIT_BAD_SPEC
+    assert "Traceback" not in bad.stderr
+    assert bad.stderr.count("\n") == 1
+
+
+def test_demo_spec_file_path_works(tmp_path: Path) -> None:
+    spec = ROOT / "tvopt_codegen" / "examples" / "integrator.toml"
+    assert main(["generate", str(spec), "--out", str(tmp_path), "--quiet"]) == 0
+    assert (tmp_path / "integrator.py").exists()
