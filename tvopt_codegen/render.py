@@ -12,7 +12,6 @@ import functools
 import hashlib
 import re
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path, PurePath
 from typing import Any
 
@@ -35,11 +34,16 @@ class CodegenError(TvoptError):
 
 
 def template_dir() -> Path:
-    """The folder holding the templates: the checkout's ``templates/`` or the wheel's copy."""
-    checkout = Path(__file__).resolve().parent.parent / "templates"
-    if checkout.is_dir():
-        return checkout
-    return Path(str(resources.files("tvopt_codegen.templates")))
+    """The folder holding the templates: the checkout's ``templates/`` or the wheel's copy.
+
+    A wheel installs ``templates/`` as the data folder ``tvopt_codegen/templates``; a
+    source checkout (and an editable install) has it beside the package.
+    """
+    package = Path(__file__).resolve().parent
+    for candidate in (package.parent / "templates", package / "templates"):
+        if (candidate / "python").is_dir():
+            return candidate
+    raise CodegenError(f"templates not found beside {package}: the installation is incomplete")
 
 
 @functools.lru_cache(maxsize=1)
