@@ -16,7 +16,8 @@ import sympy as sp
 from tvopt_codegen.derivation import Derivation
 
 
-def _total_derivative(expr: sp.Expr, t: sp.Symbol, jets: list[list[sp.Symbol]]) -> sp.Expr:
+def naive_total_derivative(expr: sp.Expr, t: sp.Symbol, jets: list[list[sp.Symbol]]) -> sp.Expr:
+    """D expr = d/dt + sum_j y^(j+1) d/dy^(j), on one expression (swells; tests only)."""
     out = sp.diff(expr, t)
     for chain in jets:
         for j in range(len(chain) - 1):
@@ -37,7 +38,7 @@ class Oracle:
         f0 = f0.xreplace({model.y[i]: jets[i][0] for i in range(m)})
         grads = [[sp.diff(f0, jets[i][0]) for i in range(m)]]
         for _ in range(k):
-            grads.append([_total_derivative(g, t, jets) for g in grads[-1]])
+            grads.append([naive_total_derivative(g, t, jets) for g in grads[-1]])
         hess = [sp.diff(g, jets[j][0]) for g in grads[0] for j in range(m)]
         rest = [g.xreplace({jets[i][k]: 0 for i in range(m)}) for g in grads[k]]
         state_jet = {jets[i][j]: d.y_jet_values[i][j] for i in range(m) for j in range(k)}

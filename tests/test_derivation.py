@@ -16,6 +16,7 @@ from tvopt_codegen.jet import cse_program, fresh_symbols, total_derivative
 from tvopt_codegen.spec import load_spec
 
 from .conftest import SPECS, derivation, write_spec
+from .oracle import naive_total_derivative
 
 theta, v = sp.symbols("theta v", real=True)
 
@@ -97,14 +98,6 @@ def test_integrator_law_is_prediction_correction() -> None:
         assert np.allclose(np.array(got, dtype=float), np.array(want, dtype=float), rtol=1e-12)
 
 
-def _naive_total_derivative(expr: sp.Expr, t: sp.Symbol, jets: list[list[sp.Symbol]]) -> sp.Expr:
-    out = sp.diff(expr, t)
-    for chain in jets:
-        for j in range(len(chain) - 1):
-            out += sp.diff(expr, chain[j]) * chain[j + 1]
-    return out
-
-
 @pytest.mark.parametrize("k", [1, 2, 3, 4])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_jet_program_matches_the_papers_binomial_formula(k: int, seed: int) -> None:
@@ -135,9 +128,9 @@ def test_jet_program_matches_the_papers_binomial_formula(k: int, seed: int) -> N
     grad_t = sp.Matrix([sp.diff(g, t) for g in grad])
     grad_t_derivs = [grad_t]
     for _ in range(k - 1):
-        hess_derivs.append(hess_derivs[-1].applyfunc(lambda e: _naive_total_derivative(e, t, jets)))
+        hess_derivs.append(hess_derivs[-1].applyfunc(lambda e: naive_total_derivative(e, t, jets)))
         grad_t_derivs.append(
-            grad_t_derivs[-1].applyfunc(lambda e: _naive_total_derivative(e, t, jets))
+            grad_t_derivs[-1].applyfunc(lambda e: naive_total_derivative(e, t, jets))
         )
     paper = grad_t_derivs[k - 1]
     for m in range(k):

@@ -216,10 +216,9 @@ def _singular_set(det: sp.Expr) -> tuple[str, ...]:
 
 
 def _check_convexity(
-    derivation_inputs: tuple[Model, sp.ImmutableMatrix, Sequence[float], float], source: str
+    model: Model, hessian: sp.ImmutableMatrix, y0: Sequence[float], t_final: float, source: str
 ) -> Convexity:
     """Estimate the convexity modulus of f0 near the initial outputs, over the horizon."""
-    model, hessian, y0, t_final = derivation_inputs
     defaults = dict(zip(model.params, model.defaults, strict=True))
     signal_subs = {s: e for s, e in model.signals}
     concrete = hessian.xreplace(signal_subs).xreplace({k: sp.Float(v) for k, v in defaults.items()})
@@ -401,7 +400,7 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
     values = {sym: sp.Float(v) for sym, v in zip(states, initial, strict=True)}
     values |= {q: sp.Float(v) for q, v in defaults.items()}
     y0 = [float(h.xreplace(values)) for h in model.h]
-    convexity = _check_convexity((model, hessian, y0, spec.t_final), source)
+    convexity = _check_convexity(model, hessian, y0, spec.t_final, source)
     clock.mark("objective")
 
     say("gradient jet")

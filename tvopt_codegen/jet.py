@@ -11,7 +11,7 @@ constant factor per order and nothing is ever expanded.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 import sympy as sp
@@ -126,16 +126,3 @@ def cse_program(
     """
     replacements, reduced = sp.cse(list(exprs), symbols=names, order="canonical")
     return Program(tuple(replacements)), tuple(reduced)
-
-
-def rename(
-    program: Program, outputs: Sequence[sp.Expr], namer: Callable[[], sp.Symbol]
-) -> tuple[Program, tuple[sp.Expr, ...]]:
-    """Rename a program's symbols in order with ``namer`` (for deterministic temporaries)."""
-    mapping: dict[sp.Symbol, sp.Expr] = {}
-    out: list[Assignment] = []
-    for sym, value in program.assignments:
-        new = namer()
-        out.append((new, value.xreplace(mapping)))
-        mapping[sym] = new
-    return Program(tuple(out)), tuple(sp.sympify(e).xreplace(mapping) for e in outputs)

@@ -156,12 +156,10 @@ def extend(
     new_states: list[str] = []
     new_inputs: list[str] = []
     chain_rows: list[tuple[list[sp.Expr], int | None]] = []
-    columns: list[int] = []
     for j, uj in enumerate(u):
         q = counts.get(uj.name, 0)
         if q == 0:
             new_inputs.append(uj.name)
-            columns.append(j)
             continue
         names = extension_state_names(uj.name, q)
         chain = [sp.Symbol(nm, real=True) for nm in names]
@@ -171,7 +169,6 @@ def extend(
         for level in range(q):
             nxt = chain[level + 1] if level + 1 < q else sp.Integer(0)
             chain_rows.append(([nxt], j if level + 1 == q else None))
-        columns.append(j)
     total = n + len(new_states)
     G_ext = sp.zeros(total, len(u))
     for i in range(n):

@@ -90,9 +90,6 @@ def _power(base: sp.Expr, exponent: sp.Expr, column: int) -> sp.Expr:
             raise ExpressionError(column, f"exponent {exponent} exceeds {MAX_EXPONENT}")
         if base.is_Number and base == 0 and exponent.is_negative:
             raise ExpressionError(column, "zero raised to a negative power")
-    elif base.is_Number:
-        # A symbolic exponent on a numeric base (2**x) is smooth; nothing to bound.
-        pass
     return sp.Pow(base, exponent)
 
 
