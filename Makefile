@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 INSTALLED := $(VENV)/.installed
 EXAMPLES := integrator unicycle_switch two_unicycles_barrier
 
-.PHONY: all demo test lint typecheck check regen check-generated update-golden clean
+.PHONY: all demo figures test lint typecheck check regen check-generated update-golden clean
 
 all: test
 
@@ -17,10 +17,19 @@ $(INSTALLED): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev]'
 	touch $(INSTALLED)
 
-## demo: generate the bundled unicycle example into build/demo and show its summary
+## demo: generate the bundled unicycle example into build/demo, simulate it, check the theorem
 demo: $(INSTALLED)
 	mkdir -p build
 	$(PY) -m tvopt_codegen generate unicycle_switch --out build/demo
+	$(PY) -m tvopt_codegen simulate unicycle_switch --out build/demo
+
+## figures: regenerate the paper's Figs. 1-3 in docs/figures from the bundled examples
+figures: $(INSTALLED)
+	mkdir -p build/figures docs/figures
+	for name in $(EXAMPLES); do \
+	  $(PY) -m tvopt_codegen simulate $$name --out build/figures/$$name || exit 1; \
+	  cp build/figures/$$name/$${name}_paths.png build/figures/$$name/$${name}_convergence.png docs/figures/; \
+	done
 
 ## test: the whole test suite
 test: $(INSTALLED)

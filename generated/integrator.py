@@ -2,8 +2,8 @@
 # Do not edit by hand: edits are lost on regeneration, and tvopt-codegen refuses to
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
-# spec sha256: 38c653548cf46fc0a50f96d4e735792bceb689c797db22b9fcb6f68ab18eb3b3
-# content sha256: aa662588ba69a9e0c53c4af5c6d2075d660a00df9a27eb59614277e5491fa286
+# spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
+# content sha256: 667d55ab22959a0da25d726631401e74f3275d30103a1cb5d037b62b90471fc6
 # ruff: noqa
 """integrator: implicit trajectory planning controller.
 

@@ -2,8 +2,8 @@
 # Do not edit by hand: edits are lost on regeneration, and tvopt-codegen refuses to
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
-# spec sha256: ba89fd00869ec3e5bbf5766498bc3a3ee319bdb1f483adf7b4c8549a1f7a2561
-# content sha256: b22be546af286b8408991fe3dc05786ad7e1fa248a9125853790a740a163c56f
+# spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
+# content sha256: 4aeb91342e368b507845b1b54923d9c37a65e68f2365601307f794dcb101765a
 # ruff: noqa
 """two_unicycles_barrier: implicit trajectory planning controller.
 

@@ -2,8 +2,8 @@
 # Do not edit by hand: edits are lost on regeneration, and tvopt-codegen refuses to
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
-# spec sha256: 169dc85dbce149a182bdc97cd09dee5a1a4449908ffc0d51f965d408a9d54e97
-# content sha256: 365bd6455f909ba885fe285f0816081129bcaf28b8586d3af7110ecf7395d2c5
+# spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
+# content sha256: 7243d90ba044da6c9884a0bf4ed843e8c6cfcc8d01ef849ea41ea23d960b8e13
 # ruff: noqa
 """unicycle_switch: implicit trajectory planning controller.
 

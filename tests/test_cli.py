@@ -114,7 +114,7 @@ def test_a_users_own_file_is_never_overwritten(tmp_path: Path) -> None:
     (out / "integrator.py").write_text("# my own notes\n")
     assert main(["generate", "integrator", "--out", str(out), "--quiet"]) == EXIT_OUTPUT
     assert (out / "integrator.py").read_text() == "# my own notes\n"
-    assert [p.name for p in out.iterdir()] == ["integrator.py"]  # no temporary litter
+    assert [p.name for p in out.iterdir()] == ["integrator.py"]  # no temporary litter, no manifest
 
 
 def test_symlinked_target_is_refused(tmp_path: Path) -> None:

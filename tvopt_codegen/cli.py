@@ -1,22 +1,33 @@
 """Command-line interface: parse arguments, call the stages, map errors to exit codes.
 
-Exit codes: 0 success; 2 bad spec; 3 the system violates the method's assumptions;
-4 output could not be written; 130 interrupted.
+Exit codes: 0 success; 2 bad spec or command line; 3 the system violates the method's
+assumptions; 4 output could not be written; 5 the simulation's certificate failed;
+130 interrupted.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Sequence
 
 from tvopt_codegen import __version__
 from tvopt_codegen.backends import BACKENDS
 from tvopt_codegen.derivation import derive
-from tvopt_codegen.emit import write_files
-from tvopt_codegen.errors import TvoptError
+from tvopt_codegen.emit import prepare_folder, write_files
+from tvopt_codegen.errors import SpecError, TvoptError
 from tvopt_codegen.ir import lower
 from tvopt_codegen.render import render
+from tvopt_codegen.simulate import (
+    EXIT_CERTIFICATE,
+    METHODS,
+    format_certificate,
+    load_controller,
+    resolve_options,
+    result_files,
+    simulate,
+)
 from tvopt_codegen.spec import bundled_examples, load_spec
 from tvopt_codegen.summary import format_summary
 
@@ -27,7 +38,8 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="tvopt-codegen",
         description="Generate implicit trajectory planning controllers from a spec file.",
-        epilog="Exit codes: 0 ok, 2 bad spec, 3 assumptions violated, 4 output not written.",
+        epilog="Exit codes: 0 ok, 2 bad spec, 3 assumptions violated, 4 output not written, "
+        "5 certificate failed, 130 interrupted.",
     )
     parser.add_argument("--version", action="version", version=f"tvopt-codegen {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -52,7 +64,124 @@ def _parser() -> argparse.ArgumentParser:
     check.add_argument("spec", help="spec file, or the name of a bundled example")
 
     commands.add_parser("examples", help="list the bundled example specs")
+
+    sim = commands.add_parser(
+        "simulate", help="simulate the closed loop and check the theorem along the run"
+    )
+    sim.add_argument("spec", help="spec file, or the name of a bundled example")
+    sim.add_argument(
+        "--backend",
+        default="python",
+        choices=sorted(BACKENDS),
+        help="controller backend to simulate (default: python)",
+    )
+    sim.add_argument("--t-final", type=float, help="horizon (default: the spec's t_final)")
+    sim.add_argument(
+        "--initial",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="initial value of a state (repeatable)",
+    )
+    sim.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="parameter override (repeatable)",
+    )
+    sim.add_argument(
+        "--method",
+        default="RK45",
+        choices=METHODS,
+        help="solve_ivp method (default: RK45, Dormand-Prince, as in the paper)",
+    )
+    sim.add_argument("--rtol", type=float, default=1e-10, help="relative tolerance (1e-10)")
+    sim.add_argument("--atol", type=float, default=1e-12, help="absolute tolerance (1e-12)")
+    sim.add_argument("--points", type=int, default=401, help="output times (401)")
+    sim.add_argument(
+        "--tolerance",
+        type=float,
+        default=1e-6,
+        help="largest accepted relative deviation of E from expm(Ht) E(0)",
+    )
+    sim.add_argument("--out", default=".", help="output folder (default: current folder)")
+    sim.add_argument(
+        "--force",
+        action="store_true",
+        help="replace files that were edited by hand or not written here",
+    )
     return parser
+
+
+def _assignments(items: Sequence[str], option: str) -> dict[str, float]:
+    """Parse NAME=VALUE options into a mapping, one clear error per bad item."""
+    values: dict[str, float] = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        try:
+            if not sep or not name:
+                raise ValueError
+            value = float(text)
+        except ValueError:
+            raise SpecError("command line", option, f"expected NAME=VALUE, got {item!r}") from None
+        if not math.isfinite(value):
+            raise SpecError("command line", option, f"{name}: value must be finite")
+        values[name.strip()] = value
+    return values
+
+
+class _Progress:
+    """Simulated time on stderr: one updating line on a terminal, else one line each."""
+
+    def __init__(self) -> None:
+        self.shown = False
+
+    def __call__(self, t: float, t_final: float) -> None:
+        end = "\r" if sys.stderr.isatty() else "\n"
+        print(f"  simulated t = {t:.3f} of {t_final:g}", end=end, file=sys.stderr, flush=True)
+        self.shown = True
+
+    def close(self) -> None:
+        if self.shown and sys.stderr.isatty():
+            print(" " * 40, end="\r", file=sys.stderr, flush=True)
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    for option, value in (
+        ("--rtol", args.rtol),
+        ("--atol", args.atol),
+        ("--tolerance", args.tolerance),
+    ):
+        if not value > 0:
+            raise SpecError("command line", option, "must be positive")
+    if args.points < 3:
+        raise SpecError("command line", "--points", "must be at least 3")
+    derivation = derive(load_spec(args.spec))
+    options = resolve_options(
+        derivation,
+        args.t_final,
+        _assignments(args.initial, "--initial"),
+        _assignments(args.param, "--param"),
+        method=args.method,
+        rtol=args.rtol,
+        atol=args.atol,
+        points=args.points,
+        tolerance=args.tolerance,
+    )
+    prepare_folder(args.out)
+    controller = load_controller(lower(derivation))
+    progress = _Progress()
+    try:
+        result = simulate(derivation, controller, options, progress=progress)
+    finally:
+        progress.close()
+    files = result_files(derivation, result)
+    write_files(files, args.out, force=args.force)
+    print(format_certificate(derivation, result))
+    for name in files:
+        print(f"  wrote {args.out.rstrip('/')}/{name}")
+    return 0 if result.passed else EXIT_CERTIFICATE
 
 
 def run(argv: Sequence[str] | None = None) -> int:
@@ -62,6 +191,8 @@ def run(argv: Sequence[str] | None = None) -> int:
         for name, summary in bundled_examples().items():
             print(f"{name:24s} {summary}")
         return 0
+    if args.command == "simulate":
+        return _simulate(args)
     derivation = derive(load_spec(args.spec))
     kernels = lower(derivation)
     if args.command == "check":

@@ -74,6 +74,10 @@ class Spec:
         Simulation horizon.
     initial_state : tuple of (str, float)
         Initial values by state name, as written.
+    agents : tuple of (str, str)
+        Output pairs drawn as planar paths (default: consecutive output pairs).
+    objects : tuple of (str, str)
+        Signal pairs drawn as moving objects in the planar figure.
     """
 
     source: str
@@ -93,6 +97,8 @@ class Spec:
     coefficients: tuple[float, ...] | None
     t_final: float
     initial_state: tuple[tuple[str, float], ...]
+    agents: tuple[tuple[str, str], ...] = ()
+    objects: tuple[tuple[str, str], ...] = ()
 
 
 _TOP_KEYS = {
@@ -352,6 +358,11 @@ class _Reader:
         extension = self.read_extension(data, inputs)
         poles, coefficients = self.read_error_dynamics(data)
         t_final, initial_state = self.read_simulation(data)
+        simulation = data.get("simulation", {})
+        agents = self.pairs(simulation, "agents", set(outputs), "output")
+        if not agents and len(outputs) % 2 == 0:
+            agents = tuple((outputs[i], outputs[i + 1]) for i in range(0, len(outputs), 2))
+        objects = self.pairs(simulation, "objects", set(signals_table), "signal")
         return Spec(
             source=self.source,
             sha256=sha256,
@@ -370,6 +381,8 @@ class _Reader:
             coefficients=coefficients,
             t_final=t_final,
             initial_state=initial_state,
+            agents=agents,
+            objects=objects,
         )
 
     def check_unique(
@@ -449,11 +462,29 @@ class _Reader:
                 poles.append(complex(self.number(value, field), 0.0))
         return tuple(poles), None
 
+    def pairs(
+        self, table: Mapping[str, Any], key: str, known: set[str], kind: str
+    ) -> tuple[tuple[str, str], ...]:
+        """Read a list of name pairs, e.g. ``agents = [["y1", "y2"]]``."""
+        value = table.get(key, [])
+        field = f"simulation.{key}"
+        if not isinstance(value, list):
+            raise self.fail(field, "expected a list of [x, y] name pairs")
+        result = []
+        for index, pair in enumerate(value):
+            if not (isinstance(pair, list) and len(pair) == 2):
+                raise self.fail(f"{field}[{index}]", "expected a pair [x, y] of names")
+            for name in pair:
+                if name not in known:
+                    raise self.fail(f"{field}[{index}]", f"{name!r} is not a declared {kind}")
+            result.append((pair[0], pair[1]))
+        return tuple(result)
+
     def read_simulation(
         self, data: Mapping[str, Any]
     ) -> tuple[float, tuple[tuple[str, float], ...]]:
         table = self.sub(data, "simulation", "simulation")
-        self.table(table, "simulation", {"t_final", "initial_state"}, set())
+        self.table(table, "simulation", {"t_final", "initial_state", "agents", "objects"}, set())
         t_final = self.number(table.get("t_final", 10.0), "simulation.t_final")
         if t_final <= 0:
             raise self.fail("simulation.t_final", "must be positive")

@@ -1,0 +1,204 @@
+"""The simulate command: certificate, y*, output files, and failure modes."""
+
+from __future__ import annotations
+
+import csv
+import io
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tvopt_codegen import cli
+from tvopt_codegen import simulate as sim
+from tvopt_codegen.cli import main
+from tvopt_codegen.derivation import derive
+from tvopt_codegen.ir import lower
+from tvopt_codegen.spec import load_spec
+
+from .conftest import ALL_SPECS, derivation, module, write_spec
+
+
+@pytest.fixture(scope="module")
+def results() -> dict[str, sim.Result]:
+    out = {}
+    for spec in ALL_SPECS:
+        d = derivation(spec)
+        out[spec] = sim.simulate(d, module(spec), sim.resolve_options(d))
+    return out
+
+
+@pytest.mark.parametrize("spec", ALL_SPECS)
+def test_certificate_passes_for_every_example(results: dict[str, sim.Result], spec: str) -> None:
+    result = results[spec]
+    assert result.passed, result.failures
+    assert result.deviation < 1e-6
+    assert result.bound_ratio <= 1.0
+    assert result.error[-1] < 1e-3 * result.error[0]
+    assert result.fitted_rate == pytest.approx(result.alpha, rel=0.1)
+
+
+def test_target_matches_closed_form_integrator(results: dict[str, sim.Result]) -> None:
+    r = results["integrator"]
+    t = r.t
+    expected = np.array([2 + 0.8 * t - 0.05 * t**2, -1 + 0.5 * t + 0.02 * t**2 - 0.001 * t**3])
+    np.testing.assert_allclose(r.target, expected, atol=1e-8, rtol=0)
+
+
+def test_target_matches_closed_form_switching(results: dict[str, sim.Result]) -> None:
+    r = results["unicycle_switch"]
+    t = r.t
+    s = 0.5 - 0.5 * np.tanh((t - 10.0) / 1.5)
+    o1 = np.array([-5 + 0.6 * t - 0.01 * t**2, -5 + 0.5 * t + 0.02 * t**2 - 0.001 * t**3])
+    o2 = np.array([5 - 0.3 * t - 0.01 * t**2, -3 + 0.4 * t - 0.015 * t**2 + 0.0002 * t**3])
+    np.testing.assert_allclose(r.target, s * o1 + (1 - s) * o2, atol=1e-8, rtol=0)
+
+
+def test_theorem_constants(results: dict[str, sim.Result]) -> None:
+    r = results["unicycle_switch"]
+    # companion([-1.5, -2.5]) has eigenvalues -1, -1.5: distinct, so alpha is exact.
+    assert r.alpha == pytest.approx(1.0) and r.alpha_exact
+    assert r.c == pytest.approx(5.0990195, rel=1e-6)  # sup |expm(Ht)| e^t, computed
+    assert r.m_f == pytest.approx(2.0)
+    assert r.C == pytest.approx(r.c * np.linalg.norm(r.E[0]) / r.m_f)
+
+
+def test_wrong_controller_fails_the_certificate(
+    tmp_path: Path,
+    unicycle_text: str,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A controller built for other poles than the spec claims: E leaves expm(Ht) E(0)."""
+    wrong = load_spec(write_spec(tmp_path, unicycle_text.replace("[-1.0, -1.5]", "[-2.0, -3.0]")))
+    impostor = sim.load_controller(lower(derive(wrong)))
+    d = derivation("unicycle_switch")
+    result = sim.simulate(d, impostor, sim.resolve_options(d))
+    assert not result.passed
+    assert any("deviates from expm(H t) E(0)" in f for f in result.failures)
+
+    monkeypatch.setattr(cli, "load_controller", lambda kernels: impostor)
+    out = tmp_path / "out"
+    assert main(["simulate", "unicycle_switch", "--out", str(out)]) == sim.EXIT_CERTIFICATE
+    assert "certificate: FAILED" in capsys.readouterr().out
+    assert (out / "unicycle_switch_certificate.txt").read_text().count("FAILED") == 1
+
+
+def test_output_files_load_back(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "run"
+    assert main(["simulate", "integrator", "--out", str(out), "--points", "51"]) == 0
+    assert "certificate: PASSED" in capsys.readouterr().out
+    names = sorted(p.name for p in out.iterdir())
+    stems = ["paths", "convergence", "inputs"]
+    expected = [f"integrator_{s}.{f}" for s in stems for f in ("png", "svg")]
+    expected += [
+        "integrator_trajectory.csv",
+        "integrator_trajectory.npz",
+        "integrator_certificate.txt",
+        ".tvopt-manifest.json",
+    ]
+    assert names == sorted(expected)
+    rows = list(csv.reader(io.StringIO((out / "integrator_trajectory.csv").read_text())))
+    assert rows[0] == [
+        "t",
+        "x1",
+        "x2",
+        "u_u1",
+        "u_u2",
+        "y_y1",
+        "y_y2",
+        "ystar_y1",
+        "ystar_y2",
+        "E0_y1",
+        "E0_y2",
+    ]
+    assert len(rows) == 52 and all(len(r) == 11 for r in rows)
+    data = np.load(out / "integrator_trajectory.npz")
+    assert data["t"].shape == (51,)
+    assert data["states"].shape == (2, 51)
+    assert data["inputs"].shape == (2, 51)
+    assert data["y"].shape == data["y_star"].shape == (2, 51)
+    assert data["E"].shape == (51, 1, 2)
+    assert list(data["state_names"]) == ["x1", "x2"]
+    for stem in stems:
+        assert (out / f"integrator_{stem}.png").read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
+        root = ET.fromstring((out / f"integrator_{stem}.svg").read_bytes())
+        assert root.tag.endswith("svg")
+
+
+def test_command_line_overrides(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "o"
+    code = main(
+        [
+            "simulate",
+            "unicycle_switch",
+            "--out",
+            str(out),
+            "--t-final",
+            "4",
+            "--initial",
+            "x2=2.5",
+            "--param",
+            "a=2",
+            "--points",
+            "21",
+        ]
+    )
+    assert code == 0
+    data = np.load(out / "unicycle_switch_trajectory.npz")
+    assert data["t"][-1] == 4.0
+    assert data["states"][1, 0] == 2.5
+    capsys.readouterr()
+    for args, message in (
+        (["--initial", "phi=1"], "--initial: unknown state 'phi'"),
+        (["--param", "c=1"], "--param: unknown parameter 'c'"),
+        (["--param", "a"], "--param: expected NAME=VALUE"),
+        (["--t-final", "-1"], "--t-final: must be positive"),
+        (["--rtol", "0"], "--rtol: must be positive"),
+    ):
+        fresh = tmp_path / "never"
+        assert main(["simulate", "unicycle_switch", "--out", str(fresh), *args]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1
+        assert not fresh.exists()
+
+
+def test_interrupt_leaves_no_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "simulate", interrupted)
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    assert main(["simulate", "integrator", "--out", str(out)]) == 130
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
+    assert "interrupted" in capsys.readouterr().err
+
+
+def test_progress_is_reported_on_long_runs(monkeypatch: pytest.MonkeyPatch) -> None:
+    clock = iter(np.arange(0.0, 1e6, 0.7))
+    monkeypatch.setattr(sim.time, "perf_counter", lambda: float(next(clock)))
+    seen: list[tuple[float, float]] = []
+    d = derivation("integrator")
+    sim.simulate(
+        d,
+        module("integrator"),
+        sim.resolve_options(d, t_final=2.0, points=11),
+        progress=lambda t, total: seen.append((t, total)),
+    )
+    assert seen and all(total == 2.0 and 0 <= t <= 2.0 for t, total in seen)
+
+
+def test_rerun_replaces_its_own_outputs_but_not_edited_ones(tmp_path: Path) -> None:
+    out = tmp_path / "o"
+    args = ["simulate", "integrator", "--out", str(out), "--points", "11", "--t-final", "1"]
+    assert main(args) == 0
+    assert main([*args[:-1], "2"]) == 0  # different run, same names: its own files, replaced
+    csv_path = out / "integrator_trajectory.csv"
+    csv_path.write_text(csv_path.read_text() + "# my note\n")
+    assert main(args) == 4
+    assert csv_path.read_text().endswith("# my note\n")

@@ -1,0 +1,132 @@
+"""Figures of a simulated closed loop, rendered in memory (PNG and SVG).
+
+The planar figure follows the paper's Figs. 1-3: the moving objects, the target path
+y* (dashed), each agent's path, and start points marked with stars.
+"""
+
+from __future__ import annotations
+
+import io
+from typing import TYPE_CHECKING, Any
+
+import matplotlib
+
+matplotlib.use("Agg")  # no display; must precede pyplot
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import sympy as sp  # noqa: E402
+
+from tvopt_codegen.derivation import Derivation  # noqa: E402
+
+if TYPE_CHECKING:
+    from tvopt_codegen.simulate import Result
+
+_COLORS = ("tab:red", "tab:purple", "tab:orange", "tab:brown", "tab:pink", "tab:olive")
+_OBJECT_COLORS = ("black", "tab:blue", "tab:gray", "tab:cyan")
+
+
+def _save(fig: Any, stem: str) -> dict[str, bytes]:
+    """Both formats, with the metadata that would make them differ between runs removed."""
+    out = {}
+    with matplotlib.rc_context({"svg.hashsalt": "tvopt-codegen"}):
+        for fmt, metadata in (("png", {"Software": None}), ("svg", {"Date": None})):
+            buffer = io.BytesIO()
+            fig.savefig(buffer, format=fmt, dpi=120, bbox_inches="tight", metadata=metadata)
+            out[f"{stem}.{fmt}"] = buffer.getvalue()
+    plt.close(fig)
+    return out
+
+
+def _signal_values(derivation: Derivation, result: Result, name: str) -> np.ndarray:
+    d = derivation
+    expr = dict((s.name, e) for s, e in d.model.signals)[name]
+    values = [
+        result.options.params.get(q.name, v)
+        for q, v in zip(d.model.params, d.model.defaults, strict=True)
+    ]
+    func = sp.lambdify([d.model.t, *d.model.params], expr, "numpy")
+    return np.broadcast_to(np.asarray(func(result.t, *values), dtype=float), result.t.shape)
+
+
+def trajectory_figure(derivation: Derivation, result: Result) -> Any:
+    """The x-y picture: objects, y*, agent paths, stars at the starts."""
+    d, r = derivation, result
+    index = {name: i for i, name in enumerate(d.spec.outputs)}
+    fig, ax = plt.subplots(figsize=(6.4, 5.2))
+    for j, (sx, sy) in enumerate(d.spec.objects):
+        ox, oy = _signal_values(d, r, sx), _signal_values(d, r, sy)
+        color = _OBJECT_COLORS[j % len(_OBJECT_COLORS)]
+        ax.plot(ox, oy, color=color, lw=1.5, label=f"object {j + 1} ({sx}, {sy})")
+        ax.plot(ox[0], oy[0], "*", color=color, ms=12)
+    for j, (nx, ny) in enumerate(d.spec.agents):
+        ix, iy = index[nx], index[ny]
+        color = _COLORS[j % len(_COLORS)]
+        ax.plot(r.outputs[ix], r.outputs[iy], color=color, lw=2, label=f"agent ({nx}, {ny})")
+        ax.plot(
+            r.target[ix],
+            r.target[iy],
+            "--",
+            color="tab:green",
+            lw=1.5,
+            zorder=3,
+            label="target y*" if j == 0 else None,
+        )
+        ax.plot(r.outputs[ix, 0], r.outputs[iy, 0], "*", color=color, ms=14)
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best")
+    ax.set_title(f"{d.spec.name}: paths over [0, {r.t[-1]:g}] (stars: starts)")
+    return fig
+
+
+def convergence_figure(derivation: Derivation, result: Result) -> Any:
+    """|y - y*| and |E| on a log scale, with the theorem's bounds."""
+    r = result
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    norms = np.linalg.norm(r.E.reshape(len(r.t), -1), axis=1)
+    floor = 1e-16
+    ax.semilogy(r.t, np.maximum(r.error, floor), color="tab:red", lw=2, label="|y - y*|")
+    ax.semilogy(r.t, r.bound, "--", color="tab:red", lw=1, label="bound C exp(-alpha t)")
+    ax.semilogy(r.t, np.maximum(norms, floor), color="tab:blue", lw=2, label="|E|")
+    ax.semilogy(
+        r.t,
+        r.c * norms[0] * np.exp(-r.alpha * r.t),
+        "--",
+        color="tab:blue",
+        lw=1,
+        label="c |E(0)| exp(-alpha t)",
+    )
+    ax.set_xlabel("t")
+    ax.set_ylim(bottom=max(floor, 1e-3 * float(np.min(np.maximum(norms, floor)))))
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    status = "certificate passed" if r.passed else "certificate FAILED"
+    ax.set_title(f"{derivation.spec.name}: convergence (alpha = {r.alpha:.3g}; {status})")
+    return fig
+
+
+def inputs_figure(derivation: Derivation, result: Result) -> Any:
+    """Plant inputs over time."""
+    fig, ax = plt.subplots(figsize=(6.4, 3.6))
+    for i, name in enumerate(derivation.spec.inputs):
+        ax.plot(result.t, result.inputs[i], lw=1.5, label=name)
+    ax.set_xlabel("t")
+    ax.set_ylabel("u")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(f"{derivation.spec.name}: plant inputs")
+    return fig
+
+
+def figures(derivation: Derivation, result: Result) -> dict[str, bytes]:
+    """All figures of a run: ``<name>_{paths,convergence,inputs}.{png,svg}``."""
+    name = derivation.spec.name
+    out: dict[str, bytes] = {}
+    if derivation.spec.agents:
+        out.update(_save(trajectory_figure(derivation, result), f"{name}_paths"))
+    out.update(_save(convergence_figure(derivation, result), f"{name}_convergence"))
+    out.update(_save(inputs_figure(derivation, result), f"{name}_inputs"))
+    return out

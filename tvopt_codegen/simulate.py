@@ -1,0 +1,467 @@
+"""Closed-loop simulation and the paper's theorem, checked on the run (the certificate).
+
+:func:`simulate` integrates ``rhs`` of a generated controller with
+``scipy.integrate.solve_ivp``, finds the target path ``y*(t)`` by numerical
+minimization of ``f0(., t)`` (never from the law), and checks the two claims of the
+paper's theorems along the run:
+
+1. the optimality error follows ``E(t) = expm(H t) E(0)``;
+2. ``|y(t) - y*(t)| <= C e^{-alpha t}`` with ``C = c |E(0)| / m_f``, where ``c`` is the
+   constant of ``|expm(H t)| <= c e^{-alpha t}`` (computed) and ``m_f`` the convexity
+   modulus (estimated along the run).
+
+Nothing here writes files: :func:`result_files` renders the outputs in memory for
+:mod:`tvopt_codegen.emit`.
+"""
+
+from __future__ import annotations
+
+import io
+import time
+import types
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import sympy as sp
+from scipy.integrate import solve_ivp
+from scipy.linalg import expm
+
+from tvopt_codegen import hurwitz
+from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.errors import SpecError
+from tvopt_codegen.figures import figures
+from tvopt_codegen.ir import KernelSet
+from tvopt_codegen.render import render
+
+#: Exit code of a simulation whose certificate fails.
+EXIT_CERTIFICATE = 5
+
+#: Integration methods of solve_ivp offered on the command line.
+METHODS = ("RK45", "DOP853", "RK23", "Radau", "BDF", "LSODA")
+
+
+def load_controller(kernels: KernelSet) -> types.ModuleType:
+    """Render the Python backend and load it as a module, without touching the disk.
+
+    The text is tvopt-codegen's own output (spec text appears in it only inside escaped
+    string literals and comments), compiled under the name it would have on disk.
+    """
+    ((name, text),) = render(kernels, "python").items()
+    module = types.ModuleType(name[: -len(".py")])
+    module.__file__ = f"<generated {name}>"
+    exec(compile(text, module.__file__, "exec"), module.__dict__)  # noqa: S102
+    return module
+
+
+@dataclass(frozen=True)
+class Options:
+    """How to run one simulation.
+
+    Attributes
+    ----------
+    t_final : float
+        Horizon.
+    initial_state : tuple of float
+        Closed-loop initial state in ``STATE_NAMES`` order.
+    params : mapping of str to float
+        Parameter overrides.
+    method : str
+        ``solve_ivp`` method; RK45 (Dormand-Prince) as in the paper.
+    rtol, atol : float
+        Integration tolerances.
+    points : int
+        Number of output times.
+    tolerance : float
+        Largest accepted relative deviation of E from ``expm(H t) E(0)``.
+    """
+
+    t_final: float
+    initial_state: tuple[float, ...]
+    params: Mapping[str, float] = field(default_factory=dict)
+    method: str = "RK45"
+    rtol: float = 1e-10
+    atol: float = 1e-12
+    points: int = 401
+    tolerance: float = 1e-6
+
+
+@dataclass(frozen=True)
+class Result:
+    """A simulated closed loop and its certificate.
+
+    Attributes
+    ----------
+    t : numpy.ndarray, shape (T,)
+        Output times.
+    states : numpy.ndarray, shape (n, T)
+        Closed-loop states.
+    inputs : numpy.ndarray, shape (m, T)
+        Plant inputs.
+    outputs, target : numpy.ndarray, shape (m, T)
+        ``y`` and ``y*``.
+    error : numpy.ndarray, shape (T,)
+        ``|y - y*|``.
+    E, E_predicted : numpy.ndarray, shape (T, K, m)
+        The optimality error and ``expm(H t) E(0)``.
+    alpha, c, m_f, C : float
+        The theorem's constants (``alpha_exact`` tells whether alpha is the slowest
+        pole's decay or reduced by the Jordan-block margin).
+    bound : numpy.ndarray, shape (T,)
+        ``C e^{-alpha t}``.
+    deviation : float
+        ``max_t |E(t) - expm(H t) E(0)| / |E(0)|``.
+    bound_ratio : float
+        ``max_t |y - y*| / (C e^{-alpha t})`` (where the bound exceeds 1e-10).
+    fitted_rate : float
+        Decay rate of ``|E|`` fitted along the run.
+    nfev : int
+        Right-hand side evaluations.
+    wall_time : float
+        Seconds spent integrating.
+    passed : bool
+        Whether the certificate holds.
+    failures : tuple of str
+        Why it does not.
+    """
+
+    options: Options
+    t: np.ndarray
+    states: np.ndarray
+    inputs: np.ndarray
+    outputs: np.ndarray
+    target: np.ndarray
+    error: np.ndarray
+    E: np.ndarray
+    E_predicted: np.ndarray
+    alpha: float
+    alpha_exact: bool
+    c: float
+    m_f: float
+    C: float
+    bound: np.ndarray
+    deviation: float
+    bound_ratio: float
+    fitted_rate: float
+    nfev: int
+    wall_time: float
+    passed: bool
+    failures: tuple[str, ...]
+
+
+def resolve_options(
+    derivation: Derivation,
+    t_final: float | None = None,
+    initial: Mapping[str, float] | None = None,
+    params: Mapping[str, float] | None = None,
+    **rest: Any,
+) -> Options:
+    """Build :class:`Options` from the spec's ``[simulation]`` and overrides by name.
+
+    Raises
+    ------
+    SpecError
+        For an unknown state or parameter name, or a non-positive horizon (the field
+        is the command-line option).
+    """
+    names = derivation.state_names
+    state = dict(zip(names, derivation.initial_state, strict=True))
+    for key, value in (initial or {}).items():
+        if key not in state:
+            raise SpecError(
+                "command line", "--initial", f"unknown state {key!r} (states: {', '.join(names)})"
+            )
+        state[key] = float(value)
+    known = {n for n, _ in derivation.spec.parameters}
+    for key in params or {}:
+        if key not in known:
+            raise SpecError(
+                "command line",
+                "--param",
+                f"unknown parameter {key!r} (parameters: {', '.join(sorted(known))})",
+            )
+    horizon = derivation.spec.t_final if t_final is None else float(t_final)
+    if not horizon > 0:
+        raise SpecError("command line", "--t-final", "must be positive")
+    return Options(
+        t_final=horizon,
+        initial_state=tuple(state[n] for n in names),
+        params=dict(params or {}),
+        **rest,
+    )
+
+
+def minimizer_path(
+    controller: types.ModuleType, ts: np.ndarray, start: np.ndarray, params: Mapping[str, float]
+) -> np.ndarray:
+    """``y*(t) = argmin_y f0(y, t)`` at each time, by a damped Newton method.
+
+    The path is followed backward in time from ``start`` (the final output),
+    warm-starting every time from the previous one, with Armijo backtracking and steps
+    capped at 0.02. For strongly convex f0 this is the unique minimizer whatever the
+    start. A barrier that is finite only on a domain (``tan^2`` in the paper's Sec.
+    V-B) is periodic, with its global minimizer beyond the barrier: continuation from
+    the converged end of the run stays on the in-domain branch the paper means.
+
+    Parameters
+    ----------
+    controller : module
+        A generated module (its ``objective``, ``gradient`` and ``hessian``).
+    ts : numpy.ndarray
+        Increasing output times.
+    start : numpy.ndarray
+        Starting point at ``ts[-1]``.
+    params : mapping
+        Parameter overrides.
+
+    Returns
+    -------
+    numpy.ndarray, shape (m, T)
+        ``y*`` at each time.
+    """
+    substeps = 5
+    path = np.empty((len(start), len(ts)))
+    y = np.array(start, dtype=float)
+    for index in range(len(ts) - 1, -1, -1):
+        later = ts[min(index + 1, len(ts) - 1)]
+        for t in (
+            np.linspace(later, ts[index], substeps + 1)[1:] if index < len(ts) - 1 else [ts[-1]]
+        ):
+            y = _newton(controller, float(t), y, params)
+        path[:, index] = y
+    return path
+
+
+def _newton(
+    controller: types.ModuleType, t: float, y: np.ndarray, params: Mapping[str, float]
+) -> np.ndarray:
+    """Minimize f0(., t) from ``y``: damped Newton with capped steps."""
+    for _ in range(200):
+        grad = controller.gradient(t, y, params)
+        hess = controller.hessian(t, y, params)
+        try:
+            step = np.linalg.solve(hess, grad)
+        except np.linalg.LinAlgError:
+            step = grad
+        if grad @ step <= 0:  # not a descent direction: fall back to the gradient
+            step = grad
+        size = float(np.linalg.norm(step))
+        if size > 0.02:
+            step = step * (0.02 / size)
+        value = controller.objective(t, y, params)
+        scale = 1.0
+        while scale > 1e-8:
+            trial = y - scale * step
+            try:
+                trial_value = controller.objective(t, trial, params)
+            except ArithmeticError:
+                trial_value = np.inf
+            if np.isfinite(trial_value) and trial_value <= value - 1e-4 * scale * (grad @ step):
+                break
+            scale *= 0.5
+        y = y - scale * step
+        if size * scale <= 1e-14 * (1.0 + float(np.linalg.norm(y))):
+            break
+    return y
+
+
+def simulate(
+    derivation: Derivation,
+    controller: types.ModuleType,
+    options: Options,
+    progress: Callable[[float, float], None] | None = None,
+) -> Result:
+    """Integrate the closed loop and check the theorem along the run.
+
+    Parameters
+    ----------
+    derivation : Derivation
+        The derivation the controller was generated from.
+    controller : module
+        The generated controller (any backend with the Python contract).
+    options : Options
+        Horizon, initial state, parameters, solver and tolerances.
+    progress : callable, optional
+        Called with (simulated time reached, horizon) at most twice a second once a
+        run has taken two seconds.
+
+    Returns
+    -------
+    Result
+        Trajectories, the theorem's quantities and the certificate.
+    """
+    d = derivation
+    params = dict(options.params)
+    started = time.perf_counter()
+    last_report = [started + 2.0]
+
+    def rhs(t: float, s: np.ndarray) -> np.ndarray:
+        if progress is not None:
+            now = time.perf_counter()
+            if now >= last_report[0]:
+                progress(float(t), options.t_final)
+                last_report[0] = now + 0.5
+        result: np.ndarray = controller.rhs(t, s, params)
+        return result
+
+    solution = solve_ivp(
+        rhs,
+        (0.0, options.t_final),
+        np.array(options.initial_state),
+        method=options.method,
+        rtol=options.rtol,
+        atol=options.atol,
+        dense_output=True,
+    )
+    wall = time.perf_counter() - started
+    failures: list[str] = []
+    if not solution.success:
+        failures.append(f"integration stopped: {solution.message}")
+    t_end = float(solution.t[-1])
+    ts = np.linspace(0.0, t_end, options.points)
+    states = solution.sol(ts)
+    m = len(d.spec.outputs)
+    inputs = np.array([controller.control(t, states[:, i], params) for i, t in enumerate(ts)]).T
+    E = np.array([controller.optimality_error(t, states[:, i], params) for i, t in enumerate(ts)])
+
+    values = {
+        q.name: options.params.get(q.name, v)
+        for q, v in zip(d.model.params, d.model.defaults, strict=True)
+    }
+    h = sp.lambdify([*d.states, *d.model.params], list(d.model.h), "numpy")
+    outputs = np.array(
+        [
+            np.broadcast_to(np.asarray(v, dtype=float), ts.shape)
+            for v in h(*states, *values.values())
+        ]
+    )
+    target = minimizer_path(controller, ts, outputs[:, -1], params)
+    error = np.linalg.norm(outputs - target, axis=0)
+
+    H = hurwitz.error_matrix(d.coefficients, m)
+    flat = E.reshape(len(ts), -1)
+    norm0 = float(np.linalg.norm(flat[0]))
+    predicted = np.array([expm(H * t) @ flat[0] for t in ts])
+    deviation = float(np.max(np.linalg.norm(flat - predicted, axis=1))) / max(norm0, 1e-300)
+    if deviation > options.tolerance:
+        failures.append(
+            f"E deviates from expm(H t) E(0) by {deviation:.3g} (relative) > {options.tolerance:g}"
+        )
+
+    alpha, exact = hurwitz.certified_rate(d.coefficients)
+    c = hurwitz.transient_constant(d.coefficients, alpha)
+    m_f = float(
+        min(
+            min(
+                np.linalg.eigvalsh(controller.hessian(t, point, params)).min()
+                for point in (outputs[:, i], target[:, i], 0.5 * (outputs[:, i] + target[:, i]))
+            )
+            for i, t in enumerate(ts)
+        )
+    )
+    if not m_f > 0:
+        failures.append(f"f0 is not strongly convex along the run (m_f = {m_f:.3g})")
+        m_f = float("nan")
+    C = c * norm0 / m_f
+    bound = C * np.exp(-alpha * ts)
+    meaningful = bound > 1e-10
+    # 1e-8 absolute: the minimizer's accuracy on y*.
+    ratio = (
+        float(np.max((error[meaningful] - 1e-8) / bound[meaningful])) if meaningful.any() else 0.0
+    )
+    if not ratio <= 1.0:
+        failures.append(f"|y - y*| exceeds the bound C e^(-alpha t) by a factor {ratio:.3g}")
+    norms = np.linalg.norm(flat, axis=1)
+    window = (norms > 1e-9 * max(norm0, 1e-300)) & (ts >= min(1.0 / max(alpha, 1e-12), t_end / 4))
+    fitted = (
+        float(-np.polyfit(ts[window], np.log(norms[window]), 1)[0])
+        if window.sum() >= 3
+        else float("nan")
+    )
+    return Result(
+        options=options,
+        t=ts,
+        states=states,
+        inputs=inputs,
+        outputs=outputs,
+        target=target,
+        error=error,
+        E=E,
+        E_predicted=predicted.reshape(E.shape),
+        alpha=alpha,
+        alpha_exact=exact,
+        c=c,
+        m_f=m_f,
+        C=C,
+        bound=bound,
+        deviation=deviation,
+        bound_ratio=ratio,
+        fitted_rate=fitted,
+        nfev=int(solution.nfev),
+        wall_time=wall,
+        passed=not failures,
+        failures=tuple(failures),
+    )
+
+
+def format_certificate(derivation: Derivation, result: Result) -> str:
+    """The one-screen summary of a run and its certificate."""
+    d, r = derivation, result
+    lines = [
+        f"{d.spec.name}: closed loop over [0, {r.t[-1]:g}] with {r.options.method} "
+        f"(rtol {r.options.rtol:g}, atol {r.options.atol:g})",
+        f"  final |y - y*|            {r.error[-1]:.3e}   (initial {r.error[0]:.3e})",
+        f"  decay rate of |E|         {r.fitted_rate:.4g} fitted, alpha = {r.alpha:.4g}"
+        + ("" if r.alpha_exact else " (repeated poles: 10% margin)"),
+        f"  E vs expm(H t) E(0)       max relative deviation {r.deviation:.3e} "
+        f"(limit {r.options.tolerance:g})",
+        f"  |y - y*| <= C e^(-alpha t)  max ratio {r.bound_ratio:.3g}  "
+        f"(C = {r.C:.4g}: c = {r.c:.4g}, m_f = {r.m_f:.4g}, |E(0)| = {np.linalg.norm(r.E[0]):.4g})",
+        f"  RHS evaluations           {r.nfev}   wall time {r.wall_time:.2f} s",
+        "  certificate: " + ("PASSED" if r.passed else "FAILED: " + "; ".join(r.failures)),
+    ]
+    return "\n".join(lines)
+
+
+def columns(derivation: Derivation) -> list[str]:
+    """Column names of the trajectory table."""
+    d = derivation
+    names = ["t", *d.state_names, *(f"u_{n}" for n in d.spec.inputs)]
+    names += [*(f"y_{n}" for n in d.spec.outputs), *(f"ystar_{n}" for n in d.spec.outputs)]
+    names += [f"E{j}_{n}" for j in range(d.k) for n in d.spec.outputs]
+    return names
+
+
+def result_files(derivation: Derivation, result: Result) -> dict[str, bytes]:
+    """Trajectories (CSV, NPZ), the certificate text, and the figures, in memory."""
+    d, r = derivation, result
+    name = d.spec.name
+    table = np.column_stack(
+        [r.t, r.states.T, r.inputs.T, r.outputs.T, r.target.T, r.E.reshape(len(r.t), -1)]
+    )
+    text = io.StringIO()
+    text.write(",".join(columns(d)) + "\n")
+    for row in table:
+        text.write(",".join(repr(float(v)) for v in row) + "\n")
+    arrays = io.BytesIO()
+    np.savez(
+        arrays,
+        t=r.t,
+        states=r.states,
+        inputs=r.inputs,
+        y=r.outputs,
+        y_star=r.target,
+        E=r.E,
+        bound=r.bound,
+        state_names=np.array(d.state_names),
+        input_names=np.array(d.spec.inputs),
+        output_names=np.array(d.spec.outputs),
+    )
+    files = {
+        f"{name}_trajectory.csv": text.getvalue().encode("utf-8"),
+        f"{name}_trajectory.npz": arrays.getvalue(),
+        f"{name}_certificate.txt": (format_certificate(d, r) + "\n").encode("utf-8"),
+    }
+    files.update(figures(d, r))
+    return files
