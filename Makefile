@@ -42,8 +42,10 @@ lint: $(INSTALLED)
 
 ## regen: regenerate the committed controllers in generated/ from the bundled examples
 regen: $(INSTALLED)
+	mkdir -p generated/c
 	for name in $(EXAMPLES); do \
 	  $(PY) -m tvopt_codegen generate $$name --out generated --quiet || exit 1; \
+	  $(PY) -m tvopt_codegen generate $$name --backend c --out generated/c --quiet || exit 1; \
 	done
 
 ## check-generated: fail if generated/ is not what the current code generates

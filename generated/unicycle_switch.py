@@ -3,8 +3,9 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 7243d90ba044da6c9884a0bf4ed843e8c6cfcc8d01ef849ea41ea23d960b8e13
+# content sha256: 48f36560c15b15b00e724cec91149656eb526ce2bcd09cf0c9e80e98d85650c0
 # ruff: noqa
+
 """unicycle_switch: implicit trajectory planning controller.
 
 Unicycle switching between two moving objects (paper, Sec. V-A).
@@ -30,12 +31,14 @@ Dynamic extension: v integrated 1 time(s).
 Order of the error dynamics K = 2; decay rate 1.0.
 The decoupling matrix R is singular where: v = 0.
 
+The law is evaluated in NumPy, column by column of a batch of states.
 Every function takes ``t`` (float), a state or output array that is 1-D, or 2-D with
 one column per point (``solve_ivp(..., vectorized=True)``), and ``params``: a mapping
 from parameter name to value, missing names taking their defaults (``PARAMETERS``).
 Where the law is undefined the functions raise a subclass of :class:`ControllerError`
 (an ``ArithmeticError``) naming the cause; they never return NaN.
 """
+
 
 from __future__ import annotations
 
@@ -115,8 +118,9 @@ class NonFiniteOutputError(ControllerError):
     status = STATUS_NONFINITE_OUTPUT
 
 
-_A = numpy.array(HURWITZ_COEFFICIENTS, dtype=float)
 _DEFAULT_P = numpy.array(list(PARAMETERS.values()), dtype=float)
+
+_A = numpy.array(HURWITZ_COEFFICIENTS, dtype=float)
 
 
 def _columns(name, value, rows):
@@ -159,6 +163,7 @@ def _check_finite(what, *arrays):
             index = int(numpy.argmax(bad))
             raise NonFiniteOutputError(f"{what} is not finite (column {index}): a signal or "
                                        "f0 left its domain", index)
+
 
 
 def _cholesky_solve(a, b):
@@ -210,7 +215,6 @@ def _lu_solve(a, b):
     for j in reversed(range(m)):
         x[:, j] = (x[:, j] - numpy.sum(lu[:, j, j + 1:] * x[:, j + 1:], axis=1)) / lu[:, j, j]
     return numpy.moveaxis(x, 0, -1)
-
 
 def _jet(t, s, p, a):
     """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 183 operations, 244 before CSE)."""
@@ -427,6 +431,7 @@ def _hessian(t, y, p):
     return hess
 
 
+
 def _law(t, s, p):
     """The paper's law, evaluated column by column: returns (ds/dt, u)."""
     with numpy.errstate(all="ignore"):
@@ -443,6 +448,42 @@ def _law(t, s, p):
         ds, u = _closed_loop(t, s, p, w, z)
     _check_finite("the closed-loop vector field", ds, u)
     return ds, u
+
+
+def _control_values(t, s, p):
+    return _law(t, s, p)[1]
+
+
+def _rhs_values(t, s, p):
+    return _law(t, s, p)[0]
+
+
+def _optimality_error(t, s, p):
+    with numpy.errstate(all="ignore"):
+        e = _optimality(t, s, p)
+    _check_finite("the optimality error", e)
+    return e
+
+
+def _objective_values(t, y, p):
+    with numpy.errstate(all="ignore"):
+        value = _objective(t, y, p)
+    _check_finite("f0", value)
+    return value
+
+
+def _gradient_values(t, y, p):
+    with numpy.errstate(all="ignore"):
+        value = _gradient(t, y, p)
+    _check_finite("the gradient of f0", value)
+    return value
+
+
+def _hessian_values(t, y, p):
+    with numpy.errstate(all="ignore"):
+        value = _hessian(t, y, p)
+    _check_finite("the Hessian of f0", value)
+    return value
 
 
 def control(t, s, params=None):
@@ -471,7 +512,7 @@ def control(t, s, params=None):
     states, single = _columns("s", s, 4)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
-    _, u = _law(t, states, p)
+    u = _control_values(t, states, p)
     return u[:, 0] if single else u
 
 
@@ -500,7 +541,7 @@ def rhs(t, s, params=None):
     states, single = _columns("s", s, 4)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
-    ds, _ = _law(t, states, p)
+    ds = _rhs_values(t, states, p)
     return ds[:, 0] if single else ds
 
 
@@ -524,19 +565,15 @@ def optimality_error(t, s, params=None):
     states, single = _columns("s", s, 4)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
-    with numpy.errstate(all="ignore"):
-        e = _optimality(t, states, p)
-    _check_finite("the optimality error", e)
+    e = _optimality_error(t, states, p)
     return e[..., 0] if single else e
 
 
-def _output_function(kernel, what, t, y, params):
+def _output_function(evaluate, t, y, params):
     outputs, single = _columns("y", y, 2)
     p = _parameters(params)
     _check_inputs(t, outputs, p, "output")
-    with numpy.errstate(all="ignore"):
-        value = kernel(t, outputs, p)
-    _check_finite(what, value)
+    value = evaluate(t, outputs, p)
     return value[..., 0] if single else value
 
 
@@ -556,7 +593,7 @@ def objective(t, y, params=None):
     -------
     float or numpy.ndarray of shape (N,)
     """
-    value = _output_function(_objective, "f0", t, y, params)
+    value = _output_function(_objective_values, t, y, params)
     return float(value) if numpy.ndim(value) == 0 else value
 
 
@@ -576,7 +613,7 @@ def gradient(t, y, params=None):
     -------
     numpy.ndarray, shape (2,) or (2, N)
     """
-    return _output_function(_gradient, "the gradient of f0", t, y, params)
+    return _output_function(_gradient_values, t, y, params)
 
 
 def hessian(t, y, params=None):
@@ -595,4 +632,5 @@ def hessian(t, y, params=None):
     -------
     numpy.ndarray, shape (2, 2) or (2, 2, N)
     """
-    return _output_function(_hessian, "the Hessian of f0", t, y, params)
+    return _output_function(_hessian_values, t, y, params)
+

@@ -20,16 +20,22 @@ from .conftest import EXAMPLES, ROOT, kernels
 GENERATED = ROOT / "generated"
 
 
+@pytest.mark.parametrize(("backend", "folder"), [("python", GENERATED), ("c", GENERATED / "c")])
 @pytest.mark.parametrize("name", EXAMPLES)
-def test_committed_module_is_what_the_tool_generates(name: str) -> None:
-    files = render(kernels(name), "python")
-    committed = (GENERATED / f"{name}.py").read_text(encoding="utf-8")
-    assert files[f"{name}.py"] == committed, f"generated/{name}.py is stale: run `make regen`"
-    assert is_pristine(committed)
+def test_committed_files_are_what_the_tool_generates(name: str, backend: str, folder: Path) -> None:
+    for file_name, text in render(kernels(name), backend).items():
+        committed = (folder / file_name).read_text(encoding="utf-8")
+        assert text == committed, f"{folder / file_name} is stale: run `make regen`"
+        assert is_pristine(committed)
 
 
 def test_generated_folder_holds_exactly_the_examples() -> None:
-    assert sorted(p.name for p in GENERATED.iterdir()) == sorted(f"{n}.py" for n in EXAMPLES)
+    assert sorted(p.name for p in GENERATED.iterdir() if p.is_file()) == sorted(
+        f"{n}.py" for n in EXAMPLES
+    )
+    assert sorted(p.name for p in (GENERATED / "c").iterdir()) == sorted(
+        f"{n}.{ext}" for n in EXAMPLES for ext in ("c", "h", "py")
+    )
 
 
 def test_output_is_identical_across_hash_seeds_and_folders(tmp_path: Path) -> None:

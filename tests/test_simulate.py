@@ -78,7 +78,7 @@ def test_wrong_controller_fails_the_certificate(
     assert not result.passed
     assert any("deviates from expm(H t) E(0)" in f for f in result.failures)
 
-    monkeypatch.setattr(cli, "load_controller", lambda kernels: impostor)
+    monkeypatch.setattr(cli, "load_controller", lambda kernels, backend: impostor)
     out = tmp_path / "out"
     assert main(["simulate", "unicycle_switch", "--out", str(out)]) == sim.EXIT_CERTIFICATE
     assert "certificate: FAILED" in capsys.readouterr().out

@@ -170,7 +170,7 @@ def _simulate(args: argparse.Namespace) -> int:
         tolerance=args.tolerance,
     )
     prepare_folder(args.out)
-    controller = load_controller(lower(derivation))
+    controller = load_controller(lower(derivation), args.backend)
     progress = _Progress()
     try:
         result = simulate(derivation, controller, options, progress=progress)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 import sympy as sp
+from sympy.printing.c import C99CodePrinter
 from sympy.printing.numpy import NumPyPrinter
 from sympy.printing.precedence import PRECEDENCE
 
@@ -39,3 +40,38 @@ class PythonPrinter(NumPyPrinter):  # type: ignore[misc]
         """Print one expression (no assignment wrapping)."""
         text: str = super().doprint(expr, assign_to)
         return text
+
+
+class CPrinter(C99CodePrinter):  # type: ignore[misc]
+    """C99 printer for kernel bodies: only ``<math.h>``, strict, full precision.
+
+    Customizations are listed on each override; everything else is sympy's C99 printer.
+    """
+
+    def __init__(self) -> None:
+        super().__init__({"strict": True, "precision": 17, "allow_unknown_functions": False})
+
+    def _print_Pi(self, expr: sp.Expr) -> str:
+        """Customizations.
+
+        * A literal instead of ``M_PI``: the macro is POSIX, not C99, and ``-std=c99
+          -pedantic`` hides it.
+        """
+        return "3.141592653589793"
+
+    def _print_Pow(self, expr: sp.Pow, rational: bool = False) -> str:
+        """Customizations.
+
+        * Small integer powers are products (``x*x``): exact for squares and cheaper than
+          ``pow`` everywhere without relying on ``-ffast-math``.
+        * Negative integer powers are ``1.0/(...)``.
+        """
+        exp = expr.exp
+        if exp.is_Integer and 2 <= abs(int(exp)) <= 4:
+            base = self.parenthesize(expr.base, PRECEDENCE["Mul"])
+            product = "*".join([base] * abs(int(exp)))
+            return f"({product})" if exp > 0 else f"(1.0/({product}))"
+        if exp == -1:
+            return f"(1.0/{self.parenthesize(expr.base, PRECEDENCE['Mul'])})"
+        result: str = super()._print_Pow(expr)
+        return result

@@ -93,16 +93,17 @@ class PrintedArg:
     name: str
     doc: str
     slots: tuple[PrintedSlot, ...]
+    used: bool
 
 
 @dataclass(frozen=True)
 class PrintedOutput:
-    """An output array: shape and ``(index, code)`` per element."""
+    """An output array: shape and ``(index, flat index, code)`` per element (row-major)."""
 
     name: str
     doc: str
     shape: tuple[int, ...]
-    elements: tuple[tuple[str, str], ...]
+    elements: tuple[tuple[str, int, str], ...]
 
 
 @dataclass(frozen=True)
@@ -134,15 +135,16 @@ def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
             for i, (sym, label) in enumerate(zip(arg.symbols, arg.labels, strict=True))
             if sym in used
         )
-        args.append(PrintedArg(arg.name, arg.doc, slots))
+        used_arg = bool(slots) or (arg.name == "t" and sp.Symbol("t", real=True) in used)
+        args.append(PrintedArg(arg.name, arg.doc, slots, used_arg))
     batch = next(arg.name for arg in kernel.inputs if arg.name in ("s", "y"))
     body = tuple((sym.name, printer.doprint(value)) for sym, value in kernel.body)
     outputs = []
     for out in kernel.outputs:
         indices = _indices(out.shape)
         elements = tuple(
-            (", ".join(map(str, index)) if index else "...", printer.doprint(sp.sympify(e)))
-            for index, e in zip(indices, out.exprs, strict=True)
+            (", ".join(map(str, index)) if index else "...", flat, printer.doprint(sp.sympify(e)))
+            for flat, (index, e) in enumerate(zip(indices, out.exprs, strict=True))
         )
         outputs.append(PrintedOutput(out.name, out.doc, out.shape, elements))
     return PrintedKernel(
@@ -218,6 +220,8 @@ def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
             "extension_counts": dict(d.extension.counts),
             "parameters": dict(d.spec.parameters),
             "relative_degree": dict(zip(d.spec.outputs, d.relative_degree, strict=True)),
+            "prefix": d.spec.name,
+            "guard": d.spec.name.upper(),
         }
         try:
             text = environment().get_template(template_name).render(context)

@@ -16,11 +16,14 @@ Nothing here writes files: :func:`result_files` renders the outputs in memory fo
 
 from __future__ import annotations
 
+import importlib.util
 import io
+import tempfile
 import time
 import types
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -30,6 +33,7 @@ from scipy.linalg import expm
 
 from tvopt_codegen import hurwitz
 from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.emit import write_files
 from tvopt_codegen.errors import SpecError
 from tvopt_codegen.figures import figures
 from tvopt_codegen.ir import KernelSet
@@ -42,16 +46,29 @@ EXIT_CERTIFICATE = 5
 METHODS = ("RK45", "DOP853", "RK23", "Radau", "BDF", "LSODA")
 
 
-def load_controller(kernels: KernelSet) -> types.ModuleType:
-    """Render the Python backend and load it as a module, without touching the disk.
+def load_controller(kernels: KernelSet, backend: str = "python") -> types.ModuleType:
+    """Render a backend and load its Python module.
 
-    The text is tvopt-codegen's own output (spec text appears in it only inside escaped
-    string literals and comments), compiled under the name it would have on disk.
+    The Python backend is compiled from memory (the text is tvopt-codegen's own output;
+    spec text appears in it only inside escaped literals and comments). Other backends
+    are written to a private temporary folder through :func:`~tvopt_codegen.emit.write_files`
+    and imported from there (the C backend compiles and caches its library on import).
     """
-    ((name, text),) = render(kernels, "python").items()
-    module = types.ModuleType(name[: -len(".py")])
-    module.__file__ = f"<generated {name}>"
-    exec(compile(text, module.__file__, "exec"), module.__dict__)  # noqa: S102
+    files = render(kernels, backend)
+    name = kernels.derivation.spec.name
+    if backend == "python":
+        module = types.ModuleType(name)
+        module.__file__ = f"<generated {name}.py>"
+        exec(compile(files[f"{name}.py"], module.__file__, "exec"), module.__dict__)  # noqa: S102
+        return module
+    with tempfile.TemporaryDirectory(prefix="tvopt-codegen-") as folder:
+        write_files(files, folder)
+        spec = importlib.util.spec_from_file_location(
+            f"_tvopt_{backend}_{name}", Path(folder) / f"{name}.py"
+        )
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
     return module
 
 

@@ -8,9 +8,10 @@ expressions and the templates it renders. Adding a backend adds an entry to
 from __future__ import annotations
 
 from tvopt_codegen.backends.base import Backend
+from tvopt_codegen.backends.c import C
 from tvopt_codegen.backends.python import PYTHON
 
 #: Backends by the name users give on the command line.
-BACKENDS: dict[str, Backend] = {backend.name: backend for backend in (PYTHON,)}
+BACKENDS: dict[str, Backend] = {backend.name: backend for backend in (PYTHON, C)}
 
 __all__ = ["BACKENDS", "Backend"]

@@ -1,0 +1,325 @@
+"""The C backend: strict compilation, agreement with the Python backend, sanitizers, cache."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+
+from tvopt_codegen.emit import write_files
+from tvopt_codegen.render import render
+
+from .conftest import ALL_SPECS, derivation, kernels, module
+from .test_generated import random_states
+
+STRICT = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic"]
+COMPILERS = [cc for cc in ("gcc", "clang") if shutil.which(cc)]
+
+
+def _write_c(spec: str, folder: Path) -> Path:
+    write_files(render(kernels(spec), "c"), folder)
+    return folder / f"{derivation(spec).spec.name}.c"
+
+
+_IMPORTED: dict[str, ModuleType] = {}
+
+
+def c_module(spec: str, tmp_path_factory: pytest.TempPathFactory) -> ModuleType:
+    if spec not in _IMPORTED:
+        folder = tmp_path_factory.mktemp("cmod")
+        _write_c(spec, folder)
+        os.environ["TVOPT_CODEGEN_CACHE"] = str(tmp_path_factory.getbasetemp() / "cache")
+        name = derivation(spec).spec.name
+        loader = importlib.util.spec_from_file_location(f"_tvopt_c_{name}", folder / f"{name}.py")
+        assert loader is not None and loader.loader is not None
+        mod = importlib.util.module_from_spec(loader)
+        loader.loader.exec_module(mod)
+        _IMPORTED[spec] = mod
+    return _IMPORTED[spec]
+
+
+@pytest.mark.parametrize("compiler", COMPILERS)
+@pytest.mark.parametrize("spec", ALL_SPECS)
+def test_compiles_cleanly_under_strict_warnings(spec: str, compiler: str, tmp_path: Path) -> None:
+    source = _write_c(spec, tmp_path)
+    done = subprocess.run(
+        [compiler, *STRICT, "-O2", "-c", str(source), "-o", str(tmp_path / "x.o")],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == ""
+
+
+def test_refuses_fast_math(tmp_path: Path) -> None:
+    source = _write_c("integrator", tmp_path)
+    done = subprocess.run(
+        ["gcc", "-std=c99", "-ffast-math", "-c", str(source), "-o", str(tmp_path / "x.o")],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert done.returncode != 0
+    assert "must not be compiled with -ffast-math" in done.stderr
+
+
+def test_c_uses_only_math_and_stddef(tmp_path: Path) -> None:
+    source = _write_c("two_unicycles_barrier", tmp_path)
+    text = source.read_text()
+    includes = sorted(line for line in text.splitlines() if line.startswith("#include"))
+    assert includes == [
+        '#include "two_unicycles_barrier.h"',
+        "#include <math.h>",
+        "#include <stddef.h>",
+    ]
+    assert "M_PI" not in text and "malloc(" not in text
+    # No mutable state at file scope: every file-scope variable is const.
+    variables = re.findall(r"^(?:static\s+)?(?:double|int|size_t)\s+\w+\s*(?:\[|=)", text, re.M)
+    assert variables == []
+
+
+@pytest.mark.parametrize("spec", ALL_SPECS)
+def test_c_agrees_with_python(spec: str, tmp_path_factory: pytest.TempPathFactory) -> None:
+    cmod, pmod = c_module(spec, tmp_path_factory), module(spec)
+    states = random_states(spec, 1000, seed=11)
+    for t in (0.0, 2.5, 13.0):
+        for name in ("control", "rhs", "optimality_error"):
+            ours, ref = getattr(cmod, name)(t, states), getattr(pmod, name)(t, states)
+            np.testing.assert_allclose(ours, ref, rtol=1e-10, atol=1e-10 * np.abs(ref).max())
+        y = states[: len(pmod.OUTPUT_NAMES)]
+        for name in ("objective", "gradient", "hessian"):
+            ours, ref = getattr(cmod, name)(t, y), getattr(pmod, name)(t, y)
+            np.testing.assert_allclose(ours, ref, rtol=1e-10, atol=1e-12)
+    assert cmod.STATE_NAMES == pmod.STATE_NAMES and cmod.PARAMETERS == pmod.PARAMETERS
+    assert cmod.control(1.0, states[:, 0]).shape == pmod.control(1.0, states[:, 0]).shape
+
+
+@pytest.mark.parametrize(
+    ("state", "exception"),
+    [
+        ([-5.0, 4.0, 0.3, 0.0], "SingularDecouplingError"),
+        ([np.nan, 4.0, 0.0, 1.0], "NonFiniteInputError"),
+        ([-5.0, np.inf, 0.0, 1.0], "NonFiniteInputError"),
+    ],
+)
+def test_same_status_at_singular_points(
+    state: list[float], exception: str, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    cmod, pmod = c_module("unicycle_switch", tmp_path_factory), module("unicycle_switch")
+    for mod in (cmod, pmod):
+        with pytest.raises(getattr(mod, exception)) as info:
+            mod.control(0.0, state)
+        assert info.value.status == getattr(pmod, exception).status
+    with pytest.raises(cmod.SingularDecouplingError, match="v = 0"):
+        cmod.rhs(0.0, state if exception == "SingularDecouplingError" else [0, 0, 0, 0.0])
+
+
+def test_same_status_for_a_hessian_that_is_not_positive_definite(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    cmod, pmod = c_module("integrator", tmp_path_factory), module("integrator")
+    for mod in (cmod, pmod):
+        with pytest.raises(mod.HessianNotPositiveDefiniteError) as info:
+            mod.control(0.0, [0.0, 0.0], {"w": -1.0})
+        assert info.value.status == 3
+
+
+def test_batch_reports_the_failing_column(tmp_path_factory: pytest.TempPathFactory) -> None:
+    cmod = c_module("unicycle_switch", tmp_path_factory)
+    states = np.array([[-5.0, -5.0, -5.0], [4.0, 4.0, 4.0], [0.0, 0.0, 0.0], [1.0, 2.0, 0.0]])
+    with pytest.raises(cmod.SingularDecouplingError) as info:
+        cmod.control(0.0, states)
+    assert info.value.index == 2
+
+
+HARNESS = """
+#include "{name}.h"
+#include <math.h>
+#include <stdio.h>
+
+int main(void)
+{{
+    double s[{P}_N_STATES], out[{P}_N_STATES * {P}_K + 16], y[{P}_N_OUTPUTS];
+    unsigned long seed = 12345UL;
+    int i, j, counts[5] = {{0, 0, 0, 0, 0}};
+    for (i = 0; i < 2000; ++i) {{
+        for (j = 0; j < {P}_N_STATES; ++j) {{
+            seed = seed * 6364136223846793005UL + 1442695040888963407UL;
+            s[j] = {name}_default_state[j] + ((double)(seed >> 11) / 9007199254740992.0 - 0.5);
+        }}
+        if (i % 7 == 0) s[{P}_N_STATES - 1] = 0.0;      /* singular for prolonged speeds */
+        if (i % 11 == 0) s[i % {P}_N_STATES] = NAN;      /* non-finite input */
+        if (i % 13 == 0) s[0] = 1e300;                   /* overflow inside the law */
+        for (j = 0; j < {P}_N_OUTPUTS; ++j) y[j] = s[j];
+        counts[{name}_control(0.1 * i, s, NULL, out)]++;
+        counts[{name}_rhs(0.1 * i, s, NULL, out)]++;
+        counts[{name}_optimality_error(0.1 * i, s, NULL, out)]++;
+        counts[{name}_hessian(0.1 * i, y, NULL, out)]++;
+        {name}_rhs_batch(1, 0.1 * i, s, NULL, out, NULL);
+    }}
+    printf("%d %d %d %d %d\\n", counts[0], counts[1], counts[2], counts[3], counts[4]);
+    return 0;
+}}
+"""
+
+
+@pytest.mark.parametrize("spec", ALL_SPECS)
+def test_address_and_undefined_behaviour_sanitizers(spec: str, tmp_path: Path) -> None:
+    source = _write_c(spec, tmp_path)
+    name = derivation(spec).spec.name
+    (tmp_path / "main.c").write_text(HARNESS.format(name=name, P=name.upper()))
+    binary = tmp_path / "harness"
+    build = subprocess.run(
+        [
+            "gcc",
+            *STRICT,
+            "-g",
+            "-O1",
+            "-fsanitize=address,undefined",
+            "-fno-sanitize-recover=all",
+            "-o",
+            str(binary),
+            str(tmp_path / "main.c"),
+            str(source),
+            "-lm",
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if build.returncode != 0 and "asan" in build.stderr.lower():
+        pytest.skip(f"sanitizer runtime unavailable: {build.stderr.strip()[:200]}")
+    assert build.returncode == 0, build.stderr
+    run = subprocess.run([str(binary)], capture_output=True, text=True, check=False, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stderr == ""
+    counts = list(map(int, run.stdout.split()))
+    assert sum(counts) == 8000 and counts[0] > 0 and counts[1] > 0  # OK and non-finite both seen
+
+
+def _import_in_subprocess(
+    folder: Path, cache: Path, extra_env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, TVOPT_CODEGEN_CACHE=str(cache), **(extra_env or {}))
+    code = "import integrator; print(integrator.control(0.0, integrator.DEFAULT_STATE))"
+    return subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=folder,
+        env=env,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+
+
+def test_compiled_library_cache(tmp_path: Path) -> None:
+    folder, cache = tmp_path / "gen", tmp_path / "cache"
+    _write_c("integrator", folder)
+    first = _import_in_subprocess(folder, cache)
+    assert first.returncode == 0, first.stderr
+    (library,) = cache.glob("integrator-*.so")
+    stamp = library.stat().st_mtime_ns
+    assert _import_in_subprocess(folder, cache).returncode == 0
+    assert list(cache.glob("integrator-*.so")) == [library]  # no rebuild
+    assert library.stat().st_mtime_ns == stamp
+    assert _import_in_subprocess(folder, cache, {"TVOPT_CODEGEN_CFLAGS": "-O1"}).returncode == 0
+    assert len(list(cache.glob("integrator-*.so"))) == 2  # changed flags: rebuilt
+    source = folder / "integrator.c"
+    source.write_text(source.read_text() + "\n/* edited */\n")
+    assert _import_in_subprocess(folder, cache).returncode == 0
+    assert len(list(cache.glob("integrator-*.so"))) == 3  # edited source: rebuilt
+    assert not [p for p in cache.iterdir() if p.name.startswith(".")]  # nothing half-built
+
+
+def test_two_processes_importing_at_once(tmp_path: Path) -> None:
+    folder, cache = tmp_path / "gen", tmp_path / "cache"
+    _write_c("integrator", folder)
+    env = dict(os.environ, TVOPT_CODEGEN_CACHE=str(cache))
+    code = "import integrator; print(integrator.rhs(0.0, integrator.DEFAULT_STATE))"
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", code],
+            cwd=folder,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(2)
+    ]
+    outputs = [p.communicate(timeout=120) for p in procs]
+    assert all(p.returncode == 0 for p in procs), outputs
+    assert outputs[0][0] == outputs[1][0]
+    assert len(list(cache.glob("integrator-*.so"))) == 1
+
+
+def test_missing_compiler_is_a_clear_import_error(tmp_path: Path) -> None:
+    folder, cache = tmp_path / "gen", tmp_path / "cache"
+    _write_c("integrator", folder)
+    empty = tmp_path / "bin"
+    empty.mkdir()
+    done = _import_in_subprocess(folder, cache, {"PATH": str(empty), "CC": "no-such-cc"})
+    assert done.returncode != 0
+    assert "ImportError: integrator: no C compiler found" in done.stderr
+    assert not cache.exists() or not list(cache.iterdir())
+
+
+def test_compiler_error_is_reported_and_nothing_cached(tmp_path: Path) -> None:
+    folder, cache = tmp_path / "gen", tmp_path / "cache"
+    _write_c("integrator", folder)
+    source = folder / "integrator.c"
+    source.write_text(source.read_text() + "\nthis is not C;\n")
+    done = _import_in_subprocess(folder, cache)
+    assert done.returncode != 0
+    assert "compiling" in done.stderr and "failed" in done.stderr
+    assert not list(cache.glob("*.so"))
+
+
+def test_example_control_loop_from_the_readme_compiles(tmp_path: Path) -> None:
+    source = _write_c("unicycle_switch", tmp_path)
+    loop = textwrap.dedent("""
+        #include "unicycle_switch.h"
+        /* A 1 kHz loop: read the state, call control, apply u (the plant is simulated here
+           by Euler steps of the controller's own closed-loop rhs). */
+        int run_loop(double *s, int steps)
+        {
+            double u[UNICYCLE_SWITCH_N_INPUTS], ds[UNICYCLE_SWITCH_N_STATES];
+            int k, i, status;
+            for (k = 0; k < steps; ++k) {
+                const double t = 1e-3 * k;
+                status = unicycle_switch_control(t, s, NULL, u);
+                if (status != UNICYCLE_SWITCH_OK) return status;
+                status = unicycle_switch_rhs(t, s, NULL, ds);
+                if (status != UNICYCLE_SWITCH_OK) return status;
+                for (i = 0; i < UNICYCLE_SWITCH_N_STATES; ++i) s[i] += 1e-3 * ds[i];
+            }
+            return UNICYCLE_SWITCH_OK;
+        }
+    """)
+    (tmp_path / "loop.c").write_text(loop)
+    done = subprocess.run(
+        [
+            "gcc",
+            *STRICT,
+            "-c",
+            str(tmp_path / "loop.c"),
+            "-I",
+            str(source.parent),
+            "-o",
+            str(tmp_path / "loop.o"),
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr

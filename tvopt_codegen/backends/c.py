@@ -1,0 +1,18 @@
+"""The C backend: a self-contained C99 pair and a Python module that compiles and loads it."""
+
+from __future__ import annotations
+
+from tvopt_codegen.backends.base import Backend
+from tvopt_codegen.printers import CPrinter
+
+#: The C backend. The Python module has the Python backend's contract exactly.
+C = Backend(
+    name="c",
+    description="C99 <name>.h/<name>.c (no heap, re-entrant) and <name>.py loading them",
+    printer=CPrinter,
+    templates=(
+        ("c/controller.h.jinja", "{name}.h"),
+        ("c/controller.c.jinja", "{name}.c"),
+        ("c/wrapper.py.jinja", "{name}.py"),
+    ),
+)
