@@ -202,3 +202,16 @@ def test_rerun_replaces_its_own_outputs_but_not_edited_ones(tmp_path: Path) -> N
     csv_path.write_text(csv_path.read_text() + "# my note\n")
     assert main(args) == 4
     assert csv_path.read_text().endswith("# my note\n")
+
+
+def test_simulate_with_the_c_backend(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                     capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setenv("TVOPT_CODEGEN_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "c"
+    assert main(["simulate", "unicycle_switch", "--backend", "c", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "certificate: PASSED" in text
+    c_run = np.load(out / "unicycle_switch_trajectory.npz")
+    assert main(["simulate", "unicycle_switch", "--out", str(tmp_path / "py")]) == 0
+    py_run = np.load(tmp_path / "py" / "unicycle_switch_trajectory.npz")
+    np.testing.assert_allclose(c_run["states"], py_run["states"], rtol=1e-8, atol=1e-8)
