@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 INSTALLED := $(VENV)/.installed
 EXAMPLES := integrator unicycle_switch two_unicycles_barrier
 
-.PHONY: all demo figures test lint typecheck check regen check-generated update-golden clean
+.PHONY: all demo figures bench test lint typecheck check regen check-generated update-golden clean
 
 all: test
 
@@ -34,6 +34,11 @@ figures: $(INSTALLED)
 ## test: the whole test suite
 test: $(INSTALLED)
 	$(PY) -m pytest
+
+## bench: C and NumPy controllers against CasADi (installs the bench extra: casadi, cffi)
+bench: $(INSTALLED)
+	$(PY) -m pip install --quiet -e '.[bench]'
+	$(PY) benchmarks/bench_c.py --write benchmarks/RESULTS.md
 
 ## lint: ruff and mypy (strict) over the package
 lint: $(INSTALLED)

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 6e644e1a20f1650985c02977c3ca00c5904f4102688cb2df7df5d86ecddeec84
+# content sha256: 051bcbe2187d9b6b7def82c02368c1302bc37d97a17e21f75eb127078f6e3623
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -233,24 +233,29 @@ def _jet(t, s, p, a):
     jet_rhs = numpy.empty((2, _n))  # sum_i a_i grad^(i) f0 - rest
     jet_rhs[0] = _a0*(_s0 - _t1) + _t2
     jet_rhs[1] = (1/2)*_a0*_p0*(2*_s1 - 2*_t3) + _p0*_t4
-    return hessian, jet_rhs
-
-
-def _decoupling(t, s, p, z):
-    """Decoupling matrix R and b = v - p, so that R w = b linearizes the plant (kernel; 0 operations, 0 before CSE)."""
-    _n = s.shape[1]
-    _z0 = z[0]  # y1^(1)
-    _z1 = z[1]  # y2^(1)
-    # Output terms
     R = numpy.empty((2, 2, _n))  # decoupling matrix
     R[0, 0] = 1
     R[0, 1] = 0
     R[1, 0] = 0
     R[1, 1] = 1
+    pvec = numpy.empty((2, _n))  # p = col(L_f^{r_i} h_i)
+    pvec[0] = 0
+    pvec[1] = 0
+    return hessian, jet_rhs, R, pvec
+
+
+def _decoupling(t, s, p, z, q):
+    """b = v - p, so that R w = b linearizes the plant (kernel; 2 operations, 2 before CSE)."""
+    _n = s.shape[1]
+    _z0 = z[0]  # y1^(1)
+    _z1 = z[1]  # y2^(1)
+    _q0 = q[0]  # p_y1
+    _q1 = q[1]  # p_y2
+    # Output terms
     b = numpy.empty((2, _n))  # v - p
-    b[0] = _z0
-    b[1] = _z1
-    return R, b
+    b[0] = -_q0 + _z0
+    b[1] = -_q1 + _z1
+    return b
 
 
 def _closed_loop(t, s, p, w, z):
@@ -335,13 +340,14 @@ def _hessian(t, y, p):
 def _law(t, s, p):
     """The paper's law, evaluated column by column: returns (ds/dt, u)."""
     with numpy.errstate(all="ignore"):
-        hess, jet_rhs = _jet(t, s, p, _A)
-    _check_finite("the Hessian or the gradient jet", hess, jet_rhs)
+        hess, jet_rhs, r, pvec = _jet(t, s, p, _A)
+    _check_finite("the Hessian, the gradient jet, the decoupling matrix or p", hess, jet_rhs,
+                  r, pvec)
     # y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
     z = _cholesky_solve(hess, jet_rhs)
     with numpy.errstate(all="ignore"):
-        r, b = _decoupling(t, s, p, z)
-    _check_finite("the decoupling matrix or p", r, b)
+        b = _decoupling(t, s, p, z, pvec)
+    _check_finite("v - p", b)
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
     w = _lu_solve(r, b)
     with numpy.errstate(all="ignore"):

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 48f36560c15b15b00e724cec91149656eb526ce2bcd09cf0c9e80e98d85650c0
+# content sha256: bf37fd972ed95b957d222cf9255d348eb1ce92313bef491079677bebbcb9ec67
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -217,7 +217,7 @@ def _lu_solve(a, b):
     return numpy.moveaxis(x, 0, -1)
 
 def _jet(t, s, p, a):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 183 operations, 244 before CSE)."""
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 185 operations, 260 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -227,79 +227,81 @@ def _jet(t, s, p, a):
     _p1 = p[1]  # b
     _a0 = a[0]  # a_0
     _a1 = a[1]  # a_1
-    # Intermediate terms (40)
+    # Intermediate terms (47)
     _t0 = 1/_p1
-    _t1 = _p0 - t
-    _t2 = -numpy.tanh(_t0*_t1)
-    _t3 = 1/2 - 1/2*_t2
-    _t4 = -1/2*_t0*(1 - _t2**2)
-    _t5 = numpy.tanh(_t0*_t1)
-    _t6 = _t5*(_t5**2 - 1)/_p1**2
-    _t7 = t**2
-    _t8 = (1/100)*_t7
-    _t9 = -_t8 + (3/5)*t - 5
-    _t10 = (1/50)*t
-    _t11 = 3/5 - _t10
-    _t12 = t**3
-    _t13 = -1/1000*_t12 + (1/50)*_t7 + (1/2)*t - 5
-    _t14 = -3/1000*_t7 + (1/25)*t + 1/2
-    _t15 = (1/500)*(20 - 3*t)
-    _t16 = -_t8 - 3/10*t + 5
-    _t17 = -_t10 - 3/10
-    _t18 = (1/5000)*_t12 - 3/200*_t7 + (2/5)*t - 3
-    _t19 = (3/5000)*_t7 - 3/100*t + 2/5
-    _t20 = (3/2500)*(t - 25)
-    _t21 = _s3*numpy.cos(_s2)
-    _t22 = _s3*numpy.sin(_s2)
-    _t23 = -2*_s0
-    _t24 = 1 - _t3
-    _t25 = -2*_s1
-    _t26 = -2*_t21
-    _t27 = -_t4
-    _t28 = -2*_t22
-    _t29 = -_t6
-    _t30 = 2*_t11
-    _t31 = -_t23 - 2*_t9
-    _t32 = -_t27 - _t4
-    _t33 = 2*_t17
-    _t34 = -2*_t16 - _t23
-    _t35 = -_t24 - _t3
-    _t36 = 2*_t14
-    _t37 = 2*_t19
-    _t38 = -2*_t13 - _t25
-    _t39 = -2*_t18 - _t25
+    _t1 = numpy.tanh(_t0*(-_p0 + t))
+    _t2 = 1/2 - 1/2*_t1
+    _t3 = _t1**2 - 1
+    _t4 = (1/2)*_t0*_t3
+    _t5 = -_t1*_t3/_p1**2
+    _t6 = t**2
+    _t7 = (1/100)*_t6
+    _t8 = -_t7 + (3/5)*t - 5
+    _t9 = (1/50)*t
+    _t10 = 3/5 - _t9
+    _t11 = t**3
+    _t12 = -1/1000*_t11 + (1/50)*_t6 + (1/2)*t - 5
+    _t13 = -3/1000*_t6 + (1/25)*t + 1/2
+    _t14 = (1/500)*(20 - 3*t)
+    _t15 = -_t7 - 3/10*t + 5
+    _t16 = -_t9 - 3/10
+    _t17 = (1/5000)*_t11 - 3/200*_t6 + (2/5)*t - 3
+    _t18 = (3/5000)*_t6 - 3/100*t + 2/5
+    _t19 = (3/2500)*(t - 25)
+    _t20 = numpy.cos(_s2)
+    _t21 = _s3*_t20
+    _t22 = _t21
+    _t23 = numpy.sin(_s2)
+    _t24 = _s3*_t23
+    _t25 = _t24
+    _t26 = -2*_s0
+    _t27 = 1 - _t2
+    _t28 = -2*_s1
+    _t29 = -2*_t22
+    _t30 = -_t4
+    _t31 = -2*_t25
+    _t32 = -_t5
+    _t33 = 2*_t10
+    _t34 = (1/2)*_t4
+    _t35 = -_t26 - 2*_t8
+    _t36 = (1/2)*_t5
+    _t37 = -1/2*_t30 - 1/2*_t4
+    _t38 = 2*_t16
+    _t39 = (1/2)*_t30
+    _t40 = -2*_t15 - _t26
+    _t41 = (1/2)*_t32
+    _t42 = -_t2 - _t27
+    _t43 = 2*_t13
+    _t44 = -2*_t12 - _t28
+    _t45 = 2*_t18
+    _t46 = -2*_t17 - _t28
     # Output terms
-    hessian = numpy.empty((2, 2, _n))  # grad_yy f0
-    hessian[0, 0] = 2
-    hessian[0, 1] = 0
-    hessian[1, 0] = 0
-    hessian[1, 1] = 2
-    jet_rhs = numpy.empty((2, _n))  # sum_i a_i grad^(i) f0 - rest
-    jet_rhs[0] = _a0*(_t24*_t34 + _t3*_t31) + _a1*(-_t24*_t33 + _t26*_t35 + _t27*_t34 - _t3*_t30 + _t31*_t4) + 2*_t11*_t4 + 2*_t17*_t27 - 1/25*_t24 - _t26*_t32 - _t27*(-_t26 - _t33) - _t29*_t34 - 1/25*_t3 - _t31*_t6 - _t4*(-_t26 - _t30)
-    jet_rhs[1] = _a0*(_t24*_t39 + _t3*_t38) + _a1*(-_t24*_t37 + _t27*_t39 + _t28*_t35 - _t3*_t36 + _t38*_t4) + 2*_t15*_t3 + 2*_t20*_t24 + _t27*_t37 - _t27*(-_t28 - _t37) - _t28*_t32 - _t29*_t39 + _t36*_t4 - _t38*_t6 - _t4*(-_t28 - _t36)
-    return hessian, jet_rhs
+    z = numpy.empty((2, _n))  # y_imp^(k)
+    z[0] = (1/2)*_a0*(_t2*_t35 + _t27*_t40) + (1/2)*_a1*(-_t2*_t33 - _t27*_t38 + _t29*_t42 + _t30*_t40 + _t35*_t4) + _t10*_t4 + _t16*_t30 - 1/50*_t2 - 1/50*_t27 - _t29*_t37 - _t34*(-_t29 - _t33) - _t35*_t36 - _t39*(-_t29 - _t38) - _t40*_t41
+    z[1] = (1/2)*_a0*(_t2*_t44 + _t27*_t46) + (1/2)*_a1*(-_t2*_t43 - _t27*_t45 + _t30*_t46 + _t31*_t42 + _t4*_t44) + _t13*_t4 + _t14*_t2 + _t18*_t30 + _t19*_t27 - _t31*_t37 - _t34*(-_t31 - _t43) - _t36*_t44 - _t39*(-_t31 - _t45) - _t41*_t46
+    R = numpy.empty((2, 2, _n))  # decoupling matrix
+    R[0, 0] = _t20
+    R[0, 1] = -_t24
+    R[1, 0] = _t23
+    R[1, 1] = _t21
+    pvec = numpy.empty((2, _n))  # p = col(L_f^{r_i} h_i)
+    pvec[0] = 0
+    pvec[1] = 0
+    return z, R, pvec
 
 
-def _decoupling(t, s, p, z):
-    """Decoupling matrix R and b = v - p, so that R w = b linearizes the plant (kernel; 5 operations, 7 before CSE)."""
+def _decoupling(t, s, p, z, q):
+    """b = v - p, so that R w = b linearizes the plant (kernel; 2 operations, 2 before CSE)."""
     _n = s.shape[1]
-    _s2 = s[2]  # theta
-    _s3 = s[3]  # v
     _z0 = z[0]  # y1^(2)
     _z1 = z[1]  # y2^(2)
-    # Intermediate terms (2)
-    _t0 = numpy.cos(_s2)
-    _t1 = numpy.sin(_s2)
+    _q0 = q[0]  # p_y1
+    _q1 = q[1]  # p_y2
     # Output terms
-    R = numpy.empty((2, 2, _n))  # decoupling matrix
-    R[0, 0] = _t0
-    R[0, 1] = -_s3*_t1
-    R[1, 0] = _t1
-    R[1, 1] = _s3*_t0
     b = numpy.empty((2, _n))  # v - p
-    b[0] = _z0
-    b[1] = _z1
-    return R, b
+    b[0] = -_q0 + _z0
+    b[1] = -_q1 + _z1
+    return b
 
 
 def _closed_loop(t, s, p, w, z):
@@ -322,7 +324,7 @@ def _closed_loop(t, s, p, w, z):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 110 operations, 157 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 110 operations, 158 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -435,13 +437,12 @@ def _hessian(t, y, p):
 def _law(t, s, p):
     """The paper's law, evaluated column by column: returns (ds/dt, u)."""
     with numpy.errstate(all="ignore"):
-        hess, jet_rhs = _jet(t, s, p, _A)
-    _check_finite("the Hessian or the gradient jet", hess, jet_rhs)
-    # y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
-    z = _cholesky_solve(hess, jet_rhs)
+        z, r, pvec = _jet(t, s, p, _A)
+    # y_imp^(K): the constant Hessian of f0 was inverted exactly at generation time.
+    _check_finite("the gradient jet, the decoupling matrix or p", z, r, pvec)
     with numpy.errstate(all="ignore"):
-        r, b = _decoupling(t, s, p, z)
-    _check_finite("the decoupling matrix or p", r, b)
+        b = _decoupling(t, s, p, z, pvec)
+    _check_finite("v - p", b)
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
     w = _lu_solve(r, b)
     with numpy.errstate(all="ignore"):

@@ -163,3 +163,13 @@ def test_wrong_shapes_are_rejected() -> None:
     mod = module("unicycle_switch")
     with pytest.raises(ValueError, match=r"s must have shape \(4,\) or \(4, N\)"):
         mod.control(0.0, [1.0, 2.0, 3.0])
+
+
+def test_constant_hessian_is_inverted_at_generation_time() -> None:
+    """Quadratic f0: no run-time Cholesky; a parameter-dependent Hessian keeps it."""
+    from .conftest import kernels
+
+    unicycle = kernels("unicycle_switch")["jet"]
+    assert [o.name for o in unicycle.outputs] == ["z", "R", "pvec"]
+    integrator = kernels("integrator")["jet"]  # Hessian diag(1, w): w is a parameter
+    assert [o.name for o in integrator.outputs] == ["hessian", "jet_rhs", "R", "pvec"]

@@ -204,8 +204,9 @@ def test_rerun_replaces_its_own_outputs_but_not_edited_ones(tmp_path: Path) -> N
     assert csv_path.read_text().endswith("# my note\n")
 
 
-def test_simulate_with_the_c_backend(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                     capsys: pytest.CaptureFixture[str]) -> None:
+def test_simulate_with_the_c_backend(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     monkeypatch.setenv("TVOPT_CODEGEN_CACHE", str(tmp_path / "cache"))
     out = tmp_path / "c"
     assert main(["simulate", "unicycle_switch", "--backend", "c", "--out", str(out)]) == 0

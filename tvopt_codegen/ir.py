@@ -9,9 +9,12 @@ on; the names survive only as labels for comments.
 The generated controller evaluates the paper's law as a chain of kernels and two
 numerical solves (never a symbolic inverse, ARCHITECTURE.md section 2)::
 
-    jet(t, s, p, a)        -> hessian, jet_rhs    # grad_yy f0 and sum a_i grad^(i) f0 - rest
+    jet(t, s, p, a)        -> hessian, jet_rhs, R, pvec
+                                                  # grad_yy f0, sum a_i grad^(i) f0 - rest,
+                                                  # decoupling matrix R and p
     z = solve(hessian, jet_rhs)                   # y_imp^(k), Cholesky
-    decoupling(t, s, p, z) -> R, b                # b = v - p with v_i = xi_i1 or z_i
+                                                  # (a constant Hessian: jet returns z itself)
+    decoupling(t, s, p, z, q=pvec) -> b           # b = v - p with v_i = xi_i1 or z_i
     w = solve(R, b)                               # LU with partial pivoting
     closed_loop(t, s, p, w, z) -> ds, u           # extended vector field and plant input
 """
@@ -198,6 +201,39 @@ def _cse_index(sym: sp.Symbol) -> int:
     return int(sym.name[len("_cse") :])
 
 
+#: Odd functions: f(-x) = -f(x).
+_ODD = (sp.sin, sp.tan, sp.sinh, sp.tanh, sp.asin, sp.atan, sp.asinh, sp.atanh)
+
+
+def canonical_odd(expr: sp.Expr) -> sp.Expr:
+    """Write every odd function with the sign of its argument pulled out.
+
+    sympy keeps ``tanh((a - t)/b)`` and ``tanh((t - a)/b)`` apart (neither argument
+    "extracts" a minus sign, so neither is rewritten), and CSE then evaluates both. Of
+    such a pair the argument with the smaller canonical sort key is kept; sympy leaves
+    it alone on re-evaluation because it does not extract a sign either.
+    """
+
+    def negate(arg: sp.Expr) -> sp.Expr:
+        # Distribute the sign into a sum factor: -(a - t)/b becomes (t - a)/b.
+        if arg.is_Mul:
+            for i, factor in enumerate(arg.args):
+                if factor.is_Add:
+                    return sp.Mul(*arg.args[:i], -factor, *arg.args[i + 1 :])
+        return -arg
+
+    def flips(e: sp.Expr) -> bool:
+        arg = e.args[0]
+        other = negate(arg)
+        if other.could_extract_minus_sign():
+            return False
+        return bool(sp.default_sort_key(sp.expand(other)) < sp.default_sort_key(sp.expand(arg)))
+
+    return sp.sympify(expr).replace(
+        lambda e: isinstance(e, _ODD) and flips(e), lambda e: -e.func(negate(e.args[0]))
+    )
+
+
 def _kernel(
     name: str,
     doc: str,
@@ -207,8 +243,10 @@ def _kernel(
     subs: Mapping[sp.Symbol, sp.Expr],
 ) -> Kernel:
     """Substitute slot symbols, CSE, and package a kernel."""
-    program = [(sym, sp.sympify(value).xreplace(subs)) for sym, value in assignments]
-    flat = [sp.sympify(e).xreplace(subs) for _, _, exprs, _ in outputs for e in exprs]
+    program = [(sym, canonical_odd(sp.sympify(value).xreplace(subs))) for sym, value in assignments]
+    flat = [
+        canonical_odd(sp.sympify(e).xreplace(subs)) for _, _, exprs, _ in outputs for e in exprs
+    ]
     before = _ops([v for _, v in program] + flat)
     body, reduced = ordered_cse(program, flat)
     packed: list[Output] = []
@@ -244,8 +282,8 @@ def lower(derivation: Derivation) -> KernelSet:
     Returns
     -------
     KernelSet
-        Kernels ``jet``, ``decoupling``, ``closed_loop``, ``optimality``,
-        ``objective``, ``gradient`` and ``hessian``.
+        Kernels ``jet``, ``decoupling``, ``closed_loop``, ``plant_input``,
+        ``optimality``, ``objective``, ``gradient`` and ``hessian``.
     """
     d = derivation
     model = d.model
@@ -279,32 +317,52 @@ def lower(derivation: Derivation) -> KernelSet:
         - d.rest[i]
         for i in range(m)
     ]
-    jet = _kernel(
-        "jet",
-        "Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest",
-        [arg_t, arg_s, arg_p, arg_a],
-        signal_block + y_block + jet_block + list(d.rest_program.assignments),
-        [
-            ("hessian", (m, m), hess, "grad_yy f0"),
-            ("jet_rhs", (m,), jet_rhs, "sum_i a_i grad^(i) f0 - rest"),
-        ],
-        subs,
-    )
+    jet_program = signal_block + y_block + jet_block + list(d.rest_program.assignments)
+    # R and p share their trigonometry with the output jet: one kernel, one CSE.
+    shared: list[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]] = [
+        ("R", (m, m), list(d.R), "decoupling matrix"),
+        ("pvec", (m,), list(d.p), "p = col(L_f^{r_i} h_i)"),
+    ]
+    if all(sp.sympify(e).is_Number for e in hess):
+        # A constant Hessian (quadratic f0) is inverted once, exactly, at generation time:
+        # a constant, not a symbolic inverse of a function, and no run-time Cholesky.
+        inverse = sp.Matrix(m, m, hess).inv()
+        y_imp = list(inverse * sp.Matrix(jet_rhs))
+        jet = _kernel(
+            "jet",
+            "y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian",
+            [arg_t, arg_s, arg_p, arg_a],
+            jet_program,
+            [("z", (m,), y_imp, "y_imp^(k)"), *shared],
+            subs,
+        )
+    else:
+        jet = _kernel(
+            "jet",
+            "Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest",
+            [arg_t, arg_s, arg_p, arg_a],
+            jet_program,
+            [
+                ("hessian", (m, m), hess, "grad_yy f0"),
+                ("jet_rhs", (m,), jet_rhs, "sum_i a_i grad^(i) f0 - rest"),
+                *shared,
+            ],
+            subs,
+        )
 
     v = []
     for i in range(m):
         v.append(
             subs[d.states[d.state_names.index(d.padding[i][0])]] if d.padding[i] else z_slots[i]
         )
+    q_slots = _slots("q", m)
+    arg_q = Arg("q", q_slots, tuple(f"p_{o}" for o in output_names), "p of the decoupling")
     decoupling = _kernel(
         "decoupling",
-        "Decoupling matrix R and b = v - p, so that R w = b linearizes the plant",
-        [arg_t, arg_s, arg_p, arg_z],
+        "b = v - p, so that R w = b linearizes the plant",
+        [arg_t, arg_s, arg_p, arg_z, arg_q],
         [],
-        [
-            ("R", (m, m), list(d.R), "decoupling matrix"),
-            ("b", (m,), [v[i] - d.p[i] for i in range(m)], "v - p"),
-        ],
+        [("b", (m,), [v[i] - q_slots[i] for i in range(m)], "v - p")],
         subs,
     )
 
@@ -326,6 +384,15 @@ def lower(derivation: Derivation) -> KernelSet:
             ("ds", (n,), ds, "time derivative of the closed-loop state"),
             ("u", (m,), plant_input, "plant input"),
         ],
+        subs,
+    )
+
+    plant_input_kernel = _kernel(
+        "plant_input",
+        "The plant input alone (control needs no vector field)",
+        [arg_t, arg_s, arg_p, arg_w],
+        [],
+        [("u", (m,), plant_input, "plant input")],
         subs,
     )
 
@@ -366,4 +433,16 @@ def lower(derivation: Derivation) -> KernelSet:
         [("hess", (m, m), hess, "grad_yy f0")],
         y_subs,
     )
-    return KernelSet(d, (jet, decoupling, closed_loop, optimality, objective, gradient, hessian))
+    return KernelSet(
+        d,
+        (
+            jet,
+            decoupling,
+            closed_loop,
+            plant_input_kernel,
+            optimality,
+            objective,
+            gradient,
+            hessian,
+        ),
+    )

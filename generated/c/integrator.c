@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: ef751ce100caf11166c267465b1e5123d7f3eface683409949d628ed8403a476
+ * content sha256: bc92b416247db299f58ffb00c8f18314753cbd0035f740cfc92a108d6e24b93b
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -36,7 +36,7 @@ const double integrator_default_state[INTEGRATOR_N_STATES] = {-1.0, 1.5};
 const double integrator_hurwitz_coefficients[INTEGRATOR_K] = {-1.0};
 
 /* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (33 operations, 35 before CSE). */
-static void integrator_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs)
+static void integrator_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* x1 */
     const double _s1 = s[1]; /* x2 */
@@ -53,23 +53,27 @@ static void integrator_k_jet(double t, const double *s, const double *p, const d
     hessian[3] = _p0;
     jet_rhs[0] = _a0*(_s0 - _t1) + _t2;
     jet_rhs[1] = (1.0/2.0)*_a0*_p0*(2*_s1 - 2*_t3) + _p0*_t4;
+    R[0] = 1;
+    R[1] = 0;
+    R[2] = 0;
+    R[3] = 1;
+    pvec[0] = 0;
+    pvec[1] = 0;
 }
 
 
-/* Decoupling matrix R and b = v - p, so that R w = b linearizes the plant (0 operations, 0 before CSE). */
-static void integrator_k_decoupling(double t, const double *s, const double *p, const double *z, double *R, double *b)
+/* b = v - p, so that R w = b linearizes the plant (2 operations, 2 before CSE). */
+static void integrator_k_decoupling(double t, const double *s, const double *p, const double *z, const double *q, double *b)
 {
     (void)t;
     (void)s;
     (void)p;
     const double _z0 = z[0]; /* y1^(1) */
     const double _z1 = z[1]; /* y2^(1) */
-    R[0] = 1;
-    R[1] = 0;
-    R[2] = 0;
-    R[3] = 1;
-    b[0] = _z0;
-    b[1] = _z1;
+    const double _q0 = q[0]; /* p_y1 */
+    const double _q1 = q[1]; /* p_y2 */
+    b[0] = -_q0 + _z0;
+    b[1] = -_q1 + _z1;
 }
 
 
@@ -84,6 +88,19 @@ static void integrator_k_closed_loop(double t, const double *s, const double *p,
     (void)z;
     ds[0] = _w0;
     ds[1] = _w1;
+    u[0] = _w0;
+    u[1] = _w1;
+}
+
+
+/* The plant input alone (control needs no vector field) (0 operations, 0 before CSE). */
+static void integrator_k_plant_input(double t, const double *s, const double *p, const double *w, double *u)
+{
+    (void)t;
+    (void)s;
+    (void)p;
+    const double _w0 = w[0]; /* u1 */
+    const double _w1 = w[1]; /* u2 */
     u[0] = _w0;
     u[1] = _w1;
 }
@@ -257,20 +274,23 @@ static int integrator_lu_solve(double *a, double *b)
     return INTEGRATOR_OK;
 }
 
-/* The paper's law at one state: ds/dt and the plant input u. */
+/* The paper's law at one state: the plant input u and, unless ds is NULL, ds/dt. */
 static int integrator_law(double t, const double *s, const double *params, double *ds, double *u)
 {
     double hess[INTEGRATOR_N_OUTPUTS * INTEGRATOR_N_OUTPUTS];
     double z[INTEGRATOR_N_OUTPUTS];
     double r[INTEGRATOR_N_OUTPUTS * INTEGRATOR_N_OUTPUTS];
     double w[INTEGRATOR_N_OUTPUTS];
+    double pvec[INTEGRATOR_N_OUTPUTS];
     int status = integrator_check_inputs(t, s, INTEGRATOR_N_STATES, params);
     if (status != INTEGRATOR_OK) {
         return status;
     }
-    integrator_k_jet(t, s, params, integrator_hurwitz_coefficients, hess, z);
+    integrator_k_jet(t, s, params, integrator_hurwitz_coefficients, hess, z, r, pvec);
     if (!integrator_all_finite(hess, INTEGRATOR_N_OUTPUTS * INTEGRATOR_N_OUTPUTS)
-        || !integrator_all_finite(z, INTEGRATOR_N_OUTPUTS)) {
+        || !integrator_all_finite(z, INTEGRATOR_N_OUTPUTS)
+        || !integrator_all_finite(r, INTEGRATOR_N_OUTPUTS * INTEGRATOR_N_OUTPUTS)
+        || !integrator_all_finite(pvec, INTEGRATOR_N_OUTPUTS)) {
         return INTEGRATOR_NONFINITE_OUTPUT;
     }
     /* y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest] */
@@ -278,15 +298,18 @@ static int integrator_law(double t, const double *s, const double *params, doubl
     if (status != INTEGRATOR_OK) {
         return status;
     }
-    integrator_k_decoupling(t, s, params, z, r, w);
-    if (!integrator_all_finite(r, INTEGRATOR_N_OUTPUTS * INTEGRATOR_N_OUTPUTS)
-        || !integrator_all_finite(w, INTEGRATOR_N_OUTPUTS)) {
+    integrator_k_decoupling(t, s, params, z, pvec, w);
+    if (!integrator_all_finite(w, INTEGRATOR_N_OUTPUTS)) {
         return INTEGRATOR_NONFINITE_OUTPUT;
     }
     /* w = R^-1 (v - p) */
     status = integrator_lu_solve(r, w);
     if (status != INTEGRATOR_OK) {
         return status;
+    }
+    if (ds == NULL) {
+        integrator_k_plant_input(t, s, params, w, u);
+        return integrator_all_finite(u, INTEGRATOR_N_INPUTS) ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
     }
     integrator_k_closed_loop(t, s, params, w, z, ds, u);
     if (!integrator_all_finite(ds, INTEGRATOR_N_STATES) || !integrator_all_finite(u, INTEGRATOR_N_INPUTS)) {
@@ -297,8 +320,7 @@ static int integrator_law(double t, const double *s, const double *params, doubl
 
 int integrator_control(double t, const double *s, const double *params, double *out)
 {
-    double ds[INTEGRATOR_N_STATES];
-    return integrator_law(t, s, params ? params : INTEGRATOR_DEFAULT_PARAMS, ds, out);
+    return integrator_law(t, s, params ? params : INTEGRATOR_DEFAULT_PARAMS, NULL, out);
 }
 
 int integrator_rhs(double t, const double *s, const double *params, double *out)

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 751a1e21f5a4e10c7d23b59948e52b9f2982af2d56731f4e2610784bd2ba59f4
+ * content sha256: 514ebd400215881f5c6b12124bb2ade389b3a2c7cc23195d82da997334a340a0
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -35,8 +35,8 @@ const double two_unicycles_barrier_default_params[TWO_UNICYCLES_BARRIER_N_PARAMS
 const double two_unicycles_barrier_default_state[TWO_UNICYCLES_BARRIER_N_STATES] = {-4.5, -3.5, 0.0, -3.5, -3.5, 0.0, 1.0, 1.0};
 const double two_unicycles_barrier_hurwitz_coefficients[TWO_UNICYCLES_BARRIER_K] = {-1.5, -2.5};
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (297 operations, 2055 before CSE). */
-static void two_unicycles_barrier_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs)
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (300 operations, 2179 before CSE). */
+static void two_unicycles_barrier_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* xa */
     const double _s1 = s[1]; /* ya */
@@ -59,159 +59,167 @@ static void two_unicycles_barrier_k_jet(double t, const double *s, const double 
     const double _t6 = (1.0/125.0)*t + 9.0/20.0;
     const double _t7 = -3.0/250.0*_t0 + (7.0/20.0)*t - 3;
     const double _t8 = 7.0/20.0 - 3.0/125.0*t;
-    const double _t9 = _s6*cos(_s2);
-    const double _t10 = _s6*sin(_s2);
-    const double _t11 = _s7*cos(_s5);
-    const double _t12 = _s7*sin(_s5);
-    const double _t13 = 2*_s0;
+    const double _t9 = cos(_s2);
+    const double _t10 = _s6*_t9;
+    const double _t11 = _t10;
+    const double _t12 = sin(_s2);
+    const double _t13 = _s6*_t12;
     const double _t14 = _t13;
-    const double _t15 = 2*_s3;
-    const double _t16 = _t15;
-    const double _t17 = -_t16;
-    const double _t18 = _t14 + _t17;
-    const double _t19 = 3.141592653589793/_p1;
+    const double _t15 = cos(_s5);
+    const double _t16 = _s7*_t15;
+    const double _t17 = _t16;
+    const double _t18 = sin(_s5);
+    const double _t19 = _s7*_t18;
     const double _t20 = _t19;
-    const double _t21 = (1.0/2.0)*((_s0 - _s3)*(_s0 - _s3)) + (1.0/2.0)*((_s1 - _s4)*(_s1 - _s4));
-    const double _t22 = tan(_t20*_t21);
-    const double _t23 = _t22;
-    const double _t24 = (_t23*_t23);
-    const double _t25 = _p0*_t20;
-    const double _t26 = _t25*(_t24 + 1);
-    const double _t27 = _t23*_t26;
-    const double _t28 = 2*_s1;
-    const double _t29 = _t28;
-    const double _t30 = 2*_s4;
-    const double _t31 = _t30;
-    const double _t32 = -_t31;
-    const double _t33 = _t29 + _t32;
-    const double _t34 = 2*_t9;
-    const double _t35 = 2*_t11;
-    const double _t36 = _t34 - _t35;
-    const double _t37 = (_t22*_t22) + 1;
-    const double _t38 = _t20*_t37;
-    const double _t39 = _t38*_t9;
-    const double _t40 = _t13 - _t15;
-    const double _t41 = (1.0/2.0)*_t40;
-    const double _t42 = _t11*_t38;
-    const double _t43 = -_t40;
-    const double _t44 = (1.0/2.0)*_t43;
-    const double _t45 = _t10*_t38;
-    const double _t46 = _t28 - _t30;
-    const double _t47 = (1.0/2.0)*_t46;
-    const double _t48 = -_t46;
-    const double _t49 = _t12*_t38;
-    const double _t50 = _t39*_t41 + _t42*_t44 + _t45*_t47 + (1.0/2.0)*_t48*_t49;
-    const double _t51 = 2*_t24*_t25 + _t26;
-    const double _t52 = _t50*_t51;
-    const double _t53 = 2*_t10;
-    const double _t54 = 2*_t12;
-    const double _t55 = -_t54;
-    const double _t56 = _t53 + _t55;
-    const double _t57 = (_t40*_t40);
-    const double _t58 = (1.0/2.0)*_t57;
-    const double _t59 = (_t20*_t20)*_t22*_t37;
-    const double _t60 = _t59*_t9;
-    const double _t61 = _t41*_t59;
-    const double _t62 = _t10*_t46;
-    const double _t63 = _t12*_t48;
-    const double _t64 = (_t43*_t43);
-    const double _t65 = (1.0/2.0)*_t59;
-    const double _t66 = _t41*_t60;
-    const double _t67 = _t44*_t59;
-    const double _t68 = (_t46*_t46);
-    const double _t69 = _t11*_t67;
-    const double _t70 = _t47*_t59;
-    const double _t71 = (_t48*_t48);
-    const double _t72 = _t10*(_t10*_t65*_t68 + _t45 + _t46*_t66 + _t46*_t69 - _t49 + _t63*_t70) + _t11*(_t11*_t64*_t65 - _t39 + _t42 + _t43*_t66 + _t62*_t67 + _t63*_t67) + _t12*(_t10*_t48*_t70 + _t12*_t65*_t71 - _t45 + _t48*_t66 + _t48*_t69 + _t49) + _t9*(_t11*_t43*_t61 + _t39 - _t42 + _t58*_t60 + _t61*_t62 + _t61*_t63);
-    const double _t73 = 6*_t23*_t25*(_t50*_t50) + _t51*_t72;
-    const double _t74 = tan(_t19*_t21);
-    const double _t75 = (_t74*_t74);
-    const double _t76 = _t75 + 1;
-    const double _t77 = (3.141592653589793*3.141592653589793)*_p0/(_p1*_p1);
-    const double _t78 = (_t76*_t76)*_t77;
-    const double _t79 = _t75*_t76*_t77;
-    const double _t80 = 2*_p0*_t19*_t74*_t76;
-    const double _t81 = _t80 + 2;
-    const double _t82 = _t41*_t78;
-    const double _t83 = _t40*_t79;
-    const double _t84 = _t46*_t82 + _t46*_t83;
-    const double _t85 = -_t80;
-    const double _t86 = _t43*_t82 + _t43*_t83 + _t85;
-    const double _t87 = _t48*_t82 + _t48*_t83;
-    const double _t88 = (1.0/2.0)*_t78;
-    const double _t89 = _t44*_t78;
-    const double _t90 = _t46*_t79;
-    const double _t91 = _t43*_t90 + _t46*_t89;
-    const double _t92 = _t47*_t48*_t78 + _t48*_t90 + _t85;
-    const double _t93 = _t43*_t48*_t79 + _t48*_t89;
-    const double _t94 = 2*_t52;
-    const double _t95 = _t36*_t94;
-    const double _t96 = _t18*_t73;
-    const double _t97 = _t18*_t27;
-    const double _t98 = _t18*_t52 + _t27*_t36;
-    const double _t99 = _t27*_t33;
-    const double _t100 = _t27*_t56 + _t33*_t52;
-    const double _t101 = _t33*_t73 + _t56*_t94;
-    hessian[0] = _t57*_t79 + _t58*_t78 + _t81;
-    hessian[1] = _t84;
-    hessian[2] = _t86;
-    hessian[3] = _t87;
-    hessian[4] = _t84;
-    hessian[5] = _t68*_t79 + _t68*_t88 + _t81;
-    hessian[6] = _t91;
-    hessian[7] = _t92;
-    hessian[8] = _t86;
-    hessian[9] = _t91;
-    hessian[10] = _t64*_t79 + _t64*_t88 + _t81;
-    hessian[11] = _t93;
-    hessian[12] = _t87;
-    hessian[13] = _t92;
-    hessian[14] = _t93;
-    hessian[15] = _t71*_t79 + _t71*_t88 + _t81;
-    jet_rhs[0] = _a0*(-2*_t1 + _t14 + _t97) + _a1*(-2*_t2 + _t34 + _t98) - _t95 - _t96 + 1.0/125.0;
-    jet_rhs[1] = _a0*(_t29 - 2*_t3 + _t99) + _a1*(_t100 - 2*_t4 + _t53) - _t101 - 1.0/25.0;
-    jet_rhs[2] = _a0*(-_t17 - 2*_t5 - _t97) + _a1*(_t35 - 2*_t6 - _t98) + _t95 + _t96 + 2.0/125.0;
-    jet_rhs[3] = _a0*(-_t32 - 2*_t7 - _t99) + _a1*(-_t100 - _t55 - 2*_t8) + _t101 - 6.0/125.0;
+    const double _t21 = 2*_s0;
+    const double _t22 = _t21;
+    const double _t23 = 2*_s3;
+    const double _t24 = _t23;
+    const double _t25 = -_t24;
+    const double _t26 = _t22 + _t25;
+    const double _t27 = 3.141592653589793/_p1;
+    const double _t28 = _t27;
+    const double _t29 = -1.0/2.0*((_s0 - _s3)*(_s0 - _s3)) - 1.0/2.0*((_s1 - _s4)*(_s1 - _s4));
+    const double _t30 = tan(_t28*_t29);
+    const double _t31 = -_t30;
+    const double _t32 = (_t31*_t31);
+    const double _t33 = _p0*_t28;
+    const double _t34 = _t33*(_t32 + 1);
+    const double _t35 = _t31*_t34;
+    const double _t36 = 2*_s1;
+    const double _t37 = _t36;
+    const double _t38 = 2*_s4;
+    const double _t39 = _t38;
+    const double _t40 = -_t39;
+    const double _t41 = _t37 + _t40;
+    const double _t42 = 2*_t11;
+    const double _t43 = 2*_t17;
+    const double _t44 = _t42 - _t43;
+    const double _t45 = (_t30*_t30) + 1;
+    const double _t46 = _t28*_t45;
+    const double _t47 = _t11*_t46;
+    const double _t48 = _t21 - _t23;
+    const double _t49 = (1.0/2.0)*_t48;
+    const double _t50 = _t17*_t46;
+    const double _t51 = -_t48;
+    const double _t52 = (1.0/2.0)*_t51;
+    const double _t53 = _t14*_t46;
+    const double _t54 = _t36 - _t38;
+    const double _t55 = (1.0/2.0)*_t54;
+    const double _t56 = -_t54;
+    const double _t57 = _t20*_t46;
+    const double _t58 = _t47*_t49 + _t50*_t52 + _t53*_t55 + (1.0/2.0)*_t56*_t57;
+    const double _t59 = 2*_t32*_t33 + _t34;
+    const double _t60 = _t58*_t59;
+    const double _t61 = 2*_t14;
+    const double _t62 = 2*_t20;
+    const double _t63 = -_t62;
+    const double _t64 = _t61 + _t63;
+    const double _t65 = (_t48*_t48);
+    const double _t66 = (1.0/2.0)*_t65;
+    const double _t67 = (_t28*_t28)*_t30*_t45;
+    const double _t68 = _t11*_t67;
+    const double _t69 = _t49*_t67;
+    const double _t70 = _t14*_t54;
+    const double _t71 = _t20*_t56;
+    const double _t72 = (_t51*_t51);
+    const double _t73 = (1.0/2.0)*_t67;
+    const double _t74 = _t49*_t68;
+    const double _t75 = _t52*_t67;
+    const double _t76 = (_t54*_t54);
+    const double _t77 = _t17*_t75;
+    const double _t78 = _t55*_t67;
+    const double _t79 = (_t56*_t56);
+    const double _t80 = _t11*(-_t17*_t51*_t69 + _t47 - _t50 - _t66*_t68 - _t69*_t70 - _t69*_t71) + _t14*(-_t14*_t73*_t76 + _t53 - _t54*_t74 - _t54*_t77 - _t57 - _t71*_t78) + _t17*(-_t17*_t72*_t73 - _t47 + _t50 - _t51*_t74 - _t70*_t75 - _t71*_t75) + _t20*(-_t14*_t56*_t78 - _t20*_t73*_t79 - _t53 - _t56*_t74 - _t56*_t77 + _t57);
+    const double _t81 = 6*_t31*_t33*(_t58*_t58) + _t59*_t80;
+    const double _t82 = tan(_t27*_t29);
+    const double _t83 = (_t82*_t82);
+    const double _t84 = _t83 + 1;
+    const double _t85 = (3.141592653589793*3.141592653589793)*_p0/(_p1*_p1);
+    const double _t86 = (_t84*_t84)*_t85;
+    const double _t87 = _t83*_t84*_t85;
+    const double _t88 = 2*_p0*_t27*_t82*_t84;
+    const double _t89 = 2 - _t88;
+    const double _t90 = _t49*_t86;
+    const double _t91 = _t48*_t87;
+    const double _t92 = _t54*_t90 + _t54*_t91;
+    const double _t93 = _t51*_t90 + _t51*_t91 + _t88;
+    const double _t94 = _t56*_t90 + _t56*_t91;
+    const double _t95 = (1.0/2.0)*_t86;
+    const double _t96 = _t52*_t86;
+    const double _t97 = _t54*_t87;
+    const double _t98 = _t51*_t97 + _t54*_t96;
+    const double _t99 = _t55*_t56*_t86 + _t56*_t97 + _t88;
+    const double _t100 = _t51*_t56*_t87 + _t56*_t96;
+    const double _t101 = 2*_t60;
+    const double _t102 = _t101*_t44;
+    const double _t103 = _t26*_t81;
+    const double _t104 = _t26*_t35;
+    const double _t105 = _t26*_t60 + _t35*_t44;
+    const double _t106 = _t35*_t41;
+    const double _t107 = _t35*_t64 + _t41*_t60;
+    const double _t108 = _t101*_t64 + _t41*_t81;
+    hessian[0] = _t65*_t87 + _t66*_t86 + _t89;
+    hessian[1] = _t92;
+    hessian[2] = _t93;
+    hessian[3] = _t94;
+    hessian[4] = _t92;
+    hessian[5] = _t76*_t87 + _t76*_t95 + _t89;
+    hessian[6] = _t98;
+    hessian[7] = _t99;
+    hessian[8] = _t93;
+    hessian[9] = _t98;
+    hessian[10] = _t72*_t87 + _t72*_t95 + _t89;
+    hessian[11] = _t100;
+    hessian[12] = _t94;
+    hessian[13] = _t99;
+    hessian[14] = _t100;
+    hessian[15] = _t79*_t87 + _t79*_t95 + _t89;
+    jet_rhs[0] = _a0*(-2*_t1 + _t104 + _t22) + _a1*(_t105 - 2*_t2 + _t42) - _t102 - _t103 + 1.0/125.0;
+    jet_rhs[1] = _a0*(_t106 - 2*_t3 + _t37) + _a1*(_t107 - 2*_t4 + _t61) - _t108 - 1.0/25.0;
+    jet_rhs[2] = _a0*(-_t104 - _t25 - 2*_t5) + _a1*(-_t105 + _t43 - 2*_t6) + _t102 + _t103 + 2.0/125.0;
+    jet_rhs[3] = _a0*(-_t106 - _t40 - 2*_t7) + _a1*(-_t107 - _t63 - 2*_t8) + _t108 - 6.0/125.0;
+    R[0] = _t9;
+    R[1] = -_t13;
+    R[2] = 0;
+    R[3] = 0;
+    R[4] = _t12;
+    R[5] = _t10;
+    R[6] = 0;
+    R[7] = 0;
+    R[8] = 0;
+    R[9] = 0;
+    R[10] = _t15;
+    R[11] = -_t19;
+    R[12] = 0;
+    R[13] = 0;
+    R[14] = _t18;
+    R[15] = _t16;
+    pvec[0] = 0;
+    pvec[1] = 0;
+    pvec[2] = 0;
+    pvec[3] = 0;
 }
 
 
-/* Decoupling matrix R and b = v - p, so that R w = b linearizes the plant (10 operations, 14 before CSE). */
-static void two_unicycles_barrier_k_decoupling(double t, const double *s, const double *p, const double *z, double *R, double *b)
+/* b = v - p, so that R w = b linearizes the plant (4 operations, 4 before CSE). */
+static void two_unicycles_barrier_k_decoupling(double t, const double *s, const double *p, const double *z, const double *q, double *b)
 {
     (void)t;
-    const double _s2 = s[2]; /* tha */
-    const double _s5 = s[5]; /* thb */
-    const double _s6 = s[6]; /* va */
-    const double _s7 = s[7]; /* vb */
+    (void)s;
     (void)p;
     const double _z0 = z[0]; /* pa^(2) */
     const double _z1 = z[1]; /* qa^(2) */
     const double _z2 = z[2]; /* pb^(2) */
     const double _z3 = z[3]; /* qb^(2) */
-    const double _t0 = cos(_s2);
-    const double _t1 = sin(_s2);
-    const double _t2 = cos(_s5);
-    const double _t3 = sin(_s5);
-    R[0] = _t0;
-    R[1] = -_s6*_t1;
-    R[2] = 0;
-    R[3] = 0;
-    R[4] = _t1;
-    R[5] = _s6*_t0;
-    R[6] = 0;
-    R[7] = 0;
-    R[8] = 0;
-    R[9] = 0;
-    R[10] = _t2;
-    R[11] = -_s7*_t3;
-    R[12] = 0;
-    R[13] = 0;
-    R[14] = _t3;
-    R[15] = _s7*_t2;
-    b[0] = _z0;
-    b[1] = _z1;
-    b[2] = _z2;
-    b[3] = _z3;
+    const double _q0 = q[0]; /* p_pa */
+    const double _q1 = q[1]; /* p_qa */
+    const double _q2 = q[2]; /* p_pb */
+    const double _q3 = q[3]; /* p_qb */
+    b[0] = -_q0 + _z0;
+    b[1] = -_q1 + _z1;
+    b[2] = -_q2 + _z2;
+    b[3] = -_q3 + _z3;
 }
 
 
@@ -244,7 +252,23 @@ static void two_unicycles_barrier_k_closed_loop(double t, const double *s, const
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (126 operations, 198 before CSE). */
+/* The plant input alone (control needs no vector field) (0 operations, 0 before CSE). */
+static void two_unicycles_barrier_k_plant_input(double t, const double *s, const double *p, const double *w, double *u)
+{
+    (void)t;
+    const double _s6 = s[6]; /* va */
+    const double _s7 = s[7]; /* vb */
+    (void)p;
+    const double _w1 = w[1]; /* wa */
+    const double _w3 = w[3]; /* wb */
+    u[0] = _s6;
+    u[1] = _w1;
+    u[2] = _s7;
+    u[3] = _w3;
+}
+
+
+/* Optimality error E: row j is grad^(j) f0 (128 operations, 204 before CSE). */
 static void two_unicycles_barrier_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* xa */
@@ -278,8 +302,8 @@ static void two_unicycles_barrier_k_optimality(double t, const double *s, const 
     const double _t18 = _t14 + _t17;
     const double _t19 = 3.141592653589793/_p1;
     const double _t20 = (1.0/2.0)*_t19;
-    const double _t21 = tan(_t20*(((_s0 - _s3)*(_s0 - _s3)) + ((_s1 - _s4)*(_s1 - _s4))));
-    const double _t22 = _t21;
+    const double _t21 = tan(_t20*(-((_s0 - _s3)*(_s0 - _s3)) - ((_s1 - _s4)*(_s1 - _s4))));
+    const double _t22 = -_t21;
     const double _t23 = (_t22*_t22);
     const double _t24 = _p0*_t19;
     const double _t25 = _t24*(_t23 + 1);
@@ -317,7 +341,7 @@ static void two_unicycles_barrier_k_optimality(double t, const double *s, const 
 }
 
 
-/* The objective f0(y, t) (44 operations, 47 before CSE). */
+/* The objective f0(y, t) (45 operations, 48 before CSE). */
 static void two_unicycles_barrier_k_objective(double t, const double *y, const double *p, double *f0)
 {
     const double _y0 = y[0]; /* pa */
@@ -331,11 +355,11 @@ static void two_unicycles_barrier_k_objective(double t, const double *y, const d
     const double _t2 = -1.0/100.0*_t0 + (3.0/10.0)*t - 3;
     const double _t3 = (1.0/250.0)*_t0 + (9.0/20.0)*t - 2;
     const double _t4 = -3.0/250.0*_t0 + (7.0/20.0)*t - 3;
-    f0[0] = _p0*(tan((1.0/2.0)*3.141592653589793*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))/_p1)*tan((1.0/2.0)*3.141592653589793*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))/_p1)) + ((-_t1 + _y0)*(-_t1 + _y0)) + ((-_t2 + _y1)*(-_t2 + _y1)) + ((-_t3 + _y2)*(-_t3 + _y2)) + ((-_t4 + _y3)*(-_t4 + _y3));
+    f0[0] = _p0*(tan((1.0/2.0)*3.141592653589793*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1)*tan((1.0/2.0)*3.141592653589793*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1)) + ((-_t1 + _y0)*(-_t1 + _y0)) + ((-_t2 + _y1)*(-_t2 + _y1)) + ((-_t3 + _y2)*(-_t3 + _y2)) + ((-_t4 + _y3)*(-_t4 + _y3));
 }
 
 
-/* grad_y f0(y, t) (57 operations, 152 before CSE). */
+/* grad_y f0(y, t) (60 operations, 160 before CSE). */
 static void two_unicycles_barrier_k_gradient(double t, const double *y, const double *p, double *grad)
 {
     const double _y0 = y[0]; /* pa */
@@ -350,22 +374,22 @@ static void two_unicycles_barrier_k_gradient(double t, const double *y, const do
     const double _t3 = (1.0/250.0)*_t0 + (9.0/20.0)*t - 2;
     const double _t4 = -3.0/250.0*_t0 + (7.0/20.0)*t - 3;
     const double _t5 = 2*_y0;
-    const double _t6 = 2*_y2;
-    const double _t7 = _t5 - _t6;
+    const double _t6 = -2*_y2;
+    const double _t7 = _t5 + _t6;
     const double _t8 = 3.141592653589793/_p1;
-    const double _t9 = tan((1.0/2.0)*_t8*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3))));
+    const double _t9 = tan((1.0/2.0)*_t8*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3))));
     const double _t10 = _p0*_t8*_t9*((_t9*_t9) + 1);
     const double _t11 = 2*_y1;
-    const double _t12 = 2*_y3;
-    const double _t13 = _t11 - _t12;
-    grad[0] = -2*_t1 + _t10*_t7 + _t5;
-    grad[1] = _t10*_t13 + _t11 - 2*_t2;
-    grad[2] = -_t10*_t7 - 2*_t3 + _t6;
-    grad[3] = -_t10*_t13 + _t12 - 2*_t4;
+    const double _t12 = -2*_y3;
+    const double _t13 = _t11 + _t12;
+    grad[0] = -2*_t1 - _t10*_t7 + _t5;
+    grad[1] = -_t10*_t13 + _t11 - 2*_t2;
+    grad[2] = _t10*_t7 - 2*_t3 - _t6;
+    grad[3] = _t10*_t13 - _t12 - 2*_t4;
 }
 
 
-/* grad_yy f0(y, t) (85 operations, 1204 before CSE). */
+/* grad_yy f0(y, t) (85 operations, 1268 before CSE). */
 static void two_unicycles_barrier_k_hessian(double t, const double *y, const double *p, double *hess)
 {
     (void)t;
@@ -379,50 +403,49 @@ static void two_unicycles_barrier_k_hessian(double t, const double *y, const dou
     const double _t1 = (3.141592653589793*3.141592653589793)*_p0/(_p1*_p1);
     const double _t2 = (_t0*_t0)*_t1;
     const double _t3 = 3.141592653589793/_p1;
-    const double _t4 = tan((1.0/2.0)*_t3*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3))));
+    const double _t4 = tan((1.0/2.0)*_t3*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3))));
     const double _t5 = (_t4*_t4);
     const double _t6 = _t5 + 1;
     const double _t7 = (1.0/2.0)*(_t6*_t6);
     const double _t8 = _t5*_t6;
     const double _t9 = 2*_p0*_t3*_t4*_t6;
-    const double _t10 = _t9 + 2;
+    const double _t10 = 2 - _t9;
     const double _t11 = 2*_y1 - 2*_y3;
     const double _t12 = _t0*_t1;
     const double _t13 = _t11*_t12;
     const double _t14 = _t13*_t7 + _t13*_t8;
     const double _t15 = -_t0;
     const double _t16 = _t12*_t15;
-    const double _t17 = -_t9;
-    const double _t18 = _t16*_t7 + _t16*_t8 + _t17;
-    const double _t19 = -_t11;
-    const double _t20 = _t12*_t19;
-    const double _t21 = _t20*_t7 + _t20*_t8;
-    const double _t22 = _t1*(_t11*_t11);
-    const double _t23 = _t1*_t11;
-    const double _t24 = _t15*_t23;
-    const double _t25 = _t24*_t7 + _t24*_t8;
-    const double _t26 = _t19*_t23;
-    const double _t27 = _t17 + _t26*_t7 + _t26*_t8;
-    const double _t28 = _t1*(_t15*_t15);
-    const double _t29 = _t1*_t15*_t19;
-    const double _t30 = _t29*_t7 + _t29*_t8;
-    const double _t31 = _t1*(_t19*_t19);
+    const double _t17 = _t16*_t7 + _t16*_t8 + _t9;
+    const double _t18 = -_t11;
+    const double _t19 = _t12*_t18;
+    const double _t20 = _t19*_t7 + _t19*_t8;
+    const double _t21 = _t1*(_t11*_t11);
+    const double _t22 = _t1*_t11;
+    const double _t23 = _t15*_t22;
+    const double _t24 = _t23*_t7 + _t23*_t8;
+    const double _t25 = _t18*_t22;
+    const double _t26 = _t25*_t7 + _t25*_t8 + _t9;
+    const double _t27 = _t1*(_t15*_t15);
+    const double _t28 = _t1*_t15*_t18;
+    const double _t29 = _t28*_t7 + _t28*_t8;
+    const double _t30 = _t1*(_t18*_t18);
     hess[0] = _t10 + _t2*_t7 + _t2*_t8;
     hess[1] = _t14;
-    hess[2] = _t18;
-    hess[3] = _t21;
+    hess[2] = _t17;
+    hess[3] = _t20;
     hess[4] = _t14;
-    hess[5] = _t10 + _t22*_t7 + _t22*_t8;
-    hess[6] = _t25;
-    hess[7] = _t27;
-    hess[8] = _t18;
-    hess[9] = _t25;
-    hess[10] = _t10 + _t28*_t7 + _t28*_t8;
-    hess[11] = _t30;
-    hess[12] = _t21;
-    hess[13] = _t27;
-    hess[14] = _t30;
-    hess[15] = _t10 + _t31*_t7 + _t31*_t8;
+    hess[5] = _t10 + _t21*_t7 + _t21*_t8;
+    hess[6] = _t24;
+    hess[7] = _t26;
+    hess[8] = _t17;
+    hess[9] = _t24;
+    hess[10] = _t10 + _t27*_t7 + _t27*_t8;
+    hess[11] = _t29;
+    hess[12] = _t20;
+    hess[13] = _t26;
+    hess[14] = _t29;
+    hess[15] = _t10 + _t30*_t7 + _t30*_t8;
 }
 
 
@@ -540,20 +563,23 @@ static int two_unicycles_barrier_lu_solve(double *a, double *b)
     return TWO_UNICYCLES_BARRIER_OK;
 }
 
-/* The paper's law at one state: ds/dt and the plant input u. */
+/* The paper's law at one state: the plant input u and, unless ds is NULL, ds/dt. */
 static int two_unicycles_barrier_law(double t, const double *s, const double *params, double *ds, double *u)
 {
     double hess[TWO_UNICYCLES_BARRIER_N_OUTPUTS * TWO_UNICYCLES_BARRIER_N_OUTPUTS];
     double z[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
     double r[TWO_UNICYCLES_BARRIER_N_OUTPUTS * TWO_UNICYCLES_BARRIER_N_OUTPUTS];
     double w[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
+    double pvec[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
     int status = two_unicycles_barrier_check_inputs(t, s, TWO_UNICYCLES_BARRIER_N_STATES, params);
     if (status != TWO_UNICYCLES_BARRIER_OK) {
         return status;
     }
-    two_unicycles_barrier_k_jet(t, s, params, two_unicycles_barrier_hurwitz_coefficients, hess, z);
+    two_unicycles_barrier_k_jet(t, s, params, two_unicycles_barrier_hurwitz_coefficients, hess, z, r, pvec);
     if (!two_unicycles_barrier_all_finite(hess, TWO_UNICYCLES_BARRIER_N_OUTPUTS * TWO_UNICYCLES_BARRIER_N_OUTPUTS)
-        || !two_unicycles_barrier_all_finite(z, TWO_UNICYCLES_BARRIER_N_OUTPUTS)) {
+        || !two_unicycles_barrier_all_finite(z, TWO_UNICYCLES_BARRIER_N_OUTPUTS)
+        || !two_unicycles_barrier_all_finite(r, TWO_UNICYCLES_BARRIER_N_OUTPUTS * TWO_UNICYCLES_BARRIER_N_OUTPUTS)
+        || !two_unicycles_barrier_all_finite(pvec, TWO_UNICYCLES_BARRIER_N_OUTPUTS)) {
         return TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
     }
     /* y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest] */
@@ -561,15 +587,18 @@ static int two_unicycles_barrier_law(double t, const double *s, const double *pa
     if (status != TWO_UNICYCLES_BARRIER_OK) {
         return status;
     }
-    two_unicycles_barrier_k_decoupling(t, s, params, z, r, w);
-    if (!two_unicycles_barrier_all_finite(r, TWO_UNICYCLES_BARRIER_N_OUTPUTS * TWO_UNICYCLES_BARRIER_N_OUTPUTS)
-        || !two_unicycles_barrier_all_finite(w, TWO_UNICYCLES_BARRIER_N_OUTPUTS)) {
+    two_unicycles_barrier_k_decoupling(t, s, params, z, pvec, w);
+    if (!two_unicycles_barrier_all_finite(w, TWO_UNICYCLES_BARRIER_N_OUTPUTS)) {
         return TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
     }
     /* w = R^-1 (v - p) */
     status = two_unicycles_barrier_lu_solve(r, w);
     if (status != TWO_UNICYCLES_BARRIER_OK) {
         return status;
+    }
+    if (ds == NULL) {
+        two_unicycles_barrier_k_plant_input(t, s, params, w, u);
+        return two_unicycles_barrier_all_finite(u, TWO_UNICYCLES_BARRIER_N_INPUTS) ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
     }
     two_unicycles_barrier_k_closed_loop(t, s, params, w, z, ds, u);
     if (!two_unicycles_barrier_all_finite(ds, TWO_UNICYCLES_BARRIER_N_STATES) || !two_unicycles_barrier_all_finite(u, TWO_UNICYCLES_BARRIER_N_INPUTS)) {
@@ -580,8 +609,7 @@ static int two_unicycles_barrier_law(double t, const double *s, const double *pa
 
 int two_unicycles_barrier_control(double t, const double *s, const double *params, double *out)
 {
-    double ds[TWO_UNICYCLES_BARRIER_N_STATES];
-    return two_unicycles_barrier_law(t, s, params ? params : TWO_UNICYCLES_BARRIER_DEFAULT_PARAMS, ds, out);
+    return two_unicycles_barrier_law(t, s, params ? params : TWO_UNICYCLES_BARRIER_DEFAULT_PARAMS, NULL, out);
 }
 
 int two_unicycles_barrier_rhs(double t, const double *s, const double *params, double *out)

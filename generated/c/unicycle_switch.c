@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: fd4eace6312f687d5481ff61b7555604541b1996445e73ff8973a69b28abf691
+ * content sha256: 8e2fdb68113b8fc82c18a9318d617dd9ac85f0cd89b8a8eeea6403cb3ddfc95b
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -35,8 +35,8 @@ const double unicycle_switch_default_params[UNICYCLE_SWITCH_N_PARAMS] = {10.0, 1
 const double unicycle_switch_default_state[UNICYCLE_SWITCH_N_STATES] = {-5.0, 4.0, 0.0, 1.0};
 const double unicycle_switch_hurwitz_coefficients[UNICYCLE_SWITCH_K] = {-1.5, -2.5};
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (183 operations, 244 before CSE). */
-static void unicycle_switch_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs)
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (185 operations, 260 before CSE). */
+static void unicycle_switch_k_jet(double t, const double *s, const double *p, const double *a, double *z, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* x1 */
     const double _s1 = s[1]; /* x2 */
@@ -47,71 +47,75 @@ static void unicycle_switch_k_jet(double t, const double *s, const double *p, co
     const double _a0 = a[0]; /* a_0 */
     const double _a1 = a[1]; /* a_1 */
     const double _t0 = (1.0/_p1);
-    const double _t1 = _p0 - t;
-    const double _t2 = -tanh(_t0*_t1);
-    const double _t3 = 1.0/2.0 - 1.0/2.0*_t2;
-    const double _t4 = -1.0/2.0*_t0*(1 - (_t2*_t2));
-    const double _t5 = tanh(_t0*_t1);
-    const double _t6 = _t5*((_t5*_t5) - 1)/(_p1*_p1);
-    const double _t7 = (t*t);
-    const double _t8 = (1.0/100.0)*_t7;
-    const double _t9 = -_t8 + (3.0/5.0)*t - 5;
-    const double _t10 = (1.0/50.0)*t;
-    const double _t11 = 3.0/5.0 - _t10;
-    const double _t12 = (t*t*t);
-    const double _t13 = -1.0/1000.0*_t12 + (1.0/50.0)*_t7 + (1.0/2.0)*t - 5;
-    const double _t14 = -3.0/1000.0*_t7 + (1.0/25.0)*t + 1.0/2.0;
-    const double _t15 = (1.0/500.0)*(20 - 3*t);
-    const double _t16 = -_t8 - 3.0/10.0*t + 5;
-    const double _t17 = -_t10 - 3.0/10.0;
-    const double _t18 = (1.0/5000.0)*_t12 - 3.0/200.0*_t7 + (2.0/5.0)*t - 3;
-    const double _t19 = (3.0/5000.0)*_t7 - 3.0/100.0*t + 2.0/5.0;
-    const double _t20 = (3.0/2500.0)*(t - 25);
-    const double _t21 = _s3*cos(_s2);
-    const double _t22 = _s3*sin(_s2);
-    const double _t23 = -2*_s0;
-    const double _t24 = 1 - _t3;
-    const double _t25 = -2*_s1;
-    const double _t26 = -2*_t21;
-    const double _t27 = -_t4;
-    const double _t28 = -2*_t22;
-    const double _t29 = -_t6;
-    const double _t30 = 2*_t11;
-    const double _t31 = -_t23 - 2*_t9;
-    const double _t32 = -_t27 - _t4;
-    const double _t33 = 2*_t17;
-    const double _t34 = -2*_t16 - _t23;
-    const double _t35 = -_t24 - _t3;
-    const double _t36 = 2*_t14;
-    const double _t37 = 2*_t19;
-    const double _t38 = -2*_t13 - _t25;
-    const double _t39 = -2*_t18 - _t25;
-    hessian[0] = 2;
-    hessian[1] = 0;
-    hessian[2] = 0;
-    hessian[3] = 2;
-    jet_rhs[0] = _a0*(_t24*_t34 + _t3*_t31) + _a1*(-_t24*_t33 + _t26*_t35 + _t27*_t34 - _t3*_t30 + _t31*_t4) + 2*_t11*_t4 + 2*_t17*_t27 - 1.0/25.0*_t24 - _t26*_t32 - _t27*(-_t26 - _t33) - _t29*_t34 - 1.0/25.0*_t3 - _t31*_t6 - _t4*(-_t26 - _t30);
-    jet_rhs[1] = _a0*(_t24*_t39 + _t3*_t38) + _a1*(-_t24*_t37 + _t27*_t39 + _t28*_t35 - _t3*_t36 + _t38*_t4) + 2*_t15*_t3 + 2*_t20*_t24 + _t27*_t37 - _t27*(-_t28 - _t37) - _t28*_t32 - _t29*_t39 + _t36*_t4 - _t38*_t6 - _t4*(-_t28 - _t36);
+    const double _t1 = tanh(_t0*(-_p0 + t));
+    const double _t2 = 1.0/2.0 - 1.0/2.0*_t1;
+    const double _t3 = (_t1*_t1) - 1;
+    const double _t4 = (1.0/2.0)*_t0*_t3;
+    const double _t5 = -_t1*_t3/(_p1*_p1);
+    const double _t6 = (t*t);
+    const double _t7 = (1.0/100.0)*_t6;
+    const double _t8 = -_t7 + (3.0/5.0)*t - 5;
+    const double _t9 = (1.0/50.0)*t;
+    const double _t10 = 3.0/5.0 - _t9;
+    const double _t11 = (t*t*t);
+    const double _t12 = -1.0/1000.0*_t11 + (1.0/50.0)*_t6 + (1.0/2.0)*t - 5;
+    const double _t13 = -3.0/1000.0*_t6 + (1.0/25.0)*t + 1.0/2.0;
+    const double _t14 = (1.0/500.0)*(20 - 3*t);
+    const double _t15 = -_t7 - 3.0/10.0*t + 5;
+    const double _t16 = -_t9 - 3.0/10.0;
+    const double _t17 = (1.0/5000.0)*_t11 - 3.0/200.0*_t6 + (2.0/5.0)*t - 3;
+    const double _t18 = (3.0/5000.0)*_t6 - 3.0/100.0*t + 2.0/5.0;
+    const double _t19 = (3.0/2500.0)*(t - 25);
+    const double _t20 = cos(_s2);
+    const double _t21 = _s3*_t20;
+    const double _t22 = _t21;
+    const double _t23 = sin(_s2);
+    const double _t24 = _s3*_t23;
+    const double _t25 = _t24;
+    const double _t26 = -2*_s0;
+    const double _t27 = 1 - _t2;
+    const double _t28 = -2*_s1;
+    const double _t29 = -2*_t22;
+    const double _t30 = -_t4;
+    const double _t31 = -2*_t25;
+    const double _t32 = -_t5;
+    const double _t33 = 2*_t10;
+    const double _t34 = (1.0/2.0)*_t4;
+    const double _t35 = -_t26 - 2*_t8;
+    const double _t36 = (1.0/2.0)*_t5;
+    const double _t37 = -1.0/2.0*_t30 - 1.0/2.0*_t4;
+    const double _t38 = 2*_t16;
+    const double _t39 = (1.0/2.0)*_t30;
+    const double _t40 = -2*_t15 - _t26;
+    const double _t41 = (1.0/2.0)*_t32;
+    const double _t42 = -_t2 - _t27;
+    const double _t43 = 2*_t13;
+    const double _t44 = -2*_t12 - _t28;
+    const double _t45 = 2*_t18;
+    const double _t46 = -2*_t17 - _t28;
+    z[0] = (1.0/2.0)*_a0*(_t2*_t35 + _t27*_t40) + (1.0/2.0)*_a1*(-_t2*_t33 - _t27*_t38 + _t29*_t42 + _t30*_t40 + _t35*_t4) + _t10*_t4 + _t16*_t30 - 1.0/50.0*_t2 - 1.0/50.0*_t27 - _t29*_t37 - _t34*(-_t29 - _t33) - _t35*_t36 - _t39*(-_t29 - _t38) - _t40*_t41;
+    z[1] = (1.0/2.0)*_a0*(_t2*_t44 + _t27*_t46) + (1.0/2.0)*_a1*(-_t2*_t43 - _t27*_t45 + _t30*_t46 + _t31*_t42 + _t4*_t44) + _t13*_t4 + _t14*_t2 + _t18*_t30 + _t19*_t27 - _t31*_t37 - _t34*(-_t31 - _t43) - _t36*_t44 - _t39*(-_t31 - _t45) - _t41*_t46;
+    R[0] = _t20;
+    R[1] = -_t24;
+    R[2] = _t23;
+    R[3] = _t21;
+    pvec[0] = 0;
+    pvec[1] = 0;
 }
 
 
-/* Decoupling matrix R and b = v - p, so that R w = b linearizes the plant (5 operations, 7 before CSE). */
-static void unicycle_switch_k_decoupling(double t, const double *s, const double *p, const double *z, double *R, double *b)
+/* b = v - p, so that R w = b linearizes the plant (2 operations, 2 before CSE). */
+static void unicycle_switch_k_decoupling(double t, const double *s, const double *p, const double *z, const double *q, double *b)
 {
     (void)t;
-    const double _s2 = s[2]; /* theta */
-    const double _s3 = s[3]; /* v */
+    (void)s;
     (void)p;
     const double _z0 = z[0]; /* y1^(2) */
     const double _z1 = z[1]; /* y2^(2) */
-    const double _t0 = cos(_s2);
-    const double _t1 = sin(_s2);
-    R[0] = _t0;
-    R[1] = -_s3*_t1;
-    R[2] = _t1;
-    R[3] = _s3*_t0;
-    b[0] = _z0;
-    b[1] = _z1;
+    const double _q0 = q[0]; /* p_y1 */
+    const double _q1 = q[1]; /* p_y2 */
+    b[0] = -_q0 + _z0;
+    b[1] = -_q1 + _z1;
 }
 
 
@@ -134,7 +138,19 @@ static void unicycle_switch_k_closed_loop(double t, const double *s, const doubl
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (110 operations, 157 before CSE). */
+/* The plant input alone (control needs no vector field) (0 operations, 0 before CSE). */
+static void unicycle_switch_k_plant_input(double t, const double *s, const double *p, const double *w, double *u)
+{
+    (void)t;
+    const double _s3 = s[3]; /* v */
+    (void)p;
+    const double _w1 = w[1]; /* omega */
+    u[0] = _s3;
+    u[1] = _w1;
+}
+
+
+/* Optimality error E: row j is grad^(j) f0 (110 operations, 158 before CSE). */
 static void unicycle_switch_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* x1 */
@@ -268,43 +284,6 @@ static double unicycle_switch_max_abs(const double *a, size_t count)
     return scale;
 }
 
-/* Solve a x = b in place (x overwrites b) for symmetric positive definite a (row-major). */
-static int unicycle_switch_cholesky_solve(double *a, double *b)
-{
-    const size_t m = UNICYCLE_SWITCH_N_OUTPUTS;
-    const double scale = unicycle_switch_max_abs(a, m * m);
-    size_t i, j, k;
-    for (j = 0; j < m; ++j) {
-        double pivot = a[j * m + j];
-        for (k = 0; k < j; ++k) {
-            pivot -= a[j * m + k] * a[j * m + k];
-        }
-        if (!(pivot > UNICYCLE_SWITCH_PIVOT_TOLERANCE * scale)) {
-            return UNICYCLE_SWITCH_HESSIAN_NOT_PD;
-        }
-        a[j * m + j] = sqrt(pivot);
-        for (i = j + 1; i < m; ++i) {
-            double value = a[i * m + j];
-            for (k = 0; k < j; ++k) {
-                value -= a[i * m + k] * a[j * m + k];
-            }
-            a[i * m + j] = value / a[j * m + j];
-        }
-    }
-    for (i = 0; i < m; ++i) {
-        for (k = 0; k < i; ++k) {
-            b[i] -= a[i * m + k] * b[k];
-        }
-        b[i] /= a[i * m + i];
-    }
-    for (i = m; i-- > 0;) {
-        for (k = i + 1; k < m; ++k) {
-            b[i] -= a[k * m + i] * b[k];
-        }
-        b[i] /= a[i * m + i];
-    }
-    return UNICYCLE_SWITCH_OK;
-}
 
 /* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major). */
 static int unicycle_switch_lu_solve(double *a, double *b)
@@ -350,36 +329,36 @@ static int unicycle_switch_lu_solve(double *a, double *b)
     return UNICYCLE_SWITCH_OK;
 }
 
-/* The paper's law at one state: ds/dt and the plant input u. */
+/* The paper's law at one state: the plant input u and, unless ds is NULL, ds/dt. */
 static int unicycle_switch_law(double t, const double *s, const double *params, double *ds, double *u)
 {
-    double hess[UNICYCLE_SWITCH_N_OUTPUTS * UNICYCLE_SWITCH_N_OUTPUTS];
     double z[UNICYCLE_SWITCH_N_OUTPUTS];
     double r[UNICYCLE_SWITCH_N_OUTPUTS * UNICYCLE_SWITCH_N_OUTPUTS];
     double w[UNICYCLE_SWITCH_N_OUTPUTS];
+    double pvec[UNICYCLE_SWITCH_N_OUTPUTS];
     int status = unicycle_switch_check_inputs(t, s, UNICYCLE_SWITCH_N_STATES, params);
     if (status != UNICYCLE_SWITCH_OK) {
         return status;
     }
-    unicycle_switch_k_jet(t, s, params, unicycle_switch_hurwitz_coefficients, hess, z);
-    if (!unicycle_switch_all_finite(hess, UNICYCLE_SWITCH_N_OUTPUTS * UNICYCLE_SWITCH_N_OUTPUTS)
-        || !unicycle_switch_all_finite(z, UNICYCLE_SWITCH_N_OUTPUTS)) {
+    /* y_imp^(K): the constant Hessian of f0 was inverted exactly at generation time. */
+    unicycle_switch_k_jet(t, s, params, unicycle_switch_hurwitz_coefficients, z, r, pvec);
+    if (!unicycle_switch_all_finite(z, UNICYCLE_SWITCH_N_OUTPUTS)
+        || !unicycle_switch_all_finite(r, UNICYCLE_SWITCH_N_OUTPUTS * UNICYCLE_SWITCH_N_OUTPUTS)
+        || !unicycle_switch_all_finite(pvec, UNICYCLE_SWITCH_N_OUTPUTS)) {
         return UNICYCLE_SWITCH_NONFINITE_OUTPUT;
     }
-    /* y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest] */
-    status = unicycle_switch_cholesky_solve(hess, z);
-    if (status != UNICYCLE_SWITCH_OK) {
-        return status;
-    }
-    unicycle_switch_k_decoupling(t, s, params, z, r, w);
-    if (!unicycle_switch_all_finite(r, UNICYCLE_SWITCH_N_OUTPUTS * UNICYCLE_SWITCH_N_OUTPUTS)
-        || !unicycle_switch_all_finite(w, UNICYCLE_SWITCH_N_OUTPUTS)) {
+    unicycle_switch_k_decoupling(t, s, params, z, pvec, w);
+    if (!unicycle_switch_all_finite(w, UNICYCLE_SWITCH_N_OUTPUTS)) {
         return UNICYCLE_SWITCH_NONFINITE_OUTPUT;
     }
     /* w = R^-1 (v - p) */
     status = unicycle_switch_lu_solve(r, w);
     if (status != UNICYCLE_SWITCH_OK) {
         return status;
+    }
+    if (ds == NULL) {
+        unicycle_switch_k_plant_input(t, s, params, w, u);
+        return unicycle_switch_all_finite(u, UNICYCLE_SWITCH_N_INPUTS) ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
     }
     unicycle_switch_k_closed_loop(t, s, params, w, z, ds, u);
     if (!unicycle_switch_all_finite(ds, UNICYCLE_SWITCH_N_STATES) || !unicycle_switch_all_finite(u, UNICYCLE_SWITCH_N_INPUTS)) {
@@ -390,8 +369,7 @@ static int unicycle_switch_law(double t, const double *s, const double *params, 
 
 int unicycle_switch_control(double t, const double *s, const double *params, double *out)
 {
-    double ds[UNICYCLE_SWITCH_N_STATES];
-    return unicycle_switch_law(t, s, params ? params : UNICYCLE_SWITCH_DEFAULT_PARAMS, ds, out);
+    return unicycle_switch_law(t, s, params ? params : UNICYCLE_SWITCH_DEFAULT_PARAMS, NULL, out);
 }
 
 int unicycle_switch_rhs(double t, const double *s, const double *params, double *out)

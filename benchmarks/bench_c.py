@@ -1,0 +1,382 @@
+"""tvopt-codegen's controllers against CasADi building the same law, side by side in one run.
+
+CasADi gets the same plant, outputs, signals and objective (translated from the spec's
+sympy expressions to SX) and derives the law with its own AD: Lie derivatives by
+``jtimes``, the gradient jet by ``jtimes`` along (t, y, y', ...), its own symbolic ``solve``.
+Both C codes are compiled with the same compiler and flags into one harness.
+
+Run: ``make bench`` (needs the ``bench`` extra: casadi, cffi). Prints a table and, with
+``--write FILE``, stores it with the command, the machine and the date.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import sympy as sp
+from cffi import FFI
+
+from tvopt_codegen.derivation import Derivation, derive
+from tvopt_codegen.emit import write_files
+from tvopt_codegen.ir import KernelSet, lower
+from tvopt_codegen.render import render
+from tvopt_codegen.simulate import load_controller
+from tvopt_codegen.spec import load_spec
+
+SPECS = ("unicycle_switch", "two_unicycles_barrier")
+CFLAGS = ["-O2", "-std=gnu99", "-fPIC"]
+BATCH_C = 100_000
+BATCH_PY_CASADI = 10_000
+
+_CASADI_FUNCTIONS = {
+    "sin": ca.sin,
+    "cos": ca.cos,
+    "tan": ca.tan,
+    "asin": ca.asin,
+    "acos": ca.acos,
+    "atan": ca.atan,
+    "atan2": ca.atan2,
+    "sinh": ca.sinh,
+    "cosh": ca.cosh,
+    "tanh": ca.tanh,
+    "asinh": ca.asinh,
+    "acosh": ca.acosh,
+    "atanh": ca.atanh,
+    "exp": ca.exp,
+    "log": ca.log,
+    "sqrt": ca.sqrt,
+    "pi": math.pi,
+}
+
+
+def _to_casadi(expr: sp.Expr, symbols: list[sp.Symbol], values: list[object]) -> object:
+    """Evaluate a sympy expression on CasADi symbols (the peer starts from the same math)."""
+    return sp.lambdify(symbols, expr, modules=[_CASADI_FUNCTIONS, "math"])(*values)
+
+
+def casadi_law(d: Derivation) -> ca.Function:
+    """The paper's law for ``d``'s plant and objective, derived by CasADi's own AD."""
+    assert d.uniform, "the benchmark builds uniform-relative-degree laws only"
+    model, ext = d.model, d.extension
+    n, m, k = len(ext.x), len(model.y), d.k
+    t = ca.SX.sym("t")
+    X = ca.SX.sym("X", n)
+    P = ca.SX.sym("P", max(1, len(model.params)))
+    base = [*ext.x, *model.params]
+    values = [X[i] for i in range(n)] + [P[i] for i in range(len(model.params))]
+    f = ca.vertcat(*[_to_casadi(e, base, values) for e in ext.f])
+    G = ca.horzcat(
+        *[ca.vertcat(*[_to_casadi(ext.G[i, j], base, values) for i in range(n)]) for j in range(m)]
+    )
+    h = [_to_casadi(e, base, values) for e in model.h]
+    signal_values = [
+        _to_casadi(e, [model.t, *model.params], [t, *values[n:]]) for _, e in model.signals
+    ]
+    Y = ca.SX.sym("Y", m, k + 1)
+    f0 = _to_casadi(
+        model.f0,
+        [*model.y, *(s for s, _ in model.signals), *model.params, model.t],
+        [*(Y[i, 0] for i in range(m)), *signal_values, *values[n:], t],
+    )
+    jet = [ca.gradient(f0, Y[:, 0])]
+    moving = ca.vertcat(t, ca.vec(Y[:, :k]))
+    rates = ca.vertcat(1, ca.vec(Y[:, 1:]))
+    for _ in range(k):
+        jet.append(ca.jtimes(jet[-1], moving, rates))
+    rest = ca.substitute(jet[k], Y[:, k], ca.DM.zeros(m))
+    hess = ca.hessian(f0, Y[:, 0])[0]
+    c = sum(d.coefficients[j] * jet[j] for j in range(k)) - rest
+    lie = []
+    rows, p = [], []
+    for i in range(m):
+        chain = [h[i]]
+        for _ in range(k):
+            chain.append(ca.jtimes(chain[-1], X, f))
+        lie.append(chain[:k])
+        rows.append(ca.mtimes(ca.jacobian(chain[k - 1], X), G))
+        p.append(chain[k])
+    R = ca.vertcat(*rows)
+    state_jet = ca.vertcat(*[lie[i][j] for j in range(k) for i in range(m)])
+    c = ca.substitute(c, ca.vec(Y[:, :k]), state_jet)
+    hess = ca.substitute(hess, ca.vec(Y[:, :k]), state_jet)
+    z = ca.solve(hess, c)
+    w = ca.solve(R, z - ca.vertcat(*p))
+    index = {s.name: i for i, s in enumerate(ext.x)}
+    u = ca.vertcat(
+        *[X[index[uj.name]] if uj.name in ext.states else w[j] for j, uj in enumerate(model.u)]
+    )
+    return ca.Function("casadi_law", [t, X, P], [u])
+
+
+HARNESS = r"""
+#define _POSIX_C_SOURCE 199309L
+#include <stdio.h>
+#include <time.h>
+#include "{name}.h"
+#include "casadi_law.h"
+
+static double now(void) {{ struct timespec ts; clock_gettime(CLOCK_MONOTONIC, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }}
+
+#define NS {P}_N_STATES
+#define NI {P}_N_INPUTS
+#define NP {np}
+#define B {batch}
+static double S[NS * B], U[NI * B], T[B], PB[NP * B];
+static casadi_int iw[1000];
+static casadi_real w[200000];
+
+int main(void)
+{{
+    double s[NS], u[NI], p[NP], acc = 0.0, tt, best_ours = 1e9, best_casadi = 1e9, t0;
+    const casadi_real *arg[16];
+    casadi_real *res[16];
+    long i, rep, calls = {calls};
+    for (i = 0; i < NS; ++i) s[i] = {name}_default_state[i];
+    for (i = 0; i < NP; ++i) p[i] = {params}[i];
+    arg[0] = &tt; arg[1] = s; arg[2] = p; res[0] = u;
+    for (rep = 0; rep < 5; ++rep) {{
+        t0 = now();
+        for (i = 0; i < calls; ++i) {{ {name}_control(1e-6 * i, s, p, u); acc += u[0]; }}
+        if ((now() - t0) / calls < best_ours) best_ours = (now() - t0) / calls;
+        t0 = now();
+        for (i = 0; i < calls; ++i) {{ tt = 1e-6 * i; casadi_law(arg, res, iw, w, 0); acc += u[0]; }}
+        if ((now() - t0) / calls < best_casadi) best_casadi = (now() - t0) / calls;
+    }}
+    printf("loop %.6e %.6e\n", best_ours, best_casadi);
+    for (i = 0; i < B; ++i) {{
+        long j;
+        for (j = 0; j < NS; ++j) S[i * NS + j] = {name}_default_state[j] + 1e-6 * (double)(i % 97);
+        for (j = 0; j < NP; ++j) PB[i * NP + j] = p[j];
+        T[i] = 0.5;
+    }}
+    best_ours = best_casadi = 1e9;
+    for (rep = 0; rep < 3; ++rep) {{
+        t0 = now();
+        {name}_control_batch(B, 0.5, S, p, U, NULL);
+        if ((now() - t0) / B < best_ours) best_ours = (now() - t0) / B;
+        acc += U[0];
+        arg[0] = T; arg[1] = S; arg[2] = PB; res[0] = U;
+        t0 = now();
+        map{batch}_casadi_law(arg, res, iw, w, 0);
+        if ((now() - t0) / B < best_casadi) best_casadi = (now() - t0) / B;
+        acc += U[0];
+    }}
+    printf("batch %.6e %.6e\n", best_ours, best_casadi);
+    printf("checksum %g\n", acc);
+    return 0;
+}}
+"""
+
+
+def _per_call(func: Callable[[], object], calls: int, repeats: int = 5) -> float:
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for _ in range(calls):
+            func()
+        best = min(best, (time.perf_counter() - start) / calls)
+    return best
+
+
+def _solve_flops(m: int) -> int:
+    """Floating-point operations of the generated Cholesky and LU solves for size m."""
+    chol = sum(2 * j + 1 + sum(2 * j + 1 for _ in range(j + 1, m)) for j in range(m))
+    chol += 2 * sum(2 * i + 1 for i in range(m))
+    lu = sum(sum(1 + 2 * (m - j) + 2 for _ in range(j + 1, m)) for j in range(m))
+    lu += sum(2 * (m - j - 1) + 1 for j in range(m))
+    return chol + lu
+
+
+def bench(name: str, folder: Path) -> dict[str, float]:
+    d = derive(load_spec(name))
+    kernels: KernelSet = lower(d)
+    law = casadi_law(d)
+    params = np.array([v for _, v in d.spec.parameters] or [0.0])
+    state = np.array(d.initial_state)
+
+    # Both C codes, compiled with the same compiler and flags into one harness.
+    write_files(render(kernels, "c"), folder)
+    generator = ca.CodeGenerator("casadi_law", {"with_header": True})
+    generator.add(law)
+    generator.add(law.map(BATCH_C))
+    generator.generate(str(folder) + "/")
+    prefix = name.upper()
+    (folder / "harness.c").write_text(
+        HARNESS.format(
+            name=name,
+            P=prefix,
+            np=len(params),
+            batch=BATCH_C,
+            calls=200_000,
+            params="(const double[]){" + ", ".join(repr(float(v)) for v in params) + "}",
+        )
+    )
+    binary = folder / "harness"
+    subprocess.run(
+        [
+            "gcc",
+            *CFLAGS,
+            "-o",
+            str(binary),
+            str(folder / "harness.c"),
+            str(folder / f"{name}.c"),
+            str(folder / "casadi_law.c"),
+            "-lm",
+        ],
+        check=True,
+    )
+    lines = dict(
+        line.split(" ", 1)
+        for line in subprocess.run(
+            [str(binary)], capture_output=True, text=True, check=True
+        ).stdout.splitlines()
+    )
+    loop_ours, loop_casadi = map(float, lines["loop"].split())
+    batch_ours, batch_casadi = map(float, lines["batch"].split())
+
+    # From Python: our compiled module, a bare cffi call of the same C, CasADi Function.
+    os.environ.setdefault("TVOPT_CODEGEN_CACHE", str(folder / "cache"))
+    ours = load_controller(kernels, "c")
+    numpy_backend = load_controller(kernels, "python")
+    library = ours._LIB._name  # noqa: SLF001 - the very library our module loaded
+    ffi = FFI()
+    ffi.cdef(f"int {name}_control(double, const double *, const double *, double *);")
+    lib = ffi.dlopen(library)
+    s_buf = ffi.new("double[]", list(state))
+    p_buf = ffi.new("double[]", list(params))
+    u_buf = ffi.new("double[]", len(d.spec.inputs))
+    control = getattr(lib, f"{name}_control")
+    u_numpy = np.empty(len(d.spec.inputs))
+
+    def cffi_numpy() -> np.ndarray:
+        s = np.asarray(state, dtype=float)
+        out = np.empty_like(u_numpy)
+        control(0.5, ffi.from_buffer("double[]", s), p_buf, ffi.from_buffer("double[]", out))
+        return out
+
+    reference = np.array(law(0.5, state, params)).ravel()
+    assert np.allclose(ours.control(0.5, state), reference, rtol=1e-9, atol=1e-12), "laws differ"
+    call_ours = _per_call(lambda: ours.control(0.5, state), 20_000)
+    call_cffi = _per_call(lambda: control(0.5, s_buf, p_buf, u_buf), 50_000)
+    call_cffi_numpy = _per_call(cffi_numpy, 20_000)
+    call_casadi = _per_call(lambda: law(0.5, state, params), 2_000)
+
+    rng = np.random.default_rng(0)
+    many = state[:, None] + 0.01 * rng.standard_normal((len(state), BATCH_C))
+    for i, nm in enumerate(d.state_names):
+        if nm in d.extension.states:
+            many[i] = 1.0 + 0.1 * rng.random(BATCH_C)
+    batch_numpy = _per_call(lambda: numpy_backend.control(0.5, many), 1, 3) / BATCH_C
+    mapped = law.map(BATCH_PY_CASADI)
+    few = many[:, :BATCH_PY_CASADI]
+    batch_casadi_py = _per_call(lambda: mapped(0.5, few, params), 1, 3) / BATCH_PY_CASADI
+
+    ops = sum(kernels[k].ops for k in ("jet", "decoupling", "closed_loop"))
+    ops += _solve_flops(len(d.spec.outputs))
+    return {
+        "loop_ours": loop_ours,
+        "loop_casadi": loop_casadi,
+        "batch_ours": batch_ours,
+        "batch_casadi": batch_casadi,
+        "call_ours": call_ours,
+        "call_cffi": call_cffi,
+        "call_cffi_numpy": call_cffi_numpy,
+        "call_casadi": call_casadi,
+        "batch_numpy": batch_numpy,
+        "batch_casadi_py": batch_casadi_py,
+        "ops_ours": ops,
+        "ops_casadi": law.n_instructions(),
+    }
+
+
+def table(results: dict[str, dict[str, float]]) -> str:
+    us = 1e6
+    rows = [
+        ("C loop, ns per `control`", "loop_ours", "loop_casadi", 1e9, "<= 1.0"),
+        ("C batch of 100k, ns per state", "batch_ours", "batch_casadi", 1e9, "<= 1.0"),
+        ("Python call, us (ours vs bare cffi)", "call_ours", "call_cffi", us, "<= 2.0"),
+        ("Python call, us (ours vs CasADi Function)", "call_ours", "call_casadi", us, "<= 0.05"),
+        (
+            "Python batch, us per state (NumPy vs CasADi map)",
+            "batch_numpy",
+            "batch_casadi_py",
+            us,
+            "<= 0.1",
+        ),
+        (
+            "operations (ours incl. solves vs CasADi instructions)",
+            "ops_ours",
+            "ops_casadi",
+            1,
+            "<= 1.5",
+        ),
+    ]
+    lines = []
+    for name, res in results.items():
+        lines += [
+            f"### {name}",
+            "",
+            "| measure | ours | peer | ratio ours/peer | target |",
+            "|---|---|---|---|---|",
+        ]
+        for label, a, b, scale, target in rows:
+            ratio = res[a] / res[b]
+            lines.append(
+                f"| {label} | {res[a] * scale:.4g} | {res[b] * scale:.4g} | "
+                f"{ratio:.3f} | {target} |"
+            )
+        lines.append(
+            f"| (reference) cffi call with numpy in and out, us | "
+            f"{res['call_cffi_numpy'] * us:.4g} | | | |"
+        )
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--write", type=Path, help="also store the table in this Markdown file")
+    args = parser.parse_args()
+    results = {}
+    with tempfile.TemporaryDirectory(prefix="tvopt-bench-") as tmp:
+        for name in SPECS:
+            folder = Path(tmp) / name
+            folder.mkdir()
+            results[name] = bench(name, folder)
+    text = table(results)
+    print(text)
+    if args.write:
+        cpu = next(
+            (
+                line.split(":", 1)[1].strip()
+                for line in Path("/proc/cpuinfo").read_text().splitlines()
+                if line.startswith("model name")
+            ),
+            platform.processor(),
+        )
+        header = [
+            "# C and NumPy backends against CasADi",
+            "",
+            "Command: `make bench` (`python benchmarks/bench_c.py --write benchmarks/RESULTS.md`).",
+            f"Machine: {os.cpu_count()} cores, {cpu}; Python {platform.python_version()}, "
+            f"casadi {ca.__version__}, gcc `{CFLAGS}`; {time.strftime('%Y-%m-%d')}.",
+            "Ratios come from one run; absolute times are noisy on a shared machine.",
+            "",
+        ]
+        args.write.write_text("\n".join(header) + "\n" + text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
