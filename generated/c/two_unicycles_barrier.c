@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 514ebd400215881f5c6b12124bb2ade389b3a2c7cc23195d82da997334a340a0
+ * content sha256: 8f1042ebf70448989a5798e3055ff8180b71025c406ca5f1071da710e9763da6
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -449,15 +449,17 @@ static void two_unicycles_barrier_k_hessian(double t, const double *y, const dou
 }
 
 
+/* Whether every x[i] is finite. x * 0.0 is +-0 for finite x and NaN for an infinity or a
+ * NaN (IEEE 754, which -ffast-math would break: see the #error above), so one comparison
+ * after a branch-free sum decides. */
 static int two_unicycles_barrier_all_finite(const double *x, size_t count)
 {
+    double probe = 0.0;
     size_t i;
     for (i = 0; i < count; ++i) {
-        if (!isfinite(x[i])) {
-            return 0;
-        }
+        probe += x[i] * 0.0;
     }
-    return 1;
+    return probe == 0.0;
 }
 
 static int two_unicycles_barrier_check_inputs(double t, const double *x, size_t count, const double *params)

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 8e2fdb68113b8fc82c18a9318d617dd9ac85f0cd89b8a8eeea6403cb3ddfc95b
+ * content sha256: 6f1706b7477596e117bf5481d12bb64450f23d35a25f02278cef4b7c3440d79e
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -252,15 +252,17 @@ static void unicycle_switch_k_hessian(double t, const double *y, const double *p
 }
 
 
+/* Whether every x[i] is finite. x * 0.0 is +-0 for finite x and NaN for an infinity or a
+ * NaN (IEEE 754, which -ffast-math would break: see the #error above), so one comparison
+ * after a branch-free sum decides. */
 static int unicycle_switch_all_finite(const double *x, size_t count)
 {
+    double probe = 0.0;
     size_t i;
     for (i = 0; i < count; ++i) {
-        if (!isfinite(x[i])) {
-            return 0;
-        }
+        probe += x[i] * 0.0;
     }
-    return 1;
+    return probe == 0.0;
 }
 
 static int unicycle_switch_check_inputs(double t, const double *x, size_t count, const double *params)
