@@ -57,6 +57,10 @@ regen: $(INSTALLED)
 check-generated: regen
 	git diff --exit-code generated/
 
+## update-golden: rewrite tests/golden from the current output (review the diff!)
+update-golden: $(INSTALLED)
+	$(PY) -m pytest tests/test_report.py -k golden --update-golden
+
 check: lint test
 
 clean:

@@ -66,3 +66,16 @@ def write_spec(tmp_path: Path, text: str, name: str = "spec.toml") -> Path:
 @pytest.fixture
 def unicycle_text() -> str:
     return (ROOT / "tvopt_codegen" / "examples" / "unicycle_switch.toml").read_text()
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--update-golden",
+        action="store_true",
+        help="rewrite tests/golden files from the current output",
+    )
+
+
+@pytest.fixture
+def update_golden(request: pytest.FixtureRequest) -> bool:
+    return bool(request.config.getoption("--update-golden"))

@@ -32,6 +32,8 @@ def test_installed_wheel_generates_a_bundled_example(tmp_path: Path) -> None:
     names = set(zipfile.ZipFile(wheel).namelist())
     assert "tvopt_codegen/templates/python/controller.py.jinja" in names
     assert "tvopt_codegen/examples/unicycle_switch.toml" in names
+    assert "tvopt_codegen/templates/c/controller.c.jinja" in names
+    assert "tvopt_codegen/templates/report/report.html.jinja" in names
     target = tmp_path / "site"
     subprocess.run(
         [

@@ -19,6 +19,7 @@ from tvopt_codegen.emit import prepare_folder, write_files
 from tvopt_codegen.errors import SpecError, TvoptError
 from tvopt_codegen.ir import lower
 from tvopt_codegen.render import render
+from tvopt_codegen.report import read_results, render_report
 from tvopt_codegen.simulate import (
     EXIT_CERTIFICATE,
     METHODS,
@@ -64,6 +65,26 @@ def _parser() -> argparse.ArgumentParser:
     check.add_argument("spec", help="spec file, or the name of a bundled example")
 
     commands.add_parser("examples", help="list the bundled example specs")
+
+    rep = commands.add_parser("report", help="write the derivation report (HTML and Markdown)")
+    rep.add_argument("spec", help="spec file, or the name of a bundled example")
+    rep.add_argument(
+        "--out",
+        default=".",
+        help="output folder (default: current folder); "
+        "simulation results already there are included",
+    )
+    rep.add_argument(
+        "--format",
+        default="both",
+        choices=("html", "md", "both"),
+        help="report format (default: both)",
+    )
+    rep.add_argument(
+        "--force",
+        action="store_true",
+        help="replace files that were edited by hand or not written here",
+    )
 
     sim = commands.add_parser(
         "simulate", help="simulate the closed loop and check the theorem along the run"
@@ -147,6 +168,20 @@ class _Progress:
             print(" " * 40, end="\r", file=sys.stderr, flush=True)
 
 
+def _report(args: argparse.Namespace) -> int:
+    derivation = derive(load_spec(args.spec))
+    kernels = lower(derivation)
+    results = read_results(args.out, derivation.spec.name)
+    formats = ("html", "md") if args.format == "both" else (args.format,)
+    files = render_report(derivation, kernels, results, formats)
+    write_files(files, args.out, force=args.force)
+    for name in files:
+        print(f"wrote {args.out.rstrip('/')}/{name}")
+    if results:
+        print(f"  with the simulation results found in {args.out}")
+    return 0
+
+
 def _simulate(args: argparse.Namespace) -> int:
     for option, value in (
         ("--rtol", args.rtol),
@@ -193,6 +228,8 @@ def run(argv: Sequence[str] | None = None) -> int:
         return 0
     if args.command == "simulate":
         return _simulate(args)
+    if args.command == "report":
+        return _report(args)
     derivation = derive(load_spec(args.spec))
     kernels = lower(derivation)
     if args.command == "check":

@@ -124,6 +124,14 @@ class Derivation:
         Strong convexity evidence.
     initial_state : tuple of float
         Default initial state in :attr:`state_names` order.
+    unextended : str or None
+        Why the extension is needed: what the plant lacks without it (``None`` when
+        nothing is prolonged).
+    certified_rate : float
+        The alpha of ``|expm(H t)| <= c e^{-alpha t}`` (the decay rate, or 10% less with
+        repeated poles).
+    transient_constant : float
+        That c, computed.
     timings : tuple of (str, float)
         Seconds spent per derivation step.
     """
@@ -160,6 +168,9 @@ class Derivation:
     uniform: bool
     convexity: Convexity
     initial_state: tuple[float, ...]
+    unextended: str | None
+    certified_rate: float
+    transient_constant: float
     timings: tuple[tuple[str, float], ...]
 
 
@@ -185,6 +196,25 @@ def _linearizable(model: Model, counts: dict[str, int]) -> bool:
         return False
     degrees = [r for r in rd.r if r is not None]
     return sum(degrees) == len(ext.x) and generic_rank(rd.R, sampler) == len(model.u)
+
+
+def _without_extension(model: Model) -> str:
+    """Describe what the plant lacks before prolongation (for the report)."""
+    sampler = Sampler(model.x, dict(zip(model.params, model.defaults, strict=True)))
+    rd = relative_degree(model.f, model.G, model.h, model.x, sampler)
+    if rd.R is None:
+        missing = [str(y) for y, r in zip(model.y, rd.r, strict=True) if r is None]
+        return f"without it, outputs {', '.join(missing)} have no relative degree"
+    rank = generic_rank(rd.R, sampler)
+    degrees = [int(r) for r in rd.r if r is not None]
+    if rank < len(model.u):
+        return (
+            f"without it, the decoupling matrix R = {sp.sstr(rd.R.tolist())} has generic "
+            f"rank {rank} < {len(model.u)}: the inputs cannot steer every output independently"
+        )
+    return (
+        f"without it, the relative degrees {degrees} sum to {sum(degrees)} < {len(model.x)} states"
+    )
 
 
 def _suggest_prolongation(model: Model, counts: dict[str, int]) -> str:
@@ -438,6 +468,12 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
     )
     clock.mark("gradient jet")
 
+    say("error bound")
+    rate, _exact = hurwitz.certified_rate(coefficients)
+    constant = hurwitz.transient_constant(coefficients, rate)
+    unextended = _without_extension(model) if ext.counts else None
+    clock.mark("error bound")
+
     return Derivation(
         spec=spec,
         model=model,
@@ -471,6 +507,9 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
         uniform=all(r == k for r in degrees),
         convexity=convexity,
         initial_state=initial,
+        unextended=unextended,
+        certified_rate=rate,
+        transient_constant=constant,
         timings=tuple(clock.marks),
     )
 

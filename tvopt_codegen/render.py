@@ -186,6 +186,29 @@ def is_pristine(text: str) -> bool:
     return claimed is not None and claimed == stamp_hash(text)
 
 
+def render_template(template_name: str, context: dict[str, Any]) -> str:
+    """Render one template and fill in its content hash.
+
+    Parameters
+    ----------
+    template_name : str
+        Path under ``templates/``.
+    context : dict
+        Template variables; ``content_hash`` and ``template_name`` are added.
+
+    Returns
+    -------
+    str
+        The file text, stamped.
+    """
+    full = {**context, "content_hash": HASH_PLACEHOLDER, "template_name": template_name}
+    try:
+        text = environment().get_template(template_name).render(full)
+    except jinja2.TemplateError as exc:
+        raise CodegenError(f"template {template_name}: {exc}") from exc
+    return text.replace(HASH_PLACEHOLDER, stamp_hash(text), 1)
+
+
 def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
     """Render all files of one backend for one controller.
 
@@ -215,18 +238,12 @@ def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
             "tool_version": __version__,
             "sympy_version": sp.__version__,
             "spec_file": PurePath(d.spec.source.removesuffix(BUNDLED_SUFFIX)).name,
-            "template_name": template_name,
-            "content_hash": HASH_PLACEHOLDER,
             "extension_counts": dict(d.extension.counts),
             "parameters": dict(d.spec.parameters),
             "relative_degree": dict(zip(d.spec.outputs, d.relative_degree, strict=True)),
             "prefix": d.spec.name,
             "guard": d.spec.name.upper(),
         }
-        try:
-            text = environment().get_template(template_name).render(context)
-        except jinja2.TemplateError as exc:
-            raise CodegenError(f"template {template_name}: {exc}") from exc
-        text = text.replace(HASH_PLACEHOLDER, stamp_hash(text), 1)
+        text = render_template(template_name, context)
         files[pattern.format(name=d.spec.name)] = text
     return files

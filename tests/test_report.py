@@ -1,0 +1,142 @@
+"""The derivation report, checked as a person would see it: rendered in a real browser."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+import sympy as sp
+
+from tvopt_codegen.cli import main
+from tvopt_codegen.report import HEADINGS, render_report
+
+from .conftest import EXAMPLES, ROOT, derivation, kernels
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+BROWSER_FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--disable-quic",
+    # Any attempt to reach a host fails loudly instead of leaving the machine.
+    "--host-resolver-rules=MAP * ~NOTFOUND",
+    "--enable-logging=stderr",
+    "--v=0",
+]
+GOLDEN = ROOT / "tests" / "golden"
+
+
+def _fixed(name: str):  # noqa: ANN202 - a Derivation with timings that do not vary
+    d = derivation(name)
+    return dataclasses.replace(d, timings=tuple((stage, 0.0) for stage, _ in d.timings))
+
+
+def _browser(html: Path, tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    if CHROMIUM is None:
+        pytest.skip("chromium is not installed (`.ci/run` installs Debian's chromium as root)")
+    return subprocess.run(
+        [CHROMIUM, *BROWSER_FLAGS, f"--user-data-dir={tmp_path / 'profile'}", *args, html.as_uri()],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_html_renders_in_a_browser(name: str, tmp_path: Path) -> None:
+    page = tmp_path / f"{name}_report.html"
+    page.write_text(render_report(derivation(name), kernels(name), formats=("html",))[page.name])
+    shot = tmp_path / "shot.png"
+    run = _browser(page, tmp_path, "--window-size=1200,3000", f"--screenshot={shot}")
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert shot.read_bytes().startswith(b"\x89PNG") and shot.stat().st_size > 50_000
+    console = [line for line in run.stderr.splitlines() if "CONSOLE" in line]
+    assert console == []
+    assert "ERR_NAME_NOT_RESOLVED" not in run.stderr and "net::ERR" not in run.stderr
+    dom = _browser(page, tmp_path, "--dump-dom").stdout
+    headings = re.findall(r"<h2>(.*?)</h2>", dom)
+    assert headings == list(HEADINGS)
+    assert dom.count("<math") >= 15
+    assert "<mtable>" in dom  # matrices typeset as MathML tables
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_html_is_self_contained(name: str) -> None:
+    html = render_report(derivation(name), kernels(name), formats=("html",))[f"{name}_report.html"]
+    assert "<script" not in html
+    assert not re.search(r"""(src|href)\s*=\s*["'](?!#|data:)""", html)
+    assert "http://" not in html and "https://" not in html and "@import" not in html
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_markdown_twin_has_the_same_sections_and_math(name: str) -> None:
+    d = derivation(name)
+    md = render_report(d, kernels(name), formats=("md",))[f"{name}_report.md"]
+    assert re.findall(r"^## (.*)$", md, re.M) == list(HEADINGS)
+    # Key quantities appear as sympy's own LaTeX of the derived objects.
+    for quantity in (d.R, d.p, d.gradient, d.hessian, d.model.f0):
+        assert sp.latex(quantity) in md
+    if d.det_R is not None:
+        assert sp.latex(d.det_R) in md
+    # Every display formula is structurally sound LaTeX.
+    for formula in re.findall(r"\$\$(.*?)\$\$", md, re.S):
+        assert formula.count("{") == formula.count("}")
+        assert formula.count(r"\left") == formula.count(r"\right")
+        assert formula.count(r"\begin{") == formula.count(r"\end{")
+
+
+def test_report_contents_for_the_unicycle() -> None:
+    md = render_report(derivation("unicycle_switch"), kernels("unicycle_switch"), formats=("md",))[
+        "unicycle_switch_report.md"
+    ]
+    assert "R is singular when v = 0." in md
+    assert "generic rank 1 < 2" in md  # why the extension is needed
+    assert r"c = sup_t \|expm(H t)\| e^(alpha t), computed | 5.09902" in md
+    assert "Theorem used: Control Law for Uniform Vector Relative Degree Systems" in md
+    assert "No simulation results beside this report" in md
+
+
+@pytest.mark.parametrize("fmt", ["md", "html"])
+def test_golden_unicycle_report(fmt: str, update_golden: bool) -> None:
+    name = f"unicycle_switch_report.{fmt}"
+    text = render_report(_fixed("unicycle_switch"), kernels("unicycle_switch"), formats=(fmt,))[
+        name
+    ]
+    golden = GOLDEN / name
+    if update_golden:
+        golden.write_text(text, encoding="utf-8")
+    assert golden.exists(), f"missing {golden}: run `make update-golden`"
+    assert text == golden.read_text(encoding="utf-8"), (
+        f"{name} changed: review, then run `make update-golden` and commit"
+    )
+
+
+def test_long_expressions_are_folded() -> None:
+    html = render_report(
+        derivation("two_unicycles_barrier"), kernels("two_unicycles_barrier"), formats=("html",)
+    )["two_unicycles_barrier_report.html"]
+    assert "<details><summary>Show the expression" in html
+
+
+def test_report_command_includes_simulation_results(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "run"
+    assert main(["simulate", "integrator", "--out", str(out), "--points", "41"]) == 0
+    assert main(["report", "integrator", "--out", str(out)]) == 0
+    assert "with the simulation results" in capsys.readouterr().out
+    md = (out / "integrator_report.md").read_text()
+    assert "certificate: PASSED" in md and "![Paths" in md
+    html = (out / "integrator_report.html").read_text()
+    assert html.count("data:image/png;base64,") == 3
+    assert main(["report", "integrator", "--out", str(tmp_path / "md"), "--format", "md"]) == 0
+    assert sorted(p.name for p in (tmp_path / "md").iterdir()) == ["integrator_report.md"]
