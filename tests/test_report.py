@@ -101,7 +101,8 @@ def test_report_contents_for_the_unicycle() -> None:
     assert "R is singular when v = 0." in md
     assert "generic rank 1 < 2" in md  # why the extension is needed
     assert r"c = sup_t \|expm(H t)\| e^(alpha t), computed | 5.09902" in md
-    assert "Theorem used: Control Law for Uniform Vector Relative Degree Systems" in md
+    assert "Theorem used: Theorem 5, Control Law for Uniform Vector Relative Degree Systems" in md
+    assert "(eq. (18))" in md and "The implicit law (paper, eq. (17))" in md
     assert "No simulation results beside this report" in md
 
 
@@ -118,6 +119,15 @@ def test_golden_unicycle_report(fmt: str, update_golden: bool) -> None:
     assert text == golden.read_text(encoding="utf-8"), (
         f"{name} changed: review, then run `make update-golden` and commit"
     )
+
+
+def test_non_uniform_law_cites_theorem_6() -> None:
+    from .conftest import SPECS
+
+    spec = str(SPECS / "nonuniform.toml")
+    md = render_report(derivation(spec), kernels(spec), formats=("md",))["nonuniform_report.md"]
+    assert "Theorem 6, Control Law for General Vector Relative Degree System" in md
+    assert "xi_y1_1" in md and "eq. (19)" in md
 
 
 def test_long_expressions_are_folded() -> None:

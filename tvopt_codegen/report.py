@@ -1,5 +1,11 @@
 """The derivation report: every derived term, for a person to check line by line.
 
+References to the paper use its arXiv numbering: Lemmas 1-2 (static and dynamic
+linearization), Theorem 3 (Hurwitz matrices), Lemma 4 (gradient time differentiation,
+eq. (16)), Theorems 5-6 (uniform and non-uniform relative degree), Assumption 1
+(convexity), and equations (2) R, (14) E' = H E, (15) H, (17) y_imp^(k), (18) and (20) the
+laws, (19) the padding chains.
+
 :func:`report_sections` turns a :class:`~tvopt_codegen.derivation.Derivation` (and the
 kernels, and any simulation results found beside the report) into sections of
 paragraphs, equations, tables, figures and preformatted text; each equation carries both
@@ -184,7 +190,7 @@ def _extension(d: Derivation) -> Section:
             Entry(
                 "text",
                 text=(
-                    f"Dynamic extension (paper, Lemma on dynamic feedback linearization): {added}. "
+                    f"Dynamic extension (paper, Lemma 2, eqs. (3)-(5)): {added}. "
                     f"New states {', '.join(ext.states)}; the extended plant's inputs are "
                     f"{', '.join(ext.inputs)}. Why: {d.unextended}."
                 ),
@@ -215,9 +221,9 @@ def _extension(d: Derivation) -> Section:
             Entry(
                 "table",
                 text=(
-                    f"Padding chains (paper, Sec. IV-B): channel i gets k - r_i = {d.k} - r_i "
-                    "integrators xi; xi_<output>_1 is that channel's Brunovsky input, the last "
-                    "one is driven by y_imp^(k)."
+                    "Padding chains (paper, Sec. IV-B, eq. (19)): channel i gets "
+                    f"k - r_i = {d.k} - r_i integrators xi; xi_<output>_1 is that channel's "
+                    "Brunovsky input, the last one is driven by y_imp^(k)."
                 ),
                 header=("output", "padding states"),
                 rows=tuple(pads),
@@ -241,7 +247,11 @@ def _linearization(d: Derivation) -> Section:
         )
     ]
     entries.append(
-        _math_entry("Decoupling matrix, rows L_G L_f^(r_i - 1) h_i:", d.R, _name("R(x)", "R"))
+        _math_entry(
+            "Decoupling matrix, rows L_G L_f^(r_i - 1) h_i (paper, eq. (2)):",
+            d.R,
+            _name("R(x)", "R"),
+        )
     )
     if d.det_R is not None:
         entries.append(
@@ -269,7 +279,7 @@ def _linearization(d: Derivation) -> Section:
         )
     entries.append(_math_entry("p = col(L_f^(r_i) h_i):", d.p, _name("p(x)", "p")))
     entries.append(
-        _math_entry("Coordinates Phi (paper, Lemma 1):", d.phi, _name(r"\Phi(x)", "&#934;"))
+        _math_entry("Coordinates Phi (paper, Lemmas 1-2):", d.phi, _name(r"\Phi(x)", "&#934;"))
     )
     entries.append(_math_entry("Brunovsky pair, A:", d.A, _name("A", "A")))
     entries.append(_math_entry("Brunovsky pair, B:", d.B, _name("B", "B")))
@@ -320,7 +330,7 @@ def _error_dynamics(d: Derivation) -> Section:
             "text",
             text=(
                 f"E = col(grad f0, ..., grad^({k - 1}) f0) obeys E' = H E with H = companion(a) "
-                f"kron I_{m} (paper, the equation for H)."
+                f"kron I_{m} (paper, eqs. (14)-(15))."
             ),
         ),
         _math_entry(
@@ -330,8 +340,7 @@ def _error_dynamics(d: Derivation) -> Section:
         ),
         Entry(
             "table",
-            text="Spectrum and the constants of |expm(H t)| <= c exp(-alpha t) "
-            "(paper, Theorem on Hurwitz matrices).",
+            text="Spectrum and the constants of |expm(H t)| <= c exp(-alpha t) (paper, Theorem 3).",
             header=("quantity", "value"),
             rows=(
                 ("poles", ", ".join(_pole(p) for p in d.eigenvalues)),
@@ -351,8 +360,7 @@ def _error_dynamics(d: Derivation) -> Section:
             "text",
             text=(
                 "Hence |y(t) - y*(t)| <= C exp(-alpha t) with C = c |E(0)| / m_f (paper, "
-                "Theorems on uniform and non-uniform relative degree); `tvopt-codegen simulate` "
-                "checks this along a run."
+                "Theorems 5 and 6); `tvopt-codegen simulate` checks this along a run."
             ),
         ),
     ]
@@ -362,11 +370,12 @@ def _error_dynamics(d: Derivation) -> Section:
 def _control_law(d: Derivation) -> Section:
     k = d.k
     theorem = (
-        "Control Law for Uniform Vector Relative Degree Systems: u = alpha + beta "
-        "R^-1 [y_imp^(k) - p]"
+        "Theorem 5, Control Law for Uniform Vector Relative Degree Systems: u = alpha + "
+        "beta R^-1 [y_imp^(k) - p] (eq. (18))"
         if d.uniform
-        else "Control Law for General Vector Relative Degree System: u = alpha + beta R^-1 "
-        "[alpha~(xi) + beta~(xi) y_imp^(k) - p], with the padding chains"
+        else "Theorem 6, Control Law for General Vector Relative Degree System: u = alpha + "
+        "beta R^-1 [alpha~(xi) + beta~(xi) y_imp^(k) - p] (eq. (20)), with the padding "
+        "chains of eq. (19)"
     )
     law = (
         r"y_{\mathrm{imp}}^{(k)} = \nabla_{yy}^{-1} f_0 \Big[\sum_{i=0}^{k-1} a_i "
@@ -387,13 +396,14 @@ def _control_law(d: Derivation) -> Section:
         Entry("text", text=f"Theorem used: {theorem} (k = {k})."),
         Entry(
             "math",
-            text="The implicit law (paper, equation y_kth_derivative_solution):",
+            text="The implicit law (paper, eq. (17)):",
             math=Math(law, law_mathml),
         ),
         Entry(
             "text",
             text=(
-                "The gradient jet grad^(j) f0 is the total time derivative along t, the output "
+                "The gradient jet grad^(j) f0 (paper, Lemma 4, eq. (16)) is the total time "
+                "derivative along t, the output "
                 "jet y, y', ... and the signal jets, taken on a straight-line program (never "
                 "expanded); grad^(k) f0 = Hess y^(k) + rest, and rest is grad^(k) f0 with "
                 f"y^(k) = 0. Program size: {len(d.jet_program.assignments)} assignments for "
