@@ -14,6 +14,7 @@ from tvopt_codegen import cli
 from tvopt_codegen import simulate as sim
 from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import derive
+from tvopt_codegen.errors import EXIT_CERTIFICATE
 from tvopt_codegen.ir import lower
 from tvopt_codegen.spec import load_spec
 
@@ -80,7 +81,7 @@ def test_wrong_controller_fails_the_certificate(
 
     monkeypatch.setattr(cli, "load_controller", lambda kernels, backend: impostor)
     out = tmp_path / "out"
-    assert main(["simulate", "unicycle_switch", "--out", str(out)]) == sim.EXIT_CERTIFICATE
+    assert main(["simulate", "unicycle_switch", "--out", str(out)]) == EXIT_CERTIFICATE
     assert "certificate: FAILED" in capsys.readouterr().out
     assert (out / "unicycle_switch_certificate.txt").read_text().count("FAILED") == 1
 

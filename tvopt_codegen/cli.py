@@ -1,27 +1,41 @@
 """Command-line interface: parse arguments, call the stages, map errors to exit codes.
 
-Exit codes: 0 success; 2 bad spec or command line; 3 the system violates the method's
-assumptions; 4 output could not be written; 5 the simulation's certificate failed;
-130 interrupted.
+Exit codes (``tvopt_codegen.errors``): 0 success; 2 bad spec or command line; 3 the
+system violates the method's assumptions; 4 output could not be written; 5 the
+simulation's certificate failed; 6 a derivation budget was exceeded; 7 a controller
+could not be built; 70 internal error; 130 interrupted (Ctrl-C); 143 terminated (SIGTERM).
+Every error is one line on stderr; set TVOPT_CODEGEN_DEBUG=1 for tracebacks of internal
+errors.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
+import signal
 import sys
+import traceback
 from collections.abc import Sequence
+from pathlib import Path
 
 from tvopt_codegen import __version__
 from tvopt_codegen.backends import BACKENDS
-from tvopt_codegen.derivation import derive
+from tvopt_codegen.derivation import Budget, Derivation, derive
 from tvopt_codegen.emit import prepare_folder, write_files
-from tvopt_codegen.errors import SpecError, TvoptError
+from tvopt_codegen.errors import (
+    EXIT_BUDGET,
+    EXIT_CERTIFICATE,
+    EXIT_INTERNAL,
+    EXIT_INTERRUPTED,
+    EXIT_TERMINATED,
+    SpecError,
+    TvoptError,
+)
 from tvopt_codegen.ir import lower
 from tvopt_codegen.render import render
 from tvopt_codegen.report import read_results, render_report
 from tvopt_codegen.simulate import (
-    EXIT_CERTIFICATE,
     METHODS,
     format_certificate,
     load_controller,
@@ -32,15 +46,14 @@ from tvopt_codegen.simulate import (
 from tvopt_codegen.spec import bundled_examples, load_spec
 from tvopt_codegen.summary import format_summary
 
-EXIT_INTERRUPTED = 130
-
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="tvopt-codegen",
         description="Generate implicit trajectory planning controllers from a spec file.",
-        epilog="Exit codes: 0 ok, 2 bad spec, 3 assumptions violated, 4 output not written, "
-        "5 certificate failed, 130 interrupted.",
+        epilog="Exit codes: 0 ok, 2 bad spec or usage, 3 assumptions violated, 4 output not "
+        "written, 5 certificate failed, 6 budget exceeded, 7 build failed, 70 internal error, "
+        "130 interrupted, 143 terminated.",
     )
     parser.add_argument("--version", action="version", version=f"tvopt-codegen {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -132,7 +145,29 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="replace files that were edited by hand or not written here",
     )
+    for command in (generate, check, rep, sim):
+        command.add_argument(
+            "--max-seconds",
+            type=float,
+            default=Budget.seconds,
+            help=f"time budget of the derivation (default {Budget.seconds:g})",
+        )
+        command.add_argument(
+            "--max-size",
+            type=int,
+            default=Budget.size,
+            help=f"largest expression tree a derivation stage may build (default {Budget.size})",
+        )
     return parser
+
+
+def _derive(args: argparse.Namespace) -> Derivation:
+    """Load and derive the spec named on the command line, within its budget."""
+    if not args.max_seconds > 0:
+        raise SpecError("command line", "--max-seconds", "must be positive")
+    if not args.max_size > 0:
+        raise SpecError("command line", "--max-size", "must be positive")
+    return derive(load_spec(args.spec), budget=Budget(args.max_seconds, args.max_size))
 
 
 def _assignments(items: Sequence[str], option: str) -> dict[str, float]:
@@ -169,7 +204,7 @@ class _Progress:
 
 
 def _report(args: argparse.Namespace) -> int:
-    derivation = derive(load_spec(args.spec))
+    derivation = _derive(args)
     kernels = lower(derivation)
     results = read_results(args.out, derivation.spec.name)
     formats = ("html", "md") if args.format == "both" else (args.format,)
@@ -192,7 +227,7 @@ def _simulate(args: argparse.Namespace) -> int:
             raise SpecError("command line", option, "must be positive")
     if args.points < 3:
         raise SpecError("command line", "--points", "must be at least 3")
-    derivation = derive(load_spec(args.spec))
+    derivation = _derive(args)
     options = resolve_options(
         derivation,
         args.t_final,
@@ -230,7 +265,7 @@ def run(argv: Sequence[str] | None = None) -> int:
         return _simulate(args)
     if args.command == "report":
         return _report(args)
-    derivation = derive(load_spec(args.spec))
+    derivation = _derive(args)
     kernels = lower(derivation)
     if args.command == "check":
         print(format_summary(derivation, kernels))
@@ -246,16 +281,49 @@ def run(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+class _Terminated(BaseException):
+    """SIGTERM, raised where the process is so that it unwinds like Ctrl-C."""
+
+
+def _on_sigterm(_signum: int, _frame: object) -> None:
+    raise _Terminated
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console-script entry point."""
+    """Console-script entry point: run, and map every outcome to one line and an exit code."""
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return run(argv)
     except TvoptError as exc:
         print(f"tvopt-codegen: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
-        print("tvopt-codegen: interrupted; nothing was written", file=sys.stderr)
+        print("tvopt-codegen: interrupted; no file was left half-written", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except _Terminated:
+        print("tvopt-codegen: terminated; no file was left half-written", file=sys.stderr)
+        return EXIT_TERMINATED
+    except (RecursionError, MemoryError) as exc:
+        print(
+            f"tvopt-codegen: error: the derivation ran out of "
+            f"{'stack' if isinstance(exc, RecursionError) else 'memory'}; the expressions are "
+            "too large",
+            file=sys.stderr,
+        )
+        return EXIT_BUDGET
+    except Exception as exc:
+        if os.environ.get("TVOPT_CODEGEN_DEBUG"):
+            raise
+        where = traceback.extract_tb(exc.__traceback__)[-1]
+        print(
+            f"tvopt-codegen: internal error: {type(exc).__name__}: {exc} (at "
+            f"{Path(where.filename).name}:{where.lineno}; please report it; "
+            "TVOPT_CODEGEN_DEBUG=1 shows the traceback)",
+            file=sys.stderr,
+        )
+        return EXIT_INTERNAL
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ import numpy as np
 import sympy as sp
 
 from tvopt_codegen import hurwitz
-from tvopt_codegen.errors import AssumptionError, SpecError
+from tvopt_codegen.errors import AssumptionError, BudgetError, SpecError
 from tvopt_codegen.jet import Program, cse_program, fresh_symbols, total_derivative
 from tvopt_codegen.lie import (
     Extension,
@@ -174,6 +174,63 @@ class Derivation:
     timings: tuple[tuple[str, float], ...]
 
 
+@dataclass(frozen=True)
+class Budget:
+    """Limits one derivation may use before it is stopped with a :class:`BudgetError`.
+
+    Attributes
+    ----------
+    seconds : float
+        Wall time for the whole derivation.
+    size : int
+        Largest expression tree (nodes, shared subtrees counted each time they occur)
+        any stage may build: Lie derivatives, gradient, Hessian, jet assignments.
+    """
+
+    seconds: float = 120.0
+    size: int = 200_000
+
+
+def tree_size(expr: sp.Expr, limit: int) -> int:
+    """Nodes of ``expr``'s tree, counting at most ``limit + 1`` (so the count is cheap)."""
+    count = 0
+    for _ in sp.preorder_traversal(expr):
+        count += 1
+        if count > limit:
+            break
+    return count
+
+
+class _Meter:
+    """Checks the budget as expressions are built; knows the current stage's name."""
+
+    def __init__(self, source: str, budget: Budget) -> None:
+        self.source = source
+        self.budget = budget
+        self.deadline = time.perf_counter() + budget.seconds
+        self.stage = "model"
+
+    def __call__(self, expr: sp.Expr) -> None:
+        if time.perf_counter() > self.deadline:
+            raise BudgetError(
+                self.source,
+                self.stage,
+                f"the derivation took longer than {self.budget.seconds:g} s",
+            )
+        size = tree_size(sp.sympify(expr), self.budget.size)
+        if size > self.budget.size:
+            raise BudgetError(
+                self.source,
+                self.stage,
+                f"an expression grew past {self.budget.size} nodes (the size budget); "
+                "simplify the model or objective, or raise --max-size",
+            )
+
+    def matrix(self, matrix: sp.MatrixBase) -> None:
+        for entry in matrix:
+            self(entry)
+
+
 class _Clock:
     """Records how long each derivation step takes."""
 
@@ -280,7 +337,9 @@ def _check_convexity(
     return result
 
 
-def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivation:
+def derive(
+    spec: Spec, progress: Callable[[str], None] | None = None, budget: Budget | None = None
+) -> Derivation:
     """Run the paper's derivation for a spec.
 
     Parameters
@@ -289,6 +348,8 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
         A validated spec.
     progress : callable, optional
         Called with the name of each step as it starts (for long derivations).
+    budget : Budget, optional
+        Time and size limits (default :class:`Budget`).
 
     Returns
     -------
@@ -305,8 +366,16 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
     SpecError
         When generated state names collide with declared names, or the initial state
         names an unknown state.
+    BudgetError
+        When a stage takes longer or builds larger expressions than the budget allows.
     """
-    say = progress or (lambda _stage: None)
+    meter = _Meter(spec.source, budget or Budget())
+
+    def say(stage: str) -> None:
+        meter.stage = stage
+        if progress is not None:
+            progress(stage)
+
     clock = _Clock()
     source = spec.source
     say("model")
@@ -332,7 +401,7 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
             )
     defaults = dict(zip(model.params, model.defaults, strict=True))
     sampler = Sampler(ext.x, defaults)
-    rd: RelativeDegree = relative_degree(ext.f, ext.G, model.h, ext.x, sampler)
+    rd: RelativeDegree = relative_degree(ext.f, ext.G, model.h, ext.x, sampler, meter)
     m = len(model.u)
     n_ext = len(ext.x)
     for name, r in zip(spec.outputs, rd.r, strict=True):
@@ -420,13 +489,20 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
     det_R: sp.Expr | None = None
     singular: tuple[str, ...] = ()
     if m <= 4:
-        det_R = sp.factor(sp.simplify(R.det(method="berkowitz")))
-        singular = _singular_set(det_R)
+        det = R.det(method="berkowitz")
+        meter(det)
+        # simplify and factor are exact but can be slow on large entries: only small ones.
+        if tree_size(det, 400) <= 400:
+            det_R = sp.factor(sp.simplify(det))
+            singular = _singular_set(det_R)
     clock.mark("decoupling matrix")
 
     say("objective")
+    meter(model.f0)
     gradient = sp.ImmutableMatrix([sp.diff(model.f0, yi) for yi in model.y])
+    meter.matrix(gradient)
     hessian = sp.ImmutableMatrix([[sp.diff(g, yj) for yj in model.y] for g in gradient])
+    meter.matrix(hessian)
     values = {sym: sp.Float(v) for sym, v in zip(states, initial, strict=True)}
     values |= {q: sp.Float(v) for q, v in defaults.items()}
     y0 = [float(h.xreplace(values)) for h in model.h]
@@ -445,7 +521,7 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
     grad_jet = [current]
     rest_program = Program(())
     for order in range(1, k + 1):
-        new, current, rates = total_derivative(program, current, rates, names)
+        new, current, rates = total_derivative(program, current, rates, names, meter)
         if order < k:
             program = program + new
             grad_jet.append(current)
@@ -458,6 +534,9 @@ def derive(spec: Spec, progress: Callable[[str], None] | None = None) -> Derivat
         tuple(sp.diff(expr, model.t, q) if q else expr for q in range(k + 1))
         for _, expr in model.signals
     )
+    for chain in signal_values:
+        for value in chain:
+            meter(value)
     state_of = dict(zip(state_names, states, strict=True))
     y_values = tuple(
         tuple(

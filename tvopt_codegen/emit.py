@@ -2,7 +2,12 @@
 
 Every file is written atomically (a temporary file in the same folder, flushed and
 then renamed over the target), so a reader or a crash sees the old file or the new
-one, never half of one. Nothing a person wrote is overwritten silently: a file is
+one, never half of one. A set of files is published as one transaction: all
+temporaries are written first, a journal names them, and the renames run with SIGINT
+and SIGTERM held back, so Ctrl-C cannot leave old and new files mixed. A process
+killed outright during the renames leaves its journal; the next run into the folder
+finds it (its process is gone) and completes the renames, and removes temporaries no
+journal claims. Nothing a person wrote is overwritten silently: a file is
 replaced only if tvopt-codegen wrote it and nobody changed it since, which is known
 from the file's own stamp (generated code carries a content hash) or from the
 folder's manifest ``.tvopt-manifest.json`` (SHA-256 of every file the tool wrote
@@ -11,11 +16,14 @@ there). ``force=True`` overrides both.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
+import signal
 import tempfile
-from collections.abc import Mapping
+import threading
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 from tvopt_codegen.errors import OutputError
@@ -23,6 +31,10 @@ from tvopt_codegen.render import is_pristine, stamped_hash
 
 #: Name of the per-folder record of what tvopt-codegen wrote.
 MANIFEST = ".tvopt-manifest.json"
+#: Journals of publications in progress: ``.tvopt-journal-<pid>-<random>.json``.
+JOURNAL_PREFIX = ".tvopt-journal-"
+_TEMP_SUFFIX = ".tvopt-tmp"
+_BLOCKED = {signal.SIGINT, signal.SIGTERM}
 
 Content = str | bytes
 
@@ -93,13 +105,66 @@ def prepare_folder(out_dir: str | Path) -> Path:
     return folder
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def recover(folder: Path) -> None:
+    """Finish publications of processes that died mid-way; drop orphaned temporaries."""
+    claimed: set[str] = set()
+    for journal in sorted(folder.glob(f"{JOURNAL_PREFIX}*.json")):
+        try:
+            record = json.loads(journal.read_text(encoding="utf-8"))
+            pid = int(record["pid"])
+            pairs = [(str(a), str(b)) for a, b in record["renames"]]
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if _alive(pid) and pid != os.getpid():
+            claimed.update(a for a, _ in pairs)
+            continue  # still publishing: leave it alone
+        for temp, target in pairs:
+            if (folder / temp).exists() and Path(target).name == target:
+                os.replace(folder / temp, folder / target)
+        with contextlib.suppress(FileNotFoundError):
+            journal.unlink()
+    for orphan in folder.glob(f".*{_TEMP_SUFFIX}"):
+        if orphan.name in claimed:
+            continue
+        # Temporaries are named .<target>.<pid>-<random>.tvopt-tmp: keep a live writer's.
+        owner = orphan.name[: -len(_TEMP_SUFFIX)].rsplit(".", 1)[-1].split("-")[0]
+        if owner.isdigit() and int(owner) != os.getpid() and _alive(int(owner)):
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            orphan.unlink()
+
+
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """Hold back SIGINT and SIGTERM (delivered right after) around the renames."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, _BLOCKED)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
 def write_files(
     files: Mapping[str, Content], out_dir: str | Path, force: bool = False
 ) -> list[Path]:
-    """Write output files into ``out_dir`` atomically.
+    """Write output files into ``out_dir`` as one transaction.
 
     All targets are checked before anything is written, so a refusal leaves the
-    folder untouched.
+    folder untouched; then every file is written to a temporary, and the temporaries
+    are renamed over the targets together (see the module docstring).
 
     Parameters
     ----------
@@ -121,26 +186,54 @@ def write_files(
         When the folder cannot be used or a file may not be replaced.
     """
     for name in files:
-        if Path(name).name != name or name in {"", ".", "..", MANIFEST}:
+        if Path(name).name != name or name in {"", ".", "..", MANIFEST} or name.startswith("."):
             raise OutputError(f"{name!r}: not a plain file name")
     folder = prepare_folder(out_dir)
+    try:
+        recover(folder)
+    except OSError as exc:
+        raise OutputError(f"{folder}: cannot repair an interrupted earlier write: {exc}") from None
     manifest = _read_manifest(folder)
     pending = []
     for name, content in files.items():
         data = _bytes(content)
         if _may_replace(folder / name, data, manifest, force):
             pending.append((folder / name, data))
-    written: list[Path] = []
-    for target, data in pending:
-        _atomic_write(target, data)
-        written.append(target)
+    if not pending:
+        return []
     # Stamped files vouch for themselves; only the others need the manifest.
     unstamped = {t.name: _digest(d) for t, d in pending if not _is_stamped(d)}
     if unstamped:
         manifest.update(unstamped)
         record = json.dumps(dict(sorted(manifest.items())), indent=1) + "\n"
-        _atomic_write(folder / MANIFEST, record.encode("utf-8"))
-    return written
+        pending.append((folder / MANIFEST, record.encode("utf-8")))
+    temps: list[tuple[Path, Path]] = []
+    try:
+        for target, data in pending:
+            temps.append((_write_temp(target, data), target))
+        journal = folder / f"{JOURNAL_PREFIX}{os.getpid()}-{os.urandom(4).hex()}.json"
+        _write_exact(
+            journal,
+            json.dumps(
+                {"pid": os.getpid(), "renames": [[t.name, g.name] for t, g in temps]}
+            ).encode(),
+        )
+        with _signals_held():
+            for temp, target in temps:
+                os.replace(temp, target)
+            _sync_folder(folder)
+            journal.unlink()
+    except OSError as exc:
+        for temp, _ in temps:
+            with contextlib.suppress(FileNotFoundError):
+                temp.unlink()
+        raise OutputError(f"{folder}: cannot write: {exc.strerror or exc}") from None
+    except BaseException:
+        for temp, _ in temps:
+            with contextlib.suppress(FileNotFoundError):
+                temp.unlink()
+        raise
+    return [target for target, _ in pending if target.name != MANIFEST]
 
 
 def _is_stamped(data: bytes) -> bool:
@@ -150,21 +243,34 @@ def _is_stamped(data: bytes) -> bool:
         return False
 
 
-def _atomic_write(target: Path, data: bytes) -> None:
-    """Write ``data`` to ``target`` through a temporary file in the same folder."""
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+def _write_temp(target: Path, data: bytes) -> Path:
+    """Write ``data`` to a new temporary file beside ``target`` (flushed to disk)."""
+    fd, name = tempfile.mkstemp(
+        prefix=f".{target.name}.{os.getpid()}-", suffix=_TEMP_SUFFIX, dir=target.parent
+    )
     try:
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
             handle.flush()
             os.fsync(handle.fileno())
-        os.chmod(tmp_name, 0o644)
-        os.replace(tmp_name, target)
-    except BaseException as exc:
-        try:
-            os.unlink(tmp_name)
-        except FileNotFoundError:
-            pass
-        if isinstance(exc, OSError):
-            raise OutputError(f"{target}: cannot write: {exc.strerror or exc}") from None
+        os.chmod(name, 0o644)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(name)
         raise
+    return Path(name)
+
+
+def _write_exact(path: Path, data: bytes) -> None:
+    """Write a small file in full, atomically (the journal)."""
+    os.replace(_write_temp(path, data), path)
+
+
+def _sync_folder(folder: Path) -> None:
+    """Flush the folder's entries so the renames survive a power cut."""
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)

@@ -14,6 +14,18 @@ EXIT_BAD_SPEC = 2
 EXIT_ASSUMPTION = 3
 #: Exit code for output that could not be written (or would overwrite a user's file).
 EXIT_OUTPUT = 4
+#: Exit code of a simulation whose certificate fails.
+EXIT_CERTIFICATE = 5
+#: Exit code for a derivation that exceeded its time or size budget.
+EXIT_BUDGET = 6
+#: Exit code for a controller that could not be built (no C compiler, compiler error).
+EXIT_BUILD = 7
+#: Exit code for a bug in tvopt-codegen itself.
+EXIT_INTERNAL = 70
+#: Exit code after Ctrl-C.
+EXIT_INTERRUPTED = 130
+#: Exit code after SIGTERM.
+EXIT_TERMINATED = 143
 
 
 class TvoptError(Exception):
@@ -80,3 +92,30 @@ class OutputError(TvoptError):
     """Generated files could not be written, or writing them would lose a user's work."""
 
     exit_code = EXIT_OUTPUT
+
+
+class BudgetError(TvoptError):
+    """A derivation stage exceeded its time or size budget.
+
+    Parameters
+    ----------
+    source : str
+        The spec file.
+    stage : str
+        The derivation stage (``relative degree``, ``gradient jet``, ...).
+    problem : str
+        What was exceeded, and by how much.
+    """
+
+    exit_code = EXIT_BUDGET
+
+    def __init__(self, source: str, stage: str, problem: str) -> None:
+        self.source = source
+        self.stage = stage
+        super().__init__(f"{source}: derivation stage '{stage}': {problem}")
+
+
+class BuildError(TvoptError):
+    """A generated controller could not be built (no C compiler, or a compiler error)."""
+
+    exit_code = EXIT_BUILD

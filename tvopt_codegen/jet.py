@@ -11,7 +11,7 @@ constant factor per order and nothing is ever expanded.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 import sympy as sp
@@ -62,6 +62,7 @@ def total_derivative(
     outputs: Sequence[sp.Expr],
     rates: Mapping[sp.Symbol, sp.Expr],
     names: Iterator[sp.Symbol],
+    check: Callable[[sp.Expr], None] | None = None,
 ) -> tuple[Program, tuple[sp.Expr, ...], dict[sp.Symbol, sp.Expr]]:
     """Differentiate a program and its outputs along given rates of its free symbols.
 
@@ -76,6 +77,8 @@ def total_derivative(
         ``y -> y'``). Symbols not listed are constant.
     names : iterator of sympy.Symbol
         Source of fresh symbols for the new assignments.
+    check : callable, optional
+        Called with every new right-hand side and output (the derivation's budget meter).
 
     Returns
     -------
@@ -100,10 +103,15 @@ def total_derivative(
         if rate.is_Symbol or rate.is_Number:
             moving[sym] = rate
             continue
+        if check is not None:
+            check(rate)
         fresh = next(names)
         new.append((fresh, rate))
         moving[sym] = fresh
     derived = tuple(_derivative(sp.sympify(e), moving) for e in outputs)
+    if check is not None:
+        for e in derived:
+            check(e)
     return Program(tuple(new)), derived, moving
 
 

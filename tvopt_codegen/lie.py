@@ -11,7 +11,7 @@ control tools spend their time, and a nonzero value at a random point is a proof
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -210,7 +210,12 @@ class RelativeDegree:
 
 
 def relative_degree(
-    f: sp.MatrixBase, G: sp.MatrixBase, h: sp.MatrixBase, x: Sequence[sp.Symbol], sampler: Sampler
+    f: sp.MatrixBase,
+    G: sp.MatrixBase,
+    h: sp.MatrixBase,
+    x: Sequence[sp.Symbol],
+    sampler: Sampler,
+    check: Callable[[sp.Expr], None] | None = None,
 ) -> RelativeDegree:
     """Compute the vector relative degree (paper, Definition 1) and R, p, Phi.
 
@@ -222,6 +227,8 @@ def relative_degree(
         State symbols.
     sampler : Sampler
         Decides which Lie derivatives vanish identically.
+    check : callable, optional
+        Called with every new Lie derivative (the derivation's budget meter).
 
     Returns
     -------
@@ -239,6 +246,10 @@ def relative_degree(
             row = [lie_derivative(chain[-1], G[:, c], x) for c in range(G.shape[1])]
             row = [sp.Integer(0) if sampler.is_zero(e) else e for e in row]
             nxt = lie_derivative(chain[-1], f, x)
+            if check is not None:
+                check(nxt)
+                for entry in row:
+                    check(entry)
             chain.append(sp.Integer(0) if sampler.is_zero(nxt) else nxt)
             if any(e != 0 for e in row):
                 found = order + 1

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import sympy as sp
 
 from tvopt_codegen.errors import AssumptionError, SpecError
+from tvopt_codegen.lie import Sampler
 from tvopt_codegen.spec import TIME, Spec, symbol
 
 
@@ -57,15 +58,6 @@ class Model:
     t: sp.Symbol
 
 
-def _is_zero(expr: sp.Expr) -> bool:
-    """Decide whether a small derivative expression is identically zero."""
-    if expr == 0:
-        return True
-    # Affinity checks see only second derivatives of single right-hand sides, which
-    # are small; simplify settles forms such as v*(cos^2 + sin^2 - 1).
-    return bool(sp.simplify(expr) == 0)
-
-
 def build_model(spec: Spec) -> Model:
     """Build the control-affine model of a spec.
 
@@ -95,13 +87,25 @@ def build_model(spec: Spec) -> Model:
             f"the plant has {len(spec.inputs)} inputs but {len(spec.outputs)} outputs; the "
             "method needs as many outputs as inputs",
         )
+    # Affinity is decided by evaluation at random points first: a nonzero value proves
+    # non-affinity at once, and simplify (slow on hostile input) is never reached then.
+    sampler = Sampler(
+        (*x, *u),
+        dict(
+            zip(
+                (symbol(n) for n, _ in spec.parameters),
+                (v for _, v in spec.parameters),
+                strict=True,
+            )
+        ),
+    )
     G_rows = []
     f_rows = []
     for state, rhs in zip(spec.states, spec.dynamics, strict=True):
         row = [sp.diff(rhs, uj) for uj in u]
         for j, gij in enumerate(row):
             for uk in u:
-                if not _is_zero(sp.diff(gij, uk)):
+                if not sampler.is_zero(sp.diff(gij, uk)):
                     raise SpecError(
                         spec.source,
                         f"system.dynamics.{state}",

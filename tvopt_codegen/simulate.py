@@ -34,13 +34,10 @@ from scipy.linalg import expm
 from tvopt_codegen import hurwitz
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.emit import write_files
-from tvopt_codegen.errors import SpecError
+from tvopt_codegen.errors import BuildError, SpecError
 from tvopt_codegen.figures import figures
 from tvopt_codegen.ir import KernelSet
 from tvopt_codegen.render import render
-
-#: Exit code of a simulation whose certificate fails.
-EXIT_CERTIFICATE = 5
 
 #: Integration methods of solve_ivp offered on the command line.
 METHODS = ("RK45", "DOP853", "RK23", "Radau", "BDF", "LSODA")
@@ -68,7 +65,10 @@ def load_controller(kernels: KernelSet, backend: str = "python") -> types.Module
         )
         assert spec is not None and spec.loader is not None
         module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
+        try:
+            spec.loader.exec_module(module)
+        except ImportError as exc:  # the C backend's build failed: say why, in one line
+            raise BuildError(" ".join(str(exc).split())) from None
     return module
 
 
