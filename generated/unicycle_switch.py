@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: bf37fd972ed95b957d222cf9255d348eb1ce92313bef491079677bebbcb9ec67
+# content sha256: 15a50393aefc94558f3b8ae3ccea7f84f786322316b6d0dded3c7d9b031dc469
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -217,7 +217,7 @@ def _lu_solve(a, b):
     return numpy.moveaxis(x, 0, -1)
 
 def _jet(t, s, p, a):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 185 operations, 260 before CSE)."""
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 164 operations, 203 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -227,7 +227,7 @@ def _jet(t, s, p, a):
     _p1 = p[1]  # b
     _a0 = a[0]  # a_0
     _a1 = a[1]  # a_1
-    # Intermediate terms (47)
+    # Intermediate terms (100)
     _t0 = 1/_p1
     _t1 = numpy.tanh(_t0*(-_p0 + t))
     _t2 = 1/2 - 1/2*_t1
@@ -254,31 +254,84 @@ def _jet(t, s, p, a):
     _t23 = numpy.sin(_s2)
     _t24 = _s3*_t23
     _t25 = _t24
-    _t26 = -2*_s0
-    _t27 = 1 - _t2
-    _t28 = -2*_s1
-    _t29 = -2*_t22
-    _t30 = -_t4
-    _t31 = -2*_t25
-    _t32 = -_t5
-    _t33 = 2*_t10
-    _t34 = (1/2)*_t4
-    _t35 = -_t26 - 2*_t8
-    _t36 = (1/2)*_t5
-    _t37 = -1/2*_t30 - 1/2*_t4
-    _t38 = 2*_t16
-    _t39 = (1/2)*_t30
-    _t40 = -2*_t15 - _t26
-    _t41 = (1/2)*_t32
-    _t42 = -_t2 - _t27
-    _t43 = 2*_t13
-    _t44 = -2*_t12 - _t28
-    _t45 = 2*_t18
-    _t46 = -2*_t17 - _t28
+    _t26 = -2*_t8
+    _t27 = 2*_s0
+    _t28 = _t26 + _t27
+    _t29 = _t2*_t28
+    _t30 = -_t2
+    _t31 = _t30 + 1
+    _t32 = -2*_t15
+    _t33 = _t27 + _t32
+    _t34 = _t31*_t33
+    _t35 = _t29 + _t34
+    _t36 = -2*_t12
+    _t37 = 2*_s1
+    _t38 = _t36 + _t37
+    _t39 = _t2*_t38
+    _t40 = -2*_t17
+    _t41 = _t37 + _t40
+    _t42 = _t31*_t41
+    _t43 = _t39 + _t42
+    _t44 = -2*_t10
+    _t45 = 2*_t22
+    _t46 = _t44 + _t45
+    _t47 = _t2*_t46
+    _t48 = _t28*_t4
+    _t49 = _t47 + _t48
+    _t50 = -_t4
+    _t51 = -2*_t16
+    _t52 = _t45 + _t51
+    _t53 = _t33*_t50
+    _t54 = _t31*_t52
+    _t55 = _t53 + _t54
+    _t56 = _t49 + _t55
+    _t57 = -2*_t13
+    _t58 = 2*_t25
+    _t59 = _t57 + _t58
+    _t60 = _t2*_t59
+    _t61 = _t38*_t4
+    _t62 = _t60 + _t61
+    _t63 = -2*_t18
+    _t64 = _t58 + _t63
+    _t65 = _t41*_t50
+    _t66 = _t31*_t64
+    _t67 = _t65 + _t66
+    _t68 = _t62 + _t67
+    _t69 = (1/25)*_t2
+    _t70 = _t4*_t46
+    _t71 = _t69 + _t70
+    _t72 = _t28*_t5
+    _t73 = _t70 + _t72
+    _t74 = _t71 + _t73
+    _t75 = -_t5
+    _t76 = _t50*_t52
+    _t77 = _t33*_t75
+    _t78 = _t76 + _t77
+    _t79 = (1/25)*_t31
+    _t80 = _t76 + _t79
+    _t81 = _t78 + _t80
+    _t82 = _t74 + _t81
+    _t83 = -2*_t14
+    _t84 = _t2*_t83
+    _t85 = _t4*_t59
+    _t86 = _t84 + _t85
+    _t87 = _t38*_t5
+    _t88 = _t85 + _t87
+    _t89 = _t86 + _t88
+    _t90 = -2*_t19
+    _t91 = _t41*_t75
+    _t92 = _t50*_t64
+    _t93 = _t91 + _t92
+    _t94 = _t31*_t90
+    _t95 = _t92 + _t94
+    _t96 = _t93 + _t95
+    _t97 = _t89 + _t96
+    _t98 = (1/2)*_a0
+    _t99 = (1/2)*_a1
     # Output terms
     z = numpy.empty((2, _n))  # y_imp^(k)
-    z[0] = (1/2)*_a0*(_t2*_t35 + _t27*_t40) + (1/2)*_a1*(-_t2*_t33 - _t27*_t38 + _t29*_t42 + _t30*_t40 + _t35*_t4) + _t10*_t4 + _t16*_t30 - 1/50*_t2 - 1/50*_t27 - _t29*_t37 - _t34*(-_t29 - _t33) - _t35*_t36 - _t39*(-_t29 - _t38) - _t40*_t41
-    z[1] = (1/2)*_a0*(_t2*_t44 + _t27*_t46) + (1/2)*_a1*(-_t2*_t43 - _t27*_t45 + _t30*_t46 + _t31*_t42 + _t4*_t44) + _t13*_t4 + _t14*_t2 + _t18*_t30 + _t19*_t27 - _t31*_t37 - _t34*(-_t31 - _t43) - _t36*_t44 - _t39*(-_t31 - _t45) - _t41*_t46
+    z[0] = _t35*_t98 + _t56*_t99 - 1/2*_t82
+    z[1] = _t43*_t98 + _t68*_t99 - 1/2*_t97
     R = numpy.empty((2, 2, _n))  # decoupling matrix
     R[0, 0] = _t20
     R[0, 1] = -_t24
@@ -324,7 +377,7 @@ def _closed_loop(t, s, p, w, z):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 110 operations, 158 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 111 operations, 143 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -332,7 +385,7 @@ def _optimality(t, s, p):
     _s3 = s[3]  # v
     _p0 = p[0]  # a
     _p1 = p[1]  # b
-    # Intermediate terms (31)
+    # Intermediate terms (61)
     _t0 = 1/_p1
     _t1 = numpy.tanh(_t0*(-_p0 + t))
     _t2 = 1/2 - 1/2*_t1
@@ -351,25 +404,55 @@ def _optimality(t, s, p):
     _t15 = (3/5000)*_t4 - 3/100*t + 2/5
     _t16 = _s3*numpy.cos(_s2)
     _t17 = _s3*numpy.sin(_s2)
-    _t18 = -2*_s0
-    _t19 = 1 - _t2
-    _t20 = -2*_s1
-    _t21 = -2*_t16
-    _t22 = -_t3
-    _t23 = -2*_t17
-    _t24 = -_t18 - 2*_t6
-    _t25 = -2*_t12 - _t18
-    _t26 = -2*_t10 - _t20
-    _t27 = -2*_t14 - _t20
-    _t28 = 2*_t2
-    _t29 = 2*_t19
-    _t30 = -_t19 - _t2
+    _t18 = -2*_t6
+    _t19 = 2*_s0
+    _t20 = _t18 + _t19
+    _t21 = _t2*_t20
+    _t22 = -_t2
+    _t23 = _t22 + 1
+    _t24 = -2*_t12
+    _t25 = _t19 + _t24
+    _t26 = _t23*_t25
+    _t27 = _t21 + _t26
+    _t28 = -2*_t10
+    _t29 = 2*_s1
+    _t30 = _t28 + _t29
+    _t31 = _t2*_t30
+    _t32 = -2*_t14
+    _t33 = _t29 + _t32
+    _t34 = _t23*_t33
+    _t35 = _t31 + _t34
+    _t36 = -2*_t8
+    _t37 = 2*_t16
+    _t38 = _t36 + _t37
+    _t39 = _t2*_t38
+    _t40 = _t20*_t3
+    _t41 = _t39 + _t40
+    _t42 = -_t3
+    _t43 = -2*_t13
+    _t44 = _t37 + _t43
+    _t45 = _t25*_t42
+    _t46 = _t23*_t44
+    _t47 = _t45 + _t46
+    _t48 = _t41 + _t47
+    _t49 = -2*_t11
+    _t50 = 2*_t17
+    _t51 = _t49 + _t50
+    _t52 = _t2*_t51
+    _t53 = _t3*_t30
+    _t54 = _t52 + _t53
+    _t55 = -2*_t15
+    _t56 = _t50 + _t55
+    _t57 = _t33*_t42
+    _t58 = _t23*_t56
+    _t59 = _t57 + _t58
+    _t60 = _t54 + _t59
     # Output terms
     E = numpy.empty((2, 2, _n))  # grad^(j) f0
-    E[0, 0] = _t19*_t25 + _t2*_t24
-    E[0, 1] = _t19*_t27 + _t2*_t26
-    E[1, 0] = -_t13*_t29 + _t21*_t30 + _t22*_t25 + _t24*_t3 - _t28*_t8
-    E[1, 1] = -_t11*_t28 - _t15*_t29 + _t22*_t27 + _t23*_t30 + _t26*_t3
+    E[0, 0] = _t27
+    E[0, 1] = _t35
+    E[1, 0] = _t48
+    E[1, 1] = _t60
     return E
 
 

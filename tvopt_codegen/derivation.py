@@ -19,7 +19,7 @@ import sympy as sp
 
 from tvopt_codegen import hurwitz
 from tvopt_codegen.errors import AssumptionError, BudgetError, SpecError
-from tvopt_codegen.jet import Program, cse_program, fresh_symbols, total_derivative
+from tvopt_codegen.jet import Program, atomize, fresh_symbols, total_derivative
 from tvopt_codegen.lie import (
     Extension,
     RelativeDegree,
@@ -188,7 +188,7 @@ class Budget:
     """
 
     seconds: float = 120.0
-    size: int = 200_000
+    size: int = 20_000
 
 
 def tree_size(expr: sp.Expr, limit: int) -> int:
@@ -517,11 +517,21 @@ def derive(
         for j in range(k):
             rates[chain[j]] = chain[j + 1]
     names = fresh_symbols("g")
-    program, current = cse_program(list(gradient), names)
+    program, current = atomize(list(gradient), names)
     grad_jet = [current]
     rest_program = Program(())
     for order in range(1, k + 1):
         new, current, rates = total_derivative(program, current, rates, names, meter)
+        # Each derivative level is broken into single operations again, in order (a
+        # later assignment may use an earlier one's symbol), so the next level
+        # differentiates small expressions only: linear growth in k.
+        memo: dict[sp.Expr, sp.Expr] = {}
+        pieces: list[tuple[sp.Symbol, sp.Expr]] = []
+        for sym, value in new.assignments:
+            part, (root,) = atomize([value], names, memo)
+            pieces += [*part.assignments, (sym, root)]
+        part, current = atomize(list(current), names, memo)
+        new = Program((*pieces, *part.assignments))
         if order < k:
             program = program + new
             grad_jet.append(current)

@@ -115,6 +115,66 @@ def total_derivative(
     return Program(tuple(new)), derived, moving
 
 
+def atomize(
+    exprs: Sequence[sp.Expr], names: Iterator[sp.Symbol], memo: dict[sp.Expr, sp.Expr] | None = None
+) -> tuple[Program, tuple[sp.Expr, ...]]:
+    """Break expressions into one operation per assignment (three-address form).
+
+    Equal subtrees share one assignment (``memo``). Differentiating such a program
+    costs one small derivative per operation, so the k-th total derivative grows
+    linearly in the size of f0's gradient instead of re-walking nested subtrees.
+
+    Parameters
+    ----------
+    exprs : sequence of sympy.Expr
+        Expressions to break up.
+    names : iterator of sympy.Symbol
+        Source of names for the assignments.
+    memo : dict, optional
+        Subtree -> symbol, shared between calls that should share assignments.
+
+    Returns
+    -------
+    tuple of (Program, tuple of sympy.Expr)
+        The assignments and the outputs (each a symbol or an atom).
+    """
+    table: dict[sp.Expr, sp.Expr] = {} if memo is None else memo
+    out: list[tuple[sp.Symbol, sp.Expr]] = []
+
+    def visit(node: sp.Expr) -> sp.Expr:
+        if node.is_Atom:
+            return node
+        if node in table:
+            return table[node]
+        args = [visit(arg) for arg in node.args]
+        if node.is_Mul:
+            # Products become chains of two factors: the derivative of an n-factor
+            # product is n terms of n - 1 factors, quadratic; of a chain, linear.
+            numbers = [a for a in args if a.is_Number]
+            factors = [a for a in args if not a.is_Number]
+            while len(factors) > 2:
+                pair = sp.Mul(factors[0], factors[1])
+                if pair in table:
+                    factors = [table[pair], *factors[2:]]
+                    continue
+                symbol = next(names)
+                out.append((symbol, pair))
+                table[pair] = symbol
+                factors = [symbol, *factors[2:]]
+            args = [*numbers, *factors]
+        rebuilt = node.func(*args)
+        if rebuilt.is_Atom:
+            table[node] = rebuilt
+            return rebuilt
+        symbol = next(names)
+        out.append((symbol, rebuilt))
+        table[node] = symbol
+        return symbol
+
+    outputs = tuple(visit(sp.sympify(e)) for e in exprs)
+    return Program(tuple(out)), outputs
+
+
 def cse_program(
     exprs: Sequence[sp.Expr], names: Iterator[sp.Symbol]
 ) -> tuple[Program, tuple[sp.Expr, ...]]:

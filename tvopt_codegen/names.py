@@ -7,6 +7,7 @@ they name the generated module. These rules keep all of that unambiguous.
 
 from __future__ import annotations
 
+import importlib.metadata
 import keyword
 import re
 import sys
@@ -98,6 +99,12 @@ def module_name_problem(name: object) -> str | None:
         return f"module name {name!r} must be lower case (it names files on every platform)"
     if name in sys.stdlib_module_names or name in sys.builtin_module_names:
         return f"module name {name!r} shadows the Python standard module of that name"
-    if name in {"numpy", "scipy", "sympy", "jinja2", "tvopt_codegen", "pytest", "setuptools"}:
-        return f"module name {name!r} shadows an installed package"
+    if name in _installed_top_level():
+        return f"module name {name!r} shadows the installed package of that name"
     return None
+
+
+def _installed_top_level() -> frozenset[str]:
+    """Top-level import names of every installed distribution, and of this tool."""
+    names = set(importlib.metadata.packages_distributions())
+    return frozenset(names | {"numpy", "scipy", "sympy", "jinja2", "tvopt_codegen"})

@@ -65,9 +65,18 @@ def environment() -> jinja2.Environment:
 
 
 def comment_text(value: object) -> str:
-    """Make text safe inside a one-line ``#`` or ``//`` comment."""
+    """Make text safe inside a one-line ``#``, ``//`` or ``/* */`` comment.
+
+    Line breaks fold to spaces, ``*/`` cannot close a C comment, ``??`` cannot start a
+    trigraph (``??/`` is a backslash under -std=c99), and a trailing backslash cannot
+    continue the line.
+    """
     text = " ".join(str(value).split())
-    return "".join(ch if ch.isprintable() else "?" for ch in text).replace("*/", "* /")
+    text = "".join(ch if ch.isprintable() else "?" for ch in text)
+    text = text.replace("*/", "* /")
+    while "??" in text:  # "???/" would otherwise keep a "??/"
+        text = text.replace("??", "? ?")
+    return text.rstrip("\\")
 
 
 def docstring_text(value: object) -> str:

@@ -143,6 +143,13 @@ def read_spec_bytes(spec: str | Path) -> tuple[str, bytes]:
         When neither a readable file nor a bundled example of that name exists.
     """
     path = Path(spec)
+    if path.suffix.lower() in {".yaml", ".yml"}:
+        raise SpecError(
+            str(spec),
+            "(file)",
+            "YAML specs are not supported (YAML 1.1 reads no as "
+            "false and 1e-3 as a string); write the spec in TOML",
+        )
     if path.is_file():
         size = path.stat().st_size
         if size > MAX_SPEC_BYTES:
