@@ -97,11 +97,25 @@ def module_name_problem(name: object) -> str | None:
     assert isinstance(name, str)
     if name != name.lower():
         return f"module name {name!r} must be lower case (it names files on every platform)"
+    if name in _WINDOWS_DEVICES:
+        return f"module name {name!r} is a reserved device name on Windows"
     if name in sys.stdlib_module_names or name in sys.builtin_module_names:
         return f"module name {name!r} shadows the Python standard module of that name"
     if name in _installed_top_level():
         return f"module name {name!r} shadows the installed package of that name"
     return None
+
+
+_WINDOWS_DEVICES = frozenset(
+    {
+        "con",
+        "prn",
+        "aux",
+        "nul",
+        *(f"com{i}" for i in range(1, 10)),
+        *(f"lpt{i}" for i in range(1, 10)),
+    }
+)
 
 
 def _installed_top_level() -> frozenset[str]:

@@ -1,0 +1,230 @@
+"""Faults: signals, kills mid-write, full or read-only disks, missing compilers, races.
+
+The output folder must hold the old files or the new ones (never a mix, never half a
+file, no temporary litter), and every failure is one clear line with its exit code.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tvopt_codegen import emit
+from tvopt_codegen.cli import main
+from tvopt_codegen.errors import EXIT_BUILD, EXIT_OUTPUT
+
+from .conftest import ROOT
+
+UNICYCLE = (ROOT / "tvopt_codegen" / "examples" / "unicycle_switch.toml").read_text()
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def _cli(
+    *args: str, env: dict[str, str] | None = None, cwd: Path | None = None
+) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "tvopt_codegen", *args],
+        cwd=cwd,
+        env={**os.environ, **(env or {})},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _slow_spec(tmp_path: Path) -> Path:
+    """A spec whose derivation takes several seconds (a deep nested objective)."""
+    f0 = "exp(" * 45 + "y1" + ")" * 45 + " + (y1 - o1x)**2 + (y2 - o1y)**2"
+    old = 'f0 = "S*((y1 - o1x)**2 + (y2 - o1y)**2) + (1 - S)*((y1 - o2x)**2 + (y2 - o2y)**2)"'
+    path = tmp_path / "slow.toml"
+    path.write_text(UNICYCLE.replace(old, f"f0 = '''{f0}'''"))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("sig", "code", "word"),
+    [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")],
+)
+def test_signal_during_derivation_writes_nothing(
+    sig: int, code: int, word: str, tmp_path: Path
+) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    before = _snapshot(out)
+    proc = _cli("generate", str(_slow_spec(tmp_path)), "--out", str(out), "--max-size", "100000000")
+    time.sleep(4.0)  # past the imports, inside the derivation
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == code, err
+    assert err.strip().count("\n") == 0 and word in err and "Traceback" not in err
+    assert _snapshot(out) == before
+
+
+KILLER = """
+import os, signal, sys
+from tvopt_codegen import emit
+real = os.replace
+count = [0]
+def replace(src, dst):
+    real(src, dst)
+    if str(dst).endswith(".c"):
+        os.kill(os.getpid(), signal.SIGKILL)  # killed between two renames
+emit.os.replace = replace
+from tvopt_codegen.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_killed_between_renames_is_completed_by_the_next_run(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    assert main(["generate", "integrator", "--backend", "c", "--out", str(out), "--quiet"]) == 0
+    old = _snapshot(out)
+    spec = tmp_path / "integrator.toml"
+    spec.write_text(
+        (ROOT / "tvopt_codegen" / "examples" / "integrator.toml")
+        .read_text()
+        .replace("w = 2.0", "w = 3.0")
+    )
+    killed = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            KILLER,
+            "generate",
+            str(spec),
+            "--backend",
+            "c",
+            "--out",
+            str(out),
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert killed.returncode == -signal.SIGKILL
+    journals = list(out.glob(".tvopt-journal-*.json"))
+    assert len(journals) == 1  # the interrupted transaction is on record
+    for name in ("integrator.c", "integrator.h", "integrator.py"):
+        text = (out / name).read_bytes()
+        assert text.endswith(b"\n") and b"content sha256" in text  # whole files only
+    emit.recover(out)  # what the next run into the folder does first
+    new = _snapshot(out)
+    assert sorted(new) == sorted(old)
+    assert all(new[n] != old[n] for n in ("integrator.c", "integrator.h", "integrator.py"))
+    assert b"3.0" in new["integrator.h"] + new["integrator.c"]
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+def test_full_disk(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    assert main(["generate", "integrator", "--out", str(out), "--quiet"]) == 0
+    before = _snapshot(out)
+    real_fdopen = os.fdopen
+
+    def full(fd: int, *args: object, **kwargs: object) -> object:
+        os.close(fd)
+        return real_fdopen(os.open("/dev/full", os.O_WRONLY), "wb")
+
+    monkeypatch.setattr(emit.os, "fdopen", full)
+    spec = tmp_path / "integrator.toml"
+    spec.write_text(
+        (ROOT / "tvopt_codegen" / "examples" / "integrator.toml")
+        .read_text()
+        .replace("w = 2.0", "w = 5.0")
+    )
+    assert main(["generate", str(spec), "--out", str(out)]) == EXIT_OUTPUT
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and err.count("\n") == 1
+    assert _snapshot(out) == before
+
+
+def test_read_only_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    mount = tmp_path / "ro"
+    mount.mkdir()
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(mount)],
+        capture_output=True,
+        check=False,
+    )
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a read-only tmpfs here: {done.stderr.decode().strip()}")
+    try:
+        assert main(["generate", "integrator", "--out", str(mount)]) == EXIT_OUTPUT
+        err = capsys.readouterr().err
+        assert "Read-only file system" in err and err.count("\n") == 1
+        assert list(mount.iterdir()) == []
+    finally:
+        subprocess.run(["umount", str(mount)], check=False)
+
+
+def test_missing_output_parent(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    target = tmp_path / "no" / "such" / "folder"
+    assert main(["generate", "integrator", "--out", str(target)]) == EXIT_OUTPUT
+    assert "does not exist" in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()
+
+
+def test_no_c_compiler(tmp_path: Path) -> None:
+    empty = tmp_path / "bin"
+    empty.mkdir()
+    env = {"PATH": str(empty), "CC": "no-such-compiler", "TVOPT_CODEGEN_CACHE": str(tmp_path / "c")}
+    proc = _cli("simulate", "integrator", "--backend", "c", "--out", str(tmp_path / "o"), env=env)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == EXIT_BUILD, err
+    assert err.count("\n") == 1 and "no C compiler found" in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists() or not list((tmp_path / "o").iterdir())
+    # The Python backend is unaffected.
+    proc = _cli("simulate", "integrator", "--out", str(tmp_path / "py"), "--points", "21", env=env)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    assert "certificate: PASSED" in out
+
+
+def test_compiler_error_is_one_line_and_nothing_cached(tmp_path: Path) -> None:
+    cache = tmp_path / "cache"
+    env = {"TVOPT_CODEGEN_CFLAGS": "-fno-such-flag", "TVOPT_CODEGEN_CACHE": str(cache)}
+    proc = _cli("simulate", "integrator", "--backend", "c", "--out", str(tmp_path / "o"), env=env)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == EXIT_BUILD, err
+    assert err.count("\n") == 1 and "failed" in err
+    assert not list(cache.glob("*.so"))
+
+
+def test_two_runs_at_once_on_the_same_output(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    reference = tmp_path / "ref"
+    assert (
+        main(
+            [
+                "generate",
+                "two_unicycles_barrier",
+                "--backend",
+                "c",
+                "--out",
+                str(reference),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    procs = [
+        _cli("generate", "two_unicycles_barrier", "--backend", "c", "--out", str(out), "--quiet")
+        for _ in range(2)
+    ]
+    results = [p.communicate(timeout=120) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], results
+    assert _snapshot(out) == _snapshot(reference)
