@@ -323,3 +323,23 @@ def test_example_control_loop_from_the_readme_compiles(tmp_path: Path) -> None:
         check=False,
     )
     assert done.returncode == 0, done.stderr
+
+
+def test_barrier_at_its_pole_same_status_in_both_backends(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    cmod, pmod = (
+        c_module("two_unicycles_barrier", tmp_path_factory),
+        module("two_unicycles_barrier"),
+    )
+    state = np.array(pmod.DEFAULT_STATE)
+    state[3], state[4] = state[0] + np.sqrt(2.0), state[1]  # |pa - pb|^2 = d: tan(pi/2)
+    outcomes = []
+    for mod in (pmod, cmod):
+        try:
+            u = mod.control(0.0, state)
+            assert np.all(np.isfinite(u))
+            outcomes.append("finite")
+        except mod.ControllerError as exc:
+            outcomes.append(exc.status)
+    assert outcomes[0] == outcomes[1]

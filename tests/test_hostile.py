@@ -388,3 +388,30 @@ def test_text_reaching_generated_files_is_escaped(tmp_path: Path) -> None:
         assert done.returncode == 0, done.stderr
     html = (out / "r" / "unicycle_switch_report.html").read_text()
     assert "<script>" not in html and "&lt;script&gt;" in html
+
+
+def test_memory_stays_bounded_on_an_exploding_spec(tmp_path: Path) -> None:
+    """Under a 2 GiB address-space limit the budget, not the allocator, stops the run."""
+    import resource
+    import subprocess
+    import sys
+
+    f0 = "exp(" * 58 + "y1" + ")" * 58 + " + (y1 - o1x)**2 + (y2 - o1y)**2"
+    spec = _spec(tmp_path, _f0(f0))
+    limit = 2 * 1024**3
+
+    def cap() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+
+    start = time.perf_counter()
+    done = subprocess.run(
+        [sys.executable, "-m", "tvopt_codegen", "check", str(spec)],
+        capture_output=True,
+        text=True,
+        preexec_fn=cap,
+        timeout=60,
+        check=False,
+    )
+    assert done.returncode == EXIT_BUDGET, done.stderr
+    assert done.stderr.count("\n") == 1 and "MemoryError" not in done.stderr
+    assert time.perf_counter() - start < 10.0
