@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 INSTALLED := $(VENV)/.installed
-EXAMPLES := integrator unicycle_switch two_unicycles_barrier
+EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint
 
 .PHONY: all demo figures bench test lint typecheck check regen check-generated update-golden clean
 
@@ -28,7 +28,10 @@ figures: $(INSTALLED)
 	mkdir -p build/figures docs/figures
 	for name in $(EXAMPLES); do \
 	  $(PY) -m tvopt_codegen simulate $$name --out build/figures/$$name || exit 1; \
-	  cp build/figures/$$name/$${name}_paths.png build/figures/$$name/$${name}_convergence.png docs/figures/; \
+	  for stem in paths convergence; do \
+	    if [ -f build/figures/$$name/$${name}_$$stem.png ]; then \
+	      cp build/figures/$$name/$${name}_$$stem.png docs/figures/; fi; \
+	  done; \
 	done
 
 ## test: the whole test suite

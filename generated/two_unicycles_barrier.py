@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 1f793628a8acf22deed9e160aacffd5857e80aa45d95dd8ed52c5377a0de739c
+# content sha256: 2549b3256a318f97fc5645408ce0c8f91734c19960bf2181e759165cbbc0aa40
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -32,6 +32,7 @@ Closed-loop state ``s``, in this order (``STATE_NAMES``)::
 Plant inputs ``u`` (``INPUT_NAMES``): va, wa, vb, wb.
 Outputs ``y`` (``OUTPUT_NAMES``): pa (relative degree 2), qa (relative degree 2), pb (relative degree 2), qb (relative degree 2).
 Dynamic extension: va integrated 1 time(s), vb integrated 1 time(s).
+
 Order of the error dynamics K = 2; decay rate 1.0.
 The decoupling matrix R is singular where: va = 0; vb = 0.
 

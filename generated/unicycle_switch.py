@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 15a50393aefc94558f3b8ae3ccea7f84f786322316b6d0dded3c7d9b031dc469
+# content sha256: 00421c8a53c77639273c787be2d73c01f00e85b82b7c6fa0c02ec598960d6643
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -28,6 +28,7 @@ Closed-loop state ``s``, in this order (``STATE_NAMES``)::
 Plant inputs ``u`` (``INPUT_NAMES``): v, omega.
 Outputs ``y`` (``OUTPUT_NAMES``): y1 (relative degree 2), y2 (relative degree 2).
 Dynamic extension: v integrated 1 time(s).
+
 Order of the error dynamics K = 2; decay rate 1.0.
 The decoupling matrix R is singular where: v = 0.
 

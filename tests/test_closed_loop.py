@@ -86,4 +86,6 @@ def test_certificate(spec: str) -> None:
     # 1e-7 absolute: the accuracy of the minimizer's y*.
     assert np.all(error <= bound * 1.01 + 1e-7), np.max(error / bound)
     # The rate is real, not a vacuous bound: the error falls at least like e^{-0.8 alpha t}.
-    assert error[-1] <= error[0] * np.exp(-0.8 * alpha * t_final) + 1e-7
+    # Measured over the second half, after the faster poles' transient.
+    mid = len(ts) // 2
+    assert error[-1] <= error[mid] * np.exp(-0.8 * alpha * (ts[-1] - ts[mid])) + 1e-7

@@ -190,3 +190,42 @@ def test_output_without_relative_degree_is_rejected(tmp_path: Path, unicycle_tex
     text = unicycle_text.replace('y2 = "x2"', 'y2 = "a"')
     with pytest.raises(AssumptionError, match="no relative degree"):
         derive(load_spec(write_spec(tmp_path, text)))
+
+
+def test_automatic_extension_finds_the_papers_prolongation(
+    tmp_path: Path, unicycle_text: str
+) -> None:
+    text = unicycle_text.replace("integrate = { v = 1 }", "auto = true")
+    d = derive(load_spec(write_spec(tmp_path, text)))
+    assert d.extension.counts == (("v", 1),)
+    assert d.extension_search == ("none", "v: 1")
+    assert d.relative_degree == (2, 2)
+
+
+def test_automatic_extension_prolongs_pvtol_thrust_twice() -> None:
+    d = derivation("pvtol")
+    assert d.extension.counts == (("thrust", 2),)
+    assert d.extension_search == ("none", "thrust: 1", "torque: 1", "thrust: 2")
+    assert d.relative_degree == (4, 4) and d.k == 4
+    assert d.state_names[-2:] == ("thrust", "thrust_d1")
+    assert d.singular_set == ("thrust = 0",)
+
+
+def test_automatic_extension_failure_lists_what_was_tried(
+    tmp_path: Path, unicycle_text: str
+) -> None:
+    text = unicycle_text.replace("integrate = { v = 1 }", "auto = true\nmax_total = 2")
+    text = text.replace('y2 = "x2"', 'y2 = "x1 + 0*x2"')  # two equal outputs: never decoupled
+    with pytest.raises(AssumptionError) as info:
+        derive(load_spec(write_spec(tmp_path, text)))
+    message = str(info.value)
+    assert "extension.auto: no prolongation of the inputs with at most 2 integrators" in message
+    assert "tried 6: none; v: 1; omega: 1; v: 2; v: 1, omega: 1; omega: 2" in message
+    assert info.value.exit_code == 3
+
+
+def test_flexible_joint_is_static_with_relative_degree_four() -> None:
+    d = derivation("flexible_joint")
+    assert d.extension.counts == () and d.relative_degree == (4,) and d.k == 4
+    assert d.singular_set == ("stiffness = 0",)
+    assert d.convexity.method == "sampled" and d.convexity.m_f > 2.0

@@ -126,7 +126,13 @@ def test_missing_file_lists_examples(tmp_path: Path) -> None:
 
 def test_bundled_examples_are_listed_and_load() -> None:
     examples = bundled_examples()
-    assert set(examples) == {"integrator", "unicycle_switch", "two_unicycles_barrier"}
+    assert set(examples) == {
+        "integrator",
+        "unicycle_switch",
+        "two_unicycles_barrier",
+        "pvtol",
+        "flexible_joint",
+    }
     for name in examples:
         spec = load_spec(name)
         assert spec.name == name

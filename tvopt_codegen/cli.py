@@ -11,6 +11,7 @@ errors.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import signal
@@ -147,6 +148,13 @@ def _parser() -> argparse.ArgumentParser:
     )
     for command in (generate, check, rep, sim):
         command.add_argument(
+            "--extension",
+            choices=("spec", "auto"),
+            default="spec",
+            help="take the dynamic extension from the spec (default), or "
+            "search the smallest one that makes the plant linearizable",
+        )
+        command.add_argument(
             "--max-seconds",
             type=float,
             default=Budget.seconds,
@@ -167,7 +175,10 @@ def _derive(args: argparse.Namespace) -> Derivation:
         raise SpecError("command line", "--max-seconds", "must be positive")
     if not args.max_size > 0:
         raise SpecError("command line", "--max-size", "must be positive")
-    return derive(load_spec(args.spec), budget=Budget(args.max_seconds, args.max_size))
+    spec = load_spec(args.spec)
+    if args.extension == "auto":
+        spec = dataclasses.replace(spec, extension=(), extension_auto=True)
+    return derive(spec, budget=Budget(args.max_seconds, args.max_size))
 
 
 def _assignments(items: Sequence[str], option: str) -> dict[str, float]:

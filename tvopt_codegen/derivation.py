@@ -127,6 +127,9 @@ class Derivation:
     unextended : str or None
         Why the extension is needed: what the plant lacks without it (``None`` when
         nothing is prolonged).
+    extension_search : tuple of str
+        The prolongations the automatic search tried, in order (empty when the spec
+        gave the extension).
     certified_rate : float
         The alpha of ``|expm(H t)| <= c e^{-alpha t}`` (the decay rate, or 10% less with
         repeated poles).
@@ -169,6 +172,7 @@ class Derivation:
     convexity: Convexity
     initial_state: tuple[float, ...]
     unextended: str | None
+    extension_search: tuple[str, ...]
     certified_rate: float
     transient_constant: float
     timings: tuple[tuple[str, float], ...]
@@ -274,6 +278,50 @@ def _without_extension(model: Model) -> str:
     )
 
 
+def _candidates(m: int, total: int) -> list[tuple[int, ...]]:
+    """Integrator counts over m inputs summing to ``total``, earlier inputs first."""
+    if m == 1:
+        return [(total,)]
+    out = []
+    for first in range(total, -1, -1):
+        out += [(first, *rest) for rest in _candidates(m - 1, total - first)]
+    return out
+
+
+def search_extension(model: Model, max_total: int) -> tuple[dict[str, int] | None, list[str]]:
+    """Find the smallest prolongation of inputs that makes the plant linearizable.
+
+    Candidates are tried by total number of integrators (0, 1, 2, ...), and within a
+    total with earlier inputs prolonged first: deterministic, and the first success is
+    a smallest one.
+
+    Parameters
+    ----------
+    model : Model
+        The plant.
+    max_total : int
+        The largest total tried.
+
+    Returns
+    -------
+    tuple of (dict or None, list of str)
+        The integrator counts found (``None`` if none works) and every candidate tried.
+    """
+    from tvopt_codegen.spec import MAX_INTEGRATORS  # noqa: PLC0415 - avoids a cycle
+
+    names = [u.name for u in model.u]
+    tried: list[str] = []
+    for total in range(max_total + 1):
+        for counts in _candidates(len(names), total):
+            if max(counts, default=0) > MAX_INTEGRATORS:
+                continue
+            chosen = {n: q for n, q in zip(names, counts, strict=True) if q}
+            tried.append(", ".join(f"{n}: {q}" for n, q in chosen.items()) or "none")
+            if _linearizable(model, chosen):
+                return chosen, tried
+    return None, tried
+
+
 def _suggest_prolongation(model: Model, counts: dict[str, int]) -> str:
     """Find the smallest single-input prolongation that makes the plant linearizable."""
     for extra in (1, 2):
@@ -290,10 +338,14 @@ def _suggest_prolongation(model: Model, counts: dict[str, int]) -> str:
 
 
 def _singular_set(det: sp.Expr) -> tuple[str, ...]:
-    """Describe where a factored determinant vanishes, one condition per factor."""
-    if det.is_Number:
-        return () if det != 0 else ("everywhere",)
-    _, factors = sp.factor_list(det)
+    """Describe where a determinant vanishes, one condition per factor of its numerator."""
+    numerator, _ = sp.fraction(sp.together(det))
+    if numerator.is_Number:
+        return () if numerator != 0 else ("everywhere",)
+    try:
+        _, factors = sp.factor_list(numerator)
+    except sp.PolynomialError:  # not a polynomial in its symbols: state it whole
+        return (f"{sp.sstr(numerator)} = 0",)
     conditions = []
     for base, _power in factors:
         if base.is_Number:
@@ -384,6 +436,21 @@ def derive(
 
     say("relative degree")
     counts = dict(spec.extension)
+    searched: tuple[str, ...] = ()
+    if spec.extension_auto:
+        say("extension search")
+        limit = spec.extension_max_total or len(spec.states)
+        found, tried = search_extension(model, limit)
+        if found is None:
+            raise AssumptionError(
+                source,
+                "extension.auto",
+                f"no prolongation of the inputs with at most {limit} integrators in all makes "
+                f"the plant full-state linearizable (tried {len(tried)}: {'; '.join(tried)})",
+            )
+        counts = found
+        searched = tuple(tried)
+        say("relative degree")
     ext = extend(model.x, model.u, model.f, model.G, counts)
     declared = {
         *spec.states,
@@ -478,7 +545,10 @@ def derive(
             )
     state_names = (*spec.states, *ext.states, *pad_names)
     states = tuple(sp.Symbol(n, real=True) for n in state_names)
-    initial = _initial_state(spec, state_names, len(spec.states) + len(ext.states))
+    # With a searched extension the user cannot know its states in advance: only the
+    # plant states are required then (extension states start at zero unless given).
+    required = len(spec.states) + (0 if spec.extension_auto else len(ext.states))
+    initial = _initial_state(spec, state_names, required)
     clock.mark("error dynamics")
 
     say("decoupling matrix")
@@ -597,6 +667,7 @@ def derive(
         convexity=convexity,
         initial_state=initial,
         unextended=unextended,
+        extension_search=searched,
         certified_rate=rate,
         transient_constant=constant,
         timings=tuple(clock.marks),

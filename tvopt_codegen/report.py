@@ -196,6 +196,16 @@ def _extension(d: Derivation) -> Section:
                 ),
             )
         )
+        if d.extension_search:
+            entries.append(
+                Entry(
+                    "text",
+                    text=(
+                        "Found by the automatic search (smallest total number of integrators "
+                        f"first, earlier inputs first); tried: {'; '.join(d.extension_search)}."
+                    ),
+                )
+            )
         entries.append(
             _math_entry("Drift of the extended plant:", ext.f, _name(r"\tilde f", "f&#771;"))
         )

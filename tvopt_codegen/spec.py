@@ -78,6 +78,11 @@ class Spec:
         Output pairs drawn as planar paths (default: consecutive output pairs).
     objects : tuple of (str, str)
         Signal pairs drawn as moving objects in the planar figure.
+    extension_auto : bool
+        Search the dynamic extension instead of taking ``extension``.
+    extension_max_total : int or None
+        Largest total number of integrators the search tries (default: the number of
+        plant states).
     """
 
     source: str
@@ -99,6 +104,8 @@ class Spec:
     initial_state: tuple[tuple[str, float], ...]
     agents: tuple[tuple[str, str], ...] = ()
     objects: tuple[tuple[str, str], ...] = ()
+    extension_auto: bool = False
+    extension_max_total: int | None = None
 
 
 _TOP_KEYS = {
@@ -362,7 +369,7 @@ class _Reader:
         )
         objective = self.expression(objective_table["f0"], "objective.f0", objective_names)
 
-        extension = self.read_extension(data, inputs)
+        extension, extension_auto, extension_max_total = self.read_extension(data, inputs)
         poles, coefficients = self.read_error_dynamics(data)
         t_final, initial_state = self.read_simulation(data)
         simulation = data.get("simulation", {})
@@ -390,6 +397,8 @@ class _Reader:
             initial_state=initial_state,
             agents=agents,
             objects=objects,
+            extension_auto=extension_auto,
+            extension_max_total=extension_max_total,
         )
 
     def check_unique(
@@ -422,9 +431,26 @@ class _Reader:
 
     def read_extension(
         self, data: Mapping[str, Any], inputs: tuple[str, ...]
-    ) -> tuple[tuple[str, int], ...]:
+    ) -> tuple[tuple[tuple[str, int], ...], bool, int | None]:
         table = self.sub(data, "extension", "extension")
-        self.table(table, "extension", {"integrate"}, set())
+        self.table(table, "extension", {"integrate", "auto", "max_total"}, set())
+        auto = table.get("auto", False)
+        if not isinstance(auto, bool):
+            raise self.fail("extension.auto", f"expected true or false, got {auto!r}")
+        max_total = table.get("max_total")
+        if max_total is not None:
+            if not auto:
+                raise self.fail("extension.max_total", "only meaningful with auto = true")
+            if (
+                isinstance(max_total, bool)
+                or not isinstance(max_total, int)
+                or not (1 <= max_total <= 3 * MAX_INTEGRATORS)
+            ):
+                raise self.fail(
+                    "extension.max_total", f"expected a whole number 1..{3 * MAX_INTEGRATORS}"
+                )
+        if auto and "integrate" in table:
+            raise self.fail("extension", "give either integrate or auto = true, not both")
         integrate = self.sub(table, "integrate", "extension.integrate")
         for key, count in integrate.items():
             field = f"extension.integrate.{key}"
@@ -434,7 +460,8 @@ class _Reader:
                 raise self.fail(field, f"expected a whole number of integrators, got {count!r}")
             if not 0 <= count <= MAX_INTEGRATORS:
                 raise self.fail(field, f"number of integrators must be 0..{MAX_INTEGRATORS}")
-        return tuple((u, integrate[u]) for u in inputs if integrate.get(u, 0) > 0)
+        counts = tuple((u, integrate[u]) for u in inputs if integrate.get(u, 0) > 0)
+        return counts, auto, max_total
 
     def read_error_dynamics(
         self, data: Mapping[str, Any]

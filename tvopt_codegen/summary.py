@@ -48,6 +48,11 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
             f"  extension: {added}; new states {', '.join(d.extension.states)}; "
             f"inputs of the extended plant {', '.join(d.extension.inputs)}"
         )
+        if d.extension_search:
+            lines.append(
+                "  extension found by the automatic search after trying: "
+                + "; ".join(d.extension_search)
+            )
     else:
         lines.append("  extension: none (static feedback linearization)")
     degrees = ", ".join(f"{o}: {r}" for o, r in zip(spec.outputs, d.relative_degree, strict=True))

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: c/wrapper.py.jinja
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 7953d8593d4c1a617a5e137fd8477debeb9b2f6ea8b2f749bdcf5e839d417373
+# content sha256: 3fbd8907af0f225b578526374a7753923c57cf379352a0fc5ceddf3df7080ff2
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -32,6 +32,7 @@ Closed-loop state ``s``, in this order (``STATE_NAMES``)::
 Plant inputs ``u`` (``INPUT_NAMES``): va, wa, vb, wb.
 Outputs ``y`` (``OUTPUT_NAMES``): pa (relative degree 2), qa (relative degree 2), pb (relative degree 2), qb (relative degree 2).
 Dynamic extension: va integrated 1 time(s), vb integrated 1 time(s).
+
 Order of the error dynamics K = 2; decay rate 1.0.
 The decoupling matrix R is singular where: va = 0; vb = 0.
 

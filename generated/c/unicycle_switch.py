@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: c/wrapper.py.jinja
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 288868d4116538a9a3687489d4974faa400f48fa3fda55e64ff60be881f1e987
+# content sha256: 2b107cba97c06d2c5a70d4494ffacb6412d5ab24d157c50b5077a36d3d56cebe
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -28,6 +28,7 @@ Closed-loop state ``s``, in this order (``STATE_NAMES``)::
 Plant inputs ``u`` (``INPUT_NAMES``): v, omega.
 Outputs ``y`` (``OUTPUT_NAMES``): y1 (relative degree 2), y2 (relative degree 2).
 Dynamic extension: v integrated 1 time(s).
+
 Order of the error dynamics K = 2; decay rate 1.0.
 The decoupling matrix R is singular where: v = 0.
 
