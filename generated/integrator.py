@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: d0dcb75e7dbcb39e43dd79ef44407ed1bcd37a19c1bd23e7ad5e8d73e484c9c3
+# content sha256: 59362a645d0782d80ab3e5e2518d094ce73561b1ec1d557830f55f6bee2914dd
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -212,28 +212,15 @@ def _lu_solve(a, b):
     return numpy.moveaxis(x, 0, -1)
 
 def _jet(t, s, p, a):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 38 operations, 42 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 31 operations, 42 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
     _p0 = p[0]  # w
     _a0 = a[0]  # a_0
-    # Intermediate terms (15)
+    # Intermediate terms (2)
     _t0 = t**2
-    _t1 = -1/20*_t0 + (4/5)*t + 2
-    _t2 = 4/5 - 1/10*t
-    _t3 = (1/50)*_t0 - 1/1000*t**3 + (1/2)*t - 1
-    _t4 = -3/1000*_t0 + (1/25)*t + 1/2
-    _t5 = -_t1
-    _t6 = _s0 + _t5
-    _t7 = -2*_t3
-    _t8 = 2*_s1
-    _t9 = _t7 + _t8
-    _t10 = (1/2)*_p0
-    _t11 = _t10*_t9
-    _t12 = -_t2
-    _t13 = -2*_t4
-    _t14 = _t10*_t13
+    _t1 = (1/2)*_p0
     # Output terms
     hessian = numpy.empty((2, 2, _n))  # grad_yy f0
     hessian[0, 0] = 1
@@ -241,8 +228,8 @@ def _jet(t, s, p, a):
     hessian[1, 0] = 0
     hessian[1, 1] = _p0
     jet_rhs = numpy.empty((2, _n))  # sum_i a_i grad^(i) f0 - rest
-    jet_rhs[0] = _a0*_t6 - _t12
-    jet_rhs[1] = _a0*_t11 - _t14
+    jet_rhs[0] = _a0*(_s0 + (1/20)*_t0 - 4/5*t - 2) - 1/10*t + 4/5
+    jet_rhs[1] = _a0*_t1*(2*_s1 - 1/25*_t0 + (1/500)*t**3 - t + 2) - _t1*((3/500)*_t0 - 2/25*t - 1)
     R = numpy.empty((2, 2, _n))  # decoupling matrix
     R[0, 0] = 1
     R[0, 1] = 0
@@ -284,25 +271,17 @@ def _closed_loop(t, s, p, w, z):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 21 operations, 32 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 17 operations, 32 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
     _p0 = p[0]  # w
-    # Intermediate terms (9)
+    # Intermediate terms (1)
     _t0 = t**2
-    _t1 = -1/20*_t0 + (4/5)*t + 2
-    _t2 = (1/50)*_t0 - 1/1000*t**3 + (1/2)*t - 1
-    _t3 = -_t1
-    _t4 = _s0 + _t3
-    _t5 = -2*_t2
-    _t6 = 2*_s1
-    _t7 = _t5 + _t6
-    _t8 = (1/2)*_p0*_t7
     # Output terms
     E = numpy.empty((1, 2, _n))  # grad^(j) f0
-    E[0, 0] = _t4
-    E[0, 1] = _t8
+    E[0, 0] = _s0 + (1/20)*_t0 - 4/5*t - 2
+    E[0, 1] = (1/2)*_p0*(2*_s1 - 1/25*_t0 + (1/500)*t**3 - t + 2)
     return E
 
 
@@ -312,30 +291,26 @@ def _objective(t, y, p):
     _y0 = y[0]  # y1
     _y1 = y[1]  # y2
     _p0 = p[0]  # w
-    # Intermediate terms (3)
+    # Intermediate terms (1)
     _t0 = t**2
-    _t1 = -1/20*_t0 + (4/5)*t + 2
-    _t2 = (1/50)*_t0 - 1/1000*t**3 + (1/2)*t - 1
     # Output terms
     f0 = numpy.empty((_n))  # f0
-    f0[...] = (1/2)*_p0*(-_t2 + _y1)**2 + (1/2)*(-_t1 + _y0)**2
+    f0[...] = (1/2)*_p0*(-1/50*_t0 + _y1 + (1/1000)*t**3 - 1/2*t + 1)**2 + (1/2)*((1/20)*_t0 + _y0 - 4/5*t - 2)**2
     return f0
 
 
 def _gradient(t, y, p):
-    """grad_y f0(y, t) (kernel; 19 operations, 20 before CSE)."""
+    """grad_y f0(y, t) (kernel; 17 operations, 20 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y1
     _y1 = y[1]  # y2
     _p0 = p[0]  # w
-    # Intermediate terms (3)
+    # Intermediate terms (1)
     _t0 = t**2
-    _t1 = -1/20*_t0 + (4/5)*t + 2
-    _t2 = (1/50)*_t0 - 1/1000*t**3 + (1/2)*t - 1
     # Output terms
     grad = numpy.empty((2, _n))  # grad_y f0
-    grad[0] = -_t1 + _y0
-    grad[1] = (1/2)*_p0*(-2*_t2 + 2*_y1)
+    grad[0] = (1/20)*_t0 + _y0 - 4/5*t - 2
+    grad[1] = (1/2)*_p0*(-1/25*_t0 + 2*_y1 + (1/500)*t**3 - t + 2)
     return grad
 
 

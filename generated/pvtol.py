@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: b3067a5419d57a0abe7591065ae24c35484b6e73a245295e2f9141c4d2d7b91a
+# content sha256: 950f74ac3f0c43c7e94760acaa2ee598f33d353fedceb85826182ec70e20b18f
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -223,7 +223,7 @@ def _lu_solve(a, b):
     return numpy.moveaxis(x, 0, -1)
 
 def _jet(t, s, p, a):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 127 operations, 189 before CSE)."""
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 99 operations, 189 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x
     _s1 = s[1]  # z
@@ -238,81 +238,41 @@ def _jet(t, s, p, a):
     _a1 = a[1]  # a_1
     _a2 = a[2]  # a_2
     _a3 = a[3]  # a_3
-    # Intermediate terms (62)
+    # Intermediate terms (22)
     _t0 = (2/5)*t
     _t1 = numpy.sin(_t0)
-    _t2 = (3/2)*_t1
-    _t3 = numpy.cos(_t0)
-    _t4 = (3/5)*_t3
-    _t5 = -6/25*_t1
-    _t6 = -12/125*_t3
-    _t7 = (24/625)*_t1
-    _t8 = (3/10)*t
-    _t9 = numpy.sin(_t8)
-    _t10 = (1/5)*t
-    _t11 = numpy.cos(_t10)
-    _t12 = -1/2*_t11 + (4/5)*_t9 + 2
-    _t13 = numpy.sin(_t10)
-    _t14 = numpy.cos(_t8)
-    _t15 = (1/10)*_t13 + (6/25)*_t14
-    _t16 = (1/50)*_t11 - 9/125*_t9
-    _t17 = -1/250*_t13 - 27/1250*_t14
-    _t18 = -1/1250*_t11 + (81/12500)*_t9
-    _t19 = numpy.sin(_s2)
-    _t20 = _s6*_t19
-    _t21 = -_t20
-    _t22 = _t21
-    _t23 = _s7*_t19
-    _t24 = numpy.cos(_s2)
-    _t25 = _s6*_t24
-    _t26 = -_s5*_t25 - _t23
-    _t27 = _t26
-    _t28 = -_t25
-    _t29 = -_p0 - _t28
-    _t30 = _s5*_t20 - _s7*_t24
-    _t31 = -_t30
-    _t32 = -2*_t2
-    _t33 = 2*_s0
-    _t34 = _t32 + _t33
-    _t35 = -2*_t12
-    _t36 = 2*_s1
-    _t37 = _t35 + _t36
-    _t38 = -2*_t4
-    _t39 = 2*_s3
-    _t40 = _t38 + _t39
-    _t41 = -2*_t15
-    _t42 = 2*_s4
-    _t43 = _t41 + _t42
-    _t44 = -2*_t5
-    _t45 = 2*_t22
-    _t46 = _t44 + _t45
-    _t47 = -2*_t16
-    _t48 = 2*_t29
-    _t49 = _t47 + _t48
-    _t50 = -2*_t6
-    _t51 = 2*_t27
-    _t52 = _t50 + _t51
-    _t53 = -2*_t17
-    _t54 = 2*_t31
-    _t55 = _t53 + _t54
-    _t56 = -2*_t7
-    _t57 = -2*_t18
-    _t58 = (1/2)*_a0
-    _t59 = (1/2)*_a1
-    _t60 = (1/2)*_a2
-    _t61 = (1/2)*_a3
+    _t2 = numpy.cos(_t0)
+    _t3 = (3/10)*t
+    _t4 = numpy.sin(_t3)
+    _t5 = (1/5)*t
+    _t6 = numpy.cos(_t5)
+    _t7 = numpy.sin(_t5)
+    _t8 = numpy.cos(_t3)
+    _t9 = numpy.sin(_s2)
+    _t10 = _s6*_t9
+    _t11 = -_t10
+    _t12 = _s7*_t9
+    _t13 = numpy.cos(_s2)
+    _t14 = _s6*_t13
+    _t15 = -_s5*_t14 - _t12
+    _t16 = -_t14
+    _t17 = _s5*_t10 - _s7*_t13
+    _t18 = (1/2)*_a0
+    _t19 = (1/2)*_a1
+    _t20 = (1/2)*_a2
+    _t21 = (1/2)*_a3
     # Output terms
     z = numpy.empty((2, _n))  # y_imp^(k)
-    z[0] = _t34*_t58 + _t40*_t59 + _t46*_t60 + _t52*_t61 - 1/2*_t56
-    z[1] = _t37*_t58 + _t43*_t59 + _t49*_t60 + _t55*_t61 - 1/2*_t57
+    z[0] = (24/625)*_t1 + _t18*(2*_s0 - 3*_t1) + _t19*(2*_s3 - 6/5*_t2) + _t20*((12/25)*_t1 + 2*_t11) + _t21*(2*_t15 + (24/125)*_t2)
+    z[1] = _t18*(2*_s1 - 8/5*_t4 + _t6 - 4) + _t19*(2*_s4 - 1/5*_t7 - 12/25*_t8) + _t20*(-2*_p0 - 2*_t16 + (18/125)*_t4 - 1/25*_t6) + _t21*(-2*_t17 + (1/125)*_t7 + (27/625)*_t8) + (81/12500)*_t4 - 1/1250*_t6
     R = numpy.empty((2, 2, _n))  # decoupling matrix
-    R[0, 0] = -_t19
-    R[0, 1] = _t28
-    R[1, 0] = _t24
-    R[1, 1] = _t21
+    R[0, 0] = -_t9
+    R[0, 1] = _t16
+    R[1, 0] = _t13
+    R[1, 1] = _t11
     pvec = numpy.empty((2, _n))  # p = col(L_f^{r_i} h_i)
-    pvec[0] = -_s5*_s7*_t24 + _s5*_t30
-    pvec[1] = -_s5*_t23 + _s5*_t26
+    pvec[0] = -_s5*_s7*_t13 + _s5*_t17
+    pvec[1] = -_s5*_t12 + _s5*_t15
     return z, R, pvec
 
 
@@ -359,7 +319,7 @@ def _closed_loop(t, s, p, w, z):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 85 operations, 125 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 65 operations, 125 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x
     _s1 = s[1]  # z
@@ -370,65 +330,29 @@ def _optimality(t, s, p):
     _s6 = s[6]  # thrust
     _s7 = s[7]  # thrust_d1
     _p0 = p[0]  # g
-    # Intermediate terms (48)
+    # Intermediate terms (12)
     _t0 = (2/5)*t
     _t1 = numpy.sin(_t0)
-    _t2 = (3/2)*_t1
-    _t3 = numpy.cos(_t0)
-    _t4 = (3/5)*_t3
-    _t5 = -6/25*_t1
-    _t6 = -12/125*_t3
-    _t7 = (3/10)*t
-    _t8 = numpy.sin(_t7)
-    _t9 = (1/5)*t
-    _t10 = numpy.cos(_t9)
-    _t11 = -1/2*_t10 + (4/5)*_t8 + 2
-    _t12 = numpy.sin(_t9)
-    _t13 = numpy.cos(_t7)
-    _t14 = (1/10)*_t12 + (6/25)*_t13
-    _t15 = (1/50)*_t10 - 9/125*_t8
-    _t16 = -1/250*_t12 - 27/1250*_t13
-    _t17 = numpy.sin(_s2)
-    _t18 = _s6*_t17
-    _t19 = -_t18
-    _t20 = numpy.cos(_s2)
-    _t21 = -_s5*_s6*_t20 - _s7*_t17
-    _t22 = -_p0 + _s6*_t20
-    _t23 = -_s5*_t18 + _s7*_t20
-    _t24 = -2*_t2
-    _t25 = 2*_s0
-    _t26 = _t24 + _t25
-    _t27 = -2*_t11
-    _t28 = 2*_s1
-    _t29 = _t27 + _t28
-    _t30 = -2*_t4
-    _t31 = 2*_s3
-    _t32 = _t30 + _t31
-    _t33 = -2*_t14
-    _t34 = 2*_s4
-    _t35 = _t33 + _t34
-    _t36 = -2*_t5
-    _t37 = 2*_t19
-    _t38 = _t36 + _t37
-    _t39 = -2*_t15
-    _t40 = 2*_t22
-    _t41 = _t39 + _t40
-    _t42 = -2*_t6
-    _t43 = 2*_t21
-    _t44 = _t42 + _t43
-    _t45 = -2*_t16
-    _t46 = 2*_t23
-    _t47 = _t45 + _t46
+    _t2 = numpy.cos(_t0)
+    _t3 = (3/10)*t
+    _t4 = numpy.sin(_t3)
+    _t5 = (1/5)*t
+    _t6 = numpy.cos(_t5)
+    _t7 = numpy.sin(_t5)
+    _t8 = numpy.cos(_t3)
+    _t9 = numpy.sin(_s2)
+    _t10 = _s6*_t9
+    _t11 = numpy.cos(_s2)
     # Output terms
     E = numpy.empty((4, 2, _n))  # grad^(j) f0
-    E[0, 0] = _t26
-    E[0, 1] = _t29
-    E[1, 0] = _t32
-    E[1, 1] = _t35
-    E[2, 0] = _t38
-    E[2, 1] = _t41
-    E[3, 0] = _t44
-    E[3, 1] = _t47
+    E[0, 0] = 2*_s0 - 3*_t1
+    E[0, 1] = 2*_s1 - 8/5*_t4 + _t6 - 4
+    E[1, 0] = 2*_s3 - 6/5*_t2
+    E[1, 1] = 2*_s4 - 1/5*_t7 - 12/25*_t8
+    E[2, 0] = (12/25)*_t1 - 2*_t10
+    E[2, 1] = -2*_p0 + 2*_s6*_t11 + (18/125)*_t4 - 1/25*_t6
+    E[3, 0] = -2*_s5*_s6*_t11 - 2*_s7*_t9 + (24/125)*_t2
+    E[3, 1] = -2*_s5*_t10 + 2*_s7*_t11 + (1/125)*_t7 + (27/625)*_t8
     return E
 
 
@@ -437,27 +361,21 @@ def _objective(t, y, p):
     _n = y.shape[1]
     _y0 = y[0]  # px
     _y1 = y[1]  # pz
-    # Intermediate terms (2)
-    _t0 = (3/2)*numpy.sin((2/5)*t)
-    _t1 = (4/5)*numpy.sin((3/10)*t) - 1/2*numpy.cos((1/5)*t) + 2
     # Output terms
     f0 = numpy.empty((_n))  # f0
-    f0[...] = (-_t0 + _y0)**2 + (-_t1 + _y1)**2
+    f0[...] = (_y0 - 3/2*numpy.sin((2/5)*t))**2 + (_y1 - 4/5*numpy.sin((3/10)*t) + (1/2)*numpy.cos((1/5)*t) - 2)**2
     return f0
 
 
 def _gradient(t, y, p):
-    """grad_y f0(y, t) (kernel; 21 operations, 21 before CSE)."""
+    """grad_y f0(y, t) (kernel; 17 operations, 21 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # px
     _y1 = y[1]  # pz
-    # Intermediate terms (2)
-    _t0 = (3/2)*numpy.sin((2/5)*t)
-    _t1 = (4/5)*numpy.sin((3/10)*t) - 1/2*numpy.cos((1/5)*t) + 2
     # Output terms
     grad = numpy.empty((2, _n))  # grad_y f0
-    grad[0] = -2*_t0 + 2*_y0
-    grad[1] = -2*_t1 + 2*_y1
+    grad[0] = 2*_y0 - 3*numpy.sin((2/5)*t)
+    grad[1] = 2*_y1 - 8/5*numpy.sin((3/10)*t) + numpy.cos((1/5)*t) - 4
     return grad
 
 

@@ -188,13 +188,42 @@ def ordered_cse(
         order.append((sym, value))
     for value in reduced[len(kept) :]:
         need(value)
+    order, outs = _inline_single_use(order, list(reduced[len(kept) :]))
     renames: dict[sp.Symbol, sp.Expr] = {}
     body: list[Assignment] = []
     for index, (sym, value) in enumerate(order):
         new = sp.Symbol(f"_t{index}", real=True)
         body.append((new, value.xreplace(renames)))
         renames[sym] = new
-    return tuple(body), tuple(e.xreplace(renames) for e in reduced[len(kept) :])
+    return tuple(body), tuple(e.xreplace(renames) for e in outs)
+
+
+def _inline_single_use(
+    order: list[Assignment], outputs: list[sp.Expr]
+) -> tuple[list[Assignment], list[sp.Expr]]:
+    """Substitute temporaries used exactly once back into their one user.
+
+    The jet is derived in three-address form (one operation per assignment), which
+    makes differentiation linear; printed that way, every operation would become a
+    named array in NumPy. Shared work stays in temporaries; the rest reads as the
+    expression it is.
+    """
+    uses: dict[sp.Symbol, int] = {}
+    for expr in [value for _, value in order] + outputs:
+        # Occurrences, not containing expressions: x*x uses x twice (inlining it would
+        # compute it twice).
+        for node in sp.preorder_traversal(expr):
+            if node.is_Symbol:
+                uses[node] = uses.get(node, 0) + 1
+    inline: dict[sp.Symbol, sp.Expr] = {}
+    kept: list[Assignment] = []
+    for sym, raw in order:
+        value = raw.xreplace(inline)
+        if uses.get(sym, 0) == 1:
+            inline[sym] = value
+        else:
+            kept.append((sym, value))
+    return kept, [e.xreplace(inline) for e in outputs]
 
 
 def _cse_index(sym: sp.Symbol) -> int:

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 48377f08f0ac21de5bd41922093a4fbb94dee121c2d5dbd8b367674d03629b13
+ * content sha256: e4c73d43f1025db3ba7e9d8fb35632c3d2a72341055db4650e7370893af9b3c1
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -35,7 +35,7 @@ const double integrator_default_params[INTEGRATOR_N_PARAMS] = {2.0};
 const double integrator_default_state[INTEGRATOR_N_STATES] = {-1.0, 1.5};
 const double integrator_hurwitz_coefficients[INTEGRATOR_K] = {-1.0};
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (38 operations, 42 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (31 operations, 42 before CSE). */
 static void integrator_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* x1 */
@@ -43,26 +43,13 @@ static void integrator_k_jet(double t, const double *s, const double *p, const d
     const double _p0 = p[0]; /* w */
     const double _a0 = a[0]; /* a_0 */
     const double _t0 = (t*t);
-    const double _t1 = -1.0/20.0*_t0 + (4.0/5.0)*t + 2;
-    const double _t2 = 4.0/5.0 - 1.0/10.0*t;
-    const double _t3 = (1.0/50.0)*_t0 - 1.0/1000.0*(t*t*t) + (1.0/2.0)*t - 1;
-    const double _t4 = -3.0/1000.0*_t0 + (1.0/25.0)*t + 1.0/2.0;
-    const double _t5 = -_t1;
-    const double _t6 = _s0 + _t5;
-    const double _t7 = -2*_t3;
-    const double _t8 = 2*_s1;
-    const double _t9 = _t7 + _t8;
-    const double _t10 = (1.0/2.0)*_p0;
-    const double _t11 = _t10*_t9;
-    const double _t12 = -_t2;
-    const double _t13 = -2*_t4;
-    const double _t14 = _t10*_t13;
+    const double _t1 = (1.0/2.0)*_p0;
     hessian[0] = 1;
     hessian[1] = 0;
     hessian[2] = 0;
     hessian[3] = _p0;
-    jet_rhs[0] = _a0*_t6 - _t12;
-    jet_rhs[1] = _a0*_t11 - _t14;
+    jet_rhs[0] = _a0*(_s0 + (1.0/20.0)*_t0 - 4.0/5.0*t - 2) - 1.0/10.0*t + 4.0/5.0;
+    jet_rhs[1] = _a0*_t1*(2*_s1 - 1.0/25.0*_t0 + (1.0/500.0)*(t*t*t) - t + 2) - _t1*((3.0/500.0)*_t0 - 2.0/25.0*t - 1);
     R[0] = 1;
     R[1] = 0;
     R[2] = 0;
@@ -116,23 +103,15 @@ static void integrator_k_plant_input(double t, const double *s, const double *p,
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (21 operations, 32 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (17 operations, 32 before CSE). */
 static void integrator_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* x1 */
     const double _s1 = s[1]; /* x2 */
     const double _p0 = p[0]; /* w */
     const double _t0 = (t*t);
-    const double _t1 = -1.0/20.0*_t0 + (4.0/5.0)*t + 2;
-    const double _t2 = (1.0/50.0)*_t0 - 1.0/1000.0*(t*t*t) + (1.0/2.0)*t - 1;
-    const double _t3 = -_t1;
-    const double _t4 = _s0 + _t3;
-    const double _t5 = -2*_t2;
-    const double _t6 = 2*_s1;
-    const double _t7 = _t5 + _t6;
-    const double _t8 = (1.0/2.0)*_p0*_t7;
-    E[0] = _t4;
-    E[1] = _t8;
+    E[0] = _s0 + (1.0/20.0)*_t0 - 4.0/5.0*t - 2;
+    E[1] = (1.0/2.0)*_p0*(2*_s1 - 1.0/25.0*_t0 + (1.0/500.0)*(t*t*t) - t + 2);
 }
 
 
@@ -143,23 +122,19 @@ static void integrator_k_objective(double t, const double *y, const double *p, d
     const double _y1 = y[1]; /* y2 */
     const double _p0 = p[0]; /* w */
     const double _t0 = (t*t);
-    const double _t1 = -1.0/20.0*_t0 + (4.0/5.0)*t + 2;
-    const double _t2 = (1.0/50.0)*_t0 - 1.0/1000.0*(t*t*t) + (1.0/2.0)*t - 1;
-    f0[0] = (1.0/2.0)*_p0*((-_t2 + _y1)*(-_t2 + _y1)) + (1.0/2.0)*((-_t1 + _y0)*(-_t1 + _y0));
+    f0[0] = (1.0/2.0)*_p0*((-1.0/50.0*_t0 + _y1 + (1.0/1000.0)*(t*t*t) - 1.0/2.0*t + 1)*(-1.0/50.0*_t0 + _y1 + (1.0/1000.0)*(t*t*t) - 1.0/2.0*t + 1)) + (1.0/2.0)*(((1.0/20.0)*_t0 + _y0 - 4.0/5.0*t - 2)*((1.0/20.0)*_t0 + _y0 - 4.0/5.0*t - 2));
 }
 
 
-/* grad_y f0(y, t) (19 operations, 20 before CSE). */
+/* grad_y f0(y, t) (17 operations, 20 before CSE). */
 static void integrator_k_gradient(double t, const double *y, const double *p, double *grad)
 {
     const double _y0 = y[0]; /* y1 */
     const double _y1 = y[1]; /* y2 */
     const double _p0 = p[0]; /* w */
     const double _t0 = (t*t);
-    const double _t1 = -1.0/20.0*_t0 + (4.0/5.0)*t + 2;
-    const double _t2 = (1.0/50.0)*_t0 - 1.0/1000.0*(t*t*t) + (1.0/2.0)*t - 1;
-    grad[0] = -_t1 + _y0;
-    grad[1] = (1.0/2.0)*_p0*(-2*_t2 + 2*_y1);
+    grad[0] = (1.0/20.0)*_t0 + _y0 - 4.0/5.0*t - 2;
+    grad[1] = (1.0/2.0)*_p0*(-1.0/25.0*_t0 + 2*_y1 + (1.0/500.0)*(t*t*t) - t + 2);
 }
 
 

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: f7fd5b246b8c64eb5b802f49edcacb44ed5ca75aa685399fcf4a76c7fee41416
+ * content sha256: 963e3b9a6b82e7223e956ea4dbc1ed11b69b73059d88ea2f930d910288da9e44
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -35,7 +35,7 @@ const double pvtol_default_params[PVTOL_N_PARAMS] = {9.81};
 const double pvtol_default_state[PVTOL_N_STATES] = {-1.0, 0.5, 0.0, 0.0, 0.0, 0.0, 9.81, 0.0};
 const double pvtol_hurwitz_coefficients[PVTOL_K] = {-7.5, -19.25, -17.75, -7.0};
 
-/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (127 operations, 189 before CSE). */
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (99 operations, 189 before CSE). */
 static void pvtol_k_jet(double t, const double *s, const double *p, const double *a, double *z, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* x */
@@ -53,74 +53,34 @@ static void pvtol_k_jet(double t, const double *s, const double *p, const double
     const double _a3 = a[3]; /* a_3 */
     const double _t0 = (2.0/5.0)*t;
     const double _t1 = sin(_t0);
-    const double _t2 = (3.0/2.0)*_t1;
-    const double _t3 = cos(_t0);
-    const double _t4 = (3.0/5.0)*_t3;
-    const double _t5 = -6.0/25.0*_t1;
-    const double _t6 = -12.0/125.0*_t3;
-    const double _t7 = (24.0/625.0)*_t1;
-    const double _t8 = (3.0/10.0)*t;
-    const double _t9 = sin(_t8);
-    const double _t10 = (1.0/5.0)*t;
-    const double _t11 = cos(_t10);
-    const double _t12 = -1.0/2.0*_t11 + (4.0/5.0)*_t9 + 2;
-    const double _t13 = sin(_t10);
-    const double _t14 = cos(_t8);
-    const double _t15 = (1.0/10.0)*_t13 + (6.0/25.0)*_t14;
-    const double _t16 = (1.0/50.0)*_t11 - 9.0/125.0*_t9;
-    const double _t17 = -1.0/250.0*_t13 - 27.0/1250.0*_t14;
-    const double _t18 = -1.0/1250.0*_t11 + (81.0/12500.0)*_t9;
-    const double _t19 = sin(_s2);
-    const double _t20 = _s6*_t19;
-    const double _t21 = -_t20;
-    const double _t22 = _t21;
-    const double _t23 = _s7*_t19;
-    const double _t24 = cos(_s2);
-    const double _t25 = _s6*_t24;
-    const double _t26 = -_s5*_t25 - _t23;
-    const double _t27 = _t26;
-    const double _t28 = -_t25;
-    const double _t29 = -_p0 - _t28;
-    const double _t30 = _s5*_t20 - _s7*_t24;
-    const double _t31 = -_t30;
-    const double _t32 = -2*_t2;
-    const double _t33 = 2*_s0;
-    const double _t34 = _t32 + _t33;
-    const double _t35 = -2*_t12;
-    const double _t36 = 2*_s1;
-    const double _t37 = _t35 + _t36;
-    const double _t38 = -2*_t4;
-    const double _t39 = 2*_s3;
-    const double _t40 = _t38 + _t39;
-    const double _t41 = -2*_t15;
-    const double _t42 = 2*_s4;
-    const double _t43 = _t41 + _t42;
-    const double _t44 = -2*_t5;
-    const double _t45 = 2*_t22;
-    const double _t46 = _t44 + _t45;
-    const double _t47 = -2*_t16;
-    const double _t48 = 2*_t29;
-    const double _t49 = _t47 + _t48;
-    const double _t50 = -2*_t6;
-    const double _t51 = 2*_t27;
-    const double _t52 = _t50 + _t51;
-    const double _t53 = -2*_t17;
-    const double _t54 = 2*_t31;
-    const double _t55 = _t53 + _t54;
-    const double _t56 = -2*_t7;
-    const double _t57 = -2*_t18;
-    const double _t58 = (1.0/2.0)*_a0;
-    const double _t59 = (1.0/2.0)*_a1;
-    const double _t60 = (1.0/2.0)*_a2;
-    const double _t61 = (1.0/2.0)*_a3;
-    z[0] = _t34*_t58 + _t40*_t59 + _t46*_t60 + _t52*_t61 - 1.0/2.0*_t56;
-    z[1] = _t37*_t58 + _t43*_t59 + _t49*_t60 + _t55*_t61 - 1.0/2.0*_t57;
-    R[0] = -_t19;
-    R[1] = _t28;
-    R[2] = _t24;
-    R[3] = _t21;
-    pvec[0] = -_s5*_s7*_t24 + _s5*_t30;
-    pvec[1] = -_s5*_t23 + _s5*_t26;
+    const double _t2 = cos(_t0);
+    const double _t3 = (3.0/10.0)*t;
+    const double _t4 = sin(_t3);
+    const double _t5 = (1.0/5.0)*t;
+    const double _t6 = cos(_t5);
+    const double _t7 = sin(_t5);
+    const double _t8 = cos(_t3);
+    const double _t9 = sin(_s2);
+    const double _t10 = _s6*_t9;
+    const double _t11 = -_t10;
+    const double _t12 = _s7*_t9;
+    const double _t13 = cos(_s2);
+    const double _t14 = _s6*_t13;
+    const double _t15 = -_s5*_t14 - _t12;
+    const double _t16 = -_t14;
+    const double _t17 = _s5*_t10 - _s7*_t13;
+    const double _t18 = (1.0/2.0)*_a0;
+    const double _t19 = (1.0/2.0)*_a1;
+    const double _t20 = (1.0/2.0)*_a2;
+    const double _t21 = (1.0/2.0)*_a3;
+    z[0] = (24.0/625.0)*_t1 + _t18*(2*_s0 - 3*_t1) + _t19*(2*_s3 - 6.0/5.0*_t2) + _t20*((12.0/25.0)*_t1 + 2*_t11) + _t21*(2*_t15 + (24.0/125.0)*_t2);
+    z[1] = _t18*(2*_s1 - 8.0/5.0*_t4 + _t6 - 4) + _t19*(2*_s4 - 1.0/5.0*_t7 - 12.0/25.0*_t8) + _t20*(-2*_p0 - 2*_t16 + (18.0/125.0)*_t4 - 1.0/25.0*_t6) + _t21*(-2*_t17 + (1.0/125.0)*_t7 + (27.0/625.0)*_t8) + (81.0/12500.0)*_t4 - 1.0/1250.0*_t6;
+    R[0] = -_t9;
+    R[1] = _t16;
+    R[2] = _t13;
+    R[3] = _t11;
+    pvec[0] = -_s5*_s7*_t13 + _s5*_t17;
+    pvec[1] = -_s5*_t12 + _s5*_t15;
 }
 
 
@@ -178,7 +138,7 @@ static void pvtol_k_plant_input(double t, const double *s, const double *p, cons
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (85 operations, 125 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (65 operations, 125 before CSE). */
 static void pvtol_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* x */
@@ -192,60 +152,24 @@ static void pvtol_k_optimality(double t, const double *s, const double *p, doubl
     const double _p0 = p[0]; /* g */
     const double _t0 = (2.0/5.0)*t;
     const double _t1 = sin(_t0);
-    const double _t2 = (3.0/2.0)*_t1;
-    const double _t3 = cos(_t0);
-    const double _t4 = (3.0/5.0)*_t3;
-    const double _t5 = -6.0/25.0*_t1;
-    const double _t6 = -12.0/125.0*_t3;
-    const double _t7 = (3.0/10.0)*t;
-    const double _t8 = sin(_t7);
-    const double _t9 = (1.0/5.0)*t;
-    const double _t10 = cos(_t9);
-    const double _t11 = -1.0/2.0*_t10 + (4.0/5.0)*_t8 + 2;
-    const double _t12 = sin(_t9);
-    const double _t13 = cos(_t7);
-    const double _t14 = (1.0/10.0)*_t12 + (6.0/25.0)*_t13;
-    const double _t15 = (1.0/50.0)*_t10 - 9.0/125.0*_t8;
-    const double _t16 = -1.0/250.0*_t12 - 27.0/1250.0*_t13;
-    const double _t17 = sin(_s2);
-    const double _t18 = _s6*_t17;
-    const double _t19 = -_t18;
-    const double _t20 = cos(_s2);
-    const double _t21 = -_s5*_s6*_t20 - _s7*_t17;
-    const double _t22 = -_p0 + _s6*_t20;
-    const double _t23 = -_s5*_t18 + _s7*_t20;
-    const double _t24 = -2*_t2;
-    const double _t25 = 2*_s0;
-    const double _t26 = _t24 + _t25;
-    const double _t27 = -2*_t11;
-    const double _t28 = 2*_s1;
-    const double _t29 = _t27 + _t28;
-    const double _t30 = -2*_t4;
-    const double _t31 = 2*_s3;
-    const double _t32 = _t30 + _t31;
-    const double _t33 = -2*_t14;
-    const double _t34 = 2*_s4;
-    const double _t35 = _t33 + _t34;
-    const double _t36 = -2*_t5;
-    const double _t37 = 2*_t19;
-    const double _t38 = _t36 + _t37;
-    const double _t39 = -2*_t15;
-    const double _t40 = 2*_t22;
-    const double _t41 = _t39 + _t40;
-    const double _t42 = -2*_t6;
-    const double _t43 = 2*_t21;
-    const double _t44 = _t42 + _t43;
-    const double _t45 = -2*_t16;
-    const double _t46 = 2*_t23;
-    const double _t47 = _t45 + _t46;
-    E[0] = _t26;
-    E[1] = _t29;
-    E[2] = _t32;
-    E[3] = _t35;
-    E[4] = _t38;
-    E[5] = _t41;
-    E[6] = _t44;
-    E[7] = _t47;
+    const double _t2 = cos(_t0);
+    const double _t3 = (3.0/10.0)*t;
+    const double _t4 = sin(_t3);
+    const double _t5 = (1.0/5.0)*t;
+    const double _t6 = cos(_t5);
+    const double _t7 = sin(_t5);
+    const double _t8 = cos(_t3);
+    const double _t9 = sin(_s2);
+    const double _t10 = _s6*_t9;
+    const double _t11 = cos(_s2);
+    E[0] = 2*_s0 - 3*_t1;
+    E[1] = 2*_s1 - 8.0/5.0*_t4 + _t6 - 4;
+    E[2] = 2*_s3 - 6.0/5.0*_t2;
+    E[3] = 2*_s4 - 1.0/5.0*_t7 - 12.0/25.0*_t8;
+    E[4] = (12.0/25.0)*_t1 - 2*_t10;
+    E[5] = -2*_p0 + 2*_s6*_t11 + (18.0/125.0)*_t4 - 1.0/25.0*_t6;
+    E[6] = -2*_s5*_s6*_t11 - 2*_s7*_t9 + (24.0/125.0)*_t2;
+    E[7] = -2*_s5*_t10 + 2*_s7*_t11 + (1.0/125.0)*_t7 + (27.0/625.0)*_t8;
 }
 
 
@@ -255,22 +179,18 @@ static void pvtol_k_objective(double t, const double *y, const double *p, double
     const double _y0 = y[0]; /* px */
     const double _y1 = y[1]; /* pz */
     (void)p;
-    const double _t0 = (3.0/2.0)*sin((2.0/5.0)*t);
-    const double _t1 = (4.0/5.0)*sin((3.0/10.0)*t) - 1.0/2.0*cos((1.0/5.0)*t) + 2;
-    f0[0] = ((-_t0 + _y0)*(-_t0 + _y0)) + ((-_t1 + _y1)*(-_t1 + _y1));
+    f0[0] = ((_y0 - 3.0/2.0*sin((2.0/5.0)*t))*(_y0 - 3.0/2.0*sin((2.0/5.0)*t))) + ((_y1 - 4.0/5.0*sin((3.0/10.0)*t) + (1.0/2.0)*cos((1.0/5.0)*t) - 2)*(_y1 - 4.0/5.0*sin((3.0/10.0)*t) + (1.0/2.0)*cos((1.0/5.0)*t) - 2));
 }
 
 
-/* grad_y f0(y, t) (21 operations, 21 before CSE). */
+/* grad_y f0(y, t) (17 operations, 21 before CSE). */
 static void pvtol_k_gradient(double t, const double *y, const double *p, double *grad)
 {
     const double _y0 = y[0]; /* px */
     const double _y1 = y[1]; /* pz */
     (void)p;
-    const double _t0 = (3.0/2.0)*sin((2.0/5.0)*t);
-    const double _t1 = (4.0/5.0)*sin((3.0/10.0)*t) - 1.0/2.0*cos((1.0/5.0)*t) + 2;
-    grad[0] = -2*_t0 + 2*_y0;
-    grad[1] = -2*_t1 + 2*_y1;
+    grad[0] = 2*_y0 - 3*sin((2.0/5.0)*t);
+    grad[1] = 2*_y1 - 8.0/5.0*sin((3.0/10.0)*t) + cos((1.0/5.0)*t) - 4;
 }
 
 

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 1db73409d48534b3a1332050f37bdfd15c484886194cc3f2424678e6876aa9eb
+ * content sha256: 89c9dfcec73f24beca90c5854b5ddc959f28f291d9c37a5d54867ef69f1ac860
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -35,7 +35,7 @@ const double unicycle_switch_default_params[UNICYCLE_SWITCH_N_PARAMS] = {10.0, 1
 const double unicycle_switch_default_state[UNICYCLE_SWITCH_N_STATES] = {-5.0, 4.0, 0.0, 1.0};
 const double unicycle_switch_hurwitz_coefficients[UNICYCLE_SWITCH_K] = {-1.5, -2.5};
 
-/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (164 operations, 203 before CSE). */
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (143 operations, 203 before CSE). */
 static void unicycle_switch_k_jet(double t, const double *s, const double *p, const double *a, double *z, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* x1 */
@@ -54,104 +54,39 @@ static void unicycle_switch_k_jet(double t, const double *s, const double *p, co
     const double _t5 = -_t1*_t3/(_p1*_p1);
     const double _t6 = (t*t);
     const double _t7 = (1.0/100.0)*_t6;
-    const double _t8 = -_t7 + (3.0/5.0)*t - 5;
-    const double _t9 = (1.0/50.0)*t;
-    const double _t10 = 3.0/5.0 - _t9;
-    const double _t11 = (t*t*t);
-    const double _t12 = -1.0/1000.0*_t11 + (1.0/50.0)*_t6 + (1.0/2.0)*t - 5;
-    const double _t13 = -3.0/1000.0*_t6 + (1.0/25.0)*t + 1.0/2.0;
-    const double _t14 = (1.0/500.0)*(20 - 3*t);
-    const double _t15 = -_t7 - 3.0/10.0*t + 5;
-    const double _t16 = -_t9 - 3.0/10.0;
-    const double _t17 = (1.0/5000.0)*_t11 - 3.0/200.0*_t6 + (2.0/5.0)*t - 3;
-    const double _t18 = (3.0/5000.0)*_t6 - 3.0/100.0*t + 2.0/5.0;
-    const double _t19 = (3.0/2500.0)*(t - 25);
-    const double _t20 = cos(_s2);
-    const double _t21 = _s3*_t20;
-    const double _t22 = _t21;
-    const double _t23 = sin(_s2);
-    const double _t24 = _s3*_t23;
-    const double _t25 = _t24;
-    const double _t26 = -2*_t8;
-    const double _t27 = 2*_s0;
-    const double _t28 = _t26 + _t27;
-    const double _t29 = _t2*_t28;
-    const double _t30 = -_t2;
-    const double _t31 = _t30 + 1;
-    const double _t32 = -2*_t15;
-    const double _t33 = _t27 + _t32;
-    const double _t34 = _t31*_t33;
-    const double _t35 = _t29 + _t34;
-    const double _t36 = -2*_t12;
-    const double _t37 = 2*_s1;
-    const double _t38 = _t36 + _t37;
-    const double _t39 = _t2*_t38;
-    const double _t40 = -2*_t17;
-    const double _t41 = _t37 + _t40;
-    const double _t42 = _t31*_t41;
-    const double _t43 = _t39 + _t42;
-    const double _t44 = -2*_t10;
-    const double _t45 = 2*_t22;
-    const double _t46 = _t44 + _t45;
-    const double _t47 = _t2*_t46;
-    const double _t48 = _t28*_t4;
-    const double _t49 = _t47 + _t48;
-    const double _t50 = -_t4;
-    const double _t51 = -2*_t16;
-    const double _t52 = _t45 + _t51;
-    const double _t53 = _t33*_t50;
-    const double _t54 = _t31*_t52;
-    const double _t55 = _t53 + _t54;
-    const double _t56 = _t49 + _t55;
-    const double _t57 = -2*_t13;
-    const double _t58 = 2*_t25;
-    const double _t59 = _t57 + _t58;
-    const double _t60 = _t2*_t59;
-    const double _t61 = _t38*_t4;
-    const double _t62 = _t60 + _t61;
-    const double _t63 = -2*_t18;
-    const double _t64 = _t58 + _t63;
-    const double _t65 = _t41*_t50;
-    const double _t66 = _t31*_t64;
-    const double _t67 = _t65 + _t66;
-    const double _t68 = _t62 + _t67;
-    const double _t69 = (1.0/25.0)*_t2;
-    const double _t70 = _t4*_t46;
-    const double _t71 = _t69 + _t70;
-    const double _t72 = _t28*_t5;
-    const double _t73 = _t70 + _t72;
-    const double _t74 = _t71 + _t73;
-    const double _t75 = -_t5;
-    const double _t76 = _t50*_t52;
-    const double _t77 = _t33*_t75;
-    const double _t78 = _t76 + _t77;
-    const double _t79 = (1.0/25.0)*_t31;
-    const double _t80 = _t76 + _t79;
-    const double _t81 = _t78 + _t80;
-    const double _t82 = _t74 + _t81;
-    const double _t83 = -2*_t14;
-    const double _t84 = _t2*_t83;
-    const double _t85 = _t4*_t59;
-    const double _t86 = _t84 + _t85;
-    const double _t87 = _t38*_t5;
-    const double _t88 = _t85 + _t87;
-    const double _t89 = _t86 + _t88;
-    const double _t90 = -2*_t19;
-    const double _t91 = _t41*_t75;
-    const double _t92 = _t50*_t64;
-    const double _t93 = _t91 + _t92;
-    const double _t94 = _t31*_t90;
-    const double _t95 = _t92 + _t94;
-    const double _t96 = _t93 + _t95;
-    const double _t97 = _t89 + _t96;
-    const double _t98 = (1.0/2.0)*_a0;
-    const double _t99 = (1.0/2.0)*_a1;
-    z[0] = _t35*_t98 + _t56*_t99 - 1.0/2.0*_t82;
-    z[1] = _t43*_t98 + _t68*_t99 - 1.0/2.0*_t97;
-    R[0] = _t20;
-    R[1] = -_t24;
-    R[2] = _t23;
-    R[3] = _t21;
+    const double _t8 = (1.0/50.0)*t;
+    const double _t9 = (t*t*t);
+    const double _t10 = cos(_s2);
+    const double _t11 = _s3*_t10;
+    const double _t12 = sin(_s2);
+    const double _t13 = _s3*_t12;
+    const double _t14 = 2*_s0;
+    const double _t15 = _t14 + 2*_t7 - 6.0/5.0*t + 10;
+    const double _t16 = 1 - _t2;
+    const double _t17 = _t14 + 2*_t7 + (3.0/5.0)*t - 10;
+    const double _t18 = 2*_s1;
+    const double _t19 = _t18 - 1.0/25.0*_t6 + (1.0/500.0)*_t9 - t + 10;
+    const double _t20 = _t18 + (3.0/100.0)*_t6 - 1.0/2500.0*_t9 - 4.0/5.0*t + 6;
+    const double _t21 = 2*_t11;
+    const double _t22 = _t21 + 2*_t8 - 6.0/5.0;
+    const double _t23 = -_t4;
+    const double _t24 = _t21 + 2*_t8 + 3.0/5.0;
+    const double _t25 = 2*_t13;
+    const double _t26 = _t25 + (3.0/500.0)*_t6 - 2.0/25.0*t - 1;
+    const double _t27 = _t25 - 3.0/2500.0*_t6 + (3.0/50.0)*t - 4.0/5.0;
+    const double _t28 = _t22*_t4;
+    const double _t29 = -_t5;
+    const double _t30 = _t23*_t24;
+    const double _t31 = _t26*_t4;
+    const double _t32 = _t23*_t27;
+    const double _t33 = (1.0/2.0)*_a0;
+    const double _t34 = (1.0/2.0)*_a1;
+    z[0] = -1.0/2.0*_t15*_t5 - 1.0/50.0*_t16 - 1.0/2.0*_t17*_t29 - 1.0/50.0*_t2 - _t28 - _t30 + _t33*(_t15*_t2 + _t16*_t17) + _t34*(_t15*_t4 + _t16*_t24 + _t17*_t23 + _t2*_t22);
+    z[1] = (3.0/2500.0)*_t16*(t - 25) - 1.0/2.0*_t19*_t5 + (1.0/500.0)*_t2*(20 - 3*t) - 1.0/2.0*_t20*_t29 - _t31 - _t32 + _t33*(_t16*_t20 + _t19*_t2) + _t34*(_t16*_t27 + _t19*_t4 + _t2*_t26 + _t20*_t23);
+    R[0] = _t10;
+    R[1] = -_t13;
+    R[2] = _t12;
+    R[3] = _t11;
     pvec[0] = 0;
     pvec[1] = 0;
 }
@@ -203,7 +138,7 @@ static void unicycle_switch_k_plant_input(double t, const double *s, const doubl
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (111 operations, 143 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (96 operations, 143 before CSE). */
 static void unicycle_switch_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* x1 */
@@ -218,65 +153,22 @@ static void unicycle_switch_k_optimality(double t, const double *s, const double
     const double _t3 = -1.0/2.0*_t0*(1 - (_t1*_t1));
     const double _t4 = (t*t);
     const double _t5 = (1.0/100.0)*_t4;
-    const double _t6 = -_t5 + (3.0/5.0)*t - 5;
-    const double _t7 = (1.0/50.0)*t;
-    const double _t8 = 3.0/5.0 - _t7;
-    const double _t9 = (t*t*t);
-    const double _t10 = (1.0/50.0)*_t4 - 1.0/1000.0*_t9 + (1.0/2.0)*t - 5;
-    const double _t11 = -3.0/1000.0*_t4 + (1.0/25.0)*t + 1.0/2.0;
-    const double _t12 = -_t5 - 3.0/10.0*t + 5;
-    const double _t13 = -_t7 - 3.0/10.0;
-    const double _t14 = -3.0/200.0*_t4 + (1.0/5000.0)*_t9 + (2.0/5.0)*t - 3;
-    const double _t15 = (3.0/5000.0)*_t4 - 3.0/100.0*t + 2.0/5.0;
-    const double _t16 = _s3*cos(_s2);
-    const double _t17 = _s3*sin(_s2);
-    const double _t18 = -2*_t6;
-    const double _t19 = 2*_s0;
-    const double _t20 = _t18 + _t19;
-    const double _t21 = _t2*_t20;
-    const double _t22 = -_t2;
-    const double _t23 = _t22 + 1;
-    const double _t24 = -2*_t12;
-    const double _t25 = _t19 + _t24;
-    const double _t26 = _t23*_t25;
-    const double _t27 = _t21 + _t26;
-    const double _t28 = -2*_t10;
-    const double _t29 = 2*_s1;
-    const double _t30 = _t28 + _t29;
-    const double _t31 = _t2*_t30;
-    const double _t32 = -2*_t14;
-    const double _t33 = _t29 + _t32;
-    const double _t34 = _t23*_t33;
-    const double _t35 = _t31 + _t34;
-    const double _t36 = -2*_t8;
-    const double _t37 = 2*_t16;
-    const double _t38 = _t36 + _t37;
-    const double _t39 = _t2*_t38;
-    const double _t40 = _t20*_t3;
-    const double _t41 = _t39 + _t40;
-    const double _t42 = -_t3;
-    const double _t43 = -2*_t13;
-    const double _t44 = _t37 + _t43;
-    const double _t45 = _t25*_t42;
-    const double _t46 = _t23*_t44;
-    const double _t47 = _t45 + _t46;
-    const double _t48 = _t41 + _t47;
-    const double _t49 = -2*_t11;
-    const double _t50 = 2*_t17;
-    const double _t51 = _t49 + _t50;
-    const double _t52 = _t2*_t51;
-    const double _t53 = _t3*_t30;
-    const double _t54 = _t52 + _t53;
-    const double _t55 = -2*_t15;
-    const double _t56 = _t50 + _t55;
-    const double _t57 = _t33*_t42;
-    const double _t58 = _t23*_t56;
-    const double _t59 = _t57 + _t58;
-    const double _t60 = _t54 + _t59;
-    E[0] = _t27;
-    E[1] = _t35;
-    E[2] = _t48;
-    E[3] = _t60;
+    const double _t6 = (1.0/50.0)*t;
+    const double _t7 = (t*t*t);
+    const double _t8 = 2*_s0;
+    const double _t9 = 2*_t5 + _t8 - 6.0/5.0*t + 10;
+    const double _t10 = 1 - _t2;
+    const double _t11 = 2*_t5 + _t8 + (3.0/5.0)*t - 10;
+    const double _t12 = 2*_s1;
+    const double _t13 = _t12 - 1.0/25.0*_t4 + (1.0/500.0)*_t7 - t + 10;
+    const double _t14 = _t12 + (3.0/100.0)*_t4 - 1.0/2500.0*_t7 - 4.0/5.0*t + 6;
+    const double _t15 = 2*_s3*cos(_s2);
+    const double _t16 = -_t3;
+    const double _t17 = 2*_s3*sin(_s2);
+    E[0] = _t10*_t11 + _t2*_t9;
+    E[1] = _t10*_t14 + _t13*_t2;
+    E[2] = _t10*(_t15 + 2*_t6 + 3.0/5.0) + _t11*_t16 + _t2*(_t15 + 2*_t6 - 6.0/5.0) + _t3*_t9;
+    E[3] = _t10*(_t17 - 3.0/2500.0*_t4 + (3.0/50.0)*t - 4.0/5.0) + _t13*_t3 + _t14*_t16 + _t2*(_t17 + (3.0/500.0)*_t4 - 2.0/25.0*t - 1);
 }
 
 
@@ -290,16 +182,12 @@ static void unicycle_switch_k_objective(double t, const double *y, const double 
     const double _t0 = 1.0/2.0 - 1.0/2.0*tanh((-_p0 + t)/_p1);
     const double _t1 = (t*t);
     const double _t2 = (1.0/100.0)*_t1;
-    const double _t3 = -_t2 + (3.0/5.0)*t - 5;
-    const double _t4 = (t*t*t);
-    const double _t5 = (1.0/50.0)*_t1 - 1.0/1000.0*_t4 + (1.0/2.0)*t - 5;
-    const double _t6 = -_t2 - 3.0/10.0*t + 5;
-    const double _t7 = -3.0/200.0*_t1 + (1.0/5000.0)*_t4 + (2.0/5.0)*t - 3;
-    f0[0] = _t0*(((-_t3 + _y0)*(-_t3 + _y0)) + ((-_t5 + _y1)*(-_t5 + _y1))) + (1 - _t0)*(((-_t6 + _y0)*(-_t6 + _y0)) + ((-_t7 + _y1)*(-_t7 + _y1)));
+    const double _t3 = (t*t*t);
+    f0[0] = _t0*(((_t2 + _y0 - 3.0/5.0*t + 5)*(_t2 + _y0 - 3.0/5.0*t + 5)) + ((-1.0/50.0*_t1 + (1.0/1000.0)*_t3 + _y1 - 1.0/2.0*t + 5)*(-1.0/50.0*_t1 + (1.0/1000.0)*_t3 + _y1 - 1.0/2.0*t + 5))) + (1 - _t0)*(((_t2 + _y0 + (3.0/10.0)*t - 5)*(_t2 + _y0 + (3.0/10.0)*t - 5)) + (((3.0/200.0)*_t1 - 1.0/5000.0*_t3 + _y1 - 2.0/5.0*t + 3)*((3.0/200.0)*_t1 - 1.0/5000.0*_t3 + _y1 - 2.0/5.0*t + 3)));
 }
 
 
-/* grad_y f0(y, t) (48 operations, 56 before CSE). */
+/* grad_y f0(y, t) (45 operations, 56 before CSE). */
 static void unicycle_switch_k_gradient(double t, const double *y, const double *p, double *grad)
 {
     const double _y0 = y[0]; /* y1 */
@@ -309,16 +197,12 @@ static void unicycle_switch_k_gradient(double t, const double *y, const double *
     const double _t0 = 1.0/2.0 - 1.0/2.0*tanh((-_p0 + t)/_p1);
     const double _t1 = (t*t);
     const double _t2 = (1.0/100.0)*_t1;
-    const double _t3 = -_t2 + (3.0/5.0)*t - 5;
-    const double _t4 = (t*t*t);
-    const double _t5 = (1.0/50.0)*_t1 - 1.0/1000.0*_t4 + (1.0/2.0)*t - 5;
-    const double _t6 = -_t2 - 3.0/10.0*t + 5;
-    const double _t7 = -3.0/200.0*_t1 + (1.0/5000.0)*_t4 + (2.0/5.0)*t - 3;
-    const double _t8 = 2*_y0;
-    const double _t9 = 1 - _t0;
-    const double _t10 = 2*_y1;
-    grad[0] = _t0*(-2*_t3 + _t8) + _t9*(-2*_t6 + _t8);
-    grad[1] = _t0*(_t10 - 2*_t5) + _t9*(_t10 - 2*_t7);
+    const double _t3 = (t*t*t);
+    const double _t4 = 2*_y0;
+    const double _t5 = 1 - _t0;
+    const double _t6 = 2*_y1;
+    grad[0] = _t0*(2*_t2 + _t4 - 6.0/5.0*t + 10) + _t5*(2*_t2 + _t4 + (3.0/5.0)*t - 10);
+    grad[1] = _t0*(-1.0/25.0*_t1 + (1.0/500.0)*_t3 + _t6 - t + 10) + _t5*((3.0/100.0)*_t1 - 1.0/2500.0*_t3 + _t6 - 4.0/5.0*t + 6);
 }
 
 
