@@ -12,7 +12,7 @@ import sympy as sp
 from tvopt_codegen import hurwitz
 from tvopt_codegen.derivation import derive, jet_symbol
 from tvopt_codegen.errors import AssumptionError
-from tvopt_codegen.jet import cse_program, fresh_symbols, total_derivative
+from tvopt_codegen.jet import atomize, fresh_symbols, total_derivative
 from tvopt_codegen.spec import load_spec
 
 from .conftest import SPECS, derivation, write_spec
@@ -117,7 +117,7 @@ def test_jet_program_matches_the_papers_binomial_formula(k: int, seed: int) -> N
     grad = [sp.diff(f0, yi) for yi in y]
     rates = {t: sp.Integer(1)} | {ch[j]: ch[j + 1] for ch in jets for j in range(k)}
     names = fresh_symbols("q")
-    program, current = cse_program(grad, names)
+    program, current = atomize(grad, names)
     for _ in range(k):
         new, current, rates = total_derivative(program, current, rates, names)
         program = program + new

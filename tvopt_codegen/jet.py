@@ -173,24 +173,3 @@ def atomize(
 
     outputs = tuple(visit(sp.sympify(e)) for e in exprs)
     return Program(tuple(out)), outputs
-
-
-def cse_program(
-    exprs: Sequence[sp.Expr], names: Iterator[sp.Symbol]
-) -> tuple[Program, tuple[sp.Expr, ...]]:
-    """Common-subexpression elimination of a list of expressions into a program.
-
-    Parameters
-    ----------
-    exprs : sequence of sympy.Expr
-        Expressions to share work between.
-    names : iterator of sympy.Symbol
-        Source of names for the temporaries.
-
-    Returns
-    -------
-    tuple of (Program, tuple of sympy.Expr)
-        The temporaries and the reduced expressions.
-    """
-    replacements, reduced = sp.cse(list(exprs), symbols=names, order="canonical")
-    return Program(tuple(replacements)), tuple(reduced)
