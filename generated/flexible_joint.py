@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 682bf7d63e0ac9725ed8ef35e354f543abcc09f732cfc28ef456398a72a6e939
+# content sha256: 03ab5789f18694ee9bb56bf084077a4b47f36a1ab12170d027c12e94a94b564d
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -217,7 +217,7 @@ def _lu_solve(a, b):
     return numpy.moveaxis(x, 0, -1)
 
 def _jet(t, s, p, a):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 267 operations, 349 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 256 operations, 335 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # q1
     _s1 = s[1]  # w1
@@ -341,7 +341,7 @@ def _decoupling(t, s, p, z, q):
 
 
 def _closed_loop(t, s, p, w, z):
-    """Closed-loop vector field and the plant input (kernel; 13 operations, 13 before CSE)."""
+    """Closed-loop vector field and the plant input (kernel; 14 operations, 16 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # q1
     _s1 = s[1]  # w1
@@ -368,7 +368,7 @@ def _closed_loop(t, s, p, w, z):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 148 operations, 199 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 137 operations, 184 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # q1
     _s1 = s[1]  # w1
@@ -435,7 +435,7 @@ def _optimality(t, s, p):
 
 
 def _objective(t, y, p):
-    """The objective f0(y, t) (kernel; 15 operations, 16 before CSE)."""
+    """The objective f0(y, t) (kernel; 12 operations, 13 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y
     # Intermediate terms (1)
@@ -447,7 +447,7 @@ def _objective(t, y, p):
 
 
 def _gradient(t, y, p):
-    """grad_y f0(y, t) (kernel; 18 operations, 19 before CSE)."""
+    """grad_y f0(y, t) (kernel; 16 operations, 17 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y
     # Intermediate terms (2)
@@ -460,7 +460,7 @@ def _gradient(t, y, p):
 
 
 def _hessian(t, y, p):
-    """grad_yy f0(y, t) (kernel; 17 operations, 18 before CSE)."""
+    """grad_yy f0(y, t) (kernel; 15 operations, 16 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y
     # Intermediate terms (1)

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 59362a645d0782d80ab3e5e2518d094ce73561b1ec1d557830f55f6bee2914dd
+# content sha256: 75c9758cee03dfddfc2c6e58475665650a45d14997303eb7324cdfb01f439294
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -212,7 +212,7 @@ def _lu_solve(a, b):
     return numpy.moveaxis(x, 0, -1)
 
 def _jet(t, s, p, a):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 31 operations, 42 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 30 operations, 39 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -271,7 +271,7 @@ def _closed_loop(t, s, p, w, z):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 17 operations, 32 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 17 operations, 30 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2

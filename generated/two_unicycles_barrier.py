@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: d1a6d946e5f90a525e5dd8d2861a29d8d6be30aaeef2d6207ed3dde5c9a03757
+# content sha256: 2a5458fdf4bfc36cd014f44a93bb6255178adaf2d5f887e537ce36aa1e0146d2
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -222,7 +222,7 @@ def _lu_solve(a, b):
     return numpy.moveaxis(x, 0, -1)
 
 def _jet(t, s, p, a):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 304 operations, 1552 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 305 operations, 1572 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # xa
     _s1 = s[1]  # ya
@@ -442,7 +442,7 @@ def _closed_loop(t, s, p, w, z):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 134 operations, 182 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 133 operations, 166 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # xa
     _s1 = s[1]  # ya
@@ -508,7 +508,7 @@ def _optimality(t, s, p):
 
 
 def _objective(t, y, p):
-    """The objective f0(y, t) (kernel; 45 operations, 48 before CSE)."""
+    """The objective f0(y, t) (kernel; 41 operations, 48 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # pa
     _y1 = y[1]  # qa
@@ -525,7 +525,7 @@ def _objective(t, y, p):
 
 
 def _gradient(t, y, p):
-    """grad_y f0(y, t) (kernel; 55 operations, 160 before CSE)."""
+    """grad_y f0(y, t) (kernel; 49 operations, 164 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # pa
     _y1 = y[1]  # qa
@@ -554,7 +554,7 @@ def _gradient(t, y, p):
 
 
 def _hessian(t, y, p):
-    """grad_yy f0(y, t) (kernel; 85 operations, 1268 before CSE)."""
+    """grad_yy f0(y, t) (kernel; 86 operations, 1308 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # pa
     _y1 = y[1]  # qa

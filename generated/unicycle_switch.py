@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 843d4c97a299cfa6b4472c893ab6c16e24a11dff9aae21344557621344d6ef37
+# content sha256: bdbedcabd82b38683492871ccf99e34f0ca053e514533f38ee602372364990ea
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -218,7 +218,7 @@ def _lu_solve(a, b):
     return numpy.moveaxis(x, 0, -1)
 
 def _jet(t, s, p, a):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 143 operations, 203 before CSE)."""
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 142 operations, 193 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -313,7 +313,7 @@ def _closed_loop(t, s, p, w, z):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 96 operations, 143 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 92 operations, 137 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -350,7 +350,7 @@ def _optimality(t, s, p):
 
 
 def _objective(t, y, p):
-    """The objective f0(y, t) (kernel; 45 operations, 50 before CSE)."""
+    """The objective f0(y, t) (kernel; 43 operations, 50 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y1
     _y1 = y[1]  # y2
@@ -368,7 +368,7 @@ def _objective(t, y, p):
 
 
 def _gradient(t, y, p):
-    """grad_y f0(y, t) (kernel; 45 operations, 56 before CSE)."""
+    """grad_y f0(y, t) (kernel; 43 operations, 56 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y1
     _y1 = y[1]  # y2

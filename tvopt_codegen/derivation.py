@@ -354,6 +354,37 @@ def _singular_set(det: sp.Expr) -> tuple[str, ...]:
     return tuple(conditions)
 
 
+def _sparse_derivatives(
+    f0: sp.Expr, y: Sequence[sp.Symbol]
+) -> tuple[sp.ImmutableMatrix, sp.ImmutableMatrix]:
+    """Gradient and Hessian of ``f0``, differentiating only where a variable occurs.
+
+    A sum over agents is split into its terms once; each gradient entry sums the
+    derivatives of the terms that contain its output, and each Hessian entry
+    differentiates a gradient entry only by the outputs it contains. For N agents
+    coupled to their neighbours this is linear in N where the dense sweep is cubic.
+    The Hessian is filled symmetrically from its upper triangle (equal by Schwarz, and
+    then equal as expressions too).
+    """
+    terms = sp.Add.make_args(f0)
+    by_output: dict[sp.Symbol, list[sp.Expr]] = {yi: [] for yi in y}
+    for term in terms:
+        for yi in term.free_symbols & by_output.keys():
+            by_output[yi].append(term)
+    gradient = [sp.Add(*(sp.diff(term, yi) for term in by_output[yi])) for yi in y]
+    m = len(y)
+    entries: dict[tuple[int, int], sp.Expr] = {}
+    for i, gi in enumerate(gradient):
+        free = gi.free_symbols
+        for j in range(i, m):
+            if y[j] in free:
+                value = sp.diff(gi, y[j])
+                if value != 0:
+                    entries[(i, j)] = entries[(j, i)] = value
+    hessian = sp.ImmutableMatrix(m, m, lambda i, j: entries.get((i, j), sp.Integer(0)))
+    return sp.ImmutableMatrix(gradient), hessian
+
+
 def _check_convexity(
     model: Model, hessian: sp.ImmutableMatrix, y0: Sequence[float], t_final: float, source: str
 ) -> Convexity:
@@ -368,13 +399,27 @@ def _check_convexity(
     else:
         rng = np.random.default_rng(7)
         points = 24
-        func = sp.lambdify([*model.y, model.t], concrete, modules="numpy")
+        # Only the nonzero entries are compiled: a sparse Hessian printed whole costs
+        # time quadratic in its size.
+        m = len(model.y)
+        where = [(i, j) for i in range(m) for j in range(i, m) if concrete[i, j] != 0]
+        func = sp.lambdify(
+            [*model.y, model.t],
+            [concrete[i, j] for i, j in where],
+            modules="numpy",
+            docstring_limit=0,
+        )
+        rows = np.array([i for i, _ in where], dtype=int)
+        cols = np.array([j for _, j in where], dtype=int)
         smallest = np.inf
         for _ in range(points):
             y = np.asarray(y0) + rng.uniform(-0.1, 0.1, size=len(y0))
             t = rng.uniform(0.0, t_final)
+            matrix = np.zeros((m, m))
             with np.errstate(all="ignore"):
-                matrix = np.array(func(*y, t), dtype=float)
+                values = np.array(func(*y, t), dtype=float)
+            matrix[rows, cols] = values
+            matrix[cols, rows] = values
             if np.all(np.isfinite(matrix)):
                 smallest = min(smallest, float(np.linalg.eigvalsh(0.5 * (matrix + matrix.T)).min()))
         m_f = float(smallest)
@@ -569,9 +614,8 @@ def derive(
 
     say("objective")
     meter(model.f0)
-    gradient = sp.ImmutableMatrix([sp.diff(model.f0, yi) for yi in model.y])
+    gradient, hessian = _sparse_derivatives(model.f0, model.y)
     meter.matrix(gradient)
-    hessian = sp.ImmutableMatrix([[sp.diff(g, yj) for yj in model.y] for g in gradient])
     meter.matrix(hessian)
     values = {sym: sp.Float(v) for sym, v in zip(states, initial, strict=True)}
     values |= {q: sp.Float(v) for q, v in defaults.items()}

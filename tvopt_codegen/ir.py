@@ -111,8 +111,46 @@ def _slots(prefix: str, count: int) -> tuple[sp.Symbol, ...]:
     return tuple(sp.Symbol(f"_{prefix}{i}", real=True) for i in range(count))
 
 
+def operation_count(exprs: Iterable[sp.Expr]) -> int:
+    """Count the arithmetic operations and function calls that printing ``exprs`` costs.
+
+    A sum or product of ``n`` terms is ``n - 1`` operations (a factor ``-1`` is the
+    negation, or nothing in a sum, where it makes the subtraction; a factor ``b**-1`` is
+    the division), every other power and every function call one, a negative or
+    fractional literal one. Expressions are counted as trees, like sympy's
+    ``count_ops``, but in one memoized pass: linear in the size of the DAG, where
+    ``count_ops`` walks each expression anew.
+    """
+    memo: dict[tuple[sp.Basic, str], int] = {}
+
+    def own(node: sp.Basic, parent: str) -> int:
+        if node.is_Number:
+            if parent == "mul":
+                return 0
+            return int(node.is_negative is True) + int(node.is_Rational and not node.is_Integer)
+        if node.is_Atom:
+            return 0
+        if node.is_Add:
+            return len(node.args) - 1
+        if node.is_Mul:
+            negated = parent == "add" and node.args[0].is_Number and node.args[0].is_negative
+            return len(node.args) - 1 - int(bool(negated) and node.args[0] == -1)
+        if node.is_Pow and node.exp == -1:
+            return 0 if parent == "mul" else 1
+        return 1
+
+    def count(node: sp.Basic, parent: str = "") -> int:
+        key = (node, parent)
+        if key not in memo:
+            kind = "mul" if node.is_Mul else "add" if node.is_Add else ""
+            memo[key] = own(node, parent) + sum(count(arg, kind) for arg in node.args)
+        return memo[key]
+
+    return sum(count(sp.sympify(e)) for e in exprs)
+
+
 def _ops(exprs: Iterable[sp.Expr]) -> int:
-    return int(sum(sp.count_ops(e) for e in exprs))
+    return operation_count(exprs)
 
 
 def _drop_aliases(
@@ -143,6 +181,10 @@ def _prune(assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]) -> lis
     return kept[::-1]
 
 
+#: Programs up to this many operations get sympy's full cse; larger ones value numbering.
+SMALL_PROGRAM_OPS = 4000
+
+
 def ordered_cse(
     assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
 ) -> tuple[tuple[Assignment, ...], tuple[sp.Expr, ...]]:
@@ -169,9 +211,13 @@ def ordered_cse(
     """
     kept, outs = _drop_aliases(_prune(assignments, outputs), outputs)
     exprs = [value for _, value in kept] + outs
-    replacements, reduced = sp.cse(
-        exprs, symbols=sp.numbered_symbols("_cse", real=True), order="canonical"
-    )
+    names = sp.numbered_symbols("_cse", real=True)
+    if operation_count(exprs) <= SMALL_PROGRAM_OPS:
+        # sympy's cse also finds common parts of sums and products (a*b in a*b*c and
+        # a*b*d): worth its superlinear time on the programs of a few agents only.
+        replacements, reduced = sp.cse(exprs, symbols=names, order="canonical")
+    else:
+        replacements, reduced = _value_numbering(exprs, names)
     defined = dict(replacements)
     order: list[Assignment] = []
     emitted: set[sp.Symbol] = set()
@@ -196,6 +242,64 @@ def ordered_cse(
         body.append((new, value.xreplace(renames)))
         renames[sym] = new
     return tuple(body), tuple(e.xreplace(renames) for e in outs)
+
+
+def _value_numbering(
+    exprs: Sequence[sp.Expr], names: Iterable[sp.Symbol]
+) -> tuple[list[Assignment], list[sp.Expr]]:
+    """Common subexpression elimination by value numbering, linear in the DAG size.
+
+    Every compound subexpression that occurs more than once becomes a temporary. This
+    is the tree pass of ``sympy.cse`` without its search for common subsets of sums
+    and products, which is quadratic in their number of terms and took minutes on a
+    ring of three agents (issue 7). The jet arrives in three-address form, where
+    such subsets are already separate assignments, so little is lost.
+    """
+    names = iter(names)
+    seen: set[sp.Basic] = set()
+    repeated: set[sp.Basic] = set()
+
+    def worth(node: sp.Basic) -> bool:
+        # A negated symbol or number is not worth a temporary: printing it is free.
+        return not (
+            node.is_Atom
+            or (node.is_Mul and len(node.args) == 2 and node.args[0] == -1 and node.args[1].is_Atom)
+        )
+
+    def find(node: sp.Basic) -> None:
+        stack = [node]
+        while stack:
+            current = stack.pop()
+            if not worth(current):
+                continue
+            if current in seen:
+                repeated.add(current)
+                continue
+            seen.add(current)
+            stack.extend(current.args)
+
+    for expr in exprs:
+        find(expr)
+    replacements: list[Assignment] = []
+    built: dict[sp.Basic, sp.Expr] = {}
+
+    def build(node: sp.Basic) -> sp.Expr:
+        if node.is_Atom:
+            return node
+        if node in built:
+            return built[node]
+        args = [build(arg) for arg in node.args]
+        same = all(a is b for a, b in zip(args, node.args, strict=True))
+        new = node if same else node.func(*args)
+        if node in repeated:
+            sym = next(names)
+            replacements.append((sym, new))
+            new = sym
+        built[node] = new
+        return new
+
+    reduced = [build(sp.sympify(e)) for e in exprs]
+    return replacements, reduced
 
 
 def _inline_single_use(
@@ -258,7 +362,10 @@ def canonical_odd(expr: sp.Expr) -> sp.Expr:
             return False
         return bool(sp.default_sort_key(sp.expand(other)) < sp.default_sort_key(sp.expand(arg)))
 
-    return sp.sympify(expr).replace(
+    expr = sp.sympify(expr)
+    if not expr.atoms(*_ODD):
+        return expr
+    return expr.replace(
         lambda e: isinstance(e, _ODD) and flips(e), lambda e: -e.func(negate(e.args[0]))
     )
 

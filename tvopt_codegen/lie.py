@@ -85,13 +85,31 @@ class Sampler:
         return bool(np.all(np.abs(finite) <= tol))
 
 
-def lie_derivative(expr: sp.Expr, field: sp.MatrixBase, x: Sequence[sp.Symbol]) -> sp.Expr:
-    """Return ``L_field expr = (d expr / dx) field`` without expanding."""
-    total = sp.Integer(0)
-    for xi, fi in zip(x, field, strict=True):
-        if fi != 0:
-            total += sp.diff(expr, xi) * fi
-    return total
+def _lie_row(
+    expr: sp.Expr,
+    f: sp.MatrixBase,
+    columns: Sequence[Sequence[tuple[int, sp.Expr]]],
+    x: Sequence[sp.Symbol],
+    width: int,
+) -> tuple[sp.Expr, list[sp.Expr]]:
+    """Return ``L_f expr`` and the row ``L_G expr`` from one sparse gradient of ``expr``.
+
+    Only the states that occur in ``expr`` are differentiated, and only the nonzero
+    entries of G are visited (``columns[i]`` lists them for state ``i``): for N agents
+    the dense sweep is quadratic in N, this one linear.
+    """
+    free = sp.sympify(expr).free_symbols
+    drift = sp.Integer(0)
+    row: list[sp.Expr] = [sp.Integer(0)] * width
+    for i, xi in enumerate(x):
+        if xi not in free:
+            continue
+        partial = sp.diff(expr, xi)
+        if f[i] != 0:
+            drift += partial * f[i]
+        for c, gic in columns[i]:
+            row[c] += partial * gic
+    return drift, row
 
 
 @dataclass(frozen=True)
@@ -236,6 +254,8 @@ def relative_degree(
         Per-output relative degrees, Lie derivative chains and the decoupling matrix.
     """
     n = len(x)
+    width = G.shape[1]
+    columns = [[(c, G[i, c]) for c in range(width) if G[i, c] != 0] for i in range(n)]
     degrees: list[int | None] = []
     chains: list[tuple[sp.Expr, ...]] = []
     rows: list[list[sp.Expr]] = []
@@ -243,9 +263,8 @@ def relative_degree(
         chain = [hi if not sampler.is_zero(hi) else sp.Integer(0)]
         found: int | None = None
         for order in range(n):
-            row = [lie_derivative(chain[-1], G[:, c], x) for c in range(G.shape[1])]
+            nxt, row = _lie_row(chain[-1], f, columns, x, width)
             row = [sp.Integer(0) if sampler.is_zero(e) else e for e in row]
-            nxt = lie_derivative(chain[-1], f, x)
             if check is not None:
                 check(nxt)
                 for entry in row:

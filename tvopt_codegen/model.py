@@ -102,10 +102,14 @@ def build_model(spec: Spec) -> Model:
     G_rows = []
     f_rows = []
     for state, rhs in zip(spec.states, spec.dynamics, strict=True):
-        row = [sp.diff(rhs, uj) for uj in u]
+        # Only the inputs that occur are differentiated: a plant of N agents has N times
+        # the inputs, each in a few equations, and a dense sweep would be quadratic.
+        present = rhs.free_symbols
+        row = [sp.diff(rhs, uj) if uj in present else sp.Integer(0) for uj in u]
         for j, gij in enumerate(row):
+            occurring = gij.free_symbols
             for uk in u:
-                if not sampler.is_zero(sp.diff(gij, uk)):
+                if uk in occurring and not sampler.is_zero(sp.diff(gij, uk)):
                     raise SpecError(
                         spec.source,
                         f"system.dynamics.{state}",

@@ -455,7 +455,11 @@ def _provenance(d: Derivation, kernels: KernelSet) -> Section:
         (
             Entry(
                 "table",
-                text="Kernels of the generated code (operation counts by sympy's count_ops).",
+                text=(
+                    "Kernels of the generated code (operations: a sum or product of n "
+                    "terms counts n - 1, every power, division, negation and function "
+                    "call one)."
+                ),
                 header=("kernel", "what", "ops before CSE", "ops after CSE"),
                 rows=rows,
             ),

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 9eb33cbc0816485f5ee78da27d52bfdbbf7b5a4f876e66c4fc72d05613910627
+ * content sha256: 90933d920555fbcedd624010e2c75400ce492b3e454c03e87994f185a60ed326
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -35,7 +35,7 @@ const double flexible_joint_default_params[FLEXIBLE_JOINT_N_PARAMS] = {2.0, 1.0,
 const double flexible_joint_default_state[FLEXIBLE_JOINT_N_STATES] = {0.5, 0.0, 0.5, 0.0};
 const double flexible_joint_hurwitz_coefficients[FLEXIBLE_JOINT_K] = {-15.0, -33.5, -26.0, -8.5};
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (267 operations, 349 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (256 operations, 335 before CSE). */
 static void flexible_joint_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* q1 */
@@ -154,7 +154,7 @@ static void flexible_joint_k_decoupling(double t, const double *s, const double 
 }
 
 
-/* Closed-loop vector field and the plant input (13 operations, 13 before CSE). */
+/* Closed-loop vector field and the plant input (14 operations, 16 before CSE). */
 static void flexible_joint_k_closed_loop(double t, const double *s, const double *p, const double *w, const double *z, double *ds, double *u)
 {
     (void)t;
@@ -190,7 +190,7 @@ static void flexible_joint_k_plant_input(double t, const double *s, const double
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (148 operations, 199 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (137 operations, 184 before CSE). */
 static void flexible_joint_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* q1 */
@@ -254,7 +254,7 @@ static void flexible_joint_k_optimality(double t, const double *s, const double 
 }
 
 
-/* The objective f0(y, t) (15 operations, 16 before CSE). */
+/* The objective f0(y, t) (12 operations, 13 before CSE). */
 static void flexible_joint_k_objective(double t, const double *y, const double *p, double *f0)
 {
     const double _y0 = y[0]; /* y */
@@ -264,7 +264,7 @@ static void flexible_joint_k_objective(double t, const double *y, const double *
 }
 
 
-/* grad_y f0(y, t) (18 operations, 19 before CSE). */
+/* grad_y f0(y, t) (16 operations, 17 before CSE). */
 static void flexible_joint_k_gradient(double t, const double *y, const double *p, double *grad)
 {
     const double _y0 = y[0]; /* y */
@@ -275,7 +275,7 @@ static void flexible_joint_k_gradient(double t, const double *y, const double *p
 }
 
 
-/* grad_yy f0(y, t) (17 operations, 18 before CSE). */
+/* grad_yy f0(y, t) (15 operations, 16 before CSE). */
 static void flexible_joint_k_hessian(double t, const double *y, const double *p, double *hess)
 {
     const double _y0 = y[0]; /* y */

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: e4c73d43f1025db3ba7e9d8fb35632c3d2a72341055db4650e7370893af9b3c1
+ * content sha256: 62b6c0ee34d82eac46f964e077caf0fd17058efd51409ec62f82f59ac99bbcd3
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -35,7 +35,7 @@ const double integrator_default_params[INTEGRATOR_N_PARAMS] = {2.0};
 const double integrator_default_state[INTEGRATOR_N_STATES] = {-1.0, 1.5};
 const double integrator_hurwitz_coefficients[INTEGRATOR_K] = {-1.0};
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (31 operations, 42 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (30 operations, 39 before CSE). */
 static void integrator_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* x1 */
@@ -103,7 +103,7 @@ static void integrator_k_plant_input(double t, const double *s, const double *p,
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (17 operations, 32 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (17 operations, 30 before CSE). */
 static void integrator_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* x1 */

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: e2c3fa6dbff0e3d2cf6805521f4a89ec5610b6e14d54a5f6d9338a493b342681
+ * content sha256: e8bb6ea7955d398dfbfd07adae88d9fd86a68261d9e06ddc8d93cdc0fce6b151
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -35,7 +35,7 @@ const double two_unicycles_barrier_default_params[TWO_UNICYCLES_BARRIER_N_PARAMS
 const double two_unicycles_barrier_default_state[TWO_UNICYCLES_BARRIER_N_STATES] = {-4.5, -3.5, 0.0, -3.5, -3.5, 0.0, 1.0, 1.0};
 const double two_unicycles_barrier_hurwitz_coefficients[TWO_UNICYCLES_BARRIER_K] = {-1.5, -2.5};
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (304 operations, 1552 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (305 operations, 1572 before CSE). */
 static void two_unicycles_barrier_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* xa */
@@ -266,7 +266,7 @@ static void two_unicycles_barrier_k_plant_input(double t, const double *s, const
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (134 operations, 182 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (133 operations, 166 before CSE). */
 static void two_unicycles_barrier_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* xa */
@@ -329,7 +329,7 @@ static void two_unicycles_barrier_k_optimality(double t, const double *s, const 
 }
 
 
-/* The objective f0(y, t) (45 operations, 48 before CSE). */
+/* The objective f0(y, t) (41 operations, 48 before CSE). */
 static void two_unicycles_barrier_k_objective(double t, const double *y, const double *p, double *f0)
 {
     const double _y0 = y[0]; /* pa */
@@ -343,7 +343,7 @@ static void two_unicycles_barrier_k_objective(double t, const double *y, const d
 }
 
 
-/* grad_y f0(y, t) (55 operations, 160 before CSE). */
+/* grad_y f0(y, t) (49 operations, 164 before CSE). */
 static void two_unicycles_barrier_k_gradient(double t, const double *y, const double *p, double *grad)
 {
     const double _y0 = y[0]; /* pa */
@@ -369,7 +369,7 @@ static void two_unicycles_barrier_k_gradient(double t, const double *y, const do
 }
 
 
-/* grad_yy f0(y, t) (85 operations, 1268 before CSE). */
+/* grad_yy f0(y, t) (86 operations, 1308 before CSE). */
 static void two_unicycles_barrier_k_hessian(double t, const double *y, const double *p, double *hess)
 {
     (void)t;

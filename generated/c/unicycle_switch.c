@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 89c9dfcec73f24beca90c5854b5ddc959f28f291d9c37a5d54867ef69f1ac860
+ * content sha256: d96686030d469af65ec114c32e898a8a6abd86fd153369c5b0604b277062e827
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -35,7 +35,7 @@ const double unicycle_switch_default_params[UNICYCLE_SWITCH_N_PARAMS] = {10.0, 1
 const double unicycle_switch_default_state[UNICYCLE_SWITCH_N_STATES] = {-5.0, 4.0, 0.0, 1.0};
 const double unicycle_switch_hurwitz_coefficients[UNICYCLE_SWITCH_K] = {-1.5, -2.5};
 
-/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (143 operations, 203 before CSE). */
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (142 operations, 193 before CSE). */
 static void unicycle_switch_k_jet(double t, const double *s, const double *p, const double *a, double *z, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* x1 */
@@ -138,7 +138,7 @@ static void unicycle_switch_k_plant_input(double t, const double *s, const doubl
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (96 operations, 143 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (92 operations, 137 before CSE). */
 static void unicycle_switch_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* x1 */
@@ -172,7 +172,7 @@ static void unicycle_switch_k_optimality(double t, const double *s, const double
 }
 
 
-/* The objective f0(y, t) (45 operations, 50 before CSE). */
+/* The objective f0(y, t) (43 operations, 50 before CSE). */
 static void unicycle_switch_k_objective(double t, const double *y, const double *p, double *f0)
 {
     const double _y0 = y[0]; /* y1 */
@@ -187,7 +187,7 @@ static void unicycle_switch_k_objective(double t, const double *y, const double 
 }
 
 
-/* grad_y f0(y, t) (45 operations, 56 before CSE). */
+/* grad_y f0(y, t) (43 operations, 56 before CSE). */
 static void unicycle_switch_k_gradient(double t, const double *y, const double *p, double *grad)
 {
     const double _y0 = y[0]; /* y1 */
