@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 INSTALLED := $(VENV)/.installed
-EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint
+EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring
 
 .PHONY: all demo figures bench test lint typecheck check regen check-generated update-golden clean
 
@@ -42,6 +42,11 @@ test: $(INSTALLED)
 bench: $(INSTALLED)
 	$(PY) -m pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/bench_c.py --write benchmarks/RESULTS.md
+
+## bench-derive: derivation time and operations for unicycle_ring, N = 1..32, vs CasADi and naive sympy
+bench-derive: $(INSTALLED)
+	$(PY) -m pip install --quiet -e '.[bench]'
+	$(PY) benchmarks/bench_derive.py --write benchmarks/DERIVE.md
 
 ## lint: ruff and mypy (strict) over the package
 lint: $(INSTALLED)

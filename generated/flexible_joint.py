@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 03ab5789f18694ee9bb56bf084077a4b47f36a1ab12170d027c12e94a94b564d
+# content sha256: 50a96423436cca071299c9fb8a1234e0a6cb51b61abae42bfec6216c82abf930
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -166,32 +166,47 @@ def _check_finite(what, *arrays):
 
 
 
-def _cholesky_solve(a, b):
-    """Solve ``a x = b`` for symmetric positive definite ``a`` (m, m, N), ``b`` (m, N)."""
-    m = b.shape[0]
-    lower = numpy.zeros_like(a)
-    scale = numpy.max(numpy.abs(a.reshape(m * m, -1)), axis=0)
-    for j in range(m):
-        pivot = a[j, j] - numpy.sum(lower[j, :j] ** 2, axis=0)
-        bad = ~(pivot > PIVOT_TOLERANCE * scale)
-        if bad.any():
-            index = int(numpy.argmax(bad))
-            raise HessianNotPositiveDefiniteError(
-                "the Hessian of f0 is not positive definite (column "
-                f"{index}): f0 is not strongly convex at this output and time", index)
-        lower[j, j] = numpy.sqrt(pivot)
-        for i in range(j + 1, m):
-            lower[i, j] = (a[i, j] - numpy.sum(lower[i, :j] * lower[j, :j], axis=0)) / lower[j, j]
-    x = b.copy()
-    for i in range(m):
-        x[i] = (x[i] - numpy.sum(lower[i, :i] * x[:i], axis=0)) / lower[i, i]
-    for i in reversed(range(m)):
-        x[i] = (x[i] - numpy.sum(lower[i + 1:, i] * x[i + 1:], axis=0)) / lower[i, i]
-    return x
+def _cholesky_solve(h, c):
+    """Solve ``Hess z = c`` (``h``: the Hessian's nonzero lower entries) and check it."""
+    with numpy.errstate(all="ignore"):
+        z, pivot = _cholesky(h, c)
+    scale = numpy.max(numpy.abs(h), axis=0)
+    bad = ~numpy.all(pivot > PIVOT_TOLERANCE * scale, axis=0)
+    if bad.any():
+        index = int(numpy.argmax(bad))
+        raise HessianNotPositiveDefiniteError(
+            "the Hessian of f0 is not positive definite (column "
+            f"{index}): f0 is not strongly convex at this output and time", index)
+    return z
 
 
-def _lu_solve(a, b):
-    """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N)."""
+#: Diagonal blocks of the decoupling matrix R, grouped by size: (size, where each
+#: block's entries start in the R output, the outputs of each block).
+_R_GROUPS = (
+    (1, (0,), ((0,),)),
+)
+
+
+def _solve_decoupling(r, b):
+    """Solve ``R w = b`` block by block; blocks of one size are one batch."""
+    count = b.shape[1]
+    w = numpy.empty_like(b)
+    for size, starts, rows in _R_GROUPS:
+        take = numpy.add.outer(numpy.array(starts), numpy.arange(size * size))
+        blocks = len(starts)
+        a = r[take].reshape(blocks, size, size, count).transpose(1, 2, 0, 3)
+        index = numpy.array(rows)
+        rhs = b[index].transpose(1, 0, 2).reshape(size, blocks * count)
+        x = _lu_solve(a.reshape(size, size, blocks * count), rhs, count)
+        w[index] = x.reshape(size, blocks, count).transpose(1, 0, 2)
+    return w
+
+
+def _lu_solve(a, b, points):
+    """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N).
+
+    Column ``c`` belongs to point ``c % points`` of the caller's batch.
+    """
     lu = numpy.moveaxis(a, -1, 0).copy()
     x = numpy.moveaxis(b, -1, 0).copy()
     count, m = x.shape
@@ -204,7 +219,7 @@ def _lu_solve(a, b):
         pivot = lu[:, j, j]
         bad = ~(numpy.abs(pivot) > PIVOT_TOLERANCE * scale)
         if bad.any():
-            index = int(numpy.argmax(bad))
+            index = int(numpy.argmax(bad)) % points
             raise SingularDecouplingError(
                 f"the decoupling matrix R is singular (column {index})"
                 "; R is singular where stiffness = 0"
@@ -318,15 +333,30 @@ def _jet(t, s, p, a):
     _t83 = _s0 - _t4
     _t84 = 1/_p2
     # Output terms
-    hessian = numpy.empty((1, 1, _n))  # grad_yy f0
-    hessian[0, 0] = -numpy.sinh(_t83)**2/numpy.cosh(_t83)**2 + 3
+    hessian = numpy.empty((1, _n))  # nonzero entries of the lower triangle of grad_yy f0
+    hessian[0] = -numpy.sinh(_t83)**2/numpy.cosh(_t83)**2 + 3
     jet_rhs = numpy.empty((1, _n))  # sum_i a_i grad^(i) f0 - rest
     jet_rhs[0] = _a0*(2*_s0 - _t23*_t25 - 2*_t4) + _a1*(2*_s1 - _t23*_t32 - _t25*_t30 - 2*_t7) + _a2*(2*_t17 - _t23*_t43 - _t25*_t40 + 2*_t44 - 2*_t8) + _a3*(2*_t19 - _t23*_t61 - _t25*_t56 + _t62 + _t63 + 2*_t64 - 2*_t9) + 2*_t10 + _t23*(_t10*_t31 + _t26*(_t26*(_t24*_t26**2 + _t33*_t57) + _t41*_t45 + 2*_t73) + _t74 + _t75 + 2*_t76) + _t25*(-_t28*(-2*_t37*_t50 - _t38*(-_t36*_t51 + 12*_t28**2/_t22**5) + 2*_t69) - _t29*(_t10*_t27 + _t26*(_t26*(_t21*_t26**2 + _t33*_t46) + _t34*_t45 + 2*_t65) + _t66 + _t67 + 2*_t68) + _t70 + _t71 + 2*_t72) - _t77 - _t79 - _t80 - _t81 - 2*_t82
-    R = numpy.empty((1, 1, _n))  # decoupling matrix
-    R[0, 0] = _t15*_t84
+    R = numpy.empty((1, _n))  # diagonal blocks of the decoupling matrix
+    R[0] = _t15*_t84
     pvec = numpy.empty((1, _n))  # p = col(L_f^{r_i} h_i)
     pvec[0] = _p3**2*_t11*_t14*_t84 + _s1**2*_t13 + _t16*_t18
     return hessian, jet_rhs, R, pvec
+
+
+def _cholesky(h, c):
+    """Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots (kernel; 5 operations, 5 before CSE)."""
+    _n = h.shape[1]
+    _h0 = h[0]  # H[0, 0]
+    _c0 = c[0]  # c[0]
+    # Intermediate terms (1)
+    _t0 = 1/numpy.sqrt(_h0)
+    # Output terms
+    z = numpy.empty((1, _n))  # y_imp^(k)
+    z[0] = _c0*_t0**2
+    pivot = numpy.empty((1, _n))  # pivots of the elimination, positive if Hess > 0
+    pivot[0] = _h0
+    return z, pivot
 
 
 def _decoupling(t, s, p, z, q):
@@ -484,7 +514,7 @@ def _law(t, s, p):
         b = _decoupling(t, s, p, z, pvec)
     _check_finite("v - p", b)
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
-    w = _lu_solve(r, b)
+    w = _solve_decoupling(r, b)
     with numpy.errstate(all="ignore"):
         ds, u = _closed_loop(t, s, p, w, z)
     _check_finite("the closed-loop vector field", ds, u)

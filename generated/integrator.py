@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 75c9758cee03dfddfc2c6e58475665650a45d14997303eb7324cdfb01f439294
+# content sha256: 069e72a02645edb16f6ab525e24b4e4e4e29117cd9eb67eb664ca0ce326b8063
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -162,32 +162,47 @@ def _check_finite(what, *arrays):
 
 
 
-def _cholesky_solve(a, b):
-    """Solve ``a x = b`` for symmetric positive definite ``a`` (m, m, N), ``b`` (m, N)."""
-    m = b.shape[0]
-    lower = numpy.zeros_like(a)
-    scale = numpy.max(numpy.abs(a.reshape(m * m, -1)), axis=0)
-    for j in range(m):
-        pivot = a[j, j] - numpy.sum(lower[j, :j] ** 2, axis=0)
-        bad = ~(pivot > PIVOT_TOLERANCE * scale)
-        if bad.any():
-            index = int(numpy.argmax(bad))
-            raise HessianNotPositiveDefiniteError(
-                "the Hessian of f0 is not positive definite (column "
-                f"{index}): f0 is not strongly convex at this output and time", index)
-        lower[j, j] = numpy.sqrt(pivot)
-        for i in range(j + 1, m):
-            lower[i, j] = (a[i, j] - numpy.sum(lower[i, :j] * lower[j, :j], axis=0)) / lower[j, j]
-    x = b.copy()
-    for i in range(m):
-        x[i] = (x[i] - numpy.sum(lower[i, :i] * x[:i], axis=0)) / lower[i, i]
-    for i in reversed(range(m)):
-        x[i] = (x[i] - numpy.sum(lower[i + 1:, i] * x[i + 1:], axis=0)) / lower[i, i]
-    return x
+def _cholesky_solve(h, c):
+    """Solve ``Hess z = c`` (``h``: the Hessian's nonzero lower entries) and check it."""
+    with numpy.errstate(all="ignore"):
+        z, pivot = _cholesky(h, c)
+    scale = numpy.max(numpy.abs(h), axis=0)
+    bad = ~numpy.all(pivot > PIVOT_TOLERANCE * scale, axis=0)
+    if bad.any():
+        index = int(numpy.argmax(bad))
+        raise HessianNotPositiveDefiniteError(
+            "the Hessian of f0 is not positive definite (column "
+            f"{index}): f0 is not strongly convex at this output and time", index)
+    return z
 
 
-def _lu_solve(a, b):
-    """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N)."""
+#: Diagonal blocks of the decoupling matrix R, grouped by size: (size, where each
+#: block's entries start in the R output, the outputs of each block).
+_R_GROUPS = (
+    (1, (0, 1), ((0,), (1,))),
+)
+
+
+def _solve_decoupling(r, b):
+    """Solve ``R w = b`` block by block; blocks of one size are one batch."""
+    count = b.shape[1]
+    w = numpy.empty_like(b)
+    for size, starts, rows in _R_GROUPS:
+        take = numpy.add.outer(numpy.array(starts), numpy.arange(size * size))
+        blocks = len(starts)
+        a = r[take].reshape(blocks, size, size, count).transpose(1, 2, 0, 3)
+        index = numpy.array(rows)
+        rhs = b[index].transpose(1, 0, 2).reshape(size, blocks * count)
+        x = _lu_solve(a.reshape(size, size, blocks * count), rhs, count)
+        w[index] = x.reshape(size, blocks, count).transpose(1, 0, 2)
+    return w
+
+
+def _lu_solve(a, b, points):
+    """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N).
+
+    Column ``c`` belongs to point ``c % points`` of the caller's batch.
+    """
     lu = numpy.moveaxis(a, -1, 0).copy()
     x = numpy.moveaxis(b, -1, 0).copy()
     count, m = x.shape
@@ -200,7 +215,7 @@ def _lu_solve(a, b):
         pivot = lu[:, j, j]
         bad = ~(numpy.abs(pivot) > PIVOT_TOLERANCE * scale)
         if bad.any():
-            index = int(numpy.argmax(bad))
+            index = int(numpy.argmax(bad)) % points
             raise SingularDecouplingError(
                 f"the decoupling matrix R is singular (column {index})"
                 , index)
@@ -222,23 +237,39 @@ def _jet(t, s, p, a):
     _t0 = t**2
     _t1 = (1/2)*_p0
     # Output terms
-    hessian = numpy.empty((2, 2, _n))  # grad_yy f0
-    hessian[0, 0] = 1
-    hessian[0, 1] = 0
-    hessian[1, 0] = 0
-    hessian[1, 1] = _p0
+    hessian = numpy.empty((2, _n))  # nonzero entries of the lower triangle of grad_yy f0
+    hessian[0] = 1
+    hessian[1] = _p0
     jet_rhs = numpy.empty((2, _n))  # sum_i a_i grad^(i) f0 - rest
     jet_rhs[0] = _a0*(_s0 + (1/20)*_t0 - 4/5*t - 2) - 1/10*t + 4/5
     jet_rhs[1] = _a0*_t1*(2*_s1 - 1/25*_t0 + (1/500)*t**3 - t + 2) - _t1*((3/500)*_t0 - 2/25*t - 1)
-    R = numpy.empty((2, 2, _n))  # decoupling matrix
-    R[0, 0] = 1
-    R[0, 1] = 0
-    R[1, 0] = 0
-    R[1, 1] = 1
+    R = numpy.empty((2, _n))  # diagonal blocks of the decoupling matrix
+    R[0] = 1
+    R[1] = 1
     pvec = numpy.empty((2, _n))  # p = col(L_f^{r_i} h_i)
     pvec[0] = 0
     pvec[1] = 0
     return hessian, jet_rhs, R, pvec
+
+
+def _cholesky(h, c):
+    """Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots (kernel; 10 operations, 10 before CSE)."""
+    _n = h.shape[1]
+    _h0 = h[0]  # H[0, 0]
+    _h1 = h[1]  # H[1, 1]
+    _c0 = c[0]  # c[0]
+    _c1 = c[1]  # c[1]
+    # Intermediate terms (2)
+    _t0 = 1/numpy.sqrt(_h0)
+    _t1 = 1/numpy.sqrt(_h1)
+    # Output terms
+    z = numpy.empty((2, _n))  # y_imp^(k)
+    z[0] = _c0*_t0**2
+    z[1] = _c1*_t1**2
+    pivot = numpy.empty((2, _n))  # pivots of the elimination, positive if Hess > 0
+    pivot[0] = _h0
+    pivot[1] = _h1
+    return z, pivot
 
 
 def _decoupling(t, s, p, z, q):
@@ -340,7 +371,7 @@ def _law(t, s, p):
         b = _decoupling(t, s, p, z, pvec)
     _check_finite("v - p", b)
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
-    w = _lu_solve(r, b)
+    w = _solve_decoupling(r, b)
     with numpy.errstate(all="ignore"):
         ds, u = _closed_loop(t, s, p, w, z)
     _check_finite("the closed-loop vector field", ds, u)

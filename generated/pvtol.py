@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: 686220e8982f3d456498c9b7c5e89f2df2128981060aec9c89cf89718252d098
+# content sha256: bb1235189e98b58460f55db282a22dbf977a4072c69bd953d3b2a86b1a73efc1
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -172,32 +172,33 @@ def _check_finite(what, *arrays):
 
 
 
-def _cholesky_solve(a, b):
-    """Solve ``a x = b`` for symmetric positive definite ``a`` (m, m, N), ``b`` (m, N)."""
-    m = b.shape[0]
-    lower = numpy.zeros_like(a)
-    scale = numpy.max(numpy.abs(a.reshape(m * m, -1)), axis=0)
-    for j in range(m):
-        pivot = a[j, j] - numpy.sum(lower[j, :j] ** 2, axis=0)
-        bad = ~(pivot > PIVOT_TOLERANCE * scale)
-        if bad.any():
-            index = int(numpy.argmax(bad))
-            raise HessianNotPositiveDefiniteError(
-                "the Hessian of f0 is not positive definite (column "
-                f"{index}): f0 is not strongly convex at this output and time", index)
-        lower[j, j] = numpy.sqrt(pivot)
-        for i in range(j + 1, m):
-            lower[i, j] = (a[i, j] - numpy.sum(lower[i, :j] * lower[j, :j], axis=0)) / lower[j, j]
-    x = b.copy()
-    for i in range(m):
-        x[i] = (x[i] - numpy.sum(lower[i, :i] * x[:i], axis=0)) / lower[i, i]
-    for i in reversed(range(m)):
-        x[i] = (x[i] - numpy.sum(lower[i + 1:, i] * x[i + 1:], axis=0)) / lower[i, i]
-    return x
+#: Diagonal blocks of the decoupling matrix R, grouped by size: (size, where each
+#: block's entries start in the R output, the outputs of each block).
+_R_GROUPS = (
+    (2, (0,), ((0, 1),)),
+)
 
 
-def _lu_solve(a, b):
-    """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N)."""
+def _solve_decoupling(r, b):
+    """Solve ``R w = b`` block by block; blocks of one size are one batch."""
+    count = b.shape[1]
+    w = numpy.empty_like(b)
+    for size, starts, rows in _R_GROUPS:
+        take = numpy.add.outer(numpy.array(starts), numpy.arange(size * size))
+        blocks = len(starts)
+        a = r[take].reshape(blocks, size, size, count).transpose(1, 2, 0, 3)
+        index = numpy.array(rows)
+        rhs = b[index].transpose(1, 0, 2).reshape(size, blocks * count)
+        x = _lu_solve(a.reshape(size, size, blocks * count), rhs, count)
+        w[index] = x.reshape(size, blocks, count).transpose(1, 0, 2)
+    return w
+
+
+def _lu_solve(a, b, points):
+    """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N).
+
+    Column ``c`` belongs to point ``c % points`` of the caller's batch.
+    """
     lu = numpy.moveaxis(a, -1, 0).copy()
     x = numpy.moveaxis(b, -1, 0).copy()
     count, m = x.shape
@@ -210,7 +211,7 @@ def _lu_solve(a, b):
         pivot = lu[:, j, j]
         bad = ~(numpy.abs(pivot) > PIVOT_TOLERANCE * scale)
         if bad.any():
-            index = int(numpy.argmax(bad))
+            index = int(numpy.argmax(bad)) % points
             raise SingularDecouplingError(
                 f"the decoupling matrix R is singular (column {index})"
                 "; R is singular where thrust = 0"
@@ -265,11 +266,11 @@ def _jet(t, s, p, a):
     z = numpy.empty((2, _n))  # y_imp^(k)
     z[0] = (24/625)*_t1 + _t18*(2*_s0 - 3*_t1) + _t19*(2*_s3 - 6/5*_t2) + _t20*((12/25)*_t1 + 2*_t11) + _t21*(2*_t15 + (24/125)*_t2)
     z[1] = _t18*(2*_s1 - 8/5*_t4 + _t6 - 4) + _t19*(2*_s4 - 1/5*_t7 - 12/25*_t8) + _t20*(-2*_p0 - 2*_t16 + (18/125)*_t4 - 1/25*_t6) + _t21*(-2*_t17 + (1/125)*_t7 + (27/625)*_t8) + (81/12500)*_t4 - 1/1250*_t6
-    R = numpy.empty((2, 2, _n))  # decoupling matrix
-    R[0, 0] = -_t9
-    R[0, 1] = _t16
-    R[1, 0] = _t13
-    R[1, 1] = _t11
+    R = numpy.empty((4, _n))  # diagonal blocks of the decoupling matrix
+    R[0] = -_t9
+    R[1] = _t16
+    R[2] = _t13
+    R[3] = _t11
     pvec = numpy.empty((2, _n))  # p = col(L_f^{r_i} h_i)
     pvec[0] = -_s5*_s7*_t13 + _s5*_t17
     pvec[1] = -_s5*_t12 + _s5*_t15
@@ -402,7 +403,7 @@ def _law(t, s, p):
         b = _decoupling(t, s, p, z, pvec)
     _check_finite("v - p", b)
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
-    w = _lu_solve(r, b)
+    w = _solve_decoupling(r, b)
     with numpy.errstate(all="ignore"):
         ds, u = _closed_loop(t, s, p, w, z)
     _check_finite("the closed-loop vector field", ds, u)

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 2a5458fdf4bfc36cd014f44a93bb6255178adaf2d5f887e537ce36aa1e0146d2
+# content sha256: cd85c381d59adf79f54870b5b91f06ff6cc53de024acab50f147f38f8221da90
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -171,32 +171,47 @@ def _check_finite(what, *arrays):
 
 
 
-def _cholesky_solve(a, b):
-    """Solve ``a x = b`` for symmetric positive definite ``a`` (m, m, N), ``b`` (m, N)."""
-    m = b.shape[0]
-    lower = numpy.zeros_like(a)
-    scale = numpy.max(numpy.abs(a.reshape(m * m, -1)), axis=0)
-    for j in range(m):
-        pivot = a[j, j] - numpy.sum(lower[j, :j] ** 2, axis=0)
-        bad = ~(pivot > PIVOT_TOLERANCE * scale)
-        if bad.any():
-            index = int(numpy.argmax(bad))
-            raise HessianNotPositiveDefiniteError(
-                "the Hessian of f0 is not positive definite (column "
-                f"{index}): f0 is not strongly convex at this output and time", index)
-        lower[j, j] = numpy.sqrt(pivot)
-        for i in range(j + 1, m):
-            lower[i, j] = (a[i, j] - numpy.sum(lower[i, :j] * lower[j, :j], axis=0)) / lower[j, j]
-    x = b.copy()
-    for i in range(m):
-        x[i] = (x[i] - numpy.sum(lower[i, :i] * x[:i], axis=0)) / lower[i, i]
-    for i in reversed(range(m)):
-        x[i] = (x[i] - numpy.sum(lower[i + 1:, i] * x[i + 1:], axis=0)) / lower[i, i]
-    return x
+def _cholesky_solve(h, c):
+    """Solve ``Hess z = c`` (``h``: the Hessian's nonzero lower entries) and check it."""
+    with numpy.errstate(all="ignore"):
+        z, pivot = _cholesky(h, c)
+    scale = numpy.max(numpy.abs(h), axis=0)
+    bad = ~numpy.all(pivot > PIVOT_TOLERANCE * scale, axis=0)
+    if bad.any():
+        index = int(numpy.argmax(bad))
+        raise HessianNotPositiveDefiniteError(
+            "the Hessian of f0 is not positive definite (column "
+            f"{index}): f0 is not strongly convex at this output and time", index)
+    return z
 
 
-def _lu_solve(a, b):
-    """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N)."""
+#: Diagonal blocks of the decoupling matrix R, grouped by size: (size, where each
+#: block's entries start in the R output, the outputs of each block).
+_R_GROUPS = (
+    (2, (0, 4), ((0, 1), (2, 3))),
+)
+
+
+def _solve_decoupling(r, b):
+    """Solve ``R w = b`` block by block; blocks of one size are one batch."""
+    count = b.shape[1]
+    w = numpy.empty_like(b)
+    for size, starts, rows in _R_GROUPS:
+        take = numpy.add.outer(numpy.array(starts), numpy.arange(size * size))
+        blocks = len(starts)
+        a = r[take].reshape(blocks, size, size, count).transpose(1, 2, 0, 3)
+        index = numpy.array(rows)
+        rhs = b[index].transpose(1, 0, 2).reshape(size, blocks * count)
+        x = _lu_solve(a.reshape(size, size, blocks * count), rhs, count)
+        w[index] = x.reshape(size, blocks, count).transpose(1, 0, 2)
+    return w
+
+
+def _lu_solve(a, b, points):
+    """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N).
+
+    Column ``c`` belongs to point ``c % points`` of the caller's batch.
+    """
     lu = numpy.moveaxis(a, -1, 0).copy()
     x = numpy.moveaxis(b, -1, 0).copy()
     count, m = x.shape
@@ -209,7 +224,7 @@ def _lu_solve(a, b):
         pivot = lu[:, j, j]
         bad = ~(numpy.abs(pivot) > PIVOT_TOLERANCE * scale)
         if bad.any():
-            index = int(numpy.argmax(bad))
+            index = int(numpy.argmax(bad)) % points
             raise SingularDecouplingError(
                 f"the decoupling matrix R is singular (column {index})"
                 "; R is singular where va = 0; vb = 0"
@@ -222,7 +237,7 @@ def _lu_solve(a, b):
     return numpy.moveaxis(x, 0, -1)
 
 def _jet(t, s, p, a):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 305 operations, 1572 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 305 operations, 1112 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # xa
     _s1 = s[1]  # ya
@@ -236,7 +251,7 @@ def _jet(t, s, p, a):
     _p1 = p[1]  # d
     _a0 = a[0]  # a_0
     _a1 = a[1]  # a_1
-    # Intermediate terms (107)
+    # Intermediate terms (101)
     _t0 = t**2
     _t1 = numpy.cos(_s2)
     _t2 = _s6*_t1
@@ -327,69 +342,100 @@ def _jet(t, s, p, a):
     _t87 = _t31 + _t34
     _t88 = _t77*_t78
     _t89 = _t87*_t88
-    _t90 = _t83*_t89 + _t84*_t89
+    _t90 = _t78*_t87**2
     _t91 = -_t77
     _t92 = _t88*_t91
-    _t93 = _t83*_t92 + _t84*_t92 + _t85
-    _t94 = -_t87
-    _t95 = _t88*_t94
-    _t96 = _t83*_t95 + _t84*_t95
-    _t97 = _t78*_t87**2
-    _t98 = _t78*_t87
-    _t99 = _t91*_t98
-    _t100 = _t83*_t99 + _t84*_t99
-    _t101 = _t94*_t98
-    _t102 = _t101*_t83 + _t101*_t84 + _t85
-    _t103 = _t78*_t91**2
-    _t104 = _t78*_t91*_t94
-    _t105 = _t104*_t83 + _t104*_t84
-    _t106 = _t78*_t94**2
+    _t93 = _t78*_t87
+    _t94 = _t91*_t93
+    _t95 = _t78*_t91**2
+    _t96 = -_t87
+    _t97 = _t88*_t96
+    _t98 = _t93*_t96
+    _t99 = _t78*_t91*_t96
+    _t100 = _t78*_t96**2
     # Output terms
-    hessian = numpy.empty((4, 4, _n))  # grad_yy f0
-    hessian[0, 0] = _t79*_t83 + _t79*_t84 + _t86
-    hessian[0, 1] = _t90
-    hessian[0, 2] = _t93
-    hessian[0, 3] = _t96
-    hessian[1, 0] = _t90
-    hessian[1, 1] = _t83*_t97 + _t84*_t97 + _t86
-    hessian[1, 2] = _t100
-    hessian[1, 3] = _t102
-    hessian[2, 0] = _t93
-    hessian[2, 1] = _t100
-    hessian[2, 2] = _t103*_t83 + _t103*_t84 + _t86
-    hessian[2, 3] = _t105
-    hessian[3, 0] = _t96
-    hessian[3, 1] = _t102
-    hessian[3, 2] = _t105
-    hessian[3, 3] = _t106*_t83 + _t106*_t84 + _t86
+    hessian = numpy.empty((10, _n))  # nonzero entries of the lower triangle of grad_yy f0
+    hessian[0] = _t79*_t83 + _t79*_t84 + _t86
+    hessian[1] = _t83*_t89 + _t84*_t89
+    hessian[2] = _t83*_t90 + _t84*_t90 + _t86
+    hessian[3] = _t83*_t92 + _t84*_t92 + _t85
+    hessian[4] = _t83*_t94 + _t84*_t94
+    hessian[5] = _t83*_t95 + _t84*_t95 + _t86
+    hessian[6] = _t83*_t97 + _t84*_t97
+    hessian[7] = _t83*_t98 + _t84*_t98 + _t85
+    hessian[8] = _t83*_t99 + _t84*_t99
+    hessian[9] = _t100*_t83 + _t100*_t84 + _t86
     jet_rhs = numpy.empty((4, _n))  # sum_i a_i grad^(i) f0 - rest
     jet_rhs[0] = _a0*(-1/250*_t0 + _t14 + _t23*_t30 - t + 10) + _a1*(_t23*_t55 + _t30*_t50 + _t44 - 1/125*t - 1) - _t23*(_t26*_t68 + 2*_t69) - _t30*_t67 - 2*_t70 + 1/125
     jet_rhs[1] = _a0*((1/50)*_t0 + _t23*_t36 + _t32 - 3/5*t + 6) + _a1*(_t23*_t60 + _t36*_t50 + _t57 + (1/25)*t - 3/5) - _t23*(_t35*_t68 + 2*_t71) - _t36*_t67 - 2*_t72 - 1/25
     jet_rhs[2] = _a0*(-1/125*_t0 + _t23*_t39 + _t37 - 9/10*t + 4) + _a1*(_t23*_t63 + _t39*_t50 + _t61 - 2/125*t - 9/10) - _t23*(_t38*_t68 + 2*_t73) - _t39*_t67 - 2*_t74 + 2/125
     jet_rhs[3] = _a0*((3/125)*_t0 + _t23*_t42 + _t40 - 7/10*t + 6) + _a1*(_t23*_t66 + _t42*_t50 + _t64 + (6/125)*t - 7/10) - _t23*(_t41*_t68 + 2*_t75) - _t42*_t67 - 2*_t76 - 6/125
-    R = numpy.empty((4, 4, _n))  # decoupling matrix
-    R[0, 0] = _t1
-    R[0, 1] = -_t5
-    R[0, 2] = 0
-    R[0, 3] = 0
-    R[1, 0] = _t4
-    R[1, 1] = _t2
-    R[1, 2] = 0
-    R[1, 3] = 0
-    R[2, 0] = 0
-    R[2, 1] = 0
-    R[2, 2] = _t7
-    R[2, 3] = -_t11
-    R[3, 0] = 0
-    R[3, 1] = 0
-    R[3, 2] = _t10
-    R[3, 3] = _t8
+    R = numpy.empty((8, _n))  # diagonal blocks of the decoupling matrix
+    R[0] = _t1
+    R[1] = -_t5
+    R[2] = _t4
+    R[3] = _t2
+    R[4] = _t7
+    R[5] = -_t11
+    R[6] = _t10
+    R[7] = _t8
     pvec = numpy.empty((4, _n))  # p = col(L_f^{r_i} h_i)
     pvec[0] = 0
     pvec[1] = 0
     pvec[2] = 0
     pvec[3] = 0
     return hessian, jet_rhs, R, pvec
+
+
+def _cholesky(h, c):
+    """Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots (kernel; 70 operations, 70 before CSE)."""
+    _n = h.shape[1]
+    _h0 = h[0]  # H[0, 0]
+    _h1 = h[1]  # H[1, 0]
+    _h2 = h[2]  # H[1, 1]
+    _h3 = h[3]  # H[2, 0]
+    _h4 = h[4]  # H[2, 1]
+    _h5 = h[5]  # H[2, 2]
+    _h6 = h[6]  # H[3, 0]
+    _h7 = h[7]  # H[3, 1]
+    _h8 = h[8]  # H[3, 2]
+    _h9 = h[9]  # H[3, 3]
+    _c0 = c[0]  # c[0]
+    _c1 = c[1]  # c[1]
+    _c2 = c[2]  # c[2]
+    _c3 = c[3]  # c[3]
+    # Intermediate terms (19)
+    _t0 = 1/numpy.sqrt(_h0)
+    _t1 = _h1*_t0
+    _t2 = _h3*_t0
+    _t3 = _h6*_t0
+    _t4 = _h2 - _t1**2
+    _t5 = 1/numpy.sqrt(_t4)
+    _t6 = _t5*(_h4 - _t1*_t2)
+    _t7 = _t5*(_h7 - _t1*_t3)
+    _t8 = _h5 - _t2**2 - _t6**2
+    _t9 = 1/numpy.sqrt(_t8)
+    _t10 = _t9*(_h8 - _t2*_t3 - _t6*_t7)
+    _t11 = _h9 - _t10**2 - _t3**2 - _t7**2
+    _t12 = 1/numpy.sqrt(_t11)
+    _t13 = _c0*_t0
+    _t14 = _t5*(_c1 - _t1*_t13)
+    _t15 = _t9*(_c2 - _t13*_t2 - _t14*_t6)
+    _t16 = _t12**2*(_c3 - _t10*_t15 - _t13*_t3 - _t14*_t7)
+    _t17 = _t9*(-_t10*_t16 + _t15)
+    _t18 = _t5*(_t14 - _t16*_t7 - _t17*_t6)
+    # Output terms
+    z = numpy.empty((4, _n))  # y_imp^(k)
+    z[0] = _t0*(-_t1*_t18 + _t13 - _t16*_t3 - _t17*_t2)
+    z[1] = _t18
+    z[2] = _t17
+    z[3] = _t16
+    pivot = numpy.empty((4, _n))  # pivots of the elimination, positive if Hess > 0
+    pivot[0] = _h0
+    pivot[1] = _t4
+    pivot[2] = _t8
+    pivot[3] = _t11
+    return z, pivot
 
 
 def _decoupling(t, s, p, z, q):
@@ -628,7 +674,7 @@ def _law(t, s, p):
         b = _decoupling(t, s, p, z, pvec)
     _check_finite("v - p", b)
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
-    w = _lu_solve(r, b)
+    w = _solve_decoupling(r, b)
     with numpy.errstate(all="ignore"):
         ds, u = _closed_loop(t, s, p, w, z)
     _check_finite("the closed-loop vector field", ds, u)

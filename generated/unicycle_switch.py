@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: bdbedcabd82b38683492871ccf99e34f0ca053e514533f38ee602372364990ea
+# content sha256: c1bb8ab41b5df82b073fd2baa2162b017d5f6e443b76cb3302e3c07daac387ec
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -167,32 +167,33 @@ def _check_finite(what, *arrays):
 
 
 
-def _cholesky_solve(a, b):
-    """Solve ``a x = b`` for symmetric positive definite ``a`` (m, m, N), ``b`` (m, N)."""
-    m = b.shape[0]
-    lower = numpy.zeros_like(a)
-    scale = numpy.max(numpy.abs(a.reshape(m * m, -1)), axis=0)
-    for j in range(m):
-        pivot = a[j, j] - numpy.sum(lower[j, :j] ** 2, axis=0)
-        bad = ~(pivot > PIVOT_TOLERANCE * scale)
-        if bad.any():
-            index = int(numpy.argmax(bad))
-            raise HessianNotPositiveDefiniteError(
-                "the Hessian of f0 is not positive definite (column "
-                f"{index}): f0 is not strongly convex at this output and time", index)
-        lower[j, j] = numpy.sqrt(pivot)
-        for i in range(j + 1, m):
-            lower[i, j] = (a[i, j] - numpy.sum(lower[i, :j] * lower[j, :j], axis=0)) / lower[j, j]
-    x = b.copy()
-    for i in range(m):
-        x[i] = (x[i] - numpy.sum(lower[i, :i] * x[:i], axis=0)) / lower[i, i]
-    for i in reversed(range(m)):
-        x[i] = (x[i] - numpy.sum(lower[i + 1:, i] * x[i + 1:], axis=0)) / lower[i, i]
-    return x
+#: Diagonal blocks of the decoupling matrix R, grouped by size: (size, where each
+#: block's entries start in the R output, the outputs of each block).
+_R_GROUPS = (
+    (2, (0,), ((0, 1),)),
+)
 
 
-def _lu_solve(a, b):
-    """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N)."""
+def _solve_decoupling(r, b):
+    """Solve ``R w = b`` block by block; blocks of one size are one batch."""
+    count = b.shape[1]
+    w = numpy.empty_like(b)
+    for size, starts, rows in _R_GROUPS:
+        take = numpy.add.outer(numpy.array(starts), numpy.arange(size * size))
+        blocks = len(starts)
+        a = r[take].reshape(blocks, size, size, count).transpose(1, 2, 0, 3)
+        index = numpy.array(rows)
+        rhs = b[index].transpose(1, 0, 2).reshape(size, blocks * count)
+        x = _lu_solve(a.reshape(size, size, blocks * count), rhs, count)
+        w[index] = x.reshape(size, blocks, count).transpose(1, 0, 2)
+    return w
+
+
+def _lu_solve(a, b, points):
+    """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N).
+
+    Column ``c`` belongs to point ``c % points`` of the caller's batch.
+    """
     lu = numpy.moveaxis(a, -1, 0).copy()
     x = numpy.moveaxis(b, -1, 0).copy()
     count, m = x.shape
@@ -205,7 +206,7 @@ def _lu_solve(a, b):
         pivot = lu[:, j, j]
         bad = ~(numpy.abs(pivot) > PIVOT_TOLERANCE * scale)
         if bad.any():
-            index = int(numpy.argmax(bad))
+            index = int(numpy.argmax(bad)) % points
             raise SingularDecouplingError(
                 f"the decoupling matrix R is singular (column {index})"
                 "; R is singular where v = 0"
@@ -268,11 +269,11 @@ def _jet(t, s, p, a):
     z = numpy.empty((2, _n))  # y_imp^(k)
     z[0] = -1/2*_t15*_t5 - 1/50*_t16 - 1/2*_t17*_t29 - 1/50*_t2 - _t28 - _t30 + _t33*(_t15*_t2 + _t16*_t17) + _t34*(_t15*_t4 + _t16*_t24 + _t17*_t23 + _t2*_t22)
     z[1] = (3/2500)*_t16*(t - 25) - 1/2*_t19*_t5 + (1/500)*_t2*(20 - 3*t) - 1/2*_t20*_t29 - _t31 - _t32 + _t33*(_t16*_t20 + _t19*_t2) + _t34*(_t16*_t27 + _t19*_t4 + _t2*_t26 + _t20*_t23)
-    R = numpy.empty((2, 2, _n))  # decoupling matrix
-    R[0, 0] = _t10
-    R[0, 1] = -_t13
-    R[1, 0] = _t12
-    R[1, 1] = _t11
+    R = numpy.empty((4, _n))  # diagonal blocks of the decoupling matrix
+    R[0] = _t10
+    R[1] = -_t13
+    R[2] = _t12
+    R[3] = _t11
     pvec = numpy.empty((2, _n))  # p = col(L_f^{r_i} h_i)
     pvec[0] = 0
     pvec[1] = 0
@@ -412,7 +413,7 @@ def _law(t, s, p):
         b = _decoupling(t, s, p, z, pvec)
     _check_finite("v - p", b)
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
-    w = _lu_solve(r, b)
+    w = _solve_decoupling(r, b)
     with numpy.errstate(all="ignore"):
         ds, u = _closed_loop(t, s, p, w, z)
     _check_finite("the closed-loop vector field", ds, u)

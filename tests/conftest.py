@@ -21,7 +21,14 @@ from tvopt_codegen.spec import load_spec
 
 ROOT = Path(__file__).resolve().parent.parent
 SPECS = Path(__file__).resolve().parent / "specs"
-EXAMPLES = ("integrator", "unicycle_switch", "two_unicycles_barrier", "pvtol", "flexible_joint")
+EXAMPLES = (
+    "integrator",
+    "unicycle_switch",
+    "two_unicycles_barrier",
+    "pvtol",
+    "flexible_joint",
+    "unicycle_ring",
+)
 #: Every spec the closed-loop and oracle tests run: the bundled examples plus test specs.
 ALL_SPECS = (*EXAMPLES, str(SPECS / "nonuniform.toml"))
 

@@ -149,7 +149,8 @@ HARNESS = """
 
 int main(void)
 {{
-    double s[{P}_N_STATES], out[{P}_N_STATES * {P}_K + 16], y[{P}_N_OUTPUTS];
+    double s[{P}_N_STATES], y[{P}_N_OUTPUTS];
+    double out[{P}_N_STATES * {P}_K + {P}_N_OUTPUTS * {P}_N_OUTPUTS + 16];
     unsigned long seed = 12345UL;
     int i, j, counts[5] = {{0, 0, 0, 0, 0}};
     for (i = 0; i < 2000; ++i) {{

@@ -153,3 +153,19 @@ def test_demo_spec_file_path_works(tmp_path: Path) -> None:
     spec = ROOT / "tvopt_codegen" / "examples" / "integrator.toml"
     assert main(["generate", str(spec), "--out", str(tmp_path), "--quiet"]) == 0
     assert (tmp_path / "integrator.py").exists()
+
+
+def test_derivation_progress_names_stage_count_and_time(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["check", "unicycle_ring", "--progress", "always"]) == 0
+    lines = capsys.readouterr().err.splitlines()
+    stages = [line.split(":")[1].split(",")[0].strip() for line in lines]
+    assert stages[0] == "model" and "gradient jet" in stages and stages[-1] == "error bound"
+    counts = [int(line.split(", ")[1].split()[0]) for line in lines]
+    seconds = [float(line.rsplit(", ", 1)[1].removesuffix(" s")) for line in lines]
+    assert counts == sorted(counts) and counts[-1] > 100
+    assert seconds == sorted(seconds)
+    # Off a terminal the default says nothing: logs and error messages stay clean.
+    assert main(["check", "unicycle_ring"]) == 0
+    assert capsys.readouterr().err == ""

@@ -140,7 +140,8 @@ def test_non_finite_input_raises() -> None:
 
 def test_hessian_that_is_not_positive_definite_raises() -> None:
     mod = module("integrator")
-    indefinite = np.array([[[1.0], [2.0]], [[2.0], [1.0]]])
+    # The integrator's Hessian is diagonal: the kernel takes H00 and H11 only.
+    indefinite = np.array([[1.0], [-1.0]])
     with pytest.raises(mod.HessianNotPositiveDefiniteError, match="not positive definite"):
         mod._cholesky_solve(indefinite, np.ones((2, 1)))
     with pytest.raises(mod.HessianNotPositiveDefiniteError):

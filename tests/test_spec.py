@@ -132,6 +132,7 @@ def test_bundled_examples_are_listed_and_load() -> None:
         "two_unicycles_barrier",
         "pvtol",
         "flexible_joint",
+        "unicycle_ring",
     }
     for name in examples:
         spec = load_spec(name)

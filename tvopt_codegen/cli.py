@@ -155,6 +155,13 @@ def _parser() -> argparse.ArgumentParser:
             "search the smallest one that makes the plant linearizable",
         )
         command.add_argument(
+            "--progress",
+            choices=("auto", "always", "never"),
+            default="auto",
+            help="show the derivation's progress on stderr: on a terminal after 2 s "
+            "(auto, the default), always, or never",
+        )
+        command.add_argument(
             "--max-seconds",
             type=float,
             default=Budget.seconds,
@@ -178,7 +185,39 @@ def _derive(args: argparse.Namespace) -> Derivation:
     spec = load_spec(args.spec)
     if args.extension == "auto":
         spec = dataclasses.replace(spec, extension=(), extension_auto=True)
-    return derive(spec, budget=Budget(args.max_seconds, args.max_size))
+    progress = _DeriveProgress(args.progress)
+    try:
+        return derive(spec, progress=progress, budget=Budget(args.max_seconds, args.max_size))
+    finally:
+        progress.close()
+
+
+class _DeriveProgress:
+    """The derivation's stage, expressions built and elapsed time, on stderr.
+
+    ``auto`` shows it on a terminal only, once the derivation has taken 2 s (one
+    updating line); ``always`` prints a line per report (for logs); ``never`` nothing.
+    Errors stay one line: an updating line is cleared before anything else is printed.
+    """
+
+    def __init__(self, mode: str) -> None:
+        self.terminal = sys.stderr.isatty()
+        self.mode = mode
+        self.shown = False
+
+    def __call__(self, stage: str, expressions: int, seconds: float) -> None:
+        if self.mode == "never" or (self.mode == "auto" and (not self.terminal or seconds < 2)):
+            return
+        text = f"  deriving: {stage}, {expressions} expressions built, {seconds:.1f} s"
+        if self.terminal:
+            print(f"{text:<72}", end="\r", file=sys.stderr, flush=True)
+        else:
+            print(text, file=sys.stderr, flush=True)
+        self.shown = True
+
+    def close(self) -> None:
+        if self.shown and self.terminal:
+            print(" " * 72, end="\r", file=sys.stderr, flush=True)
 
 
 def _assignments(items: Sequence[str], option: str) -> dict[str, float]:

@@ -208,14 +208,34 @@ def tree_size(expr: sp.Expr, limit: int) -> int:
 class _Meter:
     """Checks the budget as expressions are built; knows the current stage's name."""
 
-    def __init__(self, source: str, budget: Budget) -> None:
+    def __init__(
+        self,
+        source: str,
+        budget: Budget,
+        progress: Callable[[str, int, float], None] | None = None,
+    ) -> None:
         self.source = source
         self.budget = budget
-        self.deadline = time.perf_counter() + budget.seconds
+        self.start = time.perf_counter()
+        self.deadline = self.start + budget.seconds
         self.stage = "model"
+        self.progress = progress
+        self.expressions = 0
+        self.last_report = self.start
+
+    def report(self) -> None:
+        """Tell the progress callback the stage, expressions built so far and time."""
+        if self.progress is not None:
+            now = time.perf_counter()
+            self.last_report = now
+            self.progress(self.stage, self.expressions, now - self.start)
 
     def __call__(self, expr: sp.Expr) -> None:
-        if time.perf_counter() > self.deadline:
+        self.expressions += 1
+        now = time.perf_counter()
+        if now - self.last_report > 0.5:
+            self.report()
+        if now > self.deadline:
             raise BudgetError(
                 self.source,
                 self.stage,
@@ -435,7 +455,9 @@ def _check_convexity(
 
 
 def derive(
-    spec: Spec, progress: Callable[[str], None] | None = None, budget: Budget | None = None
+    spec: Spec,
+    progress: Callable[[str, int, float], None] | None = None,
+    budget: Budget | None = None,
 ) -> Derivation:
     """Run the paper's derivation for a spec.
 
@@ -444,7 +466,9 @@ def derive(
     spec : Spec
         A validated spec.
     progress : callable, optional
-        Called with the name of each step as it starts (for long derivations).
+        Called as ``progress(stage, expressions, seconds)`` when each step starts and
+        every half second within one: the step's name, how many expressions the
+        derivation has built so far and the time since it began.
     budget : Budget, optional
         Time and size limits (default :class:`Budget`).
 
@@ -466,12 +490,11 @@ def derive(
     BudgetError
         When a stage takes longer or builds larger expressions than the budget allows.
     """
-    meter = _Meter(spec.source, budget or Budget())
+    meter = _Meter(spec.source, budget or Budget(), progress)
 
     def say(stage: str) -> None:
         meter.stage = stage
-        if progress is not None:
-            progress(stage)
+        meter.report()
 
     clock = _Clock()
     source = spec.source

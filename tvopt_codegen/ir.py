@@ -95,10 +95,27 @@ class Kernel:
 
 @dataclass(frozen=True)
 class KernelSet:
-    """All kernels of one controller, with the derivation they came from."""
+    """All kernels of one controller, with the derivation they came from.
+
+    Attributes
+    ----------
+    derivation : Derivation
+        The derived law.
+    kernels : tuple of Kernel
+        The kernels, see :func:`lower`.
+    r_blocks : tuple of tuple of int
+        The diagonal blocks of R (output indices of each, in order). The ``R`` output
+        of the ``jet`` kernel holds each block's entries row by row, block after block;
+        a block-diagonal R (one block per agent) is solved block by block.
+    lu_ops : int
+        Operations of the LU solves of those blocks (with pivoting), counted like
+        kernel operations.
+    """
 
     derivation: Derivation
     kernels: tuple[Kernel, ...]
+    r_blocks: tuple[tuple[int, ...], ...] = ()
+    lu_ops: int = 0
 
     def __getitem__(self, name: str) -> Kernel:
         for kernel in self.kernels:
@@ -407,6 +424,157 @@ def _kernel(
     )
 
 
+def diagonal_blocks(matrix: sp.MatrixBase) -> tuple[tuple[int, ...], ...]:
+    """The finest symmetric block-diagonal partition of a square matrix's pattern.
+
+    Rows ``i`` and ``j`` share a block when ``matrix[i, j]`` or ``matrix[j, i]`` is not
+    structurally zero (connected components, found by union-find). Blocks are ordered
+    by their first index.
+    """
+    m = matrix.shape[0]
+    parent = list(range(m))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i in range(m):
+        for j in range(m):
+            if i != j and matrix[i, j] != 0:
+                parent[root(i)] = root(j)
+    blocks: dict[int, list[int]] = {}
+    for i in range(m):
+        blocks.setdefault(root(i), []).append(i)
+    return tuple(sorted((tuple(b) for b in blocks.values()), key=lambda b: b[0]))
+
+
+def lu_operations(size: int) -> int:
+    """Operations of the generated LU solve with partial pivoting of one block."""
+    factor = sum(1 + 2 * (size - j) + 2 for j in range(size) for _ in range(j + 1, size))
+    return factor + sum(2 * (size - j - 1) + 1 for j in range(size))
+
+
+def _fill(pattern: set[tuple[int, int]], order: Sequence[int]) -> list[list[int]]:
+    """Column patterns of the Cholesky factor of a symmetric pattern in a given order.
+
+    ``pattern`` holds the structurally nonzero ``(i, j)`` of the matrix; the result
+    lists, for each column ``b`` of the permuted factor, the rows ``a > b`` that are
+    nonzero in L (the matrix's own entries plus fill from elimination).
+    """
+    position = {index: a for a, index in enumerate(order)}
+    below: list[set[int]] = [set() for _ in order]
+    for i, j in pattern:
+        a, b = position[i], position[j]
+        if a > b:
+            below[b].add(a)
+    columns: list[list[int]] = []
+    for b in range(len(order)):
+        rows = sorted(below[b])
+        columns.append(rows)
+        # Eliminating b connects all its later neighbours: that is the fill.
+        for x, first in enumerate(rows):
+            for second in rows[x + 1 :]:
+                below[first].add(second)
+    return columns
+
+
+def elimination_order(pattern: set[tuple[int, int]], m: int) -> tuple[int, ...]:
+    """Order the Cholesky elimination: natural, or reverse Cuthill-McKee if it fills less."""
+    from scipy.sparse import csr_matrix  # noqa: PLC0415 - only needed here
+    from scipy.sparse.csgraph import reverse_cuthill_mckee  # noqa: PLC0415
+
+    natural = tuple(range(m))
+    if not pattern:
+        return natural
+    rows, cols = zip(*sorted(pattern), strict=True)
+    graph = csr_matrix(([1] * len(rows), (rows, cols)), shape=(m, m))
+    rcm = tuple(int(i) for i in reverse_cuthill_mckee(graph, symmetric_mode=True))
+
+    def size(order: Sequence[int]) -> int:
+        return sum(len(c) for c in _fill(pattern, order))
+
+    return rcm if size(rcm) < size(natural) else natural
+
+
+def cholesky_program(
+    entries: Sequence[tuple[int, int]], m: int, h: Sequence[sp.Symbol], c: Sequence[sp.Symbol]
+) -> tuple[list[Assignment], list[sp.Expr], list[sp.Expr]]:
+    """A straight-line sparse Cholesky solve of ``Hess z = c``.
+
+    Parameters
+    ----------
+    entries : sequence of (int, int)
+        The structurally nonzero ``(i, j)``, ``i >= j``, of the symmetric matrix, in the
+        order of its input symbols ``h``.
+    m : int
+        The matrix size.
+    h, c : sequence of sympy.Symbol
+        Symbols of the entries and of the right-hand side.
+
+    Returns
+    -------
+    assignments : list of (sympy.Symbol, sympy.Expr)
+        The factorization and both triangular solves, one small expression each.
+    z : list of sympy.Expr
+        The solution, in the matrix's own order.
+    pivots : list of sympy.Expr
+        ``d_b = A_bb - sum_k L_bk^2`` of each elimination step: the matrix is positive
+        definite (to the tolerance) when every one is positive, checked by the caller
+        before the result is used.
+
+    Notes
+    -----
+    Only the entries of L that the pattern and its fill make nonzero are formed, in an
+    elimination order chosen to fill little (:func:`elimination_order`): for a ring of
+    agents that is linear in their number where a dense factorization is cubic.
+    """
+    pattern = {(i, j) for i, j in entries} | {(j, i) for i, j in entries}
+    order = elimination_order(pattern, m)
+    position = {index: a for a, index in enumerate(order)}
+    value: dict[tuple[int, int], sp.Expr] = {}
+    for symbol, (i, j) in zip(h, entries, strict=True):
+        a, b = sorted((position[i], position[j]), reverse=True)
+        value[(a, b)] = symbol
+    columns = _fill(pattern, order)
+    names = (sp.Symbol(f"_chol{i}", real=True) for i in range(10**9))
+    program: list[Assignment] = []
+
+    def assign(expr: sp.Expr) -> sp.Expr:
+        if expr.is_Atom:
+            return expr
+        symbol = next(names)
+        program.append((symbol, expr))
+        return symbol
+
+    lower: dict[tuple[int, int], sp.Expr] = {}
+    row_entries: list[list[int]] = [[] for _ in range(m)]  # columns k < a with L[a, k] != 0
+    inverse: list[sp.Expr] = []
+    pivots: list[sp.Expr] = []
+    for b in range(m):
+        pivot = assign(
+            value.get((b, b), sp.Integer(0)) - sp.Add(*(lower[(b, k)] ** 2 for k in row_entries[b]))
+        )
+        pivots.append(pivot)
+        inverse.append(assign(1 / sp.sqrt(pivot)))
+        for a in columns[b]:
+            shared = set(row_entries[a]) & set(row_entries[b])
+            dot = sp.Add(*(lower[(a, k)] * lower[(b, k)] for k in sorted(shared)))
+            lower[(a, b)] = assign((value.get((a, b), sp.Integer(0)) - dot) * inverse[b])
+            row_entries[a].append(b)
+    forward: list[sp.Expr] = []
+    for a in range(m):
+        dot = sp.Add(*(lower[(a, k)] * forward[k] for k in row_entries[a]))
+        forward.append(assign((c[order[a]] - dot) * inverse[a]))
+    backward: dict[int, sp.Expr] = {}
+    for a in reversed(range(m)):
+        dot = sp.Add(*(lower[(k, a)] * backward[k] for k in columns[a]))
+        backward[a] = assign((forward[a] - dot) * inverse[a])
+    z = [backward[position[i]] for i in range(m)]
+    return program, z, pivots
+
+
 def lower(derivation: Derivation) -> KernelSet:
     """Lower a derivation to the kernels every backend prints.
 
@@ -454,11 +622,19 @@ def lower(derivation: Derivation) -> KernelSet:
         for i in range(m)
     ]
     jet_program = signal_block + y_block + jet_block + list(d.rest_program.assignments)
+    # R goes out block by block (its diagonal blocks, one per agent in a team): the
+    # zeros between agents are never stored and each block is solved on its own.
+    r_blocks = diagonal_blocks(d.R)
+    r_entries = [d.R[i, j] for block in r_blocks for i in block for j in block]
     # R and p share their trigonometry with the output jet: one kernel, one CSE.
     shared: list[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]] = [
-        ("R", (m, m), list(d.R), "decoupling matrix"),
+        ("R", (len(r_entries),), r_entries, "diagonal blocks of the decoupling matrix"),
         ("pvec", (m,), list(d.p), "p = col(L_f^{r_i} h_i)"),
     ]
+    # The Hessian goes out as the nonzero entries of its lower triangle.
+    hess_entries = [(i, j) for i in range(m) for j in range(i + 1) if d.hessian[i, j] != 0]
+    if not any(i == j for i, j in hess_entries):
+        hess_entries = sorted({*hess_entries, *((i, i) for i in range(m))})
     if all(sp.sympify(e).is_Number for e in hess):
         # A constant Hessian (quadratic f0) is inverted once, exactly, at generation time:
         # a constant, not a symbolic inverse of a function, and no run-time Cholesky.
@@ -472,6 +648,7 @@ def lower(derivation: Derivation) -> KernelSet:
             [("z", (m,), y_imp, "y_imp^(k)"), *shared],
             subs,
         )
+        cholesky = None
     else:
         jet = _kernel(
             "jet",
@@ -479,11 +656,32 @@ def lower(derivation: Derivation) -> KernelSet:
             [arg_t, arg_s, arg_p, arg_a],
             jet_program,
             [
-                ("hessian", (m, m), hess, "grad_yy f0"),
+                (
+                    "hessian",
+                    (len(hess_entries),),
+                    [d.hessian[i, j] for i, j in hess_entries],
+                    "nonzero entries of the lower triangle of grad_yy f0",
+                ),
                 ("jet_rhs", (m,), jet_rhs, "sum_i a_i grad^(i) f0 - rest"),
                 *shared,
             ],
             subs,
+        )
+        h_slots, c_slots = _slots("h", len(hess_entries)), _slots("c", m)
+        program, solution, pivots = cholesky_program(hess_entries, m, h_slots, c_slots)
+        cholesky = _kernel(
+            "cholesky",
+            "Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots",
+            [
+                Arg("h", h_slots, tuple(f"H[{i}, {j}]" for i, j in hess_entries), "Hessian"),
+                Arg("c", c_slots, tuple(f"c[{i}]" for i in range(m)), "right-hand side"),
+            ],
+            program,
+            [
+                ("z", (m,), solution, "y_imp^(k)"),
+                ("pivot", (m,), pivots, "pivots of the elimination, positive if Hess > 0"),
+            ],
+            {},
         )
 
     v = []
@@ -573,6 +771,7 @@ def lower(derivation: Derivation) -> KernelSet:
         d,
         (
             jet,
+            *((cholesky,) if cholesky is not None else ()),
             decoupling,
             closed_loop,
             plant_input_kernel,
@@ -581,4 +780,6 @@ def lower(derivation: Derivation) -> KernelSet:
             gradient,
             hessian,
         ),
+        r_blocks,
+        sum(lu_operations(len(block)) for block in r_blocks),
     )

@@ -93,11 +93,50 @@ def _power(base: sp.Expr, exponent: sp.Expr, column: int) -> sp.Expr:
     return sp.Pow(base, exponent)
 
 
+#: Most terms all ``sum(i, ...)`` of one expression may expand to.
+MAX_SUM_TERMS = 4096
+
+
+def indexed_name(base: str, value: int) -> str:
+    """The declared name that ``base[value]`` stands for (``x[2]`` is ``x_2``)."""
+    return f"{base}_{value}"
+
+
+@dataclass(frozen=True)
+class Indexing:
+    """Indices of a spec with repeated parts (the ``[index]`` table).
+
+    Attributes
+    ----------
+    counts : mapping of str to int
+        Each index name and how many values it takes (``0 .. count - 1``).
+    families : mapping of str to int
+        Each indexed name's base and its length: ``x[i]`` declared with ``i = 4``
+        declares ``x_0 .. x_3``, and ``x[k]`` reads ``x_(k mod 4)`` (so ``x[i + 1]``
+        wraps around a ring).
+    bound : mapping of str to int
+        The value of each index in scope (from an indexed key or an enclosing sum).
+    """
+
+    counts: Mapping[str, int]
+    families: Mapping[str, int]
+    bound: Mapping[str, int]
+
+    def bind(self, index: str, value: int) -> Indexing:
+        """The same indexing with ``index`` bound to ``value``."""
+        return Indexing(self.counts, self.families, {**self.bound, index: value})
+
+
+NO_INDEXING = Indexing({}, {}, {})
+
+
 class _TreeBuilder:
     """Walks a parse tree and builds the sympy expression, rejecting anything else."""
 
-    def __init__(self, names: Mapping[str, sp.Expr]) -> None:
+    def __init__(self, names: Mapping[str, sp.Expr], indexing: Indexing) -> None:
         self.names = names
+        self.indexing = indexing
+        self.sum_terms = 0
 
     def build(self, node: ast.AST, depth: int) -> sp.Expr:
         # The source was wrapped in one pair of parentheses: offsets are already 1-based.
@@ -119,9 +158,19 @@ class _TreeBuilder:
             return self.binop(node, depth, column)
         if isinstance(node, ast.Call):
             return self.call(node, depth, column)
+        if isinstance(node, ast.Subscript) and self.indexing.families:
+            return self.subscript(node, column)
         raise ExpressionError(column, _describe_forbidden(node))
 
     def name(self, ident: str, column: int) -> sp.Expr:
+        if ident in self.indexing.bound:
+            return sp.Integer(self.indexing.bound[ident])
+        if ident in self.indexing.counts:
+            raise ExpressionError(
+                column,
+                f"index {ident!r} is not bound here: use it inside sum({ident}, ...) or in a "
+                f"key written with [{ident}]",
+            )
         if ident in self.names:
             return self.names[ident]
         if ident in CONSTANTS:
@@ -149,7 +198,94 @@ class _TreeBuilder:
             return _power(left, right, column)
         raise ExpressionError(column, f"operator {type(node.op).__name__} is not allowed")
 
+    def subscript(self, node: ast.Subscript, column: int) -> sp.Expr:
+        """``x[k]``: the member ``k mod len(x)`` of an indexed family."""
+        families = self.indexing.families
+        if not isinstance(node.value, ast.Name) or node.value.id not in families:
+            what = ast.unparse(node.value)
+            known = ", ".join(sorted(families))
+            raise ExpressionError(
+                column, f"{what!r} is not an indexed name (indexed names: {known})"
+            )
+        base = node.value.id
+        value = self.integer(node.slice, column) % families[base]
+        return self.name(indexed_name(base, value), column)
+
+    def integer(self, node: ast.AST, column: int) -> int:
+        """Evaluate an index expression: integers, bound indices, len(i), + - * // %."""
+        if isinstance(node, ast.Constant) and type(node.value) is int:
+            if abs(node.value) > MAX_LITERAL:
+                raise ExpressionError(column, "index literal too large")
+            return node.value
+        if isinstance(node, ast.Name) and node.id in self.indexing.bound:
+            return self.indexing.bound[node.id]
+        if isinstance(node, ast.Name) and node.id in self.indexing.counts:
+            raise ExpressionError(column, f"index {node.id!r} is not bound here")
+        if isinstance(node, ast.Call) and self.is_len(node):
+            return self.indexing.counts[node.args[0].id]  # type: ignore[attr-defined]
+        if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub):
+            return -self.integer(node.operand, column)
+        if isinstance(node, ast.BinOp):
+            left = self.integer(node.left, column)
+            right = self.integer(node.right, column)
+            if isinstance(node.op, ast.Add):
+                return left + right
+            if isinstance(node.op, ast.Sub):
+                return left - right
+            if isinstance(node.op, ast.Mult):
+                return left * right
+            if isinstance(node.op, ast.FloorDiv | ast.Mod):
+                if right == 0:
+                    raise ExpressionError(column, "index division by zero")
+                return left // right if isinstance(node.op, ast.FloorDiv) else left % right
+        raise ExpressionError(
+            column,
+            "an index must be an integer expression of indices, whole numbers, len(i) "
+            "and + - * // %",
+        )
+
+    def is_len(self, node: ast.Call) -> bool:
+        return (
+            isinstance(node.func, ast.Name)
+            and node.func.id == "len"
+            and len(node.args) == 1
+            and not node.keywords
+            and isinstance(node.args[0], ast.Name)
+            and node.args[0].id in self.indexing.counts
+        )
+
+    def indexed_sum(self, node: ast.Call, depth: int, column: int) -> sp.Expr:
+        """``sum(i, body)``: body added up over every value of the index ``i``."""
+        counts = self.indexing.counts
+        if len(node.args) != 2 or node.keywords or not isinstance(node.args[0], ast.Name):
+            raise ExpressionError(column, "write a sum as sum(i, expression) with an index i")
+        index = node.args[0].id
+        if index not in counts:
+            known = ", ".join(sorted(counts)) or "none declared"
+            raise ExpressionError(column, f"sum over {index!r}, which is not an index ({known})")
+        if index in self.indexing.bound:
+            raise ExpressionError(column, f"index {index!r} is already bound here")
+        self.sum_terms += counts[index]
+        if self.sum_terms > MAX_SUM_TERMS:
+            raise ExpressionError(column, f"sums expand to more than {MAX_SUM_TERMS} terms")
+        outer = self.indexing
+        terms = []
+        try:
+            for value in range(counts[index]):
+                self.indexing = outer.bind(index, value)
+                terms.append(self.build(node.args[1], depth + 1))
+        finally:
+            self.indexing = outer
+        return sp.Add(*terms)
+
     def call(self, node: ast.Call, depth: int, column: int) -> sp.Expr:
+        if isinstance(node.func, ast.Name) and self.indexing.counts:
+            if node.func.id == "sum":
+                return self.indexed_sum(node, depth, column)
+            if node.func.id == "len":
+                if not self.is_len(node):
+                    raise ExpressionError(column, "len() takes one index name")
+                return sp.Integer(self.integer(node, column))
         if not isinstance(node.func, ast.Name) or node.func.id not in FUNCTIONS:
             what = ast.unparse(node.func)
             what = what if len(what) <= 40 else what[:37] + "..."
@@ -193,7 +329,9 @@ def _describe_forbidden(node: ast.AST) -> str:
     return f"{type(node).__name__} is not allowed in expressions"
 
 
-def parse_expression(text: str, names: Mapping[str, sp.Expr]) -> sp.Expr:
+def parse_expression(
+    text: str, names: Mapping[str, sp.Expr], indexing: Indexing = NO_INDEXING
+) -> sp.Expr:
     """Parse one spec expression into sympy without evaluating any Python.
 
     Parameters
@@ -202,6 +340,9 @@ def parse_expression(text: str, names: Mapping[str, sp.Expr]) -> sp.Expr:
         The expression as written in the spec, e.g. ``"v*cos(theta)"``.
     names : Mapping[str, sympy.Expr]
         The names the expression may use and the sympy objects they stand for.
+    indexing : Indexing, optional
+        Indices of a spec with repeated parts: then ``x[i + 1]``, ``sum(i, ...)`` and
+        ``len(i)`` are understood.
 
     Returns
     -------
@@ -237,7 +378,7 @@ def parse_expression(text: str, names: Mapping[str, sp.Expr]) -> sp.Expr:
     except (RecursionError, MemoryError, ValueError):
         raise ExpressionError(1, "expression too deeply nested") from None
     try:
-        expr = _TreeBuilder(names).build(tree.body, 0)
+        expr = _TreeBuilder(names, indexing).build(tree.body, 0)
     except RecursionError:
         raise ExpressionError(1, "expression too deeply nested") from None
     if expr.has(sp.zoo, sp.nan, sp.oo, -sp.oo):

@@ -146,7 +146,7 @@ def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
         )
         used_arg = bool(slots) or (arg.name == "t" and sp.Symbol("t", real=True) in used)
         args.append(PrintedArg(arg.name, arg.doc, slots, used_arg))
-    batch = next(arg.name for arg in kernel.inputs if arg.name in ("s", "y"))
+    batch = next(arg.name for arg in kernel.inputs if arg.name in ("s", "y", "h"))
     body = tuple((sym.name, printer.doprint(value)) for sym, value in kernel.body)
     outputs = []
     for out in kernel.outputs:
@@ -218,6 +218,23 @@ def render_template(template_name: str, context: dict[str, Any]) -> str:
     return text.replace(HASH_PLACEHOLDER, stamp_hash(text), 1)
 
 
+def _block_groups(
+    blocks: tuple[tuple[int, ...], ...],
+) -> list[tuple[int, tuple[int, ...], tuple[tuple[int, ...], ...]]]:
+    """Group diagonal blocks by size: (size, offset of each block's entries, its rows).
+
+    Blocks of one size are solved together as one batch in NumPy.
+    """
+    groups: dict[int, tuple[list[int], list[tuple[int, ...]]]] = {}
+    offset = 0
+    for block in blocks:
+        starts, rows = groups.setdefault(len(block), ([], []))
+        starts.append(offset)
+        rows.append(block)
+        offset += len(block) ** 2
+    return [(size, tuple(starts), tuple(rows)) for size, (starts, rows) in groups.items()]
+
+
 def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
     """Render all files of one backend for one controller.
 
@@ -252,6 +269,8 @@ def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
             "relative_degree": dict(zip(d.spec.outputs, d.relative_degree, strict=True)),
             "prefix": d.spec.name,
             "guard": d.spec.name.upper(),
+            "r_blocks": kernels.r_blocks,
+            "r_groups": _block_groups(kernels.r_blocks),
         }
         text = render_template(template_name, context)
         files[pattern.format(name=d.spec.name)] = text

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -20,12 +21,23 @@ import sympy as sp
 
 from tvopt_codegen.errors import SpecError
 from tvopt_codegen.names import module_name_problem, name_problem
-from tvopt_codegen.parse import ExpressionError, parse_expression
+from tvopt_codegen.parse import (
+    NO_INDEXING,
+    ExpressionError,
+    Indexing,
+    indexed_name,
+    parse_expression,
+)
 
 #: Largest spec file accepted, in bytes.
 MAX_SPEC_BYTES = 1_000_000
 #: Most integrators one input may be prolonged by.
 MAX_INTEGRATORS = 8
+#: Most values one index may take.
+MAX_INDEX_COUNT = 256
+
+#: An indexed name in a key or a list: ``base[i]``.
+_INDEXED = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)\[([A-Za-z][A-Za-z0-9_]*)\]$")
 
 #: Appended to a bundled example's file name where messages name the spec.
 BUNDLED_SUFFIX = " (bundled example)"
@@ -83,6 +95,9 @@ class Spec:
     extension_max_total : int or None
         Largest total number of integrators the search tries (default: the number of
         plant states).
+    indices : tuple of (str, int)
+        The ``[index]`` table: each index and its count. Indexed names are already
+        expanded everywhere else (``x[i]`` with ``i = 3`` is ``x_0, x_1, x_2``).
     """
 
     source: str
@@ -106,9 +121,11 @@ class Spec:
     objects: tuple[tuple[str, str], ...] = ()
     extension_auto: bool = False
     extension_max_total: int | None = None
+    indices: tuple[tuple[str, int], ...] = ()
 
 
 _TOP_KEYS = {
+    "index",
     "name",
     "description",
     "system",
@@ -231,11 +248,107 @@ def parse_spec(source: str, raw: bytes) -> Spec:
     return _Reader(source).read(data, hashlib.sha256(raw).hexdigest())
 
 
+#: A key or list item after expansion: the flat name, its value, the index values
+#: it was expanded with, and the field to name in messages.
+_Entry = tuple[str, Any, dict[str, int], str]
+
+
 class _Reader:
     """Validates one spec document; holds the source name for messages."""
 
     def __init__(self, source: str) -> None:
         self.source = source
+        self.indexing = NO_INDEXING
+
+    def read_indices(self, data: Mapping[str, Any]) -> None:
+        """Read ``[index]``: each index name and how many values it takes."""
+        table = self.sub(data, "index", "index")
+        counts: dict[str, int] = {}
+        for key, count in table.items():
+            field = f"index.{key}"
+            problem = name_problem(key)
+            if problem:
+                raise self.fail(field, problem)
+            if (
+                isinstance(count, bool)
+                or not isinstance(count, int)
+                or not 1 <= count <= MAX_INDEX_COUNT
+            ):
+                raise self.fail(field, f"expected a whole number of values 1..{MAX_INDEX_COUNT}")
+            counts[key] = count
+        self.indexing = Indexing(counts, {}, {})
+
+    def split(self, item: object, field: str) -> tuple[str, str | None]:
+        """Split ``base[i]`` into base and index; a plain name has no index."""
+        if not isinstance(item, str) or "[" not in item:
+            return str(item), None
+        match = _INDEXED.match(item)
+        if match is None:
+            raise self.fail(field, f"{item!r}: write an indexed name as base[i]")
+        base, index = match.groups()
+        if index not in self.indexing.counts:
+            known = ", ".join(self.indexing.counts) or "none: declare them in [index]"
+            raise self.fail(field, f"{item!r}: unknown index {index!r} (indices: {known})")
+        return base, index
+
+    def expand(self, items: list[tuple[str, Any, str]]) -> list[_Entry]:
+        """Expand indexed names, keeping each run of items with one index together.
+
+        ``items`` are (key, value, field for messages). ``["x[i]", "y[i]"]`` with
+        ``i = 2`` becomes ``x_0, y_0, x_1, y_1``: the variables of one agent stay
+        adjacent, which keeps its blocks contiguous.
+        """
+        out: list[_Entry] = []
+        position = 0
+        while position < len(items):
+            key, value, where = items[position]
+            base, index = self.split(key, where)
+            position += 1
+            if index is None:
+                out.append((key, value, {}, where))
+                continue
+            run = [(base, value, where)]
+            while position < len(items):
+                next_key, next_value, next_where = items[position]
+                next_base, next_index = self.split(next_key, next_where)
+                if next_index != index:
+                    break
+                run.append((next_base, next_value, next_where))
+                position += 1
+            for number in range(self.indexing.counts[index]):
+                for item_base, item_value, item_where in run:
+                    name = indexed_name(item_base, number)
+                    out.append((name, item_value, {index: number}, item_where))
+        return out
+
+    def family(self, entries: list[_Entry]) -> None:
+        """Record the bases declared with an index, for ``x[k]`` in expressions."""
+        families = dict(self.indexing.families)
+        for name, _, bound, _ in entries:
+            if bound:
+                ((index, _),) = bound.items()
+                base = name.rsplit("_", 1)[0]
+                families[base] = self.indexing.counts[index]
+        self.indexing = Indexing(self.indexing.counts, families, {})
+
+    def bound(self, values: dict[str, int]) -> Indexing:
+        indexing = self.indexing
+        for index, value in values.items():
+            indexing = indexing.bind(index, value)
+        return indexing
+
+    def constant(self, value: object, field: str, bound: dict[str, int]) -> float:
+        """A number, or for an indexed key a constant expression such as ``2*pi*i/len(i)``."""
+        if isinstance(value, str) and bound:
+            try:
+                expr = parse_expression(value, {}, self.bound(bound))
+            except ExpressionError as exc:
+                raise self.fail(field, str(exc)) from None
+            number = complex(expr.evalf())
+            if number.imag != 0 or not math.isfinite(number.real):
+                raise self.fail(field, f"{value!r} is not a finite real number")
+            return number.real
+        return self.number(value, field)
 
     def fail(self, field: str, problem: str) -> SpecError:
         return SpecError(self.source, field, problem)
@@ -272,18 +385,34 @@ class _Reader:
         if not isinstance(value, list) or not value:
             raise self.fail(field, "expected a non-empty list of names")
         for index, item in enumerate(value):
-            problem = name_problem(item)
+            if not isinstance(item, str):
+                raise self.fail(f"{field}[{index}]", name_problem(item) or "expected a name")
+        entries = self.expand([(item, None, f"{field}[{i}]") for i, item in enumerate(value)])
+        self.family(entries)
+        for name, _, _, where in entries:
+            problem = name_problem(name)
             if problem:
-                raise self.fail(f"{field}[{index}]", problem)
-        return tuple(value)
+                raise self.fail(where, problem)
+        return tuple(name for name, _, _, _ in entries)
 
-    def expression(self, text: object, field: str, names: Mapping[str, sp.Expr]) -> sp.Expr:
+    def entries(self, table: Mapping[str, Any], field: str) -> list[_Entry]:
+        """A table's items with indexed keys expanded (see :meth:`expand`)."""
+        return self.expand([(key, value, f"{field}.{key}") for key, value in table.items()])
+
+    def expression(
+        self,
+        text: object,
+        field: str,
+        names: Mapping[str, sp.Expr],
+        bound: dict[str, int] | None = None,
+    ) -> sp.Expr:
         if not isinstance(text, str):
             raise self.fail(field, f"expected an expression string, got {type(text).__name__}")
         try:
-            return parse_expression(text, names)
+            return parse_expression(text, names, self.bound(bound or {}))
         except ExpressionError as exc:
-            raise self.fail(field, str(exc)) from None
+            where = ", ".join(f"{k} = {v}" for k, v in (bound or {}).items())
+            raise self.fail(field, f"{exc} (at {where})" if where else str(exc)) from None
 
     def read(self, data: Mapping[str, Any], sha256: str) -> Spec:
         self.table(data, "", _TOP_KEYS, {"name", "system", "objective", "error_dynamics"})
@@ -297,6 +426,7 @@ class _Reader:
         if len(description) > 4000:
             raise self.fail("description", "longer than 4000 characters")
 
+        self.read_indices(data)
         system = self.sub(data, "system", "system")
         self.table(
             system,
@@ -309,51 +439,52 @@ class _Reader:
         outputs_table = self.sub(system, "outputs", "system.outputs")
         if not outputs_table:
             raise self.fail("system.outputs", "declare at least one output")
-        outputs = tuple(outputs_table)
-        for out in outputs:
-            problem = name_problem(out)
-            if problem:
-                raise self.fail(f"system.outputs.{out}", problem)
+        output_entries = self.named_entries(outputs_table, "system.outputs")
+        outputs = tuple(name for name, _, _, _ in output_entries)
         parameters_table = self.sub(data, "parameters", "parameters")
+        parameter_entries = self.named_entries(parameters_table, "parameters")
         parameters = tuple(
-            (key, self.number(value, f"parameters.{key}"))
-            for key, value in parameters_table.items()
+            (name, self.constant(value, where, bound))
+            for name, value, bound, where in parameter_entries
         )
-        for key, _ in parameters:
-            problem = name_problem(key)
-            if problem:
-                raise self.fail(f"parameters.{key}", problem)
         signals_table = self.sub(data, "signals", "signals")
-        for key in signals_table:
-            problem = name_problem(key)
-            if problem:
-                raise self.fail(f"signals.{key}", problem)
-        self.check_unique(states, inputs, outputs, parameters_table, signals_table)
+        signal_entries = self.named_entries(signals_table, "signals")
+        self.check_unique(
+            states,
+            inputs,
+            outputs,
+            tuple(name for name, _ in parameters),
+            tuple(name for name, _, _, _ in signal_entries),
+        )
 
         param_syms = {key: symbol(key) for key, _ in parameters}
         plant_names: dict[str, sp.Expr] = {n: symbol(n) for n in (*states, *inputs)} | param_syms
         dynamics_table = self.sub(system, "dynamics", "system.dynamics")
-        for key in dynamics_table:
+        dynamics_entries = {
+            name: (value, bound, where)
+            for name, value, bound, where in self.entries(dynamics_table, "system.dynamics")
+        }
+        for key, (_, _, where) in dynamics_entries.items():
             if key not in states:
-                raise self.fail(f"system.dynamics.{key}", "not a declared state")
+                raise self.fail(where, f"{key!r} is not a declared state")
         dynamics = []
         for state in states:
-            if state not in dynamics_table:
+            if state not in dynamics_entries:
                 raise self.fail(
                     f"system.dynamics.{state}", "missing right-hand side for this state"
                 )
-            dynamics.append(
-                self.expression(dynamics_table[state], f"system.dynamics.{state}", plant_names)
-            )
+            text, bound, where = dynamics_entries[state]
+            dynamics.append(self.expression(text, where, plant_names, bound))
         state_names: dict[str, sp.Expr] = {n: symbol(n) for n in states} | param_syms
         output_exprs = tuple(
-            self.expression(outputs_table[o], f"system.outputs.{o}", state_names) for o in outputs
+            self.expression(text, where, state_names, bound)
+            for _, text, bound, where in output_entries
         )
 
         signal_names: dict[str, sp.Expr] = {"t": TIME} | param_syms
         signals: list[tuple[str, sp.Expr]] = []
-        for key, text in signals_table.items():
-            expr = self.expression(text, f"signals.{key}", signal_names)
+        for key, text, bound, where in signal_entries:
+            expr = self.expression(text, where, signal_names, bound)
             signals.append((key, expr))
             # Later signals may use earlier ones; they see the explicit expression so
             # every signal is a function of t and the parameters alone.
@@ -376,7 +507,7 @@ class _Reader:
         agents = self.pairs(simulation, "agents", set(outputs), "output")
         if not agents and len(outputs) % 2 == 0:
             agents = tuple((outputs[i], outputs[i + 1]) for i in range(0, len(outputs), 2))
-        objects = self.pairs(simulation, "objects", set(signals_table), "signal")
+        objects = self.pairs(simulation, "objects", {name for name, _ in signals}, "signal")
         return Spec(
             source=self.source,
             sha256=sha256,
@@ -399,15 +530,26 @@ class _Reader:
             objects=objects,
             extension_auto=extension_auto,
             extension_max_total=extension_max_total,
+            indices=tuple(self.indexing.counts.items()),
         )
+
+    def named_entries(self, table: Mapping[str, Any], field: str) -> list[_Entry]:
+        """Expanded entries of a table that declares names (outputs, parameters, ...)."""
+        entries = self.entries(table, field)
+        self.family(entries)
+        for name, _, _, where in entries:
+            problem = name_problem(name)
+            if problem:
+                raise self.fail(where, problem)
+        return entries
 
     def check_unique(
         self,
         states: tuple[str, ...],
         inputs: tuple[str, ...],
         outputs: tuple[str, ...],
-        parameters: Mapping[str, Any],
-        signals: Mapping[str, Any],
+        parameters: tuple[str, ...],
+        signals: tuple[str, ...],
     ) -> None:
         """Every name is declared once across all five kinds (case-insensitively)."""
         seen: dict[str, str] = {}
@@ -415,8 +557,8 @@ class _Reader:
             ("system.states", states),
             ("system.inputs", inputs),
             ("system.outputs", outputs),
-            ("parameters", tuple(parameters)),
-            ("signals", tuple(signals)),
+            ("parameters", parameters),
+            ("signals", signals),
         ]
         for field, names in groups:
             for name in names:
@@ -451,11 +593,13 @@ class _Reader:
                 )
         if auto and "integrate" in table:
             raise self.fail("extension", "give either integrate or auto = true, not both")
-        integrate = self.sub(table, "integrate", "extension.integrate")
-        for key, count in integrate.items():
-            field = f"extension.integrate.{key}"
+        integrate = {}
+        for key, count, _, field in self.entries(
+            self.sub(table, "integrate", "extension.integrate"), "extension.integrate"
+        ):
+            integrate[key] = count
             if key not in inputs:
-                raise self.fail(field, "not a declared input")
+                raise self.fail(field, f"{key!r} is not a declared input")
             if isinstance(count, bool) or not isinstance(count, int):
                 raise self.fail(field, f"expected a whole number of integrators, got {count!r}")
             if not 0 <= count <= MAX_INTEGRATORS:
@@ -506,12 +650,24 @@ class _Reader:
             raise self.fail(field, "expected a list of [x, y] name pairs")
         result = []
         for index, pair in enumerate(value):
+            where = f"{field}[{index}]"
             if not (isinstance(pair, list) and len(pair) == 2):
-                raise self.fail(f"{field}[{index}]", "expected a pair [x, y] of names")
-            for name in pair:
-                if name not in known:
-                    raise self.fail(f"{field}[{index}]", f"{name!r} is not a declared {kind}")
-            result.append((pair[0], pair[1]))
+                raise self.fail(where, "expected a pair [x, y] of names")
+            # ["px[i]", "py[i]"] stands for one pair per value of i.
+            parts = [self.split(name, where) for name in pair]
+            indices = {i for _, i in parts if i is not None}
+            if len(indices) > 1:
+                raise self.fail(where, "a pair may use one index only")
+            values = range(self.indexing.counts[next(iter(indices))]) if indices else [None]
+            for number in values:
+                names = [
+                    indexed_name(base, number) if i is not None and number is not None else base
+                    for base, i in parts
+                ]
+                for name in names:
+                    if name not in known:
+                        raise self.fail(where, f"{name!r} is not a declared {kind}")
+                result.append((names[0], names[1]))
         return tuple(result)
 
     def read_simulation(
@@ -524,6 +680,6 @@ class _Reader:
             raise self.fail("simulation.t_final", "must be positive")
         initial = self.sub(table, "initial_state", "simulation.initial_state")
         return t_final, tuple(
-            (key, self.number(value, f"simulation.initial_state.{key}"))
-            for key, value in initial.items()
+            (key, self.constant(value, where, bound))
+            for key, value, bound, where in self.entries(initial, "simulation.initial_state")
         )

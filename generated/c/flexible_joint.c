@@ -2,12 +2,12 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 90933d920555fbcedd624010e2c75400ce492b3e454c03e87994f185a60ed326
+ * content sha256: 31c7a2c7988f753e67bb9b1d9a8d06c9f5b8c95c0b1fa74da9ab710c764c2c4a
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
- * solves: Cholesky for the Hessian of f0 and LU with partial pivoting for the
- * decoupling matrix R (never a symbolic inverse). */
+ * solves: a generated sparse Cholesky for the Hessian of f0 and LU with partial pivoting
+ * for each diagonal block of the decoupling matrix R (never a symbolic inverse). */
 #include "flexible_joint.h"
 
 #include <math.h>
@@ -139,6 +139,17 @@ static void flexible_joint_k_jet(double t, const double *s, const double *p, con
     jet_rhs[0] = _a0*(2*_s0 - _t23*_t25 - 2*_t4) + _a1*(2*_s1 - _t23*_t32 - _t25*_t30 - 2*_t7) + _a2*(2*_t17 - _t23*_t43 - _t25*_t40 + 2*_t44 - 2*_t8) + _a3*(2*_t19 - _t23*_t61 - _t25*_t56 + _t62 + _t63 + 2*_t64 - 2*_t9) + 2*_t10 + _t23*(_t10*_t31 + _t26*(_t26*(_t24*(_t26*_t26) + _t33*_t57) + _t41*_t45 + 2*_t73) + _t74 + _t75 + 2*_t76) + _t25*(-_t28*(-2*_t37*_t50 - _t38*(-_t36*_t51 + 12*(_t28*_t28)/pow(_t22, 5)) + 2*_t69) - _t29*(_t10*_t27 + _t26*(_t26*(_t21*(_t26*_t26) + _t33*_t46) + _t34*_t45 + 2*_t65) + _t66 + _t67 + 2*_t68) + _t70 + _t71 + 2*_t72) - _t77 - _t79 - _t80 - _t81 - 2*_t82;
     R[0] = _t15*_t84;
     pvec[0] = (_p3*_p3)*_t11*_t14*_t84 + (_s1*_s1)*_t13 + _t16*_t18;
+}
+
+
+/* Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots (5 operations, 5 before CSE). */
+static void flexible_joint_k_cholesky(const double *h, const double *c, double *z, double *pivot)
+{
+    const double _h0 = h[0]; /* H[0, 0] */
+    const double _c0 = c[0]; /* c[0] */
+    const double _t0 = pow(_h0, -1.0/2.0);
+    z[0] = _c0*(_t0*_t0);
+    pivot[0] = _h0;
 }
 
 
@@ -319,48 +330,25 @@ static double flexible_joint_max_abs(const double *a, size_t count)
     return scale;
 }
 
-/* Solve a x = b in place (x overwrites b) for symmetric positive definite a (row-major). */
-static int flexible_joint_cholesky_solve(double *a, double *b)
+/* Solve Hess z = c with the generated sparse Cholesky kernel (hess: the nonzero entries of
+ * the lower triangle); every pivot must exceed the tolerance relative to the largest entry. */
+static int flexible_joint_cholesky_solve(const double *hess, const double *c, double *z)
 {
-    const size_t m = FLEXIBLE_JOINT_N_OUTPUTS;
-    const double scale = flexible_joint_max_abs(a, m * m);
-    size_t i, j, k;
-    for (j = 0; j < m; ++j) {
-        double pivot = a[j * m + j];
-        for (k = 0; k < j; ++k) {
-            pivot -= a[j * m + k] * a[j * m + k];
-        }
-        if (!(pivot > FLEXIBLE_JOINT_PIVOT_TOLERANCE * scale)) {
+    double pivot[FLEXIBLE_JOINT_N_OUTPUTS];
+    const double scale = flexible_joint_max_abs(hess, 1);
+    size_t i;
+    flexible_joint_k_cholesky(hess, c, z, pivot);
+    for (i = 0; i < FLEXIBLE_JOINT_N_OUTPUTS; ++i) {
+        if (!(pivot[i] > FLEXIBLE_JOINT_PIVOT_TOLERANCE * scale)) {
             return FLEXIBLE_JOINT_HESSIAN_NOT_PD;
         }
-        a[j * m + j] = sqrt(pivot);
-        for (i = j + 1; i < m; ++i) {
-            double value = a[i * m + j];
-            for (k = 0; k < j; ++k) {
-                value -= a[i * m + k] * a[j * m + k];
-            }
-            a[i * m + j] = value / a[j * m + j];
-        }
-    }
-    for (i = 0; i < m; ++i) {
-        for (k = 0; k < i; ++k) {
-            b[i] -= a[i * m + k] * b[k];
-        }
-        b[i] /= a[i * m + i];
-    }
-    for (i = m; i-- > 0;) {
-        for (k = i + 1; k < m; ++k) {
-            b[i] -= a[k * m + i] * b[k];
-        }
-        b[i] /= a[i * m + i];
     }
     return FLEXIBLE_JOINT_OK;
 }
 
-/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major). */
-static int flexible_joint_lu_solve(double *a, double *b)
+/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major, m x m). */
+static int flexible_joint_lu_solve(double *a, double *b, size_t m)
 {
-    const size_t m = FLEXIBLE_JOINT_N_OUTPUTS;
     const double scale = flexible_joint_max_abs(a, m * m);
     size_t i, j, k;
     for (j = 0; j < m; ++j) {
@@ -401,27 +389,60 @@ static int flexible_joint_lu_solve(double *a, double *b)
     return FLEXIBLE_JOINT_OK;
 }
 
+/* The diagonal blocks of R: their sizes and their rows, block after block. R is stored
+ * the same way (each block row-major), so the zeros between blocks are never touched. */
+#define FLEXIBLE_JOINT_R_BLOCKS 1
+#define FLEXIBLE_JOINT_R_ENTRIES 1
+#define FLEXIBLE_JOINT_R_LARGEST_BLOCK 1
+static const size_t flexible_joint_r_block_size[FLEXIBLE_JOINT_R_BLOCKS] = {1};
+static const size_t flexible_joint_r_block_rows[FLEXIBLE_JOINT_N_OUTPUTS] = {0};
+
+/* Solve R w = b in place (w holds b), block by block. */
+static int flexible_joint_solve_decoupling(double *r, double *w)
+{
+    double x[FLEXIBLE_JOINT_R_LARGEST_BLOCK];
+    size_t block, i, entry = 0, row = 0;
+    for (block = 0; block < FLEXIBLE_JOINT_R_BLOCKS; ++block) {
+        const size_t size = flexible_joint_r_block_size[block];
+        int status;
+        for (i = 0; i < size; ++i) {
+            x[i] = w[flexible_joint_r_block_rows[row + i]];
+        }
+        status = flexible_joint_lu_solve(r + entry, x, size);
+        if (status != FLEXIBLE_JOINT_OK) {
+            return status;
+        }
+        for (i = 0; i < size; ++i) {
+            w[flexible_joint_r_block_rows[row + i]] = x[i];
+        }
+        entry += size * size;
+        row += size;
+    }
+    return FLEXIBLE_JOINT_OK;
+}
+
 /* The paper's law at one state: the plant input u and, unless ds is NULL, ds/dt. */
 static int flexible_joint_law(double t, const double *s, const double *params, double *ds, double *u)
 {
-    double hess[FLEXIBLE_JOINT_N_OUTPUTS * FLEXIBLE_JOINT_N_OUTPUTS];
+    double hess[1];
+    double c[FLEXIBLE_JOINT_N_OUTPUTS];
     double z[FLEXIBLE_JOINT_N_OUTPUTS];
-    double r[FLEXIBLE_JOINT_N_OUTPUTS * FLEXIBLE_JOINT_N_OUTPUTS];
+    double r[FLEXIBLE_JOINT_R_ENTRIES];
     double w[FLEXIBLE_JOINT_N_OUTPUTS];
     double pvec[FLEXIBLE_JOINT_N_OUTPUTS];
     int status = flexible_joint_check_inputs(t, s, FLEXIBLE_JOINT_N_STATES, params);
     if (status != FLEXIBLE_JOINT_OK) {
         return status;
     }
-    flexible_joint_k_jet(t, s, params, flexible_joint_hurwitz_coefficients, hess, z, r, pvec);
-    if (!flexible_joint_all_finite(hess, FLEXIBLE_JOINT_N_OUTPUTS * FLEXIBLE_JOINT_N_OUTPUTS)
-        || !flexible_joint_all_finite(z, FLEXIBLE_JOINT_N_OUTPUTS)
-        || !flexible_joint_all_finite(r, FLEXIBLE_JOINT_N_OUTPUTS * FLEXIBLE_JOINT_N_OUTPUTS)
+    flexible_joint_k_jet(t, s, params, flexible_joint_hurwitz_coefficients, hess, c, r, pvec);
+    if (!flexible_joint_all_finite(hess, 1)
+        || !flexible_joint_all_finite(c, FLEXIBLE_JOINT_N_OUTPUTS)
+        || !flexible_joint_all_finite(r, FLEXIBLE_JOINT_R_ENTRIES)
         || !flexible_joint_all_finite(pvec, FLEXIBLE_JOINT_N_OUTPUTS)) {
         return FLEXIBLE_JOINT_NONFINITE_OUTPUT;
     }
     /* y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest] */
-    status = flexible_joint_cholesky_solve(hess, z);
+    status = flexible_joint_cholesky_solve(hess, c, z);
     if (status != FLEXIBLE_JOINT_OK) {
         return status;
     }
@@ -430,7 +451,7 @@ static int flexible_joint_law(double t, const double *s, const double *params, d
         return FLEXIBLE_JOINT_NONFINITE_OUTPUT;
     }
     /* w = R^-1 (v - p) */
-    status = flexible_joint_lu_solve(r, w);
+    status = flexible_joint_solve_decoupling(r, w);
     if (status != FLEXIBLE_JOINT_OK) {
         return status;
     }

@@ -2,12 +2,12 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 62b6c0ee34d82eac46f964e077caf0fd17058efd51409ec62f82f59ac99bbcd3
+ * content sha256: 660d85f5a3cefeba0f3906c740dfc170ab6f6a008975dbe1417adda68eb98180
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
- * solves: Cholesky for the Hessian of f0 and LU with partial pivoting for the
- * decoupling matrix R (never a symbolic inverse). */
+ * solves: a generated sparse Cholesky for the Hessian of f0 and LU with partial pivoting
+ * for each diagonal block of the decoupling matrix R (never a symbolic inverse). */
 #include "integrator.h"
 
 #include <math.h>
@@ -45,17 +45,29 @@ static void integrator_k_jet(double t, const double *s, const double *p, const d
     const double _t0 = (t*t);
     const double _t1 = (1.0/2.0)*_p0;
     hessian[0] = 1;
-    hessian[1] = 0;
-    hessian[2] = 0;
-    hessian[3] = _p0;
+    hessian[1] = _p0;
     jet_rhs[0] = _a0*(_s0 + (1.0/20.0)*_t0 - 4.0/5.0*t - 2) - 1.0/10.0*t + 4.0/5.0;
     jet_rhs[1] = _a0*_t1*(2*_s1 - 1.0/25.0*_t0 + (1.0/500.0)*(t*t*t) - t + 2) - _t1*((3.0/500.0)*_t0 - 2.0/25.0*t - 1);
     R[0] = 1;
-    R[1] = 0;
-    R[2] = 0;
-    R[3] = 1;
+    R[1] = 1;
     pvec[0] = 0;
     pvec[1] = 0;
+}
+
+
+/* Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots (10 operations, 10 before CSE). */
+static void integrator_k_cholesky(const double *h, const double *c, double *z, double *pivot)
+{
+    const double _h0 = h[0]; /* H[0, 0] */
+    const double _h1 = h[1]; /* H[1, 1] */
+    const double _c0 = c[0]; /* c[0] */
+    const double _c1 = c[1]; /* c[1] */
+    const double _t0 = pow(_h0, -1.0/2.0);
+    const double _t1 = pow(_h1, -1.0/2.0);
+    z[0] = _c0*(_t0*_t0);
+    z[1] = _c1*(_t1*_t1);
+    pivot[0] = _h0;
+    pivot[1] = _h1;
 }
 
 
@@ -185,48 +197,25 @@ static double integrator_max_abs(const double *a, size_t count)
     return scale;
 }
 
-/* Solve a x = b in place (x overwrites b) for symmetric positive definite a (row-major). */
-static int integrator_cholesky_solve(double *a, double *b)
+/* Solve Hess z = c with the generated sparse Cholesky kernel (hess: the nonzero entries of
+ * the lower triangle); every pivot must exceed the tolerance relative to the largest entry. */
+static int integrator_cholesky_solve(const double *hess, const double *c, double *z)
 {
-    const size_t m = INTEGRATOR_N_OUTPUTS;
-    const double scale = integrator_max_abs(a, m * m);
-    size_t i, j, k;
-    for (j = 0; j < m; ++j) {
-        double pivot = a[j * m + j];
-        for (k = 0; k < j; ++k) {
-            pivot -= a[j * m + k] * a[j * m + k];
-        }
-        if (!(pivot > INTEGRATOR_PIVOT_TOLERANCE * scale)) {
+    double pivot[INTEGRATOR_N_OUTPUTS];
+    const double scale = integrator_max_abs(hess, 2);
+    size_t i;
+    integrator_k_cholesky(hess, c, z, pivot);
+    for (i = 0; i < INTEGRATOR_N_OUTPUTS; ++i) {
+        if (!(pivot[i] > INTEGRATOR_PIVOT_TOLERANCE * scale)) {
             return INTEGRATOR_HESSIAN_NOT_PD;
         }
-        a[j * m + j] = sqrt(pivot);
-        for (i = j + 1; i < m; ++i) {
-            double value = a[i * m + j];
-            for (k = 0; k < j; ++k) {
-                value -= a[i * m + k] * a[j * m + k];
-            }
-            a[i * m + j] = value / a[j * m + j];
-        }
-    }
-    for (i = 0; i < m; ++i) {
-        for (k = 0; k < i; ++k) {
-            b[i] -= a[i * m + k] * b[k];
-        }
-        b[i] /= a[i * m + i];
-    }
-    for (i = m; i-- > 0;) {
-        for (k = i + 1; k < m; ++k) {
-            b[i] -= a[k * m + i] * b[k];
-        }
-        b[i] /= a[i * m + i];
     }
     return INTEGRATOR_OK;
 }
 
-/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major). */
-static int integrator_lu_solve(double *a, double *b)
+/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major, m x m). */
+static int integrator_lu_solve(double *a, double *b, size_t m)
 {
-    const size_t m = INTEGRATOR_N_OUTPUTS;
     const double scale = integrator_max_abs(a, m * m);
     size_t i, j, k;
     for (j = 0; j < m; ++j) {
@@ -267,27 +256,60 @@ static int integrator_lu_solve(double *a, double *b)
     return INTEGRATOR_OK;
 }
 
+/* The diagonal blocks of R: their sizes and their rows, block after block. R is stored
+ * the same way (each block row-major), so the zeros between blocks are never touched. */
+#define INTEGRATOR_R_BLOCKS 2
+#define INTEGRATOR_R_ENTRIES 2
+#define INTEGRATOR_R_LARGEST_BLOCK 1
+static const size_t integrator_r_block_size[INTEGRATOR_R_BLOCKS] = {1, 1};
+static const size_t integrator_r_block_rows[INTEGRATOR_N_OUTPUTS] = {0, 1};
+
+/* Solve R w = b in place (w holds b), block by block. */
+static int integrator_solve_decoupling(double *r, double *w)
+{
+    double x[INTEGRATOR_R_LARGEST_BLOCK];
+    size_t block, i, entry = 0, row = 0;
+    for (block = 0; block < INTEGRATOR_R_BLOCKS; ++block) {
+        const size_t size = integrator_r_block_size[block];
+        int status;
+        for (i = 0; i < size; ++i) {
+            x[i] = w[integrator_r_block_rows[row + i]];
+        }
+        status = integrator_lu_solve(r + entry, x, size);
+        if (status != INTEGRATOR_OK) {
+            return status;
+        }
+        for (i = 0; i < size; ++i) {
+            w[integrator_r_block_rows[row + i]] = x[i];
+        }
+        entry += size * size;
+        row += size;
+    }
+    return INTEGRATOR_OK;
+}
+
 /* The paper's law at one state: the plant input u and, unless ds is NULL, ds/dt. */
 static int integrator_law(double t, const double *s, const double *params, double *ds, double *u)
 {
-    double hess[INTEGRATOR_N_OUTPUTS * INTEGRATOR_N_OUTPUTS];
+    double hess[2];
+    double c[INTEGRATOR_N_OUTPUTS];
     double z[INTEGRATOR_N_OUTPUTS];
-    double r[INTEGRATOR_N_OUTPUTS * INTEGRATOR_N_OUTPUTS];
+    double r[INTEGRATOR_R_ENTRIES];
     double w[INTEGRATOR_N_OUTPUTS];
     double pvec[INTEGRATOR_N_OUTPUTS];
     int status = integrator_check_inputs(t, s, INTEGRATOR_N_STATES, params);
     if (status != INTEGRATOR_OK) {
         return status;
     }
-    integrator_k_jet(t, s, params, integrator_hurwitz_coefficients, hess, z, r, pvec);
-    if (!integrator_all_finite(hess, INTEGRATOR_N_OUTPUTS * INTEGRATOR_N_OUTPUTS)
-        || !integrator_all_finite(z, INTEGRATOR_N_OUTPUTS)
-        || !integrator_all_finite(r, INTEGRATOR_N_OUTPUTS * INTEGRATOR_N_OUTPUTS)
+    integrator_k_jet(t, s, params, integrator_hurwitz_coefficients, hess, c, r, pvec);
+    if (!integrator_all_finite(hess, 2)
+        || !integrator_all_finite(c, INTEGRATOR_N_OUTPUTS)
+        || !integrator_all_finite(r, INTEGRATOR_R_ENTRIES)
         || !integrator_all_finite(pvec, INTEGRATOR_N_OUTPUTS)) {
         return INTEGRATOR_NONFINITE_OUTPUT;
     }
     /* y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest] */
-    status = integrator_cholesky_solve(hess, z);
+    status = integrator_cholesky_solve(hess, c, z);
     if (status != INTEGRATOR_OK) {
         return status;
     }
@@ -296,7 +318,7 @@ static int integrator_law(double t, const double *s, const double *params, doubl
         return INTEGRATOR_NONFINITE_OUTPUT;
     }
     /* w = R^-1 (v - p) */
-    status = integrator_lu_solve(r, w);
+    status = integrator_solve_decoupling(r, w);
     if (status != INTEGRATOR_OK) {
         return status;
     }

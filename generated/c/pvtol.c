@@ -2,12 +2,12 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: 84eb97c4f579046cad9aa8a6beca79063b2ab1f0a690296da8d0ddeb554c6b59
+ * content sha256: f50709512174761edc6027de325150b914665e7a8154ae3629fc935072a7f3da
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
- * solves: Cholesky for the Hessian of f0 and LU with partial pivoting for the
- * decoupling matrix R (never a symbolic inverse). */
+ * solves: a generated sparse Cholesky for the Hessian of f0 and LU with partial pivoting
+ * for each diagonal block of the decoupling matrix R (never a symbolic inverse). */
 #include "pvtol.h"
 
 #include <math.h>
@@ -242,10 +242,9 @@ static double pvtol_max_abs(const double *a, size_t count)
 }
 
 
-/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major). */
-static int pvtol_lu_solve(double *a, double *b)
+/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major, m x m). */
+static int pvtol_lu_solve(double *a, double *b, size_t m)
 {
-    const size_t m = PVTOL_N_OUTPUTS;
     const double scale = pvtol_max_abs(a, m * m);
     size_t i, j, k;
     for (j = 0; j < m; ++j) {
@@ -286,11 +285,43 @@ static int pvtol_lu_solve(double *a, double *b)
     return PVTOL_OK;
 }
 
+/* The diagonal blocks of R: their sizes and their rows, block after block. R is stored
+ * the same way (each block row-major), so the zeros between blocks are never touched. */
+#define PVTOL_R_BLOCKS 1
+#define PVTOL_R_ENTRIES 4
+#define PVTOL_R_LARGEST_BLOCK 2
+static const size_t pvtol_r_block_size[PVTOL_R_BLOCKS] = {2};
+static const size_t pvtol_r_block_rows[PVTOL_N_OUTPUTS] = {0, 1};
+
+/* Solve R w = b in place (w holds b), block by block. */
+static int pvtol_solve_decoupling(double *r, double *w)
+{
+    double x[PVTOL_R_LARGEST_BLOCK];
+    size_t block, i, entry = 0, row = 0;
+    for (block = 0; block < PVTOL_R_BLOCKS; ++block) {
+        const size_t size = pvtol_r_block_size[block];
+        int status;
+        for (i = 0; i < size; ++i) {
+            x[i] = w[pvtol_r_block_rows[row + i]];
+        }
+        status = pvtol_lu_solve(r + entry, x, size);
+        if (status != PVTOL_OK) {
+            return status;
+        }
+        for (i = 0; i < size; ++i) {
+            w[pvtol_r_block_rows[row + i]] = x[i];
+        }
+        entry += size * size;
+        row += size;
+    }
+    return PVTOL_OK;
+}
+
 /* The paper's law at one state: the plant input u and, unless ds is NULL, ds/dt. */
 static int pvtol_law(double t, const double *s, const double *params, double *ds, double *u)
 {
     double z[PVTOL_N_OUTPUTS];
-    double r[PVTOL_N_OUTPUTS * PVTOL_N_OUTPUTS];
+    double r[PVTOL_R_ENTRIES];
     double w[PVTOL_N_OUTPUTS];
     double pvec[PVTOL_N_OUTPUTS];
     int status = pvtol_check_inputs(t, s, PVTOL_N_STATES, params);
@@ -300,7 +331,7 @@ static int pvtol_law(double t, const double *s, const double *params, double *ds
     /* y_imp^(K): the constant Hessian of f0 was inverted exactly at generation time. */
     pvtol_k_jet(t, s, params, pvtol_hurwitz_coefficients, z, r, pvec);
     if (!pvtol_all_finite(z, PVTOL_N_OUTPUTS)
-        || !pvtol_all_finite(r, PVTOL_N_OUTPUTS * PVTOL_N_OUTPUTS)
+        || !pvtol_all_finite(r, PVTOL_R_ENTRIES)
         || !pvtol_all_finite(pvec, PVTOL_N_OUTPUTS)) {
         return PVTOL_NONFINITE_OUTPUT;
     }
@@ -309,7 +340,7 @@ static int pvtol_law(double t, const double *s, const double *params, double *ds
         return PVTOL_NONFINITE_OUTPUT;
     }
     /* w = R^-1 (v - p) */
-    status = pvtol_lu_solve(r, w);
+    status = pvtol_solve_decoupling(r, w);
     if (status != PVTOL_OK) {
         return status;
     }

@@ -2,12 +2,12 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: e8bb6ea7955d398dfbfd07adae88d9fd86a68261d9e06ddc8d93cdc0fce6b151
+ * content sha256: a35a64c96ec3686d56ed157fade9d891d7aff7ea1b21a3761a9b8fcf216ab3b1
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
- * solves: Cholesky for the Hessian of f0 and LU with partial pivoting for the
- * decoupling matrix R (never a symbolic inverse). */
+ * solves: a generated sparse Cholesky for the Hessian of f0 and LU with partial pivoting
+ * for each diagonal block of the decoupling matrix R (never a symbolic inverse). */
 #include "two_unicycles_barrier.h"
 
 #include <math.h>
@@ -35,7 +35,7 @@ const double two_unicycles_barrier_default_params[TWO_UNICYCLES_BARRIER_N_PARAMS
 const double two_unicycles_barrier_default_state[TWO_UNICYCLES_BARRIER_N_STATES] = {-4.5, -3.5, 0.0, -3.5, -3.5, 0.0, 1.0, 1.0};
 const double two_unicycles_barrier_hurwitz_coefficients[TWO_UNICYCLES_BARRIER_K] = {-1.5, -2.5};
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (305 operations, 1572 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (305 operations, 1112 before CSE). */
 static void two_unicycles_barrier_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* xa */
@@ -140,63 +140,90 @@ static void two_unicycles_barrier_k_jet(double t, const double *s, const double 
     const double _t87 = _t31 + _t34;
     const double _t88 = _t77*_t78;
     const double _t89 = _t87*_t88;
-    const double _t90 = _t83*_t89 + _t84*_t89;
+    const double _t90 = _t78*(_t87*_t87);
     const double _t91 = -_t77;
     const double _t92 = _t88*_t91;
-    const double _t93 = _t83*_t92 + _t84*_t92 + _t85;
-    const double _t94 = -_t87;
-    const double _t95 = _t88*_t94;
-    const double _t96 = _t83*_t95 + _t84*_t95;
-    const double _t97 = _t78*(_t87*_t87);
-    const double _t98 = _t78*_t87;
-    const double _t99 = _t91*_t98;
-    const double _t100 = _t83*_t99 + _t84*_t99;
-    const double _t101 = _t94*_t98;
-    const double _t102 = _t101*_t83 + _t101*_t84 + _t85;
-    const double _t103 = _t78*(_t91*_t91);
-    const double _t104 = _t78*_t91*_t94;
-    const double _t105 = _t104*_t83 + _t104*_t84;
-    const double _t106 = _t78*(_t94*_t94);
+    const double _t93 = _t78*_t87;
+    const double _t94 = _t91*_t93;
+    const double _t95 = _t78*(_t91*_t91);
+    const double _t96 = -_t87;
+    const double _t97 = _t88*_t96;
+    const double _t98 = _t93*_t96;
+    const double _t99 = _t78*_t91*_t96;
+    const double _t100 = _t78*(_t96*_t96);
     hessian[0] = _t79*_t83 + _t79*_t84 + _t86;
-    hessian[1] = _t90;
-    hessian[2] = _t93;
-    hessian[3] = _t96;
-    hessian[4] = _t90;
-    hessian[5] = _t83*_t97 + _t84*_t97 + _t86;
-    hessian[6] = _t100;
-    hessian[7] = _t102;
-    hessian[8] = _t93;
-    hessian[9] = _t100;
-    hessian[10] = _t103*_t83 + _t103*_t84 + _t86;
-    hessian[11] = _t105;
-    hessian[12] = _t96;
-    hessian[13] = _t102;
-    hessian[14] = _t105;
-    hessian[15] = _t106*_t83 + _t106*_t84 + _t86;
+    hessian[1] = _t83*_t89 + _t84*_t89;
+    hessian[2] = _t83*_t90 + _t84*_t90 + _t86;
+    hessian[3] = _t83*_t92 + _t84*_t92 + _t85;
+    hessian[4] = _t83*_t94 + _t84*_t94;
+    hessian[5] = _t83*_t95 + _t84*_t95 + _t86;
+    hessian[6] = _t83*_t97 + _t84*_t97;
+    hessian[7] = _t83*_t98 + _t84*_t98 + _t85;
+    hessian[8] = _t83*_t99 + _t84*_t99;
+    hessian[9] = _t100*_t83 + _t100*_t84 + _t86;
     jet_rhs[0] = _a0*(-1.0/250.0*_t0 + _t14 + _t23*_t30 - t + 10) + _a1*(_t23*_t55 + _t30*_t50 + _t44 - 1.0/125.0*t - 1) - _t23*(_t26*_t68 + 2*_t69) - _t30*_t67 - 2*_t70 + 1.0/125.0;
     jet_rhs[1] = _a0*((1.0/50.0)*_t0 + _t23*_t36 + _t32 - 3.0/5.0*t + 6) + _a1*(_t23*_t60 + _t36*_t50 + _t57 + (1.0/25.0)*t - 3.0/5.0) - _t23*(_t35*_t68 + 2*_t71) - _t36*_t67 - 2*_t72 - 1.0/25.0;
     jet_rhs[2] = _a0*(-1.0/125.0*_t0 + _t23*_t39 + _t37 - 9.0/10.0*t + 4) + _a1*(_t23*_t63 + _t39*_t50 + _t61 - 2.0/125.0*t - 9.0/10.0) - _t23*(_t38*_t68 + 2*_t73) - _t39*_t67 - 2*_t74 + 2.0/125.0;
     jet_rhs[3] = _a0*((3.0/125.0)*_t0 + _t23*_t42 + _t40 - 7.0/10.0*t + 6) + _a1*(_t23*_t66 + _t42*_t50 + _t64 + (6.0/125.0)*t - 7.0/10.0) - _t23*(_t41*_t68 + 2*_t75) - _t42*_t67 - 2*_t76 - 6.0/125.0;
     R[0] = _t1;
     R[1] = -_t5;
-    R[2] = 0;
-    R[3] = 0;
-    R[4] = _t4;
-    R[5] = _t2;
-    R[6] = 0;
-    R[7] = 0;
-    R[8] = 0;
-    R[9] = 0;
-    R[10] = _t7;
-    R[11] = -_t11;
-    R[12] = 0;
-    R[13] = 0;
-    R[14] = _t10;
-    R[15] = _t8;
+    R[2] = _t4;
+    R[3] = _t2;
+    R[4] = _t7;
+    R[5] = -_t11;
+    R[6] = _t10;
+    R[7] = _t8;
     pvec[0] = 0;
     pvec[1] = 0;
     pvec[2] = 0;
     pvec[3] = 0;
+}
+
+
+/* Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots (70 operations, 70 before CSE). */
+static void two_unicycles_barrier_k_cholesky(const double *h, const double *c, double *z, double *pivot)
+{
+    const double _h0 = h[0]; /* H[0, 0] */
+    const double _h1 = h[1]; /* H[1, 0] */
+    const double _h2 = h[2]; /* H[1, 1] */
+    const double _h3 = h[3]; /* H[2, 0] */
+    const double _h4 = h[4]; /* H[2, 1] */
+    const double _h5 = h[5]; /* H[2, 2] */
+    const double _h6 = h[6]; /* H[3, 0] */
+    const double _h7 = h[7]; /* H[3, 1] */
+    const double _h8 = h[8]; /* H[3, 2] */
+    const double _h9 = h[9]; /* H[3, 3] */
+    const double _c0 = c[0]; /* c[0] */
+    const double _c1 = c[1]; /* c[1] */
+    const double _c2 = c[2]; /* c[2] */
+    const double _c3 = c[3]; /* c[3] */
+    const double _t0 = pow(_h0, -1.0/2.0);
+    const double _t1 = _h1*_t0;
+    const double _t2 = _h3*_t0;
+    const double _t3 = _h6*_t0;
+    const double _t4 = _h2 - (_t1*_t1);
+    const double _t5 = pow(_t4, -1.0/2.0);
+    const double _t6 = _t5*(_h4 - _t1*_t2);
+    const double _t7 = _t5*(_h7 - _t1*_t3);
+    const double _t8 = _h5 - (_t2*_t2) - (_t6*_t6);
+    const double _t9 = pow(_t8, -1.0/2.0);
+    const double _t10 = _t9*(_h8 - _t2*_t3 - _t6*_t7);
+    const double _t11 = _h9 - (_t10*_t10) - (_t3*_t3) - (_t7*_t7);
+    const double _t12 = pow(_t11, -1.0/2.0);
+    const double _t13 = _c0*_t0;
+    const double _t14 = _t5*(_c1 - _t1*_t13);
+    const double _t15 = _t9*(_c2 - _t13*_t2 - _t14*_t6);
+    const double _t16 = (_t12*_t12)*(_c3 - _t10*_t15 - _t13*_t3 - _t14*_t7);
+    const double _t17 = _t9*(-_t10*_t16 + _t15);
+    const double _t18 = _t5*(_t14 - _t16*_t7 - _t17*_t6);
+    z[0] = _t0*(-_t1*_t18 + _t13 - _t16*_t3 - _t17*_t2);
+    z[1] = _t18;
+    z[2] = _t17;
+    z[3] = _t16;
+    pivot[0] = _h0;
+    pivot[1] = _t4;
+    pivot[2] = _t8;
+    pivot[3] = _t11;
 }
 
 
@@ -463,48 +490,25 @@ static double two_unicycles_barrier_max_abs(const double *a, size_t count)
     return scale;
 }
 
-/* Solve a x = b in place (x overwrites b) for symmetric positive definite a (row-major). */
-static int two_unicycles_barrier_cholesky_solve(double *a, double *b)
+/* Solve Hess z = c with the generated sparse Cholesky kernel (hess: the nonzero entries of
+ * the lower triangle); every pivot must exceed the tolerance relative to the largest entry. */
+static int two_unicycles_barrier_cholesky_solve(const double *hess, const double *c, double *z)
 {
-    const size_t m = TWO_UNICYCLES_BARRIER_N_OUTPUTS;
-    const double scale = two_unicycles_barrier_max_abs(a, m * m);
-    size_t i, j, k;
-    for (j = 0; j < m; ++j) {
-        double pivot = a[j * m + j];
-        for (k = 0; k < j; ++k) {
-            pivot -= a[j * m + k] * a[j * m + k];
-        }
-        if (!(pivot > TWO_UNICYCLES_BARRIER_PIVOT_TOLERANCE * scale)) {
+    double pivot[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
+    const double scale = two_unicycles_barrier_max_abs(hess, 10);
+    size_t i;
+    two_unicycles_barrier_k_cholesky(hess, c, z, pivot);
+    for (i = 0; i < TWO_UNICYCLES_BARRIER_N_OUTPUTS; ++i) {
+        if (!(pivot[i] > TWO_UNICYCLES_BARRIER_PIVOT_TOLERANCE * scale)) {
             return TWO_UNICYCLES_BARRIER_HESSIAN_NOT_PD;
         }
-        a[j * m + j] = sqrt(pivot);
-        for (i = j + 1; i < m; ++i) {
-            double value = a[i * m + j];
-            for (k = 0; k < j; ++k) {
-                value -= a[i * m + k] * a[j * m + k];
-            }
-            a[i * m + j] = value / a[j * m + j];
-        }
-    }
-    for (i = 0; i < m; ++i) {
-        for (k = 0; k < i; ++k) {
-            b[i] -= a[i * m + k] * b[k];
-        }
-        b[i] /= a[i * m + i];
-    }
-    for (i = m; i-- > 0;) {
-        for (k = i + 1; k < m; ++k) {
-            b[i] -= a[k * m + i] * b[k];
-        }
-        b[i] /= a[i * m + i];
     }
     return TWO_UNICYCLES_BARRIER_OK;
 }
 
-/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major). */
-static int two_unicycles_barrier_lu_solve(double *a, double *b)
+/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major, m x m). */
+static int two_unicycles_barrier_lu_solve(double *a, double *b, size_t m)
 {
-    const size_t m = TWO_UNICYCLES_BARRIER_N_OUTPUTS;
     const double scale = two_unicycles_barrier_max_abs(a, m * m);
     size_t i, j, k;
     for (j = 0; j < m; ++j) {
@@ -545,27 +549,60 @@ static int two_unicycles_barrier_lu_solve(double *a, double *b)
     return TWO_UNICYCLES_BARRIER_OK;
 }
 
+/* The diagonal blocks of R: their sizes and their rows, block after block. R is stored
+ * the same way (each block row-major), so the zeros between blocks are never touched. */
+#define TWO_UNICYCLES_BARRIER_R_BLOCKS 2
+#define TWO_UNICYCLES_BARRIER_R_ENTRIES 8
+#define TWO_UNICYCLES_BARRIER_R_LARGEST_BLOCK 2
+static const size_t two_unicycles_barrier_r_block_size[TWO_UNICYCLES_BARRIER_R_BLOCKS] = {2, 2};
+static const size_t two_unicycles_barrier_r_block_rows[TWO_UNICYCLES_BARRIER_N_OUTPUTS] = {0, 1, 2, 3};
+
+/* Solve R w = b in place (w holds b), block by block. */
+static int two_unicycles_barrier_solve_decoupling(double *r, double *w)
+{
+    double x[TWO_UNICYCLES_BARRIER_R_LARGEST_BLOCK];
+    size_t block, i, entry = 0, row = 0;
+    for (block = 0; block < TWO_UNICYCLES_BARRIER_R_BLOCKS; ++block) {
+        const size_t size = two_unicycles_barrier_r_block_size[block];
+        int status;
+        for (i = 0; i < size; ++i) {
+            x[i] = w[two_unicycles_barrier_r_block_rows[row + i]];
+        }
+        status = two_unicycles_barrier_lu_solve(r + entry, x, size);
+        if (status != TWO_UNICYCLES_BARRIER_OK) {
+            return status;
+        }
+        for (i = 0; i < size; ++i) {
+            w[two_unicycles_barrier_r_block_rows[row + i]] = x[i];
+        }
+        entry += size * size;
+        row += size;
+    }
+    return TWO_UNICYCLES_BARRIER_OK;
+}
+
 /* The paper's law at one state: the plant input u and, unless ds is NULL, ds/dt. */
 static int two_unicycles_barrier_law(double t, const double *s, const double *params, double *ds, double *u)
 {
-    double hess[TWO_UNICYCLES_BARRIER_N_OUTPUTS * TWO_UNICYCLES_BARRIER_N_OUTPUTS];
+    double hess[10];
+    double c[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
     double z[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
-    double r[TWO_UNICYCLES_BARRIER_N_OUTPUTS * TWO_UNICYCLES_BARRIER_N_OUTPUTS];
+    double r[TWO_UNICYCLES_BARRIER_R_ENTRIES];
     double w[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
     double pvec[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
     int status = two_unicycles_barrier_check_inputs(t, s, TWO_UNICYCLES_BARRIER_N_STATES, params);
     if (status != TWO_UNICYCLES_BARRIER_OK) {
         return status;
     }
-    two_unicycles_barrier_k_jet(t, s, params, two_unicycles_barrier_hurwitz_coefficients, hess, z, r, pvec);
-    if (!two_unicycles_barrier_all_finite(hess, TWO_UNICYCLES_BARRIER_N_OUTPUTS * TWO_UNICYCLES_BARRIER_N_OUTPUTS)
-        || !two_unicycles_barrier_all_finite(z, TWO_UNICYCLES_BARRIER_N_OUTPUTS)
-        || !two_unicycles_barrier_all_finite(r, TWO_UNICYCLES_BARRIER_N_OUTPUTS * TWO_UNICYCLES_BARRIER_N_OUTPUTS)
+    two_unicycles_barrier_k_jet(t, s, params, two_unicycles_barrier_hurwitz_coefficients, hess, c, r, pvec);
+    if (!two_unicycles_barrier_all_finite(hess, 10)
+        || !two_unicycles_barrier_all_finite(c, TWO_UNICYCLES_BARRIER_N_OUTPUTS)
+        || !two_unicycles_barrier_all_finite(r, TWO_UNICYCLES_BARRIER_R_ENTRIES)
         || !two_unicycles_barrier_all_finite(pvec, TWO_UNICYCLES_BARRIER_N_OUTPUTS)) {
         return TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
     }
     /* y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest] */
-    status = two_unicycles_barrier_cholesky_solve(hess, z);
+    status = two_unicycles_barrier_cholesky_solve(hess, c, z);
     if (status != TWO_UNICYCLES_BARRIER_OK) {
         return status;
     }
@@ -574,7 +611,7 @@ static int two_unicycles_barrier_law(double t, const double *s, const double *pa
         return TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
     }
     /* w = R^-1 (v - p) */
-    status = two_unicycles_barrier_lu_solve(r, w);
+    status = two_unicycles_barrier_solve_decoupling(r, w);
     if (status != TWO_UNICYCLES_BARRIER_OK) {
         return status;
     }

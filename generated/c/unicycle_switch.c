@@ -2,12 +2,12 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: d96686030d469af65ec114c32e898a8a6abd86fd153369c5b0604b277062e827
+ * content sha256: 370caf90d5879a81fe7289e65b794d674f89e2d3af8f978733cc8d19d69ec4f2
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
- * solves: Cholesky for the Hessian of f0 and LU with partial pivoting for the
- * decoupling matrix R (never a symbolic inverse). */
+ * solves: a generated sparse Cholesky for the Hessian of f0 and LU with partial pivoting
+ * for each diagonal block of the decoupling matrix R (never a symbolic inverse). */
 #include "unicycle_switch.h"
 
 #include <math.h>
@@ -254,10 +254,9 @@ static double unicycle_switch_max_abs(const double *a, size_t count)
 }
 
 
-/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major). */
-static int unicycle_switch_lu_solve(double *a, double *b)
+/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major, m x m). */
+static int unicycle_switch_lu_solve(double *a, double *b, size_t m)
 {
-    const size_t m = UNICYCLE_SWITCH_N_OUTPUTS;
     const double scale = unicycle_switch_max_abs(a, m * m);
     size_t i, j, k;
     for (j = 0; j < m; ++j) {
@@ -298,11 +297,43 @@ static int unicycle_switch_lu_solve(double *a, double *b)
     return UNICYCLE_SWITCH_OK;
 }
 
+/* The diagonal blocks of R: their sizes and their rows, block after block. R is stored
+ * the same way (each block row-major), so the zeros between blocks are never touched. */
+#define UNICYCLE_SWITCH_R_BLOCKS 1
+#define UNICYCLE_SWITCH_R_ENTRIES 4
+#define UNICYCLE_SWITCH_R_LARGEST_BLOCK 2
+static const size_t unicycle_switch_r_block_size[UNICYCLE_SWITCH_R_BLOCKS] = {2};
+static const size_t unicycle_switch_r_block_rows[UNICYCLE_SWITCH_N_OUTPUTS] = {0, 1};
+
+/* Solve R w = b in place (w holds b), block by block. */
+static int unicycle_switch_solve_decoupling(double *r, double *w)
+{
+    double x[UNICYCLE_SWITCH_R_LARGEST_BLOCK];
+    size_t block, i, entry = 0, row = 0;
+    for (block = 0; block < UNICYCLE_SWITCH_R_BLOCKS; ++block) {
+        const size_t size = unicycle_switch_r_block_size[block];
+        int status;
+        for (i = 0; i < size; ++i) {
+            x[i] = w[unicycle_switch_r_block_rows[row + i]];
+        }
+        status = unicycle_switch_lu_solve(r + entry, x, size);
+        if (status != UNICYCLE_SWITCH_OK) {
+            return status;
+        }
+        for (i = 0; i < size; ++i) {
+            w[unicycle_switch_r_block_rows[row + i]] = x[i];
+        }
+        entry += size * size;
+        row += size;
+    }
+    return UNICYCLE_SWITCH_OK;
+}
+
 /* The paper's law at one state: the plant input u and, unless ds is NULL, ds/dt. */
 static int unicycle_switch_law(double t, const double *s, const double *params, double *ds, double *u)
 {
     double z[UNICYCLE_SWITCH_N_OUTPUTS];
-    double r[UNICYCLE_SWITCH_N_OUTPUTS * UNICYCLE_SWITCH_N_OUTPUTS];
+    double r[UNICYCLE_SWITCH_R_ENTRIES];
     double w[UNICYCLE_SWITCH_N_OUTPUTS];
     double pvec[UNICYCLE_SWITCH_N_OUTPUTS];
     int status = unicycle_switch_check_inputs(t, s, UNICYCLE_SWITCH_N_STATES, params);
@@ -312,7 +343,7 @@ static int unicycle_switch_law(double t, const double *s, const double *params, 
     /* y_imp^(K): the constant Hessian of f0 was inverted exactly at generation time. */
     unicycle_switch_k_jet(t, s, params, unicycle_switch_hurwitz_coefficients, z, r, pvec);
     if (!unicycle_switch_all_finite(z, UNICYCLE_SWITCH_N_OUTPUTS)
-        || !unicycle_switch_all_finite(r, UNICYCLE_SWITCH_N_OUTPUTS * UNICYCLE_SWITCH_N_OUTPUTS)
+        || !unicycle_switch_all_finite(r, UNICYCLE_SWITCH_R_ENTRIES)
         || !unicycle_switch_all_finite(pvec, UNICYCLE_SWITCH_N_OUTPUTS)) {
         return UNICYCLE_SWITCH_NONFINITE_OUTPUT;
     }
@@ -321,7 +352,7 @@ static int unicycle_switch_law(double t, const double *s, const double *params, 
         return UNICYCLE_SWITCH_NONFINITE_OUTPUT;
     }
     /* w = R^-1 (v - p) */
-    status = unicycle_switch_lu_solve(r, w);
+    status = unicycle_switch_solve_decoupling(r, w);
     if (status != UNICYCLE_SWITCH_OK) {
         return status;
     }
