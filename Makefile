@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 INSTALLED := $(VENV)/.installed
 EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring
 
-.PHONY: all demo figures bench test lint typecheck check regen check-generated update-golden clean
+.PHONY: all demo figures bench bench-derive test lint typecheck check regen check-generated update-golden clean
 
 all: test
 
