@@ -166,10 +166,6 @@ def operation_count(exprs: Iterable[sp.Expr]) -> int:
     return sum(count(sp.sympify(e)) for e in exprs)
 
 
-def _ops(exprs: Iterable[sp.Expr]) -> int:
-    return operation_count(exprs)
-
-
 def _drop_aliases(
     assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
 ) -> tuple[list[Assignment], list[sp.Expr]]:
@@ -400,7 +396,7 @@ def _kernel(
     flat = [
         canonical_odd(sp.sympify(e).xreplace(subs)) for _, _, exprs, _ in outputs for e in exprs
     ]
-    before = _ops([v for _, v in program] + flat)
+    before = operation_count([v for _, v in program] + flat)
     body, reduced = ordered_cse(program, flat)
     packed: list[Output] = []
     start = 0
@@ -419,7 +415,7 @@ def _kernel(
         tuple(inputs),
         body,
         tuple(packed),
-        _ops([v for _, v in body] + list(reduced)),
+        operation_count([v for _, v in body] + list(reduced)),
         before,
     )
 

@@ -387,12 +387,9 @@ class _Reader:
         for index, item in enumerate(value):
             if not isinstance(item, str):
                 raise self.fail(f"{field}[{index}]", name_problem(item) or "expected a name")
-        entries = self.expand([(item, None, f"{field}[{i}]") for i, item in enumerate(value)])
-        self.family(entries)
-        for name, _, _, where in entries:
-            problem = name_problem(name)
-            if problem:
-                raise self.fail(where, problem)
+        entries = self.declare(
+            self.expand([(item, None, f"{field}[{i}]") for i, item in enumerate(value)])
+        )
         return tuple(name for name, _, _, _ in entries)
 
     def entries(self, table: Mapping[str, Any], field: str) -> list[_Entry]:
@@ -535,7 +532,10 @@ class _Reader:
 
     def named_entries(self, table: Mapping[str, Any], field: str) -> list[_Entry]:
         """Expanded entries of a table that declares names (outputs, parameters, ...)."""
-        entries = self.entries(table, field)
+        return self.declare(self.entries(table, field))
+
+    def declare(self, entries: list[_Entry]) -> list[_Entry]:
+        """Record indexed families and check every declared (expanded) name."""
         self.family(entries)
         for name, _, _, where in entries:
             problem = name_problem(name)
