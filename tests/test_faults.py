@@ -228,3 +228,33 @@ def test_two_runs_at_once_on_the_same_output(tmp_path: Path) -> None:
     results = [p.communicate(timeout=120) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], results
     assert _snapshot(out) == _snapshot(reference)
+
+
+def test_output_folder_created_by_another_run_in_between(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The window between "does it exist" and mkdir: the other run wins, we go on."""
+    out = tmp_path / "out"
+    real_mkdir = Path.mkdir
+
+    def racing_mkdir(self: Path, *args: object, **kwargs: object) -> None:
+        real_mkdir(self)  # the other run, just before us
+        real_mkdir(self)  # ours: FileExistsError
+
+    monkeypatch.setattr(Path, "mkdir", racing_mkdir)
+    assert emit.prepare_folder(out) == out
+    assert out.is_dir()
+
+
+def test_output_path_created_as_a_file_in_between(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out = tmp_path / "out"
+
+    def racing_mkdir(self: Path, *args: object, **kwargs: object) -> None:
+        self.write_text("not a folder")
+        raise FileExistsError(17, "File exists", str(self))
+
+    monkeypatch.setattr(Path, "mkdir", racing_mkdir)
+    with pytest.raises(emit.OutputError, match="not a folder"):
+        emit.prepare_folder(out)

@@ -100,6 +100,14 @@ def prepare_folder(out_dir: str | Path) -> Path:
             raise OutputError(f"{folder}: output folder's parent {parent} does not exist")
         try:
             folder.mkdir()
+        except FileExistsError:
+            # Another run created it between our check and mkdir; that is
+            # fine as long as it is a real folder: each run renames whole files
+            # into place, so two runs never mix their output.
+            if folder.is_symlink() or not folder.is_dir():
+                raise OutputError(
+                    f"{folder}: output path appeared concurrently and is not a folder"
+                ) from None
         except OSError as exc:
             raise OutputError(f"{folder}: cannot create output folder: {exc.strerror}") from None
     return folder
