@@ -137,8 +137,10 @@ def recover(folder: Path) -> None:
             claimed.update(a for a, _ in pairs)
             continue  # still publishing: leave it alone
         for temp, target in pairs:
-            if (folder / temp).exists() and Path(target).name == target:
-                os.replace(folder / temp, folder / target)
+            if Path(target).name == target:
+                # Another run may be finishing the same journal right now.
+                with contextlib.suppress(FileNotFoundError):
+                    os.replace(folder / temp, folder / target)
         with contextlib.suppress(FileNotFoundError):
             journal.unlink()
     for orphan in folder.glob(f".*{_TEMP_SUFFIX}"):
