@@ -7,6 +7,7 @@ file, no temporary litter), and every failure is one clear line with its exit co
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -21,7 +22,7 @@ from tvopt_codegen.errors import EXIT_BUILD, EXIT_OUTPUT
 
 from .conftest import ROOT
 
-UNICYCLE = (ROOT / "tvopt_codegen" / "examples" / "unicycle_switch.toml").read_text()
+RING = (ROOT / "tvopt_codegen" / "examples" / "unicycle_ring.toml").read_text()
 
 
 def _snapshot(folder: Path) -> dict[str, bytes]:
@@ -42,11 +43,11 @@ def _cli(
 
 
 def _slow_spec(tmp_path: Path) -> Path:
-    """A spec whose derivation takes several seconds (a deep nested objective)."""
-    f0 = "exp(" * 45 + "y1" + ")" * 45 + " + (y1 - o1x)**2 + (y2 - o1y)**2"
-    old = 'f0 = "S*((y1 - o1x)**2 + (y2 - o1y)**2) + (1 - S)*((y1 - o2x)**2 + (y2 - o2y)**2)"'
+    """A spec whose derivation takes many seconds: the ring of 64 unicycles."""
+    text, count = re.subn(r"(?m)^i = \d+", "i = 64", RING)
+    assert count == 1
     path = tmp_path / "slow.toml"
-    path.write_text(UNICYCLE.replace(old, f"f0 = '''{f0}'''"))
+    path.write_text(text)
     return path
 
 

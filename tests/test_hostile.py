@@ -415,3 +415,18 @@ def test_memory_stays_bounded_on_an_exploding_spec(tmp_path: Path) -> None:
     assert done.returncode == EXIT_BUDGET, done.stderr
     assert done.stderr.count("\n") == 1 and "MemoryError" not in done.stderr
     assert time.perf_counter() - start < 10.0
+
+
+def test_objective_undefined_near_the_start(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """exp(exp(exp(-y1))) overflows near y1 = -5: no convexity can be claimed."""
+    f0 = "exp(exp(exp(-y1))) + (y1 - o1x)**2 + (y2 - o1y)**2"
+    _run(
+        tmp_path,
+        capsys,
+        _spec(tmp_path, _f0(f0)),
+        EXIT_ASSUMPTION,
+        "objective.f0",
+        "not finite at any of 24 points",
+    )

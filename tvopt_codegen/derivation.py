@@ -13,6 +13,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import sympy as sp
@@ -30,6 +31,7 @@ from tvopt_codegen.lie import (
     relative_degree,
 )
 from tvopt_codegen.model import Model, build_model
+from tvopt_codegen.numeric import Evaluator
 from tvopt_codegen.spec import Spec
 
 
@@ -56,7 +58,7 @@ class Convexity:
         Smallest Hessian eigenvalue found: a lower bound estimate of the convexity
         modulus.
     points : int
-        Number of (y, t) points examined.
+        Number of sampled (y, t) points at which the Hessian was finite.
     """
 
     method: str
@@ -410,40 +412,43 @@ def _check_convexity(
 ) -> Convexity:
     """Estimate the convexity modulus of f0 near the initial outputs, over the horizon."""
     defaults = dict(zip(model.params, model.defaults, strict=True))
-    signal_subs = {s: e for s, e in model.signals}
-    concrete = hessian.xreplace(signal_subs).xreplace({k: sp.Float(v) for k, v in defaults.items()})
-    if not concrete.free_symbols:
-        values = np.linalg.eigvalsh(np.array(concrete.evalf(), dtype=float))
-        m_f = float(values.min())
+    m = len(model.y)
+    if hessian.free_symbols <= defaults.keys():
+        # Constant up to parameters: exact at their defaults.
+        fixed = Evaluator({q: float(v) for q, v in defaults.items()})
+        matrix = np.array([[fixed(hessian[i, j]) for j in range(m)] for i in range(m)])
+        m_f = float(np.linalg.eigvalsh(np.real(matrix)).min())
         result = Convexity("constant Hessian", m_f, 1)
     else:
         rng = np.random.default_rng(7)
         points = 24
-        # Only the nonzero entries are compiled: a sparse Hessian printed whole costs
-        # time quadratic in its size.
-        m = len(model.y)
-        where = [(i, j) for i in range(m) for j in range(i, m) if concrete[i, j] != 0]
-        func = sp.lambdify(
-            [*model.y, model.t],
-            [concrete[i, j] for i, j in where],
-            modules="numpy",
-            docstring_limit=0,
-        )
-        rows = np.array([i for i, _ in where], dtype=int)
-        cols = np.array([j for _, j in where], dtype=int)
-        smallest = np.inf
-        for _ in range(points):
-            y = np.asarray(y0) + rng.uniform(-0.1, 0.1, size=len(y0))
-            t = rng.uniform(0.0, t_final)
-            matrix = np.zeros((m, m))
-            with np.errstate(all="ignore"):
-                values = np.array(func(*y, t), dtype=float)
-            matrix[rows, cols] = values
-            matrix[cols, rows] = values
-            if np.all(np.isfinite(matrix)):
-                smallest = min(smallest, float(np.linalg.eigvalsh(0.5 * (matrix + matrix.T)).min()))
-        m_f = float(smallest)
-        result = Convexity("sampled", m_f, points)
+        ys = np.empty((points, m))
+        ts = np.empty(points)
+        for point in range(points):
+            ys[point] = np.asarray(y0) + rng.uniform(-0.1, 0.1, size=m)
+            ts[point] = rng.uniform(0.0, t_final)
+        # All points at once, node by node over the Hessian's shared DAG; only the
+        # nonzero entries of the upper triangle.
+        where = [(i, j) for i in range(m) for j in range(i, m) if hessian[i, j] != 0]
+        values: dict[sp.Symbol, Any] = {y: ys[:, i] for i, y in enumerate(model.y)}
+        values |= {q: float(v) for q, v in defaults.items()}
+        values[model.t] = ts
+        evaluate = Evaluator(values)
+        for symbol, expr in model.signals:
+            evaluate.bind(symbol, expr)
+        matrices = np.zeros((points, m, m))
+        for i, j in where:
+            matrices[:, i, j] = matrices[:, j, i] = np.real(evaluate(hessian[i, j]))
+        finite = matrices[np.all(np.isfinite(matrices), axis=(1, 2))]
+        if not len(finite):
+            raise AssumptionError(
+                source,
+                "objective.f0",
+                f"the Hessian of f0 is not finite at any of {points} points near the initial "
+                "outputs (overflow or outside its domain), so strong convexity cannot be checked",
+            )
+        m_f = float(min(np.linalg.eigvalsh(matrix).min() for matrix in finite))
+        result = Convexity("sampled", m_f, len(finite))
     if not result.m_f > 0:
         raise AssumptionError(
             source,

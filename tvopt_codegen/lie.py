@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 import sympy as sp
 
+from tvopt_codegen.numeric import Evaluator
+
 
 class Sampler:
     """Evaluates expressions at fixed pseudo-random points of the state space.
@@ -49,23 +51,24 @@ class Sampler:
         self.symbols = tuple(symbols)
         self.fixed = dict(fixed)
         self.values = magnitudes * signs
+        self._known = set(self.symbols) | self.fixed.keys()
+        # One evaluator for the sampler's life: successive Lie derivatives share most
+        # of their subtrees, each evaluated once.
+        bound: dict[sp.Symbol, object] = {s: self.values[:, i] for i, s in enumerate(symbols)}
+        bound |= {s: float(v) for s, v in self.fixed.items()}
+        self._evaluate = Evaluator(bound)
 
     def evaluate(self, expr: sp.Expr) -> np.ndarray:
         """Return the values of ``expr`` at the sample points (NaN where undefined)."""
-        expr = sp.sympify(expr).xreplace({k: sp.Float(v) for k, v in self.fixed.items()})
-        free = sorted(expr.free_symbols, key=lambda s: s.name)
-        unknown = [s for s in free if s not in self.symbols]
+        expr = sp.sympify(expr)
+        unknown = sorted(expr.free_symbols - self._known, key=lambda s: s.name)
         if unknown:
             raise ValueError(f"cannot sample {expr}: unknown symbols {unknown}")
-        if not free:
-            value = complex(expr.evalf())
-            return np.full(len(self.values), value.real if value.imag == 0 else np.nan)
-        func = sp.lambdify(free, expr, modules="numpy")
-        index = [self.symbols.index(s) for s in free]
-        with np.errstate(all="ignore"):
-            out = np.asarray(func(*(self.values[:, i] for i in index)), dtype=complex)
+        out = np.asarray(self._evaluate(expr))
         out = np.broadcast_to(out, (len(self.values),))
-        return np.where(np.abs(out.imag) > 1e-12, np.nan, out.real)
+        if np.iscomplexobj(out):
+            out = np.where(np.abs(out.imag) > 1e-12, np.nan, out.real)
+        return np.asarray(out, dtype=float)
 
     def is_zero(self, expr: sp.Expr, tol: float = 1e-9) -> bool:
         """Decide whether ``expr`` is identically zero.

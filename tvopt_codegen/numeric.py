@@ -1,0 +1,115 @@
+"""Numeric evaluation of sympy expressions over NumPy arrays, without printing code.
+
+The derivation samples expressions at a few dozen points (is a Lie derivative
+identically zero? is the Hessian positive definite near the start?). ``lambdify``
+prints each expression to Python source and compiles it: for the Hessian of a ring of
+32 agents that printing took two seconds, longer than deriving the Hessian. Here the
+expression DAG is walked once, every distinct node evaluated once over the whole array
+of points (the Hessian's entries share most of their subtrees). Nothing is printed,
+nothing executed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+import numpy as np
+import sympy as sp
+
+Array = Any  # a float or complex ndarray, or a Python scalar broadcast against one
+
+#: sympy function classes and their NumPy counterparts. Every function a spec may call
+#: (parse.FUNCTIONS) and the ones their derivatives introduce (Abs, sign) are here.
+_FUNCTIONS: Mapping[type[sp.Basic], Callable[..., Array]] = {
+    sp.sin: np.sin,
+    sp.cos: np.cos,
+    sp.tan: np.tan,
+    sp.asin: np.arcsin,
+    sp.acos: np.arccos,
+    sp.atan: np.arctan,
+    sp.atan2: np.arctan2,
+    sp.sinh: np.sinh,
+    sp.cosh: np.cosh,
+    sp.tanh: np.tanh,
+    sp.asinh: np.arcsinh,
+    sp.acosh: np.arccosh,
+    sp.atanh: np.arctanh,
+    sp.exp: np.exp,
+    sp.log: np.log,
+    sp.Abs: np.abs,
+    sp.sign: np.sign,
+}
+
+
+class Evaluator:
+    """Evaluates expressions for bound values of their symbols, sharing work across calls.
+
+    Parameters
+    ----------
+    values : mapping of sympy.Symbol to array or float
+        Values of the free symbols (arrays of one shape, or scalars).
+
+    Notes
+    -----
+    Results are memoized per node, so evaluating many expressions that share subtrees
+    costs the size of their DAG. Out-of-domain points give NaN (or complex values when
+    the values are complex), never an exception: callers decide what an undefined
+    sample means.
+    """
+
+    def __init__(self, values: Mapping[sp.Symbol, Array]) -> None:
+        self._memo: dict[sp.Basic, Array] = dict(values)
+
+    def bind(self, symbol: sp.Symbol, expr: sp.Expr) -> None:
+        """Give ``symbol`` the value of ``expr`` (an assignment of a straight-line program)."""
+        self._memo[symbol] = self(expr)
+
+    def __call__(self, expr: sp.Basic) -> Array:
+        """The value of ``expr`` at every point."""
+        memo = self._memo
+        if expr in memo:
+            return memo[expr]
+        # An explicit stack: a long sum nests deep enough to exceed Python's recursion
+        # limit in the derivatives of large objectives.
+        stack: list[tuple[sp.Basic, bool]] = [(expr, False)]
+        with np.errstate(all="ignore"):
+            while stack:
+                node, ready = stack.pop()
+                if node in memo:
+                    continue
+                if not ready:
+                    stack.append((node, True))
+                    stack.extend((arg, False) for arg in node.args if arg not in memo)
+                    continue
+                memo[node] = self._apply(node, [memo[arg] for arg in node.args])
+        return memo[expr]
+
+    @staticmethod
+    def _apply(node: sp.Basic, args: list[Array]) -> Array:
+        if node.is_Symbol:
+            raise ValueError(f"no value for the symbol {node}")
+        if node.is_Atom:  # a number, pi, E, I, oo or zoo
+            value = complex(node)
+            return value.real if value.imag == 0 else value
+        if node.is_Add:
+            return _fold(np.add, args)
+        if node.is_Mul:
+            return _fold(np.multiply, args)
+        if node.is_Pow:
+            base, exponent = args
+            if node.exp == sp.Rational(1, 2):
+                return np.sqrt(base)
+            return np.power(base, exponent)
+        function = _FUNCTIONS.get(type(node)) or _FUNCTIONS.get(node.func)
+        if function is None:
+            raise ValueError(f"cannot evaluate {type(node).__name__} numerically")
+        return function(*args)
+
+
+def _fold(op: Callable[[Array, Array], Array], args: Iterable[Array]) -> Array:
+    items = iter(args)
+    total = next(items)
+    for item in items:
+        total = op(total, item)
+    return total
