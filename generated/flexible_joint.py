@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 50a96423436cca071299c9fb8a1234e0a6cb51b61abae42bfec6216c82abf930
+# content sha256: a9b8154d5d2293af0862073af15bc37774eb9315dd9714630a93a0f0cfc32bbe
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -232,7 +232,7 @@ def _lu_solve(a, b, points):
     return numpy.moveaxis(x, 0, -1)
 
 def _jet(t, s, p, a):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 256 operations, 335 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 253 operations, 335 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # q1
     _s1 = s[1]  # w1
@@ -246,7 +246,7 @@ def _jet(t, s, p, a):
     _a1 = a[1]  # a_1
     _a2 = a[2]  # a_2
     _a3 = a[3]  # a_3
-    # Intermediate terms (85)
+    # Intermediate terms (75)
     _t0 = (1/2)*t
     _t1 = numpy.sin(_t0)
     _t2 = (13/10)*t
@@ -264,83 +264,73 @@ def _jet(t, s, p, a):
     _t14 = _s0 - _s2
     _t15 = _p3*_t11
     _t16 = -_t13 - _t14*_t15
-    _t17 = _t16
-    _t18 = -_t12*numpy.cos(_s0) - _t15
-    _t19 = _s1*_t18 + _s3*_t15
-    _t20 = -_s0 + _t4
-    _t21 = numpy.cosh(_t20)
-    _t22 = _t21
-    _t23 = 1/_t22
-    _t24 = numpy.sinh(_t20)
-    _t25 = _t24
-    _t26 = -_s1 + _t7
-    _t27 = _t24
-    _t28 = _t26*_t27
-    _t29 = 1/_t22**2
-    _t30 = -_t28*_t29
-    _t31 = _t21
-    _t32 = _t26*_t31
-    _t33 = -_t17 + _t8
-    _t34 = _t21
-    _t35 = _t26*_t34
-    _t36 = _t26*_t35 + _t27*_t33
-    _t37 = 1/_t22**3
-    _t38 = 2*_t28
-    _t39 = -_t37*_t38
-    _t40 = -_t28*_t39 - _t29*_t36
-    _t41 = _t24
-    _t42 = _t26*_t41
-    _t43 = _t26*_t42 + _t31*_t33
-    _t44 = -_t30*_t32
-    _t45 = -_t19 + _t9
-    _t46 = _t24
-    _t47 = _t26*_t46
-    _t48 = _t26*_t47 + _t33*_t34
-    _t49 = _t33*_t35
-    _t50 = _t26*_t48 + _t27*_t45 + 2*_t49
-    _t51 = 3/_t22**4
-    _t52 = -_t28*_t51
-    _t53 = 2*_t36
-    _t54 = -_t37*_t53 - _t38*_t52
-    _t55 = -_t36*_t39
-    _t56 = -_t28*_t54 - _t29*_t50 + 2*_t55
-    _t57 = _t21
-    _t58 = _t26*_t57
-    _t59 = _t26*_t58 + _t33*_t41
-    _t60 = _t33*_t42
-    _t61 = _t26*_t59 + _t31*_t45 + 2*_t60
-    _t62 = -_t30*_t43
-    _t63 = -_t32*_t40
-    _t64 = _t62 + _t63
-    _t65 = _t33*_t47
-    _t66 = _t33*_t48
-    _t67 = _t35*_t45
-    _t68 = _t66 + _t67
-    _t69 = -_t52*_t53
-    _t70 = -_t36*_t54
-    _t71 = -_t39*_t50
-    _t72 = _t70 + _t71
-    _t73 = _t33*_t58
-    _t74 = _t33*_t59
-    _t75 = _t42*_t45
-    _t76 = _t74 + _t75
-    _t77 = -_t30*_t61
-    _t78 = -_t40*_t43
-    _t79 = _t77 + _t78
-    _t80 = -_t32*_t56
-    _t81 = _t78 + _t80
-    _t82 = _t79 + _t81
-    _t83 = _s0 - _t4
-    _t84 = 1/_p2
+    _t17 = -_t12*numpy.cos(_s0) - _t15
+    _t18 = _s1*_t17 + _s3*_t15
+    _t19 = -_s0 + _t4
+    _t20 = numpy.cosh(_t19)
+    _t21 = 1/_t20
+    _t22 = numpy.sinh(_t19)
+    _t23 = -_s1 + _t7
+    _t24 = _t22*_t23
+    _t25 = 1/_t20**2
+    _t26 = -_t24*_t25
+    _t27 = _t20*_t23
+    _t28 = -_t16 + _t8
+    _t29 = _t20*_t23
+    _t30 = _t22*_t28 + _t23*_t29
+    _t31 = 1/_t20**3
+    _t32 = 2*_t24
+    _t33 = -_t31*_t32
+    _t34 = -_t24*_t33 - _t25*_t30
+    _t35 = _t22*_t23
+    _t36 = _t20*_t28 + _t23*_t35
+    _t37 = -_t26*_t27
+    _t38 = -_t18 + _t9
+    _t39 = _t22*_t23
+    _t40 = _t20*_t28 + _t23*_t39
+    _t41 = _t28*_t29
+    _t42 = _t22*_t38 + _t23*_t40 + 2*_t41
+    _t43 = 3/_t20**4
+    _t44 = -_t24*_t43
+    _t45 = 2*_t30
+    _t46 = -_t31*_t45 - _t32*_t44
+    _t47 = -_t30*_t33
+    _t48 = -_t24*_t46 - _t25*_t42 + 2*_t47
+    _t49 = _t20*_t23
+    _t50 = _t22*_t28 + _t23*_t49
+    _t51 = _t28*_t35
+    _t52 = _t20*_t38 + _t23*_t50 + 2*_t51
+    _t53 = -_t26*_t36
+    _t54 = -_t27*_t34
+    _t55 = _t53 + _t54
+    _t56 = _t28*_t39
+    _t57 = _t28*_t40
+    _t58 = _t29*_t38
+    _t59 = _t57 + _t58
+    _t60 = -_t44*_t45
+    _t61 = -_t30*_t46
+    _t62 = -_t33*_t42
+    _t63 = _t61 + _t62
+    _t64 = _t28*_t49
+    _t65 = _t28*_t50
+    _t66 = _t35*_t38
+    _t67 = _t65 + _t66
+    _t68 = -_t26*_t52
+    _t69 = -_t34*_t36
+    _t70 = _t68 + _t69
+    _t71 = -_t27*_t48
+    _t72 = _t69 + _t71
+    _t73 = _t70 + _t72
+    _t74 = 1/_p2
     # Output terms
     hessian = numpy.empty((1, _n))  # nonzero entries of the lower triangle of grad_yy f0
-    hessian[0] = -numpy.sinh(_t83)**2/numpy.cosh(_t83)**2 + 3
+    hessian[0] = _t20*_t21 - _t22**2*_t25 + 2
     jet_rhs = numpy.empty((1, _n))  # sum_i a_i grad^(i) f0 - rest
-    jet_rhs[0] = _a0*(2*_s0 - _t23*_t25 - 2*_t4) + _a1*(2*_s1 - _t23*_t32 - _t25*_t30 - 2*_t7) + _a2*(2*_t17 - _t23*_t43 - _t25*_t40 + 2*_t44 - 2*_t8) + _a3*(2*_t19 - _t23*_t61 - _t25*_t56 + _t62 + _t63 + 2*_t64 - 2*_t9) + 2*_t10 + _t23*(_t10*_t31 + _t26*(_t26*(_t24*_t26**2 + _t33*_t57) + _t41*_t45 + 2*_t73) + _t74 + _t75 + 2*_t76) + _t25*(-_t28*(-2*_t37*_t50 - _t38*(-_t36*_t51 + 12*_t28**2/_t22**5) + 2*_t69) - _t29*(_t10*_t27 + _t26*(_t26*(_t21*_t26**2 + _t33*_t46) + _t34*_t45 + 2*_t65) + _t66 + _t67 + 2*_t68) + _t70 + _t71 + 2*_t72) - _t77 - _t79 - _t80 - _t81 - 2*_t82
+    jet_rhs[0] = _a0*(2*_s0 - _t21*_t22 - 2*_t4) + _a1*(2*_s1 - _t21*_t27 - _t22*_t26 - 2*_t7) + _a2*(2*_t16 - _t21*_t36 - _t22*_t34 + 2*_t37 - 2*_t8) + _a3*(2*_t18 - _t21*_t52 - _t22*_t48 + _t53 + _t54 + 2*_t55 - 2*_t9) + 2*_t10 + _t21*(_t10*_t20 + _t23*(_t22*_t38 + _t23*(_t20*_t28 + _t22*_t23**2) + 2*_t64) + _t65 + _t66 + 2*_t67) + _t22*(-_t24*(-2*_t31*_t42 - _t32*(-_t30*_t43 + 12*_t24**2/_t20**5) + 2*_t60) - _t25*(_t10*_t22 + _t23*(_t20*_t38 + _t23*(_t20*_t23**2 + _t22*_t28) + 2*_t56) + _t57 + _t58 + 2*_t59) + _t61 + _t62 + 2*_t63) - _t68 - _t70 - _t71 - _t72 - 2*_t73
     R = numpy.empty((1, _n))  # diagonal blocks of the decoupling matrix
-    R[0] = _t15*_t84
+    R[0] = _t15*_t74
     pvec = numpy.empty((1, _n))  # p = col(L_f^{r_i} h_i)
-    pvec[0] = _p3**2*_t11*_t14*_t84 + _s1**2*_t13 + _t16*_t18
+    pvec[0] = _p3**2*_t11*_t14*_t74 + _s1**2*_t13 + _t16*_t17
     return hessian, jet_rhs, R, pvec
 
 
@@ -398,7 +388,7 @@ def _closed_loop(t, s, p, w, z):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 137 operations, 184 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 137 operations, 174 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # q1
     _s1 = s[1]  # w1
@@ -407,7 +397,7 @@ def _optimality(t, s, p):
     _p0 = p[0]  # mgl
     _p1 = p[1]  # inertia
     _p3 = p[3]  # stiffness
-    # Intermediate terms (47)
+    # Intermediate terms (41)
     _t0 = (1/2)*t
     _t1 = numpy.sin(_t0)
     _t2 = (13/10)*t
@@ -425,42 +415,36 @@ def _optimality(t, s, p):
     _t14 = _s1*(-_t11*numpy.cos(_s0) - _t12) + _s3*_t12
     _t15 = -_s0 + _t4
     _t16 = numpy.cosh(_t15)
-    _t17 = _t16
-    _t18 = 1/_t17
-    _t19 = numpy.sinh(_t15)
-    _t20 = _t19
-    _t21 = -_s1 + _t7
-    _t22 = _t19
-    _t23 = _t21*_t22
-    _t24 = 1/_t17**2
-    _t25 = -_t23*_t24
-    _t26 = _t16
-    _t27 = _t21*_t26
-    _t28 = -_t13 + _t8
-    _t29 = _t16
-    _t30 = _t21*_t29
-    _t31 = _t21*_t30 + _t22*_t28
-    _t32 = 1/_t17**3
-    _t33 = 2*_t23
-    _t34 = -_t32*_t33
-    _t35 = -_t23*_t34 - _t24*_t31
-    _t36 = _t19
-    _t37 = _t21*_t36
-    _t38 = _t21*_t37 + _t26*_t28
-    _t39 = -_t25*_t27
-    _t40 = -_t14 + _t9
-    _t41 = _t28*_t30
-    _t42 = -_t31*_t34
-    _t43 = _t28*_t37
-    _t44 = -_t25*_t38
-    _t45 = -_t27*_t35
-    _t46 = _t44 + _t45
+    _t17 = 1/_t16
+    _t18 = numpy.sinh(_t15)
+    _t19 = -_s1 + _t7
+    _t20 = _t18*_t19
+    _t21 = 1/_t16**2
+    _t22 = -_t20*_t21
+    _t23 = _t16*_t19
+    _t24 = -_t13 + _t8
+    _t25 = _t16*_t19
+    _t26 = _t18*_t24 + _t19*_t25
+    _t27 = 1/_t16**3
+    _t28 = 2*_t20
+    _t29 = -_t27*_t28
+    _t30 = -_t20*_t29 - _t21*_t26
+    _t31 = _t18*_t19
+    _t32 = _t16*_t24 + _t19*_t31
+    _t33 = -_t22*_t23
+    _t34 = -_t14 + _t9
+    _t35 = _t24*_t25
+    _t36 = -_t26*_t29
+    _t37 = _t24*_t31
+    _t38 = -_t22*_t32
+    _t39 = -_t23*_t30
+    _t40 = _t38 + _t39
     # Output terms
     E = numpy.empty((4, 1, _n))  # grad^(j) f0
-    E[0, 0] = 2*_s0 - _t18*_t20 - 2*_t4
-    E[1, 0] = 2*_s1 - _t18*_t27 - _t20*_t25 - 2*_t7
-    E[2, 0] = 2*_t13 - _t18*_t38 - _t20*_t35 + 2*_t39 - 2*_t8
-    E[3, 0] = 2*_t14 - _t18*(_t21*(_t16*_t21**2 + _t28*_t36) + _t26*_t40 + 2*_t43) - _t20*(-_t23*(-2*_t31*_t32 + 3*_t23*_t33/_t17**4) - _t24*(_t21*(_t19*_t21**2 + _t28*_t29) + _t22*_t40 + 2*_t41) + 2*_t42) + _t44 + _t45 + 2*_t46 - 2*_t9
+    E[0, 0] = 2*_s0 - _t17*_t18 - 2*_t4
+    E[1, 0] = 2*_s1 - _t17*_t23 - _t18*_t22 - 2*_t7
+    E[2, 0] = 2*_t13 - _t17*_t32 - _t18*_t30 + 2*_t33 - 2*_t8
+    E[3, 0] = 2*_t14 - _t17*(_t16*_t34 + _t19*(_t16*_t19**2 + _t18*_t24) + 2*_t37) - _t18*(-_t20*(-2*_t26*_t27 + 3*_t20*_t28/_t16**4) - _t21*(_t18*_t34 + _t19*(_t16*_t24 + _t18*_t19**2) + 2*_t35) + 2*_t36) + _t38 + _t39 + 2*_t40 - 2*_t9
     return E
 
 
@@ -477,27 +461,29 @@ def _objective(t, y, p):
 
 
 def _gradient(t, y, p):
-    """grad_y f0(y, t) (kernel; 16 operations, 17 before CSE)."""
+    """grad_y f0(y, t) (kernel; 16 operations, 19 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y
     # Intermediate terms (2)
     _t0 = (3/5)*numpy.sin((1/2)*t) + (3/10)*numpy.sin((13/10)*t)
-    _t1 = -_t0 + _y0
+    _t1 = _t0 - _y0
     # Output terms
     grad = numpy.empty((1, _n))  # grad_y f0
-    grad[0] = -2*_t0 + 2*_y0 + numpy.sinh(_t1)/numpy.cosh(_t1)
+    grad[0] = -2*_t0 + 2*_y0 - numpy.sinh(_t1)/numpy.cosh(_t1)
     return grad
 
 
 def _hessian(t, y, p):
-    """grad_yy f0(y, t) (kernel; 15 operations, 16 before CSE)."""
+    """grad_yy f0(y, t) (kernel; 15 operations, 25 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y
-    # Intermediate terms (1)
-    _t0 = _y0 - 3/5*numpy.sin((1/2)*t) - 3/10*numpy.sin((13/10)*t)
+    # Intermediate terms (3)
+    _t0 = -_y0 + (3/5)*numpy.sin((1/2)*t) + (3/10)*numpy.sin((13/10)*t)
+    _t1 = numpy.cosh(_t0)
+    _t2 = numpy.sinh(_t0)
     # Output terms
     hess = numpy.empty((1, 1, _n))  # grad_yy f0
-    hess[0, 0] = -numpy.sinh(_t0)**2/numpy.cosh(_t0)**2 + 3
+    hess[0, 0] = 3 - _t2**2/_t1**2
     return hess
 
 

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: bb1235189e98b58460f55db282a22dbf977a4072c69bd953d3b2a86b1a73efc1
+# content sha256: 7be4d3683b6a8e100ba1f57527235d038ce7eff319c801533a81b7d7d00bbef2
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -224,7 +224,7 @@ def _lu_solve(a, b, points):
     return numpy.moveaxis(x, 0, -1)
 
 def _jet(t, s, p, a):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 88 operations, 157 before CSE)."""
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 88 operations, 154 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x
     _s1 = s[1]  # z
@@ -320,7 +320,7 @@ def _closed_loop(t, s, p, w, z):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 57 operations, 96 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 57 operations, 83 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x
     _s1 = s[1]  # z
@@ -381,7 +381,7 @@ def _gradient(t, y, p):
 
 
 def _hessian(t, y, p):
-    """grad_yy f0(y, t) (kernel; 0 operations, 11 before CSE)."""
+    """grad_yy f0(y, t) (kernel; 0 operations, 0 before CSE)."""
     _n = y.shape[1]
     # Output terms
     hess = numpy.empty((2, 2, _n))  # grad_yy f0

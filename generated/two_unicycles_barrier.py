@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: cd85c381d59adf79f54870b5b91f06ff6cc53de024acab50f147f38f8221da90
+# content sha256: 34a3dcf6af316e24f7ab0fd002af076c87dba5b167d2e63e3a7b82e85579d3a1
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -237,7 +237,7 @@ def _lu_solve(a, b, points):
     return numpy.moveaxis(x, 0, -1)
 
 def _jet(t, s, p, a):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 305 operations, 1112 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 291 operations, 384 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # xa
     _s1 = s[1]  # ya
@@ -251,134 +251,101 @@ def _jet(t, s, p, a):
     _p1 = p[1]  # d
     _a0 = a[0]  # a_0
     _a1 = a[1]  # a_1
-    # Intermediate terms (101)
+    # Intermediate terms (68)
     _t0 = t**2
     _t1 = numpy.cos(_s2)
     _t2 = _s6*_t1
-    _t3 = _t2
-    _t4 = numpy.sin(_s2)
-    _t5 = _s6*_t4
-    _t6 = _t5
-    _t7 = numpy.cos(_s5)
+    _t3 = numpy.sin(_s2)
+    _t4 = _s6*_t3
+    _t5 = numpy.cos(_s5)
+    _t6 = _s7*_t5
+    _t7 = numpy.sin(_s5)
     _t8 = _s7*_t7
-    _t9 = _t8
-    _t10 = numpy.sin(_s5)
-    _t11 = _s7*_t10
-    _t12 = _t11
-    _t13 = 2*_s0
-    _t14 = _t13
-    _t15 = 1/_p1
-    _t16 = _t15
-    _t17 = -_s3
-    _t18 = _s0 + _t17
-    _t19 = -_s4
-    _t20 = _s1 + _t19
-    _t21 = (1/2)*numpy.pi*_t16
-    _t22 = numpy.tan(_t21*(_t18**2 + _t20**2))
-    _t23 = _t22
-    _t24 = 2*_s3
-    _t25 = -_t24
-    _t26 = _t14 + _t25
-    _t27 = numpy.pi*_p0
-    _t28 = _t16*_t27
-    _t29 = _t28*(_t23**2 + 1)
-    _t30 = _t26*_t29
-    _t31 = 2*_s1
-    _t32 = _t31
-    _t33 = 2*_s4
-    _t34 = -_t33
-    _t35 = _t32 + _t34
-    _t36 = _t29*_t35
-    _t37 = _t24
-    _t38 = -_t13 + _t37
-    _t39 = _t29*_t38
-    _t40 = _t33
-    _t41 = -_t31 + _t40
-    _t42 = _t29*_t41
-    _t43 = 2*_t3
-    _t44 = _t43
-    _t45 = _t3 - _t9
-    _t46 = -_t12 + _t6
-    _t47 = _t21*(2*_t18*_t45 + 2*_t20*_t46)
-    _t48 = _t22
-    _t49 = _t48**2 + 1
-    _t50 = _t47*_t49
-    _t51 = 2*_t23
-    _t52 = 2*_t9
-    _t53 = _t44 - _t52
-    _t54 = _t28*_t50*_t51
-    _t55 = _t26*_t54 + _t29*_t53
-    _t56 = 2*_t6
-    _t57 = _t56
-    _t58 = 2*_t12
-    _t59 = _t57 - _t58
-    _t60 = _t29*_t59 + _t35*_t54
-    _t61 = _t52
-    _t62 = -_t43 + _t61
-    _t63 = _t29*_t62 + _t38*_t54
-    _t64 = _t58
-    _t65 = -_t56 + _t64
-    _t66 = _t29*_t65 + _t41*_t54
-    _t67 = _t21*_t49*(2*_t45**2 + 2*_t46**2) + 2*_t47**2*_t48*(_t22**2 + 1)
-    _t68 = _t28*(2*_t50**2 + _t51*_t67)
-    _t69 = _t53*_t54
-    _t70 = _t50*_t55
-    _t71 = _t54*_t59
-    _t72 = _t50*_t60
-    _t73 = _t54*_t62
-    _t74 = _t50*_t63
-    _t75 = _t54*_t65
-    _t76 = _t50*_t66
-    _t77 = _t13 + _t25
-    _t78 = numpy.pi**2*_p0/_p1**2
-    _t79 = _t77**2*_t78
-    _t80 = numpy.tan((1/2)*numpy.pi*_t15*(-(_s0 + _t17)**2 - (_s1 + _t19)**2))
-    _t81 = _t80**2
-    _t82 = _t81 + 1
-    _t83 = (1/2)*_t82**2
-    _t84 = _t81*_t82
-    _t85 = 2*_t15*_t27*_t80*_t82
-    _t86 = 2 - _t85
-    _t87 = _t31 + _t34
-    _t88 = _t77*_t78
-    _t89 = _t87*_t88
-    _t90 = _t78*_t87**2
-    _t91 = -_t77
-    _t92 = _t88*_t91
-    _t93 = _t78*_t87
-    _t94 = _t91*_t93
-    _t95 = _t78*_t91**2
-    _t96 = -_t87
-    _t97 = _t88*_t96
-    _t98 = _t93*_t96
-    _t99 = _t78*_t91*_t96
-    _t100 = _t78*_t96**2
+    _t9 = 2*_s0
+    _t10 = 1/_p1
+    _t11 = _s0 - _s3
+    _t12 = _s1 - _s4
+    _t13 = (1/2)*numpy.pi*_t10
+    _t14 = numpy.tan(_t13*(_t11**2 + _t12**2))
+    _t15 = 2*_s3
+    _t16 = -_t15 + _t9
+    _t17 = numpy.pi*_p0*_t10
+    _t18 = _t17*(_t14**2 + 1)
+    _t19 = _t16*_t18
+    _t20 = 2*_s1
+    _t21 = 2*_s4
+    _t22 = _t20 - _t21
+    _t23 = _t18*_t22
+    _t24 = _t15 - _t9
+    _t25 = _t18*_t24
+    _t26 = -_t20 + _t21
+    _t27 = _t18*_t26
+    _t28 = 2*_t2
+    _t29 = _t2 - _t6
+    _t30 = 2*_t11
+    _t31 = _t4 - _t8
+    _t32 = 2*_t12
+    _t33 = _t13*(_t29*_t30 + _t31*_t32)
+    _t34 = _t14**2 + 1
+    _t35 = _t33*_t34
+    _t36 = 2*_t14
+    _t37 = 2*_t6
+    _t38 = _t28 - _t37
+    _t39 = _t17*_t35*_t36
+    _t40 = _t16*_t39 + _t18*_t38
+    _t41 = 2*_t4
+    _t42 = 2*_t8
+    _t43 = _t41 - _t42
+    _t44 = _t18*_t43 + _t22*_t39
+    _t45 = -_t28 + _t37
+    _t46 = _t18*_t45 + _t24*_t39
+    _t47 = -_t41 + _t42
+    _t48 = _t18*_t47 + _t26*_t39
+    _t49 = _t14**2 + 1
+    _t50 = _t13*_t30*_t49
+    _t51 = _t13*_t32*_t49
+    _t52 = -_t13*_t30*_t49
+    _t53 = -_t13*_t32*_t49
+    _t54 = _t17*_t36*_t50
+    _t55 = _t17*_t36*_t51
+    _t56 = _t17*_t36*_t52
+    _t57 = 2*_t18
+    _t58 = _t13*_t34*(2*_t29**2 + 2*_t31**2) + 2*_t14*_t33**2*(_t14**2 + 1)
+    _t59 = _t17*(2*_t35**2 + _t36*_t58)
+    _t60 = _t38*_t39
+    _t61 = _t35*_t40
+    _t62 = _t39*_t43
+    _t63 = _t35*_t44
+    _t64 = _t39*_t45
+    _t65 = _t35*_t46
+    _t66 = _t39*_t47
+    _t67 = _t35*_t48
     # Output terms
     hessian = numpy.empty((10, _n))  # nonzero entries of the lower triangle of grad_yy f0
-    hessian[0] = _t79*_t83 + _t79*_t84 + _t86
-    hessian[1] = _t83*_t89 + _t84*_t89
-    hessian[2] = _t83*_t90 + _t84*_t90 + _t86
-    hessian[3] = _t83*_t92 + _t84*_t92 + _t85
-    hessian[4] = _t83*_t94 + _t84*_t94
-    hessian[5] = _t83*_t95 + _t84*_t95 + _t86
-    hessian[6] = _t83*_t97 + _t84*_t97
-    hessian[7] = _t83*_t98 + _t84*_t98 + _t85
-    hessian[8] = _t83*_t99 + _t84*_t99
-    hessian[9] = _t100*_t83 + _t100*_t84 + _t86
+    hessian[0] = _t14*(_t16*_t54 + _t57) + _t19*_t50 + 2
+    hessian[1] = _t14*_t22*_t54 + _t23*_t50
+    hessian[2] = _t14*(_t22*_t55 + _t57) + _t23*_t51 + 2
+    hessian[3] = _t14*(_t24*_t54 - _t57) + _t25*_t50
+    hessian[4] = _t14*_t24*_t55 + _t25*_t51
+    hessian[5] = _t14*(_t24*_t56 + _t57) + _t25*_t52 + 2
+    hessian[6] = _t14*_t26*_t54 + _t27*_t50
+    hessian[7] = _t14*(_t26*_t55 - _t57) + _t27*_t51
+    hessian[8] = _t14*_t26*_t56 + _t27*_t52
+    hessian[9] = _t14*(_t17*_t26*_t36*_t53 + _t57) + _t27*_t53 + 2
     jet_rhs = numpy.empty((4, _n))  # sum_i a_i grad^(i) f0 - rest
-    jet_rhs[0] = _a0*(-1/250*_t0 + _t14 + _t23*_t30 - t + 10) + _a1*(_t23*_t55 + _t30*_t50 + _t44 - 1/125*t - 1) - _t23*(_t26*_t68 + 2*_t69) - _t30*_t67 - 2*_t70 + 1/125
-    jet_rhs[1] = _a0*((1/50)*_t0 + _t23*_t36 + _t32 - 3/5*t + 6) + _a1*(_t23*_t60 + _t36*_t50 + _t57 + (1/25)*t - 3/5) - _t23*(_t35*_t68 + 2*_t71) - _t36*_t67 - 2*_t72 - 1/25
-    jet_rhs[2] = _a0*(-1/125*_t0 + _t23*_t39 + _t37 - 9/10*t + 4) + _a1*(_t23*_t63 + _t39*_t50 + _t61 - 2/125*t - 9/10) - _t23*(_t38*_t68 + 2*_t73) - _t39*_t67 - 2*_t74 + 2/125
-    jet_rhs[3] = _a0*((3/125)*_t0 + _t23*_t42 + _t40 - 7/10*t + 6) + _a1*(_t23*_t66 + _t42*_t50 + _t64 + (6/125)*t - 7/10) - _t23*(_t41*_t68 + 2*_t75) - _t42*_t67 - 2*_t76 - 6/125
+    jet_rhs[0] = _a0*(-1/250*_t0 + _t14*_t19 + _t9 - t + 10) + _a1*(_t14*_t40 + _t19*_t35 + _t28 - 1/125*t - 1) - _t14*(_t16*_t59 + 2*_t60) - _t19*_t58 - 2*_t61 + 1/125
+    jet_rhs[1] = _a0*((1/50)*_t0 + _t14*_t23 + _t20 - 3/5*t + 6) + _a1*(_t14*_t44 + _t23*_t35 + _t41 + (1/25)*t - 3/5) - _t14*(_t22*_t59 + 2*_t62) - _t23*_t58 - 2*_t63 - 1/25
+    jet_rhs[2] = _a0*(-1/125*_t0 + _t14*_t25 + _t15 - 9/10*t + 4) + _a1*(_t14*_t46 + _t25*_t35 + _t37 - 2/125*t - 9/10) - _t14*(_t24*_t59 + 2*_t64) - _t25*_t58 - 2*_t65 + 2/125
+    jet_rhs[3] = _a0*((3/125)*_t0 + _t14*_t27 + _t21 - 7/10*t + 6) + _a1*(_t14*_t48 + _t27*_t35 + _t42 + (6/125)*t - 7/10) - _t14*(_t26*_t59 + 2*_t66) - _t27*_t58 - 2*_t67 - 6/125
     R = numpy.empty((8, _n))  # diagonal blocks of the decoupling matrix
     R[0] = _t1
-    R[1] = -_t5
-    R[2] = _t4
+    R[1] = -_t4
+    R[2] = _t3
     R[3] = _t2
-    R[4] = _t7
-    R[5] = -_t11
-    R[6] = _t10
-    R[7] = _t8
+    R[4] = _t5
+    R[5] = -_t8
+    R[6] = _t7
+    R[7] = _t6
     pvec = numpy.empty((4, _n))  # p = col(L_f^{r_i} h_i)
     pvec[0] = 0
     pvec[1] = 0
@@ -488,7 +455,7 @@ def _closed_loop(t, s, p, w, z):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 133 operations, 166 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 133 operations, 160 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # xa
     _s1 = s[1]  # ya
@@ -500,56 +467,47 @@ def _optimality(t, s, p):
     _s7 = s[7]  # vb
     _p0 = p[0]  # alpha
     _p1 = p[1]  # d
-    # Intermediate terms (39)
+    # Intermediate terms (30)
     _t0 = t**2
     _t1 = _s6*numpy.cos(_s2)
     _t2 = _s6*numpy.sin(_s2)
     _t3 = _s7*numpy.cos(_s5)
     _t4 = _s7*numpy.sin(_s5)
     _t5 = 2*_s0
-    _t6 = _t5
-    _t7 = 1/_p1
-    _t8 = _s0 - _s3
-    _t9 = _s1 - _s4
-    _t10 = (1/2)*numpy.pi*_t7
-    _t11 = numpy.tan(_t10*(_t8**2 + _t9**2))
-    _t12 = _t11
-    _t13 = 2*_s3
-    _t14 = -_t13 + _t6
-    _t15 = numpy.pi*_p0*_t7
-    _t16 = _t15*(_t12**2 + 1)
-    _t17 = _t14*_t16
-    _t18 = 2*_s1
-    _t19 = _t18
-    _t20 = 2*_s4
-    _t21 = _t19 - _t20
-    _t22 = _t16*_t21
-    _t23 = _t13
-    _t24 = _t23 - _t5
-    _t25 = _t16*_t24
-    _t26 = _t20
-    _t27 = -_t18 + _t26
-    _t28 = _t16*_t27
-    _t29 = 2*_t1
-    _t30 = _t29
-    _t31 = _t10*(_t11**2 + 1)*(2*_t8*(_t1 - _t3) + 2*_t9*(_t2 - _t4))
-    _t32 = 2*_t3
-    _t33 = 2*_t12*_t15*_t31
-    _t34 = 2*_t2
-    _t35 = _t34
-    _t36 = 2*_t4
-    _t37 = _t32
-    _t38 = _t36
+    _t6 = 1/_p1
+    _t7 = _s0 - _s3
+    _t8 = _s1 - _s4
+    _t9 = (1/2)*numpy.pi*_t6
+    _t10 = numpy.tan(_t9*(_t7**2 + _t8**2))
+    _t11 = 2*_s3
+    _t12 = -_t11 + _t5
+    _t13 = numpy.pi*_p0*_t6
+    _t14 = _t13*(_t10**2 + 1)
+    _t15 = _t12*_t14
+    _t16 = 2*_s1
+    _t17 = 2*_s4
+    _t18 = _t16 - _t17
+    _t19 = _t14*_t18
+    _t20 = _t11 - _t5
+    _t21 = _t14*_t20
+    _t22 = -_t16 + _t17
+    _t23 = _t14*_t22
+    _t24 = 2*_t1
+    _t25 = _t9*(_t10**2 + 1)*(2*_t7*(_t1 - _t3) + 2*_t8*(_t2 - _t4))
+    _t26 = 2*_t3
+    _t27 = 2*_t10*_t13*_t25
+    _t28 = 2*_t2
+    _t29 = 2*_t4
     # Output terms
     E = numpy.empty((2, 4, _n))  # grad^(j) f0
-    E[0, 0] = -1/250*_t0 + _t12*_t17 + _t6 - t + 10
-    E[0, 1] = (1/50)*_t0 + _t12*_t22 + _t19 - 3/5*t + 6
-    E[0, 2] = -1/125*_t0 + _t12*_t25 + _t23 - 9/10*t + 4
-    E[0, 3] = (3/125)*_t0 + _t12*_t28 + _t26 - 7/10*t + 6
-    E[1, 0] = _t12*(_t14*_t33 + _t16*(_t30 - _t32)) + _t17*_t31 + _t30 - 1/125*t - 1
-    E[1, 1] = _t12*(_t16*(_t35 - _t36) + _t21*_t33) + _t22*_t31 + _t35 + (1/25)*t - 3/5
-    E[1, 2] = _t12*(_t16*(-_t29 + _t37) + _t24*_t33) + _t25*_t31 + _t37 - 2/125*t - 9/10
-    E[1, 3] = _t12*(_t16*(-_t34 + _t38) + _t27*_t33) + _t28*_t31 + _t38 + (6/125)*t - 7/10
+    E[0, 0] = -1/250*_t0 + _t10*_t15 + _t5 - t + 10
+    E[0, 1] = (1/50)*_t0 + _t10*_t19 + _t16 - 3/5*t + 6
+    E[0, 2] = -1/125*_t0 + _t10*_t21 + _t11 - 9/10*t + 4
+    E[0, 3] = (3/125)*_t0 + _t10*_t23 + _t17 - 7/10*t + 6
+    E[1, 0] = _t10*(_t12*_t27 + _t14*(_t24 - _t26)) + _t15*_t25 + _t24 - 1/125*t - 1
+    E[1, 1] = _t10*(_t14*(_t28 - _t29) + _t18*_t27) + _t19*_t25 + _t28 + (1/25)*t - 3/5
+    E[1, 2] = _t10*(_t14*(-_t24 + _t26) + _t20*_t27) + _t21*_t25 + _t26 - 2/125*t - 9/10
+    E[1, 3] = _t10*(_t14*(-_t28 + _t29) + _t22*_t27) + _t23*_t25 + _t29 + (6/125)*t - 7/10
     return E
 
 
@@ -571,7 +529,7 @@ def _objective(t, y, p):
 
 
 def _gradient(t, y, p):
-    """grad_y f0(y, t) (kernel; 49 operations, 164 before CSE)."""
+    """grad_y f0(y, t) (kernel; 56 operations, 74 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # pa
     _y1 = y[1]  # qa
@@ -579,28 +537,26 @@ def _gradient(t, y, p):
     _y3 = y[3]  # qb
     _p0 = p[0]  # alpha
     _p1 = p[1]  # d
-    # Intermediate terms (10)
+    # Intermediate terms (8)
     _t0 = t**2
     _t1 = 2*_y0
-    _t2 = -2*_y2
-    _t3 = _t1 + _t2
-    _t4 = numpy.pi/_p1
-    _t5 = numpy.tan((1/2)*_t4*(-(_y0 - _y2)**2 - (_y1 - _y3)**2))
-    _t6 = _p0*_t4*_t5*(_t5**2 + 1)
-    _t7 = 2*_y1
-    _t8 = -2*_y3
-    _t9 = _t7 + _t8
+    _t2 = 1/_p1
+    _t3 = numpy.tan((1/2)*numpy.pi*_t2*((_y0 - _y2)**2 + (_y1 - _y3)**2))
+    _t4 = 2*_y2
+    _t5 = numpy.pi*_p0*_t2*(_t3**2 + 1)
+    _t6 = 2*_y1
+    _t7 = 2*_y3
     # Output terms
     grad = numpy.empty((4, _n))  # grad_y f0
-    grad[0] = -1/250*_t0 + _t1 - _t3*_t6 - t + 10
-    grad[1] = (1/50)*_t0 - _t6*_t9 + _t7 - 3/5*t + 6
-    grad[2] = -1/125*_t0 - _t2 + _t3*_t6 - 9/10*t + 4
-    grad[3] = (3/125)*_t0 + _t6*_t9 - _t8 - 7/10*t + 6
+    grad[0] = -1/250*_t0 + _t1 + _t3*_t5*(_t1 - _t4) - t + 10
+    grad[1] = (1/50)*_t0 + _t3*_t5*(_t6 - _t7) + _t6 - 3/5*t + 6
+    grad[2] = -1/125*_t0 + _t3*_t5*(-_t1 + _t4) + _t4 - 9/10*t + 4
+    grad[3] = (3/125)*_t0 + _t3*_t5*(-_t6 + _t7) + _t7 - 7/10*t + 6
     return grad
 
 
 def _hessian(t, y, p):
-    """grad_yy f0(y, t) (kernel; 86 operations, 1308 before CSE)."""
+    """grad_yy f0(y, t) (kernel; 102 operations, 130 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # pa
     _y1 = y[1]  # qa
@@ -608,56 +564,61 @@ def _hessian(t, y, p):
     _y3 = y[3]  # qb
     _p0 = p[0]  # alpha
     _p1 = p[1]  # d
-    # Intermediate terms (31)
-    _t0 = 2*_y0 - 2*_y2
-    _t1 = numpy.pi**2*_p0/_p1**2
-    _t2 = _t0**2*_t1
-    _t3 = numpy.pi/_p1
-    _t4 = numpy.tan((1/2)*_t3*(-(_y0 - _y2)**2 - (_y1 - _y3)**2))
-    _t5 = _t4**2
-    _t6 = _t5 + 1
-    _t7 = (1/2)*_t6**2
-    _t8 = _t5*_t6
-    _t9 = 2*_p0*_t3*_t4*_t6
-    _t10 = 2 - _t9
-    _t11 = 2*_y1 - 2*_y3
-    _t12 = _t0*_t1
-    _t13 = _t11*_t12
-    _t14 = _t13*_t7 + _t13*_t8
-    _t15 = -_t0
-    _t16 = _t12*_t15
-    _t17 = _t16*_t7 + _t16*_t8 + _t9
-    _t18 = -_t11
-    _t19 = _t12*_t18
-    _t20 = _t19*_t7 + _t19*_t8
-    _t21 = _t1*_t11**2
-    _t22 = _t1*_t11
-    _t23 = _t15*_t22
-    _t24 = _t23*_t7 + _t23*_t8
-    _t25 = _t18*_t22
-    _t26 = _t25*_t7 + _t25*_t8 + _t9
-    _t27 = _t1*_t15**2
-    _t28 = _t1*_t15*_t18
-    _t29 = _t28*_t7 + _t28*_t8
-    _t30 = _t1*_t18**2
+    # Intermediate terms (36)
+    _t0 = 2*_y0
+    _t1 = 1/_p1
+    _t2 = _y0 - _y2
+    _t3 = _y1 - _y3
+    _t4 = (1/2)*numpy.pi*_t1
+    _t5 = numpy.tan(_t4*(_t2**2 + _t3**2))
+    _t6 = 2*_y2
+    _t7 = _t0 - _t6
+    _t8 = numpy.pi*_p0*_t1
+    _t9 = _t8*(_t5**2 + 1)
+    _t10 = 2*_y1
+    _t11 = 2*_y3
+    _t12 = _t10 - _t11
+    _t13 = _t12*_t9
+    _t14 = -_t0 + _t6
+    _t15 = _t14*_t9
+    _t16 = -_t10 + _t11
+    _t17 = _t16*_t9
+    _t18 = 2*_t2
+    _t19 = 2*_t3
+    _t20 = _t5**2 + 1
+    _t21 = _t18*_t20*_t4
+    _t22 = _t19*_t20*_t4
+    _t23 = -_t18*_t20*_t4
+    _t24 = -_t19*_t20*_t4
+    _t25 = 2*_t5
+    _t26 = _t21*_t25*_t8
+    _t27 = _t22*_t25*_t8
+    _t28 = _t23*_t25*_t8
+    _t29 = 2*_t9
+    _t30 = _t12*_t26*_t5 + _t13*_t21
+    _t31 = _t15*_t21 + _t5*(_t14*_t26 - _t29)
+    _t32 = _t14*_t27*_t5 + _t15*_t22
+    _t33 = _t16*_t26*_t5 + _t17*_t21
+    _t34 = _t17*_t22 + _t5*(_t16*_t27 - _t29)
+    _t35 = _t16*_t28*_t5 + _t17*_t23
     # Output terms
     hess = numpy.empty((4, 4, _n))  # grad_yy f0
-    hess[0, 0] = _t10 + _t2*_t7 + _t2*_t8
-    hess[0, 1] = _t14
-    hess[0, 2] = _t17
-    hess[0, 3] = _t20
-    hess[1, 0] = _t14
-    hess[1, 1] = _t10 + _t21*_t7 + _t21*_t8
-    hess[1, 2] = _t24
-    hess[1, 3] = _t26
-    hess[2, 0] = _t17
-    hess[2, 1] = _t24
-    hess[2, 2] = _t10 + _t27*_t7 + _t27*_t8
-    hess[2, 3] = _t29
-    hess[3, 0] = _t20
-    hess[3, 1] = _t26
-    hess[3, 2] = _t29
-    hess[3, 3] = _t10 + _t30*_t7 + _t30*_t8
+    hess[0, 0] = _t21*_t7*_t9 + _t5*(_t26*_t7 + _t29) + 2
+    hess[0, 1] = _t30
+    hess[0, 2] = _t31
+    hess[0, 3] = _t33
+    hess[1, 0] = _t30
+    hess[1, 1] = _t13*_t22 + _t5*(_t12*_t27 + _t29) + 2
+    hess[1, 2] = _t32
+    hess[1, 3] = _t34
+    hess[2, 0] = _t31
+    hess[2, 1] = _t32
+    hess[2, 2] = _t15*_t23 + _t5*(_t14*_t28 + _t29) + 2
+    hess[2, 3] = _t35
+    hess[3, 0] = _t33
+    hess[3, 1] = _t34
+    hess[3, 2] = _t35
+    hess[3, 3] = _t17*_t24 + _t5*(_t16*_t24*_t25*_t8 + _t29) + 2
     return hess
 
 

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: c1bb8ab41b5df82b073fd2baa2162b017d5f6e443b76cb3302e3c07daac387ec
+# content sha256: b5446a4f3c02753dccd9b598f73be827220d2bb74d12cd2a66e719cfd4bd0048
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -219,7 +219,7 @@ def _lu_solve(a, b, points):
     return numpy.moveaxis(x, 0, -1)
 
 def _jet(t, s, p, a):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 142 operations, 193 before CSE)."""
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 143 operations, 192 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -233,9 +233,9 @@ def _jet(t, s, p, a):
     _t0 = 1/_p1
     _t1 = numpy.tanh(_t0*(-_p0 + t))
     _t2 = 1/2 - 1/2*_t1
-    _t3 = _t1**2 - 1
-    _t4 = (1/2)*_t0*_t3
-    _t5 = -_t1*_t3/_p1**2
+    _t3 = 1 - _t1**2
+    _t4 = -1/2*_t0*_t3
+    _t5 = _t1*_t3/_p1**2
     _t6 = t**2
     _t7 = (1/100)*_t6
     _t8 = (1/50)*t
@@ -268,7 +268,7 @@ def _jet(t, s, p, a):
     # Output terms
     z = numpy.empty((2, _n))  # y_imp^(k)
     z[0] = -1/2*_t15*_t5 - 1/50*_t16 - 1/2*_t17*_t29 - 1/50*_t2 - _t28 - _t30 + _t33*(_t15*_t2 + _t16*_t17) + _t34*(_t15*_t4 + _t16*_t24 + _t17*_t23 + _t2*_t22)
-    z[1] = (3/2500)*_t16*(t - 25) - 1/2*_t19*_t5 + (1/500)*_t2*(20 - 3*t) - 1/2*_t20*_t29 - _t31 - _t32 + _t33*(_t16*_t20 + _t19*_t2) + _t34*(_t16*_t27 + _t19*_t4 + _t2*_t26 + _t20*_t23)
+    z[1] = -1/2*_t16*(3/50 - 3/1250*t) - 1/2*_t19*_t5 - 1/2*_t2*((3/250)*t - 2/25) - 1/2*_t20*_t29 - _t31 - _t32 + _t33*(_t16*_t20 + _t19*_t2) + _t34*(_t16*_t27 + _t19*_t4 + _t2*_t26 + _t20*_t23)
     R = numpy.empty((4, _n))  # diagonal blocks of the decoupling matrix
     R[0] = _t10
     R[1] = -_t13
@@ -314,7 +314,7 @@ def _closed_loop(t, s, p, w, z):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 92 operations, 137 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 92 operations, 111 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -369,7 +369,7 @@ def _objective(t, y, p):
 
 
 def _gradient(t, y, p):
-    """grad_y f0(y, t) (kernel; 43 operations, 56 before CSE)."""
+    """grad_y f0(y, t) (kernel; 43 operations, 54 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y1
     _y1 = y[1]  # y2
@@ -391,7 +391,7 @@ def _gradient(t, y, p):
 
 
 def _hessian(t, y, p):
-    """grad_yy f0(y, t) (kernel; 0 operations, 36 before CSE)."""
+    """grad_yy f0(y, t) (kernel; 0 operations, 0 before CSE)."""
     _n = y.shape[1]
     # Output terms
     hess = numpy.empty((2, 2, _n))  # grad_yy f0

@@ -55,7 +55,11 @@ def module(spec: str) -> ModuleType:
     folder.mkdir()
     path = folder / name
     path.write_text(text, encoding="utf-8")
-    mod_name = f"_tvopt_test_{name[:-3]}"
+    return import_file(path, f"_tvopt_test_{name[:-3]}")
+
+
+def import_file(path: Path, mod_name: str) -> ModuleType:
+    """Import a generated Python module from its file under a unique module name."""
     loader = importlib.util.spec_from_file_location(mod_name, path)
     assert loader is not None and loader.loader is not None
     mod = importlib.util.module_from_spec(loader)

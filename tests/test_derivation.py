@@ -12,10 +12,13 @@ import sympy as sp
 from tvopt_codegen import hurwitz
 from tvopt_codegen.derivation import derive, jet_symbol
 from tvopt_codegen.errors import AssumptionError
+from tvopt_codegen.ir import lower
 from tvopt_codegen.jet import atomize, fresh_symbols, total_derivative
+from tvopt_codegen.numeric import Evaluator
+from tvopt_codegen.render import render
 from tvopt_codegen.spec import load_spec
 
-from .conftest import SPECS, derivation, write_spec
+from .conftest import EXAMPLES, SPECS, derivation, import_file, write_spec
 from .oracle import naive_total_derivative
 
 theta, v = sp.symbols("theta v", real=True)
@@ -229,3 +232,52 @@ def test_flexible_joint_is_static_with_relative_degree_four() -> None:
     assert d.extension.counts == () and d.relative_degree == (4,) and d.k == 4
     assert d.singular_set == ("stiffness = 0",)
     assert d.convexity.method == "sampled" and d.convexity.m_f > 2.0
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_hessian_program_is_the_symbolic_hessian(name: str) -> None:
+    """The generated code's Hessian (forward mode over the gradient program) against
+    sympy's differentiation of the gradient, at random points."""
+    d = derivation(name)
+    model = d.model
+    m = len(model.y)
+    rng = np.random.default_rng(3)
+    values: dict[sp.Symbol, object] = {y: rng.uniform(-2, 2, size=5) for y in model.y}
+    values |= {q: float(v) for q, v in zip(model.params, model.defaults, strict=True)}
+    values[model.t] = rng.uniform(0, 10, size=5)
+    evaluate = Evaluator(values)
+    for symbol, expr in model.signals:
+        evaluate.define(symbol, expr)
+    for symbol, expr in (d.jet_program + d.hessian_program).assignments:
+        evaluate.define(symbol, expr)
+    entries = dict(d.hessian_entries)
+    assert all(i >= j for i, j in entries)
+    for i in range(m):
+        for j in range(m):
+            ours = entries.get((max(i, j), min(i, j)), 0)
+            reference = evaluate(d.hessian[i, j])
+            np.testing.assert_allclose(evaluate(ours), reference, rtol=1e-11, atol=1e-12)
+            if d.hessian[i, j] == 0:
+                assert (max(i, j), min(i, j)) not in entries
+
+
+def test_program_names_never_capture_user_names(tmp_path: Path, unicycle_text: str) -> None:
+    """Parameters named like the derivation's own temporaries (g0, g1) change nothing."""
+    weighted = unicycle_text.replace("b = 1.5", "b = 1.5\n{a} = 3.0\n{b} = 0.5").replace(
+        'f0 = "S*(', 'f0 = "{a}*{b}*S*('
+    )
+    laws = []
+    for a, b in (("g0", "g1"), ("w0", "w1")):
+        text = weighted.replace("{a}", a).replace("{b}", b)
+        spec = load_spec(write_spec(tmp_path, text, f"{a}.toml"))
+        laws.append(lower(derive(spec)))
+    mods = []
+    for i, kernel_set in enumerate(laws):
+        ((file_name, text),) = render(kernel_set, "python").items()
+        path = tmp_path / f"capture{i}" / file_name
+        path.parent.mkdir()
+        path.write_text(text, encoding="utf-8")
+        mods.append(import_file(path, f"_tvopt_test_capture{i}"))
+    state = np.array([-4.0, 3.0, 0.3, 1.2])
+    for t in (0.0, 3.0, 11.0):
+        np.testing.assert_allclose(mods[0].control(t, state), mods[1].control(t, state), rtol=1e-13)

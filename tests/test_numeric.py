@@ -42,7 +42,7 @@ def test_out_of_domain_is_nan_not_an_error() -> None:
 
 def test_program_bindings_and_deep_sums() -> None:
     evaluate = Evaluator({t: np.array([0.0, 1.0])})
-    evaluate.bind(x, sp.cos(t))
+    evaluate.define(x, sp.cos(t))
     # 5000 nested levels would overflow a recursive walk.
     deep = x
     for i in range(5000):
@@ -64,3 +64,12 @@ def test_special_numbers() -> None:
     assert evaluate(sp.oo + x) == np.inf
     assert np.isnan(evaluate(sp.zoo * x))
     assert evaluate(sp.Rational(1, 3) * x) == pytest.approx(2 / 3)
+
+
+def test_definitions_are_lazy() -> None:
+    evaluate = Evaluator({t: np.array([0.5])})
+    evaluate.define(x, sp.cos(t))
+    evaluate.define(y, sp.sqrt(z_undefined := sp.Symbol("z", real=True)))  # never needed
+    np.testing.assert_allclose(evaluate(x + t), np.cos(0.5) + 0.5)
+    with pytest.raises(ValueError, match="no value for the symbol z"):
+        evaluate(y + z_undefined)

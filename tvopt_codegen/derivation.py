@@ -10,6 +10,7 @@ implicit law ``y_imp^(k)`` (equation y_kth_derivative_solution) feeding
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -20,7 +21,7 @@ import sympy as sp
 
 from tvopt_codegen import hurwitz
 from tvopt_codegen.errors import AssumptionError, BudgetError, SpecError
-from tvopt_codegen.jet import Program, atomize, fresh_symbols, total_derivative
+from tvopt_codegen.jet import Program, atomize, fresh_symbols, jacobian, next_derivative
 from tvopt_codegen.lie import (
     Extension,
     RelativeDegree,
@@ -96,16 +97,26 @@ class Derivation:
         ``det R`` factored, when computed symbolically (m <= 4).
     singular_set : tuple of str
         Conditions under which ``det R`` vanishes, in words.
-    gradient, hessian : sympy.ImmutableMatrix
-        ``grad_y f0`` (m, 1) and ``grad_yy f0`` (m, m) over ``y``, signals, parameters, t.
+    gradient : sympy.ImmutableMatrix
+        ``grad_y f0`` (m, 1) over ``y``, signals, parameters and t.
+    hessian_program : Program
+        Assignments computing the Hessian from :attr:`jet_program` (forward mode over
+        its gradient part, :func:`~tvopt_codegen.jet.jacobian`); empty when it is
+        constant.
+    hessian_entries : tuple of ((int, int), sympy.Expr)
+        The nonzero entries ``(i, j), i >= j`` of the lower triangle of ``grad_yy f0``,
+        over the programs' symbols (numbers when the Hessian is constant). The
+        generated code reads the Hessian from these.
     y_jet : tuple of tuple of sympy.Symbol
         ``y_jet[i][j]`` is the symbol of ``y_i^(j)``, ``j = 0 .. k``.
     y_jet_values : tuple of tuple of sympy.Expr
         ``y_i^(j)`` for ``j < k`` as a function of the closed-loop state.
     signal_jet : tuple of tuple of sympy.Symbol
         ``signal_jet[l][q]`` is the symbol of the q-th derivative of signal l.
+    signal_program : Program
+        Straight-line program of the signals and their time derivatives.
     signal_jet_values : tuple of tuple of sympy.Expr
-        Those derivatives as expressions in ``t`` and the parameters.
+        Those derivatives over :attr:`signal_program`, ``t`` and the parameters.
     jet_program : Program
         Straight-line program of the gradient jet (see :mod:`tvopt_codegen.jet`).
     grad_jet : tuple of tuple of sympy.Expr
@@ -158,10 +169,12 @@ class Derivation:
     det_R: sp.Expr | None
     singular_set: tuple[str, ...]
     gradient: sp.ImmutableMatrix
-    hessian: sp.ImmutableMatrix
+    hessian_program: Program
+    hessian_entries: tuple[tuple[tuple[int, int], sp.Expr], ...]
     y_jet: tuple[tuple[sp.Symbol, ...], ...]
     y_jet_values: tuple[tuple[sp.Expr, ...], ...]
     signal_jet: tuple[tuple[sp.Symbol, ...], ...]
+    signal_program: Program
     signal_jet_values: tuple[tuple[sp.Expr, ...], ...]
     jet_program: Program
     grad_jet: tuple[tuple[sp.Expr, ...], ...]
@@ -178,6 +191,15 @@ class Derivation:
     certified_rate: float
     transient_constant: float
     timings: tuple[tuple[str, float], ...]
+
+    @functools.cached_property
+    def hessian(self) -> sp.ImmutableMatrix:
+        """``grad_yy f0`` (m, m) as expressions, for the report and for checking.
+
+        Differentiated symbolically from :attr:`gradient` on first use (the generated
+        code never needs it: it evaluates :attr:`hessian_entries`).
+        """
+        return _sparse_hessian(self.gradient, self.model.y)
 
 
 @dataclass(frozen=True)
@@ -376,24 +398,27 @@ def _singular_set(det: sp.Expr) -> tuple[str, ...]:
     return tuple(conditions)
 
 
-def _sparse_derivatives(
-    f0: sp.Expr, y: Sequence[sp.Symbol]
-) -> tuple[sp.ImmutableMatrix, sp.ImmutableMatrix]:
-    """Gradient and Hessian of ``f0``, differentiating only where a variable occurs.
+def _sparse_gradient(f0: sp.Expr, y: Sequence[sp.Symbol]) -> sp.ImmutableMatrix:
+    """Gradient of ``f0``, differentiating only where a variable occurs.
 
     A sum over agents is split into its terms once; each gradient entry sums the
-    derivatives of the terms that contain its output, and each Hessian entry
-    differentiates a gradient entry only by the outputs it contains. For N agents
-    coupled to their neighbours this is linear in N where the dense sweep is cubic.
-    The Hessian is filled symmetrically from its upper triangle (equal by Schwarz, and
-    then equal as expressions too).
+    derivatives of the terms that contain its output: for N agents coupled to their
+    neighbours this is linear in N where differentiating the whole sum is quadratic.
     """
     terms = sp.Add.make_args(f0)
     by_output: dict[sp.Symbol, list[sp.Expr]] = {yi: [] for yi in y}
     for term in terms:
         for yi in term.free_symbols & by_output.keys():
             by_output[yi].append(term)
-    gradient = [sp.Add(*(sp.diff(term, yi) for term in by_output[yi])) for yi in y]
+    return sp.ImmutableMatrix([sp.Add(*(sp.diff(term, yi) for term in by_output[yi])) for yi in y])
+
+
+def _sparse_hessian(gradient: sp.MatrixBase, y: Sequence[sp.Symbol]) -> sp.ImmutableMatrix:
+    """Hessian from the gradient, differentiating each entry only by outputs it contains.
+
+    Filled symmetrically from the upper triangle (equal by Schwarz, and then equal as
+    expressions too).
+    """
     m = len(y)
     entries: dict[tuple[int, int], sp.Expr] = {}
     for i, gi in enumerate(gradient):
@@ -403,20 +428,65 @@ def _sparse_derivatives(
                 value = sp.diff(gi, y[j])
                 if value != 0:
                     entries[(i, j)] = entries[(j, i)] = value
-    hessian = sp.ImmutableMatrix(m, m, lambda i, j: entries.get((i, j), sp.Integer(0)))
-    return sp.ImmutableMatrix(gradient), hessian
+    return sp.ImmutableMatrix(m, m, lambda i, j: entries.get((i, j), sp.Integer(0)))
+
+
+def _polynomial_hessian(
+    gradient: sp.MatrixBase, y: Sequence[sp.Symbol]
+) -> sp.ImmutableMatrix | None:
+    """The Hessian as expressions when the gradient is polynomial in ``y``, else ``None``.
+
+    Quadratic objectives, the common case, have a Hessian free of ``y``: a matrix of
+    numbers is inverted once at generation time, and one of parameters is checked for
+    convexity exactly, at their defaults, instead of by sampling.
+    """
+    if not all(g.is_polynomial(*y) for g in gradient):
+        return None
+    return _sparse_hessian(gradient, y)
+
+
+def _signal_derivatives(
+    expr: sp.Expr, t: sp.Symbol, k: int, meter: Callable[[sp.Expr], None]
+) -> list[sp.Expr] | None:
+    """A signal and its first ``k`` time derivatives as expressions, unless they swell.
+
+    Differentiated as expressions, the usual signals (polynomials, a tanh switch)
+    print folded and readable: ``t/50``, not ``2*t`` times ``1/100``. A derivative
+    more than four times the size of the signal is a sign of nesting, whose k-th
+    derivative swells like ``size**(k+1)``: ``None`` then, and the caller takes it as
+    a program.
+    """
+    limit = 4 * tree_size(expr, 10**6) + 50
+    chain = [expr]
+    for _ in range(k):
+        derivative = sp.diff(chain[-1], t)
+        if tree_size(derivative, limit) > limit:
+            return None
+        meter(derivative)
+        chain.append(derivative)
+    return chain
 
 
 def _check_convexity(
-    model: Model, hessian: sp.ImmutableMatrix, y0: Sequence[float], t_final: float, source: str
+    model: Model,
+    polynomial: sp.ImmutableMatrix | None,
+    program: Program,
+    entries: Sequence[tuple[tuple[int, int], sp.Expr]],
+    y0: Sequence[float],
+    t_final: float,
+    source: str,
 ) -> Convexity:
-    """Estimate the convexity modulus of f0 near the initial outputs, over the horizon."""
-    defaults = dict(zip(model.params, model.defaults, strict=True))
+    """Estimate the convexity modulus of f0 near the initial outputs, over the horizon.
+
+    ``program`` and ``entries`` compute the Hessian's lower triangle; ``polynomial`` is
+    its symbolic form when f0 is polynomial in ``y`` (then a Hessian free of ``y``, t
+    and the signals is checked exactly at the parameters' defaults).
+    """
+    defaults = {q: float(v) for q, v in zip(model.params, model.defaults, strict=True)}
     m = len(model.y)
-    if hessian.free_symbols <= defaults.keys():
-        # Constant up to parameters: exact at their defaults.
-        fixed = Evaluator({q: float(v) for q, v in defaults.items()})
-        matrix = np.array([[fixed(hessian[i, j]) for j in range(m)] for i in range(m)])
+    if polynomial is not None and polynomial.free_symbols <= defaults.keys():
+        fixed = Evaluator(defaults)
+        matrix = np.array([[fixed(polynomial[i, j]) for j in range(m)] for i in range(m)])
         m_f = float(np.linalg.eigvalsh(np.real(matrix)).min())
         result = Convexity("constant Hessian", m_f, 1)
     else:
@@ -427,18 +497,18 @@ def _check_convexity(
         for point in range(points):
             ys[point] = np.asarray(y0) + rng.uniform(-0.1, 0.1, size=m)
             ts[point] = rng.uniform(0.0, t_final)
-        # All points at once, node by node over the Hessian's shared DAG; only the
-        # nonzero entries of the upper triangle.
-        where = [(i, j) for i in range(m) for j in range(i, m) if hessian[i, j] != 0]
+        # All points at once, assignment by assignment over the Hessian's program.
         values: dict[sp.Symbol, Any] = {y: ys[:, i] for i, y in enumerate(model.y)}
-        values |= {q: float(v) for q, v in defaults.items()}
+        values |= defaults
         values[model.t] = ts
         evaluate = Evaluator(values)
         for symbol, expr in model.signals:
-            evaluate.bind(symbol, expr)
+            evaluate.define(symbol, expr)
+        for symbol, expr in program.assignments:
+            evaluate.define(symbol, expr)
         matrices = np.zeros((points, m, m))
-        for i, j in where:
-            matrices[:, i, j] = matrices[:, j, i] = np.real(evaluate(hessian[i, j]))
+        for (i, j), expr in entries:
+            matrices[:, i, j] = matrices[:, j, i] = np.real(evaluate(expr))
         finite = matrices[np.all(np.isfinite(matrices), axis=(1, 2))]
         if not len(finite):
             raise AssumptionError(
@@ -642,13 +712,40 @@ def derive(
 
     say("objective")
     meter(model.f0)
-    gradient, hessian = _sparse_derivatives(model.f0, model.y)
+    gradient = _sparse_gradient(model.f0, model.y)
     meter.matrix(gradient)
-    meter.matrix(hessian)
+    # Three-address form: the Hessian and every total derivative below are taken
+    # assignment by assignment (jet.py), never on the nested gradient.
+    # A leading underscore: no user name can take it (spec.py rejects those).
+    names = fresh_symbols("_g")
+    program, current = atomize(list(gradient), names)
+    polynomial = _polynomial_hessian(gradient, model.y)
+    hessian_program = Program(())
+    if polynomial is not None and all(entry.is_Number for entry in polynomial):
+        hessian_entries = tuple(
+            ((i, j), polynomial[i, j])
+            for i in range(m)
+            for j in range(i + 1)
+            if polynomial[i, j] != 0
+        )
+    else:
+        hessian_program, columns = jacobian(program, current, model.y, names, meter)
+        # Equal by Schwarz; either side may be the one that is structurally nonzero.
+        lower = {(j, i): e for i in range(m) for j, e in columns[i].items() if j > i}
+        lower |= {(i, j): e for i in range(m) for j, e in columns[i].items() if j <= i}
+        hessian_entries = tuple(sorted(lower.items()))
     values = {sym: sp.Float(v) for sym, v in zip(states, initial, strict=True)}
     values |= {q: sp.Float(v) for q, v in defaults.items()}
     y0 = [float(h.xreplace(values)) for h in model.h]
-    convexity = _check_convexity(model, hessian, y0, spec.t_final, source)
+    convexity = _check_convexity(
+        model,
+        polynomial,
+        program + hessian_program,
+        hessian_entries,
+        y0,
+        spec.t_final,
+        source,
+    )
     clock.mark("objective")
 
     say("gradient jet")
@@ -658,22 +755,10 @@ def derive(
     for chain in (*y_jet, *signal_jet):
         for j in range(k):
             rates[chain[j]] = chain[j + 1]
-    names = fresh_symbols("g")
-    program, current = atomize(list(gradient), names)
     grad_jet = [current]
     rest_program = Program(())
     for order in range(1, k + 1):
-        new, current, rates = total_derivative(program, current, rates, names, meter)
-        # Each derivative level is broken into single operations again, in order (a
-        # later assignment may use an earlier one's symbol), so the next level
-        # differentiates small expressions only: linear growth in k.
-        memo: dict[sp.Expr, sp.Expr] = {}
-        pieces: list[tuple[sp.Symbol, sp.Expr]] = []
-        for sym, value in new.assignments:
-            part, (root,) = atomize([value], names, memo)
-            pieces += [*part.assignments, (sym, root)]
-        part, current = atomize(list(current), names, memo)
-        new = Program((*pieces, *part.assignments))
+        new, current, rates = next_derivative(program, current, rates, names, meter)
         if order < k:
             program = program + new
             grad_jet.append(current)
@@ -682,13 +767,25 @@ def derive(
             drop = {chain[k]: sp.Integer(0) for chain in y_jet}
             rest_program = Program(tuple((s, e.xreplace(drop)) for s, e in new.assignments))
             rest = tuple(e.xreplace(drop) for e in current)
-    signal_values = tuple(
-        tuple(sp.diff(expr, model.t, q) if q else expr for q in range(k + 1))
-        for _, expr in model.signals
-    )
-    for chain in signal_values:
-        for value in chain:
-            meter(value)
+    signal_program = Program(())
+    signal_chains: list[tuple[sp.Expr, ...]] = []
+    for _, expr in model.signals:
+        derivatives = _signal_derivatives(expr, model.t, k, meter)
+        if derivatives is None:
+            # Its derivatives swell (a nested signal): differentiate it as a program,
+            # linear in its size per order, like the gradient.
+            part, current = atomize([expr], names)
+            derivatives = [current[0]]
+            signal_rates: dict[sp.Symbol, sp.Expr] = {model.t: sp.Integer(1)}
+            for _ in range(k):
+                new, current, signal_rates = next_derivative(
+                    part, current, signal_rates, names, meter
+                )
+                part = part + new
+                derivatives.append(current[0])
+            signal_program = signal_program + part
+        signal_chains.append(tuple(derivatives))
+    signal_values = tuple(signal_chains)
     state_of = dict(zip(state_names, states, strict=True))
     y_values = tuple(
         tuple(
@@ -723,10 +820,12 @@ def derive(
         det_R=det_R,
         singular_set=singular,
         gradient=gradient,
-        hessian=hessian,
+        hessian_program=hessian_program,
+        hessian_entries=hessian_entries,
         y_jet=y_jet,
         y_jet_values=y_values,
         signal_jet=signal_jet,
+        signal_program=signal_program,
         signal_jet_values=signal_values,
         jet_program=program,
         grad_jet=tuple(grad_jet),

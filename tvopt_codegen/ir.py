@@ -247,7 +247,10 @@ def ordered_cse(
         order.append((sym, value))
     for value in reduced[len(kept) :]:
         need(value)
-    order, outs = _inline_single_use(order, list(reduced[len(kept) :]))
+    # CSE can leave an assignment that is just a temporary (the program computed a
+    # value CSE found elsewhere first): substitute those too.
+    order, outs = _drop_aliases(order, list(reduced[len(kept) :]))
+    order, outs = _inline_single_use(order, outs)
     renames: dict[sp.Symbol, sp.Expr] = {}
     body: list[Assignment] = []
     for index, (sym, value) in enumerate(order):
@@ -392,6 +395,8 @@ def _kernel(
     subs: Mapping[sp.Symbol, sp.Expr],
 ) -> Kernel:
     """Substitute slot symbols, CSE, and package a kernel."""
+    # Only what the outputs need: the gradient kernel, say, reads the jet's first part.
+    assignments = _prune(assignments, [e for _, _, exprs, _ in outputs for e in exprs])
     program = [(sym, canonical_odd(sp.sympify(value).xreplace(subs))) for sym, value in assignments]
     flat = [
         canonical_odd(sp.sympify(e).xreplace(subs)) for _, _, exprs, _ in outputs for e in exprs
@@ -604,20 +609,25 @@ def lower(derivation: Derivation) -> KernelSet:
     subs: dict[sp.Symbol, sp.Expr] = dict(zip(d.states, s_slots, strict=True))
     subs |= dict(zip(model.params, p_slots, strict=True))
 
-    signal_block = [
+    signal_block = list(d.signal_program.assignments) + [
         (d.signal_jet[li][q], d.signal_jet_values[li][q])
         for li in range(len(model.signals))
         for q in range(k + 1)
     ]
     y_block = [(d.y_jet[i][j], d.y_jet_values[i][j]) for i in range(m) for j in range(k)]
     jet_block = list(d.jet_program.assignments)
-    hess = [d.hessian[i, j] for i in range(m) for j in range(m)]
+    hess_block = list(d.hessian_program.assignments)
+    hess_value = dict(d.hessian_entries)
+    hess = [
+        hess_value.get((max(i, j), min(i, j)), sp.Integer(0)) for i in range(m) for j in range(m)
+    ]
     jet_rhs = [
         sum((sp.Symbol(f"_a{j}", real=True) * d.grad_jet[j][i] for j in range(k)), sp.Integer(0))
         - d.rest[i]
         for i in range(m)
     ]
-    jet_program = signal_block + y_block + jet_block + list(d.rest_program.assignments)
+    jet_program = signal_block + y_block + jet_block + hess_block
+    jet_program += list(d.rest_program.assignments)
     # R goes out block by block (its diagonal blocks, one per agent in a team): the
     # zeros between agents are never stored and each block is solved on its own.
     r_blocks = diagonal_blocks(d.R)
@@ -628,7 +638,7 @@ def lower(derivation: Derivation) -> KernelSet:
         ("pvec", (m,), list(d.p), "p = col(L_f^{r_i} h_i)"),
     ]
     # The Hessian goes out as the nonzero entries of its lower triangle.
-    hess_entries = [(i, j) for i in range(m) for j in range(i + 1) if d.hessian[i, j] != 0]
+    hess_entries = sorted(hess_value)
     if not any(i == j for i, j in hess_entries):
         hess_entries = sorted({*hess_entries, *((i, i) for i in range(m))})
     if all(sp.sympify(e).is_Number for e in hess):
@@ -655,7 +665,7 @@ def lower(derivation: Derivation) -> KernelSet:
                 (
                     "hessian",
                     (len(hess_entries),),
-                    [d.hessian[i, j] for i, j in hess_entries],
+                    [hess_value.get(entry, sp.Integer(0)) for entry in hess_entries],
                     "nonzero entries of the lower triangle of grad_yy f0",
                 ),
                 ("jet_rhs", (m,), jet_rhs, "sum_i a_i grad^(i) f0 - rest"),
@@ -736,7 +746,7 @@ def lower(derivation: Derivation) -> KernelSet:
     )
 
     y_subs = dict(subs) | dict(zip(model.y, y_slots, strict=True))
-    signal0 = [
+    signal0 = list(d.signal_program.assignments) + [
         (d.signal_jet[li][0], d.signal_jet_values[li][0]) for li in range(len(model.signals))
     ]
     objective = _kernel(
@@ -747,19 +757,21 @@ def lower(derivation: Derivation) -> KernelSet:
         [("f0", (), [model.f0], "f0")],
         y_subs,
     )
+    # Both from the gradient's program (the jet's first assignments), which _kernel
+    # prunes to what each needs.
     gradient = _kernel(
         "gradient",
         "grad_y f0(y, t)",
         [arg_t, arg_y, arg_p],
-        signal0,
-        [("grad", (m,), list(d.gradient), "grad_y f0")],
+        signal0 + jet_block,
+        [("grad", (m,), list(d.grad_jet[0]), "grad_y f0")],
         y_subs,
     )
     hessian = _kernel(
         "hessian",
         "grad_yy f0(y, t)",
         [arg_t, arg_y, arg_p],
-        signal0,
+        signal0 + jet_block + hess_block,
         [("hess", (m, m), hess, "grad_yy f0")],
         y_subs,
     )

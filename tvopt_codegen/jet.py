@@ -115,6 +115,29 @@ def total_derivative(
     return Program(tuple(new)), derived, moving
 
 
+def next_derivative(
+    program: Program,
+    outputs: Sequence[sp.Expr],
+    rates: Mapping[sp.Symbol, sp.Expr],
+    names: Iterator[sp.Symbol],
+    check: Callable[[sp.Expr], None] | None = None,
+) -> tuple[Program, tuple[sp.Expr, ...], dict[sp.Symbol, sp.Expr]]:
+    """One more total derivative (:func:`total_derivative`), back in three-address form.
+
+    Each new assignment is broken into single operations again, in order (a later
+    assignment may use an earlier one's symbol), so that the derivative after this one
+    differentiates small expressions only: the k-th derivative grows linearly in k.
+    """
+    new, current, moving = total_derivative(program, outputs, rates, names, check)
+    memo: dict[sp.Expr, sp.Expr] = {}
+    pieces: list[Assignment] = []
+    for sym, value in new.assignments:
+        part, (root,) = atomize([value], names, memo)
+        pieces += [*part.assignments, (sym, root)]
+    part, current = atomize(list(current), names, memo)
+    return Program((*pieces, *part.assignments)), current, moving
+
+
 def atomize(
     exprs: Sequence[sp.Expr], names: Iterator[sp.Symbol], memo: dict[sp.Expr, sp.Expr] | None = None
 ) -> tuple[Program, tuple[sp.Expr, ...]]:
@@ -173,3 +196,73 @@ def atomize(
 
     outputs = tuple(visit(sp.sympify(e)) for e in exprs)
     return Program(tuple(out)), outputs
+
+
+def jacobian(
+    program: Program,
+    outputs: Sequence[sp.Expr],
+    variables: Sequence[sp.Symbol],
+    names: Iterator[sp.Symbol],
+    check: Callable[[sp.Expr], None] | None = None,
+) -> tuple[Program, tuple[dict[int, sp.Expr], ...]]:
+    """Forward-mode Jacobian of a program's outputs, with sparse tangents.
+
+    Every symbol carries the nonzero entries of its gradient with respect to
+    ``variables`` (index -> expression): a variable its own unit vector, an assignment
+    ``s = e(v, ...)`` the sum ``sum_v (d e / d v) * tangent(v)``, entry by entry. Entries
+    that are not a symbol or a number become new assignments. The cost is the number of
+    nonzero tangent entries, about the program's size times the number of variables
+    each assignment depends on: for the gradient of an objective coupling each agent
+    to its neighbours, its Hessian in time linear in the number of agents.
+
+    Parameters
+    ----------
+    program : Program
+        The program (in three-address form, see :func:`atomize`, for small entries).
+    outputs : sequence of sympy.Expr
+        Expressions over the program's symbols and free symbols.
+    variables : sequence of sympy.Symbol
+        The independent variables (free symbols of the program).
+    names : iterator of sympy.Symbol
+        Source of fresh symbols for the new assignments.
+    check : callable, optional
+        Called with every new right-hand side (the derivation's budget meter).
+
+    Returns
+    -------
+    program : Program
+        The new assignments only; they follow ``program`` in evaluation order.
+    jacobian : tuple of dict of int to sympy.Expr
+        For each output, its nonzero partial derivatives by variable index.
+    """
+    tangent: dict[sp.Symbol, dict[int, sp.Expr]] = {
+        v: {j: sp.Integer(1)} for j, v in enumerate(variables)
+    }
+
+    def propagate(expr: sp.Expr) -> dict[int, sp.Expr]:
+        terms: dict[int, list[sp.Expr]] = {}
+        for var in sorted(expr.free_symbols & tangent.keys(), key=lambda s: s.name):
+            partial = sp.diff(expr, var)
+            if partial == 0:
+                continue
+            for j, rate in tangent[var].items():
+                terms.setdefault(j, []).append(partial * rate)
+        result = {j: sp.Add(*terms[j]) for j in sorted(terms)}
+        return {j: value for j, value in result.items() if value != 0}
+
+    new: list[Assignment] = []
+    for sym, value in program.assignments:
+        entries: dict[int, sp.Expr] = {}
+        for j, rate in propagate(value).items():
+            if rate.is_Symbol or rate.is_Number:
+                entries[j] = rate
+                continue
+            if check is not None:
+                check(rate)
+            fresh = next(names)
+            new.append((fresh, rate))
+            entries[j] = fresh
+        if entries:
+            tangent[sym] = entries
+    derived = tuple(propagate(sp.sympify(e)) for e in outputs)
+    return Program(tuple(new)), derived

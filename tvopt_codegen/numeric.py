@@ -60,29 +60,38 @@ class Evaluator:
 
     def __init__(self, values: Mapping[sp.Symbol, Array]) -> None:
         self._memo: dict[sp.Basic, Array] = dict(values)
+        self._definitions: dict[sp.Basic, sp.Expr] = {}
 
-    def bind(self, symbol: sp.Symbol, expr: sp.Expr) -> None:
-        """Give ``symbol`` the value of ``expr`` (an assignment of a straight-line program)."""
-        self._memo[symbol] = self(expr)
+    def define(self, symbol: sp.Symbol, expr: sp.Expr) -> None:
+        """Let ``symbol`` stand for ``expr`` (an assignment of a straight-line program).
+
+        Evaluated on first use only: a program's assignments that the requested
+        expressions do not need cost nothing.
+        """
+        self._definitions[symbol] = expr
 
     def __call__(self, expr: sp.Basic) -> Array:
         """The value of ``expr`` at every point."""
-        memo = self._memo
+        memo, definitions = self._memo, self._definitions
         if expr in memo:
             return memo[expr]
-        # An explicit stack: a long sum nests deep enough to exceed Python's recursion
-        # limit in the derivatives of large objectives.
+        # An explicit stack: a long sum, or a long chain of program assignments, nests
+        # deeper than Python's recursion limit.
         stack: list[tuple[sp.Basic, bool]] = [(expr, False)]
         with np.errstate(all="ignore"):
             while stack:
                 node, ready = stack.pop()
                 if node in memo:
                     continue
+                defined = definitions.get(node) if node.is_Symbol else None
+                children = node.args if defined is None else (defined,)
                 if not ready:
                     stack.append((node, True))
-                    stack.extend((arg, False) for arg in node.args if arg not in memo)
-                    continue
-                memo[node] = self._apply(node, [memo[arg] for arg in node.args])
+                    stack.extend((child, False) for child in children if child not in memo)
+                elif defined is not None:
+                    memo[node] = memo[defined]
+                else:
+                    memo[node] = self._apply(node, [memo[arg] for arg in node.args])
         return memo[expr]
 
     @staticmethod

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 31c7a2c7988f753e67bb9b1d9a8d06c9f5b8c95c0b1fa74da9ab710c764c2c4a
+ * content sha256: 886993b149f3899257707594af4672e095d3f74a2d56d5fcee5ef05211c68e89
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -35,7 +35,7 @@ const double flexible_joint_default_params[FLEXIBLE_JOINT_N_PARAMS] = {2.0, 1.0,
 const double flexible_joint_default_state[FLEXIBLE_JOINT_N_STATES] = {0.5, 0.0, 0.5, 0.0};
 const double flexible_joint_hurwitz_coefficients[FLEXIBLE_JOINT_K] = {-15.0, -33.5, -26.0, -8.5};
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (256 operations, 335 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (253 operations, 335 before CSE). */
 static void flexible_joint_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* q1 */
@@ -67,78 +67,68 @@ static void flexible_joint_k_jet(double t, const double *s, const double *p, con
     const double _t14 = _s0 - _s2;
     const double _t15 = _p3*_t11;
     const double _t16 = -_t13 - _t14*_t15;
-    const double _t17 = _t16;
-    const double _t18 = -_t12*cos(_s0) - _t15;
-    const double _t19 = _s1*_t18 + _s3*_t15;
-    const double _t20 = -_s0 + _t4;
-    const double _t21 = cosh(_t20);
-    const double _t22 = _t21;
-    const double _t23 = (1.0/_t22);
-    const double _t24 = sinh(_t20);
-    const double _t25 = _t24;
-    const double _t26 = -_s1 + _t7;
-    const double _t27 = _t24;
-    const double _t28 = _t26*_t27;
-    const double _t29 = (1.0/(_t22*_t22));
-    const double _t30 = -_t28*_t29;
-    const double _t31 = _t21;
-    const double _t32 = _t26*_t31;
-    const double _t33 = -_t17 + _t8;
-    const double _t34 = _t21;
-    const double _t35 = _t26*_t34;
-    const double _t36 = _t26*_t35 + _t27*_t33;
-    const double _t37 = (1.0/(_t22*_t22*_t22));
-    const double _t38 = 2*_t28;
-    const double _t39 = -_t37*_t38;
-    const double _t40 = -_t28*_t39 - _t29*_t36;
-    const double _t41 = _t24;
-    const double _t42 = _t26*_t41;
-    const double _t43 = _t26*_t42 + _t31*_t33;
-    const double _t44 = -_t30*_t32;
-    const double _t45 = -_t19 + _t9;
-    const double _t46 = _t24;
-    const double _t47 = _t26*_t46;
-    const double _t48 = _t26*_t47 + _t33*_t34;
-    const double _t49 = _t33*_t35;
-    const double _t50 = _t26*_t48 + _t27*_t45 + 2*_t49;
-    const double _t51 = 3/(_t22*_t22*_t22*_t22);
-    const double _t52 = -_t28*_t51;
-    const double _t53 = 2*_t36;
-    const double _t54 = -_t37*_t53 - _t38*_t52;
-    const double _t55 = -_t36*_t39;
-    const double _t56 = -_t28*_t54 - _t29*_t50 + 2*_t55;
-    const double _t57 = _t21;
-    const double _t58 = _t26*_t57;
-    const double _t59 = _t26*_t58 + _t33*_t41;
-    const double _t60 = _t33*_t42;
-    const double _t61 = _t26*_t59 + _t31*_t45 + 2*_t60;
-    const double _t62 = -_t30*_t43;
-    const double _t63 = -_t32*_t40;
-    const double _t64 = _t62 + _t63;
-    const double _t65 = _t33*_t47;
-    const double _t66 = _t33*_t48;
-    const double _t67 = _t35*_t45;
-    const double _t68 = _t66 + _t67;
-    const double _t69 = -_t52*_t53;
-    const double _t70 = -_t36*_t54;
-    const double _t71 = -_t39*_t50;
-    const double _t72 = _t70 + _t71;
-    const double _t73 = _t33*_t58;
-    const double _t74 = _t33*_t59;
-    const double _t75 = _t42*_t45;
-    const double _t76 = _t74 + _t75;
-    const double _t77 = -_t30*_t61;
-    const double _t78 = -_t40*_t43;
-    const double _t79 = _t77 + _t78;
-    const double _t80 = -_t32*_t56;
-    const double _t81 = _t78 + _t80;
-    const double _t82 = _t79 + _t81;
-    const double _t83 = _s0 - _t4;
-    const double _t84 = (1.0/_p2);
-    hessian[0] = -(sinh(_t83)*sinh(_t83))/(cosh(_t83)*cosh(_t83)) + 3;
-    jet_rhs[0] = _a0*(2*_s0 - _t23*_t25 - 2*_t4) + _a1*(2*_s1 - _t23*_t32 - _t25*_t30 - 2*_t7) + _a2*(2*_t17 - _t23*_t43 - _t25*_t40 + 2*_t44 - 2*_t8) + _a3*(2*_t19 - _t23*_t61 - _t25*_t56 + _t62 + _t63 + 2*_t64 - 2*_t9) + 2*_t10 + _t23*(_t10*_t31 + _t26*(_t26*(_t24*(_t26*_t26) + _t33*_t57) + _t41*_t45 + 2*_t73) + _t74 + _t75 + 2*_t76) + _t25*(-_t28*(-2*_t37*_t50 - _t38*(-_t36*_t51 + 12*(_t28*_t28)/pow(_t22, 5)) + 2*_t69) - _t29*(_t10*_t27 + _t26*(_t26*(_t21*(_t26*_t26) + _t33*_t46) + _t34*_t45 + 2*_t65) + _t66 + _t67 + 2*_t68) + _t70 + _t71 + 2*_t72) - _t77 - _t79 - _t80 - _t81 - 2*_t82;
-    R[0] = _t15*_t84;
-    pvec[0] = (_p3*_p3)*_t11*_t14*_t84 + (_s1*_s1)*_t13 + _t16*_t18;
+    const double _t17 = -_t12*cos(_s0) - _t15;
+    const double _t18 = _s1*_t17 + _s3*_t15;
+    const double _t19 = -_s0 + _t4;
+    const double _t20 = cosh(_t19);
+    const double _t21 = (1.0/_t20);
+    const double _t22 = sinh(_t19);
+    const double _t23 = -_s1 + _t7;
+    const double _t24 = _t22*_t23;
+    const double _t25 = (1.0/(_t20*_t20));
+    const double _t26 = -_t24*_t25;
+    const double _t27 = _t20*_t23;
+    const double _t28 = -_t16 + _t8;
+    const double _t29 = _t20*_t23;
+    const double _t30 = _t22*_t28 + _t23*_t29;
+    const double _t31 = (1.0/(_t20*_t20*_t20));
+    const double _t32 = 2*_t24;
+    const double _t33 = -_t31*_t32;
+    const double _t34 = -_t24*_t33 - _t25*_t30;
+    const double _t35 = _t22*_t23;
+    const double _t36 = _t20*_t28 + _t23*_t35;
+    const double _t37 = -_t26*_t27;
+    const double _t38 = -_t18 + _t9;
+    const double _t39 = _t22*_t23;
+    const double _t40 = _t20*_t28 + _t23*_t39;
+    const double _t41 = _t28*_t29;
+    const double _t42 = _t22*_t38 + _t23*_t40 + 2*_t41;
+    const double _t43 = 3/(_t20*_t20*_t20*_t20);
+    const double _t44 = -_t24*_t43;
+    const double _t45 = 2*_t30;
+    const double _t46 = -_t31*_t45 - _t32*_t44;
+    const double _t47 = -_t30*_t33;
+    const double _t48 = -_t24*_t46 - _t25*_t42 + 2*_t47;
+    const double _t49 = _t20*_t23;
+    const double _t50 = _t22*_t28 + _t23*_t49;
+    const double _t51 = _t28*_t35;
+    const double _t52 = _t20*_t38 + _t23*_t50 + 2*_t51;
+    const double _t53 = -_t26*_t36;
+    const double _t54 = -_t27*_t34;
+    const double _t55 = _t53 + _t54;
+    const double _t56 = _t28*_t39;
+    const double _t57 = _t28*_t40;
+    const double _t58 = _t29*_t38;
+    const double _t59 = _t57 + _t58;
+    const double _t60 = -_t44*_t45;
+    const double _t61 = -_t30*_t46;
+    const double _t62 = -_t33*_t42;
+    const double _t63 = _t61 + _t62;
+    const double _t64 = _t28*_t49;
+    const double _t65 = _t28*_t50;
+    const double _t66 = _t35*_t38;
+    const double _t67 = _t65 + _t66;
+    const double _t68 = -_t26*_t52;
+    const double _t69 = -_t34*_t36;
+    const double _t70 = _t68 + _t69;
+    const double _t71 = -_t27*_t48;
+    const double _t72 = _t69 + _t71;
+    const double _t73 = _t70 + _t72;
+    const double _t74 = (1.0/_p2);
+    hessian[0] = _t20*_t21 - (_t22*_t22)*_t25 + 2;
+    jet_rhs[0] = _a0*(2*_s0 - _t21*_t22 - 2*_t4) + _a1*(2*_s1 - _t21*_t27 - _t22*_t26 - 2*_t7) + _a2*(2*_t16 - _t21*_t36 - _t22*_t34 + 2*_t37 - 2*_t8) + _a3*(2*_t18 - _t21*_t52 - _t22*_t48 + _t53 + _t54 + 2*_t55 - 2*_t9) + 2*_t10 + _t21*(_t10*_t20 + _t23*(_t22*_t38 + _t23*(_t20*_t28 + _t22*(_t23*_t23)) + 2*_t64) + _t65 + _t66 + 2*_t67) + _t22*(-_t24*(-2*_t31*_t42 - _t32*(-_t30*_t43 + 12*(_t24*_t24)/pow(_t20, 5)) + 2*_t60) - _t25*(_t10*_t22 + _t23*(_t20*_t38 + _t23*(_t20*(_t23*_t23) + _t22*_t28) + 2*_t56) + _t57 + _t58 + 2*_t59) + _t61 + _t62 + 2*_t63) - _t68 - _t70 - _t71 - _t72 - 2*_t73;
+    R[0] = _t15*_t74;
+    pvec[0] = (_p3*_p3)*_t11*_t14*_t74 + (_s1*_s1)*_t13 + _t16*_t17;
 }
 
 
@@ -201,7 +191,7 @@ static void flexible_joint_k_plant_input(double t, const double *s, const double
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (137 operations, 184 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (137 operations, 174 before CSE). */
 static void flexible_joint_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* q1 */
@@ -228,40 +218,34 @@ static void flexible_joint_k_optimality(double t, const double *s, const double 
     const double _t14 = _s1*(-_t11*cos(_s0) - _t12) + _s3*_t12;
     const double _t15 = -_s0 + _t4;
     const double _t16 = cosh(_t15);
-    const double _t17 = _t16;
-    const double _t18 = (1.0/_t17);
-    const double _t19 = sinh(_t15);
-    const double _t20 = _t19;
-    const double _t21 = -_s1 + _t7;
-    const double _t22 = _t19;
-    const double _t23 = _t21*_t22;
-    const double _t24 = (1.0/(_t17*_t17));
-    const double _t25 = -_t23*_t24;
-    const double _t26 = _t16;
-    const double _t27 = _t21*_t26;
-    const double _t28 = -_t13 + _t8;
-    const double _t29 = _t16;
-    const double _t30 = _t21*_t29;
-    const double _t31 = _t21*_t30 + _t22*_t28;
-    const double _t32 = (1.0/(_t17*_t17*_t17));
-    const double _t33 = 2*_t23;
-    const double _t34 = -_t32*_t33;
-    const double _t35 = -_t23*_t34 - _t24*_t31;
-    const double _t36 = _t19;
-    const double _t37 = _t21*_t36;
-    const double _t38 = _t21*_t37 + _t26*_t28;
-    const double _t39 = -_t25*_t27;
-    const double _t40 = -_t14 + _t9;
-    const double _t41 = _t28*_t30;
-    const double _t42 = -_t31*_t34;
-    const double _t43 = _t28*_t37;
-    const double _t44 = -_t25*_t38;
-    const double _t45 = -_t27*_t35;
-    const double _t46 = _t44 + _t45;
-    E[0] = 2*_s0 - _t18*_t20 - 2*_t4;
-    E[1] = 2*_s1 - _t18*_t27 - _t20*_t25 - 2*_t7;
-    E[2] = 2*_t13 - _t18*_t38 - _t20*_t35 + 2*_t39 - 2*_t8;
-    E[3] = 2*_t14 - _t18*(_t21*(_t16*(_t21*_t21) + _t28*_t36) + _t26*_t40 + 2*_t43) - _t20*(-_t23*(-2*_t31*_t32 + 3*_t23*_t33/(_t17*_t17*_t17*_t17)) - _t24*(_t21*(_t19*(_t21*_t21) + _t28*_t29) + _t22*_t40 + 2*_t41) + 2*_t42) + _t44 + _t45 + 2*_t46 - 2*_t9;
+    const double _t17 = (1.0/_t16);
+    const double _t18 = sinh(_t15);
+    const double _t19 = -_s1 + _t7;
+    const double _t20 = _t18*_t19;
+    const double _t21 = (1.0/(_t16*_t16));
+    const double _t22 = -_t20*_t21;
+    const double _t23 = _t16*_t19;
+    const double _t24 = -_t13 + _t8;
+    const double _t25 = _t16*_t19;
+    const double _t26 = _t18*_t24 + _t19*_t25;
+    const double _t27 = (1.0/(_t16*_t16*_t16));
+    const double _t28 = 2*_t20;
+    const double _t29 = -_t27*_t28;
+    const double _t30 = -_t20*_t29 - _t21*_t26;
+    const double _t31 = _t18*_t19;
+    const double _t32 = _t16*_t24 + _t19*_t31;
+    const double _t33 = -_t22*_t23;
+    const double _t34 = -_t14 + _t9;
+    const double _t35 = _t24*_t25;
+    const double _t36 = -_t26*_t29;
+    const double _t37 = _t24*_t31;
+    const double _t38 = -_t22*_t32;
+    const double _t39 = -_t23*_t30;
+    const double _t40 = _t38 + _t39;
+    E[0] = 2*_s0 - _t17*_t18 - 2*_t4;
+    E[1] = 2*_s1 - _t17*_t23 - _t18*_t22 - 2*_t7;
+    E[2] = 2*_t13 - _t17*_t32 - _t18*_t30 + 2*_t33 - 2*_t8;
+    E[3] = 2*_t14 - _t17*(_t16*_t34 + _t19*(_t16*(_t19*_t19) + _t18*_t24) + 2*_t37) - _t18*(-_t20*(-2*_t26*_t27 + 3*_t20*_t28/(_t16*_t16*_t16*_t16)) - _t21*(_t18*_t34 + _t19*(_t16*_t24 + _t18*(_t19*_t19)) + 2*_t35) + 2*_t36) + _t38 + _t39 + 2*_t40 - 2*_t9;
 }
 
 
@@ -275,24 +259,26 @@ static void flexible_joint_k_objective(double t, const double *y, const double *
 }
 
 
-/* grad_y f0(y, t) (16 operations, 17 before CSE). */
+/* grad_y f0(y, t) (16 operations, 19 before CSE). */
 static void flexible_joint_k_gradient(double t, const double *y, const double *p, double *grad)
 {
     const double _y0 = y[0]; /* y */
     (void)p;
     const double _t0 = (3.0/5.0)*sin((1.0/2.0)*t) + (3.0/10.0)*sin((13.0/10.0)*t);
-    const double _t1 = -_t0 + _y0;
-    grad[0] = -2*_t0 + 2*_y0 + sinh(_t1)/cosh(_t1);
+    const double _t1 = _t0 - _y0;
+    grad[0] = -2*_t0 + 2*_y0 - sinh(_t1)/cosh(_t1);
 }
 
 
-/* grad_yy f0(y, t) (15 operations, 16 before CSE). */
+/* grad_yy f0(y, t) (15 operations, 25 before CSE). */
 static void flexible_joint_k_hessian(double t, const double *y, const double *p, double *hess)
 {
     const double _y0 = y[0]; /* y */
     (void)p;
-    const double _t0 = _y0 - 3.0/5.0*sin((1.0/2.0)*t) - 3.0/10.0*sin((13.0/10.0)*t);
-    hess[0] = -(sinh(_t0)*sinh(_t0))/(cosh(_t0)*cosh(_t0)) + 3;
+    const double _t0 = -_y0 + (3.0/5.0)*sin((1.0/2.0)*t) + (3.0/10.0)*sin((13.0/10.0)*t);
+    const double _t1 = cosh(_t0);
+    const double _t2 = sinh(_t0);
+    hess[0] = 3 - (_t2*_t2)/(_t1*_t1);
 }
 
 

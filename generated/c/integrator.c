@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 660d85f5a3cefeba0f3906c740dfc170ab6f6a008975dbe1417adda68eb98180
+ * content sha256: e06c9fcd0b676188d740f85bc1b316dd79982f5fe9e3ef4bb74a119bf6f7b694
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -115,7 +115,7 @@ static void integrator_k_plant_input(double t, const double *s, const double *p,
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (17 operations, 30 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (17 operations, 21 before CSE). */
 static void integrator_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* x1 */
@@ -138,7 +138,7 @@ static void integrator_k_objective(double t, const double *y, const double *p, d
 }
 
 
-/* grad_y f0(y, t) (17 operations, 20 before CSE). */
+/* grad_y f0(y, t) (17 operations, 21 before CSE). */
 static void integrator_k_gradient(double t, const double *y, const double *p, double *grad)
 {
     const double _y0 = y[0]; /* y1 */
@@ -150,7 +150,7 @@ static void integrator_k_gradient(double t, const double *y, const double *p, do
 }
 
 
-/* grad_yy f0(y, t) (0 operations, 14 before CSE). */
+/* grad_yy f0(y, t) (0 operations, 0 before CSE). */
 static void integrator_k_hessian(double t, const double *y, const double *p, double *hess)
 {
     (void)t;

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: f50709512174761edc6027de325150b914665e7a8154ae3629fc935072a7f3da
+ * content sha256: 802fb7b394ca5f617e8636c8bbcd32cde31848b8c59ee6ac8c024027b1828729
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -35,7 +35,7 @@ const double pvtol_default_params[PVTOL_N_PARAMS] = {9.81};
 const double pvtol_default_state[PVTOL_N_STATES] = {-1.0, 0.5, 0.0, 0.0, 0.0, 0.0, 9.81, 0.0};
 const double pvtol_hurwitz_coefficients[PVTOL_K] = {-7.5, -19.25, -17.75, -7.0};
 
-/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (88 operations, 157 before CSE). */
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (88 operations, 154 before CSE). */
 static void pvtol_k_jet(double t, const double *s, const double *p, const double *a, double *z, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* x */
@@ -138,7 +138,7 @@ static void pvtol_k_plant_input(double t, const double *s, const double *p, cons
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (57 operations, 96 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (57 operations, 83 before CSE). */
 static void pvtol_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* x */
@@ -194,7 +194,7 @@ static void pvtol_k_gradient(double t, const double *y, const double *p, double 
 }
 
 
-/* grad_yy f0(y, t) (0 operations, 11 before CSE). */
+/* grad_yy f0(y, t) (0 operations, 0 before CSE). */
 static void pvtol_k_hessian(double t, const double *y, const double *p, double *hess)
 {
     (void)t;

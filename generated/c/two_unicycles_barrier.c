@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: a35a64c96ec3686d56ed157fade9d891d7aff7ea1b21a3761a9b8fcf216ab3b1
+ * content sha256: 9100e20d6ca8d6dd0d9ade3d1436eb4c6c47181d2b1a9e279d14dde8eb5f5d8b
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -35,7 +35,7 @@ const double two_unicycles_barrier_default_params[TWO_UNICYCLES_BARRIER_N_PARAMS
 const double two_unicycles_barrier_default_state[TWO_UNICYCLES_BARRIER_N_STATES] = {-4.5, -3.5, 0.0, -3.5, -3.5, 0.0, 1.0, 1.0};
 const double two_unicycles_barrier_hurwitz_coefficients[TWO_UNICYCLES_BARRIER_K] = {-1.5, -2.5};
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (305 operations, 1112 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (291 operations, 384 before CSE). */
 static void two_unicycles_barrier_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* xa */
@@ -53,126 +53,93 @@ static void two_unicycles_barrier_k_jet(double t, const double *s, const double 
     const double _t0 = (t*t);
     const double _t1 = cos(_s2);
     const double _t2 = _s6*_t1;
-    const double _t3 = _t2;
-    const double _t4 = sin(_s2);
-    const double _t5 = _s6*_t4;
-    const double _t6 = _t5;
-    const double _t7 = cos(_s5);
+    const double _t3 = sin(_s2);
+    const double _t4 = _s6*_t3;
+    const double _t5 = cos(_s5);
+    const double _t6 = _s7*_t5;
+    const double _t7 = sin(_s5);
     const double _t8 = _s7*_t7;
-    const double _t9 = _t8;
-    const double _t10 = sin(_s5);
-    const double _t11 = _s7*_t10;
-    const double _t12 = _t11;
-    const double _t13 = 2*_s0;
-    const double _t14 = _t13;
-    const double _t15 = (1.0/_p1);
-    const double _t16 = _t15;
-    const double _t17 = -_s3;
-    const double _t18 = _s0 + _t17;
-    const double _t19 = -_s4;
-    const double _t20 = _s1 + _t19;
-    const double _t21 = (1.0/2.0)*3.141592653589793*_t16;
-    const double _t22 = tan(_t21*((_t18*_t18) + (_t20*_t20)));
-    const double _t23 = _t22;
-    const double _t24 = 2*_s3;
-    const double _t25 = -_t24;
-    const double _t26 = _t14 + _t25;
-    const double _t27 = 3.141592653589793*_p0;
-    const double _t28 = _t16*_t27;
-    const double _t29 = _t28*((_t23*_t23) + 1);
-    const double _t30 = _t26*_t29;
-    const double _t31 = 2*_s1;
-    const double _t32 = _t31;
-    const double _t33 = 2*_s4;
-    const double _t34 = -_t33;
-    const double _t35 = _t32 + _t34;
-    const double _t36 = _t29*_t35;
-    const double _t37 = _t24;
-    const double _t38 = -_t13 + _t37;
-    const double _t39 = _t29*_t38;
-    const double _t40 = _t33;
-    const double _t41 = -_t31 + _t40;
-    const double _t42 = _t29*_t41;
-    const double _t43 = 2*_t3;
-    const double _t44 = _t43;
-    const double _t45 = _t3 - _t9;
-    const double _t46 = -_t12 + _t6;
-    const double _t47 = _t21*(2*_t18*_t45 + 2*_t20*_t46);
-    const double _t48 = _t22;
-    const double _t49 = (_t48*_t48) + 1;
-    const double _t50 = _t47*_t49;
-    const double _t51 = 2*_t23;
-    const double _t52 = 2*_t9;
-    const double _t53 = _t44 - _t52;
-    const double _t54 = _t28*_t50*_t51;
-    const double _t55 = _t26*_t54 + _t29*_t53;
-    const double _t56 = 2*_t6;
-    const double _t57 = _t56;
-    const double _t58 = 2*_t12;
-    const double _t59 = _t57 - _t58;
-    const double _t60 = _t29*_t59 + _t35*_t54;
-    const double _t61 = _t52;
-    const double _t62 = -_t43 + _t61;
-    const double _t63 = _t29*_t62 + _t38*_t54;
-    const double _t64 = _t58;
-    const double _t65 = -_t56 + _t64;
-    const double _t66 = _t29*_t65 + _t41*_t54;
-    const double _t67 = _t21*_t49*(2*(_t45*_t45) + 2*(_t46*_t46)) + 2*(_t47*_t47)*_t48*((_t22*_t22) + 1);
-    const double _t68 = _t28*(2*(_t50*_t50) + _t51*_t67);
-    const double _t69 = _t53*_t54;
-    const double _t70 = _t50*_t55;
-    const double _t71 = _t54*_t59;
-    const double _t72 = _t50*_t60;
-    const double _t73 = _t54*_t62;
-    const double _t74 = _t50*_t63;
-    const double _t75 = _t54*_t65;
-    const double _t76 = _t50*_t66;
-    const double _t77 = _t13 + _t25;
-    const double _t78 = (3.141592653589793*3.141592653589793)*_p0/(_p1*_p1);
-    const double _t79 = (_t77*_t77)*_t78;
-    const double _t80 = tan((1.0/2.0)*3.141592653589793*_t15*(-((_s0 + _t17)*(_s0 + _t17)) - ((_s1 + _t19)*(_s1 + _t19))));
-    const double _t81 = (_t80*_t80);
-    const double _t82 = _t81 + 1;
-    const double _t83 = (1.0/2.0)*(_t82*_t82);
-    const double _t84 = _t81*_t82;
-    const double _t85 = 2*_t15*_t27*_t80*_t82;
-    const double _t86 = 2 - _t85;
-    const double _t87 = _t31 + _t34;
-    const double _t88 = _t77*_t78;
-    const double _t89 = _t87*_t88;
-    const double _t90 = _t78*(_t87*_t87);
-    const double _t91 = -_t77;
-    const double _t92 = _t88*_t91;
-    const double _t93 = _t78*_t87;
-    const double _t94 = _t91*_t93;
-    const double _t95 = _t78*(_t91*_t91);
-    const double _t96 = -_t87;
-    const double _t97 = _t88*_t96;
-    const double _t98 = _t93*_t96;
-    const double _t99 = _t78*_t91*_t96;
-    const double _t100 = _t78*(_t96*_t96);
-    hessian[0] = _t79*_t83 + _t79*_t84 + _t86;
-    hessian[1] = _t83*_t89 + _t84*_t89;
-    hessian[2] = _t83*_t90 + _t84*_t90 + _t86;
-    hessian[3] = _t83*_t92 + _t84*_t92 + _t85;
-    hessian[4] = _t83*_t94 + _t84*_t94;
-    hessian[5] = _t83*_t95 + _t84*_t95 + _t86;
-    hessian[6] = _t83*_t97 + _t84*_t97;
-    hessian[7] = _t83*_t98 + _t84*_t98 + _t85;
-    hessian[8] = _t83*_t99 + _t84*_t99;
-    hessian[9] = _t100*_t83 + _t100*_t84 + _t86;
-    jet_rhs[0] = _a0*(-1.0/250.0*_t0 + _t14 + _t23*_t30 - t + 10) + _a1*(_t23*_t55 + _t30*_t50 + _t44 - 1.0/125.0*t - 1) - _t23*(_t26*_t68 + 2*_t69) - _t30*_t67 - 2*_t70 + 1.0/125.0;
-    jet_rhs[1] = _a0*((1.0/50.0)*_t0 + _t23*_t36 + _t32 - 3.0/5.0*t + 6) + _a1*(_t23*_t60 + _t36*_t50 + _t57 + (1.0/25.0)*t - 3.0/5.0) - _t23*(_t35*_t68 + 2*_t71) - _t36*_t67 - 2*_t72 - 1.0/25.0;
-    jet_rhs[2] = _a0*(-1.0/125.0*_t0 + _t23*_t39 + _t37 - 9.0/10.0*t + 4) + _a1*(_t23*_t63 + _t39*_t50 + _t61 - 2.0/125.0*t - 9.0/10.0) - _t23*(_t38*_t68 + 2*_t73) - _t39*_t67 - 2*_t74 + 2.0/125.0;
-    jet_rhs[3] = _a0*((3.0/125.0)*_t0 + _t23*_t42 + _t40 - 7.0/10.0*t + 6) + _a1*(_t23*_t66 + _t42*_t50 + _t64 + (6.0/125.0)*t - 7.0/10.0) - _t23*(_t41*_t68 + 2*_t75) - _t42*_t67 - 2*_t76 - 6.0/125.0;
+    const double _t9 = 2*_s0;
+    const double _t10 = (1.0/_p1);
+    const double _t11 = _s0 - _s3;
+    const double _t12 = _s1 - _s4;
+    const double _t13 = (1.0/2.0)*3.141592653589793*_t10;
+    const double _t14 = tan(_t13*((_t11*_t11) + (_t12*_t12)));
+    const double _t15 = 2*_s3;
+    const double _t16 = -_t15 + _t9;
+    const double _t17 = 3.141592653589793*_p0*_t10;
+    const double _t18 = _t17*((_t14*_t14) + 1);
+    const double _t19 = _t16*_t18;
+    const double _t20 = 2*_s1;
+    const double _t21 = 2*_s4;
+    const double _t22 = _t20 - _t21;
+    const double _t23 = _t18*_t22;
+    const double _t24 = _t15 - _t9;
+    const double _t25 = _t18*_t24;
+    const double _t26 = -_t20 + _t21;
+    const double _t27 = _t18*_t26;
+    const double _t28 = 2*_t2;
+    const double _t29 = _t2 - _t6;
+    const double _t30 = 2*_t11;
+    const double _t31 = _t4 - _t8;
+    const double _t32 = 2*_t12;
+    const double _t33 = _t13*(_t29*_t30 + _t31*_t32);
+    const double _t34 = (_t14*_t14) + 1;
+    const double _t35 = _t33*_t34;
+    const double _t36 = 2*_t14;
+    const double _t37 = 2*_t6;
+    const double _t38 = _t28 - _t37;
+    const double _t39 = _t17*_t35*_t36;
+    const double _t40 = _t16*_t39 + _t18*_t38;
+    const double _t41 = 2*_t4;
+    const double _t42 = 2*_t8;
+    const double _t43 = _t41 - _t42;
+    const double _t44 = _t18*_t43 + _t22*_t39;
+    const double _t45 = -_t28 + _t37;
+    const double _t46 = _t18*_t45 + _t24*_t39;
+    const double _t47 = -_t41 + _t42;
+    const double _t48 = _t18*_t47 + _t26*_t39;
+    const double _t49 = (_t14*_t14) + 1;
+    const double _t50 = _t13*_t30*_t49;
+    const double _t51 = _t13*_t32*_t49;
+    const double _t52 = -_t13*_t30*_t49;
+    const double _t53 = -_t13*_t32*_t49;
+    const double _t54 = _t17*_t36*_t50;
+    const double _t55 = _t17*_t36*_t51;
+    const double _t56 = _t17*_t36*_t52;
+    const double _t57 = 2*_t18;
+    const double _t58 = _t13*_t34*(2*(_t29*_t29) + 2*(_t31*_t31)) + 2*_t14*(_t33*_t33)*((_t14*_t14) + 1);
+    const double _t59 = _t17*(2*(_t35*_t35) + _t36*_t58);
+    const double _t60 = _t38*_t39;
+    const double _t61 = _t35*_t40;
+    const double _t62 = _t39*_t43;
+    const double _t63 = _t35*_t44;
+    const double _t64 = _t39*_t45;
+    const double _t65 = _t35*_t46;
+    const double _t66 = _t39*_t47;
+    const double _t67 = _t35*_t48;
+    hessian[0] = _t14*(_t16*_t54 + _t57) + _t19*_t50 + 2;
+    hessian[1] = _t14*_t22*_t54 + _t23*_t50;
+    hessian[2] = _t14*(_t22*_t55 + _t57) + _t23*_t51 + 2;
+    hessian[3] = _t14*(_t24*_t54 - _t57) + _t25*_t50;
+    hessian[4] = _t14*_t24*_t55 + _t25*_t51;
+    hessian[5] = _t14*(_t24*_t56 + _t57) + _t25*_t52 + 2;
+    hessian[6] = _t14*_t26*_t54 + _t27*_t50;
+    hessian[7] = _t14*(_t26*_t55 - _t57) + _t27*_t51;
+    hessian[8] = _t14*_t26*_t56 + _t27*_t52;
+    hessian[9] = _t14*(_t17*_t26*_t36*_t53 + _t57) + _t27*_t53 + 2;
+    jet_rhs[0] = _a0*(-1.0/250.0*_t0 + _t14*_t19 + _t9 - t + 10) + _a1*(_t14*_t40 + _t19*_t35 + _t28 - 1.0/125.0*t - 1) - _t14*(_t16*_t59 + 2*_t60) - _t19*_t58 - 2*_t61 + 1.0/125.0;
+    jet_rhs[1] = _a0*((1.0/50.0)*_t0 + _t14*_t23 + _t20 - 3.0/5.0*t + 6) + _a1*(_t14*_t44 + _t23*_t35 + _t41 + (1.0/25.0)*t - 3.0/5.0) - _t14*(_t22*_t59 + 2*_t62) - _t23*_t58 - 2*_t63 - 1.0/25.0;
+    jet_rhs[2] = _a0*(-1.0/125.0*_t0 + _t14*_t25 + _t15 - 9.0/10.0*t + 4) + _a1*(_t14*_t46 + _t25*_t35 + _t37 - 2.0/125.0*t - 9.0/10.0) - _t14*(_t24*_t59 + 2*_t64) - _t25*_t58 - 2*_t65 + 2.0/125.0;
+    jet_rhs[3] = _a0*((3.0/125.0)*_t0 + _t14*_t27 + _t21 - 7.0/10.0*t + 6) + _a1*(_t14*_t48 + _t27*_t35 + _t42 + (6.0/125.0)*t - 7.0/10.0) - _t14*(_t26*_t59 + 2*_t66) - _t27*_t58 - 2*_t67 - 6.0/125.0;
     R[0] = _t1;
-    R[1] = -_t5;
-    R[2] = _t4;
+    R[1] = -_t4;
+    R[2] = _t3;
     R[3] = _t2;
-    R[4] = _t7;
-    R[5] = -_t11;
-    R[6] = _t10;
-    R[7] = _t8;
+    R[4] = _t5;
+    R[5] = -_t8;
+    R[6] = _t7;
+    R[7] = _t6;
     pvec[0] = 0;
     pvec[1] = 0;
     pvec[2] = 0;
@@ -293,7 +260,7 @@ static void two_unicycles_barrier_k_plant_input(double t, const double *s, const
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (133 operations, 166 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (133 operations, 160 before CSE). */
 static void two_unicycles_barrier_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* xa */
@@ -312,47 +279,38 @@ static void two_unicycles_barrier_k_optimality(double t, const double *s, const 
     const double _t3 = _s7*cos(_s5);
     const double _t4 = _s7*sin(_s5);
     const double _t5 = 2*_s0;
-    const double _t6 = _t5;
-    const double _t7 = (1.0/_p1);
-    const double _t8 = _s0 - _s3;
-    const double _t9 = _s1 - _s4;
-    const double _t10 = (1.0/2.0)*3.141592653589793*_t7;
-    const double _t11 = tan(_t10*((_t8*_t8) + (_t9*_t9)));
-    const double _t12 = _t11;
-    const double _t13 = 2*_s3;
-    const double _t14 = -_t13 + _t6;
-    const double _t15 = 3.141592653589793*_p0*_t7;
-    const double _t16 = _t15*((_t12*_t12) + 1);
-    const double _t17 = _t14*_t16;
-    const double _t18 = 2*_s1;
-    const double _t19 = _t18;
-    const double _t20 = 2*_s4;
-    const double _t21 = _t19 - _t20;
-    const double _t22 = _t16*_t21;
-    const double _t23 = _t13;
-    const double _t24 = _t23 - _t5;
-    const double _t25 = _t16*_t24;
-    const double _t26 = _t20;
-    const double _t27 = -_t18 + _t26;
-    const double _t28 = _t16*_t27;
-    const double _t29 = 2*_t1;
-    const double _t30 = _t29;
-    const double _t31 = _t10*((_t11*_t11) + 1)*(2*_t8*(_t1 - _t3) + 2*_t9*(_t2 - _t4));
-    const double _t32 = 2*_t3;
-    const double _t33 = 2*_t12*_t15*_t31;
-    const double _t34 = 2*_t2;
-    const double _t35 = _t34;
-    const double _t36 = 2*_t4;
-    const double _t37 = _t32;
-    const double _t38 = _t36;
-    E[0] = -1.0/250.0*_t0 + _t12*_t17 + _t6 - t + 10;
-    E[1] = (1.0/50.0)*_t0 + _t12*_t22 + _t19 - 3.0/5.0*t + 6;
-    E[2] = -1.0/125.0*_t0 + _t12*_t25 + _t23 - 9.0/10.0*t + 4;
-    E[3] = (3.0/125.0)*_t0 + _t12*_t28 + _t26 - 7.0/10.0*t + 6;
-    E[4] = _t12*(_t14*_t33 + _t16*(_t30 - _t32)) + _t17*_t31 + _t30 - 1.0/125.0*t - 1;
-    E[5] = _t12*(_t16*(_t35 - _t36) + _t21*_t33) + _t22*_t31 + _t35 + (1.0/25.0)*t - 3.0/5.0;
-    E[6] = _t12*(_t16*(-_t29 + _t37) + _t24*_t33) + _t25*_t31 + _t37 - 2.0/125.0*t - 9.0/10.0;
-    E[7] = _t12*(_t16*(-_t34 + _t38) + _t27*_t33) + _t28*_t31 + _t38 + (6.0/125.0)*t - 7.0/10.0;
+    const double _t6 = (1.0/_p1);
+    const double _t7 = _s0 - _s3;
+    const double _t8 = _s1 - _s4;
+    const double _t9 = (1.0/2.0)*3.141592653589793*_t6;
+    const double _t10 = tan(_t9*((_t7*_t7) + (_t8*_t8)));
+    const double _t11 = 2*_s3;
+    const double _t12 = -_t11 + _t5;
+    const double _t13 = 3.141592653589793*_p0*_t6;
+    const double _t14 = _t13*((_t10*_t10) + 1);
+    const double _t15 = _t12*_t14;
+    const double _t16 = 2*_s1;
+    const double _t17 = 2*_s4;
+    const double _t18 = _t16 - _t17;
+    const double _t19 = _t14*_t18;
+    const double _t20 = _t11 - _t5;
+    const double _t21 = _t14*_t20;
+    const double _t22 = -_t16 + _t17;
+    const double _t23 = _t14*_t22;
+    const double _t24 = 2*_t1;
+    const double _t25 = _t9*((_t10*_t10) + 1)*(2*_t7*(_t1 - _t3) + 2*_t8*(_t2 - _t4));
+    const double _t26 = 2*_t3;
+    const double _t27 = 2*_t10*_t13*_t25;
+    const double _t28 = 2*_t2;
+    const double _t29 = 2*_t4;
+    E[0] = -1.0/250.0*_t0 + _t10*_t15 + _t5 - t + 10;
+    E[1] = (1.0/50.0)*_t0 + _t10*_t19 + _t16 - 3.0/5.0*t + 6;
+    E[2] = -1.0/125.0*_t0 + _t10*_t21 + _t11 - 9.0/10.0*t + 4;
+    E[3] = (3.0/125.0)*_t0 + _t10*_t23 + _t17 - 7.0/10.0*t + 6;
+    E[4] = _t10*(_t12*_t27 + _t14*(_t24 - _t26)) + _t15*_t25 + _t24 - 1.0/125.0*t - 1;
+    E[5] = _t10*(_t14*(_t28 - _t29) + _t18*_t27) + _t19*_t25 + _t28 + (1.0/25.0)*t - 3.0/5.0;
+    E[6] = _t10*(_t14*(-_t24 + _t26) + _t20*_t27) + _t21*_t25 + _t26 - 2.0/125.0*t - 9.0/10.0;
+    E[7] = _t10*(_t14*(-_t28 + _t29) + _t22*_t27) + _t23*_t25 + _t29 + (6.0/125.0)*t - 7.0/10.0;
 }
 
 
@@ -370,7 +328,7 @@ static void two_unicycles_barrier_k_objective(double t, const double *y, const d
 }
 
 
-/* grad_y f0(y, t) (49 operations, 164 before CSE). */
+/* grad_y f0(y, t) (56 operations, 74 before CSE). */
 static void two_unicycles_barrier_k_gradient(double t, const double *y, const double *p, double *grad)
 {
     const double _y0 = y[0]; /* pa */
@@ -381,22 +339,20 @@ static void two_unicycles_barrier_k_gradient(double t, const double *y, const do
     const double _p1 = p[1]; /* d */
     const double _t0 = (t*t);
     const double _t1 = 2*_y0;
-    const double _t2 = -2*_y2;
-    const double _t3 = _t1 + _t2;
-    const double _t4 = 3.141592653589793/_p1;
-    const double _t5 = tan((1.0/2.0)*_t4*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3))));
-    const double _t6 = _p0*_t4*_t5*((_t5*_t5) + 1);
-    const double _t7 = 2*_y1;
-    const double _t8 = -2*_y3;
-    const double _t9 = _t7 + _t8;
-    grad[0] = -1.0/250.0*_t0 + _t1 - _t3*_t6 - t + 10;
-    grad[1] = (1.0/50.0)*_t0 - _t6*_t9 + _t7 - 3.0/5.0*t + 6;
-    grad[2] = -1.0/125.0*_t0 - _t2 + _t3*_t6 - 9.0/10.0*t + 4;
-    grad[3] = (3.0/125.0)*_t0 + _t6*_t9 - _t8 - 7.0/10.0*t + 6;
+    const double _t2 = (1.0/_p1);
+    const double _t3 = tan((1.0/2.0)*3.141592653589793*_t2*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3))));
+    const double _t4 = 2*_y2;
+    const double _t5 = 3.141592653589793*_p0*_t2*((_t3*_t3) + 1);
+    const double _t6 = 2*_y1;
+    const double _t7 = 2*_y3;
+    grad[0] = -1.0/250.0*_t0 + _t1 + _t3*_t5*(_t1 - _t4) - t + 10;
+    grad[1] = (1.0/50.0)*_t0 + _t3*_t5*(_t6 - _t7) + _t6 - 3.0/5.0*t + 6;
+    grad[2] = -1.0/125.0*_t0 + _t3*_t5*(-_t1 + _t4) + _t4 - 9.0/10.0*t + 4;
+    grad[3] = (3.0/125.0)*_t0 + _t3*_t5*(-_t6 + _t7) + _t7 - 7.0/10.0*t + 6;
 }
 
 
-/* grad_yy f0(y, t) (86 operations, 1308 before CSE). */
+/* grad_yy f0(y, t) (102 operations, 130 before CSE). */
 static void two_unicycles_barrier_k_hessian(double t, const double *y, const double *p, double *hess)
 {
     (void)t;
@@ -406,53 +362,58 @@ static void two_unicycles_barrier_k_hessian(double t, const double *y, const dou
     const double _y3 = y[3]; /* qb */
     const double _p0 = p[0]; /* alpha */
     const double _p1 = p[1]; /* d */
-    const double _t0 = 2*_y0 - 2*_y2;
-    const double _t1 = (3.141592653589793*3.141592653589793)*_p0/(_p1*_p1);
-    const double _t2 = (_t0*_t0)*_t1;
-    const double _t3 = 3.141592653589793/_p1;
-    const double _t4 = tan((1.0/2.0)*_t3*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3))));
-    const double _t5 = (_t4*_t4);
-    const double _t6 = _t5 + 1;
-    const double _t7 = (1.0/2.0)*(_t6*_t6);
-    const double _t8 = _t5*_t6;
-    const double _t9 = 2*_p0*_t3*_t4*_t6;
-    const double _t10 = 2 - _t9;
-    const double _t11 = 2*_y1 - 2*_y3;
-    const double _t12 = _t0*_t1;
-    const double _t13 = _t11*_t12;
-    const double _t14 = _t13*_t7 + _t13*_t8;
-    const double _t15 = -_t0;
-    const double _t16 = _t12*_t15;
-    const double _t17 = _t16*_t7 + _t16*_t8 + _t9;
-    const double _t18 = -_t11;
-    const double _t19 = _t12*_t18;
-    const double _t20 = _t19*_t7 + _t19*_t8;
-    const double _t21 = _t1*(_t11*_t11);
-    const double _t22 = _t1*_t11;
-    const double _t23 = _t15*_t22;
-    const double _t24 = _t23*_t7 + _t23*_t8;
-    const double _t25 = _t18*_t22;
-    const double _t26 = _t25*_t7 + _t25*_t8 + _t9;
-    const double _t27 = _t1*(_t15*_t15);
-    const double _t28 = _t1*_t15*_t18;
-    const double _t29 = _t28*_t7 + _t28*_t8;
-    const double _t30 = _t1*(_t18*_t18);
-    hess[0] = _t10 + _t2*_t7 + _t2*_t8;
-    hess[1] = _t14;
-    hess[2] = _t17;
-    hess[3] = _t20;
-    hess[4] = _t14;
-    hess[5] = _t10 + _t21*_t7 + _t21*_t8;
-    hess[6] = _t24;
-    hess[7] = _t26;
-    hess[8] = _t17;
-    hess[9] = _t24;
-    hess[10] = _t10 + _t27*_t7 + _t27*_t8;
-    hess[11] = _t29;
-    hess[12] = _t20;
-    hess[13] = _t26;
-    hess[14] = _t29;
-    hess[15] = _t10 + _t30*_t7 + _t30*_t8;
+    const double _t0 = 2*_y0;
+    const double _t1 = (1.0/_p1);
+    const double _t2 = _y0 - _y2;
+    const double _t3 = _y1 - _y3;
+    const double _t4 = (1.0/2.0)*3.141592653589793*_t1;
+    const double _t5 = tan(_t4*((_t2*_t2) + (_t3*_t3)));
+    const double _t6 = 2*_y2;
+    const double _t7 = _t0 - _t6;
+    const double _t8 = 3.141592653589793*_p0*_t1;
+    const double _t9 = _t8*((_t5*_t5) + 1);
+    const double _t10 = 2*_y1;
+    const double _t11 = 2*_y3;
+    const double _t12 = _t10 - _t11;
+    const double _t13 = _t12*_t9;
+    const double _t14 = -_t0 + _t6;
+    const double _t15 = _t14*_t9;
+    const double _t16 = -_t10 + _t11;
+    const double _t17 = _t16*_t9;
+    const double _t18 = 2*_t2;
+    const double _t19 = 2*_t3;
+    const double _t20 = (_t5*_t5) + 1;
+    const double _t21 = _t18*_t20*_t4;
+    const double _t22 = _t19*_t20*_t4;
+    const double _t23 = -_t18*_t20*_t4;
+    const double _t24 = -_t19*_t20*_t4;
+    const double _t25 = 2*_t5;
+    const double _t26 = _t21*_t25*_t8;
+    const double _t27 = _t22*_t25*_t8;
+    const double _t28 = _t23*_t25*_t8;
+    const double _t29 = 2*_t9;
+    const double _t30 = _t12*_t26*_t5 + _t13*_t21;
+    const double _t31 = _t15*_t21 + _t5*(_t14*_t26 - _t29);
+    const double _t32 = _t14*_t27*_t5 + _t15*_t22;
+    const double _t33 = _t16*_t26*_t5 + _t17*_t21;
+    const double _t34 = _t17*_t22 + _t5*(_t16*_t27 - _t29);
+    const double _t35 = _t16*_t28*_t5 + _t17*_t23;
+    hess[0] = _t21*_t7*_t9 + _t5*(_t26*_t7 + _t29) + 2;
+    hess[1] = _t30;
+    hess[2] = _t31;
+    hess[3] = _t33;
+    hess[4] = _t30;
+    hess[5] = _t13*_t22 + _t5*(_t12*_t27 + _t29) + 2;
+    hess[6] = _t32;
+    hess[7] = _t34;
+    hess[8] = _t31;
+    hess[9] = _t32;
+    hess[10] = _t15*_t23 + _t5*(_t14*_t28 + _t29) + 2;
+    hess[11] = _t35;
+    hess[12] = _t33;
+    hess[13] = _t34;
+    hess[14] = _t35;
+    hess[15] = _t17*_t24 + _t5*(_t16*_t24*_t25*_t8 + _t29) + 2;
 }
 
 

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 370caf90d5879a81fe7289e65b794d674f89e2d3af8f978733cc8d19d69ec4f2
+ * content sha256: a44295a4659b22500b909bd883e527186ab25e90e715ded60ee4a53a8c3bc531
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -35,7 +35,7 @@ const double unicycle_switch_default_params[UNICYCLE_SWITCH_N_PARAMS] = {10.0, 1
 const double unicycle_switch_default_state[UNICYCLE_SWITCH_N_STATES] = {-5.0, 4.0, 0.0, 1.0};
 const double unicycle_switch_hurwitz_coefficients[UNICYCLE_SWITCH_K] = {-1.5, -2.5};
 
-/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (142 operations, 193 before CSE). */
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (143 operations, 192 before CSE). */
 static void unicycle_switch_k_jet(double t, const double *s, const double *p, const double *a, double *z, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* x1 */
@@ -49,9 +49,9 @@ static void unicycle_switch_k_jet(double t, const double *s, const double *p, co
     const double _t0 = (1.0/_p1);
     const double _t1 = tanh(_t0*(-_p0 + t));
     const double _t2 = 1.0/2.0 - 1.0/2.0*_t1;
-    const double _t3 = (_t1*_t1) - 1;
-    const double _t4 = (1.0/2.0)*_t0*_t3;
-    const double _t5 = -_t1*_t3/(_p1*_p1);
+    const double _t3 = 1 - (_t1*_t1);
+    const double _t4 = -1.0/2.0*_t0*_t3;
+    const double _t5 = _t1*_t3/(_p1*_p1);
     const double _t6 = (t*t);
     const double _t7 = (1.0/100.0)*_t6;
     const double _t8 = (1.0/50.0)*t;
@@ -82,7 +82,7 @@ static void unicycle_switch_k_jet(double t, const double *s, const double *p, co
     const double _t33 = (1.0/2.0)*_a0;
     const double _t34 = (1.0/2.0)*_a1;
     z[0] = -1.0/2.0*_t15*_t5 - 1.0/50.0*_t16 - 1.0/2.0*_t17*_t29 - 1.0/50.0*_t2 - _t28 - _t30 + _t33*(_t15*_t2 + _t16*_t17) + _t34*(_t15*_t4 + _t16*_t24 + _t17*_t23 + _t2*_t22);
-    z[1] = (3.0/2500.0)*_t16*(t - 25) - 1.0/2.0*_t19*_t5 + (1.0/500.0)*_t2*(20 - 3*t) - 1.0/2.0*_t20*_t29 - _t31 - _t32 + _t33*(_t16*_t20 + _t19*_t2) + _t34*(_t16*_t27 + _t19*_t4 + _t2*_t26 + _t20*_t23);
+    z[1] = -1.0/2.0*_t16*(3.0/50.0 - 3.0/1250.0*t) - 1.0/2.0*_t19*_t5 - 1.0/2.0*_t2*((3.0/250.0)*t - 2.0/25.0) - 1.0/2.0*_t20*_t29 - _t31 - _t32 + _t33*(_t16*_t20 + _t19*_t2) + _t34*(_t16*_t27 + _t19*_t4 + _t2*_t26 + _t20*_t23);
     R[0] = _t10;
     R[1] = -_t13;
     R[2] = _t12;
@@ -138,7 +138,7 @@ static void unicycle_switch_k_plant_input(double t, const double *s, const doubl
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (92 operations, 137 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (92 operations, 111 before CSE). */
 static void unicycle_switch_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* x1 */
@@ -187,7 +187,7 @@ static void unicycle_switch_k_objective(double t, const double *y, const double 
 }
 
 
-/* grad_y f0(y, t) (43 operations, 56 before CSE). */
+/* grad_y f0(y, t) (43 operations, 54 before CSE). */
 static void unicycle_switch_k_gradient(double t, const double *y, const double *p, double *grad)
 {
     const double _y0 = y[0]; /* y1 */
@@ -206,7 +206,7 @@ static void unicycle_switch_k_gradient(double t, const double *y, const double *
 }
 
 
-/* grad_yy f0(y, t) (0 operations, 36 before CSE). */
+/* grad_yy f0(y, t) (0 operations, 0 before CSE). */
 static void unicycle_switch_k_hessian(double t, const double *y, const double *p, double *hess)
 {
     (void)t;
