@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: a9b8154d5d2293af0862073af15bc37774eb9315dd9714630a93a0f0cfc32bbe
+# content sha256: bcd3e7db59b7f1e5d468a800705f2b2e23d4c07f50e6375a7c02dce0e1bcf3ae
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -255,8 +255,8 @@ def _jet(t, s, p, a):
     _t5 = numpy.cos(_t0)
     _t6 = numpy.cos(_t2)
     _t7 = (3/10)*_t5 + (39/100)*_t6
-    _t8 = -3/20*_t1 - 507/1000*_t3
-    _t9 = -3/40*_t5 - 6591/10000*_t6
+    _t8 = -507/1000*_t3 - 3/20*_t1
+    _t9 = -6591/10000*_t6 - 3/40*_t5
     _t10 = (3/80)*_t1 + (85683/100000)*_t3
     _t11 = 1/_p1
     _t12 = _p0*_t11
@@ -264,18 +264,18 @@ def _jet(t, s, p, a):
     _t14 = _s0 - _s2
     _t15 = _p3*_t11
     _t16 = -_t13 - _t14*_t15
-    _t17 = -_t12*numpy.cos(_s0) - _t15
+    _t17 = -_t15 - _t12*numpy.cos(_s0)
     _t18 = _s1*_t17 + _s3*_t15
-    _t19 = -_s0 + _t4
+    _t19 = _t4 - _s0
     _t20 = numpy.cosh(_t19)
     _t21 = 1/_t20
     _t22 = numpy.sinh(_t19)
-    _t23 = -_s1 + _t7
+    _t23 = _t7 - _s1
     _t24 = _t22*_t23
     _t25 = 1/_t20**2
     _t26 = -_t24*_t25
     _t27 = _t20*_t23
-    _t28 = -_t16 + _t8
+    _t28 = _t8 - _t16
     _t29 = _t20*_t23
     _t30 = _t22*_t28 + _t23*_t29
     _t31 = 1/_t20**3
@@ -285,21 +285,21 @@ def _jet(t, s, p, a):
     _t35 = _t22*_t23
     _t36 = _t20*_t28 + _t23*_t35
     _t37 = -_t26*_t27
-    _t38 = -_t18 + _t9
+    _t38 = _t9 - _t18
     _t39 = _t22*_t23
     _t40 = _t20*_t28 + _t23*_t39
     _t41 = _t28*_t29
-    _t42 = _t22*_t38 + _t23*_t40 + 2*_t41
+    _t42 = 2*_t41 + _t22*_t38 + _t23*_t40
     _t43 = 3/_t20**4
     _t44 = -_t24*_t43
     _t45 = 2*_t30
     _t46 = -_t31*_t45 - _t32*_t44
     _t47 = -_t30*_t33
-    _t48 = -_t24*_t46 - _t25*_t42 + 2*_t47
+    _t48 = 2*_t47 - _t24*_t46 - _t25*_t42
     _t49 = _t20*_t23
     _t50 = _t22*_t28 + _t23*_t49
     _t51 = _t28*_t35
-    _t52 = _t20*_t38 + _t23*_t50 + 2*_t51
+    _t52 = 2*_t51 + _t20*_t38 + _t23*_t50
     _t53 = -_t26*_t36
     _t54 = -_t27*_t34
     _t55 = _t53 + _t54
@@ -324,13 +324,13 @@ def _jet(t, s, p, a):
     _t74 = 1/_p2
     # Output terms
     hessian = numpy.empty((1, _n))  # nonzero entries of the lower triangle of grad_yy f0
-    hessian[0] = _t20*_t21 - _t22**2*_t25 + 2
+    hessian[0] = _t20*_t21 - _t25*_t22**2 + 2
     jet_rhs = numpy.empty((1, _n))  # sum_i a_i grad^(i) f0 - rest
-    jet_rhs[0] = _a0*(2*_s0 - _t21*_t22 - 2*_t4) + _a1*(2*_s1 - _t21*_t27 - _t22*_t26 - 2*_t7) + _a2*(2*_t16 - _t21*_t36 - _t22*_t34 + 2*_t37 - 2*_t8) + _a3*(2*_t18 - _t21*_t52 - _t22*_t48 + _t53 + _t54 + 2*_t55 - 2*_t9) + 2*_t10 + _t21*(_t10*_t20 + _t23*(_t22*_t38 + _t23*(_t20*_t28 + _t22*_t23**2) + 2*_t64) + _t65 + _t66 + 2*_t67) + _t22*(-_t24*(-2*_t31*_t42 - _t32*(-_t30*_t43 + 12*_t24**2/_t20**5) + 2*_t60) - _t25*(_t10*_t22 + _t23*(_t20*_t38 + _t23*(_t20*_t23**2 + _t22*_t28) + 2*_t56) + _t57 + _t58 + 2*_t59) + _t61 + _t62 + 2*_t63) - _t68 - _t70 - _t71 - _t72 - 2*_t73
+    jet_rhs[0] = 2*_t10 - _t68 - _t70 - _t71 - _t72 - 2*_t73 + _a0*(2*_s0 - 2*_t4 - _t21*_t22) + _a1*(2*_s1 - 2*_t7 - _t21*_t27 - _t22*_t26) + _a2*(2*_t16 - 2*_t8 + 2*_t37 - _t21*_t36 - _t22*_t34) + _a3*(_t53 + _t54 - 2*_t9 + 2*_t18 + 2*_t55 - _t21*_t52 - _t22*_t48) + _t21*(_t65 + _t66 + 2*_t67 + _t10*_t20 + _t23*(2*_t64 + _t22*_t38 + _t23*(_t20*_t28 + _t22*_t23**2))) + _t22*(_t61 + _t62 + 2*_t63 - _t24*(2*_t60 - _t32*(12*_t24**2/_t20**5 - _t30*_t43) - 2*_t31*_t42) - _t25*(_t57 + _t58 + 2*_t59 + _t10*_t22 + _t23*(2*_t56 + _t20*_t38 + _t23*(_t20*_t23**2 + _t22*_t28))))
     R = numpy.empty((1, _n))  # diagonal blocks of the decoupling matrix
     R[0] = _t15*_t74
     pvec = numpy.empty((1, _n))  # p = col(L_f^{r_i} h_i)
-    pvec[0] = _p3**2*_t11*_t14*_t74 + _s1**2*_t13 + _t16*_t17
+    pvec[0] = _t13*_s1**2 + _t16*_t17 + _t11*_t14*_t74*_p3**2
     return hessian, jet_rhs, R, pvec
 
 
@@ -356,7 +356,7 @@ def _decoupling(t, s, p, z, q):
     _q0 = q[0]  # p_y
     # Output terms
     b = numpy.empty((1, _n))  # v - p
-    b[0] = -_q0 + _z0
+    b[0] = _z0 - _q0
     return b
 
 
@@ -379,7 +379,7 @@ def _closed_loop(t, s, p, w, z):
     # Output terms
     ds = numpy.empty((4, _n))  # time derivative of the closed-loop state
     ds[0] = _s1
-    ds[1] = -_p0*_t0*numpy.sin(_s0) - _t0*_t1
+    ds[1] = -_t0*_t1 - _p0*_t0*numpy.sin(_s0)
     ds[2] = _s3
     ds[3] = _t1*_t2 + _t2*_w0
     u = numpy.empty((1, _n))  # plant input
@@ -406,23 +406,23 @@ def _optimality(t, s, p):
     _t5 = numpy.cos(_t0)
     _t6 = numpy.cos(_t2)
     _t7 = (3/10)*_t5 + (39/100)*_t6
-    _t8 = -3/20*_t1 - 507/1000*_t3
-    _t9 = -3/40*_t5 - 6591/10000*_t6
+    _t8 = -507/1000*_t3 - 3/20*_t1
+    _t9 = -6591/10000*_t6 - 3/40*_t5
     _t10 = 1/_p1
     _t11 = _p0*_t10
     _t12 = _p3*_t10
     _t13 = -_t11*numpy.sin(_s0) - _t12*(_s0 - _s2)
-    _t14 = _s1*(-_t11*numpy.cos(_s0) - _t12) + _s3*_t12
-    _t15 = -_s0 + _t4
+    _t14 = _s1*(-_t12 - _t11*numpy.cos(_s0)) + _s3*_t12
+    _t15 = _t4 - _s0
     _t16 = numpy.cosh(_t15)
     _t17 = 1/_t16
     _t18 = numpy.sinh(_t15)
-    _t19 = -_s1 + _t7
+    _t19 = _t7 - _s1
     _t20 = _t18*_t19
     _t21 = 1/_t16**2
     _t22 = -_t20*_t21
     _t23 = _t16*_t19
-    _t24 = -_t13 + _t8
+    _t24 = _t8 - _t13
     _t25 = _t16*_t19
     _t26 = _t18*_t24 + _t19*_t25
     _t27 = 1/_t16**3
@@ -432,7 +432,7 @@ def _optimality(t, s, p):
     _t31 = _t18*_t19
     _t32 = _t16*_t24 + _t19*_t31
     _t33 = -_t22*_t23
-    _t34 = -_t14 + _t9
+    _t34 = _t9 - _t14
     _t35 = _t24*_t25
     _t36 = -_t26*_t29
     _t37 = _t24*_t31
@@ -441,10 +441,10 @@ def _optimality(t, s, p):
     _t40 = _t38 + _t39
     # Output terms
     E = numpy.empty((4, 1, _n))  # grad^(j) f0
-    E[0, 0] = 2*_s0 - _t17*_t18 - 2*_t4
-    E[1, 0] = 2*_s1 - _t17*_t23 - _t18*_t22 - 2*_t7
-    E[2, 0] = 2*_t13 - _t17*_t32 - _t18*_t30 + 2*_t33 - 2*_t8
-    E[3, 0] = 2*_t14 - _t17*(_t16*_t34 + _t19*(_t16*_t19**2 + _t18*_t24) + 2*_t37) - _t18*(-_t20*(-2*_t26*_t27 + 3*_t20*_t28/_t16**4) - _t21*(_t18*_t34 + _t19*(_t16*_t24 + _t18*_t19**2) + 2*_t35) + 2*_t36) + _t38 + _t39 + 2*_t40 - 2*_t9
+    E[0, 0] = 2*_s0 - 2*_t4 - _t17*_t18
+    E[1, 0] = 2*_s1 - 2*_t7 - _t17*_t23 - _t18*_t22
+    E[2, 0] = 2*_t13 - 2*_t8 + 2*_t33 - _t17*_t32 - _t18*_t30
+    E[3, 0] = _t38 + _t39 - 2*_t9 + 2*_t14 + 2*_t40 - _t17*(2*_t37 + _t16*_t34 + _t19*(_t16*_t19**2 + _t18*_t24)) - _t18*(2*_t36 - _t20*(3*_t20*_t28/_t16**4 - 2*_t26*_t27) - _t21*(2*_t35 + _t18*_t34 + _t19*(_t16*_t24 + _t18*_t19**2)))
     return E
 
 
@@ -469,7 +469,7 @@ def _gradient(t, y, p):
     _t1 = _t0 - _y0
     # Output terms
     grad = numpy.empty((1, _n))  # grad_y f0
-    grad[0] = -2*_t0 + 2*_y0 - numpy.sinh(_t1)/numpy.cosh(_t1)
+    grad[0] = 2*_y0 - 2*_t0 - numpy.sinh(_t1)/numpy.cosh(_t1)
     return grad
 
 
@@ -478,7 +478,7 @@ def _hessian(t, y, p):
     _n = y.shape[1]
     _y0 = y[0]  # y
     # Intermediate terms (3)
-    _t0 = -_y0 + (3/5)*numpy.sin((1/2)*t) + (3/10)*numpy.sin((13/10)*t)
+    _t0 = (3/5)*numpy.sin((1/2)*t) - _y0 + (3/10)*numpy.sin((13/10)*t)
     _t1 = numpy.cosh(_t0)
     _t2 = numpy.sinh(_t0)
     # Output terms

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: a2f0f4e5ed0769c0de64593d694f4836c4e1a6832b3d7e79f2cbb34d7bb09ec2
+# content sha256: 1e59c0ece1f6b96c0ff57dcf4ab17a45ea39304e6cd5ac81b29fb724e3de3f92
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -241,8 +241,8 @@ def _jet(t, s, p, a):
     hessian[0] = 1
     hessian[1] = _p0
     jet_rhs = numpy.empty((2, _n))  # sum_i a_i grad^(i) f0 - rest
-    jet_rhs[0] = _a0*(_s0 + (1/20)*_t0 - 4/5*t - 2) - 1/10*t + 4/5
-    jet_rhs[1] = _a0*_t1*(2*_s1 - 1/25*_t0 + (1/500)*t**3 - t + 2) - _t1*((3/500)*_t0 - 2/25*t - 1)
+    jet_rhs[0] = _a0*(_s0 - 4/5*t + (1/20)*_t0 - 2) - 1/10*t + 4/5
+    jet_rhs[1] = _a0*_t1*(2*_s1 - t - 1/25*_t0 + (1/500)*t**3 + 2) - _t1*((3/500)*_t0 - 2/25*t - 1)
     R = numpy.empty((2, _n))  # diagonal blocks of the decoupling matrix
     R[0] = 1
     R[1] = 1
@@ -281,8 +281,8 @@ def _decoupling(t, s, p, z, q):
     _q1 = q[1]  # p_y2
     # Output terms
     b = numpy.empty((2, _n))  # v - p
-    b[0] = -_q0 + _z0
-    b[1] = -_q1 + _z1
+    b[0] = _z0 - _q0
+    b[1] = _z1 - _q1
     return b
 
 
@@ -311,8 +311,8 @@ def _optimality(t, s, p):
     _t0 = t**2
     # Output terms
     E = numpy.empty((1, 2, _n))  # grad^(j) f0
-    E[0, 0] = _s0 + (1/20)*_t0 - 4/5*t - 2
-    E[0, 1] = (1/2)*_p0*(2*_s1 - 1/25*_t0 + (1/500)*t**3 - t + 2)
+    E[0, 0] = _s0 - 4/5*t + (1/20)*_t0 - 2
+    E[0, 1] = (1/2)*_p0*(2*_s1 - t - 1/25*_t0 + (1/500)*t**3 + 2)
     return E
 
 
@@ -326,7 +326,7 @@ def _objective(t, y, p):
     _t0 = t**2
     # Output terms
     f0 = numpy.empty((_n))  # f0
-    f0[...] = (1/2)*_p0*(-1/50*_t0 + _y1 + (1/1000)*t**3 - 1/2*t + 1)**2 + (1/2)*((1/20)*_t0 + _y0 - 4/5*t - 2)**2
+    f0[...] = (1/2)*(_y0 - 4/5*t + (1/20)*_t0 - 2)**2 + (1/2)*_p0*(_y1 - 1/2*t - 1/50*_t0 + (1/1000)*t**3 + 1)**2
     return f0
 
 
@@ -340,8 +340,8 @@ def _gradient(t, y, p):
     _t0 = t**2
     # Output terms
     grad = numpy.empty((2, _n))  # grad_y f0
-    grad[0] = (1/20)*_t0 + _y0 - 4/5*t - 2
-    grad[1] = (1/2)*_p0*(-1/25*_t0 + 2*_y1 + (1/500)*t**3 - t + 2)
+    grad[0] = _y0 - 4/5*t + (1/20)*_t0 - 2
+    grad[1] = (1/2)*_p0*(2*_y1 - t - 1/25*_t0 + (1/500)*t**3 + 2)
     return grad
 
 

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: 7be4d3683b6a8e100ba1f57527235d038ce7eff319c801533a81b7d7d00bbef2
+# content sha256: b5db7215005454015f67484314812370372fbba41004bb91eba883684991bb9a
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -255,7 +255,7 @@ def _jet(t, s, p, a):
     _t12 = _s7*_t9
     _t13 = numpy.cos(_s2)
     _t14 = _s6*_t13
-    _t15 = -_s5*_t14 - _t12
+    _t15 = -_t12 - _s5*_t14
     _t16 = -_t14
     _t17 = _s5*_t10 - _s7*_t13
     _t18 = (1/2)*_a0
@@ -264,16 +264,16 @@ def _jet(t, s, p, a):
     _t21 = (1/2)*_a3
     # Output terms
     z = numpy.empty((2, _n))  # y_imp^(k)
-    z[0] = (24/625)*_t1 + _t18*(2*_s0 - 3*_t1) + _t19*(2*_s3 - 6/5*_t2) + _t20*((12/25)*_t1 + 2*_t11) + _t21*(2*_t15 + (24/125)*_t2)
-    z[1] = _t18*(2*_s1 - 8/5*_t4 + _t6 - 4) + _t19*(2*_s4 - 1/5*_t7 - 12/25*_t8) + _t20*(-2*_p0 - 2*_t16 + (18/125)*_t4 - 1/25*_t6) + _t21*(-2*_t17 + (1/125)*_t7 + (27/625)*_t8) + (81/12500)*_t4 - 1/1250*_t6
+    z[0] = (24/625)*_t1 + _t18*(2*_s0 - 3*_t1) + _t19*(2*_s3 - 6/5*_t2) + _t20*(2*_t11 + (12/25)*_t1) + _t21*(2*_t15 + (24/125)*_t2)
+    z[1] = (81/12500)*_t4 - 1/1250*_t6 + _t18*(_t6 + 2*_s1 - 8/5*_t4 - 4) + _t19*(2*_s4 - 12/25*_t8 - 1/5*_t7) + _t20*((18/125)*_t4 - 2*_p0 - 2*_t16 - 1/25*_t6) + _t21*((1/125)*_t7 - 2*_t17 + (27/625)*_t8)
     R = numpy.empty((4, _n))  # diagonal blocks of the decoupling matrix
     R[0] = -_t9
     R[1] = _t16
     R[2] = _t13
     R[3] = _t11
     pvec = numpy.empty((2, _n))  # p = col(L_f^{r_i} h_i)
-    pvec[0] = -_s5*_s7*_t13 + _s5*_t17
-    pvec[1] = -_s5*_t12 + _s5*_t15
+    pvec[0] = _s5*_t17 - _s5*_s7*_t13
+    pvec[1] = _s5*_t15 - _s5*_t12
     return z, R, pvec
 
 
@@ -286,8 +286,8 @@ def _decoupling(t, s, p, z, q):
     _q1 = q[1]  # p_pz
     # Output terms
     b = numpy.empty((2, _n))  # v - p
-    b[0] = -_q0 + _z0
-    b[1] = -_q1 + _z1
+    b[0] = _z0 - _q0
+    b[1] = _z1 - _q1
     return b
 
 
@@ -309,7 +309,7 @@ def _closed_loop(t, s, p, w, z):
     ds[1] = _s4
     ds[2] = _s5
     ds[3] = -_s6*numpy.sin(_s2)
-    ds[4] = -_p0 + _s6*numpy.cos(_s2)
+    ds[4] = _s6*numpy.cos(_s2) - _p0
     ds[5] = _w1
     ds[6] = _s7
     ds[7] = _w0
@@ -347,13 +347,13 @@ def _optimality(t, s, p):
     # Output terms
     E = numpy.empty((4, 2, _n))  # grad^(j) f0
     E[0, 0] = 2*_s0 - 3*_t1
-    E[0, 1] = 2*_s1 - 8/5*_t4 + _t6 - 4
+    E[0, 1] = _t6 + 2*_s1 - 8/5*_t4 - 4
     E[1, 0] = 2*_s3 - 6/5*_t2
-    E[1, 1] = 2*_s4 - 1/5*_t7 - 12/25*_t8
+    E[1, 1] = 2*_s4 - 12/25*_t8 - 1/5*_t7
     E[2, 0] = (12/25)*_t1 - 2*_t10
-    E[2, 1] = -2*_p0 + 2*_s6*_t11 + (18/125)*_t4 - 1/25*_t6
-    E[3, 0] = -2*_s5*_s6*_t11 - 2*_s7*_t9 + (24/125)*_t2
-    E[3, 1] = -2*_s5*_t10 + 2*_s7*_t11 + (1/125)*_t7 + (27/625)*_t8
+    E[2, 1] = (18/125)*_t4 - 2*_p0 - 1/25*_t6 + 2*_s6*_t11
+    E[3, 0] = (24/125)*_t2 - 2*_s7*_t9 - 2*_s5*_s6*_t11
+    E[3, 1] = (1/125)*_t7 + (27/625)*_t8 - 2*_s5*_t10 + 2*_s7*_t11
     return E
 
 
@@ -364,7 +364,7 @@ def _objective(t, y, p):
     _y1 = y[1]  # pz
     # Output terms
     f0 = numpy.empty((_n))  # f0
-    f0[...] = (_y0 - 3/2*numpy.sin((2/5)*t))**2 + (_y1 - 4/5*numpy.sin((3/10)*t) + (1/2)*numpy.cos((1/5)*t) - 2)**2
+    f0[...] = (_y0 - 3/2*numpy.sin((2/5)*t))**2 + (_y1 + (1/2)*numpy.cos((1/5)*t) - 4/5*numpy.sin((3/10)*t) - 2)**2
     return f0
 
 

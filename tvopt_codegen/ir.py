@@ -21,6 +21,7 @@ numerical solves (never a symbolic inverse, ARCHITECTURE.md section 2)::
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -166,6 +167,44 @@ def operation_count(exprs: Iterable[sp.Expr]) -> int:
     return sum(count(sp.sympify(e)) for e in exprs)
 
 
+def _rebuild(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic:
+    """``node.func(*args)``, without re-running a function's ``eval`` on symbolic args.
+
+    Rebuilding ``tan(pi*g/(2*d))`` after a substitution makes sympy look for multiples
+    of pi in the argument again, with assumption queries: four milliseconds a node, two
+    seconds for a ring of 32 agents. Substituting symbols for symbols, or a temporary
+    for its value, never gives ``eval`` anything new to simplify; numbers still
+    evaluate (``sin(0)`` is 0).
+    """
+    if isinstance(node, sp.Function) and not all(a.is_Number for a in args):
+        return node.func(*args, evaluate=False)
+    return node.func(*args)
+
+
+def _substitute(
+    expr: sp.Basic,
+    mapping: Mapping[sp.Basic, sp.Basic],
+    memo: dict[sp.Basic, sp.Basic] | None = None,
+) -> sp.Basic:
+    """``expr.xreplace(mapping)`` with :func:`_rebuild`; ``memo`` may span many calls."""
+    table: dict[sp.Basic, sp.Basic] = {} if memo is None else memo
+
+    def visit(node: sp.Basic) -> sp.Basic:
+        if node in mapping:
+            return mapping[node]
+        if not node.args:
+            return node
+        if node in table:
+            return table[node]
+        args = [visit(arg) for arg in node.args]
+        same = all(a is b for a, b in zip(args, node.args, strict=True))
+        new = node if same else _rebuild(node, args)
+        table[node] = new
+        return new
+
+    return visit(sp.sympify(expr))
+
+
 def _drop_aliases(
     assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
 ) -> tuple[list[Assignment], list[sp.Expr]]:
@@ -173,12 +212,12 @@ def _drop_aliases(
     alias: dict[sp.Symbol, sp.Expr] = {}
     kept: list[Assignment] = []
     for sym, raw in assignments:
-        value = sp.sympify(raw).xreplace(alias)
+        value = _substitute(raw, alias)
         if value.is_Symbol or value.is_Number:
             alias[sym] = value
         else:
             kept.append((sym, value))
-    return kept, [sp.sympify(e).xreplace(alias) for e in outputs]
+    return kept, [_substitute(e, alias) for e in outputs]
 
 
 def _prune(assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]) -> list[Assignment]:
@@ -195,11 +234,11 @@ def _prune(assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]) -> lis
 
 
 #: Programs up to this many operations get sympy's full cse; larger ones value numbering.
-SMALL_PROGRAM_OPS = 4000
+SMALL_PROGRAM_OPS = 1000
 
 
 def ordered_cse(
-    assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
+    assignments: Sequence[Assignment], outputs: Sequence[sp.Expr], search: bool = True
 ) -> tuple[tuple[Assignment, ...], tuple[sp.Expr, ...]]:
     """CSE a straight-line program and its outputs, keeping evaluation order valid.
 
@@ -214,6 +253,10 @@ def ordered_cse(
         The program; right-hand sides use only earlier symbols and the inputs.
     outputs : sequence of sympy.Expr
         Output expressions over the program and the inputs.
+    search : bool
+        Allow sympy's ``cse`` (on programs up to :data:`SMALL_PROGRAM_OPS`), which also
+        finds common parts of sums and products. A program built one operation per
+        assignment (the Cholesky solve) has none to find: value numbering suffices.
 
     Returns
     -------
@@ -225,7 +268,7 @@ def ordered_cse(
     kept, outs = _drop_aliases(_prune(assignments, outputs), outputs)
     exprs = [value for _, value in kept] + outs
     names = sp.numbered_symbols("_cse", real=True)
-    if operation_count(exprs) <= SMALL_PROGRAM_OPS:
+    if search and operation_count(exprs) <= SMALL_PROGRAM_OPS:
         # sympy's cse also finds common parts of sums and products (a*b in a*b*c and
         # a*b*d): worth its superlinear time on the programs of a few agents only.
         replacements, reduced = sp.cse(exprs, symbols=names, order="canonical")
@@ -255,9 +298,9 @@ def ordered_cse(
     body: list[Assignment] = []
     for index, (sym, value) in enumerate(order):
         new = sp.Symbol(f"_t{index}", real=True)
-        body.append((new, value.xreplace(renames)))
+        body.append((new, _substitute(value, renames)))
         renames[sym] = new
-    return tuple(body), tuple(e.xreplace(renames) for e in outs)
+    return tuple(body), tuple(_substitute(e, renames) for e in outs)
 
 
 def _value_numbering(
@@ -306,7 +349,7 @@ def _value_numbering(
             return built[node]
         args = [build(arg) for arg in node.args]
         same = all(a is b for a, b in zip(args, node.args, strict=True))
-        new = node if same else node.func(*args)
+        new = node if same else _rebuild(node, args)
         if node in repeated:
             sym = next(names)
             replacements.append((sym, new))
@@ -338,12 +381,12 @@ def _inline_single_use(
     inline: dict[sp.Symbol, sp.Expr] = {}
     kept: list[Assignment] = []
     for sym, raw in order:
-        value = raw.xreplace(inline)
+        value = _substitute(raw, inline)
         if uses.get(sym, 0) == 1:
             inline[sym] = value
         else:
             kept.append((sym, value))
-    return kept, [e.xreplace(inline) for e in outputs]
+    return kept, [_substitute(e, inline) for e in outputs]
 
 
 def _cse_index(sym: sp.Symbol) -> int:
@@ -354,13 +397,16 @@ def _cse_index(sym: sp.Symbol) -> int:
 _ODD = (sp.sin, sp.tan, sp.sinh, sp.tanh, sp.asin, sp.atan, sp.asinh, sp.atanh)
 
 
-def canonical_odd(expr: sp.Expr) -> sp.Expr:
+def canonical_odd(expr: sp.Expr, memo: dict[sp.Basic, sp.Expr] | None = None) -> sp.Expr:
     """Write every odd function with the sign of its argument pulled out.
 
     sympy keeps ``tanh((a - t)/b)`` and ``tanh((t - a)/b)`` apart (neither argument
     "extracts" a minus sign, so neither is rewritten), and CSE then evaluates both. Of
     such a pair the argument with the smaller canonical sort key is kept; sympy leaves
     it alone on re-evaluation because it does not extract a sign either.
+
+    ``memo`` (node -> rewritten node) may be shared between calls: the kernels of one
+    controller repeat the same trigonometry, and each node is then decided once.
     """
 
     def negate(arg: sp.Expr) -> sp.Expr:
@@ -378,12 +424,29 @@ def canonical_odd(expr: sp.Expr) -> sp.Expr:
             return False
         return bool(sp.default_sort_key(sp.expand(other)) < sp.default_sort_key(sp.expand(arg)))
 
+    table: dict[sp.Basic, sp.Expr] = {} if memo is None else memo
+
+    def rewrite(node: sp.Basic) -> sp.Expr:
+        if node.is_Atom:
+            return node
+        if node in table:
+            return table[node]
+        args = [rewrite(arg) for arg in node.args]
+        new = (
+            node
+            if all(a is b for a, b in zip(args, node.args, strict=True))
+            else _rebuild(node, args)
+        )
+        if isinstance(new, _ODD) and flips(new):
+            # Not re-evaluated: eval would find nothing the original's did not.
+            new = -new.func(negate(new.args[0]), evaluate=False)
+        table[node] = new
+        return new
+
     expr = sp.sympify(expr)
     if not expr.atoms(*_ODD):
         return expr
-    return expr.replace(
-        lambda e: isinstance(e, _ODD) and flips(e), lambda e: -e.func(negate(e.args[0]))
-    )
+    return rewrite(expr)
 
 
 def _kernel(
@@ -393,16 +456,25 @@ def _kernel(
     assignments: Sequence[Assignment],
     outputs: Sequence[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]],
     subs: Mapping[sp.Symbol, sp.Expr],
+    odd: dict[sp.Basic, sp.Expr] | None = None,
+    search: bool = True,
 ) -> Kernel:
-    """Substitute slot symbols, CSE, and package a kernel."""
+    """Substitute slot symbols, CSE, and package a kernel.
+
+    ``odd`` is the :func:`canonical_odd` memo shared by one controller's kernels;
+    ``search=False`` skips sympy's search for common sub-sums (:func:`ordered_cse`).
+    """
     # Only what the outputs need: the gradient kernel, say, reads the jet's first part.
     assignments = _prune(assignments, [e for _, _, exprs, _ in outputs for e in exprs])
-    program = [(sym, canonical_odd(sp.sympify(value).xreplace(subs))) for sym, value in assignments]
+    slots: dict[sp.Basic, sp.Basic] = {}
+    program = [
+        (sym, canonical_odd(_substitute(value, subs, slots), odd)) for sym, value in assignments
+    ]
     flat = [
-        canonical_odd(sp.sympify(e).xreplace(subs)) for _, _, exprs, _ in outputs for e in exprs
+        canonical_odd(_substitute(e, subs, slots), odd) for _, _, exprs, _ in outputs for e in exprs
     ]
     before = operation_count([v for _, v in program] + flat)
-    body, reduced = ordered_cse(program, flat)
+    body, reduced = ordered_cse(program, flat, search)
     packed: list[Output] = []
     start = 0
     for out_name, shape, exprs, out_doc in outputs:
@@ -591,6 +663,8 @@ def lower(derivation: Derivation) -> KernelSet:
         ``optimality``, ``objective``, ``gradient`` and ``hessian``.
     """
     d = derivation
+    odd: dict[sp.Basic, sp.Expr] = {}
+    kernel = functools.partial(_kernel, odd=odd)
     model = d.model
     m, k = len(model.u), d.k
     n = len(d.states)
@@ -646,7 +720,7 @@ def lower(derivation: Derivation) -> KernelSet:
         # a constant, not a symbolic inverse of a function, and no run-time Cholesky.
         inverse = sp.Matrix(m, m, hess).inv()
         y_imp = list(inverse * sp.Matrix(jet_rhs))
-        jet = _kernel(
+        jet = kernel(
             "jet",
             "y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian",
             [arg_t, arg_s, arg_p, arg_a],
@@ -656,7 +730,7 @@ def lower(derivation: Derivation) -> KernelSet:
         )
         cholesky = None
     else:
-        jet = _kernel(
+        jet = kernel(
             "jet",
             "Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest",
             [arg_t, arg_s, arg_p, arg_a],
@@ -675,7 +749,7 @@ def lower(derivation: Derivation) -> KernelSet:
         )
         h_slots, c_slots = _slots("h", len(hess_entries)), _slots("c", m)
         program, solution, pivots = cholesky_program(hess_entries, m, h_slots, c_slots)
-        cholesky = _kernel(
+        cholesky = kernel(
             "cholesky",
             "Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots",
             [
@@ -688,6 +762,7 @@ def lower(derivation: Derivation) -> KernelSet:
                 ("pivot", (m,), pivots, "pivots of the elimination, positive if Hess > 0"),
             ],
             {},
+            search=False,  # one operation per assignment already: nothing to find
         )
 
     v = []
@@ -697,7 +772,7 @@ def lower(derivation: Derivation) -> KernelSet:
         )
     q_slots = _slots("q", m)
     arg_q = Arg("q", q_slots, tuple(f"p_{o}" for o in output_names), "p of the decoupling")
-    decoupling = _kernel(
+    decoupling = kernel(
         "decoupling",
         "b = v - p, so that R w = b linearizes the plant",
         [arg_t, arg_s, arg_p, arg_z, arg_q],
@@ -707,15 +782,19 @@ def lower(derivation: Derivation) -> KernelSet:
     )
 
     ext = d.extension
-    field = ext.f + ext.G * sp.Matrix(w_slots)
-    ds: list[sp.Expr] = list(field)
+    # f + G w over G's nonzero entries only: a team's G is block diagonal, and the
+    # dense product costs n m^2 sympy multiplications (half a second at 32 agents).
+    ds: list[sp.Expr] = [
+        sp.Add(ext.f[i], *(ext.G[i, j] * w_slots[j] for j in range(m) if ext.G[i, j] != 0))
+        for i in range(ext.G.shape[0])
+    ]
     for i, chain in enumerate(d.padding):
         for j in range(len(chain)):
             nxt = d.states[d.state_names.index(chain[j + 1])] if j + 1 < len(chain) else z_slots[i]
             ds.append(nxt)
     # A prolonged input is a state of the extension; the others are inputs w directly.
     plant_input = [uj if uj.name in ext.states else w_slots[j] for j, uj in enumerate(model.u)]
-    closed_loop = _kernel(
+    closed_loop = kernel(
         "closed_loop",
         "Closed-loop vector field and the plant input",
         [arg_t, arg_s, arg_p, arg_w, arg_z],
@@ -727,7 +806,7 @@ def lower(derivation: Derivation) -> KernelSet:
         subs,
     )
 
-    plant_input_kernel = _kernel(
+    plant_input_kernel = kernel(
         "plant_input",
         "The plant input alone (control needs no vector field)",
         [arg_t, arg_s, arg_p, arg_w],
@@ -736,7 +815,7 @@ def lower(derivation: Derivation) -> KernelSet:
         subs,
     )
 
-    optimality = _kernel(
+    optimality = kernel(
         "optimality",
         "Optimality error E: row j is grad^(j) f0",
         [arg_t, arg_s, arg_p],
@@ -749,7 +828,7 @@ def lower(derivation: Derivation) -> KernelSet:
     signal0 = list(d.signal_program.assignments) + [
         (d.signal_jet[li][0], d.signal_jet_values[li][0]) for li in range(len(model.signals))
     ]
-    objective = _kernel(
+    objective = kernel(
         "objective",
         "The objective f0(y, t)",
         [arg_t, arg_y, arg_p],
@@ -759,7 +838,7 @@ def lower(derivation: Derivation) -> KernelSet:
     )
     # Both from the gradient's program (the jet's first assignments), which _kernel
     # prunes to what each needs.
-    gradient = _kernel(
+    gradient = kernel(
         "gradient",
         "grad_y f0(y, t)",
         [arg_t, arg_y, arg_p],
@@ -767,7 +846,7 @@ def lower(derivation: Derivation) -> KernelSet:
         [("grad", (m,), list(d.grad_jet[0]), "grad_y f0")],
         y_subs,
     )
-    hessian = _kernel(
+    hessian = kernel(
         "hessian",
         "grad_yy f0(y, t)",
         [arg_t, arg_y, arg_p],

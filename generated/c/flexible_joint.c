@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 886993b149f3899257707594af4672e095d3f74a2d56d5fcee5ef05211c68e89
+ * content sha256: c2ec4f6e0f0f3c983efbb79550e67361e0e602c35192b184bae41fb970e4de05
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -58,8 +58,8 @@ static void flexible_joint_k_jet(double t, const double *s, const double *p, con
     const double _t5 = cos(_t0);
     const double _t6 = cos(_t2);
     const double _t7 = (3.0/10.0)*_t5 + (39.0/100.0)*_t6;
-    const double _t8 = -3.0/20.0*_t1 - 507.0/1000.0*_t3;
-    const double _t9 = -3.0/40.0*_t5 - 6591.0/10000.0*_t6;
+    const double _t8 = -507.0/1000.0*_t3 - 3.0/20.0*_t1;
+    const double _t9 = -6591.0/10000.0*_t6 - 3.0/40.0*_t5;
     const double _t10 = (3.0/80.0)*_t1 + (85683.0/100000.0)*_t3;
     const double _t11 = (1.0/_p1);
     const double _t12 = _p0*_t11;
@@ -67,18 +67,18 @@ static void flexible_joint_k_jet(double t, const double *s, const double *p, con
     const double _t14 = _s0 - _s2;
     const double _t15 = _p3*_t11;
     const double _t16 = -_t13 - _t14*_t15;
-    const double _t17 = -_t12*cos(_s0) - _t15;
+    const double _t17 = -_t15 - _t12*cos(_s0);
     const double _t18 = _s1*_t17 + _s3*_t15;
-    const double _t19 = -_s0 + _t4;
+    const double _t19 = _t4 - _s0;
     const double _t20 = cosh(_t19);
     const double _t21 = (1.0/_t20);
     const double _t22 = sinh(_t19);
-    const double _t23 = -_s1 + _t7;
+    const double _t23 = _t7 - _s1;
     const double _t24 = _t22*_t23;
     const double _t25 = (1.0/(_t20*_t20));
     const double _t26 = -_t24*_t25;
     const double _t27 = _t20*_t23;
-    const double _t28 = -_t16 + _t8;
+    const double _t28 = _t8 - _t16;
     const double _t29 = _t20*_t23;
     const double _t30 = _t22*_t28 + _t23*_t29;
     const double _t31 = (1.0/(_t20*_t20*_t20));
@@ -88,21 +88,21 @@ static void flexible_joint_k_jet(double t, const double *s, const double *p, con
     const double _t35 = _t22*_t23;
     const double _t36 = _t20*_t28 + _t23*_t35;
     const double _t37 = -_t26*_t27;
-    const double _t38 = -_t18 + _t9;
+    const double _t38 = _t9 - _t18;
     const double _t39 = _t22*_t23;
     const double _t40 = _t20*_t28 + _t23*_t39;
     const double _t41 = _t28*_t29;
-    const double _t42 = _t22*_t38 + _t23*_t40 + 2*_t41;
+    const double _t42 = 2*_t41 + _t22*_t38 + _t23*_t40;
     const double _t43 = 3/(_t20*_t20*_t20*_t20);
     const double _t44 = -_t24*_t43;
     const double _t45 = 2*_t30;
     const double _t46 = -_t31*_t45 - _t32*_t44;
     const double _t47 = -_t30*_t33;
-    const double _t48 = -_t24*_t46 - _t25*_t42 + 2*_t47;
+    const double _t48 = 2*_t47 - _t24*_t46 - _t25*_t42;
     const double _t49 = _t20*_t23;
     const double _t50 = _t22*_t28 + _t23*_t49;
     const double _t51 = _t28*_t35;
-    const double _t52 = _t20*_t38 + _t23*_t50 + 2*_t51;
+    const double _t52 = 2*_t51 + _t20*_t38 + _t23*_t50;
     const double _t53 = -_t26*_t36;
     const double _t54 = -_t27*_t34;
     const double _t55 = _t53 + _t54;
@@ -125,10 +125,10 @@ static void flexible_joint_k_jet(double t, const double *s, const double *p, con
     const double _t72 = _t69 + _t71;
     const double _t73 = _t70 + _t72;
     const double _t74 = (1.0/_p2);
-    hessian[0] = _t20*_t21 - (_t22*_t22)*_t25 + 2;
-    jet_rhs[0] = _a0*(2*_s0 - _t21*_t22 - 2*_t4) + _a1*(2*_s1 - _t21*_t27 - _t22*_t26 - 2*_t7) + _a2*(2*_t16 - _t21*_t36 - _t22*_t34 + 2*_t37 - 2*_t8) + _a3*(2*_t18 - _t21*_t52 - _t22*_t48 + _t53 + _t54 + 2*_t55 - 2*_t9) + 2*_t10 + _t21*(_t10*_t20 + _t23*(_t22*_t38 + _t23*(_t20*_t28 + _t22*(_t23*_t23)) + 2*_t64) + _t65 + _t66 + 2*_t67) + _t22*(-_t24*(-2*_t31*_t42 - _t32*(-_t30*_t43 + 12*(_t24*_t24)/pow(_t20, 5)) + 2*_t60) - _t25*(_t10*_t22 + _t23*(_t20*_t38 + _t23*(_t20*(_t23*_t23) + _t22*_t28) + 2*_t56) + _t57 + _t58 + 2*_t59) + _t61 + _t62 + 2*_t63) - _t68 - _t70 - _t71 - _t72 - 2*_t73;
+    hessian[0] = _t20*_t21 - _t25*(_t22*_t22) + 2;
+    jet_rhs[0] = 2*_t10 - _t68 - _t70 - _t71 - _t72 - 2*_t73 + _a0*(2*_s0 - 2*_t4 - _t21*_t22) + _a1*(2*_s1 - 2*_t7 - _t21*_t27 - _t22*_t26) + _a2*(2*_t16 - 2*_t8 + 2*_t37 - _t21*_t36 - _t22*_t34) + _a3*(_t53 + _t54 - 2*_t9 + 2*_t18 + 2*_t55 - _t21*_t52 - _t22*_t48) + _t21*(_t65 + _t66 + 2*_t67 + _t10*_t20 + _t23*(2*_t64 + _t22*_t38 + _t23*(_t20*_t28 + _t22*(_t23*_t23)))) + _t22*(_t61 + _t62 + 2*_t63 - _t24*(2*_t60 - _t32*(12*(_t24*_t24)/pow(_t20, 5) - _t30*_t43) - 2*_t31*_t42) - _t25*(_t57 + _t58 + 2*_t59 + _t10*_t22 + _t23*(2*_t56 + _t20*_t38 + _t23*(_t20*(_t23*_t23) + _t22*_t28))));
     R[0] = _t15*_t74;
-    pvec[0] = (_p3*_p3)*_t11*_t14*_t74 + (_s1*_s1)*_t13 + _t16*_t17;
+    pvec[0] = _t13*(_s1*_s1) + _t16*_t17 + _t11*_t14*_t74*(_p3*_p3);
 }
 
 
@@ -151,7 +151,7 @@ static void flexible_joint_k_decoupling(double t, const double *s, const double 
     (void)p;
     const double _z0 = z[0]; /* y^(4) */
     const double _q0 = q[0]; /* p_y */
-    b[0] = -_q0 + _z0;
+    b[0] = _z0 - _q0;
 }
 
 
@@ -173,7 +173,7 @@ static void flexible_joint_k_closed_loop(double t, const double *s, const double
     const double _t1 = _p3*(_s0 - _s2);
     const double _t2 = (1.0/_p2);
     ds[0] = _s1;
-    ds[1] = -_p0*_t0*sin(_s0) - _t0*_t1;
+    ds[1] = -_t0*_t1 - _p0*_t0*sin(_s0);
     ds[2] = _s3;
     ds[3] = _t1*_t2 + _t2*_w0;
     u[0] = _w0;
@@ -209,23 +209,23 @@ static void flexible_joint_k_optimality(double t, const double *s, const double 
     const double _t5 = cos(_t0);
     const double _t6 = cos(_t2);
     const double _t7 = (3.0/10.0)*_t5 + (39.0/100.0)*_t6;
-    const double _t8 = -3.0/20.0*_t1 - 507.0/1000.0*_t3;
-    const double _t9 = -3.0/40.0*_t5 - 6591.0/10000.0*_t6;
+    const double _t8 = -507.0/1000.0*_t3 - 3.0/20.0*_t1;
+    const double _t9 = -6591.0/10000.0*_t6 - 3.0/40.0*_t5;
     const double _t10 = (1.0/_p1);
     const double _t11 = _p0*_t10;
     const double _t12 = _p3*_t10;
     const double _t13 = -_t11*sin(_s0) - _t12*(_s0 - _s2);
-    const double _t14 = _s1*(-_t11*cos(_s0) - _t12) + _s3*_t12;
-    const double _t15 = -_s0 + _t4;
+    const double _t14 = _s1*(-_t12 - _t11*cos(_s0)) + _s3*_t12;
+    const double _t15 = _t4 - _s0;
     const double _t16 = cosh(_t15);
     const double _t17 = (1.0/_t16);
     const double _t18 = sinh(_t15);
-    const double _t19 = -_s1 + _t7;
+    const double _t19 = _t7 - _s1;
     const double _t20 = _t18*_t19;
     const double _t21 = (1.0/(_t16*_t16));
     const double _t22 = -_t20*_t21;
     const double _t23 = _t16*_t19;
-    const double _t24 = -_t13 + _t8;
+    const double _t24 = _t8 - _t13;
     const double _t25 = _t16*_t19;
     const double _t26 = _t18*_t24 + _t19*_t25;
     const double _t27 = (1.0/(_t16*_t16*_t16));
@@ -235,17 +235,17 @@ static void flexible_joint_k_optimality(double t, const double *s, const double 
     const double _t31 = _t18*_t19;
     const double _t32 = _t16*_t24 + _t19*_t31;
     const double _t33 = -_t22*_t23;
-    const double _t34 = -_t14 + _t9;
+    const double _t34 = _t9 - _t14;
     const double _t35 = _t24*_t25;
     const double _t36 = -_t26*_t29;
     const double _t37 = _t24*_t31;
     const double _t38 = -_t22*_t32;
     const double _t39 = -_t23*_t30;
     const double _t40 = _t38 + _t39;
-    E[0] = 2*_s0 - _t17*_t18 - 2*_t4;
-    E[1] = 2*_s1 - _t17*_t23 - _t18*_t22 - 2*_t7;
-    E[2] = 2*_t13 - _t17*_t32 - _t18*_t30 + 2*_t33 - 2*_t8;
-    E[3] = 2*_t14 - _t17*(_t16*_t34 + _t19*(_t16*(_t19*_t19) + _t18*_t24) + 2*_t37) - _t18*(-_t20*(-2*_t26*_t27 + 3*_t20*_t28/(_t16*_t16*_t16*_t16)) - _t21*(_t18*_t34 + _t19*(_t16*_t24 + _t18*(_t19*_t19)) + 2*_t35) + 2*_t36) + _t38 + _t39 + 2*_t40 - 2*_t9;
+    E[0] = 2*_s0 - 2*_t4 - _t17*_t18;
+    E[1] = 2*_s1 - 2*_t7 - _t17*_t23 - _t18*_t22;
+    E[2] = 2*_t13 - 2*_t8 + 2*_t33 - _t17*_t32 - _t18*_t30;
+    E[3] = _t38 + _t39 - 2*_t9 + 2*_t14 + 2*_t40 - _t17*(2*_t37 + _t16*_t34 + _t19*(_t16*(_t19*_t19) + _t18*_t24)) - _t18*(2*_t36 - _t20*(3*_t20*_t28/(_t16*_t16*_t16*_t16) - 2*_t26*_t27) - _t21*(2*_t35 + _t18*_t34 + _t19*(_t16*_t24 + _t18*(_t19*_t19))));
 }
 
 
@@ -266,7 +266,7 @@ static void flexible_joint_k_gradient(double t, const double *y, const double *p
     (void)p;
     const double _t0 = (3.0/5.0)*sin((1.0/2.0)*t) + (3.0/10.0)*sin((13.0/10.0)*t);
     const double _t1 = _t0 - _y0;
-    grad[0] = -2*_t0 + 2*_y0 - sinh(_t1)/cosh(_t1);
+    grad[0] = 2*_y0 - 2*_t0 - sinh(_t1)/cosh(_t1);
 }
 
 
@@ -275,7 +275,7 @@ static void flexible_joint_k_hessian(double t, const double *y, const double *p,
 {
     const double _y0 = y[0]; /* y */
     (void)p;
-    const double _t0 = -_y0 + (3.0/5.0)*sin((1.0/2.0)*t) + (3.0/10.0)*sin((13.0/10.0)*t);
+    const double _t0 = (3.0/5.0)*sin((1.0/2.0)*t) - _y0 + (3.0/10.0)*sin((13.0/10.0)*t);
     const double _t1 = cosh(_t0);
     const double _t2 = sinh(_t0);
     hess[0] = 3 - (_t2*_t2)/(_t1*_t1);

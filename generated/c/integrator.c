@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: e06c9fcd0b676188d740f85bc1b316dd79982f5fe9e3ef4bb74a119bf6f7b694
+ * content sha256: a8a4a736231f0b8da88166a38791a12521249c63efc6ac6015a5562a1398ba2d
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -46,8 +46,8 @@ static void integrator_k_jet(double t, const double *s, const double *p, const d
     const double _t1 = (1.0/2.0)*_p0;
     hessian[0] = 1;
     hessian[1] = _p0;
-    jet_rhs[0] = _a0*(_s0 + (1.0/20.0)*_t0 - 4.0/5.0*t - 2) - 1.0/10.0*t + 4.0/5.0;
-    jet_rhs[1] = _a0*_t1*(2*_s1 - 1.0/25.0*_t0 + (1.0/500.0)*(t*t*t) - t + 2) - _t1*((3.0/500.0)*_t0 - 2.0/25.0*t - 1);
+    jet_rhs[0] = _a0*(_s0 - 4.0/5.0*t + (1.0/20.0)*_t0 - 2) - 1.0/10.0*t + 4.0/5.0;
+    jet_rhs[1] = _a0*_t1*(2*_s1 - t - 1.0/25.0*_t0 + (1.0/500.0)*(t*t*t) + 2) - _t1*((3.0/500.0)*_t0 - 2.0/25.0*t - 1);
     R[0] = 1;
     R[1] = 1;
     pvec[0] = 0;
@@ -81,8 +81,8 @@ static void integrator_k_decoupling(double t, const double *s, const double *p, 
     const double _z1 = z[1]; /* y2^(1) */
     const double _q0 = q[0]; /* p_y1 */
     const double _q1 = q[1]; /* p_y2 */
-    b[0] = -_q0 + _z0;
-    b[1] = -_q1 + _z1;
+    b[0] = _z0 - _q0;
+    b[1] = _z1 - _q1;
 }
 
 
@@ -122,8 +122,8 @@ static void integrator_k_optimality(double t, const double *s, const double *p, 
     const double _s1 = s[1]; /* x2 */
     const double _p0 = p[0]; /* w */
     const double _t0 = (t*t);
-    E[0] = _s0 + (1.0/20.0)*_t0 - 4.0/5.0*t - 2;
-    E[1] = (1.0/2.0)*_p0*(2*_s1 - 1.0/25.0*_t0 + (1.0/500.0)*(t*t*t) - t + 2);
+    E[0] = _s0 - 4.0/5.0*t + (1.0/20.0)*_t0 - 2;
+    E[1] = (1.0/2.0)*_p0*(2*_s1 - t - 1.0/25.0*_t0 + (1.0/500.0)*(t*t*t) + 2);
 }
 
 
@@ -134,7 +134,7 @@ static void integrator_k_objective(double t, const double *y, const double *p, d
     const double _y1 = y[1]; /* y2 */
     const double _p0 = p[0]; /* w */
     const double _t0 = (t*t);
-    f0[0] = (1.0/2.0)*_p0*((-1.0/50.0*_t0 + _y1 + (1.0/1000.0)*(t*t*t) - 1.0/2.0*t + 1)*(-1.0/50.0*_t0 + _y1 + (1.0/1000.0)*(t*t*t) - 1.0/2.0*t + 1)) + (1.0/2.0)*(((1.0/20.0)*_t0 + _y0 - 4.0/5.0*t - 2)*((1.0/20.0)*_t0 + _y0 - 4.0/5.0*t - 2));
+    f0[0] = (1.0/2.0)*((_y0 - 4.0/5.0*t + (1.0/20.0)*_t0 - 2)*(_y0 - 4.0/5.0*t + (1.0/20.0)*_t0 - 2)) + (1.0/2.0)*_p0*((_y1 - 1.0/2.0*t - 1.0/50.0*_t0 + (1.0/1000.0)*(t*t*t) + 1)*(_y1 - 1.0/2.0*t - 1.0/50.0*_t0 + (1.0/1000.0)*(t*t*t) + 1));
 }
 
 
@@ -145,8 +145,8 @@ static void integrator_k_gradient(double t, const double *y, const double *p, do
     const double _y1 = y[1]; /* y2 */
     const double _p0 = p[0]; /* w */
     const double _t0 = (t*t);
-    grad[0] = (1.0/20.0)*_t0 + _y0 - 4.0/5.0*t - 2;
-    grad[1] = (1.0/2.0)*_p0*(-1.0/25.0*_t0 + 2*_y1 + (1.0/500.0)*(t*t*t) - t + 2);
+    grad[0] = _y0 - 4.0/5.0*t + (1.0/20.0)*_t0 - 2;
+    grad[1] = (1.0/2.0)*_p0*(2*_y1 - t - 1.0/25.0*_t0 + (1.0/500.0)*(t*t*t) + 2);
 }
 
 

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: 802fb7b394ca5f617e8636c8bbcd32cde31848b8c59ee6ac8c024027b1828729
+ * content sha256: db7bb77908f27a6c8c9e44b5e6e1a07c3c306a0ded6663ea98eb800ff633c408
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -66,21 +66,21 @@ static void pvtol_k_jet(double t, const double *s, const double *p, const double
     const double _t12 = _s7*_t9;
     const double _t13 = cos(_s2);
     const double _t14 = _s6*_t13;
-    const double _t15 = -_s5*_t14 - _t12;
+    const double _t15 = -_t12 - _s5*_t14;
     const double _t16 = -_t14;
     const double _t17 = _s5*_t10 - _s7*_t13;
     const double _t18 = (1.0/2.0)*_a0;
     const double _t19 = (1.0/2.0)*_a1;
     const double _t20 = (1.0/2.0)*_a2;
     const double _t21 = (1.0/2.0)*_a3;
-    z[0] = (24.0/625.0)*_t1 + _t18*(2*_s0 - 3*_t1) + _t19*(2*_s3 - 6.0/5.0*_t2) + _t20*((12.0/25.0)*_t1 + 2*_t11) + _t21*(2*_t15 + (24.0/125.0)*_t2);
-    z[1] = _t18*(2*_s1 - 8.0/5.0*_t4 + _t6 - 4) + _t19*(2*_s4 - 1.0/5.0*_t7 - 12.0/25.0*_t8) + _t20*(-2*_p0 - 2*_t16 + (18.0/125.0)*_t4 - 1.0/25.0*_t6) + _t21*(-2*_t17 + (1.0/125.0)*_t7 + (27.0/625.0)*_t8) + (81.0/12500.0)*_t4 - 1.0/1250.0*_t6;
+    z[0] = (24.0/625.0)*_t1 + _t18*(2*_s0 - 3*_t1) + _t19*(2*_s3 - 6.0/5.0*_t2) + _t20*(2*_t11 + (12.0/25.0)*_t1) + _t21*(2*_t15 + (24.0/125.0)*_t2);
+    z[1] = (81.0/12500.0)*_t4 - 1.0/1250.0*_t6 + _t18*(_t6 + 2*_s1 - 8.0/5.0*_t4 - 4) + _t19*(2*_s4 - 12.0/25.0*_t8 - 1.0/5.0*_t7) + _t20*((18.0/125.0)*_t4 - 2*_p0 - 2*_t16 - 1.0/25.0*_t6) + _t21*((1.0/125.0)*_t7 - 2*_t17 + (27.0/625.0)*_t8);
     R[0] = -_t9;
     R[1] = _t16;
     R[2] = _t13;
     R[3] = _t11;
-    pvec[0] = -_s5*_s7*_t13 + _s5*_t17;
-    pvec[1] = -_s5*_t12 + _s5*_t15;
+    pvec[0] = _s5*_t17 - _s5*_s7*_t13;
+    pvec[1] = _s5*_t15 - _s5*_t12;
 }
 
 
@@ -94,8 +94,8 @@ static void pvtol_k_decoupling(double t, const double *s, const double *p, const
     const double _z1 = z[1]; /* pz^(4) */
     const double _q0 = q[0]; /* p_px */
     const double _q1 = q[1]; /* p_pz */
-    b[0] = -_q0 + _z0;
-    b[1] = -_q1 + _z1;
+    b[0] = _z0 - _q0;
+    b[1] = _z1 - _q1;
 }
 
 
@@ -117,7 +117,7 @@ static void pvtol_k_closed_loop(double t, const double *s, const double *p, cons
     ds[1] = _s4;
     ds[2] = _s5;
     ds[3] = -_s6*sin(_s2);
-    ds[4] = -_p0 + _s6*cos(_s2);
+    ds[4] = _s6*cos(_s2) - _p0;
     ds[5] = _w1;
     ds[6] = _s7;
     ds[7] = _w0;
@@ -163,13 +163,13 @@ static void pvtol_k_optimality(double t, const double *s, const double *p, doubl
     const double _t10 = _s6*_t9;
     const double _t11 = cos(_s2);
     E[0] = 2*_s0 - 3*_t1;
-    E[1] = 2*_s1 - 8.0/5.0*_t4 + _t6 - 4;
+    E[1] = _t6 + 2*_s1 - 8.0/5.0*_t4 - 4;
     E[2] = 2*_s3 - 6.0/5.0*_t2;
-    E[3] = 2*_s4 - 1.0/5.0*_t7 - 12.0/25.0*_t8;
+    E[3] = 2*_s4 - 12.0/25.0*_t8 - 1.0/5.0*_t7;
     E[4] = (12.0/25.0)*_t1 - 2*_t10;
-    E[5] = -2*_p0 + 2*_s6*_t11 + (18.0/125.0)*_t4 - 1.0/25.0*_t6;
-    E[6] = -2*_s5*_s6*_t11 - 2*_s7*_t9 + (24.0/125.0)*_t2;
-    E[7] = -2*_s5*_t10 + 2*_s7*_t11 + (1.0/125.0)*_t7 + (27.0/625.0)*_t8;
+    E[5] = (18.0/125.0)*_t4 - 2*_p0 - 1.0/25.0*_t6 + 2*_s6*_t11;
+    E[6] = (24.0/125.0)*_t2 - 2*_s7*_t9 - 2*_s5*_s6*_t11;
+    E[7] = (1.0/125.0)*_t7 + (27.0/625.0)*_t8 - 2*_s5*_t10 + 2*_s7*_t11;
 }
 
 
@@ -179,7 +179,7 @@ static void pvtol_k_objective(double t, const double *y, const double *p, double
     const double _y0 = y[0]; /* px */
     const double _y1 = y[1]; /* pz */
     (void)p;
-    f0[0] = ((_y0 - 3.0/2.0*sin((2.0/5.0)*t))*(_y0 - 3.0/2.0*sin((2.0/5.0)*t))) + ((_y1 - 4.0/5.0*sin((3.0/10.0)*t) + (1.0/2.0)*cos((1.0/5.0)*t) - 2)*(_y1 - 4.0/5.0*sin((3.0/10.0)*t) + (1.0/2.0)*cos((1.0/5.0)*t) - 2));
+    f0[0] = ((_y0 - 3.0/2.0*sin((2.0/5.0)*t))*(_y0 - 3.0/2.0*sin((2.0/5.0)*t))) + ((_y1 + (1.0/2.0)*cos((1.0/5.0)*t) - 4.0/5.0*sin((3.0/10.0)*t) - 2)*(_y1 + (1.0/2.0)*cos((1.0/5.0)*t) - 4.0/5.0*sin((3.0/10.0)*t) - 2));
 }
 
 

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 9100e20d6ca8d6dd0d9ade3d1436eb4c6c47181d2b1a9e279d14dde8eb5f5d8b
+ * content sha256: 23bb88fa8fc1735d6dfced10d96c393e1bfd54122efcb103744cb8c0663499c3
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -66,7 +66,7 @@ static void two_unicycles_barrier_k_jet(double t, const double *s, const double 
     const double _t13 = (1.0/2.0)*3.141592653589793*_t10;
     const double _t14 = tan(_t13*((_t11*_t11) + (_t12*_t12)));
     const double _t15 = 2*_s3;
-    const double _t16 = -_t15 + _t9;
+    const double _t16 = _t9 - _t15;
     const double _t17 = 3.141592653589793*_p0*_t10;
     const double _t18 = _t17*((_t14*_t14) + 1);
     const double _t19 = _t16*_t18;
@@ -76,7 +76,7 @@ static void two_unicycles_barrier_k_jet(double t, const double *s, const double 
     const double _t23 = _t18*_t22;
     const double _t24 = _t15 - _t9;
     const double _t25 = _t18*_t24;
-    const double _t26 = -_t20 + _t21;
+    const double _t26 = _t21 - _t20;
     const double _t27 = _t18*_t26;
     const double _t28 = 2*_t2;
     const double _t29 = _t2 - _t6;
@@ -95,9 +95,9 @@ static void two_unicycles_barrier_k_jet(double t, const double *s, const double 
     const double _t42 = 2*_t8;
     const double _t43 = _t41 - _t42;
     const double _t44 = _t18*_t43 + _t22*_t39;
-    const double _t45 = -_t28 + _t37;
+    const double _t45 = _t37 - _t28;
     const double _t46 = _t18*_t45 + _t24*_t39;
-    const double _t47 = -_t41 + _t42;
+    const double _t47 = _t42 - _t41;
     const double _t48 = _t18*_t47 + _t26*_t39;
     const double _t49 = (_t14*_t14) + 1;
     const double _t50 = _t13*_t30*_t49;
@@ -118,20 +118,20 @@ static void two_unicycles_barrier_k_jet(double t, const double *s, const double 
     const double _t65 = _t35*_t46;
     const double _t66 = _t39*_t47;
     const double _t67 = _t35*_t48;
-    hessian[0] = _t14*(_t16*_t54 + _t57) + _t19*_t50 + 2;
-    hessian[1] = _t14*_t22*_t54 + _t23*_t50;
-    hessian[2] = _t14*(_t22*_t55 + _t57) + _t23*_t51 + 2;
+    hessian[0] = _t14*(_t57 + _t16*_t54) + _t19*_t50 + 2;
+    hessian[1] = _t23*_t50 + _t14*_t22*_t54;
+    hessian[2] = _t14*(_t57 + _t22*_t55) + _t23*_t51 + 2;
     hessian[3] = _t14*(_t24*_t54 - _t57) + _t25*_t50;
-    hessian[4] = _t14*_t24*_t55 + _t25*_t51;
-    hessian[5] = _t14*(_t24*_t56 + _t57) + _t25*_t52 + 2;
-    hessian[6] = _t14*_t26*_t54 + _t27*_t50;
+    hessian[4] = _t25*_t51 + _t14*_t24*_t55;
+    hessian[5] = _t14*(_t57 + _t24*_t56) + _t25*_t52 + 2;
+    hessian[6] = _t27*_t50 + _t14*_t26*_t54;
     hessian[7] = _t14*(_t26*_t55 - _t57) + _t27*_t51;
-    hessian[8] = _t14*_t26*_t56 + _t27*_t52;
-    hessian[9] = _t14*(_t17*_t26*_t36*_t53 + _t57) + _t27*_t53 + 2;
-    jet_rhs[0] = _a0*(-1.0/250.0*_t0 + _t14*_t19 + _t9 - t + 10) + _a1*(_t14*_t40 + _t19*_t35 + _t28 - 1.0/125.0*t - 1) - _t14*(_t16*_t59 + 2*_t60) - _t19*_t58 - 2*_t61 + 1.0/125.0;
-    jet_rhs[1] = _a0*((1.0/50.0)*_t0 + _t14*_t23 + _t20 - 3.0/5.0*t + 6) + _a1*(_t14*_t44 + _t23*_t35 + _t41 + (1.0/25.0)*t - 3.0/5.0) - _t14*(_t22*_t59 + 2*_t62) - _t23*_t58 - 2*_t63 - 1.0/25.0;
-    jet_rhs[2] = _a0*(-1.0/125.0*_t0 + _t14*_t25 + _t15 - 9.0/10.0*t + 4) + _a1*(_t14*_t46 + _t25*_t35 + _t37 - 2.0/125.0*t - 9.0/10.0) - _t14*(_t24*_t59 + 2*_t64) - _t25*_t58 - 2*_t65 + 2.0/125.0;
-    jet_rhs[3] = _a0*((3.0/125.0)*_t0 + _t14*_t27 + _t21 - 7.0/10.0*t + 6) + _a1*(_t14*_t48 + _t27*_t35 + _t42 + (6.0/125.0)*t - 7.0/10.0) - _t14*(_t26*_t59 + 2*_t66) - _t27*_t58 - 2*_t67 - 6.0/125.0;
+    hessian[8] = _t27*_t52 + _t14*_t26*_t56;
+    hessian[9] = _t14*(_t57 + _t17*_t26*_t36*_t53) + _t27*_t53 + 2;
+    jet_rhs[0] = _a0*(_t9 - t - 1.0/250.0*_t0 + _t14*_t19 + 10) - 2*_t61 + _a1*(_t28 - 1.0/125.0*t + _t14*_t40 + _t19*_t35 - 1) - _t14*(2*_t60 + _t16*_t59) - _t19*_t58 + 1.0/125.0;
+    jet_rhs[1] = _a0*(_t20 - 3.0/5.0*t + (1.0/50.0)*_t0 + _t14*_t23 + 6) - 2*_t63 + _a1*(_t41 + (1.0/25.0)*t + _t14*_t44 + _t23*_t35 - 3.0/5.0) - _t14*(2*_t62 + _t22*_t59) - _t23*_t58 - 1.0/25.0;
+    jet_rhs[2] = _a0*(_t15 - 9.0/10.0*t - 1.0/125.0*_t0 + _t14*_t25 + 4) - 2*_t65 + _a1*(_t37 - 2.0/125.0*t + _t14*_t46 + _t25*_t35 - 9.0/10.0) - _t14*(2*_t64 + _t24*_t59) - _t25*_t58 + 2.0/125.0;
+    jet_rhs[3] = _a0*(_t21 - 7.0/10.0*t + (3.0/125.0)*_t0 + _t14*_t27 + 6) - 2*_t67 + _a1*(_t42 + (6.0/125.0)*t + _t14*_t48 + _t27*_t35 - 7.0/10.0) - _t14*(2*_t66 + _t26*_t59) - _t27*_t58 - 6.0/125.0;
     R[0] = _t1;
     R[1] = -_t4;
     R[2] = _t3;
@@ -181,9 +181,9 @@ static void two_unicycles_barrier_k_cholesky(const double *h, const double *c, d
     const double _t14 = _t5*(_c1 - _t1*_t13);
     const double _t15 = _t9*(_c2 - _t13*_t2 - _t14*_t6);
     const double _t16 = (_t12*_t12)*(_c3 - _t10*_t15 - _t13*_t3 - _t14*_t7);
-    const double _t17 = _t9*(-_t10*_t16 + _t15);
+    const double _t17 = _t9*(_t15 - _t10*_t16);
     const double _t18 = _t5*(_t14 - _t16*_t7 - _t17*_t6);
-    z[0] = _t0*(-_t1*_t18 + _t13 - _t16*_t3 - _t17*_t2);
+    z[0] = _t0*(_t13 - _t1*_t18 - _t16*_t3 - _t17*_t2);
     z[1] = _t18;
     z[2] = _t17;
     z[3] = _t16;
@@ -208,10 +208,10 @@ static void two_unicycles_barrier_k_decoupling(double t, const double *s, const 
     const double _q1 = q[1]; /* p_qa */
     const double _q2 = q[2]; /* p_pb */
     const double _q3 = q[3]; /* p_qb */
-    b[0] = -_q0 + _z0;
-    b[1] = -_q1 + _z1;
-    b[2] = -_q2 + _z2;
-    b[3] = -_q3 + _z3;
+    b[0] = _z0 - _q0;
+    b[1] = _z1 - _q1;
+    b[2] = _z2 - _q2;
+    b[3] = _z3 - _q3;
 }
 
 
@@ -285,7 +285,7 @@ static void two_unicycles_barrier_k_optimality(double t, const double *s, const 
     const double _t9 = (1.0/2.0)*3.141592653589793*_t6;
     const double _t10 = tan(_t9*((_t7*_t7) + (_t8*_t8)));
     const double _t11 = 2*_s3;
-    const double _t12 = -_t11 + _t5;
+    const double _t12 = _t5 - _t11;
     const double _t13 = 3.141592653589793*_p0*_t6;
     const double _t14 = _t13*((_t10*_t10) + 1);
     const double _t15 = _t12*_t14;
@@ -295,7 +295,7 @@ static void two_unicycles_barrier_k_optimality(double t, const double *s, const 
     const double _t19 = _t14*_t18;
     const double _t20 = _t11 - _t5;
     const double _t21 = _t14*_t20;
-    const double _t22 = -_t16 + _t17;
+    const double _t22 = _t17 - _t16;
     const double _t23 = _t14*_t22;
     const double _t24 = 2*_t1;
     const double _t25 = _t9*((_t10*_t10) + 1)*(2*_t7*(_t1 - _t3) + 2*_t8*(_t2 - _t4));
@@ -303,14 +303,14 @@ static void two_unicycles_barrier_k_optimality(double t, const double *s, const 
     const double _t27 = 2*_t10*_t13*_t25;
     const double _t28 = 2*_t2;
     const double _t29 = 2*_t4;
-    E[0] = -1.0/250.0*_t0 + _t10*_t15 + _t5 - t + 10;
-    E[1] = (1.0/50.0)*_t0 + _t10*_t19 + _t16 - 3.0/5.0*t + 6;
-    E[2] = -1.0/125.0*_t0 + _t10*_t21 + _t11 - 9.0/10.0*t + 4;
-    E[3] = (3.0/125.0)*_t0 + _t10*_t23 + _t17 - 7.0/10.0*t + 6;
-    E[4] = _t10*(_t12*_t27 + _t14*(_t24 - _t26)) + _t15*_t25 + _t24 - 1.0/125.0*t - 1;
-    E[5] = _t10*(_t14*(_t28 - _t29) + _t18*_t27) + _t19*_t25 + _t28 + (1.0/25.0)*t - 3.0/5.0;
-    E[6] = _t10*(_t14*(-_t24 + _t26) + _t20*_t27) + _t21*_t25 + _t26 - 2.0/125.0*t - 9.0/10.0;
-    E[7] = _t10*(_t14*(-_t28 + _t29) + _t22*_t27) + _t23*_t25 + _t29 + (6.0/125.0)*t - 7.0/10.0;
+    E[0] = _t5 - t - 1.0/250.0*_t0 + _t10*_t15 + 10;
+    E[1] = _t16 - 3.0/5.0*t + (1.0/50.0)*_t0 + _t10*_t19 + 6;
+    E[2] = _t11 - 9.0/10.0*t - 1.0/125.0*_t0 + _t10*_t21 + 4;
+    E[3] = _t17 - 7.0/10.0*t + (3.0/125.0)*_t0 + _t10*_t23 + 6;
+    E[4] = _t24 - 1.0/125.0*t + _t10*(_t12*_t27 + _t14*(_t24 - _t26)) + _t15*_t25 - 1;
+    E[5] = _t28 + (1.0/25.0)*t + _t10*(_t14*(_t28 - _t29) + _t18*_t27) + _t19*_t25 - 3.0/5.0;
+    E[6] = _t26 - 2.0/125.0*t + _t10*(_t14*(_t26 - _t24) + _t20*_t27) + _t21*_t25 - 9.0/10.0;
+    E[7] = _t29 + (6.0/125.0)*t + _t10*(_t14*(_t29 - _t28) + _t22*_t27) + _t23*_t25 - 7.0/10.0;
 }
 
 
@@ -324,7 +324,7 @@ static void two_unicycles_barrier_k_objective(double t, const double *y, const d
     const double _p0 = p[0]; /* alpha */
     const double _p1 = p[1]; /* d */
     const double _t0 = (t*t);
-    f0[0] = _p0*(tan((1.0/2.0)*3.141592653589793*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1)*tan((1.0/2.0)*3.141592653589793*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1)) + ((-1.0/250.0*_t0 + _y2 - 9.0/20.0*t + 2)*(-1.0/250.0*_t0 + _y2 - 9.0/20.0*t + 2)) + ((-1.0/500.0*_t0 + _y0 - 1.0/2.0*t + 5)*(-1.0/500.0*_t0 + _y0 - 1.0/2.0*t + 5)) + (((1.0/100.0)*_t0 + _y1 - 3.0/10.0*t + 3)*((1.0/100.0)*_t0 + _y1 - 3.0/10.0*t + 3)) + (((3.0/250.0)*_t0 + _y3 - 7.0/20.0*t + 3)*((3.0/250.0)*_t0 + _y3 - 7.0/20.0*t + 3));
+    f0[0] = ((_y2 - 9.0/20.0*t - 1.0/250.0*_t0 + 2)*(_y2 - 9.0/20.0*t - 1.0/250.0*_t0 + 2)) + ((_y1 - 3.0/10.0*t + (1.0/100.0)*_t0 + 3)*(_y1 - 3.0/10.0*t + (1.0/100.0)*_t0 + 3)) + ((_y3 - 7.0/20.0*t + (3.0/250.0)*_t0 + 3)*(_y3 - 7.0/20.0*t + (3.0/250.0)*_t0 + 3)) + ((_y0 - 1.0/2.0*t - 1.0/500.0*_t0 + 5)*(_y0 - 1.0/2.0*t - 1.0/500.0*_t0 + 5)) + _p0*(tan((1.0/2.0)*3.141592653589793*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1)*tan((1.0/2.0)*3.141592653589793*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1));
 }
 
 
@@ -345,10 +345,10 @@ static void two_unicycles_barrier_k_gradient(double t, const double *y, const do
     const double _t5 = 3.141592653589793*_p0*_t2*((_t3*_t3) + 1);
     const double _t6 = 2*_y1;
     const double _t7 = 2*_y3;
-    grad[0] = -1.0/250.0*_t0 + _t1 + _t3*_t5*(_t1 - _t4) - t + 10;
-    grad[1] = (1.0/50.0)*_t0 + _t3*_t5*(_t6 - _t7) + _t6 - 3.0/5.0*t + 6;
-    grad[2] = -1.0/125.0*_t0 + _t3*_t5*(-_t1 + _t4) + _t4 - 9.0/10.0*t + 4;
-    grad[3] = (3.0/125.0)*_t0 + _t3*_t5*(-_t6 + _t7) + _t7 - 7.0/10.0*t + 6;
+    grad[0] = _t1 - t - 1.0/250.0*_t0 + _t3*_t5*(_t1 - _t4) + 10;
+    grad[1] = _t6 - 3.0/5.0*t + (1.0/50.0)*_t0 + _t3*_t5*(_t6 - _t7) + 6;
+    grad[2] = _t4 - 9.0/10.0*t - 1.0/125.0*_t0 + _t3*_t5*(_t4 - _t1) + 4;
+    grad[3] = _t7 - 7.0/10.0*t + (3.0/125.0)*_t0 + _t3*_t5*(_t7 - _t6) + 6;
 }
 
 
@@ -376,9 +376,9 @@ static void two_unicycles_barrier_k_hessian(double t, const double *y, const dou
     const double _t11 = 2*_y3;
     const double _t12 = _t10 - _t11;
     const double _t13 = _t12*_t9;
-    const double _t14 = -_t0 + _t6;
+    const double _t14 = _t6 - _t0;
     const double _t15 = _t14*_t9;
-    const double _t16 = -_t10 + _t11;
+    const double _t16 = _t11 - _t10;
     const double _t17 = _t16*_t9;
     const double _t18 = 2*_t2;
     const double _t19 = 2*_t3;
@@ -392,28 +392,28 @@ static void two_unicycles_barrier_k_hessian(double t, const double *y, const dou
     const double _t27 = _t22*_t25*_t8;
     const double _t28 = _t23*_t25*_t8;
     const double _t29 = 2*_t9;
-    const double _t30 = _t12*_t26*_t5 + _t13*_t21;
+    const double _t30 = _t13*_t21 + _t12*_t26*_t5;
     const double _t31 = _t15*_t21 + _t5*(_t14*_t26 - _t29);
-    const double _t32 = _t14*_t27*_t5 + _t15*_t22;
-    const double _t33 = _t16*_t26*_t5 + _t17*_t21;
+    const double _t32 = _t15*_t22 + _t14*_t27*_t5;
+    const double _t33 = _t17*_t21 + _t16*_t26*_t5;
     const double _t34 = _t17*_t22 + _t5*(_t16*_t27 - _t29);
-    const double _t35 = _t16*_t28*_t5 + _t17*_t23;
-    hess[0] = _t21*_t7*_t9 + _t5*(_t26*_t7 + _t29) + 2;
+    const double _t35 = _t17*_t23 + _t16*_t28*_t5;
+    hess[0] = _t5*(_t29 + _t26*_t7) + _t21*_t7*_t9 + 2;
     hess[1] = _t30;
     hess[2] = _t31;
     hess[3] = _t33;
     hess[4] = _t30;
-    hess[5] = _t13*_t22 + _t5*(_t12*_t27 + _t29) + 2;
+    hess[5] = _t13*_t22 + _t5*(_t29 + _t12*_t27) + 2;
     hess[6] = _t32;
     hess[7] = _t34;
     hess[8] = _t31;
     hess[9] = _t32;
-    hess[10] = _t15*_t23 + _t5*(_t14*_t28 + _t29) + 2;
+    hess[10] = _t15*_t23 + _t5*(_t29 + _t14*_t28) + 2;
     hess[11] = _t35;
     hess[12] = _t33;
     hess[13] = _t34;
     hess[14] = _t35;
-    hess[15] = _t17*_t24 + _t5*(_t16*_t24*_t25*_t8 + _t29) + 2;
+    hess[15] = _t17*_t24 + _t5*(_t29 + _t16*_t24*_t25*_t8) + 2;
 }
 
 

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: a44295a4659b22500b909bd883e527186ab25e90e715ded60ee4a53a8c3bc531
+ * content sha256: 6b4b4493ee7f45e01e7279976148b24054eac67283ee28fc798072ba79234bdc
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -47,7 +47,7 @@ static void unicycle_switch_k_jet(double t, const double *s, const double *p, co
     const double _a0 = a[0]; /* a_0 */
     const double _a1 = a[1]; /* a_1 */
     const double _t0 = (1.0/_p1);
-    const double _t1 = tanh(_t0*(-_p0 + t));
+    const double _t1 = tanh(_t0*(t - _p0));
     const double _t2 = 1.0/2.0 - 1.0/2.0*_t1;
     const double _t3 = 1 - (_t1*_t1);
     const double _t4 = -1.0/2.0*_t0*_t3;
@@ -65,14 +65,14 @@ static void unicycle_switch_k_jet(double t, const double *s, const double *p, co
     const double _t16 = 1 - _t2;
     const double _t17 = _t14 + 2*_t7 + (3.0/5.0)*t - 10;
     const double _t18 = 2*_s1;
-    const double _t19 = _t18 - 1.0/25.0*_t6 + (1.0/500.0)*_t9 - t + 10;
-    const double _t20 = _t18 + (3.0/100.0)*_t6 - 1.0/2500.0*_t9 - 4.0/5.0*t + 6;
+    const double _t19 = _t18 - t - 1.0/25.0*_t6 + (1.0/500.0)*_t9 + 10;
+    const double _t20 = _t18 - 4.0/5.0*t - 1.0/2500.0*_t9 + (3.0/100.0)*_t6 + 6;
     const double _t21 = 2*_t11;
     const double _t22 = _t21 + 2*_t8 - 6.0/5.0;
     const double _t23 = -_t4;
     const double _t24 = _t21 + 2*_t8 + 3.0/5.0;
     const double _t25 = 2*_t13;
-    const double _t26 = _t25 + (3.0/500.0)*_t6 - 2.0/25.0*t - 1;
+    const double _t26 = _t25 - 2.0/25.0*t + (3.0/500.0)*_t6 - 1;
     const double _t27 = _t25 - 3.0/2500.0*_t6 + (3.0/50.0)*t - 4.0/5.0;
     const double _t28 = _t22*_t4;
     const double _t29 = -_t5;
@@ -81,8 +81,8 @@ static void unicycle_switch_k_jet(double t, const double *s, const double *p, co
     const double _t32 = _t23*_t27;
     const double _t33 = (1.0/2.0)*_a0;
     const double _t34 = (1.0/2.0)*_a1;
-    z[0] = -1.0/2.0*_t15*_t5 - 1.0/50.0*_t16 - 1.0/2.0*_t17*_t29 - 1.0/50.0*_t2 - _t28 - _t30 + _t33*(_t15*_t2 + _t16*_t17) + _t34*(_t15*_t4 + _t16*_t24 + _t17*_t23 + _t2*_t22);
-    z[1] = -1.0/2.0*_t16*(3.0/50.0 - 3.0/1250.0*t) - 1.0/2.0*_t19*_t5 - 1.0/2.0*_t2*((3.0/250.0)*t - 2.0/25.0) - 1.0/2.0*_t20*_t29 - _t31 - _t32 + _t33*(_t16*_t20 + _t19*_t2) + _t34*(_t16*_t27 + _t19*_t4 + _t2*_t26 + _t20*_t23);
+    z[0] = _t33*(_t15*_t2 + _t16*_t17) - _t28 - _t30 - 1.0/50.0*_t16 - 1.0/50.0*_t2 + _t34*(_t15*_t4 + _t16*_t24 + _t17*_t23 + _t2*_t22) - 1.0/2.0*_t15*_t5 - 1.0/2.0*_t17*_t29;
+    z[1] = _t33*(_t16*_t20 + _t19*_t2) - _t31 - _t32 + _t34*(_t16*_t27 + _t19*_t4 + _t2*_t26 + _t20*_t23) - 1.0/2.0*_t16*(3.0/50.0 - 3.0/1250.0*t) - 1.0/2.0*_t19*_t5 - 1.0/2.0*_t2*((3.0/250.0)*t - 2.0/25.0) - 1.0/2.0*_t20*_t29;
     R[0] = _t10;
     R[1] = -_t13;
     R[2] = _t12;
@@ -102,8 +102,8 @@ static void unicycle_switch_k_decoupling(double t, const double *s, const double
     const double _z1 = z[1]; /* y2^(2) */
     const double _q0 = q[0]; /* p_y1 */
     const double _q1 = q[1]; /* p_y2 */
-    b[0] = -_q0 + _z0;
-    b[1] = -_q1 + _z1;
+    b[0] = _z0 - _q0;
+    b[1] = _z1 - _q1;
 }
 
 
@@ -148,7 +148,7 @@ static void unicycle_switch_k_optimality(double t, const double *s, const double
     const double _p0 = p[0]; /* a */
     const double _p1 = p[1]; /* b */
     const double _t0 = (1.0/_p1);
-    const double _t1 = tanh(_t0*(-_p0 + t));
+    const double _t1 = tanh(_t0*(t - _p0));
     const double _t2 = 1.0/2.0 - 1.0/2.0*_t1;
     const double _t3 = -1.0/2.0*_t0*(1 - (_t1*_t1));
     const double _t4 = (t*t);
@@ -156,19 +156,19 @@ static void unicycle_switch_k_optimality(double t, const double *s, const double
     const double _t6 = (1.0/50.0)*t;
     const double _t7 = (t*t*t);
     const double _t8 = 2*_s0;
-    const double _t9 = 2*_t5 + _t8 - 6.0/5.0*t + 10;
+    const double _t9 = _t8 + 2*_t5 - 6.0/5.0*t + 10;
     const double _t10 = 1 - _t2;
-    const double _t11 = 2*_t5 + _t8 + (3.0/5.0)*t - 10;
+    const double _t11 = _t8 + 2*_t5 + (3.0/5.0)*t - 10;
     const double _t12 = 2*_s1;
-    const double _t13 = _t12 - 1.0/25.0*_t4 + (1.0/500.0)*_t7 - t + 10;
-    const double _t14 = _t12 + (3.0/100.0)*_t4 - 1.0/2500.0*_t7 - 4.0/5.0*t + 6;
+    const double _t13 = _t12 - t - 1.0/25.0*_t4 + (1.0/500.0)*_t7 + 10;
+    const double _t14 = _t12 - 4.0/5.0*t - 1.0/2500.0*_t7 + (3.0/100.0)*_t4 + 6;
     const double _t15 = 2*_s3*cos(_s2);
     const double _t16 = -_t3;
     const double _t17 = 2*_s3*sin(_s2);
     E[0] = _t10*_t11 + _t2*_t9;
     E[1] = _t10*_t14 + _t13*_t2;
     E[2] = _t10*(_t15 + 2*_t6 + 3.0/5.0) + _t11*_t16 + _t2*(_t15 + 2*_t6 - 6.0/5.0) + _t3*_t9;
-    E[3] = _t10*(_t17 - 3.0/2500.0*_t4 + (3.0/50.0)*t - 4.0/5.0) + _t13*_t3 + _t14*_t16 + _t2*(_t17 + (3.0/500.0)*_t4 - 2.0/25.0*t - 1);
+    E[3] = _t10*(_t17 - 3.0/2500.0*_t4 + (3.0/50.0)*t - 4.0/5.0) + _t13*_t3 + _t14*_t16 + _t2*(_t17 - 2.0/25.0*t + (3.0/500.0)*_t4 - 1);
 }
 
 
@@ -179,11 +179,11 @@ static void unicycle_switch_k_objective(double t, const double *y, const double 
     const double _y1 = y[1]; /* y2 */
     const double _p0 = p[0]; /* a */
     const double _p1 = p[1]; /* b */
-    const double _t0 = 1.0/2.0 - 1.0/2.0*tanh((-_p0 + t)/_p1);
+    const double _t0 = 1.0/2.0 - 1.0/2.0*tanh((t - _p0)/_p1);
     const double _t1 = (t*t);
     const double _t2 = (1.0/100.0)*_t1;
     const double _t3 = (t*t*t);
-    f0[0] = _t0*(((_t2 + _y0 - 3.0/5.0*t + 5)*(_t2 + _y0 - 3.0/5.0*t + 5)) + ((-1.0/50.0*_t1 + (1.0/1000.0)*_t3 + _y1 - 1.0/2.0*t + 5)*(-1.0/50.0*_t1 + (1.0/1000.0)*_t3 + _y1 - 1.0/2.0*t + 5))) + (1 - _t0)*(((_t2 + _y0 + (3.0/10.0)*t - 5)*(_t2 + _y0 + (3.0/10.0)*t - 5)) + (((3.0/200.0)*_t1 - 1.0/5000.0*_t3 + _y1 - 2.0/5.0*t + 3)*((3.0/200.0)*_t1 - 1.0/5000.0*_t3 + _y1 - 2.0/5.0*t + 3)));
+    f0[0] = _t0*(((_t2 + _y0 - 3.0/5.0*t + 5)*(_t2 + _y0 - 3.0/5.0*t + 5)) + ((_y1 - 1.0/2.0*t - 1.0/50.0*_t1 + (1.0/1000.0)*_t3 + 5)*(_y1 - 1.0/2.0*t - 1.0/50.0*_t1 + (1.0/1000.0)*_t3 + 5))) + (1 - _t0)*(((_t2 + _y0 + (3.0/10.0)*t - 5)*(_t2 + _y0 + (3.0/10.0)*t - 5)) + ((_y1 - 2.0/5.0*t - 1.0/5000.0*_t3 + (3.0/200.0)*_t1 + 3)*(_y1 - 2.0/5.0*t - 1.0/5000.0*_t3 + (3.0/200.0)*_t1 + 3)));
 }
 
 
@@ -194,15 +194,15 @@ static void unicycle_switch_k_gradient(double t, const double *y, const double *
     const double _y1 = y[1]; /* y2 */
     const double _p0 = p[0]; /* a */
     const double _p1 = p[1]; /* b */
-    const double _t0 = 1.0/2.0 - 1.0/2.0*tanh((-_p0 + t)/_p1);
+    const double _t0 = 1.0/2.0 - 1.0/2.0*tanh((t - _p0)/_p1);
     const double _t1 = (t*t);
     const double _t2 = (1.0/100.0)*_t1;
     const double _t3 = (t*t*t);
     const double _t4 = 2*_y0;
     const double _t5 = 1 - _t0;
     const double _t6 = 2*_y1;
-    grad[0] = _t0*(2*_t2 + _t4 - 6.0/5.0*t + 10) + _t5*(2*_t2 + _t4 + (3.0/5.0)*t - 10);
-    grad[1] = _t0*(-1.0/25.0*_t1 + (1.0/500.0)*_t3 + _t6 - t + 10) + _t5*((3.0/100.0)*_t1 - 1.0/2500.0*_t3 + _t6 - 4.0/5.0*t + 6);
+    grad[0] = _t0*(_t4 + 2*_t2 - 6.0/5.0*t + 10) + _t5*(_t4 + 2*_t2 + (3.0/5.0)*t - 10);
+    grad[1] = _t0*(_t6 - t - 1.0/25.0*_t1 + (1.0/500.0)*_t3 + 10) + _t5*(_t6 - 4.0/5.0*t - 1.0/2500.0*_t3 + (3.0/100.0)*_t1 + 6);
 }
 
 
