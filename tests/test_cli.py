@@ -161,10 +161,13 @@ def test_derivation_progress_names_stage_count_and_time(
     assert main(["check", "unicycle_ring", "--progress", "always"]) == 0
     lines = capsys.readouterr().err.splitlines()
     stages = [line.split(":")[1].split(",")[0].strip() for line in lines]
-    assert stages[0] == "model" and "gradient jet" in stages and stages[-1] == "error bound"
+    assert stages[0] == "model" and "gradient jet" in stages and "error bound" in stages
+    assert stages[-1] == "kernels and CSE"
     counts = [int(line.split(", ")[1].split()[0]) for line in lines]
+    nodes = [int(line.split("(")[1].split()[0]) for line in lines]
     seconds = [float(line.rsplit(", ", 1)[1].removesuffix(" s")) for line in lines]
     assert counts == sorted(counts) and counts[-1] > 100
+    assert nodes == sorted(nodes) and nodes[-1] > 2 * counts[-1]
     assert seconds == sorted(seconds)
     # Off a terminal the default says nothing: logs and error messages stay clean.
     assert main(["check", "unicycle_ring"]) == 0

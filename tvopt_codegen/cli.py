@@ -16,6 +16,7 @@ import math
 import os
 import signal
 import sys
+import time
 import traceback
 from collections.abc import Sequence
 from pathlib import Path
@@ -33,7 +34,7 @@ from tvopt_codegen.errors import (
     SpecError,
     TvoptError,
 )
-from tvopt_codegen.ir import lower
+from tvopt_codegen.ir import KernelSet, lower
 from tvopt_codegen.render import render
 from tvopt_codegen.report import read_results, render_report
 from tvopt_codegen.simulate import (
@@ -176,8 +177,8 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _derive(args: argparse.Namespace) -> Derivation:
-    """Load and derive the spec named on the command line, within its budget."""
+def _derive(args: argparse.Namespace) -> tuple[Derivation, KernelSet]:
+    """Load, derive and lower the spec named on the command line, within its budget."""
     if not args.max_seconds > 0:
         raise SpecError("command line", "--max-seconds", "must be positive")
     if not args.max_size > 0:
@@ -187,7 +188,9 @@ def _derive(args: argparse.Namespace) -> Derivation:
         spec = dataclasses.replace(spec, extension=(), extension_auto=True)
     progress = _DeriveProgress(args.progress)
     try:
-        return derive(spec, progress=progress, budget=Budget(args.max_seconds, args.max_size))
+        derivation = derive(spec, progress=progress, budget=Budget(args.max_seconds, args.max_size))
+        progress.lowering()
+        return derivation, lower(derivation)
     finally:
         progress.close()
 
@@ -204,20 +207,29 @@ class _DeriveProgress:
         self.terminal = sys.stderr.isatty()
         self.mode = mode
         self.shown = False
+        self.start = time.perf_counter()
+        self.last = (0, 0)
 
-    def __call__(self, stage: str, expressions: int, seconds: float) -> None:
+    def __call__(self, stage: str, expressions: int, nodes: int, seconds: float) -> None:
+        self.last = (expressions, nodes)
         if self.mode == "never" or (self.mode == "auto" and (not self.terminal or seconds < 2)):
             return
-        text = f"  deriving: {stage}, {expressions} expressions built, {seconds:.1f} s"
+        text = (
+            f"  deriving: {stage}, {expressions} expressions ({nodes} nodes) built, {seconds:.1f} s"
+        )
         if self.terminal:
-            print(f"{text:<72}", end="\r", file=sys.stderr, flush=True)
+            print(f"{text:<80}", end="\r", file=sys.stderr, flush=True)
         else:
             print(text, file=sys.stderr, flush=True)
         self.shown = True
 
+    def lowering(self) -> None:
+        """The last step: kernels and their CSE (seconds for a large team)."""
+        self("kernels and CSE", *self.last, time.perf_counter() - self.start)
+
     def close(self) -> None:
         if self.shown and self.terminal:
-            print(" " * 72, end="\r", file=sys.stderr, flush=True)
+            print(" " * 80, end="\r", file=sys.stderr, flush=True)
 
 
 def _assignments(items: Sequence[str], option: str) -> dict[str, float]:
@@ -254,8 +266,7 @@ class _Progress:
 
 
 def _report(args: argparse.Namespace) -> int:
-    derivation = _derive(args)
-    kernels = lower(derivation)
+    derivation, kernels = _derive(args)
     results = read_results(args.out, derivation.spec.name)
     formats = ("html", "md") if args.format == "both" else (args.format,)
     files = render_report(derivation, kernels, results, formats)
@@ -277,7 +288,7 @@ def _simulate(args: argparse.Namespace) -> int:
             raise SpecError("command line", option, "must be positive")
     if args.points < 3:
         raise SpecError("command line", "--points", "must be at least 3")
-    derivation = _derive(args)
+    derivation, kernels = _derive(args)
     options = resolve_options(
         derivation,
         args.t_final,
@@ -290,7 +301,7 @@ def _simulate(args: argparse.Namespace) -> int:
         tolerance=args.tolerance,
     )
     prepare_folder(args.out)
-    controller = load_controller(lower(derivation), args.backend)
+    controller = load_controller(kernels, args.backend)
     progress = _Progress()
     try:
         result = simulate(derivation, controller, options, progress=progress)
@@ -315,8 +326,7 @@ def run(argv: Sequence[str] | None = None) -> int:
         return _simulate(args)
     if args.command == "report":
         return _report(args)
-    derivation = _derive(args)
-    kernels = lower(derivation)
+    derivation, kernels = _derive(args)
     if args.command == "check":
         print(format_summary(derivation, kernels))
         return 0

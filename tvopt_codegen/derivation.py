@@ -236,7 +236,7 @@ class _Meter:
         self,
         source: str,
         budget: Budget,
-        progress: Callable[[str, int, float], None] | None = None,
+        progress: Callable[[str, int, int, float], None] | None = None,
     ) -> None:
         self.source = source
         self.budget = budget
@@ -245,14 +245,15 @@ class _Meter:
         self.stage = "model"
         self.progress = progress
         self.expressions = 0
+        self.nodes = 0
         self.last_report = self.start
 
     def report(self) -> None:
-        """Tell the progress callback the stage, expressions built so far and time."""
+        """Tell the progress callback the stage, expressions and nodes so far, and time."""
         if self.progress is not None:
             now = time.perf_counter()
             self.last_report = now
-            self.progress(self.stage, self.expressions, now - self.start)
+            self.progress(self.stage, self.expressions, self.nodes, now - self.start)
 
     def __call__(self, expr: sp.Expr) -> None:
         self.expressions += 1
@@ -266,6 +267,7 @@ class _Meter:
                 f"the derivation took longer than {self.budget.seconds:g} s",
             )
         size = tree_size(sp.sympify(expr), self.budget.size)
+        self.nodes += size
         if size > self.budget.size:
             raise BudgetError(
                 self.source,
@@ -531,7 +533,7 @@ def _check_convexity(
 
 def derive(
     spec: Spec,
-    progress: Callable[[str, int, float], None] | None = None,
+    progress: Callable[[str, int, int, float], None] | None = None,
     budget: Budget | None = None,
 ) -> Derivation:
     """Run the paper's derivation for a spec.
@@ -541,9 +543,10 @@ def derive(
     spec : Spec
         A validated spec.
     progress : callable, optional
-        Called as ``progress(stage, expressions, seconds)`` when each step starts and
-        every half second within one: the step's name, how many expressions the
-        derivation has built so far and the time since it began.
+        Called as ``progress(stage, expressions, nodes, seconds)`` when each step
+        starts and every half second within one: the step's name, how many expressions
+        the derivation has built so far, their total size in nodes (operations and
+        atoms, the measure of the size budget) and the time since it began.
     budget : Budget, optional
         Time and size limits (default :class:`Budget`).
 
