@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: bcd3e7db59b7f1e5d468a800705f2b2e23d4c07f50e6375a7c02dce0e1bcf3ae
+# content sha256: a65eeef08879412ae7d4413462be0c2590b16723dc46b7e00f34dd53b797b02c
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -121,6 +121,13 @@ class NonFiniteOutputError(ControllerError):
 _DEFAULT_P = numpy.array(list(PARAMETERS.values()), dtype=float)
 
 _A = numpy.array(HURWITZ_COEFFICIENTS, dtype=float)
+
+
+def _time(t):
+    """``t`` as a float: a real number, not an array (one time per call)."""
+    if isinstance(t, (int, float, numpy.integer, numpy.floating)):
+        return float(t)
+    raise TypeError(f"t must be a real number, got {type(t).__name__}")
 
 
 def _columns(name, value, rows):
@@ -566,6 +573,7 @@ def control(t, s, params=None):
         ``NonFiniteInputError``, ``SingularDecouplingError``,
         ``HessianNotPositiveDefiniteError`` or ``NonFiniteOutputError``.
     """
+    t = _time(t)
     states, single = _columns("s", s, 4)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -595,6 +603,7 @@ def rhs(t, s, params=None):
     ControllerError
         As :func:`control`.
     """
+    t = _time(t)
     states, single = _columns("s", s, 4)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -619,6 +628,7 @@ def optimality_error(t, s, params=None):
     numpy.ndarray, shape (K, 1) or (K, 1, N)
         ``E``; under the law ``dE/dt = H E``.
     """
+    t = _time(t)
     states, single = _columns("s", s, 4)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -627,6 +637,7 @@ def optimality_error(t, s, params=None):
 
 
 def _output_function(evaluate, t, y, params):
+    t = _time(t)
     outputs, single = _columns("y", y, 1)
     p = _parameters(params)
     _check_inputs(t, outputs, p, "output")

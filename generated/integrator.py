@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 1e59c0ece1f6b96c0ff57dcf4ab17a45ea39304e6cd5ac81b29fb724e3de3f92
+# content sha256: d75b2bd882ca54ba8f792ccf3a1dfc8fe343945851278f1ff9eccea78edb094a
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -117,6 +117,13 @@ class NonFiniteOutputError(ControllerError):
 _DEFAULT_P = numpy.array(list(PARAMETERS.values()), dtype=float)
 
 _A = numpy.array(HURWITZ_COEFFICIENTS, dtype=float)
+
+
+def _time(t):
+    """``t`` as a float: a real number, not an array (one time per call)."""
+    if isinstance(t, (int, float, numpy.integer, numpy.floating)):
+        return float(t)
+    raise TypeError(f"t must be a real number, got {type(t).__name__}")
 
 
 def _columns(name, value, rows):
@@ -437,6 +444,7 @@ def control(t, s, params=None):
         ``NonFiniteInputError``, ``SingularDecouplingError``,
         ``HessianNotPositiveDefiniteError`` or ``NonFiniteOutputError``.
     """
+    t = _time(t)
     states, single = _columns("s", s, 2)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -466,6 +474,7 @@ def rhs(t, s, params=None):
     ControllerError
         As :func:`control`.
     """
+    t = _time(t)
     states, single = _columns("s", s, 2)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -490,6 +499,7 @@ def optimality_error(t, s, params=None):
     numpy.ndarray, shape (K, 2) or (K, 2, N)
         ``E``; under the law ``dE/dt = H E``.
     """
+    t = _time(t)
     states, single = _columns("s", s, 2)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -498,6 +508,7 @@ def optimality_error(t, s, params=None):
 
 
 def _output_function(evaluate, t, y, params):
+    t = _time(t)
     outputs, single = _columns("y", y, 2)
     p = _parameters(params)
     _check_inputs(t, outputs, p, "output")

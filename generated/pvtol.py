@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: b5db7215005454015f67484314812370372fbba41004bb91eba883684991bb9a
+# content sha256: dc6193fb2355e173748ef9918653c38c9c8932aed34d17cbd25be8edadcf69b2
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -127,6 +127,13 @@ class NonFiniteOutputError(ControllerError):
 _DEFAULT_P = numpy.array(list(PARAMETERS.values()), dtype=float)
 
 _A = numpy.array(HURWITZ_COEFFICIENTS, dtype=float)
+
+
+def _time(t):
+    """``t`` as a float: a real number, not an array (one time per call)."""
+    if isinstance(t, (int, float, numpy.integer, numpy.floating)):
+        return float(t)
+    raise TypeError(f"t must be a real number, got {type(t).__name__}")
 
 
 def _columns(name, value, rows):
@@ -469,6 +476,7 @@ def control(t, s, params=None):
         ``NonFiniteInputError``, ``SingularDecouplingError``,
         ``HessianNotPositiveDefiniteError`` or ``NonFiniteOutputError``.
     """
+    t = _time(t)
     states, single = _columns("s", s, 8)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -498,6 +506,7 @@ def rhs(t, s, params=None):
     ControllerError
         As :func:`control`.
     """
+    t = _time(t)
     states, single = _columns("s", s, 8)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -522,6 +531,7 @@ def optimality_error(t, s, params=None):
     numpy.ndarray, shape (K, 2) or (K, 2, N)
         ``E``; under the law ``dE/dt = H E``.
     """
+    t = _time(t)
     states, single = _columns("s", s, 8)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -530,6 +540,7 @@ def optimality_error(t, s, params=None):
 
 
 def _output_function(evaluate, t, y, params):
+    t = _time(t)
     outputs, single = _columns("y", y, 2)
     p = _parameters(params)
     _check_inputs(t, outputs, p, "output")

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: c2fb71590c4e30407e1aa3962009a029f9790fdcecde995c8b6795b45e94ec0d
+# content sha256: ceb735e60da1010489398c98675e9752c5367ca9896a49b8a860b25fa74b65b5
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -126,6 +126,13 @@ class NonFiniteOutputError(ControllerError):
 _DEFAULT_P = numpy.array(list(PARAMETERS.values()), dtype=float)
 
 _A = numpy.array(HURWITZ_COEFFICIENTS, dtype=float)
+
+
+def _time(t):
+    """``t`` as a float: a real number, not an array (one time per call)."""
+    if isinstance(t, (int, float, numpy.integer, numpy.floating)):
+        return float(t)
+    raise TypeError(f"t must be a real number, got {type(t).__name__}")
 
 
 def _columns(name, value, rows):
@@ -701,6 +708,7 @@ def control(t, s, params=None):
         ``NonFiniteInputError``, ``SingularDecouplingError``,
         ``HessianNotPositiveDefiniteError`` or ``NonFiniteOutputError``.
     """
+    t = _time(t)
     states, single = _columns("s", s, 8)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -730,6 +738,7 @@ def rhs(t, s, params=None):
     ControllerError
         As :func:`control`.
     """
+    t = _time(t)
     states, single = _columns("s", s, 8)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -754,6 +763,7 @@ def optimality_error(t, s, params=None):
     numpy.ndarray, shape (K, 4) or (K, 4, N)
         ``E``; under the law ``dE/dt = H E``.
     """
+    t = _time(t)
     states, single = _columns("s", s, 8)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -762,6 +772,7 @@ def optimality_error(t, s, params=None):
 
 
 def _output_function(evaluate, t, y, params):
+    t = _time(t)
     outputs, single = _columns("y", y, 4)
     p = _parameters(params)
     _check_inputs(t, outputs, p, "output")

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 5ee6f8c4a88ff85fbfcba0303765655c9a48a9f53b1bc6349b2b2ca92d3dab42
+# content sha256: 4460e13b9ae91d845cb83d07f708fcf8a622b2ba8a01d4aeedb98d5a15c7545b
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -133,6 +133,13 @@ class NonFiniteOutputError(ControllerError):
 _DEFAULT_P = numpy.array(list(PARAMETERS.values()), dtype=float)
 
 _A = numpy.array(HURWITZ_COEFFICIENTS, dtype=float)
+
+
+def _time(t):
+    """``t`` as a float: a real number, not an array (one time per call)."""
+    if isinstance(t, (int, float, numpy.integer, numpy.floating)):
+        return float(t)
+    raise TypeError(f"t must be a real number, got {type(t).__name__}")
 
 
 def _columns(name, value, rows):
@@ -1329,6 +1336,7 @@ def control(t, s, params=None):
         ``NonFiniteInputError``, ``SingularDecouplingError``,
         ``HessianNotPositiveDefiniteError`` or ``NonFiniteOutputError``.
     """
+    t = _time(t)
     states, single = _columns("s", s, 16)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -1358,6 +1366,7 @@ def rhs(t, s, params=None):
     ControllerError
         As :func:`control`.
     """
+    t = _time(t)
     states, single = _columns("s", s, 16)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -1382,6 +1391,7 @@ def optimality_error(t, s, params=None):
     numpy.ndarray, shape (K, 8) or (K, 8, N)
         ``E``; under the law ``dE/dt = H E``.
     """
+    t = _time(t)
     states, single = _columns("s", s, 16)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -1390,6 +1400,7 @@ def optimality_error(t, s, params=None):
 
 
 def _output_function(evaluate, t, y, params):
+    t = _time(t)
     outputs, single = _columns("y", y, 8)
     p = _parameters(params)
     _check_inputs(t, outputs, p, "output")

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 574eb06b5cbcc94f7a7829ca929a01e5ec09c956b1672e8a459d2b72727b2d9b
+# content sha256: 6c1b69789224342d60a66c75e89b4b01f15992502c11a52fcc60ea8d463b2fbd
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -122,6 +122,13 @@ class NonFiniteOutputError(ControllerError):
 _DEFAULT_P = numpy.array(list(PARAMETERS.values()), dtype=float)
 
 _A = numpy.array(HURWITZ_COEFFICIENTS, dtype=float)
+
+
+def _time(t):
+    """``t`` as a float: a real number, not an array (one time per call)."""
+    if isinstance(t, (int, float, numpy.integer, numpy.floating)):
+        return float(t)
+    raise TypeError(f"t must be a real number, got {type(t).__name__}")
 
 
 def _columns(name, value, rows):
@@ -479,6 +486,7 @@ def control(t, s, params=None):
         ``NonFiniteInputError``, ``SingularDecouplingError``,
         ``HessianNotPositiveDefiniteError`` or ``NonFiniteOutputError``.
     """
+    t = _time(t)
     states, single = _columns("s", s, 4)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -508,6 +516,7 @@ def rhs(t, s, params=None):
     ControllerError
         As :func:`control`.
     """
+    t = _time(t)
     states, single = _columns("s", s, 4)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -532,6 +541,7 @@ def optimality_error(t, s, params=None):
     numpy.ndarray, shape (K, 2) or (K, 2, N)
         ``E``; under the law ``dE/dt = H E``.
     """
+    t = _time(t)
     states, single = _columns("s", s, 4)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -540,6 +550,7 @@ def optimality_error(t, s, params=None):
 
 
 def _output_function(evaluate, t, y, params):
+    t = _time(t)
     outputs, single = _columns("y", y, 2)
     p = _parameters(params)
     _check_inputs(t, outputs, p, "output")

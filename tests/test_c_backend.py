@@ -344,3 +344,82 @@ def test_barrier_at_its_pole_same_status_in_both_backends(
         except mod.ControllerError as exc:
             outcomes.append(exc.status)
     assert outcomes[0] == outcomes[1]
+
+
+def _ctypes_module(spec: str, tmp_path: Path) -> ModuleType:
+    """The same generated module imported without its CPython entry point."""
+    folder = tmp_path / "ctypes"
+    _write_c(spec, folder)
+    name = derivation(spec).spec.name
+    previous = os.environ.get("TVOPT_CODEGEN_EXTENSION")
+    os.environ["TVOPT_CODEGEN_EXTENSION"] = "0"
+    try:
+        loader = importlib.util.spec_from_file_location(
+            f"_tvopt_ctypes_{name}", folder / f"{name}.py"
+        )
+        assert loader is not None and loader.loader is not None
+        mod = importlib.util.module_from_spec(loader)
+        loader.loader.exec_module(mod)
+    finally:
+        if previous is None:
+            del os.environ["TVOPT_CODEGEN_EXTENSION"]
+        else:
+            os.environ["TVOPT_CODEGEN_EXTENSION"] = previous
+    return mod
+
+
+@pytest.mark.parametrize("spec", ["unicycle_switch", "two_unicycles_barrier", "flexible_joint"])
+def test_entry_point_equals_the_ctypes_path(
+    spec: str, tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """The compiled entry point and ctypes call the same C: identical to the last bit,
+    for every layout of the state a user may pass."""
+    fast, slow = c_module(spec, tmp_path_factory), _ctypes_module(spec, tmp_path)
+    assert fast._ENTRY is not None and slow._ENTRY is None  # noqa: SLF001
+    states = random_states(spec, 50, seed=5)
+    layouts = [
+        states,  # C-contiguous (n, N)
+        np.asfortranarray(states),  # columns contiguous
+        states[:, ::3],  # strided columns
+        np.ascontiguousarray(states.T).T,  # a transposed view
+        states[:, 7],  # one state, a strided 1-D view
+        list(states[:, 3]),  # a list: the general path
+        states.astype(np.float32),  # another dtype: the general path
+    ]
+    m = len(fast.OUTPUT_NAMES)
+    for layout in layouts:
+        for name in ("control", "rhs", "optimality_error"):
+            np.testing.assert_array_equal(
+                getattr(fast, name)(1.5, layout), getattr(slow, name)(1.5, layout)
+            )
+        y = np.asarray(layout)[:m]
+        for name in ("objective", "gradient", "hessian"):
+            np.testing.assert_array_equal(getattr(fast, name)(1.5, y), getattr(slow, name)(1.5, y))
+    params = {next(iter(fast.PARAMETERS)): 0.9}
+    np.testing.assert_array_equal(
+        fast.control(2.0, states, params), slow.control(2.0, states, params)
+    )
+    assert fast.control.__doc__ == slow.control.__doc__
+    assert fast.control.__name__ == "control"
+
+
+def test_entry_point_raises_like_the_python_backend(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    cmod, pmod = c_module("unicycle_switch", tmp_path_factory), module("unicycle_switch")
+    states = np.array([[-5.0, -5.0, -5.0], [4.0, 4.0, 4.0], [0.0, 0.0, 0.0], [1.0, 0.0, 2.0]])
+    for mod in (cmod, pmod):
+        with pytest.raises(mod.SingularDecouplingError, match="column 1") as info:
+            mod.control(0.0, states)
+        assert info.value.index == 1
+        with pytest.raises(ValueError, match=r"s must have shape \(4,\) or \(4, N\), got \(3,\)"):
+            mod.control(0.0, np.zeros(3))
+        with pytest.raises(ValueError, match="unknown parameter"):
+            mod.control(0.0, states[:, 0], {"nope": 1.0})
+        with pytest.raises(TypeError, match="t must be a real number, got ndarray"):
+            mod.control(np.zeros(2), states[:, 0])
+        np.testing.assert_array_equal(
+            mod.control(np.float32(0.5), states[:, 0]), mod.control(0.5, states[:, 0])
+        )
+        with pytest.raises(mod.NonFiniteInputError):
+            mod.control(float("nan"), states[:, 0])

@@ -271,6 +271,12 @@ def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
             "guard": d.spec.name.upper(),
             "r_blocks": kernels.r_blocks,
             "r_groups": _block_groups(kernels.r_blocks),
+            # The C backend's CPython entry point: its module name and the size of
+            # its largest single result (rhs, optimality error or Hessian).
+            "extension_name": f"_{d.spec.name}_ext",
+            "result_max": max(
+                len(d.state_names), d.k * len(d.spec.outputs), len(d.spec.outputs) ** 2
+            ),
         }
         text = render_template(template_name, context)
         files[pattern.format(name=d.spec.name)] = text

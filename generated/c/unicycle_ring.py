@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: c/wrapper.py.jinja
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 24adc2e6d2cc090a8d891351345f13cb3493558e0525b5206713b79c67f237e0
+# content sha256: 3b86f1fbfd68255fbc465363ab247ee937f02247ab8492c851fb95edb22cff37
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -55,10 +55,15 @@ Where the law is undefined the functions raise a subclass of :class:`ControllerE
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
+import importlib.machinery
+import importlib.util
 import os
 import shutil
 import subprocess
+import sys
+import sysconfig
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -153,40 +158,81 @@ def _compiler():
     )
 
 
+def _python_headers():
+    """Include folders for the CPython entry point, or () without Python.h."""
+    if os.environ.get("TVOPT_CODEGEN_EXTENSION", "1") == "0":
+        return ()
+    include = sysconfig.get_paths().get("include")
+    if not include or not (Path(include) / "Python.h").is_file():
+        return ()
+    return (include, numpy.get_include())
+
+
 def _build():
-    """Compile unicycle_ring.c once per (source, compiler, flags); return the library path."""
+    """Compile unicycle_ring.c once per (source, compiler, flags); return the library path.
+
+    With Python's headers, unicycle_ring_ext.c is compiled into the same library: a
+    CPython entry point that calls the law without ctypes. Without them, or if that
+    part does not compile, the library is the C alone and calls go through ctypes.
+    Returns the library path and whether it holds the entry point.
+    """
     here = Path(__file__).resolve().parent
     source = here / "unicycle_ring.c"
     header = here / "unicycle_ring.h"
+    entry = here / "unicycle_ring_ext.c"
     cc = _compiler()
     flags = [*CFLAGS, *os.environ.get("TVOPT_CODEGEN_CFLAGS", "").split()]
     version = subprocess.run([cc, "--version"], capture_output=True, text=True).stdout
-    key = hashlib.sha256()
-    for part in (source.read_bytes(), header.read_bytes(), cc.encode(), version.encode(),
-                 "\0".join(flags).encode()):
-        key.update(hashlib.sha256(part).digest())
     cache = Path(os.environ.get("TVOPT_CODEGEN_CACHE") or Path.home() / ".cache" / "tvopt-codegen")
-    library = cache / f"unicycle_ring-{key.hexdigest()[:24]}.so"
-    if library.exists():
-        return library
-    cache.mkdir(parents=True, exist_ok=True)
-    fd, partial = tempfile.mkstemp(prefix=".unicycle_ring-", suffix=".so", dir=cache)
-    os.close(fd)
-    try:
-        done = subprocess.run([cc, *flags, "-I", str(here), "-o", partial, str(source), "-lm"],
-                              capture_output=True, text=True)
-        if done.returncode != 0:
-            detail = " ".join(done.stderr.strip().splitlines()[:3])
-            raise ImportError(f"unicycle_ring: compiling {source} with {cc} failed: {detail}")
-        # Atomic: a concurrent import sees no library or a whole one, never half.
-        os.replace(partial, library)
-    finally:
-        if os.path.exists(partial):
-            os.unlink(partial)
-    return library
+    headers = _python_headers() if entry.is_file() else ()
+    attempts = [headers, ()] if headers else [()]
+    for includes in attempts:
+        key = hashlib.sha256()
+        parts = [source.read_bytes(), header.read_bytes(), cc.encode(), version.encode(),
+                 "\0".join(flags).encode()]
+        if includes:
+            # The entry point depends on the interpreter's and numpy's ABI as well.
+            parts += [entry.read_bytes(), "\0".join(includes).encode(), sys.version.encode(),
+                      numpy.__version__.encode()]
+        for part in parts:
+            key.update(hashlib.sha256(part).digest())
+        library = cache / f"unicycle_ring-{key.hexdigest()[:24]}.so"
+        if library.exists():
+            return library, bool(includes)
+        cache.mkdir(parents=True, exist_ok=True)
+        fd, partial = tempfile.mkstemp(prefix=".unicycle_ring-", suffix=".so", dir=cache)
+        os.close(fd)
+        try:
+            command = [cc, *flags, "-I", str(here)]
+            for folder in includes:
+                command += ["-I", folder]
+            command += ["-o", partial, str(source), *([str(entry)] if includes else []), "-lm"]
+            done = subprocess.run(command, capture_output=True, text=True)
+            if done.returncode == 0:
+                # Atomic: a concurrent import sees no library or a whole one, never half.
+                os.replace(partial, library)
+                return library, bool(includes)
+            if not includes:
+                detail = " ".join(done.stderr.strip().splitlines()[:3])
+                raise ImportError(f"unicycle_ring: compiling {source} with {cc} failed: {detail}")
+        finally:
+            if os.path.exists(partial):
+                os.unlink(partial)
+    raise AssertionError("unreachable: the last attempt returns or raises")
 
 
-_LIB = ctypes.CDLL(str(_build()))
+def _entry_point(library):
+    """The CPython entry point compiled into ``library``."""
+    loader = importlib.machinery.ExtensionFileLoader("_unicycle_ring_ext", str(library))
+    module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
+    loader.exec_module(module)
+    return module.call
+
+
+_LIBRARY, _HAS_ENTRY_POINT = _build()
+_LIB = ctypes.CDLL(str(_LIBRARY))
+#: The compiled entry point, or None when calls go through ctypes (no Python headers).
+_ENTRY = _entry_point(_LIBRARY) if _HAS_ENTRY_POINT else None
 _FUNCTIONS = {}
 for _name in ("control", "rhs", "optimality_error", "objective", "gradient", "hessian"):
     _function = getattr(_LIB, f"unicycle_ring_{_name}_batch")
@@ -229,10 +275,13 @@ def _call(name, t, array, p, shape, what):
     status = _FUNCTIONS[name](count, t, _address(points), _address(params), _address(out),
                               _address(failed))
     if status != STATUS_OK:
-        kind, message = _MESSAGES[status]
-        index = int(failed[0])
-        raise kind(message.format(index=index, what=what), index)
+        _raise(status, int(failed[0]), what)
     return out.T if out.ndim == 2 else numpy.moveaxis(out, 0, -1)
+
+
+def _raise(status, index, what):
+    kind, message = _MESSAGES[status]
+    raise kind(message.format(index=index, what=what), index)
 
 
 def _control_values(t, s, p):
@@ -257,6 +306,13 @@ def _gradient_values(t, y, p):
 
 def _hessian_values(t, y, p):
     return _call("hessian", t, y, p, (8, 8), "output")
+
+
+def _time(t):
+    """``t`` as a float: a real number, not an array (one time per call)."""
+    if isinstance(t, (int, float, numpy.integer, numpy.floating)):
+        return float(t)
+    raise TypeError(f"t must be a real number, got {type(t).__name__}")
 
 
 def _columns(name, value, rows):
@@ -318,6 +374,7 @@ def control(t, s, params=None):
         ``NonFiniteInputError``, ``SingularDecouplingError``,
         ``HessianNotPositiveDefiniteError`` or ``NonFiniteOutputError``.
     """
+    t = _time(t)
     states, single = _columns("s", s, 16)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -347,6 +404,7 @@ def rhs(t, s, params=None):
     ControllerError
         As :func:`control`.
     """
+    t = _time(t)
     states, single = _columns("s", s, 16)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -371,6 +429,7 @@ def optimality_error(t, s, params=None):
     numpy.ndarray, shape (K, 8) or (K, 8, N)
         ``E``; under the law ``dE/dt = H E``.
     """
+    t = _time(t)
     states, single = _columns("s", s, 16)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
@@ -379,6 +438,7 @@ def optimality_error(t, s, params=None):
 
 
 def _output_function(evaluate, t, y, params):
+    t = _time(t)
     outputs, single = _columns("y", y, 8)
     p = _parameters(params)
     _check_inputs(t, outputs, p, "output")
@@ -443,3 +503,28 @@ def hessian(t, y, params=None):
     """
     return _output_function(_hessian_values, t, y, params)
 
+
+
+def _direct(kind, general, what):
+    """``general`` with its common case (float64 arrays) handed to the entry point."""
+    call = _ENTRY
+    default = _DEFAULT_P
+
+    def function(t, s, params=None):
+        result = call(kind, t, s, default if params is None else _parameters(params))
+        if result is None:  # a list, another dtype or a wrong shape: convert or raise
+            return general(t, s, params)
+        if type(result) is tuple:
+            _raise(result[0], result[1], what)
+        return result
+
+    return functools.update_wrapper(function, general)
+
+
+if _ENTRY is not None:
+    control = _direct(0, control, "state")
+    rhs = _direct(1, rhs, "state")
+    optimality_error = _direct(2, optimality_error, "state")
+    objective = _direct(3, objective, "output")
+    gradient = _direct(4, gradient, "output")
+    hessian = _direct(5, hessian, "output")

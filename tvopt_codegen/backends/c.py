@@ -8,11 +8,15 @@ from tvopt_codegen.printers import CPrinter
 #: The C backend. The Python module has the Python backend's contract exactly.
 C = Backend(
     name="c",
-    description="C99 <name>.h/<name>.c (no heap, re-entrant) and <name>.py loading them",
+    description=(
+        "C99 <name>.h/<name>.c (no heap, re-entrant), <name>.py loading them and "
+        "<name>_ext.c, its CPython entry point"
+    ),
     printer=CPrinter,
     templates=(
         ("c/controller.h.jinja", "{name}.h"),
         ("c/controller.c.jinja", "{name}.c"),
         ("c/wrapper.py.jinja", "{name}.py"),
+        ("c/extension.c.jinja", "{name}_ext.c"),
     ),
 )
