@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import re
 import shutil
@@ -18,7 +17,7 @@ import pytest
 from tvopt_codegen.emit import write_files
 from tvopt_codegen.render import render
 
-from .conftest import ALL_SPECS, derivation, kernels, module
+from .conftest import ALL_SPECS, derivation, import_file, kernels, module
 from .test_generated import random_states
 
 STRICT = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic"]
@@ -39,11 +38,7 @@ def c_module(spec: str, tmp_path_factory: pytest.TempPathFactory) -> ModuleType:
         _write_c(spec, folder)
         os.environ["TVOPT_CODEGEN_CACHE"] = str(tmp_path_factory.getbasetemp() / "cache")
         name = derivation(spec).spec.name
-        loader = importlib.util.spec_from_file_location(f"_tvopt_c_{name}", folder / f"{name}.py")
-        assert loader is not None and loader.loader is not None
-        mod = importlib.util.module_from_spec(loader)
-        loader.loader.exec_module(mod)
-        _IMPORTED[spec] = mod
+        _IMPORTED[spec] = import_file(folder / f"{name}.py", f"_tvopt_c_{name}")
     return _IMPORTED[spec]
 
 
@@ -346,35 +341,26 @@ def test_barrier_at_its_pole_same_status_in_both_backends(
     assert outcomes[0] == outcomes[1]
 
 
-def _ctypes_module(spec: str, tmp_path: Path) -> ModuleType:
+def _ctypes_module(spec: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> ModuleType:
     """The same generated module imported without its CPython entry point."""
     folder = tmp_path / "ctypes"
     _write_c(spec, folder)
     name = derivation(spec).spec.name
-    previous = os.environ.get("TVOPT_CODEGEN_EXTENSION")
-    os.environ["TVOPT_CODEGEN_EXTENSION"] = "0"
-    try:
-        loader = importlib.util.spec_from_file_location(
-            f"_tvopt_ctypes_{name}", folder / f"{name}.py"
-        )
-        assert loader is not None and loader.loader is not None
-        mod = importlib.util.module_from_spec(loader)
-        loader.loader.exec_module(mod)
-    finally:
-        if previous is None:
-            del os.environ["TVOPT_CODEGEN_EXTENSION"]
-        else:
-            os.environ["TVOPT_CODEGEN_EXTENSION"] = previous
-    return mod
+    with monkeypatch.context() as patch:
+        patch.setenv("TVOPT_CODEGEN_EXTENSION", "0")
+        return import_file(folder / f"{name}.py", f"_tvopt_ctypes_{name}")
 
 
 @pytest.mark.parametrize("spec", ["unicycle_switch", "two_unicycles_barrier", "flexible_joint"])
 def test_entry_point_equals_the_ctypes_path(
-    spec: str, tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
+    spec: str,
+    tmp_path: Path,
+    tmp_path_factory: pytest.TempPathFactory,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """The compiled entry point and ctypes call the same C: identical to the last bit,
     for every layout of the state a user may pass."""
-    fast, slow = c_module(spec, tmp_path_factory), _ctypes_module(spec, tmp_path)
+    fast, slow = c_module(spec, tmp_path_factory), _ctypes_module(spec, tmp_path, monkeypatch)
     assert fast._ENTRY is not None and slow._ENTRY is None  # noqa: SLF001
     states = random_states(spec, 50, seed=5)
     layouts = [
