@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: a65eeef08879412ae7d4413462be0c2590b16723dc46b7e00f34dd53b797b02c
+# content sha256: aacd85bd9d97ad10572f498e0289836bf846943d97b4ba3d19a609806c91b4a2
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -199,31 +199,46 @@ def _solve_decoupling(r, b):
     count = b.shape[1]
     w = numpy.empty_like(b)
     for size, starts, rows in _R_GROUPS:
-        take = numpy.add.outer(numpy.array(starts), numpy.arange(size * size))
         blocks = len(starts)
-        a = r[take].reshape(blocks, size, size, count).transpose(1, 2, 0, 3)
-        index = numpy.array(rows)
-        rhs = b[index].transpose(1, 0, 2).reshape(size, blocks * count)
-        x = _lu_solve(a.reshape(size, size, blocks * count), rhs, count)
-        w[index] = x.reshape(size, blocks, count).transpose(1, 0, 2)
+        if blocks == 1:
+            a = r[starts[0]:starts[0] + size * size].reshape(size, size, count)
+            rhs = b[list(rows[0])]
+        else:
+            take = numpy.add.outer(numpy.array(starts), numpy.arange(size * size))
+            a = r[take].transpose(1, 0, 2).reshape(size, size, blocks * count)
+            rhs = b[numpy.array(rows)].transpose(1, 0, 2).reshape(size, blocks * count)
+        x = _lu_solve(a, rhs, count)
+        w[numpy.array(rows)] = x.reshape(size, blocks, count).transpose(1, 0, 2)
     return w
 
 
 def _lu_solve(a, b, points):
     """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N).
 
-    Column ``c`` belongs to point ``c % points`` of the caller's batch.
+    Column ``c`` belongs to point ``c % points`` of the caller's batch. Every entry is a
+    contiguous row over the batch and a row exchange is a ``where`` on the columns that
+    need it: the same operations in the same order as the C code's loop.
     """
-    lu = numpy.moveaxis(a, -1, 0).copy()
-    x = numpy.moveaxis(b, -1, 0).copy()
-    count, m = x.shape
-    rows = numpy.arange(count)
-    scale = numpy.max(numpy.abs(lu.reshape(count, -1)), axis=1)
+    m = b.shape[0]
+    lu = [[a[i, k].copy() for k in range(m)] for i in range(m)]
+    x = [b[i].copy() for i in range(m)]
+    scale = numpy.max(numpy.abs(a.reshape(m * m, -1)), axis=0)
     for j in range(m):
-        piv = j + numpy.argmax(numpy.abs(lu[:, j:, j]), axis=1)
-        lu[rows, j], lu[rows, piv] = lu[rows, piv].copy(), lu[rows, j].copy()
-        x[rows, j], x[rows, piv] = x[rows, piv].copy(), x[rows, j].copy()
-        pivot = lu[:, j, j]
+        # The pivot row: the first of the largest |a[i, j]|, i >= j, like the C loop.
+        best, row = numpy.abs(lu[j][j]), None
+        for i in range(j + 1, m):
+            size = numpy.abs(lu[i][j])
+            larger = size > best
+            best = numpy.where(larger, size, best)
+            row = numpy.where(larger, i, j if row is None else row)
+        for i in range(j + 1, m):
+            swap = row == i
+            if swap.any():
+                for k in range(m):
+                    lu[j][k], lu[i][k] = (numpy.where(swap, lu[i][k], lu[j][k]),
+                                          numpy.where(swap, lu[j][k], lu[i][k]))
+                x[j], x[i] = numpy.where(swap, x[i], x[j]), numpy.where(swap, x[j], x[i])
+        pivot = lu[j][j]
         bad = ~(numpy.abs(pivot) > PIVOT_TOLERANCE * scale)
         if bad.any():
             index = int(numpy.argmax(bad)) % points
@@ -231,12 +246,16 @@ def _lu_solve(a, b, points):
                 f"the decoupling matrix R is singular (column {index})"
                 "; R is singular where stiffness = 0"
                 , index)
-        factor = lu[:, j + 1:, j] / pivot[:, None]
-        lu[:, j + 1:, j:] -= factor[:, :, None] * lu[:, None, j, j:]
-        x[:, j + 1:] -= factor * x[:, j, None]
+        for i in range(j + 1, m):
+            factor = lu[i][j] / pivot
+            for k in range(j + 1, m):
+                lu[i][k] -= factor * lu[j][k]
+            x[i] -= factor * x[j]
     for j in reversed(range(m)):
-        x[:, j] = (x[:, j] - numpy.sum(lu[:, j, j + 1:] * x[:, j + 1:], axis=1)) / lu[:, j, j]
-    return numpy.moveaxis(x, 0, -1)
+        for k in range(j + 1, m):
+            x[j] -= lu[j][k] * x[k]
+        x[j] /= lu[j][j]
+    return numpy.array(x)
 
 def _jet(t, s, p, a):
     """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 253 operations, 335 before CSE)."""
@@ -342,15 +361,13 @@ def _jet(t, s, p, a):
 
 
 def _cholesky(h, c):
-    """Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots (kernel; 5 operations, 5 before CSE)."""
+    """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (kernel; 2 operations, 3 before CSE)."""
     _n = h.shape[1]
     _h0 = h[0]  # H[0, 0]
     _c0 = c[0]  # c[0]
-    # Intermediate terms (1)
-    _t0 = 1/numpy.sqrt(_h0)
     # Output terms
     z = numpy.empty((1, _n))  # y_imp^(k)
-    z[0] = _c0*_t0**2
+    z[0] = _c0/_h0
     pivot = numpy.empty((1, _n))  # pivots of the elimination, positive if Hess > 0
     pivot[0] = _h0
     return z, pivot
@@ -392,6 +409,16 @@ def _closed_loop(t, s, p, w, z):
     u = numpy.empty((1, _n))  # plant input
     u[0] = _w0
     return ds, u
+
+
+def _plant_input(t, s, p, w):
+    """The plant input alone (control needs no vector field) (kernel; 0 operations, 0 before CSE)."""
+    _n = s.shape[1]
+    _w0 = w[0]  # u
+    # Output terms
+    u = numpy.empty((1, _n))  # plant input
+    u[0] = _w0
+    return u
 
 
 def _optimality(t, s, p):
@@ -495,8 +522,12 @@ def _hessian(t, y, p):
 
 
 
-def _law(t, s, p):
-    """The paper's law, evaluated column by column: returns (ds/dt, u)."""
+def _law(t, s, p, rates=True):
+    """The paper's law, evaluated column by column: returns (ds/dt, u).
+
+    Without ``rates`` ds/dt is None: :func:`control` needs the plant input alone, and then
+    checks no more than the C backend's ``control`` does.
+    """
     with numpy.errstate(all="ignore"):
         hess, jet_rhs, r, pvec = _jet(t, s, p, _A)
     _check_finite("the Hessian, the gradient jet, the decoupling matrix or p", hess, jet_rhs,
@@ -508,46 +539,103 @@ def _law(t, s, p):
     _check_finite("v - p", b)
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
     w = _solve_decoupling(r, b)
+    if not rates:
+        with numpy.errstate(all="ignore"):
+            u = _plant_input(t, s, p, w)
+        _check_finite("the plant input", u)
+        return None, u
     with numpy.errstate(all="ignore"):
         ds, u = _closed_loop(t, s, p, w, z)
     _check_finite("the closed-loop vector field", ds, u)
     return ds, u
 
 
-def _control_values(t, s, p):
-    return _law(t, s, p)[1]
+#: Columns evaluated at once. The temporaries of one block stay in the CPU caches, where
+#: one pass over a batch of 10^5 columns streams every temporary through main memory.
+_BLOCK = 8192
 
 
-def _rhs_values(t, s, p):
+def _blockwise(function, t, s, p):
+    """``function(t, s, p)`` over blocks of ``_BLOCK`` columns, joined on the last axis."""
+    count = s.shape[1]
+    if count <= _BLOCK:
+        return function(t, s, p)
+    parts = []
+    for start in range(0, count, _BLOCK):
+        try:
+            parts.append(function(t, s[:, start:start + _BLOCK], p))
+        except ControllerError as error:
+            raise _shifted(error, start) from None
+    return numpy.concatenate(parts, axis=-1)
+
+
+def _shifted(error, offset):
+    """``error`` of a block that starts at column ``offset``, told in whole-batch columns."""
+    if error.index is None:
+        return error
+    index = error.index + offset
+    message = str(error).replace(f"(column {error.index})", f"(column {index})", 1)
+    return type(error)(message, index)
+
+
+def _control_one_block(t, s, p):
+    return _law(t, s, p, rates=False)[1]
+
+
+def _rhs_one_block(t, s, p):
     return _law(t, s, p)[0]
 
 
-def _optimality_error(t, s, p):
+def _optimality_one_block(t, s, p):
     with numpy.errstate(all="ignore"):
         e = _optimality(t, s, p)
     _check_finite("the optimality error", e)
     return e
 
 
-def _objective_values(t, y, p):
+def _objective_one_block(t, y, p):
     with numpy.errstate(all="ignore"):
         value = _objective(t, y, p)
     _check_finite("f0", value)
     return value
 
 
-def _gradient_values(t, y, p):
+def _gradient_one_block(t, y, p):
     with numpy.errstate(all="ignore"):
         value = _gradient(t, y, p)
     _check_finite("the gradient of f0", value)
     return value
 
 
-def _hessian_values(t, y, p):
+def _hessian_one_block(t, y, p):
     with numpy.errstate(all="ignore"):
         value = _hessian(t, y, p)
     _check_finite("the Hessian of f0", value)
     return value
+
+
+def _control_values(t, s, p):
+    return _blockwise(_control_one_block, t, s, p)
+
+
+def _rhs_values(t, s, p):
+    return _blockwise(_rhs_one_block, t, s, p)
+
+
+def _optimality_error(t, s, p):
+    return _blockwise(_optimality_one_block, t, s, p)
+
+
+def _objective_values(t, y, p):
+    return _blockwise(_objective_one_block, t, y, p)
+
+
+def _gradient_values(t, y, p):
+    return _blockwise(_gradient_one_block, t, y, p)
+
+
+def _hessian_values(t, y, p):
+    return _blockwise(_hessian_one_block, t, y, p)
 
 
 def control(t, s, params=None):

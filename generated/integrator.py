@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: d75b2bd882ca54ba8f792ccf3a1dfc8fe343945851278f1ff9eccea78edb094a
+# content sha256: 2068864fd9ae8dc9d248c950468c840897c269cc29f640fbeec863a3e8b51259
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -195,61 +195,79 @@ def _solve_decoupling(r, b):
     count = b.shape[1]
     w = numpy.empty_like(b)
     for size, starts, rows in _R_GROUPS:
-        take = numpy.add.outer(numpy.array(starts), numpy.arange(size * size))
         blocks = len(starts)
-        a = r[take].reshape(blocks, size, size, count).transpose(1, 2, 0, 3)
-        index = numpy.array(rows)
-        rhs = b[index].transpose(1, 0, 2).reshape(size, blocks * count)
-        x = _lu_solve(a.reshape(size, size, blocks * count), rhs, count)
-        w[index] = x.reshape(size, blocks, count).transpose(1, 0, 2)
+        if blocks == 1:
+            a = r[starts[0]:starts[0] + size * size].reshape(size, size, count)
+            rhs = b[list(rows[0])]
+        else:
+            take = numpy.add.outer(numpy.array(starts), numpy.arange(size * size))
+            a = r[take].transpose(1, 0, 2).reshape(size, size, blocks * count)
+            rhs = b[numpy.array(rows)].transpose(1, 0, 2).reshape(size, blocks * count)
+        x = _lu_solve(a, rhs, count)
+        w[numpy.array(rows)] = x.reshape(size, blocks, count).transpose(1, 0, 2)
     return w
 
 
 def _lu_solve(a, b, points):
     """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N).
 
-    Column ``c`` belongs to point ``c % points`` of the caller's batch.
+    Column ``c`` belongs to point ``c % points`` of the caller's batch. Every entry is a
+    contiguous row over the batch and a row exchange is a ``where`` on the columns that
+    need it: the same operations in the same order as the C code's loop.
     """
-    lu = numpy.moveaxis(a, -1, 0).copy()
-    x = numpy.moveaxis(b, -1, 0).copy()
-    count, m = x.shape
-    rows = numpy.arange(count)
-    scale = numpy.max(numpy.abs(lu.reshape(count, -1)), axis=1)
+    m = b.shape[0]
+    lu = [[a[i, k].copy() for k in range(m)] for i in range(m)]
+    x = [b[i].copy() for i in range(m)]
+    scale = numpy.max(numpy.abs(a.reshape(m * m, -1)), axis=0)
     for j in range(m):
-        piv = j + numpy.argmax(numpy.abs(lu[:, j:, j]), axis=1)
-        lu[rows, j], lu[rows, piv] = lu[rows, piv].copy(), lu[rows, j].copy()
-        x[rows, j], x[rows, piv] = x[rows, piv].copy(), x[rows, j].copy()
-        pivot = lu[:, j, j]
+        # The pivot row: the first of the largest |a[i, j]|, i >= j, like the C loop.
+        best, row = numpy.abs(lu[j][j]), None
+        for i in range(j + 1, m):
+            size = numpy.abs(lu[i][j])
+            larger = size > best
+            best = numpy.where(larger, size, best)
+            row = numpy.where(larger, i, j if row is None else row)
+        for i in range(j + 1, m):
+            swap = row == i
+            if swap.any():
+                for k in range(m):
+                    lu[j][k], lu[i][k] = (numpy.where(swap, lu[i][k], lu[j][k]),
+                                          numpy.where(swap, lu[j][k], lu[i][k]))
+                x[j], x[i] = numpy.where(swap, x[i], x[j]), numpy.where(swap, x[j], x[i])
+        pivot = lu[j][j]
         bad = ~(numpy.abs(pivot) > PIVOT_TOLERANCE * scale)
         if bad.any():
             index = int(numpy.argmax(bad)) % points
             raise SingularDecouplingError(
                 f"the decoupling matrix R is singular (column {index})"
                 , index)
-        factor = lu[:, j + 1:, j] / pivot[:, None]
-        lu[:, j + 1:, j:] -= factor[:, :, None] * lu[:, None, j, j:]
-        x[:, j + 1:] -= factor * x[:, j, None]
+        for i in range(j + 1, m):
+            factor = lu[i][j] / pivot
+            for k in range(j + 1, m):
+                lu[i][k] -= factor * lu[j][k]
+            x[i] -= factor * x[j]
     for j in reversed(range(m)):
-        x[:, j] = (x[:, j] - numpy.sum(lu[:, j, j + 1:] * x[:, j + 1:], axis=1)) / lu[:, j, j]
-    return numpy.moveaxis(x, 0, -1)
+        for k in range(j + 1, m):
+            x[j] -= lu[j][k] * x[k]
+        x[j] /= lu[j][j]
+    return numpy.array(x)
 
 def _jet(t, s, p, a):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 30 operations, 39 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 31 operations, 37 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
     _p0 = p[0]  # w
     _a0 = a[0]  # a_0
-    # Intermediate terms (2)
+    # Intermediate terms (1)
     _t0 = t**2
-    _t1 = (1/2)*_p0
     # Output terms
     hessian = numpy.empty((2, _n))  # nonzero entries of the lower triangle of grad_yy f0
     hessian[0] = 1
     hessian[1] = _p0
     jet_rhs = numpy.empty((2, _n))  # sum_i a_i grad^(i) f0 - rest
     jet_rhs[0] = _a0*(_s0 - 4/5*t + (1/20)*_t0 - 2) - 1/10*t + 4/5
-    jet_rhs[1] = _a0*_t1*(2*_s1 - t - 1/25*_t0 + (1/500)*t**3 + 2) - _t1*((3/500)*_t0 - 2/25*t - 1)
+    jet_rhs[1] = _a0*(_p0*_s1 - _p0*((1/2)*t - 1/1000*t**3 + (1/50)*_t0 - 1)) + _p0*((1/25)*t - 3/1000*_t0 + 1/2)
     R = numpy.empty((2, _n))  # diagonal blocks of the decoupling matrix
     R[0] = 1
     R[1] = 1
@@ -260,19 +278,16 @@ def _jet(t, s, p, a):
 
 
 def _cholesky(h, c):
-    """Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots (kernel; 10 operations, 10 before CSE)."""
+    """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (kernel; 4 operations, 6 before CSE)."""
     _n = h.shape[1]
     _h0 = h[0]  # H[0, 0]
     _h1 = h[1]  # H[1, 1]
     _c0 = c[0]  # c[0]
     _c1 = c[1]  # c[1]
-    # Intermediate terms (2)
-    _t0 = 1/numpy.sqrt(_h0)
-    _t1 = 1/numpy.sqrt(_h1)
     # Output terms
     z = numpy.empty((2, _n))  # y_imp^(k)
-    z[0] = _c0*_t0**2
-    z[1] = _c1*_t1**2
+    z[0] = _c0/_h0
+    z[1] = _c1/_h1
     pivot = numpy.empty((2, _n))  # pivots of the elimination, positive if Hess > 0
     pivot[0] = _h0
     pivot[1] = _h1
@@ -308,8 +323,20 @@ def _closed_loop(t, s, p, w, z):
     return ds, u
 
 
+def _plant_input(t, s, p, w):
+    """The plant input alone (control needs no vector field) (kernel; 0 operations, 0 before CSE)."""
+    _n = s.shape[1]
+    _w0 = w[0]  # u1
+    _w1 = w[1]  # u2
+    # Output terms
+    u = numpy.empty((2, _n))  # plant input
+    u[0] = _w0
+    u[1] = _w1
+    return u
+
+
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 17 operations, 21 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 18 operations, 20 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -319,7 +346,7 @@ def _optimality(t, s, p):
     # Output terms
     E = numpy.empty((1, 2, _n))  # grad^(j) f0
     E[0, 0] = _s0 - 4/5*t + (1/20)*_t0 - 2
-    E[0, 1] = (1/2)*_p0*(2*_s1 - t - 1/25*_t0 + (1/500)*t**3 + 2)
+    E[0, 1] = _p0*_s1 - _p0*((1/2)*t - 1/1000*t**3 + (1/50)*_t0 - 1)
     return E
 
 
@@ -338,7 +365,7 @@ def _objective(t, y, p):
 
 
 def _gradient(t, y, p):
-    """grad_y f0(y, t) (kernel; 17 operations, 21 before CSE)."""
+    """grad_y f0(y, t) (kernel; 18 operations, 20 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y1
     _y1 = y[1]  # y2
@@ -348,7 +375,7 @@ def _gradient(t, y, p):
     # Output terms
     grad = numpy.empty((2, _n))  # grad_y f0
     grad[0] = _y0 - 4/5*t + (1/20)*_t0 - 2
-    grad[1] = (1/2)*_p0*(2*_y1 - t - 1/25*_t0 + (1/500)*t**3 + 2)
+    grad[1] = _p0*_y1 - _p0*((1/2)*t - 1/1000*t**3 + (1/50)*_t0 - 1)
     return grad
 
 
@@ -366,8 +393,12 @@ def _hessian(t, y, p):
 
 
 
-def _law(t, s, p):
-    """The paper's law, evaluated column by column: returns (ds/dt, u)."""
+def _law(t, s, p, rates=True):
+    """The paper's law, evaluated column by column: returns (ds/dt, u).
+
+    Without ``rates`` ds/dt is None: :func:`control` needs the plant input alone, and then
+    checks no more than the C backend's ``control`` does.
+    """
     with numpy.errstate(all="ignore"):
         hess, jet_rhs, r, pvec = _jet(t, s, p, _A)
     _check_finite("the Hessian, the gradient jet, the decoupling matrix or p", hess, jet_rhs,
@@ -379,46 +410,103 @@ def _law(t, s, p):
     _check_finite("v - p", b)
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
     w = _solve_decoupling(r, b)
+    if not rates:
+        with numpy.errstate(all="ignore"):
+            u = _plant_input(t, s, p, w)
+        _check_finite("the plant input", u)
+        return None, u
     with numpy.errstate(all="ignore"):
         ds, u = _closed_loop(t, s, p, w, z)
     _check_finite("the closed-loop vector field", ds, u)
     return ds, u
 
 
-def _control_values(t, s, p):
-    return _law(t, s, p)[1]
+#: Columns evaluated at once. The temporaries of one block stay in the CPU caches, where
+#: one pass over a batch of 10^5 columns streams every temporary through main memory.
+_BLOCK = 8192
 
 
-def _rhs_values(t, s, p):
+def _blockwise(function, t, s, p):
+    """``function(t, s, p)`` over blocks of ``_BLOCK`` columns, joined on the last axis."""
+    count = s.shape[1]
+    if count <= _BLOCK:
+        return function(t, s, p)
+    parts = []
+    for start in range(0, count, _BLOCK):
+        try:
+            parts.append(function(t, s[:, start:start + _BLOCK], p))
+        except ControllerError as error:
+            raise _shifted(error, start) from None
+    return numpy.concatenate(parts, axis=-1)
+
+
+def _shifted(error, offset):
+    """``error`` of a block that starts at column ``offset``, told in whole-batch columns."""
+    if error.index is None:
+        return error
+    index = error.index + offset
+    message = str(error).replace(f"(column {error.index})", f"(column {index})", 1)
+    return type(error)(message, index)
+
+
+def _control_one_block(t, s, p):
+    return _law(t, s, p, rates=False)[1]
+
+
+def _rhs_one_block(t, s, p):
     return _law(t, s, p)[0]
 
 
-def _optimality_error(t, s, p):
+def _optimality_one_block(t, s, p):
     with numpy.errstate(all="ignore"):
         e = _optimality(t, s, p)
     _check_finite("the optimality error", e)
     return e
 
 
-def _objective_values(t, y, p):
+def _objective_one_block(t, y, p):
     with numpy.errstate(all="ignore"):
         value = _objective(t, y, p)
     _check_finite("f0", value)
     return value
 
 
-def _gradient_values(t, y, p):
+def _gradient_one_block(t, y, p):
     with numpy.errstate(all="ignore"):
         value = _gradient(t, y, p)
     _check_finite("the gradient of f0", value)
     return value
 
 
-def _hessian_values(t, y, p):
+def _hessian_one_block(t, y, p):
     with numpy.errstate(all="ignore"):
         value = _hessian(t, y, p)
     _check_finite("the Hessian of f0", value)
     return value
+
+
+def _control_values(t, s, p):
+    return _blockwise(_control_one_block, t, s, p)
+
+
+def _rhs_values(t, s, p):
+    return _blockwise(_rhs_one_block, t, s, p)
+
+
+def _optimality_error(t, s, p):
+    return _blockwise(_optimality_one_block, t, s, p)
+
+
+def _objective_values(t, y, p):
+    return _blockwise(_objective_one_block, t, y, p)
+
+
+def _gradient_values(t, y, p):
+    return _blockwise(_gradient_one_block, t, y, p)
+
+
+def _hessian_values(t, y, p):
+    return _blockwise(_hessian_one_block, t, y, p)
 
 
 def control(t, s, params=None):

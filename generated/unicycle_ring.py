@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 4460e13b9ae91d845cb83d07f708fcf8a622b2ba8a01d4aeedb98d5a15c7545b
+# content sha256: 5094badc35708c51e79df651e66363c9fc5c0e7a970b9bc8e390ae916aa3a030
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -211,43 +211,62 @@ def _solve_decoupling(r, b):
     count = b.shape[1]
     w = numpy.empty_like(b)
     for size, starts, rows in _R_GROUPS:
-        take = numpy.add.outer(numpy.array(starts), numpy.arange(size * size))
         blocks = len(starts)
-        a = r[take].reshape(blocks, size, size, count).transpose(1, 2, 0, 3)
-        index = numpy.array(rows)
-        rhs = b[index].transpose(1, 0, 2).reshape(size, blocks * count)
-        x = _lu_solve(a.reshape(size, size, blocks * count), rhs, count)
-        w[index] = x.reshape(size, blocks, count).transpose(1, 0, 2)
+        if blocks == 1:
+            a = r[starts[0]:starts[0] + size * size].reshape(size, size, count)
+            rhs = b[list(rows[0])]
+        else:
+            take = numpy.add.outer(numpy.array(starts), numpy.arange(size * size))
+            a = r[take].transpose(1, 0, 2).reshape(size, size, blocks * count)
+            rhs = b[numpy.array(rows)].transpose(1, 0, 2).reshape(size, blocks * count)
+        x = _lu_solve(a, rhs, count)
+        w[numpy.array(rows)] = x.reshape(size, blocks, count).transpose(1, 0, 2)
     return w
 
 
 def _lu_solve(a, b, points):
     """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N).
 
-    Column ``c`` belongs to point ``c % points`` of the caller's batch.
+    Column ``c`` belongs to point ``c % points`` of the caller's batch. Every entry is a
+    contiguous row over the batch and a row exchange is a ``where`` on the columns that
+    need it: the same operations in the same order as the C code's loop.
     """
-    lu = numpy.moveaxis(a, -1, 0).copy()
-    x = numpy.moveaxis(b, -1, 0).copy()
-    count, m = x.shape
-    rows = numpy.arange(count)
-    scale = numpy.max(numpy.abs(lu.reshape(count, -1)), axis=1)
+    m = b.shape[0]
+    lu = [[a[i, k].copy() for k in range(m)] for i in range(m)]
+    x = [b[i].copy() for i in range(m)]
+    scale = numpy.max(numpy.abs(a.reshape(m * m, -1)), axis=0)
     for j in range(m):
-        piv = j + numpy.argmax(numpy.abs(lu[:, j:, j]), axis=1)
-        lu[rows, j], lu[rows, piv] = lu[rows, piv].copy(), lu[rows, j].copy()
-        x[rows, j], x[rows, piv] = x[rows, piv].copy(), x[rows, j].copy()
-        pivot = lu[:, j, j]
+        # The pivot row: the first of the largest |a[i, j]|, i >= j, like the C loop.
+        best, row = numpy.abs(lu[j][j]), None
+        for i in range(j + 1, m):
+            size = numpy.abs(lu[i][j])
+            larger = size > best
+            best = numpy.where(larger, size, best)
+            row = numpy.where(larger, i, j if row is None else row)
+        for i in range(j + 1, m):
+            swap = row == i
+            if swap.any():
+                for k in range(m):
+                    lu[j][k], lu[i][k] = (numpy.where(swap, lu[i][k], lu[j][k]),
+                                          numpy.where(swap, lu[j][k], lu[i][k]))
+                x[j], x[i] = numpy.where(swap, x[i], x[j]), numpy.where(swap, x[j], x[i])
+        pivot = lu[j][j]
         bad = ~(numpy.abs(pivot) > PIVOT_TOLERANCE * scale)
         if bad.any():
             index = int(numpy.argmax(bad)) % points
             raise SingularDecouplingError(
                 f"the decoupling matrix R is singular (column {index})"
                 , index)
-        factor = lu[:, j + 1:, j] / pivot[:, None]
-        lu[:, j + 1:, j:] -= factor[:, :, None] * lu[:, None, j, j:]
-        x[:, j + 1:] -= factor * x[:, j, None]
+        for i in range(j + 1, m):
+            factor = lu[i][j] / pivot
+            for k in range(j + 1, m):
+                lu[i][k] -= factor * lu[j][k]
+            x[i] -= factor * x[j]
     for j in reversed(range(m)):
-        x[:, j] = (x[:, j] - numpy.sum(lu[:, j, j + 1:] * x[:, j + 1:], axis=1)) / lu[:, j, j]
-    return numpy.moveaxis(x, 0, -1)
+        for k in range(j + 1, m):
+            x[j] -= lu[j][k] * x[k]
+        x[j] /= lu[j][j]
+    return numpy.array(x)
 
 def _jet(t, s, p, a):
     """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 1069 operations, 1333 before CSE)."""
@@ -597,7 +616,7 @@ def _jet(t, s, p, a):
 
 
 def _cholesky(h, c):
-    """Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots (kernel; 276 operations, 276 before CSE)."""
+    """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (kernel; 259 operations, 260 before CSE)."""
     _n = h.shape[1]
     _h0 = h[0]  # H[0, 0]
     _h1 = h[1]  # H[1, 0]
@@ -635,79 +654,94 @@ def _cholesky(h, c):
     _c5 = c[5]  # c[5]
     _c6 = c[6]  # c[6]
     _c7 = c[7]  # c[7]
-    # Intermediate terms (53)
-    _t0 = 1/numpy.sqrt(_h0)
+    # Intermediate terms (68)
+    _t0 = 1/_h0
     _t1 = _h1*_t0
     _t2 = _h3*_t0
     _t3 = _h6*_t0
     _t4 = _h17*_t0
     _t5 = _h22*_t0
-    _t6 = _h2 - _t1**2
-    _t7 = 1/numpy.sqrt(_t6)
-    _t8 = _t7*(_h4 - _t1*_t2)
-    _t9 = _t7*(_h7 - _t1*_t3)
-    _t10 = _t7*(_h18 - _t1*_t4)
-    _t11 = _t7*(_h23 - _t1*_t5)
-    _t12 = _h5 - _t2**2 - _t8**2
-    _t13 = 1/numpy.sqrt(_t12)
-    _t14 = _t13*(_h8 - _t2*_t3 - _t8*_t9)
-    _t15 = _h10*_t13
-    _t16 = _h13*_t13
-    _t17 = _t13*(-_t10*_t8 - _t2*_t4)
-    _t18 = _t13*(-_t11*_t8 - _t2*_t5)
-    _t19 = _h9 - _t14**2 - _t3**2 - _t9**2
-    _t20 = 1/numpy.sqrt(_t19)
-    _t21 = _t20*(_h11 - _t14*_t15)
-    _t22 = _t20*(_h14 - _t14*_t16)
-    _t23 = _t20*(-_t10*_t9 - _t14*_t17 - _t3*_t4)
-    _t24 = _t20*(-_t11*_t9 - _t14*_t18 - _t3*_t5)
-    _t25 = _h12 - _t15**2 - _t21**2
-    _t26 = 1/numpy.sqrt(_t25)
-    _t27 = _t26*(_h15 - _t15*_t16 - _t21*_t22)
-    _t28 = _t26*(_h19 - _t15*_t17 - _t21*_t23)
-    _t29 = _t26*(_h24 - _t15*_t18 - _t21*_t24)
-    _t30 = _h16 - _t16**2 - _t22**2 - _t27**2
-    _t31 = 1/numpy.sqrt(_t30)
-    _t32 = _t31*(_h20 - _t16*_t17 - _t22*_t23 - _t27*_t28)
-    _t33 = _t31*(_h25 - _t16*_t18 - _t22*_t24 - _t27*_t29)
-    _t34 = _h21 - _t10**2 - _t17**2 - _t23**2 - _t28**2 - _t32**2 - _t4**2
-    _t35 = 1/numpy.sqrt(_t34)
-    _t36 = _t35*(_h26 - _t10*_t11 - _t17*_t18 - _t23*_t24 - _t28*_t29 - _t32*_t33 - _t4*_t5)
-    _t37 = _h27 - _t11**2 - _t18**2 - _t24**2 - _t29**2 - _t33**2 - _t36**2 - _t5**2
-    _t38 = 1/numpy.sqrt(_t37)
-    _t39 = _c0*_t0
-    _t40 = _t7*(_c1 - _t1*_t39)
-    _t41 = _t13*(_c2 - _t2*_t39 - _t40*_t8)
-    _t42 = _t20*(_c3 - _t14*_t41 - _t3*_t39 - _t40*_t9)
-    _t43 = _t26*(_c4 - _t15*_t41 - _t21*_t42)
-    _t44 = _t31*(_c5 - _t16*_t41 - _t22*_t42 - _t27*_t43)
-    _t45 = _t35*(_c6 - _t10*_t40 - _t17*_t41 - _t23*_t42 - _t28*_t43 - _t32*_t44 - _t39*_t4)
-    _t46 = _t38**2*(_c7 - _t11*_t40 - _t18*_t41 - _t24*_t42 - _t29*_t43 - _t33*_t44 - _t36*_t45 - _t39*_t5)
-    _t47 = _t35*(_t45 - _t36*_t46)
-    _t48 = _t31*(_t44 - _t32*_t47 - _t33*_t46)
-    _t49 = _t26*(_t43 - _t27*_t48 - _t28*_t47 - _t29*_t46)
-    _t50 = _t20*(_t42 - _t21*_t49 - _t22*_t48 - _t23*_t47 - _t24*_t46)
-    _t51 = _t13*(_t41 - _t14*_t50 - _t15*_t49 - _t16*_t48 - _t17*_t47 - _t18*_t46)
-    _t52 = _t7*(_t40 - _t10*_t47 - _t11*_t46 - _t50*_t9 - _t51*_t8)
+    _t6 = _h2 - _h1*_t1
+    _t7 = 1/_t6
+    _t8 = _h4 - _h1*_t2
+    _t9 = _t7*_t8
+    _t10 = _h7 - _h1*_t3
+    _t11 = _t10*_t7
+    _t12 = _h18 - _h1*_t4
+    _t13 = _t12*_t7
+    _t14 = _h23 - _h1*_t5
+    _t15 = _t14*_t7
+    _t16 = _h5 - _h3*_t2 - _t8*_t9
+    _t17 = 1/_t16
+    _t18 = _h8 - _h3*_t3 - _t11*_t8
+    _t19 = _t17*_t18
+    _t20 = _h10*_t17
+    _t21 = _h13*_t17
+    _t22 = -_h3*_t4 - _t13*_t8
+    _t23 = _t17*_t22
+    _t24 = -_h3*_t5 - _t15*_t8
+    _t25 = _t17*_t24
+    _t26 = _h9 - _h6*_t3 - _t10*_t11 - _t18*_t19
+    _t27 = 1/_t26
+    _t28 = _h11 - _t18*_t20
+    _t29 = _t27*_t28
+    _t30 = _h14 - _t18*_t21
+    _t31 = _t27*_t30
+    _t32 = -_h6*_t4 - _t10*_t13 - _t18*_t23
+    _t33 = _t27*_t32
+    _t34 = -_h6*_t5 - _t10*_t15 - _t18*_t25
+    _t35 = _t27*_t34
+    _t36 = _h12 - _h10*_t20 - _t28*_t29
+    _t37 = 1/_t36
+    _t38 = _h15 - _h10*_t21 - _t28*_t31
+    _t39 = _t37*_t38
+    _t40 = _h19 - _h10*_t23 - _t28*_t33
+    _t41 = _t37*_t40
+    _t42 = _h24 - _h10*_t25 - _t28*_t35
+    _t43 = _t37*_t42
+    _t44 = _h16 - _h13*_t21 - _t30*_t31 - _t38*_t39
+    _t45 = 1/_t44
+    _t46 = _h20 - _h13*_t23 - _t30*_t33 - _t38*_t41
+    _t47 = _t45*_t46
+    _t48 = _h25 - _h13*_t25 - _t30*_t35 - _t38*_t43
+    _t49 = _t45*_t48
+    _t50 = _h21 - _h17*_t4 - _t12*_t13 - _t22*_t23 - _t32*_t33 - _t40*_t41 - _t46*_t47
+    _t51 = 1/_t50
+    _t52 = _h26 - _h17*_t5 - _t12*_t15 - _t22*_t25 - _t32*_t35 - _t40*_t43 - _t46*_t49
+    _t53 = _t51*_t52
+    _t54 = _h27 - _h22*_t5 - _t14*_t15 - _t24*_t25 - _t34*_t35 - _t42*_t43 - _t48*_t49 - _t52*_t53
+    _t55 = _c1 - _c0*_t1
+    _t56 = _c2 - _c0*_t2 - _t55*_t9
+    _t57 = _c3 - _c0*_t3 - _t11*_t55 - _t19*_t56
+    _t58 = _c4 - _t20*_t56 - _t29*_t57
+    _t59 = _c5 - _t21*_t56 - _t31*_t57 - _t39*_t58
+    _t60 = _c6 - _c0*_t4 - _t13*_t55 - _t23*_t56 - _t33*_t57 - _t41*_t58 - _t47*_t59
+    _t61 = (_c7 - _c0*_t5 - _t15*_t55 - _t25*_t56 - _t35*_t57 - _t43*_t58 - _t49*_t59 - _t53*_t60)/_t54
+    _t62 = _t51*_t60 - _t53*_t61
+    _t63 = _t45*_t59 - _t47*_t62 - _t49*_t61
+    _t64 = _t37*_t58 - _t39*_t63 - _t41*_t62 - _t43*_t61
+    _t65 = _t27*_t57 - _t29*_t64 - _t31*_t63 - _t33*_t62 - _t35*_t61
+    _t66 = _t17*_t56 - _t19*_t65 - _t20*_t64 - _t21*_t63 - _t23*_t62 - _t25*_t61
+    _t67 = _t55*_t7 - _t11*_t65 - _t13*_t62 - _t15*_t61 - _t66*_t9
     # Output terms
     z = numpy.empty((8, _n))  # y_imp^(k)
-    z[0] = _t0*(_t39 - _t1*_t52 - _t2*_t51 - _t3*_t50 - _t4*_t47 - _t46*_t5)
-    z[1] = _t52
-    z[2] = _t51
-    z[3] = _t50
-    z[4] = _t49
-    z[5] = _t48
-    z[6] = _t47
-    z[7] = _t46
+    z[0] = _c0*_t0 - _t1*_t67 - _t2*_t66 - _t3*_t65 - _t4*_t62 - _t5*_t61
+    z[1] = _t67
+    z[2] = _t66
+    z[3] = _t65
+    z[4] = _t64
+    z[5] = _t63
+    z[6] = _t62
+    z[7] = _t61
     pivot = numpy.empty((8, _n))  # pivots of the elimination, positive if Hess > 0
     pivot[0] = _h0
     pivot[1] = _t6
-    pivot[2] = _t12
-    pivot[3] = _t19
-    pivot[4] = _t25
-    pivot[5] = _t30
-    pivot[6] = _t34
-    pivot[7] = _t37
+    pivot[2] = _t16
+    pivot[3] = _t26
+    pivot[4] = _t36
+    pivot[5] = _t44
+    pivot[6] = _t50
+    pivot[7] = _t54
     return z, pivot
 
 
@@ -790,6 +824,30 @@ def _closed_loop(t, s, p, w, z):
     u[6] = _s15
     u[7] = _w7
     return ds, u
+
+
+def _plant_input(t, s, p, w):
+    """The plant input alone (control needs no vector field) (kernel; 0 operations, 0 before CSE)."""
+    _n = s.shape[1]
+    _s12 = s[12]  # v_0
+    _s13 = s[13]  # v_1
+    _s14 = s[14]  # v_2
+    _s15 = s[15]  # v_3
+    _w1 = w[1]  # omega_0
+    _w3 = w[3]  # omega_1
+    _w5 = w[5]  # omega_2
+    _w7 = w[7]  # omega_3
+    # Output terms
+    u = numpy.empty((8, _n))  # plant input
+    u[0] = _s12
+    u[1] = _w1
+    u[2] = _s13
+    u[3] = _w3
+    u[4] = _s14
+    u[5] = _w5
+    u[6] = _s15
+    u[7] = _w7
+    return u
 
 
 def _optimality(t, s, p):
@@ -1258,8 +1316,12 @@ def _hessian(t, y, p):
 
 
 
-def _law(t, s, p):
-    """The paper's law, evaluated column by column: returns (ds/dt, u)."""
+def _law(t, s, p, rates=True):
+    """The paper's law, evaluated column by column: returns (ds/dt, u).
+
+    Without ``rates`` ds/dt is None: :func:`control` needs the plant input alone, and then
+    checks no more than the C backend's ``control`` does.
+    """
     with numpy.errstate(all="ignore"):
         hess, jet_rhs, r, pvec = _jet(t, s, p, _A)
     _check_finite("the Hessian, the gradient jet, the decoupling matrix or p", hess, jet_rhs,
@@ -1271,46 +1333,103 @@ def _law(t, s, p):
     _check_finite("v - p", b)
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
     w = _solve_decoupling(r, b)
+    if not rates:
+        with numpy.errstate(all="ignore"):
+            u = _plant_input(t, s, p, w)
+        _check_finite("the plant input", u)
+        return None, u
     with numpy.errstate(all="ignore"):
         ds, u = _closed_loop(t, s, p, w, z)
     _check_finite("the closed-loop vector field", ds, u)
     return ds, u
 
 
-def _control_values(t, s, p):
-    return _law(t, s, p)[1]
+#: Columns evaluated at once. The temporaries of one block stay in the CPU caches, where
+#: one pass over a batch of 10^5 columns streams every temporary through main memory.
+_BLOCK = 8192
 
 
-def _rhs_values(t, s, p):
+def _blockwise(function, t, s, p):
+    """``function(t, s, p)`` over blocks of ``_BLOCK`` columns, joined on the last axis."""
+    count = s.shape[1]
+    if count <= _BLOCK:
+        return function(t, s, p)
+    parts = []
+    for start in range(0, count, _BLOCK):
+        try:
+            parts.append(function(t, s[:, start:start + _BLOCK], p))
+        except ControllerError as error:
+            raise _shifted(error, start) from None
+    return numpy.concatenate(parts, axis=-1)
+
+
+def _shifted(error, offset):
+    """``error`` of a block that starts at column ``offset``, told in whole-batch columns."""
+    if error.index is None:
+        return error
+    index = error.index + offset
+    message = str(error).replace(f"(column {error.index})", f"(column {index})", 1)
+    return type(error)(message, index)
+
+
+def _control_one_block(t, s, p):
+    return _law(t, s, p, rates=False)[1]
+
+
+def _rhs_one_block(t, s, p):
     return _law(t, s, p)[0]
 
 
-def _optimality_error(t, s, p):
+def _optimality_one_block(t, s, p):
     with numpy.errstate(all="ignore"):
         e = _optimality(t, s, p)
     _check_finite("the optimality error", e)
     return e
 
 
-def _objective_values(t, y, p):
+def _objective_one_block(t, y, p):
     with numpy.errstate(all="ignore"):
         value = _objective(t, y, p)
     _check_finite("f0", value)
     return value
 
 
-def _gradient_values(t, y, p):
+def _gradient_one_block(t, y, p):
     with numpy.errstate(all="ignore"):
         value = _gradient(t, y, p)
     _check_finite("the gradient of f0", value)
     return value
 
 
-def _hessian_values(t, y, p):
+def _hessian_one_block(t, y, p):
     with numpy.errstate(all="ignore"):
         value = _hessian(t, y, p)
     _check_finite("the Hessian of f0", value)
     return value
+
+
+def _control_values(t, s, p):
+    return _blockwise(_control_one_block, t, s, p)
+
+
+def _rhs_values(t, s, p):
+    return _blockwise(_rhs_one_block, t, s, p)
+
+
+def _optimality_error(t, s, p):
+    return _blockwise(_optimality_one_block, t, s, p)
+
+
+def _objective_values(t, y, p):
+    return _blockwise(_objective_one_block, t, y, p)
+
+
+def _gradient_values(t, y, p):
+    return _blockwise(_gradient_one_block, t, y, p)
+
+
+def _hessian_values(t, y, p):
+    return _blockwise(_hessian_one_block, t, y, p)
 
 
 def control(t, s, params=None):

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 6c1b69789224342d60a66c75e89b4b01f15992502c11a52fcc60ea8d463b2fbd
+# content sha256: a45584cd3cb058abfbcab8112030a8bd1834da028ca5cfe3359a8751970606b7
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -186,31 +186,46 @@ def _solve_decoupling(r, b):
     count = b.shape[1]
     w = numpy.empty_like(b)
     for size, starts, rows in _R_GROUPS:
-        take = numpy.add.outer(numpy.array(starts), numpy.arange(size * size))
         blocks = len(starts)
-        a = r[take].reshape(blocks, size, size, count).transpose(1, 2, 0, 3)
-        index = numpy.array(rows)
-        rhs = b[index].transpose(1, 0, 2).reshape(size, blocks * count)
-        x = _lu_solve(a.reshape(size, size, blocks * count), rhs, count)
-        w[index] = x.reshape(size, blocks, count).transpose(1, 0, 2)
+        if blocks == 1:
+            a = r[starts[0]:starts[0] + size * size].reshape(size, size, count)
+            rhs = b[list(rows[0])]
+        else:
+            take = numpy.add.outer(numpy.array(starts), numpy.arange(size * size))
+            a = r[take].transpose(1, 0, 2).reshape(size, size, blocks * count)
+            rhs = b[numpy.array(rows)].transpose(1, 0, 2).reshape(size, blocks * count)
+        x = _lu_solve(a, rhs, count)
+        w[numpy.array(rows)] = x.reshape(size, blocks, count).transpose(1, 0, 2)
     return w
 
 
 def _lu_solve(a, b, points):
     """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N).
 
-    Column ``c`` belongs to point ``c % points`` of the caller's batch.
+    Column ``c`` belongs to point ``c % points`` of the caller's batch. Every entry is a
+    contiguous row over the batch and a row exchange is a ``where`` on the columns that
+    need it: the same operations in the same order as the C code's loop.
     """
-    lu = numpy.moveaxis(a, -1, 0).copy()
-    x = numpy.moveaxis(b, -1, 0).copy()
-    count, m = x.shape
-    rows = numpy.arange(count)
-    scale = numpy.max(numpy.abs(lu.reshape(count, -1)), axis=1)
+    m = b.shape[0]
+    lu = [[a[i, k].copy() for k in range(m)] for i in range(m)]
+    x = [b[i].copy() for i in range(m)]
+    scale = numpy.max(numpy.abs(a.reshape(m * m, -1)), axis=0)
     for j in range(m):
-        piv = j + numpy.argmax(numpy.abs(lu[:, j:, j]), axis=1)
-        lu[rows, j], lu[rows, piv] = lu[rows, piv].copy(), lu[rows, j].copy()
-        x[rows, j], x[rows, piv] = x[rows, piv].copy(), x[rows, j].copy()
-        pivot = lu[:, j, j]
+        # The pivot row: the first of the largest |a[i, j]|, i >= j, like the C loop.
+        best, row = numpy.abs(lu[j][j]), None
+        for i in range(j + 1, m):
+            size = numpy.abs(lu[i][j])
+            larger = size > best
+            best = numpy.where(larger, size, best)
+            row = numpy.where(larger, i, j if row is None else row)
+        for i in range(j + 1, m):
+            swap = row == i
+            if swap.any():
+                for k in range(m):
+                    lu[j][k], lu[i][k] = (numpy.where(swap, lu[i][k], lu[j][k]),
+                                          numpy.where(swap, lu[j][k], lu[i][k]))
+                x[j], x[i] = numpy.where(swap, x[i], x[j]), numpy.where(swap, x[j], x[i])
+        pivot = lu[j][j]
         bad = ~(numpy.abs(pivot) > PIVOT_TOLERANCE * scale)
         if bad.any():
             index = int(numpy.argmax(bad)) % points
@@ -218,15 +233,19 @@ def _lu_solve(a, b, points):
                 f"the decoupling matrix R is singular (column {index})"
                 "; R is singular where v = 0"
                 , index)
-        factor = lu[:, j + 1:, j] / pivot[:, None]
-        lu[:, j + 1:, j:] -= factor[:, :, None] * lu[:, None, j, j:]
-        x[:, j + 1:] -= factor * x[:, j, None]
+        for i in range(j + 1, m):
+            factor = lu[i][j] / pivot
+            for k in range(j + 1, m):
+                lu[i][k] -= factor * lu[j][k]
+            x[i] -= factor * x[j]
     for j in reversed(range(m)):
-        x[:, j] = (x[:, j] - numpy.sum(lu[:, j, j + 1:] * x[:, j + 1:], axis=1)) / lu[:, j, j]
-    return numpy.moveaxis(x, 0, -1)
+        for k in range(j + 1, m):
+            x[j] -= lu[j][k] * x[k]
+        x[j] /= lu[j][j]
+    return numpy.array(x)
 
 def _jet(t, s, p, a):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 143 operations, 192 before CSE)."""
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 145 operations, 198 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -245,42 +264,42 @@ def _jet(t, s, p, a):
     _t5 = _t1*_t3/_p1**2
     _t6 = t**2
     _t7 = (1/100)*_t6
-    _t8 = (1/50)*t
-    _t9 = t**3
-    _t10 = numpy.cos(_s2)
-    _t11 = _s3*_t10
-    _t12 = numpy.sin(_s2)
-    _t13 = _s3*_t12
-    _t14 = 2*_s0
-    _t15 = _t14 + 2*_t7 - 6/5*t + 10
-    _t16 = 1 - _t2
-    _t17 = _t14 + 2*_t7 + (3/5)*t - 10
-    _t18 = 2*_s1
-    _t19 = _t18 - t - 1/25*_t6 + (1/500)*_t9 + 10
-    _t20 = _t18 - 4/5*t - 1/2500*_t9 + (3/100)*_t6 + 6
-    _t21 = 2*_t11
-    _t22 = _t21 + 2*_t8 - 6/5
-    _t23 = -_t4
-    _t24 = _t21 + 2*_t8 + 3/5
-    _t25 = 2*_t13
-    _t26 = _t25 - 2/25*t + (3/500)*_t6 - 1
-    _t27 = _t25 - 3/2500*_t6 + (3/50)*t - 4/5
-    _t28 = _t22*_t4
-    _t29 = -_t5
-    _t30 = _t23*_t24
-    _t31 = _t26*_t4
-    _t32 = _t23*_t27
+    _t8 = (3/5)*t - _t7 - 5
+    _t9 = (1/50)*t
+    _t10 = 3/5 - _t9
+    _t11 = t**3
+    _t12 = (1/2)*t - 1/1000*_t11 + (1/50)*_t6 - 5
+    _t13 = (1/25)*t - 3/1000*_t6 + 1/2
+    _t14 = 5 - _t7 - 3/10*t
+    _t15 = -_t9 - 3/10
+    _t16 = (1/5000)*_t11 - 3/200*_t6 + (2/5)*t - 3
+    _t17 = (3/5000)*_t6 - 3/100*t + 2/5
+    _t18 = numpy.cos(_s2)
+    _t19 = _s3*_t18
+    _t20 = numpy.sin(_s2)
+    _t21 = _s3*_t20
+    _t22 = 2*_t2
+    _t23 = 1 - _t2
+    _t24 = 2*_t23
+    _t25 = 2*_t4
+    _t26 = -2*_t4
+    _t27 = -_t10*_t25
+    _t28 = 2*_t5
+    _t29 = -_t15*_t26
+    _t30 = -2*_t5
+    _t31 = -_t13*_t25
+    _t32 = -_t17*_t26
     _t33 = (1/2)*_a0
     _t34 = (1/2)*_a1
     # Output terms
     z = numpy.empty((2, _n))  # y_imp^(k)
-    z[0] = _t33*(_t15*_t2 + _t16*_t17) - _t28 - _t30 - 1/50*_t16 - 1/50*_t2 + _t34*(_t15*_t4 + _t16*_t24 + _t17*_t23 + _t2*_t22) - 1/2*_t15*_t5 - 1/2*_t17*_t29
-    z[1] = _t33*(_t16*_t20 + _t19*_t2) - _t31 - _t32 + _t34*(_t16*_t27 + _t19*_t4 + _t2*_t26 + _t20*_t23) - 1/2*_t16*(3/50 - 3/1250*t) - 1/2*_t19*_t5 - 1/2*_t2*((3/250)*t - 2/25) - 1/2*_t20*_t29
+    z[0] = _t33*(2*_s0 - _t14*_t24 - _t22*_t8) - _t27 - _t29 - 1/50*_t2 - 1/50*_t23 + _t34*(2*_t19 - _t10*_t22 - _t14*_t26 - _t15*_t24 - _t25*_t8) + (1/2)*_t14*_t30 + (1/2)*_t28*_t8
+    z[1] = _t33*(2*_s1 - _t12*_t22 - _t16*_t24) - _t31 - _t32 + _t34*(2*_t21 - _t12*_t25 - _t13*_t22 - _t16*_t26 - _t17*_t24) + (1/2)*_t12*_t28 + (1/2)*_t16*_t30 + (1/2)*_t22*(1/25 - 3/500*t) + (1/2)*_t24*((3/2500)*t - 3/100)
     R = numpy.empty((4, _n))  # diagonal blocks of the decoupling matrix
-    R[0] = _t10
-    R[1] = -_t13
-    R[2] = _t12
-    R[3] = _t11
+    R[0] = _t18
+    R[1] = -_t21
+    R[2] = _t20
+    R[3] = _t19
     pvec = numpy.empty((2, _n))  # p = col(L_f^{r_i} h_i)
     pvec[0] = 0
     pvec[1] = 0
@@ -320,8 +339,20 @@ def _closed_loop(t, s, p, w, z):
     return ds, u
 
 
+def _plant_input(t, s, p, w):
+    """The plant input alone (control needs no vector field) (kernel; 0 operations, 0 before CSE)."""
+    _n = s.shape[1]
+    _s3 = s[3]  # v
+    _w1 = w[1]  # omega
+    # Output terms
+    u = numpy.empty((2, _n))  # plant input
+    u[0] = _s3
+    u[1] = _w1
+    return u
+
+
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 92 operations, 111 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 89 operations, 111 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -329,31 +360,29 @@ def _optimality(t, s, p):
     _s3 = s[3]  # v
     _p0 = p[0]  # a
     _p1 = p[1]  # b
-    # Intermediate terms (18)
+    # Intermediate terms (16)
     _t0 = 1/_p1
     _t1 = numpy.tanh(_t0*(t - _p0))
     _t2 = 1/2 - 1/2*_t1
     _t3 = -1/2*_t0*(1 - _t1**2)
     _t4 = t**2
     _t5 = (1/100)*_t4
-    _t6 = (1/50)*t
-    _t7 = t**3
-    _t8 = 2*_s0
-    _t9 = _t8 + 2*_t5 - 6/5*t + 10
-    _t10 = 1 - _t2
-    _t11 = _t8 + 2*_t5 + (3/5)*t - 10
-    _t12 = 2*_s1
-    _t13 = _t12 - t - 1/25*_t4 + (1/500)*_t7 + 10
-    _t14 = _t12 - 4/5*t - 1/2500*_t7 + (3/100)*_t4 + 6
-    _t15 = 2*_s3*numpy.cos(_s2)
-    _t16 = -_t3
-    _t17 = 2*_s3*numpy.sin(_s2)
+    _t6 = (3/5)*t - _t5 - 5
+    _t7 = (1/50)*t
+    _t8 = t**3
+    _t9 = (1/2)*t - 1/1000*_t8 + (1/50)*_t4 - 5
+    _t10 = 5 - _t5 - 3/10*t
+    _t11 = (1/5000)*_t8 - 3/200*_t4 + (2/5)*t - 3
+    _t12 = 2*_t2
+    _t13 = 2 - 2*_t2
+    _t14 = 2*_t3
+    _t15 = -2*_t3
     # Output terms
     E = numpy.empty((2, 2, _n))  # grad^(j) f0
-    E[0, 0] = _t10*_t11 + _t2*_t9
-    E[0, 1] = _t10*_t14 + _t13*_t2
-    E[1, 0] = _t10*(_t15 + 2*_t6 + 3/5) + _t11*_t16 + _t2*(_t15 + 2*_t6 - 6/5) + _t3*_t9
-    E[1, 1] = _t10*(_t17 - 3/2500*_t4 + (3/50)*t - 4/5) + _t13*_t3 + _t14*_t16 + _t2*(_t17 - 2/25*t + (3/500)*_t4 - 1)
+    E[0, 0] = 2*_s0 - _t10*_t13 - _t12*_t6
+    E[0, 1] = 2*_s1 - _t11*_t13 - _t12*_t9
+    E[1, 0] = 2*_s3*numpy.cos(_s2) - _t10*_t15 - _t12*(3/5 - _t7) - _t13*(-_t7 - 3/10) - _t14*_t6
+    E[1, 1] = 2*_s3*numpy.sin(_s2) - _t11*_t15 - _t12*((1/25)*t - 3/1000*_t4 + 1/2) - _t13*((3/5000)*_t4 - 3/100*t + 2/5) - _t14*_t9
     return E
 
 
@@ -376,24 +405,23 @@ def _objective(t, y, p):
 
 
 def _gradient(t, y, p):
-    """grad_y f0(y, t) (kernel; 43 operations, 54 before CSE)."""
+    """grad_y f0(y, t) (kernel; 44 operations, 52 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y1
     _y1 = y[1]  # y2
     _p0 = p[0]  # a
     _p1 = p[1]  # b
-    # Intermediate terms (7)
+    # Intermediate terms (6)
     _t0 = 1/2 - 1/2*numpy.tanh((t - _p0)/_p1)
     _t1 = t**2
     _t2 = (1/100)*_t1
     _t3 = t**3
-    _t4 = 2*_y0
-    _t5 = 1 - _t0
-    _t6 = 2*_y1
+    _t4 = 2*_t0
+    _t5 = 2 - 2*_t0
     # Output terms
     grad = numpy.empty((2, _n))  # grad_y f0
-    grad[0] = _t0*(_t4 + 2*_t2 - 6/5*t + 10) + _t5*(_t4 + 2*_t2 + (3/5)*t - 10)
-    grad[1] = _t0*(_t6 - t - 1/25*_t1 + (1/500)*_t3 + 10) + _t5*(_t6 - 4/5*t - 1/2500*_t3 + (3/100)*_t1 + 6)
+    grad[0] = 2*_y0 - _t4*((3/5)*t - _t2 - 5) - _t5*(5 - _t2 - 3/10*t)
+    grad[1] = 2*_y1 - _t4*((1/2)*t - 1/1000*_t3 + (1/50)*_t1 - 5) - _t5*((1/5000)*_t3 - 3/200*_t1 + (2/5)*t - 3)
     return grad
 
 
@@ -410,8 +438,12 @@ def _hessian(t, y, p):
 
 
 
-def _law(t, s, p):
-    """The paper's law, evaluated column by column: returns (ds/dt, u)."""
+def _law(t, s, p, rates=True):
+    """The paper's law, evaluated column by column: returns (ds/dt, u).
+
+    Without ``rates`` ds/dt is None: :func:`control` needs the plant input alone, and then
+    checks no more than the C backend's ``control`` does.
+    """
     with numpy.errstate(all="ignore"):
         z, r, pvec = _jet(t, s, p, _A)
     # y_imp^(K): the constant Hessian of f0 was inverted exactly at generation time.
@@ -421,46 +453,103 @@ def _law(t, s, p):
     _check_finite("v - p", b)
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
     w = _solve_decoupling(r, b)
+    if not rates:
+        with numpy.errstate(all="ignore"):
+            u = _plant_input(t, s, p, w)
+        _check_finite("the plant input", u)
+        return None, u
     with numpy.errstate(all="ignore"):
         ds, u = _closed_loop(t, s, p, w, z)
     _check_finite("the closed-loop vector field", ds, u)
     return ds, u
 
 
-def _control_values(t, s, p):
-    return _law(t, s, p)[1]
+#: Columns evaluated at once. The temporaries of one block stay in the CPU caches, where
+#: one pass over a batch of 10^5 columns streams every temporary through main memory.
+_BLOCK = 8192
 
 
-def _rhs_values(t, s, p):
+def _blockwise(function, t, s, p):
+    """``function(t, s, p)`` over blocks of ``_BLOCK`` columns, joined on the last axis."""
+    count = s.shape[1]
+    if count <= _BLOCK:
+        return function(t, s, p)
+    parts = []
+    for start in range(0, count, _BLOCK):
+        try:
+            parts.append(function(t, s[:, start:start + _BLOCK], p))
+        except ControllerError as error:
+            raise _shifted(error, start) from None
+    return numpy.concatenate(parts, axis=-1)
+
+
+def _shifted(error, offset):
+    """``error`` of a block that starts at column ``offset``, told in whole-batch columns."""
+    if error.index is None:
+        return error
+    index = error.index + offset
+    message = str(error).replace(f"(column {error.index})", f"(column {index})", 1)
+    return type(error)(message, index)
+
+
+def _control_one_block(t, s, p):
+    return _law(t, s, p, rates=False)[1]
+
+
+def _rhs_one_block(t, s, p):
     return _law(t, s, p)[0]
 
 
-def _optimality_error(t, s, p):
+def _optimality_one_block(t, s, p):
     with numpy.errstate(all="ignore"):
         e = _optimality(t, s, p)
     _check_finite("the optimality error", e)
     return e
 
 
-def _objective_values(t, y, p):
+def _objective_one_block(t, y, p):
     with numpy.errstate(all="ignore"):
         value = _objective(t, y, p)
     _check_finite("f0", value)
     return value
 
 
-def _gradient_values(t, y, p):
+def _gradient_one_block(t, y, p):
     with numpy.errstate(all="ignore"):
         value = _gradient(t, y, p)
     _check_finite("the gradient of f0", value)
     return value
 
 
-def _hessian_values(t, y, p):
+def _hessian_one_block(t, y, p):
     with numpy.errstate(all="ignore"):
         value = _hessian(t, y, p)
     _check_finite("the Hessian of f0", value)
     return value
+
+
+def _control_values(t, s, p):
+    return _blockwise(_control_one_block, t, s, p)
+
+
+def _rhs_values(t, s, p):
+    return _blockwise(_rhs_one_block, t, s, p)
+
+
+def _optimality_error(t, s, p):
+    return _blockwise(_optimality_one_block, t, s, p)
+
+
+def _objective_values(t, y, p):
+    return _blockwise(_objective_one_block, t, y, p)
+
+
+def _gradient_values(t, y, p):
+    return _blockwise(_gradient_one_block, t, y, p)
+
+
+def _hessian_values(t, y, p):
+    return _blockwise(_hessian_one_block, t, y, p)
 
 
 def control(t, s, params=None):

@@ -30,7 +30,7 @@ EXAMPLES = (
     "unicycle_ring",
 )
 #: Every spec the closed-loop and oracle tests run: the bundled examples plus test specs.
-ALL_SPECS = (*EXAMPLES, str(SPECS / "nonuniform.toml"))
+ALL_SPECS = (*EXAMPLES, str(SPECS / "nonuniform.toml"), str(SPECS / "hovercraft.toml"))
 
 
 @functools.cache

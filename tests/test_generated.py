@@ -174,3 +174,46 @@ def test_constant_hessian_is_inverted_at_generation_time() -> None:
     assert [o.name for o in unicycle.outputs] == ["z", "R", "pvec"]
     integrator = kernels("integrator")["jet"]  # Hessian diag(1, w): w is a parameter
     assert [o.name for o in integrator.outputs] == ["hessian", "jet_rhs", "R", "pvec"]
+
+
+def test_batches_larger_than_a_block() -> None:
+    # The NumPy backend evaluates a batch in blocks of _BLOCK columns (cache-sized):
+    # results join seamlessly and an error names its column in the whole batch.
+    mod = module("two_unicycles_barrier")
+    count = 2 * mod._BLOCK + 77
+    states = random_states("two_unicycles_barrier", count, seed=8)
+    for name in ("control", "rhs", "optimality_error"):
+        whole = getattr(mod, name)(1.3, states)
+        assert whole.shape[-1] == count
+        for start in (0, mod._BLOCK - 1, 2 * mod._BLOCK + 3):
+            np.testing.assert_array_equal(
+                whole[..., start], getattr(mod, name)(1.3, states[:, start])
+            )
+    y = states[: len(mod.OUTPUT_NAMES)]
+    for name in ("objective", "gradient", "hessian"):
+        whole = getattr(mod, name)(1.3, y)
+        np.testing.assert_array_equal(whole[..., -1], getattr(mod, name)(1.3, y[:, -1]))
+    bad = 2 * mod._BLOCK + 5
+    states[6, bad] = 0.0  # va = 0: R is singular there
+    with pytest.raises(mod.SingularDecouplingError, match=rf"\(column {bad}\)") as info:
+        mod.control(1.3, states)
+    assert info.value.index == bad
+    states[6, bad] = np.nan
+    with pytest.raises(mod.NonFiniteInputError, match=rf"\(column {bad}\)"):
+        mod.rhs(1.3, states)
+
+
+def test_control_never_evaluates_the_vector_field(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Like the C backend's control: the plant input alone is computed and checked, so a
+    # vector field that overflows where u is fine cannot make the two backends disagree.
+    mod = module("unicycle_switch")
+    states = random_states("unicycle_switch", 5)
+    expected = mod.control(0.4, states)
+
+    def vector_field(*args: object) -> None:
+        raise AssertionError("control evaluated ds/dt")
+
+    monkeypatch.setattr(mod, "_closed_loop", vector_field)
+    np.testing.assert_array_equal(mod.control(0.4, states), expected)
+    with pytest.raises(AssertionError, match="ds/dt"):
+        mod.rhs(0.4, states)

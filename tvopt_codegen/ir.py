@@ -574,7 +574,7 @@ def elimination_order(pattern: set[tuple[int, int]], m: int) -> tuple[int, ...]:
 def cholesky_program(
     entries: Sequence[tuple[int, int]], m: int, h: Sequence[sp.Symbol], c: Sequence[sp.Symbol]
 ) -> tuple[list[Assignment], list[sp.Expr], list[sp.Expr]]:
-    """A straight-line sparse Cholesky solve of ``Hess z = c``.
+    """A straight-line sparse, square-root-free Cholesky (LDL^T) solve of ``Hess z = c``.
 
     Parameters
     ----------
@@ -593,15 +593,19 @@ def cholesky_program(
     z : list of sympy.Expr
         The solution, in the matrix's own order.
     pivots : list of sympy.Expr
-        ``d_b = A_bb - sum_k L_bk^2`` of each elimination step: the matrix is positive
-        definite (to the tolerance) when every one is positive, checked by the caller
-        before the result is used.
+        ``D_b = A_bb - sum_k L_bk^2 D_k`` of each elimination step, the squares of the
+        pivots of the classical Cholesky factor: the matrix is positive definite (to the
+        tolerance) when every one is positive, checked by the caller before the result
+        is used.
 
     Notes
     -----
-    Only the entries of L that the pattern and its fill make nonzero are formed, in an
-    elimination order chosen to fill little (:func:`elimination_order`): for a ring of
-    agents that is linear in their number where a dense factorization is cubic.
+    ``Hess = L D L^T`` with unit lower-triangular ``L``: one reciprocal per pivot and no
+    square root, where the classical factor needs ``1/sqrt`` per pivot (a ``pow`` call
+    in C, several times the cost of a division). Only the entries of L that the pattern
+    and its fill make nonzero are formed, in an elimination order chosen to fill little
+    (:func:`elimination_order`): for a ring of agents that is linear in their number
+    where a dense factorization is cubic.
     """
     pattern = {(i, j) for i, j in entries} | {(j, i) for i, j in entries}
     order = elimination_order(pattern, m)
@@ -621,29 +625,34 @@ def cholesky_program(
         program.append((symbol, expr))
         return symbol
 
-    lower: dict[tuple[int, int], sp.Expr] = {}
+    # scaled[(a, k)] = L[a, k] * D[k]: formed once, it turns every later dot product
+    # into plain multiply-adds.
+    unit: dict[tuple[int, int], sp.Expr] = {}
+    scaled: dict[tuple[int, int], sp.Expr] = {}
     row_entries: list[list[int]] = [[] for _ in range(m)]  # columns k < a with L[a, k] != 0
     inverse: list[sp.Expr] = []
     pivots: list[sp.Expr] = []
     for b in range(m):
         pivot = assign(
-            value.get((b, b), sp.Integer(0)) - sp.Add(*(lower[(b, k)] ** 2 for k in row_entries[b]))
+            value.get((b, b), sp.Integer(0))
+            - sp.Add(*(unit[(b, k)] * scaled[(b, k)] for k in row_entries[b]))
         )
         pivots.append(pivot)
-        inverse.append(assign(1 / sp.sqrt(pivot)))
+        inverse.append(assign(1 / pivot))
         for a in columns[b]:
             shared = set(row_entries[a]) & set(row_entries[b])
-            dot = sp.Add(*(lower[(a, k)] * lower[(b, k)] for k in sorted(shared)))
-            lower[(a, b)] = assign((value.get((a, b), sp.Integer(0)) - dot) * inverse[b])
+            dot = sp.Add(*(unit[(a, k)] * scaled[(b, k)] for k in sorted(shared)))
+            scaled[(a, b)] = assign(value.get((a, b), sp.Integer(0)) - dot)
+            unit[(a, b)] = assign(scaled[(a, b)] * inverse[b])
             row_entries[a].append(b)
     forward: list[sp.Expr] = []
     for a in range(m):
-        dot = sp.Add(*(lower[(a, k)] * forward[k] for k in row_entries[a]))
-        forward.append(assign((c[order[a]] - dot) * inverse[a]))
+        dot = sp.Add(*(unit[(a, k)] * forward[k] for k in row_entries[a]))
+        forward.append(assign(c[order[a]] - dot))
     backward: dict[int, sp.Expr] = {}
     for a in reversed(range(m)):
-        dot = sp.Add(*(lower[(k, a)] * backward[k] for k in columns[a]))
-        backward[a] = assign((forward[a] - dot) * inverse[a])
+        dot = sp.Add(*(unit[(k, a)] * backward[k] for k in columns[a]))
+        backward[a] = assign(forward[a] * inverse[a] - dot)
     z = [backward[position[i]] for i in range(m)]
     return program, z, pivots
 
@@ -751,7 +760,8 @@ def lower(derivation: Derivation) -> KernelSet:
         program, solution, pivots = cholesky_program(hess_entries, m, h_slots, c_slots)
         cholesky = kernel(
             "cholesky",
-            "Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots",
+            "Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) "
+            "and its pivots",
             [
                 Arg("h", h_slots, tuple(f"H[{i}, {j}]" for i, j in hess_entries), "Hessian"),
                 Arg("c", c_slots, tuple(f"c[{i}]" for i in range(m)), "right-hand side"),

@@ -300,7 +300,15 @@ def _objective(d: Derivation) -> Section:
     model = d.model
     entries = [
         _math_entry("The objective (signals by name):", model.f0, _name("f_0(y, t)", "f0")),
-        _math_entry("Its gradient:", d.gradient, _name(r"\nabla_y f_0", "&#8711;f0")),
+        _math_entry(
+            "Its gradient, written Hess y + b with b its value at y = 0 (f0 is quadratic in "
+            "y: in this form y enters each time derivative once, grad^(j) = Hess y^(j) + "
+            "b^(j)):"
+            if not d.hessian.free_symbols & set(model.y)
+            else "Its gradient:",
+            d.gradient,
+            _name(r"\nabla_y f_0", "&#8711;f0"),
+        ),
         _math_entry("Its Hessian:", d.hessian, _name(r"\nabla_{yy} f_0", "&#8711;&#178;f0")),
     ]
     conv = d.convexity
@@ -315,7 +323,8 @@ def _objective(d: Derivation) -> Section:
             "text",
             text=(
                 f"Strong convexity (paper, Assumption 1): m_f = {conv.m_f:.6g} > 0; {how}. The "
-                "generated code checks positive definiteness at run time (Cholesky pivots)."
+                "generated code checks positive definiteness at run time (the pivots of an "
+                "LDL^T factorization)."
             ),
         )
     )
@@ -418,9 +427,10 @@ def _control_law(d: Derivation) -> Section:
                 "expanded); grad^(k) f0 = Hess y^(k) + rest, and rest is grad^(k) f0 with "
                 f"y^(k) = 0. Program size: {len(d.jet_program.assignments)} assignments for "
                 f"grad^(j), j < k, and {len(d.rest_program.assignments)} more for rest. The "
-                "generated code solves Hess z = sum a_i grad^(i) f0 - rest (Cholesky, or the "
-                "exact constant inverse when the Hessian is constant) and R w = v - p (LU with "
-                "partial pivoting); no symbolic inverse is formed."
+                "generated code solves Hess z = sum a_i grad^(i) f0 - rest (LDL^T, a "
+                "square-root-free Cholesky, or the exact constant inverse when the Hessian is "
+                "constant) and R w = v - p (LU with partial pivoting); no symbolic inverse is "
+                "formed."
             ),
         ),
     ]

@@ -2,12 +2,13 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: c2ec4f6e0f0f3c983efbb79550e67361e0e602c35192b184bae41fb970e4de05
+ * content sha256: c5dd8af794218e7a1e3dfca4bfcfb9920d1b4e040789016862189f92f346bf9a
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
- * solves: a generated sparse Cholesky for the Hessian of f0 and LU with partial pivoting
- * for each diagonal block of the decoupling matrix R (never a symbolic inverse). */
+ * solves: a generated sparse LDL^T (square-root-free Cholesky) for the Hessian of f0 and LU
+ * with partial pivoting for each diagonal block of the decoupling matrix R (never a symbolic
+ * inverse). */
 #include "flexible_joint.h"
 
 #include <math.h>
@@ -132,13 +133,12 @@ static void flexible_joint_k_jet(double t, const double *s, const double *p, con
 }
 
 
-/* Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots (5 operations, 5 before CSE). */
+/* Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (2 operations, 3 before CSE). */
 static void flexible_joint_k_cholesky(const double *h, const double *c, double *z, double *pivot)
 {
     const double _h0 = h[0]; /* H[0, 0] */
     const double _c0 = c[0]; /* c[0] */
-    const double _t0 = pow(_h0, -1.0/2.0);
-    z[0] = _c0*(_t0*_t0);
+    z[0] = _c0/_h0;
     pivot[0] = _h0;
 }
 
@@ -316,7 +316,7 @@ static double flexible_joint_max_abs(const double *a, size_t count)
     return scale;
 }
 
-/* Solve Hess z = c with the generated sparse Cholesky kernel (hess: the nonzero entries of
+/* Solve Hess z = c with the generated sparse LDL^T kernel (hess: the nonzero entries of
  * the lower triangle); every pivot must exceed the tolerance relative to the largest entry. */
 static int flexible_joint_cholesky_solve(const double *hess, const double *c, double *z)
 {
@@ -332,77 +332,28 @@ static int flexible_joint_cholesky_solve(const double *hess, const double *c, do
     return FLEXIBLE_JOINT_OK;
 }
 
-/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major, m x m). */
-static int flexible_joint_lu_solve(double *a, double *b, size_t m)
+/* Solve a x = b for one number: a 1 x 1 block of R (its own scale, so only 0 is singular). */
+static int flexible_joint_lu_solve_1(double a, double *b)
 {
-    const double scale = flexible_joint_max_abs(a, m * m);
-    size_t i, j, k;
-    for (j = 0; j < m; ++j) {
-        size_t row = j;
-        for (i = j + 1; i < m; ++i) {
-            if (fabs(a[i * m + j]) > fabs(a[row * m + j])) {
-                row = i;
-            }
-        }
-        if (row != j) {
-            double swap;
-            for (k = 0; k < m; ++k) {
-                swap = a[j * m + k];
-                a[j * m + k] = a[row * m + k];
-                a[row * m + k] = swap;
-            }
-            swap = b[j];
-            b[j] = b[row];
-            b[row] = swap;
-        }
-        if (!(fabs(a[j * m + j]) > FLEXIBLE_JOINT_PIVOT_TOLERANCE * scale)) {
-            return FLEXIBLE_JOINT_SINGULAR_DECOUPLING;
-        }
-        for (i = j + 1; i < m; ++i) {
-            const double factor = a[i * m + j] / a[j * m + j];
-            for (k = j; k < m; ++k) {
-                a[i * m + k] -= factor * a[j * m + k];
-            }
-            b[i] -= factor * b[j];
-        }
+    if (!(fabs(a) > FLEXIBLE_JOINT_PIVOT_TOLERANCE * fabs(a))) {
+        return FLEXIBLE_JOINT_SINGULAR_DECOUPLING;
     }
-    for (j = m; j-- > 0;) {
-        for (k = j + 1; k < m; ++k) {
-            b[j] -= a[j * m + k] * b[k];
-        }
-        b[j] /= a[j * m + j];
-    }
+    *b /= a;
     return FLEXIBLE_JOINT_OK;
 }
 
-/* The diagonal blocks of R: their sizes and their rows, block after block. R is stored
- * the same way (each block row-major), so the zeros between blocks are never touched. */
-#define FLEXIBLE_JOINT_R_BLOCKS 1
+/* R holds the diagonal blocks of the decoupling matrix one after the other, each
+ * row-major, so the zeros between blocks are never stored or touched. */
 #define FLEXIBLE_JOINT_R_ENTRIES 1
-#define FLEXIBLE_JOINT_R_LARGEST_BLOCK 1
-static const size_t flexible_joint_r_block_size[FLEXIBLE_JOINT_R_BLOCKS] = {1};
-static const size_t flexible_joint_r_block_rows[FLEXIBLE_JOINT_N_OUTPUTS] = {0};
 
 /* Solve R w = b in place (w holds b), block by block. */
 static int flexible_joint_solve_decoupling(double *r, double *w)
 {
-    double x[FLEXIBLE_JOINT_R_LARGEST_BLOCK];
-    size_t block, i, entry = 0, row = 0;
-    for (block = 0; block < FLEXIBLE_JOINT_R_BLOCKS; ++block) {
-        const size_t size = flexible_joint_r_block_size[block];
-        int status;
-        for (i = 0; i < size; ++i) {
-            x[i] = w[flexible_joint_r_block_rows[row + i]];
-        }
-        status = flexible_joint_lu_solve(r + entry, x, size);
-        if (status != FLEXIBLE_JOINT_OK) {
-            return status;
-        }
-        for (i = 0; i < size; ++i) {
-            w[flexible_joint_r_block_rows[row + i]] = x[i];
-        }
-        entry += size * size;
-        row += size;
+    int status;
+    /* block 0: outputs 0 */
+    status = flexible_joint_lu_solve_1(r[0], &w[0]);
+    if (status != FLEXIBLE_JOINT_OK) {
+        return status;
     }
     return FLEXIBLE_JOINT_OK;
 }

@@ -2,12 +2,13 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: a8a4a736231f0b8da88166a38791a12521249c63efc6ac6015a5562a1398ba2d
+ * content sha256: 2a2bcd4aa43bf9935ff80591948c3bb0c81711de9f1e7c7769aee3fd9ab6adef
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
- * solves: a generated sparse Cholesky for the Hessian of f0 and LU with partial pivoting
- * for each diagonal block of the decoupling matrix R (never a symbolic inverse). */
+ * solves: a generated sparse LDL^T (square-root-free Cholesky) for the Hessian of f0 and LU
+ * with partial pivoting for each diagonal block of the decoupling matrix R (never a symbolic
+ * inverse). */
 #include "integrator.h"
 
 #include <math.h>
@@ -35,7 +36,7 @@ const double integrator_default_params[INTEGRATOR_N_PARAMS] = {2.0};
 const double integrator_default_state[INTEGRATOR_N_STATES] = {-1.0, 1.5};
 const double integrator_hurwitz_coefficients[INTEGRATOR_K] = {-1.0};
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (30 operations, 39 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (31 operations, 37 before CSE). */
 static void integrator_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* x1 */
@@ -43,11 +44,10 @@ static void integrator_k_jet(double t, const double *s, const double *p, const d
     const double _p0 = p[0]; /* w */
     const double _a0 = a[0]; /* a_0 */
     const double _t0 = (t*t);
-    const double _t1 = (1.0/2.0)*_p0;
     hessian[0] = 1;
     hessian[1] = _p0;
     jet_rhs[0] = _a0*(_s0 - 4.0/5.0*t + (1.0/20.0)*_t0 - 2) - 1.0/10.0*t + 4.0/5.0;
-    jet_rhs[1] = _a0*_t1*(2*_s1 - t - 1.0/25.0*_t0 + (1.0/500.0)*(t*t*t) + 2) - _t1*((3.0/500.0)*_t0 - 2.0/25.0*t - 1);
+    jet_rhs[1] = _a0*(_p0*_s1 - _p0*((1.0/2.0)*t - 1.0/1000.0*(t*t*t) + (1.0/50.0)*_t0 - 1)) + _p0*((1.0/25.0)*t - 3.0/1000.0*_t0 + 1.0/2.0);
     R[0] = 1;
     R[1] = 1;
     pvec[0] = 0;
@@ -55,17 +55,15 @@ static void integrator_k_jet(double t, const double *s, const double *p, const d
 }
 
 
-/* Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots (10 operations, 10 before CSE). */
+/* Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (4 operations, 6 before CSE). */
 static void integrator_k_cholesky(const double *h, const double *c, double *z, double *pivot)
 {
     const double _h0 = h[0]; /* H[0, 0] */
     const double _h1 = h[1]; /* H[1, 1] */
     const double _c0 = c[0]; /* c[0] */
     const double _c1 = c[1]; /* c[1] */
-    const double _t0 = pow(_h0, -1.0/2.0);
-    const double _t1 = pow(_h1, -1.0/2.0);
-    z[0] = _c0*(_t0*_t0);
-    z[1] = _c1*(_t1*_t1);
+    z[0] = _c0/_h0;
+    z[1] = _c1/_h1;
     pivot[0] = _h0;
     pivot[1] = _h1;
 }
@@ -115,7 +113,7 @@ static void integrator_k_plant_input(double t, const double *s, const double *p,
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (17 operations, 21 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (18 operations, 20 before CSE). */
 static void integrator_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* x1 */
@@ -123,7 +121,7 @@ static void integrator_k_optimality(double t, const double *s, const double *p, 
     const double _p0 = p[0]; /* w */
     const double _t0 = (t*t);
     E[0] = _s0 - 4.0/5.0*t + (1.0/20.0)*_t0 - 2;
-    E[1] = (1.0/2.0)*_p0*(2*_s1 - t - 1.0/25.0*_t0 + (1.0/500.0)*(t*t*t) + 2);
+    E[1] = _p0*_s1 - _p0*((1.0/2.0)*t - 1.0/1000.0*(t*t*t) + (1.0/50.0)*_t0 - 1);
 }
 
 
@@ -138,7 +136,7 @@ static void integrator_k_objective(double t, const double *y, const double *p, d
 }
 
 
-/* grad_y f0(y, t) (17 operations, 21 before CSE). */
+/* grad_y f0(y, t) (18 operations, 20 before CSE). */
 static void integrator_k_gradient(double t, const double *y, const double *p, double *grad)
 {
     const double _y0 = y[0]; /* y1 */
@@ -146,7 +144,7 @@ static void integrator_k_gradient(double t, const double *y, const double *p, do
     const double _p0 = p[0]; /* w */
     const double _t0 = (t*t);
     grad[0] = _y0 - 4.0/5.0*t + (1.0/20.0)*_t0 - 2;
-    grad[1] = (1.0/2.0)*_p0*(2*_y1 - t - 1.0/25.0*_t0 + (1.0/500.0)*(t*t*t) + 2);
+    grad[1] = _p0*_y1 - _p0*((1.0/2.0)*t - 1.0/1000.0*(t*t*t) + (1.0/50.0)*_t0 - 1);
 }
 
 
@@ -197,7 +195,7 @@ static double integrator_max_abs(const double *a, size_t count)
     return scale;
 }
 
-/* Solve Hess z = c with the generated sparse Cholesky kernel (hess: the nonzero entries of
+/* Solve Hess z = c with the generated sparse LDL^T kernel (hess: the nonzero entries of
  * the lower triangle); every pivot must exceed the tolerance relative to the largest entry. */
 static int integrator_cholesky_solve(const double *hess, const double *c, double *z)
 {
@@ -213,77 +211,33 @@ static int integrator_cholesky_solve(const double *hess, const double *c, double
     return INTEGRATOR_OK;
 }
 
-/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major, m x m). */
-static int integrator_lu_solve(double *a, double *b, size_t m)
+/* Solve a x = b for one number: a 1 x 1 block of R (its own scale, so only 0 is singular). */
+static int integrator_lu_solve_1(double a, double *b)
 {
-    const double scale = integrator_max_abs(a, m * m);
-    size_t i, j, k;
-    for (j = 0; j < m; ++j) {
-        size_t row = j;
-        for (i = j + 1; i < m; ++i) {
-            if (fabs(a[i * m + j]) > fabs(a[row * m + j])) {
-                row = i;
-            }
-        }
-        if (row != j) {
-            double swap;
-            for (k = 0; k < m; ++k) {
-                swap = a[j * m + k];
-                a[j * m + k] = a[row * m + k];
-                a[row * m + k] = swap;
-            }
-            swap = b[j];
-            b[j] = b[row];
-            b[row] = swap;
-        }
-        if (!(fabs(a[j * m + j]) > INTEGRATOR_PIVOT_TOLERANCE * scale)) {
-            return INTEGRATOR_SINGULAR_DECOUPLING;
-        }
-        for (i = j + 1; i < m; ++i) {
-            const double factor = a[i * m + j] / a[j * m + j];
-            for (k = j; k < m; ++k) {
-                a[i * m + k] -= factor * a[j * m + k];
-            }
-            b[i] -= factor * b[j];
-        }
+    if (!(fabs(a) > INTEGRATOR_PIVOT_TOLERANCE * fabs(a))) {
+        return INTEGRATOR_SINGULAR_DECOUPLING;
     }
-    for (j = m; j-- > 0;) {
-        for (k = j + 1; k < m; ++k) {
-            b[j] -= a[j * m + k] * b[k];
-        }
-        b[j] /= a[j * m + j];
-    }
+    *b /= a;
     return INTEGRATOR_OK;
 }
 
-/* The diagonal blocks of R: their sizes and their rows, block after block. R is stored
- * the same way (each block row-major), so the zeros between blocks are never touched. */
-#define INTEGRATOR_R_BLOCKS 2
+/* R holds the diagonal blocks of the decoupling matrix one after the other, each
+ * row-major, so the zeros between blocks are never stored or touched. */
 #define INTEGRATOR_R_ENTRIES 2
-#define INTEGRATOR_R_LARGEST_BLOCK 1
-static const size_t integrator_r_block_size[INTEGRATOR_R_BLOCKS] = {1, 1};
-static const size_t integrator_r_block_rows[INTEGRATOR_N_OUTPUTS] = {0, 1};
 
 /* Solve R w = b in place (w holds b), block by block. */
 static int integrator_solve_decoupling(double *r, double *w)
 {
-    double x[INTEGRATOR_R_LARGEST_BLOCK];
-    size_t block, i, entry = 0, row = 0;
-    for (block = 0; block < INTEGRATOR_R_BLOCKS; ++block) {
-        const size_t size = integrator_r_block_size[block];
-        int status;
-        for (i = 0; i < size; ++i) {
-            x[i] = w[integrator_r_block_rows[row + i]];
-        }
-        status = integrator_lu_solve(r + entry, x, size);
-        if (status != INTEGRATOR_OK) {
-            return status;
-        }
-        for (i = 0; i < size; ++i) {
-            w[integrator_r_block_rows[row + i]] = x[i];
-        }
-        entry += size * size;
-        row += size;
+    int status;
+    /* block 0: outputs 0 */
+    status = integrator_lu_solve_1(r[0], &w[0]);
+    if (status != INTEGRATOR_OK) {
+        return status;
+    }
+    /* block 1: outputs 1 */
+    status = integrator_lu_solve_1(r[1], &w[1]);
+    if (status != INTEGRATOR_OK) {
+        return status;
     }
     return INTEGRATOR_OK;
 }

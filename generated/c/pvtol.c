@@ -2,12 +2,13 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: db7bb77908f27a6c8c9e44b5e6e1a07c3c306a0ded6663ea98eb800ff633c408
+ * content sha256: e62a00e2d383d2132ba81ffd640281ec997ea9c57e0934d6e5f05b4d6260c563
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
- * solves: a generated sparse Cholesky for the Hessian of f0 and LU with partial pivoting
- * for each diagonal block of the decoupling matrix R (never a symbolic inverse). */
+ * solves: a generated sparse LDL^T (square-root-free Cholesky) for the Hessian of f0 and LU
+ * with partial pivoting for each diagonal block of the decoupling matrix R (never a symbolic
+ * inverse). */
 #include "pvtol.h"
 
 #include <math.h>
@@ -229,90 +230,67 @@ static int pvtol_check_inputs(double t, const double *x, size_t count, const dou
     return PVTOL_OK;
 }
 
-static double pvtol_max_abs(const double *a, size_t count)
-{
-    double scale = 0.0;
-    size_t i;
-    for (i = 0; i < count; ++i) {
-        if (fabs(a[i]) > scale) {
-            scale = fabs(a[i]);
-        }
-    }
-    return scale;
-}
 
 
-/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major, m x m). */
-static int pvtol_lu_solve(double *a, double *b, size_t m)
+/* Solve a x = b in place for a 2 x 2 block (a row-major; x overwrites b0, b1): LU with
+ * partial pivoting, unrolled. The same operations in the same order as the general loop,
+ * so the results are the same to the bit, without its index arithmetic. */
+static int pvtol_lu_solve_2(const double *a, double *b0, double *b1)
 {
-    const double scale = pvtol_max_abs(a, m * m);
-    size_t i, j, k;
-    for (j = 0; j < m; ++j) {
-        size_t row = j;
-        for (i = j + 1; i < m; ++i) {
-            if (fabs(a[i * m + j]) > fabs(a[row * m + j])) {
-                row = i;
-            }
-        }
-        if (row != j) {
-            double swap;
-            for (k = 0; k < m; ++k) {
-                swap = a[j * m + k];
-                a[j * m + k] = a[row * m + k];
-                a[row * m + k] = swap;
-            }
-            swap = b[j];
-            b[j] = b[row];
-            b[row] = swap;
-        }
-        if (!(fabs(a[j * m + j]) > PVTOL_PIVOT_TOLERANCE * scale)) {
-            return PVTOL_SINGULAR_DECOUPLING;
-        }
-        for (i = j + 1; i < m; ++i) {
-            const double factor = a[i * m + j] / a[j * m + j];
-            for (k = j; k < m; ++k) {
-                a[i * m + k] -= factor * a[j * m + k];
-            }
-            b[i] -= factor * b[j];
-        }
+    double a00 = a[0], a01 = a[1], a10 = a[2], a11 = a[3], x0 = *b0, x1 = *b1;
+    double scale = 0.0, factor;
+    if (fabs(a00) > scale) {
+        scale = fabs(a00);
     }
-    for (j = m; j-- > 0;) {
-        for (k = j + 1; k < m; ++k) {
-            b[j] -= a[j * m + k] * b[k];
-        }
-        b[j] /= a[j * m + j];
+    if (fabs(a01) > scale) {
+        scale = fabs(a01);
     }
+    if (fabs(a10) > scale) {
+        scale = fabs(a10);
+    }
+    if (fabs(a11) > scale) {
+        scale = fabs(a11);
+    }
+    if (fabs(a10) > fabs(a00)) {
+        double swap = a00;
+        a00 = a10;
+        a10 = swap;
+        swap = a01;
+        a01 = a11;
+        a11 = swap;
+        swap = x0;
+        x0 = x1;
+        x1 = swap;
+    }
+    if (!(fabs(a00) > PVTOL_PIVOT_TOLERANCE * scale)) {
+        return PVTOL_SINGULAR_DECOUPLING;
+    }
+    factor = a10 / a00;
+    a11 -= factor * a01;
+    x1 -= factor * x0;
+    if (!(fabs(a11) > PVTOL_PIVOT_TOLERANCE * scale)) {
+        return PVTOL_SINGULAR_DECOUPLING;
+    }
+    x1 /= a11;
+    x0 -= a01 * x1;
+    x0 /= a00;
+    *b0 = x0;
+    *b1 = x1;
     return PVTOL_OK;
 }
 
-/* The diagonal blocks of R: their sizes and their rows, block after block. R is stored
- * the same way (each block row-major), so the zeros between blocks are never touched. */
-#define PVTOL_R_BLOCKS 1
+/* R holds the diagonal blocks of the decoupling matrix one after the other, each
+ * row-major, so the zeros between blocks are never stored or touched. */
 #define PVTOL_R_ENTRIES 4
-#define PVTOL_R_LARGEST_BLOCK 2
-static const size_t pvtol_r_block_size[PVTOL_R_BLOCKS] = {2};
-static const size_t pvtol_r_block_rows[PVTOL_N_OUTPUTS] = {0, 1};
 
 /* Solve R w = b in place (w holds b), block by block. */
 static int pvtol_solve_decoupling(double *r, double *w)
 {
-    double x[PVTOL_R_LARGEST_BLOCK];
-    size_t block, i, entry = 0, row = 0;
-    for (block = 0; block < PVTOL_R_BLOCKS; ++block) {
-        const size_t size = pvtol_r_block_size[block];
-        int status;
-        for (i = 0; i < size; ++i) {
-            x[i] = w[pvtol_r_block_rows[row + i]];
-        }
-        status = pvtol_lu_solve(r + entry, x, size);
-        if (status != PVTOL_OK) {
-            return status;
-        }
-        for (i = 0; i < size; ++i) {
-            w[pvtol_r_block_rows[row + i]] = x[i];
-        }
-        entry += size * size;
-        row += size;
+    int status;
+    /* block 0: outputs 0, 1 */
+    status = pvtol_lu_solve_2(r + 0, &w[0], &w[1]);
+    if (status != PVTOL_OK) {
+        return status;
     }
     return PVTOL_OK;
 }

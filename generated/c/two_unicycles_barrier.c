@@ -2,12 +2,13 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 23bb88fa8fc1735d6dfced10d96c393e1bfd54122efcb103744cb8c0663499c3
+ * content sha256: 26bf055eafb0754e0920621b1c2fd9ce5ff4cc810b57c1c5939396715a048d5c
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
- * solves: a generated sparse Cholesky for the Hessian of f0 and LU with partial pivoting
- * for each diagonal block of the decoupling matrix R (never a symbolic inverse). */
+ * solves: a generated sparse LDL^T (square-root-free Cholesky) for the Hessian of f0 and LU
+ * with partial pivoting for each diagonal block of the decoupling matrix R (never a symbolic
+ * inverse). */
 #include "two_unicycles_barrier.h"
 
 #include <math.h>
@@ -147,7 +148,7 @@ static void two_unicycles_barrier_k_jet(double t, const double *s, const double 
 }
 
 
-/* Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots (70 operations, 70 before CSE). */
+/* Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (61 operations, 62 before CSE). */
 static void two_unicycles_barrier_k_cholesky(const double *h, const double *c, double *z, double *pivot)
 {
     const double _h0 = h[0]; /* H[0, 0] */
@@ -164,33 +165,34 @@ static void two_unicycles_barrier_k_cholesky(const double *h, const double *c, d
     const double _c1 = c[1]; /* c[1] */
     const double _c2 = c[2]; /* c[2] */
     const double _c3 = c[3]; /* c[3] */
-    const double _t0 = pow(_h0, -1.0/2.0);
+    const double _t0 = (1.0/_h0);
     const double _t1 = _h1*_t0;
     const double _t2 = _h3*_t0;
     const double _t3 = _h6*_t0;
-    const double _t4 = _h2 - (_t1*_t1);
-    const double _t5 = pow(_t4, -1.0/2.0);
-    const double _t6 = _t5*(_h4 - _t1*_t2);
-    const double _t7 = _t5*(_h7 - _t1*_t3);
-    const double _t8 = _h5 - (_t2*_t2) - (_t6*_t6);
-    const double _t9 = pow(_t8, -1.0/2.0);
-    const double _t10 = _t9*(_h8 - _t2*_t3 - _t6*_t7);
-    const double _t11 = _h9 - (_t10*_t10) - (_t3*_t3) - (_t7*_t7);
-    const double _t12 = pow(_t11, -1.0/2.0);
-    const double _t13 = _c0*_t0;
-    const double _t14 = _t5*(_c1 - _t1*_t13);
-    const double _t15 = _t9*(_c2 - _t13*_t2 - _t14*_t6);
-    const double _t16 = (_t12*_t12)*(_c3 - _t10*_t15 - _t13*_t3 - _t14*_t7);
-    const double _t17 = _t9*(_t15 - _t10*_t16);
-    const double _t18 = _t5*(_t14 - _t16*_t7 - _t17*_t6);
-    z[0] = _t0*(_t13 - _t1*_t18 - _t16*_t3 - _t17*_t2);
-    z[1] = _t18;
-    z[2] = _t17;
-    z[3] = _t16;
+    const double _t4 = _h2 - _h1*_t1;
+    const double _t5 = (1.0/_t4);
+    const double _t6 = _h4 - _h1*_t2;
+    const double _t7 = _t5*_t6;
+    const double _t8 = _h7 - _h1*_t3;
+    const double _t9 = _t5*_t8;
+    const double _t10 = _h5 - _h3*_t2 - _t6*_t7;
+    const double _t11 = (1.0/_t10);
+    const double _t12 = _h8 - _h3*_t3 - _t6*_t9;
+    const double _t13 = _t11*_t12;
+    const double _t14 = _h9 - _h6*_t3 - _t12*_t13 - _t8*_t9;
+    const double _t15 = _c1 - _c0*_t1;
+    const double _t16 = _c2 - _c0*_t2 - _t15*_t7;
+    const double _t17 = (_c3 - _c0*_t3 - _t13*_t16 - _t15*_t9)/_t14;
+    const double _t18 = _t11*_t16 - _t13*_t17;
+    const double _t19 = _t15*_t5 - _t17*_t9 - _t18*_t7;
+    z[0] = _c0*_t0 - _t1*_t19 - _t17*_t3 - _t18*_t2;
+    z[1] = _t19;
+    z[2] = _t18;
+    z[3] = _t17;
     pivot[0] = _h0;
     pivot[1] = _t4;
-    pivot[2] = _t8;
-    pivot[3] = _t11;
+    pivot[2] = _t10;
+    pivot[3] = _t14;
 }
 
 
@@ -451,7 +453,7 @@ static double two_unicycles_barrier_max_abs(const double *a, size_t count)
     return scale;
 }
 
-/* Solve Hess z = c with the generated sparse Cholesky kernel (hess: the nonzero entries of
+/* Solve Hess z = c with the generated sparse LDL^T kernel (hess: the nonzero entries of
  * the lower triangle); every pivot must exceed the tolerance relative to the largest entry. */
 static int two_unicycles_barrier_cholesky_solve(const double *hess, const double *c, double *z)
 {
@@ -467,77 +469,70 @@ static int two_unicycles_barrier_cholesky_solve(const double *hess, const double
     return TWO_UNICYCLES_BARRIER_OK;
 }
 
-/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major, m x m). */
-static int two_unicycles_barrier_lu_solve(double *a, double *b, size_t m)
+/* Solve a x = b in place for a 2 x 2 block (a row-major; x overwrites b0, b1): LU with
+ * partial pivoting, unrolled. The same operations in the same order as the general loop,
+ * so the results are the same to the bit, without its index arithmetic. */
+static int two_unicycles_barrier_lu_solve_2(const double *a, double *b0, double *b1)
 {
-    const double scale = two_unicycles_barrier_max_abs(a, m * m);
-    size_t i, j, k;
-    for (j = 0; j < m; ++j) {
-        size_t row = j;
-        for (i = j + 1; i < m; ++i) {
-            if (fabs(a[i * m + j]) > fabs(a[row * m + j])) {
-                row = i;
-            }
-        }
-        if (row != j) {
-            double swap;
-            for (k = 0; k < m; ++k) {
-                swap = a[j * m + k];
-                a[j * m + k] = a[row * m + k];
-                a[row * m + k] = swap;
-            }
-            swap = b[j];
-            b[j] = b[row];
-            b[row] = swap;
-        }
-        if (!(fabs(a[j * m + j]) > TWO_UNICYCLES_BARRIER_PIVOT_TOLERANCE * scale)) {
-            return TWO_UNICYCLES_BARRIER_SINGULAR_DECOUPLING;
-        }
-        for (i = j + 1; i < m; ++i) {
-            const double factor = a[i * m + j] / a[j * m + j];
-            for (k = j; k < m; ++k) {
-                a[i * m + k] -= factor * a[j * m + k];
-            }
-            b[i] -= factor * b[j];
-        }
+    double a00 = a[0], a01 = a[1], a10 = a[2], a11 = a[3], x0 = *b0, x1 = *b1;
+    double scale = 0.0, factor;
+    if (fabs(a00) > scale) {
+        scale = fabs(a00);
     }
-    for (j = m; j-- > 0;) {
-        for (k = j + 1; k < m; ++k) {
-            b[j] -= a[j * m + k] * b[k];
-        }
-        b[j] /= a[j * m + j];
+    if (fabs(a01) > scale) {
+        scale = fabs(a01);
     }
+    if (fabs(a10) > scale) {
+        scale = fabs(a10);
+    }
+    if (fabs(a11) > scale) {
+        scale = fabs(a11);
+    }
+    if (fabs(a10) > fabs(a00)) {
+        double swap = a00;
+        a00 = a10;
+        a10 = swap;
+        swap = a01;
+        a01 = a11;
+        a11 = swap;
+        swap = x0;
+        x0 = x1;
+        x1 = swap;
+    }
+    if (!(fabs(a00) > TWO_UNICYCLES_BARRIER_PIVOT_TOLERANCE * scale)) {
+        return TWO_UNICYCLES_BARRIER_SINGULAR_DECOUPLING;
+    }
+    factor = a10 / a00;
+    a11 -= factor * a01;
+    x1 -= factor * x0;
+    if (!(fabs(a11) > TWO_UNICYCLES_BARRIER_PIVOT_TOLERANCE * scale)) {
+        return TWO_UNICYCLES_BARRIER_SINGULAR_DECOUPLING;
+    }
+    x1 /= a11;
+    x0 -= a01 * x1;
+    x0 /= a00;
+    *b0 = x0;
+    *b1 = x1;
     return TWO_UNICYCLES_BARRIER_OK;
 }
 
-/* The diagonal blocks of R: their sizes and their rows, block after block. R is stored
- * the same way (each block row-major), so the zeros between blocks are never touched. */
-#define TWO_UNICYCLES_BARRIER_R_BLOCKS 2
+/* R holds the diagonal blocks of the decoupling matrix one after the other, each
+ * row-major, so the zeros between blocks are never stored or touched. */
 #define TWO_UNICYCLES_BARRIER_R_ENTRIES 8
-#define TWO_UNICYCLES_BARRIER_R_LARGEST_BLOCK 2
-static const size_t two_unicycles_barrier_r_block_size[TWO_UNICYCLES_BARRIER_R_BLOCKS] = {2, 2};
-static const size_t two_unicycles_barrier_r_block_rows[TWO_UNICYCLES_BARRIER_N_OUTPUTS] = {0, 1, 2, 3};
 
 /* Solve R w = b in place (w holds b), block by block. */
 static int two_unicycles_barrier_solve_decoupling(double *r, double *w)
 {
-    double x[TWO_UNICYCLES_BARRIER_R_LARGEST_BLOCK];
-    size_t block, i, entry = 0, row = 0;
-    for (block = 0; block < TWO_UNICYCLES_BARRIER_R_BLOCKS; ++block) {
-        const size_t size = two_unicycles_barrier_r_block_size[block];
-        int status;
-        for (i = 0; i < size; ++i) {
-            x[i] = w[two_unicycles_barrier_r_block_rows[row + i]];
-        }
-        status = two_unicycles_barrier_lu_solve(r + entry, x, size);
-        if (status != TWO_UNICYCLES_BARRIER_OK) {
-            return status;
-        }
-        for (i = 0; i < size; ++i) {
-            w[two_unicycles_barrier_r_block_rows[row + i]] = x[i];
-        }
-        entry += size * size;
-        row += size;
+    int status;
+    /* block 0: outputs 0, 1 */
+    status = two_unicycles_barrier_lu_solve_2(r + 0, &w[0], &w[1]);
+    if (status != TWO_UNICYCLES_BARRIER_OK) {
+        return status;
+    }
+    /* block 1: outputs 2, 3 */
+    status = two_unicycles_barrier_lu_solve_2(r + 4, &w[2], &w[3]);
+    if (status != TWO_UNICYCLES_BARRIER_OK) {
+        return status;
     }
     return TWO_UNICYCLES_BARRIER_OK;
 }

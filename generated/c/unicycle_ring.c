@@ -2,12 +2,13 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: ce65b04a14fff836b5ddf31c687c2296703f422358c92e67de8d89f4b87a44ee
+ * content sha256: d85aa034e69c1194e80aab896c787b7c8c61da5f4046c7088bfc2b16c68930b8
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical
- * solves: a generated sparse Cholesky for the Hessian of f0 and LU with partial pivoting
- * for each diagonal block of the decoupling matrix R (never a symbolic inverse). */
+ * solves: a generated sparse LDL^T (square-root-free Cholesky) for the Hessian of f0 and LU
+ * with partial pivoting for each diagonal block of the decoupling matrix R (never a symbolic
+ * inverse). */
 #include "unicycle_ring.h"
 
 #include <math.h>
@@ -376,7 +377,7 @@ static void unicycle_ring_k_jet(double t, const double *s, const double *p, cons
 }
 
 
-/* Sparse Cholesky solve of Hess z = c (z = y_imp^(k)) and its pivots (276 operations, 276 before CSE). */
+/* Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (259 operations, 260 before CSE). */
 static void unicycle_ring_k_cholesky(const double *h, const double *c, double *z, double *pivot)
 {
     const double _h0 = h[0]; /* H[0, 0] */
@@ -415,75 +416,90 @@ static void unicycle_ring_k_cholesky(const double *h, const double *c, double *z
     const double _c5 = c[5]; /* c[5] */
     const double _c6 = c[6]; /* c[6] */
     const double _c7 = c[7]; /* c[7] */
-    const double _t0 = pow(_h0, -1.0/2.0);
+    const double _t0 = (1.0/_h0);
     const double _t1 = _h1*_t0;
     const double _t2 = _h3*_t0;
     const double _t3 = _h6*_t0;
     const double _t4 = _h17*_t0;
     const double _t5 = _h22*_t0;
-    const double _t6 = _h2 - (_t1*_t1);
-    const double _t7 = pow(_t6, -1.0/2.0);
-    const double _t8 = _t7*(_h4 - _t1*_t2);
-    const double _t9 = _t7*(_h7 - _t1*_t3);
-    const double _t10 = _t7*(_h18 - _t1*_t4);
-    const double _t11 = _t7*(_h23 - _t1*_t5);
-    const double _t12 = _h5 - (_t2*_t2) - (_t8*_t8);
-    const double _t13 = pow(_t12, -1.0/2.0);
-    const double _t14 = _t13*(_h8 - _t2*_t3 - _t8*_t9);
-    const double _t15 = _h10*_t13;
-    const double _t16 = _h13*_t13;
-    const double _t17 = _t13*(-_t10*_t8 - _t2*_t4);
-    const double _t18 = _t13*(-_t11*_t8 - _t2*_t5);
-    const double _t19 = _h9 - (_t14*_t14) - (_t3*_t3) - (_t9*_t9);
-    const double _t20 = pow(_t19, -1.0/2.0);
-    const double _t21 = _t20*(_h11 - _t14*_t15);
-    const double _t22 = _t20*(_h14 - _t14*_t16);
-    const double _t23 = _t20*(-_t10*_t9 - _t14*_t17 - _t3*_t4);
-    const double _t24 = _t20*(-_t11*_t9 - _t14*_t18 - _t3*_t5);
-    const double _t25 = _h12 - (_t15*_t15) - (_t21*_t21);
-    const double _t26 = pow(_t25, -1.0/2.0);
-    const double _t27 = _t26*(_h15 - _t15*_t16 - _t21*_t22);
-    const double _t28 = _t26*(_h19 - _t15*_t17 - _t21*_t23);
-    const double _t29 = _t26*(_h24 - _t15*_t18 - _t21*_t24);
-    const double _t30 = _h16 - (_t16*_t16) - (_t22*_t22) - (_t27*_t27);
-    const double _t31 = pow(_t30, -1.0/2.0);
-    const double _t32 = _t31*(_h20 - _t16*_t17 - _t22*_t23 - _t27*_t28);
-    const double _t33 = _t31*(_h25 - _t16*_t18 - _t22*_t24 - _t27*_t29);
-    const double _t34 = _h21 - (_t10*_t10) - (_t17*_t17) - (_t23*_t23) - (_t28*_t28) - (_t32*_t32) - (_t4*_t4);
-    const double _t35 = pow(_t34, -1.0/2.0);
-    const double _t36 = _t35*(_h26 - _t10*_t11 - _t17*_t18 - _t23*_t24 - _t28*_t29 - _t32*_t33 - _t4*_t5);
-    const double _t37 = _h27 - (_t11*_t11) - (_t18*_t18) - (_t24*_t24) - (_t29*_t29) - (_t33*_t33) - (_t36*_t36) - (_t5*_t5);
-    const double _t38 = pow(_t37, -1.0/2.0);
-    const double _t39 = _c0*_t0;
-    const double _t40 = _t7*(_c1 - _t1*_t39);
-    const double _t41 = _t13*(_c2 - _t2*_t39 - _t40*_t8);
-    const double _t42 = _t20*(_c3 - _t14*_t41 - _t3*_t39 - _t40*_t9);
-    const double _t43 = _t26*(_c4 - _t15*_t41 - _t21*_t42);
-    const double _t44 = _t31*(_c5 - _t16*_t41 - _t22*_t42 - _t27*_t43);
-    const double _t45 = _t35*(_c6 - _t10*_t40 - _t17*_t41 - _t23*_t42 - _t28*_t43 - _t32*_t44 - _t39*_t4);
-    const double _t46 = (_t38*_t38)*(_c7 - _t11*_t40 - _t18*_t41 - _t24*_t42 - _t29*_t43 - _t33*_t44 - _t36*_t45 - _t39*_t5);
-    const double _t47 = _t35*(_t45 - _t36*_t46);
-    const double _t48 = _t31*(_t44 - _t32*_t47 - _t33*_t46);
-    const double _t49 = _t26*(_t43 - _t27*_t48 - _t28*_t47 - _t29*_t46);
-    const double _t50 = _t20*(_t42 - _t21*_t49 - _t22*_t48 - _t23*_t47 - _t24*_t46);
-    const double _t51 = _t13*(_t41 - _t14*_t50 - _t15*_t49 - _t16*_t48 - _t17*_t47 - _t18*_t46);
-    const double _t52 = _t7*(_t40 - _t10*_t47 - _t11*_t46 - _t50*_t9 - _t51*_t8);
-    z[0] = _t0*(_t39 - _t1*_t52 - _t2*_t51 - _t3*_t50 - _t4*_t47 - _t46*_t5);
-    z[1] = _t52;
-    z[2] = _t51;
-    z[3] = _t50;
-    z[4] = _t49;
-    z[5] = _t48;
-    z[6] = _t47;
-    z[7] = _t46;
+    const double _t6 = _h2 - _h1*_t1;
+    const double _t7 = (1.0/_t6);
+    const double _t8 = _h4 - _h1*_t2;
+    const double _t9 = _t7*_t8;
+    const double _t10 = _h7 - _h1*_t3;
+    const double _t11 = _t10*_t7;
+    const double _t12 = _h18 - _h1*_t4;
+    const double _t13 = _t12*_t7;
+    const double _t14 = _h23 - _h1*_t5;
+    const double _t15 = _t14*_t7;
+    const double _t16 = _h5 - _h3*_t2 - _t8*_t9;
+    const double _t17 = (1.0/_t16);
+    const double _t18 = _h8 - _h3*_t3 - _t11*_t8;
+    const double _t19 = _t17*_t18;
+    const double _t20 = _h10*_t17;
+    const double _t21 = _h13*_t17;
+    const double _t22 = -_h3*_t4 - _t13*_t8;
+    const double _t23 = _t17*_t22;
+    const double _t24 = -_h3*_t5 - _t15*_t8;
+    const double _t25 = _t17*_t24;
+    const double _t26 = _h9 - _h6*_t3 - _t10*_t11 - _t18*_t19;
+    const double _t27 = (1.0/_t26);
+    const double _t28 = _h11 - _t18*_t20;
+    const double _t29 = _t27*_t28;
+    const double _t30 = _h14 - _t18*_t21;
+    const double _t31 = _t27*_t30;
+    const double _t32 = -_h6*_t4 - _t10*_t13 - _t18*_t23;
+    const double _t33 = _t27*_t32;
+    const double _t34 = -_h6*_t5 - _t10*_t15 - _t18*_t25;
+    const double _t35 = _t27*_t34;
+    const double _t36 = _h12 - _h10*_t20 - _t28*_t29;
+    const double _t37 = (1.0/_t36);
+    const double _t38 = _h15 - _h10*_t21 - _t28*_t31;
+    const double _t39 = _t37*_t38;
+    const double _t40 = _h19 - _h10*_t23 - _t28*_t33;
+    const double _t41 = _t37*_t40;
+    const double _t42 = _h24 - _h10*_t25 - _t28*_t35;
+    const double _t43 = _t37*_t42;
+    const double _t44 = _h16 - _h13*_t21 - _t30*_t31 - _t38*_t39;
+    const double _t45 = (1.0/_t44);
+    const double _t46 = _h20 - _h13*_t23 - _t30*_t33 - _t38*_t41;
+    const double _t47 = _t45*_t46;
+    const double _t48 = _h25 - _h13*_t25 - _t30*_t35 - _t38*_t43;
+    const double _t49 = _t45*_t48;
+    const double _t50 = _h21 - _h17*_t4 - _t12*_t13 - _t22*_t23 - _t32*_t33 - _t40*_t41 - _t46*_t47;
+    const double _t51 = (1.0/_t50);
+    const double _t52 = _h26 - _h17*_t5 - _t12*_t15 - _t22*_t25 - _t32*_t35 - _t40*_t43 - _t46*_t49;
+    const double _t53 = _t51*_t52;
+    const double _t54 = _h27 - _h22*_t5 - _t14*_t15 - _t24*_t25 - _t34*_t35 - _t42*_t43 - _t48*_t49 - _t52*_t53;
+    const double _t55 = _c1 - _c0*_t1;
+    const double _t56 = _c2 - _c0*_t2 - _t55*_t9;
+    const double _t57 = _c3 - _c0*_t3 - _t11*_t55 - _t19*_t56;
+    const double _t58 = _c4 - _t20*_t56 - _t29*_t57;
+    const double _t59 = _c5 - _t21*_t56 - _t31*_t57 - _t39*_t58;
+    const double _t60 = _c6 - _c0*_t4 - _t13*_t55 - _t23*_t56 - _t33*_t57 - _t41*_t58 - _t47*_t59;
+    const double _t61 = (_c7 - _c0*_t5 - _t15*_t55 - _t25*_t56 - _t35*_t57 - _t43*_t58 - _t49*_t59 - _t53*_t60)/_t54;
+    const double _t62 = _t51*_t60 - _t53*_t61;
+    const double _t63 = _t45*_t59 - _t47*_t62 - _t49*_t61;
+    const double _t64 = _t37*_t58 - _t39*_t63 - _t41*_t62 - _t43*_t61;
+    const double _t65 = _t27*_t57 - _t29*_t64 - _t31*_t63 - _t33*_t62 - _t35*_t61;
+    const double _t66 = _t17*_t56 - _t19*_t65 - _t20*_t64 - _t21*_t63 - _t23*_t62 - _t25*_t61;
+    const double _t67 = _t55*_t7 - _t11*_t65 - _t13*_t62 - _t15*_t61 - _t66*_t9;
+    z[0] = _c0*_t0 - _t1*_t67 - _t2*_t66 - _t3*_t65 - _t4*_t62 - _t5*_t61;
+    z[1] = _t67;
+    z[2] = _t66;
+    z[3] = _t65;
+    z[4] = _t64;
+    z[5] = _t63;
+    z[6] = _t62;
+    z[7] = _t61;
     pivot[0] = _h0;
     pivot[1] = _t6;
-    pivot[2] = _t12;
-    pivot[3] = _t19;
-    pivot[4] = _t25;
-    pivot[5] = _t30;
-    pivot[6] = _t34;
-    pivot[7] = _t37;
+    pivot[2] = _t16;
+    pivot[3] = _t26;
+    pivot[4] = _t36;
+    pivot[5] = _t44;
+    pivot[6] = _t50;
+    pivot[7] = _t54;
 }
 
 
@@ -1081,7 +1097,7 @@ static double unicycle_ring_max_abs(const double *a, size_t count)
     return scale;
 }
 
-/* Solve Hess z = c with the generated sparse Cholesky kernel (hess: the nonzero entries of
+/* Solve Hess z = c with the generated sparse LDL^T kernel (hess: the nonzero entries of
  * the lower triangle); every pivot must exceed the tolerance relative to the largest entry. */
 static int unicycle_ring_cholesky_solve(const double *hess, const double *c, double *z)
 {
@@ -1097,77 +1113,80 @@ static int unicycle_ring_cholesky_solve(const double *hess, const double *c, dou
     return UNICYCLE_RING_OK;
 }
 
-/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major, m x m). */
-static int unicycle_ring_lu_solve(double *a, double *b, size_t m)
+/* Solve a x = b in place for a 2 x 2 block (a row-major; x overwrites b0, b1): LU with
+ * partial pivoting, unrolled. The same operations in the same order as the general loop,
+ * so the results are the same to the bit, without its index arithmetic. */
+static int unicycle_ring_lu_solve_2(const double *a, double *b0, double *b1)
 {
-    const double scale = unicycle_ring_max_abs(a, m * m);
-    size_t i, j, k;
-    for (j = 0; j < m; ++j) {
-        size_t row = j;
-        for (i = j + 1; i < m; ++i) {
-            if (fabs(a[i * m + j]) > fabs(a[row * m + j])) {
-                row = i;
-            }
-        }
-        if (row != j) {
-            double swap;
-            for (k = 0; k < m; ++k) {
-                swap = a[j * m + k];
-                a[j * m + k] = a[row * m + k];
-                a[row * m + k] = swap;
-            }
-            swap = b[j];
-            b[j] = b[row];
-            b[row] = swap;
-        }
-        if (!(fabs(a[j * m + j]) > UNICYCLE_RING_PIVOT_TOLERANCE * scale)) {
-            return UNICYCLE_RING_SINGULAR_DECOUPLING;
-        }
-        for (i = j + 1; i < m; ++i) {
-            const double factor = a[i * m + j] / a[j * m + j];
-            for (k = j; k < m; ++k) {
-                a[i * m + k] -= factor * a[j * m + k];
-            }
-            b[i] -= factor * b[j];
-        }
+    double a00 = a[0], a01 = a[1], a10 = a[2], a11 = a[3], x0 = *b0, x1 = *b1;
+    double scale = 0.0, factor;
+    if (fabs(a00) > scale) {
+        scale = fabs(a00);
     }
-    for (j = m; j-- > 0;) {
-        for (k = j + 1; k < m; ++k) {
-            b[j] -= a[j * m + k] * b[k];
-        }
-        b[j] /= a[j * m + j];
+    if (fabs(a01) > scale) {
+        scale = fabs(a01);
     }
+    if (fabs(a10) > scale) {
+        scale = fabs(a10);
+    }
+    if (fabs(a11) > scale) {
+        scale = fabs(a11);
+    }
+    if (fabs(a10) > fabs(a00)) {
+        double swap = a00;
+        a00 = a10;
+        a10 = swap;
+        swap = a01;
+        a01 = a11;
+        a11 = swap;
+        swap = x0;
+        x0 = x1;
+        x1 = swap;
+    }
+    if (!(fabs(a00) > UNICYCLE_RING_PIVOT_TOLERANCE * scale)) {
+        return UNICYCLE_RING_SINGULAR_DECOUPLING;
+    }
+    factor = a10 / a00;
+    a11 -= factor * a01;
+    x1 -= factor * x0;
+    if (!(fabs(a11) > UNICYCLE_RING_PIVOT_TOLERANCE * scale)) {
+        return UNICYCLE_RING_SINGULAR_DECOUPLING;
+    }
+    x1 /= a11;
+    x0 -= a01 * x1;
+    x0 /= a00;
+    *b0 = x0;
+    *b1 = x1;
     return UNICYCLE_RING_OK;
 }
 
-/* The diagonal blocks of R: their sizes and their rows, block after block. R is stored
- * the same way (each block row-major), so the zeros between blocks are never touched. */
-#define UNICYCLE_RING_R_BLOCKS 4
+/* R holds the diagonal blocks of the decoupling matrix one after the other, each
+ * row-major, so the zeros between blocks are never stored or touched. */
 #define UNICYCLE_RING_R_ENTRIES 16
-#define UNICYCLE_RING_R_LARGEST_BLOCK 2
-static const size_t unicycle_ring_r_block_size[UNICYCLE_RING_R_BLOCKS] = {2, 2, 2, 2};
-static const size_t unicycle_ring_r_block_rows[UNICYCLE_RING_N_OUTPUTS] = {0, 1, 2, 3, 4, 5, 6, 7};
 
 /* Solve R w = b in place (w holds b), block by block. */
 static int unicycle_ring_solve_decoupling(double *r, double *w)
 {
-    double x[UNICYCLE_RING_R_LARGEST_BLOCK];
-    size_t block, i, entry = 0, row = 0;
-    for (block = 0; block < UNICYCLE_RING_R_BLOCKS; ++block) {
-        const size_t size = unicycle_ring_r_block_size[block];
-        int status;
-        for (i = 0; i < size; ++i) {
-            x[i] = w[unicycle_ring_r_block_rows[row + i]];
-        }
-        status = unicycle_ring_lu_solve(r + entry, x, size);
-        if (status != UNICYCLE_RING_OK) {
-            return status;
-        }
-        for (i = 0; i < size; ++i) {
-            w[unicycle_ring_r_block_rows[row + i]] = x[i];
-        }
-        entry += size * size;
-        row += size;
+    int status;
+    /* block 0: outputs 0, 1 */
+    status = unicycle_ring_lu_solve_2(r + 0, &w[0], &w[1]);
+    if (status != UNICYCLE_RING_OK) {
+        return status;
+    }
+    /* block 1: outputs 2, 3 */
+    status = unicycle_ring_lu_solve_2(r + 4, &w[2], &w[3]);
+    if (status != UNICYCLE_RING_OK) {
+        return status;
+    }
+    /* block 2: outputs 4, 5 */
+    status = unicycle_ring_lu_solve_2(r + 8, &w[4], &w[5]);
+    if (status != UNICYCLE_RING_OK) {
+        return status;
+    }
+    /* block 3: outputs 6, 7 */
+    status = unicycle_ring_lu_solve_2(r + 12, &w[6], &w[7]);
+    if (status != UNICYCLE_RING_OK) {
+        return status;
     }
     return UNICYCLE_RING_OK;
 }

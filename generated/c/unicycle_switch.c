@@ -2,12 +2,13 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 6b4b4493ee7f45e01e7279976148b24054eac67283ee28fc798072ba79234bdc
+ * content sha256: 800a0e6b27efc020c25194b4810a6d8649f48f07e9a9bb59eaf8a052e6d2dc7e
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
- * solves: a generated sparse Cholesky for the Hessian of f0 and LU with partial pivoting
- * for each diagonal block of the decoupling matrix R (never a symbolic inverse). */
+ * solves: a generated sparse LDL^T (square-root-free Cholesky) for the Hessian of f0 and LU
+ * with partial pivoting for each diagonal block of the decoupling matrix R (never a symbolic
+ * inverse). */
 #include "unicycle_switch.h"
 
 #include <math.h>
@@ -35,7 +36,7 @@ const double unicycle_switch_default_params[UNICYCLE_SWITCH_N_PARAMS] = {10.0, 1
 const double unicycle_switch_default_state[UNICYCLE_SWITCH_N_STATES] = {-5.0, 4.0, 0.0, 1.0};
 const double unicycle_switch_hurwitz_coefficients[UNICYCLE_SWITCH_K] = {-1.5, -2.5};
 
-/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (143 operations, 192 before CSE). */
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (145 operations, 198 before CSE). */
 static void unicycle_switch_k_jet(double t, const double *s, const double *p, const double *a, double *z, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* x1 */
@@ -54,39 +55,39 @@ static void unicycle_switch_k_jet(double t, const double *s, const double *p, co
     const double _t5 = _t1*_t3/(_p1*_p1);
     const double _t6 = (t*t);
     const double _t7 = (1.0/100.0)*_t6;
-    const double _t8 = (1.0/50.0)*t;
-    const double _t9 = (t*t*t);
-    const double _t10 = cos(_s2);
-    const double _t11 = _s3*_t10;
-    const double _t12 = sin(_s2);
-    const double _t13 = _s3*_t12;
-    const double _t14 = 2*_s0;
-    const double _t15 = _t14 + 2*_t7 - 6.0/5.0*t + 10;
-    const double _t16 = 1 - _t2;
-    const double _t17 = _t14 + 2*_t7 + (3.0/5.0)*t - 10;
-    const double _t18 = 2*_s1;
-    const double _t19 = _t18 - t - 1.0/25.0*_t6 + (1.0/500.0)*_t9 + 10;
-    const double _t20 = _t18 - 4.0/5.0*t - 1.0/2500.0*_t9 + (3.0/100.0)*_t6 + 6;
-    const double _t21 = 2*_t11;
-    const double _t22 = _t21 + 2*_t8 - 6.0/5.0;
-    const double _t23 = -_t4;
-    const double _t24 = _t21 + 2*_t8 + 3.0/5.0;
-    const double _t25 = 2*_t13;
-    const double _t26 = _t25 - 2.0/25.0*t + (3.0/500.0)*_t6 - 1;
-    const double _t27 = _t25 - 3.0/2500.0*_t6 + (3.0/50.0)*t - 4.0/5.0;
-    const double _t28 = _t22*_t4;
-    const double _t29 = -_t5;
-    const double _t30 = _t23*_t24;
-    const double _t31 = _t26*_t4;
-    const double _t32 = _t23*_t27;
+    const double _t8 = (3.0/5.0)*t - _t7 - 5;
+    const double _t9 = (1.0/50.0)*t;
+    const double _t10 = 3.0/5.0 - _t9;
+    const double _t11 = (t*t*t);
+    const double _t12 = (1.0/2.0)*t - 1.0/1000.0*_t11 + (1.0/50.0)*_t6 - 5;
+    const double _t13 = (1.0/25.0)*t - 3.0/1000.0*_t6 + 1.0/2.0;
+    const double _t14 = 5 - _t7 - 3.0/10.0*t;
+    const double _t15 = -_t9 - 3.0/10.0;
+    const double _t16 = (1.0/5000.0)*_t11 - 3.0/200.0*_t6 + (2.0/5.0)*t - 3;
+    const double _t17 = (3.0/5000.0)*_t6 - 3.0/100.0*t + 2.0/5.0;
+    const double _t18 = cos(_s2);
+    const double _t19 = _s3*_t18;
+    const double _t20 = sin(_s2);
+    const double _t21 = _s3*_t20;
+    const double _t22 = 2*_t2;
+    const double _t23 = 1 - _t2;
+    const double _t24 = 2*_t23;
+    const double _t25 = 2*_t4;
+    const double _t26 = -2*_t4;
+    const double _t27 = -_t10*_t25;
+    const double _t28 = 2*_t5;
+    const double _t29 = -_t15*_t26;
+    const double _t30 = -2*_t5;
+    const double _t31 = -_t13*_t25;
+    const double _t32 = -_t17*_t26;
     const double _t33 = (1.0/2.0)*_a0;
     const double _t34 = (1.0/2.0)*_a1;
-    z[0] = _t33*(_t15*_t2 + _t16*_t17) - _t28 - _t30 - 1.0/50.0*_t16 - 1.0/50.0*_t2 + _t34*(_t15*_t4 + _t16*_t24 + _t17*_t23 + _t2*_t22) - 1.0/2.0*_t15*_t5 - 1.0/2.0*_t17*_t29;
-    z[1] = _t33*(_t16*_t20 + _t19*_t2) - _t31 - _t32 + _t34*(_t16*_t27 + _t19*_t4 + _t2*_t26 + _t20*_t23) - 1.0/2.0*_t16*(3.0/50.0 - 3.0/1250.0*t) - 1.0/2.0*_t19*_t5 - 1.0/2.0*_t2*((3.0/250.0)*t - 2.0/25.0) - 1.0/2.0*_t20*_t29;
-    R[0] = _t10;
-    R[1] = -_t13;
-    R[2] = _t12;
-    R[3] = _t11;
+    z[0] = _t33*(2*_s0 - _t14*_t24 - _t22*_t8) - _t27 - _t29 - 1.0/50.0*_t2 - 1.0/50.0*_t23 + _t34*(2*_t19 - _t10*_t22 - _t14*_t26 - _t15*_t24 - _t25*_t8) + (1.0/2.0)*_t14*_t30 + (1.0/2.0)*_t28*_t8;
+    z[1] = _t33*(2*_s1 - _t12*_t22 - _t16*_t24) - _t31 - _t32 + _t34*(2*_t21 - _t12*_t25 - _t13*_t22 - _t16*_t26 - _t17*_t24) + (1.0/2.0)*_t12*_t28 + (1.0/2.0)*_t16*_t30 + (1.0/2.0)*_t22*(1.0/25.0 - 3.0/500.0*t) + (1.0/2.0)*_t24*((3.0/2500.0)*t - 3.0/100.0);
+    R[0] = _t18;
+    R[1] = -_t21;
+    R[2] = _t20;
+    R[3] = _t19;
     pvec[0] = 0;
     pvec[1] = 0;
 }
@@ -138,7 +139,7 @@ static void unicycle_switch_k_plant_input(double t, const double *s, const doubl
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (92 operations, 111 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (89 operations, 111 before CSE). */
 static void unicycle_switch_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* x1 */
@@ -153,22 +154,20 @@ static void unicycle_switch_k_optimality(double t, const double *s, const double
     const double _t3 = -1.0/2.0*_t0*(1 - (_t1*_t1));
     const double _t4 = (t*t);
     const double _t5 = (1.0/100.0)*_t4;
-    const double _t6 = (1.0/50.0)*t;
-    const double _t7 = (t*t*t);
-    const double _t8 = 2*_s0;
-    const double _t9 = _t8 + 2*_t5 - 6.0/5.0*t + 10;
-    const double _t10 = 1 - _t2;
-    const double _t11 = _t8 + 2*_t5 + (3.0/5.0)*t - 10;
-    const double _t12 = 2*_s1;
-    const double _t13 = _t12 - t - 1.0/25.0*_t4 + (1.0/500.0)*_t7 + 10;
-    const double _t14 = _t12 - 4.0/5.0*t - 1.0/2500.0*_t7 + (3.0/100.0)*_t4 + 6;
-    const double _t15 = 2*_s3*cos(_s2);
-    const double _t16 = -_t3;
-    const double _t17 = 2*_s3*sin(_s2);
-    E[0] = _t10*_t11 + _t2*_t9;
-    E[1] = _t10*_t14 + _t13*_t2;
-    E[2] = _t10*(_t15 + 2*_t6 + 3.0/5.0) + _t11*_t16 + _t2*(_t15 + 2*_t6 - 6.0/5.0) + _t3*_t9;
-    E[3] = _t10*(_t17 - 3.0/2500.0*_t4 + (3.0/50.0)*t - 4.0/5.0) + _t13*_t3 + _t14*_t16 + _t2*(_t17 - 2.0/25.0*t + (3.0/500.0)*_t4 - 1);
+    const double _t6 = (3.0/5.0)*t - _t5 - 5;
+    const double _t7 = (1.0/50.0)*t;
+    const double _t8 = (t*t*t);
+    const double _t9 = (1.0/2.0)*t - 1.0/1000.0*_t8 + (1.0/50.0)*_t4 - 5;
+    const double _t10 = 5 - _t5 - 3.0/10.0*t;
+    const double _t11 = (1.0/5000.0)*_t8 - 3.0/200.0*_t4 + (2.0/5.0)*t - 3;
+    const double _t12 = 2*_t2;
+    const double _t13 = 2 - 2*_t2;
+    const double _t14 = 2*_t3;
+    const double _t15 = -2*_t3;
+    E[0] = 2*_s0 - _t10*_t13 - _t12*_t6;
+    E[1] = 2*_s1 - _t11*_t13 - _t12*_t9;
+    E[2] = 2*_s3*cos(_s2) - _t10*_t15 - _t12*(3.0/5.0 - _t7) - _t13*(-_t7 - 3.0/10.0) - _t14*_t6;
+    E[3] = 2*_s3*sin(_s2) - _t11*_t15 - _t12*((1.0/25.0)*t - 3.0/1000.0*_t4 + 1.0/2.0) - _t13*((3.0/5000.0)*_t4 - 3.0/100.0*t + 2.0/5.0) - _t14*_t9;
 }
 
 
@@ -187,7 +186,7 @@ static void unicycle_switch_k_objective(double t, const double *y, const double 
 }
 
 
-/* grad_y f0(y, t) (43 operations, 54 before CSE). */
+/* grad_y f0(y, t) (44 operations, 52 before CSE). */
 static void unicycle_switch_k_gradient(double t, const double *y, const double *p, double *grad)
 {
     const double _y0 = y[0]; /* y1 */
@@ -198,11 +197,10 @@ static void unicycle_switch_k_gradient(double t, const double *y, const double *
     const double _t1 = (t*t);
     const double _t2 = (1.0/100.0)*_t1;
     const double _t3 = (t*t*t);
-    const double _t4 = 2*_y0;
-    const double _t5 = 1 - _t0;
-    const double _t6 = 2*_y1;
-    grad[0] = _t0*(_t4 + 2*_t2 - 6.0/5.0*t + 10) + _t5*(_t4 + 2*_t2 + (3.0/5.0)*t - 10);
-    grad[1] = _t0*(_t6 - t - 1.0/25.0*_t1 + (1.0/500.0)*_t3 + 10) + _t5*(_t6 - 4.0/5.0*t - 1.0/2500.0*_t3 + (3.0/100.0)*_t1 + 6);
+    const double _t4 = 2*_t0;
+    const double _t5 = 2 - 2*_t0;
+    grad[0] = 2*_y0 - _t4*((3.0/5.0)*t - _t2 - 5) - _t5*(5 - _t2 - 3.0/10.0*t);
+    grad[1] = 2*_y1 - _t4*((1.0/2.0)*t - 1.0/1000.0*_t3 + (1.0/50.0)*_t1 - 5) - _t5*((1.0/5000.0)*_t3 - 3.0/200.0*_t1 + (2.0/5.0)*t - 3);
 }
 
 
@@ -241,90 +239,67 @@ static int unicycle_switch_check_inputs(double t, const double *x, size_t count,
     return UNICYCLE_SWITCH_OK;
 }
 
-static double unicycle_switch_max_abs(const double *a, size_t count)
-{
-    double scale = 0.0;
-    size_t i;
-    for (i = 0; i < count; ++i) {
-        if (fabs(a[i]) > scale) {
-            scale = fabs(a[i]);
-        }
-    }
-    return scale;
-}
 
 
-/* Solve a x = b in place (x overwrites b) by LU with partial pivoting (a row-major, m x m). */
-static int unicycle_switch_lu_solve(double *a, double *b, size_t m)
+/* Solve a x = b in place for a 2 x 2 block (a row-major; x overwrites b0, b1): LU with
+ * partial pivoting, unrolled. The same operations in the same order as the general loop,
+ * so the results are the same to the bit, without its index arithmetic. */
+static int unicycle_switch_lu_solve_2(const double *a, double *b0, double *b1)
 {
-    const double scale = unicycle_switch_max_abs(a, m * m);
-    size_t i, j, k;
-    for (j = 0; j < m; ++j) {
-        size_t row = j;
-        for (i = j + 1; i < m; ++i) {
-            if (fabs(a[i * m + j]) > fabs(a[row * m + j])) {
-                row = i;
-            }
-        }
-        if (row != j) {
-            double swap;
-            for (k = 0; k < m; ++k) {
-                swap = a[j * m + k];
-                a[j * m + k] = a[row * m + k];
-                a[row * m + k] = swap;
-            }
-            swap = b[j];
-            b[j] = b[row];
-            b[row] = swap;
-        }
-        if (!(fabs(a[j * m + j]) > UNICYCLE_SWITCH_PIVOT_TOLERANCE * scale)) {
-            return UNICYCLE_SWITCH_SINGULAR_DECOUPLING;
-        }
-        for (i = j + 1; i < m; ++i) {
-            const double factor = a[i * m + j] / a[j * m + j];
-            for (k = j; k < m; ++k) {
-                a[i * m + k] -= factor * a[j * m + k];
-            }
-            b[i] -= factor * b[j];
-        }
+    double a00 = a[0], a01 = a[1], a10 = a[2], a11 = a[3], x0 = *b0, x1 = *b1;
+    double scale = 0.0, factor;
+    if (fabs(a00) > scale) {
+        scale = fabs(a00);
     }
-    for (j = m; j-- > 0;) {
-        for (k = j + 1; k < m; ++k) {
-            b[j] -= a[j * m + k] * b[k];
-        }
-        b[j] /= a[j * m + j];
+    if (fabs(a01) > scale) {
+        scale = fabs(a01);
     }
+    if (fabs(a10) > scale) {
+        scale = fabs(a10);
+    }
+    if (fabs(a11) > scale) {
+        scale = fabs(a11);
+    }
+    if (fabs(a10) > fabs(a00)) {
+        double swap = a00;
+        a00 = a10;
+        a10 = swap;
+        swap = a01;
+        a01 = a11;
+        a11 = swap;
+        swap = x0;
+        x0 = x1;
+        x1 = swap;
+    }
+    if (!(fabs(a00) > UNICYCLE_SWITCH_PIVOT_TOLERANCE * scale)) {
+        return UNICYCLE_SWITCH_SINGULAR_DECOUPLING;
+    }
+    factor = a10 / a00;
+    a11 -= factor * a01;
+    x1 -= factor * x0;
+    if (!(fabs(a11) > UNICYCLE_SWITCH_PIVOT_TOLERANCE * scale)) {
+        return UNICYCLE_SWITCH_SINGULAR_DECOUPLING;
+    }
+    x1 /= a11;
+    x0 -= a01 * x1;
+    x0 /= a00;
+    *b0 = x0;
+    *b1 = x1;
     return UNICYCLE_SWITCH_OK;
 }
 
-/* The diagonal blocks of R: their sizes and their rows, block after block. R is stored
- * the same way (each block row-major), so the zeros between blocks are never touched. */
-#define UNICYCLE_SWITCH_R_BLOCKS 1
+/* R holds the diagonal blocks of the decoupling matrix one after the other, each
+ * row-major, so the zeros between blocks are never stored or touched. */
 #define UNICYCLE_SWITCH_R_ENTRIES 4
-#define UNICYCLE_SWITCH_R_LARGEST_BLOCK 2
-static const size_t unicycle_switch_r_block_size[UNICYCLE_SWITCH_R_BLOCKS] = {2};
-static const size_t unicycle_switch_r_block_rows[UNICYCLE_SWITCH_N_OUTPUTS] = {0, 1};
 
 /* Solve R w = b in place (w holds b), block by block. */
 static int unicycle_switch_solve_decoupling(double *r, double *w)
 {
-    double x[UNICYCLE_SWITCH_R_LARGEST_BLOCK];
-    size_t block, i, entry = 0, row = 0;
-    for (block = 0; block < UNICYCLE_SWITCH_R_BLOCKS; ++block) {
-        const size_t size = unicycle_switch_r_block_size[block];
-        int status;
-        for (i = 0; i < size; ++i) {
-            x[i] = w[unicycle_switch_r_block_rows[row + i]];
-        }
-        status = unicycle_switch_lu_solve(r + entry, x, size);
-        if (status != UNICYCLE_SWITCH_OK) {
-            return status;
-        }
-        for (i = 0; i < size; ++i) {
-            w[unicycle_switch_r_block_rows[row + i]] = x[i];
-        }
-        entry += size * size;
-        row += size;
+    int status;
+    /* block 0: outputs 0, 1 */
+    status = unicycle_switch_lu_solve_2(r + 0, &w[0], &w[1]);
+    if (status != UNICYCLE_SWITCH_OK) {
+        return status;
     }
     return UNICYCLE_SWITCH_OK;
 }
