@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: aacd85bd9d97ad10572f498e0289836bf846943d97b4ba3d19a609806c91b4a2
+# content sha256: ee0343ebf974d15aafcd3bd17f29b94aa966c32a586fe3d96b85011305869bd6
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -258,7 +258,7 @@ def _lu_solve(a, b, points):
     return numpy.array(x)
 
 def _jet(t, s, p, a):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 253 operations, 335 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 206 operations, 335 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # q1
     _s1 = s[1]  # w1
@@ -272,7 +272,7 @@ def _jet(t, s, p, a):
     _a1 = a[1]  # a_1
     _a2 = a[2]  # a_2
     _a3 = a[3]  # a_3
-    # Intermediate terms (75)
+    # Intermediate terms (44)
     _t0 = (1/2)*t
     _t1 = numpy.sin(_t0)
     _t2 = (13/10)*t
@@ -302,61 +302,30 @@ def _jet(t, s, p, a):
     _t26 = -_t24*_t25
     _t27 = _t20*_t23
     _t28 = _t8 - _t16
-    _t29 = _t20*_t23
-    _t30 = _t22*_t28 + _t23*_t29
-    _t31 = 1/_t20**3
-    _t32 = 2*_t24
-    _t33 = -_t31*_t32
-    _t34 = -_t24*_t33 - _t25*_t30
-    _t35 = _t22*_t23
-    _t36 = _t20*_t28 + _t23*_t35
-    _t37 = -_t26*_t27
-    _t38 = _t9 - _t18
-    _t39 = _t22*_t23
-    _t40 = _t20*_t28 + _t23*_t39
-    _t41 = _t28*_t29
-    _t42 = 2*_t41 + _t22*_t38 + _t23*_t40
-    _t43 = 3/_t20**4
-    _t44 = -_t24*_t43
-    _t45 = 2*_t30
-    _t46 = -_t31*_t45 - _t32*_t44
-    _t47 = -_t30*_t33
-    _t48 = 2*_t47 - _t24*_t46 - _t25*_t42
-    _t49 = _t20*_t23
-    _t50 = _t22*_t28 + _t23*_t49
-    _t51 = _t28*_t35
-    _t52 = 2*_t51 + _t20*_t38 + _t23*_t50
-    _t53 = -_t26*_t36
-    _t54 = -_t27*_t34
-    _t55 = _t53 + _t54
-    _t56 = _t28*_t39
-    _t57 = _t28*_t40
-    _t58 = _t29*_t38
-    _t59 = _t57 + _t58
-    _t60 = -_t44*_t45
-    _t61 = -_t30*_t46
-    _t62 = -_t33*_t42
-    _t63 = _t61 + _t62
-    _t64 = _t28*_t49
-    _t65 = _t28*_t50
-    _t66 = _t35*_t38
-    _t67 = _t65 + _t66
-    _t68 = -_t26*_t52
-    _t69 = -_t34*_t36
-    _t70 = _t68 + _t69
-    _t71 = -_t27*_t48
-    _t72 = _t69 + _t71
-    _t73 = _t70 + _t72
-    _t74 = 1/_p2
+    _t29 = _t22*_t28 + _t23*_t27
+    _t30 = 1/_t20**3
+    _t31 = 2*_t24
+    _t32 = -_t30*_t31
+    _t33 = -_t24*_t32 - _t25*_t29
+    _t34 = _t20*_t28 + _t23*_t24
+    _t35 = _t9 - _t18
+    _t36 = _t22*_t35 + _t23*_t34 + 2*_t27*_t28
+    _t37 = 3/_t20**4
+    _t38 = -_t24*_t37
+    _t39 = 2*_t29
+    _t40 = -_t30*_t39 - _t31*_t38
+    _t41 = -_t24*_t40 - _t25*_t36 - 2*_t29*_t32
+    _t42 = _t20*_t35 + _t23*_t29 + 2*_t24*_t28
+    _t43 = 1/_p2
     # Output terms
     hessian = numpy.empty((1, _n))  # nonzero entries of the lower triangle of grad_yy f0
     hessian[0] = _t20*_t21 - _t25*_t22**2 + 2
     jet_rhs = numpy.empty((1, _n))  # sum_i a_i grad^(i) f0 - rest
-    jet_rhs[0] = 2*_t10 - _t68 - _t70 - _t71 - _t72 - 2*_t73 + _a0*(2*_s0 - 2*_t4 - _t21*_t22) + _a1*(2*_s1 - 2*_t7 - _t21*_t27 - _t22*_t26) + _a2*(2*_t16 - 2*_t8 + 2*_t37 - _t21*_t36 - _t22*_t34) + _a3*(_t53 + _t54 - 2*_t9 + 2*_t18 + 2*_t55 - _t21*_t52 - _t22*_t48) + _t21*(_t65 + _t66 + 2*_t67 + _t10*_t20 + _t23*(2*_t64 + _t22*_t38 + _t23*(_t20*_t28 + _t22*_t23**2))) + _t22*(_t61 + _t62 + 2*_t63 - _t24*(2*_t60 - _t32*(12*_t24**2/_t20**5 - _t30*_t43) - 2*_t31*_t42) - _t25*(_t57 + _t58 + 2*_t59 + _t10*_t22 + _t23*(2*_t56 + _t20*_t38 + _t23*(_t20*_t23**2 + _t22*_t28))))
+    jet_rhs[0] = 2*_t10 + _a0*(2*_s0 - 2*_t4 - _t21*_t22) + _a1*(2*_s1 - 2*_t7 - _t21*_t27 - _t22*_t26) + _a2*(2*_t16 - 2*_t8 - _t21*_t34 - _t22*_t33 - 2*_t26*_t27) + _a3*(2*_t18 - 2*_t9 - _t21*_t42 - _t22*_t41 - 3*_t26*_t34 - 3*_t27*_t33) + _t21*(_t10*_t20 + _t23*_t36 + 3*_t24*_t35 + 3*_t28*_t29) + _t22*(-_t24*(-_t31*(12*_t24**2/_t20**5 - _t29*_t37) - 2*_t30*_t36 - 2*_t38*_t39) - _t25*(_t10*_t22 + _t23*_t42 + 3*_t27*_t35 + 3*_t28*_t34) - 3*_t29*_t40 - 3*_t32*_t36) + 4*_t26*_t42 + 4*_t27*_t41 + 6*_t33*_t34
     R = numpy.empty((1, _n))  # diagonal blocks of the decoupling matrix
-    R[0] = _t15*_t74
+    R[0] = _t15*_t43
     pvec = numpy.empty((1, _n))  # p = col(L_f^{r_i} h_i)
-    pvec[0] = _t13*_s1**2 + _t16*_t17 + _t11*_t14*_t74*_p3**2
+    pvec[0] = _t13*_s1**2 + _t16*_t17 + _t11*_t14*_t43*_p3**2
     return hessian, jet_rhs, R, pvec
 
 
@@ -422,7 +391,7 @@ def _plant_input(t, s, p, w):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 137 operations, 174 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 122 operations, 174 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # q1
     _s1 = s[1]  # w1
@@ -431,7 +400,7 @@ def _optimality(t, s, p):
     _p0 = p[0]  # mgl
     _p1 = p[1]  # inertia
     _p3 = p[3]  # stiffness
-    # Intermediate terms (41)
+    # Intermediate terms (32)
     _t0 = (1/2)*t
     _t1 = numpy.sin(_t0)
     _t2 = (13/10)*t
@@ -457,28 +426,19 @@ def _optimality(t, s, p):
     _t22 = -_t20*_t21
     _t23 = _t16*_t19
     _t24 = _t8 - _t13
-    _t25 = _t16*_t19
-    _t26 = _t18*_t24 + _t19*_t25
-    _t27 = 1/_t16**3
-    _t28 = 2*_t20
-    _t29 = -_t27*_t28
-    _t30 = -_t20*_t29 - _t21*_t26
-    _t31 = _t18*_t19
-    _t32 = _t16*_t24 + _t19*_t31
-    _t33 = -_t22*_t23
-    _t34 = _t9 - _t14
-    _t35 = _t24*_t25
-    _t36 = -_t26*_t29
-    _t37 = _t24*_t31
-    _t38 = -_t22*_t32
-    _t39 = -_t23*_t30
-    _t40 = _t38 + _t39
+    _t25 = _t18*_t24 + _t19*_t23
+    _t26 = 1/_t16**3
+    _t27 = 2*_t20
+    _t28 = -_t26*_t27
+    _t29 = -_t20*_t28 - _t21*_t25
+    _t30 = _t16*_t24 + _t19*_t20
+    _t31 = _t9 - _t14
     # Output terms
     E = numpy.empty((4, 1, _n))  # grad^(j) f0
     E[0, 0] = 2*_s0 - 2*_t4 - _t17*_t18
     E[1, 0] = 2*_s1 - 2*_t7 - _t17*_t23 - _t18*_t22
-    E[2, 0] = 2*_t13 - 2*_t8 + 2*_t33 - _t17*_t32 - _t18*_t30
-    E[3, 0] = _t38 + _t39 - 2*_t9 + 2*_t14 + 2*_t40 - _t17*(2*_t37 + _t16*_t34 + _t19*(_t16*_t19**2 + _t18*_t24)) - _t18*(2*_t36 - _t20*(3*_t20*_t28/_t16**4 - 2*_t26*_t27) - _t21*(2*_t35 + _t18*_t34 + _t19*(_t16*_t24 + _t18*_t19**2)))
+    E[2, 0] = 2*_t13 - 2*_t8 - _t17*_t30 - _t18*_t29 - 2*_t22*_t23
+    E[3, 0] = 2*_t14 - 2*_t9 - _t17*(_t16*_t31 + _t19*_t25 + 2*_t20*_t24) - _t18*(-_t20*(3*_t20*_t27/_t16**4 - 2*_t25*_t26) - _t21*(_t18*_t31 + _t19*_t30 + 2*_t23*_t24) - 2*_t25*_t28) - 3*_t22*_t30 - 3*_t23*_t29
     return E
 
 
@@ -511,13 +471,11 @@ def _hessian(t, y, p):
     """grad_yy f0(y, t) (kernel; 15 operations, 25 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y
-    # Intermediate terms (3)
+    # Intermediate terms (1)
     _t0 = (3/5)*numpy.sin((1/2)*t) - _y0 + (3/10)*numpy.sin((13/10)*t)
-    _t1 = numpy.cosh(_t0)
-    _t2 = numpy.sinh(_t0)
     # Output terms
     hess = numpy.empty((1, 1, _n))  # grad_yy f0
-    hess[0, 0] = 3 - _t2**2/_t1**2
+    hess[0, 0] = 3 - numpy.sinh(_t0)**2/numpy.cosh(_t0)**2
     return hess
 
 

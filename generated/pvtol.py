@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: 5ddee98314bf3f500f7cec5fc35198a328d39925bf03fdd0b06bfb18b0b26e52
+# content sha256: 073c90b90f623c1f82ccd0e395f3483bcf65018c114d0e9092654fea68d0bc32
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -265,7 +265,7 @@ def _jet(t, s, p, a):
     _a1 = a[1]  # a_1
     _a2 = a[2]  # a_2
     _a3 = a[3]  # a_3
-    # Intermediate terms (22)
+    # Intermediate terms (20)
     _t0 = (2/5)*t
     _t1 = numpy.sin(_t0)
     _t2 = numpy.cos(_t0)
@@ -277,29 +277,27 @@ def _jet(t, s, p, a):
     _t8 = numpy.cos(_t3)
     _t9 = numpy.sin(_s2)
     _t10 = _s6*_t9
-    _t11 = -_t10
-    _t12 = _s7*_t9
-    _t13 = numpy.cos(_s2)
-    _t14 = _s6*_t13
-    _t15 = -_t12 - _s5*_t14
-    _t16 = -_t14
-    _t17 = _s5*_t10 - _s7*_t13
-    _t18 = (1/2)*_a0
-    _t19 = (1/2)*_a1
-    _t20 = (1/2)*_a2
-    _t21 = (1/2)*_a3
+    _t11 = _s7*_t9
+    _t12 = numpy.cos(_s2)
+    _t13 = _s6*_t12
+    _t14 = -_t11 - _s5*_t13
+    _t15 = _s5*_t10 - _s7*_t12
+    _t16 = (1/2)*_a0
+    _t17 = (1/2)*_a1
+    _t18 = (1/2)*_a2
+    _t19 = (1/2)*_a3
     # Output terms
     z = numpy.empty((2, _n))  # y_imp^(k)
-    z[0] = (24/625)*_t1 + _t18*(2*_s0 - 3*_t1) + _t19*(2*_s3 - 6/5*_t2) + _t20*(2*_t11 + (12/25)*_t1) + _t21*(2*_t15 + (24/125)*_t2)
-    z[1] = (81/12500)*_t4 - 1/1250*_t6 + _t18*(_t6 + 2*_s1 - 8/5*_t4 - 4) + _t19*(2*_s4 - 12/25*_t8 - 1/5*_t7) + _t20*((18/125)*_t4 - 2*_p0 - 2*_t16 - 1/25*_t6) + _t21*((1/125)*_t7 - 2*_t17 + (27/625)*_t8)
+    z[0] = (24/625)*_t1 + _t16*(2*_s0 - 3*_t1) + _t17*(2*_s3 - 6/5*_t2) + _t18*((12/25)*_t1 - 2*_t10) + _t19*(2*_t14 + (24/125)*_t2)
+    z[1] = (81/12500)*_t4 - 1/1250*_t6 + _t16*(_t6 + 2*_s1 - 8/5*_t4 - 4) + _t17*(2*_s4 - 12/25*_t8 - 1/5*_t7) + _t18*(2*_t13 - 2*_p0 - 1/25*_t6 + (18/125)*_t4) + _t19*((1/125)*_t7 - 2*_t15 + (27/625)*_t8)
     R = numpy.empty((4, _n))  # diagonal blocks of the decoupling matrix
     R[0] = -_t9
-    R[1] = _t16
-    R[2] = _t13
-    R[3] = _t11
+    R[1] = -_t13
+    R[2] = _t12
+    R[3] = -_t10
     pvec = numpy.empty((2, _n))  # p = col(L_f^{r_i} h_i)
-    pvec[0] = _s5*_t17 - _s5*_s7*_t13
-    pvec[1] = _s5*_t15 - _s5*_t12
+    pvec[0] = _s5*_t15 - _s5*_s7*_t12
+    pvec[1] = _s5*_t14 - _s5*_t11
     return z, R, pvec
 
 

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 5e200ff85134520b4efc864788fe99edcb2c4ae7da51d689100db9357fd64859
+# content sha256: 761489cdb1c86934a782cc01dec2fb2942324bf18ee6708d0f060423fbf51da6
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -263,7 +263,7 @@ def _lu_solve(a, b, points):
     return numpy.array(x)
 
 def _jet(t, s, p, a):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 291 operations, 384 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 207 operations, 384 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # xa
     _s1 = s[1]  # ya
@@ -277,7 +277,7 @@ def _jet(t, s, p, a):
     _p1 = p[1]  # d
     _a0 = a[0]  # a_0
     _a1 = a[1]  # a_1
-    # Intermediate terms (68)
+    # Intermediate terms (59)
     _t0 = t**2
     _t1 = numpy.cos(_s2)
     _t2 = _s6*_t1
@@ -293,76 +293,67 @@ def _jet(t, s, p, a):
     _t12 = _s1 - _s4
     _t13 = (1/2)*numpy.pi*_t10
     _t14 = numpy.tan(_t13*(_t11**2 + _t12**2))
-    _t15 = 2*_s3
-    _t16 = _t9 - _t15
-    _t17 = numpy.pi*_p0*_t10
-    _t18 = _t17*(_t14**2 + 1)
-    _t19 = _t16*_t18
-    _t20 = 2*_s1
-    _t21 = 2*_s4
-    _t22 = _t20 - _t21
-    _t23 = _t18*_t22
-    _t24 = _t15 - _t9
-    _t25 = _t18*_t24
-    _t26 = _t21 - _t20
-    _t27 = _t18*_t26
-    _t28 = 2*_t2
-    _t29 = _t2 - _t6
-    _t30 = 2*_t11
-    _t31 = _t4 - _t8
-    _t32 = 2*_t12
-    _t33 = _t13*(_t29*_t30 + _t31*_t32)
-    _t34 = _t14**2 + 1
-    _t35 = _t33*_t34
-    _t36 = 2*_t14
-    _t37 = 2*_t6
-    _t38 = _t28 - _t37
-    _t39 = _t17*_t35*_t36
-    _t40 = _t16*_t39 + _t18*_t38
-    _t41 = 2*_t4
-    _t42 = 2*_t8
-    _t43 = _t41 - _t42
-    _t44 = _t18*_t43 + _t22*_t39
-    _t45 = _t37 - _t28
-    _t46 = _t18*_t45 + _t24*_t39
-    _t47 = _t42 - _t41
-    _t48 = _t18*_t47 + _t26*_t39
-    _t49 = _t14**2 + 1
-    _t50 = _t13*_t30*_t49
-    _t51 = _t13*_t32*_t49
-    _t52 = -_t13*_t30*_t49
-    _t53 = -_t13*_t32*_t49
-    _t54 = _t17*_t36*_t50
-    _t55 = _t17*_t36*_t51
-    _t56 = _t17*_t36*_t52
-    _t57 = 2*_t18
-    _t58 = _t13*_t34*(2*_t29**2 + 2*_t31**2) + 2*_t14*_t33**2*(_t14**2 + 1)
-    _t59 = _t17*(2*_t35**2 + _t36*_t58)
-    _t60 = _t38*_t39
-    _t61 = _t35*_t40
-    _t62 = _t39*_t43
-    _t63 = _t35*_t44
-    _t64 = _t39*_t45
-    _t65 = _t35*_t46
-    _t66 = _t39*_t47
-    _t67 = _t35*_t48
+    _t15 = _t14**2 + 1
+    _t16 = 2*_s3
+    _t17 = _t9 - _t16
+    _t18 = numpy.pi*_p0*_t10
+    _t19 = _t15*_t18
+    _t20 = _t17*_t19
+    _t21 = _t14*_t20
+    _t22 = 2*_s1
+    _t23 = 2*_s4
+    _t24 = _t22 - _t23
+    _t25 = _t19*_t24
+    _t26 = _t14*_t25
+    _t27 = 2*_t2
+    _t28 = _t2 - _t6
+    _t29 = 2*_t11
+    _t30 = _t4 - _t8
+    _t31 = 2*_t12
+    _t32 = _t13*(_t28*_t29 + _t30*_t31)
+    _t33 = _t15*_t32
+    _t34 = 2*_t14
+    _t35 = 2*_t6
+    _t36 = _t27 - _t35
+    _t37 = _t18*_t33*_t34
+    _t38 = _t17*_t37 + _t19*_t36
+    _t39 = _t14*_t38 + _t20*_t33
+    _t40 = 2*_t4
+    _t41 = 2*_t8
+    _t42 = _t40 - _t41
+    _t43 = _t19*_t42 + _t24*_t37
+    _t44 = _t14*_t43 + _t25*_t33
+    _t45 = _t13*_t15*_t29
+    _t46 = _t13*_t15*_t31
+    _t47 = _t18*_t34*_t45
+    _t48 = _t18*_t34*_t46
+    _t49 = 2*_t19
+    _t50 = _t14*(_t49 + _t17*_t47) + _t20*_t45
+    _t51 = _t50 + 2
+    _t52 = _t25*_t45 + _t14*_t24*_t47
+    _t53 = _t14*(_t49 + _t24*_t48) + _t25*_t46
+    _t54 = _t53 + 2
+    _t55 = _t13*_t15*(2*_t28**2 + 2*_t30**2) + 2*_t14*_t32*_t33
+    _t56 = _t18*(2*_t33**2 + _t34*_t55)
+    _t57 = _t14*(_t17*_t56 + 2*_t36*_t37) + _t20*_t55 + 2*_t33*_t38
+    _t58 = _t14*(_t24*_t56 + 2*_t37*_t42) + _t25*_t55 + 2*_t33*_t43
     # Output terms
     hessian = numpy.empty((10, _n))  # nonzero entries of the lower triangle of grad_yy f0
-    hessian[0] = _t14*(_t57 + _t16*_t54) + _t19*_t50 + 2
-    hessian[1] = _t23*_t50 + _t14*_t22*_t54
-    hessian[2] = _t14*(_t57 + _t22*_t55) + _t23*_t51 + 2
-    hessian[3] = _t14*(_t24*_t54 - _t57) + _t25*_t50
-    hessian[4] = _t25*_t51 + _t14*_t24*_t55
-    hessian[5] = _t14*(_t57 + _t24*_t56) + _t25*_t52 + 2
-    hessian[6] = _t27*_t50 + _t14*_t26*_t54
-    hessian[7] = _t14*(_t26*_t55 - _t57) + _t27*_t51
-    hessian[8] = _t27*_t52 + _t14*_t26*_t56
-    hessian[9] = _t14*(_t57 + _t17*_t26*_t36*_t53) + _t27*_t53 + 2
+    hessian[0] = _t51
+    hessian[1] = _t52
+    hessian[2] = _t54
+    hessian[3] = -_t50
+    hessian[4] = -_t20*_t46 - _t14*_t17*_t48
+    hessian[5] = _t51
+    hessian[6] = -_t52
+    hessian[7] = -_t53
+    hessian[8] = _t52
+    hessian[9] = _t54
     jet_rhs = numpy.empty((4, _n))  # sum_i a_i grad^(i) f0 - rest
-    jet_rhs[0] = _a0*(_t9 - t - 1/250*_t0 + _t14*_t19 + 10) - 2*_t61 + _a1*(_t28 - 1/125*t + _t14*_t40 + _t19*_t35 - 1) - _t14*(2*_t60 + _t16*_t59) - _t19*_t58 + 1/125
-    jet_rhs[1] = _a0*(_t20 - 3/5*t + (1/50)*_t0 + _t14*_t23 + 6) - 2*_t63 + _a1*(_t41 + (1/25)*t + _t14*_t44 + _t23*_t35 - 3/5) - _t14*(2*_t62 + _t22*_t59) - _t23*_t58 - 1/25
-    jet_rhs[2] = _a0*(_t15 - 9/10*t - 1/125*_t0 + _t14*_t25 + 4) - 2*_t65 + _a1*(_t37 - 2/125*t + _t14*_t46 + _t25*_t35 - 9/10) - _t14*(2*_t64 + _t24*_t59) - _t25*_t58 + 2/125
-    jet_rhs[3] = _a0*(_t21 - 7/10*t + (3/125)*_t0 + _t14*_t27 + 6) - 2*_t67 + _a1*(_t42 + (6/125)*t + _t14*_t48 + _t27*_t35 - 7/10) - _t14*(2*_t66 + _t26*_t59) - _t27*_t58 - 6/125
+    jet_rhs[0] = _a0*(_t21 + _t9 - t - 1/250*_t0 + 10) - _t57 + _a1*(_t27 + _t39 - 1/125*t - 1) + 1/125
+    jet_rhs[1] = _a0*(_t22 + _t26 - 3/5*t + (1/50)*_t0 + 6) - _t58 + _a1*(_t40 + _t44 + (1/25)*t - 3/5) - 1/25
+    jet_rhs[2] = _t57 + _a0*(_t16 - _t21 - 9/10*t - 1/125*_t0 + 4) + _a1*(_t35 - _t39 - 2/125*t - 9/10) + 2/125
+    jet_rhs[3] = _t58 + _a0*(_t23 - _t26 - 7/10*t + (3/125)*_t0 + 6) + _a1*(_t41 - _t44 + (6/125)*t - 7/10) - 6/125
     R = numpy.empty((8, _n))  # diagonal blocks of the decoupling matrix
     R[0] = _t1
     R[1] = -_t4
@@ -498,7 +489,7 @@ def _plant_input(t, s, p, w):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 133 operations, 160 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 111 operations, 160 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # xa
     _s1 = s[1]  # ya
@@ -510,7 +501,7 @@ def _optimality(t, s, p):
     _s7 = s[7]  # vb
     _p0 = p[0]  # alpha
     _p1 = p[1]  # d
-    # Intermediate terms (30)
+    # Intermediate terms (31)
     _t0 = t**2
     _t1 = _s6*numpy.cos(_s2)
     _t2 = _s6*numpy.sin(_s2)
@@ -522,35 +513,36 @@ def _optimality(t, s, p):
     _t8 = _s1 - _s4
     _t9 = (1/2)*numpy.pi*_t6
     _t10 = numpy.tan(_t9*(_t7**2 + _t8**2))
-    _t11 = 2*_s3
-    _t12 = _t5 - _t11
-    _t13 = numpy.pi*_p0*_t6
-    _t14 = _t13*(_t10**2 + 1)
-    _t15 = _t12*_t14
-    _t16 = 2*_s1
-    _t17 = 2*_s4
-    _t18 = _t16 - _t17
-    _t19 = _t14*_t18
-    _t20 = _t11 - _t5
-    _t21 = _t14*_t20
-    _t22 = _t17 - _t16
-    _t23 = _t14*_t22
-    _t24 = 2*_t1
-    _t25 = _t9*(_t10**2 + 1)*(2*_t7*(_t1 - _t3) + 2*_t8*(_t2 - _t4))
-    _t26 = 2*_t3
-    _t27 = 2*_t10*_t13*_t25
+    _t11 = _t10**2 + 1
+    _t12 = 2*_s3
+    _t13 = _t5 - _t12
+    _t14 = numpy.pi*_p0*_t6
+    _t15 = _t11*_t14
+    _t16 = _t13*_t15
+    _t17 = _t10*_t16
+    _t18 = 2*_s1
+    _t19 = 2*_s4
+    _t20 = _t18 - _t19
+    _t21 = _t15*_t20
+    _t22 = _t10*_t21
+    _t23 = 2*_t1
+    _t24 = _t11*_t9*(2*_t7*(_t1 - _t3) + 2*_t8*(_t2 - _t4))
+    _t25 = 2*_t3
+    _t26 = 2*_t10*_t14*_t24
+    _t27 = _t10*(_t13*_t26 + _t15*(_t23 - _t25)) + _t16*_t24
     _t28 = 2*_t2
     _t29 = 2*_t4
+    _t30 = _t10*(_t15*(_t28 - _t29) + _t20*_t26) + _t21*_t24
     # Output terms
     E = numpy.empty((2, 4, _n))  # grad^(j) f0
-    E[0, 0] = _t5 - t - 1/250*_t0 + _t10*_t15 + 10
-    E[0, 1] = _t16 - 3/5*t + (1/50)*_t0 + _t10*_t19 + 6
-    E[0, 2] = _t11 - 9/10*t - 1/125*_t0 + _t10*_t21 + 4
-    E[0, 3] = _t17 - 7/10*t + (3/125)*_t0 + _t10*_t23 + 6
-    E[1, 0] = _t24 - 1/125*t + _t10*(_t12*_t27 + _t14*(_t24 - _t26)) + _t15*_t25 - 1
-    E[1, 1] = _t28 + (1/25)*t + _t10*(_t14*(_t28 - _t29) + _t18*_t27) + _t19*_t25 - 3/5
-    E[1, 2] = _t26 - 2/125*t + _t10*(_t14*(_t26 - _t24) + _t20*_t27) + _t21*_t25 - 9/10
-    E[1, 3] = _t29 + (6/125)*t + _t10*(_t14*(_t29 - _t28) + _t22*_t27) + _t23*_t25 - 7/10
+    E[0, 0] = _t17 + _t5 - t - 1/250*_t0 + 10
+    E[0, 1] = _t18 + _t22 - 3/5*t + (1/50)*_t0 + 6
+    E[0, 2] = _t12 - _t17 - 9/10*t - 1/125*_t0 + 4
+    E[0, 3] = _t19 - _t22 - 7/10*t + (3/125)*_t0 + 6
+    E[1, 0] = _t23 + _t27 - 1/125*t - 1
+    E[1, 1] = _t28 + _t30 + (1/25)*t - 3/5
+    E[1, 2] = _t25 - _t27 - 2/125*t - 9/10
+    E[1, 3] = _t29 - _t30 + (6/125)*t - 7/10
     return E
 
 
@@ -572,7 +564,7 @@ def _objective(t, y, p):
 
 
 def _gradient(t, y, p):
-    """grad_y f0(y, t) (kernel; 56 operations, 74 before CSE)."""
+    """grad_y f0(y, t) (kernel; 50 operations, 74 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # pa
     _y1 = y[1]  # qa
@@ -580,26 +572,28 @@ def _gradient(t, y, p):
     _y3 = y[3]  # qb
     _p0 = p[0]  # alpha
     _p1 = p[1]  # d
-    # Intermediate terms (8)
+    # Intermediate terms (10)
     _t0 = t**2
     _t1 = 2*_y0
     _t2 = 1/_p1
     _t3 = numpy.tan((1/2)*numpy.pi*_t2*((_y0 - _y2)**2 + (_y1 - _y3)**2))
     _t4 = 2*_y2
     _t5 = numpy.pi*_p0*_t2*(_t3**2 + 1)
-    _t6 = 2*_y1
-    _t7 = 2*_y3
+    _t6 = _t3*_t5*(_t1 - _t4)
+    _t7 = 2*_y1
+    _t8 = 2*_y3
+    _t9 = _t3*_t5*(_t7 - _t8)
     # Output terms
     grad = numpy.empty((4, _n))  # grad_y f0
-    grad[0] = _t1 - t - 1/250*_t0 + _t3*_t5*(_t1 - _t4) + 10
-    grad[1] = _t6 - 3/5*t + (1/50)*_t0 + _t3*_t5*(_t6 - _t7) + 6
-    grad[2] = _t4 - 9/10*t - 1/125*_t0 + _t3*_t5*(_t4 - _t1) + 4
-    grad[3] = _t7 - 7/10*t + (3/125)*_t0 + _t3*_t5*(_t7 - _t6) + 6
+    grad[0] = _t1 + _t6 - t - 1/250*_t0 + 10
+    grad[1] = _t7 + _t9 - 3/5*t + (1/50)*_t0 + 6
+    grad[2] = _t4 - _t6 - 9/10*t - 1/125*_t0 + 4
+    grad[3] = _t8 - _t9 - 7/10*t + (3/125)*_t0 + 6
     return grad
 
 
 def _hessian(t, y, p):
-    """grad_yy f0(y, t) (kernel; 102 operations, 130 before CSE)."""
+    """grad_yy f0(y, t) (kernel; 64 operations, 130 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # pa
     _y1 = y[1]  # qa
@@ -607,61 +601,49 @@ def _hessian(t, y, p):
     _y3 = y[3]  # qb
     _p0 = p[0]  # alpha
     _p1 = p[1]  # d
-    # Intermediate terms (36)
-    _t0 = 2*_y0
-    _t1 = 1/_p1
-    _t2 = _y0 - _y2
-    _t3 = _y1 - _y3
-    _t4 = (1/2)*numpy.pi*_t1
-    _t5 = numpy.tan(_t4*(_t2**2 + _t3**2))
-    _t6 = 2*_y2
-    _t7 = _t0 - _t6
-    _t8 = numpy.pi*_p0*_t1
-    _t9 = _t8*(_t5**2 + 1)
-    _t10 = 2*_y1
-    _t11 = 2*_y3
-    _t12 = _t10 - _t11
-    _t13 = _t12*_t9
-    _t14 = _t6 - _t0
-    _t15 = _t14*_t9
-    _t16 = _t11 - _t10
-    _t17 = _t16*_t9
-    _t18 = 2*_t2
-    _t19 = 2*_t3
-    _t20 = _t5**2 + 1
-    _t21 = _t18*_t20*_t4
-    _t22 = _t19*_t20*_t4
-    _t23 = -_t18*_t20*_t4
-    _t24 = -_t19*_t20*_t4
-    _t25 = 2*_t5
-    _t26 = _t21*_t25*_t8
-    _t27 = _t22*_t25*_t8
-    _t28 = _t23*_t25*_t8
-    _t29 = 2*_t9
-    _t30 = _t13*_t21 + _t12*_t26*_t5
-    _t31 = _t15*_t21 + _t5*(_t14*_t26 - _t29)
-    _t32 = _t15*_t22 + _t14*_t27*_t5
-    _t33 = _t17*_t21 + _t16*_t26*_t5
-    _t34 = _t17*_t22 + _t5*(_t16*_t27 - _t29)
-    _t35 = _t17*_t23 + _t16*_t28*_t5
+    # Intermediate terms (24)
+    _t0 = 1/_p1
+    _t1 = _y0 - _y2
+    _t2 = _y1 - _y3
+    _t3 = (1/2)*numpy.pi*_t0
+    _t4 = numpy.tan(_t3*(_t1**2 + _t2**2))
+    _t5 = 2*_y0 - 2*_y2
+    _t6 = numpy.pi*_p0*_t0
+    _t7 = _t6*(_t4**2 + 1)
+    _t8 = _t5*_t7
+    _t9 = 2*_y1 - 2*_y3
+    _t10 = _t7*_t9
+    _t11 = _t4**2 + 1
+    _t12 = 2*_t1*_t11*_t3
+    _t13 = 2*_t11*_t2*_t3
+    _t14 = 2*_t4
+    _t15 = _t12*_t14*_t6
+    _t16 = _t13*_t14*_t6
+    _t17 = 2*_t7
+    _t18 = _t12*_t8 + _t4*(_t17 + _t15*_t5)
+    _t19 = _t18 + 2
+    _t20 = _t10*_t12 + _t15*_t4*_t9
+    _t21 = _t10*_t13 + _t4*(_t17 + _t16*_t9)
+    _t22 = _t21 + 2
+    _t23 = -_t13*_t8 - _t16*_t4*_t5
     # Output terms
     hess = numpy.empty((4, 4, _n))  # grad_yy f0
-    hess[0, 0] = _t5*(_t29 + _t26*_t7) + _t21*_t7*_t9 + 2
-    hess[0, 1] = _t30
-    hess[0, 2] = _t31
-    hess[0, 3] = _t33
-    hess[1, 0] = _t30
-    hess[1, 1] = _t13*_t22 + _t5*(_t29 + _t12*_t27) + 2
-    hess[1, 2] = _t32
-    hess[1, 3] = _t34
-    hess[2, 0] = _t31
-    hess[2, 1] = _t32
-    hess[2, 2] = _t15*_t23 + _t5*(_t29 + _t14*_t28) + 2
-    hess[2, 3] = _t35
-    hess[3, 0] = _t33
-    hess[3, 1] = _t34
-    hess[3, 2] = _t35
-    hess[3, 3] = _t17*_t24 + _t5*(_t29 + _t16*_t24*_t25*_t8) + 2
+    hess[0, 0] = _t19
+    hess[0, 1] = _t20
+    hess[0, 2] = -_t18
+    hess[0, 3] = -_t20
+    hess[1, 0] = _t20
+    hess[1, 1] = _t22
+    hess[1, 2] = _t23
+    hess[1, 3] = -_t21
+    hess[2, 0] = -_t18
+    hess[2, 1] = _t23
+    hess[2, 2] = _t19
+    hess[2, 3] = _t20
+    hess[3, 0] = -_t20
+    hess[3, 1] = -_t21
+    hess[3, 2] = _t20
+    hess[3, 3] = _t22
     return hess
 
 

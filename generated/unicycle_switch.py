@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: a45584cd3cb058abfbcab8112030a8bd1834da028ca5cfe3359a8751970606b7
+# content sha256: 92f24f4853be59b7124f192ada8a9670e6985f36def211c22507e30075bed63c
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -245,7 +245,7 @@ def _lu_solve(a, b, points):
     return numpy.array(x)
 
 def _jet(t, s, p, a):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 145 operations, 198 before CSE)."""
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 138 operations, 198 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -255,51 +255,43 @@ def _jet(t, s, p, a):
     _p1 = p[1]  # b
     _a0 = a[0]  # a_0
     _a1 = a[1]  # a_1
-    # Intermediate terms (35)
+    # Intermediate terms (27)
     _t0 = 1/_p1
     _t1 = numpy.tanh(_t0*(t - _p0))
     _t2 = 1/2 - 1/2*_t1
     _t3 = 1 - _t1**2
-    _t4 = -1/2*_t0*_t3
-    _t5 = _t1*_t3/_p1**2
-    _t6 = t**2
-    _t7 = (1/100)*_t6
-    _t8 = (3/5)*t - _t7 - 5
-    _t9 = (1/50)*t
-    _t10 = 3/5 - _t9
-    _t11 = t**3
-    _t12 = (1/2)*t - 1/1000*_t11 + (1/50)*_t6 - 5
-    _t13 = (1/25)*t - 3/1000*_t6 + 1/2
-    _t14 = 5 - _t7 - 3/10*t
-    _t15 = -_t9 - 3/10
-    _t16 = (1/5000)*_t11 - 3/200*_t6 + (2/5)*t - 3
-    _t17 = (3/5000)*_t6 - 3/100*t + 2/5
-    _t18 = numpy.cos(_s2)
+    _t4 = t**2
+    _t5 = (1/100)*_t4
+    _t6 = (3/5)*t - _t5 - 5
+    _t7 = (1/50)*t
+    _t8 = 3/5 - _t7
+    _t9 = t**3
+    _t10 = (1/2)*t - 1/1000*_t9 + (1/50)*_t4 - 5
+    _t11 = (1/25)*t - 3/1000*_t4 + 1/2
+    _t12 = 5 - _t5 - 3/10*t
+    _t13 = -_t7 - 3/10
+    _t14 = (1/5000)*_t9 - 3/200*_t4 + (2/5)*t - 3
+    _t15 = (3/5000)*_t4 - 3/100*t + 2/5
+    _t16 = numpy.cos(_s2)
+    _t17 = _s3*_t16
+    _t18 = numpy.sin(_s2)
     _t19 = _s3*_t18
-    _t20 = numpy.sin(_s2)
-    _t21 = _s3*_t20
-    _t22 = 2*_t2
-    _t23 = 1 - _t2
-    _t24 = 2*_t23
-    _t25 = 2*_t4
-    _t26 = -2*_t4
-    _t27 = -_t10*_t25
-    _t28 = 2*_t5
-    _t29 = -_t15*_t26
-    _t30 = -2*_t5
-    _t31 = -_t13*_t25
-    _t32 = -_t17*_t26
-    _t33 = (1/2)*_a0
-    _t34 = (1/2)*_a1
+    _t20 = 2*_t2
+    _t21 = 1 - _t2
+    _t22 = 2*_t21
+    _t23 = -_t0*_t3
+    _t24 = 2*_t1*_t3/_p1**2
+    _t25 = (1/2)*_a0
+    _t26 = (1/2)*_a1
     # Output terms
     z = numpy.empty((2, _n))  # y_imp^(k)
-    z[0] = _t33*(2*_s0 - _t14*_t24 - _t22*_t8) - _t27 - _t29 - 1/50*_t2 - 1/50*_t23 + _t34*(2*_t19 - _t10*_t22 - _t14*_t26 - _t15*_t24 - _t25*_t8) + (1/2)*_t14*_t30 + (1/2)*_t28*_t8
-    z[1] = _t33*(2*_s1 - _t12*_t22 - _t16*_t24) - _t31 - _t32 + _t34*(2*_t21 - _t12*_t25 - _t13*_t22 - _t16*_t26 - _t17*_t24) + (1/2)*_t12*_t28 + (1/2)*_t16*_t30 + (1/2)*_t22*(1/25 - 3/500*t) + (1/2)*_t24*((3/2500)*t - 3/100)
+    z[0] = _t23*_t8 - 1/50*_t2 - 1/50*_t21 + _t25*(2*_s0 - _t12*_t22 - _t20*_t6) + _t26*(2*_t17 + _t12*_t23 - _t13*_t22 - _t20*_t8 - _t23*_t6) + (1/2)*_t24*_t6 - _t13*_t23 - 1/2*_t12*_t24
+    z[1] = _t11*_t23 + _t25*(2*_s1 - _t10*_t20 - _t14*_t22) + _t26*(2*_t19 + _t14*_t23 - _t10*_t23 - _t11*_t20 - _t15*_t22) + (1/2)*_t10*_t24 + (1/2)*_t20*(1/25 - 3/500*t) + (1/2)*_t22*((3/2500)*t - 3/100) - _t15*_t23 - 1/2*_t14*_t24
     R = numpy.empty((4, _n))  # diagonal blocks of the decoupling matrix
-    R[0] = _t18
-    R[1] = -_t21
-    R[2] = _t20
-    R[3] = _t19
+    R[0] = _t16
+    R[1] = -_t19
+    R[2] = _t18
+    R[3] = _t17
     pvec = numpy.empty((2, _n))  # p = col(L_f^{r_i} h_i)
     pvec[0] = 0
     pvec[1] = 0
@@ -352,7 +344,7 @@ def _plant_input(t, s, p, w):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 89 operations, 111 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 87 operations, 111 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -360,29 +352,27 @@ def _optimality(t, s, p):
     _s3 = s[3]  # v
     _p0 = p[0]  # a
     _p1 = p[1]  # b
-    # Intermediate terms (16)
+    # Intermediate terms (14)
     _t0 = 1/_p1
     _t1 = numpy.tanh(_t0*(t - _p0))
     _t2 = 1/2 - 1/2*_t1
-    _t3 = -1/2*_t0*(1 - _t1**2)
-    _t4 = t**2
-    _t5 = (1/100)*_t4
-    _t6 = (3/5)*t - _t5 - 5
-    _t7 = (1/50)*t
-    _t8 = t**3
-    _t9 = (1/2)*t - 1/1000*_t8 + (1/50)*_t4 - 5
-    _t10 = 5 - _t5 - 3/10*t
-    _t11 = (1/5000)*_t8 - 3/200*_t4 + (2/5)*t - 3
-    _t12 = 2*_t2
-    _t13 = 2 - 2*_t2
-    _t14 = 2*_t3
-    _t15 = -2*_t3
+    _t3 = t**2
+    _t4 = (1/100)*_t3
+    _t5 = (3/5)*t - _t4 - 5
+    _t6 = (1/50)*t
+    _t7 = t**3
+    _t8 = (1/2)*t - 1/1000*_t7 + (1/50)*_t3 - 5
+    _t9 = 5 - _t4 - 3/10*t
+    _t10 = (1/5000)*_t7 - 3/200*_t3 + (2/5)*t - 3
+    _t11 = 2*_t2
+    _t12 = 2 - 2*_t2
+    _t13 = -_t0*(1 - _t1**2)
     # Output terms
     E = numpy.empty((2, 2, _n))  # grad^(j) f0
-    E[0, 0] = 2*_s0 - _t10*_t13 - _t12*_t6
-    E[0, 1] = 2*_s1 - _t11*_t13 - _t12*_t9
-    E[1, 0] = 2*_s3*numpy.cos(_s2) - _t10*_t15 - _t12*(3/5 - _t7) - _t13*(-_t7 - 3/10) - _t14*_t6
-    E[1, 1] = 2*_s3*numpy.sin(_s2) - _t11*_t15 - _t12*((1/25)*t - 3/1000*_t4 + 1/2) - _t13*((3/5000)*_t4 - 3/100*t + 2/5) - _t14*_t9
+    E[0, 0] = 2*_s0 - _t11*_t5 - _t12*_t9
+    E[0, 1] = 2*_s1 - _t10*_t12 - _t11*_t8
+    E[1, 0] = _t13*_t9 - _t11*(3/5 - _t6) - _t12*(-_t6 - 3/10) - _t13*_t5 + 2*_s3*numpy.cos(_s2)
+    E[1, 1] = _t10*_t13 - _t11*((1/25)*t - 3/1000*_t3 + 1/2) - _t12*((3/5000)*_t3 - 3/100*t + 2/5) - _t13*_t8 + 2*_s3*numpy.sin(_s2)
     return E
 
 

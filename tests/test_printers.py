@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import pytest
 import sympy as sp
 
-from tvopt_codegen.ir import _substitute, canonical_odd
+from tvopt_codegen.ir import _substitute, canonical_odd, ordered_cse
 from tvopt_codegen.printers import CPrinter, PythonPrinter
+
+from .conftest import kernels
 
 t, x, y, a = sp.symbols("t x y a", real=True)
 
@@ -39,3 +42,40 @@ def test_canonical_odd_merges_mirrored_arguments_once() -> None:
     assert first == -second
     # Shared memo: a second pass over the same node is a lookup.
     assert canonical_odd(sp.tanh((a - t) / x) + y, memo) == first + y
+
+
+def test_cse_merges_equal_and_opposite_values() -> None:
+    x, y, z = sp.symbols("x y z", real=True)
+    a, b1, b2, c, d = (sp.Symbol(n, real=True) for n in ("a", "b1", "b2", "c", "d"))
+    # b1 and b2 only become equal once a is named; c is -(x - y) spelled the other way.
+    program = [
+        (a, sp.tan(x * z)),
+        (b1, a**2 + 1),
+        (b2, sp.tan(x * z) ** 2 + 1),
+        (c, y - x),
+        (d, (x - y) * z),
+    ]
+    body, outs = ordered_cse(program, [b1 * x + b2 * y, c * b2 + d * b1, c * z + d])
+    values = [value for _, value in body]
+    assert len(values) == len(set(values))
+    assert not any(-v in values for v in values)
+    point = {x: 0.3, y: -1.2, z: 0.7}
+    reference = [b1 * x + b2 * y, c * b2 + d * b1, c * z + d]
+    full = dict(program)
+    for _ in range(3):
+        reference = [e.xreplace(full) for e in reference]
+    env = dict(point)
+    for sym, value in body:
+        env[sym] = float(value.xreplace(env))
+    for got, want in zip(outs, reference, strict=True):
+        assert float(got.xreplace(env)) == pytest.approx(float(want.xreplace(point)), rel=1e-15)
+    # tan once, its square plus one once, and x - y once (y - x is its negation).
+    assert len(body) == 3
+
+
+@pytest.mark.parametrize("spec", ["two_unicycles_barrier", "unicycle_ring", "flexible_joint"])
+def test_no_kernel_computes_a_value_twice(spec: str) -> None:
+    for kernel in kernels(spec).kernels:
+        values = [value for _, value in kernel.body]
+        assert len(values) == len(set(values)), kernel.name
+        assert not set(values) & {-v for v in values}, kernel.name

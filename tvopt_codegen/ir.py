@@ -205,15 +205,22 @@ def _substitute(
     return visit(sp.sympify(expr))
 
 
+def _negated_symbol(value: sp.Basic) -> bool:
+    """Whether ``value`` is ``-x`` for a symbol ``x`` (printing it costs nothing)."""
+    return bool(
+        value.is_Mul and len(value.args) == 2 and value.args[0] == -1 and value.args[1].is_Symbol
+    )
+
+
 def _drop_aliases(
     assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
 ) -> tuple[list[Assignment], list[sp.Expr]]:
-    """Substitute assignments whose value is a bare symbol or number."""
+    """Substitute assignments whose value is a bare symbol or number, or a negated symbol."""
     alias: dict[sp.Symbol, sp.Expr] = {}
     kept: list[Assignment] = []
     for sym, raw in assignments:
         value = _substitute(raw, alias)
-        if value.is_Symbol or value.is_Number:
+        if value.is_Symbol or value.is_Number or _negated_symbol(value):
             alias[sym] = value
         else:
             kept.append((sym, value))
@@ -293,7 +300,14 @@ def ordered_cse(
     # CSE can leave an assignment that is just a temporary (the program computed a
     # value CSE found elsewhere first): substitute those too.
     order, outs = _drop_aliases(order, list(reduced[len(kept) :]))
-    order, outs = _inline_single_use(order, outs)
+    # Merging equal values can leave a temporary with one use, and inlining can make
+    # two values equal: alternate to a fixed point (two or three rounds in practice).
+    while True:
+        size = len(order)
+        order, outs = _merge_equal(order, outs)
+        order, outs = _inline_single_use(order, outs)
+        if len(order) == size:
+            break
     renames: dict[sp.Symbol, sp.Expr] = {}
     body: list[Assignment] = []
     for index, (sym, value) in enumerate(order):
@@ -359,6 +373,44 @@ def _value_numbering(
 
     reduced = [build(sp.sympify(e)) for e in exprs]
     return replacements, reduced
+
+
+def _merge_equal(
+    order: list[Assignment], outputs: list[sp.Expr]
+) -> tuple[list[Assignment], list[sp.Expr]]:
+    """Merge temporaries that compute the same value as an earlier one, or its negation.
+
+    CSE compares expressions, not values, before its own replacements: two products
+    that only become equal once their factors are named stay apart (``a**2 + 1`` twice
+    after ``a = tan(...)`` was extracted). And a pairwise term such as a barrier between
+    agents a and b differentiates into ``xa - xb`` for one and ``xb - xa`` for the other.
+    One pass in evaluation order catches both, each match turning the next ones up.
+    """
+    first: dict[sp.Basic, sp.Symbol] = {}
+    rename: dict[sp.Symbol, sp.Expr] = {}
+    # A node is rewritten once: a renamed symbol is only used after its assignment,
+    # so no node seen before a rename can contain it.
+    memo: dict[sp.Basic, sp.Basic] = {}
+    kept: list[Assignment] = []
+    for sym, raw in order:
+        value = _substitute(raw, rename, memo)
+        if value in first:
+            rename[sym] = first[value]
+            continue
+        # Negating a long sum builds a new one term by term; exact opposites are short
+        # differences (xa - xb) and products, so longer sums are not tried.
+        if not (value.is_Add and len(value.args) > _NEGATED_TERMS):
+            negated = -value
+            if negated in first:
+                rename[sym] = -first[negated]
+                continue
+        first[value] = sym
+        kept.append((sym, value))
+    return kept, [_substitute(e, rename, memo) for e in outputs]
+
+
+#: Sums up to this many terms are looked up negated too (:func:`_merge_equal`).
+_NEGATED_TERMS = 4
 
 
 def _inline_single_use(

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: c5dd8af794218e7a1e3dfca4bfcfb9920d1b4e040789016862189f92f346bf9a
+ * content sha256: 0e4d5c1a8f1a584642cba1ce7516d47b53185de7994a2cb87bf701bf40105e46
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -36,7 +36,7 @@ const double flexible_joint_default_params[FLEXIBLE_JOINT_N_PARAMS] = {2.0, 1.0,
 const double flexible_joint_default_state[FLEXIBLE_JOINT_N_STATES] = {0.5, 0.0, 0.5, 0.0};
 const double flexible_joint_hurwitz_coefficients[FLEXIBLE_JOINT_K] = {-15.0, -33.5, -26.0, -8.5};
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (253 operations, 335 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (206 operations, 335 before CSE). */
 static void flexible_joint_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* q1 */
@@ -80,56 +80,25 @@ static void flexible_joint_k_jet(double t, const double *s, const double *p, con
     const double _t26 = -_t24*_t25;
     const double _t27 = _t20*_t23;
     const double _t28 = _t8 - _t16;
-    const double _t29 = _t20*_t23;
-    const double _t30 = _t22*_t28 + _t23*_t29;
-    const double _t31 = (1.0/(_t20*_t20*_t20));
-    const double _t32 = 2*_t24;
-    const double _t33 = -_t31*_t32;
-    const double _t34 = -_t24*_t33 - _t25*_t30;
-    const double _t35 = _t22*_t23;
-    const double _t36 = _t20*_t28 + _t23*_t35;
-    const double _t37 = -_t26*_t27;
-    const double _t38 = _t9 - _t18;
-    const double _t39 = _t22*_t23;
-    const double _t40 = _t20*_t28 + _t23*_t39;
-    const double _t41 = _t28*_t29;
-    const double _t42 = 2*_t41 + _t22*_t38 + _t23*_t40;
-    const double _t43 = 3/(_t20*_t20*_t20*_t20);
-    const double _t44 = -_t24*_t43;
-    const double _t45 = 2*_t30;
-    const double _t46 = -_t31*_t45 - _t32*_t44;
-    const double _t47 = -_t30*_t33;
-    const double _t48 = 2*_t47 - _t24*_t46 - _t25*_t42;
-    const double _t49 = _t20*_t23;
-    const double _t50 = _t22*_t28 + _t23*_t49;
-    const double _t51 = _t28*_t35;
-    const double _t52 = 2*_t51 + _t20*_t38 + _t23*_t50;
-    const double _t53 = -_t26*_t36;
-    const double _t54 = -_t27*_t34;
-    const double _t55 = _t53 + _t54;
-    const double _t56 = _t28*_t39;
-    const double _t57 = _t28*_t40;
-    const double _t58 = _t29*_t38;
-    const double _t59 = _t57 + _t58;
-    const double _t60 = -_t44*_t45;
-    const double _t61 = -_t30*_t46;
-    const double _t62 = -_t33*_t42;
-    const double _t63 = _t61 + _t62;
-    const double _t64 = _t28*_t49;
-    const double _t65 = _t28*_t50;
-    const double _t66 = _t35*_t38;
-    const double _t67 = _t65 + _t66;
-    const double _t68 = -_t26*_t52;
-    const double _t69 = -_t34*_t36;
-    const double _t70 = _t68 + _t69;
-    const double _t71 = -_t27*_t48;
-    const double _t72 = _t69 + _t71;
-    const double _t73 = _t70 + _t72;
-    const double _t74 = (1.0/_p2);
+    const double _t29 = _t22*_t28 + _t23*_t27;
+    const double _t30 = (1.0/(_t20*_t20*_t20));
+    const double _t31 = 2*_t24;
+    const double _t32 = -_t30*_t31;
+    const double _t33 = -_t24*_t32 - _t25*_t29;
+    const double _t34 = _t20*_t28 + _t23*_t24;
+    const double _t35 = _t9 - _t18;
+    const double _t36 = _t22*_t35 + _t23*_t34 + 2*_t27*_t28;
+    const double _t37 = 3/(_t20*_t20*_t20*_t20);
+    const double _t38 = -_t24*_t37;
+    const double _t39 = 2*_t29;
+    const double _t40 = -_t30*_t39 - _t31*_t38;
+    const double _t41 = -_t24*_t40 - _t25*_t36 - 2*_t29*_t32;
+    const double _t42 = _t20*_t35 + _t23*_t29 + 2*_t24*_t28;
+    const double _t43 = (1.0/_p2);
     hessian[0] = _t20*_t21 - _t25*(_t22*_t22) + 2;
-    jet_rhs[0] = 2*_t10 - _t68 - _t70 - _t71 - _t72 - 2*_t73 + _a0*(2*_s0 - 2*_t4 - _t21*_t22) + _a1*(2*_s1 - 2*_t7 - _t21*_t27 - _t22*_t26) + _a2*(2*_t16 - 2*_t8 + 2*_t37 - _t21*_t36 - _t22*_t34) + _a3*(_t53 + _t54 - 2*_t9 + 2*_t18 + 2*_t55 - _t21*_t52 - _t22*_t48) + _t21*(_t65 + _t66 + 2*_t67 + _t10*_t20 + _t23*(2*_t64 + _t22*_t38 + _t23*(_t20*_t28 + _t22*(_t23*_t23)))) + _t22*(_t61 + _t62 + 2*_t63 - _t24*(2*_t60 - _t32*(12*(_t24*_t24)/pow(_t20, 5) - _t30*_t43) - 2*_t31*_t42) - _t25*(_t57 + _t58 + 2*_t59 + _t10*_t22 + _t23*(2*_t56 + _t20*_t38 + _t23*(_t20*(_t23*_t23) + _t22*_t28))));
-    R[0] = _t15*_t74;
-    pvec[0] = _t13*(_s1*_s1) + _t16*_t17 + _t11*_t14*_t74*(_p3*_p3);
+    jet_rhs[0] = 2*_t10 + _a0*(2*_s0 - 2*_t4 - _t21*_t22) + _a1*(2*_s1 - 2*_t7 - _t21*_t27 - _t22*_t26) + _a2*(2*_t16 - 2*_t8 - _t21*_t34 - _t22*_t33 - 2*_t26*_t27) + _a3*(2*_t18 - 2*_t9 - _t21*_t42 - _t22*_t41 - 3*_t26*_t34 - 3*_t27*_t33) + _t21*(_t10*_t20 + _t23*_t36 + 3*_t24*_t35 + 3*_t28*_t29) + _t22*(-_t24*(-_t31*(12*(_t24*_t24)/pow(_t20, 5) - _t29*_t37) - 2*_t30*_t36 - 2*_t38*_t39) - _t25*(_t10*_t22 + _t23*_t42 + 3*_t27*_t35 + 3*_t28*_t34) - 3*_t29*_t40 - 3*_t32*_t36) + 4*_t26*_t42 + 4*_t27*_t41 + 6*_t33*_t34;
+    R[0] = _t15*_t43;
+    pvec[0] = _t13*(_s1*_s1) + _t16*_t17 + _t11*_t14*_t43*(_p3*_p3);
 }
 
 
@@ -191,7 +160,7 @@ static void flexible_joint_k_plant_input(double t, const double *s, const double
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (137 operations, 174 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (122 operations, 174 before CSE). */
 static void flexible_joint_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* q1 */
@@ -226,26 +195,17 @@ static void flexible_joint_k_optimality(double t, const double *s, const double 
     const double _t22 = -_t20*_t21;
     const double _t23 = _t16*_t19;
     const double _t24 = _t8 - _t13;
-    const double _t25 = _t16*_t19;
-    const double _t26 = _t18*_t24 + _t19*_t25;
-    const double _t27 = (1.0/(_t16*_t16*_t16));
-    const double _t28 = 2*_t20;
-    const double _t29 = -_t27*_t28;
-    const double _t30 = -_t20*_t29 - _t21*_t26;
-    const double _t31 = _t18*_t19;
-    const double _t32 = _t16*_t24 + _t19*_t31;
-    const double _t33 = -_t22*_t23;
-    const double _t34 = _t9 - _t14;
-    const double _t35 = _t24*_t25;
-    const double _t36 = -_t26*_t29;
-    const double _t37 = _t24*_t31;
-    const double _t38 = -_t22*_t32;
-    const double _t39 = -_t23*_t30;
-    const double _t40 = _t38 + _t39;
+    const double _t25 = _t18*_t24 + _t19*_t23;
+    const double _t26 = (1.0/(_t16*_t16*_t16));
+    const double _t27 = 2*_t20;
+    const double _t28 = -_t26*_t27;
+    const double _t29 = -_t20*_t28 - _t21*_t25;
+    const double _t30 = _t16*_t24 + _t19*_t20;
+    const double _t31 = _t9 - _t14;
     E[0] = 2*_s0 - 2*_t4 - _t17*_t18;
     E[1] = 2*_s1 - 2*_t7 - _t17*_t23 - _t18*_t22;
-    E[2] = 2*_t13 - 2*_t8 + 2*_t33 - _t17*_t32 - _t18*_t30;
-    E[3] = _t38 + _t39 - 2*_t9 + 2*_t14 + 2*_t40 - _t17*(2*_t37 + _t16*_t34 + _t19*(_t16*(_t19*_t19) + _t18*_t24)) - _t18*(2*_t36 - _t20*(3*_t20*_t28/(_t16*_t16*_t16*_t16) - 2*_t26*_t27) - _t21*(2*_t35 + _t18*_t34 + _t19*(_t16*_t24 + _t18*(_t19*_t19))));
+    E[2] = 2*_t13 - 2*_t8 - _t17*_t30 - _t18*_t29 - 2*_t22*_t23;
+    E[3] = 2*_t14 - 2*_t9 - _t17*(_t16*_t31 + _t19*_t25 + 2*_t20*_t24) - _t18*(-_t20*(3*_t20*_t27/(_t16*_t16*_t16*_t16) - 2*_t25*_t26) - _t21*(_t18*_t31 + _t19*_t30 + 2*_t23*_t24) - 2*_t25*_t28) - 3*_t22*_t30 - 3*_t23*_t29;
 }
 
 
@@ -276,9 +236,7 @@ static void flexible_joint_k_hessian(double t, const double *y, const double *p,
     const double _y0 = y[0]; /* y */
     (void)p;
     const double _t0 = (3.0/5.0)*sin((1.0/2.0)*t) - _y0 + (3.0/10.0)*sin((13.0/10.0)*t);
-    const double _t1 = cosh(_t0);
-    const double _t2 = sinh(_t0);
-    hess[0] = 3 - (_t2*_t2)/(_t1*_t1);
+    hess[0] = 3 - (sinh(_t0)*sinh(_t0))/(cosh(_t0)*cosh(_t0));
 }
 
 

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: e62a00e2d383d2132ba81ffd640281ec997ea9c57e0934d6e5f05b4d6260c563
+ * content sha256: 61d753c7b0f264dc0cf781c9cc7566bb81287b72625d14df5fd74d490ae65cfd
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -63,25 +63,23 @@ static void pvtol_k_jet(double t, const double *s, const double *p, const double
     const double _t8 = cos(_t3);
     const double _t9 = sin(_s2);
     const double _t10 = _s6*_t9;
-    const double _t11 = -_t10;
-    const double _t12 = _s7*_t9;
-    const double _t13 = cos(_s2);
-    const double _t14 = _s6*_t13;
-    const double _t15 = -_t12 - _s5*_t14;
-    const double _t16 = -_t14;
-    const double _t17 = _s5*_t10 - _s7*_t13;
-    const double _t18 = (1.0/2.0)*_a0;
-    const double _t19 = (1.0/2.0)*_a1;
-    const double _t20 = (1.0/2.0)*_a2;
-    const double _t21 = (1.0/2.0)*_a3;
-    z[0] = (24.0/625.0)*_t1 + _t18*(2*_s0 - 3*_t1) + _t19*(2*_s3 - 6.0/5.0*_t2) + _t20*(2*_t11 + (12.0/25.0)*_t1) + _t21*(2*_t15 + (24.0/125.0)*_t2);
-    z[1] = (81.0/12500.0)*_t4 - 1.0/1250.0*_t6 + _t18*(_t6 + 2*_s1 - 8.0/5.0*_t4 - 4) + _t19*(2*_s4 - 12.0/25.0*_t8 - 1.0/5.0*_t7) + _t20*((18.0/125.0)*_t4 - 2*_p0 - 2*_t16 - 1.0/25.0*_t6) + _t21*((1.0/125.0)*_t7 - 2*_t17 + (27.0/625.0)*_t8);
+    const double _t11 = _s7*_t9;
+    const double _t12 = cos(_s2);
+    const double _t13 = _s6*_t12;
+    const double _t14 = -_t11 - _s5*_t13;
+    const double _t15 = _s5*_t10 - _s7*_t12;
+    const double _t16 = (1.0/2.0)*_a0;
+    const double _t17 = (1.0/2.0)*_a1;
+    const double _t18 = (1.0/2.0)*_a2;
+    const double _t19 = (1.0/2.0)*_a3;
+    z[0] = (24.0/625.0)*_t1 + _t16*(2*_s0 - 3*_t1) + _t17*(2*_s3 - 6.0/5.0*_t2) + _t18*((12.0/25.0)*_t1 - 2*_t10) + _t19*(2*_t14 + (24.0/125.0)*_t2);
+    z[1] = (81.0/12500.0)*_t4 - 1.0/1250.0*_t6 + _t16*(_t6 + 2*_s1 - 8.0/5.0*_t4 - 4) + _t17*(2*_s4 - 12.0/25.0*_t8 - 1.0/5.0*_t7) + _t18*(2*_t13 - 2*_p0 - 1.0/25.0*_t6 + (18.0/125.0)*_t4) + _t19*((1.0/125.0)*_t7 - 2*_t15 + (27.0/625.0)*_t8);
     R[0] = -_t9;
-    R[1] = _t16;
-    R[2] = _t13;
-    R[3] = _t11;
-    pvec[0] = _s5*_t17 - _s5*_s7*_t13;
-    pvec[1] = _s5*_t15 - _s5*_t12;
+    R[1] = -_t13;
+    R[2] = _t12;
+    R[3] = -_t10;
+    pvec[0] = _s5*_t15 - _s5*_s7*_t12;
+    pvec[1] = _s5*_t14 - _s5*_t11;
 }
 
 

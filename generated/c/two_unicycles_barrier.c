@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 26bf055eafb0754e0920621b1c2fd9ce5ff4cc810b57c1c5939396715a048d5c
+ * content sha256: 6992123e2fb48c32042fdf057924820bd3b6d057a9c63ce98439cb2ef99d7147
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -36,7 +36,7 @@ const double two_unicycles_barrier_default_params[TWO_UNICYCLES_BARRIER_N_PARAMS
 const double two_unicycles_barrier_default_state[TWO_UNICYCLES_BARRIER_N_STATES] = {-4.5, -3.5, 0.0, -3.5, -3.5, 0.0, 1.0, 1.0};
 const double two_unicycles_barrier_hurwitz_coefficients[TWO_UNICYCLES_BARRIER_K] = {-1.5, -2.5};
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (291 operations, 384 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (207 operations, 384 before CSE). */
 static void two_unicycles_barrier_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* xa */
@@ -66,73 +66,64 @@ static void two_unicycles_barrier_k_jet(double t, const double *s, const double 
     const double _t12 = _s1 - _s4;
     const double _t13 = (1.0/2.0)*3.141592653589793*_t10;
     const double _t14 = tan(_t13*((_t11*_t11) + (_t12*_t12)));
-    const double _t15 = 2*_s3;
-    const double _t16 = _t9 - _t15;
-    const double _t17 = 3.141592653589793*_p0*_t10;
-    const double _t18 = _t17*((_t14*_t14) + 1);
-    const double _t19 = _t16*_t18;
-    const double _t20 = 2*_s1;
-    const double _t21 = 2*_s4;
-    const double _t22 = _t20 - _t21;
-    const double _t23 = _t18*_t22;
-    const double _t24 = _t15 - _t9;
-    const double _t25 = _t18*_t24;
-    const double _t26 = _t21 - _t20;
-    const double _t27 = _t18*_t26;
-    const double _t28 = 2*_t2;
-    const double _t29 = _t2 - _t6;
-    const double _t30 = 2*_t11;
-    const double _t31 = _t4 - _t8;
-    const double _t32 = 2*_t12;
-    const double _t33 = _t13*(_t29*_t30 + _t31*_t32);
-    const double _t34 = (_t14*_t14) + 1;
-    const double _t35 = _t33*_t34;
-    const double _t36 = 2*_t14;
-    const double _t37 = 2*_t6;
-    const double _t38 = _t28 - _t37;
-    const double _t39 = _t17*_t35*_t36;
-    const double _t40 = _t16*_t39 + _t18*_t38;
-    const double _t41 = 2*_t4;
-    const double _t42 = 2*_t8;
-    const double _t43 = _t41 - _t42;
-    const double _t44 = _t18*_t43 + _t22*_t39;
-    const double _t45 = _t37 - _t28;
-    const double _t46 = _t18*_t45 + _t24*_t39;
-    const double _t47 = _t42 - _t41;
-    const double _t48 = _t18*_t47 + _t26*_t39;
-    const double _t49 = (_t14*_t14) + 1;
-    const double _t50 = _t13*_t30*_t49;
-    const double _t51 = _t13*_t32*_t49;
-    const double _t52 = -_t13*_t30*_t49;
-    const double _t53 = -_t13*_t32*_t49;
-    const double _t54 = _t17*_t36*_t50;
-    const double _t55 = _t17*_t36*_t51;
-    const double _t56 = _t17*_t36*_t52;
-    const double _t57 = 2*_t18;
-    const double _t58 = _t13*_t34*(2*(_t29*_t29) + 2*(_t31*_t31)) + 2*_t14*(_t33*_t33)*((_t14*_t14) + 1);
-    const double _t59 = _t17*(2*(_t35*_t35) + _t36*_t58);
-    const double _t60 = _t38*_t39;
-    const double _t61 = _t35*_t40;
-    const double _t62 = _t39*_t43;
-    const double _t63 = _t35*_t44;
-    const double _t64 = _t39*_t45;
-    const double _t65 = _t35*_t46;
-    const double _t66 = _t39*_t47;
-    const double _t67 = _t35*_t48;
-    hessian[0] = _t14*(_t57 + _t16*_t54) + _t19*_t50 + 2;
-    hessian[1] = _t23*_t50 + _t14*_t22*_t54;
-    hessian[2] = _t14*(_t57 + _t22*_t55) + _t23*_t51 + 2;
-    hessian[3] = _t14*(_t24*_t54 - _t57) + _t25*_t50;
-    hessian[4] = _t25*_t51 + _t14*_t24*_t55;
-    hessian[5] = _t14*(_t57 + _t24*_t56) + _t25*_t52 + 2;
-    hessian[6] = _t27*_t50 + _t14*_t26*_t54;
-    hessian[7] = _t14*(_t26*_t55 - _t57) + _t27*_t51;
-    hessian[8] = _t27*_t52 + _t14*_t26*_t56;
-    hessian[9] = _t14*(_t57 + _t17*_t26*_t36*_t53) + _t27*_t53 + 2;
-    jet_rhs[0] = _a0*(_t9 - t - 1.0/250.0*_t0 + _t14*_t19 + 10) - 2*_t61 + _a1*(_t28 - 1.0/125.0*t + _t14*_t40 + _t19*_t35 - 1) - _t14*(2*_t60 + _t16*_t59) - _t19*_t58 + 1.0/125.0;
-    jet_rhs[1] = _a0*(_t20 - 3.0/5.0*t + (1.0/50.0)*_t0 + _t14*_t23 + 6) - 2*_t63 + _a1*(_t41 + (1.0/25.0)*t + _t14*_t44 + _t23*_t35 - 3.0/5.0) - _t14*(2*_t62 + _t22*_t59) - _t23*_t58 - 1.0/25.0;
-    jet_rhs[2] = _a0*(_t15 - 9.0/10.0*t - 1.0/125.0*_t0 + _t14*_t25 + 4) - 2*_t65 + _a1*(_t37 - 2.0/125.0*t + _t14*_t46 + _t25*_t35 - 9.0/10.0) - _t14*(2*_t64 + _t24*_t59) - _t25*_t58 + 2.0/125.0;
-    jet_rhs[3] = _a0*(_t21 - 7.0/10.0*t + (3.0/125.0)*_t0 + _t14*_t27 + 6) - 2*_t67 + _a1*(_t42 + (6.0/125.0)*t + _t14*_t48 + _t27*_t35 - 7.0/10.0) - _t14*(2*_t66 + _t26*_t59) - _t27*_t58 - 6.0/125.0;
+    const double _t15 = (_t14*_t14) + 1;
+    const double _t16 = 2*_s3;
+    const double _t17 = _t9 - _t16;
+    const double _t18 = 3.141592653589793*_p0*_t10;
+    const double _t19 = _t15*_t18;
+    const double _t20 = _t17*_t19;
+    const double _t21 = _t14*_t20;
+    const double _t22 = 2*_s1;
+    const double _t23 = 2*_s4;
+    const double _t24 = _t22 - _t23;
+    const double _t25 = _t19*_t24;
+    const double _t26 = _t14*_t25;
+    const double _t27 = 2*_t2;
+    const double _t28 = _t2 - _t6;
+    const double _t29 = 2*_t11;
+    const double _t30 = _t4 - _t8;
+    const double _t31 = 2*_t12;
+    const double _t32 = _t13*(_t28*_t29 + _t30*_t31);
+    const double _t33 = _t15*_t32;
+    const double _t34 = 2*_t14;
+    const double _t35 = 2*_t6;
+    const double _t36 = _t27 - _t35;
+    const double _t37 = _t18*_t33*_t34;
+    const double _t38 = _t17*_t37 + _t19*_t36;
+    const double _t39 = _t14*_t38 + _t20*_t33;
+    const double _t40 = 2*_t4;
+    const double _t41 = 2*_t8;
+    const double _t42 = _t40 - _t41;
+    const double _t43 = _t19*_t42 + _t24*_t37;
+    const double _t44 = _t14*_t43 + _t25*_t33;
+    const double _t45 = _t13*_t15*_t29;
+    const double _t46 = _t13*_t15*_t31;
+    const double _t47 = _t18*_t34*_t45;
+    const double _t48 = _t18*_t34*_t46;
+    const double _t49 = 2*_t19;
+    const double _t50 = _t14*(_t49 + _t17*_t47) + _t20*_t45;
+    const double _t51 = _t50 + 2;
+    const double _t52 = _t25*_t45 + _t14*_t24*_t47;
+    const double _t53 = _t14*(_t49 + _t24*_t48) + _t25*_t46;
+    const double _t54 = _t53 + 2;
+    const double _t55 = _t13*_t15*(2*(_t28*_t28) + 2*(_t30*_t30)) + 2*_t14*_t32*_t33;
+    const double _t56 = _t18*(2*(_t33*_t33) + _t34*_t55);
+    const double _t57 = _t14*(_t17*_t56 + 2*_t36*_t37) + _t20*_t55 + 2*_t33*_t38;
+    const double _t58 = _t14*(_t24*_t56 + 2*_t37*_t42) + _t25*_t55 + 2*_t33*_t43;
+    hessian[0] = _t51;
+    hessian[1] = _t52;
+    hessian[2] = _t54;
+    hessian[3] = -_t50;
+    hessian[4] = -_t20*_t46 - _t14*_t17*_t48;
+    hessian[5] = _t51;
+    hessian[6] = -_t52;
+    hessian[7] = -_t53;
+    hessian[8] = _t52;
+    hessian[9] = _t54;
+    jet_rhs[0] = _a0*(_t21 + _t9 - t - 1.0/250.0*_t0 + 10) - _t57 + _a1*(_t27 + _t39 - 1.0/125.0*t - 1) + 1.0/125.0;
+    jet_rhs[1] = _a0*(_t22 + _t26 - 3.0/5.0*t + (1.0/50.0)*_t0 + 6) - _t58 + _a1*(_t40 + _t44 + (1.0/25.0)*t - 3.0/5.0) - 1.0/25.0;
+    jet_rhs[2] = _t57 + _a0*(_t16 - _t21 - 9.0/10.0*t - 1.0/125.0*_t0 + 4) + _a1*(_t35 - _t39 - 2.0/125.0*t - 9.0/10.0) + 2.0/125.0;
+    jet_rhs[3] = _t58 + _a0*(_t23 - _t26 - 7.0/10.0*t + (3.0/125.0)*_t0 + 6) + _a1*(_t41 - _t44 + (6.0/125.0)*t - 7.0/10.0) - 6.0/125.0;
     R[0] = _t1;
     R[1] = -_t4;
     R[2] = _t3;
@@ -262,7 +253,7 @@ static void two_unicycles_barrier_k_plant_input(double t, const double *s, const
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (133 operations, 160 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (111 operations, 160 before CSE). */
 static void two_unicycles_barrier_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* xa */
@@ -286,33 +277,34 @@ static void two_unicycles_barrier_k_optimality(double t, const double *s, const 
     const double _t8 = _s1 - _s4;
     const double _t9 = (1.0/2.0)*3.141592653589793*_t6;
     const double _t10 = tan(_t9*((_t7*_t7) + (_t8*_t8)));
-    const double _t11 = 2*_s3;
-    const double _t12 = _t5 - _t11;
-    const double _t13 = 3.141592653589793*_p0*_t6;
-    const double _t14 = _t13*((_t10*_t10) + 1);
-    const double _t15 = _t12*_t14;
-    const double _t16 = 2*_s1;
-    const double _t17 = 2*_s4;
-    const double _t18 = _t16 - _t17;
-    const double _t19 = _t14*_t18;
-    const double _t20 = _t11 - _t5;
-    const double _t21 = _t14*_t20;
-    const double _t22 = _t17 - _t16;
-    const double _t23 = _t14*_t22;
-    const double _t24 = 2*_t1;
-    const double _t25 = _t9*((_t10*_t10) + 1)*(2*_t7*(_t1 - _t3) + 2*_t8*(_t2 - _t4));
-    const double _t26 = 2*_t3;
-    const double _t27 = 2*_t10*_t13*_t25;
+    const double _t11 = (_t10*_t10) + 1;
+    const double _t12 = 2*_s3;
+    const double _t13 = _t5 - _t12;
+    const double _t14 = 3.141592653589793*_p0*_t6;
+    const double _t15 = _t11*_t14;
+    const double _t16 = _t13*_t15;
+    const double _t17 = _t10*_t16;
+    const double _t18 = 2*_s1;
+    const double _t19 = 2*_s4;
+    const double _t20 = _t18 - _t19;
+    const double _t21 = _t15*_t20;
+    const double _t22 = _t10*_t21;
+    const double _t23 = 2*_t1;
+    const double _t24 = _t11*_t9*(2*_t7*(_t1 - _t3) + 2*_t8*(_t2 - _t4));
+    const double _t25 = 2*_t3;
+    const double _t26 = 2*_t10*_t14*_t24;
+    const double _t27 = _t10*(_t13*_t26 + _t15*(_t23 - _t25)) + _t16*_t24;
     const double _t28 = 2*_t2;
     const double _t29 = 2*_t4;
-    E[0] = _t5 - t - 1.0/250.0*_t0 + _t10*_t15 + 10;
-    E[1] = _t16 - 3.0/5.0*t + (1.0/50.0)*_t0 + _t10*_t19 + 6;
-    E[2] = _t11 - 9.0/10.0*t - 1.0/125.0*_t0 + _t10*_t21 + 4;
-    E[3] = _t17 - 7.0/10.0*t + (3.0/125.0)*_t0 + _t10*_t23 + 6;
-    E[4] = _t24 - 1.0/125.0*t + _t10*(_t12*_t27 + _t14*(_t24 - _t26)) + _t15*_t25 - 1;
-    E[5] = _t28 + (1.0/25.0)*t + _t10*(_t14*(_t28 - _t29) + _t18*_t27) + _t19*_t25 - 3.0/5.0;
-    E[6] = _t26 - 2.0/125.0*t + _t10*(_t14*(_t26 - _t24) + _t20*_t27) + _t21*_t25 - 9.0/10.0;
-    E[7] = _t29 + (6.0/125.0)*t + _t10*(_t14*(_t29 - _t28) + _t22*_t27) + _t23*_t25 - 7.0/10.0;
+    const double _t30 = _t10*(_t15*(_t28 - _t29) + _t20*_t26) + _t21*_t24;
+    E[0] = _t17 + _t5 - t - 1.0/250.0*_t0 + 10;
+    E[1] = _t18 + _t22 - 3.0/5.0*t + (1.0/50.0)*_t0 + 6;
+    E[2] = _t12 - _t17 - 9.0/10.0*t - 1.0/125.0*_t0 + 4;
+    E[3] = _t19 - _t22 - 7.0/10.0*t + (3.0/125.0)*_t0 + 6;
+    E[4] = _t23 + _t27 - 1.0/125.0*t - 1;
+    E[5] = _t28 + _t30 + (1.0/25.0)*t - 3.0/5.0;
+    E[6] = _t25 - _t27 - 2.0/125.0*t - 9.0/10.0;
+    E[7] = _t29 - _t30 + (6.0/125.0)*t - 7.0/10.0;
 }
 
 
@@ -330,7 +322,7 @@ static void two_unicycles_barrier_k_objective(double t, const double *y, const d
 }
 
 
-/* grad_y f0(y, t) (56 operations, 74 before CSE). */
+/* grad_y f0(y, t) (50 operations, 74 before CSE). */
 static void two_unicycles_barrier_k_gradient(double t, const double *y, const double *p, double *grad)
 {
     const double _y0 = y[0]; /* pa */
@@ -345,16 +337,18 @@ static void two_unicycles_barrier_k_gradient(double t, const double *y, const do
     const double _t3 = tan((1.0/2.0)*3.141592653589793*_t2*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3))));
     const double _t4 = 2*_y2;
     const double _t5 = 3.141592653589793*_p0*_t2*((_t3*_t3) + 1);
-    const double _t6 = 2*_y1;
-    const double _t7 = 2*_y3;
-    grad[0] = _t1 - t - 1.0/250.0*_t0 + _t3*_t5*(_t1 - _t4) + 10;
-    grad[1] = _t6 - 3.0/5.0*t + (1.0/50.0)*_t0 + _t3*_t5*(_t6 - _t7) + 6;
-    grad[2] = _t4 - 9.0/10.0*t - 1.0/125.0*_t0 + _t3*_t5*(_t4 - _t1) + 4;
-    grad[3] = _t7 - 7.0/10.0*t + (3.0/125.0)*_t0 + _t3*_t5*(_t7 - _t6) + 6;
+    const double _t6 = _t3*_t5*(_t1 - _t4);
+    const double _t7 = 2*_y1;
+    const double _t8 = 2*_y3;
+    const double _t9 = _t3*_t5*(_t7 - _t8);
+    grad[0] = _t1 + _t6 - t - 1.0/250.0*_t0 + 10;
+    grad[1] = _t7 + _t9 - 3.0/5.0*t + (1.0/50.0)*_t0 + 6;
+    grad[2] = _t4 - _t6 - 9.0/10.0*t - 1.0/125.0*_t0 + 4;
+    grad[3] = _t8 - _t9 - 7.0/10.0*t + (3.0/125.0)*_t0 + 6;
 }
 
 
-/* grad_yy f0(y, t) (102 operations, 130 before CSE). */
+/* grad_yy f0(y, t) (64 operations, 130 before CSE). */
 static void two_unicycles_barrier_k_hessian(double t, const double *y, const double *p, double *hess)
 {
     (void)t;
@@ -364,58 +358,46 @@ static void two_unicycles_barrier_k_hessian(double t, const double *y, const dou
     const double _y3 = y[3]; /* qb */
     const double _p0 = p[0]; /* alpha */
     const double _p1 = p[1]; /* d */
-    const double _t0 = 2*_y0;
-    const double _t1 = (1.0/_p1);
-    const double _t2 = _y0 - _y2;
-    const double _t3 = _y1 - _y3;
-    const double _t4 = (1.0/2.0)*3.141592653589793*_t1;
-    const double _t5 = tan(_t4*((_t2*_t2) + (_t3*_t3)));
-    const double _t6 = 2*_y2;
-    const double _t7 = _t0 - _t6;
-    const double _t8 = 3.141592653589793*_p0*_t1;
-    const double _t9 = _t8*((_t5*_t5) + 1);
-    const double _t10 = 2*_y1;
-    const double _t11 = 2*_y3;
-    const double _t12 = _t10 - _t11;
-    const double _t13 = _t12*_t9;
-    const double _t14 = _t6 - _t0;
-    const double _t15 = _t14*_t9;
-    const double _t16 = _t11 - _t10;
-    const double _t17 = _t16*_t9;
-    const double _t18 = 2*_t2;
-    const double _t19 = 2*_t3;
-    const double _t20 = (_t5*_t5) + 1;
-    const double _t21 = _t18*_t20*_t4;
-    const double _t22 = _t19*_t20*_t4;
-    const double _t23 = -_t18*_t20*_t4;
-    const double _t24 = -_t19*_t20*_t4;
-    const double _t25 = 2*_t5;
-    const double _t26 = _t21*_t25*_t8;
-    const double _t27 = _t22*_t25*_t8;
-    const double _t28 = _t23*_t25*_t8;
-    const double _t29 = 2*_t9;
-    const double _t30 = _t13*_t21 + _t12*_t26*_t5;
-    const double _t31 = _t15*_t21 + _t5*(_t14*_t26 - _t29);
-    const double _t32 = _t15*_t22 + _t14*_t27*_t5;
-    const double _t33 = _t17*_t21 + _t16*_t26*_t5;
-    const double _t34 = _t17*_t22 + _t5*(_t16*_t27 - _t29);
-    const double _t35 = _t17*_t23 + _t16*_t28*_t5;
-    hess[0] = _t5*(_t29 + _t26*_t7) + _t21*_t7*_t9 + 2;
-    hess[1] = _t30;
-    hess[2] = _t31;
-    hess[3] = _t33;
-    hess[4] = _t30;
-    hess[5] = _t13*_t22 + _t5*(_t29 + _t12*_t27) + 2;
-    hess[6] = _t32;
-    hess[7] = _t34;
-    hess[8] = _t31;
-    hess[9] = _t32;
-    hess[10] = _t15*_t23 + _t5*(_t29 + _t14*_t28) + 2;
-    hess[11] = _t35;
-    hess[12] = _t33;
-    hess[13] = _t34;
-    hess[14] = _t35;
-    hess[15] = _t17*_t24 + _t5*(_t29 + _t16*_t24*_t25*_t8) + 2;
+    const double _t0 = (1.0/_p1);
+    const double _t1 = _y0 - _y2;
+    const double _t2 = _y1 - _y3;
+    const double _t3 = (1.0/2.0)*3.141592653589793*_t0;
+    const double _t4 = tan(_t3*((_t1*_t1) + (_t2*_t2)));
+    const double _t5 = 2*_y0 - 2*_y2;
+    const double _t6 = 3.141592653589793*_p0*_t0;
+    const double _t7 = _t6*((_t4*_t4) + 1);
+    const double _t8 = _t5*_t7;
+    const double _t9 = 2*_y1 - 2*_y3;
+    const double _t10 = _t7*_t9;
+    const double _t11 = (_t4*_t4) + 1;
+    const double _t12 = 2*_t1*_t11*_t3;
+    const double _t13 = 2*_t11*_t2*_t3;
+    const double _t14 = 2*_t4;
+    const double _t15 = _t12*_t14*_t6;
+    const double _t16 = _t13*_t14*_t6;
+    const double _t17 = 2*_t7;
+    const double _t18 = _t12*_t8 + _t4*(_t17 + _t15*_t5);
+    const double _t19 = _t18 + 2;
+    const double _t20 = _t10*_t12 + _t15*_t4*_t9;
+    const double _t21 = _t10*_t13 + _t4*(_t17 + _t16*_t9);
+    const double _t22 = _t21 + 2;
+    const double _t23 = -_t13*_t8 - _t16*_t4*_t5;
+    hess[0] = _t19;
+    hess[1] = _t20;
+    hess[2] = -_t18;
+    hess[3] = -_t20;
+    hess[4] = _t20;
+    hess[5] = _t22;
+    hess[6] = _t23;
+    hess[7] = -_t21;
+    hess[8] = -_t18;
+    hess[9] = _t23;
+    hess[10] = _t19;
+    hess[11] = _t20;
+    hess[12] = -_t20;
+    hess[13] = -_t21;
+    hess[14] = _t20;
+    hess[15] = _t22;
 }
 
 

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 800a0e6b27efc020c25194b4810a6d8649f48f07e9a9bb59eaf8a052e6d2dc7e
+ * content sha256: 41e9b18200171df4a8e95a287e02f36c94a3618c7123793cf62813a0adb2d232
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -36,7 +36,7 @@ const double unicycle_switch_default_params[UNICYCLE_SWITCH_N_PARAMS] = {10.0, 1
 const double unicycle_switch_default_state[UNICYCLE_SWITCH_N_STATES] = {-5.0, 4.0, 0.0, 1.0};
 const double unicycle_switch_hurwitz_coefficients[UNICYCLE_SWITCH_K] = {-1.5, -2.5};
 
-/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (145 operations, 198 before CSE). */
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (138 operations, 198 before CSE). */
 static void unicycle_switch_k_jet(double t, const double *s, const double *p, const double *a, double *z, double *R, double *pvec)
 {
     const double _s0 = s[0]; /* x1 */
@@ -51,43 +51,35 @@ static void unicycle_switch_k_jet(double t, const double *s, const double *p, co
     const double _t1 = tanh(_t0*(t - _p0));
     const double _t2 = 1.0/2.0 - 1.0/2.0*_t1;
     const double _t3 = 1 - (_t1*_t1);
-    const double _t4 = -1.0/2.0*_t0*_t3;
-    const double _t5 = _t1*_t3/(_p1*_p1);
-    const double _t6 = (t*t);
-    const double _t7 = (1.0/100.0)*_t6;
-    const double _t8 = (3.0/5.0)*t - _t7 - 5;
-    const double _t9 = (1.0/50.0)*t;
-    const double _t10 = 3.0/5.0 - _t9;
-    const double _t11 = (t*t*t);
-    const double _t12 = (1.0/2.0)*t - 1.0/1000.0*_t11 + (1.0/50.0)*_t6 - 5;
-    const double _t13 = (1.0/25.0)*t - 3.0/1000.0*_t6 + 1.0/2.0;
-    const double _t14 = 5 - _t7 - 3.0/10.0*t;
-    const double _t15 = -_t9 - 3.0/10.0;
-    const double _t16 = (1.0/5000.0)*_t11 - 3.0/200.0*_t6 + (2.0/5.0)*t - 3;
-    const double _t17 = (3.0/5000.0)*_t6 - 3.0/100.0*t + 2.0/5.0;
-    const double _t18 = cos(_s2);
+    const double _t4 = (t*t);
+    const double _t5 = (1.0/100.0)*_t4;
+    const double _t6 = (3.0/5.0)*t - _t5 - 5;
+    const double _t7 = (1.0/50.0)*t;
+    const double _t8 = 3.0/5.0 - _t7;
+    const double _t9 = (t*t*t);
+    const double _t10 = (1.0/2.0)*t - 1.0/1000.0*_t9 + (1.0/50.0)*_t4 - 5;
+    const double _t11 = (1.0/25.0)*t - 3.0/1000.0*_t4 + 1.0/2.0;
+    const double _t12 = 5 - _t5 - 3.0/10.0*t;
+    const double _t13 = -_t7 - 3.0/10.0;
+    const double _t14 = (1.0/5000.0)*_t9 - 3.0/200.0*_t4 + (2.0/5.0)*t - 3;
+    const double _t15 = (3.0/5000.0)*_t4 - 3.0/100.0*t + 2.0/5.0;
+    const double _t16 = cos(_s2);
+    const double _t17 = _s3*_t16;
+    const double _t18 = sin(_s2);
     const double _t19 = _s3*_t18;
-    const double _t20 = sin(_s2);
-    const double _t21 = _s3*_t20;
-    const double _t22 = 2*_t2;
-    const double _t23 = 1 - _t2;
-    const double _t24 = 2*_t23;
-    const double _t25 = 2*_t4;
-    const double _t26 = -2*_t4;
-    const double _t27 = -_t10*_t25;
-    const double _t28 = 2*_t5;
-    const double _t29 = -_t15*_t26;
-    const double _t30 = -2*_t5;
-    const double _t31 = -_t13*_t25;
-    const double _t32 = -_t17*_t26;
-    const double _t33 = (1.0/2.0)*_a0;
-    const double _t34 = (1.0/2.0)*_a1;
-    z[0] = _t33*(2*_s0 - _t14*_t24 - _t22*_t8) - _t27 - _t29 - 1.0/50.0*_t2 - 1.0/50.0*_t23 + _t34*(2*_t19 - _t10*_t22 - _t14*_t26 - _t15*_t24 - _t25*_t8) + (1.0/2.0)*_t14*_t30 + (1.0/2.0)*_t28*_t8;
-    z[1] = _t33*(2*_s1 - _t12*_t22 - _t16*_t24) - _t31 - _t32 + _t34*(2*_t21 - _t12*_t25 - _t13*_t22 - _t16*_t26 - _t17*_t24) + (1.0/2.0)*_t12*_t28 + (1.0/2.0)*_t16*_t30 + (1.0/2.0)*_t22*(1.0/25.0 - 3.0/500.0*t) + (1.0/2.0)*_t24*((3.0/2500.0)*t - 3.0/100.0);
-    R[0] = _t18;
-    R[1] = -_t21;
-    R[2] = _t20;
-    R[3] = _t19;
+    const double _t20 = 2*_t2;
+    const double _t21 = 1 - _t2;
+    const double _t22 = 2*_t21;
+    const double _t23 = -_t0*_t3;
+    const double _t24 = 2*_t1*_t3/(_p1*_p1);
+    const double _t25 = (1.0/2.0)*_a0;
+    const double _t26 = (1.0/2.0)*_a1;
+    z[0] = _t23*_t8 - 1.0/50.0*_t2 - 1.0/50.0*_t21 + _t25*(2*_s0 - _t12*_t22 - _t20*_t6) + _t26*(2*_t17 + _t12*_t23 - _t13*_t22 - _t20*_t8 - _t23*_t6) + (1.0/2.0)*_t24*_t6 - _t13*_t23 - 1.0/2.0*_t12*_t24;
+    z[1] = _t11*_t23 + _t25*(2*_s1 - _t10*_t20 - _t14*_t22) + _t26*(2*_t19 + _t14*_t23 - _t10*_t23 - _t11*_t20 - _t15*_t22) + (1.0/2.0)*_t10*_t24 + (1.0/2.0)*_t20*(1.0/25.0 - 3.0/500.0*t) + (1.0/2.0)*_t22*((3.0/2500.0)*t - 3.0/100.0) - _t15*_t23 - 1.0/2.0*_t14*_t24;
+    R[0] = _t16;
+    R[1] = -_t19;
+    R[2] = _t18;
+    R[3] = _t17;
     pvec[0] = 0;
     pvec[1] = 0;
 }
@@ -139,7 +131,7 @@ static void unicycle_switch_k_plant_input(double t, const double *s, const doubl
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (89 operations, 111 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (87 operations, 111 before CSE). */
 static void unicycle_switch_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* x1 */
@@ -151,23 +143,21 @@ static void unicycle_switch_k_optimality(double t, const double *s, const double
     const double _t0 = (1.0/_p1);
     const double _t1 = tanh(_t0*(t - _p0));
     const double _t2 = 1.0/2.0 - 1.0/2.0*_t1;
-    const double _t3 = -1.0/2.0*_t0*(1 - (_t1*_t1));
-    const double _t4 = (t*t);
-    const double _t5 = (1.0/100.0)*_t4;
-    const double _t6 = (3.0/5.0)*t - _t5 - 5;
-    const double _t7 = (1.0/50.0)*t;
-    const double _t8 = (t*t*t);
-    const double _t9 = (1.0/2.0)*t - 1.0/1000.0*_t8 + (1.0/50.0)*_t4 - 5;
-    const double _t10 = 5 - _t5 - 3.0/10.0*t;
-    const double _t11 = (1.0/5000.0)*_t8 - 3.0/200.0*_t4 + (2.0/5.0)*t - 3;
-    const double _t12 = 2*_t2;
-    const double _t13 = 2 - 2*_t2;
-    const double _t14 = 2*_t3;
-    const double _t15 = -2*_t3;
-    E[0] = 2*_s0 - _t10*_t13 - _t12*_t6;
-    E[1] = 2*_s1 - _t11*_t13 - _t12*_t9;
-    E[2] = 2*_s3*cos(_s2) - _t10*_t15 - _t12*(3.0/5.0 - _t7) - _t13*(-_t7 - 3.0/10.0) - _t14*_t6;
-    E[3] = 2*_s3*sin(_s2) - _t11*_t15 - _t12*((1.0/25.0)*t - 3.0/1000.0*_t4 + 1.0/2.0) - _t13*((3.0/5000.0)*_t4 - 3.0/100.0*t + 2.0/5.0) - _t14*_t9;
+    const double _t3 = (t*t);
+    const double _t4 = (1.0/100.0)*_t3;
+    const double _t5 = (3.0/5.0)*t - _t4 - 5;
+    const double _t6 = (1.0/50.0)*t;
+    const double _t7 = (t*t*t);
+    const double _t8 = (1.0/2.0)*t - 1.0/1000.0*_t7 + (1.0/50.0)*_t3 - 5;
+    const double _t9 = 5 - _t4 - 3.0/10.0*t;
+    const double _t10 = (1.0/5000.0)*_t7 - 3.0/200.0*_t3 + (2.0/5.0)*t - 3;
+    const double _t11 = 2*_t2;
+    const double _t12 = 2 - 2*_t2;
+    const double _t13 = -_t0*(1 - (_t1*_t1));
+    E[0] = 2*_s0 - _t11*_t5 - _t12*_t9;
+    E[1] = 2*_s1 - _t10*_t12 - _t11*_t8;
+    E[2] = _t13*_t9 - _t11*(3.0/5.0 - _t6) - _t12*(-_t6 - 3.0/10.0) - _t13*_t5 + 2*_s3*cos(_s2);
+    E[3] = _t10*_t13 - _t11*((1.0/25.0)*t - 3.0/1000.0*_t3 + 1.0/2.0) - _t12*((3.0/5000.0)*_t3 - 3.0/100.0*t + 2.0/5.0) - _t13*_t8 + 2*_s3*sin(_s2);
 }
 
 
