@@ -50,7 +50,7 @@ bench-derive: $(INSTALLED)
 
 ## lint: ruff and mypy (strict) over the package
 lint: $(INSTALLED)
-	$(PY) -m ruff check tvopt_codegen tests
+	$(PY) -m ruff check tvopt_codegen tests benchmarks
 	$(PY) -m mypy
 
 ## regen: regenerate the committed controllers in generated/ from the bundled examples

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 0e4d5c1a8f1a584642cba1ce7516d47b53185de7994a2cb87bf701bf40105e46
+ * content sha256: 56cf33a90958d720a16ecfe1923347f98dce07f7d857d30428093e0bfd45f453
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -240,23 +240,22 @@ static void flexible_joint_k_hessian(double t, const double *y, const double *p,
 }
 
 
-/* Whether every x[i] is finite. x * 0.0 is +-0 for finite x and NaN for an infinity or a
- * NaN (IEEE 754, which -ffast-math would break: see the #error above), so one comparison
- * after a branch-free sum decides. */
-static int flexible_joint_all_finite(const double *x, size_t count)
+/* 0 when every x[i] is finite, NaN otherwise. x * 0.0 is +-0 for finite x and NaN for an
+ * infinity or a NaN (IEEE 754, which -ffast-math would break: see the #error above), and a
+ * sum of probes is 0 only when each is: one comparison checks several arrays, branch-free. */
+static double flexible_joint_probe(const double *x, size_t count)
 {
     double probe = 0.0;
     size_t i;
     for (i = 0; i < count; ++i) {
         probe += x[i] * 0.0;
     }
-    return probe == 0.0;
+    return probe;
 }
 
 static int flexible_joint_check_inputs(double t, const double *x, size_t count, const double *params)
 {
-    if (!isfinite(t) || !flexible_joint_all_finite(x, count)
-        || !flexible_joint_all_finite(params, FLEXIBLE_JOINT_N_PARAMS)) {
+    if (t * 0.0 + flexible_joint_probe(x, count) + flexible_joint_probe(params, FLEXIBLE_JOINT_N_PARAMS) != 0.0) {
         return FLEXIBLE_JOINT_NONFINITE_INPUT;
     }
     return FLEXIBLE_JOINT_OK;
@@ -330,10 +329,8 @@ static int flexible_joint_law(double t, const double *s, const double *params, d
         return status;
     }
     flexible_joint_k_jet(t, s, params, flexible_joint_hurwitz_coefficients, hess, c, r, pvec);
-    if (!flexible_joint_all_finite(hess, 1)
-        || !flexible_joint_all_finite(c, FLEXIBLE_JOINT_N_OUTPUTS)
-        || !flexible_joint_all_finite(r, FLEXIBLE_JOINT_R_ENTRIES)
-        || !flexible_joint_all_finite(pvec, FLEXIBLE_JOINT_N_OUTPUTS)) {
+    if (flexible_joint_probe(hess, 1) + flexible_joint_probe(c, FLEXIBLE_JOINT_N_OUTPUTS)
+        + flexible_joint_probe(r, FLEXIBLE_JOINT_R_ENTRIES) + flexible_joint_probe(pvec, FLEXIBLE_JOINT_N_OUTPUTS) != 0.0) {
         return FLEXIBLE_JOINT_NONFINITE_OUTPUT;
     }
     /* y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest] */
@@ -342,7 +339,7 @@ static int flexible_joint_law(double t, const double *s, const double *params, d
         return status;
     }
     flexible_joint_k_decoupling(t, s, params, z, pvec, w);
-    if (!flexible_joint_all_finite(w, FLEXIBLE_JOINT_N_OUTPUTS)) {
+    if (flexible_joint_probe(w, FLEXIBLE_JOINT_N_OUTPUTS) != 0.0) {
         return FLEXIBLE_JOINT_NONFINITE_OUTPUT;
     }
     /* w = R^-1 (v - p) */
@@ -352,10 +349,10 @@ static int flexible_joint_law(double t, const double *s, const double *params, d
     }
     if (ds == NULL) {
         flexible_joint_k_plant_input(t, s, params, w, u);
-        return flexible_joint_all_finite(u, FLEXIBLE_JOINT_N_INPUTS) ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
+        return flexible_joint_probe(u, FLEXIBLE_JOINT_N_INPUTS) == 0.0 ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
     }
     flexible_joint_k_closed_loop(t, s, params, w, z, ds, u);
-    if (!flexible_joint_all_finite(ds, FLEXIBLE_JOINT_N_STATES) || !flexible_joint_all_finite(u, FLEXIBLE_JOINT_N_INPUTS)) {
+    if (flexible_joint_probe(ds, FLEXIBLE_JOINT_N_STATES) + flexible_joint_probe(u, FLEXIBLE_JOINT_N_INPUTS) != 0.0) {
         return FLEXIBLE_JOINT_NONFINITE_OUTPUT;
     }
     return FLEXIBLE_JOINT_OK;
@@ -380,7 +377,7 @@ int flexible_joint_optimality_error(double t, const double *s, const double *par
         return status;
     }
     flexible_joint_k_optimality(t, s, p, out);
-    return flexible_joint_all_finite(out, FLEXIBLE_JOINT_K * FLEXIBLE_JOINT_N_OUTPUTS) ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
+    return flexible_joint_probe(out, FLEXIBLE_JOINT_K * FLEXIBLE_JOINT_N_OUTPUTS) == 0.0 ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
 }
 
 int flexible_joint_objective(double t, const double *y, const double *params, double *out)
@@ -391,7 +388,7 @@ int flexible_joint_objective(double t, const double *y, const double *params, do
         return status;
     }
     flexible_joint_k_objective(t, y, p, out);
-    return flexible_joint_all_finite(out, 1) ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
+    return flexible_joint_probe(out, 1) == 0.0 ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
 }
 
 int flexible_joint_gradient(double t, const double *y, const double *params, double *out)
@@ -402,7 +399,7 @@ int flexible_joint_gradient(double t, const double *y, const double *params, dou
         return status;
     }
     flexible_joint_k_gradient(t, y, p, out);
-    return flexible_joint_all_finite(out, FLEXIBLE_JOINT_N_OUTPUTS) ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
+    return flexible_joint_probe(out, FLEXIBLE_JOINT_N_OUTPUTS) == 0.0 ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
 }
 
 int flexible_joint_hessian(double t, const double *y, const double *params, double *out)
@@ -413,7 +410,7 @@ int flexible_joint_hessian(double t, const double *y, const double *params, doub
         return status;
     }
     flexible_joint_k_hessian(t, y, p, out);
-    return flexible_joint_all_finite(out, FLEXIBLE_JOINT_N_OUTPUTS * FLEXIBLE_JOINT_N_OUTPUTS) ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
+    return flexible_joint_probe(out, FLEXIBLE_JOINT_N_OUTPUTS * FLEXIBLE_JOINT_N_OUTPUTS) == 0.0 ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
 }
 
 int flexible_joint_control_batch(size_t count, double t, const double *s, const double *params, double *out, size_t *failed)

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 2a2bcd4aa43bf9935ff80591948c3bb0c81711de9f1e7c7769aee3fd9ab6adef
+ * content sha256: 45b4dc567fe764b211edb8c62b95d8e517cd542586e71f27da9d9df6d2df826c
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -161,23 +161,22 @@ static void integrator_k_hessian(double t, const double *y, const double *p, dou
 }
 
 
-/* Whether every x[i] is finite. x * 0.0 is +-0 for finite x and NaN for an infinity or a
- * NaN (IEEE 754, which -ffast-math would break: see the #error above), so one comparison
- * after a branch-free sum decides. */
-static int integrator_all_finite(const double *x, size_t count)
+/* 0 when every x[i] is finite, NaN otherwise. x * 0.0 is +-0 for finite x and NaN for an
+ * infinity or a NaN (IEEE 754, which -ffast-math would break: see the #error above), and a
+ * sum of probes is 0 only when each is: one comparison checks several arrays, branch-free. */
+static double integrator_probe(const double *x, size_t count)
 {
     double probe = 0.0;
     size_t i;
     for (i = 0; i < count; ++i) {
         probe += x[i] * 0.0;
     }
-    return probe == 0.0;
+    return probe;
 }
 
 static int integrator_check_inputs(double t, const double *x, size_t count, const double *params)
 {
-    if (!isfinite(t) || !integrator_all_finite(x, count)
-        || !integrator_all_finite(params, INTEGRATOR_N_PARAMS)) {
+    if (t * 0.0 + integrator_probe(x, count) + integrator_probe(params, INTEGRATOR_N_PARAMS) != 0.0) {
         return INTEGRATOR_NONFINITE_INPUT;
     }
     return INTEGRATOR_OK;
@@ -256,10 +255,8 @@ static int integrator_law(double t, const double *s, const double *params, doubl
         return status;
     }
     integrator_k_jet(t, s, params, integrator_hurwitz_coefficients, hess, c, r, pvec);
-    if (!integrator_all_finite(hess, 2)
-        || !integrator_all_finite(c, INTEGRATOR_N_OUTPUTS)
-        || !integrator_all_finite(r, INTEGRATOR_R_ENTRIES)
-        || !integrator_all_finite(pvec, INTEGRATOR_N_OUTPUTS)) {
+    if (integrator_probe(hess, 2) + integrator_probe(c, INTEGRATOR_N_OUTPUTS)
+        + integrator_probe(r, INTEGRATOR_R_ENTRIES) + integrator_probe(pvec, INTEGRATOR_N_OUTPUTS) != 0.0) {
         return INTEGRATOR_NONFINITE_OUTPUT;
     }
     /* y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest] */
@@ -268,7 +265,7 @@ static int integrator_law(double t, const double *s, const double *params, doubl
         return status;
     }
     integrator_k_decoupling(t, s, params, z, pvec, w);
-    if (!integrator_all_finite(w, INTEGRATOR_N_OUTPUTS)) {
+    if (integrator_probe(w, INTEGRATOR_N_OUTPUTS) != 0.0) {
         return INTEGRATOR_NONFINITE_OUTPUT;
     }
     /* w = R^-1 (v - p) */
@@ -278,10 +275,10 @@ static int integrator_law(double t, const double *s, const double *params, doubl
     }
     if (ds == NULL) {
         integrator_k_plant_input(t, s, params, w, u);
-        return integrator_all_finite(u, INTEGRATOR_N_INPUTS) ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
+        return integrator_probe(u, INTEGRATOR_N_INPUTS) == 0.0 ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
     }
     integrator_k_closed_loop(t, s, params, w, z, ds, u);
-    if (!integrator_all_finite(ds, INTEGRATOR_N_STATES) || !integrator_all_finite(u, INTEGRATOR_N_INPUTS)) {
+    if (integrator_probe(ds, INTEGRATOR_N_STATES) + integrator_probe(u, INTEGRATOR_N_INPUTS) != 0.0) {
         return INTEGRATOR_NONFINITE_OUTPUT;
     }
     return INTEGRATOR_OK;
@@ -306,7 +303,7 @@ int integrator_optimality_error(double t, const double *s, const double *params,
         return status;
     }
     integrator_k_optimality(t, s, p, out);
-    return integrator_all_finite(out, INTEGRATOR_K * INTEGRATOR_N_OUTPUTS) ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
+    return integrator_probe(out, INTEGRATOR_K * INTEGRATOR_N_OUTPUTS) == 0.0 ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
 }
 
 int integrator_objective(double t, const double *y, const double *params, double *out)
@@ -317,7 +314,7 @@ int integrator_objective(double t, const double *y, const double *params, double
         return status;
     }
     integrator_k_objective(t, y, p, out);
-    return integrator_all_finite(out, 1) ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
+    return integrator_probe(out, 1) == 0.0 ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
 }
 
 int integrator_gradient(double t, const double *y, const double *params, double *out)
@@ -328,7 +325,7 @@ int integrator_gradient(double t, const double *y, const double *params, double 
         return status;
     }
     integrator_k_gradient(t, y, p, out);
-    return integrator_all_finite(out, INTEGRATOR_N_OUTPUTS) ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
+    return integrator_probe(out, INTEGRATOR_N_OUTPUTS) == 0.0 ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
 }
 
 int integrator_hessian(double t, const double *y, const double *params, double *out)
@@ -339,7 +336,7 @@ int integrator_hessian(double t, const double *y, const double *params, double *
         return status;
     }
     integrator_k_hessian(t, y, p, out);
-    return integrator_all_finite(out, INTEGRATOR_N_OUTPUTS * INTEGRATOR_N_OUTPUTS) ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
+    return integrator_probe(out, INTEGRATOR_N_OUTPUTS * INTEGRATOR_N_OUTPUTS) == 0.0 ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
 }
 
 int integrator_control_batch(size_t count, double t, const double *s, const double *params, double *out, size_t *failed)

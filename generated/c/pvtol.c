@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: 61d753c7b0f264dc0cf781c9cc7566bb81287b72625d14df5fd74d490ae65cfd
+ * content sha256: 9abea7cf1f29e55688ba3c13ad6d757aa53f0eca8a1346230627a98fc46b9b8b
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -206,23 +206,22 @@ static void pvtol_k_hessian(double t, const double *y, const double *p, double *
 }
 
 
-/* Whether every x[i] is finite. x * 0.0 is +-0 for finite x and NaN for an infinity or a
- * NaN (IEEE 754, which -ffast-math would break: see the #error above), so one comparison
- * after a branch-free sum decides. */
-static int pvtol_all_finite(const double *x, size_t count)
+/* 0 when every x[i] is finite, NaN otherwise. x * 0.0 is +-0 for finite x and NaN for an
+ * infinity or a NaN (IEEE 754, which -ffast-math would break: see the #error above), and a
+ * sum of probes is 0 only when each is: one comparison checks several arrays, branch-free. */
+static double pvtol_probe(const double *x, size_t count)
 {
     double probe = 0.0;
     size_t i;
     for (i = 0; i < count; ++i) {
         probe += x[i] * 0.0;
     }
-    return probe == 0.0;
+    return probe;
 }
 
 static int pvtol_check_inputs(double t, const double *x, size_t count, const double *params)
 {
-    if (!isfinite(t) || !pvtol_all_finite(x, count)
-        || !pvtol_all_finite(params, PVTOL_N_PARAMS)) {
+    if (t * 0.0 + pvtol_probe(x, count) + pvtol_probe(params, PVTOL_N_PARAMS) != 0.0) {
         return PVTOL_NONFINITE_INPUT;
     }
     return PVTOL_OK;
@@ -306,13 +305,12 @@ static int pvtol_law(double t, const double *s, const double *params, double *ds
     }
     /* y_imp^(K): the constant Hessian of f0 was inverted exactly at generation time. */
     pvtol_k_jet(t, s, params, pvtol_hurwitz_coefficients, z, r, pvec);
-    if (!pvtol_all_finite(z, PVTOL_N_OUTPUTS)
-        || !pvtol_all_finite(r, PVTOL_R_ENTRIES)
-        || !pvtol_all_finite(pvec, PVTOL_N_OUTPUTS)) {
+    if (pvtol_probe(z, PVTOL_N_OUTPUTS) + pvtol_probe(r, PVTOL_R_ENTRIES)
+        + pvtol_probe(pvec, PVTOL_N_OUTPUTS) != 0.0) {
         return PVTOL_NONFINITE_OUTPUT;
     }
     pvtol_k_decoupling(t, s, params, z, pvec, w);
-    if (!pvtol_all_finite(w, PVTOL_N_OUTPUTS)) {
+    if (pvtol_probe(w, PVTOL_N_OUTPUTS) != 0.0) {
         return PVTOL_NONFINITE_OUTPUT;
     }
     /* w = R^-1 (v - p) */
@@ -322,10 +320,10 @@ static int pvtol_law(double t, const double *s, const double *params, double *ds
     }
     if (ds == NULL) {
         pvtol_k_plant_input(t, s, params, w, u);
-        return pvtol_all_finite(u, PVTOL_N_INPUTS) ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
+        return pvtol_probe(u, PVTOL_N_INPUTS) == 0.0 ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
     }
     pvtol_k_closed_loop(t, s, params, w, z, ds, u);
-    if (!pvtol_all_finite(ds, PVTOL_N_STATES) || !pvtol_all_finite(u, PVTOL_N_INPUTS)) {
+    if (pvtol_probe(ds, PVTOL_N_STATES) + pvtol_probe(u, PVTOL_N_INPUTS) != 0.0) {
         return PVTOL_NONFINITE_OUTPUT;
     }
     return PVTOL_OK;
@@ -350,7 +348,7 @@ int pvtol_optimality_error(double t, const double *s, const double *params, doub
         return status;
     }
     pvtol_k_optimality(t, s, p, out);
-    return pvtol_all_finite(out, PVTOL_K * PVTOL_N_OUTPUTS) ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
+    return pvtol_probe(out, PVTOL_K * PVTOL_N_OUTPUTS) == 0.0 ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
 }
 
 int pvtol_objective(double t, const double *y, const double *params, double *out)
@@ -361,7 +359,7 @@ int pvtol_objective(double t, const double *y, const double *params, double *out
         return status;
     }
     pvtol_k_objective(t, y, p, out);
-    return pvtol_all_finite(out, 1) ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
+    return pvtol_probe(out, 1) == 0.0 ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
 }
 
 int pvtol_gradient(double t, const double *y, const double *params, double *out)
@@ -372,7 +370,7 @@ int pvtol_gradient(double t, const double *y, const double *params, double *out)
         return status;
     }
     pvtol_k_gradient(t, y, p, out);
-    return pvtol_all_finite(out, PVTOL_N_OUTPUTS) ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
+    return pvtol_probe(out, PVTOL_N_OUTPUTS) == 0.0 ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
 }
 
 int pvtol_hessian(double t, const double *y, const double *params, double *out)
@@ -383,7 +381,7 @@ int pvtol_hessian(double t, const double *y, const double *params, double *out)
         return status;
     }
     pvtol_k_hessian(t, y, p, out);
-    return pvtol_all_finite(out, PVTOL_N_OUTPUTS * PVTOL_N_OUTPUTS) ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
+    return pvtol_probe(out, PVTOL_N_OUTPUTS * PVTOL_N_OUTPUTS) == 0.0 ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
 }
 
 int pvtol_control_batch(size_t count, double t, const double *s, const double *params, double *out, size_t *failed)

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 6992123e2fb48c32042fdf057924820bd3b6d057a9c63ce98439cb2ef99d7147
+ * content sha256: af8a2006572cf939d249429bdac335e057e9a849f7fe2be4f66ceeacbd34aabc
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -401,23 +401,22 @@ static void two_unicycles_barrier_k_hessian(double t, const double *y, const dou
 }
 
 
-/* Whether every x[i] is finite. x * 0.0 is +-0 for finite x and NaN for an infinity or a
- * NaN (IEEE 754, which -ffast-math would break: see the #error above), so one comparison
- * after a branch-free sum decides. */
-static int two_unicycles_barrier_all_finite(const double *x, size_t count)
+/* 0 when every x[i] is finite, NaN otherwise. x * 0.0 is +-0 for finite x and NaN for an
+ * infinity or a NaN (IEEE 754, which -ffast-math would break: see the #error above), and a
+ * sum of probes is 0 only when each is: one comparison checks several arrays, branch-free. */
+static double two_unicycles_barrier_probe(const double *x, size_t count)
 {
     double probe = 0.0;
     size_t i;
     for (i = 0; i < count; ++i) {
         probe += x[i] * 0.0;
     }
-    return probe == 0.0;
+    return probe;
 }
 
 static int two_unicycles_barrier_check_inputs(double t, const double *x, size_t count, const double *params)
 {
-    if (!isfinite(t) || !two_unicycles_barrier_all_finite(x, count)
-        || !two_unicycles_barrier_all_finite(params, TWO_UNICYCLES_BARRIER_N_PARAMS)) {
+    if (t * 0.0 + two_unicycles_barrier_probe(x, count) + two_unicycles_barrier_probe(params, TWO_UNICYCLES_BARRIER_N_PARAMS) != 0.0) {
         return TWO_UNICYCLES_BARRIER_NONFINITE_INPUT;
     }
     return TWO_UNICYCLES_BARRIER_OK;
@@ -533,10 +532,8 @@ static int two_unicycles_barrier_law(double t, const double *s, const double *pa
         return status;
     }
     two_unicycles_barrier_k_jet(t, s, params, two_unicycles_barrier_hurwitz_coefficients, hess, c, r, pvec);
-    if (!two_unicycles_barrier_all_finite(hess, 10)
-        || !two_unicycles_barrier_all_finite(c, TWO_UNICYCLES_BARRIER_N_OUTPUTS)
-        || !two_unicycles_barrier_all_finite(r, TWO_UNICYCLES_BARRIER_R_ENTRIES)
-        || !two_unicycles_barrier_all_finite(pvec, TWO_UNICYCLES_BARRIER_N_OUTPUTS)) {
+    if (two_unicycles_barrier_probe(hess, 10) + two_unicycles_barrier_probe(c, TWO_UNICYCLES_BARRIER_N_OUTPUTS)
+        + two_unicycles_barrier_probe(r, TWO_UNICYCLES_BARRIER_R_ENTRIES) + two_unicycles_barrier_probe(pvec, TWO_UNICYCLES_BARRIER_N_OUTPUTS) != 0.0) {
         return TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
     }
     /* y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest] */
@@ -545,7 +542,7 @@ static int two_unicycles_barrier_law(double t, const double *s, const double *pa
         return status;
     }
     two_unicycles_barrier_k_decoupling(t, s, params, z, pvec, w);
-    if (!two_unicycles_barrier_all_finite(w, TWO_UNICYCLES_BARRIER_N_OUTPUTS)) {
+    if (two_unicycles_barrier_probe(w, TWO_UNICYCLES_BARRIER_N_OUTPUTS) != 0.0) {
         return TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
     }
     /* w = R^-1 (v - p) */
@@ -555,10 +552,10 @@ static int two_unicycles_barrier_law(double t, const double *s, const double *pa
     }
     if (ds == NULL) {
         two_unicycles_barrier_k_plant_input(t, s, params, w, u);
-        return two_unicycles_barrier_all_finite(u, TWO_UNICYCLES_BARRIER_N_INPUTS) ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
+        return two_unicycles_barrier_probe(u, TWO_UNICYCLES_BARRIER_N_INPUTS) == 0.0 ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
     }
     two_unicycles_barrier_k_closed_loop(t, s, params, w, z, ds, u);
-    if (!two_unicycles_barrier_all_finite(ds, TWO_UNICYCLES_BARRIER_N_STATES) || !two_unicycles_barrier_all_finite(u, TWO_UNICYCLES_BARRIER_N_INPUTS)) {
+    if (two_unicycles_barrier_probe(ds, TWO_UNICYCLES_BARRIER_N_STATES) + two_unicycles_barrier_probe(u, TWO_UNICYCLES_BARRIER_N_INPUTS) != 0.0) {
         return TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
     }
     return TWO_UNICYCLES_BARRIER_OK;
@@ -583,7 +580,7 @@ int two_unicycles_barrier_optimality_error(double t, const double *s, const doub
         return status;
     }
     two_unicycles_barrier_k_optimality(t, s, p, out);
-    return two_unicycles_barrier_all_finite(out, TWO_UNICYCLES_BARRIER_K * TWO_UNICYCLES_BARRIER_N_OUTPUTS) ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
+    return two_unicycles_barrier_probe(out, TWO_UNICYCLES_BARRIER_K * TWO_UNICYCLES_BARRIER_N_OUTPUTS) == 0.0 ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
 }
 
 int two_unicycles_barrier_objective(double t, const double *y, const double *params, double *out)
@@ -594,7 +591,7 @@ int two_unicycles_barrier_objective(double t, const double *y, const double *par
         return status;
     }
     two_unicycles_barrier_k_objective(t, y, p, out);
-    return two_unicycles_barrier_all_finite(out, 1) ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
+    return two_unicycles_barrier_probe(out, 1) == 0.0 ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
 }
 
 int two_unicycles_barrier_gradient(double t, const double *y, const double *params, double *out)
@@ -605,7 +602,7 @@ int two_unicycles_barrier_gradient(double t, const double *y, const double *para
         return status;
     }
     two_unicycles_barrier_k_gradient(t, y, p, out);
-    return two_unicycles_barrier_all_finite(out, TWO_UNICYCLES_BARRIER_N_OUTPUTS) ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
+    return two_unicycles_barrier_probe(out, TWO_UNICYCLES_BARRIER_N_OUTPUTS) == 0.0 ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
 }
 
 int two_unicycles_barrier_hessian(double t, const double *y, const double *params, double *out)
@@ -616,7 +613,7 @@ int two_unicycles_barrier_hessian(double t, const double *y, const double *param
         return status;
     }
     two_unicycles_barrier_k_hessian(t, y, p, out);
-    return two_unicycles_barrier_all_finite(out, TWO_UNICYCLES_BARRIER_N_OUTPUTS * TWO_UNICYCLES_BARRIER_N_OUTPUTS) ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
+    return two_unicycles_barrier_probe(out, TWO_UNICYCLES_BARRIER_N_OUTPUTS * TWO_UNICYCLES_BARRIER_N_OUTPUTS) == 0.0 ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
 }
 
 int two_unicycles_barrier_control_batch(size_t count, double t, const double *s, const double *params, double *out, size_t *failed)

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: 52bf695ef779e46efa7a2c3e8e9d8d0c8e2bb9b56ee780ff68af11bb9d462d46
+ * content sha256: eeac9dc1999055305a13095977b91f74125f891d9205df917decc23ed809f2c4
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical
@@ -934,23 +934,22 @@ static void unicycle_ring_k_hessian(double t, const double *y, const double *p, 
 }
 
 
-/* Whether every x[i] is finite. x * 0.0 is +-0 for finite x and NaN for an infinity or a
- * NaN (IEEE 754, which -ffast-math would break: see the #error above), so one comparison
- * after a branch-free sum decides. */
-static int unicycle_ring_all_finite(const double *x, size_t count)
+/* 0 when every x[i] is finite, NaN otherwise. x * 0.0 is +-0 for finite x and NaN for an
+ * infinity or a NaN (IEEE 754, which -ffast-math would break: see the #error above), and a
+ * sum of probes is 0 only when each is: one comparison checks several arrays, branch-free. */
+static double unicycle_ring_probe(const double *x, size_t count)
 {
     double probe = 0.0;
     size_t i;
     for (i = 0; i < count; ++i) {
         probe += x[i] * 0.0;
     }
-    return probe == 0.0;
+    return probe;
 }
 
 static int unicycle_ring_check_inputs(double t, const double *x, size_t count, const double *params)
 {
-    if (!isfinite(t) || !unicycle_ring_all_finite(x, count)
-        || !unicycle_ring_all_finite(params, UNICYCLE_RING_N_PARAMS)) {
+    if (t * 0.0 + unicycle_ring_probe(x, count) + unicycle_ring_probe(params, UNICYCLE_RING_N_PARAMS) != 0.0) {
         return UNICYCLE_RING_NONFINITE_INPUT;
     }
     return UNICYCLE_RING_OK;
@@ -1076,10 +1075,8 @@ static int unicycle_ring_law(double t, const double *s, const double *params, do
         return status;
     }
     unicycle_ring_k_jet(t, s, params, unicycle_ring_hurwitz_coefficients, hess, c, r, pvec);
-    if (!unicycle_ring_all_finite(hess, 28)
-        || !unicycle_ring_all_finite(c, UNICYCLE_RING_N_OUTPUTS)
-        || !unicycle_ring_all_finite(r, UNICYCLE_RING_R_ENTRIES)
-        || !unicycle_ring_all_finite(pvec, UNICYCLE_RING_N_OUTPUTS)) {
+    if (unicycle_ring_probe(hess, 28) + unicycle_ring_probe(c, UNICYCLE_RING_N_OUTPUTS)
+        + unicycle_ring_probe(r, UNICYCLE_RING_R_ENTRIES) + unicycle_ring_probe(pvec, UNICYCLE_RING_N_OUTPUTS) != 0.0) {
         return UNICYCLE_RING_NONFINITE_OUTPUT;
     }
     /* y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest] */
@@ -1088,7 +1085,7 @@ static int unicycle_ring_law(double t, const double *s, const double *params, do
         return status;
     }
     unicycle_ring_k_decoupling(t, s, params, z, pvec, w);
-    if (!unicycle_ring_all_finite(w, UNICYCLE_RING_N_OUTPUTS)) {
+    if (unicycle_ring_probe(w, UNICYCLE_RING_N_OUTPUTS) != 0.0) {
         return UNICYCLE_RING_NONFINITE_OUTPUT;
     }
     /* w = R^-1 (v - p) */
@@ -1098,10 +1095,10 @@ static int unicycle_ring_law(double t, const double *s, const double *params, do
     }
     if (ds == NULL) {
         unicycle_ring_k_plant_input(t, s, params, w, u);
-        return unicycle_ring_all_finite(u, UNICYCLE_RING_N_INPUTS) ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
+        return unicycle_ring_probe(u, UNICYCLE_RING_N_INPUTS) == 0.0 ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
     }
     unicycle_ring_k_closed_loop(t, s, params, w, z, ds, u);
-    if (!unicycle_ring_all_finite(ds, UNICYCLE_RING_N_STATES) || !unicycle_ring_all_finite(u, UNICYCLE_RING_N_INPUTS)) {
+    if (unicycle_ring_probe(ds, UNICYCLE_RING_N_STATES) + unicycle_ring_probe(u, UNICYCLE_RING_N_INPUTS) != 0.0) {
         return UNICYCLE_RING_NONFINITE_OUTPUT;
     }
     return UNICYCLE_RING_OK;
@@ -1126,7 +1123,7 @@ int unicycle_ring_optimality_error(double t, const double *s, const double *para
         return status;
     }
     unicycle_ring_k_optimality(t, s, p, out);
-    return unicycle_ring_all_finite(out, UNICYCLE_RING_K * UNICYCLE_RING_N_OUTPUTS) ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
+    return unicycle_ring_probe(out, UNICYCLE_RING_K * UNICYCLE_RING_N_OUTPUTS) == 0.0 ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
 }
 
 int unicycle_ring_objective(double t, const double *y, const double *params, double *out)
@@ -1137,7 +1134,7 @@ int unicycle_ring_objective(double t, const double *y, const double *params, dou
         return status;
     }
     unicycle_ring_k_objective(t, y, p, out);
-    return unicycle_ring_all_finite(out, 1) ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
+    return unicycle_ring_probe(out, 1) == 0.0 ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
 }
 
 int unicycle_ring_gradient(double t, const double *y, const double *params, double *out)
@@ -1148,7 +1145,7 @@ int unicycle_ring_gradient(double t, const double *y, const double *params, doub
         return status;
     }
     unicycle_ring_k_gradient(t, y, p, out);
-    return unicycle_ring_all_finite(out, UNICYCLE_RING_N_OUTPUTS) ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
+    return unicycle_ring_probe(out, UNICYCLE_RING_N_OUTPUTS) == 0.0 ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
 }
 
 int unicycle_ring_hessian(double t, const double *y, const double *params, double *out)
@@ -1159,7 +1156,7 @@ int unicycle_ring_hessian(double t, const double *y, const double *params, doubl
         return status;
     }
     unicycle_ring_k_hessian(t, y, p, out);
-    return unicycle_ring_all_finite(out, UNICYCLE_RING_N_OUTPUTS * UNICYCLE_RING_N_OUTPUTS) ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
+    return unicycle_ring_probe(out, UNICYCLE_RING_N_OUTPUTS * UNICYCLE_RING_N_OUTPUTS) == 0.0 ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
 }
 
 int unicycle_ring_control_batch(size_t count, double t, const double *s, const double *params, double *out, size_t *failed)

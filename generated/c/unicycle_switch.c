@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 41e9b18200171df4a8e95a287e02f36c94a3618c7123793cf62813a0adb2d232
+ * content sha256: a8953289b3b59008e07e55b971b5f4d4705d606b412f912fa8e0f6f85a4195fa
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -207,23 +207,22 @@ static void unicycle_switch_k_hessian(double t, const double *y, const double *p
 }
 
 
-/* Whether every x[i] is finite. x * 0.0 is +-0 for finite x and NaN for an infinity or a
- * NaN (IEEE 754, which -ffast-math would break: see the #error above), so one comparison
- * after a branch-free sum decides. */
-static int unicycle_switch_all_finite(const double *x, size_t count)
+/* 0 when every x[i] is finite, NaN otherwise. x * 0.0 is +-0 for finite x and NaN for an
+ * infinity or a NaN (IEEE 754, which -ffast-math would break: see the #error above), and a
+ * sum of probes is 0 only when each is: one comparison checks several arrays, branch-free. */
+static double unicycle_switch_probe(const double *x, size_t count)
 {
     double probe = 0.0;
     size_t i;
     for (i = 0; i < count; ++i) {
         probe += x[i] * 0.0;
     }
-    return probe == 0.0;
+    return probe;
 }
 
 static int unicycle_switch_check_inputs(double t, const double *x, size_t count, const double *params)
 {
-    if (!isfinite(t) || !unicycle_switch_all_finite(x, count)
-        || !unicycle_switch_all_finite(params, UNICYCLE_SWITCH_N_PARAMS)) {
+    if (t * 0.0 + unicycle_switch_probe(x, count) + unicycle_switch_probe(params, UNICYCLE_SWITCH_N_PARAMS) != 0.0) {
         return UNICYCLE_SWITCH_NONFINITE_INPUT;
     }
     return UNICYCLE_SWITCH_OK;
@@ -307,13 +306,12 @@ static int unicycle_switch_law(double t, const double *s, const double *params, 
     }
     /* y_imp^(K): the constant Hessian of f0 was inverted exactly at generation time. */
     unicycle_switch_k_jet(t, s, params, unicycle_switch_hurwitz_coefficients, z, r, pvec);
-    if (!unicycle_switch_all_finite(z, UNICYCLE_SWITCH_N_OUTPUTS)
-        || !unicycle_switch_all_finite(r, UNICYCLE_SWITCH_R_ENTRIES)
-        || !unicycle_switch_all_finite(pvec, UNICYCLE_SWITCH_N_OUTPUTS)) {
+    if (unicycle_switch_probe(z, UNICYCLE_SWITCH_N_OUTPUTS) + unicycle_switch_probe(r, UNICYCLE_SWITCH_R_ENTRIES)
+        + unicycle_switch_probe(pvec, UNICYCLE_SWITCH_N_OUTPUTS) != 0.0) {
         return UNICYCLE_SWITCH_NONFINITE_OUTPUT;
     }
     unicycle_switch_k_decoupling(t, s, params, z, pvec, w);
-    if (!unicycle_switch_all_finite(w, UNICYCLE_SWITCH_N_OUTPUTS)) {
+    if (unicycle_switch_probe(w, UNICYCLE_SWITCH_N_OUTPUTS) != 0.0) {
         return UNICYCLE_SWITCH_NONFINITE_OUTPUT;
     }
     /* w = R^-1 (v - p) */
@@ -323,10 +321,10 @@ static int unicycle_switch_law(double t, const double *s, const double *params, 
     }
     if (ds == NULL) {
         unicycle_switch_k_plant_input(t, s, params, w, u);
-        return unicycle_switch_all_finite(u, UNICYCLE_SWITCH_N_INPUTS) ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
+        return unicycle_switch_probe(u, UNICYCLE_SWITCH_N_INPUTS) == 0.0 ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
     }
     unicycle_switch_k_closed_loop(t, s, params, w, z, ds, u);
-    if (!unicycle_switch_all_finite(ds, UNICYCLE_SWITCH_N_STATES) || !unicycle_switch_all_finite(u, UNICYCLE_SWITCH_N_INPUTS)) {
+    if (unicycle_switch_probe(ds, UNICYCLE_SWITCH_N_STATES) + unicycle_switch_probe(u, UNICYCLE_SWITCH_N_INPUTS) != 0.0) {
         return UNICYCLE_SWITCH_NONFINITE_OUTPUT;
     }
     return UNICYCLE_SWITCH_OK;
@@ -351,7 +349,7 @@ int unicycle_switch_optimality_error(double t, const double *s, const double *pa
         return status;
     }
     unicycle_switch_k_optimality(t, s, p, out);
-    return unicycle_switch_all_finite(out, UNICYCLE_SWITCH_K * UNICYCLE_SWITCH_N_OUTPUTS) ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
+    return unicycle_switch_probe(out, UNICYCLE_SWITCH_K * UNICYCLE_SWITCH_N_OUTPUTS) == 0.0 ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
 }
 
 int unicycle_switch_objective(double t, const double *y, const double *params, double *out)
@@ -362,7 +360,7 @@ int unicycle_switch_objective(double t, const double *y, const double *params, d
         return status;
     }
     unicycle_switch_k_objective(t, y, p, out);
-    return unicycle_switch_all_finite(out, 1) ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
+    return unicycle_switch_probe(out, 1) == 0.0 ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
 }
 
 int unicycle_switch_gradient(double t, const double *y, const double *params, double *out)
@@ -373,7 +371,7 @@ int unicycle_switch_gradient(double t, const double *y, const double *params, do
         return status;
     }
     unicycle_switch_k_gradient(t, y, p, out);
-    return unicycle_switch_all_finite(out, UNICYCLE_SWITCH_N_OUTPUTS) ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
+    return unicycle_switch_probe(out, UNICYCLE_SWITCH_N_OUTPUTS) == 0.0 ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
 }
 
 int unicycle_switch_hessian(double t, const double *y, const double *params, double *out)
@@ -384,7 +382,7 @@ int unicycle_switch_hessian(double t, const double *y, const double *params, dou
         return status;
     }
     unicycle_switch_k_hessian(t, y, p, out);
-    return unicycle_switch_all_finite(out, UNICYCLE_SWITCH_N_OUTPUTS * UNICYCLE_SWITCH_N_OUTPUTS) ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
+    return unicycle_switch_probe(out, UNICYCLE_SWITCH_N_OUTPUTS * UNICYCLE_SWITCH_N_OUTPUTS) == 0.0 ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
 }
 
 int unicycle_switch_control_batch(size_t count, double t, const double *s, const double *params, double *out, size_t *failed)
