@@ -296,7 +296,7 @@ def bench(name: str, folder: Path) -> dict[str, float]:
 
     # The law as emitted: its kernels (the Hessian's Cholesky is one) and R's block LUs.
     present = {k.name for k in kernels.kernels}
-    law_kernels = ("jet", "cholesky", "decoupling", "closed_loop")
+    law_kernels = ("jet_time", "jet", "cholesky", "decoupling", "closed_loop")
     ops = sum(kernels[k].ops for k in law_kernels if k in present) + kernels.lu_ops
     return {
         "loop_ours": loop_ours,

@@ -10,8 +10,8 @@
   derivatives, differentiation of whole expressions for the jet, ``LUsolve``) followed by one
   ``cse`` of the law; each N runs in a child process stopped at a time budget.
 
-Our operation count is the law as emitted: the jet, Cholesky, decoupling and closed-loop
-kernels plus the LU solves of R's diagonal blocks.
+Our operation count is the law as emitted: the jet (its time part too), Cholesky,
+decoupling and closed-loop kernels plus the LU solves of R's diagonal blocks.
 
 Run: ``make bench-derive`` (needs the ``bench`` extra for CasADi). Prints a table and,
 with ``--write FILE``, stores it with the command, the machine and the date.
@@ -39,7 +39,7 @@ from tvopt_codegen.render import render
 from tvopt_codegen.spec import Spec, parse_spec
 
 SIZES = (1, 2, 4, 8, 16, 32)
-LAW_KERNELS = ("jet", "cholesky", "decoupling", "closed_loop")
+LAW_KERNELS = ("jet_time", "jet", "cholesky", "decoupling", "closed_loop")
 # The spec's defaults, for the peers (ours reads them from the spec).
 ALPHA, D, RADIUS, SPIN = 1e-3, 40.0, 2.0, 0.1
 POLES = (-1.0, -1.5)

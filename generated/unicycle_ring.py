@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: f6536732edf27f2226715e1762dc3e61d54861c7983eefb1ac1c1625f7937400
+# content sha256: 836a016090dbc6e73da39c74b25d37e221e3b13a1f2fbbfbdbe8117a32253ec7
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -268,8 +268,60 @@ def _lu_solve(a, b, points):
         x[j] /= lu[j][j]
     return numpy.array(x)
 
-def _jet(t, s, p, a):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 686 operations, 1333 before CSE)."""
+def _jet_time(t, p, a):
+    """The jet's terms of time and parameters alone (kernel; 85 operations, 85 before CSE)."""
+    _p0 = p[0]  # alpha
+    _p1 = p[1]  # d
+    _p2 = p[2]  # radius
+    _p3 = p[3]  # spin
+    # Intermediate terms (15)
+    _t0 = (3/10)*t
+    _t1 = _p3*t
+    _t2 = numpy.cos(_t1)
+    _t3 = _p2*_t2
+    _t4 = numpy.sin(_t1)
+    _t5 = -_p2*_p3*_t4
+    _t6 = _p3**2
+    _t7 = (1/5)*t
+    _t8 = _p2*_t4
+    _t9 = _p2*_p3*_t2
+    _t27 = 1/_p1
+    _t30 = numpy.pi*_t27
+    _t35 = numpy.pi*_p0*_t27
+    _t169 = 2*_p2*_t2*_t6
+    _t176 = 2*_p2*_t4*_t6
+    # Output terms
+    tau = numpy.empty((25, ))  # terms of time and parameters
+    tau[0] = (1/2)*_t30
+    tau[1] = _t35
+    tau[2] = _t30
+    tau[3] = 2*_t35
+    tau[4] = -_t30
+    tau[5] = -2*_t0 - 2*_t3
+    tau[6] = -2*_t5 - 3/5
+    tau[7] = -_t169
+    tau[8] = -2*_t7 - 2*_t8
+    tau[9] = -2*_t9 - 2/5
+    tau[10] = -_t176
+    tau[11] = 2*_t8 - 2*_t0
+    tau[12] = 2*_t9 - 3/5
+    tau[13] = _t176
+    tau[14] = -2*_t3 - 2*_t7
+    tau[15] = -2*_t5 - 2/5
+    tau[16] = 2*_t3 - 2*_t0
+    tau[17] = 2*_t5 - 3/5
+    tau[18] = _t169
+    tau[19] = 2*_t8 - 2*_t7
+    tau[20] = 2*_t9 - 2/5
+    tau[21] = -2*_t0 - 2*_t8
+    tau[22] = -2*_t9 - 3/5
+    tau[23] = 2*_t3 - 2*_t7
+    tau[24] = 2*_t5 - 2/5
+    return tau
+
+
+def _jet(t, s, p, a, tau):
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 584 operations, 1248 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x_0
     _s1 = s[1]  # y_0
@@ -287,23 +339,34 @@ def _jet(t, s, p, a):
     _s13 = s[13]  # v_1
     _s14 = s[14]  # v_2
     _s15 = s[15]  # v_3
-    _p0 = p[0]  # alpha
-    _p1 = p[1]  # d
-    _p2 = p[2]  # radius
-    _p3 = p[3]  # spin
     _a0 = a[0]  # a_0
     _a1 = a[1]  # a_1
-    # Intermediate terms (187)
-    _t0 = (3/10)*t
-    _t1 = _p3*t
-    _t2 = numpy.cos(_t1)
-    _t3 = _p2*_t2
-    _t4 = numpy.sin(_t1)
-    _t5 = -_p2*_p3*_t4
-    _t6 = _p3**2
-    _t7 = (1/5)*t
-    _t8 = _p2*_t4
-    _t9 = _p2*_p3*_t2
+    _h0 = tau[0]  # jet_time tau[0]
+    _t35 = tau[1]  # jet_time tau[1]
+    _t30 = tau[2]  # jet_time tau[2]
+    _h1 = tau[3]  # jet_time tau[3]
+    _h2 = tau[4]  # jet_time tau[4]
+    _h3 = tau[5]  # jet_time tau[5]
+    _h4 = tau[6]  # jet_time tau[6]
+    _h5 = tau[7]  # jet_time tau[7]
+    _h6 = tau[8]  # jet_time tau[8]
+    _h7 = tau[9]  # jet_time tau[9]
+    _h8 = tau[10]  # jet_time tau[10]
+    _h9 = tau[11]  # jet_time tau[11]
+    _h10 = tau[12]  # jet_time tau[12]
+    _t176 = tau[13]  # jet_time tau[13]
+    _h11 = tau[14]  # jet_time tau[14]
+    _h12 = tau[15]  # jet_time tau[15]
+    _h13 = tau[16]  # jet_time tau[16]
+    _h14 = tau[17]  # jet_time tau[17]
+    _t169 = tau[18]  # jet_time tau[18]
+    _h15 = tau[19]  # jet_time tau[19]
+    _h16 = tau[20]  # jet_time tau[20]
+    _h17 = tau[21]  # jet_time tau[21]
+    _h18 = tau[22]  # jet_time tau[22]
+    _h19 = tau[23]  # jet_time tau[23]
+    _h20 = tau[24]  # jet_time tau[24]
+    # Intermediate terms (172)
     _t10 = numpy.cos(_s2)
     _t11 = _s12*_t10
     _t12 = numpy.sin(_s2)
@@ -321,21 +384,18 @@ def _jet(t, s, p, a):
     _t24 = numpy.sin(_s11)
     _t25 = _s15*_t24
     _t26 = 2*_s0
-    _t27 = 1/_p1
     _t28 = _s0 - _s3
     _t29 = _s1 - _s4
-    _t30 = numpy.pi*_t27
-    _t31 = numpy.tan((1/2)*_t30*(_t28**2 + _t29**2))
+    _t31 = numpy.tan(_h0*(_t28**2 + _t29**2))
     _t32 = _t31**2 + 1
     _t33 = -2*_s3
     _t34 = _t26 + _t33
-    _t35 = numpy.pi*_p0*_t27
     _t36 = _t32*_t35
     _t37 = _t34*_t36
     _t38 = _t31*_t37
     _t39 = _s9 - _s0
     _t40 = _s10 - _s1
-    _t41 = numpy.tan((1/2)*_t30*(_t39**2 + _t40**2))
+    _t41 = numpy.tan(_h0*(_t39**2 + _t40**2))
     _t42 = _t41**2 + 1
     _t43 = -2*_s9
     _t44 = _t26 + _t43
@@ -353,7 +413,7 @@ def _jet(t, s, p, a):
     _t56 = _t41*_t55
     _t57 = _s3 - _s6
     _t58 = _s4 - _s7
-    _t59 = numpy.tan((1/2)*_t30*(_t57**2 + _t58**2))
+    _t59 = numpy.tan(_h0*(_t57**2 + _t58**2))
     _t60 = _t59**2 + 1
     _t61 = -2*_s6
     _t62 = _t61 - _t33
@@ -366,7 +426,7 @@ def _jet(t, s, p, a):
     _t69 = _t59*_t68
     _t70 = _s6 - _s9
     _t71 = _s7 - _s10
-    _t72 = numpy.tan((1/2)*_t30*(_t70**2 + _t71**2))
+    _t72 = numpy.tan(_h0*(_t70**2 + _t71**2))
     _t73 = _t72**2 + 1
     _t74 = _t43 - _t61
     _t75 = _t35*_t73
@@ -378,7 +438,7 @@ def _jet(t, s, p, a):
     _t81 = 2*_t11
     _t82 = _t11 - _t15
     _t83 = _t13 - _t17
-    _t84 = (1/2)*_t30*(2*_t28*_t82 + 2*_t29*_t83)
+    _t84 = _h0*(2*_t28*_t82 + 2*_t29*_t83)
     _t85 = _t32*_t84
     _t86 = 2*_t31*_t85
     _t87 = -2*_t15
@@ -388,7 +448,7 @@ def _jet(t, s, p, a):
     _t91 = _t31*_t90 + _t37*_t85
     _t92 = _t23 - _t11
     _t93 = _t25 - _t13
-    _t94 = (1/2)*_t30*(2*_t39*_t92 + 2*_t40*_t93)
+    _t94 = _h0*(2*_t39*_t92 + 2*_t40*_t93)
     _t95 = _t42*_t94
     _t96 = 2*_t41*_t95
     _t97 = -2*_t23
@@ -407,7 +467,7 @@ def _jet(t, s, p, a):
     _t110 = _t109*_t41 + _t55*_t95
     _t111 = _t15 - _t19
     _t112 = _t17 - _t21
-    _t113 = (1/2)*_t30*(2*_t111*_t57 + 2*_t112*_t58)
+    _t113 = _h0*(2*_t111*_t57 + 2*_t112*_t58)
     _t114 = _t113*_t60
     _t115 = 2*_t114*_t59
     _t116 = -2*_t19
@@ -421,7 +481,7 @@ def _jet(t, s, p, a):
     _t124 = _t114*_t68 + _t123*_t59
     _t125 = _t19 - _t23
     _t126 = _t21 - _t25
-    _t127 = (1/2)*_t30*(2*_t125*_t70 + 2*_t126*_t71)
+    _t127 = _h0*(2*_t125*_t70 + 2*_t126*_t71)
     _t128 = _t127*_t73
     _t129 = 2*_t128*_t72
     _t130 = _t97 - _t116
@@ -433,14 +493,14 @@ def _jet(t, s, p, a):
     _t136 = _t128*_t79 + _t135*_t72
     _t137 = _t28*_t30*_t32
     _t138 = _t29*_t30*_t32
-    _t139 = 2*_t137*_t31*_t35
-    _t140 = 2*_t138*_t31*_t35
+    _t139 = _h1*_t137*_t31
+    _t140 = _h1*_t138*_t31
     _t141 = 2*_t36
     _t142 = _t137*_t37 + _t31*(_t141 + _t139*_t34)
-    _t143 = -_t30*_t39*_t42
-    _t144 = -_t30*_t40*_t42
-    _t145 = 2*_t143*_t35*_t41
-    _t146 = 2*_t144*_t35*_t41
+    _t143 = _h2*_t39*_t42
+    _t144 = _h2*_t40*_t42
+    _t145 = _h1*_t143*_t41
+    _t146 = _h1*_t144*_t41
     _t147 = 2*_t45
     _t148 = _t143*_t46 + _t41*(_t147 + _t145*_t44)
     _t149 = _t137*_t51 + _t139*_t31*_t50
@@ -449,35 +509,33 @@ def _jet(t, s, p, a):
     _t152 = _t144*_t55 + _t41*(_t147 + _t146*_t54)
     _t153 = _t30*_t57*_t60
     _t154 = _t30*_t58*_t60
-    _t155 = 2*_t153*_t35*_t59
-    _t156 = 2*_t154*_t35*_t59
+    _t155 = _h1*_t153*_t59
+    _t156 = _h1*_t154*_t59
     _t157 = 2*_t63
     _t158 = _t153*_t64 + _t59*(_t157 + _t155*_t62)
     _t159 = _t153*_t68 + _t155*_t59*_t67
     _t160 = _t154*_t68 + _t59*(_t157 + _t156*_t67)
     _t161 = _t30*_t70*_t73
     _t162 = _t30*_t71*_t73
-    _t163 = 2*_t161*_t35*_t72
-    _t164 = 2*_t162*_t35*_t72
+    _t163 = _h1*_t161*_t72
+    _t164 = _h1*_t162*_t72
     _t165 = 2*_t75
     _t166 = _t161*_t76 + _t72*(_t165 + _t163*_t74)
     _t167 = _t161*_t79 + _t163*_t72*_t78
     _t168 = _t162*_t79 + _t72*(_t165 + _t164*_t78)
-    _t169 = 2*_p2*_t2*_t6
-    _t170 = _t84*_t86 + (1/2)*_t30*_t32*(2*_t82**2 + 2*_t83**2)
+    _t170 = _t84*_t86 + _h0*_t32*(2*_t82**2 + 2*_t83**2)
     _t171 = _t35*(2*_t85**2 + 2*_t170*_t31)
     _t172 = _t170*_t37 + _t31*(_t171*_t34 + 2*_t88*_t89) + 2*_t85*_t90
-    _t173 = _t94*_t96 + (1/2)*_t30*_t42*(2*_t92**2 + 2*_t93**2)
+    _t173 = _t94*_t96 + _h0*_t42*(2*_t92**2 + 2*_t93**2)
     _t174 = _t35*(2*_t95**2 + 2*_t173*_t41)
     _t175 = _t173*_t46 + _t41*(_t174*_t44 + 2*_t98*_t99) + 2*_t100*_t95
-    _t176 = 2*_p2*_t4*_t6
     _t177 = _t170*_t51 + _t31*(_t171*_t50 + 2*_t104*_t89) + 2*_t105*_t85
     _t178 = _t173*_t55 + _t41*(_t174*_t54 + 2*_t108*_t99) + 2*_t109*_t95
-    _t179 = _t113*_t115 + (1/2)*_t30*_t60*(2*_t111**2 + 2*_t112**2)
+    _t179 = _t113*_t115 + _h0*_t60*(2*_t111**2 + 2*_t112**2)
     _t180 = _t35*(2*_t114**2 + 2*_t179*_t59)
     _t181 = _t179*_t64 + _t59*(_t180*_t62 + 2*_t117*_t118) + 2*_t114*_t119
     _t182 = _t179*_t68 + _t59*(_t180*_t67 + 2*_t118*_t122) + 2*_t114*_t123
-    _t183 = _t127*_t129 + (1/2)*_t30*_t73*(2*_t125**2 + 2*_t126**2)
+    _t183 = _t127*_t129 + _h0*_t73*(2*_t125**2 + 2*_t126**2)
     _t184 = _t35*(2*_t128**2 + 2*_t183*_t72)
     _t185 = _t183*_t76 + _t72*(_t184*_t74 + 2*_t130*_t131) + 2*_t128*_t132
     _t186 = _t183*_t79 + _t72*(_t184*_t78 + 2*_t131*_t134) + 2*_t128*_t135
@@ -512,14 +570,14 @@ def _jet(t, s, p, a):
     hessian[26] = _t151 + _t167
     hessian[27] = _t152 + _t168 + 2
     jet_rhs = numpy.empty((8, _n))  # sum_i a_i grad^(i) f0 - rest
-    jet_rhs[0] = _a0*(_t26 + _t38 + _t47 - 2*_t0 - 2*_t3) - _t169 - _t172 - _t175 + _a1*(_t101 + _t81 + _t91 - 2*_t5 - 3/5)
-    jet_rhs[1] = _a0*(_t48 + _t52 + _t56 - 2*_t7 - 2*_t8) - _t176 - _t177 - _t178 + _a1*(_t102 + _t106 + _t110 - 2*_t9 - 2/5)
-    jet_rhs[2] = _t172 + _t176 - _t181 + _a0*(_t65 - _t33 - _t38 - 2*_t0 + 2*_t8) + _a1*(_t120 - _t87 - _t91 + 2*_t9 - 3/5)
-    jet_rhs[3] = _t177 - _t169 - _t182 + _a0*(_t69 - _t49 - _t52 - 2*_t3 - 2*_t7) + _a1*(_t124 - _t103 - _t106 - 2*_t5 - 2/5)
-    jet_rhs[4] = _t169 + _t181 - _t185 + _a0*(_t77 - _t61 - _t65 - 2*_t0 + 2*_t3) + _a1*(_t133 - _t116 - _t120 + 2*_t5 - 3/5)
-    jet_rhs[5] = _t176 + _t182 - _t186 + _a0*(_t80 - _t66 - _t69 - 2*_t7 + 2*_t8) + _a1*(_t136 - _t121 - _t124 + 2*_t9 - 2/5)
-    jet_rhs[6] = _t175 + _t185 - _t176 + _a0*(-_t43 - _t47 - _t77 - 2*_t0 - 2*_t8) + _a1*(-_t101 - _t133 - _t97 - 2*_t9 - 3/5)
-    jet_rhs[7] = _t169 + _t178 + _t186 + _a0*(2*_t3 - _t53 - _t56 - _t80 - 2*_t7) + _a1*(2*_t5 - _t107 - _t110 - _t136 - 2/5)
+    jet_rhs[0] = _h5 - _t172 - _t175 + _a0*(_h3 + _t26 + _t38 + _t47) + _a1*(_h4 + _t101 + _t81 + _t91)
+    jet_rhs[1] = _h8 - _t177 - _t178 + _a0*(_h6 + _t48 + _t52 + _t56) + _a1*(_h7 + _t102 + _t106 + _t110)
+    jet_rhs[2] = _t172 + _t176 - _t181 + _a0*(_h9 + _t65 - _t33 - _t38) + _a1*(_h10 + _t120 - _t87 - _t91)
+    jet_rhs[3] = _h5 + _t177 - _t182 + _a0*(_h11 + _t69 - _t49 - _t52) + _a1*(_h12 + _t124 - _t103 - _t106)
+    jet_rhs[4] = _t169 + _t181 - _t185 + _a0*(_h13 + _t77 - _t61 - _t65) + _a1*(_h14 + _t133 - _t116 - _t120)
+    jet_rhs[5] = _t176 + _t182 - _t186 + _a0*(_h15 + _t80 - _t66 - _t69) + _a1*(_h16 + _t136 - _t121 - _t124)
+    jet_rhs[6] = _h8 + _t175 + _t185 + _a0*(_h17 - _t43 - _t47 - _t77) + _a1*(_h18 - _t101 - _t133 - _t97)
+    jet_rhs[7] = _t169 + _t178 + _t186 + _a0*(_h19 - _t53 - _t56 - _t80) + _a1*(_h20 - _t107 - _t110 - _t136)
     R = numpy.empty((16, _n))  # diagonal blocks of the decoupling matrix
     R[0] = _t10
     R[1] = -_s12*_t12
@@ -1194,7 +1252,8 @@ def _law(t, s, p, rates=True):
     checks no more than the C backend's ``control`` does.
     """
     with numpy.errstate(all="ignore"):
-        hess, jet_rhs, r, pvec = _jet(t, s, p, _A)
+        tau = _jet_time(t, p, _A)
+        hess, jet_rhs, r, pvec = _jet(t, s, p, _A, tau)
     _check_finite("the Hessian, the gradient jet, the decoupling matrix or p", hess, jet_rhs,
                   r, pvec)
     # y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.

@@ -111,7 +111,7 @@ def test_operations_grow_linearly_with_the_agents() -> None:
     ops = {}
     for agents in (5, 10):
         kernels = lower(derive(ring(agents)))
-        law = ("jet", "cholesky", "decoupling", "closed_loop")
+        law = ("jet_time", "jet", "cholesky", "decoupling", "closed_loop")
         ops[agents] = sum(kernels[k].ops for k in law) + kernels.lu_ops
     # Doubling the ring at most doubles the law (plus a constant): no dense solve.
     assert ops[10] <= 2.1 * ops[5], ops

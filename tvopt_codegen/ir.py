@@ -9,10 +9,12 @@ on; the names survive only as labels for comments.
 The generated controller evaluates the paper's law as a chain of kernels and two
 numerical solves (never a symbolic inverse, ARCHITECTURE.md section 2)::
 
-    jet(t, s, p, a)        -> hessian, jet_rhs, R, pvec
+    jet_time(t, p, a)      -> tau                 # the jet's terms of time and parameters
+                                                  # alone: once per batch of states
+    jet(t, s, p, a, tau)   -> hessian, jet_rhs, R, pvec
                                                   # grad_yy f0, sum a_i grad^(i) f0 - rest,
                                                   # decoupling matrix R and p
-    z = solve(hessian, jet_rhs)                   # y_imp^(k), Cholesky
+    z = solve(hessian, jet_rhs)                   # y_imp^(k), LDL^T
                                                   # (a constant Hessian: jet returns z itself)
     decoupling(t, s, p, z, q=pvec) -> b           # b = v - p with v_i = xi_i1 or z_i
     w = solve(R, b)                               # LU with partial pivoting
@@ -549,6 +551,102 @@ def _kernel(
     )
 
 
+#: Inputs that are the same for every state of a batch (one time, one parameter vector).
+_INVARIANT_INPUTS = ("t", "p", "a")
+
+
+def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel] | None:
+    """Split off the part of ``kernel`` that depends on time and parameters alone.
+
+    A batch of states at one time shares everything that does not involve the state:
+    the signals and their derivatives, a switch such as ``tanh((t - a)/b)``, sums of
+    such terms inside a state-dependent expression. Those become a kernel of
+    :data:`_INVARIANT_INPUTS` that returns them as one array ``tau``; the remaining
+    kernel reads ``tau`` as an input. Temporaries keep their names; a hoisted sub-sum or
+    sub-product of a larger expression gets a name ``_h0, _h1, ...``.
+
+    Returns
+    -------
+    (Kernel, Kernel) or None
+        The invariant kernel ``name`` and the rest (``kernel``'s name, inputs plus
+        ``tau``), or None when nothing would be shared.
+    """
+    invariant_args = [arg for arg in kernel.inputs if arg.name in _INVARIANT_INPUTS]
+    given: set[sp.Basic] = {sym for arg in invariant_args for sym in arg.symbols}
+    given.add(sp.Symbol("t", real=True))
+    invariant = set(given)
+    time_body: list[Assignment] = []
+    for sym, value in kernel.body:
+        if value.free_symbols <= invariant:
+            invariant.add(sym)
+            time_body.append((sym, value))
+    if not time_body:
+        return None
+    names = (sp.Symbol(f"_h{i}", real=True) for i in range(10**9))
+    shared: dict[sp.Expr, sp.Symbol] = {}  # invariant value -> the state part's name for it
+    memo: dict[sp.Basic, sp.Expr] = {}
+
+    def fixed(node: sp.Basic) -> bool:
+        return bool(node.free_symbols <= invariant)
+
+    def share(node: sp.Expr) -> sp.Expr:
+        # Numbers and the inputs themselves are at hand in the state part already.
+        if node.is_Number or node in given:
+            return node
+        if node not in shared:
+            shared[node] = node if node in invariant else next(names)
+        return shared[node]
+
+    def hoist(node: sp.Basic) -> sp.Expr:
+        if node.is_Atom:
+            return share(node) if node.is_Symbol and node in invariant else node
+        if node in memo:
+            return memo[node]
+        if fixed(node):
+            new = share(node)
+        elif node.is_Add or node.is_Mul:
+            # (x + t + 1) -> x + _h0: the invariant terms or factors become one.
+            part = [a for a in node.args if fixed(a)]
+            rest = [hoist(a) for a in node.args if not fixed(a)]
+            new = node.func(*rest, *([share(node.func(*part))] if part else []))
+        else:
+            new = _rebuild(node, [hoist(a) for a in node.args])
+        memo[node] = new
+        return new
+
+    state_body = tuple((sym, hoist(value)) for sym, value in kernel.body if sym not in invariant)
+    state_outputs = tuple(
+        Output(out.name, out.shape, tuple(hoist(sp.sympify(e)) for e in out.exprs), out.doc)
+        for out in kernel.outputs
+    )
+    tau_values = list(shared)
+    time_program = _prune(time_body, tau_values)
+    tau = Output("tau", (len(tau_values),), tuple(tau_values), "terms of time and parameters")
+    time_ops = operation_count([v for _, v in time_program] + tau_values)
+    time_kernel = Kernel(
+        name, doc, tuple(invariant_args), tuple(time_program), (tau,), time_ops, time_ops
+    )
+    arg_tau = Arg(
+        "tau",
+        tuple(shared.values()),
+        tuple(f"{name} tau[{i}]" for i in range(len(shared))),
+        f"terms of time and parameters alone ({name})",
+    )
+    state_ops = operation_count(
+        [v for _, v in state_body] + [e for o in state_outputs for e in o.exprs]
+    )
+    state_kernel = Kernel(
+        kernel.name,
+        kernel.doc,
+        (*kernel.inputs, arg_tau),
+        state_body,
+        state_outputs,
+        state_ops,
+        kernel.ops_before_cse - time_ops,
+    )
+    return time_kernel, state_kernel
+
+
 def diagonal_blocks(matrix: sp.MatrixBase) -> tuple[tuple[int, ...], ...]:
     """The finest symmetric block-diagonal partition of a square matrix's pattern.
 
@@ -720,8 +818,10 @@ def lower(derivation: Derivation) -> KernelSet:
     Returns
     -------
     KernelSet
-        Kernels ``jet``, ``decoupling``, ``closed_loop``, ``plant_input``,
-        ``optimality``, ``objective``, ``gradient`` and ``hessian``.
+        Kernels ``jet_time`` (unless the jet has no term of time and parameters alone),
+        ``jet``, ``cholesky`` (unless the Hessian is constant), ``decoupling``,
+        ``closed_loop``, ``plant_input``, ``optimality``, ``objective``, ``gradient`` and
+        ``hessian``.
     """
     d = derivation
     odd: dict[sp.Basic, sp.Expr] = {}
@@ -827,6 +927,13 @@ def lower(derivation: Derivation) -> KernelSet:
             search=False,  # one operation per assignment already: nothing to find
         )
 
+    # Everything of the jet that depends on time and parameters alone is computed once
+    # per batch of states (the C backend's batch functions; a block in NumPy).
+    split = split_invariant(jet, "jet_time", "The jet's terms of time and parameters alone")
+    jet_time = None
+    if split is not None:
+        jet_time, jet = split
+
     v = []
     for i in range(m):
         v.append(
@@ -919,6 +1026,7 @@ def lower(derivation: Derivation) -> KernelSet:
     return KernelSet(
         d,
         (
+            *((jet_time,) if jet_time is not None else ()),
             jet,
             *((cholesky,) if cholesky is not None else ()),
             decoupling,

@@ -146,7 +146,9 @@ def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
         )
         used_arg = bool(slots) or (arg.name == "t" and sp.Symbol("t", real=True) in used)
         args.append(PrintedArg(arg.name, arg.doc, slots, used_arg))
-    batch = next(arg.name for arg in kernel.inputs if arg.name in ("s", "y", "h"))
+    # The argument whose last axis is the batch; none for a kernel of time and
+    # parameters alone (jet_time), whose outputs are the same for every state.
+    batch = next((arg.name for arg in kernel.inputs if arg.name in ("s", "y", "h")), "")
     body = tuple((sym.name, printer.doprint(value)) for sym, value in kernel.body)
     outputs = []
     for out in kernel.outputs:

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: eeac9dc1999055305a13095977b91f74125f891d9205df917decc23ed809f2c4
+ * content sha256: f4d7a51b128a50ea2e0a40e926ec9f44cbe06bd268cbf7dc9d90bbd9c0fc8493
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical
@@ -36,9 +36,61 @@ const double unicycle_ring_default_params[UNICYCLE_RING_N_PARAMS] = {0.001, 40.0
 const double unicycle_ring_default_state[UNICYCLE_RING_N_STATES] = {1.5, -1.0, 0.0, -1.0, 1.5, 0.0, -3.5, -1.0, 0.0, -1.0, -3.5, 0.0, 1.0, 1.0, 1.0, 1.0};
 const double unicycle_ring_hurwitz_coefficients[UNICYCLE_RING_K] = {-1.5, -2.5};
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (686 operations, 1333 before CSE). */
-static void unicycle_ring_k_jet(double t, const double *s, const double *p, const double *a, double *hessian, double *jet_rhs, double *R, double *pvec)
+/* The jet's terms of time and parameters alone (85 operations, 85 before CSE). */
+static void unicycle_ring_k_jet_time(double t, const double *p, const double *a, double *tau)
 {
+    const double _p0 = p[0]; /* alpha */
+    const double _p1 = p[1]; /* d */
+    const double _p2 = p[2]; /* radius */
+    const double _p3 = p[3]; /* spin */
+    (void)a;
+    const double _t0 = (3.0/10.0)*t;
+    const double _t1 = _p3*t;
+    const double _t2 = cos(_t1);
+    const double _t3 = _p2*_t2;
+    const double _t4 = sin(_t1);
+    const double _t5 = -_p2*_p3*_t4;
+    const double _t6 = (_p3*_p3);
+    const double _t7 = (1.0/5.0)*t;
+    const double _t8 = _p2*_t4;
+    const double _t9 = _p2*_p3*_t2;
+    const double _t27 = (1.0/_p1);
+    const double _t30 = 3.141592653589793*_t27;
+    const double _t35 = 3.141592653589793*_p0*_t27;
+    const double _t169 = 2*_p2*_t2*_t6;
+    const double _t176 = 2*_p2*_t4*_t6;
+    tau[0] = (1.0/2.0)*_t30;
+    tau[1] = _t35;
+    tau[2] = _t30;
+    tau[3] = 2*_t35;
+    tau[4] = -_t30;
+    tau[5] = -2*_t0 - 2*_t3;
+    tau[6] = -2*_t5 - 3.0/5.0;
+    tau[7] = -_t169;
+    tau[8] = -2*_t7 - 2*_t8;
+    tau[9] = -2*_t9 - 2.0/5.0;
+    tau[10] = -_t176;
+    tau[11] = 2*_t8 - 2*_t0;
+    tau[12] = 2*_t9 - 3.0/5.0;
+    tau[13] = _t176;
+    tau[14] = -2*_t3 - 2*_t7;
+    tau[15] = -2*_t5 - 2.0/5.0;
+    tau[16] = 2*_t3 - 2*_t0;
+    tau[17] = 2*_t5 - 3.0/5.0;
+    tau[18] = _t169;
+    tau[19] = 2*_t8 - 2*_t7;
+    tau[20] = 2*_t9 - 2.0/5.0;
+    tau[21] = -2*_t0 - 2*_t8;
+    tau[22] = -2*_t9 - 3.0/5.0;
+    tau[23] = 2*_t3 - 2*_t7;
+    tau[24] = 2*_t5 - 2.0/5.0;
+}
+
+
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (584 operations, 1248 before CSE). */
+static void unicycle_ring_k_jet(double t, const double *s, const double *p, const double *a, const double *tau, double *hessian, double *jet_rhs, double *R, double *pvec)
+{
+    (void)t;
     const double _s0 = s[0]; /* x_0 */
     const double _s1 = s[1]; /* y_0 */
     const double _s2 = s[2]; /* theta_0 */
@@ -55,22 +107,34 @@ static void unicycle_ring_k_jet(double t, const double *s, const double *p, cons
     const double _s13 = s[13]; /* v_1 */
     const double _s14 = s[14]; /* v_2 */
     const double _s15 = s[15]; /* v_3 */
-    const double _p0 = p[0]; /* alpha */
-    const double _p1 = p[1]; /* d */
-    const double _p2 = p[2]; /* radius */
-    const double _p3 = p[3]; /* spin */
+    (void)p;
     const double _a0 = a[0]; /* a_0 */
     const double _a1 = a[1]; /* a_1 */
-    const double _t0 = (3.0/10.0)*t;
-    const double _t1 = _p3*t;
-    const double _t2 = cos(_t1);
-    const double _t3 = _p2*_t2;
-    const double _t4 = sin(_t1);
-    const double _t5 = -_p2*_p3*_t4;
-    const double _t6 = (_p3*_p3);
-    const double _t7 = (1.0/5.0)*t;
-    const double _t8 = _p2*_t4;
-    const double _t9 = _p2*_p3*_t2;
+    const double _h0 = tau[0]; /* jet_time tau[0] */
+    const double _t35 = tau[1]; /* jet_time tau[1] */
+    const double _t30 = tau[2]; /* jet_time tau[2] */
+    const double _h1 = tau[3]; /* jet_time tau[3] */
+    const double _h2 = tau[4]; /* jet_time tau[4] */
+    const double _h3 = tau[5]; /* jet_time tau[5] */
+    const double _h4 = tau[6]; /* jet_time tau[6] */
+    const double _h5 = tau[7]; /* jet_time tau[7] */
+    const double _h6 = tau[8]; /* jet_time tau[8] */
+    const double _h7 = tau[9]; /* jet_time tau[9] */
+    const double _h8 = tau[10]; /* jet_time tau[10] */
+    const double _h9 = tau[11]; /* jet_time tau[11] */
+    const double _h10 = tau[12]; /* jet_time tau[12] */
+    const double _t176 = tau[13]; /* jet_time tau[13] */
+    const double _h11 = tau[14]; /* jet_time tau[14] */
+    const double _h12 = tau[15]; /* jet_time tau[15] */
+    const double _h13 = tau[16]; /* jet_time tau[16] */
+    const double _h14 = tau[17]; /* jet_time tau[17] */
+    const double _t169 = tau[18]; /* jet_time tau[18] */
+    const double _h15 = tau[19]; /* jet_time tau[19] */
+    const double _h16 = tau[20]; /* jet_time tau[20] */
+    const double _h17 = tau[21]; /* jet_time tau[21] */
+    const double _h18 = tau[22]; /* jet_time tau[22] */
+    const double _h19 = tau[23]; /* jet_time tau[23] */
+    const double _h20 = tau[24]; /* jet_time tau[24] */
     const double _t10 = cos(_s2);
     const double _t11 = _s12*_t10;
     const double _t12 = sin(_s2);
@@ -88,21 +152,18 @@ static void unicycle_ring_k_jet(double t, const double *s, const double *p, cons
     const double _t24 = sin(_s11);
     const double _t25 = _s15*_t24;
     const double _t26 = 2*_s0;
-    const double _t27 = (1.0/_p1);
     const double _t28 = _s0 - _s3;
     const double _t29 = _s1 - _s4;
-    const double _t30 = 3.141592653589793*_t27;
-    const double _t31 = tan((1.0/2.0)*_t30*((_t28*_t28) + (_t29*_t29)));
+    const double _t31 = tan(_h0*((_t28*_t28) + (_t29*_t29)));
     const double _t32 = (_t31*_t31) + 1;
     const double _t33 = -2*_s3;
     const double _t34 = _t26 + _t33;
-    const double _t35 = 3.141592653589793*_p0*_t27;
     const double _t36 = _t32*_t35;
     const double _t37 = _t34*_t36;
     const double _t38 = _t31*_t37;
     const double _t39 = _s9 - _s0;
     const double _t40 = _s10 - _s1;
-    const double _t41 = tan((1.0/2.0)*_t30*((_t39*_t39) + (_t40*_t40)));
+    const double _t41 = tan(_h0*((_t39*_t39) + (_t40*_t40)));
     const double _t42 = (_t41*_t41) + 1;
     const double _t43 = -2*_s9;
     const double _t44 = _t26 + _t43;
@@ -120,7 +181,7 @@ static void unicycle_ring_k_jet(double t, const double *s, const double *p, cons
     const double _t56 = _t41*_t55;
     const double _t57 = _s3 - _s6;
     const double _t58 = _s4 - _s7;
-    const double _t59 = tan((1.0/2.0)*_t30*((_t57*_t57) + (_t58*_t58)));
+    const double _t59 = tan(_h0*((_t57*_t57) + (_t58*_t58)));
     const double _t60 = (_t59*_t59) + 1;
     const double _t61 = -2*_s6;
     const double _t62 = _t61 - _t33;
@@ -133,7 +194,7 @@ static void unicycle_ring_k_jet(double t, const double *s, const double *p, cons
     const double _t69 = _t59*_t68;
     const double _t70 = _s6 - _s9;
     const double _t71 = _s7 - _s10;
-    const double _t72 = tan((1.0/2.0)*_t30*((_t70*_t70) + (_t71*_t71)));
+    const double _t72 = tan(_h0*((_t70*_t70) + (_t71*_t71)));
     const double _t73 = (_t72*_t72) + 1;
     const double _t74 = _t43 - _t61;
     const double _t75 = _t35*_t73;
@@ -145,7 +206,7 @@ static void unicycle_ring_k_jet(double t, const double *s, const double *p, cons
     const double _t81 = 2*_t11;
     const double _t82 = _t11 - _t15;
     const double _t83 = _t13 - _t17;
-    const double _t84 = (1.0/2.0)*_t30*(2*_t28*_t82 + 2*_t29*_t83);
+    const double _t84 = _h0*(2*_t28*_t82 + 2*_t29*_t83);
     const double _t85 = _t32*_t84;
     const double _t86 = 2*_t31*_t85;
     const double _t87 = -2*_t15;
@@ -155,7 +216,7 @@ static void unicycle_ring_k_jet(double t, const double *s, const double *p, cons
     const double _t91 = _t31*_t90 + _t37*_t85;
     const double _t92 = _t23 - _t11;
     const double _t93 = _t25 - _t13;
-    const double _t94 = (1.0/2.0)*_t30*(2*_t39*_t92 + 2*_t40*_t93);
+    const double _t94 = _h0*(2*_t39*_t92 + 2*_t40*_t93);
     const double _t95 = _t42*_t94;
     const double _t96 = 2*_t41*_t95;
     const double _t97 = -2*_t23;
@@ -174,7 +235,7 @@ static void unicycle_ring_k_jet(double t, const double *s, const double *p, cons
     const double _t110 = _t109*_t41 + _t55*_t95;
     const double _t111 = _t15 - _t19;
     const double _t112 = _t17 - _t21;
-    const double _t113 = (1.0/2.0)*_t30*(2*_t111*_t57 + 2*_t112*_t58);
+    const double _t113 = _h0*(2*_t111*_t57 + 2*_t112*_t58);
     const double _t114 = _t113*_t60;
     const double _t115 = 2*_t114*_t59;
     const double _t116 = -2*_t19;
@@ -188,7 +249,7 @@ static void unicycle_ring_k_jet(double t, const double *s, const double *p, cons
     const double _t124 = _t114*_t68 + _t123*_t59;
     const double _t125 = _t19 - _t23;
     const double _t126 = _t21 - _t25;
-    const double _t127 = (1.0/2.0)*_t30*(2*_t125*_t70 + 2*_t126*_t71);
+    const double _t127 = _h0*(2*_t125*_t70 + 2*_t126*_t71);
     const double _t128 = _t127*_t73;
     const double _t129 = 2*_t128*_t72;
     const double _t130 = _t97 - _t116;
@@ -200,14 +261,14 @@ static void unicycle_ring_k_jet(double t, const double *s, const double *p, cons
     const double _t136 = _t128*_t79 + _t135*_t72;
     const double _t137 = _t28*_t30*_t32;
     const double _t138 = _t29*_t30*_t32;
-    const double _t139 = 2*_t137*_t31*_t35;
-    const double _t140 = 2*_t138*_t31*_t35;
+    const double _t139 = _h1*_t137*_t31;
+    const double _t140 = _h1*_t138*_t31;
     const double _t141 = 2*_t36;
     const double _t142 = _t137*_t37 + _t31*(_t141 + _t139*_t34);
-    const double _t143 = -_t30*_t39*_t42;
-    const double _t144 = -_t30*_t40*_t42;
-    const double _t145 = 2*_t143*_t35*_t41;
-    const double _t146 = 2*_t144*_t35*_t41;
+    const double _t143 = _h2*_t39*_t42;
+    const double _t144 = _h2*_t40*_t42;
+    const double _t145 = _h1*_t143*_t41;
+    const double _t146 = _h1*_t144*_t41;
     const double _t147 = 2*_t45;
     const double _t148 = _t143*_t46 + _t41*(_t147 + _t145*_t44);
     const double _t149 = _t137*_t51 + _t139*_t31*_t50;
@@ -216,35 +277,33 @@ static void unicycle_ring_k_jet(double t, const double *s, const double *p, cons
     const double _t152 = _t144*_t55 + _t41*(_t147 + _t146*_t54);
     const double _t153 = _t30*_t57*_t60;
     const double _t154 = _t30*_t58*_t60;
-    const double _t155 = 2*_t153*_t35*_t59;
-    const double _t156 = 2*_t154*_t35*_t59;
+    const double _t155 = _h1*_t153*_t59;
+    const double _t156 = _h1*_t154*_t59;
     const double _t157 = 2*_t63;
     const double _t158 = _t153*_t64 + _t59*(_t157 + _t155*_t62);
     const double _t159 = _t153*_t68 + _t155*_t59*_t67;
     const double _t160 = _t154*_t68 + _t59*(_t157 + _t156*_t67);
     const double _t161 = _t30*_t70*_t73;
     const double _t162 = _t30*_t71*_t73;
-    const double _t163 = 2*_t161*_t35*_t72;
-    const double _t164 = 2*_t162*_t35*_t72;
+    const double _t163 = _h1*_t161*_t72;
+    const double _t164 = _h1*_t162*_t72;
     const double _t165 = 2*_t75;
     const double _t166 = _t161*_t76 + _t72*(_t165 + _t163*_t74);
     const double _t167 = _t161*_t79 + _t163*_t72*_t78;
     const double _t168 = _t162*_t79 + _t72*(_t165 + _t164*_t78);
-    const double _t169 = 2*_p2*_t2*_t6;
-    const double _t170 = _t84*_t86 + (1.0/2.0)*_t30*_t32*(2*(_t82*_t82) + 2*(_t83*_t83));
+    const double _t170 = _t84*_t86 + _h0*_t32*(2*(_t82*_t82) + 2*(_t83*_t83));
     const double _t171 = _t35*(2*(_t85*_t85) + 2*_t170*_t31);
     const double _t172 = _t170*_t37 + _t31*(_t171*_t34 + 2*_t88*_t89) + 2*_t85*_t90;
-    const double _t173 = _t94*_t96 + (1.0/2.0)*_t30*_t42*(2*(_t92*_t92) + 2*(_t93*_t93));
+    const double _t173 = _t94*_t96 + _h0*_t42*(2*(_t92*_t92) + 2*(_t93*_t93));
     const double _t174 = _t35*(2*(_t95*_t95) + 2*_t173*_t41);
     const double _t175 = _t173*_t46 + _t41*(_t174*_t44 + 2*_t98*_t99) + 2*_t100*_t95;
-    const double _t176 = 2*_p2*_t4*_t6;
     const double _t177 = _t170*_t51 + _t31*(_t171*_t50 + 2*_t104*_t89) + 2*_t105*_t85;
     const double _t178 = _t173*_t55 + _t41*(_t174*_t54 + 2*_t108*_t99) + 2*_t109*_t95;
-    const double _t179 = _t113*_t115 + (1.0/2.0)*_t30*_t60*(2*(_t111*_t111) + 2*(_t112*_t112));
+    const double _t179 = _t113*_t115 + _h0*_t60*(2*(_t111*_t111) + 2*(_t112*_t112));
     const double _t180 = _t35*(2*(_t114*_t114) + 2*_t179*_t59);
     const double _t181 = _t179*_t64 + _t59*(_t180*_t62 + 2*_t117*_t118) + 2*_t114*_t119;
     const double _t182 = _t179*_t68 + _t59*(_t180*_t67 + 2*_t118*_t122) + 2*_t114*_t123;
-    const double _t183 = _t127*_t129 + (1.0/2.0)*_t30*_t73*(2*(_t125*_t125) + 2*(_t126*_t126));
+    const double _t183 = _t127*_t129 + _h0*_t73*(2*(_t125*_t125) + 2*(_t126*_t126));
     const double _t184 = _t35*(2*(_t128*_t128) + 2*_t183*_t72);
     const double _t185 = _t183*_t76 + _t72*(_t184*_t74 + 2*_t130*_t131) + 2*_t128*_t132;
     const double _t186 = _t183*_t79 + _t72*(_t184*_t78 + 2*_t131*_t134) + 2*_t128*_t135;
@@ -276,14 +335,14 @@ static void unicycle_ring_k_jet(double t, const double *s, const double *p, cons
     hessian[25] = -_t168;
     hessian[26] = _t151 + _t167;
     hessian[27] = _t152 + _t168 + 2;
-    jet_rhs[0] = _a0*(_t26 + _t38 + _t47 - 2*_t0 - 2*_t3) - _t169 - _t172 - _t175 + _a1*(_t101 + _t81 + _t91 - 2*_t5 - 3.0/5.0);
-    jet_rhs[1] = _a0*(_t48 + _t52 + _t56 - 2*_t7 - 2*_t8) - _t176 - _t177 - _t178 + _a1*(_t102 + _t106 + _t110 - 2*_t9 - 2.0/5.0);
-    jet_rhs[2] = _t172 + _t176 - _t181 + _a0*(_t65 - _t33 - _t38 - 2*_t0 + 2*_t8) + _a1*(_t120 - _t87 - _t91 + 2*_t9 - 3.0/5.0);
-    jet_rhs[3] = _t177 - _t169 - _t182 + _a0*(_t69 - _t49 - _t52 - 2*_t3 - 2*_t7) + _a1*(_t124 - _t103 - _t106 - 2*_t5 - 2.0/5.0);
-    jet_rhs[4] = _t169 + _t181 - _t185 + _a0*(_t77 - _t61 - _t65 - 2*_t0 + 2*_t3) + _a1*(_t133 - _t116 - _t120 + 2*_t5 - 3.0/5.0);
-    jet_rhs[5] = _t176 + _t182 - _t186 + _a0*(_t80 - _t66 - _t69 - 2*_t7 + 2*_t8) + _a1*(_t136 - _t121 - _t124 + 2*_t9 - 2.0/5.0);
-    jet_rhs[6] = _t175 + _t185 - _t176 + _a0*(-_t43 - _t47 - _t77 - 2*_t0 - 2*_t8) + _a1*(-_t101 - _t133 - _t97 - 2*_t9 - 3.0/5.0);
-    jet_rhs[7] = _t169 + _t178 + _t186 + _a0*(2*_t3 - _t53 - _t56 - _t80 - 2*_t7) + _a1*(2*_t5 - _t107 - _t110 - _t136 - 2.0/5.0);
+    jet_rhs[0] = _h5 - _t172 - _t175 + _a0*(_h3 + _t26 + _t38 + _t47) + _a1*(_h4 + _t101 + _t81 + _t91);
+    jet_rhs[1] = _h8 - _t177 - _t178 + _a0*(_h6 + _t48 + _t52 + _t56) + _a1*(_h7 + _t102 + _t106 + _t110);
+    jet_rhs[2] = _t172 + _t176 - _t181 + _a0*(_h9 + _t65 - _t33 - _t38) + _a1*(_h10 + _t120 - _t87 - _t91);
+    jet_rhs[3] = _h5 + _t177 - _t182 + _a0*(_h11 + _t69 - _t49 - _t52) + _a1*(_h12 + _t124 - _t103 - _t106);
+    jet_rhs[4] = _t169 + _t181 - _t185 + _a0*(_h13 + _t77 - _t61 - _t65) + _a1*(_h14 + _t133 - _t116 - _t120);
+    jet_rhs[5] = _t176 + _t182 - _t186 + _a0*(_h15 + _t80 - _t66 - _t69) + _a1*(_h16 + _t136 - _t121 - _t124);
+    jet_rhs[6] = _h8 + _t175 + _t185 + _a0*(_h17 - _t43 - _t47 - _t77) + _a1*(_h18 - _t101 - _t133 - _t97);
+    jet_rhs[7] = _t169 + _t178 + _t186 + _a0*(_h19 - _t53 - _t56 - _t80) + _a1*(_h20 - _t107 - _t110 - _t136);
     R[0] = _t10;
     R[1] = -_s12*_t12;
     R[2] = _t12;
@@ -1061,8 +1120,12 @@ static int unicycle_ring_solve_decoupling(double *r, double *w)
     return UNICYCLE_RING_OK;
 }
 
-/* The paper's law at one state: the plant input u and, unless ds is NULL, ds/dt. */
-static int unicycle_ring_law(double t, const double *s, const double *params, double *ds, double *u)
+/* The jet's terms of time and parameters alone: computed once for a batch of states. */
+#define UNICYCLE_RING_N_TAU 25
+
+/* The paper's law at one state: the plant input u and, unless ds is NULL, ds/dt (tau: the jet's
+ * terms of time and parameters, jet_time). */
+static int unicycle_ring_law(double t, const double *s, const double *params, const double *tau, double *ds, double *u)
 {
     double hess[28];
     double c[UNICYCLE_RING_N_OUTPUTS];
@@ -1074,7 +1137,7 @@ static int unicycle_ring_law(double t, const double *s, const double *params, do
     if (status != UNICYCLE_RING_OK) {
         return status;
     }
-    unicycle_ring_k_jet(t, s, params, unicycle_ring_hurwitz_coefficients, hess, c, r, pvec);
+    unicycle_ring_k_jet(t, s, params, unicycle_ring_hurwitz_coefficients, tau, hess, c, r, pvec);
     if (unicycle_ring_probe(hess, 28) + unicycle_ring_probe(c, UNICYCLE_RING_N_OUTPUTS)
         + unicycle_ring_probe(r, UNICYCLE_RING_R_ENTRIES) + unicycle_ring_probe(pvec, UNICYCLE_RING_N_OUTPUTS) != 0.0) {
         return UNICYCLE_RING_NONFINITE_OUTPUT;
@@ -1106,13 +1169,19 @@ static int unicycle_ring_law(double t, const double *s, const double *params, do
 
 int unicycle_ring_control(double t, const double *s, const double *params, double *out)
 {
-    return unicycle_ring_law(t, s, params ? params : UNICYCLE_RING_DEFAULT_PARAMS, NULL, out);
+    const double *p = params ? params : UNICYCLE_RING_DEFAULT_PARAMS;
+    double tau[UNICYCLE_RING_N_TAU];
+    unicycle_ring_k_jet_time(t, p, unicycle_ring_hurwitz_coefficients, tau);
+    return unicycle_ring_law(t, s, p, tau, NULL, out);
 }
 
 int unicycle_ring_rhs(double t, const double *s, const double *params, double *out)
 {
+    const double *p = params ? params : UNICYCLE_RING_DEFAULT_PARAMS;
     double u[UNICYCLE_RING_N_INPUTS];
-    return unicycle_ring_law(t, s, params ? params : UNICYCLE_RING_DEFAULT_PARAMS, out, u);
+    double tau[UNICYCLE_RING_N_TAU];
+    unicycle_ring_k_jet_time(t, p, unicycle_ring_hurwitz_coefficients, tau);
+    return unicycle_ring_law(t, s, p, tau, out, u);
 }
 
 int unicycle_ring_optimality_error(double t, const double *s, const double *params, double *out)
@@ -1159,11 +1228,16 @@ int unicycle_ring_hessian(double t, const double *y, const double *params, doubl
     return unicycle_ring_probe(out, UNICYCLE_RING_N_OUTPUTS * UNICYCLE_RING_N_OUTPUTS) == 0.0 ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
 }
 
+/* The law at count states and one time: what depends on time and parameters alone is
+ * computed once for the batch. */
 int unicycle_ring_control_batch(size_t count, double t, const double *s, const double *params, double *out, size_t *failed)
 {
+    const double *p = params ? params : UNICYCLE_RING_DEFAULT_PARAMS;
+    double tau[UNICYCLE_RING_N_TAU];
     size_t i;
+    unicycle_ring_k_jet_time(t, p, unicycle_ring_hurwitz_coefficients, tau);
     for (i = 0; i < count; ++i) {
-        const int status = unicycle_ring_control(t, s + i * UNICYCLE_RING_N_STATES, params, out + i * (UNICYCLE_RING_N_INPUTS));
+        const int status = unicycle_ring_law(t, s + i * UNICYCLE_RING_N_STATES, p, tau, NULL, out + i * UNICYCLE_RING_N_INPUTS);
         if (status != UNICYCLE_RING_OK) {
             if (failed) {
                 *failed = i;
@@ -1174,11 +1248,17 @@ int unicycle_ring_control_batch(size_t count, double t, const double *s, const d
     return UNICYCLE_RING_OK;
 }
 
+/* The law at count states and one time: what depends on time and parameters alone is
+ * computed once for the batch. */
 int unicycle_ring_rhs_batch(size_t count, double t, const double *s, const double *params, double *out, size_t *failed)
 {
+    const double *p = params ? params : UNICYCLE_RING_DEFAULT_PARAMS;
+    double u[UNICYCLE_RING_N_INPUTS];
+    double tau[UNICYCLE_RING_N_TAU];
     size_t i;
+    unicycle_ring_k_jet_time(t, p, unicycle_ring_hurwitz_coefficients, tau);
     for (i = 0; i < count; ++i) {
-        const int status = unicycle_ring_rhs(t, s + i * UNICYCLE_RING_N_STATES, params, out + i * (UNICYCLE_RING_N_STATES));
+        const int status = unicycle_ring_law(t, s + i * UNICYCLE_RING_N_STATES, p, tau, out + i * UNICYCLE_RING_N_STATES, u);
         if (status != UNICYCLE_RING_OK) {
             if (failed) {
                 *failed = i;

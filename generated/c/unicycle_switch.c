@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: a8953289b3b59008e07e55b971b5f4d4705d606b412f912fa8e0f6f85a4195fa
+ * content sha256: e63dd1f2d78436a51c7fdf5072c845a741eadfed3960b0b98efb77397b0dedd6
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -36,13 +36,9 @@ const double unicycle_switch_default_params[UNICYCLE_SWITCH_N_PARAMS] = {10.0, 1
 const double unicycle_switch_default_state[UNICYCLE_SWITCH_N_STATES] = {-5.0, 4.0, 0.0, 1.0};
 const double unicycle_switch_hurwitz_coefficients[UNICYCLE_SWITCH_K] = {-1.5, -2.5};
 
-/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (138 operations, 198 before CSE). */
-static void unicycle_switch_k_jet(double t, const double *s, const double *p, const double *a, double *z, double *R, double *pvec)
+/* The jet's terms of time and parameters alone (117 operations, 117 before CSE). */
+static void unicycle_switch_k_jet_time(double t, const double *p, const double *a, double *tau)
 {
-    const double _s0 = s[0]; /* x1 */
-    const double _s1 = s[1]; /* x2 */
-    const double _s2 = s[2]; /* theta */
-    const double _s3 = s[3]; /* v */
     const double _p0 = p[0]; /* a */
     const double _p1 = p[1]; /* b */
     const double _a0 = a[0]; /* a_0 */
@@ -63,10 +59,6 @@ static void unicycle_switch_k_jet(double t, const double *s, const double *p, co
     const double _t13 = -_t7 - 3.0/10.0;
     const double _t14 = (1.0/5000.0)*_t9 - 3.0/200.0*_t4 + (2.0/5.0)*t - 3;
     const double _t15 = (3.0/5000.0)*_t4 - 3.0/100.0*t + 2.0/5.0;
-    const double _t16 = cos(_s2);
-    const double _t17 = _s3*_t16;
-    const double _t18 = sin(_s2);
-    const double _t19 = _s3*_t18;
     const double _t20 = 2*_t2;
     const double _t21 = 1 - _t2;
     const double _t22 = 2*_t21;
@@ -74,8 +66,41 @@ static void unicycle_switch_k_jet(double t, const double *s, const double *p, co
     const double _t24 = 2*_t1*_t3/(_p1*_p1);
     const double _t25 = (1.0/2.0)*_a0;
     const double _t26 = (1.0/2.0)*_a1;
-    z[0] = _t23*_t8 - 1.0/50.0*_t2 - 1.0/50.0*_t21 + _t25*(2*_s0 - _t12*_t22 - _t20*_t6) + _t26*(2*_t17 + _t12*_t23 - _t13*_t22 - _t20*_t8 - _t23*_t6) + (1.0/2.0)*_t24*_t6 - _t13*_t23 - 1.0/2.0*_t12*_t24;
-    z[1] = _t11*_t23 + _t25*(2*_s1 - _t10*_t20 - _t14*_t22) + _t26*(2*_t19 + _t14*_t23 - _t10*_t23 - _t11*_t20 - _t15*_t22) + (1.0/2.0)*_t10*_t24 + (1.0/2.0)*_t20*(1.0/25.0 - 3.0/500.0*t) + (1.0/2.0)*_t22*((3.0/2500.0)*t - 3.0/100.0) - _t15*_t23 - 1.0/2.0*_t14*_t24;
+    tau[0] = -_t12*_t22 - _t20*_t6;
+    tau[1] = _t25;
+    tau[2] = _t12*_t23 - _t13*_t22 - _t20*_t8 - _t23*_t6;
+    tau[3] = _t26;
+    tau[4] = _t23*_t8 - 1.0/50.0*_t2 - 1.0/50.0*_t21 + (1.0/2.0)*_t24*_t6 - _t13*_t23 - 1.0/2.0*_t12*_t24;
+    tau[5] = -_t10*_t20 - _t14*_t22;
+    tau[6] = _t14*_t23 - _t10*_t23 - _t11*_t20 - _t15*_t22;
+    tau[7] = _t11*_t23 + (1.0/2.0)*_t10*_t24 + (1.0/2.0)*_t20*(1.0/25.0 - 3.0/500.0*t) + (1.0/2.0)*_t22*((3.0/2500.0)*t - 3.0/100.0) - _t15*_t23 - 1.0/2.0*_t14*_t24;
+}
+
+
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (21 operations, 81 before CSE). */
+static void unicycle_switch_k_jet(double t, const double *s, const double *p, const double *a, const double *tau, double *z, double *R, double *pvec)
+{
+    (void)t;
+    const double _s0 = s[0]; /* x1 */
+    const double _s1 = s[1]; /* x2 */
+    const double _s2 = s[2]; /* theta */
+    const double _s3 = s[3]; /* v */
+    (void)p;
+    (void)a;
+    const double _h0 = tau[0]; /* jet_time tau[0] */
+    const double _t25 = tau[1]; /* jet_time tau[1] */
+    const double _h1 = tau[2]; /* jet_time tau[2] */
+    const double _t26 = tau[3]; /* jet_time tau[3] */
+    const double _h2 = tau[4]; /* jet_time tau[4] */
+    const double _h3 = tau[5]; /* jet_time tau[5] */
+    const double _h4 = tau[6]; /* jet_time tau[6] */
+    const double _h5 = tau[7]; /* jet_time tau[7] */
+    const double _t16 = cos(_s2);
+    const double _t17 = _s3*_t16;
+    const double _t18 = sin(_s2);
+    const double _t19 = _s3*_t18;
+    z[0] = _h2 + _t25*(_h0 + 2*_s0) + _t26*(_h1 + 2*_t17);
+    z[1] = _h5 + _t25*(_h3 + 2*_s1) + _t26*(_h4 + 2*_t19);
     R[0] = _t16;
     R[1] = -_t19;
     R[2] = _t18;
@@ -293,8 +318,12 @@ static int unicycle_switch_solve_decoupling(double *r, double *w)
     return UNICYCLE_SWITCH_OK;
 }
 
-/* The paper's law at one state: the plant input u and, unless ds is NULL, ds/dt. */
-static int unicycle_switch_law(double t, const double *s, const double *params, double *ds, double *u)
+/* The jet's terms of time and parameters alone: computed once for a batch of states. */
+#define UNICYCLE_SWITCH_N_TAU 8
+
+/* The paper's law at one state: the plant input u and, unless ds is NULL, ds/dt (tau: the jet's
+ * terms of time and parameters, jet_time). */
+static int unicycle_switch_law(double t, const double *s, const double *params, const double *tau, double *ds, double *u)
 {
     double z[UNICYCLE_SWITCH_N_OUTPUTS];
     double r[UNICYCLE_SWITCH_R_ENTRIES];
@@ -305,7 +334,7 @@ static int unicycle_switch_law(double t, const double *s, const double *params, 
         return status;
     }
     /* y_imp^(K): the constant Hessian of f0 was inverted exactly at generation time. */
-    unicycle_switch_k_jet(t, s, params, unicycle_switch_hurwitz_coefficients, z, r, pvec);
+    unicycle_switch_k_jet(t, s, params, unicycle_switch_hurwitz_coefficients, tau, z, r, pvec);
     if (unicycle_switch_probe(z, UNICYCLE_SWITCH_N_OUTPUTS) + unicycle_switch_probe(r, UNICYCLE_SWITCH_R_ENTRIES)
         + unicycle_switch_probe(pvec, UNICYCLE_SWITCH_N_OUTPUTS) != 0.0) {
         return UNICYCLE_SWITCH_NONFINITE_OUTPUT;
@@ -332,13 +361,19 @@ static int unicycle_switch_law(double t, const double *s, const double *params, 
 
 int unicycle_switch_control(double t, const double *s, const double *params, double *out)
 {
-    return unicycle_switch_law(t, s, params ? params : UNICYCLE_SWITCH_DEFAULT_PARAMS, NULL, out);
+    const double *p = params ? params : UNICYCLE_SWITCH_DEFAULT_PARAMS;
+    double tau[UNICYCLE_SWITCH_N_TAU];
+    unicycle_switch_k_jet_time(t, p, unicycle_switch_hurwitz_coefficients, tau);
+    return unicycle_switch_law(t, s, p, tau, NULL, out);
 }
 
 int unicycle_switch_rhs(double t, const double *s, const double *params, double *out)
 {
+    const double *p = params ? params : UNICYCLE_SWITCH_DEFAULT_PARAMS;
     double u[UNICYCLE_SWITCH_N_INPUTS];
-    return unicycle_switch_law(t, s, params ? params : UNICYCLE_SWITCH_DEFAULT_PARAMS, out, u);
+    double tau[UNICYCLE_SWITCH_N_TAU];
+    unicycle_switch_k_jet_time(t, p, unicycle_switch_hurwitz_coefficients, tau);
+    return unicycle_switch_law(t, s, p, tau, out, u);
 }
 
 int unicycle_switch_optimality_error(double t, const double *s, const double *params, double *out)
@@ -385,11 +420,16 @@ int unicycle_switch_hessian(double t, const double *y, const double *params, dou
     return unicycle_switch_probe(out, UNICYCLE_SWITCH_N_OUTPUTS * UNICYCLE_SWITCH_N_OUTPUTS) == 0.0 ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
 }
 
+/* The law at count states and one time: what depends on time and parameters alone is
+ * computed once for the batch. */
 int unicycle_switch_control_batch(size_t count, double t, const double *s, const double *params, double *out, size_t *failed)
 {
+    const double *p = params ? params : UNICYCLE_SWITCH_DEFAULT_PARAMS;
+    double tau[UNICYCLE_SWITCH_N_TAU];
     size_t i;
+    unicycle_switch_k_jet_time(t, p, unicycle_switch_hurwitz_coefficients, tau);
     for (i = 0; i < count; ++i) {
-        const int status = unicycle_switch_control(t, s + i * UNICYCLE_SWITCH_N_STATES, params, out + i * (UNICYCLE_SWITCH_N_INPUTS));
+        const int status = unicycle_switch_law(t, s + i * UNICYCLE_SWITCH_N_STATES, p, tau, NULL, out + i * UNICYCLE_SWITCH_N_INPUTS);
         if (status != UNICYCLE_SWITCH_OK) {
             if (failed) {
                 *failed = i;
@@ -400,11 +440,17 @@ int unicycle_switch_control_batch(size_t count, double t, const double *s, const
     return UNICYCLE_SWITCH_OK;
 }
 
+/* The law at count states and one time: what depends on time and parameters alone is
+ * computed once for the batch. */
 int unicycle_switch_rhs_batch(size_t count, double t, const double *s, const double *params, double *out, size_t *failed)
 {
+    const double *p = params ? params : UNICYCLE_SWITCH_DEFAULT_PARAMS;
+    double u[UNICYCLE_SWITCH_N_INPUTS];
+    double tau[UNICYCLE_SWITCH_N_TAU];
     size_t i;
+    unicycle_switch_k_jet_time(t, p, unicycle_switch_hurwitz_coefficients, tau);
     for (i = 0; i < count; ++i) {
-        const int status = unicycle_switch_rhs(t, s + i * UNICYCLE_SWITCH_N_STATES, params, out + i * (UNICYCLE_SWITCH_N_STATES));
+        const int status = unicycle_switch_law(t, s + i * UNICYCLE_SWITCH_N_STATES, p, tau, out + i * UNICYCLE_SWITCH_N_STATES, u);
         if (status != UNICYCLE_SWITCH_OK) {
             if (failed) {
                 *failed = i;
