@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/extension.c.jinja
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: d4e68654b2057acb8bc8fdcee3301ab6579c8ab51cb51d0a78a105f6782cda5c
+ * content sha256: 97cd504af3131ef9ed00aef38eb4ee2ad129a9d2740e7b78cc125002bb5c39a5
  */
 
 /*
@@ -27,26 +27,32 @@
 
 #define ROWS_MAX (INTEGRATOR_N_STATES > INTEGRATOR_N_OUTPUTS ? INTEGRATOR_N_STATES : INTEGRATOR_N_OUTPUTS)
 
-typedef int (*point_function)(double, const double *, const double *, double *);
+typedef int (*batch_function)(size_t, double, const double *, const double *, double *, size_t *);
 
 typedef struct {
-    point_function evaluate;
+    batch_function evaluate;
     npy_intp rows;      /* length of one column of s */
     int ndim;           /* dimensions of one result */
     npy_intp shape[2];  /* its shape */
 } entry;
 
 static const entry ENTRIES[6] = {
-    { integrator_control, INTEGRATOR_N_STATES, 1, { INTEGRATOR_N_INPUTS, 1}},
-    { integrator_rhs, INTEGRATOR_N_STATES, 1, { INTEGRATOR_N_STATES, 1}},
-    { integrator_optimality_error, INTEGRATOR_N_STATES, 2, { INTEGRATOR_K, INTEGRATOR_N_OUTPUTS}},
-    { integrator_objective, INTEGRATOR_N_OUTPUTS, 0, {1, 1}},
-    { integrator_gradient, INTEGRATOR_N_OUTPUTS, 1, { INTEGRATOR_N_OUTPUTS, 1}},
-    { integrator_hessian, INTEGRATOR_N_OUTPUTS, 2, { INTEGRATOR_N_OUTPUTS, INTEGRATOR_N_OUTPUTS}},
+    { integrator_control_batch, INTEGRATOR_N_STATES, 1, { INTEGRATOR_N_INPUTS, 1}},
+    { integrator_rhs_batch, INTEGRATOR_N_STATES, 1, { INTEGRATOR_N_STATES, 1}},
+    { integrator_optimality_error_batch, INTEGRATOR_N_STATES, 2, { INTEGRATOR_K, INTEGRATOR_N_OUTPUTS}},
+    { integrator_objective_batch, INTEGRATOR_N_OUTPUTS, 0, {1, 1}},
+    { integrator_gradient_batch, INTEGRATOR_N_OUTPUTS, 1, { INTEGRATOR_N_OUTPUTS, 1}},
+    { integrator_hessian_batch, INTEGRATOR_N_OUTPUTS, 2, { INTEGRATOR_N_OUTPUTS, INTEGRATOR_N_OUTPUTS}},
 };
 
 /* The largest result: one column of the rhs, the optimality error or the Hessian. */
 #define RESULT_MAX (4)
+
+/* Columns per call of a batch function: the C's batch functions evaluate what depends on
+ * time and parameters alone once per call. Up to 64, within 64 KiB of stack for both
+ * buffers. */
+#define CHUNK_FIT (8192 / ((ROWS_MAX > 0 ? ROWS_MAX : 1) + RESULT_MAX))
+#define CHUNK (CHUNK_FIT > 64 ? 64 : (CHUNK_FIT > 0 ? CHUNK_FIT : 1))
 
 static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -99,24 +105,30 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     npy_intp column_stride = columns_given ? PyArray_STRIDE(s, 1) : 0;
     const double *params = (const double *)PyArray_DATA(p);
     double *result = (double *)PyArray_DATA((PyArrayObject *)out);
-    double column[ROWS_MAX > 0 ? ROWS_MAX : 1];
-    double value[RESULT_MAX];
+    double columns[CHUNK * (ROWS_MAX > 0 ? ROWS_MAX : 1)];
+    double values[CHUNK * RESULT_MAX];
     int status = 0;
     npy_intp failed = 0;
     /* Only large batches are worth the cost of releasing the GIL. */
     PyThreadState *saved = points >= 64 ? PyEval_SaveThread() : NULL;
-    for (npy_intp i = 0; i < points; ++i) {
-        const char *first = base + i * column_stride;
-        for (npy_intp r = 0; r < e->rows; ++r)
-            column[r] = *(const double *)(first + r * row_stride);
-        status = e->evaluate(t, column, params, value);
+    for (npy_intp start = 0; start < points && status == 0; start += CHUNK) {
+        const npy_intp count = points - start < CHUNK ? points - start : CHUNK;
+        size_t bad = 0;
+        /* Gathered point after point, whatever the strides of s. */
+        for (npy_intp i = 0; i < count; ++i) {
+            const char *first = base + (start + i) * column_stride;
+            for (npy_intp r = 0; r < e->rows; ++r)
+                columns[i * e->rows + r] = *(const double *)(first + r * row_stride);
+        }
+        status = e->evaluate((size_t)count, t, columns, params, values, &bad);
         if (status != 0) {
-            failed = i;
+            failed = start + (npy_intp)bad;
             break;
         }
         /* The result's last axis is the column: element j of column i is at j*N + i. */
-        for (npy_intp j = 0; j < size; ++j)
-            result[j * points + i] = value[j];
+        for (npy_intp i = 0; i < count; ++i)
+            for (npy_intp j = 0; j < size; ++j)
+                result[j * points + start + i] = values[i * size + j];
     }
     if (saved != NULL)
         PyEval_RestoreThread(saved);

@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/extension.c.jinja
  * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: 0e7bc4d630a5e26aba1be270dadbea0cd52de54a3466b31b83698cc213dcab11
+ * content sha256: 859794541bdce7a05173f7fbc2a506504d444f4ac24841624bb43d0be8640c25
  */
 
 /*
@@ -27,26 +27,32 @@
 
 #define ROWS_MAX (PVTOL_N_STATES > PVTOL_N_OUTPUTS ? PVTOL_N_STATES : PVTOL_N_OUTPUTS)
 
-typedef int (*point_function)(double, const double *, const double *, double *);
+typedef int (*batch_function)(size_t, double, const double *, const double *, double *, size_t *);
 
 typedef struct {
-    point_function evaluate;
+    batch_function evaluate;
     npy_intp rows;      /* length of one column of s */
     int ndim;           /* dimensions of one result */
     npy_intp shape[2];  /* its shape */
 } entry;
 
 static const entry ENTRIES[6] = {
-    { pvtol_control, PVTOL_N_STATES, 1, { PVTOL_N_INPUTS, 1}},
-    { pvtol_rhs, PVTOL_N_STATES, 1, { PVTOL_N_STATES, 1}},
-    { pvtol_optimality_error, PVTOL_N_STATES, 2, { PVTOL_K, PVTOL_N_OUTPUTS}},
-    { pvtol_objective, PVTOL_N_OUTPUTS, 0, {1, 1}},
-    { pvtol_gradient, PVTOL_N_OUTPUTS, 1, { PVTOL_N_OUTPUTS, 1}},
-    { pvtol_hessian, PVTOL_N_OUTPUTS, 2, { PVTOL_N_OUTPUTS, PVTOL_N_OUTPUTS}},
+    { pvtol_control_batch, PVTOL_N_STATES, 1, { PVTOL_N_INPUTS, 1}},
+    { pvtol_rhs_batch, PVTOL_N_STATES, 1, { PVTOL_N_STATES, 1}},
+    { pvtol_optimality_error_batch, PVTOL_N_STATES, 2, { PVTOL_K, PVTOL_N_OUTPUTS}},
+    { pvtol_objective_batch, PVTOL_N_OUTPUTS, 0, {1, 1}},
+    { pvtol_gradient_batch, PVTOL_N_OUTPUTS, 1, { PVTOL_N_OUTPUTS, 1}},
+    { pvtol_hessian_batch, PVTOL_N_OUTPUTS, 2, { PVTOL_N_OUTPUTS, PVTOL_N_OUTPUTS}},
 };
 
 /* The largest result: one column of the rhs, the optimality error or the Hessian. */
 #define RESULT_MAX (8)
+
+/* Columns per call of a batch function: the C's batch functions evaluate what depends on
+ * time and parameters alone once per call. Up to 64, within 64 KiB of stack for both
+ * buffers. */
+#define CHUNK_FIT (8192 / ((ROWS_MAX > 0 ? ROWS_MAX : 1) + RESULT_MAX))
+#define CHUNK (CHUNK_FIT > 64 ? 64 : (CHUNK_FIT > 0 ? CHUNK_FIT : 1))
 
 static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -99,24 +105,30 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     npy_intp column_stride = columns_given ? PyArray_STRIDE(s, 1) : 0;
     const double *params = (const double *)PyArray_DATA(p);
     double *result = (double *)PyArray_DATA((PyArrayObject *)out);
-    double column[ROWS_MAX > 0 ? ROWS_MAX : 1];
-    double value[RESULT_MAX];
+    double columns[CHUNK * (ROWS_MAX > 0 ? ROWS_MAX : 1)];
+    double values[CHUNK * RESULT_MAX];
     int status = 0;
     npy_intp failed = 0;
     /* Only large batches are worth the cost of releasing the GIL. */
     PyThreadState *saved = points >= 64 ? PyEval_SaveThread() : NULL;
-    for (npy_intp i = 0; i < points; ++i) {
-        const char *first = base + i * column_stride;
-        for (npy_intp r = 0; r < e->rows; ++r)
-            column[r] = *(const double *)(first + r * row_stride);
-        status = e->evaluate(t, column, params, value);
+    for (npy_intp start = 0; start < points && status == 0; start += CHUNK) {
+        const npy_intp count = points - start < CHUNK ? points - start : CHUNK;
+        size_t bad = 0;
+        /* Gathered point after point, whatever the strides of s. */
+        for (npy_intp i = 0; i < count; ++i) {
+            const char *first = base + (start + i) * column_stride;
+            for (npy_intp r = 0; r < e->rows; ++r)
+                columns[i * e->rows + r] = *(const double *)(first + r * row_stride);
+        }
+        status = e->evaluate((size_t)count, t, columns, params, values, &bad);
         if (status != 0) {
-            failed = i;
+            failed = start + (npy_intp)bad;
             break;
         }
         /* The result's last axis is the column: element j of column i is at j*N + i. */
-        for (npy_intp j = 0; j < size; ++j)
-            result[j * points + i] = value[j];
+        for (npy_intp i = 0; i < count; ++i)
+            for (npy_intp j = 0; j < size; ++j)
+                result[j * points + start + i] = values[i * size + j];
     }
     if (saved != NULL)
         PyEval_RestoreThread(saved);

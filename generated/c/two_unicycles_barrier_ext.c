@@ -2,7 +2,7 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/extension.c.jinja
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 32251c0580e6489e2abc9f0dd58d81a549609c51cb211329e92b7ab3491eb322
+ * content sha256: a22806033709c3ebee5eef77ac16a40c4231dfc5392089a1015ca77b93fff7a2
  */
 
 /*
@@ -27,26 +27,32 @@
 
 #define ROWS_MAX (TWO_UNICYCLES_BARRIER_N_STATES > TWO_UNICYCLES_BARRIER_N_OUTPUTS ? TWO_UNICYCLES_BARRIER_N_STATES : TWO_UNICYCLES_BARRIER_N_OUTPUTS)
 
-typedef int (*point_function)(double, const double *, const double *, double *);
+typedef int (*batch_function)(size_t, double, const double *, const double *, double *, size_t *);
 
 typedef struct {
-    point_function evaluate;
+    batch_function evaluate;
     npy_intp rows;      /* length of one column of s */
     int ndim;           /* dimensions of one result */
     npy_intp shape[2];  /* its shape */
 } entry;
 
 static const entry ENTRIES[6] = {
-    { two_unicycles_barrier_control, TWO_UNICYCLES_BARRIER_N_STATES, 1, { TWO_UNICYCLES_BARRIER_N_INPUTS, 1}},
-    { two_unicycles_barrier_rhs, TWO_UNICYCLES_BARRIER_N_STATES, 1, { TWO_UNICYCLES_BARRIER_N_STATES, 1}},
-    { two_unicycles_barrier_optimality_error, TWO_UNICYCLES_BARRIER_N_STATES, 2, { TWO_UNICYCLES_BARRIER_K, TWO_UNICYCLES_BARRIER_N_OUTPUTS}},
-    { two_unicycles_barrier_objective, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 0, {1, 1}},
-    { two_unicycles_barrier_gradient, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 1, { TWO_UNICYCLES_BARRIER_N_OUTPUTS, 1}},
-    { two_unicycles_barrier_hessian, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 2, { TWO_UNICYCLES_BARRIER_N_OUTPUTS, TWO_UNICYCLES_BARRIER_N_OUTPUTS}},
+    { two_unicycles_barrier_control_batch, TWO_UNICYCLES_BARRIER_N_STATES, 1, { TWO_UNICYCLES_BARRIER_N_INPUTS, 1}},
+    { two_unicycles_barrier_rhs_batch, TWO_UNICYCLES_BARRIER_N_STATES, 1, { TWO_UNICYCLES_BARRIER_N_STATES, 1}},
+    { two_unicycles_barrier_optimality_error_batch, TWO_UNICYCLES_BARRIER_N_STATES, 2, { TWO_UNICYCLES_BARRIER_K, TWO_UNICYCLES_BARRIER_N_OUTPUTS}},
+    { two_unicycles_barrier_objective_batch, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 0, {1, 1}},
+    { two_unicycles_barrier_gradient_batch, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 1, { TWO_UNICYCLES_BARRIER_N_OUTPUTS, 1}},
+    { two_unicycles_barrier_hessian_batch, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 2, { TWO_UNICYCLES_BARRIER_N_OUTPUTS, TWO_UNICYCLES_BARRIER_N_OUTPUTS}},
 };
 
 /* The largest result: one column of the rhs, the optimality error or the Hessian. */
 #define RESULT_MAX (16)
+
+/* Columns per call of a batch function: the C's batch functions evaluate what depends on
+ * time and parameters alone once per call. Up to 64, within 64 KiB of stack for both
+ * buffers. */
+#define CHUNK_FIT (8192 / ((ROWS_MAX > 0 ? ROWS_MAX : 1) + RESULT_MAX))
+#define CHUNK (CHUNK_FIT > 64 ? 64 : (CHUNK_FIT > 0 ? CHUNK_FIT : 1))
 
 static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -99,24 +105,30 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     npy_intp column_stride = columns_given ? PyArray_STRIDE(s, 1) : 0;
     const double *params = (const double *)PyArray_DATA(p);
     double *result = (double *)PyArray_DATA((PyArrayObject *)out);
-    double column[ROWS_MAX > 0 ? ROWS_MAX : 1];
-    double value[RESULT_MAX];
+    double columns[CHUNK * (ROWS_MAX > 0 ? ROWS_MAX : 1)];
+    double values[CHUNK * RESULT_MAX];
     int status = 0;
     npy_intp failed = 0;
     /* Only large batches are worth the cost of releasing the GIL. */
     PyThreadState *saved = points >= 64 ? PyEval_SaveThread() : NULL;
-    for (npy_intp i = 0; i < points; ++i) {
-        const char *first = base + i * column_stride;
-        for (npy_intp r = 0; r < e->rows; ++r)
-            column[r] = *(const double *)(first + r * row_stride);
-        status = e->evaluate(t, column, params, value);
+    for (npy_intp start = 0; start < points && status == 0; start += CHUNK) {
+        const npy_intp count = points - start < CHUNK ? points - start : CHUNK;
+        size_t bad = 0;
+        /* Gathered point after point, whatever the strides of s. */
+        for (npy_intp i = 0; i < count; ++i) {
+            const char *first = base + (start + i) * column_stride;
+            for (npy_intp r = 0; r < e->rows; ++r)
+                columns[i * e->rows + r] = *(const double *)(first + r * row_stride);
+        }
+        status = e->evaluate((size_t)count, t, columns, params, values, &bad);
         if (status != 0) {
-            failed = i;
+            failed = start + (npy_intp)bad;
             break;
         }
         /* The result's last axis is the column: element j of column i is at j*N + i. */
-        for (npy_intp j = 0; j < size; ++j)
-            result[j * points + i] = value[j];
+        for (npy_intp i = 0; i < count; ++i)
+            for (npy_intp j = 0; j < size; ++j)
+                result[j * points + start + i] = values[i * size + j];
     }
     if (saved != NULL)
         PyEval_RestoreThread(saved);
