@@ -435,3 +435,17 @@ def test_lu_row_exchanges_in_both_backends(
         np.testing.assert_allclose(
             mod.rhs(0.7, states), ds_ref, rtol=1e-10, atol=1e-10 * np.abs(ds_ref).max()
         )
+
+
+def test_large_batches_through_the_entry_point(tmp_path_factory: pytest.TempPathFactory) -> None:
+    # The entry point hands the C batch functions up to 64 columns at a time: results join
+    # across chunks, and a failure in a later chunk names its column in the whole batch.
+    cmod = c_module("unicycle_switch", tmp_path_factory)
+    states = random_states("unicycle_switch", 300, seed=2)
+    whole = cmod.rhs(0.5, states)
+    for column in (0, 63, 64, 150, 299):
+        np.testing.assert_array_equal(whole[:, column], cmod.rhs(0.5, states[:, column]))
+    states[3, 150] = 0.0  # v = 0: R is singular
+    with pytest.raises(cmod.SingularDecouplingError, match=r"\(column 150\)") as info:
+        cmod.control(0.5, states)
+    assert info.value.index == 150
