@@ -6,12 +6,16 @@ import dataclasses
 import re
 import shutil
 import subprocess
+from html.entities import html5
 from pathlib import Path
+from xml.etree import ElementTree
 
 import pytest
 import sympy as sp
 
 from tvopt_codegen.cli import main
+from tvopt_codegen.derivation import derive
+from tvopt_codegen.ir import lower
 from tvopt_codegen.report import HEADINGS, render_report
 
 from .conftest import EXAMPLES, ROOT, derivation, kernels
@@ -150,3 +154,36 @@ def test_report_command_includes_simulation_results(
     assert html.count("data:image/png;base64,") == 3
     assert main(["report", "integrator", "--out", str(tmp_path / "md"), "--format", "md"]) == 0
     assert sorted(p.name for p in (tmp_path / "md").iterdir()) == ["integrator_report.md"]
+
+
+def test_large_sparse_matrices_are_listed_by_entry(tmp_path: Path) -> None:
+    # A ring of 10 agents: G, R, A, B and the Hessian are 20 x 20 or larger and mostly
+    # zero. Each is listed by its nonzero entries (the symmetric Hessian by its lower
+    # triangle), in the Markdown and as MathML tables in the HTML.
+    from .test_index import ring
+
+    m = 20
+    d = derive(ring(m // 2))
+    pages = render_report(d, lower(d), formats=("md", "html"))
+    md, html = pages["unicycle_ring_report.md"], pages["unicycle_ring_report.html"]
+    hess = d.hessian
+    assert (
+        f"Its Hessian ({m} x {m}, symmetric; the nonzero entries of its lower triangle, indexed "
+        f"from 1; the other {sum(1 for e in hess if e == 0)} entries are 0):" in md
+    )
+    entry = r"\left[\nabla_{{yy}} f_0\right]_{{{}, {}}} &= {}"
+    listed = [(i, j) for i in range(m) for j in range(i + 1) if hess[i, j] != 0]
+    for i, j in listed[:5] + listed[-5:]:
+        assert entry.format(i + 1, j + 1, sp.latex(hess[i, j])) in md
+    i, j = next((i, j) for i in range(m) for j in range(i) if hess[i, j] == 0)
+    assert entry.format(i + 1, j + 1, "") not in md
+    assert r"\left[\nabla_{yy} f_0\right]_{1, 2} &=" not in md  # upper triangle: not listed
+    assert sp.latex(hess) not in md  # not the dense matrix
+    assert f"Decoupling matrix, rows L_G L_f^(r_i - 1) h_i (paper, eq. (2)) ({m} x {m}, its" in md
+    # The MathML tables are well-formed XML, with HTML's named entities (&pi;) known to it.
+    tables = re.findall(r"<math[^>]*><mtable><mtr><mtd><msub>.*?</math>", html, re.S)
+    assert len(tables) >= 5
+    for table in tables:
+        for name in re.findall(r"&([A-Za-z]+;)", table):
+            assert name in html5
+        ElementTree.fromstring(re.sub(r"&[A-Za-z]+;", "", table))

@@ -31,6 +31,9 @@ from tvopt_codegen.render import render_template
 
 #: Equations longer than this (LaTeX characters) are folded, shown in full on demand.
 FOLD_AT = 600
+#: A matrix with more entries than this, most of them zero (a team's G, R or Hessian), is
+#: listed by its nonzero entries: a dense 64 x 64 array of zeros cannot be checked by eye.
+SPARSE_AT = 64
 #: Gradient-jet expressions above this many operations are described, not inlined.
 INLINE_OPS = 400
 #: Report formats and their templates.
@@ -125,7 +128,53 @@ def _name(latex: str, text: str) -> tuple[str, str]:
 
 
 def _math_entry(text: str, expr: object, lhs: tuple[str, str] | None = None) -> Entry:
-    return Entry("math", text=text, math=formula(expr, lhs))
+    value = sp.sympify(expr)
+    if lhs is not None and isinstance(value, sp.MatrixBase):
+        size = value.rows * value.cols
+        nonzero = [
+            ((i, j), value[i, j])
+            for i in range(value.rows)
+            for j in range(value.cols)
+            if value[i, j] != 0
+        ]
+        if size > SPARSE_AT and 2 * len(nonzero) <= size:
+            zeros = size - len(nonzero)
+            # Structurally symmetric (a Hessian is, entry by entry): the lower triangle says
+            # it all.
+            symmetric = value.rows == value.cols and all(
+                value[j, i] == e for (i, j), e in nonzero if i != j
+            )
+            if symmetric:
+                nonzero = [((i, j), e) for (i, j), e in nonzero if i >= j]
+            text = (
+                f"{text.rstrip(':')} ({value.rows} x {value.cols}, "
+                + (
+                    "symmetric; the nonzero entries of its lower triangle"
+                    if symmetric
+                    else "its nonzero entries"
+                )
+                + f", indexed from 1; the other {zeros} entries are 0):"
+            )
+            return Entry("math", text=text, math=_entries(nonzero, lhs))
+    return Entry("math", text=text, math=formula(value, lhs))
+
+
+def _entries(nonzero: Sequence[tuple[tuple[int, int], sp.Expr]], lhs: tuple[str, str]) -> Math:
+    """``[M]_ij = value`` for each listed entry, one per line, in both notations."""
+    latex = (
+        r"\begin{aligned}"
+        + r" \\ ".join(
+            rf"\left[{lhs[0]}\right]_{{{i + 1}, {j + 1}}} &= {sp.latex(e)}" for (i, j), e in nonzero
+        )
+        + r"\end{aligned}"
+    )
+    rows = "".join(
+        f"<mtr><mtd><msub><mrow><mo>[</mo>{lhs[1]}<mo>]</mo></mrow>"
+        f"<mrow><mn>{i + 1}</mn><mo>,</mo><mn>{j + 1}</mn></mrow></msub></mtd>"
+        f"<mtd><mo>=</mo></mtd><mtd>{mathml(e, printer='presentation')}</mtd></mtr>"
+        for (i, j), e in nonzero
+    )
+    return Math(latex, f"<mtable>{rows}</mtable>")
 
 
 def _smoothness(expr: sp.Expr) -> str:
