@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: fc65490359adb26913ecf113809418bd1f52d228e758e41999dcba16167f6141
+# content sha256: 2f18bf10389db325f9b1d4507a2c028106d21b46b2b5a99b9c3491792c569c6d
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -577,64 +577,40 @@ def _shifted(error, offset):
     return type(error)(message, index)
 
 
-def _control_one_block(t, s, p):
-    return _law(t, s, p, rates=False)[1]
-
-
-def _rhs_one_block(t, s, p):
-    return _law(t, s, p)[0]
-
-
-def _optimality_one_block(t, s, p):
-    with numpy.errstate(all="ignore"):
-        e = _optimality(t, s, p)
-    _check_finite("the optimality error", e)
-    return e
-
-
-def _objective_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _objective(t, y, p)
-    _check_finite("f0", value)
-    return value
-
-
-def _gradient_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _gradient(t, y, p)
-    _check_finite("the gradient of f0", value)
-    return value
-
-
-def _hessian_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _hessian(t, y, p)
-    _check_finite("the Hessian of f0", value)
-    return value
-
-
 def _control_values(t, s, p):
-    return _blockwise(_control_one_block, t, s, p)
+    return _blockwise(lambda t, s, p: _law(t, s, p, rates=False)[1], t, s, p)
 
 
 def _rhs_values(t, s, p):
-    return _blockwise(_rhs_one_block, t, s, p)
+    return _blockwise(lambda t, s, p: _law(t, s, p)[0], t, s, p)
 
 
-def _optimality_error(t, s, p):
-    return _blockwise(_optimality_one_block, t, s, p)
+def _kernel_values(kernel, what, t, x, p):
+    """``kernel`` over blocks of columns of ``x``, each checked to be finite."""
+
+    def one_block(t, x, p):
+        with numpy.errstate(all="ignore"):
+            value = kernel(t, x, p)
+        _check_finite(what, value)
+        return value
+
+    return _blockwise(one_block, t, x, p)
 
 
-def _objective_values(t, y, p):
-    return _blockwise(_objective_one_block, t, y, p)
+def _optimality_error(t, x, p):
+    return _kernel_values(_optimality, "the optimality error", t, x, p)
 
 
-def _gradient_values(t, y, p):
-    return _blockwise(_gradient_one_block, t, y, p)
+def _objective_values(t, x, p):
+    return _kernel_values(_objective, "f0", t, x, p)
 
 
-def _hessian_values(t, y, p):
-    return _blockwise(_hessian_one_block, t, y, p)
+def _gradient_values(t, x, p):
+    return _kernel_values(_gradient, "the gradient of f0", t, x, p)
+
+
+def _hessian_values(t, x, p):
+    return _kernel_values(_hessian, "the Hessian of f0", t, x, p)
 
 
 def control(t, s, params=None):

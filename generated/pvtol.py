@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: ffdbc63f038a7346b8080fdb42b11de44c9aac23e876300577d05b7aeebd562d
+# content sha256: 6d687fa11bbcfbac463990321f9ab5ba92b05ad77b4c914a74c8d35c66ba0e30
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -520,64 +520,40 @@ def _shifted(error, offset):
     return type(error)(message, index)
 
 
-def _control_one_block(t, s, p):
-    return _law(t, s, p, rates=False)[1]
-
-
-def _rhs_one_block(t, s, p):
-    return _law(t, s, p)[0]
-
-
-def _optimality_one_block(t, s, p):
-    with numpy.errstate(all="ignore"):
-        e = _optimality(t, s, p)
-    _check_finite("the optimality error", e)
-    return e
-
-
-def _objective_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _objective(t, y, p)
-    _check_finite("f0", value)
-    return value
-
-
-def _gradient_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _gradient(t, y, p)
-    _check_finite("the gradient of f0", value)
-    return value
-
-
-def _hessian_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _hessian(t, y, p)
-    _check_finite("the Hessian of f0", value)
-    return value
-
-
 def _control_values(t, s, p):
-    return _blockwise(_control_one_block, t, s, p)
+    return _blockwise(lambda t, s, p: _law(t, s, p, rates=False)[1], t, s, p)
 
 
 def _rhs_values(t, s, p):
-    return _blockwise(_rhs_one_block, t, s, p)
+    return _blockwise(lambda t, s, p: _law(t, s, p)[0], t, s, p)
 
 
-def _optimality_error(t, s, p):
-    return _blockwise(_optimality_one_block, t, s, p)
+def _kernel_values(kernel, what, t, x, p):
+    """``kernel`` over blocks of columns of ``x``, each checked to be finite."""
+
+    def one_block(t, x, p):
+        with numpy.errstate(all="ignore"):
+            value = kernel(t, x, p)
+        _check_finite(what, value)
+        return value
+
+    return _blockwise(one_block, t, x, p)
 
 
-def _objective_values(t, y, p):
-    return _blockwise(_objective_one_block, t, y, p)
+def _optimality_error(t, x, p):
+    return _kernel_values(_optimality, "the optimality error", t, x, p)
 
 
-def _gradient_values(t, y, p):
-    return _blockwise(_gradient_one_block, t, y, p)
+def _objective_values(t, x, p):
+    return _kernel_values(_objective, "f0", t, x, p)
 
 
-def _hessian_values(t, y, p):
-    return _blockwise(_hessian_one_block, t, y, p)
+def _gradient_values(t, x, p):
+    return _kernel_values(_gradient, "the gradient of f0", t, x, p)
+
+
+def _hessian_values(t, x, p):
+    return _kernel_values(_hessian, "the Hessian of f0", t, x, p)
 
 
 def control(t, s, params=None):

@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 0c907903a5d8ad2cac9ca2466120d0e291b9f3e66dc2dad265461d3620ac528a
+# content sha256: b389805e349f7589be45c8db7feaf80af0e2171214d44cdbbe170bf310277acc
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -733,64 +733,40 @@ def _shifted(error, offset):
     return type(error)(message, index)
 
 
-def _control_one_block(t, s, p):
-    return _law(t, s, p, rates=False)[1]
-
-
-def _rhs_one_block(t, s, p):
-    return _law(t, s, p)[0]
-
-
-def _optimality_one_block(t, s, p):
-    with numpy.errstate(all="ignore"):
-        e = _optimality(t, s, p)
-    _check_finite("the optimality error", e)
-    return e
-
-
-def _objective_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _objective(t, y, p)
-    _check_finite("f0", value)
-    return value
-
-
-def _gradient_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _gradient(t, y, p)
-    _check_finite("the gradient of f0", value)
-    return value
-
-
-def _hessian_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _hessian(t, y, p)
-    _check_finite("the Hessian of f0", value)
-    return value
-
-
 def _control_values(t, s, p):
-    return _blockwise(_control_one_block, t, s, p)
+    return _blockwise(lambda t, s, p: _law(t, s, p, rates=False)[1], t, s, p)
 
 
 def _rhs_values(t, s, p):
-    return _blockwise(_rhs_one_block, t, s, p)
+    return _blockwise(lambda t, s, p: _law(t, s, p)[0], t, s, p)
 
 
-def _optimality_error(t, s, p):
-    return _blockwise(_optimality_one_block, t, s, p)
+def _kernel_values(kernel, what, t, x, p):
+    """``kernel`` over blocks of columns of ``x``, each checked to be finite."""
+
+    def one_block(t, x, p):
+        with numpy.errstate(all="ignore"):
+            value = kernel(t, x, p)
+        _check_finite(what, value)
+        return value
+
+    return _blockwise(one_block, t, x, p)
 
 
-def _objective_values(t, y, p):
-    return _blockwise(_objective_one_block, t, y, p)
+def _optimality_error(t, x, p):
+    return _kernel_values(_optimality, "the optimality error", t, x, p)
 
 
-def _gradient_values(t, y, p):
-    return _blockwise(_gradient_one_block, t, y, p)
+def _objective_values(t, x, p):
+    return _kernel_values(_objective, "f0", t, x, p)
 
 
-def _hessian_values(t, y, p):
-    return _blockwise(_hessian_one_block, t, y, p)
+def _gradient_values(t, x, p):
+    return _kernel_values(_gradient, "the gradient of f0", t, x, p)
+
+
+def _hessian_values(t, x, p):
+    return _kernel_values(_hessian, "the Hessian of f0", t, x, p)
 
 
 def control(t, s, params=None):

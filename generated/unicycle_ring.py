@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 836a016090dbc6e73da39c74b25d37e221e3b13a1f2fbbfbdbe8117a32253ec7
+# content sha256: 639c8fc5c26e275a64430fb97328473fd8023ded9e5c451b23587e6de6d2d499
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -1302,64 +1302,40 @@ def _shifted(error, offset):
     return type(error)(message, index)
 
 
-def _control_one_block(t, s, p):
-    return _law(t, s, p, rates=False)[1]
-
-
-def _rhs_one_block(t, s, p):
-    return _law(t, s, p)[0]
-
-
-def _optimality_one_block(t, s, p):
-    with numpy.errstate(all="ignore"):
-        e = _optimality(t, s, p)
-    _check_finite("the optimality error", e)
-    return e
-
-
-def _objective_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _objective(t, y, p)
-    _check_finite("f0", value)
-    return value
-
-
-def _gradient_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _gradient(t, y, p)
-    _check_finite("the gradient of f0", value)
-    return value
-
-
-def _hessian_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _hessian(t, y, p)
-    _check_finite("the Hessian of f0", value)
-    return value
-
-
 def _control_values(t, s, p):
-    return _blockwise(_control_one_block, t, s, p)
+    return _blockwise(lambda t, s, p: _law(t, s, p, rates=False)[1], t, s, p)
 
 
 def _rhs_values(t, s, p):
-    return _blockwise(_rhs_one_block, t, s, p)
+    return _blockwise(lambda t, s, p: _law(t, s, p)[0], t, s, p)
 
 
-def _optimality_error(t, s, p):
-    return _blockwise(_optimality_one_block, t, s, p)
+def _kernel_values(kernel, what, t, x, p):
+    """``kernel`` over blocks of columns of ``x``, each checked to be finite."""
+
+    def one_block(t, x, p):
+        with numpy.errstate(all="ignore"):
+            value = kernel(t, x, p)
+        _check_finite(what, value)
+        return value
+
+    return _blockwise(one_block, t, x, p)
 
 
-def _objective_values(t, y, p):
-    return _blockwise(_objective_one_block, t, y, p)
+def _optimality_error(t, x, p):
+    return _kernel_values(_optimality, "the optimality error", t, x, p)
 
 
-def _gradient_values(t, y, p):
-    return _blockwise(_gradient_one_block, t, y, p)
+def _objective_values(t, x, p):
+    return _kernel_values(_objective, "f0", t, x, p)
 
 
-def _hessian_values(t, y, p):
-    return _blockwise(_hessian_one_block, t, y, p)
+def _gradient_values(t, x, p):
+    return _kernel_values(_gradient, "the gradient of f0", t, x, p)
+
+
+def _hessian_values(t, x, p):
+    return _kernel_values(_hessian, "the Hessian of f0", t, x, p)
 
 
 def control(t, s, params=None):

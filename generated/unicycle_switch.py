@@ -3,7 +3,7 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: a2778d0a6e0a523ab6bd66be98fac6b0abbde982896023cf898418c21306be52
+# content sha256: 96feefd44b1aaccf717c0978822c8fbb0b748291ccda044df7204b4e84648b5f
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -507,64 +507,40 @@ def _shifted(error, offset):
     return type(error)(message, index)
 
 
-def _control_one_block(t, s, p):
-    return _law(t, s, p, rates=False)[1]
-
-
-def _rhs_one_block(t, s, p):
-    return _law(t, s, p)[0]
-
-
-def _optimality_one_block(t, s, p):
-    with numpy.errstate(all="ignore"):
-        e = _optimality(t, s, p)
-    _check_finite("the optimality error", e)
-    return e
-
-
-def _objective_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _objective(t, y, p)
-    _check_finite("f0", value)
-    return value
-
-
-def _gradient_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _gradient(t, y, p)
-    _check_finite("the gradient of f0", value)
-    return value
-
-
-def _hessian_one_block(t, y, p):
-    with numpy.errstate(all="ignore"):
-        value = _hessian(t, y, p)
-    _check_finite("the Hessian of f0", value)
-    return value
-
-
 def _control_values(t, s, p):
-    return _blockwise(_control_one_block, t, s, p)
+    return _blockwise(lambda t, s, p: _law(t, s, p, rates=False)[1], t, s, p)
 
 
 def _rhs_values(t, s, p):
-    return _blockwise(_rhs_one_block, t, s, p)
+    return _blockwise(lambda t, s, p: _law(t, s, p)[0], t, s, p)
 
 
-def _optimality_error(t, s, p):
-    return _blockwise(_optimality_one_block, t, s, p)
+def _kernel_values(kernel, what, t, x, p):
+    """``kernel`` over blocks of columns of ``x``, each checked to be finite."""
+
+    def one_block(t, x, p):
+        with numpy.errstate(all="ignore"):
+            value = kernel(t, x, p)
+        _check_finite(what, value)
+        return value
+
+    return _blockwise(one_block, t, x, p)
 
 
-def _objective_values(t, y, p):
-    return _blockwise(_objective_one_block, t, y, p)
+def _optimality_error(t, x, p):
+    return _kernel_values(_optimality, "the optimality error", t, x, p)
 
 
-def _gradient_values(t, y, p):
-    return _blockwise(_gradient_one_block, t, y, p)
+def _objective_values(t, x, p):
+    return _kernel_values(_objective, "f0", t, x, p)
 
 
-def _hessian_values(t, y, p):
-    return _blockwise(_hessian_one_block, t, y, p)
+def _gradient_values(t, x, p):
+    return _kernel_values(_gradient, "the gradient of f0", t, x, p)
+
+
+def _hessian_values(t, x, p):
+    return _kernel_values(_hessian, "the Hessian of f0", t, x, p)
 
 
 def control(t, s, params=None):

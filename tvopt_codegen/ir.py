@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import sympy as sp
 
 from tvopt_codegen.derivation import Derivation
-from tvopt_codegen.jet import Assignment
+from tvopt_codegen.jet import Assignment, fresh_symbols
 
 
 @dataclass(frozen=True)
@@ -207,22 +207,22 @@ def _substitute(
     return visit(sp.sympify(expr))
 
 
-def _negated_symbol(value: sp.Basic) -> bool:
-    """Whether ``value`` is ``-x`` for a symbol ``x`` (printing it costs nothing)."""
+def _negated_atom(value: sp.Basic) -> bool:
+    """Whether ``value`` is ``-x`` for a symbol or constant ``x`` (printing it costs nothing)."""
     return bool(
-        value.is_Mul and len(value.args) == 2 and value.args[0] == -1 and value.args[1].is_Symbol
+        value.is_Mul and len(value.args) == 2 and value.args[0] == -1 and value.args[1].is_Atom
     )
 
 
 def _drop_aliases(
     assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
 ) -> tuple[list[Assignment], list[sp.Expr]]:
-    """Substitute assignments whose value is a bare symbol or number, or a negated symbol."""
+    """Substitute assignments whose value is a bare symbol or constant, or its negation."""
     alias: dict[sp.Symbol, sp.Expr] = {}
     kept: list[Assignment] = []
     for sym, raw in assignments:
         value = _substitute(raw, alias)
-        if value.is_Symbol or value.is_Number or _negated_symbol(value):
+        if value.is_Atom or _negated_atom(value):
             alias[sym] = value
         else:
             kept.append((sym, value))
@@ -336,10 +336,7 @@ def _value_numbering(
 
     def worth(node: sp.Basic) -> bool:
         # A negated symbol or number is not worth a temporary: printing it is free.
-        return not (
-            node.is_Atom
-            or (node.is_Mul and len(node.args) == 2 and node.args[0] == -1 and node.args[1].is_Atom)
-        )
+        return not (node.is_Atom or _negated_atom(node))
 
     def find(node: sp.Basic) -> None:
         stack = [node]
@@ -582,7 +579,7 @@ def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel
             time_body.append((sym, value))
     if not time_body:
         return None
-    names = (sp.Symbol(f"_h{i}", real=True) for i in range(10**9))
+    names = fresh_symbols("_h")
     shared: dict[sp.Expr, sp.Symbol] = {}  # invariant value -> the state part's name for it
     memo: dict[sp.Basic, sp.Expr] = {}
 
@@ -765,7 +762,7 @@ def cholesky_program(
         a, b = sorted((position[i], position[j]), reverse=True)
         value[(a, b)] = symbol
     columns = _fill(pattern, order)
-    names = (sp.Symbol(f"_chol{i}", real=True) for i in range(10**9))
+    names = fresh_symbols("_chol")
     program: list[Assignment] = []
 
     def assign(expr: sp.Expr) -> sp.Expr:
