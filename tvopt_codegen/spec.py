@@ -28,6 +28,7 @@ from tvopt_codegen.parse import (
     indexed_name,
     parse_expression,
 )
+from tvopt_codegen.toml_shape import ShapeError, check_shape
 
 #: Largest spec file accepted, in bytes.
 MAX_SPEC_BYTES = 1_000_000
@@ -241,6 +242,10 @@ def parse_spec(source: str, raw: bytes) -> Spec:
         raise SpecError(source, "(file)", f"not UTF-8 text (byte {exc.start})") from None
     if "\x00" in text:
         raise SpecError(source, "(file)", "binary file (contains NUL bytes)")
+    try:
+        check_shape(text)
+    except ShapeError as exc:
+        raise SpecError(source, "(file)", str(exc)) from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
