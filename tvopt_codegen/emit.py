@@ -21,13 +21,14 @@ import hashlib
 import json
 import os
 import signal
+import stat
 import tempfile
 import threading
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 from tvopt_codegen.errors import OutputError
-from tvopt_codegen.render import is_pristine, stamped_hash
+from tvopt_codegen.render import is_pristine, stamped_hash, stamped_spec
 
 #: Name of the per-folder record of what tvopt-codegen wrote.
 MANIFEST = ".tvopt-manifest.json"
@@ -47,11 +48,63 @@ def _digest(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-def _read_manifest(folder: Path) -> dict[str, str]:
-    path = folder / MANIFEST
+#: Largest manifest or journal read (each names a few dozen files).
+_MAX_RECORD_BYTES = 4_000_000
+
+
+def read_regular_file(path: Path, limit: int) -> bytes | None:
+    """The content of ``path`` if it is a regular file of at most ``limit`` bytes.
+
+    Anything else (missing, a folder, a symbolic link, a FIFO or device, which could
+    block a read forever, or a larger file) gives ``None``; memory stays bounded by
+    ``limit`` whatever the file's size.
+    """
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError:
+        return None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode) or info.st_size > limit:
+            return None
+        chunks, total = [], 0
+        while total <= limit:
+            chunk = os.read(fd, min(1 << 20, limit + 1 - total))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            total += len(chunk)
+        return None if total > limit else b"".join(chunks)
+    except OSError:
+        return None
+    finally:
+        os.close(fd)
+
+
+def read_own_output(folder: str | Path, name: str, limit: int) -> bytes | None:
+    """A file this tool wrote into ``folder`` and nobody changed since, else ``None``.
+
+    The folder's manifest vouches for the file's SHA-256; a file it does not name,
+    one edited since, or one larger than ``limit`` bytes is not read (beyond
+    ``limit``).
+    """
+    folder = Path(folder)
+    expected = _read_manifest(folder).get(name)
+    if expected is None:
+        return None
+    data = read_regular_file(folder / name, limit)
+    if data is None or _digest(data) != expected:
+        return None
+    return data
+
+
+def _read_manifest(folder: Path) -> dict[str, str]:
+    raw = read_regular_file(folder / MANIFEST, _MAX_RECORD_BYTES)
+    if raw is None:
+        return {}
+    try:
+        data = json.loads(raw.decode("utf-8"))
+    except ValueError:
         return {}
     if not isinstance(data, dict):
         return {}
@@ -72,17 +125,43 @@ def _may_replace(path: Path, data: bytes, manifest: Mapping[str, str], force: bo
         raise OutputError(f"{path}: exists and cannot be read: {exc.strerror}") from None
     if current == data:
         return False
-    if force or manifest.get(path.name) == _digest(current):
+    if force:
         return True
     try:
-        if is_pristine(current.decode("utf-8")):
-            return True
+        text = current.decode("utf-8")
     except UnicodeDecodeError:
-        pass
+        text = None
+    if text is not None:
+        _refuse_another_specs_file(path, text, data)
+    if manifest.get(path.name) == _digest(current):
+        return True
+    if text is not None and is_pristine(text):
+        return True
     raise OutputError(
         f"{path}: was edited by hand or not written by tvopt-codegen; refusing to overwrite "
         "it (use --force to replace it)"
     )
+
+
+def _refuse_another_specs_file(path: Path, current: str, data: bytes) -> None:
+    """Raise when ``path`` was generated for one spec and ``data`` is another spec's file.
+
+    Two specs whose file names meet in one folder must not replace each other's
+    files, however pristine: the user would lose a controller without a word.
+    """
+    owner = stamped_spec(current)
+    if owner is None:
+        return
+    try:
+        incoming = stamped_spec(data.decode("utf-8"))
+    except UnicodeDecodeError:
+        incoming = None
+    if incoming != owner:
+        raise OutputError(
+            f"{path}: was generated for spec '{owner}', not for "
+            f"{f'spec {incoming!r}' if incoming else 'this run'}; refusing to replace "
+            "another spec's file (rename a spec, choose another --out, or use --force)"
+        )
 
 
 def prepare_folder(out_dir: str | Path) -> Path:
@@ -127,8 +206,11 @@ def recover(folder: Path) -> None:
     """Finish publications of processes that died mid-way; drop orphaned temporaries."""
     claimed: set[str] = set()
     for journal in sorted(folder.glob(f"{JOURNAL_PREFIX}*.json")):
+        raw = read_regular_file(journal, _MAX_RECORD_BYTES)
+        if raw is None:
+            continue
         try:
-            record = json.loads(journal.read_text(encoding="utf-8"))
+            record = json.loads(raw.decode("utf-8"))
             pid = int(record["pid"])
             pairs = [(str(a), str(b)) for a, b in record["renames"]]
         except (OSError, ValueError, KeyError, TypeError):

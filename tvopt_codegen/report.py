@@ -26,6 +26,7 @@ from sympy.printing.mathml import mathml
 
 from tvopt_codegen import __version__
 from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.emit import read_own_output
 from tvopt_codegen.ir import KernelSet
 from tvopt_codegen.render import render_template
 
@@ -332,8 +333,7 @@ def _linearization(d: Derivation) -> Section:
         entries.append(
             Entry(
                 "text",
-                text="det R is not expanded symbolically (more than four "
-                "outputs); the generated code checks every pivot at run time.",
+                text=f"det R is {d.det_R_note}; the generated code checks every pivot at run time.",
             )
         )
     entries.append(_math_entry("p = col(L_f^(r_i) h_i):", d.p, _name("p(x)", "p")))
@@ -569,13 +569,24 @@ def _simulation(d: Derivation, results: Mapping[str, bytes]) -> Section:
     return Section("Simulation", tuple(entries))
 
 
+#: Largest simulation output the report reads: a certificate is a few KB, a figure
+#: a few hundred.
+MAX_RESULT_BYTES = {"certificate.txt": 1_000_000, "png": 20_000_000}
+
+
 def read_results(folder: str | Path, name: str) -> dict[str, bytes]:
-    """The simulation outputs of ``name`` in ``folder`` the report shows (may be empty)."""
+    """The simulation outputs of ``name`` in ``folder`` the report shows (may be empty).
+
+    Only files ``simulate`` wrote there and nobody changed since are read, each within
+    a size bound, so a stray or huge file of that name costs neither memory nor trust.
+    """
     found = {}
     for stem in ("certificate.txt", "paths.png", "convergence.png", "inputs.png"):
-        path = Path(folder) / f"{name}_{stem}"
-        if path.is_file() and not path.is_symlink():
-            found[path.name] = path.read_bytes()
+        file_name = f"{name}_{stem}"
+        limit = MAX_RESULT_BYTES.get(stem, MAX_RESULT_BYTES["png"])
+        data = read_own_output(folder, file_name, limit)
+        if data is not None:
+            found[file_name] = data
     return found
 
 
