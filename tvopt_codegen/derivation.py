@@ -95,6 +95,8 @@ class Derivation:
         Symbols of ``state_names``.
     det_R : sympy.Expr or None
         ``det R`` factored, when computed symbolically (m <= 4).
+    det_R_note : str
+        Why ``det_R`` is None (empty when it was computed), for the summary and report.
     singular_set : tuple of str
         Conditions under which ``det R`` vanishes, in words.
     gradient : sympy.ImmutableMatrix
@@ -167,6 +169,7 @@ class Derivation:
     state_names: tuple[str, ...]
     states: tuple[sp.Symbol, ...]
     det_R: sp.Expr | None
+    det_R_note: str
     singular_set: tuple[str, ...]
     gradient: sp.ImmutableMatrix
     hessian_program: Program
@@ -219,6 +222,10 @@ class Budget:
     size: int = 20_000
 
 
+#: det R is simplified and factored only up to this many expression nodes.
+_DET_SIMPLIFY_NODES = 400
+
+
 def tree_size(expr: sp.Expr, limit: int) -> int:
     """Nodes of ``expr``'s tree, counting at most ``limit + 1`` (so the count is cheap)."""
     count = 0
@@ -255,8 +262,8 @@ class _Meter:
             self.last_report = now
             self.progress(self.stage, self.expressions, self.nodes, now - self.start)
 
-    def __call__(self, expr: sp.Expr) -> None:
-        self.expressions += 1
+    def check_time(self) -> None:
+        """Report progress now and then; raise when the time budget is spent."""
         now = time.perf_counter()
         if now - self.last_report > 0.5:
             self.report()
@@ -266,6 +273,10 @@ class _Meter:
                 self.stage,
                 f"the derivation took longer than {self.budget.seconds:g} s",
             )
+
+    def __call__(self, expr: sp.Expr) -> None:
+        self.expressions += 1
+        self.check_time()
         size = tree_size(sp.sympify(expr), self.budget.size)
         self.nodes += size
         if size > self.budget.size:
@@ -725,14 +736,23 @@ def derive(
     phi = sp.ImmutableMatrix([rd.lie[i][j] for i in range(m) for j in range(degrees[i])])
     A, B = brunovsky(degrees)
     det_R: sp.Expr | None = None
+    det_R_note = ""
     singular: tuple[str, ...] = ()
-    if m <= 4:
+    if m > 4:
+        det_R_note = f"not expanded symbolically (m = {m} > 4)"
+    else:
         det = R.det(method="berkowitz")
         meter(det)
         # simplify and factor are exact but can be slow on large entries: only small ones.
-        if tree_size(det, 400) <= 400:
+        if tree_size(det, _DET_SIMPLIFY_NODES) <= _DET_SIMPLIFY_NODES:
             det_R = sp.factor(sp.simplify(det))
+            # Charge simplify's time to this stage, not to the next one that checks.
+            meter.check_time()
             singular = _singular_set(det_R)
+        else:
+            det_R_note = (
+                f"not simplified symbolically (more than {_DET_SIMPLIFY_NODES} expression nodes)"
+            )
     clock.mark("decoupling matrix")
 
     say("objective")
@@ -846,6 +866,7 @@ def derive(
         state_names=state_names,
         states=states,
         det_R=det_R,
+        det_R_note=det_R_note,
         singular_set=singular,
         gradient=gradient,
         hessian_program=hessian_program,

@@ -69,10 +69,7 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
         )
         lines.append(f"  det R = {sp.sstr(d.det_R)}; {where}")
     else:
-        lines.append(
-            "  det R: not expanded symbolically (m > 4); singularity is checked at run "
-            "time by pivoting"
-        )
+        lines.append(f"  det R: {d.det_R_note}; singularity is checked at run time by pivoting")
     lines.append(
         f"  f0: strongly convex ({d.convexity.method}, m_f ~ "
         f"{_number(d.convexity.m_f)} over {d.convexity.points} point(s))"
