@@ -2,8 +2,9 @@
 # Do not edit by hand: edits are lost on regeneration, and tvopt-codegen refuses to
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
+# spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 2f18bf10389db325f9b1d4507a2c028106d21b46b2b5a99b9c3491792c569c6d
+# content sha256: f243b8d7b3a358e996e1248240bb2692ee31b00a024253fd7fe900285095b947
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -46,6 +47,8 @@ from collections.abc import Mapping
 
 import numpy
 
+#: The backend that generated this module: "python" (NumPy) or "c" (the compiled C).
+BACKEND = 'python'
 #: Closed-loop state order: plant states, extension states, padding states.
 STATE_NAMES = ('q1', 'w1', 'q2', 'w2')
 #: Plant inputs returned by :func:`control`.
@@ -132,7 +135,14 @@ def _time(t):
 
 def _columns(name, value, rows):
     """Return ``value`` as a float array of shape (rows, N) and whether it was 1-D."""
-    array = numpy.asarray(value, dtype=float)
+    array = numpy.asarray(value)
+    if array.dtype.kind == "c" or (
+        array.dtype.kind == "O"
+        and any(isinstance(v, (complex, numpy.complexfloating)) for v in array.flat)
+    ):
+        # numpy would drop the imaginary part with only a warning.
+        raise TypeError(f"{name} must be real, got complex values")
+    array = numpy.asarray(array, dtype=float)
     if array.ndim == 1 and array.shape[0] == rows:
         return array[:, None], True
     if array.ndim == 2 and array.shape[0] == rows:
@@ -149,7 +159,13 @@ def _parameters(params):
     unknown = [key for key in params if key not in PARAMETERS]
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
-    return numpy.array([float(params.get(key, default)) for key, default in PARAMETERS.items()])
+    values = []
+    for key, default in PARAMETERS.items():
+        value = params.get(key, default)
+        if isinstance(value, (complex, numpy.complexfloating)):
+            raise TypeError(f"parameter {key!r} must be real, got {value!r}")
+        values.append(float(value))
+    return numpy.array(values)
 
 
 def _check_inputs(t, array, p, what):
@@ -558,14 +574,25 @@ def _blockwise(function, t, s, p):
     """``function(t, s, p)`` over blocks of ``_BLOCK`` columns, joined on the last axis."""
     count = s.shape[1]
     if count <= _BLOCK:
-        return function(t, s, p)
+        return _overflow_checked(function, t, s, p)
     parts = []
     for start in range(0, count, _BLOCK):
         try:
-            parts.append(function(t, s[:, start:start + _BLOCK], p))
+            parts.append(_overflow_checked(function, t, s[:, start:start + _BLOCK], p))
         except ControllerError as error:
             raise _shifted(error, start) from None
     return numpy.concatenate(parts, axis=-1)
+
+
+def _overflow_checked(function, t, s, p):
+    """``function(t, s, p)``, with a Python float's overflow reported as the C reports inf."""
+    try:
+        return function(t, s, p)
+    except OverflowError:
+        # Terms of t alone are Python floats, which raise (t**2 at |t| = 1e200) where numpy
+        # and the C give inf.
+        raise NonFiniteOutputError(
+            "a result is not finite (column 0): a signal or f0 left its domain", 0) from None
 
 
 def _shifted(error, offset):

@@ -2,8 +2,9 @@
 # Do not edit by hand: edits are lost on regeneration, and tvopt-codegen refuses to
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
+# spec name: pvtol
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: 6d687fa11bbcfbac463990321f9ab5ba92b05ad77b4c914a74c8d35c66ba0e30
+# content sha256: 459e2677a4c389b28ecf37c2931eb53ab88bc06ccda3547ae218ff5f5f61d017
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -52,6 +53,8 @@ from collections.abc import Mapping
 
 import numpy
 
+#: The backend that generated this module: "python" (NumPy) or "c" (the compiled C).
+BACKEND = 'python'
 #: Closed-loop state order: plant states, extension states, padding states.
 STATE_NAMES = ('x', 'z', 'theta', 'vx', 'vz', 'omega', 'thrust', 'thrust_d1')
 #: Plant inputs returned by :func:`control`.
@@ -138,7 +141,14 @@ def _time(t):
 
 def _columns(name, value, rows):
     """Return ``value`` as a float array of shape (rows, N) and whether it was 1-D."""
-    array = numpy.asarray(value, dtype=float)
+    array = numpy.asarray(value)
+    if array.dtype.kind == "c" or (
+        array.dtype.kind == "O"
+        and any(isinstance(v, (complex, numpy.complexfloating)) for v in array.flat)
+    ):
+        # numpy would drop the imaginary part with only a warning.
+        raise TypeError(f"{name} must be real, got complex values")
+    array = numpy.asarray(array, dtype=float)
     if array.ndim == 1 and array.shape[0] == rows:
         return array[:, None], True
     if array.ndim == 2 and array.shape[0] == rows:
@@ -155,7 +165,13 @@ def _parameters(params):
     unknown = [key for key in params if key not in PARAMETERS]
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
-    return numpy.array([float(params.get(key, default)) for key, default in PARAMETERS.items()])
+    values = []
+    for key, default in PARAMETERS.items():
+        value = params.get(key, default)
+        if isinstance(value, (complex, numpy.complexfloating)):
+            raise TypeError(f"parameter {key!r} must be real, got {value!r}")
+        values.append(float(value))
+    return numpy.array(values)
 
 
 def _check_inputs(t, array, p, what):
@@ -501,14 +517,25 @@ def _blockwise(function, t, s, p):
     """``function(t, s, p)`` over blocks of ``_BLOCK`` columns, joined on the last axis."""
     count = s.shape[1]
     if count <= _BLOCK:
-        return function(t, s, p)
+        return _overflow_checked(function, t, s, p)
     parts = []
     for start in range(0, count, _BLOCK):
         try:
-            parts.append(function(t, s[:, start:start + _BLOCK], p))
+            parts.append(_overflow_checked(function, t, s[:, start:start + _BLOCK], p))
         except ControllerError as error:
             raise _shifted(error, start) from None
     return numpy.concatenate(parts, axis=-1)
+
+
+def _overflow_checked(function, t, s, p):
+    """``function(t, s, p)``, with a Python float's overflow reported as the C reports inf."""
+    try:
+        return function(t, s, p)
+    except OverflowError:
+        # Terms of t alone are Python floats, which raise (t**2 at |t| = 1e200) where numpy
+        # and the C give inf.
+        raise NonFiniteOutputError(
+            "a result is not finite (column 0): a signal or f0 left its domain", 0) from None
 
 
 def _shifted(error, offset):

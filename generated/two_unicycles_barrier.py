@@ -2,8 +2,9 @@
 # Do not edit by hand: edits are lost on regeneration, and tvopt-codegen refuses to
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
+# spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: b389805e349f7589be45c8db7feaf80af0e2171214d44cdbbe170bf310277acc
+# content sha256: f08910cb1f76f604d15c876e8ec5ed052528e23ce35fc9d7d0838ca0cc1aab25
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -51,6 +52,8 @@ from collections.abc import Mapping
 
 import numpy
 
+#: The backend that generated this module: "python" (NumPy) or "c" (the compiled C).
+BACKEND = 'python'
 #: Closed-loop state order: plant states, extension states, padding states.
 STATE_NAMES = ('xa', 'ya', 'tha', 'xb', 'yb', 'thb', 'va', 'vb')
 #: Plant inputs returned by :func:`control`.
@@ -137,7 +140,14 @@ def _time(t):
 
 def _columns(name, value, rows):
     """Return ``value`` as a float array of shape (rows, N) and whether it was 1-D."""
-    array = numpy.asarray(value, dtype=float)
+    array = numpy.asarray(value)
+    if array.dtype.kind == "c" or (
+        array.dtype.kind == "O"
+        and any(isinstance(v, (complex, numpy.complexfloating)) for v in array.flat)
+    ):
+        # numpy would drop the imaginary part with only a warning.
+        raise TypeError(f"{name} must be real, got complex values")
+    array = numpy.asarray(array, dtype=float)
     if array.ndim == 1 and array.shape[0] == rows:
         return array[:, None], True
     if array.ndim == 2 and array.shape[0] == rows:
@@ -154,7 +164,13 @@ def _parameters(params):
     unknown = [key for key in params if key not in PARAMETERS]
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
-    return numpy.array([float(params.get(key, default)) for key, default in PARAMETERS.items()])
+    values = []
+    for key, default in PARAMETERS.items():
+        value = params.get(key, default)
+        if isinstance(value, (complex, numpy.complexfloating)):
+            raise TypeError(f"parameter {key!r} must be real, got {value!r}")
+        values.append(float(value))
+    return numpy.array(values)
 
 
 def _check_inputs(t, array, p, what):
@@ -714,14 +730,25 @@ def _blockwise(function, t, s, p):
     """``function(t, s, p)`` over blocks of ``_BLOCK`` columns, joined on the last axis."""
     count = s.shape[1]
     if count <= _BLOCK:
-        return function(t, s, p)
+        return _overflow_checked(function, t, s, p)
     parts = []
     for start in range(0, count, _BLOCK):
         try:
-            parts.append(function(t, s[:, start:start + _BLOCK], p))
+            parts.append(_overflow_checked(function, t, s[:, start:start + _BLOCK], p))
         except ControllerError as error:
             raise _shifted(error, start) from None
     return numpy.concatenate(parts, axis=-1)
+
+
+def _overflow_checked(function, t, s, p):
+    """``function(t, s, p)``, with a Python float's overflow reported as the C reports inf."""
+    try:
+        return function(t, s, p)
+    except OverflowError:
+        # Terms of t alone are Python floats, which raise (t**2 at |t| = 1e200) where numpy
+        # and the C give inf.
+        raise NonFiniteOutputError(
+            "a result is not finite (column 0): a signal or f0 left its domain", 0) from None
 
 
 def _shifted(error, offset):

@@ -2,8 +2,9 @@
 # Do not edit by hand: edits are lost on regeneration, and tvopt-codegen refuses to
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
+# spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 639c8fc5c26e275a64430fb97328473fd8023ded9e5c451b23587e6de6d2d499
+# content sha256: fc7a7481f72a27de8582fd87aca703a8876cc4acca3012cd06fdd38238516191
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -58,6 +59,8 @@ from collections.abc import Mapping
 
 import numpy
 
+#: The backend that generated this module: "python" (NumPy) or "c" (the compiled C).
+BACKEND = 'python'
 #: Closed-loop state order: plant states, extension states, padding states.
 STATE_NAMES = ('x_0', 'y_0', 'theta_0', 'x_1', 'y_1', 'theta_1', 'x_2', 'y_2', 'theta_2', 'x_3', 'y_3', 'theta_3', 'v_0', 'v_1', 'v_2', 'v_3')
 #: Plant inputs returned by :func:`control`.
@@ -144,7 +147,14 @@ def _time(t):
 
 def _columns(name, value, rows):
     """Return ``value`` as a float array of shape (rows, N) and whether it was 1-D."""
-    array = numpy.asarray(value, dtype=float)
+    array = numpy.asarray(value)
+    if array.dtype.kind == "c" or (
+        array.dtype.kind == "O"
+        and any(isinstance(v, (complex, numpy.complexfloating)) for v in array.flat)
+    ):
+        # numpy would drop the imaginary part with only a warning.
+        raise TypeError(f"{name} must be real, got complex values")
+    array = numpy.asarray(array, dtype=float)
     if array.ndim == 1 and array.shape[0] == rows:
         return array[:, None], True
     if array.ndim == 2 and array.shape[0] == rows:
@@ -161,7 +171,13 @@ def _parameters(params):
     unknown = [key for key in params if key not in PARAMETERS]
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
-    return numpy.array([float(params.get(key, default)) for key, default in PARAMETERS.items()])
+    values = []
+    for key, default in PARAMETERS.items():
+        value = params.get(key, default)
+        if isinstance(value, (complex, numpy.complexfloating)):
+            raise TypeError(f"parameter {key!r} must be real, got {value!r}")
+        values.append(float(value))
+    return numpy.array(values)
 
 
 def _check_inputs(t, array, p, what):
@@ -1283,14 +1299,25 @@ def _blockwise(function, t, s, p):
     """``function(t, s, p)`` over blocks of ``_BLOCK`` columns, joined on the last axis."""
     count = s.shape[1]
     if count <= _BLOCK:
-        return function(t, s, p)
+        return _overflow_checked(function, t, s, p)
     parts = []
     for start in range(0, count, _BLOCK):
         try:
-            parts.append(function(t, s[:, start:start + _BLOCK], p))
+            parts.append(_overflow_checked(function, t, s[:, start:start + _BLOCK], p))
         except ControllerError as error:
             raise _shifted(error, start) from None
     return numpy.concatenate(parts, axis=-1)
+
+
+def _overflow_checked(function, t, s, p):
+    """``function(t, s, p)``, with a Python float's overflow reported as the C reports inf."""
+    try:
+        return function(t, s, p)
+    except OverflowError:
+        # Terms of t alone are Python floats, which raise (t**2 at |t| = 1e200) where numpy
+        # and the C give inf.
+        raise NonFiniteOutputError(
+            "a result is not finite (column 0): a signal or f0 left its domain", 0) from None
 
 
 def _shifted(error, offset):

@@ -27,6 +27,11 @@ from tvopt_codegen.spec import BUNDLED_SUFFIX
 #: Placeholder for the content hash while the hash is computed.
 HASH_PLACEHOLDER = "@@CONTENT_SHA256@@"
 _HASH_LINE = re.compile(r"content sha256: ([0-9a-f]{64}|" + HASH_PLACEHOLDER + ")")
+#: The stamp's line naming the spec a file was generated for (the writer refuses to
+#: replace one spec's file with another's).
+_SPEC_LINE = re.compile(r"^\W{1,3}spec name: ([A-Za-z][A-Za-z0-9_]*)$", re.MULTILINE)
+#: The stamp stands in a file's first lines.
+_STAMP_LENGTH = 2000
 
 
 class CodegenError(TvoptError):
@@ -191,6 +196,12 @@ def stamped_hash(text: str) -> str | None:
     return match.group(1)
 
 
+def stamped_spec(text: str) -> str | None:
+    """The spec name a generated file's stamp names, or ``None`` if it names none."""
+    match = _SPEC_LINE.search(text, 0, _STAMP_LENGTH)
+    return None if match is None else match.group(1)
+
+
 def is_pristine(text: str) -> bool:
     """Whether ``text`` is a generated file nobody has edited since generation."""
     claimed = stamped_hash(text)
@@ -261,6 +272,7 @@ def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
     for template_name, pattern in backend.templates:
         context = {
             "d": d,
+            "backend": backend.name,
             "spec": d.spec,
             "kernels": printed,
             "tool_version": __version__,

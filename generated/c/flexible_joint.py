@@ -2,8 +2,9 @@
 # Do not edit by hand: edits are lost on regeneration, and tvopt-codegen refuses to
 # overwrite an edited file without --force.
 # template: c/wrapper.py.jinja
+# spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: be6100265e988f02629e23d9374f0889d1970f4b0687355f80432a979ffd6258
+# content sha256: 0dd0484386384aaa89cc029a6ed03e33f59a4bcca3100b2c098248c9653f069b
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -58,6 +59,8 @@ from pathlib import Path
 
 import numpy
 
+#: The backend that generated this module: "python" (NumPy) or "c" (the compiled C).
+BACKEND = 'c'
 #: Closed-loop state order: plant states, extension states, padding states.
 STATE_NAMES = ('q1', 'w1', 'q2', 'w2')
 #: Plant inputs returned by :func:`control`.
@@ -159,7 +162,7 @@ def _python_headers():
 def _build():
     """Compile flexible_joint.c once per (source, compiler, flags); return the library path.
 
-    With Python's headers, flexible_joint_ext.c is compiled into the same library: a
+    With Python's headers, flexible_joint.ext.c is compiled into the same library: a
     CPython entry point that calls the law without ctypes. Without them, or if that
     part does not compile, the library is the C alone and calls go through ctypes.
     Returns the library path and whether it holds the entry point.
@@ -167,7 +170,7 @@ def _build():
     here = Path(__file__).resolve().parent
     source = here / "flexible_joint.c"
     header = here / "flexible_joint.h"
-    entry = here / "flexible_joint_ext.c"
+    entry = here / "flexible_joint.ext.c"
     cc = _compiler()
     flags = [*CFLAGS, *os.environ.get("TVOPT_CODEGEN_CFLAGS", "").split()]
     version = subprocess.run([cc, "--version"], capture_output=True, text=True).stdout
@@ -306,7 +309,14 @@ def _time(t):
 
 def _columns(name, value, rows):
     """Return ``value`` as a float array of shape (rows, N) and whether it was 1-D."""
-    array = numpy.asarray(value, dtype=float)
+    array = numpy.asarray(value)
+    if array.dtype.kind == "c" or (
+        array.dtype.kind == "O"
+        and any(isinstance(v, (complex, numpy.complexfloating)) for v in array.flat)
+    ):
+        # numpy would drop the imaginary part with only a warning.
+        raise TypeError(f"{name} must be real, got complex values")
+    array = numpy.asarray(array, dtype=float)
     if array.ndim == 1 and array.shape[0] == rows:
         return array[:, None], True
     if array.ndim == 2 and array.shape[0] == rows:
@@ -323,7 +333,13 @@ def _parameters(params):
     unknown = [key for key in params if key not in PARAMETERS]
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
-    return numpy.array([float(params.get(key, default)) for key, default in PARAMETERS.items()])
+    values = []
+    for key, default in PARAMETERS.items():
+        value = params.get(key, default)
+        if isinstance(value, (complex, numpy.complexfloating)):
+            raise TypeError(f"parameter {key!r} must be real, got {value!r}")
+        values.append(float(value))
+    return numpy.array(values)
 
 
 def _check_inputs(t, array, p, what):

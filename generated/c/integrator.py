@@ -2,8 +2,9 @@
 # Do not edit by hand: edits are lost on regeneration, and tvopt-codegen refuses to
 # overwrite an edited file without --force.
 # template: c/wrapper.py.jinja
+# spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 02858b6f2e1159605abea80c046fa2f052fca1f4a5a744feddc1ecb0c96677a9
+# content sha256: 37a4710f94afb847a36310c219bb72792db62fd88d369d7ca4d2005eacade07f
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -54,6 +55,8 @@ from pathlib import Path
 
 import numpy
 
+#: The backend that generated this module: "python" (NumPy) or "c" (the compiled C).
+BACKEND = 'c'
 #: Closed-loop state order: plant states, extension states, padding states.
 STATE_NAMES = ('x1', 'x2')
 #: Plant inputs returned by :func:`control`.
@@ -155,7 +158,7 @@ def _python_headers():
 def _build():
     """Compile integrator.c once per (source, compiler, flags); return the library path.
 
-    With Python's headers, integrator_ext.c is compiled into the same library: a
+    With Python's headers, integrator.ext.c is compiled into the same library: a
     CPython entry point that calls the law without ctypes. Without them, or if that
     part does not compile, the library is the C alone and calls go through ctypes.
     Returns the library path and whether it holds the entry point.
@@ -163,7 +166,7 @@ def _build():
     here = Path(__file__).resolve().parent
     source = here / "integrator.c"
     header = here / "integrator.h"
-    entry = here / "integrator_ext.c"
+    entry = here / "integrator.ext.c"
     cc = _compiler()
     flags = [*CFLAGS, *os.environ.get("TVOPT_CODEGEN_CFLAGS", "").split()]
     version = subprocess.run([cc, "--version"], capture_output=True, text=True).stdout
@@ -301,7 +304,14 @@ def _time(t):
 
 def _columns(name, value, rows):
     """Return ``value`` as a float array of shape (rows, N) and whether it was 1-D."""
-    array = numpy.asarray(value, dtype=float)
+    array = numpy.asarray(value)
+    if array.dtype.kind == "c" or (
+        array.dtype.kind == "O"
+        and any(isinstance(v, (complex, numpy.complexfloating)) for v in array.flat)
+    ):
+        # numpy would drop the imaginary part with only a warning.
+        raise TypeError(f"{name} must be real, got complex values")
+    array = numpy.asarray(array, dtype=float)
     if array.ndim == 1 and array.shape[0] == rows:
         return array[:, None], True
     if array.ndim == 2 and array.shape[0] == rows:
@@ -318,7 +328,13 @@ def _parameters(params):
     unknown = [key for key in params if key not in PARAMETERS]
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
-    return numpy.array([float(params.get(key, default)) for key, default in PARAMETERS.items()])
+    values = []
+    for key, default in PARAMETERS.items():
+        value = params.get(key, default)
+        if isinstance(value, (complex, numpy.complexfloating)):
+            raise TypeError(f"parameter {key!r} must be real, got {value!r}")
+        values.append(float(value))
+    return numpy.array(values)
 
 
 def _check_inputs(t, array, p, what):

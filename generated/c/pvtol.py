@@ -2,8 +2,9 @@
 # Do not edit by hand: edits are lost on regeneration, and tvopt-codegen refuses to
 # overwrite an edited file without --force.
 # template: c/wrapper.py.jinja
+# spec name: pvtol
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: 6c3765ac26aabb24cc8d23cf8b0c3d0fd4b7ea445bb0448ac64b426ca18b4ebb
+# content sha256: 26fee452399de267f462fdf91647113e1dbf934e1c99af113ac49fbe9d4b03c1
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -64,6 +65,8 @@ from pathlib import Path
 
 import numpy
 
+#: The backend that generated this module: "python" (NumPy) or "c" (the compiled C).
+BACKEND = 'c'
 #: Closed-loop state order: plant states, extension states, padding states.
 STATE_NAMES = ('x', 'z', 'theta', 'vx', 'vz', 'omega', 'thrust', 'thrust_d1')
 #: Plant inputs returned by :func:`control`.
@@ -165,7 +168,7 @@ def _python_headers():
 def _build():
     """Compile pvtol.c once per (source, compiler, flags); return the library path.
 
-    With Python's headers, pvtol_ext.c is compiled into the same library: a
+    With Python's headers, pvtol.ext.c is compiled into the same library: a
     CPython entry point that calls the law without ctypes. Without them, or if that
     part does not compile, the library is the C alone and calls go through ctypes.
     Returns the library path and whether it holds the entry point.
@@ -173,7 +176,7 @@ def _build():
     here = Path(__file__).resolve().parent
     source = here / "pvtol.c"
     header = here / "pvtol.h"
-    entry = here / "pvtol_ext.c"
+    entry = here / "pvtol.ext.c"
     cc = _compiler()
     flags = [*CFLAGS, *os.environ.get("TVOPT_CODEGEN_CFLAGS", "").split()]
     version = subprocess.run([cc, "--version"], capture_output=True, text=True).stdout
@@ -312,7 +315,14 @@ def _time(t):
 
 def _columns(name, value, rows):
     """Return ``value`` as a float array of shape (rows, N) and whether it was 1-D."""
-    array = numpy.asarray(value, dtype=float)
+    array = numpy.asarray(value)
+    if array.dtype.kind == "c" or (
+        array.dtype.kind == "O"
+        and any(isinstance(v, (complex, numpy.complexfloating)) for v in array.flat)
+    ):
+        # numpy would drop the imaginary part with only a warning.
+        raise TypeError(f"{name} must be real, got complex values")
+    array = numpy.asarray(array, dtype=float)
     if array.ndim == 1 and array.shape[0] == rows:
         return array[:, None], True
     if array.ndim == 2 and array.shape[0] == rows:
@@ -329,7 +339,13 @@ def _parameters(params):
     unknown = [key for key in params if key not in PARAMETERS]
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
-    return numpy.array([float(params.get(key, default)) for key, default in PARAMETERS.items()])
+    values = []
+    for key, default in PARAMETERS.items():
+        value = params.get(key, default)
+        if isinstance(value, (complex, numpy.complexfloating)):
+            raise TypeError(f"parameter {key!r} must be real, got {value!r}")
+        values.append(float(value))
+    return numpy.array(values)
 
 
 def _check_inputs(t, array, p, what):

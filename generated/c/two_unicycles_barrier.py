@@ -2,8 +2,9 @@
 # Do not edit by hand: edits are lost on regeneration, and tvopt-codegen refuses to
 # overwrite an edited file without --force.
 # template: c/wrapper.py.jinja
+# spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: e38d6cbe38e401ed596e71f2809ba5f9529288b737fe0ff39b6a3f1551982030
+# content sha256: 8a80e55e2f14ae0bc39f0578e8c36bab78fb68021e3f6ada10a6ba0861379144
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -63,6 +64,8 @@ from pathlib import Path
 
 import numpy
 
+#: The backend that generated this module: "python" (NumPy) or "c" (the compiled C).
+BACKEND = 'c'
 #: Closed-loop state order: plant states, extension states, padding states.
 STATE_NAMES = ('xa', 'ya', 'tha', 'xb', 'yb', 'thb', 'va', 'vb')
 #: Plant inputs returned by :func:`control`.
@@ -164,7 +167,7 @@ def _python_headers():
 def _build():
     """Compile two_unicycles_barrier.c once per (source, compiler, flags); return the library path.
 
-    With Python's headers, two_unicycles_barrier_ext.c is compiled into the same library: a
+    With Python's headers, two_unicycles_barrier.ext.c is compiled into the same library: a
     CPython entry point that calls the law without ctypes. Without them, or if that
     part does not compile, the library is the C alone and calls go through ctypes.
     Returns the library path and whether it holds the entry point.
@@ -172,7 +175,7 @@ def _build():
     here = Path(__file__).resolve().parent
     source = here / "two_unicycles_barrier.c"
     header = here / "two_unicycles_barrier.h"
-    entry = here / "two_unicycles_barrier_ext.c"
+    entry = here / "two_unicycles_barrier.ext.c"
     cc = _compiler()
     flags = [*CFLAGS, *os.environ.get("TVOPT_CODEGEN_CFLAGS", "").split()]
     version = subprocess.run([cc, "--version"], capture_output=True, text=True).stdout
@@ -311,7 +314,14 @@ def _time(t):
 
 def _columns(name, value, rows):
     """Return ``value`` as a float array of shape (rows, N) and whether it was 1-D."""
-    array = numpy.asarray(value, dtype=float)
+    array = numpy.asarray(value)
+    if array.dtype.kind == "c" or (
+        array.dtype.kind == "O"
+        and any(isinstance(v, (complex, numpy.complexfloating)) for v in array.flat)
+    ):
+        # numpy would drop the imaginary part with only a warning.
+        raise TypeError(f"{name} must be real, got complex values")
+    array = numpy.asarray(array, dtype=float)
     if array.ndim == 1 and array.shape[0] == rows:
         return array[:, None], True
     if array.ndim == 2 and array.shape[0] == rows:
@@ -328,7 +338,13 @@ def _parameters(params):
     unknown = [key for key in params if key not in PARAMETERS]
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
-    return numpy.array([float(params.get(key, default)) for key, default in PARAMETERS.items()])
+    values = []
+    for key, default in PARAMETERS.items():
+        value = params.get(key, default)
+        if isinstance(value, (complex, numpy.complexfloating)):
+            raise TypeError(f"parameter {key!r} must be real, got {value!r}")
+        values.append(float(value))
+    return numpy.array(values)
 
 
 def _check_inputs(t, array, p, what):

@@ -2,8 +2,9 @@
 # Do not edit by hand: edits are lost on regeneration, and tvopt-codegen refuses to
 # overwrite an edited file without --force.
 # template: c/wrapper.py.jinja
+# spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 3b86f1fbfd68255fbc465363ab247ee937f02247ab8492c851fb95edb22cff37
+# content sha256: 20e97c5dd5107b12ccbc5cc67f374a58945cca4bb11d5a95824fbec4f4e631bb
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -70,6 +71,8 @@ from pathlib import Path
 
 import numpy
 
+#: The backend that generated this module: "python" (NumPy) or "c" (the compiled C).
+BACKEND = 'c'
 #: Closed-loop state order: plant states, extension states, padding states.
 STATE_NAMES = ('x_0', 'y_0', 'theta_0', 'x_1', 'y_1', 'theta_1', 'x_2', 'y_2', 'theta_2', 'x_3', 'y_3', 'theta_3', 'v_0', 'v_1', 'v_2', 'v_3')
 #: Plant inputs returned by :func:`control`.
@@ -171,7 +174,7 @@ def _python_headers():
 def _build():
     """Compile unicycle_ring.c once per (source, compiler, flags); return the library path.
 
-    With Python's headers, unicycle_ring_ext.c is compiled into the same library: a
+    With Python's headers, unicycle_ring.ext.c is compiled into the same library: a
     CPython entry point that calls the law without ctypes. Without them, or if that
     part does not compile, the library is the C alone and calls go through ctypes.
     Returns the library path and whether it holds the entry point.
@@ -179,7 +182,7 @@ def _build():
     here = Path(__file__).resolve().parent
     source = here / "unicycle_ring.c"
     header = here / "unicycle_ring.h"
-    entry = here / "unicycle_ring_ext.c"
+    entry = here / "unicycle_ring.ext.c"
     cc = _compiler()
     flags = [*CFLAGS, *os.environ.get("TVOPT_CODEGEN_CFLAGS", "").split()]
     version = subprocess.run([cc, "--version"], capture_output=True, text=True).stdout
@@ -317,7 +320,14 @@ def _time(t):
 
 def _columns(name, value, rows):
     """Return ``value`` as a float array of shape (rows, N) and whether it was 1-D."""
-    array = numpy.asarray(value, dtype=float)
+    array = numpy.asarray(value)
+    if array.dtype.kind == "c" or (
+        array.dtype.kind == "O"
+        and any(isinstance(v, (complex, numpy.complexfloating)) for v in array.flat)
+    ):
+        # numpy would drop the imaginary part with only a warning.
+        raise TypeError(f"{name} must be real, got complex values")
+    array = numpy.asarray(array, dtype=float)
     if array.ndim == 1 and array.shape[0] == rows:
         return array[:, None], True
     if array.ndim == 2 and array.shape[0] == rows:
@@ -334,7 +344,13 @@ def _parameters(params):
     unknown = [key for key in params if key not in PARAMETERS]
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
-    return numpy.array([float(params.get(key, default)) for key, default in PARAMETERS.items()])
+    values = []
+    for key, default in PARAMETERS.items():
+        value = params.get(key, default)
+        if isinstance(value, (complex, numpy.complexfloating)):
+            raise TypeError(f"parameter {key!r} must be real, got {value!r}")
+        values.append(float(value))
+    return numpy.array(values)
 
 
 def _check_inputs(t, array, p, what):

@@ -2,8 +2,9 @@
 # Do not edit by hand: edits are lost on regeneration, and tvopt-codegen refuses to
 # overwrite an edited file without --force.
 # template: c/wrapper.py.jinja
+# spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 451a4ffffc8c8324d59045570d41de6751cc2c847a81b21e1d451a4df8810b0b
+# content sha256: 2c4af158f7b418df99484f6bad5fc5b2fcc82acb1976130a60c326af50467e11
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -59,6 +60,8 @@ from pathlib import Path
 
 import numpy
 
+#: The backend that generated this module: "python" (NumPy) or "c" (the compiled C).
+BACKEND = 'c'
 #: Closed-loop state order: plant states, extension states, padding states.
 STATE_NAMES = ('x1', 'x2', 'theta', 'v')
 #: Plant inputs returned by :func:`control`.
@@ -160,7 +163,7 @@ def _python_headers():
 def _build():
     """Compile unicycle_switch.c once per (source, compiler, flags); return the library path.
 
-    With Python's headers, unicycle_switch_ext.c is compiled into the same library: a
+    With Python's headers, unicycle_switch.ext.c is compiled into the same library: a
     CPython entry point that calls the law without ctypes. Without them, or if that
     part does not compile, the library is the C alone and calls go through ctypes.
     Returns the library path and whether it holds the entry point.
@@ -168,7 +171,7 @@ def _build():
     here = Path(__file__).resolve().parent
     source = here / "unicycle_switch.c"
     header = here / "unicycle_switch.h"
-    entry = here / "unicycle_switch_ext.c"
+    entry = here / "unicycle_switch.ext.c"
     cc = _compiler()
     flags = [*CFLAGS, *os.environ.get("TVOPT_CODEGEN_CFLAGS", "").split()]
     version = subprocess.run([cc, "--version"], capture_output=True, text=True).stdout
@@ -307,7 +310,14 @@ def _time(t):
 
 def _columns(name, value, rows):
     """Return ``value`` as a float array of shape (rows, N) and whether it was 1-D."""
-    array = numpy.asarray(value, dtype=float)
+    array = numpy.asarray(value)
+    if array.dtype.kind == "c" or (
+        array.dtype.kind == "O"
+        and any(isinstance(v, (complex, numpy.complexfloating)) for v in array.flat)
+    ):
+        # numpy would drop the imaginary part with only a warning.
+        raise TypeError(f"{name} must be real, got complex values")
+    array = numpy.asarray(array, dtype=float)
     if array.ndim == 1 and array.shape[0] == rows:
         return array[:, None], True
     if array.ndim == 2 and array.shape[0] == rows:
@@ -324,7 +334,13 @@ def _parameters(params):
     unknown = [key for key in params if key not in PARAMETERS]
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
-    return numpy.array([float(params.get(key, default)) for key, default in PARAMETERS.items()])
+    values = []
+    for key, default in PARAMETERS.items():
+        value = params.get(key, default)
+        if isinstance(value, (complex, numpy.complexfloating)):
+            raise TypeError(f"parameter {key!r} must be real, got {value!r}")
+        values.append(float(value))
+    return numpy.array(values)
 
 
 def _check_inputs(t, array, p, what):

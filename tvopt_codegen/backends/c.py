@@ -10,13 +10,13 @@ C = Backend(
     name="c",
     description=(
         "C99 <name>.h/<name>.c (no heap, re-entrant), <name>.py loading them and "
-        "<name>_ext.c, its CPython entry point"
+        "<name>.ext.c, its CPython entry point"
     ),
     printer=CPrinter,
     templates=(
         ("c/controller.h.jinja", "{name}.h"),
         ("c/controller.c.jinja", "{name}.c"),
         ("c/wrapper.py.jinja", "{name}.py"),
-        ("c/extension.c.jinja", "{name}_ext.c"),
+        ("c/extension.c.jinja", "{name}.ext.c"),
     ),
 )
