@@ -190,9 +190,12 @@ def _derive(args: argparse.Namespace) -> tuple[Derivation, KernelSet]:
     try:
         derivation = derive(spec, progress=progress, budget=Budget(args.max_seconds, args.max_size))
         progress.lowering()
-        return derivation, lower(derivation)
+        kernels = lower(derivation)
     finally:
         progress.close()
+    for warning in derivation.warnings:
+        print(f"tvopt-codegen: warning: {spec.source}: {warning}", file=sys.stderr)
+    return derivation, kernels
 
 
 class _DeriveProgress:
@@ -300,7 +303,7 @@ def _simulate(args: argparse.Namespace) -> int:
         points=args.points,
         tolerance=args.tolerance,
     )
-    prepare_folder(args.out)
+    prepare_folder(args.out, create=False)
     controller = load_controller(kernels, args.backend)
     progress = _Progress()
     try:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -148,6 +148,11 @@ class Derivation:
     certified_rate : float
         The alpha of ``|expm(H t)| <= c e^{-alpha t}`` (the decay rate, or 10% less with
         repeated poles).
+    certified_rate_exact : bool
+        Whether ``certified_rate`` is the decay rate itself (the poles are distinct).
+    warnings : tuple of str
+        What the user should know but that does not stop the derivation (f0 strongly
+        convex only near its minimiser, a singular default state), one line each.
     transient_constant : float
         That c, computed.
     timings : tuple of (str, float)
@@ -192,6 +197,8 @@ class Derivation:
     unextended: str | None
     extension_search: tuple[str, ...]
     certified_rate: float
+    certified_rate_exact: bool
+    warnings: tuple[str, ...]
     transient_constant: float
     timings: tuple[tuple[str, float], ...]
 
@@ -502,58 +509,185 @@ def _signal_derivatives(
     return chain
 
 
+#: A Hessian whose smallest eigenvalue is below this fraction of its scale (the largest
+#: eigenvalue met) is degenerate: f0 is not strongly convex there.
+DEGENERATE_HESSIAN = 1e-8
+#: Times along the horizon at which the minimiser y*(t) is found and checked.
+_PATH_POINTS = 25
+#: Distances from y*(t) probed for where f0 stops being strongly convex.
+_PROBE_DISTANCES = (1.0, 10.0, 100.0)
+
+
+class _ObjectiveNumbers:
+    """f0, its gradient and its Hessian at many (y, t) points at once."""
+
+    def __init__(
+        self,
+        model: Model,
+        program: Program,
+        gradient: Sequence[sp.Expr],
+        entries: Sequence[tuple[tuple[int, int], sp.Expr]],
+        defaults: Mapping[sp.Symbol, float],
+    ) -> None:
+        self.model, self.program, self.gradient = model, program, gradient
+        self.entries, self.defaults = entries, defaults
+
+    def _evaluator(self, ys: np.ndarray, ts: np.ndarray) -> Evaluator:
+        values: dict[sp.Symbol, Any] = {y: ys[:, i] for i, y in enumerate(self.model.y)}
+        values |= self.defaults
+        values[self.model.t] = ts
+        evaluate = Evaluator(values)
+        for symbol, expr in self.model.signals:
+            evaluate.define(symbol, expr)
+        for symbol, expr in self.program.assignments:
+            evaluate.define(symbol, expr)
+        return evaluate
+
+    def value(self, ys: np.ndarray, ts: np.ndarray) -> np.ndarray:
+        out = np.real(self._evaluator(ys, ts)(self.model.f0))
+        return np.broadcast_to(np.asarray(out, dtype=float), ts.shape).copy()
+
+    def derivatives(self, ys: np.ndarray, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Gradients (P, m) and Hessians (P, m, m) at the points (NaN where undefined)."""
+        evaluate = self._evaluator(ys, ts)
+        points, m = ys.shape
+        grads = np.empty((points, m))
+        for i, expr in enumerate(self.gradient):
+            grads[:, i] = np.real(evaluate(expr))
+        matrices = np.zeros((points, m, m))
+        for (i, j), expr in self.entries:
+            matrices[:, i, j] = matrices[:, j, i] = np.real(evaluate(expr))
+        return grads, matrices
+
+
+def _smallest_eigenvalues(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest and largest |eigenvalue| of each finite matrix (NaN for the others)."""
+    low = np.full(len(matrices), np.nan)
+    high = np.full(len(matrices), np.nan)
+    finite = np.all(np.isfinite(matrices), axis=(1, 2))
+    if finite.any():
+        eig = np.linalg.eigvalsh(matrices[finite])
+        low[finite] = eig[:, 0]
+        high[finite] = np.max(np.abs(eig), axis=1)
+    return low, high
+
+
+def _minimiser_path(
+    numbers: _ObjectiveNumbers, y0: Sequence[float], ts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``y*(t)`` at every time by damped Newton (all times at once), and which converged.
+
+    Each time starts from ``y0``; steps are Newton's where the Hessian is positive
+    definite, the gradient's elsewhere, halved until f0 decreases.
+    """
+    points = len(ts)
+    ys = np.tile(np.asarray(y0, dtype=float), (points, 1))
+    converged = np.zeros(points, dtype=bool)
+    with np.errstate(all="ignore"):
+        # 40 steps: Newton converges in a few on a strongly convex f0; on a flat minimum
+        # ((y - r)**4: linear, by 2/3 a step) they leave a Hessian ~1e-13 of its scale.
+        first: np.ndarray | None = None
+        for _ in range(40):
+            grads, matrices = numbers.derivatives(ys, ts)
+            grads = np.where(np.isfinite(grads), grads, 0.0)
+            norms = np.linalg.norm(grads, axis=1)
+            if first is None:
+                first = norms
+            usable = np.all(np.isfinite(matrices), axis=(1, 2))
+            usable &= np.abs(np.linalg.det(np.where(usable[:, None, None], matrices, 1.0))) > 0
+            safe = np.where(usable[:, None, None], matrices, np.eye(matrices.shape[1]))
+            newton = np.linalg.solve(safe, grads[:, :, None])[:, :, 0]
+            descent = usable & np.all(np.isfinite(newton), axis=1)
+            descent &= np.einsum("pi,pi->p", grads, newton) > 0
+            steps = np.where(descent[:, None], newton, grads)
+            size = np.linalg.norm(steps, axis=1)
+            converged = size <= 1e-10 * (1.0 + np.linalg.norm(ys, axis=1))
+            # Located: the step vanished, or the gradient fell by eight orders.
+            converged |= norms <= 1e-8 * first
+            if converged.all():
+                break
+            value = numbers.value(ys, ts)
+            scale = np.ones(points)
+            accepted = converged.copy()
+            for _halving in range(30):
+                trial = ys - scale[:, None] * steps
+                better = numbers.value(trial, ts) < value
+                accepted |= better
+                if accepted.all():
+                    break
+                scale = np.where(accepted, scale, 0.5 * scale)
+            if not (accepted & ~converged).any():
+                break  # no point moves any more
+            ys = np.where(accepted[:, None], ys - scale[:, None] * steps, ys)
+    return ys, converged
+
+
 def _check_convexity(
     model: Model,
     polynomial: sp.ImmutableMatrix | None,
     program: Program,
+    gradient: Sequence[sp.Expr],
     entries: Sequence[tuple[tuple[int, int], sp.Expr]],
     y0: Sequence[float],
     t_final: float,
     source: str,
-) -> Convexity:
-    """Estimate the convexity modulus of f0 near the initial outputs, over the horizon.
+) -> tuple[Convexity, tuple[str, ...]]:
+    """Check the strong convexity of f0 where it matters; return the evidence and warnings.
 
-    ``program`` and ``entries`` compute the Hessian's lower triangle; ``polynomial`` is
-    its symbolic form when f0 is polynomial in ``y`` (then a Hessian free of ``y``, t
-    and the signals is checked exactly at the parameters' defaults).
+    ``program`` computes ``gradient`` and the Hessian's lower triangle ``entries``;
+    ``polynomial`` is the Hessian's symbolic form when f0 is polynomial in ``y`` (then a
+    Hessian free of ``y``, t and the signals is checked exactly at the parameters'
+    defaults). Otherwise the Hessian is sampled near the initial outputs and along the
+    minimiser ``y*(t)`` over the horizon (found by Newton's method), where the
+    theorem's bound lives: a Hessian that degenerates on ``y*`` (``(y - r)**4``) is
+    refused, and one that fades away from ``y*`` (``log cosh``) gives a warning.
     """
     defaults = {q: float(v) for q, v in zip(model.params, model.defaults, strict=True)}
     m = len(model.y)
+    warnings: list[str] = []
     if polynomial is not None and polynomial.free_symbols <= defaults.keys():
         fixed = Evaluator(defaults)
         matrix = np.array([[fixed(polynomial[i, j]) for j in range(m)] for i in range(m)])
         m_f = float(np.linalg.eigvalsh(np.real(matrix)).min())
         result = Convexity("constant Hessian", m_f, 1)
     else:
+        numbers = _ObjectiveNumbers(model, program, gradient, entries, defaults)
         rng = np.random.default_rng(7)
         points = 24
-        ys = np.empty((points, m))
-        ts = np.empty(points)
-        for point in range(points):
-            ys[point] = np.asarray(y0) + rng.uniform(-0.1, 0.1, size=m)
-            ts[point] = rng.uniform(0.0, t_final)
-        # All points at once, assignment by assignment over the Hessian's program.
-        values: dict[sp.Symbol, Any] = {y: ys[:, i] for i, y in enumerate(model.y)}
-        values |= defaults
-        values[model.t] = ts
-        evaluate = Evaluator(values)
-        for symbol, expr in model.signals:
-            evaluate.define(symbol, expr)
-        for symbol, expr in program.assignments:
-            evaluate.define(symbol, expr)
-        matrices = np.zeros((points, m, m))
-        for (i, j), expr in entries:
-            matrices[:, i, j] = matrices[:, j, i] = np.real(evaluate(expr))
-        finite = matrices[np.all(np.isfinite(matrices), axis=(1, 2))]
-        if not len(finite):
+        ys = np.asarray(y0) + rng.uniform(-0.1, 0.1, size=(points, m))
+        ts = rng.uniform(0.0, t_final, size=points)
+        _, near = numbers.derivatives(ys, ts)
+        low, high = _smallest_eigenvalues(near)
+        path_ts = np.linspace(0.0, t_final, _PATH_POINTS)
+        path, converged = _minimiser_path(numbers, y0, path_ts)
+        _, on_path = numbers.derivatives(path, path_ts)
+        path_low, path_high = _smallest_eigenvalues(on_path)
+        path_low = np.where(converged, path_low, np.nan)
+        finite = np.isfinite(low).sum() + np.isfinite(path_low).sum()
+        if not finite:
             raise AssumptionError(
                 source,
                 "objective.f0",
                 f"the Hessian of f0 is not finite at any of {points} points near the initial "
                 "outputs (overflow or outside its domain), so strong convexity cannot be checked",
             )
-        m_f = float(min(np.linalg.eigvalsh(matrix).min() for matrix in finite))
-        result = Convexity("sampled", m_f, len(finite))
+        scale = float(np.nanmax(np.concatenate([high, path_high, [0.0]])))
+        m_f = float(np.nanmin(np.concatenate([low, path_low])))
+        if converged.any() and np.nanmin(path_low) <= DEGENERATE_HESSIAN * scale:
+            worst = int(np.nanargmin(path_low))
+            where = ", ".join(
+                f"{y.name} = {value:.6g}" for y, value in zip(model.y, path[worst], strict=True)
+            )
+            raise AssumptionError(
+                source,
+                "objective.f0",
+                "f0 is not strongly convex at its minimiser: at t = "
+                f"{path_ts[worst]:.6g}, y*(t) = ({where}), the Hessian's smallest eigenvalue "
+                f"is {path_low[worst]:.3g}, below {DEGENERATE_HESSIAN:g} of its scale "
+                f"{scale:.3g} (a flat minimum such as (y - r)**4: the law divides by it)",
+            )
+        warnings += _fading_convexity(numbers, path, path_ts, path_low, converged)
+        result = Convexity("sampled near y(0) and along y*(t)", m_f, int(finite))
     if not result.m_f > 0:
         raise AssumptionError(
             source,
@@ -561,7 +695,38 @@ def _check_convexity(
             "f0 is not strongly convex in the outputs: the Hessian has eigenvalue "
             f"{result.m_f:.6g} <= 0 (the method needs grad_yy f0 positive definite)",
         )
-    return result
+    return result, tuple(warnings)
+
+
+def _fading_convexity(
+    numbers: _ObjectiveNumbers,
+    path: np.ndarray,
+    ts: np.ndarray,
+    path_low: np.ndarray,
+    converged: np.ndarray,
+) -> list[str]:
+    """A warning when f0 is strongly convex near y*(t) only (its Hessian fades away)."""
+    m = path.shape[1]
+    for distance in _PROBE_DISTANCES:
+        for sign in (1.0, -1.0):
+            probes = path[:, None, :] + sign * distance * np.eye(m)[None]  # (T, m, m): one per axis
+            flat = probes.reshape(-1, m)
+            _, matrices = numbers.derivatives(flat, np.repeat(ts, m))
+            low, _ = _smallest_eigenvalues(matrices)
+            reference = np.repeat(path_low, m)
+            # Fading, not turning negative: a barrier's periodic branches beyond its
+            # domain (tan**2) are not where the outputs can go.
+            fading = np.repeat(converged, m) & (np.abs(low) < 1e-6 * reference)
+            if fading.any():
+                at = int(np.argmax(fading))
+                return [
+                    "objective.f0: f0 is strongly convex only near its minimiser: at distance "
+                    f"{distance:g} "
+                    f"from y*(t) (t = {ts[at // m]:.6g}) the Hessian's smallest eigenvalue is "
+                    f"{low[at]:.3g}, against {reference[at]:.3g} at y*; the certificate's "
+                    "bound holds only while the outputs stay where it is bounded below"
+                ]
+    return []
 
 
 def derive(
@@ -785,10 +950,11 @@ def derive(
     values = {sym: sp.Float(v) for sym, v in zip(states, initial, strict=True)}
     values |= {q: sp.Float(v) for q, v in defaults.items()}
     y0 = [float(h.xreplace(values)) for h in model.h]
-    convexity = _check_convexity(
+    convexity, warnings = _check_convexity(
         model,
         polynomial,
         program + hessian_program,
+        current,
         hessian_entries,
         y0,
         spec.t_final,
@@ -845,7 +1011,7 @@ def derive(
     clock.mark("gradient jet")
 
     say("error bound")
-    rate, _exact = hurwitz.certified_rate(coefficients)
+    rate, rate_exact = hurwitz.certified_rate(coefficients)
     constant = hurwitz.transient_constant(coefficients, rate)
     unextended = _without_extension(model) if ext.counts else None
     clock.mark("error bound")
@@ -889,6 +1055,8 @@ def derive(
         unextended=unextended,
         extension_search=searched,
         certified_rate=rate,
+        certified_rate_exact=rate_exact,
+        warnings=warnings,
         transient_constant=constant,
         timings=tuple(clock.marks),
     )

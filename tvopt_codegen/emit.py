@@ -164,8 +164,12 @@ def _refuse_another_specs_file(path: Path, current: str, data: bytes) -> None:
         )
 
 
-def prepare_folder(out_dir: str | Path) -> Path:
-    """Check (and create, one level deep) an output folder; write nothing else."""
+def prepare_folder(out_dir: str | Path, create: bool = True) -> Path:
+    """Check (and create, one level deep) an output folder; write nothing else.
+
+    With ``create=False`` only check that it could be used: a command that may still
+    fail (a simulation) checks first and creates nothing until it writes.
+    """
     folder = Path(out_dir)
     if folder.is_symlink():
         raise OutputError(
@@ -177,6 +181,8 @@ def prepare_folder(out_dir: str | Path) -> Path:
         parent = folder.parent
         if not parent.is_dir():
             raise OutputError(f"{folder}: output folder's parent {parent} does not exist")
+        if not create:
+            return folder
         try:
             folder.mkdir()
         except FileExistsError:

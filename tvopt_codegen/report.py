@@ -417,9 +417,7 @@ def _error_dynamics(d: Derivation) -> Section:
                 (
                     "alpha used in the bound",
                     f"{d.certified_rate:.6g}"
-                    + (
-                        "" if d.certified_rate == d.decay_rate else " (repeated poles: 10% epsilon)"
-                    ),
+                    + ("" if d.certified_rate_exact else " (repeated poles: 10% epsilon)"),
                 ),
                 ("c = sup_t |expm(H t)| e^(alpha t), computed", f"{d.transient_constant:.6g}"),
             ),

@@ -1,0 +1,127 @@
+"""A certificate never passes vacuously; a run where the law is undefined is a user error."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tvopt_codegen.derivation import derive
+from tvopt_codegen.errors import AssumptionError
+from tvopt_codegen.ir import lower
+from tvopt_codegen.report import render_report
+from tvopt_codegen.simulate import load_controller, resolve_options, simulate
+from tvopt_codegen.spec import load_spec
+
+from .conftest import ROOT, derivation, module, write_spec
+
+INTEGRATOR = (ROOT / "tvopt_codegen" / "examples" / "integrator.toml").read_text()
+
+
+def _with_objective(tmp_path: Path, f0: str, name: str = "spec.toml") -> Path:
+    lines = [
+        f'f0 = "{f0}"' if line.startswith("f0 = ") else line for line in INTEGRATOR.splitlines()
+    ]
+    return write_spec(tmp_path, "\n".join(lines) + "\n", name)
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "tvopt_codegen", *args], check=False, capture_output=True, text=True
+    )
+
+
+def test_a_flat_minimum_is_refused_where_it_matters(tmp_path: Path) -> None:
+    # (y - r)**4: the Hessian is 12 (y - r)**2, positive near y(0) but 0 at y*(t).
+    spec = _with_objective(tmp_path, "(y1 - o1)**4 + (y2 - o2)**4")
+    done = _cli("check", str(spec))
+    assert done.returncode == 3
+    assert done.stderr.count("\n") == 1
+    assert "f0 is not strongly convex at its minimiser: at t = " in done.stderr
+    assert "(a flat minimum such as (y - r)**4" in done.stderr
+
+
+def test_locally_strongly_convex_objective_gets_a_warning(tmp_path: Path) -> None:
+    spec = _with_objective(tmp_path, "log(cosh(y1 - o1)) + log(cosh(y2 - o2))")
+    d = derive(load_spec(spec))
+    assert len(d.warnings) == 1
+    assert "strongly convex only near its minimiser: at distance 10 from y*(t)" in d.warnings[0]
+    done = _cli("check", str(spec))
+    assert done.returncode == 0
+    assert "tvopt-codegen: warning: " in done.stderr and "objective.f0:" in done.stderr
+    # The bundled examples (quadratic, log cosh plus a quadratic, barriers) warn of nothing.
+    for name in ("integrator", "flexible_joint", "two_unicycles_barrier", "unicycle_ring"):
+        assert derivation(name).warnings == ()
+
+
+def test_a_barely_convex_objective_fails_the_certificate(tmp_path: Path) -> None:
+    # Strong enough convexity to be derived (2e-5 against a scale of about 100), but the
+    # bound C e^(-alpha t) with C ~ 1/m_f says nothing over the run.
+    spec = _with_objective(
+        tmp_path, "(y1 - o1)**4 + (y2 - o2)**4 + 1e-5*((y1 - o1)**2 + (y2 - o2)**2)"
+    )
+    out = tmp_path / "run"
+    done = _cli("simulate", str(spec), "--out", str(out), "--points", "101")
+    assert done.returncode == 5, done.stderr
+    assert "certificate: FAILED" in done.stdout
+    assert "the bound is vacuous: m_f = 2e-05 is below 1e-06 of the Hessian's scale" in done.stdout
+    assert "is still above the initial |y - y*|" in done.stdout
+    # The bundled integrator passes with a meaningful bound.
+    done = _cli("simulate", "integrator", "--out", str(tmp_path / "ok"), "--points", "101")
+    assert done.returncode == 0 and "vacuous" not in done.stdout
+
+
+def test_a_singular_initial_state_is_a_user_error_and_writes_nothing(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    done = _cli("simulate", "unicycle_switch", "--initial", "v=0", "--out", str(out))
+    assert done.returncode == 3
+    assert done.stderr.count("\n") == 1
+    assert "simulation.initial_state: the law is undefined at the initial state (" in done.stderr
+    assert "v = 0" in done.stderr and "R is singular where v = 0" in done.stderr
+    assert not out.exists()
+    done = _cli("simulate", "integrator", "--initial", "x1=1e308", "--out", str(out))
+    assert done.returncode == 3, done.stderr
+    assert done.stderr.count("\n") == 1 and "near t = " in done.stderr
+    assert not out.exists()
+
+
+def test_a_law_undefined_along_the_run_is_exit_3_not_an_internal_error() -> None:
+    d = derivation("integrator")
+    real = module("integrator")
+    fake = types.ModuleType("fake")
+    fake.__dict__.update({k: v for k, v in vars(real).items() if not k.startswith("__")})
+
+    def rhs(t: float, s: np.ndarray, params: object = None) -> np.ndarray:
+        if t > 1.0:
+            raise real.HessianNotPositiveDefiniteError("the Hessian of f0 is not positive")
+        return real.rhs(t, s, params)
+
+    fake.rhs = rhs
+    with pytest.raises(
+        AssumptionError,
+        match=r"simulation: the law became undefined along the "
+        r"run, near t = 1\.\d+: the Hessian of f0 is not positive",
+    ):
+        simulate(d, fake, resolve_options(d, points=21))
+
+
+def test_repeated_poles_are_read_from_the_poles(tmp_path: Path) -> None:
+    # Distinct poles (unicycle_switch: -1, -1.5): the bound's rate is the decay rate,
+    # whatever rounding the companion matrix's eigenvalues carry.
+    assert derivation("unicycle_switch").certified_rate_exact
+    text = (ROOT / "tvopt_codegen" / "examples" / "unicycle_switch.toml").read_text()
+    assert "poles = [-1.0, -1.5]" in text
+    spec = write_spec(tmp_path, text.replace("poles = [-1.0, -1.5]", "poles = [-1.0, -1.0]"))
+    d = derive(load_spec(spec))
+    assert not d.certified_rate_exact and d.certified_rate == pytest.approx(0.9)
+    report = render_report(d, lower(d), formats=("md",))
+    assert "(repeated poles: 10% epsilon)" in next(iter(report.values()))
+    plain = derivation("unicycle_switch")
+    report = render_report(plain, lower(plain), formats=("md",))
+    assert "repeated poles" not in next(iter(report.values()))
+    result = simulate(plain, load_controller(lower(plain)), resolve_options(plain, points=21))
+    assert result.alpha_exact
