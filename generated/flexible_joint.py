@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: f243b8d7b3a358e996e1248240bb2692ee31b00a024253fd7fe900285095b947
+# content sha256: 75c8ff5fedd7fdbb35fea2922967b2ed23359ba63887210e9522ef14c6a012a3
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -181,6 +181,8 @@ def _check_inputs(t, array, p, what):
 
 def _check_finite(what, *arrays):
     for array in arrays:
+        if array.size == 0:  # a batch of no columns
+            continue
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))

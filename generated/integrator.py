@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: e2d19d53e5790ccc92c0749bfaaacbd795b97d0252c34e668d1a855d00f85e2d
+# content sha256: e158d35f1e247d68729a59c20dd11f6d070f014dc8d3663e76fec91305cc92e4
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -177,6 +177,8 @@ def _check_inputs(t, array, p, what):
 
 def _check_finite(what, *arrays):
     for array in arrays:
+        if array.size == 0:  # a batch of no columns
+            continue
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))

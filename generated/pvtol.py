@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: 459e2677a4c389b28ecf37c2931eb53ab88bc06ccda3547ae218ff5f5f61d017
+# content sha256: 938b55174647aa621d4cf6dea642b0491cb72372b782b22af46bec380042fa5f
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -187,6 +187,8 @@ def _check_inputs(t, array, p, what):
 
 def _check_finite(what, *arrays):
     for array in arrays:
+        if array.size == 0:  # a batch of no columns
+            continue
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))

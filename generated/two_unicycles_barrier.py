@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: f08910cb1f76f604d15c876e8ec5ed052528e23ce35fc9d7d0838ca0cc1aab25
+# content sha256: 754d8a330f5e0f134f541e7823b6636b8d0eedba68b30f0558939e3c356a6013
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -186,6 +186,8 @@ def _check_inputs(t, array, p, what):
 
 def _check_finite(what, *arrays):
     for array in arrays:
+        if array.size == 0:  # a batch of no columns
+            continue
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: fc7a7481f72a27de8582fd87aca703a8876cc4acca3012cd06fdd38238516191
+# content sha256: bf1edcb175711ba2a6bcd59bd79aa15a7da5261b4de2f5b5c917779ee38ddc21
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -193,6 +193,8 @@ def _check_inputs(t, array, p, what):
 
 def _check_finite(what, *arrays):
     for array in arrays:
+        if array.size == 0:  # a batch of no columns
+            continue
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: e19019d77cc0efad70894f3bc7e070d229810f6963e493360007c482dfec6ee1
+# content sha256: 99104fb8e131437ab4b82b8f5ee82a9bcce274eb493a3871573336f10aa5ae4d
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -182,6 +182,8 @@ def _check_inputs(t, array, p, what):
 
 def _check_finite(what, *arrays):
     for array in arrays:
+        if array.size == 0:  # a batch of no columns
+            continue
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))

@@ -11,26 +11,32 @@ errors.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import math
 import os
 import signal
 import sys
+import threading
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import NoReturn
 
 from tvopt_codegen import __version__
 from tvopt_codegen.backends import BACKENDS
 from tvopt_codegen.derivation import Budget, Derivation, derive
 from tvopt_codegen.emit import prepare_folder, write_files
 from tvopt_codegen.errors import (
+    EXIT_BAD_SPEC,
+    EXIT_BROKEN_PIPE,
     EXIT_BUDGET,
     EXIT_CERTIFICATE,
     EXIT_INTERNAL,
     EXIT_INTERRUPTED,
     EXIT_TERMINATED,
+    BudgetError,
     SpecError,
     TvoptError,
 )
@@ -49,8 +55,16 @@ from tvopt_codegen.spec import bundled_examples, load_spec
 from tvopt_codegen.summary import format_summary
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, with a usage error in one line (the seven-line usage is --help's)."""
+
+    def error(self, message: str) -> NoReturn:
+        sys.stderr.write(f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+        raise SystemExit(EXIT_BAD_SPEC)
+
+
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="tvopt-codegen",
         description="Generate implicit trajectory planning controllers from a spec file.",
         epilog="Exit codes: 0 ok, 2 bad spec or usage, 3 assumptions violated, 4 output not "
@@ -183,19 +197,61 @@ def _derive(args: argparse.Namespace) -> tuple[Derivation, KernelSet]:
         raise SpecError("command line", "--max-seconds", "must be positive")
     if not args.max_size > 0:
         raise SpecError("command line", "--max-size", "must be positive")
-    spec = load_spec(args.spec)
-    if args.extension == "auto":
-        spec = dataclasses.replace(spec, extension=(), extension_auto=True)
     progress = _DeriveProgress(args.progress)
+    source = [str(args.spec)]
     try:
-        derivation = derive(spec, progress=progress, budget=Budget(args.max_seconds, args.max_size))
-        progress.lowering()
-        kernels = lower(derivation)
+        with _time_limit(args.max_seconds, source, progress):
+            spec = load_spec(args.spec)
+            source[0] = spec.source
+            if args.extension == "auto":
+                spec = dataclasses.replace(spec, extension=(), extension_auto=True)
+            derivation = derive(
+                spec, progress=progress, budget=Budget(args.max_seconds, args.max_size)
+            )
+            progress.lowering()
+            kernels = lower(derivation)
     finally:
         progress.close()
     for warning in derivation.warnings:
         print(f"tvopt-codegen: warning: {spec.source}: {warning}", file=sys.stderr)
     return derivation, kernels
+
+
+class _Overrun(BaseException):
+    """The time budget ran out.
+
+    A BaseException, so that no ``except Exception`` in a library the derivation calls
+    can swallow it.
+    """
+
+
+@contextlib.contextmanager
+def _time_limit(seconds: float, source: list[str], progress: _DeriveProgress) -> Iterator[None]:
+    """Stop loading, deriving and lowering after ``seconds``, wherever they are.
+
+    The derivation checks its budget as it builds expressions, but a single sympy
+    call (a simplification, an exact power) can run far past it between two checks:
+    a timer signal interrupts it within the budget. Only in the main thread, where
+    Python delivers signals.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def expire(_signum: int, _frame: object) -> None:
+        raise _Overrun
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    except _Overrun:
+        raise BudgetError(
+            source[0], progress.stage, f"the derivation took longer than {seconds:g} s"
+        ) from None
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
 
 
 class _DeriveProgress:
@@ -209,11 +265,13 @@ class _DeriveProgress:
     def __init__(self, mode: str) -> None:
         self.terminal = sys.stderr.isatty()
         self.mode = mode
+        self.stage = "reading the spec"
         self.shown = False
         self.start = time.perf_counter()
         self.last = (0, 0)
 
     def __call__(self, stage: str, expressions: int, nodes: int, seconds: float) -> None:
+        self.stage = stage
         self.last = (expressions, nodes)
         if self.mode == "never" or (self.mode == "auto" and (not self.terminal or seconds < 2)):
             return
@@ -356,10 +414,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Console-script entry point: run, and map every outcome to one line and an exit code."""
     previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
-        return run(argv)
+        code = run(argv)
+        sys.stdout.flush()  # here, where a closed pipe is caught below, not at exit
+        return code
     except TvoptError as exc:
         print(f"tvopt-codegen: error: {exc}", file=sys.stderr)
         return exc.exit_code
+    except BrokenPipeError:
+        # The reader went away (`check SPEC | head -1`): stop quietly, like a Unix tool,
+        # and keep Python from complaining as it flushes stdout at exit.
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except KeyboardInterrupt:
         print("tvopt-codegen: interrupted; no file was left half-written", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -6,6 +6,8 @@ line and exits with :attr:`TvoptError.exit_code`.
 
 from __future__ import annotations
 
+import re
+
 #: Exit code of a successful run.
 EXIT_OK = 0
 #: Exit code for a spec file that cannot be read or is invalid.
@@ -22,10 +24,42 @@ EXIT_BUDGET = 6
 EXIT_BUILD = 7
 #: Exit code for a bug in tvopt-codegen itself.
 EXIT_INTERNAL = 70
+#: Exit code when the reader of stdout went away (as a process killed by SIGPIPE).
+EXIT_BROKEN_PIPE = 141
 #: Exit code after Ctrl-C.
 EXIT_INTERRUPTED = 130
 #: Exit code after SIGTERM.
 EXIT_TERMINATED = 143
+
+
+#: Longest name or value an error message quotes in full.
+MAX_QUOTED = 60
+
+_LONG = MAX_QUOTED + 1
+_QUOTED = re.compile(rf"'([^'\n]{{{_LONG},}})'|\"([^\"\n]{{{_LONG},}})\"")
+
+
+def clip(text: str, limit: int = MAX_QUOTED) -> str:
+    """``text``, or its first ``limit - 3`` characters and an ellipsis."""
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def clip_quotes(message: str) -> str:
+    """``message`` with every quoted name or value longer than :data:`MAX_QUOTED` clipped.
+
+    A 10,000-character name must not make a 10,000-character error line.
+    """
+
+    def shorten(match: re.Match[str]) -> str:
+        quote = "'" if match.group(1) is not None else '"'
+        return quote + clip(match.group(1) or match.group(2)) + quote
+
+    return _QUOTED.sub(shorten, message)
+
+
+def _field(field: str) -> str:
+    """A dotted field path, clipped part by part (a key may be a long name)."""
+    return ".".join(clip(part) for part in field.split("."))
 
 
 class TvoptError(Exception):
@@ -59,7 +93,7 @@ class SpecError(TvoptError):
         self.source = source
         self.field = field
         self.problem = problem
-        super().__init__(f"{source}: {field}: {problem}")
+        super().__init__(f"{source}: {_field(field)}: {clip_quotes(problem)}")
 
 
 class AssumptionError(TvoptError):
@@ -85,7 +119,7 @@ class AssumptionError(TvoptError):
         self.source = source
         self.field = field
         self.problem = problem
-        super().__init__(f"{source}: {field}: {problem}")
+        super().__init__(f"{source}: {_field(field)}: {clip_quotes(problem)}")
 
 
 class OutputError(TvoptError):
@@ -112,7 +146,7 @@ class BudgetError(TvoptError):
     def __init__(self, source: str, stage: str, problem: str) -> None:
         self.source = source
         self.stage = stage
-        super().__init__(f"{source}: derivation stage '{stage}': {problem}")
+        super().__init__(f"{source}: derivation stage '{stage}': {clip_quotes(problem)}")
 
 
 class BuildError(TvoptError):

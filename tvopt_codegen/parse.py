@@ -9,14 +9,23 @@ literal magnitude and exponents are bounded so that no spec can hang the tool.
 from __future__ import annotations
 
 import ast
+import io
 import math
+import tokenize
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import sympy as sp
 
 #: Longest expression text accepted, in characters.
-MAX_EXPRESSION_LENGTH = 4000
+MAX_EXPRESSION_LENGTH = 1_000_000
+#: Largest exact number (bits of its numerator or denominator) constant folding may
+#: build: about 1e1233, far beyond any double.
+MAX_CONSTANT_BITS = 4096
+#: Expressions at least this long are split at their top-level sums and products and
+#: the pieces parsed one by one: Python's parser nests a flat sum of n terms n deep.
+#: Shorter ones (every hand-written spec) are parsed whole.
+_SPLIT_LENGTH = 2000
 #: Deepest nesting of operations accepted.
 MAX_DEPTH = 60
 #: Largest magnitude of a numeric literal.
@@ -90,7 +99,33 @@ def _power(base: sp.Expr, exponent: sp.Expr, column: int) -> sp.Expr:
             raise ExpressionError(column, f"exponent {exponent} exceeds {MAX_EXPONENT}")
         if base.is_Number and base == 0 and exponent.is_negative:
             raise ExpressionError(column, "zero raised to a negative power")
-    return sp.Pow(base, exponent)
+        if base.is_Rational and exponent.is_Integer:
+            # Checked before sympy folds it: (((9**64)**64)**64)**64 has 10^8 digits.
+            bits = abs(int(exponent)) * max(_bits(base), 1)
+            if bits > MAX_CONSTANT_BITS:
+                raise _too_large(column, bits)
+    return _bounded(sp.Pow(base, exponent), column)
+
+
+def _bits(number: sp.Expr) -> int:
+    """Bits of the larger of a rational's numerator and denominator."""
+    p, q = sp.fraction(number)
+    return max(abs(int(p)).bit_length(), abs(int(q)).bit_length())
+
+
+def _too_large(column: int, bits: int) -> ExpressionError:
+    return ExpressionError(
+        column, f"constant too large (about 10^{int(bits * 0.30103)}; the limit is 10^1233)"
+    )
+
+
+def _bounded(value: sp.Expr, column: int) -> sp.Expr:
+    """``value``, unless constant folding made an exact number too large to be useful."""
+    if value.is_Rational:
+        bits = _bits(value)
+        if bits > MAX_CONSTANT_BITS:
+            raise _too_large(column, bits)
+    return value
 
 
 #: Most terms all ``sum(i, ...)`` of one expression may expand to.
@@ -185,15 +220,15 @@ class _TreeBuilder:
         left = self.build(node.left, depth + 1)
         right = self.build(node.right, depth + 1)
         if isinstance(node.op, ast.Add):
-            return left + right
+            return _bounded(left + right, column)
         if isinstance(node.op, ast.Sub):
-            return left - right
+            return _bounded(left - right, column)
         if isinstance(node.op, ast.Mult):
-            return left * right
+            return _bounded(left * right, column)
         if isinstance(node.op, ast.Div):
             if right == 0:
                 raise ExpressionError(column, "division by zero")
-            return left / right
+            return _bounded(left / right, column)
         if isinstance(node.op, ast.Pow):
             return _power(left, right, column)
         raise ExpressionError(column, f"operator {type(node.op).__name__} is not allowed")
@@ -370,17 +405,117 @@ def parse_expression(
     # Multi-line TOML strings are welcome: line breaks become spaces (columns keep
     # their offsets) and the parentheses allow the continuation lines' indentation.
     flat = text.replace("\r", " ").replace("\n", " ").replace("\t", " ")
-    try:
-        tree = ast.parse(f"({flat})", mode="eval")
-    except SyntaxError as exc:
-        column = max(1, (exc.offset or 2) - 1)
-        raise ExpressionError(column, f"syntax error: {exc.msg}") from None
-    except (RecursionError, MemoryError, ValueError):
-        raise ExpressionError(1, "expression too deeply nested") from None
-    try:
-        expr = _TreeBuilder(names, indexing).build(tree.body, 0)
-    except RecursionError:
-        raise ExpressionError(1, "expression too deeply nested") from None
+    builder = _TreeBuilder(names, indexing)
+    expr = _parse_chain(flat, 0, builder, ("+", "-"))
     if expr.has(sp.zoo, sp.nan, sp.oo, -sp.oo):
         raise ExpressionError(1, "expression is infinite or undefined")
     return expr
+
+
+def _parse_piece(text: str, offset: int, builder: _TreeBuilder) -> sp.Expr:
+    """Parse ``text``, which starts at column ``offset + 1`` of the expression."""
+    try:
+        tree = ast.parse(f"({text})", mode="eval")
+    except SyntaxError as exc:
+        column = max(1, (exc.offset or 2) - 1)
+        raise ExpressionError(offset + column, f"syntax error: {exc.msg}") from None
+    except (RecursionError, MemoryError, ValueError):
+        raise ExpressionError(offset + 1, "expression too deeply nested") from None
+    try:
+        return builder.build(tree.body, 0)
+    except RecursionError:
+        raise ExpressionError(offset + 1, "expression too deeply nested") from None
+    except ExpressionError as exc:
+        raise ExpressionError(offset + exc.column, exc.message) from None
+
+
+def _parse_chain(
+    text: str, offset: int, builder: _TreeBuilder, operators: tuple[str, str]
+) -> sp.Expr:
+    """Parse ``text``, splitting a long chain of ``operators`` at its top level.
+
+    A sum (``+ -``) or product (``* /``) of thousands of terms is associative, not
+    nested: its pieces are parsed one by one and combined in one step, so neither
+    Python's parser nor the nesting limit sees a deep tree. Short text takes the
+    direct route.
+    """
+    if len(text) < _SPLIT_LENGTH:
+        return _parse_piece(text, offset, builder)
+    stripped = text.strip()
+    if stripped.startswith("(") and _closing(stripped) == len(stripped) - 1:
+        # One parenthesized operand: what is inside may be a long chain itself.
+        inner = text.index("(") + 1
+        return _parse_chain(text[inner : text.rindex(")")], offset + inner, builder, ("+", "-"))
+    pieces = _split_top_level(text, operators)
+    if pieces is None:
+        return _parse_piece(text, offset, builder)
+    if len(pieces) == 1:
+        if operators == ("+", "-"):
+            return _parse_chain(text, offset, builder, ("*", "/"))
+        return _parse_piece(text, offset, builder)
+    values = []
+    for operator, start, piece in pieces:
+        if operators == ("+", "-"):
+            value = _parse_chain(piece, offset + start, builder, ("*", "/"))
+            values.append(-value if operator == "-" else value)
+        else:
+            value = _parse_chain(piece, offset + start, builder, ("+", "-"))
+            if operator == "/":
+                if value == 0:
+                    raise ExpressionError(offset + start + 1, "division by zero")
+                value = 1 / value
+            values.append(value)
+    combined = sp.Add(*values) if operators == ("+", "-") else sp.Mul(*values)
+    return _bounded(combined, offset + 1)
+
+
+def _closing(text: str) -> int:
+    """Index of the parenthesis that closes the one ``text`` starts with (-1: none)."""
+    depth = 0
+    for index, ch in enumerate(text):
+        if ch == "(":
+            depth += 1
+        elif ch == ")":
+            depth -= 1
+            if depth == 0:
+                return index
+    return -1
+
+
+def _split_top_level(text: str, operators: tuple[str, str]) -> list[tuple[str, int, str]] | None:
+    """``(operator, start, piece)`` for each operand of a top-level chain, or None.
+
+    Only binary operators outside parentheses and brackets split (a ``-`` after
+    another operator or ``**`` is unary; ``1e-5`` is one token); None when the text
+    does not tokenize, which the parser then reports.
+    """
+    try:
+        tokens = list(tokenize.generate_tokens(io.StringIO(text).readline))
+    except (tokenize.TokenError, SyntaxError, IndentationError):
+        return None
+    depth = 0
+    pieces: list[tuple[str, int, str]] = []
+    start, operator = 0, operators[0]
+    previous: tokenize.TokenInfo | None = None
+    for token in tokens:
+        if token.type == tokenize.OP and token.string in "([{":
+            depth += 1
+        elif token.type == tokenize.OP and token.string in ")]}":
+            depth -= 1
+        elif (
+            depth == 0
+            and token.type == tokenize.OP
+            and token.string in operators
+            and previous is not None
+            and (
+                previous.type in (tokenize.NAME, tokenize.NUMBER)
+                or (previous.type == tokenize.OP and previous.string in ")]}")
+            )
+        ):
+            column = token.start[1]
+            pieces.append((operator, start, text[start:column]))
+            start, operator = column + 1, token.string
+        if token.type not in (tokenize.NEWLINE, tokenize.NL, tokenize.ENDMARKER):
+            previous = token
+    pieces.append((operator, start, text[start:]))
+    return pieces

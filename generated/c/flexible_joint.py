@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 0dd0484386384aaa89cc029a6ed03e33f59a4bcca3100b2c098248c9653f069b
+# content sha256: e28f31fff755d71d82d914b6f6fdd926bdbb78470d56b0a557e8efbbcfda605b
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -348,6 +348,8 @@ def _check_inputs(t, array, p, what):
 
 def _check_finite(what, *arrays):
     for array in arrays:
+        if array.size == 0:  # a batch of no columns
+            continue
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))

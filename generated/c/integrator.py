@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 37a4710f94afb847a36310c219bb72792db62fd88d369d7ca4d2005eacade07f
+# content sha256: 552b8349fb9734408e3f3580edf99fe7c746f901913632df86ca1a6921ba43be
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -343,6 +343,8 @@ def _check_inputs(t, array, p, what):
 
 def _check_finite(what, *arrays):
     for array in arrays:
+        if array.size == 0:  # a batch of no columns
+            continue
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: pvtol
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: 26fee452399de267f462fdf91647113e1dbf934e1c99af113ac49fbe9d4b03c1
+# content sha256: 2e8093fa2eec1215e92c49b3d405dfa5dcd851d61312999063ce46631463fcbd
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -354,6 +354,8 @@ def _check_inputs(t, array, p, what):
 
 def _check_finite(what, *arrays):
     for array in arrays:
+        if array.size == 0:  # a batch of no columns
+            continue
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 8a80e55e2f14ae0bc39f0578e8c36bab78fb68021e3f6ada10a6ba0861379144
+# content sha256: 23196b3fa77ee5481308f2f2a99511c7967a39f1b7d9415e2b89b2178d720fac
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -353,6 +353,8 @@ def _check_inputs(t, array, p, what):
 
 def _check_finite(what, *arrays):
     for array in arrays:
+        if array.size == 0:  # a batch of no columns
+            continue
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 20e97c5dd5107b12ccbc5cc67f374a58945cca4bb11d5a95824fbec4f4e631bb
+# content sha256: 8d8d48d5dfd719bd7ee213d606824d50ba188cb4bdfe62b14624001954c546c1
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -359,6 +359,8 @@ def _check_inputs(t, array, p, what):
 
 def _check_finite(what, *arrays):
     for array in arrays:
+        if array.size == 0:  # a batch of no columns
+            continue
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))

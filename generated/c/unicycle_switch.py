@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 2c4af158f7b418df99484f6bad5fc5b2fcc82acb1976130a60c326af50467e11
+# content sha256: fb82c108f5a813f494543049e2f35aacd52bef9e8c19c0619ef29f7b245ea1e9
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -349,6 +349,8 @@ def _check_inputs(t, array, p, what):
 
 def _check_finite(what, *arrays):
     for array in arrays:
+        if array.size == 0:  # a batch of no columns
+            continue
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))
