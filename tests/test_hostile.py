@@ -97,9 +97,8 @@ RESOURCES = [
     ("10**999999 + y1", "exceeds 64"),
     ("1e400 + y1", "non-finite number"),
     ("y1 + 123456789012345678", "exceeds 1e+12"),
-    ("y1" + " + y1" * 200_000, "longer than 1000000 characters"),
     ("(((9**64)**64)**64)**64 + y1", "constant too large (about 10^3910"),
-    ("9**64*9**64*9**64*9**64*9**64*9**64*9**64*9**64 + y1", "constant too large"),
+    ("*".join(["9**64"] * 24) + " + y1", "constant too large"),
     ("sin(" * 100 + "y1" + ")" * 100, "nesting deeper than 60"),
     ("-" * 300 + "y1", "nest"),
 ]

@@ -81,8 +81,17 @@ def test_position_points_at_the_problem() -> None:
 
 
 def test_too_long_is_refused_quickly() -> None:
-    with pytest.raises(ExpressionError, match="longer than"):
-        parse_expression("x+" * 3000 + "x", NAMES)
+    with pytest.raises(ExpressionError, match="longer than 1000000 characters"):
+        parse_expression("x+" * 500_001 + "x", NAMES)
+
+
+def test_a_long_flat_sum_or_product_parses_with_exact_columns() -> None:
+    assert parse_expression("x+" * 3000 + "x", NAMES) == 3001 * NAMES["x"]
+    product = parse_expression("*".join(["x", "y"] * 1500) + "/y", NAMES)
+    assert product == NAMES["x"] ** 1500 * NAMES["y"] ** 1499
+    assert parse_expression("x - " * 1000 + "(x + y)", NAMES) == -999 * NAMES["x"] - NAMES["y"]
+    with pytest.raises(ExpressionError, match="column 4001: unknown name 'z'"):
+        parse_expression("x + " * 1000 + "z", NAMES)
 
 
 _leaves = st.sampled_from(["x", "y", "2", "0.25", "3"])
