@@ -265,10 +265,40 @@ def test_missing_compiler_is_a_clear_import_error(tmp_path: Path) -> None:
     _write_c("integrator", folder)
     empty = tmp_path / "bin"
     empty.mkdir()
-    done = _import_in_subprocess(folder, cache, {"PATH": str(empty), "CC": "no-such-cc"})
+    done = _import_in_subprocess(folder, cache, {"PATH": str(empty), "CC": ""})
     assert done.returncode != 0
     assert "ImportError: integrator: no C compiler found" in done.stderr
     assert not cache.exists() or not list(cache.iterdir())
+
+
+def test_a_named_compiler_that_does_not_exist_is_not_replaced(tmp_path: Path) -> None:
+    folder, cache = tmp_path / "gen", tmp_path / "cache"
+    _write_c("integrator", folder)
+    done = _import_in_subprocess(folder, cache, {"CC": "/nonexistent/cc"})
+    assert done.returncode != 0
+    assert "the C compiler CC='/nonexistent/cc' was not found" in done.stderr
+    out = tmp_path / "run"
+    env = dict(os.environ, CC="/nonexistent/cc", TVOPT_CODEGEN_CACHE=str(cache))
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "tvopt_codegen",
+            "simulate",
+            "integrator",
+            "--backend",
+            "c",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        check=False,
+    )
+    assert run.returncode == 7, run.stderr
+    assert run.stderr.count("\n") == 1 and "CC='/nonexistent/cc' was not found" in run.stderr
+    assert not out.exists()
 
 
 def test_compiler_error_is_reported_and_nothing_cached(tmp_path: Path) -> None:

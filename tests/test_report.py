@@ -17,8 +17,9 @@ from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.ir import lower
 from tvopt_codegen.report import HEADINGS, render_report
+from tvopt_codegen.spec import load_spec
 
-from .conftest import EXAMPLES, ROOT, derivation, kernels
+from .conftest import EXAMPLES, ROOT, derivation, kernels, write_spec
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 BROWSER_FLAGS = [
@@ -187,3 +188,19 @@ def test_large_sparse_matrices_are_listed_by_entry(tmp_path: Path) -> None:
         for name in re.findall(r"&([A-Za-z]+;)", table):
             assert name in html5
         ElementTree.fromstring(re.sub(r"&[A-Za-z]+;", "", table))
+
+
+def test_markup_in_the_description_stays_text_in_both_reports(tmp_path: Path) -> None:
+    text = (ROOT / "tvopt_codegen" / "examples" / "integrator.toml").read_text()
+    hostile = '<script>alert(1)</script> <img src=x onerror="alert(2)"> a & b'
+    spec = write_spec(
+        tmp_path, text.replace('description = """', f'description = """{hostile}\n', 1)
+    )
+    d = derive(load_spec(spec))
+    files = render_report(d, lower(d))
+    md = files["integrator_report.md"]
+    assert "<script" not in md and "<img" not in md
+    assert "&lt;script&gt;alert(1)&lt;/script&gt; &lt;img src=x onerror=" in md
+    assert "a &amp; b" in md
+    html = files["integrator_report.html"]
+    assert "<script" not in html and "<img src=x" not in html

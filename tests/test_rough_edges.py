@@ -107,3 +107,65 @@ def test_zero_columns_give_empty_results_in_the_numpy_backend() -> None:
     assert mod.objective(0.5, np.zeros((m, 0))).shape == (0,)
     assert mod.gradient(0.5, np.zeros((m, 0))).shape == (m, 0)
     assert mod.hessian(0.5, np.zeros((m, 0))).shape == (m, m, 0)
+
+
+def test_bad_simulation_numbers_are_refused_at_once(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    for args, text in (
+        (("--t-final", "inf"), "--t-final: must be positive and at most 1e+06"),
+        (("--t-final", "1e300"), "--t-final: must be positive and at most 1e+06"),
+        (("--points", "300000000"), "--points: must be between 3 and 100000"),
+        (("--rtol", "inf"), "--rtol: must be positive and finite"),
+    ):
+        start = time.perf_counter()
+        done = _cli("simulate", "integrator", "--out", str(out), *args)
+        assert done.returncode == 2 and text in done.stderr, done.stderr
+        assert done.stderr.count("\n") == 1
+        assert time.perf_counter() - start < 10 and not out.exists()
+    for value, text in (
+        ("inf", "expected a finite number"),
+        ("1e300", "must be positive and at most 1e+06"),
+    ):
+        spec = write_spec(tmp_path, INTEGRATOR.replace("t_final = 10.0", f"t_final = {value}"))
+        done = _cli("simulate", str(spec), "--out", str(out))
+        assert done.returncode == 2 and f"simulation.t_final: {text}" in done.stderr
+    # A parameter that divides by zero: one line, not an internal error.
+    spec = write_spec(
+        tmp_path,
+        INTEGRATOR.replace("w = 2.0", "w = 0.0").replace(
+            "0.5*w*(y2 - o2)**2", "0.5*(y2 - o2)**2/w"
+        ),
+    )
+    done = _cli("simulate", str(spec), "--out", str(out))
+    assert done.returncode == 3 and done.stderr.count("\n") == 1
+    assert "does a parameter divide by zero?" in done.stderr
+    done = _cli("simulate", "integrator", "--param", "w=0", "--out", str(out))
+    assert done.returncode == 3 and done.stderr.count("\n") == 1
+    assert "(x1 = -1, x2 = 1.5; parameters w = 0)" in done.stderr
+    assert not out.exists()
+
+
+def test_a_name_of_the_wrong_kind_is_said_to_be_not_allowed(tmp_path: Path) -> None:
+    cases = [
+        (
+            INTEGRATOR.replace('y1 = "x1"', 'y1 = "x1 + u1"'),
+            "system.outputs.y1: column 6: input 'u1' may not appear here: outputs are functions "
+            "of the states and parameters (y = h(x))",
+        ),
+        (
+            INTEGRATOR.replace('o1 = "2 + 0.8*t', 'o1 = "x1 + 2 + 0.8*t'),
+            "signals.o1: column 1: state 'x1' may not appear here: signals are functions of t, "
+            "parameters and other signals",
+        ),
+        (
+            INTEGRATOR.replace('f0 = "0.5*', 'f0 = "u2 + 0.5*'),
+            "objective.f0: column 1: input 'u2' may not appear here: f0 is a function of the "
+            "outputs, signals, parameters and t",
+        ),
+    ]
+    for text, message in cases:
+        done = _cli("check", str(write_spec(tmp_path, text)))
+        assert done.returncode == 2 and message in done.stderr, done.stderr
+    # A name declared nowhere is still just unknown.
+    done = _cli("check", str(write_spec(tmp_path, INTEGRATOR.replace('y1 = "x1"', 'y1 = "q"'))))
+    assert "column 1: unknown name 'q'" in done.stderr

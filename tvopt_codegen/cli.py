@@ -51,8 +51,12 @@ from tvopt_codegen.simulate import (
     result_files,
     simulate,
 )
-from tvopt_codegen.spec import bundled_examples, load_spec
+from tvopt_codegen.spec import MAX_T_FINAL, bundled_examples, load_spec
 from tvopt_codegen.summary import format_summary
+
+
+#: Most output times of a simulation (each is a row of the trajectory table).
+MAX_POINTS = 100_000
 
 
 class _Parser(argparse.ArgumentParser):
@@ -345,10 +349,14 @@ def _simulate(args: argparse.Namespace) -> int:
         ("--atol", args.atol),
         ("--tolerance", args.tolerance),
     ):
-        if not value > 0:
-            raise SpecError("command line", option, "must be positive")
-    if args.points < 3:
-        raise SpecError("command line", "--points", "must be at least 3")
+        if not 0 < value < math.inf:
+            raise SpecError("command line", option, "must be positive and finite")
+    if not 3 <= args.points <= MAX_POINTS:
+        raise SpecError("command line", "--points", f"must be between 3 and {MAX_POINTS}")
+    if args.t_final is not None and not 0 < args.t_final <= MAX_T_FINAL:
+        raise SpecError(
+            "command line", "--t-final", f"must be positive and at most {MAX_T_FINAL:g}"
+        )
     derivation, kernels = _derive(args)
     options = resolve_options(
         derivation,

@@ -648,6 +648,13 @@ def _check_convexity(
     if polynomial is not None and polynomial.free_symbols <= defaults.keys():
         fixed = Evaluator(defaults)
         matrix = np.array([[fixed(polynomial[i, j]) for j in range(m)] for i in range(m)])
+        if not np.all(np.isfinite(matrix)):
+            raise AssumptionError(
+                source,
+                "objective.f0",
+                "the Hessian of f0 is not finite at the parameters' defaults (does a "
+                "parameter divide by zero?)",
+            )
         m_f = float(np.linalg.eigvalsh(np.real(matrix)).min())
         result = Convexity("constant Hessian", m_f, 1)
     else:

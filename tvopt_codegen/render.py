@@ -64,6 +64,7 @@ def environment() -> jinja2.Environment:
     )
     env.filters["comment"] = comment_text
     env.filters["docstring"] = docstring_text
+    env.filters["md"] = markdown_text
     env.filters["pyrepr"] = repr
     env.filters["pytuple"] = lambda values: repr(tuple(values))
     return env
@@ -82,6 +83,15 @@ def comment_text(value: object) -> str:
     while "??" in text:  # "???/" would otherwise keep a "??/"
         text = text.replace("??", "? ?")
     return text.rstrip("\\")
+
+
+def markdown_text(value: object) -> str:
+    """Make text safe in Markdown, where many viewers render raw HTML.
+
+    ``<``, ``>`` and ``&`` become entities, which every viewer shows as the characters:
+    a description holding ``<script>`` or ``<img onerror=...>`` stays text.
+    """
+    return str(value).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
 
 
 def docstring_text(value: object) -> str:

@@ -39,6 +39,7 @@ from tvopt_codegen.errors import AssumptionError, BuildError, SpecError
 from tvopt_codegen.figures import figures
 from tvopt_codegen.ir import KernelSet
 from tvopt_codegen.render import render
+from tvopt_codegen.spec import MAX_T_FINAL
 
 #: The certificate is vacuous when the convexity modulus along the run is below this
 #: fraction of the Hessian's scale there (its largest eigenvalue in magnitude).
@@ -204,8 +205,10 @@ def resolve_options(
                 f"unknown parameter {key!r} (parameters: {', '.join(sorted(known))})",
             )
     horizon = derivation.spec.t_final if t_final is None else float(t_final)
-    if not horizon > 0:
-        raise SpecError("command line", "--t-final", "must be positive")
+    if not 0 < horizon <= MAX_T_FINAL:
+        raise SpecError(
+            "command line", "--t-final", f"must be positive and at most {MAX_T_FINAL:g}"
+        )
     return Options(
         t_final=horizon,
         initial_state=tuple(state[n] for n in names),
@@ -370,8 +373,12 @@ def _check_initial_state(d: Derivation, controller: types.ModuleType, options: O
         where = ", ".join(
             f"{name} = {value:.6g}" for name, value in zip(d.state_names, s0, strict=True)
         )
-        if len(where) > 120:
-            where = where[:117] + "..."
+        if options.params:
+            where += "; parameters " + ", ".join(
+                f"{name} = {value:.6g}" for name, value in options.params.items()
+            )
+        if len(where) > 160:
+            where = where[:157] + "..."
         kind = AssumptionError if exc.status in (2, 3) else SpecError
         raise kind(
             d.spec.source,

@@ -30,6 +30,9 @@ from tvopt_codegen.parse import (
 )
 from tvopt_codegen.toml_shape import ShapeError, check_shape
 
+#: Longest simulation horizon: a run is integrated and sampled step by step, so a
+#: horizon of 1e300 would never end.
+MAX_T_FINAL = 1e6
 #: Largest spec file accepted, in bytes.
 MAX_SPEC_BYTES = 1_000_000
 #: Most integrators one input may be prolonged by.
@@ -253,6 +256,24 @@ def parse_spec(source: str, raw: bytes) -> Spec:
     return _Reader(source).read(data, hashlib.sha256(raw).hexdigest())
 
 
+#: The kind of name each declaring field holds.
+_ROLES = {
+    "system.states": "state",
+    "system.inputs": "input",
+    "system.outputs": "output",
+    "parameters": "parameter",
+    "signals": "signal",
+}
+#: What the expressions of each field may use (for a name of another kind).
+_ALLOWED = (
+    ("system.dynamics", "the dynamics are functions of the states, inputs and parameters"),
+    ("system.outputs", "outputs are functions of the states and parameters (y = h(x))"),
+    ("signals", "signals are functions of t, parameters and other signals"),
+    ("objective", "f0 is a function of the outputs, signals, parameters and t"),
+    ("parameters", "parameters are constants"),
+    ("simulation", "initial values are constants"),
+)
+
 #: A key or list item after expansion: the flat name, its value, the index values
 #: it was expanded with, and the field to name in messages.
 _Entry = tuple[str, Any, dict[str, int], str]
@@ -264,6 +285,8 @@ class _Reader:
     def __init__(self, source: str) -> None:
         self.source = source
         self.indexing = NO_INDEXING
+        #: Declared name -> its kind ("state", "input", ...), for messages.
+        self.roles: dict[str, str] = {}
 
     def read_indices(self, data: Mapping[str, Any]) -> None:
         """Read ``[index]``: each index name and how many values it takes."""
@@ -413,8 +436,20 @@ class _Reader:
         try:
             return parse_expression(text, names, self.bound(bound or {}))
         except ExpressionError as exc:
+            message = self.explain_unknown(exc, field)
             where = ", ".join(f"{k} = {v}" for k, v in (bound or {}).items())
-            raise self.fail(field, f"{exc} (at {where})" if where else str(exc)) from None
+            raise self.fail(field, f"{message} (at {where})" if where else message) from None
+
+    def explain_unknown(self, exc: ExpressionError, field: str) -> str:
+        """``exc`` as text; a declared name used where its kind may not be, said so."""
+        found = re.fullmatch(r"unknown name '(\w+)'", exc.message)
+        role = self.roles.get(found.group(1)) if found else None
+        allowed = next((text for prefix, text in _ALLOWED if field.startswith(prefix)), None)
+        if found is None or role is None or allowed is None:
+            return str(exc)
+        return (
+            f"column {exc.column}: {role} {found.group(1)!r} may not appear here: {allowed}"
+        )
 
     def read(self, data: Mapping[str, Any], sha256: str) -> Spec:
         self.table(data, "", _TOP_KEYS, {"name", "system", "objective", "error_dynamics"})
@@ -575,6 +610,7 @@ class _Reader:
                         "be unique, ignoring case)",
                     )
                 seen[folded] = field
+                self.roles[name] = _ROLES[field]
 
     def read_extension(
         self, data: Mapping[str, Any], inputs: tuple[str, ...]
@@ -681,8 +717,8 @@ class _Reader:
         table = self.sub(data, "simulation", "simulation")
         self.table(table, "simulation", {"t_final", "initial_state", "agents", "objects"}, set())
         t_final = self.number(table.get("t_final", 10.0), "simulation.t_final")
-        if t_final <= 0:
-            raise self.fail("simulation.t_final", "must be positive")
+        if not 0 < t_final <= MAX_T_FINAL:
+            raise self.fail("simulation.t_final", f"must be positive and at most {MAX_T_FINAL:g}")
         initial = self.sub(table, "initial_state", "simulation.initial_state")
         return t_final, tuple(
             (key, self.constant(value, where, bound))

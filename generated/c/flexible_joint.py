@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: e28f31fff755d71d82d914b6f6fdd926bdbb78470d56b0a557e8efbbcfda605b
+# content sha256: d990a10424347fa968fff7588df33d85fad97115d763bd86abd635197344c6a1
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -140,8 +140,18 @@ CFLAGS = ("-O2", "-std=c99", "-fPIC", "-shared")
 
 
 def _compiler():
-    for candidate in (os.environ.get("CC"), "cc", "gcc", "clang"):
-        if candidate and shutil.which(candidate):
+    explicit = os.environ.get("CC")
+    if explicit:
+        # A compiler the user named is used or reported, never quietly replaced.
+        found = shutil.which(explicit)
+        if found is None:
+            raise ImportError(
+                f"flexible_joint: the C compiler CC={explicit!r} was not found; install it, "
+                "point CC at an installed compiler, or unset CC"
+            )
+        return found
+    for candidate in ("cc", "gcc", "clang"):
+        if shutil.which(candidate):
             return shutil.which(candidate)
     raise ImportError(
         "flexible_joint: no C compiler found (tried $CC, cc, gcc, clang); install gcc or "

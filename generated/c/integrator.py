@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 552b8349fb9734408e3f3580edf99fe7c746f901913632df86ca1a6921ba43be
+# content sha256: c1bba6fc29269d72eb26acb4399a45241d706f3d1ebd1c5e602cd7de12ed4087
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -136,8 +136,18 @@ CFLAGS = ("-O2", "-std=c99", "-fPIC", "-shared")
 
 
 def _compiler():
-    for candidate in (os.environ.get("CC"), "cc", "gcc", "clang"):
-        if candidate and shutil.which(candidate):
+    explicit = os.environ.get("CC")
+    if explicit:
+        # A compiler the user named is used or reported, never quietly replaced.
+        found = shutil.which(explicit)
+        if found is None:
+            raise ImportError(
+                f"integrator: the C compiler CC={explicit!r} was not found; install it, "
+                "point CC at an installed compiler, or unset CC"
+            )
+        return found
+    for candidate in ("cc", "gcc", "clang"):
+        if shutil.which(candidate):
             return shutil.which(candidate)
     raise ImportError(
         "integrator: no C compiler found (tried $CC, cc, gcc, clang); install gcc or "

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: pvtol
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: 2e8093fa2eec1215e92c49b3d405dfa5dcd851d61312999063ce46631463fcbd
+# content sha256: 0d2d3b673974fd8e876e97e5330bb0c900a2e3e45f4dcb1347fb3faa4537589c
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -146,8 +146,18 @@ CFLAGS = ("-O2", "-std=c99", "-fPIC", "-shared")
 
 
 def _compiler():
-    for candidate in (os.environ.get("CC"), "cc", "gcc", "clang"):
-        if candidate and shutil.which(candidate):
+    explicit = os.environ.get("CC")
+    if explicit:
+        # A compiler the user named is used or reported, never quietly replaced.
+        found = shutil.which(explicit)
+        if found is None:
+            raise ImportError(
+                f"pvtol: the C compiler CC={explicit!r} was not found; install it, "
+                "point CC at an installed compiler, or unset CC"
+            )
+        return found
+    for candidate in ("cc", "gcc", "clang"):
+        if shutil.which(candidate):
             return shutil.which(candidate)
     raise ImportError(
         "pvtol: no C compiler found (tried $CC, cc, gcc, clang); install gcc or "

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 23196b3fa77ee5481308f2f2a99511c7967a39f1b7d9415e2b89b2178d720fac
+# content sha256: 20f79a87817c5f32464aa33dcbeedcfada0418387eb47cd1a1b2f4c7266ace4c
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -145,8 +145,18 @@ CFLAGS = ("-O2", "-std=c99", "-fPIC", "-shared")
 
 
 def _compiler():
-    for candidate in (os.environ.get("CC"), "cc", "gcc", "clang"):
-        if candidate and shutil.which(candidate):
+    explicit = os.environ.get("CC")
+    if explicit:
+        # A compiler the user named is used or reported, never quietly replaced.
+        found = shutil.which(explicit)
+        if found is None:
+            raise ImportError(
+                f"two_unicycles_barrier: the C compiler CC={explicit!r} was not found; install it, "
+                "point CC at an installed compiler, or unset CC"
+            )
+        return found
+    for candidate in ("cc", "gcc", "clang"):
+        if shutil.which(candidate):
             return shutil.which(candidate)
     raise ImportError(
         "two_unicycles_barrier: no C compiler found (tried $CC, cc, gcc, clang); install gcc or "

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 8d8d48d5dfd719bd7ee213d606824d50ba188cb4bdfe62b14624001954c546c1
+# content sha256: 042e8c651fbf839b70341c11a1fe1baa2e3f8a7334a0f8794db4f3643a2dce4f
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -152,8 +152,18 @@ CFLAGS = ("-O2", "-std=c99", "-fPIC", "-shared")
 
 
 def _compiler():
-    for candidate in (os.environ.get("CC"), "cc", "gcc", "clang"):
-        if candidate and shutil.which(candidate):
+    explicit = os.environ.get("CC")
+    if explicit:
+        # A compiler the user named is used or reported, never quietly replaced.
+        found = shutil.which(explicit)
+        if found is None:
+            raise ImportError(
+                f"unicycle_ring: the C compiler CC={explicit!r} was not found; install it, "
+                "point CC at an installed compiler, or unset CC"
+            )
+        return found
+    for candidate in ("cc", "gcc", "clang"):
+        if shutil.which(candidate):
             return shutil.which(candidate)
     raise ImportError(
         "unicycle_ring: no C compiler found (tried $CC, cc, gcc, clang); install gcc or "

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: fb82c108f5a813f494543049e2f35aacd52bef9e8c19c0619ef29f7b245ea1e9
+# content sha256: 42ef6e5393894a15d1085b3e2da507085105efef0b38cc11d845f86273003565
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -141,8 +141,18 @@ CFLAGS = ("-O2", "-std=c99", "-fPIC", "-shared")
 
 
 def _compiler():
-    for candidate in (os.environ.get("CC"), "cc", "gcc", "clang"):
-        if candidate and shutil.which(candidate):
+    explicit = os.environ.get("CC")
+    if explicit:
+        # A compiler the user named is used or reported, never quietly replaced.
+        found = shutil.which(explicit)
+        if found is None:
+            raise ImportError(
+                f"unicycle_switch: the C compiler CC={explicit!r} was not found; install it, "
+                "point CC at an installed compiler, or unset CC"
+            )
+        return found
+    for candidate in ("cc", "gcc", "clang"):
+        if shutil.which(candidate):
             return shutil.which(candidate)
     raise ImportError(
         "unicycle_switch: no C compiler found (tried $CC, cc, gcc, clang); install gcc or "
