@@ -54,7 +54,6 @@ from tvopt_codegen.simulate import (
 from tvopt_codegen.spec import MAX_T_FINAL, bundled_examples, load_spec
 from tvopt_codegen.summary import format_summary
 
-
 #: Most output times of a simulation (each is a row of the trajectory table).
 MAX_POINTS = 100_000
 
