@@ -20,11 +20,13 @@ import contextlib
 import hashlib
 import json
 import os
+import re
 import signal
 import stat
+import sys
 import tempfile
 import threading
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
 from tvopt_codegen.errors import OutputError
@@ -50,6 +52,8 @@ def _digest(data: bytes) -> str:
 
 #: Largest manifest or journal read (each names a few dozen files).
 _MAX_RECORD_BYTES = 4_000_000
+#: Largest file recovery reads to tell whether the tool wrote it.
+_MAX_OWN_FILE_BYTES = 256_000_000
 
 
 def read_regular_file(path: Path, limit: int) -> bytes | None:
@@ -208,9 +212,61 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def recover(folder: Path) -> None:
-    """Finish publications of processes that died mid-way; drop orphaned temporaries."""
+#: The tool's temporaries: ``.<target>.<pid>-<random>.tvopt-tmp`` (tempfile's names).
+_TEMP_NAME = re.compile(r"\.(?P<target>[^/\\]+)\.(?P<pid>\d+)-[A-Za-z0-9_]+\.tvopt-tmp")
+
+
+def _may_recover(folder: Path, temp: str, target: str, manifest: Mapping[str, str]) -> str:
+    """Why the journal's rename ``temp -> target`` must not run ("" when it may).
+
+    A journal is only a file in the folder: anyone able to put one there must not be
+    able to move or replace a user's file through it. So only the tool's own
+    temporaries (by name, regular files) are renamed, only to a plain name in the
+    folder, and only over a file the tool wrote that nobody changed since.
+    """
+    found = _TEMP_NAME.fullmatch(temp)
+    if found is None or found.group("target") != target:
+        return f"{temp!r} is not a temporary of tvopt-codegen for {target!r}"
+    if Path(target).name != target or target in {".", ".."}:
+        return f"target {target!r} is not a plain file name in the folder"
+    try:
+        info = os.lstat(folder / temp)
+    except FileNotFoundError:
+        return ""  # renamed already (by the dead run or a concurrent one): nothing to do
+    if not stat.S_ISREG(info.st_mode):
+        return f"{temp!r} is not a regular file"
+    path = folder / target
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        return f"{target!r} is not a regular file"
+    if path.exists():
+        current = read_regular_file(path, _MAX_OWN_FILE_BYTES)
+        if current is None:
+            return f"{target!r} could not be read"
+        owned = manifest.get(target) == _digest(current) or target == MANIFEST
+        if not owned:
+            try:
+                owned = is_pristine(current.decode("utf-8"))
+            except UnicodeDecodeError:
+                owned = False
+        if not owned:
+            return f"{target!r} was changed since tvopt-codegen wrote it"
+    return ""
+
+
+def recover(folder: Path, warn: Callable[[str], None] | None = None) -> None:
+    """Finish publications of processes that died mid-way; drop orphaned temporaries.
+
+    Parameters
+    ----------
+    folder : pathlib.Path
+        The output folder.
+    warn : callable, optional
+        Told, one line each, of journal entries left alone (see :func:`_may_recover`);
+        by default they are printed on stderr.
+    """
+    report = warn or _print_warning
     claimed: set[str] = set()
+    manifest = _read_manifest(folder)
     for journal in sorted(folder.glob(f"{JOURNAL_PREFIX}*.json")):
         raw = read_regular_file(journal, _MAX_RECORD_BYTES)
         if raw is None:
@@ -225,21 +281,30 @@ def recover(folder: Path) -> None:
             claimed.update(a for a, _ in pairs)
             continue  # still publishing: leave it alone
         for temp, target in pairs:
-            if Path(target).name == target:
-                # Another run may be finishing the same journal right now.
-                with contextlib.suppress(FileNotFoundError):
-                    os.replace(folder / temp, folder / target)
+            problem = _may_recover(folder, temp, target, manifest)
+            if problem:
+                report(f"{folder}: left alone while finishing {journal.name}: {problem}")
+                continue
+            # Another run may be finishing the same journal right now.
+            with contextlib.suppress(FileNotFoundError):
+                os.replace(folder / temp, folder / target)
         with contextlib.suppress(FileNotFoundError):
             journal.unlink()
     for orphan in folder.glob(f".*{_TEMP_SUFFIX}"):
-        if orphan.name in claimed:
+        if orphan.name in claimed or _TEMP_NAME.fullmatch(orphan.name) is None:
             continue
         # Temporaries are named .<target>.<pid>-<random>.tvopt-tmp: keep a live writer's.
         owner = orphan.name[: -len(_TEMP_SUFFIX)].rsplit(".", 1)[-1].split("-")[0]
         if owner.isdigit() and int(owner) != os.getpid() and _alive(int(owner)):
             continue
+        if orphan.is_symlink() or not orphan.is_file():
+            continue
         with contextlib.suppress(FileNotFoundError):
             orphan.unlink()
+
+
+def _print_warning(message: str) -> None:
+    print(f"tvopt-codegen: warning: {message}", file=sys.stderr)
 
 
 @contextlib.contextmanager
