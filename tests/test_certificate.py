@@ -125,3 +125,60 @@ def test_repeated_poles_are_read_from_the_poles(tmp_path: Path) -> None:
     assert "repeated poles" not in next(iter(report.values()))
     result = simulate(plain, load_controller(lower(plain)), resolve_options(plain, points=21))
     assert result.alpha_exact
+
+
+SPECS = ROOT / "tests" / "specs"
+
+
+def test_singular_sets_name_where_r_or_p_is_undefined(tmp_path: Path) -> None:
+    car = derive(load_spec(SPECS / "kinematic_car.toml"))
+    assert car.singular_set == ("v = 0",) and car.undefined_set == ("cos(phi) = 0",)
+    assert car.singular_text == "R is singular where v = 0; R or p is undefined where cos(phi) = 0"
+    attitude = derive(load_spec(SPECS / "attitude.toml"))
+    assert attitude.singular_set == () and attitude.undefined_set == ("cos(pitch) = 0",)
+    done = _cli("check", str(SPECS / "attitude.toml"))
+    assert (
+        "never singular" in done.stdout and "R or p undefined where cos(pitch) = 0" in done.stdout
+    )
+    # A steering angle of pi/2: the message names the set the state lies on.
+    done = _cli(
+        "simulate",
+        str(SPECS / "kinematic_car.toml"),
+        "--initial",
+        "v=1",
+        "--initial",
+        f"phi={np.pi / 2!r}",
+        "--out",
+        str(tmp_path / "run"),
+    )
+    assert done.returncode == 3
+    assert "phi = 1.5708" in done.stderr and "R or p is undefined where cos(phi) = 0" in done.stderr
+    mod = module(str(SPECS / "kinematic_car.toml"))
+    state = np.array(mod.DEFAULT_STATE)
+    with pytest.raises(mod.SingularDecouplingError, match="R or p is undefined where cos"):
+        mod.control(0.0, state)
+    # Every bundled example has nowhere R or p is undefined (the generated code is as before).
+    for name in ("integrator", "unicycle_switch", "pvtol", "flexible_joint", "unicycle_ring"):
+        assert derivation(name).undefined_set == ()
+
+
+def test_a_singular_default_state_is_warned_about(tmp_path: Path) -> None:
+    car = derive(load_spec(SPECS / "kinematic_car.toml"))
+    (warning,) = car.warnings
+    assert "the law is undefined at the initial state (" in warning
+    assert "the extension states v, v_d1 start at 0 unless simulation.initial_state gives them" in (
+        warning
+    )
+    assert "DEFAULT_STATE cannot be simulated as it is" in warning
+    for command in ("check", "generate"):
+        args = ["--out", str(tmp_path / "gen")] if command == "generate" else []
+        done = _cli(command, str(SPECS / "kinematic_car.toml"), *args)
+        assert done.returncode == 0 and "warning:" in done.stderr and "DEFAULT_STATE" in done.stderr
+    # With automatic extension the extension states may be given by name (PVTOL's thrust).
+    pvtol = derivation("pvtol")
+    assert pvtol.spec.extension_auto
+    assert pvtol.initial_state[pvtol.state_names.index("thrust")] == 9.81
+    assert pvtol.warnings == ()
+    text = (SPECS / "kinematic_car.toml").read_text()
+    given = text.replace("phi = 0.0 }", "phi = 0.0, v = 1.0 }")
+    assert derive(load_spec(write_spec(tmp_path, given))).warnings == ()

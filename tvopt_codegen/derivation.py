@@ -99,6 +99,9 @@ class Derivation:
         Why ``det_R`` is None (empty when it was computed), for the summary and report.
     singular_set : tuple of str
         Conditions under which ``det R`` vanishes, in words.
+    undefined_set : tuple of str
+        Conditions under which R or p (and so the law) is undefined (a denominator
+        or a cosine under ``tan`` vanishes, ...), in words.
     gradient : sympy.ImmutableMatrix
         ``grad_y f0`` (m, 1) over ``y``, signals, parameters and t.
     hessian_program : Program
@@ -176,6 +179,7 @@ class Derivation:
     det_R: sp.Expr | None
     det_R_note: str
     singular_set: tuple[str, ...]
+    undefined_set: tuple[str, ...]
     gradient: sp.ImmutableMatrix
     hessian_program: Program
     hessian_entries: tuple[tuple[tuple[int, int], sp.Expr], ...]
@@ -201,6 +205,16 @@ class Derivation:
     warnings: tuple[str, ...]
     transient_constant: float
     timings: tuple[tuple[str, float], ...]
+
+    @property
+    def singular_text(self) -> str:
+        """Where the law cannot be evaluated, in words ("" when nowhere is known)."""
+        parts = []
+        if self.singular_set:
+            parts.append(f"R is singular where {'; '.join(self.singular_set)}")
+        if self.undefined_set:
+            parts.append(f"R or p is undefined where {'; '.join(self.undefined_set)}")
+        return "; ".join(parts)
 
     @functools.cached_property
     def hessian(self) -> sp.ImmutableMatrix:
@@ -415,6 +429,91 @@ def _singular_set(det: sp.Expr) -> tuple[str, ...]:
         if base.is_Number:
             continue
         conditions.append(f"{sp.sstr(base)} = 0")
+    return tuple(conditions)
+
+
+def _singular_start(
+    R: sp.ImmutableMatrix,
+    p: sp.ImmutableMatrix,
+    states: Sequence[sp.Symbol],
+    initial: Sequence[float],
+    defaults: Mapping[sp.Symbol, float],
+    extension_states: Sequence[str],
+) -> tuple[str, ...]:
+    """A warning when the spec's initial state is where the law is undefined.
+
+    An automatic extension starts its states at 0 unless the spec gives them, and 0
+    is singular for any prolonged speed: the module's DEFAULT_STATE would be unusable
+    without a word.
+    """
+    values: dict[sp.Symbol, Any] = {q: float(v) for q, v in defaults.items()}
+    values |= {sym: float(v) for sym, v in zip(states, initial, strict=True)}
+    evaluate = Evaluator(values)
+    with np.errstate(all="ignore"):
+        matrix = np.array(
+            [[complex(evaluate(R[i, j])) for j in range(R.cols)] for i in range(R.rows)]
+        )
+        rest = np.array([complex(evaluate(e)) for e in p])
+    finite = bool(np.all(np.isfinite(matrix)) and np.all(np.isfinite(rest)))
+    if finite and np.all(matrix.imag == 0) and np.linalg.cond(matrix.real) < 1e12:
+        return ()
+    where = ", ".join(f"{sym.name} = {v:.6g}" for sym, v in zip(states, initial, strict=True))
+    if len(where) > 120:
+        where = where[:117] + "..."
+    zeros = [
+        name
+        for name, v in zip((s.name for s in states), initial, strict=True)
+        if name in extension_states and v == 0
+    ]
+    hint = (
+        f"; the extension states {', '.join(zeros)} start at 0 unless "
+        "simulation.initial_state gives them (by name)"
+        if zeros
+        else ""
+    )
+    what = "R is singular there" if finite else "R or p is not finite there"
+    return (
+        f"simulation.initial_state: the law is undefined at the initial state ({where}): "
+        f"{what}{hint}; DEFAULT_STATE cannot be simulated as it is",
+    )
+
+
+#: At most this many conditions are listed where R or p is undefined.
+_MAX_UNDEFINED = 6
+
+
+def _undefined_set(exprs: Sequence[sp.Expr], states: set[sp.Symbol]) -> tuple[str, ...]:
+    """Where expressions of the states are undefined, one condition per cause.
+
+    A denominator that vanishes, ``tan``/``sec`` where the cosine vanishes,
+    ``cot``/``csc`` where the sine does, ``log`` of a non-positive and a root of a
+    negative number: the places where R or p, and with them the law, do not exist
+    although det R may not vanish there (a steering angle of pi/2, an Euler pitch of
+    pi/2). Conditions on parameters alone are not listed.
+    """
+    conditions: dict[str, None] = {}
+    seen: set[sp.Basic] = set()
+    stack = [e for e in exprs if isinstance(e, sp.Basic)]
+    while stack and len(conditions) < _MAX_UNDEFINED:
+        node = stack.pop()
+        if node in seen or not node.free_symbols & states:
+            continue
+        seen.add(node)
+        condition = None
+        if node.is_Pow and node.exp.is_Number and node.base.free_symbols & states:
+            if node.exp.is_negative:
+                condition = f"{sp.sstr(node.base)} = 0"
+            elif not node.exp.is_Integer:
+                condition = f"{sp.sstr(node.base)} < 0"
+        elif isinstance(node, sp.tan | sp.sec):
+            condition = f"cos({sp.sstr(node.args[0])}) = 0"
+        elif isinstance(node, sp.cot | sp.csc):
+            condition = f"sin({sp.sstr(node.args[0])}) = 0"
+        elif isinstance(node, sp.log):
+            condition = f"{sp.sstr(node.args[0])} <= 0"
+        if condition is not None:
+            conditions.setdefault(condition)
+        stack.extend(reversed(node.args))
     return tuple(conditions)
 
 
@@ -925,6 +1024,7 @@ def derive(
             det_R_note = (
                 f"not simplified symbolically (more than {_DET_SIMPLIFY_NODES} expression nodes)"
             )
+    undefined = _undefined_set([*R, *p], set(ext.x))
     clock.mark("decoupling matrix")
 
     say("objective")
@@ -966,6 +1066,14 @@ def derive(
         y0,
         spec.t_final,
         source,
+    )
+    warnings += _singular_start(
+        R,
+        p,
+        states,
+        initial,
+        defaults,
+        state_names[len(spec.states) : len(spec.states) + len(ext.states)],
     )
     clock.mark("objective")
 
@@ -1041,6 +1149,7 @@ def derive(
         det_R=det_R,
         det_R_note=det_R_note,
         singular_set=singular,
+        undefined_set=undefined,
         gradient=gradient,
         hessian_program=hessian_program,
         hessian_entries=hessian_entries,

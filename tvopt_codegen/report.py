@@ -336,6 +336,16 @@ def _linearization(d: Derivation) -> Section:
                 text=f"det R is {d.det_R_note}; the generated code checks every pivot at run time.",
             )
         )
+    if d.undefined_set:
+        entries.append(
+            Entry(
+                "text",
+                text="R or p, and with them the law, is undefined where "
+                + " or where ".join(d.undefined_set)
+                + " (a vanishing denominator, or a cosine under tan); det R says nothing "
+                "there.",
+            )
+        )
     entries.append(_math_entry("p = col(L_f^(r_i) h_i):", d.p, _name("p(x)", "p")))
     entries.append(
         _math_entry("Coordinates Phi (paper, Lemmas 1-2):", d.phi, _name(r"\Phi(x)", "&#934;"))

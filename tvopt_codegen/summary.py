@@ -70,6 +70,8 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
         lines.append(f"  det R = {sp.sstr(d.det_R)}; {where}")
     else:
         lines.append(f"  det R: {d.det_R_note}; singularity is checked at run time by pivoting")
+    if d.undefined_set:
+        lines.append(f"  R or p undefined where {'; '.join(d.undefined_set)}")
     lines.append(
         f"  f0: strongly convex ({d.convexity.method}, m_f ~ "
         f"{_number(d.convexity.m_f)} over {d.convexity.points} point(s))"
