@@ -379,3 +379,35 @@ def test_a_slow_det_simplification_is_charged_to_its_own_stage(
     monkeypatch.setattr(derivation_module.sp, "simplify", slow(budget + 0.5))
     with pytest.raises(BudgetError, match="derivation stage 'decoupling matrix'"):
         derive(spec, budget=Budget(seconds=budget))
+
+
+@pytest.mark.parametrize("spec", ["integrator", "unicycle_switch"])
+def test_non_finite_inputs_are_worded_alike_in_both_backends(
+    spec: str, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    states = random_states(spec, 4)
+    states[0, 2] = np.nan
+    m = len(derivation(spec).spec.outputs)
+    outcomes = []
+    for mod in _modules(spec, tmp_path_factory):
+        seen = []
+        name = next(iter(mod.PARAMETERS))
+        for t, x, params in (
+            (np.inf, random_states(spec, 2), None),
+            (0.5, states, None),
+            (0.5, states[:, 2], None),
+            (0.5, random_states(spec, 2), {name: np.nan}),
+        ):
+            for function in STATE_FUNCTIONS:
+                with pytest.raises(mod.NonFiniteInputError) as info:
+                    getattr(mod, function)(t, x, params)
+                seen.append((str(info.value), info.value.index))
+            for function in OUTPUT_FUNCTIONS:
+                with pytest.raises(mod.NonFiniteInputError) as info:
+                    getattr(mod, function)(t, np.asarray(x)[:m], params)
+                seen.append((str(info.value), info.value.index))
+        outcomes.append(seen)
+    assert outcomes[0] == outcomes[1]
+    assert ("the state is not finite (column 2)", 2) in outcomes[0]
+    assert ("t = inf is not finite", None) in outcomes[0]
+    assert ("a parameter is not finite", None) in outcomes[0]

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: c1bba6fc29269d72eb26acb4399a45241d706f3d1ebd1c5e602cd7de12ed4087
+# content sha256: 17bf71f37173dc3f34014ab65349bebdb65c4de43b48d22001b29d9ac2aeab6d
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -241,7 +241,6 @@ for _name in ("control", "rhs", "optimality_error", "objective", "gradient", "he
 _P_NONE = numpy.zeros(1)
 
 _MESSAGES = {
-    STATUS_NONFINITE_INPUT: (NonFiniteInputError, "t, the {what} or a parameter is not finite"),
     STATUS_SINGULAR_DECOUPLING: (
         SingularDecouplingError,
         "the decoupling matrix R is singular (column {index})"
@@ -253,8 +252,17 @@ _MESSAGES = {
     ),
     STATUS_NONFINITE_OUTPUT: (
         NonFiniteOutputError,
-        "a result is not finite (column {index}): a signal or f0 left its domain",
+        "{result} is not finite (column {index}): a signal or f0 left its domain",
     ),
+}
+#: What each function computes, and what its argument is, for messages.
+_RESULTS = {
+    "control": ("the plant input", "state"),
+    "rhs": ("the closed-loop vector field", "state"),
+    "optimality_error": ("the optimality error", "state"),
+    "objective": ("f0", "output"),
+    "gradient": ("the gradient of f0", "output"),
+    "hessian": ("the Hessian of f0", "output"),
 }
 
 
@@ -262,7 +270,7 @@ def _address(array):
     return array.__array_interface__["data"][0]
 
 
-def _call(name, t, array, p, shape, what):
+def _call(name, t, array, p, shape):
     """Run a batched C function over the columns of ``array``; raise on a status."""
     points = numpy.ascontiguousarray(array.T)
     count = points.shape[0]
@@ -272,37 +280,50 @@ def _call(name, t, array, p, shape, what):
     status = _FUNCTIONS[name](count, t, _address(points), _address(params), _address(out),
                               _address(failed))
     if status != STATUS_OK:
-        _raise(status, int(failed[0]), what)
+        _raise(status, int(failed[0]), name, t, array, p)
     return out.T if out.ndim == 2 else numpy.moveaxis(out, 0, -1)
 
 
-def _raise(status, index, what):
+def _raise(status, index, name, t, values, p):
+    """Raise the exception of a C status, worded as the Python backend words it."""
+    result, what = _RESULTS[name]
+    if status == STATUS_NONFINITE_INPUT:
+        # The C reports that an input is not finite; which one is found here, off the
+        # fast path, so that the message names it as the Python backend does.
+        if not numpy.isfinite(t):
+            raise NonFiniteInputError(f"t = {t!r} is not finite")
+        columns = numpy.asarray(values, dtype=float).reshape(len(values), -1)
+        bad = ~numpy.all(numpy.isfinite(columns), axis=0)
+        if bad.any():
+            column = int(numpy.argmax(bad))
+            raise NonFiniteInputError(f"the {what} is not finite (column {column})", column)
+        raise NonFiniteInputError("a parameter is not finite")
     kind, message = _MESSAGES[status]
-    raise kind(message.format(index=index, what=what), index)
+    raise kind(message.format(index=index, result=result), index)
 
 
 def _control_values(t, s, p):
-    return _call("control", t, s, p, (2,), "state")
+    return _call("control", t, s, p, (2,))
 
 
 def _rhs_values(t, s, p):
-    return _call("rhs", t, s, p, (2,), "state")
+    return _call("rhs", t, s, p, (2,))
 
 
 def _optimality_error(t, s, p):
-    return _call("optimality_error", t, s, p, (K, 2), "state")
+    return _call("optimality_error", t, s, p, (K, 2))
 
 
 def _objective_values(t, y, p):
-    return _call("objective", t, y, p, (), "output")
+    return _call("objective", t, y, p, ())
 
 
 def _gradient_values(t, y, p):
-    return _call("gradient", t, y, p, (2,), "output")
+    return _call("gradient", t, y, p, (2,))
 
 
 def _hessian_values(t, y, p):
-    return _call("hessian", t, y, p, (2, 2), "output")
+    return _call("hessian", t, y, p, (2, 2))
 
 
 def _time(t):
@@ -517,26 +538,27 @@ def hessian(t, y, params=None):
 
 
 
-def _direct(kind, general, what):
+def _direct(kind, general, name):
     """``general`` with its common case (float64 arrays) handed to the entry point."""
     call = _ENTRY
     default = _DEFAULT_P
 
     def function(t, s, params=None):
-        result = call(kind, t, s, default if params is None else _parameters(params))
+        p = default if params is None else _parameters(params)
+        result = call(kind, t, s, p)
         if result is None:  # a list, another dtype or a wrong shape: convert or raise
             return general(t, s, params)
         if type(result) is tuple:
-            _raise(result[0], result[1], what)
+            _raise(result[0], result[1], name, float(t), s, p)
         return result
 
     return functools.update_wrapper(function, general)
 
 
 if _ENTRY is not None:
-    control = _direct(0, control, "state")
-    rhs = _direct(1, rhs, "state")
-    optimality_error = _direct(2, optimality_error, "state")
-    objective = _direct(3, objective, "output")
-    gradient = _direct(4, gradient, "output")
-    hessian = _direct(5, hessian, "output")
+    control = _direct(0, control, "control")
+    rhs = _direct(1, rhs, "rhs")
+    optimality_error = _direct(2, optimality_error, "optimality_error")
+    objective = _direct(3, objective, "objective")
+    gradient = _direct(4, gradient, "gradient")
+    hessian = _direct(5, hessian, "hessian")

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 20f79a87817c5f32464aa33dcbeedcfada0418387eb47cd1a1b2f4c7266ace4c
+# content sha256: 9b5a692bd81f76ffe5b1b2584e16298f49ddd0d1b9741db95c0ada13658e9b2e
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -250,7 +250,6 @@ for _name in ("control", "rhs", "optimality_error", "objective", "gradient", "he
 _P_NONE = numpy.zeros(1)
 
 _MESSAGES = {
-    STATUS_NONFINITE_INPUT: (NonFiniteInputError, "t, the {what} or a parameter is not finite"),
     STATUS_SINGULAR_DECOUPLING: (
         SingularDecouplingError,
         "the decoupling matrix R is singular (column {index})"
@@ -263,8 +262,17 @@ _MESSAGES = {
     ),
     STATUS_NONFINITE_OUTPUT: (
         NonFiniteOutputError,
-        "a result is not finite (column {index}): a signal or f0 left its domain",
+        "{result} is not finite (column {index}): a signal or f0 left its domain",
     ),
+}
+#: What each function computes, and what its argument is, for messages.
+_RESULTS = {
+    "control": ("the plant input", "state"),
+    "rhs": ("the closed-loop vector field", "state"),
+    "optimality_error": ("the optimality error", "state"),
+    "objective": ("f0", "output"),
+    "gradient": ("the gradient of f0", "output"),
+    "hessian": ("the Hessian of f0", "output"),
 }
 
 
@@ -272,7 +280,7 @@ def _address(array):
     return array.__array_interface__["data"][0]
 
 
-def _call(name, t, array, p, shape, what):
+def _call(name, t, array, p, shape):
     """Run a batched C function over the columns of ``array``; raise on a status."""
     points = numpy.ascontiguousarray(array.T)
     count = points.shape[0]
@@ -282,37 +290,50 @@ def _call(name, t, array, p, shape, what):
     status = _FUNCTIONS[name](count, t, _address(points), _address(params), _address(out),
                               _address(failed))
     if status != STATUS_OK:
-        _raise(status, int(failed[0]), what)
+        _raise(status, int(failed[0]), name, t, array, p)
     return out.T if out.ndim == 2 else numpy.moveaxis(out, 0, -1)
 
 
-def _raise(status, index, what):
+def _raise(status, index, name, t, values, p):
+    """Raise the exception of a C status, worded as the Python backend words it."""
+    result, what = _RESULTS[name]
+    if status == STATUS_NONFINITE_INPUT:
+        # The C reports that an input is not finite; which one is found here, off the
+        # fast path, so that the message names it as the Python backend does.
+        if not numpy.isfinite(t):
+            raise NonFiniteInputError(f"t = {t!r} is not finite")
+        columns = numpy.asarray(values, dtype=float).reshape(len(values), -1)
+        bad = ~numpy.all(numpy.isfinite(columns), axis=0)
+        if bad.any():
+            column = int(numpy.argmax(bad))
+            raise NonFiniteInputError(f"the {what} is not finite (column {column})", column)
+        raise NonFiniteInputError("a parameter is not finite")
     kind, message = _MESSAGES[status]
-    raise kind(message.format(index=index, what=what), index)
+    raise kind(message.format(index=index, result=result), index)
 
 
 def _control_values(t, s, p):
-    return _call("control", t, s, p, (4,), "state")
+    return _call("control", t, s, p, (4,))
 
 
 def _rhs_values(t, s, p):
-    return _call("rhs", t, s, p, (8,), "state")
+    return _call("rhs", t, s, p, (8,))
 
 
 def _optimality_error(t, s, p):
-    return _call("optimality_error", t, s, p, (K, 4), "state")
+    return _call("optimality_error", t, s, p, (K, 4))
 
 
 def _objective_values(t, y, p):
-    return _call("objective", t, y, p, (), "output")
+    return _call("objective", t, y, p, ())
 
 
 def _gradient_values(t, y, p):
-    return _call("gradient", t, y, p, (4,), "output")
+    return _call("gradient", t, y, p, (4,))
 
 
 def _hessian_values(t, y, p):
-    return _call("hessian", t, y, p, (4, 4), "output")
+    return _call("hessian", t, y, p, (4, 4))
 
 
 def _time(t):
@@ -527,26 +548,27 @@ def hessian(t, y, params=None):
 
 
 
-def _direct(kind, general, what):
+def _direct(kind, general, name):
     """``general`` with its common case (float64 arrays) handed to the entry point."""
     call = _ENTRY
     default = _DEFAULT_P
 
     def function(t, s, params=None):
-        result = call(kind, t, s, default if params is None else _parameters(params))
+        p = default if params is None else _parameters(params)
+        result = call(kind, t, s, p)
         if result is None:  # a list, another dtype or a wrong shape: convert or raise
             return general(t, s, params)
         if type(result) is tuple:
-            _raise(result[0], result[1], what)
+            _raise(result[0], result[1], name, float(t), s, p)
         return result
 
     return functools.update_wrapper(function, general)
 
 
 if _ENTRY is not None:
-    control = _direct(0, control, "state")
-    rhs = _direct(1, rhs, "state")
-    optimality_error = _direct(2, optimality_error, "state")
-    objective = _direct(3, objective, "output")
-    gradient = _direct(4, gradient, "output")
-    hessian = _direct(5, hessian, "output")
+    control = _direct(0, control, "control")
+    rhs = _direct(1, rhs, "rhs")
+    optimality_error = _direct(2, optimality_error, "optimality_error")
+    objective = _direct(3, objective, "objective")
+    gradient = _direct(4, gradient, "gradient")
+    hessian = _direct(5, hessian, "hessian")
