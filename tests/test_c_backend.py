@@ -39,7 +39,7 @@ def c_module(spec: str, tmp_path_factory: pytest.TempPathFactory) -> ModuleType:
         _write_c(spec, folder)
         os.environ["TVOPT_CODEGEN_CACHE"] = str(tmp_path_factory.getbasetemp() / "cache")
         name = derivation(spec).spec.name
-        _IMPORTED[spec] = import_file(folder / f"{name}.py", f"_tvopt_c_{name}")
+        _IMPORTED[spec] = import_file(folder / f"{name}_c.py", f"_tvopt_c_{name}")
     return _IMPORTED[spec]
 
 
@@ -208,7 +208,7 @@ def _import_in_subprocess(
     folder: Path, cache: Path, extra_env: dict[str, str] | None = None
 ) -> subprocess.CompletedProcess[str]:
     env = dict(os.environ, TVOPT_CODEGEN_CACHE=str(cache), **(extra_env or {}))
-    code = "import integrator; print(integrator.control(0.0, integrator.DEFAULT_STATE))"
+    code = "import integrator_c as m; print(m.control(0.0, m.DEFAULT_STATE))"
     return subprocess.run(
         [sys.executable, "-c", code],
         cwd=folder,
@@ -242,7 +242,7 @@ def test_two_processes_importing_at_once(tmp_path: Path) -> None:
     folder, cache = tmp_path / "gen", tmp_path / "cache"
     _write_c("integrator", folder)
     env = dict(os.environ, TVOPT_CODEGEN_CACHE=str(cache))
-    code = "import integrator; print(integrator.rhs(0.0, integrator.DEFAULT_STATE))"
+    code = "import integrator_c as m; print(m.rhs(0.0, m.DEFAULT_STATE))"
     procs = [
         subprocess.Popen(
             [sys.executable, "-c", code],
@@ -379,7 +379,7 @@ def _ctypes_module(spec: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
     name = derivation(spec).spec.name
     with monkeypatch.context() as patch:
         patch.setenv("TVOPT_CODEGEN_EXTENSION", "0")
-        return import_file(folder / f"{name}.py", f"_tvopt_ctypes_{name}")
+        return import_file(folder / f"{name}_c.py", f"_tvopt_ctypes_{name}")
 
 
 @pytest.mark.parametrize("spec", ["unicycle_switch", "two_unicycles_barrier", "flexible_joint"])

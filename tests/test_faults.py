@@ -118,13 +118,13 @@ def test_killed_between_renames_is_completed_by_the_next_run(tmp_path: Path) -> 
     assert killed.returncode == -signal.SIGKILL
     journals = list(out.glob(".tvopt-journal-*.json"))
     assert len(journals) == 1  # the interrupted transaction is on record
-    for name in ("integrator.c", "integrator.h", "integrator.py"):
+    for name in ("integrator.c", "integrator.h", "integrator_c.py"):
         text = (out / name).read_bytes()
         assert text.endswith(b"\n") and b"content sha256" in text  # whole files only
     emit.recover(out)  # what the next run into the folder does first
     new = _snapshot(out)
     assert sorted(new) == sorted(old)
-    assert all(new[n] != old[n] for n in ("integrator.c", "integrator.h", "integrator.py"))
+    assert all(new[n] != old[n] for n in ("integrator.c", "integrator.h", "integrator_c.py"))
     assert b"3.0" in new["integrator.h"] + new["integrator.c"]
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
 

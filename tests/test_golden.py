@@ -34,7 +34,7 @@ def test_generated_folder_holds_exactly_the_examples() -> None:
         f"{n}.py" for n in EXAMPLES
     )
     assert sorted(p.name for p in (GENERATED / "c").iterdir()) == sorted(
-        f"{n}{ext}" for n in EXAMPLES for ext in (".c", ".h", ".py", ".ext.c")
+        f"{n}{ext}" for n in EXAMPLES for ext in (".c", ".h", "_c.py", ".ext.c")
     )
 
 

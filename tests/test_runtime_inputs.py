@@ -6,6 +6,7 @@ native copy, to the bit) or refused with a clear error; never misread.
 
 from __future__ import annotations
 
+import os
 import resource
 import subprocess
 import sys
@@ -176,10 +177,11 @@ def test_a_spec_named_like_anothers_entry_point_does_not_clobber_it(
         assert done.returncode == 0, done.stderr
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted(
-        f"{n}{ext}" for n in ("probe", "probe_ext") for ext in (".c", ".h", ".py", ".ext.c")
+        f"{n}{ext}" for n in ("probe", "probe_ext") for ext in (".c", ".h", "_c.py", ".ext.c")
     )
     script = (
-        "import probe, probe_ext, numpy; s = numpy.array(probe.DEFAULT_STATE);"
+        "import probe_c as probe, probe_ext_c as probe_ext, numpy;"
+        "s = numpy.array(probe.DEFAULT_STATE);"
         "assert probe._ENTRY is not None and probe_ext._ENTRY is not None;"
         "print((probe.control(0.5, s) == probe_ext.control(0.5, s)).all())"
     )
@@ -411,3 +413,45 @@ def test_non_finite_inputs_are_worded_alike_in_both_backends(
     assert ("the state is not finite (column 2)", 2) in outcomes[0]
     assert ("t = inf is not finite", None) in outcomes[0]
     assert ("a parameter is not finite", None) in outcomes[0]
+
+
+def test_both_backends_share_an_output_folder(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    for backend in ("python", "c"):
+        done = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "tvopt_codegen",
+                "generate",
+                "integrator",
+                "--backend",
+                backend,
+                "--out",
+                str(out),
+                "--quiet",
+            ],
+            check=False,
+            capture_output=True,
+            text=True,
+        )
+        assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["integrator.py", "integrator_c.py", "integrator.c", "integrator.h", "integrator.ext.c"]
+    )
+    script = (
+        "import integrator as a, integrator_c as b, numpy;"
+        "s = numpy.array(a.DEFAULT_STATE);"
+        "print(a.BACKEND, b.BACKEND, numpy.allclose(a.control(1.0, s), b.control(1.0, s),"
+        " rtol=1e-13, atol=0))"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script],
+        check=False,
+        cwd=out,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "TVOPT_CODEGEN_CACHE": str(tmp_path / "cache")},
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["python", "c", "True"]

@@ -33,6 +33,7 @@ from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
 from tvopt_codegen import hurwitz
+from tvopt_codegen.backends import BACKENDS
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.emit import write_files
 from tvopt_codegen.errors import AssumptionError, BuildError, SpecError
@@ -59,15 +60,16 @@ def load_controller(kernels: KernelSet, backend: str = "python") -> types.Module
     """
     files = render(kernels, backend)
     name = kernels.derivation.spec.name
+    module_file = BACKENDS[backend].module.format(name=name)
     if backend == "python":
         module = types.ModuleType(name)
-        module.__file__ = f"<generated {name}.py>"
-        exec(compile(files[f"{name}.py"], module.__file__, "exec"), module.__dict__)  # noqa: S102
+        module.__file__ = f"<generated {module_file}>"
+        exec(compile(files[module_file], module.__file__, "exec"), module.__dict__)  # noqa: S102
         return module
     with tempfile.TemporaryDirectory(prefix="tvopt-codegen-") as folder:
         write_files(files, folder)
         spec = importlib.util.spec_from_file_location(
-            f"_tvopt_{backend}_{name}", Path(folder) / f"{name}.py"
+            f"_tvopt_{backend}_{name}", Path(folder) / module_file
         )
         assert spec is not None and spec.loader is not None
         module = importlib.util.module_from_spec(spec)

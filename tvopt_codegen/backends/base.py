@@ -23,9 +23,13 @@ class Backend:
     templates : tuple of (str, str)
         Template path (under ``templates/``) and output file name pattern, where
         ``{name}`` is the spec's module name.
+    module : str
+        The file name pattern of the Python module users (and ``simulate``) import;
+        distinct per backend, so that backends can share an output folder.
     """
 
     name: str
     description: str
     printer: Callable[[], CodePrinter]
     templates: tuple[tuple[str, str], ...]
+    module: str

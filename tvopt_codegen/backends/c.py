@@ -9,14 +9,16 @@ from tvopt_codegen.printers import CPrinter
 C = Backend(
     name="c",
     description=(
-        "C99 <name>.h/<name>.c (no heap, re-entrant), <name>.py loading them and "
+        "C99 <name>.h/<name>.c (no heap, re-entrant), <name>_c.py loading them and "
         "<name>.ext.c, its CPython entry point"
     ),
     printer=CPrinter,
     templates=(
         ("c/controller.h.jinja", "{name}.h"),
         ("c/controller.c.jinja", "{name}.c"),
-        ("c/wrapper.py.jinja", "{name}.py"),
+        ("c/wrapper.py.jinja", "{name}_c.py"),
         ("c/extension.c.jinja", "{name}.ext.c"),
     ),
+    # Not <name>.py: the NumPy module of the same spec may sit in the same folder.
+    module="{name}_c.py",
 )

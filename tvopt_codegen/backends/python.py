@@ -11,4 +11,5 @@ PYTHON = Backend(
     description="NumPy module with control, rhs, optimality_error, objective, gradient, hessian",
     printer=PythonPrinter,
     templates=(("python/controller.py.jinja", "{name}.py"),),
+    module="{name}.py",
 )
