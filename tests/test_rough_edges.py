@@ -169,3 +169,42 @@ def test_a_name_of_the_wrong_kind_is_said_to_be_not_allowed(tmp_path: Path) -> N
     # A name declared nowhere is still just unknown.
     done = _cli("check", str(write_spec(tmp_path, INTEGRATOR.replace('y1 = "x1"', 'y1 = "q"'))))
     assert "column 1: unknown name 'q'" in done.stderr
+
+
+def _imported_by(*args: str) -> set[str]:
+    code = (
+        "import sys\nfrom tvopt_codegen.cli import main\n"
+        f"try:\n    main({list(args)!r})\nexcept SystemExit:\n    pass\n"
+        "print(' '.join(sorted(sys.modules)))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
+    return set(done.stdout.strip().splitlines()[-1].split())  # the last line: the modules
+
+
+def test_help_and_version_load_none_of_the_heavy_libraries() -> None:
+    for args in (["--version"], ["--help"], ["simulate", "--help"]):
+        loaded = _imported_by(*args)
+        assert not {"sympy", "numpy", "scipy", "jinja2", "matplotlib"} & loaded, args
+
+
+def test_generate_check_and_report_load_no_matplotlib_or_integrator(tmp_path: Path) -> None:
+    for args in (
+        ["check", "unicycle_switch"],
+        ["generate", "integrator", "--out", str(tmp_path / "g"), "--quiet"],
+        ["report", "integrator", "--out", str(tmp_path / "r")],
+    ):
+        loaded = _imported_by(*args)
+        assert "sympy" in loaded
+        assert not {"matplotlib", "scipy.integrate"} & loaded, args
+
+
+def test_figures_leave_the_users_matplotlib_backend_alone(tmp_path: Path) -> None:
+    code = (
+        "import matplotlib; matplotlib.use('svg')\n"
+        "from tvopt_codegen.cli import main\n"
+        f"main(['simulate', 'integrator', '--out', {str(tmp_path / 'run')!r}, '--points', '21'])\n"
+        "import sys; print(matplotlib.get_backend(), 'matplotlib.pyplot' in sys.modules)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
+    assert done.stdout.split()[-2:] == ["svg", "False"]
+    assert (tmp_path / "run" / "integrator_convergence.png").read_bytes()[:4] == b"\x89PNG"

@@ -22,12 +22,10 @@ import time
 import traceback
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 from tvopt_codegen import __version__
 from tvopt_codegen.backends import BACKENDS
-from tvopt_codegen.derivation import Budget, Derivation, derive
-from tvopt_codegen.emit import prepare_folder, write_files
 from tvopt_codegen.errors import (
     EXIT_BAD_SPEC,
     EXIT_BROKEN_PIPE,
@@ -40,22 +38,13 @@ from tvopt_codegen.errors import (
     SpecError,
     TvoptError,
 )
-from tvopt_codegen.ir import KernelSet, lower
-from tvopt_codegen.render import render
-from tvopt_codegen.report import read_results, render_report
-from tvopt_codegen.simulate import (
-    METHODS,
-    format_certificate,
-    load_controller,
-    resolve_options,
-    result_files,
-    simulate,
-)
-from tvopt_codegen.spec import MAX_T_FINAL, bundled_examples, load_spec
-from tvopt_codegen.summary import format_summary
+from tvopt_codegen.limits import MAX_POINTS, MAX_T_FINAL, METHODS, Budget
 
-#: Most output times of a simulation (each is a row of the trajectory table).
-MAX_POINTS = 100_000
+# The stages (sympy, numpy, scipy, jinja2; matplotlib for figures) are imported by the
+# commands that use them: --help and --version answer without them.
+if TYPE_CHECKING:
+    from tvopt_codegen.derivation import Derivation
+    from tvopt_codegen.ir import KernelSet
 
 
 class _Parser(argparse.ArgumentParser):
@@ -196,6 +185,10 @@ def _parser() -> argparse.ArgumentParser:
 
 def _derive(args: argparse.Namespace) -> tuple[Derivation, KernelSet]:
     """Load, derive and lower the spec named on the command line, within its budget."""
+    from tvopt_codegen.derivation import derive  # noqa: PLC0415
+    from tvopt_codegen.ir import lower  # noqa: PLC0415
+    from tvopt_codegen.spec import load_spec  # noqa: PLC0415
+
     if not args.max_seconds > 0:
         raise SpecError("command line", "--max-seconds", "must be positive")
     if not args.max_size > 0:
@@ -330,6 +323,9 @@ class _Progress:
 
 
 def _report(args: argparse.Namespace) -> int:
+    from tvopt_codegen.emit import write_files  # noqa: PLC0415
+    from tvopt_codegen.report import read_results, render_report  # noqa: PLC0415
+
     derivation, kernels = _derive(args)
     results = read_results(args.out, derivation.spec.name)
     formats = ("html", "md") if args.format == "both" else (args.format,)
@@ -343,6 +339,15 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
+    from tvopt_codegen.emit import prepare_folder, write_files  # noqa: PLC0415
+    from tvopt_codegen.simulate import (  # noqa: PLC0415
+        format_certificate,
+        load_controller,
+        resolve_options,
+        result_files,
+        simulate,
+    )
+
     for option, value in (
         ("--rtol", args.rtol),
         ("--atol", args.atol),
@@ -387,6 +392,8 @@ def run(argv: Sequence[str] | None = None) -> int:
     """Run the CLI and return the exit code (errors are reported on stderr)."""
     args = _parser().parse_args(argv)
     if args.command == "examples":
+        from tvopt_codegen.spec import bundled_examples  # noqa: PLC0415
+
         for name, summary in bundled_examples().items():
             print(f"{name:24s} {summary}")
         return 0
@@ -394,10 +401,15 @@ def run(argv: Sequence[str] | None = None) -> int:
         return _simulate(args)
     if args.command == "report":
         return _report(args)
+    from tvopt_codegen.summary import format_summary  # noqa: PLC0415
+
     derivation, kernels = _derive(args)
     if args.command == "check":
         print(format_summary(derivation, kernels))
         return 0
+    from tvopt_codegen.emit import write_files  # noqa: PLC0415
+    from tvopt_codegen.render import render  # noqa: PLC0415
+
     files = render(kernels, args.backend)
     written = write_files(files, args.out, force=args.force)
     if not args.quiet:

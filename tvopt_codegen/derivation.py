@@ -31,6 +31,7 @@ from tvopt_codegen.lie import (
     generic_rank,
     relative_degree,
 )
+from tvopt_codegen.limits import Budget
 from tvopt_codegen.model import Model, build_model
 from tvopt_codegen.numeric import Evaluator
 from tvopt_codegen.spec import Spec
@@ -224,23 +225,6 @@ class Derivation:
         code never needs it: it evaluates :attr:`hessian_entries`).
         """
         return _sparse_hessian(self.gradient, self.model.y)
-
-
-@dataclass(frozen=True)
-class Budget:
-    """Limits one derivation may use before it is stopped with a :class:`BudgetError`.
-
-    Attributes
-    ----------
-    seconds : float
-        Wall time for the whole derivation.
-    size : int
-        Largest expression tree (nodes, shared subtrees counted each time they occur)
-        any stage may build: Lie derivatives, gradient, Hessian, jet assignments.
-    """
-
-    seconds: float = 120.0
-    size: int = 20_000
 
 
 #: det R is simplified and factored only up to this many expression nodes.

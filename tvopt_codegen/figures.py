@@ -1,5 +1,8 @@
 """Figures of a simulated closed loop, rendered in memory (PNG and SVG).
 
+Drawn on ``matplotlib.figure.Figure`` with the Agg canvas, never through pyplot or
+``matplotlib.use``: a library user's plotting backend and open figures are left alone.
+
 The planar figure follows the paper's Figs. 1-3: the moving objects, the target path
 y* (dashed), each agent's path, and start points marked with stars.
 """
@@ -10,14 +13,12 @@ import io
 from typing import TYPE_CHECKING, Any
 
 import matplotlib
+import numpy as np
+import sympy as sp
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")  # no display; must precede pyplot
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import sympy as sp  # noqa: E402
-
-from tvopt_codegen.derivation import Derivation  # noqa: E402
+from tvopt_codegen.derivation import Derivation
 
 if TYPE_CHECKING:
     from tvopt_codegen.simulate import Result
@@ -34,8 +35,14 @@ def _save(fig: Any, stem: str) -> dict[str, bytes]:
             buffer = io.BytesIO()
             fig.savefig(buffer, format=fmt, dpi=120, bbox_inches="tight", metadata=metadata)
             out[f"{stem}.{fmt}"] = buffer.getvalue()
-    plt.close(fig)
     return out
+
+
+def _axes(width: float, height: float) -> tuple[Figure, Any]:
+    """A figure on its own Agg canvas (no pyplot state), and its one axes."""
+    fig = Figure(figsize=(width, height))
+    FigureCanvasAgg(fig)
+    return fig, fig.subplots()
 
 
 def _signal_values(derivation: Derivation, result: Result, name: str) -> np.ndarray:
@@ -53,7 +60,7 @@ def trajectory_figure(derivation: Derivation, result: Result) -> Any:
     """The x-y picture: objects, y*, agent paths, stars at the starts."""
     d, r = derivation, result
     index = {name: i for i, name in enumerate(d.spec.outputs)}
-    fig, ax = plt.subplots(figsize=(6.4, 5.2))
+    fig, ax = _axes(6.4, 5.2)
     for j, (sx, sy) in enumerate(d.spec.objects):
         ox, oy = _signal_values(d, r, sx), _signal_values(d, r, sy)
         color = _OBJECT_COLORS[j % len(_OBJECT_COLORS)]
@@ -85,7 +92,7 @@ def trajectory_figure(derivation: Derivation, result: Result) -> Any:
 def convergence_figure(derivation: Derivation, result: Result) -> Any:
     """|y - y*| and |E| on a log scale, with the theorem's bounds."""
     r = result
-    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    fig, ax = _axes(6.4, 4.0)
     norms = np.linalg.norm(r.E.reshape(len(r.t), -1), axis=1)
     floor = 1e-16
     ax.semilogy(r.t, np.maximum(r.error, floor), color="tab:red", lw=2, label="|y - y*|")
@@ -110,7 +117,7 @@ def convergence_figure(derivation: Derivation, result: Result) -> Any:
 
 def inputs_figure(derivation: Derivation, result: Result) -> Any:
     """Plant inputs over time."""
-    fig, ax = plt.subplots(figsize=(6.4, 3.6))
+    fig, ax = _axes(6.4, 3.6)
     for i, name in enumerate(derivation.spec.inputs):
         ax.plot(result.t, result.inputs[i], lw=1.5, label=name)
     ax.set_xlabel("t")

@@ -37,17 +37,13 @@ from tvopt_codegen.backends import BACKENDS
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.emit import write_files
 from tvopt_codegen.errors import AssumptionError, BuildError, SpecError
-from tvopt_codegen.figures import figures
 from tvopt_codegen.ir import KernelSet
+from tvopt_codegen.limits import MAX_T_FINAL
 from tvopt_codegen.render import render
-from tvopt_codegen.spec import MAX_T_FINAL
 
 #: The certificate is vacuous when the convexity modulus along the run is below this
 #: fraction of the Hessian's scale there (its largest eigenvalue in magnitude).
 VACUOUS_M_F = 1e-6
-
-#: Integration methods of solve_ivp offered on the command line.
-METHODS = ("RK45", "DOP853", "RK23", "Radau", "BDF", "LSODA")
 
 
 def load_controller(kernels: KernelSet, backend: str = "python") -> types.ModuleType:
@@ -561,5 +557,8 @@ def result_files(derivation: Derivation, result: Result) -> dict[str, bytes]:
         f"{name}_trajectory.npz": arrays.getvalue(),
         f"{name}_certificate.txt": (format_certificate(d, r) + "\n").encode("utf-8"),
     }
+    # matplotlib is imported here only: generate, check and report never load it.
+    from tvopt_codegen.figures import figures  # noqa: PLC0415
+
     files.update(figures(d, r))
     return files

@@ -20,6 +20,7 @@ from typing import Any
 import sympy as sp
 
 from tvopt_codegen.errors import SpecError
+from tvopt_codegen.limits import MAX_T_FINAL
 from tvopt_codegen.names import module_name_problem, name_problem
 from tvopt_codegen.parse import (
     NO_INDEXING,
@@ -30,9 +31,6 @@ from tvopt_codegen.parse import (
 )
 from tvopt_codegen.toml_shape import ShapeError, check_shape
 
-#: Longest simulation horizon: a run is integrated and sampled step by step, so a
-#: horizon of 1e300 would never end.
-MAX_T_FINAL = 1e6
 #: Largest spec file accepted, in bytes.
 MAX_SPEC_BYTES = 1_000_000
 #: Most integrators one input may be prolonged by.
@@ -447,9 +445,7 @@ class _Reader:
         allowed = next((text for prefix, text in _ALLOWED if field.startswith(prefix)), None)
         if found is None or role is None or allowed is None:
             return str(exc)
-        return (
-            f"column {exc.column}: {role} {found.group(1)!r} may not appear here: {allowed}"
-        )
+        return f"column {exc.column}: {role} {found.group(1)!r} may not appear here: {allowed}"
 
     def read(self, data: Mapping[str, Any], sha256: str) -> Spec:
         self.table(data, "", _TOP_KEYS, {"name", "system", "objective", "error_dynamics"})

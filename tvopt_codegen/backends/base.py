@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from sympy.printing.codeprinter import CodePrinter
+if TYPE_CHECKING:  # sympy loads in a second; the registry is read by --help too
+    from sympy.printing.codeprinter import CodePrinter
 
 
 @dataclass(frozen=True)
@@ -19,7 +21,8 @@ class Backend:
     description : str
         One line for ``--help``.
     printer : callable
-        Builds the expression printer (a sympy ``CodePrinter`` subclass).
+        Builds the expression printer (a sympy ``CodePrinter`` subclass); called when
+        rendering, so that registering a backend imports no printer.
     templates : tuple of (str, str)
         Template path (under ``templates/``) and output file name pattern, where
         ``{name}`` is the spec's module name.

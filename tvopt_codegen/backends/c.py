@@ -2,8 +2,19 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from tvopt_codegen.backends.base import Backend
-from tvopt_codegen.printers import CPrinter
+
+if TYPE_CHECKING:
+    from sympy.printing.codeprinter import CodePrinter
+
+
+def _printer() -> CodePrinter:
+    from tvopt_codegen.printers import CPrinter  # noqa: PLC0415 - sympy only when rendering
+
+    return CPrinter()
+
 
 #: The C backend. The Python module has the Python backend's contract exactly.
 C = Backend(
@@ -12,7 +23,7 @@ C = Backend(
         "C99 <name>.h/<name>.c (no heap, re-entrant), <name>_c.py loading them and "
         "<name>.ext.c, its CPython entry point"
     ),
-    printer=CPrinter,
+    printer=_printer,
     templates=(
         ("c/controller.h.jinja", "{name}.h"),
         ("c/controller.c.jinja", "{name}.c"),

@@ -2,14 +2,25 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from tvopt_codegen.backends.base import Backend
-from tvopt_codegen.printers import PythonPrinter
+
+if TYPE_CHECKING:
+    from sympy.printing.codeprinter import CodePrinter
+
+
+def _printer() -> CodePrinter:
+    from tvopt_codegen.printers import PythonPrinter  # noqa: PLC0415 - sympy only when rendering
+
+    return PythonPrinter()
+
 
 #: The Python backend.
 PYTHON = Backend(
     name="python",
     description="NumPy module with control, rhs, optimality_error, objective, gradient, hessian",
-    printer=PythonPrinter,
+    printer=_printer,
     templates=(("python/controller.py.jinja", "{name}.py"),),
     module="{name}.py",
 )
