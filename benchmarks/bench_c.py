@@ -314,6 +314,94 @@ def bench(name: str, folder: Path) -> dict[str, float]:
     }
 
 
+#: Every bundled example: the NumPy module's single-state call against CasADi's.
+EXAMPLES = (
+    "integrator",
+    "unicycle_switch",
+    "two_unicycles_barrier",
+    "pvtol",
+    "flexible_joint",
+    "unicycle_ring",
+)
+
+
+def single_state() -> list[tuple[str, float, float]]:
+    """Per example, the single-state call of the NumPy module and of CasADi.
+
+    The NumPy module's ``control`` for one state, and a CasADi Function call on the
+    same state, in seconds (best of 7 rounds of 2000 calls).
+    """
+    rows = []
+    for name in EXAMPLES:
+        d = derive(load_spec(name))
+        module = load_controller(lower(d), "python")
+        law = casadi_law(d)
+        state = np.array(d.initial_state)
+        params = np.array([v for _, v in d.spec.parameters] or [0.0])
+        ours = _per_call(lambda m=module, s=state: m.control(0.5, s), 2000, 7)
+        peer = _per_call(lambda f=law, s=state, p=params: f(0.5, s, p), 2000, 7)
+        rows.append((name, ours, peer))
+    return rows
+
+
+def _cold(command: list[str], runs: int = 5) -> float:
+    """Best wall time of ``runs`` fresh processes, in seconds."""
+    best = math.inf
+    for _ in range(runs):
+        start = time.perf_counter()
+        subprocess.run(command, check=True, capture_output=True)
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def startup() -> list[tuple[str, float, str]]:
+    """Cold ``tvopt-codegen`` processes as a user starts them, and the peer.
+
+    The peer is a Python process importing sympy, numpy and scipy (what every command
+    used to load).
+    """
+    cli = [sys.executable, "-m", "tvopt_codegen"]
+    peer = _cold([sys.executable, "-c", "import sympy, numpy, scipy"])
+    return [
+        ("`tvopt-codegen --version`", _cold([*cli, "--version"]), "<= 0.25 s"),
+        ("`tvopt-codegen --help`", _cold([*cli, "--help"]), "<= 0.25 s"),
+        (
+            "`tvopt-codegen check unicycle_switch`",
+            _cold([*cli, "check", "unicycle_switch"]),
+            "<= 1.5 s",
+        ),
+        ("(peer) `python -c 'import sympy, numpy, scipy'`", peer, ""),
+    ]
+
+
+def extra_tables(
+    single: list[tuple[str, float, float]], start: list[tuple[str, float, str]]
+) -> str:
+    """The single-state call and start-up sections."""
+    peer = start[-1][1]
+    lines = [
+        "### NumPy backend, one state per call (`control(t, s)` with a 1-D float array)",
+        "",
+        "| example | ours, us | CasADi Function, us | ratio ours/peer | target |",
+        "|---|---|---|---|---|",
+    ]
+    for name, ours, casadi in single:
+        lines.append(
+            f"| {name} | {ours * 1e6:.3g} | {casadi * 1e6:.3g} | {ours / casadi:.3f} | <= 20 us |"
+        )
+    lines += [
+        "",
+        "### Start-up: cold processes (best of 5)",
+        "",
+        "| command | wall, s | ratio to the peer | target |",
+        "|---|---|---|---|",
+    ]
+    for label, seconds, target in start:
+        lines.append(f"| {label} | {seconds:.3f} | {seconds / peer:.2f} | {target} |")
+    lines.append("")
+    return "\n".join(lines)
+
+
 def table(results: dict[str, dict[str, float]]) -> str:
     """The Markdown table of :func:`bench`'s results, one section per spec."""
     us = 1e6
@@ -370,7 +458,7 @@ def main() -> int:
             folder = Path(tmp) / name
             folder.mkdir()
             results[name] = bench(name, folder)
-    text = table(results)
+    text = table(results) + "\n" + extra_tables(single_state(), startup())
     print(text)
     if args.write:
         cpu = next(

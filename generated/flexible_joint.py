@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 75c8ff5fedd7fdbb35fea2922967b2ed23359ba63887210e9522ef14c6a012a3
+# content sha256: e2240f4093336052ac74057c65684543b7cba4a8363a4588c5d9605db2115772
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -43,6 +43,8 @@ Where the law is undefined the functions raise a subclass of :class:`ControllerE
 
 from __future__ import annotations
 
+import functools
+import math
 from collections.abc import Mapping
 
 import numpy
@@ -314,7 +316,7 @@ def _jet_time(t, p, a):
     tau[12] = _t10
     tau[13] = 2*_t10
     tau[14] = _t15*_t43
-    tau[15] = _t11*_t43*_p3**2
+    tau[15] = _t11*_t43*(_p3*_p3)
     return tau
 
 
@@ -357,19 +359,19 @@ def _jet(t, s, p, a, tau):
     _t22 = numpy.sinh(_t19)
     _t23 = _t7 - _s1
     _t24 = _t22*_t23
-    _t25 = 1/_t20**2
+    _t25 = 1/(_t20*_t20)
     _t26 = -_t24*_t25
     _t27 = _t20*_t23
     _t28 = _t8 - _t16
     _t29 = _t22*_t28 + _t23*_t27
-    _t30 = 1/_t20**3
+    _t30 = 1/(_t20*_t20*_t20)
     _t31 = 2*_t24
     _t32 = -_t30*_t31
     _t33 = -_t24*_t32 - _t25*_t29
     _t34 = _t20*_t28 + _t23*_t24
     _t35 = _t9 - _t18
     _t36 = _t22*_t35 + _t23*_t34 + 2*_t27*_t28
-    _t37 = 3/_t20**4
+    _t37 = 3/(_t20*_t20*_t20*_t20)
     _t38 = -_t24*_t37
     _t39 = 2*_t29
     _t40 = -_t30*_t39 - _t31*_t38
@@ -377,13 +379,13 @@ def _jet(t, s, p, a, tau):
     _t42 = _t20*_t35 + _t23*_t29 + 2*_t24*_t28
     # Output terms
     hessian = numpy.empty((1, _n))  # nonzero entries of the lower triangle of grad_yy f0
-    hessian[0] = _t20*_t21 - _t25*_t22**2 + 2
+    hessian[0] = _t20*_t21 - _t25*(_t22*_t22) + 2
     jet_rhs = numpy.empty((1, _n))  # sum_i a_i grad^(i) f0 - rest
-    jet_rhs[0] = _h6 + _a0*(_h2 + 2*_s0 - _t21*_t22) + _a1*(_h3 + 2*_s1 - _t21*_t27 - _t22*_t26) + _a2*(_h4 + 2*_t16 - _t21*_t34 - _t22*_t33 - 2*_t26*_t27) + _a3*(_h5 + 2*_t18 - _t21*_t42 - _t22*_t41 - 3*_t26*_t34 - 3*_t27*_t33) + _t21*(_t10*_t20 + _t23*_t36 + 3*_t24*_t35 + 3*_t28*_t29) + _t22*(-_t24*(-_t31*(12*_t24**2/_t20**5 - _t29*_t37) - 2*_t30*_t36 - 2*_t38*_t39) - _t25*(_t10*_t22 + _t23*_t42 + 3*_t27*_t35 + 3*_t28*_t34) - 3*_t29*_t40 - 3*_t32*_t36) + 4*_t26*_t42 + 4*_t27*_t41 + 6*_t33*_t34
+    jet_rhs[0] = _h6 + _a0*(_h2 + 2*_s0 - _t21*_t22) + _a1*(_h3 + 2*_s1 - _t21*_t27 - _t22*_t26) + _a2*(_h4 + 2*_t16 - _t21*_t34 - _t22*_t33 - 2*_t26*_t27) + _a3*(_h5 + 2*_t18 - _t21*_t42 - _t22*_t41 - 3*_t26*_t34 - 3*_t27*_t33) + _t21*(_t10*_t20 + _t23*_t36 + 3*_t24*_t35 + 3*_t28*_t29) + _t22*(-_t24*(-_t31*(12*(_t24*_t24)/numpy.power(_t20, 5) - _t29*_t37) - 2*_t30*_t36 - 2*_t38*_t39) - _t25*(_t10*_t22 + _t23*_t42 + 3*_t27*_t35 + 3*_t28*_t34) - 3*_t29*_t40 - 3*_t32*_t36) + 4*_t26*_t42 + 4*_t27*_t41 + 6*_t33*_t34
     R = numpy.empty((1, _n))  # diagonal blocks of the decoupling matrix
     R[0] = _h7
     pvec = numpy.empty((1, _n))  # p = col(L_f^{r_i} h_i)
-    pvec[0] = _h8*_t14 + _t13*_s1**2 + _t16*_t17
+    pvec[0] = _h8*_t14 + _t13*(_s1*_s1) + _t16*_t17
     return hessian, jet_rhs, R, pvec
 
 
@@ -480,12 +482,12 @@ def _optimality(t, s, p):
     _t18 = numpy.sinh(_t15)
     _t19 = _t7 - _s1
     _t20 = _t18*_t19
-    _t21 = 1/_t16**2
+    _t21 = 1/(_t16*_t16)
     _t22 = -_t20*_t21
     _t23 = _t16*_t19
     _t24 = _t8 - _t13
     _t25 = _t18*_t24 + _t19*_t23
-    _t26 = 1/_t16**3
+    _t26 = 1/(_t16*_t16*_t16)
     _t27 = 2*_t20
     _t28 = -_t26*_t27
     _t29 = -_t20*_t28 - _t21*_t25
@@ -496,7 +498,7 @@ def _optimality(t, s, p):
     E[0, 0] = 2*_s0 - 2*_t4 - _t17*_t18
     E[1, 0] = 2*_s1 - 2*_t7 - _t17*_t23 - _t18*_t22
     E[2, 0] = 2*_t13 - 2*_t8 - _t17*_t30 - _t18*_t29 - 2*_t22*_t23
-    E[3, 0] = 2*_t14 - 2*_t9 - _t17*(_t16*_t31 + _t19*_t25 + 2*_t20*_t24) - _t18*(-_t20*(3*_t20*_t27/_t16**4 - 2*_t25*_t26) - _t21*(_t18*_t31 + _t19*_t30 + 2*_t23*_t24) - 2*_t25*_t28) - 3*_t22*_t30 - 3*_t23*_t29
+    E[3, 0] = 2*_t14 - 2*_t9 - _t17*(_t16*_t31 + _t19*_t25 + 2*_t20*_t24) - _t18*(-_t20*(3*_t20*_t27/(_t16*_t16*_t16*_t16) - 2*_t25*_t26) - _t21*(_t18*_t31 + _t19*_t30 + 2*_t23*_t24) - 2*_t25*_t28) - 3*_t22*_t30 - 3*_t23*_t29
     return E
 
 
@@ -508,7 +510,7 @@ def _objective(t, y, p):
     _t0 = _y0 - 3/5*numpy.sin((1/2)*t) - 3/10*numpy.sin((13/10)*t)
     # Output terms
     f0 = numpy.empty((_n))  # f0
-    f0[...] = _t0**2 + numpy.log(numpy.cosh(_t0))
+    f0[...] = (_t0*_t0) + numpy.log(numpy.cosh(_t0))
     return f0
 
 
@@ -533,7 +535,258 @@ def _hessian(t, y, p):
     _t0 = (3/5)*numpy.sin((1/2)*t) - _y0 + (3/10)*numpy.sin((13/10)*t)
     # Output terms
     hess = numpy.empty((1, 1, _n))  # grad_yy f0
-    hess[0, 0] = 3 - numpy.sinh(_t0)**2/numpy.cosh(_t0)**2
+    hess[0, 0] = 3 - (numpy.sinh(_t0)*numpy.sinh(_t0))/(numpy.cosh(_t0)*numpy.cosh(_t0))
+    return hess
+
+
+def _jet_time_1(t, p, a):
+    """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
+    _p0 = p[0]
+    _p1 = p[1]
+    _p2 = p[2]
+    _p3 = p[3]
+    _t0 = (1/2)*t
+    _t1 = float(numpy.sin(_t0))
+    _t2 = (13/10)*t
+    _t3 = float(numpy.sin(_t2))
+    _t4 = (3/5)*_t1 + (3/10)*_t3
+    _t5 = float(numpy.cos(_t0))
+    _t6 = float(numpy.cos(_t2))
+    _t7 = (3/10)*_t5 + (39/100)*_t6
+    _t8 = -507/1000*_t3 - 3/20*_t1
+    _t9 = -6591/10000*_t6 - 3/40*_t5
+    _t10 = (3/80)*_t1 + (85683/100000)*_t3
+    _t11 = 1/_p1
+    _t12 = _p0*_t11
+    _t15 = _p3*_t11
+    _t43 = 1/_p2
+    tau = [
+        _t12,
+        -_t15,
+        -_t12,
+        _t15,
+        _t4,
+        _t7,
+        _t8,
+        _t9,
+        -2*_t4,
+        -2*_t7,
+        -2*_t8,
+        -2*_t9,
+        _t10,
+        2*_t10,
+        _t15*_t43,
+        _t11*_t43*(_p3*_p3),
+    ]
+    return tau
+
+
+def _jet_1(t, s, p, a, tau):
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (one point; lists in, lists out)."""
+    _s0 = s[0]
+    _s1 = s[1]
+    _s2 = s[2]
+    _s3 = s[3]
+    _a0 = a[0]
+    _a1 = a[1]
+    _a2 = a[2]
+    _a3 = a[3]
+    _t12 = tau[0]
+    _h0 = tau[1]
+    _h1 = tau[2]
+    _t15 = tau[3]
+    _t4 = tau[4]
+    _t7 = tau[5]
+    _t8 = tau[6]
+    _t9 = tau[7]
+    _h2 = tau[8]
+    _h3 = tau[9]
+    _h4 = tau[10]
+    _h5 = tau[11]
+    _t10 = tau[12]
+    _h6 = tau[13]
+    _h7 = tau[14]
+    _h8 = tau[15]
+    _t13 = _t12*float(numpy.sin(_s0))
+    _t14 = _s0 - _s2
+    _t16 = _h0*_t14 - _t13
+    _t17 = _h0 + _h1*float(numpy.cos(_s0))
+    _t18 = _s1*_t17 + _s3*_t15
+    _t19 = _t4 - _s0
+    _t20 = float(numpy.cosh(_t19))
+    _t21 = 1/_t20
+    _t22 = float(numpy.sinh(_t19))
+    _t23 = _t7 - _s1
+    _t24 = _t22*_t23
+    _t25 = 1/(_t20*_t20)
+    _t26 = -_t24*_t25
+    _t27 = _t20*_t23
+    _t28 = _t8 - _t16
+    _t29 = _t22*_t28 + _t23*_t27
+    _t30 = 1/(_t20*_t20*_t20)
+    _t31 = 2*_t24
+    _t32 = -_t30*_t31
+    _t33 = -_t24*_t32 - _t25*_t29
+    _t34 = _t20*_t28 + _t23*_t24
+    _t35 = _t9 - _t18
+    _t36 = _t22*_t35 + _t23*_t34 + 2*_t27*_t28
+    _t37 = 3/(_t20*_t20*_t20*_t20)
+    _t38 = -_t24*_t37
+    _t39 = 2*_t29
+    _t40 = -_t30*_t39 - _t31*_t38
+    _t41 = -_t24*_t40 - _t25*_t36 - 2*_t29*_t32
+    _t42 = _t20*_t35 + _t23*_t29 + 2*_t24*_t28
+    hessian = [
+        _t20*_t21 - _t25*(_t22*_t22) + 2,
+    ]
+    jet_rhs = [
+        _h6 + _a0*(_h2 + 2*_s0 - _t21*_t22) + _a1*(_h3 + 2*_s1 - _t21*_t27 - _t22*_t26) + _a2*(_h4 + 2*_t16 - _t21*_t34 - _t22*_t33 - 2*_t26*_t27) + _a3*(_h5 + 2*_t18 - _t21*_t42 - _t22*_t41 - 3*_t26*_t34 - 3*_t27*_t33) + _t21*(_t10*_t20 + _t23*_t36 + 3*_t24*_t35 + 3*_t28*_t29) + _t22*(-_t24*(-_t31*(12*(_t24*_t24)/float(numpy.power(_t20, 5)) - _t29*_t37) - 2*_t30*_t36 - 2*_t38*_t39) - _t25*(_t10*_t22 + _t23*_t42 + 3*_t27*_t35 + 3*_t28*_t34) - 3*_t29*_t40 - 3*_t32*_t36) + 4*_t26*_t42 + 4*_t27*_t41 + 6*_t33*_t34,
+    ]
+    R = [
+        _h7,
+    ]
+    pvec = [
+        _h8*_t14 + _t13*(_s1*_s1) + _t16*_t17,
+    ]
+    return hessian, jet_rhs, R, pvec
+
+
+def _cholesky_1(h, c):
+    """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (one point; lists in, lists out)."""
+    _h0 = h[0]
+    _c0 = c[0]
+    z = [
+        _c0/_h0,
+    ]
+    pivot = [
+        _h0,
+    ]
+    return z, pivot
+
+
+def _decoupling_1(t, s, p, z, q):
+    """b = v - p, so that R w = b linearizes the plant (one point; lists in, lists out)."""
+    _z0 = z[0]
+    _q0 = q[0]
+    b = [
+        _z0 - _q0,
+    ]
+    return b
+
+
+def _closed_loop_1(t, s, p, w, z):
+    """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
+    _s0 = s[0]
+    _s1 = s[1]
+    _s2 = s[2]
+    _s3 = s[3]
+    _p0 = p[0]
+    _p1 = p[1]
+    _p2 = p[2]
+    _p3 = p[3]
+    _w0 = w[0]
+    _t0 = 1/_p1
+    _t1 = _p3*(_s0 - _s2)
+    _t2 = 1/_p2
+    ds = [
+        _s1,
+        -_t0*_t1 - _p0*_t0*float(numpy.sin(_s0)),
+        _s3,
+        _t1*_t2 + _t2*_w0,
+    ]
+    u = [
+        _w0,
+    ]
+    return ds, u
+
+
+def _plant_input_1(t, s, p, w):
+    """The plant input alone (control needs no vector field) (one point; lists in, lists out)."""
+    _w0 = w[0]
+    u = [
+        _w0,
+    ]
+    return u
+
+
+def _optimality_1(t, s, p):
+    """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
+    _s0 = s[0]
+    _s1 = s[1]
+    _s2 = s[2]
+    _s3 = s[3]
+    _p0 = p[0]
+    _p1 = p[1]
+    _p3 = p[3]
+    _t0 = (1/2)*t
+    _t1 = float(numpy.sin(_t0))
+    _t2 = (13/10)*t
+    _t3 = float(numpy.sin(_t2))
+    _t4 = (3/5)*_t1 + (3/10)*_t3
+    _t5 = float(numpy.cos(_t0))
+    _t6 = float(numpy.cos(_t2))
+    _t7 = (3/10)*_t5 + (39/100)*_t6
+    _t8 = -507/1000*_t3 - 3/20*_t1
+    _t9 = -6591/10000*_t6 - 3/40*_t5
+    _t10 = 1/_p1
+    _t11 = _p0*_t10
+    _t12 = _p3*_t10
+    _t13 = -_t11*float(numpy.sin(_s0)) - _t12*(_s0 - _s2)
+    _t14 = _s1*(-_t12 - _t11*float(numpy.cos(_s0))) + _s3*_t12
+    _t15 = _t4 - _s0
+    _t16 = float(numpy.cosh(_t15))
+    _t17 = 1/_t16
+    _t18 = float(numpy.sinh(_t15))
+    _t19 = _t7 - _s1
+    _t20 = _t18*_t19
+    _t21 = 1/(_t16*_t16)
+    _t22 = -_t20*_t21
+    _t23 = _t16*_t19
+    _t24 = _t8 - _t13
+    _t25 = _t18*_t24 + _t19*_t23
+    _t26 = 1/(_t16*_t16*_t16)
+    _t27 = 2*_t20
+    _t28 = -_t26*_t27
+    _t29 = -_t20*_t28 - _t21*_t25
+    _t30 = _t16*_t24 + _t19*_t20
+    _t31 = _t9 - _t14
+    E = [
+        2*_s0 - 2*_t4 - _t17*_t18,
+        2*_s1 - 2*_t7 - _t17*_t23 - _t18*_t22,
+        2*_t13 - 2*_t8 - _t17*_t30 - _t18*_t29 - 2*_t22*_t23,
+        2*_t14 - 2*_t9 - _t17*(_t16*_t31 + _t19*_t25 + 2*_t20*_t24) - _t18*(-_t20*(3*_t20*_t27/(_t16*_t16*_t16*_t16) - 2*_t25*_t26) - _t21*(_t18*_t31 + _t19*_t30 + 2*_t23*_t24) - 2*_t25*_t28) - 3*_t22*_t30 - 3*_t23*_t29,
+    ]
+    return E
+
+
+def _objective_1(t, y, p):
+    """The objective f0(y, t) (one point; lists in, lists out)."""
+    _y0 = y[0]
+    _t0 = _y0 - 3/5*float(numpy.sin((1/2)*t)) - 3/10*float(numpy.sin((13/10)*t))
+    f0 = [
+        (_t0*_t0) + float(numpy.log(float(numpy.cosh(_t0)))),
+    ]
+    return f0
+
+
+def _gradient_1(t, y, p):
+    """grad_y f0(y, t) (one point; lists in, lists out)."""
+    _y0 = y[0]
+    _t0 = (3/5)*float(numpy.sin((1/2)*t)) + (3/10)*float(numpy.sin((13/10)*t))
+    _t1 = _t0 - _y0
+    grad = [
+        2*_y0 - 2*_t0 - float(numpy.sinh(_t1))/float(numpy.cosh(_t1)),
+    ]
+    return grad
+
+
+def _hessian_1(t, y, p):
+    """grad_yy f0(y, t) (one point; lists in, lists out)."""
+    _y0 = y[0]
+    _t0 = (3/5)*float(numpy.sin((1/2)*t)) - _y0 + (3/10)*float(numpy.sin((13/10)*t))
+    hess = [
+        3 - (float(numpy.sinh(_t0))*float(numpy.sinh(_t0)))/(float(numpy.cosh(_t0))*float(numpy.cosh(_t0))),
+    ]
     return hess
 
 
@@ -640,6 +893,149 @@ def _gradient_values(t, x, p):
 
 def _hessian_values(t, x, p):
     return _kernel_values(_hessian, "the Hessian of f0", t, x, p)
+
+
+# One state at a time (a user's control loop, solve_ivp without vectorized=True, a
+# minimizer): the same kernels on lists of Python floats, without the per-array cost
+# of NumPy. Anything unusual (a non-finite value, a singular pivot, a Python float's
+# ZeroDivisionError or OverflowError) returns None, and the array path then answers
+# and raises exactly as documented: the two paths never disagree.
+
+
+def _finite(values):
+    """Whether every value is finite (a sum of infinities of both signs is NaN)."""
+    return math.isfinite(sum(values))
+
+
+def _lu_solve_1(a, b):
+    """Solve ``a x = b`` (``a`` row-major, m*m) as :func:`_lu_solve` does; None if singular."""
+    m = len(b)
+    lu = [a[i * m:(i + 1) * m] for i in range(m)]
+    x = list(b)
+    scale = max(map(abs, a))
+    for j in range(m):
+        row, best = j, abs(lu[j][j])
+        for i in range(j + 1, m):
+            if abs(lu[i][j]) > best:
+                row, best = i, abs(lu[i][j])
+        if row != j:
+            lu[j], lu[row] = lu[row], lu[j]
+            x[j], x[row] = x[row], x[j]
+        pivot = lu[j][j]
+        if not abs(pivot) > PIVOT_TOLERANCE * scale:
+            return None
+        for i in range(j + 1, m):
+            factor = lu[i][j] / pivot
+            lu[i] = lu[i][:j + 1] + [lu[i][k] - factor * lu[j][k] for k in range(j + 1, m)]
+            x[i] -= factor * x[j]
+    for j in reversed(range(m)):
+        for k in range(j + 1, m):
+            x[j] -= lu[j][k] * x[k]
+        x[j] /= lu[j][j]
+    return x
+
+
+def _solve_decoupling_1(r, b):
+    """Solve ``R w = b`` block by block for one point; None where a block is singular.
+
+    Blocks of sizes 1 and 2 are unrolled: the same operations, in the same order, as
+    the general loop of :func:`_lu_solve`.
+    """
+    w = list(b)
+    tolerance = PIVOT_TOLERANCE
+    for size, starts, rows in _R_GROUPS:
+        if size == 1:
+            for start, (i,) in zip(starts, rows):
+                a = r[start]
+                if not abs(a) > tolerance * abs(a):
+                    return None
+                w[i] = b[i] / a
+        elif size == 2:
+            for start, (i, j) in zip(starts, rows):
+                a00, a01, a10, a11 = r[start:start + 4]
+                b0, b1 = b[i], b[j]
+                scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
+                if abs(a10) > abs(a00):
+                    a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
+                if not abs(a00) > tolerance * scale:
+                    return None
+                factor = a10 / a00
+                a11 = a11 - factor * a01
+                b1 = b1 - factor * b0
+                if not abs(a11) > tolerance * scale:
+                    return None
+                x1 = b1 / a11
+                w[i], w[j] = (b0 - a01 * x1) / a00, x1
+        else:
+            for start, block in zip(starts, rows):
+                x = _lu_solve_1(r[start:start + size * size], [b[i] for i in block])
+                if x is None:
+                    return None
+                for i, value in zip(block, x):
+                    w[i] = value
+    return w
+
+
+def _law_1(t, s, p, rates):
+    """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
+    tau = _jet_time_1(t, p, _A_LIST)
+    hess, jet_rhs, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
+    if not (_finite(hess) and _finite(jet_rhs) and _finite(r) and _finite(pvec)):
+        return None
+    z, pivot = _cholesky_1(hess, jet_rhs)
+    if not min(pivot) > PIVOT_TOLERANCE * max(map(abs, hess)):
+        return None
+    b = _decoupling_1(t, s, p, z, pvec)
+    if not _finite(b):
+        return None
+    w = _solve_decoupling_1(r, b)
+    if w is None:
+        return None
+    if not rates:
+        u = _plant_input_1(t, s, p, w)
+        return (None, u) if _finite(u) else None
+    ds, u = _closed_loop_1(t, s, p, w, z)
+    return (ds, u) if _finite(ds) and _finite(u) else None
+
+
+def _one_point(function, shape):
+    """``function(t, s, p)`` for one state given as a 1-D float array, or None."""
+
+    def evaluate(t, s, params):
+        values = s.tolist()
+        p = _P_LIST if params is None else _parameters(params).tolist()
+        if not (math.isfinite(t) and _finite(values) and _finite(p)):
+            return None
+        try:
+            with numpy.errstate(all="ignore"):
+                result = function(float(t), values, p)
+        except ArithmeticError:
+            return None
+        if result is None or not _finite(result):
+            return None
+        return numpy.array(result).reshape(shape)
+
+    return evaluate
+
+
+def _first(result):
+    return None if result is None else result[1]
+
+
+def _second(result):
+    return None if result is None else result[0]
+
+
+_ONE_POINT = {
+    "control": _one_point(lambda t, s, p: _first(_law_1(t, s, p, False)), (1,)),
+    "rhs": _one_point(lambda t, s, p: _second(_law_1(t, s, p, True)), (4,)),
+    "optimality_error": _one_point(_optimality_1, (K, 1)),
+    "objective": _one_point(_objective_1, ()),
+    "gradient": _one_point(_gradient_1, (1,)),
+    "hessian": _one_point(_hessian_1, (1, 1)),
+}
+_A_LIST = list(HURWITZ_COEFFICIENTS)
+_P_LIST = _DEFAULT_P.tolist()
 
 
 def control(t, s, params=None):
@@ -794,3 +1190,27 @@ def hessian(t, y, params=None):
     """
     return _output_function(_hessian_values, t, y, params)
 
+
+
+def _with_one_point(general, rows):
+    """``general``, with a single state or output in a float array taken by the fast path."""
+    fast = _ONE_POINT[general.__name__]
+    number = general.__name__ == "objective"
+
+    def function(t, s, params=None):
+        if (type(s) is numpy.ndarray and s.shape == (rows,) and s.dtype.kind == "f"
+                and isinstance(t, (float, int))):
+            result = fast(t, s, params)
+            if result is not None:
+                return float(result) if number else result
+        return general(t, s, params)
+
+    return functools.update_wrapper(function, general)
+
+
+control = _with_one_point(control, 4)
+rhs = _with_one_point(rhs, 4)
+optimality_error = _with_one_point(optimality_error, 4)
+objective = _with_one_point(objective, 1)
+gradient = _with_one_point(gradient, 1)
+hessian = _with_one_point(hessian, 1)

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: e158d35f1e247d68729a59c20dd11f6d070f014dc8d3663e76fec91305cc92e4
+# content sha256: fc040cd7597b7d975ec5bf19ea61770394fd0ae417f526b1841d0b1425b2d422
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -39,6 +39,8 @@ Where the law is undefined the functions raise a subclass of :class:`ControllerE
 
 from __future__ import annotations
 
+import functools
+import math
 from collections.abc import Mapping
 
 import numpy
@@ -274,12 +276,12 @@ def _jet_time(t, p, a):
     """The jet's terms of time and parameters alone (kernel; 25 operations, 25 before CSE)."""
     _p0 = p[0]  # w
     # Intermediate terms (1)
-    _t0 = t**2
+    _t0 = (t*t)
     # Output terms
     tau = numpy.empty((4, ))  # terms of time and parameters
     tau[0] = (1/20)*_t0 - 4/5*t - 2
     tau[1] = 4/5 - 1/10*t
-    tau[2] = -_p0*((1/2)*t - 1/1000*t**3 + (1/50)*_t0 - 1)
+    tau[2] = -_p0*((1/2)*t - 1/1000*(t*t*t) + (1/50)*_t0 - 1)
     tau[3] = _p0*((1/25)*t - 3/1000*_t0 + 1/2)
     return tau
 
@@ -376,11 +378,11 @@ def _optimality(t, s, p):
     _s1 = s[1]  # x2
     _p0 = p[0]  # w
     # Intermediate terms (1)
-    _t0 = t**2
+    _t0 = (t*t)
     # Output terms
     E = numpy.empty((1, 2, _n))  # grad^(j) f0
     E[0, 0] = _s0 - 4/5*t + (1/20)*_t0 - 2
-    E[0, 1] = _p0*_s1 - _p0*((1/2)*t - 1/1000*t**3 + (1/50)*_t0 - 1)
+    E[0, 1] = _p0*_s1 - _p0*((1/2)*t - 1/1000*(t*t*t) + (1/50)*_t0 - 1)
     return E
 
 
@@ -391,10 +393,10 @@ def _objective(t, y, p):
     _y1 = y[1]  # y2
     _p0 = p[0]  # w
     # Intermediate terms (1)
-    _t0 = t**2
+    _t0 = (t*t)
     # Output terms
     f0 = numpy.empty((_n))  # f0
-    f0[...] = (1/2)*(_y0 - 4/5*t + (1/20)*_t0 - 2)**2 + (1/2)*_p0*(_y1 - 1/2*t - 1/50*_t0 + (1/1000)*t**3 + 1)**2
+    f0[...] = (1/2)*((_y0 - 4/5*t + (1/20)*_t0 - 2)*(_y0 - 4/5*t + (1/20)*_t0 - 2)) + (1/2)*_p0*((_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1)*(_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1))
     return f0
 
 
@@ -405,11 +407,11 @@ def _gradient(t, y, p):
     _y1 = y[1]  # y2
     _p0 = p[0]  # w
     # Intermediate terms (1)
-    _t0 = t**2
+    _t0 = (t*t)
     # Output terms
     grad = numpy.empty((2, _n))  # grad_y f0
     grad[0] = _y0 - 4/5*t + (1/20)*_t0 - 2
-    grad[1] = _p0*_y1 - _p0*((1/2)*t - 1/1000*t**3 + (1/50)*_t0 - 1)
+    grad[1] = _p0*_y1 - _p0*((1/2)*t - 1/1000*(t*t*t) + (1/50)*_t0 - 1)
     return grad
 
 
@@ -423,6 +425,154 @@ def _hessian(t, y, p):
     hess[0, 1] = 0
     hess[1, 0] = 0
     hess[1, 1] = _p0
+    return hess
+
+
+def _jet_time_1(t, p, a):
+    """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
+    _p0 = p[0]
+    _t0 = (t*t)
+    tau = [
+        (1/20)*_t0 - 4/5*t - 2,
+        4/5 - 1/10*t,
+        -_p0*((1/2)*t - 1/1000*(t*t*t) + (1/50)*_t0 - 1),
+        _p0*((1/25)*t - 3/1000*_t0 + 1/2),
+    ]
+    return tau
+
+
+def _jet_1(t, s, p, a, tau):
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (one point; lists in, lists out)."""
+    _s0 = s[0]
+    _s1 = s[1]
+    _p0 = p[0]
+    _a0 = a[0]
+    _h0 = tau[0]
+    _h1 = tau[1]
+    _h2 = tau[2]
+    _h3 = tau[3]
+    hessian = [
+        1,
+        _p0,
+    ]
+    jet_rhs = [
+        _h1 + _a0*(_h0 + _s0),
+        _h3 + _a0*(_h2 + _p0*_s1),
+    ]
+    R = [
+        1,
+        1,
+    ]
+    pvec = [
+        0,
+        0,
+    ]
+    return hessian, jet_rhs, R, pvec
+
+
+def _cholesky_1(h, c):
+    """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (one point; lists in, lists out)."""
+    _h0 = h[0]
+    _h1 = h[1]
+    _c0 = c[0]
+    _c1 = c[1]
+    z = [
+        _c0/_h0,
+        _c1/_h1,
+    ]
+    pivot = [
+        _h0,
+        _h1,
+    ]
+    return z, pivot
+
+
+def _decoupling_1(t, s, p, z, q):
+    """b = v - p, so that R w = b linearizes the plant (one point; lists in, lists out)."""
+    _z0 = z[0]
+    _z1 = z[1]
+    _q0 = q[0]
+    _q1 = q[1]
+    b = [
+        _z0 - _q0,
+        _z1 - _q1,
+    ]
+    return b
+
+
+def _closed_loop_1(t, s, p, w, z):
+    """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
+    _w0 = w[0]
+    _w1 = w[1]
+    ds = [
+        _w0,
+        _w1,
+    ]
+    u = [
+        _w0,
+        _w1,
+    ]
+    return ds, u
+
+
+def _plant_input_1(t, s, p, w):
+    """The plant input alone (control needs no vector field) (one point; lists in, lists out)."""
+    _w0 = w[0]
+    _w1 = w[1]
+    u = [
+        _w0,
+        _w1,
+    ]
+    return u
+
+
+def _optimality_1(t, s, p):
+    """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
+    _s0 = s[0]
+    _s1 = s[1]
+    _p0 = p[0]
+    _t0 = (t*t)
+    E = [
+        _s0 - 4/5*t + (1/20)*_t0 - 2,
+        _p0*_s1 - _p0*((1/2)*t - 1/1000*(t*t*t) + (1/50)*_t0 - 1),
+    ]
+    return E
+
+
+def _objective_1(t, y, p):
+    """The objective f0(y, t) (one point; lists in, lists out)."""
+    _y0 = y[0]
+    _y1 = y[1]
+    _p0 = p[0]
+    _t0 = (t*t)
+    f0 = [
+        (1/2)*((_y0 - 4/5*t + (1/20)*_t0 - 2)*(_y0 - 4/5*t + (1/20)*_t0 - 2)) + (1/2)*_p0*((_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1)*(_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1)),
+    ]
+    return f0
+
+
+def _gradient_1(t, y, p):
+    """grad_y f0(y, t) (one point; lists in, lists out)."""
+    _y0 = y[0]
+    _y1 = y[1]
+    _p0 = p[0]
+    _t0 = (t*t)
+    grad = [
+        _y0 - 4/5*t + (1/20)*_t0 - 2,
+        _p0*_y1 - _p0*((1/2)*t - 1/1000*(t*t*t) + (1/50)*_t0 - 1),
+    ]
+    return grad
+
+
+def _hessian_1(t, y, p):
+    """grad_yy f0(y, t) (one point; lists in, lists out)."""
+    _p0 = p[0]
+    hess = [
+        1,
+        0,
+        0,
+        _p0,
+    ]
     return hess
 
 
@@ -529,6 +679,149 @@ def _gradient_values(t, x, p):
 
 def _hessian_values(t, x, p):
     return _kernel_values(_hessian, "the Hessian of f0", t, x, p)
+
+
+# One state at a time (a user's control loop, solve_ivp without vectorized=True, a
+# minimizer): the same kernels on lists of Python floats, without the per-array cost
+# of NumPy. Anything unusual (a non-finite value, a singular pivot, a Python float's
+# ZeroDivisionError or OverflowError) returns None, and the array path then answers
+# and raises exactly as documented: the two paths never disagree.
+
+
+def _finite(values):
+    """Whether every value is finite (a sum of infinities of both signs is NaN)."""
+    return math.isfinite(sum(values))
+
+
+def _lu_solve_1(a, b):
+    """Solve ``a x = b`` (``a`` row-major, m*m) as :func:`_lu_solve` does; None if singular."""
+    m = len(b)
+    lu = [a[i * m:(i + 1) * m] for i in range(m)]
+    x = list(b)
+    scale = max(map(abs, a))
+    for j in range(m):
+        row, best = j, abs(lu[j][j])
+        for i in range(j + 1, m):
+            if abs(lu[i][j]) > best:
+                row, best = i, abs(lu[i][j])
+        if row != j:
+            lu[j], lu[row] = lu[row], lu[j]
+            x[j], x[row] = x[row], x[j]
+        pivot = lu[j][j]
+        if not abs(pivot) > PIVOT_TOLERANCE * scale:
+            return None
+        for i in range(j + 1, m):
+            factor = lu[i][j] / pivot
+            lu[i] = lu[i][:j + 1] + [lu[i][k] - factor * lu[j][k] for k in range(j + 1, m)]
+            x[i] -= factor * x[j]
+    for j in reversed(range(m)):
+        for k in range(j + 1, m):
+            x[j] -= lu[j][k] * x[k]
+        x[j] /= lu[j][j]
+    return x
+
+
+def _solve_decoupling_1(r, b):
+    """Solve ``R w = b`` block by block for one point; None where a block is singular.
+
+    Blocks of sizes 1 and 2 are unrolled: the same operations, in the same order, as
+    the general loop of :func:`_lu_solve`.
+    """
+    w = list(b)
+    tolerance = PIVOT_TOLERANCE
+    for size, starts, rows in _R_GROUPS:
+        if size == 1:
+            for start, (i,) in zip(starts, rows):
+                a = r[start]
+                if not abs(a) > tolerance * abs(a):
+                    return None
+                w[i] = b[i] / a
+        elif size == 2:
+            for start, (i, j) in zip(starts, rows):
+                a00, a01, a10, a11 = r[start:start + 4]
+                b0, b1 = b[i], b[j]
+                scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
+                if abs(a10) > abs(a00):
+                    a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
+                if not abs(a00) > tolerance * scale:
+                    return None
+                factor = a10 / a00
+                a11 = a11 - factor * a01
+                b1 = b1 - factor * b0
+                if not abs(a11) > tolerance * scale:
+                    return None
+                x1 = b1 / a11
+                w[i], w[j] = (b0 - a01 * x1) / a00, x1
+        else:
+            for start, block in zip(starts, rows):
+                x = _lu_solve_1(r[start:start + size * size], [b[i] for i in block])
+                if x is None:
+                    return None
+                for i, value in zip(block, x):
+                    w[i] = value
+    return w
+
+
+def _law_1(t, s, p, rates):
+    """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
+    tau = _jet_time_1(t, p, _A_LIST)
+    hess, jet_rhs, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
+    if not (_finite(hess) and _finite(jet_rhs) and _finite(r) and _finite(pvec)):
+        return None
+    z, pivot = _cholesky_1(hess, jet_rhs)
+    if not min(pivot) > PIVOT_TOLERANCE * max(map(abs, hess)):
+        return None
+    b = _decoupling_1(t, s, p, z, pvec)
+    if not _finite(b):
+        return None
+    w = _solve_decoupling_1(r, b)
+    if w is None:
+        return None
+    if not rates:
+        u = _plant_input_1(t, s, p, w)
+        return (None, u) if _finite(u) else None
+    ds, u = _closed_loop_1(t, s, p, w, z)
+    return (ds, u) if _finite(ds) and _finite(u) else None
+
+
+def _one_point(function, shape):
+    """``function(t, s, p)`` for one state given as a 1-D float array, or None."""
+
+    def evaluate(t, s, params):
+        values = s.tolist()
+        p = _P_LIST if params is None else _parameters(params).tolist()
+        if not (math.isfinite(t) and _finite(values) and _finite(p)):
+            return None
+        try:
+            with numpy.errstate(all="ignore"):
+                result = function(float(t), values, p)
+        except ArithmeticError:
+            return None
+        if result is None or not _finite(result):
+            return None
+        return numpy.array(result).reshape(shape)
+
+    return evaluate
+
+
+def _first(result):
+    return None if result is None else result[1]
+
+
+def _second(result):
+    return None if result is None else result[0]
+
+
+_ONE_POINT = {
+    "control": _one_point(lambda t, s, p: _first(_law_1(t, s, p, False)), (2,)),
+    "rhs": _one_point(lambda t, s, p: _second(_law_1(t, s, p, True)), (2,)),
+    "optimality_error": _one_point(_optimality_1, (K, 2)),
+    "objective": _one_point(_objective_1, ()),
+    "gradient": _one_point(_gradient_1, (2,)),
+    "hessian": _one_point(_hessian_1, (2, 2)),
+}
+_A_LIST = list(HURWITZ_COEFFICIENTS)
+_P_LIST = _DEFAULT_P.tolist()
 
 
 def control(t, s, params=None):
@@ -683,3 +976,27 @@ def hessian(t, y, params=None):
     """
     return _output_function(_hessian_values, t, y, params)
 
+
+
+def _with_one_point(general, rows):
+    """``general``, with a single state or output in a float array taken by the fast path."""
+    fast = _ONE_POINT[general.__name__]
+    number = general.__name__ == "objective"
+
+    def function(t, s, params=None):
+        if (type(s) is numpy.ndarray and s.shape == (rows,) and s.dtype.kind == "f"
+                and isinstance(t, (float, int))):
+            result = fast(t, s, params)
+            if result is not None:
+                return float(result) if number else result
+        return general(t, s, params)
+
+    return functools.update_wrapper(function, general)
+
+
+control = _with_one_point(control, 2)
+rhs = _with_one_point(rhs, 2)
+optimality_error = _with_one_point(optimality_error, 2)
+objective = _with_one_point(objective, 2)
+gradient = _with_one_point(gradient, 2)
+hessian = _with_one_point(hessian, 2)

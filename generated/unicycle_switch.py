@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 99104fb8e131437ab4b82b8f5ee82a9bcce274eb493a3871573336f10aa5ae4d
+# content sha256: 9b2eb9e6fe4bd7e4b161193d085281d1e7678164394455529bf54b2b3890d72e
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -44,6 +44,8 @@ Where the law is undefined the functions raise a subclass of :class:`ControllerE
 
 from __future__ import annotations
 
+import functools
+import math
 from collections.abc import Mapping
 
 import numpy
@@ -272,13 +274,13 @@ def _jet_time(t, p, a):
     _t0 = 1/_p1
     _t1 = numpy.tanh(_t0*(t - _p0))
     _t2 = 1/2 - 1/2*_t1
-    _t3 = 1 - _t1**2
-    _t4 = t**2
+    _t3 = 1 - (_t1*_t1)
+    _t4 = (t*t)
     _t5 = (1/100)*_t4
     _t6 = (3/5)*t - _t5 - 5
     _t7 = (1/50)*t
     _t8 = 3/5 - _t7
-    _t9 = t**3
+    _t9 = (t*t*t)
     _t10 = (1/2)*t - 1/1000*_t9 + (1/50)*_t4 - 5
     _t11 = (1/25)*t - 3/1000*_t4 + 1/2
     _t12 = 5 - _t5 - 3/10*t
@@ -289,7 +291,7 @@ def _jet_time(t, p, a):
     _t21 = 1 - _t2
     _t22 = 2*_t21
     _t23 = -_t0*_t3
-    _t24 = 2*_t1*_t3/_p1**2
+    _t24 = 2*_t1*_t3/(_p1*_p1)
     _t25 = (1/2)*_a0
     _t26 = (1/2)*_a1
     # Output terms
@@ -398,17 +400,17 @@ def _optimality(t, s, p):
     _t0 = 1/_p1
     _t1 = numpy.tanh(_t0*(t - _p0))
     _t2 = 1/2 - 1/2*_t1
-    _t3 = t**2
+    _t3 = (t*t)
     _t4 = (1/100)*_t3
     _t5 = (3/5)*t - _t4 - 5
     _t6 = (1/50)*t
-    _t7 = t**3
+    _t7 = (t*t*t)
     _t8 = (1/2)*t - 1/1000*_t7 + (1/50)*_t3 - 5
     _t9 = 5 - _t4 - 3/10*t
     _t10 = (1/5000)*_t7 - 3/200*_t3 + (2/5)*t - 3
     _t11 = 2*_t2
     _t12 = 2 - 2*_t2
-    _t13 = -_t0*(1 - _t1**2)
+    _t13 = -_t0*(1 - (_t1*_t1))
     # Output terms
     E = numpy.empty((2, 2, _n))  # grad^(j) f0
     E[0, 0] = 2*_s0 - _t11*_t5 - _t12*_t9
@@ -427,12 +429,12 @@ def _objective(t, y, p):
     _p1 = p[1]  # b
     # Intermediate terms (4)
     _t0 = 1/2 - 1/2*numpy.tanh((t - _p0)/_p1)
-    _t1 = t**2
+    _t1 = (t*t)
     _t2 = (1/100)*_t1
-    _t3 = t**3
+    _t3 = (t*t*t)
     # Output terms
     f0 = numpy.empty((_n))  # f0
-    f0[...] = _t0*((_t2 + _y0 - 3/5*t + 5)**2 + (_y1 - 1/2*t - 1/50*_t1 + (1/1000)*_t3 + 5)**2) + (1 - _t0)*((_t2 + _y0 + (3/10)*t - 5)**2 + (_y1 - 2/5*t - 1/5000*_t3 + (3/200)*_t1 + 3)**2)
+    f0[...] = _t0*(((_t2 + _y0 - 3/5*t + 5)*(_t2 + _y0 - 3/5*t + 5)) + ((_y1 - 1/2*t - 1/50*_t1 + (1/1000)*_t3 + 5)*(_y1 - 1/2*t - 1/50*_t1 + (1/1000)*_t3 + 5))) + (1 - _t0)*(((_t2 + _y0 + (3/10)*t - 5)*(_t2 + _y0 + (3/10)*t - 5)) + ((_y1 - 2/5*t - 1/5000*_t3 + (3/200)*_t1 + 3)*(_y1 - 2/5*t - 1/5000*_t3 + (3/200)*_t1 + 3)))
     return f0
 
 
@@ -445,9 +447,9 @@ def _gradient(t, y, p):
     _p1 = p[1]  # b
     # Intermediate terms (6)
     _t0 = 1/2 - 1/2*numpy.tanh((t - _p0)/_p1)
-    _t1 = t**2
+    _t1 = (t*t)
     _t2 = (1/100)*_t1
-    _t3 = t**3
+    _t3 = (t*t*t)
     _t4 = 2*_t0
     _t5 = 2 - 2*_t0
     # Output terms
@@ -466,6 +468,203 @@ def _hessian(t, y, p):
     hess[0, 1] = 0
     hess[1, 0] = 0
     hess[1, 1] = 2
+    return hess
+
+
+def _jet_time_1(t, p, a):
+    """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
+    _p0 = p[0]
+    _p1 = p[1]
+    _a0 = a[0]
+    _a1 = a[1]
+    _t0 = 1/_p1
+    _t1 = float(numpy.tanh(_t0*(t - _p0)))
+    _t2 = 1/2 - 1/2*_t1
+    _t3 = 1 - (_t1*_t1)
+    _t4 = (t*t)
+    _t5 = (1/100)*_t4
+    _t6 = (3/5)*t - _t5 - 5
+    _t7 = (1/50)*t
+    _t8 = 3/5 - _t7
+    _t9 = (t*t*t)
+    _t10 = (1/2)*t - 1/1000*_t9 + (1/50)*_t4 - 5
+    _t11 = (1/25)*t - 3/1000*_t4 + 1/2
+    _t12 = 5 - _t5 - 3/10*t
+    _t13 = -_t7 - 3/10
+    _t14 = (1/5000)*_t9 - 3/200*_t4 + (2/5)*t - 3
+    _t15 = (3/5000)*_t4 - 3/100*t + 2/5
+    _t20 = 2*_t2
+    _t21 = 1 - _t2
+    _t22 = 2*_t21
+    _t23 = -_t0*_t3
+    _t24 = 2*_t1*_t3/(_p1*_p1)
+    _t25 = (1/2)*_a0
+    _t26 = (1/2)*_a1
+    tau = [
+        -_t12*_t22 - _t20*_t6,
+        _t25,
+        _t12*_t23 - _t13*_t22 - _t20*_t8 - _t23*_t6,
+        _t26,
+        _t23*_t8 - 1/50*_t2 - 1/50*_t21 + (1/2)*_t24*_t6 - _t13*_t23 - 1/2*_t12*_t24,
+        -_t10*_t20 - _t14*_t22,
+        _t14*_t23 - _t10*_t23 - _t11*_t20 - _t15*_t22,
+        _t11*_t23 + (1/2)*_t10*_t24 + (1/2)*_t20*(1/25 - 3/500*t) + (1/2)*_t22*((3/2500)*t - 3/100) - _t15*_t23 - 1/2*_t14*_t24,
+    ]
+    return tau
+
+
+def _jet_1(t, s, p, a, tau):
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (one point; lists in, lists out)."""
+    _s0 = s[0]
+    _s1 = s[1]
+    _s2 = s[2]
+    _s3 = s[3]
+    _h0 = tau[0]
+    _t25 = tau[1]
+    _h1 = tau[2]
+    _t26 = tau[3]
+    _h2 = tau[4]
+    _h3 = tau[5]
+    _h4 = tau[6]
+    _h5 = tau[7]
+    _t16 = float(numpy.cos(_s2))
+    _t17 = _s3*_t16
+    _t18 = float(numpy.sin(_s2))
+    _t19 = _s3*_t18
+    z = [
+        _h2 + _t25*(_h0 + 2*_s0) + _t26*(_h1 + 2*_t17),
+        _h5 + _t25*(_h3 + 2*_s1) + _t26*(_h4 + 2*_t19),
+    ]
+    R = [
+        _t16,
+        -_t19,
+        _t18,
+        _t17,
+    ]
+    pvec = [
+        0,
+        0,
+    ]
+    return z, R, pvec
+
+
+def _decoupling_1(t, s, p, z, q):
+    """b = v - p, so that R w = b linearizes the plant (one point; lists in, lists out)."""
+    _z0 = z[0]
+    _z1 = z[1]
+    _q0 = q[0]
+    _q1 = q[1]
+    b = [
+        _z0 - _q0,
+        _z1 - _q1,
+    ]
+    return b
+
+
+def _closed_loop_1(t, s, p, w, z):
+    """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
+    _s2 = s[2]
+    _s3 = s[3]
+    _w0 = w[0]
+    _w1 = w[1]
+    ds = [
+        _s3*float(numpy.cos(_s2)),
+        _s3*float(numpy.sin(_s2)),
+        _w1,
+        _w0,
+    ]
+    u = [
+        _s3,
+        _w1,
+    ]
+    return ds, u
+
+
+def _plant_input_1(t, s, p, w):
+    """The plant input alone (control needs no vector field) (one point; lists in, lists out)."""
+    _s3 = s[3]
+    _w1 = w[1]
+    u = [
+        _s3,
+        _w1,
+    ]
+    return u
+
+
+def _optimality_1(t, s, p):
+    """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
+    _s0 = s[0]
+    _s1 = s[1]
+    _s2 = s[2]
+    _s3 = s[3]
+    _p0 = p[0]
+    _p1 = p[1]
+    _t0 = 1/_p1
+    _t1 = float(numpy.tanh(_t0*(t - _p0)))
+    _t2 = 1/2 - 1/2*_t1
+    _t3 = (t*t)
+    _t4 = (1/100)*_t3
+    _t5 = (3/5)*t - _t4 - 5
+    _t6 = (1/50)*t
+    _t7 = (t*t*t)
+    _t8 = (1/2)*t - 1/1000*_t7 + (1/50)*_t3 - 5
+    _t9 = 5 - _t4 - 3/10*t
+    _t10 = (1/5000)*_t7 - 3/200*_t3 + (2/5)*t - 3
+    _t11 = 2*_t2
+    _t12 = 2 - 2*_t2
+    _t13 = -_t0*(1 - (_t1*_t1))
+    E = [
+        2*_s0 - _t11*_t5 - _t12*_t9,
+        2*_s1 - _t10*_t12 - _t11*_t8,
+        _t13*_t9 - _t11*(3/5 - _t6) - _t12*(-_t6 - 3/10) - _t13*_t5 + 2*_s3*float(numpy.cos(_s2)),
+        _t10*_t13 - _t11*((1/25)*t - 3/1000*_t3 + 1/2) - _t12*((3/5000)*_t3 - 3/100*t + 2/5) - _t13*_t8 + 2*_s3*float(numpy.sin(_s2)),
+    ]
+    return E
+
+
+def _objective_1(t, y, p):
+    """The objective f0(y, t) (one point; lists in, lists out)."""
+    _y0 = y[0]
+    _y1 = y[1]
+    _p0 = p[0]
+    _p1 = p[1]
+    _t0 = 1/2 - 1/2*float(numpy.tanh((t - _p0)/_p1))
+    _t1 = (t*t)
+    _t2 = (1/100)*_t1
+    _t3 = (t*t*t)
+    f0 = [
+        _t0*(((_t2 + _y0 - 3/5*t + 5)*(_t2 + _y0 - 3/5*t + 5)) + ((_y1 - 1/2*t - 1/50*_t1 + (1/1000)*_t3 + 5)*(_y1 - 1/2*t - 1/50*_t1 + (1/1000)*_t3 + 5))) + (1 - _t0)*(((_t2 + _y0 + (3/10)*t - 5)*(_t2 + _y0 + (3/10)*t - 5)) + ((_y1 - 2/5*t - 1/5000*_t3 + (3/200)*_t1 + 3)*(_y1 - 2/5*t - 1/5000*_t3 + (3/200)*_t1 + 3))),
+    ]
+    return f0
+
+
+def _gradient_1(t, y, p):
+    """grad_y f0(y, t) (one point; lists in, lists out)."""
+    _y0 = y[0]
+    _y1 = y[1]
+    _p0 = p[0]
+    _p1 = p[1]
+    _t0 = 1/2 - 1/2*float(numpy.tanh((t - _p0)/_p1))
+    _t1 = (t*t)
+    _t2 = (1/100)*_t1
+    _t3 = (t*t*t)
+    _t4 = 2*_t0
+    _t5 = 2 - 2*_t0
+    grad = [
+        2*_y0 - _t4*((3/5)*t - _t2 - 5) - _t5*(5 - _t2 - 3/10*t),
+        2*_y1 - _t4*((1/2)*t - 1/1000*_t3 + (1/50)*_t1 - 5) - _t5*((1/5000)*_t3 - 3/200*_t1 + (2/5)*t - 3),
+    ]
+    return grad
+
+
+def _hessian_1(t, y, p):
+    """grad_yy f0(y, t) (one point; lists in, lists out)."""
+    hess = [
+        2,
+        0,
+        0,
+        2,
+    ]
     return hess
 
 
@@ -570,6 +769,146 @@ def _gradient_values(t, x, p):
 
 def _hessian_values(t, x, p):
     return _kernel_values(_hessian, "the Hessian of f0", t, x, p)
+
+
+# One state at a time (a user's control loop, solve_ivp without vectorized=True, a
+# minimizer): the same kernels on lists of Python floats, without the per-array cost
+# of NumPy. Anything unusual (a non-finite value, a singular pivot, a Python float's
+# ZeroDivisionError or OverflowError) returns None, and the array path then answers
+# and raises exactly as documented: the two paths never disagree.
+
+
+def _finite(values):
+    """Whether every value is finite (a sum of infinities of both signs is NaN)."""
+    return math.isfinite(sum(values))
+
+
+def _lu_solve_1(a, b):
+    """Solve ``a x = b`` (``a`` row-major, m*m) as :func:`_lu_solve` does; None if singular."""
+    m = len(b)
+    lu = [a[i * m:(i + 1) * m] for i in range(m)]
+    x = list(b)
+    scale = max(map(abs, a))
+    for j in range(m):
+        row, best = j, abs(lu[j][j])
+        for i in range(j + 1, m):
+            if abs(lu[i][j]) > best:
+                row, best = i, abs(lu[i][j])
+        if row != j:
+            lu[j], lu[row] = lu[row], lu[j]
+            x[j], x[row] = x[row], x[j]
+        pivot = lu[j][j]
+        if not abs(pivot) > PIVOT_TOLERANCE * scale:
+            return None
+        for i in range(j + 1, m):
+            factor = lu[i][j] / pivot
+            lu[i] = lu[i][:j + 1] + [lu[i][k] - factor * lu[j][k] for k in range(j + 1, m)]
+            x[i] -= factor * x[j]
+    for j in reversed(range(m)):
+        for k in range(j + 1, m):
+            x[j] -= lu[j][k] * x[k]
+        x[j] /= lu[j][j]
+    return x
+
+
+def _solve_decoupling_1(r, b):
+    """Solve ``R w = b`` block by block for one point; None where a block is singular.
+
+    Blocks of sizes 1 and 2 are unrolled: the same operations, in the same order, as
+    the general loop of :func:`_lu_solve`.
+    """
+    w = list(b)
+    tolerance = PIVOT_TOLERANCE
+    for size, starts, rows in _R_GROUPS:
+        if size == 1:
+            for start, (i,) in zip(starts, rows):
+                a = r[start]
+                if not abs(a) > tolerance * abs(a):
+                    return None
+                w[i] = b[i] / a
+        elif size == 2:
+            for start, (i, j) in zip(starts, rows):
+                a00, a01, a10, a11 = r[start:start + 4]
+                b0, b1 = b[i], b[j]
+                scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
+                if abs(a10) > abs(a00):
+                    a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
+                if not abs(a00) > tolerance * scale:
+                    return None
+                factor = a10 / a00
+                a11 = a11 - factor * a01
+                b1 = b1 - factor * b0
+                if not abs(a11) > tolerance * scale:
+                    return None
+                x1 = b1 / a11
+                w[i], w[j] = (b0 - a01 * x1) / a00, x1
+        else:
+            for start, block in zip(starts, rows):
+                x = _lu_solve_1(r[start:start + size * size], [b[i] for i in block])
+                if x is None:
+                    return None
+                for i, value in zip(block, x):
+                    w[i] = value
+    return w
+
+
+def _law_1(t, s, p, rates):
+    """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
+    tau = _jet_time_1(t, p, _A_LIST)
+    z, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
+    if not (_finite(z) and _finite(r) and _finite(pvec)):
+        return None
+    b = _decoupling_1(t, s, p, z, pvec)
+    if not _finite(b):
+        return None
+    w = _solve_decoupling_1(r, b)
+    if w is None:
+        return None
+    if not rates:
+        u = _plant_input_1(t, s, p, w)
+        return (None, u) if _finite(u) else None
+    ds, u = _closed_loop_1(t, s, p, w, z)
+    return (ds, u) if _finite(ds) and _finite(u) else None
+
+
+def _one_point(function, shape):
+    """``function(t, s, p)`` for one state given as a 1-D float array, or None."""
+
+    def evaluate(t, s, params):
+        values = s.tolist()
+        p = _P_LIST if params is None else _parameters(params).tolist()
+        if not (math.isfinite(t) and _finite(values) and _finite(p)):
+            return None
+        try:
+            with numpy.errstate(all="ignore"):
+                result = function(float(t), values, p)
+        except ArithmeticError:
+            return None
+        if result is None or not _finite(result):
+            return None
+        return numpy.array(result).reshape(shape)
+
+    return evaluate
+
+
+def _first(result):
+    return None if result is None else result[1]
+
+
+def _second(result):
+    return None if result is None else result[0]
+
+
+_ONE_POINT = {
+    "control": _one_point(lambda t, s, p: _first(_law_1(t, s, p, False)), (2,)),
+    "rhs": _one_point(lambda t, s, p: _second(_law_1(t, s, p, True)), (4,)),
+    "optimality_error": _one_point(_optimality_1, (K, 2)),
+    "objective": _one_point(_objective_1, ()),
+    "gradient": _one_point(_gradient_1, (2,)),
+    "hessian": _one_point(_hessian_1, (2, 2)),
+}
+_A_LIST = list(HURWITZ_COEFFICIENTS)
+_P_LIST = _DEFAULT_P.tolist()
 
 
 def control(t, s, params=None):
@@ -724,3 +1063,27 @@ def hessian(t, y, params=None):
     """
     return _output_function(_hessian_values, t, y, params)
 
+
+
+def _with_one_point(general, rows):
+    """``general``, with a single state or output in a float array taken by the fast path."""
+    fast = _ONE_POINT[general.__name__]
+    number = general.__name__ == "objective"
+
+    def function(t, s, params=None):
+        if (type(s) is numpy.ndarray and s.shape == (rows,) and s.dtype.kind == "f"
+                and isinstance(t, (float, int))):
+            result = fast(t, s, params)
+            if result is not None:
+                return float(result) if number else result
+        return general(t, s, params)
+
+    return functools.update_wrapper(function, general)
+
+
+control = _with_one_point(control, 4)
+rhs = _with_one_point(rhs, 4)
+optimality_error = _with_one_point(optimality_error, 4)
+objective = _with_one_point(objective, 2)
+gradient = _with_one_point(gradient, 2)
+hessian = _with_one_point(hessian, 2)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import sympy as sp
 
@@ -14,7 +15,7 @@ from tvopt_codegen.ir import (
     ordered_cse,
     split_invariant,
 )
-from tvopt_codegen.printers import CPrinter, PythonPrinter
+from tvopt_codegen.printers import CPrinter, PythonPrinter, PythonScalarPrinter
 
 from .conftest import kernels
 
@@ -133,3 +134,26 @@ def test_the_state_part_of_the_switching_jet_is_small() -> None:
     jet = kernels("unicycle_switch")["jet"]
     assert jet.ops <= 25
     assert kernels("unicycle_switch")["jet_time"].ops >= 100
+
+
+def test_python_powers_print_alike_for_arrays_and_floats() -> None:
+
+    x, y = sp.symbols("x y")
+    array, scalar = PythonPrinter(), PythonScalarPrinter()
+    cases = {
+        x**2: ("(x*x)", "(x*x)"),
+        x**-3: ("1/(x*x*x)", "1/(x*x*x)"),
+        x**7: ("numpy.power(x, 7)", "float(numpy.power(x, 7))"),
+        sp.sqrt(x): ("numpy.sqrt(x)", "float(numpy.sqrt(x))"),
+        x**y: ("numpy.power(x, y)", "float(numpy.power(x, y))"),
+        sp.tanh(x) + 1: ("numpy.tanh(x) + 1", "float(numpy.tanh(x)) + 1"),
+    }
+    for expr, (want_array, want_scalar) in cases.items():
+        assert array.doprint(expr) == want_array
+        assert scalar.doprint(expr) == want_scalar
+    # Same bits on both paths: NumPy's own routine, whatever the argument's type.
+    values = np.linspace(-3, 3, 101)
+    for text in ("numpy.power(x, 7)", "(x*x*x)", "numpy.tanh(x)"):
+        batch = eval(text, {"numpy": np, "x": values})  # noqa: S307 - printer output
+        single = [float(eval(text, {"numpy": np, "x": float(v)})) for v in values]  # noqa: S307
+        assert np.array_equal(batch, single)

@@ -7,6 +7,7 @@ native copy, to the bit) or refused with a clear error; never misread.
 from __future__ import annotations
 
 import os
+import re
 import resource
 import subprocess
 import sys
@@ -455,3 +456,50 @@ def test_both_backends_share_an_output_folder(tmp_path: Path) -> None:
     )
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["python", "c", "True"]
+
+
+ALL_FUNCTIONS = STATE_FUNCTIONS + OUTPUT_FUNCTIONS
+
+
+@pytest.mark.parametrize("spec", EXAMPLES)
+def test_one_state_takes_the_fast_path_with_the_batch_bits(
+    spec: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    mod = module(spec)
+    states = random_states(spec, 5, seed=21)
+    m = len(mod.OUTPUT_NAMES)
+    for j in range(states.shape[1]):
+        for name in ALL_FUNCTIONS:
+            x = states[:, j] if name in STATE_FUNCTIONS else states[:m, j]
+            batch = getattr(mod, name)(0.9, x[:, None])[..., 0]
+            assert np.array_equal(getattr(mod, name)(0.9, x), batch), (name, j)
+    # The one-point path answers alone: the array law is never called for one state.
+    monkeypatch.setattr(mod, "_law", lambda *a, **k: (_ for _ in ()).throw(AssertionError))
+    mod.control(0.9, states[:, 0])
+    mod.rhs(0.9, states[:, 0])
+    assert isinstance(mod.objective(0.9, states[:m, 0]), float)
+
+
+def test_the_fast_path_leaves_every_error_to_the_array_path() -> None:
+    mod = module("unicycle_switch")
+    state = np.array(mod.DEFAULT_STATE)
+    state[3] = 0.0  # v = 0: R is singular
+    with pytest.raises(mod.SingularDecouplingError) as single:
+        mod.control(0.5, state)
+    with pytest.raises(mod.SingularDecouplingError) as batch:
+        mod.control(0.5, state[:, None])
+    assert str(single.value) == str(batch.value) and single.value.index == 0
+    state[0] = np.nan
+    with pytest.raises(mod.NonFiniteInputError, match=r"the state is not finite \(column 0\)"):
+        mod.rhs(0.5, state)
+    barrier = module("two_unicycles_barrier")
+    at_pole = np.array(barrier.DEFAULT_STATE)
+    at_pole[3:5] = at_pole[0:2]  # the two agents at one point: the barrier's tan is fine,
+    for function in (barrier.control, barrier.rhs):  # its derivative jet too; same answer
+        try:
+            expected = function(0.5, at_pole[:, None])[..., 0]
+        except barrier.ControllerError as error:
+            with pytest.raises(type(error), match=re.escape(str(error))):
+                function(0.5, at_pole)
+        else:
+            assert np.array_equal(function(0.5, at_pole), expected)

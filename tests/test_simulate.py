@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tvopt_codegen import cli
 from tvopt_codegen import simulate as sim
 from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import derive
@@ -79,7 +78,7 @@ def test_wrong_controller_fails_the_certificate(
     assert not result.passed
     assert any("deviates from expm(H t) E(0)" in f for f in result.failures)
 
-    monkeypatch.setattr(cli, "load_controller", lambda kernels, backend: impostor)
+    monkeypatch.setattr(sim, "load_controller", lambda kernels, backend: impostor)
     out = tmp_path / "out"
     assert main(["simulate", "unicycle_switch", "--out", str(out)]) == EXIT_CERTIFICATE
     assert "certificate: FAILED" in capsys.readouterr().out
@@ -171,7 +170,7 @@ def test_interrupt_leaves_no_file(
     def interrupted(*args: object, **kwargs: object) -> None:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli, "simulate", interrupted)
+    monkeypatch.setattr(sim, "simulate", interrupted)
     out = tmp_path / "o"
     out.mkdir()
     (out / "keep.txt").write_text("mine")

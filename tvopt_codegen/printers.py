@@ -57,20 +57,63 @@ class PythonPrinter(_CanonicalOrder, NumPyPrinter):  # type: ignore[misc]
     def _print_Pow(self, expr: sp.Pow, rational: bool = False) -> str:
         """Customizations.
 
-        * Negative integer powers print as ``1/x**n``: NumPyPrinter writes
-          ``x**(-1.0)``, which is harder to read and slower than a division.
+        * Small integer powers are products (``x*x``), and their reciprocals
+          ``1/(x*x)``: exact for squares, as the C backend writes them, and the same
+          bits whether ``x`` is a NumPy array or a Python float (``float.__pow__``
+          calls libm's ``pow``, NumPy its own, and they differ in the last bit).
+        * Every other power is ``numpy.power(x, e)``, one routine for arrays and
+          scalars alike; square roots stay ``numpy.sqrt``.
+        * ``x**-1`` is ``1/x``: NumPyPrinter writes ``x**(-1.0)``.
         """
         exp = expr.exp
-        if exp.is_Integer and exp.is_negative:
-            base = self.parenthesize(expr.base, PRECEDENCE["Pow"])
-            return f"1/{base}" if exp == -1 else f"1/{base}**{-int(exp)}"
-        result: str = super()._print_Pow(expr, rational=rational)
-        return result
+        if exp.is_Integer and 1 <= abs(int(exp)) <= 4:
+            base = self.parenthesize(expr.base, PRECEDENCE["Mul"])
+            product = "*".join([base] * abs(int(exp)))
+            if exp > 0:
+                return f"({product})" if abs(int(exp)) > 1 else product
+            return f"1/{base}" if exp == -1 else f"1/({product})"
+        if exp == sp.S.Half:
+            return self._call(f"numpy.sqrt({self._print(expr.base)})")
+        if exp == -sp.S.Half:
+            return f"1/{self._call(f'numpy.sqrt({self._print(expr.base)})')}"
+        return self._call(f"numpy.power({self._print(expr.base)}, {self._print(exp)})")
+
+    def _call(self, text: str) -> str:
+        """A call of a NumPy function, as printed (the scalar printer converts it)."""
+        return text
 
     def doprint(self, expr: Any, assign_to: Any = None) -> str:
         """Print one expression (no assignment wrapping)."""
         text: str = super().doprint(expr, assign_to)
         return text
+
+
+class PythonScalarPrinter(PythonPrinter):
+    """The NumPy printer for one point: every NumPy function's result becomes a ``float``.
+
+    The one-point kernels run on Python floats. A NumPy function returns a NumPy
+    scalar, on which every later operation costs about three times a float's; the
+    value is the same, so it is converted at once. The function stays NumPy's: its
+    bits then equal those of the batch path (libm's ``math`` functions differ from
+    NumPy's vectorized ones in the last bit).
+    """
+
+    def _print(self, expr: Any, **kwargs: Any) -> str:
+        """Customizations.
+
+        * A function printed as a NumPy call is wrapped in ``float(...)``.
+        """
+        text: str = super()._print(expr, **kwargs)
+        if isinstance(expr, sp.Function) and text.startswith("numpy."):
+            return f"float({text})"
+        return text
+
+    def _call(self, text: str) -> str:
+        """Customizations.
+
+        * ``numpy.power`` and ``numpy.sqrt`` from powers are wrapped in ``float(...)``.
+        """
+        return f"float({text})"
 
 
 class CPrinter(_CanonicalOrder, C99CodePrinter):  # type: ignore[misc]

@@ -278,6 +278,10 @@ def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
     printer = backend.printer()
     d = kernels.derivation
     printed = {k.name: print_kernel(k, printer) for k in kernels.kernels}
+    variants = {
+        f"kernels_{key}": {k.name: print_kernel(k, make()) for k in kernels.kernels}
+        for key, make in backend.variants
+    }
     files: dict[str, str] = {}
     for template_name, pattern in backend.templates:
         context = {
@@ -285,6 +289,7 @@ def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
             "backend": backend.name,
             "spec": d.spec,
             "kernels": printed,
+            **variants,
             "tool_version": __version__,
             "sympy_version": sp.__version__,
             "spec_file": PurePath(d.spec.source.removesuffix(BUNDLED_SUFFIX)).name,

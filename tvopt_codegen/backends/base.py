@@ -29,6 +29,9 @@ class Backend:
     module : str
         The file name pattern of the Python module users (and ``simulate``) import;
         distinct per backend, so that backends can share an output folder.
+    variants : tuple of (str, callable)
+        More printings of the same kernels, each with its own printer, given to the
+        templates as ``kernels_<key>`` (the Python backend's one-point kernels).
     """
 
     name: str
@@ -36,3 +39,4 @@ class Backend:
     printer: Callable[[], CodePrinter]
     templates: tuple[tuple[str, str], ...]
     module: str
+    variants: tuple[tuple[str, Callable[[], CodePrinter]], ...] = ()

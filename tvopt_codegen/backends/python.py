@@ -16,6 +16,12 @@ def _printer() -> CodePrinter:
     return PythonPrinter()
 
 
+def _scalar_printer() -> CodePrinter:
+    from tvopt_codegen.printers import PythonScalarPrinter  # noqa: PLC0415
+
+    return PythonScalarPrinter()
+
+
 #: The Python backend.
 PYTHON = Backend(
     name="python",
@@ -23,4 +29,6 @@ PYTHON = Backend(
     printer=_printer,
     templates=(("python/controller.py.jinja", "{name}.py"),),
     module="{name}.py",
+    # The same kernels for one point (lists of floats): a single state in microseconds.
+    variants=(("1", _scalar_printer),),
 )
