@@ -319,3 +319,33 @@ def test_a_fifo_named_like_the_manifest_or_a_journal_does_not_hang(tmp_path: Pat
     # The manifest is not a regular file: the report cannot record itself, and says so.
     assert proc.returncode in (0, 4), err
     assert err.count("\n") <= 1
+
+
+@pytest.mark.parametrize(
+    ("env", "message"),
+    [
+        (
+            {"TVOPT_CODEGEN_CACHE": "/dev/null/cache"},
+            "the cache folder /dev/null/cache cannot be used",
+        ),
+        ({"TVOPT_CODEGEN_CFLAGS": "-ffast-math"}, "failed"),
+        ({"TVOPT_CODEGEN_CFLAGS": "-fno-such-flag-at-all"}, "failed"),
+    ],
+)
+def test_a_failing_c_build_writes_nothing(
+    env: dict[str, str], message: str, tmp_path: Path
+) -> None:
+    env = {"TVOPT_CODEGEN_CACHE": str(tmp_path / "cache"), **env}
+    out = tmp_path / "o"
+    proc = _cli("simulate", "integrator", "--backend", "c", "--out", str(out), env=env)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == EXIT_BUILD, err
+    assert err.count("\n") == 1 and message in err and "Traceback" not in err
+    assert not out.exists()
+    # An existing folder is left exactly as it was.
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    proc = _cli("simulate", "integrator", "--backend", "c", "--out", str(out), env=env)
+    proc.communicate(timeout=120)
+    assert proc.returncode == EXIT_BUILD
+    assert [p.name for p in out.iterdir()] == ["keep.txt"]

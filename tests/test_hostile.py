@@ -8,6 +8,8 @@ traceback, the folder unchanged byte for byte, and an answer within 5 seconds.
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -450,3 +452,46 @@ def test_deeply_nested_signal_is_differentiated_without_swell(
     assert main(["check", str(_spec(tmp_path, UNICYCLE.replace(old, f'S = "{nested}"')))]) == 0
     assert time.perf_counter() - start < 10.0
     assert "strongly convex" in capsys.readouterr().out
+
+
+RING = (ROOT / "tvopt_codegen" / "examples" / "unicycle_ring.toml").read_text()
+TOWER = "exp(exp(exp(exp(exp(exp(exp(exp(i))))))))"
+
+
+@pytest.mark.parametrize(
+    ("text", "args", "code", "message", "limit"),
+    [
+        # 256 agents: minutes of derivation, stopped at the budget.
+        (RING.replace("i = 4 ", "i = 256 "), ("--max-seconds", "3"), 6, "took longer than 3 s", 3),
+        # Exponential towers in indexed constants: refused in doubles, not evaluated exactly.
+        (
+            RING.replace('"theta[i]" = 0.0', f'"theta[i]" = "{TOWER}"'),
+            (),
+            2,
+            "simulation.initial_state.theta[i]: 'exp(exp(",
+            0,
+        ),
+        (
+            RING.replace("alpha = 1e-3", f'"w[i]" = "{TOWER}"\nalpha = 1e-3'),
+            (),
+            2,
+            "parameters.w[i]: 'exp(exp(",
+            0,
+        ),
+    ],
+)
+def test_bombs_answer_within_the_budget(
+    tmp_path: Path, text: str, args: tuple[str, ...], code: int, message: str, limit: float
+) -> None:
+    spec = _spec(tmp_path, text)
+    start = time.perf_counter()
+    done = subprocess.run(
+        [sys.executable, "-m", "tvopt_codegen", "check", str(spec), *args],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    elapsed = time.perf_counter() - start
+    assert done.returncode == code, done.stderr
+    assert done.stderr.count("\n") == 1 and message in done.stderr
+    assert elapsed < limit + 6  # the budget, plus start-up: within a few seconds

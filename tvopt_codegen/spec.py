@@ -17,11 +17,13 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import sympy as sp
 
-from tvopt_codegen.errors import SpecError
+from tvopt_codegen.errors import SpecError, clip
 from tvopt_codegen.limits import MAX_T_FINAL
 from tvopt_codegen.names import module_name_problem, name_problem
+from tvopt_codegen.numeric import Evaluator
 from tvopt_codegen.parse import (
     NO_INDEXING,
     ExpressionError,
@@ -370,9 +372,15 @@ class _Reader:
                 expr = parse_expression(value, {}, self.bound(bound))
             except ExpressionError as exc:
                 raise self.fail(field, str(exc)) from None
+            # In doubles first: an exponential tower is inf at once, where sympy's
+            # arbitrary-precision evalf would work on it for minutes.
+            with np.errstate(all="ignore"):
+                approximate = complex(Evaluator({})(expr))
+            if approximate.imag != 0 or not math.isfinite(approximate.real):
+                raise self.fail(field, f"{clip(value)!r} is not a finite real number")
             number = complex(expr.evalf())
             if number.imag != 0 or not math.isfinite(number.real):
-                raise self.fail(field, f"{value!r} is not a finite real number")
+                raise self.fail(field, f"{clip(value)!r} is not a finite real number")
             return number.real
         return self.number(value, field)
 

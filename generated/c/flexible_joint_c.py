@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 36da7862fcf550d3493f608e0a1e236177ce98162d3e5d1716cc826af28fb749
+# content sha256: 078ad9ba47d42d0ed5c96770c0b4ab834ed895f219f5ba9db79d7e520f21899d
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -200,8 +200,14 @@ def _build():
         library = cache / f"flexible_joint-{key.hexdigest()[:24]}.so"
         if library.exists():
             return library, bool(includes)
-        cache.mkdir(parents=True, exist_ok=True)
-        fd, partial = tempfile.mkstemp(prefix=".flexible_joint-", suffix=".so", dir=cache)
+        try:
+            cache.mkdir(parents=True, exist_ok=True)
+            fd, partial = tempfile.mkstemp(prefix=".flexible_joint-", suffix=".so", dir=cache)
+        except OSError as exc:
+            raise ImportError(
+                f"flexible_joint: the cache folder {cache} cannot be used "
+                f"({exc.strerror or exc}); set TVOPT_CODEGEN_CACHE to a writable folder"
+            ) from None
         os.close(fd)
         try:
             command = [cc, *flags, "-I", str(here)]

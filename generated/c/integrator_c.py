@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 17bf71f37173dc3f34014ab65349bebdb65c4de43b48d22001b29d9ac2aeab6d
+# content sha256: a0f31516e44c5fd82c8ccbf624b1ef9d3ae1e2f9f569a2a5844f1b8a3b879a2a
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -196,8 +196,14 @@ def _build():
         library = cache / f"integrator-{key.hexdigest()[:24]}.so"
         if library.exists():
             return library, bool(includes)
-        cache.mkdir(parents=True, exist_ok=True)
-        fd, partial = tempfile.mkstemp(prefix=".integrator-", suffix=".so", dir=cache)
+        try:
+            cache.mkdir(parents=True, exist_ok=True)
+            fd, partial = tempfile.mkstemp(prefix=".integrator-", suffix=".so", dir=cache)
+        except OSError as exc:
+            raise ImportError(
+                f"integrator: the cache folder {cache} cannot be used "
+                f"({exc.strerror or exc}); set TVOPT_CODEGEN_CACHE to a writable folder"
+            ) from None
         os.close(fd)
         try:
             command = [cc, *flags, "-I", str(here)]

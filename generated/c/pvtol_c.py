@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: pvtol
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: 28f753e7f88888b21ca92226b6af2723aaacdec7bb90fdf4d822b620f4fdb9ef
+# content sha256: d198bf90ea9546cd88b22b65f6ae441cfa399edf9dea0a9f97fa26bb19627f96
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -206,8 +206,14 @@ def _build():
         library = cache / f"pvtol-{key.hexdigest()[:24]}.so"
         if library.exists():
             return library, bool(includes)
-        cache.mkdir(parents=True, exist_ok=True)
-        fd, partial = tempfile.mkstemp(prefix=".pvtol-", suffix=".so", dir=cache)
+        try:
+            cache.mkdir(parents=True, exist_ok=True)
+            fd, partial = tempfile.mkstemp(prefix=".pvtol-", suffix=".so", dir=cache)
+        except OSError as exc:
+            raise ImportError(
+                f"pvtol: the cache folder {cache} cannot be used "
+                f"({exc.strerror or exc}); set TVOPT_CODEGEN_CACHE to a writable folder"
+            ) from None
         os.close(fd)
         try:
             command = [cc, *flags, "-I", str(here)]

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 9b5a692bd81f76ffe5b1b2584e16298f49ddd0d1b9741db95c0ada13658e9b2e
+# content sha256: af29f5354b9a5e1215e2cee86338086d25a294d411c07e5b8ccc67edd9ff03f9
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -205,8 +205,14 @@ def _build():
         library = cache / f"two_unicycles_barrier-{key.hexdigest()[:24]}.so"
         if library.exists():
             return library, bool(includes)
-        cache.mkdir(parents=True, exist_ok=True)
-        fd, partial = tempfile.mkstemp(prefix=".two_unicycles_barrier-", suffix=".so", dir=cache)
+        try:
+            cache.mkdir(parents=True, exist_ok=True)
+            fd, partial = tempfile.mkstemp(prefix=".two_unicycles_barrier-", suffix=".so", dir=cache)
+        except OSError as exc:
+            raise ImportError(
+                f"two_unicycles_barrier: the cache folder {cache} cannot be used "
+                f"({exc.strerror or exc}); set TVOPT_CODEGEN_CACHE to a writable folder"
+            ) from None
         os.close(fd)
         try:
             command = [cc, *flags, "-I", str(here)]

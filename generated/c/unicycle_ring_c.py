@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 9decdc8720dc0a3ee3fab3e8cf2d42e6a523570f914e2012c3077fc21734a535
+# content sha256: dfe690e9fbe6d4ebaf626ffc4ff8d8fa65500c6f3d3f02f59defc73f8ab82038
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -212,8 +212,14 @@ def _build():
         library = cache / f"unicycle_ring-{key.hexdigest()[:24]}.so"
         if library.exists():
             return library, bool(includes)
-        cache.mkdir(parents=True, exist_ok=True)
-        fd, partial = tempfile.mkstemp(prefix=".unicycle_ring-", suffix=".so", dir=cache)
+        try:
+            cache.mkdir(parents=True, exist_ok=True)
+            fd, partial = tempfile.mkstemp(prefix=".unicycle_ring-", suffix=".so", dir=cache)
+        except OSError as exc:
+            raise ImportError(
+                f"unicycle_ring: the cache folder {cache} cannot be used "
+                f"({exc.strerror or exc}); set TVOPT_CODEGEN_CACHE to a writable folder"
+            ) from None
         os.close(fd)
         try:
             command = [cc, *flags, "-I", str(here)]

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: b819ddeb818ec8aa5e2d6de286142aaf73744f823d3c42b1c3217eea0e3d599d
+# content sha256: 6240b75ca38e8dae687b201f7cb2eec5bf8bfde2a4d863e8cd1c4479cf055806
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -201,8 +201,14 @@ def _build():
         library = cache / f"unicycle_switch-{key.hexdigest()[:24]}.so"
         if library.exists():
             return library, bool(includes)
-        cache.mkdir(parents=True, exist_ok=True)
-        fd, partial = tempfile.mkstemp(prefix=".unicycle_switch-", suffix=".so", dir=cache)
+        try:
+            cache.mkdir(parents=True, exist_ok=True)
+            fd, partial = tempfile.mkstemp(prefix=".unicycle_switch-", suffix=".so", dir=cache)
+        except OSError as exc:
+            raise ImportError(
+                f"unicycle_switch: the cache folder {cache} cannot be used "
+                f"({exc.strerror or exc}); set TVOPT_CODEGEN_CACHE to a writable folder"
+            ) from None
         os.close(fd)
         try:
             command = [cc, *flags, "-I", str(here)]
