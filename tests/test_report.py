@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import re
 import shutil
 import subprocess
@@ -204,3 +205,47 @@ def test_markup_in_the_description_stays_text_in_both_reports(tmp_path: Path) ->
     assert "a &amp; b" in md
     html = files["integrator_report.html"]
     assert "<script" not in html and "<img src=x" not in html
+
+
+def test_matrices_have_css_brackets_and_names_keep_apart() -> None:
+    d = derive(load_spec(ROOT / "tests" / "specs" / "kinematic_car.toml"))
+    files = render_report(d, lower(d))
+    html, md = files["kinematic_car_report.html"], files["kinematic_car_report.md"]
+    assert '<mtable class="matrix">' in html and "<mo>[</mo><mtable" not in html
+    assert "mtable.matrix {" in html  # the brackets, drawn at any height
+    assert '<mo lspace="0.1667em" rspace="0.1667em">&InvisibleTimes;</mo>' in html
+    assert r"\mathtt" not in md and r"wheelbase\," in md  # det R = v^2/(wheelbase cos^2)
+
+
+def test_brackets_stretch_and_names_are_spaced_in_a_browser(tmp_path: Path) -> None:
+    d = derive(load_spec(ROOT / "tests" / "specs" / "kinematic_car.toml"))
+    html = render_report(d, lower(d), formats=("html",))["kinematic_car_report.html"]
+    # Measured in the page: each matrix's bracket borders span its height, and in det R
+    # the name "wheelbase" and the "cos" that follows it have a visible gap.
+    probe = """<pre id="probe"></pre><script>
+const out = [];
+for (const t of document.querySelectorAll('mtable.matrix')) {
+  const s = getComputedStyle(t), r = t.getBoundingClientRect();
+  out.push(['matrix', parseFloat(s.borderLeftWidth) > 0 && parseFloat(s.borderRightWidth) > 0,
+            r.height]);
+}
+for (const mi of document.querySelectorAll('mi')) {
+  if (mi.textContent !== 'wheelbase') continue;
+  const next = mi.nextElementSibling;
+  if (!next || next.tagName.toLowerCase() !== 'mo' || !next.nextElementSibling) continue;
+  const a = mi.getBoundingClientRect(), b = next.nextElementSibling.getBoundingClientRect();
+  out.push(['gap', b.left - a.right]);
+}
+document.getElementById('probe').textContent = JSON.stringify(out);
+</script></body>"""
+    page = tmp_path / "car.html"
+    page.write_text(html.replace("</body>", probe))
+    dom = _browser(page, tmp_path, "--window-size=1200,3000", "--dump-dom").stdout
+    found = re.search(r'<pre id="probe">(.*?)</pre>', dom)
+    assert found is not None, dom[-500:]
+    results = json.loads(found.group(1).replace("&quot;", '"'))
+    matrices = [r for r in results if r[0] == "matrix"]
+    assert matrices and all(bordered for _, bordered, _ in matrices)
+    assert max(height for _, _, height in matrices) > 60  # a tall one: G, R, f~
+    gaps = [r[1] for r in results if r[0] == "gap"]
+    assert gaps and min(gaps) > 1.5  # pixels: a thin space, not glued together

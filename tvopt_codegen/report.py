@@ -20,9 +20,10 @@ import base64
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import sympy as sp
-from sympy.printing.mathml import mathml
+from sympy.printing.mathml import MathMLPresentationPrinter
 
 from tvopt_codegen import __version__
 from tvopt_codegen.derivation import Derivation
@@ -104,6 +105,71 @@ class Section:
         return self.title.lower().replace(" ", "-")
 
 
+class ReportMathMLPrinter(MathMLPresentationPrinter):  # type: ignore[misc]
+    """Presentation MathML as a browser shows it well without a math font.
+
+    Customizations are listed on each override; everything else is sympy's printer.
+    """
+
+    def _print_MatrixBase(self, m: sp.MatrixBase) -> Any:
+        """Customizations.
+
+        * No ``<mo>[</mo>`` fences: they stretch beside a tall matrix only with an
+          OpenType MATH font, which most readers lack. The table gets the class
+          ``matrix``, whose brackets the page draws in CSS at any height.
+        """
+        saved = self._settings["mat_delim"]
+        self._settings["mat_delim"] = ""
+        try:
+            table = super()._print_MatrixBase(m)
+        finally:
+            self._settings["mat_delim"] = saved
+        table.setAttribute("class", "matrix")
+        return table
+
+    def _print_Mul(self, expr: sp.Mul) -> Any:
+        """Customizations.
+
+        * The invisible times beside a multi-letter name or a function gets a thin
+          space on both sides: ``wheelbase cos(phi)``, ``jx jy``, never
+          ``wheelbasecos(phi)`` or ``jxjy``.
+        """
+        row = super()._print_Mul(expr)
+        children = [c for c in row.childNodes if c.nodeType == c.ELEMENT_NODE]
+        for before, node, after in zip(children, children[1:], children[2:], strict=False):
+            if (
+                node.tagName == "mo"
+                and _text(node) == "&InvisibleTimes;"
+                and (_wide(before) or _wide(after))
+            ):
+                node.setAttribute("lspace", "0.1667em")
+                node.setAttribute("rspace", "0.1667em")
+        return row
+
+
+def _text(node: Any) -> str:
+    return "".join(c.data for c in node.childNodes if c.nodeType == c.TEXT_NODE)
+
+
+def _wide(node: Any) -> bool:
+    """Whether a factor starts with a name of several letters (or is a function)."""
+    while node.tagName not in ("mi", "mn", "mo") and node.firstChild is not None:
+        node = node.firstChild
+        if node.nodeType != node.ELEMENT_NODE:
+            return False
+    text = _text(node)
+    return node.tagName == "mi" and len(text) > 1 and not text.startswith("&")
+
+
+#: The report's LaTeX settings: a thin space between factors.
+_LATEX = {"mul_symbol": r"\,"}
+
+
+def _mathml(value: object) -> str:
+    printer = ReportMathMLPrinter()
+    return str(printer.doprint(value))
+
+
 def formula(expr: object, lhs: tuple[str, str] | None = None) -> Math:
     """Both notations of ``expr``, optionally as ``lhs = expr``.
 
@@ -115,8 +181,9 @@ def formula(expr: object, lhs: tuple[str, str] | None = None) -> Math:
         The left-hand side as (LaTeX, MathML).
     """
     value = sp.sympify(expr)
-    latex = sp.latex(value)
-    markup = mathml(value, printer="presentation")
+    # A thin space between factors: "jx\,jy" is two names where "jx jy" reads as jxjy.
+    latex = sp.latex(value, **_LATEX)
+    markup = _mathml(value)
     if lhs is not None:
         latex = f"{lhs[0]} = {latex}"
         markup = f"<mrow>{lhs[1]}<mo>=</mo>{markup}</mrow>"
@@ -165,14 +232,15 @@ def _entries(nonzero: Sequence[tuple[tuple[int, int], sp.Expr]], lhs: tuple[str,
     latex = (
         r"\begin{aligned}"
         + r" \\ ".join(
-            rf"\left[{lhs[0]}\right]_{{{i + 1}, {j + 1}}} &= {sp.latex(e)}" for (i, j), e in nonzero
+            rf"\left[{lhs[0]}\right]_{{{i + 1}, {j + 1}}} &= {sp.latex(e, **_LATEX)}"
+            for (i, j), e in nonzero
         )
         + r"\end{aligned}"
     )
     rows = "".join(
         f"<mtr><mtd><msub><mrow><mo>[</mo>{lhs[1]}<mo>]</mo></mrow>"
         f"<mrow><mn>{i + 1}</mn><mo>,</mo><mn>{j + 1}</mn></mrow></msub></mtd>"
-        f"<mtd><mo>=</mo></mtd><mtd>{mathml(e, printer='presentation')}</mtd></mtr>"
+        f"<mtd><mo>=</mo></mtd><mtd>{_mathml(e)}</mtd></mtr>"
         for (i, j), e in nonzero
     )
     return Math(latex, f"<mtable>{rows}</mtable>")
