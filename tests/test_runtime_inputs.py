@@ -148,6 +148,28 @@ def test_huge_times_give_the_same_outcome_in_both_backends(
             assert info.value.index == 0
 
 
+def _generate(spec: str, backend: str, out: Path) -> None:
+    """``tvopt-codegen generate`` in a fresh process; it must succeed."""
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "tvopt_codegen",
+            "generate",
+            spec,
+            "--backend",
+            backend,
+            "--out",
+            str(out),
+            "--quiet",
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+
+
 def _renamed(text: str, name: str) -> str:
     return text.replace('name = "unicycle_switch"', f'name = "{name}"', 1)
 
@@ -158,24 +180,7 @@ def test_a_spec_named_like_anothers_entry_point_does_not_clobber_it(
     out = tmp_path / "out"
     for name in ("probe", "probe_ext"):
         spec = write_spec(tmp_path, _renamed(unicycle_text, name), f"{name}.toml")
-        done = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "tvopt_codegen",
-                "generate",
-                str(spec),
-                "--backend",
-                "c",
-                "--out",
-                str(out),
-                "--quiet",
-            ],
-            check=False,
-            capture_output=True,
-            text=True,
-        )
-        assert done.returncode == 0, done.stderr
+        _generate(str(spec), "c", out)
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted(
         f"{n}{ext}" for n in ("probe", "probe_ext") for ext in (".c", ".h", "_c.py", ".ext.c")
@@ -419,24 +424,7 @@ def test_non_finite_inputs_are_worded_alike_in_both_backends(
 def test_both_backends_share_an_output_folder(tmp_path: Path) -> None:
     out = tmp_path / "out"
     for backend in ("python", "c"):
-        done = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "tvopt_codegen",
-                "generate",
-                "integrator",
-                "--backend",
-                backend,
-                "--out",
-                str(out),
-                "--quiet",
-            ],
-            check=False,
-            capture_output=True,
-            text=True,
-        )
-        assert done.returncode == 0, done.stderr
+        _generate("integrator", backend, out)
     assert sorted(p.name for p in out.iterdir()) == sorted(
         ["integrator.py", "integrator_c.py", "integrator.c", "integrator.h", "integrator.ext.c"]
     )
