@@ -34,6 +34,12 @@ def test_installed_wheel_generates_a_bundled_example(tmp_path: Path) -> None:
     assert "tvopt_codegen/examples/unicycle_switch.toml" in names
     assert "tvopt_codegen/templates/c/controller.c.jinja" in names
     assert "tvopt_codegen/templates/report/report.html.jinja" in names
+    # Every template of every backend, found by glob (pyproject names no folder).
+    shipped = {
+        f"tvopt_codegen/templates/{p.relative_to(ROOT / 'templates').as_posix()}"
+        for p in (ROOT / "templates").rglob("*.jinja")
+    }
+    assert shipped <= names
     target = tmp_path / "site"
     subprocess.run(
         [

@@ -12,30 +12,11 @@ import keyword
 import re
 import sys
 
+from tvopt_codegen.backends import BACKENDS
+from tvopt_codegen.backends.c import C_KEYWORDS, C_LIBRARY_NAMES
 from tvopt_codegen.parse import CONSTANTS, FUNCTIONS
 
 _IDENTIFIER = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
-
-#: Keywords of C99 (and the C11 ones a C99 compiler may reserve).
-C_KEYWORDS = frozenset(
-    "auto break case char const continue default do double else enum extern float for goto if "
-    "inline int long register restrict return short signed sizeof static struct switch typedef "
-    "union unsigned void volatile while _Bool _Complex _Imaginary _Alignas _Alignof _Atomic "
-    "_Generic _Noreturn _Static_assert _Thread_local".split()
-)
-
-#: Names from <math.h> and the C library that a generated C file may see. The POSIX
-#: Bessel functions j0, j1, jn, y0, y1, yn are deliberately absent: y1, y2 are what
-#: control engineers call outputs, and user names never become C identifiers.
-C_LIBRARY_NAMES = frozenset(
-    "acos acosh asin asinh atan atan2 atanh cbrt ceil copysign cos cosh erf erfc exp exp2 expm1 "
-    "fabs fdim floor fma fmax fmin fmod frexp hypot ilogb ldexp lgamma llrint llround log log10 "
-    "log1p log2 logb lrint lround modf nan nearbyint nextafter pow remainder remquo rint round "
-    "scalbln scalbn sin sinh sqrt tan tanh tgamma trunc isfinite isnan isinf "
-    "signbit fpclassify NAN INFINITY HUGE_VAL errno assert abs exit main malloc free memcpy "
-    "memset printf size_t NULL int8_t int16_t int32_t int64_t uint8_t uint16_t uint32_t "
-    "uint64_t".split()
-)
 
 #: Names the spec language reserves: ``t`` is time in every expression. (Generated code
 #: addresses user values by slot, so no other name needs reserving for it.)
@@ -75,6 +56,9 @@ def name_problem(name: object) -> str | None:
         return f"name {name!r} is a C library or math function name"
     if name in TOOL_NAMES:
         return f"name {name!r} is reserved (t is time)"
+    for backend in BACKENDS.values():
+        if name in backend.reserved:
+            return f"name {name!r} is a reserved word of the {backend.name} backend"
     return None
 
 

@@ -51,11 +51,16 @@ def template_dir() -> Path:
     raise CodegenError(f"templates not found beside {package}: the installation is incomplete")
 
 
-@functools.lru_cache(maxsize=1)
-def environment() -> jinja2.Environment:
-    """The one jinja environment: strict about undefined names, whitespace-exact."""
+@functools.lru_cache(maxsize=8)
+def environment(root: Path | None = None) -> jinja2.Environment:
+    """The jinja environment of a template folder: strict and whitespace-exact.
+
+    ``root`` None is the shipped ``templates/``; a backend from another package brings
+    its own folder (which may still import the shipped macros).
+    """
+    folders = [str(template_dir())] if root is None else [str(root), str(template_dir())]
     env = jinja2.Environment(
-        loader=jinja2.FileSystemLoader(str(template_dir())),
+        loader=jinja2.FileSystemLoader(folders),
         undefined=jinja2.StrictUndefined,
         trim_blocks=True,
         lstrip_blocks=True,
@@ -218,7 +223,7 @@ def is_pristine(text: str) -> bool:
     return claimed is not None and claimed == stamp_hash(text)
 
 
-def render_template(template_name: str, context: dict[str, Any]) -> str:
+def render_template(template_name: str, context: dict[str, Any], root: Path | None = None) -> str:
     """Render one template and fill in its content hash.
 
     Parameters
@@ -227,6 +232,8 @@ def render_template(template_name: str, context: dict[str, Any]) -> str:
         Path under ``templates/``.
     context : dict
         Template variables; ``content_hash`` and ``template_name`` are added.
+    root : pathlib.Path, optional
+        The backend's template folder (default: the shipped ``templates/``).
 
     Returns
     -------
@@ -235,27 +242,10 @@ def render_template(template_name: str, context: dict[str, Any]) -> str:
     """
     full = {**context, "content_hash": HASH_PLACEHOLDER, "template_name": template_name}
     try:
-        text = environment().get_template(template_name).render(full)
+        text = environment(root).get_template(template_name).render(full)
     except jinja2.TemplateError as exc:
         raise CodegenError(f"template {template_name}: {exc}") from exc
     return text.replace(HASH_PLACEHOLDER, stamp_hash(text), 1)
-
-
-def _block_groups(
-    blocks: tuple[tuple[int, ...], ...],
-) -> list[tuple[int, tuple[int, ...], tuple[tuple[int, ...], ...]]]:
-    """Group diagonal blocks by size: (size, offset of each block's entries, its rows).
-
-    Blocks of one size are solved together as one batch in NumPy.
-    """
-    groups: dict[int, tuple[list[int], list[tuple[int, ...]]]] = {}
-    offset = 0
-    for block in blocks:
-        starts, rows = groups.setdefault(len(block), ([], []))
-        starts.append(offset)
-        rows.append(block)
-        offset += len(block) ** 2
-    return [(size, tuple(starts), tuple(rows)) for size, (starts, rows) in groups.items()]
 
 
 def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
@@ -299,14 +289,8 @@ def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
             "prefix": d.spec.name,
             "guard": d.spec.name.upper(),
             "r_blocks": kernels.r_blocks,
-            "r_groups": _block_groups(kernels.r_blocks),
-            # The C backend's CPython entry point: its module name and the size of
-            # its largest single result (rhs, optimality error or Hessian).
-            "extension_name": f"_{d.spec.name}_ext",
-            "result_max": max(
-                len(d.state_names), d.k * len(d.spec.outputs), len(d.spec.outputs) ** 2
-            ),
+            **(backend.context(kernels) if backend.context is not None else {}),
         }
-        text = render_template(template_name, context)
+        text = render_template(template_name, context, backend.template_root)
         files[pattern.format(name=d.spec.name)] = text
     return files

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # sympy loads in a second; the registry is read by --help too
     from sympy.printing.codeprinter import CodePrinter
+
+    from tvopt_codegen.ir import KernelSet
 
 
 @dataclass(frozen=True)
@@ -32,6 +35,14 @@ class Backend:
     variants : tuple of (str, callable)
         More printings of the same kernels, each with its own printer, given to the
         templates as ``kernels_<key>`` (the Python backend's one-point kernels).
+    context : callable or None
+        ``context(kernels)`` returns the backend's own template variables (added to the
+        shared ones: ``d``, ``spec``, ``kernels``, ``prefix``, ...).
+    template_root : pathlib.Path or None
+        The folder its template paths are relative to; None for the shipped
+        ``templates/`` (a backend from another package brings its own).
+    reserved : frozenset of str
+        Words the target language reserves: no spec name may be one of them.
     """
 
     name: str
@@ -40,3 +51,6 @@ class Backend:
     templates: tuple[tuple[str, str], ...]
     module: str
     variants: tuple[tuple[str, Callable[[], CodePrinter]], ...] = ()
+    context: Callable[[KernelSet], dict[str, Any]] | None = None
+    template_root: Path | None = None
+    reserved: frozenset[str] = frozenset()

@@ -2,12 +2,35 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from tvopt_codegen.backends.base import Backend
 
 if TYPE_CHECKING:
     from sympy.printing.codeprinter import CodePrinter
+
+    from tvopt_codegen.ir import KernelSet
+
+#: Keywords of C99 (and the C11 ones a C99 compiler may reserve).
+C_KEYWORDS = frozenset(
+    "auto break case char const continue default do double else enum extern float for goto if "
+    "inline int long register restrict return short signed sizeof static struct switch typedef "
+    "union unsigned void volatile while _Bool _Complex _Imaginary _Alignas _Alignof _Atomic "
+    "_Generic _Noreturn _Static_assert _Thread_local".split()
+)
+
+#: Names from <math.h> and the C library that a generated C file may see. The POSIX
+#: Bessel functions j0, j1, jn, y0, y1, yn are deliberately absent: y1, y2 are what
+#: control engineers call outputs, and user names never become C identifiers.
+C_LIBRARY_NAMES = frozenset(
+    "acos acosh asin asinh atan atan2 atanh cbrt ceil copysign cos cosh erf erfc exp exp2 expm1 "
+    "fabs fdim floor fma fmax fmin fmod frexp hypot ilogb ldexp lgamma llrint llround log log10 "
+    "log1p log2 logb lrint lround modf nan nearbyint nextafter pow remainder remquo rint round "
+    "scalbln scalbn sin sinh sqrt tan tanh tgamma trunc isfinite isnan isinf "
+    "signbit fpclassify NAN INFINITY HUGE_VAL errno assert abs exit main malloc free memcpy "
+    "memset printf size_t NULL int8_t int16_t int32_t int64_t uint8_t uint16_t uint32_t "
+    "uint64_t".split()
+)
 
 
 def _printer() -> CodePrinter:
@@ -16,8 +39,19 @@ def _printer() -> CodePrinter:
     return CPrinter()
 
 
+def _context(kernels: KernelSet) -> dict[str, Any]:
+    """The C templates' own variables."""
+    d = kernels.derivation
+    return {
+        # The CPython entry point: its module name, and the size of its largest single
+        # result (rhs, optimality error or Hessian).
+        "extension_name": f"_{d.spec.name}_ext",
+        "result_max": max(len(d.state_names), d.k * len(d.spec.outputs), len(d.spec.outputs) ** 2),
+    }
+
+
 #: The C backend. The Python module has the Python backend's contract exactly.
-C = Backend(
+BACKEND = Backend(
     name="c",
     description=(
         "C99 <name>.h/<name>.c (no heap, re-entrant), <name>_c.py loading them and "
@@ -32,4 +66,6 @@ C = Backend(
     ),
     # Not <name>.py: the NumPy module of the same spec may sit in the same folder.
     module="{name}_c.py",
+    context=_context,
+    reserved=C_KEYWORDS | C_LIBRARY_NAMES,
 )

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import keyword
+from typing import TYPE_CHECKING, Any
 
 from tvopt_codegen.backends.base import Backend
 
 if TYPE_CHECKING:
     from sympy.printing.codeprinter import CodePrinter
+
+    from tvopt_codegen.ir import KernelSet
 
 
 def _printer() -> CodePrinter:
@@ -22,8 +25,24 @@ def _scalar_printer() -> CodePrinter:
     return PythonScalarPrinter()
 
 
+def _context(kernels: KernelSet) -> dict[str, Any]:
+    """The Python templates' own variables: R's diagonal blocks grouped by size."""
+    groups: dict[int, tuple[list[int], list[tuple[int, ...]]]] = {}
+    offset = 0
+    for block in kernels.r_blocks:
+        starts, rows = groups.setdefault(len(block), ([], []))
+        starts.append(offset)
+        rows.append(block)
+        offset += len(block) ** 2
+    # (size, offset of each block's entries in R, the outputs of each): blocks of one
+    # size are solved together as one batch in NumPy.
+    return {
+        "r_groups": [(size, tuple(starts), tuple(rows)) for size, (starts, rows) in groups.items()]
+    }
+
+
 #: The Python backend.
-PYTHON = Backend(
+BACKEND = Backend(
     name="python",
     description="NumPy module with control, rhs, optimality_error, objective, gradient, hessian",
     printer=_printer,
@@ -31,4 +50,6 @@ PYTHON = Backend(
     module="{name}.py",
     # The same kernels for one point (lists of floats): a single state in microseconds.
     variants=(("1", _scalar_printer),),
+    context=_context,
+    reserved=frozenset(keyword.kwlist) | frozenset(keyword.softkwlist),
 )
