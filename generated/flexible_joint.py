@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: e2240f4093336052ac74057c65684543b7cba4a8363a4588c5d9605db2115772
+# content sha256: c8615298d4bf093d85c4e1a4371fe6ff41abbf36472641d3468032a8cdc00040
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 from collections.abc import Mapping
 
 import numpy
@@ -541,10 +542,7 @@ def _hessian(t, y, p):
 
 def _jet_time_1(t, p, a):
     """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
-    _p0 = p[0]
-    _p1 = p[1]
-    _p2 = p[2]
-    _p3 = p[3]
+    _p0, _p1, _p2, _p3 = p
     _t0 = (1/2)*t
     _t1 = float(numpy.sin(_t0))
     _t2 = (13/10)*t
@@ -556,10 +554,10 @@ def _jet_time_1(t, p, a):
     _t8 = -507/1000*_t3 - 3/20*_t1
     _t9 = -6591/10000*_t6 - 3/40*_t5
     _t10 = (3/80)*_t1 + (85683/100000)*_t3
-    _t11 = 1/_p1
+    _t11 = 1.0/_p1
     _t12 = _p0*_t11
     _t15 = _p3*_t11
-    _t43 = 1/_p2
+    _t43 = 1.0/_p2
     tau = [
         _t12,
         -_t15,
@@ -569,12 +567,12 @@ def _jet_time_1(t, p, a):
         _t7,
         _t8,
         _t9,
-        -2*_t4,
-        -2*_t7,
-        -2*_t8,
-        -2*_t9,
+        -2.0*_t4,
+        -2.0*_t7,
+        -2.0*_t8,
+        -2.0*_t9,
         _t10,
-        2*_t10,
+        2.0*_t10,
         _t15*_t43,
         _t11*_t43*(_p3*_p3),
     ]
@@ -583,30 +581,9 @@ def _jet_time_1(t, p, a):
 
 def _jet_1(t, s, p, a, tau):
     """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (one point; lists in, lists out)."""
-    _s0 = s[0]
-    _s1 = s[1]
-    _s2 = s[2]
-    _s3 = s[3]
-    _a0 = a[0]
-    _a1 = a[1]
-    _a2 = a[2]
-    _a3 = a[3]
-    _t12 = tau[0]
-    _h0 = tau[1]
-    _h1 = tau[2]
-    _t15 = tau[3]
-    _t4 = tau[4]
-    _t7 = tau[5]
-    _t8 = tau[6]
-    _t9 = tau[7]
-    _h2 = tau[8]
-    _h3 = tau[9]
-    _h4 = tau[10]
-    _h5 = tau[11]
-    _t10 = tau[12]
-    _h6 = tau[13]
-    _h7 = tau[14]
-    _h8 = tau[15]
+    _s0, _s1, _s2, _s3 = s
+    _a0, _a1, _a2, _a3 = a
+    _t12, _h0, _h1, _t15, _t4, _t7, _t8, _t9, _h2, _h3, _h4, _h5, _t10, _h6, _h7, _h8 = tau
     _t13 = _t12*float(numpy.sin(_s0))
     _t14 = _s0 - _s2
     _t16 = _h0*_t14 - _t13
@@ -614,33 +591,33 @@ def _jet_1(t, s, p, a, tau):
     _t18 = _s1*_t17 + _s3*_t15
     _t19 = _t4 - _s0
     _t20 = float(numpy.cosh(_t19))
-    _t21 = 1/_t20
+    _t21 = 1.0/_t20
     _t22 = float(numpy.sinh(_t19))
     _t23 = _t7 - _s1
     _t24 = _t22*_t23
-    _t25 = 1/(_t20*_t20)
+    _t25 = 1.0/(_t20*_t20)
     _t26 = -_t24*_t25
     _t27 = _t20*_t23
     _t28 = _t8 - _t16
     _t29 = _t22*_t28 + _t23*_t27
-    _t30 = 1/(_t20*_t20*_t20)
-    _t31 = 2*_t24
+    _t30 = 1.0/(_t20*_t20*_t20)
+    _t31 = 2.0*_t24
     _t32 = -_t30*_t31
     _t33 = -_t24*_t32 - _t25*_t29
     _t34 = _t20*_t28 + _t23*_t24
     _t35 = _t9 - _t18
-    _t36 = _t22*_t35 + _t23*_t34 + 2*_t27*_t28
-    _t37 = 3/(_t20*_t20*_t20*_t20)
+    _t36 = _t22*_t35 + _t23*_t34 + 2.0*_t27*_t28
+    _t37 = 3.0/(_t20*_t20*_t20*_t20)
     _t38 = -_t24*_t37
-    _t39 = 2*_t29
+    _t39 = 2.0*_t29
     _t40 = -_t30*_t39 - _t31*_t38
-    _t41 = -_t24*_t40 - _t25*_t36 - 2*_t29*_t32
-    _t42 = _t20*_t35 + _t23*_t29 + 2*_t24*_t28
+    _t41 = -_t24*_t40 - _t25*_t36 - 2.0*_t29*_t32
+    _t42 = _t20*_t35 + _t23*_t29 + 2.0*_t24*_t28
     hessian = [
-        _t20*_t21 - _t25*(_t22*_t22) + 2,
+        _t20*_t21 - _t25*(_t22*_t22) + 2.0,
     ]
     jet_rhs = [
-        _h6 + _a0*(_h2 + 2*_s0 - _t21*_t22) + _a1*(_h3 + 2*_s1 - _t21*_t27 - _t22*_t26) + _a2*(_h4 + 2*_t16 - _t21*_t34 - _t22*_t33 - 2*_t26*_t27) + _a3*(_h5 + 2*_t18 - _t21*_t42 - _t22*_t41 - 3*_t26*_t34 - 3*_t27*_t33) + _t21*(_t10*_t20 + _t23*_t36 + 3*_t24*_t35 + 3*_t28*_t29) + _t22*(-_t24*(-_t31*(12*(_t24*_t24)/float(numpy.power(_t20, 5)) - _t29*_t37) - 2*_t30*_t36 - 2*_t38*_t39) - _t25*(_t10*_t22 + _t23*_t42 + 3*_t27*_t35 + 3*_t28*_t34) - 3*_t29*_t40 - 3*_t32*_t36) + 4*_t26*_t42 + 4*_t27*_t41 + 6*_t33*_t34,
+        _h6 + _a0*(_h2 + 2.0*_s0 - _t21*_t22) + _a1*(_h3 + 2.0*_s1 - _t21*_t27 - _t22*_t26) + _a2*(_h4 + 2.0*_t16 - _t21*_t34 - _t22*_t33 - 2.0*_t26*_t27) + _a3*(_h5 + 2.0*_t18 - _t21*_t42 - _t22*_t41 - 3.0*_t26*_t34 - 3.0*_t27*_t33) + _t21*(_t10*_t20 + _t23*_t36 + 3.0*_t24*_t35 + 3.0*_t28*_t29) + _t22*(-_t24*(-_t31*(12.0*(_t24*_t24)/float(numpy.power(_t20, 5.0)) - _t29*_t37) - 2.0*_t30*_t36 - 2.0*_t38*_t39) - _t25*(_t10*_t22 + _t23*_t42 + 3.0*_t27*_t35 + 3.0*_t28*_t34) - 3.0*_t29*_t40 - 3.0*_t32*_t36) + 4.0*_t26*_t42 + 4.0*_t27*_t41 + 6.0*_t33*_t34,
     ]
     R = [
         _h7,
@@ -653,8 +630,8 @@ def _jet_1(t, s, p, a, tau):
 
 def _cholesky_1(h, c):
     """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (one point; lists in, lists out)."""
-    _h0 = h[0]
-    _c0 = c[0]
+    _h0, = h
+    _c0, = c
     z = [
         _c0/_h0,
     ]
@@ -666,8 +643,8 @@ def _cholesky_1(h, c):
 
 def _decoupling_1(t, s, p, z, q):
     """b = v - p, so that R w = b linearizes the plant (one point; lists in, lists out)."""
-    _z0 = z[0]
-    _q0 = q[0]
+    _z0, = z
+    _q0, = q
     b = [
         _z0 - _q0,
     ]
@@ -676,18 +653,12 @@ def _decoupling_1(t, s, p, z, q):
 
 def _closed_loop_1(t, s, p, w, z):
     """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
-    _s0 = s[0]
-    _s1 = s[1]
-    _s2 = s[2]
-    _s3 = s[3]
-    _p0 = p[0]
-    _p1 = p[1]
-    _p2 = p[2]
-    _p3 = p[3]
-    _w0 = w[0]
-    _t0 = 1/_p1
+    _s0, _s1, _s2, _s3 = s
+    _p0, _p1, _p2, _p3 = p
+    _w0, = w
+    _t0 = 1.0/_p1
     _t1 = _p3*(_s0 - _s2)
-    _t2 = 1/_p2
+    _t2 = 1.0/_p2
     ds = [
         _s1,
         -_t0*_t1 - _p0*_t0*float(numpy.sin(_s0)),
@@ -702,7 +673,7 @@ def _closed_loop_1(t, s, p, w, z):
 
 def _plant_input_1(t, s, p, w):
     """The plant input alone (control needs no vector field) (one point; lists in, lists out)."""
-    _w0 = w[0]
+    _w0, = w
     u = [
         _w0,
     ]
@@ -711,13 +682,8 @@ def _plant_input_1(t, s, p, w):
 
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
-    _s0 = s[0]
-    _s1 = s[1]
-    _s2 = s[2]
-    _s3 = s[3]
-    _p0 = p[0]
-    _p1 = p[1]
-    _p3 = p[3]
+    _s0, _s1, _s2, _s3 = s
+    _p0, _p1, _, _p3 = p
     _t0 = (1/2)*t
     _t1 = float(numpy.sin(_t0))
     _t2 = (13/10)*t
@@ -728,40 +694,40 @@ def _optimality_1(t, s, p):
     _t7 = (3/10)*_t5 + (39/100)*_t6
     _t8 = -507/1000*_t3 - 3/20*_t1
     _t9 = -6591/10000*_t6 - 3/40*_t5
-    _t10 = 1/_p1
+    _t10 = 1.0/_p1
     _t11 = _p0*_t10
     _t12 = _p3*_t10
     _t13 = -_t11*float(numpy.sin(_s0)) - _t12*(_s0 - _s2)
     _t14 = _s1*(-_t12 - _t11*float(numpy.cos(_s0))) + _s3*_t12
     _t15 = _t4 - _s0
     _t16 = float(numpy.cosh(_t15))
-    _t17 = 1/_t16
+    _t17 = 1.0/_t16
     _t18 = float(numpy.sinh(_t15))
     _t19 = _t7 - _s1
     _t20 = _t18*_t19
-    _t21 = 1/(_t16*_t16)
+    _t21 = 1.0/(_t16*_t16)
     _t22 = -_t20*_t21
     _t23 = _t16*_t19
     _t24 = _t8 - _t13
     _t25 = _t18*_t24 + _t19*_t23
-    _t26 = 1/(_t16*_t16*_t16)
-    _t27 = 2*_t20
+    _t26 = 1.0/(_t16*_t16*_t16)
+    _t27 = 2.0*_t20
     _t28 = -_t26*_t27
     _t29 = -_t20*_t28 - _t21*_t25
     _t30 = _t16*_t24 + _t19*_t20
     _t31 = _t9 - _t14
     E = [
-        2*_s0 - 2*_t4 - _t17*_t18,
-        2*_s1 - 2*_t7 - _t17*_t23 - _t18*_t22,
-        2*_t13 - 2*_t8 - _t17*_t30 - _t18*_t29 - 2*_t22*_t23,
-        2*_t14 - 2*_t9 - _t17*(_t16*_t31 + _t19*_t25 + 2*_t20*_t24) - _t18*(-_t20*(3*_t20*_t27/(_t16*_t16*_t16*_t16) - 2*_t25*_t26) - _t21*(_t18*_t31 + _t19*_t30 + 2*_t23*_t24) - 2*_t25*_t28) - 3*_t22*_t30 - 3*_t23*_t29,
+        2.0*_s0 - 2.0*_t4 - _t17*_t18,
+        2.0*_s1 - 2.0*_t7 - _t17*_t23 - _t18*_t22,
+        2.0*_t13 - 2.0*_t8 - _t17*_t30 - _t18*_t29 - 2.0*_t22*_t23,
+        2.0*_t14 - 2.0*_t9 - _t17*(_t16*_t31 + _t19*_t25 + 2.0*_t20*_t24) - _t18*(-_t20*(3.0*_t20*_t27/(_t16*_t16*_t16*_t16) - 2.0*_t25*_t26) - _t21*(_t18*_t31 + _t19*_t30 + 2.0*_t23*_t24) - 2.0*_t25*_t28) - 3.0*_t22*_t30 - 3.0*_t23*_t29,
     ]
     return E
 
 
 def _objective_1(t, y, p):
     """The objective f0(y, t) (one point; lists in, lists out)."""
-    _y0 = y[0]
+    _y0, = y
     _t0 = _y0 - 3/5*float(numpy.sin((1/2)*t)) - 3/10*float(numpy.sin((13/10)*t))
     f0 = [
         (_t0*_t0) + float(numpy.log(float(numpy.cosh(_t0)))),
@@ -771,21 +737,21 @@ def _objective_1(t, y, p):
 
 def _gradient_1(t, y, p):
     """grad_y f0(y, t) (one point; lists in, lists out)."""
-    _y0 = y[0]
+    _y0, = y
     _t0 = (3/5)*float(numpy.sin((1/2)*t)) + (3/10)*float(numpy.sin((13/10)*t))
     _t1 = _t0 - _y0
     grad = [
-        2*_y0 - 2*_t0 - float(numpy.sinh(_t1))/float(numpy.cosh(_t1)),
+        2.0*_y0 - 2.0*_t0 - float(numpy.sinh(_t1))/float(numpy.cosh(_t1)),
     ]
     return grad
 
 
 def _hessian_1(t, y, p):
     """grad_yy f0(y, t) (one point; lists in, lists out)."""
-    _y0 = y[0]
+    _y0, = y
     _t0 = (3/5)*float(numpy.sin((1/2)*t)) - _y0 + (3/10)*float(numpy.sin((13/10)*t))
     hess = [
-        3 - (float(numpy.sinh(_t0))*float(numpy.sinh(_t0)))/(float(numpy.cosh(_t0))*float(numpy.cosh(_t0))),
+        3.0 - (float(numpy.sinh(_t0))*float(numpy.sinh(_t0)))/(float(numpy.cosh(_t0))*float(numpy.cosh(_t0))),
     ]
     return hess
 
@@ -902,6 +868,13 @@ def _hessian_values(t, x, p):
 # and raises exactly as documented: the two paths never disagree.
 
 
+# NumPy's warnings on the one-point path (a function of an infinite or out-of-domain
+# value) say nothing: its result is then not finite and the array path answers with the
+# documented exception. This filter covers this module's own calls alone, and costs
+# nothing until a warning is issued (numpy.errstate would cost a microsecond a call).
+warnings.filterwarnings("ignore", category=RuntimeWarning, module=__name__)
+
+
 def _finite(values):
     """Whether every value is finite (a sum of infinities of both signs is NaN)."""
     return math.isfinite(sum(values))
@@ -938,41 +911,16 @@ def _lu_solve_1(a, b):
 def _solve_decoupling_1(r, b):
     """Solve ``R w = b`` block by block for one point; None where a block is singular.
 
-    Blocks of sizes 1 and 2 are unrolled: the same operations, in the same order, as
-    the general loop of :func:`_lu_solve`.
+    Written out block by block (their places in R are known here); 1 x 1 and 2 x 2
+    blocks are unrolled, with the same operations in the same order as the general
+    loop of :func:`_lu_solve`.
     """
     w = list(b)
     tolerance = PIVOT_TOLERANCE
-    for size, starts, rows in _R_GROUPS:
-        if size == 1:
-            for start, (i,) in zip(starts, rows):
-                a = r[start]
-                if not abs(a) > tolerance * abs(a):
-                    return None
-                w[i] = b[i] / a
-        elif size == 2:
-            for start, (i, j) in zip(starts, rows):
-                a00, a01, a10, a11 = r[start:start + 4]
-                b0, b1 = b[i], b[j]
-                scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
-                if abs(a10) > abs(a00):
-                    a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
-                if not abs(a00) > tolerance * scale:
-                    return None
-                factor = a10 / a00
-                a11 = a11 - factor * a01
-                b1 = b1 - factor * b0
-                if not abs(a11) > tolerance * scale:
-                    return None
-                x1 = b1 / a11
-                w[i], w[j] = (b0 - a01 * x1) / a00, x1
-        else:
-            for start, block in zip(starts, rows):
-                x = _lu_solve_1(r[start:start + size * size], [b[i] for i in block])
-                if x is None:
-                    return None
-                for i, value in zip(block, x):
-                    w[i] = value
+    a = r[0]
+    if not abs(a) > tolerance * abs(a):
+        return None
+    w[0] = b[0] / a
     return w
 
 
@@ -980,7 +928,9 @@ def _law_1(t, s, p, rates):
     """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
     tau = _jet_time_1(t, p, _A_LIST)
     hess, jet_rhs, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
-    if not (_finite(hess) and _finite(jet_rhs) and _finite(r) and _finite(pvec)):
+    # The right-hand side and p reach b, which is checked below; an infinite Hessian
+    # entry can leave z finite, and an entry of R no plant input depends on could hide.
+    if not math.isfinite(sum(hess) + sum(r)):
         return None
     z, pivot = _cholesky_1(hess, jet_rhs)
     if not min(pivot) > PIVOT_TOLERANCE * max(map(abs, hess)):
@@ -998,41 +948,24 @@ def _law_1(t, s, p, rates):
     return (ds, u) if _finite(ds) and _finite(u) else None
 
 
-def _one_point(function, shape):
-    """``function(t, s, p)`` for one state given as a 1-D float array, or None."""
-
-    def evaluate(t, s, params):
-        values = s.tolist()
-        p = _P_LIST if params is None else _parameters(params).tolist()
-        if not (math.isfinite(t) and _finite(values) and _finite(p)):
-            return None
-        try:
-            with numpy.errstate(all="ignore"):
-                result = function(float(t), values, p)
-        except ArithmeticError:
-            return None
-        if result is None or not _finite(result):
-            return None
-        return numpy.array(result).reshape(shape)
-
-    return evaluate
+def _control_1(t, s, p):
+    law = _law_1(t, s, p, False)
+    return None if law is None else law[1]
 
 
-def _first(result):
-    return None if result is None else result[1]
+def _rhs_1(t, s, p):
+    law = _law_1(t, s, p, True)
+    return None if law is None else law[0]
 
 
-def _second(result):
-    return None if result is None else result[0]
-
-
+#: The one-point evaluators by public function, and their results' shapes.
 _ONE_POINT = {
-    "control": _one_point(lambda t, s, p: _first(_law_1(t, s, p, False)), (1,)),
-    "rhs": _one_point(lambda t, s, p: _second(_law_1(t, s, p, True)), (4,)),
-    "optimality_error": _one_point(_optimality_1, (K, 1)),
-    "objective": _one_point(_objective_1, ()),
-    "gradient": _one_point(_gradient_1, (1,)),
-    "hessian": _one_point(_hessian_1, (1, 1)),
+    "control": (_control_1, (1,)),
+    "rhs": (_rhs_1, (4,)),
+    "optimality_error": (_optimality_1, (K, 1)),
+    "objective": (_objective_1, ()),
+    "gradient": (_gradient_1, (1,)),
+    "hessian": (_hessian_1, (1, 1)),
 }
 _A_LIST = list(HURWITZ_COEFFICIENTS)
 _P_LIST = _DEFAULT_P.tolist()
@@ -1194,15 +1127,27 @@ def hessian(t, y, params=None):
 
 def _with_one_point(general, rows):
     """``general``, with a single state or output in a float array taken by the fast path."""
-    fast = _ONE_POINT[general.__name__]
+    fast, shape = _ONE_POINT[general.__name__]
     number = general.__name__ == "objective"
+    flat = len(shape) == 1
+    expected = (rows,)
 
     def function(t, s, params=None):
-        if (type(s) is numpy.ndarray and s.shape == (rows,) and s.dtype.kind == "f"
+        if (type(s) is numpy.ndarray and s.shape == expected and s.dtype.kind == "f"
                 and isinstance(t, (float, int))):
-            result = fast(t, s, params)
-            if result is not None:
-                return float(result) if number else result
+            values = s.tolist()
+            p = _P_LIST if params is None else _parameters(params).tolist()
+            if math.isfinite(t) and _finite(values) and _finite(p):
+                try:
+                    result = fast(float(t), values, p)
+                except (ArithmeticError, RuntimeWarning):
+                    # A float's ZeroDivisionError or OverflowError; NumPy's warning made
+                    # an error by the caller's filters, or FloatingPointError by seterr.
+                    result = None
+                if result is not None and _finite(result):
+                    if number:
+                        return float(result[0])
+                    return numpy.array(result) if flat else numpy.array(result).reshape(shape)
         return general(t, s, params)
 
     return functools.update_wrapper(function, general)

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: fc040cd7597b7d975ec5bf19ea61770394fd0ae417f526b1841d0b1425b2d422
+# content sha256: 6667ae8ec6cc462396d763d33deb90b9fcb2d29b8636fee5a585bf7bb0ed056c
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 from collections.abc import Mapping
 
 import numpy
@@ -430,12 +431,12 @@ def _hessian(t, y, p):
 
 def _jet_time_1(t, p, a):
     """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
-    _p0 = p[0]
+    _p0, = p
     _t0 = (t*t)
     tau = [
-        (1/20)*_t0 - 4/5*t - 2,
+        (1/20)*_t0 - 4/5*t - 2.0,
         4/5 - 1/10*t,
-        -_p0*((1/2)*t - 1/1000*(t*t*t) + (1/50)*_t0 - 1),
+        -_p0*((1/2)*t - 1/1000*(t*t*t) + (1/50)*_t0 - 1.0),
         _p0*((1/25)*t - 3/1000*_t0 + 1/2),
     ]
     return tau
@@ -443,16 +444,12 @@ def _jet_time_1(t, p, a):
 
 def _jet_1(t, s, p, a, tau):
     """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (one point; lists in, lists out)."""
-    _s0 = s[0]
-    _s1 = s[1]
-    _p0 = p[0]
-    _a0 = a[0]
-    _h0 = tau[0]
-    _h1 = tau[1]
-    _h2 = tau[2]
-    _h3 = tau[3]
+    _s0, _s1 = s
+    _p0, = p
+    _a0, = a
+    _h0, _h1, _h2, _h3 = tau
     hessian = [
-        1,
+        1.0,
         _p0,
     ]
     jet_rhs = [
@@ -460,22 +457,20 @@ def _jet_1(t, s, p, a, tau):
         _h3 + _a0*(_h2 + _p0*_s1),
     ]
     R = [
-        1,
-        1,
+        1.0,
+        1.0,
     ]
     pvec = [
-        0,
-        0,
+        0.0,
+        0.0,
     ]
     return hessian, jet_rhs, R, pvec
 
 
 def _cholesky_1(h, c):
     """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (one point; lists in, lists out)."""
-    _h0 = h[0]
-    _h1 = h[1]
-    _c0 = c[0]
-    _c1 = c[1]
+    _h0, _h1 = h
+    _c0, _c1 = c
     z = [
         _c0/_h0,
         _c1/_h1,
@@ -489,10 +484,8 @@ def _cholesky_1(h, c):
 
 def _decoupling_1(t, s, p, z, q):
     """b = v - p, so that R w = b linearizes the plant (one point; lists in, lists out)."""
-    _z0 = z[0]
-    _z1 = z[1]
-    _q0 = q[0]
-    _q1 = q[1]
+    _z0, _z1 = z
+    _q0, _q1 = q
     b = [
         _z0 - _q0,
         _z1 - _q1,
@@ -502,8 +495,7 @@ def _decoupling_1(t, s, p, z, q):
 
 def _closed_loop_1(t, s, p, w, z):
     """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
-    _w0 = w[0]
-    _w1 = w[1]
+    _w0, _w1 = w
     ds = [
         _w0,
         _w1,
@@ -517,8 +509,7 @@ def _closed_loop_1(t, s, p, w, z):
 
 def _plant_input_1(t, s, p, w):
     """The plant input alone (control needs no vector field) (one point; lists in, lists out)."""
-    _w0 = w[0]
-    _w1 = w[1]
+    _w0, _w1 = w
     u = [
         _w0,
         _w1,
@@ -528,49 +519,46 @@ def _plant_input_1(t, s, p, w):
 
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
-    _s0 = s[0]
-    _s1 = s[1]
-    _p0 = p[0]
+    _s0, _s1 = s
+    _p0, = p
     _t0 = (t*t)
     E = [
-        _s0 - 4/5*t + (1/20)*_t0 - 2,
-        _p0*_s1 - _p0*((1/2)*t - 1/1000*(t*t*t) + (1/50)*_t0 - 1),
+        _s0 - 4/5*t + (1/20)*_t0 - 2.0,
+        _p0*_s1 - _p0*((1/2)*t - 1/1000*(t*t*t) + (1/50)*_t0 - 1.0),
     ]
     return E
 
 
 def _objective_1(t, y, p):
     """The objective f0(y, t) (one point; lists in, lists out)."""
-    _y0 = y[0]
-    _y1 = y[1]
-    _p0 = p[0]
+    _y0, _y1 = y
+    _p0, = p
     _t0 = (t*t)
     f0 = [
-        (1/2)*((_y0 - 4/5*t + (1/20)*_t0 - 2)*(_y0 - 4/5*t + (1/20)*_t0 - 2)) + (1/2)*_p0*((_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1)*(_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1)),
+        (1/2)*((_y0 - 4/5*t + (1/20)*_t0 - 2.0)*(_y0 - 4/5*t + (1/20)*_t0 - 2.0)) + (1/2)*_p0*((_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1.0)*(_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1.0)),
     ]
     return f0
 
 
 def _gradient_1(t, y, p):
     """grad_y f0(y, t) (one point; lists in, lists out)."""
-    _y0 = y[0]
-    _y1 = y[1]
-    _p0 = p[0]
+    _y0, _y1 = y
+    _p0, = p
     _t0 = (t*t)
     grad = [
-        _y0 - 4/5*t + (1/20)*_t0 - 2,
-        _p0*_y1 - _p0*((1/2)*t - 1/1000*(t*t*t) + (1/50)*_t0 - 1),
+        _y0 - 4/5*t + (1/20)*_t0 - 2.0,
+        _p0*_y1 - _p0*((1/2)*t - 1/1000*(t*t*t) + (1/50)*_t0 - 1.0),
     ]
     return grad
 
 
 def _hessian_1(t, y, p):
     """grad_yy f0(y, t) (one point; lists in, lists out)."""
-    _p0 = p[0]
+    _p0, = p
     hess = [
-        1,
-        0,
-        0,
+        1.0,
+        0.0,
+        0.0,
         _p0,
     ]
     return hess
@@ -688,6 +676,13 @@ def _hessian_values(t, x, p):
 # and raises exactly as documented: the two paths never disagree.
 
 
+# NumPy's warnings on the one-point path (a function of an infinite or out-of-domain
+# value) say nothing: its result is then not finite and the array path answers with the
+# documented exception. This filter covers this module's own calls alone, and costs
+# nothing until a warning is issued (numpy.errstate would cost a microsecond a call).
+warnings.filterwarnings("ignore", category=RuntimeWarning, module=__name__)
+
+
 def _finite(values):
     """Whether every value is finite (a sum of infinities of both signs is NaN)."""
     return math.isfinite(sum(values))
@@ -724,41 +719,20 @@ def _lu_solve_1(a, b):
 def _solve_decoupling_1(r, b):
     """Solve ``R w = b`` block by block for one point; None where a block is singular.
 
-    Blocks of sizes 1 and 2 are unrolled: the same operations, in the same order, as
-    the general loop of :func:`_lu_solve`.
+    Written out block by block (their places in R are known here); 1 x 1 and 2 x 2
+    blocks are unrolled, with the same operations in the same order as the general
+    loop of :func:`_lu_solve`.
     """
     w = list(b)
     tolerance = PIVOT_TOLERANCE
-    for size, starts, rows in _R_GROUPS:
-        if size == 1:
-            for start, (i,) in zip(starts, rows):
-                a = r[start]
-                if not abs(a) > tolerance * abs(a):
-                    return None
-                w[i] = b[i] / a
-        elif size == 2:
-            for start, (i, j) in zip(starts, rows):
-                a00, a01, a10, a11 = r[start:start + 4]
-                b0, b1 = b[i], b[j]
-                scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
-                if abs(a10) > abs(a00):
-                    a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
-                if not abs(a00) > tolerance * scale:
-                    return None
-                factor = a10 / a00
-                a11 = a11 - factor * a01
-                b1 = b1 - factor * b0
-                if not abs(a11) > tolerance * scale:
-                    return None
-                x1 = b1 / a11
-                w[i], w[j] = (b0 - a01 * x1) / a00, x1
-        else:
-            for start, block in zip(starts, rows):
-                x = _lu_solve_1(r[start:start + size * size], [b[i] for i in block])
-                if x is None:
-                    return None
-                for i, value in zip(block, x):
-                    w[i] = value
+    a = r[0]
+    if not abs(a) > tolerance * abs(a):
+        return None
+    w[0] = b[0] / a
+    a = r[1]
+    if not abs(a) > tolerance * abs(a):
+        return None
+    w[1] = b[1] / a
     return w
 
 
@@ -766,7 +740,9 @@ def _law_1(t, s, p, rates):
     """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
     tau = _jet_time_1(t, p, _A_LIST)
     hess, jet_rhs, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
-    if not (_finite(hess) and _finite(jet_rhs) and _finite(r) and _finite(pvec)):
+    # The right-hand side and p reach b, which is checked below; an infinite Hessian
+    # entry can leave z finite, and an entry of R no plant input depends on could hide.
+    if not math.isfinite(sum(hess) + sum(r)):
         return None
     z, pivot = _cholesky_1(hess, jet_rhs)
     if not min(pivot) > PIVOT_TOLERANCE * max(map(abs, hess)):
@@ -784,41 +760,24 @@ def _law_1(t, s, p, rates):
     return (ds, u) if _finite(ds) and _finite(u) else None
 
 
-def _one_point(function, shape):
-    """``function(t, s, p)`` for one state given as a 1-D float array, or None."""
-
-    def evaluate(t, s, params):
-        values = s.tolist()
-        p = _P_LIST if params is None else _parameters(params).tolist()
-        if not (math.isfinite(t) and _finite(values) and _finite(p)):
-            return None
-        try:
-            with numpy.errstate(all="ignore"):
-                result = function(float(t), values, p)
-        except ArithmeticError:
-            return None
-        if result is None or not _finite(result):
-            return None
-        return numpy.array(result).reshape(shape)
-
-    return evaluate
+def _control_1(t, s, p):
+    law = _law_1(t, s, p, False)
+    return None if law is None else law[1]
 
 
-def _first(result):
-    return None if result is None else result[1]
+def _rhs_1(t, s, p):
+    law = _law_1(t, s, p, True)
+    return None if law is None else law[0]
 
 
-def _second(result):
-    return None if result is None else result[0]
-
-
+#: The one-point evaluators by public function, and their results' shapes.
 _ONE_POINT = {
-    "control": _one_point(lambda t, s, p: _first(_law_1(t, s, p, False)), (2,)),
-    "rhs": _one_point(lambda t, s, p: _second(_law_1(t, s, p, True)), (2,)),
-    "optimality_error": _one_point(_optimality_1, (K, 2)),
-    "objective": _one_point(_objective_1, ()),
-    "gradient": _one_point(_gradient_1, (2,)),
-    "hessian": _one_point(_hessian_1, (2, 2)),
+    "control": (_control_1, (2,)),
+    "rhs": (_rhs_1, (2,)),
+    "optimality_error": (_optimality_1, (K, 2)),
+    "objective": (_objective_1, ()),
+    "gradient": (_gradient_1, (2,)),
+    "hessian": (_hessian_1, (2, 2)),
 }
 _A_LIST = list(HURWITZ_COEFFICIENTS)
 _P_LIST = _DEFAULT_P.tolist()
@@ -980,15 +939,27 @@ def hessian(t, y, params=None):
 
 def _with_one_point(general, rows):
     """``general``, with a single state or output in a float array taken by the fast path."""
-    fast = _ONE_POINT[general.__name__]
+    fast, shape = _ONE_POINT[general.__name__]
     number = general.__name__ == "objective"
+    flat = len(shape) == 1
+    expected = (rows,)
 
     def function(t, s, params=None):
-        if (type(s) is numpy.ndarray and s.shape == (rows,) and s.dtype.kind == "f"
+        if (type(s) is numpy.ndarray and s.shape == expected and s.dtype.kind == "f"
                 and isinstance(t, (float, int))):
-            result = fast(t, s, params)
-            if result is not None:
-                return float(result) if number else result
+            values = s.tolist()
+            p = _P_LIST if params is None else _parameters(params).tolist()
+            if math.isfinite(t) and _finite(values) and _finite(p):
+                try:
+                    result = fast(float(t), values, p)
+                except (ArithmeticError, RuntimeWarning):
+                    # A float's ZeroDivisionError or OverflowError; NumPy's warning made
+                    # an error by the caller's filters, or FloatingPointError by seterr.
+                    result = None
+                if result is not None and _finite(result):
+                    if number:
+                        return float(result[0])
+                    return numpy.array(result) if flat else numpy.array(result).reshape(shape)
         return general(t, s, params)
 
     return functools.update_wrapper(function, general)

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: f9a246e7f4cca757599e455080c1f01e9c3eb084c65387cc2e626afcbf8a6719
+# content sha256: b87dc418964f6bac337488b15421d3d91071f36c96c68325cb28fc581d77d8a6
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 from collections.abc import Mapping
 
 import numpy
@@ -486,11 +487,8 @@ def _hessian(t, y, p):
 
 def _jet_time_1(t, p, a):
     """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
-    _p0 = p[0]
-    _a0 = a[0]
-    _a1 = a[1]
-    _a2 = a[2]
-    _a3 = a[3]
+    _p0, = p
+    _a0, _a1, _a2, _a3 = a
     _t0 = (2/5)*t
     _t1 = float(numpy.sin(_t0))
     _t2 = float(numpy.cos(_t0))
@@ -505,7 +503,7 @@ def _jet_time_1(t, p, a):
     _t18 = (1/2)*_a2
     _t19 = (1/2)*_a3
     tau = [
-        -3*_t1,
+        -3.0*_t1,
         _t16,
         -6/5*_t2,
         _t17,
@@ -514,9 +512,9 @@ def _jet_time_1(t, p, a):
         (24/125)*_t2,
         _t19,
         (24/625)*_t1,
-        _t6 - 8/5*_t4 - 4,
+        _t6 - 8/5*_t4 - 4.0,
         -12/25*_t8 - 1/5*_t7,
-        (18/125)*_t4 - 2*_p0 - 1/25*_t6,
+        (18/125)*_t4 - 2.0*_p0 - 1/25*_t6,
         (1/125)*_t7 + (27/625)*_t8,
         (81/12500)*_t4 - 1/1250*_t6,
     ]
@@ -525,28 +523,8 @@ def _jet_time_1(t, p, a):
 
 def _jet_1(t, s, p, a, tau):
     """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (one point; lists in, lists out)."""
-    _s0 = s[0]
-    _s1 = s[1]
-    _s2 = s[2]
-    _s3 = s[3]
-    _s4 = s[4]
-    _s5 = s[5]
-    _s6 = s[6]
-    _s7 = s[7]
-    _h0 = tau[0]
-    _t16 = tau[1]
-    _h1 = tau[2]
-    _t17 = tau[3]
-    _h2 = tau[4]
-    _t18 = tau[5]
-    _h3 = tau[6]
-    _t19 = tau[7]
-    _h4 = tau[8]
-    _h5 = tau[9]
-    _h6 = tau[10]
-    _h7 = tau[11]
-    _h8 = tau[12]
-    _h9 = tau[13]
+    _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7 = s
+    _h0, _t16, _h1, _t17, _h2, _t18, _h3, _t19, _h4, _h5, _h6, _h7, _h8, _h9 = tau
     _t9 = float(numpy.sin(_s2))
     _t10 = _s6*_t9
     _t11 = _s7*_t9
@@ -555,8 +533,8 @@ def _jet_1(t, s, p, a, tau):
     _t14 = -_t11 - _s5*_t13
     _t15 = _s5*_t10 - _s7*_t12
     z = [
-        _h4 + _t16*(_h0 + 2*_s0) + _t17*(_h1 + 2*_s3) + _t18*(_h2 - 2*_t10) + _t19*(_h3 + 2*_t14),
-        _h9 + _t16*(_h5 + 2*_s1) + _t17*(_h6 + 2*_s4) + _t18*(_h7 + 2*_t13) + _t19*(_h8 - 2*_t15),
+        _h4 + _t16*(_h0 + 2.0*_s0) + _t17*(_h1 + 2.0*_s3) + _t18*(_h2 - 2.0*_t10) + _t19*(_h3 + 2.0*_t14),
+        _h9 + _t16*(_h5 + 2.0*_s1) + _t17*(_h6 + 2.0*_s4) + _t18*(_h7 + 2.0*_t13) + _t19*(_h8 - 2.0*_t15),
     ]
     R = [
         -_t9,
@@ -573,10 +551,8 @@ def _jet_1(t, s, p, a, tau):
 
 def _decoupling_1(t, s, p, z, q):
     """b = v - p, so that R w = b linearizes the plant (one point; lists in, lists out)."""
-    _z0 = z[0]
-    _z1 = z[1]
-    _q0 = q[0]
-    _q1 = q[1]
+    _z0, _z1 = z
+    _q0, _q1 = q
     b = [
         _z0 - _q0,
         _z1 - _q1,
@@ -586,15 +562,9 @@ def _decoupling_1(t, s, p, z, q):
 
 def _closed_loop_1(t, s, p, w, z):
     """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
-    _s2 = s[2]
-    _s3 = s[3]
-    _s4 = s[4]
-    _s5 = s[5]
-    _s6 = s[6]
-    _s7 = s[7]
-    _p0 = p[0]
-    _w0 = w[0]
-    _w1 = w[1]
+    _, _, _s2, _s3, _s4, _s5, _s6, _s7 = s
+    _p0, = p
+    _w0, _w1 = w
     ds = [
         _s3,
         _s4,
@@ -614,8 +584,8 @@ def _closed_loop_1(t, s, p, w, z):
 
 def _plant_input_1(t, s, p, w):
     """The plant input alone (control needs no vector field) (one point; lists in, lists out)."""
-    _s6 = s[6]
-    _w1 = w[1]
+    _, _, _, _, _, _, _s6, _ = s
+    _, _w1 = w
     u = [
         _s6,
         _w1,
@@ -625,15 +595,8 @@ def _plant_input_1(t, s, p, w):
 
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
-    _s0 = s[0]
-    _s1 = s[1]
-    _s2 = s[2]
-    _s3 = s[3]
-    _s4 = s[4]
-    _s5 = s[5]
-    _s6 = s[6]
-    _s7 = s[7]
-    _p0 = p[0]
+    _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7 = s
+    _p0, = p
     _t0 = (2/5)*t
     _t1 = float(numpy.sin(_t0))
     _t2 = float(numpy.cos(_t0))
@@ -647,35 +610,33 @@ def _optimality_1(t, s, p):
     _t10 = _s6*_t9
     _t11 = float(numpy.cos(_s2))
     E = [
-        2*_s0 - 3*_t1,
-        _t6 + 2*_s1 - 8/5*_t4 - 4,
-        2*_s3 - 6/5*_t2,
-        2*_s4 - 12/25*_t8 - 1/5*_t7,
-        (12/25)*_t1 - 2*_t10,
-        (18/125)*_t4 - 2*_p0 - 1/25*_t6 + 2*_s6*_t11,
-        (24/125)*_t2 - 2*_s7*_t9 - 2*_s5*_s6*_t11,
-        (1/125)*_t7 + (27/625)*_t8 - 2*_s5*_t10 + 2*_s7*_t11,
+        2.0*_s0 - 3.0*_t1,
+        _t6 + 2.0*_s1 - 8/5*_t4 - 4.0,
+        2.0*_s3 - 6/5*_t2,
+        2.0*_s4 - 12/25*_t8 - 1/5*_t7,
+        (12/25)*_t1 - 2.0*_t10,
+        (18/125)*_t4 - 2.0*_p0 - 1/25*_t6 + 2.0*_s6*_t11,
+        (24/125)*_t2 - 2.0*_s7*_t9 - 2.0*_s5*_s6*_t11,
+        (1/125)*_t7 + (27/625)*_t8 - 2.0*_s5*_t10 + 2.0*_s7*_t11,
     ]
     return E
 
 
 def _objective_1(t, y, p):
     """The objective f0(y, t) (one point; lists in, lists out)."""
-    _y0 = y[0]
-    _y1 = y[1]
+    _y0, _y1 = y
     f0 = [
-        ((_y0 - 3/2*float(numpy.sin((2/5)*t)))*(_y0 - 3/2*float(numpy.sin((2/5)*t)))) + ((_y1 + (1/2)*float(numpy.cos((1/5)*t)) - 4/5*float(numpy.sin((3/10)*t)) - 2)*(_y1 + (1/2)*float(numpy.cos((1/5)*t)) - 4/5*float(numpy.sin((3/10)*t)) - 2)),
+        ((_y0 - 3/2*float(numpy.sin((2/5)*t)))*(_y0 - 3/2*float(numpy.sin((2/5)*t)))) + ((_y1 + (1/2)*float(numpy.cos((1/5)*t)) - 4/5*float(numpy.sin((3/10)*t)) - 2.0)*(_y1 + (1/2)*float(numpy.cos((1/5)*t)) - 4/5*float(numpy.sin((3/10)*t)) - 2.0)),
     ]
     return f0
 
 
 def _gradient_1(t, y, p):
     """grad_y f0(y, t) (one point; lists in, lists out)."""
-    _y0 = y[0]
-    _y1 = y[1]
+    _y0, _y1 = y
     grad = [
-        2*_y0 - 3*float(numpy.sin((2/5)*t)),
-        2*_y1 - 8/5*float(numpy.sin((3/10)*t)) + float(numpy.cos((1/5)*t)) - 4,
+        2.0*_y0 - 3.0*float(numpy.sin((2/5)*t)),
+        2.0*_y1 - 8/5*float(numpy.sin((3/10)*t)) + float(numpy.cos((1/5)*t)) - 4.0,
     ]
     return grad
 
@@ -683,10 +644,10 @@ def _gradient_1(t, y, p):
 def _hessian_1(t, y, p):
     """grad_yy f0(y, t) (one point; lists in, lists out)."""
     hess = [
-        2,
-        0,
-        0,
-        2,
+        2.0,
+        0.0,
+        0.0,
+        2.0,
     ]
     return hess
 
@@ -801,6 +762,13 @@ def _hessian_values(t, x, p):
 # and raises exactly as documented: the two paths never disagree.
 
 
+# NumPy's warnings on the one-point path (a function of an infinite or out-of-domain
+# value) say nothing: its result is then not finite and the array path answers with the
+# documented exception. This filter covers this module's own calls alone, and costs
+# nothing until a warning is issued (numpy.errstate would cost a microsecond a call).
+warnings.filterwarnings("ignore", category=RuntimeWarning, module=__name__)
+
+
 def _finite(values):
     """Whether every value is finite (a sum of infinities of both signs is NaN)."""
     return math.isfinite(sum(values))
@@ -837,41 +805,26 @@ def _lu_solve_1(a, b):
 def _solve_decoupling_1(r, b):
     """Solve ``R w = b`` block by block for one point; None where a block is singular.
 
-    Blocks of sizes 1 and 2 are unrolled: the same operations, in the same order, as
-    the general loop of :func:`_lu_solve`.
+    Written out block by block (their places in R are known here); 1 x 1 and 2 x 2
+    blocks are unrolled, with the same operations in the same order as the general
+    loop of :func:`_lu_solve`.
     """
     w = list(b)
     tolerance = PIVOT_TOLERANCE
-    for size, starts, rows in _R_GROUPS:
-        if size == 1:
-            for start, (i,) in zip(starts, rows):
-                a = r[start]
-                if not abs(a) > tolerance * abs(a):
-                    return None
-                w[i] = b[i] / a
-        elif size == 2:
-            for start, (i, j) in zip(starts, rows):
-                a00, a01, a10, a11 = r[start:start + 4]
-                b0, b1 = b[i], b[j]
-                scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
-                if abs(a10) > abs(a00):
-                    a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
-                if not abs(a00) > tolerance * scale:
-                    return None
-                factor = a10 / a00
-                a11 = a11 - factor * a01
-                b1 = b1 - factor * b0
-                if not abs(a11) > tolerance * scale:
-                    return None
-                x1 = b1 / a11
-                w[i], w[j] = (b0 - a01 * x1) / a00, x1
-        else:
-            for start, block in zip(starts, rows):
-                x = _lu_solve_1(r[start:start + size * size], [b[i] for i in block])
-                if x is None:
-                    return None
-                for i, value in zip(block, x):
-                    w[i] = value
+    a00, a01, a10, a11 = r[0:4]
+    b0, b1 = b[0], b[1]
+    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
+    if abs(a10) > abs(a00):
+        a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
+    if not abs(a00) > tolerance * scale:
+        return None
+    factor = a10 / a00
+    a11 = a11 - factor * a01
+    b1 = b1 - factor * b0
+    if not abs(a11) > tolerance * scale:
+        return None
+    x1 = b1 / a11
+    w[0], w[1] = (b0 - a01 * x1) / a00, x1
     return w
 
 
@@ -879,7 +832,9 @@ def _law_1(t, s, p, rates):
     """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
     tau = _jet_time_1(t, p, _A_LIST)
     z, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
-    if not (_finite(z) and _finite(r) and _finite(pvec)):
+    # z and p reach b, which is checked below; R is checked here, since an entry of R
+    # that no plant input depends on could hide in w.
+    if not math.isfinite(sum(r)):
         return None
     b = _decoupling_1(t, s, p, z, pvec)
     if not _finite(b):
@@ -894,41 +849,24 @@ def _law_1(t, s, p, rates):
     return (ds, u) if _finite(ds) and _finite(u) else None
 
 
-def _one_point(function, shape):
-    """``function(t, s, p)`` for one state given as a 1-D float array, or None."""
-
-    def evaluate(t, s, params):
-        values = s.tolist()
-        p = _P_LIST if params is None else _parameters(params).tolist()
-        if not (math.isfinite(t) and _finite(values) and _finite(p)):
-            return None
-        try:
-            with numpy.errstate(all="ignore"):
-                result = function(float(t), values, p)
-        except ArithmeticError:
-            return None
-        if result is None or not _finite(result):
-            return None
-        return numpy.array(result).reshape(shape)
-
-    return evaluate
+def _control_1(t, s, p):
+    law = _law_1(t, s, p, False)
+    return None if law is None else law[1]
 
 
-def _first(result):
-    return None if result is None else result[1]
+def _rhs_1(t, s, p):
+    law = _law_1(t, s, p, True)
+    return None if law is None else law[0]
 
 
-def _second(result):
-    return None if result is None else result[0]
-
-
+#: The one-point evaluators by public function, and their results' shapes.
 _ONE_POINT = {
-    "control": _one_point(lambda t, s, p: _first(_law_1(t, s, p, False)), (2,)),
-    "rhs": _one_point(lambda t, s, p: _second(_law_1(t, s, p, True)), (8,)),
-    "optimality_error": _one_point(_optimality_1, (K, 2)),
-    "objective": _one_point(_objective_1, ()),
-    "gradient": _one_point(_gradient_1, (2,)),
-    "hessian": _one_point(_hessian_1, (2, 2)),
+    "control": (_control_1, (2,)),
+    "rhs": (_rhs_1, (8,)),
+    "optimality_error": (_optimality_1, (K, 2)),
+    "objective": (_objective_1, ()),
+    "gradient": (_gradient_1, (2,)),
+    "hessian": (_hessian_1, (2, 2)),
 }
 _A_LIST = list(HURWITZ_COEFFICIENTS)
 _P_LIST = _DEFAULT_P.tolist()
@@ -1090,15 +1028,27 @@ def hessian(t, y, params=None):
 
 def _with_one_point(general, rows):
     """``general``, with a single state or output in a float array taken by the fast path."""
-    fast = _ONE_POINT[general.__name__]
+    fast, shape = _ONE_POINT[general.__name__]
     number = general.__name__ == "objective"
+    flat = len(shape) == 1
+    expected = (rows,)
 
     def function(t, s, params=None):
-        if (type(s) is numpy.ndarray and s.shape == (rows,) and s.dtype.kind == "f"
+        if (type(s) is numpy.ndarray and s.shape == expected and s.dtype.kind == "f"
                 and isinstance(t, (float, int))):
-            result = fast(t, s, params)
-            if result is not None:
-                return float(result) if number else result
+            values = s.tolist()
+            p = _P_LIST if params is None else _parameters(params).tolist()
+            if math.isfinite(t) and _finite(values) and _finite(p):
+                try:
+                    result = fast(float(t), values, p)
+                except (ArithmeticError, RuntimeWarning):
+                    # A float's ZeroDivisionError or OverflowError; NumPy's warning made
+                    # an error by the caller's filters, or FloatingPointError by seterr.
+                    result = None
+                if result is not None and _finite(result):
+                    if number:
+                        return float(result[0])
+                    return numpy.array(result) if flat else numpy.array(result).reshape(shape)
         return general(t, s, params)
 
     return functools.update_wrapper(function, general)

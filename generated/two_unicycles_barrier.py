@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 5499fa05a6e1d9126751e3c0568a15ab13dcdac1f6f1638bb31d4970badf4e87
+# content sha256: bfe50b24d7ba63e8a4654a41411fd4ce9cc9cef92d45ca8386989ab0248a6d46
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 from collections.abc import Mapping
 
 import numpy
@@ -697,22 +698,21 @@ def _hessian(t, y, p):
 
 def _jet_time_1(t, p, a):
     """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
-    _p0 = p[0]
-    _p1 = p[1]
+    _p0, _p1 = p
     _t0 = (t*t)
-    _t10 = 1/_p1
+    _t10 = 1.0/_p1
     _t13 = (1/2)*numpy.pi*_t10
     _t18 = numpy.pi*_p0*_t10
     tau = [
         _t13,
         _t18,
-        10 - t - 1/250*_t0,
-        -1/125*t - 1,
-        (1/50)*_t0 - 3/5*t + 6,
+        10.0 - t - 1/250*_t0,
+        -1/125*t - 1.0,
+        (1/50)*_t0 - 3/5*t + 6.0,
         (1/25)*t - 3/5,
-        4 - 9/10*t - 1/125*_t0,
+        4.0 - 9/10*t - 1/125*_t0,
         -2/125*t - 9/10,
-        (3/125)*_t0 - 7/10*t + 6,
+        (3/125)*_t0 - 7/10*t + 6.0,
         (6/125)*t - 7/10,
     ]
     return tau
@@ -720,26 +720,9 @@ def _jet_time_1(t, p, a):
 
 def _jet_1(t, s, p, a, tau):
     """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (one point; lists in, lists out)."""
-    _s0 = s[0]
-    _s1 = s[1]
-    _s2 = s[2]
-    _s3 = s[3]
-    _s4 = s[4]
-    _s5 = s[5]
-    _s6 = s[6]
-    _s7 = s[7]
-    _a0 = a[0]
-    _a1 = a[1]
-    _t13 = tau[0]
-    _t18 = tau[1]
-    _h0 = tau[2]
-    _h1 = tau[3]
-    _h2 = tau[4]
-    _h3 = tau[5]
-    _h4 = tau[6]
-    _h5 = tau[7]
-    _h6 = tau[8]
-    _h7 = tau[9]
+    _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7 = s
+    _a0, _a1 = a
+    _t13, _t18, _h0, _h1, _h2, _h3, _h4, _h5, _h6, _h7 = tau
     _t1 = float(numpy.cos(_s2))
     _t2 = _s6*_t1
     _t3 = float(numpy.sin(_s2))
@@ -748,36 +731,36 @@ def _jet_1(t, s, p, a, tau):
     _t6 = _s7*_t5
     _t7 = float(numpy.sin(_s5))
     _t8 = _s7*_t7
-    _t9 = 2*_s0
+    _t9 = 2.0*_s0
     _t11 = _s0 - _s3
     _t12 = _s1 - _s4
     _t14 = float(numpy.tan(_t13*((_t11*_t11) + (_t12*_t12))))
-    _t15 = (_t14*_t14) + 1
-    _t16 = 2*_s3
+    _t15 = (_t14*_t14) + 1.0
+    _t16 = 2.0*_s3
     _t17 = _t9 - _t16
     _t19 = _t15*_t18
     _t20 = _t17*_t19
     _t21 = _t14*_t20
-    _t22 = 2*_s1
-    _t23 = 2*_s4
+    _t22 = 2.0*_s1
+    _t23 = 2.0*_s4
     _t24 = _t22 - _t23
     _t25 = _t19*_t24
     _t26 = _t14*_t25
-    _t27 = 2*_t2
+    _t27 = 2.0*_t2
     _t28 = _t2 - _t6
-    _t29 = 2*_t11
+    _t29 = 2.0*_t11
     _t30 = _t4 - _t8
-    _t31 = 2*_t12
+    _t31 = 2.0*_t12
     _t32 = _t13*(_t28*_t29 + _t30*_t31)
     _t33 = _t15*_t32
-    _t34 = 2*_t14
-    _t35 = 2*_t6
+    _t34 = 2.0*_t14
+    _t35 = 2.0*_t6
     _t36 = _t27 - _t35
     _t37 = _t18*_t33*_t34
     _t38 = _t17*_t37 + _t19*_t36
     _t39 = _t14*_t38 + _t20*_t33
-    _t40 = 2*_t4
-    _t41 = 2*_t8
+    _t40 = 2.0*_t4
+    _t41 = 2.0*_t8
     _t42 = _t40 - _t41
     _t43 = _t19*_t42 + _t24*_t37
     _t44 = _t14*_t43 + _t25*_t33
@@ -785,16 +768,16 @@ def _jet_1(t, s, p, a, tau):
     _t46 = _t13*_t15*_t31
     _t47 = _t18*_t34*_t45
     _t48 = _t18*_t34*_t46
-    _t49 = 2*_t19
+    _t49 = 2.0*_t19
     _t50 = _t14*(_t49 + _t17*_t47) + _t20*_t45
-    _t51 = _t50 + 2
+    _t51 = _t50 + 2.0
     _t52 = _t25*_t45 + _t14*_t24*_t47
     _t53 = _t14*(_t49 + _t24*_t48) + _t25*_t46
-    _t54 = _t53 + 2
-    _t55 = _t13*_t15*(2*(_t28*_t28) + 2*(_t30*_t30)) + 2*_t14*_t32*_t33
-    _t56 = _t18*(2*(_t33*_t33) + _t34*_t55)
-    _t57 = _t14*(_t17*_t56 + 2*_t36*_t37) + _t20*_t55 + 2*_t33*_t38
-    _t58 = _t14*(_t24*_t56 + 2*_t37*_t42) + _t25*_t55 + 2*_t33*_t43
+    _t54 = _t53 + 2.0
+    _t55 = _t13*_t15*(2.0*(_t28*_t28) + 2.0*(_t30*_t30)) + 2.0*_t14*_t32*_t33
+    _t56 = _t18*(2.0*(_t33*_t33) + _t34*_t55)
+    _t57 = _t14*(_t17*_t56 + 2.0*_t36*_t37) + _t20*_t55 + 2.0*_t33*_t38
+    _t58 = _t14*(_t24*_t56 + 2.0*_t37*_t42) + _t25*_t55 + 2.0*_t33*_t43
     hessian = [
         _t51,
         _t52,
@@ -824,42 +807,30 @@ def _jet_1(t, s, p, a, tau):
         _t6,
     ]
     pvec = [
-        0,
-        0,
-        0,
-        0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
     ]
     return hessian, jet_rhs, R, pvec
 
 
 def _cholesky_1(h, c):
     """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (one point; lists in, lists out)."""
-    _h0 = h[0]
-    _h1 = h[1]
-    _h2 = h[2]
-    _h3 = h[3]
-    _h4 = h[4]
-    _h5 = h[5]
-    _h6 = h[6]
-    _h7 = h[7]
-    _h8 = h[8]
-    _h9 = h[9]
-    _c0 = c[0]
-    _c1 = c[1]
-    _c2 = c[2]
-    _c3 = c[3]
-    _t0 = 1/_h0
+    _h0, _h1, _h2, _h3, _h4, _h5, _h6, _h7, _h8, _h9 = h
+    _c0, _c1, _c2, _c3 = c
+    _t0 = 1.0/_h0
     _t1 = _h1*_t0
     _t2 = _h3*_t0
     _t3 = _h6*_t0
     _t4 = _h2 - _h1*_t1
-    _t5 = 1/_t4
+    _t5 = 1.0/_t4
     _t6 = _h4 - _h1*_t2
     _t7 = _t5*_t6
     _t8 = _h7 - _h1*_t3
     _t9 = _t5*_t8
     _t10 = _h5 - _h3*_t2 - _t6*_t7
-    _t11 = 1/_t10
+    _t11 = 1.0/_t10
     _t12 = _h8 - _h3*_t3 - _t6*_t9
     _t13 = _t11*_t12
     _t14 = _h9 - _h6*_t3 - _t12*_t13 - _t8*_t9
@@ -885,14 +856,8 @@ def _cholesky_1(h, c):
 
 def _decoupling_1(t, s, p, z, q):
     """b = v - p, so that R w = b linearizes the plant (one point; lists in, lists out)."""
-    _z0 = z[0]
-    _z1 = z[1]
-    _z2 = z[2]
-    _z3 = z[3]
-    _q0 = q[0]
-    _q1 = q[1]
-    _q2 = q[2]
-    _q3 = q[3]
+    _z0, _z1, _z2, _z3 = z
+    _q0, _q1, _q2, _q3 = q
     b = [
         _z0 - _q0,
         _z1 - _q1,
@@ -904,14 +869,8 @@ def _decoupling_1(t, s, p, z, q):
 
 def _closed_loop_1(t, s, p, w, z):
     """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
-    _s2 = s[2]
-    _s5 = s[5]
-    _s6 = s[6]
-    _s7 = s[7]
-    _w0 = w[0]
-    _w1 = w[1]
-    _w2 = w[2]
-    _w3 = w[3]
+    _, _, _s2, _, _, _s5, _s6, _s7 = s
+    _w0, _w1, _w2, _w3 = w
     ds = [
         _s6*float(numpy.cos(_s2)),
         _s6*float(numpy.sin(_s2)),
@@ -933,10 +892,8 @@ def _closed_loop_1(t, s, p, w, z):
 
 def _plant_input_1(t, s, p, w):
     """The plant input alone (control needs no vector field) (one point; lists in, lists out)."""
-    _s6 = s[6]
-    _s7 = s[7]
-    _w1 = w[1]
-    _w3 = w[3]
+    _, _, _, _, _, _, _s6, _s7 = s
+    _, _w1, _, _w3 = w
     u = [
         _s6,
         _w1,
@@ -948,53 +905,45 @@ def _plant_input_1(t, s, p, w):
 
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
-    _s0 = s[0]
-    _s1 = s[1]
-    _s2 = s[2]
-    _s3 = s[3]
-    _s4 = s[4]
-    _s5 = s[5]
-    _s6 = s[6]
-    _s7 = s[7]
-    _p0 = p[0]
-    _p1 = p[1]
+    _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7 = s
+    _p0, _p1 = p
     _t0 = (t*t)
     _t1 = _s6*float(numpy.cos(_s2))
     _t2 = _s6*float(numpy.sin(_s2))
     _t3 = _s7*float(numpy.cos(_s5))
     _t4 = _s7*float(numpy.sin(_s5))
-    _t5 = 2*_s0
-    _t6 = 1/_p1
+    _t5 = 2.0*_s0
+    _t6 = 1.0/_p1
     _t7 = _s0 - _s3
     _t8 = _s1 - _s4
     _t9 = (1/2)*numpy.pi*_t6
     _t10 = float(numpy.tan(_t9*((_t7*_t7) + (_t8*_t8))))
-    _t11 = (_t10*_t10) + 1
-    _t12 = 2*_s3
+    _t11 = (_t10*_t10) + 1.0
+    _t12 = 2.0*_s3
     _t13 = _t5 - _t12
     _t14 = numpy.pi*_p0*_t6
     _t15 = _t11*_t14
     _t16 = _t13*_t15
     _t17 = _t10*_t16
-    _t18 = 2*_s1
-    _t19 = 2*_s4
+    _t18 = 2.0*_s1
+    _t19 = 2.0*_s4
     _t20 = _t18 - _t19
     _t21 = _t15*_t20
     _t22 = _t10*_t21
-    _t23 = 2*_t1
-    _t24 = _t11*_t9*(2*_t7*(_t1 - _t3) + 2*_t8*(_t2 - _t4))
-    _t25 = 2*_t3
-    _t26 = 2*_t10*_t14*_t24
+    _t23 = 2.0*_t1
+    _t24 = _t11*_t9*(2.0*_t7*(_t1 - _t3) + 2.0*_t8*(_t2 - _t4))
+    _t25 = 2.0*_t3
+    _t26 = 2.0*_t10*_t14*_t24
     _t27 = _t10*(_t13*_t26 + _t15*(_t23 - _t25)) + _t16*_t24
-    _t28 = 2*_t2
-    _t29 = 2*_t4
+    _t28 = 2.0*_t2
+    _t29 = 2.0*_t4
     _t30 = _t10*(_t15*(_t28 - _t29) + _t20*_t26) + _t21*_t24
     E = [
-        _t17 + _t5 - t - 1/250*_t0 + 10,
-        _t18 + _t22 - 3/5*t + (1/50)*_t0 + 6,
-        _t12 - _t17 - 9/10*t - 1/125*_t0 + 4,
-        _t19 - _t22 - 7/10*t + (3/125)*_t0 + 6,
-        _t23 + _t27 - 1/125*t - 1,
+        _t17 + _t5 - t - 1/250*_t0 + 10.0,
+        _t18 + _t22 - 3/5*t + (1/50)*_t0 + 6.0,
+        _t12 - _t17 - 9/10*t - 1/125*_t0 + 4.0,
+        _t19 - _t22 - 7/10*t + (3/125)*_t0 + 6.0,
+        _t23 + _t27 - 1/125*t - 1.0,
         _t28 + _t30 + (1/25)*t - 3/5,
         _t25 - _t27 - 2/125*t - 9/10,
         _t29 - _t30 + (6/125)*t - 7/10,
@@ -1004,77 +953,65 @@ def _optimality_1(t, s, p):
 
 def _objective_1(t, y, p):
     """The objective f0(y, t) (one point; lists in, lists out)."""
-    _y0 = y[0]
-    _y1 = y[1]
-    _y2 = y[2]
-    _y3 = y[3]
-    _p0 = p[0]
-    _p1 = p[1]
+    _y0, _y1, _y2, _y3 = y
+    _p0, _p1 = p
     _t0 = (t*t)
     f0 = [
-        ((_y2 - 9/20*t - 1/250*_t0 + 2)*(_y2 - 9/20*t - 1/250*_t0 + 2)) + ((_y1 - 3/10*t + (1/100)*_t0 + 3)*(_y1 - 3/10*t + (1/100)*_t0 + 3)) + ((_y3 - 7/20*t + (3/250)*_t0 + 3)*(_y3 - 7/20*t + (3/250)*_t0 + 3)) + ((_y0 - 1/2*t - 1/500*_t0 + 5)*(_y0 - 1/2*t - 1/500*_t0 + 5)) + _p0*(float(numpy.tan((1/2)*numpy.pi*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1))*float(numpy.tan((1/2)*numpy.pi*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1))),
+        ((_y2 - 9/20*t - 1/250*_t0 + 2.0)*(_y2 - 9/20*t - 1/250*_t0 + 2.0)) + ((_y1 - 3/10*t + (1/100)*_t0 + 3.0)*(_y1 - 3/10*t + (1/100)*_t0 + 3.0)) + ((_y3 - 7/20*t + (3/250)*_t0 + 3.0)*(_y3 - 7/20*t + (3/250)*_t0 + 3.0)) + ((_y0 - 1/2*t - 1/500*_t0 + 5.0)*(_y0 - 1/2*t - 1/500*_t0 + 5.0)) + _p0*(float(numpy.tan((1/2)*numpy.pi*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1))*float(numpy.tan((1/2)*numpy.pi*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1))),
     ]
     return f0
 
 
 def _gradient_1(t, y, p):
     """grad_y f0(y, t) (one point; lists in, lists out)."""
-    _y0 = y[0]
-    _y1 = y[1]
-    _y2 = y[2]
-    _y3 = y[3]
-    _p0 = p[0]
-    _p1 = p[1]
+    _y0, _y1, _y2, _y3 = y
+    _p0, _p1 = p
     _t0 = (t*t)
-    _t1 = 2*_y0
-    _t2 = 1/_p1
+    _t1 = 2.0*_y0
+    _t2 = 1.0/_p1
     _t3 = float(numpy.tan((1/2)*numpy.pi*_t2*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))))
-    _t4 = 2*_y2
-    _t5 = numpy.pi*_p0*_t2*((_t3*_t3) + 1)
+    _t4 = 2.0*_y2
+    _t5 = numpy.pi*_p0*_t2*((_t3*_t3) + 1.0)
     _t6 = _t3*_t5*(_t1 - _t4)
-    _t7 = 2*_y1
-    _t8 = 2*_y3
+    _t7 = 2.0*_y1
+    _t8 = 2.0*_y3
     _t9 = _t3*_t5*(_t7 - _t8)
     grad = [
-        _t1 + _t6 - t - 1/250*_t0 + 10,
-        _t7 + _t9 - 3/5*t + (1/50)*_t0 + 6,
-        _t4 - _t6 - 9/10*t - 1/125*_t0 + 4,
-        _t8 - _t9 - 7/10*t + (3/125)*_t0 + 6,
+        _t1 + _t6 - t - 1/250*_t0 + 10.0,
+        _t7 + _t9 - 3/5*t + (1/50)*_t0 + 6.0,
+        _t4 - _t6 - 9/10*t - 1/125*_t0 + 4.0,
+        _t8 - _t9 - 7/10*t + (3/125)*_t0 + 6.0,
     ]
     return grad
 
 
 def _hessian_1(t, y, p):
     """grad_yy f0(y, t) (one point; lists in, lists out)."""
-    _y0 = y[0]
-    _y1 = y[1]
-    _y2 = y[2]
-    _y3 = y[3]
-    _p0 = p[0]
-    _p1 = p[1]
-    _t0 = 1/_p1
+    _y0, _y1, _y2, _y3 = y
+    _p0, _p1 = p
+    _t0 = 1.0/_p1
     _t1 = _y0 - _y2
     _t2 = _y1 - _y3
     _t3 = (1/2)*numpy.pi*_t0
     _t4 = float(numpy.tan(_t3*((_t1*_t1) + (_t2*_t2))))
-    _t5 = 2*_y0 - 2*_y2
+    _t5 = 2.0*_y0 - 2.0*_y2
     _t6 = numpy.pi*_p0*_t0
-    _t7 = _t6*((_t4*_t4) + 1)
+    _t7 = _t6*((_t4*_t4) + 1.0)
     _t8 = _t5*_t7
-    _t9 = 2*_y1 - 2*_y3
+    _t9 = 2.0*_y1 - 2.0*_y3
     _t10 = _t7*_t9
-    _t11 = (_t4*_t4) + 1
-    _t12 = 2*_t1*_t11*_t3
-    _t13 = 2*_t11*_t2*_t3
-    _t14 = 2*_t4
+    _t11 = (_t4*_t4) + 1.0
+    _t12 = 2.0*_t1*_t11*_t3
+    _t13 = 2.0*_t11*_t2*_t3
+    _t14 = 2.0*_t4
     _t15 = _t12*_t14*_t6
     _t16 = _t13*_t14*_t6
-    _t17 = 2*_t7
+    _t17 = 2.0*_t7
     _t18 = _t12*_t8 + _t4*(_t17 + _t15*_t5)
-    _t19 = _t18 + 2
+    _t19 = _t18 + 2.0
     _t20 = _t10*_t12 + _t15*_t4*_t9
     _t21 = _t10*_t13 + _t4*(_t17 + _t16*_t9)
-    _t22 = _t21 + 2
+    _t22 = _t21 + 2.0
     _t23 = -_t13*_t8 - _t16*_t4*_t5
     hess = [
         _t19,
@@ -1209,6 +1146,13 @@ def _hessian_values(t, x, p):
 # and raises exactly as documented: the two paths never disagree.
 
 
+# NumPy's warnings on the one-point path (a function of an infinite or out-of-domain
+# value) say nothing: its result is then not finite and the array path answers with the
+# documented exception. This filter covers this module's own calls alone, and costs
+# nothing until a warning is issued (numpy.errstate would cost a microsecond a call).
+warnings.filterwarnings("ignore", category=RuntimeWarning, module=__name__)
+
+
 def _finite(values):
     """Whether every value is finite (a sum of infinities of both signs is NaN)."""
     return math.isfinite(sum(values))
@@ -1245,41 +1189,40 @@ def _lu_solve_1(a, b):
 def _solve_decoupling_1(r, b):
     """Solve ``R w = b`` block by block for one point; None where a block is singular.
 
-    Blocks of sizes 1 and 2 are unrolled: the same operations, in the same order, as
-    the general loop of :func:`_lu_solve`.
+    Written out block by block (their places in R are known here); 1 x 1 and 2 x 2
+    blocks are unrolled, with the same operations in the same order as the general
+    loop of :func:`_lu_solve`.
     """
     w = list(b)
     tolerance = PIVOT_TOLERANCE
-    for size, starts, rows in _R_GROUPS:
-        if size == 1:
-            for start, (i,) in zip(starts, rows):
-                a = r[start]
-                if not abs(a) > tolerance * abs(a):
-                    return None
-                w[i] = b[i] / a
-        elif size == 2:
-            for start, (i, j) in zip(starts, rows):
-                a00, a01, a10, a11 = r[start:start + 4]
-                b0, b1 = b[i], b[j]
-                scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
-                if abs(a10) > abs(a00):
-                    a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
-                if not abs(a00) > tolerance * scale:
-                    return None
-                factor = a10 / a00
-                a11 = a11 - factor * a01
-                b1 = b1 - factor * b0
-                if not abs(a11) > tolerance * scale:
-                    return None
-                x1 = b1 / a11
-                w[i], w[j] = (b0 - a01 * x1) / a00, x1
-        else:
-            for start, block in zip(starts, rows):
-                x = _lu_solve_1(r[start:start + size * size], [b[i] for i in block])
-                if x is None:
-                    return None
-                for i, value in zip(block, x):
-                    w[i] = value
+    a00, a01, a10, a11 = r[0:4]
+    b0, b1 = b[0], b[1]
+    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
+    if abs(a10) > abs(a00):
+        a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
+    if not abs(a00) > tolerance * scale:
+        return None
+    factor = a10 / a00
+    a11 = a11 - factor * a01
+    b1 = b1 - factor * b0
+    if not abs(a11) > tolerance * scale:
+        return None
+    x1 = b1 / a11
+    w[0], w[1] = (b0 - a01 * x1) / a00, x1
+    a00, a01, a10, a11 = r[4:8]
+    b0, b1 = b[2], b[3]
+    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
+    if abs(a10) > abs(a00):
+        a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
+    if not abs(a00) > tolerance * scale:
+        return None
+    factor = a10 / a00
+    a11 = a11 - factor * a01
+    b1 = b1 - factor * b0
+    if not abs(a11) > tolerance * scale:
+        return None
+    x1 = b1 / a11
+    w[2], w[3] = (b0 - a01 * x1) / a00, x1
     return w
 
 
@@ -1287,7 +1230,9 @@ def _law_1(t, s, p, rates):
     """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
     tau = _jet_time_1(t, p, _A_LIST)
     hess, jet_rhs, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
-    if not (_finite(hess) and _finite(jet_rhs) and _finite(r) and _finite(pvec)):
+    # The right-hand side and p reach b, which is checked below; an infinite Hessian
+    # entry can leave z finite, and an entry of R no plant input depends on could hide.
+    if not math.isfinite(sum(hess) + sum(r)):
         return None
     z, pivot = _cholesky_1(hess, jet_rhs)
     if not min(pivot) > PIVOT_TOLERANCE * max(map(abs, hess)):
@@ -1305,41 +1250,24 @@ def _law_1(t, s, p, rates):
     return (ds, u) if _finite(ds) and _finite(u) else None
 
 
-def _one_point(function, shape):
-    """``function(t, s, p)`` for one state given as a 1-D float array, or None."""
-
-    def evaluate(t, s, params):
-        values = s.tolist()
-        p = _P_LIST if params is None else _parameters(params).tolist()
-        if not (math.isfinite(t) and _finite(values) and _finite(p)):
-            return None
-        try:
-            with numpy.errstate(all="ignore"):
-                result = function(float(t), values, p)
-        except ArithmeticError:
-            return None
-        if result is None or not _finite(result):
-            return None
-        return numpy.array(result).reshape(shape)
-
-    return evaluate
+def _control_1(t, s, p):
+    law = _law_1(t, s, p, False)
+    return None if law is None else law[1]
 
 
-def _first(result):
-    return None if result is None else result[1]
+def _rhs_1(t, s, p):
+    law = _law_1(t, s, p, True)
+    return None if law is None else law[0]
 
 
-def _second(result):
-    return None if result is None else result[0]
-
-
+#: The one-point evaluators by public function, and their results' shapes.
 _ONE_POINT = {
-    "control": _one_point(lambda t, s, p: _first(_law_1(t, s, p, False)), (4,)),
-    "rhs": _one_point(lambda t, s, p: _second(_law_1(t, s, p, True)), (8,)),
-    "optimality_error": _one_point(_optimality_1, (K, 4)),
-    "objective": _one_point(_objective_1, ()),
-    "gradient": _one_point(_gradient_1, (4,)),
-    "hessian": _one_point(_hessian_1, (4, 4)),
+    "control": (_control_1, (4,)),
+    "rhs": (_rhs_1, (8,)),
+    "optimality_error": (_optimality_1, (K, 4)),
+    "objective": (_objective_1, ()),
+    "gradient": (_gradient_1, (4,)),
+    "hessian": (_hessian_1, (4, 4)),
 }
 _A_LIST = list(HURWITZ_COEFFICIENTS)
 _P_LIST = _DEFAULT_P.tolist()
@@ -1501,15 +1429,27 @@ def hessian(t, y, params=None):
 
 def _with_one_point(general, rows):
     """``general``, with a single state or output in a float array taken by the fast path."""
-    fast = _ONE_POINT[general.__name__]
+    fast, shape = _ONE_POINT[general.__name__]
     number = general.__name__ == "objective"
+    flat = len(shape) == 1
+    expected = (rows,)
 
     def function(t, s, params=None):
-        if (type(s) is numpy.ndarray and s.shape == (rows,) and s.dtype.kind == "f"
+        if (type(s) is numpy.ndarray and s.shape == expected and s.dtype.kind == "f"
                 and isinstance(t, (float, int))):
-            result = fast(t, s, params)
-            if result is not None:
-                return float(result) if number else result
+            values = s.tolist()
+            p = _P_LIST if params is None else _parameters(params).tolist()
+            if math.isfinite(t) and _finite(values) and _finite(p):
+                try:
+                    result = fast(float(t), values, p)
+                except (ArithmeticError, RuntimeWarning):
+                    # A float's ZeroDivisionError or OverflowError; NumPy's warning made
+                    # an error by the caller's filters, or FloatingPointError by seterr.
+                    result = None
+                if result is not None and _finite(result):
+                    if number:
+                        return float(result[0])
+                    return numpy.array(result) if flat else numpy.array(result).reshape(shape)
         return general(t, s, params)
 
     return functools.update_wrapper(function, general)

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 1eaf762d59c87e74530e539c4f6f288dc95dfcbb09d230a6b52308265d2d2f36
+# content sha256: 1e2e34981e75565e0205cea2ee774cbf3296da752b3d86559bcef1665bcbcc25
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 from collections.abc import Mapping
 
 import numpy
@@ -1266,10 +1267,7 @@ def _hessian(t, y, p):
 
 def _jet_time_1(t, p, a):
     """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
-    _p0 = p[0]
-    _p1 = p[1]
-    _p2 = p[2]
-    _p3 = p[3]
+    _p0, _p1, _p2, _p3 = p
     _t0 = (3/10)*t
     _t1 = _p3*t
     _t2 = float(numpy.cos(_t1))
@@ -1280,86 +1278,46 @@ def _jet_time_1(t, p, a):
     _t7 = (1/5)*t
     _t8 = _p2*_t4
     _t9 = _p2*_p3*_t2
-    _t27 = 1/_p1
+    _t27 = 1.0/_p1
     _t30 = numpy.pi*_t27
     _t35 = numpy.pi*_p0*_t27
-    _t169 = 2*_p2*_t2*_t6
-    _t176 = 2*_p2*_t4*_t6
+    _t169 = 2.0*_p2*_t2*_t6
+    _t176 = 2.0*_p2*_t4*_t6
     tau = [
         (1/2)*_t30,
         _t35,
         _t30,
-        2*_t35,
+        2.0*_t35,
         -_t30,
-        -2*_t0 - 2*_t3,
-        -2*_t5 - 3/5,
+        -2.0*_t0 - 2.0*_t3,
+        -2.0*_t5 - 3/5,
         -_t169,
-        -2*_t7 - 2*_t8,
-        -2*_t9 - 2/5,
+        -2.0*_t7 - 2.0*_t8,
+        -2.0*_t9 - 2/5,
         -_t176,
-        2*_t8 - 2*_t0,
-        2*_t9 - 3/5,
+        2.0*_t8 - 2.0*_t0,
+        2.0*_t9 - 3/5,
         _t176,
-        -2*_t3 - 2*_t7,
-        -2*_t5 - 2/5,
-        2*_t3 - 2*_t0,
-        2*_t5 - 3/5,
+        -2.0*_t3 - 2.0*_t7,
+        -2.0*_t5 - 2/5,
+        2.0*_t3 - 2.0*_t0,
+        2.0*_t5 - 3/5,
         _t169,
-        2*_t8 - 2*_t7,
-        2*_t9 - 2/5,
-        -2*_t0 - 2*_t8,
-        -2*_t9 - 3/5,
-        2*_t3 - 2*_t7,
-        2*_t5 - 2/5,
+        2.0*_t8 - 2.0*_t7,
+        2.0*_t9 - 2/5,
+        -2.0*_t0 - 2.0*_t8,
+        -2.0*_t9 - 3/5,
+        2.0*_t3 - 2.0*_t7,
+        2.0*_t5 - 2/5,
     ]
     return tau
 
 
 def _jet_1(t, s, p, a, tau):
     """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (one point; lists in, lists out)."""
-    _s0 = s[0]
-    _s1 = s[1]
-    _s2 = s[2]
-    _s3 = s[3]
-    _s4 = s[4]
-    _s5 = s[5]
-    _s6 = s[6]
-    _s7 = s[7]
-    _s8 = s[8]
-    _s9 = s[9]
-    _s10 = s[10]
-    _s11 = s[11]
-    _s12 = s[12]
-    _s13 = s[13]
-    _s14 = s[14]
-    _s15 = s[15]
-    _a0 = a[0]
-    _a1 = a[1]
-    _h0 = tau[0]
-    _t35 = tau[1]
-    _t30 = tau[2]
-    _h1 = tau[3]
-    _h2 = tau[4]
-    _h3 = tau[5]
-    _h4 = tau[6]
-    _h5 = tau[7]
-    _h6 = tau[8]
-    _h7 = tau[9]
-    _h8 = tau[10]
-    _h9 = tau[11]
-    _h10 = tau[12]
-    _t176 = tau[13]
-    _h11 = tau[14]
-    _h12 = tau[15]
-    _h13 = tau[16]
-    _h14 = tau[17]
-    _t169 = tau[18]
-    _h15 = tau[19]
-    _h16 = tau[20]
-    _h17 = tau[21]
-    _h18 = tau[22]
-    _h19 = tau[23]
-    _h20 = tau[24]
+    _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7, _s8, _s9, _s10, _s11, _s12, _s13, _s14, _s15 = s
+    _a0, _a1 = a
+    _h0, _t35, _t30, _h1, _h2, _h3, _h4, _h5, _h6, _h7, _h8, _h9, _h10, _t176, _h11, _h12, _h13, _h14, _t169, _h15, _h16, _h17, _h18, _h19, _h20 = tau
     _t10 = float(numpy.cos(_s2))
     _t11 = _s12*_t10
     _t12 = float(numpy.sin(_s2))
@@ -1376,12 +1334,12 @@ def _jet_1(t, s, p, a, tau):
     _t23 = _s15*_t22
     _t24 = float(numpy.sin(_s11))
     _t25 = _s15*_t24
-    _t26 = 2*_s0
+    _t26 = 2.0*_s0
     _t28 = _s0 - _s3
     _t29 = _s1 - _s4
     _t31 = float(numpy.tan(_h0*((_t28*_t28) + (_t29*_t29))))
-    _t32 = (_t31*_t31) + 1
-    _t33 = -2*_s3
+    _t32 = (_t31*_t31) + 1.0
+    _t33 = -2.0*_s3
     _t34 = _t26 + _t33
     _t36 = _t32*_t35
     _t37 = _t34*_t36
@@ -1389,38 +1347,38 @@ def _jet_1(t, s, p, a, tau):
     _t39 = _s9 - _s0
     _t40 = _s10 - _s1
     _t41 = float(numpy.tan(_h0*((_t39*_t39) + (_t40*_t40))))
-    _t42 = (_t41*_t41) + 1
-    _t43 = -2*_s9
+    _t42 = (_t41*_t41) + 1.0
+    _t43 = -2.0*_s9
     _t44 = _t26 + _t43
     _t45 = _t35*_t42
     _t46 = _t44*_t45
     _t47 = _t41*_t46
-    _t48 = 2*_s1
-    _t49 = -2*_s4
+    _t48 = 2.0*_s1
+    _t49 = -2.0*_s4
     _t50 = _t48 + _t49
     _t51 = _t36*_t50
     _t52 = _t31*_t51
-    _t53 = -2*_s10
+    _t53 = -2.0*_s10
     _t54 = _t48 + _t53
     _t55 = _t45*_t54
     _t56 = _t41*_t55
     _t57 = _s3 - _s6
     _t58 = _s4 - _s7
     _t59 = float(numpy.tan(_h0*((_t57*_t57) + (_t58*_t58))))
-    _t60 = (_t59*_t59) + 1
-    _t61 = -2*_s6
+    _t60 = (_t59*_t59) + 1.0
+    _t61 = -2.0*_s6
     _t62 = _t61 - _t33
     _t63 = _t35*_t60
     _t64 = _t62*_t63
     _t65 = _t59*_t64
-    _t66 = -2*_s7
+    _t66 = -2.0*_s7
     _t67 = _t66 - _t49
     _t68 = _t63*_t67
     _t69 = _t59*_t68
     _t70 = _s6 - _s9
     _t71 = _s7 - _s10
     _t72 = float(numpy.tan(_h0*((_t70*_t70) + (_t71*_t71))))
-    _t73 = (_t72*_t72) + 1
+    _t73 = (_t72*_t72) + 1.0
     _t74 = _t43 - _t61
     _t75 = _t35*_t73
     _t76 = _t74*_t75
@@ -1428,55 +1386,55 @@ def _jet_1(t, s, p, a, tau):
     _t78 = _t53 - _t66
     _t79 = _t75*_t78
     _t80 = _t72*_t79
-    _t81 = 2*_t11
+    _t81 = 2.0*_t11
     _t82 = _t11 - _t15
     _t83 = _t13 - _t17
-    _t84 = _h0*(2*_t28*_t82 + 2*_t29*_t83)
+    _t84 = _h0*(2.0*_t28*_t82 + 2.0*_t29*_t83)
     _t85 = _t32*_t84
-    _t86 = 2*_t31*_t85
-    _t87 = -2*_t15
+    _t86 = 2.0*_t31*_t85
+    _t87 = -2.0*_t15
     _t88 = _t81 + _t87
     _t89 = _t35*_t86
     _t90 = _t34*_t89 + _t36*_t88
     _t91 = _t31*_t90 + _t37*_t85
     _t92 = _t23 - _t11
     _t93 = _t25 - _t13
-    _t94 = _h0*(2*_t39*_t92 + 2*_t40*_t93)
+    _t94 = _h0*(2.0*_t39*_t92 + 2.0*_t40*_t93)
     _t95 = _t42*_t94
-    _t96 = 2*_t41*_t95
-    _t97 = -2*_t23
+    _t96 = 2.0*_t41*_t95
+    _t97 = -2.0*_t23
     _t98 = _t81 + _t97
     _t99 = _t35*_t96
     _t100 = _t44*_t99 + _t45*_t98
     _t101 = _t100*_t41 + _t46*_t95
-    _t102 = 2*_t13
-    _t103 = -2*_t17
+    _t102 = 2.0*_t13
+    _t103 = -2.0*_t17
     _t104 = _t102 + _t103
     _t105 = _t104*_t36 + _t50*_t89
     _t106 = _t105*_t31 + _t51*_t85
-    _t107 = -2*_t25
+    _t107 = -2.0*_t25
     _t108 = _t102 + _t107
     _t109 = _t108*_t45 + _t54*_t99
     _t110 = _t109*_t41 + _t55*_t95
     _t111 = _t15 - _t19
     _t112 = _t17 - _t21
-    _t113 = _h0*(2*_t111*_t57 + 2*_t112*_t58)
+    _t113 = _h0*(2.0*_t111*_t57 + 2.0*_t112*_t58)
     _t114 = _t113*_t60
-    _t115 = 2*_t114*_t59
-    _t116 = -2*_t19
+    _t115 = 2.0*_t114*_t59
+    _t116 = -2.0*_t19
     _t117 = _t116 - _t87
     _t118 = _t115*_t35
     _t119 = _t117*_t63 + _t118*_t62
     _t120 = _t114*_t64 + _t119*_t59
-    _t121 = -2*_t21
+    _t121 = -2.0*_t21
     _t122 = _t121 - _t103
     _t123 = _t118*_t67 + _t122*_t63
     _t124 = _t114*_t68 + _t123*_t59
     _t125 = _t19 - _t23
     _t126 = _t21 - _t25
-    _t127 = _h0*(2*_t125*_t70 + 2*_t126*_t71)
+    _t127 = _h0*(2.0*_t125*_t70 + 2.0*_t126*_t71)
     _t128 = _t127*_t73
-    _t129 = 2*_t128*_t72
+    _t129 = 2.0*_t128*_t72
     _t130 = _t97 - _t116
     _t131 = _t129*_t35
     _t132 = _t130*_t75 + _t131*_t74
@@ -1488,13 +1446,13 @@ def _jet_1(t, s, p, a, tau):
     _t138 = _t29*_t30*_t32
     _t139 = _h1*_t137*_t31
     _t140 = _h1*_t138*_t31
-    _t141 = 2*_t36
+    _t141 = 2.0*_t36
     _t142 = _t137*_t37 + _t31*(_t141 + _t139*_t34)
     _t143 = _h2*_t39*_t42
     _t144 = _h2*_t40*_t42
     _t145 = _h1*_t143*_t41
     _t146 = _h1*_t144*_t41
-    _t147 = 2*_t45
+    _t147 = 2.0*_t45
     _t148 = _t143*_t46 + _t41*(_t147 + _t145*_t44)
     _t149 = _t137*_t51 + _t139*_t31*_t50
     _t150 = _t138*_t51 + _t31*(_t141 + _t140*_t50)
@@ -1504,7 +1462,7 @@ def _jet_1(t, s, p, a, tau):
     _t154 = _t30*_t58*_t60
     _t155 = _h1*_t153*_t59
     _t156 = _h1*_t154*_t59
-    _t157 = 2*_t63
+    _t157 = 2.0*_t63
     _t158 = _t153*_t64 + _t59*(_t157 + _t155*_t62)
     _t159 = _t153*_t68 + _t155*_t59*_t67
     _t160 = _t154*_t68 + _t59*(_t157 + _t156*_t67)
@@ -1512,55 +1470,55 @@ def _jet_1(t, s, p, a, tau):
     _t162 = _t30*_t71*_t73
     _t163 = _h1*_t161*_t72
     _t164 = _h1*_t162*_t72
-    _t165 = 2*_t75
+    _t165 = 2.0*_t75
     _t166 = _t161*_t76 + _t72*(_t165 + _t163*_t74)
     _t167 = _t161*_t79 + _t163*_t72*_t78
     _t168 = _t162*_t79 + _t72*(_t165 + _t164*_t78)
-    _t170 = _t84*_t86 + _h0*_t32*(2*(_t82*_t82) + 2*(_t83*_t83))
-    _t171 = _t35*(2*(_t85*_t85) + 2*_t170*_t31)
-    _t172 = _t170*_t37 + _t31*(_t171*_t34 + 2*_t88*_t89) + 2*_t85*_t90
-    _t173 = _t94*_t96 + _h0*_t42*(2*(_t92*_t92) + 2*(_t93*_t93))
-    _t174 = _t35*(2*(_t95*_t95) + 2*_t173*_t41)
-    _t175 = _t173*_t46 + _t41*(_t174*_t44 + 2*_t98*_t99) + 2*_t100*_t95
-    _t177 = _t170*_t51 + _t31*(_t171*_t50 + 2*_t104*_t89) + 2*_t105*_t85
-    _t178 = _t173*_t55 + _t41*(_t174*_t54 + 2*_t108*_t99) + 2*_t109*_t95
-    _t179 = _t113*_t115 + _h0*_t60*(2*(_t111*_t111) + 2*(_t112*_t112))
-    _t180 = _t35*(2*(_t114*_t114) + 2*_t179*_t59)
-    _t181 = _t179*_t64 + _t59*(_t180*_t62 + 2*_t117*_t118) + 2*_t114*_t119
-    _t182 = _t179*_t68 + _t59*(_t180*_t67 + 2*_t118*_t122) + 2*_t114*_t123
-    _t183 = _t127*_t129 + _h0*_t73*(2*(_t125*_t125) + 2*(_t126*_t126))
-    _t184 = _t35*(2*(_t128*_t128) + 2*_t183*_t72)
-    _t185 = _t183*_t76 + _t72*(_t184*_t74 + 2*_t130*_t131) + 2*_t128*_t132
-    _t186 = _t183*_t79 + _t72*(_t184*_t78 + 2*_t131*_t134) + 2*_t128*_t135
+    _t170 = _t84*_t86 + _h0*_t32*(2.0*(_t82*_t82) + 2.0*(_t83*_t83))
+    _t171 = _t35*(2.0*(_t85*_t85) + 2.0*_t170*_t31)
+    _t172 = _t170*_t37 + _t31*(_t171*_t34 + 2.0*_t88*_t89) + 2.0*_t85*_t90
+    _t173 = _t94*_t96 + _h0*_t42*(2.0*(_t92*_t92) + 2.0*(_t93*_t93))
+    _t174 = _t35*(2.0*(_t95*_t95) + 2.0*_t173*_t41)
+    _t175 = _t173*_t46 + _t41*(_t174*_t44 + 2.0*_t98*_t99) + 2.0*_t100*_t95
+    _t177 = _t170*_t51 + _t31*(_t171*_t50 + 2.0*_t104*_t89) + 2.0*_t105*_t85
+    _t178 = _t173*_t55 + _t41*(_t174*_t54 + 2.0*_t108*_t99) + 2.0*_t109*_t95
+    _t179 = _t113*_t115 + _h0*_t60*(2.0*(_t111*_t111) + 2.0*(_t112*_t112))
+    _t180 = _t35*(2.0*(_t114*_t114) + 2.0*_t179*_t59)
+    _t181 = _t179*_t64 + _t59*(_t180*_t62 + 2.0*_t117*_t118) + 2.0*_t114*_t119
+    _t182 = _t179*_t68 + _t59*(_t180*_t67 + 2.0*_t118*_t122) + 2.0*_t114*_t123
+    _t183 = _t127*_t129 + _h0*_t73*(2.0*(_t125*_t125) + 2.0*(_t126*_t126))
+    _t184 = _t35*(2.0*(_t128*_t128) + 2.0*_t183*_t72)
+    _t185 = _t183*_t76 + _t72*(_t184*_t74 + 2.0*_t130*_t131) + 2.0*_t128*_t132
+    _t186 = _t183*_t79 + _t72*(_t184*_t78 + 2.0*_t131*_t134) + 2.0*_t128*_t135
     hessian = [
-        _t142 + _t148 + 2,
+        _t142 + _t148 + 2.0,
         _t149 + _t151,
-        _t150 + _t152 + 2,
+        _t150 + _t152 + 2.0,
         -_t142,
         -_t138*_t37 - _t140*_t31*_t34,
-        _t142 + _t158 + 2,
+        _t142 + _t158 + 2.0,
         -_t149,
         -_t150,
         _t149 + _t159,
-        _t150 + _t160 + 2,
+        _t150 + _t160 + 2.0,
         -_t158,
         -_t154*_t64 - _t156*_t59*_t62,
-        _t158 + _t166 + 2,
+        _t158 + _t166 + 2.0,
         -_t159,
         -_t160,
         _t159 + _t167,
-        _t160 + _t168 + 2,
+        _t160 + _t168 + 2.0,
         -_t148,
         -_t144*_t46 - _t146*_t41*_t44,
         -_t166,
         -_t162*_t76 - _t164*_t72*_t74,
-        _t148 + _t166 + 2,
+        _t148 + _t166 + 2.0,
         -_t151,
         -_t152,
         -_t167,
         -_t168,
         _t151 + _t167,
-        _t152 + _t168 + 2,
+        _t152 + _t168 + 2.0,
     ]
     jet_rhs = [
         _h5 - _t172 - _t175 + _a0*(_h3 + _t26 + _t38 + _t47) + _a1*(_h4 + _t101 + _t81 + _t91),
@@ -1591,64 +1549,30 @@ def _jet_1(t, s, p, a, tau):
         _t23,
     ]
     pvec = [
-        0,
-        0,
-        0,
-        0,
-        0,
-        0,
-        0,
-        0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
     ]
     return hessian, jet_rhs, R, pvec
 
 
 def _cholesky_1(h, c):
     """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (one point; lists in, lists out)."""
-    _h0 = h[0]
-    _h1 = h[1]
-    _h2 = h[2]
-    _h3 = h[3]
-    _h4 = h[4]
-    _h5 = h[5]
-    _h6 = h[6]
-    _h7 = h[7]
-    _h8 = h[8]
-    _h9 = h[9]
-    _h10 = h[10]
-    _h11 = h[11]
-    _h12 = h[12]
-    _h13 = h[13]
-    _h14 = h[14]
-    _h15 = h[15]
-    _h16 = h[16]
-    _h17 = h[17]
-    _h18 = h[18]
-    _h19 = h[19]
-    _h20 = h[20]
-    _h21 = h[21]
-    _h22 = h[22]
-    _h23 = h[23]
-    _h24 = h[24]
-    _h25 = h[25]
-    _h26 = h[26]
-    _h27 = h[27]
-    _c0 = c[0]
-    _c1 = c[1]
-    _c2 = c[2]
-    _c3 = c[3]
-    _c4 = c[4]
-    _c5 = c[5]
-    _c6 = c[6]
-    _c7 = c[7]
-    _t0 = 1/_h0
+    _h0, _h1, _h2, _h3, _h4, _h5, _h6, _h7, _h8, _h9, _h10, _h11, _h12, _h13, _h14, _h15, _h16, _h17, _h18, _h19, _h20, _h21, _h22, _h23, _h24, _h25, _h26, _h27 = h
+    _c0, _c1, _c2, _c3, _c4, _c5, _c6, _c7 = c
+    _t0 = 1.0/_h0
     _t1 = _h1*_t0
     _t2 = _h3*_t0
     _t3 = _h6*_t0
     _t4 = _h17*_t0
     _t5 = _h22*_t0
     _t6 = _h2 - _h1*_t1
-    _t7 = 1/_t6
+    _t7 = 1.0/_t6
     _t8 = _h4 - _h1*_t2
     _t9 = _t7*_t8
     _t10 = _h7 - _h1*_t3
@@ -1658,7 +1582,7 @@ def _cholesky_1(h, c):
     _t14 = _h23 - _h1*_t5
     _t15 = _t14*_t7
     _t16 = _h5 - _h3*_t2 - _t8*_t9
-    _t17 = 1/_t16
+    _t17 = 1.0/_t16
     _t18 = _h8 - _h3*_t3 - _t11*_t8
     _t19 = _t17*_t18
     _t20 = _h10*_t17
@@ -1668,7 +1592,7 @@ def _cholesky_1(h, c):
     _t24 = -_h3*_t5 - _t15*_t8
     _t25 = _t17*_t24
     _t26 = _h9 - _h6*_t3 - _t10*_t11 - _t18*_t19
-    _t27 = 1/_t26
+    _t27 = 1.0/_t26
     _t28 = _h11 - _t18*_t20
     _t29 = _t27*_t28
     _t30 = _h14 - _t18*_t21
@@ -1678,7 +1602,7 @@ def _cholesky_1(h, c):
     _t34 = -_h6*_t5 - _t10*_t15 - _t18*_t25
     _t35 = _t27*_t34
     _t36 = _h12 - _h10*_t20 - _t28*_t29
-    _t37 = 1/_t36
+    _t37 = 1.0/_t36
     _t38 = _h15 - _h10*_t21 - _t28*_t31
     _t39 = _t37*_t38
     _t40 = _h19 - _h10*_t23 - _t28*_t33
@@ -1686,13 +1610,13 @@ def _cholesky_1(h, c):
     _t42 = _h24 - _h10*_t25 - _t28*_t35
     _t43 = _t37*_t42
     _t44 = _h16 - _h13*_t21 - _t30*_t31 - _t38*_t39
-    _t45 = 1/_t44
+    _t45 = 1.0/_t44
     _t46 = _h20 - _h13*_t23 - _t30*_t33 - _t38*_t41
     _t47 = _t45*_t46
     _t48 = _h25 - _h13*_t25 - _t30*_t35 - _t38*_t43
     _t49 = _t45*_t48
     _t50 = _h21 - _h17*_t4 - _t12*_t13 - _t22*_t23 - _t32*_t33 - _t40*_t41 - _t46*_t47
-    _t51 = 1/_t50
+    _t51 = 1.0/_t50
     _t52 = _h26 - _h17*_t5 - _t12*_t15 - _t22*_t25 - _t32*_t35 - _t40*_t43 - _t46*_t49
     _t53 = _t51*_t52
     _t54 = _h27 - _h22*_t5 - _t14*_t15 - _t24*_t25 - _t34*_t35 - _t42*_t43 - _t48*_t49 - _t52*_t53
@@ -1734,22 +1658,8 @@ def _cholesky_1(h, c):
 
 def _decoupling_1(t, s, p, z, q):
     """b = v - p, so that R w = b linearizes the plant (one point; lists in, lists out)."""
-    _z0 = z[0]
-    _z1 = z[1]
-    _z2 = z[2]
-    _z3 = z[3]
-    _z4 = z[4]
-    _z5 = z[5]
-    _z6 = z[6]
-    _z7 = z[7]
-    _q0 = q[0]
-    _q1 = q[1]
-    _q2 = q[2]
-    _q3 = q[3]
-    _q4 = q[4]
-    _q5 = q[5]
-    _q6 = q[6]
-    _q7 = q[7]
+    _z0, _z1, _z2, _z3, _z4, _z5, _z6, _z7 = z
+    _q0, _q1, _q2, _q3, _q4, _q5, _q6, _q7 = q
     b = [
         _z0 - _q0,
         _z1 - _q1,
@@ -1765,22 +1675,8 @@ def _decoupling_1(t, s, p, z, q):
 
 def _closed_loop_1(t, s, p, w, z):
     """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
-    _s2 = s[2]
-    _s5 = s[5]
-    _s8 = s[8]
-    _s11 = s[11]
-    _s12 = s[12]
-    _s13 = s[13]
-    _s14 = s[14]
-    _s15 = s[15]
-    _w0 = w[0]
-    _w1 = w[1]
-    _w2 = w[2]
-    _w3 = w[3]
-    _w4 = w[4]
-    _w5 = w[5]
-    _w6 = w[6]
-    _w7 = w[7]
+    _, _, _s2, _, _, _s5, _, _, _s8, _, _, _s11, _s12, _s13, _s14, _s15 = s
+    _w0, _w1, _w2, _w3, _w4, _w5, _w6, _w7 = w
     ds = [
         _s12*float(numpy.cos(_s2)),
         _s12*float(numpy.sin(_s2)),
@@ -1814,14 +1710,8 @@ def _closed_loop_1(t, s, p, w, z):
 
 def _plant_input_1(t, s, p, w):
     """The plant input alone (control needs no vector field) (one point; lists in, lists out)."""
-    _s12 = s[12]
-    _s13 = s[13]
-    _s14 = s[14]
-    _s15 = s[15]
-    _w1 = w[1]
-    _w3 = w[3]
-    _w5 = w[5]
-    _w7 = w[7]
+    _, _, _, _, _, _, _, _, _, _, _, _, _s12, _s13, _s14, _s15 = s
+    _, _w1, _, _w3, _, _w5, _, _w7 = w
     u = [
         _s12,
         _w1,
@@ -1837,26 +1727,8 @@ def _plant_input_1(t, s, p, w):
 
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
-    _s0 = s[0]
-    _s1 = s[1]
-    _s2 = s[2]
-    _s3 = s[3]
-    _s4 = s[4]
-    _s5 = s[5]
-    _s6 = s[6]
-    _s7 = s[7]
-    _s8 = s[8]
-    _s9 = s[9]
-    _s10 = s[10]
-    _s11 = s[11]
-    _s12 = s[12]
-    _s13 = s[13]
-    _s14 = s[14]
-    _s15 = s[15]
-    _p0 = p[0]
-    _p1 = p[1]
-    _p2 = p[2]
-    _p3 = p[3]
+    _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7, _s8, _s9, _s10, _s11, _s12, _s13, _s14, _s15 = s
+    _p0, _p1, _p2, _p3 = p
     _t0 = (3/10)*t
     _t1 = _p3*t
     _t2 = _p2*float(numpy.cos(_t1))
@@ -1872,14 +1744,14 @@ def _optimality_1(t, s, p):
     _t12 = _s14*float(numpy.sin(_s8))
     _t13 = _s15*float(numpy.cos(_s11))
     _t14 = _s15*float(numpy.sin(_s11))
-    _t15 = 2*_s0
-    _t16 = 1/_p1
+    _t15 = 2.0*_s0
+    _t16 = 1.0/_p1
     _t17 = _s0 - _s3
     _t18 = _s1 - _s4
     _t19 = (1/2)*numpy.pi*_t16
     _t20 = float(numpy.tan(_t19*((_t17*_t17) + (_t18*_t18))))
-    _t21 = (_t20*_t20) + 1
-    _t22 = 2*_s3
+    _t21 = (_t20*_t20) + 1.0
+    _t22 = 2.0*_s3
     _t23 = _t15 - _t22
     _t24 = numpy.pi*_p0*_t16
     _t25 = _t21*_t24
@@ -1888,38 +1760,38 @@ def _optimality_1(t, s, p):
     _t28 = _s9 - _s0
     _t29 = _s10 - _s1
     _t30 = float(numpy.tan(_t19*((_t28*_t28) + (_t29*_t29))))
-    _t31 = (_t30*_t30) + 1
-    _t32 = 2*_s9
+    _t31 = (_t30*_t30) + 1.0
+    _t32 = 2.0*_s9
     _t33 = _t15 - _t32
     _t34 = _t24*_t31
     _t35 = _t33*_t34
     _t36 = _t30*_t35
-    _t37 = 2*_s1
-    _t38 = 2*_s4
+    _t37 = 2.0*_s1
+    _t38 = 2.0*_s4
     _t39 = _t37 - _t38
     _t40 = _t25*_t39
     _t41 = _t20*_t40
-    _t42 = 2*_s10
+    _t42 = 2.0*_s10
     _t43 = _t37 - _t42
     _t44 = _t34*_t43
     _t45 = _t30*_t44
     _t46 = _s3 - _s6
     _t47 = _s4 - _s7
     _t48 = float(numpy.tan(_t19*((_t46*_t46) + (_t47*_t47))))
-    _t49 = (_t48*_t48) + 1
-    _t50 = 2*_s6
+    _t49 = (_t48*_t48) + 1.0
+    _t50 = 2.0*_s6
     _t51 = _t22 - _t50
     _t52 = _t24*_t49
     _t53 = _t51*_t52
     _t54 = _t48*_t53
-    _t55 = 2*_s7
+    _t55 = 2.0*_s7
     _t56 = _t38 - _t55
     _t57 = _t52*_t56
     _t58 = _t48*_t57
     _t59 = _s6 - _s9
     _t60 = _s7 - _s10
     _t61 = float(numpy.tan(_t19*((_t59*_t59) + (_t60*_t60))))
-    _t62 = (_t61*_t61) + 1
+    _t62 = (_t61*_t61) + 1.0
     _t63 = _t50 - _t32
     _t64 = _t24*_t62
     _t65 = _t63*_t64
@@ -1927,65 +1799,55 @@ def _optimality_1(t, s, p):
     _t67 = _t55 - _t42
     _t68 = _t64*_t67
     _t69 = _t61*_t68
-    _t70 = 2*_t7
-    _t71 = _t19*_t21*(2*_t17*(_t7 - _t9) + 2*_t18*(_t8 - _t10))
-    _t72 = 2*_t9
-    _t73 = 2*_t20*_t24*_t71
+    _t70 = 2.0*_t7
+    _t71 = _t19*_t21*(2.0*_t17*(_t7 - _t9) + 2.0*_t18*(_t8 - _t10))
+    _t72 = 2.0*_t9
+    _t73 = 2.0*_t20*_t24*_t71
     _t74 = _t20*(_t23*_t73 + _t25*(_t70 - _t72)) + _t26*_t71
-    _t75 = _t19*_t31*(2*_t28*(_t13 - _t7) + 2*_t29*(_t14 - _t8))
-    _t76 = 2*_t13
-    _t77 = 2*_t24*_t30*_t75
+    _t75 = _t19*_t31*(2.0*_t28*(_t13 - _t7) + 2.0*_t29*(_t14 - _t8))
+    _t76 = 2.0*_t13
+    _t77 = 2.0*_t24*_t30*_t75
     _t78 = _t30*(_t33*_t77 + _t34*(_t70 - _t76)) + _t35*_t75
-    _t79 = 2*_t8
-    _t80 = 2*_t10
+    _t79 = 2.0*_t8
+    _t80 = 2.0*_t10
     _t81 = _t20*(_t25*(_t79 - _t80) + _t39*_t73) + _t40*_t71
-    _t82 = 2*_t14
+    _t82 = 2.0*_t14
     _t83 = _t30*(_t34*(_t79 - _t82) + _t43*_t77) + _t44*_t75
-    _t84 = _t19*_t49*(2*_t46*(_t9 - _t11) + 2*_t47*(_t10 - _t12))
-    _t85 = 2*_t11
-    _t86 = 2*_t24*_t48*_t84
+    _t84 = _t19*_t49*(2.0*_t46*(_t9 - _t11) + 2.0*_t47*(_t10 - _t12))
+    _t85 = 2.0*_t11
+    _t86 = 2.0*_t24*_t48*_t84
     _t87 = _t48*(_t51*_t86 + _t52*(_t72 - _t85)) + _t53*_t84
-    _t88 = 2*_t12
+    _t88 = 2.0*_t12
     _t89 = _t48*(_t52*(_t80 - _t88) + _t56*_t86) + _t57*_t84
-    _t90 = _t19*_t62*(2*_t59*(_t11 - _t13) + 2*_t60*(_t12 - _t14))
-    _t91 = 2*_t24*_t61*_t90
+    _t90 = _t19*_t62*(2.0*_t59*(_t11 - _t13) + 2.0*_t60*(_t12 - _t14))
+    _t91 = 2.0*_t24*_t61*_t90
     _t92 = _t61*(_t63*_t91 + _t64*(_t85 - _t76)) + _t65*_t90
     _t93 = _t61*(_t64*(_t88 - _t82) + _t67*_t91) + _t68*_t90
     E = [
-        _t15 + _t27 + _t36 - 2*_t0 - 2*_t2,
-        _t37 + _t41 + _t45 - 2*_t3 - 2*_t5,
-        _t22 + _t54 - _t27 - 2*_t0 + 2*_t3,
-        _t38 + _t58 - _t41 - 2*_t2 - 2*_t5,
-        _t50 + _t66 - _t54 - 2*_t0 + 2*_t2,
-        _t55 + _t69 - _t58 - 2*_t5 + 2*_t3,
-        _t32 - _t36 - _t66 - 2*_t0 - 2*_t3,
-        _t42 - _t45 - _t69 - 2*_t5 + 2*_t2,
-        _t70 + _t74 + _t78 + 2*_t4 - 3/5,
-        _t79 + _t81 + _t83 - 2*_t6 - 2/5,
-        _t72 + _t87 - _t74 + 2*_t6 - 3/5,
-        _t80 + _t89 - _t81 + 2*_t4 - 2/5,
-        _t85 + _t92 - _t87 - 2*_t4 - 3/5,
-        _t88 + _t93 - _t89 + 2*_t6 - 2/5,
-        _t76 - _t78 - _t92 - 2*_t6 - 3/5,
-        _t82 - _t83 - _t93 - 2*_t4 - 2/5,
+        _t15 + _t27 + _t36 - 2.0*_t0 - 2.0*_t2,
+        _t37 + _t41 + _t45 - 2.0*_t3 - 2.0*_t5,
+        _t22 + _t54 - _t27 - 2.0*_t0 + 2.0*_t3,
+        _t38 + _t58 - _t41 - 2.0*_t2 - 2.0*_t5,
+        _t50 + _t66 - _t54 - 2.0*_t0 + 2.0*_t2,
+        _t55 + _t69 - _t58 - 2.0*_t5 + 2.0*_t3,
+        _t32 - _t36 - _t66 - 2.0*_t0 - 2.0*_t3,
+        _t42 - _t45 - _t69 - 2.0*_t5 + 2.0*_t2,
+        _t70 + _t74 + _t78 + 2.0*_t4 - 3/5,
+        _t79 + _t81 + _t83 - 2.0*_t6 - 2/5,
+        _t72 + _t87 - _t74 + 2.0*_t6 - 3/5,
+        _t80 + _t89 - _t81 + 2.0*_t4 - 2/5,
+        _t85 + _t92 - _t87 - 2.0*_t4 - 3/5,
+        _t88 + _t93 - _t89 + 2.0*_t6 - 2/5,
+        _t76 - _t78 - _t92 - 2.0*_t6 - 3/5,
+        _t82 - _t83 - _t93 - 2.0*_t4 - 2/5,
     ]
     return E
 
 
 def _objective_1(t, y, p):
     """The objective f0(y, t) (one point; lists in, lists out)."""
-    _y0 = y[0]
-    _y1 = y[1]
-    _y2 = y[2]
-    _y3 = y[3]
-    _y4 = y[4]
-    _y5 = y[5]
-    _y6 = y[6]
-    _y7 = y[7]
-    _p0 = p[0]
-    _p1 = p[1]
-    _p2 = p[2]
-    _p3 = p[3]
+    _y0, _y1, _y2, _y3, _y4, _y5, _y6, _y7 = y
+    _p0, _p1, _p2, _p3 = p
     _t0 = (3/10)*t
     _t1 = _p3*t
     _t2 = _p2*float(numpy.cos(_t1))
@@ -2000,133 +1862,115 @@ def _objective_1(t, y, p):
 
 def _gradient_1(t, y, p):
     """grad_y f0(y, t) (one point; lists in, lists out)."""
-    _y0 = y[0]
-    _y1 = y[1]
-    _y2 = y[2]
-    _y3 = y[3]
-    _y4 = y[4]
-    _y5 = y[5]
-    _y6 = y[6]
-    _y7 = y[7]
-    _p0 = p[0]
-    _p1 = p[1]
-    _p2 = p[2]
-    _p3 = p[3]
+    _y0, _y1, _y2, _y3, _y4, _y5, _y6, _y7 = y
+    _p0, _p1, _p2, _p3 = p
     _t0 = (3/10)*t
     _t1 = _p3*t
     _t2 = _p2*float(numpy.cos(_t1))
     _t3 = (1/5)*t
     _t4 = _p2*float(numpy.sin(_t1))
-    _t5 = 2*_y0
-    _t6 = 1/_p1
+    _t5 = 2.0*_y0
+    _t6 = 1.0/_p1
     _t7 = (1/2)*numpy.pi*_t6
     _t8 = float(numpy.tan(_t7*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))))
-    _t9 = 2*_y2
+    _t9 = 2.0*_y2
     _t10 = numpy.pi*_p0*_t6
-    _t11 = _t10*((_t8*_t8) + 1)
+    _t11 = _t10*((_t8*_t8) + 1.0)
     _t12 = _t11*_t8*(_t5 - _t9)
     _t13 = float(numpy.tan(_t7*(((_y6 - _y0)*(_y6 - _y0)) + ((_y7 - _y1)*(_y7 - _y1)))))
-    _t14 = 2*_y6
-    _t15 = _t10*((_t13*_t13) + 1)
+    _t14 = 2.0*_y6
+    _t15 = _t10*((_t13*_t13) + 1.0)
     _t16 = _t13*_t15*(_t5 - _t14)
-    _t17 = 2*_y1
-    _t18 = 2*_y3
+    _t17 = 2.0*_y1
+    _t18 = 2.0*_y3
     _t19 = _t11*_t8*(_t17 - _t18)
-    _t20 = 2*_y7
+    _t20 = 2.0*_y7
     _t21 = _t13*_t15*(_t17 - _t20)
     _t22 = float(numpy.tan(_t7*(((_y2 - _y4)*(_y2 - _y4)) + ((_y3 - _y5)*(_y3 - _y5)))))
-    _t23 = 2*_y4
-    _t24 = _t10*((_t22*_t22) + 1)
+    _t23 = 2.0*_y4
+    _t24 = _t10*((_t22*_t22) + 1.0)
     _t25 = _t22*_t24*(_t9 - _t23)
-    _t26 = 2*_y5
+    _t26 = 2.0*_y5
     _t27 = _t22*_t24*(_t18 - _t26)
     _t28 = float(numpy.tan(_t7*(((_y4 - _y6)*(_y4 - _y6)) + ((_y5 - _y7)*(_y5 - _y7)))))
-    _t29 = _t10*((_t28*_t28) + 1)
+    _t29 = _t10*((_t28*_t28) + 1.0)
     _t30 = _t28*_t29*(_t23 - _t14)
     _t31 = _t28*_t29*(_t26 - _t20)
     grad = [
-        _t12 + _t16 + _t5 - 2*_t0 - 2*_t2,
-        _t17 + _t19 + _t21 - 2*_t3 - 2*_t4,
-        _t25 + _t9 - _t12 - 2*_t0 + 2*_t4,
-        _t18 + _t27 - _t19 - 2*_t2 - 2*_t3,
-        _t23 + _t30 - _t25 - 2*_t0 + 2*_t2,
-        _t26 + _t31 - _t27 - 2*_t3 + 2*_t4,
-        _t14 - _t16 - _t30 - 2*_t0 - 2*_t4,
-        _t20 - _t21 - _t31 - 2*_t3 + 2*_t2,
+        _t12 + _t16 + _t5 - 2.0*_t0 - 2.0*_t2,
+        _t17 + _t19 + _t21 - 2.0*_t3 - 2.0*_t4,
+        _t25 + _t9 - _t12 - 2.0*_t0 + 2.0*_t4,
+        _t18 + _t27 - _t19 - 2.0*_t2 - 2.0*_t3,
+        _t23 + _t30 - _t25 - 2.0*_t0 + 2.0*_t2,
+        _t26 + _t31 - _t27 - 2.0*_t3 + 2.0*_t4,
+        _t14 - _t16 - _t30 - 2.0*_t0 - 2.0*_t4,
+        _t20 - _t21 - _t31 - 2.0*_t3 + 2.0*_t2,
     ]
     return grad
 
 
 def _hessian_1(t, y, p):
     """grad_yy f0(y, t) (one point; lists in, lists out)."""
-    _y0 = y[0]
-    _y1 = y[1]
-    _y2 = y[2]
-    _y3 = y[3]
-    _y4 = y[4]
-    _y5 = y[5]
-    _y6 = y[6]
-    _y7 = y[7]
-    _p0 = p[0]
-    _p1 = p[1]
-    _t0 = 2*_y0
-    _t1 = 1/_p1
+    _y0, _y1, _y2, _y3, _y4, _y5, _y6, _y7 = y
+    _p0, _p1, _, _ = p
+    _t0 = 2.0*_y0
+    _t1 = 1.0/_p1
     _t2 = _y0 - _y2
     _t3 = _y1 - _y3
     _t4 = (1/2)*numpy.pi*_t1
     _t5 = float(numpy.tan(_t4*((_t2*_t2) + (_t3*_t3))))
-    _t6 = 2*_y2
+    _t6 = 2.0*_y2
     _t7 = _t0 - _t6
     _t8 = numpy.pi*_p0*_t1
-    _t9 = _t8*((_t5*_t5) + 1)
+    _t9 = _t8*((_t5*_t5) + 1.0)
     _t10 = _t7*_t9
     _t11 = _y6 - _y0
     _t12 = _y7 - _y1
     _t13 = float(numpy.tan(_t4*((_t11*_t11) + (_t12*_t12))))
-    _t14 = 2*_y6
+    _t14 = 2.0*_y6
     _t15 = _t0 - _t14
-    _t16 = _t8*((_t13*_t13) + 1)
+    _t16 = _t8*((_t13*_t13) + 1.0)
     _t17 = _t15*_t16
-    _t18 = 2*_y1
-    _t19 = 2*_y3
+    _t18 = 2.0*_y1
+    _t19 = 2.0*_y3
     _t20 = _t18 - _t19
     _t21 = _t20*_t9
-    _t22 = 2*_y7
+    _t22 = 2.0*_y7
     _t23 = _t18 - _t22
     _t24 = _t16*_t23
     _t25 = _y2 - _y4
     _t26 = _y3 - _y5
     _t27 = float(numpy.tan(_t4*((_t25*_t25) + (_t26*_t26))))
-    _t28 = 2*_y4
+    _t28 = 2.0*_y4
     _t29 = _t6 - _t28
-    _t30 = _t8*((_t27*_t27) + 1)
+    _t30 = _t8*((_t27*_t27) + 1.0)
     _t31 = _t29*_t30
-    _t32 = 2*_y5
+    _t32 = 2.0*_y5
     _t33 = _t19 - _t32
     _t34 = _t30*_t33
     _t35 = _y4 - _y6
     _t36 = _y5 - _y7
     _t37 = float(numpy.tan(_t4*((_t35*_t35) + (_t36*_t36))))
     _t38 = _t28 - _t14
-    _t39 = _t8*((_t37*_t37) + 1)
+    _t39 = _t8*((_t37*_t37) + 1.0)
     _t40 = _t38*_t39
     _t41 = _t32 - _t22
     _t42 = _t39*_t41
-    _t43 = (_t5*_t5) + 1
-    _t44 = 2*_t2*_t4*_t43
-    _t45 = 2*_t3*_t4*_t43
-    _t46 = 2*_t5
+    _t43 = (_t5*_t5) + 1.0
+    _t44 = 2.0*_t2*_t4*_t43
+    _t45 = 2.0*_t3*_t4*_t43
+    _t46 = 2.0*_t5
     _t47 = _t44*_t46*_t8
     _t48 = _t45*_t46*_t8
-    _t49 = 2*_t9
+    _t49 = 2.0*_t9
     _t50 = _t10*_t44 + _t5*(_t49 + _t47*_t7)
-    _t51 = (_t13*_t13) + 1
-    _t52 = -2*_t11*_t4*_t51
-    _t53 = -2*_t12*_t4*_t51
-    _t54 = 2*_t13
+    _t51 = (_t13*_t13) + 1.0
+    _t52 = -2.0*_t11*_t4*_t51
+    _t53 = -2.0*_t12*_t4*_t51
+    _t54 = 2.0*_t13
     _t55 = _t52*_t54*_t8
     _t56 = _t53*_t54*_t8
-    _t57 = 2*_t16
+    _t57 = 2.0*_t16
     _t58 = _t13*(_t57 + _t15*_t55) + _t17*_t52
     _t59 = _t21*_t44 + _t20*_t47*_t5
     _t60 = _t21*_t45 + _t5*(_t49 + _t20*_t48)
@@ -2134,25 +1978,25 @@ def _hessian_1(t, y, p):
     _t62 = _t13*(_t57 + _t23*_t56) + _t24*_t53
     _t63 = _t59 + _t61
     _t64 = -_t10*_t45 - _t48*_t5*_t7
-    _t65 = (_t27*_t27) + 1
-    _t66 = 2*_t25*_t4*_t65
-    _t67 = 2*_t26*_t4*_t65
-    _t68 = 2*_t27
+    _t65 = (_t27*_t27) + 1.0
+    _t66 = 2.0*_t25*_t4*_t65
+    _t67 = 2.0*_t26*_t4*_t65
+    _t68 = 2.0*_t27
     _t69 = _t66*_t68*_t8
     _t70 = _t67*_t68*_t8
-    _t71 = 2*_t30
+    _t71 = 2.0*_t30
     _t72 = _t27*(_t71 + _t29*_t69) + _t31*_t66
     _t73 = _t34*_t66 + _t27*_t33*_t69
     _t74 = _t27*(_t71 + _t33*_t70) + _t34*_t67
     _t75 = _t59 + _t73
     _t76 = -_t31*_t67 - _t27*_t29*_t70
-    _t77 = (_t37*_t37) + 1
-    _t78 = 2*_t35*_t4*_t77
-    _t79 = 2*_t36*_t4*_t77
-    _t80 = 2*_t37
+    _t77 = (_t37*_t37) + 1.0
+    _t78 = 2.0*_t35*_t4*_t77
+    _t79 = 2.0*_t36*_t4*_t77
+    _t80 = 2.0*_t37
     _t81 = _t78*_t8*_t80
     _t82 = _t79*_t8*_t80
-    _t83 = 2*_t39
+    _t83 = 2.0*_t39
     _t84 = _t37*(_t83 + _t38*_t81) + _t40*_t78
     _t85 = _t42*_t78 + _t37*_t41*_t81
     _t86 = _t37*(_t83 + _t41*_t82) + _t42*_t79
@@ -2161,70 +2005,70 @@ def _hessian_1(t, y, p):
     _t89 = -_t17*_t53 - _t13*_t15*_t56
     _t90 = _t61 + _t85
     hess = [
-        _t50 + _t58 + 2,
+        _t50 + _t58 + 2.0,
         _t63,
         -_t50,
         -_t59,
-        0,
-        0,
+        0.0,
+        0.0,
         -_t58,
         -_t61,
         _t63,
-        _t60 + _t62 + 2,
+        _t60 + _t62 + 2.0,
         _t64,
         -_t60,
-        0,
-        0,
+        0.0,
+        0.0,
         _t89,
         -_t62,
         -_t50,
         _t64,
-        _t50 + _t72 + 2,
+        _t50 + _t72 + 2.0,
         _t75,
         -_t72,
         -_t73,
-        0,
-        0,
+        0.0,
+        0.0,
         -_t59,
         -_t60,
         _t75,
-        _t60 + _t74 + 2,
+        _t60 + _t74 + 2.0,
         _t76,
         -_t74,
-        0,
-        0,
-        0,
-        0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
         -_t72,
         _t76,
-        _t72 + _t84 + 2,
+        _t72 + _t84 + 2.0,
         _t87,
         -_t84,
         -_t85,
-        0,
-        0,
+        0.0,
+        0.0,
         -_t73,
         -_t74,
         _t87,
-        _t74 + _t86 + 2,
+        _t74 + _t86 + 2.0,
         _t88,
         -_t86,
         -_t58,
         _t89,
-        0,
-        0,
+        0.0,
+        0.0,
         -_t84,
         _t88,
-        _t58 + _t84 + 2,
+        _t58 + _t84 + 2.0,
         _t90,
         -_t61,
         -_t62,
-        0,
-        0,
+        0.0,
+        0.0,
         -_t85,
         -_t86,
         _t90,
-        _t62 + _t86 + 2,
+        _t62 + _t86 + 2.0,
     ]
     return hess
 
@@ -2341,6 +2185,13 @@ def _hessian_values(t, x, p):
 # and raises exactly as documented: the two paths never disagree.
 
 
+# NumPy's warnings on the one-point path (a function of an infinite or out-of-domain
+# value) say nothing: its result is then not finite and the array path answers with the
+# documented exception. This filter covers this module's own calls alone, and costs
+# nothing until a warning is issued (numpy.errstate would cost a microsecond a call).
+warnings.filterwarnings("ignore", category=RuntimeWarning, module=__name__)
+
+
 def _finite(values):
     """Whether every value is finite (a sum of infinities of both signs is NaN)."""
     return math.isfinite(sum(values))
@@ -2377,41 +2228,68 @@ def _lu_solve_1(a, b):
 def _solve_decoupling_1(r, b):
     """Solve ``R w = b`` block by block for one point; None where a block is singular.
 
-    Blocks of sizes 1 and 2 are unrolled: the same operations, in the same order, as
-    the general loop of :func:`_lu_solve`.
+    Written out block by block (their places in R are known here); 1 x 1 and 2 x 2
+    blocks are unrolled, with the same operations in the same order as the general
+    loop of :func:`_lu_solve`.
     """
     w = list(b)
     tolerance = PIVOT_TOLERANCE
-    for size, starts, rows in _R_GROUPS:
-        if size == 1:
-            for start, (i,) in zip(starts, rows):
-                a = r[start]
-                if not abs(a) > tolerance * abs(a):
-                    return None
-                w[i] = b[i] / a
-        elif size == 2:
-            for start, (i, j) in zip(starts, rows):
-                a00, a01, a10, a11 = r[start:start + 4]
-                b0, b1 = b[i], b[j]
-                scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
-                if abs(a10) > abs(a00):
-                    a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
-                if not abs(a00) > tolerance * scale:
-                    return None
-                factor = a10 / a00
-                a11 = a11 - factor * a01
-                b1 = b1 - factor * b0
-                if not abs(a11) > tolerance * scale:
-                    return None
-                x1 = b1 / a11
-                w[i], w[j] = (b0 - a01 * x1) / a00, x1
-        else:
-            for start, block in zip(starts, rows):
-                x = _lu_solve_1(r[start:start + size * size], [b[i] for i in block])
-                if x is None:
-                    return None
-                for i, value in zip(block, x):
-                    w[i] = value
+    a00, a01, a10, a11 = r[0:4]
+    b0, b1 = b[0], b[1]
+    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
+    if abs(a10) > abs(a00):
+        a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
+    if not abs(a00) > tolerance * scale:
+        return None
+    factor = a10 / a00
+    a11 = a11 - factor * a01
+    b1 = b1 - factor * b0
+    if not abs(a11) > tolerance * scale:
+        return None
+    x1 = b1 / a11
+    w[0], w[1] = (b0 - a01 * x1) / a00, x1
+    a00, a01, a10, a11 = r[4:8]
+    b0, b1 = b[2], b[3]
+    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
+    if abs(a10) > abs(a00):
+        a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
+    if not abs(a00) > tolerance * scale:
+        return None
+    factor = a10 / a00
+    a11 = a11 - factor * a01
+    b1 = b1 - factor * b0
+    if not abs(a11) > tolerance * scale:
+        return None
+    x1 = b1 / a11
+    w[2], w[3] = (b0 - a01 * x1) / a00, x1
+    a00, a01, a10, a11 = r[8:12]
+    b0, b1 = b[4], b[5]
+    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
+    if abs(a10) > abs(a00):
+        a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
+    if not abs(a00) > tolerance * scale:
+        return None
+    factor = a10 / a00
+    a11 = a11 - factor * a01
+    b1 = b1 - factor * b0
+    if not abs(a11) > tolerance * scale:
+        return None
+    x1 = b1 / a11
+    w[4], w[5] = (b0 - a01 * x1) / a00, x1
+    a00, a01, a10, a11 = r[12:16]
+    b0, b1 = b[6], b[7]
+    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
+    if abs(a10) > abs(a00):
+        a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
+    if not abs(a00) > tolerance * scale:
+        return None
+    factor = a10 / a00
+    a11 = a11 - factor * a01
+    b1 = b1 - factor * b0
+    if not abs(a11) > tolerance * scale:
+        return None
+    x1 = b1 / a11
+    w[6], w[7] = (b0 - a01 * x1) / a00, x1
     return w
 
 
@@ -2419,7 +2297,9 @@ def _law_1(t, s, p, rates):
     """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
     tau = _jet_time_1(t, p, _A_LIST)
     hess, jet_rhs, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
-    if not (_finite(hess) and _finite(jet_rhs) and _finite(r) and _finite(pvec)):
+    # The right-hand side and p reach b, which is checked below; an infinite Hessian
+    # entry can leave z finite, and an entry of R no plant input depends on could hide.
+    if not math.isfinite(sum(hess) + sum(r)):
         return None
     z, pivot = _cholesky_1(hess, jet_rhs)
     if not min(pivot) > PIVOT_TOLERANCE * max(map(abs, hess)):
@@ -2437,41 +2317,24 @@ def _law_1(t, s, p, rates):
     return (ds, u) if _finite(ds) and _finite(u) else None
 
 
-def _one_point(function, shape):
-    """``function(t, s, p)`` for one state given as a 1-D float array, or None."""
-
-    def evaluate(t, s, params):
-        values = s.tolist()
-        p = _P_LIST if params is None else _parameters(params).tolist()
-        if not (math.isfinite(t) and _finite(values) and _finite(p)):
-            return None
-        try:
-            with numpy.errstate(all="ignore"):
-                result = function(float(t), values, p)
-        except ArithmeticError:
-            return None
-        if result is None or not _finite(result):
-            return None
-        return numpy.array(result).reshape(shape)
-
-    return evaluate
+def _control_1(t, s, p):
+    law = _law_1(t, s, p, False)
+    return None if law is None else law[1]
 
 
-def _first(result):
-    return None if result is None else result[1]
+def _rhs_1(t, s, p):
+    law = _law_1(t, s, p, True)
+    return None if law is None else law[0]
 
 
-def _second(result):
-    return None if result is None else result[0]
-
-
+#: The one-point evaluators by public function, and their results' shapes.
 _ONE_POINT = {
-    "control": _one_point(lambda t, s, p: _first(_law_1(t, s, p, False)), (8,)),
-    "rhs": _one_point(lambda t, s, p: _second(_law_1(t, s, p, True)), (16,)),
-    "optimality_error": _one_point(_optimality_1, (K, 8)),
-    "objective": _one_point(_objective_1, ()),
-    "gradient": _one_point(_gradient_1, (8,)),
-    "hessian": _one_point(_hessian_1, (8, 8)),
+    "control": (_control_1, (8,)),
+    "rhs": (_rhs_1, (16,)),
+    "optimality_error": (_optimality_1, (K, 8)),
+    "objective": (_objective_1, ()),
+    "gradient": (_gradient_1, (8,)),
+    "hessian": (_hessian_1, (8, 8)),
 }
 _A_LIST = list(HURWITZ_COEFFICIENTS)
 _P_LIST = _DEFAULT_P.tolist()
@@ -2633,15 +2496,27 @@ def hessian(t, y, params=None):
 
 def _with_one_point(general, rows):
     """``general``, with a single state or output in a float array taken by the fast path."""
-    fast = _ONE_POINT[general.__name__]
+    fast, shape = _ONE_POINT[general.__name__]
     number = general.__name__ == "objective"
+    flat = len(shape) == 1
+    expected = (rows,)
 
     def function(t, s, params=None):
-        if (type(s) is numpy.ndarray and s.shape == (rows,) and s.dtype.kind == "f"
+        if (type(s) is numpy.ndarray and s.shape == expected and s.dtype.kind == "f"
                 and isinstance(t, (float, int))):
-            result = fast(t, s, params)
-            if result is not None:
-                return float(result) if number else result
+            values = s.tolist()
+            p = _P_LIST if params is None else _parameters(params).tolist()
+            if math.isfinite(t) and _finite(values) and _finite(p):
+                try:
+                    result = fast(float(t), values, p)
+                except (ArithmeticError, RuntimeWarning):
+                    # A float's ZeroDivisionError or OverflowError; NumPy's warning made
+                    # an error by the caller's filters, or FloatingPointError by seterr.
+                    result = None
+                if result is not None and _finite(result):
+                    if number:
+                        return float(result[0])
+                    return numpy.array(result) if flat else numpy.array(result).reshape(shape)
         return general(t, s, params)
 
     return functools.update_wrapper(function, general)

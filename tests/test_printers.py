@@ -142,18 +142,22 @@ def test_python_powers_print_alike_for_arrays_and_floats() -> None:
     array, scalar = PythonPrinter(), PythonScalarPrinter()
     cases = {
         x**2: ("(x*x)", "(x*x)"),
-        x**-3: ("1/(x*x*x)", "1/(x*x*x)"),
-        x**7: ("numpy.power(x, 7)", "float(numpy.power(x, 7))"),
+        x**-3: ("1/(x*x*x)", "1.0/(x*x*x)"),
+        x**7: ("numpy.power(x, 7)", "float(numpy.power(x, 7.0))"),
+        2 * x + 1: ("2*x + 1", "2.0*x + 1.0"),
         sp.sqrt(x): ("numpy.sqrt(x)", "float(numpy.sqrt(x))"),
         x**y: ("numpy.power(x, y)", "float(numpy.power(x, y))"),
-        sp.tanh(x) + 1: ("numpy.tanh(x) + 1", "float(numpy.tanh(x)) + 1"),
+        sp.tanh(x) + 1: ("numpy.tanh(x) + 1", "float(numpy.tanh(x)) + 1.0"),
     }
     for expr, (want_array, want_scalar) in cases.items():
         assert array.doprint(expr) == want_array
         assert scalar.doprint(expr) == want_scalar
     # Same bits on both paths: NumPy's own routine, whatever the argument's type.
     values = np.linspace(-3, 3, 101)
-    for text in ("numpy.power(x, 7)", "(x*x*x)", "numpy.tanh(x)"):
-        batch = eval(text, {"numpy": np, "x": values})  # noqa: S307 - printer output
-        single = [float(eval(text, {"numpy": np, "x": float(v)})) for v in values]  # noqa: S307
+    for expr in (x**7, x**3, sp.tanh(x), 2 * x - 3):
+        batch = eval(array.doprint(expr), {"numpy": np, "x": values})  # noqa: S307
+        single = [
+            eval(scalar.doprint(expr), {"numpy": np, "x": float(v)})  # noqa: S307
+            for v in values
+        ]
         assert np.array_equal(batch, single)

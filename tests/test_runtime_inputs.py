@@ -12,6 +12,7 @@ import resource
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 from types import ModuleType
 
@@ -491,3 +492,24 @@ def test_the_fast_path_leaves_every_error_to_the_array_path() -> None:
                 function(0.5, at_pole)
         else:
             assert np.array_equal(function(0.5, at_pole), expected)
+
+
+def test_the_fast_path_is_silent_and_obeys_strict_warning_filters() -> None:
+    mod = module("flexible_joint")
+    state = np.array(mod.DEFAULT_STATE)
+    state[0] = 1e300  # cosh overflows on the way: the result is not finite
+    # The module's own filter hides NumPy's warnings on its one-point path; a caller who
+    # turns warnings into errors gets the documented exception all the same.
+    for strict in (False, True):
+        with warnings.catch_warnings(record=True) as seen:
+            if strict:
+                warnings.simplefilter("error")
+            with pytest.raises(mod.NonFiniteOutputError):
+                mod.control(0.5, state)
+            with np.errstate(all="raise"), pytest.raises(mod.NonFiniteOutputError):
+                mod.rhs(0.5, state)
+        assert seen == []
+    np.testing.assert_array_equal(
+        mod.control(0.5, np.array(mod.DEFAULT_STATE)),
+        mod.control(0.5, np.array(mod.DEFAULT_STATE)[:, None])[:, 0],
+    )

@@ -71,11 +71,13 @@ class PythonPrinter(_CanonicalOrder, NumPyPrinter):  # type: ignore[misc]
             product = "*".join([base] * abs(int(exp)))
             if exp > 0:
                 return f"({product})" if abs(int(exp)) > 1 else product
-            return f"1/{base}" if exp == -1 else f"1/({product})"
+            one = self._print(sp.S.One)
+            return f"{one}/{base}" if exp == -1 else f"{one}/({product})"
         if exp == sp.S.Half:
             return self._call(f"numpy.sqrt({self._print(expr.base)})")
         if exp == -sp.S.Half:
-            return f"1/{self._call(f'numpy.sqrt({self._print(expr.base)})')}"
+            one = self._print(sp.S.One)
+            return f"{one}/{self._call(f'numpy.sqrt({self._print(expr.base)})')}"
         return self._call(f"numpy.power({self._print(expr.base)}, {self._print(exp)})")
 
     def _call(self, text: str) -> str:
@@ -114,6 +116,14 @@ class PythonScalarPrinter(PythonPrinter):
         * ``numpy.power`` and ``numpy.sqrt`` from powers are wrapped in ``float(...)``.
         """
         return f"float({text})"
+
+    def _print_Integer(self, expr: sp.Integer) -> str:
+        """Customizations.
+
+        * Integers print as floats (``2.0``): CPython's fast path multiplies two floats,
+          not an int and a float; the value is the same (an int converts exactly).
+        """
+        return f"{int(expr)}.0"
 
 
 class CPrinter(_CanonicalOrder, C99CodePrinter):  # type: ignore[misc]

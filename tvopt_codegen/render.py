@@ -123,6 +123,15 @@ class PrintedArg:
     doc: str
     slots: tuple[PrintedSlot, ...]
     used: bool
+    size: int = 0
+
+    @property
+    def unpack(self) -> str:
+        """The targets of one unpacking of the whole argument (``_`` for unread slots)."""
+        names = ["_"] * self.size
+        for slot in self.slots:
+            names[slot.index] = slot.symbol
+        return ", ".join(names) + ("," if self.size == 1 else "")
 
 
 @dataclass(frozen=True)
@@ -165,7 +174,7 @@ def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
             if sym in used
         )
         used_arg = bool(slots) or (arg.name == "t" and sp.Symbol("t", real=True) in used)
-        args.append(PrintedArg(arg.name, arg.doc, slots, used_arg))
+        args.append(PrintedArg(arg.name, arg.doc, slots, used_arg, len(arg.symbols)))
     # The argument whose last axis is the batch; none for a kernel of time and
     # parameters alone (jet_time), whose outputs are the same for every state.
     batch = next((arg.name for arg in kernel.inputs if arg.name in ("s", "y", "h")), "")
