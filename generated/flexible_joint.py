@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: c8615298d4bf093d85c4e1a4371fe6ff41abbf36472641d3468032a8cdc00040
+# content sha256: 25461c11ff5f79b81a7ad9f408ccbfaeb8c1e6cb376de18a8d0bb196615938dc
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import functools
 import math
-import warnings
 from collections.abc import Mapping
 
 import numpy
@@ -868,13 +867,6 @@ def _hessian_values(t, x, p):
 # and raises exactly as documented: the two paths never disagree.
 
 
-# NumPy's warnings on the one-point path (a function of an infinite or out-of-domain
-# value) say nothing: its result is then not finite and the array path answers with the
-# documented exception. This filter covers this module's own calls alone, and costs
-# nothing until a warning is issued (numpy.errstate would cost a microsecond a call).
-warnings.filterwarnings("ignore", category=RuntimeWarning, module=__name__)
-
-
 def _finite(values):
     """Whether every value is finite (a sum of infinities of both signs is NaN)."""
     return math.isfinite(sum(values))
@@ -1139,10 +1131,12 @@ def _with_one_point(general, rows):
             p = _P_LIST if params is None else _parameters(params).tolist()
             if math.isfinite(t) and _finite(values) and _finite(p):
                 try:
-                    result = fast(float(t), values, p)
-                except (ArithmeticError, RuntimeWarning):
-                    # A float's ZeroDivisionError or OverflowError; NumPy's warning made
-                    # an error by the caller's filters, or FloatingPointError by seterr.
+                    # NumPy's warnings here (a function of an infinite or out-of-domain
+                    # value) say nothing: the result is then not finite, and the array
+                    # path answers with the documented exception.
+                    with numpy.errstate(all="ignore"):
+                        result = fast(float(t), values, p)
+                except ArithmeticError:  # a float's ZeroDivisionError or OverflowError
                     result = None
                 if result is not None and _finite(result):
                     if number:

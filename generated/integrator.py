@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 6667ae8ec6cc462396d763d33deb90b9fcb2d29b8636fee5a585bf7bb0ed056c
+# content sha256: 565e3d6d8ab0a0e93cb7e3657fa2e2530bf666b3f9803ee36ce53dbf0b63004b
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import functools
 import math
-import warnings
 from collections.abc import Mapping
 
 import numpy
@@ -676,13 +675,6 @@ def _hessian_values(t, x, p):
 # and raises exactly as documented: the two paths never disagree.
 
 
-# NumPy's warnings on the one-point path (a function of an infinite or out-of-domain
-# value) say nothing: its result is then not finite and the array path answers with the
-# documented exception. This filter covers this module's own calls alone, and costs
-# nothing until a warning is issued (numpy.errstate would cost a microsecond a call).
-warnings.filterwarnings("ignore", category=RuntimeWarning, module=__name__)
-
-
 def _finite(values):
     """Whether every value is finite (a sum of infinities of both signs is NaN)."""
     return math.isfinite(sum(values))
@@ -951,10 +943,12 @@ def _with_one_point(general, rows):
             p = _P_LIST if params is None else _parameters(params).tolist()
             if math.isfinite(t) and _finite(values) and _finite(p):
                 try:
-                    result = fast(float(t), values, p)
-                except (ArithmeticError, RuntimeWarning):
-                    # A float's ZeroDivisionError or OverflowError; NumPy's warning made
-                    # an error by the caller's filters, or FloatingPointError by seterr.
+                    # NumPy's warnings here (a function of an infinite or out-of-domain
+                    # value) say nothing: the result is then not finite, and the array
+                    # path answers with the documented exception.
+                    with numpy.errstate(all="ignore"):
+                        result = fast(float(t), values, p)
+                except ArithmeticError:  # a float's ZeroDivisionError or OverflowError
                     result = None
                 if result is not None and _finite(result):
                     if number:

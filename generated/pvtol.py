@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: b87dc418964f6bac337488b15421d3d91071f36c96c68325cb28fc581d77d8a6
+# content sha256: 241997c39562b0161dab7c01bbe319995f6e637d1329f7700ecebb0b9ff79bc8
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -51,7 +51,6 @@ from __future__ import annotations
 
 import functools
 import math
-import warnings
 from collections.abc import Mapping
 
 import numpy
@@ -762,13 +761,6 @@ def _hessian_values(t, x, p):
 # and raises exactly as documented: the two paths never disagree.
 
 
-# NumPy's warnings on the one-point path (a function of an infinite or out-of-domain
-# value) say nothing: its result is then not finite and the array path answers with the
-# documented exception. This filter covers this module's own calls alone, and costs
-# nothing until a warning is issued (numpy.errstate would cost a microsecond a call).
-warnings.filterwarnings("ignore", category=RuntimeWarning, module=__name__)
-
-
 def _finite(values):
     """Whether every value is finite (a sum of infinities of both signs is NaN)."""
     return math.isfinite(sum(values))
@@ -1040,10 +1032,12 @@ def _with_one_point(general, rows):
             p = _P_LIST if params is None else _parameters(params).tolist()
             if math.isfinite(t) and _finite(values) and _finite(p):
                 try:
-                    result = fast(float(t), values, p)
-                except (ArithmeticError, RuntimeWarning):
-                    # A float's ZeroDivisionError or OverflowError; NumPy's warning made
-                    # an error by the caller's filters, or FloatingPointError by seterr.
+                    # NumPy's warnings here (a function of an infinite or out-of-domain
+                    # value) say nothing: the result is then not finite, and the array
+                    # path answers with the documented exception.
+                    with numpy.errstate(all="ignore"):
+                        result = fast(float(t), values, p)
+                except ArithmeticError:  # a float's ZeroDivisionError or OverflowError
                     result = None
                 if result is not None and _finite(result):
                     if number:

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: bfe50b24d7ba63e8a4654a41411fd4ce9cc9cef92d45ca8386989ab0248a6d46
+# content sha256: cbd51761c27bf04bbccda4f82e6dd34952724d464d706a2f5e405bf5414f479d
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -50,7 +50,6 @@ from __future__ import annotations
 
 import functools
 import math
-import warnings
 from collections.abc import Mapping
 
 import numpy
@@ -1146,13 +1145,6 @@ def _hessian_values(t, x, p):
 # and raises exactly as documented: the two paths never disagree.
 
 
-# NumPy's warnings on the one-point path (a function of an infinite or out-of-domain
-# value) say nothing: its result is then not finite and the array path answers with the
-# documented exception. This filter covers this module's own calls alone, and costs
-# nothing until a warning is issued (numpy.errstate would cost a microsecond a call).
-warnings.filterwarnings("ignore", category=RuntimeWarning, module=__name__)
-
-
 def _finite(values):
     """Whether every value is finite (a sum of infinities of both signs is NaN)."""
     return math.isfinite(sum(values))
@@ -1441,10 +1433,12 @@ def _with_one_point(general, rows):
             p = _P_LIST if params is None else _parameters(params).tolist()
             if math.isfinite(t) and _finite(values) and _finite(p):
                 try:
-                    result = fast(float(t), values, p)
-                except (ArithmeticError, RuntimeWarning):
-                    # A float's ZeroDivisionError or OverflowError; NumPy's warning made
-                    # an error by the caller's filters, or FloatingPointError by seterr.
+                    # NumPy's warnings here (a function of an infinite or out-of-domain
+                    # value) say nothing: the result is then not finite, and the array
+                    # path answers with the documented exception.
+                    with numpy.errstate(all="ignore"):
+                        result = fast(float(t), values, p)
+                except ArithmeticError:  # a float's ZeroDivisionError or OverflowError
                     result = None
                 if result is not None and _finite(result):
                     if number:

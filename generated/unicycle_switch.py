@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: f799fa2d6b46542095ca5bdcbe02bf5162dbdd47c535706bf26a1810548cd40c
+# content sha256: 38614b416b113028c72b914f0ebbfd55665fb726cc6e36023883125a067ff625
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import functools
 import math
-import warnings
 from collections.abc import Mapping
 
 import numpy
@@ -755,13 +754,6 @@ def _hessian_values(t, x, p):
 # and raises exactly as documented: the two paths never disagree.
 
 
-# NumPy's warnings on the one-point path (a function of an infinite or out-of-domain
-# value) say nothing: its result is then not finite and the array path answers with the
-# documented exception. This filter covers this module's own calls alone, and costs
-# nothing until a warning is issued (numpy.errstate would cost a microsecond a call).
-warnings.filterwarnings("ignore", category=RuntimeWarning, module=__name__)
-
-
 def _finite(values):
     """Whether every value is finite (a sum of infinities of both signs is NaN)."""
     return math.isfinite(sum(values))
@@ -1033,10 +1025,12 @@ def _with_one_point(general, rows):
             p = _P_LIST if params is None else _parameters(params).tolist()
             if math.isfinite(t) and _finite(values) and _finite(p):
                 try:
-                    result = fast(float(t), values, p)
-                except (ArithmeticError, RuntimeWarning):
-                    # A float's ZeroDivisionError or OverflowError; NumPy's warning made
-                    # an error by the caller's filters, or FloatingPointError by seterr.
+                    # NumPy's warnings here (a function of an infinite or out-of-domain
+                    # value) say nothing: the result is then not finite, and the array
+                    # path answers with the documented exception.
+                    with numpy.errstate(all="ignore"):
+                        result = fast(float(t), values, p)
+                except ArithmeticError:  # a float's ZeroDivisionError or OverflowError
                     result = None
                 if result is not None and _finite(result):
                     if number:
