@@ -30,8 +30,8 @@ from cffi import FFI
 from tvopt_codegen.derivation import Derivation, derive
 from tvopt_codegen.emit import write_files
 from tvopt_codegen.ir import KernelSet, lower
-from tvopt_codegen.render import render
-from tvopt_codegen.simulate import load_controller
+from tvopt_codegen.rendering import render
+from tvopt_codegen.simulation import load_controller
 from tvopt_codegen.spec import load_spec
 
 SPECS = ("unicycle_switch", "two_unicycles_barrier")

@@ -35,7 +35,7 @@ import sympy as sp
 
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.ir import lower
-from tvopt_codegen.render import render
+from tvopt_codegen.rendering import render
 from tvopt_codegen.spec import Spec, parse_spec
 
 SIZES = (1, 2, 4, 8, 16, 32)

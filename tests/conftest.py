@@ -16,7 +16,7 @@ import pytest
 
 from tvopt_codegen.derivation import Derivation, derive
 from tvopt_codegen.ir import KernelSet, lower
-from tvopt_codegen.render import render
+from tvopt_codegen.rendering import render
 from tvopt_codegen.spec import load_spec
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -68,4 +68,4 @@ def test_no_import_cycles_inside_the_package() -> None:
     # The graph is real, and the command line reaches the stages only inside its commands.
     assert "tvopt_codegen.jet" in graph["tvopt_codegen.derivation"]
     assert "tvopt_codegen.derivation" not in graph["tvopt_codegen.cli"]
-    assert "tvopt_codegen.figures" not in graph["tvopt_codegen.simulate"]
+    assert "tvopt_codegen.figures" not in graph["tvopt_codegen.simulation"]

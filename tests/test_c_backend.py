@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from tvopt_codegen.emit import write_files
-from tvopt_codegen.render import render
+from tvopt_codegen.rendering import render
 
 from .conftest import ALL_SPECS, SPECS, derivation, import_file, kernels, module
 from .oracle import Oracle

@@ -14,7 +14,7 @@ from tvopt_codegen.derivation import derive
 from tvopt_codegen.errors import AssumptionError
 from tvopt_codegen.ir import lower
 from tvopt_codegen.report import render_report
-from tvopt_codegen.simulate import load_controller, resolve_options, simulate
+from tvopt_codegen.simulation import load_controller, resolve_options, simulate
 from tvopt_codegen.spec import load_spec
 
 from .conftest import ROOT, derivation, module, write_spec

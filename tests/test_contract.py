@@ -20,8 +20,8 @@ from tvopt_codegen.backends import BACKENDS, Backend
 from tvopt_codegen.cli import main
 from tvopt_codegen.errors import SpecError
 from tvopt_codegen.ir import KernelSet
-from tvopt_codegen.render import is_pristine, render
-from tvopt_codegen.simulate import load_controller
+from tvopt_codegen.rendering import is_pristine, render
+from tvopt_codegen.simulation import load_controller
 from tvopt_codegen.spec import load_spec
 
 from .conftest import derivation, kernels, write_spec
@@ -112,7 +112,7 @@ def test_a_toy_backend_needs_a_registry_entry_and_a_template_folder(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     monkeypatch.setattr(backends, "BACKENDS", dict(BACKENDS))
-    monkeypatch.setattr("tvopt_codegen.render.BACKENDS", backends.BACKENDS)
+    monkeypatch.setattr("tvopt_codegen.rendering.BACKENDS", backends.BACKENDS)
     monkeypatch.setattr("tvopt_codegen.names.BACKENDS", backends.BACKENDS)
     monkeypatch.setattr("tvopt_codegen.cli.BACKENDS", backends.BACKENDS)
     toy = backends.register(_toy(tmp_path / "templates"))

@@ -15,7 +15,7 @@ from tvopt_codegen.errors import AssumptionError
 from tvopt_codegen.ir import lower
 from tvopt_codegen.jet import atomize, fresh_symbols, total_derivative
 from tvopt_codegen.numeric import Evaluator
-from tvopt_codegen.render import render
+from tvopt_codegen.rendering import render
 from tvopt_codegen.spec import load_spec
 
 from .conftest import EXAMPLES, SPECS, derivation, import_file, write_spec

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tvopt_codegen.render import is_pristine, render
+from tvopt_codegen.rendering import is_pristine, render
 
 from .conftest import EXAMPLES, ROOT, kernels
 

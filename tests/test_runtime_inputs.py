@@ -25,7 +25,7 @@ from tvopt_codegen.derivation import Budget, derive
 from tvopt_codegen.emit import write_files
 from tvopt_codegen.errors import BudgetError, OutputError, SpecError
 from tvopt_codegen.ir import lower
-from tvopt_codegen.render import render
+from tvopt_codegen.rendering import render
 from tvopt_codegen.spec import load_spec, parse_spec
 from tvopt_codegen.summary import format_summary
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tvopt_codegen import simulate as sim
+from tvopt_codegen import simulation as sim
 from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.errors import EXIT_CERTIFICATE

@@ -340,7 +340,7 @@ def _report(args: argparse.Namespace) -> int:
 
 def _simulate(args: argparse.Namespace) -> int:
     from tvopt_codegen.emit import prepare_folder, write_files  # noqa: PLC0415
-    from tvopt_codegen.simulate import (  # noqa: PLC0415
+    from tvopt_codegen.simulation import (  # noqa: PLC0415
         format_certificate,
         load_controller,
         resolve_options,
@@ -408,7 +408,7 @@ def run(argv: Sequence[str] | None = None) -> int:
         print(format_summary(derivation, kernels))
         return 0
     from tvopt_codegen.emit import write_files  # noqa: PLC0415
-    from tvopt_codegen.render import render  # noqa: PLC0415
+    from tvopt_codegen.rendering import render  # noqa: PLC0415
 
     files = render(kernels, args.backend)
     written = write_files(files, args.out, force=args.force)

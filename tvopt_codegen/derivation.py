@@ -34,7 +34,7 @@ from tvopt_codegen.lie import (
 from tvopt_codegen.limits import Budget
 from tvopt_codegen.model import Model, build_model
 from tvopt_codegen.numeric import Evaluator
-from tvopt_codegen.spec import Spec
+from tvopt_codegen.spec import Spec, spec_from_dict
 
 
 def jet_symbol(name: str, order: int) -> sp.Symbol:
@@ -820,7 +820,7 @@ def _fading_convexity(
 
 
 def derive(
-    spec: Spec,
+    spec: Spec | Mapping[str, Any],
     progress: Callable[[str, int, int, float], None] | None = None,
     budget: Budget | None = None,
 ) -> Derivation:
@@ -828,8 +828,9 @@ def derive(
 
     Parameters
     ----------
-    spec : Spec
-        A validated spec.
+    spec : Spec or mapping
+        A validated spec, or a mapping laid out as a spec file (see
+        :func:`~tvopt_codegen.spec.spec_from_dict`).
     progress : callable, optional
         Called as ``progress(stage, expressions, nodes, seconds)`` when each step
         starts and every half second within one: the step's name, how many expressions
@@ -856,6 +857,8 @@ def derive(
     BudgetError
         When a stage takes longer or builds larger expressions than the budget allows.
     """
+    if not isinstance(spec, Spec):
+        spec = spec_from_dict(spec)
     meter = _Meter(spec.source, budget or Budget(), progress)
 
     def say(stage: str) -> None:

@@ -30,7 +30,7 @@ from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
 from tvopt_codegen.errors import OutputError
-from tvopt_codegen.render import is_pristine, stamped_hash, stamped_spec
+from tvopt_codegen.rendering import is_pristine, stamped_hash, stamped_spec
 
 #: Name of the per-folder record of what tvopt-codegen wrote.
 MANIFEST = ".tvopt-manifest.json"

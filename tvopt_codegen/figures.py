@@ -21,7 +21,7 @@ from matplotlib.figure import Figure
 from tvopt_codegen.derivation import Derivation
 
 if TYPE_CHECKING:
-    from tvopt_codegen.simulate import Result
+    from tvopt_codegen.simulation import Result
 
 _COLORS = ("tab:red", "tab:purple", "tab:orange", "tab:brown", "tab:pink", "tab:olive")
 _OBJECT_COLORS = ("black", "tab:blue", "tab:gray", "tab:cyan")

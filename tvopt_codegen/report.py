@@ -29,7 +29,7 @@ from tvopt_codegen import __version__
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.emit import read_own_output
 from tvopt_codegen.ir import KernelSet
-from tvopt_codegen.render import render_template
+from tvopt_codegen.rendering import render_template
 
 #: Equations longer than this (LaTeX characters) are folded, shown in full on demand.
 FOLD_AT = 600

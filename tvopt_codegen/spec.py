@@ -8,6 +8,7 @@ naming the file, the field and the problem.
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import re
 import tomllib
@@ -222,6 +223,35 @@ def load_spec(spec: str | Path) -> Spec:
     """
     source, raw = read_spec_bytes(spec)
     return parse_spec(source, raw)
+
+
+def spec_from_dict(data: Mapping[str, Any], source: str = "<python>") -> Spec:
+    """A spec from a mapping laid out as the TOML file would be: no file needed.
+
+    Parameters
+    ----------
+    data : mapping
+        Tables as dicts, lists as lists, expressions as strings, numbers as numbers.
+    source : str
+        The name messages give it.
+
+    Returns
+    -------
+    Spec
+        The validated spec; its SHA-256 is that of the mapping as canonical JSON.
+
+    Raises
+    ------
+    SpecError
+        For any problem, naming the field and the problem.
+    """
+    if not isinstance(data, Mapping):
+        raise SpecError(source, "(spec)", f"expected a mapping, got {type(data).__name__}")
+    try:
+        canonical = json.dumps(data, sort_keys=True, allow_nan=False).encode("utf-8")
+    except (TypeError, ValueError) as exc:
+        raise SpecError(source, "(spec)", f"not a plain mapping of tables: {exc}") from None
+    return _Reader(source).read(data, hashlib.sha256(canonical).hexdigest())
 
 
 def parse_spec(source: str, raw: bytes) -> Spec:

@@ -39,7 +39,7 @@ from tvopt_codegen.emit import write_files
 from tvopt_codegen.errors import AssumptionError, BuildError, SpecError
 from tvopt_codegen.ir import KernelSet
 from tvopt_codegen.limits import MAX_T_FINAL
-from tvopt_codegen.render import render
+from tvopt_codegen.rendering import render
 
 #: The certificate is vacuous when the convexity modulus along the run is below this
 #: fraction of the Hessian's scale there (its largest eigenvalue in magnitude).
