@@ -171,6 +171,18 @@ def _generate(spec: str, backend: str, out: Path) -> None:
     assert done.returncode == 0, done.stderr
 
 
+def _python(script: str, cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    """``script`` in a fresh interpreter, in ``cwd``, with exactly ``env``."""
+    return subprocess.run(
+        [sys.executable, "-c", script],
+        cwd=cwd,
+        env=env,
+        check=False,
+        capture_output=True,
+        text=True,
+    )
+
+
 def _renamed(text: str, name: str) -> str:
     return text.replace('name = "unicycle_switch"', f'name = "{name}"', 1)
 
@@ -192,13 +204,8 @@ def test_a_spec_named_like_anothers_entry_point_does_not_clobber_it(
         "assert probe._ENTRY is not None and probe_ext._ENTRY is not None;"
         "print((probe.control(0.5, s) == probe_ext.control(0.5, s)).all())"
     )
-    done = subprocess.run(
-        [sys.executable, "-c", script],
-        cwd=out,
-        check=False,
-        capture_output=True,
-        text=True,
-        env={"TVOPT_CODEGEN_CACHE": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin"},
+    done = _python(
+        script, out, {"TVOPT_CODEGEN_CACHE": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin"}
     )
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "True"
@@ -435,14 +442,7 @@ def test_both_backends_share_an_output_folder(tmp_path: Path) -> None:
         "print(a.BACKEND, b.BACKEND, numpy.allclose(a.control(1.0, s), b.control(1.0, s),"
         " rtol=1e-13, atol=0))"
     )
-    done = subprocess.run(
-        [sys.executable, "-c", script],
-        check=False,
-        cwd=out,
-        capture_output=True,
-        text=True,
-        env={**os.environ, "TVOPT_CODEGEN_CACHE": str(tmp_path / "cache")},
-    )
+    done = _python(script, out, {**os.environ, "TVOPT_CODEGEN_CACHE": str(tmp_path / "cache")})
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["python", "c", "True"]
 
