@@ -171,6 +171,16 @@ def _generate(spec: str, backend: str, out: Path) -> None:
     assert done.returncode == 0, done.stderr
 
 
+def _tvopt(*args: str) -> subprocess.CompletedProcess[str]:
+    """``tvopt-codegen ARGS`` in a fresh process."""
+    return subprocess.run(
+        [sys.executable, "-m", "tvopt_codegen", *args],
+        check=False,
+        capture_output=True,
+        text=True,
+    )
+
+
 def _python(script: str, cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
     """``script`` in a fresh interpreter, in ``cwd``, with exactly ``env``."""
     return subprocess.run(
@@ -248,22 +258,7 @@ def test_report_reads_no_huge_or_foreign_results_file(tmp_path: Path) -> None:
     huge = out / "integrator_certificate.txt"
     with huge.open("wb") as handle:  # sparse: 3 GB on paper, nothing on disk
         handle.truncate(3_000_000_000)
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "tvopt_codegen",
-            "report",
-            "integrator",
-            "--out",
-            str(out),
-            "--format",
-            "md",
-        ],
-        check=False,
-        capture_output=True,
-        text=True,
-    )
+    done = _tvopt("report", "integrator", "--out", str(out), "--format", "md")
     assert done.returncode == 0, done.stderr
     assert _child_peak_mb() < 1000
     assert "simulation results" not in done.stdout
@@ -272,21 +267,7 @@ def test_report_reads_no_huge_or_foreign_results_file(tmp_path: Path) -> None:
 
 def test_report_includes_only_results_simulate_wrote_unchanged(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "tvopt_codegen",
-            "simulate",
-            "integrator",
-            "--out",
-            str(out),
-            "--points",
-            "41",
-        ],
-        check=True,
-        capture_output=True,
-    )
+    assert _tvopt("simulate", "integrator", "--out", str(out), "--points", "41").returncode == 0
     args = [
         sys.executable,
         "-m",
