@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 25461c11ff5f79b81a7ad9f408ccbfaeb8c1e6cb376de18a8d0bb196615938dc
+# content sha256: ed69329ee89100a0416eee4b15ab0b9fd670d2063510444ef66f8502bd32b36e
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -925,7 +925,8 @@ def _law_1(t, s, p, rates):
     if not math.isfinite(sum(hess) + sum(r)):
         return None
     z, pivot = _cholesky_1(hess, jet_rhs)
-    if not min(pivot) > PIVOT_TOLERANCE * max(map(abs, hess)):
+    # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
+    if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
     b = _decoupling_1(t, s, p, z, pvec)
     if not _finite(b):
@@ -1129,7 +1130,8 @@ def _with_one_point(general, rows):
                 and isinstance(t, (float, int))):
             values = s.tolist()
             p = _P_LIST if params is None else _parameters(params).tolist()
-            if math.isfinite(t) and _finite(values) and _finite(p):
+            # The defaults are finite: the spec loader refuses any other number.
+            if math.isfinite(t) and _finite(values) and (params is None or _finite(p)):
                 try:
                     # NumPy's warnings here (a function of an infinite or out-of-domain
                     # value) say nothing: the result is then not finite, and the array

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 565e3d6d8ab0a0e93cb7e3657fa2e2530bf666b3f9803ee36ce53dbf0b63004b
+# content sha256: 2707a447171aebc6040eff4500c92a60cde7bd13d3d754b222393a68565daa81
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -737,7 +737,8 @@ def _law_1(t, s, p, rates):
     if not math.isfinite(sum(hess) + sum(r)):
         return None
     z, pivot = _cholesky_1(hess, jet_rhs)
-    if not min(pivot) > PIVOT_TOLERANCE * max(map(abs, hess)):
+    # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
+    if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
     b = _decoupling_1(t, s, p, z, pvec)
     if not _finite(b):
@@ -941,7 +942,8 @@ def _with_one_point(general, rows):
                 and isinstance(t, (float, int))):
             values = s.tolist()
             p = _P_LIST if params is None else _parameters(params).tolist()
-            if math.isfinite(t) and _finite(values) and _finite(p):
+            # The defaults are finite: the spec loader refuses any other number.
+            if math.isfinite(t) and _finite(values) and (params is None or _finite(p)):
                 try:
                     # NumPy's warnings here (a function of an infinite or out-of-domain
                     # value) say nothing: the result is then not finite, and the array

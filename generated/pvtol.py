@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: 241997c39562b0161dab7c01bbe319995f6e637d1329f7700ecebb0b9ff79bc8
+# content sha256: aac01f384b6f625310327f9995994b9a41021fa76e1fdc688f95ad6c032b6c04
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -1030,7 +1030,8 @@ def _with_one_point(general, rows):
                 and isinstance(t, (float, int))):
             values = s.tolist()
             p = _P_LIST if params is None else _parameters(params).tolist()
-            if math.isfinite(t) and _finite(values) and _finite(p):
+            # The defaults are finite: the spec loader refuses any other number.
+            if math.isfinite(t) and _finite(values) and (params is None or _finite(p)):
                 try:
                     # NumPy's warnings here (a function of an infinite or out-of-domain
                     # value) say nothing: the result is then not finite, and the array

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: cbd51761c27bf04bbccda4f82e6dd34952724d464d706a2f5e405bf5414f479d
+# content sha256: 8720425ff0fb8614adbc23fbeeb8c7c37732a299e99b2e85e7b40433802cf989
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -1227,7 +1227,8 @@ def _law_1(t, s, p, rates):
     if not math.isfinite(sum(hess) + sum(r)):
         return None
     z, pivot = _cholesky_1(hess, jet_rhs)
-    if not min(pivot) > PIVOT_TOLERANCE * max(map(abs, hess)):
+    # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
+    if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
     b = _decoupling_1(t, s, p, z, pvec)
     if not _finite(b):
@@ -1431,7 +1432,8 @@ def _with_one_point(general, rows):
                 and isinstance(t, (float, int))):
             values = s.tolist()
             p = _P_LIST if params is None else _parameters(params).tolist()
-            if math.isfinite(t) and _finite(values) and _finite(p):
+            # The defaults are finite: the spec loader refuses any other number.
+            if math.isfinite(t) and _finite(values) and (params is None or _finite(p)):
                 try:
                     # NumPy's warnings here (a function of an infinite or out-of-domain
                     # value) say nothing: the result is then not finite, and the array

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 1311f464ad9a375c57e2a9e22a28338f5bbc8c179bdead443186dbb966b8e54b
+# content sha256: ba0dfe364cf03e9c1b457dac779648e092d68e8f38d4060e80f264bd30581139
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -2294,7 +2294,8 @@ def _law_1(t, s, p, rates):
     if not math.isfinite(sum(hess) + sum(r)):
         return None
     z, pivot = _cholesky_1(hess, jet_rhs)
-    if not min(pivot) > PIVOT_TOLERANCE * max(map(abs, hess)):
+    # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
+    if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
     b = _decoupling_1(t, s, p, z, pvec)
     if not _finite(b):
@@ -2498,7 +2499,8 @@ def _with_one_point(general, rows):
                 and isinstance(t, (float, int))):
             values = s.tolist()
             p = _P_LIST if params is None else _parameters(params).tolist()
-            if math.isfinite(t) and _finite(values) and _finite(p):
+            # The defaults are finite: the spec loader refuses any other number.
+            if math.isfinite(t) and _finite(values) and (params is None or _finite(p)):
                 try:
                     # NumPy's warnings here (a function of an infinite or out-of-domain
                     # value) say nothing: the result is then not finite, and the array

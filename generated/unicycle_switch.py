@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 38614b416b113028c72b914f0ebbfd55665fb726cc6e36023883125a067ff625
+# content sha256: 9d79762afc309c945bd47f8b4a1bf2a6ff68ac2022b3647210f4f0e7af4dcb04
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -1023,7 +1023,8 @@ def _with_one_point(general, rows):
                 and isinstance(t, (float, int))):
             values = s.tolist()
             p = _P_LIST if params is None else _parameters(params).tolist()
-            if math.isfinite(t) and _finite(values) and _finite(p):
+            # The defaults are finite: the spec loader refuses any other number.
+            if math.isfinite(t) and _finite(values) and (params is None or _finite(p)):
                 try:
                     # NumPy's warnings here (a function of an infinite or out-of-domain
                     # value) say nothing: the result is then not finite, and the array
