@@ -11,7 +11,8 @@ import sympy as sp
 
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.errors import SpecError
-from tvopt_codegen.ir import diagonal_blocks, lower
+from tvopt_codegen.ir import lower
+from tvopt_codegen.law import diagonal_blocks
 from tvopt_codegen.spec import load_spec, parse_spec
 
 

@@ -22,6 +22,7 @@ import sympy as sp
 from tvopt_codegen import hurwitz
 from tvopt_codegen.errors import AssumptionError, BudgetError, SpecError
 from tvopt_codegen.jet import Program, atomize, fresh_symbols, jacobian, next_derivative
+from tvopt_codegen.law import Law, control_law
 from tvopt_codegen.lie import (
     Extension,
     RelativeDegree,
@@ -159,6 +160,9 @@ class Derivation:
         convex only near its minimiser, a singular default state), one line each.
     transient_constant : float
         That c, computed.
+    law : Law
+        The control law written down from the above (:mod:`tvopt_codegen.law`):
+        everything the code generators evaluate.
     timings : tuple of (str, float)
         Seconds spent per derivation step.
     """
@@ -205,6 +209,7 @@ class Derivation:
     certified_rate_exact: bool
     warnings: tuple[str, ...]
     transient_constant: float
+    law: Law
     timings: tuple[tuple[str, float], ...]
 
     @property
@@ -1118,6 +1123,20 @@ def derive(
     unextended = _without_extension(model) if ext.counts else None
     clock.mark("error bound")
 
+    say("law")
+    law = control_law(
+        hessian_entries=hessian_entries,
+        grad_jet=grad_jet,
+        rest=rest,
+        R=R,
+        extension=ext,
+        plant_inputs=model.u,
+        padding=padding,
+        states=states,
+        state_names=state_names,
+    )
+    clock.mark("law")
+
     return Derivation(
         spec=spec,
         model=model,
@@ -1161,6 +1180,7 @@ def derive(
         certified_rate_exact=rate_exact,
         warnings=warnings,
         transient_constant=constant,
+        law=law,
         timings=tuple(clock.marks),
     )
 

@@ -6,8 +6,9 @@ only; printing them is the backends' job, laying out files the templates'. User 
 never reach kernel code: states are ``_s0, _s1, ...``, parameters ``_p0, ...``, and so
 on; the names survive only as labels for comments.
 
-The generated controller evaluates the paper's law as a chain of kernels and two
-numerical solves (never a symbolic inverse, ARCHITECTURE.md section 2)::
+The generated controller evaluates the paper's law (``Derivation.law``, written down by
+:mod:`tvopt_codegen.law`) as a chain of kernels and two numerical solves (never a
+symbolic inverse, docs/architecture.md section 2)::
 
     jet_time(t, p, a)      -> tau                 # the jet's terms of time and parameters
                                                   # alone: once per batch of states
@@ -31,6 +32,7 @@ import sympy as sp
 
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.jet import Assignment, fresh_symbols
+from tvopt_codegen.law import symbols
 
 
 @dataclass(frozen=True)
@@ -127,8 +129,7 @@ class KernelSet:
         raise KeyError(name)
 
 
-def _slots(prefix: str, count: int) -> tuple[sp.Symbol, ...]:
-    return tuple(sp.Symbol(f"_{prefix}{i}", real=True) for i in range(count))
+_slots = symbols
 
 
 def operation_count(exprs: Iterable[sp.Expr]) -> int:
@@ -644,32 +645,6 @@ def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel
     return time_kernel, state_kernel
 
 
-def diagonal_blocks(matrix: sp.MatrixBase) -> tuple[tuple[int, ...], ...]:
-    """The finest symmetric block-diagonal partition of a square matrix's pattern.
-
-    Rows ``i`` and ``j`` share a block when ``matrix[i, j]`` or ``matrix[j, i]`` is not
-    structurally zero (connected components, found by union-find). Blocks are ordered
-    by their first index.
-    """
-    m = matrix.shape[0]
-    parent = list(range(m))
-
-    def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for i in range(m):
-        for j in range(m):
-            if i != j and matrix[i, j] != 0:
-                parent[root(i)] = root(j)
-    blocks: dict[int, list[int]] = {}
-    for i in range(m):
-        blocks.setdefault(root(i), []).append(i)
-    return tuple(sorted((tuple(b) for b in blocks.values()), key=lambda b: b[0]))
-
-
 def lu_operations(size: int) -> int:
     """Operations of the generated LU solve with partial pivoting of one block."""
     factor = sum(1 + 2 * (size - j) + 2 for j in range(size) for _ in range(j + 1, size))
@@ -827,8 +802,9 @@ def lower(derivation: Derivation) -> KernelSet:
     m, k = len(model.u), d.k
     n = len(d.states)
     s_slots, p_slots = _slots("s", n), _slots("p", len(model.params))
-    a_slots, y_slots = _slots("a", k), _slots("y", m)
-    w_slots, z_slots = _slots("w", m), _slots("z", m)
+    # The law's unknowns are slots already (law.symbols names them like _slots).
+    a_slots, y_slots = d.law.a, _slots("y", m)
+    w_slots, z_slots = d.law.w, d.law.z
     param_names = tuple(q.name for q in model.params)
     output_names = d.spec.outputs
     arg_t = Arg("t", (), (), "time")
@@ -849,45 +825,28 @@ def lower(derivation: Derivation) -> KernelSet:
     y_block = [(d.y_jet[i][j], d.y_jet_values[i][j]) for i in range(m) for j in range(k)]
     jet_block = list(d.jet_program.assignments)
     hess_block = list(d.hessian_program.assignments)
+    law = d.law
     hess_value = dict(d.hessian_entries)
-    hess = [
-        hess_value.get((max(i, j), min(i, j)), sp.Integer(0)) for i in range(m) for j in range(m)
-    ]
-    jet_rhs = [
-        sum((sp.Symbol(f"_a{j}", real=True) * d.grad_jet[j][i] for j in range(k)), sp.Integer(0))
-        - d.rest[i]
-        for i in range(m)
-    ]
     jet_program = signal_block + y_block + jet_block + hess_block
     jet_program += list(d.rest_program.assignments)
-    # R goes out block by block (its diagonal blocks, one per agent in a team): the
-    # zeros between agents are never stored and each block is solved on its own.
-    r_blocks = diagonal_blocks(d.R)
-    r_entries = [d.R[i, j] for block in r_blocks for i in block for j in block]
     # R and p share their trigonometry with the output jet: one kernel, one CSE.
     shared: list[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]] = [
-        ("R", (len(r_entries),), r_entries, "diagonal blocks of the decoupling matrix"),
+        ("R", (len(law.r_entries),), law.r_entries, "diagonal blocks of the decoupling matrix"),
         ("pvec", (m,), list(d.p), "p = col(L_f^{r_i} h_i)"),
     ]
-    # The Hessian goes out as the nonzero entries of its lower triangle.
-    hess_entries = sorted(hess_value)
-    if not any(i == j for i, j in hess_entries):
-        hess_entries = sorted({*hess_entries, *((i, i) for i in range(m))})
-    if all(sp.sympify(e).is_Number for e in hess):
-        # A constant Hessian (quadratic f0) is inverted once, exactly, at generation time:
-        # a constant, not a symbolic inverse of a function, and no run-time Cholesky.
-        inverse = sp.Matrix(m, m, hess).inv()
-        y_imp = list(inverse * sp.Matrix(jet_rhs))
+    if law.y_imp is not None:
         jet = kernel(
             "jet",
             "y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian",
             [arg_t, arg_s, arg_p, arg_a],
             jet_program,
-            [("z", (m,), y_imp, "y_imp^(k)"), *shared],
+            [("z", (m,), law.y_imp, "y_imp^(k)"), *shared],
             subs,
         )
         cholesky = None
     else:
+        # The Hessian goes out as the entries of its lower triangle that law keeps.
+        hess_entries = law.hessian_pattern
         jet = kernel(
             "jet",
             "Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest",
@@ -900,7 +859,7 @@ def lower(derivation: Derivation) -> KernelSet:
                     [hess_value.get(entry, sp.Integer(0)) for entry in hess_entries],
                     "nonzero entries of the lower triangle of grad_yy f0",
                 ),
-                ("jet_rhs", (m,), jet_rhs, "sum_i a_i grad^(i) f0 - rest"),
+                ("jet_rhs", (m,), law.jet_rhs, "sum_i a_i grad^(i) f0 - rest"),
                 *shared,
             ],
             subs,
@@ -931,11 +890,6 @@ def lower(derivation: Derivation) -> KernelSet:
     if split is not None:
         jet_time, jet = split
 
-    v = []
-    for i in range(m):
-        v.append(
-            subs[d.states[d.state_names.index(d.padding[i][0])]] if d.padding[i] else z_slots[i]
-        )
     q_slots = _slots("q", m)
     arg_q = Arg("q", q_slots, tuple(f"p_{o}" for o in output_names), "p of the decoupling")
     decoupling = kernel(
@@ -943,30 +897,17 @@ def lower(derivation: Derivation) -> KernelSet:
         "b = v - p, so that R w = b linearizes the plant",
         [arg_t, arg_s, arg_p, arg_z, arg_q],
         [],
-        [("b", (m,), [v[i] - q_slots[i] for i in range(m)], "v - p")],
+        [("b", (m,), [law.v[i] - q_slots[i] for i in range(m)], "v - p")],
         subs,
     )
-
-    ext = d.extension
-    # f + G w over G's nonzero entries only: a team's G is block diagonal, and the
-    # dense product costs n m^2 sympy multiplications (half a second at 32 agents).
-    ds: list[sp.Expr] = [
-        sp.Add(ext.f[i], *(ext.G[i, j] * w_slots[j] for j in range(m) if ext.G[i, j] != 0))
-        for i in range(ext.G.shape[0])
-    ]
-    for i, chain in enumerate(d.padding):
-        for j in range(len(chain)):
-            nxt = d.states[d.state_names.index(chain[j + 1])] if j + 1 < len(chain) else z_slots[i]
-            ds.append(nxt)
-    # A prolonged input is a state of the extension; the others are inputs w directly.
-    plant_input = [uj if uj.name in ext.states else w_slots[j] for j, uj in enumerate(model.u)]
+    plant_input = law.plant_input
     closed_loop = kernel(
         "closed_loop",
         "Closed-loop vector field and the plant input",
         [arg_t, arg_s, arg_p, arg_w, arg_z],
         [],
         [
-            ("ds", (n,), ds, "time derivative of the closed-loop state"),
+            ("ds", (n,), law.closed_loop, "time derivative of the closed-loop state"),
             ("u", (m,), plant_input, "plant input"),
         ],
         subs,
@@ -1017,7 +958,7 @@ def lower(derivation: Derivation) -> KernelSet:
         "grad_yy f0(y, t)",
         [arg_t, arg_y, arg_p],
         signal0 + jet_block + hess_block,
-        [("hess", (m, m), hess, "grad_yy f0")],
+        [("hess", (m, m), law.hessian, "grad_yy f0")],
         y_subs,
     )
     return KernelSet(
@@ -1034,6 +975,6 @@ def lower(derivation: Derivation) -> KernelSet:
             gradient,
             hessian,
         ),
-        r_blocks,
-        sum(lu_operations(len(block)) for block in r_blocks),
+        law.r_blocks,
+        sum(lu_operations(len(block)) for block in law.r_blocks),
     )

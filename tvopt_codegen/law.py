@@ -1,0 +1,202 @@
+"""The paper's control law as data: the last step of the derivation.
+
+Given the derived quantities (the gradient jet, the Hessian's entries, R, the
+extended plant, the padding chains), this module writes the law down, once, as
+expressions that lowering only has to slice into kernels (``ir.lower``) and the report
+can show:
+
+- ``Hess y_imp^(k) = sum_j a_j grad^(j) f0 - rest`` (eq. (13) of the paper solved for
+  the highest derivative): :attr:`Law.jet_rhs`, with the Hessian's pattern
+  :attr:`Law.hessian_pattern`; when the Hessian is constant, its exact inverse applied
+  at generation time, :attr:`Law.y_imp`;
+- the new input ``v``: ``y_imp^(k)`` for an output of full relative degree, the first
+  padding state otherwise (the non-uniform theorem);
+- ``w = R^-1 (v - p)``, solved at run time over R's diagonal blocks
+  (:attr:`Law.r_blocks`);
+- the closed-loop field ``f + G w`` with the padding chains, and the map from ``w`` and
+  the state to the plant input ``u``.
+
+The unknowns solved for at run time are symbols of their own: ``_w0, ...`` (the input
+of the extended plant), ``_z0, ...`` (``y_imp^(k)``) and the Hurwitz coefficients
+``_a0, ...``. A leading underscore keeps them apart from every user name.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import sympy as sp
+
+from tvopt_codegen.lie import Extension
+
+
+def symbols(prefix: str, count: int) -> tuple[sp.Symbol, ...]:
+    """``_<prefix>0, _<prefix>1, ...``: real symbols no user name can take."""
+    return tuple(sp.Symbol(f"_{prefix}{i}", real=True) for i in range(count))
+
+
+@dataclass(frozen=True)
+class Law:
+    """The implicit trajectory planning law of one spec.
+
+    Attributes
+    ----------
+    a, w, z : tuple of sympy.Symbol
+        The Hurwitz coefficients ``a_j``, the extended plant's input ``w`` and
+        ``z = y_imp^(k)``, as they appear in the expressions below.
+    hessian : tuple of sympy.Expr
+        ``grad_yy f0``, (m, m) row-major, over the derivation's programs.
+    hessian_pattern : tuple of (int, int)
+        The entries ``(i, j), i >= j`` of the Hessian's lower triangle that the
+        generated code stores: the structurally nonzero ones and the whole diagonal.
+    jet_rhs : tuple of sympy.Expr
+        ``sum_j a_j grad^(j) f0 - rest``, so that ``Hess z = jet_rhs``.
+    y_imp : tuple of sympy.Expr or None
+        ``Hess^-1 jet_rhs`` with the exact inverse of a constant Hessian (a quadratic
+        f0); None when the Hessian varies and ``z`` is solved for at run time.
+    v : tuple of sympy.Expr
+        The new input per output: ``z_i``, or the first padding state of output i.
+    r_blocks : tuple of tuple of int
+        R's diagonal blocks (output indices, in order): a team of agents has one each.
+    r_entries : tuple of sympy.Expr
+        R's entries block by block, each block row by row: the zeros between blocks
+        are never stored.
+    closed_loop : tuple of sympy.Expr
+        The closed-loop vector field: ``f + G w`` of the extended plant, then the
+        padding chains (each state's derivative is the next, the last one's ``z_i``).
+    plant_input : tuple of sympy.Expr
+        The plant input ``u``: a prolonged input is a state of the extension, the
+        others are entries of ``w``.
+    """
+
+    a: tuple[sp.Symbol, ...]
+    w: tuple[sp.Symbol, ...]
+    z: tuple[sp.Symbol, ...]
+    hessian: tuple[sp.Expr, ...]
+    hessian_pattern: tuple[tuple[int, int], ...]
+    jet_rhs: tuple[sp.Expr, ...]
+    y_imp: tuple[sp.Expr, ...] | None
+    v: tuple[sp.Expr, ...]
+    r_blocks: tuple[tuple[int, ...], ...]
+    r_entries: tuple[sp.Expr, ...]
+    closed_loop: tuple[sp.Expr, ...]
+    plant_input: tuple[sp.Expr, ...]
+
+    @property
+    def constant_hessian(self) -> bool:
+        """Whether the Hessian is a constant matrix (and :attr:`y_imp` is the law)."""
+        return self.y_imp is not None
+
+
+def diagonal_blocks(matrix: sp.MatrixBase) -> tuple[tuple[int, ...], ...]:
+    """The finest symmetric block-diagonal partition of a square matrix's pattern.
+
+    Rows ``i`` and ``j`` share a block when ``matrix[i, j]`` or ``matrix[j, i]`` is not
+    structurally zero (connected components, found by union-find). Blocks are ordered
+    by their first index.
+    """
+    m = matrix.shape[0]
+    parent = list(range(m))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i in range(m):
+        for j in range(m):
+            if i != j and matrix[i, j] != 0:
+                parent[root(i)] = root(j)
+    blocks: dict[int, list[int]] = {}
+    for i in range(m):
+        blocks.setdefault(root(i), []).append(i)
+    return tuple(sorted((tuple(b) for b in blocks.values()), key=lambda b: b[0]))
+
+
+def control_law(
+    *,
+    hessian_entries: Sequence[tuple[tuple[int, int], sp.Expr]],
+    grad_jet: Sequence[Sequence[sp.Expr]],
+    rest: Sequence[sp.Expr],
+    R: sp.MatrixBase,
+    extension: Extension,
+    plant_inputs: Sequence[sp.Symbol],
+    padding: Sequence[Sequence[str]],
+    states: Sequence[sp.Symbol],
+    state_names: Sequence[str],
+) -> Law:
+    """Write the law down from the derived quantities.
+
+    Parameters
+    ----------
+    hessian_entries : sequence of ((int, int), sympy.Expr)
+        The nonzero entries ``(i, j), i >= j`` of the Hessian's lower triangle.
+    grad_jet : sequence of sequence of sympy.Expr
+        ``grad^(j) f0`` for ``j = 0 .. k-1``.
+    rest : sequence of sympy.Expr
+        ``grad^(k) f0`` with ``y^(k) = 0``.
+    R : sympy.MatrixBase
+        The decoupling matrix (m, m).
+    extension : Extension
+        The extended plant.
+    plant_inputs : sequence of sympy.Symbol
+        The plant's inputs ``u``.
+    padding : sequence of sequence of str
+        The padding states of each output, in chain order.
+    states, state_names : sequence
+        The closed-loop state: symbols and names, in order.
+
+    Returns
+    -------
+    Law
+        The law.
+    """
+    m, k = len(plant_inputs), len(grad_jet)
+    a, w, z = symbols("a", k), symbols("w", m), symbols("z", m)
+    state_of = dict(zip(state_names, states, strict=True))
+    value = dict(hessian_entries)
+    hessian = tuple(
+        value.get((max(i, j), min(i, j)), sp.Integer(0)) for i in range(m) for j in range(m)
+    )
+    pattern = sorted(value)
+    if not any(i == j for i, j in pattern):
+        pattern = sorted({*pattern, *((i, i) for i in range(m))})
+    jet_rhs = tuple(
+        sum((a[j] * grad_jet[j][i] for j in range(k)), sp.Integer(0)) - rest[i] for i in range(m)
+    )
+    y_imp = None
+    if all(sp.sympify(e).is_Number for e in hessian):
+        # A constant Hessian (quadratic f0) is inverted once, exactly, at generation time:
+        # a constant, not a symbolic inverse of a function, and no run-time Cholesky.
+        inverse = sp.Matrix(m, m, hessian).inv()
+        y_imp = tuple(inverse * sp.Matrix(jet_rhs))
+    v = tuple(state_of[padding[i][0]] if padding[i] else z[i] for i in range(m))
+    r_blocks = diagonal_blocks(R)
+    r_entries = tuple(R[i, j] for block in r_blocks for i in block for j in block)
+    ext = extension
+    # f + G w over G's nonzero entries only: a team's G is block diagonal, and the
+    # dense product costs n m^2 sympy multiplications (half a second at 32 agents).
+    field: list[sp.Expr] = [
+        sp.Add(ext.f[i], *(ext.G[i, j] * w[j] for j in range(m) if ext.G[i, j] != 0))
+        for i in range(ext.G.shape[0])
+    ]
+    for i, chain in enumerate(padding):
+        for j in range(len(chain)):
+            field.append(state_of[chain[j + 1]] if j + 1 < len(chain) else z[i])
+    plant_input = tuple(u if u.name in ext.states else w[j] for j, u in enumerate(plant_inputs))
+    return Law(
+        a=a,
+        w=w,
+        z=z,
+        hessian=hessian,
+        hessian_pattern=tuple(pattern),
+        jet_rhs=jet_rhs,
+        y_imp=y_imp,
+        v=v,
+        r_blocks=r_blocks,
+        r_entries=r_entries,
+        closed_loop=tuple(field),
+        plant_input=plant_input,
+    )
