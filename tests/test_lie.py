@@ -1,0 +1,77 @@
+"""Lie derivatives, dynamic extension, vector relative degree and the Brunovsky pair
+(lie.py), on hand-derived systems."""
+
+from __future__ import annotations
+
+import sympy as sp
+
+from tvopt_codegen.lie import Sampler, brunovsky, extend, generic_rank, relative_degree
+
+from .conftest import derivation
+
+x1, x2, theta, v, omega = sp.symbols("x1 x2 theta v omega", real=True)
+
+
+def _unicycle() -> tuple[sp.Matrix, sp.Matrix, sp.Matrix]:
+    f = sp.Matrix([0, 0, 0])
+    G = sp.Matrix([[sp.cos(theta), 0], [sp.sin(theta), 0], [0, 1]])
+    h = sp.Matrix([x1, x2])
+    return f, G, h
+
+
+def test_raw_unicycle_has_a_singular_decoupling_matrix() -> None:
+    """y = (x1, x2): both outputs have relative degree 1, and R = [[cos, 0], [sin, 0]]."""
+    f, G, h = _unicycle()
+    sampler = Sampler((x1, x2, theta), {})
+    rd = relative_degree(f, G, h, (x1, x2, theta), sampler)
+    assert rd.r == (1, 1)
+    assert rd.R is not None
+    assert sp.simplify(rd.R - sp.Matrix([[sp.cos(theta), 0], [sp.sin(theta), 0]])) == sp.zeros(2)
+    assert generic_rank(rd.R, sampler) == 1
+
+
+def test_prolonged_unicycle_is_full_state_linearizable() -> None:
+    """One integrator on v: states (x1, x2, theta, v), relative degrees (2, 2), det R = v."""
+    f, G, h = _unicycle()
+    ext = extend((x1, x2, theta), (v, omega), f, G, {"v": 1})
+    assert ext.states == ("v",) and ext.inputs == ("v_d1", "omega")
+    assert ext.f == sp.Matrix([v * sp.cos(theta), v * sp.sin(theta), 0, 0])
+    assert ext.G == sp.Matrix([[0, 0], [0, 0], [0, 1], [1, 0]])
+    sampler = Sampler(ext.x, {})
+    rd = relative_degree(ext.f, ext.G, h, ext.x, sampler)
+    assert rd.r == (2, 2)
+    assert rd.R is not None
+    expected = sp.Matrix([[sp.cos(theta), -v * sp.sin(theta)], [sp.sin(theta), v * sp.cos(theta)]])
+    assert sp.simplify(rd.R - expected) == sp.zeros(2)
+    assert sp.simplify(rd.R.det()) == v
+    # L_f h and L_f^2 h: the chains Phi is read from, and p = 0 (no drift beyond v).
+    assert rd.lie[0][:3] == (x1, v * sp.cos(theta), 0)
+    assert rd.lie[1][:3] == (x2, v * sp.sin(theta), 0)
+
+
+def test_two_integrators_make_an_input_chain() -> None:
+    f, G, h = _unicycle()
+    ext = extend((x1, x2, theta), (v, omega), f, G, {"v": 2})
+    assert ext.states == ("v", "v_d1") and ext.inputs == ("v_d2", "omega")
+    v_d1 = sp.Symbol("v_d1", real=True)
+    assert list(ext.f)[3:] == [v_d1, 0]
+    assert ext.G[4, 0] == 1 and ext.G[3, 0] == 0
+
+
+def test_brunovsky_pair_of_non_uniform_degrees() -> None:
+    A, B = brunovsky((1, 3))
+    assert A == sp.Matrix([[0, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [0, 0, 0, 0]])
+    assert B == sp.Matrix([[1, 0], [0, 0], [0, 0], [0, 1]])
+
+
+def test_derivation_reads_r_p_and_phi_from_the_lie_chains() -> None:
+    d = derivation("unicycle_switch")
+    assert d.relative_degree == (2, 2)
+    assert d.state_names == ("x1", "x2", "theta", "v")
+    assert d.det_R == v
+    assert d.singular_set == ("v = 0",)
+    assert d.p == sp.Matrix([0, 0])
+    assert list(d.phi) == [x1, v * sp.cos(theta), x2, v * sp.sin(theta)]
+    assert d.A == sp.Matrix([[0, 1, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1], [0, 0, 0, 0]])
+    assert d.B == sp.Matrix([[0, 0], [1, 0], [0, 0], [0, 1]])
+    assert d.uniform and d.k == 2 and d.padding == ((), ())

@@ -1,0 +1,530 @@
+"""Optimising kernels: operation counts, substitution, ordered CSE, and hoisting.
+
+:func:`make_kernel` turns a derived program and its outputs into a :class:`Kernel`:
+slot symbols substituted, odd functions of mirrored arguments merged
+(:func:`canonical_odd`), common subexpressions found and named in evaluation order
+(:func:`ordered_cse`). :func:`split_invariant` splits off the part of a kernel that
+depends on time and parameters alone, computed once per batch of states.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+
+import sympy as sp
+
+from tvopt_codegen.jet import Assignment, fresh_symbols
+from tvopt_codegen.kernel import Arg, Kernel, Output
+
+
+def operation_count(exprs: Iterable[sp.Expr]) -> int:
+    """Count the arithmetic operations and function calls that printing ``exprs`` costs.
+
+    A sum or product of ``n`` terms is ``n - 1`` operations (a factor ``-1`` is the
+    negation, or nothing in a sum, where it makes the subtraction; a factor ``b**-1`` is
+    the division), every other power and every function call one, a negative or
+    fractional literal one. Expressions are counted as trees, like sympy's
+    ``count_ops``, but in one memoized pass: linear in the size of the DAG, where
+    ``count_ops`` walks each expression anew.
+    """
+    memo: dict[tuple[sp.Basic, str], int] = {}
+
+    def own(node: sp.Basic, parent: str) -> int:
+        if node.is_Number:
+            if parent == "mul":
+                return 0
+            return int(node.is_negative is True) + int(node.is_Rational and not node.is_Integer)
+        if node.is_Atom:
+            return 0
+        if node.is_Add:
+            return len(node.args) - 1
+        if node.is_Mul:
+            negated = parent == "add" and node.args[0].is_Number and node.args[0].is_negative
+            return len(node.args) - 1 - int(bool(negated) and node.args[0] == -1)
+        if node.is_Pow and node.exp == -1:
+            return 0 if parent == "mul" else 1
+        return 1
+
+    def count(node: sp.Basic, parent: str = "") -> int:
+        key = (node, parent)
+        if key not in memo:
+            kind = "mul" if node.is_Mul else "add" if node.is_Add else ""
+            memo[key] = own(node, parent) + sum(count(arg, kind) for arg in node.args)
+        return memo[key]
+
+    return sum(count(sp.sympify(e)) for e in exprs)
+
+
+def _rebuild(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic:
+    """``node.func(*args)``, without re-running a function's ``eval`` on symbolic args.
+
+    Rebuilding ``tan(pi*g/(2*d))`` after a substitution makes sympy look for multiples
+    of pi in the argument again, with assumption queries: four milliseconds a node, two
+    seconds for a ring of 32 agents. Substituting symbols for symbols, or a temporary
+    for its value, never gives ``eval`` anything new to simplify; numbers still
+    evaluate (``sin(0)`` is 0).
+    """
+    if isinstance(node, sp.Function) and not all(a.is_Number for a in args):
+        return node.func(*args, evaluate=False)
+    return node.func(*args)
+
+
+def _substitute(
+    expr: sp.Basic,
+    mapping: Mapping[sp.Basic, sp.Basic],
+    memo: dict[sp.Basic, sp.Basic] | None = None,
+) -> sp.Basic:
+    """``expr.xreplace(mapping)`` with :func:`_rebuild`; ``memo`` may span many calls."""
+    table: dict[sp.Basic, sp.Basic] = {} if memo is None else memo
+
+    def visit(node: sp.Basic) -> sp.Basic:
+        if node in mapping:
+            return mapping[node]
+        if not node.args:
+            return node
+        if node in table:
+            return table[node]
+        args = [visit(arg) for arg in node.args]
+        same = all(a is b for a, b in zip(args, node.args, strict=True))
+        new = node if same else _rebuild(node, args)
+        table[node] = new
+        return new
+
+    return visit(sp.sympify(expr))
+
+
+def _negated_atom(value: sp.Basic) -> bool:
+    """Whether ``value`` is ``-x`` for a symbol or constant ``x`` (printing it costs nothing)."""
+    return bool(
+        value.is_Mul and len(value.args) == 2 and value.args[0] == -1 and value.args[1].is_Atom
+    )
+
+
+def _drop_aliases(
+    assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
+) -> tuple[list[Assignment], list[sp.Expr]]:
+    """Substitute assignments whose value is a bare symbol or constant, or its negation."""
+    alias: dict[sp.Symbol, sp.Expr] = {}
+    kept: list[Assignment] = []
+    for sym, raw in assignments:
+        value = _substitute(raw, alias)
+        if value.is_Atom or _negated_atom(value):
+            alias[sym] = value
+        else:
+            kept.append((sym, value))
+    return kept, [_substitute(e, alias) for e in outputs]
+
+
+def _prune(assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]) -> list[Assignment]:
+    """Drop assignments that no output needs (signal orders a kernel does not use)."""
+    needed: set[sp.Symbol] = set()
+    for e in outputs:
+        needed |= sp.sympify(e).free_symbols
+    kept: list[Assignment] = []
+    for sym, value in reversed(assignments):
+        if sym in needed:
+            kept.append((sym, value))
+            needed |= sp.sympify(value).free_symbols
+    return kept[::-1]
+
+
+#: Programs up to this many operations get sympy's full cse; larger ones value numbering.
+SMALL_PROGRAM_OPS = 1000
+
+
+def ordered_cse(
+    assignments: Sequence[Assignment], outputs: Sequence[sp.Expr], search: bool = True
+) -> tuple[tuple[Assignment, ...], tuple[sp.Expr, ...]]:
+    """CSE a straight-line program and its outputs, keeping evaluation order valid.
+
+    One ``sympy.cse`` pass sees every right-hand side and output. A common
+    subexpression found in an assignment only uses symbols defined before it, so each
+    extracted temporary is emitted just before its first use. Temporaries are then
+    renamed ``_t0, _t1, ...`` in emission order, which makes the text deterministic.
+
+    Parameters
+    ----------
+    assignments : sequence of (sympy.Symbol, sympy.Expr)
+        The program; right-hand sides use only earlier symbols and the inputs.
+    outputs : sequence of sympy.Expr
+        Output expressions over the program and the inputs.
+    search : bool
+        Allow sympy's ``cse`` (on programs up to :data:`SMALL_PROGRAM_OPS`), which also
+        finds common parts of sums and products. A program built one operation per
+        assignment (the Cholesky solve) has none to find: value numbering suffices.
+
+    Returns
+    -------
+    body : tuple of (sympy.Symbol, sympy.Expr)
+        The temporaries in evaluation order.
+    outputs : tuple of sympy.Expr
+        The reduced outputs.
+    """
+    kept, outs = _drop_aliases(_prune(assignments, outputs), outputs)
+    exprs = [value for _, value in kept] + outs
+    names = sp.numbered_symbols("_cse", real=True)
+    if search and operation_count(exprs) <= SMALL_PROGRAM_OPS:
+        # sympy's cse also finds common parts of sums and products (a*b in a*b*c and
+        # a*b*d): worth its superlinear time on the programs of a few agents only.
+        replacements, reduced = sp.cse(exprs, symbols=names, order="canonical")
+    else:
+        replacements, reduced = _value_numbering(exprs, names)
+    defined = dict(replacements)
+    order: list[Assignment] = []
+    emitted: set[sp.Symbol] = set()
+
+    def need(expr: sp.Expr) -> None:
+        for sym in sorted(expr.free_symbols & defined.keys() - emitted, key=_cse_index):
+            need(defined[sym])
+            if sym not in emitted:
+                emitted.add(sym)
+                order.append((sym, defined[sym]))
+
+    for (sym, _), value in zip(kept, reduced[: len(kept)], strict=True):
+        need(value)
+        order.append((sym, value))
+    for value in reduced[len(kept) :]:
+        need(value)
+    # CSE can leave an assignment that is just a temporary (the program computed a
+    # value CSE found elsewhere first): substitute those too.
+    order, outs = _drop_aliases(order, list(reduced[len(kept) :]))
+    # Merging equal values can leave a temporary with one use, and inlining can make
+    # two values equal: alternate to a fixed point (two or three rounds in practice).
+    while True:
+        size = len(order)
+        order, outs = _merge_equal(order, outs)
+        order, outs = _inline_single_use(order, outs)
+        if len(order) == size:
+            break
+    renames: dict[sp.Symbol, sp.Expr] = {}
+    body: list[Assignment] = []
+    for index, (sym, value) in enumerate(order):
+        new = sp.Symbol(f"_t{index}", real=True)
+        body.append((new, _substitute(value, renames)))
+        renames[sym] = new
+    return tuple(body), tuple(_substitute(e, renames) for e in outs)
+
+
+def _value_numbering(
+    exprs: Sequence[sp.Expr], names: Iterable[sp.Symbol]
+) -> tuple[list[Assignment], list[sp.Expr]]:
+    """Common subexpression elimination by value numbering, linear in the DAG size.
+
+    Every compound subexpression that occurs more than once becomes a temporary. This
+    is the tree pass of ``sympy.cse`` without its search for common subsets of sums
+    and products, which is quadratic in their number of terms and took minutes on a
+    ring of three agents (issue 7). The jet arrives in three-address form, where
+    such subsets are already separate assignments, so little is lost.
+    """
+    names = iter(names)
+    seen: set[sp.Basic] = set()
+    repeated: set[sp.Basic] = set()
+
+    def worth(node: sp.Basic) -> bool:
+        # A negated symbol or number is not worth a temporary: printing it is free.
+        return not (node.is_Atom or _negated_atom(node))
+
+    def find(node: sp.Basic) -> None:
+        stack = [node]
+        while stack:
+            current = stack.pop()
+            if not worth(current):
+                continue
+            if current in seen:
+                repeated.add(current)
+                continue
+            seen.add(current)
+            stack.extend(current.args)
+
+    for expr in exprs:
+        find(expr)
+    replacements: list[Assignment] = []
+    built: dict[sp.Basic, sp.Expr] = {}
+
+    def build(node: sp.Basic) -> sp.Expr:
+        if node.is_Atom:
+            return node
+        if node in built:
+            return built[node]
+        args = [build(arg) for arg in node.args]
+        same = all(a is b for a, b in zip(args, node.args, strict=True))
+        new = node if same else _rebuild(node, args)
+        if node in repeated:
+            sym = next(names)
+            replacements.append((sym, new))
+            new = sym
+        built[node] = new
+        return new
+
+    reduced = [build(sp.sympify(e)) for e in exprs]
+    return replacements, reduced
+
+
+def _merge_equal(
+    order: list[Assignment], outputs: list[sp.Expr]
+) -> tuple[list[Assignment], list[sp.Expr]]:
+    """Merge temporaries that compute the same value as an earlier one, or its negation.
+
+    CSE compares expressions, not values, before its own replacements: two products
+    that only become equal once their factors are named stay apart (``a**2 + 1`` twice
+    after ``a = tan(...)`` was extracted). And a pairwise term such as a barrier between
+    agents a and b differentiates into ``xa - xb`` for one and ``xb - xa`` for the other.
+    One pass in evaluation order catches both, each match turning the next ones up.
+    """
+    first: dict[sp.Basic, sp.Symbol] = {}
+    rename: dict[sp.Symbol, sp.Expr] = {}
+    # A node is rewritten once: a renamed symbol is only used after its assignment,
+    # so no node seen before a rename can contain it.
+    memo: dict[sp.Basic, sp.Basic] = {}
+    kept: list[Assignment] = []
+    for sym, raw in order:
+        value = _substitute(raw, rename, memo)
+        if value in first:
+            rename[sym] = first[value]
+            continue
+        # Negating a long sum builds a new one term by term; exact opposites are short
+        # differences (xa - xb) and products, so longer sums are not tried.
+        if not (value.is_Add and len(value.args) > _NEGATED_TERMS):
+            negated = -value
+            if negated in first:
+                rename[sym] = -first[negated]
+                continue
+        first[value] = sym
+        kept.append((sym, value))
+    return kept, [_substitute(e, rename, memo) for e in outputs]
+
+
+#: Sums up to this many terms are looked up negated too (:func:`_merge_equal`).
+_NEGATED_TERMS = 4
+
+
+def _inline_single_use(
+    order: list[Assignment], outputs: list[sp.Expr]
+) -> tuple[list[Assignment], list[sp.Expr]]:
+    """Substitute temporaries used exactly once back into their one user.
+
+    The jet is derived in three-address form (one operation per assignment), which
+    makes differentiation linear; printed that way, every operation would become a
+    named array in NumPy. Shared work stays in temporaries; the rest reads as the
+    expression it is.
+    """
+    uses: dict[sp.Symbol, int] = {}
+    for expr in [value for _, value in order] + outputs:
+        # Occurrences, not containing expressions: x*x uses x twice (inlining it would
+        # compute it twice).
+        for node in sp.preorder_traversal(expr):
+            if node.is_Symbol:
+                uses[node] = uses.get(node, 0) + 1
+    inline: dict[sp.Symbol, sp.Expr] = {}
+    kept: list[Assignment] = []
+    for sym, raw in order:
+        value = _substitute(raw, inline)
+        if uses.get(sym, 0) == 1:
+            inline[sym] = value
+        else:
+            kept.append((sym, value))
+    return kept, [_substitute(e, inline) for e in outputs]
+
+
+def _cse_index(sym: sp.Symbol) -> int:
+    return int(sym.name[len("_cse") :])
+
+
+#: Odd functions: f(-x) = -f(x).
+_ODD = (sp.sin, sp.tan, sp.sinh, sp.tanh, sp.asin, sp.atan, sp.asinh, sp.atanh)
+
+
+def canonical_odd(expr: sp.Expr, memo: dict[sp.Basic, sp.Expr] | None = None) -> sp.Expr:
+    """Write every odd function with the sign of its argument pulled out.
+
+    sympy keeps ``tanh((a - t)/b)`` and ``tanh((t - a)/b)`` apart (neither argument
+    "extracts" a minus sign, so neither is rewritten), and CSE then evaluates both. Of
+    such a pair the argument with the smaller canonical sort key is kept; sympy leaves
+    it alone on re-evaluation because it does not extract a sign either.
+
+    ``memo`` (node -> rewritten node) may be shared between calls: the kernels of one
+    controller repeat the same trigonometry, and each node is then decided once.
+    """
+
+    def negate(arg: sp.Expr) -> sp.Expr:
+        # Distribute the sign into a sum factor: -(a - t)/b becomes (t - a)/b.
+        if arg.is_Mul:
+            for i, factor in enumerate(arg.args):
+                if factor.is_Add:
+                    return sp.Mul(*arg.args[:i], -factor, *arg.args[i + 1 :])
+        return -arg
+
+    def flips(e: sp.Expr) -> bool:
+        arg = e.args[0]
+        other = negate(arg)
+        if other.could_extract_minus_sign():
+            return False
+        return bool(sp.default_sort_key(sp.expand(other)) < sp.default_sort_key(sp.expand(arg)))
+
+    table: dict[sp.Basic, sp.Expr] = {} if memo is None else memo
+
+    def rewrite(node: sp.Basic) -> sp.Expr:
+        if node.is_Atom:
+            return node
+        if node in table:
+            return table[node]
+        args = [rewrite(arg) for arg in node.args]
+        new = (
+            node
+            if all(a is b for a, b in zip(args, node.args, strict=True))
+            else _rebuild(node, args)
+        )
+        if isinstance(new, _ODD) and flips(new):
+            # Not re-evaluated: eval would find nothing the original's did not.
+            new = -new.func(negate(new.args[0]), evaluate=False)
+        table[node] = new
+        return new
+
+    expr = sp.sympify(expr)
+    if not expr.atoms(*_ODD):
+        return expr
+    return rewrite(expr)
+
+
+def make_kernel(
+    name: str,
+    doc: str,
+    inputs: Sequence[Arg],
+    assignments: Sequence[Assignment],
+    outputs: Sequence[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]],
+    subs: Mapping[sp.Symbol, sp.Expr],
+    odd: dict[sp.Basic, sp.Expr] | None = None,
+    search: bool = True,
+) -> Kernel:
+    """Substitute slot symbols, CSE, and package a kernel.
+
+    ``odd`` is the :func:`canonical_odd` memo shared by one controller's kernels;
+    ``search=False`` skips sympy's search for common sub-sums (:func:`ordered_cse`).
+    """
+    # Only what the outputs need: the gradient kernel, say, reads the jet's first part.
+    assignments = _prune(assignments, [e for _, _, exprs, _ in outputs for e in exprs])
+    slots: dict[sp.Basic, sp.Basic] = {}
+    program = [
+        (sym, canonical_odd(_substitute(value, subs, slots), odd)) for sym, value in assignments
+    ]
+    flat = [
+        canonical_odd(_substitute(e, subs, slots), odd) for _, _, exprs, _ in outputs for e in exprs
+    ]
+    before = operation_count([v for _, v in program] + flat)
+    body, reduced = ordered_cse(program, flat, search)
+    packed: list[Output] = []
+    start = 0
+    for out_name, shape, exprs, out_doc in outputs:
+        packed.append(Output(out_name, shape, reduced[start : start + len(exprs)], out_doc))
+        start += len(exprs)
+    allowed = {s for arg in inputs for s in arg.symbols} | {sym for sym, _ in body}
+    allowed.add(sp.Symbol("t", real=True))
+    for expr in [v for _, v in body] + list(reduced):
+        stray = expr.free_symbols - allowed
+        if stray:
+            raise AssertionError(f"kernel {name}: unbound symbols {sorted(map(str, stray))}")
+    return Kernel(
+        name,
+        doc,
+        tuple(inputs),
+        body,
+        tuple(packed),
+        operation_count([v for _, v in body] + list(reduced)),
+        before,
+    )
+
+
+#: Inputs that are the same for every state of a batch (one time, one parameter vector).
+_INVARIANT_INPUTS = ("t", "p", "a")
+
+
+def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel] | None:
+    """Split off the part of ``kernel`` that depends on time and parameters alone.
+
+    A batch of states at one time shares everything that does not involve the state:
+    the signals and their derivatives, a switch such as ``tanh((t - a)/b)``, sums of
+    such terms inside a state-dependent expression. Those become a kernel of
+    :data:`_INVARIANT_INPUTS` that returns them as one array ``tau``; the remaining
+    kernel reads ``tau`` as an input. Temporaries keep their names; a hoisted sub-sum or
+    sub-product of a larger expression gets a name ``_h0, _h1, ...``.
+
+    Returns
+    -------
+    (Kernel, Kernel) or None
+        The invariant kernel ``name`` and the rest (``kernel``'s name, inputs plus
+        ``tau``), or None when nothing would be shared.
+    """
+    invariant_args = [arg for arg in kernel.inputs if arg.name in _INVARIANT_INPUTS]
+    given: set[sp.Basic] = {sym for arg in invariant_args for sym in arg.symbols}
+    given.add(sp.Symbol("t", real=True))
+    invariant = set(given)
+    time_body: list[Assignment] = []
+    for sym, value in kernel.body:
+        if value.free_symbols <= invariant:
+            invariant.add(sym)
+            time_body.append((sym, value))
+    if not time_body:
+        return None
+    names = fresh_symbols("_h")
+    shared: dict[sp.Expr, sp.Symbol] = {}  # invariant value -> the state part's name for it
+    memo: dict[sp.Basic, sp.Expr] = {}
+
+    def fixed(node: sp.Basic) -> bool:
+        return bool(node.free_symbols <= invariant)
+
+    def share(node: sp.Expr) -> sp.Expr:
+        # Numbers and the inputs themselves are at hand in the state part already.
+        if node.is_Number or node in given:
+            return node
+        if node not in shared:
+            shared[node] = node if node in invariant else next(names)
+        return shared[node]
+
+    def hoist(node: sp.Basic) -> sp.Expr:
+        if node.is_Atom:
+            return share(node) if node.is_Symbol and node in invariant else node
+        if node in memo:
+            return memo[node]
+        if fixed(node):
+            new = share(node)
+        elif node.is_Add or node.is_Mul:
+            # (x + t + 1) -> x + _h0: the invariant terms or factors become one.
+            part = [a for a in node.args if fixed(a)]
+            rest = [hoist(a) for a in node.args if not fixed(a)]
+            new = node.func(*rest, *([share(node.func(*part))] if part else []))
+        else:
+            new = _rebuild(node, [hoist(a) for a in node.args])
+        memo[node] = new
+        return new
+
+    state_body = tuple((sym, hoist(value)) for sym, value in kernel.body if sym not in invariant)
+    state_outputs = tuple(
+        Output(out.name, out.shape, tuple(hoist(sp.sympify(e)) for e in out.exprs), out.doc)
+        for out in kernel.outputs
+    )
+    tau_values = list(shared)
+    time_program = _prune(time_body, tau_values)
+    tau = Output("tau", (len(tau_values),), tuple(tau_values), "terms of time and parameters")
+    time_ops = operation_count([v for _, v in time_program] + tau_values)
+    time_kernel = Kernel(
+        name, doc, tuple(invariant_args), tuple(time_program), (tau,), time_ops, time_ops
+    )
+    arg_tau = Arg(
+        "tau",
+        tuple(shared.values()),
+        tuple(f"{name} tau[{i}]" for i in range(len(shared))),
+        f"terms of time and parameters alone ({name})",
+    )
+    state_ops = operation_count(
+        [v for _, v in state_body] + [e for o in state_outputs for e in o.exprs]
+    )
+    state_kernel = Kernel(
+        kernel.name,
+        kernel.doc,
+        (*kernel.inputs, arg_tau),
+        state_body,
+        state_outputs,
+        state_ops,
+        kernel.ops_before_cse - time_ops,
+    )
+    return time_kernel, state_kernel
