@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: ed69329ee89100a0416eee4b15ab0b9fd670d2063510444ef66f8502bd32b36e
+# content sha256: 86679a36dc6bac637fc9db8f9c17d948bb6cc9bf9aec35793c47834a095b35ec
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -765,9 +765,10 @@ def _law(t, s, p, rates=True):
     with numpy.errstate(all="ignore"):
         tau = _jet_time(t, p, _A)
         hess, jet_rhs, r, pvec = _jet(t, s, p, _A, tau)
-    _check_finite("the Hessian, the gradient jet, the decoupling matrix or p", hess, jet_rhs,
-                  r, pvec)
-    # y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
+    _check_finite(
+        "the Hessian, the gradient jet, the decoupling matrix or p", hess, jet_rhs, r, pvec
+    )
+    # y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
     z = _cholesky_solve(hess, jet_rhs)
     with numpy.errstate(all="ignore"):
         b = _decoupling(t, s, p, z, pvec)
@@ -924,21 +925,27 @@ def _law_1(t, s, p, rates):
     # entry can leave z finite, and an entry of R no plant input depends on could hide.
     if not math.isfinite(sum(hess) + sum(r)):
         return None
+    # y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
     z, pivot = _cholesky_1(hess, jet_rhs)
     # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
     if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
     b = _decoupling_1(t, s, p, z, pvec)
-    if not _finite(b):
+    if not math.isfinite(sum(b)):
         return None
+    # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
     w = _solve_decoupling_1(r, b)
     if w is None:
         return None
     if not rates:
         u = _plant_input_1(t, s, p, w)
-        return (None, u) if _finite(u) else None
+        if not math.isfinite(sum(u)):
+            return None
+        return None, u
     ds, u = _closed_loop_1(t, s, p, w, z)
-    return (ds, u) if _finite(ds) and _finite(u) else None
+    if not math.isfinite(sum(ds) + sum(u)):
+        return None
+    return ds, u
 
 
 def _control_1(t, s, p):

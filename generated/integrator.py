@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 2707a447171aebc6040eff4500c92a60cde7bd13d3d754b222393a68565daa81
+# content sha256: 7e238cbd4ef4872c166a19ae88b3c738ef43b2c32d595f5b23e1ef3d0cadbaff
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -573,9 +573,10 @@ def _law(t, s, p, rates=True):
     with numpy.errstate(all="ignore"):
         tau = _jet_time(t, p, _A)
         hess, jet_rhs, r, pvec = _jet(t, s, p, _A, tau)
-    _check_finite("the Hessian, the gradient jet, the decoupling matrix or p", hess, jet_rhs,
-                  r, pvec)
-    # y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
+    _check_finite(
+        "the Hessian, the gradient jet, the decoupling matrix or p", hess, jet_rhs, r, pvec
+    )
+    # y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
     z = _cholesky_solve(hess, jet_rhs)
     with numpy.errstate(all="ignore"):
         b = _decoupling(t, s, p, z, pvec)
@@ -736,21 +737,27 @@ def _law_1(t, s, p, rates):
     # entry can leave z finite, and an entry of R no plant input depends on could hide.
     if not math.isfinite(sum(hess) + sum(r)):
         return None
+    # y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
     z, pivot = _cholesky_1(hess, jet_rhs)
     # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
     if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
     b = _decoupling_1(t, s, p, z, pvec)
-    if not _finite(b):
+    if not math.isfinite(sum(b)):
         return None
+    # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
     w = _solve_decoupling_1(r, b)
     if w is None:
         return None
     if not rates:
         u = _plant_input_1(t, s, p, w)
-        return (None, u) if _finite(u) else None
+        if not math.isfinite(sum(u)):
+            return None
+        return None, u
     ds, u = _closed_loop_1(t, s, p, w, z)
-    return (ds, u) if _finite(ds) and _finite(u) else None
+    if not math.isfinite(sum(ds) + sum(u)):
+        return None
+    return ds, u
 
 
 def _control_1(t, s, p):

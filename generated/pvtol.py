@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: aac01f384b6f625310327f9995994b9a41021fa76e1fdc688f95ad6c032b6c04
+# content sha256: 334748d23b4479580e55e0984796c39005d2725e6899fe789f2024f81b6253a8
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -660,8 +660,8 @@ def _law(t, s, p, rates=True):
     """
     with numpy.errstate(all="ignore"):
         tau = _jet_time(t, p, _A)
+        # y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time.
         z, r, pvec = _jet(t, s, p, _A, tau)
-    # y_imp^(K): the constant Hessian of f0 was inverted exactly at generation time.
     _check_finite("the gradient jet, the decoupling matrix or p", z, r, pvec)
     with numpy.errstate(all="ignore"):
         b = _decoupling(t, s, p, z, pvec)
@@ -823,22 +823,28 @@ def _solve_decoupling_1(r, b):
 def _law_1(t, s, p, rates):
     """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
     tau = _jet_time_1(t, p, _A_LIST)
+    # y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time.
     z, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
     # z and p reach b, which is checked below; R is checked here, since an entry of R
     # that no plant input depends on could hide in w.
     if not math.isfinite(sum(r)):
         return None
     b = _decoupling_1(t, s, p, z, pvec)
-    if not _finite(b):
+    if not math.isfinite(sum(b)):
         return None
+    # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
     w = _solve_decoupling_1(r, b)
     if w is None:
         return None
     if not rates:
         u = _plant_input_1(t, s, p, w)
-        return (None, u) if _finite(u) else None
+        if not math.isfinite(sum(u)):
+            return None
+        return None, u
     ds, u = _closed_loop_1(t, s, p, w, z)
-    return (ds, u) if _finite(ds) and _finite(u) else None
+    if not math.isfinite(sum(ds) + sum(u)):
+        return None
+    return ds, u
 
 
 def _control_1(t, s, p):

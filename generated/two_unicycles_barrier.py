@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 8720425ff0fb8614adbc23fbeeb8c7c37732a299e99b2e85e7b40433802cf989
+# content sha256: bb864228f5c36f324ede5678938e7b80587cd5f960b39f2410309eac99d748f0
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -1043,9 +1043,10 @@ def _law(t, s, p, rates=True):
     with numpy.errstate(all="ignore"):
         tau = _jet_time(t, p, _A)
         hess, jet_rhs, r, pvec = _jet(t, s, p, _A, tau)
-    _check_finite("the Hessian, the gradient jet, the decoupling matrix or p", hess, jet_rhs,
-                  r, pvec)
-    # y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
+    _check_finite(
+        "the Hessian, the gradient jet, the decoupling matrix or p", hess, jet_rhs, r, pvec
+    )
+    # y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
     z = _cholesky_solve(hess, jet_rhs)
     with numpy.errstate(all="ignore"):
         b = _decoupling(t, s, p, z, pvec)
@@ -1226,21 +1227,27 @@ def _law_1(t, s, p, rates):
     # entry can leave z finite, and an entry of R no plant input depends on could hide.
     if not math.isfinite(sum(hess) + sum(r)):
         return None
+    # y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
     z, pivot = _cholesky_1(hess, jet_rhs)
     # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
     if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
     b = _decoupling_1(t, s, p, z, pvec)
-    if not _finite(b):
+    if not math.isfinite(sum(b)):
         return None
+    # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
     w = _solve_decoupling_1(r, b)
     if w is None:
         return None
     if not rates:
         u = _plant_input_1(t, s, p, w)
-        return (None, u) if _finite(u) else None
+        if not math.isfinite(sum(u)):
+            return None
+        return None, u
     ds, u = _closed_loop_1(t, s, p, w, z)
-    return (ds, u) if _finite(ds) and _finite(u) else None
+    if not math.isfinite(sum(ds) + sum(u)):
+        return None
+    return ds, u
 
 
 def _control_1(t, s, p):

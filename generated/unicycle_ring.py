@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: ba0dfe364cf03e9c1b457dac779648e092d68e8f38d4060e80f264bd30581139
+# content sha256: 9162675bb9dbe184b0b57f5d28d3a1e3b248a618878654584a325848b2f11c4d
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -2082,9 +2082,10 @@ def _law(t, s, p, rates=True):
     with numpy.errstate(all="ignore"):
         tau = _jet_time(t, p, _A)
         hess, jet_rhs, r, pvec = _jet(t, s, p, _A, tau)
-    _check_finite("the Hessian, the gradient jet, the decoupling matrix or p", hess, jet_rhs,
-                  r, pvec)
-    # y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
+    _check_finite(
+        "the Hessian, the gradient jet, the decoupling matrix or p", hess, jet_rhs, r, pvec
+    )
+    # y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
     z = _cholesky_solve(hess, jet_rhs)
     with numpy.errstate(all="ignore"):
         b = _decoupling(t, s, p, z, pvec)
@@ -2293,21 +2294,27 @@ def _law_1(t, s, p, rates):
     # entry can leave z finite, and an entry of R no plant input depends on could hide.
     if not math.isfinite(sum(hess) + sum(r)):
         return None
+    # y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
     z, pivot = _cholesky_1(hess, jet_rhs)
     # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
     if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
     b = _decoupling_1(t, s, p, z, pvec)
-    if not _finite(b):
+    if not math.isfinite(sum(b)):
         return None
+    # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
     w = _solve_decoupling_1(r, b)
     if w is None:
         return None
     if not rates:
         u = _plant_input_1(t, s, p, w)
-        return (None, u) if _finite(u) else None
+        if not math.isfinite(sum(u)):
+            return None
+        return None, u
     ds, u = _closed_loop_1(t, s, p, w, z)
-    return (ds, u) if _finite(ds) and _finite(u) else None
+    if not math.isfinite(sum(ds) + sum(u)):
+        return None
+    return ds, u
 
 
 def _control_1(t, s, p):

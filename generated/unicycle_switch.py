@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 9d79762afc309c945bd47f8b4a1bf2a6ff68ac2022b3647210f4f0e7af4dcb04
+# content sha256: e52c10927c7c11f3f542e055877fb5cfdbdcc16cb20b82712f30ffc0d03c1a5e
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -653,8 +653,8 @@ def _law(t, s, p, rates=True):
     """
     with numpy.errstate(all="ignore"):
         tau = _jet_time(t, p, _A)
+        # y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time.
         z, r, pvec = _jet(t, s, p, _A, tau)
-    # y_imp^(K): the constant Hessian of f0 was inverted exactly at generation time.
     _check_finite("the gradient jet, the decoupling matrix or p", z, r, pvec)
     with numpy.errstate(all="ignore"):
         b = _decoupling(t, s, p, z, pvec)
@@ -816,22 +816,28 @@ def _solve_decoupling_1(r, b):
 def _law_1(t, s, p, rates):
     """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
     tau = _jet_time_1(t, p, _A_LIST)
+    # y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time.
     z, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
     # z and p reach b, which is checked below; R is checked here, since an entry of R
     # that no plant input depends on could hide in w.
     if not math.isfinite(sum(r)):
         return None
     b = _decoupling_1(t, s, p, z, pvec)
-    if not _finite(b):
+    if not math.isfinite(sum(b)):
         return None
+    # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
     w = _solve_decoupling_1(r, b)
     if w is None:
         return None
     if not rates:
         u = _plant_input_1(t, s, p, w)
-        return (None, u) if _finite(u) else None
+        if not math.isfinite(sum(u)):
+            return None
+        return None, u
     ds, u = _closed_loop_1(t, s, p, w, z)
-    return (ds, u) if _finite(ds) and _finite(u) else None
+    if not math.isfinite(sum(ds) + sum(u)):
+        return None
+    return ds, u
 
 
 def _control_1(t, s, p):

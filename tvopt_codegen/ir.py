@@ -25,14 +25,17 @@ symbolic inverse, docs/architecture.md section 2)::
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import sympy as sp
 
 from tvopt_codegen.cse import make_kernel, split_invariant
 from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.jet import Assignment
 from tvopt_codegen.kernel import Arg, Kernel, KernelSet, Output
 from tvopt_codegen.law import symbols
+from tvopt_codegen.plan import law_plan
 from tvopt_codegen.sparse import cholesky_program, lu_operations
 
 __all__ = ["Arg", "Kernel", "KernelSet", "Output", "lower"]
@@ -40,8 +43,197 @@ __all__ = ["Arg", "Kernel", "KernelSet", "Output", "lower"]
 _slots = symbols
 
 
+#: How a kernel is made: :func:`~tvopt_codegen.cse.make_kernel` sharing one controller's
+#: memo of odd functions.
+_Make = Callable[..., Kernel]
+
+
+@dataclass(frozen=True)
+class _Args:
+    """The kernels' arguments, and the substitution of derived symbols by their slots."""
+
+    t: Arg
+    s: Arg
+    p: Arg
+    a: Arg
+    y: Arg
+    w: Arg
+    z: Arg
+    subs: dict[sp.Symbol, sp.Expr]
+    y_subs: dict[sp.Symbol, sp.Expr]
+
+
+def _arguments(d: Derivation) -> _Args:
+    model, law = d.model, d.law
+    m, k = len(model.u), d.k
+    s_slots, p_slots = _slots("s", len(d.states)), _slots("p", len(model.params))
+    y_slots = _slots("y", m)
+    outputs = d.spec.outputs
+    subs: dict[sp.Symbol, sp.Expr] = dict(zip(d.states, s_slots, strict=True))
+    subs |= dict(zip(model.params, p_slots, strict=True))
+    return _Args(
+        t=Arg("t", (), (), "time"),
+        s=Arg("s", s_slots, d.state_names, "closed-loop state"),
+        p=Arg("p", p_slots, tuple(q.name for q in model.params), "parameters"),
+        # The law's unknowns are slots already (law.symbols names them like _slots).
+        a=Arg("a", law.a, tuple(f"a_{i}" for i in range(k)), "Hurwitz coefficients"),
+        y=Arg("y", y_slots, outputs, "outputs"),
+        w=Arg("w", law.w, d.extension.inputs, "inputs of the extended plant"),
+        z=Arg("z", law.z, tuple(f"{o}^({k})" for o in outputs), "y_imp^(k)"),
+        subs=subs,
+        y_subs=subs | dict(zip(model.y, y_slots, strict=True)),
+    )
+
+
+def _programs(d: Derivation) -> dict[str, list[Assignment]]:
+    """The derivation's straight-line programs, by what they compute."""
+    model, m, k = d.model, len(d.model.u), d.k
+    signals = range(len(model.signals))
+    return {
+        "signals": list(d.signal_program.assignments)
+        + [(d.signal_jet[i][q], d.signal_jet_values[i][q]) for i in signals for q in range(k + 1)],
+        "signals0": list(d.signal_program.assignments)
+        + [(d.signal_jet[i][0], d.signal_jet_values[i][0]) for i in signals],
+        "y": [(d.y_jet[i][j], d.y_jet_values[i][j]) for i in range(m) for j in range(k)],
+        "jet": list(d.jet_program.assignments),
+        "hessian": list(d.hessian_program.assignments),
+        "rest": list(d.rest_program.assignments),
+    }
+
+
+def _jet_kernels(
+    d: Derivation, args: _Args, programs: dict[str, list[Assignment]], kernel: _Make
+) -> tuple[Kernel, Kernel | None]:
+    """The jet (with R and p) and, unless the Hessian is constant, its LDL^T solve."""
+    law, m = d.law, len(d.model.u)
+    jet_program = programs["signals"] + programs["y"] + programs["jet"] + programs["hessian"]
+    jet_program += programs["rest"]
+    inputs = [args.t, args.s, args.p, args.a]
+    # R and p share their trigonometry with the output jet: one kernel, one CSE.
+    shared: list[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]] = [
+        ("R", (len(law.r_entries),), law.r_entries, "diagonal blocks of the decoupling matrix"),
+        ("pvec", (m,), list(d.p), "p = col(L_f^{r_i} h_i)"),
+    ]
+    if law.y_imp is not None:
+        jet = kernel(
+            "jet",
+            "y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian",
+            inputs,
+            jet_program,
+            [("z", (m,), law.y_imp, "y_imp^(k)"), *shared],
+            args.subs,
+        )
+        return jet, None
+    # The Hessian goes out as the entries of its lower triangle that the law keeps.
+    pattern = law.hessian_pattern
+    value = dict(d.hessian_entries)
+    jet = kernel(
+        "jet",
+        "Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest",
+        inputs,
+        jet_program,
+        [
+            (
+                "hessian",
+                (len(pattern),),
+                [value.get(entry, sp.Integer(0)) for entry in pattern],
+                "nonzero entries of the lower triangle of grad_yy f0",
+            ),
+            ("jet_rhs", (m,), law.jet_rhs, "sum_i a_i grad^(i) f0 - rest"),
+            *shared,
+        ],
+        args.subs,
+    )
+    h_slots, c_slots = _slots("h", len(pattern)), _slots("c", m)
+    program, solution, pivots = cholesky_program(pattern, m, h_slots, c_slots)
+    cholesky = kernel(
+        "cholesky",
+        "Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) "
+        "and its pivots",
+        [
+            Arg("h", h_slots, tuple(f"H[{i}, {j}]" for i, j in pattern), "Hessian"),
+            Arg("c", c_slots, tuple(f"c[{i}]" for i in range(m)), "right-hand side"),
+        ],
+        program,
+        [
+            ("z", (m,), solution, "y_imp^(k)"),
+            ("pivot", (m,), pivots, "pivots of the elimination, positive if Hess > 0"),
+        ],
+        {},
+        search=False,  # one operation per assignment already: nothing to find
+    )
+    return jet, cholesky
+
+
+def _input_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
+    """From y_imp^(k) to the plant: b = v - p, the closed-loop field, the plant input."""
+    law, m = d.law, len(d.model.u)
+    q_slots = _slots("q", m)
+    arg_q = Arg("q", q_slots, tuple(f"p_{o}" for o in d.spec.outputs), "p of the decoupling")
+    decoupling = kernel(
+        "decoupling",
+        "b = v - p, so that R w = b linearizes the plant",
+        [args.t, args.s, args.p, args.z, arg_q],
+        [],
+        [("b", (m,), [law.v[i] - q_slots[i] for i in range(m)], "v - p")],
+        args.subs,
+    )
+    closed_loop = kernel(
+        "closed_loop",
+        "Closed-loop vector field and the plant input",
+        [args.t, args.s, args.p, args.w, args.z],
+        [],
+        [
+            ("ds", (len(d.states),), law.closed_loop, "time derivative of the closed-loop state"),
+            ("u", (m,), law.plant_input, "plant input"),
+        ],
+        args.subs,
+    )
+    plant_input = kernel(
+        "plant_input",
+        "The plant input alone (control needs no vector field)",
+        [args.t, args.s, args.p, args.w],
+        [],
+        [("u", (m,), law.plant_input, "plant input")],
+        args.subs,
+    )
+    return [decoupling, closed_loop, plant_input]
+
+
+def _objective_kernels(
+    d: Derivation, args: _Args, programs: dict[str, list[Assignment]], kernel: _Make
+) -> list[Kernel]:
+    """The optimality error along the closed loop, and f0 with its derivatives in y."""
+    m, k = len(d.model.u), d.k
+    optimality = kernel(
+        "optimality",
+        "Optimality error E: row j is grad^(j) f0",
+        [args.t, args.s, args.p],
+        programs["signals"] + programs["y"] + programs["jet"],
+        [("E", (k, m), [d.grad_jet[j][i] for j in range(k) for i in range(m)], "grad^(j) f0")],
+        args.subs,
+    )
+    on_y = [args.t, args.y, args.p]
+    signal0 = programs["signals0"]
+    objective = kernel(
+        "objective", "The objective f0(y, t)", on_y, signal0,
+        [("f0", (), [d.model.f0], "f0")], args.y_subs,
+    )  # fmt: skip
+    # Both from the gradient's program (the jet's first assignments), which make_kernel
+    # prunes to what each needs.
+    gradient = kernel(
+        "gradient", "grad_y f0(y, t)", on_y, signal0 + programs["jet"],
+        [("grad", (m,), list(d.grad_jet[0]), "grad_y f0")], args.y_subs,
+    )  # fmt: skip
+    hessian = kernel(
+        "hessian", "grad_yy f0(y, t)", on_y, signal0 + programs["jet"] + programs["hessian"],
+        [("hess", (m, m), d.law.hessian, "grad_yy f0")], args.y_subs,
+    )  # fmt: skip
+    return [optimality, objective, gradient, hessian]
+
+
 def lower(derivation: Derivation) -> KernelSet:
-    """Lower a derivation to the kernels every backend prints.
+    """Lower a derivation to the kernels every backend prints, and the plan that runs them.
 
     Parameters
     ----------
@@ -54,173 +246,32 @@ def lower(derivation: Derivation) -> KernelSet:
         Kernels ``jet_time`` (unless the jet has no term of time and parameters alone),
         ``jet``, ``cholesky`` (unless the Hessian is constant), ``decoupling``,
         ``closed_loop``, ``plant_input``, ``optimality``, ``objective``, ``gradient`` and
-        ``hessian``.
+        ``hessian``; the execution plan (:mod:`tvopt_codegen.plan`).
     """
     d = derivation
-    odd: dict[sp.Basic, sp.Expr] = {}
-    kernel = functools.partial(make_kernel, odd=odd)
-    model = d.model
-    m, k = len(model.u), d.k
-    n = len(d.states)
-    s_slots, p_slots = _slots("s", n), _slots("p", len(model.params))
-    # The law's unknowns are slots already (law.symbols names them like _slots).
-    a_slots, y_slots = d.law.a, _slots("y", m)
-    w_slots, z_slots = d.law.w, d.law.z
-    param_names = tuple(q.name for q in model.params)
-    output_names = d.spec.outputs
-    arg_t = Arg("t", (), (), "time")
-    arg_s = Arg("s", s_slots, d.state_names, "closed-loop state")
-    arg_p = Arg("p", p_slots, param_names, "parameters")
-    arg_a = Arg("a", a_slots, tuple(f"a_{i}" for i in range(k)), "Hurwitz coefficients")
-    arg_y = Arg("y", y_slots, output_names, "outputs")
-    arg_w = Arg("w", w_slots, d.extension.inputs, "inputs of the extended plant")
-    arg_z = Arg("z", z_slots, tuple(f"{o}^({k})" for o in output_names), "y_imp^(k)")
-    subs: dict[sp.Symbol, sp.Expr] = dict(zip(d.states, s_slots, strict=True))
-    subs |= dict(zip(model.params, p_slots, strict=True))
-
-    signal_block = list(d.signal_program.assignments) + [
-        (d.signal_jet[li][q], d.signal_jet_values[li][q])
-        for li in range(len(model.signals))
-        for q in range(k + 1)
-    ]
-    y_block = [(d.y_jet[i][j], d.y_jet_values[i][j]) for i in range(m) for j in range(k)]
-    jet_block = list(d.jet_program.assignments)
-    hess_block = list(d.hessian_program.assignments)
-    law = d.law
-    hess_value = dict(d.hessian_entries)
-    jet_program = signal_block + y_block + jet_block + hess_block
-    jet_program += list(d.rest_program.assignments)
-    # R and p share their trigonometry with the output jet: one kernel, one CSE.
-    shared: list[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]] = [
-        ("R", (len(law.r_entries),), law.r_entries, "diagonal blocks of the decoupling matrix"),
-        ("pvec", (m,), list(d.p), "p = col(L_f^{r_i} h_i)"),
-    ]
-    if law.y_imp is not None:
-        jet = kernel(
-            "jet",
-            "y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian",
-            [arg_t, arg_s, arg_p, arg_a],
-            jet_program,
-            [("z", (m,), law.y_imp, "y_imp^(k)"), *shared],
-            subs,
-        )
-        cholesky = None
-    else:
-        # The Hessian goes out as the entries of its lower triangle that law keeps.
-        hess_entries = law.hessian_pattern
-        jet = kernel(
-            "jet",
-            "Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest",
-            [arg_t, arg_s, arg_p, arg_a],
-            jet_program,
-            [
-                (
-                    "hessian",
-                    (len(hess_entries),),
-                    [hess_value.get(entry, sp.Integer(0)) for entry in hess_entries],
-                    "nonzero entries of the lower triangle of grad_yy f0",
-                ),
-                ("jet_rhs", (m,), law.jet_rhs, "sum_i a_i grad^(i) f0 - rest"),
-                *shared,
-            ],
-            subs,
-        )
-        h_slots, c_slots = _slots("h", len(hess_entries)), _slots("c", m)
-        program, solution, pivots = cholesky_program(hess_entries, m, h_slots, c_slots)
-        cholesky = kernel(
-            "cholesky",
-            "Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) "
-            "and its pivots",
-            [
-                Arg("h", h_slots, tuple(f"H[{i}, {j}]" for i, j in hess_entries), "Hessian"),
-                Arg("c", c_slots, tuple(f"c[{i}]" for i in range(m)), "right-hand side"),
-            ],
-            program,
-            [
-                ("z", (m,), solution, "y_imp^(k)"),
-                ("pivot", (m,), pivots, "pivots of the elimination, positive if Hess > 0"),
-            ],
-            {},
-            search=False,  # one operation per assignment already: nothing to find
-        )
-
+    # One memo of odd functions for all kernels, made in this order: the CSE of each
+    # sees the signs the earlier ones chose.
+    kernel = functools.partial(make_kernel, odd={})
+    args = _arguments(d)
+    programs = _programs(d)
+    jet, cholesky = _jet_kernels(d, args, programs, kernel)
     # Everything of the jet that depends on time and parameters alone is computed once
     # per batch of states (the C backend's batch functions; a block in NumPy).
     split = split_invariant(jet, "jet_time", "The jet's terms of time and parameters alone")
     jet_time = None
     if split is not None:
         jet_time, jet = split
-
-    q_slots = _slots("q", m)
-    arg_q = Arg("q", q_slots, tuple(f"p_{o}" for o in output_names), "p of the decoupling")
-    decoupling = kernel(
-        "decoupling",
-        "b = v - p, so that R w = b linearizes the plant",
-        [arg_t, arg_s, arg_p, arg_z, arg_q],
-        [],
-        [("b", (m,), [law.v[i] - q_slots[i] for i in range(m)], "v - p")],
-        subs,
-    )
-    plant_input = law.plant_input
-    closed_loop = kernel(
-        "closed_loop",
-        "Closed-loop vector field and the plant input",
-        [arg_t, arg_s, arg_p, arg_w, arg_z],
-        [],
-        [
-            ("ds", (n,), law.closed_loop, "time derivative of the closed-loop state"),
-            ("u", (m,), plant_input, "plant input"),
-        ],
-        subs,
-    )
-
-    plant_input_kernel = kernel(
-        "plant_input",
-        "The plant input alone (control needs no vector field)",
-        [arg_t, arg_s, arg_p, arg_w],
-        [],
-        [("u", (m,), plant_input, "plant input")],
-        subs,
-    )
-
-    optimality = kernel(
-        "optimality",
-        "Optimality error E: row j is grad^(j) f0",
-        [arg_t, arg_s, arg_p],
-        signal_block + y_block + jet_block,
-        [("E", (k, m), [d.grad_jet[j][i] for j in range(k) for i in range(m)], "grad^(j) f0")],
-        subs,
-    )
-
-    y_subs = dict(subs) | dict(zip(model.y, y_slots, strict=True))
-    signal0 = list(d.signal_program.assignments) + [
-        (d.signal_jet[li][0], d.signal_jet_values[li][0]) for li in range(len(model.signals))
-    ]
-    objective = kernel(
-        "objective",
-        "The objective f0(y, t)",
-        [arg_t, arg_y, arg_p],
-        signal0,
-        [("f0", (), [model.f0], "f0")],
-        y_subs,
-    )
-    # Both from the gradient's program (the jet's first assignments), which _kernel
-    # prunes to what each needs.
-    gradient = kernel(
-        "gradient",
-        "grad_y f0(y, t)",
-        [arg_t, arg_y, arg_p],
-        signal0 + jet_block,
-        [("grad", (m,), list(d.grad_jet[0]), "grad_y f0")],
-        y_subs,
-    )
-    hessian = kernel(
-        "hessian",
-        "grad_yy f0(y, t)",
-        [arg_t, arg_y, arg_p],
-        signal0 + jet_block + hess_block,
-        [("hess", (m, m), law.hessian, "grad_yy f0")],
-        y_subs,
+    rest = _input_kernels(d, args, kernel) + _objective_kernels(d, args, programs, kernel)
+    law = d.law
+    plan = law_plan(
+        n_states=len(d.states),
+        n_inputs=len(d.model.u),
+        n_outputs=len(d.spec.outputs),
+        n_params=len(d.model.params),
+        k=d.k,
+        tau=0 if jet_time is None else jet_time.outputs[0].shape[0],
+        hessian=0 if cholesky is None else jet.outputs[0].shape[0],
+        r_blocks=law.r_blocks,
     )
     return KernelSet(
         d,
@@ -228,14 +279,9 @@ def lower(derivation: Derivation) -> KernelSet:
             *((jet_time,) if jet_time is not None else ()),
             jet,
             *((cholesky,) if cholesky is not None else ()),
-            decoupling,
-            closed_loop,
-            plant_input_kernel,
-            optimality,
-            objective,
-            gradient,
-            hessian,
+            *rest,
         ),
+        plan,
         law.r_blocks,
         sum(lu_operations(len(block)) for block in law.r_blocks),
     )

@@ -16,6 +16,7 @@ from tvopt_codegen.jet import Assignment
 
 if TYPE_CHECKING:
     from tvopt_codegen.derivation import Derivation
+    from tvopt_codegen.plan import Plan
 
 
 @dataclass(frozen=True)
@@ -90,7 +91,9 @@ class KernelSet:
     derivation : Derivation
         The derived law.
     kernels : tuple of Kernel
-        The kernels, see :func:`lower`.
+        The kernels, see :func:`~tvopt_codegen.ir.lower`.
+    plan : Plan
+        The order of kernel calls, solves and checks that evaluates the law.
     r_blocks : tuple of tuple of int
         The diagonal blocks of R (output indices of each, in order). The ``R`` output
         of the ``jet`` kernel holds each block's entries row by row, block after block;
@@ -102,6 +105,7 @@ class KernelSet:
 
     derivation: Derivation
     kernels: tuple[Kernel, ...]
+    plan: Plan
     r_blocks: tuple[tuple[int, ...], ...] = ()
     lu_ops: int = 0
 

@@ -22,6 +22,7 @@ from tvopt_codegen import __version__
 from tvopt_codegen.backends import BACKENDS, Backend
 from tvopt_codegen.errors import TvoptError
 from tvopt_codegen.ir import Kernel, KernelSet
+from tvopt_codegen.plan import PIVOT_TOLERANCE, Status
 from tvopt_codegen.spec import BUNDLED_SUFFIX
 
 #: Placeholder for the content hash while the hash is computed.
@@ -72,6 +73,8 @@ def environment(root: Path | None = None) -> jinja2.Environment:
     env.filters["md"] = markdown_text
     env.filters["pyrepr"] = repr
     env.filters["pytuple"] = lambda values: repr(tuple(values))
+    # A macro's text ends with a newline, and so does the line that calls it.
+    env.filters["chomp"] = lambda text: str(text).removesuffix("\n")
     return env
 
 
@@ -298,6 +301,9 @@ def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
             "prefix": d.spec.name,
             "guard": d.spec.name.upper(),
             "r_blocks": kernels.r_blocks,
+            "plan": kernels.plan,
+            "statuses": tuple(Status),
+            "pivot_tolerance": PIVOT_TOLERANCE,
             **(backend.context(kernels) if backend.context is not None else {}),
         }
         text = render_template(template_name, context, backend.template_root)

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: a1044d0c83910d80c2551f60e122233b26eb769b69fdfbbb374c774c1dc4e683
+ * content sha256: a2b688e1f62802a225651e3aa51663ebb5964872209c1a4eb7506fffd19d27ef
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -365,22 +365,24 @@ static int flexible_joint_solve_decoupling(double *r, double *w)
 static int flexible_joint_law(double t, const double *s, const double *params, const double *tau, double *ds, double *u)
 {
     double hess[1];
-    double c[FLEXIBLE_JOINT_N_OUTPUTS];
+    double jet_rhs[FLEXIBLE_JOINT_N_OUTPUTS];
     double z[FLEXIBLE_JOINT_N_OUTPUTS];
     double r[FLEXIBLE_JOINT_R_ENTRIES];
-    double w[FLEXIBLE_JOINT_N_OUTPUTS];
     double pvec[FLEXIBLE_JOINT_N_OUTPUTS];
+    double w[FLEXIBLE_JOINT_N_OUTPUTS];
     int status = flexible_joint_check_inputs(t, s, FLEXIBLE_JOINT_N_STATES, params);
     if (status != FLEXIBLE_JOINT_OK) {
         return status;
     }
-    flexible_joint_k_jet(t, s, params, flexible_joint_hurwitz_coefficients, tau, hess, c, r, pvec);
-    if (flexible_joint_probe(hess, 1) + flexible_joint_probe(c, FLEXIBLE_JOINT_N_OUTPUTS)
-        + flexible_joint_probe(r, FLEXIBLE_JOINT_R_ENTRIES) + flexible_joint_probe(pvec, FLEXIBLE_JOINT_N_OUTPUTS) != 0.0) {
+    flexible_joint_k_jet(t, s, params, flexible_joint_hurwitz_coefficients, tau, hess, jet_rhs, r, pvec);
+    if (flexible_joint_probe(hess, 1)
+        + flexible_joint_probe(jet_rhs, FLEXIBLE_JOINT_N_OUTPUTS)
+        + flexible_joint_probe(r, FLEXIBLE_JOINT_R_ENTRIES)
+        + flexible_joint_probe(pvec, FLEXIBLE_JOINT_N_OUTPUTS) != 0.0) {
         return FLEXIBLE_JOINT_NONFINITE_OUTPUT;
     }
-    /* y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest] */
-    status = flexible_joint_cholesky_solve(hess, c, z);
+    /* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted. */
+    status = flexible_joint_cholesky_solve(hess, jet_rhs, z);
     if (status != FLEXIBLE_JOINT_OK) {
         return status;
     }
@@ -388,17 +390,21 @@ static int flexible_joint_law(double t, const double *s, const double *params, c
     if (flexible_joint_probe(w, FLEXIBLE_JOINT_N_OUTPUTS) != 0.0) {
         return FLEXIBLE_JOINT_NONFINITE_OUTPUT;
     }
-    /* w = R^-1 (v - p) */
+    /* w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits). */
     status = flexible_joint_solve_decoupling(r, w);
     if (status != FLEXIBLE_JOINT_OK) {
         return status;
     }
     if (ds == NULL) {
         flexible_joint_k_plant_input(t, s, params, w, u);
-        return flexible_joint_probe(u, FLEXIBLE_JOINT_N_INPUTS) == 0.0 ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
+        if (flexible_joint_probe(u, FLEXIBLE_JOINT_N_INPUTS) != 0.0) {
+            return FLEXIBLE_JOINT_NONFINITE_OUTPUT;
+        }
+        return FLEXIBLE_JOINT_OK;
     }
     flexible_joint_k_closed_loop(t, s, params, w, z, ds, u);
-    if (flexible_joint_probe(ds, FLEXIBLE_JOINT_N_STATES) + flexible_joint_probe(u, FLEXIBLE_JOINT_N_INPUTS) != 0.0) {
+    if (flexible_joint_probe(ds, FLEXIBLE_JOINT_N_STATES)
+        + flexible_joint_probe(u, FLEXIBLE_JOINT_N_INPUTS) != 0.0) {
         return FLEXIBLE_JOINT_NONFINITE_OUTPUT;
     }
     return FLEXIBLE_JOINT_OK;

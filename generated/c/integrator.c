@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 482e6c881f49115e52d1baff1ac5b98e7511a83222b278297dac0d6f12c47236
+ * content sha256: ef3fc729c351fba362c49f186e499173fd4238a007fe46780f174c5d32266aca
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -267,22 +267,24 @@ static int integrator_solve_decoupling(double *r, double *w)
 static int integrator_law(double t, const double *s, const double *params, const double *tau, double *ds, double *u)
 {
     double hess[2];
-    double c[INTEGRATOR_N_OUTPUTS];
+    double jet_rhs[INTEGRATOR_N_OUTPUTS];
     double z[INTEGRATOR_N_OUTPUTS];
     double r[INTEGRATOR_R_ENTRIES];
-    double w[INTEGRATOR_N_OUTPUTS];
     double pvec[INTEGRATOR_N_OUTPUTS];
+    double w[INTEGRATOR_N_OUTPUTS];
     int status = integrator_check_inputs(t, s, INTEGRATOR_N_STATES, params);
     if (status != INTEGRATOR_OK) {
         return status;
     }
-    integrator_k_jet(t, s, params, integrator_hurwitz_coefficients, tau, hess, c, r, pvec);
-    if (integrator_probe(hess, 2) + integrator_probe(c, INTEGRATOR_N_OUTPUTS)
-        + integrator_probe(r, INTEGRATOR_R_ENTRIES) + integrator_probe(pvec, INTEGRATOR_N_OUTPUTS) != 0.0) {
+    integrator_k_jet(t, s, params, integrator_hurwitz_coefficients, tau, hess, jet_rhs, r, pvec);
+    if (integrator_probe(hess, 2)
+        + integrator_probe(jet_rhs, INTEGRATOR_N_OUTPUTS)
+        + integrator_probe(r, INTEGRATOR_R_ENTRIES)
+        + integrator_probe(pvec, INTEGRATOR_N_OUTPUTS) != 0.0) {
         return INTEGRATOR_NONFINITE_OUTPUT;
     }
-    /* y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest] */
-    status = integrator_cholesky_solve(hess, c, z);
+    /* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted. */
+    status = integrator_cholesky_solve(hess, jet_rhs, z);
     if (status != INTEGRATOR_OK) {
         return status;
     }
@@ -290,17 +292,21 @@ static int integrator_law(double t, const double *s, const double *params, const
     if (integrator_probe(w, INTEGRATOR_N_OUTPUTS) != 0.0) {
         return INTEGRATOR_NONFINITE_OUTPUT;
     }
-    /* w = R^-1 (v - p) */
+    /* w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits). */
     status = integrator_solve_decoupling(r, w);
     if (status != INTEGRATOR_OK) {
         return status;
     }
     if (ds == NULL) {
         integrator_k_plant_input(t, s, params, w, u);
-        return integrator_probe(u, INTEGRATOR_N_INPUTS) == 0.0 ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
+        if (integrator_probe(u, INTEGRATOR_N_INPUTS) != 0.0) {
+            return INTEGRATOR_NONFINITE_OUTPUT;
+        }
+        return INTEGRATOR_OK;
     }
     integrator_k_closed_loop(t, s, params, w, z, ds, u);
-    if (integrator_probe(ds, INTEGRATOR_N_STATES) + integrator_probe(u, INTEGRATOR_N_INPUTS) != 0.0) {
+    if (integrator_probe(ds, INTEGRATOR_N_STATES)
+        + integrator_probe(u, INTEGRATOR_N_INPUTS) != 0.0) {
         return INTEGRATOR_NONFINITE_OUTPUT;
     }
     return INTEGRATOR_OK;

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: pvtol
  * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: d0de80f27aa12cd669e65f6fa141a83a9bf7efd0813d726bbebed25b8378cbf2
+ * content sha256: 39680214184d215d5e9229932646e0675d4a3400fe01dd358188a19637339612
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -265,8 +265,6 @@ static int pvtol_check_inputs(double t, const double *x, size_t count, const dou
     return PVTOL_OK;
 }
 
-
-
 /* Solve a x = b in place for a 2 x 2 block (a row-major; x overwrites b0, b1): LU with
  * partial pivoting, unrolled. The same operations in the same order as the general loop,
  * so the results are the same to the bit, without its index arithmetic. */
@@ -339,15 +337,16 @@ static int pvtol_law(double t, const double *s, const double *params, const doub
 {
     double z[PVTOL_N_OUTPUTS];
     double r[PVTOL_R_ENTRIES];
-    double w[PVTOL_N_OUTPUTS];
     double pvec[PVTOL_N_OUTPUTS];
+    double w[PVTOL_N_OUTPUTS];
     int status = pvtol_check_inputs(t, s, PVTOL_N_STATES, params);
     if (status != PVTOL_OK) {
         return status;
     }
-    /* y_imp^(K): the constant Hessian of f0 was inverted exactly at generation time. */
+    /* y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time. */
     pvtol_k_jet(t, s, params, pvtol_hurwitz_coefficients, tau, z, r, pvec);
-    if (pvtol_probe(z, PVTOL_N_OUTPUTS) + pvtol_probe(r, PVTOL_R_ENTRIES)
+    if (pvtol_probe(z, PVTOL_N_OUTPUTS)
+        + pvtol_probe(r, PVTOL_R_ENTRIES)
         + pvtol_probe(pvec, PVTOL_N_OUTPUTS) != 0.0) {
         return PVTOL_NONFINITE_OUTPUT;
     }
@@ -355,17 +354,21 @@ static int pvtol_law(double t, const double *s, const double *params, const doub
     if (pvtol_probe(w, PVTOL_N_OUTPUTS) != 0.0) {
         return PVTOL_NONFINITE_OUTPUT;
     }
-    /* w = R^-1 (v - p) */
+    /* w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits). */
     status = pvtol_solve_decoupling(r, w);
     if (status != PVTOL_OK) {
         return status;
     }
     if (ds == NULL) {
         pvtol_k_plant_input(t, s, params, w, u);
-        return pvtol_probe(u, PVTOL_N_INPUTS) == 0.0 ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
+        if (pvtol_probe(u, PVTOL_N_INPUTS) != 0.0) {
+            return PVTOL_NONFINITE_OUTPUT;
+        }
+        return PVTOL_OK;
     }
     pvtol_k_closed_loop(t, s, params, w, z, ds, u);
-    if (pvtol_probe(ds, PVTOL_N_STATES) + pvtol_probe(u, PVTOL_N_INPUTS) != 0.0) {
+    if (pvtol_probe(ds, PVTOL_N_STATES)
+        + pvtol_probe(u, PVTOL_N_INPUTS) != 0.0) {
         return PVTOL_NONFINITE_OUTPUT;
     }
     return PVTOL_OK;

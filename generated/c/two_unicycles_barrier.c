@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 83741dd9e470dfc3d4c4c1ca8676af25b48ed62be252ac7484e958fd0986d112
+ * content sha256: 7e445abecca602c8ad427d688530a584b7ca2b3d5943436b857e79f89edc6d59
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -556,22 +556,24 @@ static int two_unicycles_barrier_solve_decoupling(double *r, double *w)
 static int two_unicycles_barrier_law(double t, const double *s, const double *params, const double *tau, double *ds, double *u)
 {
     double hess[10];
-    double c[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
+    double jet_rhs[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
     double z[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
     double r[TWO_UNICYCLES_BARRIER_R_ENTRIES];
-    double w[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
     double pvec[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
+    double w[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
     int status = two_unicycles_barrier_check_inputs(t, s, TWO_UNICYCLES_BARRIER_N_STATES, params);
     if (status != TWO_UNICYCLES_BARRIER_OK) {
         return status;
     }
-    two_unicycles_barrier_k_jet(t, s, params, two_unicycles_barrier_hurwitz_coefficients, tau, hess, c, r, pvec);
-    if (two_unicycles_barrier_probe(hess, 10) + two_unicycles_barrier_probe(c, TWO_UNICYCLES_BARRIER_N_OUTPUTS)
-        + two_unicycles_barrier_probe(r, TWO_UNICYCLES_BARRIER_R_ENTRIES) + two_unicycles_barrier_probe(pvec, TWO_UNICYCLES_BARRIER_N_OUTPUTS) != 0.0) {
+    two_unicycles_barrier_k_jet(t, s, params, two_unicycles_barrier_hurwitz_coefficients, tau, hess, jet_rhs, r, pvec);
+    if (two_unicycles_barrier_probe(hess, 10)
+        + two_unicycles_barrier_probe(jet_rhs, TWO_UNICYCLES_BARRIER_N_OUTPUTS)
+        + two_unicycles_barrier_probe(r, TWO_UNICYCLES_BARRIER_R_ENTRIES)
+        + two_unicycles_barrier_probe(pvec, TWO_UNICYCLES_BARRIER_N_OUTPUTS) != 0.0) {
         return TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
     }
-    /* y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest] */
-    status = two_unicycles_barrier_cholesky_solve(hess, c, z);
+    /* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted. */
+    status = two_unicycles_barrier_cholesky_solve(hess, jet_rhs, z);
     if (status != TWO_UNICYCLES_BARRIER_OK) {
         return status;
     }
@@ -579,17 +581,21 @@ static int two_unicycles_barrier_law(double t, const double *s, const double *pa
     if (two_unicycles_barrier_probe(w, TWO_UNICYCLES_BARRIER_N_OUTPUTS) != 0.0) {
         return TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
     }
-    /* w = R^-1 (v - p) */
+    /* w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits). */
     status = two_unicycles_barrier_solve_decoupling(r, w);
     if (status != TWO_UNICYCLES_BARRIER_OK) {
         return status;
     }
     if (ds == NULL) {
         two_unicycles_barrier_k_plant_input(t, s, params, w, u);
-        return two_unicycles_barrier_probe(u, TWO_UNICYCLES_BARRIER_N_INPUTS) == 0.0 ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
+        if (two_unicycles_barrier_probe(u, TWO_UNICYCLES_BARRIER_N_INPUTS) != 0.0) {
+            return TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
+        }
+        return TWO_UNICYCLES_BARRIER_OK;
     }
     two_unicycles_barrier_k_closed_loop(t, s, params, w, z, ds, u);
-    if (two_unicycles_barrier_probe(ds, TWO_UNICYCLES_BARRIER_N_STATES) + two_unicycles_barrier_probe(u, TWO_UNICYCLES_BARRIER_N_INPUTS) != 0.0) {
+    if (two_unicycles_barrier_probe(ds, TWO_UNICYCLES_BARRIER_N_STATES)
+        + two_unicycles_barrier_probe(u, TWO_UNICYCLES_BARRIER_N_INPUTS) != 0.0) {
         return TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
     }
     return TWO_UNICYCLES_BARRIER_OK;

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_ring
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: d5a0d298445a70c5c44db9742ef8a9286b60139001bb8dd317ed81daff2684a1
+ * content sha256: e207957dd4f81bee0c3b831e8fa259848e2f2e58f0ec05158dcd4477ca71cfac
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical
@@ -1129,22 +1129,24 @@ static int unicycle_ring_solve_decoupling(double *r, double *w)
 static int unicycle_ring_law(double t, const double *s, const double *params, const double *tau, double *ds, double *u)
 {
     double hess[28];
-    double c[UNICYCLE_RING_N_OUTPUTS];
+    double jet_rhs[UNICYCLE_RING_N_OUTPUTS];
     double z[UNICYCLE_RING_N_OUTPUTS];
     double r[UNICYCLE_RING_R_ENTRIES];
-    double w[UNICYCLE_RING_N_OUTPUTS];
     double pvec[UNICYCLE_RING_N_OUTPUTS];
+    double w[UNICYCLE_RING_N_OUTPUTS];
     int status = unicycle_ring_check_inputs(t, s, UNICYCLE_RING_N_STATES, params);
     if (status != UNICYCLE_RING_OK) {
         return status;
     }
-    unicycle_ring_k_jet(t, s, params, unicycle_ring_hurwitz_coefficients, tau, hess, c, r, pvec);
-    if (unicycle_ring_probe(hess, 28) + unicycle_ring_probe(c, UNICYCLE_RING_N_OUTPUTS)
-        + unicycle_ring_probe(r, UNICYCLE_RING_R_ENTRIES) + unicycle_ring_probe(pvec, UNICYCLE_RING_N_OUTPUTS) != 0.0) {
+    unicycle_ring_k_jet(t, s, params, unicycle_ring_hurwitz_coefficients, tau, hess, jet_rhs, r, pvec);
+    if (unicycle_ring_probe(hess, 28)
+        + unicycle_ring_probe(jet_rhs, UNICYCLE_RING_N_OUTPUTS)
+        + unicycle_ring_probe(r, UNICYCLE_RING_R_ENTRIES)
+        + unicycle_ring_probe(pvec, UNICYCLE_RING_N_OUTPUTS) != 0.0) {
         return UNICYCLE_RING_NONFINITE_OUTPUT;
     }
-    /* y_imp^(K) = Hess^-1 [sum a_i grad^(i) f0 - rest] */
-    status = unicycle_ring_cholesky_solve(hess, c, z);
+    /* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted. */
+    status = unicycle_ring_cholesky_solve(hess, jet_rhs, z);
     if (status != UNICYCLE_RING_OK) {
         return status;
     }
@@ -1152,17 +1154,21 @@ static int unicycle_ring_law(double t, const double *s, const double *params, co
     if (unicycle_ring_probe(w, UNICYCLE_RING_N_OUTPUTS) != 0.0) {
         return UNICYCLE_RING_NONFINITE_OUTPUT;
     }
-    /* w = R^-1 (v - p) */
+    /* w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits). */
     status = unicycle_ring_solve_decoupling(r, w);
     if (status != UNICYCLE_RING_OK) {
         return status;
     }
     if (ds == NULL) {
         unicycle_ring_k_plant_input(t, s, params, w, u);
-        return unicycle_ring_probe(u, UNICYCLE_RING_N_INPUTS) == 0.0 ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
+        if (unicycle_ring_probe(u, UNICYCLE_RING_N_INPUTS) != 0.0) {
+            return UNICYCLE_RING_NONFINITE_OUTPUT;
+        }
+        return UNICYCLE_RING_OK;
     }
     unicycle_ring_k_closed_loop(t, s, params, w, z, ds, u);
-    if (unicycle_ring_probe(ds, UNICYCLE_RING_N_STATES) + unicycle_ring_probe(u, UNICYCLE_RING_N_INPUTS) != 0.0) {
+    if (unicycle_ring_probe(ds, UNICYCLE_RING_N_STATES)
+        + unicycle_ring_probe(u, UNICYCLE_RING_N_INPUTS) != 0.0) {
         return UNICYCLE_RING_NONFINITE_OUTPUT;
     }
     return UNICYCLE_RING_OK;

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 32c6ccd263fbce20a7e766d44bc30bf84adba902ead62e259ed5e31a22e64387
+ * content sha256: 4678b3c6ff180a6d1b1c86329dcff8cc900d1ae638a02e1c51e458170d27a95c
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -254,8 +254,6 @@ static int unicycle_switch_check_inputs(double t, const double *x, size_t count,
     return UNICYCLE_SWITCH_OK;
 }
 
-
-
 /* Solve a x = b in place for a 2 x 2 block (a row-major; x overwrites b0, b1): LU with
  * partial pivoting, unrolled. The same operations in the same order as the general loop,
  * so the results are the same to the bit, without its index arithmetic. */
@@ -328,15 +326,16 @@ static int unicycle_switch_law(double t, const double *s, const double *params, 
 {
     double z[UNICYCLE_SWITCH_N_OUTPUTS];
     double r[UNICYCLE_SWITCH_R_ENTRIES];
-    double w[UNICYCLE_SWITCH_N_OUTPUTS];
     double pvec[UNICYCLE_SWITCH_N_OUTPUTS];
+    double w[UNICYCLE_SWITCH_N_OUTPUTS];
     int status = unicycle_switch_check_inputs(t, s, UNICYCLE_SWITCH_N_STATES, params);
     if (status != UNICYCLE_SWITCH_OK) {
         return status;
     }
-    /* y_imp^(K): the constant Hessian of f0 was inverted exactly at generation time. */
+    /* y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time. */
     unicycle_switch_k_jet(t, s, params, unicycle_switch_hurwitz_coefficients, tau, z, r, pvec);
-    if (unicycle_switch_probe(z, UNICYCLE_SWITCH_N_OUTPUTS) + unicycle_switch_probe(r, UNICYCLE_SWITCH_R_ENTRIES)
+    if (unicycle_switch_probe(z, UNICYCLE_SWITCH_N_OUTPUTS)
+        + unicycle_switch_probe(r, UNICYCLE_SWITCH_R_ENTRIES)
         + unicycle_switch_probe(pvec, UNICYCLE_SWITCH_N_OUTPUTS) != 0.0) {
         return UNICYCLE_SWITCH_NONFINITE_OUTPUT;
     }
@@ -344,17 +343,21 @@ static int unicycle_switch_law(double t, const double *s, const double *params, 
     if (unicycle_switch_probe(w, UNICYCLE_SWITCH_N_OUTPUTS) != 0.0) {
         return UNICYCLE_SWITCH_NONFINITE_OUTPUT;
     }
-    /* w = R^-1 (v - p) */
+    /* w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits). */
     status = unicycle_switch_solve_decoupling(r, w);
     if (status != UNICYCLE_SWITCH_OK) {
         return status;
     }
     if (ds == NULL) {
         unicycle_switch_k_plant_input(t, s, params, w, u);
-        return unicycle_switch_probe(u, UNICYCLE_SWITCH_N_INPUTS) == 0.0 ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
+        if (unicycle_switch_probe(u, UNICYCLE_SWITCH_N_INPUTS) != 0.0) {
+            return UNICYCLE_SWITCH_NONFINITE_OUTPUT;
+        }
+        return UNICYCLE_SWITCH_OK;
     }
     unicycle_switch_k_closed_loop(t, s, params, w, z, ds, u);
-    if (unicycle_switch_probe(ds, UNICYCLE_SWITCH_N_STATES) + unicycle_switch_probe(u, UNICYCLE_SWITCH_N_INPUTS) != 0.0) {
+    if (unicycle_switch_probe(ds, UNICYCLE_SWITCH_N_STATES)
+        + unicycle_switch_probe(u, UNICYCLE_SWITCH_N_INPUTS) != 0.0) {
         return UNICYCLE_SWITCH_NONFINITE_OUTPUT;
     }
     return UNICYCLE_SWITCH_OK;

@@ -1,0 +1,296 @@
+"""The execution plan: the order of kernel calls, solves and checks, as data.
+
+Every backend evaluates the law the same way; the plan says how, once, and the
+templates loop over it. One evaluation of the law at a state is
+
+- the common :attr:`Plan.steps`: the jet, the solve for ``y_imp^(k)``, ``b = v - p``,
+  the solve ``R w = b``, each result checked for finiteness;
+- then :attr:`Plan.control` (the plant input alone, what ``control`` needs) or
+  :attr:`Plan.rhs` (the closed-loop vector field and the plant input).
+
+A step's ``op`` is one of
+
+``call``
+    Evaluate the kernel ``kernel`` on the values ``args`` (in the kernel's input
+    order) into the values ``results`` (in its output order).
+``solve_ldl``
+    ``results[0] = Hess^-1 args[1]`` with the generated LDL^T kernel ``kernel`` on the
+    Hessian's stored entries ``args[0]``; fails with :attr:`Status.HESSIAN_NOT_PD` when a
+    pivot is not above :data:`PIVOT_TOLERANCE` times the largest entry.
+``solve_lu``
+    ``results[0] = R^-1 args[1]`` by LU with partial pivoting over R's diagonal blocks
+    ``args[0]``; fails with :attr:`Status.SINGULAR_DECOUPLING` likewise.
+``check``
+    Every entry of ``args`` is finite, or the law fails with
+    :attr:`Status.NONFINITE_OUTPUT`, naming ``what``.
+
+The statuses and the tolerance are defined here and nowhere else: every backend's
+templates print them from this module.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+#: A pivot not above this fraction of the largest entry of its matrix makes the matrix
+#: singular (R) or not positive definite (the Hessian).
+PIVOT_TOLERANCE = 1e-12
+
+
+class Status(enum.IntEnum):
+    """The outcome of one evaluation (a C function's return, a Python exception's status)."""
+
+    OK = 0
+    NONFINITE_INPUT = 1
+    SINGULAR_DECOUPLING = 2
+    HESSIAN_NOT_PD = 3
+    NONFINITE_OUTPUT = 4
+
+
+@dataclass(frozen=True)
+class Value:
+    """An array the plan computes or reads.
+
+    Attributes
+    ----------
+    name : str
+        Its name in every backend's law.
+    size : int
+        Number of entries.
+    role : str
+        ``input`` (an argument of the law: ``t``, ``s``, ``p``, ``a``), ``batch`` (the
+        same for every state of a batch: ``tau``), ``output`` (a result of the law:
+        ``u``, ``ds``) or ``local``.
+    storage : str
+        The name of the buffer that holds it, for backends that solve in place: its own
+        name, or that of the value that later overwrites it (``R w = b`` is solved in
+        ``w``'s buffer, which holds ``b`` until then).
+    doc : str
+        What it is.
+    """
+
+    name: str
+    size: int
+    role: str
+    storage: str
+    doc: str
+
+
+@dataclass(frozen=True)
+class Step:
+    """One step of the plan (see the module docstring for the operations).
+
+    Attributes
+    ----------
+    op : str
+        ``call``, ``solve_ldl``, ``solve_lu`` or ``check``.
+    kernel : str
+        The kernel a ``call`` or ``solve_ldl`` evaluates ("" otherwise).
+    args, results : tuple of str
+        Value names read and written.
+    status : Status
+        What the law returns when the step fails (``OK`` for a call, which cannot).
+    what : str
+        For a check: what is not finite, in the error message.
+    alone : tuple of str
+        For a check: the values among ``args`` whose non-finite entries no later check
+        would see. A backend that only needs to know *whether* the law failed (the
+        Python backend's one-point path, which then answers through the array path)
+        checks these alone.
+    note : str
+        A comment for the generated code ("" for none); for a check, why ``alone`` holds
+        what it holds (printed where only ``alone`` is checked).
+    """
+
+    op: str
+    kernel: str = ""
+    args: tuple[str, ...] = ()
+    results: tuple[str, ...] = ()
+    status: Status = Status.OK
+    what: str = ""
+    alone: tuple[str, ...] = ()
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """How a backend evaluates the law at one state.
+
+    Attributes
+    ----------
+    values : tuple of Value
+        Every value the steps read or write.
+    per_batch : tuple of Step
+        Calls whose arguments are the same for every state of a batch (the jet's terms
+        of time and parameters): made once per call of ``control`` or ``rhs``.
+    steps : tuple of Step
+        The steps every evaluation makes, in order.
+    control, rhs : tuple of Step
+        The steps that end an evaluation for the plant input alone, and for the
+        closed-loop vector field and the plant input.
+    runtime : tuple of str
+        The run-time pieces the steps use, for backends to emit only those:
+        ``ldl`` (the check around the LDL^T kernel), ``lu_1``, ``lu_2`` and ``lu``
+        (solves of 1 x 1, unrolled 2 x 2 and larger blocks of R).
+    """
+
+    values: tuple[Value, ...]
+    per_batch: tuple[Step, ...]
+    steps: tuple[Step, ...]
+    control: tuple[Step, ...]
+    rhs: tuple[Step, ...]
+    runtime: tuple[str, ...]
+
+    def value(self, name: str) -> Value:
+        """The value called ``name``."""
+        for value in self.values:
+            if value.name == name:
+                return value
+        raise KeyError(name)
+
+    @property
+    def locals(self) -> tuple[Value, ...]:
+        """The values a backend's law holds in buffers of its own, one per storage."""
+        return tuple(v for v in self.values if v.role == "local" and v.storage == v.name)
+
+
+def law_plan(
+    *,
+    n_states: int,
+    n_inputs: int,
+    n_outputs: int,
+    n_params: int,
+    k: int,
+    tau: int,
+    hessian: int,
+    r_blocks: tuple[tuple[int, ...], ...],
+) -> Plan:
+    """The plan of the law for a controller's sizes.
+
+    Parameters
+    ----------
+    n_states, n_inputs, n_outputs, n_params, k : int
+        Sizes of the closed-loop state, the plant input, the outputs, the parameters,
+        and the order of the error dynamics.
+    tau : int
+        Number of the jet's terms of time and parameters alone (0: the jet has none, and
+        there is no ``jet_time`` kernel).
+    hessian : int
+        Number of the Hessian's stored entries (0: the Hessian is constant, inverted at
+        generation time, and the ``jet`` kernel returns ``z`` itself).
+    r_blocks : tuple of tuple of int
+        R's diagonal blocks.
+
+    Returns
+    -------
+    Plan
+        The plan.
+    """
+    m = n_outputs
+    r_entries = sum(len(block) ** 2 for block in r_blocks)
+    values = [
+        Value("t", 1, "input", "t", "time"),
+        Value("s", n_states, "input", "s", "closed-loop state"),
+        Value("p", max(n_params, 1), "input", "p", "parameters"),
+        Value("a", k, "input", "a", "Hurwitz coefficients"),
+    ]
+    per_batch: list[Step] = []
+    jet_args: tuple[str, ...] = ("t", "s", "p", "a")
+    if tau:
+        values.append(Value("tau", tau, "batch", "tau", "the jet's terms of time and parameters"))
+        per_batch.append(Step("call", "jet_time", ("t", "p", "a"), ("tau",)))
+        jet_args += ("tau",)
+    steps: list[Step] = []
+    if hessian:
+        values += [
+            Value("hess", hessian, "local", "hess", "stored entries of the Hessian of f0"),
+            Value("jet_rhs", m, "local", "jet_rhs", "sum a_i grad^(i) f0 - rest"),
+        ]
+        jet_results: tuple[str, ...] = ("hess", "jet_rhs", "r", "pvec")
+        jet_alone: tuple[str, ...] = ("hess", "r")
+        jet_what = "the Hessian, the gradient jet, the decoupling matrix or p"
+        jet_note = (
+            "The right-hand side and p reach b, which is checked below; an infinite Hessian "
+            "entry can leave z finite, and an entry of R no plant input depends on could hide."
+        )
+        call_note = ""
+    else:
+        jet_results = ("z", "r", "pvec")
+        jet_alone = ("r",)
+        jet_what = "the gradient jet, the decoupling matrix or p"
+        jet_note = (
+            "z and p reach b, which is checked below; R is checked here, since an entry of R "
+            "that no plant input depends on could hide in w."
+        )
+        call_note = "y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time."
+    values += [
+        Value("z", m, "local", "z", "y_imp^(k)"),
+        Value("r", r_entries, "local", "r", "diagonal blocks of R, each row-major"),
+        Value("pvec", m, "local", "pvec", "p = col(L_f^{r_i} h_i)"),
+        Value("b", m, "local", "w", "v - p"),
+        Value("w", m, "local", "w", "input of the extended plant, R^-1 (v - p)"),
+        Value("u", n_inputs, "output", "u", "plant input"),
+        Value("ds", n_states, "output", "ds", "time derivative of the closed-loop state"),
+    ]
+    steps.append(Step("call", "jet", jet_args, jet_results, note=call_note))
+    steps.append(
+        Step(
+            "check",
+            args=jet_results,
+            status=Status.NONFINITE_OUTPUT,
+            what=jet_what,
+            alone=jet_alone,
+            note=jet_note,
+        )
+    )
+    if hessian:
+        steps.append(
+            Step(
+                "solve_ldl",
+                "cholesky",
+                ("hess", "jet_rhs"),
+                ("z",),
+                Status.HESSIAN_NOT_PD,
+                note="y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.",
+            )
+        )
+    steps += [
+        Step("call", "decoupling", ("t", "s", "p", "z", "pvec"), ("b",)),
+        Step("check", args=("b",), status=Status.NONFINITE_OUTPUT, what="v - p", alone=("b",)),
+        Step(
+            "solve_lu",
+            args=("r", "b"),
+            results=("w",),
+            status=Status.SINGULAR_DECOUPLING,
+            note="w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).",
+        ),
+    ]
+    control = (
+        Step("call", "plant_input", ("t", "s", "p", "w"), ("u",)),
+        Step(
+            "check",
+            args=("u",),
+            status=Status.NONFINITE_OUTPUT,
+            what="the plant input",
+            alone=("u",),
+        ),
+    )
+    rhs = (
+        Step("call", "closed_loop", ("t", "s", "p", "w", "z"), ("ds", "u")),
+        Step(
+            "check",
+            args=("ds", "u"),
+            status=Status.NONFINITE_OUTPUT,
+            what="the closed-loop vector field",
+            alone=("ds", "u"),
+        ),
+    )
+    sizes = {len(block) for block in r_blocks}
+    runtime = (
+        *(("ldl",) if hessian else ()),
+        *(("lu_1",) if 1 in sizes else ()),
+        *(("lu_2",) if 2 in sizes else ()),
+        *(("lu",) if any(size > 2 for size in sizes) else ()),
+    )
+    return Plan(tuple(values), tuple(per_batch), tuple(steps), control, rhs, runtime)
