@@ -56,6 +56,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _parser() -> argparse.ArgumentParser:
+    # Long on purpose: one declaration per option of every command, read top to bottom
+    # like the --help it prints; there is no logic to split out.
     parser = _Parser(
         prog="tvopt-codegen",
         description="Generate implicit trajectory planning controllers from a spec file.",

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -824,6 +824,364 @@ def _fading_convexity(
     return []
 
 
+@dataclass(frozen=True)
+class _Linearization:
+    """The extended plant and its vector relative degree (Lemmas 1-2)."""
+
+    extension: Extension
+    degrees: tuple[int, ...]
+    lie: tuple[tuple[sp.Expr, ...], ...]
+    R: sp.ImmutableMatrix
+    searched: tuple[str, ...]
+    declared: frozenset[str]
+
+
+@dataclass(frozen=True)
+class _ErrorDynamics:
+    """``H``: its order, coefficients, eigenvalues and decay rate."""
+
+    k: int
+    coefficients: tuple[float, ...]
+    eigenvalues: tuple[complex, ...]
+    decay_rate: float
+
+
+@dataclass(frozen=True)
+class _States:
+    """The closed-loop state: plant, extension, padding chains; its initial value."""
+
+    padding: tuple[tuple[str, ...], ...]
+    names: tuple[str, ...]
+    symbols: tuple[sp.Symbol, ...]
+    initial: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class _Decoupling:
+    """R, p, Phi, the Brunovsky pair, and where R is singular or R and p undefined."""
+
+    p: sp.ImmutableMatrix
+    phi: sp.ImmutableMatrix
+    A: sp.ImmutableMatrix
+    B: sp.ImmutableMatrix
+    det_R: sp.Expr | None
+    det_R_note: str
+    singular: tuple[str, ...]
+    undefined: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class _Objective:
+    """The gradient of f0 as a program, its Hessian, and the convexity evidence."""
+
+    gradient: sp.ImmutableMatrix
+    program: Program
+    current: tuple[sp.Expr, ...]
+    hessian_program: Program
+    hessian_entries: tuple[tuple[tuple[int, int], sp.Expr], ...]
+    convexity: Convexity
+    warnings: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class _GradientJet:
+    """``grad^(j) f0`` for ``j < k``, ``rest``, and the jets of y and of the signals."""
+
+    y_jet: tuple[tuple[sp.Symbol, ...], ...]
+    y_values: tuple[tuple[sp.Expr, ...], ...]
+    signal_jet: tuple[tuple[sp.Symbol, ...], ...]
+    signal_program: Program
+    signal_values: tuple[tuple[sp.Expr, ...], ...]
+    program: Program
+    grad_jet: tuple[tuple[sp.Expr, ...], ...]
+    rest_program: Program
+    rest: tuple[sp.Expr, ...]
+
+
+def _linearize(spec: Spec, model: Model, meter: _Meter) -> _Linearization:
+    """Extend the plant (as given, or by search) and find its vector relative degree."""
+    source = spec.source
+    counts = dict(spec.extension)
+    searched: tuple[str, ...] = ()
+    if spec.extension_auto:
+        meter.stage = "extension search"
+        meter.report()
+        limit = spec.extension_max_total or len(spec.states)
+        found, tried = search_extension(model, limit)
+        if found is None:
+            raise AssumptionError(
+                source,
+                "extension.auto",
+                f"no prolongation of the inputs with at most {limit} integrators in all makes "
+                f"the plant full-state linearizable (tried {len(tried)}: {'; '.join(tried)})",
+            )
+        counts = found
+        searched = tuple(tried)
+        meter.stage = "relative degree"
+        meter.report()
+    ext = extend(model.x, model.u, model.f, model.G, counts)
+    declared = frozenset(
+        {
+            *spec.states,
+            *spec.inputs,
+            *spec.outputs,
+            *(n for n, _ in spec.parameters),
+            *(n for n, _ in spec.signals),
+        }
+    )
+    for name in ext.states:
+        if name in declared and name not in spec.inputs:
+            raise SpecError(
+                source,
+                "extension.integrate",
+                f"extension state {name!r} collides with a declared name",
+            )
+    defaults = dict(zip(model.params, model.defaults, strict=True))
+    sampler = Sampler(ext.x, defaults)
+    rd: RelativeDegree = relative_degree(ext.f, ext.G, model.h, ext.x, sampler, meter)
+    m = len(model.u)
+    n_ext = len(ext.x)
+    for name, r in zip(spec.outputs, rd.r, strict=True):
+        if r is None:
+            raise AssumptionError(
+                source,
+                f"system.outputs.{name}",
+                f"output {name!r} has no relative degree: no input reaches it within "
+                f"{n_ext} derivatives",
+            )
+    assert rd.R is not None
+    degrees = tuple(int(r) for r in rd.r if r is not None)
+    named = dict(zip(spec.outputs, degrees, strict=True))
+    rank = generic_rank(rd.R, sampler)
+    if rank < m:
+        suggestion = _suggest_prolongation(model, counts)
+        raise AssumptionError(
+            source,
+            "extension",
+            f"the decoupling matrix R is singular everywhere (generic rank {rank} < {m}; "
+            f"relative degrees {named}){suggestion}",
+        )
+    if sum(degrees) != n_ext:
+        raise AssumptionError(
+            source,
+            "system.outputs",
+            f"not full-state linearizable: the relative degrees {named} sum to "
+            f"{sum(degrees)}, but the extended system has {n_ext} states (internal dynamics "
+            f"of dimension {n_ext - sum(degrees)})",
+        )
+    return _Linearization(ext, degrees, rd.lie, rd.R, searched, declared)
+
+
+def _error_dynamics(spec: Spec, k: int) -> _ErrorDynamics:
+    """H from the spec's poles or coefficients: of order k, and Hurwitz."""
+    source = spec.source
+    if spec.coefficients is not None:
+        coefficients = spec.coefficients
+        field, given = "error_dynamics.coefficients", len(coefficients)
+    else:
+        assert spec.poles is not None
+        coefficients = hurwitz.coefficients_from_poles(spec.poles)
+        field, given = "error_dynamics.poles", len(spec.poles)
+    if given != k:
+        raise AssumptionError(
+            source,
+            field,
+            f"the error dynamics have order k = {k} (the largest relative degree), so give "
+            f"{k} {'poles' if spec.poles is not None else 'coefficients'}, not {given}",
+        )
+    if spec.poles is not None:
+        # The poles are exact as written; the companion eigenvalues would be rounded.
+        eig = np.array(sorted(spec.poles, key=lambda v: (v.real, v.imag)))
+        alpha = float(-max(v.real for v in spec.poles))
+    else:
+        eig = hurwitz.eigenvalues(coefficients)
+        alpha = hurwitz.decay_rate(coefficients)
+    if not alpha > 0:
+        raise AssumptionError(
+            source,
+            field,
+            f"H is not Hurwitz: eigenvalue {complex(eig[-1]):.6g} has real part >= 0 "
+            "(coefficients a_i are the last row of the companion matrix; for poles -1, -2 "
+            "they are a_0 = -2, a_1 = -3)",
+        )
+    return _ErrorDynamics(k, tuple(coefficients), tuple(complex(v) for v in eig), alpha)
+
+
+def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:
+    """Pad outputs of relative degree below k with integrator chains; order the state."""
+    padding = tuple(
+        tuple(f"xi_{name}_{j}" for j in range(1, k - r + 1))
+        for name, r in zip(spec.outputs, lin.degrees, strict=True)
+    )
+    pad_names = [n for chain in padding for n in chain]
+    for name in pad_names:
+        if name in lin.declared:
+            raise SpecError(
+                spec.source,
+                "system.outputs",
+                f"padding state {name!r} collides with a declared name",
+            )
+    ext = lin.extension
+    names = (*spec.states, *ext.states, *pad_names)
+    # With a searched extension the user cannot know its states in advance: only the
+    # plant states are required then (extension states start at zero unless given).
+    required = len(spec.states) + (0 if spec.extension_auto else len(ext.states))
+    initial = _initial_state(spec, names, required)
+    return _States(padding, names, tuple(sp.Symbol(n, real=True) for n in names), initial)
+
+
+def _decoupling(lin: _Linearization, meter: _Meter) -> _Decoupling:
+    """p, Phi and the Brunovsky pair from the Lie chains; where R fails, in words."""
+    R, degrees, lie = lin.R, lin.degrees, lin.lie
+    m = len(degrees)
+    p = sp.ImmutableMatrix([lie[i][degrees[i]] for i in range(m)])
+    phi = sp.ImmutableMatrix([lie[i][j] for i in range(m) for j in range(degrees[i])])
+    A, B = brunovsky(degrees)
+    det_R: sp.Expr | None = None
+    det_R_note = ""
+    singular: tuple[str, ...] = ()
+    if m > 4:
+        det_R_note = f"not expanded symbolically (m = {m} > 4)"
+    else:
+        det = R.det(method="berkowitz")
+        meter(det)
+        # simplify and factor are exact but can be slow on large entries: only small ones.
+        if tree_size(det, _DET_SIMPLIFY_NODES) <= _DET_SIMPLIFY_NODES:
+            det_R = sp.factor(sp.simplify(det))
+            # Charge simplify's time to this stage, not to the next one that checks.
+            meter.check_time()
+            singular = _singular_set(det_R)
+        else:
+            det_R_note = (
+                f"not simplified symbolically (more than {_DET_SIMPLIFY_NODES} expression nodes)"
+            )
+    undefined = _undefined_set([*R, *p], set(lin.extension.x))
+    return _Decoupling(p, phi, A, B, det_R, det_R_note, singular, undefined)
+
+
+def _objective(
+    spec: Spec, model: Model, states: _States, names: Iterator[sp.Symbol], meter: _Meter
+) -> _Objective:
+    """The gradient of f0 as a program, its Hessian, and f0's convexity where it matters."""
+    m = len(model.y)
+    meter(model.f0)
+    gradient = _sparse_gradient(model.f0, model.y)
+    meter.matrix(gradient)
+    polynomial = _polynomial_hessian(gradient, model.y)
+    if polynomial is not None and not polynomial.free_symbols & set(model.y):
+        gradient = _affine_split(gradient, polynomial, model.y)
+        meter.matrix(gradient)
+    # Three-address form: the Hessian and every total derivative below are taken
+    # assignment by assignment (jet.py), never on the nested gradient.
+    program, current = atomize(list(gradient), names)
+    hessian_program = Program(())
+    if polynomial is not None and all(entry.is_Number for entry in polynomial):
+        hessian_entries = tuple(
+            ((i, j), polynomial[i, j])
+            for i in range(m)
+            for j in range(i + 1)
+            if polynomial[i, j] != 0
+        )
+    else:
+        hessian_program, columns = jacobian(program, current, model.y, names, meter)
+        # Equal by Schwarz; either side may be the one that is structurally nonzero.
+        lower = {(j, i): e for i in range(m) for j, e in columns[i].items() if j > i}
+        lower |= {(i, j): e for i in range(m) for j, e in columns[i].items() if j <= i}
+        hessian_entries = tuple(sorted(lower.items()))
+    defaults = dict(zip(model.params, model.defaults, strict=True))
+    values = {sym: sp.Float(v) for sym, v in zip(states.symbols, states.initial, strict=True)}
+    values |= {q: sp.Float(v) for q, v in defaults.items()}
+    y0 = [float(h.xreplace(values)) for h in model.h]
+    convexity, warnings = _check_convexity(
+        model,
+        polynomial,
+        program + hessian_program,
+        current,
+        hessian_entries,
+        y0,
+        spec.t_final,
+        spec.source,
+    )
+    return _Objective(
+        gradient,
+        program,
+        tuple(current),
+        hessian_program,
+        hessian_entries,
+        convexity,
+        warnings,
+    )
+
+
+def _gradient_jet(
+    model: Model,
+    k: int,
+    objective: _Objective,
+    lin: _Linearization,
+    states: _States,
+    names: Iterator[sp.Symbol],
+    meter: _Meter,
+) -> _GradientJet:
+    """Total time derivatives of the gradient up to order k (the paper's lemma)."""
+    y_jet = tuple(tuple(jet_symbol(y.name, j) for j in range(k + 1)) for y in model.y)
+    signal_jet = tuple(tuple(jet_symbol(s.name, q) for q in range(k + 1)) for s, _ in model.signals)
+    rates: dict[sp.Symbol, sp.Expr] = {model.t: sp.Integer(1)}
+    for chain in (*y_jet, *signal_jet):
+        for j in range(k):
+            rates[chain[j]] = chain[j + 1]
+    program = objective.program
+    current: Sequence[sp.Expr] = objective.current
+    grad_jet = [tuple(current)]
+    rest_program = Program(())
+    rest: tuple[sp.Expr, ...] = ()
+    for order in range(1, k + 1):
+        new, current, rates = next_derivative(program, current, rates, names, meter)
+        if order < k:
+            program = program + new
+            grad_jet.append(tuple(current))
+        else:
+            # grad^(k) is affine in y^(k) with slope Hess: dropping y^(k) leaves the rest.
+            drop = {chain[k]: sp.Integer(0) for chain in y_jet}
+            rest_program = Program(tuple((s, e.xreplace(drop)) for s, e in new.assignments))
+            rest = tuple(e.xreplace(drop) for e in current)
+    signal_program = Program(())
+    signal_chains: list[tuple[sp.Expr, ...]] = []
+    for _, expr in model.signals:
+        derivatives = _signal_derivatives(expr, model.t, k, meter)
+        if derivatives is None:
+            # Its derivatives swell (a nested signal): differentiate it as a program,
+            # linear in its size per order, like the gradient.
+            part, chain = atomize([expr], names)
+            derivatives = [chain[0]]
+            signal_rates: dict[sp.Symbol, sp.Expr] = {model.t: sp.Integer(1)}
+            for _ in range(k):
+                new, chain, signal_rates = next_derivative(part, chain, signal_rates, names, meter)
+                part = part + new
+                derivatives.append(chain[0])
+            signal_program = signal_program + part
+        signal_chains.append(tuple(derivatives))
+    state_of = dict(zip(states.names, states.symbols, strict=True))
+    degrees = lin.degrees
+    y_values = tuple(
+        tuple(
+            lin.lie[i][j] if j < degrees[i] else state_of[states.padding[i][j - degrees[i]]]
+            for j in range(k)
+        )
+        for i in range(len(model.y))
+    )
+    return _GradientJet(
+        y_jet,
+        y_values,
+        signal_jet,
+        signal_program,
+        tuple(signal_chains),
+        program,
+        tuple(grad_jet),
+        rest_program,
+        rest,
+    )
+
+
 def derive(
     spec: Spec | Mapping[str, Any],
     progress: Callable[[str, int, int, float], None] | None = None,
@@ -862,320 +1220,107 @@ def derive(
     BudgetError
         When a stage takes longer or builds larger expressions than the budget allows.
     """
+    # Longer than most functions here on purpose: a list of stage calls, then the keyword
+    # list of the flat Derivation record; the work is in the stage functions above.
     if not isinstance(spec, Spec):
         spec = spec_from_dict(spec)
     meter = _Meter(spec.source, budget or Budget(), progress)
+    clock = _Clock()
 
     def say(stage: str) -> None:
         meter.stage = stage
         meter.report()
 
-    clock = _Clock()
-    source = spec.source
     say("model")
     model = build_model(spec)
     clock.mark("model")
-
     say("relative degree")
-    counts = dict(spec.extension)
-    searched: tuple[str, ...] = ()
-    if spec.extension_auto:
-        say("extension search")
-        limit = spec.extension_max_total or len(spec.states)
-        found, tried = search_extension(model, limit)
-        if found is None:
-            raise AssumptionError(
-                source,
-                "extension.auto",
-                f"no prolongation of the inputs with at most {limit} integrators in all makes "
-                f"the plant full-state linearizable (tried {len(tried)}: {'; '.join(tried)})",
-            )
-        counts = found
-        searched = tuple(tried)
-        say("relative degree")
-    ext = extend(model.x, model.u, model.f, model.G, counts)
-    declared = {
-        *spec.states,
-        *spec.inputs,
-        *spec.outputs,
-        *(n for n, _ in spec.parameters),
-        *(n for n, _ in spec.signals),
-    }
-    for name in ext.states:
-        if name in declared and name not in spec.inputs:
-            raise SpecError(
-                source,
-                "extension.integrate",
-                f"extension state {name!r} collides with a declared name",
-            )
-    defaults = dict(zip(model.params, model.defaults, strict=True))
-    sampler = Sampler(ext.x, defaults)
-    rd: RelativeDegree = relative_degree(ext.f, ext.G, model.h, ext.x, sampler, meter)
-    m = len(model.u)
-    n_ext = len(ext.x)
-    for name, r in zip(spec.outputs, rd.r, strict=True):
-        if r is None:
-            raise AssumptionError(
-                source,
-                f"system.outputs.{name}",
-                f"output {name!r} has no relative degree: no input reaches it within "
-                f"{n_ext} derivatives",
-            )
-    assert rd.R is not None
-    degrees = tuple(int(r) for r in rd.r if r is not None)
-    rank = generic_rank(rd.R, sampler)
-    if rank < m:
-        suggestion = _suggest_prolongation(model, counts)
-        raise AssumptionError(
-            source,
-            "extension",
-            f"the decoupling matrix R is singular everywhere (generic rank {rank} < {m}; "
-            f"relative degrees {dict(zip(spec.outputs, degrees, strict=True))}){suggestion}",
-        )
-    if sum(degrees) != n_ext:
-        raise AssumptionError(
-            source,
-            "system.outputs",
-            f"not full-state linearizable: the relative degrees "
-            f"{dict(zip(spec.outputs, degrees, strict=True))} sum to {sum(degrees)}, but the "
-            f"extended system has {n_ext} states (internal dynamics of dimension "
-            f"{n_ext - sum(degrees)})",
-        )
+    lin = _linearize(spec, model, meter)
     clock.mark("relative degree")
-
     say("error dynamics")
-    k = max(degrees)
-    if spec.coefficients is not None:
-        coefficients = spec.coefficients
-        field, given = "error_dynamics.coefficients", len(coefficients)
-    else:
-        assert spec.poles is not None
-        coefficients = hurwitz.coefficients_from_poles(spec.poles)
-        field, given = "error_dynamics.poles", len(spec.poles)
-    if given != k:
-        raise AssumptionError(
-            source,
-            field,
-            f"the error dynamics have order k = {k} (the largest relative degree), so give "
-            f"{k} {'poles' if spec.poles is not None else 'coefficients'}, not {given}",
-        )
-    if spec.poles is not None:
-        # The poles are exact as written; the companion eigenvalues would be rounded.
-        eig = np.array(sorted(spec.poles, key=lambda v: (v.real, v.imag)))
-        alpha = float(-max(v.real for v in spec.poles))
-    else:
-        eig = hurwitz.eigenvalues(coefficients)
-        alpha = hurwitz.decay_rate(coefficients)
-    if not alpha > 0:
-        raise AssumptionError(
-            source,
-            field,
-            f"H is not Hurwitz: eigenvalue {complex(eig[-1]):.6g} has real part >= 0 "
-            "(coefficients a_i are the last row of the companion matrix; for poles -1, -2 "
-            "they are a_0 = -2, a_1 = -3)",
-        )
-
-    padding = tuple(
-        tuple(f"xi_{name}_{j}" for j in range(1, k - r + 1))
-        for name, r in zip(spec.outputs, degrees, strict=True)
-    )
-    pad_names = [n for chain in padding for n in chain]
-    for name in pad_names:
-        if name in declared:
-            raise SpecError(
-                source, "system.outputs", f"padding state {name!r} collides with a declared name"
-            )
-    state_names = (*spec.states, *ext.states, *pad_names)
-    states = tuple(sp.Symbol(n, real=True) for n in state_names)
-    # With a searched extension the user cannot know its states in advance: only the
-    # plant states are required then (extension states start at zero unless given).
-    required = len(spec.states) + (0 if spec.extension_auto else len(ext.states))
-    initial = _initial_state(spec, state_names, required)
+    dynamics = _error_dynamics(spec, max(lin.degrees))
+    k = dynamics.k
+    states = _closed_loop_states(spec, lin, k)
     clock.mark("error dynamics")
-
     say("decoupling matrix")
-    R = rd.R
-    p = sp.ImmutableMatrix([rd.lie[i][degrees[i]] for i in range(m)])
-    phi = sp.ImmutableMatrix([rd.lie[i][j] for i in range(m) for j in range(degrees[i])])
-    A, B = brunovsky(degrees)
-    det_R: sp.Expr | None = None
-    det_R_note = ""
-    singular: tuple[str, ...] = ()
-    if m > 4:
-        det_R_note = f"not expanded symbolically (m = {m} > 4)"
-    else:
-        det = R.det(method="berkowitz")
-        meter(det)
-        # simplify and factor are exact but can be slow on large entries: only small ones.
-        if tree_size(det, _DET_SIMPLIFY_NODES) <= _DET_SIMPLIFY_NODES:
-            det_R = sp.factor(sp.simplify(det))
-            # Charge simplify's time to this stage, not to the next one that checks.
-            meter.check_time()
-            singular = _singular_set(det_R)
-        else:
-            det_R_note = (
-                f"not simplified symbolically (more than {_DET_SIMPLIFY_NODES} expression nodes)"
-            )
-    undefined = _undefined_set([*R, *p], set(ext.x))
+    decoupling = _decoupling(lin, meter)
     clock.mark("decoupling matrix")
-
     say("objective")
-    meter(model.f0)
-    gradient = _sparse_gradient(model.f0, model.y)
-    meter.matrix(gradient)
-    polynomial = _polynomial_hessian(gradient, model.y)
-    if polynomial is not None and not polynomial.free_symbols & set(model.y):
-        gradient = _affine_split(gradient, polynomial, model.y)
-        meter.matrix(gradient)
-    # Three-address form: the Hessian and every total derivative below are taken
-    # assignment by assignment (jet.py), never on the nested gradient.
-    # A leading underscore: no user name can take it (spec.py rejects those).
+    # A leading underscore: no user name can take it (spec.py rejects those). One
+    # sequence for the gradient, the Hessian and the jet: their names never collide.
     names = fresh_symbols("_g")
-    program, current = atomize(list(gradient), names)
-    hessian_program = Program(())
-    if polynomial is not None and all(entry.is_Number for entry in polynomial):
-        hessian_entries = tuple(
-            ((i, j), polynomial[i, j])
-            for i in range(m)
-            for j in range(i + 1)
-            if polynomial[i, j] != 0
-        )
-    else:
-        hessian_program, columns = jacobian(program, current, model.y, names, meter)
-        # Equal by Schwarz; either side may be the one that is structurally nonzero.
-        lower = {(j, i): e for i in range(m) for j, e in columns[i].items() if j > i}
-        lower |= {(i, j): e for i in range(m) for j, e in columns[i].items() if j <= i}
-        hessian_entries = tuple(sorted(lower.items()))
-    values = {sym: sp.Float(v) for sym, v in zip(states, initial, strict=True)}
-    values |= {q: sp.Float(v) for q, v in defaults.items()}
-    y0 = [float(h.xreplace(values)) for h in model.h]
-    convexity, warnings = _check_convexity(
-        model,
-        polynomial,
-        program + hessian_program,
-        current,
-        hessian_entries,
-        y0,
-        spec.t_final,
-        source,
-    )
-    warnings += _singular_start(
-        R,
-        p,
-        states,
-        initial,
+    objective = _objective(spec, model, states, names, meter)
+    defaults = dict(zip(model.params, model.defaults, strict=True))
+    ext = lin.extension
+    warnings = objective.warnings + _singular_start(
+        lin.R,
+        decoupling.p,
+        states.symbols,
+        states.initial,
         defaults,
-        state_names[len(spec.states) : len(spec.states) + len(ext.states)],
+        states.names[len(spec.states) : len(spec.states) + len(ext.states)],
     )
     clock.mark("objective")
-
     say("gradient jet")
-    y_jet = tuple(tuple(jet_symbol(y.name, j) for j in range(k + 1)) for y in model.y)
-    signal_jet = tuple(tuple(jet_symbol(s.name, q) for q in range(k + 1)) for s, _ in model.signals)
-    rates: dict[sp.Symbol, sp.Expr] = {model.t: sp.Integer(1)}
-    for chain in (*y_jet, *signal_jet):
-        for j in range(k):
-            rates[chain[j]] = chain[j + 1]
-    grad_jet = [current]
-    rest_program = Program(())
-    for order in range(1, k + 1):
-        new, current, rates = next_derivative(program, current, rates, names, meter)
-        if order < k:
-            program = program + new
-            grad_jet.append(current)
-        else:
-            # grad^(k) is affine in y^(k) with slope Hess: dropping y^(k) leaves the rest.
-            drop = {chain[k]: sp.Integer(0) for chain in y_jet}
-            rest_program = Program(tuple((s, e.xreplace(drop)) for s, e in new.assignments))
-            rest = tuple(e.xreplace(drop) for e in current)
-    signal_program = Program(())
-    signal_chains: list[tuple[sp.Expr, ...]] = []
-    for _, expr in model.signals:
-        derivatives = _signal_derivatives(expr, model.t, k, meter)
-        if derivatives is None:
-            # Its derivatives swell (a nested signal): differentiate it as a program,
-            # linear in its size per order, like the gradient.
-            part, current = atomize([expr], names)
-            derivatives = [current[0]]
-            signal_rates: dict[sp.Symbol, sp.Expr] = {model.t: sp.Integer(1)}
-            for _ in range(k):
-                new, current, signal_rates = next_derivative(
-                    part, current, signal_rates, names, meter
-                )
-                part = part + new
-                derivatives.append(current[0])
-            signal_program = signal_program + part
-        signal_chains.append(tuple(derivatives))
-    signal_values = tuple(signal_chains)
-    state_of = dict(zip(state_names, states, strict=True))
-    y_values = tuple(
-        tuple(
-            rd.lie[i][j] if j < degrees[i] else state_of[padding[i][j - degrees[i]]]
-            for j in range(k)
-        )
-        for i in range(m)
-    )
+    jet = _gradient_jet(model, k, objective, lin, states, names, meter)
     clock.mark("gradient jet")
-
     say("error bound")
-    rate, rate_exact = hurwitz.certified_rate(coefficients)
-    constant = hurwitz.transient_constant(coefficients, rate)
+    rate, rate_exact = hurwitz.certified_rate(dynamics.coefficients)
+    constant = hurwitz.transient_constant(dynamics.coefficients, rate)
     unextended = _without_extension(model) if ext.counts else None
     clock.mark("error bound")
-
     say("law")
     law = control_law(
-        hessian_entries=hessian_entries,
-        grad_jet=grad_jet,
-        rest=rest,
-        R=R,
+        hessian_entries=objective.hessian_entries,
+        grad_jet=jet.grad_jet,
+        rest=jet.rest,
+        R=lin.R,
         extension=ext,
         plant_inputs=model.u,
-        padding=padding,
-        states=states,
-        state_names=state_names,
+        padding=states.padding,
+        states=states.symbols,
+        state_names=states.names,
     )
     clock.mark("law")
-
     return Derivation(
         spec=spec,
         model=model,
         extension=ext,
-        relative_degree=degrees,
-        lie=rd.lie,
-        R=R,
-        p=p,
-        phi=phi,
-        A=A,
-        B=B,
+        relative_degree=lin.degrees,
+        lie=lin.lie,
+        R=lin.R,
+        p=decoupling.p,
+        phi=decoupling.phi,
+        A=decoupling.A,
+        B=decoupling.B,
         k=k,
-        padding=padding,
-        state_names=state_names,
-        states=states,
-        det_R=det_R,
-        det_R_note=det_R_note,
-        singular_set=singular,
-        undefined_set=undefined,
-        gradient=gradient,
-        hessian_program=hessian_program,
-        hessian_entries=hessian_entries,
-        y_jet=y_jet,
-        y_jet_values=y_values,
-        signal_jet=signal_jet,
-        signal_program=signal_program,
-        signal_jet_values=signal_values,
-        jet_program=program,
-        grad_jet=tuple(grad_jet),
-        rest_program=rest_program,
-        rest=rest,
-        coefficients=tuple(coefficients),
-        eigenvalues=tuple(complex(v) for v in eig),
-        decay_rate=alpha,
-        uniform=all(r == k for r in degrees),
-        convexity=convexity,
-        initial_state=initial,
+        padding=states.padding,
+        state_names=states.names,
+        states=states.symbols,
+        det_R=decoupling.det_R,
+        det_R_note=decoupling.det_R_note,
+        singular_set=decoupling.singular,
+        undefined_set=decoupling.undefined,
+        gradient=objective.gradient,
+        hessian_program=objective.hessian_program,
+        hessian_entries=objective.hessian_entries,
+        y_jet=jet.y_jet,
+        y_jet_values=jet.y_values,
+        signal_jet=jet.signal_jet,
+        signal_program=jet.signal_program,
+        signal_jet_values=jet.signal_values,
+        jet_program=jet.program,
+        grad_jet=jet.grad_jet,
+        rest_program=jet.rest_program,
+        rest=jet.rest,
+        coefficients=dynamics.coefficients,
+        eigenvalues=dynamics.eigenvalues,
+        decay_rate=dynamics.decay_rate,
+        uniform=all(r == k for r in lin.degrees),
+        convexity=objective.convexity,
+        initial_state=states.initial,
         unextended=unextended,
-        extension_search=searched,
+        extension_search=lin.searched,
         certified_rate=rate,
         certified_rate_exact=rate_exact,
         warnings=warnings,

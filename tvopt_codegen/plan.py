@@ -155,6 +155,38 @@ class Plan:
         return tuple(v for v in self.values if v.role == "local" and v.storage == v.name)
 
 
+#: From y_imp^(k) to the extended plant's input: b = v - p, checked, then R w = b.
+_DECOUPLE = (
+    Step("call", "decoupling", ("t", "s", "p", "z", "pvec"), ("b",)),
+    Step("check", args=("b",), status=Status.NONFINITE_OUTPUT, what="v - p", alone=("b",)),
+    Step(
+        "solve_lu",
+        args=("r", "b"),
+        results=("w",),
+        status=Status.SINGULAR_DECOUPLING,
+        note="w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).",
+    ),
+)
+#: The end of an evaluation for the plant input alone (``control``).
+_CONTROL = (
+    Step("call", "plant_input", ("t", "s", "p", "w"), ("u",)),
+    Step(
+        "check", args=("u",), status=Status.NONFINITE_OUTPUT, what="the plant input", alone=("u",)
+    ),
+)
+#: The end of an evaluation for the closed-loop vector field and the plant input (``rhs``).
+_RHS = (
+    Step("call", "closed_loop", ("t", "s", "p", "w", "z"), ("ds", "u")),
+    Step(
+        "check",
+        args=("ds", "u"),
+        status=Status.NONFINITE_OUTPUT,
+        what="the closed-loop vector field",
+        alone=("ds", "u"),
+    ),
+)
+
+
 def law_plan(
     *,
     n_states: int,
@@ -255,37 +287,7 @@ def law_plan(
                 note="y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.",
             )
         )
-    steps += [
-        Step("call", "decoupling", ("t", "s", "p", "z", "pvec"), ("b",)),
-        Step("check", args=("b",), status=Status.NONFINITE_OUTPUT, what="v - p", alone=("b",)),
-        Step(
-            "solve_lu",
-            args=("r", "b"),
-            results=("w",),
-            status=Status.SINGULAR_DECOUPLING,
-            note="w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).",
-        ),
-    ]
-    control = (
-        Step("call", "plant_input", ("t", "s", "p", "w"), ("u",)),
-        Step(
-            "check",
-            args=("u",),
-            status=Status.NONFINITE_OUTPUT,
-            what="the plant input",
-            alone=("u",),
-        ),
-    )
-    rhs = (
-        Step("call", "closed_loop", ("t", "s", "p", "w", "z"), ("ds", "u")),
-        Step(
-            "check",
-            args=("ds", "u"),
-            status=Status.NONFINITE_OUTPUT,
-            what="the closed-loop vector field",
-            alone=("ds", "u"),
-        ),
-    )
+    steps += _DECOUPLE
     sizes = {len(block) for block in r_blocks}
     runtime = (
         *(("ldl",) if hessian else ()),
@@ -293,4 +295,4 @@ def law_plan(
         *(("lu_2",) if 2 in sizes else ()),
         *(("lu",) if any(size > 2 for size in sizes) else ()),
     )
-    return Plan(tuple(values), tuple(per_batch), tuple(steps), control, rhs, runtime)
+    return Plan(tuple(values), tuple(per_batch), tuple(steps), _CONTROL, _RHS, runtime)
