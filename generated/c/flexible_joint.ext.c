@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 59a5dfa54d118da9bca47d9b00cbb2d0a214be6ad4445f574451df5d4cfa6be1
+ * content sha256: 9e993b37038ae121092b8ad8ad4eaf400a9ff420e7080df8e57884e8b66afe4e
  */
 
 /*
@@ -111,11 +111,11 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     double *result = (double *)PyArray_DATA((PyArrayObject *)out);
     double columns[CHUNK * (ROWS_MAX > 0 ? ROWS_MAX : 1)];
     double values[CHUNK * RESULT_MAX];
-    int status = 0;
+    int status = FLEXIBLE_JOINT_OK;
     npy_intp failed = 0;
     /* Only large batches are worth the cost of releasing the GIL. */
     PyThreadState *saved = points >= 64 ? PyEval_SaveThread() : NULL;
-    for (npy_intp start = 0; start < points && status == 0; start += CHUNK) {
+    for (npy_intp start = 0; start < points && status == FLEXIBLE_JOINT_OK; start += CHUNK) {
         const npy_intp count = points - start < CHUNK ? points - start : CHUNK;
         size_t bad = 0;
         /* Gathered point after point, whatever the strides of s. */
@@ -125,7 +125,7 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
                 columns[i * e->rows + r] = *(const double *)(first + r * row_stride);
         }
         status = e->evaluate((size_t)count, t, columns, params, values, &bad);
-        if (status != 0) {
+        if (status != FLEXIBLE_JOINT_OK) {
             failed = start + (npy_intp)bad;
             break;
         }
@@ -136,7 +136,7 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     }
     if (saved != NULL)
         PyEval_RestoreThread(saved);
-    if (status != 0) {
+    if (status != FLEXIBLE_JOINT_OK) {
         Py_DECREF(out);
         return Py_BuildValue("(in)", status, (Py_ssize_t)failed);
     }

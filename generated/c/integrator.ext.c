@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: e9bf344ec363f7ac7aae065110712f52251a82dabf377b204475638d454c0fbb
+ * content sha256: 11a8d9f1993c9238cecdee56cf0278ecaae4369310a8ff094c6f50bd1f2a50c7
  */
 
 /*
@@ -111,11 +111,11 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     double *result = (double *)PyArray_DATA((PyArrayObject *)out);
     double columns[CHUNK * (ROWS_MAX > 0 ? ROWS_MAX : 1)];
     double values[CHUNK * RESULT_MAX];
-    int status = 0;
+    int status = INTEGRATOR_OK;
     npy_intp failed = 0;
     /* Only large batches are worth the cost of releasing the GIL. */
     PyThreadState *saved = points >= 64 ? PyEval_SaveThread() : NULL;
-    for (npy_intp start = 0; start < points && status == 0; start += CHUNK) {
+    for (npy_intp start = 0; start < points && status == INTEGRATOR_OK; start += CHUNK) {
         const npy_intp count = points - start < CHUNK ? points - start : CHUNK;
         size_t bad = 0;
         /* Gathered point after point, whatever the strides of s. */
@@ -125,7 +125,7 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
                 columns[i * e->rows + r] = *(const double *)(first + r * row_stride);
         }
         status = e->evaluate((size_t)count, t, columns, params, values, &bad);
-        if (status != 0) {
+        if (status != INTEGRATOR_OK) {
             failed = start + (npy_intp)bad;
             break;
         }
@@ -136,7 +136,7 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     }
     if (saved != NULL)
         PyEval_RestoreThread(saved);
-    if (status != 0) {
+    if (status != INTEGRATOR_OK) {
         Py_DECREF(out);
         return Py_BuildValue("(in)", status, (Py_ssize_t)failed);
     }

@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: pvtol
  * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: 81fa24e267ed647543aed51efec926d888691dffaaf515c88953a14e5b6337da
+ * content sha256: 01e0da4cc6af8c9a2c365f02a01a7be1f5096ee7fc475d966ef1a24055ab4ed8
  */
 
 /*
@@ -111,11 +111,11 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     double *result = (double *)PyArray_DATA((PyArrayObject *)out);
     double columns[CHUNK * (ROWS_MAX > 0 ? ROWS_MAX : 1)];
     double values[CHUNK * RESULT_MAX];
-    int status = 0;
+    int status = PVTOL_OK;
     npy_intp failed = 0;
     /* Only large batches are worth the cost of releasing the GIL. */
     PyThreadState *saved = points >= 64 ? PyEval_SaveThread() : NULL;
-    for (npy_intp start = 0; start < points && status == 0; start += CHUNK) {
+    for (npy_intp start = 0; start < points && status == PVTOL_OK; start += CHUNK) {
         const npy_intp count = points - start < CHUNK ? points - start : CHUNK;
         size_t bad = 0;
         /* Gathered point after point, whatever the strides of s. */
@@ -125,7 +125,7 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
                 columns[i * e->rows + r] = *(const double *)(first + r * row_stride);
         }
         status = e->evaluate((size_t)count, t, columns, params, values, &bad);
-        if (status != 0) {
+        if (status != PVTOL_OK) {
             failed = start + (npy_intp)bad;
             break;
         }
@@ -136,7 +136,7 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     }
     if (saved != NULL)
         PyEval_RestoreThread(saved);
-    if (status != 0) {
+    if (status != PVTOL_OK) {
         Py_DECREF(out);
         return Py_BuildValue("(in)", status, (Py_ssize_t)failed);
     }

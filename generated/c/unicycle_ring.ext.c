@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: unicycle_ring
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: 9da51a2c1b63a970c5fbea6ff87079d1e491d4655f525aa51efc2b215fd03381
+ * content sha256: 0239292e60518a7ec9eb6cf7ef5280794e4281bb42339893f31087c00350d10a
  */
 
 /*
@@ -111,11 +111,11 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     double *result = (double *)PyArray_DATA((PyArrayObject *)out);
     double columns[CHUNK * (ROWS_MAX > 0 ? ROWS_MAX : 1)];
     double values[CHUNK * RESULT_MAX];
-    int status = 0;
+    int status = UNICYCLE_RING_OK;
     npy_intp failed = 0;
     /* Only large batches are worth the cost of releasing the GIL. */
     PyThreadState *saved = points >= 64 ? PyEval_SaveThread() : NULL;
-    for (npy_intp start = 0; start < points && status == 0; start += CHUNK) {
+    for (npy_intp start = 0; start < points && status == UNICYCLE_RING_OK; start += CHUNK) {
         const npy_intp count = points - start < CHUNK ? points - start : CHUNK;
         size_t bad = 0;
         /* Gathered point after point, whatever the strides of s. */
@@ -125,7 +125,7 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
                 columns[i * e->rows + r] = *(const double *)(first + r * row_stride);
         }
         status = e->evaluate((size_t)count, t, columns, params, values, &bad);
-        if (status != 0) {
+        if (status != UNICYCLE_RING_OK) {
             failed = start + (npy_intp)bad;
             break;
         }
@@ -136,7 +136,7 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     }
     if (saved != NULL)
         PyEval_RestoreThread(saved);
-    if (status != 0) {
+    if (status != UNICYCLE_RING_OK) {
         Py_DECREF(out);
         return Py_BuildValue("(in)", status, (Py_ssize_t)failed);
     }

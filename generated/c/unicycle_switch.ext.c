@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: e63fde4703f1754edbef4f76b9629bee2201943528fdca89363e7e7a32956f20
+ * content sha256: e28203b0734bfdd59f20bb3222824cd2739dfddf222909a1b9941e6cba540093
  */
 
 /*
@@ -111,11 +111,11 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     double *result = (double *)PyArray_DATA((PyArrayObject *)out);
     double columns[CHUNK * (ROWS_MAX > 0 ? ROWS_MAX : 1)];
     double values[CHUNK * RESULT_MAX];
-    int status = 0;
+    int status = UNICYCLE_SWITCH_OK;
     npy_intp failed = 0;
     /* Only large batches are worth the cost of releasing the GIL. */
     PyThreadState *saved = points >= 64 ? PyEval_SaveThread() : NULL;
-    for (npy_intp start = 0; start < points && status == 0; start += CHUNK) {
+    for (npy_intp start = 0; start < points && status == UNICYCLE_SWITCH_OK; start += CHUNK) {
         const npy_intp count = points - start < CHUNK ? points - start : CHUNK;
         size_t bad = 0;
         /* Gathered point after point, whatever the strides of s. */
@@ -125,7 +125,7 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
                 columns[i * e->rows + r] = *(const double *)(first + r * row_stride);
         }
         status = e->evaluate((size_t)count, t, columns, params, values, &bad);
-        if (status != 0) {
+        if (status != UNICYCLE_SWITCH_OK) {
             failed = start + (npy_intp)bad;
             break;
         }
@@ -136,7 +136,7 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     }
     if (saved != NULL)
         PyEval_RestoreThread(saved);
-    if (status != 0) {
+    if (status != UNICYCLE_SWITCH_OK) {
         Py_DECREF(out);
         return Py_BuildValue("(in)", status, (Py_ssize_t)failed);
     }
