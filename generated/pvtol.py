@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: 334748d23b4479580e55e0984796c39005d2725e6899fe789f2024f81b6253a8
+# content sha256: 8ac0833cdebb471ae9e0df9ffc278139acf1a55d542f7d53f05221a80a42d489
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -77,6 +77,10 @@ HURWITZ_COEFFICIENTS = (-7.5, -19.25, -17.75, -7.0)
 DECAY_RATE = 1.0
 #: Initial state of the spec's [simulation] table, in STATE_NAMES order.
 DEFAULT_STATE = (-1.0, 0.5, 0.0, 0.0, 0.0, 0.0, 9.81, 0.0)
+#: The plant states a stateful :class:`Controller` measures (the first of STATE_NAMES).
+PLANT_STATE_NAMES = ('x', 'z', 'theta', 'vx', 'vz', 'omega')
+#: The controller's own states (extension, then padding: the rest of STATE_NAMES).
+CONTROLLER_STATE_NAMES = ('thrust', 'thrust_d1')
 #: A pivot below this fraction of the largest entry makes a matrix singular.
 PIVOT_TOLERANCE = 1e-12
 
@@ -85,6 +89,7 @@ STATUS_NONFINITE_INPUT = 1
 STATUS_SINGULAR_DECOUPLING = 2
 STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
+STATUS_DECREASING_TIME = 5
 
 
 class ControllerError(ArithmeticError):
@@ -1022,6 +1027,171 @@ def hessian(t, y, params=None):
     """
     return _output_function(_hessian_values, t, y, params)
 
+
+
+#: Integrator chains among the controller states: (first index, length); the last state
+#: of each is driven by its entry of ds (an input of the extended plant, or y_imp^(K)).
+_CHAINS = ((0, 2),)
+_DRIVERS = (7,)
+
+
+def _vector(name, value, size):
+    """``value`` as a float array of shape (size,)."""
+    array = numpy.asarray(value)
+    if array.dtype.kind == "c":
+        raise TypeError(f"{name} must be real, got complex values")
+    array = numpy.array(array, dtype=float)
+    if array.shape != (size,):
+        raise ValueError(f"{name} must have shape ({size},), got {array.shape}")
+    return array
+
+
+def _check_measurement(t, x, names):
+    """Raise NonFiniteInputError naming ``t`` or the first entry of ``x`` that is not finite."""
+    if not numpy.isfinite(t):
+        raise NonFiniteInputError(f"t = {t!r} is not finite")
+    bad = ~numpy.isfinite(x)
+    if bad.any():
+        index = int(numpy.argmax(bad))
+        raise NonFiniteInputError(f"{names[index]} = {float(x[index])!r} is not finite", index)
+
+
+class _Controller:
+    """The stateful sampled-data controller: measure ``x``, :meth:`step`, apply ``u``.
+
+    It keeps the controller states ``z`` (``CONTROLLER_STATE_NAMES``: extension and
+    padding states) itself. Each :meth:`step` first advances ``z`` from the last step's
+    time to ``t``, holding the input computed then (``z`` are integrator chains, so the
+    update is exact), then evaluates the law at ``(t, [x; z])``.
+
+    Parameters
+    ----------
+    x0 : array_like, shape (6,)
+        Plant state at ``t0`` in ``PLANT_STATE_NAMES`` order.
+    t0 : float, optional
+        Start time (default 0).
+    z0 : array_like, shape (2,), optional
+        Controller states at ``t0`` (default: those of ``DEFAULT_STATE``).
+    params : mapping, optional
+        Parameter overrides by name, kept for every step.
+
+    Raises
+    ------
+    ControllerError
+        When the law is undefined at ``(t0, [x0; z0])``.
+    """
+
+    def __init__(self, x0, t0=0.0, z0=None, params=None):
+        self.reset(x0, t0, z0, params)
+
+    def reset(self, x0, t0=0.0, z0=None, params=None):
+        """Start again from ``x0`` at ``t0`` (arguments as for the constructor)."""
+        t0 = _time(t0)
+        x = _vector("x0", x0, 6)
+        if z0 is None:
+            z = numpy.array(DEFAULT_STATE[6:], dtype=float)
+        else:
+            z = _vector("z0", z0, 2)
+        p = _parameters(params)
+        _check_measurement(t0, x, PLANT_STATE_NAMES)
+        _check_measurement(t0, z, CONTROLLER_STATE_NAMES)
+        if not numpy.all(numpy.isfinite(p)):
+            raise NonFiniteInputError("a parameter is not finite")
+        self._begin(t0, x, z, p)
+
+    def step(self, t, x):
+        """The plant input at time ``t`` for the measured plant state ``x``.
+
+        Parameters
+        ----------
+        t : float
+            Time of the measurement; not before the last step's.
+        x : array_like, shape (6,)
+            Plant state in ``PLANT_STATE_NAMES`` order.
+
+        Returns
+        -------
+        numpy.ndarray, shape (2,)
+            Plant input in ``INPUT_NAMES`` order, to hold until the next step.
+
+        Raises
+        ------
+        ValueError
+            When ``t`` is before the last step's time, or ``x`` has the wrong shape.
+        ControllerError
+            ``NonFiniteInputError`` for a measurement or time that is not finite, or
+            where the law is undefined; the controller is then unchanged.
+        """
+        t = _time(t)
+        x = _vector("x", x, 6)
+        _check_measurement(t, x, PLANT_STATE_NAMES)
+        if t < self.t:
+            raise ValueError(
+                f"t = {t!r} is before the last step's time {self.t!r}: time must not decrease"
+            )
+        return self._move(t, x)
+
+    @property
+    def t(self):
+        """Time of the last step (or of the start)."""
+        return self._t
+
+    @property
+    def state(self):
+        """A copy of the controller states ``z``, in ``CONTROLLER_STATE_NAMES`` order."""
+        return numpy.array(self._z, dtype=float)
+
+    @property
+    def u(self):
+        """A copy of the plant input of the last step (or of the start)."""
+        return numpy.array(self._u, dtype=float)
+
+    def __repr__(self):
+        return f"<pvtol Controller ({BACKEND}) at t = {self.t!r}>"
+
+
+
+def _advance(z, drive, h):
+    """The controller states ``h`` seconds on, each chain's drive held (Taylor, exact)."""
+    out = list(z)
+    for chain, (start, length) in enumerate(_CHAINS):
+        for j in range(length):
+            term, total = 1.0, 0.0
+            for l in range(length - j):
+                total += z[start + j + l] * term
+                term *= h / (l + 1)
+            out[start + j] = total + drive[chain] * term
+    return out
+
+
+def _law_at(t, s, p):
+    """(ds, u) of the law at one state: the one-point path, else the array path (raises)."""
+    values, p_list = s.tolist(), p.tolist()
+    try:
+        with numpy.errstate(all="ignore"):
+            law = _law_1(t, values, p_list, True)
+    except ArithmeticError:  # a float's ZeroDivisionError or OverflowError
+        law = None
+    if law is not None and _finite(law[0]) and _finite(law[1]):
+        return numpy.array(law[0]), numpy.array(law[1])
+    ds, u = _law(t, s[:, None], p)
+    return ds[:, 0], u[:, 0]
+
+
+class Controller(_Controller):
+    __doc__ = _Controller.__doc__
+
+    def _begin(self, t, x, z, p):
+        ds, u = _law_at(t, numpy.concatenate([x, z]), p)
+        self._t, self._z, self._u, self._p = t, z, u, p
+        self._drive = [float(ds[i]) for i in _DRIVERS]
+
+    def _move(self, t, x):
+        z = numpy.array(_advance(self._z.tolist(), self._drive, t - self._t))
+        ds, u = _law_at(t, numpy.concatenate([x, z]), self._p)
+        self._t, self._z, self._u = t, z, u
+        self._drive = [float(ds[i]) for i in _DRIVERS]
+        return u.copy()
 
 
 def _with_one_point(general, rows):

@@ -68,6 +68,12 @@ class Law:
     plant_input : tuple of sympy.Expr
         The plant input ``u``: a prolonged input is a state of the extension, the
         others are entries of ``w``.
+    chains : tuple of (int, int)
+        The integrator chains among the controller's own states (the closed-loop state
+        after the plant's: extension, then padding): ``(first index among them, length)``
+        each, extension chains first. A chain's last state is driven by an entry of
+        ``w`` (extension) or of ``z`` (padding): its entry of :attr:`closed_loop`. Held
+        constant over a sampling interval, the chain moves by a finite Taylor polynomial.
     """
 
     a: tuple[sp.Symbol, ...]
@@ -82,6 +88,7 @@ class Law:
     r_entries: tuple[sp.Expr, ...]
     closed_loop: tuple[sp.Expr, ...]
     plant_input: tuple[sp.Expr, ...]
+    chains: tuple[tuple[int, int], ...]
 
     @property
     def constant_hessian(self) -> bool:
@@ -186,6 +193,15 @@ def control_law(
         for j in range(len(chain)):
             field.append(state_of[chain[j + 1]] if j + 1 < len(chain) else z[i])
     plant_input = tuple(u if u.name in ext.states else w[j] for j, u in enumerate(plant_inputs))
+    chains: list[tuple[int, int]] = []
+    start = 0
+    for _, count in ext.counts:
+        chains.append((start, count))
+        start += count
+    for chain in padding:
+        if chain:
+            chains.append((start, len(chain)))
+            start += len(chain)
     return Law(
         a=a,
         w=w,
@@ -199,4 +215,5 @@ def control_law(
         r_entries=r_entries,
         closed_loop=tuple(field),
         plant_input=plant_input,
+        chains=tuple(chains),
     )

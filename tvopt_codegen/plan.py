@@ -46,6 +46,8 @@ class Status(enum.IntEnum):
     SINGULAR_DECOUPLING = 2
     HESSIAN_NOT_PD = 3
     NONFINITE_OUTPUT = 4
+    #: A stateful controller was stepped to a time before its last step's.
+    DECREASING_TIME = 5
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: a2b688e1f62802a225651e3aa51663ebb5964872209c1a4eb7506fffd19d27ef
+ * content sha256: 47e61effaaa88f2ea9df02f80bc218a7466fc7da29f067b8230c46cac5077f31
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -35,6 +35,7 @@ const char *const flexible_joint_param_names[FLEXIBLE_JOINT_N_PARAMS] = {"mgl", 
 const double flexible_joint_default_params[FLEXIBLE_JOINT_N_PARAMS] = {2.0, 1.0, 0.5, 10.0};
 #define FLEXIBLE_JOINT_DEFAULT_PARAMS flexible_joint_default_params
 const double flexible_joint_default_state[FLEXIBLE_JOINT_N_STATES] = {0.5, 0.0, 0.5, 0.0};
+const char *const flexible_joint_plant_state_names[FLEXIBLE_JOINT_N_PLANT_STATES] = {"q1", "w1", "q2", "w2"};
 const double flexible_joint_hurwitz_coefficients[FLEXIBLE_JOINT_K] = {-15.0, -33.5, -26.0, -8.5};
 
 /* The jet's terms of time and parameters alone (38 operations, 38 before CSE). */
@@ -568,6 +569,96 @@ int flexible_joint_hessian_batch(size_t count, double t, const double *s, const 
             }
             return status;
         }
+    }
+    return FLEXIBLE_JOINT_OK;
+}
+
+size_t flexible_joint_controller_size(void)
+{
+    return sizeof(flexible_joint_controller_t);
+}
+
+/* The controller states h seconds on: each integrator chain c_0' = c_1, ..., c_last' = drive
+ * moves by its Taylor polynomial, exact for a drive held constant. */
+static void flexible_joint_advance(const flexible_joint_controller_t *c, double h, double *z)
+{
+    /* No extension and no padding: the controller has no states. */
+    (void)c;
+    (void)h;
+    (void)z;
+}
+
+/* The law at (t, [x; z]) into ds and u; on success the controller moves to t. */
+static int flexible_joint_controller_move(flexible_joint_controller_t *c, double t, const double *s)
+{
+    double ds[FLEXIBLE_JOINT_N_STATES];
+    double u[FLEXIBLE_JOINT_N_INPUTS];
+    double tau[FLEXIBLE_JOINT_N_TAU];
+    int i, status;
+    flexible_joint_k_jet_time(t, c->params, flexible_joint_hurwitz_coefficients, tau);
+    status = flexible_joint_law(t, s, c->params, tau, ds, u);
+    if (status != FLEXIBLE_JOINT_OK) {
+        return status;
+    }
+    c->t = t;
+    for (i = 0; i < FLEXIBLE_JOINT_N_CONTROLLER_STATES; ++i) {
+        c->z[i] = s[FLEXIBLE_JOINT_N_PLANT_STATES + i];
+    }
+    for (i = 0; i < FLEXIBLE_JOINT_N_INPUTS; ++i) {
+        c->u[i] = u[i];
+    }
+    return FLEXIBLE_JOINT_OK;
+}
+
+int flexible_joint_controller_init(flexible_joint_controller_t *c, double t0, const double *x0, const double *z0, const double *params)
+{
+    flexible_joint_controller_t next;
+    double s[FLEXIBLE_JOINT_N_STATES];
+    int i, status;
+    /* Slots that a controller without states or parameters never reads. */
+    next.z[0] = 0.0;
+    next.drive[0] = 0.0;
+    next.params[0] = 0.0;
+    for (i = 0; i < FLEXIBLE_JOINT_N_PLANT_STATES; ++i) {
+        s[i] = x0[i];
+    }
+    for (i = 0; i < FLEXIBLE_JOINT_N_CONTROLLER_STATES; ++i) {
+        s[FLEXIBLE_JOINT_N_PLANT_STATES + i] = z0 ? z0[i] : flexible_joint_default_state[FLEXIBLE_JOINT_N_PLANT_STATES + i];
+    }
+    for (i = 0; i < FLEXIBLE_JOINT_N_PARAMS; ++i) {
+        next.params[i] = params ? params[i] : FLEXIBLE_JOINT_DEFAULT_PARAMS[i];
+    }
+    status = flexible_joint_check_inputs(t0, s, FLEXIBLE_JOINT_N_STATES, next.params);
+    if (status != FLEXIBLE_JOINT_OK) {
+        return status;
+    }
+    status = flexible_joint_controller_move(&next, t0, s);
+    if (status == FLEXIBLE_JOINT_OK) {
+        *c = next;
+    }
+    return status;
+}
+
+int flexible_joint_controller_step(flexible_joint_controller_t *c, double t, const double *x, double *u)
+{
+    double s[FLEXIBLE_JOINT_N_STATES];
+    int i, status = flexible_joint_check_inputs(t, x, FLEXIBLE_JOINT_N_PLANT_STATES, c->params);
+    if (status != FLEXIBLE_JOINT_OK) {
+        return status;
+    }
+    if (t < c->t) {
+        return FLEXIBLE_JOINT_DECREASING_TIME;
+    }
+    for (i = 0; i < FLEXIBLE_JOINT_N_PLANT_STATES; ++i) {
+        s[i] = x[i];
+    }
+    flexible_joint_advance(c, t - c->t, s + FLEXIBLE_JOINT_N_PLANT_STATES);
+    status = flexible_joint_controller_move(c, t, s);
+    if (status != FLEXIBLE_JOINT_OK) {
+        return status;
+    }
+    for (i = 0; i < FLEXIBLE_JOINT_N_INPUTS; ++i) {
+        u[i] = c->u[i];
     }
     return FLEXIBLE_JOINT_OK;
 }

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 2df9ab679ec7718034af5ff01058ccf058ae30a134088c4c181b65066704d3ae
+ * content sha256: a1f61e0828d7893c33e1f000ea7a30f853b5a64311d13dac43992f1040437d32
  */
 
 /*
@@ -29,6 +29,10 @@ extern "C" {
 #define FLEXIBLE_JOINT_N_OUTPUTS 1
 #define FLEXIBLE_JOINT_N_PARAMS 4
 #define FLEXIBLE_JOINT_K 4
+/* The stateful controller: the plant states x it measures, and its own states z
+ * (extension, then padding: the closed-loop state after the plant's). */
+#define FLEXIBLE_JOINT_N_PLANT_STATES 4
+#define FLEXIBLE_JOINT_N_CONTROLLER_STATES 0
 
 /* Status codes: the Python exceptions' .status. */
 #define FLEXIBLE_JOINT_OK 0
@@ -36,6 +40,7 @@ extern "C" {
 #define FLEXIBLE_JOINT_SINGULAR_DECOUPLING 2
 #define FLEXIBLE_JOINT_HESSIAN_NOT_PD 3
 #define FLEXIBLE_JOINT_NONFINITE_OUTPUT 4
+#define FLEXIBLE_JOINT_DECREASING_TIME 5
 
 int flexible_joint_n_states(void);
 int flexible_joint_n_inputs(void);
@@ -48,6 +53,7 @@ extern const char *const flexible_joint_output_names[FLEXIBLE_JOINT_N_OUTPUTS];
 extern const char *const flexible_joint_param_names[FLEXIBLE_JOINT_N_PARAMS];
 extern const double flexible_joint_default_params[FLEXIBLE_JOINT_N_PARAMS];
 extern const double flexible_joint_default_state[FLEXIBLE_JOINT_N_STATES];
+extern const char *const flexible_joint_plant_state_names[FLEXIBLE_JOINT_N_PLANT_STATES];
 extern const double flexible_joint_hurwitz_coefficients[FLEXIBLE_JOINT_K];
 
 /* Plant input u (FLEXIBLE_JOINT_N_INPUTS doubles). */
@@ -69,6 +75,38 @@ int flexible_joint_optimality_error_batch(size_t count, double t, const double *
 int flexible_joint_objective_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int flexible_joint_gradient_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int flexible_joint_hessian_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
+
+/*
+ * The stateful sampled-data controller, in memory the caller owns (no heap, no globals).
+ *
+ *   flexible_joint_controller_t c;
+ *   flexible_joint_controller_init(&c, t0, x0, NULL, NULL);   z and params: the defaults
+ *   every sample: status = flexible_joint_controller_step(&c, t, x, u);   then apply u
+ *
+ * x holds the plant states (FLEXIBLE_JOINT_N_PLANT_STATES, order in flexible_joint_plant_state_names).
+ * A step first advances the controller states z from the last step's time to t, holding
+ * the input computed then (z are integrator chains: the update is exact), then evaluates
+ * the law at (t, [x; z]) and writes u (FLEXIBLE_JOINT_N_INPUTS). A step that fails (a status
+ * other than OK: x or t not finite, t before the last step's time, the law undefined)
+ * leaves the controller as it was. init evaluates the law at (t0, [x0; z0]).
+ */
+typedef struct {
+    /* time of the last step (or of init) */
+    double t;
+    /* controller states z (FLEXIBLE_JOINT_N_CONTROLLER_STATES; at least one slot) */
+    double z[1];
+    /* each integrator chain's top derivative, held since t */
+    double drive[1];
+    /* the parameters the controller runs with */
+    double params[4];
+    /* the plant input of the last step */
+    double u[FLEXIBLE_JOINT_N_INPUTS];
+} flexible_joint_controller_t;
+
+int flexible_joint_controller_init(flexible_joint_controller_t *c, double t0, const double *x0, const double *z0, const double *params);
+int flexible_joint_controller_step(flexible_joint_controller_t *c, double t, const double *x, double *u);
+/* sizeof(flexible_joint_controller_t), for callers that allocate it from another language. */
+size_t flexible_joint_controller_size(void);
 
 #ifdef __cplusplus
 }

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: ef3fc729c351fba362c49f186e499173fd4238a007fe46780f174c5d32266aca
+ * content sha256: 6942f506ce0d514c76539f029799456a3f31967a9e370c36f83fe4ede72d80b6
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -35,6 +35,7 @@ const char *const integrator_param_names[INTEGRATOR_N_PARAMS] = {"w"};
 const double integrator_default_params[INTEGRATOR_N_PARAMS] = {2.0};
 #define INTEGRATOR_DEFAULT_PARAMS integrator_default_params
 const double integrator_default_state[INTEGRATOR_N_STATES] = {-1.0, 1.5};
+const char *const integrator_plant_state_names[INTEGRATOR_N_PLANT_STATES] = {"x1", "x2"};
 const double integrator_hurwitz_coefficients[INTEGRATOR_K] = {-1.0};
 
 /* The jet's terms of time and parameters alone (25 operations, 25 before CSE). */
@@ -470,6 +471,96 @@ int integrator_hessian_batch(size_t count, double t, const double *s, const doub
             }
             return status;
         }
+    }
+    return INTEGRATOR_OK;
+}
+
+size_t integrator_controller_size(void)
+{
+    return sizeof(integrator_controller_t);
+}
+
+/* The controller states h seconds on: each integrator chain c_0' = c_1, ..., c_last' = drive
+ * moves by its Taylor polynomial, exact for a drive held constant. */
+static void integrator_advance(const integrator_controller_t *c, double h, double *z)
+{
+    /* No extension and no padding: the controller has no states. */
+    (void)c;
+    (void)h;
+    (void)z;
+}
+
+/* The law at (t, [x; z]) into ds and u; on success the controller moves to t. */
+static int integrator_controller_move(integrator_controller_t *c, double t, const double *s)
+{
+    double ds[INTEGRATOR_N_STATES];
+    double u[INTEGRATOR_N_INPUTS];
+    double tau[INTEGRATOR_N_TAU];
+    int i, status;
+    integrator_k_jet_time(t, c->params, integrator_hurwitz_coefficients, tau);
+    status = integrator_law(t, s, c->params, tau, ds, u);
+    if (status != INTEGRATOR_OK) {
+        return status;
+    }
+    c->t = t;
+    for (i = 0; i < INTEGRATOR_N_CONTROLLER_STATES; ++i) {
+        c->z[i] = s[INTEGRATOR_N_PLANT_STATES + i];
+    }
+    for (i = 0; i < INTEGRATOR_N_INPUTS; ++i) {
+        c->u[i] = u[i];
+    }
+    return INTEGRATOR_OK;
+}
+
+int integrator_controller_init(integrator_controller_t *c, double t0, const double *x0, const double *z0, const double *params)
+{
+    integrator_controller_t next;
+    double s[INTEGRATOR_N_STATES];
+    int i, status;
+    /* Slots that a controller without states or parameters never reads. */
+    next.z[0] = 0.0;
+    next.drive[0] = 0.0;
+    next.params[0] = 0.0;
+    for (i = 0; i < INTEGRATOR_N_PLANT_STATES; ++i) {
+        s[i] = x0[i];
+    }
+    for (i = 0; i < INTEGRATOR_N_CONTROLLER_STATES; ++i) {
+        s[INTEGRATOR_N_PLANT_STATES + i] = z0 ? z0[i] : integrator_default_state[INTEGRATOR_N_PLANT_STATES + i];
+    }
+    for (i = 0; i < INTEGRATOR_N_PARAMS; ++i) {
+        next.params[i] = params ? params[i] : INTEGRATOR_DEFAULT_PARAMS[i];
+    }
+    status = integrator_check_inputs(t0, s, INTEGRATOR_N_STATES, next.params);
+    if (status != INTEGRATOR_OK) {
+        return status;
+    }
+    status = integrator_controller_move(&next, t0, s);
+    if (status == INTEGRATOR_OK) {
+        *c = next;
+    }
+    return status;
+}
+
+int integrator_controller_step(integrator_controller_t *c, double t, const double *x, double *u)
+{
+    double s[INTEGRATOR_N_STATES];
+    int i, status = integrator_check_inputs(t, x, INTEGRATOR_N_PLANT_STATES, c->params);
+    if (status != INTEGRATOR_OK) {
+        return status;
+    }
+    if (t < c->t) {
+        return INTEGRATOR_DECREASING_TIME;
+    }
+    for (i = 0; i < INTEGRATOR_N_PLANT_STATES; ++i) {
+        s[i] = x[i];
+    }
+    integrator_advance(c, t - c->t, s + INTEGRATOR_N_PLANT_STATES);
+    status = integrator_controller_move(c, t, s);
+    if (status != INTEGRATOR_OK) {
+        return status;
+    }
+    for (i = 0; i < INTEGRATOR_N_INPUTS; ++i) {
+        u[i] = c->u[i];
     }
     return INTEGRATOR_OK;
 }

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 2e5963cdbec8a16c0319bcc7d22e2e4fcbcbde263ddd789eb8693dfc1e511b2d
+ * content sha256: 4f764b8e02f0d3c4ffee978d6ff482f7e3bf246efe31ec3a66595509728f14f3
  */
 
 /*
@@ -29,6 +29,10 @@ extern "C" {
 #define INTEGRATOR_N_OUTPUTS 2
 #define INTEGRATOR_N_PARAMS 1
 #define INTEGRATOR_K 1
+/* The stateful controller: the plant states x it measures, and its own states z
+ * (extension, then padding: the closed-loop state after the plant's). */
+#define INTEGRATOR_N_PLANT_STATES 2
+#define INTEGRATOR_N_CONTROLLER_STATES 0
 
 /* Status codes: the Python exceptions' .status. */
 #define INTEGRATOR_OK 0
@@ -36,6 +40,7 @@ extern "C" {
 #define INTEGRATOR_SINGULAR_DECOUPLING 2
 #define INTEGRATOR_HESSIAN_NOT_PD 3
 #define INTEGRATOR_NONFINITE_OUTPUT 4
+#define INTEGRATOR_DECREASING_TIME 5
 
 int integrator_n_states(void);
 int integrator_n_inputs(void);
@@ -48,6 +53,7 @@ extern const char *const integrator_output_names[INTEGRATOR_N_OUTPUTS];
 extern const char *const integrator_param_names[INTEGRATOR_N_PARAMS];
 extern const double integrator_default_params[INTEGRATOR_N_PARAMS];
 extern const double integrator_default_state[INTEGRATOR_N_STATES];
+extern const char *const integrator_plant_state_names[INTEGRATOR_N_PLANT_STATES];
 extern const double integrator_hurwitz_coefficients[INTEGRATOR_K];
 
 /* Plant input u (INTEGRATOR_N_INPUTS doubles). */
@@ -69,6 +75,38 @@ int integrator_optimality_error_batch(size_t count, double t, const double *s, c
 int integrator_objective_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int integrator_gradient_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int integrator_hessian_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
+
+/*
+ * The stateful sampled-data controller, in memory the caller owns (no heap, no globals).
+ *
+ *   integrator_controller_t c;
+ *   integrator_controller_init(&c, t0, x0, NULL, NULL);   z and params: the defaults
+ *   every sample: status = integrator_controller_step(&c, t, x, u);   then apply u
+ *
+ * x holds the plant states (INTEGRATOR_N_PLANT_STATES, order in integrator_plant_state_names).
+ * A step first advances the controller states z from the last step's time to t, holding
+ * the input computed then (z are integrator chains: the update is exact), then evaluates
+ * the law at (t, [x; z]) and writes u (INTEGRATOR_N_INPUTS). A step that fails (a status
+ * other than OK: x or t not finite, t before the last step's time, the law undefined)
+ * leaves the controller as it was. init evaluates the law at (t0, [x0; z0]).
+ */
+typedef struct {
+    /* time of the last step (or of init) */
+    double t;
+    /* controller states z (INTEGRATOR_N_CONTROLLER_STATES; at least one slot) */
+    double z[1];
+    /* each integrator chain's top derivative, held since t */
+    double drive[1];
+    /* the parameters the controller runs with */
+    double params[1];
+    /* the plant input of the last step */
+    double u[INTEGRATOR_N_INPUTS];
+} integrator_controller_t;
+
+int integrator_controller_init(integrator_controller_t *c, double t0, const double *x0, const double *z0, const double *params);
+int integrator_controller_step(integrator_controller_t *c, double t, const double *x, double *u);
+/* sizeof(integrator_controller_t), for callers that allocate it from another language. */
+size_t integrator_controller_size(void);
 
 #ifdef __cplusplus
 }

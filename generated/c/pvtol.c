@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: pvtol
  * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: 39680214184d215d5e9229932646e0675d4a3400fe01dd358188a19637339612
+ * content sha256: 81b5d67c5321a8ee67d03722b59e8da5e145afd53db542d0f6db9d5a1d2e28b8
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -35,6 +35,8 @@ const char *const pvtol_param_names[PVTOL_N_PARAMS] = {"g"};
 const double pvtol_default_params[PVTOL_N_PARAMS] = {9.81};
 #define PVTOL_DEFAULT_PARAMS pvtol_default_params
 const double pvtol_default_state[PVTOL_N_STATES] = {-1.0, 0.5, 0.0, 0.0, 0.0, 0.0, 9.81, 0.0};
+const char *const pvtol_plant_state_names[PVTOL_N_PLANT_STATES] = {"x", "z", "theta", "vx", "vz", "omega"};
+const char *const pvtol_controller_state_names[PVTOL_N_CONTROLLER_STATES] = {"thrust", "thrust_d1"};
 const double pvtol_hurwitz_coefficients[PVTOL_K] = {-7.5, -19.25, -17.75, -7.0};
 
 /* The jet's terms of time and parameters alone (36 operations, 36 before CSE). */
@@ -532,6 +534,106 @@ int pvtol_hessian_batch(size_t count, double t, const double *s, const double *p
             }
             return status;
         }
+    }
+    return PVTOL_OK;
+}
+
+size_t pvtol_controller_size(void)
+{
+    return sizeof(pvtol_controller_t);
+}
+
+/* The controller states h seconds on: each integrator chain c_0' = c_1, ..., c_last' = drive
+ * moves by its Taylor polynomial, exact for a drive held constant. */
+static void pvtol_advance(const pvtol_controller_t *c, double h, double *z)
+{
+    static const int chains[1][2] = {{0, 2}};
+    int chain, j, l;
+    for (chain = 0; chain < 1; ++chain) {
+        const int start = chains[chain][0], length = chains[chain][1];
+        for (j = 0; j < length; ++j) {
+            double term = 1.0, sum = 0.0;
+            for (l = 0; j + l < length; ++l) {
+                sum += c->z[start + j + l] * term;
+                term *= h / (double)(l + 1);
+            }
+            z[start + j] = sum + c->drive[chain] * term;
+        }
+    }
+}
+
+/* The law at (t, [x; z]) into ds and u; on success the controller moves to t. */
+static int pvtol_controller_move(pvtol_controller_t *c, double t, const double *s)
+{
+    double ds[PVTOL_N_STATES];
+    double u[PVTOL_N_INPUTS];
+    double tau[PVTOL_N_TAU];
+    int i, status;
+    pvtol_k_jet_time(t, c->params, pvtol_hurwitz_coefficients, tau);
+    status = pvtol_law(t, s, c->params, tau, ds, u);
+    if (status != PVTOL_OK) {
+        return status;
+    }
+    c->t = t;
+    for (i = 0; i < PVTOL_N_CONTROLLER_STATES; ++i) {
+        c->z[i] = s[PVTOL_N_PLANT_STATES + i];
+    }
+    c->drive[0] = ds[PVTOL_N_PLANT_STATES + 1];
+    for (i = 0; i < PVTOL_N_INPUTS; ++i) {
+        c->u[i] = u[i];
+    }
+    return PVTOL_OK;
+}
+
+int pvtol_controller_init(pvtol_controller_t *c, double t0, const double *x0, const double *z0, const double *params)
+{
+    pvtol_controller_t next;
+    double s[PVTOL_N_STATES];
+    int i, status;
+    /* Slots that a controller without states or parameters never reads. */
+    next.z[0] = 0.0;
+    next.drive[0] = 0.0;
+    next.params[0] = 0.0;
+    for (i = 0; i < PVTOL_N_PLANT_STATES; ++i) {
+        s[i] = x0[i];
+    }
+    for (i = 0; i < PVTOL_N_CONTROLLER_STATES; ++i) {
+        s[PVTOL_N_PLANT_STATES + i] = z0 ? z0[i] : pvtol_default_state[PVTOL_N_PLANT_STATES + i];
+    }
+    for (i = 0; i < PVTOL_N_PARAMS; ++i) {
+        next.params[i] = params ? params[i] : PVTOL_DEFAULT_PARAMS[i];
+    }
+    status = pvtol_check_inputs(t0, s, PVTOL_N_STATES, next.params);
+    if (status != PVTOL_OK) {
+        return status;
+    }
+    status = pvtol_controller_move(&next, t0, s);
+    if (status == PVTOL_OK) {
+        *c = next;
+    }
+    return status;
+}
+
+int pvtol_controller_step(pvtol_controller_t *c, double t, const double *x, double *u)
+{
+    double s[PVTOL_N_STATES];
+    int i, status = pvtol_check_inputs(t, x, PVTOL_N_PLANT_STATES, c->params);
+    if (status != PVTOL_OK) {
+        return status;
+    }
+    if (t < c->t) {
+        return PVTOL_DECREASING_TIME;
+    }
+    for (i = 0; i < PVTOL_N_PLANT_STATES; ++i) {
+        s[i] = x[i];
+    }
+    pvtol_advance(c, t - c->t, s + PVTOL_N_PLANT_STATES);
+    status = pvtol_controller_move(c, t, s);
+    if (status != PVTOL_OK) {
+        return status;
+    }
+    for (i = 0; i < PVTOL_N_INPUTS; ++i) {
+        u[i] = c->u[i];
     }
     return PVTOL_OK;
 }

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: pvtol
  * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: d403fe706aa2fced1b880c8628531e2b2c53fa2e98a43fa51658ff890212f9a6
+ * content sha256: ae0f0e6226fbfd8aaaa8f7f954545743ee3d428b8d5f640bd70538ae8709cc2c
  */
 
 /*
@@ -29,6 +29,10 @@ extern "C" {
 #define PVTOL_N_OUTPUTS 2
 #define PVTOL_N_PARAMS 1
 #define PVTOL_K 4
+/* The stateful controller: the plant states x it measures, and its own states z
+ * (extension, then padding: the closed-loop state after the plant's). */
+#define PVTOL_N_PLANT_STATES 6
+#define PVTOL_N_CONTROLLER_STATES 2
 
 /* Status codes: the Python exceptions' .status. */
 #define PVTOL_OK 0
@@ -36,6 +40,7 @@ extern "C" {
 #define PVTOL_SINGULAR_DECOUPLING 2
 #define PVTOL_HESSIAN_NOT_PD 3
 #define PVTOL_NONFINITE_OUTPUT 4
+#define PVTOL_DECREASING_TIME 5
 
 int pvtol_n_states(void);
 int pvtol_n_inputs(void);
@@ -48,6 +53,8 @@ extern const char *const pvtol_output_names[PVTOL_N_OUTPUTS];
 extern const char *const pvtol_param_names[PVTOL_N_PARAMS];
 extern const double pvtol_default_params[PVTOL_N_PARAMS];
 extern const double pvtol_default_state[PVTOL_N_STATES];
+extern const char *const pvtol_plant_state_names[PVTOL_N_PLANT_STATES];
+extern const char *const pvtol_controller_state_names[PVTOL_N_CONTROLLER_STATES];
 extern const double pvtol_hurwitz_coefficients[PVTOL_K];
 
 /* Plant input u (PVTOL_N_INPUTS doubles). */
@@ -69,6 +76,38 @@ int pvtol_optimality_error_batch(size_t count, double t, const double *s, const 
 int pvtol_objective_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int pvtol_gradient_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int pvtol_hessian_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
+
+/*
+ * The stateful sampled-data controller, in memory the caller owns (no heap, no globals).
+ *
+ *   pvtol_controller_t c;
+ *   pvtol_controller_init(&c, t0, x0, NULL, NULL);   z and params: the defaults
+ *   every sample: status = pvtol_controller_step(&c, t, x, u);   then apply u
+ *
+ * x holds the plant states (PVTOL_N_PLANT_STATES, order in pvtol_plant_state_names).
+ * A step first advances the controller states z from the last step's time to t, holding
+ * the input computed then (z are integrator chains: the update is exact), then evaluates
+ * the law at (t, [x; z]) and writes u (PVTOL_N_INPUTS). A step that fails (a status
+ * other than OK: x or t not finite, t before the last step's time, the law undefined)
+ * leaves the controller as it was. init evaluates the law at (t0, [x0; z0]).
+ */
+typedef struct {
+    /* time of the last step (or of init) */
+    double t;
+    /* controller states z (PVTOL_N_CONTROLLER_STATES; at least one slot) */
+    double z[2];
+    /* each integrator chain's top derivative, held since t */
+    double drive[1];
+    /* the parameters the controller runs with */
+    double params[1];
+    /* the plant input of the last step */
+    double u[PVTOL_N_INPUTS];
+} pvtol_controller_t;
+
+int pvtol_controller_init(pvtol_controller_t *c, double t0, const double *x0, const double *z0, const double *params);
+int pvtol_controller_step(pvtol_controller_t *c, double t, const double *x, double *u);
+/* sizeof(pvtol_controller_t), for callers that allocate it from another language. */
+size_t pvtol_controller_size(void);
 
 #ifdef __cplusplus
 }

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 7e445abecca602c8ad427d688530a584b7ca2b3d5943436b857e79f89edc6d59
+ * content sha256: 56da77d8246fe0351da1ff7e2b3f853abbd1fd768a4bfdce918ae4ffcdbdfe75
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -35,6 +35,8 @@ const char *const two_unicycles_barrier_param_names[TWO_UNICYCLES_BARRIER_N_PARA
 const double two_unicycles_barrier_default_params[TWO_UNICYCLES_BARRIER_N_PARAMS] = {1e-08, 2.0};
 #define TWO_UNICYCLES_BARRIER_DEFAULT_PARAMS two_unicycles_barrier_default_params
 const double two_unicycles_barrier_default_state[TWO_UNICYCLES_BARRIER_N_STATES] = {-4.5, -3.5, 0.0, -3.5, -3.5, 0.0, 1.0, 1.0};
+const char *const two_unicycles_barrier_plant_state_names[TWO_UNICYCLES_BARRIER_N_PLANT_STATES] = {"xa", "ya", "tha", "xb", "yb", "thb"};
+const char *const two_unicycles_barrier_controller_state_names[TWO_UNICYCLES_BARRIER_N_CONTROLLER_STATES] = {"va", "vb"};
 const double two_unicycles_barrier_hurwitz_coefficients[TWO_UNICYCLES_BARRIER_K] = {-1.5, -2.5};
 
 /* The jet's terms of time and parameters alone (37 operations, 37 before CSE). */
@@ -759,6 +761,107 @@ int two_unicycles_barrier_hessian_batch(size_t count, double t, const double *s,
             }
             return status;
         }
+    }
+    return TWO_UNICYCLES_BARRIER_OK;
+}
+
+size_t two_unicycles_barrier_controller_size(void)
+{
+    return sizeof(two_unicycles_barrier_controller_t);
+}
+
+/* The controller states h seconds on: each integrator chain c_0' = c_1, ..., c_last' = drive
+ * moves by its Taylor polynomial, exact for a drive held constant. */
+static void two_unicycles_barrier_advance(const two_unicycles_barrier_controller_t *c, double h, double *z)
+{
+    static const int chains[2][2] = {{0, 1}, {1, 1}};
+    int chain, j, l;
+    for (chain = 0; chain < 2; ++chain) {
+        const int start = chains[chain][0], length = chains[chain][1];
+        for (j = 0; j < length; ++j) {
+            double term = 1.0, sum = 0.0;
+            for (l = 0; j + l < length; ++l) {
+                sum += c->z[start + j + l] * term;
+                term *= h / (double)(l + 1);
+            }
+            z[start + j] = sum + c->drive[chain] * term;
+        }
+    }
+}
+
+/* The law at (t, [x; z]) into ds and u; on success the controller moves to t. */
+static int two_unicycles_barrier_controller_move(two_unicycles_barrier_controller_t *c, double t, const double *s)
+{
+    double ds[TWO_UNICYCLES_BARRIER_N_STATES];
+    double u[TWO_UNICYCLES_BARRIER_N_INPUTS];
+    double tau[TWO_UNICYCLES_BARRIER_N_TAU];
+    int i, status;
+    two_unicycles_barrier_k_jet_time(t, c->params, two_unicycles_barrier_hurwitz_coefficients, tau);
+    status = two_unicycles_barrier_law(t, s, c->params, tau, ds, u);
+    if (status != TWO_UNICYCLES_BARRIER_OK) {
+        return status;
+    }
+    c->t = t;
+    for (i = 0; i < TWO_UNICYCLES_BARRIER_N_CONTROLLER_STATES; ++i) {
+        c->z[i] = s[TWO_UNICYCLES_BARRIER_N_PLANT_STATES + i];
+    }
+    c->drive[0] = ds[TWO_UNICYCLES_BARRIER_N_PLANT_STATES + 0];
+    c->drive[1] = ds[TWO_UNICYCLES_BARRIER_N_PLANT_STATES + 1];
+    for (i = 0; i < TWO_UNICYCLES_BARRIER_N_INPUTS; ++i) {
+        c->u[i] = u[i];
+    }
+    return TWO_UNICYCLES_BARRIER_OK;
+}
+
+int two_unicycles_barrier_controller_init(two_unicycles_barrier_controller_t *c, double t0, const double *x0, const double *z0, const double *params)
+{
+    two_unicycles_barrier_controller_t next;
+    double s[TWO_UNICYCLES_BARRIER_N_STATES];
+    int i, status;
+    /* Slots that a controller without states or parameters never reads. */
+    next.z[0] = 0.0;
+    next.drive[0] = 0.0;
+    next.params[0] = 0.0;
+    for (i = 0; i < TWO_UNICYCLES_BARRIER_N_PLANT_STATES; ++i) {
+        s[i] = x0[i];
+    }
+    for (i = 0; i < TWO_UNICYCLES_BARRIER_N_CONTROLLER_STATES; ++i) {
+        s[TWO_UNICYCLES_BARRIER_N_PLANT_STATES + i] = z0 ? z0[i] : two_unicycles_barrier_default_state[TWO_UNICYCLES_BARRIER_N_PLANT_STATES + i];
+    }
+    for (i = 0; i < TWO_UNICYCLES_BARRIER_N_PARAMS; ++i) {
+        next.params[i] = params ? params[i] : TWO_UNICYCLES_BARRIER_DEFAULT_PARAMS[i];
+    }
+    status = two_unicycles_barrier_check_inputs(t0, s, TWO_UNICYCLES_BARRIER_N_STATES, next.params);
+    if (status != TWO_UNICYCLES_BARRIER_OK) {
+        return status;
+    }
+    status = two_unicycles_barrier_controller_move(&next, t0, s);
+    if (status == TWO_UNICYCLES_BARRIER_OK) {
+        *c = next;
+    }
+    return status;
+}
+
+int two_unicycles_barrier_controller_step(two_unicycles_barrier_controller_t *c, double t, const double *x, double *u)
+{
+    double s[TWO_UNICYCLES_BARRIER_N_STATES];
+    int i, status = two_unicycles_barrier_check_inputs(t, x, TWO_UNICYCLES_BARRIER_N_PLANT_STATES, c->params);
+    if (status != TWO_UNICYCLES_BARRIER_OK) {
+        return status;
+    }
+    if (t < c->t) {
+        return TWO_UNICYCLES_BARRIER_DECREASING_TIME;
+    }
+    for (i = 0; i < TWO_UNICYCLES_BARRIER_N_PLANT_STATES; ++i) {
+        s[i] = x[i];
+    }
+    two_unicycles_barrier_advance(c, t - c->t, s + TWO_UNICYCLES_BARRIER_N_PLANT_STATES);
+    status = two_unicycles_barrier_controller_move(c, t, s);
+    if (status != TWO_UNICYCLES_BARRIER_OK) {
+        return status;
+    }
+    for (i = 0; i < TWO_UNICYCLES_BARRIER_N_INPUTS; ++i) {
+        u[i] = c->u[i];
     }
     return TWO_UNICYCLES_BARRIER_OK;
 }

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 6c16f854b773b800db89c773739ca1b419eb988c36b27925a6eaa457bafc3929
+ * content sha256: 90d20095dce875c7c615ea37e8fc3c856d0749de97bac4a4747eaf34b3fd7e56
  */
 
 /*
@@ -29,6 +29,10 @@ extern "C" {
 #define TWO_UNICYCLES_BARRIER_N_OUTPUTS 4
 #define TWO_UNICYCLES_BARRIER_N_PARAMS 2
 #define TWO_UNICYCLES_BARRIER_K 2
+/* The stateful controller: the plant states x it measures, and its own states z
+ * (extension, then padding: the closed-loop state after the plant's). */
+#define TWO_UNICYCLES_BARRIER_N_PLANT_STATES 6
+#define TWO_UNICYCLES_BARRIER_N_CONTROLLER_STATES 2
 
 /* Status codes: the Python exceptions' .status. */
 #define TWO_UNICYCLES_BARRIER_OK 0
@@ -36,6 +40,7 @@ extern "C" {
 #define TWO_UNICYCLES_BARRIER_SINGULAR_DECOUPLING 2
 #define TWO_UNICYCLES_BARRIER_HESSIAN_NOT_PD 3
 #define TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT 4
+#define TWO_UNICYCLES_BARRIER_DECREASING_TIME 5
 
 int two_unicycles_barrier_n_states(void);
 int two_unicycles_barrier_n_inputs(void);
@@ -48,6 +53,8 @@ extern const char *const two_unicycles_barrier_output_names[TWO_UNICYCLES_BARRIE
 extern const char *const two_unicycles_barrier_param_names[TWO_UNICYCLES_BARRIER_N_PARAMS];
 extern const double two_unicycles_barrier_default_params[TWO_UNICYCLES_BARRIER_N_PARAMS];
 extern const double two_unicycles_barrier_default_state[TWO_UNICYCLES_BARRIER_N_STATES];
+extern const char *const two_unicycles_barrier_plant_state_names[TWO_UNICYCLES_BARRIER_N_PLANT_STATES];
+extern const char *const two_unicycles_barrier_controller_state_names[TWO_UNICYCLES_BARRIER_N_CONTROLLER_STATES];
 extern const double two_unicycles_barrier_hurwitz_coefficients[TWO_UNICYCLES_BARRIER_K];
 
 /* Plant input u (TWO_UNICYCLES_BARRIER_N_INPUTS doubles). */
@@ -69,6 +76,38 @@ int two_unicycles_barrier_optimality_error_batch(size_t count, double t, const d
 int two_unicycles_barrier_objective_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int two_unicycles_barrier_gradient_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int two_unicycles_barrier_hessian_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
+
+/*
+ * The stateful sampled-data controller, in memory the caller owns (no heap, no globals).
+ *
+ *   two_unicycles_barrier_controller_t c;
+ *   two_unicycles_barrier_controller_init(&c, t0, x0, NULL, NULL);   z and params: the defaults
+ *   every sample: status = two_unicycles_barrier_controller_step(&c, t, x, u);   then apply u
+ *
+ * x holds the plant states (TWO_UNICYCLES_BARRIER_N_PLANT_STATES, order in two_unicycles_barrier_plant_state_names).
+ * A step first advances the controller states z from the last step's time to t, holding
+ * the input computed then (z are integrator chains: the update is exact), then evaluates
+ * the law at (t, [x; z]) and writes u (TWO_UNICYCLES_BARRIER_N_INPUTS). A step that fails (a status
+ * other than OK: x or t not finite, t before the last step's time, the law undefined)
+ * leaves the controller as it was. init evaluates the law at (t0, [x0; z0]).
+ */
+typedef struct {
+    /* time of the last step (or of init) */
+    double t;
+    /* controller states z (TWO_UNICYCLES_BARRIER_N_CONTROLLER_STATES; at least one slot) */
+    double z[2];
+    /* each integrator chain's top derivative, held since t */
+    double drive[2];
+    /* the parameters the controller runs with */
+    double params[2];
+    /* the plant input of the last step */
+    double u[TWO_UNICYCLES_BARRIER_N_INPUTS];
+} two_unicycles_barrier_controller_t;
+
+int two_unicycles_barrier_controller_init(two_unicycles_barrier_controller_t *c, double t0, const double *x0, const double *z0, const double *params);
+int two_unicycles_barrier_controller_step(two_unicycles_barrier_controller_t *c, double t, const double *x, double *u);
+/* sizeof(two_unicycles_barrier_controller_t), for callers that allocate it from another language. */
+size_t two_unicycles_barrier_controller_size(void);
 
 #ifdef __cplusplus
 }

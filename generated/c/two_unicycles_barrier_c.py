@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: af29f5354b9a5e1215e2cee86338086d25a294d411c07e5b8ccc67edd9ff03f9
+# content sha256: 3224e6c6dd935db3466e8e81fd0f66c0b9affae91d5e9f87c2be54792ef951b7
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -86,6 +86,10 @@ HURWITZ_COEFFICIENTS = (-1.5, -2.5)
 DECAY_RATE = 1.0
 #: Initial state of the spec's [simulation] table, in STATE_NAMES order.
 DEFAULT_STATE = (-4.5, -3.5, 0.0, -3.5, -3.5, 0.0, 1.0, 1.0)
+#: The plant states a stateful :class:`Controller` measures (the first of STATE_NAMES).
+PLANT_STATE_NAMES = ('xa', 'ya', 'tha', 'xb', 'yb', 'thb')
+#: The controller's own states (extension, then padding: the rest of STATE_NAMES).
+CONTROLLER_STATE_NAMES = ('va', 'vb')
 #: A pivot below this fraction of the largest entry makes a matrix singular.
 PIVOT_TOLERANCE = 1e-12
 
@@ -94,6 +98,7 @@ STATUS_NONFINITE_INPUT = 1
 STATUS_SINGULAR_DECOUPLING = 2
 STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
+STATUS_DECREASING_TIME = 5
 
 
 class ControllerError(ArithmeticError):
@@ -552,6 +557,178 @@ def hessian(t, y, params=None):
     """
     return _output_function(_hessian_values, t, y, params)
 
+
+
+#: Integrator chains among the controller states: (first index, length); the last state
+#: of each is driven by its entry of ds (an input of the extended plant, or y_imp^(K)).
+_CHAINS = ((0, 1), (1, 1))
+_DRIVERS = (6, 7,)
+
+
+def _vector(name, value, size):
+    """``value`` as a float array of shape (size,)."""
+    array = numpy.asarray(value)
+    if array.dtype.kind == "c":
+        raise TypeError(f"{name} must be real, got complex values")
+    array = numpy.array(array, dtype=float)
+    if array.shape != (size,):
+        raise ValueError(f"{name} must have shape ({size},), got {array.shape}")
+    return array
+
+
+def _check_measurement(t, x, names):
+    """Raise NonFiniteInputError naming ``t`` or the first entry of ``x`` that is not finite."""
+    if not numpy.isfinite(t):
+        raise NonFiniteInputError(f"t = {t!r} is not finite")
+    bad = ~numpy.isfinite(x)
+    if bad.any():
+        index = int(numpy.argmax(bad))
+        raise NonFiniteInputError(f"{names[index]} = {float(x[index])!r} is not finite", index)
+
+
+class _Controller:
+    """The stateful sampled-data controller: measure ``x``, :meth:`step`, apply ``u``.
+
+    It keeps the controller states ``z`` (``CONTROLLER_STATE_NAMES``: extension and
+    padding states) itself. Each :meth:`step` first advances ``z`` from the last step's
+    time to ``t``, holding the input computed then (``z`` are integrator chains, so the
+    update is exact), then evaluates the law at ``(t, [x; z])``.
+
+    Parameters
+    ----------
+    x0 : array_like, shape (6,)
+        Plant state at ``t0`` in ``PLANT_STATE_NAMES`` order.
+    t0 : float, optional
+        Start time (default 0).
+    z0 : array_like, shape (2,), optional
+        Controller states at ``t0`` (default: those of ``DEFAULT_STATE``).
+    params : mapping, optional
+        Parameter overrides by name, kept for every step.
+
+    Raises
+    ------
+    ControllerError
+        When the law is undefined at ``(t0, [x0; z0])``.
+    """
+
+    def __init__(self, x0, t0=0.0, z0=None, params=None):
+        self.reset(x0, t0, z0, params)
+
+    def reset(self, x0, t0=0.0, z0=None, params=None):
+        """Start again from ``x0`` at ``t0`` (arguments as for the constructor)."""
+        t0 = _time(t0)
+        x = _vector("x0", x0, 6)
+        if z0 is None:
+            z = numpy.array(DEFAULT_STATE[6:], dtype=float)
+        else:
+            z = _vector("z0", z0, 2)
+        p = _parameters(params)
+        _check_measurement(t0, x, PLANT_STATE_NAMES)
+        _check_measurement(t0, z, CONTROLLER_STATE_NAMES)
+        if not numpy.all(numpy.isfinite(p)):
+            raise NonFiniteInputError("a parameter is not finite")
+        self._begin(t0, x, z, p)
+
+    def step(self, t, x):
+        """The plant input at time ``t`` for the measured plant state ``x``.
+
+        Parameters
+        ----------
+        t : float
+            Time of the measurement; not before the last step's.
+        x : array_like, shape (6,)
+            Plant state in ``PLANT_STATE_NAMES`` order.
+
+        Returns
+        -------
+        numpy.ndarray, shape (4,)
+            Plant input in ``INPUT_NAMES`` order, to hold until the next step.
+
+        Raises
+        ------
+        ValueError
+            When ``t`` is before the last step's time, or ``x`` has the wrong shape.
+        ControllerError
+            ``NonFiniteInputError`` for a measurement or time that is not finite, or
+            where the law is undefined; the controller is then unchanged.
+        """
+        t = _time(t)
+        x = _vector("x", x, 6)
+        _check_measurement(t, x, PLANT_STATE_NAMES)
+        if t < self.t:
+            raise ValueError(
+                f"t = {t!r} is before the last step's time {self.t!r}: time must not decrease"
+            )
+        return self._move(t, x)
+
+    @property
+    def t(self):
+        """Time of the last step (or of the start)."""
+        return self._t
+
+    @property
+    def state(self):
+        """A copy of the controller states ``z``, in ``CONTROLLER_STATE_NAMES`` order."""
+        return numpy.array(self._z, dtype=float)
+
+    @property
+    def u(self):
+        """A copy of the plant input of the last step (or of the start)."""
+        return numpy.array(self._u, dtype=float)
+
+    def __repr__(self):
+        return f"<two_unicycles_barrier Controller ({BACKEND}) at t = {self.t!r}>"
+
+
+
+_LIB.two_unicycles_barrier_controller_size.restype = ctypes.c_size_t
+_CONTROLLER_SIZE = _LIB.two_unicycles_barrier_controller_size()
+_INIT = _LIB.two_unicycles_barrier_controller_init
+_INIT.argtypes = (ctypes.c_void_p, ctypes.c_double, ctypes.c_void_p, ctypes.c_void_p,
+                  ctypes.c_void_p)
+_INIT.restype = ctypes.c_int
+_STEP = _LIB.two_unicycles_barrier_controller_step
+_STEP.argtypes = (ctypes.c_void_p, ctypes.c_double, ctypes.c_void_p, ctypes.c_void_p)
+_STEP.restype = ctypes.c_int
+#: Where the fields of two_unicycles_barrier_controller_t start, in doubles (all fields are doubles).
+_Z_AT = 1
+_U_AT = 1 + 2 + 2 + 2
+
+
+class Controller(_Controller):
+    __doc__ = _Controller.__doc__
+
+    def _begin(self, t, x, z, p):
+        memory = numpy.zeros(_CONTROLLER_SIZE // 8 + 1)  # doubles: 8-byte aligned
+        params = numpy.ascontiguousarray(p, dtype=float) if len(p) else _P_NONE
+        status = _INIT(_address(memory), t, _address(x), _address(z), _address(params))
+        if status != STATUS_OK:
+            self._fail(status, t, numpy.concatenate([x, z]), p)
+        self._memory, self._out = memory, numpy.empty(4)
+
+    def _move(self, t, x):
+        status = _STEP(_address(self._memory), t, _address(x), _address(self._out))
+        if status != STATUS_OK:
+            self._fail(status, t, x, self._memory)
+        return self._out.copy()
+
+    @staticmethod
+    def _fail(status, t, x, p):
+        if status == STATUS_NONFINITE_INPUT:
+            raise NonFiniteInputError("a parameter is not finite")
+        _raise(status, 0, "rhs", t, x, p)
+
+    @property
+    def _t(self):
+        return float(self._memory[0])
+
+    @property
+    def _z(self):
+        return self._memory[_Z_AT:_Z_AT + 2]
+
+    @property
+    def _u(self):
+        return self._memory[_U_AT:_U_AT + 4]
 
 
 def _direct(kind, general, name):

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_ring
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: e207957dd4f81bee0c3b831e8fa259848e2f2e58f0ec05158dcd4477ca71cfac
+ * content sha256: ba7b7e7d9d50bf820675e726c7c2b729e37983da59585047719523742aac23d1
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical
@@ -35,6 +35,8 @@ const char *const unicycle_ring_param_names[UNICYCLE_RING_N_PARAMS] = {"alpha", 
 const double unicycle_ring_default_params[UNICYCLE_RING_N_PARAMS] = {0.001, 40.0, 2.0, 0.1};
 #define UNICYCLE_RING_DEFAULT_PARAMS unicycle_ring_default_params
 const double unicycle_ring_default_state[UNICYCLE_RING_N_STATES] = {1.5, -1.0, 0.0, -1.0, 1.5, 0.0, -3.5, -1.0, 0.0, -1.0, -3.5, 0.0, 1.0, 1.0, 1.0, 1.0};
+const char *const unicycle_ring_plant_state_names[UNICYCLE_RING_N_PLANT_STATES] = {"x_0", "y_0", "theta_0", "x_1", "y_1", "theta_1", "x_2", "y_2", "theta_2", "x_3", "y_3", "theta_3"};
+const char *const unicycle_ring_controller_state_names[UNICYCLE_RING_N_CONTROLLER_STATES] = {"v_0", "v_1", "v_2", "v_3"};
 const double unicycle_ring_hurwitz_coefficients[UNICYCLE_RING_K] = {-1.5, -2.5};
 
 /* The jet's terms of time and parameters alone (85 operations, 85 before CSE). */
@@ -1332,6 +1334,109 @@ int unicycle_ring_hessian_batch(size_t count, double t, const double *s, const d
             }
             return status;
         }
+    }
+    return UNICYCLE_RING_OK;
+}
+
+size_t unicycle_ring_controller_size(void)
+{
+    return sizeof(unicycle_ring_controller_t);
+}
+
+/* The controller states h seconds on: each integrator chain c_0' = c_1, ..., c_last' = drive
+ * moves by its Taylor polynomial, exact for a drive held constant. */
+static void unicycle_ring_advance(const unicycle_ring_controller_t *c, double h, double *z)
+{
+    static const int chains[4][2] = {{0, 1}, {1, 1}, {2, 1}, {3, 1}};
+    int chain, j, l;
+    for (chain = 0; chain < 4; ++chain) {
+        const int start = chains[chain][0], length = chains[chain][1];
+        for (j = 0; j < length; ++j) {
+            double term = 1.0, sum = 0.0;
+            for (l = 0; j + l < length; ++l) {
+                sum += c->z[start + j + l] * term;
+                term *= h / (double)(l + 1);
+            }
+            z[start + j] = sum + c->drive[chain] * term;
+        }
+    }
+}
+
+/* The law at (t, [x; z]) into ds and u; on success the controller moves to t. */
+static int unicycle_ring_controller_move(unicycle_ring_controller_t *c, double t, const double *s)
+{
+    double ds[UNICYCLE_RING_N_STATES];
+    double u[UNICYCLE_RING_N_INPUTS];
+    double tau[UNICYCLE_RING_N_TAU];
+    int i, status;
+    unicycle_ring_k_jet_time(t, c->params, unicycle_ring_hurwitz_coefficients, tau);
+    status = unicycle_ring_law(t, s, c->params, tau, ds, u);
+    if (status != UNICYCLE_RING_OK) {
+        return status;
+    }
+    c->t = t;
+    for (i = 0; i < UNICYCLE_RING_N_CONTROLLER_STATES; ++i) {
+        c->z[i] = s[UNICYCLE_RING_N_PLANT_STATES + i];
+    }
+    c->drive[0] = ds[UNICYCLE_RING_N_PLANT_STATES + 0];
+    c->drive[1] = ds[UNICYCLE_RING_N_PLANT_STATES + 1];
+    c->drive[2] = ds[UNICYCLE_RING_N_PLANT_STATES + 2];
+    c->drive[3] = ds[UNICYCLE_RING_N_PLANT_STATES + 3];
+    for (i = 0; i < UNICYCLE_RING_N_INPUTS; ++i) {
+        c->u[i] = u[i];
+    }
+    return UNICYCLE_RING_OK;
+}
+
+int unicycle_ring_controller_init(unicycle_ring_controller_t *c, double t0, const double *x0, const double *z0, const double *params)
+{
+    unicycle_ring_controller_t next;
+    double s[UNICYCLE_RING_N_STATES];
+    int i, status;
+    /* Slots that a controller without states or parameters never reads. */
+    next.z[0] = 0.0;
+    next.drive[0] = 0.0;
+    next.params[0] = 0.0;
+    for (i = 0; i < UNICYCLE_RING_N_PLANT_STATES; ++i) {
+        s[i] = x0[i];
+    }
+    for (i = 0; i < UNICYCLE_RING_N_CONTROLLER_STATES; ++i) {
+        s[UNICYCLE_RING_N_PLANT_STATES + i] = z0 ? z0[i] : unicycle_ring_default_state[UNICYCLE_RING_N_PLANT_STATES + i];
+    }
+    for (i = 0; i < UNICYCLE_RING_N_PARAMS; ++i) {
+        next.params[i] = params ? params[i] : UNICYCLE_RING_DEFAULT_PARAMS[i];
+    }
+    status = unicycle_ring_check_inputs(t0, s, UNICYCLE_RING_N_STATES, next.params);
+    if (status != UNICYCLE_RING_OK) {
+        return status;
+    }
+    status = unicycle_ring_controller_move(&next, t0, s);
+    if (status == UNICYCLE_RING_OK) {
+        *c = next;
+    }
+    return status;
+}
+
+int unicycle_ring_controller_step(unicycle_ring_controller_t *c, double t, const double *x, double *u)
+{
+    double s[UNICYCLE_RING_N_STATES];
+    int i, status = unicycle_ring_check_inputs(t, x, UNICYCLE_RING_N_PLANT_STATES, c->params);
+    if (status != UNICYCLE_RING_OK) {
+        return status;
+    }
+    if (t < c->t) {
+        return UNICYCLE_RING_DECREASING_TIME;
+    }
+    for (i = 0; i < UNICYCLE_RING_N_PLANT_STATES; ++i) {
+        s[i] = x[i];
+    }
+    unicycle_ring_advance(c, t - c->t, s + UNICYCLE_RING_N_PLANT_STATES);
+    status = unicycle_ring_controller_move(c, t, s);
+    if (status != UNICYCLE_RING_OK) {
+        return status;
+    }
+    for (i = 0; i < UNICYCLE_RING_N_INPUTS; ++i) {
+        u[i] = c->u[i];
     }
     return UNICYCLE_RING_OK;
 }

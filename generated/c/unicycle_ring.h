@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_ring
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: 19fdcd98c1ae2c949e9f92618efae23ca8e9c36f4d7efbb47c4528dafb146e47
+ * content sha256: 0ae8f4d28949a076b0c7ac48d2dccda05ba8428a4b5dfbd194d8fc8545998964
  */
 
 /*
@@ -29,6 +29,10 @@ extern "C" {
 #define UNICYCLE_RING_N_OUTPUTS 8
 #define UNICYCLE_RING_N_PARAMS 4
 #define UNICYCLE_RING_K 2
+/* The stateful controller: the plant states x it measures, and its own states z
+ * (extension, then padding: the closed-loop state after the plant's). */
+#define UNICYCLE_RING_N_PLANT_STATES 12
+#define UNICYCLE_RING_N_CONTROLLER_STATES 4
 
 /* Status codes: the Python exceptions' .status. */
 #define UNICYCLE_RING_OK 0
@@ -36,6 +40,7 @@ extern "C" {
 #define UNICYCLE_RING_SINGULAR_DECOUPLING 2
 #define UNICYCLE_RING_HESSIAN_NOT_PD 3
 #define UNICYCLE_RING_NONFINITE_OUTPUT 4
+#define UNICYCLE_RING_DECREASING_TIME 5
 
 int unicycle_ring_n_states(void);
 int unicycle_ring_n_inputs(void);
@@ -48,6 +53,8 @@ extern const char *const unicycle_ring_output_names[UNICYCLE_RING_N_OUTPUTS];
 extern const char *const unicycle_ring_param_names[UNICYCLE_RING_N_PARAMS];
 extern const double unicycle_ring_default_params[UNICYCLE_RING_N_PARAMS];
 extern const double unicycle_ring_default_state[UNICYCLE_RING_N_STATES];
+extern const char *const unicycle_ring_plant_state_names[UNICYCLE_RING_N_PLANT_STATES];
+extern const char *const unicycle_ring_controller_state_names[UNICYCLE_RING_N_CONTROLLER_STATES];
 extern const double unicycle_ring_hurwitz_coefficients[UNICYCLE_RING_K];
 
 /* Plant input u (UNICYCLE_RING_N_INPUTS doubles). */
@@ -69,6 +76,38 @@ int unicycle_ring_optimality_error_batch(size_t count, double t, const double *s
 int unicycle_ring_objective_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int unicycle_ring_gradient_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int unicycle_ring_hessian_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
+
+/*
+ * The stateful sampled-data controller, in memory the caller owns (no heap, no globals).
+ *
+ *   unicycle_ring_controller_t c;
+ *   unicycle_ring_controller_init(&c, t0, x0, NULL, NULL);   z and params: the defaults
+ *   every sample: status = unicycle_ring_controller_step(&c, t, x, u);   then apply u
+ *
+ * x holds the plant states (UNICYCLE_RING_N_PLANT_STATES, order in unicycle_ring_plant_state_names).
+ * A step first advances the controller states z from the last step's time to t, holding
+ * the input computed then (z are integrator chains: the update is exact), then evaluates
+ * the law at (t, [x; z]) and writes u (UNICYCLE_RING_N_INPUTS). A step that fails (a status
+ * other than OK: x or t not finite, t before the last step's time, the law undefined)
+ * leaves the controller as it was. init evaluates the law at (t0, [x0; z0]).
+ */
+typedef struct {
+    /* time of the last step (or of init) */
+    double t;
+    /* controller states z (UNICYCLE_RING_N_CONTROLLER_STATES; at least one slot) */
+    double z[4];
+    /* each integrator chain's top derivative, held since t */
+    double drive[4];
+    /* the parameters the controller runs with */
+    double params[4];
+    /* the plant input of the last step */
+    double u[UNICYCLE_RING_N_INPUTS];
+} unicycle_ring_controller_t;
+
+int unicycle_ring_controller_init(unicycle_ring_controller_t *c, double t0, const double *x0, const double *z0, const double *params);
+int unicycle_ring_controller_step(unicycle_ring_controller_t *c, double t, const double *x, double *u);
+/* sizeof(unicycle_ring_controller_t), for callers that allocate it from another language. */
+size_t unicycle_ring_controller_size(void);
 
 #ifdef __cplusplus
 }

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 4678b3c6ff180a6d1b1c86329dcff8cc900d1ae638a02e1c51e458170d27a95c
+ * content sha256: 5aaf299e23e585e8aeb768a103d93acb1fb1f7dfd28e2a8663cf767e4c9c6347
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -35,6 +35,8 @@ const char *const unicycle_switch_param_names[UNICYCLE_SWITCH_N_PARAMS] = {"a", 
 const double unicycle_switch_default_params[UNICYCLE_SWITCH_N_PARAMS] = {10.0, 1.5};
 #define UNICYCLE_SWITCH_DEFAULT_PARAMS unicycle_switch_default_params
 const double unicycle_switch_default_state[UNICYCLE_SWITCH_N_STATES] = {-5.0, 4.0, 0.0, 1.0};
+const char *const unicycle_switch_plant_state_names[UNICYCLE_SWITCH_N_PLANT_STATES] = {"x1", "x2", "theta"};
+const char *const unicycle_switch_controller_state_names[UNICYCLE_SWITCH_N_CONTROLLER_STATES] = {"v"};
 const double unicycle_switch_hurwitz_coefficients[UNICYCLE_SWITCH_K] = {-1.5, -2.5};
 
 /* The jet's terms of time and parameters alone (117 operations, 117 before CSE). */
@@ -521,6 +523,106 @@ int unicycle_switch_hessian_batch(size_t count, double t, const double *s, const
             }
             return status;
         }
+    }
+    return UNICYCLE_SWITCH_OK;
+}
+
+size_t unicycle_switch_controller_size(void)
+{
+    return sizeof(unicycle_switch_controller_t);
+}
+
+/* The controller states h seconds on: each integrator chain c_0' = c_1, ..., c_last' = drive
+ * moves by its Taylor polynomial, exact for a drive held constant. */
+static void unicycle_switch_advance(const unicycle_switch_controller_t *c, double h, double *z)
+{
+    static const int chains[1][2] = {{0, 1}};
+    int chain, j, l;
+    for (chain = 0; chain < 1; ++chain) {
+        const int start = chains[chain][0], length = chains[chain][1];
+        for (j = 0; j < length; ++j) {
+            double term = 1.0, sum = 0.0;
+            for (l = 0; j + l < length; ++l) {
+                sum += c->z[start + j + l] * term;
+                term *= h / (double)(l + 1);
+            }
+            z[start + j] = sum + c->drive[chain] * term;
+        }
+    }
+}
+
+/* The law at (t, [x; z]) into ds and u; on success the controller moves to t. */
+static int unicycle_switch_controller_move(unicycle_switch_controller_t *c, double t, const double *s)
+{
+    double ds[UNICYCLE_SWITCH_N_STATES];
+    double u[UNICYCLE_SWITCH_N_INPUTS];
+    double tau[UNICYCLE_SWITCH_N_TAU];
+    int i, status;
+    unicycle_switch_k_jet_time(t, c->params, unicycle_switch_hurwitz_coefficients, tau);
+    status = unicycle_switch_law(t, s, c->params, tau, ds, u);
+    if (status != UNICYCLE_SWITCH_OK) {
+        return status;
+    }
+    c->t = t;
+    for (i = 0; i < UNICYCLE_SWITCH_N_CONTROLLER_STATES; ++i) {
+        c->z[i] = s[UNICYCLE_SWITCH_N_PLANT_STATES + i];
+    }
+    c->drive[0] = ds[UNICYCLE_SWITCH_N_PLANT_STATES + 0];
+    for (i = 0; i < UNICYCLE_SWITCH_N_INPUTS; ++i) {
+        c->u[i] = u[i];
+    }
+    return UNICYCLE_SWITCH_OK;
+}
+
+int unicycle_switch_controller_init(unicycle_switch_controller_t *c, double t0, const double *x0, const double *z0, const double *params)
+{
+    unicycle_switch_controller_t next;
+    double s[UNICYCLE_SWITCH_N_STATES];
+    int i, status;
+    /* Slots that a controller without states or parameters never reads. */
+    next.z[0] = 0.0;
+    next.drive[0] = 0.0;
+    next.params[0] = 0.0;
+    for (i = 0; i < UNICYCLE_SWITCH_N_PLANT_STATES; ++i) {
+        s[i] = x0[i];
+    }
+    for (i = 0; i < UNICYCLE_SWITCH_N_CONTROLLER_STATES; ++i) {
+        s[UNICYCLE_SWITCH_N_PLANT_STATES + i] = z0 ? z0[i] : unicycle_switch_default_state[UNICYCLE_SWITCH_N_PLANT_STATES + i];
+    }
+    for (i = 0; i < UNICYCLE_SWITCH_N_PARAMS; ++i) {
+        next.params[i] = params ? params[i] : UNICYCLE_SWITCH_DEFAULT_PARAMS[i];
+    }
+    status = unicycle_switch_check_inputs(t0, s, UNICYCLE_SWITCH_N_STATES, next.params);
+    if (status != UNICYCLE_SWITCH_OK) {
+        return status;
+    }
+    status = unicycle_switch_controller_move(&next, t0, s);
+    if (status == UNICYCLE_SWITCH_OK) {
+        *c = next;
+    }
+    return status;
+}
+
+int unicycle_switch_controller_step(unicycle_switch_controller_t *c, double t, const double *x, double *u)
+{
+    double s[UNICYCLE_SWITCH_N_STATES];
+    int i, status = unicycle_switch_check_inputs(t, x, UNICYCLE_SWITCH_N_PLANT_STATES, c->params);
+    if (status != UNICYCLE_SWITCH_OK) {
+        return status;
+    }
+    if (t < c->t) {
+        return UNICYCLE_SWITCH_DECREASING_TIME;
+    }
+    for (i = 0; i < UNICYCLE_SWITCH_N_PLANT_STATES; ++i) {
+        s[i] = x[i];
+    }
+    unicycle_switch_advance(c, t - c->t, s + UNICYCLE_SWITCH_N_PLANT_STATES);
+    status = unicycle_switch_controller_move(c, t, s);
+    if (status != UNICYCLE_SWITCH_OK) {
+        return status;
+    }
+    for (i = 0; i < UNICYCLE_SWITCH_N_INPUTS; ++i) {
+        u[i] = c->u[i];
     }
     return UNICYCLE_SWITCH_OK;
 }

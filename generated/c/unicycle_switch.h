@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 9cb277cfeb206d3394b34fabdceb017e2f2f95dc9983e6b90523ee770914566c
+ * content sha256: 59460de0581048534958e2e81a9550820b1be6ad471806403046159dde6263d7
  */
 
 /*
@@ -29,6 +29,10 @@ extern "C" {
 #define UNICYCLE_SWITCH_N_OUTPUTS 2
 #define UNICYCLE_SWITCH_N_PARAMS 2
 #define UNICYCLE_SWITCH_K 2
+/* The stateful controller: the plant states x it measures, and its own states z
+ * (extension, then padding: the closed-loop state after the plant's). */
+#define UNICYCLE_SWITCH_N_PLANT_STATES 3
+#define UNICYCLE_SWITCH_N_CONTROLLER_STATES 1
 
 /* Status codes: the Python exceptions' .status. */
 #define UNICYCLE_SWITCH_OK 0
@@ -36,6 +40,7 @@ extern "C" {
 #define UNICYCLE_SWITCH_SINGULAR_DECOUPLING 2
 #define UNICYCLE_SWITCH_HESSIAN_NOT_PD 3
 #define UNICYCLE_SWITCH_NONFINITE_OUTPUT 4
+#define UNICYCLE_SWITCH_DECREASING_TIME 5
 
 int unicycle_switch_n_states(void);
 int unicycle_switch_n_inputs(void);
@@ -48,6 +53,8 @@ extern const char *const unicycle_switch_output_names[UNICYCLE_SWITCH_N_OUTPUTS]
 extern const char *const unicycle_switch_param_names[UNICYCLE_SWITCH_N_PARAMS];
 extern const double unicycle_switch_default_params[UNICYCLE_SWITCH_N_PARAMS];
 extern const double unicycle_switch_default_state[UNICYCLE_SWITCH_N_STATES];
+extern const char *const unicycle_switch_plant_state_names[UNICYCLE_SWITCH_N_PLANT_STATES];
+extern const char *const unicycle_switch_controller_state_names[UNICYCLE_SWITCH_N_CONTROLLER_STATES];
 extern const double unicycle_switch_hurwitz_coefficients[UNICYCLE_SWITCH_K];
 
 /* Plant input u (UNICYCLE_SWITCH_N_INPUTS doubles). */
@@ -69,6 +76,38 @@ int unicycle_switch_optimality_error_batch(size_t count, double t, const double 
 int unicycle_switch_objective_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int unicycle_switch_gradient_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int unicycle_switch_hessian_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
+
+/*
+ * The stateful sampled-data controller, in memory the caller owns (no heap, no globals).
+ *
+ *   unicycle_switch_controller_t c;
+ *   unicycle_switch_controller_init(&c, t0, x0, NULL, NULL);   z and params: the defaults
+ *   every sample: status = unicycle_switch_controller_step(&c, t, x, u);   then apply u
+ *
+ * x holds the plant states (UNICYCLE_SWITCH_N_PLANT_STATES, order in unicycle_switch_plant_state_names).
+ * A step first advances the controller states z from the last step's time to t, holding
+ * the input computed then (z are integrator chains: the update is exact), then evaluates
+ * the law at (t, [x; z]) and writes u (UNICYCLE_SWITCH_N_INPUTS). A step that fails (a status
+ * other than OK: x or t not finite, t before the last step's time, the law undefined)
+ * leaves the controller as it was. init evaluates the law at (t0, [x0; z0]).
+ */
+typedef struct {
+    /* time of the last step (or of init) */
+    double t;
+    /* controller states z (UNICYCLE_SWITCH_N_CONTROLLER_STATES; at least one slot) */
+    double z[1];
+    /* each integrator chain's top derivative, held since t */
+    double drive[1];
+    /* the parameters the controller runs with */
+    double params[2];
+    /* the plant input of the last step */
+    double u[UNICYCLE_SWITCH_N_INPUTS];
+} unicycle_switch_controller_t;
+
+int unicycle_switch_controller_init(unicycle_switch_controller_t *c, double t0, const double *x0, const double *z0, const double *params);
+int unicycle_switch_controller_step(unicycle_switch_controller_t *c, double t, const double *x, double *u);
+/* sizeof(unicycle_switch_controller_t), for callers that allocate it from another language. */
+size_t unicycle_switch_controller_size(void);
 
 #ifdef __cplusplus
 }
