@@ -167,6 +167,26 @@ int main(void)
         if ((now() - t0) / calls < best_casadi) best_casadi = (now() - t0) / calls;
     }}
     printf("loop %.6e %.6e\n", best_ours, best_casadi);
+    {{
+        /* The stateful controller's step against a control call, taking turns likewise;
+           x is the plant part of s, and time moves on by 1 us per step. */
+        {name}_controller_t c;
+        double best_step = 1e9, best_control = 1e9, t_step = 0.0;
+        {name}_controller_init(&c, 0.0, s, NULL, p);
+        for (rep = 0; rep < REPEATS; ++rep) {{
+            t0 = now();
+            for (i = 0; i < calls; ++i) {{
+                t_step += 1e-6;
+                {name}_controller_step(&c, t_step, s, u);
+                acc += u[0];
+            }}
+            if ((now() - t0) / calls < best_step) best_step = (now() - t0) / calls;
+            t0 = now();
+            for (i = 0; i < calls; ++i) {{ {name}_control(1e-6 * i, s, p, u); acc += u[0]; }}
+            if ((now() - t0) / calls < best_control) best_control = (now() - t0) / calls;
+        }}
+        printf("step %.6e %.6e\n", best_step, best_control);
+    }}
     for (i = 0; i < B; ++i) {{
         long j;
         for (j = 0; j < NS; ++j) S[i * NS + j] = {name}_default_state[j] + 1e-6 * (double)(i % 97);
@@ -245,6 +265,7 @@ def bench(name: str, folder: Path) -> dict[str, float]:
     # its own cache and branch-predictor aliasing, which moved one side by 10% in single
     # runs. Each figure is the best over the processes.
     loop_ours = loop_casadi = batch_ours = batch_casadi = math.inf
+    step_ours = step_control = math.inf
     for _ in range(HARNESS_RUNS):
         lines = dict(
             line.split(" ", 1)
@@ -256,6 +277,8 @@ def bench(name: str, folder: Path) -> dict[str, float]:
         batch = [float(v) for v in lines["batch"].split()]
         loop_ours, loop_casadi = min(loop_ours, loop[0]), min(loop_casadi, loop[1])
         batch_ours, batch_casadi = min(batch_ours, batch[0]), min(batch_casadi, batch[1])
+        step = [float(v) for v in lines["step"].split()]
+        step_ours, step_control = min(step_ours, step[0]), min(step_control, step[1])
 
     # From Python: our compiled module, a bare cffi call of the same C, CasADi Function.
     os.environ.setdefault("TVOPT_CODEGEN_CACHE", str(folder / "cache"))
@@ -301,6 +324,8 @@ def bench(name: str, folder: Path) -> dict[str, float]:
     return {
         "loop_ours": loop_ours,
         "loop_casadi": loop_casadi,
+        "step_ours": step_ours,
+        "step_control": step_control,
         "batch_ours": batch_ours,
         "batch_casadi": batch_casadi,
         "call_ours": call_ours,
@@ -411,6 +436,13 @@ def table(results: dict[str, dict[str, float]]) -> str:
     rows = [
         ("C loop, ns per `control`", "loop_ours", "loop_casadi", 1e9, "<= 1.0"),
         ("C batch of 100k, ns per state", "batch_ours", "batch_casadi", 1e9, "<= 1.0"),
+        (
+            "C controller step vs our `control` call, ns",
+            "step_ours",
+            "step_control",
+            1e9,
+            "<= 1.3",
+        ),
         ("Python call, us (ours vs bare cffi)", "call_ours", "call_cffi", us, "<= 2.0"),
         ("Python call, us (ours vs CasADi Function)", "call_ours", "call_casadi", us, "<= 0.05"),
         (
