@@ -14,7 +14,7 @@ all: test
 $(INSTALLED): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip install --quiet -e '.[dev,all]'
 	touch $(INSTALLED)
 
 ## demo: generate the bundled unicycle example into build/demo, simulate it, check the theorem

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 4fe233ffe5d6df42aedef7c41360f01578edab4a28d1f51103fe2f0c56d0e660
+# content sha256: f2756cfbebb51aa2c07af51d2356017be98b9f4e1adfbb85a4795044324de6cf
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -544,6 +544,41 @@ def _hessian(t, y, p):
     return hess
 
 
+def _plant(t, x, u, p):
+    """The plant alone: x' = f(x) + G(x) u (kernel; 14 operations, 16 before CSE)."""
+    _n = x.shape[1]
+    _x0 = x[0]  # q1
+    _x1 = x[1]  # w1
+    _x2 = x[2]  # q2
+    _x3 = x[3]  # w2
+    _u0 = u[0]  # u
+    _p0 = p[0]  # mgl
+    _p1 = p[1]  # inertia
+    _p2 = p[2]  # motor
+    _p3 = p[3]  # stiffness
+    # Intermediate terms (3)
+    _t0 = 1/_p1
+    _t1 = _p3*(_x0 - _x2)
+    _t2 = 1/_p2
+    # Output terms
+    dx = numpy.empty((4, _n))  # time derivative of the plant state
+    dx[0] = _x1
+    dx[1] = -_t0*_t1 - _p0*_t0*numpy.sin(_x0)
+    dx[2] = _x3
+    dx[3] = _t1*_t2 + _t2*_u0
+    return dx
+
+
+def _outputs(t, x, p):
+    """The outputs y = h(x) (kernel; 0 operations, 0 before CSE)."""
+    _n = x.shape[1]
+    _x0 = x[0]  # q1
+    # Output terms
+    y = numpy.empty((1, _n))  # outputs
+    y[0] = _x0
+    return y
+
+
 def _jet_time_1(t, p, a):
     """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
     _p0, _p1, _p2, _p3 = p
@@ -976,6 +1011,20 @@ _A_LIST = list(HURWITZ_COEFFICIENTS)
 _P_LIST = _DEFAULT_P.tolist()
 
 
+def _plant_values(t, x, u, p):
+    with numpy.errstate(all="ignore"):
+        dx = _plant(t, x, u, p)
+    _check_finite("the plant's vector field", dx)
+    return dx
+
+
+def _outputs_values(t, x, p):
+    with numpy.errstate(all="ignore"):
+        y = _outputs(t, x, p)
+    _check_finite("the outputs", y)
+    return y
+
+
 def control(t, s, params=None):
     """Plant input u of the implicit trajectory planning law.
 
@@ -1108,6 +1157,76 @@ def gradient(t, y, params=None):
     numpy.ndarray, shape (1,) or (1, N)
     """
     return _output_function(_gradient_values, t, y, params)
+
+
+def _plant_arguments(t, x, params, u=None):
+    t = _time(t)
+    states, single = _columns("x", x, 4)
+    p = _parameters(params)
+    if not numpy.isfinite(t):
+        raise NonFiniteInputError(f"t = {t!r} is not finite")
+    arrays = [("plant state", states)]
+    if u is not None:
+        inputs, _ = _columns("u", u, 1)
+        if inputs.shape[1] != states.shape[1]:
+            raise ValueError(
+                f"x and u must have as many columns, got {states.shape[1]} and {inputs.shape[1]}")
+        arrays.append(("input", inputs))
+    for what, array in arrays:
+        bad = ~numpy.all(numpy.isfinite(array), axis=0)
+        if bad.any():
+            index = int(numpy.argmax(bad))
+            raise NonFiniteInputError(f"the {what} is not finite (column {index})", index)
+    if not numpy.all(numpy.isfinite(p)):
+        raise NonFiniteInputError("a parameter is not finite")
+    return t, [a for _, a in arrays], p, single
+
+
+def plant(t, x, u, params=None):
+    """The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller.
+
+    The true plant of a sampled-data loop (the input held between samples) and of
+    :func:`tvopt_codegen.interop.plant_nlsys`.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    x : array_like, shape (4,) or (4, N)
+        Plant state in ``PLANT_STATE_NAMES`` order.
+    u : array_like, shape (1,) or (1, N)
+        Plant input in ``INPUT_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name.
+
+    Returns
+    -------
+    numpy.ndarray, same shape as ``x``
+    """
+    t, (states, inputs), p, single = _plant_arguments(t, x, params, u)
+    dx = _plant_values(t, states, inputs, p)
+    return dx[:, 0] if single else dx
+
+
+def outputs(t, x, params=None):
+    """The outputs ``y = h(x)`` of the plant state.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    x : array_like, shape (4,) or (4, N)
+        Plant state in ``PLANT_STATE_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name.
+
+    Returns
+    -------
+    numpy.ndarray, shape (1,) or (1, N)
+    """
+    t, (states,), p, single = _plant_arguments(t, x, params)
+    y = _outputs_values(t, states, p)
+    return y[:, 0] if single else y
 
 
 def hessian(t, y, params=None):

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: a08f64a895c0218038606c655fafb5b3841d5b94ac41786c4eab64572bbcc538
+# content sha256: 09897dddc95b8f4bb067b40eea871179da28544086416b82328d13845526e03c
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -433,6 +433,30 @@ def _hessian(t, y, p):
     return hess
 
 
+def _plant(t, x, u, p):
+    """The plant alone: x' = f(x) + G(x) u (kernel; 0 operations, 0 before CSE)."""
+    _n = x.shape[1]
+    _u0 = u[0]  # u1
+    _u1 = u[1]  # u2
+    # Output terms
+    dx = numpy.empty((2, _n))  # time derivative of the plant state
+    dx[0] = _u0
+    dx[1] = _u1
+    return dx
+
+
+def _outputs(t, x, p):
+    """The outputs y = h(x) (kernel; 0 operations, 0 before CSE)."""
+    _n = x.shape[1]
+    _x0 = x[0]  # x1
+    _x1 = x[1]  # x2
+    # Output terms
+    y = numpy.empty((2, _n))  # outputs
+    y[0] = _x0
+    y[1] = _x1
+    return y
+
+
 def _jet_time_1(t, p, a):
     """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
     _p0, = p
@@ -788,6 +812,20 @@ _A_LIST = list(HURWITZ_COEFFICIENTS)
 _P_LIST = _DEFAULT_P.tolist()
 
 
+def _plant_values(t, x, u, p):
+    with numpy.errstate(all="ignore"):
+        dx = _plant(t, x, u, p)
+    _check_finite("the plant's vector field", dx)
+    return dx
+
+
+def _outputs_values(t, x, p):
+    with numpy.errstate(all="ignore"):
+        y = _outputs(t, x, p)
+    _check_finite("the outputs", y)
+    return y
+
+
 def control(t, s, params=None):
     """Plant input u of the implicit trajectory planning law.
 
@@ -920,6 +958,76 @@ def gradient(t, y, params=None):
     numpy.ndarray, shape (2,) or (2, N)
     """
     return _output_function(_gradient_values, t, y, params)
+
+
+def _plant_arguments(t, x, params, u=None):
+    t = _time(t)
+    states, single = _columns("x", x, 2)
+    p = _parameters(params)
+    if not numpy.isfinite(t):
+        raise NonFiniteInputError(f"t = {t!r} is not finite")
+    arrays = [("plant state", states)]
+    if u is not None:
+        inputs, _ = _columns("u", u, 2)
+        if inputs.shape[1] != states.shape[1]:
+            raise ValueError(
+                f"x and u must have as many columns, got {states.shape[1]} and {inputs.shape[1]}")
+        arrays.append(("input", inputs))
+    for what, array in arrays:
+        bad = ~numpy.all(numpy.isfinite(array), axis=0)
+        if bad.any():
+            index = int(numpy.argmax(bad))
+            raise NonFiniteInputError(f"the {what} is not finite (column {index})", index)
+    if not numpy.all(numpy.isfinite(p)):
+        raise NonFiniteInputError("a parameter is not finite")
+    return t, [a for _, a in arrays], p, single
+
+
+def plant(t, x, u, params=None):
+    """The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller.
+
+    The true plant of a sampled-data loop (the input held between samples) and of
+    :func:`tvopt_codegen.interop.plant_nlsys`.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    x : array_like, shape (2,) or (2, N)
+        Plant state in ``PLANT_STATE_NAMES`` order.
+    u : array_like, shape (2,) or (2, N)
+        Plant input in ``INPUT_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name.
+
+    Returns
+    -------
+    numpy.ndarray, same shape as ``x``
+    """
+    t, (states, inputs), p, single = _plant_arguments(t, x, params, u)
+    dx = _plant_values(t, states, inputs, p)
+    return dx[:, 0] if single else dx
+
+
+def outputs(t, x, params=None):
+    """The outputs ``y = h(x)`` of the plant state.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    x : array_like, shape (2,) or (2, N)
+        Plant state in ``PLANT_STATE_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name.
+
+    Returns
+    -------
+    numpy.ndarray, shape (2,) or (2, N)
+    """
+    t, (states,), p, single = _plant_arguments(t, x, params)
+    y = _outputs_values(t, states, p)
+    return y[:, 0] if single else y
 
 
 def hessian(t, y, params=None):

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 39c9a57a9c71168aca9039fb8d9acc9ea13568a0a3d018bd29c18743f570b06a
+# content sha256: 3d1bad14df1ec86c5e01af6ddd6a7740834b726c5ec934ea5a6a040b38aed7fd
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -700,6 +700,42 @@ def _hessian(t, y, p):
     return hess
 
 
+def _plant(t, x, u, p):
+    """The plant alone: x' = f(x) + G(x) u (kernel; 8 operations, 8 before CSE)."""
+    _n = x.shape[1]
+    _x2 = x[2]  # tha
+    _x5 = x[5]  # thb
+    _u0 = u[0]  # va
+    _u1 = u[1]  # wa
+    _u2 = u[2]  # vb
+    _u3 = u[3]  # wb
+    # Output terms
+    dx = numpy.empty((6, _n))  # time derivative of the plant state
+    dx[0] = _u0*numpy.cos(_x2)
+    dx[1] = _u0*numpy.sin(_x2)
+    dx[2] = _u1
+    dx[3] = _u2*numpy.cos(_x5)
+    dx[4] = _u2*numpy.sin(_x5)
+    dx[5] = _u3
+    return dx
+
+
+def _outputs(t, x, p):
+    """The outputs y = h(x) (kernel; 0 operations, 0 before CSE)."""
+    _n = x.shape[1]
+    _x0 = x[0]  # xa
+    _x1 = x[1]  # ya
+    _x3 = x[3]  # xb
+    _x4 = x[4]  # yb
+    # Output terms
+    y = numpy.empty((4, _n))  # outputs
+    y[0] = _x0
+    y[1] = _x1
+    y[2] = _x3
+    y[3] = _x4
+    return y
+
+
 def _jet_time_1(t, p, a):
     """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
     _p0, _p1 = p
@@ -1278,6 +1314,20 @@ _A_LIST = list(HURWITZ_COEFFICIENTS)
 _P_LIST = _DEFAULT_P.tolist()
 
 
+def _plant_values(t, x, u, p):
+    with numpy.errstate(all="ignore"):
+        dx = _plant(t, x, u, p)
+    _check_finite("the plant's vector field", dx)
+    return dx
+
+
+def _outputs_values(t, x, p):
+    with numpy.errstate(all="ignore"):
+        y = _outputs(t, x, p)
+    _check_finite("the outputs", y)
+    return y
+
+
 def control(t, s, params=None):
     """Plant input u of the implicit trajectory planning law.
 
@@ -1410,6 +1460,76 @@ def gradient(t, y, params=None):
     numpy.ndarray, shape (4,) or (4, N)
     """
     return _output_function(_gradient_values, t, y, params)
+
+
+def _plant_arguments(t, x, params, u=None):
+    t = _time(t)
+    states, single = _columns("x", x, 6)
+    p = _parameters(params)
+    if not numpy.isfinite(t):
+        raise NonFiniteInputError(f"t = {t!r} is not finite")
+    arrays = [("plant state", states)]
+    if u is not None:
+        inputs, _ = _columns("u", u, 4)
+        if inputs.shape[1] != states.shape[1]:
+            raise ValueError(
+                f"x and u must have as many columns, got {states.shape[1]} and {inputs.shape[1]}")
+        arrays.append(("input", inputs))
+    for what, array in arrays:
+        bad = ~numpy.all(numpy.isfinite(array), axis=0)
+        if bad.any():
+            index = int(numpy.argmax(bad))
+            raise NonFiniteInputError(f"the {what} is not finite (column {index})", index)
+    if not numpy.all(numpy.isfinite(p)):
+        raise NonFiniteInputError("a parameter is not finite")
+    return t, [a for _, a in arrays], p, single
+
+
+def plant(t, x, u, params=None):
+    """The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller.
+
+    The true plant of a sampled-data loop (the input held between samples) and of
+    :func:`tvopt_codegen.interop.plant_nlsys`.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    x : array_like, shape (6,) or (6, N)
+        Plant state in ``PLANT_STATE_NAMES`` order.
+    u : array_like, shape (4,) or (4, N)
+        Plant input in ``INPUT_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name.
+
+    Returns
+    -------
+    numpy.ndarray, same shape as ``x``
+    """
+    t, (states, inputs), p, single = _plant_arguments(t, x, params, u)
+    dx = _plant_values(t, states, inputs, p)
+    return dx[:, 0] if single else dx
+
+
+def outputs(t, x, params=None):
+    """The outputs ``y = h(x)`` of the plant state.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    x : array_like, shape (6,) or (6, N)
+        Plant state in ``PLANT_STATE_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name.
+
+    Returns
+    -------
+    numpy.ndarray, shape (4,) or (4, N)
+    """
+    t, (states,), p, single = _plant_arguments(t, x, params)
+    y = _outputs_values(t, states, p)
+    return y[:, 0] if single else y
 
 
 def hessian(t, y, params=None):

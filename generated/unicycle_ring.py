@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 39e5e4323aa3f56344a4eff710c557a484c894b874ee424315bbae5e61e28d0a
+# content sha256: 112ad7d4341494170e7cd1d34fc6bbf3e03aeced4e91863a9673325d4c7f96f8
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -1269,6 +1269,62 @@ def _hessian(t, y, p):
     return hess
 
 
+def _plant(t, x, u, p):
+    """The plant alone: x' = f(x) + G(x) u (kernel; 16 operations, 16 before CSE)."""
+    _n = x.shape[1]
+    _x2 = x[2]  # theta_0
+    _x5 = x[5]  # theta_1
+    _x8 = x[8]  # theta_2
+    _x11 = x[11]  # theta_3
+    _u0 = u[0]  # v_0
+    _u1 = u[1]  # omega_0
+    _u2 = u[2]  # v_1
+    _u3 = u[3]  # omega_1
+    _u4 = u[4]  # v_2
+    _u5 = u[5]  # omega_2
+    _u6 = u[6]  # v_3
+    _u7 = u[7]  # omega_3
+    # Output terms
+    dx = numpy.empty((12, _n))  # time derivative of the plant state
+    dx[0] = _u0*numpy.cos(_x2)
+    dx[1] = _u0*numpy.sin(_x2)
+    dx[2] = _u1
+    dx[3] = _u2*numpy.cos(_x5)
+    dx[4] = _u2*numpy.sin(_x5)
+    dx[5] = _u3
+    dx[6] = _u4*numpy.cos(_x8)
+    dx[7] = _u4*numpy.sin(_x8)
+    dx[8] = _u5
+    dx[9] = _u6*numpy.cos(_x11)
+    dx[10] = _u6*numpy.sin(_x11)
+    dx[11] = _u7
+    return dx
+
+
+def _outputs(t, x, p):
+    """The outputs y = h(x) (kernel; 0 operations, 0 before CSE)."""
+    _n = x.shape[1]
+    _x0 = x[0]  # x_0
+    _x1 = x[1]  # y_0
+    _x3 = x[3]  # x_1
+    _x4 = x[4]  # y_1
+    _x6 = x[6]  # x_2
+    _x7 = x[7]  # y_2
+    _x9 = x[9]  # x_3
+    _x10 = x[10]  # y_3
+    # Output terms
+    y = numpy.empty((8, _n))  # outputs
+    y[0] = _x0
+    y[1] = _x1
+    y[2] = _x3
+    y[3] = _x4
+    y[4] = _x6
+    y[5] = _x7
+    y[6] = _x9
+    y[7] = _x10
+    return y
+
+
 def _jet_time_1(t, p, a):
     """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
     _p0, _p1, _p2, _p3 = p
@@ -2345,6 +2401,20 @@ _A_LIST = list(HURWITZ_COEFFICIENTS)
 _P_LIST = _DEFAULT_P.tolist()
 
 
+def _plant_values(t, x, u, p):
+    with numpy.errstate(all="ignore"):
+        dx = _plant(t, x, u, p)
+    _check_finite("the plant's vector field", dx)
+    return dx
+
+
+def _outputs_values(t, x, p):
+    with numpy.errstate(all="ignore"):
+        y = _outputs(t, x, p)
+    _check_finite("the outputs", y)
+    return y
+
+
 def control(t, s, params=None):
     """Plant input u of the implicit trajectory planning law.
 
@@ -2477,6 +2547,76 @@ def gradient(t, y, params=None):
     numpy.ndarray, shape (8,) or (8, N)
     """
     return _output_function(_gradient_values, t, y, params)
+
+
+def _plant_arguments(t, x, params, u=None):
+    t = _time(t)
+    states, single = _columns("x", x, 12)
+    p = _parameters(params)
+    if not numpy.isfinite(t):
+        raise NonFiniteInputError(f"t = {t!r} is not finite")
+    arrays = [("plant state", states)]
+    if u is not None:
+        inputs, _ = _columns("u", u, 8)
+        if inputs.shape[1] != states.shape[1]:
+            raise ValueError(
+                f"x and u must have as many columns, got {states.shape[1]} and {inputs.shape[1]}")
+        arrays.append(("input", inputs))
+    for what, array in arrays:
+        bad = ~numpy.all(numpy.isfinite(array), axis=0)
+        if bad.any():
+            index = int(numpy.argmax(bad))
+            raise NonFiniteInputError(f"the {what} is not finite (column {index})", index)
+    if not numpy.all(numpy.isfinite(p)):
+        raise NonFiniteInputError("a parameter is not finite")
+    return t, [a for _, a in arrays], p, single
+
+
+def plant(t, x, u, params=None):
+    """The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller.
+
+    The true plant of a sampled-data loop (the input held between samples) and of
+    :func:`tvopt_codegen.interop.plant_nlsys`.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    x : array_like, shape (12,) or (12, N)
+        Plant state in ``PLANT_STATE_NAMES`` order.
+    u : array_like, shape (8,) or (8, N)
+        Plant input in ``INPUT_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name.
+
+    Returns
+    -------
+    numpy.ndarray, same shape as ``x``
+    """
+    t, (states, inputs), p, single = _plant_arguments(t, x, params, u)
+    dx = _plant_values(t, states, inputs, p)
+    return dx[:, 0] if single else dx
+
+
+def outputs(t, x, params=None):
+    """The outputs ``y = h(x)`` of the plant state.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    x : array_like, shape (12,) or (12, N)
+        Plant state in ``PLANT_STATE_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name.
+
+    Returns
+    -------
+    numpy.ndarray, shape (8,) or (8, N)
+    """
+    t, (states,), p, single = _plant_arguments(t, x, params)
+    y = _outputs_values(t, states, p)
+    return y[:, 0] if single else y
 
 
 def hessian(t, y, params=None):

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 4c9023831ae799184b7de6f2b60c0b4f4a02ba50c98048c3da1ed73822cf3147
+# content sha256: 33dfec7f6e8145bcf9e1cab13ad5f7a1c626f3508b6964cec57c0afc4ab34e86
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -476,6 +476,32 @@ def _hessian(t, y, p):
     return hess
 
 
+def _plant(t, x, u, p):
+    """The plant alone: x' = f(x) + G(x) u (kernel; 4 operations, 4 before CSE)."""
+    _n = x.shape[1]
+    _x2 = x[2]  # theta
+    _u0 = u[0]  # v
+    _u1 = u[1]  # omega
+    # Output terms
+    dx = numpy.empty((3, _n))  # time derivative of the plant state
+    dx[0] = _u0*numpy.cos(_x2)
+    dx[1] = _u0*numpy.sin(_x2)
+    dx[2] = _u1
+    return dx
+
+
+def _outputs(t, x, p):
+    """The outputs y = h(x) (kernel; 0 operations, 0 before CSE)."""
+    _n = x.shape[1]
+    _x0 = x[0]  # x1
+    _x1 = x[1]  # x2
+    # Output terms
+    y = numpy.empty((2, _n))  # outputs
+    y[0] = _x0
+    y[1] = _x1
+    return y
+
+
 def _jet_time_1(t, p, a):
     """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
     _p0, _p1 = p
@@ -868,6 +894,20 @@ _A_LIST = list(HURWITZ_COEFFICIENTS)
 _P_LIST = _DEFAULT_P.tolist()
 
 
+def _plant_values(t, x, u, p):
+    with numpy.errstate(all="ignore"):
+        dx = _plant(t, x, u, p)
+    _check_finite("the plant's vector field", dx)
+    return dx
+
+
+def _outputs_values(t, x, p):
+    with numpy.errstate(all="ignore"):
+        y = _outputs(t, x, p)
+    _check_finite("the outputs", y)
+    return y
+
+
 def control(t, s, params=None):
     """Plant input u of the implicit trajectory planning law.
 
@@ -1000,6 +1040,76 @@ def gradient(t, y, params=None):
     numpy.ndarray, shape (2,) or (2, N)
     """
     return _output_function(_gradient_values, t, y, params)
+
+
+def _plant_arguments(t, x, params, u=None):
+    t = _time(t)
+    states, single = _columns("x", x, 3)
+    p = _parameters(params)
+    if not numpy.isfinite(t):
+        raise NonFiniteInputError(f"t = {t!r} is not finite")
+    arrays = [("plant state", states)]
+    if u is not None:
+        inputs, _ = _columns("u", u, 2)
+        if inputs.shape[1] != states.shape[1]:
+            raise ValueError(
+                f"x and u must have as many columns, got {states.shape[1]} and {inputs.shape[1]}")
+        arrays.append(("input", inputs))
+    for what, array in arrays:
+        bad = ~numpy.all(numpy.isfinite(array), axis=0)
+        if bad.any():
+            index = int(numpy.argmax(bad))
+            raise NonFiniteInputError(f"the {what} is not finite (column {index})", index)
+    if not numpy.all(numpy.isfinite(p)):
+        raise NonFiniteInputError("a parameter is not finite")
+    return t, [a for _, a in arrays], p, single
+
+
+def plant(t, x, u, params=None):
+    """The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller.
+
+    The true plant of a sampled-data loop (the input held between samples) and of
+    :func:`tvopt_codegen.interop.plant_nlsys`.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    x : array_like, shape (3,) or (3, N)
+        Plant state in ``PLANT_STATE_NAMES`` order.
+    u : array_like, shape (2,) or (2, N)
+        Plant input in ``INPUT_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name.
+
+    Returns
+    -------
+    numpy.ndarray, same shape as ``x``
+    """
+    t, (states, inputs), p, single = _plant_arguments(t, x, params, u)
+    dx = _plant_values(t, states, inputs, p)
+    return dx[:, 0] if single else dx
+
+
+def outputs(t, x, params=None):
+    """The outputs ``y = h(x)`` of the plant state.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    x : array_like, shape (3,) or (3, N)
+        Plant state in ``PLANT_STATE_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name.
+
+    Returns
+    -------
+    numpy.ndarray, shape (2,) or (2, N)
+    """
+    t, (states,), p, single = _plant_arguments(t, x, params)
+    y = _outputs_values(t, states, p)
+    return y[:, 0] if single else y
 
 
 def hessian(t, y, params=None):

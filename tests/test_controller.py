@@ -200,3 +200,39 @@ def test_the_c_struct_under_sanitizers(spec: str, tmp_path: Path) -> None:
     assert run.stderr == ""
     t, u0 = map(float, run.stdout.split())
     assert t == pytest.approx(0.1) and math.isfinite(u0)
+
+
+@pytest.mark.parametrize("spec", ALL_SPECS)
+def test_plant_and_outputs_are_the_model(
+    spec: str, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """The generated plant against sympy's own evaluation of f + G u and h."""
+    import sympy as sp
+
+    d = derivation(spec)
+    model = d.model
+    rng = np.random.default_rng(5)
+    defaults = dict(zip(model.params, model.defaults, strict=True))
+    for mod in _both(spec, tmp_path_factory):
+        x = np.array(mod.DEFAULT_STATE[: len(model.x)]) + 0.1 * rng.standard_normal(len(model.x))
+        u = rng.uniform(0.5, 1.5, len(model.u))
+        values = {**dict(zip(model.x, x, strict=True)), **dict(zip(model.u, u, strict=True))}
+        values |= {q: v for q, v in defaults.items()}
+        expected = (model.f + model.G * sp.Matrix(model.u)).xreplace(values)
+        np.testing.assert_allclose(
+            mod.plant(0.3, x, u), np.array(expected, dtype=float).ravel(), rtol=1e-13, atol=1e-14
+        )
+        np.testing.assert_allclose(
+            mod.outputs(0.3, x),
+            np.array(model.h.xreplace(values), dtype=float).ravel(),
+            rtol=1e-13,
+            atol=1e-14,
+        )
+        batch = mod.plant(0.3, np.stack([x, x], 1), np.stack([u, u], 1))
+        np.testing.assert_array_equal(batch[:, 1], mod.plant(0.3, x, u))
+        with pytest.raises(ValueError, match="as many columns"):
+            mod.plant(0.3, np.stack([x, x], 1), u)
+        bad = u.copy()
+        bad[0] = np.nan
+        with pytest.raises(mod.NonFiniteInputError, match=r"the input is not finite \(column 0\)"):
+            mod.plant(0.3, x, bad)

@@ -153,3 +153,7 @@ class BuildError(TvoptError):
     """A generated controller could not be built (no C compiler, or a compiler error)."""
 
     exit_code = EXIT_BUILD
+
+
+class MissingExtraError(BuildError, ImportError):
+    """An optional integration was used without its package: the message says what to install."""

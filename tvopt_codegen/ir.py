@@ -232,6 +232,39 @@ def _objective_kernels(
     return [optimality, objective, gradient, hessian]
 
 
+def _plant_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
+    """The plant alone: ``x' = f(x) + G(x) u`` and ``y = h(x)``, over the plant's state."""
+    model = d.model
+    x_slots, u_slots = _slots("x", len(model.x)), _slots("u", len(model.u))
+    arg_x = Arg("x", x_slots, d.spec.states, "plant state")
+    arg_u = Arg("u", u_slots, d.spec.inputs, "plant input")
+    subs: dict[sp.Symbol, sp.Expr] = dict(zip(model.x, x_slots, strict=True))
+    subs |= dict(zip(model.u, u_slots, strict=True))
+    subs |= dict(zip(model.params, args.p.symbols, strict=True))
+    G = model.G
+    dx = [
+        sp.Add(model.f[i], *(G[i, j] * model.u[j] for j in range(G.shape[1]) if G[i, j] != 0))
+        for i in range(G.shape[0])
+    ]
+    plant = kernel(
+        "plant",
+        "The plant alone: x' = f(x) + G(x) u",
+        [args.t, arg_x, arg_u, args.p],
+        [],
+        [("dx", (len(dx),), dx, "time derivative of the plant state")],
+        subs,
+    )
+    outputs = kernel(
+        "outputs",
+        "The outputs y = h(x)",
+        [args.t, arg_x, args.p],
+        [],
+        [("y", (len(model.h),), list(model.h), "outputs")],
+        subs,
+    )
+    return [plant, outputs]
+
+
 def lower(derivation: Derivation) -> KernelSet:
     """Lower a derivation to the kernels every backend prints, and the plan that runs them.
 
@@ -245,8 +278,9 @@ def lower(derivation: Derivation) -> KernelSet:
     KernelSet
         Kernels ``jet_time`` (unless the jet has no term of time and parameters alone),
         ``jet``, ``cholesky`` (unless the Hessian is constant), ``decoupling``,
-        ``closed_loop``, ``plant_input``, ``optimality``, ``objective``, ``gradient`` and
-        ``hessian``; the execution plan (:mod:`tvopt_codegen.plan`).
+        ``closed_loop``, ``plant_input``, ``optimality``, ``objective``, ``gradient``,
+        ``hessian``, and the plant alone: ``plant`` and ``outputs``; the execution plan
+        (:mod:`tvopt_codegen.plan`).
     """
     d = derivation
     # One memo of odd functions for all kernels, made in this order: the CSE of each
@@ -262,6 +296,7 @@ def lower(derivation: Derivation) -> KernelSet:
     if split is not None:
         jet_time, jet = split
     rest = _input_kernels(d, args, kernel) + _objective_kernels(d, args, programs, kernel)
+    rest += _plant_kernels(d, args, kernel)
     law = d.law
     plan = law_plan(
         n_states=len(d.states),

@@ -180,7 +180,7 @@ def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
         args.append(PrintedArg(arg.name, arg.doc, slots, used_arg, len(arg.symbols)))
     # The argument whose last axis is the batch; none for a kernel of time and
     # parameters alone (jet_time), whose outputs are the same for every state.
-    batch = next((arg.name for arg in kernel.inputs if arg.name in ("s", "y", "h")), "")
+    batch = next((arg.name for arg in kernel.inputs if arg.name in ("s", "y", "h", "x")), "")
     body = tuple((sym.name, printer.doprint(value)) for sym, value in kernel.body)
     outputs = []
     for out in kernel.outputs:

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 47e61effaaa88f2ea9df02f80bc218a7466fc7da29f067b8230c46cac5077f31
+ * content sha256: 0b7c0cba17cf2f92a81762d59d9e13198f46a655aaeb94f0106374041018817e
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -280,6 +280,39 @@ static void flexible_joint_k_hessian(double t, const double *y, const double *p,
     (void)p;
     const double _t0 = (3.0/5.0)*sin((1.0/2.0)*t) - _y0 + (3.0/10.0)*sin((13.0/10.0)*t);
     hess[0] = 3 - (sinh(_t0)*sinh(_t0))/(cosh(_t0)*cosh(_t0));
+}
+
+
+/* The plant alone: x' = f(x) + G(x) u (14 operations, 16 before CSE). */
+static void flexible_joint_k_plant(double t, const double *x, const double *u, const double *p, double *dx)
+{
+    (void)t;
+    const double _x0 = x[0]; /* q1 */
+    const double _x1 = x[1]; /* w1 */
+    const double _x2 = x[2]; /* q2 */
+    const double _x3 = x[3]; /* w2 */
+    const double _u0 = u[0]; /* u */
+    const double _p0 = p[0]; /* mgl */
+    const double _p1 = p[1]; /* inertia */
+    const double _p2 = p[2]; /* motor */
+    const double _p3 = p[3]; /* stiffness */
+    const double _t0 = (1.0/_p1);
+    const double _t1 = _p3*(_x0 - _x2);
+    const double _t2 = (1.0/_p2);
+    dx[0] = _x1;
+    dx[1] = -_t0*_t1 - _p0*_t0*sin(_x0);
+    dx[2] = _x3;
+    dx[3] = _t1*_t2 + _t2*_u0;
+}
+
+
+/* The outputs y = h(x) (0 operations, 0 before CSE). */
+static void flexible_joint_k_outputs(double t, const double *x, const double *p, double *y)
+{
+    (void)t;
+    const double _x0 = x[0]; /* q1 */
+    (void)p;
+    y[0] = _x0;
 }
 
 
@@ -571,6 +604,28 @@ int flexible_joint_hessian_batch(size_t count, double t, const double *s, const 
         }
     }
     return FLEXIBLE_JOINT_OK;
+}
+
+int flexible_joint_plant(double t, const double *x, const double *u, const double *params, double *out)
+{
+    const double *p = params ? params : FLEXIBLE_JOINT_DEFAULT_PARAMS;
+    if (t * 0.0 + flexible_joint_probe(x, FLEXIBLE_JOINT_N_PLANT_STATES) + flexible_joint_probe(u, FLEXIBLE_JOINT_N_INPUTS)
+        + flexible_joint_probe(p, FLEXIBLE_JOINT_N_PARAMS) != 0.0) {
+        return FLEXIBLE_JOINT_NONFINITE_INPUT;
+    }
+    flexible_joint_k_plant(t, x, u, p, out);
+    return flexible_joint_probe(out, FLEXIBLE_JOINT_N_PLANT_STATES) == 0.0 ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
+}
+
+int flexible_joint_outputs(double t, const double *x, const double *params, double *out)
+{
+    const double *p = params ? params : FLEXIBLE_JOINT_DEFAULT_PARAMS;
+    int status = flexible_joint_check_inputs(t, x, FLEXIBLE_JOINT_N_PLANT_STATES, p);
+    if (status != FLEXIBLE_JOINT_OK) {
+        return status;
+    }
+    flexible_joint_k_outputs(t, x, p, out);
+    return flexible_joint_probe(out, FLEXIBLE_JOINT_N_OUTPUTS) == 0.0 ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
 }
 
 size_t flexible_joint_controller_size(void)

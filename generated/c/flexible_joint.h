@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: a1f61e0828d7893c33e1f000ea7a30f853b5a64311d13dac43992f1040437d32
+ * content sha256: 1027b8e0226c700df7546bba8192b7211215802d291e73b26e20f31cdeaacde2
  */
 
 /*
@@ -66,6 +66,11 @@ int flexible_joint_optimality_error(double t, const double *s, const double *par
 int flexible_joint_objective(double t, const double *y, const double *params, double *out);
 int flexible_joint_gradient(double t, const double *y, const double *params, double *out);
 int flexible_joint_hessian(double t, const double *y, const double *params, double *out);
+
+/* The plant alone, as the spec models it: x' = f(x) + G(x) u (FLEXIBLE_JOINT_N_PLANT_STATES
+ * doubles) for plant state x and input u, and the outputs y = h(x) (FLEXIBLE_JOINT_N_OUTPUTS). */
+int flexible_joint_plant(double t, const double *x, const double *u, const double *params, double *out);
+int flexible_joint_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop
  * at the first point that fails and store its index in *failed (when failed is not NULL). */

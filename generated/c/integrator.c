@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 6942f506ce0d514c76539f029799456a3f31967a9e370c36f83fe4ede72d80b6
+ * content sha256: 702d43d9f2278af5637592fd597ebcbe7658e0f38c90e7e38a763d4af8dd0fe8
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -177,6 +177,31 @@ static void integrator_k_hessian(double t, const double *y, const double *p, dou
     hess[1] = 0;
     hess[2] = 0;
     hess[3] = _p0;
+}
+
+
+/* The plant alone: x' = f(x) + G(x) u (0 operations, 0 before CSE). */
+static void integrator_k_plant(double t, const double *x, const double *u, const double *p, double *dx)
+{
+    (void)t;
+    (void)x;
+    const double _u0 = u[0]; /* u1 */
+    const double _u1 = u[1]; /* u2 */
+    (void)p;
+    dx[0] = _u0;
+    dx[1] = _u1;
+}
+
+
+/* The outputs y = h(x) (0 operations, 0 before CSE). */
+static void integrator_k_outputs(double t, const double *x, const double *p, double *y)
+{
+    (void)t;
+    const double _x0 = x[0]; /* x1 */
+    const double _x1 = x[1]; /* x2 */
+    (void)p;
+    y[0] = _x0;
+    y[1] = _x1;
 }
 
 
@@ -473,6 +498,28 @@ int integrator_hessian_batch(size_t count, double t, const double *s, const doub
         }
     }
     return INTEGRATOR_OK;
+}
+
+int integrator_plant(double t, const double *x, const double *u, const double *params, double *out)
+{
+    const double *p = params ? params : INTEGRATOR_DEFAULT_PARAMS;
+    if (t * 0.0 + integrator_probe(x, INTEGRATOR_N_PLANT_STATES) + integrator_probe(u, INTEGRATOR_N_INPUTS)
+        + integrator_probe(p, INTEGRATOR_N_PARAMS) != 0.0) {
+        return INTEGRATOR_NONFINITE_INPUT;
+    }
+    integrator_k_plant(t, x, u, p, out);
+    return integrator_probe(out, INTEGRATOR_N_PLANT_STATES) == 0.0 ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
+}
+
+int integrator_outputs(double t, const double *x, const double *params, double *out)
+{
+    const double *p = params ? params : INTEGRATOR_DEFAULT_PARAMS;
+    int status = integrator_check_inputs(t, x, INTEGRATOR_N_PLANT_STATES, p);
+    if (status != INTEGRATOR_OK) {
+        return status;
+    }
+    integrator_k_outputs(t, x, p, out);
+    return integrator_probe(out, INTEGRATOR_N_OUTPUTS) == 0.0 ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
 }
 
 size_t integrator_controller_size(void)

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 4f764b8e02f0d3c4ffee978d6ff482f7e3bf246efe31ec3a66595509728f14f3
+ * content sha256: 855eedec04c66c9d869d90ef6dc76726ea4f9e9c48f30ec53824390b1f6ff751
  */
 
 /*
@@ -66,6 +66,11 @@ int integrator_optimality_error(double t, const double *s, const double *params,
 int integrator_objective(double t, const double *y, const double *params, double *out);
 int integrator_gradient(double t, const double *y, const double *params, double *out);
 int integrator_hessian(double t, const double *y, const double *params, double *out);
+
+/* The plant alone, as the spec models it: x' = f(x) + G(x) u (INTEGRATOR_N_PLANT_STATES
+ * doubles) for plant state x and input u, and the outputs y = h(x) (INTEGRATOR_N_OUTPUTS). */
+int integrator_plant(double t, const double *x, const double *u, const double *params, double *out);
+int integrator_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop
  * at the first point that fails and store its index in *failed (when failed is not NULL). */

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: pvtol
  * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: 81b5d67c5321a8ee67d03722b59e8da5e145afd53db542d0f6db9d5a1d2e28b8
+ * content sha256: 5ecaa57fe7988bc636393eceb50d80a2f8c70fcccafc926e98d8183d2c50dcca
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -243,6 +243,38 @@ static void pvtol_k_hessian(double t, const double *y, const double *p, double *
     hess[1] = 0;
     hess[2] = 0;
     hess[3] = 2;
+}
+
+
+/* The plant alone: x' = f(x) + G(x) u (6 operations, 6 before CSE). */
+static void pvtol_k_plant(double t, const double *x, const double *u, const double *p, double *dx)
+{
+    (void)t;
+    const double _x2 = x[2]; /* theta */
+    const double _x3 = x[3]; /* vx */
+    const double _x4 = x[4]; /* vz */
+    const double _x5 = x[5]; /* omega */
+    const double _u0 = u[0]; /* thrust */
+    const double _u1 = u[1]; /* torque */
+    const double _p0 = p[0]; /* g */
+    dx[0] = _x3;
+    dx[1] = _x4;
+    dx[2] = _x5;
+    dx[3] = -_u0*sin(_x2);
+    dx[4] = _u0*cos(_x2) - _p0;
+    dx[5] = _u1;
+}
+
+
+/* The outputs y = h(x) (0 operations, 0 before CSE). */
+static void pvtol_k_outputs(double t, const double *x, const double *p, double *y)
+{
+    (void)t;
+    const double _x0 = x[0]; /* x */
+    const double _x1 = x[1]; /* z */
+    (void)p;
+    y[0] = _x0;
+    y[1] = _x1;
 }
 
 
@@ -536,6 +568,28 @@ int pvtol_hessian_batch(size_t count, double t, const double *s, const double *p
         }
     }
     return PVTOL_OK;
+}
+
+int pvtol_plant(double t, const double *x, const double *u, const double *params, double *out)
+{
+    const double *p = params ? params : PVTOL_DEFAULT_PARAMS;
+    if (t * 0.0 + pvtol_probe(x, PVTOL_N_PLANT_STATES) + pvtol_probe(u, PVTOL_N_INPUTS)
+        + pvtol_probe(p, PVTOL_N_PARAMS) != 0.0) {
+        return PVTOL_NONFINITE_INPUT;
+    }
+    pvtol_k_plant(t, x, u, p, out);
+    return pvtol_probe(out, PVTOL_N_PLANT_STATES) == 0.0 ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
+}
+
+int pvtol_outputs(double t, const double *x, const double *params, double *out)
+{
+    const double *p = params ? params : PVTOL_DEFAULT_PARAMS;
+    int status = pvtol_check_inputs(t, x, PVTOL_N_PLANT_STATES, p);
+    if (status != PVTOL_OK) {
+        return status;
+    }
+    pvtol_k_outputs(t, x, p, out);
+    return pvtol_probe(out, PVTOL_N_OUTPUTS) == 0.0 ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
 }
 
 size_t pvtol_controller_size(void)

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: pvtol
  * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: ae0f0e6226fbfd8aaaa8f7f954545743ee3d428b8d5f640bd70538ae8709cc2c
+ * content sha256: 5ab1c79adbf2135d261c139d42236f25e4c86309eb349c03d4015bb389edf3de
  */
 
 /*
@@ -67,6 +67,11 @@ int pvtol_optimality_error(double t, const double *s, const double *params, doub
 int pvtol_objective(double t, const double *y, const double *params, double *out);
 int pvtol_gradient(double t, const double *y, const double *params, double *out);
 int pvtol_hessian(double t, const double *y, const double *params, double *out);
+
+/* The plant alone, as the spec models it: x' = f(x) + G(x) u (PVTOL_N_PLANT_STATES
+ * doubles) for plant state x and input u, and the outputs y = h(x) (PVTOL_N_OUTPUTS). */
+int pvtol_plant(double t, const double *x, const double *u, const double *params, double *out);
+int pvtol_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop
  * at the first point that fails and store its index in *failed (when failed is not NULL). */

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 56da77d8246fe0351da1ff7e2b3f853abbd1fd768a4bfdce918ae4ffcdbdfe75
+ * content sha256: 658584755ad9feb7211781da291cf8250354b85748608ecf8eb053068e56d63f
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -433,6 +433,42 @@ static void two_unicycles_barrier_k_hessian(double t, const double *y, const dou
 }
 
 
+/* The plant alone: x' = f(x) + G(x) u (8 operations, 8 before CSE). */
+static void two_unicycles_barrier_k_plant(double t, const double *x, const double *u, const double *p, double *dx)
+{
+    (void)t;
+    const double _x2 = x[2]; /* tha */
+    const double _x5 = x[5]; /* thb */
+    const double _u0 = u[0]; /* va */
+    const double _u1 = u[1]; /* wa */
+    const double _u2 = u[2]; /* vb */
+    const double _u3 = u[3]; /* wb */
+    (void)p;
+    dx[0] = _u0*cos(_x2);
+    dx[1] = _u0*sin(_x2);
+    dx[2] = _u1;
+    dx[3] = _u2*cos(_x5);
+    dx[4] = _u2*sin(_x5);
+    dx[5] = _u3;
+}
+
+
+/* The outputs y = h(x) (0 operations, 0 before CSE). */
+static void two_unicycles_barrier_k_outputs(double t, const double *x, const double *p, double *y)
+{
+    (void)t;
+    const double _x0 = x[0]; /* xa */
+    const double _x1 = x[1]; /* ya */
+    const double _x3 = x[3]; /* xb */
+    const double _x4 = x[4]; /* yb */
+    (void)p;
+    y[0] = _x0;
+    y[1] = _x1;
+    y[2] = _x3;
+    y[3] = _x4;
+}
+
+
 /* 0 when every x[i] is finite, NaN otherwise. x * 0.0 is +-0 for finite x and NaN for an
  * infinity or a NaN (IEEE 754, which -ffast-math would break: see the #error above), and a
  * sum of probes is 0 only when each is: one comparison checks several arrays, branch-free. */
@@ -763,6 +799,28 @@ int two_unicycles_barrier_hessian_batch(size_t count, double t, const double *s,
         }
     }
     return TWO_UNICYCLES_BARRIER_OK;
+}
+
+int two_unicycles_barrier_plant(double t, const double *x, const double *u, const double *params, double *out)
+{
+    const double *p = params ? params : TWO_UNICYCLES_BARRIER_DEFAULT_PARAMS;
+    if (t * 0.0 + two_unicycles_barrier_probe(x, TWO_UNICYCLES_BARRIER_N_PLANT_STATES) + two_unicycles_barrier_probe(u, TWO_UNICYCLES_BARRIER_N_INPUTS)
+        + two_unicycles_barrier_probe(p, TWO_UNICYCLES_BARRIER_N_PARAMS) != 0.0) {
+        return TWO_UNICYCLES_BARRIER_NONFINITE_INPUT;
+    }
+    two_unicycles_barrier_k_plant(t, x, u, p, out);
+    return two_unicycles_barrier_probe(out, TWO_UNICYCLES_BARRIER_N_PLANT_STATES) == 0.0 ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
+}
+
+int two_unicycles_barrier_outputs(double t, const double *x, const double *params, double *out)
+{
+    const double *p = params ? params : TWO_UNICYCLES_BARRIER_DEFAULT_PARAMS;
+    int status = two_unicycles_barrier_check_inputs(t, x, TWO_UNICYCLES_BARRIER_N_PLANT_STATES, p);
+    if (status != TWO_UNICYCLES_BARRIER_OK) {
+        return status;
+    }
+    two_unicycles_barrier_k_outputs(t, x, p, out);
+    return two_unicycles_barrier_probe(out, TWO_UNICYCLES_BARRIER_N_OUTPUTS) == 0.0 ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
 }
 
 size_t two_unicycles_barrier_controller_size(void)

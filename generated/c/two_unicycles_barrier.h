@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 90d20095dce875c7c615ea37e8fc3c856d0749de97bac4a4747eaf34b3fd7e56
+ * content sha256: a8f0649187b356497846522027657817c9a4af2dd5cfe6875dd5a077fae45b33
  */
 
 /*
@@ -67,6 +67,11 @@ int two_unicycles_barrier_optimality_error(double t, const double *s, const doub
 int two_unicycles_barrier_objective(double t, const double *y, const double *params, double *out);
 int two_unicycles_barrier_gradient(double t, const double *y, const double *params, double *out);
 int two_unicycles_barrier_hessian(double t, const double *y, const double *params, double *out);
+
+/* The plant alone, as the spec models it: x' = f(x) + G(x) u (TWO_UNICYCLES_BARRIER_N_PLANT_STATES
+ * doubles) for plant state x and input u, and the outputs y = h(x) (TWO_UNICYCLES_BARRIER_N_OUTPUTS). */
+int two_unicycles_barrier_plant(double t, const double *x, const double *u, const double *params, double *out);
+int two_unicycles_barrier_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop
  * at the first point that fails and store its index in *failed (when failed is not NULL). */

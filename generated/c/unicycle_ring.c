@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_ring
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: ba7b7e7d9d50bf820675e726c7c2b729e37983da59585047719523742aac23d1
+ * content sha256: 7efe11e578a19587e09bca6205edd8d360917231b03c45c31576c976da464f1d
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical
@@ -996,6 +996,62 @@ static void unicycle_ring_k_hessian(double t, const double *y, const double *p, 
 }
 
 
+/* The plant alone: x' = f(x) + G(x) u (16 operations, 16 before CSE). */
+static void unicycle_ring_k_plant(double t, const double *x, const double *u, const double *p, double *dx)
+{
+    (void)t;
+    const double _x2 = x[2]; /* theta_0 */
+    const double _x5 = x[5]; /* theta_1 */
+    const double _x8 = x[8]; /* theta_2 */
+    const double _x11 = x[11]; /* theta_3 */
+    const double _u0 = u[0]; /* v_0 */
+    const double _u1 = u[1]; /* omega_0 */
+    const double _u2 = u[2]; /* v_1 */
+    const double _u3 = u[3]; /* omega_1 */
+    const double _u4 = u[4]; /* v_2 */
+    const double _u5 = u[5]; /* omega_2 */
+    const double _u6 = u[6]; /* v_3 */
+    const double _u7 = u[7]; /* omega_3 */
+    (void)p;
+    dx[0] = _u0*cos(_x2);
+    dx[1] = _u0*sin(_x2);
+    dx[2] = _u1;
+    dx[3] = _u2*cos(_x5);
+    dx[4] = _u2*sin(_x5);
+    dx[5] = _u3;
+    dx[6] = _u4*cos(_x8);
+    dx[7] = _u4*sin(_x8);
+    dx[8] = _u5;
+    dx[9] = _u6*cos(_x11);
+    dx[10] = _u6*sin(_x11);
+    dx[11] = _u7;
+}
+
+
+/* The outputs y = h(x) (0 operations, 0 before CSE). */
+static void unicycle_ring_k_outputs(double t, const double *x, const double *p, double *y)
+{
+    (void)t;
+    const double _x0 = x[0]; /* x_0 */
+    const double _x1 = x[1]; /* y_0 */
+    const double _x3 = x[3]; /* x_1 */
+    const double _x4 = x[4]; /* y_1 */
+    const double _x6 = x[6]; /* x_2 */
+    const double _x7 = x[7]; /* y_2 */
+    const double _x9 = x[9]; /* x_3 */
+    const double _x10 = x[10]; /* y_3 */
+    (void)p;
+    y[0] = _x0;
+    y[1] = _x1;
+    y[2] = _x3;
+    y[3] = _x4;
+    y[4] = _x6;
+    y[5] = _x7;
+    y[6] = _x9;
+    y[7] = _x10;
+}
+
+
 /* 0 when every x[i] is finite, NaN otherwise. x * 0.0 is +-0 for finite x and NaN for an
  * infinity or a NaN (IEEE 754, which -ffast-math would break: see the #error above), and a
  * sum of probes is 0 only when each is: one comparison checks several arrays, branch-free. */
@@ -1336,6 +1392,28 @@ int unicycle_ring_hessian_batch(size_t count, double t, const double *s, const d
         }
     }
     return UNICYCLE_RING_OK;
+}
+
+int unicycle_ring_plant(double t, const double *x, const double *u, const double *params, double *out)
+{
+    const double *p = params ? params : UNICYCLE_RING_DEFAULT_PARAMS;
+    if (t * 0.0 + unicycle_ring_probe(x, UNICYCLE_RING_N_PLANT_STATES) + unicycle_ring_probe(u, UNICYCLE_RING_N_INPUTS)
+        + unicycle_ring_probe(p, UNICYCLE_RING_N_PARAMS) != 0.0) {
+        return UNICYCLE_RING_NONFINITE_INPUT;
+    }
+    unicycle_ring_k_plant(t, x, u, p, out);
+    return unicycle_ring_probe(out, UNICYCLE_RING_N_PLANT_STATES) == 0.0 ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
+}
+
+int unicycle_ring_outputs(double t, const double *x, const double *params, double *out)
+{
+    const double *p = params ? params : UNICYCLE_RING_DEFAULT_PARAMS;
+    int status = unicycle_ring_check_inputs(t, x, UNICYCLE_RING_N_PLANT_STATES, p);
+    if (status != UNICYCLE_RING_OK) {
+        return status;
+    }
+    unicycle_ring_k_outputs(t, x, p, out);
+    return unicycle_ring_probe(out, UNICYCLE_RING_N_OUTPUTS) == 0.0 ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
 }
 
 size_t unicycle_ring_controller_size(void)

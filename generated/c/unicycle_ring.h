@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_ring
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: 0ae8f4d28949a076b0c7ac48d2dccda05ba8428a4b5dfbd194d8fc8545998964
+ * content sha256: 92627d15b8f43c5415d6279ccb2efb68c43f93dc331b40c63159f7ec259834ff
  */
 
 /*
@@ -67,6 +67,11 @@ int unicycle_ring_optimality_error(double t, const double *s, const double *para
 int unicycle_ring_objective(double t, const double *y, const double *params, double *out);
 int unicycle_ring_gradient(double t, const double *y, const double *params, double *out);
 int unicycle_ring_hessian(double t, const double *y, const double *params, double *out);
+
+/* The plant alone, as the spec models it: x' = f(x) + G(x) u (UNICYCLE_RING_N_PLANT_STATES
+ * doubles) for plant state x and input u, and the outputs y = h(x) (UNICYCLE_RING_N_OUTPUTS). */
+int unicycle_ring_plant(double t, const double *x, const double *u, const double *params, double *out);
+int unicycle_ring_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop
  * at the first point that fails and store its index in *failed (when failed is not NULL). */

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: a27021c4bdb8059f8a6482ce6f38d43a900b8ea7af8eda014d10f5a8a51aa7a7
+# content sha256: c8b425d93e4d8ac38376f0644909c5aa6d3bf375d7d25262f4ff849df1edfef7
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -353,6 +353,36 @@ def _hessian_values(t, y, p):
     return _call("hessian", t, y, p, (8, 8))
 
 
+_PLANT = _LIB.unicycle_ring_plant
+_PLANT.argtypes = (ctypes.c_double, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                   ctypes.c_void_p)
+_PLANT.restype = ctypes.c_int
+_OUTPUTS = _LIB.unicycle_ring_outputs
+_OUTPUTS.argtypes = (ctypes.c_double, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p)
+_OUTPUTS.restype = ctypes.c_int
+
+
+def _per_column(what, rows, call, t, p, *arrays):
+    """Call a one-point C function per column (the plant is off the law's fast path)."""
+    columns = [numpy.ascontiguousarray(a.T) for a in arrays]
+    out = numpy.empty((arrays[0].shape[1], rows))
+    params = numpy.ascontiguousarray(p, dtype=float) if len(p) else _P_NONE
+    for j in range(out.shape[0]):
+        status = call(t, *(_address(c[j]) for c in columns), _address(params), _address(out[j]))
+        if status != STATUS_OK:  # the inputs were checked: the result is not finite
+            raise NonFiniteOutputError(
+                f"{what} is not finite (column {j}): a signal or f0 left its domain", j)
+    return out.T
+
+
+def _plant_values(t, x, u, p):
+    return _per_column("the plant's vector field", 12, _PLANT, t, p, x, u)
+
+
+def _outputs_values(t, x, p):
+    return _per_column("the outputs", 8, _OUTPUTS, t, p, x)
+
+
 def _time(t):
     """``t`` as a float: a real number, not an array (one time per call)."""
     if isinstance(t, (int, float, numpy.integer, numpy.floating)):
@@ -543,6 +573,76 @@ def gradient(t, y, params=None):
     numpy.ndarray, shape (8,) or (8, N)
     """
     return _output_function(_gradient_values, t, y, params)
+
+
+def _plant_arguments(t, x, params, u=None):
+    t = _time(t)
+    states, single = _columns("x", x, 12)
+    p = _parameters(params)
+    if not numpy.isfinite(t):
+        raise NonFiniteInputError(f"t = {t!r} is not finite")
+    arrays = [("plant state", states)]
+    if u is not None:
+        inputs, _ = _columns("u", u, 8)
+        if inputs.shape[1] != states.shape[1]:
+            raise ValueError(
+                f"x and u must have as many columns, got {states.shape[1]} and {inputs.shape[1]}")
+        arrays.append(("input", inputs))
+    for what, array in arrays:
+        bad = ~numpy.all(numpy.isfinite(array), axis=0)
+        if bad.any():
+            index = int(numpy.argmax(bad))
+            raise NonFiniteInputError(f"the {what} is not finite (column {index})", index)
+    if not numpy.all(numpy.isfinite(p)):
+        raise NonFiniteInputError("a parameter is not finite")
+    return t, [a for _, a in arrays], p, single
+
+
+def plant(t, x, u, params=None):
+    """The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller.
+
+    The true plant of a sampled-data loop (the input held between samples) and of
+    :func:`tvopt_codegen.interop.plant_nlsys`.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    x : array_like, shape (12,) or (12, N)
+        Plant state in ``PLANT_STATE_NAMES`` order.
+    u : array_like, shape (8,) or (8, N)
+        Plant input in ``INPUT_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name.
+
+    Returns
+    -------
+    numpy.ndarray, same shape as ``x``
+    """
+    t, (states, inputs), p, single = _plant_arguments(t, x, params, u)
+    dx = _plant_values(t, states, inputs, p)
+    return dx[:, 0] if single else dx
+
+
+def outputs(t, x, params=None):
+    """The outputs ``y = h(x)`` of the plant state.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    x : array_like, shape (12,) or (12, N)
+        Plant state in ``PLANT_STATE_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name.
+
+    Returns
+    -------
+    numpy.ndarray, shape (8,) or (8, N)
+    """
+    t, (states,), p, single = _plant_arguments(t, x, params)
+    y = _outputs_values(t, states, p)
+    return y[:, 0] if single else y
 
 
 def hessian(t, y, params=None):

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 5aaf299e23e585e8aeb768a103d93acb1fb1f7dfd28e2a8663cf767e4c9c6347
+ * content sha256: ef7d5f93428cec49e3a933147fc012197cde9a462b379831d75dacc8a5cb558b
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -232,6 +232,32 @@ static void unicycle_switch_k_hessian(double t, const double *y, const double *p
     hess[1] = 0;
     hess[2] = 0;
     hess[3] = 2;
+}
+
+
+/* The plant alone: x' = f(x) + G(x) u (4 operations, 4 before CSE). */
+static void unicycle_switch_k_plant(double t, const double *x, const double *u, const double *p, double *dx)
+{
+    (void)t;
+    const double _x2 = x[2]; /* theta */
+    const double _u0 = u[0]; /* v */
+    const double _u1 = u[1]; /* omega */
+    (void)p;
+    dx[0] = _u0*cos(_x2);
+    dx[1] = _u0*sin(_x2);
+    dx[2] = _u1;
+}
+
+
+/* The outputs y = h(x) (0 operations, 0 before CSE). */
+static void unicycle_switch_k_outputs(double t, const double *x, const double *p, double *y)
+{
+    (void)t;
+    const double _x0 = x[0]; /* x1 */
+    const double _x1 = x[1]; /* x2 */
+    (void)p;
+    y[0] = _x0;
+    y[1] = _x1;
 }
 
 
@@ -525,6 +551,28 @@ int unicycle_switch_hessian_batch(size_t count, double t, const double *s, const
         }
     }
     return UNICYCLE_SWITCH_OK;
+}
+
+int unicycle_switch_plant(double t, const double *x, const double *u, const double *params, double *out)
+{
+    const double *p = params ? params : UNICYCLE_SWITCH_DEFAULT_PARAMS;
+    if (t * 0.0 + unicycle_switch_probe(x, UNICYCLE_SWITCH_N_PLANT_STATES) + unicycle_switch_probe(u, UNICYCLE_SWITCH_N_INPUTS)
+        + unicycle_switch_probe(p, UNICYCLE_SWITCH_N_PARAMS) != 0.0) {
+        return UNICYCLE_SWITCH_NONFINITE_INPUT;
+    }
+    unicycle_switch_k_plant(t, x, u, p, out);
+    return unicycle_switch_probe(out, UNICYCLE_SWITCH_N_PLANT_STATES) == 0.0 ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
+}
+
+int unicycle_switch_outputs(double t, const double *x, const double *params, double *out)
+{
+    const double *p = params ? params : UNICYCLE_SWITCH_DEFAULT_PARAMS;
+    int status = unicycle_switch_check_inputs(t, x, UNICYCLE_SWITCH_N_PLANT_STATES, p);
+    if (status != UNICYCLE_SWITCH_OK) {
+        return status;
+    }
+    unicycle_switch_k_outputs(t, x, p, out);
+    return unicycle_switch_probe(out, UNICYCLE_SWITCH_N_OUTPUTS) == 0.0 ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
 }
 
 size_t unicycle_switch_controller_size(void)

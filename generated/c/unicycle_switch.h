@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 59460de0581048534958e2e81a9550820b1be6ad471806403046159dde6263d7
+ * content sha256: 6715e7e4a1f1ce66720b4bd288628fc8d8ccdacb772a42ec7c6153140b97a0b7
  */
 
 /*
@@ -67,6 +67,11 @@ int unicycle_switch_optimality_error(double t, const double *s, const double *pa
 int unicycle_switch_objective(double t, const double *y, const double *params, double *out);
 int unicycle_switch_gradient(double t, const double *y, const double *params, double *out);
 int unicycle_switch_hessian(double t, const double *y, const double *params, double *out);
+
+/* The plant alone, as the spec models it: x' = f(x) + G(x) u (UNICYCLE_SWITCH_N_PLANT_STATES
+ * doubles) for plant state x and input u, and the outputs y = h(x) (UNICYCLE_SWITCH_N_OUTPUTS). */
+int unicycle_switch_plant(double t, const double *x, const double *u, const double *params, double *out);
+int unicycle_switch_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop
  * at the first point that fails and store its index in *failed (when failed is not NULL). */
