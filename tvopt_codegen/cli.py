@@ -149,6 +149,18 @@ def _parser() -> argparse.ArgumentParser:
         default=1e-6,
         help="largest accepted relative deviation of E from expm(Ht) E(0)",
     )
+    sim.add_argument(
+        "--sample-time",
+        type=float,
+        metavar="H",
+        help="also run the stateful controller sampled every H seconds (zero-order hold) "
+        "against the continuous loop",
+    )
+    sim.add_argument(
+        "--convergence-order",
+        action="store_true",
+        help="with --sample-time: also run at H/2 and report the observed order in H",
+    )
     sim.add_argument("--out", default=".", help="output folder (default: current folder)")
     sim.add_argument(
         "--force",
@@ -363,6 +375,10 @@ def _simulate(args: argparse.Namespace) -> int:
         raise SpecError(
             "command line", "--t-final", f"must be positive and at most {MAX_T_FINAL:g}"
         )
+    if args.convergence_order and args.sample_time is None:
+        raise SpecError("command line", "--convergence-order", "needs --sample-time")
+    if args.sample_time is not None and not 0 < args.sample_time < math.inf:
+        raise SpecError("command line", "--sample-time", "must be positive and finite")
     derivation, kernels = _derive(args)
     options = resolve_options(
         derivation,
@@ -375,19 +391,49 @@ def _simulate(args: argparse.Namespace) -> int:
         points=args.points,
         tolerance=args.tolerance,
     )
+    if args.sample_time is not None:
+        from tvopt_codegen.sampled import check_sample_time  # noqa: PLC0415
+
+        check_sample_time(
+            args.sample_time / 2 if args.convergence_order else args.sample_time,
+            options.t_final,
+        )
     prepare_folder(args.out, create=False)
     controller = load_controller(kernels, args.backend)
     progress = _Progress()
     try:
-        result = simulate(derivation, controller, options, progress=progress)
+        if args.sample_time is None:
+            result = simulate(derivation, controller, options, progress=progress)
+            sampled = None
+        else:
+            from tvopt_codegen.sampled import simulate_sampled  # noqa: PLC0415
+
+            sampled = simulate_sampled(
+                derivation,
+                controller,
+                options,
+                args.sample_time,
+                convergence_order=args.convergence_order,
+                progress=progress,
+            )
+            result = sampled.continuous
     finally:
         progress.close()
     files = result_files(derivation, result)
+    text = format_certificate(derivation, result)
+    passed = result.passed
+    if sampled is not None:
+        from tvopt_codegen.sampled import format_sampled, sampled_files  # noqa: PLC0415
+
+        files.update(sampled_files(derivation, sampled))
+        text += "\n" + format_sampled(derivation, sampled)
+        files[f"{derivation.spec.name}_certificate.txt"] = (text + "\n").encode("utf-8")
+        passed = sampled.passed
     write_files(files, args.out, force=args.force)
-    print(format_certificate(derivation, result))
+    print(text)
     for name in files:
         print(f"  wrote {args.out.rstrip('/')}/{name}")
-    return 0 if result.passed else EXIT_CERTIFICATE
+    return 0 if passed else EXIT_CERTIFICATE
 
 
 def run(argv: Sequence[str] | None = None) -> int:

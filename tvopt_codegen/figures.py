@@ -21,6 +21,7 @@ from matplotlib.figure import Figure
 from tvopt_codegen.derivation import Derivation
 
 if TYPE_CHECKING:
+    from tvopt_codegen.sampled import SampledResult
     from tvopt_codegen.simulation import Result
 
 _COLORS = ("tab:red", "tab:purple", "tab:orange", "tab:brown", "tab:pink", "tab:olive")
@@ -137,3 +138,39 @@ def figures(derivation: Derivation, result: Result) -> dict[str, bytes]:
     out.update(_save(convergence_figure(derivation, result), f"{name}_convergence"))
     out.update(_save(inputs_figure(derivation, result), f"{name}_inputs"))
     return out
+
+
+def sampled_figure(derivation: Derivation, result: SampledResult) -> Any:
+    """The sampled outputs over the continuous ones, and their distance on a log scale."""
+    d, r = derivation, result
+    fig = Figure(figsize=(6.4, 6.0))
+    FigureCanvasAgg(fig)
+    top, bottom = fig.subplots(2, 1, sharex=True)
+    continuous = r.continuous
+    for i, name in enumerate(d.spec.outputs):
+        color = _COLORS[i % len(_COLORS)]
+        top.plot(continuous.t, continuous.outputs[i], color=color, lw=2, label=f"{name}")
+        run = r.runs[0]
+        top.step(run.t, run.outputs[i], where="post", color="black", lw=0.8, ls="--")
+    top.plot([], [], color="black", lw=0.8, ls="--", label=f"sampled, H = {r.runs[0].h:g}")
+    top.set_ylabel("y")
+    top.grid(alpha=0.3)
+    top.legend(fontsize=8, ncol=2)
+    top.set_title(f"{d.spec.name}: continuous (solid) and sampled (dashed) outputs")
+    for index, run in enumerate(r.runs):
+        bottom.semilogy(
+            run.t,
+            np.maximum(run.distance, 1e-16),
+            lw=1.2,
+            color=("tab:red", "tab:blue")[index % 2],
+            label=f"|y - y_continuous|, H = {run.h:g} (max {run.deviation:.2e})",
+        )
+    bottom.set_xlabel("t")
+    bottom.grid(alpha=0.3, which="both")
+    bottom.legend(fontsize=8)
+    return fig
+
+
+def sampled_figures(derivation: Derivation, result: SampledResult) -> dict[str, bytes]:
+    """``<name>_sampled.{png,svg}``: the sampled run over the continuous one."""
+    return _save(sampled_figure(derivation, result), f"{derivation.spec.name}_sampled")

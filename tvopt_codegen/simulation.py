@@ -145,6 +145,9 @@ class Result:
         Whether the certificate holds.
     failures : tuple of str
         Why it does not.
+    dense : callable or None
+        The integrator's interpolant: the closed-loop state at any time of the run
+        (``dense(t)``, shape (n,) or (n, T)).
     """
 
     options: Options
@@ -169,6 +172,7 @@ class Result:
     wall_time: float
     passed: bool
     failures: tuple[str, ...]
+    dense: Any = None
 
 
 def resolve_options(
@@ -496,6 +500,7 @@ def _certify(
         wall_time=wall,
         passed=not failures,
         failures=tuple(failures),
+        dense=solution.sol,
     )
 
 
