@@ -109,6 +109,25 @@ def _parser() -> argparse.ArgumentParser:
         help="replace files that were edited by hand or not written here",
     )
 
+    export = commands.add_parser(
+        "export", help="export the stateful controller for other tools (an FMU)"
+    )
+    export.add_argument("spec", help="spec file, or the name of a bundled example")
+    export.add_argument(
+        "--fmu",
+        action="store_true",
+        help="write <name>.fmu: a co-simulation FMU built from the generated C",
+    )
+    export.add_argument(
+        "--fmi", type=int, default=2, choices=(2, 3), help="FMI version (default: 2)"
+    )
+    export.add_argument("--out", default=".", help="output folder (default: current folder)")
+    export.add_argument(
+        "--force",
+        action="store_true",
+        help="replace files that were edited by hand or not written here",
+    )
+
     sim = commands.add_parser(
         "simulate", help="simulate the closed loop and check the theorem along the run"
     )
@@ -167,7 +186,7 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="replace files that were edited by hand or not written here",
     )
-    for command in (generate, check, rep, sim):
+    for command in (generate, check, rep, sim, export):
         command.add_argument(
             "--extension",
             choices=("spec", "auto"),
@@ -352,6 +371,20 @@ def _report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _export(args: argparse.Namespace) -> int:
+    from tvopt_codegen.emit import prepare_folder, write_files  # noqa: PLC0415
+    from tvopt_codegen.fmu import build_fmu  # noqa: PLC0415
+
+    if not args.fmu:
+        raise SpecError("command line", "export", "nothing to export: give --fmu")
+    derivation, kernels = _derive(args)
+    prepare_folder(args.out, create=False)
+    name = f"{derivation.spec.name}.fmu"
+    write_files({name: build_fmu(kernels, args.fmi)}, args.out, force=args.force)
+    print(f"wrote {args.out.rstrip('/')}/{name} (FMI {args.fmi}.0 co-simulation)")
+    return 0
+
+
 def _simulate(args: argparse.Namespace) -> int:
     from tvopt_codegen.emit import prepare_folder, write_files  # noqa: PLC0415
     from tvopt_codegen.simulation import (  # noqa: PLC0415
@@ -449,6 +482,8 @@ def run(argv: Sequence[str] | None = None) -> int:
         return _simulate(args)
     if args.command == "report":
         return _report(args)
+    if args.command == "export":
+        return _export(args)
     from tvopt_codegen.summary import format_summary  # noqa: PLC0415
 
     derivation, kernels = _derive(args)

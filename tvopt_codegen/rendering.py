@@ -71,6 +71,7 @@ def environment(root: Path | None = None) -> jinja2.Environment:
     env.filters["comment"] = comment_text
     env.filters["docstring"] = docstring_text
     env.filters["md"] = markdown_text
+    env.filters["xml"] = xml_text
     env.filters["pyrepr"] = repr
     env.filters["pytuple"] = lambda values: repr(tuple(values))
     # A macro's text ends with a newline, and so does the line that calls it.
@@ -100,6 +101,15 @@ def markdown_text(value: object) -> str:
     a description holding ``<script>`` or ``<img onerror=...>`` stays text.
     """
     return str(value).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+
+
+def xml_text(value: object) -> str:
+    """Make text safe in an XML attribute or element (one line)."""
+    text = " ".join(str(value).split())
+    text = "".join(ch if ch.isprintable() else "?" for ch in text)
+    for raw, entity in (("&", "&amp;"), ("<", "&lt;"), (">", "&gt;"), ('"', "&quot;")):
+        text = text.replace(raw, entity)
+    return text.replace("--", "- -")  # never closes an XML comment
 
 
 def docstring_text(value: object) -> str:
@@ -260,6 +270,52 @@ def render_template(template_name: str, context: dict[str, Any], root: Path | No
     return text.replace(HASH_PLACEHOLDER, stamp_hash(text), 1)
 
 
+def template_context(kernels: KernelSet, backend: Backend | str) -> dict[str, Any]:
+    """The variables every template of ``backend`` sees (docs/backends.md lists them).
+
+    Parameters
+    ----------
+    kernels : KernelSet
+        The lowered controller.
+    backend : Backend or str
+        The backend (its printers print the kernels) or its name.
+
+    Returns
+    -------
+    dict
+        Template variables.
+    """
+    if isinstance(backend, str):
+        backend = BACKENDS[backend]
+    printer = backend.printer()
+    d = kernels.derivation
+    printed = {k.name: print_kernel(k, printer) for k in kernels.kernels}
+    variants = {
+        f"kernels_{key}": {k.name: print_kernel(k, make()) for k in kernels.kernels}
+        for key, make in backend.variants
+    }
+    return {
+        "d": d,
+        "backend": backend.name,
+        "spec": d.spec,
+        "kernels": printed,
+        **variants,
+        "tool_version": __version__,
+        "sympy_version": sp.__version__,
+        "spec_file": PurePath(d.spec.source.removesuffix(BUNDLED_SUFFIX)).name,
+        "extension_counts": dict(d.extension.counts),
+        "parameters": dict(d.spec.parameters),
+        "relative_degree": dict(zip(d.spec.outputs, d.relative_degree, strict=True)),
+        "prefix": d.spec.name,
+        "guard": d.spec.name.upper(),
+        "r_blocks": kernels.r_blocks,
+        "plan": kernels.plan,
+        "statuses": tuple(Status),
+        "pivot_tolerance": PIVOT_TOLERANCE,
+        **(backend.context(kernels) if backend.context is not None else {}),
+    }
+
+
 def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
     """Render all files of one backend for one controller.
 
@@ -277,35 +333,9 @@ def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
     """
     if isinstance(backend, str):
         backend = BACKENDS[backend]
-    printer = backend.printer()
-    d = kernels.derivation
-    printed = {k.name: print_kernel(k, printer) for k in kernels.kernels}
-    variants = {
-        f"kernels_{key}": {k.name: print_kernel(k, make()) for k in kernels.kernels}
-        for key, make in backend.variants
+    context = template_context(kernels, backend)
+    name = kernels.derivation.spec.name
+    return {
+        pattern.format(name=name): render_template(template_name, context, backend.template_root)
+        for template_name, pattern in backend.templates
     }
-    files: dict[str, str] = {}
-    for template_name, pattern in backend.templates:
-        context = {
-            "d": d,
-            "backend": backend.name,
-            "spec": d.spec,
-            "kernels": printed,
-            **variants,
-            "tool_version": __version__,
-            "sympy_version": sp.__version__,
-            "spec_file": PurePath(d.spec.source.removesuffix(BUNDLED_SUFFIX)).name,
-            "extension_counts": dict(d.extension.counts),
-            "parameters": dict(d.spec.parameters),
-            "relative_degree": dict(zip(d.spec.outputs, d.relative_degree, strict=True)),
-            "prefix": d.spec.name,
-            "guard": d.spec.name.upper(),
-            "r_blocks": kernels.r_blocks,
-            "plan": kernels.plan,
-            "statuses": tuple(Status),
-            "pivot_tolerance": PIVOT_TOLERANCE,
-            **(backend.context(kernels) if backend.context is not None else {}),
-        }
-        text = render_template(template_name, context, backend.template_root)
-        files[pattern.format(name=d.spec.name)] = text
-    return files

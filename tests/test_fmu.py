@@ -1,0 +1,175 @@
+"""The co-simulation FMU: valid for FMPy, and the same inputs as Controller.step."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from tvopt_codegen.cli import main
+from tvopt_codegen.errors import EXIT_BAD_SPEC, MissingExtraError
+from tvopt_codegen.fmu import build_fmu, fmi_headers, fmu_sources
+
+from .conftest import kernels, module
+from .test_c_backend import COMPILERS, STRICT
+
+fmpy = pytest.importorskip("fmpy")
+from fmpy.validation import validate_fmu  # noqa: E402
+
+
+def _fmu(spec: str, fmi: int, folder: Path) -> Path:
+    path = folder / f"{spec}_fmi{fmi}.fmu"
+    path.write_bytes(build_fmu(kernels(spec), fmi))
+    return path
+
+
+def _measured(spec: str, horizon: float, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Plant states along the continuous closed loop, at the communication points."""
+    mod = module(spec)
+    times = np.round(np.arange(0.0, horizon + h / 2, h), 12)
+    run = solve_ivp(
+        mod.rhs, (0.0, horizon), np.array(mod.DEFAULT_STATE), dense_output=True, rtol=1e-10,
+        atol=1e-12,
+    )  # fmt: skip
+    return times, run.sol(times)[: len(mod.PLANT_STATE_NAMES)]
+
+
+@pytest.mark.parametrize("fmi", [2, 3])
+@pytest.mark.parametrize("spec", ["pvtol", "unicycle_switch"])
+def test_fmpy_validates_and_cosimulates_it_like_controller_step(
+    spec: str, fmi: int, tmp_path: Path
+) -> None:
+    mod = module(spec)
+    path = _fmu(spec, fmi, tmp_path)
+    assert validate_fmu(str(path)) == []
+    description = fmpy.read_model_description(str(path))
+    assert description.fmiVersion == f"{fmi}.0"
+    causality = {v.name: v.causality for v in description.modelVariables}
+    assert all(causality[n] == "input" for n in mod.PLANT_STATE_NAMES)
+    assert all(causality[n] == "output" for n in mod.INPUT_NAMES)
+    assert all(causality[n] == "parameter" for n in mod.PARAMETERS)
+    assert all(causality[f"controller.{n}"] == "local" for n in mod.CONTROLLER_STATE_NAMES)
+    h = 0.01
+    times, states = _measured(spec, 1.5, h)
+    table = np.array(
+        [(t, *states[:, k]) for k, t in enumerate(times)],
+        dtype=[("time", float)] + [(n, float) for n in mod.PLANT_STATE_NAMES],
+    )
+    names = [*mod.INPUT_NAMES, *(f"controller.{n}" for n in mod.CONTROLLER_STATE_NAMES)]
+    result = fmpy.simulate_fmu(
+        str(path),
+        start_time=0.0,
+        stop_time=float(times[-1]),
+        output_interval=h,
+        input=table,
+        output=names,
+        fmi_type="CoSimulation",
+    )
+    # At time t_{k+1} the FMU shows the input its doStep(t_k, h) computed from x(t_k);
+    # at 0, the input of the initialization.
+    controller = mod.Controller(states[:, 0])
+    expected = [np.concatenate([controller.u, controller.state])]
+    for k in range(len(times) - 1):
+        u = controller.step(float(times[k]), states[:, k])
+        expected.append(np.concatenate([u, controller.state]))
+    got = np.array([[row[n] for n in names] for row in result])
+    assert got.shape == (len(times), len(names))
+    np.testing.assert_allclose(got, np.array(expected), rtol=1e-10, atol=1e-10)
+
+
+def test_parameters_are_tunable_in_the_fmu(tmp_path: Path) -> None:
+    mod = module("pvtol")
+    path = _fmu("pvtol", 2, tmp_path)
+    times, states = _measured("pvtol", 0.2, 0.05)
+    table = np.array(
+        [(t, *states[:, k]) for k, t in enumerate(times)],
+        dtype=[("time", float)] + [(n, float) for n in mod.PLANT_STATE_NAMES],
+    )
+    result = fmpy.simulate_fmu(
+        str(path),
+        stop_time=float(times[-1]),
+        output_interval=0.05,
+        input=table,
+        start_values={"g": 9.0},
+        output=list(mod.INPUT_NAMES),
+    )
+    controller = mod.Controller(states[:, 0], params={"g": 9.0})
+    np.testing.assert_allclose([result[0][n] for n in mod.INPUT_NAMES], controller.u, rtol=1e-12)
+
+
+def test_a_failing_step_is_an_fmi_error_with_the_reason(tmp_path: Path) -> None:
+    path = _fmu("unicycle_switch", 2, tmp_path)
+    messages: list[str] = []
+
+    def logger(*args: object) -> None:
+        messages.append(repr(args))
+
+    with pytest.raises(Exception, match="fmi2ExitInitializationMode"):
+        fmpy.simulate_fmu(
+            str(path),
+            stop_time=1.0,
+            output_interval=0.5,
+            start_values={"x1": float("nan")},
+            logger=logger,
+        )
+    assert any("a plant state or a parameter is not finite" in m for m in messages), messages
+
+
+def test_the_archive_is_deterministic_and_holds_sources_and_a_binary(tmp_path: Path) -> None:
+    first = build_fmu(kernels("integrator"), 3)
+    assert build_fmu(kernels("integrator"), 3) == first
+    path = tmp_path / "integrator.fmu"
+    path.write_bytes(first)
+    with zipfile.ZipFile(path) as archive:
+        names = archive.namelist()
+    assert names == sorted(names)
+    assert "modelDescription.xml" in names
+    assert {"sources/integrator.c", "sources/integrator.h", "sources/integrator_fmi3.c"} <= set(
+        names
+    )
+    assert any(n.startswith("binaries/") and n.endswith("integrator.so") for n in names)
+
+
+@pytest.mark.parametrize("compiler", COMPILERS)
+@pytest.mark.parametrize("fmi", [2, 3])
+def test_the_glue_compiles_under_strict_warnings(fmi: int, compiler: str, tmp_path: Path) -> None:
+    for member, text in fmu_sources(kernels("two_unicycles_barrier"), fmi).items():
+        (tmp_path / Path(member).name).write_text(text)
+    done = subprocess.run(
+        [compiler, *STRICT, "-c", str(tmp_path / f"two_unicycles_barrier_fmi{fmi}.c")]
+        + ["-I", str(tmp_path), "-I", str(fmi_headers(fmi)), "-o", str(tmp_path / "glue.o")],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+
+
+def test_the_command_exports_and_replaces_its_own_fmu(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    assert main(["export", "pvtol", "--fmu", "--fmi", "3", "--out", str(out)]) == 0
+    assert validate_fmu(str(out / "pvtol.fmu")) == []
+    assert main(["export", "pvtol", "--fmu", "--out", str(out)]) == 0  # FMI 2 replaces it
+    assert fmpy.read_model_description(str(out / "pvtol.fmu")).fmiVersion == "2.0"
+    assert "wrote" in capsys.readouterr().out
+    assert main(["export", "pvtol", "--out", str(out)]) == EXIT_BAD_SPEC
+    assert "nothing to export: give --fmu" in capsys.readouterr().err
+
+
+def test_without_headers_one_line_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("TVOPT_CODEGEN_FMI_HEADERS", "/nonexistent")
+    with pytest.raises(MissingExtraError, match="has no fmi2Functions.h"):
+        build_fmu(kernels("integrator"), 2)
+    monkeypatch.delenv("TVOPT_CODEGEN_FMI_HEADERS")
+    monkeypatch.setattr("importlib.util.find_spec", lambda name: None)
+    with pytest.raises(MissingExtraError, match=r"pip install 'tvopt-codegen\[fmu\]'"):
+        build_fmu(kernels("integrator"), 2)
+    assert shutil.which("cc") or shutil.which("gcc")
