@@ -312,44 +312,41 @@ def test_compiler_error_is_reported_and_nothing_cached(tmp_path: Path) -> None:
     assert not list(cache.glob("*.so"))
 
 
-def test_example_control_loop_from_the_readme_compiles(tmp_path: Path) -> None:
+def test_example_control_loop_from_the_readme_compiles_and_runs(tmp_path: Path) -> None:
+    """The README's stateful C loop, as written there, with a simulated robot around it."""
+    from .conftest import ROOT
+
+    readme = (ROOT / "README.md").read_text()
+    blocks = re.findall(r"```c\n(.*?)```", readme, re.DOTALL)
+    loop = next(block for block in blocks if "controller_step" in block)
     source = _write_c("unicycle_switch", tmp_path)
-    loop = textwrap.dedent("""
-        #include "unicycle_switch.h"
-        /* A 1 kHz loop: read the state, call control, apply u (the plant is simulated here
-           by Euler steps of the controller's own closed-loop rhs). */
-        int run_loop(double *s, int steps)
+    robot = textwrap.dedent("""
+        #include <stdio.h>
+        static double state[3] = {-5.0, 4.0, 0.0};
+        static int sent = 0;
+        static void read_sensors(double *x) { int i; for (i = 0; i < 3; ++i) x[i] = state[i]; }
+        static void send_to_motors(const double *u) { state[2] += 1e-3 * u[1]; ++sent; }
+    """)
+    main_c = textwrap.dedent("""
+        int main(void)
         {
-            double u[UNICYCLE_SWITCH_N_INPUTS], ds[UNICYCLE_SWITCH_N_STATES];
-            int k, i, status;
-            for (k = 0; k < steps; ++k) {
-                const double t = 1e-3 * k;
-                status = unicycle_switch_control(t, s, NULL, u);
-                if (status != UNICYCLE_SWITCH_OK) return status;
-                status = unicycle_switch_rhs(t, s, NULL, ds);
-                if (status != UNICYCLE_SWITCH_OK) return status;
-                for (i = 0; i < UNICYCLE_SWITCH_N_STATES; ++i) s[i] += 1e-3 * ds[i];
-            }
-            return UNICYCLE_SWITCH_OK;
+            const int status = run_loop(500);
+            printf("%d %d\\n", status, sent);
+            return 0;
         }
     """)
-    (tmp_path / "loop.c").write_text(loop)
+    (tmp_path / "loop.c").write_text(robot + loop + main_c)
+    binary = tmp_path / "loop"
     done = subprocess.run(
-        [
-            "gcc",
-            *STRICT,
-            "-c",
-            str(tmp_path / "loop.c"),
-            "-I",
-            str(source.parent),
-            "-o",
-            str(tmp_path / "loop.o"),
-        ],
+        ["gcc", *STRICT, "-I", str(source.parent), "-o", str(binary), str(tmp_path / "loop.c")]
+        + [str(source), "-lm"],
         capture_output=True,
         text=True,
         check=False,
     )
     assert done.returncode == 0, done.stderr
+    run = subprocess.run([str(binary)], capture_output=True, text=True, check=True)
+    assert run.stdout.split() == ["0", "500"]
 
 
 def test_barrier_at_its_pole_same_status_in_both_backends(
