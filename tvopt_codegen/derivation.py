@@ -163,6 +163,11 @@ class Derivation:
     law : Law
         The control law written down from the above (:mod:`tvopt_codegen.law`):
         everything the code generators evaluate.
+    reference_jet : tuple of tuple of sympy.Symbol
+        ``reference_jet[l][q]``: the q-th derivative of reference l, ``q = 0 .. k``
+        (supplied by the caller, never derived).
+    reference_order : int
+        The highest derivative of a reference the law reads (0 without references).
     timings : tuple of (str, float)
         Seconds spent per derivation step.
     """
@@ -211,6 +216,8 @@ class Derivation:
     transient_constant: float
     law: Law
     timings: tuple[tuple[str, float], ...]
+    reference_jet: tuple[tuple[sp.Symbol, ...], ...] = ()
+    reference_order: int = 0
 
     @property
     def singular_text(self) -> str:
@@ -624,7 +631,12 @@ class _ObjectiveNumbers:
         values: dict[sp.Symbol, Any] = {y: ys[:, i] for i, y in enumerate(self.model.y)}
         values |= self.defaults
         values[self.model.t] = ts
+        nominal = dict(self.model.nominal)
+        # A reference without a nominal closed form is unknown here: taken at 0.
+        values |= {r: 0.0 for r in self.model.references if r not in nominal}
         evaluate = Evaluator(values)
+        for symbol, expr in nominal.items():
+            evaluate.define(symbol, expr)
         for symbol, expr in self.model.signals:
             evaluate.define(symbol, expr)
         for symbol, expr in self.program.assignments:
@@ -885,8 +897,10 @@ class _Objective:
 
 @dataclass(frozen=True)
 class _GradientJet:
-    """``grad^(j) f0`` for ``j < k``, ``rest``, and the jets of y and of the signals."""
+    """``grad^(j) f0`` for ``j < k``, ``rest``, and the jets of y, signals and references."""
 
+    reference_jet: tuple[tuple[sp.Symbol, ...], ...]
+    reference_order: int
     y_jet: tuple[tuple[sp.Symbol, ...], ...]
     y_values: tuple[tuple[sp.Expr, ...], ...]
     signal_jet: tuple[tuple[sp.Symbol, ...], ...]
@@ -927,6 +941,7 @@ def _linearize(spec: Spec, model: Model, meter: _Meter) -> _Linearization:
             *spec.outputs,
             *(n for n, _ in spec.parameters),
             *(n for n, _ in spec.signals),
+            *spec.references,
         }
     )
     for name in ext.states:
@@ -1125,7 +1140,11 @@ def _gradient_jet(
     """Total time derivatives of the gradient up to order k (the paper's lemma)."""
     y_jet = tuple(tuple(jet_symbol(y.name, j) for j in range(k + 1)) for y in model.y)
     signal_jet = tuple(tuple(jet_symbol(s.name, q) for q in range(k + 1)) for s, _ in model.signals)
-    rates: dict[sp.Symbol, sp.Expr] = {model.t: sp.Integer(1)}
+    reference_jet = tuple(
+        tuple(jet_symbol(r.name, q) for q in range(k + 1)) for r in model.references
+    )
+    reference_rates = {chain[j]: chain[j + 1] for chain in reference_jet for j in range(k)}
+    rates: dict[sp.Symbol, sp.Expr] = {model.t: sp.Integer(1)} | reference_rates
     for chain in (*y_jet, *signal_jet):
         for j in range(k):
             rates[chain[j]] = chain[j + 1]
@@ -1146,14 +1165,18 @@ def _gradient_jet(
             rest = tuple(e.xreplace(drop) for e in current)
     signal_program = Program(())
     signal_chains: list[tuple[sp.Expr, ...]] = []
+    measured = set(model.references)
     for _, expr in model.signals:
-        derivatives = _signal_derivatives(expr, model.t, k, meter)
+        # A signal of references moves with their jets: differentiated as a program.
+        derivatives = (
+            None if expr.free_symbols & measured else _signal_derivatives(expr, model.t, k, meter)
+        )
         if derivatives is None:
             # Its derivatives swell (a nested signal): differentiate it as a program,
             # linear in its size per order, like the gradient.
             part, chain = atomize([expr], names)
             derivatives = [chain[0]]
-            signal_rates: dict[sp.Symbol, sp.Expr] = {model.t: sp.Integer(1)}
+            signal_rates: dict[sp.Symbol, sp.Expr] = {model.t: sp.Integer(1)} | reference_rates
             for _ in range(k):
                 new, chain, signal_rates = next_derivative(part, chain, signal_rates, names, meter)
                 part = part + new
@@ -1169,7 +1192,21 @@ def _gradient_jet(
         )
         for i in range(len(model.y))
     )
+    # The highest derivative of a reference that the law or the optimality error reads.
+    used: set[sp.Basic] = set()
+    for part in (program, rest_program, signal_program):
+        for _, value in part.assignments:
+            used |= value.free_symbols
+    for exprs in (*grad_jet, rest, *signal_chains):
+        for value in exprs:
+            used |= sp.sympify(value).free_symbols
+    order = max(
+        (j for chain in reference_jet for j, symbol in enumerate(chain) if symbol in used),
+        default=0,
+    )
     return _GradientJet(
+        reference_jet,
+        order,
         y_jet,
         y_values,
         signal_jet,
@@ -1260,6 +1297,12 @@ def derive(
         defaults,
         states.names[len(spec.states) : len(spec.states) + len(ext.states)],
     )
+    unknown = [r.name for r in model.references if r not in dict(model.nominal)]
+    if unknown:
+        warnings += (
+            f"references {', '.join(unknown)} have no nominal closed form: f0's convexity "
+            "was checked with them at 0 (give [references] nominal to check along it)",
+        )
     clock.mark("objective")
     say("gradient jet")
     jet = _gradient_jet(model, k, objective, lin, states, names, meter)
@@ -1327,6 +1370,8 @@ def derive(
         transient_constant=constant,
         law=law,
         timings=tuple(clock.marks),
+        reference_jet=jet.reference_jet,
+        reference_order=jet.reference_order,
     )
 
 

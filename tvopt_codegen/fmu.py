@@ -27,6 +27,8 @@ import tempfile
 import zipfile
 from pathlib import Path
 
+import sympy as sp
+
 from tvopt_codegen.errors import BuildError, MissingExtraError
 from tvopt_codegen.ir import KernelSet
 from tvopt_codegen.rendering import render, render_template, template_context
@@ -110,13 +112,31 @@ def fmu_sources(kernels: KernelSet, fmi: int) -> dict[str, str]:
         raise ValueError(f"fmi must be one of {FMI_VERSIONS}, got {fmi!r}")
     name = kernels.derivation.spec.name
     c_files = render(kernels, "c")
-    context = template_context(kernels, "c") | {"guid": guid(kernels, fmi)}
+    context = template_context(kernels, "c") | {
+        "guid": guid(kernels, fmi),
+        "reference_start": reference_start(kernels),
+    }
     return {
         "modelDescription.xml": render_template(f"fmu/modelDescription{fmi}.xml.jinja", context),
         f"sources/{name}.h": c_files[f"{name}.h"],
         f"sources/{name}.c": c_files[f"{name}.c"],
         f"sources/{name}_fmi{fmi}.c": render_template(f"fmu/fmi{fmi}.c.jinja", context),
     }
+
+
+def reference_start(kernels: KernelSet) -> tuple[float, ...]:
+    """The reference jets at t = 0 from the nominal closed forms (0 without one), flat."""
+    d = kernels.derivation
+    model = d.model
+    nominal = dict(model.nominal)
+    defaults = dict(zip(model.params, model.defaults, strict=True))
+    values = []
+    for reference in model.references:
+        expr = nominal.get(reference, sp.Integer(0))
+        for order in range(d.reference_order + 1):
+            value = sp.diff(expr, model.t, order).xreplace(defaults).xreplace({model.t: 0})
+            values.append(float(value))
+    return tuple(values)
 
 
 def _compiler() -> str:

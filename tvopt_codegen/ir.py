@@ -61,6 +61,8 @@ class _Args:
     z: Arg
     subs: dict[sp.Symbol, sp.Expr]
     y_subs: dict[sp.Symbol, sp.Expr]
+    #: The reference jets (one row per reference, derivatives 0 .. q), when there are any.
+    r: tuple[Arg, ...] = ()
 
 
 def _arguments(d: Derivation) -> _Args:
@@ -71,6 +73,14 @@ def _arguments(d: Derivation) -> _Args:
     outputs = d.spec.outputs
     subs: dict[sp.Symbol, sp.Expr] = dict(zip(d.states, s_slots, strict=True))
     subs |= dict(zip(model.params, p_slots, strict=True))
+    refs: tuple[Arg, ...] = ()
+    if model.references:
+        q = d.reference_order
+        jets = [chain[: q + 1] for chain in d.reference_jet]
+        r_slots = _slots("r", len(jets) * (q + 1))
+        subs |= dict(zip((s for chain in jets for s in chain), r_slots, strict=True))
+        labels = tuple(str(symbol) for chain in jets for symbol in chain)
+        refs = (Arg("refs", r_slots, labels, "reference jets, derivatives 0 .. q of each"),)
     return _Args(
         t=Arg("t", (), (), "time"),
         s=Arg("s", s_slots, d.state_names, "closed-loop state"),
@@ -82,6 +92,7 @@ def _arguments(d: Derivation) -> _Args:
         z=Arg("z", law.z, tuple(f"{o}^({k})" for o in outputs), "y_imp^(k)"),
         subs=subs,
         y_subs=subs | dict(zip(model.y, y_slots, strict=True)),
+        r=refs,
     )
 
 
@@ -108,7 +119,7 @@ def _jet_kernels(
     law, m = d.law, len(d.model.u)
     jet_program = programs["signals"] + programs["y"] + programs["jet"] + programs["hessian"]
     jet_program += programs["rest"]
-    inputs = [args.t, args.s, args.p, args.a]
+    inputs = [args.t, args.s, args.p, args.a, *args.r]
     # R and p share their trigonometry with the output jet: one kernel, one CSE.
     shared: list[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]] = [
         ("R", (len(law.r_entries),), law.r_entries, "diagonal blocks of the decoupling matrix"),
@@ -208,12 +219,12 @@ def _objective_kernels(
     optimality = kernel(
         "optimality",
         "Optimality error E: row j is grad^(j) f0",
-        [args.t, args.s, args.p],
+        [args.t, args.s, args.p, *args.r],
         programs["signals"] + programs["y"] + programs["jet"],
         [("E", (k, m), [d.grad_jet[j][i] for j in range(k) for i in range(m)], "grad^(j) f0")],
         args.subs,
     )
-    on_y = [args.t, args.y, args.p]
+    on_y = [args.t, args.y, args.p, *args.r]
     signal0 = programs["signals0"]
     objective = kernel(
         "objective", "The objective f0(y, t)", on_y, signal0,
@@ -307,6 +318,7 @@ def lower(derivation: Derivation) -> KernelSet:
         tau=0 if jet_time is None else jet_time.outputs[0].shape[0],
         hessian=0 if cholesky is None else jet.outputs[0].shape[0],
         r_blocks=law.r_blocks,
+        references=len(args.r[0].symbols) if args.r else 0,
     )
     return KernelSet(
         d,

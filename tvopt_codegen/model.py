@@ -42,6 +42,11 @@ class Model:
         The objective in ``y``, the signal symbols, the parameters and ``t``.
     t : sympy.Symbol
         Time.
+    references : tuple of sympy.Symbol
+        References measured at run time: in signals and ``f0`` like signals, with their
+        derivatives supplied by the caller.
+    nominal : tuple of (sympy.Symbol, sympy.Expr)
+        The closed form the spec gives for some references, in ``t`` and the parameters.
     """
 
     spec: Spec
@@ -56,6 +61,8 @@ class Model:
     signals: tuple[tuple[sp.Symbol, sp.Expr], ...]
     f0: sp.Expr
     t: sp.Symbol
+    references: tuple[sp.Symbol, ...] = ()
+    nominal: tuple[tuple[sp.Symbol, sp.Expr], ...] = ()
 
 
 def build_model(spec: Spec) -> Model:
@@ -131,4 +138,6 @@ def build_model(spec: Spec) -> Model:
         signals=tuple((symbol(n), e) for n, e in spec.signals),
         f0=spec.objective,
         t=TIME,
+        references=tuple(symbol(n) for n in spec.references),
+        nominal=tuple((symbol(n), e) for n, e in spec.reference_nominal),
     )

@@ -199,6 +199,7 @@ def law_plan(
     tau: int,
     hessian: int,
     r_blocks: tuple[tuple[int, ...], ...],
+    references: int = 0,
 ) -> Plan:
     """The plan of the law for a controller's sizes.
 
@@ -215,6 +216,8 @@ def law_plan(
         generation time, and the ``jet`` kernel returns ``z`` itself).
     r_blocks : tuple of tuple of int
         R's diagonal blocks.
+    references : int, optional
+        Number of entries of the reference jets (0: the spec has no references).
 
     Returns
     -------
@@ -231,6 +234,9 @@ def law_plan(
     ]
     per_batch: list[Step] = []
     jet_args: tuple[str, ...] = ("t", "s", "p", "a")
+    if references:
+        values.append(Value("refs", references, "input", "refs", "reference jets"))
+        jet_args += ("refs",)
     if tau:
         values.append(Value("tau", tau, "batch", "tau", "the jet's terms of time and parameters"))
         per_batch.append(Step("call", "jet_time", ("t", "p", "a"), ("tau",)))

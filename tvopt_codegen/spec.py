@@ -103,6 +103,15 @@ class Spec:
     indices : tuple of (str, int)
         The ``[index]`` table: each index and its count. Indexed names are already
         expanded everywhere else (``x[i]`` with ``i = 3`` is ``x_0, x_1, x_2``).
+    references : tuple of str
+        Targets measured at run time (``[references] names``): used in signals and the
+        objective like signals, their derivative jets supplied with every call.
+    reference_nominal : tuple of (str, sympy.Expr)
+        A closed form in ``t`` and the parameters for some references (``nominal``): the
+        convexity check, ``simulate`` without samples and the report use it.
+    estimator : Estimator or None
+        The differentiator that turns reference samples into jets (None without
+        references).
     """
 
     source: str
@@ -127,6 +136,34 @@ class Spec:
     extension_auto: bool = False
     extension_max_total: int | None = None
     indices: tuple[tuple[str, int], ...] = ()
+    references: tuple[str, ...] = ()
+    reference_nominal: tuple[tuple[str, sp.Expr], ...] = ()
+    estimator: Estimator | None = None
+
+
+#: The differentiators a spec may choose for its references.
+ESTIMATOR_KINDS = ("linear", "levant")
+
+
+@dataclass(frozen=True)
+class Estimator:
+    """How reference samples become derivative jets (``[references.estimator]``).
+
+    Attributes
+    ----------
+    kind : str
+        ``"linear"``: a high-gain linear differentiator, every pole at ``-bandwidth``;
+        ``"levant"``: Levant's robust exact differentiator for signals whose next
+        derivative is bounded by ``lipschitz``.
+    bandwidth : float
+        rad/s, for ``linear``.
+    lipschitz : float
+        The bound ``L`` on ``|r^(q+1)|``, for ``levant``.
+    """
+
+    kind: str = "linear"
+    bandwidth: float = 20.0
+    lipschitz: float = 1.0
 
 
 _TOP_KEYS = {
@@ -137,6 +174,7 @@ _TOP_KEYS = {
     "extension",
     "parameters",
     "signals",
+    "references",
     "objective",
     "error_dynamics",
     "simulation",
@@ -293,13 +331,15 @@ _ROLES = {
     "system.outputs": "output",
     "parameters": "parameter",
     "signals": "signal",
+    "references": "reference",
 }
 #: What the expressions of each field may use (for a name of another kind).
 _ALLOWED = (
     ("system.dynamics", "the dynamics are functions of the states, inputs and parameters"),
     ("system.outputs", "outputs are functions of the states and parameters (y = h(x))"),
-    ("signals", "signals are functions of t, parameters and other signals"),
-    ("objective", "f0 is a function of the outputs, signals, parameters and t"),
+    ("signals", "signals are functions of t, parameters, references and other signals"),
+    ("references", "a nominal reference is a function of t and the parameters"),
+    ("objective", "f0 is a function of the outputs, signals, references, parameters and t"),
     ("parameters", "parameters are constants"),
     ("simulation", "initial values are constants"),
 )
@@ -520,12 +560,18 @@ class _Reader:
         )
         signals_table = self.sub(data, "signals", "signals")
         signal_entries = self.named_entries(signals_table, "signals")
+        references_table = self.sub(data, "references", "references")
+        references: tuple[str, ...] = ()
+        if "references" in data:
+            self.table(references_table, "references", {"names", "nominal", "estimator"}, {"names"})
+            references = self.name_list(references_table["names"], "references.names")
         self.check_unique(
             states,
             inputs,
             outputs,
             tuple(name for name, _ in parameters),
             tuple(name for name, _, _, _ in signal_entries),
+            references,
         )
 
         param_syms = {key: symbol(key) for key, _ in parameters}
@@ -552,13 +598,16 @@ class _Reader:
             for _, text, bound, where in output_entries
         )
 
-        signal_names: dict[str, sp.Expr] = {"t": TIME} | param_syms
+        reference_syms = {name: symbol(name) for name in references}
+        nominal = self.read_nominal(references_table, references, param_syms)
+        estimator = self.read_estimator(references_table) if references else None
+        signal_names: dict[str, sp.Expr] = {"t": TIME} | param_syms | reference_syms
         signals: list[tuple[str, sp.Expr]] = []
         for key, text, bound, where in signal_entries:
             expr = self.expression(text, where, signal_names, bound)
             signals.append((key, expr))
             # Later signals may use earlier ones; they see the explicit expression so
-            # every signal is a function of t and the parameters alone.
+            # every signal is a function of t, the parameters and the references alone.
             signal_names[key] = expr
 
         objective_table = self.sub(data, "objective", "objective")
@@ -568,6 +617,7 @@ class _Reader:
             | param_syms
             | {o: symbol(o) for o in outputs}
             | {key: symbol(key) for key, _ in signals}
+            | reference_syms
         )
         objective = self.expression(objective_table["f0"], "objective.f0", objective_names)
 
@@ -578,7 +628,9 @@ class _Reader:
         agents = self.pairs(simulation, "agents", set(outputs), "output")
         if not agents and len(outputs) % 2 == 0:
             agents = tuple((outputs[i], outputs[i + 1]) for i in range(0, len(outputs), 2))
-        objects = self.pairs(simulation, "objects", {name for name, _ in signals}, "signal")
+        objects = self.pairs(
+            simulation, "objects", {name for name, _ in signals} | set(references), "signal"
+        )
         return Spec(
             source=self.source,
             sha256=sha256,
@@ -602,7 +654,49 @@ class _Reader:
             extension_auto=extension_auto,
             extension_max_total=extension_max_total,
             indices=tuple(self.indexing.counts.items()),
+            references=references,
+            reference_nominal=nominal,
+            estimator=estimator,
         )
+
+    def read_nominal(
+        self,
+        table: Mapping[str, Any],
+        references: tuple[str, ...],
+        param_syms: Mapping[str, sp.Expr],
+    ) -> tuple[tuple[str, sp.Expr], ...]:
+        """The ``nominal`` closed forms, in t and the parameters, by reference name."""
+        nominal = self.sub(table, "nominal", "references.nominal") if table else {}
+        names = {"t": TIME} | dict(param_syms)
+        result = []
+        for key, text, bound, where in self.entries(nominal, "references.nominal"):
+            if key not in references:
+                raise self.fail(where, f"{key!r} is not a declared reference")
+            result.append((key, self.expression(text, where, names, bound)))
+        order = {name: i for i, name in enumerate(references)}
+        return tuple(sorted(result, key=lambda item: order[item[0]]))
+
+    def read_estimator(self, table: Mapping[str, Any]) -> Estimator:
+        """``[references.estimator]``: its kind and gain (defaults: linear, 20 rad/s)."""
+        estimator = self.sub(table, "estimator", "references.estimator")
+        self.table(estimator, "references.estimator", {"kind", "bandwidth", "lipschitz"}, set())
+        kind = estimator.get("kind", "linear")
+        if kind not in ESTIMATOR_KINDS:
+            raise self.fail(
+                "references.estimator.kind",
+                f"expected one of {', '.join(map(repr, ESTIMATOR_KINDS))}, got {clip(kind)!r}",
+            )
+        values = {}
+        for key, default in (("bandwidth", 20.0), ("lipschitz", 1.0)):
+            value = self.number(estimator.get(key, default), f"references.estimator.{key}")
+            if not value > 0:
+                raise self.fail(f"references.estimator.{key}", "must be positive")
+            values[key] = value
+        if kind == "linear" and "lipschitz" in estimator:
+            raise self.fail("references.estimator.lipschitz", "only meaningful for levant")
+        if kind == "levant" and "bandwidth" in estimator:
+            raise self.fail("references.estimator.bandwidth", "only meaningful for linear")
+        return Estimator(kind, values["bandwidth"], values["lipschitz"])
 
     def named_entries(self, table: Mapping[str, Any], field: str) -> list[_Entry]:
         """Expanded entries of a table that declares names (outputs, parameters, ...)."""
@@ -624,8 +718,9 @@ class _Reader:
         outputs: tuple[str, ...],
         parameters: tuple[str, ...],
         signals: tuple[str, ...],
+        references: tuple[str, ...] = (),
     ) -> None:
-        """Every name is declared once across all five kinds (case-insensitively)."""
+        """Every name is declared once across all six kinds (case-insensitively)."""
         seen: dict[str, str] = {}
         groups = [
             ("system.states", states),
@@ -633,6 +728,7 @@ class _Reader:
             ("system.outputs", outputs),
             ("parameters", parameters),
             ("signals", signals),
+            ("references", references),
         ]
         for field, names in groups:
             for name in names:

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: e5de72fb1ee7b4e34067fde76f131fdb714ba36941e854b73979de94c304124d
+# content sha256: 9645edefe2f888e71bd51458947a2ef8fa8d2a88b9f4dc45accddb9ad3ef8e75
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -293,8 +293,8 @@ def _call(name, t, array, p, shape):
     out = numpy.empty((count, *shape))
     failed = numpy.zeros(1, dtype=numpy.uintp)
     params = numpy.ascontiguousarray(p, dtype=float) if len(p) else _P_NONE
-    status = _FUNCTIONS[name](count, t, _address(points), _address(params), _address(out),
-                              _address(failed))
+    status = _FUNCTIONS[name](count, t, _address(points), _address(params),
+                              _address(out), _address(failed))
     if status != STATUS_OK:
         _raise(status, int(failed[0]), name, t, array, p)
     return out.T if out.ndim == 2 else numpy.moveaxis(out, 0, -1)

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: pvtol
 # spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: 82973468225114cd3f5ca5530e29344cba44686b1df61856a7f2bb69cff67327
+# content sha256: 1a06fa8939c697c4a24b42fa48ccd466b7b42088efc4ba84e5df23919a328eba
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -299,8 +299,8 @@ def _call(name, t, array, p, shape):
     out = numpy.empty((count, *shape))
     failed = numpy.zeros(1, dtype=numpy.uintp)
     params = numpy.ascontiguousarray(p, dtype=float) if len(p) else _P_NONE
-    status = _FUNCTIONS[name](count, t, _address(points), _address(params), _address(out),
-                              _address(failed))
+    status = _FUNCTIONS[name](count, t, _address(points), _address(params),
+                              _address(out), _address(failed))
     if status != STATUS_OK:
         _raise(status, int(failed[0]), name, t, array, p)
     return out.T if out.ndim == 2 else numpy.moveaxis(out, 0, -1)

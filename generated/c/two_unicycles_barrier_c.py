@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: c28ed360b6194bf066c594304c56fa39ab3a8567ec685c8db394ceed464060e9
+# content sha256: 9afafca9a9e0b114d99222814423798bfa7093f253eab701f21b5d42b9358ed4
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -298,8 +298,8 @@ def _call(name, t, array, p, shape):
     out = numpy.empty((count, *shape))
     failed = numpy.zeros(1, dtype=numpy.uintp)
     params = numpy.ascontiguousarray(p, dtype=float) if len(p) else _P_NONE
-    status = _FUNCTIONS[name](count, t, _address(points), _address(params), _address(out),
-                              _address(failed))
+    status = _FUNCTIONS[name](count, t, _address(points), _address(params),
+                              _address(out), _address(failed))
     if status != STATUS_OK:
         _raise(status, int(failed[0]), name, t, array, p)
     return out.T if out.ndim == 2 else numpy.moveaxis(out, 0, -1)

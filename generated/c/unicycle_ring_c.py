@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: c8b425d93e4d8ac38376f0644909c5aa6d3bf375d7d25262f4ff849df1edfef7
+# content sha256: 5501a78556bb0c35d2acc0eaa0df97addee7042072e9b1b5e0d54ae1da337ee0
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -304,8 +304,8 @@ def _call(name, t, array, p, shape):
     out = numpy.empty((count, *shape))
     failed = numpy.zeros(1, dtype=numpy.uintp)
     params = numpy.ascontiguousarray(p, dtype=float) if len(p) else _P_NONE
-    status = _FUNCTIONS[name](count, t, _address(points), _address(params), _address(out),
-                              _address(failed))
+    status = _FUNCTIONS[name](count, t, _address(points), _address(params),
+                              _address(out), _address(failed))
     if status != STATUS_OK:
         _raise(status, int(failed[0]), name, t, array, p)
     return out.T if out.ndim == 2 else numpy.moveaxis(out, 0, -1)

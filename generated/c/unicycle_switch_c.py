@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 4222e464a767816dcc3c67ca7cb7de01fe8474d35936d792d75ea7af354d7ca6
+# content sha256: 990fbd4ba1acb51c7cec55b5bdceea8671b84e6f4eb4ef65bb842391e19a0f3a
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -294,8 +294,8 @@ def _call(name, t, array, p, shape):
     out = numpy.empty((count, *shape))
     failed = numpy.zeros(1, dtype=numpy.uintp)
     params = numpy.ascontiguousarray(p, dtype=float) if len(p) else _P_NONE
-    status = _FUNCTIONS[name](count, t, _address(points), _address(params), _address(out),
-                              _address(failed))
+    status = _FUNCTIONS[name](count, t, _address(points), _address(params),
+                              _address(out), _address(failed))
     if status != STATUS_OK:
         _raise(status, int(failed[0]), name, t, array, p)
     return out.T if out.ndim == 2 else numpy.moveaxis(out, 0, -1)

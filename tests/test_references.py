@@ -1,0 +1,142 @@
+"""References measured at run time: jets as arguments, the closed-form law when exact."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+import sympy as sp
+
+from tvopt_codegen.errors import SpecError
+from tvopt_codegen.spec import load_spec
+
+from .conftest import derivation, module, write_spec
+from .test_c_backend import c_module
+
+TWINS = ["integrator", "unicycle_switch", "two_unicycles_barrier", "pvtol", "unicycle_ring"]
+
+
+def exact_jets(spec: str, t: float) -> np.ndarray:
+    """The references' jets from their nominal closed forms: shape (n_refs, q + 1)."""
+    d = derivation(spec)
+    model = d.model
+    defaults = dict(zip(model.params, model.defaults, strict=True))
+    nominal = dict(model.nominal)
+    return np.array(
+        [
+            [
+                float(sp.diff(nominal[r], model.t, j).xreplace(defaults).xreplace({model.t: t}))
+                for j in range(d.reference_order + 1)
+            ]
+            for r in model.references
+        ]
+    )
+
+
+def _pairs(
+    name: str, tmp_path_factory: pytest.TempPathFactory
+) -> list[tuple[ModuleType, ModuleType]]:
+    return [
+        (module(name), module(f"{name}_refs")),
+        (c_module(name, tmp_path_factory), c_module(f"{name}_refs", tmp_path_factory)),
+    ]
+
+
+@pytest.mark.parametrize("name", TWINS)
+def test_exact_jets_give_the_closed_form_controller(
+    name: str, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    rng = np.random.default_rng(16)
+    for closed, measured in _pairs(name, tmp_path_factory):
+        assert measured.REFERENCE_ORDER == derivation(f"{name}_refs").reference_order >= 1
+        assert measured.STATE_NAMES == closed.STATE_NAMES
+        base = np.array(closed.DEFAULT_STATE)
+        m = len(closed.OUTPUT_NAMES)
+        for t in (0.0, 3.7, 11.2):
+            jets = exact_jets(f"{name}_refs", t)
+            states = base[:, None] + 0.05 * rng.standard_normal((len(base), 3))
+            for function in ("control", "rhs", "optimality_error"):
+                want = getattr(closed, function)(t, states)
+                got = getattr(measured, function)(t, states, refs=jets)
+                np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12, err_msg=function)
+                # One state, and one jet per column, give the same.
+                one = getattr(measured, function)(t, states[:, 0], refs=jets)
+                np.testing.assert_allclose(one, want[..., 0], rtol=1e-12, atol=1e-12)
+                per_column = np.repeat(jets[:, :, None], 3, axis=2)
+                np.testing.assert_allclose(
+                    getattr(measured, function)(t, states, refs=per_column), got, rtol=0, atol=0
+                )
+            outputs = states[:m]
+            for function in ("objective", "gradient", "hessian"):
+                want = getattr(closed, function)(t, outputs)
+                got = getattr(measured, function)(t, outputs, refs=jets)
+                np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12, err_msg=function)
+
+
+@pytest.mark.parametrize("name", ["unicycle_switch", "pvtol"])
+def test_the_stateful_controller_with_exact_jets(
+    name: str, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    for closed, measured in _pairs(name, tmp_path_factory):
+        n = len(closed.PLANT_STATE_NAMES)
+        x = np.array(closed.DEFAULT_STATE[:n])
+        a = closed.Controller(x)
+        b = measured.Controller(x, refs=exact_jets(f"{name}_refs", 0.0))
+        for k in range(1, 60):
+            t = 0.05 * k
+            np.testing.assert_allclose(
+                b.step(t, x, refs=exact_jets(f"{name}_refs", t)), a.step(t, x), rtol=1e-12,
+                atol=1e-12,
+            )  # fmt: skip
+
+
+@pytest.mark.parametrize("backend", ["python", "c"])
+def test_missing_wrong_or_non_finite_jets_are_clear_errors(
+    backend: str, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    name = "unicycle_switch_refs"
+    mod = module(name) if backend == "python" else c_module(name, tmp_path_factory)
+    s = np.array(mod.DEFAULT_STATE)
+    jets = exact_jets(name, 1.0)
+    with pytest.raises(
+        TypeError, match=r"refs is required: the jets of REFERENCE_NAMES, shape \(4, 3\)"
+    ):
+        mod.control(1.0, s)
+    with pytest.raises(
+        ValueError, match=r"refs must have shape \(4, 3\) or \(4, 3, 1\), got \(4, 2\)"
+    ):
+        mod.rhs(1.0, s, refs=jets[:, :2])
+    bad = jets.copy()
+    bad[1, 2] = math.nan
+    with pytest.raises(mod.NonFiniteInputError, match=r"a reference is not finite \(column 0\)"):
+        mod.control(1.0, s, refs=bad)
+    with pytest.raises(TypeError, match="refs is required"):
+        mod.Controller(s[:3])
+    with pytest.raises(TypeError, match="refs must be real"):
+        mod.gradient(1.0, s[:2], refs=jets + 1j)
+
+
+@pytest.mark.parametrize(
+    ("table", "field", "problem"),
+    [
+        ('names = ["o1x"]\nnominal = { zz = "t" }', "references.nominal.zz", "not a declared"),
+        ('names = ["o1x"]\n[references.estimator]\nkind = "kalman"', "kind", "expected one of"),
+        (
+            'names = ["o1x"]\n[references.estimator]\nlipschitz = 2.0',
+            "lipschitz",
+            "only meaningful for levant",
+        ),
+        ('names = ["y1"]', "references.y1", "name already declared"),
+        ('names = ["o1x"]\nnominal = { o1x = "y1" }', "references.nominal.o1x", "may not appear"),
+    ],
+)
+def test_bad_reference_tables_name_the_field(
+    tmp_path: Path, unicycle_text: str, table: str, field: str, problem: str
+) -> None:
+    text = unicycle_text.replace('o1x = "', 'o1x_unused = "') + "\n[references]\n" + table + "\n"
+    with pytest.raises(SpecError) as info:
+        load_spec(write_spec(tmp_path, text))
+    assert field in str(info.value) and problem in str(info.value), str(info.value)
