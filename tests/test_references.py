@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
@@ -19,21 +21,23 @@ from .test_c_backend import c_module
 TWINS = ["integrator", "unicycle_switch", "two_unicycles_barrier", "pvtol", "unicycle_ring"]
 
 
-def exact_jets(spec: str, t: float) -> np.ndarray:
-    """The references' jets from their nominal closed forms: shape (n_refs, q + 1)."""
+@functools.cache
+def _jet_function(spec: str) -> Callable[[float], list[list[float]]]:
     d = derivation(spec)
     model = d.model
     defaults = dict(zip(model.params, model.defaults, strict=True))
     nominal = dict(model.nominal)
-    return np.array(
-        [
-            [
-                float(sp.diff(nominal[r], model.t, j).xreplace(defaults).xreplace({model.t: t}))
-                for j in range(d.reference_order + 1)
-            ]
-            for r in model.references
-        ]
-    )
+    rows = [
+        [sp.diff(nominal[r], model.t, j).xreplace(defaults) for j in range(d.reference_order + 1)]
+        for r in model.references
+    ]
+    function: Callable[[float], list[list[float]]] = sp.lambdify(model.t, rows, "math")
+    return function
+
+
+def exact_jets(spec: str, t: float) -> np.ndarray:
+    """The references' jets from their nominal closed forms: shape (n_refs, q + 1)."""
+    return np.array(_jet_function(spec)(t), dtype=float)
 
 
 def _pairs(
@@ -140,3 +144,64 @@ def test_bad_reference_tables_name_the_field(
     with pytest.raises(SpecError) as info:
         load_spec(write_spec(tmp_path, text))
     assert field in str(info.value) and problem in str(info.value), str(info.value)
+
+
+@pytest.mark.parametrize("name", ["unicycle_switch_refs", "pvtol_refs"])
+def test_the_estimators_converge_and_agree_to_the_bit(
+    name: str, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """Samples of the nominal references at 1 kHz: the jets approach the exact ones; the
+    NumPy and the C estimators give the same bits, noise or not."""
+    py, c = module(name), c_module(name, tmp_path_factory)
+    assert py.ESTIMATOR == derivation(name).spec.estimator.kind
+    estimators = [m.ReferenceEstimator(exact_jets(name, 0.0)[:, 0]) for m in (py, c)]
+    h = 1e-3
+    for k in range(1, 6001):
+        t = k * h
+        samples = exact_jets(name, t)[:, 0]
+        jets = [e.update(t, samples) for e in estimators]
+        np.testing.assert_array_equal(jets[0], jets[1])
+    error = np.abs(jets[0] - exact_jets(name, 6.0))
+    scale = np.abs(exact_jets(name, 6.0)).max(axis=0) + 1.0
+    # Value and first derivative to 1e-3 of their scale; every derivative to 5%.
+    assert np.all(error[:, :2] <= 1e-3 * scale[:2]), error
+    assert np.all(error <= 0.05 * scale), error
+    # Between samples: the Taylor polynomial of the last estimate.
+    ahead = estimators[0].jets(6.0 + 0.5 * h)
+    np.testing.assert_allclose(ahead[:, 0], jets[0][:, 0] + 0.5 * h * jets[0][:, 1], rtol=1e-6)
+    noisy = [m.ReferenceEstimator(exact_jets(name, 0.0)[:, 0]) for m in (py, c)]
+    rng = np.random.default_rng(3)
+    for k in range(1, 500):
+        samples = exact_jets(name, k * h)[:, 0] + 1e-2 * rng.standard_normal(
+            len(py.REFERENCE_NAMES)
+        )
+        np.testing.assert_array_equal(*(e.update(k * h, samples) for e in noisy))
+
+
+@pytest.mark.parametrize("backend", ["python", "c"])
+def test_a_controller_fed_with_samples(
+    backend: str, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    name = "unicycle_switch_refs"
+    mod = module(name) if backend == "python" else c_module(name, tmp_path_factory)
+    x = np.array(mod.DEFAULT_STATE[:3])
+    by_samples = mod.Controller(x, samples=exact_jets(name, 0.0)[:, 0])
+    estimator = mod.ReferenceEstimator(exact_jets(name, 0.0)[:, 0])
+    by_jets = mod.Controller(x, refs=estimator.jets(0.0))
+    for k in range(1, 40):
+        t = 0.01 * k
+        samples = exact_jets(name, t)[:, 0]
+        np.testing.assert_array_equal(
+            by_samples.step(t, x, samples=samples),
+            by_jets.step(t, x, refs=estimator.update(t, samples)),
+        )
+    with pytest.raises(ValueError, match="samples need a controller started from samples"):
+        by_jets.step(1.0, x, samples=samples)
+    before = estimator.t
+    with pytest.raises(ValueError, match="is before the last update's time"):
+        estimator.update(0.1, samples)
+    bad = samples.copy()
+    bad[0] = math.nan
+    with pytest.raises(mod.NonFiniteInputError, match="o1x = nan is not finite"):
+        estimator.update(2.0, bad)
+    assert estimator.t == before

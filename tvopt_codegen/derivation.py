@@ -21,6 +21,7 @@ import sympy as sp
 
 from tvopt_codegen import hurwitz
 from tvopt_codegen.errors import AssumptionError, BudgetError, SpecError
+from tvopt_codegen.estimator import estimator_gains
 from tvopt_codegen.jet import Program, atomize, fresh_symbols, jacobian, next_derivative
 from tvopt_codegen.law import Law, control_law
 from tvopt_codegen.lie import (
@@ -1324,6 +1325,11 @@ def derive(
         states=states.symbols,
         state_names=states.names,
     )
+    if spec.estimator is not None:
+        try:
+            estimator_gains(spec.estimator, jet.reference_order)
+        except ValueError as exc:
+            raise AssumptionError(spec.source, "references.estimator.kind", str(exc)) from None
     clock.mark("law")
     return Derivation(
         spec=spec,

@@ -21,6 +21,7 @@ import sympy as sp
 from tvopt_codegen import __version__
 from tvopt_codegen.backends import BACKENDS, Backend
 from tvopt_codegen.errors import TvoptError
+from tvopt_codegen.estimator import estimator_gains
 from tvopt_codegen.ir import Kernel, KernelSet
 from tvopt_codegen.plan import PIVOT_TOLERANCE, Status
 from tvopt_codegen.spec import BUNDLED_SUFFIX
@@ -312,6 +313,11 @@ def template_context(kernels: KernelSet, backend: Backend | str) -> dict[str, An
         "plan": kernels.plan,
         "statuses": tuple(Status),
         "pivot_tolerance": PIVOT_TOLERANCE,
+        "estimator_gains": (
+            estimator_gains(d.spec.estimator, d.reference_order)
+            if d.spec.estimator is not None
+            else ()
+        ),
         **(backend.context(kernels) if backend.context is not None else {}),
     }
 

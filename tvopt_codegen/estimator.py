@@ -1,0 +1,52 @@
+"""The reference differentiators' gains (``[references.estimator]``).
+
+``linear``: the high-gain linear differentiator ``xi_j' = xi_{j+1} + l_j (r - xi_0)``
+(``xi_q' = l_q (r - xi_0)``) with every pole at ``-bandwidth``: its characteristic
+polynomial is ``(s + bandwidth)^(q+1)``, so ``l_j = C(q + 1, j + 1) bandwidth^(j+1)``.
+
+``levant``: Levant's robust exact differentiator in its recursive form (Levant 2003,
+"Higher-order sliding modes, differentiation and output-feedback control"), with his
+parameters ``lambda_0 .. lambda_5 = 1.1, 1.5, 2, 3, 5, 8`` and the bound ``L`` on the
+references' derivative of order ``q + 1``.
+"""
+
+from __future__ import annotations
+
+import math
+
+from tvopt_codegen.spec import Estimator
+
+#: Levant's lambda_i for differentiators of order up to 5.
+LEVANT_LAMBDAS = (1.1, 1.5, 2.0, 3.0, 5.0, 8.0)
+
+
+def estimator_gains(estimator: Estimator, order: int) -> tuple[float, ...]:
+    """The gains the generated differentiator of order ``order`` uses.
+
+    Parameters
+    ----------
+    estimator : Estimator
+        The spec's choice.
+    order : int
+        ``q``: the highest derivative estimated.
+
+    Returns
+    -------
+    tuple of float
+        ``l_0 .. l_q`` (linear) or ``lambda_0 .. lambda_q`` (levant).
+
+    Raises
+    ------
+    ValueError
+        For a Levant differentiator of order above 5 (no tuned parameters).
+    """
+    if estimator.kind == "linear":
+        return tuple(
+            math.comb(order + 1, j + 1) * estimator.bandwidth ** (j + 1) for j in range(order + 1)
+        )
+    if order >= len(LEVANT_LAMBDAS):
+        raise ValueError(
+            f"Levant's differentiator is tuned here up to order {len(LEVANT_LAMBDAS) - 1}; "
+            f"the law needs order {order}: use kind = \"linear\""
+        )
+    return LEVANT_LAMBDAS[: order + 1]
