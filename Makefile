@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 INSTALLED := $(VENV)/.installed
 EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring
 
-.PHONY: all demo figures bench bench-derive test lint typecheck check regen check-generated update-golden clean
+.PHONY: all demo figures bench bench-derive reference-noise test lint typecheck check regen check-generated update-golden clean
 
 all: test
 
@@ -47,6 +47,10 @@ bench: $(INSTALLED)
 bench-derive: $(INSTALLED)
 	$(PY) -m pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/bench_derive.py --write benchmarks/DERIVE.md
+
+## reference-noise: tracking from sampled references at three noise levels (docs/references-noise.md)
+reference-noise: $(INSTALLED)
+	$(PY) benchmarks/reference_noise.py --write docs/references-noise.md
 
 ## lint: ruff and mypy (strict) over the package
 lint: $(INSTALLED)

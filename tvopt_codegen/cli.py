@@ -169,6 +169,20 @@ def _parser() -> argparse.ArgumentParser:
         help="largest accepted relative deviation of E from expm(Ht) E(0)",
     )
     sim.add_argument(
+        "--reference-file",
+        metavar="FILE.csv",
+        help="for a spec with [references]: samples t, <reference>, ... estimated online "
+        "into jets by the spec's differentiator (default: the nominal closed forms)",
+    )
+    sim.add_argument(
+        "--noise",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="with --reference-file: Gaussian noise of this standard deviation on every sample",
+    )
+    sim.add_argument("--seed", type=int, default=0, help="seed of the noise (default 0)")
+    sim.add_argument(
         "--sample-time",
         type=float,
         metavar="H",
@@ -408,6 +422,10 @@ def _simulate(args: argparse.Namespace) -> int:
         raise SpecError(
             "command line", "--t-final", f"must be positive and at most {MAX_T_FINAL:g}"
         )
+    if not 0 <= args.noise < math.inf:
+        raise SpecError("command line", "--noise", "must be zero or positive and finite")
+    if args.noise and args.reference_file is None:
+        raise SpecError("command line", "--noise", "needs --reference-file")
     if args.convergence_order and args.sample_time is None:
         raise SpecError("command line", "--convergence-order", "needs --sample-time")
     if args.sample_time is not None and not 0 < args.sample_time < math.inf:
@@ -431,12 +449,32 @@ def _simulate(args: argparse.Namespace) -> int:
             args.sample_time / 2 if args.convergence_order else args.sample_time,
             options.t_final,
         )
+    if args.reference_file is not None and not derivation.model.references:
+        raise SpecError("command line", "--reference-file", "the spec has no [references]")
+    if args.reference_file is not None and args.sample_time is not None:
+        raise SpecError(
+            "command line", "--reference-file", "not with --sample-time (one at a time, for now)"
+        )
+    samples = None
+    if args.reference_file is not None:
+        from tvopt_codegen.references import read_reference_file  # noqa: PLC0415
+
+        samples = read_reference_file(args.reference_file, derivation, options.t_final)
     prepare_folder(args.out, create=False)
     controller = load_controller(kernels, args.backend)
+    references = None
+    if samples is not None:
+        from tvopt_codegen.references import sampled_source  # noqa: PLC0415
+
+        references = sampled_source(
+            derivation, controller, dict(options.params), *samples, args.noise, args.seed
+        )
     progress = _Progress()
     try:
         if args.sample_time is None:
-            result = simulate(derivation, controller, options, progress=progress)
+            result = simulate(
+                derivation, controller, options, progress=progress, references=references
+            )
             sampled = None
         else:
             from tvopt_codegen.sampled import simulate_sampled  # noqa: PLC0415

@@ -47,6 +47,6 @@ def estimator_gains(estimator: Estimator, order: int) -> tuple[float, ...]:
     if order >= len(LEVANT_LAMBDAS):
         raise ValueError(
             f"Levant's differentiator is tuned here up to order {len(LEVANT_LAMBDAS) - 1}; "
-            f"the law needs order {order}: use kind = \"linear\""
+            f'the law needs order {order}: use kind = "linear"'
         )
     return LEVANT_LAMBDAS[: order + 1]

@@ -48,6 +48,13 @@ def _axes(width: float, height: float) -> tuple[Figure, Any]:
 
 def _signal_values(derivation: Derivation, result: Result, name: str) -> np.ndarray:
     d = derivation
+    references = [r.name for r in d.model.references]
+    if name in references and result.references is not None:
+        # A reference: its true path when known, else what the controller was given.
+        source = result.references
+        jets = source.exact or source.jets
+        row = references.index(name)
+        return np.array([jets(t)[row, 0] for t in result.t])
     expr = dict((s.name, e) for s, e in d.model.signals)[name]
     values = [
         result.options.params.get(q.name, v)
@@ -129,14 +136,57 @@ def inputs_figure(derivation: Derivation, result: Result) -> Any:
     return fig
 
 
+def references_figure(derivation: Derivation, result: Result) -> Any:
+    """References estimated from samples: samples, estimate, truth, and the error.
+
+    The bottom panel shows the estimate's error per derivative order and ``|y - y*|``.
+    """
+    d, r = derivation, result
+    source = r.references
+    fig = Figure(figsize=(6.4, 6.0))
+    FigureCanvasAgg(fig)
+    top, bottom = fig.subplots(2, 1, sharex=True)
+    estimated = np.array([source.jets(t) for t in r.t])  # (T, n_refs, q + 1)
+    truth = np.array([source.exact(t) for t in r.t]) if source.exact is not None else None
+    shown = np.linspace(0, len(source.times) - 1, min(len(source.times), 400)).astype(int)
+    for i, name in enumerate(ref.name for ref in d.model.references):
+        color = _COLORS[i % len(_COLORS)]
+        top.plot(source.times[shown], source.samples[i, shown], ".", ms=2, color=color, alpha=0.4)
+        top.plot(r.t, estimated[:, i, 0], color=color, lw=1.5, label=f"{name} estimated")
+        if truth is not None:
+            top.plot(r.t, truth[:, i, 0], "--", color="black", lw=0.8)
+    top.set_ylabel("reference")
+    top.grid(alpha=0.3)
+    top.legend(fontsize=7, ncol=2)
+    top.set_title(
+        f"{d.spec.name}: references from samples (dots; noise sd {source.noise:g}), true (dashed)"
+    )
+    if truth is not None:
+        for order in range(estimated.shape[2]):
+            gap = np.linalg.norm(estimated[:, :, order] - truth[:, :, order], axis=1)
+            bottom.semilogy(r.t, np.maximum(gap, 1e-16), lw=1.2, label=f"derivative {order}")
+        bottom.set_ylabel("|estimate - truth|")
+        bottom.legend(fontsize=8)
+    bottom.semilogy(r.t, np.maximum(r.error, 1e-16), color="black", lw=2, label="|y - y*|")
+    bottom.set_xlabel("t")
+    bottom.grid(alpha=0.3, which="both")
+    bottom.legend(fontsize=8)
+    return fig
+
+
 def figures(derivation: Derivation, result: Result) -> dict[str, bytes]:
-    """All figures of a run: ``<name>_{paths,convergence,inputs}.{png,svg}``."""
+    """All figures of a run: ``<name>_{paths,convergence,inputs}.{png,svg}``.
+
+    And ``<name>_references`` when the references were estimated from samples.
+    """
     name = derivation.spec.name
     out: dict[str, bytes] = {}
     if derivation.spec.agents:
         out.update(_save(trajectory_figure(derivation, result), f"{name}_paths"))
     out.update(_save(convergence_figure(derivation, result), f"{name}_convergence"))
     out.update(_save(inputs_figure(derivation, result), f"{name}_inputs"))
+    if result.references is not None and result.references.estimated:
+        out.update(_save(references_figure(derivation, result), f"{name}_references"))
     return out
 
 

@@ -296,6 +296,36 @@ def _model(d: Derivation) -> Section:
                 rows=tuple((s.name, formula(e), _smoothness(e)) for s, e in model.signals),
             )
         )
+    if model.references:
+        estimator = spec.estimator
+        assert estimator is not None
+        gain = (
+            f"every pole at -{estimator.bandwidth:g} rad/s"
+            if estimator.kind == "linear"
+            else f"L = {estimator.lipschitz:g} bounds derivative {d.reference_order + 1}"
+        )
+        nominal = dict(model.nominal)
+        entries.append(
+            Entry(
+                "table",
+                text=(
+                    f"References measured at run time: every call takes their jets up to "
+                    f"derivative q = {d.reference_order}, the highest the law reads "
+                    f"(REFERENCE_ORDER). From samples, the {estimator.kind} differentiator "
+                    f"estimates them ({gain}); between samples a jet follows its Taylor "
+                    "polynomial."
+                ),
+                header=("reference", "jet the law reads", "nominal closed form"),
+                rows=tuple(
+                    (
+                        r.name,
+                        ", ".join(str(s) for s in chain[: d.reference_order + 1]),
+                        formula(nominal[r]) if r in nominal else "(none: samples only)",
+                    )
+                    for r, chain in zip(model.references, d.reference_jet, strict=True)
+                ),
+            )
+        )
     return Section("Model", tuple(entries))
 
 

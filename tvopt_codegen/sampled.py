@@ -32,6 +32,7 @@ import sympy as sp
 
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.errors import AssumptionError, SpecError
+from tvopt_codegen.references import nominal_source
 from tvopt_codegen.simulation import Options, Result, simulate
 
 #: Longest Runge-Kutta step of the plant between samples.
@@ -159,7 +160,13 @@ def sampled_run(
     initial = np.array(options.initial_state)
     started = time.perf_counter()
     x = initial[:n].copy()
-    step = controller.Controller(x, 0.0, initial[n:], params or None)
+    # A spec with references: the nominal closed forms' exact jets at every sample.
+    jets = nominal_source(d, params).jets if d.model.references else None
+
+    def extra(t: float) -> dict[str, Any]:
+        return {} if jets is None else {"refs": jets(t)}
+
+    step = controller.Controller(x, 0.0, initial[n:], params or None, **extra(0.0))
     states = np.empty((len(initial), count + 1))
     inputs = np.empty((len(d.spec.inputs), count + 1))
     states[:, 0], inputs[:, 0] = np.concatenate([x, step.state]), step.u
@@ -177,7 +184,7 @@ def sampled_run(
             k4 = plant(t + dt, x + dt * k3, u)
             x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         try:
-            u = step.step(t1, x)
+            u = step.step(t1, x, **extra(t1))
         except ArithmeticError as exc:
             if not hasattr(exc, "status"):
                 raise

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import importlib.util
 import io
+import math
 import tempfile
 import time
 import types
@@ -30,6 +31,7 @@ from typing import Any
 import numpy as np
 import sympy as sp
 from scipy.integrate import solve_ivp
+from scipy.interpolate import CubicHermiteSpline
 from scipy.linalg import expm
 
 from tvopt_codegen import hurwitz
@@ -39,6 +41,7 @@ from tvopt_codegen.emit import write_files
 from tvopt_codegen.errors import AssumptionError, BuildError, SpecError
 from tvopt_codegen.ir import KernelSet
 from tvopt_codegen.limits import MAX_T_FINAL
+from tvopt_codegen.references import ReferenceSource, nominal_source
 from tvopt_codegen.rendering import render
 
 #: The certificate is vacuous when the convexity modulus along the run is below this
@@ -148,6 +151,14 @@ class Result:
     dense : callable or None
         The integrator's interpolant: the closed-loop state at any time of the run
         (``dense(t)``, shape (n,) or (n, T)).
+    references : ReferenceSource or None
+        Where the reference jets came from (None without references).
+    disturbance : float
+        With estimated reference jets: ``sup |d|`` of ``E' = H E + d`` along the run
+        (NaN otherwise).
+    iss_ratio : float
+        With estimated reference jets: ``max_t |E(t)| / (c e^{-alpha t} |E(0)| +
+        (c / alpha)(1 - e^{-alpha t}) sup |d|)``, which the certificate checks is at most 1.
     """
 
     options: Options
@@ -173,6 +184,9 @@ class Result:
     passed: bool
     failures: tuple[str, ...]
     dense: Any = None
+    references: Any = None
+    disturbance: float = float("nan")
+    iss_ratio: float = float("nan")
 
 
 def resolve_options(
@@ -220,7 +234,11 @@ def resolve_options(
 
 
 def minimizer_path(
-    controller: types.ModuleType, ts: np.ndarray, start: np.ndarray, params: Mapping[str, float]
+    controller: types.ModuleType,
+    ts: np.ndarray,
+    start: np.ndarray,
+    params: Mapping[str, float],
+    refs: Callable[[float], dict[str, Any]] | None = None,
 ) -> np.ndarray:
     """``y*(t) = argmin_y f0(y, t)`` at each time, by a damped Newton method.
 
@@ -241,6 +259,9 @@ def minimizer_path(
         Starting point at ``ts[-1]``.
     params : mapping
         Parameter overrides.
+    refs : callable, optional
+        ``refs(t)``: the keyword arguments that give the module the reference jets at
+        ``t`` (for a spec with references).
 
     Returns
     -------
@@ -255,18 +276,23 @@ def minimizer_path(
         for t in (
             np.linspace(later, ts[index], substeps + 1)[1:] if index < len(ts) - 1 else [ts[-1]]
         ):
-            y = _newton(controller, float(t), y, params)
+            y = _newton(controller, float(t), y, params, (refs or (lambda t: {}))(float(t)))
         path[:, index] = y
     return path
 
 
 def _newton(
-    controller: types.ModuleType, t: float, y: np.ndarray, params: Mapping[str, float]
+    controller: types.ModuleType,
+    t: float,
+    y: np.ndarray,
+    params: Mapping[str, float],
+    extra: Mapping[str, Any] | None = None,
 ) -> np.ndarray:
     """Minimize f0(., t) from ``y``: damped Newton with capped steps."""
+    extra = extra or {}
     for _ in range(200):
-        grad = controller.gradient(t, y, params)
-        hess = controller.hessian(t, y, params)
+        grad = controller.gradient(t, y, params, **extra)
+        hess = controller.hessian(t, y, params, **extra)
         try:
             step = np.linalg.solve(hess, grad)
         except np.linalg.LinAlgError:
@@ -276,12 +302,12 @@ def _newton(
         size = float(np.linalg.norm(step))
         if size > 0.02:
             step = step * (0.02 / size)
-        value = controller.objective(t, y, params)
+        value = controller.objective(t, y, params, **extra)
         scale = 1.0
         while scale > 1e-8:
             trial = y - scale * step
             try:
-                trial_value = controller.objective(t, trial, params)
+                trial_value = controller.objective(t, trial, params, **extra)
             except ArithmeticError:
                 trial_value = np.inf
             if np.isfinite(trial_value) and trial_value <= value - 1e-4 * scale * (grad @ step):
@@ -298,6 +324,7 @@ def simulate(
     controller: types.ModuleType,
     options: Options,
     progress: Callable[[float, float], None] | None = None,
+    references: ReferenceSource | None = None,
 ) -> Result:
     """Integrate the closed loop and check the theorem along the run.
 
@@ -312,6 +339,9 @@ def simulate(
     progress : callable, optional
         Called with (simulated time reached, horizon) at most twice a second once a
         run has taken two seconds.
+    references : ReferenceSource, optional
+        The reference jets, for a spec with references (default: the exact jets of the
+        nominal closed forms).
 
     Returns
     -------
@@ -320,6 +350,9 @@ def simulate(
     """
     d = derivation
     params = dict(options.params)
+    if d.model.references and references is None:
+        references = nominal_source(d, params)
+    source = references
     started = time.perf_counter()
     last_report = [started + 2.0]
 
@@ -329,10 +362,13 @@ def simulate(
             if now >= last_report[0]:
                 progress(float(t), options.t_final)
                 last_report[0] = now + 0.5
+        if source is not None:
+            jets: np.ndarray = controller.rhs(t, s, params, refs=source.jets(t))
+            return jets
         result: np.ndarray = controller.rhs(t, s, params)
         return result
 
-    _check_initial_state(d, controller, options)
+    _check_initial_state(d, controller, options, source)
     reached = [0.0]
 
     def tracked(t: float, s: np.ndarray) -> np.ndarray:
@@ -344,16 +380,21 @@ def simulate(
         # warnings on the way would only add lines to that one-line message.
         with np.errstate(all="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            solution = solve_ivp(
-                tracked,
-                (0.0, options.t_final),
-                np.array(options.initial_state),
-                method=options.method,
-                rtol=options.rtol,
-                atol=options.atol,
-                dense_output=True,
-            )
-        return _certify(d, controller, options, solution, time.perf_counter() - started)
+            if source is not None and source.estimated and source.times is not None:
+                solution = _on_the_sample_grid(
+                    tracked, options.t_final, np.array(options.initial_state), source.times
+                )
+            else:
+                solution = solve_ivp(
+                    tracked,
+                    (0.0, options.t_final),
+                    np.array(options.initial_state),
+                    method=options.method,
+                    rtol=options.rtol,
+                    atol=options.atol,
+                    dense_output=True,
+                )
+        return _certify(d, controller, options, solution, time.perf_counter() - started, source)
     except ArithmeticError as exc:
         if not hasattr(exc, "status"):
             raise
@@ -364,11 +405,70 @@ def simulate(
         ) from None
 
 
-def _check_initial_state(d: Derivation, controller: types.ModuleType, options: Options) -> None:
+#: Longest step of the fixed-grid integration of a loop fed with estimated references.
+MAX_GRID_STEP = 1e-2
+
+
+@dataclass(frozen=True)
+class _GridSolution:
+    """What ``solve_ivp`` returns, for a run integrated on the reference samples' grid."""
+
+    t: np.ndarray
+    y: np.ndarray
+    sol: Any
+    nfev: int
+    success: bool = True
+    message: str = "the end of the horizon was reached"
+
+
+def _on_the_sample_grid(
+    rhs: Callable[[float, np.ndarray], np.ndarray],
+    horizon: float,
+    start: np.ndarray,
+    sample_times: np.ndarray,
+) -> _GridSolution:
+    """Integrate by classical RK4 with steps that end on every reference sample.
+
+    Steps are at most :data:`MAX_GRID_STEP`. Estimated jets jump at the samples and are
+    smooth between them, where an adaptive method would spend its steps rediscovering
+    each jump.
+    """
+    inside = sample_times[(sample_times > 0.0) & (sample_times < horizon)]
+    knots = [0.0]
+    for end in (*inside.tolist(), horizon):
+        pieces = max(1, math.ceil((end - knots[-1]) / MAX_GRID_STEP - 1e-9))
+        knots += list(np.linspace(knots[-1], end, pieces + 1)[1:])
+    grid = np.array(knots)
+    states = np.empty((len(start), len(grid)))
+    rates = np.empty_like(states)
+    x = start.astype(float)
+    states[:, 0] = x
+    for i in range(len(grid) - 1):
+        t, h = float(grid[i]), float(grid[i + 1] - grid[i])
+        k1 = rhs(t, x)
+        rates[:, i] = k1
+        k2 = rhs(t + h / 2, x + h / 2 * k1)
+        k3 = rhs(t + h / 2, x + h / 2 * k2)
+        k4 = rhs(t + h, x + h * k3)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        states[:, i + 1] = x
+    # The last rate: the left limit of the last interval's (the jets jump at samples).
+    rates[:, -1] = k4
+    interpolant = CubicHermiteSpline(grid, states, rates, axis=1)
+    return _GridSolution(grid, states, interpolant, 4 * (len(grid) - 1))
+
+
+def _check_initial_state(
+    d: Derivation,
+    controller: types.ModuleType,
+    options: Options,
+    references: ReferenceSource | None = None,
+) -> None:
     """Refuse, before integrating, an initial state where the law is undefined."""
     s0 = np.array(options.initial_state)
+    extra = {} if references is None else {"refs": references.jets(0.0)}
     try:
-        controller.rhs(0.0, s0, dict(options.params))
+        controller.rhs(0.0, s0, dict(options.params), **extra)
     except ArithmeticError as exc:
         if not hasattr(exc, "status"):
             raise
@@ -395,9 +495,19 @@ def _certify(
     options: Options,
     solution: Any,
     wall: float,
+    references: ReferenceSource | None = None,
 ) -> Result:
     """Sample the run and check the theorem along it."""
     params = dict(options.params)
+    # The controller got these jets; E and y* are measured against the true ones when
+    # they are known (an estimate's error is then the disturbance d of E' = H E + d).
+    given: Callable[[float], dict[str, Any]] = lambda t: {}  # noqa: E731
+    true = given
+    if references is not None:
+        source = references
+        given = lambda t: {"refs": source.jets(t)}  # noqa: E731
+        truth = source.exact or source.jets
+        true = lambda t: {"refs": truth(t)}  # noqa: E731
     failures: list[str] = []
     if not solution.success:
         failures.append(f"integration stopped: {solution.message}")
@@ -405,8 +515,12 @@ def _certify(
     ts = np.linspace(0.0, t_end, options.points)
     states = solution.sol(ts)
     m = len(d.spec.outputs)
-    inputs = np.array([controller.control(t, states[:, i], params) for i, t in enumerate(ts)]).T
-    E = np.array([controller.optimality_error(t, states[:, i], params) for i, t in enumerate(ts)])
+    inputs = np.array(
+        [controller.control(t, states[:, i], params, **given(t)) for i, t in enumerate(ts)]
+    ).T
+    E = np.array(
+        [controller.optimality_error(t, states[:, i], params, **true(t)) for i, t in enumerate(ts)]
+    )
 
     values = {
         q.name: options.params.get(q.name, v)
@@ -419,7 +533,7 @@ def _certify(
             for v in h(*states, *values.values())
         ]
     )
-    target = minimizer_path(controller, ts, outputs[:, -1], params)
+    target = minimizer_path(controller, ts, outputs[:, -1], params, true)
     error = np.linalg.norm(outputs - target, axis=0)
 
     H = hurwitz.error_matrix(d.coefficients, m)
@@ -427,7 +541,16 @@ def _certify(
     norm0 = float(np.linalg.norm(flat[0]))
     predicted = np.array([expm(H * t) @ flat[0] for t in ts])
     deviation = float(np.max(np.linalg.norm(flat - predicted, axis=1))) / max(norm0, 1e-300)
-    if deviation > options.tolerance:
+    estimated = references is not None and references.estimated
+    disturbance = iss_ratio = float("nan")
+    if estimated:
+        disturbance, iss_ratio = _input_to_state(d, controller, params, solution, ts, flat, true)
+        if not iss_ratio <= 1.0:
+            failures.append(
+                f"|E| exceeds its input-to-state bound by a factor {iss_ratio:.3g} "
+                f"(sup |d| = {disturbance:.3g})"
+            )
+    elif deviation > options.tolerance:
         failures.append(
             f"E deviates from expm(H t) E(0) by {deviation:.3g} (relative) > {options.tolerance:g}"
         )
@@ -437,7 +560,7 @@ def _certify(
     exact = d.certified_rate_exact
     eigenvalues = np.array(
         [
-            np.linalg.eigvalsh(controller.hessian(t, point, params))
+            np.linalg.eigvalsh(controller.hessian(t, point, params, **true(t)))
             for i, t in enumerate(ts)
             for point in (outputs[:, i], target[:, i], 0.5 * (outputs[:, i] + target[:, i]))
         ]
@@ -454,7 +577,7 @@ def _certify(
         )
     C = c * norm0 / m_f
     bound = C * np.exp(-alpha * ts)
-    if np.isfinite(C) and error[0] > 0 and bound[-1] >= error[0]:
+    if not estimated and np.isfinite(C) and error[0] > 0 and bound[-1] >= error[0]:
         failures.append(
             f"the bound is vacuous: C e^(-alpha t) = {bound[-1]:.3g} at the end of the run "
             f"is still above the initial |y - y*| = {error[0]:.3g}"
@@ -464,7 +587,7 @@ def _certify(
     ratio = (
         float(np.max((error[meaningful] - 1e-8) / bound[meaningful])) if meaningful.any() else 0.0
     )
-    if not ratio <= 1.0:
+    if not estimated and not ratio <= 1.0:
         failures.append(f"|y - y*| exceeds the bound C e^(-alpha t) by a factor {ratio:.3g}")
     norms = np.linalg.norm(flat, axis=1)
     # The decay rate is fitted where the slowest pole dominates: the second half of the
@@ -501,12 +624,63 @@ def _certify(
         passed=not failures,
         failures=tuple(failures),
         dense=solution.sol,
+        references=references,
+        disturbance=disturbance,
+        iss_ratio=iss_ratio,
     )
+
+
+def _input_to_state(
+    d: Derivation,
+    controller: types.ModuleType,
+    params: dict[str, float],
+    solution: Any,
+    ts: np.ndarray,
+    flat: np.ndarray,
+    true: Callable[[float], dict[str, Any]],
+) -> tuple[float, float]:
+    """``sup |d|`` of ``E' = H E + d`` along the run, and the largest ``|E| / bound``.
+
+    ``E'`` by central differences of ``E`` read from the run's interpolant, on a grid ten
+    times finer than the output's; the bound is the variation-of-constants one,
+    ``c e^{-alpha t} |E(0)| + int_0^t c e^{-alpha (t - s)} |d(s)| ds``, with the certified
+    ``alpha`` and ``c`` of ``|expm(H t)| <= c e^{-alpha t}``: the disturbance fades from it
+    as it fades from E (the estimator's start does not weigh on the end of the run).
+    """
+    m = len(d.spec.outputs)
+    H = hurwitz.error_matrix(d.coefficients, m)
+    horizon = float(ts[-1])
+    fine = np.linspace(0.0, horizon, 10 * (len(ts) - 1) + 1)
+    step = 1e-6 * max(1.0, horizon)
+
+    def error_at(t: float) -> np.ndarray:
+        state = solution.sol(min(max(t, 0.0), horizon))
+        value: np.ndarray = controller.optimality_error(t, state, params, **true(t))
+        return value.ravel()
+
+    errors = np.array([error_at(t) for t in fine])
+    rates = np.array([(error_at(t + step) - error_at(t - step)) / (2 * step) for t in fine])
+    d_norm = np.linalg.norm(rates - errors @ H.T, axis=1)
+    d_norm[0], d_norm[-1] = d_norm[1], d_norm[-2]  # one-sided there: take the neighbours'
+    alpha, c = d.certified_rate, d.transient_constant
+    # int_0^t e^{-alpha (t - s)} |d(s)| ds by the trapezoid rule, recursively.
+    forced = np.zeros(len(fine))
+    for i in range(1, len(fine)):
+        h = fine[i] - fine[i - 1]
+        decay = math.exp(-alpha * h)
+        forced[i] = forced[i - 1] * decay + h / 2 * (d_norm[i - 1] * decay + d_norm[i])
+    bound = c * np.exp(-alpha * fine) * float(np.linalg.norm(errors[0])) + c * forced
+    norms = np.linalg.norm(errors, axis=1)
+    # 1e-9 absolute, and 1% for the trapezoid rule's error on a disturbance that jumps.
+    ratio = float(np.max((norms - 1e-9) / np.maximum(1.01 * bound, 1e-300)))
+    return float(np.max(d_norm)), ratio
 
 
 def format_certificate(derivation: Derivation, result: Result) -> str:
     """The one-screen summary of a run and its certificate."""
     d, r = derivation, result
+    if r.references is not None and r.references.estimated:
+        return _format_estimated(d, r)
     lines = [
         f"{d.spec.name}: closed loop over [0, {r.t[-1]:g}] with {r.options.method} "
         f"(rtol {r.options.rtol:g}, atol {r.options.atol:g})",
@@ -520,6 +694,31 @@ def format_certificate(derivation: Derivation, result: Result) -> str:
         f"  RHS evaluations           {r.nfev}   wall time {r.wall_time:.2f} s",
         "  certificate: " + ("PASSED" if r.passed else "FAILED: " + "; ".join(r.failures)),
     ]
+    return "\n".join(lines)
+
+
+def _format_estimated(d: Derivation, r: Result) -> str:
+    """The summary of a run fed with references estimated from samples."""
+    source = r.references
+    kind = d.spec.estimator.kind if d.spec.estimator is not None else "?"
+    noise = f", noise sd {source.noise:g}" if source.noise else ""
+    samples = len(source.times)
+    rate = (samples - 1) / float(source.times[-1] - source.times[0])
+    lines = [
+        f"{d.spec.name}: closed loop over [0, {r.t[-1]:g}], references estimated online from "
+        f"{samples} samples ({rate:.4g} per second{noise}) by the {kind} "
+        "differentiator; RK4 on the sample grid",
+        f"  final |y - y*|            {r.error[-1]:.3e}   (initial {r.error[0]:.3e}; ratio "
+        f"{r.error[-1] / max(r.error[0], 1e-300):.3e})",
+        "  E' = H E + d: the jets' error is the disturbance d (the exact decay no longer holds)",
+        f"  sup |d|                   {r.disturbance:.3e}",
+        f"  |E| <= c e^(-alpha t)|E(0)| + int c e^(-alpha (t-s)) |d(s)| ds   max ratio "
+        f"{r.iss_ratio:.3g}   (c = {r.c:.4g}, alpha = {r.alpha:.4g})",
+        f"  RHS evaluations           {r.nfev}   wall time {r.wall_time:.2f} s",
+        "  certificate: " + ("PASSED" if r.passed else "FAILED: " + "; ".join(r.failures)),
+    ]
+    if source.exact is None:
+        lines.insert(3, "  (no nominal reference: E is measured against the estimate itself)")
     return "\n".join(lines)
 
 

@@ -1,0 +1,198 @@
+"""Where a simulation's reference jets come from: the nominal closed form, or samples.
+
+A spec with ``[references]`` generates a controller that takes the references' jets with
+every call. ``simulate`` feeds it either the exact jets of the nominal closed forms
+(:func:`nominal_source`) or jets estimated online from samples, as a robot would
+(:func:`sampled_source`): the generated :class:`ReferenceEstimator` runs over the samples
+in time order, and between two samples the jet is the last estimate's Taylor polynomial,
+so the jets at time t use the samples up to t only.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import types
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import sympy as sp
+
+from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.errors import SpecError
+
+#: Most samples a reference file may hold.
+MAX_SAMPLES = 2_000_000
+
+
+@dataclass(frozen=True)
+class ReferenceSource:
+    """The reference jets of a simulation.
+
+    Attributes
+    ----------
+    jets : callable
+        ``jets(t)``: what the controller gets at ``t``, shape (n_refs, q + 1).
+    exact : callable or None
+        ``exact(t)``: the true jets (the nominal closed forms), when they are known.
+    estimated : bool
+        Whether ``jets`` are estimated from samples.
+    times, samples : numpy.ndarray or None
+        The sample times (T,) and the samples as the controller saw them, noise included
+        (n_refs, T), for figures.
+    noise : float
+        Standard deviation of the noise added to the samples.
+    """
+
+    jets: Callable[[float], np.ndarray]
+    exact: Callable[[float], np.ndarray] | None
+    estimated: bool = False
+    times: np.ndarray | None = None
+    samples: np.ndarray | None = None
+    noise: float = 0.0
+
+
+def _taylor(xi: np.ndarray, h: float) -> np.ndarray:
+    """Jets (n_refs, q + 1) ``h`` seconds on along their Taylor polynomials."""
+    order = xi.shape[1]
+    out = np.zeros_like(xi)
+    for j in range(order):
+        term = 1.0
+        for index in range(order - j):
+            out[:, j] += xi[:, j + index] * term
+            term *= h / (index + 1)
+    return out
+
+
+def exact_jets(derivation: Derivation, params: dict[str, float]) -> Callable[[float], np.ndarray]:
+    """The jets of the nominal closed forms, or a SpecError naming those without one."""
+    d, model = derivation, derivation.model
+    nominal = dict(model.nominal)
+    missing = [r.name for r in model.references if r not in nominal]
+    if missing:
+        raise SpecError(
+            d.spec.source,
+            "references.nominal",
+            f"{', '.join(missing)} have no nominal closed form: give --reference-file",
+        )
+    values = {q: params.get(q.name, v) for q, v in zip(model.params, model.defaults, strict=True)}
+    rows = [
+        [
+            sp.diff(nominal[r], model.t, j).xreplace({q: sp.Float(v) for q, v in values.items()})
+            for j in range(d.reference_order + 1)
+        ]
+        for r in model.references
+    ]
+    function = sp.lambdify(model.t, rows, "math")
+
+    def jets(t: float) -> np.ndarray:
+        return np.array(function(float(t)), dtype=float)
+
+    return jets
+
+
+def nominal_source(derivation: Derivation, params: dict[str, float]) -> ReferenceSource:
+    """Exact jets from the nominal closed forms: the controller is the closed-form one."""
+    jets = exact_jets(derivation, params)
+    return ReferenceSource(jets=jets, exact=jets)
+
+
+def read_reference_file(
+    path: str | Path, derivation: Derivation, horizon: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Samples ``t, <reference>...`` from a CSV file, checked.
+
+    Returns
+    -------
+    times : numpy.ndarray, shape (T,)
+    values : numpy.ndarray, shape (n_refs, T)
+        In ``REFERENCE_NAMES`` order (the file's other columns are ignored).
+
+    Raises
+    ------
+    SpecError
+        Naming the file and the problem: unreadable, a missing column, a value that is not
+        a finite number, times that do not increase, samples that do not cover
+        ``[0, horizon]``.
+    """
+    source = str(path)
+    names = [r.name for r in derivation.model.references]
+    try:
+        with open(path, newline="", encoding="utf-8") as handle:
+            rows = list(csv.reader(handle))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SpecError(source, "(file)", f"cannot read the reference file: {exc}") from None
+    if not rows:
+        raise SpecError(source, "(header)", "empty file: expected a header t, " + ", ".join(names))
+    header = [cell.strip() for cell in rows[0]]
+    for name in ("t", *names):
+        if name not in header:
+            raise SpecError(source, "(header)", f"missing column {name!r}")
+    if len(rows) - 1 > MAX_SAMPLES:
+        raise SpecError(source, "(file)", f"more than {MAX_SAMPLES} samples")
+    columns = [header.index(name) for name in ("t", *names)]
+    data = np.empty((len(rows) - 1, len(columns)))
+    for line, row in enumerate(rows[1:], start=2):
+        for k, column in enumerate(columns):
+            try:
+                value = float(row[column])
+            except (IndexError, ValueError):
+                raise SpecError(
+                    source, f"line {line}", f"{header[column]}: expected a number"
+                ) from None
+            if not math.isfinite(value):
+                raise SpecError(
+                    source, f"line {line}", f"{header[column]} = {value!r} is not finite"
+                )
+            data[line - 2, k] = value
+    times = data[:, 0]
+    if len(times) < 2:
+        raise SpecError(source, "(file)", "expected at least two samples")
+    steps = np.diff(times)
+    if not np.all(steps > 0):
+        line = int(np.argmax(~(steps > 0))) + 3
+        raise SpecError(source, f"line {line}", "t must increase from one sample to the next")
+    if times[0] > 0.0 or times[-1] < horizon:
+        raise SpecError(
+            source,
+            "t",
+            f"the samples cover [{times[0]:g}, {times[-1]:g}]; the run needs [0, {horizon:g}]",
+        )
+    return times, data[:, 1:].T
+
+
+def sampled_source(
+    derivation: Derivation,
+    controller: types.ModuleType,
+    params: dict[str, float],
+    times: np.ndarray,
+    values: np.ndarray,
+    noise: float = 0.0,
+    seed: int = 0,
+) -> ReferenceSource:
+    """Jets estimated online from samples by the controller's own estimator.
+
+    ``noise`` adds Gaussian noise of that standard deviation to every sample (seeded).
+    The estimate at a sample uses the samples up to it; between samples the jets follow
+    its Taylor polynomial; before the first sample, the first estimate's.
+    """
+    samples = values + noise * np.random.default_rng(seed).standard_normal(values.shape)
+    estimator = controller.ReferenceEstimator(samples[:, 0], float(times[0]))
+    estimates = [estimator.jets(float(times[0]))]
+    for index in range(1, len(times)):
+        estimates.append(estimator.update(float(times[index]), samples[:, index]))
+    stack = np.array(estimates)
+
+    def jets(t: float) -> np.ndarray:
+        index = max(int(np.searchsorted(times, t, side="right")) - 1, 0)
+        return _taylor(stack[index], float(t) - float(times[index]))
+
+    try:
+        exact: Callable[[float], np.ndarray] | None = exact_jets(derivation, params)
+    except SpecError:
+        exact = None
+    return ReferenceSource(
+        jets=jets, exact=exact, estimated=True, times=times, samples=samples, noise=noise
+    )
