@@ -173,3 +173,34 @@ def test_without_headers_one_line_says_what_to_install(monkeypatch: pytest.Monke
     with pytest.raises(MissingExtraError, match=r"pip install 'tvopt-codegen\[fmu\]'"):
         build_fmu(kernels("integrator"), 2)
     assert shutil.which("cc") or shutil.which("gcc")
+
+
+@pytest.mark.parametrize("fmi", [2, 3])
+def test_reference_jets_are_fmu_inputs(fmi: int, tmp_path: Path) -> None:
+    from .test_references import exact_jets
+
+    spec = "unicycle_switch_refs"
+    mod = module(spec)
+    path = _fmu(spec, fmi, tmp_path)
+    assert validate_fmu(str(path)) == []
+    q = mod.REFERENCE_ORDER
+    jet_names = [f"reference.{n}.d{j}" for n in mod.REFERENCE_NAMES for j in range(q + 1)]
+    causality = {v.name: v.causality for v in fmpy.read_model_description(str(path)).modelVariables}
+    assert all(causality[n] == "input" for n in jet_names)
+    h = 0.05
+    times, states = _measured("unicycle_switch", 1.0, h)
+    rows = [(t, *states[:, k], *exact_jets(spec, float(t)).ravel()) for k, t in enumerate(times)]
+    table = np.array(
+        rows, dtype=[("time", float)] + [(n, float) for n in (*mod.PLANT_STATE_NAMES, *jet_names)]
+    )
+    result = fmpy.simulate_fmu(
+        str(path), stop_time=float(times[-1]), output_interval=h, input=table,
+        output=list(mod.INPUT_NAMES),
+    )  # fmt: skip
+    controller = mod.Controller(states[:, 0], refs=exact_jets(spec, 0.0))
+    expected = [controller.u]
+    for k in range(len(times) - 1):
+        t = float(times[k])
+        expected.append(controller.step(t, states[:, k], refs=exact_jets(spec, t)))
+    got = np.array([[row[n] for n in mod.INPUT_NAMES] for row in result])
+    np.testing.assert_allclose(got, np.array(expected), rtol=1e-10, atol=1e-10)

@@ -86,6 +86,12 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
     )
     law = "uniform relative degree theorem" if d.uniform else "non-uniform theorem (xi chains)"
     lines.append(f"  law: u = alpha + beta R^-1 [v - p], v from y_imp^({d.k}) ({law})")
+    if d.model.references and spec.estimator is not None:
+        lines.append(
+            f"  references: {', '.join(spec.references)}; every call takes their jets to "
+            f"derivative q = {d.reference_order} (refs, shape ({len(spec.references)}, "
+            f"{d.reference_order + 1})); from samples: the {spec.estimator.kind} differentiator"
+        )
     if kernels is not None:
         ops = ", ".join(f"{k.name} {k.ops}" for k in kernels.kernels)
         lines.append(f"  operations after CSE: {ops}")
