@@ -155,12 +155,12 @@ def test_a_name_of_the_wrong_kind_is_said_to_be_not_allowed(tmp_path: Path) -> N
         (
             INTEGRATOR.replace('o1 = "2 + 0.8*t', 'o1 = "x1 + 2 + 0.8*t'),
             "signals.o1: column 1: state 'x1' may not appear here: signals are functions of t, "
-            "parameters and other signals",
+            "parameters, references and other signals",
         ),
         (
             INTEGRATOR.replace('f0 = "0.5*', 'f0 = "u2 + 0.5*'),
             "objective.f0: column 1: input 'u2' may not appear here: f0 is a function of the "
-            "outputs, signals, parameters and t",
+            "outputs, signals, references, parameters and t",
         ),
     ]
     for text, message in cases:
