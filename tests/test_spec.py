@@ -136,6 +136,8 @@ def test_bundled_examples_are_listed_and_load() -> None:
         # Their twins with the moving objects as references measured at run time.
         *(f"{name}_refs" for name in ("integrator", "unicycle_switch", "pvtol")),
         *(f"{name}_refs" for name in ("two_unicycles_barrier", "unicycle_ring")),
+        # The paper's Fig. 3 team inside a moving corridor ([constraints]).
+        "two_unicycles_corridor",
     }
     for name in examples:
         spec = load_spec(name)

@@ -20,6 +20,7 @@ import numpy as np
 import sympy as sp
 
 from tvopt_codegen import hurwitz
+from tvopt_codegen.constraints import nonconvex
 from tvopt_codegen.errors import AssumptionError, BudgetError, SpecError
 from tvopt_codegen.estimator import estimator_gains
 from tvopt_codegen.jet import Program, atomize, fresh_symbols, jacobian, next_derivative
@@ -1220,6 +1221,88 @@ def _gradient_jet(
     )
 
 
+def objective_start(model: Model, states: _States) -> np.ndarray:
+    """The outputs at the initial state, parameters at their defaults."""
+    values = {sym: sp.Float(v) for sym, v in zip(states.symbols, states.initial, strict=True)}
+    values |= {q: sp.Float(v) for q, v in zip(model.params, model.defaults, strict=True)}
+    return np.array([float(h.xreplace(values)) for h in model.h])
+
+
+def _constraint_convexity(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str, ...]:
+    """Refuse a constraint that is not convex in the outputs, unless the spec allows it.
+
+    Each ``g_i``'s Hessian in ``y`` is sampled around the initial outputs over the
+    horizon (signals and nominal references at their values there; references without
+    one at 0).
+    """
+    if not model.constraints:
+        return ()
+    rng = np.random.default_rng(18)
+    points = 64
+    ys = y0[None, :] + rng.uniform(-2.0, 2.0, size=(points, len(y0)))
+    values: dict[sp.Symbol, Any] = {y: ys[:, i] for i, y in enumerate(model.y)}
+    values[model.t] = rng.uniform(0.0, spec.t_final, size=points)
+    values |= {q: float(v) for q, v in zip(model.params, model.defaults, strict=True)}
+    nominal = dict(model.nominal)
+    values |= {r: 0.0 for r in model.references if r not in nominal}
+    evaluate = Evaluator(values)
+    for symbol, expr in nominal.items():
+        evaluate.define(symbol, expr)
+    for symbol, expr in model.signals:
+        evaluate.define(symbol, expr)
+    _feasible_at_the_end(spec, model, y0)
+    found = nonconvex(model.constraints, model.y, evaluate, points)
+    if not found:
+        return ()
+    names = ", ".join(f"{name} (Hessian eigenvalue {value:.3g})" for name, value in found)
+    if not spec.allow_nonconvex:
+        raise AssumptionError(
+            spec.source,
+            f"constraints.{found[0][0]}",
+            f"not convex in the outputs: {names}; the barrier method needs convex "
+            "inequalities (set allow_nonconvex = true to accept a local certificate)",
+        )
+    return (f"constraints not convex in the outputs: {names}; the certificate is local only",)
+
+
+def _feasible_at_the_end(spec: Spec, model: Model, y0: np.ndarray) -> None:
+    """Refuse constraints that no output satisfies at the end of the horizon.
+
+    ``min_y max_i g_i(y, T)`` by SLSQP (as ``min z`` subject to ``g_i(y, T) <= z``) from
+    the initial outputs; positive means infeasible there.
+    """
+    from scipy.optimize import minimize  # noqa: PLC0415 - only with constraints
+
+    end = {model.t: sp.Float(spec.t_final)}
+    end |= {q: sp.Float(v) for q, v in zip(model.params, model.defaults, strict=True)}
+    nominal = dict(model.nominal)
+    fixed = {r: nominal.get(r, sp.Integer(0)) for r in model.references}
+    signals = dict(model.signals)
+    functions = [
+        sp.lambdify(
+            [model.y], sp.sympify(c.g).xreplace(signals).xreplace(fixed).xreplace(end), "math"
+        )
+        for c in model.constraints
+    ]
+    m = len(model.y)
+    start = np.append(y0, max(f(y0) for f in functions) + 1.0)
+    result = minimize(
+        lambda v: v[m],
+        start,
+        method="SLSQP",
+        constraints=[{"type": "ineq", "fun": lambda v, f=f: v[m] - f(v[:m])} for f in functions],
+        options={"ftol": 1e-12, "maxiter": 500},
+    )
+    worst = float(max(f(result.x[:m]) for f in functions))
+    if worst > 1e-7:
+        raise AssumptionError(
+            spec.source,
+            "constraints",
+            f"infeasible at the horizon's end t = {spec.t_final:g}: every output violates a "
+            f"constraint (the least violation found is {worst:.3g})",
+        )
+
+
 def derive(
     spec: Spec | Mapping[str, Any],
     progress: Callable[[str, int, int, float], None] | None = None,
@@ -1287,6 +1370,9 @@ def derive(
     # A leading underscore: no user name can take it (spec.py rejects those). One
     # sequence for the gradient, the Hessian and the jet: their names never collide.
     names = fresh_symbols("_g")
+    # Constraints first: an infeasible or non-convex one explains itself before the
+    # barrier objective's convexity check would stumble on it.
+    constraint_warnings = _constraint_convexity(spec, model, objective_start(model, states))
     objective = _objective(spec, model, states, names, meter)
     defaults = dict(zip(model.params, model.defaults, strict=True))
     ext = lin.extension
@@ -1298,6 +1384,7 @@ def derive(
         defaults,
         states.names[len(spec.states) : len(spec.states) + len(ext.states)],
     )
+    warnings += constraint_warnings
     unknown = [r.name for r in model.references if r not in dict(model.nominal)]
     if unknown:
         warnings += (

@@ -174,6 +174,36 @@ def references_figure(derivation: Derivation, result: Result) -> Any:
     return fig
 
 
+def constraints_figure(derivation: Derivation, result: Result) -> Any:
+    """Each constraint's two sides as the boundary moves, and its margin ``s - g``."""
+    d, r = derivation, result
+    check = r.constraints
+    fig = Figure(figsize=(6.4, 6.0))
+    FigureCanvasAgg(fig)
+    top, bottom = fig.subplots(2, 1, sharex=True)
+    for i, constraint in enumerate(d.model.constraints):
+        color = _COLORS[i % len(_COLORS)]
+        top.plot(r.t, check.lhs[i], color=color, lw=1.5, label=f"{constraint.name}: lhs")
+        top.plot(r.t, check.rhs[i], "--", color=color, lw=1, label=f"{constraint.name}: bound")
+        bottom.semilogy(
+            r.t,
+            np.maximum(check.margins[i], 1e-16),
+            color=color,
+            lw=1.5,
+            label=f"s - g, {constraint.name}",
+        )
+    if np.any(check.slack > 0):
+        bottom.semilogy(r.t, np.maximum(check.slack, 1e-16), ":", color="black", label="slack s")
+    top.grid(alpha=0.3)
+    top.legend(fontsize=7, ncol=2)
+    top.set_title(f"{d.spec.name}: constraints (dashed: the moving boundary)")
+    bottom.set_xlabel("t")
+    bottom.set_ylabel("margin")
+    bottom.grid(alpha=0.3, which="both")
+    bottom.legend(fontsize=7)
+    return fig
+
+
 def figures(derivation: Derivation, result: Result) -> dict[str, bytes]:
     """All figures of a run: ``<name>_{paths,convergence,inputs}.{png,svg}``.
 
@@ -185,6 +215,8 @@ def figures(derivation: Derivation, result: Result) -> dict[str, bytes]:
         out.update(_save(trajectory_figure(derivation, result), f"{name}_paths"))
     out.update(_save(convergence_figure(derivation, result), f"{name}_convergence"))
     out.update(_save(inputs_figure(derivation, result), f"{name}_inputs"))
+    if result.constraints is not None:
+        out.update(_save(constraints_figure(derivation, result), f"{name}_constraints"))
     if result.references is not None and result.references.estimated:
         out.update(_save(references_figure(derivation, result), f"{name}_references"))
     return out

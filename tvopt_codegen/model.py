@@ -11,9 +11,10 @@ from dataclasses import dataclass
 
 import sympy as sp
 
+from tvopt_codegen.constraints import barrier_objective, initial_slack, schedule
 from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.lie import Sampler
-from tvopt_codegen.spec import TIME, Spec, symbol
+from tvopt_codegen.spec import TIME, Constraint, Spec, symbol
 
 
 @dataclass(frozen=True)
@@ -47,6 +48,13 @@ class Model:
         derivatives supplied by the caller.
     nominal : tuple of (sympy.Symbol, sympy.Expr)
         The closed form the spec gives for some references, in ``t`` and the parameters.
+    objective : sympy.Expr or None
+        The spec's ``f0`` when ``[constraints]`` made :attr:`f0` the barrier objective
+        ``Phi`` (:mod:`tvopt_codegen.constraints`); None otherwise.
+    constraints : tuple of Constraint
+        The inequalities, ``g_i(y, t) <= 0``.
+    mu, slack : sympy.Expr
+        The barrier's weight ``mu(t)`` and slack ``s(t)`` (0 without constraints).
     """
 
     spec: Spec
@@ -63,6 +71,10 @@ class Model:
     t: sp.Symbol
     references: tuple[sp.Symbol, ...] = ()
     nominal: tuple[tuple[sp.Symbol, sp.Expr], ...] = ()
+    objective: sp.Expr | None = None
+    constraints: tuple[Constraint, ...] = ()
+    mu: sp.Expr = sp.Integer(0)
+    slack: sp.Expr = sp.Integer(0)
 
 
 def build_model(spec: Spec) -> Model:
@@ -125,6 +137,31 @@ def build_model(spec: Spec) -> Model:
                     )
         G_rows.append(row)
         f_rows.append(rhs.xreplace(dict.fromkeys(u, sp.Integer(0))))
+    f0: sp.Expr = spec.objective
+    objective = mu = slack = None
+    if spec.constraints:
+        assert spec.barrier is not None
+        # The start: outputs of the initial plant state; signals, references (nominal,
+        # else 0) and t at 0; parameters at their defaults.
+        given = dict(spec.initial_state)
+        defaults = {symbol(n): sp.Float(v) for n, v in spec.parameters}
+        start: dict[sp.Symbol, sp.Expr] = {TIME: sp.Integer(0)}
+        start |= {symbol(n): sp.Float(given.get(n, 0.0)) for n in spec.states}
+        nominal = dict(spec.reference_nominal)
+        for name in spec.references:
+            start[symbol(name)] = nominal.get(name, sp.Integer(0))
+        start |= {symbol(n): e for n, e in spec.signals}
+        values = {
+            symbol(o): e.xreplace(start).xreplace(defaults)
+            for o, e in zip(spec.outputs, spec.output_exprs, strict=True)
+        }
+        for key, value in start.items():
+            values.setdefault(key, value.xreplace(start).xreplace(defaults).xreplace(start))
+        values |= defaults
+        s0 = initial_slack(spec.constraints, spec.barrier, values)
+        mu, slack = schedule(spec.barrier, s0, TIME)
+        objective = f0
+        f0 = barrier_objective(f0, spec.constraints, mu, slack)
     return Model(
         spec=spec,
         x=x,
@@ -136,8 +173,12 @@ def build_model(spec: Spec) -> Model:
         params=tuple(symbol(n) for n, _ in spec.parameters),
         defaults=tuple(v for _, v in spec.parameters),
         signals=tuple((symbol(n), e) for n, e in spec.signals),
-        f0=spec.objective,
+        f0=f0,
         t=TIME,
         references=tuple(symbol(n) for n in spec.references),
         nominal=tuple((symbol(n), e) for n, e in spec.reference_nominal),
+        objective=objective,
+        constraints=spec.constraints,
+        mu=mu if mu is not None else sp.Integer(0),
+        slack=slack if slack is not None else sp.Integer(0),
     )

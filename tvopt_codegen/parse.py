@@ -349,7 +349,7 @@ def _describe_forbidden(node: ast.AST) -> str:
         ast.Subscript: "indexing is",
         ast.Lambda: "lambda is",
         ast.IfExp: "conditional expressions are",
-        ast.Compare: "comparisons are",
+        ast.Compare: "comparisons (only in [constraints]) are",
         ast.BoolOp: "logical operators are",
         ast.JoinedStr: "f-strings are",
         ast.ListComp: "comprehensions are",
@@ -410,6 +410,67 @@ def parse_expression(
     if expr.has(sp.zoo, sp.nan, sp.oo, -sp.oo):
         raise ExpressionError(1, "expression is infinite or undefined")
     return expr
+
+
+def parse_comparison(
+    text: str, names: Mapping[str, sp.Expr], indexing: Indexing = NO_INDEXING
+) -> tuple[str, sp.Expr, sp.Expr]:
+    """Parse one constraint, ``lhs <= rhs``, ``lhs >= rhs`` or ``lhs == rhs``.
+
+    The comparison is found at the top level (outside parentheses); each side is parsed
+    by :func:`parse_expression`, with columns counted in the whole text.
+
+    Returns
+    -------
+    op : str
+        ``"<="``, ``">="`` or ``"=="``.
+    lhs, rhs : sympy.Expr
+        The two sides.
+
+    Raises
+    ------
+    ExpressionError
+        For no comparison, a chained one, ``!=``, a strict ``<`` or ``>``, or a side that
+        :func:`parse_expression` refuses.
+    """
+    if not isinstance(text, str):
+        raise ExpressionError(1, f"expected a constraint string, got {type(text).__name__}")
+    if len(text) > MAX_EXPRESSION_LENGTH:
+        raise ExpressionError(1, f"expression longer than {MAX_EXPRESSION_LENGTH} characters")
+    depth, found, index = 0, [], 0
+    while index < len(text):
+        char = text[index]
+        if char in "([{":
+            depth += 1
+        elif char in ")]}":
+            depth -= 1
+        elif depth == 0:
+            pair = text[index : index + 2]
+            if pair in ("<=", ">=", "==", "!="):
+                found.append((index, pair))
+                index += 2
+                continue
+            if char in "<>":
+                found.append((index, char))
+        index += 1
+    if not found:
+        raise ExpressionError(1, "expected a comparison: lhs <= rhs, lhs >= rhs or lhs == rhs")
+    if len(found) > 1:
+        raise ExpressionError(
+            found[1][0] + 1, "a chained comparison: write one comparison per constraint"
+        )
+    position, op = found[0]
+    if op == "!=":
+        raise ExpressionError(position + 1, "!= is not a constraint: use <=, >= or ==")
+    if op in ("<", ">"):
+        raise ExpressionError(position + 1, f"a strict {op} is not supported: use {op}=")
+    lhs = parse_expression(text[:position], names, indexing)
+    start = position + len(op)
+    try:
+        rhs = parse_expression(text[start:], names, indexing)
+    except ExpressionError as exc:
+        raise ExpressionError(start + exc.column, exc.message) from None
+    return op, lhs, rhs
 
 
 def _parse_piece(text: str, offset: int, builder: _TreeBuilder) -> sp.Expr:

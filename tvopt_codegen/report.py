@@ -296,6 +296,20 @@ def _model(d: Derivation) -> Section:
                 rows=tuple((s.name, formula(e), _smoothness(e)) for s, e in model.signals),
             )
         )
+    if model.constraints:
+        entries.append(
+            Entry(
+                "table",
+                text=(
+                    "Constraints g_i(y, t) <= 0, kept by an interior-point homotopy: the law "
+                    "tracks the minimiser of Phi = f0 - mu(t) sum_i log(s(t) - g_i), with the "
+                    f"weight mu(t) = {sp.sstr(model.mu)} and the slack s(t) = "
+                    f"{sp.sstr(model.slack)}. The objective below is Phi."
+                ),
+                header=("constraint", "as written", "g_i"),
+                rows=tuple((c.name, c.text, formula(c.g)) for c in model.constraints),
+            )
+        )
     if model.references:
         estimator = spec.estimator
         assert estimator is not None

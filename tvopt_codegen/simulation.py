@@ -159,6 +159,9 @@ class Result:
     iss_ratio : float
         With estimated reference jets: ``max_t |E(t)| / (c e^{-alpha t} |E(0)| +
         (c / alpha)(1 - e^{-alpha t}) sup |d|)``, which the certificate checks is at most 1.
+    constraints : RunCheck or None
+        For a spec with ``[constraints]``: margins, final values and the distance to the
+        constrained minimiser along the run (:func:`tvopt_codegen.constraints.check_run`).
     """
 
     options: Options
@@ -187,6 +190,7 @@ class Result:
     references: Any = None
     disturbance: float = float("nan")
     iss_ratio: float = float("nan")
+    constraints: Any = None
 
 
 def resolve_options(
@@ -239,6 +243,7 @@ def minimizer_path(
     start: np.ndarray,
     params: Mapping[str, float],
     refs: Callable[[float], dict[str, Any]] | None = None,
+    inside: np.ndarray | None = None,
 ) -> np.ndarray:
     """``y*(t) = argmin_y f0(y, t)`` at each time, by a damped Newton method.
 
@@ -262,6 +267,9 @@ def minimizer_path(
     refs : callable, optional
         ``refs(t)``: the keyword arguments that give the module the reference jets at
         ``t`` (for a spec with references).
+    inside : numpy.ndarray, shape (m, T), optional
+        A point of f0's domain at each time (the run's outputs): the start whenever the
+        warm start has left the domain (a barrier of moving constraints).
 
     Returns
     -------
@@ -276,9 +284,26 @@ def minimizer_path(
         for t in (
             np.linspace(later, ts[index], substeps + 1)[1:] if index < len(ts) - 1 else [ts[-1]]
         ):
-            y = _newton(controller, float(t), y, params, (refs or (lambda t: {}))(float(t)))
+            extra = (refs or (lambda t: {}))(float(t))
+            if inside is not None and not _defined(controller, float(t), y, params, extra):
+                y = np.array(inside[:, index], dtype=float)
+            y = _newton(controller, float(t), y, params, extra)
         path[:, index] = y
     return path
+
+
+def _defined(
+    controller: types.ModuleType,
+    t: float,
+    y: np.ndarray,
+    params: Mapping[str, float],
+    extra: Mapping[str, Any],
+) -> bool:
+    """Whether f0 is finite at ``y`` and ``t``."""
+    try:
+        return bool(np.isfinite(controller.objective(t, y, params, **extra)))
+    except ArithmeticError:
+        return False
 
 
 def _newton(
@@ -533,7 +558,7 @@ def _certify(
             for v in h(*states, *values.values())
         ]
     )
-    target = minimizer_path(controller, ts, outputs[:, -1], params, true)
+    target = minimizer_path(controller, ts, outputs[:, -1], params, true, outputs)
     error = np.linalg.norm(outputs - target, axis=0)
 
     H = hurwitz.error_matrix(d.coefficients, m)
@@ -589,6 +614,27 @@ def _certify(
     )
     if not estimated and not ratio <= 1.0:
         failures.append(f"|y - y*| exceeds the bound C e^(-alpha t) by a factor {ratio:.3g}")
+    constrained = None
+    if d.model.constraints:
+        from tvopt_codegen.constraints import check_run  # noqa: PLC0415
+
+        values = {
+            q: options.params.get(q.name, v)
+            for q, v in zip(d.model.params, d.model.defaults, strict=True)
+        }
+        constrained = check_run(d.model, ts, outputs, error, target, values, references)
+        worst = float(constrained.margins.min())
+        if not worst > 0:
+            where = np.unravel_index(int(np.argmin(constrained.margins)), constrained.margins.shape)
+            failures.append(
+                f"constraint {d.model.constraints[where[0]].name} reached its barrier: "
+                f"s - g = {worst:.3g} at t = {ts[where[1]]:.4g}"
+            )
+        if not constrained.distance[-1] <= constrained.bound[-1] + 1e-6:
+            failures.append(
+                f"the distance to the constrained minimiser at the end, "
+                f"{constrained.distance[-1]:.3g}, exceeds its bound {constrained.bound[-1]:.3g}"
+            )
     norms = np.linalg.norm(flat, axis=1)
     # The decay rate is fitted where the slowest pole dominates: the second half of the
     # stretch where |E| is still above the integration noise.
@@ -627,6 +673,7 @@ def _certify(
         references=references,
         disturbance=disturbance,
         iss_ratio=iss_ratio,
+        constraints=constrained,
     )
 
 
@@ -694,6 +741,18 @@ def format_certificate(derivation: Derivation, result: Result) -> str:
         f"  RHS evaluations           {r.nfev}   wall time {r.wall_time:.2f} s",
         "  certificate: " + ("PASSED" if r.passed else "FAILED: " + "; ".join(r.failures)),
     ]
+    if r.constraints is not None:
+        check = r.constraints
+        finals = ", ".join(f"{name} {value:.3g}" for name, value in check.final)
+        lines[-1:-1] = [
+            "  constraints (interior-point homotopy on Phi = f0 - mu sum log(s - g_i)):",
+            f"    min over t and i of s - g_i   {float(check.margins.min()):.3e}  (> 0: no "
+            "instant on or past a barrier)",
+            f"    g_i at the end (<= 0 holds)   {finals}",
+            f"    |y - y*_constrained| at the end {check.distance[-1]:.3e} <= bound "
+            f"{check.bound[-1]:.3e}  (|y - y*_Phi| + sqrt(2 p mu / m_f), m_f = {check.m_f:.4g}; "
+            "SLSQP on f0 subject to g_i <= s)",
+        ]
     return "\n".join(lines)
 
 

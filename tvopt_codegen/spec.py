@@ -30,6 +30,7 @@ from tvopt_codegen.parse import (
     ExpressionError,
     Indexing,
     indexed_name,
+    parse_comparison,
     parse_expression,
 )
 from tvopt_codegen.toml_shape import ShapeError, check_shape
@@ -112,6 +113,14 @@ class Spec:
     estimator : Estimator or None
         The differentiator that turns reference samples into jets (None without
         references).
+    constraints : tuple of Constraint
+        ``[constraints]``: inequalities on the outputs, kept by an interior-point
+        homotopy (see :mod:`tvopt_codegen.constraints`).
+    barrier : Barrier
+        The homotopy's weight and slack schedule.
+    allow_nonconvex : bool
+        Accept inequalities that are not convex in the outputs (the certificate is then
+        local only).
     """
 
     source: str
@@ -139,6 +148,56 @@ class Spec:
     references: tuple[str, ...] = ()
     reference_nominal: tuple[tuple[str, sp.Expr], ...] = ()
     estimator: Estimator | None = None
+    constraints: tuple[Constraint, ...] = ()
+    barrier: Barrier | None = None
+    allow_nonconvex: bool = False
+
+
+@dataclass(frozen=True)
+class Constraint:
+    """One constraint of ``[constraints]``: ``lhs op rhs``.
+
+    Attributes
+    ----------
+    name : str
+        Its key in the spec.
+    op : str
+        ``"<="`` or ``">="``.
+    lhs, rhs : sympy.Expr
+        The two sides, in outputs, signals, references, parameters and ``t``.
+    text : str
+        As written.
+    """
+
+    name: str
+    op: str
+    lhs: sp.Expr
+    rhs: sp.Expr
+    text: str
+
+    @property
+    def g(self) -> sp.Expr:
+        """``g(y, t) <= 0``: the constraint in the interior-point method's form."""
+        return self.lhs - self.rhs if self.op == "<=" else self.rhs - self.lhs
+
+
+@dataclass(frozen=True)
+class Barrier:
+    """The interior-point homotopy's schedule (``[constraints.barrier]``).
+
+    Attributes
+    ----------
+    initial_weight, final_weight, rate : float
+        ``mu(t) = mu_inf + (mu_0 - mu_inf) exp(-rate t)``; the slack decays at the same rate.
+    initial_slack : float or None
+        ``s(0)``; None: from the initial outputs (twice the largest violation plus 0.1,
+        or 0 when the start is strictly feasible).
+    """
+
+    initial_weight: float = 1.0
+    final_weight: float = 1e-4
+    rate: float = 1.0
+    initial_slack: float | None = None
 
 
 #: The differentiators a spec may choose for its references.
@@ -175,6 +234,7 @@ _TOP_KEYS = {
     "parameters",
     "signals",
     "references",
+    "constraints",
     "objective",
     "error_dynamics",
     "simulation",
@@ -340,6 +400,10 @@ _ALLOWED = (
     ("signals", "signals are functions of t, parameters, references and other signals"),
     ("references", "a nominal reference is a function of t and the parameters"),
     ("objective", "f0 is a function of the outputs, signals, references, parameters and t"),
+    (
+        "constraints",
+        "constraints are functions of the outputs, signals, references, parameters and t",
+    ),
     ("parameters", "parameters are constants"),
     ("simulation", "initial values are constants"),
 )
@@ -621,6 +685,7 @@ class _Reader:
         )
         objective = self.expression(objective_table["f0"], "objective.f0", objective_names)
 
+        constraints, barrier, allow_nonconvex = self.read_constraints(data, objective_names)
         extension, extension_auto, extension_max_total = self.read_extension(data, inputs)
         poles, coefficients = self.read_error_dynamics(data)
         t_final, initial_state = self.read_simulation(data)
@@ -657,7 +722,63 @@ class _Reader:
             references=references,
             reference_nominal=nominal,
             estimator=estimator,
+            constraints=constraints,
+            barrier=barrier,
+            allow_nonconvex=allow_nonconvex,
         )
+
+    def read_constraints(
+        self, data: Mapping[str, Any], names: Mapping[str, sp.Expr]
+    ) -> tuple[tuple[Constraint, ...], Barrier | None, bool]:
+        """``[constraints]``: one comparison per key, the barrier, ``allow_nonconvex``."""
+        table = self.sub(data, "constraints", "constraints")
+        if "constraints" not in data:
+            return (), None, False
+        allow = table.get("allow_nonconvex", False)
+        if not isinstance(allow, bool):
+            raise self.fail("constraints.allow_nonconvex", f"expected true or false, got {allow!r}")
+        items = {k: v for k, v in table.items() if k not in ("barrier", "allow_nonconvex")}
+        if not items:
+            raise self.fail("constraints", "declare at least one constraint")
+        constraints = []
+        for key, text, bound, where in self.entries(items, "constraints"):
+            problem = name_problem(key)
+            if problem:
+                raise self.fail(where, problem)
+            if not isinstance(text, str):
+                raise self.fail(where, f"expected a comparison string, got {type(text).__name__}")
+            try:
+                op, lhs, rhs = parse_comparison(text, names, self.bound(bound))
+            except ExpressionError as exc:
+                raise self.fail(where, self.explain_unknown(exc, where)) from None
+            if op == "==":
+                raise self.fail(
+                    where,
+                    "equality constraints are not supported yet: only inequalities (<=, >=)",
+                )
+            constraints.append(Constraint(key, op, lhs, rhs, text))
+        barrier_table = self.sub(table, "barrier", "constraints.barrier")
+        self.table(
+            barrier_table,
+            "constraints.barrier",
+            {"initial_weight", "final_weight", "rate", "initial_slack"},
+            set(),
+        )
+        values: dict[str, float] = {}
+        for key, default in (("initial_weight", 1.0), ("final_weight", 1e-4), ("rate", 1.0)):
+            value = self.number(barrier_table.get(key, default), f"constraints.barrier.{key}")
+            if not value > 0:
+                raise self.fail(f"constraints.barrier.{key}", "must be positive")
+            values[key] = value
+        if values["final_weight"] > values["initial_weight"]:
+            raise self.fail("constraints.barrier.final_weight", "must not exceed initial_weight")
+        slack = barrier_table.get("initial_slack")
+        if slack is not None:
+            slack = self.number(slack, "constraints.barrier.initial_slack")
+            if slack < 0:
+                raise self.fail("constraints.barrier.initial_slack", "must not be negative")
+        barrier = Barrier(values["initial_weight"], values["final_weight"], values["rate"], slack)
+        return tuple(constraints), barrier, allow
 
     def read_nominal(
         self,

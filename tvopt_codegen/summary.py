@@ -86,6 +86,12 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
     )
     law = "uniform relative degree theorem" if d.uniform else "non-uniform theorem (xi chains)"
     lines.append(f"  law: u = alpha + beta R^-1 [v - p], v from y_imp^({d.k}) ({law})")
+    if d.model.constraints:
+        listed = "; ".join(f"{c.name}: {c.text}" for c in d.model.constraints)
+        lines.append(
+            f"  constraints: {listed}; kept by the barrier objective Phi = f0 - mu(t) sum "
+            f"log(s(t) - g_i) with mu(t) = {sp.sstr(d.model.mu)}, s(t) = {sp.sstr(d.model.slack)}"
+        )
     if d.model.references and spec.estimator is not None:
         lines.append(
             f"  references: {', '.join(spec.references)}; every call takes their jets to "
