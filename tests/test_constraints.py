@@ -84,7 +84,7 @@ def test_a_comparison_outside_constraints_says_where_they_belong(
     spec = write_spec(tmp_path, UNICYCLE.replace('f0 = "S*(', 'f0 = "(y1 <= 2) + S*('))
     assert main(["check", str(spec)]) == EXIT_BAD_SPEC
     err = capsys.readouterr().err
-    assert "comparisons (only in [constraints]) are not allowed in expressions" in err
+    assert "comparisons are not allowed in expressions (a constraint goes in [constraints])" in err
 
 
 def test_nonconvex_and_infeasible_constraints_are_refused(

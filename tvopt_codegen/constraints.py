@@ -141,6 +141,94 @@ class RunCheck:
     rhs: np.ndarray
 
 
+@dataclass(frozen=True)
+class _Problem:
+    """The constrained problem in numbers: f0, the g_i, their gradients, f0's domain."""
+
+    f0: Any
+    f0_grad: list[Any]
+    g: list[Any]
+    g_grad: list[list[Any]]
+    domain: list[Any]
+    domain_grad: list[list[Any]]
+    numeric: Any
+    refs_at: Any
+
+
+def _problem(model: Any, values: Mapping[sp.Symbol, float], references: Any) -> _Problem:
+    """Lambdify the problem of :func:`check_run` (signals and parameters substituted)."""
+    t = model.t
+    signals = {s: e for s, e in model.signals}
+    fixed = {q: sp.Float(v) for q, v in values.items()}
+
+    def numeric(expr: sp.Expr) -> Any:
+        expr = sp.sympify(expr).xreplace(signals).xreplace(fixed)
+        return sp.lambdify([t, model.y, model.references], expr, "math")
+
+    def refs_at(time: float) -> list[float]:
+        if not model.references or references is None:
+            return []
+        jets = (references.exact or references.jets)(time)
+        return [float(v) for v in jets[:, 0]]
+
+    objective = sp.sympify(model.objective)
+    # f0's principal domain, which the barrier objective never leaves: tan's argument
+    # within (-pi/2, pi/2) and log's positive; the independent solver keeps to it too.
+    domain = []
+    for node in sp.preorder_traversal(objective.xreplace(signals)):
+        if isinstance(node, sp.tan):
+            domain += [sp.pi / 2 - node.args[0], node.args[0] + sp.pi / 2]
+        elif isinstance(node, sp.log):
+            domain.append(node.args[0])
+    return _Problem(
+        f0=numeric(objective),
+        # Exact gradients for the solver: f0's barriers (the paper's tan) are steep.
+        f0_grad=[numeric(sp.diff(objective, yi)) for yi in model.y],
+        g=[numeric(c.g) for c in model.constraints],
+        g_grad=[
+            [numeric(sp.diff(sp.sympify(c.g), yi)) for yi in model.y] for c in model.constraints
+        ],
+        domain=[numeric(e) for e in domain],
+        domain_grad=[[numeric(sp.diff(e, yi)) for yi in model.y] for e in domain],
+        numeric=numeric,
+        refs_at=refs_at,
+    )
+
+
+def _minimise(
+    problem: _Problem, time: float, r: list[float], s: float, centre: np.ndarray, radius: float
+) -> np.ndarray:
+    """f0's minimiser subject to ``g_i <= s`` by SLSQP, in a box around ``centre``."""
+    from scipy.optimize import minimize  # noqa: PLC0415 - only simulate needs it
+
+    inequalities = [
+        {
+            "type": "ineq",
+            "fun": lambda y, gi=gi: s - gi(time, y, r),
+            "jac": lambda y, row=row: -np.array([d(time, y, r) for d in row]),
+        }
+        for gi, row in zip(problem.g, problem.g_grad, strict=True)
+    ] + [
+        {
+            "type": "ineq",
+            "fun": lambda y, e=e: e(time, y, r),
+            "jac": lambda y, row=row: np.array([d(time, y, r) for d in row]),
+        }
+        for e, row in zip(problem.domain, problem.domain_grad, strict=True)
+    ]
+    result = minimize(
+        lambda y: problem.f0(time, y, r),
+        centre,
+        jac=lambda y: np.array([d(time, y, r) for d in problem.f0_grad]),
+        method="SLSQP",
+        bounds=[(c - radius, c + radius) for c in centre],
+        constraints=inequalities,
+        options={"ftol": 1e-15, "maxiter": 1000},
+    )
+    minimiser: np.ndarray = result.x
+    return minimiser
+
+
 def check_run(
     model: Any,
     ts: np.ndarray,
@@ -171,38 +259,10 @@ def check_run(
         Times at which the constrained minimiser is found (evenly spread, the last one
         the end of the run).
     """
-    from scipy.optimize import minimize  # noqa: PLC0415 - only simulate needs it
-
-    t = model.t
-    signals = {s: e for s, e in model.signals}
+    problem = _problem(model, values, references)
+    t, numeric, refs_at = model.t, problem.numeric, problem.refs_at
+    g = problem.g
     fixed = {q: sp.Float(v) for q, v in values.items()}
-
-    def numeric(expr: sp.Expr) -> Any:
-        expr = sp.sympify(expr).xreplace(signals).xreplace(fixed)
-        return sp.lambdify([t, model.y, model.references], expr, "math")
-
-    def refs_at(time: float) -> list[float]:
-        if not model.references or references is None:
-            return []
-        jets = (references.exact or references.jets)(time)
-        return [float(v) for v in jets[:, 0]]
-
-    g = [numeric(c.g) for c in model.constraints]
-    f0 = numeric(model.objective)
-    # Exact gradients for the solver: f0's barriers (the paper's tan) are steep.
-    objective = sp.sympify(model.objective)
-    f0_grad = [numeric(sp.diff(objective, yi)) for yi in model.y]
-    g_grad = [[numeric(sp.diff(sp.sympify(c.g), yi)) for yi in model.y] for c in model.constraints]
-    # f0's principal domain, which the barrier objective never leaves: tan's argument
-    # within (-pi/2, pi/2) and log's positive; the independent solver keeps to it too.
-    domain = []
-    for node in sp.preorder_traversal(objective.xreplace(signals)):
-        if isinstance(node, sp.tan):
-            domain += [sp.pi / 2 - node.args[0], node.args[0] + sp.pi / 2]
-        elif isinstance(node, sp.log):
-            domain.append(node.args[0])
-    domain_fun = [numeric(e) for e in domain]
-    domain_grad = [[numeric(sp.diff(e, yi)) for yi in model.y] for e in domain]
     slack_of = sp.lambdify(t, model.slack.xreplace(fixed), "math")
     mu_of = sp.lambdify(t, model.mu.xreplace(fixed), "math")
     slack = np.array([slack_of(float(time)) for time in ts])
@@ -241,33 +301,10 @@ def check_run(
         # is reported: the minimiser was not where the theory puts it.
         radius = 2.0 * gap + 1e-3
         centre = phi_minimisers[:, k]
-        inequalities = [
-            {
-                "type": "ineq",
-                "fun": lambda y, gi=gi: s - gi(time, y, r),  # noqa: B023 - called at once
-                "jac": lambda y, row=row: -np.array([d(time, y, r) for d in row]),  # noqa: B023
-            }
-            for gi, row in zip(g, g_grad, strict=True)
-        ] + [
-            {
-                "type": "ineq",
-                "fun": lambda y, e=e: e(time, y, r),  # noqa: B023
-                "jac": lambda y, row=row: np.array([d(time, y, r) for d in row]),  # noqa: B023
-            }
-            for e, row in zip(domain_fun, domain_grad, strict=True)
-        ]
-        result = minimize(
-            lambda y: f0(time, y, r),  # noqa: B023 - called at once
-            centre,
-            jac=lambda y: np.array([d(time, y, r) for d in f0_grad]),  # noqa: B023
-            method="SLSQP",
-            bounds=[(c - radius, c + radius) for c in centre],
-            constraints=inequalities,
-            options={"ftol": 1e-15, "maxiter": 1000},
-        )
-        on_box = bool(np.any(np.abs(result.x - centre) >= radius * (1 - 1e-9)))
-        minimisers.append(result.x)
-        distance.append(math.inf if on_box else float(np.linalg.norm(outputs[:, k] - result.x)))
+        result_x = _minimise(problem, time, r, s, centre, radius)
+        on_box = bool(np.any(np.abs(result_x - centre) >= radius * (1 - 1e-9)))
+        minimisers.append(result_x)
+        distance.append(math.inf if on_box else float(np.linalg.norm(outputs[:, k] - result_x)))
         bound.append(float(to_phi[k] + gap))
     sides = [(numeric(c.lhs), numeric(c.rhs)) for c in model.constraints]
     lhs = np.array(

@@ -349,7 +349,7 @@ def _describe_forbidden(node: ast.AST) -> str:
         ast.Subscript: "indexing is",
         ast.Lambda: "lambda is",
         ast.IfExp: "conditional expressions are",
-        ast.Compare: "comparisons (only in [constraints]) are",
+        ast.Compare: "comparisons are",
         ast.BoolOp: "logical operators are",
         ast.JoinedStr: "f-strings are",
         ast.ListComp: "comprehensions are",
@@ -358,6 +358,8 @@ def _describe_forbidden(node: ast.AST) -> str:
         ast.SetComp: "comprehensions are",
         ast.NamedExpr: "assignment expressions are",
     }
+    if isinstance(node, ast.Compare):
+        return "comparisons are not allowed in expressions (a constraint goes in [constraints])"
     for kind, text in kinds.items():
         if isinstance(node, kind):
             return f"{text} not allowed in expressions"

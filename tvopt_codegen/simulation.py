@@ -523,6 +523,8 @@ def _certify(
     references: ReferenceSource | None = None,
 ) -> Result:
     """Sample the run and check the theorem along it."""
+    # Long on purpose: one pass over the run's samples, each check of the certificate
+    # in the order the summary prints them; the heavy parts are helpers.
     params = dict(options.params)
     # The controller got these jets; E and y* are measured against the true ones when
     # they are known (an estimate's error is then the disturbance d of E' = H E + d).
@@ -614,27 +616,7 @@ def _certify(
     )
     if not estimated and not ratio <= 1.0:
         failures.append(f"|y - y*| exceeds the bound C e^(-alpha t) by a factor {ratio:.3g}")
-    constrained = None
-    if d.model.constraints:
-        from tvopt_codegen.constraints import check_run  # noqa: PLC0415
-
-        values = {
-            q: options.params.get(q.name, v)
-            for q, v in zip(d.model.params, d.model.defaults, strict=True)
-        }
-        constrained = check_run(d.model, ts, outputs, error, target, values, references)
-        worst = float(constrained.margins.min())
-        if not worst > 0:
-            where = np.unravel_index(int(np.argmin(constrained.margins)), constrained.margins.shape)
-            failures.append(
-                f"constraint {d.model.constraints[where[0]].name} reached its barrier: "
-                f"s - g = {worst:.3g} at t = {ts[where[1]]:.4g}"
-            )
-        if not constrained.distance[-1] <= constrained.bound[-1] + 1e-6:
-            failures.append(
-                f"the distance to the constrained minimiser at the end, "
-                f"{constrained.distance[-1]:.3g}, exceeds its bound {constrained.bound[-1]:.3g}"
-            )
+    constrained = _constraint_check(d, options, ts, outputs, error, target, references, failures)
     norms = np.linalg.norm(flat, axis=1)
     # The decay rate is fitted where the slowest pole dominates: the second half of the
     # stretch where |E| is still above the integration noise.
@@ -675,6 +657,41 @@ def _certify(
         iss_ratio=iss_ratio,
         constraints=constrained,
     )
+
+
+def _constraint_check(
+    d: Derivation,
+    options: Options,
+    ts: np.ndarray,
+    outputs: np.ndarray,
+    error: np.ndarray,
+    target: np.ndarray,
+    references: ReferenceSource | None,
+    failures: list[str],
+) -> Any:
+    """For a spec with constraints: check them along the run, adding to ``failures``."""
+    if not d.model.constraints:
+        return None
+    from tvopt_codegen.constraints import check_run  # noqa: PLC0415
+
+    values = {
+        q: options.params.get(q.name, v)
+        for q, v in zip(d.model.params, d.model.defaults, strict=True)
+    }
+    constrained = check_run(d.model, ts, outputs, error, target, values, references)
+    worst = float(constrained.margins.min())
+    if not worst > 0:
+        where = np.unravel_index(int(np.argmin(constrained.margins)), constrained.margins.shape)
+        failures.append(
+            f"constraint {d.model.constraints[where[0]].name} reached its barrier: "
+            f"s - g = {worst:.3g} at t = {ts[where[1]]:.4g}"
+        )
+    if not constrained.distance[-1] <= constrained.bound[-1] + 1e-6:
+        failures.append(
+            f"the distance to the constrained minimiser at the end, "
+            f"{constrained.distance[-1]:.3g}, exceeds its bound {constrained.bound[-1]:.3g}"
+        )
+    return constrained
 
 
 def _input_to_state(

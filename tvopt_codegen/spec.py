@@ -590,6 +590,8 @@ class _Reader:
         return f"column {exc.column}: {role} {found.group(1)!r} may not appear here: {allowed}"
 
     def read(self, data: Mapping[str, Any], sha256: str) -> Spec:
+        # Long on purpose: the spec's sections in file order, each read and checked
+        # where the next one needs it (names before expressions that use them).
         self.table(data, "", _TOP_KEYS, {"name", "system", "objective", "error_dynamics"})
         name = data["name"]
         problem = module_name_problem(name)
