@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import subprocess
 from pathlib import Path
 from types import ModuleType
 
@@ -11,7 +10,7 @@ import numpy as np
 import pytest
 
 from .conftest import ALL_SPECS, derivation, module
-from .test_c_backend import STRICT, _write_c, c_module
+from .test_c_backend import _write_c, c_module, run_sanitized
 
 
 def _both(spec: str, tmp_path_factory: pytest.TempPathFactory) -> tuple[ModuleType, ModuleType]:
@@ -183,22 +182,8 @@ int main(void)
 def test_the_c_struct_under_sanitizers(spec: str, tmp_path: Path) -> None:
     source = _write_c(spec, tmp_path)
     name = derivation(spec).spec.name
-    (tmp_path / "main.c").write_text(C_DRIVER.format(name=name, P=name.upper()))
-    binary = tmp_path / "driver"
-    build = subprocess.run(
-        ["gcc", *STRICT, "-g", "-O1", "-fsanitize=address,undefined", "-fno-sanitize-recover=all"]
-        + ["-o", str(binary), str(tmp_path / "main.c"), str(source), "-lm"],
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    if build.returncode != 0 and "asan" in build.stderr.lower():
-        pytest.skip(f"sanitizer runtime unavailable: {build.stderr.strip()[:200]}")
-    assert build.returncode == 0, build.stderr
-    run = subprocess.run([str(binary)], capture_output=True, text=True, check=False, timeout=60)
-    assert run.returncode == 0, (run.returncode, run.stderr)
-    assert run.stderr == ""
-    t, u0 = map(float, run.stdout.split())
+    out = run_sanitized(C_DRIVER.format(name=name, P=name.upper()), source, tmp_path)
+    t, u0 = map(float, out.split())
     assert t == pytest.approx(0.1) and math.isfinite(u0)
 
 
