@@ -23,7 +23,14 @@ from tvopt_codegen import hurwitz
 from tvopt_codegen.constraints import nonconvex
 from tvopt_codegen.errors import AssumptionError, BudgetError, SpecError
 from tvopt_codegen.estimator import estimator_gains
-from tvopt_codegen.jet import Program, atomize, fresh_symbols, jacobian, next_derivative
+from tvopt_codegen.jet import (
+    Program,
+    atomize,
+    fresh_symbols,
+    jacobian,
+    next_derivative,
+    partial,
+)
 from tvopt_codegen.law import Law, control_law
 from tvopt_codegen.lie import (
     Extension,
@@ -527,7 +534,7 @@ def _sparse_gradient(f0: sp.Expr, y: Sequence[sp.Symbol]) -> sp.ImmutableMatrix:
     for term in terms:
         for yi in term.free_symbols & by_output.keys():
             by_output[yi].append(term)
-    return sp.ImmutableMatrix([sp.Add(*(sp.diff(term, yi) for term in by_output[yi])) for yi in y])
+    return sp.ImmutableMatrix([sp.Add(*(partial(term, yi) for term in by_output[yi])) for yi in y])
 
 
 def _sparse_hessian(gradient: sp.MatrixBase, y: Sequence[sp.Symbol]) -> sp.ImmutableMatrix:

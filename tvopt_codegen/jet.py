@@ -49,11 +49,46 @@ def fresh_symbols(prefix: str) -> Iterator[sp.Symbol]:
         index += 1
 
 
+def partial(expr: sp.Expr, var: sp.Symbol) -> sp.Expr:
+    """``d expr / d var`` by the sum, product, power and chain rules, as sympy's ``diff``.
+
+    The programs' right-hand sides are single operations, where sympy's ``diff`` spends
+    most of its time in the machinery of ``Derivative`` objects. The rules here build
+    the same sums and products (sympy's constructors put them in the same canonical
+    form); anything else is left to ``diff``.
+    """
+    if expr == var:
+        return sp.Integer(1)
+    if var not in expr.free_symbols:
+        return sp.Integer(0)
+    if expr.is_Add:
+        return sp.Add(*(partial(arg, var) for arg in expr.args if var in arg.free_symbols))
+    if expr.is_Mul:
+        # Each term one product of all factors, as sympy's Leibniz rule for a first
+        # derivative builds it (Mul._eval_derivative_n_times): a number times a sum
+        # distributes only there, and the form must be the same.
+        args = expr.args
+        terms = []
+        for i, arg in enumerate(args):
+            if var in arg.free_symbols:
+                terms.append(sp.Mul(*args[:i], partial(arg, var), *args[i + 1 :]))
+        return sp.Add(*terms)
+    if expr.is_Pow:
+        base, exponent = expr.args
+        if exponent.is_Number:
+            # sympy's Pow._eval_derivative with a constant exponent, term for term.
+            return expr * (partial(base, var) * exponent / base)
+        return sp.diff(expr, var)
+    if isinstance(expr, sp.Function) and len(expr.args) == 1:
+        return expr.fdiff(1) * partial(expr.args[0], var)
+    return sp.diff(expr, var)
+
+
 def _derivative(expr: sp.Expr, rates: Mapping[sp.Symbol, sp.Expr]) -> sp.Expr:
     """Chain rule: ``sum_v (d expr / d v) * rates[v]`` over the symbols that move."""
     total = sp.Integer(0)
     for var in sorted(expr.free_symbols & rates.keys(), key=lambda s: s.name):
-        total += sp.diff(expr, var) * rates[var]
+        total += partial(expr, var) * rates[var]
     return total
 
 
@@ -242,11 +277,11 @@ def jacobian(
     def propagate(expr: sp.Expr) -> dict[int, sp.Expr]:
         terms: dict[int, list[sp.Expr]] = {}
         for var in sorted(expr.free_symbols & tangent.keys(), key=lambda s: s.name):
-            partial = sp.diff(expr, var)
-            if partial == 0:
+            slope = partial(expr, var)
+            if slope == 0:
                 continue
             for j, rate in tangent[var].items():
-                terms.setdefault(j, []).append(partial * rate)
+                terms.setdefault(j, []).append(slope * rate)
         result = {j: sp.Add(*terms[j]) for j in sorted(terms)}
         return {j: value for j, value in result.items() if value != 0}
 
