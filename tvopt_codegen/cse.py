@@ -106,13 +106,16 @@ def _drop_aliases(
     """Substitute assignments whose value is a bare symbol or constant, or its negation."""
     alias: dict[sp.Symbol, sp.Expr] = {}
     kept: list[Assignment] = []
+    # One memo for the whole program: in evaluation order a node can only hold symbols
+    # assigned before it, whose aliases are all decided when it is first met.
+    memo: dict[sp.Basic, sp.Basic] = {}
     for sym, raw in assignments:
-        value = _substitute(raw, alias)
+        value = _substitute(raw, alias, memo)
         if value.is_Atom or _negated_atom(value):
             alias[sym] = value
         else:
             kept.append((sym, value))
-    return kept, [_substitute(e, alias) for e in outputs]
+    return kept, [_substitute(e, alias, memo) for e in outputs]
 
 
 def _prune(assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]) -> list[Assignment]:
@@ -317,13 +320,15 @@ def _inline_single_use(
                 uses[node] = uses.get(node, 0) + 1
     inline: dict[sp.Symbol, sp.Expr] = {}
     kept: list[Assignment] = []
+    # One memo for the program, as in _drop_aliases: a node holds only earlier symbols.
+    memo: dict[sp.Basic, sp.Basic] = {}
     for sym, raw in order:
-        value = _substitute(raw, inline)
+        value = _substitute(raw, inline, memo)
         if uses.get(sym, 0) == 1:
             inline[sym] = value
         else:
             kept.append((sym, value))
-    return kept, [_substitute(e, inline) for e in outputs]
+    return kept, [_substitute(e, inline, memo) for e in outputs]
 
 
 def _cse_index(sym: sp.Symbol) -> int:
