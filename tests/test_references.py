@@ -10,9 +10,9 @@ from types import ModuleType
 
 import numpy as np
 import pytest
-import sympy as sp
 
 from tvopt_codegen.errors import SpecError
+from tvopt_codegen.references import exact_jets as reference_jets
 from tvopt_codegen.spec import load_spec
 
 from .conftest import derivation, module, write_spec
@@ -22,22 +22,13 @@ TWINS = ["integrator", "unicycle_switch", "two_unicycles_barrier", "pvtol", "uni
 
 
 @functools.cache
-def _jet_function(spec: str) -> Callable[[float], list[list[float]]]:
-    d = derivation(spec)
-    model = d.model
-    defaults = dict(zip(model.params, model.defaults, strict=True))
-    nominal = dict(model.nominal)
-    rows = [
-        [sp.diff(nominal[r], model.t, j).xreplace(defaults) for j in range(d.reference_order + 1)]
-        for r in model.references
-    ]
-    function: Callable[[float], list[list[float]]] = sp.lambdify(model.t, rows, "math")
-    return function
+def _jets(spec: str) -> Callable[[float], np.ndarray]:
+    return reference_jets(derivation(spec), {})
 
 
 def exact_jets(spec: str, t: float) -> np.ndarray:
     """The references' jets from their nominal closed forms: shape (n_refs, q + 1)."""
-    return np.array(_jet_function(spec)(t), dtype=float)
+    return _jets(spec)(t)
 
 
 def _pairs(

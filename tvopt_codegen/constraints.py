@@ -104,6 +104,37 @@ def nonconvex(
     return found
 
 
+def least_violation(model: Any, t: float, y0: np.ndarray) -> float:
+    """``min_y max_i g_i(y, t)``: positive when no output satisfies every constraint.
+
+    By SLSQP, as ``min z`` subject to ``g_i(y, t) <= z``, from ``y0``; signals and nominal
+    references at ``t`` (references without one at 0), parameters at their defaults.
+    """
+    from scipy.optimize import minimize  # noqa: PLC0415 - only with constraints
+
+    at = {model.t: sp.Float(t)}
+    at |= {q: sp.Float(v) for q, v in zip(model.params, model.defaults, strict=True)}
+    nominal = dict(model.nominal)
+    fixed = {r: nominal.get(r, sp.Integer(0)) for r in model.references}
+    signals = dict(model.signals)
+    functions = [
+        sp.lambdify(
+            [model.y], sp.sympify(c.g).xreplace(signals).xreplace(fixed).xreplace(at), "math"
+        )
+        for c in model.constraints
+    ]
+    m = len(model.y)
+    start = np.append(y0, max(f(y0) for f in functions) + 1.0)
+    result = minimize(
+        lambda v: v[m],
+        start,
+        method="SLSQP",
+        constraints=[{"type": "ineq", "fun": lambda v, f=f: v[m] - f(v[:m])} for f in functions],
+        options={"ftol": 1e-12, "maxiter": 500},
+    )
+    return float(max(f(result.x[:m]) for f in functions))
+
+
 @dataclass(frozen=True)
 class RunCheck:
     """What the constraints' certificate found along a run.

@@ -20,7 +20,7 @@ import numpy as np
 import sympy as sp
 
 from tvopt_codegen import hurwitz
-from tvopt_codegen.constraints import nonconvex
+from tvopt_codegen.constraints import least_violation, nonconvex
 from tvopt_codegen.errors import AssumptionError, BudgetError, SpecError
 from tvopt_codegen.estimator import estimator_gains
 from tvopt_codegen.jet import (
@@ -1273,34 +1273,8 @@ def _constraint_convexity(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str
 
 
 def _feasible_at_the_end(spec: Spec, model: Model, y0: np.ndarray) -> None:
-    """Refuse constraints that no output satisfies at the end of the horizon.
-
-    ``min_y max_i g_i(y, T)`` by SLSQP (as ``min z`` subject to ``g_i(y, T) <= z``) from
-    the initial outputs; positive means infeasible there.
-    """
-    from scipy.optimize import minimize  # noqa: PLC0415 - only with constraints
-
-    end = {model.t: sp.Float(spec.t_final)}
-    end |= {q: sp.Float(v) for q, v in zip(model.params, model.defaults, strict=True)}
-    nominal = dict(model.nominal)
-    fixed = {r: nominal.get(r, sp.Integer(0)) for r in model.references}
-    signals = dict(model.signals)
-    functions = [
-        sp.lambdify(
-            [model.y], sp.sympify(c.g).xreplace(signals).xreplace(fixed).xreplace(end), "math"
-        )
-        for c in model.constraints
-    ]
-    m = len(model.y)
-    start = np.append(y0, max(f(y0) for f in functions) + 1.0)
-    result = minimize(
-        lambda v: v[m],
-        start,
-        method="SLSQP",
-        constraints=[{"type": "ineq", "fun": lambda v, f=f: v[m] - f(v[:m])} for f in functions],
-        options={"ftol": 1e-12, "maxiter": 500},
-    )
-    worst = float(max(f(result.x[:m]) for f in functions))
+    """Refuse constraints that no output satisfies at the end of the horizon."""
+    worst = least_violation(model, spec.t_final, y0)
     if worst > 1e-7:
         raise AssumptionError(
             spec.source,
