@@ -3,14 +3,14 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec name: pvtol
-# spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: 7b1a26f23fccfad386433ffa84381966ef02c4eb9f1423aeef3a61fa214be824
+# spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
+# content sha256: 72aa804ff53043a022046642364265d06ce3304f0da29d8c09362024a69d8e6d
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
 
 Planar quadrotor (PVTOL aircraft) tracking a moving target.
-Position (x, z), attitude theta, thrust and torque. Declared without an extension: the
+Position (x, z), attitude theta, thrust and torque; mass m and inertia J. Declared without an extension: the
 automatic search finds that the thrust must be integrated twice (relative degree {4, 4},
 k = 4); the law is singular at zero thrust.
 
@@ -64,7 +64,7 @@ INPUT_NAMES = ('thrust', 'torque')
 #: Outputs y, the arguments of the objective.
 OUTPUT_NAMES = ('px', 'pz')
 #: Parameters and their default values.
-PARAMETERS = {'g': 9.81}
+PARAMETERS = {'g': 9.81, 'm': 1.0, 'J': 1.0}
 #: Relative degree of each output in the extended system.
 RELATIVE_DEGREE = {'px': 4, 'pz': 4}
 #: Integrators added to each prolonged input (dynamic extension).
@@ -275,13 +275,15 @@ def _lu_solve(a, b, points):
     return numpy.array(x)
 
 def _jet_time(t, p, a):
-    """The jet's terms of time and parameters alone (kernel; 36 operations, 36 before CSE)."""
+    """The jet's terms of time and parameters alone (kernel; 43 operations, 43 before CSE)."""
     _p0 = p[0]  # g
+    _p1 = p[1]  # m
+    _p2 = p[2]  # J
     _a0 = a[0]  # a_0
     _a1 = a[1]  # a_1
     _a2 = a[2]  # a_2
     _a3 = a[3]  # a_3
-    # Intermediate terms (13)
+    # Intermediate terms (15)
     _t0 = (2/5)*t
     _t1 = numpy.sin(_t0)
     _t2 = numpy.cos(_t0)
@@ -291,31 +293,37 @@ def _jet_time(t, p, a):
     _t6 = numpy.cos(_t5)
     _t7 = numpy.sin(_t5)
     _t8 = numpy.cos(_t3)
-    _t16 = (1/2)*_a0
-    _t17 = (1/2)*_a1
-    _t18 = (1/2)*_a2
-    _t19 = (1/2)*_a3
+    _t9 = 1/_p1
+    _t18 = (1/2)*_a0
+    _t19 = (1/2)*_a1
+    _t20 = (1/2)*_a2
+    _t21 = (1/2)*_a3
+    _t22 = 1/_p2
     # Output terms
-    tau = numpy.empty((14, ))  # terms of time and parameters
-    tau[0] = -3*_t1
-    tau[1] = _t16
-    tau[2] = -6/5*_t2
-    tau[3] = _t17
-    tau[4] = (12/25)*_t1
-    tau[5] = _t18
-    tau[6] = (24/125)*_t2
-    tau[7] = _t19
-    tau[8] = (24/625)*_t1
-    tau[9] = _t6 - 8/5*_t4 - 4
-    tau[10] = -12/25*_t8 - 1/5*_t7
-    tau[11] = (18/125)*_t4 - 2*_p0 - 1/25*_t6
-    tau[12] = (1/125)*_t7 + (27/625)*_t8
-    tau[13] = (81/12500)*_t4 - 1/1250*_t6
+    tau = numpy.empty((18, ))  # terms of time and parameters
+    tau[0] = _t9
+    tau[1] = -_t9
+    tau[2] = -3*_t1
+    tau[3] = _t18
+    tau[4] = -6/5*_t2
+    tau[5] = _t19
+    tau[6] = (12/25)*_t1
+    tau[7] = _t20
+    tau[8] = (24/125)*_t2
+    tau[9] = _t21
+    tau[10] = (24/625)*_t1
+    tau[11] = _t6 - 8/5*_t4 - 4
+    tau[12] = -12/25*_t8 - 1/5*_t7
+    tau[13] = 2*_t9
+    tau[14] = (18/125)*_t4 - 2*_p0 - 1/25*_t6
+    tau[15] = (1/125)*_t7 + (27/625)*_t8
+    tau[16] = (81/12500)*_t4 - 1/1250*_t6
+    tau[17] = -_t22
     return tau
 
 
 def _jet(t, s, p, a, tau):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 52 operations, 118 before CSE)."""
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 56 operations, 147 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x
     _s1 = s[1]  # z
@@ -325,40 +333,45 @@ def _jet(t, s, p, a, tau):
     _s5 = s[5]  # omega
     _s6 = s[6]  # thrust
     _s7 = s[7]  # thrust_d1
-    _h0 = tau[0]  # jet_time tau[0]
-    _t16 = tau[1]  # jet_time tau[1]
+    _t9 = tau[0]  # jet_time tau[0]
+    _h0 = tau[1]  # jet_time tau[1]
     _h1 = tau[2]  # jet_time tau[2]
-    _t17 = tau[3]  # jet_time tau[3]
+    _t18 = tau[3]  # jet_time tau[3]
     _h2 = tau[4]  # jet_time tau[4]
-    _t18 = tau[5]  # jet_time tau[5]
+    _t19 = tau[5]  # jet_time tau[5]
     _h3 = tau[6]  # jet_time tau[6]
-    _t19 = tau[7]  # jet_time tau[7]
+    _t20 = tau[7]  # jet_time tau[7]
     _h4 = tau[8]  # jet_time tau[8]
-    _h5 = tau[9]  # jet_time tau[9]
-    _h6 = tau[10]  # jet_time tau[10]
-    _h7 = tau[11]  # jet_time tau[11]
-    _h8 = tau[12]  # jet_time tau[12]
-    _h9 = tau[13]  # jet_time tau[13]
-    # Intermediate terms (7)
-    _t9 = numpy.sin(_s2)
-    _t10 = _s6*_t9
-    _t11 = _s7*_t9
-    _t12 = numpy.cos(_s2)
-    _t13 = _s6*_t12
-    _t14 = -_t11 - _s5*_t13
-    _t15 = _s5*_t10 - _s7*_t12
+    _t21 = tau[9]  # jet_time tau[9]
+    _h5 = tau[10]  # jet_time tau[10]
+    _h6 = tau[11]  # jet_time tau[11]
+    _h7 = tau[12]  # jet_time tau[12]
+    _h8 = tau[13]  # jet_time tau[13]
+    _h9 = tau[14]  # jet_time tau[14]
+    _h10 = tau[15]  # jet_time tau[15]
+    _h11 = tau[16]  # jet_time tau[16]
+    _h12 = tau[17]  # jet_time tau[17]
+    # Intermediate terms (8)
+    _t10 = _t9*numpy.sin(_s2)
+    _t11 = _s6*_t10
+    _t12 = _s7*_t10
+    _t13 = numpy.cos(_s2)
+    _t14 = _t13*_t9
+    _t15 = _s6*_t14
+    _t16 = -_t12 - _s5*_t15
+    _t17 = _s5*_t11 + _h0*_s7*_t13
     # Output terms
     z = numpy.empty((2, _n))  # y_imp^(k)
-    z[0] = _h4 + _t16*(_h0 + 2*_s0) + _t17*(_h1 + 2*_s3) + _t18*(_h2 - 2*_t10) + _t19*(_h3 + 2*_t14)
-    z[1] = _h9 + _t16*(_h5 + 2*_s1) + _t17*(_h6 + 2*_s4) + _t18*(_h7 + 2*_t13) + _t19*(_h8 - 2*_t15)
+    z[0] = _h5 + _t18*(_h1 + 2*_s0) + _t19*(_h2 + 2*_s3) + _t20*(_h3 - 2*_t11) + _t21*(_h4 + 2*_t16)
+    z[1] = _h11 + _t18*(_h6 + 2*_s1) + _t19*(_h7 + 2*_s4) + _t20*(_h9 + _h8*_s6*_t13) + _t21*(_h10 - 2*_t17)
     R = numpy.empty((4, _n))  # diagonal blocks of the decoupling matrix
-    R[0] = -_t9
-    R[1] = -_t13
-    R[2] = _t12
-    R[3] = -_t10
+    R[0] = -_t10
+    R[1] = _h12*_t15
+    R[2] = _t14
+    R[3] = _h12*_t11
     pvec = numpy.empty((2, _n))  # p = col(L_f^{r_i} h_i)
-    pvec[0] = _s5*_t15 - _s5*_s7*_t12
-    pvec[1] = _s5*_t14 - _s5*_t11
+    pvec[0] = _s5*_t17 - _s5*_s7*_t14
+    pvec[1] = _s5*_t16 - _s5*_t12
     return z, R, pvec
 
 
@@ -377,7 +390,7 @@ def _decoupling(t, s, p, z, q):
 
 
 def _closed_loop(t, s, p, w, z):
-    """Closed-loop vector field and the plant input (kernel; 6 operations, 6 before CSE)."""
+    """Closed-loop vector field and the plant input (kernel; 12 operations, 12 before CSE)."""
     _n = s.shape[1]
     _s2 = s[2]  # theta
     _s3 = s[3]  # vx
@@ -386,16 +399,20 @@ def _closed_loop(t, s, p, w, z):
     _s6 = s[6]  # thrust
     _s7 = s[7]  # thrust_d1
     _p0 = p[0]  # g
+    _p1 = p[1]  # m
+    _p2 = p[2]  # J
     _w0 = w[0]  # thrust_d2
     _w1 = w[1]  # torque
+    # Intermediate terms (1)
+    _t0 = 1/_p1
     # Output terms
     ds = numpy.empty((8, _n))  # time derivative of the closed-loop state
     ds[0] = _s3
     ds[1] = _s4
     ds[2] = _s5
-    ds[3] = -_s6*numpy.sin(_s2)
-    ds[4] = _s6*numpy.cos(_s2) - _p0
-    ds[5] = _w1
+    ds[3] = -_s6*_t0*numpy.sin(_s2)
+    ds[4] = _s6*_t0*numpy.cos(_s2) - _p0
+    ds[5] = _w1/_p2
     ds[6] = _s7
     ds[7] = _w0
     u = numpy.empty((2, _n))  # plant input
@@ -417,7 +434,7 @@ def _plant_input(t, s, p, w):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 57 operations, 83 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 63 operations, 95 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x
     _s1 = s[1]  # z
@@ -428,7 +445,8 @@ def _optimality(t, s, p):
     _s6 = s[6]  # thrust
     _s7 = s[7]  # thrust_d1
     _p0 = p[0]  # g
-    # Intermediate terms (12)
+    _p1 = p[1]  # m
+    # Intermediate terms (13)
     _t0 = (2/5)*t
     _t1 = numpy.sin(_t0)
     _t2 = numpy.cos(_t0)
@@ -438,19 +456,20 @@ def _optimality(t, s, p):
     _t6 = numpy.cos(_t5)
     _t7 = numpy.sin(_t5)
     _t8 = numpy.cos(_t3)
-    _t9 = numpy.sin(_s2)
-    _t10 = _s6*_t9
-    _t11 = numpy.cos(_s2)
+    _t9 = 1/_p1
+    _t10 = _t9*numpy.sin(_s2)
+    _t11 = _s6*_t10
+    _t12 = numpy.cos(_s2)
     # Output terms
     E = numpy.empty((4, 2, _n))  # grad^(j) f0
     E[0, 0] = 2*_s0 - 3*_t1
     E[0, 1] = _t6 + 2*_s1 - 8/5*_t4 - 4
     E[1, 0] = 2*_s3 - 6/5*_t2
     E[1, 1] = 2*_s4 - 12/25*_t8 - 1/5*_t7
-    E[2, 0] = (12/25)*_t1 - 2*_t10
-    E[2, 1] = (18/125)*_t4 - 2*_p0 - 1/25*_t6 + 2*_s6*_t11
-    E[3, 0] = (24/125)*_t2 - 2*_s7*_t9 - 2*_s5*_s6*_t11
-    E[3, 1] = (1/125)*_t7 + (27/625)*_t8 - 2*_s5*_t10 + 2*_s7*_t11
+    E[2, 0] = (12/25)*_t1 - 2*_t11
+    E[2, 1] = (18/125)*_t4 - 2*_p0 - 1/25*_t6 + 2*_s6*_t12*_t9
+    E[3, 0] = (24/125)*_t2 - 2*_s7*_t10 - 2*_s5*_s6*_t12*_t9
+    E[3, 1] = (1/125)*_t7 + (27/625)*_t8 - 2*_s5*_t11 + 2*_s7*_t12*_t9
     return E
 
 
@@ -490,7 +509,7 @@ def _hessian(t, y, p):
 
 
 def _plant(t, x, u, p):
-    """The plant alone: x' = f(x) + G(x) u (kernel; 6 operations, 6 before CSE)."""
+    """The plant alone: x' = f(x) + G(x) u (kernel; 12 operations, 12 before CSE)."""
     _n = x.shape[1]
     _x2 = x[2]  # theta
     _x3 = x[3]  # vx
@@ -499,14 +518,18 @@ def _plant(t, x, u, p):
     _u0 = u[0]  # thrust
     _u1 = u[1]  # torque
     _p0 = p[0]  # g
+    _p1 = p[1]  # m
+    _p2 = p[2]  # J
+    # Intermediate terms (1)
+    _t0 = 1/_p1
     # Output terms
     dx = numpy.empty((6, _n))  # time derivative of the plant state
     dx[0] = _x3
     dx[1] = _x4
     dx[2] = _x5
-    dx[3] = -_u0*numpy.sin(_x2)
-    dx[4] = _u0*numpy.cos(_x2) - _p0
-    dx[5] = _u1
+    dx[3] = -_t0*_u0*numpy.sin(_x2)
+    dx[4] = _t0*_u0*numpy.cos(_x2) - _p0
+    dx[5] = _u1/_p2
     return dx
 
 
@@ -524,7 +547,7 @@ def _outputs(t, x, p):
 
 def _jet_time_1(t, p, a):
     """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
-    _p0, = p
+    _p0, _p1, _p2 = p
     _a0, _a1, _a2, _a3 = a
     _t0 = (2/5)*t
     _t1 = float(numpy.sin(_t0))
@@ -535,25 +558,31 @@ def _jet_time_1(t, p, a):
     _t6 = float(numpy.cos(_t5))
     _t7 = float(numpy.sin(_t5))
     _t8 = float(numpy.cos(_t3))
-    _t16 = (1/2)*_a0
-    _t17 = (1/2)*_a1
-    _t18 = (1/2)*_a2
-    _t19 = (1/2)*_a3
+    _t9 = 1.0/_p1
+    _t18 = (1/2)*_a0
+    _t19 = (1/2)*_a1
+    _t20 = (1/2)*_a2
+    _t21 = (1/2)*_a3
+    _t22 = 1.0/_p2
     tau = [
+        _t9,
+        -_t9,
         -3.0*_t1,
-        _t16,
-        -6/5*_t2,
-        _t17,
-        (12/25)*_t1,
         _t18,
-        (24/125)*_t2,
+        -6/5*_t2,
         _t19,
+        (12/25)*_t1,
+        _t20,
+        (24/125)*_t2,
+        _t21,
         (24/625)*_t1,
         _t6 - 8/5*_t4 - 4.0,
         -12/25*_t8 - 1/5*_t7,
+        2.0*_t9,
         (18/125)*_t4 - 2.0*_p0 - 1/25*_t6,
         (1/125)*_t7 + (27/625)*_t8,
         (81/12500)*_t4 - 1/1250*_t6,
+        -_t22,
     ]
     return tau
 
@@ -561,27 +590,28 @@ def _jet_time_1(t, p, a):
 def _jet_1(t, s, p, a, tau):
     """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (one point; lists in, lists out)."""
     _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7 = s
-    _h0, _t16, _h1, _t17, _h2, _t18, _h3, _t19, _h4, _h5, _h6, _h7, _h8, _h9 = tau
-    _t9 = float(numpy.sin(_s2))
-    _t10 = _s6*_t9
-    _t11 = _s7*_t9
-    _t12 = float(numpy.cos(_s2))
-    _t13 = _s6*_t12
-    _t14 = -_t11 - _s5*_t13
-    _t15 = _s5*_t10 - _s7*_t12
+    _t9, _h0, _h1, _t18, _h2, _t19, _h3, _t20, _h4, _t21, _h5, _h6, _h7, _h8, _h9, _h10, _h11, _h12 = tau
+    _t10 = _t9*float(numpy.sin(_s2))
+    _t11 = _s6*_t10
+    _t12 = _s7*_t10
+    _t13 = float(numpy.cos(_s2))
+    _t14 = _t13*_t9
+    _t15 = _s6*_t14
+    _t16 = -_t12 - _s5*_t15
+    _t17 = _s5*_t11 + _h0*_s7*_t13
     z = [
-        _h4 + _t16*(_h0 + 2.0*_s0) + _t17*(_h1 + 2.0*_s3) + _t18*(_h2 - 2.0*_t10) + _t19*(_h3 + 2.0*_t14),
-        _h9 + _t16*(_h5 + 2.0*_s1) + _t17*(_h6 + 2.0*_s4) + _t18*(_h7 + 2.0*_t13) + _t19*(_h8 - 2.0*_t15),
+        _h5 + _t18*(_h1 + 2.0*_s0) + _t19*(_h2 + 2.0*_s3) + _t20*(_h3 - 2.0*_t11) + _t21*(_h4 + 2.0*_t16),
+        _h11 + _t18*(_h6 + 2.0*_s1) + _t19*(_h7 + 2.0*_s4) + _t20*(_h9 + _h8*_s6*_t13) + _t21*(_h10 - 2.0*_t17),
     ]
     R = [
-        -_t9,
-        -_t13,
-        _t12,
         -_t10,
+        _h12*_t15,
+        _t14,
+        _h12*_t11,
     ]
     pvec = [
-        _s5*_t15 - _s5*_s7*_t12,
-        _s5*_t14 - _s5*_t11,
+        _s5*_t17 - _s5*_s7*_t14,
+        _s5*_t16 - _s5*_t12,
     ]
     return z, R, pvec
 
@@ -600,15 +630,16 @@ def _decoupling_1(t, s, p, z, q):
 def _closed_loop_1(t, s, p, w, z):
     """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
     _, _, _s2, _s3, _s4, _s5, _s6, _s7 = s
-    _p0, = p
+    _p0, _p1, _p2 = p
     _w0, _w1 = w
+    _t0 = 1.0/_p1
     ds = [
         _s3,
         _s4,
         _s5,
-        -_s6*float(numpy.sin(_s2)),
-        _s6*float(numpy.cos(_s2)) - _p0,
-        _w1,
+        -_s6*_t0*float(numpy.sin(_s2)),
+        _s6*_t0*float(numpy.cos(_s2)) - _p0,
+        _w1/_p2,
         _s7,
         _w0,
     ]
@@ -633,7 +664,7 @@ def _plant_input_1(t, s, p, w):
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
     _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7 = s
-    _p0, = p
+    _p0, _p1, _ = p
     _t0 = (2/5)*t
     _t1 = float(numpy.sin(_t0))
     _t2 = float(numpy.cos(_t0))
@@ -643,18 +674,19 @@ def _optimality_1(t, s, p):
     _t6 = float(numpy.cos(_t5))
     _t7 = float(numpy.sin(_t5))
     _t8 = float(numpy.cos(_t3))
-    _t9 = float(numpy.sin(_s2))
-    _t10 = _s6*_t9
-    _t11 = float(numpy.cos(_s2))
+    _t9 = 1.0/_p1
+    _t10 = _t9*float(numpy.sin(_s2))
+    _t11 = _s6*_t10
+    _t12 = float(numpy.cos(_s2))
     E = [
         2.0*_s0 - 3.0*_t1,
         _t6 + 2.0*_s1 - 8/5*_t4 - 4.0,
         2.0*_s3 - 6/5*_t2,
         2.0*_s4 - 12/25*_t8 - 1/5*_t7,
-        (12/25)*_t1 - 2.0*_t10,
-        (18/125)*_t4 - 2.0*_p0 - 1/25*_t6 + 2.0*_s6*_t11,
-        (24/125)*_t2 - 2.0*_s7*_t9 - 2.0*_s5*_s6*_t11,
-        (1/125)*_t7 + (27/625)*_t8 - 2.0*_s5*_t10 + 2.0*_s7*_t11,
+        (12/25)*_t1 - 2.0*_t11,
+        (18/125)*_t4 - 2.0*_p0 - 1/25*_t6 + 2.0*_s6*_t12*_t9,
+        (24/125)*_t2 - 2.0*_s7*_t10 - 2.0*_s5*_s6*_t12*_t9,
+        (1/125)*_t7 + (27/625)*_t8 - 2.0*_s5*_t11 + 2.0*_s7*_t12*_t9,
     ]
     return E
 

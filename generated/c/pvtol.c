@@ -2,8 +2,8 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec name: pvtol
- * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: 5ecaa57fe7988bc636393eceb50d80a2f8c70fcccafc926e98d8183d2c50dcca
+ * spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
+ * content sha256: 1abf36e71857da3ca84af301901b40091273d4476fa2e1b1b12e5084634fed7b
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -31,18 +31,20 @@ int pvtol_k(void) { return PVTOL_K; }
 const char *const pvtol_state_names[PVTOL_N_STATES] = {"x", "z", "theta", "vx", "vz", "omega", "thrust", "thrust_d1"};
 const char *const pvtol_input_names[PVTOL_N_INPUTS] = {"thrust", "torque"};
 const char *const pvtol_output_names[PVTOL_N_OUTPUTS] = {"px", "pz"};
-const char *const pvtol_param_names[PVTOL_N_PARAMS] = {"g"};
-const double pvtol_default_params[PVTOL_N_PARAMS] = {9.81};
+const char *const pvtol_param_names[PVTOL_N_PARAMS] = {"g", "m", "J"};
+const double pvtol_default_params[PVTOL_N_PARAMS] = {9.81, 1.0, 1.0};
 #define PVTOL_DEFAULT_PARAMS pvtol_default_params
 const double pvtol_default_state[PVTOL_N_STATES] = {-1.0, 0.5, 0.0, 0.0, 0.0, 0.0, 9.81, 0.0};
 const char *const pvtol_plant_state_names[PVTOL_N_PLANT_STATES] = {"x", "z", "theta", "vx", "vz", "omega"};
 const char *const pvtol_controller_state_names[PVTOL_N_CONTROLLER_STATES] = {"thrust", "thrust_d1"};
 const double pvtol_hurwitz_coefficients[PVTOL_K] = {-7.5, -19.25, -17.75, -7.0};
 
-/* The jet's terms of time and parameters alone (36 operations, 36 before CSE). */
+/* The jet's terms of time and parameters alone (43 operations, 43 before CSE). */
 static void pvtol_k_jet_time(double t, const double *p, const double *a, double *tau)
 {
     const double _p0 = p[0]; /* g */
+    const double _p1 = p[1]; /* m */
+    const double _p2 = p[2]; /* J */
     const double _a0 = a[0]; /* a_0 */
     const double _a1 = a[1]; /* a_1 */
     const double _a2 = a[2]; /* a_2 */
@@ -56,28 +58,34 @@ static void pvtol_k_jet_time(double t, const double *p, const double *a, double 
     const double _t6 = cos(_t5);
     const double _t7 = sin(_t5);
     const double _t8 = cos(_t3);
-    const double _t16 = (1.0/2.0)*_a0;
-    const double _t17 = (1.0/2.0)*_a1;
-    const double _t18 = (1.0/2.0)*_a2;
-    const double _t19 = (1.0/2.0)*_a3;
-    tau[0] = -3*_t1;
-    tau[1] = _t16;
-    tau[2] = -6.0/5.0*_t2;
-    tau[3] = _t17;
-    tau[4] = (12.0/25.0)*_t1;
-    tau[5] = _t18;
-    tau[6] = (24.0/125.0)*_t2;
-    tau[7] = _t19;
-    tau[8] = (24.0/625.0)*_t1;
-    tau[9] = _t6 - 8.0/5.0*_t4 - 4;
-    tau[10] = -12.0/25.0*_t8 - 1.0/5.0*_t7;
-    tau[11] = (18.0/125.0)*_t4 - 2*_p0 - 1.0/25.0*_t6;
-    tau[12] = (1.0/125.0)*_t7 + (27.0/625.0)*_t8;
-    tau[13] = (81.0/12500.0)*_t4 - 1.0/1250.0*_t6;
+    const double _t9 = (1.0/_p1);
+    const double _t18 = (1.0/2.0)*_a0;
+    const double _t19 = (1.0/2.0)*_a1;
+    const double _t20 = (1.0/2.0)*_a2;
+    const double _t21 = (1.0/2.0)*_a3;
+    const double _t22 = (1.0/_p2);
+    tau[0] = _t9;
+    tau[1] = -_t9;
+    tau[2] = -3*_t1;
+    tau[3] = _t18;
+    tau[4] = -6.0/5.0*_t2;
+    tau[5] = _t19;
+    tau[6] = (12.0/25.0)*_t1;
+    tau[7] = _t20;
+    tau[8] = (24.0/125.0)*_t2;
+    tau[9] = _t21;
+    tau[10] = (24.0/625.0)*_t1;
+    tau[11] = _t6 - 8.0/5.0*_t4 - 4;
+    tau[12] = -12.0/25.0*_t8 - 1.0/5.0*_t7;
+    tau[13] = 2*_t9;
+    tau[14] = (18.0/125.0)*_t4 - 2*_p0 - 1.0/25.0*_t6;
+    tau[15] = (1.0/125.0)*_t7 + (27.0/625.0)*_t8;
+    tau[16] = (81.0/12500.0)*_t4 - 1.0/1250.0*_t6;
+    tau[17] = -_t22;
 }
 
 
-/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (52 operations, 118 before CSE). */
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (56 operations, 147 before CSE). */
 static void pvtol_k_jet(double t, const double *s, const double *p, const double *a, const double *tau, double *z, double *R, double *pvec)
 {
     (void)t;
@@ -91,35 +99,40 @@ static void pvtol_k_jet(double t, const double *s, const double *p, const double
     const double _s7 = s[7]; /* thrust_d1 */
     (void)p;
     (void)a;
-    const double _h0 = tau[0]; /* jet_time tau[0] */
-    const double _t16 = tau[1]; /* jet_time tau[1] */
+    const double _t9 = tau[0]; /* jet_time tau[0] */
+    const double _h0 = tau[1]; /* jet_time tau[1] */
     const double _h1 = tau[2]; /* jet_time tau[2] */
-    const double _t17 = tau[3]; /* jet_time tau[3] */
+    const double _t18 = tau[3]; /* jet_time tau[3] */
     const double _h2 = tau[4]; /* jet_time tau[4] */
-    const double _t18 = tau[5]; /* jet_time tau[5] */
+    const double _t19 = tau[5]; /* jet_time tau[5] */
     const double _h3 = tau[6]; /* jet_time tau[6] */
-    const double _t19 = tau[7]; /* jet_time tau[7] */
+    const double _t20 = tau[7]; /* jet_time tau[7] */
     const double _h4 = tau[8]; /* jet_time tau[8] */
-    const double _h5 = tau[9]; /* jet_time tau[9] */
-    const double _h6 = tau[10]; /* jet_time tau[10] */
-    const double _h7 = tau[11]; /* jet_time tau[11] */
-    const double _h8 = tau[12]; /* jet_time tau[12] */
-    const double _h9 = tau[13]; /* jet_time tau[13] */
-    const double _t9 = sin(_s2);
-    const double _t10 = _s6*_t9;
-    const double _t11 = _s7*_t9;
-    const double _t12 = cos(_s2);
-    const double _t13 = _s6*_t12;
-    const double _t14 = -_t11 - _s5*_t13;
-    const double _t15 = _s5*_t10 - _s7*_t12;
-    z[0] = _h4 + _t16*(_h0 + 2*_s0) + _t17*(_h1 + 2*_s3) + _t18*(_h2 - 2*_t10) + _t19*(_h3 + 2*_t14);
-    z[1] = _h9 + _t16*(_h5 + 2*_s1) + _t17*(_h6 + 2*_s4) + _t18*(_h7 + 2*_t13) + _t19*(_h8 - 2*_t15);
-    R[0] = -_t9;
-    R[1] = -_t13;
-    R[2] = _t12;
-    R[3] = -_t10;
-    pvec[0] = _s5*_t15 - _s5*_s7*_t12;
-    pvec[1] = _s5*_t14 - _s5*_t11;
+    const double _t21 = tau[9]; /* jet_time tau[9] */
+    const double _h5 = tau[10]; /* jet_time tau[10] */
+    const double _h6 = tau[11]; /* jet_time tau[11] */
+    const double _h7 = tau[12]; /* jet_time tau[12] */
+    const double _h8 = tau[13]; /* jet_time tau[13] */
+    const double _h9 = tau[14]; /* jet_time tau[14] */
+    const double _h10 = tau[15]; /* jet_time tau[15] */
+    const double _h11 = tau[16]; /* jet_time tau[16] */
+    const double _h12 = tau[17]; /* jet_time tau[17] */
+    const double _t10 = _t9*sin(_s2);
+    const double _t11 = _s6*_t10;
+    const double _t12 = _s7*_t10;
+    const double _t13 = cos(_s2);
+    const double _t14 = _t13*_t9;
+    const double _t15 = _s6*_t14;
+    const double _t16 = -_t12 - _s5*_t15;
+    const double _t17 = _s5*_t11 + _h0*_s7*_t13;
+    z[0] = _h5 + _t18*(_h1 + 2*_s0) + _t19*(_h2 + 2*_s3) + _t20*(_h3 - 2*_t11) + _t21*(_h4 + 2*_t16);
+    z[1] = _h11 + _t18*(_h6 + 2*_s1) + _t19*(_h7 + 2*_s4) + _t20*(_h9 + _h8*_s6*_t13) + _t21*(_h10 - 2*_t17);
+    R[0] = -_t10;
+    R[1] = _h12*_t15;
+    R[2] = _t14;
+    R[3] = _h12*_t11;
+    pvec[0] = _s5*_t17 - _s5*_s7*_t14;
+    pvec[1] = _s5*_t16 - _s5*_t12;
 }
 
 
@@ -138,7 +151,7 @@ static void pvtol_k_decoupling(double t, const double *s, const double *p, const
 }
 
 
-/* Closed-loop vector field and the plant input (6 operations, 6 before CSE). */
+/* Closed-loop vector field and the plant input (12 operations, 12 before CSE). */
 static void pvtol_k_closed_loop(double t, const double *s, const double *p, const double *w, const double *z, double *ds, double *u)
 {
     (void)t;
@@ -149,15 +162,18 @@ static void pvtol_k_closed_loop(double t, const double *s, const double *p, cons
     const double _s6 = s[6]; /* thrust */
     const double _s7 = s[7]; /* thrust_d1 */
     const double _p0 = p[0]; /* g */
+    const double _p1 = p[1]; /* m */
+    const double _p2 = p[2]; /* J */
     const double _w0 = w[0]; /* thrust_d2 */
     const double _w1 = w[1]; /* torque */
     (void)z;
+    const double _t0 = (1.0/_p1);
     ds[0] = _s3;
     ds[1] = _s4;
     ds[2] = _s5;
-    ds[3] = -_s6*sin(_s2);
-    ds[4] = _s6*cos(_s2) - _p0;
-    ds[5] = _w1;
+    ds[3] = -_s6*_t0*sin(_s2);
+    ds[4] = _s6*_t0*cos(_s2) - _p0;
+    ds[5] = _w1/_p2;
     ds[6] = _s7;
     ds[7] = _w0;
     u[0] = _s6;
@@ -177,7 +193,7 @@ static void pvtol_k_plant_input(double t, const double *s, const double *p, cons
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (57 operations, 83 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (63 operations, 95 before CSE). */
 static void pvtol_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* x */
@@ -189,6 +205,7 @@ static void pvtol_k_optimality(double t, const double *s, const double *p, doubl
     const double _s6 = s[6]; /* thrust */
     const double _s7 = s[7]; /* thrust_d1 */
     const double _p0 = p[0]; /* g */
+    const double _p1 = p[1]; /* m */
     const double _t0 = (2.0/5.0)*t;
     const double _t1 = sin(_t0);
     const double _t2 = cos(_t0);
@@ -198,17 +215,18 @@ static void pvtol_k_optimality(double t, const double *s, const double *p, doubl
     const double _t6 = cos(_t5);
     const double _t7 = sin(_t5);
     const double _t8 = cos(_t3);
-    const double _t9 = sin(_s2);
-    const double _t10 = _s6*_t9;
-    const double _t11 = cos(_s2);
+    const double _t9 = (1.0/_p1);
+    const double _t10 = _t9*sin(_s2);
+    const double _t11 = _s6*_t10;
+    const double _t12 = cos(_s2);
     E[0] = 2*_s0 - 3*_t1;
     E[1] = _t6 + 2*_s1 - 8.0/5.0*_t4 - 4;
     E[2] = 2*_s3 - 6.0/5.0*_t2;
     E[3] = 2*_s4 - 12.0/25.0*_t8 - 1.0/5.0*_t7;
-    E[4] = (12.0/25.0)*_t1 - 2*_t10;
-    E[5] = (18.0/125.0)*_t4 - 2*_p0 - 1.0/25.0*_t6 + 2*_s6*_t11;
-    E[6] = (24.0/125.0)*_t2 - 2*_s7*_t9 - 2*_s5*_s6*_t11;
-    E[7] = (1.0/125.0)*_t7 + (27.0/625.0)*_t8 - 2*_s5*_t10 + 2*_s7*_t11;
+    E[4] = (12.0/25.0)*_t1 - 2*_t11;
+    E[5] = (18.0/125.0)*_t4 - 2*_p0 - 1.0/25.0*_t6 + 2*_s6*_t12*_t9;
+    E[6] = (24.0/125.0)*_t2 - 2*_s7*_t10 - 2*_s5*_s6*_t12*_t9;
+    E[7] = (1.0/125.0)*_t7 + (27.0/625.0)*_t8 - 2*_s5*_t11 + 2*_s7*_t12*_t9;
 }
 
 
@@ -246,7 +264,7 @@ static void pvtol_k_hessian(double t, const double *y, const double *p, double *
 }
 
 
-/* The plant alone: x' = f(x) + G(x) u (6 operations, 6 before CSE). */
+/* The plant alone: x' = f(x) + G(x) u (12 operations, 12 before CSE). */
 static void pvtol_k_plant(double t, const double *x, const double *u, const double *p, double *dx)
 {
     (void)t;
@@ -257,12 +275,15 @@ static void pvtol_k_plant(double t, const double *x, const double *u, const doub
     const double _u0 = u[0]; /* thrust */
     const double _u1 = u[1]; /* torque */
     const double _p0 = p[0]; /* g */
+    const double _p1 = p[1]; /* m */
+    const double _p2 = p[2]; /* J */
+    const double _t0 = (1.0/_p1);
     dx[0] = _x3;
     dx[1] = _x4;
     dx[2] = _x5;
-    dx[3] = -_u0*sin(_x2);
-    dx[4] = _u0*cos(_x2) - _p0;
-    dx[5] = _u1;
+    dx[3] = -_t0*_u0*sin(_x2);
+    dx[4] = _t0*_u0*cos(_x2) - _p0;
+    dx[5] = _u1/_p2;
 }
 
 
@@ -363,7 +384,7 @@ static int pvtol_solve_decoupling(double *r, double *w)
 }
 
 /* The jet's terms of time and parameters alone: computed once for a batch of states. */
-#define PVTOL_N_TAU 14
+#define PVTOL_N_TAU 18
 
 /* The paper's law at one state: the plant input u and, unless ds is NULL, ds/dt (tau: the jet's
  * terms of time and parameters, jet_time). */

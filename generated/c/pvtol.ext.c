@@ -2,8 +2,8 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/extension.c.jinja
  * spec name: pvtol
- * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: 01e0da4cc6af8c9a2c365f02a01a7be1f5096ee7fc475d966ef1a24055ab4ed8
+ * spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
+ * content sha256: b4a13895e15c78749b525092196d4c89d42690b8a56d50112afdeba58a60100e
  */
 
 /*

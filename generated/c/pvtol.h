@@ -2,8 +2,8 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.h.jinja
  * spec name: pvtol
- * spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
- * content sha256: 5ab1c79adbf2135d261c139d42236f25e4c86309eb349c03d4015bb389edf3de
+ * spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
+ * content sha256: 949b0fd3689c1169275a815491477b782b3309a98560487d0037b6fd92793c42
  */
 
 /*
@@ -27,7 +27,7 @@ extern "C" {
 #define PVTOL_N_STATES 8
 #define PVTOL_N_INPUTS 2
 #define PVTOL_N_OUTPUTS 2
-#define PVTOL_N_PARAMS 1
+#define PVTOL_N_PARAMS 3
 #define PVTOL_K 4
 /* The stateful controller: the plant states x it measures, and its own states z
  * (extension, then padding: the closed-loop state after the plant's). */
@@ -104,7 +104,7 @@ typedef struct {
     /* each integrator chain's top derivative, held since t */
     double drive[1];
     /* the parameters the controller runs with */
-    double params[1];
+    double params[3];
     /* the plant input of the last step */
     double u[PVTOL_N_INPUTS];
 } pvtol_controller_t;

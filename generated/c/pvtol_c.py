@@ -3,14 +3,14 @@
 # overwrite an edited file without --force.
 # template: c/wrapper.py.jinja
 # spec name: pvtol
-# spec sha256: ec8726f1ad8550c687bc68c7bb2470a87a264e9281e60e6d90bb81ac2656de53
-# content sha256: 1a06fa8939c697c4a24b42fa48ccd466b7b42088efc4ba84e5df23919a328eba
+# spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
+# content sha256: 03637e905f8d132d3cf794454f403e5f3930b3dc5939a32949e6a0c18ab420a0
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
 
 Planar quadrotor (PVTOL aircraft) tracking a moving target.
-Position (x, z), attitude theta, thrust and torque. Declared without an extension: the
+Position (x, z), attitude theta, thrust and torque; mass m and inertia J. Declared without an extension: the
 automatic search finds that the thrust must be integrated twice (relative degree {4, 4},
 k = 4); the law is singular at zero thrust.
 
@@ -74,7 +74,7 @@ INPUT_NAMES = ('thrust', 'torque')
 #: Outputs y, the arguments of the objective.
 OUTPUT_NAMES = ('px', 'pz')
 #: Parameters and their default values.
-PARAMETERS = {'g': 9.81}
+PARAMETERS = {'g': 9.81, 'm': 1.0, 'J': 1.0}
 #: Relative degree of each output in the extended system.
 RELATIVE_DEGREE = {'px': 4, 'pz': 4}
 #: Integrators added to each prolonged input (dynamic extension).
@@ -793,7 +793,7 @@ _STEP.argtypes = (ctypes.c_void_p, ctypes.c_double, ctypes.c_void_p, ctypes.c_vo
 _STEP.restype = ctypes.c_int
 #: Where the fields of pvtol_controller_t start, in doubles (all fields are doubles).
 _Z_AT = 1
-_U_AT = 1 + 2 + 1 + 1
+_U_AT = 1 + 2 + 1 + 3
 
 
 class Controller(_Controller):
