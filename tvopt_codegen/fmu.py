@@ -20,7 +20,6 @@ import importlib.util
 import io
 import os
 import platform
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -32,11 +31,10 @@ import sympy as sp
 from tvopt_codegen.errors import BuildError, MissingExtraError
 from tvopt_codegen.ir import KernelSet
 from tvopt_codegen.rendering import render, render_template, template_context
+from tvopt_codegen.toolchain import CFLAGS, compiler
 
 #: The FMI versions an FMU can be exported for.
 FMI_VERSIONS = (2, 3)
-#: Flags the FMU's library is built with.
-CFLAGS = ("-O2", "-std=c99", "-fPIC", "-shared")
 #: Every archive member's time stamp: the FMU's bytes depend on its content alone.
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
@@ -139,20 +137,6 @@ def reference_start(kernels: KernelSet) -> tuple[float, ...]:
     return tuple(values)
 
 
-def _compiler() -> str:
-    explicit = os.environ.get("CC")
-    if explicit:
-        found = shutil.which(explicit)
-        if found is None:
-            raise BuildError(f"the C compiler CC={explicit!r} was not found")
-        return found
-    for candidate in ("cc", "gcc", "clang"):
-        found = shutil.which(candidate)
-        if found:
-            return found
-    raise BuildError("no C compiler found (tried $CC, cc, gcc, clang): install gcc or clang")
-
-
 def build_fmu(kernels: KernelSet, fmi: int = 2) -> bytes:
     """The FMU archive: sources, model description and this platform's binary.
 
@@ -187,7 +171,7 @@ def build_fmu(kernels: KernelSet, fmi: int = 2) -> bytes:
             (root / member).write_text(text, encoding="utf-8")
         library = root / f"{name}{suffix}"
         command = [
-            _compiler(),
+            compiler(),
             *CFLAGS,
             "-I",
             str(root / "sources"),
