@@ -40,7 +40,7 @@ from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.emit import write_files
 from tvopt_codegen.errors import AssumptionError, BuildError, SpecError
 from tvopt_codegen.ir import KernelSet
-from tvopt_codegen.limits import MAX_T_FINAL
+from tvopt_codegen.limits import MAX_T_FINAL, START_ITERATIONS
 from tvopt_codegen.references import ReferenceSource, nominal_source
 from tvopt_codegen.rendering import render
 
@@ -287,7 +287,10 @@ def minimizer_path(
             extra = (refs or (lambda t: {}))(float(t))
             if inside is not None and not _defined(controller, float(t), y, params, extra):
                 y = np.array(inside[:, index], dtype=float)
-            y = _newton(controller, float(t), y, params, extra)
+            # The first point may start far from y* (a run that has not converged): its
+            # capped steps may need more than the warm starts' 200 iterations.
+            budget = 200 if index < len(ts) - 1 else START_ITERATIONS
+            y = _newton(controller, float(t), y, params, extra, budget)
         path[:, index] = y
     return path
 
@@ -312,10 +315,11 @@ def _newton(
     y: np.ndarray,
     params: Mapping[str, float],
     extra: Mapping[str, Any] | None = None,
+    iterations: int = 200,
 ) -> np.ndarray:
     """Minimize f0(., t) from ``y``: damped Newton with capped steps."""
     extra = extra or {}
-    for _ in range(200):
+    for _ in range(iterations):
         grad = controller.gradient(t, y, params, **extra)
         hess = controller.hessian(t, y, params, **extra)
         try:
