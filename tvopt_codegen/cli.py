@@ -200,6 +200,84 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="replace files that were edited by hand or not written here",
     )
+    sw = commands.add_parser(
+        "sweep",
+        help="Monte-Carlo closed loops with model mismatch, saturation and noise, on Dask",
+        description="Run SPEC's closed loop for many drawn initial states and parameters "
+        "(DIST: a number, normal(mean, sd), uniform(lo, hi) or lognormal(mu, sigma)), in "
+        "compiled C on a Dask cluster; write summary.parquet, summary.md and figures to "
+        "--out. `sweep --replay DIR SAMPLE_ID --out DIR2` reruns one sample of the sweep "
+        "in DIR and writes its whole trajectory.",
+    )
+    sw.add_argument("spec", nargs="?", help="spec file, or the name of a bundled example")
+    sw.add_argument(
+        "--replay",
+        nargs=2,
+        metavar=("DIR", "SAMPLE_ID"),
+        help="rerun sample SAMPLE_ID of the sweep written to DIR (no SPEC)",
+    )
+    sw.add_argument("--samples", type=int, help="number of runs")
+    sw.add_argument("--seed", type=int, default=0, help="root seed (default 0)")
+    sw.add_argument("--out", required=True, help="output folder")
+    for option, what in (
+        ("--initial", "spread of an initial closed-loop state"),
+        ("--param", "the controller's (model's) parameter"),
+        ("--plant-param", "the true plant's parameter (model mismatch)"),
+    ):
+        sw.add_argument(
+            option, action="append", default=[], metavar="NAME=DIST", help=f"{what} (repeatable)"
+        )
+    sw.add_argument(
+        "--saturation",
+        action="append",
+        default=[],
+        metavar="INPUT=LIMIT",
+        help="clip a plant input to |u| <= LIMIT, or to LO:HI (repeatable)",
+    )
+    sw.add_argument(
+        "--noise",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="with --sample-time: Gaussian noise on every measured plant state",
+    )
+    sw.add_argument(
+        "--sample-time",
+        type=float,
+        metavar="H",
+        help="run the stateful controller every H seconds (zero-order hold)",
+    )
+    sw.add_argument("--t-final", type=float, help="horizon (default: the spec's t_final)")
+    sw.add_argument("--rtol", type=float, default=1e-8, help="RK45 relative tolerance (1e-8)")
+    sw.add_argument("--atol", type=float, default=1e-10, help="RK45 absolute tolerance (1e-10)")
+    sw.add_argument("--points", type=int, default=201, help="output times per run (201)")
+    where = sw.add_mutually_exclusive_group()
+    where.add_argument(
+        "--workers", type=int, help="workers of a new local Dask cluster (default: one per core)"
+    )
+    where.add_argument(
+        "--scheduler", metavar="ADDRESS", help="an existing Dask scheduler, e.g. tcp://host:8786"
+    )
+    sw.add_argument(
+        "--chunk-size", type=int, help="samples per Dask task (default: about 8 tasks a worker)"
+    )
+    sw.add_argument(
+        "--trajectories",
+        action="store_true",
+        help="also store every run in trajectories.zarr (xarray-readable), as runs finish",
+    )
+    sw.add_argument(
+        "--force", action="store_true", help="replace an earlier sweep's files in --out"
+    )
+    sw.add_argument(
+        "--progress",
+        choices=("auto", "always", "never"),
+        default="auto",
+        help="show progress on stderr (auto: on a terminal)",
+    )
+    for option, default in (("--max-seconds", Budget.seconds), ("--max-size", Budget.size)):
+        sw.add_argument(option, type=type(default), default=default, help=argparse.SUPPRESS)
+    sw.add_argument("--extension", choices=("spec", "auto"), default="spec", help=argparse.SUPPRESS)
     for command in (generate, check, rep, sim, export):
         command.add_argument(
             "--extension",
@@ -518,6 +596,10 @@ def run(argv: Sequence[str] | None = None) -> int:
         return 0
     if args.command == "simulate":
         return _simulate(args)
+    if args.command == "sweep":
+        from tvopt_codegen.sweep_cli import replay, sweep  # noqa: PLC0415
+
+        return replay(args) if args.replay else sweep(args, _derive)
     if args.command == "report":
         return _report(args)
     if args.command == "export":

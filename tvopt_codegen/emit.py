@@ -23,11 +23,13 @@ import os
 import re
 import signal
 import stat
+import subprocess
 import sys
 import tempfile
 import threading
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
+from typing import Any
 
 from tvopt_codegen.errors import OutputError
 from tvopt_codegen.rendering import is_pristine, stamped_hash, stamped_spec
@@ -437,3 +439,152 @@ def _sync_folder(folder: Path) -> None:
             os.fsync(fd)
         finally:
             os.close(fd)
+
+
+def cache_folder() -> Path:
+    """Where compiled libraries are kept: ``$TVOPT_CODEGEN_CACHE`` or ~/.cache/tvopt-codegen."""
+    explicit = os.environ.get("TVOPT_CODEGEN_CACHE")
+    return Path(explicit) if explicit else Path.home() / ".cache" / "tvopt-codegen"
+
+
+def cached_library(sources: Mapping[str, str], main: str) -> Path:
+    """Compile ``main`` (with the other sources beside it) once per content and compiler.
+
+    The library is cached under a hash of the sources, the compiler, its version and
+    the flags; a concurrent build of the same key (two workers of one machine) publishes
+    by rename, so a reader sees a whole library or none.
+
+    Parameters
+    ----------
+    sources : mapping of str to str
+        File name to text; ``main`` is the one compiled, the others are its includes.
+    main : str
+        The translation unit.
+
+    Returns
+    -------
+    pathlib.Path
+        The shared library.
+
+    Raises
+    ------
+    BuildError
+        Without a C compiler, when the cache folder is unusable, or when compiling fails.
+    """
+    from tvopt_codegen.errors import BuildError  # noqa: PLC0415
+    from tvopt_codegen.toolchain import CFLAGS, compiler, version  # noqa: PLC0415
+
+    cc = compiler()
+    key = hashlib.sha256()
+    for part in (
+        cc,
+        version(cc),
+        "\0".join(CFLAGS),
+        *(f"{n}\0{t}" for n, t in sorted(sources.items())),
+    ):
+        key.update(hashlib.sha256(part.encode("utf-8")).digest())
+    cache = cache_folder()
+    stem = Path(main).stem
+    library = cache / f"{stem}-{key.hexdigest()[:24]}.so"
+    if library.is_file():
+        return library
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix=f".{stem}-", dir=cache) as folder:
+            for name, text in sources.items():
+                (Path(folder) / name).write_text(text, encoding="utf-8")
+            partial = Path(folder) / "library.so"
+            command = [
+                cc,
+                *CFLAGS,
+                "-I",
+                folder,
+                "-o",
+                str(partial),
+                str(Path(folder) / main),
+                "-lm",
+            ]
+            done = subprocess.run(command, capture_output=True, text=True, check=False)
+            if done.returncode != 0:
+                detail = " ".join(done.stderr.strip().splitlines()[:3]) or "(no message)"
+                raise BuildError(f"compiling {main} with {cc} failed: {detail}")
+            os.replace(partial, library)
+    except OSError as exc:
+        raise BuildError(
+            f"the cache folder {cache} cannot be used ({exc.strerror or exc}); set "
+            "TVOPT_CODEGEN_CACHE to a writable folder"
+        ) from None
+    return library
+
+
+class TrajectoryStore:
+    """A Zarr store written block by block as a sweep's samples finish.
+
+    A crash keeps every block written before it. The store is created whole (every
+    array at full size, filled with NaN) so that xarray reads it at any moment.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The store's folder; it must not exist.
+    variables : mapping of str to (tuple of str, tuple of int, tuple of int)
+        Each array's dimension names, shape and chunks.
+    coords : mapping of str to numpy.ndarray
+        Coordinate arrays (one dimension each, named like it).
+    attrs : mapping
+        The store's attributes (JSON-ready).
+
+    Raises
+    ------
+    MissingExtraError
+        Without zarr.
+    OutputError
+        When ``path`` exists or cannot be created.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        variables: Mapping[str, tuple[tuple[str, ...], tuple[int, ...], tuple[int, ...]]],
+        coords: Mapping[str, Any],
+        attrs: Mapping[str, Any],
+    ) -> None:
+        try:
+            import zarr  # noqa: PLC0415
+        except ImportError:
+            from tvopt_codegen.errors import MissingExtraError  # noqa: PLC0415
+
+            raise MissingExtraError(
+                "--trajectories needs zarr: pip install 'tvopt-codegen[sweep]'"
+            ) from None
+        target = Path(path)
+        if target.exists() or target.is_symlink():
+            raise OutputError(f"{target}: already exists; refusing to replace a trajectory store")
+        try:
+            group = zarr.open_group(str(target), mode="w-")
+            for name, values in coords.items():
+                # Text as zarr's variable-length strings (fixed-width UTF-32 has no v3 spec).
+                kind = str if values.dtype.kind == "U" else values.dtype
+                array = group.create_array(
+                    name, shape=values.shape, dtype=kind, dimension_names=(name,)
+                )
+                array[:] = values
+            self._arrays = {
+                name: group.create_array(
+                    name,
+                    shape=shape,
+                    chunks=chunks,
+                    dtype="f8",
+                    fill_value=float("nan"),
+                    dimension_names=dims,
+                )
+                for name, (dims, shape, chunks) in variables.items()
+            }
+            group.attrs.update(dict(attrs))
+        except OSError as exc:
+            raise OutputError(f"{target}: cannot create the trajectory store: {exc}") from None
+
+    def write(self, start: int, values: Mapping[str, Any]) -> None:
+        """Store a block of samples beginning at sample ``start`` (first axis)."""
+        for name, block in values.items():
+            self._arrays[name][start : start + len(block)] = block

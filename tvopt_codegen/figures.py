@@ -10,6 +10,7 @@ y* (dashed), each agent's path, and start points marked with stars.
 from __future__ import annotations
 
 import io
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import matplotlib
@@ -23,6 +24,7 @@ from tvopt_codegen.derivation import Derivation
 if TYPE_CHECKING:
     from tvopt_codegen.sampled import SampledResult
     from tvopt_codegen.simulation import Result
+    from tvopt_codegen.sweep import SweepProgram
 
 _COLORS = ("tab:red", "tab:purple", "tab:orange", "tab:brown", "tab:pink", "tab:olive")
 _OBJECT_COLORS = ("black", "tab:blue", "tab:gray", "tab:cyan")
@@ -256,3 +258,83 @@ def sampled_figure(derivation: Derivation, result: SampledResult) -> Any:
 def sampled_figures(derivation: Derivation, result: SampledResult) -> dict[str, bytes]:
     """``<name>_sampled.{png,svg}``: the sampled run over the continuous one."""
     return _save(sampled_figure(derivation, result), f"{derivation.spec.name}_sampled")
+
+
+def _trajectory_error(program: SweepProgram, trajectory: np.ndarray) -> tuple[Any, Any]:
+    """Times and ``|y - y*|`` of one sweep trajectory (rows: t, s, y, y*, ...)."""
+    n, m = len(program.state_names), len(program.output_names)
+    y = trajectory[:, 1 + n : 1 + n + m]
+    target = trajectory[:, 1 + n + m : 1 + n + 2 * m]
+    return trajectory[:, 0], np.linalg.norm(y - target, axis=1)
+
+
+def sweep_figures(
+    program: SweepProgram, rows: Sequence[Mapping[str, Any]], worst: Mapping[int, np.ndarray]
+) -> dict[str, bytes]:
+    """``sweep_histograms``: final error and settling time; ``sweep_worst``: the worst runs."""
+    ok = [row for row in rows if row["status"] == "ok"]
+    fig = Figure(figsize=(9.0, 3.6))
+    FigureCanvasAgg(fig)
+    left, right = fig.subplots(1, 2)
+    finals = np.array([row["final_error"] for row in ok])
+    if len(finals):
+        positive = np.maximum(finals, 1e-16)
+        low, high = np.log10(positive.min()), np.log10(positive.max())
+        bins = np.logspace(low - 0.1, high + 0.1, 30) if high > low else 10
+        left.hist(positive, bins=bins, color="tab:blue", edgecolor="white")
+        left.set_xscale("log")
+    left.set_xlabel("final |y - y*|")
+    left.set_ylabel("samples")
+    left.set_title(f"{program.name}: {len(ok)} of {len(rows)} runs ok", fontsize=10)
+    settle = np.array([row["settling_1pct"] for row in ok])
+    settle = settle[np.isfinite(settle)]
+    if len(settle):
+        right.hist(settle, bins=30, color="tab:orange", edgecolor="white")
+    right.set_xlabel("settling time to 1% of |y - y*|(0) (s)")
+    right.set_title(f"{len(ok) - len(settle)} never settled", fontsize=10)
+    for axes in (left, right):
+        axes.grid(alpha=0.3)
+    out = _save(fig, "sweep_histograms")
+    fig, axes = _axes(6.4, 4.0)
+    for rank, (index, trajectory) in enumerate(worst.items()):
+        t, error = _trajectory_error(program, trajectory)
+        axes.semilogy(
+            t,
+            np.maximum(error, 1e-16),
+            color=_COLORS[rank % len(_COLORS)],
+            lw=1.2,
+            label=f"sample {index}",
+        )
+    axes.set_xlabel("t")
+    axes.set_ylabel("|y - y*|")
+    axes.set_title(f"{program.name}: the {len(worst)} worst runs by final error", fontsize=10)
+    axes.grid(alpha=0.3, which="both")
+    if worst:
+        axes.legend(fontsize=8)
+    out.update(_save(fig, "sweep_worst"))
+    return out
+
+
+def replay_figure(
+    program: SweepProgram, row: Mapping[str, Any], trajectory: np.ndarray
+) -> dict[str, bytes]:
+    """``sample_<id>``: one replayed run's outputs over their targets, and its error."""
+    n, m = len(program.state_names), len(program.output_names)
+    fig = Figure(figsize=(6.4, 6.0))
+    FigureCanvasAgg(fig)
+    top, bottom = fig.subplots(2, 1, sharex=True)
+    t = trajectory[:, 0]
+    for i, name in enumerate(program.output_names):
+        color = _COLORS[i % len(_COLORS)]
+        top.plot(t, trajectory[:, 1 + n + i], color=color, lw=1.5, label=name)
+        top.plot(t, trajectory[:, 1 + n + m + i], color=color, lw=1.0, ls="--")
+    top.plot([], [], color="black", lw=1.0, ls="--", label="y* (dashed)")
+    top.legend(fontsize=8, ncol=2)
+    top.grid(alpha=0.3)
+    top.set_title(f"{program.name}, sample {row['sample']}: {row['status']}", fontsize=10)
+    _, error = _trajectory_error(program, trajectory)
+    bottom.semilogy(t, np.maximum(error, 1e-16), color="tab:red", lw=1.2)
+    bottom.set_xlabel("t")
+    bottom.set_ylabel("|y - y*|")
+    bottom.grid(alpha=0.3, which="both")
+    return _save(fig, f"sample_{row['sample']}")

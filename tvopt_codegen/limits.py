@@ -33,6 +33,7 @@ class Budget:
     seconds: float = 120.0
     size: int = 20_000
 
+
 #: Newton iterations at the first point of a minimiser path (steps are capped at 0.02: up
 #: to 2,000 units from y*); the warm-started points take at most 200.
 START_ITERATIONS = 100_000

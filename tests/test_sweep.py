@@ -1,0 +1,483 @@
+"""Monte-Carlo sweeps: the compiled loop against scipy, the statistics, the command."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+from scipy.stats import binomtest
+
+from tests.conftest import derivation, kernels, module
+from tvopt_codegen import sweep
+from tvopt_codegen.cli import main
+from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_INTERRUPTED, MissingExtraError
+from tvopt_codegen.simulation import minimizer_path
+from tvopt_codegen.sweep import (
+    Distribution,
+    Outcome,
+    SweepOptions,
+    clopper_pearson_upper,
+    draw,
+    loop_for,
+    parse_distribution,
+    run_sample,
+    sweep_program,
+)
+
+pq = pytest.importorskip("pyarrow.parquet")
+xr = pytest.importorskip("xarray")
+
+
+def program(name: str) -> sweep.SweepProgram:
+    return _programs.setdefault(name, sweep_program(kernels(name)))
+
+
+_programs: dict[str, sweep.SweepProgram] = {}
+
+
+def _columns(p: sweep.SweepProgram) -> dict[str, slice]:
+    n, m, nu = len(p.state_names), len(p.output_names), len(p.input_names)
+    return {
+        "s": slice(1, 1 + n),
+        "x": slice(1, 1 + len(p.plant_state_names)),
+        "y": slice(1 + n, 1 + n + m),
+        "target": slice(1 + n + m, 1 + n + 2 * m),
+        "u": slice(1 + n + 2 * m, 1 + n + 2 * m + nu),
+    }
+
+
+# ------------------------------------------------------------------ the compiled loop
+
+
+def test_continuous_loop_takes_scipys_steps_and_matches_its_states() -> None:
+    """Dormand-Prince with scipy's error control: the same steps, the same states."""
+    p = program("unicycle_switch")
+    options = SweepOptions(samples=1, seed=3, t_final=20.0, points=101)
+    sample = draw(p, options, 0)
+    outcome, rows, info = loop_for(p).run(options, sample)
+    assert outcome == Outcome.OK
+    mod = module("unicycle_switch")
+    solution = solve_ivp(
+        mod.rhs,
+        (0.0, 20.0),
+        sample.s0,
+        method="RK45",
+        rtol=options.rtol,
+        atol=options.atol,
+        t_eval=rows[:, 0],
+    )
+    # scipy: 6 evaluations per step (accepted or rejected) and 2 for the first step.
+    assert info[2] + info[3] == (solution.nfev - 2) / 6
+    assert np.max(np.abs(solution.y.T - rows[:, _columns(p)["s"]])) < 1e-12
+    # y* by the same Newton path as simulate's certificate.
+    c = _columns(p)
+    target = minimizer_path(mod, rows[:, 0], rows[-1, c["y"]], {})
+    assert np.max(np.abs(target.T - rows[:, c["target"]])) < 1e-10
+
+
+def test_mismatch_and_saturation_match_an_independent_loop() -> None:
+    """The true plant's parameters and clipped inputs, against solve_ivp on the model."""
+    p = program("pvtol")
+    options = SweepOptions(
+        samples=1,
+        seed=0,
+        t_final=6.0,
+        plant_params=(("m", Distribution("fixed", (1.15,))), ("J", Distribution("fixed", (0.9,)))),
+        limits=(("torque", -0.5, 0.5),),
+        points=61,
+    )
+    sample = draw(p, options, 0)
+    outcome, rows, _ = loop_for(p).run(options, sample)
+    assert outcome == Outcome.OK
+    mod = module("pvtol")
+    model = derivation("pvtol").model
+    plant_params = dict(zip(p.param_names, sample.pp, strict=True))
+    nx = len(p.plant_state_names)
+
+    def rhs(t: float, s: np.ndarray) -> np.ndarray:
+        ds = np.array(mod.rhs(t, s))
+        u = np.clip(mod.control(t, s), [-np.inf, -0.5], [np.inf, 0.5])
+        ds[:nx] = mod.plant(t, s[:nx], u, plant_params)
+        return ds
+
+    solution = solve_ivp(
+        rhs, (0.0, 6.0), sample.s0, rtol=1e-8, atol=1e-10, t_eval=rows[:, 0], method="RK45"
+    )
+    assert np.max(np.abs(solution.y.T - rows[:, _columns(p)["s"]])) < 1e-9
+    assert model.params  # m and J are the spec's parameters
+    result = run_sample(p, options, 0)
+    assert result.row["time_saturated"] > 0
+    assert result.row["max_abs_torque"] > 0.5  # commanded, before the limit
+    assert result.row["nominal"] is False and result.row["certificate_holds"] is None
+
+
+def test_sampled_loop_matches_the_stateful_controller_under_scipy() -> None:
+    """Zero-order hold every H with noisy measurements: the generated Controller and
+    solve_ivp per interval give the same plant states."""
+    p = program("unicycle_switch")
+    h = 0.05
+    options = SweepOptions(samples=2, seed=11, t_final=4.0, noise=1e-3, sample_time=h, points=81)
+    sample = draw(p, options, 1)
+    assert sample.noise is not None and sample.noise.shape == (81, 3)
+    outcome, rows, _ = loop_for(p).run(options, sample)
+    assert outcome == Outcome.OK
+    mod = module("unicycle_switch")
+    nx = len(p.plant_state_names)
+    x = sample.s0[:nx].copy()
+    controller = mod.Controller(x + sample.noise[0], 0.0, sample.s0[nx:])
+    u = controller.u
+    states = [x.copy()]
+    for k in range(80):
+        solution = solve_ivp(
+            lambda t, x, u=u: mod.plant(t, x, u),
+            (k * h, (k + 1) * h),
+            x,
+            method="RK45",
+            rtol=options.rtol,
+            atol=options.atol,
+        )
+        x = solution.y[:, -1]
+        states.append(x.copy())
+        u = controller.step((k + 1) * h, x + sample.noise[k + 1])
+    assert np.max(np.abs(np.array(states) - rows[:, _columns(p)["x"]])) < 1e-9
+    quiet = run_sample(p, SweepOptions(samples=2, seed=11, t_final=4.0, sample_time=h), 1)
+    assert quiet.row["final_error"] != run_sample(p, options, 1).row["final_error"]
+
+
+def test_a_singular_law_is_an_outcome_not_an_error() -> None:
+    """PVTOL at zero thrust: R is singular; the sample says so and the sweep goes on."""
+    p = program("pvtol")
+    options = SweepOptions(
+        samples=1, seed=0, t_final=2.0, initial=(("thrust", Distribution("fixed", (0.0,))),)
+    )
+    result = run_sample(p, options, 0)
+    assert result.row["status"] == "singular_decoupling"
+    assert math.isnan(result.row["final_error"])
+
+
+def test_nominal_samples_meet_the_certificate_and_mismatch_degrades_tracking() -> None:
+    p = program("unicycle_switch")
+    spread = (("x1", parse_distribution("normal(-5, 1)", "--initial", "x1")),)
+    nominal = SweepOptions(samples=6, seed=5, t_final=20.0, initial=spread)
+    rows = [run_sample(p, nominal, i).row for i in range(6)]
+    assert all(r["nominal"] and r["certificate_holds"] for r in rows)
+    assert max(r["final_error"] for r in rows) < 1e-6
+    q = program("pvtol")
+    mismatched = SweepOptions(
+        samples=6, seed=5, t_final=12.0, plant_params=(("m", Distribution("normal", (1.0, 0.1))),)
+    )
+    worse = [run_sample(q, mismatched, i).row for i in range(6)]
+    ideal = run_sample(q, SweepOptions(samples=1, seed=5, t_final=12.0), 0).row
+    assert ideal["nominal"] and ideal["certificate_holds"]
+    assert all(r["status"] == "ok" and not r["nominal"] for r in worse)
+    assert min(r["final_error"] for r in worse) > 100 * ideal["final_error"]
+
+
+# ------------------------------------------------------------------ draws and statistics
+
+
+def test_distributions_parse_and_refuse_in_one_line() -> None:
+    assert parse_distribution("2.5", "--param", "a") == Distribution("fixed", (2.5,))
+    assert parse_distribution(" normal(1, 0.1) ", "--param", "a") == Distribution(
+        "normal", (1.0, 0.1)
+    )
+    assert parse_distribution("uniform(-1,1)", "--param", "a").kind == "uniform"
+    assert parse_distribution("lognormal(0, 0.2)", "--param", "a").kind == "lognormal"
+    for bad, words in (
+        ("normal(1)", "takes two numbers"),
+        ("gauss(0, 1)", "unknown distribution"),
+        ("normal(0, -1)", "sd must be >= 0"),
+        ("uniform(2, 1)", "lo <= hi"),
+        ("normal(0, 1", "malformed"),
+        ("abc", "not a number"),
+        ("nan", "finite"),
+    ):
+        with pytest.raises(sweep.SpecError, match=words) as caught:
+            parse_distribution(bad, "--param", "a")
+        assert "\n" not in str(caught.value) and "--param" in str(caught.value)
+
+
+def test_each_sample_draws_alone_from_its_recorded_seed() -> None:
+    p = program("pvtol")
+    options = SweepOptions(
+        samples=50,
+        seed=7,
+        t_final=1.0,
+        initial=(("x", Distribution("uniform", (-1.0, 1.0))),),
+        plant_params=(("m", Distribution("lognormal", (0.0, 0.1))),),
+    )
+    first = draw(p, options, 37)
+    again = draw(p, options, 37)
+    assert first.seed == again.seed and first.values == again.values
+    rng = np.random.default_rng(first.seed)
+    assert first.values["initial.x"] == rng.uniform(-1.0, 1.0)
+    assert first.values["plant.m"] == rng.lognormal(0.0, 0.1)
+    assert len({draw(p, options, i).seed for i in range(50)}) == 50
+    assert 0 <= first.seed < 2**63
+
+
+def test_clopper_pearson_upper_bound() -> None:
+    # 0 failures in 299 runs: below 1% (the issue's example), exactly 1 - 0.05^(1/299).
+    assert clopper_pearson_upper(0, 299) == pytest.approx(1 - 0.05 ** (1 / 299), rel=1e-12)
+    assert clopper_pearson_upper(0, 299) < 0.01
+    # One-sided 95% = the upper end of the two-sided exact 90% interval.
+    exact = binomtest(5, 100).proportion_ci(0.90, method="exact").high
+    assert clopper_pearson_upper(5, 100) == pytest.approx(exact, rel=1e-10)
+    assert clopper_pearson_upper(3, 3) == 1.0
+
+
+# ------------------------------------------------------------------ the command
+
+
+def _sweep(out: Path, *extra: str, spec: str = "unicycle_switch") -> int:
+    return main(
+        [
+            "sweep",
+            spec,
+            "--samples",
+            "24",
+            "--seed",
+            "4",
+            "--t-final",
+            "6",
+            "--initial",
+            "x1=normal(-5, 0.3)",
+            "--plant-param",
+            "b=uniform(1, 2)",
+            "--out",
+            str(out),
+            *extra,
+        ]
+    )
+
+
+def _table(folder: Path) -> list[dict[str, object]]:
+    return pq.read_table(folder / "summary.parquet").to_pylist()
+
+
+def test_sweep_is_the_same_whatever_the_workers_and_chunks(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert _sweep(tmp_path / "a", "--workers", "1", "--chunk-size", "24", "--trajectories") == 0
+    assert _sweep(tmp_path / "b", "--workers", "2", "--chunk-size", "5") == 0
+    a, b = (tmp_path / "a" / "summary.parquet"), (tmp_path / "b" / "summary.parquet")
+    assert a.read_bytes() == b.read_bytes()
+    rows = _table(tmp_path / "a")
+    assert [r["sample"] for r in rows] == list(range(24))
+    required = {"sample", "seed", "status", "final_error", "max_error", "settling_1pct"}
+    assert required | {"settling_01pct", "max_abs_v", "max_abs_omega", "time_saturated"} <= set(
+        rows[0]
+    )
+    assert {"min_det_ratio", "nominal", "certificate_holds", "initial.x1", "plant.b"} <= set(
+        rows[0]
+    )
+    text = (tmp_path / "a" / "summary.md").read_text()
+    assert "Clopper-Pearson 95% upper bound" in text and "| ok | 24 |" in text
+    assert (tmp_path / "a" / "sweep_histograms.png").stat().st_size > 1000
+    assert (tmp_path / "a" / "sweep_worst.png").stat().st_size > 1000
+    # The trajectories, read with xarray, are the runs the table measured.
+    store = xr.open_zarr(tmp_path / "a" / "trajectories.zarr", consolidated=False)
+    assert store.sizes["sample"] == 24 and list(store.state_name.values)[:2] == ["x1", "x2"]
+    last = store.isel(sample=17, time=-1)
+    error = float(np.linalg.norm(last.output.values - last.target.values))
+    assert error == rows[17]["final_error"]
+    # Replay one sample alone: the same row, the whole trajectory.
+    capsys.readouterr()
+    assert main(["sweep", "--replay", str(tmp_path / "a"), "17", "--out", str(tmp_path / "r")]) == 0
+    assert "the sweep's row matches this run" in capsys.readouterr().out
+    replayed = np.loadtxt(tmp_path / "r" / "sample_17.csv", delimiter=",", skiprows=1)
+    assert np.array_equal(replayed[:, 0], store.t.isel(sample=17).values)
+    # A second sweep into the same folder is refused: nothing of the first is lost.
+    before = a.read_bytes()
+    assert _sweep(tmp_path / "a") == 4
+    assert a.read_bytes() == before
+
+
+@pytest.mark.parametrize(
+    ("extra", "words"),
+    [
+        (["--param", "mass=1"], "unknown parameter 'mass'"),
+        (["--plant-param", "a=normal(1)"], "takes two numbers"),
+        (["--initial", "omega=1"], "unknown state 'omega'"),
+        (["--saturation", "thrust=1"], "unknown input 'thrust'"),
+        (["--noise", "0.1"], "needs --sample-time"),
+        (["--samples", "-3"], "must be positive"),
+        (["--scheduler", "tcp://127.0.0.1:{port}"], "cannot reach"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2_and_writes_nothing(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    extra: list[str],
+    words: str,
+) -> None:
+    monkeypatch.setattr(sweep, "SCHEDULER_TIMEOUT", 2.0)
+    with socket.socket() as probe:  # a port nobody listens on
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    extra = [e.format(port=port) for e in extra]
+    out = tmp_path / "out"
+    assert _sweep(out, *extra) == EXIT_BAD_SPEC
+    err = capsys.readouterr().err.strip()
+    assert words in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
+def test_missing_dask_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    with pytest.raises(MissingExtraError, match=r"pip install 'tvopt-codegen\[sweep\]'"):
+        sweep.connect(1, None)
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def test_a_real_scheduler_and_two_workers_give_the_local_table(tmp_path: Path) -> None:
+    """`dask scheduler` and two `dask worker` processes, reached through --scheduler; the
+    workers compile the loop themselves (their own cache) from the sources they receive."""
+    dask = Path(sys.executable).parent / "dask"
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = dict(os.environ, TVOPT_CODEGEN_CACHE=str(tmp_path / "worker-cache"))
+    logs = (tmp_path / "dask.log").open("w")
+    processes = [
+        subprocess.Popen(
+            [
+                str(dask),
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                "--dashboard-address",
+                ":0",
+            ],
+            stdout=logs,
+            stderr=logs,
+            env=env,
+        )
+    ]
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            with socket.socket() as probe:
+                if probe.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            time.sleep(0.2)
+        for _ in range(2):
+            processes.append(
+                subprocess.Popen(
+                    [
+                        str(dask),
+                        "worker",
+                        address,
+                        "--nthreads",
+                        "1",
+                        "--nworkers",
+                        "1",
+                        "--no-dashboard",
+                    ],
+                    stdout=logs,
+                    stderr=logs,
+                    env=env,
+                )
+            )
+        from distributed import Client
+
+        with Client(address, timeout="30s") as client:
+            client.wait_for_workers(2, timeout=60)
+        assert _sweep(tmp_path / "remote", "--scheduler", address) == 0
+        assert _sweep(tmp_path / "local", "--workers", "2") == 0
+        remote = (tmp_path / "remote" / "summary.parquet").read_bytes()
+        assert remote == (tmp_path / "local" / "summary.parquet").read_bytes()
+        built = list((tmp_path / "worker-cache").glob("unicycle_switch_sweep-*.so"))
+        assert built, "the workers built the loop from its sources"
+    finally:
+        for process in reversed(processes):
+            process.terminate()
+        for process in processes:
+            try:
+                process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+        logs.close()
+
+
+def test_ctrl_c_stops_the_workers_and_keeps_what_finished(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    command = [
+        sys.executable,
+        "-m",
+        "tvopt_codegen",
+        "sweep",
+        "unicycle_switch",
+        "--samples",
+        "200000",
+        "--chunk-size",
+        "100",
+        "--workers",
+        "2",
+        "--progress",
+        "always",
+        "--out",
+        str(out),
+    ]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert process.stderr is not None
+    for line in process.stderr:  # wait until samples are finishing
+        if "samples/s" in line:
+            break
+    workers = _descendants(process.pid)
+    assert workers, "the local cluster runs its workers as child processes"
+    process.send_signal(signal.SIGINT)
+    stdout, stderr = process.communicate(timeout=120)
+    assert process.returncode == EXIT_INTERRUPTED, stderr
+    assert "interrupted; kept the" in stderr
+    rows = _table(out)
+    assert 0 < len(rows) < 200000 and all(r["status"] == "ok" for r in rows)
+    record = json.loads((out / "sweep.json").read_text())
+    assert record["interrupted"] is True and record["finished"] == len(rows)
+    assert "Interrupted:" in (out / "summary.md").read_text()
+    # No worker outlives the command.
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and any(_alive(pid) for pid in workers):
+        time.sleep(0.2)
+    assert not [pid for pid in workers if _alive(pid)]
+
+
+def _descendants(pid: int) -> list[int]:
+    found: list[int] = []
+    todo = [pid]
+    while todo:
+        listed = subprocess.run(
+            ["ps", "-o", "pid=", "--ppid", str(todo.pop())],
+            capture_output=True,
+            text=True,
+            check=False,
+        ).stdout.split()
+        found += [int(p) for p in listed]
+        todo += [int(p) for p in listed]
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    state = Path(f"/proc/{pid}/stat")
+    return not (state.exists() and state.read_text().split(") ")[-1].startswith("Z"))
