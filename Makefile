@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 INSTALLED := $(VENV)/.installed
 EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring
 
-.PHONY: all demo figures bench bench-derive reference-noise test lint typecheck check regen check-generated update-golden clean
+.PHONY: all demo figures bench bench-derive bench-sweep sweep-example reference-noise test lint typecheck check regen check-generated update-golden clean
 
 all: test
 
@@ -47,6 +47,21 @@ bench: $(INSTALLED)
 bench-derive: $(INSTALLED)
 	$(PY) -m pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/bench_derive.py --write benchmarks/DERIVE.md
+
+## bench-sweep: sweep throughput on unicycle_switch vs simulate per sample and CasADi's cvodes map
+bench-sweep: $(INSTALLED)
+	$(PY) -m pip install --quiet -e '.[bench]'
+	$(PY) benchmarks/bench_sweep.py --write benchmarks/SWEEP.md
+
+## sweep-example: the README's 1,000-sample PVTOL sweep with mass and inertia mismatch
+sweep-example: $(INSTALLED)
+	rm -rf build/sweep-pvtol
+	mkdir -p build docs/figures
+	$(PY) -m tvopt_codegen sweep pvtol --samples 1000 --seed 2026 \
+	  --plant-param m='normal(1, 0.1)' --plant-param J='normal(1, 0.1)' --out build/sweep-pvtol
+	cp build/sweep-pvtol/sweep_histograms.png docs/figures/sweep_pvtol_histograms.png
+	cp build/sweep-pvtol/sweep_worst.png docs/figures/sweep_pvtol_worst.png
+	cp build/sweep-pvtol/summary.md docs/sweep-pvtol.md
 
 ## reference-noise: tracking from sampled references at three noise levels (docs/references-noise.md)
 reference-noise: $(INSTALLED)

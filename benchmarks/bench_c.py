@@ -68,6 +68,18 @@ def _to_casadi(expr: sp.Expr, symbols: list[sp.Symbol], values: list[object]) ->
 
 def casadi_law(d: Derivation) -> ca.Function:
     """The paper's law for ``d``'s plant and objective, derived by CasADi's own AD."""
+    t, X, P, _, _, _, u = _casadi_pieces(d)
+    return ca.Function("casadi_law", [t, X, P], [u])
+
+
+def casadi_closed_loop(d: Derivation) -> ca.Function:
+    """The closed loop ``ds/dt = f(s) + G(s) w`` under the law, all in CasADi."""
+    t, X, P, f, G, w, _ = _casadi_pieces(d)
+    return ca.Function("casadi_closed_loop", [t, X, P], [f + ca.mtimes(G, w)])
+
+
+def _casadi_pieces(d: Derivation) -> tuple[ca.SX, ...]:
+    """Time, state, parameters, the extended plant's f and G, the law's w and u."""
     assert d.uniform, "the benchmark builds uniform-relative-degree laws only"
     model, ext = d.model, d.extension
     n, m, k = len(ext.x), len(model.y), d.k
@@ -117,7 +129,7 @@ def casadi_law(d: Derivation) -> ca.Function:
     u = ca.vertcat(
         *[X[index[uj.name]] if uj.name in ext.states else w[j] for j, uj in enumerate(model.u)]
     )
-    return ca.Function("casadi_law", [t, X, P], [u])
+    return t, X, P, f, G, w, u
 
 
 HARNESS = r"""

@@ -852,7 +852,9 @@ def run_sweep(
     distributed = _distributed()
     workers = len(client.scheduler_info().get("workers", {})) or 1
     size = chunk or default_chunk(options.samples, workers)
-    scattered = client.scatter(program, broadcast=True)
+    # A fresh key per sweep: a key shared with an earlier sweep on the same client could
+    # still be in release when this one needs it ("lost dependencies").
+    scattered = client.scatter(program, broadcast=True, hash=False)
     started = time.perf_counter()
     futures = [
         client.submit(run_chunk, scattered, options, list(r), keep, pure=False)
