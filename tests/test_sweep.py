@@ -481,3 +481,38 @@ def _alive(pid: int) -> bool:
         return False
     state = Path(f"/proc/{pid}/stat")
     return not (state.exists() and state.read_text().split(") ")[-1].startswith("Z"))
+
+
+def test_constraints_are_measured_on_every_run() -> None:
+    """The corridor: the barrier's margin s(t) - g_i and the largest g_i at each output
+    time, checked against the constraints evaluated here from the run's outputs."""
+    import sympy as sp
+
+    name = "two_unicycles_corridor"
+    p = program(name)
+    options = SweepOptions(
+        samples=3, seed=2, t_final=20.0, initial=(("ya", Distribution("normal", (-3.0, 0.1))),)
+    )
+    result = run_sample(p, options, 1, keep=True)
+    row, rows = result.row, result.trajectory
+    assert rows is not None and row["status"] == "ok"
+    model = derivation(name).model
+    values = dict(zip(model.params, model.defaults, strict=True))
+    signals = dict(model.signals)
+    functions = [
+        sp.lambdify(
+            [model.t, *model.y],
+            sp.sympify(e).subs(signals).subs(values),
+            "numpy",
+        )
+        for e in (model.slack, *(c.g for c in model.constraints))
+    ]
+    y = rows[:, _columns(p)["y"]]
+    evaluated = np.array(
+        [np.broadcast_to(f(rows[:, 0], *y.T), rows[:, 0].shape) for f in functions]
+    )
+    margin = np.min(evaluated[0] - evaluated[1:], axis=0)
+    assert np.allclose(rows[:, -2], margin, rtol=0, atol=1e-12)
+    assert np.allclose(rows[:, -1], evaluated[1:].max(axis=0), rtol=0, atol=1e-12)
+    assert row["violations"] == 0 and row["min_margin"] == pytest.approx(margin.min(), abs=1e-12)
+    assert row["min_margin"] > 0 and row["final_constraint"] <= 0

@@ -341,6 +341,8 @@ class SweepProgram:
         The Hurwitz coefficients of H.
     alpha, c : float
         The certificate's constants: ``|expm(H t)| <= c e^(-alpha t)``.
+    constraints : tuple of str
+        The names of the spec's ``[constraints]`` (their values are measured on the run).
     """
 
     name: str
@@ -356,11 +358,12 @@ class SweepProgram:
     coefficients: tuple[float, ...]
     alpha: float
     c: float
+    constraints: tuple[str, ...] = ()
 
     @property
     def columns(self) -> int:
-        """Width of a trajectory row: t, s, y, y*, u, log|det R|, m_f."""
-        return 1 + len(self.state_names) + 2 * len(self.output_names) + len(self.input_names) + 2
+        """Width of a trajectory row: t, s, y, y*, u, log|det R|, m_f, margin, max g_i."""
+        return 1 + len(self.state_names) + 2 * len(self.output_names) + len(self.input_names) + 4
 
 
 def decoupling_kernel(kernels: KernelSet) -> Any:
@@ -379,6 +382,30 @@ def decoupling_kernel(kernels: KernelSet) -> Any:
         [],
         [("r", (m * m,), entries, "decoupling matrix R")],
         args.subs,
+        odd={},
+    )
+
+
+def constraint_kernel(kernels: KernelSet) -> Any:
+    """The slack ``s(t)`` and each ``g_i(y, t)`` at the outputs (None without constraints)."""
+    import sympy as sp  # noqa: PLC0415 - a worker never needs sympy
+
+    from tvopt_codegen.cse import make_kernel  # noqa: PLC0415
+    from tvopt_codegen.ir import _arguments  # noqa: PLC0415
+
+    d = kernels.derivation
+    model = d.model
+    if not model.constraints:
+        return None
+    args = _arguments(d)
+    values = [model.slack, *(sp.sympify(c.g) for c in model.constraints)]
+    return make_kernel(
+        "sweep_constraints",
+        "The barrier's slack s(t), then each constraint g_i(y, t) (<= 0 when kept)",
+        [args.t, args.y, args.p],
+        list(model.signals),
+        [("g", (len(values),), values, "slack and constraint values")],
+        args.y_subs,
         odd={},
     )
 
@@ -414,8 +441,13 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
     files = render(kernels, backend)
     name = d.spec.name
     context = template_context(kernels, backend)
+    constraints = constraint_kernel(kernels)
     context |= {
         "decoupling": print_kernel(decoupling_kernel(kernels), backend.printer()),
+        "constraints": None
+        if constraints is None
+        else print_kernel(constraints, backend.printer()),
+        "constraint_count": len(d.model.constraints),
         "rk": {
             "A": RK45.A[:, :5].tolist(),
             "B": RK45.B.tolist(),
@@ -450,6 +482,7 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
         coefficients=tuple(float(a) for a in d.coefficients),
         alpha=float(d.certified_rate),
         c=float(d.transient_constant),
+        constraints=tuple(c.name for c in d.model.constraints),
     )
 
 
@@ -679,7 +712,7 @@ def run_sample(
     y = rows[:, 1 + n : 1 + n + m]
     target = rows[:, 1 + n + m : 1 + n + 2 * m]
     u = rows[:, 1 + n + 2 * m : 1 + n + 2 * m + nu]
-    logdet, convexity = rows[:, -2], rows[:, -1]
+    logdet, convexity, margin, largest = rows[:, -4], rows[:, -3], rows[:, -2], rows[:, -1]
     error = np.linalg.norm(y - target, axis=1) if len(rows) else np.zeros(0)
     ok = outcome == Outcome.OK
     limits = {name: (lo, hi) for name, lo, hi in options.limits}
@@ -716,6 +749,13 @@ def run_sample(
         if len(rows) and np.isfinite(logdet[0])
         else (0.0 if len(finite) < len(logdet) else math.nan)
     )
+    if program.constraints:
+        # The barrier keeps g_i < s(t) (the certificate's claim); g_i > 0 alone is allowed
+        # while the slack is still open.
+        row["min_margin"] = float(np.min(margin)) if len(rows) else math.nan
+        row["violations"] = int(np.sum(margin <= 0.0))
+        row["time_outside"] = float(np.sum(largest[:-1] > 0.0) * spacing) if len(rows) else 0.0
+        row["final_constraint"] = float(largest[-1]) if ok else math.nan
     row["steps"] = int(info[2])
     row["rejected_steps"] = int(info[3])
     row["nominal"] = nominal
@@ -912,6 +952,9 @@ class Summary:
     nominal: int
     nominal_certified: int
     interrupted: bool
+    constrained: bool = False
+    violating: int = 0
+    ended_outside: int = 0
 
 
 def summarize(
@@ -952,6 +995,9 @@ def summarize(
         nominal=len(nominal),
         nominal_certified=sum(bool(row["certificate_holds"]) for row in nominal),
         interrupted=interrupted,
+        constrained=bool(rows) and "violations" in rows[0],
+        violating=sum(int(row.get("violations", 0)) > 0 for row in rows),
+        ended_outside=sum(row.get("final_constraint", -1.0) > 0 for row in ok),
     )
 
 
@@ -1002,6 +1048,13 @@ def format_summary(name: str, options: SweepOptions, summary: Summary) -> str:
             cells = [f"{q[k]:.3g}" if k in q else "-" for k in ("median", "p95", "p99", "max")]
             lines.append(f"| {label} | {' | '.join(cells)} | {int(q.get('never', 0))} |")
         lines.append("")
+    if s.constrained:
+        lines += [
+            f"Constraints: {s.violating} of {s.runs} samples crossed the barrier (g_i >= s(t) at "
+            f"some output time; the barrier claims never); {s.ended_outside} ok samples end "
+            "outside a constraint (g_i > 0 at the horizon).",
+            "",
+        ]
     if s.nominal:
         lines += [
             f"Nominal samples (no mismatch, no saturation, no noise, continuous): {s.nominal}; "
@@ -1043,6 +1096,8 @@ def trajectory_layout(
         "input": variable(("input_name", nu)),
         "log_det_R": variable(),
         "m_f": variable(),
+        "margin": variable(),
+        "max_constraint": variable(),
     }
     coords = {
         "sample": np.arange(count, dtype=np.int64),
@@ -1077,8 +1132,10 @@ def trajectory_block(
         "output": block[:, :, 1 + n : 1 + n + m],
         "target": block[:, :, 1 + n + m : 1 + n + 2 * m],
         "input": block[:, :, 1 + n + 2 * m : 1 + n + 2 * m + nu],
-        "log_det_R": block[:, :, -2],
-        "m_f": block[:, :, -1],
+        "log_det_R": block[:, :, -4],
+        "m_f": block[:, :, -3],
+        "margin": block[:, :, -2],
+        "max_constraint": block[:, :, -1],
     }
 
 
@@ -1159,7 +1216,7 @@ def replay_files(program: SweepProgram, result: SampleResult) -> dict[str, bytes
         + list(program.output_names)
         + [f"{name}*" for name in program.output_names]
         + list(program.input_names)
-        + ["log_det_R", "m_f"]
+        + ["log_det_R", "m_f", "margin", "max_constraint"]
     )
     lines = [",".join(header)]
     lines += [",".join(repr(float(v)) for v in row) for row in result.trajectory]
