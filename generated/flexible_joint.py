@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: f2756cfbebb51aa2c07af51d2356017be98b9f4e1adfbb85a4795044324de6cf
+# content sha256: 5a622474feb6f26907f282e581c1d61bb5e48b23a6b7c575808bbe8fea80b193
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -579,146 +579,6 @@ def _outputs(t, x, p):
     return y
 
 
-def _jet_time_1(t, p, a):
-    """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
-    _p0, _p1, _p2, _p3 = p
-    _t0 = (1/2)*t
-    _t1 = float(numpy.sin(_t0))
-    _t2 = (13/10)*t
-    _t3 = float(numpy.sin(_t2))
-    _t4 = (3/5)*_t1 + (3/10)*_t3
-    _t5 = float(numpy.cos(_t0))
-    _t6 = float(numpy.cos(_t2))
-    _t7 = (3/10)*_t5 + (39/100)*_t6
-    _t8 = -507/1000*_t3 - 3/20*_t1
-    _t9 = -6591/10000*_t6 - 3/40*_t5
-    _t10 = (3/80)*_t1 + (85683/100000)*_t3
-    _t11 = 1.0/_p1
-    _t12 = _p0*_t11
-    _t15 = _p3*_t11
-    _t43 = 1.0/_p2
-    tau = [
-        _t12,
-        -_t15,
-        -_t12,
-        _t15,
-        _t4,
-        _t7,
-        _t8,
-        _t9,
-        -2.0*_t4,
-        -2.0*_t7,
-        -2.0*_t8,
-        -2.0*_t9,
-        _t10,
-        2.0*_t10,
-        _t15*_t43,
-        _t11*_t43*(_p3*_p3),
-    ]
-    return tau
-
-
-def _jet_1(t, s, p, a, tau):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (one point; lists in, lists out)."""
-    _s0, _s1, _s2, _s3 = s
-    _a0, _a1, _a2, _a3 = a
-    _t12, _h0, _h1, _t15, _t4, _t7, _t8, _t9, _h2, _h3, _h4, _h5, _t10, _h6, _h7, _h8 = tau
-    _t13 = _t12*float(numpy.sin(_s0))
-    _t14 = _s0 - _s2
-    _t16 = _h0*_t14 - _t13
-    _t17 = _h0 + _h1*float(numpy.cos(_s0))
-    _t18 = _s1*_t17 + _s3*_t15
-    _t19 = _t4 - _s0
-    _t20 = float(numpy.cosh(_t19))
-    _t21 = 1.0/_t20
-    _t22 = float(numpy.sinh(_t19))
-    _t23 = _t7 - _s1
-    _t24 = _t22*_t23
-    _t25 = 1.0/(_t20*_t20)
-    _t26 = -_t24*_t25
-    _t27 = _t20*_t23
-    _t28 = _t8 - _t16
-    _t29 = _t22*_t28 + _t23*_t27
-    _t30 = 1.0/(_t20*_t20*_t20)
-    _t31 = 2.0*_t24
-    _t32 = -_t30*_t31
-    _t33 = -_t24*_t32 - _t25*_t29
-    _t34 = _t20*_t28 + _t23*_t24
-    _t35 = _t9 - _t18
-    _t36 = _t22*_t35 + _t23*_t34 + 2.0*_t27*_t28
-    _t37 = 3.0/(_t20*_t20*_t20*_t20)
-    _t38 = -_t24*_t37
-    _t39 = 2.0*_t29
-    _t40 = -_t30*_t39 - _t31*_t38
-    _t41 = -_t24*_t40 - _t25*_t36 - 2.0*_t29*_t32
-    _t42 = _t20*_t35 + _t23*_t29 + 2.0*_t24*_t28
-    hessian = [
-        _t20*_t21 - _t25*(_t22*_t22) + 2.0,
-    ]
-    jet_rhs = [
-        _h6 + _a0*(_h2 + 2.0*_s0 - _t21*_t22) + _a1*(_h3 + 2.0*_s1 - _t21*_t27 - _t22*_t26) + _a2*(_h4 + 2.0*_t16 - _t21*_t34 - _t22*_t33 - 2.0*_t26*_t27) + _a3*(_h5 + 2.0*_t18 - _t21*_t42 - _t22*_t41 - 3.0*_t26*_t34 - 3.0*_t27*_t33) + _t21*(_t10*_t20 + _t23*_t36 + 3.0*_t24*_t35 + 3.0*_t28*_t29) + _t22*(-_t24*(-_t31*(12.0*(_t24*_t24)/float(numpy.power(_t20, 5.0)) - _t29*_t37) - 2.0*_t30*_t36 - 2.0*_t38*_t39) - _t25*(_t10*_t22 + _t23*_t42 + 3.0*_t27*_t35 + 3.0*_t28*_t34) - 3.0*_t29*_t40 - 3.0*_t32*_t36) + 4.0*_t26*_t42 + 4.0*_t27*_t41 + 6.0*_t33*_t34,
-    ]
-    R = [
-        _h7,
-    ]
-    pvec = [
-        _h8*_t14 + _t13*(_s1*_s1) + _t16*_t17,
-    ]
-    return hessian, jet_rhs, R, pvec
-
-
-def _cholesky_1(h, c):
-    """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (one point; lists in, lists out)."""
-    _h0, = h
-    _c0, = c
-    z = [
-        _c0/_h0,
-    ]
-    pivot = [
-        _h0,
-    ]
-    return z, pivot
-
-
-def _decoupling_1(t, s, p, z, q):
-    """b = v - p, so that R w = b linearizes the plant (one point; lists in, lists out)."""
-    _z0, = z
-    _q0, = q
-    b = [
-        _z0 - _q0,
-    ]
-    return b
-
-
-def _closed_loop_1(t, s, p, w, z):
-    """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
-    _s0, _s1, _s2, _s3 = s
-    _p0, _p1, _p2, _p3 = p
-    _w0, = w
-    _t0 = 1.0/_p1
-    _t1 = _p3*(_s0 - _s2)
-    _t2 = 1.0/_p2
-    ds = [
-        _s1,
-        -_t0*_t1 - _p0*_t0*float(numpy.sin(_s0)),
-        _s3,
-        _t1*_t2 + _t2*_w0,
-    ]
-    u = [
-        _w0,
-    ]
-    return ds, u
-
-
-def _plant_input_1(t, s, p, w):
-    """The plant input alone (control needs no vector field) (one point; lists in, lists out)."""
-    _w0, = w
-    u = [
-        _w0,
-    ]
-    return u
-
-
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
     _s0, _s1, _s2, _s3 = s
@@ -959,18 +819,78 @@ def _solve_decoupling_1(r, b):
 
 def _law_1(t, s, p, rates):
     """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
-    tau = _jet_time_1(t, p, _A_LIST)
-    hess, jet_rhs, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
+    # jet_time: The jet's terms of time and parameters alone (38 operations)
+    _r0, _r1, _r2, _r3 = p
+    _r4 = (1/2)*t
+    _r5 = float(numpy.sin(_r4))
+    _r6 = (13/10)*t
+    _r7 = float(numpy.sin(_r6))
+    _r8 = (3/5)*_r5 + (3/10)*_r7
+    _r4 = float(numpy.cos(_r4))
+    _r6 = float(numpy.cos(_r6))
+    _r9 = (3/10)*_r4 + (39/100)*_r6
+    _r10 = -507/1000*_r7 - 3/20*_r5
+    _r4 = -6591/10000*_r6 - 3/40*_r4
+    _r5 = (3/80)*_r5 + (85683/100000)*_r7
+    _r1 = 1.0/_r1
+    _r0 = _r0*_r1
+    _r6 = _r3*_r1
+    _r2 = 1.0/_r2
+    tau = [_r0, -_r6, -_r0, _r6, _r8, _r9, _r10, _r4, -2.0*_r8, -2.0*_r9, -2.0*_r10, -2.0*_r4, _r5, 2.0*_r5, _r6*_r2, _r1*_r2*(_r3*_r3)]
+    # jet: Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (170 operations)
+    _r0, _r1, _r2, _r3 = s
+    _r4, _r5, _r6, _r7 = _A_LIST
+    _r8, _r9, _r10, _r11, _r12, _r13, _r14, _r15, _r16, _r17, _r18, _r19, _r20, _r21, _r22, _r23 = tau
+    _r8 = _r8*float(numpy.sin(_r0))
+    _r2 = _r0 - _r2
+    _r24 = _r9*_r2 - _r8
+    _r9 = _r9 + _r10*float(numpy.cos(_r0))
+    _r3 = _r1*_r9 + _r3*_r11
+    _r10 = _r12 - _r0
+    _r11 = float(numpy.cosh(_r10))
+    _r12 = 1.0/_r11
+    _r10 = float(numpy.sinh(_r10))
+    _r13 = _r13 - _r1
+    _r25 = _r10*_r13
+    _r26 = 1.0/(_r11*_r11)
+    _r27 = -_r25*_r26
+    _r28 = _r11*_r13
+    _r14 = _r14 - _r24
+    _r29 = _r10*_r14 + _r13*_r28
+    _r30 = 1.0/(_r11*_r11*_r11)
+    _r31 = 2.0*_r25
+    _r32 = -_r30*_r31
+    _r33 = -_r25*_r32 - _r26*_r29
+    _r34 = _r11*_r14 + _r13*_r25
+    _r15 = _r15 - _r3
+    _r35 = _r10*_r15 + _r13*_r34 + 2.0*_r28*_r14
+    _r36 = 3.0/(_r11*_r11*_r11*_r11)
+    _r37 = -_r25*_r36
+    _r38 = 2.0*_r29
+    _r39 = -_r30*_r38 - _r31*_r37
+    _r40 = -_r25*_r39 - _r26*_r35 - 2.0*_r29*_r32
+    _r41 = _r11*_r15 + _r13*_r29 + 2.0*_r25*_r14
+    hess = [_r11*_r12 - _r26*(_r10*_r10) + 2.0]
+    jet_rhs = [_r21 + _r4*(_r16 + 2.0*_r0 - _r12*_r10) + _r5*(_r17 + 2.0*_r1 - _r12*_r28 - _r10*_r27) + _r6*(_r18 + 2.0*_r24 - _r12*_r34 - _r10*_r33 - 2.0*_r27*_r28) + _r7*(_r19 + 2.0*_r3 - _r12*_r41 - _r10*_r40 - 3.0*_r27*_r34 - 3.0*_r28*_r33) + _r12*(_r20*_r11 + _r13*_r35 + 3.0*_r25*_r15 + 3.0*_r14*_r29) + _r10*(-_r25*(-_r31*(12.0*(_r25*_r25)/float(numpy.power(_r11, 5.0)) - _r29*_r36) - 2.0*_r30*_r35 - 2.0*_r37*_r38) - _r26*(_r20*_r10 + _r13*_r41 + 3.0*_r28*_r15 + 3.0*_r14*_r34) - 3.0*_r29*_r39 - 3.0*_r32*_r35) + 4.0*_r27*_r41 + 4.0*_r28*_r40 + 6.0*_r33*_r34]
+    r = [_r22]
+    pvec = [_r23*_r2 + _r8*(_r1*_r1) + _r24*_r9]
     # The right-hand side and p reach b, which is checked below; an infinite Hessian
     # entry can leave z finite, and an entry of R no plant input depends on could hide.
     if not math.isfinite(sum(hess) + sum(r)):
         return None
     # y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
-    z, pivot = _cholesky_1(hess, jet_rhs)
+    # cholesky: Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (2 operations)
+    _r0, = hess
+    _r1, = jet_rhs
+    z = [_r1/_r0]
+    pivot = [_r0]
     # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
     if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
-    b = _decoupling_1(t, s, p, z, pvec)
+    # decoupling: b = v - p, so that R w = b linearizes the plant (1 operations)
+    _r0, = z
+    _r1, = pvec
+    b = [_r0 - _r1]
     if not math.isfinite(sum(b)):
         return None
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
@@ -978,11 +898,21 @@ def _law_1(t, s, p, rates):
     if w is None:
         return None
     if not rates:
-        u = _plant_input_1(t, s, p, w)
+        # plant_input: The plant input alone (control needs no vector field) (0 operations)
+        _r0, = w
+        u = [_r0]
         if not math.isfinite(sum(u)):
             return None
         return None, u
-    ds, u = _closed_loop_1(t, s, p, w, z)
+    # closed_loop: Closed-loop vector field and the plant input (14 operations)
+    _r0, _r1, _r2, _r3 = s
+    _r4, _r5, _r6, _r7 = p
+    _r8, = w
+    _r5 = 1.0/_r5
+    _r2 = _r7*(_r0 - _r2)
+    _r6 = 1.0/_r6
+    ds = [_r1, -_r5*_r2 - _r4*_r5*float(numpy.sin(_r0)), _r3, _r2*_r6 + _r6*_r8]
+    u = [_r8]
     if not math.isfinite(sum(ds) + sum(u)):
         return None
     return ds, u
@@ -1417,6 +1347,10 @@ class Controller(_Controller):
 def _with_one_point(general, rows):
     """``general``, with a single state or output in a float array taken by the fast path."""
     fast, shape = _ONE_POINT[general.__name__]
+    # NumPy's warnings in the fast path (a function of an infinite or out-of-domain
+    # value) say nothing: the result is then not finite, and the array path answers with
+    # the documented exception. errstate as a decorator costs half its `with` form.
+    quiet = numpy.errstate(all="ignore")(fast)
     number = general.__name__ == "objective"
     flat = len(shape) == 1
     expected = (rows,)
@@ -1429,11 +1363,7 @@ def _with_one_point(general, rows):
             # The defaults are finite: the spec loader refuses any other number.
             if math.isfinite(t) and _finite(values) and (params is None or _finite(p)):
                 try:
-                    # NumPy's warnings here (a function of an infinite or out-of-domain
-                    # value) say nothing: the result is then not finite, and the array
-                    # path answers with the documented exception.
-                    with numpy.errstate(all="ignore"):
-                        result = fast(float(t), values, p)
+                    result = quiet(float(t), values, p)
                 except ArithmeticError:  # a float's ZeroDivisionError or OverflowError
                     result = None
                 if result is not None and _finite(result):

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 09897dddc95b8f4bb067b40eea871179da28544086416b82328d13845526e03c
+# content sha256: 57684ae3df9ae8d25576b5ad2619b66c7e6369a993f546856d72ed8f77348c7f
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -457,94 +457,6 @@ def _outputs(t, x, p):
     return y
 
 
-def _jet_time_1(t, p, a):
-    """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
-    _p0, = p
-    _t0 = (t*t)
-    tau = [
-        (1/20)*_t0 - 4/5*t - 2.0,
-        4/5 - 1/10*t,
-        -_p0*((1/2)*t - 1/1000*(t*t*t) + (1/50)*_t0 - 1.0),
-        _p0*((1/25)*t - 3/1000*_t0 + 1/2),
-    ]
-    return tau
-
-
-def _jet_1(t, s, p, a, tau):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (one point; lists in, lists out)."""
-    _s0, _s1 = s
-    _p0, = p
-    _a0, = a
-    _h0, _h1, _h2, _h3 = tau
-    hessian = [
-        1.0,
-        _p0,
-    ]
-    jet_rhs = [
-        _h1 + _a0*(_h0 + _s0),
-        _h3 + _a0*(_h2 + _p0*_s1),
-    ]
-    R = [
-        1.0,
-        1.0,
-    ]
-    pvec = [
-        0.0,
-        0.0,
-    ]
-    return hessian, jet_rhs, R, pvec
-
-
-def _cholesky_1(h, c):
-    """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (one point; lists in, lists out)."""
-    _h0, _h1 = h
-    _c0, _c1 = c
-    z = [
-        _c0/_h0,
-        _c1/_h1,
-    ]
-    pivot = [
-        _h0,
-        _h1,
-    ]
-    return z, pivot
-
-
-def _decoupling_1(t, s, p, z, q):
-    """b = v - p, so that R w = b linearizes the plant (one point; lists in, lists out)."""
-    _z0, _z1 = z
-    _q0, _q1 = q
-    b = [
-        _z0 - _q0,
-        _z1 - _q1,
-    ]
-    return b
-
-
-def _closed_loop_1(t, s, p, w, z):
-    """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
-    _w0, _w1 = w
-    ds = [
-        _w0,
-        _w1,
-    ]
-    u = [
-        _w0,
-        _w1,
-    ]
-    return ds, u
-
-
-def _plant_input_1(t, s, p, w):
-    """The plant input alone (control needs no vector field) (one point; lists in, lists out)."""
-    _w0, _w1 = w
-    u = [
-        _w0,
-        _w1,
-    ]
-    return u
-
-
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
     _s0, _s1 = s
@@ -760,18 +672,36 @@ def _solve_decoupling_1(r, b):
 
 def _law_1(t, s, p, rates):
     """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
-    tau = _jet_time_1(t, p, _A_LIST)
-    hess, jet_rhs, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
+    # jet_time: The jet's terms of time and parameters alone (25 operations)
+    _r0, = p
+    _r1 = (t*t)
+    tau = [(1/20)*_r1 - 4/5*t - 2.0, 4/5 - 1/10*t, -_r0*((1/2)*t - 1/1000*(t*t*t) + (1/50)*_r1 - 1.0), _r0*((1/25)*t - 3/1000*_r1 + 1/2)]
+    # jet: Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (7 operations)
+    _r0, _r1 = s
+    _r2, = p
+    _r3, = _A_LIST
+    _r4, _r5, _r6, _r7 = tau
+    hess = [1.0, _r2]
+    jet_rhs = [_r5 + _r3*(_r4 + _r0), _r7 + _r3*(_r6 + _r2*_r1)]
+    r = [1.0, 1.0]
+    pvec = [0.0, 0.0]
     # The right-hand side and p reach b, which is checked below; an infinite Hessian
     # entry can leave z finite, and an entry of R no plant input depends on could hide.
     if not math.isfinite(sum(hess) + sum(r)):
         return None
     # y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
-    z, pivot = _cholesky_1(hess, jet_rhs)
+    # cholesky: Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (4 operations)
+    _r0, _r1 = hess
+    _r2, _r3 = jet_rhs
+    z = [_r2/_r0, _r3/_r1]
+    pivot = [_r0, _r1]
     # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
     if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
-    b = _decoupling_1(t, s, p, z, pvec)
+    # decoupling: b = v - p, so that R w = b linearizes the plant (2 operations)
+    _r0, _r1 = z
+    _r2, _r3 = pvec
+    b = [_r0 - _r2, _r1 - _r3]
     if not math.isfinite(sum(b)):
         return None
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
@@ -779,11 +709,16 @@ def _law_1(t, s, p, rates):
     if w is None:
         return None
     if not rates:
-        u = _plant_input_1(t, s, p, w)
+        # plant_input: The plant input alone (control needs no vector field) (0 operations)
+        _r0, _r1 = w
+        u = [_r0, _r1]
         if not math.isfinite(sum(u)):
             return None
         return None, u
-    ds, u = _closed_loop_1(t, s, p, w, z)
+    # closed_loop: Closed-loop vector field and the plant input (0 operations)
+    _r0, _r1 = w
+    ds = [_r0, _r1]
+    u = [_r0, _r1]
     if not math.isfinite(sum(ds) + sum(u)):
         return None
     return ds, u
@@ -1218,6 +1153,10 @@ class Controller(_Controller):
 def _with_one_point(general, rows):
     """``general``, with a single state or output in a float array taken by the fast path."""
     fast, shape = _ONE_POINT[general.__name__]
+    # NumPy's warnings in the fast path (a function of an infinite or out-of-domain
+    # value) say nothing: the result is then not finite, and the array path answers with
+    # the documented exception. errstate as a decorator costs half its `with` form.
+    quiet = numpy.errstate(all="ignore")(fast)
     number = general.__name__ == "objective"
     flat = len(shape) == 1
     expected = (rows,)
@@ -1230,11 +1169,7 @@ def _with_one_point(general, rows):
             # The defaults are finite: the spec loader refuses any other number.
             if math.isfinite(t) and _finite(values) and (params is None or _finite(p)):
                 try:
-                    # NumPy's warnings here (a function of an infinite or out-of-domain
-                    # value) say nothing: the result is then not finite, and the array
-                    # path answers with the documented exception.
-                    with numpy.errstate(all="ignore"):
-                        result = fast(float(t), values, p)
+                    result = quiet(float(t), values, p)
                 except ArithmeticError:  # a float's ZeroDivisionError or OverflowError
                     result = None
                 if result is not None and _finite(result):

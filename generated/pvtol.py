@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
-# content sha256: 72aa804ff53043a022046642364265d06ce3304f0da29d8c09362024a69d8e6d
+# content sha256: a12dbcd5e76ea6abce2a46c2e0223fd315aa50e7c05c47ddaf15366214fa779b
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -545,122 +545,6 @@ def _outputs(t, x, p):
     return y
 
 
-def _jet_time_1(t, p, a):
-    """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
-    _p0, _p1, _p2 = p
-    _a0, _a1, _a2, _a3 = a
-    _t0 = (2/5)*t
-    _t1 = float(numpy.sin(_t0))
-    _t2 = float(numpy.cos(_t0))
-    _t3 = (3/10)*t
-    _t4 = float(numpy.sin(_t3))
-    _t5 = (1/5)*t
-    _t6 = float(numpy.cos(_t5))
-    _t7 = float(numpy.sin(_t5))
-    _t8 = float(numpy.cos(_t3))
-    _t9 = 1.0/_p1
-    _t18 = (1/2)*_a0
-    _t19 = (1/2)*_a1
-    _t20 = (1/2)*_a2
-    _t21 = (1/2)*_a3
-    _t22 = 1.0/_p2
-    tau = [
-        _t9,
-        -_t9,
-        -3.0*_t1,
-        _t18,
-        -6/5*_t2,
-        _t19,
-        (12/25)*_t1,
-        _t20,
-        (24/125)*_t2,
-        _t21,
-        (24/625)*_t1,
-        _t6 - 8/5*_t4 - 4.0,
-        -12/25*_t8 - 1/5*_t7,
-        2.0*_t9,
-        (18/125)*_t4 - 2.0*_p0 - 1/25*_t6,
-        (1/125)*_t7 + (27/625)*_t8,
-        (81/12500)*_t4 - 1/1250*_t6,
-        -_t22,
-    ]
-    return tau
-
-
-def _jet_1(t, s, p, a, tau):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (one point; lists in, lists out)."""
-    _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7 = s
-    _t9, _h0, _h1, _t18, _h2, _t19, _h3, _t20, _h4, _t21, _h5, _h6, _h7, _h8, _h9, _h10, _h11, _h12 = tau
-    _t10 = _t9*float(numpy.sin(_s2))
-    _t11 = _s6*_t10
-    _t12 = _s7*_t10
-    _t13 = float(numpy.cos(_s2))
-    _t14 = _t13*_t9
-    _t15 = _s6*_t14
-    _t16 = -_t12 - _s5*_t15
-    _t17 = _s5*_t11 + _h0*_s7*_t13
-    z = [
-        _h5 + _t18*(_h1 + 2.0*_s0) + _t19*(_h2 + 2.0*_s3) + _t20*(_h3 - 2.0*_t11) + _t21*(_h4 + 2.0*_t16),
-        _h11 + _t18*(_h6 + 2.0*_s1) + _t19*(_h7 + 2.0*_s4) + _t20*(_h9 + _h8*_s6*_t13) + _t21*(_h10 - 2.0*_t17),
-    ]
-    R = [
-        -_t10,
-        _h12*_t15,
-        _t14,
-        _h12*_t11,
-    ]
-    pvec = [
-        _s5*_t17 - _s5*_s7*_t14,
-        _s5*_t16 - _s5*_t12,
-    ]
-    return z, R, pvec
-
-
-def _decoupling_1(t, s, p, z, q):
-    """b = v - p, so that R w = b linearizes the plant (one point; lists in, lists out)."""
-    _z0, _z1 = z
-    _q0, _q1 = q
-    b = [
-        _z0 - _q0,
-        _z1 - _q1,
-    ]
-    return b
-
-
-def _closed_loop_1(t, s, p, w, z):
-    """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
-    _, _, _s2, _s3, _s4, _s5, _s6, _s7 = s
-    _p0, _p1, _p2 = p
-    _w0, _w1 = w
-    _t0 = 1.0/_p1
-    ds = [
-        _s3,
-        _s4,
-        _s5,
-        -_s6*_t0*float(numpy.sin(_s2)),
-        _s6*_t0*float(numpy.cos(_s2)) - _p0,
-        _w1/_p2,
-        _s7,
-        _w0,
-    ]
-    u = [
-        _s6,
-        _w1,
-    ]
-    return ds, u
-
-
-def _plant_input_1(t, s, p, w):
-    """The plant input alone (control needs no vector field) (one point; lists in, lists out)."""
-    _, _, _, _, _, _, _s6, _ = s
-    _, _w1 = w
-    u = [
-        _s6,
-        _w1,
-    ]
-    return u
-
-
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
     _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7 = s
@@ -892,14 +776,48 @@ def _solve_decoupling_1(r, b):
 
 def _law_1(t, s, p, rates):
     """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
-    tau = _jet_time_1(t, p, _A_LIST)
+    # jet_time: The jet's terms of time and parameters alone (43 operations)
+    _r0, _r1, _r2 = p
+    _r3, _r4, _r5, _r6 = _A_LIST
+    _r7 = (2/5)*t
+    _r8 = float(numpy.sin(_r7))
+    _r7 = float(numpy.cos(_r7))
+    _r9 = (3/10)*t
+    _r10 = float(numpy.sin(_r9))
+    _r11 = (1/5)*t
+    _r12 = float(numpy.cos(_r11))
+    _r11 = float(numpy.sin(_r11))
+    _r9 = float(numpy.cos(_r9))
+    _r1 = 1.0/_r1
+    _r3 = (1/2)*_r3
+    _r4 = (1/2)*_r4
+    _r5 = (1/2)*_r5
+    _r6 = (1/2)*_r6
+    _r2 = 1.0/_r2
+    tau = [_r1, -_r1, -3.0*_r8, _r3, -6/5*_r7, _r4, (12/25)*_r8, _r5, (24/125)*_r7, _r6, (24/625)*_r8, _r12 - 8/5*_r10 - 4.0, -12/25*_r9 - 1/5*_r11, 2.0*_r1, (18/125)*_r10 - 2.0*_r0 - 1/25*_r12, (1/125)*_r11 + (27/625)*_r9, (81/12500)*_r10 - 1/1250*_r12, -_r2]
     # y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time.
-    z, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
+    # jet: y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (56 operations)
+    _r0, _r1, _r2, _r3, _r4, _r5, _r6, _r7 = s
+    _r8, _r9, _r10, _r11, _r12, _r13, _r14, _r15, _r16, _r17, _r18, _r19, _r20, _r21, _r22, _r23, _r24, _r25 = tau
+    _r26 = _r8*float(numpy.sin(_r2))
+    _r27 = _r6*_r26
+    _r28 = _r7*_r26
+    _r2 = float(numpy.cos(_r2))
+    _r8 = _r2*_r8
+    _r29 = _r6*_r8
+    _r30 = -_r28 - _r5*_r29
+    _r9 = _r5*_r27 + _r9*_r7*_r2
+    z = [_r18 + _r11*(_r10 + 2.0*_r0) + _r13*(_r12 + 2.0*_r3) + _r15*(_r14 - 2.0*_r27) + _r17*(_r16 + 2.0*_r30), _r24 + _r11*(_r19 + 2.0*_r1) + _r13*(_r20 + 2.0*_r4) + _r15*(_r22 + _r21*_r6*_r2) + _r17*(_r23 - 2.0*_r9)]
+    r = [-_r26, _r25*_r29, _r8, _r25*_r27]
+    pvec = [_r5*_r9 - _r5*_r7*_r8, _r5*_r30 - _r5*_r28]
     # z and p reach b, which is checked below; R is checked here, since an entry of R
     # that no plant input depends on could hide in w.
     if not math.isfinite(sum(r)):
         return None
-    b = _decoupling_1(t, s, p, z, pvec)
+    # decoupling: b = v - p, so that R w = b linearizes the plant (2 operations)
+    _r0, _r1 = z
+    _r2, _r3 = pvec
+    b = [_r0 - _r2, _r1 - _r3]
     if not math.isfinite(sum(b)):
         return None
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
@@ -907,11 +825,20 @@ def _law_1(t, s, p, rates):
     if w is None:
         return None
     if not rates:
-        u = _plant_input_1(t, s, p, w)
+        # plant_input: The plant input alone (control needs no vector field) (0 operations)
+        _, _, _, _, _, _, _r0, _ = s
+        _, _r1 = w
+        u = [_r0, _r1]
         if not math.isfinite(sum(u)):
             return None
         return None, u
-    ds, u = _closed_loop_1(t, s, p, w, z)
+    # closed_loop: Closed-loop vector field and the plant input (12 operations)
+    _, _, _r0, _r1, _r2, _r3, _r4, _r5 = s
+    _r6, _r7, _r8 = p
+    _r9, _r10 = w
+    _r7 = 1.0/_r7
+    ds = [_r1, _r2, _r3, -_r4*_r7*float(numpy.sin(_r0)), _r4*_r7*float(numpy.cos(_r0)) - _r6, _r10/_r8, _r5, _r9]
+    u = [_r4, _r10]
     if not math.isfinite(sum(ds) + sum(u)):
         return None
     return ds, u
@@ -1346,6 +1273,10 @@ class Controller(_Controller):
 def _with_one_point(general, rows):
     """``general``, with a single state or output in a float array taken by the fast path."""
     fast, shape = _ONE_POINT[general.__name__]
+    # NumPy's warnings in the fast path (a function of an infinite or out-of-domain
+    # value) say nothing: the result is then not finite, and the array path answers with
+    # the documented exception. errstate as a decorator costs half its `with` form.
+    quiet = numpy.errstate(all="ignore")(fast)
     number = general.__name__ == "objective"
     flat = len(shape) == 1
     expected = (rows,)
@@ -1358,11 +1289,7 @@ def _with_one_point(general, rows):
             # The defaults are finite: the spec loader refuses any other number.
             if math.isfinite(t) and _finite(values) and (params is None or _finite(p)):
                 try:
-                    # NumPy's warnings here (a function of an infinite or out-of-domain
-                    # value) say nothing: the result is then not finite, and the array
-                    # path answers with the documented exception.
-                    with numpy.errstate(all="ignore"):
-                        result = fast(float(t), values, p)
+                    result = quiet(float(t), values, p)
                 except ArithmeticError:  # a float's ZeroDivisionError or OverflowError
                     result = None
                 if result is not None and _finite(result):

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 3d1bad14df1ec86c5e01af6ddd6a7740834b726c5ec934ea5a6a040b38aed7fd
+# content sha256: 264b7a2cb09ffa0f3983e7c8a2caaf0dcfe498d506550afad89fcfd755246960
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -736,213 +736,6 @@ def _outputs(t, x, p):
     return y
 
 
-def _jet_time_1(t, p, a):
-    """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
-    _p0, _p1 = p
-    _t0 = (t*t)
-    _t10 = 1.0/_p1
-    _t13 = (1/2)*numpy.pi*_t10
-    _t18 = numpy.pi*_p0*_t10
-    tau = [
-        _t13,
-        _t18,
-        10.0 - t - 1/250*_t0,
-        -1/125*t - 1.0,
-        (1/50)*_t0 - 3/5*t + 6.0,
-        (1/25)*t - 3/5,
-        4.0 - 9/10*t - 1/125*_t0,
-        -2/125*t - 9/10,
-        (3/125)*_t0 - 7/10*t + 6.0,
-        (6/125)*t - 7/10,
-    ]
-    return tau
-
-
-def _jet_1(t, s, p, a, tau):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (one point; lists in, lists out)."""
-    _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7 = s
-    _a0, _a1 = a
-    _t13, _t18, _h0, _h1, _h2, _h3, _h4, _h5, _h6, _h7 = tau
-    _t1 = float(numpy.cos(_s2))
-    _t2 = _s6*_t1
-    _t3 = float(numpy.sin(_s2))
-    _t4 = _s6*_t3
-    _t5 = float(numpy.cos(_s5))
-    _t6 = _s7*_t5
-    _t7 = float(numpy.sin(_s5))
-    _t8 = _s7*_t7
-    _t9 = 2.0*_s0
-    _t11 = _s0 - _s3
-    _t12 = _s1 - _s4
-    _t14 = float(numpy.tan(_t13*((_t11*_t11) + (_t12*_t12))))
-    _t15 = (_t14*_t14) + 1.0
-    _t16 = 2.0*_s3
-    _t17 = _t9 - _t16
-    _t19 = _t15*_t18
-    _t20 = _t17*_t19
-    _t21 = _t14*_t20
-    _t22 = 2.0*_s1
-    _t23 = 2.0*_s4
-    _t24 = _t22 - _t23
-    _t25 = _t19*_t24
-    _t26 = _t14*_t25
-    _t27 = 2.0*_t2
-    _t28 = _t2 - _t6
-    _t29 = 2.0*_t11
-    _t30 = _t4 - _t8
-    _t31 = 2.0*_t12
-    _t32 = _t13*(_t28*_t29 + _t30*_t31)
-    _t33 = _t15*_t32
-    _t34 = 2.0*_t14
-    _t35 = 2.0*_t6
-    _t36 = _t27 - _t35
-    _t37 = _t18*_t33*_t34
-    _t38 = _t17*_t37 + _t19*_t36
-    _t39 = _t14*_t38 + _t20*_t33
-    _t40 = 2.0*_t4
-    _t41 = 2.0*_t8
-    _t42 = _t40 - _t41
-    _t43 = _t19*_t42 + _t24*_t37
-    _t44 = _t14*_t43 + _t25*_t33
-    _t45 = _t13*_t15*_t29
-    _t46 = _t13*_t15*_t31
-    _t47 = _t18*_t34*_t45
-    _t48 = _t18*_t34*_t46
-    _t49 = 2.0*_t19
-    _t50 = _t14*(_t49 + _t17*_t47) + _t20*_t45
-    _t51 = _t50 + 2.0
-    _t52 = _t25*_t45 + _t14*_t24*_t47
-    _t53 = _t14*(_t49 + _t24*_t48) + _t25*_t46
-    _t54 = _t53 + 2.0
-    _t55 = _t13*_t15*(2.0*(_t28*_t28) + 2.0*(_t30*_t30)) + 2.0*_t14*_t32*_t33
-    _t56 = _t18*(2.0*(_t33*_t33) + _t34*_t55)
-    _t57 = _t14*(_t17*_t56 + 2.0*_t36*_t37) + _t20*_t55 + 2.0*_t33*_t38
-    _t58 = _t14*(_t24*_t56 + 2.0*_t37*_t42) + _t25*_t55 + 2.0*_t33*_t43
-    hessian = [
-        _t51,
-        _t52,
-        _t54,
-        -_t50,
-        -_t20*_t46 - _t14*_t17*_t48,
-        _t51,
-        -_t52,
-        -_t53,
-        _t52,
-        _t54,
-    ]
-    jet_rhs = [
-        _a0*(_h0 + _t21 + _t9) - _t57 + _a1*(_h1 + _t27 + _t39) + 1/125,
-        _a0*(_h2 + _t22 + _t26) - _t58 + _a1*(_h3 + _t40 + _t44) - 1/25,
-        _t57 + _a0*(_h4 + _t16 - _t21) + _a1*(_h5 + _t35 - _t39) + 2/125,
-        _t58 + _a0*(_h6 + _t23 - _t26) + _a1*(_h7 + _t41 - _t44) - 6/125,
-    ]
-    R = [
-        _t1,
-        -_t4,
-        _t3,
-        _t2,
-        _t5,
-        -_t8,
-        _t7,
-        _t6,
-    ]
-    pvec = [
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-    ]
-    return hessian, jet_rhs, R, pvec
-
-
-def _cholesky_1(h, c):
-    """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (one point; lists in, lists out)."""
-    _h0, _h1, _h2, _h3, _h4, _h5, _h6, _h7, _h8, _h9 = h
-    _c0, _c1, _c2, _c3 = c
-    _t0 = 1.0/_h0
-    _t1 = _h1*_t0
-    _t2 = _h3*_t0
-    _t3 = _h6*_t0
-    _t4 = _h2 - _h1*_t1
-    _t5 = 1.0/_t4
-    _t6 = _h4 - _h1*_t2
-    _t7 = _t5*_t6
-    _t8 = _h7 - _h1*_t3
-    _t9 = _t5*_t8
-    _t10 = _h5 - _h3*_t2 - _t6*_t7
-    _t11 = 1.0/_t10
-    _t12 = _h8 - _h3*_t3 - _t6*_t9
-    _t13 = _t11*_t12
-    _t14 = _h9 - _h6*_t3 - _t12*_t13 - _t8*_t9
-    _t15 = _c1 - _c0*_t1
-    _t16 = _c2 - _c0*_t2 - _t15*_t7
-    _t17 = (_c3 - _c0*_t3 - _t13*_t16 - _t15*_t9)/_t14
-    _t18 = _t11*_t16 - _t13*_t17
-    _t19 = _t15*_t5 - _t17*_t9 - _t18*_t7
-    z = [
-        _c0*_t0 - _t1*_t19 - _t17*_t3 - _t18*_t2,
-        _t19,
-        _t18,
-        _t17,
-    ]
-    pivot = [
-        _h0,
-        _t4,
-        _t10,
-        _t14,
-    ]
-    return z, pivot
-
-
-def _decoupling_1(t, s, p, z, q):
-    """b = v - p, so that R w = b linearizes the plant (one point; lists in, lists out)."""
-    _z0, _z1, _z2, _z3 = z
-    _q0, _q1, _q2, _q3 = q
-    b = [
-        _z0 - _q0,
-        _z1 - _q1,
-        _z2 - _q2,
-        _z3 - _q3,
-    ]
-    return b
-
-
-def _closed_loop_1(t, s, p, w, z):
-    """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
-    _, _, _s2, _, _, _s5, _s6, _s7 = s
-    _w0, _w1, _w2, _w3 = w
-    ds = [
-        _s6*float(numpy.cos(_s2)),
-        _s6*float(numpy.sin(_s2)),
-        _w1,
-        _s7*float(numpy.cos(_s5)),
-        _s7*float(numpy.sin(_s5)),
-        _w3,
-        _w0,
-        _w2,
-    ]
-    u = [
-        _s6,
-        _w1,
-        _s7,
-        _w3,
-    ]
-    return ds, u
-
-
-def _plant_input_1(t, s, p, w):
-    """The plant input alone (control needs no vector field) (one point; lists in, lists out)."""
-    _, _, _, _, _, _, _s6, _s7 = s
-    _, _w1, _, _w3 = w
-    u = [
-        _s6,
-        _w1,
-        _s7,
-        _w3,
-    ]
-    return u
-
-
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
     _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7 = s
@@ -1262,18 +1055,113 @@ def _solve_decoupling_1(r, b):
 
 def _law_1(t, s, p, rates):
     """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
-    tau = _jet_time_1(t, p, _A_LIST)
-    hess, jet_rhs, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
+    # jet_time: The jet's terms of time and parameters alone (37 operations)
+    _r0, _r1 = p
+    _r2 = (t*t)
+    _r1 = 1.0/_r1
+    _r3 = (1/2)*numpy.pi*_r1
+    _r0 = numpy.pi*_r0*_r1
+    tau = [_r3, _r0, 10.0 - t - 1/250*_r2, -1/125*t - 1.0, (1/50)*_r2 - 3/5*t + 6.0, (1/25)*t - 3/5, 4.0 - 9/10*t - 1/125*_r2, -2/125*t - 9/10, (3/125)*_r2 - 7/10*t + 6.0, (6/125)*t - 7/10]
+    # jet: Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (170 operations)
+    _r0, _r1, _r2, _r3, _r4, _r5, _r6, _r7 = s
+    _r8, _r9 = _A_LIST
+    _r10, _r11, _r12, _r13, _r14, _r15, _r16, _r17, _r18, _r19 = tau
+    _r20 = float(numpy.cos(_r2))
+    _r21 = _r6*_r20
+    _r2 = float(numpy.sin(_r2))
+    _r6 = _r6*_r2
+    _r22 = float(numpy.cos(_r5))
+    _r23 = _r7*_r22
+    _r5 = float(numpy.sin(_r5))
+    _r7 = _r7*_r5
+    _r24 = 2.0*_r0
+    _r0 = _r0 - _r3
+    _r25 = _r1 - _r4
+    _r26 = float(numpy.tan(_r10*((_r0*_r0) + (_r25*_r25))))
+    _r27 = (_r26*_r26) + 1.0
+    _r3 = 2.0*_r3
+    _r28 = _r24 - _r3
+    _r29 = _r27*_r11
+    _r30 = _r28*_r29
+    _r31 = _r26*_r30
+    _r1 = 2.0*_r1
+    _r4 = 2.0*_r4
+    _r32 = _r1 - _r4
+    _r33 = _r29*_r32
+    _r34 = _r26*_r33
+    _r35 = 2.0*_r21
+    _r36 = _r21 - _r23
+    _r0 = 2.0*_r0
+    _r37 = _r6 - _r7
+    _r25 = 2.0*_r25
+    _r38 = _r10*(_r36*_r0 + _r37*_r25)
+    _r39 = _r27*_r38
+    _r40 = 2.0*_r26
+    _r41 = 2.0*_r23
+    _r42 = _r35 - _r41
+    _r43 = _r11*_r39*_r40
+    _r44 = _r28*_r43 + _r29*_r42
+    _r45 = _r26*_r44 + _r30*_r39
+    _r46 = 2.0*_r6
+    _r47 = 2.0*_r7
+    _r48 = _r46 - _r47
+    _r49 = _r29*_r48 + _r32*_r43
+    _r50 = _r26*_r49 + _r33*_r39
+    _r0 = _r10*_r27*_r0
+    _r25 = _r10*_r27*_r25
+    _r51 = _r11*_r40*_r0
+    _r52 = _r11*_r40*_r25
+    _r29 = 2.0*_r29
+    _r53 = _r26*(_r29 + _r28*_r51) + _r30*_r0
+    _r54 = _r53 + 2.0
+    _r0 = _r33*_r0 + _r26*_r32*_r51
+    _r29 = _r26*(_r29 + _r32*_r52) + _r33*_r25
+    _r51 = _r29 + 2.0
+    _r10 = _r10*_r27*(2.0*(_r36*_r36) + 2.0*(_r37*_r37)) + 2.0*_r26*_r38*_r39
+    _r11 = _r11*(2.0*(_r39*_r39) + _r40*_r10)
+    _r27 = _r26*(_r28*_r11 + 2.0*_r42*_r43) + _r30*_r10 + 2.0*_r39*_r44
+    _r10 = _r26*(_r32*_r11 + 2.0*_r43*_r48) + _r33*_r10 + 2.0*_r39*_r49
+    hess = [_r54, _r0, _r51, -_r53, -_r30*_r25 - _r26*_r28*_r52, _r54, -_r0, -_r29, _r0, _r51]
+    jet_rhs = [_r8*(_r12 + _r31 + _r24) - _r27 + _r9*(_r13 + _r35 + _r45) + 1/125, _r8*(_r14 + _r1 + _r34) - _r10 + _r9*(_r15 + _r46 + _r50) - 1/25, _r27 + _r8*(_r16 + _r3 - _r31) + _r9*(_r17 + _r41 - _r45) + 2/125, _r10 + _r8*(_r18 + _r4 - _r34) + _r9*(_r19 + _r47 - _r50) - 6/125]
+    r = [_r20, -_r6, _r2, _r21, _r22, -_r7, _r5, _r23]
+    pvec = [0.0, 0.0, 0.0, 0.0]
     # The right-hand side and p reach b, which is checked below; an infinite Hessian
     # entry can leave z finite, and an entry of R no plant input depends on could hide.
     if not math.isfinite(sum(hess) + sum(r)):
         return None
     # y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
-    z, pivot = _cholesky_1(hess, jet_rhs)
+    # cholesky: Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (61 operations)
+    _r0, _r1, _r2, _r3, _r4, _r5, _r6, _r7, _r8, _r9 = hess
+    _r10, _r11, _r12, _r13 = jet_rhs
+    _r14 = 1.0/_r0
+    _r15 = _r1*_r14
+    _r16 = _r3*_r14
+    _r17 = _r6*_r14
+    _r2 = _r2 - _r1*_r15
+    _r18 = 1.0/_r2
+    _r4 = _r4 - _r1*_r16
+    _r19 = _r18*_r4
+    _r1 = _r7 - _r1*_r17
+    _r7 = _r18*_r1
+    _r5 = _r5 - _r3*_r16 - _r4*_r19
+    _r20 = 1.0/_r5
+    _r3 = _r8 - _r3*_r17 - _r4*_r7
+    _r4 = _r20*_r3
+    _r1 = _r9 - _r6*_r17 - _r3*_r4 - _r1*_r7
+    _r3 = _r11 - _r10*_r15
+    _r6 = _r12 - _r10*_r16 - _r3*_r19
+    _r8 = (_r13 - _r10*_r17 - _r4*_r6 - _r3*_r7)/_r1
+    _r4 = _r20*_r6 - _r4*_r8
+    _r3 = _r3*_r18 - _r8*_r7 - _r4*_r19
+    z = [_r10*_r14 - _r15*_r3 - _r8*_r17 - _r4*_r16, _r3, _r4, _r8]
+    pivot = [_r0, _r2, _r5, _r1]
     # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
     if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
-    b = _decoupling_1(t, s, p, z, pvec)
+    # decoupling: b = v - p, so that R w = b linearizes the plant (4 operations)
+    _r0, _r1, _r2, _r3 = z
+    _r4, _r5, _r6, _r7 = pvec
+    b = [_r0 - _r4, _r1 - _r5, _r2 - _r6, _r3 - _r7]
     if not math.isfinite(sum(b)):
         return None
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
@@ -1281,11 +1169,18 @@ def _law_1(t, s, p, rates):
     if w is None:
         return None
     if not rates:
-        u = _plant_input_1(t, s, p, w)
+        # plant_input: The plant input alone (control needs no vector field) (0 operations)
+        _, _, _, _, _, _, _r0, _r1 = s
+        _, _r2, _, _r3 = w
+        u = [_r0, _r2, _r1, _r3]
         if not math.isfinite(sum(u)):
             return None
         return None, u
-    ds, u = _closed_loop_1(t, s, p, w, z)
+    # closed_loop: Closed-loop vector field and the plant input (8 operations)
+    _, _, _r0, _, _, _r1, _r2, _r3 = s
+    _r4, _r5, _r6, _r7 = w
+    ds = [_r2*float(numpy.cos(_r0)), _r2*float(numpy.sin(_r0)), _r5, _r3*float(numpy.cos(_r1)), _r3*float(numpy.sin(_r1)), _r7, _r4, _r6]
+    u = [_r2, _r5, _r3, _r7]
     if not math.isfinite(sum(ds) + sum(u)):
         return None
     return ds, u
@@ -1720,6 +1615,10 @@ class Controller(_Controller):
 def _with_one_point(general, rows):
     """``general``, with a single state or output in a float array taken by the fast path."""
     fast, shape = _ONE_POINT[general.__name__]
+    # NumPy's warnings in the fast path (a function of an infinite or out-of-domain
+    # value) say nothing: the result is then not finite, and the array path answers with
+    # the documented exception. errstate as a decorator costs half its `with` form.
+    quiet = numpy.errstate(all="ignore")(fast)
     number = general.__name__ == "objective"
     flat = len(shape) == 1
     expected = (rows,)
@@ -1732,11 +1631,7 @@ def _with_one_point(general, rows):
             # The defaults are finite: the spec loader refuses any other number.
             if math.isfinite(t) and _finite(values) and (params is None or _finite(p)):
                 try:
-                    # NumPy's warnings here (a function of an infinite or out-of-domain
-                    # value) say nothing: the result is then not finite, and the array
-                    # path answers with the documented exception.
-                    with numpy.errstate(all="ignore"):
-                        result = fast(float(t), values, p)
+                    result = quiet(float(t), values, p)
                 except ArithmeticError:  # a float's ZeroDivisionError or OverflowError
                     result = None
                 if result is not None and _finite(result):

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 112ad7d4341494170e7cd1d34fc6bbf3e03aeced4e91863a9673325d4c7f96f8
+# content sha256: 499f8c5142eaacfc580921551d16e184bbb2ae2d49d9062d6e3daf609199b0e0
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -1325,466 +1325,6 @@ def _outputs(t, x, p):
     return y
 
 
-def _jet_time_1(t, p, a):
-    """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
-    _p0, _p1, _p2, _p3 = p
-    _t0 = (3/10)*t
-    _t1 = _p3*t
-    _t2 = float(numpy.cos(_t1))
-    _t3 = _p2*_t2
-    _t4 = float(numpy.sin(_t1))
-    _t5 = -_p2*_p3*_t4
-    _t6 = (_p3*_p3)
-    _t7 = (1/5)*t
-    _t8 = _p2*_t4
-    _t9 = _p2*_p3*_t2
-    _t27 = 1.0/_p1
-    _t30 = numpy.pi*_t27
-    _t35 = numpy.pi*_p0*_t27
-    _t169 = 2.0*_p2*_t2*_t6
-    _t176 = 2.0*_p2*_t4*_t6
-    tau = [
-        (1/2)*_t30,
-        _t35,
-        _t30,
-        2.0*_t35,
-        -_t30,
-        -2.0*_t0 - 2.0*_t3,
-        -2.0*_t5 - 3/5,
-        -_t169,
-        -2.0*_t7 - 2.0*_t8,
-        -2.0*_t9 - 2/5,
-        -_t176,
-        2.0*_t8 - 2.0*_t0,
-        2.0*_t9 - 3/5,
-        _t176,
-        -2.0*_t3 - 2.0*_t7,
-        -2.0*_t5 - 2/5,
-        2.0*_t3 - 2.0*_t0,
-        2.0*_t5 - 3/5,
-        _t169,
-        2.0*_t8 - 2.0*_t7,
-        2.0*_t9 - 2/5,
-        -2.0*_t0 - 2.0*_t8,
-        -2.0*_t9 - 3/5,
-        2.0*_t3 - 2.0*_t7,
-        2.0*_t5 - 2/5,
-    ]
-    return tau
-
-
-def _jet_1(t, s, p, a, tau):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (one point; lists in, lists out)."""
-    _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7, _s8, _s9, _s10, _s11, _s12, _s13, _s14, _s15 = s
-    _a0, _a1 = a
-    _h0, _t35, _t30, _h1, _h2, _h3, _h4, _h5, _h6, _h7, _h8, _h9, _h10, _t176, _h11, _h12, _h13, _h14, _t169, _h15, _h16, _h17, _h18, _h19, _h20 = tau
-    _t10 = float(numpy.cos(_s2))
-    _t11 = _s12*_t10
-    _t12 = float(numpy.sin(_s2))
-    _t13 = _s12*_t12
-    _t14 = float(numpy.cos(_s5))
-    _t15 = _s13*_t14
-    _t16 = float(numpy.sin(_s5))
-    _t17 = _s13*_t16
-    _t18 = float(numpy.cos(_s8))
-    _t19 = _s14*_t18
-    _t20 = float(numpy.sin(_s8))
-    _t21 = _s14*_t20
-    _t22 = float(numpy.cos(_s11))
-    _t23 = _s15*_t22
-    _t24 = float(numpy.sin(_s11))
-    _t25 = _s15*_t24
-    _t26 = 2.0*_s0
-    _t28 = _s0 - _s3
-    _t29 = _s1 - _s4
-    _t31 = float(numpy.tan(_h0*((_t28*_t28) + (_t29*_t29))))
-    _t32 = (_t31*_t31) + 1.0
-    _t33 = -2.0*_s3
-    _t34 = _t26 + _t33
-    _t36 = _t32*_t35
-    _t37 = _t34*_t36
-    _t38 = _t31*_t37
-    _t39 = _s9 - _s0
-    _t40 = _s10 - _s1
-    _t41 = float(numpy.tan(_h0*((_t39*_t39) + (_t40*_t40))))
-    _t42 = (_t41*_t41) + 1.0
-    _t43 = -2.0*_s9
-    _t44 = _t26 + _t43
-    _t45 = _t35*_t42
-    _t46 = _t44*_t45
-    _t47 = _t41*_t46
-    _t48 = 2.0*_s1
-    _t49 = -2.0*_s4
-    _t50 = _t48 + _t49
-    _t51 = _t36*_t50
-    _t52 = _t31*_t51
-    _t53 = -2.0*_s10
-    _t54 = _t48 + _t53
-    _t55 = _t45*_t54
-    _t56 = _t41*_t55
-    _t57 = _s3 - _s6
-    _t58 = _s4 - _s7
-    _t59 = float(numpy.tan(_h0*((_t57*_t57) + (_t58*_t58))))
-    _t60 = (_t59*_t59) + 1.0
-    _t61 = -2.0*_s6
-    _t62 = _t61 - _t33
-    _t63 = _t35*_t60
-    _t64 = _t62*_t63
-    _t65 = _t59*_t64
-    _t66 = -2.0*_s7
-    _t67 = _t66 - _t49
-    _t68 = _t63*_t67
-    _t69 = _t59*_t68
-    _t70 = _s6 - _s9
-    _t71 = _s7 - _s10
-    _t72 = float(numpy.tan(_h0*((_t70*_t70) + (_t71*_t71))))
-    _t73 = (_t72*_t72) + 1.0
-    _t74 = _t43 - _t61
-    _t75 = _t35*_t73
-    _t76 = _t74*_t75
-    _t77 = _t72*_t76
-    _t78 = _t53 - _t66
-    _t79 = _t75*_t78
-    _t80 = _t72*_t79
-    _t81 = 2.0*_t11
-    _t82 = _t11 - _t15
-    _t83 = _t13 - _t17
-    _t84 = _h0*(2.0*_t28*_t82 + 2.0*_t29*_t83)
-    _t85 = _t32*_t84
-    _t86 = 2.0*_t31*_t85
-    _t87 = -2.0*_t15
-    _t88 = _t81 + _t87
-    _t89 = _t35*_t86
-    _t90 = _t34*_t89 + _t36*_t88
-    _t91 = _t31*_t90 + _t37*_t85
-    _t92 = _t23 - _t11
-    _t93 = _t25 - _t13
-    _t94 = _h0*(2.0*_t39*_t92 + 2.0*_t40*_t93)
-    _t95 = _t42*_t94
-    _t96 = 2.0*_t41*_t95
-    _t97 = -2.0*_t23
-    _t98 = _t81 + _t97
-    _t99 = _t35*_t96
-    _t100 = _t44*_t99 + _t45*_t98
-    _t101 = _t100*_t41 + _t46*_t95
-    _t102 = 2.0*_t13
-    _t103 = -2.0*_t17
-    _t104 = _t102 + _t103
-    _t105 = _t104*_t36 + _t50*_t89
-    _t106 = _t105*_t31 + _t51*_t85
-    _t107 = -2.0*_t25
-    _t108 = _t102 + _t107
-    _t109 = _t108*_t45 + _t54*_t99
-    _t110 = _t109*_t41 + _t55*_t95
-    _t111 = _t15 - _t19
-    _t112 = _t17 - _t21
-    _t113 = _h0*(2.0*_t111*_t57 + 2.0*_t112*_t58)
-    _t114 = _t113*_t60
-    _t115 = 2.0*_t114*_t59
-    _t116 = -2.0*_t19
-    _t117 = _t116 - _t87
-    _t118 = _t115*_t35
-    _t119 = _t117*_t63 + _t118*_t62
-    _t120 = _t114*_t64 + _t119*_t59
-    _t121 = -2.0*_t21
-    _t122 = _t121 - _t103
-    _t123 = _t118*_t67 + _t122*_t63
-    _t124 = _t114*_t68 + _t123*_t59
-    _t125 = _t19 - _t23
-    _t126 = _t21 - _t25
-    _t127 = _h0*(2.0*_t125*_t70 + 2.0*_t126*_t71)
-    _t128 = _t127*_t73
-    _t129 = 2.0*_t128*_t72
-    _t130 = _t97 - _t116
-    _t131 = _t129*_t35
-    _t132 = _t130*_t75 + _t131*_t74
-    _t133 = _t128*_t76 + _t132*_t72
-    _t134 = _t107 - _t121
-    _t135 = _t131*_t78 + _t134*_t75
-    _t136 = _t128*_t79 + _t135*_t72
-    _t137 = _t28*_t30*_t32
-    _t138 = _t29*_t30*_t32
-    _t139 = _h1*_t137*_t31
-    _t140 = _h1*_t138*_t31
-    _t141 = 2.0*_t36
-    _t142 = _t137*_t37 + _t31*(_t141 + _t139*_t34)
-    _t143 = _h2*_t39*_t42
-    _t144 = _h2*_t40*_t42
-    _t145 = _h1*_t143*_t41
-    _t146 = _h1*_t144*_t41
-    _t147 = 2.0*_t45
-    _t148 = _t143*_t46 + _t41*(_t147 + _t145*_t44)
-    _t149 = _t137*_t51 + _t139*_t31*_t50
-    _t150 = _t138*_t51 + _t31*(_t141 + _t140*_t50)
-    _t151 = _t143*_t55 + _t145*_t41*_t54
-    _t152 = _t144*_t55 + _t41*(_t147 + _t146*_t54)
-    _t153 = _t30*_t57*_t60
-    _t154 = _t30*_t58*_t60
-    _t155 = _h1*_t153*_t59
-    _t156 = _h1*_t154*_t59
-    _t157 = 2.0*_t63
-    _t158 = _t153*_t64 + _t59*(_t157 + _t155*_t62)
-    _t159 = _t153*_t68 + _t155*_t59*_t67
-    _t160 = _t154*_t68 + _t59*(_t157 + _t156*_t67)
-    _t161 = _t30*_t70*_t73
-    _t162 = _t30*_t71*_t73
-    _t163 = _h1*_t161*_t72
-    _t164 = _h1*_t162*_t72
-    _t165 = 2.0*_t75
-    _t166 = _t161*_t76 + _t72*(_t165 + _t163*_t74)
-    _t167 = _t161*_t79 + _t163*_t72*_t78
-    _t168 = _t162*_t79 + _t72*(_t165 + _t164*_t78)
-    _t170 = _t84*_t86 + _h0*_t32*(2.0*(_t82*_t82) + 2.0*(_t83*_t83))
-    _t171 = _t35*(2.0*(_t85*_t85) + 2.0*_t170*_t31)
-    _t172 = _t170*_t37 + _t31*(_t171*_t34 + 2.0*_t88*_t89) + 2.0*_t85*_t90
-    _t173 = _t94*_t96 + _h0*_t42*(2.0*(_t92*_t92) + 2.0*(_t93*_t93))
-    _t174 = _t35*(2.0*(_t95*_t95) + 2.0*_t173*_t41)
-    _t175 = _t173*_t46 + _t41*(_t174*_t44 + 2.0*_t98*_t99) + 2.0*_t100*_t95
-    _t177 = _t170*_t51 + _t31*(_t171*_t50 + 2.0*_t104*_t89) + 2.0*_t105*_t85
-    _t178 = _t173*_t55 + _t41*(_t174*_t54 + 2.0*_t108*_t99) + 2.0*_t109*_t95
-    _t179 = _t113*_t115 + _h0*_t60*(2.0*(_t111*_t111) + 2.0*(_t112*_t112))
-    _t180 = _t35*(2.0*(_t114*_t114) + 2.0*_t179*_t59)
-    _t181 = _t179*_t64 + _t59*(_t180*_t62 + 2.0*_t117*_t118) + 2.0*_t114*_t119
-    _t182 = _t179*_t68 + _t59*(_t180*_t67 + 2.0*_t118*_t122) + 2.0*_t114*_t123
-    _t183 = _t127*_t129 + _h0*_t73*(2.0*(_t125*_t125) + 2.0*(_t126*_t126))
-    _t184 = _t35*(2.0*(_t128*_t128) + 2.0*_t183*_t72)
-    _t185 = _t183*_t76 + _t72*(_t184*_t74 + 2.0*_t130*_t131) + 2.0*_t128*_t132
-    _t186 = _t183*_t79 + _t72*(_t184*_t78 + 2.0*_t131*_t134) + 2.0*_t128*_t135
-    hessian = [
-        _t142 + _t148 + 2.0,
-        _t149 + _t151,
-        _t150 + _t152 + 2.0,
-        -_t142,
-        -_t138*_t37 - _t140*_t31*_t34,
-        _t142 + _t158 + 2.0,
-        -_t149,
-        -_t150,
-        _t149 + _t159,
-        _t150 + _t160 + 2.0,
-        -_t158,
-        -_t154*_t64 - _t156*_t59*_t62,
-        _t158 + _t166 + 2.0,
-        -_t159,
-        -_t160,
-        _t159 + _t167,
-        _t160 + _t168 + 2.0,
-        -_t148,
-        -_t144*_t46 - _t146*_t41*_t44,
-        -_t166,
-        -_t162*_t76 - _t164*_t72*_t74,
-        _t148 + _t166 + 2.0,
-        -_t151,
-        -_t152,
-        -_t167,
-        -_t168,
-        _t151 + _t167,
-        _t152 + _t168 + 2.0,
-    ]
-    jet_rhs = [
-        _h5 - _t172 - _t175 + _a0*(_h3 + _t26 + _t38 + _t47) + _a1*(_h4 + _t101 + _t81 + _t91),
-        _h8 - _t177 - _t178 + _a0*(_h6 + _t48 + _t52 + _t56) + _a1*(_h7 + _t102 + _t106 + _t110),
-        _t172 + _t176 - _t181 + _a0*(_h9 + _t65 - _t33 - _t38) + _a1*(_h10 + _t120 - _t87 - _t91),
-        _h5 + _t177 - _t182 + _a0*(_h11 + _t69 - _t49 - _t52) + _a1*(_h12 + _t124 - _t103 - _t106),
-        _t169 + _t181 - _t185 + _a0*(_h13 + _t77 - _t61 - _t65) + _a1*(_h14 + _t133 - _t116 - _t120),
-        _t176 + _t182 - _t186 + _a0*(_h15 + _t80 - _t66 - _t69) + _a1*(_h16 + _t136 - _t121 - _t124),
-        _h8 + _t175 + _t185 + _a0*(_h17 - _t43 - _t47 - _t77) + _a1*(_h18 - _t101 - _t133 - _t97),
-        _t169 + _t178 + _t186 + _a0*(_h19 - _t53 - _t56 - _t80) + _a1*(_h20 - _t107 - _t110 - _t136),
-    ]
-    R = [
-        _t10,
-        -_s12*_t12,
-        _t12,
-        _t11,
-        _t14,
-        -_s13*_t16,
-        _t16,
-        _t15,
-        _t18,
-        -_s14*_t20,
-        _t20,
-        _t19,
-        _t22,
-        -_s15*_t24,
-        _t24,
-        _t23,
-    ]
-    pvec = [
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-    ]
-    return hessian, jet_rhs, R, pvec
-
-
-def _cholesky_1(h, c):
-    """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (one point; lists in, lists out)."""
-    _h0, _h1, _h2, _h3, _h4, _h5, _h6, _h7, _h8, _h9, _h10, _h11, _h12, _h13, _h14, _h15, _h16, _h17, _h18, _h19, _h20, _h21, _h22, _h23, _h24, _h25, _h26, _h27 = h
-    _c0, _c1, _c2, _c3, _c4, _c5, _c6, _c7 = c
-    _t0 = 1.0/_h0
-    _t1 = _h1*_t0
-    _t2 = _h3*_t0
-    _t3 = _h6*_t0
-    _t4 = _h17*_t0
-    _t5 = _h22*_t0
-    _t6 = _h2 - _h1*_t1
-    _t7 = 1.0/_t6
-    _t8 = _h4 - _h1*_t2
-    _t9 = _t7*_t8
-    _t10 = _h7 - _h1*_t3
-    _t11 = _t10*_t7
-    _t12 = _h18 - _h1*_t4
-    _t13 = _t12*_t7
-    _t14 = _h23 - _h1*_t5
-    _t15 = _t14*_t7
-    _t16 = _h5 - _h3*_t2 - _t8*_t9
-    _t17 = 1.0/_t16
-    _t18 = _h8 - _h3*_t3 - _t11*_t8
-    _t19 = _t17*_t18
-    _t20 = _h10*_t17
-    _t21 = _h13*_t17
-    _t22 = -_h3*_t4 - _t13*_t8
-    _t23 = _t17*_t22
-    _t24 = -_h3*_t5 - _t15*_t8
-    _t25 = _t17*_t24
-    _t26 = _h9 - _h6*_t3 - _t10*_t11 - _t18*_t19
-    _t27 = 1.0/_t26
-    _t28 = _h11 - _t18*_t20
-    _t29 = _t27*_t28
-    _t30 = _h14 - _t18*_t21
-    _t31 = _t27*_t30
-    _t32 = -_h6*_t4 - _t10*_t13 - _t18*_t23
-    _t33 = _t27*_t32
-    _t34 = -_h6*_t5 - _t10*_t15 - _t18*_t25
-    _t35 = _t27*_t34
-    _t36 = _h12 - _h10*_t20 - _t28*_t29
-    _t37 = 1.0/_t36
-    _t38 = _h15 - _h10*_t21 - _t28*_t31
-    _t39 = _t37*_t38
-    _t40 = _h19 - _h10*_t23 - _t28*_t33
-    _t41 = _t37*_t40
-    _t42 = _h24 - _h10*_t25 - _t28*_t35
-    _t43 = _t37*_t42
-    _t44 = _h16 - _h13*_t21 - _t30*_t31 - _t38*_t39
-    _t45 = 1.0/_t44
-    _t46 = _h20 - _h13*_t23 - _t30*_t33 - _t38*_t41
-    _t47 = _t45*_t46
-    _t48 = _h25 - _h13*_t25 - _t30*_t35 - _t38*_t43
-    _t49 = _t45*_t48
-    _t50 = _h21 - _h17*_t4 - _t12*_t13 - _t22*_t23 - _t32*_t33 - _t40*_t41 - _t46*_t47
-    _t51 = 1.0/_t50
-    _t52 = _h26 - _h17*_t5 - _t12*_t15 - _t22*_t25 - _t32*_t35 - _t40*_t43 - _t46*_t49
-    _t53 = _t51*_t52
-    _t54 = _h27 - _h22*_t5 - _t14*_t15 - _t24*_t25 - _t34*_t35 - _t42*_t43 - _t48*_t49 - _t52*_t53
-    _t55 = _c1 - _c0*_t1
-    _t56 = _c2 - _c0*_t2 - _t55*_t9
-    _t57 = _c3 - _c0*_t3 - _t11*_t55 - _t19*_t56
-    _t58 = _c4 - _t20*_t56 - _t29*_t57
-    _t59 = _c5 - _t21*_t56 - _t31*_t57 - _t39*_t58
-    _t60 = _c6 - _c0*_t4 - _t13*_t55 - _t23*_t56 - _t33*_t57 - _t41*_t58 - _t47*_t59
-    _t61 = (_c7 - _c0*_t5 - _t15*_t55 - _t25*_t56 - _t35*_t57 - _t43*_t58 - _t49*_t59 - _t53*_t60)/_t54
-    _t62 = _t51*_t60 - _t53*_t61
-    _t63 = _t45*_t59 - _t47*_t62 - _t49*_t61
-    _t64 = _t37*_t58 - _t39*_t63 - _t41*_t62 - _t43*_t61
-    _t65 = _t27*_t57 - _t29*_t64 - _t31*_t63 - _t33*_t62 - _t35*_t61
-    _t66 = _t17*_t56 - _t19*_t65 - _t20*_t64 - _t21*_t63 - _t23*_t62 - _t25*_t61
-    _t67 = _t55*_t7 - _t11*_t65 - _t13*_t62 - _t15*_t61 - _t66*_t9
-    z = [
-        _c0*_t0 - _t1*_t67 - _t2*_t66 - _t3*_t65 - _t4*_t62 - _t5*_t61,
-        _t67,
-        _t66,
-        _t65,
-        _t64,
-        _t63,
-        _t62,
-        _t61,
-    ]
-    pivot = [
-        _h0,
-        _t6,
-        _t16,
-        _t26,
-        _t36,
-        _t44,
-        _t50,
-        _t54,
-    ]
-    return z, pivot
-
-
-def _decoupling_1(t, s, p, z, q):
-    """b = v - p, so that R w = b linearizes the plant (one point; lists in, lists out)."""
-    _z0, _z1, _z2, _z3, _z4, _z5, _z6, _z7 = z
-    _q0, _q1, _q2, _q3, _q4, _q5, _q6, _q7 = q
-    b = [
-        _z0 - _q0,
-        _z1 - _q1,
-        _z2 - _q2,
-        _z3 - _q3,
-        _z4 - _q4,
-        _z5 - _q5,
-        _z6 - _q6,
-        _z7 - _q7,
-    ]
-    return b
-
-
-def _closed_loop_1(t, s, p, w, z):
-    """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
-    _, _, _s2, _, _, _s5, _, _, _s8, _, _, _s11, _s12, _s13, _s14, _s15 = s
-    _w0, _w1, _w2, _w3, _w4, _w5, _w6, _w7 = w
-    ds = [
-        _s12*float(numpy.cos(_s2)),
-        _s12*float(numpy.sin(_s2)),
-        _w1,
-        _s13*float(numpy.cos(_s5)),
-        _s13*float(numpy.sin(_s5)),
-        _w3,
-        _s14*float(numpy.cos(_s8)),
-        _s14*float(numpy.sin(_s8)),
-        _w5,
-        _s15*float(numpy.cos(_s11)),
-        _s15*float(numpy.sin(_s11)),
-        _w7,
-        _w0,
-        _w2,
-        _w4,
-        _w6,
-    ]
-    u = [
-        _s12,
-        _w1,
-        _s13,
-        _w3,
-        _s14,
-        _w5,
-        _s15,
-        _w7,
-    ]
-    return ds, u
-
-
-def _plant_input_1(t, s, p, w):
-    """The plant input alone (control needs no vector field) (one point; lists in, lists out)."""
-    _, _, _, _, _, _, _, _, _, _, _, _, _s12, _s13, _s14, _s15 = s
-    _, _w1, _, _w3, _, _w5, _, _w7 = w
-    u = [
-        _s12,
-        _w1,
-        _s13,
-        _w3,
-        _s14,
-        _w5,
-        _s15,
-        _w7,
-    ]
-    return u
-
-
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
     _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7, _s8, _s9, _s10, _s11, _s12, _s13, _s14, _s15 = s
@@ -2349,18 +1889,289 @@ def _solve_decoupling_1(r, b):
 
 def _law_1(t, s, p, rates):
     """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
-    tau = _jet_time_1(t, p, _A_LIST)
-    hess, jet_rhs, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
+    # jet_time: The jet's terms of time and parameters alone (85 operations)
+    _r0, _r1, _r2, _r3 = p
+    _r4 = (3/10)*t
+    _r5 = _r3*t
+    _r6 = float(numpy.cos(_r5))
+    _r7 = _r2*_r6
+    _r5 = float(numpy.sin(_r5))
+    _r8 = -_r2*_r3*_r5
+    _r9 = (_r3*_r3)
+    _r10 = (1/5)*t
+    _r11 = _r2*_r5
+    _r3 = _r2*_r3*_r6
+    _r1 = 1.0/_r1
+    _r12 = numpy.pi*_r1
+    _r0 = numpy.pi*_r0*_r1
+    _r1 = 2.0*_r2*_r6*_r9
+    _r2 = 2.0*_r2*_r5*_r9
+    tau = [(1/2)*_r12, _r0, _r12, 2.0*_r0, -_r12, -2.0*_r4 - 2.0*_r7, -2.0*_r8 - 3/5, -_r1, -2.0*_r10 - 2.0*_r11, -2.0*_r3 - 2/5, -_r2, 2.0*_r11 - 2.0*_r4, 2.0*_r3 - 3/5, _r2, -2.0*_r7 - 2.0*_r10, -2.0*_r8 - 2/5, 2.0*_r7 - 2.0*_r4, 2.0*_r8 - 3/5, _r1, 2.0*_r11 - 2.0*_r10, 2.0*_r3 - 2/5, -2.0*_r4 - 2.0*_r11, -2.0*_r3 - 3/5, 2.0*_r7 - 2.0*_r10, 2.0*_r8 - 2/5]
+    # jet: Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (584 operations)
+    _r0, _r1, _r2, _r3, _r4, _r5, _r6, _r7, _r8, _r9, _r10, _r11, _r12, _r13, _r14, _r15 = s
+    _r16, _r17 = _A_LIST
+    _r18, _r19, _r20, _r21, _r22, _r23, _r24, _r25, _r26, _r27, _r28, _r29, _r30, _r31, _r32, _r33, _r34, _r35, _r36, _r37, _r38, _r39, _r40, _r41, _r42 = tau
+    _r43 = float(numpy.cos(_r2))
+    _r44 = _r12*_r43
+    _r2 = float(numpy.sin(_r2))
+    _r45 = _r12*_r2
+    _r46 = float(numpy.cos(_r5))
+    _r47 = _r13*_r46
+    _r5 = float(numpy.sin(_r5))
+    _r48 = _r13*_r5
+    _r49 = float(numpy.cos(_r8))
+    _r50 = _r14*_r49
+    _r8 = float(numpy.sin(_r8))
+    _r51 = _r14*_r8
+    _r52 = float(numpy.cos(_r11))
+    _r53 = _r15*_r52
+    _r11 = float(numpy.sin(_r11))
+    _r54 = _r15*_r11
+    _r55 = 2.0*_r0
+    _r56 = _r0 - _r3
+    _r57 = _r1 - _r4
+    _r58 = float(numpy.tan(_r18*((_r56*_r56) + (_r57*_r57))))
+    _r59 = (_r58*_r58) + 1.0
+    _r60 = -2.0*_r3
+    _r61 = _r55 + _r60
+    _r62 = _r59*_r19
+    _r63 = _r61*_r62
+    _r64 = _r58*_r63
+    _r0 = _r9 - _r0
+    _r65 = _r10 - _r1
+    _r66 = float(numpy.tan(_r18*((_r0*_r0) + (_r65*_r65))))
+    _r67 = (_r66*_r66) + 1.0
+    _r68 = -2.0*_r9
+    _r69 = _r55 + _r68
+    _r70 = _r19*_r67
+    _r71 = _r69*_r70
+    _r72 = _r66*_r71
+    _r1 = 2.0*_r1
+    _r73 = -2.0*_r4
+    _r74 = _r1 + _r73
+    _r75 = _r62*_r74
+    _r76 = _r58*_r75
+    _r77 = -2.0*_r10
+    _r78 = _r1 + _r77
+    _r79 = _r70*_r78
+    _r80 = _r66*_r79
+    _r3 = _r3 - _r6
+    _r4 = _r4 - _r7
+    _r81 = float(numpy.tan(_r18*((_r3*_r3) + (_r4*_r4))))
+    _r82 = (_r81*_r81) + 1.0
+    _r83 = -2.0*_r6
+    _r84 = _r83 - _r60
+    _r85 = _r19*_r82
+    _r86 = _r84*_r85
+    _r87 = _r81*_r86
+    _r88 = -2.0*_r7
+    _r89 = _r88 - _r73
+    _r90 = _r85*_r89
+    _r91 = _r81*_r90
+    _r6 = _r6 - _r9
+    _r7 = _r7 - _r10
+    _r9 = float(numpy.tan(_r18*((_r6*_r6) + (_r7*_r7))))
+    _r10 = (_r9*_r9) + 1.0
+    _r92 = _r68 - _r83
+    _r93 = _r19*_r10
+    _r94 = _r92*_r93
+    _r95 = _r9*_r94
+    _r96 = _r77 - _r88
+    _r97 = _r93*_r96
+    _r98 = _r9*_r97
+    _r99 = 2.0*_r44
+    _r100 = _r44 - _r47
+    _r101 = _r45 - _r48
+    _r102 = _r18*(2.0*_r56*_r100 + 2.0*_r57*_r101)
+    _r103 = _r59*_r102
+    _r104 = 2.0*_r58*_r103
+    _r105 = -2.0*_r47
+    _r106 = _r99 + _r105
+    _r107 = _r19*_r104
+    _r108 = _r61*_r107 + _r62*_r106
+    _r109 = _r58*_r108 + _r63*_r103
+    _r110 = _r53 - _r44
+    _r111 = _r54 - _r45
+    _r112 = _r18*(2.0*_r0*_r110 + 2.0*_r65*_r111)
+    _r113 = _r67*_r112
+    _r114 = 2.0*_r66*_r113
+    _r115 = -2.0*_r53
+    _r116 = _r99 + _r115
+    _r117 = _r19*_r114
+    _r118 = _r69*_r117 + _r70*_r116
+    _r119 = _r118*_r66 + _r71*_r113
+    _r45 = 2.0*_r45
+    _r120 = -2.0*_r48
+    _r121 = _r45 + _r120
+    _r122 = _r121*_r62 + _r74*_r107
+    _r123 = _r122*_r58 + _r75*_r103
+    _r124 = -2.0*_r54
+    _r125 = _r45 + _r124
+    _r126 = _r125*_r70 + _r78*_r117
+    _r127 = _r126*_r66 + _r79*_r113
+    _r128 = _r47 - _r50
+    _r48 = _r48 - _r51
+    _r129 = _r18*(2.0*_r128*_r3 + 2.0*_r48*_r4)
+    _r130 = _r129*_r82
+    _r131 = 2.0*_r130*_r81
+    _r132 = -2.0*_r50
+    _r133 = _r132 - _r105
+    _r134 = _r131*_r19
+    _r135 = _r133*_r85 + _r134*_r84
+    _r136 = _r130*_r86 + _r135*_r81
+    _r137 = -2.0*_r51
+    _r138 = _r137 - _r120
+    _r139 = _r134*_r89 + _r138*_r85
+    _r140 = _r130*_r90 + _r139*_r81
+    _r141 = _r50 - _r53
+    _r51 = _r51 - _r54
+    _r54 = _r18*(2.0*_r141*_r6 + 2.0*_r51*_r7)
+    _r142 = _r54*_r10
+    _r143 = 2.0*_r142*_r9
+    _r144 = _r115 - _r132
+    _r145 = _r143*_r19
+    _r146 = _r144*_r93 + _r145*_r92
+    _r147 = _r142*_r94 + _r146*_r9
+    _r148 = _r124 - _r137
+    _r149 = _r145*_r96 + _r148*_r93
+    _r150 = _r142*_r97 + _r149*_r9
+    _r56 = _r56*_r20*_r59
+    _r57 = _r57*_r20*_r59
+    _r151 = _r21*_r56*_r58
+    _r152 = _r21*_r57*_r58
+    _r62 = 2.0*_r62
+    _r153 = _r56*_r63 + _r58*(_r62 + _r151*_r61)
+    _r0 = _r22*_r0*_r67
+    _r22 = _r22*_r65*_r67
+    _r65 = _r21*_r0*_r66
+    _r154 = _r21*_r22*_r66
+    _r70 = 2.0*_r70
+    _r155 = _r0*_r71 + _r66*(_r70 + _r65*_r69)
+    _r56 = _r56*_r75 + _r151*_r58*_r74
+    _r62 = _r57*_r75 + _r58*(_r62 + _r152*_r74)
+    _r0 = _r0*_r79 + _r65*_r66*_r78
+    _r65 = _r22*_r79 + _r66*(_r70 + _r154*_r78)
+    _r3 = _r20*_r3*_r82
+    _r4 = _r20*_r4*_r82
+    _r70 = _r21*_r3*_r81
+    _r151 = _r21*_r4*_r81
+    _r85 = 2.0*_r85
+    _r156 = _r3*_r86 + _r81*(_r85 + _r70*_r84)
+    _r3 = _r3*_r90 + _r70*_r81*_r89
+    _r70 = _r4*_r90 + _r81*(_r85 + _r151*_r89)
+    _r6 = _r20*_r6*_r10
+    _r7 = _r20*_r7*_r10
+    _r20 = _r21*_r6*_r9
+    _r21 = _r21*_r7*_r9
+    _r85 = 2.0*_r93
+    _r93 = _r6*_r94 + _r9*(_r85 + _r20*_r92)
+    _r6 = _r6*_r97 + _r20*_r9*_r96
+    _r20 = _r7*_r97 + _r9*(_r85 + _r21*_r96)
+    _r59 = _r102*_r104 + _r18*_r59*(2.0*(_r100*_r100) + 2.0*(_r101*_r101))
+    _r85 = _r19*(2.0*(_r103*_r103) + 2.0*_r59*_r58)
+    _r100 = _r59*_r63 + _r58*(_r85*_r61 + 2.0*_r106*_r107) + 2.0*_r103*_r108
+    _r67 = _r112*_r114 + _r18*_r67*(2.0*(_r110*_r110) + 2.0*(_r111*_r111))
+    _r101 = _r19*(2.0*(_r113*_r113) + 2.0*_r67*_r66)
+    _r102 = _r67*_r71 + _r66*(_r101*_r69 + 2.0*_r116*_r117) + 2.0*_r118*_r113
+    _r59 = _r59*_r75 + _r58*(_r85*_r74 + 2.0*_r121*_r107) + 2.0*_r122*_r103
+    _r67 = _r67*_r79 + _r66*(_r101*_r78 + 2.0*_r125*_r117) + 2.0*_r126*_r113
+    _r48 = _r129*_r131 + _r18*_r82*(2.0*(_r128*_r128) + 2.0*(_r48*_r48))
+    _r74 = _r19*(2.0*(_r130*_r130) + 2.0*_r48*_r81)
+    _r75 = _r48*_r86 + _r81*(_r74*_r84 + 2.0*_r133*_r134) + 2.0*_r130*_r135
+    _r48 = _r48*_r90 + _r81*(_r74*_r89 + 2.0*_r134*_r138) + 2.0*_r130*_r139
+    _r10 = _r54*_r143 + _r18*_r10*(2.0*(_r141*_r141) + 2.0*(_r51*_r51))
+    _r18 = _r19*(2.0*(_r142*_r142) + 2.0*_r10*_r9)
+    _r19 = _r10*_r94 + _r9*(_r18*_r92 + 2.0*_r144*_r145) + 2.0*_r142*_r146
+    _r10 = _r10*_r97 + _r9*(_r18*_r96 + 2.0*_r145*_r148) + 2.0*_r142*_r149
+    hess = [_r153 + _r155 + 2.0, _r56 + _r0, _r62 + _r65 + 2.0, -_r153, -_r57*_r63 - _r152*_r58*_r61, _r153 + _r156 + 2.0, -_r56, -_r62, _r56 + _r3, _r62 + _r70 + 2.0, -_r156, -_r4*_r86 - _r151*_r81*_r84, _r156 + _r93 + 2.0, -_r3, -_r70, _r3 + _r6, _r70 + _r20 + 2.0, -_r155, -_r22*_r71 - _r154*_r66*_r69, -_r93, -_r7*_r94 - _r21*_r9*_r92, _r155 + _r93 + 2.0, -_r0, -_r65, -_r6, -_r20, _r0 + _r6, _r65 + _r20 + 2.0]
+    jet_rhs = [_r25 - _r100 - _r102 + _r16*(_r23 + _r55 + _r64 + _r72) + _r17*(_r24 + _r119 + _r99 + _r109), _r28 - _r59 - _r67 + _r16*(_r26 + _r1 + _r76 + _r80) + _r17*(_r27 + _r45 + _r123 + _r127), _r100 + _r31 - _r75 + _r16*(_r29 + _r87 - _r60 - _r64) + _r17*(_r30 + _r136 - _r105 - _r109), _r25 + _r59 - _r48 + _r16*(_r32 + _r91 - _r73 - _r76) + _r17*(_r33 + _r140 - _r120 - _r123), _r36 + _r75 - _r19 + _r16*(_r34 + _r95 - _r83 - _r87) + _r17*(_r35 + _r147 - _r132 - _r136), _r31 + _r48 - _r10 + _r16*(_r37 + _r98 - _r88 - _r91) + _r17*(_r38 + _r150 - _r137 - _r140), _r28 + _r102 + _r19 + _r16*(_r39 - _r68 - _r72 - _r95) + _r17*(_r40 - _r119 - _r147 - _r115), _r36 + _r67 + _r10 + _r16*(_r41 - _r77 - _r80 - _r98) + _r17*(_r42 - _r124 - _r127 - _r150)]
+    r = [_r43, -_r12*_r2, _r2, _r44, _r46, -_r13*_r5, _r5, _r47, _r49, -_r14*_r8, _r8, _r50, _r52, -_r15*_r11, _r11, _r53]
+    pvec = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
     # The right-hand side and p reach b, which is checked below; an infinite Hessian
     # entry can leave z finite, and an entry of R no plant input depends on could hide.
     if not math.isfinite(sum(hess) + sum(r)):
         return None
     # y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.
-    z, pivot = _cholesky_1(hess, jet_rhs)
+    # cholesky: Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (259 operations)
+    _r0, _r1, _r2, _r3, _r4, _r5, _r6, _r7, _r8, _r9, _r10, _r11, _r12, _r13, _r14, _r15, _r16, _r17, _r18, _r19, _r20, _r21, _r22, _r23, _r24, _r25, _r26, _r27 = hess
+    _r28, _r29, _r30, _r31, _r32, _r33, _r34, _r35 = jet_rhs
+    _r36 = 1.0/_r0
+    _r37 = _r1*_r36
+    _r38 = _r3*_r36
+    _r39 = _r6*_r36
+    _r40 = _r17*_r36
+    _r41 = _r22*_r36
+    _r2 = _r2 - _r1*_r37
+    _r42 = 1.0/_r2
+    _r4 = _r4 - _r1*_r38
+    _r43 = _r42*_r4
+    _r7 = _r7 - _r1*_r39
+    _r44 = _r7*_r42
+    _r18 = _r18 - _r1*_r40
+    _r45 = _r18*_r42
+    _r1 = _r23 - _r1*_r41
+    _r23 = _r1*_r42
+    _r5 = _r5 - _r3*_r38 - _r4*_r43
+    _r46 = 1.0/_r5
+    _r8 = _r8 - _r3*_r39 - _r44*_r4
+    _r47 = _r46*_r8
+    _r48 = _r10*_r46
+    _r49 = _r13*_r46
+    _r50 = -_r3*_r40 - _r45*_r4
+    _r51 = _r46*_r50
+    _r3 = -_r3*_r41 - _r23*_r4
+    _r4 = _r46*_r3
+    _r9 = _r9 - _r6*_r39 - _r7*_r44 - _r8*_r47
+    _r52 = 1.0/_r9
+    _r11 = _r11 - _r8*_r48
+    _r53 = _r52*_r11
+    _r14 = _r14 - _r8*_r49
+    _r54 = _r52*_r14
+    _r55 = -_r6*_r40 - _r7*_r45 - _r8*_r51
+    _r56 = _r52*_r55
+    _r6 = -_r6*_r41 - _r7*_r23 - _r8*_r4
+    _r7 = _r52*_r6
+    _r8 = _r12 - _r10*_r48 - _r11*_r53
+    _r12 = 1.0/_r8
+    _r15 = _r15 - _r10*_r49 - _r11*_r54
+    _r57 = _r12*_r15
+    _r19 = _r19 - _r10*_r51 - _r11*_r56
+    _r58 = _r12*_r19
+    _r10 = _r24 - _r10*_r4 - _r11*_r7
+    _r11 = _r12*_r10
+    _r16 = _r16 - _r13*_r49 - _r14*_r54 - _r15*_r57
+    _r24 = 1.0/_r16
+    _r20 = _r20 - _r13*_r51 - _r14*_r56 - _r15*_r58
+    _r59 = _r24*_r20
+    _r13 = _r25 - _r13*_r4 - _r14*_r7 - _r15*_r11
+    _r14 = _r24*_r13
+    _r15 = _r21 - _r17*_r40 - _r18*_r45 - _r50*_r51 - _r55*_r56 - _r19*_r58 - _r20*_r59
+    _r21 = 1.0/_r15
+    _r17 = _r26 - _r17*_r41 - _r18*_r23 - _r50*_r4 - _r55*_r7 - _r19*_r11 - _r20*_r14
+    _r18 = _r21*_r17
+    _r1 = _r27 - _r22*_r41 - _r1*_r23 - _r3*_r4 - _r6*_r7 - _r10*_r11 - _r13*_r14 - _r17*_r18
+    _r3 = _r29 - _r28*_r37
+    _r6 = _r30 - _r28*_r38 - _r3*_r43
+    _r10 = _r31 - _r28*_r39 - _r44*_r3 - _r47*_r6
+    _r13 = _r32 - _r48*_r6 - _r53*_r10
+    _r17 = _r33 - _r49*_r6 - _r54*_r10 - _r57*_r13
+    _r19 = _r34 - _r28*_r40 - _r45*_r3 - _r51*_r6 - _r56*_r10 - _r58*_r13 - _r59*_r17
+    _r20 = (_r35 - _r28*_r41 - _r23*_r3 - _r4*_r6 - _r7*_r10 - _r11*_r13 - _r14*_r17 - _r18*_r19)/_r1
+    _r18 = _r21*_r19 - _r18*_r20
+    _r14 = _r24*_r17 - _r59*_r18 - _r14*_r20
+    _r11 = _r12*_r13 - _r57*_r14 - _r58*_r18 - _r11*_r20
+    _r7 = _r52*_r10 - _r53*_r11 - _r54*_r14 - _r56*_r18 - _r7*_r20
+    _r4 = _r46*_r6 - _r47*_r7 - _r48*_r11 - _r49*_r14 - _r51*_r18 - _r4*_r20
+    _r3 = _r3*_r42 - _r44*_r7 - _r45*_r18 - _r23*_r20 - _r4*_r43
+    z = [_r28*_r36 - _r37*_r3 - _r38*_r4 - _r39*_r7 - _r40*_r18 - _r41*_r20, _r3, _r4, _r7, _r11, _r14, _r18, _r20]
+    pivot = [_r0, _r2, _r5, _r9, _r8, _r16, _r15, _r1]
     # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
     if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
-    b = _decoupling_1(t, s, p, z, pvec)
+    # decoupling: b = v - p, so that R w = b linearizes the plant (8 operations)
+    _r0, _r1, _r2, _r3, _r4, _r5, _r6, _r7 = z
+    _r8, _r9, _r10, _r11, _r12, _r13, _r14, _r15 = pvec
+    b = [_r0 - _r8, _r1 - _r9, _r2 - _r10, _r3 - _r11, _r4 - _r12, _r5 - _r13, _r6 - _r14, _r7 - _r15]
     if not math.isfinite(sum(b)):
         return None
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
@@ -2368,11 +2179,18 @@ def _law_1(t, s, p, rates):
     if w is None:
         return None
     if not rates:
-        u = _plant_input_1(t, s, p, w)
+        # plant_input: The plant input alone (control needs no vector field) (0 operations)
+        _, _, _, _, _, _, _, _, _, _, _, _, _r0, _r1, _r2, _r3 = s
+        _, _r4, _, _r5, _, _r6, _, _r7 = w
+        u = [_r0, _r4, _r1, _r5, _r2, _r6, _r3, _r7]
         if not math.isfinite(sum(u)):
             return None
         return None, u
-    ds, u = _closed_loop_1(t, s, p, w, z)
+    # closed_loop: Closed-loop vector field and the plant input (16 operations)
+    _, _, _r0, _, _, _r1, _, _, _r2, _, _, _r3, _r4, _r5, _r6, _r7 = s
+    _r8, _r9, _r10, _r11, _r12, _r13, _r14, _r15 = w
+    ds = [_r4*float(numpy.cos(_r0)), _r4*float(numpy.sin(_r0)), _r9, _r5*float(numpy.cos(_r1)), _r5*float(numpy.sin(_r1)), _r11, _r6*float(numpy.cos(_r2)), _r6*float(numpy.sin(_r2)), _r13, _r7*float(numpy.cos(_r3)), _r7*float(numpy.sin(_r3)), _r15, _r8, _r10, _r12, _r14]
+    u = [_r4, _r9, _r5, _r11, _r6, _r13, _r7, _r15]
     if not math.isfinite(sum(ds) + sum(u)):
         return None
     return ds, u
@@ -2807,6 +2625,10 @@ class Controller(_Controller):
 def _with_one_point(general, rows):
     """``general``, with a single state or output in a float array taken by the fast path."""
     fast, shape = _ONE_POINT[general.__name__]
+    # NumPy's warnings in the fast path (a function of an infinite or out-of-domain
+    # value) say nothing: the result is then not finite, and the array path answers with
+    # the documented exception. errstate as a decorator costs half its `with` form.
+    quiet = numpy.errstate(all="ignore")(fast)
     number = general.__name__ == "objective"
     flat = len(shape) == 1
     expected = (rows,)
@@ -2819,11 +2641,7 @@ def _with_one_point(general, rows):
             # The defaults are finite: the spec loader refuses any other number.
             if math.isfinite(t) and _finite(values) and (params is None or _finite(p)):
                 try:
-                    # NumPy's warnings here (a function of an infinite or out-of-domain
-                    # value) say nothing: the result is then not finite, and the array
-                    # path answers with the documented exception.
-                    with numpy.errstate(all="ignore"):
-                        result = fast(float(t), values, p)
+                    result = quiet(float(t), values, p)
                 except ArithmeticError:  # a float's ZeroDivisionError or OverflowError
                     result = None
                 if result is not None and _finite(result):

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 33dfec7f6e8145bcf9e1cab13ad5f7a1c626f3508b6964cec57c0afc4ab34e86
+# content sha256: b9881e5a090c2e6da1e34859ce0bba1cab0e0ff30daefd56124bb179bba92e31
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -502,110 +502,6 @@ def _outputs(t, x, p):
     return y
 
 
-def _jet_time_1(t, p, a):
-    """The jet's terms of time and parameters alone (one point; lists in, lists out)."""
-    _p0, _p1 = p
-    _a0, _a1 = a
-    _t0 = 1.0/_p1
-    _t1 = float(numpy.tanh(_t0*(t - _p0)))
-    _t2 = 1/2 - 1/2*_t1
-    _t3 = 1.0 - (_t1*_t1)
-    _t4 = (t*t)
-    _t5 = (1/100)*_t4
-    _t6 = (3/5)*t - _t5 - 5.0
-    _t7 = (1/50)*t
-    _t8 = 3/5 - _t7
-    _t9 = (t*t*t)
-    _t10 = (1/2)*t - 1/1000*_t9 + (1/50)*_t4 - 5.0
-    _t11 = (1/25)*t - 3/1000*_t4 + 1/2
-    _t12 = 5.0 - _t5 - 3/10*t
-    _t13 = -_t7 - 3/10
-    _t14 = (1/5000)*_t9 - 3/200*_t4 + (2/5)*t - 3.0
-    _t15 = (3/5000)*_t4 - 3/100*t + 2/5
-    _t20 = 2.0*_t2
-    _t21 = 1.0 - _t2
-    _t22 = 2.0*_t21
-    _t23 = -_t0*_t3
-    _t24 = 2.0*_t1*_t3/(_p1*_p1)
-    _t25 = (1/2)*_a0
-    _t26 = (1/2)*_a1
-    tau = [
-        -_t12*_t22 - _t20*_t6,
-        _t25,
-        _t12*_t23 - _t13*_t22 - _t20*_t8 - _t23*_t6,
-        _t26,
-        _t23*_t8 - 1/50*_t2 - 1/50*_t21 + (1/2)*_t24*_t6 - _t13*_t23 - 1/2*_t12*_t24,
-        -_t10*_t20 - _t14*_t22,
-        _t14*_t23 - _t10*_t23 - _t11*_t20 - _t15*_t22,
-        _t11*_t23 + (1/2)*_t10*_t24 + (1/2)*_t20*(1/25 - 3/500*t) + (1/2)*_t22*((3/2500)*t - 3/100) - _t15*_t23 - 1/2*_t14*_t24,
-    ]
-    return tau
-
-
-def _jet_1(t, s, p, a, tau):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (one point; lists in, lists out)."""
-    _s0, _s1, _s2, _s3 = s
-    _h0, _t25, _h1, _t26, _h2, _h3, _h4, _h5 = tau
-    _t16 = float(numpy.cos(_s2))
-    _t17 = _s3*_t16
-    _t18 = float(numpy.sin(_s2))
-    _t19 = _s3*_t18
-    z = [
-        _h2 + _t25*(_h0 + 2.0*_s0) + _t26*(_h1 + 2.0*_t17),
-        _h5 + _t25*(_h3 + 2.0*_s1) + _t26*(_h4 + 2.0*_t19),
-    ]
-    R = [
-        _t16,
-        -_t19,
-        _t18,
-        _t17,
-    ]
-    pvec = [
-        0.0,
-        0.0,
-    ]
-    return z, R, pvec
-
-
-def _decoupling_1(t, s, p, z, q):
-    """b = v - p, so that R w = b linearizes the plant (one point; lists in, lists out)."""
-    _z0, _z1 = z
-    _q0, _q1 = q
-    b = [
-        _z0 - _q0,
-        _z1 - _q1,
-    ]
-    return b
-
-
-def _closed_loop_1(t, s, p, w, z):
-    """Closed-loop vector field and the plant input (one point; lists in, lists out)."""
-    _, _, _s2, _s3 = s
-    _w0, _w1 = w
-    ds = [
-        _s3*float(numpy.cos(_s2)),
-        _s3*float(numpy.sin(_s2)),
-        _w1,
-        _w0,
-    ]
-    u = [
-        _s3,
-        _w1,
-    ]
-    return ds, u
-
-
-def _plant_input_1(t, s, p, w):
-    """The plant input alone (control needs no vector field) (one point; lists in, lists out)."""
-    _, _, _, _s3 = s
-    _, _w1 = w
-    u = [
-        _s3,
-        _w1,
-    ]
-    return u
-
-
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
     _s0, _s1, _s2, _s3 = s
@@ -846,14 +742,52 @@ def _solve_decoupling_1(r, b):
 
 def _law_1(t, s, p, rates):
     """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
-    tau = _jet_time_1(t, p, _A_LIST)
+    # jet_time: The jet's terms of time and parameters alone (117 operations)
+    _r0, _r1 = p
+    _r2, _r3 = _A_LIST
+    _r4 = 1.0/_r1
+    _r0 = float(numpy.tanh(_r4*(t - _r0)))
+    _r5 = 1/2 - 1/2*_r0
+    _r6 = 1.0 - (_r0*_r0)
+    _r7 = (t*t)
+    _r8 = (1/100)*_r7
+    _r9 = (3/5)*t - _r8 - 5.0
+    _r10 = (1/50)*t
+    _r11 = 3/5 - _r10
+    _r12 = (t*t*t)
+    _r13 = (1/2)*t - 1/1000*_r12 + (1/50)*_r7 - 5.0
+    _r14 = (1/25)*t - 3/1000*_r7 + 1/2
+    _r8 = 5.0 - _r8 - 3/10*t
+    _r10 = -_r10 - 3/10
+    _r12 = (1/5000)*_r12 - 3/200*_r7 + (2/5)*t - 3.0
+    _r7 = (3/5000)*_r7 - 3/100*t + 2/5
+    _r15 = 2.0*_r5
+    _r16 = 1.0 - _r5
+    _r17 = 2.0*_r16
+    _r4 = -_r4*_r6
+    _r0 = 2.0*_r0*_r6/(_r1*_r1)
+    _r1 = (1/2)*_r2
+    _r2 = (1/2)*_r3
+    tau = [-_r8*_r17 - _r15*_r9, _r1, _r8*_r4 - _r10*_r17 - _r15*_r11 - _r4*_r9, _r2, _r4*_r11 - 1/50*_r5 - 1/50*_r16 + (1/2)*_r0*_r9 - _r10*_r4 - 1/2*_r8*_r0, -_r13*_r15 - _r12*_r17, _r12*_r4 - _r13*_r4 - _r14*_r15 - _r7*_r17, _r14*_r4 + (1/2)*_r13*_r0 + (1/2)*_r15*(1/25 - 3/500*t) + (1/2)*_r17*((3/2500)*t - 3/100) - _r7*_r4 - 1/2*_r12*_r0]
     # y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time.
-    z, r, pvec = _jet_1(t, s, p, _A_LIST, tau)
+    # jet: y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (21 operations)
+    _r0, _r1, _r2, _r3 = s
+    _r4, _r5, _r6, _r7, _r8, _r9, _r10, _r11 = tau
+    _r12 = float(numpy.cos(_r2))
+    _r13 = _r3*_r12
+    _r2 = float(numpy.sin(_r2))
+    _r3 = _r3*_r2
+    z = [_r8 + _r5*(_r4 + 2.0*_r0) + _r7*(_r6 + 2.0*_r13), _r11 + _r5*(_r9 + 2.0*_r1) + _r7*(_r10 + 2.0*_r3)]
+    r = [_r12, -_r3, _r2, _r13]
+    pvec = [0.0, 0.0]
     # z and p reach b, which is checked below; R is checked here, since an entry of R
     # that no plant input depends on could hide in w.
     if not math.isfinite(sum(r)):
         return None
-    b = _decoupling_1(t, s, p, z, pvec)
+    # decoupling: b = v - p, so that R w = b linearizes the plant (2 operations)
+    _r0, _r1 = z
+    _r2, _r3 = pvec
+    b = [_r0 - _r2, _r1 - _r3]
     if not math.isfinite(sum(b)):
         return None
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).
@@ -861,11 +795,18 @@ def _law_1(t, s, p, rates):
     if w is None:
         return None
     if not rates:
-        u = _plant_input_1(t, s, p, w)
+        # plant_input: The plant input alone (control needs no vector field) (0 operations)
+        _, _, _, _r0 = s
+        _, _r1 = w
+        u = [_r0, _r1]
         if not math.isfinite(sum(u)):
             return None
         return None, u
-    ds, u = _closed_loop_1(t, s, p, w, z)
+    # closed_loop: Closed-loop vector field and the plant input (4 operations)
+    _, _, _r0, _r1 = s
+    _r2, _r3 = w
+    ds = [_r1*float(numpy.cos(_r0)), _r1*float(numpy.sin(_r0)), _r3, _r2]
+    u = [_r1, _r3]
     if not math.isfinite(sum(ds) + sum(u)):
         return None
     return ds, u
@@ -1300,6 +1241,10 @@ class Controller(_Controller):
 def _with_one_point(general, rows):
     """``general``, with a single state or output in a float array taken by the fast path."""
     fast, shape = _ONE_POINT[general.__name__]
+    # NumPy's warnings in the fast path (a function of an infinite or out-of-domain
+    # value) say nothing: the result is then not finite, and the array path answers with
+    # the documented exception. errstate as a decorator costs half its `with` form.
+    quiet = numpy.errstate(all="ignore")(fast)
     number = general.__name__ == "objective"
     flat = len(shape) == 1
     expected = (rows,)
@@ -1312,11 +1257,7 @@ def _with_one_point(general, rows):
             # The defaults are finite: the spec loader refuses any other number.
             if math.isfinite(t) and _finite(values) and (params is None or _finite(p)):
                 try:
-                    # NumPy's warnings here (a function of an infinite or out-of-domain
-                    # value) say nothing: the result is then not finite, and the array
-                    # path answers with the documented exception.
-                    with numpy.errstate(all="ignore"):
-                        result = fast(float(t), values, p)
+                    result = quiet(float(t), values, p)
                 except ArithmeticError:  # a float's ZeroDivisionError or OverflowError
                     result = None
                 if result is not None and _finite(result):
