@@ -43,7 +43,7 @@ bench: $(INSTALLED)
 	$(PY) -m pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/bench_c.py --write benchmarks/RESULTS.md
 
-## bench-derive: derivation time and operations for unicycle_ring, N = 1..32, vs CasADi and naive sympy
+## bench-derive: cold generate per N = 1..256 of unicycle_ring: wall, stage shares, memory, ops, vs CasADi
 bench-derive: $(INSTALLED)
 	$(PY) -m pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/bench_derive.py --write benchmarks/DERIVE.md

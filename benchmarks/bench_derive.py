@@ -1,14 +1,16 @@
-"""How the derivation scales: ``unicycle_ring`` with N = 1 .. 32 agents, three ways.
+"""How the derivation scales: ``unicycle_ring`` with N = 1 .. 256 agents, as a user runs it.
 
-- tvopt-codegen: spec -> derivation -> kernels -> Python and C files rendered, in process
-  (the bundled ``unicycle_ring`` spec with ``[index] i = N``, nothing else changed).
+- tvopt-codegen: one cold ``tvopt-codegen generate`` process per N (the bundled
+  ``unicycle_ring`` spec with ``[index] i = N``, nothing else changed; the NumPy module
+  written to a temporary folder), timed from outside: wall seconds, the stages' shares
+  from ``--timings`` (start-up is the wall time no stage accounts for: the interpreter and
+  the imports of the command line), and the process's peak memory (``wait4``'s
+  ``ru_maxrss``).
 - CasADi: the same plant, outputs, signals and objective written directly in SX, and its
   whole pipeline: relative degree by structural tests, Lie derivatives by ``jtimes``, the
   gradient jet by ``jtimes`` along (t, y, y'), ``solve`` for the Hessian and R, and the
-  ``Function``; the operation count is its ``n_instructions``.
-- naive sympy: the textbook derivation with sympy matrices (Jacobians for the Lie
-  derivatives, differentiation of whole expressions for the jet, ``LUsolve``) followed by one
-  ``cse`` of the law; each N runs in a child process stopped at a time budget.
+  ``Function``; its operation count is ``n_instructions``. Also in a cold process (a fresh
+  interpreter that imports CasADi and runs the pipeline), timed from outside the same way.
 
 Our operation count is the law as emitted: the jet (its time part too), Cholesky,
 decoupling and closed-loop kernels plus the LU solves of R's diagonal blocks.
@@ -20,12 +22,14 @@ with ``--write FILE``, stores it with the command, the machine and the date.
 from __future__ import annotations
 
 import argparse
+import json
 import math
-import multiprocessing
 import os
 import platform
 import re
+import subprocess
 import sys
+import tempfile
 import time
 from importlib import resources
 from pathlib import Path
@@ -33,50 +37,17 @@ from pathlib import Path
 import casadi as ca
 import sympy as sp
 
-from tvopt_codegen.derivation import derive
-from tvopt_codegen.ir import lower
-from tvopt_codegen.rendering import render
-from tvopt_codegen.spec import Spec, parse_spec
-
-SIZES = (1, 2, 4, 8, 16, 32)
+SIZES = (1, 2, 4, 8, 16, 32, 64, 128, 256)
 LAW_KERNELS = ("jet_time", "jet", "cholesky", "decoupling", "closed_loop")
 # The spec's defaults, for the peers (ours reads them from the spec).
 ALPHA, D, RADIUS, SPIN = 1e-3, 40.0, 2.0, 0.1
 POLES = (-1.0, -1.5)
 
 
-def ring_spec(agents: int) -> Spec:
-    """The bundled ``unicycle_ring`` with ``agents`` agents."""
-    text = (resources.files("tvopt_codegen.examples") / "unicycle_ring.toml").read_text()
-    text, count = re.subn(r"(?m)^i = \d+", f"i = {agents}", text)
-    assert count == 1, "the bundled unicycle_ring spec no longer has the line 'i = N'"
-    return parse_spec(f"unicycle_ring (N = {agents})", text.encode())
-
-
-def ours(agents: int) -> tuple[float, int]:
-    """Seconds from parsed spec to rendered Python and C, and the law's operations."""
-    spec = ring_spec(agents)
-    start = time.perf_counter()
-    kernels = lower(derive(spec))
-    render(kernels, "python")
-    render(kernels, "c")
-    seconds = time.perf_counter() - start
-    names = {k.name for k in kernels.kernels}
-    ops = sum(kernels[name].ops for name in LAW_KERNELS if name in names) + kernels.lu_ops
-    return seconds, ops
-
-
-def _ring_model(agents: int, lib: str) -> tuple[object, ...]:
-    """Plant, outputs, signals and f0 of the ring in CasADi SX or sympy (``lib``)."""
-    if lib == "casadi":
-        sym = ca.SX.sym
-        sin, cos, tan, pi = ca.sin, ca.cos, ca.tan, math.pi
-    else:
-
-        def sym(name: str) -> sp.Symbol:
-            return sp.Symbol(name, real=True)
-
-        sin, cos, tan, pi = sp.sin, sp.cos, sp.tan, sp.pi
+def _ring_model(agents: int) -> tuple[object, ...]:
+    """Plant, outputs, signals and f0 of the ring in CasADi SX."""
+    sym = ca.SX.sym
+    sin, cos, tan, pi = ca.sin, ca.cos, ca.tan, math.pi
     t = sym("t")
     alpha, d, radius, spin = (sym(n) for n in ("alpha", "d", "radius", "spin"))
     x, y, th, v = ([sym(f"{b}_{i}") for i in range(agents)] for b in ("x", "y", "theta", "v"))
@@ -107,7 +78,7 @@ def _ring_model(agents: int, lib: str) -> tuple[object, ...]:
 def casadi(agents: int) -> tuple[float, int]:
     """Seconds for CasADi's whole pipeline, and its ``n_instructions``."""
     start = time.perf_counter()
-    t, states, f_list, G_list, h, ys, f0, params = _ring_model(agents, "casadi")
+    t, states, f_list, G_list, h, ys, f0, params = _ring_model(agents)
     X, Y0 = ca.vertcat(*states), ca.vertcat(*ys)
     f = ca.vertcat(*f_list)
     G = ca.SX(len(states), 2 * agents)
@@ -154,75 +125,103 @@ def casadi(agents: int) -> tuple[float, int]:
     return seconds, int(law.n_instructions())
 
 
-def _naive_sympy(agents: int, queue: multiprocessing.Queue[tuple[float, int]]) -> None:
-    start = time.perf_counter()
-    t, states, f_list, G_list, h, ys, f0, _ = _ring_model(agents, "sympy")
-    X, f, G = sp.Matrix(states), sp.Matrix(f_list), sp.Matrix(G_list)
-    m = 2 * agents
-    H = sp.Matrix(h)
-    lf = H.jacobian(X) * f
-    R = lf.jacobian(X) * G
-    p = lf.jacobian(X) * f
-    Y0 = sp.Matrix(ys)
-    Y1 = sp.Matrix([sp.Symbol(f"{s}_1", real=True) for s in ys])
-    Y2 = sp.Matrix([sp.Symbol(f"{s}_2", real=True) for s in ys])
-    grad = sp.Matrix([f0]).jacobian(Y0).T
-    hess = grad.jacobian(Y0)
-    grad1 = grad.diff(t) + hess * Y1
-    grad2 = grad1.diff(t) + grad1.jacobian(Y0) * Y1 + grad1.jacobian(Y1) * Y2
-    rest = grad2.subs(dict.fromkeys(Y2, 0))
-    a0, a1 = POLES[0] * POLES[1], -(POLES[0] + POLES[1])
-    c = -a0 * grad - a1 * grad1 - rest
-    jet = dict(zip(Y0, H, strict=True)) | dict(zip(Y1, lf, strict=True))
-    z = hess.subs(jet).LUsolve(c.subs(jet))
-    w = R.LUsolve(z - p)
-    replacements, reduced = sp.cse(list(w))
-    ops = int(sum(sp.count_ops(e) for e in [*(e for _, e in replacements), *reduced]))
-    assert len(reduced) == m
-    queue.put((time.perf_counter() - start, ops))
+def _cold(command: list[str], timeout: float) -> tuple[float, float, str]:
+    """Wall seconds, peak memory (MB) and stderr of one child process."""
+    with tempfile.TemporaryFile() as errors:
+        started = time.perf_counter()
+        child = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=errors)
+        deadline = started + timeout
+        while True:
+            pid, status, usage = os.wait4(child.pid, os.WNOHANG)
+            if pid:
+                break
+            if time.perf_counter() > deadline:
+                child.kill()
+                pid, status, usage = os.wait4(child.pid, 0)
+                break
+            time.sleep(0.01)
+        wall = time.perf_counter() - started
+        child.returncode = os.waitstatus_to_exitcode(status)
+        errors.seek(0)
+        text = errors.read().decode("utf-8", "replace")
+    if child.returncode != 0:
+        raise RuntimeError(f"{command[:4]} failed ({child.returncode}): {text[-500:]}")
+    return wall, usage.ru_maxrss / 1024, text
 
 
-def naive_sympy(agents: int, budget: float) -> tuple[float, int] | None:
-    """The naive derivation in a child process; ``None`` when it exceeds ``budget`` s."""
-    context = multiprocessing.get_context("fork")
-    queue: multiprocessing.Queue[tuple[float, int]] = context.Queue()
-    child = context.Process(target=_naive_sympy, args=(agents, queue))
-    child.start()
-    child.join(budget)
-    if child.is_alive():
-        child.kill()
-        child.join()
-        return None
-    return queue.get() if not queue.empty() else None
+def ours_cold(agents: int, folder: Path, timeout: float) -> dict[str, float]:
+    """One cold ``tvopt-codegen generate`` of the ring: wall, stages, memory, operations."""
+    text = (resources.files("tvopt_codegen.examples") / "unicycle_ring.toml").read_text()
+    text, count = re.subn(r"(?m)^i = \d+", f"i = {agents}", text)
+    assert count == 1, "the bundled unicycle_ring spec no longer has the line 'i = N'"
+    spec = folder / f"ring{agents}.toml"
+    spec.write_text(text, encoding="utf-8")
+    out = folder / f"out{agents}"
+    command = [
+        sys.executable,
+        "-m",
+        "tvopt_codegen",
+        "generate",
+        str(spec),
+        "--out",
+        str(out),
+        "--quiet",
+        "--timings",
+        "--max-seconds",
+        str(timeout),
+        "--max-size",
+        "100000000",
+    ]
+    wall, memory, errors = _cold(command, timeout + 30)
+    line = next(x for x in errors.splitlines() if x.startswith("timings: "))
+    record: dict[str, float] = json.loads(line.removeprefix("timings: "))
+    record["wall"] = wall
+    record["memory"] = memory
+    stages = sum(record[k] for k in ("load", "derive", "lower", "render", "write"))
+    record["startup"] = wall - stages
+    return record
+
+
+def casadi_cold(agents: int, timeout: float) -> float:
+    """Wall seconds of CasADi's pipeline in a fresh interpreter (imports included)."""
+    here = Path(__file__).resolve()
+    code = (
+        f"import sys; sys.path.insert(0, {str(here.parent)!r}); "
+        f"from bench_derive import casadi; casadi({agents})"
+    )
+    wall, _, _ = _cold([sys.executable, "-c", code], timeout)
+    return wall
 
 
 def main(argv: list[str] | None = None) -> int:
     """Measure every size, print the table and optionally store it."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default=",".join(map(str, SIZES)))
-    parser.add_argument("--budget", type=float, default=60.0, help="naive sympy, s per N")
+    parser.add_argument("--timeout", type=float, default=900.0, help="s per cold process")
     parser.add_argument("--write", type=Path, help="also store the table in this file")
     args = parser.parse_args(argv)
     sizes = [int(s) for s in args.sizes.split(",")]
     header = (
-        "| N | ours s | CasADi s | naive sympy s | ours ops | CasADi instr. | naive ops "
-        "| ops ours/CasADi |"
+        "| N | CLI wall s | s per agent | start-up | load | derive | lower | render | write "
+        "| peak MB | ours ops | CasADi s (cold) | CasADi s (pipeline) | CasADi instr. "
+        "| wall ours/CasADi cold | ops ours/CasADi |"
     )
-    lines = [header, "|" + "---|" * 8]
-    naive_alive = True
-    for agents in sizes:
-        ours_s, ours_ops = ours(agents)
-        ca_s, ca_ops = casadi(agents)
-        naive = naive_sympy(agents, args.budget) if naive_alive else None
-        if naive is None:
-            naive_alive = False
-        naive_s = f"{naive[0]:.2f}" if naive else f"> {args.budget:.0f}"
-        naive_ops = str(naive[1]) if naive else "-"
-        lines.append(
-            f"| {agents} | {ours_s:.2f} | {ca_s:.2f} | {naive_s} | {ours_ops} | {ca_ops} "
-            f"| {naive_ops} | {ours_ops / ca_ops:.2f} |"
-        )
-        print(lines[-1], flush=True)
+    lines = [header, "|" + "---|" * 16]
+    with tempfile.TemporaryDirectory(prefix="bench-derive-") as tmp:
+        for agents in sizes:
+            r = ours_cold(agents, Path(tmp), args.timeout)
+            ca_s, ca_ops = casadi(agents)
+            ca_cold = casadi_cold(agents, args.timeout)
+            shares = " | ".join(
+                f"{100 * r[k] / r['wall']:.0f}%"
+                for k in ("startup", "load", "derive", "lower", "render", "write")
+            )
+            lines.append(
+                f"| {agents} | {r['wall']:.2f} | {r['wall'] / agents:.3f} | {shares} "
+                f"| {r['memory']:.0f} | {int(r['ops'])} | {ca_cold:.2f} | {ca_s:.3f} | {ca_ops} "
+                f"| {r['wall'] / ca_cold:.1f} | {r['ops'] / ca_ops:.2f} |"
+            )
+            print(lines[-1], flush=True)
     table = "\n".join(lines)
     print(table)
     if args.write:
@@ -234,15 +233,19 @@ def main(argv: list[str] | None = None) -> int:
         )
         versions = f"sympy {sp.__version__}, casadi {ca.__version__}"
         args.write.write_text(
-            "# Derivation scaling: unicycle_ring, N agents\n\n"
+            "# Derivation scaling: unicycle_ring, N agents, cold processes\n\n"
             f"Command: `{command}`  \nMachine: {machine}; {versions}  \n"
             f"Date: {time.strftime('%Y-%m-%d')}\n\n"
-            "Seconds from a parsed spec to the generated files (ours: derivation, kernels, "
-            "Python and C rendered; CasADi: relative degree, Lie derivatives, gradient jet, "
-            "solves, Function; naive sympy: matrices, LUsolve and one cse, in a child "
-            f"process stopped after {args.budget:.0f} s). Operations: our emitted law "
-            "(jet, Cholesky, decoupling and closed-loop kernels, LU of R's blocks) against "
-            "CasADi's n_instructions and sympy's count_ops after cse.\n\n" + table + "\n",
+            "One cold `tvopt-codegen generate ringN.toml --out DIR` process per N (the "
+            "bundled `unicycle_ring` with `i = N`, the NumPy module written), timed from "
+            "outside; the stages' shares of its wall time come from `--timings` (start-up: "
+            "the interpreter and the command line's imports; load: the spec, with sympy's "
+            "import; derive; lower: kernels and CSE; render; write). Peak memory is the "
+            "process's maximum resident set. CasADi: the same law built directly in SX "
+            "(relative degree, Lie derivatives, gradient jet, solves, Function), in a cold "
+            "interpreter (imports included) and, alone, in this process. Operations: our "
+            "emitted law (jet, Cholesky, decoupling and closed-loop kernels, LU of R's "
+            "blocks) against CasADi's n_instructions.\n\n" + table + "\n",
             encoding="utf-8",
         )
     return 0

@@ -182,3 +182,28 @@ def test_a_singular_default_state_is_warned_about(tmp_path: Path) -> None:
     text = (SPECS / "kinematic_car.toml").read_text()
     given = text.replace("phi = 0.0 }", "phi = 0.0, v = 1.0 }")
     assert derive(load_spec(write_spec(tmp_path, given))).warnings == ()
+
+
+def test_fading_convexity_is_found_among_many_outputs() -> None:
+    """Beyond 16 outputs the probe steps along 16 fixed directions (not every axis):
+    a log cosh objective over 20 outputs still gets the warning, and a quadratic none."""
+    n = 20
+    base = {
+        "name": "many",
+        "system": {
+            "states": [f"x{i}" for i in range(n)],
+            "inputs": [f"u{i}" for i in range(n)],
+            "dynamics": {f"x{i}": f"u{i}" for i in range(n)},
+            "outputs": {f"y{i}": f"x{i}" for i in range(n)},
+        },
+        "error_dynamics": {"poles": [-1.0]},
+        "simulation": {"t_final": 5.0},
+    }
+    fading = " + ".join(f"log(cosh(y{i} - sin(t + {i})))" for i in range(n))
+    d = derive({**base, "objective": {"f0": fading}})
+    assert len(d.warnings) == 1
+    assert "strongly convex only near its minimiser: at distance 10 from y*(t)" in d.warnings[0]
+    # tanh keeps the Hessian away from constant, so the sampled path is taken, not the
+    # exact one of a quadratic: still no warning where f0 does not fade.
+    steady = " + ".join(f"(y{i} - sin(t + {i}))**2 + 0.1*tanh(y{i})" for i in range(n))
+    assert derive({**base, "objective": {"f0": steady}}).warnings == ()

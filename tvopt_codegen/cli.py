@@ -83,6 +83,12 @@ def _parser() -> argparse.ArgumentParser:
         help="replace files that were edited by hand or not generated here",
     )
     generate.add_argument("--quiet", action="store_true", help="print nothing on success")
+    generate.add_argument(
+        "--timings",
+        action="store_true",
+        help="also print one JSON line of stage seconds and law operations on stderr "
+        "(for benchmarks/bench_derive.py)",
+    )
 
     check = commands.add_parser("check", help="print the derivation summary; writes nothing")
     check.add_argument("spec", help="spec file, or the name of a bundled example")
@@ -310,6 +316,8 @@ def _parser() -> argparse.ArgumentParser:
 
 def _derive(args: argparse.Namespace) -> tuple[Derivation, KernelSet]:
     """Load, derive and lower the spec named on the command line, within its budget."""
+    # From the command's start: --timings counts the imports the stages need in "load".
+    clock = [getattr(args, "started", time.perf_counter())]
     from tvopt_codegen.derivation import derive  # noqa: PLC0415
     from tvopt_codegen.ir import lower  # noqa: PLC0415
     from tvopt_codegen.spec import load_spec  # noqa: PLC0415
@@ -320,19 +328,30 @@ def _derive(args: argparse.Namespace) -> tuple[Derivation, KernelSet]:
         raise SpecError("command line", "--max-size", "must be positive")
     progress = _DeriveProgress(args.progress)
     source = [str(args.spec)]
+    stages: dict[str, float] = {}
+
+    def lap(stage: str) -> None:
+        now = time.perf_counter()
+        stages[stage] = now - clock[0]
+        clock[0] = now
+
     try:
         with _time_limit(args.max_seconds, source, progress):
             spec = load_spec(args.spec)
             source[0] = spec.source
             if args.extension == "auto":
                 spec = dataclasses.replace(spec, extension=(), extension_auto=True)
+            lap("load")
             derivation = derive(
                 spec, progress=progress, budget=Budget(args.max_seconds, args.max_size)
             )
+            lap("derive")
             progress.lowering()
             kernels = lower(derivation)
+            lap("lower")
     finally:
         progress.close()
+    args.stage_seconds = stages
     for warning in derivation.warnings:
         print(f"tvopt-codegen: warning: {spec.source}: {warning}", file=sys.stderr)
     return derivation, kernels
@@ -588,6 +607,7 @@ def _simulate(args: argparse.Namespace) -> int:
 def run(argv: Sequence[str] | None = None) -> int:
     """Run the CLI and return the exit code (errors are reported on stderr)."""
     args = _parser().parse_args(argv)
+    args.started = time.perf_counter()
     if args.command == "examples":
         from tvopt_codegen.spec import bundled_examples  # noqa: PLC0415
 
@@ -610,11 +630,22 @@ def run(argv: Sequence[str] | None = None) -> int:
     if args.command == "check":
         print(format_summary(derivation, kernels))
         return 0
+    started = time.perf_counter()
     from tvopt_codegen.emit import write_files  # noqa: PLC0415
     from tvopt_codegen.rendering import render  # noqa: PLC0415
 
     files = render(kernels, args.backend)
+    rendered = time.perf_counter()
     written = write_files(files, args.out, force=args.force)
+    if args.timings:
+        import json  # noqa: PLC0415
+
+        law = ("jet_time", "jet", "cholesky", "decoupling", "closed_loop")
+        names = {k.name for k in kernels.kernels}
+        record = dict(args.stage_seconds)
+        record |= {"render": rendered - started, "write": time.perf_counter() - rendered}
+        record["ops"] = sum(kernels[n].ops for n in law if n in names) + kernels.lu_ops
+        print(f"timings: {json.dumps(record)}", file=sys.stderr)
     if not args.quiet:
         print(format_summary(derivation, kernels))
         for name in files:

@@ -620,6 +620,9 @@ DEGENERATE_HESSIAN = 1e-8
 _PATH_POINTS = 25
 #: Distances from y*(t) probed for where f0 stops being strongly convex.
 _PROBE_DISTANCES = (1.0, 10.0, 100.0)
+#: Up to this many outputs the fading probe steps along every axis; beyond, along this
+#: many fixed directions.
+_PROBE_AXES = 16
 
 
 class _ObjectiveNumbers:
@@ -814,6 +817,23 @@ def _check_convexity(
     return result, tuple(warnings)
 
 
+def _probe_directions(m: int) -> np.ndarray:
+    """The directions in which :func:`_fading_convexity` steps away from ``y*``.
+
+    Each axis both ways while there are at most :data:`_PROBE_AXES` outputs; beyond,
+    :data:`_PROBE_AXES` fixed directions of +-1 entries (all ones, alternating signs, and
+    seeded random signs, each with its opposite), so that every output moves by the
+    probe's distance in every direction: the cost stays that of :data:`_PROBE_AXES`
+    Hessians per point however many outputs there are (per axis it grew as m^4).
+    """
+    if m <= _PROBE_AXES:
+        return np.concatenate([np.eye(m), -np.eye(m)])
+    rng = np.random.default_rng(14)
+    half = [np.ones(m), np.resize([1.0, -1.0], m)]
+    half += [rng.choice([-1.0, 1.0], size=m) for _ in range(_PROBE_AXES // 2 - 2)]
+    return np.concatenate([np.array(half), -np.array(half)])
+
+
 def _fading_convexity(
     numbers: _ObjectiveNumbers,
     path: np.ndarray,
@@ -823,23 +843,22 @@ def _fading_convexity(
 ) -> list[str]:
     """A warning when f0 is strongly convex near y*(t) only (its Hessian fades away)."""
     m = path.shape[1]
+    directions = _probe_directions(m)
     for distance in _PROBE_DISTANCES:
-        for sign in (1.0, -1.0):
-            probes = path[:, None, :] + sign * distance * np.eye(m)[None]  # (T, m, m): one per axis
-            flat = probes.reshape(-1, m)
-            _, matrices = numbers.derivatives(flat, np.repeat(ts, m))
+        # One direction at a time: len(ts) Hessians in memory, not len(ts) * m of them.
+        for direction in directions:
+            _, matrices = numbers.derivatives(path + distance * direction, ts)
             low, _ = _smallest_eigenvalues(matrices)
-            reference = np.repeat(path_low, m)
             # Fading, not turning negative: a barrier's periodic branches beyond its
             # domain (tan**2) are not where the outputs can go.
-            fading = np.repeat(converged, m) & (np.abs(low) < 1e-6 * reference)
+            fading = converged & (np.abs(low) < 1e-6 * path_low)
             if fading.any():
                 at = int(np.argmax(fading))
                 return [
                     "objective.f0: f0 is strongly convex only near its minimiser: at distance "
                     f"{distance:g} "
-                    f"from y*(t) (t = {ts[at // m]:.6g}) the Hessian's smallest eigenvalue is "
-                    f"{low[at]:.3g}, against {reference[at]:.3g} at y*; the certificate's "
+                    f"from y*(t) (t = {ts[at]:.6g}) the Hessian's smallest eigenvalue is "
+                    f"{low[at]:.3g}, against {path_low[at]:.3g} at y*; the certificate's "
                     "bound holds only while the outputs stay where it is bounded below"
                 ]
     return []
