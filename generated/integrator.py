@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 57684ae3df9ae8d25576b5ad2619b66c7e6369a993f546856d72ed8f77348c7f
+# content sha256: b3d5d25fca107671f876034389ec01bbc8fb311d14a919505154622bebdff2d8
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -336,16 +336,14 @@ def _cholesky(h, c):
 
 
 def _decoupling(t, s, p, z, q):
-    """b = v - p, so that R w = b linearizes the plant (kernel; 2 operations, 2 before CSE)."""
+    """b = v - p, so that R w = b linearizes the plant (kernel; 0 operations, 0 before CSE)."""
     _n = s.shape[1]
     _z0 = z[0]  # y1^(1)
     _z1 = z[1]  # y2^(1)
-    _q0 = q[0]  # p_y1
-    _q1 = q[1]  # p_y2
     # Output terms
     b = numpy.empty((2, _n))  # v - p
-    b[0] = _z0 - _q0
-    b[1] = _z1 - _q1
+    b[0] = _z0
+    b[1] = _z1
     return b
 
 
@@ -698,10 +696,9 @@ def _law_1(t, s, p, rates):
     # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
     if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
-    # decoupling: b = v - p, so that R w = b linearizes the plant (2 operations)
+    # decoupling: b = v - p, so that R w = b linearizes the plant (0 operations)
     _r0, _r1 = z
-    _r2, _r3 = pvec
-    b = [_r0 - _r2, _r1 - _r3]
+    b = [_r0, _r1]
     if not math.isfinite(sum(b)):
         return None
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).

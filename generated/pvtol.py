@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
-# content sha256: a12dbcd5e76ea6abce2a46c2e0223fd315aa50e7c05c47ddaf15366214fa779b
+# content sha256: 63ea6af1e8d49a66181216acd5426d6f1d075d02eedec4f7f3171e5fb75d9348
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -759,10 +759,12 @@ def _solve_decoupling_1(r, b):
     tolerance = PIVOT_TOLERANCE
     a00, a01, a10, a11 = r[0:4]
     b0, b1 = b[0], b[1]
-    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
-    if abs(a10) > abs(a00):
+    m00, m10 = abs(a00), abs(a10)
+    scale = max(m00, abs(a01), m10, abs(a11))
+    if m10 > m00:
         a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
-    if not abs(a00) > tolerance * scale:
+        m00 = m10
+    if not m00 > tolerance * scale:
         return None
     factor = a10 / a00
     a11 = a11 - factor * a01

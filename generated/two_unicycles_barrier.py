@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 264b7a2cb09ffa0f3983e7c8a2caaf0dcfe498d506550afad89fcfd755246960
+# content sha256: 4c890a34e73e8f237846a8c9429bd2f586becd2e1f296ce280416d482e169230
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -477,22 +477,18 @@ def _cholesky(h, c):
 
 
 def _decoupling(t, s, p, z, q):
-    """b = v - p, so that R w = b linearizes the plant (kernel; 4 operations, 4 before CSE)."""
+    """b = v - p, so that R w = b linearizes the plant (kernel; 0 operations, 0 before CSE)."""
     _n = s.shape[1]
     _z0 = z[0]  # pa^(2)
     _z1 = z[1]  # qa^(2)
     _z2 = z[2]  # pb^(2)
     _z3 = z[3]  # qb^(2)
-    _q0 = q[0]  # p_pa
-    _q1 = q[1]  # p_qa
-    _q2 = q[2]  # p_pb
-    _q3 = q[3]  # p_qb
     # Output terms
     b = numpy.empty((4, _n))  # v - p
-    b[0] = _z0 - _q0
-    b[1] = _z1 - _q1
-    b[2] = _z2 - _q2
-    b[3] = _z3 - _q3
+    b[0] = _z0
+    b[1] = _z1
+    b[2] = _z2
+    b[3] = _z3
     return b
 
 
@@ -1024,10 +1020,12 @@ def _solve_decoupling_1(r, b):
     tolerance = PIVOT_TOLERANCE
     a00, a01, a10, a11 = r[0:4]
     b0, b1 = b[0], b[1]
-    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
-    if abs(a10) > abs(a00):
+    m00, m10 = abs(a00), abs(a10)
+    scale = max(m00, abs(a01), m10, abs(a11))
+    if m10 > m00:
         a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
-    if not abs(a00) > tolerance * scale:
+        m00 = m10
+    if not m00 > tolerance * scale:
         return None
     factor = a10 / a00
     a11 = a11 - factor * a01
@@ -1038,10 +1036,12 @@ def _solve_decoupling_1(r, b):
     w[0], w[1] = (b0 - a01 * x1) / a00, x1
     a00, a01, a10, a11 = r[4:8]
     b0, b1 = b[2], b[3]
-    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
-    if abs(a10) > abs(a00):
+    m00, m10 = abs(a00), abs(a10)
+    scale = max(m00, abs(a01), m10, abs(a11))
+    if m10 > m00:
         a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
-    if not abs(a00) > tolerance * scale:
+        m00 = m10
+    if not m00 > tolerance * scale:
         return None
     factor = a10 / a00
     a11 = a11 - factor * a01
@@ -1158,10 +1158,9 @@ def _law_1(t, s, p, rates):
     # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
     if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
-    # decoupling: b = v - p, so that R w = b linearizes the plant (4 operations)
+    # decoupling: b = v - p, so that R w = b linearizes the plant (0 operations)
     _r0, _r1, _r2, _r3 = z
-    _r4, _r5, _r6, _r7 = pvec
-    b = [_r0 - _r4, _r1 - _r5, _r2 - _r6, _r3 - _r7]
+    b = [_r0, _r1, _r2, _r3]
     if not math.isfinite(sum(b)):
         return None
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).

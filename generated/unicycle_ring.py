@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 499f8c5142eaacfc580921551d16e184bbb2ae2d49d9062d6e3daf609199b0e0
+# content sha256: 1ffd1b0e871987228d132834eb25716171deaceeb0fc8c841af25b51a6f2803f
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -763,7 +763,7 @@ def _cholesky(h, c):
 
 
 def _decoupling(t, s, p, z, q):
-    """b = v - p, so that R w = b linearizes the plant (kernel; 8 operations, 8 before CSE)."""
+    """b = v - p, so that R w = b linearizes the plant (kernel; 0 operations, 0 before CSE)."""
     _n = s.shape[1]
     _z0 = z[0]  # px_0^(2)
     _z1 = z[1]  # py_0^(2)
@@ -773,24 +773,16 @@ def _decoupling(t, s, p, z, q):
     _z5 = z[5]  # py_2^(2)
     _z6 = z[6]  # px_3^(2)
     _z7 = z[7]  # py_3^(2)
-    _q0 = q[0]  # p_px_0
-    _q1 = q[1]  # p_py_0
-    _q2 = q[2]  # p_px_1
-    _q3 = q[3]  # p_py_1
-    _q4 = q[4]  # p_px_2
-    _q5 = q[5]  # p_py_2
-    _q6 = q[6]  # p_px_3
-    _q7 = q[7]  # p_py_3
     # Output terms
     b = numpy.empty((8, _n))  # v - p
-    b[0] = _z0 - _q0
-    b[1] = _z1 - _q1
-    b[2] = _z2 - _q2
-    b[3] = _z3 - _q3
-    b[4] = _z4 - _q4
-    b[5] = _z5 - _q5
-    b[6] = _z6 - _q6
-    b[7] = _z7 - _q7
+    b[0] = _z0
+    b[1] = _z1
+    b[2] = _z2
+    b[3] = _z3
+    b[4] = _z4
+    b[5] = _z5
+    b[6] = _z6
+    b[7] = _z7
     return b
 
 
@@ -1830,10 +1822,12 @@ def _solve_decoupling_1(r, b):
     tolerance = PIVOT_TOLERANCE
     a00, a01, a10, a11 = r[0:4]
     b0, b1 = b[0], b[1]
-    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
-    if abs(a10) > abs(a00):
+    m00, m10 = abs(a00), abs(a10)
+    scale = max(m00, abs(a01), m10, abs(a11))
+    if m10 > m00:
         a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
-    if not abs(a00) > tolerance * scale:
+        m00 = m10
+    if not m00 > tolerance * scale:
         return None
     factor = a10 / a00
     a11 = a11 - factor * a01
@@ -1844,10 +1838,12 @@ def _solve_decoupling_1(r, b):
     w[0], w[1] = (b0 - a01 * x1) / a00, x1
     a00, a01, a10, a11 = r[4:8]
     b0, b1 = b[2], b[3]
-    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
-    if abs(a10) > abs(a00):
+    m00, m10 = abs(a00), abs(a10)
+    scale = max(m00, abs(a01), m10, abs(a11))
+    if m10 > m00:
         a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
-    if not abs(a00) > tolerance * scale:
+        m00 = m10
+    if not m00 > tolerance * scale:
         return None
     factor = a10 / a00
     a11 = a11 - factor * a01
@@ -1858,10 +1854,12 @@ def _solve_decoupling_1(r, b):
     w[2], w[3] = (b0 - a01 * x1) / a00, x1
     a00, a01, a10, a11 = r[8:12]
     b0, b1 = b[4], b[5]
-    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
-    if abs(a10) > abs(a00):
+    m00, m10 = abs(a00), abs(a10)
+    scale = max(m00, abs(a01), m10, abs(a11))
+    if m10 > m00:
         a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
-    if not abs(a00) > tolerance * scale:
+        m00 = m10
+    if not m00 > tolerance * scale:
         return None
     factor = a10 / a00
     a11 = a11 - factor * a01
@@ -1872,10 +1870,12 @@ def _solve_decoupling_1(r, b):
     w[4], w[5] = (b0 - a01 * x1) / a00, x1
     a00, a01, a10, a11 = r[12:16]
     b0, b1 = b[6], b[7]
-    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
-    if abs(a10) > abs(a00):
+    m00, m10 = abs(a00), abs(a10)
+    scale = max(m00, abs(a01), m10, abs(a11))
+    if m10 > m00:
         a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
-    if not abs(a00) > tolerance * scale:
+        m00 = m10
+    if not m00 > tolerance * scale:
         return None
     factor = a10 / a00
     a11 = a11 - factor * a01
@@ -2168,10 +2168,9 @@ def _law_1(t, s, p, rates):
     # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
     if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):
         return None
-    # decoupling: b = v - p, so that R w = b linearizes the plant (8 operations)
+    # decoupling: b = v - p, so that R w = b linearizes the plant (0 operations)
     _r0, _r1, _r2, _r3, _r4, _r5, _r6, _r7 = z
-    _r8, _r9, _r10, _r11, _r12, _r13, _r14, _r15 = pvec
-    b = [_r0 - _r8, _r1 - _r9, _r2 - _r10, _r3 - _r11, _r4 - _r12, _r5 - _r13, _r6 - _r14, _r7 - _r15]
+    b = [_r0, _r1, _r2, _r3, _r4, _r5, _r6, _r7]
     if not math.isfinite(sum(b)):
         return None
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: b9881e5a090c2e6da1e34859ce0bba1cab0e0ff30daefd56124bb179bba92e31
+# content sha256: 8020bbe13363a29ec0c7d7f2c6821add78be15d4ba9ef9fbe24050ef092be004
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -348,16 +348,14 @@ def _jet(t, s, p, a, tau):
 
 
 def _decoupling(t, s, p, z, q):
-    """b = v - p, so that R w = b linearizes the plant (kernel; 2 operations, 2 before CSE)."""
+    """b = v - p, so that R w = b linearizes the plant (kernel; 0 operations, 0 before CSE)."""
     _n = s.shape[1]
     _z0 = z[0]  # y1^(2)
     _z1 = z[1]  # y2^(2)
-    _q0 = q[0]  # p_y1
-    _q1 = q[1]  # p_y2
     # Output terms
     b = numpy.empty((2, _n))  # v - p
-    b[0] = _z0 - _q0
-    b[1] = _z1 - _q1
+    b[0] = _z0
+    b[1] = _z1
     return b
 
 
@@ -725,10 +723,12 @@ def _solve_decoupling_1(r, b):
     tolerance = PIVOT_TOLERANCE
     a00, a01, a10, a11 = r[0:4]
     b0, b1 = b[0], b[1]
-    scale = max(abs(a00), abs(a01), abs(a10), abs(a11))
-    if abs(a10) > abs(a00):
+    m00, m10 = abs(a00), abs(a10)
+    scale = max(m00, abs(a01), m10, abs(a11))
+    if m10 > m00:
         a00, a01, a10, a11, b0, b1 = a10, a11, a00, a01, b1, b0
-    if not abs(a00) > tolerance * scale:
+        m00 = m10
+    if not m00 > tolerance * scale:
         return None
     factor = a10 / a00
     a11 = a11 - factor * a01
@@ -784,10 +784,9 @@ def _law_1(t, s, p, rates):
     # that no plant input depends on could hide in w.
     if not math.isfinite(sum(r)):
         return None
-    # decoupling: b = v - p, so that R w = b linearizes the plant (2 operations)
+    # decoupling: b = v - p, so that R w = b linearizes the plant (0 operations)
     _r0, _r1 = z
-    _r2, _r3 = pvec
-    b = [_r0 - _r2, _r1 - _r3]
+    b = [_r0, _r1]
     if not math.isfinite(sum(b)):
         return None
     # w = R^-1 (v - p) by LU with partial pivoting (a symbolic solve loses digits).

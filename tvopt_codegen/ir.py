@@ -181,12 +181,15 @@ def _input_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
     law, m = d.law, len(d.model.u)
     q_slots = _slots("q", m)
     arg_q = Arg("q", q_slots, tuple(f"p_{o}" for o in d.spec.outputs), "p of the decoupling")
+    # An entry of p that is a number (0 for a kinematic plant) is subtracted here as that
+    # number, not read from the jet's output.
+    p = [d.p[i] if d.p[i].is_Number else q_slots[i] for i in range(m)]
     decoupling = kernel(
         "decoupling",
         "b = v - p, so that R w = b linearizes the plant",
         [args.t, args.s, args.p, args.z, arg_q],
         [],
-        [("b", (m,), [law.v[i] - q_slots[i] for i in range(m)], "v - p")],
+        [("b", (m,), [law.v[i] - p[i] for i in range(m)], "v - p")],
         args.subs,
     )
     closed_loop = kernel(

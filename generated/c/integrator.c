@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 702d43d9f2278af5637592fd597ebcbe7658e0f38c90e7e38a763d4af8dd0fe8
+ * content sha256: 284327350ad43ad21e23ad850e06b1869986b5ebe9cafe6d9ea2d01a361c755d
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -88,7 +88,7 @@ static void integrator_k_cholesky(const double *h, const double *c, double *z, d
 }
 
 
-/* b = v - p, so that R w = b linearizes the plant (2 operations, 2 before CSE). */
+/* b = v - p, so that R w = b linearizes the plant (0 operations, 0 before CSE). */
 static void integrator_k_decoupling(double t, const double *s, const double *p, const double *z, const double *q, double *b)
 {
     (void)t;
@@ -96,10 +96,9 @@ static void integrator_k_decoupling(double t, const double *s, const double *p, 
     (void)p;
     const double _z0 = z[0]; /* y1^(1) */
     const double _z1 = z[1]; /* y2^(1) */
-    const double _q0 = q[0]; /* p_y1 */
-    const double _q1 = q[1]; /* p_y2 */
-    b[0] = _z0 - _q0;
-    b[1] = _z1 - _q1;
+    (void)q;
+    b[0] = _z0;
+    b[1] = _z1;
 }
 
 

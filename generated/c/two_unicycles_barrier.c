@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 658584755ad9feb7211781da291cf8250354b85748608ecf8eb053068e56d63f
+ * content sha256: c610527d4c0565b44ad8d51e1d4188d23110a3b341c95da00b070251b6cd191a
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -219,7 +219,7 @@ static void two_unicycles_barrier_k_cholesky(const double *h, const double *c, d
 }
 
 
-/* b = v - p, so that R w = b linearizes the plant (4 operations, 4 before CSE). */
+/* b = v - p, so that R w = b linearizes the plant (0 operations, 0 before CSE). */
 static void two_unicycles_barrier_k_decoupling(double t, const double *s, const double *p, const double *z, const double *q, double *b)
 {
     (void)t;
@@ -229,14 +229,11 @@ static void two_unicycles_barrier_k_decoupling(double t, const double *s, const 
     const double _z1 = z[1]; /* qa^(2) */
     const double _z2 = z[2]; /* pb^(2) */
     const double _z3 = z[3]; /* qb^(2) */
-    const double _q0 = q[0]; /* p_pa */
-    const double _q1 = q[1]; /* p_qa */
-    const double _q2 = q[2]; /* p_pb */
-    const double _q3 = q[3]; /* p_qb */
-    b[0] = _z0 - _q0;
-    b[1] = _z1 - _q1;
-    b[2] = _z2 - _q2;
-    b[3] = _z3 - _q3;
+    (void)q;
+    b[0] = _z0;
+    b[1] = _z1;
+    b[2] = _z2;
+    b[3] = _z3;
 }
 
 

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_ring
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: 7efe11e578a19587e09bca6205edd8d360917231b03c45c31576c976da464f1d
+ * content sha256: 8d2688ea7953728913a6e1617aad76c82127301e6781fc455c021204aeaff2ea
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical
@@ -499,7 +499,7 @@ static void unicycle_ring_k_cholesky(const double *h, const double *c, double *z
 }
 
 
-/* b = v - p, so that R w = b linearizes the plant (8 operations, 8 before CSE). */
+/* b = v - p, so that R w = b linearizes the plant (0 operations, 0 before CSE). */
 static void unicycle_ring_k_decoupling(double t, const double *s, const double *p, const double *z, const double *q, double *b)
 {
     (void)t;
@@ -513,22 +513,15 @@ static void unicycle_ring_k_decoupling(double t, const double *s, const double *
     const double _z5 = z[5]; /* py_2^(2) */
     const double _z6 = z[6]; /* px_3^(2) */
     const double _z7 = z[7]; /* py_3^(2) */
-    const double _q0 = q[0]; /* p_px_0 */
-    const double _q1 = q[1]; /* p_py_0 */
-    const double _q2 = q[2]; /* p_px_1 */
-    const double _q3 = q[3]; /* p_py_1 */
-    const double _q4 = q[4]; /* p_px_2 */
-    const double _q5 = q[5]; /* p_py_2 */
-    const double _q6 = q[6]; /* p_px_3 */
-    const double _q7 = q[7]; /* p_py_3 */
-    b[0] = _z0 - _q0;
-    b[1] = _z1 - _q1;
-    b[2] = _z2 - _q2;
-    b[3] = _z3 - _q3;
-    b[4] = _z4 - _q4;
-    b[5] = _z5 - _q5;
-    b[6] = _z6 - _q6;
-    b[7] = _z7 - _q7;
+    (void)q;
+    b[0] = _z0;
+    b[1] = _z1;
+    b[2] = _z2;
+    b[3] = _z3;
+    b[4] = _z4;
+    b[5] = _z5;
+    b[6] = _z6;
+    b[7] = _z7;
 }
 
 

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: ef7d5f93428cec49e3a933147fc012197cde9a462b379831d75dacc8a5cb558b
+ * content sha256: f66fc06b08a96cbb96196a259fb16182e5fb69668c0b86b61123cd2815082c43
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -113,7 +113,7 @@ static void unicycle_switch_k_jet(double t, const double *s, const double *p, co
 }
 
 
-/* b = v - p, so that R w = b linearizes the plant (2 operations, 2 before CSE). */
+/* b = v - p, so that R w = b linearizes the plant (0 operations, 0 before CSE). */
 static void unicycle_switch_k_decoupling(double t, const double *s, const double *p, const double *z, const double *q, double *b)
 {
     (void)t;
@@ -121,10 +121,9 @@ static void unicycle_switch_k_decoupling(double t, const double *s, const double
     (void)p;
     const double _z0 = z[0]; /* y1^(2) */
     const double _z1 = z[1]; /* y2^(2) */
-    const double _q0 = q[0]; /* p_y1 */
-    const double _q1 = q[1]; /* p_y2 */
-    b[0] = _z0 - _q0;
-    b[1] = _z1 - _q1;
+    (void)q;
+    b[0] = _z0;
+    b[1] = _z1;
 }
 
 
