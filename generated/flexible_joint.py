@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 5a622474feb6f26907f282e581c1d61bb5e48b23a6b7c575808bbe8fea80b193
+# content sha256: ccee87a7a59148120f34f0260232097d7e35c64cf138e67250c3c04a37f1ffeb
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -579,29 +579,38 @@ def _outputs(t, x, p):
     return y
 
 
+
+# The one-point code calls NumPy's functions through these names (one lookup, not two).
+_np_cos = numpy.cos
+_np_cosh = numpy.cosh
+_np_log = numpy.log
+_np_power = numpy.power
+_np_sin = numpy.sin
+_np_sinh = numpy.sinh
+
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
     _s0, _s1, _s2, _s3 = s
     _p0, _p1, _, _p3 = p
     _t0 = (1/2)*t
-    _t1 = float(numpy.sin(_t0))
+    _t1 = float(_np_sin(_t0))
     _t2 = (13/10)*t
-    _t3 = float(numpy.sin(_t2))
+    _t3 = float(_np_sin(_t2))
     _t4 = (3/5)*_t1 + (3/10)*_t3
-    _t5 = float(numpy.cos(_t0))
-    _t6 = float(numpy.cos(_t2))
+    _t5 = float(_np_cos(_t0))
+    _t6 = float(_np_cos(_t2))
     _t7 = (3/10)*_t5 + (39/100)*_t6
     _t8 = -507/1000*_t3 - 3/20*_t1
     _t9 = -6591/10000*_t6 - 3/40*_t5
     _t10 = 1.0/_p1
     _t11 = _p0*_t10
     _t12 = _p3*_t10
-    _t13 = -_t11*float(numpy.sin(_s0)) - _t12*(_s0 - _s2)
-    _t14 = _s1*(-_t12 - _t11*float(numpy.cos(_s0))) + _s3*_t12
+    _t13 = -_t11*float(_np_sin(_s0)) - _t12*(_s0 - _s2)
+    _t14 = _s1*(-_t12 - _t11*float(_np_cos(_s0))) + _s3*_t12
     _t15 = _t4 - _s0
-    _t16 = float(numpy.cosh(_t15))
+    _t16 = float(_np_cosh(_t15))
     _t17 = 1.0/_t16
-    _t18 = float(numpy.sinh(_t15))
+    _t18 = float(_np_sinh(_t15))
     _t19 = _t7 - _s1
     _t20 = _t18*_t19
     _t21 = 1.0/(_t16*_t16)
@@ -627,9 +636,9 @@ def _optimality_1(t, s, p):
 def _objective_1(t, y, p):
     """The objective f0(y, t) (one point; lists in, lists out)."""
     _y0, = y
-    _t0 = _y0 - 3/5*float(numpy.sin((1/2)*t)) - 3/10*float(numpy.sin((13/10)*t))
+    _t0 = _y0 - 3/5*float(_np_sin((1/2)*t)) - 3/10*float(_np_sin((13/10)*t))
     f0 = [
-        (_t0*_t0) + float(numpy.log(float(numpy.cosh(_t0)))),
+        (_t0*_t0) + float(_np_log(float(_np_cosh(_t0)))),
     ]
     return f0
 
@@ -637,10 +646,10 @@ def _objective_1(t, y, p):
 def _gradient_1(t, y, p):
     """grad_y f0(y, t) (one point; lists in, lists out)."""
     _y0, = y
-    _t0 = (3/5)*float(numpy.sin((1/2)*t)) + (3/10)*float(numpy.sin((13/10)*t))
+    _t0 = (3/5)*float(_np_sin((1/2)*t)) + (3/10)*float(_np_sin((13/10)*t))
     _t1 = _t0 - _y0
     grad = [
-        2.0*_y0 - 2.0*_t0 - float(numpy.sinh(_t1))/float(numpy.cosh(_t1)),
+        2.0*_y0 - 2.0*_t0 - float(_np_sinh(_t1))/float(_np_cosh(_t1)),
     ]
     return grad
 
@@ -648,9 +657,9 @@ def _gradient_1(t, y, p):
 def _hessian_1(t, y, p):
     """grad_yy f0(y, t) (one point; lists in, lists out)."""
     _y0, = y
-    _t0 = (3/5)*float(numpy.sin((1/2)*t)) - _y0 + (3/10)*float(numpy.sin((13/10)*t))
+    _t0 = (3/5)*float(_np_sin((1/2)*t)) - _y0 + (3/10)*float(_np_sin((13/10)*t))
     hess = [
-        3.0 - (float(numpy.sinh(_t0))*float(numpy.sinh(_t0)))/(float(numpy.cosh(_t0))*float(numpy.cosh(_t0))),
+        3.0 - (float(_np_sinh(_t0))*float(_np_sinh(_t0)))/(float(_np_cosh(_t0))*float(_np_cosh(_t0))),
     ]
     return hess
 
@@ -822,12 +831,12 @@ def _law_1(t, s, p, rates):
     # jet_time: The jet's terms of time and parameters alone (38 operations)
     _r0, _r1, _r2, _r3 = p
     _r4 = (1/2)*t
-    _r5 = float(numpy.sin(_r4))
+    _r5 = float(_np_sin(_r4))
     _r6 = (13/10)*t
-    _r7 = float(numpy.sin(_r6))
+    _r7 = float(_np_sin(_r6))
     _r8 = (3/5)*_r5 + (3/10)*_r7
-    _r4 = float(numpy.cos(_r4))
-    _r6 = float(numpy.cos(_r6))
+    _r4 = float(_np_cos(_r4))
+    _r6 = float(_np_cos(_r6))
     _r9 = (3/10)*_r4 + (39/100)*_r6
     _r10 = -507/1000*_r7 - 3/20*_r5
     _r4 = -6591/10000*_r6 - 3/40*_r4
@@ -841,15 +850,15 @@ def _law_1(t, s, p, rates):
     _r0, _r1, _r2, _r3 = s
     _r4, _r5, _r6, _r7 = _A_LIST
     _r8, _r9, _r10, _r11, _r12, _r13, _r14, _r15, _r16, _r17, _r18, _r19, _r20, _r21, _r22, _r23 = tau
-    _r8 = _r8*float(numpy.sin(_r0))
+    _r8 = _r8*float(_np_sin(_r0))
     _r2 = _r0 - _r2
     _r24 = _r9*_r2 - _r8
-    _r9 = _r9 + _r10*float(numpy.cos(_r0))
+    _r9 = _r9 + _r10*float(_np_cos(_r0))
     _r3 = _r1*_r9 + _r3*_r11
     _r10 = _r12 - _r0
-    _r11 = float(numpy.cosh(_r10))
+    _r11 = float(_np_cosh(_r10))
     _r12 = 1.0/_r11
-    _r10 = float(numpy.sinh(_r10))
+    _r10 = float(_np_sinh(_r10))
     _r13 = _r13 - _r1
     _r25 = _r10*_r13
     _r26 = 1.0/(_r11*_r11)
@@ -871,7 +880,7 @@ def _law_1(t, s, p, rates):
     _r40 = -_r25*_r39 - _r26*_r35 - 2.0*_r29*_r32
     _r41 = _r11*_r15 + _r13*_r29 + 2.0*_r25*_r14
     hess = [_r11*_r12 - _r26*(_r10*_r10) + 2.0]
-    jet_rhs = [_r21 + _r4*(_r16 + 2.0*_r0 - _r12*_r10) + _r5*(_r17 + 2.0*_r1 - _r12*_r28 - _r10*_r27) + _r6*(_r18 + 2.0*_r24 - _r12*_r34 - _r10*_r33 - 2.0*_r27*_r28) + _r7*(_r19 + 2.0*_r3 - _r12*_r41 - _r10*_r40 - 3.0*_r27*_r34 - 3.0*_r28*_r33) + _r12*(_r20*_r11 + _r13*_r35 + 3.0*_r25*_r15 + 3.0*_r14*_r29) + _r10*(-_r25*(-_r31*(12.0*(_r25*_r25)/float(numpy.power(_r11, 5.0)) - _r29*_r36) - 2.0*_r30*_r35 - 2.0*_r37*_r38) - _r26*(_r20*_r10 + _r13*_r41 + 3.0*_r28*_r15 + 3.0*_r14*_r34) - 3.0*_r29*_r39 - 3.0*_r32*_r35) + 4.0*_r27*_r41 + 4.0*_r28*_r40 + 6.0*_r33*_r34]
+    jet_rhs = [_r21 + _r4*(_r16 + 2.0*_r0 - _r12*_r10) + _r5*(_r17 + 2.0*_r1 - _r12*_r28 - _r10*_r27) + _r6*(_r18 + 2.0*_r24 - _r12*_r34 - _r10*_r33 - 2.0*_r27*_r28) + _r7*(_r19 + 2.0*_r3 - _r12*_r41 - _r10*_r40 - 3.0*_r27*_r34 - 3.0*_r28*_r33) + _r12*(_r20*_r11 + _r13*_r35 + 3.0*_r25*_r15 + 3.0*_r14*_r29) + _r10*(-_r25*(-_r31*(12.0*(_r25*_r25)/float(_np_power(_r11, 5.0)) - _r29*_r36) - 2.0*_r30*_r35 - 2.0*_r37*_r38) - _r26*(_r20*_r10 + _r13*_r41 + 3.0*_r28*_r15 + 3.0*_r14*_r34) - 3.0*_r29*_r39 - 3.0*_r32*_r35) + 4.0*_r27*_r41 + 4.0*_r28*_r40 + 6.0*_r33*_r34]
     r = [_r22]
     pvec = [_r23*_r2 + _r8*(_r1*_r1) + _r24*_r9]
     # The right-hand side and p reach b, which is checked below; an infinite Hessian
@@ -911,7 +920,7 @@ def _law_1(t, s, p, rates):
     _r5 = 1.0/_r5
     _r2 = _r7*(_r0 - _r2)
     _r6 = 1.0/_r6
-    ds = [_r1, -_r5*_r2 - _r4*_r5*float(numpy.sin(_r0)), _r3, _r2*_r6 + _r6*_r8]
+    ds = [_r1, -_r5*_r2 - _r4*_r5*float(_np_sin(_r0)), _r3, _r2*_r6 + _r6*_r8]
     u = [_r8]
     if not math.isfinite(sum(ds) + sum(u)):
         return None

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
-# content sha256: 63ea6af1e8d49a66181216acd5426d6f1d075d02eedec4f7f3171e5fb75d9348
+# content sha256: 9b961dc1f6e276bc3d7c919f5db8608d42c9d77e1924ef24f37c9078e9e07b7a
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -545,23 +545,28 @@ def _outputs(t, x, p):
     return y
 
 
+
+# The one-point code calls NumPy's functions through these names (one lookup, not two).
+_np_cos = numpy.cos
+_np_sin = numpy.sin
+
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
     _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7 = s
     _p0, _p1, _ = p
     _t0 = (2/5)*t
-    _t1 = float(numpy.sin(_t0))
-    _t2 = float(numpy.cos(_t0))
+    _t1 = float(_np_sin(_t0))
+    _t2 = float(_np_cos(_t0))
     _t3 = (3/10)*t
-    _t4 = float(numpy.sin(_t3))
+    _t4 = float(_np_sin(_t3))
     _t5 = (1/5)*t
-    _t6 = float(numpy.cos(_t5))
-    _t7 = float(numpy.sin(_t5))
-    _t8 = float(numpy.cos(_t3))
+    _t6 = float(_np_cos(_t5))
+    _t7 = float(_np_sin(_t5))
+    _t8 = float(_np_cos(_t3))
     _t9 = 1.0/_p1
-    _t10 = _t9*float(numpy.sin(_s2))
+    _t10 = _t9*float(_np_sin(_s2))
     _t11 = _s6*_t10
-    _t12 = float(numpy.cos(_s2))
+    _t12 = float(_np_cos(_s2))
     E = [
         2.0*_s0 - 3.0*_t1,
         _t6 + 2.0*_s1 - 8/5*_t4 - 4.0,
@@ -579,7 +584,7 @@ def _objective_1(t, y, p):
     """The objective f0(y, t) (one point; lists in, lists out)."""
     _y0, _y1 = y
     f0 = [
-        ((_y0 - 3/2*float(numpy.sin((2/5)*t)))*(_y0 - 3/2*float(numpy.sin((2/5)*t)))) + ((_y1 + (1/2)*float(numpy.cos((1/5)*t)) - 4/5*float(numpy.sin((3/10)*t)) - 2.0)*(_y1 + (1/2)*float(numpy.cos((1/5)*t)) - 4/5*float(numpy.sin((3/10)*t)) - 2.0)),
+        ((_y0 - 3/2*float(_np_sin((2/5)*t)))*(_y0 - 3/2*float(_np_sin((2/5)*t)))) + ((_y1 + (1/2)*float(_np_cos((1/5)*t)) - 4/5*float(_np_sin((3/10)*t)) - 2.0)*(_y1 + (1/2)*float(_np_cos((1/5)*t)) - 4/5*float(_np_sin((3/10)*t)) - 2.0)),
     ]
     return f0
 
@@ -588,8 +593,8 @@ def _gradient_1(t, y, p):
     """grad_y f0(y, t) (one point; lists in, lists out)."""
     _y0, _y1 = y
     grad = [
-        2.0*_y0 - 3.0*float(numpy.sin((2/5)*t)),
-        2.0*_y1 - 8/5*float(numpy.sin((3/10)*t)) + float(numpy.cos((1/5)*t)) - 4.0,
+        2.0*_y0 - 3.0*float(_np_sin((2/5)*t)),
+        2.0*_y1 - 8/5*float(_np_sin((3/10)*t)) + float(_np_cos((1/5)*t)) - 4.0,
     ]
     return grad
 
@@ -782,14 +787,14 @@ def _law_1(t, s, p, rates):
     _r0, _r1, _r2 = p
     _r3, _r4, _r5, _r6 = _A_LIST
     _r7 = (2/5)*t
-    _r8 = float(numpy.sin(_r7))
-    _r7 = float(numpy.cos(_r7))
+    _r8 = float(_np_sin(_r7))
+    _r7 = float(_np_cos(_r7))
     _r9 = (3/10)*t
-    _r10 = float(numpy.sin(_r9))
+    _r10 = float(_np_sin(_r9))
     _r11 = (1/5)*t
-    _r12 = float(numpy.cos(_r11))
-    _r11 = float(numpy.sin(_r11))
-    _r9 = float(numpy.cos(_r9))
+    _r12 = float(_np_cos(_r11))
+    _r11 = float(_np_sin(_r11))
+    _r9 = float(_np_cos(_r9))
     _r1 = 1.0/_r1
     _r3 = (1/2)*_r3
     _r4 = (1/2)*_r4
@@ -801,10 +806,10 @@ def _law_1(t, s, p, rates):
     # jet: y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (56 operations)
     _r0, _r1, _r2, _r3, _r4, _r5, _r6, _r7 = s
     _r8, _r9, _r10, _r11, _r12, _r13, _r14, _r15, _r16, _r17, _r18, _r19, _r20, _r21, _r22, _r23, _r24, _r25 = tau
-    _r26 = _r8*float(numpy.sin(_r2))
+    _r26 = _r8*float(_np_sin(_r2))
     _r27 = _r6*_r26
     _r28 = _r7*_r26
-    _r2 = float(numpy.cos(_r2))
+    _r2 = float(_np_cos(_r2))
     _r8 = _r2*_r8
     _r29 = _r6*_r8
     _r30 = -_r28 - _r5*_r29
@@ -839,7 +844,7 @@ def _law_1(t, s, p, rates):
     _r6, _r7, _r8 = p
     _r9, _r10 = w
     _r7 = 1.0/_r7
-    ds = [_r1, _r2, _r3, -_r4*_r7*float(numpy.sin(_r0)), _r4*_r7*float(numpy.cos(_r0)) - _r6, _r10/_r8, _r5, _r9]
+    ds = [_r1, _r2, _r3, -_r4*_r7*float(_np_sin(_r0)), _r4*_r7*float(_np_cos(_r0)) - _r6, _r10/_r8, _r5, _r9]
     u = [_r4, _r10]
     if not math.isfinite(sum(ds) + sum(u)):
         return None

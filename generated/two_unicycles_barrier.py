@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 4c890a34e73e8f237846a8c9429bd2f586becd2e1f296ce280416d482e169230
+# content sha256: aba3cb68210fea741dd578cbf80434a4a98e84fa5a6dd9b5f7d2669a9eb38d2b
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -732,21 +732,27 @@ def _outputs(t, x, p):
     return y
 
 
+
+# The one-point code calls NumPy's functions through these names (one lookup, not two).
+_np_cos = numpy.cos
+_np_sin = numpy.sin
+_np_tan = numpy.tan
+
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
     _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7 = s
     _p0, _p1 = p
     _t0 = (t*t)
-    _t1 = _s6*float(numpy.cos(_s2))
-    _t2 = _s6*float(numpy.sin(_s2))
-    _t3 = _s7*float(numpy.cos(_s5))
-    _t4 = _s7*float(numpy.sin(_s5))
+    _t1 = _s6*float(_np_cos(_s2))
+    _t2 = _s6*float(_np_sin(_s2))
+    _t3 = _s7*float(_np_cos(_s5))
+    _t4 = _s7*float(_np_sin(_s5))
     _t5 = 2.0*_s0
     _t6 = 1.0/_p1
     _t7 = _s0 - _s3
     _t8 = _s1 - _s4
     _t9 = (1/2)*numpy.pi*_t6
-    _t10 = float(numpy.tan(_t9*((_t7*_t7) + (_t8*_t8))))
+    _t10 = float(_np_tan(_t9*((_t7*_t7) + (_t8*_t8))))
     _t11 = (_t10*_t10) + 1.0
     _t12 = 2.0*_s3
     _t13 = _t5 - _t12
@@ -786,7 +792,7 @@ def _objective_1(t, y, p):
     _p0, _p1 = p
     _t0 = (t*t)
     f0 = [
-        ((_y2 - 9/20*t - 1/250*_t0 + 2.0)*(_y2 - 9/20*t - 1/250*_t0 + 2.0)) + ((_y1 - 3/10*t + (1/100)*_t0 + 3.0)*(_y1 - 3/10*t + (1/100)*_t0 + 3.0)) + ((_y3 - 7/20*t + (3/250)*_t0 + 3.0)*(_y3 - 7/20*t + (3/250)*_t0 + 3.0)) + ((_y0 - 1/2*t - 1/500*_t0 + 5.0)*(_y0 - 1/2*t - 1/500*_t0 + 5.0)) + _p0*(float(numpy.tan((1/2)*numpy.pi*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1))*float(numpy.tan((1/2)*numpy.pi*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1))),
+        ((_y2 - 9/20*t - 1/250*_t0 + 2.0)*(_y2 - 9/20*t - 1/250*_t0 + 2.0)) + ((_y1 - 3/10*t + (1/100)*_t0 + 3.0)*(_y1 - 3/10*t + (1/100)*_t0 + 3.0)) + ((_y3 - 7/20*t + (3/250)*_t0 + 3.0)*(_y3 - 7/20*t + (3/250)*_t0 + 3.0)) + ((_y0 - 1/2*t - 1/500*_t0 + 5.0)*(_y0 - 1/2*t - 1/500*_t0 + 5.0)) + _p0*(float(_np_tan((1/2)*numpy.pi*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1))*float(_np_tan((1/2)*numpy.pi*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1))),
     ]
     return f0
 
@@ -798,7 +804,7 @@ def _gradient_1(t, y, p):
     _t0 = (t*t)
     _t1 = 2.0*_y0
     _t2 = 1.0/_p1
-    _t3 = float(numpy.tan((1/2)*numpy.pi*_t2*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))))
+    _t3 = float(_np_tan((1/2)*numpy.pi*_t2*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))))
     _t4 = 2.0*_y2
     _t5 = numpy.pi*_p0*_t2*((_t3*_t3) + 1.0)
     _t6 = _t3*_t5*(_t1 - _t4)
@@ -822,7 +828,7 @@ def _hessian_1(t, y, p):
     _t1 = _y0 - _y2
     _t2 = _y1 - _y3
     _t3 = (1/2)*numpy.pi*_t0
-    _t4 = float(numpy.tan(_t3*((_t1*_t1) + (_t2*_t2))))
+    _t4 = float(_np_tan(_t3*((_t1*_t1) + (_t2*_t2))))
     _t5 = 2.0*_y0 - 2.0*_y2
     _t6 = numpy.pi*_p0*_t0
     _t7 = _t6*((_t4*_t4) + 1.0)
@@ -1066,18 +1072,18 @@ def _law_1(t, s, p, rates):
     _r0, _r1, _r2, _r3, _r4, _r5, _r6, _r7 = s
     _r8, _r9 = _A_LIST
     _r10, _r11, _r12, _r13, _r14, _r15, _r16, _r17, _r18, _r19 = tau
-    _r20 = float(numpy.cos(_r2))
+    _r20 = float(_np_cos(_r2))
     _r21 = _r6*_r20
-    _r2 = float(numpy.sin(_r2))
+    _r2 = float(_np_sin(_r2))
     _r6 = _r6*_r2
-    _r22 = float(numpy.cos(_r5))
+    _r22 = float(_np_cos(_r5))
     _r23 = _r7*_r22
-    _r5 = float(numpy.sin(_r5))
+    _r5 = float(_np_sin(_r5))
     _r7 = _r7*_r5
     _r24 = 2.0*_r0
     _r0 = _r0 - _r3
     _r25 = _r1 - _r4
-    _r26 = float(numpy.tan(_r10*((_r0*_r0) + (_r25*_r25))))
+    _r26 = float(_np_tan(_r10*((_r0*_r0) + (_r25*_r25))))
     _r27 = (_r26*_r26) + 1.0
     _r3 = 2.0*_r3
     _r28 = _r24 - _r3
@@ -1178,7 +1184,7 @@ def _law_1(t, s, p, rates):
     # closed_loop: Closed-loop vector field and the plant input (8 operations)
     _, _, _r0, _, _, _r1, _r2, _r3 = s
     _r4, _r5, _r6, _r7 = w
-    ds = [_r2*float(numpy.cos(_r0)), _r2*float(numpy.sin(_r0)), _r5, _r3*float(numpy.cos(_r1)), _r3*float(numpy.sin(_r1)), _r7, _r4, _r6]
+    ds = [_r2*float(_np_cos(_r0)), _r2*float(_np_sin(_r0)), _r5, _r3*float(_np_cos(_r1)), _r3*float(_np_sin(_r1)), _r7, _r4, _r6]
     u = [_r2, _r5, _r3, _r7]
     if not math.isfinite(sum(ds) + sum(u)):
         return None

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 1ffd1b0e871987228d132834eb25716171deaceeb0fc8c841af25b51a6f2803f
+# content sha256: 4a9dd8f034c3136dd32e8b9ca7f36426901206b37cab4e7560b0867c0e267497
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -1317,31 +1317,37 @@ def _outputs(t, x, p):
     return y
 
 
+
+# The one-point code calls NumPy's functions through these names (one lookup, not two).
+_np_cos = numpy.cos
+_np_sin = numpy.sin
+_np_tan = numpy.tan
+
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
     _s0, _s1, _s2, _s3, _s4, _s5, _s6, _s7, _s8, _s9, _s10, _s11, _s12, _s13, _s14, _s15 = s
     _p0, _p1, _p2, _p3 = p
     _t0 = (3/10)*t
     _t1 = _p3*t
-    _t2 = _p2*float(numpy.cos(_t1))
-    _t3 = _p2*float(numpy.sin(_t1))
+    _t2 = _p2*float(_np_cos(_t1))
+    _t3 = _p2*float(_np_sin(_t1))
     _t4 = _p3*_t3
     _t5 = (1/5)*t
     _t6 = _p3*_t2
-    _t7 = _s12*float(numpy.cos(_s2))
-    _t8 = _s12*float(numpy.sin(_s2))
-    _t9 = _s13*float(numpy.cos(_s5))
-    _t10 = _s13*float(numpy.sin(_s5))
-    _t11 = _s14*float(numpy.cos(_s8))
-    _t12 = _s14*float(numpy.sin(_s8))
-    _t13 = _s15*float(numpy.cos(_s11))
-    _t14 = _s15*float(numpy.sin(_s11))
+    _t7 = _s12*float(_np_cos(_s2))
+    _t8 = _s12*float(_np_sin(_s2))
+    _t9 = _s13*float(_np_cos(_s5))
+    _t10 = _s13*float(_np_sin(_s5))
+    _t11 = _s14*float(_np_cos(_s8))
+    _t12 = _s14*float(_np_sin(_s8))
+    _t13 = _s15*float(_np_cos(_s11))
+    _t14 = _s15*float(_np_sin(_s11))
     _t15 = 2.0*_s0
     _t16 = 1.0/_p1
     _t17 = _s0 - _s3
     _t18 = _s1 - _s4
     _t19 = (1/2)*numpy.pi*_t16
-    _t20 = float(numpy.tan(_t19*((_t17*_t17) + (_t18*_t18))))
+    _t20 = float(_np_tan(_t19*((_t17*_t17) + (_t18*_t18))))
     _t21 = (_t20*_t20) + 1.0
     _t22 = 2.0*_s3
     _t23 = _t15 - _t22
@@ -1351,7 +1357,7 @@ def _optimality_1(t, s, p):
     _t27 = _t20*_t26
     _t28 = _s9 - _s0
     _t29 = _s10 - _s1
-    _t30 = float(numpy.tan(_t19*((_t28*_t28) + (_t29*_t29))))
+    _t30 = float(_np_tan(_t19*((_t28*_t28) + (_t29*_t29))))
     _t31 = (_t30*_t30) + 1.0
     _t32 = 2.0*_s9
     _t33 = _t15 - _t32
@@ -1369,7 +1375,7 @@ def _optimality_1(t, s, p):
     _t45 = _t30*_t44
     _t46 = _s3 - _s6
     _t47 = _s4 - _s7
-    _t48 = float(numpy.tan(_t19*((_t46*_t46) + (_t47*_t47))))
+    _t48 = float(_np_tan(_t19*((_t46*_t46) + (_t47*_t47))))
     _t49 = (_t48*_t48) + 1.0
     _t50 = 2.0*_s6
     _t51 = _t22 - _t50
@@ -1382,7 +1388,7 @@ def _optimality_1(t, s, p):
     _t58 = _t48*_t57
     _t59 = _s6 - _s9
     _t60 = _s7 - _s10
-    _t61 = float(numpy.tan(_t19*((_t59*_t59) + (_t60*_t60))))
+    _t61 = float(_np_tan(_t19*((_t59*_t59) + (_t60*_t60))))
     _t62 = (_t61*_t61) + 1.0
     _t63 = _t50 - _t32
     _t64 = _t24*_t62
@@ -1442,12 +1448,12 @@ def _objective_1(t, y, p):
     _p0, _p1, _p2, _p3 = p
     _t0 = (3/10)*t
     _t1 = _p3*t
-    _t2 = _p2*float(numpy.cos(_t1))
+    _t2 = _p2*float(_np_cos(_t1))
     _t3 = (1/5)*t
-    _t4 = _p2*float(numpy.sin(_t1))
+    _t4 = _p2*float(_np_sin(_t1))
     _t5 = (1/2)*numpy.pi/_p1
     f0 = [
-        ((_t2 + _y4 - _t0)*(_t2 + _y4 - _t0)) + ((_t2 + _y7 - _t3)*(_t2 + _y7 - _t3)) + ((_t4 + _y2 - _t0)*(_t4 + _y2 - _t0)) + ((_t4 + _y5 - _t3)*(_t4 + _y5 - _t3)) + ((_y0 - _t0 - _t2)*(_y0 - _t0 - _t2)) + ((_y1 - _t3 - _t4)*(_y1 - _t3 - _t4)) + ((_y3 - _t2 - _t3)*(_y3 - _t2 - _t3)) + ((_y6 - _t0 - _t4)*(_y6 - _t0 - _t4)) + _p0*(float(numpy.tan(_t5*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))))*float(numpy.tan(_t5*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))))) + _p0*(float(numpy.tan(_t5*(-((_y2 - _y4)*(_y2 - _y4)) - ((_y3 - _y5)*(_y3 - _y5)))))*float(numpy.tan(_t5*(-((_y2 - _y4)*(_y2 - _y4)) - ((_y3 - _y5)*(_y3 - _y5)))))) + _p0*(float(numpy.tan(_t5*(-((_y4 - _y6)*(_y4 - _y6)) - ((_y5 - _y7)*(_y5 - _y7)))))*float(numpy.tan(_t5*(-((_y4 - _y6)*(_y4 - _y6)) - ((_y5 - _y7)*(_y5 - _y7)))))) + _p0*(float(numpy.tan(_t5*(-((_y6 - _y0)*(_y6 - _y0)) - ((_y7 - _y1)*(_y7 - _y1)))))*float(numpy.tan(_t5*(-((_y6 - _y0)*(_y6 - _y0)) - ((_y7 - _y1)*(_y7 - _y1)))))),
+        ((_t2 + _y4 - _t0)*(_t2 + _y4 - _t0)) + ((_t2 + _y7 - _t3)*(_t2 + _y7 - _t3)) + ((_t4 + _y2 - _t0)*(_t4 + _y2 - _t0)) + ((_t4 + _y5 - _t3)*(_t4 + _y5 - _t3)) + ((_y0 - _t0 - _t2)*(_y0 - _t0 - _t2)) + ((_y1 - _t3 - _t4)*(_y1 - _t3 - _t4)) + ((_y3 - _t2 - _t3)*(_y3 - _t2 - _t3)) + ((_y6 - _t0 - _t4)*(_y6 - _t0 - _t4)) + _p0*(float(_np_tan(_t5*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))))*float(_np_tan(_t5*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))))) + _p0*(float(_np_tan(_t5*(-((_y2 - _y4)*(_y2 - _y4)) - ((_y3 - _y5)*(_y3 - _y5)))))*float(_np_tan(_t5*(-((_y2 - _y4)*(_y2 - _y4)) - ((_y3 - _y5)*(_y3 - _y5)))))) + _p0*(float(_np_tan(_t5*(-((_y4 - _y6)*(_y4 - _y6)) - ((_y5 - _y7)*(_y5 - _y7)))))*float(_np_tan(_t5*(-((_y4 - _y6)*(_y4 - _y6)) - ((_y5 - _y7)*(_y5 - _y7)))))) + _p0*(float(_np_tan(_t5*(-((_y6 - _y0)*(_y6 - _y0)) - ((_y7 - _y1)*(_y7 - _y1)))))*float(_np_tan(_t5*(-((_y6 - _y0)*(_y6 - _y0)) - ((_y7 - _y1)*(_y7 - _y1)))))),
     ]
     return f0
 
@@ -1458,18 +1464,18 @@ def _gradient_1(t, y, p):
     _p0, _p1, _p2, _p3 = p
     _t0 = (3/10)*t
     _t1 = _p3*t
-    _t2 = _p2*float(numpy.cos(_t1))
+    _t2 = _p2*float(_np_cos(_t1))
     _t3 = (1/5)*t
-    _t4 = _p2*float(numpy.sin(_t1))
+    _t4 = _p2*float(_np_sin(_t1))
     _t5 = 2.0*_y0
     _t6 = 1.0/_p1
     _t7 = (1/2)*numpy.pi*_t6
-    _t8 = float(numpy.tan(_t7*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))))
+    _t8 = float(_np_tan(_t7*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))))
     _t9 = 2.0*_y2
     _t10 = numpy.pi*_p0*_t6
     _t11 = _t10*((_t8*_t8) + 1.0)
     _t12 = _t11*_t8*(_t5 - _t9)
-    _t13 = float(numpy.tan(_t7*(((_y6 - _y0)*(_y6 - _y0)) + ((_y7 - _y1)*(_y7 - _y1)))))
+    _t13 = float(_np_tan(_t7*(((_y6 - _y0)*(_y6 - _y0)) + ((_y7 - _y1)*(_y7 - _y1)))))
     _t14 = 2.0*_y6
     _t15 = _t10*((_t13*_t13) + 1.0)
     _t16 = _t13*_t15*(_t5 - _t14)
@@ -1478,13 +1484,13 @@ def _gradient_1(t, y, p):
     _t19 = _t11*_t8*(_t17 - _t18)
     _t20 = 2.0*_y7
     _t21 = _t13*_t15*(_t17 - _t20)
-    _t22 = float(numpy.tan(_t7*(((_y2 - _y4)*(_y2 - _y4)) + ((_y3 - _y5)*(_y3 - _y5)))))
+    _t22 = float(_np_tan(_t7*(((_y2 - _y4)*(_y2 - _y4)) + ((_y3 - _y5)*(_y3 - _y5)))))
     _t23 = 2.0*_y4
     _t24 = _t10*((_t22*_t22) + 1.0)
     _t25 = _t22*_t24*(_t9 - _t23)
     _t26 = 2.0*_y5
     _t27 = _t22*_t24*(_t18 - _t26)
-    _t28 = float(numpy.tan(_t7*(((_y4 - _y6)*(_y4 - _y6)) + ((_y5 - _y7)*(_y5 - _y7)))))
+    _t28 = float(_np_tan(_t7*(((_y4 - _y6)*(_y4 - _y6)) + ((_y5 - _y7)*(_y5 - _y7)))))
     _t29 = _t10*((_t28*_t28) + 1.0)
     _t30 = _t28*_t29*(_t23 - _t14)
     _t31 = _t28*_t29*(_t26 - _t20)
@@ -1510,7 +1516,7 @@ def _hessian_1(t, y, p):
     _t2 = _y0 - _y2
     _t3 = _y1 - _y3
     _t4 = (1/2)*numpy.pi*_t1
-    _t5 = float(numpy.tan(_t4*((_t2*_t2) + (_t3*_t3))))
+    _t5 = float(_np_tan(_t4*((_t2*_t2) + (_t3*_t3))))
     _t6 = 2.0*_y2
     _t7 = _t0 - _t6
     _t8 = numpy.pi*_p0*_t1
@@ -1518,7 +1524,7 @@ def _hessian_1(t, y, p):
     _t10 = _t7*_t9
     _t11 = _y6 - _y0
     _t12 = _y7 - _y1
-    _t13 = float(numpy.tan(_t4*((_t11*_t11) + (_t12*_t12))))
+    _t13 = float(_np_tan(_t4*((_t11*_t11) + (_t12*_t12))))
     _t14 = 2.0*_y6
     _t15 = _t0 - _t14
     _t16 = _t8*((_t13*_t13) + 1.0)
@@ -1532,7 +1538,7 @@ def _hessian_1(t, y, p):
     _t24 = _t16*_t23
     _t25 = _y2 - _y4
     _t26 = _y3 - _y5
-    _t27 = float(numpy.tan(_t4*((_t25*_t25) + (_t26*_t26))))
+    _t27 = float(_np_tan(_t4*((_t25*_t25) + (_t26*_t26))))
     _t28 = 2.0*_y4
     _t29 = _t6 - _t28
     _t30 = _t8*((_t27*_t27) + 1.0)
@@ -1542,7 +1548,7 @@ def _hessian_1(t, y, p):
     _t34 = _t30*_t33
     _t35 = _y4 - _y6
     _t36 = _y5 - _y7
-    _t37 = float(numpy.tan(_t4*((_t35*_t35) + (_t36*_t36))))
+    _t37 = float(_np_tan(_t4*((_t35*_t35) + (_t36*_t36))))
     _t38 = _t28 - _t14
     _t39 = _t8*((_t37*_t37) + 1.0)
     _t40 = _t38*_t39
@@ -1893,9 +1899,9 @@ def _law_1(t, s, p, rates):
     _r0, _r1, _r2, _r3 = p
     _r4 = (3/10)*t
     _r5 = _r3*t
-    _r6 = float(numpy.cos(_r5))
+    _r6 = float(_np_cos(_r5))
     _r7 = _r2*_r6
-    _r5 = float(numpy.sin(_r5))
+    _r5 = float(_np_sin(_r5))
     _r8 = -_r2*_r3*_r5
     _r9 = (_r3*_r3)
     _r10 = (1/5)*t
@@ -1911,26 +1917,26 @@ def _law_1(t, s, p, rates):
     _r0, _r1, _r2, _r3, _r4, _r5, _r6, _r7, _r8, _r9, _r10, _r11, _r12, _r13, _r14, _r15 = s
     _r16, _r17 = _A_LIST
     _r18, _r19, _r20, _r21, _r22, _r23, _r24, _r25, _r26, _r27, _r28, _r29, _r30, _r31, _r32, _r33, _r34, _r35, _r36, _r37, _r38, _r39, _r40, _r41, _r42 = tau
-    _r43 = float(numpy.cos(_r2))
+    _r43 = float(_np_cos(_r2))
     _r44 = _r12*_r43
-    _r2 = float(numpy.sin(_r2))
+    _r2 = float(_np_sin(_r2))
     _r45 = _r12*_r2
-    _r46 = float(numpy.cos(_r5))
+    _r46 = float(_np_cos(_r5))
     _r47 = _r13*_r46
-    _r5 = float(numpy.sin(_r5))
+    _r5 = float(_np_sin(_r5))
     _r48 = _r13*_r5
-    _r49 = float(numpy.cos(_r8))
+    _r49 = float(_np_cos(_r8))
     _r50 = _r14*_r49
-    _r8 = float(numpy.sin(_r8))
+    _r8 = float(_np_sin(_r8))
     _r51 = _r14*_r8
-    _r52 = float(numpy.cos(_r11))
+    _r52 = float(_np_cos(_r11))
     _r53 = _r15*_r52
-    _r11 = float(numpy.sin(_r11))
+    _r11 = float(_np_sin(_r11))
     _r54 = _r15*_r11
     _r55 = 2.0*_r0
     _r56 = _r0 - _r3
     _r57 = _r1 - _r4
-    _r58 = float(numpy.tan(_r18*((_r56*_r56) + (_r57*_r57))))
+    _r58 = float(_np_tan(_r18*((_r56*_r56) + (_r57*_r57))))
     _r59 = (_r58*_r58) + 1.0
     _r60 = -2.0*_r3
     _r61 = _r55 + _r60
@@ -1939,7 +1945,7 @@ def _law_1(t, s, p, rates):
     _r64 = _r58*_r63
     _r0 = _r9 - _r0
     _r65 = _r10 - _r1
-    _r66 = float(numpy.tan(_r18*((_r0*_r0) + (_r65*_r65))))
+    _r66 = float(_np_tan(_r18*((_r0*_r0) + (_r65*_r65))))
     _r67 = (_r66*_r66) + 1.0
     _r68 = -2.0*_r9
     _r69 = _r55 + _r68
@@ -1957,7 +1963,7 @@ def _law_1(t, s, p, rates):
     _r80 = _r66*_r79
     _r3 = _r3 - _r6
     _r4 = _r4 - _r7
-    _r81 = float(numpy.tan(_r18*((_r3*_r3) + (_r4*_r4))))
+    _r81 = float(_np_tan(_r18*((_r3*_r3) + (_r4*_r4))))
     _r82 = (_r81*_r81) + 1.0
     _r83 = -2.0*_r6
     _r84 = _r83 - _r60
@@ -1970,7 +1976,7 @@ def _law_1(t, s, p, rates):
     _r91 = _r81*_r90
     _r6 = _r6 - _r9
     _r7 = _r7 - _r10
-    _r9 = float(numpy.tan(_r18*((_r6*_r6) + (_r7*_r7))))
+    _r9 = float(_np_tan(_r18*((_r6*_r6) + (_r7*_r7))))
     _r10 = (_r9*_r9) + 1.0
     _r92 = _r68 - _r83
     _r93 = _r19*_r10
@@ -2188,7 +2194,7 @@ def _law_1(t, s, p, rates):
     # closed_loop: Closed-loop vector field and the plant input (16 operations)
     _, _, _r0, _, _, _r1, _, _, _r2, _, _, _r3, _r4, _r5, _r6, _r7 = s
     _r8, _r9, _r10, _r11, _r12, _r13, _r14, _r15 = w
-    ds = [_r4*float(numpy.cos(_r0)), _r4*float(numpy.sin(_r0)), _r9, _r5*float(numpy.cos(_r1)), _r5*float(numpy.sin(_r1)), _r11, _r6*float(numpy.cos(_r2)), _r6*float(numpy.sin(_r2)), _r13, _r7*float(numpy.cos(_r3)), _r7*float(numpy.sin(_r3)), _r15, _r8, _r10, _r12, _r14]
+    ds = [_r4*float(_np_cos(_r0)), _r4*float(_np_sin(_r0)), _r9, _r5*float(_np_cos(_r1)), _r5*float(_np_sin(_r1)), _r11, _r6*float(_np_cos(_r2)), _r6*float(_np_sin(_r2)), _r13, _r7*float(_np_cos(_r3)), _r7*float(_np_sin(_r3)), _r15, _r8, _r10, _r12, _r14]
     u = [_r4, _r9, _r5, _r11, _r6, _r13, _r7, _r15]
     if not math.isfinite(sum(ds) + sum(u)):
         return None

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 8020bbe13363a29ec0c7d7f2c6821add78be15d4ba9ef9fbe24050ef092be004
+# content sha256: 926423688caad61cade299d81b073f054a85d82ba28e85c346234b23444ab210
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -500,12 +500,18 @@ def _outputs(t, x, p):
     return y
 
 
+
+# The one-point code calls NumPy's functions through these names (one lookup, not two).
+_np_cos = numpy.cos
+_np_sin = numpy.sin
+_np_tanh = numpy.tanh
+
 def _optimality_1(t, s, p):
     """Optimality error E: row j is grad^(j) f0 (one point; lists in, lists out)."""
     _s0, _s1, _s2, _s3 = s
     _p0, _p1 = p
     _t0 = 1.0/_p1
-    _t1 = float(numpy.tanh(_t0*(t - _p0)))
+    _t1 = float(_np_tanh(_t0*(t - _p0)))
     _t2 = 1/2 - 1/2*_t1
     _t3 = (t*t)
     _t4 = (1/100)*_t3
@@ -521,8 +527,8 @@ def _optimality_1(t, s, p):
     E = [
         2.0*_s0 - _t11*_t5 - _t12*_t9,
         2.0*_s1 - _t10*_t12 - _t11*_t8,
-        _t13*_t9 - _t11*(3/5 - _t6) - _t12*(-_t6 - 3/10) - _t13*_t5 + 2.0*_s3*float(numpy.cos(_s2)),
-        _t10*_t13 - _t11*((1/25)*t - 3/1000*_t3 + 1/2) - _t12*((3/5000)*_t3 - 3/100*t + 2/5) - _t13*_t8 + 2.0*_s3*float(numpy.sin(_s2)),
+        _t13*_t9 - _t11*(3/5 - _t6) - _t12*(-_t6 - 3/10) - _t13*_t5 + 2.0*_s3*float(_np_cos(_s2)),
+        _t10*_t13 - _t11*((1/25)*t - 3/1000*_t3 + 1/2) - _t12*((3/5000)*_t3 - 3/100*t + 2/5) - _t13*_t8 + 2.0*_s3*float(_np_sin(_s2)),
     ]
     return E
 
@@ -531,7 +537,7 @@ def _objective_1(t, y, p):
     """The objective f0(y, t) (one point; lists in, lists out)."""
     _y0, _y1 = y
     _p0, _p1 = p
-    _t0 = 1/2 - 1/2*float(numpy.tanh((t - _p0)/_p1))
+    _t0 = 1/2 - 1/2*float(_np_tanh((t - _p0)/_p1))
     _t1 = (t*t)
     _t2 = (1/100)*_t1
     _t3 = (t*t*t)
@@ -545,7 +551,7 @@ def _gradient_1(t, y, p):
     """grad_y f0(y, t) (one point; lists in, lists out)."""
     _y0, _y1 = y
     _p0, _p1 = p
-    _t0 = 1/2 - 1/2*float(numpy.tanh((t - _p0)/_p1))
+    _t0 = 1/2 - 1/2*float(_np_tanh((t - _p0)/_p1))
     _t1 = (t*t)
     _t2 = (1/100)*_t1
     _t3 = (t*t*t)
@@ -746,7 +752,7 @@ def _law_1(t, s, p, rates):
     _r0, _r1 = p
     _r2, _r3 = _A_LIST
     _r4 = 1.0/_r1
-    _r0 = float(numpy.tanh(_r4*(t - _r0)))
+    _r0 = float(_np_tanh(_r4*(t - _r0)))
     _r5 = 1/2 - 1/2*_r0
     _r6 = 1.0 - (_r0*_r0)
     _r7 = (t*t)
@@ -773,9 +779,9 @@ def _law_1(t, s, p, rates):
     # jet: y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (21 operations)
     _r0, _r1, _r2, _r3 = s
     _r4, _r5, _r6, _r7, _r8, _r9, _r10, _r11 = tau
-    _r12 = float(numpy.cos(_r2))
+    _r12 = float(_np_cos(_r2))
     _r13 = _r3*_r12
-    _r2 = float(numpy.sin(_r2))
+    _r2 = float(_np_sin(_r2))
     _r3 = _r3*_r2
     z = [_r8 + _r5*(_r4 + 2.0*_r0) + _r7*(_r6 + 2.0*_r13), _r11 + _r5*(_r9 + 2.0*_r1) + _r7*(_r10 + 2.0*_r3)]
     r = [_r12, -_r3, _r2, _r13]
@@ -804,7 +810,7 @@ def _law_1(t, s, p, rates):
     # closed_loop: Closed-loop vector field and the plant input (4 operations)
     _, _, _r0, _r1 = s
     _r2, _r3 = w
-    ds = [_r1*float(numpy.cos(_r0)), _r1*float(numpy.sin(_r0)), _r3, _r2]
+    ds = [_r1*float(_np_cos(_r0)), _r1*float(_np_sin(_r0)), _r3, _r2]
     u = [_r1, _r3]
     if not math.isfinite(sum(ds) + sum(u)):
         return None

@@ -103,19 +103,22 @@ class PythonScalarPrinter(PythonPrinter):
     def _print(self, expr: Any, **kwargs: Any) -> str:
         """Customizations.
 
-        * A function printed as a NumPy call is wrapped in ``float(...)``.
+        * A function printed as a NumPy call is wrapped in ``float(...)`` and calls the
+          module's alias ``_np_<name>`` of ``numpy.<name>`` (one global lookup instead of
+          a global and an attribute: the template defines the aliases the code uses).
         """
         text: str = super()._print(expr, **kwargs)
         if isinstance(expr, sp.Function) and text.startswith("numpy."):
-            return f"float({text})"
+            return f"float(_np_{text.removeprefix('numpy.')})"
         return text
 
     def _call(self, text: str) -> str:
         """Customizations.
 
-        * ``numpy.power`` and ``numpy.sqrt`` from powers are wrapped in ``float(...)``.
+        * ``numpy.power`` and ``numpy.sqrt`` from powers are wrapped in ``float(...)``,
+          through their aliases.
         """
-        return f"float({text})"
+        return f"float(_np_{text.removeprefix('numpy.')})"
 
     def _print_Integer(self, expr: sp.Integer) -> str:
         """Customizations.

@@ -79,6 +79,7 @@ def environment(root: Path | None = None) -> jinja2.Environment:
     # A macro's text ends with a newline, and so does the line that calls it.
     env.filters["chomp"] = lambda text: str(text).removesuffix("\n")
     env.filters["registers"] = registers
+    env.filters["numpy_aliases"] = numpy_aliases
     return env
 
 
@@ -216,6 +217,20 @@ def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
 
 
 _NAME = re.compile(r"\b_[A-Za-z]+\d+\b")
+
+
+_ALIAS = re.compile(r"\b_np_([A-Za-z_][A-Za-z0-9_]*)\(")
+
+
+def numpy_aliases(kernels: Any) -> list[str]:
+    """The NumPy functions the one-point kernels call through ``_np_<name>`` aliases."""
+    names: set[str] = set()
+    for kernel in kernels:
+        codes = [code for _, code in kernel.body]
+        codes += [code for out in kernel.outputs for _, _, code in out.elements]
+        for code in codes:
+            names.update(_ALIAS.findall(code))
+    return sorted(names)
 
 
 def registers(kernel: PrintedKernel) -> PrintedKernel:
