@@ -623,6 +623,8 @@ _PROBE_DISTANCES = (1.0, 10.0, 100.0)
 #: Up to this many outputs the fading probe steps along every axis; beyond, along this
 #: many fixed directions.
 _PROBE_AXES = 16
+#: Memory for the Hessians of the fading probe evaluated at once.
+_PROBE_BYTES = 64 * 2**20
 
 
 class _ObjectiveNumbers:
@@ -842,26 +844,34 @@ def _fading_convexity(
     converged: np.ndarray,
 ) -> list[str]:
     """A warning when f0 is strongly convex near y*(t) only (its Hessian fades away)."""
-    m = path.shape[1]
-    directions = _probe_directions(m)
-    for distance in _PROBE_DISTANCES:
-        # One direction at a time: len(ts) Hessians in memory, not len(ts) * m of them.
-        for direction in directions:
-            _, matrices = numbers.derivatives(path + distance * direction, ts)
-            low, _ = _smallest_eigenvalues(matrices)
-            # Fading, not turning negative: a barrier's periodic branches beyond its
-            # domain (tan**2) are not where the outputs can go.
-            fading = converged & (np.abs(low) < 1e-6 * path_low)
-            if fading.any():
-                at = int(np.argmax(fading))
-                return [
-                    "objective.f0: f0 is strongly convex only near its minimiser: at distance "
-                    f"{distance:g} "
-                    f"from y*(t) (t = {ts[at]:.6g}) the Hessian's smallest eigenvalue is "
-                    f"{low[at]:.3g}, against {path_low[at]:.3g} at y*; the certificate's "
-                    "bound holds only while the outputs stay where it is bounded below"
-                ]
-    return []
+    count, m = path.shape
+    probes = [(d, direction) for d in _PROBE_DISTANCES for direction in _probe_directions(m)]
+    # Every probe point in one array, evaluated in chunks of at most _PROBE_BYTES of
+    # Hessians: the evaluator's cost is per expression, not per point.
+    points = np.concatenate([path + d * direction for d, direction in probes])
+    times = np.tile(ts, len(probes))
+    low = np.empty(len(points))
+    chunk = max(count, _PROBE_BYTES // (8 * m * m))
+    for start in range(0, len(points), chunk):
+        _, matrices = numbers.derivatives(
+            points[start : start + chunk], times[start : start + chunk]
+        )
+        low[start : start + chunk], _ = _smallest_eigenvalues(matrices)
+    reference = np.tile(path_low, len(probes))
+    # Fading, not turning negative: a barrier's periodic branches beyond its domain
+    # (tan**2) are not where the outputs can go.
+    fading = np.tile(converged, len(probes)) & (np.abs(low) < 1e-6 * reference)
+    if not fading.any():
+        return []
+    at = int(np.argmax(fading))  # the first in the order distance, direction, time
+    distance, when = probes[at // count][0], ts[at % count]
+    return [
+        "objective.f0: f0 is strongly convex only near its minimiser: at distance "
+        f"{distance:g} "
+        f"from y*(t) (t = {when:.6g}) the Hessian's smallest eigenvalue is "
+        f"{low[at]:.3g}, against {reference[at]:.3g} at y*; the certificate's "
+        "bound holds only while the outputs stay where it is bounded below"
+    ]
 
 
 @dataclass(frozen=True)

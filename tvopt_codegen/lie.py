@@ -285,14 +285,19 @@ def relative_degree(
 
 def brunovsky(degrees: Sequence[int]) -> tuple[sp.ImmutableMatrix, sp.ImmutableMatrix]:
     """Return the Brunovsky canonical pair (A, B) for chains of the given lengths."""
-    blocks_a = []
-    blocks_b = []
-    for r in degrees:
-        blocks_a.append(sp.Matrix(r, r, lambda i, j: 1 if j == i + 1 else 0))
-        column = sp.zeros(r, 1)
-        column[r - 1] = 1
-        blocks_b.append(column)
-    return sp.ImmutableMatrix(sp.diag(*blocks_a)), sp.ImmutableMatrix(sp.diag(*blocks_b))
+    # Written entry by entry: sympy's diag of many blocks takes seconds for a team.
+    n = sum(degrees)
+    a = [[0] * n for _ in range(n)]
+    b = [[0] * len(degrees) for _ in range(n)]
+    offset = 0
+    for chain, r in enumerate(degrees):
+        for i in range(r - 1):
+            a[offset + i][offset + i + 1] = 1
+        b[offset + r - 1][chain] = 1
+        offset += r
+    return sp.ImmutableMatrix(n, n, [v for row in a for v in row]), sp.ImmutableMatrix(
+        n, len(degrees), [v for row in b for v in row]
+    )
 
 
 def generic_rank(matrix: sp.MatrixBase, sampler: Sampler) -> int:
