@@ -352,9 +352,13 @@ def _without_extension(model: Model) -> str:
     rank = generic_rank(rd.R, sampler)
     degrees = [int(r) for r in rd.r if r is not None]
     if rank < len(model.u):
+        # A team's R is written out only while it is small enough to read.
+        shown = (
+            f"R = {sp.sstr(rd.R.tolist())}" if rd.R.rows <= 4 else f"R ({rd.R.rows} x {rd.R.cols})"
+        )
         return (
-            f"without it, the decoupling matrix R = {sp.sstr(rd.R.tolist())} has generic "
-            f"rank {rank} < {len(model.u)}: the inputs cannot steer every output independently"
+            f"without it, the decoupling matrix {shown} has generic rank {rank} < "
+            f"{len(model.u)}: the inputs cannot steer every output independently"
         )
     return (
         f"without it, the relative degrees {degrees} sum to {sum(degrees)} < {len(model.x)} states"
