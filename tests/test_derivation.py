@@ -180,3 +180,13 @@ def test_program_names_never_capture_user_names(tmp_path: Path, unicycle_text: s
     state = np.array([-4.0, 3.0, 0.3, 1.2])
     for t in (0.0, 3.0, 11.0):
         np.testing.assert_allclose(mods[0].control(t, state), mods[1].control(t, state), rtol=1e-13)
+
+
+def test_why_the_extension_is_needed_is_said_in_one_readable_line() -> None:
+    """The note on the plant before prolongation: R written out while it is small, its
+    size alone for a team (a 64-agent ring's R is 128 x 128)."""
+    small = derivation("unicycle_switch").unextended
+    assert small is not None and "R = [[" in small and "generic rank 1 < 2" in small
+    team = derivation("unicycle_ring").unextended
+    assert team is not None and "R (8 x 8) has generic rank 4 < 8" in team
+    assert len(team) < 200
