@@ -323,10 +323,7 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(
     words: str,
 ) -> None:
     monkeypatch.setattr(sweep, "SCHEDULER_TIMEOUT", 2.0)
-    with socket.socket() as probe:  # a port nobody listens on
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    extra = [e.format(port=port) for e in extra]
+    extra = [e.format(port=_free_port()) for e in extra]  # a port nobody listens on
     out = tmp_path / "out"
     assert _sweep(out, *extra) == EXIT_BAD_SPEC
     err = capsys.readouterr().err.strip()

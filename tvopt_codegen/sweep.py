@@ -743,12 +743,13 @@ def run_sample(
     for j, name in enumerate(program.input_names):
         row[f"max_abs_{name}"] = float(np.abs(u[:, j]).max()) if len(rows) else math.nan
     row["time_saturated"] = float(saturated[:-1].sum() * spacing) if len(rows) else 0.0
-    finite = logdet[np.isfinite(logdet)] if len(rows) else logdet
-    row["min_det_ratio"] = (
-        float(np.exp(np.min(logdet) - logdet[0]))
-        if len(rows) and np.isfinite(logdet[0])
-        else (0.0 if len(finite) < len(logdet) else math.nan)
-    )
+    # log|det R| is -inf where R is singular: the ratio is then 0.
+    if not len(rows):
+        row["min_det_ratio"] = math.nan
+    elif np.isfinite(logdet[0]):
+        row["min_det_ratio"] = float(np.exp(np.min(logdet) - logdet[0]))
+    else:
+        row["min_det_ratio"] = 0.0
     if program.constraints:
         # The barrier keeps g_i < s(t) (the certificate's claim); g_i > 0 alone is allowed
         # while the slack is still open.
