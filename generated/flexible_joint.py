@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: ccee87a7a59148120f34f0260232097d7e35c64cf138e67250c3c04a37f1ffeb
+# content sha256: 445adeef566cea07cf0c580811976e28c48a9f828dff23485d336f829476ba7b
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -57,6 +57,9 @@ STATE_NAMES = ('q1', 'w1', 'q2', 'w2')
 INPUT_NAMES = ('u',)
 #: Outputs y, the arguments of the objective.
 OUTPUT_NAMES = ('y',)
+#: Lagrange multipliers of the equality constraints: a row of the optimality error holds
+#: the outputs' entries, then theirs (the KKT map F = [grad f0 + J_a^T nu; a]).
+MULTIPLIER_NAMES = ()
 #: Parameters and their default values.
 PARAMETERS = {'mgl': 2.0, 'inertia': 1.0, 'motor': 0.5, 'stiffness': 10.0}
 #: Relative degree of each output in the extended system.
@@ -84,6 +87,7 @@ STATUS_SINGULAR_DECOUPLING = 2
 STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
+STATUS_DEPENDENT_CONSTRAINTS = 6
 
 
 class ControllerError(ArithmeticError):
@@ -120,6 +124,12 @@ class HessianNotPositiveDefiniteError(ControllerError):
     """The Hessian of f0 is not positive definite: f0 is not strongly convex here."""
 
     status = STATUS_HESSIAN_NOT_PD
+
+
+class DependentConstraintsError(ControllerError):
+    """The equality constraints' gradients are dependent: the KKT matrix is singular."""
+
+    status = STATUS_DEPENDENT_CONSTRAINTS
 
 
 class NonFiniteOutputError(ControllerError):
@@ -203,7 +213,8 @@ def _cholesky_solve(h, c):
     with numpy.errstate(all="ignore"):
         z, pivot = _cholesky(h, c)
     scale = numpy.max(numpy.abs(h), axis=0)
-    bad = ~numpy.all(pivot > PIVOT_TOLERANCE * scale, axis=0)
+    ok = pivot > PIVOT_TOLERANCE * scale
+    bad = ~numpy.all(ok, axis=0)
     if bad.any():
         index = int(numpy.argmax(bad))
         raise HessianNotPositiveDefiniteError(
@@ -1040,8 +1051,7 @@ def optimality_error(t, s, params=None):
     Returns
     -------
     numpy.ndarray, shape (K, 1) or (K, 1, N)
-        ``E``; under the law ``dE/dt = H E``.
-    """
+        ``E``; under the law ``dE/dt = H E``.    """
     t = _time(t)
     states, single = _columns("s", s, 4)
     p = _parameters(params)

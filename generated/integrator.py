@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: b3d5d25fca107671f876034389ec01bbc8fb311d14a919505154622bebdff2d8
+# content sha256: 3fa265bac74b20641b8dd80a99c02996f8db17b67bdad35935b32b939d41da3a
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -53,6 +53,9 @@ STATE_NAMES = ('x1', 'x2')
 INPUT_NAMES = ('u1', 'u2')
 #: Outputs y, the arguments of the objective.
 OUTPUT_NAMES = ('y1', 'y2')
+#: Lagrange multipliers of the equality constraints: a row of the optimality error holds
+#: the outputs' entries, then theirs (the KKT map F = [grad f0 + J_a^T nu; a]).
+MULTIPLIER_NAMES = ()
 #: Parameters and their default values.
 PARAMETERS = {'w': 2.0}
 #: Relative degree of each output in the extended system.
@@ -80,6 +83,7 @@ STATUS_SINGULAR_DECOUPLING = 2
 STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
+STATUS_DEPENDENT_CONSTRAINTS = 6
 
 
 class ControllerError(ArithmeticError):
@@ -116,6 +120,12 @@ class HessianNotPositiveDefiniteError(ControllerError):
     """The Hessian of f0 is not positive definite: f0 is not strongly convex here."""
 
     status = STATUS_HESSIAN_NOT_PD
+
+
+class DependentConstraintsError(ControllerError):
+    """The equality constraints' gradients are dependent: the KKT matrix is singular."""
+
+    status = STATUS_DEPENDENT_CONSTRAINTS
 
 
 class NonFiniteOutputError(ControllerError):
@@ -199,7 +209,8 @@ def _cholesky_solve(h, c):
     with numpy.errstate(all="ignore"):
         z, pivot = _cholesky(h, c)
     scale = numpy.max(numpy.abs(h), axis=0)
-    bad = ~numpy.all(pivot > PIVOT_TOLERANCE * scale, axis=0)
+    ok = pivot > PIVOT_TOLERANCE * scale
+    bad = ~numpy.all(ok, axis=0)
     if bad.any():
         index = int(numpy.argmax(bad))
         raise HessianNotPositiveDefiniteError(
@@ -834,8 +845,7 @@ def optimality_error(t, s, params=None):
     Returns
     -------
     numpy.ndarray, shape (K, 2) or (K, 2, N)
-        ``E``; under the law ``dE/dt = H E``.
-    """
+        ``E``; under the law ``dE/dt = H E``.    """
     t = _time(t)
     states, single = _columns("s", s, 2)
     p = _parameters(params)

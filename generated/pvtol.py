@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
-# content sha256: 9b961dc1f6e276bc3d7c919f5db8608d42c9d77e1924ef24f37c9078e9e07b7a
+# content sha256: e8fefaf91d03dbcc2110192bad423bd3640e94d77c7c11ef116a8f02a75f1755
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -63,6 +63,9 @@ STATE_NAMES = ('x', 'z', 'theta', 'vx', 'vz', 'omega', 'thrust', 'thrust_d1')
 INPUT_NAMES = ('thrust', 'torque')
 #: Outputs y, the arguments of the objective.
 OUTPUT_NAMES = ('px', 'pz')
+#: Lagrange multipliers of the equality constraints: a row of the optimality error holds
+#: the outputs' entries, then theirs (the KKT map F = [grad f0 + J_a^T nu; a]).
+MULTIPLIER_NAMES = ()
 #: Parameters and their default values.
 PARAMETERS = {'g': 9.81, 'm': 1.0, 'J': 1.0}
 #: Relative degree of each output in the extended system.
@@ -90,6 +93,7 @@ STATUS_SINGULAR_DECOUPLING = 2
 STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
+STATUS_DEPENDENT_CONSTRAINTS = 6
 
 
 class ControllerError(ArithmeticError):
@@ -126,6 +130,12 @@ class HessianNotPositiveDefiniteError(ControllerError):
     """The Hessian of f0 is not positive definite: f0 is not strongly convex here."""
 
     status = STATUS_HESSIAN_NOT_PD
+
+
+class DependentConstraintsError(ControllerError):
+    """The equality constraints' gradients are dependent: the KKT matrix is singular."""
+
+    status = STATUS_DEPENDENT_CONSTRAINTS
 
 
 class NonFiniteOutputError(ControllerError):
@@ -964,8 +974,7 @@ def optimality_error(t, s, params=None):
     Returns
     -------
     numpy.ndarray, shape (K, 2) or (K, 2, N)
-        ``E``; under the law ``dE/dt = H E``.
-    """
+        ``E``; under the law ``dE/dt = H E``.    """
     t = _time(t)
     states, single = _columns("s", s, 8)
     p = _parameters(params)

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: aba3cb68210fea741dd578cbf80434a4a98e84fa5a6dd9b5f7d2669a9eb38d2b
+# content sha256: 5385f338afd8af3be97fcb5252e00292b306545c99ff3262517b3acbe080b782
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -62,6 +62,9 @@ STATE_NAMES = ('xa', 'ya', 'tha', 'xb', 'yb', 'thb', 'va', 'vb')
 INPUT_NAMES = ('va', 'wa', 'vb', 'wb')
 #: Outputs y, the arguments of the objective.
 OUTPUT_NAMES = ('pa', 'qa', 'pb', 'qb')
+#: Lagrange multipliers of the equality constraints: a row of the optimality error holds
+#: the outputs' entries, then theirs (the KKT map F = [grad f0 + J_a^T nu; a]).
+MULTIPLIER_NAMES = ()
 #: Parameters and their default values.
 PARAMETERS = {'alpha': 1e-08, 'd': 2.0}
 #: Relative degree of each output in the extended system.
@@ -89,6 +92,7 @@ STATUS_SINGULAR_DECOUPLING = 2
 STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
+STATUS_DEPENDENT_CONSTRAINTS = 6
 
 
 class ControllerError(ArithmeticError):
@@ -125,6 +129,12 @@ class HessianNotPositiveDefiniteError(ControllerError):
     """The Hessian of f0 is not positive definite: f0 is not strongly convex here."""
 
     status = STATUS_HESSIAN_NOT_PD
+
+
+class DependentConstraintsError(ControllerError):
+    """The equality constraints' gradients are dependent: the KKT matrix is singular."""
+
+    status = STATUS_DEPENDENT_CONSTRAINTS
 
 
 class NonFiniteOutputError(ControllerError):
@@ -208,7 +218,8 @@ def _cholesky_solve(h, c):
     with numpy.errstate(all="ignore"):
         z, pivot = _cholesky(h, c)
     scale = numpy.max(numpy.abs(h), axis=0)
-    bad = ~numpy.all(pivot > PIVOT_TOLERANCE * scale, axis=0)
+    ok = pivot > PIVOT_TOLERANCE * scale
+    bad = ~numpy.all(ok, axis=0)
     if bad.any():
         index = int(numpy.argmax(bad))
         raise HessianNotPositiveDefiniteError(
@@ -1304,8 +1315,7 @@ def optimality_error(t, s, params=None):
     Returns
     -------
     numpy.ndarray, shape (K, 4) or (K, 4, N)
-        ``E``; under the law ``dE/dt = H E``.
-    """
+        ``E``; under the law ``dE/dt = H E``.    """
     t = _time(t)
     states, single = _columns("s", s, 8)
     p = _parameters(params)

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 4a9dd8f034c3136dd32e8b9ca7f36426901206b37cab4e7560b0867c0e267497
+# content sha256: d9317e1b1200e88d2f7da6dc9e081ddebaaa44b444b410e3d88a709248224662
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -69,6 +69,9 @@ STATE_NAMES = ('x_0', 'y_0', 'theta_0', 'x_1', 'y_1', 'theta_1', 'x_2', 'y_2', '
 INPUT_NAMES = ('v_0', 'omega_0', 'v_1', 'omega_1', 'v_2', 'omega_2', 'v_3', 'omega_3')
 #: Outputs y, the arguments of the objective.
 OUTPUT_NAMES = ('px_0', 'py_0', 'px_1', 'py_1', 'px_2', 'py_2', 'px_3', 'py_3')
+#: Lagrange multipliers of the equality constraints: a row of the optimality error holds
+#: the outputs' entries, then theirs (the KKT map F = [grad f0 + J_a^T nu; a]).
+MULTIPLIER_NAMES = ()
 #: Parameters and their default values.
 PARAMETERS = {'alpha': 0.001, 'd': 40.0, 'radius': 2.0, 'spin': 0.1}
 #: Relative degree of each output in the extended system.
@@ -96,6 +99,7 @@ STATUS_SINGULAR_DECOUPLING = 2
 STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
+STATUS_DEPENDENT_CONSTRAINTS = 6
 
 
 class ControllerError(ArithmeticError):
@@ -132,6 +136,12 @@ class HessianNotPositiveDefiniteError(ControllerError):
     """The Hessian of f0 is not positive definite: f0 is not strongly convex here."""
 
     status = STATUS_HESSIAN_NOT_PD
+
+
+class DependentConstraintsError(ControllerError):
+    """The equality constraints' gradients are dependent: the KKT matrix is singular."""
+
+    status = STATUS_DEPENDENT_CONSTRAINTS
 
 
 class NonFiniteOutputError(ControllerError):
@@ -215,7 +225,8 @@ def _cholesky_solve(h, c):
     with numpy.errstate(all="ignore"):
         z, pivot = _cholesky(h, c)
     scale = numpy.max(numpy.abs(h), axis=0)
-    bad = ~numpy.all(pivot > PIVOT_TOLERANCE * scale, axis=0)
+    ok = pivot > PIVOT_TOLERANCE * scale
+    bad = ~numpy.all(ok, axis=0)
     if bad.any():
         index = int(numpy.argmax(bad))
         raise HessianNotPositiveDefiniteError(
@@ -2314,8 +2325,7 @@ def optimality_error(t, s, params=None):
     Returns
     -------
     numpy.ndarray, shape (K, 8) or (K, 8, N)
-        ``E``; under the law ``dE/dt = H E``.
-    """
+        ``E``; under the law ``dE/dt = H E``.    """
     t = _time(t)
     states, single = _columns("s", s, 16)
     p = _parameters(params)

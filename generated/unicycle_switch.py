@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 926423688caad61cade299d81b073f054a85d82ba28e85c346234b23444ab210
+# content sha256: c9e9d59c85902c5f9f3dab04af0178373ae9ca129e1e82654348411e43257067
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -58,6 +58,9 @@ STATE_NAMES = ('x1', 'x2', 'theta', 'v')
 INPUT_NAMES = ('v', 'omega')
 #: Outputs y, the arguments of the objective.
 OUTPUT_NAMES = ('y1', 'y2')
+#: Lagrange multipliers of the equality constraints: a row of the optimality error holds
+#: the outputs' entries, then theirs (the KKT map F = [grad f0 + J_a^T nu; a]).
+MULTIPLIER_NAMES = ()
 #: Parameters and their default values.
 PARAMETERS = {'a': 10.0, 'b': 1.5}
 #: Relative degree of each output in the extended system.
@@ -85,6 +88,7 @@ STATUS_SINGULAR_DECOUPLING = 2
 STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
+STATUS_DEPENDENT_CONSTRAINTS = 6
 
 
 class ControllerError(ArithmeticError):
@@ -121,6 +125,12 @@ class HessianNotPositiveDefiniteError(ControllerError):
     """The Hessian of f0 is not positive definite: f0 is not strongly convex here."""
 
     status = STATUS_HESSIAN_NOT_PD
+
+
+class DependentConstraintsError(ControllerError):
+    """The equality constraints' gradients are dependent: the KKT matrix is singular."""
+
+    status = STATUS_DEPENDENT_CONSTRAINTS
 
 
 class NonFiniteOutputError(ControllerError):
@@ -930,8 +940,7 @@ def optimality_error(t, s, params=None):
     Returns
     -------
     numpy.ndarray, shape (K, 2) or (K, 2, N)
-        ``E``; under the law ``dE/dt = H E``.
-    """
+        ``E``; under the law ``dE/dt = H E``.    """
     t = _time(t)
     states, single = _columns("s", s, 4)
     p = _parameters(params)

@@ -28,9 +28,15 @@ EXAMPLES = (
     "pvtol",
     "flexible_joint",
     "unicycle_ring",
+    # An equality constraint: the KKT law, with multiplier chains among the states.
+    "arm_on_line",
 )
 #: Every spec the closed-loop and oracle tests run: the bundled examples plus test specs.
-ALL_SPECS = (*EXAMPLES, str(SPECS / "nonuniform.toml"), str(SPECS / "hovercraft.toml"))
+ALL_SPECS = (
+    *EXAMPLES,
+    str(SPECS / "nonuniform.toml"),
+    str(SPECS / "hovercraft.toml"),
+)
 
 
 @functools.cache

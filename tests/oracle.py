@@ -3,7 +3,9 @@
 It shares only the Derivation's Lie derivatives with the generator. The gradient jet
 comes from naive repeated total derivatives of the fully substituted f0 (no
 straight-line program, no CSE), the law from numpy's dense solves, and everything is
-evaluated through ``sympy.lambdify``.
+evaluated through ``sympy.lambdify``. With equality constraints, the same for the
+Lagrangian ``f0 + sum_j nu_j a_j`` over the outputs and the multipliers, whose jets are
+the states ``nu_<name>_0 .. nu_<name>_<k-1>`` by name.
 """
 
 from __future__ import annotations
@@ -32,16 +34,32 @@ class Oracle:
         self.d = d
         model = d.model
         t, k, m = model.t, d.k, len(model.y)
-        self.k, self.m = k, m
-        f0 = model.f0.xreplace(dict(model.signals))
-        jets = [[sp.Symbol(f"Y{i}_{j}", real=True) for j in range(k + 1)] for i in range(m)]
-        f0 = f0.xreplace({model.y[i]: jets[i][0] for i in range(m)})
-        grads = [[sp.diff(f0, jets[i][0]) for i in range(m)]]
+        q = len(model.equalities)
+        n = m + q
+        self.k, self.m, self.n = k, m, n
+        lagrangian = model.f0 + sum(
+            (sp.Symbol(f"nu_{c.name}", real=True) * (c.lhs - c.rhs) for c in model.equalities),
+            sp.Integer(0),
+        )
+        variables = [*model.y, *(sp.Symbol(f"nu_{c.name}", real=True) for c in model.equalities)]
+        f0 = lagrangian.xreplace(dict(model.signals)).xreplace(dict(model.signals))
+        jets = [[sp.Symbol(f"Y{i}_{j}", real=True) for j in range(k + 1)] for i in range(n)]
+        f0 = f0.xreplace({variables[i]: jets[i][0] for i in range(n)})
+        grads = [[sp.diff(f0, jets[i][0]) for i in range(n)]]
         for _ in range(k):
             grads.append([naive_total_derivative(g, t, jets) for g in grads[-1]])
-        hess = [sp.diff(g, jets[j][0]) for g in grads[0] for j in range(m)]
-        rest = [g.xreplace({jets[i][k]: 0 for i in range(m)}) for g in grads[k]]
+        hess = [sp.diff(g, jets[j][0]) for g in grads[0] for j in range(n)]
+        rest = [g.xreplace({jets[i][k]: 0 for i in range(n)}) for g in grads[k]]
         state_jet = {jets[i][j]: d.y_jet_values[i][j] for i in range(m) for j in range(k)}
+        states = dict(zip(d.state_names, d.states, strict=True))
+        state_jet |= {
+            jets[m + i][j]: states[f"nu_{c.name}_{j}"]
+            for i, c in enumerate(model.equalities)
+            for j in range(k)
+        }
+        self.multipliers = [
+            [d.state_names.index(f"nu_{c.name}_{j}") for j in range(k)] for c in model.equalities
+        ]
         w = sp.symbols(f"W0:{m}", real=True)
         args = [t, *d.states, *model.params, *w]
         ext = d.extension
@@ -68,11 +86,11 @@ class Oracle:
 
     def law(self, t: float, s: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return (u, ds) for states ``s`` of shape (n, N) and parameters ``p``."""
-        d, k, m, n = self.d, self.k, self.m, s.shape[1]
+        d, k, m, size, n = self.d, self.k, self.m, self.n, s.shape[1]
         args: list[object] = [t, *s, *p, *np.zeros(m)]
-        E = self._eval(self.E, args, (k, m), n)
-        hess = self._eval(self.hess, args, (m, m), n)
-        rest = self._eval(self.rest, args, (m,), n)
+        E = self._eval(self.E, args, (k, size), n)
+        hess = self._eval(self.hess, args, (size, size), n)
+        rest = self._eval(self.rest, args, (size,), n)
         c = sum(d.coefficients[j] * E[j] for j in range(k)) - rest
         z = np.linalg.solve(np.moveaxis(hess, -1, 0), np.moveaxis(c, -1, 0)[..., None])[..., 0].T
         v = np.array(
@@ -86,6 +104,9 @@ class Oracle:
         for i, chain in enumerate(d.padding):
             for j in range(len(chain)):
                 pad.append(s[d.state_names.index(chain[j + 1])] if j + 1 < len(chain) else z[i])
+        for i, chain in enumerate(self.multipliers):
+            for j in range(k):
+                pad.append(s[chain[j + 1]] if j + 1 < k else z[m + i])
         ds = np.vstack([field, *pad]) if pad else field
         u = np.array(
             [
@@ -96,6 +117,6 @@ class Oracle:
         return u, ds
 
     def optimality_error(self, t: float, s: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """E of shape (k, m, N)."""
+        """E of shape (k, m + q, N)."""
         args: list[object] = [t, *s, *p, *np.zeros(self.m)]
-        return self._eval(self.E, args, (self.k, self.m), s.shape[1])
+        return self._eval(self.E, args, (self.k, self.n), s.shape[1])

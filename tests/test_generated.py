@@ -65,7 +65,8 @@ def test_one_dimensional_and_batched_calls_agree(spec: str) -> None:
         assert single.shape == (states.shape[0],)
         np.testing.assert_array_equal(single, batched[:, j])
     assert mod.control(1.5, states[:, 0]).shape == (len(mod.INPUT_NAMES),)
-    assert mod.optimality_error(1.5, states[:, 0]).shape == (mod.K, len(mod.OUTPUT_NAMES))
+    width = len(mod.OUTPUT_NAMES) + len(mod.MULTIPLIER_NAMES)
+    assert mod.optimality_error(1.5, states[:, 0]).shape == (mod.K, width)
 
 
 def test_contract_of_the_unicycle_module() -> None:

@@ -40,7 +40,8 @@ def test_closed_loop_field_is_f_plus_g_w(spec: str) -> None:
 @pytest.mark.parametrize("spec", ALL_SPECS)
 def test_jet_rhs_and_the_constant_inverse(spec: str) -> None:
     d = derivation(spec)
-    law, m, k = d.law, len(d.model.u), d.k
+    # m: the outputs, and with equality constraints the multipliers after them.
+    law, m, k = d.law, d.n_kkt, d.k
     assert len(law.jet_rhs) == m and len(law.a) == k
     for i in range(m):
         expected = sum((law.a[j] * d.grad_jet[j][i] for j in range(k)), sp.Integer(0)) - d.rest[i]

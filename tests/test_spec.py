@@ -138,6 +138,8 @@ def test_bundled_examples_are_listed_and_load() -> None:
         *(f"{name}_refs" for name in ("two_unicycles_barrier", "unicycle_ring")),
         # The paper's Fig. 3 team inside a moving corridor ([constraints]).
         "two_unicycles_corridor",
+        # A two-link arm's end effector on a turning line (an equality constraint).
+        "arm_on_line",
     }
     for name in examples:
         spec = load_spec(name)

@@ -509,7 +509,10 @@ def test_constraints_are_measured_on_every_run() -> None:
         [np.broadcast_to(f(rows[:, 0], *y.T), rows[:, 0].shape) for f in functions]
     )
     margin = np.min(evaluated[0] - evaluated[1:], axis=0)
-    assert np.allclose(rows[:, -2], margin, rtol=0, atol=1e-12)
-    assert np.allclose(rows[:, -1], evaluated[1:].max(axis=0), rtol=0, atol=1e-12)
+    assert np.allclose(sweep.tail(rows, "margin"), margin, rtol=0, atol=1e-12)
+    assert np.allclose(
+        sweep.tail(rows, "max_constraint"), evaluated[1:].max(axis=0), rtol=0, atol=1e-12
+    )
+    assert np.all(np.isnan(sweep.tail(rows, "max_equality")))
     assert row["violations"] == 0 and row["min_margin"] == pytest.approx(margin.min(), abs=1e-12)
     assert row["min_margin"] > 0 and row["final_constraint"] <= 0

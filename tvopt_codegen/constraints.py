@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -146,10 +146,11 @@ class RunCheck:
     slack : numpy.ndarray, shape (T,)
         ``s(t)``.
     final : tuple of (str, float)
-        ``g_i(y(T), T)`` per constraint (<= 0 where it holds).
+        ``g_i(y(T), T)`` per inequality (<= 0 where it holds), then ``a_j(y(T), T)`` per
+        equality.
     distance : numpy.ndarray, shape (K,)
         ``|y(t) - y*_s(t)|`` at the checked times, ``y*_s`` found by SLSQP (scipy) on f0
-        subject to ``g_i <= s(t)``.
+        subject to ``g_i <= s(t)`` and ``a_j = 0``.
     bound : numpy.ndarray, shape (K,)
         ``|y(t) - y*_Phi(t)| + sqrt(2 p mu(t) / m_f)`` at those times, ``m_f`` the smallest
         eigenvalue of the spec's f0's Hessian along the run.
@@ -157,8 +158,11 @@ class RunCheck:
         The checked times.
     m_f : float
         That modulus.
-    lhs, rhs : numpy.ndarray, shape (p, T)
-        Each constraint's two sides along the run (the boundary moves with ``rhs``).
+    lhs, rhs : numpy.ndarray, shape (p + q, T)
+        Each constraint's two sides along the run (the boundary moves with ``rhs``):
+        the inequalities, then the equalities.
+    equality : numpy.ndarray, shape (q, T)
+        ``a_j(y(t), t)`` of each equality along the run (0 where it holds).
     """
 
     margins: np.ndarray
@@ -170,6 +174,7 @@ class RunCheck:
     m_f: float
     lhs: np.ndarray
     rhs: np.ndarray
+    equality: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
 
 @dataclass(frozen=True)
@@ -180,6 +185,8 @@ class _Problem:
     f0_grad: list[Any]
     g: list[Any]
     g_grad: list[list[Any]]
+    a: list[Any]
+    a_grad: list[list[Any]]
     domain: list[Any]
     domain_grad: list[list[Any]]
     numeric: Any
@@ -202,7 +209,7 @@ def _problem(model: Any, values: Mapping[sp.Symbol, float], references: Any) -> 
         jets = (references.exact or references.jets)(time)
         return [float(v) for v in jets[:, 0]]
 
-    objective = sp.sympify(model.objective)
+    objective = sp.sympify(model.f0 if model.objective is None else model.objective)
     # f0's principal domain, which the barrier objective never leaves: tan's argument
     # within (-pi/2, pi/2) and log's positive; the independent solver keeps to it too.
     domain = []
@@ -219,6 +226,10 @@ def _problem(model: Any, values: Mapping[sp.Symbol, float], references: Any) -> 
         g_grad=[
             [numeric(sp.diff(sp.sympify(c.g), yi)) for yi in model.y] for c in model.constraints
         ],
+        a=[numeric(c.g) for c in model.equalities],
+        a_grad=[
+            [numeric(sp.diff(sp.sympify(c.g), yi)) for yi in model.y] for c in model.equalities
+        ],
         domain=[numeric(e) for e in domain],
         domain_grad=[[numeric(sp.diff(e, yi)) for yi in model.y] for e in domain],
         numeric=numeric,
@@ -229,7 +240,10 @@ def _problem(model: Any, values: Mapping[sp.Symbol, float], references: Any) -> 
 def _minimise(
     problem: _Problem, time: float, r: list[float], s: float, centre: np.ndarray, radius: float
 ) -> np.ndarray:
-    """f0's minimiser subject to ``g_i <= s`` by SLSQP, in a box around ``centre``."""
+    """f0's minimiser subject to ``g_i <= s`` and ``a_j = 0``, by SLSQP near ``centre``.
+
+    The search stays in the box of half-width ``radius`` around ``centre``.
+    """
     from scipy.optimize import minimize  # noqa: PLC0415 - only simulate needs it
 
     inequalities = [
@@ -247,13 +261,21 @@ def _minimise(
         }
         for e, row in zip(problem.domain, problem.domain_grad, strict=True)
     ]
+    equal = [
+        {
+            "type": "eq",
+            "fun": lambda y, ai=ai: ai(time, y, r),
+            "jac": lambda y, row=row: np.array([d(time, y, r) for d in row]),
+        }
+        for ai, row in zip(problem.a, problem.a_grad, strict=True)
+    ]
     result = minimize(
         lambda y: problem.f0(time, y, r),
         centre,
         jac=lambda y: np.array([d(time, y, r) for d in problem.f0_grad]),
         method="SLSQP",
         bounds=[(c - radius, c + radius) for c in centre],
-        constraints=inequalities,
+        constraints=inequalities + equal,
         options={"ftol": 1e-15, "maxiter": 1000},
     )
     minimiser: np.ndarray = result.x
@@ -297,22 +319,26 @@ def check_run(
     slack_of = sp.lambdify(t, model.slack.xreplace(fixed), "math")
     mu_of = sp.lambdify(t, model.mu.xreplace(fixed), "math")
     slack = np.array([slack_of(float(time)) for time in ts])
-    margins = np.array(
-        [
+
+    def along(functions: Sequence[Any]) -> np.ndarray:
+        return np.array(
             [
-                slack[k] - gi(float(time), outputs[:, k], refs_at(float(time)))
-                for k, time in enumerate(ts)
-            ]
-            for gi in g
-        ]
-    )
+                [f(float(time), outputs[:, k], refs_at(float(time))) for k, time in enumerate(ts)]
+                for f in functions
+            ],
+            dtype=float,
+        ).reshape(len(functions), len(ts))
+
+    margins = slack[None, :] - along(g)
+    equality = along(problem.a)
     end = float(ts[-1])
     final = tuple(
         (c.name, float(gi(end, outputs[:, -1], refs_at(end))))
-        for c, gi in zip(model.constraints, g, strict=True)
+        for c, gi in zip((*model.constraints, *model.equalities), (*g, *problem.a), strict=True)
     )
     picks = np.unique(np.linspace(0, len(ts) - 1, checked).round().astype(int))
-    hessian = [[numeric(sp.diff(model.objective, yi, yj)) for yj in model.y] for yi in model.y]
+    objective = model.f0 if model.objective is None else model.objective
+    hessian = [[numeric(sp.diff(objective, yi, yj)) for yj in model.y] for yi in model.y]
 
     def smallest(time: float, y: np.ndarray, r: list[float]) -> float:
         matrix = np.array([[h(time, y, r) for h in row] for row in hessian], dtype=float)
@@ -337,19 +363,9 @@ def check_run(
         minimisers.append(result_x)
         distance.append(math.inf if on_box else float(np.linalg.norm(outputs[:, k] - result_x)))
         bound.append(float(to_phi[k] + gap))
-    sides = [(numeric(c.lhs), numeric(c.rhs)) for c in model.constraints]
-    lhs = np.array(
-        [
-            [a(float(s), outputs[:, k], refs_at(float(s))) for k, s in enumerate(ts)]
-            for a, _ in sides
-        ]
-    )
-    rhs = np.array(
-        [
-            [b(float(s), outputs[:, k], refs_at(float(s))) for k, s in enumerate(ts)]
-            for _, b in sides
-        ]
-    )
+    every = (*model.constraints, *model.equalities)
+    lhs = along([numeric(c.lhs) for c in every])
+    rhs = along([numeric(c.rhs) for c in every])
     return RunCheck(
         margins=margins,
         slack=slack,
@@ -360,4 +376,67 @@ def check_run(
         m_f=m_f,
         lhs=lhs,
         rhs=rhs,
+        equality=equality,
     )
+
+
+@dataclass(frozen=True)
+class Equalities:
+    """The equality constraints in numbers, for the KKT certificate.
+
+    Each callable takes ``(t, y, r)``: time, outputs (m,) and the references' values.
+
+    Attributes
+    ----------
+    value : callable
+        ``a(y, t)``, shape (q,).
+    jacobian : callable
+        ``J_a``, shape (q, m).
+    curvature : callable
+        ``sum_j nu_j grad_yy a_j`` for given ``nu``: ``curvature(t, y, r, nu)``, (m, m);
+        zero for affine equalities.
+    """
+
+    value: Any
+    jacobian: Any
+    curvature: Any
+
+
+def equalities(model: Any, values: Mapping[sp.Symbol, float]) -> Equalities:
+    """Lambdify the equalities of ``model`` (signals and the parameters ``values`` substituted)."""
+    signals = {s: e for s, e in model.signals}
+    fixed = {q: sp.Float(v) for q, v in values.items()}
+    m, q = len(model.y), len(model.equalities)
+
+    def numeric(exprs: Sequence[sp.Expr]) -> Any:
+        exprs = [sp.sympify(e).xreplace(signals).xreplace(signals).xreplace(fixed) for e in exprs]
+        return sp.lambdify([model.t, model.y, model.references], exprs, "math")
+
+    a = [sp.sympify(c.g) for c in model.equalities]
+    value = numeric(a)
+    jacobian = numeric([sp.diff(e, y) for e in a for y in model.y])
+    second = [[sp.diff(e, yi, yj) for yi in model.y for yj in model.y] for e in a]
+    curved = any(entry != 0 for row in second for entry in row)
+    hessians = [numeric(row) for row in second] if curved else []
+
+    def curvature(t: float, y: np.ndarray, r: Sequence[float], nu: np.ndarray) -> np.ndarray:
+        total = np.zeros((m, m))
+        for weight, hessian in zip(nu, hessians, strict=False):
+            total += weight * np.array(hessian(t, y, r), dtype=float).reshape(m, m)
+        return total
+
+    return Equalities(
+        value=lambda t, y, r: np.array(value(t, y, r), dtype=float),
+        jacobian=lambda t, y, r: np.array(jacobian(t, y, r), dtype=float).reshape(q, m),
+        curvature=curvature,
+    )
+
+
+def kkt_matrix(hessian: np.ndarray, jacobian_a: np.ndarray) -> np.ndarray:
+    """``K = [[grad_yy L, J_a^T], [J_a, 0]]``."""
+    m, q = hessian.shape[0], jacobian_a.shape[0]
+    matrix = np.zeros((m + q, m + q))
+    matrix[:m, :m] = hessian
+    matrix[:m, m:] = jacobian_a.T
+    matrix[m:, :m] = jacobian_a
+    return matrix

@@ -101,7 +101,7 @@ class Derivation:
     padding : tuple of tuple of str
         Names of the padding states ``xi_<output>_<j>`` per output.
     state_names : tuple of str
-        Closed-loop state order: plant, extension, padding.
+        Closed-loop state order: plant, extension, padding, multiplier chains.
     states : tuple of sympy.Symbol
         Symbols of ``state_names``.
     det_R : sympy.Expr or None
@@ -179,6 +179,22 @@ class Derivation:
         The highest derivative of a reference the law reads (0 without references).
     timings : tuple of (str, float)
         Seconds spent per derivation step.
+    objective_program : Program
+        The program of f0's own gradient and Hessian (over the outputs): the generated
+        ``gradient`` and ``hessian`` functions evaluate it. With equalities the jet's
+        programs are the KKT system's instead.
+    objective_gradient, objective_hessian : tuple of sympy.Expr
+        f0's gradient (m) and Hessian ((m, m), row-major) over that program.
+    multiplier_states : tuple of tuple of str
+        With equality constraints, each multiplier's chain of controller states
+        ``nu_<name>_0 .. nu_<name>_<k-1>`` (the multiplier and its derivatives).
+    kkt_gradient : sympy.ImmutableMatrix or None
+        With equalities, the KKT map ``F = [grad f0 + J_a^T nu; a]`` over (y, nu).
+
+    With equality constraints, :attr:`y_jet`, :attr:`grad_jet`, :attr:`rest`,
+    :attr:`jet_program`, :attr:`hessian_program` and :attr:`hessian_entries` are those of
+    the Lagrangian ``L = f0 + nu^T a`` over the outputs and then the multipliers (m + q
+    entries, :attr:`n_kkt`): the law is the paper's, written for ``L``.
     """
 
     spec: Spec
@@ -227,6 +243,16 @@ class Derivation:
     timings: tuple[tuple[str, float], ...]
     reference_jet: tuple[tuple[sp.Symbol, ...], ...] = ()
     reference_order: int = 0
+    objective_program: Program = Program(())
+    objective_gradient: tuple[sp.Expr, ...] = ()
+    objective_hessian: tuple[sp.Expr, ...] = ()
+    multiplier_states: tuple[tuple[str, ...], ...] = ()
+    kkt_gradient: sp.ImmutableMatrix | None = None
+
+    @property
+    def n_kkt(self) -> int:
+        """The law's unknowns ``y^(k)`` and, with equalities, ``nu^(k)``: m + q."""
+        return len(self.y_jet)
 
     @property
     def singular_text(self) -> str:
@@ -246,6 +272,15 @@ class Derivation:
         code never needs it: it evaluates :attr:`hessian_entries`).
         """
         return _sparse_hessian(self.gradient, self.model.y)
+
+    @functools.cached_property
+    def kkt_hessian(self) -> sp.ImmutableMatrix:
+        """With equalities, the KKT matrix ``[[grad_yy L, J_a^T], [J_a, 0]]`` as expressions.
+
+        Differentiated from :attr:`kkt_gradient` on first use, for the report.
+        """
+        assert self.kkt_gradient is not None
+        return _sparse_hessian(self.kkt_gradient, (*self.model.y, *self.model.multipliers))
 
 
 #: det R is simplified and factored only up to this many expression nodes.
@@ -908,6 +943,7 @@ class _States:
     names: tuple[str, ...]
     symbols: tuple[sp.Symbol, ...]
     initial: tuple[float, ...]
+    multipliers: tuple[tuple[str, ...], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -1078,13 +1114,28 @@ def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:
                 "system.outputs",
                 f"padding state {name!r} collides with a declared name",
             )
+    # Each equality's multiplier and its first k - 1 derivatives: the controller's own
+    # integrator chain, driven by nu^(k) from the KKT system.
+    multipliers = tuple(tuple(f"nu_{c.name}_{j}" for j in range(k)) for c in spec.equalities)
+    for name in (
+        *(n for chain in multipliers for n in chain),
+        *(f"nu_{c.name}" for c in spec.equalities),
+    ):
+        if name in lin.declared:
+            raise SpecError(
+                spec.source,
+                "constraints",
+                f"multiplier name {name!r} collides with a declared name",
+            )
     ext = lin.extension
-    names = (*spec.states, *ext.states, *pad_names)
+    names = (*spec.states, *ext.states, *pad_names, *(n for chain in multipliers for n in chain))
     # With a searched extension the user cannot know its states in advance: only the
     # plant states are required then (extension states start at zero unless given).
     required = len(spec.states) + (0 if spec.extension_auto else len(ext.states))
     initial = _initial_state(spec, names, required)
-    return _States(padding, names, tuple(sp.Symbol(n, real=True) for n in names), initial)
+    return _States(
+        padding, names, tuple(sp.Symbol(n, real=True) for n in names), initial, multipliers
+    )
 
 
 def _decoupling(lin: _Linearization, meter: _Meter) -> _Decoupling:
@@ -1116,17 +1167,30 @@ def _decoupling(lin: _Linearization, meter: _Meter) -> _Decoupling:
     return _Decoupling(p, phi, A, B, det_R, det_R_note, singular, undefined)
 
 
-def _objective(
-    spec: Spec, model: Model, states: _States, names: Iterator[sp.Symbol], meter: _Meter
-) -> _Objective:
-    """The gradient of f0 as a program, its Hessian, and f0's convexity where it matters."""
-    m = len(model.y)
-    meter(model.f0)
-    gradient = _sparse_gradient(model.f0, model.y)
+def _programs_of(
+    expr: sp.Expr, variables: Sequence[sp.Symbol], names: Iterator[sp.Symbol], meter: _Meter
+) -> tuple[
+    sp.ImmutableMatrix,
+    Program,
+    tuple[sp.Expr, ...],
+    Program,
+    tuple[tuple[tuple[int, int], sp.Expr], ...],
+    sp.ImmutableMatrix | None,
+]:
+    """The gradient of ``expr`` in ``variables`` as a program, and its Hessian's entries.
+
+    Returns the gradient (as expressions), its three-address program and outputs, the
+    Hessian's program and nonzero lower entries ``(i, j), i >= j`` over it (numbers when
+    the Hessian is constant), and the Hessian as expressions when the gradient is
+    polynomial in the variables (else None).
+    """
+    m = len(variables)
+    meter(expr)
+    gradient = _sparse_gradient(expr, variables)
     meter.matrix(gradient)
-    polynomial = _polynomial_hessian(gradient, model.y)
-    if polynomial is not None and not polynomial.free_symbols & set(model.y):
-        gradient = _affine_split(gradient, polynomial, model.y)
+    polynomial = _polynomial_hessian(gradient, variables)
+    if polynomial is not None and not polynomial.free_symbols & set(variables):
+        gradient = _affine_split(gradient, polynomial, variables)
         meter.matrix(gradient)
     # Three-address form: the Hessian and every total derivative below are taken
     # assignment by assignment (jet.py), never on the nested gradient.
@@ -1140,11 +1204,21 @@ def _objective(
             if polynomial[i, j] != 0
         )
     else:
-        hessian_program, columns = jacobian(program, current, model.y, names, meter)
+        hessian_program, columns = jacobian(program, current, variables, names, meter)
         # Equal by Schwarz; either side may be the one that is structurally nonzero.
         lower = {(j, i): e for i in range(m) for j, e in columns[i].items() if j > i}
         lower |= {(i, j): e for i in range(m) for j, e in columns[i].items() if j <= i}
         hessian_entries = tuple(sorted(lower.items()))
+    return gradient, program, tuple(current), hessian_program, hessian_entries, polynomial
+
+
+def _objective(
+    spec: Spec, model: Model, states: _States, names: Iterator[sp.Symbol], meter: _Meter
+) -> _Objective:
+    """The gradient of f0 as a program, its Hessian, and f0's convexity where it matters."""
+    gradient, program, current, hessian_program, hessian_entries, polynomial = _programs_of(
+        model.f0, model.y, names, meter
+    )
     defaults = dict(zip(model.params, model.defaults, strict=True))
     values = {sym: sp.Float(v) for sym, v in zip(states.symbols, states.initial, strict=True)}
     values |= {q: sp.Float(v) for q, v in defaults.items()}
@@ -1179,8 +1253,13 @@ def _gradient_jet(
     names: Iterator[sp.Symbol],
     meter: _Meter,
 ) -> _GradientJet:
-    """Total time derivatives of the gradient up to order k (the paper's lemma)."""
-    y_jet = tuple(tuple(jet_symbol(y.name, j) for j in range(k + 1)) for y in model.y)
+    """Total time derivatives of the gradient up to order k (the paper's lemma).
+
+    With equalities the gradient is the KKT map's, over the outputs and the multipliers,
+    whose jets are the controller's multiplier chains.
+    """
+    variables = (*model.y, *model.multipliers)
+    y_jet = tuple(tuple(jet_symbol(y.name, j) for j in range(k + 1)) for y in variables)
     signal_jet = tuple(tuple(jet_symbol(s.name, q) for q in range(k + 1)) for s, _ in model.signals)
     reference_jet = tuple(
         tuple(jet_symbol(r.name, q) for q in range(k + 1)) for r in model.references
@@ -1233,7 +1312,7 @@ def _gradient_jet(
             for j in range(k)
         )
         for i in range(len(model.y))
-    )
+    ) + tuple(tuple(state_of[name] for name in chain) for chain in states.multipliers)
     # The highest derivative of a reference that the law or the optimality error reads.
     used: set[sp.Basic] = set()
     for part in (program, rest_program, signal_program):
@@ -1303,6 +1382,162 @@ def _constraint_convexity(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str
             "inequalities (set allow_nonconvex = true to accept a local certificate)",
         )
     return (f"constraints not convex in the outputs: {names}; the certificate is local only",)
+
+
+def _evaluator_at(model: Model, ys: np.ndarray, ts: np.ndarray) -> Evaluator:
+    """Numbers for expressions in the outputs and t at points (one row of ``ys`` each).
+
+    Parameters at their defaults, signals and nominal references defined (references
+    without one at 0).
+    """
+    values: dict[sp.Symbol, Any] = {y: ys[:, i] for i, y in enumerate(model.y)}
+    values[model.t] = ts
+    values |= {q: float(v) for q, v in zip(model.params, model.defaults, strict=True)}
+    nominal = dict(model.nominal)
+    values |= {r: 0.0 for r in model.references if r not in nominal}
+    evaluate = Evaluator(values)
+    for symbol, expr in nominal.items():
+        evaluate.define(symbol, expr)
+    for symbol, expr in model.signals:
+        evaluate.define(symbol, expr)
+    return evaluate
+
+
+def _equality_jacobian(model: Model) -> list[list[sp.Expr]]:
+    """``J_a``: the equalities' derivatives in the outputs, (q, m)."""
+    return [[sp.diff(c.g, y) for y in model.y] for c in model.equalities]
+
+
+def _equality_checks(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str, ...]:
+    """Refuse equalities the KKT law cannot keep: too many, dependent, or not affine.
+
+    Equalities not affine in the outputs make the feasible set non-convex: refused
+    unless ``allow_nonconvex``, and then a warning says the certificate is local only.
+    Dependence is decided on ``J_a`` at the initial outputs over the horizon (at every
+    output when ``J_a`` is constant).
+    """
+    if not model.equalities:
+        return ()
+    q, m = len(model.equalities), len(model.y)
+    names = ", ".join(c.name for c in model.equalities)
+    if q > m:
+        raise AssumptionError(
+            spec.source,
+            "constraints",
+            f"{q} equality constraints ({names}) on {m} outputs: at most {m} can be independent",
+        )
+    warnings: tuple[str, ...] = ()
+    curved = [
+        c.name
+        for c in model.equalities
+        if any(sp.diff(c.g, yi, yj) != 0 for yi in model.y for yj in model.y)
+    ]
+    if curved:
+        if not spec.allow_nonconvex:
+            raise AssumptionError(
+                spec.source,
+                f"constraints.{curved[0]}",
+                f"not affine in the outputs: {', '.join(curved)}; the feasible set of a "
+                "curved equality is not convex (set allow_nonconvex = true to accept a "
+                "local certificate)",
+            )
+        warnings = (
+            f"equality constraints not affine in the outputs: {', '.join(curved)}; "
+            "the certificate is local only",
+        )
+    jacobian_a = _equality_jacobian(model)
+    points = 5
+    ts = np.linspace(0.0, spec.t_final, points)
+    evaluate = _evaluator_at(model, np.repeat(y0[None, :], points, axis=0), ts)
+    matrices = np.zeros((points, q, m))
+    for i, row in enumerate(jacobian_a):
+        for j, entry in enumerate(row):
+            if entry != 0:
+                matrices[:, i, j] = np.broadcast_to(np.real(evaluate(entry)), (points,))
+    constant = all(sp.sympify(e).is_Number for row in jacobian_a for e in row)
+    for index in range(points):
+        singular = np.linalg.svd(matrices[index], compute_uv=False)
+        if not singular[-1] > 1e-9 * max(1.0, float(singular[0])):
+            where = "everywhere" if constant else f"at the initial outputs and t = {ts[index]:g}"
+            raise AssumptionError(
+                spec.source,
+                "constraints",
+                f"the equality constraints {names} are dependent: their gradients in the "
+                f"outputs have rank {int(np.sum(singular > 1e-9 * singular[0]))} < {q} "
+                f"{where} (drop or combine the redundant ones)",
+            )
+    return warnings
+
+
+def _lagrangian(
+    model: Model, objective: _Objective, names: Iterator[sp.Symbol], meter: _Meter
+) -> _Objective:
+    """With equalities, the KKT map ``F = grad L`` over (y, nu) and its Hessian ``K``.
+
+    ``L = f0 + nu^T a``: its gradient is ``[grad f0 + J_a^T nu; a]`` and its Hessian the
+    KKT matrix ``[[grad_yy L, J_a^T], [J_a, 0]]``, so the paper's law written for
+    ``L`` over (y, nu) is the KKT law (docs/constraints.md). Without equalities, the
+    objective itself.
+    """
+    if not model.equalities:
+        return objective
+    variables = (*model.y, *model.multipliers)
+    gradient, program, current, hessian_program, entries, _ = _programs_of(
+        model.lagrangian, variables, names, meter
+    )
+    # The (nu, nu) block is structurally zero; its diagonal is stored all the same, as
+    # the elimination fills it (the Schur complement -J Hess^-1 J^T).
+    m = len(variables)
+    value = dict(entries)
+    entries = tuple(
+        sorted(value.items() | {((i, i), sp.Integer(0)) for i in range(m) if (i, i) not in value})
+    )
+    return _Objective(
+        gradient,
+        program,
+        current,
+        hessian_program,
+        entries,
+        objective.convexity,
+        objective.warnings,
+    )
+
+
+def _multipliers_start(spec: Spec, model: Model, states: _States, kkt: _Objective) -> _States:
+    """The multiplier chains' initial values: nu(0) by least squares, its derivatives 0.
+
+    ``nu(0)`` minimises ``|grad f0 + J_a^T nu|`` at the initial outputs and t = 0, so the
+    KKT map starts as small as the plant's state allows; any start is admissible (the
+    theorem holds for every ``E_F(0)``). Values given in ``[simulation]`` are kept.
+    """
+    if not model.equalities:
+        return states
+    y0 = objective_start(model, states)
+    evaluate = _evaluator_at(model, y0[None, :], np.zeros(1))
+    m, q = len(model.y), len(model.equalities)
+    gradient = sp.ImmutableMatrix([sp.diff(model.f0, y) for y in model.y])
+    g = np.array([float(np.real(np.broadcast_to(evaluate(e), (1,))[0])) for e in gradient])
+    jacobian_a = np.array(
+        [
+            [float(np.real(np.broadcast_to(evaluate(e), (1,))[0])) for e in row]
+            for row in _equality_jacobian(model)
+        ]
+    ).reshape(q, m)
+    nu0 = np.linalg.lstsq(jacobian_a.T, -g, rcond=None)[0]
+    given = dict(spec.initial_state)
+    initial = list(states.initial)
+    for chain, value in zip(states.multipliers, nu0, strict=True):
+        if chain[0] not in given:
+            initial[states.names.index(chain[0])] = float(value)
+    return _States(states.padding, states.names, states.symbols, tuple(initial), states.multipliers)
+
+
+def _dense(entries: Sequence[tuple[tuple[int, int], sp.Expr]], m: int) -> tuple[sp.Expr, ...]:
+    """A symmetric (m, m) matrix, row-major, from its lower entries."""
+    value = dict(entries)
+    return tuple(
+        value.get((max(i, j), min(i, j)), sp.Integer(0)) for i in range(m) for j in range(m)
+    )
 
 
 def _feasible_at_the_end(spec: Spec, model: Model, y0: np.ndarray) -> None:
@@ -1388,6 +1623,9 @@ def derive(
     # barrier objective's convexity check would stumble on it.
     constraint_warnings = _constraint_convexity(spec, model, objective_start(model, states))
     objective = _objective(spec, model, states, names, meter)
+    equality_warnings = _equality_checks(spec, model, objective_start(model, states))
+    kkt = _lagrangian(model, objective, names, meter)
+    states = _multipliers_start(spec, model, states, kkt)
     defaults = dict(zip(model.params, model.defaults, strict=True))
     ext = lin.extension
     warnings = objective.warnings + _singular_start(
@@ -1398,7 +1636,7 @@ def derive(
         defaults,
         states.names[len(spec.states) : len(spec.states) + len(ext.states)],
     )
-    warnings += constraint_warnings
+    warnings += constraint_warnings + equality_warnings
     unknown = [r.name for r in model.references if r not in dict(model.nominal)]
     if unknown:
         warnings += (
@@ -1407,7 +1645,7 @@ def derive(
         )
     clock.mark("objective")
     say("gradient jet")
-    jet = _gradient_jet(model, k, objective, lin, states, names, meter)
+    jet = _gradient_jet(model, k, kkt, lin, states, names, meter)
     clock.mark("gradient jet")
     say("error bound")
     rate, rate_exact = hurwitz.certified_rate(dynamics.coefficients)
@@ -1416,7 +1654,7 @@ def derive(
     clock.mark("error bound")
     say("law")
     law = control_law(
-        hessian_entries=objective.hessian_entries,
+        hessian_entries=kkt.hessian_entries,
         grad_jet=jet.grad_jet,
         rest=jet.rest,
         R=lin.R,
@@ -1425,6 +1663,7 @@ def derive(
         padding=states.padding,
         states=states.symbols,
         state_names=states.names,
+        multipliers=states.multipliers,
     )
     if spec.estimator is not None:
         try:
@@ -1452,8 +1691,13 @@ def derive(
         singular_set=decoupling.singular,
         undefined_set=decoupling.undefined,
         gradient=objective.gradient,
-        hessian_program=objective.hessian_program,
-        hessian_entries=objective.hessian_entries,
+        hessian_program=kkt.hessian_program,
+        hessian_entries=kkt.hessian_entries,
+        objective_program=objective.program + objective.hessian_program,
+        objective_gradient=objective.current,
+        objective_hessian=_dense(objective.hessian_entries, len(model.y)),
+        multiplier_states=states.multipliers,
+        kkt_gradient=kkt.gradient if model.equalities else None,
         y_jet=jet.y_jet,
         y_jet_values=jet.y_values,
         signal_jet=jet.signal_jet,

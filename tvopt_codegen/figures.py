@@ -177,30 +177,38 @@ def references_figure(derivation: Derivation, result: Result) -> Any:
 
 
 def constraints_figure(derivation: Derivation, result: Result) -> Any:
-    """Each constraint's two sides as the boundary moves, and its margin ``s - g``."""
+    """Each constraint's two sides as the boundary moves, and how far it is from failing.
+
+    Below: the margin ``s - g`` of each inequality, and ``|a|`` of each equality under
+    its bound ``c e^(-alpha t) |E(0)|``.
+    """
     d, r = derivation, result
     check = r.constraints
     fig = Figure(figsize=(6.4, 6.0))
     FigureCanvasAgg(fig)
     top, bottom = fig.subplots(2, 1, sharex=True)
-    for i, constraint in enumerate(d.model.constraints):
+    p = len(d.model.constraints)
+    for i, constraint in enumerate((*d.model.constraints, *d.model.equalities)):
         color = _COLORS[i % len(_COLORS)]
         top.plot(r.t, check.lhs[i], color=color, lw=1.5, label=f"{constraint.name}: lhs")
-        top.plot(r.t, check.rhs[i], "--", color=color, lw=1, label=f"{constraint.name}: bound")
-        bottom.semilogy(
-            r.t,
-            np.maximum(check.margins[i], 1e-16),
-            color=color,
-            lw=1.5,
-            label=f"s - g, {constraint.name}",
-        )
+        top.plot(r.t, check.rhs[i], "--", color=color, lw=1, label=f"{constraint.name}: rhs")
+        if i < p:
+            value, label = check.margins[i], f"s - g, {constraint.name}"
+        else:
+            value, label = np.abs(check.equality[i - p]), f"|a|, {constraint.name}"
+        bottom.semilogy(r.t, np.maximum(value, 1e-16), color=color, lw=1.5, label=label)
     if np.any(check.slack > 0):
         bottom.semilogy(r.t, np.maximum(check.slack, 1e-16), ":", color="black", label="slack s")
+    if d.model.equalities:
+        envelope = r.c * float(np.linalg.norm(r.E[0])) * np.exp(-r.alpha * r.t)
+        bottom.semilogy(
+            r.t, envelope, ":", color="gray", label="c e^(-alpha t) |E(0)| (bound on |a|)"
+        )
     top.grid(alpha=0.3)
     top.legend(fontsize=7, ncol=2)
     top.set_title(f"{d.spec.name}: constraints (dashed: the moving boundary)")
     bottom.set_xlabel("t")
-    bottom.set_ylabel("margin")
+    bottom.set_ylabel("margin" if not d.model.equalities else "margin, |a|")
     bottom.grid(alpha=0.3, which="both")
     bottom.legend(fontsize=7)
     return fig

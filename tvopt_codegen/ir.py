@@ -89,7 +89,12 @@ def _arguments(d: Derivation) -> _Args:
         a=Arg("a", law.a, tuple(f"a_{i}" for i in range(k)), "Hurwitz coefficients"),
         y=Arg("y", y_slots, outputs, "outputs"),
         w=Arg("w", law.w, d.extension.inputs, "inputs of the extended plant"),
-        z=Arg("z", law.z, tuple(f"{o}^({k})" for o in outputs), "y_imp^(k)"),
+        z=Arg(
+            "z",
+            law.z,
+            tuple(f"{o}^({k})" for o in (*outputs, *(nu.name for nu in model.multipliers))),
+            "y_imp^(k)" + (", then nu^(k)" if model.multipliers else ""),
+        ),
         subs=subs,
         y_subs=subs | dict(zip(model.y, y_slots, strict=True)),
         r=refs,
@@ -98,14 +103,14 @@ def _arguments(d: Derivation) -> _Args:
 
 def _programs(d: Derivation) -> dict[str, list[Assignment]]:
     """The derivation's straight-line programs, by what they compute."""
-    model, m, k = d.model, len(d.model.u), d.k
+    model, k = d.model, d.k
     signals = range(len(model.signals))
     return {
         "signals": list(d.signal_program.assignments)
         + [(d.signal_jet[i][q], d.signal_jet_values[i][q]) for i in signals for q in range(k + 1)],
         "signals0": list(d.signal_program.assignments)
         + [(d.signal_jet[i][0], d.signal_jet_values[i][0]) for i in signals],
-        "y": [(d.y_jet[i][j], d.y_jet_values[i][j]) for i in range(m) for j in range(k)],
+        "y": [(d.y_jet[i][j], d.y_jet_values[i][j]) for i in range(len(d.y_jet)) for j in range(k)],
         "jet": list(d.jet_program.assignments),
         "hessian": list(d.hessian_program.assignments),
         "rest": list(d.rest_program.assignments),
@@ -116,7 +121,7 @@ def _jet_kernels(
     d: Derivation, args: _Args, programs: dict[str, list[Assignment]], kernel: _Make
 ) -> tuple[Kernel, Kernel | None]:
     """The jet (with R and p) and, unless the Hessian is constant, its LDL^T solve."""
-    law, m = d.law, len(d.model.u)
+    law, m, n = d.law, len(d.model.u), d.n_kkt
     jet_program = programs["signals"] + programs["y"] + programs["jet"] + programs["hessian"]
     jet_program += programs["rest"]
     inputs = [args.t, args.s, args.p, args.a, *args.r]
@@ -131,7 +136,7 @@ def _jet_kernels(
             "y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian",
             inputs,
             jet_program,
-            [("z", (m,), law.y_imp, "y_imp^(k)"), *shared],
+            [("z", (n,), law.y_imp, args.z.doc), *shared],
             args.subs,
         )
         return jet, None
@@ -150,25 +155,33 @@ def _jet_kernels(
                 [value.get(entry, sp.Integer(0)) for entry in pattern],
                 "nonzero entries of the lower triangle of grad_yy f0",
             ),
-            ("jet_rhs", (m,), law.jet_rhs, "sum_i a_i grad^(i) f0 - rest"),
+            ("jet_rhs", (n,), law.jet_rhs, "sum_i a_i grad^(i) f0 - rest"),
             *shared,
         ],
         args.subs,
     )
-    h_slots, c_slots = _slots("h", len(pattern)), _slots("c", m)
-    program, solution, pivots = cholesky_program(pattern, m, h_slots, c_slots)
+    h_slots, c_slots = _slots("h", len(pattern)), _slots("c", n)
+    # The outputs' block is eliminated first: its pivots are positive where f0 is
+    # strongly convex, the multipliers' then negative unless the constraints' gradients
+    # are dependent. Their signs are flipped so that one test, every pivot positive,
+    # checks both (the first m failing: not convex; a later one: dependent).
+    program, solution, pivots = cholesky_program(pattern, n, h_slots, c_slots, leading=m)
+    pivots = [p if b < m else -p for b, p in enumerate(pivots)]
+    what = "pivots of the elimination, positive if Hess > 0"
+    if n > m:
+        what = "pivots of the elimination (the multipliers' negated), positive if K is a KKT matrix"
     cholesky = kernel(
         "cholesky",
         "Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) "
         "and its pivots",
         [
             Arg("h", h_slots, tuple(f"H[{i}, {j}]" for i, j in pattern), "Hessian"),
-            Arg("c", c_slots, tuple(f"c[{i}]" for i in range(m)), "right-hand side"),
+            Arg("c", c_slots, tuple(f"c[{i}]" for i in range(n)), "right-hand side"),
         ],
         program,
         [
-            ("z", (m,), solution, "y_imp^(k)"),
-            ("pivot", (m,), pivots, "pivots of the elimination, positive if Hess > 0"),
+            ("z", (n,), solution, args.z.doc),
+            ("pivot", (n,), pivots, what),
         ],
         {},
         search=False,  # one operation per assignment already: nothing to find
@@ -218,13 +231,14 @@ def _objective_kernels(
     d: Derivation, args: _Args, programs: dict[str, list[Assignment]], kernel: _Make
 ) -> list[Kernel]:
     """The optimality error along the closed loop, and f0 with its derivatives in y."""
-    m, k = len(d.model.u), d.k
+    m, k, n = len(d.model.u), d.k, d.n_kkt
+    what = "grad^(j) f0" if n == m else "F^(j), F = [grad f0 + J_a^T nu; a]"
     optimality = kernel(
         "optimality",
-        "Optimality error E: row j is grad^(j) f0",
+        f"Optimality error E: row j is {what}",
         [args.t, args.s, args.p, *args.r],
         programs["signals"] + programs["y"] + programs["jet"],
-        [("E", (k, m), [d.grad_jet[j][i] for j in range(k) for i in range(m)], "grad^(j) f0")],
+        [("E", (k, n), [d.grad_jet[j][i] for j in range(k) for i in range(n)], what)],
         args.subs,
     )
     on_y = [args.t, args.y, args.p, *args.r]
@@ -235,13 +249,14 @@ def _objective_kernels(
     )  # fmt: skip
     # Both from the gradient's program (the jet's first assignments), which make_kernel
     # prunes to what each needs.
+    objective_program = list(d.objective_program.assignments)
     gradient = kernel(
-        "gradient", "grad_y f0(y, t)", on_y, signal0 + programs["jet"],
-        [("grad", (m,), list(d.grad_jet[0]), "grad_y f0")], args.y_subs,
+        "gradient", "grad_y f0(y, t)", on_y, signal0 + objective_program,
+        [("grad", (m,), list(d.objective_gradient), "grad_y f0")], args.y_subs,
     )  # fmt: skip
     hessian = kernel(
-        "hessian", "grad_yy f0(y, t)", on_y, signal0 + programs["jet"] + programs["hessian"],
-        [("hess", (m, m), d.law.hessian, "grad_yy f0")], args.y_subs,
+        "hessian", "grad_yy f0(y, t)", on_y, signal0 + objective_program,
+        [("hess", (m, m), d.objective_hessian, "grad_yy f0")], args.y_subs,
     )  # fmt: skip
     return [optimality, objective, gradient, hessian]
 
@@ -316,6 +331,7 @@ def lower(derivation: Derivation) -> KernelSet:
         n_states=len(d.states),
         n_inputs=len(d.model.u),
         n_outputs=len(d.spec.outputs),
+        n_kkt=d.n_kkt,
         n_params=len(d.model.params),
         k=d.k,
         tau=0 if jet_time is None else jet_time.outputs[0].shape[0],

@@ -44,9 +44,11 @@ class Law:
     ----------
     a, w, z : tuple of sympy.Symbol
         The Hurwitz coefficients ``a_j``, the extended plant's input ``w`` and
-        ``z = y_imp^(k)``, as they appear in the expressions below.
+        ``z = y_imp^(k)`` (then ``nu^(k)`` with equalities), as they appear in the
+        expressions below.
     hessian : tuple of sympy.Expr
-        ``grad_yy f0``, (m, m) row-major, over the derivation's programs.
+        ``grad_yy f0``, (m, m) row-major, over the derivation's programs; with
+        equalities the KKT matrix ``[[grad_yy L, J_a^T], [J_a, 0]]``, (m + q, m + q).
     hessian_pattern : tuple of (int, int)
         The entries ``(i, j), i >= j`` of the Hessian's lower triangle that the
         generated code stores: the structurally nonzero ones and the whole diagonal.
@@ -133,6 +135,7 @@ def control_law(
     padding: Sequence[Sequence[str]],
     states: Sequence[sp.Symbol],
     state_names: Sequence[str],
+    multipliers: Sequence[Sequence[str]] = (),
 ) -> Law:
     """Write the law down from the derived quantities.
 
@@ -154,6 +157,10 @@ def control_law(
         The padding states of each output, in chain order.
     states, state_names : sequence
         The closed-loop state: symbols and names, in order.
+    multipliers : sequence of sequence of str, optional
+        With equalities, each multiplier's chain of states ``nu, nu', ..., nu^(k-1)``:
+        the jet, the Hessian and ``rest`` are then the KKT system's, over the outputs
+        and the multipliers, and ``z`` holds ``nu^(k)`` after ``y_imp^(k)``.
 
     Returns
     -------
@@ -161,23 +168,26 @@ def control_law(
         The law.
     """
     m, k = len(plant_inputs), len(grad_jet)
-    a, w, z = symbols("a", k), symbols("w", m), symbols("z", m)
+    # n = m + q unknowns: y^(k), then nu^(k) of each equality.
+    n = len(grad_jet[0])
+    a, w, z = symbols("a", k), symbols("w", m), symbols("z", n)
     state_of = dict(zip(state_names, states, strict=True))
     value = dict(hessian_entries)
     hessian = tuple(
-        value.get((max(i, j), min(i, j)), sp.Integer(0)) for i in range(m) for j in range(m)
+        value.get((max(i, j), min(i, j)), sp.Integer(0)) for i in range(n) for j in range(n)
     )
     pattern = sorted(value)
     if not any(i == j for i, j in pattern):
-        pattern = sorted({*pattern, *((i, i) for i in range(m))})
+        pattern = sorted({*pattern, *((i, i) for i in range(n))})
     jet_rhs = tuple(
-        sum((a[j] * grad_jet[j][i] for j in range(k)), sp.Integer(0)) - rest[i] for i in range(m)
+        sum((a[j] * grad_jet[j][i] for j in range(k)), sp.Integer(0)) - rest[i] for i in range(n)
     )
     y_imp = None
     if all(sp.sympify(e).is_Number for e in hessian):
         # A constant Hessian (quadratic f0) is inverted once, exactly, at generation time:
         # a constant, not a symbolic inverse of a function, and no run-time Cholesky.
-        inverse = sp.Matrix(m, m, hessian).inv()
+        # (The derivation has checked it is nonsingular.)
+        inverse = sp.Matrix(n, n, hessian).inv()
         y_imp = tuple(inverse * sp.Matrix(jet_rhs))
     v = tuple(state_of[padding[i][0]] if padding[i] else z[i] for i in range(m))
     r_blocks = diagonal_blocks(R)
@@ -192,13 +202,16 @@ def control_law(
     for i, chain in enumerate(padding):
         for j in range(len(chain)):
             field.append(state_of[chain[j + 1]] if j + 1 < len(chain) else z[i])
+    for index, chain in enumerate(multipliers):
+        for j in range(len(chain)):
+            field.append(state_of[chain[j + 1]] if j + 1 < len(chain) else z[m + index])
     plant_input = tuple(u if u.name in ext.states else w[j] for j, u in enumerate(plant_inputs))
     chains: list[tuple[int, int]] = []
     start = 0
     for _, count in ext.counts:
         chains.append((start, count))
         start += count
-    for chain in padding:
+    for chain in (*padding, *multipliers):
         if chain:
             chains.append((start, len(chain)))
             start += len(chain)

@@ -55,6 +55,10 @@ class Model:
         The inequalities, ``g_i(y, t) <= 0``.
     mu, slack : sympy.Expr
         The barrier's weight ``mu(t)`` and slack ``s(t)`` (0 without constraints).
+    equalities : tuple of Constraint
+        The equalities, ``a_j(y, t) = 0``.
+    multipliers : tuple of sympy.Symbol
+        Their Lagrange multipliers ``nu_<name>``, one per equality.
     """
 
     spec: Spec
@@ -75,6 +79,15 @@ class Model:
     constraints: tuple[Constraint, ...] = ()
     mu: sp.Expr = sp.Integer(0)
     slack: sp.Expr = sp.Integer(0)
+    equalities: tuple[Constraint, ...] = ()
+    multipliers: tuple[sp.Symbol, ...] = ()
+
+    @property
+    def lagrangian(self) -> sp.Expr:
+        """``L = f0 + sum_j nu_j a_j``: :attr:`f0` itself without equalities."""
+        return self.f0 + sp.Add(
+            *(nu * c.g for nu, c in zip(self.multipliers, self.equalities, strict=True))
+        )
 
 
 def build_model(spec: Spec) -> Model:
@@ -181,4 +194,6 @@ def build_model(spec: Spec) -> Model:
         constraints=spec.constraints,
         mu=mu if mu is not None else sp.Integer(0),
         slack=slack if slack is not None else sp.Integer(0),
+        equalities=spec.equalities,
+        multipliers=tuple(sp.Symbol(f"nu_{c.name}", real=True) for c in spec.equalities),
     )

@@ -16,7 +16,10 @@ A step's ``op`` is one of
 ``solve_ldl``
     ``results[0] = Hess^-1 args[1]`` with the generated LDL^T kernel ``kernel`` on the
     Hessian's stored entries ``args[0]``; fails with :attr:`Status.HESSIAN_NOT_PD` when a
-    pivot is not above :data:`PIVOT_TOLERANCE` times the largest entry.
+    pivot is not above :data:`PIVOT_TOLERANCE` times the largest entry. With equality
+    constraints the matrix is the KKT matrix and the kernel's last pivots are the
+    multipliers' (negated): one of those failing is
+    :attr:`Status.DEPENDENT_CONSTRAINTS`.
 ``solve_lu``
     ``results[0] = R^-1 args[1]`` by LU with partial pivoting over R's diagonal blocks
     ``args[0]``; fails with :attr:`Status.SINGULAR_DECOUPLING` likewise.
@@ -48,6 +51,8 @@ class Status(enum.IntEnum):
     NONFINITE_OUTPUT = 4
     #: A stateful controller was stepped to a time before its last step's.
     DECREASING_TIME = 5
+    #: The equality constraints' gradients are dependent here: the KKT matrix is singular.
+    DEPENDENT_CONSTRAINTS = 6
 
 
 @dataclass(frozen=True)
@@ -195,6 +200,7 @@ def law_plan(
     n_inputs: int,
     n_outputs: int,
     n_params: int,
+    n_kkt: int | None = None,
     k: int,
     tau: int,
     hessian: int,
@@ -218,6 +224,9 @@ def law_plan(
         R's diagonal blocks.
     references : int, optional
         Number of entries of the reference jets (0: the spec has no references).
+    n_kkt : int, optional
+        The law's unknowns: the outputs' and, with equality constraints, the
+        multipliers' k-th derivatives (default: the outputs alone).
 
     Returns
     -------
@@ -225,6 +234,7 @@ def law_plan(
         The plan.
     """
     m = n_outputs
+    n = m if n_kkt is None else n_kkt
     r_entries = sum(len(block) ** 2 for block in r_blocks)
     values = [
         Value("t", 1, "input", "t", "time"),
@@ -245,7 +255,7 @@ def law_plan(
     if hessian:
         values += [
             Value("hess", hessian, "local", "hess", "stored entries of the Hessian of f0"),
-            Value("jet_rhs", m, "local", "jet_rhs", "sum a_i grad^(i) f0 - rest"),
+            Value("jet_rhs", n, "local", "jet_rhs", "sum a_i grad^(i) f0 - rest"),
         ]
         jet_results: tuple[str, ...] = ("hess", "jet_rhs", "r", "pvec")
         jet_alone: tuple[str, ...] = ("hess", "r")
@@ -265,7 +275,7 @@ def law_plan(
         )
         call_note = "y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time."
     values += [
-        Value("z", m, "local", "z", "y_imp^(k)"),
+        Value("z", n, "local", "z", "y_imp^(k)" + (", then nu^(k)" if n > m else "")),
         Value("r", r_entries, "local", "r", "diagonal blocks of R, each row-major"),
         Value("pvec", m, "local", "pvec", "p = col(L_f^{r_i} h_i)"),
         Value("b", m, "local", "w", "v - p"),

@@ -310,6 +310,29 @@ def _model(d: Derivation) -> Section:
                 rows=tuple((c.name, c.text, formula(c.g)) for c in model.constraints),
             )
         )
+    if model.equalities:
+        chains = "; ".join(", ".join(chain) for chain in d.multiplier_states)
+        entries.append(
+            Entry(
+                "table",
+                text=(
+                    "Equality constraints a_j(y, t) = 0, kept by the KKT system: the law is "
+                    "the paper's, written for the Lagrangian L = f0 + sum_j nu_j a_j over the "
+                    "outputs and the multipliers, so that E = col(F, F', ..., F^(k-1)) with "
+                    "F = [grad f0 + J_a^T nu; a] obeys E' = H E. F and its Hessian, the KKT "
+                    "matrix K = [[grad_yy L, J_a^T], [J_a, 0]], are shown with the objective; "
+                    "K is solved at run time by LDL^T "
+                    "with the outputs' block first (its pivots positive, the multipliers' "
+                    "negative; a failing multiplier pivot is the status DEPENDENT_CONSTRAINTS). "
+                    f"The multipliers and their derivatives are controller states: {chains}."
+                ),
+                header=("constraint", "as written", "a_j", "multiplier"),
+                rows=tuple(
+                    (c.name, c.text, formula(c.g), nu.name)
+                    for c, nu in zip(model.equalities, model.multipliers, strict=True)
+                ),
+            )
+        )
     if model.references:
         estimator = spec.estimator
         assert estimator is not None
@@ -499,6 +522,22 @@ def _objective(d: Derivation) -> Section:
             ),
         )
     )
+    if model.equalities:
+        assert d.kkt_gradient is not None
+        entries += [
+            _math_entry(
+                "With equality constraints the law is written for L = f0 + nu^T a over (y, nu): "
+                "its gradient, the KKT map F = [grad f0 + J_a^T nu; a], is what E holds:",
+                d.kkt_gradient,
+                _name("F", "F"),
+            ),
+            _math_entry(
+                "Its Hessian, the KKT matrix K = [[grad_yy L, J_a^T], [J_a, 0]], which the "
+                "generated code factors (the outputs' block first):",
+                d.kkt_hessian,
+                _name("K", "K"),
+            ),
+        ]
     return Section("Objective", tuple(entries))
 
 
@@ -509,7 +548,9 @@ def _pole(value: complex) -> str:
 
 
 def _error_dynamics(d: Derivation) -> Section:
-    k, m = d.k, len(d.spec.outputs)
+    k, m = d.k, d.n_kkt
+    # With equalities E holds the KKT map F and its derivatives instead of grad f0's.
+    first, last = ("F", f"F^({k - 1})") if d.model.equalities else ("grad f0", f"grad^({k - 1}) f0")
     companion = sp.zeros(k, k)
     for i in range(k - 1):
         companion[i, i + 1] = 1
@@ -519,7 +560,7 @@ def _error_dynamics(d: Derivation) -> Section:
         Entry(
             "text",
             text=(
-                f"E = col(grad f0, ..., grad^({k - 1}) f0) obeys E' = H E with H = companion(a) "
+                f"E = col({first}, ..., {last}) obeys E' = H E with H = companion(a) "
                 f"kron I_{m} (paper, eqs. (14)-(15))."
             ),
         ),

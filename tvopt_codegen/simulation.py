@@ -348,6 +348,103 @@ def _newton(
     return y
 
 
+def _kkt_newton(
+    controller: types.ModuleType,
+    eq: Any,
+    t: float,
+    w: np.ndarray,
+    params: Mapping[str, float],
+    extra: Mapping[str, Any],
+    iterations: int = 200,
+) -> np.ndarray:
+    """Solve the KKT system ``F(y, nu, t) = 0`` from ``w = (y, nu)``: damped Newton.
+
+    ``F = [grad f0 + J_a^T nu; a]`` (f0's gradient and Hessian from the module, the
+    equalities from ``eq``, :func:`tvopt_codegen.constraints.equalities`), backtracking
+    on ``|F|^2`` within f0's domain, the outputs' steps capped at 0.02 like
+    :func:`_newton`'s.
+    """
+    from tvopt_codegen.constraints import kkt_matrix  # noqa: PLC0415
+
+    m = len(controller.OUTPUT_NAMES)
+    refs = extra.get("refs")
+    r = [] if refs is None else [float(v) for v in np.asarray(refs)[:, 0]]
+
+    def residual(point: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        y, nu = point[:m], point[m:]
+        try:
+            grad = controller.gradient(t, y, params, **extra)
+            hess = controller.hessian(t, y, params, **extra)
+        except ArithmeticError:
+            return None
+        jac = eq.jacobian(t, y, r)
+        value = np.concatenate([grad + jac.T @ nu, eq.value(t, y, r)])
+        if not np.all(np.isfinite(value)):
+            return None
+        return value, kkt_matrix(hess + eq.curvature(t, y, r, nu), jac)
+
+    w = np.array(w, dtype=float)
+    current = residual(w)
+    if current is None:
+        return w
+    for _ in range(iterations):
+        value, matrix = current
+        try:
+            step = np.linalg.solve(matrix, value)
+        except np.linalg.LinAlgError:
+            step = np.linalg.lstsq(matrix, value, rcond=None)[0]
+        size = float(np.linalg.norm(step[:m]))
+        if size > 0.02:
+            step = step * (0.02 / size)
+        norm = float(value @ value)
+        scale = 1.0
+        while scale > 1e-8:
+            trial = residual(w - scale * step)
+            if trial is not None and float(trial[0] @ trial[0]) <= norm * (1 - 1e-4 * scale):
+                break
+            scale *= 0.5
+        else:
+            break
+        w = w - scale * step
+        current = trial
+        assert current is not None
+        if float(np.linalg.norm(step)) * scale <= 1e-14 * (1.0 + float(np.linalg.norm(w))):
+            break
+    return w
+
+
+def kkt_path(
+    controller: types.ModuleType,
+    eq: Any,
+    ts: np.ndarray,
+    start: np.ndarray,
+    params: Mapping[str, float],
+    refs: Callable[[float], dict[str, Any]] | None = None,
+) -> np.ndarray:
+    """``(y*, nu*)(t)``: the KKT system solved at each time.
+
+    Followed backward like :func:`minimizer_path`, from ``start`` (the run's final
+    outputs and multipliers).
+
+    Returns
+    -------
+    numpy.ndarray, shape (m + q, T)
+    """
+    substeps = 5
+    path = np.empty((len(start), len(ts)))
+    w = np.array(start, dtype=float)
+    for index in range(len(ts) - 1, -1, -1):
+        later = ts[min(index + 1, len(ts) - 1)]
+        for t in (
+            np.linspace(later, ts[index], substeps + 1)[1:] if index < len(ts) - 1 else [ts[-1]]
+        ):
+            extra = (refs or (lambda t: {}))(float(t))
+            budget = 200 if index < len(ts) - 1 else START_ITERATIONS
+            w = _kkt_newton(controller, eq, float(t), w, params, extra, budget)
+        path[:, index] = w
+    return path
+
+
 def simulate(
     derivation: Derivation,
     controller: types.ModuleType,
@@ -564,10 +661,21 @@ def _certify(
             for v in h(*states, *values.values())
         ]
     )
-    target = minimizer_path(controller, ts, outputs[:, -1], params, true, outputs)
+    eq = multipliers = kkt = None
+    if d.model.equalities:
+        from tvopt_codegen.constraints import equalities  # noqa: PLC0415
+
+        eq = equalities(d.model, {q: values[q.name] for q in d.model.params})
+        rows = [d.state_names.index(chain[0]) for chain in d.multiplier_states]
+        multipliers = states[rows]
+        start = np.concatenate([outputs[:, -1], multipliers[:, -1]])
+        kkt = kkt_path(controller, eq, ts, start, params, true)
+        target = kkt[:m]
+    else:
+        target = minimizer_path(controller, ts, outputs[:, -1], params, true, outputs)
     error = np.linalg.norm(outputs - target, axis=0)
 
-    H = hurwitz.error_matrix(d.coefficients, m)
+    H = hurwitz.error_matrix(d.coefficients, d.n_kkt)
     flat = E.reshape(len(ts), -1)
     norm0 = float(np.linalg.norm(flat[0]))
     predicted = np.array([expm(H * t) @ flat[0] for t in ts])
@@ -589,16 +697,27 @@ def _certify(
     # The theorem's constants were computed with the derivation (the report shows them too).
     alpha, c = d.certified_rate, d.transient_constant
     exact = d.certified_rate_exact
-    eigenvalues = np.array(
-        [
-            np.linalg.eigvalsh(controller.hessian(t, point, params, **true(t)))
-            for i, t in enumerate(ts)
-            for point in (outputs[:, i], target[:, i], 0.5 * (outputs[:, i] + target[:, i]))
-        ]
-    )
+    if eq is not None:
+        assert multipliers is not None and kkt is not None
+        # |w - w*| <= |F(w)| / sigma_min(K) along the segment, and |y - y*| <= |w - w*|:
+        # the KKT matrix's smallest singular value takes m_f's place.
+        eigenvalues = np.abs(
+            _kkt_eigenvalues(d, controller, eq, ts, outputs, multipliers, kkt, params, true)
+        )
+    else:
+        eigenvalues = np.array(
+            [
+                np.linalg.eigvalsh(controller.hessian(t, point, params, **true(t)))
+                for i, t in enumerate(ts)
+                for point in (outputs[:, i], target[:, i], 0.5 * (outputs[:, i] + target[:, i]))
+            ]
+        )
     m_f = float(eigenvalues.min())
     scale = float(np.abs(eigenvalues).max())
-    if not m_f > 0:
+    if eq is not None and not m_f > 0:
+        failures.append(f"the KKT matrix is singular along the run (sigma_min = {m_f:.3g})")
+        m_f = float("nan")
+    elif not m_f > 0:
         failures.append(f"f0 is not strongly convex along the run (m_f = {m_f:.3g})")
         m_f = float("nan")
     elif m_f <= VACUOUS_M_F * scale:
@@ -621,6 +740,16 @@ def _certify(
     if not estimated and not ratio <= 1.0:
         failures.append(f"|y - y*| exceeds the bound C e^(-alpha t) by a factor {ratio:.3g}")
     constrained = _constraint_check(d, options, ts, outputs, error, target, references, failures)
+    if constrained is not None and d.model.equalities:
+        # a is the KKT map's last rows: |a(y(t), t)| <= |E(t)| <= c e^(-alpha t) |E(0)|.
+        drift = np.linalg.norm(constrained.equality, axis=0)
+        envelope = c * norm0 * np.exp(-alpha * ts)
+        excess = float(np.max((drift - 1e-9) / np.maximum(envelope, 1e-300)))
+        if not excess <= 1.0:
+            failures.append(
+                f"the equality constraints exceed their bound c e^(-alpha t) |E(0)| by a "
+                f"factor {excess:.3g}"
+            )
     norms = np.linalg.norm(flat, axis=1)
     # The decay rate is fitted where the slowest pole dominates: the second half of the
     # stretch where |E| is still above the integration noise.
@@ -663,6 +792,35 @@ def _certify(
     )
 
 
+def _kkt_eigenvalues(
+    d: Derivation,
+    controller: types.ModuleType,
+    eq: Any,
+    ts: np.ndarray,
+    outputs: np.ndarray,
+    multipliers: np.ndarray,
+    kkt: np.ndarray,
+    params: Mapping[str, float],
+    true: Callable[[float], dict[str, Any]],
+) -> np.ndarray:
+    """The KKT matrix's eigenvalues at the run's (y, nu), at (y*, nu*) and midway."""
+    from tvopt_codegen.constraints import kkt_matrix  # noqa: PLC0415
+
+    m = len(d.model.y)
+    run = np.vstack([outputs, multipliers])
+    found = []
+    for i, t in enumerate(ts):
+        extra = true(float(t))
+        refs = extra.get("refs")
+        r = [] if refs is None else [float(v) for v in np.asarray(refs)[:, 0]]
+        for point in (run[:, i], kkt[:, i], 0.5 * (run[:, i] + kkt[:, i])):
+            y, nu = point[:m], point[m:]
+            hess = controller.hessian(float(t), y, params, **extra)
+            matrix = kkt_matrix(hess + eq.curvature(t, y, r, nu), eq.jacobian(t, y, r))
+            found.append(np.linalg.eigvalsh(matrix))
+    return np.array(found)
+
+
 def _constraint_check(
     d: Derivation,
     options: Options,
@@ -674,7 +832,7 @@ def _constraint_check(
     failures: list[str],
 ) -> Any:
     """For a spec with constraints: check them along the run, adding to ``failures``."""
-    if not d.model.constraints:
+    if not d.model.constraints and not d.model.equalities:
         return None
     from tvopt_codegen.constraints import check_run  # noqa: PLC0415
 
@@ -683,7 +841,7 @@ def _constraint_check(
         for q, v in zip(d.model.params, d.model.defaults, strict=True)
     }
     constrained = check_run(d.model, ts, outputs, error, target, values, references)
-    worst = float(constrained.margins.min())
+    worst = float(constrained.margins.min()) if constrained.margins.size else math.inf
     if not worst > 0:
         where = np.unravel_index(int(np.argmin(constrained.margins)), constrained.margins.shape)
         failures.append(
@@ -762,9 +920,29 @@ def format_certificate(derivation: Derivation, result: Result) -> str:
         f"  RHS evaluations           {r.nfev}   wall time {r.wall_time:.2f} s",
         "  certificate: " + ("PASSED" if r.passed else "FAILED: " + "; ".join(r.failures)),
     ]
-    if r.constraints is not None:
+    if r.constraints is not None and d.model.equalities:
         check = r.constraints
-        finals = ", ".join(f"{name} {value:.3g}" for name, value in check.final)
+        q = len(d.model.equalities)
+        finals = ", ".join(f"{name} {value:.3g}" for name, value in check.final[-q:])
+        envelope = r.c * np.linalg.norm(r.E[0]) * np.exp(-r.alpha * r.t)
+        drift = np.linalg.norm(check.equality, axis=0) / np.maximum(envelope, 1e-300)
+        lines[-1:-1] = [
+            "  equality constraints (KKT system: E is col(F, ..., F^(k-1)), "
+            "F = [grad f0 + J_a^T nu; a]; m_f is sigma_min of the KKT matrix):",
+            f"    a_j at the end (0 holds)     {finals}",
+            f"    max over t of |a| / (c e^(-alpha t) |E(0)|) {float(np.max(drift)):.3g}  (<= 1)",
+            f"    KKT residual |F| at the end  {float(np.linalg.norm(r.E[-1][0])):.3e}",
+        ]
+        if not d.model.constraints:
+            lines[-1:-1] = [
+                f"    |y - y*_constrained| at the end {check.distance[-1]:.3e} <= "
+                f"{check.bound[-1]:.3e}  (|y - y*_KKT|; SLSQP on f0 subject to a_j = 0)",
+            ]
+    if r.constraints is not None and d.model.constraints:
+        check = r.constraints
+        finals = ", ".join(
+            f"{name} {value:.3g}" for name, value in check.final[: len(d.model.constraints)]
+        )
         lines[-1:-1] = [
             "  constraints (interior-point homotopy on Phi = f0 - mu sum log(s - g_i)):",
             f"    min over t and i of s - g_i   {float(check.margins.min()):.3e}  (> 0: no "
@@ -772,7 +950,7 @@ def format_certificate(derivation: Derivation, result: Result) -> str:
             f"    g_i at the end (<= 0 holds)   {finals}",
             f"    |y - y*_constrained| at the end {check.distance[-1]:.3e} <= bound "
             f"{check.bound[-1]:.3e}  (|y - y*_Phi| + sqrt(2 p mu / m_f), m_f = {check.m_f:.4g}; "
-            "SLSQP on f0 subject to g_i <= s)",
+            "SLSQP on f0 subject to g_i <= s" + (", a_j = 0)" if d.model.equalities else ")"),
         ]
     return "\n".join(lines)
 

@@ -46,8 +46,22 @@ def _fill(pattern: set[tuple[int, int]], order: Sequence[int]) -> list[list[int]
     return columns
 
 
-def elimination_order(pattern: set[tuple[int, int]], m: int) -> tuple[int, ...]:
-    """Order the Cholesky elimination: natural, or reverse Cuthill-McKee if it fills less."""
+def elimination_order(
+    pattern: set[tuple[int, int]], m: int, leading: int | None = None
+) -> tuple[int, ...]:
+    """Order the Cholesky elimination: natural, or reverse Cuthill-McKee if it fills less.
+
+    With ``leading``, indices ``0 .. leading - 1`` are eliminated first, each block ordered
+    on its own (a KKT matrix: the outputs' block, positive definite, before the
+    multipliers', whose diagonal is zero until the elimination fills it).
+    """
+    if leading is not None and 0 < leading < m:
+        first = {(i, j) for i, j in pattern if i < leading and j < leading}
+        second = {(i - leading, j - leading) for i, j in pattern if i >= leading and j >= leading}
+        return (
+            *elimination_order(first, leading),
+            *(leading + i for i in elimination_order(second, m - leading)),
+        )
     from scipy.sparse import csr_matrix  # noqa: PLC0415 - only needed here
     from scipy.sparse.csgraph import reverse_cuthill_mckee  # noqa: PLC0415
 
@@ -65,7 +79,11 @@ def elimination_order(pattern: set[tuple[int, int]], m: int) -> tuple[int, ...]:
 
 
 def cholesky_program(
-    entries: Sequence[tuple[int, int]], m: int, h: Sequence[sp.Symbol], c: Sequence[sp.Symbol]
+    entries: Sequence[tuple[int, int]],
+    m: int,
+    h: Sequence[sp.Symbol],
+    c: Sequence[sp.Symbol],
+    leading: int | None = None,
 ) -> tuple[list[Assignment], list[sp.Expr], list[sp.Expr]]:
     """A straight-line sparse, square-root-free Cholesky (LDL^T) solve of ``Hess z = c``.
 
@@ -78,6 +96,10 @@ def cholesky_program(
         The matrix size.
     h, c : sequence of sympy.Symbol
         Symbols of the entries and of the right-hand side.
+    leading : int, optional
+        Eliminate indices below this first (see :func:`elimination_order`): the pivots
+        of a KKT matrix are then positive for the outputs and negative for the
+        multipliers, in that order.
 
     Returns
     -------
@@ -101,7 +123,7 @@ def cholesky_program(
     where a dense factorization is cubic.
     """
     pattern = {(i, j) for i, j in entries} | {(j, i) for i, j in entries}
-    order = elimination_order(pattern, m)
+    order = elimination_order(pattern, m, leading)
     position = {index: a for a, index in enumerate(order)}
     value: dict[tuple[int, int], sp.Expr] = {}
     for symbol, (i, j) in zip(h, entries, strict=True):

@@ -119,8 +119,11 @@ class Spec:
     barrier : Barrier
         The homotopy's weight and slack schedule.
     allow_nonconvex : bool
-        Accept inequalities that are not convex in the outputs (the certificate is then
-        local only).
+        Accept inequalities that are not convex in the outputs, or equalities that are
+        not affine in them (the certificate is then local only).
+    equalities : tuple of Constraint
+        ``[constraints]`` written with ``==``: ``a_j(y, t) = 0``, kept by the KKT system
+        with a multiplier chain per equality (see :mod:`tvopt_codegen.constraints`).
     """
 
     source: str
@@ -151,6 +154,7 @@ class Spec:
     constraints: tuple[Constraint, ...] = ()
     barrier: Barrier | None = None
     allow_nonconvex: bool = False
+    equalities: tuple[Constraint, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -162,7 +166,7 @@ class Constraint:
     name : str
         Its key in the spec.
     op : str
-        ``"<="`` or ``">="``.
+        ``"<="``, ``">="`` or ``"=="``.
     lhs, rhs : sympy.Expr
         The two sides, in outputs, signals, references, parameters and ``t``.
     text : str
@@ -177,8 +181,8 @@ class Constraint:
 
     @property
     def g(self) -> sp.Expr:
-        """``g(y, t) <= 0``: the constraint in the interior-point method's form."""
-        return self.lhs - self.rhs if self.op == "<=" else self.rhs - self.lhs
+        """``g(y, t) <= 0`` (``a(y, t) = 0`` for an equality): ``lhs - rhs`` or its negative."""
+        return self.rhs - self.lhs if self.op == ">=" else self.lhs - self.rhs
 
 
 @dataclass(frozen=True)
@@ -688,6 +692,8 @@ class _Reader:
         objective = self.expression(objective_table["f0"], "objective.f0", objective_names)
 
         constraints, barrier, allow_nonconvex = self.read_constraints(data, objective_names)
+        equalities = tuple(c for c in constraints if c.op == "==")
+        constraints = tuple(c for c in constraints if c.op != "==")
         extension, extension_auto, extension_max_total = self.read_extension(data, inputs)
         poles, coefficients = self.read_error_dynamics(data)
         t_final, initial_state = self.read_simulation(data)
@@ -727,6 +733,7 @@ class _Reader:
             constraints=constraints,
             barrier=barrier,
             allow_nonconvex=allow_nonconvex,
+            equalities=equalities,
         )
 
     def read_constraints(
@@ -753,12 +760,9 @@ class _Reader:
                 op, lhs, rhs = parse_comparison(text, names, self.bound(bound))
             except ExpressionError as exc:
                 raise self.fail(where, self.explain_unknown(exc, where)) from None
-            if op == "==":
-                raise self.fail(
-                    where,
-                    "equality constraints are not supported yet: only inequalities (<=, >=)",
-                )
             constraints.append(Constraint(key, op, lhs, rhs, text))
+        if "barrier" in table and all(c.op == "==" for c in constraints):
+            raise self.fail("constraints.barrier", "only meaningful with inequalities (<=, >=)")
         barrier_table = self.sub(table, "barrier", "constraints.barrier")
         self.table(
             barrier_table,

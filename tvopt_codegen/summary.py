@@ -92,6 +92,15 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
             f"  constraints: {listed}; kept by the barrier objective Phi = f0 - mu(t) sum "
             f"log(s(t) - g_i) with mu(t) = {sp.sstr(d.model.mu)}, s(t) = {sp.sstr(d.model.slack)}"
         )
+    if d.model.equalities:
+        listed = "; ".join(f"{c.name}: {c.text}" for c in d.model.equalities)
+        chains = ", ".join(chain[0] for chain in d.multiplier_states)
+        lines.append(
+            f"  equality constraints: {listed}; kept by the KKT system of L = f0 + nu^T a over "
+            f"(y, nu): the multipliers and their first {d.k - 1} derivative(s) are controller "
+            f"states ({chains}, ...), E = col(F, ..., F^({d.k - 1})) with "
+            "F = [grad f0 + J_a^T nu; a]"
+        )
     if d.model.references and spec.estimator is not None:
         lines.append(
             f"  references: {', '.join(spec.references)}; every call takes their jets to "

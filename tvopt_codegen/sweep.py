@@ -342,7 +342,12 @@ class SweepProgram:
     alpha, c : float
         The certificate's constants: ``|expm(H t)| <= c e^(-alpha t)``.
     constraints : tuple of str
-        The names of the spec's ``[constraints]`` (their values are measured on the run).
+        The names of the spec's inequalities (their values are measured on the run).
+    equalities : tuple of str
+        The names of its equality constraints (``|a|`` is measured on the run, and y* is
+        the KKT point).
+    n_kkt : int
+        Entries of a row of the optimality error: the outputs, then the multipliers.
     """
 
     name: str
@@ -359,11 +364,26 @@ class SweepProgram:
     alpha: float
     c: float
     constraints: tuple[str, ...] = ()
+    equalities: tuple[str, ...] = ()
+    n_kkt: int = 0
 
     @property
     def columns(self) -> int:
-        """Width of a trajectory row: t, s, y, y*, u, log|det R|, m_f, margin, max g_i."""
-        return 1 + len(self.state_names) + 2 * len(self.output_names) + len(self.input_names) + 4
+        """Width of a trajectory row: t, s, y, y*, u, then the :data:`TAIL` columns."""
+        n, m, nu = len(self.state_names), len(self.output_names), len(self.input_names)
+        return 1 + n + 2 * m + nu + len(TAIL)
+
+
+#: A trajectory row's last columns, after t, s, y, y* and u: log|det R|, the certificate's
+#: m_f (with equalities, the KKT matrix's sigma_min), the barrier's margin
+#: min_i (s - g_i), max_i g_i, and max_j |a_j| (NaN where the spec has none of them).
+TAIL = ("log_det_R", "m_f", "margin", "max_constraint", "max_equality")
+
+
+def tail(rows: np.ndarray, name: str) -> np.ndarray:
+    """The :data:`TAIL` column ``name`` of trajectory rows (any leading dimensions)."""
+    column: np.ndarray = rows[..., TAIL.index(name) - len(TAIL)]
+    return column
 
 
 def decoupling_kernel(kernels: KernelSet) -> Any:
@@ -410,6 +430,44 @@ def constraint_kernel(kernels: KernelSet) -> Any:
     )
 
 
+def equality_kernel(kernels: KernelSet) -> Any:
+    """``a(y, t)``, ``J_a`` and ``sum_j nu_j grad_yy a_j`` (None without equalities)."""
+    import sympy as sp  # noqa: PLC0415 - a worker never needs sympy
+
+    from tvopt_codegen.cse import make_kernel  # noqa: PLC0415
+    from tvopt_codegen.ir import _arguments  # noqa: PLC0415
+    from tvopt_codegen.kernel import Arg  # noqa: PLC0415
+    from tvopt_codegen.law import symbols  # noqa: PLC0415
+
+    d = kernels.derivation
+    model = d.model
+    if not model.equalities:
+        return None
+    args = _arguments(d)
+    slots = symbols("nu", len(model.multipliers))
+    arg_nu = Arg("nu", slots, tuple(nu.name for nu in model.multipliers), "multipliers")
+    a = [sp.sympify(c.g) for c in model.equalities]
+    curvature = [
+        sp.Add(*(nu * sp.diff(e, yi, yj) for nu, e in zip(model.multipliers, a, strict=True)))
+        for yi in model.y
+        for yj in model.y
+    ]
+    m, q = len(model.y), len(a)
+    return make_kernel(
+        "sweep_equalities",
+        "The equalities a_j(y, t), their Jacobian in y and sum_j nu_j grad_yy a_j",
+        [args.t, args.y, args.p, arg_nu],
+        list(model.signals),
+        [
+            ("a", (q,), a, "equality values (0 when kept)"),
+            ("jac", (q, m), [sp.diff(e, y) for e in a for y in model.y], "J_a"),
+            ("curv", (m, m), curvature, "the multipliers' curvature"),
+        ],
+        args.y_subs | dict(zip(model.multipliers, slots, strict=True)),
+        odd={},
+    )
+
+
 def sweep_program(kernels: KernelSet) -> SweepProgram:
     """Render the C closed loop of a lowered controller.
 
@@ -442,7 +500,12 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
     name = d.spec.name
     context = template_context(kernels, backend)
     constraints = constraint_kernel(kernels)
+    equalities = equality_kernel(kernels)
     context |= {
+        "equalities": None if equalities is None else print_kernel(equalities, backend.printer()),
+        "equality_count": len(d.model.equalities),
+        "multiplier_rows": [d.state_names.index(chain[0]) for chain in d.multiplier_states],
+        "tail": TAIL,
         "decoupling": print_kernel(decoupling_kernel(kernels), backend.printer()),
         "constraints": None
         if constraints is None
@@ -483,6 +546,8 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
         alpha=float(d.certified_rate),
         c=float(d.transient_constant),
         constraints=tuple(c.name for c in d.model.constraints),
+        equalities=tuple(c.name for c in d.model.equalities),
+        n_kkt=d.n_kkt,
     )
 
 
@@ -639,8 +704,9 @@ class Loop:
         return Outcome(status), rows[:written], info
 
     def optimality_error(self, s: np.ndarray, params: np.ndarray) -> np.ndarray:
-        """E at t = 0 (K rows of the outputs' gradient jet)."""
-        out = np.empty(len(self.program.coefficients) * len(self.program.output_names))
+        """E at t = 0 (K rows of the gradient jet, or of the KKT map with equalities)."""
+        width = self.program.n_kkt or len(self.program.output_names)
+        out = np.empty(len(self.program.coefficients) * width)
         self._error(0.0, self._ptr(np.ascontiguousarray(s)), self._ptr(params), self._ptr(out))
         return out
 
@@ -712,7 +778,8 @@ def run_sample(
     y = rows[:, 1 + n : 1 + n + m]
     target = rows[:, 1 + n + m : 1 + n + 2 * m]
     u = rows[:, 1 + n + 2 * m : 1 + n + 2 * m + nu]
-    logdet, convexity, margin, largest = rows[:, -4], rows[:, -3], rows[:, -2], rows[:, -1]
+    logdet, convexity = tail(rows, "log_det_R"), tail(rows, "m_f")
+    margin, largest = tail(rows, "margin"), tail(rows, "max_constraint")
     error = np.linalg.norm(y - target, axis=1) if len(rows) else np.zeros(0)
     ok = outcome == Outcome.OK
     limits = {name: (lo, hi) for name, lo, hi in options.limits}
@@ -757,6 +824,11 @@ def run_sample(
         row["violations"] = int(np.sum(margin <= 0.0))
         row["time_outside"] = float(np.sum(largest[:-1] > 0.0) * spacing) if len(rows) else 0.0
         row["final_constraint"] = float(largest[-1]) if ok else math.nan
+    if program.equalities:
+        # max_j |a_j| along the run: the KKT law drives it to 0 like E.
+        drift = tail(rows, "max_equality")
+        row["max_equality"] = float(np.max(drift)) if len(rows) else math.nan
+        row["final_equality"] = float(drift[-1]) if ok else math.nan
     row["steps"] = int(info[2])
     row["rejected_steps"] = int(info[3])
     row["nominal"] = nominal
@@ -956,6 +1028,7 @@ class Summary:
     constrained: bool = False
     violating: int = 0
     ended_outside: int = 0
+    final_equality: dict[str, float] = field(default_factory=dict)
 
 
 def summarize(
@@ -999,6 +1072,9 @@ def summarize(
         constrained=bool(rows) and "violations" in rows[0],
         violating=sum(int(row.get("violations", 0)) > 0 for row in rows),
         ended_outside=sum(row.get("final_constraint", -1.0) > 0 for row in ok),
+        final_equality=quantiles(np.array([row["final_equality"] for row in ok]))
+        if ok and "final_equality" in ok[0]
+        else {},
     )
 
 
@@ -1045,6 +1121,11 @@ def format_summary(name: str, options: SweepOptions, summary: Summary) -> str:
         for label, q in (
             ("final \\|y - y*\\|", s.final_error),
             ("settling time to 1% (s)", s.settling),
+            *(
+                (("final max_j \\|a_j\\| (equalities)", s.final_equality),)
+                if s.final_equality
+                else ()
+            ),
         ):
             cells = [f"{q[k]:.3g}" if k in q else "-" for k in ("median", "p95", "p99", "max")]
             lines.append(f"| {label} | {' | '.join(cells)} | {int(q.get('never', 0))} |")
@@ -1095,10 +1176,7 @@ def trajectory_layout(
         "output": variable(("output_name", m)),
         "target": variable(("output_name", m)),
         "input": variable(("input_name", nu)),
-        "log_det_R": variable(),
-        "m_f": variable(),
-        "margin": variable(),
-        "max_constraint": variable(),
+        **{name: variable() for name in TAIL},
     }
     coords = {
         "sample": np.arange(count, dtype=np.int64),
@@ -1133,10 +1211,7 @@ def trajectory_block(
         "output": block[:, :, 1 + n : 1 + n + m],
         "target": block[:, :, 1 + n + m : 1 + n + 2 * m],
         "input": block[:, :, 1 + n + 2 * m : 1 + n + 2 * m + nu],
-        "log_det_R": block[:, :, -4],
-        "m_f": block[:, :, -3],
-        "margin": block[:, :, -2],
-        "max_constraint": block[:, :, -1],
+        **{name: tail(block, name) for name in TAIL},
     }
 
 
@@ -1217,7 +1292,7 @@ def replay_files(program: SweepProgram, result: SampleResult) -> dict[str, bytes
         + list(program.output_names)
         + [f"{name}*" for name in program.output_names]
         + list(program.input_names)
-        + ["log_det_R", "m_f", "margin", "max_constraint"]
+        + list(TAIL)
     )
     lines = [",".join(header)]
     lines += [",".join(repr(float(v)) for v in row) for row in result.trajectory]

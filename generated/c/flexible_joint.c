@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 0b7c0cba17cf2f92a81762d59d9e13198f46a655aaeb94f0106374041018817e
+ * content sha256: a6677ef54a7c08739af6db15c08f2f6582fe8ab79741ea541cfd583bef6a81c5
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -353,11 +353,11 @@ static double flexible_joint_max_abs(const double *a, size_t count)
  * the lower triangle); every pivot must exceed the tolerance relative to the largest entry. */
 static int flexible_joint_cholesky_solve(const double *hess, const double *c, double *z)
 {
-    double pivot[FLEXIBLE_JOINT_N_OUTPUTS];
+    double pivot[FLEXIBLE_JOINT_N_KKT];
     const double scale = flexible_joint_max_abs(hess, 1);
     size_t i;
     flexible_joint_k_cholesky(hess, c, z, pivot);
-    for (i = 0; i < FLEXIBLE_JOINT_N_OUTPUTS; ++i) {
+    for (i = 0; i < FLEXIBLE_JOINT_N_KKT; ++i) {
         if (!(pivot[i] > FLEXIBLE_JOINT_PIVOT_TOLERANCE * scale)) {
             return FLEXIBLE_JOINT_HESSIAN_NOT_PD;
         }
@@ -399,8 +399,8 @@ static int flexible_joint_solve_decoupling(double *r, double *w)
 static int flexible_joint_law(double t, const double *s, const double *params, const double *tau, double *ds, double *u)
 {
     double hess[1];
-    double jet_rhs[FLEXIBLE_JOINT_N_OUTPUTS];
-    double z[FLEXIBLE_JOINT_N_OUTPUTS];
+    double jet_rhs[FLEXIBLE_JOINT_N_KKT];
+    double z[FLEXIBLE_JOINT_N_KKT];
     double r[FLEXIBLE_JOINT_R_ENTRIES];
     double pvec[FLEXIBLE_JOINT_N_OUTPUTS];
     double w[FLEXIBLE_JOINT_N_OUTPUTS];
@@ -410,7 +410,7 @@ static int flexible_joint_law(double t, const double *s, const double *params, c
     }
     flexible_joint_k_jet(t, s, params, flexible_joint_hurwitz_coefficients, tau, hess, jet_rhs, r, pvec);
     if (flexible_joint_probe(hess, 1)
-        + flexible_joint_probe(jet_rhs, FLEXIBLE_JOINT_N_OUTPUTS)
+        + flexible_joint_probe(jet_rhs, FLEXIBLE_JOINT_N_KKT)
         + flexible_joint_probe(r, FLEXIBLE_JOINT_R_ENTRIES)
         + flexible_joint_probe(pvec, FLEXIBLE_JOINT_N_OUTPUTS) != 0.0) {
         return FLEXIBLE_JOINT_NONFINITE_OUTPUT;
@@ -469,7 +469,7 @@ int flexible_joint_optimality_error(double t, const double *s, const double *par
         return status;
     }
     flexible_joint_k_optimality(t, s, p, out);
-    return flexible_joint_probe(out, FLEXIBLE_JOINT_K * FLEXIBLE_JOINT_N_OUTPUTS) == 0.0 ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
+    return flexible_joint_probe(out, FLEXIBLE_JOINT_K * FLEXIBLE_JOINT_N_KKT) == 0.0 ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
 }
 
 int flexible_joint_objective(double t, const double *y, const double *params, double *out)
@@ -550,7 +550,7 @@ int flexible_joint_optimality_error_batch(size_t count, double t, const double *
 {
     size_t i;
     for (i = 0; i < count; ++i) {
-        const int status = flexible_joint_optimality_error(t, s + i * FLEXIBLE_JOINT_N_STATES, params, out + i * (FLEXIBLE_JOINT_K * FLEXIBLE_JOINT_N_OUTPUTS));
+        const int status = flexible_joint_optimality_error(t, s + i * FLEXIBLE_JOINT_N_STATES, params, out + i * (FLEXIBLE_JOINT_K * FLEXIBLE_JOINT_N_KKT));
         if (status != FLEXIBLE_JOINT_OK) {
             if (failed) {
                 *failed = i;

@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 9e993b37038ae121092b8ad8ad4eaf400a9ff420e7080df8e57884e8b66afe4e
+ * content sha256: 827171b9b4c595f38bbce9907bf0f00b99af429ddf0ff34d693251789508dc1d
  */
 
 /*
@@ -40,7 +40,7 @@ typedef struct {
 static const entry ENTRIES[6] = {
     { flexible_joint_control_batch, FLEXIBLE_JOINT_N_STATES, 1, { FLEXIBLE_JOINT_N_INPUTS, 1}},
     { flexible_joint_rhs_batch, FLEXIBLE_JOINT_N_STATES, 1, { FLEXIBLE_JOINT_N_STATES, 1}},
-    { flexible_joint_optimality_error_batch, FLEXIBLE_JOINT_N_STATES, 2, { FLEXIBLE_JOINT_K, FLEXIBLE_JOINT_N_OUTPUTS}},
+    { flexible_joint_optimality_error_batch, FLEXIBLE_JOINT_N_STATES, 2, { FLEXIBLE_JOINT_K, FLEXIBLE_JOINT_N_KKT}},
     { flexible_joint_objective_batch, FLEXIBLE_JOINT_N_OUTPUTS, 0, {1, 1}},
     { flexible_joint_gradient_batch, FLEXIBLE_JOINT_N_OUTPUTS, 1, { FLEXIBLE_JOINT_N_OUTPUTS, 1}},
     { flexible_joint_hessian_batch, FLEXIBLE_JOINT_N_OUTPUTS, 2, { FLEXIBLE_JOINT_N_OUTPUTS, FLEXIBLE_JOINT_N_OUTPUTS}},

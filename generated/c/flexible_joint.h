@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 1027b8e0226c700df7546bba8192b7211215802d291e73b26e20f31cdeaacde2
+ * content sha256: 1a124b2a961f2d4aa7f000197983f00e08ca21cd4bf6f0039ed7bbe515550d1f
  */
 
 /*
@@ -27,6 +27,8 @@ extern "C" {
 #define FLEXIBLE_JOINT_N_STATES 4
 #define FLEXIBLE_JOINT_N_INPUTS 1
 #define FLEXIBLE_JOINT_N_OUTPUTS 1
+/* The optimality error's row: the outputs, then one multiplier per equality constraint. */
+#define FLEXIBLE_JOINT_N_KKT 1
 #define FLEXIBLE_JOINT_N_PARAMS 4
 #define FLEXIBLE_JOINT_K 4
 /* The stateful controller: the plant states x it measures, and its own states z
@@ -41,6 +43,7 @@ extern "C" {
 #define FLEXIBLE_JOINT_HESSIAN_NOT_PD 3
 #define FLEXIBLE_JOINT_NONFINITE_OUTPUT 4
 #define FLEXIBLE_JOINT_DECREASING_TIME 5
+#define FLEXIBLE_JOINT_DEPENDENT_CONSTRAINTS 6
 
 int flexible_joint_n_states(void);
 int flexible_joint_n_inputs(void);
@@ -60,7 +63,7 @@ extern const double flexible_joint_hurwitz_coefficients[FLEXIBLE_JOINT_K];
 int flexible_joint_control(double t, const double *s, const double *params, double *out);
 /* Closed-loop ds/dt (FLEXIBLE_JOINT_N_STATES doubles). */
 int flexible_joint_rhs(double t, const double *s, const double *params, double *out);
-/* Optimality error E, K rows of FLEXIBLE_JOINT_N_OUTPUTS (row j: grad^(j) f0). */
+/* Optimality error E, K rows of FLEXIBLE_JOINT_N_KKT (row j: grad^(j) f0). */
 int flexible_joint_optimality_error(double t, const double *s, const double *params, double *out);
 /* f0(y, t) (1 double), its gradient (FLEXIBLE_JOINT_N_OUTPUTS) and Hessian (row-major); y: outputs. */
 int flexible_joint_objective(double t, const double *y, const double *params, double *out);

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 9645edefe2f888e71bd51458947a2ef8fa8d2a88b9f4dc45accddb9ad3ef8e75
+# content sha256: 9c71815e494f4e29f4f095dc1acfaed20519cd3c8302035c3d30103f20a4b98a
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -67,6 +67,9 @@ STATE_NAMES = ('q1', 'w1', 'q2', 'w2')
 INPUT_NAMES = ('u',)
 #: Outputs y, the arguments of the objective.
 OUTPUT_NAMES = ('y',)
+#: Lagrange multipliers of the equality constraints: a row of the optimality error holds
+#: the outputs' entries, then theirs (the KKT map F = [grad f0 + J_a^T nu; a]).
+MULTIPLIER_NAMES = ()
 #: Parameters and their default values.
 PARAMETERS = {'mgl': 2.0, 'inertia': 1.0, 'motor': 0.5, 'stiffness': 10.0}
 #: Relative degree of each output in the extended system.
@@ -94,6 +97,7 @@ STATUS_SINGULAR_DECOUPLING = 2
 STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
+STATUS_DEPENDENT_CONSTRAINTS = 6
 
 
 class ControllerError(ArithmeticError):
@@ -130,6 +134,12 @@ class HessianNotPositiveDefiniteError(ControllerError):
     """The Hessian of f0 is not positive definite: f0 is not strongly convex here."""
 
     status = STATUS_HESSIAN_NOT_PD
+
+
+class DependentConstraintsError(ControllerError):
+    """The equality constraints' gradients are dependent: the KKT matrix is singular."""
+
+    status = STATUS_DEPENDENT_CONSTRAINTS
 
 
 class NonFiniteOutputError(ControllerError):
@@ -506,8 +516,7 @@ def optimality_error(t, s, params=None):
     Returns
     -------
     numpy.ndarray, shape (K, 1) or (K, 1, N)
-        ``E``; under the law ``dE/dt = H E``.
-    """
+        ``E``; under the law ``dE/dt = H E``.    """
     t = _time(t)
     states, single = _columns("s", s, 4)
     p = _parameters(params)

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 284327350ad43ad21e23ad850e06b1869986b5ebe9cafe6d9ea2d01a361c755d
+ * content sha256: 3ced6e8a69025eeea71b8027c8264bd3266512a1d17a5623809bb9293834eed2
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -241,11 +241,11 @@ static double integrator_max_abs(const double *a, size_t count)
  * the lower triangle); every pivot must exceed the tolerance relative to the largest entry. */
 static int integrator_cholesky_solve(const double *hess, const double *c, double *z)
 {
-    double pivot[INTEGRATOR_N_OUTPUTS];
+    double pivot[INTEGRATOR_N_KKT];
     const double scale = integrator_max_abs(hess, 2);
     size_t i;
     integrator_k_cholesky(hess, c, z, pivot);
-    for (i = 0; i < INTEGRATOR_N_OUTPUTS; ++i) {
+    for (i = 0; i < INTEGRATOR_N_KKT; ++i) {
         if (!(pivot[i] > INTEGRATOR_PIVOT_TOLERANCE * scale)) {
             return INTEGRATOR_HESSIAN_NOT_PD;
         }
@@ -292,8 +292,8 @@ static int integrator_solve_decoupling(double *r, double *w)
 static int integrator_law(double t, const double *s, const double *params, const double *tau, double *ds, double *u)
 {
     double hess[2];
-    double jet_rhs[INTEGRATOR_N_OUTPUTS];
-    double z[INTEGRATOR_N_OUTPUTS];
+    double jet_rhs[INTEGRATOR_N_KKT];
+    double z[INTEGRATOR_N_KKT];
     double r[INTEGRATOR_R_ENTRIES];
     double pvec[INTEGRATOR_N_OUTPUTS];
     double w[INTEGRATOR_N_OUTPUTS];
@@ -303,7 +303,7 @@ static int integrator_law(double t, const double *s, const double *params, const
     }
     integrator_k_jet(t, s, params, integrator_hurwitz_coefficients, tau, hess, jet_rhs, r, pvec);
     if (integrator_probe(hess, 2)
-        + integrator_probe(jet_rhs, INTEGRATOR_N_OUTPUTS)
+        + integrator_probe(jet_rhs, INTEGRATOR_N_KKT)
         + integrator_probe(r, INTEGRATOR_R_ENTRIES)
         + integrator_probe(pvec, INTEGRATOR_N_OUTPUTS) != 0.0) {
         return INTEGRATOR_NONFINITE_OUTPUT;
@@ -362,7 +362,7 @@ int integrator_optimality_error(double t, const double *s, const double *params,
         return status;
     }
     integrator_k_optimality(t, s, p, out);
-    return integrator_probe(out, INTEGRATOR_K * INTEGRATOR_N_OUTPUTS) == 0.0 ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
+    return integrator_probe(out, INTEGRATOR_K * INTEGRATOR_N_KKT) == 0.0 ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
 }
 
 int integrator_objective(double t, const double *y, const double *params, double *out)
@@ -443,7 +443,7 @@ int integrator_optimality_error_batch(size_t count, double t, const double *s, c
 {
     size_t i;
     for (i = 0; i < count; ++i) {
-        const int status = integrator_optimality_error(t, s + i * INTEGRATOR_N_STATES, params, out + i * (INTEGRATOR_K * INTEGRATOR_N_OUTPUTS));
+        const int status = integrator_optimality_error(t, s + i * INTEGRATOR_N_STATES, params, out + i * (INTEGRATOR_K * INTEGRATOR_N_KKT));
         if (status != INTEGRATOR_OK) {
             if (failed) {
                 *failed = i;

@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 11a8d9f1993c9238cecdee56cf0278ecaae4369310a8ff094c6f50bd1f2a50c7
+ * content sha256: 3040069c65ff3dca91a11b0349acf773bfdb26fd4f16f59a63af43d29c58fb4b
  */
 
 /*
@@ -40,7 +40,7 @@ typedef struct {
 static const entry ENTRIES[6] = {
     { integrator_control_batch, INTEGRATOR_N_STATES, 1, { INTEGRATOR_N_INPUTS, 1}},
     { integrator_rhs_batch, INTEGRATOR_N_STATES, 1, { INTEGRATOR_N_STATES, 1}},
-    { integrator_optimality_error_batch, INTEGRATOR_N_STATES, 2, { INTEGRATOR_K, INTEGRATOR_N_OUTPUTS}},
+    { integrator_optimality_error_batch, INTEGRATOR_N_STATES, 2, { INTEGRATOR_K, INTEGRATOR_N_KKT}},
     { integrator_objective_batch, INTEGRATOR_N_OUTPUTS, 0, {1, 1}},
     { integrator_gradient_batch, INTEGRATOR_N_OUTPUTS, 1, { INTEGRATOR_N_OUTPUTS, 1}},
     { integrator_hessian_batch, INTEGRATOR_N_OUTPUTS, 2, { INTEGRATOR_N_OUTPUTS, INTEGRATOR_N_OUTPUTS}},

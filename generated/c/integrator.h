@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 855eedec04c66c9d869d90ef6dc76726ea4f9e9c48f30ec53824390b1f6ff751
+ * content sha256: a8f3197e3cffec4e54c523f6aa406d0e15cea189c4410408c5760dfbcf124abb
  */
 
 /*
@@ -27,6 +27,8 @@ extern "C" {
 #define INTEGRATOR_N_STATES 2
 #define INTEGRATOR_N_INPUTS 2
 #define INTEGRATOR_N_OUTPUTS 2
+/* The optimality error's row: the outputs, then one multiplier per equality constraint. */
+#define INTEGRATOR_N_KKT 2
 #define INTEGRATOR_N_PARAMS 1
 #define INTEGRATOR_K 1
 /* The stateful controller: the plant states x it measures, and its own states z
@@ -41,6 +43,7 @@ extern "C" {
 #define INTEGRATOR_HESSIAN_NOT_PD 3
 #define INTEGRATOR_NONFINITE_OUTPUT 4
 #define INTEGRATOR_DECREASING_TIME 5
+#define INTEGRATOR_DEPENDENT_CONSTRAINTS 6
 
 int integrator_n_states(void);
 int integrator_n_inputs(void);
@@ -60,7 +63,7 @@ extern const double integrator_hurwitz_coefficients[INTEGRATOR_K];
 int integrator_control(double t, const double *s, const double *params, double *out);
 /* Closed-loop ds/dt (INTEGRATOR_N_STATES doubles). */
 int integrator_rhs(double t, const double *s, const double *params, double *out);
-/* Optimality error E, K rows of INTEGRATOR_N_OUTPUTS (row j: grad^(j) f0). */
+/* Optimality error E, K rows of INTEGRATOR_N_KKT (row j: grad^(j) f0). */
 int integrator_optimality_error(double t, const double *s, const double *params, double *out);
 /* f0(y, t) (1 double), its gradient (INTEGRATOR_N_OUTPUTS) and Hessian (row-major); y: outputs. */
 int integrator_objective(double t, const double *y, const double *params, double *out);

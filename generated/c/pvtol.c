@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: pvtol
  * spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
- * content sha256: 1abf36e71857da3ca84af301901b40091273d4476fa2e1b1b12e5084634fed7b
+ * content sha256: 7ec0cbf6b888e3a82fd90a74e53874932eb3e9cab91c8ec98e1ee8752ac3aa3e
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -390,7 +390,7 @@ static int pvtol_solve_decoupling(double *r, double *w)
  * terms of time and parameters, jet_time). */
 static int pvtol_law(double t, const double *s, const double *params, const double *tau, double *ds, double *u)
 {
-    double z[PVTOL_N_OUTPUTS];
+    double z[PVTOL_N_KKT];
     double r[PVTOL_R_ENTRIES];
     double pvec[PVTOL_N_OUTPUTS];
     double w[PVTOL_N_OUTPUTS];
@@ -400,7 +400,7 @@ static int pvtol_law(double t, const double *s, const double *params, const doub
     }
     /* y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time. */
     pvtol_k_jet(t, s, params, pvtol_hurwitz_coefficients, tau, z, r, pvec);
-    if (pvtol_probe(z, PVTOL_N_OUTPUTS)
+    if (pvtol_probe(z, PVTOL_N_KKT)
         + pvtol_probe(r, PVTOL_R_ENTRIES)
         + pvtol_probe(pvec, PVTOL_N_OUTPUTS) != 0.0) {
         return PVTOL_NONFINITE_OUTPUT;
@@ -454,7 +454,7 @@ int pvtol_optimality_error(double t, const double *s, const double *params, doub
         return status;
     }
     pvtol_k_optimality(t, s, p, out);
-    return pvtol_probe(out, PVTOL_K * PVTOL_N_OUTPUTS) == 0.0 ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
+    return pvtol_probe(out, PVTOL_K * PVTOL_N_KKT) == 0.0 ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
 }
 
 int pvtol_objective(double t, const double *y, const double *params, double *out)
@@ -535,7 +535,7 @@ int pvtol_optimality_error_batch(size_t count, double t, const double *s, const 
 {
     size_t i;
     for (i = 0; i < count; ++i) {
-        const int status = pvtol_optimality_error(t, s + i * PVTOL_N_STATES, params, out + i * (PVTOL_K * PVTOL_N_OUTPUTS));
+        const int status = pvtol_optimality_error(t, s + i * PVTOL_N_STATES, params, out + i * (PVTOL_K * PVTOL_N_KKT));
         if (status != PVTOL_OK) {
             if (failed) {
                 *failed = i;

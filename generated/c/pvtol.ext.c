@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: pvtol
  * spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
- * content sha256: b4a13895e15c78749b525092196d4c89d42690b8a56d50112afdeba58a60100e
+ * content sha256: bf05303b5086111a64e70354651fdbbab3b5065b1b38b8ab00a936939f03be24
  */
 
 /*
@@ -40,7 +40,7 @@ typedef struct {
 static const entry ENTRIES[6] = {
     { pvtol_control_batch, PVTOL_N_STATES, 1, { PVTOL_N_INPUTS, 1}},
     { pvtol_rhs_batch, PVTOL_N_STATES, 1, { PVTOL_N_STATES, 1}},
-    { pvtol_optimality_error_batch, PVTOL_N_STATES, 2, { PVTOL_K, PVTOL_N_OUTPUTS}},
+    { pvtol_optimality_error_batch, PVTOL_N_STATES, 2, { PVTOL_K, PVTOL_N_KKT}},
     { pvtol_objective_batch, PVTOL_N_OUTPUTS, 0, {1, 1}},
     { pvtol_gradient_batch, PVTOL_N_OUTPUTS, 1, { PVTOL_N_OUTPUTS, 1}},
     { pvtol_hessian_batch, PVTOL_N_OUTPUTS, 2, { PVTOL_N_OUTPUTS, PVTOL_N_OUTPUTS}},

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: pvtol
  * spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
- * content sha256: 949b0fd3689c1169275a815491477b782b3309a98560487d0037b6fd92793c42
+ * content sha256: 2f4d6bbc9304fdd5a918ac0e41bd7b5499931eb581497383f0ac37de91f239ad
  */
 
 /*
@@ -27,6 +27,8 @@ extern "C" {
 #define PVTOL_N_STATES 8
 #define PVTOL_N_INPUTS 2
 #define PVTOL_N_OUTPUTS 2
+/* The optimality error's row: the outputs, then one multiplier per equality constraint. */
+#define PVTOL_N_KKT 2
 #define PVTOL_N_PARAMS 3
 #define PVTOL_K 4
 /* The stateful controller: the plant states x it measures, and its own states z
@@ -41,6 +43,7 @@ extern "C" {
 #define PVTOL_HESSIAN_NOT_PD 3
 #define PVTOL_NONFINITE_OUTPUT 4
 #define PVTOL_DECREASING_TIME 5
+#define PVTOL_DEPENDENT_CONSTRAINTS 6
 
 int pvtol_n_states(void);
 int pvtol_n_inputs(void);
@@ -61,7 +64,7 @@ extern const double pvtol_hurwitz_coefficients[PVTOL_K];
 int pvtol_control(double t, const double *s, const double *params, double *out);
 /* Closed-loop ds/dt (PVTOL_N_STATES doubles). */
 int pvtol_rhs(double t, const double *s, const double *params, double *out);
-/* Optimality error E, K rows of PVTOL_N_OUTPUTS (row j: grad^(j) f0). */
+/* Optimality error E, K rows of PVTOL_N_KKT (row j: grad^(j) f0). */
 int pvtol_optimality_error(double t, const double *s, const double *params, double *out);
 /* f0(y, t) (1 double), its gradient (PVTOL_N_OUTPUTS) and Hessian (row-major); y: outputs. */
 int pvtol_objective(double t, const double *y, const double *params, double *out);

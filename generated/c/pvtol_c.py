@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: pvtol
 # spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
-# content sha256: 03637e905f8d132d3cf794454f403e5f3930b3dc5939a32949e6a0c18ab420a0
+# content sha256: b1e9c6aad77162e14f7f51a2687826270783f3f52e930b2780f9b0b9ee296cec
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -73,6 +73,9 @@ STATE_NAMES = ('x', 'z', 'theta', 'vx', 'vz', 'omega', 'thrust', 'thrust_d1')
 INPUT_NAMES = ('thrust', 'torque')
 #: Outputs y, the arguments of the objective.
 OUTPUT_NAMES = ('px', 'pz')
+#: Lagrange multipliers of the equality constraints: a row of the optimality error holds
+#: the outputs' entries, then theirs (the KKT map F = [grad f0 + J_a^T nu; a]).
+MULTIPLIER_NAMES = ()
 #: Parameters and their default values.
 PARAMETERS = {'g': 9.81, 'm': 1.0, 'J': 1.0}
 #: Relative degree of each output in the extended system.
@@ -100,6 +103,7 @@ STATUS_SINGULAR_DECOUPLING = 2
 STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
+STATUS_DEPENDENT_CONSTRAINTS = 6
 
 
 class ControllerError(ArithmeticError):
@@ -136,6 +140,12 @@ class HessianNotPositiveDefiniteError(ControllerError):
     """The Hessian of f0 is not positive definite: f0 is not strongly convex here."""
 
     status = STATUS_HESSIAN_NOT_PD
+
+
+class DependentConstraintsError(ControllerError):
+    """The equality constraints' gradients are dependent: the KKT matrix is singular."""
+
+    status = STATUS_DEPENDENT_CONSTRAINTS
 
 
 class NonFiniteOutputError(ControllerError):
@@ -512,8 +522,7 @@ def optimality_error(t, s, params=None):
     Returns
     -------
     numpy.ndarray, shape (K, 2) or (K, 2, N)
-        ``E``; under the law ``dE/dt = H E``.
-    """
+        ``E``; under the law ``dE/dt = H E``.    """
     t = _time(t)
     states, single = _columns("s", s, 8)
     p = _parameters(params)

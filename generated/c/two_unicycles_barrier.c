@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: c610527d4c0565b44ad8d51e1d4188d23110a3b341c95da00b070251b6cd191a
+ * content sha256: 21840bd8327c64391f72d17808f67451fdcda9c36c0e545293f55b807bf559a6
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -503,11 +503,11 @@ static double two_unicycles_barrier_max_abs(const double *a, size_t count)
  * the lower triangle); every pivot must exceed the tolerance relative to the largest entry. */
 static int two_unicycles_barrier_cholesky_solve(const double *hess, const double *c, double *z)
 {
-    double pivot[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
+    double pivot[TWO_UNICYCLES_BARRIER_N_KKT];
     const double scale = two_unicycles_barrier_max_abs(hess, 10);
     size_t i;
     two_unicycles_barrier_k_cholesky(hess, c, z, pivot);
-    for (i = 0; i < TWO_UNICYCLES_BARRIER_N_OUTPUTS; ++i) {
+    for (i = 0; i < TWO_UNICYCLES_BARRIER_N_KKT; ++i) {
         if (!(pivot[i] > TWO_UNICYCLES_BARRIER_PIVOT_TOLERANCE * scale)) {
             return TWO_UNICYCLES_BARRIER_HESSIAN_NOT_PD;
         }
@@ -591,8 +591,8 @@ static int two_unicycles_barrier_solve_decoupling(double *r, double *w)
 static int two_unicycles_barrier_law(double t, const double *s, const double *params, const double *tau, double *ds, double *u)
 {
     double hess[10];
-    double jet_rhs[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
-    double z[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
+    double jet_rhs[TWO_UNICYCLES_BARRIER_N_KKT];
+    double z[TWO_UNICYCLES_BARRIER_N_KKT];
     double r[TWO_UNICYCLES_BARRIER_R_ENTRIES];
     double pvec[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
     double w[TWO_UNICYCLES_BARRIER_N_OUTPUTS];
@@ -602,7 +602,7 @@ static int two_unicycles_barrier_law(double t, const double *s, const double *pa
     }
     two_unicycles_barrier_k_jet(t, s, params, two_unicycles_barrier_hurwitz_coefficients, tau, hess, jet_rhs, r, pvec);
     if (two_unicycles_barrier_probe(hess, 10)
-        + two_unicycles_barrier_probe(jet_rhs, TWO_UNICYCLES_BARRIER_N_OUTPUTS)
+        + two_unicycles_barrier_probe(jet_rhs, TWO_UNICYCLES_BARRIER_N_KKT)
         + two_unicycles_barrier_probe(r, TWO_UNICYCLES_BARRIER_R_ENTRIES)
         + two_unicycles_barrier_probe(pvec, TWO_UNICYCLES_BARRIER_N_OUTPUTS) != 0.0) {
         return TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
@@ -661,7 +661,7 @@ int two_unicycles_barrier_optimality_error(double t, const double *s, const doub
         return status;
     }
     two_unicycles_barrier_k_optimality(t, s, p, out);
-    return two_unicycles_barrier_probe(out, TWO_UNICYCLES_BARRIER_K * TWO_UNICYCLES_BARRIER_N_OUTPUTS) == 0.0 ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
+    return two_unicycles_barrier_probe(out, TWO_UNICYCLES_BARRIER_K * TWO_UNICYCLES_BARRIER_N_KKT) == 0.0 ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
 }
 
 int two_unicycles_barrier_objective(double t, const double *y, const double *params, double *out)
@@ -742,7 +742,7 @@ int two_unicycles_barrier_optimality_error_batch(size_t count, double t, const d
 {
     size_t i;
     for (i = 0; i < count; ++i) {
-        const int status = two_unicycles_barrier_optimality_error(t, s + i * TWO_UNICYCLES_BARRIER_N_STATES, params, out + i * (TWO_UNICYCLES_BARRIER_K * TWO_UNICYCLES_BARRIER_N_OUTPUTS));
+        const int status = two_unicycles_barrier_optimality_error(t, s + i * TWO_UNICYCLES_BARRIER_N_STATES, params, out + i * (TWO_UNICYCLES_BARRIER_K * TWO_UNICYCLES_BARRIER_N_KKT));
         if (status != TWO_UNICYCLES_BARRIER_OK) {
             if (failed) {
                 *failed = i;

@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 0fe85348439a51b9ab7a119c4620e91190809c8371519e8b21f26679de8c8c6b
+ * content sha256: 87d59e68e3f824eeab7cc6dc60ae538abd486d7010db37544bbdb38a1b6566db
  */
 
 /*
@@ -40,7 +40,7 @@ typedef struct {
 static const entry ENTRIES[6] = {
     { two_unicycles_barrier_control_batch, TWO_UNICYCLES_BARRIER_N_STATES, 1, { TWO_UNICYCLES_BARRIER_N_INPUTS, 1}},
     { two_unicycles_barrier_rhs_batch, TWO_UNICYCLES_BARRIER_N_STATES, 1, { TWO_UNICYCLES_BARRIER_N_STATES, 1}},
-    { two_unicycles_barrier_optimality_error_batch, TWO_UNICYCLES_BARRIER_N_STATES, 2, { TWO_UNICYCLES_BARRIER_K, TWO_UNICYCLES_BARRIER_N_OUTPUTS}},
+    { two_unicycles_barrier_optimality_error_batch, TWO_UNICYCLES_BARRIER_N_STATES, 2, { TWO_UNICYCLES_BARRIER_K, TWO_UNICYCLES_BARRIER_N_KKT}},
     { two_unicycles_barrier_objective_batch, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 0, {1, 1}},
     { two_unicycles_barrier_gradient_batch, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 1, { TWO_UNICYCLES_BARRIER_N_OUTPUTS, 1}},
     { two_unicycles_barrier_hessian_batch, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 2, { TWO_UNICYCLES_BARRIER_N_OUTPUTS, TWO_UNICYCLES_BARRIER_N_OUTPUTS}},

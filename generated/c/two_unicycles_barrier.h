@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: a8f0649187b356497846522027657817c9a4af2dd5cfe6875dd5a077fae45b33
+ * content sha256: 929a593de5b68b34a7f3fbd817b448c8f2517c05a527efe8eea220edfbb362fd
  */
 
 /*
@@ -27,6 +27,8 @@ extern "C" {
 #define TWO_UNICYCLES_BARRIER_N_STATES 8
 #define TWO_UNICYCLES_BARRIER_N_INPUTS 4
 #define TWO_UNICYCLES_BARRIER_N_OUTPUTS 4
+/* The optimality error's row: the outputs, then one multiplier per equality constraint. */
+#define TWO_UNICYCLES_BARRIER_N_KKT 4
 #define TWO_UNICYCLES_BARRIER_N_PARAMS 2
 #define TWO_UNICYCLES_BARRIER_K 2
 /* The stateful controller: the plant states x it measures, and its own states z
@@ -41,6 +43,7 @@ extern "C" {
 #define TWO_UNICYCLES_BARRIER_HESSIAN_NOT_PD 3
 #define TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT 4
 #define TWO_UNICYCLES_BARRIER_DECREASING_TIME 5
+#define TWO_UNICYCLES_BARRIER_DEPENDENT_CONSTRAINTS 6
 
 int two_unicycles_barrier_n_states(void);
 int two_unicycles_barrier_n_inputs(void);
@@ -61,7 +64,7 @@ extern const double two_unicycles_barrier_hurwitz_coefficients[TWO_UNICYCLES_BAR
 int two_unicycles_barrier_control(double t, const double *s, const double *params, double *out);
 /* Closed-loop ds/dt (TWO_UNICYCLES_BARRIER_N_STATES doubles). */
 int two_unicycles_barrier_rhs(double t, const double *s, const double *params, double *out);
-/* Optimality error E, K rows of TWO_UNICYCLES_BARRIER_N_OUTPUTS (row j: grad^(j) f0). */
+/* Optimality error E, K rows of TWO_UNICYCLES_BARRIER_N_KKT (row j: grad^(j) f0). */
 int two_unicycles_barrier_optimality_error(double t, const double *s, const double *params, double *out);
 /* f0(y, t) (1 double), its gradient (TWO_UNICYCLES_BARRIER_N_OUTPUTS) and Hessian (row-major); y: outputs. */
 int two_unicycles_barrier_objective(double t, const double *y, const double *params, double *out);

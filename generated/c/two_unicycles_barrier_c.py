@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 9afafca9a9e0b114d99222814423798bfa7093f253eab701f21b5d42b9358ed4
+# content sha256: 2de81de681756515d6ab05e89ee128173fb0e55382ea91d20937db01b059772a
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -72,6 +72,9 @@ STATE_NAMES = ('xa', 'ya', 'tha', 'xb', 'yb', 'thb', 'va', 'vb')
 INPUT_NAMES = ('va', 'wa', 'vb', 'wb')
 #: Outputs y, the arguments of the objective.
 OUTPUT_NAMES = ('pa', 'qa', 'pb', 'qb')
+#: Lagrange multipliers of the equality constraints: a row of the optimality error holds
+#: the outputs' entries, then theirs (the KKT map F = [grad f0 + J_a^T nu; a]).
+MULTIPLIER_NAMES = ()
 #: Parameters and their default values.
 PARAMETERS = {'alpha': 1e-08, 'd': 2.0}
 #: Relative degree of each output in the extended system.
@@ -99,6 +102,7 @@ STATUS_SINGULAR_DECOUPLING = 2
 STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
+STATUS_DEPENDENT_CONSTRAINTS = 6
 
 
 class ControllerError(ArithmeticError):
@@ -135,6 +139,12 @@ class HessianNotPositiveDefiniteError(ControllerError):
     """The Hessian of f0 is not positive definite: f0 is not strongly convex here."""
 
     status = STATUS_HESSIAN_NOT_PD
+
+
+class DependentConstraintsError(ControllerError):
+    """The equality constraints' gradients are dependent: the KKT matrix is singular."""
+
+    status = STATUS_DEPENDENT_CONSTRAINTS
 
 
 class NonFiniteOutputError(ControllerError):
@@ -511,8 +521,7 @@ def optimality_error(t, s, params=None):
     Returns
     -------
     numpy.ndarray, shape (K, 4) or (K, 4, N)
-        ``E``; under the law ``dE/dt = H E``.
-    """
+        ``E``; under the law ``dE/dt = H E``.    """
     t = _time(t)
     states, single = _columns("s", s, 8)
     p = _parameters(params)

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_ring
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: 8d2688ea7953728913a6e1617aad76c82127301e6781fc455c021204aeaff2ea
+ * content sha256: 003eb91add860add1c92d59808acfa74c18629f8831f5bc8eb8b929f97ca9b0c
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical
@@ -1082,11 +1082,11 @@ static double unicycle_ring_max_abs(const double *a, size_t count)
  * the lower triangle); every pivot must exceed the tolerance relative to the largest entry. */
 static int unicycle_ring_cholesky_solve(const double *hess, const double *c, double *z)
 {
-    double pivot[UNICYCLE_RING_N_OUTPUTS];
+    double pivot[UNICYCLE_RING_N_KKT];
     const double scale = unicycle_ring_max_abs(hess, 28);
     size_t i;
     unicycle_ring_k_cholesky(hess, c, z, pivot);
-    for (i = 0; i < UNICYCLE_RING_N_OUTPUTS; ++i) {
+    for (i = 0; i < UNICYCLE_RING_N_KKT; ++i) {
         if (!(pivot[i] > UNICYCLE_RING_PIVOT_TOLERANCE * scale)) {
             return UNICYCLE_RING_HESSIAN_NOT_PD;
         }
@@ -1180,8 +1180,8 @@ static int unicycle_ring_solve_decoupling(double *r, double *w)
 static int unicycle_ring_law(double t, const double *s, const double *params, const double *tau, double *ds, double *u)
 {
     double hess[28];
-    double jet_rhs[UNICYCLE_RING_N_OUTPUTS];
-    double z[UNICYCLE_RING_N_OUTPUTS];
+    double jet_rhs[UNICYCLE_RING_N_KKT];
+    double z[UNICYCLE_RING_N_KKT];
     double r[UNICYCLE_RING_R_ENTRIES];
     double pvec[UNICYCLE_RING_N_OUTPUTS];
     double w[UNICYCLE_RING_N_OUTPUTS];
@@ -1191,7 +1191,7 @@ static int unicycle_ring_law(double t, const double *s, const double *params, co
     }
     unicycle_ring_k_jet(t, s, params, unicycle_ring_hurwitz_coefficients, tau, hess, jet_rhs, r, pvec);
     if (unicycle_ring_probe(hess, 28)
-        + unicycle_ring_probe(jet_rhs, UNICYCLE_RING_N_OUTPUTS)
+        + unicycle_ring_probe(jet_rhs, UNICYCLE_RING_N_KKT)
         + unicycle_ring_probe(r, UNICYCLE_RING_R_ENTRIES)
         + unicycle_ring_probe(pvec, UNICYCLE_RING_N_OUTPUTS) != 0.0) {
         return UNICYCLE_RING_NONFINITE_OUTPUT;
@@ -1250,7 +1250,7 @@ int unicycle_ring_optimality_error(double t, const double *s, const double *para
         return status;
     }
     unicycle_ring_k_optimality(t, s, p, out);
-    return unicycle_ring_probe(out, UNICYCLE_RING_K * UNICYCLE_RING_N_OUTPUTS) == 0.0 ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
+    return unicycle_ring_probe(out, UNICYCLE_RING_K * UNICYCLE_RING_N_KKT) == 0.0 ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
 }
 
 int unicycle_ring_objective(double t, const double *y, const double *params, double *out)
@@ -1331,7 +1331,7 @@ int unicycle_ring_optimality_error_batch(size_t count, double t, const double *s
 {
     size_t i;
     for (i = 0; i < count; ++i) {
-        const int status = unicycle_ring_optimality_error(t, s + i * UNICYCLE_RING_N_STATES, params, out + i * (UNICYCLE_RING_K * UNICYCLE_RING_N_OUTPUTS));
+        const int status = unicycle_ring_optimality_error(t, s + i * UNICYCLE_RING_N_STATES, params, out + i * (UNICYCLE_RING_K * UNICYCLE_RING_N_KKT));
         if (status != UNICYCLE_RING_OK) {
             if (failed) {
                 *failed = i;

@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: unicycle_ring
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: 0239292e60518a7ec9eb6cf7ef5280794e4281bb42339893f31087c00350d10a
+ * content sha256: e5b07f41859ceb9a38c57828409b8b69dbd7685db8ca80f823b8cbfdf9a874d3
  */
 
 /*
@@ -40,7 +40,7 @@ typedef struct {
 static const entry ENTRIES[6] = {
     { unicycle_ring_control_batch, UNICYCLE_RING_N_STATES, 1, { UNICYCLE_RING_N_INPUTS, 1}},
     { unicycle_ring_rhs_batch, UNICYCLE_RING_N_STATES, 1, { UNICYCLE_RING_N_STATES, 1}},
-    { unicycle_ring_optimality_error_batch, UNICYCLE_RING_N_STATES, 2, { UNICYCLE_RING_K, UNICYCLE_RING_N_OUTPUTS}},
+    { unicycle_ring_optimality_error_batch, UNICYCLE_RING_N_STATES, 2, { UNICYCLE_RING_K, UNICYCLE_RING_N_KKT}},
     { unicycle_ring_objective_batch, UNICYCLE_RING_N_OUTPUTS, 0, {1, 1}},
     { unicycle_ring_gradient_batch, UNICYCLE_RING_N_OUTPUTS, 1, { UNICYCLE_RING_N_OUTPUTS, 1}},
     { unicycle_ring_hessian_batch, UNICYCLE_RING_N_OUTPUTS, 2, { UNICYCLE_RING_N_OUTPUTS, UNICYCLE_RING_N_OUTPUTS}},

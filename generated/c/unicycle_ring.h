@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_ring
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: 92627d15b8f43c5415d6279ccb2efb68c43f93dc331b40c63159f7ec259834ff
+ * content sha256: 0ca5b9e79cacaeda283e426f0b0798dc6578e26af06351918a372ab534345179
  */
 
 /*
@@ -27,6 +27,8 @@ extern "C" {
 #define UNICYCLE_RING_N_STATES 16
 #define UNICYCLE_RING_N_INPUTS 8
 #define UNICYCLE_RING_N_OUTPUTS 8
+/* The optimality error's row: the outputs, then one multiplier per equality constraint. */
+#define UNICYCLE_RING_N_KKT 8
 #define UNICYCLE_RING_N_PARAMS 4
 #define UNICYCLE_RING_K 2
 /* The stateful controller: the plant states x it measures, and its own states z
@@ -41,6 +43,7 @@ extern "C" {
 #define UNICYCLE_RING_HESSIAN_NOT_PD 3
 #define UNICYCLE_RING_NONFINITE_OUTPUT 4
 #define UNICYCLE_RING_DECREASING_TIME 5
+#define UNICYCLE_RING_DEPENDENT_CONSTRAINTS 6
 
 int unicycle_ring_n_states(void);
 int unicycle_ring_n_inputs(void);
@@ -61,7 +64,7 @@ extern const double unicycle_ring_hurwitz_coefficients[UNICYCLE_RING_K];
 int unicycle_ring_control(double t, const double *s, const double *params, double *out);
 /* Closed-loop ds/dt (UNICYCLE_RING_N_STATES doubles). */
 int unicycle_ring_rhs(double t, const double *s, const double *params, double *out);
-/* Optimality error E, K rows of UNICYCLE_RING_N_OUTPUTS (row j: grad^(j) f0). */
+/* Optimality error E, K rows of UNICYCLE_RING_N_KKT (row j: grad^(j) f0). */
 int unicycle_ring_optimality_error(double t, const double *s, const double *params, double *out);
 /* f0(y, t) (1 double), its gradient (UNICYCLE_RING_N_OUTPUTS) and Hessian (row-major); y: outputs. */
 int unicycle_ring_objective(double t, const double *y, const double *params, double *out);

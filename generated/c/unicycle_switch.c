@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: f66fc06b08a96cbb96196a259fb16182e5fb69668c0b86b61123cd2815082c43
+ * content sha256: 503d283a412628e962d94466ce39a615c9320b003f9542d990d24b35d9f48d01
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -351,7 +351,7 @@ static int unicycle_switch_solve_decoupling(double *r, double *w)
  * terms of time and parameters, jet_time). */
 static int unicycle_switch_law(double t, const double *s, const double *params, const double *tau, double *ds, double *u)
 {
-    double z[UNICYCLE_SWITCH_N_OUTPUTS];
+    double z[UNICYCLE_SWITCH_N_KKT];
     double r[UNICYCLE_SWITCH_R_ENTRIES];
     double pvec[UNICYCLE_SWITCH_N_OUTPUTS];
     double w[UNICYCLE_SWITCH_N_OUTPUTS];
@@ -361,7 +361,7 @@ static int unicycle_switch_law(double t, const double *s, const double *params, 
     }
     /* y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time. */
     unicycle_switch_k_jet(t, s, params, unicycle_switch_hurwitz_coefficients, tau, z, r, pvec);
-    if (unicycle_switch_probe(z, UNICYCLE_SWITCH_N_OUTPUTS)
+    if (unicycle_switch_probe(z, UNICYCLE_SWITCH_N_KKT)
         + unicycle_switch_probe(r, UNICYCLE_SWITCH_R_ENTRIES)
         + unicycle_switch_probe(pvec, UNICYCLE_SWITCH_N_OUTPUTS) != 0.0) {
         return UNICYCLE_SWITCH_NONFINITE_OUTPUT;
@@ -415,7 +415,7 @@ int unicycle_switch_optimality_error(double t, const double *s, const double *pa
         return status;
     }
     unicycle_switch_k_optimality(t, s, p, out);
-    return unicycle_switch_probe(out, UNICYCLE_SWITCH_K * UNICYCLE_SWITCH_N_OUTPUTS) == 0.0 ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
+    return unicycle_switch_probe(out, UNICYCLE_SWITCH_K * UNICYCLE_SWITCH_N_KKT) == 0.0 ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
 }
 
 int unicycle_switch_objective(double t, const double *y, const double *params, double *out)
@@ -496,7 +496,7 @@ int unicycle_switch_optimality_error_batch(size_t count, double t, const double 
 {
     size_t i;
     for (i = 0; i < count; ++i) {
-        const int status = unicycle_switch_optimality_error(t, s + i * UNICYCLE_SWITCH_N_STATES, params, out + i * (UNICYCLE_SWITCH_K * UNICYCLE_SWITCH_N_OUTPUTS));
+        const int status = unicycle_switch_optimality_error(t, s + i * UNICYCLE_SWITCH_N_STATES, params, out + i * (UNICYCLE_SWITCH_K * UNICYCLE_SWITCH_N_KKT));
         if (status != UNICYCLE_SWITCH_OK) {
             if (failed) {
                 *failed = i;

@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: e28203b0734bfdd59f20bb3222824cd2739dfddf222909a1b9941e6cba540093
+ * content sha256: 6397e4f4ee3dcd2446facdb0c1739b7f560c85897c2cd4a383360cd57319cc7c
  */
 
 /*
@@ -40,7 +40,7 @@ typedef struct {
 static const entry ENTRIES[6] = {
     { unicycle_switch_control_batch, UNICYCLE_SWITCH_N_STATES, 1, { UNICYCLE_SWITCH_N_INPUTS, 1}},
     { unicycle_switch_rhs_batch, UNICYCLE_SWITCH_N_STATES, 1, { UNICYCLE_SWITCH_N_STATES, 1}},
-    { unicycle_switch_optimality_error_batch, UNICYCLE_SWITCH_N_STATES, 2, { UNICYCLE_SWITCH_K, UNICYCLE_SWITCH_N_OUTPUTS}},
+    { unicycle_switch_optimality_error_batch, UNICYCLE_SWITCH_N_STATES, 2, { UNICYCLE_SWITCH_K, UNICYCLE_SWITCH_N_KKT}},
     { unicycle_switch_objective_batch, UNICYCLE_SWITCH_N_OUTPUTS, 0, {1, 1}},
     { unicycle_switch_gradient_batch, UNICYCLE_SWITCH_N_OUTPUTS, 1, { UNICYCLE_SWITCH_N_OUTPUTS, 1}},
     { unicycle_switch_hessian_batch, UNICYCLE_SWITCH_N_OUTPUTS, 2, { UNICYCLE_SWITCH_N_OUTPUTS, UNICYCLE_SWITCH_N_OUTPUTS}},

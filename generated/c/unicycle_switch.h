@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 6715e7e4a1f1ce66720b4bd288628fc8d8ccdacb772a42ec7c6153140b97a0b7
+ * content sha256: 3fd677a21094c7b85aa664c4968f46d934dc6b36bc058c0644fe378782b7139b
  */
 
 /*
@@ -27,6 +27,8 @@ extern "C" {
 #define UNICYCLE_SWITCH_N_STATES 4
 #define UNICYCLE_SWITCH_N_INPUTS 2
 #define UNICYCLE_SWITCH_N_OUTPUTS 2
+/* The optimality error's row: the outputs, then one multiplier per equality constraint. */
+#define UNICYCLE_SWITCH_N_KKT 2
 #define UNICYCLE_SWITCH_N_PARAMS 2
 #define UNICYCLE_SWITCH_K 2
 /* The stateful controller: the plant states x it measures, and its own states z
@@ -41,6 +43,7 @@ extern "C" {
 #define UNICYCLE_SWITCH_HESSIAN_NOT_PD 3
 #define UNICYCLE_SWITCH_NONFINITE_OUTPUT 4
 #define UNICYCLE_SWITCH_DECREASING_TIME 5
+#define UNICYCLE_SWITCH_DEPENDENT_CONSTRAINTS 6
 
 int unicycle_switch_n_states(void);
 int unicycle_switch_n_inputs(void);
@@ -61,7 +64,7 @@ extern const double unicycle_switch_hurwitz_coefficients[UNICYCLE_SWITCH_K];
 int unicycle_switch_control(double t, const double *s, const double *params, double *out);
 /* Closed-loop ds/dt (UNICYCLE_SWITCH_N_STATES doubles). */
 int unicycle_switch_rhs(double t, const double *s, const double *params, double *out);
-/* Optimality error E, K rows of UNICYCLE_SWITCH_N_OUTPUTS (row j: grad^(j) f0). */
+/* Optimality error E, K rows of UNICYCLE_SWITCH_N_KKT (row j: grad^(j) f0). */
 int unicycle_switch_optimality_error(double t, const double *s, const double *params, double *out);
 /* f0(y, t) (1 double), its gradient (UNICYCLE_SWITCH_N_OUTPUTS) and Hessian (row-major); y: outputs. */
 int unicycle_switch_objective(double t, const double *y, const double *params, double *out);

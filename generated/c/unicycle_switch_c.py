@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 990fbd4ba1acb51c7cec55b5bdceea8671b84e6f4eb4ef65bb842391e19a0f3a
+# content sha256: 18534b996937487d7b6808dcf62829d158a9dad777d1127d7bfa38cc91e76760
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -68,6 +68,9 @@ STATE_NAMES = ('x1', 'x2', 'theta', 'v')
 INPUT_NAMES = ('v', 'omega')
 #: Outputs y, the arguments of the objective.
 OUTPUT_NAMES = ('y1', 'y2')
+#: Lagrange multipliers of the equality constraints: a row of the optimality error holds
+#: the outputs' entries, then theirs (the KKT map F = [grad f0 + J_a^T nu; a]).
+MULTIPLIER_NAMES = ()
 #: Parameters and their default values.
 PARAMETERS = {'a': 10.0, 'b': 1.5}
 #: Relative degree of each output in the extended system.
@@ -95,6 +98,7 @@ STATUS_SINGULAR_DECOUPLING = 2
 STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
+STATUS_DEPENDENT_CONSTRAINTS = 6
 
 
 class ControllerError(ArithmeticError):
@@ -131,6 +135,12 @@ class HessianNotPositiveDefiniteError(ControllerError):
     """The Hessian of f0 is not positive definite: f0 is not strongly convex here."""
 
     status = STATUS_HESSIAN_NOT_PD
+
+
+class DependentConstraintsError(ControllerError):
+    """The equality constraints' gradients are dependent: the KKT matrix is singular."""
+
+    status = STATUS_DEPENDENT_CONSTRAINTS
 
 
 class NonFiniteOutputError(ControllerError):
@@ -507,8 +517,7 @@ def optimality_error(t, s, params=None):
     Returns
     -------
     numpy.ndarray, shape (K, 2) or (K, 2, N)
-        ``E``; under the law ``dE/dt = H E``.
-    """
+        ``E``; under the law ``dE/dt = H E``.    """
     t = _time(t)
     states, single = _columns("s", s, 4)
     p = _parameters(params)
