@@ -28,7 +28,7 @@ figures: $(INSTALLED)
 	mkdir -p build/figures docs/figures
 	for name in $(EXAMPLES); do \
 	  $(PY) -m tvopt_codegen simulate $$name --out build/figures/$$name || exit 1; \
-	  for stem in paths convergence; do \
+	  for stem in paths convergence constraints; do \
 	    if [ -f build/figures/$$name/$${name}_$$stem.png ]; then \
 	      cp build/figures/$$name/$${name}_$$stem.png docs/figures/; fi; \
 	  done; \

@@ -40,7 +40,8 @@ def _measured(spec: str, horizon: float, h: float) -> tuple[np.ndarray, np.ndarr
 
 
 @pytest.mark.parametrize("fmi", [2, 3])
-@pytest.mark.parametrize("spec", ["pvtol", "unicycle_switch"])
+# arm_on_line: the multipliers of its equality constraint are controller states too.
+@pytest.mark.parametrize("spec", ["pvtol", "unicycle_switch", "arm_on_line"])
 def test_fmpy_validates_and_cosimulates_it_like_controller_step(
     spec: str, fmi: int, tmp_path: Path
 ) -> None:

@@ -105,10 +105,11 @@ def nonconvex(
 
 
 def least_violation(model: Any, t: float, y0: np.ndarray) -> float:
-    """``min_y max_i g_i(y, t)``: positive when no output satisfies every constraint.
+    """``min_y max_i g_i(y, t)`` on ``a_j(y, t) = 0``: positive when nothing is feasible.
 
-    By SLSQP, as ``min z`` subject to ``g_i(y, t) <= z``, from ``y0``; signals and nominal
-    references at ``t`` (references without one at 0), parameters at their defaults.
+    By SLSQP, as ``min z`` subject to ``g_i(y, t) <= z`` and the equalities, from ``y0``;
+    signals and nominal references at ``t`` (references without one at 0), parameters at
+    their defaults.
     """
     from scipy.optimize import minimize  # noqa: PLC0415 - only with constraints
 
@@ -117,19 +118,21 @@ def least_violation(model: Any, t: float, y0: np.ndarray) -> float:
     nominal = dict(model.nominal)
     fixed = {r: nominal.get(r, sp.Integer(0)) for r in model.references}
     signals = dict(model.signals)
-    functions = [
-        sp.lambdify(
-            [model.y], sp.sympify(c.g).xreplace(signals).xreplace(fixed).xreplace(at), "math"
-        )
-        for c in model.constraints
-    ]
+
+    def function(constraint: Any) -> Any:
+        expr = sp.sympify(constraint.g).xreplace(signals).xreplace(fixed).xreplace(at)
+        return sp.lambdify([model.y], expr, "math")
+
+    functions = [function(c) for c in model.constraints]
+    equal = [function(c) for c in model.equalities]
     m = len(model.y)
     start = np.append(y0, max(f(y0) for f in functions) + 1.0)
     result = minimize(
         lambda v: v[m],
         start,
         method="SLSQP",
-        constraints=[{"type": "ineq", "fun": lambda v, f=f: v[m] - f(v[:m])} for f in functions],
+        constraints=[{"type": "ineq", "fun": lambda v, f=f: v[m] - f(v[:m])} for f in functions]
+        + [{"type": "eq", "fun": lambda v, f=f: f(v[:m])} for f in equal],
         options={"ftol": 1e-12, "maxiter": 500},
     )
     return float(max(f(result.x[:m]) for f in functions))
