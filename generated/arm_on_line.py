@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: arm_on_line
 # spec sha256: 4194f1f0d46904245e4cb166b561f03ee23947c179614a7250471e1fb40deb16
-# content sha256: 9a92146be4ecbb5606b3a2edec716b8adb41bab27610efe4b65a9a32844bdd30
+# content sha256: 38235265f5a414042f8908240f0b4976cb70749b1c5b2756ccd35114b33afb15
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -226,7 +226,9 @@ def _cholesky_solve(h, c):
         if numpy.all(ok[:2, index]):
             raise DependentConstraintsError(
                 "the equality constraints' gradients are dependent (column "
-                f"{index}): the KKT matrix is singular at this state and time", index)
+                f"{index}): the KKT matrix is singular at this state and time",
+                index,
+            )
         raise HessianNotPositiveDefiniteError(
             "the Hessian of f0 is not positive definite (column "
             f"{index}): f0 is not strongly convex at this output and time", index)

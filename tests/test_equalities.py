@@ -148,6 +148,7 @@ def test_dependence_at_run_time_is_a_status(tmp_path: Path, backend: str) -> Non
     assert np.all(np.isfinite(mod.control(1.0, state)))
     with pytest.raises(mod.DependentConstraintsError, match="gradients are dependent") as info:
         mod.control(5 * math.pi, state)
+    assert "it is where cos(t/10) = 0" in str(info.value)
     assert info.value.status == mod.STATUS_DEPENDENT_CONSTRAINTS == 6
     # A batch names the column.
     with pytest.raises(mod.DependentConstraintsError) as info:
@@ -205,9 +206,11 @@ def test_check_and_report_show_the_kkt_system(capsys: pytest.CaptureFixture[str]
     out = capsys.readouterr().out
     assert "closed-loop state: q1, q2, w1, w2, nu_on_line_0, nu_on_line_1" in out
     assert "equality constraints: on_line: cos(0.1*t)*px + sin(0.1*t)*py == 1; kept by" in out
+    assert "KKT matrix singular (the equalities' gradients dependent) where: nowhere" in out
     d = derivation(ARM)
     text = render_report(d, lower(d), None, ("md",))[f"{ARM}_report.md"]
     assert "Equality constraints a_j(y, t) = 0, kept by the KKT system" in text
     assert "| on_line | cos(0.1*t)*px + sin(0.1*t)*py == 1 |" in text
     assert "the KKT matrix K = [[grad_yy L, J_a^T], [J_a, 0]]" in text
     assert "kron I_3" in text
+    assert "K is singular (the constraints' gradients dependent) nowhere" in text

@@ -190,6 +190,9 @@ class Derivation:
         ``nu_<name>_0 .. nu_<name>_<k-1>`` (the multiplier and its derivatives).
     kkt_gradient : sympy.ImmutableMatrix or None
         With equalities, the KKT map ``F = [grad f0 + J_a^T nu; a]`` over (y, nu).
+    dependent_set : tuple of str
+        Where the equalities' gradients are dependent (``det(J_a J_a^T) = 0``, where the
+        KKT matrix is singular), in words; empty where nowhere (or without equalities).
 
     With equality constraints, :attr:`y_jet`, :attr:`grad_jet`, :attr:`rest`,
     :attr:`jet_program`, :attr:`hessian_program` and :attr:`hessian_entries` are those of
@@ -248,6 +251,7 @@ class Derivation:
     objective_hessian: tuple[sp.Expr, ...] = ()
     multiplier_states: tuple[tuple[str, ...], ...] = ()
     kkt_gradient: sp.ImmutableMatrix | None = None
+    dependent_set: tuple[str, ...] = ()
 
     @property
     def n_kkt(self) -> int:
@@ -1469,6 +1473,25 @@ def _equality_checks(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str, ...
     return warnings
 
 
+def _dependent_set(model: Model) -> tuple[str, ...]:
+    """Where the equalities' gradients are dependent (K singular), in words.
+
+    ``det(J_a J_a^T) = 0``, factored, for up to four equalities of small expressions; a
+    note saying it was not computed otherwise.
+    """
+    q = len(model.equalities)
+    if not q:
+        return ()
+    if q > 4:
+        return (f"not computed symbolically (q = {q} > 4)",)
+    jacobian_a = sp.Matrix(_equality_jacobian(model))
+    gram = jacobian_a * jacobian_a.T
+    det = gram.det(method="berkowitz")
+    if tree_size(det, _DET_SIMPLIFY_NODES) > _DET_SIMPLIFY_NODES:
+        return (f"not simplified symbolically (more than {_DET_SIMPLIFY_NODES} expression nodes)",)
+    return _singular_set(sp.factor(sp.simplify(det)))
+
+
 def _lagrangian(
     model: Model, objective: _Objective, names: Iterator[sp.Symbol], meter: _Meter
 ) -> _Objective:
@@ -1698,6 +1721,7 @@ def derive(
         objective_hessian=_dense(objective.hessian_entries, len(model.y)),
         multiplier_states=states.multipliers,
         kkt_gradient=kkt.gradient if model.equalities else None,
+        dependent_set=_dependent_set(model),
         y_jet=jet.y_jet,
         y_jet_values=jet.y_values,
         signal_jet=jet.signal_jet,

@@ -324,7 +324,14 @@ def _model(d: Derivation) -> Section:
                     "K is solved at run time by LDL^T "
                     "with the outputs' block first (its pivots positive, the multipliers' "
                     "negative; a failing multiplier pivot is the status DEPENDENT_CONSTRAINTS). "
-                    f"The multipliers and their derivatives are controller states: {chains}."
+                    f"The multipliers and their derivatives are controller states: {chains}. "
+                    "K is singular (the constraints' gradients dependent) "
+                    + (
+                        "where " + " or where ".join(d.dependent_set)
+                        if d.dependent_set
+                        else "nowhere: det(J_a J_a^T) never vanishes"
+                    )
+                    + "."
                 ),
                 header=("constraint", "as written", "a_j", "multiplier"),
                 rows=tuple(

@@ -101,6 +101,8 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
             f"states ({chains}, ...), E = col(F, ..., F^({d.k - 1})) with "
             "F = [grad f0 + J_a^T nu; a]"
         )
+        where = "; ".join(d.dependent_set) if d.dependent_set else "nowhere"
+        lines.append(f"  KKT matrix singular (the equalities' gradients dependent) where: {where}")
     if d.model.references and spec.estimator is not None:
         lines.append(
             f"  references: {', '.join(spec.references)}; every call takes their jets to "
