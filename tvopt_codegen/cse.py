@@ -9,6 +9,7 @@ depends on time and parameters alone, computed once per batch of states.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable, Mapping, Sequence
 
 import sympy as sp
@@ -55,6 +56,74 @@ def operation_count(exprs: Iterable[sp.Expr]) -> int:
     return sum(count(sp.sympify(e)) for e in exprs)
 
 
+#: The canonical order of a sum's terms or a product's factors: sympy's own
+#: (``Add.flatten`` and ``Mul.flatten`` sort with ``Basic.compare``).
+_CANONICAL = functools.cmp_to_key(sp.Basic.compare)
+
+
+def _sorted_args(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic | None:
+    """``Add(*args)`` or ``Mul(*args)`` without ``flatten``, when nothing would combine.
+
+    Substitution mostly renames (a state symbol for its slot, a temporary for its final
+    name) or puts a temporary's value in its one use: a sum or product then needs its
+    nested sums or products spliced in, its numbers folded into one coefficient and its
+    terms put back in canonical order, while ``flatten``'s search for things to combine
+    (sympy's most expensive constructor, half of lowering's time) finds nothing. This
+    does just that, in ``flatten``'s order (numbers folded as met, spliced arguments
+    last, so a Float coefficient has the same bits), and returns None whenever
+    ``flatten`` could do more: two terms alike (``x + 2*x``) or factors of one base
+    (``x*x**2``, ``exp(a)*exp(b)``), a power of a constant or to a sum (``2**x``,
+    ``exp(b + 1)``), a zero product, or a
+    coefficient beside a sum in a product (which ``flatten`` may distribute). The result
+    is then the very object ``flatten`` would build.
+    """
+    is_add = node.is_Add
+    seq = list(args)
+    coefficient: sp.Basic = sp.S.Zero if is_add else sp.S.One
+    seen: set[sp.Basic] = set()
+    rest: list[sp.Basic] = []
+    has_sum = False
+    for arg in seq:  # grows while iterating: spliced arguments come last, as in flatten
+        if arg.is_Number:
+            if not arg.is_finite:
+                return None
+            coefficient = coefficient + arg if is_add else coefficient * arg
+            continue
+        if not arg.is_commutative:
+            return None
+        if arg.is_Add if is_add else arg.is_Mul:
+            seq.extend(arg.args)
+            continue
+        if is_add:
+            if arg.is_Pow and arg.base.is_number:
+                return None
+            key = arg.as_coeff_Mul()[1] if arg.is_Mul else arg
+        else:
+            # A constant base (2**x, sqrt(3), exp(b + 0.1) = E**(b + 0.1)) or a sum in
+            # the exponent is where flatten folds or splits powers.
+            key, exponent = arg.as_base_exp()
+            if key.is_number or exponent.is_Add:
+                return None
+            has_sum = has_sum or arg.is_Add
+        if key in seen:
+            return None
+        seen.add(key)
+        rest.append(arg)
+    if is_add:
+        keep = coefficient != 0
+    else:
+        if coefficient == 0 or (coefficient != 1 and has_sum):
+            return None
+        keep = coefficient != 1
+    rest.sort(key=_CANONICAL)
+    if keep:
+        rest.insert(0, coefficient)
+    if len(rest) < 2:
+        return rest[0] if rest else None
+    result: sp.Basic = node.func._from_args(rest)
+    return result
+
+
 def _rebuild(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic:
     """``node.func(*args)``, without re-running a function's ``eval`` on symbolic args.
 
@@ -62,10 +131,15 @@ def _rebuild(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic:
     of pi in the argument again, with assumption queries: four milliseconds a node, two
     seconds for a ring of 32 agents. Substituting symbols for symbols, or a temporary
     for its value, never gives ``eval`` anything new to simplify; numbers still
-    evaluate (``sin(0)`` is 0).
+    evaluate (``sin(0)`` is 0). Sums and products that only need re-sorting skip
+    ``flatten`` (:func:`_sorted_args`).
     """
     if isinstance(node, sp.Function) and not all(a.is_Number for a in args):
         return node.func(*args, evaluate=False)
+    if node.is_Add or node.is_Mul:
+        fast = _sorted_args(node, args)
+        if fast is not None:
+            return fast
     return node.func(*args)
 
 
@@ -288,7 +362,7 @@ def _merge_equal(
         # Negating a long sum builds a new one term by term; exact opposites are short
         # differences (xa - xb) and products, so longer sums are not tried.
         if not (value.is_Add and len(value.args) > _NEGATED_TERMS):
-            negated = -value
+            negated = _negate(value)
             if negated in first:
                 rename[sym] = -first[negated]
                 continue
@@ -299,6 +373,16 @@ def _merge_equal(
 
 #: Sums up to this many terms are looked up negated too (:func:`_merge_equal`).
 _NEGATED_TERMS = 4
+
+
+def _negate(value: sp.Basic) -> sp.Basic:
+    """``-value``; a sum's terms negated and re-sorted without ``flatten`` where possible."""
+    if value.is_Add:
+        fast = _sorted_args(value, [-term for term in value.args])
+        if fast is not None:
+            return fast
+    negated: sp.Basic = -value
+    return negated
 
 
 def _inline_single_use(
