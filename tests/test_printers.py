@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import pytest
 import sympy as sp
 
 from tvopt_codegen.printers import CPrinter, PythonPrinter, PythonScalarPrinter
@@ -94,3 +97,16 @@ def test_register_renaming_keeps_every_value_and_needs_fewer_names() -> None:
             before |= {slot.symbol for arg in printed.args for slot in arg.slots}
             after = set(re.findall(r"_r\d+", _one_point_function(renamed)))
             assert len(after) < len(before)
+
+
+def test_c_constants_are_c99_literals_not_posix_macros() -> None:
+    """M_PI_4, M_E, M_1_PI are POSIX: -std=c99 -pedantic hides them. sympy's C99
+    printer uses them for pi/4, E, 1/pi, ... (a ring of eight agents has pi/4)."""
+    printer = CPrinter()
+    constants = (x + sp.pi / 4, x + sp.pi / 2, x * sp.E, x / sp.pi, x * sp.sqrt(2), x + sp.log(2))
+    for expr in constants:
+        code = printer.doprint(expr)
+        assert "M_" not in code and ";" not in code, code
+        python = code.replace("sqrt", "math.sqrt").replace("log", "math.log")
+        value = eval(python, {"math": math, "x": 0.5})  # noqa: S307 - our printed arithmetic
+        assert value == pytest.approx(float(expr.subs(x, 0.5)), rel=1e-15)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import sympy as sp
@@ -137,7 +138,15 @@ class CPrinter(_CanonicalOrder, C99CodePrinter):  # type: ignore[misc]
 
     def __init__(self) -> None:
         super().__init__(
-            {"strict": True, "precision": 17, "allow_unknown_functions": False, "order": "none"}
+            {
+                "strict": True,
+                "precision": 17,
+                "allow_unknown_functions": False,
+                "order": "none",
+                # M_PI_4, M_SQRT2, M_E, ... are POSIX, not C99: -std=c99 -pedantic hides
+                # them (a ring of 8 agents has pi/4). Constants print as numbers.
+                "math_macros": {},
+            }
         )
 
     def _print_Pi(self, expr: sp.Expr) -> str:
@@ -147,6 +156,14 @@ class CPrinter(_CanonicalOrder, C99CodePrinter):  # type: ignore[misc]
           -pedantic`` hides it.
         """
         return "3.141592653589793"
+
+    def _print_Exp1(self, expr: sp.Expr) -> str:
+        """Customizations.
+
+        * A literal instead of ``M_E`` (POSIX, not C99) or, without the macro, sympy's
+          declaration of a constant ``E`` in the middle of an expression.
+        """
+        return repr(math.e)
 
     def _print_Pow(self, expr: sp.Pow, rational: bool = False) -> str:
         """Customizations.
