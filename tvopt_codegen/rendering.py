@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import heapq
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path, PurePath
@@ -151,14 +152,30 @@ class PrintedArg:
         return ", ".join(names) + ("," if self.size == 1 else "")
 
 
+#: An output with at least this many structurally zero elements, and as many zeros as
+#: other elements, is printed as zeros and its nonzero elements (a team's Hessian is
+#: almost all zeros: a dense listing is quadratic in the number of agents).
+SPARSE_OUTPUT_ZEROS = 16
+
+
 @dataclass(frozen=True)
 class PrintedOutput:
-    """An output array: shape and ``(index, flat index, code)`` per element (row-major)."""
+    """An output array: shape and ``(index, flat index, code)`` per element (row-major).
+
+    When :attr:`sparse`, ``elements`` holds the nonzero elements only and the template
+    fills the rest with zeros.
+    """
 
     name: str
     doc: str
     shape: tuple[int, ...]
     elements: tuple[tuple[str, int, str], ...]
+    sparse: bool = False
+
+    @property
+    def size(self) -> int:
+        """Number of elements."""
+        return math.prod(self.shape)
 
 
 @dataclass(frozen=True)
@@ -199,11 +216,15 @@ def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
     outputs = []
     for out in kernel.outputs:
         indices = _indices(out.shape)
+        values = [sp.sympify(e) for e in out.exprs]
+        zeros = sum(1 for e in values if e == 0)
+        sparse = zeros >= SPARSE_OUTPUT_ZEROS and 2 * zeros >= len(values)
         elements = tuple(
-            (", ".join(map(str, index)) if index else "...", flat, printer.doprint(sp.sympify(e)))
-            for flat, (index, e) in enumerate(zip(indices, out.exprs, strict=True))
+            (", ".join(map(str, index)) if index else "...", flat, printer.doprint(e))
+            for flat, (index, e) in enumerate(zip(indices, values, strict=True))
+            if not (sparse and e == 0)
         )
-        outputs.append(PrintedOutput(out.name, out.doc, out.shape, elements))
+        outputs.append(PrintedOutput(out.name, out.doc, out.shape, elements, sparse))
     return PrintedKernel(
         kernel.name,
         kernel.doc,
@@ -295,6 +316,7 @@ def registers(kernel: PrintedKernel) -> PrintedKernel:
             out.doc,
             out.shape,
             tuple((index, flat, rename(code)) for index, flat, code in out.elements),
+            out.sparse,
         )
         for out in kernel.outputs
     )
