@@ -1464,16 +1464,7 @@ def _constraint_convexity(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str
     rng = np.random.default_rng(18)
     points = 64
     ys = y0[None, :] + rng.uniform(-2.0, 2.0, size=(points, len(y0)))
-    values: dict[sp.Symbol, Any] = {y: ys[:, i] for i, y in enumerate(model.y)}
-    values[model.t] = rng.uniform(0.0, spec.t_final, size=points)
-    values |= {q: float(v) for q, v in zip(model.params, model.defaults, strict=True)}
-    nominal = dict(model.nominal)
-    values |= {r: 0.0 for r in model.references if r not in nominal}
-    evaluate = Evaluator(values)
-    for symbol, expr in nominal.items():
-        evaluate.define(symbol, expr)
-    for symbol, expr in model.signals:
-        evaluate.define(symbol, expr)
+    evaluate = _evaluator_at(model, ys, rng.uniform(0.0, spec.t_final, size=points))
     _feasible_at_the_end(spec, model, y0)
     found = nonconvex(model.constraints, model.y, evaluate, points)
     if not found:

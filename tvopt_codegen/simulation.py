@@ -276,22 +276,37 @@ def minimizer_path(
     numpy.ndarray, shape (m, T)
         ``y*`` at each time.
     """
+
+    def step(t: float, y: np.ndarray, index: int, budget: int) -> np.ndarray:
+        extra = (refs or (lambda t: {}))(t)
+        if inside is not None and not _defined(controller, t, y, params, extra):
+            y = np.array(inside[:, index], dtype=float)
+        return _newton(controller, t, y, params, extra, budget)
+
+    return _backward(ts, start, step)
+
+
+def _backward(
+    ts: np.ndarray, start: np.ndarray, step: Callable[[float, np.ndarray, int, int], np.ndarray]
+) -> np.ndarray:
+    """Follow a solution backward in time from ``start`` at ``ts[-1]``, warm-starting.
+
+    ``step(t, w, index, budget)`` solves at time ``t`` from ``w`` (``index``: the output
+    time being approached) in at most ``budget`` iterations; five substeps lie between
+    output times. The first point may start far from the solution (a run that has not
+    converged): its capped steps get :data:`START_ITERATIONS`, the warm starts 200.
+    """
     substeps = 5
     path = np.empty((len(start), len(ts)))
-    y = np.array(start, dtype=float)
+    w = np.array(start, dtype=float)
     for index in range(len(ts) - 1, -1, -1):
         later = ts[min(index + 1, len(ts) - 1)]
         for t in (
             np.linspace(later, ts[index], substeps + 1)[1:] if index < len(ts) - 1 else [ts[-1]]
         ):
-            extra = (refs or (lambda t: {}))(float(t))
-            if inside is not None and not _defined(controller, float(t), y, params, extra):
-                y = np.array(inside[:, index], dtype=float)
-            # The first point may start far from y* (a run that has not converged): its
-            # capped steps may need more than the warm starts' 200 iterations.
             budget = 200 if index < len(ts) - 1 else START_ITERATIONS
-            y = _newton(controller, float(t), y, params, extra, budget)
-        path[:, index] = y
+            w = step(float(t), w, index, budget)
+        path[:, index] = w
     return path
 
 
@@ -430,19 +445,12 @@ def kkt_path(
     -------
     numpy.ndarray, shape (m + q, T)
     """
-    substeps = 5
-    path = np.empty((len(start), len(ts)))
-    w = np.array(start, dtype=float)
-    for index in range(len(ts) - 1, -1, -1):
-        later = ts[min(index + 1, len(ts) - 1)]
-        for t in (
-            np.linspace(later, ts[index], substeps + 1)[1:] if index < len(ts) - 1 else [ts[-1]]
-        ):
-            extra = (refs or (lambda t: {}))(float(t))
-            budget = 200 if index < len(ts) - 1 else START_ITERATIONS
-            w = _kkt_newton(controller, eq, float(t), w, params, extra, budget)
-        path[:, index] = w
-    return path
+
+    def step(t: float, w: np.ndarray, _index: int, budget: int) -> np.ndarray:
+        extra = (refs or (lambda t: {}))(t)
+        return _kkt_newton(controller, eq, t, w, params, extra, budget)
+
+    return _backward(ts, start, step)
 
 
 def simulate(
