@@ -214,3 +214,22 @@ def test_check_and_report_show_the_kkt_system(capsys: pytest.CaptureFixture[str]
     assert "the KKT matrix K = [[grad_yy L, J_a^T], [J_a, 0]]" in text
     assert "kron I_3" in text
     assert "K is singular (the constraints' gradients dependent) nowhere" in text
+
+
+def test_constraints_on_signals_of_signals(tmp_path: Path) -> None:
+    """A line that follows a signal defined by other signals: the certificate's
+    independent problem (SLSQP, the equalities' numbers) inlines them all."""
+    text = UNICYCLE.replace('name = "unicycle_switch"', 'name = "nested"').replace(
+        'o2y = "-3 + 0.4*t', 'mid = "0.5*(o1x + o2x)"\nshift = "mid - 1"\no2y = "-3 + 0.4*t'
+    )
+    spec = write_spec(tmp_path, text + '\n[constraints]\nline = "y1 == shift"\n')
+    d = derive(load_spec(spec))
+    result = simulate(d, load_controller(lower(d), "python"), resolve_options(d))
+    assert result.passed, result.failures
+    t = result.t
+    shift = 0.5 * ((-5 + 0.6 * t - 0.01 * t**2) + (5 - 0.3 * t - 0.01 * t**2)) - 1
+    np.testing.assert_allclose(
+        result.constraints.equality[0], result.outputs[0] - shift, atol=1e-12
+    )
+    assert abs(result.constraints.equality[0, -1]) < 1e-6
+    assert np.all(result.constraints.distance <= result.constraints.bound + 1e-6)

@@ -41,6 +41,16 @@ from tvopt_codegen.spec import Barrier, Constraint
 SLACK_MARGIN = 0.1
 
 
+def inline_signals(expr: sp.Expr, signals: Mapping[sp.Symbol, sp.Expr]) -> sp.Expr:
+    """``expr`` with every signal replaced by its definition, signals of signals too."""
+    expr = sp.sympify(expr)
+    for _ in range(len(signals) + 1):
+        if not expr.free_symbols & signals.keys():
+            break
+        expr = expr.xreplace(signals)
+    return expr
+
+
 def schedule(barrier: Barrier, slack: float, t: sp.Symbol) -> tuple[sp.Expr, sp.Expr]:
     """``mu(t)`` and ``s(t)`` as expressions in ``t`` (exact: they are differentiated)."""
     decay = sp.exp(-sp.nsimplify(barrier.rate) * t)
@@ -120,7 +130,7 @@ def least_violation(model: Any, t: float, y0: np.ndarray) -> float:
     signals = dict(model.signals)
 
     def function(constraint: Any) -> Any:
-        expr = sp.sympify(constraint.g).xreplace(signals).xreplace(fixed).xreplace(at)
+        expr = inline_signals(constraint.g, signals).xreplace(fixed).xreplace(at)
         return sp.lambdify([model.y], expr, "math")
 
     functions = [function(c) for c in model.constraints]
@@ -203,7 +213,7 @@ def _problem(model: Any, values: Mapping[sp.Symbol, float], references: Any) -> 
     fixed = {q: sp.Float(v) for q, v in values.items()}
 
     def numeric(expr: sp.Expr) -> Any:
-        expr = sp.sympify(expr).xreplace(signals).xreplace(fixed)
+        expr = inline_signals(expr, signals).xreplace(fixed)
         return sp.lambdify([t, model.y, model.references], expr, "math")
 
     def refs_at(time: float) -> list[float]:
@@ -216,7 +226,7 @@ def _problem(model: Any, values: Mapping[sp.Symbol, float], references: Any) -> 
     # f0's principal domain, which the barrier objective never leaves: tan's argument
     # within (-pi/2, pi/2) and log's positive; the independent solver keeps to it too.
     domain = []
-    for node in sp.preorder_traversal(objective.xreplace(signals)):
+    for node in sp.preorder_traversal(inline_signals(objective, signals)):
         if isinstance(node, sp.tan):
             domain += [sp.pi / 2 - node.args[0], node.args[0] + sp.pi / 2]
         elif isinstance(node, sp.log):
@@ -412,7 +422,7 @@ def equalities(model: Any, values: Mapping[sp.Symbol, float]) -> Equalities:
     m, q = len(model.y), len(model.equalities)
 
     def numeric(exprs: Sequence[sp.Expr]) -> Any:
-        exprs = [sp.sympify(e).xreplace(signals).xreplace(signals).xreplace(fixed) for e in exprs]
+        exprs = [inline_signals(e, signals).xreplace(fixed) for e in exprs]
         return sp.lambdify([model.t, model.y, model.references], exprs, "math")
 
     a = [sp.sympify(c.g) for c in model.equalities]
