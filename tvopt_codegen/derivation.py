@@ -1618,7 +1618,7 @@ def _lagrangian(
     )
 
 
-def _multipliers_start(spec: Spec, model: Model, states: _States, kkt: _Objective) -> _States:
+def _multipliers_start(spec: Spec, model: Model, states: _States, objective: _Objective) -> _States:
     """The multiplier chains' initial values: nu(0) by least squares, its derivatives 0.
 
     ``nu(0)`` minimises ``|grad f0 + J_a^T nu|`` at the initial outputs and t = 0, so the
@@ -1630,8 +1630,9 @@ def _multipliers_start(spec: Spec, model: Model, states: _States, kkt: _Objectiv
     y0 = objective_start(model, states)
     evaluate = _evaluator_at(model, y0[None, :], np.zeros(1))
     m, q = len(model.y), len(model.equalities)
-    gradient = sp.ImmutableMatrix([sp.diff(model.f0, y) for y in model.y])
-    g = np.array([float(np.real(np.broadcast_to(evaluate(e), (1,))[0])) for e in gradient])
+    g = np.array(
+        [float(np.real(np.broadcast_to(evaluate(e), (1,))[0])) for e in objective.gradient]
+    )
     jacobian_a = np.array(
         [
             [float(np.real(np.broadcast_to(evaluate(e), (1,))[0])) for e in row]
@@ -1740,7 +1741,7 @@ def derive(
     objective = _objective(spec, model, states, names, meter)
     equality_warnings = _equality_checks(spec, model, objective_start(model, states))
     kkt = _lagrangian(model, objective, names, meter)
-    states = _multipliers_start(spec, model, states, kkt)
+    states = _multipliers_start(spec, model, states, objective)
     defaults = dict(zip(model.params, model.defaults, strict=True))
     ext = lin.extension
     warnings = objective.warnings + _singular_start(

@@ -382,8 +382,7 @@ def _kkt_newton(
     from tvopt_codegen.constraints import kkt_matrix  # noqa: PLC0415
 
     m = len(controller.OUTPUT_NAMES)
-    refs = extra.get("refs")
-    r = [] if refs is None else [float(v) for v in np.asarray(refs)[:, 0]]
+    r = _reference_values(extra)
 
     def residual(point: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         y, nu = point[:m], point[m:]
@@ -426,6 +425,12 @@ def _kkt_newton(
         if float(np.linalg.norm(step)) * scale <= 1e-14 * (1.0 + float(np.linalg.norm(w))):
             break
     return w
+
+
+def _reference_values(extra: Mapping[str, Any]) -> list[float]:
+    """The references' values (their jets' first column) in a call's keyword arguments."""
+    refs = extra.get("refs")
+    return [] if refs is None else [float(v) for v in np.asarray(refs)[:, 0]]
 
 
 def kkt_path(
@@ -819,8 +824,7 @@ def _kkt_eigenvalues(
     found = []
     for i, t in enumerate(ts):
         extra = true(float(t))
-        refs = extra.get("refs")
-        r = [] if refs is None else [float(v) for v in np.asarray(refs)[:, 0]]
+        r = _reference_values(extra)
         for point in (run[:, i], kkt[:, i], 0.5 * (run[:, i] + kkt[:, i])):
             y, nu = point[:m], point[m:]
             hess = controller.hessian(float(t), y, params, **extra)
