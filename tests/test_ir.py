@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+from collections import Counter
+from collections.abc import Sequence
+
 import numpy as np
 import pytest
 import sympy as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tvopt_codegen import cse
 from tvopt_codegen.cse import (
     _substitute,
     canonical_odd,
+    make_kernel,
+    make_kernels,
     operation_count,
     ordered_cse,
     split_invariant,
@@ -68,6 +74,99 @@ def test_cse_merges_equal_and_opposite_values() -> None:
         assert float(got.xreplace(env)) == pytest.approx(float(want.xreplace(point)), rel=1e-15)
     # tan once, its square plus one once, and x - y once (y - x is its negation).
     assert len(body) == 3
+
+
+def _evaluate(
+    body: Sequence[tuple[sp.Symbol, sp.Expr]], outs: Sequence[sp.Expr], env: dict
+) -> list[float]:
+    env = dict(env)
+    for sym, value in body:
+        env[sym] = float(value.xreplace(env))
+    return [float(sp.sympify(e).xreplace(env)) for e in outs]
+
+
+def _uses(body: Sequence[tuple[sp.Symbol, sp.Expr]], outs: Sequence[sp.Expr]) -> Counter[sp.Basic]:
+    return Counter(
+        node
+        for e in [v for _, v in body] + list(outs)
+        for node in sp.preorder_traversal(e)
+        if node.is_Symbol
+    )
+
+
+def test_inlining_follows_the_uses_that_collecting_terms_removes() -> None:
+    # Each level is s_j = s_{j-1} + b_j, read by u_j = s_j + 2*u_{j+1}-like sums: inlining
+    # the single-use u collects 3*s_j, after which s_j is used once too. One pass over
+    # the program found one level; the result must have no temporary used once.
+    xs = sp.symbols("x0:8", real=True)
+    s = [sp.Symbol(f"_s{j}", real=True) for j in range(8)]
+    u = [sp.Symbol(f"_u{j}", real=True) for j in range(8)]
+    program = [(s[0], xs[0] * xs[1])]
+    for j in range(1, 8):
+        program.append((s[j], s[j - 1] + sp.sin(xs[j])))
+    # u_j = s_j + s_{j-1}, and the output sums s_j + 2*u_j: s_j twice, u_j once.
+    for j in range(1, 8):
+        program.append((u[j], s[j] + xs[j] * s[j - 1]))
+    out = sp.Add(*(s[j] + 2 * u[j] for j in range(1, 8)))
+    # One call reaches the fixed point (it used to take a pass per level).
+    once, once_outs = cse._inline_single_use(program, [out])
+    uses = _uses(once, once_outs)
+    assert all(uses[sym] > 1 for sym, _ in once), [(sym, uses[sym]) for sym, _ in once]
+    body, outs = ordered_cse(program, [out], search=False)
+    point = {x: 0.1 * (i + 1) for i, x in enumerate(xs)}
+    full = sp.Add(*(s[j] + 2 * u[j] for j in range(1, 8)))
+    for sym, value in reversed(program):
+        full = full.xreplace({sym: value})
+    assert _evaluate(body, outs, point) == pytest.approx([float(full.xreplace(point))], rel=1e-14)
+
+
+def test_kernels_lowered_together_compute_what_they_compute_apart(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # A jet-like program read by two kernels (one needs a prefix of it), lowered
+    # together once both are "large" (the limit lowered to make them so).
+    monkeypatch.setattr(cse, "SMALL_PROGRAM_OPS", 5)
+    s0, s1, p0 = sp.symbols("_s0 _s1 _p0", real=True)
+    g = [sp.Symbol(f"_g{i}", real=True) for i in range(6)]
+    program = [
+        (g[0], sp.tanh((x - t) / a)),
+        (g[1], g[0] ** 2 + y),
+        (g[2], g[1] * x + g[0] * y),
+        (g[3], g[2] + g[1] * a),
+        (g[4], g[3] * g[0] + sp.cos(y - x)),
+        (g[5], g[4] + 2 * g[3] + g[2] * g[1]),
+    ]
+    subs = {x: s0, y: s1, a: p0}
+    inputs = [
+        Arg("t", (), (), "time"),
+        Arg("s", (s0, s1), ("x", "y"), ""),
+        Arg("p", (p0,), ("a",), ""),
+    ]
+    first = ("first", "all of it", inputs, [("o", (2,), [g[5], g[4] * g[1]], "")])
+    second = ("second", "a prefix", inputs, [("e", (2,), [g[2], g[3] - g[0]], "")])
+    reduced = []
+    reduce = cse._reduce
+    monkeypatch.setattr(cse, "_reduce", lambda *a, **k: reduced.append(1) or reduce(*a, **k))
+    together = make_kernels([first, second], program, subs, odd={})
+    assert len(reduced) == 1  # one lowering for both
+    apart = [
+        make_kernel(name, doc, args, program, outs, subs, odd={})
+        for name, doc, args, outs in (first, second)
+    ]
+    env = {t: 0.3, s0: 0.8, s1: -0.4, p0: 1.7}
+    for joint, alone in zip(together, apart, strict=True):
+        assert joint.name == alone.name
+        assert joint.ops <= alone.ops
+        assert joint.ops_before_cse == alone.ops_before_cse
+        got = _evaluate(joint.body, joint.outputs[0].exprs, env)
+        want = _evaluate(alone.body, alone.outputs[0].exprs, env)
+        assert got == pytest.approx(want, rel=1e-14)
+        uses = _uses(joint.body, joint.outputs[0].exprs)
+        assert all(uses[sym] > 1 for sym, _ in joint.body), joint.name
+        # Each keeps what its outputs need: the prefix kernel never reads g4's cosine.
+    assert not any(
+        node.func == sp.cos for _, v in together[1].body for node in sp.preorder_traversal(v)
+    )
 
 
 @pytest.mark.parametrize("spec", ["two_unicycles_barrier", "unicycle_ring", "flexible_joint"])

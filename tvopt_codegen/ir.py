@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import sympy as sp
 
-from tvopt_codegen.cse import make_kernel, split_invariant
+from tvopt_codegen.cse import Outputs, make_kernel, make_kernels, split_invariant
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.jet import Assignment
 from tvopt_codegen.kernel import Arg, Kernel, KernelSet, Output
@@ -43,9 +43,11 @@ __all__ = ["Arg", "Kernel", "KernelSet", "Output", "lower"]
 _slots = symbols
 
 
-#: How a kernel is made: :func:`~tvopt_codegen.cse.make_kernel` sharing one controller's
-#: memo of odd functions.
+#: How kernels are made: :func:`~tvopt_codegen.cse.make_kernel` (one) and
+#: :func:`~tvopt_codegen.cse.make_kernels` (several over one program), sharing one
+#: controller's memo of odd functions.
 _Make = Callable[..., Kernel]
+_MakeMany = Callable[..., list[Kernel]]
 
 
 @dataclass(frozen=True)
@@ -118,10 +120,18 @@ def _programs(d: Derivation) -> dict[str, list[Assignment]]:
 
 
 def _jet_kernels(
-    d: Derivation, args: _Args, programs: dict[str, list[Assignment]], kernel: _Make
-) -> tuple[Kernel, Kernel | None]:
-    """The jet (with R and p) and, unless the Hessian is constant, its LDL^T solve."""
-    law, m, n = d.law, len(d.model.u), d.n_kkt
+    d: Derivation,
+    args: _Args,
+    programs: dict[str, list[Assignment]],
+    kernel: _Make,
+    kernels: _MakeMany,
+) -> tuple[Kernel, Kernel | None, Kernel]:
+    """The jet (with R and p), its LDL^T solve, and the optimality error E.
+
+    The solve is left out (None) when the Hessian is constant. E reads the same gradient
+    jet as the jet kernel: both are lowered together.
+    """
+    law, m, n, k = d.law, len(d.model.u), d.n_kkt, d.k
     jet_program = programs["signals"] + programs["y"] + programs["jet"] + programs["hessian"]
     jet_program += programs["rest"]
     inputs = [args.t, args.s, args.p, args.a, *args.r]
@@ -130,24 +140,31 @@ def _jet_kernels(
         ("R", (len(law.r_entries),), law.r_entries, "diagonal blocks of the decoupling matrix"),
         ("pvec", (m,), list(d.p), "p = col(L_f^{r_i} h_i)"),
     ]
-    if law.y_imp is not None:
-        jet = kernel(
-            "jet",
-            "y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian",
-            inputs,
-            jet_program,
-            [("z", (n,), law.y_imp, args.z.doc), *shared],
-            args.subs,
+    what = "grad^(j) f0" if n == m else "F^(j), F = [grad f0 + J_a^T nu; a]"
+    optimality_kernel = (
+        "optimality",
+        f"Optimality error E: row j is {what}",
+        [args.t, args.s, args.p, *args.r],
+        [("E", (k, n), [d.grad_jet[j][i] for j in range(k) for i in range(n)], what)],
+    )
+
+    def with_optimality(jet_doc: str, outputs: Outputs) -> tuple[Kernel, Kernel]:
+        jet, optimality = kernels(
+            [("jet", jet_doc, inputs, outputs), optimality_kernel], jet_program, args.subs
         )
-        return jet, None
+        return jet, optimality
+
+    if law.y_imp is not None:
+        jet, optimality = with_optimality(
+            "y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian",
+            [("z", (n,), law.y_imp, args.z.doc), *shared],
+        )
+        return jet, None, optimality
     # The Hessian goes out as the entries of its lower triangle that the law keeps.
     pattern = law.hessian_pattern
     value = dict(d.hessian_entries)
-    jet = kernel(
-        "jet",
+    jet, optimality = with_optimality(
         "Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest",
-        inputs,
-        jet_program,
         [
             (
                 "hessian",
@@ -158,7 +175,6 @@ def _jet_kernels(
             ("jet_rhs", (n,), law.jet_rhs, "sum_i a_i grad^(i) f0 - rest"),
             *shared,
         ],
-        args.subs,
     )
     h_slots, c_slots = _slots("h", len(pattern)), _slots("c", n)
     # The outputs' block is eliminated first: its pivots are positive where f0 is
@@ -186,7 +202,7 @@ def _jet_kernels(
         {},
         search=False,  # one operation per assignment already: nothing to find
     )
-    return jet, cholesky
+    return jet, cholesky, optimality
 
 
 def _input_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
@@ -228,37 +244,33 @@ def _input_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
 
 
 def _objective_kernels(
-    d: Derivation, args: _Args, programs: dict[str, list[Assignment]], kernel: _Make
+    d: Derivation, args: _Args, programs: dict[str, list[Assignment]], kernels: _MakeMany
 ) -> list[Kernel]:
-    """The optimality error along the closed loop, and f0 with its derivatives in y."""
-    m, k, n = len(d.model.u), d.k, d.n_kkt
-    what = "grad^(j) f0" if n == m else "F^(j), F = [grad f0 + J_a^T nu; a]"
-    optimality = kernel(
-        "optimality",
-        f"Optimality error E: row j is {what}",
-        [args.t, args.s, args.p, *args.r],
-        programs["signals"] + programs["y"] + programs["jet"],
-        [("E", (k, n), [d.grad_jet[j][i] for j in range(k) for i in range(n)], what)],
-        args.subs,
-    )
+    """f0 and its first and second derivatives in y, at given outputs."""
+    m = len(d.model.u)
     on_y = [args.t, args.y, args.p, *args.r]
-    signal0 = programs["signals0"]
-    objective = kernel(
-        "objective", "The objective f0(y, t)", on_y, signal0,
-        [("f0", (), [d.model.f0], "f0")], args.y_subs,
-    )  # fmt: skip
-    # Both from the gradient's program (the jet's first assignments), which make_kernel
-    # prunes to what each needs.
-    objective_program = list(d.objective_program.assignments)
-    gradient = kernel(
-        "gradient", "grad_y f0(y, t)", on_y, signal0 + objective_program,
-        [("grad", (m,), list(d.objective_gradient), "grad_y f0")], args.y_subs,
-    )  # fmt: skip
-    hessian = kernel(
-        "hessian", "grad_yy f0(y, t)", on_y, signal0 + objective_program,
-        [("hess", (m, m), d.objective_hessian, "grad_yy f0")], args.y_subs,
-    )  # fmt: skip
-    return [optimality, objective, gradient, hessian]
+    # One program for the three: the signals, then the gradient's program (the jet's
+    # first assignments), which each kernel prunes to what it needs.
+    program = programs["signals0"] + list(d.objective_program.assignments)
+    return kernels(
+        [
+            ("objective", "The objective f0(y, t)", on_y, [("f0", (), [d.model.f0], "f0")]),
+            (
+                "gradient",
+                "grad_y f0(y, t)",
+                on_y,
+                [("grad", (m,), list(d.objective_gradient), "grad_y f0")],
+            ),
+            (
+                "hessian",
+                "grad_yy f0(y, t)",
+                on_y,
+                [("hess", (m, m), d.objective_hessian, "grad_yy f0")],
+            ),
+        ],
+        program,
+        args.y_subs,
+    )
 
 
 def _plant_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
@@ -312,20 +324,22 @@ def lower(derivation: Derivation) -> KernelSet:
         (:mod:`tvopt_codegen.plan`).
     """
     d = derivation
-    # One memo of odd functions for all kernels, made in this order: the CSE of each
-    # sees the signs the earlier ones chose.
-    kernel = functools.partial(make_kernel, odd={})
+    # One memo of odd functions for all kernels: a node's sign is decided once (by the
+    # node alone, so the kernels' order does not matter).
+    odd: dict[sp.Basic, sp.Expr] = {}
+    kernel = functools.partial(make_kernel, odd=odd)
+    kernels = functools.partial(make_kernels, odd=odd)
     args = _arguments(d)
     programs = _programs(d)
-    jet, cholesky = _jet_kernels(d, args, programs, kernel)
+    jet, cholesky, optimality = _jet_kernels(d, args, programs, kernel, kernels)
     # Everything of the jet that depends on time and parameters alone is computed once
     # per batch of states (the C backend's batch functions; a block in NumPy).
     split = split_invariant(jet, "jet_time", "The jet's terms of time and parameters alone")
     jet_time = None
     if split is not None:
         jet_time, jet = split
-    rest = _input_kernels(d, args, kernel) + _objective_kernels(d, args, programs, kernel)
-    rest += _plant_kernels(d, args, kernel)
+    rest = _input_kernels(d, args, kernel) + [optimality]
+    rest += _objective_kernels(d, args, programs, kernels) + _plant_kernels(d, args, kernel)
     law = d.law
     plan = law_plan(
         n_states=len(d.states),
