@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import subprocess
 import sys
@@ -9,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from tvopt_codegen import cli
 from tvopt_codegen.cli import main
 from tvopt_codegen.errors import EXIT_ASSUMPTION, EXIT_BAD_SPEC, EXIT_OUTPUT
 
@@ -172,3 +174,20 @@ def test_derivation_progress_names_stage_count_and_time(
     # Off a terminal the default says nothing: logs and error messages stay clean.
     assert main(["check", "unicycle_ring"]) == 0
     assert capsys.readouterr().err == ""
+
+
+def test_a_command_runs_with_the_collectors_thresholds_and_restores_them(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    seen: list[tuple[int, int, int]] = []
+    before = gc.get_threshold()
+
+    def run(argv: object) -> int:
+        seen.append(gc.get_threshold())
+        raise RuntimeError("boom")  # restored on every way out, an internal error too
+
+    monkeypatch.setattr(cli, "run", run)
+    assert main(["check", "integrator"]) != 0
+    assert seen == [cli.GC_THRESHOLDS] != [before]
+    assert gc.get_threshold() == before
+    assert "internal error" in capsys.readouterr().err

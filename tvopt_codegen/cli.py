@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import gc
 import math
 import os
 import signal
@@ -663,9 +664,19 @@ def _on_sigterm(_signum: int, _frame: object) -> None:
     raise _Terminated
 
 
+#: The cyclic garbage collector's thresholds while a command runs (Python's: 700, 10, 10).
+#: A derivation allocates millions of sympy objects that live to its end; with Python's
+#: thresholds the collector scans them nine thousand times for a ring of 128 agents, a
+#: fifth of the run (6.0 s of 31), for next to no garbage. At these, 613 collections
+#: take 2.8 s and the peak memory is the same (272 MB).
+GC_THRESHOLDS = (10000, 10, 10)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Console-script entry point: run, and map every outcome to one line and an exit code."""
     previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    collector = gc.get_threshold()
+    gc.set_threshold(*GC_THRESHOLDS)
     try:
         code = run(argv)
         sys.stdout.flush()  # here, where a closed pipe is caught below, not at exit
@@ -706,6 +717,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INTERNAL
     finally:
         signal.signal(signal.SIGTERM, previous)
+        gc.set_threshold(*collector)
 
 
 if __name__ == "__main__":
