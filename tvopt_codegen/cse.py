@@ -150,6 +150,8 @@ def _substitute(
     memo: dict[sp.Basic, sp.Basic] | None = None,
 ) -> sp.Basic:
     """``expr.xreplace(mapping)`` with :func:`_rebuild`; ``memo`` may span many calls."""
+    if isinstance(expr, sp.Basic) and not expr.args and expr not in mapping:
+        return expr  # a number or a symbol left alone: most of a team's Hessian
     table: dict[sp.Basic, sp.Basic] = {} if memo is None else memo
 
     def visit(node: sp.Basic) -> sp.Basic:
@@ -259,7 +261,10 @@ def _reduce(
     emitted: set[sp.Symbol] = set()
 
     def need(expr: sp.Expr) -> None:
-        for sym in sorted(expr.free_symbols & defined.keys() - emitted, key=_cse_index):
+        # Not free_symbols & defined.keys() - emitted: "-" binds first, and the difference
+        # of the two large sets, once per value, was quadratic in the program's size.
+        missing = [s for s in expr.free_symbols if s in defined and s not in emitted]
+        for sym in sorted(missing, key=_cse_index):
             need(defined[sym])
             if sym not in emitted:
                 emitted.add(sym)
@@ -290,11 +295,13 @@ def _number(
     """Rename the temporaries ``_t0, _t1, ...`` in evaluation order."""
     renames: dict[sp.Symbol, sp.Expr] = {}
     body: list[Assignment] = []
+    # One memo, as in _drop_aliases: a node holds only symbols renamed before it is met.
+    memo: dict[sp.Basic, sp.Basic] = {}
     for index, (sym, value) in enumerate(order):
         new = sp.Symbol(f"_t{index}", real=True)
-        body.append((new, _substitute(value, renames)))
+        body.append((new, _substitute(value, renames, memo)))
         renames[sym] = new
-    return tuple(body), tuple(_substitute(e, renames) for e in outs)
+    return tuple(body), tuple(_substitute(e, renames, memo) for e in outs)
 
 
 def _value_numbering(
@@ -402,6 +409,8 @@ def _negate(value: sp.Basic) -> sp.Basic:
 
 def _occurrences(expr: sp.Basic) -> Counter[sp.Symbol]:
     """How often each symbol occurs in ``expr`` as a tree: ``x*x`` uses ``x`` twice."""
+    if not expr.args:  # most of a team's Hessian is zeros
+        return Counter((expr,) if expr.is_Symbol else ())
     return Counter(node for node in sp.preorder_traversal(expr) if node.is_Symbol)
 
 
@@ -428,8 +437,8 @@ def _inline_single_use(
     uses: Counter[sp.Symbol] = Counter()
     holders: dict[sp.Symbol, set[int]] = {}
     for i, count in enumerate(counts):
-        uses.update(count)
-        for sym in count:
+        for sym, times in count.items():
+            uses[sym] += times
             holders.setdefault(sym, set()).add(i)
     gone: set[int] = set()
     wave = {i for i, (sym, _) in enumerate(order) if uses[sym] <= 1}

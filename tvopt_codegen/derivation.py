@@ -498,9 +498,10 @@ def _singular_start(
     values |= {sym: float(v) for sym, v in zip(states, initial, strict=True)}
     evaluate = Evaluator(values)
     with np.errstate(all="ignore"):
-        matrix = np.array(
-            [[complex(evaluate(R[i, j])) for j in range(R.cols)] for i in range(R.rows)]
-        )
+        # R's nonzero entries only: a team's R is block diagonal.
+        matrix = np.zeros(R.shape, dtype=complex)
+        for (i, j), entry in R.todok().items():
+            matrix[i, j] = complex(evaluate(entry))
         rest = np.array([complex(evaluate(e)) for e in p])
     finite = bool(np.all(np.isfinite(matrix)) and np.all(np.isfinite(rest)))
     if finite and np.all(matrix.imag == 0) and np.linalg.cond(matrix.real) < 1e12:
@@ -1268,7 +1269,9 @@ def _decoupling(lin: _Linearization, meter: _Meter) -> _Decoupling:
             det_R_note = (
                 f"not simplified symbolically (more than {_DET_SIMPLIFY_NODES} expression nodes)"
             )
-    undefined = _undefined_set([*R, *p], set(lin.extension.x))
+    # R's nonzero entries: a team's R is m^2 entries, almost all zeros.
+    entries = [e for _, e in sorted(R.todok().items())]
+    undefined = _undefined_set([*entries, *p], set(lin.extension.x))
     return _Decoupling(p, phi, A, B, det_R, det_R_note, singular, undefined)
 
 

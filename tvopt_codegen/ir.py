@@ -282,11 +282,12 @@ def _plant_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
     subs: dict[sp.Symbol, sp.Expr] = dict(zip(model.x, x_slots, strict=True))
     subs |= dict(zip(model.u, u_slots, strict=True))
     subs |= dict(zip(model.params, args.p.symbols, strict=True))
-    G = model.G
-    dx = [
-        sp.Add(model.f[i], *(G[i, j] * model.u[j] for j in range(G.shape[1]) if G[i, j] != 0))
-        for i in range(G.shape[0])
-    ]
+    # G's nonzero entries only: a team's G is block diagonal.
+    terms: list[list[sp.Expr]] = [[] for _ in range(model.G.shape[0])]
+    for (i, j), entry in sorted(model.G.todok().items()):
+        if entry != 0:
+            terms[i].append(entry * model.u[j])
+    dx = [sp.Add(model.f[i], *terms[i]) for i in range(model.G.shape[0])]
     plant = kernel(
         "plant",
         "The plant alone: x' = f(x) + G(x) u",

@@ -114,10 +114,10 @@ def diagonal_blocks(matrix: sp.MatrixBase) -> tuple[tuple[int, ...], ...]:
             i = parent[i]
         return i
 
-    for i in range(m):
-        for j in range(m):
-            if i != j and matrix[i, j] != 0:
-                parent[root(i)] = root(j)
+    # The dictionary of keys: a team's R has m^2 entries, almost all zeros.
+    for (i, j), entry in sorted(matrix.todok().items()):
+        if i != j and entry != 0:
+            parent[root(i)] = root(j)
     blocks: dict[int, list[int]] = {}
     for i in range(m):
         blocks.setdefault(root(i), []).append(i)
@@ -195,10 +195,12 @@ def control_law(
     ext = extension
     # f + G w over G's nonzero entries only: a team's G is block diagonal, and the
     # dense product costs n m^2 sympy multiplications (half a second at 32 agents).
-    field: list[sp.Expr] = [
-        sp.Add(ext.f[i], *(ext.G[i, j] * w[j] for j in range(m) if ext.G[i, j] != 0))
-        for i in range(ext.G.shape[0])
-    ]
+    # Its nonzero entries from the dictionary of keys, not by visiting all n m of them.
+    terms: list[list[sp.Expr]] = [[] for _ in range(ext.G.shape[0])]
+    for (i, j), entry in sorted(ext.G.todok().items()):
+        if entry != 0:
+            terms[i].append(entry * w[j])
+    field: list[sp.Expr] = [sp.Add(ext.f[i], *terms[i]) for i in range(ext.G.shape[0])]
     for i, chain in enumerate(padding):
         for j in range(len(chain)):
             field.append(state_of[chain[j + 1]] if j + 1 < len(chain) else z[i])
