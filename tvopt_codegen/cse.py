@@ -695,8 +695,17 @@ def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel
     shared: dict[sp.Expr, sp.Symbol] = {}  # invariant value -> the state part's name for it
     memo: dict[sp.Basic, sp.Expr] = {}
 
+    known: dict[sp.Basic, bool] = {}
+
     def fixed(node: sp.Basic) -> bool:
-        return bool(node.free_symbols <= invariant)
+        # Bottom-up and memoized: sympy's free_symbols walks the whole subtree on every
+        # call, which made hoisting quadratic in an expression's depth.
+        if not node.args:
+            return not node.is_Symbol or node in invariant
+        found = known.get(node)
+        if found is None:
+            found = known[node] = all(fixed(arg) for arg in node.args)
+        return found
 
     def share(node: sp.Expr) -> sp.Expr:
         # Numbers and the inputs themselves are at hand in the state part already.

@@ -341,6 +341,9 @@ class _Meter:
 
     def __call__(self, expr: sp.Expr) -> None:
         self.expressions += 1
+        if isinstance(expr, sp.Basic) and not expr.args:
+            self.nodes += 1  # an atom: most entries of a team's matrices are zeros
+            return
         self.check_time()
         size = tree_size(sp.sympify(expr), self.budget.size)
         self.nodes += size
@@ -943,8 +946,9 @@ def _fading_sparse(
 ) -> np.ndarray:
     """Which points have a Hessian whose smallest eigenvalue lies in (-threshold, threshold).
 
-    Two sparse factorizations per candidate point (``H + threshold I`` definite,
-    ``H - threshold I`` not), and a dense eigenvalue decomposition where SuperLU would
+    Sparse factorizations per candidate point: ``H - threshold I`` not definite (one
+    factorization where it is, at every point where f0 is strongly convex), then
+    ``H + threshold I`` definite; a dense eigenvalue decomposition where SuperLU would
     not keep a symmetric order.
     """
     m = points.shape[1]
@@ -958,8 +962,10 @@ def _fading_sparse(
             column, tau = values[:, offset], float(threshold[start + offset])
             if not np.all(np.isfinite(column)):
                 continue
-            above = sparse.positive_definite(column, tau)
             below = sparse.positive_definite(column, -tau)
+            if below:
+                continue  # H - tau I > 0: strongly convex there, the common case
+            above = sparse.positive_definite(column, tau)
             if above is None or below is None:
                 _, dense = numbers.derivatives(
                     points[None, start + offset], times[None, start + offset]
