@@ -534,8 +534,12 @@ def canonical_odd(expr: sp.Expr, memo: dict[sp.Basic, sp.Expr] | None = None) ->
         return new
 
     expr = sp.sympify(expr)
-    if not expr.atoms(*_ODD):
+    if not expr.args:
         return expr
+    if memo is None and not expr.atoms(*_ODD):
+        return expr
+    # With a shared memo, no search for odd functions first: atoms() walks the whole
+    # tree on every call, where the memo makes each node's rewrite a lookup.
     return rewrite(expr)
 
 
@@ -726,7 +730,7 @@ def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel
             # (x + t + 1) -> x + _h0: the invariant terms or factors become one.
             part = [a for a in node.args if fixed(a)]
             rest = [hoist(a) for a in node.args if not fixed(a)]
-            new = node.func(*rest, *([share(node.func(*part))] if part else []))
+            new = _rebuild(node, [*rest, *([share(_rebuild(node, part))] if part else [])])
         else:
             new = _rebuild(node, [hoist(a) for a in node.args])
         memo[node] = new
