@@ -17,6 +17,7 @@ import pytest
 
 from tvopt_codegen.cli import main
 from tvopt_codegen.errors import EXIT_ASSUMPTION, EXIT_BAD_SPEC, EXIT_BUDGET
+from tvopt_codegen.names import module_name_problem
 
 from .conftest import ROOT
 
@@ -495,3 +496,24 @@ def test_bombs_answer_within_the_budget(
     assert done.returncode == code, done.stderr
     assert done.stderr.count("\n") == 1 and message in done.stderr
     assert elapsed < limit + 6  # the budget, plus start-up: within a few seconds
+
+
+def test_a_module_name_is_refused_where_installed_not_where_generated(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A module generated earlier into the working folder, which python -m puts on
+    # sys.path, does not make its name "installed": regenerating it must work.
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "my_robot.py").write_text("X = 1\n")
+    monkeypatch.chdir(work)
+    monkeypatch.syspath_prepend(str(work))
+    assert module_name_problem("my_robot") is None
+    # The same name in a folder of installed code is refused, like numpy is.
+    site = tmp_path / "site"
+    (site / "my_robot").mkdir(parents=True)
+    (site / "my_robot" / "__init__.py").write_text("")
+    monkeypatch.syspath_prepend(str(site))
+    assert module_name_problem("my_robot") == (
+        "module name 'my_robot' shadows the installed package of that name"
+    )

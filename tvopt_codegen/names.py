@@ -7,8 +7,9 @@ they name the generated module. These rules keep all of that unambiguous.
 
 from __future__ import annotations
 
-import importlib.metadata
+import importlib.machinery
 import keyword
+import os
 import re
 import sys
 
@@ -85,7 +86,7 @@ def module_name_problem(name: object) -> str | None:
         return f"module name {name!r} is a reserved device name on Windows"
     if name in sys.stdlib_module_names or name in sys.builtin_module_names:
         return f"module name {name!r} shadows the Python standard module of that name"
-    if name in _installed_top_level():
+    if _installed(name):
         return f"module name {name!r} shadows the installed package of that name"
     return None
 
@@ -102,7 +103,38 @@ _WINDOWS_DEVICES = frozenset(
 )
 
 
-def _installed_top_level() -> frozenset[str]:
-    """Top-level import names of every installed distribution, and of this tool."""
-    names = set(importlib.metadata.packages_distributions())
-    return frozenset(names | {"numpy", "scipy", "sympy", "jinja2", "tvopt_codegen"})
+#: The tool's own imports, installed or not (an editable install is found by its finder).
+_OWN_IMPORTS = frozenset({"numpy", "scipy", "sympy", "jinja2", "tvopt_codegen"})
+
+#: The interpreter's own finders: PathFinder is asked directly, without the working folder.
+_STANDARD_FINDERS = (
+    importlib.machinery.BuiltinImporter,
+    importlib.machinery.FrozenImporter,
+    importlib.machinery.PathFinder,
+)
+
+
+def _installed(name: str) -> bool:
+    """Whether ``name`` imports from an installed location (not the working folder).
+
+    Asked of the import system for this one name: the module path without the working
+    folder (where a module generated earlier may sit), then any finder an installer
+    added (an editable install's). Listing every installed distribution's top-level
+    names instead (``importlib.metadata.packages_distributions``) reads each one's file
+    list, 0.4 s of every command in an environment with the optional integrations.
+    """
+    if name in _OWN_IMPORTS:
+        return True
+    here = os.path.abspath(os.getcwd())
+    paths = [p for p in sys.path if p and os.path.abspath(p) != here]
+    if importlib.machinery.PathFinder.find_spec(name, paths) is not None:
+        return True
+    for finder in sys.meta_path:
+        if finder in _STANDARD_FINDERS or not hasattr(finder, "find_spec"):
+            continue
+        try:
+            if finder.find_spec(name, None) is not None:
+                return True
+        except Exception:  # noqa: BLE001 - a third-party finder's failure is not ours
+            continue
+    return False
