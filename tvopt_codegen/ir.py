@@ -35,6 +35,7 @@ from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.jet import Assignment
 from tvopt_codegen.kernel import Arg, Kernel, KernelSet, Output
 from tvopt_codegen.law import symbols
+from tvopt_codegen.lie import control_affine
 from tvopt_codegen.plan import law_plan
 from tvopt_codegen.sparse import cholesky_program, lu_operations
 
@@ -282,12 +283,7 @@ def _plant_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
     subs: dict[sp.Symbol, sp.Expr] = dict(zip(model.x, x_slots, strict=True))
     subs |= dict(zip(model.u, u_slots, strict=True))
     subs |= dict(zip(model.params, args.p.symbols, strict=True))
-    # G's nonzero entries only: a team's G is block diagonal.
-    terms: list[list[sp.Expr]] = [[] for _ in range(model.G.shape[0])]
-    for (i, j), entry in sorted(model.G.todok().items()):
-        if entry != 0:
-            terms[i].append(entry * model.u[j])
-    dx = [sp.Add(model.f[i], *terms[i]) for i in range(model.G.shape[0])]
+    dx = control_affine(model.f, model.G, model.u)
     plant = kernel(
         "plant",
         "The plant alone: x' = f(x) + G(x) u",

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import sympy as sp
 
-from tvopt_codegen.lie import Extension
+from tvopt_codegen.lie import Extension, control_affine
 
 
 def symbols(prefix: str, count: int) -> tuple[sp.Symbol, ...]:
@@ -193,14 +193,7 @@ def control_law(
     r_blocks = diagonal_blocks(R)
     r_entries = tuple(R[i, j] for block in r_blocks for i in block for j in block)
     ext = extension
-    # f + G w over G's nonzero entries only: a team's G is block diagonal, and the
-    # dense product costs n m^2 sympy multiplications (half a second at 32 agents).
-    # Its nonzero entries from the dictionary of keys, not by visiting all n m of them.
-    terms: list[list[sp.Expr]] = [[] for _ in range(ext.G.shape[0])]
-    for (i, j), entry in sorted(ext.G.todok().items()):
-        if entry != 0:
-            terms[i].append(entry * w[j])
-    field: list[sp.Expr] = [sp.Add(ext.f[i], *terms[i]) for i in range(ext.G.shape[0])]
+    field = control_affine(ext.f, ext.G, w)
     for i, chain in enumerate(padding):
         for j in range(len(chain)):
             field.append(state_of[chain[j + 1]] if j + 1 < len(chain) else z[i])
