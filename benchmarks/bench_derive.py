@@ -40,6 +40,8 @@ from pathlib import Path
 import casadi as ca
 import sympy as sp
 
+from tvopt_codegen.spec import bundled_examples
+
 SIZES = (1, 2, 4, 8, 16, 32, 64, 128, 256)
 LAW_KERNELS = ("jet_time", "jet", "cholesky", "decoupling", "closed_loop")
 # The spec's defaults, for the peers (ours reads them from the spec).
@@ -189,32 +191,22 @@ def ours_cold(agents: int, folder: Path, timeout: float) -> dict[str, float]:
     return generate_cold(spec, folder / f"out{agents}", timeout)
 
 
-#: Specs timed beside the ring, with the issue's target for each (cold CLI seconds).
-SINGLES = [
-    (Path(__file__).resolve().parent / "chain12.toml", 5.0),
-    *(
-        (Path(str(resources.files("tvopt_codegen.examples") / f"{name}.toml")), 1.5)
-        for name in (
-            "integrator",
-            "unicycle_switch",
-            "two_unicycles_barrier",
-            "pvtol",
-            "flexible_joint",
-            "unicycle_ring",
-            "two_unicycles_corridor",
-            "arm_on_line",
-        )
-    ),
-]
+def singles() -> list[tuple[Path, float]]:
+    """Specs timed beside the ring, with the issue's target for each (cold CLI seconds)."""
+    examples = resources.files("tvopt_codegen.examples")
+    return [
+        (Path(__file__).resolve().parent / "chain12.toml", 5.0),
+        *((Path(str(examples / f"{name}.toml")), 1.5) for name in bundled_examples()),
+    ]
 
 
 def singles_table(folder: Path, timeout: float) -> str:
-    """The k = 12 chain and every bundled example, one cold process each."""
+    """The k = 12 chain and every bundled example, the median of three cold processes."""
     lines = [
         "| spec | CLI wall s | target s | start-up | load | derive | lower | render | ops |",
         "|" + "---|" * 9,
     ]
-    for spec, target in SINGLES:
+    for spec, target in singles():
         # The median of three cold runs: a short process on this shared machine now and
         # then takes half again as long.
         runs = sorted(
