@@ -10,6 +10,7 @@ depends on time and parameters alone, computed once per batch of states.
 from __future__ import annotations
 
 import functools
+import itertools
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 
@@ -636,13 +637,12 @@ def make_kernels(
     then used once. Smaller kernels are made one by one, as :func:`make_kernel` would:
     sympy's fuller search suits them, and a union could pass its size limit.
     """
-    exprs = [_flat(outputs) for _, _, _, outputs in kernels]
-    program, flat = _prepare(assignments, [e for part in exprs for e in part], subs, odd)
-    parts: list[list[sp.Expr]] = []
-    for part in exprs:
-        parts.append(flat[: len(part)])
-        flat = flat[len(part) :]
-    flat = [e for part in parts for e in part]
+    sizes = [len(_flat(outputs)) for _, _, _, outputs in kernels]
+    program, flat = _prepare(
+        assignments, [e for *_, outputs in kernels for e in _flat(outputs)], subs, odd
+    )
+    ends = list(itertools.accumulate(sizes))
+    parts = [flat[end - size : end] for size, end in zip(sizes, ends, strict=True)]
     programs = [_prune(program, part) for part in parts]
     befores = [
         operation_count([v for _, v in mine] + part)
@@ -657,8 +657,10 @@ def make_kernels(
         ]
     order, outs = _reduce(program, flat, search=False)
     made: list[Kernel] = []
-    for (name, doc, inputs, outputs), part, before in zip(kernels, parts, befores, strict=True):
-        mine, outs = outs[: len(part)], outs[len(part) :]
+    for (name, doc, inputs, outputs), size, end, before in zip(
+        kernels, sizes, ends, befores, strict=True
+    ):
+        mine = outs[end - size : end]
         body, reduced = _number(*_inline_single_use(_prune(order, mine), mine))
         made.append(_package(name, doc, inputs, outputs, body, reduced, before))
     return made
