@@ -99,8 +99,7 @@ class Evaluator:
         if node.is_Symbol:
             raise ValueError(f"no value for the symbol {node}")
         if node.is_Atom:  # a number, pi, E, I, oo or zoo
-            value = complex(node)
-            return value.real if value.imag == 0 else value
+            return _constant(node)
         if node.is_Add:
             return _fold(np.add, args)
         if node.is_Mul:
@@ -114,6 +113,21 @@ class Evaluator:
         if function is None:
             raise ValueError(f"cannot evaluate {type(node).__name__} numerically")
         return function(*args)
+
+
+#: Values of the numbers met so far. An evaluator's memo lives for one batch of points;
+#: the numbers recur across batches (a Newton search builds hundreds of evaluators), and
+#: sympy's ``complex()`` goes through evalf each time.
+_CONSTANTS: dict[sp.Basic, complex | float] = {}
+
+
+def _constant(node: sp.Basic) -> complex | float:
+    value = _CONSTANTS.get(node)
+    if value is None:
+        number = complex(node)
+        value = number.real if number.imag == 0 else number
+        _CONSTANTS[node] = value
+    return value
 
 
 def _fold(op: Callable[[Array, Array], Array], args: Iterable[Array]) -> Array:
