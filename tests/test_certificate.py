@@ -213,3 +213,24 @@ def test_fading_convexity_is_found_among_many_outputs(n: int) -> None:
     # exact one of a quadratic: still no warning where f0 does not fade.
     steady = " + ".join(f"(y{i} - sin(t + {i}))**2 + 0.1*tanh(y{i})" for i in range(n))
     assert derive({**base, "objective": {"f0": steady}}).warnings == ()
+
+
+def test_the_step_exponential_matches_a_fifty_digit_reference() -> None:
+    # hurwitz.exponential replaces scipy's expm for the transient constant: it must be right
+    # to the last bit on companion matrices (stiff, repeated poles) and on general ones.
+    import mpmath  # noqa: PLC0415 - a dependency of sympy
+
+    from tvopt_codegen.hurwitz import coefficients_from_poles, companion, exponential
+
+    rng = np.random.default_rng(7)
+    matrices = [
+        companion(coefficients_from_poles(poles)) * step
+        for poles in ([-1.0] * 6, [-0.5 + 2j, -0.5 - 2j, -3.0], [-10.0] * 8)
+        for step in (1e-3, 0.1, 2.0)
+    ]
+    matrices += [rng.normal(size=(k, k)) * scale for k in (1, 3, 5) for scale in (0.01, 1, 20)]
+    with mpmath.workdps(50):
+        for matrix in matrices:
+            exact = np.array(mpmath.expm(mpmath.matrix(matrix.tolist())).tolist(), dtype=float)
+            error = np.max(np.abs(exponential(matrix) - exact)) / max(1.0, np.max(np.abs(exact)))
+            assert error < 1e-15, (matrix, error)

@@ -196,6 +196,9 @@ def test_generate_check_and_report_load_no_matplotlib_or_integrator(tmp_path: Pa
         loaded = _imported_by(*args)
         assert "sympy" in loaded
         assert not {"matplotlib", "scipy.integrate"} & loaded, args
+    # A small controller needs no scipy at all (a fifth of such a command to import).
+    loaded = _imported_by("generate", "integrator", "--out", str(tmp_path / "h"), "--quiet")
+    assert "scipy" not in loaded
 
 
 def test_figures_leave_the_users_matplotlib_backend_alone(tmp_path: Path) -> None:
