@@ -191,3 +191,24 @@ def test_a_command_runs_with_the_collectors_thresholds_and_restores_them(
     assert seen == [cli.GC_THRESHOLDS] != [before]
     assert gc.get_threshold() == before
     assert "internal error" in capsys.readouterr().err
+
+
+def test_compiled_templates_are_cached_and_change_nothing(tmp_path: Path) -> None:
+    # jinja's compiled templates are kept across commands; the output is the same cold,
+    # warm, and with a cache folder that cannot be used.
+    def generate(cache: Path, out: str) -> dict[str, bytes]:
+        env = dict(os.environ, TVOPT_CODEGEN_CACHE=str(cache))
+        command = [sys.executable, "-m", "tvopt_codegen", "generate", "integrator", "--quiet"]
+        subprocess.run([*command, "--out", str(tmp_path / out)], env=env, check=True)
+        return snapshot(tmp_path / out)
+
+    cache = tmp_path / "cache"
+    cold = generate(cache, "cold")
+    entries = sorted((cache / "templates").iterdir())
+    assert entries and all(e.name.startswith("__jinja2_") for e in entries)
+    stamps = {e: e.stat().st_mtime_ns for e in entries}
+    assert generate(cache, "warm") == cold
+    assert {e: e.stat().st_mtime_ns for e in entries} == stamps  # read, not rewritten
+    blocked = tmp_path / "a-file"
+    blocked.write_text("not a folder\n")
+    assert generate(blocked, "blocked") == cold
