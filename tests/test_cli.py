@@ -212,3 +212,33 @@ def test_compiled_templates_are_cached_and_change_nothing(tmp_path: Path) -> Non
     blocked = tmp_path / "a-file"
     blocked.write_text("not a folder\n")
     assert generate(blocked, "blocked") == cold
+
+
+def test_the_process_ends_without_teardown_but_with_its_exit_handlers(tmp_path: Path) -> None:
+    # entry() ends the process with os._exit (freeing a derivation's objects one by one
+    # took a quarter of a command): exit handlers still run, output is whole, and the
+    # exit code is kept; with another thread alive, Python exits as usual.
+    script = (
+        "import atexit, sys, threading\n"
+        "atexit.register(lambda: print('handler ran', flush=True))\n"
+        "stop = threading.Event()\n"
+        "if sys.argv[1] == 'thread':\n"
+        "    threading.Thread(target=stop.wait).start()\n"
+        "from tvopt_codegen.__main__ import entry\n"
+        "sys.argv = ['tvopt-codegen', *sys.argv[2:]]\n"
+        "code = entry()\n"
+        "print('returned', code, flush=True)\n"
+        "stop.set()\n"
+        "sys.exit(code)\n"
+    )
+    run = [sys.executable, "-c", script]
+    done = subprocess.run([*run, "main", "check", "pvtol"], capture_output=True, text=True)
+    assert done.returncode == 0
+    assert "relative degree" in done.stdout and "derivation time" in done.stdout
+    assert done.stdout.rstrip().endswith("handler ran") and "returned" not in done.stdout
+    bad = subprocess.run([*run, "main", "check", "no_such_spec"], capture_output=True, text=True)
+    assert bad.returncode == EXIT_BAD_SPEC and bad.stderr.count("\n") == 1
+    assert bad.stdout == "handler ran\n"
+    usual = subprocess.run([*run, "thread", "check", "integrator"], capture_output=True, text=True)
+    assert usual.returncode == 0 and "returned 0" in usual.stdout
+    assert usual.stdout.rstrip().endswith("handler ran")
