@@ -199,6 +199,9 @@ def test_generate_check_and_report_load_no_matplotlib_or_integrator(tmp_path: Pa
     # A small controller needs no scipy at all (a fifth of such a command to import).
     loaded = _imported_by("generate", "integrator", "--out", str(tmp_path / "h"), "--quiet")
     assert "scipy" not in loaded
+    # Nor SLSQP's search, where the constraints hold at the start already.
+    loaded = _imported_by("check", "two_unicycles_corridor")
+    assert "scipy.optimize" not in loaded
 
 
 def test_figures_leave_the_users_matplotlib_backend_alone(tmp_path: Path) -> None:

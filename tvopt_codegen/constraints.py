@@ -119,10 +119,9 @@ def least_violation(model: Any, t: float, y0: np.ndarray) -> float:
 
     By SLSQP, as ``min z`` subject to ``g_i(y, t) <= z`` and the equalities, from ``y0``;
     signals and nominal references at ``t`` (references without one at 0), parameters at
-    their defaults.
+    their defaults. When ``y0`` is feasible itself, its ``max_i g_i`` (at most 0) is
+    returned without a search: that answers the question asked, whether anything is.
     """
-    from scipy.optimize import minimize  # noqa: PLC0415 - only with constraints
-
     at = {model.t: sp.Float(t)}
     at |= {q: sp.Float(v) for q, v in zip(model.params, model.defaults, strict=True)}
     nominal = dict(model.nominal)
@@ -136,7 +135,14 @@ def least_violation(model: Any, t: float, y0: np.ndarray) -> float:
     functions = [function(c) for c in model.constraints]
     equal = [function(c) for c in model.equalities]
     m = len(model.y)
-    start = np.append(y0, max(f(y0) for f in functions) + 1.0)
+    at_start = max(f(y0) for f in functions)
+    if at_start <= 0 and all(f(y0) == 0 for f in equal):
+        # y0 is a feasible point already; the search (and importing scipy.optimize, a
+        # sixth of such a command) would only find a smaller value, never a positive one.
+        return float(at_start)
+    from scipy.optimize import minimize  # noqa: PLC0415 - only for an infeasible start
+
+    start = np.append(y0, at_start + 1.0)
     result = minimize(
         lambda v: v[m],
         start,
