@@ -231,14 +231,18 @@ def test_the_process_ends_without_teardown_but_with_its_exit_handlers(tmp_path: 
         "stop.set()\n"
         "sys.exit(code)\n"
     )
-    run = [sys.executable, "-c", script]
-    done = subprocess.run([*run, "main", "check", "pvtol"], capture_output=True, text=True)
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        command = [sys.executable, "-c", script, *args]
+        return subprocess.run(command, capture_output=True, text=True, check=False)
+
+    done = run("main", "check", "pvtol")
     assert done.returncode == 0
     assert "relative degree" in done.stdout and "derivation time" in done.stdout
     assert done.stdout.rstrip().endswith("handler ran") and "returned" not in done.stdout
-    bad = subprocess.run([*run, "main", "check", "no_such_spec"], capture_output=True, text=True)
+    bad = run("main", "check", "no_such_spec")
     assert bad.returncode == EXIT_BAD_SPEC and bad.stderr.count("\n") == 1
     assert bad.stdout == "handler ran\n"
-    usual = subprocess.run([*run, "thread", "check", "integrator"], capture_output=True, text=True)
+    usual = run("thread", "check", "integrator")
     assert usual.returncode == 0 and "returned 0" in usual.stdout
     assert usual.stdout.rstrip().endswith("handler ran")
