@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import random
 from collections import Counter
 from collections.abc import Sequence
 
@@ -22,7 +23,7 @@ from tvopt_codegen.cse import (
     split_invariant,
 )
 from tvopt_codegen.kernel import Arg, Kernel, Output
-from tvopt_codegen.sparse import cholesky_program, elimination_order
+from tvopt_codegen.sparse import cholesky_program, elimination_order, reverse_cuthill_mckee
 
 from .conftest import kernels
 
@@ -276,6 +277,28 @@ def test_elimination_order_avoids_the_arrow_fill() -> None:
     program, _, _ = cholesky_program(entries, m, h, c)
     # No fill: per column below the diagonal one L entry and one scaled entry at most.
     assert operation_count([v for _, v in program]) < 6 * m * 3
+
+
+def test_reverse_cuthill_mckee_is_scipys_order() -> None:
+    """The order is scipy's to the tie, so the generated code did not change with it."""
+    from scipy.sparse import csr_matrix  # noqa: PLC0415
+    from scipy.sparse.csgraph import reverse_cuthill_mckee as scipys  # noqa: PLC0415
+
+    rng = random.Random(3)
+    for _ in range(300):
+        m = rng.choice([2, 3, 5, 8, 13, 30, 64, 130, 600])
+        density = rng.choice([0.005, 0.02] if m > 100 else [0.02, 0.1, 0.3, 0.7])
+        pattern = {(i, i) for i in range(m) if rng.random() < 0.8}
+        for i in range(m):
+            for j in range(i):
+                if rng.random() < density:
+                    pattern |= {(i, j), (j, i)}
+        if not pattern:
+            continue
+        rows, cols = zip(*sorted(pattern), strict=True)
+        graph = csr_matrix(([1] * len(rows), (rows, cols)), shape=(m, m))
+        expected = tuple(int(i) for i in scipys(graph, symmetric_mode=True))
+        assert reverse_cuthill_mckee(pattern, m) == expected, (m, density)
 
 
 _LEAVES = [

@@ -196,9 +196,11 @@ def test_generate_check_and_report_load_no_matplotlib_or_integrator(tmp_path: Pa
         loaded = _imported_by(*args)
         assert "sympy" in loaded
         assert not {"matplotlib", "scipy.integrate"} & loaded, args
-    # A small controller needs no scipy at all (a fifth of such a command to import).
-    loaded = _imported_by("generate", "integrator", "--out", str(tmp_path / "h"), "--quiet")
-    assert "scipy" not in loaded
+    # A controller needs no scipy at all (a fifth of a small command to import), a team's
+    # with its fill-reducing order neither.
+    for name in ("integrator", "unicycle_ring"):
+        loaded = _imported_by("generate", name, "--out", str(tmp_path / name), "--quiet")
+        assert "scipy" not in loaded, name
     # Nor SLSQP's search, where the constraints hold at the start already.
     loaded = _imported_by("check", "two_unicycles_corridor")
     assert "scipy.optimize" not in loaded
