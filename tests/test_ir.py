@@ -9,7 +9,7 @@ from collections.abc import Sequence
 import numpy as np
 import pytest
 import sympy as sp
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from tvopt_codegen import cse
@@ -351,3 +351,14 @@ def test_substitution_builds_what_sympy_builds(expr: sp.Expr, mapping: dict) -> 
 
     assert sp.srepr(_substitute(expr, mapping)) == sp.srepr(reference(expr))
     assert sp.srepr(_negate(expr)) == sp.srepr(-expr)
+
+
+@given(_expressions())
+@settings(max_examples=200, deadline=None)
+def test_an_exact_expansion_negated_is_the_negations_expansion(expr: sp.Expr) -> None:
+    """canonical_odd expands an odd function's argument once and negates the terms for
+    the mirrored argument: the same tree as expanding the negation, without floats."""
+    from tvopt_codegen.cse import _negate
+
+    assume(not expr.has(sp.Float))
+    assert sp.srepr(_negate(sp.expand(expr))) == sp.srepr(sp.expand(-expr))
