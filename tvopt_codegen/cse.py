@@ -20,7 +20,9 @@ from tvopt_codegen.jet import Assignment, fresh_symbols
 from tvopt_codegen.kernel import Arg, Kernel, Output
 
 
-def operation_count(exprs: Iterable[sp.Expr]) -> int:
+def operation_count(
+    exprs: Iterable[sp.Expr], memo: dict[tuple[sp.Basic, str], int] | None = None
+) -> int:
     """Count the arithmetic operations and function calls that printing ``exprs`` costs.
 
     A sum or product of ``n`` terms is ``n - 1`` operations (a factor ``-1`` is the
@@ -28,9 +30,10 @@ def operation_count(exprs: Iterable[sp.Expr]) -> int:
     the division), every other power and every function call one, a negative or
     fractional literal one. Expressions are counted as trees, like sympy's
     ``count_ops``, but in one memoized pass: linear in the size of the DAG, where
-    ``count_ops`` walks each expression anew.
+    ``count_ops`` walks each expression anew. ``memo`` may span calls over the same
+    nodes (the kernels cut from one program).
     """
-    memo: dict[tuple[sp.Basic, str], int] = {}
+    memo = {} if memo is None else memo
 
     def own(node: sp.Basic, parent: str) -> int:
         if node.is_Number:
@@ -196,16 +199,32 @@ def _drop_aliases(
     return kept, [_substitute(e, alias, memo) for e in outputs]
 
 
-def _prune(assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]) -> list[Assignment]:
-    """Drop assignments that no output needs (signal orders a kernel does not use)."""
-    needed: set[sp.Symbol] = set()
+def _prune(
+    assignments: Sequence[Assignment],
+    outputs: Sequence[sp.Expr],
+    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
+) -> list[Assignment]:
+    """Drop assignments that no output needs (signal orders a kernel does not use).
+
+    ``symbols`` (expression -> its free symbols) may span calls over the same program:
+    sympy walks the tree anew each time it is asked.
+    """
+    known: dict[sp.Basic, set[sp.Basic]] = {} if symbols is None else symbols
+
+    def free(expr: sp.Basic) -> set[sp.Basic]:
+        found = known.get(expr)
+        if found is None:
+            found = known[expr] = sp.sympify(expr).free_symbols
+        return found
+
+    needed: set[sp.Basic] = set()
     for e in outputs:
-        needed |= sp.sympify(e).free_symbols
+        needed |= free(e)
     kept: list[Assignment] = []
     for sym, value in reversed(assignments):
         if sym in needed:
             kept.append((sym, value))
-            needed |= sp.sympify(value).free_symbols
+            needed |= free(value)
     return kept[::-1]
 
 
@@ -245,10 +264,16 @@ def ordered_cse(
 
 
 def _reduce(
-    assignments: Sequence[Assignment], outputs: Sequence[sp.Expr], search: bool
+    assignments: Sequence[Assignment],
+    outputs: Sequence[sp.Expr],
+    search: bool,
+    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
 ) -> tuple[list[Assignment], list[sp.Expr]]:
-    """:func:`ordered_cse` up to naming: temporaries in evaluation order, reduced outputs."""
-    kept, outs = _drop_aliases(_prune(assignments, outputs), outputs)
+    """:func:`ordered_cse` up to naming: temporaries in evaluation order, reduced outputs.
+
+    ``symbols`` is :func:`_prune`'s memo of free symbols, when the caller has one.
+    """
+    kept, outs = _drop_aliases(_prune(assignments, outputs, symbols), outputs)
     exprs = [value for _, value in kept] + outs
     names = sp.numbered_symbols("_cse", real=True)
     if search and operation_count(exprs) <= SMALL_PROGRAM_OPS:
@@ -651,9 +676,12 @@ def make_kernels(
     )
     ends = list(itertools.accumulate(sizes))
     parts = [flat[end - size : end] for size, end in zip(sizes, ends, strict=True)]
-    programs = [_prune(program, part) for part in parts]
+    # The kernels cut from one program share its nodes: each is walked once.
+    symbols: dict[sp.Basic, set[sp.Basic]] = {}
+    counts: dict[tuple[sp.Basic, str], int] = {}
+    programs = [_prune(program, part, symbols) for part in parts]
     befores = [
-        operation_count([v for _, v in mine] + part)
+        operation_count([v for _, v in mine] + part, counts)
         for mine, part in zip(programs, parts, strict=True)
     ]
     if len(kernels) < 2 or min(befores) <= SMALL_PROGRAM_OPS:
@@ -663,13 +691,13 @@ def make_kernels(
                 kernels, programs, parts, befores, strict=True
             )
         ]
-    order, outs = _reduce(program, flat, search=False)
+    order, outs = _reduce(program, flat, search=False, symbols=symbols)
     made: list[Kernel] = []
     for (name, doc, inputs, outputs), size, end, before in zip(
         kernels, sizes, ends, befores, strict=True
     ):
         mine = outs[end - size : end]
-        body, reduced = _number(*_inline_single_use(_prune(order, mine), mine))
+        body, reduced = _number(*_inline_single_use(_prune(order, mine, symbols), mine))
         made.append(_package(name, doc, inputs, outputs, body, reduced, before))
     return made
 
