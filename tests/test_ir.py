@@ -113,6 +113,10 @@ def test_inlining_follows_the_uses_that_collecting_terms_removes() -> None:
     once, once_outs = cse._inline_single_use(program, [out])
     uses = _uses(once, once_outs)
     assert all(uses[sym] > 1 for sym, _ in once), [(sym, uses[sym]) for sym, _ in once]
+    # _reduce stops at the first round whose inlining removes nothing: another round
+    # of merging and inlining must then change nothing.
+    order, order_outs = cse._reduce(program, [out], search=False)
+    assert cse._inline_single_use(*cse._merge_equal(order, order_outs)) == (order, order_outs)
     body, outs = ordered_cse(program, [out], search=False)
     point = {x: 0.1 * (i + 1) for i, x in enumerate(xs)}
     full = sp.Add(*(s[j] + 2 * u[j] for j in range(1, 8)))

@@ -305,10 +305,12 @@ def _reduce(
     # value CSE found elsewhere first): substitute those too.
     order, outs = _drop_aliases(order, list(reduced[len(kept) :]))
     # Merging equal values can leave a temporary with one use, and inlining can make
-    # two values equal: alternate to a fixed point (two or three rounds in practice).
+    # two values equal: alternate to a fixed point (two rounds in practice). Each pass
+    # reaches its own fixed point, and inlining changes the program exactly when it
+    # removes a temporary: a round whose inlining removed none ends the loop.
     while True:
-        size = len(order)
         order, outs = _merge_equal(order, outs)
+        size = len(order)
         order, outs = _inline_single_use(order, outs)
         if len(order) == size:
             break
