@@ -39,9 +39,18 @@ def test_python_powers_print_alike_for_arrays_and_floats() -> None:
         x**y: ("numpy.power(x, y)", "float(_np_power(x, y))"),
         sp.tanh(x) + 1: ("numpy.tanh(x) + 1", "float(_np_tanh(x)) + 1.0"),
     }
+    from tvopt_codegen.printers import PythonJointPrinter
+
+    joint, texts = PythonJointPrinter(), PythonJointPrinter.texts()
+    cases[-sp.sin(x) ** 2 - 3 * sp.exp(-x) + sp.Rational(1, 3)] = (
+        "1/3 - (numpy.sin(x)*numpy.sin(x)) - 3*numpy.exp(-x)",
+        "1/3 - (float(_np_sin(x))*float(_np_sin(x))) - 3.0*float(_np_exp(-x))",
+    )
     for expr, (want_array, want_scalar) in cases.items():
         assert array.doprint(expr) == want_array
         assert scalar.doprint(expr) == want_scalar
+        marked = joint.doprint(expr)
+        assert (texts[""](marked), texts["1"](marked)) == (want_array, want_scalar)
     # Same bits on both paths: NumPy's own routine, whatever the argument's type.
     values = np.linspace(-3, 3, 101)
     for expr in (x**7, x**3, sp.tanh(x), 2 * x - 3):
@@ -110,3 +119,22 @@ def test_c_constants_are_c99_literals_not_posix_macros() -> None:
         python = code.replace("sqrt", "math.sqrt").replace("log", "math.log")
         value = eval(python, {"math": math, "x": 0.5})  # noqa: S307 - our printed arithmetic
         assert value == pytest.approx(float(expr.subs(x, 0.5)), rel=1e-15)
+
+
+def test_the_joint_printing_is_both_python_printings_for_every_example() -> None:
+    """Rendering prints the Python kernels once (PythonJointPrinter) and derives both texts:
+    each must be, character for character, what its own printer prints."""
+    from tests.conftest import kernels
+    from tvopt_codegen.printers import PythonJointPrinter
+    from tvopt_codegen.rendering import _translated, print_kernel
+    from tvopt_codegen.spec import bundled_examples
+
+    texts = PythonJointPrinter.texts()
+    compared = 0
+    for spec in bundled_examples():
+        for kernel in kernels(spec).kernels:
+            joint = print_kernel(kernel, PythonJointPrinter())
+            assert _translated(joint, texts[""]) == print_kernel(kernel, PythonPrinter())
+            assert _translated(joint, texts["1"]) == print_kernel(kernel, PythonScalarPrinter())
+            compared += 1
+    assert compared > 100

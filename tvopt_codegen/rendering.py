@@ -8,11 +8,13 @@ generated file from one a person edited.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import heapq
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path, PurePath
 from typing import Any
@@ -394,6 +396,33 @@ def render_template(template_name: str, context: dict[str, Any], root: Path | No
     return text.replace(HASH_PLACEHOLDER, stamp_hash(text), 1)
 
 
+def _printings(kernels: KernelSet, backend: Backend) -> dict[str, dict[str, PrintedKernel]]:
+    """Every printing of the kernels a backend's templates read: ``""`` and each variant's."""
+    printings: dict[str, dict[str, PrintedKernel]] = {}
+    if backend.joint is not None:
+        joint = backend.joint()
+        once = {k.name: print_kernel(k, joint) for k in kernels.kernels}
+        for key, text in joint.texts().items():
+            printings[key] = {name: _translated(p, text) for name, p in once.items()}
+    if "" not in printings:
+        printer = backend.printer()
+        printings[""] = {k.name: print_kernel(k, printer) for k in kernels.kernels}
+    for key, make in backend.variants:
+        if key not in printings:
+            printings[key] = {k.name: print_kernel(k, make()) for k in kernels.kernels}
+    return printings
+
+
+def _translated(printed: PrintedKernel, text: Callable[[str], str]) -> PrintedKernel:
+    """A printed kernel with every code fragment passed through ``text``."""
+    outputs = tuple(
+        dataclasses.replace(out, elements=tuple((i, f, text(c)) for i, f, c in out.elements))
+        for out in printed.outputs
+    )
+    body = tuple((name, text(code)) for name, code in printed.body)
+    return dataclasses.replace(printed, body=body, outputs=outputs)
+
+
 def template_context(kernels: KernelSet, backend: Backend | str) -> dict[str, Any]:
     """The variables every template of ``backend`` sees (docs/backends.md lists them).
 
@@ -411,13 +440,10 @@ def template_context(kernels: KernelSet, backend: Backend | str) -> dict[str, An
     """
     if isinstance(backend, str):
         backend = BACKENDS[backend]
-    printer = backend.printer()
     d = kernels.derivation
-    printed = {k.name: print_kernel(k, printer) for k in kernels.kernels}
-    variants = {
-        f"kernels_{key}": {k.name: print_kernel(k, make()) for k in kernels.kernels}
-        for key, make in backend.variants
-    }
+    printings = _printings(kernels, backend)
+    printed = printings[""]
+    variants = {f"kernels_{key}": printings[key] for key, _ in backend.variants}
     return {
         "d": d,
         "backend": backend.name,

@@ -35,6 +35,11 @@ class Backend:
     variants : tuple of (str, callable)
         More printings of the same kernels, each with its own printer, given to the
         templates as ``kernels_<key>`` (the Python backend's one-point kernels).
+    joint : callable or None
+        Builds a printer that prints the main printing and some variants at once: its
+        ``texts()`` maps ``""`` and variant keys to functions from its text to theirs.
+        Rendering then prints each kernel once; variants it does not cover are printed
+        by their own printers. None: every printing is printed on its own.
     context : callable or None
         ``context(kernels)`` returns the backend's own template variables (added to the
         shared ones: ``d``, ``spec``, ``kernels``, ``prefix``, ...).
@@ -51,6 +56,7 @@ class Backend:
     templates: tuple[tuple[str, str], ...]
     module: str
     variants: tuple[tuple[str, Callable[[], CodePrinter]], ...] = ()
+    joint: Callable[[], CodePrinter] | None = None
     context: Callable[[KernelSet], dict[str, Any]] | None = None
     template_root: Path | None = None
     reserved: frozenset[str] = frozenset()

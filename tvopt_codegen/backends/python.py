@@ -25,6 +25,12 @@ def _scalar_printer() -> CodePrinter:
     return PythonScalarPrinter()
 
 
+def _joint_printer() -> CodePrinter:
+    from tvopt_codegen.printers import PythonJointPrinter  # noqa: PLC0415
+
+    return PythonJointPrinter()
+
+
 def _context(kernels: KernelSet) -> dict[str, Any]:
     """The Python templates' own variables: R's diagonal blocks grouped by size."""
     groups: dict[int, tuple[list[int], list[tuple[int, ...]]]] = {}
@@ -50,6 +56,8 @@ BACKEND = Backend(
     module="{name}.py",
     # The same kernels for one point (lists of floats): a single state in microseconds.
     variants=(("1", _scalar_printer),),
+    # Both printings from one: the printers differ only in marked places.
+    joint=_joint_printer,
     context=_context,
     reserved=frozenset(keyword.kwlist) | frozenset(keyword.softkwlist),
 )
