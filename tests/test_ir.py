@@ -366,3 +366,16 @@ def test_an_exact_expansion_negated_is_the_negations_expansion(expr: sp.Expr) ->
 
     assume(not expr.has(sp.Float))
     assert sp.srepr(_negate(sp.expand(expr))) == sp.srepr(sp.expand(-expr))
+
+
+@given(st.lists(_expressions(), min_size=1, max_size=6))
+@settings(max_examples=200, deadline=None)
+def test_symbols_in_is_the_union_of_free_symbols(exprs: list[sp.Expr]) -> None:
+    assert cse.symbols_in(exprs) == set().union(*(e.free_symbols for e in exprs))
+
+
+def test_a_kernel_reading_a_symbol_it_is_not_given_is_refused() -> None:
+    s0, stray = sp.symbols("_s0 _stray", real=True)
+    inputs = [Arg("s", (s0,), ("x",), "state")]
+    with pytest.raises(AssertionError, match=r"kernel k: unbound symbols \['_stray'\]"):
+        make_kernel("k", "", inputs, [], [("out", (1,), [s0 * stray + 1], "")], {})

@@ -24,6 +24,7 @@ import sympy as sp
 
 from tvopt_codegen import __version__
 from tvopt_codegen.backends import BACKENDS, Backend
+from tvopt_codegen.cse import symbols_in
 from tvopt_codegen.errors import TvoptError
 from tvopt_codegen.estimator import estimator_gains
 from tvopt_codegen.ir import Kernel, KernelSet
@@ -199,12 +200,9 @@ class PrintedKernel:
 
 def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
     """Print every expression of a kernel with the backend's printer."""
-    used: set[sp.Symbol] = set()
-    for _, value in kernel.body:
-        used |= value.free_symbols
-    for out in kernel.outputs:
-        for e in out.exprs:
-            used |= sp.sympify(e).free_symbols
+    used = symbols_in(
+        [value for _, value in kernel.body] + [e for o in kernel.outputs for e in o.exprs]
+    )
     args = []
     for arg in kernel.inputs:
         slots = tuple(
