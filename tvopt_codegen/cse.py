@@ -20,9 +20,7 @@ from tvopt_codegen.jet import Assignment, fresh_symbols
 from tvopt_codegen.kernel import Arg, Kernel, Output
 
 
-def operation_count(
-    exprs: Iterable[sp.Expr], memo: dict[tuple[sp.Basic, str], int] | None = None
-) -> int:
+def operation_count(exprs: Iterable[sp.Expr], memo: dict[sp.Basic, int] | None = None) -> int:
     """Count the arithmetic operations and function calls that printing ``exprs`` costs.
 
     A sum or product of ``n`` terms is ``n - 1`` operations (a factor ``-1`` is the
@@ -30,10 +28,10 @@ def operation_count(
     the division), every other power and every function call one, a negative or
     fractional literal one. Expressions are counted as trees, like sympy's
     ``count_ops``, but in one memoized pass: linear in the size of the DAG, where
-    ``count_ops`` walks each expression anew. ``memo`` may span calls over the same
-    nodes (the kernels cut from one program).
+    ``count_ops`` walks each expression anew. ``memo`` (a node -> the operations below
+    it) may span calls over the same nodes (the kernels cut from one program).
     """
-    memo = {} if memo is None else memo
+    below: dict[sp.Basic, int] = {} if memo is None else memo
 
     def own(node: sp.Basic, parent: str) -> int:
         if node.is_Number:
@@ -51,14 +49,18 @@ def operation_count(
             return 0 if parent == "mul" else 1
         return 1
 
-    def count(node: sp.Basic, parent: str = "") -> int:
-        key = (node, parent)
-        if key not in memo:
+    def count(node: sp.Basic) -> int:
+        # A node's own operations depend on its parent's kind; those of its subtree
+        # do not, and are what the memo keeps.
+        total = below.get(node)
+        if total is None:
             kind = "mul" if node.is_Mul else "add" if node.is_Add else ""
-            memo[key] = own(node, parent) + sum(count(arg, kind) for arg in node.args)
-        return memo[key]
+            total = sum(own(arg, kind) + count(arg) for arg in node.args)
+            below[node] = total
+        return total
 
-    return sum(count(sp.sympify(e)) for e in exprs)
+    exprs = [sp.sympify(e) for e in exprs]
+    return sum(own(e, "") + count(e) for e in exprs)
 
 
 def symbols_in(exprs: Iterable[sp.Basic]) -> set[sp.Basic]:
@@ -712,7 +714,7 @@ def make_kernels(
     parts = [flat[end - size : end] for size, end in zip(sizes, ends, strict=True)]
     # The kernels cut from one program share its nodes: each is walked once.
     symbols: dict[sp.Basic, set[sp.Basic]] = {}
-    counts: dict[tuple[sp.Basic, str], int] = {}
+    counts: dict[sp.Basic, int] = {}
     programs = [_prune(program, part, symbols) for part in parts]
     befores = [
         operation_count([v for _, v in mine] + part, counts)
