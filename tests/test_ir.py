@@ -379,3 +379,14 @@ def test_a_kernel_reading_a_symbol_it_is_not_given_is_refused() -> None:
     inputs = [Arg("s", (s0,), ("x",), "state")]
     with pytest.raises(AssertionError, match=r"kernel k: unbound symbols \['_stray'\]"):
         make_kernel("k", "", inputs, [], [("out", (1,), [s0 * stray + 1], "")], {})
+
+
+@given(_expressions(), st.dictionaries(st.sampled_from(_LEAVES[:4]), st.sampled_from(_LEAVES)))
+@settings(max_examples=300, deadline=None)
+def test_substituting_and_signing_odd_functions_in_one_pass(expr: sp.Expr, mapping: dict) -> None:
+    """_prepare substitutes slots and gives odd functions their canonical sign in one
+    walk: the same tree as substituting, then canonical_odd."""
+    from tvopt_codegen.cse import _substitute
+
+    two_passes = canonical_odd(_substitute(expr, mapping), {})
+    assert sp.srepr(_substitute(expr, mapping, {}, {})) == sp.srepr(two_passes)

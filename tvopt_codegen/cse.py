@@ -118,8 +118,8 @@ def _sorted_args(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic | None:
                 return None
             coefficient = coefficient + arg if is_add else coefficient * arg
             continue
-        if not arg.is_commutative:
-            return None
+        if not arg.is_commutative or arg is sp.S.ComplexInfinity:
+            return None  # zoo is no Number, and absorbs every term as flatten builds it
         if arg.is_Add if is_add else arg.is_Mul:
             seq.extend(arg.args)
             continue
@@ -176,8 +176,15 @@ def _substitute(
     expr: sp.Basic,
     mapping: Mapping[sp.Basic, sp.Basic],
     memo: dict[sp.Basic, sp.Basic] | None = None,
+    odd: dict[sp.Basic, sp.Expr] | None = None,
 ) -> sp.Basic:
-    """``expr.xreplace(mapping)`` with :func:`_rebuild`; ``memo`` may span many calls."""
+    """``expr.xreplace(mapping)`` with :func:`_rebuild`; ``memo`` may span many calls.
+
+    With ``odd`` (:func:`canonical_odd`'s memo), every odd function of the result gets
+    its sign as :func:`canonical_odd` would give it, in the same pass: the result is
+    ``canonical_odd(expr.xreplace(mapping), odd)`` for mapping values that hold no odd
+    function (slot symbols), without walking the substituted tree a second time.
+    """
     if isinstance(expr, sp.Basic) and not expr.args and expr not in mapping:
         return expr  # a number or a symbol left alone: most of a team's Hessian
     table: dict[sp.Basic, sp.Basic] = {} if memo is None else memo
@@ -192,6 +199,8 @@ def _substitute(
         args = [visit(arg) for arg in node.args]
         same = all(a is b for a, b in zip(args, node.args, strict=True))
         new = node if same else _rebuild(node, args)
+        if odd is not None and isinstance(new, _ODD):
+            new = _signed_odd(new, odd)
         table[node] = new
         return new
 
@@ -561,30 +570,6 @@ def canonical_odd(expr: sp.Expr, memo: dict[sp.Basic, sp.Expr] | None = None) ->
     ``memo`` (node -> rewritten node) may be shared between calls: the kernels of one
     controller repeat the same trigonometry, and each node is then decided once.
     """
-
-    def negate(arg: sp.Expr) -> sp.Expr:
-        # Distribute the sign into a sum factor: -(a - t)/b becomes (t - a)/b.
-        if arg.is_Mul:
-            for i, factor in enumerate(arg.args):
-                if factor.is_Add:
-                    return sp.Mul(*arg.args[:i], -factor, *arg.args[i + 1 :])
-        return -arg
-
-    def flips(e: sp.Expr) -> bool:
-        arg = e.args[0]
-        other = negate(arg)
-        if other.could_extract_minus_sign():
-            return False
-        expanded = sp.expand(arg)
-        # Expanding is canonical: with exact coefficients, the negation's expansion is
-        # the expansion's terms negated, and one expansion (half of this decision's
-        # time) is saved. Floats may round apart in the two expansions: both are made.
-        if expanded.has(sp.Float):
-            negated = sp.expand(other)
-        else:
-            negated = _negate(expanded)
-        return bool(sp.default_sort_key(negated) < sp.default_sort_key(expanded))
-
     table: dict[sp.Basic, sp.Expr] = {} if memo is None else memo
 
     def rewrite(node: sp.Basic) -> sp.Expr:
@@ -598,9 +583,8 @@ def canonical_odd(expr: sp.Expr, memo: dict[sp.Basic, sp.Expr] | None = None) ->
             if all(a is b for a, b in zip(args, node.args, strict=True))
             else _rebuild(node, args)
         )
-        if isinstance(new, _ODD) and flips(new):
-            # Not re-evaluated: eval would find nothing the original's did not.
-            new = -new.func(negate(new.args[0]), evaluate=False)
+        if isinstance(new, _ODD):
+            new = _signed_odd(new, table)
         table[node] = new
         return new
 
@@ -612,6 +596,49 @@ def canonical_odd(expr: sp.Expr, memo: dict[sp.Basic, sp.Expr] | None = None) ->
     # With a shared memo, no search for odd functions first: atoms() walks the whole
     # tree on every call, where the memo makes each node's rewrite a lookup.
     return rewrite(expr)
+
+
+def _signed_odd(node: sp.Expr, memo: dict[sp.Basic, sp.Expr]) -> sp.Expr:
+    """An odd function whose argument is already canonical, with its sign decided.
+
+    ``memo`` is :func:`canonical_odd`'s: a node of canonical arguments rewrites to what
+    this returns there, so the two may share it.
+    """
+    known = memo.get(node)
+    if known is not None:
+        return known
+    signed = node
+    if _flips(node):
+        # Not re-evaluated: eval would find nothing the original's did not.
+        signed = -node.func(_negated_argument(node.args[0]), evaluate=False)
+    memo[node] = signed
+    return signed
+
+
+def _negated_argument(arg: sp.Expr) -> sp.Expr:
+    """``-arg``, the sign distributed into a sum factor: -(a - t)/b becomes (t - a)/b."""
+    if arg.is_Mul:
+        for i, factor in enumerate(arg.args):
+            if factor.is_Add:
+                return sp.Mul(*arg.args[:i], -factor, *arg.args[i + 1 :])
+    return -arg
+
+
+def _flips(e: sp.Expr) -> bool:
+    """Whether the odd function ``e`` is written with its argument negated, canonically."""
+    arg = e.args[0]
+    other = _negated_argument(arg)
+    if other.could_extract_minus_sign():
+        return False
+    expanded = sp.expand(arg)
+    # Expanding is canonical: with exact coefficients, the negation's expansion is the
+    # expansion's terms negated, and one expansion (half of this decision's time) is
+    # saved. Floats may round apart in the two expansions: both are made.
+    if expanded.has(sp.Float):
+        negated = sp.expand(other)
+    else:
+        negated = _negate(expanded)
+    return bool(sp.default_sort_key(negated) < sp.default_sort_key(expanded))
 
 
 #: A kernel's outputs: (name, shape, expressions in row-major order, description).
@@ -628,10 +655,12 @@ def _prepare(
     # Only what the outputs need: the gradient kernel, say, reads the jet's first part.
     assignments = _prune(assignments, exprs)
     slots: dict[sp.Basic, sp.Basic] = {}
-    program = [
-        (sym, canonical_odd(_substitute(value, subs, slots), odd)) for sym, value in assignments
-    ]
-    return program, [canonical_odd(_substitute(e, subs, slots), odd) for e in exprs]
+    signs: dict[sp.Basic, sp.Expr] = {} if odd is None else odd
+    # Slots are symbols: substituting and signing odd functions is one pass.
+    if not all(value.is_Atom for value in subs.values()):
+        subs = {sym: canonical_odd(value, signs) for sym, value in subs.items()}
+    program = [(sym, _substitute(value, subs, slots, signs)) for sym, value in assignments]
+    return program, [_substitute(e, subs, slots, signs) for e in exprs]
 
 
 def _package(
