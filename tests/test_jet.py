@@ -129,3 +129,26 @@ def test_partial_builds_what_sympys_diff_builds(seed: int) -> None:
         assert partial(expr, var) == sp.diff(expr, var), (expr, var)
     x, y = symbols[:2]
     assert partial(x**y, x) == sp.diff(x**y, x)  # a symbolic exponent: sympy's rule
+
+
+def test_signal_chains_are_sympys_derivatives() -> None:
+    """The derivation differentiates signals with partial: for every function a spec may
+    call, four orders of the usual signal shapes are sympy's diff, expression for expression."""
+    from tvopt_codegen.parse import FUNCTIONS
+
+    t, a, b = sp.symbols("t a b", real=True)
+    shapes = [(t - a) / b, 2 * sp.pi * t / 7 + a, sp.Float(0.3) * t**2 - 1]
+    for name, (func, arity) in FUNCTIONS.items():
+        for shape in shapes:
+            signal = b * func(shape, t + 1) if arity == 2 else b * func(shape) + sp.Float(0.2) * t
+            ours = theirs = signal
+            for _ in range(4):
+                ours, theirs = partial(ours, t), sp.diff(theirs, t)
+                assert ours == theirs, (name, shape)
+
+
+def test_partial_leaves_functions_with_their_own_rule_to_sympy() -> None:
+    x, y = sp.symbols("x y", real=True)
+    for expr in (sp.Abs(x * y), sp.sign(x - y), sp.sign(x) * sp.Abs(x) ** 2):
+        assert partial(expr, x) == sp.diff(expr, x), expr
+    assert not partial(sp.sign(x), x).has(sp.Derivative)

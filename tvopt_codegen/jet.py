@@ -79,9 +79,22 @@ def partial(expr: sp.Expr, var: sp.Symbol) -> sp.Expr:
             # sympy's Pow._eval_derivative with a constant exponent, term for term.
             return expr * (partial(base, var) * exponent / base)
         return sp.diff(expr, var)
-    if isinstance(expr, sp.Function) and len(expr.args) == 1:
+    if isinstance(expr, sp.Function) and len(expr.args) == 1 and _chain_rule(type(expr)):
         return expr.fdiff(1) * partial(expr.args[0], var)
     return sp.diff(expr, var)
+
+
+def _chain_rule(func: type[sp.Function]) -> bool:
+    """Whether sympy differentiates ``func`` by the plain chain rule on its ``fdiff``.
+
+    ``Abs`` has its own rule (through the conjugate), and ``sign`` no ``fdiff`` (sympy
+    gives ``2*DiracDelta``, the default ``fdiff`` an unevaluated ``Derivative``): those
+    are left to ``diff``.
+    """
+    return (
+        func._eval_derivative is sp.Function._eval_derivative
+        and func.fdiff is not sp.Function.fdiff
+    )
 
 
 def _derivative(expr: sp.Expr, rates: Mapping[sp.Symbol, sp.Expr]) -> sp.Expr:
