@@ -390,3 +390,16 @@ def test_substituting_and_signing_odd_functions_in_one_pass(expr: sp.Expr, mappi
 
     two_passes = canonical_odd(_substitute(expr, mapping), {})
     assert sp.srepr(_substitute(expr, mapping, {}, {})) == sp.srepr(two_passes)
+
+
+def test_a_number_beside_a_sum_is_distributed_exactly_where_sympy_does() -> None:
+    """Substitution distributes a number over a sum where flatten does (a product of two
+    arguments, or of the number and the sum alone), and nowhere else."""
+    from tvopt_codegen.cse import _substitute
+
+    g, h = sp.symbols("_g _h", real=True)
+    values = {g: a + y, h: 2 * x}
+    for expr in (2 * g, 2 * x * g, -3 * g * x * t, h * g, h * g * t, g * h / 3, -g, 2 * g**2):
+        expected = expr.xreplace(values)
+        built = _substitute(expr, values)
+        assert sp.srepr(built) == sp.srepr(expected), (expr, built, expected)
