@@ -73,3 +73,35 @@ def test_definitions_are_lazy() -> None:
     np.testing.assert_allclose(evaluate(x + t), np.cos(0.5) + 0.5)
     with pytest.raises(ValueError, match="no value for the symbol z"):
         evaluate(y + z_undefined)
+
+
+def test_a_tape_computes_the_evaluators_bits() -> None:
+    """Tape (compiled once, run per call) runs Evaluator's operations in its order: the
+    same bits, out-of-domain NaN included, for programs, constants and every function."""
+    from tvopt_codegen.numeric import Tape
+
+    a, b = sp.symbols("_a _b", real=True)
+    p = sp.Symbol("p", real=True)
+    definitions = {a: sp.tan(x * y + sp.pi / 4) * p, b: sp.sqrt(x) - a**2 / 3}
+    exprs = [
+        *(
+            func(x + 1 if name == "acosh" else x, y) if arity == 2 else func(x - 0.4 * y + a)
+            for name, (func, arity) in sorted(FUNCTIONS.items())
+        ),
+        b * a + sp.Rational(2, 7) * t**3 - sp.E,
+        sp.log(x - 0.5) + 1 / (x - y),
+        sp.Abs(b) * sp.sign(x - 0.5) + p,
+        sp.Integer(3),
+    ]
+    tape = Tape([x, y, t], exprs, definitions, {p: 1.5})
+    rng = np.random.default_rng(2)
+    for _ in range(3):
+        xs, ys, ts = rng.uniform(0.1, 0.9, (3, 9))
+        evaluate = Evaluator({x: xs, y: ys, t: ts, p: 1.5})
+        for symbol, value in definitions.items():
+            evaluate.define(symbol, value)
+        for expr, got in zip(exprs, tape(xs, ys, ts), strict=True):
+            want = evaluate(expr)
+            assert np.array_equal(np.asarray(got), np.asarray(want), equal_nan=True), expr
+    with pytest.raises(ValueError, match="no value for the symbol q"):
+        Tape([x], [x + sp.Symbol("q")], {}, {})

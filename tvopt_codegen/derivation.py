@@ -43,7 +43,7 @@ from tvopt_codegen.lie import (
 )
 from tvopt_codegen.limits import Budget
 from tvopt_codegen.model import Model, build_model
-from tvopt_codegen.numeric import Evaluator
+from tvopt_codegen.numeric import Evaluator, Tape
 from tvopt_codegen.spec import Spec, spec_from_dict
 
 
@@ -693,44 +693,52 @@ class _ObjectiveNumbers:
         self.model, self.program, self.gradient = model, program, gradient
         self.entries, self.defaults = entries, defaults
 
-    def _evaluator(self, ys: np.ndarray, ts: np.ndarray) -> Evaluator:
-        values: dict[sp.Symbol, Any] = {y: ys[:, i] for i, y in enumerate(self.model.y)}
-        values |= self.defaults
-        values[self.model.t] = ts
+    def _tape(self, outputs: Sequence[sp.Expr]) -> Tape:
+        """``outputs`` compiled over (y_1 .. y_m, t): parameters at their defaults."""
         nominal = dict(self.model.nominal)
+        definitions = nominal | dict(self.model.signals) | dict(self.program.assignments)
         # A reference without a nominal closed form is unknown here: taken at 0.
-        values |= {r: 0.0 for r in self.model.references if r not in nominal}
-        evaluate = Evaluator(values)
-        for symbol, expr in nominal.items():
-            evaluate.define(symbol, expr)
-        for symbol, expr in self.model.signals:
-            evaluate.define(symbol, expr)
-        for symbol, expr in self.program.assignments:
-            evaluate.define(symbol, expr)
-        return evaluate
+        constants: dict[sp.Symbol, Any] = dict(self.defaults)
+        constants |= {r: 0.0 for r in self.model.references if r not in nominal}
+        return Tape([*self.model.y, self.model.t], outputs, definitions, constants)
+
+    @functools.cached_property
+    def _f0(self) -> Tape:
+        return self._tape([self.model.f0])
+
+    @functools.cached_property
+    def _hessian(self) -> Tape:
+        return self._tape([expr for _, expr in self.entries])
+
+    @functools.cached_property
+    def _derivatives(self) -> Tape:
+        return self._tape([*self.gradient, *(expr for _, expr in self.entries)])
+
+    @staticmethod
+    def _inputs(ys: np.ndarray, ts: np.ndarray) -> list[np.ndarray]:
+        return [*(ys[:, i] for i in range(ys.shape[1])), ts]
 
     def value(self, ys: np.ndarray, ts: np.ndarray) -> np.ndarray:
-        out = np.real(self._evaluator(ys, ts)(self.model.f0))
-        return np.broadcast_to(np.asarray(out, dtype=float), ts.shape).copy()
+        (out,) = self._f0(*self._inputs(ys, ts))
+        return np.broadcast_to(np.asarray(np.real(out), dtype=float), ts.shape).copy()
 
     def hessian_entries(self, ys: np.ndarray, ts: np.ndarray) -> np.ndarray:
         """The Hessian's stored entries (E, P) at the points (NaN where undefined)."""
-        evaluate = self._evaluator(ys, ts)
         values = np.empty((len(self.entries), len(ts)))
-        for index, (_, expr) in enumerate(self.entries):
-            values[index] = np.real(evaluate(expr))
+        for index, value in enumerate(self._hessian(*self._inputs(ys, ts))):
+            values[index] = np.real(value)
         return values
 
     def derivatives(self, ys: np.ndarray, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gradients (P, m) and Hessians (P, m, m) at the points (NaN where undefined)."""
-        evaluate = self._evaluator(ys, ts)
         points, m = ys.shape
+        results = self._derivatives(*self._inputs(ys, ts))
         grads = np.empty((points, m))
-        for i, expr in enumerate(self.gradient):
-            grads[:, i] = np.real(evaluate(expr))
+        for i in range(m):
+            grads[:, i] = np.real(results[i])
         matrices = np.zeros((points, m, m))
-        for (i, j), expr in self.entries:
-            matrices[:, i, j] = matrices[:, j, i] = np.real(evaluate(expr))
+        for ((i, j), _), value in zip(self.entries, results[m:], strict=True):
+            matrices[:, i, j] = matrices[:, j, i] = np.real(value)
         return grads, matrices
 
 

@@ -11,7 +11,7 @@ nothing executed.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -100,19 +100,117 @@ class Evaluator:
             raise ValueError(f"no value for the symbol {node}")
         if node.is_Atom:  # a number, pi, E, I, oo or zoo
             return _constant(node)
-        if node.is_Add:
-            return _fold(np.add, args)
-        if node.is_Mul:
-            return _fold(np.multiply, args)
-        if node.is_Pow:
-            base, exponent = args
-            if node.exp == sp.Rational(1, 2):
-                return np.sqrt(base)
-            return np.power(base, exponent)
-        function = _FUNCTIONS.get(type(node)) or _FUNCTIONS.get(node.func)
-        if function is None:
-            raise ValueError(f"cannot evaluate {type(node).__name__} numerically")
-        return function(*args)
+        return _operation(node)(*args)
+
+
+def _operation(node: sp.Basic) -> Callable[..., Array]:
+    """The NumPy operation of an expression node that is not an atom, on its args' values."""
+    if node.is_Add:
+        return _sum
+    if node.is_Mul:
+        return _product
+    if node.is_Pow:
+        return _square_root if node.exp == sp.Rational(1, 2) else _power
+    function = _FUNCTIONS.get(type(node)) or _FUNCTIONS.get(node.func)
+    if function is None:
+        raise ValueError(f"cannot evaluate {type(node).__name__} numerically")
+    return function
+
+
+def _sum(*args: Array) -> Array:
+    return _fold(np.add, args)
+
+
+def _product(*args: Array) -> Array:
+    return _fold(np.multiply, args)
+
+
+def _power(base: Array, exponent: Array) -> Array:
+    return np.power(base, exponent)
+
+
+def _square_root(base: Array, _exponent: Array) -> Array:
+    # The exponent (1/2) is an argument like any other: evaluated, and not needed.
+    return np.sqrt(base)
+
+
+class Tape:
+    """Expressions compiled once into a list of NumPy operations, run for many inputs.
+
+    :class:`Evaluator` walks the expression graph on every call; a Newton search for the
+    minimiser evaluates f0 and its derivatives hundreds of times at new points, and the
+    walk (hashing nodes, dispatching on their type) cost more than the arithmetic. Here
+    the walk is done once: a call runs the operations in order over a list of values,
+    the same operations in the same order as :class:`Evaluator`'s, so the results are
+    the same bits.
+
+    Parameters
+    ----------
+    inputs : sequence of sympy.Symbol
+        The symbols whose values each call passes, in this order.
+    outputs : sequence of sympy.Basic
+        The expressions each call returns.
+    definitions : mapping of sympy.Symbol to sympy.Expr
+        Symbols that stand for an expression (a program's assignments); only those the
+        outputs need are compiled.
+    constants : mapping of sympy.Symbol to array or float
+        Values fixed for every call (parameters at their defaults).
+    """
+
+    def __init__(
+        self,
+        inputs: Sequence[sp.Symbol],
+        outputs: Sequence[sp.Basic],
+        definitions: Mapping[sp.Symbol, sp.Expr],
+        constants: Mapping[sp.Symbol, Array],
+    ) -> None:
+        slot: dict[sp.Basic, int] = {sym: i for i, sym in enumerate(inputs)}
+        values: list[Array] = [None] * len(inputs)
+        operations: list[tuple[Callable[..., Array], tuple[int, ...], int]] = []
+        for sym, value in constants.items():
+            if sym not in slot:
+                slot[sym] = len(values)
+                values.append(value)
+
+        def place(expr: sp.Basic) -> int:
+            # An explicit stack, as Evaluator's: programs nest deeper than the recursion limit.
+            stack: list[tuple[sp.Basic, bool]] = [(expr, False)]
+            while stack:
+                node, ready = stack.pop()
+                if node in slot:
+                    continue
+                defined = definitions.get(node) if node.is_Symbol else None
+                children = node.args if defined is None else (defined,)
+                if not ready:
+                    stack.append((node, True))
+                    stack.extend((child, False) for child in children if child not in slot)
+                elif defined is not None:
+                    slot[node] = slot[defined]
+                elif node.is_Symbol:
+                    raise ValueError(f"no value for the symbol {node}")
+                elif node.is_Atom:
+                    slot[node] = len(values)
+                    values.append(_constant(node))
+                else:
+                    slot[node] = len(values)
+                    values.append(None)
+                    args = tuple(slot[arg] for arg in node.args)
+                    operations.append((_operation(node), args, slot[node]))
+            return slot[expr]
+
+        self._outputs = [place(e) for e in outputs]
+        self._size = len(inputs)
+        self._values = values
+        self._operations = operations
+
+    def __call__(self, *inputs: Array) -> list[Array]:
+        """The outputs' values for the inputs' (arrays of one shape, or scalars)."""
+        values = list(self._values)
+        values[: self._size] = inputs
+        with np.errstate(all="ignore"):
+            for operation, args, out in self._operations:
+                values[out] = operation(*[values[a] for a in args])
+        return [values[i] for i in self._outputs]
 
 
 #: Values of the numbers met so far. An evaluator's memo lives for one batch of points;
