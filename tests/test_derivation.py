@@ -190,3 +190,15 @@ def test_why_the_extension_is_needed_is_said_in_one_readable_line() -> None:
     team = derivation("unicycle_ring").unextended
     assert team is not None and "R (8 x 8) has generic rank 4 < 8" in team
     assert len(team) < 200
+
+
+def test_tree_size_counts_the_tree_and_stops_past_its_limit() -> None:
+    from tvopt_codegen.derivation import tree_size
+
+    x, y = sp.symbols("x y", real=True)
+    shared = sp.sin(x + y)
+    expr = shared * shared.diff(x) + 3 * x  # the shared subtree is counted where it occurs
+    nodes = sum(1 for _ in sp.preorder_traversal(expr))
+    assert tree_size(expr, 10**6) == nodes
+    assert tree_size(expr, 4) == 5  # at most limit + 1
+    assert tree_size(x, 0) == 1

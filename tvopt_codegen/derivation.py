@@ -292,12 +292,18 @@ _DET_SIMPLIFY_NODES = 400
 
 
 def tree_size(expr: sp.Expr, limit: int) -> int:
-    """Nodes of ``expr``'s tree, counting at most ``limit + 1`` (so the count is cheap)."""
+    """Nodes of ``expr``'s tree, counting at most ``limit + 1`` (so the count is cheap).
+
+    A plain stack: sympy's ``preorder_traversal`` costs a generator step per node, and
+    the budget meter sizes every expression the derivation builds.
+    """
     count = 0
-    for _ in sp.preorder_traversal(expr):
+    stack = [expr]
+    while stack:
         count += 1
         if count > limit:
             break
+        stack.extend(stack.pop().args)
     return count
 
 
