@@ -650,10 +650,11 @@ def _prepare(
     exprs: Sequence[sp.Expr],
     subs: Mapping[sp.Symbol, sp.Expr],
     odd: dict[sp.Basic, sp.Expr] | None,
+    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
 ) -> tuple[list[Assignment], list[sp.Expr]]:
     """What ``exprs`` need of the program, with slots substituted and odd functions signed."""
     # Only what the outputs need: the gradient kernel, say, reads the jet's first part.
-    assignments = _prune(assignments, exprs)
+    assignments = _prune(assignments, exprs, symbols)
     slots: dict[sp.Basic, sp.Basic] = {}
     signs: dict[sp.Basic, sp.Expr] = {} if odd is None else odd
     # Slots are symbols: substituting and signing odd functions is one pass.
@@ -707,13 +708,16 @@ def make_kernel(
     subs: Mapping[sp.Symbol, sp.Expr],
     odd: dict[sp.Basic, sp.Expr] | None = None,
     search: bool = True,
+    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
 ) -> Kernel:
     """Substitute slot symbols, CSE, and package a kernel.
 
-    ``odd`` is the :func:`canonical_odd` memo shared by one controller's kernels;
-    ``search=False`` skips sympy's search for common sub-sums (:func:`ordered_cse`).
+    ``odd`` is the :func:`canonical_odd` memo shared by one controller's kernels, and
+    ``symbols`` the memo of free symbols (:func:`_prune`): the kernels read the same
+    programs. ``search=False`` skips sympy's search for common sub-sums
+    (:func:`ordered_cse`).
     """
-    program, flat = _prepare(assignments, _flat(outputs), subs, odd)
+    program, flat = _prepare(assignments, _flat(outputs), subs, odd, symbols)
     before = operation_count([v for _, v in program] + flat)
     body, reduced = ordered_cse(program, flat, search)
     return _package(name, doc, inputs, outputs, body, reduced, before)
@@ -724,8 +728,11 @@ def make_kernels(
     assignments: Sequence[Assignment],
     subs: Mapping[sp.Symbol, sp.Expr],
     odd: dict[sp.Basic, sp.Expr] | None = None,
+    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
 ) -> list[Kernel]:
     """Kernels (name, doc, inputs, outputs) over one program, lowered together when large.
+
+    ``odd`` and ``symbols`` are memos one controller's kernels share (:func:`make_kernel`).
 
     The jet kernel and the optimality error read the same gradient jet; lowered apart,
     each substitutes, numbers and inlines it anew (a third of lowering's time on a ring
@@ -736,13 +743,13 @@ def make_kernels(
     sympy's fuller search suits them, and a union could pass its size limit.
     """
     sizes = [len(_flat(outputs)) for _, _, _, outputs in kernels]
+    # The kernels cut from one program share its nodes: each is walked once.
+    symbols = {} if symbols is None else symbols
     program, flat = _prepare(
-        assignments, [e for *_, outputs in kernels for e in _flat(outputs)], subs, odd
+        assignments, [e for *_, outputs in kernels for e in _flat(outputs)], subs, odd, symbols
     )
     ends = list(itertools.accumulate(sizes))
     parts = [flat[end - size : end] for size, end in zip(sizes, ends, strict=True)]
-    # The kernels cut from one program share its nodes: each is walked once.
-    symbols: dict[sp.Basic, set[sp.Basic]] = {}
     counts: dict[sp.Basic, int] = {}
     programs = [_prune(program, part, symbols) for part in parts]
     befores = [

@@ -324,8 +324,10 @@ def lower(derivation: Derivation) -> KernelSet:
     # One memo of odd functions for all kernels: a node's sign is decided once (by the
     # node alone, so the kernels' order does not matter).
     odd: dict[sp.Basic, sp.Expr] = {}
-    kernel = functools.partial(make_kernel, odd=odd)
-    kernels = functools.partial(make_kernels, odd=odd)
+    # And one memo of free symbols: the kernels prune the same programs.
+    symbols: dict[sp.Basic, set[sp.Basic]] = {}
+    kernel = functools.partial(make_kernel, odd=odd, symbols=symbols)
+    kernels = functools.partial(make_kernels, odd=odd, symbols=symbols)
     args = _arguments(d)
     programs = _programs(d)
     jet, cholesky, optimality = _jet_kernels(d, args, programs, kernel, kernels)
