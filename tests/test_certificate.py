@@ -234,3 +234,30 @@ def test_the_step_exponential_matches_a_fifty_digit_reference() -> None:
             exact = np.array(mpmath.expm(mpmath.matrix(matrix.tolist())).tolist(), dtype=float)
             error = np.max(np.abs(exponential(matrix) - exact)) / max(1.0, np.max(np.abs(exact)))
             assert error < 1e-15, (matrix, error)
+
+
+def test_sparse_definiteness_agrees_with_eigenvalues_banded_or_not() -> None:
+    """The fading probe's definiteness test: a narrow band (a ring, in its reverse
+    Cuthill-McKee order) by banded Cholesky, a wide pattern by SuperLU; both give the
+    verdict of the smallest eigenvalue, on both sides of it."""
+    from tvopt_codegen.derivation import _BAND_LIMIT, _SparseHessians
+
+    rng = np.random.default_rng(11)
+    m = 90
+    ring = [(i, i) for i in range(m)] + [
+        (max(i, (i + 1) % m), min(i, (i + 1) % m)) for i in range(m)
+    ]
+    # A star coupling every output to the first is no band in any order.
+    star = [(i, i) for i in range(m)] + [(i, 0) for i in range(1, m)]
+    for entries, banded in ((ring, True), (star, False)):
+        sparse = _SparseHessians(entries, m)
+        assert (sparse.band <= _BAND_LIMIT) is banded
+        for _ in range(20):
+            values = rng.normal(size=len(entries))
+            dense = np.zeros((m, m))
+            for (i, j), v in zip(entries, values, strict=True):
+                dense[i, j] = dense[j, i] = v
+            low = float(np.linalg.eigvalsh(dense)[0])
+            for shift in (-low + 1e-3, -low - 1e-3):
+                verdict = sparse.positive_definite(values, shift)
+                assert verdict is None or verdict == (low + shift > 0), (banded, shift)

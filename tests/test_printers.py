@@ -42,7 +42,7 @@ def test_python_powers_print_alike_for_arrays_and_floats() -> None:
     from tvopt_codegen.printers import PythonJointPrinter
 
     joint, texts = PythonJointPrinter(), PythonJointPrinter.texts()
-    cases[-sp.sin(x) ** 2 - 3 * sp.exp(-x) + sp.Rational(1, 3)] = (
+    cases[-(sp.sin(x) ** 2) - 3 * sp.exp(-x) + sp.Rational(1, 3)] = (
         "1/3 - (numpy.sin(x)*numpy.sin(x)) - 3*numpy.exp(-x)",
         "1/3 - (float(_np_sin(x))*float(_np_sin(x))) - 3.0*float(_np_exp(-x))",
     )

@@ -44,6 +44,7 @@ from tvopt_codegen.lie import (
 from tvopt_codegen.limits import Budget
 from tvopt_codegen.model import Model, build_model
 from tvopt_codegen.numeric import Evaluator, Tape
+from tvopt_codegen.sparse import reverse_cuthill_mckee
 from tvopt_codegen.spec import Spec, spec_from_dict
 
 
@@ -680,6 +681,9 @@ _PROBE_DISTANCES = (1.0, 10.0, 100.0)
 _PROBE_AXES = 16
 #: Memory for the Hessians of the fading probe evaluated at once.
 _PROBE_BYTES = 64 * 2**20
+#: Sparse Hessians whose band (in the reverse Cuthill-McKee order) is at most this wide
+#: are factored as bands; wider ones by SuperLU.
+_BAND_LIMIT = 32
 #: Beyond this many outputs the fading probe factors sparse Hessians instead of
 #: computing dense eigenvalues (a team's Hessian is almost all zeros).
 _SPARSE_PROBE = 64
@@ -913,11 +917,13 @@ def _probe_directions(m: int) -> np.ndarray:
 class _SparseHessians:
     """Definiteness of one sparse symmetric pattern's matrices, by sparse factorization.
 
-    ``A + shift I`` is positive definite exactly when its LDL^T without pivoting (in a
-    fill-reducing symmetric order) exists with every pivot positive (Sylvester's law of
-    inertia); SuperLU gives that factorization when told to keep the diagonal and the
-    order symmetric. For a team's Hessian (a few entries per row) a factorization costs
-    well under a millisecond where a dense eigenvalue decomposition costs tens.
+    ``A + shift I`` is positive definite exactly when its Cholesky factor exists. In
+    the reverse Cuthill-McKee order a team's Hessian (a few entries per row, neighbours
+    coupled) is a narrow band, whose Cholesky factorization (LAPACK's ``pbtrf``) takes
+    microseconds. A pattern whose band stays wide is factored by SuperLU instead, as an
+    LDL^T without pivoting in a fill-reducing symmetric order: positive definite when
+    every pivot is positive (Sylvester's law of inertia). Either costs well under a
+    millisecond where a dense eigenvalue decomposition costs tens.
     """
 
     def __init__(self, entries: Sequence[tuple[int, int]], m: int) -> None:
@@ -927,6 +933,16 @@ class _SparseHessians:
         self.rows = np.concatenate([lower[:, 0], lower[self.off, 1], diagonal])
         self.cols = np.concatenate([lower[:, 1], lower[self.off, 0], diagonal])
         self.m = m
+        # Each entry's place in LAPACK's upper band storage of the permuted matrix:
+        # ab[band + i - j, j] = A[i, j] for i <= j.
+        pattern = {(i, j) for i, j in entries} | {(j, i) for i, j in entries}
+        position = np.empty(m, dtype=np.int64)
+        position[list(reverse_cuthill_mckee(pattern, m))] = np.arange(m)
+        first, second = position[lower[:, 0]], position[lower[:, 1]]
+        low, high = np.minimum(first, second), np.maximum(first, second)
+        self.band = int((high - low).max(initial=0))
+        self.band_rows = self.band + low - high
+        self.band_cols = high
 
     def positive_definite(self, values: np.ndarray, shift: float) -> bool | None:
         """Whether the matrix of ``values`` (in the entries' order) + ``shift I`` is definite.
@@ -934,6 +950,17 @@ class _SparseHessians:
         None when SuperLU would not keep the order symmetric (the pivots then say
         nothing of the inertia).
         """
+        if self.band <= _BAND_LIMIT:
+            from scipy.linalg import cholesky_banded  # noqa: PLC0415 - only for large teams
+
+            band = np.zeros((self.band + 1, self.m))
+            band[self.band_rows, self.band_cols] = values
+            band[self.band] += shift
+            try:
+                cholesky_banded(band, lower=False, check_finite=False)
+            except np.linalg.LinAlgError:
+                return False
+            return True
         from scipy.sparse import csc_matrix  # noqa: PLC0415 - only for large teams
         from scipy.sparse.linalg import splu  # noqa: PLC0415
 
