@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -246,3 +247,21 @@ def test_the_process_ends_without_teardown_but_with_its_exit_handlers(tmp_path: 
     usual = run("thread", "check", "integrator")
     assert usual.returncode == 0 and "returned 0" in usual.stdout
     assert usual.stdout.rstrip().endswith("handler ran")
+
+
+def test_the_derivation_runs_without_the_cyclic_collector_and_turns_it_back_on(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    seen: list[bool] = []
+    real = cli._time_limit
+
+    def spy(*args: Any) -> Any:
+        seen.append(gc.isenabled())
+        return real(*args)
+
+    monkeypatch.setattr(cli, "_time_limit", spy)
+    assert main(["check", "integrator"]) == 0
+    assert seen == [False] and gc.isenabled()
+    bad = write_spec(tmp_path, "not toml [")
+    assert main(["check", str(bad)]) != 0
+    assert gc.isenabled()  # also after an error

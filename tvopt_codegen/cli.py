@@ -337,7 +337,7 @@ def _derive(args: argparse.Namespace) -> tuple[Derivation, KernelSet]:
         clock[0] = now
 
     try:
-        with _time_limit(args.max_seconds, source, progress):
+        with _without_collector(), _time_limit(args.max_seconds, source, progress):
             spec = load_spec(args.spec)
             source[0] = spec.source
             if args.extension == "auto":
@@ -356,6 +356,24 @@ def _derive(args: argparse.Namespace) -> tuple[Derivation, KernelSet]:
     for warning in derivation.warnings:
         print(f"tvopt-codegen: warning: {spec.source}: {warning}", file=sys.stderr)
     return derivation, kernels
+
+
+@contextlib.contextmanager
+def _without_collector() -> Iterator[None]:
+    """Run without Python's cyclic garbage collector, and turn it back on after.
+
+    The derivation's and the printers' walks leave no reference cycles (jet.release):
+    what they drop, reference counting frees at once. The collector would only scan the
+    live expressions, again and again: a tenth of a large team's run, for no garbage
+    (the peak memory is the same with it or without).
+    """
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if collecting:
+            gc.enable()
 
 
 class _Overrun(BaseException):
@@ -625,7 +643,8 @@ def run(argv: Sequence[str] | None = None) -> int:
         return _report(args)
     if args.command == "export":
         return _export(args)
-    from tvopt_codegen.summary import format_summary  # noqa: PLC0415
+    with _without_collector():  # sympy's and numpy's imports build objects by the million
+        from tvopt_codegen.summary import format_summary  # noqa: PLC0415
 
     derivation, kernels = _derive(args)
     if args.command == "check":
@@ -635,7 +654,8 @@ def run(argv: Sequence[str] | None = None) -> int:
     from tvopt_codegen.emit import write_files  # noqa: PLC0415
     from tvopt_codegen.rendering import render  # noqa: PLC0415
 
-    files = render(kernels, args.backend)
+    with _without_collector():
+        files = render(kernels, args.backend)
     rendered = time.perf_counter()
     written = write_files(files, args.out, force=args.force)
     if args.timings:

@@ -16,7 +16,7 @@ from collections.abc import Iterable, Mapping, Sequence
 
 import sympy as sp
 
-from tvopt_codegen.jet import Assignment, fresh_symbols
+from tvopt_codegen.jet import Assignment, fresh_symbols, release
 from tvopt_codegen.kernel import Arg, Kernel, Output
 
 
@@ -60,7 +60,9 @@ def operation_count(exprs: Iterable[sp.Expr], memo: dict[sp.Basic, int] | None =
         return total
 
     exprs = [sp.sympify(e) for e in exprs]
-    return sum(own(e, "") + count(e) for e in exprs)
+    total = sum(own(e, "") + count(e) for e in exprs)
+    release(count)
+    return total
 
 
 def symbols_in(exprs: Iterable[sp.Basic]) -> set[sp.Basic]:
@@ -204,7 +206,9 @@ def _substitute(
         table[node] = new
         return new
 
-    return visit(sp.sympify(expr))
+    result = visit(sp.sympify(expr))
+    release(visit)
+    return result
 
 
 def _negated_atom(value: sp.Basic) -> bool:
@@ -334,6 +338,7 @@ def _reduce(
         order.append((sym, value))
     for value in reduced[len(kept) :]:
         need(value)
+    release(need)
     # CSE can leave an assignment that is just a temporary (the program computed a
     # value CSE found elsewhere first): substitute those too.
     order, outs = _drop_aliases(order, list(reduced[len(kept) :]))
@@ -417,6 +422,7 @@ def _value_numbering(
         return new
 
     reduced = [build(sp.sympify(e)) for e in exprs]
+    release(build)
     return replacements, reduced
 
 
@@ -589,13 +595,12 @@ def canonical_odd(expr: sp.Expr, memo: dict[sp.Basic, sp.Expr] | None = None) ->
         return new
 
     expr = sp.sympify(expr)
-    if not expr.args:
-        return expr
-    if memo is None and not expr.atoms(*_ODD):
-        return expr
     # With a shared memo, no search for odd functions first: atoms() walks the whole
     # tree on every call, where the memo makes each node's rewrite a lookup.
-    return rewrite(expr)
+    if expr.args and (memo is not None or expr.atoms(*_ODD)):
+        expr = rewrite(expr)
+    release(rewrite)
+    return expr
 
 
 def _signed_odd(node: sp.Expr, memo: dict[sp.Basic, sp.Expr]) -> sp.Expr:
@@ -851,6 +856,8 @@ def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel
         Output(out.name, out.shape, tuple(hoist(sp.sympify(e)) for e in out.exprs), out.doc)
         for out in kernel.outputs
     )
+    release(hoist)
+    release(fixed)
     tau_values = list(shared)
     time_program = _prune(time_body, tau_values)
     tau = Output("tau", (len(tau_values),), tuple(tau_values), "terms of time and parameters")

@@ -41,6 +41,22 @@ class Program:
         return expr
 
 
+def release(walk: Callable[..., object]) -> None:
+    """Free a recursive nested function now, with what it holds, not at a collection.
+
+    A nested function that calls itself holds itself in a closure cell: a reference
+    cycle, which only Python's cyclic collector frees, and which keeps the walk's memo
+    (often the size of the program) alive until then. Called once the walk is done, this
+    empties that cell, and reference counting frees the function and its memo at once:
+    the command line can then run the derivation without the collector
+    (:func:`tvopt_codegen.cli.main`), whose scans of the live expressions were a tenth
+    of a large team's run.
+    """
+    for cell in walk.__closure__ or ():
+        if cell.cell_contents is walk:
+            cell.cell_contents = None
+
+
 def fresh_symbols(prefix: str) -> Iterator[sp.Symbol]:
     """Endless numbered symbols ``prefix0, prefix1, ...`` (real)."""
     index = 0
@@ -243,6 +259,7 @@ def atomize(
         return symbol
 
     outputs = tuple(visit(sp.sympify(e)) for e in exprs)
+    release(visit)
     return Program(tuple(out)), outputs
 
 
