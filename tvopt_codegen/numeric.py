@@ -201,15 +201,33 @@ class Tape:
         self._outputs = [place(e) for e in outputs]
         self._size = len(inputs)
         self._values = values
-        self._operations = operations
+        # Each intermediate value is dropped after its last use: a batch of thousands of
+        # points keeps only the values still needed, not every node's array at once.
+        last: dict[int, int] = {}
+        for step, (_, args, _) in enumerate(operations):
+            for a in args:
+                last[a] = step
+        kept = set(self._outputs) | set(range(len(inputs))) | {
+            i for i, value in enumerate(values) if value is not None
+        }
+        dead: list[list[int]] = [[] for _ in operations]
+        for slot_index, step in last.items():
+            if slot_index not in kept:
+                dead[step].append(slot_index)
+        self._operations = [
+            (operation, args, out, tuple(dead[step]))
+            for step, (operation, args, out) in enumerate(operations)
+        ]
 
     def __call__(self, *inputs: Array) -> list[Array]:
         """The outputs' values for the inputs' (arrays of one shape, or scalars)."""
         values = list(self._values)
         values[: self._size] = inputs
         with np.errstate(all="ignore"):
-            for operation, args, out in self._operations:
+            for operation, args, out, dead in self._operations:
                 values[out] = operation(*[values[a] for a in args])
+                for slot_index in dead:
+                    values[slot_index] = None
         return [values[i] for i in self._outputs]
 
 
