@@ -11,7 +11,7 @@ nothing executed.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Container, Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -72,23 +72,12 @@ class Evaluator:
 
     def __call__(self, expr: sp.Basic) -> Array:
         """The value of ``expr`` at every point."""
-        memo, definitions = self._memo, self._definitions
+        memo = self._memo
         if expr in memo:
             return memo[expr]
-        # An explicit stack: a long sum, or a long chain of program assignments, nests
-        # deeper than Python's recursion limit.
-        stack: list[tuple[sp.Basic, bool]] = [(expr, False)]
         with np.errstate(all="ignore"):
-            while stack:
-                node, ready = stack.pop()
-                if node in memo:
-                    continue
-                defined = definitions.get(node) if node.is_Symbol else None
-                children = node.args if defined is None else (defined,)
-                if not ready:
-                    stack.append((node, True))
-                    stack.extend((child, False) for child in children if child not in memo)
-                elif defined is not None:
+            for node, defined in _post_order(expr, memo, self._definitions):
+                if defined is not None:
                     memo[node] = memo[defined]
                 else:
                     memo[node] = self._apply(node, [memo[arg] for arg in node.args])
@@ -101,6 +90,30 @@ class Evaluator:
         if node.is_Atom:  # a number, pi, E, I, oo or zoo
             return _constant(node)
         return _operation(node)(*args)
+
+
+def _post_order(
+    expr: sp.Basic, known: Container[sp.Basic], definitions: Mapping[sp.Basic, sp.Expr]
+) -> Iterator[tuple[sp.Basic, sp.Expr | None]]:
+    """The nodes of ``expr`` not ``known``, each after its arguments, with its definition.
+
+    A symbol that ``definitions`` defines comes after its definition, with it; any other
+    node with None. The caller makes each node known before taking the next. An explicit
+    stack: a long sum, or a long chain of program assignments, nests deeper than
+    Python's recursion limit.
+    """
+    stack: list[tuple[sp.Basic, bool]] = [(expr, False)]
+    while stack:
+        node, ready = stack.pop()
+        if node in known:
+            continue
+        defined = definitions.get(node) if node.is_Symbol else None
+        if ready:
+            yield node, defined
+            continue
+        stack.append((node, True))
+        children = node.args if defined is None else (defined,)
+        stack.extend((child, False) for child in children if child not in known)
 
 
 def _operation(node: sp.Basic) -> Callable[..., Array]:
@@ -173,18 +186,8 @@ class Tape:
                 values.append(value)
 
         def place(expr: sp.Basic) -> int:
-            # An explicit stack, as Evaluator's: programs nest deeper than the recursion limit.
-            stack: list[tuple[sp.Basic, bool]] = [(expr, False)]
-            while stack:
-                node, ready = stack.pop()
-                if node in slot:
-                    continue
-                defined = definitions.get(node) if node.is_Symbol else None
-                children = node.args if defined is None else (defined,)
-                if not ready:
-                    stack.append((node, True))
-                    stack.extend((child, False) for child in children if child not in slot)
-                elif defined is not None:
+            for node, defined in _post_order(expr, slot, definitions):
+                if defined is not None:
                     slot[node] = slot[defined]
                 elif node.is_Symbol:
                     raise ValueError(f"no value for the symbol {node}")
@@ -207,9 +210,11 @@ class Tape:
         for step, (_, args, _) in enumerate(operations):
             for a in args:
                 last[a] = step
-        kept = set(self._outputs) | set(range(len(inputs))) | {
-            i for i, value in enumerate(values) if value is not None
-        }
+        kept = (
+            set(self._outputs)
+            | set(range(len(inputs)))
+            | {i for i, value in enumerate(values) if value is not None}
+        )
         dead: list[list[int]] = [[] for _ in operations]
         for slot_index, step in last.items():
             if slot_index not in kept:
