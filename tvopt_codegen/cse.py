@@ -182,10 +182,9 @@ def _substitute(
 ) -> sp.Basic:
     """``expr.xreplace(mapping)`` with :func:`_rebuild`; ``memo`` may span many calls.
 
-    With ``odd`` (:func:`canonical_odd`'s memo), every odd function of the result gets
-    its sign as :func:`canonical_odd` would give it, in the same pass: the result is
-    ``canonical_odd(expr.xreplace(mapping), odd)`` for mapping values that hold no odd
-    function (slot symbols), without walking the substituted tree a second time.
+    With ``odd`` (a memo of odd functions -> their signed forms), every odd function of
+    the result gets its canonical sign (:func:`canonical_odd`) as it is rebuilt: the
+    substituted tree is not walked a second time to sign it.
     """
     if isinstance(expr, sp.Basic) and not expr.args and expr not in mapping:
         return expr  # a number or a symbol left alone: most of a team's Hessian
@@ -573,41 +572,23 @@ def canonical_odd(expr: sp.Expr, memo: dict[sp.Basic, sp.Expr] | None = None) ->
     such a pair the argument with the smaller canonical sort key is kept; sympy leaves
     it alone on re-evaluation because it does not extract a sign either.
 
-    ``memo`` (node -> rewritten node) may be shared between calls: the kernels of one
-    controller repeat the same trigonometry, and each node is then decided once.
+    ``memo`` (an odd function -> its signed form) may be shared between calls: the
+    kernels of one controller repeat the same trigonometry, and each is decided once.
     """
-    table: dict[sp.Basic, sp.Expr] = {} if memo is None else memo
-
-    def rewrite(node: sp.Basic) -> sp.Expr:
-        if node.is_Atom:
-            return node
-        if node in table:
-            return table[node]
-        args = [rewrite(arg) for arg in node.args]
-        new = (
-            node
-            if all(a is b for a, b in zip(args, node.args, strict=True))
-            else _rebuild(node, args)
-        )
-        if isinstance(new, _ODD):
-            new = _signed_odd(new, table)
-        table[node] = new
-        return new
-
+    signs: dict[sp.Basic, sp.Expr] = {} if memo is None else memo
     expr = sp.sympify(expr)
     # With a shared memo, no search for odd functions first: atoms() walks the whole
-    # tree on every call, where the memo makes each node's rewrite a lookup.
-    if expr.args and (memo is not None or expr.atoms(*_ODD)):
-        expr = rewrite(expr)
-    release(rewrite)
-    return expr
+    # tree on every call, where the memo makes each node's decision a lookup.
+    if memo is None and not expr.atoms(*_ODD):
+        return expr
+    # A substitution of nothing that signs odd functions as it rebuilds: one walk.
+    return _substitute(expr, {}, None, signs)
 
 
 def _signed_odd(node: sp.Expr, memo: dict[sp.Basic, sp.Expr]) -> sp.Expr:
     """An odd function whose argument is already canonical, with its sign decided.
 
-    ``memo`` is :func:`canonical_odd`'s: a node of canonical arguments rewrites to what
-    this returns there, so the two may share it.
+    ``memo`` holds the odd functions decided so far, with their signed forms.
     """
     known = memo.get(node)
     if known is not None:
