@@ -39,6 +39,7 @@ from tvopt_codegen.lie import (
     brunovsky,
     extend,
     generic_rank,
+    nonzero_entries,
     relative_degree,
 )
 from tvopt_codegen.limits import Budget
@@ -510,7 +511,7 @@ def _singular_start(
     with np.errstate(all="ignore"):
         # R's nonzero entries only: a team's R is block diagonal.
         matrix = np.zeros(R.shape, dtype=complex)
-        for (i, j), entry in R.todok().items():
+        for i, j, entry in nonzero_entries(R):
             matrix[i, j] = complex(evaluate(entry))
         rest = np.array([complex(evaluate(e)) for e in p])
     finite = bool(np.all(np.isfinite(matrix)) and np.all(np.isfinite(rest)))
@@ -1319,7 +1320,7 @@ def _decoupling(lin: _Linearization, meter: _Meter) -> _Decoupling:
                 f"not simplified symbolically (more than {_DET_SIMPLIFY_NODES} expression nodes)"
             )
     # R's nonzero entries: a team's R is m^2 entries, almost all zeros.
-    entries = [e for _, e in sorted(R.todok().items())]
+    entries = [e for _, _, e in nonzero_entries(R)]
     undefined = _undefined_set([*entries, *p], set(lin.extension.x))
     return _Decoupling(p, phi, A, B, det_R, det_R_note, singular, undefined)
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import sympy as sp
 
-from tvopt_codegen.lie import Extension, control_affine
+from tvopt_codegen.lie import Extension, control_affine, nonzero_entries
 
 
 def symbols(prefix: str, count: int) -> tuple[sp.Symbol, ...]:
@@ -114,9 +114,8 @@ def diagonal_blocks(matrix: sp.MatrixBase) -> tuple[tuple[int, ...], ...]:
             i = parent[i]
         return i
 
-    # The dictionary of keys: a team's R has m^2 entries, almost all zeros.
-    for (i, j), entry in sorted(matrix.todok().items()):
-        if i != j and entry != 0:
+    for i, j, _ in nonzero_entries(matrix):
+        if i != j:
             parent[root(i)] = root(j)
     blocks: dict[int, list[int]] = {}
     for i in range(m):

@@ -115,17 +115,24 @@ def _lie_row(
     return drift, row
 
 
+def nonzero_entries(matrix: sp.MatrixBase) -> list[tuple[int, int, sp.Expr]]:
+    """``(i, j, entry)`` of a matrix's nonzero entries, row by row.
+
+    Read from its dictionary of keys: a team's matrices (G, R) are block diagonal, and
+    visiting every entry is quadratic in the team's size.
+    """
+    return [(i, j, e) for (i, j), e in sorted(matrix.todok().items()) if e != 0]
+
+
 def control_affine(f: sp.MatrixBase, G: sp.MatrixBase, inputs: Sequence[sp.Expr]) -> list[sp.Expr]:
     """``f + G u`` entry by entry, over G's nonzero entries only.
 
     A team's G is block diagonal: the dense product costs n m^2 sympy multiplications
-    (half a second at 32 agents), and even visiting every entry is quadratic in the
-    team's size; its dictionary of keys holds the nonzero ones.
+    (half a second at 32 agents).
     """
     terms: list[list[sp.Expr]] = [[] for _ in range(G.shape[0])]
-    for (i, j), entry in sorted(G.todok().items()):
-        if entry != 0:
-            terms[i].append(entry * inputs[j])
+    for i, j, entry in nonzero_entries(G):
+        terms[i].append(entry * inputs[j])
     return [sp.Add(f[i], *terms[i]) for i in range(G.shape[0])]
 
 
@@ -188,12 +195,11 @@ def extend(
     """
     n = len(x)
     drift = list(f)
-    # G's nonzero entries by column: a team's G is block diagonal, and visiting every
-    # entry for every prolonged input was quadratic in the team's size.
+    # G's nonzero entries by column: visiting every entry for every prolonged input was
+    # quadratic in the team's size.
     column: dict[int, list[tuple[int, sp.Expr]]] = {}
-    for (i, j), entry in sorted(G.todok().items()):
-        if entry != 0:
-            column.setdefault(j, []).append((i, entry))
+    for i, j, entry in nonzero_entries(G):
+        column.setdefault(j, []).append((i, entry))
     new_states: list[str] = []
     new_inputs: list[str] = []
     chain_rows: list[tuple[list[sp.Expr], int | None]] = []
@@ -280,9 +286,8 @@ def relative_degree(
     n = len(x)
     width = G.shape[1]
     columns: list[list[tuple[int, sp.Expr]]] = [[] for _ in range(n)]
-    for (i, c), entry in sorted(G.todok().items()):
-        if entry != 0:
-            columns[i].append((c, entry))
+    for i, c, entry in nonzero_entries(G):
+        columns[i].append((c, entry))
     degrees: list[int | None] = []
     chains: list[tuple[sp.Expr, ...]] = []
     rows: list[list[sp.Expr]] = []
@@ -327,9 +332,8 @@ def generic_rank(matrix: sp.MatrixBase, sampler: Sampler) -> int:
     rows, cols = matrix.shape
     values = np.zeros((len(sampler.values), rows, cols))
     # Structural zeros are skipped: a team's R is block diagonal, almost all zeros.
-    for (i, j), entry in matrix.todok().items():
-        if entry != 0:
-            values[:, i, j] = sampler.evaluate(entry)
+    for i, j, entry in nonzero_entries(matrix):
+        values[:, i, j] = sampler.evaluate(entry)
     best = 0
     for point in values:
         if np.all(np.isfinite(point)):
