@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from tvopt_codegen import cli
+from tvopt_codegen import cli, summary
 from tvopt_codegen.cli import main
 from tvopt_codegen.errors import EXIT_ASSUMPTION, EXIT_BAD_SPEC, EXIT_OUTPUT
 
@@ -252,16 +252,26 @@ def test_the_process_ends_without_teardown_but_with_its_exit_handlers(tmp_path: 
 def test_the_derivation_runs_without_the_cyclic_collector_and_turns_it_back_on(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    # What the derivation built is frozen for the rest of the command (the collector's
+    # next scan would visit all of it, for no garbage) and unfrozen when main returns.
     seen: list[bool] = []
-    real = cli._time_limit
+    frozen: list[int] = []
+    real_limit, real_summary = cli._time_limit, summary.format_summary
 
     def spy(*args: Any) -> Any:
         seen.append(gc.isenabled())
-        return real(*args)
+        return real_limit(*args)
+
+    def summarise(*args: Any) -> str:
+        frozen.append(gc.get_freeze_count())
+        return real_summary(*args)
 
     monkeypatch.setattr(cli, "_time_limit", spy)
+    monkeypatch.setattr(summary, "format_summary", summarise)
+    gc.unfreeze()
     assert main(["check", "integrator"]) == 0
     assert seen == [False] and gc.isenabled()
+    assert frozen[0] > 10000 and gc.get_freeze_count() == 0
     bad = write_spec(tmp_path, "not toml [")
     assert main(["check", str(bad)]) != 0
-    assert gc.isenabled()  # also after an error
+    assert gc.isenabled() and gc.get_freeze_count() == 0  # also after an error
