@@ -125,6 +125,46 @@ def test_inlining_follows_the_uses_that_collecting_terms_removes() -> None:
     assert _evaluate(body, outs, point) == pytest.approx([float(full.xreplace(point))], rel=1e-14)
 
 
+@pytest.mark.parametrize("small_program_ops", [5, 10**6])
+def test_number_outputs_pass_through_lowering_in_place(
+    monkeypatch: pytest.MonkeyPatch, small_program_ops: int
+) -> None:
+    # A Hessian-like output, mostly numbers, lowered together with another kernel and
+    # alone: the numbers come out where they were, and no pass ever sees them.
+    monkeypatch.setattr(cse, "SMALL_PROGRAM_OPS", small_program_ops)
+    s0, p0 = sp.symbols("_s0 _p0", real=True)
+    g = [sp.Symbol(f"_g{i}", real=True) for i in range(3)]
+    program = [(g[0], sp.sin(x * a)), (g[1], g[0] ** 2 + x), (g[2], g[1] * g[0] + a)]
+    subs = {x: s0, a: p0}
+    inputs = [Arg("t", (), (), "time"), Arg("s", (s0,), ("x",), ""), Arg("p", (p0,), ("a",), "")]
+    numbers = [sp.Integer(0), sp.Rational(1, 2), sp.Float(-1.5), sp.Integer(0)]
+    hessian = [numbers[0], g[2] * g[1], numbers[1], numbers[2], g[1] - g[0], numbers[3]]
+    specs = [
+        ("hess", "mostly numbers", inputs, [("h", (2, 3), hessian, "")]),
+        ("grad", "no numbers", inputs, [("d", (2,), [g[2], g[1] * a], "")]),
+    ]
+    seen: list[sp.Expr] = []
+    prepare = cse._prepare
+    monkeypatch.setattr(
+        cse, "_prepare", lambda a, e, *r, **k: seen.extend(e) or prepare(a, e, *r, **k)
+    )
+    env = {t: 0.3, s0: 0.8, p0: 1.7}
+    together = make_kernels(specs, program, subs, odd={})
+    alone = make_kernel("hess", "", inputs, program, specs[0][3], subs, odd={})
+    assert seen and not any(isinstance(e, sp.Number) for e in seen)
+    for kernel in (together[0], alone):
+        out = kernel.outputs[0].exprs
+        assert [out[i] for i in (0, 2, 3, 5)] == numbers
+        assert all(out[i] is n for i, n in zip((0, 2, 3, 5), numbers, strict=True))
+        value = x * a
+        direct = {g[0]: sp.sin(value)}
+        direct[g[1]] = direct[g[0]] ** 2 + x
+        direct[g[2]] = direct[g[1]] * direct[g[0]] + a
+        point = {x: 0.8, a: 1.7}
+        want = [float(e.xreplace(direct).xreplace(point)) for e in hessian]
+        assert _evaluate(kernel.body, out, env) == pytest.approx(want, rel=1e-14)
+
+
 def test_kernels_lowered_together_compute_what_they_compute_apart(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

@@ -685,6 +685,27 @@ def _flat(outputs: Outputs) -> list[sp.Expr]:
     return [e for _, _, exprs, _ in outputs for e in exprs]
 
 
+def _symbolic(outputs: Outputs) -> tuple[list[sp.Expr], list[int]]:
+    """A kernel's output expressions that are not numbers, and their places in ``_flat``.
+
+    Numbers need no substitution, CSE or inlining, but each pass did its per-expression
+    work on every one: a team's Hessian is almost all zeros (259 thousand of its 262
+    thousand entries at 256 agents), and lowering it took longer than the objective's
+    and gradient's kernels together.
+    """
+    flat = _flat(outputs)
+    where = [i for i, e in enumerate(flat) if not isinstance(e, sp.Number)]
+    return [flat[i] for i in where], where
+
+
+def _scatter(outputs: Outputs, where: Sequence[int], reduced: Sequence[sp.Expr]) -> list[sp.Expr]:
+    """The outputs, flat, with the reduced expressions put back at ``where``."""
+    flat = _flat(outputs)
+    for i, expr in zip(where, reduced, strict=True):
+        flat[i] = expr
+    return flat
+
+
 def make_kernel(
     name: str,
     doc: str,
@@ -703,10 +724,11 @@ def make_kernel(
     programs. ``search=False`` skips sympy's search for common sub-sums
     (:func:`ordered_cse`).
     """
-    program, flat = _prepare(assignments, _flat(outputs), subs, odd, symbols)
+    exprs, where = _symbolic(outputs)
+    program, flat = _prepare(assignments, exprs, subs, odd, symbols)
     before = operation_count([v for _, v in program] + flat)
     body, reduced = ordered_cse(program, flat, search)
-    return _package(name, doc, inputs, outputs, body, reduced, before)
+    return _package(name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before)
 
 
 def make_kernels(
@@ -728,11 +750,12 @@ def make_kernels(
     then used once. Smaller kernels are made one by one, as :func:`make_kernel` would:
     sympy's fuller search suits them, and a union could pass its size limit.
     """
-    sizes = [len(_flat(outputs)) for _, _, _, outputs in kernels]
+    symbolic = [_symbolic(outputs) for *_, outputs in kernels]
+    sizes = [len(exprs) for exprs, _ in symbolic]
     # The kernels cut from one program share its nodes: each is walked once.
     symbols = {} if symbols is None else symbols
     program, flat = _prepare(
-        assignments, [e for *_, outputs in kernels for e in _flat(outputs)], subs, odd, symbols
+        assignments, [e for exprs, _ in symbolic for e in exprs], subs, odd, symbols
     )
     ends = list(itertools.accumulate(sizes))
     parts = [flat[end - size : end] for size, end in zip(sizes, ends, strict=True)]
@@ -742,21 +765,29 @@ def make_kernels(
         operation_count([v for _, v in mine] + part, counts)
         for mine, part in zip(programs, parts, strict=True)
     ]
+    wheres = [where for _, where in symbolic]
     if len(kernels) < 2 or min(befores) <= SMALL_PROGRAM_OPS:
-        return [
-            _package(name, doc, inputs, outputs, *ordered_cse(mine, part), before)
-            for (name, doc, inputs, outputs), mine, part, before in zip(
-                kernels, programs, parts, befores, strict=True
+        made = []
+        for (name, doc, inputs, outputs), mine, part, where, before in zip(
+            kernels, programs, parts, wheres, befores, strict=True
+        ):
+            body, reduced = ordered_cse(mine, part)
+            made.append(
+                _package(
+                    name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before
+                )
             )
-        ]
+        return made
     order, outs = _reduce(program, flat, search=False, symbols=symbols)
-    made: list[Kernel] = []
-    for (name, doc, inputs, outputs), size, end, before in zip(
-        kernels, sizes, ends, befores, strict=True
+    made = []
+    for (name, doc, inputs, outputs), size, end, where, before in zip(
+        kernels, sizes, ends, wheres, befores, strict=True
     ):
         mine = outs[end - size : end]
         body, reduced = _number(*_inline_single_use(_prune(order, mine, symbols), mine))
-        made.append(_package(name, doc, inputs, outputs, body, reduced, before))
+        made.append(
+            _package(name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before)
+        )
     return made
 
 
