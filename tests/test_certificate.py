@@ -263,6 +263,46 @@ def test_sparse_definiteness_agrees_with_eigenvalues_banded_or_not() -> None:
                 assert verdict is None or verdict == (low + shift > 0), (banded, shift)
 
 
+def test_sparse_eigenvalues_and_newton_steps_agree_with_dense_algebra() -> None:
+    """A team's convexity check and Newton search: banded eigenvalues and banded LU of
+    the permuted matrix (a ring), dense ones for a wide pattern (a star), against numpy's
+    dense eigvalsh and solve; a singular or non-finite matrix is reported unusable."""
+    from tvopt_codegen.derivation import _BAND_LIMIT, _SparseHessians
+
+    rng = np.random.default_rng(5)
+    m = 90
+    ring = [(i, i) for i in range(m)] + [
+        (max(i, (i + 1) % m), min(i, (i + 1) % m)) for i in range(m)
+    ]
+    star = [(i, i) for i in range(m)] + [(i, 0) for i in range(1, m)]
+    for entries, banded in ((ring, True), (star, False)):
+        sparse = _SparseHessians(entries, m)
+        assert (sparse.band <= _BAND_LIMIT) is banded
+
+        def dense(values: np.ndarray, entries: list[tuple[int, int]] = entries) -> np.ndarray:
+            out = np.zeros((values.shape[1], m, m))
+            for (i, j), v in zip(entries, values, strict=True):
+                out[:, i, j] = out[:, j, i] = v
+            return out
+
+        values = rng.normal(size=(len(entries), 6))
+        values[:, 5] = 0.0  # the zero matrix: singular
+        values[3, 4] = np.nan  # not finite
+        grads = rng.normal(size=(6, m))
+        matrices = dense(values)
+        low, high = sparse.extremes(values, dense)
+        steps, usable = sparse.solve(values, grads, dense)
+        assert usable.tolist() == [True, True, True, True, False, False], banded
+        assert np.isnan(low[4]) and np.isnan(high[4])
+        for point in range(4):
+            eig = np.linalg.eigvalsh(matrices[point])
+            assert low[point] == pytest.approx(eig[0], rel=1e-12, abs=1e-12)
+            assert high[point] == pytest.approx(np.max(np.abs(eig)), rel=1e-12)
+            want = np.linalg.solve(matrices[point], grads[point])
+            assert steps[point] == pytest.approx(want, rel=1e-9, abs=1e-9), (banded, point)
+        assert np.array_equal(steps[4:], grads[4:])
+
+
 def test_the_transient_constant_is_the_supremum_on_its_grid() -> None:
     """c = sup_t |expm(H t)|_2 e^(alpha t), sampled where transient_constant samples it
     (its powers of one step, their norms in one batched call), against expm at each t."""

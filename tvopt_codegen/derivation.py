@@ -685,8 +685,9 @@ _PROBE_BYTES = 64 * 2**20
 #: Sparse Hessians whose band (in the reverse Cuthill-McKee order) is at most this wide
 #: are factored as bands; wider ones by SuperLU.
 _BAND_LIMIT = 32
-#: Beyond this many outputs the fading probe factors sparse Hessians instead of
-#: computing dense eigenvalues (a team's Hessian is almost all zeros).
+#: Beyond this many outputs the Hessian's samples are handled as sparse matrices (a
+#: team's is almost all zeros): the fading probe factors them, the convexity check takes
+#: their banded eigenvalues and the search for y*(t) their banded LU (:class:`_SparseHessians`).
 _SPARSE_PROBE = 64
 
 
@@ -742,15 +743,60 @@ class _ObjectiveNumbers:
 
     def derivatives(self, ys: np.ndarray, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gradients (P, m) and Hessians (P, m, m) at the points (NaN where undefined)."""
+        grads, values = self._gradients_and_entries(ys, ts)
+        return grads, self._dense(values)
+
+    def _gradients_and_entries(
+        self, ys: np.ndarray, ts: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Gradients (P, m) and the Hessian's stored entries (E, P) at the points."""
         points, m = ys.shape
         results = self._derivatives(*self._inputs(ys, ts))
         grads = np.empty((points, m))
         for i in range(m):
             grads[:, i] = np.real(results[i])
-        matrices = np.zeros((points, m, m))
-        for ((i, j), _), value in zip(self.entries, results[m:], strict=True):
-            matrices[:, i, j] = matrices[:, j, i] = np.real(value)
-        return grads, matrices
+        values = np.empty((len(self.entries), points))
+        for index, value in enumerate(results[m:]):
+            values[index] = np.real(value)
+        return grads, values
+
+    def _dense(self, values: np.ndarray) -> np.ndarray:
+        """The Hessians (P, m, m) of stored entries (E, P)."""
+        m = len(self.model.y)
+        matrices = np.zeros((values.shape[1], m, m))
+        for ((i, j), _), value in zip(self.entries, values, strict=True):
+            matrices[:, i, j] = matrices[:, j, i] = value
+        return matrices
+
+    @functools.cached_property
+    def sparse(self) -> _SparseHessians | None:
+        """The Hessian's pattern, for a team's outputs (beyond :data:`_SPARSE_PROBE`)."""
+        m = len(self.model.y)
+        return _SparseHessians([ij for ij, _ in self.entries], m) if m > _SPARSE_PROBE else None
+
+    def extremes(self, ys: np.ndarray, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The Hessian's smallest and largest |eigenvalue| at each point (NaN if not finite)."""
+        if self.sparse is None:
+            return _smallest_eigenvalues(self.derivatives(ys, ts)[1])
+        return self.sparse.extremes(self.hessian_entries(ys, ts), self._dense)
+
+    def newton(self, ys: np.ndarray, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Gradients (P, m), Newton steps H^-1 grad, and where H was finite and nonsingular.
+
+        Non-finite gradient entries are taken as 0; where H is not usable the step is
+        the solve with the identity's place taken (the caller falls back to the gradient).
+        """
+        if self.sparse is None:
+            grads, matrices = self.derivatives(ys, ts)
+            grads = np.where(np.isfinite(grads), grads, 0.0)
+            usable = np.all(np.isfinite(matrices), axis=(1, 2))
+            usable &= np.abs(np.linalg.det(np.where(usable[:, None, None], matrices, 1.0))) > 0
+            safe = np.where(usable[:, None, None], matrices, np.eye(matrices.shape[1]))
+            return grads, np.linalg.solve(safe, grads[:, :, None])[:, :, 0], usable
+        grads, values = self._gradients_and_entries(ys, ts)
+        grads = np.where(np.isfinite(grads), grads, 0.0)
+        steps, usable = self.sparse.solve(values, grads, self._dense)
+        return grads, steps, usable
 
 
 def _smallest_eigenvalues(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -781,15 +827,10 @@ def _minimiser_path(
         # ((y - r)**4: linear, by 2/3 a step) they leave a Hessian ~1e-13 of its scale.
         first: np.ndarray | None = None
         for _ in range(40):
-            grads, matrices = numbers.derivatives(ys, ts)
-            grads = np.where(np.isfinite(grads), grads, 0.0)
+            grads, newton, usable = numbers.newton(ys, ts)
             norms = np.linalg.norm(grads, axis=1)
             if first is None:
                 first = norms
-            usable = np.all(np.isfinite(matrices), axis=(1, 2))
-            usable &= np.abs(np.linalg.det(np.where(usable[:, None, None], matrices, 1.0))) > 0
-            safe = np.where(usable[:, None, None], matrices, np.eye(matrices.shape[1]))
-            newton = np.linalg.solve(safe, grads[:, :, None])[:, :, 0]
             descent = usable & np.all(np.isfinite(newton), axis=1)
             descent &= np.einsum("pi,pi->p", grads, newton) > 0
             steps = np.where(descent[:, None], newton, grads)
@@ -856,12 +897,10 @@ def _check_convexity(
         points = 24
         ys = np.asarray(y0) + rng.uniform(-0.1, 0.1, size=(points, m))
         ts = rng.uniform(0.0, t_final, size=points)
-        _, near = numbers.derivatives(ys, ts)
-        low, high = _smallest_eigenvalues(near)
+        low, high = numbers.extremes(ys, ts)
         path_ts = np.linspace(0.0, t_final, _PATH_POINTS)
         path, converged = _minimiser_path(numbers, y0, path_ts)
-        _, on_path = numbers.derivatives(path, path_ts)
-        path_low, path_high = _smallest_eigenvalues(on_path)
+        path_low, path_high = numbers.extremes(path, path_ts)
         path_low = np.where(converged, path_low, np.nan)
         finite = np.isfinite(low).sum() + np.isfinite(path_low).sum()
         if not finite:
@@ -937,13 +976,82 @@ class _SparseHessians:
         # Each entry's place in LAPACK's upper band storage of the permuted matrix:
         # ab[band + i - j, j] = A[i, j] for i <= j.
         pattern = {(i, j) for i, j in entries} | {(j, i) for i, j in entries}
-        position = np.empty(m, dtype=np.int64)
-        position[list(reverse_cuthill_mckee(pattern, m))] = np.arange(m)
+        # order[k]: the output at place k of the permuted matrix; position: its inverse.
+        self.order = np.array(reverse_cuthill_mckee(pattern, m), dtype=np.int64)
+        position = self.position = np.empty(m, dtype=np.int64)
+        position[self.order] = np.arange(m)
         first, second = position[lower[:, 0]], position[lower[:, 1]]
         low, high = np.minimum(first, second), np.maximum(first, second)
         self.band = int((high - low).max(initial=0))
         self.band_rows = self.band + low - high
         self.band_cols = high
+
+    def _upper_band(self, values: np.ndarray) -> np.ndarray:
+        """LAPACK's upper band storage of the permuted matrix of ``values`` (one point)."""
+        band = np.zeros((self.band + 1, self.m))
+        band[self.band_rows, self.band_cols] = values
+        return band
+
+    def extremes(
+        self, values: np.ndarray, dense: Callable[[np.ndarray], np.ndarray]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Smallest and largest |eigenvalue| of each point's matrix (``values`` (E, P)).
+
+        In a narrow band, LAPACK's banded symmetric eigenvalues (``sbevd``: a reduction
+        to tridiagonal form in O(m band^2)) of the permuted matrix, a similarity that
+        keeps them; otherwise the dense matrices (``dense`` builds them). NaN where an
+        entry is not finite.
+        """
+        points = values.shape[1]
+        finite = np.all(np.isfinite(values), axis=0)
+        if self.band > _BAND_LIMIT:
+            low, high = np.full(points, np.nan), np.full(points, np.nan)
+            if finite.any():
+                low[finite], high[finite] = _smallest_eigenvalues(dense(values[:, finite]))
+            return low, high
+        from scipy.linalg import eigvals_banded  # noqa: PLC0415 - only for large teams
+
+        low, high = np.full(points, np.nan), np.full(points, np.nan)
+        for point in np.nonzero(finite)[0]:
+            band = self._upper_band(values[:, point])
+            eig = eigvals_banded(band, lower=False, check_finite=False)
+            low[point], high[point] = eig[0], max(abs(eig[0]), abs(eig[-1]))
+        return low, high
+
+    def solve(
+        self, values: np.ndarray, grads: np.ndarray, dense: Callable[[np.ndarray], np.ndarray]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``H^-1 g`` at each point, and where H is finite and nonsingular (else ``g``).
+
+        In a narrow band, LAPACK's banded LU (``gbsv``) of the permuted matrix (a
+        Newton step need not be on a definite matrix); otherwise dense LU.
+        """
+        steps = grads.copy()
+        usable = np.all(np.isfinite(values), axis=0)
+        if self.band > _BAND_LIMIT:
+            for point in np.nonzero(usable)[0]:
+                try:
+                    steps[point] = np.linalg.solve(dense(values[:, point, None])[0], grads[point])
+                except np.linalg.LinAlgError:
+                    usable[point] = False
+            return steps, usable
+        from scipy.linalg import solve_banded  # noqa: PLC0415 - only for large teams
+
+        b = self.band
+        for point in np.nonzero(usable)[0]:
+            upper = self._upper_band(values[:, point])
+            general = np.zeros((2 * b + 1, self.m))
+            general[: b + 1] = upper
+            # Below the diagonal by symmetry: A[j + d, j] = A[j, j + d].
+            for d in range(1, b + 1):
+                general[b + d, : self.m - d] = upper[b - d, d:]
+            try:
+                permuted = solve_banded((b, b), general, grads[point, self.order])
+            except np.linalg.LinAlgError:
+                usable[point] = False
+                continue
+            steps[point] = permuted[self.position]
+        return steps, usable
 
     def positive_definite(self, values: np.ndarray, shift: float) -> bool | None:
         """Whether the matrix of ``values`` (in the entries' order) + ``shift I`` is definite.
@@ -954,8 +1062,7 @@ class _SparseHessians:
         if self.band <= _BAND_LIMIT:
             from scipy.linalg import cholesky_banded  # noqa: PLC0415 - only for large teams
 
-            band = np.zeros((self.band + 1, self.m))
-            band[self.band_rows, self.band_cols] = values
+            band = self._upper_band(values)
             band[self.band] += shift
             try:
                 cholesky_banded(band, lower=False, check_finite=False)
@@ -1011,10 +1118,7 @@ def _fading_sparse(
                 continue  # H - tau I > 0: strongly convex there, the common case
             above = sparse.positive_definite(column, tau)
             if above is None or below is None:
-                _, dense = numbers.derivatives(
-                    points[None, start + offset], times[None, start + offset]
-                )
-                low, _ = _smallest_eigenvalues(dense)
+                low, _ = _smallest_eigenvalues(numbers._dense(column[:, None]))
                 fading[start + offset] = bool(abs(low[0]) < tau)
             else:
                 fading[start + offset] = above and not below
@@ -1044,17 +1148,14 @@ def _fading_convexity(
         if not fading.any():
             return []
         at = int(np.argmax(fading))
-        _, dense = numbers.derivatives(points[None, at], times[None, at])
         low = np.full(len(points), np.nan)
-        low[at] = _smallest_eigenvalues(dense)[0][0]
+        low[at] = numbers.extremes(points[None, at], times[None, at])[0][0]
     else:
         low = np.empty(len(points))
         chunk = max(count, _PROBE_BYTES // (8 * m * m))
         for start in range(0, len(points), chunk):
-            _, matrices = numbers.derivatives(
-                points[start : start + chunk], times[start : start + chunk]
-            )
-            low[start : start + chunk], _ = _smallest_eigenvalues(matrices)
+            part = slice(start, start + chunk)
+            low[part], _ = numbers.extremes(points[part], times[part])
         fading = candidates & (np.abs(low) < 1e-6 * reference)
         if not fading.any():
             return []
