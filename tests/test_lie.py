@@ -75,3 +75,52 @@ def test_derivation_reads_r_p_and_phi_from_the_lie_chains() -> None:
     assert d.A == sp.Matrix([[0, 1, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1], [0, 0, 0, 0]])
     assert d.B == sp.Matrix([[0, 0], [1, 0], [0, 0], [0, 1]])
     assert d.uniform and d.k == 2 and d.padding == ((), ())
+
+
+def test_generic_rank_by_blocks_is_the_rank_of_the_whole_matrix() -> None:
+    """Rank block by block (a team's R) against numpy's rank of the whole matrix at each
+    sample: shuffled block patterns, blocks that lose rank everywhere or at some points
+    only, a scale that sets the tolerance, entries undefined at some samples."""
+    import random
+
+    import numpy as np
+
+    a, b, c = sp.symbols("a b c", real=True)
+    sampler = Sampler((a, b, c), {})
+    pieces = [a, sp.cos(b), a * b - 1, sp.sqrt(c), sp.log(a), 3 * a, 1e12 * b, c**2, b]
+    rng = random.Random(3)
+
+    def reference(matrix: sp.Matrix) -> int:
+        rows, cols = matrix.shape
+        values = np.zeros((len(sampler.values), rows, cols))
+        for i in range(rows):
+            for j in range(cols):
+                if matrix[i, j] != 0:
+                    values[:, i, j] = sampler.evaluate(matrix[i, j])
+        ranks = [
+            int(np.linalg.matrix_rank(point, tol=1e-9 * max(1.0, np.abs(point).max())))
+            for point in values
+            if np.all(np.isfinite(point))
+        ]
+        return max(ranks, default=0)
+
+    seen = set()
+    for _ in range(60):
+        size = rng.randint(1, 8)
+        matrix = sp.zeros(size, size)
+        for _ in range(rng.randint(0, 3 * size)):
+            matrix[rng.randrange(size), rng.randrange(size)] = rng.choice(pieces)
+        if size > 1 and rng.random() < 0.5:  # a row that is a multiple of another
+            matrix[1, :] = 2 * matrix[0, :]
+        rows, cols = list(range(size)), list(range(size))
+        rng.shuffle(rows)
+        rng.shuffle(cols)
+        shuffled = matrix.extract(rows, cols)
+        want = reference(shuffled)
+        seen.add(want)
+        assert generic_rank(shuffled, sampler) == want, shuffled
+    assert len(seen) >= 6
+    # Undefined everywhere in one block: no sample counts, whatever the other blocks.
+    undefined = sp.diag(a, sp.Matrix([[b, 1], [sp.log(-(a**2) - 1), 2]]))
+    assert reference(undefined) == 0
+    assert generic_rank(undefined, sampler) == 0

@@ -327,17 +327,59 @@ def brunovsky(degrees: Sequence[int]) -> tuple[sp.ImmutableMatrix, sp.ImmutableM
     return a.as_immutable(), b.as_immutable()
 
 
+def _coupled_blocks(entries: Sequence[tuple[int, int]]) -> list[tuple[list[int], list[int]]]:
+    """The rows and columns of each connected block of a sparsity pattern.
+
+    Rows and columns are joined where an entry is nonzero; permuted by blocks, the matrix
+    is block diagonal, and its singular values are those of its blocks together.
+    """
+    parent: dict[tuple[str, int], tuple[str, int]] = {}
+
+    def root(node: tuple[str, int]) -> tuple[str, int]:
+        while parent.setdefault(node, node) != node:
+            parent[node] = parent[parent[node]]
+            node = parent[node]
+        return node
+
+    for i, j in entries:
+        parent[root(("row", i))] = root(("col", j))
+    blocks: dict[tuple[str, int], tuple[list[int], list[int]]] = {}
+    for node in sorted(parent):
+        rows, cols = blocks.setdefault(root(node), ([], []))
+        (rows if node[0] == "row" else cols).append(node[1])
+    return list(blocks.values())
+
+
 def generic_rank(matrix: sp.MatrixBase, sampler: Sampler) -> int:
-    """Generic rank of a matrix function: its largest numerical rank at the samples."""
-    rows, cols = matrix.shape
-    values = np.zeros((len(sampler.values), rows, cols))
+    """Generic rank of a matrix function: its largest numerical rank at the samples.
+
+    The rank at a point counts the singular values above ``1e-9`` of the point's largest
+    entry (at least 1e-9). They are taken block by block (:func:`_coupled_blocks`), all
+    points and blocks of one shape in one batched call: a team's R is block diagonal,
+    and the SVD of a 512 x 512 matrix at each sample was 0.4 s of a 256-agent run.
+    """
+    points = len(sampler.values)
     # Structural zeros are skipped: a team's R is block diagonal, almost all zeros.
-    for i, j, entry in nonzero_entries(matrix):
-        values[:, i, j] = sampler.evaluate(entry)
-    best = 0
-    for point in values:
-        if np.all(np.isfinite(point)):
-            best = max(
-                best, int(np.linalg.matrix_rank(point, tol=1e-9 * max(1.0, np.abs(point).max())))
-            )
-    return best
+    entries = nonzero_entries(matrix)
+    values = {(i, j): sampler.evaluate(entry) for i, j, entry in entries}
+    if not values:
+        return 0
+    stacked = np.array(list(values.values()))
+    finite = np.all(np.isfinite(stacked), axis=0)
+    with np.errstate(invalid="ignore"):
+        tol = 1e-9 * np.maximum(1.0, np.abs(stacked).max(axis=0, initial=0.0))
+    ranks = np.zeros(points, dtype=int)
+    by_shape: dict[tuple[int, int], list[np.ndarray]] = {}
+    for rows, cols in _coupled_blocks(list(values)):
+        block = np.zeros((points, len(rows), len(cols)))
+        for a, i in enumerate(rows):
+            for b, j in enumerate(cols):
+                if (i, j) in values:
+                    block[:, a, b] = values[i, j]
+        by_shape.setdefault(block.shape[1:], []).append(block)
+    for blocks in by_shape.values():
+        # (blocks, points, r, c): every block at every point, one SVD call.
+        batch = np.where(finite[None, :, None, None], np.stack(blocks), 0.0)
+        singular = np.linalg.svd(batch, compute_uv=False)
+        ranks += np.sum(singular > tol[None, :, None], axis=(0, 2))
+    return int(ranks[finite].max(initial=0))
