@@ -414,6 +414,48 @@ def test_symbols_in_is_the_union_of_free_symbols(exprs: list[sp.Expr]) -> None:
     assert cse.symbols_in(exprs) == set().union(*(e.free_symbols for e in exprs))
 
 
+@st.composite
+def _programs_with_aliases(draw: st.DrawFn) -> tuple[list[tuple[sp.Symbol, sp.Expr]], list]:
+    """Three-address-like programs: temporaries that alias an earlier one (or its
+    negation, or a leaf), repeat an earlier value (or its negation), or combine."""
+    order: list[tuple[sp.Symbol, sp.Expr]] = []
+    for k in range(draw(st.integers(1, 12))):
+        known = [sym for sym, _ in order] + list(_LEAVES[:4])
+        kind = draw(st.sampled_from(["alias", "negated", "repeat", "combine", "combine"]))
+        if kind in ("alias", "negated"):
+            value = draw(st.sampled_from(known)) * (-1 if kind == "negated" else 1)
+        elif kind == "repeat" and order:
+            value = draw(st.sampled_from([v for _, v in order])) * draw(st.sampled_from([1, -1]))
+        else:
+            pick = st.sampled_from(known)
+            value = draw(st.sampled_from([sp.Add, sp.Mul]))(draw(pick), draw(pick))
+            value = draw(st.sampled_from([value, sp.sin(value), value - draw(pick)]))
+        order.append((sp.Symbol(f"_cse{k}", real=True), value))
+    syms = [sym for sym, _ in order]
+    outs = draw(st.lists(st.sampled_from(syms), min_size=1, max_size=4))
+    return order, [o + 1 for o in outs]
+
+
+@given(_programs_with_aliases())
+@settings(max_examples=300, deadline=None)
+def test_merging_also_drops_aliases_and_computes_the_same(program: tuple) -> None:
+    """_merge_equal substitutes aliases (a temporary that is a symbol, a constant or a
+    negation of one) in the same walk as it merges equal values: the outputs are the
+    same numbers, no alias and no value twice (or negated) is left, and nothing is
+    kept that dropping aliases first, then merging, would have removed."""
+    order, outs = program
+    merged, merged_outs = cse._merge_equal(order, outs)
+    apart, apart_outs = cse._merge_equal(*cse._drop_aliases(order, outs))
+    assert len(merged) <= len(apart)
+    values = [value for _, value in merged]
+    assert not any(v.is_Atom or cse._negated_atom(v) for v in values)
+    assert len(set(values)) == len(values) and not set(values) & {-v for v in values}
+    point = {leaf: 0.1 * (k + 2) for k, leaf in enumerate(_LEAVES[:4])}
+    want = _evaluate(order, outs, point)
+    assert _evaluate(merged, merged_outs, point) == pytest.approx(want, rel=1e-12)
+    assert _evaluate(apart, apart_outs, point) == pytest.approx(want, rel=1e-12)
+
+
 def test_a_kernel_reading_a_symbol_it_is_not_given_is_refused() -> None:
     s0, stray = sp.symbols("_s0 _stray", real=True)
     inputs = [Arg("s", (s0,), ("x",), "state")]

@@ -338,9 +338,7 @@ def _reduce(
     for value in reduced[len(kept) :]:
         need(value)
     release(need)
-    # CSE can leave an assignment that is just a temporary (the program computed a
-    # value CSE found elsewhere first): substitute those too.
-    order, outs = _drop_aliases(order, list(reduced[len(kept) :]))
+    outs = list(reduced[len(kept) :])
     # Merging equal values can leave a temporary with one use, and inlining can make
     # two values equal: alternate to a fixed point (two rounds in practice). Each pass
     # reaches its own fixed point, and inlining changes the program exactly when it
@@ -435,6 +433,11 @@ def _merge_equal(
     after ``a = tan(...)`` was extracted). And a pairwise term such as a barrier between
     agents a and b differentiates into ``xa - xb`` for one and ``xb - xa`` for the other.
     One pass in evaluation order catches both, each match turning the next ones up.
+
+    Temporaries whose value is a symbol or constant, or its negation, are substituted
+    too, in the same walk (:func:`_drop_aliases` did it in a pass of its own): CSE
+    leaves them where the program computed a value found elsewhere first, a merge where
+    ``a - b`` meets ``b - a``, and inlining where terms cancel.
     """
     first: dict[sp.Basic, sp.Symbol] = {}
     rename: dict[sp.Symbol, sp.Expr] = {}
@@ -444,6 +447,9 @@ def _merge_equal(
     kept: list[Assignment] = []
     for sym, raw in order:
         value = _substitute(raw, rename, memo)
+        if value.is_Atom or _negated_atom(value):
+            rename[sym] = value
+            continue
         if value in first:
             rename[sym] = first[value]
             continue
