@@ -124,3 +124,42 @@ def test_generic_rank_by_blocks_is_the_rank_of_the_whole_matrix() -> None:
     undefined = sp.diag(a, sp.Matrix([[b, 1], [sp.log(-(a**2) - 1), 2]]))
     assert reference(undefined) == 0
     assert generic_rank(undefined, sampler) == 0
+
+
+def test_a_teams_decoupling_matrix_is_the_dense_formulas() -> None:
+    """Three prolonged unicycles with coupled drift and non-uniform degrees: R and the
+    Lie chains read from sparse rows equal the textbook dense formula
+    R[i] = d(L_f^(r_i - 1) h_i)/dx G, and R's zeros are exact zeros."""
+    xs = sp.symbols("a0:3 b0:3 th0:3 v0:3", real=True)
+    a, b, th, vv = xs[0:3], xs[3:6], xs[6:9], xs[9:12]
+    w = sp.symbols("w0:3", real=True)
+    x = (*a, *b, *th)
+    # Each agent drifts towards the next one: f couples the team.
+    f = sp.Matrix(
+        [0.1 * (a[(i + 1) % 3] - a[i]) for i in range(3)]
+        + [0.1 * (b[(i + 1) % 3] - b[i]) for i in range(3)]
+        + [0, 0, 0]
+    )
+    G = sp.zeros(9, 6)
+    for i in range(3):
+        G[i, i] = sp.cos(th[i])
+        G[3 + i, i] = sp.sin(th[i])
+        G[6 + i, 3 + i] = 1
+    ext = extend(x, (*vv, *w), f, G, {f"v{i}": 1 for i in range(3)})
+    # Outputs of two relative degrees: positions (2) and one heading (1).
+    h = sp.Matrix([a[0], b[0], a[1], b[1], a[2], th[2]])
+    sampler = Sampler(ext.x, {})
+    rd = relative_degree(ext.f, ext.G, h, ext.x, sampler)
+    assert rd.r == (2, 2, 2, 2, 2, 1)
+    assert rd.R is not None and rd.R.shape == (6, 6)
+    state = sp.Matrix(ext.x)
+    for i, r in enumerate(rd.r):
+        lie = h[i]
+        for _ in range(r - 1):
+            lie = (sp.Matrix([lie]).jacobian(state) * ext.f)[0]
+        row = sp.Matrix([lie]).jacobian(state) * ext.G
+        assert sp.simplify(rd.lie[i][r - 1] - lie) == 0
+        for j in range(6):
+            assert sp.simplify(rd.R[i, j] - row[j]) == 0, (i, j)
+            assert (rd.R[i, j] == 0) == (sp.simplify(row[j]) == 0)
+    assert generic_rank(rd.R, sampler) == 6

@@ -38,6 +38,7 @@ from tvopt_codegen.lie import (
     Sampler,
     brunovsky,
     extend,
+    from_entries,
     generic_rank,
     nonzero_entries,
     relative_degree,
@@ -607,7 +608,7 @@ def _sparse_hessian(gradient: sp.MatrixBase, y: Sequence[sp.Symbol]) -> sp.Immut
                 value = sp.diff(gi, y[j])
                 if value != 0:
                     entries[(i, j)] = entries[(j, i)] = value
-    return sp.ImmutableMatrix(m, m, lambda i, j: entries.get((i, j), sp.Integer(0)))
+    return from_entries(m, m, entries)
 
 
 def _polynomial_hessian(
@@ -637,12 +638,12 @@ def _affine_split(
     and parameters alone, which a batch of states at one time shares.
     """
     at_zero = {yi: sp.Integer(0) for yi in y}
+    # The Hessian's nonzero entries by row: a team's is almost all zeros.
+    rows: list[list[sp.Expr]] = [[] for _ in y]
+    for i, j, entry in nonzero_entries(hessian):
+        rows[i].append(entry * y[j])
     return sp.ImmutableMatrix(
-        [
-            sp.Add(*(hessian[i, j] * y[j] for j in range(len(y)) if hessian[i, j] != 0))
-            + gi.xreplace(at_zero)
-            for i, gi in enumerate(gradient)
-        ]
+        [sp.Add(*rows[i]) + gi.xreplace(at_zero) for i, gi in enumerate(gradient)]
     )
 
 

@@ -93,17 +93,17 @@ def _lie_row(
     f: sp.MatrixBase,
     columns: Sequence[Sequence[tuple[int, sp.Expr]]],
     x: Sequence[sp.Symbol],
-    width: int,
-) -> tuple[sp.Expr, list[sp.Expr]]:
+) -> tuple[sp.Expr, dict[int, sp.Expr]]:
     """Return ``L_f expr`` and the row ``L_G expr`` from one sparse gradient of ``expr``.
 
     Only the states that occur in ``expr`` are differentiated, and only the nonzero
     entries of G are visited (``columns[i]`` lists them for state ``i``): for N agents
-    the dense sweep is quadratic in N, this one linear.
+    the dense sweep is quadratic in N, this one linear. The row is its entries by
+    column, the columns no state of ``expr`` reaches left out.
     """
     free = sp.sympify(expr).free_symbols
     drift = sp.Integer(0)
-    row: list[sp.Expr] = [sp.Integer(0)] * width
+    row: dict[int, sp.Expr] = {}
     for i, xi in enumerate(x):
         if xi not in free:
             continue
@@ -111,8 +111,22 @@ def _lie_row(
         if f[i] != 0:
             drift += partial * f[i]
         for c, gic in columns[i]:
-            row[c] += partial * gic
+            row[c] = row.get(c, sp.Integer(0)) + partial * gic
     return drift, row
+
+
+def from_entries(
+    rows: int, cols: int, entries: Mapping[tuple[int, int], sp.Expr]
+) -> sp.ImmutableMatrix:
+    """The dense matrix of the given entries, zeros elsewhere.
+
+    Written into a matrix of zeros: a matrix built from nested lists sympifies every
+    entry, 0.26 s for a team's 768 x 512 G, where its 768 nonzero entries take 0.01 s.
+    """
+    matrix = sp.zeros(rows, cols)
+    for (i, j), value in entries.items():
+        matrix[i, j] = value
+    return matrix.as_immutable()
 
 
 def nonzero_entries(matrix: sp.MatrixBase) -> list[tuple[int, int, sp.Expr]]:
@@ -233,7 +247,7 @@ def extend(
         inputs=tuple(new_inputs),
         x=x_ext,
         f=sp.ImmutableMatrix(drift),
-        G=sp.ImmutableMatrix(G_ext),
+        G=G_ext.as_immutable(),
         counts=tuple((uj.name, counts[uj.name]) for uj in u if counts.get(uj.name, 0) > 0),
     )
 
@@ -284,31 +298,33 @@ def relative_degree(
         Per-output relative degrees, Lie derivative chains and the decoupling matrix.
     """
     n = len(x)
-    width = G.shape[1]
     columns: list[list[tuple[int, sp.Expr]]] = [[] for _ in range(n)]
     for i, c, entry in nonzero_entries(G):
         columns[i].append((c, entry))
     degrees: list[int | None] = []
     chains: list[tuple[sp.Expr, ...]] = []
-    rows: list[list[sp.Expr]] = []
-    for hi in h:
+    # R's nonzero entries: a team's R is m^2 entries, almost all zeros, and a dense row
+    # per Lie derivative made this stage quadratic in the team's size.
+    entries: dict[tuple[int, int], sp.Expr] = {}
+    for output, hi in enumerate(h):
         chain = [hi if not sampler.is_zero(hi) else sp.Integer(0)]
         found: int | None = None
         for order in range(n):
-            nxt, row = _lie_row(chain[-1], f, columns, x, width)
-            row = [e if e == 0 or not sampler.is_zero(e) else sp.Integer(0) for e in row]
+            nxt, row = _lie_row(chain[-1], f, columns, x)
+            row = {c: e for c, e in sorted(row.items()) if e != 0 and not sampler.is_zero(e)}
             if check is not None:
                 check(nxt)
-                for entry in row:
+                for entry in row.values():
                     check(entry)
             chain.append(sp.Integer(0) if sampler.is_zero(nxt) else nxt)
-            if any(e != 0 for e in row):
+            if row:
                 found = order + 1
-                rows.append(row)
+                entries |= {(output, c): e for c, e in row.items()}
                 break
         degrees.append(found)
         chains.append(tuple(chain))
-    R = sp.ImmutableMatrix(rows) if all(d is not None for d in degrees) else None
+    complete = all(d is not None for d in degrees)
+    R = from_entries(len(degrees), G.shape[1], entries) if complete else None
     return RelativeDegree(r=tuple(degrees), lie=tuple(chains), R=R)
 
 

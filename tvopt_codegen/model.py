@@ -13,7 +13,7 @@ import sympy as sp
 
 from tvopt_codegen.constraints import barrier_objective, initial_slack, schedule
 from tvopt_codegen.errors import AssumptionError, SpecError
-from tvopt_codegen.lie import Sampler
+from tvopt_codegen.lie import Sampler, from_entries
 from tvopt_codegen.spec import TIME, Constraint, Spec, symbol
 
 
@@ -131,15 +131,17 @@ def build_model(spec: Spec) -> Model:
             )
         ),
     )
-    G_rows = []
+    G_entries: dict[tuple[int, int], sp.Expr] = {}
     f_rows = []
     inputs = set(u)
-    for state, rhs in zip(spec.states, spec.dynamics, strict=True):
+    for i, (state, rhs) in enumerate(zip(spec.states, spec.dynamics, strict=True)):
         # Only the inputs that occur are differentiated: a plant of N agents has N times
         # the inputs, each in a few equations, and a dense sweep would be quadratic.
         present = rhs.free_symbols
-        row = [sp.diff(rhs, uj) if uj in present else sp.Integer(0) for uj in u]
-        for j, gij in enumerate(row):
+        row = {j: sp.diff(rhs, uj) for j, uj in enumerate(u) if uj in present}
+        for j, gij in row.items():
+            if gij != 0:
+                G_entries[i, j] = gij
             # Only the inputs that occur in the coefficient, in declaration order: a
             # team's G is almost all zeros, and looping over every input for every
             # entry was cubic (9 s for 128 agents).
@@ -154,7 +156,6 @@ def build_model(spec: Spec) -> Model:
                         f"not affine in the inputs: the coefficient of {spec.inputs[j]!r} "
                         f"depends on input {str(uk)!r}",
                     )
-        G_rows.append(row)
         f_rows.append(rhs.xreplace(dict.fromkeys(u, sp.Integer(0))))
     f0: sp.Expr = spec.objective
     objective = mu = slack = None
@@ -187,7 +188,7 @@ def build_model(spec: Spec) -> Model:
         u=u,
         y=tuple(symbol(n) for n in spec.outputs),
         f=sp.ImmutableMatrix(f_rows),
-        G=sp.ImmutableMatrix(G_rows),
+        G=from_entries(len(x), len(u), G_entries),
         h=sp.ImmutableMatrix(spec.output_exprs),
         params=tuple(symbol(n) for n, _ in spec.parameters),
         defaults=tuple(v for _, v in spec.parameters),
