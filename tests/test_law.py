@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from tvopt_codegen.law import diagonal_blocks
+from tvopt_codegen.law import diagonal_blocks, symmetric_dense
 
 from .conftest import ALL_SPECS, SPECS, derivation
 
@@ -94,3 +94,14 @@ def test_diagonal_blocks_are_connected_components() -> None:
     assert diagonal_blocks(sp.eye(3)) == ((0,), (1,), (2,))
     full = sp.Matrix(np.ones((3, 3), dtype=int))
     assert diagonal_blocks(full) == ((0, 1, 2),)
+
+
+def test_symmetric_dense_mirrors_the_lower_entries_and_fills_zeros() -> None:
+    a, b, c = sp.symbols("a b c", real=True)
+    entries = [((0, 0), a), ((2, 0), b), ((2, 2), c), ((3, 1), sp.Integer(4))]
+    dense = symmetric_dense(entries, 4)
+    lower = dict(entries)
+    assert dense == tuple(
+        lower.get((max(i, j), min(i, j)), sp.S.Zero) for i in range(4) for j in range(4)
+    )
+    assert sp.Matrix(4, 4, dense).is_symmetric() and dense.count(0) == 10

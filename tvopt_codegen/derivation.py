@@ -31,7 +31,7 @@ from tvopt_codegen.jet import (
     next_derivative,
     partial,
 )
-from tvopt_codegen.law import Law, control_law
+from tvopt_codegen.law import Law, control_law, symmetric_dense
 from tvopt_codegen.lie import (
     Extension,
     RelativeDegree,
@@ -1803,14 +1803,6 @@ def _multipliers_start(spec: Spec, model: Model, states: _States, objective: _Ob
     return _States(states.padding, states.names, states.symbols, tuple(initial), states.multipliers)
 
 
-def _dense(entries: Sequence[tuple[tuple[int, int], sp.Expr]], m: int) -> tuple[sp.Expr, ...]:
-    """A symmetric (m, m) matrix, row-major, from its lower entries."""
-    value = dict(entries)
-    return tuple(
-        value.get((max(i, j), min(i, j)), sp.Integer(0)) for i in range(m) for j in range(m)
-    )
-
-
 def _feasible_at_the_end(spec: Spec, model: Model, y0: np.ndarray) -> None:
     """Refuse constraints that no output satisfies at the end of the horizon."""
     worst = least_violation(model, spec.t_final, y0)
@@ -1966,7 +1958,7 @@ def derive(
         hessian_entries=kkt.hessian_entries,
         objective_program=objective.program + objective.hessian_program,
         objective_gradient=objective.current,
-        objective_hessian=_dense(objective.hessian_entries, len(model.y)),
+        objective_hessian=symmetric_dense(objective.hessian_entries, len(model.y)),
         multiplier_states=states.multipliers,
         kkt_gradient=kkt.gradient if model.equalities else None,
         dependent_set=_dependent_set(model),
