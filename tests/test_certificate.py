@@ -236,6 +236,25 @@ def test_the_step_exponential_matches_a_fifty_digit_reference() -> None:
             assert error < 1e-15, (matrix, error)
 
 
+def _ring_and_star(m: int) -> list[tuple[list[tuple[int, int]], bool]]:
+    """Two lower patterns of m outputs, and whether each is a narrow band: a ring (in its
+    reverse Cuthill-McKee order) is, a star coupling every output to the first is not,
+    in any order."""
+    ring = [(i, i) for i in range(m)] + [
+        (max(i, (i + 1) % m), min(i, (i + 1) % m)) for i in range(m)
+    ]
+    star = [(i, i) for i in range(m)] + [(i, 0) for i in range(1, m)]
+    return [(ring, True), (star, False)]
+
+
+def _symmetric(entries: list[tuple[int, int]], values: np.ndarray, m: int) -> np.ndarray:
+    """The (P, m, m) symmetric matrices of stored lower entries (E, P)."""
+    out = np.zeros((values.shape[1], m, m))
+    for (i, j), v in zip(entries, values, strict=True):
+        out[:, i, j] = out[:, j, i] = v
+    return out
+
+
 def test_sparse_definiteness_agrees_with_eigenvalues_banded_or_not() -> None:
     """The fading probe's definiteness test: a narrow band (a ring, in its reverse
     Cuthill-McKee order) by banded Cholesky, a wide pattern by SuperLU; both give the
@@ -244,20 +263,12 @@ def test_sparse_definiteness_agrees_with_eigenvalues_banded_or_not() -> None:
 
     rng = np.random.default_rng(11)
     m = 90
-    ring = [(i, i) for i in range(m)] + [
-        (max(i, (i + 1) % m), min(i, (i + 1) % m)) for i in range(m)
-    ]
-    # A star coupling every output to the first is no band in any order.
-    star = [(i, i) for i in range(m)] + [(i, 0) for i in range(1, m)]
-    for entries, banded in ((ring, True), (star, False)):
+    for entries, banded in _ring_and_star(m):
         sparse = _SparseHessians(entries, m)
         assert (sparse.band <= _BAND_LIMIT) is banded
         for _ in range(20):
             values = rng.normal(size=len(entries))
-            dense = np.zeros((m, m))
-            for (i, j), v in zip(entries, values, strict=True):
-                dense[i, j] = dense[j, i] = v
-            low = float(np.linalg.eigvalsh(dense)[0])
+            low = float(np.linalg.eigvalsh(_symmetric(entries, values[:, None], m)[0])[0])
             for shift in (-low + 1e-3, -low - 1e-3):
                 verdict = sparse.positive_definite(values, shift)
                 assert verdict is None or verdict == (low + shift > 0), (banded, shift)
@@ -271,19 +282,12 @@ def test_sparse_eigenvalues_and_newton_steps_agree_with_dense_algebra() -> None:
 
     rng = np.random.default_rng(5)
     m = 90
-    ring = [(i, i) for i in range(m)] + [
-        (max(i, (i + 1) % m), min(i, (i + 1) % m)) for i in range(m)
-    ]
-    star = [(i, i) for i in range(m)] + [(i, 0) for i in range(1, m)]
-    for entries, banded in ((ring, True), (star, False)):
+    for entries, banded in _ring_and_star(m):
         sparse = _SparseHessians(entries, m)
         assert (sparse.band <= _BAND_LIMIT) is banded
 
         def dense(values: np.ndarray, entries: list[tuple[int, int]] = entries) -> np.ndarray:
-            out = np.zeros((values.shape[1], m, m))
-            for (i, j), v in zip(entries, values, strict=True):
-                out[:, i, j] = out[:, j, i] = v
-            return out
+            return _symmetric(entries, values, m)
 
         values = rng.normal(size=(len(entries), 6))
         values[:, 5] = 0.0  # the zero matrix: singular
