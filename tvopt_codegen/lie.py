@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import sympy as sp
 
+from tvopt_codegen.jet import partial
 from tvopt_codegen.numeric import Evaluator
 
 
@@ -107,11 +108,11 @@ def _lie_row(
     for i, xi in enumerate(x):
         if xi not in free:
             continue
-        partial = sp.diff(expr, xi)
+        slope = partial(expr, xi)
         if f[i] != 0:
-            drift += partial * f[i]
+            drift += slope * f[i]
         for c, gic in columns[i]:
-            row[c] = row.get(c, sp.Integer(0)) + partial * gic
+            row[c] = row.get(c, sp.Integer(0)) + slope * gic
     return drift, row
 
 
