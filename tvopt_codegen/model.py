@@ -13,6 +13,7 @@ import sympy as sp
 
 from tvopt_codegen.constraints import barrier_objective, initial_slack, schedule
 from tvopt_codegen.errors import AssumptionError, SpecError
+from tvopt_codegen.jet import partial
 from tvopt_codegen.lie import Sampler, from_entries
 from tvopt_codegen.spec import TIME, Constraint, Spec, symbol
 
@@ -138,7 +139,7 @@ def build_model(spec: Spec) -> Model:
         # Only the inputs that occur are differentiated: a plant of N agents has N times
         # the inputs, each in a few equations, and a dense sweep would be quadratic.
         present = rhs.free_symbols
-        row = {j: sp.diff(rhs, uj) for j, uj in enumerate(u) if uj in present}
+        row = {j: partial(rhs, uj) for j, uj in enumerate(u) if uj in present}
         for j, gij in row.items():
             if gij != 0:
                 G_entries[i, j] = gij
@@ -149,7 +150,7 @@ def build_model(spec: Spec) -> Model:
             if not occurring:
                 continue
             for uk in u:
-                if uk in occurring and not sampler.is_zero(sp.diff(gij, uk)):
+                if uk in occurring and not sampler.is_zero(partial(gij, uk)):
                     raise SpecError(
                         spec.source,
                         f"system.dynamics.{state}",
