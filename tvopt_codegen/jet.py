@@ -11,6 +11,7 @@ constant factor per order and nothing is ever expanded.
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -249,7 +250,13 @@ def atomize(
                 table[pair] = symbol
                 factors = [symbol, *factors[2:]]
             args = [*numbers, *factors]
-        rebuilt = node.func(*args)
+        # Arguments that came back as they were (atoms, in the same order) leave the
+        # node as it is: rebuilding it (sympy's flatten) would only give it back.
+        rebuilt = (
+            node
+            if all(map(operator.is_, args, node.args)) and len(args) == len(node.args)
+            else node.func(*args)
+        )
         if rebuilt.is_Atom:
             table[node] = rebuilt
             return rebuilt
