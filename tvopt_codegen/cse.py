@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import operator
 from collections.abc import Iterable, Mapping, Sequence
 
 import sympy as sp
@@ -861,13 +862,15 @@ def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel
             return memo[node]
         if fixed(node):
             new = share(node)
-        elif node.is_Add or node.is_Mul:
+        elif (node.is_Add or node.is_Mul) and any(fixed(a) for a in node.args):
             # (x + t + 1) -> x + _h0: the invariant terms or factors become one.
             part = [a for a in node.args if fixed(a)]
             rest = [hoist(a) for a in node.args if not fixed(a)]
-            new = _rebuild(node, [*rest, *([share(_rebuild(node, part))] if part else [])])
+            new = _rebuild(node, [*rest, share(_rebuild(node, part))])
         else:
-            new = _rebuild(node, [hoist(a) for a in node.args])
+            args = [hoist(a) for a in node.args]
+            # Nothing hoisted below: the node as it is (rebuilding would give it back).
+            new = _rebuild(node, args) if any(map(operator.is_not, args, node.args)) else node
         memo[node] = new
         return new
 
