@@ -51,11 +51,17 @@ def operation_count(exprs: Iterable[sp.Expr], memo: dict[sp.Basic, int] | None =
 
     def count(node: sp.Basic) -> int:
         # A node's own operations depend on its parent's kind; those of its subtree
-        # do not, and are what the memo keeps.
+        # do not, and are what the memo keeps. Leaves have no subtree, and symbols cost
+        # nothing: only numbers among them are looked at (half the calls were symbols).
         total = below.get(node)
         if total is None:
             kind = "mul" if node.is_Mul else "add" if node.is_Add else ""
-            total = sum(own(arg, kind) + count(arg) for arg in node.args)
+            total = 0
+            for arg in node.args:
+                if arg.args:
+                    total += own(arg, kind) + count(arg)
+                elif arg.is_Number:
+                    total += own(arg, kind)
             below[node] = total
         return total
 
