@@ -84,11 +84,17 @@ def partial(expr: sp.Expr, var: sp.Symbol) -> sp.Expr:
         # Each term one product of all factors, as sympy's Leibniz rule for a first
         # derivative builds it (Mul._eval_derivative_n_times): a number times a sum
         # distributes only there, and the form must be the same.
+        # A product of two whose factor is the variable itself differentiates to the
+        # other factor: Mul(1, b) is b, the very object, so it is not built.
         args = expr.args
         terms = []
         for i, arg in enumerate(args):
             if var in arg.free_symbols:
-                terms.append(sp.Mul(*args[:i], partial(arg, var), *args[i + 1 :]))
+                slope = partial(arg, var)
+                if slope is sp.S.One and len(args) == 2:
+                    terms.append(args[1 - i])
+                else:
+                    terms.append(sp.Mul(*args[:i], slope, *args[i + 1 :]))
         return sp.Add(*terms)
     if expr.is_Pow:
         base, exponent = expr.args
@@ -124,7 +130,7 @@ def _derivative(expr: sp.Expr, rates: Mapping[sp.Symbol, sp.Expr]) -> sp.Expr:
     terms = []
     for var in sorted(expr.free_symbols & rates.keys(), key=lambda s: s.name):
         slope, rate = partial(expr, var), rates[var]
-        terms.append(slope if rate is sp.S.One else slope * rate)
+        terms.append(slope if rate is sp.S.One else rate if slope is sp.S.One else slope * rate)
     if len(terms) == 1:
         return terms[0]
     return sp.Add(*terms)
