@@ -332,7 +332,8 @@ def jacobian(
             if slope == 0:
                 continue
             for j, rate in tangent[var].items():
-                terms.setdefault(j, []).append(slope * rate)
+                term = slope if rate is sp.S.One else rate if slope is sp.S.One else slope * rate
+                terms.setdefault(j, []).append(term)
         result = {j: sp.Add(*terms[j]) for j in sorted(terms)}
         return {j: value for j, value in result.items() if value != 0}
 
