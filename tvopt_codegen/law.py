@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import sympy as sp
 
-from tvopt_codegen.lie import Extension, control_affine, nonzero_entries
+from tvopt_codegen.lie import Extension, connected_groups, control_affine, nonzero_entries
 
 
 def symbols(prefix: str, count: int) -> tuple[sp.Symbol, ...]:
@@ -105,22 +105,8 @@ def diagonal_blocks(matrix: sp.MatrixBase) -> tuple[tuple[int, ...], ...]:
     structurally zero (connected components, found by union-find). Blocks are ordered
     by their first index.
     """
-    m = matrix.shape[0]
-    parent = list(range(m))
-
-    def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for i, j, _ in nonzero_entries(matrix):
-        if i != j:
-            parent[root(i)] = root(j)
-    blocks: dict[int, list[int]] = {}
-    for i in range(m):
-        blocks.setdefault(root(i), []).append(i)
-    return tuple(sorted((tuple(b) for b in blocks.values()), key=lambda b: b[0]))
+    links = [(i, j) for i, j, _ in nonzero_entries(matrix) if i != j]
+    return tuple(tuple(block) for block in connected_groups(range(matrix.shape[0]), links))
 
 
 def symmetric_dense(

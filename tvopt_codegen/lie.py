@@ -11,14 +11,17 @@ control tools spend their time, and a nonzero value at a random point is a proof
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Hashable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 import sympy as sp
 
 from tvopt_codegen.jet import partial
 from tvopt_codegen.numeric import Evaluator
+
+Node = TypeVar("Node", bound=Hashable)
 
 
 class Sampler:
@@ -344,27 +347,41 @@ def brunovsky(degrees: Sequence[int]) -> tuple[sp.ImmutableMatrix, sp.ImmutableM
     return a.as_immutable(), b.as_immutable()
 
 
+def connected_groups(nodes: Iterable[Node], links: Iterable[tuple[Node, Node]]) -> list[list[Node]]:
+    """The nodes in groups joined by the links (union-find), each group in ``nodes`` order.
+
+    Groups come in the order of their first node. Every node of a link must be among
+    ``nodes``.
+    """
+    order = list(nodes)
+    parent = {node: node for node in order}
+
+    def root(node: Node) -> Node:
+        while parent[node] != node:
+            parent[node] = parent[parent[node]]
+            node = parent[node]
+        return node
+
+    for a, b in links:
+        parent[root(a)] = root(b)
+    groups: dict[Node, list[Node]] = {}
+    for node in order:
+        groups.setdefault(root(node), []).append(node)
+    return list(groups.values())
+
+
 def _coupled_blocks(entries: Sequence[tuple[int, int]]) -> list[tuple[list[int], list[int]]]:
     """The rows and columns of each connected block of a sparsity pattern.
 
     Rows and columns are joined where an entry is nonzero; permuted by blocks, the matrix
     is block diagonal, and its singular values are those of its blocks together.
     """
-    parent: dict[tuple[str, int], tuple[str, int]] = {}
-
-    def root(node: tuple[str, int]) -> tuple[str, int]:
-        while parent.setdefault(node, node) != node:
-            parent[node] = parent[parent[node]]
-            node = parent[node]
-        return node
-
-    for i, j in entries:
-        parent[root(("row", i))] = root(("col", j))
-    blocks: dict[tuple[str, int], tuple[list[int], list[int]]] = {}
-    for node in sorted(parent):
-        rows, cols = blocks.setdefault(root(node), ([], []))
-        (rows if node[0] == "row" else cols).append(node[1])
-    return list(blocks.values())
+    nodes = sorted({("row", i) for i, _ in entries} | {("col", j) for _, j in entries})
+    links = [(("row", i), ("col", j)) for i, j in entries]
+    return [
+        ([i for kind, i in group if kind == "row"], [j for kind, j in group if kind == "col"])
+        for group in connected_groups(nodes, links)
+    ]
 
 
 def generic_rank(matrix: sp.MatrixBase, sampler: Sampler) -> int:
