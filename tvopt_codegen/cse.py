@@ -11,12 +11,11 @@ from __future__ import annotations
 
 import functools
 import itertools
-import operator
 from collections.abc import Iterable, Mapping, Sequence
 
 import sympy as sp
 
-from tvopt_codegen.jet import Assignment, fresh_symbols, release
+from tvopt_codegen.jet import Assignment, fresh_symbols, release, unchanged
 from tvopt_codegen.kernel import Arg, Kernel, Output
 
 
@@ -204,8 +203,7 @@ def _substitute(
         if node in table:
             return table[node]
         args = [visit(arg) for arg in node.args]
-        same = all(a is b for a, b in zip(args, node.args, strict=True))
-        new = node if same else _rebuild(node, args)
+        new = node if unchanged(node, args) else _rebuild(node, args)
         if odd is not None and isinstance(new, _ODD):
             new = _signed_odd(new, odd)
         table[node] = new
@@ -415,8 +413,7 @@ def _value_numbering(
         if node in built:
             return built[node]
         args = [build(arg) for arg in node.args]
-        same = all(a is b for a, b in zip(args, node.args, strict=True))
-        new = node if same else _rebuild(node, args)
+        new = node if unchanged(node, args) else _rebuild(node, args)
         if node in repeated:
             sym = next(names)
             replacements.append((sym, new))
@@ -876,7 +873,7 @@ def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel
         else:
             args = [hoist(a) for a in node.args]
             # Nothing hoisted below: the node as it is (rebuilding would give it back).
-            new = _rebuild(node, args) if any(map(operator.is_not, args, node.args)) else node
+            new = node if unchanged(node, args) else _rebuild(node, args)
         memo[node] = new
         return new
 

@@ -58,6 +58,15 @@ def release(walk: Callable[..., object]) -> None:
             cell.cell_contents = None
 
 
+def unchanged(node: sp.Basic, args: Sequence[sp.Basic]) -> bool:
+    """Whether ``args`` are ``node``'s own arguments, the very objects, in order.
+
+    A walk that rebuilds a tree leaves such a node as it is: rebuilding it would run
+    sympy's constructors only to give it back.
+    """
+    return len(args) == len(node.args) and all(map(operator.is_, args, node.args))
+
+
 def fresh_symbols(prefix: str) -> Iterator[sp.Symbol]:
     """Endless numbered symbols ``prefix0, prefix1, ...`` (real)."""
     index = 0
@@ -266,11 +275,7 @@ def atomize(
             args = [*numbers, *factors]
         # Arguments that came back as they were (atoms, in the same order) leave the
         # node as it is: rebuilding it (sympy's flatten) would only give it back.
-        rebuilt = (
-            node
-            if all(map(operator.is_, args, node.args)) and len(args) == len(node.args)
-            else node.func(*args)
-        )
+        rebuilt = node if unchanged(node, args) else node.func(*args)
         if rebuilt.is_Atom:
             table[node] = rebuilt
             return rebuilt
