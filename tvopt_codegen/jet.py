@@ -129,6 +129,15 @@ def _chain_rule(func: type[sp.Function]) -> bool:
     )
 
 
+def _times(slope: sp.Expr, rate: sp.Expr) -> sp.Expr:
+    """``slope * rate``, without building a product by 1 (``Mul(1, b)`` is ``b`` itself)."""
+    if rate is sp.S.One:
+        return slope
+    if slope is sp.S.One:
+        return rate
+    return slope * rate
+
+
 def _derivative(expr: sp.Expr, rates: Mapping[sp.Symbol, sp.Expr]) -> sp.Expr:
     """Chain rule: ``sum_v (d expr / d v) * rates[v]`` over the symbols that move.
 
@@ -139,7 +148,7 @@ def _derivative(expr: sp.Expr, rates: Mapping[sp.Symbol, sp.Expr]) -> sp.Expr:
     terms = []
     for var in sorted(expr.free_symbols & rates.keys(), key=lambda s: s.name):
         slope, rate = partial(expr, var), rates[var]
-        terms.append(slope if rate is sp.S.One else rate if slope is sp.S.One else slope * rate)
+        terms.append(_times(slope, rate))
     if len(terms) == 1:
         return terms[0]
     return sp.Add(*terms)
@@ -337,8 +346,7 @@ def jacobian(
             if slope == 0:
                 continue
             for j, rate in tangent[var].items():
-                term = slope if rate is sp.S.One else rate if slope is sp.S.One else slope * rate
-                terms.setdefault(j, []).append(term)
+                terms.setdefault(j, []).append(_times(slope, rate))
         result = {j: sp.Add(*terms[j]) for j in sorted(terms)}
         return {j: value for j, value in result.items() if value != 0}
 
