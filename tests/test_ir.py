@@ -369,6 +369,12 @@ def _expressions() -> st.SearchStrategy[sp.Expr]:
             children.map(sp.sin),
             # exp of a leaf only: exp(exp(...)) of a number overflows mpmath in both.
             leaves.map(sp.exp),
+            # A number kept beside a sum, as sympy's _keep_coeff and factor_terms leave
+            # it: flatten distributes, or keeps it whole when given it and a rational.
+            st.tuples(
+                st.sampled_from([2, -1, sp.Rational(1, 3), sp.Float(0.1)]),
+                st.lists(children, min_size=2, max_size=3),
+            ).map(lambda p: sp.Mul(p[0], sp.Add(*p[1]), evaluate=False)),
         )
 
     return st.recursive(leaves, extend, max_leaves=12)
@@ -389,6 +395,8 @@ def test_substitution_builds_what_sympy_builds(expr: sp.Expr, mapping: dict) -> 
         if not node.args:
             return node
         args = [reference(arg) for arg in node.args]
+        if all(new is old for new, old in zip(args, node.args, strict=True)):
+            return node  # as cse keeps it (jet.unchanged): an unevaluated product stays
         if isinstance(node, sp.Function) and not all(a.is_Number for a in args):
             return node.func(*args, evaluate=False)
         return node.func(*args)
