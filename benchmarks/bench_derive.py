@@ -1,7 +1,10 @@
 """How the derivation scales: ``unicycle_ring`` with N = 1 .. 256 agents, as a user runs it.
 
-- tvopt-codegen: cold ``tvopt-codegen generate`` processes per N (the median of three up
-  to 64 agents, one beyond; a first, unrecorded process warms the file cache; the bundled
+The whole sweep runs in rounds (three by default), minutes apart, and each figure is the
+median of its rounds: this shared machine has slow phases of a few minutes.
+
+- tvopt-codegen: cold ``tvopt-codegen generate`` processes per N (a first, unrecorded
+  process warms the file cache; the bundled
   ``unicycle_ring`` spec with ``[index] i = N``, nothing else changed; the NumPy module
   written to a temporary folder), timed from outside: wall seconds, the stages' shares
   from ``--timings`` (start-up is the wall time no stage accounts for: the interpreter and
@@ -12,8 +15,10 @@
   gradient jet by ``jtimes`` along (t, y, y'), ``solve`` for the Hessian and R, and the
   ``Function``; its operation count is ``n_instructions``. Also in a cold process (a fresh
   interpreter that imports CasADi and runs the pipeline), timed from outside the same way.
+  The ratio of wall times is the median of the rounds' ratios (ours against CasADi's cold
+  run of the same minute).
 
-Then, the median of three cold processes each: ``benchmarks/chain12.toml`` (k = 12, a
+In each round, also one cold process each of ``benchmarks/chain12.toml`` (k = 12, a
 30-factor product in f0; the issue's target 5 s) and every bundled example (target 1.5 s).
 
 Our operation count is the law as emitted: the jet (its time part too), Cholesky,
@@ -35,7 +40,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
 
@@ -183,27 +187,30 @@ def generate_cold(spec: Path, out: Path, timeout: float) -> dict[str, float]:
     return record
 
 
-#: Teams up to this many agents are timed as the median of three cold processes.
-SMALL_TEAM = 64
+#: Rounds of the whole sweep. Each figure is the median of its rounds, which run
+#: minutes apart: this shared machine has slow phases of a few minutes (CasADi's own cold
+#: N = 256 has taken from 11.8 to 17.3 s), and three runs back to back fall in one.
+ROUNDS = 3
 
 
-def _median(run: Callable[[], dict[str, float]], count: int) -> dict[str, float]:
-    """The run of median wall time among ``count`` (odd).
-
-    A short process on this shared machine now and then takes half again as long.
-    """
-    runs = sorted((run() for _ in range(count)), key=lambda r: r["wall"])
-    return runs[count // 2]
+def _median(runs: list[dict[str, float]]) -> dict[str, float]:
+    """The run of median wall time (its stages and memory with it); ``runs`` is odd."""
+    return sorted(runs, key=lambda r: r["wall"])[len(runs) // 2]
 
 
-def ours_cold(agents: int, folder: Path, timeout: float, count: int = 1) -> dict[str, float]:
-    """Cold ``tvopt-codegen generate`` of the ring of ``agents``: the median of ``count``."""
+def _spread(runs: list[dict[str, float]]) -> str:
+    walls = [r["wall"] for r in runs]
+    return f"{min(walls):.2f}-{max(walls):.2f}"
+
+
+def ours_cold(agents: int, folder: Path, timeout: float) -> dict[str, float]:
+    """One cold ``tvopt-codegen generate`` of the ring of ``agents``."""
     text = (resources.files("tvopt_codegen.examples") / "unicycle_ring.toml").read_text()
     text, found = re.subn(r"(?m)^i = \d+", f"i = {agents}", text)
     assert found == 1, "the bundled unicycle_ring spec no longer has the line 'i = N'"
     spec = folder / f"ring{agents}.toml"
     spec.write_text(text, encoding="utf-8")
-    return _median(lambda: generate_cold(spec, folder / f"out{agents}", timeout), count)
+    return generate_cold(spec, folder / f"out{agents}", timeout)
 
 
 def singles() -> list[tuple[Path, float]]:
@@ -215,33 +222,65 @@ def singles() -> list[tuple[Path, float]]:
     ]
 
 
-def singles_table(folder: Path, timeout: float) -> str:
-    """The k = 12 chain and every bundled example, the median of three cold processes."""
+def singles_table(runs: dict[Path, list[dict[str, float]]]) -> str:
+    """The k = 12 chain and every bundled example: the median of the rounds."""
     lines = [
-        "| spec | CLI wall s | target s | start-up | load | derive | lower | render | ops |",
-        "|" + "---|" * 9,
+        "| spec | CLI wall s | range s | target s | start-up | load | derive | lower | render "
+        "| ops |",
+        "|" + "---|" * 10,
     ]
     for spec, target in singles():
-        r = _median(lambda spec=spec: generate_cold(spec, folder / f"s-{spec.stem}", timeout), 3)
+        r = _median(runs[spec])
         shares = " | ".join(f"{r[k]:.2f}" for k in ("startup", "load", "derive", "lower", "render"))
         lines.append(
-            f"| {spec.stem} | {r['wall']:.2f} | {target:.1f} | {shares} | {int(r['ops'])} |"
+            f"| {spec.stem} | {r['wall']:.2f} | {_spread(runs[spec])} | {target:.1f} | {shares} "
+            f"| {int(r['ops'])} |"
         )
-        print(lines[-1], flush=True)
     return "\n".join(lines)
 
 
-def casadi_cold(agents: int, timeout: float, count: int = 1) -> float:
-    """Wall seconds of CasADi's pipeline in a fresh interpreter: the median of ``count``.
-
-    Its imports are included, as ours are.
-    """
+def casadi_cold(agents: int, timeout: float) -> float:
+    """Wall seconds of CasADi's pipeline in a fresh interpreter, its imports included."""
     here = Path(__file__).resolve()
     code = (
         f"import sys; sys.path.insert(0, {str(here.parent)!r}); "
         f"from bench_derive import casadi; casadi({agents})"
     )
-    return _median(lambda: {"wall": _cold([sys.executable, "-c", code], timeout)[0]}, count)["wall"]
+    return _cold([sys.executable, "-c", code], timeout)[0]
+
+
+def ring_table(
+    ours: dict[int, list[dict[str, float]]],
+    cold: dict[int, list[float]],
+    warm: dict[int, list[tuple[float, int]]],
+) -> str:
+    """Per N: our median run, CasADi's medians, and the median of the rounds' ratios.
+
+    A round's ratio sets our run beside CasADi's cold run of the same minute, so the
+    machine's phase cancels in it.
+    """
+    lines = [
+        "| N | CLI wall s | range s | s per agent | start-up | load | derive | lower | render "
+        "| write | peak MB | ours ops | CasADi s (cold) | CasADi s (pipeline) | CasADi instr. "
+        "| wall ours/CasADi cold | ops ours/CasADi |",
+        "|" + "---|" * 17,
+    ]
+    for agents, runs in ours.items():
+        r = _median(runs)
+        shares = " | ".join(
+            f"{100 * r[k] / r['wall']:.0f}%"
+            for k in ("startup", "load", "derive", "lower", "render", "write")
+        )
+        ca_cold = sorted(cold[agents])[len(runs) // 2]
+        ca_s = sorted(s for s, _ in warm[agents])[len(runs) // 2]
+        ca_ops = warm[agents][0][1]
+        ratio = sorted(o["wall"] / c for o, c in zip(runs, cold[agents], strict=True))
+        lines.append(
+            f"| {agents} | {r['wall']:.2f} | {_spread(runs)} | {r['wall'] / agents:.3f} "
+            f"| {shares} | {r['memory']:.0f} | {int(r['ops'])} | {ca_cold:.2f} | {ca_s:.3f} "
+            f"| {ca_ops} | {ratio[len(ratio) // 2]:.1f} | {r['ops'] / ca_ops:.2f} |"
+        )
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -249,38 +288,39 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default=",".join(map(str, SIZES)))
     parser.add_argument("--timeout", type=float, default=900.0, help="s per cold process")
+    parser.add_argument("--rounds", type=int, default=ROUNDS, help="sweeps (odd)")
     parser.add_argument("--write", type=Path, help="also store the table in this file")
     args = parser.parse_args(argv)
     sizes = [int(s) for s in args.sizes.split(",")]
-    header = (
-        "| N | CLI wall s | s per agent | start-up | load | derive | lower | render | write "
-        "| peak MB | ours ops | CasADi s (cold) | CasADi s (pipeline) | CasADi instr. "
-        "| wall ours/CasADi cold | ops ours/CasADi |"
-    )
-    lines = [header, "|" + "---|" * 16]
+    if args.rounds < 1 or args.rounds % 2 == 0:
+        parser.error("--rounds must be odd (each figure is a median)")
+    ours: dict[int, list[dict[str, float]]] = {n: [] for n in sizes}
+    cold: dict[int, list[float]] = {n: [] for n in sizes}
+    warm: dict[int, list[tuple[float, int]]] = {n: [] for n in sizes}
+    single: dict[Path, list[dict[str, float]]] = {spec: [] for spec, _ in singles()}
     with tempfile.TemporaryDirectory(prefix="bench-derive-") as tmp:
+        folder = Path(tmp)
         # Not recorded: the first process pays for a cold file cache (and compiles the
         # templates into the cache folder, once per installation).
-        ours_cold(1, Path(tmp), args.timeout)
-        for agents in sizes:
-            # The median of three where a run is short; one run of a large team.
-            count = 3 if agents <= SMALL_TEAM else 1
-            r = ours_cold(agents, Path(tmp), args.timeout, count)
-            ca_s, ca_ops = casadi(agents)
-            ca_cold = casadi_cold(agents, args.timeout, count)
-            shares = " | ".join(
-                f"{100 * r[k] / r['wall']:.0f}%"
-                for k in ("startup", "load", "derive", "lower", "render", "write")
-            )
-            lines.append(
-                f"| {agents} | {r['wall']:.2f} | {r['wall'] / agents:.3f} | {shares} "
-                f"| {r['memory']:.0f} | {int(r['ops'])} | {ca_cold:.2f} | {ca_s:.3f} | {ca_ops} "
-                f"| {r['wall'] / ca_cold:.1f} | {r['ops'] / ca_ops:.2f} |"
-            )
-            print(lines[-1], flush=True)
-        singles = singles_table(Path(tmp), args.timeout)
-    table = "\n".join(lines)
-    print(table)
+        ours_cold(1, folder, args.timeout)
+        for round_ in range(1, args.rounds + 1):
+            for agents in sizes:
+                r = ours_cold(agents, folder, args.timeout)
+                ours[agents].append(r)
+                warm[agents].append(casadi(agents))
+                cold[agents].append(casadi_cold(agents, args.timeout))
+                print(
+                    f"round {round_}: N = {agents}: {r['wall']:.2f} s, CasADi cold "
+                    f"{cold[agents][-1]:.2f} s",
+                    flush=True,
+                )
+            for spec, runs in single.items():
+                r = generate_cold(spec, folder / f"s-{spec.stem}", args.timeout)
+                runs.append(r)
+                print(f"round {round_}: {spec.stem}: {r['wall']:.2f} s", flush=True)
+    table = ring_table(ours, cold, warm)
+    chain_and_examples = singles_table(single)
+    print(table + "\n\n" + chain_and_examples)
     if args.write:
         command = "make bench-derive  # python benchmarks/bench_derive.py " + " ".join(
             argv if argv is not None else sys.argv[1:]
@@ -295,8 +335,10 @@ def main(argv: list[str] | None = None) -> int:
             f"Date: {time.strftime('%Y-%m-%d')}\n\n"
             "Cold `tvopt-codegen generate ringN.toml --out DIR` processes per N (the "
             "bundled `unicycle_ring` with `i = N`, the NumPy module written), timed from "
-            "outside: the median of three up to 64 agents and one run beyond, after an "
-            "unrecorded run that warms the file cache. The stages' shares of its wall time "
+            f"outside: the median of {args.rounds} rounds of the whole sweep, which run "
+            "minutes apart (this machine has slow phases of a few minutes), after an "
+            "unrecorded run that warms the file cache; the range is the rounds' fastest "
+            "and slowest. The stages' shares of its wall time "
             "come from `--timings` (start-up: the interpreter and the command line's "
             "imports; load: the spec, with sympy's "
             "import; derive; lower: kernels and CSE; render; write). Peak memory is the "
@@ -304,12 +346,15 @@ def main(argv: list[str] | None = None) -> int:
             "(relative degree, Lie derivatives, gradient jet, solves, Function), in a cold "
             "interpreter (imports included) and, alone, in this process. Operations: our "
             "emitted law (jet, Cholesky, decoupling and closed-loop kernels, LU of R's "
-            "blocks) against CasADi's n_instructions.\n\n" + table + "\n\n"
+            "blocks) against CasADi's n_instructions. The ratio of wall times is the median "
+            "of the rounds' ratios: each sets our run beside CasADi's cold run of the same "
+            "minute, so the machine's phase cancels in it.\n\n" + table + "\n\n"
             "## The k = 12 chain and the bundled examples\n\n"
-            "Cold `tvopt-codegen generate` runs, in seconds: the median of three (its "
+            "Cold `tvopt-codegen generate` runs, in seconds, in the same rounds: the median "
+            "(its "
             "stages, start-up to render as above, absolute). `chain12` is "
             "`benchmarks/chain12.toml`: a chain of 12 integrators whose f0 tracks a "
-            "30-factor product, the issue's high-order case.\n\n" + singles + "\n",
+            "30-factor product, the issue's high-order case.\n\n" + chain_and_examples + "\n",
             encoding="utf-8",
         )
     return 0
