@@ -9,12 +9,14 @@ median of its rounds: this shared machine has slow phases of a few minutes.
   written to a temporary folder), timed from outside: wall seconds, the stages' shares
   from ``--timings`` (start-up is the wall time no stage accounts for: the interpreter and
   the imports of the command line), and the process's peak memory (``wait4``'s
-  ``ru_maxrss``).
+  ``ru_maxrss``, read by a small launcher process: Linux hands a process the peak size of
+  the process it was forked from, and the bench itself holds sympy and CasADi).
 - CasADi: the same plant, outputs, signals and objective written directly in SX, and its
   whole pipeline: relative degree by structural tests, Lie derivatives by ``jtimes``, the
   gradient jet by ``jtimes`` along (t, y, y'), ``solve`` for the Hessian and R, and the
   ``Function``; its operation count is ``n_instructions``. Also in a cold process (a fresh
-  interpreter that imports CasADi and runs the pipeline), timed from outside the same way.
+  interpreter that imports CasADi and runs the pipeline), timed from outside the same way;
+  the pipeline's own seconds are timed inside that process.
   The ratio of wall times is the median of the rounds' ratios (ours against CasADi's cold
   run of the same minute).
 
@@ -136,28 +138,45 @@ def casadi(agents: int) -> tuple[float, int]:
     return seconds, int(law.n_instructions())
 
 
-def _cold(command: list[str], timeout: float) -> tuple[float, float, str]:
-    """Wall seconds, peak memory (MB) and stderr of one child process."""
-    with tempfile.TemporaryFile() as errors:
-        started = time.perf_counter()
-        child = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=errors)
-        deadline = started + timeout
-        while True:
-            pid, status, usage = os.wait4(child.pid, os.WNOHANG)
-            if pid:
-                break
-            if time.perf_counter() > deadline:
-                child.kill()
-                pid, status, usage = os.wait4(child.pid, 0)
-                break
-            time.sleep(0.01)
-        wall = time.perf_counter() - started
-        child.returncode = os.waitstatus_to_exitcode(status)
-        errors.seek(0)
-        text = errors.read().decode("utf-8", "replace")
-    if child.returncode != 0:
-        raise RuntimeError(f"{command[:4]} failed ({child.returncode}): {text[-500:]}")
-    return wall, usage.ru_maxrss / 1024, text
+#: Starts one command, waits for it (killing it after ``timeout``) and writes its wall
+#: time, peak memory and exit code to ``report``. Linux gives a process the peak resident
+#: size of the process it was forked from (``ru_maxrss`` survives ``exec``): started from
+#: the bench itself, which imports sympy and CasADi, every process would report at least
+#: the bench's size. Started from this small interpreter, each reports its own.
+_LAUNCHER = """
+import json, os, subprocess, sys, time
+report, timeout, command = sys.argv[1], float(sys.argv[2]), sys.argv[3:]
+started = time.perf_counter()
+child = subprocess.Popen(command)
+while True:
+    pid, status, usage = os.wait4(child.pid, os.WNOHANG)
+    if pid:
+        break
+    if time.perf_counter() > started + timeout:
+        child.kill()
+        pid, status, usage = os.wait4(child.pid, 0)
+        break
+    time.sleep(0.01)
+wall = time.perf_counter() - started
+with open(report, "w") as out:
+    json.dump([wall, usage.ru_maxrss, os.waitstatus_to_exitcode(status)], out)
+"""
+
+
+def _cold(command: list[str], timeout: float) -> tuple[float, float, str, str]:
+    """Wall seconds, peak memory (MB), stdout and stderr of one fresh process."""
+    with tempfile.TemporaryDirectory(prefix="cold-") as tmp:
+        report = Path(tmp) / "report.json"
+        launcher = [sys.executable, "-c", _LAUNCHER, str(report), str(timeout), *command]
+        done = subprocess.run(
+            launcher, check=False, capture_output=True, text=True, timeout=timeout + 60
+        )
+        if done.returncode != 0 or not report.exists():
+            raise RuntimeError(f"the launcher failed ({done.returncode}): {done.stderr[-500:]}")
+        wall, maxrss_kb, code = json.loads(report.read_text())
+    if code != 0:
+        raise RuntimeError(f"{command[:4]} failed ({code}): {done.stderr[-500:]}")
+    return wall, maxrss_kb / 1024, done.stdout, done.stderr
 
 
 def generate_cold(spec: Path, out: Path, timeout: float) -> dict[str, float]:
@@ -177,7 +196,7 @@ def generate_cold(spec: Path, out: Path, timeout: float) -> dict[str, float]:
         "--max-size",
         "100000000",
     ]
-    wall, memory, errors = _cold(command, timeout + 30)
+    wall, memory, _, errors = _cold(command, timeout)
     line = next(x for x in errors.splitlines() if x.startswith("timings: "))
     record: dict[str, float] = json.loads(line.removeprefix("timings: "))
     record["wall"] = wall
@@ -239,20 +258,25 @@ def singles_table(runs: dict[Path, list[dict[str, float]]]) -> str:
     return "\n".join(lines)
 
 
-def casadi_cold(agents: int, timeout: float) -> float:
-    """Wall seconds of CasADi's pipeline in a fresh interpreter, its imports included."""
+def casadi_cold(agents: int, timeout: float) -> tuple[float, float, int]:
+    """CasADi in a fresh interpreter: wall, the pipeline's seconds, ``n_instructions``.
+
+    The wall time includes the imports, as ours does; the pipeline is timed inside.
+    """
     here = Path(__file__).resolve()
     code = (
         f"import sys; sys.path.insert(0, {str(here.parent)!r}); "
-        f"from bench_derive import casadi; casadi({agents})"
+        f"from bench_derive import casadi; print(*casadi({agents}))"
     )
-    return _cold([sys.executable, "-c", code], timeout)[0]
+    wall, _, out, _ = _cold([sys.executable, "-c", code], timeout)
+    seconds, instructions = out.split()
+    return wall, float(seconds), int(instructions)
 
 
 def ring_table(
     ours: dict[int, list[dict[str, float]]],
     cold: dict[int, list[float]],
-    warm: dict[int, list[tuple[float, int]]],
+    inside: dict[int, list[tuple[float, int]]],
 ) -> str:
     """Per N: our median run, CasADi's medians, and the median of the rounds' ratios.
 
@@ -272,8 +296,8 @@ def ring_table(
             for k in ("startup", "load", "derive", "lower", "render", "write")
         )
         ca_cold = sorted(cold[agents])[len(runs) // 2]
-        ca_s = sorted(s for s, _ in warm[agents])[len(runs) // 2]
-        ca_ops = warm[agents][0][1]
+        ca_s = sorted(s for s, _ in inside[agents])[len(runs) // 2]
+        ca_ops = inside[agents][0][1]
         ratio = sorted(o["wall"] / c for o, c in zip(runs, cold[agents], strict=True))
         lines.append(
             f"| {agents} | {r['wall']:.2f} | {_spread(runs)} | {r['wall'] / agents:.3f} "
@@ -296,7 +320,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--rounds must be odd (each figure is a median)")
     ours: dict[int, list[dict[str, float]]] = {n: [] for n in sizes}
     cold: dict[int, list[float]] = {n: [] for n in sizes}
-    warm: dict[int, list[tuple[float, int]]] = {n: [] for n in sizes}
+    inside: dict[int, list[tuple[float, int]]] = {n: [] for n in sizes}
     single: dict[Path, list[dict[str, float]]] = {spec: [] for spec, _ in singles()}
     with tempfile.TemporaryDirectory(prefix="bench-derive-") as tmp:
         folder = Path(tmp)
@@ -307,8 +331,9 @@ def main(argv: list[str] | None = None) -> int:
             for agents in sizes:
                 r = ours_cold(agents, folder, args.timeout)
                 ours[agents].append(r)
-                warm[agents].append(casadi(agents))
-                cold[agents].append(casadi_cold(agents, args.timeout))
+                wall, seconds, instructions = casadi_cold(agents, args.timeout)
+                cold[agents].append(wall)
+                inside[agents].append((seconds, instructions))
                 print(
                     f"round {round_}: N = {agents}: {r['wall']:.2f} s, CasADi cold "
                     f"{cold[agents][-1]:.2f} s",
@@ -318,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
                 r = generate_cold(spec, folder / f"s-{spec.stem}", args.timeout)
                 runs.append(r)
                 print(f"round {round_}: {spec.stem}: {r['wall']:.2f} s", flush=True)
-    table = ring_table(ours, cold, warm)
+    table = ring_table(ours, cold, inside)
     chain_and_examples = singles_table(single)
     print(table + "\n\n" + chain_and_examples)
     if args.write:
@@ -344,7 +369,9 @@ def main(argv: list[str] | None = None) -> int:
             "import; derive; lower: kernels and CSE; render; write). Peak memory is the "
             "process's maximum resident set. CasADi: the same law built directly in SX "
             "(relative degree, Lie derivatives, gradient jet, solves, Function), in a cold "
-            "interpreter (imports included) and, alone, in this process. Operations: our "
+            "interpreter (imports included), and its pipeline alone as timed inside that "
+            "process. Peak memory is each process's own: they are started from a small "
+            "launcher, as Linux hands a process the peak size of its parent. Operations: our "
             "emitted law (jet, Cholesky, decoupling and closed-loop kernels, LU of R's "
             "blocks) against CasADi's n_instructions. The ratio of wall times is the median "
             "of the rounds' ratios: each sets our run beside CasADi's cold run of the same "
