@@ -38,7 +38,6 @@ import math
 import os
 import platform
 import re
-import subprocess
 import sys
 import tempfile
 import time
@@ -47,6 +46,7 @@ from pathlib import Path
 
 import casadi as ca
 import sympy as sp
+from cold import cold_run
 
 from tvopt_codegen.spec import bundled_examples
 
@@ -138,47 +138,6 @@ def casadi(agents: int) -> tuple[float, int]:
     return seconds, int(law.n_instructions())
 
 
-#: Starts one command, waits for it (killing it after ``timeout``) and writes its wall
-#: time, peak memory and exit code to ``report``. Linux gives a process the peak resident
-#: size of the process it was forked from (``ru_maxrss`` survives ``exec``): started from
-#: the bench itself, which imports sympy and CasADi, every process would report at least
-#: the bench's size. Started from this small interpreter, each reports its own.
-_LAUNCHER = """
-import json, os, subprocess, sys, time
-report, timeout, command = sys.argv[1], float(sys.argv[2]), sys.argv[3:]
-started = time.perf_counter()
-child = subprocess.Popen(command)
-while True:
-    pid, status, usage = os.wait4(child.pid, os.WNOHANG)
-    if pid:
-        break
-    if time.perf_counter() > started + timeout:
-        child.kill()
-        pid, status, usage = os.wait4(child.pid, 0)
-        break
-    time.sleep(0.01)
-wall = time.perf_counter() - started
-with open(report, "w") as out:
-    json.dump([wall, usage.ru_maxrss, os.waitstatus_to_exitcode(status)], out)
-"""
-
-
-def _cold(command: list[str], timeout: float) -> tuple[float, float, str, str]:
-    """Wall seconds, peak memory (MB), stdout and stderr of one fresh process."""
-    with tempfile.TemporaryDirectory(prefix="cold-") as tmp:
-        report = Path(tmp) / "report.json"
-        launcher = [sys.executable, "-c", _LAUNCHER, str(report), str(timeout), *command]
-        done = subprocess.run(
-            launcher, check=False, capture_output=True, text=True, timeout=timeout + 60
-        )
-        if done.returncode != 0 or not report.exists():
-            raise RuntimeError(f"the launcher failed ({done.returncode}): {done.stderr[-500:]}")
-        wall, maxrss_kb, code = json.loads(report.read_text())
-    if code != 0:
-        raise RuntimeError(f"{command[:4]} failed ({code}): {done.stderr[-500:]}")
-    return wall, maxrss_kb / 1024, done.stdout, done.stderr
-
-
 def generate_cold(spec: Path, out: Path, timeout: float) -> dict[str, float]:
     """One cold ``tvopt-codegen generate`` of ``spec``: wall, stages, memory, operations."""
     command = [
@@ -196,7 +155,8 @@ def generate_cold(spec: Path, out: Path, timeout: float) -> dict[str, float]:
         "--max-size",
         "100000000",
     ]
-    wall, memory, _, errors = _cold(command, timeout)
+    run = cold_run(command, timeout)
+    wall, memory, errors = run.wall, run.peak_mb, run.stderr
     line = next(x for x in errors.splitlines() if x.startswith("timings: "))
     record: dict[str, float] = json.loads(line.removeprefix("timings: "))
     record["wall"] = wall
@@ -268,9 +228,9 @@ def casadi_cold(agents: int, timeout: float) -> tuple[float, float, int]:
         f"import sys; sys.path.insert(0, {str(here.parent)!r}); "
         f"from bench_derive import casadi; print(*casadi({agents}))"
     )
-    wall, _, out, _ = _cold([sys.executable, "-c", code], timeout)
-    seconds, instructions = out.split()
-    return wall, float(seconds), int(instructions)
+    run = cold_run([sys.executable, "-c", code], timeout)
+    seconds, instructions = run.stdout.split()
+    return run.wall, float(seconds), int(instructions)
 
 
 def ring_table(
