@@ -3,8 +3,8 @@
 The whole sweep runs in rounds (three by default), minutes apart, and each figure is the
 median of its rounds: this shared machine has slow phases of a few minutes.
 
-- tvopt-codegen: cold ``tvopt-codegen generate`` processes per N (a first, unrecorded
-  process warms the file cache; the bundled
+- tvopt-codegen: cold ``tvopt-codegen generate`` processes per N (an unrecorded process
+  warms the file cache at the start of each round; the bundled
   ``unicycle_ring`` spec with ``[index] i = N``, nothing else changed; the NumPy module
   written to a temporary folder), timed from outside: wall seconds, the stages' shares
   from ``--timings`` (start-up is the wall time no stage accounts for: the interpreter and
@@ -284,10 +284,11 @@ def main(argv: list[str] | None = None) -> int:
     single: dict[Path, list[dict[str, float]]] = {spec: [] for spec, _ in singles()}
     with tempfile.TemporaryDirectory(prefix="bench-derive-") as tmp:
         folder = Path(tmp)
-        # Not recorded: the first process pays for a cold file cache (and compiles the
-        # templates into the cache folder, once per installation).
-        ours_cold(1, folder, args.timeout)
         for round_ in range(1, args.rounds + 1):
+            # Not recorded: a process that finds the file cache cold (sympy's thousand
+            # modules read from disk: seen at 2 s of iowait for a bare import, after
+            # other work evicted them) and, once per installation, compiles the templates.
+            ours_cold(1, folder, args.timeout)
             for agents in sizes:
                 r = ours_cold(agents, folder, args.timeout)
                 ours[agents].append(r)
@@ -321,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
             "Cold `tvopt-codegen generate ringN.toml --out DIR` processes per N (the "
             "bundled `unicycle_ring` with `i = N`, the NumPy module written), timed from "
             f"outside: the median of {args.rounds} rounds of the whole sweep, which run "
-            "minutes apart (this machine has slow phases of a few minutes), after an "
+            "minutes apart (this machine has slow phases of a few minutes), each after an "
             "unrecorded run that warms the file cache; the range is the rounds' fastest "
             "and slowest. The stages' shares of its wall time "
             "come from `--timings` (start-up: the interpreter and the command line's "
