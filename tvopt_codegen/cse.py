@@ -109,9 +109,10 @@ def _sorted_args(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic | None:
     last, so a Float coefficient has the same bits), and returns None whenever
     ``flatten`` could do more: two terms alike (``x + 2*x``) or factors of one base
     (``x*x**2``, ``exp(a)*exp(b)``), a power of a constant or to a sum (``2**x``,
-    ``exp(b + 1)``), a zero product, or a
-    coefficient beside a sum in a product (which ``flatten`` may distribute). The result
-    is then the very object ``flatten`` would build.
+    ``exp(b + 1)``), a zero product, a
+    coefficient beside a sum in a product (which ``flatten`` may distribute), or a term
+    that is a product holding a product (which ``flatten`` rebuilds). The result is then
+    the very object ``flatten`` would build.
     """
     is_add = node.is_Add
     seq = list(args)
@@ -132,6 +133,10 @@ def _sorted_args(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic | None:
             continue
         if is_add:
             if arg.is_Pow and arg.base.is_number:
+                return None
+            if arg.is_Mul and any(factor.is_Mul for factor in arg.args):
+                # A product holding a product (sympy's own 2*exp(a + 0.1) is 2*(c*exp(a))):
+                # flatten rebuilds such a term from its coefficient and the rest.
                 return None
             key = arg.as_coeff_Mul()[1] if arg.is_Mul else arg
         else:
