@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
-# content sha256: e8fefaf91d03dbcc2110192bad423bd3640e94d77c7c11ef116a8f02a75f1755
+# content sha256: 5ad21e9a5304a4f95d9ae0662b16b5e0685cf52df84c20a8fc807316b5f485b1
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -132,16 +132,40 @@ class HessianNotPositiveDefiniteError(ControllerError):
     status = STATUS_HESSIAN_NOT_PD
 
 
+class NonFiniteOutputError(ControllerError):
+    """An intermediate or the result is not finite (a function left its domain)."""
+
+    status = STATUS_NONFINITE_OUTPUT
+
+
+class DecreasingTimeError(ControllerError, ValueError):
+    """A stateful controller was stepped to a time before its last step's."""
+
+    status = STATUS_DECREASING_TIME
+
+
 class DependentConstraintsError(ControllerError):
     """The equality constraints' gradients are dependent: the KKT matrix is singular."""
 
     status = STATUS_DEPENDENT_CONSTRAINTS
 
 
-class NonFiniteOutputError(ControllerError):
-    """An intermediate or the result is not finite (a function left its domain)."""
+#: Each error status: its exception, the message's head, and what follows the column
+#: (why, then where this spec's law fails so).
+_ERRORS = {
+    STATUS_NONFINITE_INPUT: (NonFiniteInputError, 'time, a plant state or a parameter is not finite', ''),
+    STATUS_SINGULAR_DECOUPLING: (SingularDecouplingError, 'the decoupling matrix R is singular', '; R is singular where thrust = 0'),
+    STATUS_HESSIAN_NOT_PD: (HessianNotPositiveDefiniteError, 'the Hessian of f0 is not positive definite', ': f0 is not strongly convex at this output and time'),
+    STATUS_NONFINITE_OUTPUT: (NonFiniteOutputError, '{result} is not finite', ': a signal or f0 left its domain'),
+    STATUS_DECREASING_TIME: (DecreasingTimeError, "the time is before the last step's time", ''),
+    STATUS_DEPENDENT_CONSTRAINTS: (DependentConstraintsError, "the equality constraints' gradients are dependent", ': the KKT matrix is singular at this state and time'),
+}
 
-    status = STATUS_NONFINITE_OUTPUT
+
+def _error(status, index, result=""):
+    """The exception of ``status`` at column ``index`` (``result``: what is not finite)."""
+    kind, text, tail = _ERRORS[status]
+    return kind(f"{text.replace('{result}', result)} (column {index}){tail}", index)
 
 
 _DEFAULT_P = numpy.array(list(PARAMETERS.values()), dtype=float)
@@ -209,8 +233,7 @@ def _check_finite(what, *arrays):
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))
-            raise NonFiniteOutputError(f"{what} is not finite (column {index}): a signal or "
-                                       "f0 left its domain", index)
+            raise _error(STATUS_NONFINITE_OUTPUT, index, what)
 
 
 
@@ -269,10 +292,7 @@ def _lu_solve(a, b, points):
         bad = ~(numpy.abs(pivot) > PIVOT_TOLERANCE * scale)
         if bad.any():
             index = int(numpy.argmax(bad)) % points
-            raise SingularDecouplingError(
-                f"the decoupling matrix R is singular (column {index})"
-                "; R is singular where thrust = 0"
-                , index)
+            raise _error(STATUS_SINGULAR_DECOUPLING, index)
         for i in range(j + 1, m):
             factor = lu[i][j] / pivot
             for k in range(j + 1, m):
@@ -674,8 +694,7 @@ def _overflow_checked(function, t, s, p):
     except OverflowError:
         # Terms of t alone are Python floats, which raise (t**2 at |t| = 1e200) where numpy
         # and the C give inf.
-        raise NonFiniteOutputError(
-            "a result is not finite (column 0): a signal or f0 left its domain", 0) from None
+        raise _error(STATUS_NONFINITE_OUTPUT, 0, "a result") from None
 
 
 def _shifted(error, offset):
@@ -707,7 +726,7 @@ def _kernel_values(kernel, what, t, x, p):
     return _blockwise(one_block, t, x, p)
 
 
-def _optimality_error(t, x, p):
+def _optimality_error_values(t, x, p):
     return _kernel_values(_optimality, "the optimality error", t, x, p)
 
 
@@ -979,7 +998,7 @@ def optimality_error(t, s, params=None):
     states, single = _columns("s", s, 8)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
-    e = _optimality_error(t, states, p)
+    e = _optimality_error_values(t, states, p)
     return e[..., 0] if single else e
 
 
@@ -1209,7 +1228,8 @@ class _Controller:
         Raises
         ------
         ValueError
-            When ``t`` is before the last step's time, or ``x`` has the wrong shape.
+            When ``t`` is before the last step's time (``DecreasingTimeError``, also a
+            ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
             where the law is undefined; the controller is then unchanged.
@@ -1218,7 +1238,7 @@ class _Controller:
         x = _vector("x", x, 6)
         _check_measurement(t, x, PLANT_STATE_NAMES)
         if t < self.t:
-            raise ValueError(
+            raise DecreasingTimeError(
                 f"t = {t!r} is before the last step's time {self.t!r}: time must not decrease"
             )
         return self._move(t, x)

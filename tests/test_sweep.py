@@ -20,11 +20,11 @@ from scipy.stats import binomtest
 from tests.conftest import derivation, kernels, module
 from tvopt_codegen import sweep
 from tvopt_codegen.cli import main
+from tvopt_codegen.contract import Status
 from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_INTERRUPTED, MissingExtraError
 from tvopt_codegen.simulation import minimizer_path
 from tvopt_codegen.sweep import (
     Distribution,
-    Outcome,
     SweepOptions,
     clopper_pearson_upper,
     draw,
@@ -65,7 +65,7 @@ def test_continuous_loop_takes_scipys_steps_and_matches_its_states() -> None:
     options = SweepOptions(samples=1, seed=3, t_final=20.0, points=101)
     sample = draw(p, options, 0)
     outcome, rows, info = loop_for(p).run(options, sample)
-    assert outcome == Outcome.OK
+    assert outcome == Status.OK
     mod = module("unicycle_switch")
     solution = solve_ivp(
         mod.rhs,
@@ -98,7 +98,7 @@ def test_mismatch_and_saturation_match_an_independent_loop() -> None:
     )
     sample = draw(p, options, 0)
     outcome, rows, _ = loop_for(p).run(options, sample)
-    assert outcome == Outcome.OK
+    assert outcome == Status.OK
     mod = module("pvtol")
     model = derivation("pvtol").model
     plant_params = dict(zip(p.param_names, sample.pp, strict=True))
@@ -130,7 +130,7 @@ def test_sampled_loop_matches_the_stateful_controller_under_scipy() -> None:
     sample = draw(p, options, 1)
     assert sample.noise is not None and sample.noise.shape == (81, 3)
     outcome, rows, _ = loop_for(p).run(options, sample)
-    assert outcome == Outcome.OK
+    assert outcome == Status.OK
     mod = module("unicycle_switch")
     nx = len(p.plant_state_names)
     x = sample.s0[:nx].copy()

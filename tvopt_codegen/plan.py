@@ -19,7 +19,8 @@ A step's ``op`` is one of
     pivot is not above :data:`PIVOT_TOLERANCE` times the largest entry. With equality
     constraints the matrix is the KKT matrix and the kernel's last pivots are the
     multipliers' (negated): one of those failing is
-    :attr:`Status.DEPENDENT_CONSTRAINTS`.
+    :attr:`Status.DEPENDENT_CONSTRAINTS`. Which pivot means which status is the step's
+    ``pivots``, printed by every backend.
 ``solve_lu``
     ``results[0] = R^-1 args[1]`` by LU with partial pivoting over R's diagonal blocks
     ``args[0]``; fails with :attr:`Status.SINGULAR_DECOUPLING` likewise.
@@ -27,32 +28,17 @@ A step's ``op`` is one of
     Every entry of ``args`` is finite, or the law fails with
     :attr:`Status.NONFINITE_OUTPUT`, naming ``what``.
 
-The statuses and the tolerance are defined here and nowhere else: every backend's
-templates print them from this module.
+The statuses and the tolerance are the contract's (:mod:`tvopt_codegen.contract`);
+the plan says which step fails with which.
 """
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass
 
-#: A pivot not above this fraction of the largest entry of its matrix makes the matrix
-#: singular (R) or not positive definite (the Hessian).
-PIVOT_TOLERANCE = 1e-12
+from tvopt_codegen.contract import PIVOT_TOLERANCE, Status
 
-
-class Status(enum.IntEnum):
-    """The outcome of one evaluation (a C function's return, a Python exception's status)."""
-
-    OK = 0
-    NONFINITE_INPUT = 1
-    SINGULAR_DECOUPLING = 2
-    HESSIAN_NOT_PD = 3
-    NONFINITE_OUTPUT = 4
-    #: A stateful controller was stepped to a time before its last step's.
-    DECREASING_TIME = 5
-    #: The equality constraints' gradients are dependent here: the KKT matrix is singular.
-    DEPENDENT_CONSTRAINTS = 6
+__all__ = ["PIVOT_TOLERANCE", "Plan", "Status", "Step", "Value", "law_plan"]
 
 
 @dataclass(frozen=True)
@@ -108,6 +94,9 @@ class Step:
     note : str
         A comment for the generated code ("" for none); for a check, why ``alone`` holds
         what it holds (printed where only ``alone`` is checked).
+    pivots : tuple of (int, Status)
+        For a solve: the status of a failing pivot, by range: pivot ``i`` fails with the
+        status of the first entry whose bound exceeds ``i`` (empty: ``status`` for all).
     """
 
     op: str
@@ -118,6 +107,7 @@ class Step:
     what: str = ""
     alone: tuple[str, ...] = ()
     note: str = ""
+    pivots: tuple[tuple[int, Status], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -303,6 +293,10 @@ def law_plan(
                 ("z",),
                 Status.HESSIAN_NOT_PD,
                 note="y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.",
+                # The KKT matrix's pivots: the outputs' first, then the multipliers'.
+                pivots=((m, Status.HESSIAN_NOT_PD), (n, Status.DEPENDENT_CONSTRAINTS))
+                if n > m
+                else ((m, Status.HESSIAN_NOT_PD),),
             )
         )
     steps += _DECOUPLE

@@ -24,11 +24,11 @@ import sympy as sp
 
 from tvopt_codegen import __version__
 from tvopt_codegen.backends import BACKENDS, Backend
+from tvopt_codegen.contract import CALLER_FAULTS, FUNCTIONS, PIVOT_TOLERANCE, statuses
 from tvopt_codegen.cse import symbols_in
 from tvopt_codegen.errors import TvoptError
 from tvopt_codegen.estimator import estimator_gains
 from tvopt_codegen.ir import Kernel, KernelSet
-from tvopt_codegen.plan import PIVOT_TOLERANCE, Status
 from tvopt_codegen.spec import BUNDLED_SUFFIX
 
 #: Placeholder for the content hash while the hash is computed.
@@ -81,6 +81,7 @@ def environment(root: Path | None = None) -> jinja2.Environment:
     env.filters["docstring"] = docstring_text
     env.filters["md"] = markdown_text
     env.filters["xml"] = xml_text
+    env.filters["c_string"] = c_string
     env.filters["pyrepr"] = repr
     env.filters["pytuple"] = lambda values: repr(tuple(values))
     # A macro's text ends with a newline, and so does the line that calls it.
@@ -112,6 +113,35 @@ def markdown_text(value: object) -> str:
     a description holding ``<script>`` or ``<img onerror=...>`` stays text.
     """
     return str(value).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+
+
+def c_string(value: object) -> str:
+    """``value`` as a C string literal.
+
+    Quotes, backslashes, question marks (trigraphs in C99) and every character outside
+    printable ASCII are escaped, so that any text a user wrote compiles as the same bytes.
+
+    Parameters
+    ----------
+    value : object
+        The text.
+
+    Returns
+    -------
+    str
+        A double-quoted C literal.
+    """
+    out = []
+    for byte in str(value).encode():
+        char = chr(byte)
+        if char in '"\\?':
+            out.append("\\" + char)
+        elif 32 <= byte < 127:
+            out.append(char)
+        else:
+            # Octal escapes take at most three digits: the next character cannot join it.
+            out.append(f"\\{byte:03o}")
+    return '"' + "".join(out) + '"'
 
 
 def xml_text(value: object) -> str:
@@ -458,14 +488,51 @@ def template_context(kernels: KernelSet, backend: Backend | str) -> dict[str, An
         "guard": d.spec.name.upper(),
         "r_blocks": kernels.r_blocks,
         "plan": kernels.plan,
-        "statuses": tuple(Status),
-        "pivot_tolerance": PIVOT_TOLERANCE,
+        **contract_context(kernels),
         "estimator_gains": (
             estimator_gains(d.spec.estimator, d.reference_order)
             if d.spec.estimator is not None
             else ()
         ),
         **(backend.context(kernels) if backend.context is not None else {}),
+    }
+
+
+def contract_context(kernels: KernelSet) -> dict[str, Any]:
+    """The contract's tables as every template reads them (:mod:`tvopt_codegen.contract`).
+
+    Parameters
+    ----------
+    kernels : KernelSet
+        The lowered controller.
+
+    Returns
+    -------
+    dict
+        ``statuses``, ``status_details`` (a spec's own words on where a status happens,
+        by status name), ``caller_faults``, ``functions``, ``sizes`` (the sizes that
+        :attr:`~tvopt_codegen.contract.Function.shape` names) and
+        ``pivot_tolerance``.
+    """
+    d = kernels.derivation
+    dependent = "it is where " + "; ".join(d.dependent_set) if d.dependent_set else ""
+    return {
+        "statuses": statuses(),
+        "status_details": {
+            "SINGULAR_DECOUPLING": d.singular_text,
+            "DEPENDENT_CONSTRAINTS": dependent,
+        },
+        "caller_faults": CALLER_FAULTS,
+        "functions": FUNCTIONS,
+        "sizes": {
+            "n_inputs": len(d.spec.inputs),
+            "n_states": len(d.state_names),
+            "n_outputs": len(d.spec.outputs),
+            "n_plant_states": len(d.spec.states),
+            "n_kkt": d.n_kkt,
+            "k": d.k,
+        },
+        "pivot_tolerance": PIVOT_TOLERANCE,
     }
 
 

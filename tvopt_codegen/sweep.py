@@ -33,9 +33,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from tvopt_codegen.contract import Status
 from tvopt_codegen.errors import MissingExtraError, SpecError
 from tvopt_codegen.limits import START_ITERATIONS
-from tvopt_codegen.plan import Status
 
 if TYPE_CHECKING:
     from tvopt_codegen.ir import KernelSet
@@ -54,15 +54,9 @@ SCHEDULER_TIMEOUT = 10.0
 DISTRIBUTIONS = {"normal": ("mean", "sd"), "uniform": ("lo", "hi"), "lognormal": ("mu", "sigma")}
 
 
-class Outcome(enum.IntEnum):
-    """How a sample ended: the law's statuses (:class:`~tvopt_codegen.plan.Status`), the loop's."""
+class LoopOutcome(enum.IntEnum):
+    """How the sweep's loop ends a sample beyond the law's statuses (:class:`Status`)."""
 
-    OK = Status.OK
-    NONFINITE_INPUT = Status.NONFINITE_INPUT
-    SINGULAR_DECOUPLING = Status.SINGULAR_DECOUPLING
-    HESSIAN_NOT_PD = Status.HESSIAN_NOT_PD
-    NONFINITE_OUTPUT = Status.NONFINITE_OUTPUT
-    DECREASING_TIME = Status.DECREASING_TIME
     #: A state left the divergence bound (or an output became non-finite).
     DIVERGED = 16
     #: RK45's step fell below ten units in the last place of t (scipy's "too small").
@@ -74,8 +68,23 @@ class Outcome(enum.IntEnum):
 
     @property
     def label(self) -> str:
-        """The name in tables: ``ok``, ``singular_decoupling``, ..."""
+        """The name in tables: ``diverged``, ``step_size_collapse``, ..."""
         return self.name.lower()
+
+
+#: How a sample ended: one of the contract's statuses, or one of the loop's own.
+Outcome = Status | LoopOutcome
+
+
+def outcome_of(value: int) -> Outcome:
+    """The outcome whose code the compiled loop returned.
+
+    Every status of the contract (:func:`~tvopt_codegen.contract.statuses`) is one, so a
+    status added there is recorded by every sweep without a change here.
+    """
+    if value in LoopOutcome._value2member_map_:
+        return LoopOutcome(value)
+    return Status.of(value)
 
 
 # ------------------------------------------------------------------ distributions
@@ -519,7 +528,7 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
             "P": RK45.P.tolist(),
         },
         "scipy_version": scipy.__version__,
-        "sweep_statuses": [o for o in Outcome if o.value >= Outcome.DIVERGED],
+        "sweep_statuses": list(LoopOutcome),
         "max_points": MAX_POINTS,
         "start_iterations": START_ITERATIONS,
     }
@@ -701,7 +710,7 @@ class Loop:
             self._ptr(info),
         )
         written = int(info[1])
-        return Outcome(status), rows[:written], info
+        return outcome_of(status), rows[:written], info
 
     def optimality_error(self, s: np.ndarray, params: np.ndarray) -> np.ndarray:
         """E at t = 0 (K rows of the gradient jet, or of the KKT map with equalities)."""
@@ -781,7 +790,7 @@ def run_sample(
     logdet, convexity = tail(rows, "log_det_R"), tail(rows, "m_f")
     margin, largest = tail(rows, "margin"), tail(rows, "max_constraint")
     error = np.linalg.norm(y - target, axis=1) if len(rows) else np.zeros(0)
-    ok = outcome == Outcome.OK
+    ok = outcome == Status.OK
     limits = {name: (lo, hi) for name, lo, hi in options.limits}
     saturated = np.zeros(len(rows), dtype=bool)
     for j, name in enumerate(program.input_names):

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: arm_on_line
  * spec sha256: 4194f1f0d46904245e4cb166b561f03ee23947c179614a7250471e1fb40deb16
- * content sha256: b6b1e14d38ab6b41c3b2b39be744d453d5442bed01470b3a589bdc50ec3ed648
+ * content sha256: 17d89aaa26c3390e949d9bb15fa13942288d40ff6161ecddff7b9d75ddf67c5c
  */
 
 /* arm_on_line: see arm_on_line.h. The law is CSE'd straight-line code and two numerical
@@ -420,7 +420,8 @@ static int arm_on_line_cholesky_solve(const double *hess, const double *c, doubl
     arm_on_line_k_cholesky(hess, c, z, pivot);
     for (i = 0; i < ARM_ON_LINE_N_KKT; ++i) {
         if (!(pivot[i] > ARM_ON_LINE_PIVOT_TOLERANCE * scale)) {
-            return i < ARM_ON_LINE_N_OUTPUTS ? ARM_ON_LINE_HESSIAN_NOT_PD : ARM_ON_LINE_DEPENDENT_CONSTRAINTS;
+            /* The first failing pivot says which matrix failed (the plan's ranges). */
+            return i < 2 ? ARM_ON_LINE_HESSIAN_NOT_PD : ARM_ON_LINE_DEPENDENT_CONSTRAINTS;
         }
     }
     return ARM_ON_LINE_OK;
@@ -724,6 +725,28 @@ int arm_on_line_outputs(double t, const double *x, const double *params, double 
     }
     arm_on_line_k_outputs(t, x, p, out);
     return arm_on_line_probe(out, ARM_ON_LINE_N_OUTPUTS) == 0.0 ? ARM_ON_LINE_OK : ARM_ON_LINE_NONFINITE_OUTPUT;
+}
+
+const char *arm_on_line_status_message(int status)
+{
+    switch (status) {
+    case ARM_ON_LINE_OK:
+        return "no error";
+    case ARM_ON_LINE_NONFINITE_INPUT:
+        return "time, a plant state or a parameter is not finite";
+    case ARM_ON_LINE_SINGULAR_DECOUPLING:
+        return "the decoupling matrix R is singular (R is singular where sin(q2) = 0; R or p is undefined where l2**2*m2*(l1**2*(m1 + m2) + 2*l1*l2*m2*cos(q2) + l2**2*m2) - (l1*l2*m2*cos(q2) + l2**2*m2)**2 = 0)";
+    case ARM_ON_LINE_HESSIAN_NOT_PD:
+        return "the Hessian of f0 is not positive definite: f0 is not strongly convex at this output and time";
+    case ARM_ON_LINE_NONFINITE_OUTPUT:
+        return "a result of the law is not finite: a signal or f0 left its domain";
+    case ARM_ON_LINE_DECREASING_TIME:
+        return "the time is before the last step's time";
+    case ARM_ON_LINE_DEPENDENT_CONSTRAINTS:
+        return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
+    default:
+        return "unknown status";
+    }
 }
 
 size_t arm_on_line_controller_size(void)

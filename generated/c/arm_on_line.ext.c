@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: arm_on_line
  * spec sha256: 4194f1f0d46904245e4cb166b561f03ee23947c179614a7250471e1fb40deb16
- * content sha256: c91f7e65b82b1456515c528ea25e4a5ff84d0150cd2b6ec252731ed84b6f09c2
+ * content sha256: c0dd8af321d02fd8b9aa452533d54e84eda32d45fe681598c42fd8a4f383ec1d
  */
 
 /*
@@ -11,8 +11,8 @@
  * numpy in and numpy out, without ctypes' argument conversion. Not for firmware: the
  * controller is arm_on_line.h and arm_on_line.c alone.
  *
- * call(kind, t, s, p) evaluates function `kind` (0 control, 1 rhs, 2 optimality_error,
- * 3 objective, 4 gradient, 5 hessian) at every column of s and returns
+ * call(kind, t, s, p) evaluates function `kind` (0 control, 1 rhs, 2 optimality_error, 3 objective, 4 gradient, 5 hessian) at
+ * every column of s and returns
  *   - the result array (shape of one result, plus N for a 2-D s), or
  *   - (status, column) when the C reports a status other than OK, or
  *   - None when t, s or p is not something it takes as is (not a float; not a native,
@@ -38,12 +38,12 @@ typedef struct {
 } entry;
 
 static const entry ENTRIES[6] = {
-    { arm_on_line_control_batch, ARM_ON_LINE_N_STATES, 1, { ARM_ON_LINE_N_INPUTS, 1}},
-    { arm_on_line_rhs_batch, ARM_ON_LINE_N_STATES, 1, { ARM_ON_LINE_N_STATES, 1}},
-    { arm_on_line_optimality_error_batch, ARM_ON_LINE_N_STATES, 2, { ARM_ON_LINE_K, ARM_ON_LINE_N_KKT}},
-    { arm_on_line_objective_batch, ARM_ON_LINE_N_OUTPUTS, 0, {1, 1}},
-    { arm_on_line_gradient_batch, ARM_ON_LINE_N_OUTPUTS, 1, { ARM_ON_LINE_N_OUTPUTS, 1}},
-    { arm_on_line_hessian_batch, ARM_ON_LINE_N_OUTPUTS, 2, { ARM_ON_LINE_N_OUTPUTS, ARM_ON_LINE_N_OUTPUTS}},
+    { arm_on_line_control_batch, ARM_ON_LINE_N_STATES, 1, { ARM_ON_LINE_N_INPUTS, 1 } },
+    { arm_on_line_rhs_batch, ARM_ON_LINE_N_STATES, 1, { ARM_ON_LINE_N_STATES, 1 } },
+    { arm_on_line_optimality_error_batch, ARM_ON_LINE_N_STATES, 2, { ARM_ON_LINE_K, ARM_ON_LINE_N_KKT } },
+    { arm_on_line_objective_batch, ARM_ON_LINE_N_OUTPUTS, 0, { 1, 1 } },
+    { arm_on_line_gradient_batch, ARM_ON_LINE_N_OUTPUTS, 1, { ARM_ON_LINE_N_OUTPUTS, 1 } },
+    { arm_on_line_hessian_batch, ARM_ON_LINE_N_OUTPUTS, 2, { ARM_ON_LINE_N_OUTPUTS, ARM_ON_LINE_N_OUTPUTS } },
 };
 
 /* The largest result: one column of the rhs, the optimality error or the Hessian. */

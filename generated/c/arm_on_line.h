@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: arm_on_line
  * spec sha256: 4194f1f0d46904245e4cb166b561f03ee23947c179614a7250471e1fb40deb16
- * content sha256: 71a54fccdb86cc13f8ffb5575a50fcd5c80573ffb7a736063daa438be05b13f9
+ * content sha256: 7a2181047e5b18db05c9910ab8f9e3b73163c7c7bf5b59a9a2a1b9ccb6a3d097
  */
 
 /*
@@ -60,20 +60,24 @@ extern const char *const arm_on_line_plant_state_names[ARM_ON_LINE_N_PLANT_STATE
 extern const char *const arm_on_line_controller_state_names[ARM_ON_LINE_N_CONTROLLER_STATES];
 extern const double arm_on_line_hurwitz_coefficients[ARM_ON_LINE_K];
 
-/* Plant input u (ARM_ON_LINE_N_INPUTS doubles). */
+/* The public functions (tvopt_codegen.contract.FUNCTIONS). Each returns a status and
+ * writes its result to out: the number of doubles in brackets, matrices row-major. s: the closed-loop state, y: the outputs, x: the plant state, u: the
+ * plant input; params NULL for the defaults. */
+/* Plant input u of the implicit trajectory planning law. [ARM_ON_LINE_N_INPUTS] */
 int arm_on_line_control(double t, const double *s, const double *params, double *out);
-/* Closed-loop ds/dt (ARM_ON_LINE_N_STATES doubles). */
+/* Time derivative of the closed-loop state, for scipy.integrate.solve_ivp. [ARM_ON_LINE_N_STATES] */
 int arm_on_line_rhs(double t, const double *s, const double *params, double *out);
-/* Optimality error E, K rows of ARM_ON_LINE_N_KKT (row j: grad^(j) f0, of the Lagrangian over outputs and multipliers). */
+/* The optimality error: row j is grad^(j) f0 along the closed loop. [ARM_ON_LINE_K * ARM_ON_LINE_N_KKT] */
 int arm_on_line_optimality_error(double t, const double *s, const double *params, double *out);
-/* f0(y, t) (1 double), its gradient (ARM_ON_LINE_N_OUTPUTS) and Hessian (row-major); y: outputs. */
+/* The objective f0(y, t). [1] */
 int arm_on_line_objective(double t, const double *y, const double *params, double *out);
+/* The gradient of f0 with respect to y. [ARM_ON_LINE_N_OUTPUTS] */
 int arm_on_line_gradient(double t, const double *y, const double *params, double *out);
+/* The Hessian of f0 with respect to y. [ARM_ON_LINE_N_OUTPUTS * ARM_ON_LINE_N_OUTPUTS] */
 int arm_on_line_hessian(double t, const double *y, const double *params, double *out);
-
-/* The plant alone, as the spec models it: x' = f(x) + G(x) u (ARM_ON_LINE_N_PLANT_STATES
- * doubles) for plant state x and input u, and the outputs y = h(x) (ARM_ON_LINE_N_OUTPUTS). */
+/* The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller. [ARM_ON_LINE_N_PLANT_STATES] */
 int arm_on_line_plant(double t, const double *x, const double *u, const double *params, double *out);
+/* The outputs y = h(x) of the plant state. [ARM_ON_LINE_N_OUTPUTS] */
 int arm_on_line_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop
@@ -84,6 +88,9 @@ int arm_on_line_optimality_error_batch(size_t count, double t, const double *s, 
 int arm_on_line_objective_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int arm_on_line_gradient_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int arm_on_line_hessian_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
+
+/* The message of a status: one line, without a trailing period. */
+const char *arm_on_line_status_message(int status);
 
 /*
  * The stateful sampled-data controller, in memory the caller owns (no heap, no globals).

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: a6677ef54a7c08739af6db15c08f2f6582fe8ab79741ea541cfd583bef6a81c5
+ * content sha256: 9f58eb2a131e01005dcd93dfff42bb34a66567c7d305eb178e7a5c4213e62bf7
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -359,6 +359,7 @@ static int flexible_joint_cholesky_solve(const double *hess, const double *c, do
     flexible_joint_k_cholesky(hess, c, z, pivot);
     for (i = 0; i < FLEXIBLE_JOINT_N_KKT; ++i) {
         if (!(pivot[i] > FLEXIBLE_JOINT_PIVOT_TOLERANCE * scale)) {
+            /* The first failing pivot says which matrix failed (the plan's ranges). */
             return FLEXIBLE_JOINT_HESSIAN_NOT_PD;
         }
     }
@@ -626,6 +627,28 @@ int flexible_joint_outputs(double t, const double *x, const double *params, doub
     }
     flexible_joint_k_outputs(t, x, p, out);
     return flexible_joint_probe(out, FLEXIBLE_JOINT_N_OUTPUTS) == 0.0 ? FLEXIBLE_JOINT_OK : FLEXIBLE_JOINT_NONFINITE_OUTPUT;
+}
+
+const char *flexible_joint_status_message(int status)
+{
+    switch (status) {
+    case FLEXIBLE_JOINT_OK:
+        return "no error";
+    case FLEXIBLE_JOINT_NONFINITE_INPUT:
+        return "time, a plant state or a parameter is not finite";
+    case FLEXIBLE_JOINT_SINGULAR_DECOUPLING:
+        return "the decoupling matrix R is singular (R is singular where stiffness = 0)";
+    case FLEXIBLE_JOINT_HESSIAN_NOT_PD:
+        return "the Hessian of f0 is not positive definite: f0 is not strongly convex at this output and time";
+    case FLEXIBLE_JOINT_NONFINITE_OUTPUT:
+        return "a result of the law is not finite: a signal or f0 left its domain";
+    case FLEXIBLE_JOINT_DECREASING_TIME:
+        return "the time is before the last step's time";
+    case FLEXIBLE_JOINT_DEPENDENT_CONSTRAINTS:
+        return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
+    default:
+        return "unknown status";
+    }
 }
 
 size_t flexible_joint_controller_size(void)

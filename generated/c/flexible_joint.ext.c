@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 827171b9b4c595f38bbce9907bf0f00b99af429ddf0ff34d693251789508dc1d
+ * content sha256: 013016b9bee0bedc092f8c4833dc86e5e1477f2e49fd4a2a33e54f5adc98842d
  */
 
 /*
@@ -11,8 +11,8 @@
  * numpy in and numpy out, without ctypes' argument conversion. Not for firmware: the
  * controller is flexible_joint.h and flexible_joint.c alone.
  *
- * call(kind, t, s, p) evaluates function `kind` (0 control, 1 rhs, 2 optimality_error,
- * 3 objective, 4 gradient, 5 hessian) at every column of s and returns
+ * call(kind, t, s, p) evaluates function `kind` (0 control, 1 rhs, 2 optimality_error, 3 objective, 4 gradient, 5 hessian) at
+ * every column of s and returns
  *   - the result array (shape of one result, plus N for a 2-D s), or
  *   - (status, column) when the C reports a status other than OK, or
  *   - None when t, s or p is not something it takes as is (not a float; not a native,
@@ -38,12 +38,12 @@ typedef struct {
 } entry;
 
 static const entry ENTRIES[6] = {
-    { flexible_joint_control_batch, FLEXIBLE_JOINT_N_STATES, 1, { FLEXIBLE_JOINT_N_INPUTS, 1}},
-    { flexible_joint_rhs_batch, FLEXIBLE_JOINT_N_STATES, 1, { FLEXIBLE_JOINT_N_STATES, 1}},
-    { flexible_joint_optimality_error_batch, FLEXIBLE_JOINT_N_STATES, 2, { FLEXIBLE_JOINT_K, FLEXIBLE_JOINT_N_KKT}},
-    { flexible_joint_objective_batch, FLEXIBLE_JOINT_N_OUTPUTS, 0, {1, 1}},
-    { flexible_joint_gradient_batch, FLEXIBLE_JOINT_N_OUTPUTS, 1, { FLEXIBLE_JOINT_N_OUTPUTS, 1}},
-    { flexible_joint_hessian_batch, FLEXIBLE_JOINT_N_OUTPUTS, 2, { FLEXIBLE_JOINT_N_OUTPUTS, FLEXIBLE_JOINT_N_OUTPUTS}},
+    { flexible_joint_control_batch, FLEXIBLE_JOINT_N_STATES, 1, { FLEXIBLE_JOINT_N_INPUTS, 1 } },
+    { flexible_joint_rhs_batch, FLEXIBLE_JOINT_N_STATES, 1, { FLEXIBLE_JOINT_N_STATES, 1 } },
+    { flexible_joint_optimality_error_batch, FLEXIBLE_JOINT_N_STATES, 2, { FLEXIBLE_JOINT_K, FLEXIBLE_JOINT_N_KKT } },
+    { flexible_joint_objective_batch, FLEXIBLE_JOINT_N_OUTPUTS, 0, { 1, 1 } },
+    { flexible_joint_gradient_batch, FLEXIBLE_JOINT_N_OUTPUTS, 1, { FLEXIBLE_JOINT_N_OUTPUTS, 1 } },
+    { flexible_joint_hessian_batch, FLEXIBLE_JOINT_N_OUTPUTS, 2, { FLEXIBLE_JOINT_N_OUTPUTS, FLEXIBLE_JOINT_N_OUTPUTS } },
 };
 
 /* The largest result: one column of the rhs, the optimality error or the Hessian. */

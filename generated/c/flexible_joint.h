@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 1a124b2a961f2d4aa7f000197983f00e08ca21cd4bf6f0039ed7bbe515550d1f
+ * content sha256: cc65fea5eacee368ceae0268089f9628bd2251dc08f4c862102d38051561a363
  */
 
 /*
@@ -59,20 +59,24 @@ extern const double flexible_joint_default_state[FLEXIBLE_JOINT_N_STATES];
 extern const char *const flexible_joint_plant_state_names[FLEXIBLE_JOINT_N_PLANT_STATES];
 extern const double flexible_joint_hurwitz_coefficients[FLEXIBLE_JOINT_K];
 
-/* Plant input u (FLEXIBLE_JOINT_N_INPUTS doubles). */
+/* The public functions (tvopt_codegen.contract.FUNCTIONS). Each returns a status and
+ * writes its result to out: the number of doubles in brackets, matrices row-major. s: the closed-loop state, y: the outputs, x: the plant state, u: the
+ * plant input; params NULL for the defaults. */
+/* Plant input u of the implicit trajectory planning law. [FLEXIBLE_JOINT_N_INPUTS] */
 int flexible_joint_control(double t, const double *s, const double *params, double *out);
-/* Closed-loop ds/dt (FLEXIBLE_JOINT_N_STATES doubles). */
+/* Time derivative of the closed-loop state, for scipy.integrate.solve_ivp. [FLEXIBLE_JOINT_N_STATES] */
 int flexible_joint_rhs(double t, const double *s, const double *params, double *out);
-/* Optimality error E, K rows of FLEXIBLE_JOINT_N_KKT (row j: grad^(j) f0). */
+/* The optimality error: row j is grad^(j) f0 along the closed loop. [FLEXIBLE_JOINT_K * FLEXIBLE_JOINT_N_KKT] */
 int flexible_joint_optimality_error(double t, const double *s, const double *params, double *out);
-/* f0(y, t) (1 double), its gradient (FLEXIBLE_JOINT_N_OUTPUTS) and Hessian (row-major); y: outputs. */
+/* The objective f0(y, t). [1] */
 int flexible_joint_objective(double t, const double *y, const double *params, double *out);
+/* The gradient of f0 with respect to y. [FLEXIBLE_JOINT_N_OUTPUTS] */
 int flexible_joint_gradient(double t, const double *y, const double *params, double *out);
+/* The Hessian of f0 with respect to y. [FLEXIBLE_JOINT_N_OUTPUTS * FLEXIBLE_JOINT_N_OUTPUTS] */
 int flexible_joint_hessian(double t, const double *y, const double *params, double *out);
-
-/* The plant alone, as the spec models it: x' = f(x) + G(x) u (FLEXIBLE_JOINT_N_PLANT_STATES
- * doubles) for plant state x and input u, and the outputs y = h(x) (FLEXIBLE_JOINT_N_OUTPUTS). */
+/* The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller. [FLEXIBLE_JOINT_N_PLANT_STATES] */
 int flexible_joint_plant(double t, const double *x, const double *u, const double *params, double *out);
+/* The outputs y = h(x) of the plant state. [FLEXIBLE_JOINT_N_OUTPUTS] */
 int flexible_joint_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop
@@ -83,6 +87,9 @@ int flexible_joint_optimality_error_batch(size_t count, double t, const double *
 int flexible_joint_objective_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int flexible_joint_gradient_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int flexible_joint_hessian_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
+
+/* The message of a status: one line, without a trailing period. */
+const char *flexible_joint_status_message(int status);
 
 /*
  * The stateful sampled-data controller, in memory the caller owns (no heap, no globals).

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 3ced6e8a69025eeea71b8027c8264bd3266512a1d17a5623809bb9293834eed2
+ * content sha256: 6afd0a1bf9e55cf6755ec67594bcd383ece9cd49323f02223d2861dd0c4b7985
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -247,6 +247,7 @@ static int integrator_cholesky_solve(const double *hess, const double *c, double
     integrator_k_cholesky(hess, c, z, pivot);
     for (i = 0; i < INTEGRATOR_N_KKT; ++i) {
         if (!(pivot[i] > INTEGRATOR_PIVOT_TOLERANCE * scale)) {
+            /* The first failing pivot says which matrix failed (the plan's ranges). */
             return INTEGRATOR_HESSIAN_NOT_PD;
         }
     }
@@ -519,6 +520,28 @@ int integrator_outputs(double t, const double *x, const double *params, double *
     }
     integrator_k_outputs(t, x, p, out);
     return integrator_probe(out, INTEGRATOR_N_OUTPUTS) == 0.0 ? INTEGRATOR_OK : INTEGRATOR_NONFINITE_OUTPUT;
+}
+
+const char *integrator_status_message(int status)
+{
+    switch (status) {
+    case INTEGRATOR_OK:
+        return "no error";
+    case INTEGRATOR_NONFINITE_INPUT:
+        return "time, a plant state or a parameter is not finite";
+    case INTEGRATOR_SINGULAR_DECOUPLING:
+        return "the decoupling matrix R is singular";
+    case INTEGRATOR_HESSIAN_NOT_PD:
+        return "the Hessian of f0 is not positive definite: f0 is not strongly convex at this output and time";
+    case INTEGRATOR_NONFINITE_OUTPUT:
+        return "a result of the law is not finite: a signal or f0 left its domain";
+    case INTEGRATOR_DECREASING_TIME:
+        return "the time is before the last step's time";
+    case INTEGRATOR_DEPENDENT_CONSTRAINTS:
+        return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
+    default:
+        return "unknown status";
+    }
 }
 
 size_t integrator_controller_size(void)

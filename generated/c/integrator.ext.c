@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 3040069c65ff3dca91a11b0349acf773bfdb26fd4f16f59a63af43d29c58fb4b
+ * content sha256: 6e0f353351291fc6f38016e31b15b8b6f33c8637734f9398ef8bd4257b17038a
  */
 
 /*
@@ -11,8 +11,8 @@
  * numpy in and numpy out, without ctypes' argument conversion. Not for firmware: the
  * controller is integrator.h and integrator.c alone.
  *
- * call(kind, t, s, p) evaluates function `kind` (0 control, 1 rhs, 2 optimality_error,
- * 3 objective, 4 gradient, 5 hessian) at every column of s and returns
+ * call(kind, t, s, p) evaluates function `kind` (0 control, 1 rhs, 2 optimality_error, 3 objective, 4 gradient, 5 hessian) at
+ * every column of s and returns
  *   - the result array (shape of one result, plus N for a 2-D s), or
  *   - (status, column) when the C reports a status other than OK, or
  *   - None when t, s or p is not something it takes as is (not a float; not a native,
@@ -38,12 +38,12 @@ typedef struct {
 } entry;
 
 static const entry ENTRIES[6] = {
-    { integrator_control_batch, INTEGRATOR_N_STATES, 1, { INTEGRATOR_N_INPUTS, 1}},
-    { integrator_rhs_batch, INTEGRATOR_N_STATES, 1, { INTEGRATOR_N_STATES, 1}},
-    { integrator_optimality_error_batch, INTEGRATOR_N_STATES, 2, { INTEGRATOR_K, INTEGRATOR_N_KKT}},
-    { integrator_objective_batch, INTEGRATOR_N_OUTPUTS, 0, {1, 1}},
-    { integrator_gradient_batch, INTEGRATOR_N_OUTPUTS, 1, { INTEGRATOR_N_OUTPUTS, 1}},
-    { integrator_hessian_batch, INTEGRATOR_N_OUTPUTS, 2, { INTEGRATOR_N_OUTPUTS, INTEGRATOR_N_OUTPUTS}},
+    { integrator_control_batch, INTEGRATOR_N_STATES, 1, { INTEGRATOR_N_INPUTS, 1 } },
+    { integrator_rhs_batch, INTEGRATOR_N_STATES, 1, { INTEGRATOR_N_STATES, 1 } },
+    { integrator_optimality_error_batch, INTEGRATOR_N_STATES, 2, { INTEGRATOR_K, INTEGRATOR_N_KKT } },
+    { integrator_objective_batch, INTEGRATOR_N_OUTPUTS, 0, { 1, 1 } },
+    { integrator_gradient_batch, INTEGRATOR_N_OUTPUTS, 1, { INTEGRATOR_N_OUTPUTS, 1 } },
+    { integrator_hessian_batch, INTEGRATOR_N_OUTPUTS, 2, { INTEGRATOR_N_OUTPUTS, INTEGRATOR_N_OUTPUTS } },
 };
 
 /* The largest result: one column of the rhs, the optimality error or the Hessian. */

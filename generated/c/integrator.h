@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: a8f3197e3cffec4e54c523f6aa406d0e15cea189c4410408c5760dfbcf124abb
+ * content sha256: 7fd59dd5c046baaf0e1c5804d0584568f473ea0d2e4f3600a809321c70f78f77
  */
 
 /*
@@ -59,20 +59,24 @@ extern const double integrator_default_state[INTEGRATOR_N_STATES];
 extern const char *const integrator_plant_state_names[INTEGRATOR_N_PLANT_STATES];
 extern const double integrator_hurwitz_coefficients[INTEGRATOR_K];
 
-/* Plant input u (INTEGRATOR_N_INPUTS doubles). */
+/* The public functions (tvopt_codegen.contract.FUNCTIONS). Each returns a status and
+ * writes its result to out: the number of doubles in brackets, matrices row-major. s: the closed-loop state, y: the outputs, x: the plant state, u: the
+ * plant input; params NULL for the defaults. */
+/* Plant input u of the implicit trajectory planning law. [INTEGRATOR_N_INPUTS] */
 int integrator_control(double t, const double *s, const double *params, double *out);
-/* Closed-loop ds/dt (INTEGRATOR_N_STATES doubles). */
+/* Time derivative of the closed-loop state, for scipy.integrate.solve_ivp. [INTEGRATOR_N_STATES] */
 int integrator_rhs(double t, const double *s, const double *params, double *out);
-/* Optimality error E, K rows of INTEGRATOR_N_KKT (row j: grad^(j) f0). */
+/* The optimality error: row j is grad^(j) f0 along the closed loop. [INTEGRATOR_K * INTEGRATOR_N_KKT] */
 int integrator_optimality_error(double t, const double *s, const double *params, double *out);
-/* f0(y, t) (1 double), its gradient (INTEGRATOR_N_OUTPUTS) and Hessian (row-major); y: outputs. */
+/* The objective f0(y, t). [1] */
 int integrator_objective(double t, const double *y, const double *params, double *out);
+/* The gradient of f0 with respect to y. [INTEGRATOR_N_OUTPUTS] */
 int integrator_gradient(double t, const double *y, const double *params, double *out);
+/* The Hessian of f0 with respect to y. [INTEGRATOR_N_OUTPUTS * INTEGRATOR_N_OUTPUTS] */
 int integrator_hessian(double t, const double *y, const double *params, double *out);
-
-/* The plant alone, as the spec models it: x' = f(x) + G(x) u (INTEGRATOR_N_PLANT_STATES
- * doubles) for plant state x and input u, and the outputs y = h(x) (INTEGRATOR_N_OUTPUTS). */
+/* The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller. [INTEGRATOR_N_PLANT_STATES] */
 int integrator_plant(double t, const double *x, const double *u, const double *params, double *out);
+/* The outputs y = h(x) of the plant state. [INTEGRATOR_N_OUTPUTS] */
 int integrator_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop
@@ -83,6 +87,9 @@ int integrator_optimality_error_batch(size_t count, double t, const double *s, c
 int integrator_objective_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int integrator_gradient_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int integrator_hessian_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
+
+/* The message of a status: one line, without a trailing period. */
+const char *integrator_status_message(int status);
 
 /*
  * The stateful sampled-data controller, in memory the caller owns (no heap, no globals).

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: pvtol
  * spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
- * content sha256: 7ec0cbf6b888e3a82fd90a74e53874932eb3e9cab91c8ec98e1ee8752ac3aa3e
+ * content sha256: 1a8da651b889aa4e184d03f8d30578aa59b0045e35ea51dcb81bbe2250fae7ed
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -611,6 +611,28 @@ int pvtol_outputs(double t, const double *x, const double *params, double *out)
     }
     pvtol_k_outputs(t, x, p, out);
     return pvtol_probe(out, PVTOL_N_OUTPUTS) == 0.0 ? PVTOL_OK : PVTOL_NONFINITE_OUTPUT;
+}
+
+const char *pvtol_status_message(int status)
+{
+    switch (status) {
+    case PVTOL_OK:
+        return "no error";
+    case PVTOL_NONFINITE_INPUT:
+        return "time, a plant state or a parameter is not finite";
+    case PVTOL_SINGULAR_DECOUPLING:
+        return "the decoupling matrix R is singular (R is singular where thrust = 0)";
+    case PVTOL_HESSIAN_NOT_PD:
+        return "the Hessian of f0 is not positive definite: f0 is not strongly convex at this output and time";
+    case PVTOL_NONFINITE_OUTPUT:
+        return "a result of the law is not finite: a signal or f0 left its domain";
+    case PVTOL_DECREASING_TIME:
+        return "the time is before the last step's time";
+    case PVTOL_DEPENDENT_CONSTRAINTS:
+        return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
+    default:
+        return "unknown status";
+    }
 }
 
 size_t pvtol_controller_size(void)

@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: pvtol
  * spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
- * content sha256: bf05303b5086111a64e70354651fdbbab3b5065b1b38b8ab00a936939f03be24
+ * content sha256: aaa6fdce506369b63d9caa7e1be3d82a6826b9f8be918d425ac9b1a5ced0acd0
  */
 
 /*
@@ -11,8 +11,8 @@
  * numpy in and numpy out, without ctypes' argument conversion. Not for firmware: the
  * controller is pvtol.h and pvtol.c alone.
  *
- * call(kind, t, s, p) evaluates function `kind` (0 control, 1 rhs, 2 optimality_error,
- * 3 objective, 4 gradient, 5 hessian) at every column of s and returns
+ * call(kind, t, s, p) evaluates function `kind` (0 control, 1 rhs, 2 optimality_error, 3 objective, 4 gradient, 5 hessian) at
+ * every column of s and returns
  *   - the result array (shape of one result, plus N for a 2-D s), or
  *   - (status, column) when the C reports a status other than OK, or
  *   - None when t, s or p is not something it takes as is (not a float; not a native,
@@ -38,12 +38,12 @@ typedef struct {
 } entry;
 
 static const entry ENTRIES[6] = {
-    { pvtol_control_batch, PVTOL_N_STATES, 1, { PVTOL_N_INPUTS, 1}},
-    { pvtol_rhs_batch, PVTOL_N_STATES, 1, { PVTOL_N_STATES, 1}},
-    { pvtol_optimality_error_batch, PVTOL_N_STATES, 2, { PVTOL_K, PVTOL_N_KKT}},
-    { pvtol_objective_batch, PVTOL_N_OUTPUTS, 0, {1, 1}},
-    { pvtol_gradient_batch, PVTOL_N_OUTPUTS, 1, { PVTOL_N_OUTPUTS, 1}},
-    { pvtol_hessian_batch, PVTOL_N_OUTPUTS, 2, { PVTOL_N_OUTPUTS, PVTOL_N_OUTPUTS}},
+    { pvtol_control_batch, PVTOL_N_STATES, 1, { PVTOL_N_INPUTS, 1 } },
+    { pvtol_rhs_batch, PVTOL_N_STATES, 1, { PVTOL_N_STATES, 1 } },
+    { pvtol_optimality_error_batch, PVTOL_N_STATES, 2, { PVTOL_K, PVTOL_N_KKT } },
+    { pvtol_objective_batch, PVTOL_N_OUTPUTS, 0, { 1, 1 } },
+    { pvtol_gradient_batch, PVTOL_N_OUTPUTS, 1, { PVTOL_N_OUTPUTS, 1 } },
+    { pvtol_hessian_batch, PVTOL_N_OUTPUTS, 2, { PVTOL_N_OUTPUTS, PVTOL_N_OUTPUTS } },
 };
 
 /* The largest result: one column of the rhs, the optimality error or the Hessian. */

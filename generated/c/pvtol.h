@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: pvtol
  * spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
- * content sha256: 2f4d6bbc9304fdd5a918ac0e41bd7b5499931eb581497383f0ac37de91f239ad
+ * content sha256: 0b38fdd98a6665d5c6670ab639c58dacadaa46b43041481810f3ee364faa76c2
  */
 
 /*
@@ -60,20 +60,24 @@ extern const char *const pvtol_plant_state_names[PVTOL_N_PLANT_STATES];
 extern const char *const pvtol_controller_state_names[PVTOL_N_CONTROLLER_STATES];
 extern const double pvtol_hurwitz_coefficients[PVTOL_K];
 
-/* Plant input u (PVTOL_N_INPUTS doubles). */
+/* The public functions (tvopt_codegen.contract.FUNCTIONS). Each returns a status and
+ * writes its result to out: the number of doubles in brackets, matrices row-major. s: the closed-loop state, y: the outputs, x: the plant state, u: the
+ * plant input; params NULL for the defaults. */
+/* Plant input u of the implicit trajectory planning law. [PVTOL_N_INPUTS] */
 int pvtol_control(double t, const double *s, const double *params, double *out);
-/* Closed-loop ds/dt (PVTOL_N_STATES doubles). */
+/* Time derivative of the closed-loop state, for scipy.integrate.solve_ivp. [PVTOL_N_STATES] */
 int pvtol_rhs(double t, const double *s, const double *params, double *out);
-/* Optimality error E, K rows of PVTOL_N_KKT (row j: grad^(j) f0). */
+/* The optimality error: row j is grad^(j) f0 along the closed loop. [PVTOL_K * PVTOL_N_KKT] */
 int pvtol_optimality_error(double t, const double *s, const double *params, double *out);
-/* f0(y, t) (1 double), its gradient (PVTOL_N_OUTPUTS) and Hessian (row-major); y: outputs. */
+/* The objective f0(y, t). [1] */
 int pvtol_objective(double t, const double *y, const double *params, double *out);
+/* The gradient of f0 with respect to y. [PVTOL_N_OUTPUTS] */
 int pvtol_gradient(double t, const double *y, const double *params, double *out);
+/* The Hessian of f0 with respect to y. [PVTOL_N_OUTPUTS * PVTOL_N_OUTPUTS] */
 int pvtol_hessian(double t, const double *y, const double *params, double *out);
-
-/* The plant alone, as the spec models it: x' = f(x) + G(x) u (PVTOL_N_PLANT_STATES
- * doubles) for plant state x and input u, and the outputs y = h(x) (PVTOL_N_OUTPUTS). */
+/* The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller. [PVTOL_N_PLANT_STATES] */
 int pvtol_plant(double t, const double *x, const double *u, const double *params, double *out);
+/* The outputs y = h(x) of the plant state. [PVTOL_N_OUTPUTS] */
 int pvtol_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop
@@ -84,6 +88,9 @@ int pvtol_optimality_error_batch(size_t count, double t, const double *s, const 
 int pvtol_objective_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int pvtol_gradient_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int pvtol_hessian_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
+
+/* The message of a status: one line, without a trailing period. */
+const char *pvtol_status_message(int status);
 
 /*
  * The stateful sampled-data controller, in memory the caller owns (no heap, no globals).

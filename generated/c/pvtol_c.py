@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: pvtol
 # spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
-# content sha256: b1e9c6aad77162e14f7f51a2687826270783f3f52e930b2780f9b0b9ee296cec
+# content sha256: bcdfda6f2cbe159bf73a41137b8b234d293da9cc781cc5a14f327ed219048650
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -142,16 +142,40 @@ class HessianNotPositiveDefiniteError(ControllerError):
     status = STATUS_HESSIAN_NOT_PD
 
 
+class NonFiniteOutputError(ControllerError):
+    """An intermediate or the result is not finite (a function left its domain)."""
+
+    status = STATUS_NONFINITE_OUTPUT
+
+
+class DecreasingTimeError(ControllerError, ValueError):
+    """A stateful controller was stepped to a time before its last step's."""
+
+    status = STATUS_DECREASING_TIME
+
+
 class DependentConstraintsError(ControllerError):
     """The equality constraints' gradients are dependent: the KKT matrix is singular."""
 
     status = STATUS_DEPENDENT_CONSTRAINTS
 
 
-class NonFiniteOutputError(ControllerError):
-    """An intermediate or the result is not finite (a function left its domain)."""
+#: Each error status: its exception, the message's head, and what follows the column
+#: (why, then where this spec's law fails so).
+_ERRORS = {
+    STATUS_NONFINITE_INPUT: (NonFiniteInputError, 'time, a plant state or a parameter is not finite', ''),
+    STATUS_SINGULAR_DECOUPLING: (SingularDecouplingError, 'the decoupling matrix R is singular', '; R is singular where thrust = 0'),
+    STATUS_HESSIAN_NOT_PD: (HessianNotPositiveDefiniteError, 'the Hessian of f0 is not positive definite', ': f0 is not strongly convex at this output and time'),
+    STATUS_NONFINITE_OUTPUT: (NonFiniteOutputError, '{result} is not finite', ': a signal or f0 left its domain'),
+    STATUS_DECREASING_TIME: (DecreasingTimeError, "the time is before the last step's time", ''),
+    STATUS_DEPENDENT_CONSTRAINTS: (DependentConstraintsError, "the equality constraints' gradients are dependent", ': the KKT matrix is singular at this state and time'),
+}
 
-    status = STATUS_NONFINITE_OUTPUT
+
+def _error(status, index, result=""):
+    """The exception of ``status`` at column ``index`` (``result``: what is not finite)."""
+    kind, text, tail = _ERRORS[status]
+    return kind(f"{text.replace('{result}', result)} (column {index}){tail}", index)
 
 
 _DEFAULT_P = numpy.array(list(PARAMETERS.values()), dtype=float)
@@ -262,7 +286,7 @@ _LIB = ctypes.CDLL(str(_LIBRARY))
 #: The compiled entry point, or None when calls go through ctypes (no Python headers).
 _ENTRY = _entry_point(_LIBRARY) if _HAS_ENTRY_POINT else None
 _FUNCTIONS = {}
-for _name in ("control", "rhs", "optimality_error", "objective", "gradient", "hessian"):
+for _name in ('control', 'rhs', 'optimality_error', 'objective', 'gradient', 'hessian'):
     _function = getattr(_LIB, f"pvtol_{_name}_batch")
     # Raw addresses (c_void_p) are the cheapest way ctypes takes numpy buffers.
     _function.argtypes = (ctypes.c_size_t, ctypes.c_double, ctypes.c_void_p, ctypes.c_void_p,
@@ -271,30 +295,14 @@ for _name in ("control", "rhs", "optimality_error", "objective", "gradient", "he
     _FUNCTIONS[_name] = _function
 _P_NONE = numpy.zeros(1)
 
-_MESSAGES = {
-    STATUS_SINGULAR_DECOUPLING: (
-        SingularDecouplingError,
-        "the decoupling matrix R is singular (column {index})"
-        "; R is singular where thrust = 0"
-    ),
-    STATUS_HESSIAN_NOT_PD: (
-        HessianNotPositiveDefiniteError,
-        "the Hessian of f0 is not positive definite (column {index}): f0 is not strongly "
-        "convex at this output and time",
-    ),
-    STATUS_NONFINITE_OUTPUT: (
-        NonFiniteOutputError,
-        "{result} is not finite (column {index}): a signal or f0 left its domain",
-    ),
-}
 #: What each function computes, and what its argument is, for messages.
 _RESULTS = {
-    "control": ("the plant input", "state"),
-    "rhs": ("the closed-loop vector field", "state"),
-    "optimality_error": ("the optimality error", "state"),
-    "objective": ("f0", "output"),
-    "gradient": ("the gradient of f0", "output"),
-    "hessian": ("the Hessian of f0", "output"),
+    "control": ('the plant input', "state"),
+    "rhs": ('the closed-loop vector field', "state"),
+    "optimality_error": ('the optimality error', "state"),
+    "objective": ('f0', "output"),
+    "gradient": ('the gradient of f0', "output"),
+    "hessian": ('the Hessian of f0', "output"),
 }
 
 
@@ -330,32 +338,31 @@ def _raise(status, index, name, t, values, p):
             column = int(numpy.argmax(bad))
             raise NonFiniteInputError(f"the {what} is not finite (column {column})", column)
         raise NonFiniteInputError("a parameter is not finite")
-    kind, message = _MESSAGES[status]
-    raise kind(message.format(index=index, result=result), index)
+    raise _error(status, index, result)
 
 
-def _control_values(t, s, p):
-    return _call("control", t, s, p, (2,))
+def _control_values(t, values, p):
+    return _call("control", t, values, p, (2,))
 
 
-def _rhs_values(t, s, p):
-    return _call("rhs", t, s, p, (8,))
+def _rhs_values(t, values, p):
+    return _call("rhs", t, values, p, (8,))
 
 
-def _optimality_error(t, s, p):
-    return _call("optimality_error", t, s, p, (K, 2))
+def _optimality_error_values(t, values, p):
+    return _call("optimality_error", t, values, p, (4, 2))
 
 
-def _objective_values(t, y, p):
-    return _call("objective", t, y, p, ())
+def _objective_values(t, values, p):
+    return _call("objective", t, values, p, ())
 
 
-def _gradient_values(t, y, p):
-    return _call("gradient", t, y, p, (2,))
+def _gradient_values(t, values, p):
+    return _call("gradient", t, values, p, (2,))
 
 
-def _hessian_values(t, y, p):
-    return _call("hessian", t, y, p, (2, 2))
+def _hessian_values(t, values, p):
+    return _call("hessian", t, values, p, (2, 2))
 
 
 _PLANT = _LIB.pvtol_plant
@@ -375,8 +382,7 @@ def _per_column(what, rows, call, t, p, *arrays):
     for j in range(out.shape[0]):
         status = call(t, *(_address(c[j]) for c in columns), _address(params), _address(out[j]))
         if status != STATUS_OK:  # the inputs were checked: the result is not finite
-            raise NonFiniteOutputError(
-                f"{what} is not finite (column {j}): a signal or f0 left its domain", j)
+            raise _error(STATUS_NONFINITE_OUTPUT, j, what)
     return out.T
 
 
@@ -441,8 +447,7 @@ def _check_finite(what, *arrays):
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))
-            raise NonFiniteOutputError(f"{what} is not finite (column {index}): a signal or "
-                                       "f0 left its domain", index)
+            raise _error(STATUS_NONFINITE_OUTPUT, index, what)
 
 
 
@@ -527,7 +532,7 @@ def optimality_error(t, s, params=None):
     states, single = _columns("s", s, 8)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
-    e = _optimality_error(t, states, p)
+    e = _optimality_error_values(t, states, p)
     return e[..., 0] if single else e
 
 
@@ -757,7 +762,8 @@ class _Controller:
         Raises
         ------
         ValueError
-            When ``t`` is before the last step's time, or ``x`` has the wrong shape.
+            When ``t`` is before the last step's time (``DecreasingTimeError``, also a
+            ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
             where the law is undefined; the controller is then unchanged.
@@ -766,7 +772,7 @@ class _Controller:
         x = _vector("x", x, 6)
         _check_measurement(t, x, PLANT_STATE_NAMES)
         if t < self.t:
-            raise ValueError(
+            raise DecreasingTimeError(
                 f"t = {t!r} is before the last step's time {self.t!r}: time must not decrease"
             )
         return self._move(t, x)

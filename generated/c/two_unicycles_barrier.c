@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 21840bd8327c64391f72d17808f67451fdcda9c36c0e545293f55b807bf559a6
+ * content sha256: 385fbc2abe526b42c6f4583c654ef06cea143293aa7a0a672f74b5dfde382082
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -509,6 +509,7 @@ static int two_unicycles_barrier_cholesky_solve(const double *hess, const double
     two_unicycles_barrier_k_cholesky(hess, c, z, pivot);
     for (i = 0; i < TWO_UNICYCLES_BARRIER_N_KKT; ++i) {
         if (!(pivot[i] > TWO_UNICYCLES_BARRIER_PIVOT_TOLERANCE * scale)) {
+            /* The first failing pivot says which matrix failed (the plan's ranges). */
             return TWO_UNICYCLES_BARRIER_HESSIAN_NOT_PD;
         }
     }
@@ -818,6 +819,28 @@ int two_unicycles_barrier_outputs(double t, const double *x, const double *param
     }
     two_unicycles_barrier_k_outputs(t, x, p, out);
     return two_unicycles_barrier_probe(out, TWO_UNICYCLES_BARRIER_N_OUTPUTS) == 0.0 ? TWO_UNICYCLES_BARRIER_OK : TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT;
+}
+
+const char *two_unicycles_barrier_status_message(int status)
+{
+    switch (status) {
+    case TWO_UNICYCLES_BARRIER_OK:
+        return "no error";
+    case TWO_UNICYCLES_BARRIER_NONFINITE_INPUT:
+        return "time, a plant state or a parameter is not finite";
+    case TWO_UNICYCLES_BARRIER_SINGULAR_DECOUPLING:
+        return "the decoupling matrix R is singular (R is singular where va = 0; vb = 0)";
+    case TWO_UNICYCLES_BARRIER_HESSIAN_NOT_PD:
+        return "the Hessian of f0 is not positive definite: f0 is not strongly convex at this output and time";
+    case TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT:
+        return "a result of the law is not finite: a signal or f0 left its domain";
+    case TWO_UNICYCLES_BARRIER_DECREASING_TIME:
+        return "the time is before the last step's time";
+    case TWO_UNICYCLES_BARRIER_DEPENDENT_CONSTRAINTS:
+        return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
+    default:
+        return "unknown status";
+    }
 }
 
 size_t two_unicycles_barrier_controller_size(void)

@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 87d59e68e3f824eeab7cc6dc60ae538abd486d7010db37544bbdb38a1b6566db
+ * content sha256: a9310408e48affa1e5ae8fdaeaeb6b901b16db77ca23197b4d26dbe2b2b540ff
  */
 
 /*
@@ -11,8 +11,8 @@
  * numpy in and numpy out, without ctypes' argument conversion. Not for firmware: the
  * controller is two_unicycles_barrier.h and two_unicycles_barrier.c alone.
  *
- * call(kind, t, s, p) evaluates function `kind` (0 control, 1 rhs, 2 optimality_error,
- * 3 objective, 4 gradient, 5 hessian) at every column of s and returns
+ * call(kind, t, s, p) evaluates function `kind` (0 control, 1 rhs, 2 optimality_error, 3 objective, 4 gradient, 5 hessian) at
+ * every column of s and returns
  *   - the result array (shape of one result, plus N for a 2-D s), or
  *   - (status, column) when the C reports a status other than OK, or
  *   - None when t, s or p is not something it takes as is (not a float; not a native,
@@ -38,12 +38,12 @@ typedef struct {
 } entry;
 
 static const entry ENTRIES[6] = {
-    { two_unicycles_barrier_control_batch, TWO_UNICYCLES_BARRIER_N_STATES, 1, { TWO_UNICYCLES_BARRIER_N_INPUTS, 1}},
-    { two_unicycles_barrier_rhs_batch, TWO_UNICYCLES_BARRIER_N_STATES, 1, { TWO_UNICYCLES_BARRIER_N_STATES, 1}},
-    { two_unicycles_barrier_optimality_error_batch, TWO_UNICYCLES_BARRIER_N_STATES, 2, { TWO_UNICYCLES_BARRIER_K, TWO_UNICYCLES_BARRIER_N_KKT}},
-    { two_unicycles_barrier_objective_batch, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 0, {1, 1}},
-    { two_unicycles_barrier_gradient_batch, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 1, { TWO_UNICYCLES_BARRIER_N_OUTPUTS, 1}},
-    { two_unicycles_barrier_hessian_batch, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 2, { TWO_UNICYCLES_BARRIER_N_OUTPUTS, TWO_UNICYCLES_BARRIER_N_OUTPUTS}},
+    { two_unicycles_barrier_control_batch, TWO_UNICYCLES_BARRIER_N_STATES, 1, { TWO_UNICYCLES_BARRIER_N_INPUTS, 1 } },
+    { two_unicycles_barrier_rhs_batch, TWO_UNICYCLES_BARRIER_N_STATES, 1, { TWO_UNICYCLES_BARRIER_N_STATES, 1 } },
+    { two_unicycles_barrier_optimality_error_batch, TWO_UNICYCLES_BARRIER_N_STATES, 2, { TWO_UNICYCLES_BARRIER_K, TWO_UNICYCLES_BARRIER_N_KKT } },
+    { two_unicycles_barrier_objective_batch, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 0, { 1, 1 } },
+    { two_unicycles_barrier_gradient_batch, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 1, { TWO_UNICYCLES_BARRIER_N_OUTPUTS, 1 } },
+    { two_unicycles_barrier_hessian_batch, TWO_UNICYCLES_BARRIER_N_OUTPUTS, 2, { TWO_UNICYCLES_BARRIER_N_OUTPUTS, TWO_UNICYCLES_BARRIER_N_OUTPUTS } },
 };
 
 /* The largest result: one column of the rhs, the optimality error or the Hessian. */

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 929a593de5b68b34a7f3fbd817b448c8f2517c05a527efe8eea220edfbb362fd
+ * content sha256: 6754cbbb60ecd4d8cfa1af8c8bf81ed739acf398752fc64a47357c251cbe2247
  */
 
 /*
@@ -60,20 +60,24 @@ extern const char *const two_unicycles_barrier_plant_state_names[TWO_UNICYCLES_B
 extern const char *const two_unicycles_barrier_controller_state_names[TWO_UNICYCLES_BARRIER_N_CONTROLLER_STATES];
 extern const double two_unicycles_barrier_hurwitz_coefficients[TWO_UNICYCLES_BARRIER_K];
 
-/* Plant input u (TWO_UNICYCLES_BARRIER_N_INPUTS doubles). */
+/* The public functions (tvopt_codegen.contract.FUNCTIONS). Each returns a status and
+ * writes its result to out: the number of doubles in brackets, matrices row-major. s: the closed-loop state, y: the outputs, x: the plant state, u: the
+ * plant input; params NULL for the defaults. */
+/* Plant input u of the implicit trajectory planning law. [TWO_UNICYCLES_BARRIER_N_INPUTS] */
 int two_unicycles_barrier_control(double t, const double *s, const double *params, double *out);
-/* Closed-loop ds/dt (TWO_UNICYCLES_BARRIER_N_STATES doubles). */
+/* Time derivative of the closed-loop state, for scipy.integrate.solve_ivp. [TWO_UNICYCLES_BARRIER_N_STATES] */
 int two_unicycles_barrier_rhs(double t, const double *s, const double *params, double *out);
-/* Optimality error E, K rows of TWO_UNICYCLES_BARRIER_N_KKT (row j: grad^(j) f0). */
+/* The optimality error: row j is grad^(j) f0 along the closed loop. [TWO_UNICYCLES_BARRIER_K * TWO_UNICYCLES_BARRIER_N_KKT] */
 int two_unicycles_barrier_optimality_error(double t, const double *s, const double *params, double *out);
-/* f0(y, t) (1 double), its gradient (TWO_UNICYCLES_BARRIER_N_OUTPUTS) and Hessian (row-major); y: outputs. */
+/* The objective f0(y, t). [1] */
 int two_unicycles_barrier_objective(double t, const double *y, const double *params, double *out);
+/* The gradient of f0 with respect to y. [TWO_UNICYCLES_BARRIER_N_OUTPUTS] */
 int two_unicycles_barrier_gradient(double t, const double *y, const double *params, double *out);
+/* The Hessian of f0 with respect to y. [TWO_UNICYCLES_BARRIER_N_OUTPUTS * TWO_UNICYCLES_BARRIER_N_OUTPUTS] */
 int two_unicycles_barrier_hessian(double t, const double *y, const double *params, double *out);
-
-/* The plant alone, as the spec models it: x' = f(x) + G(x) u (TWO_UNICYCLES_BARRIER_N_PLANT_STATES
- * doubles) for plant state x and input u, and the outputs y = h(x) (TWO_UNICYCLES_BARRIER_N_OUTPUTS). */
+/* The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller. [TWO_UNICYCLES_BARRIER_N_PLANT_STATES] */
 int two_unicycles_barrier_plant(double t, const double *x, const double *u, const double *params, double *out);
+/* The outputs y = h(x) of the plant state. [TWO_UNICYCLES_BARRIER_N_OUTPUTS] */
 int two_unicycles_barrier_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop
@@ -84,6 +88,9 @@ int two_unicycles_barrier_optimality_error_batch(size_t count, double t, const d
 int two_unicycles_barrier_objective_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int two_unicycles_barrier_gradient_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int two_unicycles_barrier_hessian_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
+
+/* The message of a status: one line, without a trailing period. */
+const char *two_unicycles_barrier_status_message(int status);
 
 /*
  * The stateful sampled-data controller, in memory the caller owns (no heap, no globals).

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 2de81de681756515d6ab05e89ee128173fb0e55382ea91d20937db01b059772a
+# content sha256: 8219cfc235be69bb939fb52fb7d0791d5851954a5ff347bced09c18c9ac158a5
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -141,16 +141,40 @@ class HessianNotPositiveDefiniteError(ControllerError):
     status = STATUS_HESSIAN_NOT_PD
 
 
+class NonFiniteOutputError(ControllerError):
+    """An intermediate or the result is not finite (a function left its domain)."""
+
+    status = STATUS_NONFINITE_OUTPUT
+
+
+class DecreasingTimeError(ControllerError, ValueError):
+    """A stateful controller was stepped to a time before its last step's."""
+
+    status = STATUS_DECREASING_TIME
+
+
 class DependentConstraintsError(ControllerError):
     """The equality constraints' gradients are dependent: the KKT matrix is singular."""
 
     status = STATUS_DEPENDENT_CONSTRAINTS
 
 
-class NonFiniteOutputError(ControllerError):
-    """An intermediate or the result is not finite (a function left its domain)."""
+#: Each error status: its exception, the message's head, and what follows the column
+#: (why, then where this spec's law fails so).
+_ERRORS = {
+    STATUS_NONFINITE_INPUT: (NonFiniteInputError, 'time, a plant state or a parameter is not finite', ''),
+    STATUS_SINGULAR_DECOUPLING: (SingularDecouplingError, 'the decoupling matrix R is singular', '; R is singular where va = 0; vb = 0'),
+    STATUS_HESSIAN_NOT_PD: (HessianNotPositiveDefiniteError, 'the Hessian of f0 is not positive definite', ': f0 is not strongly convex at this output and time'),
+    STATUS_NONFINITE_OUTPUT: (NonFiniteOutputError, '{result} is not finite', ': a signal or f0 left its domain'),
+    STATUS_DECREASING_TIME: (DecreasingTimeError, "the time is before the last step's time", ''),
+    STATUS_DEPENDENT_CONSTRAINTS: (DependentConstraintsError, "the equality constraints' gradients are dependent", ': the KKT matrix is singular at this state and time'),
+}
 
-    status = STATUS_NONFINITE_OUTPUT
+
+def _error(status, index, result=""):
+    """The exception of ``status`` at column ``index`` (``result``: what is not finite)."""
+    kind, text, tail = _ERRORS[status]
+    return kind(f"{text.replace('{result}', result)} (column {index}){tail}", index)
 
 
 _DEFAULT_P = numpy.array(list(PARAMETERS.values()), dtype=float)
@@ -261,7 +285,7 @@ _LIB = ctypes.CDLL(str(_LIBRARY))
 #: The compiled entry point, or None when calls go through ctypes (no Python headers).
 _ENTRY = _entry_point(_LIBRARY) if _HAS_ENTRY_POINT else None
 _FUNCTIONS = {}
-for _name in ("control", "rhs", "optimality_error", "objective", "gradient", "hessian"):
+for _name in ('control', 'rhs', 'optimality_error', 'objective', 'gradient', 'hessian'):
     _function = getattr(_LIB, f"two_unicycles_barrier_{_name}_batch")
     # Raw addresses (c_void_p) are the cheapest way ctypes takes numpy buffers.
     _function.argtypes = (ctypes.c_size_t, ctypes.c_double, ctypes.c_void_p, ctypes.c_void_p,
@@ -270,30 +294,14 @@ for _name in ("control", "rhs", "optimality_error", "objective", "gradient", "he
     _FUNCTIONS[_name] = _function
 _P_NONE = numpy.zeros(1)
 
-_MESSAGES = {
-    STATUS_SINGULAR_DECOUPLING: (
-        SingularDecouplingError,
-        "the decoupling matrix R is singular (column {index})"
-        "; R is singular where va = 0; vb = 0"
-    ),
-    STATUS_HESSIAN_NOT_PD: (
-        HessianNotPositiveDefiniteError,
-        "the Hessian of f0 is not positive definite (column {index}): f0 is not strongly "
-        "convex at this output and time",
-    ),
-    STATUS_NONFINITE_OUTPUT: (
-        NonFiniteOutputError,
-        "{result} is not finite (column {index}): a signal or f0 left its domain",
-    ),
-}
 #: What each function computes, and what its argument is, for messages.
 _RESULTS = {
-    "control": ("the plant input", "state"),
-    "rhs": ("the closed-loop vector field", "state"),
-    "optimality_error": ("the optimality error", "state"),
-    "objective": ("f0", "output"),
-    "gradient": ("the gradient of f0", "output"),
-    "hessian": ("the Hessian of f0", "output"),
+    "control": ('the plant input', "state"),
+    "rhs": ('the closed-loop vector field', "state"),
+    "optimality_error": ('the optimality error', "state"),
+    "objective": ('f0', "output"),
+    "gradient": ('the gradient of f0', "output"),
+    "hessian": ('the Hessian of f0', "output"),
 }
 
 
@@ -329,32 +337,31 @@ def _raise(status, index, name, t, values, p):
             column = int(numpy.argmax(bad))
             raise NonFiniteInputError(f"the {what} is not finite (column {column})", column)
         raise NonFiniteInputError("a parameter is not finite")
-    kind, message = _MESSAGES[status]
-    raise kind(message.format(index=index, result=result), index)
+    raise _error(status, index, result)
 
 
-def _control_values(t, s, p):
-    return _call("control", t, s, p, (4,))
+def _control_values(t, values, p):
+    return _call("control", t, values, p, (4,))
 
 
-def _rhs_values(t, s, p):
-    return _call("rhs", t, s, p, (8,))
+def _rhs_values(t, values, p):
+    return _call("rhs", t, values, p, (8,))
 
 
-def _optimality_error(t, s, p):
-    return _call("optimality_error", t, s, p, (K, 4))
+def _optimality_error_values(t, values, p):
+    return _call("optimality_error", t, values, p, (2, 4))
 
 
-def _objective_values(t, y, p):
-    return _call("objective", t, y, p, ())
+def _objective_values(t, values, p):
+    return _call("objective", t, values, p, ())
 
 
-def _gradient_values(t, y, p):
-    return _call("gradient", t, y, p, (4,))
+def _gradient_values(t, values, p):
+    return _call("gradient", t, values, p, (4,))
 
 
-def _hessian_values(t, y, p):
-    return _call("hessian", t, y, p, (4, 4))
+def _hessian_values(t, values, p):
+    return _call("hessian", t, values, p, (4, 4))
 
 
 _PLANT = _LIB.two_unicycles_barrier_plant
@@ -374,8 +381,7 @@ def _per_column(what, rows, call, t, p, *arrays):
     for j in range(out.shape[0]):
         status = call(t, *(_address(c[j]) for c in columns), _address(params), _address(out[j]))
         if status != STATUS_OK:  # the inputs were checked: the result is not finite
-            raise NonFiniteOutputError(
-                f"{what} is not finite (column {j}): a signal or f0 left its domain", j)
+            raise _error(STATUS_NONFINITE_OUTPUT, j, what)
     return out.T
 
 
@@ -440,8 +446,7 @@ def _check_finite(what, *arrays):
         bad = ~numpy.all(numpy.isfinite(array.reshape(-1, array.shape[-1])), axis=0)
         if bad.any():
             index = int(numpy.argmax(bad))
-            raise NonFiniteOutputError(f"{what} is not finite (column {index}): a signal or "
-                                       "f0 left its domain", index)
+            raise _error(STATUS_NONFINITE_OUTPUT, index, what)
 
 
 
@@ -526,7 +531,7 @@ def optimality_error(t, s, params=None):
     states, single = _columns("s", s, 8)
     p = _parameters(params)
     _check_inputs(t, states, p, "state")
-    e = _optimality_error(t, states, p)
+    e = _optimality_error_values(t, states, p)
     return e[..., 0] if single else e
 
 
@@ -756,7 +761,8 @@ class _Controller:
         Raises
         ------
         ValueError
-            When ``t`` is before the last step's time, or ``x`` has the wrong shape.
+            When ``t`` is before the last step's time (``DecreasingTimeError``, also a
+            ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
             where the law is undefined; the controller is then unchanged.
@@ -765,7 +771,7 @@ class _Controller:
         x = _vector("x", x, 6)
         _check_measurement(t, x, PLANT_STATE_NAMES)
         if t < self.t:
-            raise ValueError(
+            raise DecreasingTimeError(
                 f"t = {t!r} is before the last step's time {self.t!r}: time must not decrease"
             )
         return self._move(t, x)

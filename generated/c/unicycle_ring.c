@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_ring
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: 003eb91add860add1c92d59808acfa74c18629f8831f5bc8eb8b929f97ca9b0c
+ * content sha256: c9d156ee8916220c338dbfc437067efd0cf46face1f6f947c7a0b83a4e1e53b5
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical
@@ -1088,6 +1088,7 @@ static int unicycle_ring_cholesky_solve(const double *hess, const double *c, dou
     unicycle_ring_k_cholesky(hess, c, z, pivot);
     for (i = 0; i < UNICYCLE_RING_N_KKT; ++i) {
         if (!(pivot[i] > UNICYCLE_RING_PIVOT_TOLERANCE * scale)) {
+            /* The first failing pivot says which matrix failed (the plan's ranges). */
             return UNICYCLE_RING_HESSIAN_NOT_PD;
         }
     }
@@ -1407,6 +1408,28 @@ int unicycle_ring_outputs(double t, const double *x, const double *params, doubl
     }
     unicycle_ring_k_outputs(t, x, p, out);
     return unicycle_ring_probe(out, UNICYCLE_RING_N_OUTPUTS) == 0.0 ? UNICYCLE_RING_OK : UNICYCLE_RING_NONFINITE_OUTPUT;
+}
+
+const char *unicycle_ring_status_message(int status)
+{
+    switch (status) {
+    case UNICYCLE_RING_OK:
+        return "no error";
+    case UNICYCLE_RING_NONFINITE_INPUT:
+        return "time, a plant state or a parameter is not finite";
+    case UNICYCLE_RING_SINGULAR_DECOUPLING:
+        return "the decoupling matrix R is singular";
+    case UNICYCLE_RING_HESSIAN_NOT_PD:
+        return "the Hessian of f0 is not positive definite: f0 is not strongly convex at this output and time";
+    case UNICYCLE_RING_NONFINITE_OUTPUT:
+        return "a result of the law is not finite: a signal or f0 left its domain";
+    case UNICYCLE_RING_DECREASING_TIME:
+        return "the time is before the last step's time";
+    case UNICYCLE_RING_DEPENDENT_CONSTRAINTS:
+        return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
+    default:
+        return "unknown status";
+    }
 }
 
 size_t unicycle_ring_controller_size(void)

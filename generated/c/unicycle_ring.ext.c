@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: unicycle_ring
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: e5b07f41859ceb9a38c57828409b8b69dbd7685db8ca80f823b8cbfdf9a874d3
+ * content sha256: 36ca912ef281d487a49b38b6f276cd1c90a8b374ef26e311065985fd745b8e7b
  */
 
 /*
@@ -11,8 +11,8 @@
  * numpy in and numpy out, without ctypes' argument conversion. Not for firmware: the
  * controller is unicycle_ring.h and unicycle_ring.c alone.
  *
- * call(kind, t, s, p) evaluates function `kind` (0 control, 1 rhs, 2 optimality_error,
- * 3 objective, 4 gradient, 5 hessian) at every column of s and returns
+ * call(kind, t, s, p) evaluates function `kind` (0 control, 1 rhs, 2 optimality_error, 3 objective, 4 gradient, 5 hessian) at
+ * every column of s and returns
  *   - the result array (shape of one result, plus N for a 2-D s), or
  *   - (status, column) when the C reports a status other than OK, or
  *   - None when t, s or p is not something it takes as is (not a float; not a native,
@@ -38,12 +38,12 @@ typedef struct {
 } entry;
 
 static const entry ENTRIES[6] = {
-    { unicycle_ring_control_batch, UNICYCLE_RING_N_STATES, 1, { UNICYCLE_RING_N_INPUTS, 1}},
-    { unicycle_ring_rhs_batch, UNICYCLE_RING_N_STATES, 1, { UNICYCLE_RING_N_STATES, 1}},
-    { unicycle_ring_optimality_error_batch, UNICYCLE_RING_N_STATES, 2, { UNICYCLE_RING_K, UNICYCLE_RING_N_KKT}},
-    { unicycle_ring_objective_batch, UNICYCLE_RING_N_OUTPUTS, 0, {1, 1}},
-    { unicycle_ring_gradient_batch, UNICYCLE_RING_N_OUTPUTS, 1, { UNICYCLE_RING_N_OUTPUTS, 1}},
-    { unicycle_ring_hessian_batch, UNICYCLE_RING_N_OUTPUTS, 2, { UNICYCLE_RING_N_OUTPUTS, UNICYCLE_RING_N_OUTPUTS}},
+    { unicycle_ring_control_batch, UNICYCLE_RING_N_STATES, 1, { UNICYCLE_RING_N_INPUTS, 1 } },
+    { unicycle_ring_rhs_batch, UNICYCLE_RING_N_STATES, 1, { UNICYCLE_RING_N_STATES, 1 } },
+    { unicycle_ring_optimality_error_batch, UNICYCLE_RING_N_STATES, 2, { UNICYCLE_RING_K, UNICYCLE_RING_N_KKT } },
+    { unicycle_ring_objective_batch, UNICYCLE_RING_N_OUTPUTS, 0, { 1, 1 } },
+    { unicycle_ring_gradient_batch, UNICYCLE_RING_N_OUTPUTS, 1, { UNICYCLE_RING_N_OUTPUTS, 1 } },
+    { unicycle_ring_hessian_batch, UNICYCLE_RING_N_OUTPUTS, 2, { UNICYCLE_RING_N_OUTPUTS, UNICYCLE_RING_N_OUTPUTS } },
 };
 
 /* The largest result: one column of the rhs, the optimality error or the Hessian. */

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_ring
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: 0ca5b9e79cacaeda283e426f0b0798dc6578e26af06351918a372ab534345179
+ * content sha256: 8850d86862adb51b29d585b6233c1eb27311aa22837c1dd2fed80aff1063adf1
  */
 
 /*
@@ -60,20 +60,24 @@ extern const char *const unicycle_ring_plant_state_names[UNICYCLE_RING_N_PLANT_S
 extern const char *const unicycle_ring_controller_state_names[UNICYCLE_RING_N_CONTROLLER_STATES];
 extern const double unicycle_ring_hurwitz_coefficients[UNICYCLE_RING_K];
 
-/* Plant input u (UNICYCLE_RING_N_INPUTS doubles). */
+/* The public functions (tvopt_codegen.contract.FUNCTIONS). Each returns a status and
+ * writes its result to out: the number of doubles in brackets, matrices row-major. s: the closed-loop state, y: the outputs, x: the plant state, u: the
+ * plant input; params NULL for the defaults. */
+/* Plant input u of the implicit trajectory planning law. [UNICYCLE_RING_N_INPUTS] */
 int unicycle_ring_control(double t, const double *s, const double *params, double *out);
-/* Closed-loop ds/dt (UNICYCLE_RING_N_STATES doubles). */
+/* Time derivative of the closed-loop state, for scipy.integrate.solve_ivp. [UNICYCLE_RING_N_STATES] */
 int unicycle_ring_rhs(double t, const double *s, const double *params, double *out);
-/* Optimality error E, K rows of UNICYCLE_RING_N_KKT (row j: grad^(j) f0). */
+/* The optimality error: row j is grad^(j) f0 along the closed loop. [UNICYCLE_RING_K * UNICYCLE_RING_N_KKT] */
 int unicycle_ring_optimality_error(double t, const double *s, const double *params, double *out);
-/* f0(y, t) (1 double), its gradient (UNICYCLE_RING_N_OUTPUTS) and Hessian (row-major); y: outputs. */
+/* The objective f0(y, t). [1] */
 int unicycle_ring_objective(double t, const double *y, const double *params, double *out);
+/* The gradient of f0 with respect to y. [UNICYCLE_RING_N_OUTPUTS] */
 int unicycle_ring_gradient(double t, const double *y, const double *params, double *out);
+/* The Hessian of f0 with respect to y. [UNICYCLE_RING_N_OUTPUTS * UNICYCLE_RING_N_OUTPUTS] */
 int unicycle_ring_hessian(double t, const double *y, const double *params, double *out);
-
-/* The plant alone, as the spec models it: x' = f(x) + G(x) u (UNICYCLE_RING_N_PLANT_STATES
- * doubles) for plant state x and input u, and the outputs y = h(x) (UNICYCLE_RING_N_OUTPUTS). */
+/* The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller. [UNICYCLE_RING_N_PLANT_STATES] */
 int unicycle_ring_plant(double t, const double *x, const double *u, const double *params, double *out);
+/* The outputs y = h(x) of the plant state. [UNICYCLE_RING_N_OUTPUTS] */
 int unicycle_ring_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop
@@ -84,6 +88,9 @@ int unicycle_ring_optimality_error_batch(size_t count, double t, const double *s
 int unicycle_ring_objective_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int unicycle_ring_gradient_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int unicycle_ring_hessian_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
+
+/* The message of a status: one line, without a trailing period. */
+const char *unicycle_ring_status_message(int status);
 
 /*
  * The stateful sampled-data controller, in memory the caller owns (no heap, no globals).

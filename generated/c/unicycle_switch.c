@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 503d283a412628e962d94466ce39a615c9320b003f9542d990d24b35d9f48d01
+ * content sha256: 935dd5cf3b2a8ce81af569fca9a32e0534bf80ff57b8aeab00007084a9d6a7f7
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -572,6 +572,28 @@ int unicycle_switch_outputs(double t, const double *x, const double *params, dou
     }
     unicycle_switch_k_outputs(t, x, p, out);
     return unicycle_switch_probe(out, UNICYCLE_SWITCH_N_OUTPUTS) == 0.0 ? UNICYCLE_SWITCH_OK : UNICYCLE_SWITCH_NONFINITE_OUTPUT;
+}
+
+const char *unicycle_switch_status_message(int status)
+{
+    switch (status) {
+    case UNICYCLE_SWITCH_OK:
+        return "no error";
+    case UNICYCLE_SWITCH_NONFINITE_INPUT:
+        return "time, a plant state or a parameter is not finite";
+    case UNICYCLE_SWITCH_SINGULAR_DECOUPLING:
+        return "the decoupling matrix R is singular (R is singular where v = 0)";
+    case UNICYCLE_SWITCH_HESSIAN_NOT_PD:
+        return "the Hessian of f0 is not positive definite: f0 is not strongly convex at this output and time";
+    case UNICYCLE_SWITCH_NONFINITE_OUTPUT:
+        return "a result of the law is not finite: a signal or f0 left its domain";
+    case UNICYCLE_SWITCH_DECREASING_TIME:
+        return "the time is before the last step's time";
+    case UNICYCLE_SWITCH_DEPENDENT_CONSTRAINTS:
+        return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
+    default:
+        return "unknown status";
+    }
 }
 
 size_t unicycle_switch_controller_size(void)

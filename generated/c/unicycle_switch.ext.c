@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 6397e4f4ee3dcd2446facdb0c1739b7f560c85897c2cd4a383360cd57319cc7c
+ * content sha256: e5326579d9547def56956674bd10a95b448b286286080f5f0966f25bf6d40eff
  */
 
 /*
@@ -11,8 +11,8 @@
  * numpy in and numpy out, without ctypes' argument conversion. Not for firmware: the
  * controller is unicycle_switch.h and unicycle_switch.c alone.
  *
- * call(kind, t, s, p) evaluates function `kind` (0 control, 1 rhs, 2 optimality_error,
- * 3 objective, 4 gradient, 5 hessian) at every column of s and returns
+ * call(kind, t, s, p) evaluates function `kind` (0 control, 1 rhs, 2 optimality_error, 3 objective, 4 gradient, 5 hessian) at
+ * every column of s and returns
  *   - the result array (shape of one result, plus N for a 2-D s), or
  *   - (status, column) when the C reports a status other than OK, or
  *   - None when t, s or p is not something it takes as is (not a float; not a native,
@@ -38,12 +38,12 @@ typedef struct {
 } entry;
 
 static const entry ENTRIES[6] = {
-    { unicycle_switch_control_batch, UNICYCLE_SWITCH_N_STATES, 1, { UNICYCLE_SWITCH_N_INPUTS, 1}},
-    { unicycle_switch_rhs_batch, UNICYCLE_SWITCH_N_STATES, 1, { UNICYCLE_SWITCH_N_STATES, 1}},
-    { unicycle_switch_optimality_error_batch, UNICYCLE_SWITCH_N_STATES, 2, { UNICYCLE_SWITCH_K, UNICYCLE_SWITCH_N_KKT}},
-    { unicycle_switch_objective_batch, UNICYCLE_SWITCH_N_OUTPUTS, 0, {1, 1}},
-    { unicycle_switch_gradient_batch, UNICYCLE_SWITCH_N_OUTPUTS, 1, { UNICYCLE_SWITCH_N_OUTPUTS, 1}},
-    { unicycle_switch_hessian_batch, UNICYCLE_SWITCH_N_OUTPUTS, 2, { UNICYCLE_SWITCH_N_OUTPUTS, UNICYCLE_SWITCH_N_OUTPUTS}},
+    { unicycle_switch_control_batch, UNICYCLE_SWITCH_N_STATES, 1, { UNICYCLE_SWITCH_N_INPUTS, 1 } },
+    { unicycle_switch_rhs_batch, UNICYCLE_SWITCH_N_STATES, 1, { UNICYCLE_SWITCH_N_STATES, 1 } },
+    { unicycle_switch_optimality_error_batch, UNICYCLE_SWITCH_N_STATES, 2, { UNICYCLE_SWITCH_K, UNICYCLE_SWITCH_N_KKT } },
+    { unicycle_switch_objective_batch, UNICYCLE_SWITCH_N_OUTPUTS, 0, { 1, 1 } },
+    { unicycle_switch_gradient_batch, UNICYCLE_SWITCH_N_OUTPUTS, 1, { UNICYCLE_SWITCH_N_OUTPUTS, 1 } },
+    { unicycle_switch_hessian_batch, UNICYCLE_SWITCH_N_OUTPUTS, 2, { UNICYCLE_SWITCH_N_OUTPUTS, UNICYCLE_SWITCH_N_OUTPUTS } },
 };
 
 /* The largest result: one column of the rhs, the optimality error or the Hessian. */

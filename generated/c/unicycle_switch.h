@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 3fd677a21094c7b85aa664c4968f46d934dc6b36bc058c0644fe378782b7139b
+ * content sha256: 25beee73a156365f1db1f2ed0c7965ffaf50e6e8377ddeb22b7176f16698d96a
  */
 
 /*
@@ -60,20 +60,24 @@ extern const char *const unicycle_switch_plant_state_names[UNICYCLE_SWITCH_N_PLA
 extern const char *const unicycle_switch_controller_state_names[UNICYCLE_SWITCH_N_CONTROLLER_STATES];
 extern const double unicycle_switch_hurwitz_coefficients[UNICYCLE_SWITCH_K];
 
-/* Plant input u (UNICYCLE_SWITCH_N_INPUTS doubles). */
+/* The public functions (tvopt_codegen.contract.FUNCTIONS). Each returns a status and
+ * writes its result to out: the number of doubles in brackets, matrices row-major. s: the closed-loop state, y: the outputs, x: the plant state, u: the
+ * plant input; params NULL for the defaults. */
+/* Plant input u of the implicit trajectory planning law. [UNICYCLE_SWITCH_N_INPUTS] */
 int unicycle_switch_control(double t, const double *s, const double *params, double *out);
-/* Closed-loop ds/dt (UNICYCLE_SWITCH_N_STATES doubles). */
+/* Time derivative of the closed-loop state, for scipy.integrate.solve_ivp. [UNICYCLE_SWITCH_N_STATES] */
 int unicycle_switch_rhs(double t, const double *s, const double *params, double *out);
-/* Optimality error E, K rows of UNICYCLE_SWITCH_N_KKT (row j: grad^(j) f0). */
+/* The optimality error: row j is grad^(j) f0 along the closed loop. [UNICYCLE_SWITCH_K * UNICYCLE_SWITCH_N_KKT] */
 int unicycle_switch_optimality_error(double t, const double *s, const double *params, double *out);
-/* f0(y, t) (1 double), its gradient (UNICYCLE_SWITCH_N_OUTPUTS) and Hessian (row-major); y: outputs. */
+/* The objective f0(y, t). [1] */
 int unicycle_switch_objective(double t, const double *y, const double *params, double *out);
+/* The gradient of f0 with respect to y. [UNICYCLE_SWITCH_N_OUTPUTS] */
 int unicycle_switch_gradient(double t, const double *y, const double *params, double *out);
+/* The Hessian of f0 with respect to y. [UNICYCLE_SWITCH_N_OUTPUTS * UNICYCLE_SWITCH_N_OUTPUTS] */
 int unicycle_switch_hessian(double t, const double *y, const double *params, double *out);
-
-/* The plant alone, as the spec models it: x' = f(x) + G(x) u (UNICYCLE_SWITCH_N_PLANT_STATES
- * doubles) for plant state x and input u, and the outputs y = h(x) (UNICYCLE_SWITCH_N_OUTPUTS). */
+/* The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller. [UNICYCLE_SWITCH_N_PLANT_STATES] */
 int unicycle_switch_plant(double t, const double *x, const double *u, const double *params, double *out);
+/* The outputs y = h(x) of the plant state. [UNICYCLE_SWITCH_N_OUTPUTS] */
 int unicycle_switch_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop
@@ -84,6 +88,9 @@ int unicycle_switch_optimality_error_batch(size_t count, double t, const double 
 int unicycle_switch_objective_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int unicycle_switch_gradient_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
 int unicycle_switch_hessian_batch(size_t count, double t, const double *y, const double *params, double *out, size_t *failed);
+
+/* The message of a status: one line, without a trailing period. */
+const char *unicycle_switch_status_message(int status);
 
 /*
  * The stateful sampled-data controller, in memory the caller owns (no heap, no globals).
