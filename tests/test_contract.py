@@ -20,9 +20,10 @@ from tvopt_codegen.backends import BACKENDS, Backend
 from tvopt_codegen.cli import main
 from tvopt_codegen.errors import SpecError
 from tvopt_codegen.ir import KernelSet
-from tvopt_codegen.rendering import is_pristine, render
+from tvopt_codegen.rendering import render
 from tvopt_codegen.simulation import load_controller
 from tvopt_codegen.spec import load_spec
+from tvopt_codegen.stamp import is_pristine
 
 from .conftest import derivation, kernels, write_spec
 from .oracle import Oracle

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from tvopt_codegen.rendering import is_pristine, render
+from tvopt_codegen.rendering import render
+from tvopt_codegen.stamp import is_pristine
 
 from .conftest import EXAMPLES, ROOT, kernels
 

@@ -522,12 +522,12 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
+    from tvopt_codegen.artifacts import result_files  # noqa: PLC0415 - matplotlib on use
     from tvopt_codegen.emit import prepare_folder, write_files  # noqa: PLC0415
     from tvopt_codegen.simulation import (  # noqa: PLC0415
         format_certificate,
         load_controller,
         resolve_options,
-        result_files,
         simulate,
     )
 
@@ -616,7 +616,8 @@ def _simulate(args: argparse.Namespace) -> int:
     text = format_certificate(derivation, result)
     passed = result.passed
     if sampled is not None:
-        from tvopt_codegen.sampled import format_sampled, sampled_files  # noqa: PLC0415
+        from tvopt_codegen.artifacts import sampled_files  # noqa: PLC0415
+        from tvopt_codegen.sampled import format_sampled  # noqa: PLC0415
 
         files.update(sampled_files(derivation, sampled))
         text += "\n" + format_sampled(derivation, sampled)

@@ -35,7 +35,7 @@ import jinja2
 import jinja2.bccache
 
 from tvopt_codegen.errors import OutputError
-from tvopt_codegen.rendering import is_pristine, stamped_hash, stamped_spec
+from tvopt_codegen.stamp import is_pristine, stamped_hash, stamped_spec
 
 #: Name of the per-folder record of what tvopt-codegen wrote.
 MANIFEST = ".tvopt-manifest.json"

@@ -14,7 +14,6 @@ import re
 import sys
 
 from tvopt_codegen.backends import BACKENDS
-from tvopt_codegen.backends.c import C_KEYWORDS, C_LIBRARY_NAMES
 from tvopt_codegen.parse import CONSTANTS, FUNCTIONS
 
 _IDENTIFIER = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
@@ -49,15 +48,16 @@ def name_problem(name: object) -> str | None:
         return f"name {name!r} is longer than 64 characters"
     if keyword.iskeyword(name) or keyword.issoftkeyword(name) or name in {"True", "False", "None"}:
         return f"name {name!r} is a Python keyword"
-    if name in C_KEYWORDS:
-        return f"name {name!r} is a C keyword"
     if name in FUNCTIONS or name in CONSTANTS:
         return f"name {name!r} is a built-in function or constant of spec expressions"
-    if name in C_LIBRARY_NAMES:
-        return f"name {name!r} is a C library or math function name"
     if name in TOOL_NAMES:
         return f"name {name!r} is reserved (t is time)"
+    # Every registered backend's words, asked of the registry: the spec reader imports no
+    # backend by name, and a backend another package registers is heard too.
     for backend in BACKENDS.values():
+        for what, words in backend.reserved_as:
+            if name in words:
+                return f"name {name!r} is {what}"
         if name in backend.reserved:
             return f"name {name!r} is a reserved word of the {backend.name} backend"
     return None

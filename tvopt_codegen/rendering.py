@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
 import heapq
 import math
 import re
@@ -30,15 +29,7 @@ from tvopt_codegen.errors import TvoptError
 from tvopt_codegen.estimator import estimator_gains
 from tvopt_codegen.ir import Kernel, KernelSet
 from tvopt_codegen.spec import BUNDLED_SUFFIX
-
-#: Placeholder for the content hash while the hash is computed.
-HASH_PLACEHOLDER = "@@CONTENT_SHA256@@"
-_HASH_LINE = re.compile(r"content sha256: ([0-9a-f]{64}|" + HASH_PLACEHOLDER + ")")
-#: The stamp's line naming the spec a file was generated for (the writer refuses to
-#: replace one spec's file with another's).
-_SPEC_LINE = re.compile(r"^\W{1,3}spec name: ([A-Za-z][A-Za-z0-9_]*)$", re.MULTILINE)
-#: The stamp stands in a file's first lines.
-_STAMP_LENGTH = 2000
+from tvopt_codegen.stamp import HASH_PLACEHOLDER, stamp_hash
 
 
 class CodegenError(TvoptError):
@@ -371,32 +362,6 @@ def _indices(shape: tuple[int, ...]) -> list[tuple[int, ...]]:
         return [()]
     rest = _indices(shape[1:])
     return [(i, *r) for i in range(shape[0]) for r in rest]
-
-
-def stamp_hash(text: str) -> str:
-    """SHA-256 of a generated file's text with its content hash replaced by the placeholder."""
-    normalized = _HASH_LINE.sub(f"content sha256: {HASH_PLACEHOLDER}", text, count=1)
-    return hashlib.sha256(normalized.encode("utf-8")).hexdigest()
-
-
-def stamped_hash(text: str) -> str | None:
-    """The content hash a generated file claims, or ``None`` if it carries no stamp."""
-    match = _HASH_LINE.search(text)
-    if match is None or match.group(1) == HASH_PLACEHOLDER:
-        return None
-    return match.group(1)
-
-
-def stamped_spec(text: str) -> str | None:
-    """The spec name a generated file's stamp names, or ``None`` if it names none."""
-    match = _SPEC_LINE.search(text, 0, _STAMP_LENGTH)
-    return None if match is None else match.group(1)
-
-
-def is_pristine(text: str) -> bool:
-    """Whether ``text`` is a generated file nobody has edited since generation."""
-    claimed = stamped_hash(text)
-    return claimed is not None and claimed == stamp_hash(text)
 
 
 def render_template(template_name: str, context: dict[str, Any], root: Path | None = None) -> str:

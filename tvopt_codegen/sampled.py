@@ -19,7 +19,6 @@ the sampling effect, ``O(H)``.
 
 from __future__ import annotations
 
-import io
 import math
 import time
 import types
@@ -320,36 +319,3 @@ def format_sampled(derivation: Derivation, result: SampledResult) -> str:
         + ("PASSED" if result.passed else "FAILED: " + "; ".join(result.failures))
     )
     return "\n".join(lines)
-
-
-def sampled_files(derivation: Derivation, result: SampledResult) -> dict[str, bytes]:
-    """The sampled runs (CSV of the first, NPZ of all) and the overlay figure, in memory."""
-    d = derivation
-    name = d.spec.name
-    run = result.runs[0]
-    table = np.column_stack([run.t, run.states.T, run.inputs.T, run.outputs.T])
-    header = ["t", *d.state_names, *(f"u_{n}" for n in d.spec.inputs)]
-    header += [f"y_{n}" for n in d.spec.outputs]
-    text = io.StringIO()
-    text.write(",".join(header) + "\n")
-    for row in table:
-        text.write(",".join(repr(float(v)) for v in row) + "\n")
-    arrays = io.BytesIO()
-    saved: dict[str, Any] = {}
-    for index, each in enumerate(result.runs):
-        saved |= {
-            f"h{index}": np.array(each.h),
-            f"t{index}": each.t,
-            f"states{index}": each.states,
-            f"inputs{index}": each.inputs,
-            f"y{index}": each.outputs,
-        }
-    np.savez(arrays, state_names=np.array(d.state_names), **saved)
-    files = {
-        f"{name}_sampled.csv": text.getvalue().encode("utf-8"),
-        f"{name}_sampled.npz": arrays.getvalue(),
-    }
-    from tvopt_codegen.figures import sampled_figures  # noqa: PLC0415 - matplotlib on use
-
-    files.update(sampled_figures(d, result))
-    return files

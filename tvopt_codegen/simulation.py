@@ -10,14 +10,13 @@ paper's theorems along the run:
    constant of ``|expm(H t)| <= c e^{-alpha t}`` (computed) and ``m_f`` the convexity
    modulus (estimated along the run).
 
-Nothing here writes files: :func:`result_files` renders the outputs in memory for
-:mod:`tvopt_codegen.emit`.
+Nothing here writes files or draws: :func:`tvopt_codegen.artifacts.result_files` renders
+the outputs and figures in memory for :mod:`tvopt_codegen.emit`.
 """
 
 from __future__ import annotations
 
 import importlib.util
-import io
 import math
 import tempfile
 import time
@@ -999,40 +998,3 @@ def columns(derivation: Derivation) -> list[str]:
     names += [*(f"y_{n}" for n in d.spec.outputs), *(f"ystar_{n}" for n in d.spec.outputs)]
     names += [f"E{j}_{n}" for j in range(d.k) for n in d.spec.outputs]
     return names
-
-
-def result_files(derivation: Derivation, result: Result) -> dict[str, bytes]:
-    """Trajectories (CSV, NPZ), the certificate text, and the figures, in memory."""
-    d, r = derivation, result
-    name = d.spec.name
-    table = np.column_stack(
-        [r.t, r.states.T, r.inputs.T, r.outputs.T, r.target.T, r.E.reshape(len(r.t), -1)]
-    )
-    text = io.StringIO()
-    text.write(",".join(columns(d)) + "\n")
-    for row in table:
-        text.write(",".join(repr(float(v)) for v in row) + "\n")
-    arrays = io.BytesIO()
-    np.savez(
-        arrays,
-        t=r.t,
-        states=r.states,
-        inputs=r.inputs,
-        y=r.outputs,
-        y_star=r.target,
-        E=r.E,
-        bound=r.bound,
-        state_names=np.array(d.state_names),
-        input_names=np.array(d.spec.inputs),
-        output_names=np.array(d.spec.outputs),
-    )
-    files = {
-        f"{name}_trajectory.csv": text.getvalue().encode("utf-8"),
-        f"{name}_trajectory.npz": arrays.getvalue(),
-        f"{name}_certificate.txt": (format_certificate(d, r) + "\n").encode("utf-8"),
-    }
-    # matplotlib is imported here only: generate, check and report never load it.
-    from tvopt_codegen.figures import figures  # noqa: PLC0415
-
-    files.update(figures(d, r))
-    return files

@@ -110,7 +110,6 @@ def sweep(
         run_sample,
         run_sweep,
         summarize,
-        sweep_files,
         sweep_program,
         trajectory_block,
         trajectory_layout,
@@ -173,6 +172,8 @@ def sweep(
         index: run_sample(program, options, index, keep=True).trajectory
         for index, _ in summary.worst
     }
+    from tvopt_codegen.artifacts import sweep_files  # noqa: PLC0415 - matplotlib on use
+
     files = sweep_files(
         program,
         options,
@@ -219,7 +220,6 @@ def replay(args: argparse.Namespace) -> int:
         RECORD,
         SweepOptions,
         read_summary,
-        replay_files,
         run_sample,
         sweep_program,
     )
@@ -264,6 +264,8 @@ def replay(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     result = run_sample(program, options, index, keep=True)
+    from tvopt_codegen.artifacts import replay_files  # noqa: PLC0415 - matplotlib on use
+
     files = replay_files(program, result)
     write_files(files, args.out, force=args.force)
     rows = {int(r["sample"]): r for r in read_summary(str(folder / "summary.parquet"))}

@@ -10,8 +10,6 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # sympy loads in a second; the registry is read by --help too
     from sympy.printing.codeprinter import CodePrinter
 
-    from tvopt_codegen.ir import KernelSet
-
 
 @dataclass(frozen=True)
 class Backend:
@@ -42,12 +40,19 @@ class Backend:
         by their own printers. None: every printing is printed on its own.
     context : callable or None
         ``context(kernels)`` returns the backend's own template variables (added to the
-        shared ones: ``d``, ``spec``, ``kernels``, ``prefix``, ...).
+        shared ones: ``d``, ``spec``, ``kernels``, ``prefix``, ...); ``kernels`` is the
+        :class:`~tvopt_codegen.kernel.KernelSet` being rendered. (Typed ``Any`` here: the
+        spec reader consults this registry for reserved words, so the record must not
+        depend on the stages after it.)
     template_root : pathlib.Path or None
         The folder its template paths are relative to; None for the shipped
         ``templates/`` (a backend from another package brings its own).
     reserved : frozenset of str
         Words the target language reserves: no spec name may be one of them.
+    reserved_as : tuple of (str, frozenset of str)
+        Reserved words grouped by what they are (``"a C keyword"``), for the message that
+        refuses such a name; words in none of the groups are "a reserved word of the
+        <name> backend".
     """
 
     name: str
@@ -57,6 +62,7 @@ class Backend:
     module: str
     variants: tuple[tuple[str, Callable[[], CodePrinter]], ...] = ()
     joint: Callable[[], CodePrinter] | None = None
-    context: Callable[[KernelSet], dict[str, Any]] | None = None
+    context: Callable[[Any], dict[str, Any]] | None = None
     template_root: Path | None = None
     reserved: frozenset[str] = frozenset()
+    reserved_as: tuple[tuple[str, frozenset[str]], ...] = ()

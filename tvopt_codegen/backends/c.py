@@ -68,4 +68,8 @@ BACKEND = Backend(
     module="{name}_c.py",
     context=_context,
     reserved=C_KEYWORDS | C_LIBRARY_NAMES,
+    reserved_as=(
+        ("a C keyword", C_KEYWORDS),
+        ("a C library or math function name", C_LIBRARY_NAMES),
+    ),
 )
