@@ -44,8 +44,13 @@ from tvopt_codegen.limits import MAX_POINTS, MAX_T_FINAL, METHODS, Budget
 # The stages (sympy, numpy, scipy, jinja2; matplotlib for figures) are imported by the
 # commands that use them: --help and --version answer without them.
 if TYPE_CHECKING:
+    from typing import TypeAlias
+
     from tvopt_codegen.derivation import Derivation
     from tvopt_codegen.ir import KernelSet
+
+    #: The subcommand table each ``_add_<command>`` adds its command to.
+    _Commands: TypeAlias = argparse._SubParsersAction["_Parser"]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -56,19 +61,8 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(EXIT_BAD_SPEC)
 
 
-def _parser() -> argparse.ArgumentParser:
-    # Long on purpose: one declaration per option of every command, read top to bottom
-    # like the --help it prints; there is no logic to split out.
-    parser = _Parser(
-        prog="tvopt-codegen",
-        description="Generate implicit trajectory planning controllers from a spec file.",
-        epilog="Exit codes: 0 ok, 2 bad spec or usage, 3 assumptions violated, 4 output not "
-        "written, 5 certificate failed, 6 budget exceeded, 7 build failed, 70 internal error, "
-        "130 interrupted, 143 terminated.",
-    )
-    parser.add_argument("--version", action="version", version=f"tvopt-codegen {__version__}")
-    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
+def _add_generate(commands: _Commands) -> argparse.ArgumentParser:
+    """The ``generate`` command and its options."""
     generate = commands.add_parser("generate", help="derive the law and write the controller")
     generate.add_argument("spec", help="spec file, or the name of a bundled example")
     generate.add_argument("--out", default=".", help="output folder (default: current folder)")
@@ -90,12 +84,23 @@ def _parser() -> argparse.ArgumentParser:
         help="also print one JSON line of stage seconds and law operations on stderr "
         "(for benchmarks/bench_derive.py)",
     )
+    return generate
 
+
+def _add_check(commands: _Commands) -> argparse.ArgumentParser:
+    """The ``check`` command and its options."""
     check = commands.add_parser("check", help="print the derivation summary; writes nothing")
     check.add_argument("spec", help="spec file, or the name of a bundled example")
+    return check
 
+
+def _add_examples(commands: _Commands) -> None:
+    """The ``examples`` command and its options."""
     commands.add_parser("examples", help="list the bundled example specs")
 
+
+def _add_report(commands: _Commands) -> argparse.ArgumentParser:
+    """The ``report`` command and its options."""
     rep = commands.add_parser("report", help="write the derivation report (HTML and Markdown)")
     rep.add_argument("spec", help="spec file, or the name of a bundled example")
     rep.add_argument(
@@ -115,7 +120,11 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="replace files that were edited by hand or not written here",
     )
+    return rep
 
+
+def _add_export(commands: _Commands) -> argparse.ArgumentParser:
+    """The ``export`` command and its options."""
     export = commands.add_parser(
         "export", help="export the stateful controller for other tools (an FMU)"
     )
@@ -134,7 +143,11 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="replace files that were edited by hand or not written here",
     )
+    return export
 
+
+def _add_simulate(commands: _Commands) -> argparse.ArgumentParser:
+    """The ``simulate`` command and its options."""
     sim = commands.add_parser(
         "simulate", help="simulate the closed loop and check the theorem along the run"
     )
@@ -207,6 +220,11 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="replace files that were edited by hand or not written here",
     )
+    return sim
+
+
+def _add_sweep(commands: _Commands) -> argparse.ArgumentParser:
+    """The ``sweep`` command and its options."""
     sw = commands.add_parser(
         "sweep",
         help="Monte-Carlo closed loops with model mismatch, saturation and noise, on Dask",
@@ -285,33 +303,56 @@ def _parser() -> argparse.ArgumentParser:
     for option, default in (("--max-seconds", Budget.seconds), ("--max-size", Budget.size)):
         sw.add_argument(option, type=type(default), default=default, help=argparse.SUPPRESS)
     sw.add_argument("--extension", choices=("spec", "auto"), default="spec", help=argparse.SUPPRESS)
-    for command in (generate, check, rep, sim, export):
-        command.add_argument(
-            "--extension",
-            choices=("spec", "auto"),
-            default="spec",
-            help="take the dynamic extension from the spec (default), or "
-            "search the smallest one that makes the plant linearizable",
-        )
-        command.add_argument(
-            "--progress",
-            choices=("auto", "always", "never"),
-            default="auto",
-            help="show the derivation's progress on stderr: on a terminal after 2 s "
-            "(auto, the default), always, or never",
-        )
-        command.add_argument(
-            "--max-seconds",
-            type=float,
-            default=Budget.seconds,
-            help=f"time budget of the derivation (default {Budget.seconds:g})",
-        )
-        command.add_argument(
-            "--max-size",
-            type=int,
-            default=Budget.size,
-            help=f"largest expression tree a derivation stage may build (default {Budget.size})",
-        )
+    return sw
+
+
+def _derivation_options(command: argparse.ArgumentParser) -> None:
+    """The options of every command that derives the law (all but examples and sweep)."""
+    command.add_argument(
+        "--extension",
+        choices=("spec", "auto"),
+        default="spec",
+        help="take the dynamic extension from the spec (default), or "
+        "search the smallest one that makes the plant linearizable",
+    )
+    command.add_argument(
+        "--progress",
+        choices=("auto", "always", "never"),
+        default="auto",
+        help="show the derivation's progress on stderr: on a terminal after 2 s "
+        "(auto, the default), always, or never",
+    )
+    command.add_argument(
+        "--max-seconds",
+        type=float,
+        default=Budget.seconds,
+        help=f"time budget of the derivation (default {Budget.seconds:g})",
+    )
+    command.add_argument(
+        "--max-size",
+        type=int,
+        default=Budget.size,
+        help=f"largest expression tree a derivation stage may build (default {Budget.size})",
+    )
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog="tvopt-codegen",
+        description="Generate implicit trajectory planning controllers from a spec file.",
+        epilog="Exit codes: 0 ok, 2 bad spec or usage, 3 assumptions violated, 4 output not "
+        "written, 5 certificate failed, 6 budget exceeded, 7 build failed, 70 internal error, "
+        "130 interrupted, 143 terminated.",
+    )
+    parser.add_argument("--version", action="version", version=f"tvopt-codegen {__version__}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    for add in (_add_generate, _add_check):
+        _derivation_options(add(commands))
+    _add_examples(commands)
+    for add in (_add_report, _add_export, _add_simulate):
+        _derivation_options(add(commands))
+    _add_sweep(commands)
     return parser
 
 

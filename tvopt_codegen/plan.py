@@ -184,6 +184,17 @@ _RHS = (
 )
 
 
+def _pivots(m: int, n: int) -> tuple[tuple[int, Status], ...]:
+    """What a failing pivot of the Hessian's LDL^T means (``Step.pivots``).
+
+    With equality constraints the matrix is the KKT matrix: the outputs' pivots first,
+    then the multipliers'.
+    """
+    if n > m:
+        return ((m, Status.HESSIAN_NOT_PD), (n, Status.DEPENDENT_CONSTRAINTS))
+    return ((m, Status.HESSIAN_NOT_PD),)
+
+
 def law_plan(
     *,
     n_states: int,
@@ -293,10 +304,7 @@ def law_plan(
                 ("z",),
                 Status.HESSIAN_NOT_PD,
                 note="y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.",
-                # The KKT matrix's pivots: the outputs' first, then the multipliers'.
-                pivots=((m, Status.HESSIAN_NOT_PD), (n, Status.DEPENDENT_CONSTRAINTS))
-                if n > m
-                else ((m, Status.HESSIAN_NOT_PD),),
+                pivots=_pivots(m, n),
             )
         )
     steps += _DECOUPLE

@@ -594,18 +594,10 @@ class _Reader:
         return f"column {exc.column}: {role} {found.group(1)!r} may not appear here: {allowed}"
 
     def read(self, data: Mapping[str, Any], sha256: str) -> Spec:
-        # Long on purpose: the spec's sections in file order, each read and checked
-        # where the next one needs it (names before expressions that use them).
+        # The spec's sections in file order, each read and checked where the next one
+        # needs it (names before expressions that use them).
         self.table(data, "", _TOP_KEYS, {"name", "system", "objective", "error_dynamics"})
-        name = data["name"]
-        problem = module_name_problem(name)
-        if problem:
-            raise self.fail("name", problem)
-        description = data.get("description", "")
-        if not isinstance(description, str):
-            raise self.fail("description", "expected a string")
-        if len(description) > 4000:
-            raise self.fail("description", "longer than 4000 characters")
+        name, description = self.read_title(data)
 
         self.read_indices(data)
         system = self.sub(data, "system", "system")
@@ -645,23 +637,7 @@ class _Reader:
         )
 
         param_syms = {key: symbol(key) for key, _ in parameters}
-        plant_names: dict[str, sp.Expr] = {n: symbol(n) for n in (*states, *inputs)} | param_syms
-        dynamics_table = self.sub(system, "dynamics", "system.dynamics")
-        dynamics_entries = {
-            name: (value, bound, where)
-            for name, value, bound, where in self.entries(dynamics_table, "system.dynamics")
-        }
-        for key, (_, _, where) in dynamics_entries.items():
-            if key not in states:
-                raise self.fail(where, f"{key!r} is not a declared state")
-        dynamics = []
-        for state in states:
-            if state not in dynamics_entries:
-                raise self.fail(
-                    f"system.dynamics.{state}", "missing right-hand side for this state"
-                )
-            text, bound, where = dynamics_entries[state]
-            dynamics.append(self.expression(text, where, plant_names, bound))
+        dynamics = self.read_dynamics(system, states, inputs, param_syms)
         state_names: dict[str, sp.Expr] = {n: symbol(n) for n in states} | param_syms
         output_exprs = tuple(
             self.expression(text, where, state_names, bound)
@@ -671,14 +647,7 @@ class _Reader:
         reference_syms = {name: symbol(name) for name in references}
         nominal = self.read_nominal(references_table, references, param_syms)
         estimator = self.read_estimator(references_table) if references else None
-        signal_names: dict[str, sp.Expr] = {"t": TIME} | param_syms | reference_syms
-        signals: list[tuple[str, sp.Expr]] = []
-        for key, text, bound, where in signal_entries:
-            expr = self.expression(text, where, signal_names, bound)
-            signals.append((key, expr))
-            # Later signals may use earlier ones; they see the explicit expression so
-            # every signal is a function of t, the parameters and the references alone.
-            signal_names[key] = expr
+        signals = self.read_signals(signal_entries, {"t": TIME} | param_syms | reference_syms)
 
         objective_table = self.sub(data, "objective", "objective")
         self.table(objective_table, "objective", {"f0"}, {"f0"})
@@ -697,13 +666,7 @@ class _Reader:
         extension, extension_auto, extension_max_total = self.read_extension(data, inputs)
         poles, coefficients = self.read_error_dynamics(data)
         t_final, initial_state = self.read_simulation(data)
-        simulation = data.get("simulation", {})
-        agents = self.pairs(simulation, "agents", set(outputs), "output")
-        if not agents and len(outputs) % 2 == 0:
-            agents = tuple((outputs[i], outputs[i + 1]) for i in range(0, len(outputs), 2))
-        objects = self.pairs(
-            simulation, "objects", {name for name, _ in signals} | set(references), "signal"
-        )
+        agents, objects = self.read_figure_layout(data, outputs, signals, references)
         return Spec(
             source=self.source,
             sha256=sha256,
@@ -735,6 +698,75 @@ class _Reader:
             allow_nonconvex=allow_nonconvex,
             equalities=equalities,
         )
+
+    def read_title(self, data: Mapping[str, Any]) -> tuple[str, str]:
+        """``name`` (it names the generated module) and ``description``."""
+        name = data["name"]
+        problem = module_name_problem(name)
+        if problem:
+            raise self.fail("name", problem)
+        description = data.get("description", "")
+        if not isinstance(description, str):
+            raise self.fail("description", "expected a string")
+        if len(description) > 4000:
+            raise self.fail("description", "longer than 4000 characters")
+        return name, description
+
+    def read_dynamics(
+        self,
+        system: Mapping[str, Any],
+        states: tuple[str, ...],
+        inputs: tuple[str, ...],
+        param_syms: Mapping[str, sp.Symbol],
+    ) -> list[sp.Expr]:
+        """``[system.dynamics]``: one right-hand side per state, in the states' order."""
+        plant_names: dict[str, sp.Expr] = {n: symbol(n) for n in (*states, *inputs)}
+        plant_names |= param_syms
+        dynamics_table = self.sub(system, "dynamics", "system.dynamics")
+        dynamics_entries = {
+            name: (value, bound, where)
+            for name, value, bound, where in self.entries(dynamics_table, "system.dynamics")
+        }
+        for key, (_, _, where) in dynamics_entries.items():
+            if key not in states:
+                raise self.fail(where, f"{key!r} is not a declared state")
+        dynamics = []
+        for state in states:
+            if state not in dynamics_entries:
+                raise self.fail(
+                    f"system.dynamics.{state}", "missing right-hand side for this state"
+                )
+            text, bound, where = dynamics_entries[state]
+            dynamics.append(self.expression(text, where, plant_names, bound))
+        return dynamics
+
+    def read_signals(self, entries: Any, names: dict[str, sp.Expr]) -> list[tuple[str, sp.Expr]]:
+        """``[signals]``, in file order; ``names`` holds t, the parameters and references."""
+        signals: list[tuple[str, sp.Expr]] = []
+        for key, text, bound, where in entries:
+            expr = self.expression(text, where, names, bound)
+            signals.append((key, expr))
+            # Later signals may use earlier ones; they see the explicit expression so
+            # every signal is a function of t, the parameters and the references alone.
+            names[key] = expr
+        return signals
+
+    def read_figure_layout(
+        self,
+        data: Mapping[str, Any],
+        outputs: tuple[str, ...],
+        signals: list[tuple[str, sp.Expr]],
+        references: tuple[str, ...],
+    ) -> tuple[tuple[tuple[str, str], ...], tuple[tuple[str, str], ...]]:
+        """``[simulation]``'s ``agents`` and ``objects``: what the figures draw as pairs."""
+        simulation = data.get("simulation", {})
+        agents = self.pairs(simulation, "agents", set(outputs), "output")
+        if not agents and len(outputs) % 2 == 0:
+            agents = tuple((outputs[i], outputs[i + 1]) for i in range(0, len(outputs), 2))
+        objects = self.pairs(
+            simulation, "objects", {name for name, _ in signals} | set(references), "signal"
+        )
+        return agents, objects
 
     def read_constraints(
         self, data: Mapping[str, Any], names: Mapping[str, sp.Expr]
