@@ -195,6 +195,17 @@ def _pivots(m: int, n: int) -> tuple[tuple[int, Status], ...]:
     return ((m, Status.HESSIAN_NOT_PD),)
 
 
+def _runtime(hessian: int, r_blocks: tuple[tuple[int, ...], ...]) -> tuple[str, ...]:
+    """The run-time pieces (``Plan.runtime``) a law with these solves uses."""
+    sizes = {len(block) for block in r_blocks}
+    return (
+        *(("ldl",) if hessian else ()),
+        *(("lu_1",) if 1 in sizes else ()),
+        *(("lu_2",) if 2 in sizes else ()),
+        *(("lu",) if any(size > 2 for size in sizes) else ()),
+    )
+
+
 def law_plan(
     *,
     n_states: int,
@@ -308,11 +319,5 @@ def law_plan(
             )
         )
     steps += _DECOUPLE
-    sizes = {len(block) for block in r_blocks}
-    runtime = (
-        *(("ldl",) if hessian else ()),
-        *(("lu_1",) if 1 in sizes else ()),
-        *(("lu_2",) if 2 in sizes else ()),
-        *(("lu",) if any(size > 2 for size in sizes) else ()),
-    )
+    runtime = _runtime(hessian, r_blocks)
     return Plan(tuple(values), tuple(per_batch), tuple(steps), _CONTROL, _RHS, runtime)
