@@ -13,9 +13,10 @@ import shutil
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from tests.conftest import ROOT, import_file, kernels
+from tests.conftest import ROOT, import_file, kernels, module
 from tvopt_codegen import contract, sweep
 from tvopt_codegen.cli import main
 from tvopt_codegen.fmu import fmu_sources
@@ -195,3 +196,43 @@ def test_a_sweep_records_dependent_constraints_and_finishes(
 
     rows = pq.read_table(out / "summary.parquet").to_pylist()
     assert [row["status"] for row in rows] == ["dependent_constraints"] * 3
+
+
+@pytest.mark.skipif(CC is None, reason="no C compiler")
+def test_every_status_of_the_c_module_raises_its_exception(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    """The C wrapper once knew four statuses: a DECREASING_TIME that reached it (one
+    Controller stepped from two threads) raised KeyError: 5."""
+    from tests.test_c_backend import c_module
+
+    c = c_module(SPEC, tmp_path_factory)
+    x = np.asarray(c.DEFAULT_STATE, dtype=float)[:, None]
+    p = np.zeros(max(len(c.PARAMETERS), 1))
+    for status in contract.statuses():
+        if status.kind != "error" or status.name == "NONFINITE_INPUT":
+            continue
+        with pytest.raises(c.ControllerError) as raised:
+            c._raise(int(status), 0, "rhs", 0.0, x, p)
+        assert type(raised.value).__name__ == status.exception
+        assert raised.value.status == int(status)
+
+
+@pytest.mark.parametrize("backend", ["python", "c"])
+def test_a_controller_stepped_back_raises_decreasing_time(
+    backend: str, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    if backend == "c":
+        if CC is None:
+            pytest.skip("no C compiler")
+        from tests.test_c_backend import c_module
+
+        generated = c_module(SPEC, tmp_path_factory)
+    else:
+        generated = module(SPEC)
+    plant = list(generated.DEFAULT_STATE[: len(generated.PLANT_STATE_NAMES)])
+    controller = generated.Controller(plant, t0=1.0)
+    with pytest.raises(generated.DecreasingTimeError, match="time must not decrease") as raised:
+        controller.step(0.5, plant)
+    assert isinstance(raised.value, ValueError) and isinstance(raised.value, ArithmeticError)
+    assert raised.value.status == int(contract.Status.DECREASING_TIME)
