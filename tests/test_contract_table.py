@@ -20,7 +20,7 @@ from tests.conftest import ROOT, import_file, kernels, module
 from tvopt_codegen import contract, sweep
 from tvopt_codegen.cli import main
 from tvopt_codegen.fmu import fmu_sources
-from tvopt_codegen.rendering import render
+from tvopt_codegen.rendering import contract_context, render
 
 SPEC = "unicycle_switch"
 CC = shutil.which("cc") or shutil.which("gcc")
@@ -124,13 +124,7 @@ def test_the_c_messages_are_the_contracts(spec: str, tmp_path: Path) -> None:
     for name, source in render(lowered, "c").items():
         (tmp_path / name).write_text(source, encoding="utf-8")
     message = getattr(_status_messages(tmp_path, spec, tmp_path), f"{spec}_status_message")
-    d = lowered.derivation
-    details = {
-        "SINGULAR_DECOUPLING": d.singular_text,
-        "DEPENDENT_CONSTRAINTS": "it is where " + "; ".join(d.dependent_set)
-        if d.dependent_set
-        else "",
-    }
+    details = contract_context(lowered)["status_details"]
     for status in contract.statuses():
         expected = status.message(detail=details.get(status.name, ""))
         assert message(int(status)).decode() == expected
