@@ -20,11 +20,11 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from tvopt_codegen import derivation as derivation_module
-from tvopt_codegen.derivation import Budget, derive
+from tvopt_codegen.derivation import derive, linearization
 from tvopt_codegen.emit import write_files
 from tvopt_codegen.errors import BudgetError, OutputError, SpecError
 from tvopt_codegen.ir import lower
+from tvopt_codegen.limits import Budget
 from tvopt_codegen.rendering import render
 from tvopt_codegen.spec import load_spec, parse_spec
 from tvopt_codegen.summary import format_summary
@@ -373,7 +373,7 @@ def test_a_slow_det_simplification_is_charged_to_its_own_stage(
     marks = dict(derive(spec).timings)
     before = sum(marks[s] for s in ("model", "relative degree", "error dynamics"))
     budget = 3 * before + 0.5
-    monkeypatch.setattr(derivation_module.sp, "simplify", slow(budget + 0.5))
+    monkeypatch.setattr(linearization.sp, "simplify", slow(budget + 0.5))
     with pytest.raises(BudgetError, match="derivation stage 'decoupling matrix'"):
         derive(spec, budget=Budget(seconds=budget))
 

@@ -1,0 +1,475 @@
+"""Linearization: dynamic extension, relative degree, R, p and the closed-loop states.
+
+The dynamic extension (and its search), the vector relative degree, the decoupling matrix
+R and p, the Brunovsky form, the closed-loop states, and where R or p is singular or
+undefined (Lemmas 1-2, Section IV-B of the paper).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import sympy as sp
+
+from tvopt_codegen import hurwitz
+from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter, tree_size
+from tvopt_codegen.errors import AssumptionError, SpecError
+from tvopt_codegen.lie import (
+    Extension,
+    RelativeDegree,
+    Sampler,
+    brunovsky,
+    extend,
+    generic_rank,
+    nonzero_entries,
+    relative_degree,
+)
+from tvopt_codegen.model import Model
+from tvopt_codegen.numeric import Evaluator
+from tvopt_codegen.spec import Spec
+
+
+def _linearizable(model: Model, counts: dict[str, int]) -> bool:
+    """Whether the plant with these input integrators is full-state linearizable."""
+    ext = extend(model.x, model.u, model.f, model.G, counts)
+    sampler = Sampler(ext.x, dict(zip(model.params, model.defaults, strict=True)))
+    rd = relative_degree(ext.f, ext.G, model.h, ext.x, sampler)
+    if rd.R is None:
+        return False
+    degrees = [r for r in rd.r if r is not None]
+    return sum(degrees) == len(ext.x) and generic_rank(rd.R, sampler) == len(model.u)
+
+
+def _without_extension(model: Model) -> str:
+    """Describe what the plant lacks before prolongation (for the report)."""
+    sampler = Sampler(model.x, dict(zip(model.params, model.defaults, strict=True)))
+    rd = relative_degree(model.f, model.G, model.h, model.x, sampler)
+    if rd.R is None:
+        missing = [str(y) for y, r in zip(model.y, rd.r, strict=True) if r is None]
+        return f"without it, outputs {', '.join(missing)} have no relative degree"
+    rank = generic_rank(rd.R, sampler)
+    degrees = [int(r) for r in rd.r if r is not None]
+    if rank < len(model.u):
+        # A team's R is written out only while it is small enough to read.
+        shown = (
+            f"R = {sp.sstr(rd.R.tolist())}" if rd.R.rows <= 4 else f"R ({rd.R.rows} x {rd.R.cols})"
+        )
+        return (
+            f"without it, the decoupling matrix {shown} has generic rank {rank} < "
+            f"{len(model.u)}: the inputs cannot steer every output independently"
+        )
+    return (
+        f"without it, the relative degrees {degrees} sum to {sum(degrees)} < {len(model.x)} states"
+    )
+
+
+def _candidates(m: int, total: int) -> list[tuple[int, ...]]:
+    """Integrator counts over m inputs summing to ``total``, earlier inputs first."""
+    if m == 1:
+        return [(total,)]
+    out = []
+    for first in range(total, -1, -1):
+        out += [(first, *rest) for rest in _candidates(m - 1, total - first)]
+    return out
+
+
+def search_extension(model: Model, max_total: int) -> tuple[dict[str, int] | None, list[str]]:
+    """Find the smallest prolongation of inputs that makes the plant linearizable.
+
+    Candidates are tried by total number of integrators (0, 1, 2, ...), and within a
+    total with earlier inputs prolonged first: deterministic, and the first success is
+    a smallest one.
+
+    Parameters
+    ----------
+    model : Model
+        The plant.
+    max_total : int
+        The largest total tried.
+
+    Returns
+    -------
+    tuple of (dict or None, list of str)
+        The integrator counts found (``None`` if none works) and every candidate tried.
+    """
+    from tvopt_codegen.spec import MAX_INTEGRATORS  # noqa: PLC0415 - avoids a cycle
+
+    names = [u.name for u in model.u]
+    tried: list[str] = []
+    for total in range(max_total + 1):
+        for counts in _candidates(len(names), total):
+            if max(counts, default=0) > MAX_INTEGRATORS:
+                continue
+            chosen = {n: q for n, q in zip(names, counts, strict=True) if q}
+            tried.append(", ".join(f"{n}: {q}" for n, q in chosen.items()) or "none")
+            if _linearizable(model, chosen):
+                return chosen, tried
+    return None, tried
+
+
+def _suggest_prolongation(model: Model, counts: dict[str, int]) -> str:
+    """Find the smallest single-input prolongation that makes the plant linearizable."""
+    for extra in (1, 2):
+        for uj in model.u:
+            trial = dict(counts)
+            trial[uj.name] = trial.get(uj.name, 0) + extra
+            if _linearizable(model, trial):
+                table = ", ".join(f"{k} = {v}" for k, v in trial.items() if v)
+                return (
+                    f"; prolong input {uj.name!r} by {extra} integrator(s): "
+                    f"[extension] integrate = {{ {table} }}"
+                )
+    return "; no prolongation of a single input by 1 or 2 integrators makes it linearizable"
+
+
+def _singular_set(det: sp.Expr) -> tuple[str, ...]:
+    """Describe where a determinant vanishes, one condition per factor of its numerator."""
+    numerator, _ = sp.fraction(sp.together(det))
+    if numerator.is_Number:
+        return () if numerator != 0 else ("everywhere",)
+    try:
+        _, factors = sp.factor_list(numerator)
+    except sp.PolynomialError:  # not a polynomial in its symbols: state it whole
+        return (f"{sp.sstr(numerator)} = 0",)
+    conditions = []
+    for base, _power in factors:
+        if base.is_Number:
+            continue
+        conditions.append(f"{sp.sstr(base)} = 0")
+    return tuple(conditions)
+
+
+def _singular_start(
+    R: sp.ImmutableMatrix,
+    p: sp.ImmutableMatrix,
+    states: Sequence[sp.Symbol],
+    initial: Sequence[float],
+    defaults: Mapping[sp.Symbol, float],
+    extension_states: Sequence[str],
+) -> tuple[str, ...]:
+    """A warning when the spec's initial state is where the law is undefined.
+
+    An automatic extension starts its states at 0 unless the spec gives them, and 0
+    is singular for any prolonged speed: the module's DEFAULT_STATE would be unusable
+    without a word.
+    """
+    values: dict[sp.Symbol, Any] = {q: float(v) for q, v in defaults.items()}
+    values |= {sym: float(v) for sym, v in zip(states, initial, strict=True)}
+    evaluate = Evaluator(values)
+    with np.errstate(all="ignore"):
+        # R's nonzero entries only: a team's R is block diagonal.
+        matrix = np.zeros(R.shape, dtype=complex)
+        for i, j, entry in nonzero_entries(R):
+            matrix[i, j] = complex(evaluate(entry))
+        rest = np.array([complex(evaluate(e)) for e in p])
+    finite = bool(np.all(np.isfinite(matrix)) and np.all(np.isfinite(rest)))
+    if finite and np.all(matrix.imag == 0) and np.linalg.cond(matrix.real) < 1e12:
+        return ()
+    where = ", ".join(f"{sym.name} = {v:.6g}" for sym, v in zip(states, initial, strict=True))
+    if len(where) > 120:
+        where = where[:117] + "..."
+    zeros = [
+        name
+        for name, v in zip((s.name for s in states), initial, strict=True)
+        if name in extension_states and v == 0
+    ]
+    hint = (
+        f"; the extension states {', '.join(zeros)} start at 0 unless "
+        "simulation.initial_state gives them (by name)"
+        if zeros
+        else ""
+    )
+    what = "R is singular there" if finite else "R or p is not finite there"
+    return (
+        f"simulation.initial_state: the law is undefined at the initial state ({where}): "
+        f"{what}{hint}; DEFAULT_STATE cannot be simulated as it is",
+    )
+
+
+#: At most this many conditions are listed where R or p is undefined.
+_MAX_UNDEFINED = 6
+
+
+def _undefined_set(exprs: Sequence[sp.Expr], states: set[sp.Symbol]) -> tuple[str, ...]:
+    """Where expressions of the states are undefined, one condition per cause.
+
+    A denominator that vanishes, ``tan``/``sec`` where the cosine vanishes,
+    ``cot``/``csc`` where the sine does, ``log`` of a non-positive and a root of a
+    negative number: the places where R or p, and with them the law, do not exist
+    although det R may not vanish there (a steering angle of pi/2, an Euler pitch of
+    pi/2). Conditions on parameters alone are not listed.
+    """
+    conditions: dict[str, None] = {}
+    seen: set[sp.Basic] = set()
+    stack = [e for e in exprs if isinstance(e, sp.Basic)]
+    while stack and len(conditions) < _MAX_UNDEFINED:
+        node = stack.pop()
+        if node in seen or not node.free_symbols & states:
+            continue
+        seen.add(node)
+        condition = None
+        if node.is_Pow and node.exp.is_Number and node.base.free_symbols & states:
+            if node.exp.is_negative:
+                condition = f"{sp.sstr(node.base)} = 0"
+            elif not node.exp.is_Integer:
+                condition = f"{sp.sstr(node.base)} < 0"
+        elif isinstance(node, sp.tan | sp.sec):
+            condition = f"cos({sp.sstr(node.args[0])}) = 0"
+        elif isinstance(node, sp.cot | sp.csc):
+            condition = f"sin({sp.sstr(node.args[0])}) = 0"
+        elif isinstance(node, sp.log):
+            condition = f"{sp.sstr(node.args[0])} <= 0"
+        if condition is not None:
+            conditions.setdefault(condition)
+        stack.extend(reversed(node.args))
+    return tuple(conditions)
+
+
+@dataclass(frozen=True)
+class _Linearization:
+    """The extended plant and its vector relative degree (Lemmas 1-2)."""
+
+    extension: Extension
+    degrees: tuple[int, ...]
+    lie: tuple[tuple[sp.Expr, ...], ...]
+    R: sp.ImmutableMatrix
+    searched: tuple[str, ...]
+    declared: frozenset[str]
+
+
+@dataclass(frozen=True)
+class _ErrorDynamics:
+    """``H``: its order, coefficients, eigenvalues and decay rate."""
+
+    k: int
+    coefficients: tuple[float, ...]
+    eigenvalues: tuple[complex, ...]
+    decay_rate: float
+
+
+@dataclass(frozen=True)
+class _States:
+    """The closed-loop state: plant, extension, padding chains; its initial value."""
+
+    padding: tuple[tuple[str, ...], ...]
+    names: tuple[str, ...]
+    symbols: tuple[sp.Symbol, ...]
+    initial: tuple[float, ...]
+    multipliers: tuple[tuple[str, ...], ...] = ()
+
+
+@dataclass(frozen=True)
+class _Decoupling:
+    """R, p, Phi, the Brunovsky pair, and where R is singular or R and p undefined."""
+
+    p: sp.ImmutableMatrix
+    phi: sp.ImmutableMatrix
+    A: sp.ImmutableMatrix
+    B: sp.ImmutableMatrix
+    det_R: sp.Expr | None
+    det_R_note: str
+    singular: tuple[str, ...]
+    undefined: tuple[str, ...]
+
+
+def _linearize(spec: Spec, model: Model, meter: _Meter) -> _Linearization:
+    """Extend the plant (as given, or by search) and find its vector relative degree."""
+    source = spec.source
+    counts = dict(spec.extension)
+    searched: tuple[str, ...] = ()
+    if spec.extension_auto:
+        meter.stage = "extension search"
+        meter.report()
+        limit = spec.extension_max_total or len(spec.states)
+        found, tried = search_extension(model, limit)
+        if found is None:
+            raise AssumptionError(
+                source,
+                "extension.auto",
+                f"no prolongation of the inputs with at most {limit} integrators in all makes "
+                f"the plant full-state linearizable (tried {len(tried)}: {'; '.join(tried)})",
+            )
+        counts = found
+        searched = tuple(tried)
+        meter.stage = "relative degree"
+        meter.report()
+    ext = extend(model.x, model.u, model.f, model.G, counts)
+    declared = frozenset(
+        {
+            *spec.states,
+            *spec.inputs,
+            *spec.outputs,
+            *(n for n, _ in spec.parameters),
+            *(n for n, _ in spec.signals),
+            *spec.references,
+        }
+    )
+    for name in ext.states:
+        if name in declared and name not in spec.inputs:
+            raise SpecError(
+                source,
+                "extension.integrate",
+                f"extension state {name!r} collides with a declared name",
+            )
+    defaults = dict(zip(model.params, model.defaults, strict=True))
+    sampler = Sampler(ext.x, defaults)
+    rd: RelativeDegree = relative_degree(ext.f, ext.G, model.h, ext.x, sampler, meter)
+    m = len(model.u)
+    n_ext = len(ext.x)
+    for name, r in zip(spec.outputs, rd.r, strict=True):
+        if r is None:
+            raise AssumptionError(
+                source,
+                f"system.outputs.{name}",
+                f"output {name!r} has no relative degree: no input reaches it within "
+                f"{n_ext} derivatives",
+            )
+    assert rd.R is not None
+    degrees = tuple(int(r) for r in rd.r if r is not None)
+    named = dict(zip(spec.outputs, degrees, strict=True))
+    rank = generic_rank(rd.R, sampler)
+    if rank < m:
+        suggestion = _suggest_prolongation(model, counts)
+        raise AssumptionError(
+            source,
+            "extension",
+            f"the decoupling matrix R is singular everywhere (generic rank {rank} < {m}; "
+            f"relative degrees {named}){suggestion}",
+        )
+    if sum(degrees) != n_ext:
+        raise AssumptionError(
+            source,
+            "system.outputs",
+            f"not full-state linearizable: the relative degrees {named} sum to "
+            f"{sum(degrees)}, but the extended system has {n_ext} states (internal dynamics "
+            f"of dimension {n_ext - sum(degrees)})",
+        )
+    return _Linearization(ext, degrees, rd.lie, rd.R, searched, declared)
+
+
+def _error_dynamics(spec: Spec, k: int) -> _ErrorDynamics:
+    """H from the spec's poles or coefficients: of order k, and Hurwitz."""
+    source = spec.source
+    if spec.coefficients is not None:
+        coefficients = spec.coefficients
+        field, given = "error_dynamics.coefficients", len(coefficients)
+    else:
+        assert spec.poles is not None
+        coefficients = hurwitz.coefficients_from_poles(spec.poles)
+        field, given = "error_dynamics.poles", len(spec.poles)
+    if given != k:
+        raise AssumptionError(
+            source,
+            field,
+            f"the error dynamics have order k = {k} (the largest relative degree), so give "
+            f"{k} {'poles' if spec.poles is not None else 'coefficients'}, not {given}",
+        )
+    if spec.poles is not None:
+        # The poles are exact as written; the companion eigenvalues would be rounded.
+        eig = np.array(sorted(spec.poles, key=lambda v: (v.real, v.imag)))
+        alpha = float(-max(v.real for v in spec.poles))
+    else:
+        eig = hurwitz.eigenvalues(coefficients)
+        alpha = hurwitz.decay_rate(coefficients)
+    if not alpha > 0:
+        raise AssumptionError(
+            source,
+            field,
+            f"H is not Hurwitz: eigenvalue {complex(eig[-1]):.6g} has real part >= 0 "
+            "(coefficients a_i are the last row of the companion matrix; for poles -1, -2 "
+            "they are a_0 = -2, a_1 = -3)",
+        )
+    return _ErrorDynamics(k, tuple(coefficients), tuple(complex(v) for v in eig), alpha)
+
+
+def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:
+    """Pad outputs of relative degree below k with integrator chains; order the state."""
+    padding = tuple(
+        tuple(f"xi_{name}_{j}" for j in range(1, k - r + 1))
+        for name, r in zip(spec.outputs, lin.degrees, strict=True)
+    )
+    pad_names = [n for chain in padding for n in chain]
+    for name in pad_names:
+        if name in lin.declared:
+            raise SpecError(
+                spec.source,
+                "system.outputs",
+                f"padding state {name!r} collides with a declared name",
+            )
+    # Each equality's multiplier and its first k - 1 derivatives: the controller's own
+    # integrator chain, driven by nu^(k) from the KKT system.
+    multipliers = tuple(tuple(f"nu_{c.name}_{j}" for j in range(k)) for c in spec.equalities)
+    for name in (
+        *(n for chain in multipliers for n in chain),
+        *(f"nu_{c.name}" for c in spec.equalities),
+    ):
+        if name in lin.declared:
+            raise SpecError(
+                spec.source,
+                "constraints",
+                f"multiplier name {name!r} collides with a declared name",
+            )
+    ext = lin.extension
+    names = (*spec.states, *ext.states, *pad_names, *(n for chain in multipliers for n in chain))
+    # With a searched extension the user cannot know its states in advance: only the
+    # plant states are required then (extension states start at zero unless given).
+    required = len(spec.states) + (0 if spec.extension_auto else len(ext.states))
+    initial = _initial_state(spec, names, required)
+    return _States(
+        padding, names, tuple(sp.Symbol(n, real=True) for n in names), initial, multipliers
+    )
+
+
+def _decoupling(lin: _Linearization, meter: _Meter) -> _Decoupling:
+    """p, Phi and the Brunovsky pair from the Lie chains; where R fails, in words."""
+    R, degrees, lie = lin.R, lin.degrees, lin.lie
+    m = len(degrees)
+    p = sp.ImmutableMatrix([lie[i][degrees[i]] for i in range(m)])
+    phi = sp.ImmutableMatrix([lie[i][j] for i in range(m) for j in range(degrees[i])])
+    A, B = brunovsky(degrees)
+    det_R: sp.Expr | None = None
+    det_R_note = ""
+    singular: tuple[str, ...] = ()
+    if m > 4:
+        det_R_note = f"not expanded symbolically (m = {m} > 4)"
+    else:
+        det = R.det(method="berkowitz")
+        meter(det)
+        # simplify and factor are exact but can be slow on large entries: only small ones.
+        if tree_size(det, _DET_SIMPLIFY_NODES) <= _DET_SIMPLIFY_NODES:
+            det_R = sp.factor(sp.simplify(det))
+            # Charge simplify's time to this stage, not to the next one that checks.
+            meter.check_time()
+            singular = _singular_set(det_R)
+        else:
+            det_R_note = (
+                f"not simplified symbolically (more than {_DET_SIMPLIFY_NODES} expression nodes)"
+            )
+    # R's nonzero entries: a team's R is m^2 entries, almost all zeros.
+    entries = [e for _, _, e in nonzero_entries(R)]
+    undefined = _undefined_set([*entries, *p], set(lin.extension.x))
+    return _Decoupling(p, phi, A, B, det_R, det_R_note, singular, undefined)
+
+
+def _initial_state(spec: Spec, state_names: Sequence[str], required: int) -> tuple[float, ...]:
+    """Order the spec's initial state; plant and extension states must all be given."""
+    given = dict(spec.initial_state)
+    for key in given:
+        if key not in state_names:
+            raise SpecError(
+                spec.source,
+                f"simulation.initial_state.{key}",
+                f"not a state of the closed loop (states: {', '.join(state_names)})",
+            )
+    if given:
+        for name in state_names[:required]:
+            if name not in given:
+                raise SpecError(
+                    spec.source,
+                    f"simulation.initial_state.{name}",
+                    "missing (every plant and extension state needs a value)",
+                )
+    return tuple(float(given.get(name, 0.0)) for name in state_names)

@@ -1,0 +1,102 @@
+"""The derivation's budgets: expression size and time, checked as it builds."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import sympy as sp
+
+from tvopt_codegen.errors import BudgetError
+from tvopt_codegen.limits import Budget
+
+#: det R is simplified and factored only up to this many expression nodes.
+_DET_SIMPLIFY_NODES = 400
+
+
+def tree_size(expr: sp.Expr, limit: int) -> int:
+    """Nodes of ``expr``'s tree, counting at most ``limit + 1`` (so the count is cheap).
+
+    A plain stack: sympy's ``preorder_traversal`` costs a generator step per node, and
+    the budget meter sizes every expression the derivation builds.
+    """
+    count = 0
+    stack = [expr]
+    while stack:
+        count += 1
+        if count > limit:
+            break
+        stack.extend(stack.pop().args)
+    return count
+
+
+class _Meter:
+    """Checks the budget as expressions are built; knows the current stage's name."""
+
+    def __init__(
+        self,
+        source: str,
+        budget: Budget,
+        progress: Callable[[str, int, int, float], None] | None = None,
+    ) -> None:
+        self.source = source
+        self.budget = budget
+        self.start = time.perf_counter()
+        self.deadline = self.start + budget.seconds
+        self.stage = "model"
+        self.progress = progress
+        self.expressions = 0
+        self.nodes = 0
+        self.last_report = self.start
+
+    def report(self) -> None:
+        """Tell the progress callback the stage, expressions and nodes so far, and time."""
+        if self.progress is not None:
+            now = time.perf_counter()
+            self.last_report = now
+            self.progress(self.stage, self.expressions, self.nodes, now - self.start)
+
+    def check_time(self) -> None:
+        """Report progress now and then; raise when the time budget is spent."""
+        now = time.perf_counter()
+        if now - self.last_report > 0.5:
+            self.report()
+        if now > self.deadline:
+            raise BudgetError(
+                self.source,
+                self.stage,
+                f"the derivation took longer than {self.budget.seconds:g} s",
+            )
+
+    def __call__(self, expr: sp.Expr) -> None:
+        self.expressions += 1
+        if isinstance(expr, sp.Basic) and not expr.args:
+            self.nodes += 1  # an atom: most entries of a team's matrices are zeros
+            return
+        self.check_time()
+        size = tree_size(sp.sympify(expr), self.budget.size)
+        self.nodes += size
+        if size > self.budget.size:
+            raise BudgetError(
+                self.source,
+                self.stage,
+                f"an expression grew past {self.budget.size} nodes (the size budget); "
+                "simplify the model or objective, or raise --max-size",
+            )
+
+    def matrix(self, matrix: sp.MatrixBase) -> None:
+        for entry in matrix:
+            self(entry)
+
+
+class _Clock:
+    """Records how long each derivation step takes."""
+
+    def __init__(self) -> None:
+        self.marks: list[tuple[str, float]] = []
+        self.last = time.perf_counter()
+
+    def mark(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.marks.append((stage, now - self.last))
+        self.last = now

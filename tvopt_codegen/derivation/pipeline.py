@@ -1,0 +1,214 @@
+"""The derivation itself: :func:`derive` runs the stages in the paper's order.
+
+It fills the :class:`~tvopt_codegen.derivation.record.Derivation` that every later stage
+reads.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from tvopt_codegen import hurwitz
+from tvopt_codegen.derivation.convexity import _constraint_convexity
+from tvopt_codegen.derivation.equalities import (
+    _dependent_set,
+    _equality_checks,
+    _lagrangian,
+    _multipliers_start,
+)
+from tvopt_codegen.derivation.linearization import (
+    _closed_loop_states,
+    _decoupling,
+    _error_dynamics,
+    _linearize,
+    _singular_start,
+    _without_extension,
+)
+from tvopt_codegen.derivation.meter import _Clock, _Meter
+from tvopt_codegen.derivation.objective import _gradient_jet, _objective, objective_start
+from tvopt_codegen.derivation.record import Derivation
+from tvopt_codegen.errors import AssumptionError
+from tvopt_codegen.estimator import estimator_gains
+from tvopt_codegen.jet import (
+    fresh_symbols,
+)
+from tvopt_codegen.law import control_law, symmetric_dense
+from tvopt_codegen.limits import Budget
+from tvopt_codegen.model import build_model
+from tvopt_codegen.spec import Spec, spec_from_dict
+
+
+def derive(
+    spec: Spec | Mapping[str, Any],
+    progress: Callable[[str, int, int, float], None] | None = None,
+    budget: Budget | None = None,
+) -> Derivation:
+    """Run the paper's derivation for a spec.
+
+    Parameters
+    ----------
+    spec : Spec or mapping
+        A validated spec, or a mapping laid out as a spec file (see
+        :func:`~tvopt_codegen.spec.spec_from_dict`).
+    progress : callable, optional
+        Called as ``progress(stage, expressions, nodes, seconds)`` when each step
+        starts and every half second within one: the step's name, how many expressions
+        the derivation has built so far, their total size in nodes (operations and
+        atoms, the measure of the size budget) and the time since it began.
+    budget : Budget, optional
+        Time and size limits (default :class:`Budget`).
+
+    Returns
+    -------
+    Derivation
+        Everything the code generators and the report need.
+
+    Raises
+    ------
+    AssumptionError
+        When the extended plant has no vector relative degree, is not full-state
+        linearizable, has a decoupling matrix singular everywhere (with a
+        prolongation suggestion), when f0 is not strongly convex, or when the error
+        dynamics are not Hurwitz or have the wrong order.
+    SpecError
+        When generated state names collide with declared names, or the initial state
+        names an unknown state.
+    BudgetError
+        When a stage takes longer or builds larger expressions than the budget allows.
+    """
+    # Longer than most functions here on purpose: a list of stage calls, then the keyword
+    # list of the flat Derivation record; the work is in the stage functions above.
+    if not isinstance(spec, Spec):
+        spec = spec_from_dict(spec)
+    meter = _Meter(spec.source, budget or Budget(), progress)
+    clock = _Clock()
+
+    def say(stage: str) -> None:
+        meter.stage = stage
+        meter.report()
+
+    say("model")
+    model = build_model(spec)
+    clock.mark("model")
+    say("relative degree")
+    lin = _linearize(spec, model, meter)
+    clock.mark("relative degree")
+    say("error dynamics")
+    dynamics = _error_dynamics(spec, max(lin.degrees))
+    k = dynamics.k
+    states = _closed_loop_states(spec, lin, k)
+    clock.mark("error dynamics")
+    say("decoupling matrix")
+    decoupling = _decoupling(lin, meter)
+    clock.mark("decoupling matrix")
+    say("objective")
+    # A leading underscore: no user name can take it (spec.py rejects those). One
+    # sequence for the gradient, the Hessian and the jet: their names never collide.
+    names = fresh_symbols("_g")
+    # Constraints first: an infeasible or non-convex one explains itself before the
+    # barrier objective's convexity check would stumble on it.
+    constraint_warnings = _constraint_convexity(spec, model, objective_start(model, states))
+    objective = _objective(spec, model, states, names, meter)
+    equality_warnings = _equality_checks(spec, model, objective_start(model, states))
+    kkt = _lagrangian(model, objective, names, meter)
+    states = _multipliers_start(spec, model, states, objective)
+    defaults = dict(zip(model.params, model.defaults, strict=True))
+    ext = lin.extension
+    warnings = objective.warnings + _singular_start(
+        lin.R,
+        decoupling.p,
+        states.symbols,
+        states.initial,
+        defaults,
+        states.names[len(spec.states) : len(spec.states) + len(ext.states)],
+    )
+    warnings += constraint_warnings + equality_warnings
+    unknown = [r.name for r in model.references if r not in dict(model.nominal)]
+    if unknown:
+        warnings += (
+            f"references {', '.join(unknown)} have no nominal closed form: f0's convexity "
+            "was checked with them at 0 (give [references] nominal to check along it)",
+        )
+    clock.mark("objective")
+    say("gradient jet")
+    jet = _gradient_jet(model, k, kkt, lin, states, names, meter)
+    clock.mark("gradient jet")
+    say("error bound")
+    rate, rate_exact = hurwitz.certified_rate(dynamics.coefficients)
+    constant = hurwitz.transient_constant(dynamics.coefficients, rate)
+    unextended = _without_extension(model) if ext.counts else None
+    clock.mark("error bound")
+    say("law")
+    law = control_law(
+        hessian_entries=kkt.hessian_entries,
+        grad_jet=jet.grad_jet,
+        rest=jet.rest,
+        R=lin.R,
+        extension=ext,
+        plant_inputs=model.u,
+        padding=states.padding,
+        states=states.symbols,
+        state_names=states.names,
+        multipliers=states.multipliers,
+    )
+    if spec.estimator is not None:
+        try:
+            estimator_gains(spec.estimator, jet.reference_order)
+        except ValueError as exc:
+            raise AssumptionError(spec.source, "references.estimator.kind", str(exc)) from None
+    clock.mark("law")
+    return Derivation(
+        spec=spec,
+        model=model,
+        extension=ext,
+        relative_degree=lin.degrees,
+        lie=lin.lie,
+        R=lin.R,
+        p=decoupling.p,
+        phi=decoupling.phi,
+        A=decoupling.A,
+        B=decoupling.B,
+        k=k,
+        padding=states.padding,
+        state_names=states.names,
+        states=states.symbols,
+        det_R=decoupling.det_R,
+        det_R_note=decoupling.det_R_note,
+        singular_set=decoupling.singular,
+        undefined_set=decoupling.undefined,
+        gradient=objective.gradient,
+        hessian_program=kkt.hessian_program,
+        hessian_entries=kkt.hessian_entries,
+        objective_program=objective.program + objective.hessian_program,
+        objective_gradient=objective.current,
+        objective_hessian=symmetric_dense(objective.hessian_entries, len(model.y)),
+        multiplier_states=states.multipliers,
+        kkt_gradient=kkt.gradient if model.equalities else None,
+        dependent_set=_dependent_set(model),
+        y_jet=jet.y_jet,
+        y_jet_values=jet.y_values,
+        signal_jet=jet.signal_jet,
+        signal_program=jet.signal_program,
+        signal_jet_values=jet.signal_values,
+        jet_program=jet.program,
+        grad_jet=jet.grad_jet,
+        rest_program=jet.rest_program,
+        rest=jet.rest,
+        coefficients=dynamics.coefficients,
+        eigenvalues=dynamics.eigenvalues,
+        decay_rate=dynamics.decay_rate,
+        uniform=all(r == k for r in lin.degrees),
+        convexity=objective.convexity,
+        initial_state=states.initial,
+        unextended=unextended,
+        extension_search=lin.searched,
+        certified_rate=rate,
+        certified_rate_exact=rate_exact,
+        warnings=warnings,
+        transient_constant=constant,
+        law=law,
+        timings=tuple(clock.marks),
+        reference_jet=jet.reference_jet,
+        reference_order=jet.reference_order,
+    )

@@ -1,0 +1,278 @@
+"""The record of a derivation: what the code generators and the report read."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import sympy as sp
+
+from tvopt_codegen.jet import (
+    Program,
+)
+from tvopt_codegen.law import Law
+from tvopt_codegen.lie import (
+    Extension,
+    from_entries,
+)
+from tvopt_codegen.model import Model
+from tvopt_codegen.spec import Spec
+
+
+def jet_symbol(name: str, order: int) -> sp.Symbol:
+    """The symbol for the ``order``-th time derivative of ``name`` (y1, y1', y1'', ...).
+
+    The primes cannot occur in user names, so jet symbols never collide with them.
+    """
+    if order == 0:
+        return sp.Symbol(name, real=True)
+    mark = "'" * order if order <= 3 else f"^({order})"
+    return sp.Symbol(f"{name}{mark}", real=True)
+
+
+@dataclass(frozen=True)
+class Convexity:
+    """Evidence for the strong convexity of f0 (paper, Assumption 1).
+
+    Attributes
+    ----------
+    method : str
+        ``"constant Hessian"`` (exact) or ``"sampled"``.
+    m_f : float
+        Smallest Hessian eigenvalue found: a lower bound estimate of the convexity
+        modulus.
+    points : int
+        Number of sampled (y, t) points at which the Hessian was finite.
+    """
+
+    method: str
+    m_f: float
+    points: int
+
+
+@dataclass(frozen=True)
+class Derivation:
+    """The complete derivation for one spec.
+
+    Attributes
+    ----------
+    spec, model : Spec, Model
+        The inputs of the derivation.
+    extension : Extension
+        The extended plant (equal to the plant when nothing is prolonged).
+    relative_degree : tuple of int
+        ``r_i`` per output, of the extended system.
+    lie : tuple of tuple of sympy.Expr
+        ``lie[i][j] = L_f^j h_i``, ``j = 0 .. r_i``.
+    R, p, phi : sympy.ImmutableMatrix
+        Decoupling matrix (m, m), ``p = col(L_f^{r_i} h_i)`` and coordinates ``Phi``.
+    A, B : sympy.ImmutableMatrix
+        Brunovsky pair of the extended system.
+    k : int
+        ``max r_i``: the order of the error dynamics.
+    padding : tuple of tuple of str
+        Names of the padding states ``xi_<output>_<j>`` per output.
+    state_names : tuple of str
+        Closed-loop state order: plant, extension, padding, multiplier chains.
+    states : tuple of sympy.Symbol
+        Symbols of ``state_names``.
+    det_R : sympy.Expr or None
+        ``det R`` factored, when computed symbolically (m <= 4).
+    det_R_note : str
+        Why ``det_R`` is None (empty when it was computed), for the summary and report.
+    singular_set : tuple of str
+        Conditions under which ``det R`` vanishes, in words.
+    undefined_set : tuple of str
+        Conditions under which R or p (and so the law) is undefined (a denominator
+        or a cosine under ``tan`` vanishes, ...), in words.
+    gradient : sympy.ImmutableMatrix
+        ``grad_y f0`` (m, 1) over ``y``, signals, parameters and t.
+    hessian_program : Program
+        Assignments computing the Hessian from :attr:`jet_program` (forward mode over
+        its gradient part, :func:`~tvopt_codegen.jet.jacobian`); empty when it is
+        constant.
+    hessian_entries : tuple of ((int, int), sympy.Expr)
+        The nonzero entries ``(i, j), i >= j`` of the lower triangle of ``grad_yy f0``,
+        over the programs' symbols (numbers when the Hessian is constant). The
+        generated code reads the Hessian from these.
+    y_jet : tuple of tuple of sympy.Symbol
+        ``y_jet[i][j]`` is the symbol of ``y_i^(j)``, ``j = 0 .. k``.
+    y_jet_values : tuple of tuple of sympy.Expr
+        ``y_i^(j)`` for ``j < k`` as a function of the closed-loop state.
+    signal_jet : tuple of tuple of sympy.Symbol
+        ``signal_jet[l][q]`` is the symbol of the q-th derivative of signal l.
+    signal_program : Program
+        Straight-line program of the signals and their time derivatives.
+    signal_jet_values : tuple of tuple of sympy.Expr
+        Those derivatives over :attr:`signal_program`, ``t`` and the parameters.
+    jet_program : Program
+        Straight-line program of the gradient jet (see :mod:`tvopt_codegen.jet`).
+    grad_jet : tuple of tuple of sympy.Expr
+        ``grad^(j) f0`` for ``j = 0 .. k-1`` over the program's symbols.
+    rest_program : Program
+        Extra assignments used by :attr:`rest` only.
+    rest : tuple of sympy.Expr
+        ``grad^(k) f0`` with ``y^(k) = 0``, so ``grad^(k) f0 = Hess y^(k) + rest``.
+    coefficients : tuple of float
+        ``a_0 .. a_{k-1}`` of H.
+    eigenvalues : tuple of complex
+        Eigenvalues of the companion matrix.
+    decay_rate : float
+        ``alpha = -max Re(lambda)``.
+    uniform : bool
+        Whether all relative degrees equal k (no padding).
+    convexity : Convexity
+        Strong convexity evidence.
+    initial_state : tuple of float
+        Default initial state in :attr:`state_names` order.
+    unextended : str or None
+        Why the extension is needed: what the plant lacks without it (``None`` when
+        nothing is prolonged).
+    extension_search : tuple of str
+        The prolongations the automatic search tried, in order (empty when the spec
+        gave the extension).
+    certified_rate : float
+        The alpha of ``|expm(H t)| <= c e^{-alpha t}`` (the decay rate, or 10% less with
+        repeated poles).
+    certified_rate_exact : bool
+        Whether ``certified_rate`` is the decay rate itself (the poles are distinct).
+    warnings : tuple of str
+        What the user should know but that does not stop the derivation (f0 strongly
+        convex only near its minimiser, a singular default state), one line each.
+    transient_constant : float
+        That c, computed.
+    law : Law
+        The control law written down from the above (:mod:`tvopt_codegen.law`):
+        everything the code generators evaluate.
+    reference_jet : tuple of tuple of sympy.Symbol
+        ``reference_jet[l][q]``: the q-th derivative of reference l, ``q = 0 .. k``
+        (supplied by the caller, never derived).
+    reference_order : int
+        The highest derivative of a reference the law reads (0 without references).
+    timings : tuple of (str, float)
+        Seconds spent per derivation step.
+    objective_program : Program
+        The program of f0's own gradient and Hessian (over the outputs): the generated
+        ``gradient`` and ``hessian`` functions evaluate it. With equalities the jet's
+        programs are the KKT system's instead.
+    objective_gradient, objective_hessian : tuple of sympy.Expr
+        f0's gradient (m) and Hessian ((m, m), row-major) over that program.
+    multiplier_states : tuple of tuple of str
+        With equality constraints, each multiplier's chain of controller states
+        ``nu_<name>_0 .. nu_<name>_<k-1>`` (the multiplier and its derivatives).
+    kkt_gradient : sympy.ImmutableMatrix or None
+        With equalities, the KKT map ``F = [grad f0 + J_a^T nu; a]`` over (y, nu).
+    dependent_set : tuple of str
+        Where the equalities' gradients are dependent (``det(J_a J_a^T) = 0``, where the
+        KKT matrix is singular), in words; empty where nowhere (or without equalities).
+
+    With equality constraints, :attr:`y_jet`, :attr:`grad_jet`, :attr:`rest`,
+    :attr:`jet_program`, :attr:`hessian_program` and :attr:`hessian_entries` are those of
+    the Lagrangian ``L = f0 + nu^T a`` over the outputs and then the multipliers (m + q
+    entries, :attr:`n_kkt`): the law is the paper's, written for ``L``.
+    """
+
+    spec: Spec
+    model: Model
+    extension: Extension
+    relative_degree: tuple[int, ...]
+    lie: tuple[tuple[sp.Expr, ...], ...]
+    R: sp.ImmutableMatrix
+    p: sp.ImmutableMatrix
+    phi: sp.ImmutableMatrix
+    A: sp.ImmutableMatrix
+    B: sp.ImmutableMatrix
+    k: int
+    padding: tuple[tuple[str, ...], ...]
+    state_names: tuple[str, ...]
+    states: tuple[sp.Symbol, ...]
+    det_R: sp.Expr | None
+    det_R_note: str
+    singular_set: tuple[str, ...]
+    undefined_set: tuple[str, ...]
+    gradient: sp.ImmutableMatrix
+    hessian_program: Program
+    hessian_entries: tuple[tuple[tuple[int, int], sp.Expr], ...]
+    y_jet: tuple[tuple[sp.Symbol, ...], ...]
+    y_jet_values: tuple[tuple[sp.Expr, ...], ...]
+    signal_jet: tuple[tuple[sp.Symbol, ...], ...]
+    signal_program: Program
+    signal_jet_values: tuple[tuple[sp.Expr, ...], ...]
+    jet_program: Program
+    grad_jet: tuple[tuple[sp.Expr, ...], ...]
+    rest_program: Program
+    rest: tuple[sp.Expr, ...]
+    coefficients: tuple[float, ...]
+    eigenvalues: tuple[complex, ...]
+    decay_rate: float
+    uniform: bool
+    convexity: Convexity
+    initial_state: tuple[float, ...]
+    unextended: str | None
+    extension_search: tuple[str, ...]
+    certified_rate: float
+    certified_rate_exact: bool
+    warnings: tuple[str, ...]
+    transient_constant: float
+    law: Law
+    timings: tuple[tuple[str, float], ...]
+    reference_jet: tuple[tuple[sp.Symbol, ...], ...] = ()
+    reference_order: int = 0
+    objective_program: Program = Program(())
+    objective_gradient: tuple[sp.Expr, ...] = ()
+    objective_hessian: tuple[sp.Expr, ...] = ()
+    multiplier_states: tuple[tuple[str, ...], ...] = ()
+    kkt_gradient: sp.ImmutableMatrix | None = None
+    dependent_set: tuple[str, ...] = ()
+
+    @property
+    def n_kkt(self) -> int:
+        """The law's unknowns ``y^(k)`` and, with equalities, ``nu^(k)``: m + q."""
+        return len(self.y_jet)
+
+    @property
+    def singular_text(self) -> str:
+        """Where the law cannot be evaluated, in words ("" when nowhere is known)."""
+        parts = []
+        if self.singular_set:
+            parts.append(f"R is singular where {'; '.join(self.singular_set)}")
+        if self.undefined_set:
+            parts.append(f"R or p is undefined where {'; '.join(self.undefined_set)}")
+        return "; ".join(parts)
+
+    @functools.cached_property
+    def hessian(self) -> sp.ImmutableMatrix:
+        """``grad_yy f0`` (m, m) as expressions, for the report and for checking.
+
+        Differentiated symbolically from :attr:`gradient` on first use (the generated
+        code never needs it: it evaluates :attr:`hessian_entries`).
+        """
+        return _sparse_hessian(self.gradient, self.model.y)
+
+    @functools.cached_property
+    def kkt_hessian(self) -> sp.ImmutableMatrix:
+        """With equalities, the KKT matrix ``[[grad_yy L, J_a^T], [J_a, 0]]`` as expressions.
+
+        Differentiated from :attr:`kkt_gradient` on first use, for the report.
+        """
+        assert self.kkt_gradient is not None
+        return _sparse_hessian(self.kkt_gradient, (*self.model.y, *self.model.multipliers))
+
+
+def _sparse_hessian(gradient: sp.MatrixBase, y: Sequence[sp.Symbol]) -> sp.ImmutableMatrix:
+    """Hessian from the gradient, differentiating each entry only by outputs it contains.
+
+    Filled symmetrically from the upper triangle (equal by Schwarz, and then equal as
+    expressions too).
+    """
+    m = len(y)
+    entries: dict[tuple[int, int], sp.Expr] = {}
+    for i, gi in enumerate(gradient):
+        free = gi.free_symbols
+        for j in range(i, m):
+            if y[j] in free:
+                value = sp.diff(gi, y[j])
+                if value != 0:
+                    entries[(i, j)] = entries[(j, i)] = value
+    return from_entries(m, m, entries)
