@@ -7,6 +7,7 @@ reads.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 from tvopt_codegen import hurwitz
@@ -19,23 +20,33 @@ from tvopt_codegen.derivation.equalities import (
 )
 from tvopt_codegen.derivation.linearization import (
     _closed_loop_states,
+    _Decoupling,
     _decoupling,
     _error_dynamics,
+    _ErrorDynamics,
+    _Linearization,
     _linearize,
     _singular_start,
+    _States,
     _without_extension,
 )
 from tvopt_codegen.derivation.meter import _Clock, _Meter
-from tvopt_codegen.derivation.objective import _gradient_jet, _objective, objective_start
+from tvopt_codegen.derivation.objective import (
+    _gradient_jet,
+    _GradientJet,
+    _Objective,
+    _objective,
+    objective_start,
+)
 from tvopt_codegen.derivation.record import Derivation
 from tvopt_codegen.errors import AssumptionError
 from tvopt_codegen.estimator import estimator_gains
 from tvopt_codegen.jet import (
     fresh_symbols,
 )
-from tvopt_codegen.law import control_law, symmetric_dense
+from tvopt_codegen.law import Law, control_law, symmetric_dense
 from tvopt_codegen.limits import Budget
-from tvopt_codegen.model import build_model
+from tvopt_codegen.model import Model, build_model
 from tvopt_codegen.spec import Spec, spec_from_dict
 
 
@@ -77,8 +88,7 @@ def derive(
     BudgetError
         When a stage takes longer or builds larger expressions than the budget allows.
     """
-    # Longer than most functions here on purpose: a list of stage calls, then the keyword
-    # list of the flat Derivation record; the work is in the stage functions above.
+    # A list of stage calls; the work is in the stage functions, the record in _record.
     if not isinstance(spec, Spec):
         spec = spec_from_dict(spec)
     meter = _Meter(spec.source, budget or Budget(), progress)
@@ -113,23 +123,14 @@ def derive(
     equality_warnings = _equality_checks(spec, model, objective_start(model, states))
     kkt = _lagrangian(model, objective, names, meter)
     states = _multipliers_start(spec, model, states, objective)
-    defaults = dict(zip(model.params, model.defaults, strict=True))
     ext = lin.extension
-    warnings = objective.warnings + _singular_start(
-        lin.R,
-        decoupling.p,
-        states.symbols,
-        states.initial,
-        defaults,
-        states.names[len(spec.states) : len(spec.states) + len(ext.states)],
+    warnings = (
+        objective.warnings
+        + _start_warnings(spec, model, lin, decoupling, states)
+        + constraint_warnings
+        + equality_warnings
+        + _reference_warnings(model)
     )
-    warnings += constraint_warnings + equality_warnings
-    unknown = [r.name for r in model.references if r not in dict(model.nominal)]
-    if unknown:
-        warnings += (
-            f"references {', '.join(unknown)} have no nominal closed form: f0's convexity "
-            "was checked with them at 0 (give [references] nominal to check along it)",
-        )
     clock.mark("objective")
     say("gradient jet")
     jet = _gradient_jet(model, k, kkt, lin, states, names, meter)
@@ -158,6 +159,77 @@ def derive(
         except ValueError as exc:
             raise AssumptionError(spec.source, "references.estimator.kind", str(exc)) from None
     clock.mark("law")
+    return _record(
+        spec,
+        model,
+        _Stages(lin, dynamics, states, decoupling, objective, kkt, jet),
+        law,
+        warnings,
+        (rate, rate_exact, constant),
+        unextended,
+        tuple(clock.marks),
+    )
+
+
+def _start_warnings(
+    spec: Spec, model: Model, lin: _Linearization, decoupling: _Decoupling, states: _States
+) -> tuple[str, ...]:
+    """Warnings about the start: R or p singular or undefined there."""
+    defaults = dict(zip(model.params, model.defaults, strict=True))
+    extension = lin.extension
+    return _singular_start(
+        lin.R,
+        decoupling.p,
+        states.symbols,
+        states.initial,
+        defaults,
+        states.names[len(spec.states) : len(spec.states) + len(extension.states)],
+    )
+
+
+def _reference_warnings(model: Model) -> tuple[str, ...]:
+    """A warning for references with no nominal closed form (convexity checked at 0)."""
+    unknown = [r.name for r in model.references if r not in dict(model.nominal)]
+    if not unknown:
+        return ()
+    return (
+        f"references {', '.join(unknown)} have no nominal closed form: f0's convexity "
+        "was checked with them at 0 (give [references] nominal to check along it)",
+    )
+
+
+@dataclass(frozen=True)
+class _Stages:
+    """The stage records :func:`derive` gathers, handed to :func:`_record` together."""
+
+    lin: _Linearization
+    dynamics: _ErrorDynamics
+    states: _States
+    decoupling: _Decoupling
+    objective: _Objective
+    kkt: _Objective
+    jet: _GradientJet
+
+
+def _record(
+    spec: Spec,
+    model: Model,
+    stages: _Stages,
+    law: Law,
+    warnings: tuple[str, ...],
+    bound: tuple[float, bool, float],
+    unextended: str | None,
+    timings: tuple[tuple[str, float], ...],
+) -> Derivation:
+    """The flat :class:`Derivation` from the stage records.
+
+    ``bound`` is the certified rate, whether it is exact, and the transient constant.
+    """
+    lin, dynamics, states = stages.lin, stages.dynamics, stages.states
+    decoupling, objective, kkt, jet = stages.decoupling, stages.objective, stages.kkt, stages.jet
+    rate, rate_exact, constant = bound
+    k = dynamics.k
+    ext = lin.extension
     return Derivation(
         spec=spec,
         model=model,
@@ -208,7 +280,7 @@ def derive(
         warnings=warnings,
         transient_constant=constant,
         law=law,
-        timings=tuple(clock.marks),
+        timings=timings,
         reference_jet=jet.reference_jet,
         reference_order=jet.reference_order,
     )
