@@ -21,7 +21,7 @@ from tests.conftest import derivation, kernels, module
 from tvopt_codegen import sweep
 from tvopt_codegen.cli import main
 from tvopt_codegen.contract import Status
-from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_INTERRUPTED, MissingExtraError
+from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_INTERRUPTED, MissingExtraError, SpecError
 from tvopt_codegen.simulation import minimizer_path
 from tvopt_codegen.sweep import (
     Distribution,
@@ -202,7 +202,7 @@ def test_distributions_parse_and_refuse_in_one_line() -> None:
         ("abc", "not a number"),
         ("nan", "finite"),
     ):
-        with pytest.raises(sweep.SpecError, match=words) as caught:
+        with pytest.raises(SpecError, match=words) as caught:
             parse_distribution(bad, "--param", "a")
         assert "\n" not in str(caught.value) and "--param" in str(caught.value)
 
@@ -322,7 +322,7 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(
     extra: list[str],
     words: str,
 ) -> None:
-    monkeypatch.setattr(sweep, "SCHEDULER_TIMEOUT", 2.0)
+    monkeypatch.setattr(sweep.driver, "SCHEDULER_TIMEOUT", 2.0)
     extra = [e.format(port=_free_port()) for e in extra]  # a port nobody listens on
     out = tmp_path / "out"
     assert _sweep(out, *extra) == EXIT_BAD_SPEC

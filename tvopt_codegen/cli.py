@@ -684,7 +684,7 @@ def run(argv: Sequence[str] | None = None) -> int:
     if args.command == "simulate":
         return _simulate(args)
     if args.command == "sweep":
-        from tvopt_codegen.sweep_cli import replay, sweep  # noqa: PLC0415
+        from tvopt_codegen.sweep.command import replay, sweep  # noqa: PLC0415
 
         return replay(args) if args.replay else sweep(args, _derive)
     if args.command == "report":

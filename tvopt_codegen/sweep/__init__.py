@@ -1,0 +1,120 @@
+"""Monte-Carlo robustness sweeps: thousands of closed loops, each with its own plant.
+
+A sweep draws, for every sample, an initial state, the controller's (model's)
+parameters and the true plant's parameters from the distributions the user names; runs
+the closed loop in compiled C (``templates/c/sweep.c.jinja``: the true plant under the
+law, inputs clipped to their limits, optionally sampled every ``H`` seconds with noisy
+measurements, integrated by Dormand-Prince RK45 with scipy's error control, then
+``y*(t)`` by the Newton method of :mod:`tvopt_codegen.simulation`); and tabulates each
+run's outcome. Samples are spread over a Dask cluster in chunks; a worker builds (or
+finds in its cache) the compiled loop from the sources' hash and never receives a
+ctypes handle.
+
+Sample ``i`` draws from ``numpy.random.default_rng(seed_i)``, where ``seed_i`` is the
+first 64-bit word of ``SeedSequence(seed, spawn_key=(i,))`` (the sweep's ``i``-th
+child) shifted right by one bit; ``seed_i`` is stored with the sample, so any sample
+can be rerun alone, and the table is the same bit for bit whatever the number of
+workers or the chunk size.
+
+Nothing here writes files: :mod:`tvopt_codegen.emit` does.
+"""
+
+from __future__ import annotations
+
+from tvopt_codegen.sweep.driver import (
+    SCHEDULER_TIMEOUT,
+    SweepRun,
+    chunks,
+    connect,
+    default_chunk,
+    run_sweep,
+)
+from tvopt_codegen.sweep.options import (
+    DISTRIBUTIONS,
+    DIVERGENCE_FACTOR,
+    MAX_POINTS,
+    MAX_SAMPLES,
+    SETTLING,
+    Distribution,
+    LoopOutcome,
+    Outcome,
+    SweepOptions,
+    outcome_of,
+    parse_assignments,
+    parse_distribution,
+    parse_limits,
+)
+from tvopt_codegen.sweep.program import (
+    TAIL,
+    Draw,
+    Loop,
+    SweepProgram,
+    check_options,
+    constraint_kernel,
+    decoupling_kernel,
+    draw,
+    equality_kernel,
+    loop_for,
+    sample_seed,
+    sweep_program,
+    tail,
+)
+from tvopt_codegen.sweep.results import (
+    RECORD,
+    Summary,
+    clopper_pearson_upper,
+    format_summary,
+    parquet_bytes,
+    read_summary,
+    summarize,
+    trajectory_block,
+    trajectory_layout,
+)
+from tvopt_codegen.sweep.sample import SampleResult, run_chunk, run_sample
+
+__all__ = [
+    "DISTRIBUTIONS",
+    "DIVERGENCE_FACTOR",
+    "Distribution",
+    "Draw",
+    "Loop",
+    "LoopOutcome",
+    "MAX_POINTS",
+    "MAX_SAMPLES",
+    "Outcome",
+    "RECORD",
+    "SCHEDULER_TIMEOUT",
+    "SETTLING",
+    "SampleResult",
+    "Summary",
+    "SweepOptions",
+    "SweepProgram",
+    "SweepRun",
+    "TAIL",
+    "check_options",
+    "chunks",
+    "clopper_pearson_upper",
+    "connect",
+    "constraint_kernel",
+    "decoupling_kernel",
+    "default_chunk",
+    "draw",
+    "equality_kernel",
+    "format_summary",
+    "loop_for",
+    "outcome_of",
+    "parquet_bytes",
+    "parse_assignments",
+    "parse_distribution",
+    "parse_limits",
+    "read_summary",
+    "run_chunk",
+    "run_sample",
+    "run_sweep",
+    "sample_seed",
+    "summarize",
+    "sweep_program",
+    "tail",
+    "trajectory_block",
+    "trajectory_layout",
+]

@@ -1,0 +1,428 @@
+"""The compiled loop: the sweep's C program beside the controller, and the draws.
+
+Its loader, and the draws of one sample (one ``SeedSequence`` child per sample).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from tvopt_codegen.errors import SpecError
+from tvopt_codegen.limits import START_ITERATIONS
+
+if TYPE_CHECKING:
+    from tvopt_codegen.ir import KernelSet
+from tvopt_codegen.sweep.options import (
+    DIVERGENCE_FACTOR,
+    MAX_POINTS,
+    MAX_SAMPLES,
+    LoopOutcome,
+    Outcome,
+    SweepOptions,
+    outcome_of,
+)
+
+
+@dataclass(frozen=True)
+class SweepProgram:
+    """What a worker needs to run samples: the C sources and the spec's names and numbers.
+
+    Attributes
+    ----------
+    name : str
+        The spec's module name (the C functions' prefix).
+    key : str
+        SHA-256 of the sources: the compiled library's cache key.
+    sources : tuple of (str, str)
+        File name and text: ``<name>.h``, ``<name>.c`` and ``<name>_sweep.c``.
+    state_names, plant_state_names, input_names, output_names, param_names : tuple of str
+        The closed loop's names, in the C arrays' order.
+    defaults : tuple of float
+        The parameters' spec values.
+    initial_state : tuple of float
+        The spec's closed-loop initial state.
+    coefficients : tuple of float
+        The Hurwitz coefficients of H.
+    alpha, c : float
+        The certificate's constants: ``|expm(H t)| <= c e^(-alpha t)``.
+    constraints : tuple of str
+        The names of the spec's inequalities (their values are measured on the run).
+    equalities : tuple of str
+        The names of its equality constraints (``|a|`` is measured on the run, and y* is
+        the KKT point).
+    n_kkt : int
+        Entries of a row of the optimality error: the outputs, then the multipliers.
+    """
+
+    name: str
+    key: str
+    sources: tuple[tuple[str, str], ...]
+    state_names: tuple[str, ...]
+    plant_state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    param_names: tuple[str, ...]
+    defaults: tuple[float, ...]
+    initial_state: tuple[float, ...]
+    coefficients: tuple[float, ...]
+    alpha: float
+    c: float
+    constraints: tuple[str, ...] = ()
+    equalities: tuple[str, ...] = ()
+    n_kkt: int = 0
+
+    @property
+    def columns(self) -> int:
+        """Width of a trajectory row: t, s, y, y*, u, then the :data:`TAIL` columns."""
+        n, m, nu = len(self.state_names), len(self.output_names), len(self.input_names)
+        return 1 + n + 2 * m + nu + len(TAIL)
+
+
+#: A trajectory row's last columns, after t, s, y, y* and u: log|det R|, the certificate's
+#: m_f (with equalities, the KKT matrix's sigma_min), the barrier's margin
+#: min_i (s - g_i), max_i g_i, and max_j |a_j| (NaN where the spec has none of them).
+TAIL = ("log_det_R", "m_f", "margin", "max_constraint", "max_equality")
+
+
+def tail(rows: np.ndarray, name: str) -> np.ndarray:
+    """The :data:`TAIL` column ``name`` of trajectory rows (any leading dimensions)."""
+    column: np.ndarray = rows[..., TAIL.index(name) - len(TAIL)]
+    return column
+
+
+def decoupling_kernel(kernels: KernelSet) -> Any:
+    """The sweep's own kernel: the whole decoupling matrix R(s), row-major (for det R)."""
+    from tvopt_codegen.cse import make_kernel  # noqa: PLC0415 - sympy only when building
+    from tvopt_codegen.ir import _arguments  # noqa: PLC0415
+
+    d = kernels.derivation
+    args = _arguments(d)
+    m = d.R.rows
+    entries = [d.R[i, j] for i in range(m) for j in range(m)]
+    return make_kernel(
+        "sweep_decoupling",
+        "The decoupling matrix R(s), row-major",
+        [args.t, args.s, args.p],
+        [],
+        [("r", (m * m,), entries, "decoupling matrix R")],
+        args.subs,
+        odd={},
+    )
+
+
+def constraint_kernel(kernels: KernelSet) -> Any:
+    """The slack ``s(t)`` and each ``g_i(y, t)`` at the outputs (None without constraints)."""
+    import sympy as sp  # noqa: PLC0415 - a worker never needs sympy
+
+    from tvopt_codegen.cse import make_kernel  # noqa: PLC0415
+    from tvopt_codegen.ir import _arguments  # noqa: PLC0415
+
+    d = kernels.derivation
+    model = d.model
+    if not model.constraints:
+        return None
+    args = _arguments(d)
+    values = [model.slack, *(sp.sympify(c.g) for c in model.constraints)]
+    return make_kernel(
+        "sweep_constraints",
+        "The barrier's slack s(t), then each constraint g_i(y, t) (<= 0 when kept)",
+        [args.t, args.y, args.p],
+        list(model.signals),
+        [("g", (len(values),), values, "slack and constraint values")],
+        args.y_subs,
+        odd={},
+    )
+
+
+def equality_kernel(kernels: KernelSet) -> Any:
+    """``a(y, t)``, ``J_a`` and ``sum_j nu_j grad_yy a_j`` (None without equalities)."""
+    import sympy as sp  # noqa: PLC0415 - a worker never needs sympy
+
+    from tvopt_codegen.cse import make_kernel  # noqa: PLC0415
+    from tvopt_codegen.ir import _arguments  # noqa: PLC0415
+    from tvopt_codegen.kernel import Arg  # noqa: PLC0415
+    from tvopt_codegen.law import symbols  # noqa: PLC0415
+
+    d = kernels.derivation
+    model = d.model
+    if not model.equalities:
+        return None
+    args = _arguments(d)
+    slots = symbols("nu", len(model.multipliers))
+    arg_nu = Arg("nu", slots, tuple(nu.name for nu in model.multipliers), "multipliers")
+    a = [sp.sympify(c.g) for c in model.equalities]
+    curvature = [
+        sp.Add(*(nu * sp.diff(e, yi, yj) for nu, e in zip(model.multipliers, a, strict=True)))
+        for yi in model.y
+        for yj in model.y
+    ]
+    m, q = len(model.y), len(a)
+    return make_kernel(
+        "sweep_equalities",
+        "The equalities a_j(y, t), their Jacobian in y and sum_j nu_j grad_yy a_j",
+        [args.t, args.y, args.p, arg_nu],
+        list(model.signals),
+        [
+            ("a", (q,), a, "equality values (0 when kept)"),
+            ("jac", (q, m), [sp.diff(e, y) for e in a for y in model.y], "J_a"),
+            ("curv", (m, m), curvature, "the multipliers' curvature"),
+        ],
+        args.y_subs | dict(zip(model.multipliers, slots, strict=True)),
+        odd={},
+    )
+
+
+def sweep_program(kernels: KernelSet) -> SweepProgram:
+    """Render the C closed loop of a lowered controller.
+
+    Raises
+    ------
+    SpecError
+        For a spec with ``[references]`` (the compiled loop has no reference source yet).
+    """
+    import scipy  # noqa: PLC0415
+    from scipy.integrate._ivp.rk import RK45  # noqa: PLC0415
+
+    from tvopt_codegen.backends import BACKENDS  # noqa: PLC0415
+    from tvopt_codegen.rendering import (  # noqa: PLC0415
+        print_kernel,
+        render,
+        render_template,
+        template_context,
+    )
+
+    d = kernels.derivation
+    if d.model.references:
+        raise SpecError(
+            d.spec.source,
+            "references",
+            "sweep does not run specs with [references] yet: sweep the spec without them "
+            "(the nominal closed forms as signals)",
+        )
+    backend = BACKENDS["c"]
+    files = render(kernels, backend)
+    name = d.spec.name
+    context = template_context(kernels, backend)
+    constraints = constraint_kernel(kernels)
+    equalities = equality_kernel(kernels)
+    context |= {
+        "equalities": None if equalities is None else print_kernel(equalities, backend.printer()),
+        "equality_count": len(d.model.equalities),
+        "multiplier_rows": [d.state_names.index(chain[0]) for chain in d.multiplier_states],
+        "tail": TAIL,
+        "decoupling": print_kernel(decoupling_kernel(kernels), backend.printer()),
+        "constraints": None
+        if constraints is None
+        else print_kernel(constraints, backend.printer()),
+        "constraint_count": len(d.model.constraints),
+        "rk": {
+            "A": RK45.A[:, :5].tolist(),
+            "B": RK45.B.tolist(),
+            "C": RK45.C.tolist(),
+            "E": RK45.E.tolist(),
+            "P": RK45.P.tolist(),
+        },
+        "scipy_version": scipy.__version__,
+        "sweep_statuses": list(LoopOutcome),
+        "max_points": MAX_POINTS,
+        "start_iterations": START_ITERATIONS,
+    }
+    sources = (
+        (f"{name}.h", files[f"{name}.h"]),
+        (f"{name}.c", files[f"{name}.c"]),
+        (f"{name}_sweep.c", render_template("c/sweep.c.jinja", context)),
+    )
+    digest = hashlib.sha256()
+    for file_name, text in sources:
+        digest.update(hashlib.sha256(f"{file_name}\0{text}".encode()).digest())
+    return SweepProgram(
+        name=name,
+        key=digest.hexdigest(),
+        sources=sources,
+        state_names=tuple(d.state_names),
+        plant_state_names=tuple(d.spec.states),
+        input_names=tuple(d.spec.inputs),
+        output_names=tuple(d.spec.outputs),
+        param_names=tuple(n for n, _ in d.spec.parameters),
+        defaults=tuple(float(v) for _, v in d.spec.parameters),
+        initial_state=tuple(float(v) for v in d.initial_state),
+        coefficients=tuple(float(a) for a in d.coefficients),
+        alpha=float(d.certified_rate),
+        c=float(d.transient_constant),
+        constraints=tuple(c.name for c in d.model.constraints),
+        equalities=tuple(c.name for c in d.model.equalities),
+        n_kkt=d.n_kkt,
+    )
+
+
+def check_options(program: SweepProgram, options: SweepOptions) -> None:
+    """Refuse what the loop cannot run, naming the option (all before anything runs)."""
+    if not 1 <= options.samples <= MAX_SAMPLES:
+        raise SpecError("command line", "--samples", f"must be between 1 and {MAX_SAMPLES}")
+    if not 0 <= options.seed < 2**63:
+        raise SpecError("command line", "--seed", "must be between 0 and 2**63 - 1")
+    if not 0 < options.t_final <= 1e6:
+        raise SpecError("command line", "--t-final", "must be positive and at most 1e6")
+    if not 2 <= options.points <= MAX_POINTS:
+        raise SpecError("command line", "--points", f"must be between 2 and {MAX_POINTS}")
+    for option, value in (("--rtol", options.rtol), ("--atol", options.atol)):
+        if not 0 < value < math.inf:
+            raise SpecError("command line", option, "must be positive and finite")
+    if not 0 <= options.noise < math.inf:
+        raise SpecError("command line", "--noise", "must be zero or positive and finite")
+    if options.sample_time is not None:
+        if not 0 < options.sample_time < math.inf:
+            raise SpecError("command line", "--sample-time", "must be positive and finite")
+        if options.t_final / options.sample_time > 10_000_000:
+            raise SpecError(
+                "command line", "--sample-time", "more than 10^7 samples of the controller per run"
+            )
+    elif options.noise:
+        raise SpecError(
+            "command line",
+            "--noise",
+            "needs --sample-time (the noise is drawn once per measurement)",
+        )
+
+
+@dataclass(frozen=True)
+class Draw:
+    """What sample ``index`` drew."""
+
+    index: int
+    seed: int
+    values: dict[str, float]
+    s0: np.ndarray
+    cp: np.ndarray
+    pp: np.ndarray
+    noise: np.ndarray | None
+
+
+def sample_seed(root: int, index: int) -> int:
+    """The seed of sample ``index``: the sweep's ``index``-th child's first word, 63 bits.
+
+    63 bits, so that the seed is a signed 64-bit integer in every table format.
+    """
+    child = np.random.SeedSequence(root, spawn_key=(index,))
+    return int(child.generate_state(1, np.uint64)[0]) >> 1
+
+
+def draw(program: SweepProgram, options: SweepOptions, index: int) -> Draw:
+    """Sample ``index``'s initial state, parameters and noise (in that order)."""
+    seed = sample_seed(options.seed, index)
+    rng = np.random.default_rng(seed)
+    values: dict[str, float] = {}
+    s0 = np.array(program.initial_state, dtype=float)
+    for name, dist in options.initial:
+        value = dist.draw(rng)
+        values[f"initial.{name}"] = value
+        s0[program.state_names.index(name)] = value
+    cp = np.array(program.defaults, dtype=float)
+    for name, dist in options.params:
+        value = dist.draw(rng)
+        values[f"param.{name}"] = value
+        cp[program.param_names.index(name)] = value
+    pp = np.array(program.defaults, dtype=float)
+    for name, dist in options.plant_params:
+        value = dist.draw(rng)
+        values[f"plant.{name}"] = value
+        pp[program.param_names.index(name)] = value
+    noise = None
+    if options.noise and options.sample_time is not None:
+        count = math.ceil(options.t_final / options.sample_time - 1e-9) + 1
+        noise = options.noise * rng.standard_normal((count, len(program.plant_state_names)))
+    return Draw(index, seed, values, s0, cp, pp, noise)
+
+
+class Loop:
+    """The compiled closed loop of one program, loaded in this process.
+
+    Parameters
+    ----------
+    program : SweepProgram
+        Its sources; compiled once per machine into the cache (``TVOPT_CODEGEN_CACHE``).
+    """
+
+    def __init__(self, program: SweepProgram) -> None:
+        from tvopt_codegen.emit import cached_library  # noqa: PLC0415
+
+        self.program = program
+        path = cached_library(dict(program.sources), f"{program.name}_sweep.c")
+        library = ctypes.CDLL(str(path))
+        pointer = ctypes.POINTER(ctypes.c_double)
+        self._run = getattr(library, f"{program.name}_sweep_run")
+        self._run.restype = ctypes.c_int
+        self._run.argtypes = [pointer] * 8
+        self._error = getattr(library, f"{program.name}_optimality_error")
+        self._error.restype = ctypes.c_int
+        self._error.argtypes = [ctypes.c_double, pointer, pointer, pointer]
+
+    @staticmethod
+    def _ptr(array: np.ndarray | None) -> Any:
+        if array is None:
+            return None
+        return array.ctypes.data_as(ctypes.POINTER(ctypes.c_double))
+
+    def run(self, options: SweepOptions, sample: Draw) -> tuple[Outcome, np.ndarray, np.ndarray]:
+        """Integrate one sample: its outcome, the rows written and the run's counters."""
+        p = self.program
+        bound = DIVERGENCE_FACTOR * max(1.0, float(np.max(np.abs(sample.s0), initial=0.0)))
+        settings = np.array(
+            [
+                options.t_final,
+                options.rtol,
+                options.atol,
+                options.sample_time or 0.0,
+                options.points,
+                options.max_steps,
+                bound,
+            ]
+        )
+        lower = np.full(len(p.input_names), -np.inf)
+        upper = np.full(len(p.input_names), np.inf)
+        for name, lo, hi in options.limits:
+            lower[p.input_names.index(name)] = lo
+            upper[p.input_names.index(name)] = hi
+        limits = np.concatenate([lower, upper])
+        rows = np.full((options.points, p.columns), np.nan)
+        info = np.zeros(4)
+        noise = None if sample.noise is None else np.ascontiguousarray(sample.noise)
+        cp, pp = np.ascontiguousarray(sample.cp), np.ascontiguousarray(sample.pp)
+        # The C reads a pointer even for an empty parameter vector.
+        if not len(cp):
+            cp, pp = np.zeros(1), np.zeros(1)
+        status = self._run(
+            self._ptr(settings),
+            self._ptr(np.ascontiguousarray(sample.s0)),
+            self._ptr(cp),
+            self._ptr(pp),
+            self._ptr(limits),
+            self._ptr(noise),
+            self._ptr(rows),
+            self._ptr(info),
+        )
+        written = int(info[1])
+        return outcome_of(status), rows[:written], info
+
+    def optimality_error(self, s: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """E at t = 0 (K rows of the gradient jet, or of the KKT map with equalities)."""
+        width = self.program.n_kkt or len(self.program.output_names)
+        out = np.empty(len(self.program.coefficients) * width)
+        self._error(0.0, self._ptr(np.ascontiguousarray(s)), self._ptr(params), self._ptr(out))
+        return out
+
+
+_LOOPS: dict[str, Loop] = {}
+
+
+def loop_for(program: SweepProgram) -> Loop:
+    """The loaded loop of ``program`` (built or loaded from the cache once)."""
+    if program.key not in _LOOPS:
+        _LOOPS[program.key] = Loop(program)
+    return _LOOPS[program.key]

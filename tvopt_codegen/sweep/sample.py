@@ -1,0 +1,140 @@
+"""One sample: run the compiled loop and measure it (errors, settling, the certificate)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from tvopt_codegen.contract import Status
+
+if TYPE_CHECKING:
+    pass
+from tvopt_codegen.sweep.options import SETTLING, SweepOptions
+from tvopt_codegen.sweep.program import Draw, Loop, SweepProgram, draw, loop_for, tail
+
+
+@dataclass(frozen=True)
+class SampleResult:
+    """One row of the summary and, when kept, the run's trajectory.
+
+    Attributes
+    ----------
+    row : dict
+        The summary's columns for this sample.
+    trajectory : numpy.ndarray or None
+        ``points x columns`` (NaN after a failure); see :attr:`SweepProgram.columns`.
+    """
+
+    row: dict[str, Any]
+    trajectory: np.ndarray | None
+
+
+def _settling(t: np.ndarray, error: np.ndarray, fraction: float) -> float:
+    """The first time after which ``error`` stays at or below ``fraction`` of its start."""
+    above = np.nonzero(error > fraction * error[0])[0]
+    if not len(above):
+        return 0.0
+    last = int(above[-1])
+    return float(t[last + 1]) if last + 1 < len(t) else math.nan
+
+
+def _certificate(
+    loop: Loop, sample: Draw, t: np.ndarray, convexity: np.ndarray, error: np.ndarray
+) -> bool:
+    """Whether ``|y - y*| <= c |E(0)| / m_f e^(-alpha t)`` held (the nominal theorem).
+
+    ``m_f`` is the least eigenvalue of f0's Hessian at y, y* and their midpoint along
+    the run (the C loop's last column), as :mod:`tvopt_codegen.simulation` estimates it.
+    """
+    p = loop.program
+    cp = sample.cp if len(sample.cp) else np.zeros(1)
+    norm0 = float(np.linalg.norm(loop.optimality_error(sample.s0, cp)))
+    smallest = float(np.min(convexity))
+    if not smallest > 0:
+        return False
+    bound = p.c * norm0 / smallest * np.exp(-p.alpha * t)
+    meaningful = bound > 1e-10
+    return bool(np.all(error[meaningful] - 1e-8 <= bound[meaningful]))
+
+
+def run_sample(
+    program: SweepProgram, options: SweepOptions, index: int, keep: bool = False
+) -> SampleResult:
+    """Run sample ``index`` and measure it; keep its trajectory when asked."""
+    loop = loop_for(program)
+    sample = draw(program, options, index)
+    outcome, rows, info = loop.run(options, sample)
+    n, m = len(program.state_names), len(program.output_names)
+    nu = len(program.input_names)
+    t = rows[:, 0]
+    y = rows[:, 1 + n : 1 + n + m]
+    target = rows[:, 1 + n + m : 1 + n + 2 * m]
+    u = rows[:, 1 + n + 2 * m : 1 + n + 2 * m + nu]
+    logdet, convexity = tail(rows, "log_det_R"), tail(rows, "m_f")
+    margin, largest = tail(rows, "margin"), tail(rows, "max_constraint")
+    error = np.linalg.norm(y - target, axis=1) if len(rows) else np.zeros(0)
+    ok = outcome == Status.OK
+    limits = {name: (lo, hi) for name, lo, hi in options.limits}
+    saturated = np.zeros(len(rows), dtype=bool)
+    for j, name in enumerate(program.input_names):
+        if name in limits:
+            lo, hi = limits[name]
+            saturated |= (u[:, j] < lo) | (u[:, j] > hi)
+    spacing = options.t_final / (options.points - 1)
+    mismatch = bool(np.any(sample.cp != sample.pp))
+    nominal = (
+        ok
+        and not mismatch
+        and not saturated.any()
+        and options.sample_time is None
+        and not options.noise
+    )
+    row: dict[str, Any] = {
+        "sample": index,
+        "seed": sample.seed,
+        "status": outcome.label,
+        "t_end": float(info[0]),
+        "final_error": float(error[-1]) if ok else math.nan,
+        "max_error": float(error.max()) if ok else math.nan,
+        "settling_1pct": _settling(t, error, SETTLING[0]) if ok else math.nan,
+        "settling_01pct": _settling(t, error, SETTLING[1]) if ok else math.nan,
+    }
+    for j, name in enumerate(program.input_names):
+        row[f"max_abs_{name}"] = float(np.abs(u[:, j]).max()) if len(rows) else math.nan
+    row["time_saturated"] = float(saturated[:-1].sum() * spacing) if len(rows) else 0.0
+    # log|det R| is -inf where R is singular: the ratio is then 0.
+    if not len(rows):
+        row["min_det_ratio"] = math.nan
+    elif np.isfinite(logdet[0]):
+        row["min_det_ratio"] = float(np.exp(np.min(logdet) - logdet[0]))
+    else:
+        row["min_det_ratio"] = 0.0
+    if program.constraints:
+        # The barrier keeps g_i < s(t) (the certificate's claim); g_i > 0 alone is allowed
+        # while the slack is still open.
+        row["min_margin"] = float(np.min(margin)) if len(rows) else math.nan
+        row["violations"] = int(np.sum(margin <= 0.0))
+        row["time_outside"] = float(np.sum(largest[:-1] > 0.0) * spacing) if len(rows) else 0.0
+        row["final_constraint"] = float(largest[-1]) if ok else math.nan
+    if program.equalities:
+        # max_j |a_j| along the run: the KKT law drives it to 0 like E.
+        drift = tail(rows, "max_equality")
+        row["max_equality"] = float(np.max(drift)) if len(rows) else math.nan
+        row["final_equality"] = float(drift[-1]) if ok else math.nan
+    row["steps"] = int(info[2])
+    row["rejected_steps"] = int(info[3])
+    row["nominal"] = nominal
+    row["certificate_holds"] = _certificate(loop, sample, t, convexity, error) if nominal else None
+    row |= sample.values
+    return SampleResult(row, rows if keep else None)
+
+
+def run_chunk(
+    program: SweepProgram, options: SweepOptions, indices: Sequence[int], keep: bool
+) -> list[SampleResult]:
+    """Samples ``indices`` in this process (what one Dask task runs)."""
+    return [run_sample(program, options, i, keep) for i in indices]
