@@ -181,7 +181,7 @@ def test_interrupt_leaves_no_file(
 
 def test_progress_is_reported_on_long_runs(monkeypatch: pytest.MonkeyPatch) -> None:
     clock = iter(np.arange(0.0, 1e6, 0.7))
-    monkeypatch.setattr(sim.time, "perf_counter", lambda: float(next(clock)))
+    monkeypatch.setattr(sim.run.time, "perf_counter", lambda: float(next(clock)))
     seen: list[tuple[float, float]] = []
     d = derivation("integrator")
     sim.simulate(

@@ -1,0 +1,191 @@
+"""The closed loop: integrate the generated controller's ``rhs`` and certify the run."""
+
+from __future__ import annotations
+
+import math
+import time
+import types
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.integrate import solve_ivp
+from scipy.interpolate import CubicHermiteSpline
+
+from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.errors import AssumptionError, SpecError
+from tvopt_codegen.references import ReferenceSource, nominal_source
+from tvopt_codegen.simulation.certificate import _certify
+from tvopt_codegen.simulation.result import Options, Result
+
+
+def simulate(
+    derivation: Derivation,
+    controller: types.ModuleType,
+    options: Options,
+    progress: Callable[[float, float], None] | None = None,
+    references: ReferenceSource | None = None,
+) -> Result:
+    """Integrate the closed loop and check the theorem along the run.
+
+    Parameters
+    ----------
+    derivation : Derivation
+        The derivation the controller was generated from.
+    controller : module
+        The generated controller (any backend with the Python contract).
+    options : Options
+        Horizon, initial state, parameters, solver and tolerances.
+    progress : callable, optional
+        Called with (simulated time reached, horizon) at most twice a second once a
+        run has taken two seconds.
+    references : ReferenceSource, optional
+        The reference jets, for a spec with references (default: the exact jets of the
+        nominal closed forms).
+
+    Returns
+    -------
+    Result
+        Trajectories, the theorem's quantities and the certificate.
+    """
+    d = derivation
+    params = dict(options.params)
+    if d.model.references and references is None:
+        references = nominal_source(d, params)
+    source = references
+    started = time.perf_counter()
+    last_report = [started + 2.0]
+
+    def rhs(t: float, s: np.ndarray) -> np.ndarray:
+        if progress is not None:
+            now = time.perf_counter()
+            if now >= last_report[0]:
+                progress(float(t), options.t_final)
+                last_report[0] = now + 0.5
+        if source is not None:
+            jets: np.ndarray = controller.rhs(t, s, params, refs=source.jets(t))
+            return jets
+        result: np.ndarray = controller.rhs(t, s, params)
+        return result
+
+    _check_initial_state(d, controller, options, source)
+    reached = [0.0]
+
+    def tracked(t: float, s: np.ndarray) -> np.ndarray:
+        reached[0] = float(t)
+        return rhs(t, s)
+
+    try:
+        # A run that overflows ends in a ControllerError with its time; numpy's own
+        # warnings on the way would only add lines to that one-line message.
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            if source is not None and source.estimated and source.times is not None:
+                solution = _on_the_sample_grid(
+                    tracked, options.t_final, np.array(options.initial_state), source.times
+                )
+            else:
+                solution = solve_ivp(
+                    tracked,
+                    (0.0, options.t_final),
+                    np.array(options.initial_state),
+                    method=options.method,
+                    rtol=options.rtol,
+                    atol=options.atol,
+                    dense_output=True,
+                )
+        return _certify(d, controller, options, solution, time.perf_counter() - started, source)
+    except ArithmeticError as exc:
+        if not hasattr(exc, "status"):
+            raise
+        raise AssumptionError(
+            d.spec.source,
+            "simulation",
+            f"the law became undefined along the run, near t = {reached[0]:.6g}: {exc}",
+        ) from None
+
+
+#: Longest step of the fixed-grid integration of a loop fed with estimated references.
+MAX_GRID_STEP = 1e-2
+
+
+@dataclass(frozen=True)
+class _GridSolution:
+    """What ``solve_ivp`` returns, for a run integrated on the reference samples' grid."""
+
+    t: np.ndarray
+    y: np.ndarray
+    sol: Any
+    nfev: int
+    success: bool = True
+    message: str = "the end of the horizon was reached"
+
+
+def _on_the_sample_grid(
+    rhs: Callable[[float, np.ndarray], np.ndarray],
+    horizon: float,
+    start: np.ndarray,
+    sample_times: np.ndarray,
+) -> _GridSolution:
+    """Integrate by classical RK4 with steps that end on every reference sample.
+
+    Steps are at most :data:`MAX_GRID_STEP`. Estimated jets jump at the samples and are
+    smooth between them, where an adaptive method would spend its steps rediscovering
+    each jump.
+    """
+    inside = sample_times[(sample_times > 0.0) & (sample_times < horizon)]
+    knots = [0.0]
+    for end in (*inside.tolist(), horizon):
+        pieces = max(1, math.ceil((end - knots[-1]) / MAX_GRID_STEP - 1e-9))
+        knots += list(np.linspace(knots[-1], end, pieces + 1)[1:])
+    grid = np.array(knots)
+    states = np.empty((len(start), len(grid)))
+    rates = np.empty_like(states)
+    x = start.astype(float)
+    states[:, 0] = x
+    for i in range(len(grid) - 1):
+        t, h = float(grid[i]), float(grid[i + 1] - grid[i])
+        k1 = rhs(t, x)
+        rates[:, i] = k1
+        k2 = rhs(t + h / 2, x + h / 2 * k1)
+        k3 = rhs(t + h / 2, x + h / 2 * k2)
+        k4 = rhs(t + h, x + h * k3)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        states[:, i + 1] = x
+    # The last rate: the left limit of the last interval's (the jets jump at samples).
+    rates[:, -1] = k4
+    interpolant = CubicHermiteSpline(grid, states, rates, axis=1)
+    return _GridSolution(grid, states, interpolant, 4 * (len(grid) - 1))
+
+
+def _check_initial_state(
+    d: Derivation,
+    controller: types.ModuleType,
+    options: Options,
+    references: ReferenceSource | None = None,
+) -> None:
+    """Refuse, before integrating, an initial state where the law is undefined."""
+    s0 = np.array(options.initial_state)
+    extra = {} if references is None else {"refs": references.jets(0.0)}
+    try:
+        controller.rhs(0.0, s0, dict(options.params), **extra)
+    except ArithmeticError as exc:
+        if not hasattr(exc, "status"):
+            raise
+        where = ", ".join(
+            f"{name} = {value:.6g}" for name, value in zip(d.state_names, s0, strict=True)
+        )
+        if options.params:
+            where += "; parameters " + ", ".join(
+                f"{name} = {value:.6g}" for name, value in options.params.items()
+            )
+        if len(where) > 160:
+            where = where[:157] + "..."
+        kind = AssumptionError if exc.status in (2, 3) else SpecError
+        raise kind(
+            d.spec.source,
+            "simulation.initial_state",
+            f"the law is undefined at the initial state ({where}): {exc}",
+        ) from None

@@ -1,0 +1,236 @@
+"""The target ``y*(t)``, found independently of the law.
+
+Damped Newton on f0 (and on the KKT map with equality constraints), followed backward
+from the end of the horizon: never read off the controller.
+"""
+
+from __future__ import annotations
+
+import types
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from tvopt_codegen.limits import START_ITERATIONS
+
+
+def minimizer_path(
+    controller: types.ModuleType,
+    ts: np.ndarray,
+    start: np.ndarray,
+    params: Mapping[str, float],
+    refs: Callable[[float], dict[str, Any]] | None = None,
+    inside: np.ndarray | None = None,
+) -> np.ndarray:
+    """``y*(t) = argmin_y f0(y, t)`` at each time, by a damped Newton method.
+
+    The path is followed backward in time from ``start`` (the final output),
+    warm-starting every time from the previous one, with Armijo backtracking and steps
+    capped at 0.02. For strongly convex f0 this is the unique minimizer whatever the
+    start. A barrier that is finite only on a domain (``tan^2`` in the paper's Sec.
+    V-B) is periodic, with its global minimizer beyond the barrier: continuation from
+    the converged end of the run stays on the in-domain branch the paper means.
+
+    Parameters
+    ----------
+    controller : module
+        A generated module (its ``objective``, ``gradient`` and ``hessian``).
+    ts : numpy.ndarray
+        Increasing output times.
+    start : numpy.ndarray
+        Starting point at ``ts[-1]``.
+    params : mapping
+        Parameter overrides.
+    refs : callable, optional
+        ``refs(t)``: the keyword arguments that give the module the reference jets at
+        ``t`` (for a spec with references).
+    inside : numpy.ndarray, shape (m, T), optional
+        A point of f0's domain at each time (the run's outputs): the start whenever the
+        warm start has left the domain (a barrier of moving constraints).
+
+    Returns
+    -------
+    numpy.ndarray, shape (m, T)
+        ``y*`` at each time.
+    """
+
+    def step(t: float, y: np.ndarray, index: int, budget: int) -> np.ndarray:
+        extra = (refs or (lambda t: {}))(t)
+        if inside is not None and not _defined(controller, t, y, params, extra):
+            y = np.array(inside[:, index], dtype=float)
+        return _newton(controller, t, y, params, extra, budget)
+
+    return _backward(ts, start, step)
+
+
+def _backward(
+    ts: np.ndarray, start: np.ndarray, step: Callable[[float, np.ndarray, int, int], np.ndarray]
+) -> np.ndarray:
+    """Follow a solution backward in time from ``start`` at ``ts[-1]``, warm-starting.
+
+    ``step(t, w, index, budget)`` solves at time ``t`` from ``w`` (``index``: the output
+    time being approached) in at most ``budget`` iterations; five substeps lie between
+    output times. The first point may start far from the solution (a run that has not
+    converged): its capped steps get :data:`START_ITERATIONS`, the warm starts 200.
+    """
+    substeps = 5
+    path = np.empty((len(start), len(ts)))
+    w = np.array(start, dtype=float)
+    for index in range(len(ts) - 1, -1, -1):
+        later = ts[min(index + 1, len(ts) - 1)]
+        for t in (
+            np.linspace(later, ts[index], substeps + 1)[1:] if index < len(ts) - 1 else [ts[-1]]
+        ):
+            budget = 200 if index < len(ts) - 1 else START_ITERATIONS
+            w = step(float(t), w, index, budget)
+        path[:, index] = w
+    return path
+
+
+def _defined(
+    controller: types.ModuleType,
+    t: float,
+    y: np.ndarray,
+    params: Mapping[str, float],
+    extra: Mapping[str, Any],
+) -> bool:
+    """Whether f0 is finite at ``y`` and ``t``."""
+    try:
+        return bool(np.isfinite(controller.objective(t, y, params, **extra)))
+    except ArithmeticError:
+        return False
+
+
+def _newton(
+    controller: types.ModuleType,
+    t: float,
+    y: np.ndarray,
+    params: Mapping[str, float],
+    extra: Mapping[str, Any] | None = None,
+    iterations: int = 200,
+) -> np.ndarray:
+    """Minimize f0(., t) from ``y``: damped Newton with capped steps."""
+    extra = extra or {}
+    for _ in range(iterations):
+        grad = controller.gradient(t, y, params, **extra)
+        hess = controller.hessian(t, y, params, **extra)
+        try:
+            step = np.linalg.solve(hess, grad)
+        except np.linalg.LinAlgError:
+            step = grad
+        if grad @ step <= 0:  # not a descent direction: fall back to the gradient
+            step = grad
+        size = float(np.linalg.norm(step))
+        if size > 0.02:
+            step = step * (0.02 / size)
+        value = controller.objective(t, y, params, **extra)
+        scale = 1.0
+        while scale > 1e-8:
+            trial = y - scale * step
+            try:
+                trial_value = controller.objective(t, trial, params, **extra)
+            except ArithmeticError:
+                trial_value = np.inf
+            if np.isfinite(trial_value) and trial_value <= value - 1e-4 * scale * (grad @ step):
+                break
+            scale *= 0.5
+        y = y - scale * step
+        if size * scale <= 1e-14 * (1.0 + float(np.linalg.norm(y))):
+            break
+    return y
+
+
+def _kkt_newton(
+    controller: types.ModuleType,
+    eq: Any,
+    t: float,
+    w: np.ndarray,
+    params: Mapping[str, float],
+    extra: Mapping[str, Any],
+    iterations: int = 200,
+) -> np.ndarray:
+    """Solve the KKT system ``F(y, nu, t) = 0`` from ``w = (y, nu)``: damped Newton.
+
+    ``F = [grad f0 + J_a^T nu; a]`` (f0's gradient and Hessian from the module, the
+    equalities from ``eq``, :func:`tvopt_codegen.constraints.equalities`), backtracking
+    on ``|F|^2`` within f0's domain, the outputs' steps capped at 0.02 like
+    :func:`_newton`'s.
+    """
+    from tvopt_codegen.constraints import kkt_matrix  # noqa: PLC0415
+
+    m = len(controller.OUTPUT_NAMES)
+    r = _reference_values(extra)
+
+    def residual(point: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        y, nu = point[:m], point[m:]
+        try:
+            grad = controller.gradient(t, y, params, **extra)
+            hess = controller.hessian(t, y, params, **extra)
+        except ArithmeticError:
+            return None
+        jac = eq.jacobian(t, y, r)
+        value = np.concatenate([grad + jac.T @ nu, eq.value(t, y, r)])
+        if not np.all(np.isfinite(value)):
+            return None
+        return value, kkt_matrix(hess + eq.curvature(t, y, r, nu), jac)
+
+    w = np.array(w, dtype=float)
+    current = residual(w)
+    if current is None:
+        return w
+    for _ in range(iterations):
+        value, matrix = current
+        try:
+            step = np.linalg.solve(matrix, value)
+        except np.linalg.LinAlgError:
+            step = np.linalg.lstsq(matrix, value, rcond=None)[0]
+        size = float(np.linalg.norm(step[:m]))
+        if size > 0.02:
+            step = step * (0.02 / size)
+        norm = float(value @ value)
+        scale = 1.0
+        while scale > 1e-8:
+            trial = residual(w - scale * step)
+            if trial is not None and float(trial[0] @ trial[0]) <= norm * (1 - 1e-4 * scale):
+                break
+            scale *= 0.5
+        else:
+            break
+        w = w - scale * step
+        current = trial
+        assert current is not None
+        if float(np.linalg.norm(step)) * scale <= 1e-14 * (1.0 + float(np.linalg.norm(w))):
+            break
+    return w
+
+
+def _reference_values(extra: Mapping[str, Any]) -> list[float]:
+    """The references' values (their jets' first column) in a call's keyword arguments."""
+    refs = extra.get("refs")
+    return [] if refs is None else [float(v) for v in np.asarray(refs)[:, 0]]
+
+
+def kkt_path(
+    controller: types.ModuleType,
+    eq: Any,
+    ts: np.ndarray,
+    start: np.ndarray,
+    params: Mapping[str, float],
+    refs: Callable[[float], dict[str, Any]] | None = None,
+) -> np.ndarray:
+    """``(y*, nu*)(t)``: the KKT system solved at each time.
+
+    Followed backward like :func:`minimizer_path`, from ``start`` (the run's final
+    outputs and multipliers).
+
+    Returns
+    -------
+    numpy.ndarray, shape (m + q, T)
+    """
+
+    def step(t: float, w: np.ndarray, _index: int, budget: int) -> np.ndarray:
+        extra = (refs or (lambda t: {}))(t)
+        return _kkt_newton(controller, eq, t, w, params, extra, budget)
+
+    return _backward(ts, start, step)
