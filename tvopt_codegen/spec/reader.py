@@ -1,21 +1,14 @@
-"""Stage 1: read a spec file, validate it, and parse its expressions.
+"""The spec reader: every section read and checked in file order.
 
-The result, :class:`Spec`, holds names, numbers and sympy expressions; nothing in it
-has been derived yet. Every problem is a :class:`~tvopt_codegen.errors.SpecError`
-naming the file, the field and the problem.
+Names come before the expressions that use them; every problem is a
+:class:`~tvopt_codegen.errors.SpecError` naming the file, the field and the problem.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import re
-import tomllib
 from collections.abc import Mapping
-from dataclasses import dataclass
-from importlib import resources
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -33,200 +26,23 @@ from tvopt_codegen.parse import (
     parse_comparison,
     parse_expression,
 )
-from tvopt_codegen.toml_shape import ShapeError, check_shape
+from tvopt_codegen.spec.types import (
+    ESTIMATOR_KINDS,
+    MAX_INTEGRATORS,
+    TIME,
+    Barrier,
+    Constraint,
+    Estimator,
+    Spec,
+    symbol,
+)
 
-#: Largest spec file accepted, in bytes.
-MAX_SPEC_BYTES = 1_000_000
-#: Most integrators one input may be prolonged by.
-MAX_INTEGRATORS = 8
 #: Most values one index may take.
 MAX_INDEX_COUNT = 256
 
+
 #: An indexed name in a key or a list: ``base[i]``.
 _INDEXED = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)\[([A-Za-z][A-Za-z0-9_]*)\]$")
-
-#: Appended to a bundled example's file name where messages name the spec.
-BUNDLED_SUFFIX = " (bundled example)"
-
-#: The symbol for time in every expression.
-TIME = sp.Symbol("t", real=True)
-
-
-def symbol(name: str) -> sp.Symbol:
-    """Return the sympy symbol that stands for a declared name (always real)."""
-    return sp.Symbol(name, real=True)
-
-
-@dataclass(frozen=True)
-class Spec:
-    """A validated spec: names, numbers and parsed expressions.
-
-    Attributes
-    ----------
-    source : str
-        How the spec was named (a path, or ``<name> (bundled example)``).
-    sha256 : str
-        SHA-256 of the spec file's bytes; stamped into every generated file.
-    name, description : str
-        Module name and free text.
-    states, inputs, outputs : tuple of str
-        Declared names, in declaration order.
-    dynamics : tuple of sympy.Expr
-        Right-hand side of each state equation, in state order.
-    output_exprs : tuple of sympy.Expr
-        Each output as an expression in the states and parameters.
-    parameters : tuple of (str, float)
-        Parameter names and default values.
-    signals : tuple of (str, sympy.Expr)
-        Time signals as explicit expressions in ``t`` and the parameters (references
-        to earlier signals already substituted).
-    objective : sympy.Expr
-        ``f0`` in the output symbols, signal symbols, parameters and ``t``.
-    extension : tuple of (str, int)
-        Inputs to prolong and their number of integrators, in input order.
-    poles : tuple of complex, or None
-        Requested eigenvalues of the error dynamics (conjugates included).
-    coefficients : tuple of float, or None
-        Requested ``a_0 ... a_{k-1}`` of the companion matrix.
-    t_final : float
-        Simulation horizon.
-    initial_state : tuple of (str, float)
-        Initial values by state name, as written.
-    agents : tuple of (str, str)
-        Output pairs drawn as planar paths (default: consecutive output pairs).
-    objects : tuple of (str, str)
-        Signal pairs drawn as moving objects in the planar figure.
-    extension_auto : bool
-        Search the dynamic extension instead of taking ``extension``.
-    extension_max_total : int or None
-        Largest total number of integrators the search tries (default: the number of
-        plant states).
-    indices : tuple of (str, int)
-        The ``[index]`` table: each index and its count. Indexed names are already
-        expanded everywhere else (``x[i]`` with ``i = 3`` is ``x_0, x_1, x_2``).
-    references : tuple of str
-        Targets measured at run time (``[references] names``): used in signals and the
-        objective like signals, their derivative jets supplied with every call.
-    reference_nominal : tuple of (str, sympy.Expr)
-        A closed form in ``t`` and the parameters for some references (``nominal``): the
-        convexity check, ``simulate`` without samples and the report use it.
-    estimator : Estimator or None
-        The differentiator that turns reference samples into jets (None without
-        references).
-    constraints : tuple of Constraint
-        ``[constraints]``: inequalities on the outputs, kept by an interior-point
-        homotopy (see :mod:`tvopt_codegen.constraints`).
-    barrier : Barrier
-        The homotopy's weight and slack schedule.
-    allow_nonconvex : bool
-        Accept inequalities that are not convex in the outputs, or equalities that are
-        not affine in them (the certificate is then local only).
-    equalities : tuple of Constraint
-        ``[constraints]`` written with ``==``: ``a_j(y, t) = 0``, kept by the KKT system
-        with a multiplier chain per equality (see :mod:`tvopt_codegen.constraints`).
-    """
-
-    source: str
-    sha256: str
-    name: str
-    description: str
-    states: tuple[str, ...]
-    inputs: tuple[str, ...]
-    dynamics: tuple[sp.Expr, ...]
-    outputs: tuple[str, ...]
-    output_exprs: tuple[sp.Expr, ...]
-    parameters: tuple[tuple[str, float], ...]
-    signals: tuple[tuple[str, sp.Expr], ...]
-    objective: sp.Expr
-    extension: tuple[tuple[str, int], ...]
-    poles: tuple[complex, ...] | None
-    coefficients: tuple[float, ...] | None
-    t_final: float
-    initial_state: tuple[tuple[str, float], ...]
-    agents: tuple[tuple[str, str], ...] = ()
-    objects: tuple[tuple[str, str], ...] = ()
-    extension_auto: bool = False
-    extension_max_total: int | None = None
-    indices: tuple[tuple[str, int], ...] = ()
-    references: tuple[str, ...] = ()
-    reference_nominal: tuple[tuple[str, sp.Expr], ...] = ()
-    estimator: Estimator | None = None
-    constraints: tuple[Constraint, ...] = ()
-    barrier: Barrier | None = None
-    allow_nonconvex: bool = False
-    equalities: tuple[Constraint, ...] = ()
-
-
-@dataclass(frozen=True)
-class Constraint:
-    """One constraint of ``[constraints]``: ``lhs op rhs``.
-
-    Attributes
-    ----------
-    name : str
-        Its key in the spec.
-    op : str
-        ``"<="``, ``">="`` or ``"=="``.
-    lhs, rhs : sympy.Expr
-        The two sides, in outputs, signals, references, parameters and ``t``.
-    text : str
-        As written.
-    """
-
-    name: str
-    op: str
-    lhs: sp.Expr
-    rhs: sp.Expr
-    text: str
-
-    @property
-    def g(self) -> sp.Expr:
-        """``g(y, t) <= 0`` (``a(y, t) = 0`` for an equality): ``lhs - rhs`` or its negative."""
-        return self.rhs - self.lhs if self.op == ">=" else self.lhs - self.rhs
-
-
-@dataclass(frozen=True)
-class Barrier:
-    """The interior-point homotopy's schedule (``[constraints.barrier]``).
-
-    Attributes
-    ----------
-    initial_weight, final_weight, rate : float
-        ``mu(t) = mu_inf + (mu_0 - mu_inf) exp(-rate t)``; the slack decays at the same rate.
-    initial_slack : float or None
-        ``s(0)``; None: from the initial outputs (twice the largest violation plus 0.1,
-        or 0 when the start is strictly feasible).
-    """
-
-    initial_weight: float = 1.0
-    final_weight: float = 1e-4
-    rate: float = 1.0
-    initial_slack: float | None = None
-
-
-#: The differentiators a spec may choose for its references.
-ESTIMATOR_KINDS = ("linear", "levant")
-
-
-@dataclass(frozen=True)
-class Estimator:
-    """How reference samples become derivative jets (``[references.estimator]``).
-
-    Attributes
-    ----------
-    kind : str
-        ``"linear"``: a high-gain linear differentiator, every pole at ``-bandwidth``;
-        ``"levant"``: Levant's robust exact differentiator for signals whose next
-        derivative is bounded by ``lipschitz``.
-    bandwidth : float
-        rad/s, for ``linear``.
-    lipschitz : float
-        The bound ``L`` on ``|r^(q+1)|``, for ``levant``.
-    """
-
-    kind: str = "linear"
-    bandwidth: float = 20.0
-    lipschitz: float = 1.0
 
 
 _TOP_KEYS = {
@@ -245,149 +61,6 @@ _TOP_KEYS = {
 }
 
 
-def bundled_examples() -> dict[str, str]:
-    """Return the bundled example specs: name -> first line of the description."""
-    found: dict[str, str] = {}
-    for entry in sorted(resources.files("tvopt_codegen.examples").iterdir(), key=lambda e: e.name):
-        if entry.name.endswith(".toml"):
-            data = tomllib.loads(entry.read_text(encoding="utf-8"))
-            found[entry.name[: -len(".toml")]] = str(data.get("description", "")).splitlines()[0]
-    return found
-
-
-def read_spec_bytes(spec: str | Path) -> tuple[str, bytes]:
-    """Find a spec by path or bundled-example name and return (display name, bytes).
-
-    Parameters
-    ----------
-    spec : str or pathlib.Path
-        A path to a TOML file, or the name of a bundled example.
-
-    Returns
-    -------
-    tuple of (str, bytes)
-        The name to use in messages and the raw file content.
-
-    Raises
-    ------
-    SpecError
-        When neither a readable file nor a bundled example of that name exists.
-    """
-    path = Path(spec)
-    if path.suffix.lower() in {".yaml", ".yml"}:
-        raise SpecError(
-            str(spec),
-            "(file)",
-            "YAML specs are not supported (YAML 1.1 reads no as "
-            "false and 1e-3 as a string); write the spec in TOML",
-        )
-    if path.is_file():
-        size = path.stat().st_size
-        if size > MAX_SPEC_BYTES:
-            raise SpecError(
-                str(spec), "(file)", f"file is {size} bytes; the limit is {MAX_SPEC_BYTES}"
-            )
-        try:
-            return str(spec), path.read_bytes()
-        except OSError as exc:
-            raise SpecError(str(spec), "(file)", f"cannot read: {exc.strerror}") from None
-    if path.exists():
-        raise SpecError(str(spec), "(file)", "not a regular file")
-    name = str(spec)
-    examples = resources.files("tvopt_codegen.examples")
-    candidate = examples / f"{name}.toml"
-    if name.isidentifier() and candidate.is_file():
-        return f"{name}.toml{BUNDLED_SUFFIX}", candidate.read_bytes()
-    known = ", ".join(bundled_examples())
-    raise SpecError(
-        str(spec), "(file)", f"no such file, and no bundled example of that name ({known})"
-    )
-
-
-def load_spec(spec: str | Path) -> Spec:
-    """Read, validate and parse a spec file.
-
-    Parameters
-    ----------
-    spec : str or pathlib.Path
-        A path to a TOML spec, or the name of a bundled example
-        (see :func:`bundled_examples`).
-
-    Returns
-    -------
-    Spec
-        The validated spec.
-
-    Raises
-    ------
-    SpecError
-        For any problem, naming the file, the field and the problem.
-    """
-    source, raw = read_spec_bytes(spec)
-    return parse_spec(source, raw)
-
-
-def spec_from_dict(data: Mapping[str, Any], source: str = "<python>") -> Spec:
-    """A spec from a mapping laid out as the TOML file would be: no file needed.
-
-    Parameters
-    ----------
-    data : mapping
-        Tables as dicts, lists as lists, expressions as strings, numbers as numbers.
-    source : str
-        The name messages give it.
-
-    Returns
-    -------
-    Spec
-        The validated spec; its SHA-256 is that of the mapping as canonical JSON.
-
-    Raises
-    ------
-    SpecError
-        For any problem, naming the field and the problem.
-    """
-    if not isinstance(data, Mapping):
-        raise SpecError(source, "(spec)", f"expected a mapping, got {type(data).__name__}")
-    try:
-        canonical = json.dumps(data, sort_keys=True, allow_nan=False).encode("utf-8")
-    except (TypeError, ValueError) as exc:
-        raise SpecError(source, "(spec)", f"not a plain mapping of tables: {exc}") from None
-    return _Reader(source).read(data, hashlib.sha256(canonical).hexdigest())
-
-
-def parse_spec(source: str, raw: bytes) -> Spec:
-    """Validate and parse spec bytes; ``source`` names them in messages.
-
-    Parameters
-    ----------
-    source : str
-        Display name of the spec, used in every error message.
-    raw : bytes
-        The file content (UTF-8 TOML).
-
-    Returns
-    -------
-    Spec
-        The validated spec.
-    """
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise SpecError(source, "(file)", f"not UTF-8 text (byte {exc.start})") from None
-    if "\x00" in text:
-        raise SpecError(source, "(file)", "binary file (contains NUL bytes)")
-    try:
-        check_shape(text)
-    except ShapeError as exc:
-        raise SpecError(source, "(file)", str(exc)) from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise SpecError(source, "(file)", f"TOML syntax error: {exc}") from None
-    return _Reader(source).read(data, hashlib.sha256(raw).hexdigest())
-
-
 #: The kind of name each declaring field holds.
 _ROLES = {
     "system.states": "state",
@@ -397,6 +70,8 @@ _ROLES = {
     "signals": "signal",
     "references": "reference",
 }
+
+
 #: What the expressions of each field may use (for a name of another kind).
 _ALLOWED = (
     ("system.dynamics", "the dynamics are functions of the states, inputs and parameters"),
@@ -411,6 +86,7 @@ _ALLOWED = (
     ("parameters", "parameters are constants"),
     ("simulation", "initial values are constants"),
 )
+
 
 #: A key or list item after expansion: the flat name, its value, the index values
 #: it was expanded with, and the field to name in messages.

@@ -1,0 +1,194 @@
+"""What a read spec is: :class:`Spec` and its parts (constraints, barrier, estimator).
+
+Names, numbers and sympy expressions; nothing in it has been derived yet.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import sympy as sp
+
+#: Most integrators one input may be prolonged by.
+MAX_INTEGRATORS = 8
+
+
+#: The symbol for time in every expression.
+TIME = sp.Symbol("t", real=True)
+
+
+def symbol(name: str) -> sp.Symbol:
+    """Return the sympy symbol that stands for a declared name (always real)."""
+    return sp.Symbol(name, real=True)
+
+
+@dataclass(frozen=True)
+class Spec:
+    """A validated spec: names, numbers and parsed expressions.
+
+    Attributes
+    ----------
+    source : str
+        How the spec was named (a path, or ``<name> (bundled example)``).
+    sha256 : str
+        SHA-256 of the spec file's bytes; stamped into every generated file.
+    name, description : str
+        Module name and free text.
+    states, inputs, outputs : tuple of str
+        Declared names, in declaration order.
+    dynamics : tuple of sympy.Expr
+        Right-hand side of each state equation, in state order.
+    output_exprs : tuple of sympy.Expr
+        Each output as an expression in the states and parameters.
+    parameters : tuple of (str, float)
+        Parameter names and default values.
+    signals : tuple of (str, sympy.Expr)
+        Time signals as explicit expressions in ``t`` and the parameters (references
+        to earlier signals already substituted).
+    objective : sympy.Expr
+        ``f0`` in the output symbols, signal symbols, parameters and ``t``.
+    extension : tuple of (str, int)
+        Inputs to prolong and their number of integrators, in input order.
+    poles : tuple of complex, or None
+        Requested eigenvalues of the error dynamics (conjugates included).
+    coefficients : tuple of float, or None
+        Requested ``a_0 ... a_{k-1}`` of the companion matrix.
+    t_final : float
+        Simulation horizon.
+    initial_state : tuple of (str, float)
+        Initial values by state name, as written.
+    agents : tuple of (str, str)
+        Output pairs drawn as planar paths (default: consecutive output pairs).
+    objects : tuple of (str, str)
+        Signal pairs drawn as moving objects in the planar figure.
+    extension_auto : bool
+        Search the dynamic extension instead of taking ``extension``.
+    extension_max_total : int or None
+        Largest total number of integrators the search tries (default: the number of
+        plant states).
+    indices : tuple of (str, int)
+        The ``[index]`` table: each index and its count. Indexed names are already
+        expanded everywhere else (``x[i]`` with ``i = 3`` is ``x_0, x_1, x_2``).
+    references : tuple of str
+        Targets measured at run time (``[references] names``): used in signals and the
+        objective like signals, their derivative jets supplied with every call.
+    reference_nominal : tuple of (str, sympy.Expr)
+        A closed form in ``t`` and the parameters for some references (``nominal``): the
+        convexity check, ``simulate`` without samples and the report use it.
+    estimator : Estimator or None
+        The differentiator that turns reference samples into jets (None without
+        references).
+    constraints : tuple of Constraint
+        ``[constraints]``: inequalities on the outputs, kept by an interior-point
+        homotopy (see :mod:`tvopt_codegen.constraints`).
+    barrier : Barrier
+        The homotopy's weight and slack schedule.
+    allow_nonconvex : bool
+        Accept inequalities that are not convex in the outputs, or equalities that are
+        not affine in them (the certificate is then local only).
+    equalities : tuple of Constraint
+        ``[constraints]`` written with ``==``: ``a_j(y, t) = 0``, kept by the KKT system
+        with a multiplier chain per equality (see :mod:`tvopt_codegen.constraints`).
+    """
+
+    source: str
+    sha256: str
+    name: str
+    description: str
+    states: tuple[str, ...]
+    inputs: tuple[str, ...]
+    dynamics: tuple[sp.Expr, ...]
+    outputs: tuple[str, ...]
+    output_exprs: tuple[sp.Expr, ...]
+    parameters: tuple[tuple[str, float], ...]
+    signals: tuple[tuple[str, sp.Expr], ...]
+    objective: sp.Expr
+    extension: tuple[tuple[str, int], ...]
+    poles: tuple[complex, ...] | None
+    coefficients: tuple[float, ...] | None
+    t_final: float
+    initial_state: tuple[tuple[str, float], ...]
+    agents: tuple[tuple[str, str], ...] = ()
+    objects: tuple[tuple[str, str], ...] = ()
+    extension_auto: bool = False
+    extension_max_total: int | None = None
+    indices: tuple[tuple[str, int], ...] = ()
+    references: tuple[str, ...] = ()
+    reference_nominal: tuple[tuple[str, sp.Expr], ...] = ()
+    estimator: Estimator | None = None
+    constraints: tuple[Constraint, ...] = ()
+    barrier: Barrier | None = None
+    allow_nonconvex: bool = False
+    equalities: tuple[Constraint, ...] = ()
+
+
+@dataclass(frozen=True)
+class Constraint:
+    """One constraint of ``[constraints]``: ``lhs op rhs``.
+
+    Attributes
+    ----------
+    name : str
+        Its key in the spec.
+    op : str
+        ``"<="``, ``">="`` or ``"=="``.
+    lhs, rhs : sympy.Expr
+        The two sides, in outputs, signals, references, parameters and ``t``.
+    text : str
+        As written.
+    """
+
+    name: str
+    op: str
+    lhs: sp.Expr
+    rhs: sp.Expr
+    text: str
+
+    @property
+    def g(self) -> sp.Expr:
+        """``g(y, t) <= 0`` (``a(y, t) = 0`` for an equality): ``lhs - rhs`` or its negative."""
+        return self.rhs - self.lhs if self.op == ">=" else self.lhs - self.rhs
+
+
+@dataclass(frozen=True)
+class Barrier:
+    """The interior-point homotopy's schedule (``[constraints.barrier]``).
+
+    Attributes
+    ----------
+    initial_weight, final_weight, rate : float
+        ``mu(t) = mu_inf + (mu_0 - mu_inf) exp(-rate t)``; the slack decays at the same rate.
+    initial_slack : float or None
+        ``s(0)``; None: from the initial outputs (twice the largest violation plus 0.1,
+        or 0 when the start is strictly feasible).
+    """
+
+    initial_weight: float = 1.0
+    final_weight: float = 1e-4
+    rate: float = 1.0
+    initial_slack: float | None = None
+
+
+#: The differentiators a spec may choose for its references.
+ESTIMATOR_KINDS = ("linear", "levant")
+
+
+@dataclass(frozen=True)
+class Estimator:
+    """How reference samples become derivative jets (``[references.estimator]``).
+
+    Attributes
+    ----------
+    kind : str
+        ``"linear"``: a high-gain linear differentiator, every pole at ``-bandwidth``;
+        ``"levant"``: Levant's robust exact differentiator for signals whose next
+        derivative is bounded by ``lipschitz``.
+    bandwidth : float
+        rad/s, for ``linear``.
+    lipschitz : float
+        The bound ``L`` on ``|r^(q+1)|``, for ``levant``.
+    """
+
+    kind: str = "linear"
+    bandwidth: float = 20.0
+    lipschitz: float = 1.0
