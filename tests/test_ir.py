@@ -12,16 +12,18 @@ import sympy as sp
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from tvopt_codegen import cse
 from tvopt_codegen.cse import (
-    _substitute,
+    assembly,
     canonical_odd,
     make_kernel,
     make_kernels,
+    numbering,
     operation_count,
     ordered_cse,
+    rewrite,
     split_invariant,
 )
+from tvopt_codegen.cse.rewrite import _substitute
 from tvopt_codegen.kernel import Arg, Kernel, Output
 from tvopt_codegen.sparse import cholesky_program, elimination_order, reverse_cuthill_mckee
 
@@ -110,13 +112,16 @@ def test_inlining_follows_the_uses_that_collecting_terms_removes() -> None:
         program.append((u[j], s[j] + xs[j] * s[j - 1]))
     out = sp.Add(*(s[j] + 2 * u[j] for j in range(1, 8)))
     # One call reaches the fixed point (it used to take a pass per level).
-    once, once_outs = cse._inline_single_use(program, [out])
+    once, once_outs = numbering._inline_single_use(program, [out])
     uses = _uses(once, once_outs)
     assert all(uses[sym] > 1 for sym, _ in once), [(sym, uses[sym]) for sym, _ in once]
     # _reduce stops at the first round whose inlining removes nothing: another round
     # of merging and inlining must then change nothing.
-    order, order_outs = cse._reduce(program, [out], search=False)
-    assert cse._inline_single_use(*cse._merge_equal(order, order_outs)) == (order, order_outs)
+    order, order_outs = numbering._reduce(program, [out], search=False)
+    assert numbering._inline_single_use(*numbering._merge_equal(order, order_outs)) == (
+        order,
+        order_outs,
+    )
     body, outs = ordered_cse(program, [out], search=False)
     point = {x: 0.1 * (i + 1) for i, x in enumerate(xs)}
     full = sp.Add(*(s[j] + 2 * u[j] for j in range(1, 8)))
@@ -131,7 +136,8 @@ def test_number_outputs_pass_through_lowering_in_place(
 ) -> None:
     # A Hessian-like output, mostly numbers, lowered together with another kernel and
     # alone: the numbers come out where they were, and no pass ever sees them.
-    monkeypatch.setattr(cse, "SMALL_PROGRAM_OPS", small_program_ops)
+    monkeypatch.setattr(assembly, "SMALL_PROGRAM_OPS", small_program_ops)
+    monkeypatch.setattr(numbering, "SMALL_PROGRAM_OPS", small_program_ops)
     s0, p0 = sp.symbols("_s0 _p0", real=True)
     g = [sp.Symbol(f"_g{i}", real=True) for i in range(3)]
     program = [(g[0], sp.sin(x * a)), (g[1], g[0] ** 2 + x), (g[2], g[1] * g[0] + a)]
@@ -144,9 +150,9 @@ def test_number_outputs_pass_through_lowering_in_place(
         ("grad", "no numbers", inputs, [("d", (2,), [g[2], g[1] * a], "")]),
     ]
     seen: list[sp.Expr] = []
-    prepare = cse._prepare
+    prepare = assembly._prepare
     monkeypatch.setattr(
-        cse, "_prepare", lambda a, e, *r, **k: seen.extend(e) or prepare(a, e, *r, **k)
+        assembly, "_prepare", lambda a, e, *r, **k: seen.extend(e) or prepare(a, e, *r, **k)
     )
     env = {t: 0.3, s0: 0.8, p0: 1.7}
     together = make_kernels(specs, program, subs, odd={})
@@ -170,7 +176,8 @@ def test_kernels_lowered_together_compute_what_they_compute_apart(
 ) -> None:
     # A jet-like program read by two kernels (one needs a prefix of it), lowered
     # together once both are "large" (the limit lowered to make them so).
-    monkeypatch.setattr(cse, "SMALL_PROGRAM_OPS", 5)
+    monkeypatch.setattr(assembly, "SMALL_PROGRAM_OPS", 5)
+    monkeypatch.setattr(numbering, "SMALL_PROGRAM_OPS", 5)
     s0, s1, p0 = sp.symbols("_s0 _s1 _p0", real=True)
     g = [sp.Symbol(f"_g{i}", real=True) for i in range(6)]
     program = [
@@ -190,8 +197,8 @@ def test_kernels_lowered_together_compute_what_they_compute_apart(
     first = ("first", "all of it", inputs, [("o", (2,), [g[5], g[4] * g[1]], "")])
     second = ("second", "a prefix", inputs, [("e", (2,), [g[2], g[3] - g[0]], "")])
     reduced = []
-    reduce = cse._reduce
-    monkeypatch.setattr(cse, "_reduce", lambda *a, **k: reduced.append(1) or reduce(*a, **k))
+    reduce = numbering._reduce
+    monkeypatch.setattr(assembly, "_reduce", lambda *a, **k: reduced.append(1) or reduce(*a, **k))
     together = make_kernels([first, second], program, subs, odd={})
     assert len(reduced) == 1  # one lowering for both
     apart = [
@@ -377,12 +384,12 @@ def _expressions() -> st.SearchStrategy[sp.Expr]:
 @given(_expressions(), st.dictionaries(st.sampled_from(_LEAVES[:4]), _expressions(), max_size=3))
 @settings(max_examples=400, deadline=None)
 def test_substitution_builds_what_sympy_builds(expr: sp.Expr, mapping: dict) -> None:
-    """Sums and products rebuilt without flatten (cse._sorted_args) are sympy's own:
+    """Sums and products rebuilt without flatten (rewrite._sorted_args) are sympy's own:
     the same tree, argument for argument, whatever the substitution splices or folds."""
-    from tvopt_codegen.cse import _negate, _substitute
+    from tvopt_codegen.cse.rewrite import _negate, _substitute
 
     def reference(node: sp.Basic) -> sp.Basic:
-        # cse._rebuild's rule for functions (not re-evaluated on symbolic arguments),
+        # rewrite._rebuild's rule for functions (not re-evaluated on symbolic arguments),
         # sympy's full constructor for everything else.
         if node in mapping:
             return mapping[node]
@@ -402,7 +409,7 @@ def test_a_sum_rebuilt_around_sympys_nested_product() -> None:
     ``2*(1.105...*exp(a))``, and ``Add.flatten`` rebuilds such a term from its coefficient
     and the rest: a sum rebuilt around it is flatten's, not a re-sorted copy (a case the
     substitution property test above found)."""
-    from tvopt_codegen.cse import _substitute
+    from tvopt_codegen.cse.rewrite import _substitute
 
     a = sp.Symbol("a", real=True)
     nested = sp.Mul(2, sp.exp(a + sp.Float(0.1), evaluate=False))
@@ -417,7 +424,7 @@ def test_a_sum_rebuilt_around_sympys_nested_product() -> None:
 def test_an_exact_expansion_negated_is_the_negations_expansion(expr: sp.Expr) -> None:
     """canonical_odd expands an odd function's argument once and negates the terms for
     the mirrored argument: the same tree as expanding the negation, without floats."""
-    from tvopt_codegen.cse import _negate
+    from tvopt_codegen.cse.rewrite import _negate
 
     assume(not expr.has(sp.Float))
     assert sp.srepr(_negate(sp.expand(expr))) == sp.srepr(sp.expand(-expr))
@@ -426,7 +433,7 @@ def test_an_exact_expansion_negated_is_the_negations_expansion(expr: sp.Expr) ->
 @given(st.lists(_expressions(), min_size=1, max_size=6))
 @settings(max_examples=200, deadline=None)
 def test_symbols_in_is_the_union_of_free_symbols(exprs: list[sp.Expr]) -> None:
-    assert cse.symbols_in(exprs) == set().union(*(e.free_symbols for e in exprs))
+    assert rewrite.symbols_in(exprs) == set().union(*(e.free_symbols for e in exprs))
 
 
 @st.composite
@@ -459,11 +466,11 @@ def test_merging_also_drops_aliases_and_computes_the_same(program: tuple) -> Non
     same numbers, no alias and no value twice (or negated) is left, and nothing is
     kept that dropping aliases first, then merging, would have removed."""
     order, outs = program
-    merged, merged_outs = cse._merge_equal(order, outs)
-    apart, apart_outs = cse._merge_equal(*cse._drop_aliases(order, outs))
+    merged, merged_outs = numbering._merge_equal(order, outs)
+    apart, apart_outs = numbering._merge_equal(*numbering._drop_aliases(order, outs))
     assert len(merged) <= len(apart)
     values = [value for _, value in merged]
-    assert not any(v.is_Atom or cse._negated_atom(v) for v in values)
+    assert not any(v.is_Atom or rewrite._negated_atom(v) for v in values)
     assert len(set(values)) == len(values) and not set(values) & {-v for v in values}
     point = {leaf: 0.1 * (k + 2) for k, leaf in enumerate(_LEAVES[:4])}
     want = _evaluate(order, outs, point)
@@ -483,7 +490,7 @@ def test_a_kernel_reading_a_symbol_it_is_not_given_is_refused() -> None:
 def test_substituting_and_signing_odd_functions_in_one_pass(expr: sp.Expr, mapping: dict) -> None:
     """_prepare substitutes slots and gives odd functions their canonical sign in one
     walk: the same tree as substituting, then canonical_odd."""
-    from tvopt_codegen.cse import _substitute
+    from tvopt_codegen.cse.rewrite import _substitute
 
     two_passes = canonical_odd(_substitute(expr, mapping), {})
     assert sp.srepr(_substitute(expr, mapping, {}, {})) == sp.srepr(two_passes)
@@ -492,7 +499,7 @@ def test_substituting_and_signing_odd_functions_in_one_pass(expr: sp.Expr, mappi
 def test_a_number_beside_a_sum_is_distributed_exactly_where_sympy_does() -> None:
     """Substitution distributes a number over a sum where flatten does (a product of two
     arguments, or of the number and the sum alone), and nowhere else."""
-    from tvopt_codegen.cse import _substitute
+    from tvopt_codegen.cse.rewrite import _substitute
 
     g, h = sp.symbols("_g _h", real=True)
     values = {g: a + y, h: 2 * x}

@@ -1,0 +1,301 @@
+"""Kernels from programs: slots substituted, CSE, and the time-only part split off.
+
+Kernels that read one program are lowered together (:func:`make_kernels`).
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping, Sequence
+
+import sympy as sp
+
+from tvopt_codegen.cse.numbering import (
+    SMALL_PROGRAM_OPS,
+    _inline_single_use,
+    _number,
+    _prune,
+    _reduce,
+    ordered_cse,
+)
+from tvopt_codegen.cse.rewrite import (
+    _rebuild,
+    _substitute,
+    canonical_odd,
+    operation_count,
+    symbols_in,
+)
+from tvopt_codegen.jet import Assignment, fresh_symbols, release, unchanged
+from tvopt_codegen.kernel import Arg, Kernel, Output
+
+#: A kernel's outputs: (name, shape, expressions in row-major order, description).
+Outputs = Sequence[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]]
+
+
+def _prepare(
+    assignments: Sequence[Assignment],
+    exprs: Sequence[sp.Expr],
+    subs: Mapping[sp.Symbol, sp.Expr],
+    odd: dict[sp.Basic, sp.Expr] | None,
+    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
+) -> tuple[list[Assignment], list[sp.Expr]]:
+    """What ``exprs`` need of the program, with slots substituted and odd functions signed."""
+    # Only what the outputs need: the gradient kernel, say, reads the jet's first part.
+    assignments = _prune(assignments, exprs, symbols)
+    slots: dict[sp.Basic, sp.Basic] = {}
+    signs: dict[sp.Basic, sp.Expr] = {} if odd is None else odd
+    # Slots are symbols: substituting and signing odd functions is one pass.
+    if not all(value.is_Atom for value in subs.values()):
+        subs = {sym: canonical_odd(value, signs) for sym, value in subs.items()}
+    program = [(sym, _substitute(value, subs, slots, signs)) for sym, value in assignments]
+    return program, [_substitute(e, subs, slots, signs) for e in exprs]
+
+
+def _package(
+    name: str,
+    doc: str,
+    inputs: Sequence[Arg],
+    outputs: Outputs,
+    body: Sequence[Assignment],
+    reduced: Sequence[sp.Expr],
+    before: int,
+) -> Kernel:
+    """The kernel of a CSE'd program, its outputs cut to their shapes; checks its symbols."""
+    packed: list[Output] = []
+    start = 0
+    for out_name, shape, exprs, out_doc in outputs:
+        packed.append(Output(out_name, shape, tuple(reduced[start : start + len(exprs)]), out_doc))
+        start += len(exprs)
+    allowed = {s for arg in inputs for s in arg.symbols} | {sym for sym, _ in body}
+    allowed.add(sp.Symbol("t", real=True))
+    stray = symbols_in([v for _, v in body] + list(reduced)) - allowed
+    if stray:
+        raise AssertionError(f"kernel {name}: unbound symbols {sorted(map(str, stray))}")
+    return Kernel(
+        name,
+        doc,
+        tuple(inputs),
+        tuple(body),
+        tuple(packed),
+        operation_count([v for _, v in body] + list(reduced)),
+        before,
+    )
+
+
+def _flat(outputs: Outputs) -> list[sp.Expr]:
+    return [e for _, _, exprs, _ in outputs for e in exprs]
+
+
+def _symbolic(outputs: Outputs) -> tuple[list[sp.Expr], list[int]]:
+    """A kernel's output expressions that are not numbers, and their places in ``_flat``.
+
+    Numbers need no substitution, CSE or inlining, but each pass did its per-expression
+    work on every one: a team's Hessian is almost all zeros (259 thousand of its 262
+    thousand entries at 256 agents), and lowering it took longer than the objective's
+    and gradient's kernels together.
+    """
+    flat = _flat(outputs)
+    where = [i for i, e in enumerate(flat) if not isinstance(e, sp.Number)]
+    return [flat[i] for i in where], where
+
+
+def _scatter(outputs: Outputs, where: Sequence[int], reduced: Sequence[sp.Expr]) -> list[sp.Expr]:
+    """The outputs, flat, with the reduced expressions put back at ``where``."""
+    flat = _flat(outputs)
+    for i, expr in zip(where, reduced, strict=True):
+        flat[i] = expr
+    return flat
+
+
+def make_kernel(
+    name: str,
+    doc: str,
+    inputs: Sequence[Arg],
+    assignments: Sequence[Assignment],
+    outputs: Outputs,
+    subs: Mapping[sp.Symbol, sp.Expr],
+    odd: dict[sp.Basic, sp.Expr] | None = None,
+    search: bool = True,
+    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
+) -> Kernel:
+    """Substitute slot symbols, CSE, and package a kernel.
+
+    ``odd`` is the :func:`canonical_odd` memo shared by one controller's kernels, and
+    ``symbols`` the memo of free symbols (:func:`_prune`): the kernels read the same
+    programs. ``search=False`` skips sympy's search for common sub-sums
+    (:func:`ordered_cse`).
+    """
+    exprs, where = _symbolic(outputs)
+    program, flat = _prepare(assignments, exprs, subs, odd, symbols)
+    before = operation_count([v for _, v in program] + flat)
+    body, reduced = ordered_cse(program, flat, search)
+    return _package(name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before)
+
+
+def make_kernels(
+    kernels: Sequence[tuple[str, str, Sequence[Arg], Outputs]],
+    assignments: Sequence[Assignment],
+    subs: Mapping[sp.Symbol, sp.Expr],
+    odd: dict[sp.Basic, sp.Expr] | None = None,
+    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
+) -> list[Kernel]:
+    """Kernels (name, doc, inputs, outputs) over one program, lowered together when large.
+
+    ``odd`` and ``symbols`` are memos one controller's kernels share (:func:`make_kernel`).
+
+    The jet kernel and the optimality error read the same gradient jet; lowered apart,
+    each substitutes, numbers and inlines it anew (a third of lowering's time on a ring
+    of 64 agents, half of it for a k = 12 chain). When every kernel is large enough
+    for value numbering alone (:data:`SMALL_PROGRAM_OPS`), the program and all outputs
+    are reduced once, and each kernel keeps what its outputs need, inlining what is
+    then used once. Smaller kernels are made one by one, as :func:`make_kernel` would:
+    sympy's fuller search suits them, and a union could pass its size limit.
+    """
+    symbolic = [_symbolic(outputs) for *_, outputs in kernels]
+    sizes = [len(exprs) for exprs, _ in symbolic]
+    # The kernels cut from one program share its nodes: each is walked once.
+    symbols = {} if symbols is None else symbols
+    program, flat = _prepare(
+        assignments, [e for exprs, _ in symbolic for e in exprs], subs, odd, symbols
+    )
+    ends = list(itertools.accumulate(sizes))
+    parts = [flat[end - size : end] for size, end in zip(sizes, ends, strict=True)]
+    counts: dict[sp.Basic, int] = {}
+    programs = [_prune(program, part, symbols) for part in parts]
+    befores = [
+        operation_count([v for _, v in mine] + part, counts)
+        for mine, part in zip(programs, parts, strict=True)
+    ]
+    wheres = [where for _, where in symbolic]
+    if len(kernels) < 2 or min(befores) <= SMALL_PROGRAM_OPS:
+        made = []
+        for (name, doc, inputs, outputs), mine, part, where, before in zip(
+            kernels, programs, parts, wheres, befores, strict=True
+        ):
+            body, reduced = ordered_cse(mine, part)
+            made.append(
+                _package(
+                    name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before
+                )
+            )
+        return made
+    order, outs = _reduce(program, flat, search=False, symbols=symbols)
+    made = []
+    for (name, doc, inputs, outputs), size, end, where, before in zip(
+        kernels, sizes, ends, wheres, befores, strict=True
+    ):
+        mine = outs[end - size : end]
+        body, reduced = _number(*_inline_single_use(_prune(order, mine, symbols), mine))
+        made.append(
+            _package(name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before)
+        )
+    return made
+
+
+#: Inputs that are the same for every state of a batch (one time, one parameter vector).
+_INVARIANT_INPUTS = ("t", "p", "a")
+
+
+def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel] | None:
+    """Split off the part of ``kernel`` that depends on time and parameters alone.
+
+    A batch of states at one time shares everything that does not involve the state:
+    the signals and their derivatives, a switch such as ``tanh((t - a)/b)``, sums of
+    such terms inside a state-dependent expression. Those become a kernel of
+    :data:`_INVARIANT_INPUTS` that returns them as one array ``tau``; the remaining
+    kernel reads ``tau`` as an input. Temporaries keep their names; a hoisted sub-sum or
+    sub-product of a larger expression gets a name ``_h0, _h1, ...``.
+
+    Returns
+    -------
+    (Kernel, Kernel) or None
+        The invariant kernel ``name`` and the rest (``kernel``'s name, inputs plus
+        ``tau``), or None when nothing would be shared.
+    """
+    invariant_args = [arg for arg in kernel.inputs if arg.name in _INVARIANT_INPUTS]
+    given: set[sp.Basic] = {sym for arg in invariant_args for sym in arg.symbols}
+    given.add(sp.Symbol("t", real=True))
+    invariant = set(given)
+    time_body: list[Assignment] = []
+    for sym, value in kernel.body:
+        if value.free_symbols <= invariant:
+            invariant.add(sym)
+            time_body.append((sym, value))
+    if not time_body:
+        return None
+    names = fresh_symbols("_h")
+    shared: dict[sp.Expr, sp.Symbol] = {}  # invariant value -> the state part's name for it
+    memo: dict[sp.Basic, sp.Expr] = {}
+
+    known: dict[sp.Basic, bool] = {}
+
+    def fixed(node: sp.Basic) -> bool:
+        # Bottom-up and memoized: sympy's free_symbols walks the whole subtree on every
+        # call, which made hoisting quadratic in an expression's depth.
+        if not node.args:
+            return not node.is_Symbol or node in invariant
+        found = known.get(node)
+        if found is None:
+            found = known[node] = all(fixed(arg) for arg in node.args)
+        return found
+
+    def share(node: sp.Expr) -> sp.Expr:
+        # Numbers and the inputs themselves are at hand in the state part already.
+        if node.is_Number or node in given:
+            return node
+        if node not in shared:
+            shared[node] = node if node in invariant else next(names)
+        return shared[node]
+
+    def hoist(node: sp.Basic) -> sp.Expr:
+        if node.is_Atom:
+            return share(node) if node.is_Symbol and node in invariant else node
+        if node in memo:
+            return memo[node]
+        if fixed(node):
+            new = share(node)
+        elif (node.is_Add or node.is_Mul) and any(fixed(a) for a in node.args):
+            # (x + t + 1) -> x + _h0: the invariant terms or factors become one.
+            part = [a for a in node.args if fixed(a)]
+            rest = [hoist(a) for a in node.args if not fixed(a)]
+            new = _rebuild(node, [*rest, share(_rebuild(node, part))])
+        else:
+            args = [hoist(a) for a in node.args]
+            # Nothing hoisted below: the node as it is (rebuilding would give it back).
+            new = node if unchanged(node, args) else _rebuild(node, args)
+        memo[node] = new
+        return new
+
+    state_body = tuple((sym, hoist(value)) for sym, value in kernel.body if sym not in invariant)
+    state_outputs = tuple(
+        Output(out.name, out.shape, tuple(hoist(sp.sympify(e)) for e in out.exprs), out.doc)
+        for out in kernel.outputs
+    )
+    release(hoist)
+    release(fixed)
+    tau_values = list(shared)
+    time_program = _prune(time_body, tau_values)
+    tau = Output("tau", (len(tau_values),), tuple(tau_values), "terms of time and parameters")
+    time_ops = operation_count([v for _, v in time_program] + tau_values)
+    time_kernel = Kernel(
+        name, doc, tuple(invariant_args), tuple(time_program), (tau,), time_ops, time_ops
+    )
+    arg_tau = Arg(
+        "tau",
+        tuple(shared.values()),
+        tuple(f"{name} tau[{i}]" for i in range(len(shared))),
+        f"terms of time and parameters alone ({name})",
+    )
+    state_ops = operation_count(
+        [v for _, v in state_body] + [e for o in state_outputs for e in o.exprs]
+    )
+    state_kernel = Kernel(
+        kernel.name,
+        kernel.doc,
+        (*kernel.inputs, arg_tau),
+        state_body,
+        state_outputs,
+        state_ops,
+        kernel.ops_before_cse - time_ops,
+    )
+    return time_kernel, state_kernel

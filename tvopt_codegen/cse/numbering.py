@@ -1,0 +1,357 @@
+"""Ordered common-subexpression elimination, in evaluation order.
+
+Value numbering, merging equal values and inlining values used once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+
+import sympy as sp
+
+from tvopt_codegen.cse.rewrite import (
+    _NEGATED_TERMS,
+    _negate,
+    _negated_atom,
+    _rebuild,
+    _substitute,
+    operation_count,
+)
+from tvopt_codegen.jet import Assignment, release, unchanged
+
+
+def _drop_aliases(
+    assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
+) -> tuple[list[Assignment], list[sp.Expr]]:
+    """Substitute assignments whose value is a bare symbol or constant, or its negation."""
+    alias: dict[sp.Symbol, sp.Expr] = {}
+    kept: list[Assignment] = []
+    # One memo for the whole program: in evaluation order a node can only hold symbols
+    # assigned before it, whose aliases are all decided when it is first met.
+    memo: dict[sp.Basic, sp.Basic] = {}
+    for sym, raw in assignments:
+        value = _substitute(raw, alias, memo)
+        if value.is_Atom or _negated_atom(value):
+            alias[sym] = value
+        else:
+            kept.append((sym, value))
+    return kept, [_substitute(e, alias, memo) for e in outputs]
+
+
+def _prune(
+    assignments: Sequence[Assignment],
+    outputs: Sequence[sp.Expr],
+    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
+) -> list[Assignment]:
+    """Drop assignments that no output needs (signal orders a kernel does not use).
+
+    ``symbols`` (expression -> its free symbols) may span calls over the same program:
+    sympy walks the tree anew each time it is asked.
+    """
+    known: dict[sp.Basic, set[sp.Basic]] = {} if symbols is None else symbols
+
+    def free(expr: sp.Basic) -> set[sp.Basic]:
+        found = known.get(expr)
+        if found is None:
+            found = known[expr] = sp.sympify(expr).free_symbols
+        return found
+
+    needed: set[sp.Basic] = set()
+    for e in outputs:
+        needed |= free(e)
+    kept: list[Assignment] = []
+    for sym, value in reversed(assignments):
+        if sym in needed:
+            kept.append((sym, value))
+            needed |= free(value)
+    return kept[::-1]
+
+
+#: Programs up to this many operations get sympy's full cse; larger ones value numbering.
+SMALL_PROGRAM_OPS = 1000
+
+
+def ordered_cse(
+    assignments: Sequence[Assignment], outputs: Sequence[sp.Expr], search: bool = True
+) -> tuple[tuple[Assignment, ...], tuple[sp.Expr, ...]]:
+    """CSE a straight-line program and its outputs, keeping evaluation order valid.
+
+    One ``sympy.cse`` pass sees every right-hand side and output. A common
+    subexpression found in an assignment only uses symbols defined before it, so each
+    extracted temporary is emitted just before its first use. Temporaries are then
+    renamed ``_t0, _t1, ...`` in emission order, which makes the text deterministic.
+
+    Parameters
+    ----------
+    assignments : sequence of (sympy.Symbol, sympy.Expr)
+        The program; right-hand sides use only earlier symbols and the inputs.
+    outputs : sequence of sympy.Expr
+        Output expressions over the program and the inputs.
+    search : bool
+        Allow sympy's ``cse`` (on programs up to :data:`SMALL_PROGRAM_OPS`), which also
+        finds common parts of sums and products. A program built one operation per
+        assignment (the Cholesky solve) has none to find: value numbering suffices.
+
+    Returns
+    -------
+    body : tuple of (sympy.Symbol, sympy.Expr)
+        The temporaries in evaluation order.
+    outputs : tuple of sympy.Expr
+        The reduced outputs.
+    """
+    return _number(*_reduce(assignments, outputs, search))
+
+
+def _reduce(
+    assignments: Sequence[Assignment],
+    outputs: Sequence[sp.Expr],
+    search: bool,
+    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
+) -> tuple[list[Assignment], list[sp.Expr]]:
+    """:func:`ordered_cse` up to naming: temporaries in evaluation order, reduced outputs.
+
+    ``symbols`` is :func:`_prune`'s memo of free symbols, when the caller has one.
+    """
+    kept, outs = _drop_aliases(_prune(assignments, outputs, symbols), outputs)
+    exprs = [value for _, value in kept] + outs
+    names = sp.numbered_symbols("_cse", real=True)
+    if search and operation_count(exprs) <= SMALL_PROGRAM_OPS:
+        # sympy's cse also finds common parts of sums and products (a*b in a*b*c and
+        # a*b*d): worth its superlinear time on the programs of a few agents only.
+        replacements, reduced = sp.cse(exprs, symbols=names, order="canonical")
+    else:
+        replacements, reduced = _value_numbering(exprs, names)
+    defined = dict(replacements)
+    order: list[Assignment] = []
+    emitted: set[sp.Symbol] = set()
+
+    def need(expr: sp.Expr) -> None:
+        # Not free_symbols & defined.keys() - emitted: "-" binds first, and the difference
+        # of the two large sets, once per value, was quadratic in the program's size.
+        missing = [s for s in expr.free_symbols if s in defined and s not in emitted]
+        for sym in sorted(missing, key=_cse_index):
+            need(defined[sym])
+            if sym not in emitted:
+                emitted.add(sym)
+                order.append((sym, defined[sym]))
+
+    for (sym, _), value in zip(kept, reduced[: len(kept)], strict=True):
+        need(value)
+        order.append((sym, value))
+    for value in reduced[len(kept) :]:
+        need(value)
+    release(need)
+    outs = list(reduced[len(kept) :])
+    # Merging equal values can leave a temporary with one use, and inlining can make
+    # two values equal: alternate to a fixed point (two rounds in practice). Each pass
+    # reaches its own fixed point, and inlining changes the program exactly when it
+    # removes a temporary: a round whose inlining removed none ends the loop.
+    while True:
+        order, outs = _merge_equal(order, outs)
+        size = len(order)
+        order, outs = _inline_single_use(order, outs)
+        if len(order) == size:
+            break
+    return order, outs
+
+
+def _number(
+    order: Sequence[Assignment], outs: Sequence[sp.Expr]
+) -> tuple[tuple[Assignment, ...], tuple[sp.Expr, ...]]:
+    """Rename the temporaries ``_t0, _t1, ...`` in evaluation order."""
+    renames: dict[sp.Symbol, sp.Expr] = {}
+    body: list[Assignment] = []
+    # One memo, as in _drop_aliases: a node holds only symbols renamed before it is met.
+    memo: dict[sp.Basic, sp.Basic] = {}
+    for index, (sym, value) in enumerate(order):
+        new = sp.Symbol(f"_t{index}", real=True)
+        body.append((new, _substitute(value, renames, memo)))
+        renames[sym] = new
+    return tuple(body), tuple(_substitute(e, renames, memo) for e in outs)
+
+
+def _value_numbering(
+    exprs: Sequence[sp.Expr], names: Iterable[sp.Symbol]
+) -> tuple[list[Assignment], list[sp.Expr]]:
+    """Common subexpression elimination by value numbering, linear in the DAG size.
+
+    Every compound subexpression that occurs more than once becomes a temporary. This
+    is the tree pass of ``sympy.cse`` without its search for common subsets of sums
+    and products, which is quadratic in their number of terms and took minutes on a
+    ring of three agents (issue 7). The jet arrives in three-address form, where
+    such subsets are already separate assignments, so little is lost.
+    """
+    names = iter(names)
+    seen: set[sp.Basic] = set()
+    repeated: set[sp.Basic] = set()
+
+    def worth(node: sp.Basic) -> bool:
+        # A negated symbol or number is not worth a temporary: printing it is free.
+        return not (node.is_Atom or _negated_atom(node))
+
+    def find(node: sp.Basic) -> None:
+        stack = [node]
+        while stack:
+            current = stack.pop()
+            if not worth(current):
+                continue
+            if current in seen:
+                repeated.add(current)
+                continue
+            seen.add(current)
+            stack.extend(current.args)
+
+    for expr in exprs:
+        find(expr)
+    replacements: list[Assignment] = []
+    built: dict[sp.Basic, sp.Expr] = {}
+
+    def build(node: sp.Basic) -> sp.Expr:
+        if node.is_Atom:
+            return node
+        if node in built:
+            return built[node]
+        args = [build(arg) for arg in node.args]
+        new = node if unchanged(node, args) else _rebuild(node, args)
+        if node in repeated:
+            sym = next(names)
+            replacements.append((sym, new))
+            new = sym
+        built[node] = new
+        return new
+
+    reduced = [build(sp.sympify(e)) for e in exprs]
+    release(build)
+    return replacements, reduced
+
+
+def _merge_equal(
+    order: list[Assignment], outputs: list[sp.Expr]
+) -> tuple[list[Assignment], list[sp.Expr]]:
+    """Merge temporaries that compute the same value as an earlier one, or its negation.
+
+    CSE compares expressions, not values, before its own replacements: two products
+    that only become equal once their factors are named stay apart (``a**2 + 1`` twice
+    after ``a = tan(...)`` was extracted). And a pairwise term such as a barrier between
+    agents a and b differentiates into ``xa - xb`` for one and ``xb - xa`` for the other.
+    One pass in evaluation order catches both, each match turning the next ones up.
+
+    Temporaries whose value is a symbol or constant, or its negation, are substituted
+    too, in the same walk (:func:`_drop_aliases` did it in a pass of its own): CSE
+    leaves them where the program computed a value found elsewhere first, a merge where
+    ``a - b`` meets ``b - a``, and inlining where terms cancel.
+    """
+    first: dict[sp.Basic, sp.Symbol] = {}
+    rename: dict[sp.Symbol, sp.Expr] = {}
+    # A node is rewritten once: a renamed symbol is only used after its assignment,
+    # so no node seen before a rename can contain it.
+    memo: dict[sp.Basic, sp.Basic] = {}
+    kept: list[Assignment] = []
+    for sym, raw in order:
+        value = _substitute(raw, rename, memo)
+        if value.is_Atom or _negated_atom(value):
+            rename[sym] = value
+            continue
+        if value in first:
+            rename[sym] = first[value]
+            continue
+        # Negating a long sum builds a new one term by term; exact opposites are short
+        # differences (xa - xb) and products, so longer sums are not tried.
+        if not (value.is_Add and len(value.args) > _NEGATED_TERMS):
+            negated = _negate(value)
+            if negated in first:
+                rename[sym] = -first[negated]
+                continue
+        first[value] = sym
+        kept.append((sym, value))
+    return kept, [_substitute(e, rename, memo) for e in outputs]
+
+
+def _occurrences(expr: sp.Basic) -> dict[sp.Symbol, int]:
+    """How often each symbol occurs in ``expr`` as a tree: ``x*x`` uses ``x`` twice.
+
+    A plain stack walk: sympy's ``preorder_traversal`` costs a generator step per node,
+    and this counts every value of a program (a fifth of inlining's time).
+    """
+    # A plain dict: building a Counter (a Python-level __init__) for every value of a
+    # program was a tenth of inlining's time.
+    found: dict[sp.Symbol, int] = {}
+    stack = [expr]
+    while stack:
+        node = stack.pop()
+        args = node.args
+        if args:
+            stack.extend(args)
+        elif node.is_Symbol:
+            found[node] = found.get(node, 0) + 1
+    return found
+
+
+def _inline_single_use(
+    order: list[Assignment], outputs: list[sp.Expr]
+) -> tuple[list[Assignment], list[sp.Expr]]:
+    """Substitute temporaries used exactly once back into their one user; drop the unused.
+
+    The jet is derived in three-address form (one operation per assignment), which
+    makes differentiation linear; printed that way, every operation would become a
+    named array in NumPy. Shared work stays in temporaries; the rest reads as the
+    expression it is.
+
+    Inlining can collect terms: ``a + 2*(a + b)`` becomes ``3*a + 3*b``, and ``a``,
+    used twice before, is now used once. A pass over the whole program finds one level
+    of such temporaries at a time (a k = 12 jet needed a dozen). Here every
+    expression's symbol counts are kept; after the first wave, each wave substitutes
+    into the expressions the last one changed, until no temporary is used once.
+    """
+    n = len(order)
+    values: list[sp.Expr] = [value for _, value in order] + list(outputs)
+    position = {sym: i for i, (sym, _) in enumerate(order)}
+    counts = [_occurrences(value) for value in values]
+    uses: dict[sp.Symbol, int] = {}
+    holders: dict[sp.Symbol, set[int]] = {}
+    for i, count in enumerate(counts):
+        for sym, times in count.items():
+            uses[sym] = uses.get(sym, 0) + times
+            holders.setdefault(sym, set()).add(i)
+    gone: set[int] = set()
+    wave = {i for i, (sym, _) in enumerate(order) if uses.get(sym, 0) <= 1}
+    while wave:
+        inline: dict[sp.Symbol, sp.Expr] = {}
+        # One memo for the wave: in evaluation order a node holds only earlier
+        # symbols, whose values are final when it is first met (as in _drop_aliases).
+        memo: dict[sp.Basic, sp.Basic] = {}
+        users: set[int] = set()
+        changed: set[sp.Symbol] = set()
+        for i in sorted(wave):
+            sym = order[i][0]
+            inline[sym] = _substitute(values[i], inline, memo)
+            users |= holders.get(sym, set())
+            gone.add(i)
+            changed |= counts[i].keys()
+            for other, times in counts[i].items():
+                uses[other] -= times
+                holders[other].discard(i)
+        for user in sorted(users - gone):
+            before = counts[user]
+            values[user] = _substitute(values[user], inline, memo)
+            after = counts[user] = _occurrences(values[user])
+            for other in before.keys() | after.keys():
+                was, now = before.get(other, 0), after.get(other, 0)
+                if was != now:
+                    uses[other] = uses.get(other, 0) + now - was
+                    changed.add(other)
+                if not now:
+                    holders[other].discard(user)
+                elif not was:
+                    holders.setdefault(other, set()).add(user)
+        wave = {
+            j
+            for j in (position.get(sym) for sym in changed)
+            if j is not None and j not in gone and uses.get(order[j][0], 0) <= 1
+        }
+    kept = [(order[i][0], values[i]) for i in range(n) if i not in gone]
+    return kept, values[n:]
+
+
+def _cse_index(sym: sp.Symbol) -> int:
+    return int(sym.name[len("_cse") :])
