@@ -1,0 +1,230 @@
+"""The report's building blocks, as data the templates lay out.
+
+Paragraphs, equations (MathML and LaTeX), tables and figures.
+"""
+
+from __future__ import annotations
+
+import base64
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import sympy as sp
+from sympy.printing.mathml import MathMLPresentationPrinter
+
+#: Equations longer than this (LaTeX characters) are folded, shown in full on demand.
+FOLD_AT = 600
+
+
+#: A matrix with more entries than this, most of them zero (a team's G, R or Hessian), is
+#: listed by its nonzero entries: a dense 64 x 64 array of zeros cannot be checked by eye.
+SPARSE_AT = 64
+
+
+#: Gradient-jet expressions above this many operations are described, not inlined.
+INLINE_OPS = 400
+
+
+#: Functions that are smooth (analytic) on the whole real line.
+ENTIRE = (sp.sin, sp.cos, sp.exp, sp.sinh, sp.cosh, sp.tanh, sp.atan, sp.asinh)
+
+
+@dataclass(frozen=True)
+class Math:
+    """One displayed formula in two notations."""
+
+    latex: str
+    mathml: str
+
+    @property
+    def folded(self) -> bool:
+        """Whether the formula is long enough to be shown folded."""
+        return len(self.latex) > FOLD_AT
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One item of a section.
+
+    ``kind`` is ``text`` (``text``), ``math`` (``text`` introduces ``math``), ``table``
+    (``header`` and ``rows`` of strings or :class:`Math`), ``figure`` (``text`` caption,
+    ``image`` PNG bytes, ``name``) or ``pre`` (``text``).
+    """
+
+    kind: str
+    text: str = ""
+    math: Math | None = None
+    header: tuple[str, ...] = ()
+    rows: tuple[tuple[str | Math, ...], ...] = ()
+    image: bytes = b""
+    name: str = ""
+
+    @property
+    def image_base64(self) -> str:
+        """The figure as base64 text, for a data URI."""
+        return base64.b64encode(self.image).decode("ascii")
+
+
+@dataclass(frozen=True)
+class Section:
+    """A titled list of entries."""
+
+    title: str
+    entries: tuple[Entry, ...] = field(default_factory=tuple)
+
+    @property
+    def anchor(self) -> str:
+        """The section's id in the HTML page."""
+        return self.title.lower().replace(" ", "-")
+
+
+class ReportMathMLPrinter(MathMLPresentationPrinter):  # type: ignore[misc]
+    """Presentation MathML as a browser shows it well without a math font.
+
+    Customizations are listed on each override; everything else is sympy's printer.
+    """
+
+    def _print_MatrixBase(self, m: sp.MatrixBase) -> Any:
+        """Customizations.
+
+        * No ``<mo>[</mo>`` fences: they stretch beside a tall matrix only with an
+          OpenType MATH font, which most readers lack. The table gets the class
+          ``matrix``, whose brackets the page draws in CSS at any height.
+        """
+        saved = self._settings["mat_delim"]
+        self._settings["mat_delim"] = ""
+        try:
+            table = super()._print_MatrixBase(m)
+        finally:
+            self._settings["mat_delim"] = saved
+        table.setAttribute("class", "matrix")
+        return table
+
+    def _print_Mul(self, expr: sp.Mul) -> Any:
+        """Customizations.
+
+        * The invisible times beside a multi-letter name or a function gets a thin
+          space on both sides: ``wheelbase cos(phi)``, ``jx jy``, never
+          ``wheelbasecos(phi)`` or ``jxjy``.
+        """
+        row = super()._print_Mul(expr)
+        children = [c for c in row.childNodes if c.nodeType == c.ELEMENT_NODE]
+        for before, node, after in zip(children, children[1:], children[2:], strict=False):
+            if (
+                node.tagName == "mo"
+                and _text(node) == "&InvisibleTimes;"
+                and (_wide(before) or _wide(after))
+            ):
+                node.setAttribute("lspace", "0.1667em")
+                node.setAttribute("rspace", "0.1667em")
+        return row
+
+
+def _text(node: Any) -> str:
+    return "".join(c.data for c in node.childNodes if c.nodeType == c.TEXT_NODE)
+
+
+def _wide(node: Any) -> bool:
+    """Whether a factor starts with a name of several letters (or is a function)."""
+    while node.tagName not in ("mi", "mn", "mo") and node.firstChild is not None:
+        node = node.firstChild
+        if node.nodeType != node.ELEMENT_NODE:
+            return False
+    text = _text(node)
+    return node.tagName == "mi" and len(text) > 1 and not text.startswith("&")
+
+
+#: The report's LaTeX settings: a thin space between factors.
+_LATEX = {"mul_symbol": r"\,"}
+
+
+def _mathml(value: object) -> str:
+    printer = ReportMathMLPrinter()
+    return str(printer.doprint(value))
+
+
+def formula(expr: object, lhs: tuple[str, str] | None = None) -> Math:
+    """Both notations of ``expr``, optionally as ``lhs = expr``.
+
+    Parameters
+    ----------
+    expr : sympy object
+        The right-hand side.
+    lhs : tuple of (str, str), optional
+        The left-hand side as (LaTeX, MathML).
+    """
+    value = sp.sympify(expr)
+    # A thin space between factors: "jx\,jy" is two names where "jx jy" reads as jxjy.
+    latex = sp.latex(value, **_LATEX)
+    markup = _mathml(value)
+    if lhs is not None:
+        latex = f"{lhs[0]} = {latex}"
+        markup = f"<mrow>{lhs[1]}<mo>=</mo>{markup}</mrow>"
+    return Math(latex, markup)
+
+
+def _name(latex: str, text: str) -> tuple[str, str]:
+    """A left-hand side: LaTeX and an MathML identifier (``text`` is plain ASCII)."""
+    return latex, f"<mi>{text}</mi>"
+
+
+def _math_entry(text: str, expr: object, lhs: tuple[str, str] | None = None) -> Entry:
+    value = sp.sympify(expr)
+    if lhs is not None and isinstance(value, sp.MatrixBase):
+        size = value.rows * value.cols
+        nonzero = [
+            ((i, j), value[i, j])
+            for i in range(value.rows)
+            for j in range(value.cols)
+            if value[i, j] != 0
+        ]
+        if size > SPARSE_AT and 2 * len(nonzero) <= size:
+            zeros = size - len(nonzero)
+            # Structurally symmetric (a Hessian is, entry by entry): the lower triangle says
+            # it all.
+            symmetric = value.rows == value.cols and all(
+                value[j, i] == e for (i, j), e in nonzero if i != j
+            )
+            if symmetric:
+                nonzero = [((i, j), e) for (i, j), e in nonzero if i >= j]
+            text = (
+                f"{text.rstrip(':')} ({value.rows} x {value.cols}, "
+                + (
+                    "symmetric; the nonzero entries of its lower triangle"
+                    if symmetric
+                    else "its nonzero entries"
+                )
+                + f", indexed from 1; the other {zeros} entries are 0):"
+            )
+            return Entry("math", text=text, math=_entries(nonzero, lhs))
+    return Entry("math", text=text, math=formula(value, lhs))
+
+
+def _entries(nonzero: Sequence[tuple[tuple[int, int], sp.Expr]], lhs: tuple[str, str]) -> Math:
+    """``[M]_ij = value`` for each listed entry, one per line, in both notations."""
+    latex = (
+        r"\begin{aligned}"
+        + r" \\ ".join(
+            rf"\left[{lhs[0]}\right]_{{{i + 1}, {j + 1}}} &= {sp.latex(e, **_LATEX)}"
+            for (i, j), e in nonzero
+        )
+        + r"\end{aligned}"
+    )
+    rows = "".join(
+        f"<mtr><mtd><msub><mrow><mo>[</mo>{lhs[1]}<mo>]</mo></mrow>"
+        f"<mrow><mn>{i + 1}</mn><mo>,</mo><mn>{j + 1}</mn></mrow></msub></mtd>"
+        f"<mtd><mo>=</mo></mtd><mtd>{_mathml(e)}</mtd></mtr>"
+        for (i, j), e in nonzero
+    )
+    return Math(latex, f"<mtable>{rows}</mtable>")
+
+
+def _smoothness(expr: sp.Expr) -> str:
+    used = sorted({type(f).__name__ for f in expr.atoms(sp.Function)})
+    restricted = [f for f in used if not any(f == g.__name__ for g in ENTIRE)]
+    if not used:
+        return "polynomial in t: C-infinity"
+    if not restricted:
+        return f"built from {', '.join(used)}: C-infinity for all t"
+    return f"C-infinity where {', '.join(restricted)} are defined and smooth"
