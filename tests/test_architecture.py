@@ -153,3 +153,41 @@ def test_the_command_line_loads_the_stages_only_inside_its_commands() -> None:
     assert "tvopt_codegen.jet" in graph["tvopt_codegen.derivation.objective"]
     assert "tvopt_codegen.derivation" not in graph["tvopt_codegen.cli"]
     assert "tvopt_codegen.figures" not in graph["tvopt_codegen.simulation"]
+
+
+#: The derivation stage: the only modules that differentiate (sympy's diff, Derivative,
+#: jacobian, hessian). Everything after it evaluates or lowers what it derived.
+DERIVATION_STAGE = ("tvopt_codegen.derivation", "tvopt_codegen.jet", "tvopt_codegen.lie")
+_DIFFERENTIATION = {"diff", "Derivative", "jacobian", "hessian", "idiff"}
+
+
+def _differentiations(path: Path) -> list[str]:
+    """Calls in ``path`` that differentiate symbolically (numpy's ``np.diff`` is not one)."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if not isinstance(node, ast.Call):
+            continue
+        func = node.func
+        if isinstance(func, ast.Name) and func.id in _DIFFERENTIATION - {"hessian"}:
+            found.append(f"{path.name}:{node.lineno} {func.id}(")
+        elif isinstance(func, ast.Attribute) and func.attr in _DIFFERENTIATION:
+            owner = func.value.id if isinstance(func.value, ast.Name) else ""
+            if owner in {"np", "numpy"}:
+                continue
+            # A generated controller's hessian() evaluates a kernel; sympy's differentiates.
+            if func.attr == "hessian" and owner not in {"sp", "sympy"}:
+                continue
+            found.append(f"{path.name}:{node.lineno} {owner}.{func.attr}(")
+    return found
+
+
+def test_only_the_derivation_stage_differentiates() -> None:
+    offenders = [
+        call
+        for path in sorted(PACKAGE.rglob("*.py"))
+        if not _module_name(path).startswith(DERIVATION_STAGE)
+        for call in _differentiations(path)
+    ]
+    assert not offenders, offenders
+    # The scan sees what it must: the derivation's own calls.
+    assert _differentiations(PACKAGE / "derivation" / "calculus.py")

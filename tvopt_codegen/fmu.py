@@ -26,8 +26,7 @@ import tempfile
 import zipfile
 from pathlib import Path
 
-import sympy as sp
-
+from tvopt_codegen.derivation import calculus
 from tvopt_codegen.errors import BuildError, MissingExtraError
 from tvopt_codegen.ir import KernelSet
 from tvopt_codegen.rendering import render, render_template, template_context
@@ -126,15 +125,12 @@ def reference_start(kernels: KernelSet) -> tuple[float, ...]:
     """The reference jets at t = 0 from the nominal closed forms (0 without one), flat."""
     d = kernels.derivation
     model = d.model
-    nominal = dict(model.nominal)
     defaults = dict(zip(model.params, model.defaults, strict=True))
-    values = []
-    for reference in model.references:
-        expr = nominal.get(reference, sp.Integer(0))
-        for order in range(d.reference_order + 1):
-            value = sp.diff(expr, model.t, order).xreplace(defaults).xreplace({model.t: 0})
-            values.append(float(value))
-    return tuple(values)
+    return tuple(
+        float(term.xreplace(defaults).xreplace({model.t: 0}))
+        for row in calculus.nominal_jets(model, d.reference_order)
+        for term in row
+    )
 
 
 def build_fmu(kernels: KernelSet, fmi: int = 2) -> bytes:

@@ -32,6 +32,7 @@ import sympy as sp
 
 from tvopt_codegen.cse import Outputs, make_kernel, make_kernels, split_invariant
 from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.derivation.calculus import equality_calculus
 from tvopt_codegen.jet import Assignment
 from tvopt_codegen.kernel import Arg, Kernel, KernelSet, Output
 from tvopt_codegen.law import symbols
@@ -364,3 +365,80 @@ def lower(derivation: Derivation) -> KernelSet:
         law.r_blocks,
         sum(lu_operations(len(block)) for block in law.r_blocks),
     )
+
+
+@dataclass(frozen=True)
+class CheckKernels:
+    """Kernels that check a run rather than control it (the sweep's compiled loop).
+
+    Attributes
+    ----------
+    decoupling : Kernel
+        The whole decoupling matrix R(s), row-major (for det R).
+    constraints : Kernel or None
+        The barrier's slack s(t), then each constraint g_i(y, t).
+    equalities : Kernel or None
+        ``a(y, t)``, ``J_a`` and ``sum_j nu_j grad_yy a_j`` (the multipliers' curvature).
+    """
+
+    decoupling: Kernel
+    constraints: Kernel | None
+    equalities: Kernel | None
+
+
+def check_kernels(derivation: Derivation) -> CheckKernels:
+    """Lower the check kernels of a derivation (on demand: only a sweep needs them).
+
+    Their derivatives come from :mod:`tvopt_codegen.derivation.calculus`; lowering, as
+    for the law's kernels, only substitutes slots and applies CSE.
+    """
+    d = derivation
+    model = d.model
+    args = _arguments(d)
+    m = d.R.rows
+    decoupling = make_kernel(
+        "sweep_decoupling",
+        "The decoupling matrix R(s), row-major",
+        [args.t, args.s, args.p],
+        [],
+        [("r", (m * m,), [d.R[i, j] for i in range(m) for j in range(m)], "decoupling matrix R")],
+        args.subs,
+        odd={},
+    )
+    constraints = None
+    if model.constraints:
+        values = [model.slack, *(sp.sympify(c.g) for c in model.constraints)]
+        constraints = make_kernel(
+            "sweep_constraints",
+            "The barrier's slack s(t), then each constraint g_i(y, t) (<= 0 when kept)",
+            [args.t, args.y, args.p],
+            list(model.signals),
+            [("g", (len(values),), values, "slack and constraint values")],
+            args.y_subs,
+            odd={},
+        )
+    equalities = None
+    if model.equalities:
+        slots = symbols("nu", len(model.multipliers))
+        arg_nu = Arg("nu", slots, tuple(nu.name for nu in model.multipliers), "multipliers")
+        calculus = equality_calculus(model)
+        n, q = len(model.y), len(model.equalities)
+        equalities = make_kernel(
+            "sweep_equalities",
+            "The equalities a_j(y, t), their Jacobian in y and sum_j nu_j grad_yy a_j",
+            [args.t, args.y, args.p, arg_nu],
+            list(model.signals),
+            [
+                ("a", (q,), calculus.values, "equality values (0 when kept)"),
+                ("jac", (q, n), calculus.jacobian, "J_a"),
+                (
+                    "curv",
+                    (n, n),
+                    calculus.curvature(model.multipliers),
+                    "the multipliers' curvature",
+                ),
+            ],
+            args.y_subs | dict(zip(model.multipliers, slots, strict=True)),
+            odd={},
+        )
+    return CheckKernels(decoupling, constraints, equalities)

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import sympy as sp
 
-from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.derivation import Derivation, calculus
 from tvopt_codegen.errors import SpecError
 
 #: Most samples a reference file may hold.
@@ -78,12 +78,10 @@ def exact_jets(derivation: Derivation, params: dict[str, float]) -> Callable[[fl
             f"{', '.join(missing)} have no nominal closed form: give --reference-file",
         )
     values = {q: params.get(q.name, v) for q, v in zip(model.params, model.defaults, strict=True)}
+    fixed = {q: sp.Float(v) for q, v in values.items()}
     rows = [
-        [
-            sp.diff(nominal[r], model.t, j).xreplace({q: sp.Float(v) for q, v in values.items()})
-            for j in range(d.reference_order + 1)
-        ]
-        for r in model.references
+        [term.xreplace(fixed) for term in row]
+        for row in calculus.nominal_jets(model, d.reference_order)
     ]
     function = sp.lambdify(model.t, rows, "math")
 

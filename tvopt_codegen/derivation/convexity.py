@@ -13,7 +13,8 @@ from typing import Any
 import numpy as np
 import sympy as sp
 
-from tvopt_codegen.constraints import least_violation, nonconvex
+from tvopt_codegen.constraints import least_violation
+from tvopt_codegen.derivation.calculus import constraint_hessian_entries
 from tvopt_codegen.derivation.record import Convexity
 from tvopt_codegen.errors import AssumptionError
 from tvopt_codegen.jet import (
@@ -22,7 +23,7 @@ from tvopt_codegen.jet import (
 from tvopt_codegen.model import Model
 from tvopt_codegen.numeric import Evaluator, Tape
 from tvopt_codegen.sparse import reverse_cuthill_mckee
-from tvopt_codegen.spec import Spec
+from tvopt_codegen.spec import Constraint, Spec
 
 #: A Hessian whose smallest eigenvalue is below this fraction of its scale (the largest
 #: eigenvalue met) is degenerate: f0 is not strongly convex there.
@@ -534,6 +535,35 @@ def _fading_convexity(
         f"{low[at]:.3g}, against {reference[at]:.3g} at y*; the certificate's "
         "bound holds only while the outputs stay where it is bounded below"
     ]
+
+
+def nonconvex(
+    constraints: Sequence[Constraint],
+    outputs: Sequence[sp.Symbol],
+    evaluate: Evaluator,
+    points: int,
+) -> list[tuple[str, float]]:
+    """The constraints whose Hessian in ``y`` has a negative eigenvalue at a sample point.
+
+    ``evaluate`` holds the sample points (arrays of ``points`` values for the outputs,
+    ``t``, signals and references). Returns (name, smallest eigenvalue) of each.
+    """
+    found = []
+    m = len(outputs)
+    for constraint in constraints:
+        matrices = np.zeros((points, m, m))
+        for i, j, second in constraint_hessian_entries(sp.sympify(constraint.g), tuple(outputs)):
+            value = np.broadcast_to(np.real(evaluate(second)), (points,))
+            matrices[:, i, j] = matrices[:, j, i] = value
+        finite = np.all(np.isfinite(matrices), axis=(1, 2))
+        if not finite.any():
+            continue
+        eigenvalues = np.linalg.eigvalsh(matrices[finite])
+        smallest = float(eigenvalues[:, 0].min())
+        scale = max(1.0, float(np.abs(eigenvalues).max()))
+        if smallest < -1e-9 * scale:
+            found.append((constraint.name, smallest))
+    return found
 
 
 def _constraint_convexity(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str, ...]:

@@ -64,7 +64,7 @@ def _target(
             None,
             None,
         )
-    from tvopt_codegen.constraints import equalities  # noqa: PLC0415
+    from tvopt_codegen.simulation.constraints import equalities  # noqa: PLC0415
 
     values = {
         q: options.params.get(q.name, v)
@@ -262,7 +262,7 @@ def _kkt_eigenvalues(
     true: Callable[[float], dict[str, Any]],
 ) -> np.ndarray:
     """The KKT matrix's eigenvalues at the run's (y, nu), at (y*, nu*) and midway."""
-    from tvopt_codegen.constraints import kkt_matrix  # noqa: PLC0415
+    from tvopt_codegen.simulation.constraints import kkt_matrix  # noqa: PLC0415
 
     m = len(d.model.y)
     run = np.vstack([outputs, multipliers])
@@ -273,7 +273,7 @@ def _kkt_eigenvalues(
         for point in (run[:, i], kkt[:, i], 0.5 * (run[:, i] + kkt[:, i])):
             y, nu = point[:m], point[m:]
             hess = controller.hessian(float(t), y, params, **extra)
-            matrix = kkt_matrix(hess + eq.curvature(t, y, r, nu), eq.jacobian(t, y, r))
+            matrix = kkt_matrix(hess + eq.curvature(t, y, r, nu), eq.jacobian_a(t, y, r))
             found.append(np.linalg.eigvalsh(matrix))
     return np.array(found)
 
@@ -291,7 +291,7 @@ def _constraint_check(
     """For a spec with constraints: check them along the run, adding to ``failures``."""
     if not d.model.constraints and not d.model.equalities:
         return None
-    from tvopt_codegen.constraints import check_run  # noqa: PLC0415
+    from tvopt_codegen.simulation.constraints import check_run  # noqa: PLC0415
 
     values = {
         q: options.params.get(q.name, v)

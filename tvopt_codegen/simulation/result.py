@@ -137,7 +137,8 @@ class Result:
         (c / alpha)(1 - e^{-alpha t}) sup |d|)``, which the certificate checks is at most 1.
     constraints : RunCheck or None
         For a spec with ``[constraints]``: margins, final values and the distance to the
-        constrained minimiser along the run (:func:`tvopt_codegen.constraints.check_run`).
+        constrained minimiser along the run
+        (:func:`tvopt_codegen.simulation.constraints.check_run`).
     """
 
     options: Options

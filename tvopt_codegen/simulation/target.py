@@ -153,11 +153,11 @@ def _kkt_newton(
     """Solve the KKT system ``F(y, nu, t) = 0`` from ``w = (y, nu)``: damped Newton.
 
     ``F = [grad f0 + J_a^T nu; a]`` (f0's gradient and Hessian from the module, the
-    equalities from ``eq``, :func:`tvopt_codegen.constraints.equalities`), backtracking
+    equalities from ``eq``, :func:`tvopt_codegen.simulation.constraints.equalities`), backtracking
     on ``|F|^2`` within f0's domain, the outputs' steps capped at 0.02 like
     :func:`_newton`'s.
     """
-    from tvopt_codegen.constraints import kkt_matrix  # noqa: PLC0415
+    from tvopt_codegen.simulation.constraints import kkt_matrix  # noqa: PLC0415
 
     m = len(controller.OUTPUT_NAMES)
     r = _reference_values(extra)
@@ -169,7 +169,7 @@ def _kkt_newton(
             hess = controller.hessian(t, y, params, **extra)
         except ArithmeticError:
             return None
-        jac = eq.jacobian(t, y, r)
+        jac = eq.jacobian_a(t, y, r)
         value = np.concatenate([grad + jac.T @ nu, eq.value(t, y, r)])
         if not np.all(np.isfinite(value)):
             return None

@@ -96,88 +96,6 @@ def tail(rows: np.ndarray, name: str) -> np.ndarray:
     return column
 
 
-def decoupling_kernel(kernels: KernelSet) -> Any:
-    """The sweep's own kernel: the whole decoupling matrix R(s), row-major (for det R)."""
-    from tvopt_codegen.cse import make_kernel  # noqa: PLC0415 - sympy only when building
-    from tvopt_codegen.ir import _arguments  # noqa: PLC0415
-
-    d = kernels.derivation
-    args = _arguments(d)
-    m = d.R.rows
-    entries = [d.R[i, j] for i in range(m) for j in range(m)]
-    return make_kernel(
-        "sweep_decoupling",
-        "The decoupling matrix R(s), row-major",
-        [args.t, args.s, args.p],
-        [],
-        [("r", (m * m,), entries, "decoupling matrix R")],
-        args.subs,
-        odd={},
-    )
-
-
-def constraint_kernel(kernels: KernelSet) -> Any:
-    """The slack ``s(t)`` and each ``g_i(y, t)`` at the outputs (None without constraints)."""
-    import sympy as sp  # noqa: PLC0415 - a worker never needs sympy
-
-    from tvopt_codegen.cse import make_kernel  # noqa: PLC0415
-    from tvopt_codegen.ir import _arguments  # noqa: PLC0415
-
-    d = kernels.derivation
-    model = d.model
-    if not model.constraints:
-        return None
-    args = _arguments(d)
-    values = [model.slack, *(sp.sympify(c.g) for c in model.constraints)]
-    return make_kernel(
-        "sweep_constraints",
-        "The barrier's slack s(t), then each constraint g_i(y, t) (<= 0 when kept)",
-        [args.t, args.y, args.p],
-        list(model.signals),
-        [("g", (len(values),), values, "slack and constraint values")],
-        args.y_subs,
-        odd={},
-    )
-
-
-def equality_kernel(kernels: KernelSet) -> Any:
-    """``a(y, t)``, ``J_a`` and ``sum_j nu_j grad_yy a_j`` (None without equalities)."""
-    import sympy as sp  # noqa: PLC0415 - a worker never needs sympy
-
-    from tvopt_codegen.cse import make_kernel  # noqa: PLC0415
-    from tvopt_codegen.ir import _arguments  # noqa: PLC0415
-    from tvopt_codegen.kernel import Arg  # noqa: PLC0415
-    from tvopt_codegen.law import symbols  # noqa: PLC0415
-
-    d = kernels.derivation
-    model = d.model
-    if not model.equalities:
-        return None
-    args = _arguments(d)
-    slots = symbols("nu", len(model.multipliers))
-    arg_nu = Arg("nu", slots, tuple(nu.name for nu in model.multipliers), "multipliers")
-    a = [sp.sympify(c.g) for c in model.equalities]
-    curvature = [
-        sp.Add(*(nu * sp.diff(e, yi, yj) for nu, e in zip(model.multipliers, a, strict=True)))
-        for yi in model.y
-        for yj in model.y
-    ]
-    m, q = len(model.y), len(a)
-    return make_kernel(
-        "sweep_equalities",
-        "The equalities a_j(y, t), their Jacobian in y and sum_j nu_j grad_yy a_j",
-        [args.t, args.y, args.p, arg_nu],
-        list(model.signals),
-        [
-            ("a", (q,), a, "equality values (0 when kept)"),
-            ("jac", (q, m), [sp.diff(e, y) for e in a for y in model.y], "J_a"),
-            ("curv", (m, m), curvature, "the multipliers' curvature"),
-        ],
-        args.y_subs | dict(zip(model.multipliers, slots, strict=True)),
-        odd={},
-    )
-
-
 def sweep_program(kernels: KernelSet) -> SweepProgram:
     """Render the C closed loop of a lowered controller.
 
@@ -190,6 +108,7 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
     from scipy.integrate._ivp.rk import RK45  # noqa: PLC0415
 
     from tvopt_codegen.backends import BACKENDS  # noqa: PLC0415
+    from tvopt_codegen.ir import check_kernels  # noqa: PLC0415
     from tvopt_codegen.rendering import (  # noqa: PLC0415
         print_kernel,
         render,
@@ -209,14 +128,14 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
     files = render(kernels, backend)
     name = d.spec.name
     context = template_context(kernels, backend)
-    constraints = constraint_kernel(kernels)
-    equalities = equality_kernel(kernels)
+    checks = check_kernels(d)
+    constraints, equalities = checks.constraints, checks.equalities
     context |= {
         "equalities": None if equalities is None else print_kernel(equalities, backend.printer()),
         "equality_count": len(d.model.equalities),
         "multiplier_rows": [d.state_names.index(chain[0]) for chain in d.multiplier_states],
         "tail": TAIL,
-        "decoupling": print_kernel(decoupling_kernel(kernels), backend.printer()),
+        "decoupling": print_kernel(checks.decoupling, backend.printer()),
         "constraints": None
         if constraints is None
         else print_kernel(constraints, backend.printer()),

@@ -1,0 +1,320 @@
+"""The constraints' certificate of a run, and the equality constraints in numbers.
+
+What ``simulate`` checks of a run with ``[constraints]`` (see
+:mod:`tvopt_codegen.constraints` for the barrier objective and the claims): the margins
+``s(t) - g_i``, the equalities' drift, the distance to an independent constrained
+minimiser (SLSQP), and the KKT matrix of equality constraints. Every derivative comes
+from :mod:`tvopt_codegen.derivation.calculus`; nothing here differentiates.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import sympy as sp
+
+from tvopt_codegen.constraints import inline_signals
+from tvopt_codegen.derivation import calculus
+
+
+@dataclass(frozen=True)
+class RunCheck:
+    """What the constraints' certificate found along a run.
+
+    Attributes
+    ----------
+    margins : numpy.ndarray, shape (p, T)
+        ``s(t) - g_i(y(t), t)`` at the output times: positive everywhere, by the barrier.
+    slack : numpy.ndarray, shape (T,)
+        ``s(t)``.
+    final : tuple of (str, float)
+        ``g_i(y(T), T)`` per inequality (<= 0 where it holds), then ``a_j(y(T), T)`` per
+        equality.
+    distance : numpy.ndarray, shape (K,)
+        ``|y(t) - y*_s(t)|`` at the checked times, ``y*_s`` found by SLSQP (scipy) on f0
+        subject to ``g_i <= s(t)`` and ``a_j = 0``.
+    bound : numpy.ndarray, shape (K,)
+        ``|y(t) - y*_Phi(t)| + sqrt(2 p mu(t) / m_f)`` at those times, ``m_f`` the smallest
+        eigenvalue of the spec's f0's Hessian along the run.
+    times : numpy.ndarray, shape (K,)
+        The checked times.
+    m_f : float
+        That modulus.
+    lhs, rhs : numpy.ndarray, shape (p + q, T)
+        Each constraint's two sides along the run (the boundary moves with ``rhs``):
+        the inequalities, then the equalities.
+    equality : numpy.ndarray, shape (q, T)
+        ``a_j(y(t), t)`` of each equality along the run (0 where it holds).
+    """
+
+    margins: np.ndarray
+    slack: np.ndarray
+    final: tuple[tuple[str, float], ...]
+    distance: np.ndarray
+    bound: np.ndarray
+    times: np.ndarray
+    m_f: float
+    lhs: np.ndarray
+    rhs: np.ndarray
+    equality: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """The constrained problem in numbers: f0, the g_i, their gradients, f0's domain."""
+
+    f0: Any
+    f0_grad: list[Any]
+    g: list[Any]
+    g_grad: list[list[Any]]
+    a: list[Any]
+    a_grad: list[list[Any]]
+    domain: list[Any]
+    domain_grad: list[list[Any]]
+    numeric: Any
+    refs_at: Any
+
+
+def _problem(model: Any, values: Mapping[sp.Symbol, float], references: Any) -> _Problem:
+    """Lambdify the problem of :func:`check_run` (signals and parameters substituted)."""
+    t = model.t
+    signals = {s: e for s, e in model.signals}
+    fixed = {q: sp.Float(v) for q, v in values.items()}
+
+    def numeric(expr: sp.Expr) -> Any:
+        expr = inline_signals(expr, signals).xreplace(fixed)
+        return sp.lambdify([t, model.y, model.references], expr, "math")
+
+    def refs_at(time: float) -> list[float]:
+        if not model.references or references is None:
+            return []
+        jets = (references.exact or references.jets)(time)
+        return [float(v) for v in jets[:, 0]]
+
+    domain, domain_grad = calculus.objective_domain(model)
+    equal = calculus.equality_calculus(model)
+    m = len(model.y)
+    return _Problem(
+        f0=numeric(calculus.objective_of(model)),
+        # Exact gradients for the solver: f0's barriers (the paper's tan) are steep.
+        f0_grad=[numeric(e) for e in calculus.objective_gradient(model)],
+        g=[numeric(c.g) for c in model.constraints],
+        g_grad=[[numeric(e) for e in row] for row in calculus.constraint_gradients(model)],
+        a=[numeric(c.g) for c in model.equalities],
+        a_grad=[
+            [numeric(e) for e in equal.jacobian[j * m : (j + 1) * m]]
+            for j in range(len(model.equalities))
+        ],
+        domain=[numeric(e) for e in domain],
+        domain_grad=[[numeric(e) for e in row] for row in domain_grad],
+        numeric=numeric,
+        refs_at=refs_at,
+    )
+
+
+def _minimise(
+    problem: _Problem, time: float, r: list[float], s: float, centre: np.ndarray, radius: float
+) -> np.ndarray:
+    """f0's minimiser subject to ``g_i <= s`` and ``a_j = 0``, by SLSQP near ``centre``.
+
+    The search stays in the box of half-width ``radius`` around ``centre``.
+    """
+    from scipy.optimize import minimize  # noqa: PLC0415 - only simulate needs it
+
+    inequalities = [
+        {
+            "type": "ineq",
+            "fun": lambda y, gi=gi: s - gi(time, y, r),
+            "jac": lambda y, row=row: -np.array([d(time, y, r) for d in row]),
+        }
+        for gi, row in zip(problem.g, problem.g_grad, strict=True)
+    ] + [
+        {
+            "type": "ineq",
+            "fun": lambda y, e=e: e(time, y, r),
+            "jac": lambda y, row=row: np.array([d(time, y, r) for d in row]),
+        }
+        for e, row in zip(problem.domain, problem.domain_grad, strict=True)
+    ]
+    equal = [
+        {
+            "type": "eq",
+            "fun": lambda y, ai=ai: ai(time, y, r),
+            "jac": lambda y, row=row: np.array([d(time, y, r) for d in row]),
+        }
+        for ai, row in zip(problem.a, problem.a_grad, strict=True)
+    ]
+    result = minimize(
+        lambda y: problem.f0(time, y, r),
+        centre,
+        jac=lambda y: np.array([d(time, y, r) for d in problem.f0_grad]),
+        method="SLSQP",
+        bounds=[(c - radius, c + radius) for c in centre],
+        constraints=inequalities + equal,
+        options={"ftol": 1e-15, "maxiter": 1000},
+    )
+    minimiser: np.ndarray = result.x
+    return minimiser
+
+
+def check_run(
+    model: Any,
+    ts: np.ndarray,
+    outputs: np.ndarray,
+    to_phi: np.ndarray,
+    phi_minimisers: np.ndarray,
+    values: Mapping[sp.Symbol, float],
+    references: Any = None,
+    checked: int = 41,
+) -> RunCheck:
+    """Check a run against its constraints (see the module docstring).
+
+    Parameters
+    ----------
+    model : Model
+        With ``constraints``, ``objective`` (the spec's f0), ``mu`` and ``slack``.
+    ts, outputs : numpy.ndarray
+        Output times (T,) and outputs (m, T) of the run.
+    to_phi : numpy.ndarray, shape (T,)
+        ``|y(t) - y*_Phi(t)|``: the distance to the barrier objective's minimiser.
+    phi_minimisers : numpy.ndarray, shape (m, T)
+        ``y*_Phi(t)``: where the independent solver starts.
+    values : mapping
+        Parameter values.
+    references : ReferenceSource, optional
+        For a spec with references: their values (true ones when known).
+    checked : int, optional
+        Times at which the constrained minimiser is found (evenly spread, the last one
+        the end of the run).
+    """
+    problem = _problem(model, values, references)
+    t, numeric, refs_at = model.t, problem.numeric, problem.refs_at
+    g = problem.g
+    fixed = {q: sp.Float(v) for q, v in values.items()}
+    slack_of = sp.lambdify(t, model.slack.xreplace(fixed), "math")
+    mu_of = sp.lambdify(t, model.mu.xreplace(fixed), "math")
+    slack = np.array([slack_of(float(time)) for time in ts])
+
+    def along(functions: Sequence[Any]) -> np.ndarray:
+        return np.array(
+            [
+                [f(float(time), outputs[:, k], refs_at(float(time))) for k, time in enumerate(ts)]
+                for f in functions
+            ],
+            dtype=float,
+        ).reshape(len(functions), len(ts))
+
+    margins = slack[None, :] - along(g)
+    equality = along(problem.a)
+    end = float(ts[-1])
+    final = tuple(
+        (c.name, float(gi(end, outputs[:, -1], refs_at(end))))
+        for c, gi in zip((*model.constraints, *model.equalities), (*g, *problem.a), strict=True)
+    )
+    picks = np.unique(np.linspace(0, len(ts) - 1, checked).round().astype(int))
+    hessian = [[numeric(e) for e in row] for row in calculus.objective_hessian(model)]
+
+    def smallest(time: float, y: np.ndarray, r: list[float]) -> float:
+        matrix = np.array([[h(time, y, r) for h in row] for row in hessian], dtype=float)
+        return float(np.linalg.eigvalsh(matrix)[0])
+
+    p = len(model.constraints)
+    m_f = min(smallest(float(ts[k]), outputs[:, k], refs_at(float(ts[k]))) for k in picks)
+    minimisers, distance, bound = [], [], []
+    for k in picks:
+        time = float(ts[k])
+        r = refs_at(time)
+        s = slack[k]
+        gap = math.sqrt(2.0 * p * mu_of(time) / m_f) if m_f > 0 else math.inf
+        # A local solve from the barrier's minimiser, within twice the gap the theory
+        # allows: f0 may have other branches (a periodic barrier such as tan), and the
+        # constrained minimiser meant is the one of y*_Phi's branch. A solution on the box
+        # is reported: the minimiser was not where the theory puts it.
+        radius = 2.0 * gap + 1e-3
+        centre = phi_minimisers[:, k]
+        result_x = _minimise(problem, time, r, s, centre, radius)
+        on_box = bool(np.any(np.abs(result_x - centre) >= radius * (1 - 1e-9)))
+        minimisers.append(result_x)
+        distance.append(math.inf if on_box else float(np.linalg.norm(outputs[:, k] - result_x)))
+        bound.append(float(to_phi[k] + gap))
+    every = (*model.constraints, *model.equalities)
+    lhs = along([numeric(c.lhs) for c in every])
+    rhs = along([numeric(c.rhs) for c in every])
+    return RunCheck(
+        margins=margins,
+        slack=slack,
+        final=final,
+        distance=np.array(distance),
+        bound=np.array(bound),
+        times=ts[picks],
+        m_f=m_f,
+        lhs=lhs,
+        rhs=rhs,
+        equality=equality,
+    )
+
+
+@dataclass(frozen=True)
+class Equalities:
+    """The equality constraints in numbers, for the KKT certificate.
+
+    Each callable takes ``(t, y, r)``: time, outputs (m,) and the references' values.
+
+    Attributes
+    ----------
+    value : callable
+        ``a(y, t)``, shape (q,).
+    jacobian_a : callable
+        ``J_a``, shape (q, m).
+    curvature : callable
+        ``sum_j nu_j grad_yy a_j`` for given ``nu``: ``curvature(t, y, r, nu)``, (m, m);
+        zero for affine equalities.
+    """
+
+    value: Any
+    jacobian_a: Any
+    curvature: Any
+
+
+def equalities(model: Any, values: Mapping[sp.Symbol, float]) -> Equalities:
+    """Lambdify the equalities of ``model`` (signals and the parameters ``values`` substituted)."""
+    signals = {s: e for s, e in model.signals}
+    fixed = {q: sp.Float(v) for q, v in values.items()}
+    m, q = len(model.y), len(model.equalities)
+
+    def numeric(exprs: Sequence[sp.Expr]) -> Any:
+        exprs = [inline_signals(e, signals).xreplace(fixed) for e in exprs]
+        return sp.lambdify([model.t, model.y, model.references], exprs, "math")
+
+    equal = calculus.equality_calculus(model)
+    value = numeric(equal.values)
+    j_a = numeric(equal.jacobian)
+    second = equal.hessians
+    curved = any(entry != 0 for row in second for entry in row)
+    hessians = [numeric(row) for row in second] if curved else []
+
+    def curvature(t: float, y: np.ndarray, r: Sequence[float], nu: np.ndarray) -> np.ndarray:
+        total = np.zeros((m, m))
+        for weight, hessian in zip(nu, hessians, strict=False):
+            total += weight * np.array(hessian(t, y, r), dtype=float).reshape(m, m)
+        return total
+
+    return Equalities(
+        value=lambda t, y, r: np.array(value(t, y, r), dtype=float),
+        jacobian_a=lambda t, y, r: np.array(j_a(t, y, r), dtype=float).reshape(q, m),
+        curvature=curvature,
+    )
+
+
+def kkt_matrix(hessian: np.ndarray, jacobian_a: np.ndarray) -> np.ndarray:
+    """``K = [[grad_yy L, J_a^T], [J_a, 0]]``."""
+    m, q = hessian.shape[0], jacobian_a.shape[0]
+    matrix = np.zeros((m + q, m + q))
+    matrix[:m, :m] = hessian
+    matrix[:m, m:] = jacobian_a.T
+    matrix[m:, :m] = jacobian_a
+    return matrix
