@@ -36,6 +36,8 @@ ALL_SPECS = (
     *EXAMPLES,
     str(SPECS / "nonuniform.toml"),
     str(SPECS / "hovercraft.toml"),
+    # R is one full 3 x 3 block: the general LU of the run-time library.
+    str(SPECS / "coupled3.toml"),
 )
 
 

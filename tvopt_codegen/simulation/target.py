@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from tvopt_codegen.limits import START_ITERATIONS
+from tvopt_codegen.runtime import NEWTON
 
 
 def minimizer_path(
@@ -27,8 +28,8 @@ def minimizer_path(
 
     The path is followed backward in time from ``start`` (the final output),
     warm-starting every time from the previous one, with Armijo backtracking and steps
-    capped at 0.02. For strongly convex f0 this is the unique minimizer whatever the
-    start. A barrier that is finite only on a domain (``tan^2`` in the paper's Sec.
+    capped at ``NEWTON.step_cap``. For strongly convex f0 this is the unique minimizer
+    whatever the start. A barrier that is finite only on a domain (``tan^2`` in the paper's Sec.
     V-B) is periodic, with its global minimizer beyond the barrier: continuation from
     the converged end of the run stays on the in-domain branch the paper means.
 
@@ -72,7 +73,7 @@ def _backward(
     ``step(t, w, index, budget)`` solves at time ``t`` from ``w`` (``index``: the output
     time being approached) in at most ``budget`` iterations; five substeps lie between
     output times. The first point may start far from the solution (a run that has not
-    converged): its capped steps get :data:`START_ITERATIONS`, the warm starts 200.
+    converged): its capped steps get :data:`START_ITERATIONS`, the warm starts NEWTON.iterations.
     """
     substeps = 5
     path = np.empty((len(start), len(ts)))
@@ -82,7 +83,7 @@ def _backward(
         for t in (
             np.linspace(later, ts[index], substeps + 1)[1:] if index < len(ts) - 1 else [ts[-1]]
         ):
-            budget = 200 if index < len(ts) - 1 else START_ITERATIONS
+            budget = NEWTON.iterations if index < len(ts) - 1 else START_ITERATIONS
             w = step(float(t), w, index, budget)
         path[:, index] = w
     return path
@@ -108,7 +109,7 @@ def _newton(
     y: np.ndarray,
     params: Mapping[str, float],
     extra: Mapping[str, Any] | None = None,
-    iterations: int = 200,
+    iterations: int = NEWTON.iterations,
 ) -> np.ndarray:
     """Minimize f0(., t) from ``y``: damped Newton with capped steps."""
     extra = extra or {}
@@ -122,21 +123,23 @@ def _newton(
         if grad @ step <= 0:  # not a descent direction: fall back to the gradient
             step = grad
         size = float(np.linalg.norm(step))
-        if size > 0.02:
-            step = step * (0.02 / size)
+        if size > NEWTON.step_cap:
+            step = step * (NEWTON.step_cap / size)
         value = controller.objective(t, y, params, **extra)
         scale = 1.0
-        while scale > 1e-8:
+        while scale > NEWTON.smallest_scale:
             trial = y - scale * step
             try:
                 trial_value = controller.objective(t, trial, params, **extra)
             except ArithmeticError:
                 trial_value = np.inf
-            if np.isfinite(trial_value) and trial_value <= value - 1e-4 * scale * (grad @ step):
+            if np.isfinite(trial_value) and trial_value <= value - NEWTON.armijo * scale * (
+                grad @ step
+            ):
                 break
-            scale *= 0.5
+            scale *= NEWTON.shrink
         y = y - scale * step
-        if size * scale <= 1e-14 * (1.0 + float(np.linalg.norm(y))):
+        if size * scale <= NEWTON.stop * (1.0 + float(np.linalg.norm(y))):
             break
     return y
 
@@ -148,13 +151,13 @@ def _kkt_newton(
     w: np.ndarray,
     params: Mapping[str, float],
     extra: Mapping[str, Any],
-    iterations: int = 200,
+    iterations: int = NEWTON.iterations,
 ) -> np.ndarray:
     """Solve the KKT system ``F(y, nu, t) = 0`` from ``w = (y, nu)``: damped Newton.
 
     ``F = [grad f0 + J_a^T nu; a]`` (f0's gradient and Hessian from the module, the
     equalities from ``eq``, :func:`tvopt_codegen.simulation.constraints.equalities`), backtracking
-    on ``|F|^2`` within f0's domain, the outputs' steps capped at 0.02 like
+    on ``|F|^2`` within f0's domain, the outputs' steps capped at NEWTON.step_cap like
     :func:`_newton`'s.
     """
     from tvopt_codegen.simulation.constraints import kkt_matrix  # noqa: PLC0415
@@ -186,21 +189,23 @@ def _kkt_newton(
         except np.linalg.LinAlgError:
             step = np.linalg.lstsq(matrix, value, rcond=None)[0]
         size = float(np.linalg.norm(step[:m]))
-        if size > 0.02:
-            step = step * (0.02 / size)
+        if size > NEWTON.step_cap:
+            step = step * (NEWTON.step_cap / size)
         norm = float(value @ value)
         scale = 1.0
-        while scale > 1e-8:
+        while scale > NEWTON.smallest_scale:
             trial = residual(w - scale * step)
-            if trial is not None and float(trial[0] @ trial[0]) <= norm * (1 - 1e-4 * scale):
+            if trial is not None and float(trial[0] @ trial[0]) <= norm * (
+                1 - NEWTON.armijo * scale
+            ):
                 break
-            scale *= 0.5
+            scale *= NEWTON.shrink
         else:
             break
         w = w - scale * step
         current = trial
         assert current is not None
-        if float(np.linalg.norm(step)) * scale <= 1e-14 * (1.0 + float(np.linalg.norm(w))):
+        if float(np.linalg.norm(step)) * scale <= NEWTON.stop * (1.0 + float(np.linalg.norm(w))):
             break
     return w
 

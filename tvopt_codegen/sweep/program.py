@@ -115,6 +115,7 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
         render_template,
         template_context,
     )
+    from tvopt_codegen.runtime import NEWTON, closure  # noqa: PLC0415
 
     d = kernels.derivation
     if d.model.references:
@@ -149,6 +150,18 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
         },
         "scipy_version": scipy.__version__,
         "sweep_statuses": list(LoopOutcome),
+        # The run-time library's routines this loop calls, beyond the controller's own.
+        "runtime_routines": closure(
+            (
+                "rk45",
+                "lu_det",
+                "dot",
+                "kkt_path" if equalities else "minimizer_path",
+            ),
+            # The controller's C file, which the loop includes, has its plan's routines.
+            emitted=kernels.plan.runtime,
+        ),
+        "newton_rule": NEWTON,
         "max_points": MAX_POINTS,
         "start_iterations": START_ITERATIONS,
     }
