@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from tvopt_codegen import derive, load_spec, lower
-from tvopt_codegen.references import exact_jets, sampled_source
 from tvopt_codegen.simulation import load_controller, resolve_options, simulate
+from tvopt_codegen.simulation.references import exact_jets, sampled_source
 
 SPECS = ("unicycle_switch_refs", "pvtol_refs")
 NOISE = (0.0, 1e-3, 1e-2)

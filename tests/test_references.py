@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from tvopt_codegen.errors import SpecError
-from tvopt_codegen.references import exact_jets as reference_jets
+from tvopt_codegen.simulation.references import exact_jets as reference_jets
 from tvopt_codegen.spec import load_spec
 
 from .conftest import derivation, module, write_spec
@@ -211,8 +211,8 @@ def _write_samples(path: Path, name: str, horizon: float, rate: float = 1000.0) 
 def test_simulate_from_samples_tracks_and_the_iss_bound_holds_at_every_noise(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from tvopt_codegen.references import read_reference_file, sampled_source
     from tvopt_codegen.simulation import resolve_options, simulate
+    from tvopt_codegen.simulation.references import read_reference_file, sampled_source
 
     name = "unicycle_switch_refs"
     samples_file = tmp_path / "objects.csv"

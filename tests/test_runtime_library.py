@@ -106,3 +106,25 @@ def test_a_full_three_by_three_block_is_solved_by_the_library_lu(
     for backend in backends:
         with pytest.raises(backend.SingularDecouplingError):
             backend.control(0.0, [0.0, 0.0, 0.3], {"c": 0.06})
+
+
+def test_one_tracking_bound_for_simulate_and_the_sweep() -> None:
+    from tvopt_codegen import hurwitz
+    from tvopt_codegen.simulation import certificate
+    from tvopt_codegen.sweep import sample
+
+    t = np.array([0.0, 1.0, 30.0])
+    constant, bound = hurwitz.tracking_bound(t, c=2.0, alpha=1.0, e0=3.0, m_f=0.5)
+    assert constant == 12.0
+    np.testing.assert_allclose(bound, 12.0 * np.exp(-t))
+    # At t = 30 the bound is below the noise floor and is not judged.
+    error = np.array([6.0, 12.0 * np.exp(-1.0) + 1e-8, 1.0])
+    assert hurwitz.bound_ratio(error, bound) == pytest.approx(1.0)
+    assert hurwitz.bound_ratio(error * 2, bound) > 1.0
+    assert hurwitz.bound_ratio(error, np.zeros(3)) == 0.0
+    # Both certificates state it through these two functions, not a copy of them.
+    for verifier in (certificate, sample):
+        source = verifier.__file__
+        text = open(source, encoding="utf-8").read()
+        assert "tracking_bound(" in text and "bound_ratio(" in text
+        assert "1e-10" not in text

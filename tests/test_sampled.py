@@ -10,8 +10,8 @@ import pytest
 
 from tvopt_codegen.cli import main
 from tvopt_codegen.errors import EXIT_BAD_SPEC
-from tvopt_codegen.sampled import ORDER_FLOOR, simulate_sampled
 from tvopt_codegen.simulation import resolve_options
+from tvopt_codegen.simulation.sampled import ORDER_FLOOR, simulate_sampled
 
 from .conftest import derivation, module
 from .test_c_backend import c_module

@@ -1,6 +1,6 @@
 """What the verification commands write: tables, records, certificates and figures.
 
-The verification stages (:mod:`~tvopt_codegen.simulation`, :mod:`~tvopt_codegen.sampled`,
+The verification stages (:mod:`~tvopt_codegen.simulation`, :mod:`~tvopt_codegen.simulation.sampled`,
 :mod:`~tvopt_codegen.sweep`) compute and return data; this module turns their results
 into the files a command writes, in memory (the writer, :mod:`~tvopt_codegen.emit`,
 puts them on disk). It is the only module that imports :mod:`~tvopt_codegen.figures`,
@@ -18,8 +18,8 @@ import numpy as np
 
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.figures import figures, replay_figure, sampled_figures, sweep_figures
-from tvopt_codegen.sampled import SampledResult
 from tvopt_codegen.simulation import Result, columns, format_certificate
+from tvopt_codegen.simulation.sampled import SampledResult
 from tvopt_codegen.sweep import (
     RECORD,
     TAIL,

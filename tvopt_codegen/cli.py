@@ -606,7 +606,7 @@ def _simulate(args: argparse.Namespace) -> int:
         tolerance=args.tolerance,
     )
     if args.sample_time is not None:
-        from tvopt_codegen.sampled import check_sample_time  # noqa: PLC0415
+        from tvopt_codegen.simulation.sampled import check_sample_time  # noqa: PLC0415
 
         check_sample_time(
             args.sample_time / 2 if args.convergence_order else args.sample_time,
@@ -620,14 +620,14 @@ def _simulate(args: argparse.Namespace) -> int:
         )
     samples = None
     if args.reference_file is not None:
-        from tvopt_codegen.references import read_reference_file  # noqa: PLC0415
+        from tvopt_codegen.simulation.references import read_reference_file  # noqa: PLC0415
 
         samples = read_reference_file(args.reference_file, derivation, options.t_final)
     prepare_folder(args.out, create=False)
     controller = load_controller(kernels, args.backend)
     references = None
     if samples is not None:
-        from tvopt_codegen.references import sampled_source  # noqa: PLC0415
+        from tvopt_codegen.simulation.references import sampled_source  # noqa: PLC0415
 
         references = sampled_source(
             derivation, controller, dict(options.params), *samples, args.noise, args.seed
@@ -640,7 +640,7 @@ def _simulate(args: argparse.Namespace) -> int:
             )
             sampled = None
         else:
-            from tvopt_codegen.sampled import simulate_sampled  # noqa: PLC0415
+            from tvopt_codegen.simulation.sampled import simulate_sampled  # noqa: PLC0415
 
             sampled = simulate_sampled(
                 derivation,
@@ -658,7 +658,7 @@ def _simulate(args: argparse.Namespace) -> int:
     passed = result.passed
     if sampled is not None:
         from tvopt_codegen.artifacts import sampled_files  # noqa: PLC0415
-        from tvopt_codegen.sampled import format_sampled  # noqa: PLC0415
+        from tvopt_codegen.simulation.sampled import format_sampled  # noqa: PLC0415
 
         files.update(sampled_files(derivation, sampled))
         text += "\n" + format_sampled(derivation, sampled)

@@ -22,8 +22,8 @@ from matplotlib.figure import Figure
 from tvopt_codegen.derivation import Derivation
 
 if TYPE_CHECKING:
-    from tvopt_codegen.sampled import SampledResult
     from tvopt_codegen.simulation import Result
+    from tvopt_codegen.simulation.sampled import SampledResult
     from tvopt_codegen.sweep import SweepProgram
 
 _COLORS = ("tab:red", "tab:purple", "tab:orange", "tab:brown", "tab:pink", "tab:olive")

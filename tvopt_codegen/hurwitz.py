@@ -162,3 +162,50 @@ def transient_constant(coefficients: Sequence[float], alpha: float) -> float:
         current = powers[i] = current @ step
     norms = np.linalg.svd(powers, compute_uv=False)[:, 0]
     return max(1.0, float(np.max(norms * np.exp(alpha * grid[1:]))))
+
+
+#: |y - y*| is compared with the bound only where the bound exceeds this: below it the
+#: bound is at the integration's and the minimiser's noise.
+MEANINGFUL_BOUND = 1e-10
+#: The minimiser's absolute accuracy on y*, granted to |y - y*| against the bound.
+TARGET_ACCURACY = 1e-8
+
+
+def tracking_bound(
+    t: np.ndarray, c: float, alpha: float, e0: float, m_f: float
+) -> tuple[float, np.ndarray]:
+    """The theorem's bound on ``|y - y*|``: ``C e^(-alpha t)`` with ``C = c |E(0)| / m_f``.
+
+    Parameters
+    ----------
+    t : numpy.ndarray
+        Times.
+    c, alpha : float
+        ``|expm(H t)| <= c e^(-alpha t)`` (:func:`transient_constant`, :func:`certified_rate`).
+    e0 : float
+        ``|E(0)|``.
+    m_f : float
+        f0's strong convexity modulus along the run (with equalities, the KKT matrix's
+        smallest singular value).
+
+    Returns
+    -------
+    C : float
+        The bound's constant.
+    bound : numpy.ndarray
+        ``C e^(-alpha t)``.
+    """
+    constant = c * e0 / m_f
+    return constant, constant * np.exp(-alpha * np.asarray(t, dtype=float))
+
+
+def bound_ratio(error: np.ndarray, bound: np.ndarray) -> float:
+    """The largest ``(|y - y*| - TARGET_ACCURACY) / bound`` where the bound is meaningful.
+
+    At most 1 when the run keeps to the bound; 0 where no bound is meaningful. The
+    certificate of ``simulate`` and the sweep's both ask this function.
+    """
+    meaningful = bound > MEANINGFUL_BOUND
+    if not meaningful.any():
+        return 0.0
+    return float(np.max((error[meaningful] - TARGET_ACCURACY) / bound[meaningful]))

@@ -16,7 +16,7 @@ from scipy.linalg import expm
 
 from tvopt_codegen import hurwitz
 from tvopt_codegen.derivation import Derivation
-from tvopt_codegen.references import ReferenceSource
+from tvopt_codegen.simulation.references import ReferenceSource
 from tvopt_codegen.simulation.result import Options, Result
 from tvopt_codegen.simulation.target import _reference_values, kkt_path, minimizer_path
 
@@ -194,18 +194,13 @@ def _certify(
     m_f = _modulus(
         d, controller, params, ts, outputs, target, (eq, multipliers, kkt), true, failures
     )
-    C = c * norm0 / m_f
-    bound = C * np.exp(-alpha * ts)
+    C, bound = hurwitz.tracking_bound(ts, c, alpha, norm0, m_f)
     if not estimated and np.isfinite(C) and error[0] > 0 and bound[-1] >= error[0]:
         failures.append(
             f"the bound is vacuous: C e^(-alpha t) = {bound[-1]:.3g} at the end of the run "
             f"is still above the initial |y - y*| = {error[0]:.3g}"
         )
-    meaningful = bound > 1e-10
-    # 1e-8 absolute: the minimizer's accuracy on y*.
-    ratio = (
-        float(np.max((error[meaningful] - 1e-8) / bound[meaningful])) if meaningful.any() else 0.0
-    )
+    ratio = hurwitz.bound_ratio(error, bound)
     if not estimated and not ratio <= 1.0:
         failures.append(f"|y - y*| exceeds the bound C e^(-alpha t) by a factor {ratio:.3g}")
     constrained = _constraint_check(d, options, ts, outputs, error, target, references, failures)

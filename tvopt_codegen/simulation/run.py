@@ -16,8 +16,8 @@ from scipy.interpolate import CubicHermiteSpline
 
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.errors import AssumptionError, SpecError
-from tvopt_codegen.references import ReferenceSource, nominal_source
 from tvopt_codegen.simulation.certificate import _certify
+from tvopt_codegen.simulation.references import ReferenceSource, nominal_source
 from tvopt_codegen.simulation.result import Options, Result
 
 

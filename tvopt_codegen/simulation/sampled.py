@@ -27,12 +27,12 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import sympy as sp
 
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.errors import AssumptionError, SpecError
-from tvopt_codegen.references import nominal_source
-from tvopt_codegen.simulation import Options, Result, simulate
+from tvopt_codegen.simulation.references import nominal_source
+from tvopt_codegen.simulation.result import Options, Result
+from tvopt_codegen.simulation.run import simulate
 
 #: Longest Runge-Kutta step of the plant between samples.
 MAX_SUBSTEP = 1e-2
@@ -112,17 +112,21 @@ class SampledResult:
     failures: tuple[str, ...]
 
 
-def _plant(derivation: Derivation, params: dict[str, float]) -> Callable[..., Any]:
-    """``f(x) + G(x) u`` from the model (not the generated code): the true plant."""
-    model = derivation.model
-    values = {q: params.get(q.name, v) for q, v in zip(model.params, model.defaults, strict=True)}
-    rates = (model.f + model.G * sp.Matrix(model.u)).xreplace(
-        {q: sp.Float(v) for q, v in values.items()}
-    )
-    function = sp.lambdify([model.t, model.x, model.u], list(rates), "math")
+def _plant(controller: types.ModuleType, params: dict[str, float]) -> Callable[..., Any]:
+    """The true plant ``f(x) + G(x) u``: the generated module's own ``plant`` at ``params``.
+
+    Where it is not finite the state becomes NaN, and the controller's next step reports
+    it (NonFiniteInputError), as a run leaving the plant's domain is reported.
+    """
+    given = params or None
 
     def plant(t: float, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return np.array(function(t, x, u), dtype=float)
+        try:
+            return np.asarray(controller.plant(t, x, u, given), dtype=float)
+        except ArithmeticError as exc:
+            if not hasattr(exc, "status"):
+                raise
+            return np.full(len(x), np.nan)
 
     return plant
 
@@ -152,7 +156,7 @@ def sampled_run(
     d = derivation
     params = dict(options.params)
     n = len(d.spec.states)
-    plant = _plant(d, params)
+    plant = _plant(controller, params)
     horizon = options.t_final
     count = math.ceil(horizon / h - 1e-9)
     times = np.minimum(np.arange(count + 1) * h, horizon)
