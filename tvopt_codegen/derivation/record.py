@@ -52,31 +52,45 @@ class Convexity:
 
 
 @dataclass(frozen=True)
-class Derivation:
-    """The complete derivation for one spec.
+class LinearizationStage:
+    """The extended plant and its linearization (Lemmas 1-2).
 
     Attributes
     ----------
-    spec, model : Spec, Model
-        The inputs of the derivation.
     extension : Extension
         The extended plant (equal to the plant when nothing is prolonged).
     relative_degree : tuple of int
         ``r_i`` per output, of the extended system.
     lie : tuple of tuple of sympy.Expr
         ``lie[i][j] = L_f^j h_i``, ``j = 0 .. r_i``.
-    R, p, phi : sympy.ImmutableMatrix
-        Decoupling matrix (m, m), ``p = col(L_f^{r_i} h_i)`` and coordinates ``Phi``.
+    R : sympy.ImmutableMatrix
+        Decoupling matrix (m, m).
+    unextended : str or None
+        Why the extension is needed: what the plant lacks without it (``None`` when
+        nothing is prolonged).
+    extension_search : tuple of str
+        The prolongations the automatic search tried, in order (empty when the spec
+        gave the extension).
+    """
+
+    extension: Extension
+    relative_degree: tuple[int, ...]
+    lie: tuple[tuple[sp.Expr, ...], ...]
+    R: sp.ImmutableMatrix
+    unextended: str | None
+    extension_search: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class DecouplingStage:
+    """``p``, the coordinates, the Brunovsky pair, and where the law is undefined.
+
+    Attributes
+    ----------
+    p, phi : sympy.ImmutableMatrix
+        ``p = col(L_f^{r_i} h_i)`` and the coordinates ``Phi``.
     A, B : sympy.ImmutableMatrix
         Brunovsky pair of the extended system.
-    k : int
-        ``max r_i``: the order of the error dynamics.
-    padding : tuple of tuple of str
-        Names of the padding states ``xi_<output>_<j>`` per output.
-    state_names : tuple of str
-        Closed-loop state order: plant, extension, padding, multiplier chains.
-    states : tuple of sympy.Symbol
-        Symbols of ``state_names``.
     det_R : sympy.Expr or None
         ``det R`` factored, when computed symbolically (m <= 4).
     det_R_note : str
@@ -86,6 +100,89 @@ class Derivation:
     undefined_set : tuple of str
         Conditions under which R or p (and so the law) is undefined (a denominator
         or a cosine under ``tan`` vanishes, ...), in words.
+    dependent_set : tuple of str
+        Where the equalities' gradients are dependent (``det(J_a J_a^T) = 0``, where the
+        KKT matrix is singular), in words; empty where nowhere (or without equalities).
+    """
+
+    p: sp.ImmutableMatrix
+    phi: sp.ImmutableMatrix
+    A: sp.ImmutableMatrix
+    B: sp.ImmutableMatrix
+    det_R: sp.Expr | None
+    det_R_note: str
+    singular_set: tuple[str, ...]
+    undefined_set: tuple[str, ...]
+    dependent_set: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class ClosedLoopStage:
+    """The closed-loop state: plant, extension, padding and multiplier chains.
+
+    Attributes
+    ----------
+    padding : tuple of tuple of str
+        Names of the padding states ``xi_<output>_<j>`` per output.
+    state_names : tuple of str
+        Closed-loop state order: plant, extension, padding, multiplier chains.
+    states : tuple of sympy.Symbol
+        Symbols of ``state_names``.
+    initial_state : tuple of float
+        Default initial state in :attr:`state_names` order.
+    multiplier_states : tuple of tuple of str
+        With equality constraints, each multiplier's chain of controller states
+        ``nu_<name>_0 .. nu_<name>_<k-1>`` (the multiplier and its derivatives).
+    """
+
+    padding: tuple[tuple[str, ...], ...]
+    state_names: tuple[str, ...]
+    states: tuple[sp.Symbol, ...]
+    initial_state: tuple[float, ...]
+    multiplier_states: tuple[tuple[str, ...], ...] = ()
+
+
+@dataclass(frozen=True)
+class ErrorDynamicsStage:
+    """The error dynamics ``E' = H E`` and the theorem's constants.
+
+    Attributes
+    ----------
+    k : int
+        ``max r_i``: the order of the error dynamics.
+    coefficients : tuple of float
+        ``a_0 .. a_{k-1}`` of H.
+    eigenvalues : tuple of complex
+        Eigenvalues of the companion matrix.
+    decay_rate : float
+        ``alpha = -max Re(lambda)``.
+    uniform : bool
+        Whether all relative degrees equal k (no padding).
+    certified_rate : float
+        The alpha of ``|expm(H t)| <= c e^{-alpha t}`` (the decay rate, or 10% less with
+        repeated poles).
+    certified_rate_exact : bool
+        Whether ``certified_rate`` is the decay rate itself (the poles are distinct).
+    transient_constant : float
+        That c, computed.
+    """
+
+    k: int
+    coefficients: tuple[float, ...]
+    eigenvalues: tuple[complex, ...]
+    decay_rate: float
+    uniform: bool
+    certified_rate: float
+    certified_rate_exact: bool
+    transient_constant: float
+
+
+@dataclass(frozen=True)
+class ObjectiveStage:
+    """f0's gradient and Hessian, as expressions and programs, and its convexity.
+
+    Attributes
+    ----------
     gradient : sympy.ImmutableMatrix
         ``grad_y f0`` (m, 1) over ``y``, signals, parameters and t.
     hessian_program : Program
@@ -96,6 +193,34 @@ class Derivation:
         The nonzero entries ``(i, j), i >= j`` of the lower triangle of ``grad_yy f0``,
         over the programs' symbols (numbers when the Hessian is constant). The
         generated code reads the Hessian from these.
+    convexity : Convexity
+        Strong convexity evidence.
+    objective_program : Program
+        The program of f0's own gradient and Hessian (over the outputs): the generated
+        ``gradient`` and ``hessian`` functions evaluate it. With equalities the jet's
+        programs are the KKT system's instead.
+    objective_gradient, objective_hessian : tuple of sympy.Expr
+        f0's gradient (m) and Hessian ((m, m), row-major) over that program.
+    kkt_gradient : sympy.ImmutableMatrix or None
+        With equalities, the KKT map ``F = [grad f0 + J_a^T nu; a]`` over (y, nu).
+    """
+
+    gradient: sp.ImmutableMatrix
+    hessian_program: Program
+    hessian_entries: tuple[tuple[tuple[int, int], sp.Expr], ...]
+    convexity: Convexity
+    objective_program: Program = Program(())
+    objective_gradient: tuple[sp.Expr, ...] = ()
+    objective_hessian: tuple[sp.Expr, ...] = ()
+    kkt_gradient: sp.ImmutableMatrix | None = None
+
+
+@dataclass(frozen=True)
+class JetStage:
+    """The output, signal and reference jets and the gradient jet ``grad^(j) f0``.
+
+    Attributes
+    ----------
     y_jet : tuple of tuple of sympy.Symbol
         ``y_jet[i][j]`` is the symbol of ``y_i^(j)``, ``j = 0 .. k``.
     y_jet_values : tuple of tuple of sympy.Expr
@@ -114,86 +239,13 @@ class Derivation:
         Extra assignments used by :attr:`rest` only.
     rest : tuple of sympy.Expr
         ``grad^(k) f0`` with ``y^(k) = 0``, so ``grad^(k) f0 = Hess y^(k) + rest``.
-    coefficients : tuple of float
-        ``a_0 .. a_{k-1}`` of H.
-    eigenvalues : tuple of complex
-        Eigenvalues of the companion matrix.
-    decay_rate : float
-        ``alpha = -max Re(lambda)``.
-    uniform : bool
-        Whether all relative degrees equal k (no padding).
-    convexity : Convexity
-        Strong convexity evidence.
-    initial_state : tuple of float
-        Default initial state in :attr:`state_names` order.
-    unextended : str or None
-        Why the extension is needed: what the plant lacks without it (``None`` when
-        nothing is prolonged).
-    extension_search : tuple of str
-        The prolongations the automatic search tried, in order (empty when the spec
-        gave the extension).
-    certified_rate : float
-        The alpha of ``|expm(H t)| <= c e^{-alpha t}`` (the decay rate, or 10% less with
-        repeated poles).
-    certified_rate_exact : bool
-        Whether ``certified_rate`` is the decay rate itself (the poles are distinct).
-    warnings : tuple of str
-        What the user should know but that does not stop the derivation (f0 strongly
-        convex only near its minimiser, a singular default state), one line each.
-    transient_constant : float
-        That c, computed.
-    law : Law
-        The control law written down from the above (:mod:`tvopt_codegen.law`):
-        everything the code generators evaluate.
     reference_jet : tuple of tuple of sympy.Symbol
         ``reference_jet[l][q]``: the q-th derivative of reference l, ``q = 0 .. k``
         (supplied by the caller, never derived).
     reference_order : int
         The highest derivative of a reference the law reads (0 without references).
-    timings : tuple of (str, float)
-        Seconds spent per derivation step.
-    objective_program : Program
-        The program of f0's own gradient and Hessian (over the outputs): the generated
-        ``gradient`` and ``hessian`` functions evaluate it. With equalities the jet's
-        programs are the KKT system's instead.
-    objective_gradient, objective_hessian : tuple of sympy.Expr
-        f0's gradient (m) and Hessian ((m, m), row-major) over that program.
-    multiplier_states : tuple of tuple of str
-        With equality constraints, each multiplier's chain of controller states
-        ``nu_<name>_0 .. nu_<name>_<k-1>`` (the multiplier and its derivatives).
-    kkt_gradient : sympy.ImmutableMatrix or None
-        With equalities, the KKT map ``F = [grad f0 + J_a^T nu; a]`` over (y, nu).
-    dependent_set : tuple of str
-        Where the equalities' gradients are dependent (``det(J_a J_a^T) = 0``, where the
-        KKT matrix is singular), in words; empty where nowhere (or without equalities).
-
-    With equality constraints, :attr:`y_jet`, :attr:`grad_jet`, :attr:`rest`,
-    :attr:`jet_program`, :attr:`hessian_program` and :attr:`hessian_entries` are those of
-    the Lagrangian ``L = f0 + nu^T a`` over the outputs and then the multipliers (m + q
-    entries, :attr:`n_kkt`): the law is the paper's, written for ``L``.
     """
 
-    spec: Spec
-    model: Model
-    extension: Extension
-    relative_degree: tuple[int, ...]
-    lie: tuple[tuple[sp.Expr, ...], ...]
-    R: sp.ImmutableMatrix
-    p: sp.ImmutableMatrix
-    phi: sp.ImmutableMatrix
-    A: sp.ImmutableMatrix
-    B: sp.ImmutableMatrix
-    k: int
-    padding: tuple[tuple[str, ...], ...]
-    state_names: tuple[str, ...]
-    states: tuple[sp.Symbol, ...]
-    det_R: sp.Expr | None
-    det_R_note: str
-    singular_set: tuple[str, ...]
-    undefined_set: tuple[str, ...]
-    gradient: sp.ImmutableMatrix
-    hessian_program: Program
-    hessian_entries: tuple[tuple[tuple[int, int], sp.Expr], ...]
     y_jet: tuple[tuple[sp.Symbol, ...], ...]
     y_jet_values: tuple[tuple[sp.Expr, ...], ...]
     signal_jet: tuple[tuple[sp.Symbol, ...], ...]
@@ -203,28 +255,293 @@ class Derivation:
     grad_jet: tuple[tuple[sp.Expr, ...], ...]
     rest_program: Program
     rest: tuple[sp.Expr, ...]
-    coefficients: tuple[float, ...]
-    eigenvalues: tuple[complex, ...]
-    decay_rate: float
-    uniform: bool
-    convexity: Convexity
-    initial_state: tuple[float, ...]
-    unextended: str | None
-    extension_search: tuple[str, ...]
-    certified_rate: float
-    certified_rate_exact: bool
-    warnings: tuple[str, ...]
-    transient_constant: float
-    law: Law
-    timings: tuple[tuple[str, float], ...]
     reference_jet: tuple[tuple[sp.Symbol, ...], ...] = ()
     reference_order: int = 0
-    objective_program: Program = Program(())
-    objective_gradient: tuple[sp.Expr, ...] = ()
-    objective_hessian: tuple[sp.Expr, ...] = ()
-    multiplier_states: tuple[tuple[str, ...], ...] = ()
-    kkt_gradient: sp.ImmutableMatrix | None = None
-    dependent_set: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Derivation:
+    """The complete derivation for one spec, as the records of its stages.
+
+    Attributes
+    ----------
+    spec, model : Spec, Model
+        The inputs of the derivation.
+    linearization : LinearizationStage
+        The extended plant, relative degrees, Lie derivatives and R.
+    decoupling : DecouplingStage
+        p, Phi, the Brunovsky pair, det R and where the law is singular or undefined.
+    closed_loop : ClosedLoopStage
+        The closed-loop state and its default start.
+    dynamics : ErrorDynamicsStage
+        H's coefficients, rate and the theorem's constants.
+    objective : ObjectiveStage
+        f0's gradient and Hessian and their convexity evidence.
+    jet : JetStage
+        The jets and the gradient jet the law reads.
+    law : Law
+        The control law written down from the above (:mod:`tvopt_codegen.law`):
+        everything the code generators evaluate.
+    warnings : tuple of str
+        What the user should know but that does not stop the derivation (f0 strongly
+        convex only near its minimiser, a singular default state), one line each.
+    timings : tuple of (str, float)
+        Seconds spent per derivation step.
+
+    Every attribute of a stage record reads through on the derivation itself
+    (``d.state_names`` is ``d.closed_loop.state_names``), as templates and readers name
+    them. With equality constraints, :attr:`y_jet`, :attr:`grad_jet`, :attr:`rest`,
+    :attr:`jet_program`, :attr:`hessian_program` and :attr:`hessian_entries` are those of
+    the Lagrangian ``L = f0 + nu^T a`` over the outputs and then the multipliers (m + q
+    entries, :attr:`n_kkt`): the law is the paper's, written for ``L``.
+    """
+
+    spec: Spec
+    model: Model
+    linearization: LinearizationStage
+    decoupling: DecouplingStage
+    closed_loop: ClosedLoopStage
+    dynamics: ErrorDynamicsStage
+    objective: ObjectiveStage
+    jet: JetStage
+    law: Law
+    warnings: tuple[str, ...]
+    timings: tuple[tuple[str, float], ...]
+
+    @property
+    def extension(self) -> Extension:
+        """``linearization.extension``."""
+        return self.linearization.extension
+
+    @property
+    def relative_degree(self) -> tuple[int, ...]:
+        """``linearization.relative_degree``."""
+        return self.linearization.relative_degree
+
+    @property
+    def lie(self) -> tuple[tuple[sp.Expr, ...], ...]:
+        """``linearization.lie``."""
+        return self.linearization.lie
+
+    @property
+    def R(self) -> sp.ImmutableMatrix:
+        """``linearization.R``."""
+        return self.linearization.R
+
+    @property
+    def unextended(self) -> str | None:
+        """``linearization.unextended``."""
+        return self.linearization.unextended
+
+    @property
+    def extension_search(self) -> tuple[str, ...]:
+        """``linearization.extension_search``."""
+        return self.linearization.extension_search
+
+    @property
+    def p(self) -> sp.ImmutableMatrix:
+        """``decoupling.p``."""
+        return self.decoupling.p
+
+    @property
+    def phi(self) -> sp.ImmutableMatrix:
+        """``decoupling.phi``."""
+        return self.decoupling.phi
+
+    @property
+    def A(self) -> sp.ImmutableMatrix:
+        """``decoupling.A``."""
+        return self.decoupling.A
+
+    @property
+    def B(self) -> sp.ImmutableMatrix:
+        """``decoupling.B``."""
+        return self.decoupling.B
+
+    @property
+    def det_R(self) -> sp.Expr | None:
+        """``decoupling.det_R``."""
+        return self.decoupling.det_R
+
+    @property
+    def det_R_note(self) -> str:
+        """``decoupling.det_R_note``."""
+        return self.decoupling.det_R_note
+
+    @property
+    def singular_set(self) -> tuple[str, ...]:
+        """``decoupling.singular_set``."""
+        return self.decoupling.singular_set
+
+    @property
+    def undefined_set(self) -> tuple[str, ...]:
+        """``decoupling.undefined_set``."""
+        return self.decoupling.undefined_set
+
+    @property
+    def dependent_set(self) -> tuple[str, ...]:
+        """``decoupling.dependent_set``."""
+        return self.decoupling.dependent_set
+
+    @property
+    def padding(self) -> tuple[tuple[str, ...], ...]:
+        """``closed_loop.padding``."""
+        return self.closed_loop.padding
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """``closed_loop.state_names``."""
+        return self.closed_loop.state_names
+
+    @property
+    def states(self) -> tuple[sp.Symbol, ...]:
+        """``closed_loop.states``."""
+        return self.closed_loop.states
+
+    @property
+    def initial_state(self) -> tuple[float, ...]:
+        """``closed_loop.initial_state``."""
+        return self.closed_loop.initial_state
+
+    @property
+    def multiplier_states(self) -> tuple[tuple[str, ...], ...]:
+        """``closed_loop.multiplier_states``."""
+        return self.closed_loop.multiplier_states
+
+    @property
+    def k(self) -> int:
+        """``dynamics.k``."""
+        return self.dynamics.k
+
+    @property
+    def coefficients(self) -> tuple[float, ...]:
+        """``dynamics.coefficients``."""
+        return self.dynamics.coefficients
+
+    @property
+    def eigenvalues(self) -> tuple[complex, ...]:
+        """``dynamics.eigenvalues``."""
+        return self.dynamics.eigenvalues
+
+    @property
+    def decay_rate(self) -> float:
+        """``dynamics.decay_rate``."""
+        return self.dynamics.decay_rate
+
+    @property
+    def uniform(self) -> bool:
+        """``dynamics.uniform``."""
+        return self.dynamics.uniform
+
+    @property
+    def certified_rate(self) -> float:
+        """``dynamics.certified_rate``."""
+        return self.dynamics.certified_rate
+
+    @property
+    def certified_rate_exact(self) -> bool:
+        """``dynamics.certified_rate_exact``."""
+        return self.dynamics.certified_rate_exact
+
+    @property
+    def transient_constant(self) -> float:
+        """``dynamics.transient_constant``."""
+        return self.dynamics.transient_constant
+
+    @property
+    def gradient(self) -> sp.ImmutableMatrix:
+        """``objective.gradient``."""
+        return self.objective.gradient
+
+    @property
+    def hessian_program(self) -> Program:
+        """``objective.hessian_program``."""
+        return self.objective.hessian_program
+
+    @property
+    def hessian_entries(self) -> tuple[tuple[tuple[int, int], sp.Expr], ...]:
+        """``objective.hessian_entries``."""
+        return self.objective.hessian_entries
+
+    @property
+    def convexity(self) -> Convexity:
+        """``objective.convexity``."""
+        return self.objective.convexity
+
+    @property
+    def objective_program(self) -> Program:
+        """``objective.objective_program``."""
+        return self.objective.objective_program
+
+    @property
+    def objective_gradient(self) -> tuple[sp.Expr, ...]:
+        """``objective.objective_gradient``."""
+        return self.objective.objective_gradient
+
+    @property
+    def objective_hessian(self) -> tuple[sp.Expr, ...]:
+        """``objective.objective_hessian``."""
+        return self.objective.objective_hessian
+
+    @property
+    def kkt_gradient(self) -> sp.ImmutableMatrix | None:
+        """``objective.kkt_gradient``."""
+        return self.objective.kkt_gradient
+
+    @property
+    def y_jet(self) -> tuple[tuple[sp.Symbol, ...], ...]:
+        """``jet.y_jet``."""
+        return self.jet.y_jet
+
+    @property
+    def y_jet_values(self) -> tuple[tuple[sp.Expr, ...], ...]:
+        """``jet.y_jet_values``."""
+        return self.jet.y_jet_values
+
+    @property
+    def signal_jet(self) -> tuple[tuple[sp.Symbol, ...], ...]:
+        """``jet.signal_jet``."""
+        return self.jet.signal_jet
+
+    @property
+    def signal_program(self) -> Program:
+        """``jet.signal_program``."""
+        return self.jet.signal_program
+
+    @property
+    def signal_jet_values(self) -> tuple[tuple[sp.Expr, ...], ...]:
+        """``jet.signal_jet_values``."""
+        return self.jet.signal_jet_values
+
+    @property
+    def jet_program(self) -> Program:
+        """``jet.jet_program``."""
+        return self.jet.jet_program
+
+    @property
+    def grad_jet(self) -> tuple[tuple[sp.Expr, ...], ...]:
+        """``jet.grad_jet``."""
+        return self.jet.grad_jet
+
+    @property
+    def rest_program(self) -> Program:
+        """``jet.rest_program``."""
+        return self.jet.rest_program
+
+    @property
+    def rest(self) -> tuple[sp.Expr, ...]:
+        """``jet.rest``."""
+        return self.jet.rest
+
+    @property
+    def reference_jet(self) -> tuple[tuple[sp.Symbol, ...], ...]:
+        """``jet.reference_jet``."""
+        return self.jet.reference_jet
+
+    @property
+    def reference_order(self) -> int:
+        """``jet.reference_order``."""
+        return self.jet.reference_order
 
     @property
     def n_kkt(self) -> int:
