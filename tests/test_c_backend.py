@@ -487,7 +487,7 @@ def test_sparse_outputs_are_zeros_and_their_nonzero_elements(
     """An eight-agent ring's Hessian (16 x 16, 160 zeros) is printed as zeros and its 96
     nonzero elements, in every printing; its values are sympy's, the same in both
     backends, on the one-point and the batch path; the C compiles under strict warnings."""
-    from tvopt_codegen.printers import CPrinter
+    from tvopt_codegen.backends.c.printer import CPrinter
     from tvopt_codegen.rendering import print_kernel
 
     spec = tmp_path / "ring8.toml"

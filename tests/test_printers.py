@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from tvopt_codegen.printers import CPrinter, PythonPrinter, PythonScalarPrinter
+from tvopt_codegen.backends.c.printer import CPrinter
+from tvopt_codegen.backends.python.printer import PythonPrinter, PythonScalarPrinter
 
 t, x, y, a = sp.symbols("t x y a", real=True)
 
@@ -39,7 +40,7 @@ def test_python_powers_print_alike_for_arrays_and_floats() -> None:
         x**y: ("numpy.power(x, y)", "float(_np_power(x, y))"),
         sp.tanh(x) + 1: ("numpy.tanh(x) + 1", "float(_np_tanh(x)) + 1.0"),
     }
-    from tvopt_codegen.printers import PythonJointPrinter
+    from tvopt_codegen.backends.python.printer import PythonJointPrinter
 
     joint, texts = PythonJointPrinter(), PythonJointPrinter.texts()
     cases[-(sp.sin(x) ** 2) - 3 * sp.exp(-x) + sp.Rational(1, 3)] = (
@@ -76,14 +77,15 @@ def _one_point_function(kernel: object) -> str:
 
 
 def test_register_renaming_keeps_every_value_and_needs_fewer_names() -> None:
-    """rendering.registers: the same results, bit for bit, from reused names."""
+    """The Python backend's registers filter: the same results, bit for bit, from reused names."""
     import math
     import re
 
     import numpy
 
     from tests.conftest import kernels
-    from tvopt_codegen.rendering import print_kernel, registers
+    from tvopt_codegen.backends.python.filters import registers
+    from tvopt_codegen.rendering import print_kernel
 
     for spec in ("two_unicycles_barrier", "unicycle_ring"):
         ks = kernels(spec)
@@ -125,7 +127,7 @@ def test_the_joint_printing_is_both_python_printings_for_every_example() -> None
     """Rendering prints the Python kernels once (PythonJointPrinter) and derives both texts:
     each must be, character for character, what its own printer prints."""
     from tests.conftest import kernels
-    from tvopt_codegen.printers import PythonJointPrinter
+    from tvopt_codegen.backends.python.printer import PythonJointPrinter
     from tvopt_codegen.rendering import _translated, print_kernel
     from tvopt_codegen.spec import bundled_examples
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # sympy loads in a second; the registry is read by --help too
@@ -44,6 +45,13 @@ class Backend:
         :class:`~tvopt_codegen.kernel.KernelSet` being rendered. (Typed ``Any`` here: the
         spec reader consults this registry for reserved words, so the record must not
         depend on the stages after it.)
+    filters : callable or None
+        ``filters()`` returns the backend's own jinja filters by name (called when the
+        template environment is built, so that registering a backend imports none).
+    load : callable or None
+        ``load(files, module_file, name)`` imports the module users import from the
+        rendered ``files`` (``simulate`` runs it); None: the files are written to a
+        private folder and ``module_file`` is imported from there.
     template_root : pathlib.Path or None
         The folder its template paths are relative to; None for the shipped
         ``templates/`` (a backend from another package brings its own).
@@ -63,6 +71,8 @@ class Backend:
     variants: tuple[tuple[str, Callable[[], CodePrinter]], ...] = ()
     joint: Callable[[], CodePrinter] | None = None
     context: Callable[[Any], dict[str, Any]] | None = None
+    filters: Callable[[], dict[str, Callable[..., Any]]] | None = None
+    load: Callable[[dict[str, str], str, str], ModuleType] | None = None
     template_root: Path | None = None
     reserved: frozenset[str] = frozenset()
     reserved_as: tuple[tuple[str, frozenset[str]], ...] = ()

@@ -28,19 +28,17 @@ from tvopt_codegen.rendering import render
 def load_controller(kernels: KernelSet, backend: str = "python") -> types.ModuleType:
     """Render a backend and load its Python module.
 
-    The Python backend is compiled from memory (the text is tvopt-codegen's own output;
-    spec text appears in it only inside escaped literals and comments). Other backends
-    are written to a private temporary folder through :func:`~tvopt_codegen.emit.write_files`
-    and imported from there (the C backend compiles and caches its library on import).
+    A backend that says how (``Backend.load``: the Python backend compiles its module from
+    memory) loads it so; the others are written to a private temporary folder through
+    :func:`~tvopt_codegen.emit.write_files` and imported from there (the C backend compiles
+    and caches its library on import).
     """
     files = render(kernels, backend)
     name = kernels.derivation.spec.name
-    module_file = BACKENDS[backend].module.format(name=name)
-    if backend == "python":
-        module = types.ModuleType(name)
-        module.__file__ = f"<generated {module_file}>"
-        exec(compile(files[module_file], module.__file__, "exec"), module.__dict__)  # noqa: S102
-        return module
+    record = BACKENDS[backend]
+    module_file = record.module.format(name=name)
+    if record.load is not None:
+        return record.load(files, module_file, name)
     with tempfile.TemporaryDirectory(prefix="tvopt-codegen-") as folder:
         write_files(files, folder)
         spec = importlib.util.spec_from_file_location(

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import keyword
+import types
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from tvopt_codegen.backends.base import Backend
@@ -14,21 +16,42 @@ if TYPE_CHECKING:
 
 
 def _printer() -> CodePrinter:
-    from tvopt_codegen.printers import PythonPrinter  # noqa: PLC0415 - sympy only when rendering
+    from tvopt_codegen.backends.python.printer import PythonPrinter  # noqa: PLC0415 - sympy only when rendering
 
     return PythonPrinter()
 
 
 def _scalar_printer() -> CodePrinter:
-    from tvopt_codegen.printers import PythonScalarPrinter  # noqa: PLC0415
+    from tvopt_codegen.backends.python.printer import PythonScalarPrinter  # noqa: PLC0415
 
     return PythonScalarPrinter()
 
 
 def _joint_printer() -> CodePrinter:
-    from tvopt_codegen.printers import PythonJointPrinter  # noqa: PLC0415
+    from tvopt_codegen.backends.python.printer import PythonJointPrinter  # noqa: PLC0415
 
     return PythonJointPrinter()
+
+
+def _filters() -> dict[str, Callable[..., Any]]:
+    from tvopt_codegen.backends.python.filters import (  # noqa: PLC0415 - when rendering
+        numpy_aliases,
+        registers,
+    )
+
+    return {"registers": registers, "numpy_aliases": numpy_aliases}
+
+
+def _load(files: dict[str, str], module_file: str, name: str) -> types.ModuleType:
+    """The module, compiled from memory.
+
+    The text is tvopt-codegen's own output: spec text appears in it only inside escaped
+    literals and comments.
+    """
+    module = types.ModuleType(name)
+    module.__file__ = f"<generated {module_file}>"
+    exec(compile(files[module_file], module.__file__, "exec"), module.__dict__)  # noqa: S102
+    return module
 
 
 def _context(kernels: KernelSet) -> dict[str, Any]:
@@ -59,5 +82,7 @@ BACKEND = Backend(
     # Both printings from one: the printers differ only in marked places.
     joint=_joint_printer,
     context=_context,
+    filters=_filters,
+    load=_load,
     reserved=frozenset(keyword.kwlist) | frozenset(keyword.softkwlist),
 )

@@ -34,7 +34,7 @@ C_LIBRARY_NAMES = frozenset(
 
 
 def _printer() -> CodePrinter:
-    from tvopt_codegen.printers import CPrinter  # noqa: PLC0415 - sympy only when rendering
+    from tvopt_codegen.backends.c.printer import CPrinter  # noqa: PLC0415 - sympy only when rendering
 
     return CPrinter()
 
