@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: f5b9de5ef25734281580050f5d65ed81a8c7785b4b1d0b58b874ff0e515a83a5
+# content sha256: ac0c56dd0fa8b2c313c18d60f8934a72bcdc90c724438a2a122d546121d79bab
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -992,91 +992,6 @@ def _outputs_values(t, x, p):
     return y
 
 
-def control(t, s, params=None):
-    """Plant input u of the implicit trajectory planning law.
-
-    Parameters
-    ----------
-    t : float
-        Time.
-    s : array_like, shape (4,) or (4, N)
-        Closed-loop state in ``STATE_NAMES`` order.
-    params : mapping, optional
-        Parameter overrides by name; missing names take ``PARAMETERS`` defaults.
-
-    Returns
-    -------
-    numpy.ndarray, shape (1,) or (1, N)
-        Plant input in ``INPUT_NAMES`` order.
-
-    Raises
-    ------
-    ControllerError
-        ``NonFiniteInputError``, ``SingularDecouplingError``,
-        ``HessianNotPositiveDefiniteError`` or ``NonFiniteOutputError``.
-    """
-    t = _time(t)
-    states, single = _columns("s", s, 4)
-    p = _parameters(params)
-    _check_inputs(t, states, p, "state")
-    u = _control_values(t, states, p)
-    return u[:, 0] if single else u
-
-
-def rhs(t, s, params=None):
-    """Time derivative of the closed-loop state, for ``scipy.integrate.solve_ivp``.
-
-    Parameters
-    ----------
-    t : float
-        Time.
-    s : array_like, shape (4,) or (4, N)
-        Closed-loop state in ``STATE_NAMES`` order.
-    params : mapping, optional
-        Parameter overrides by name.
-
-    Returns
-    -------
-    numpy.ndarray, same shape as ``s``
-        ``ds/dt``: plant and extension dynamics under the law, and the padding chains.
-
-    Raises
-    ------
-    ControllerError
-        As :func:`control`.
-    """
-    t = _time(t)
-    states, single = _columns("s", s, 4)
-    p = _parameters(params)
-    _check_inputs(t, states, p, "state")
-    ds = _rhs_values(t, states, p)
-    return ds[:, 0] if single else ds
-
-
-def optimality_error(t, s, params=None):
-    """The optimality error: row j is grad^(j) f0 along the closed loop.
-
-    Parameters
-    ----------
-    t : float
-        Time.
-    s : array_like, shape (4,) or (4, N)
-        Closed-loop state in ``STATE_NAMES`` order.
-    params : mapping, optional
-        Parameter overrides by name.
-
-    Returns
-    -------
-    numpy.ndarray, shape (K, 1) or (K, 1, N)
-        ``E``; under the law ``dE/dt = H E``.    """
-    t = _time(t)
-    states, single = _columns("s", s, 4)
-    p = _parameters(params)
-    _check_inputs(t, states, p, "state")
-    e = _optimality_error_values(t, states, p)
-    return e[..., 0] if single else e
-
-
 def _output_function(evaluate, t, y, params):
     t = _time(t)
     outputs, single = _columns("y", y, 1)
@@ -1084,45 +999,6 @@ def _output_function(evaluate, t, y, params):
     _check_inputs(t, outputs, p, "output")
     value = evaluate(t, outputs, p)
     return value[..., 0] if single else value
-
-
-def objective(t, y, params=None):
-    """The objective f0(y, t).
-
-    Parameters
-    ----------
-    t : float
-        Time.
-    y : array_like, shape (1,) or (1, N)
-        Outputs in ``OUTPUT_NAMES`` order.
-    params : mapping, optional
-        Parameter overrides by name.
-
-    Returns
-    -------
-    float or numpy.ndarray of shape (N,)
-    """
-    value = _output_function(_objective_values, t, y, params)
-    return float(value) if numpy.ndim(value) == 0 else value
-
-
-def gradient(t, y, params=None):
-    """The gradient of f0 with respect to y.
-
-    Parameters
-    ----------
-    t : float
-        Time.
-    y : array_like, shape (1,) or (1, N)
-        Outputs in ``OUTPUT_NAMES`` order.
-    params : mapping, optional
-        Parameter overrides by name.
-
-    Returns
-    -------
-    numpy.ndarray, shape (1,) or (1, N)
-    """
-    return _output_function(_gradient_values, t, y, params)
 
 
 def _plant_arguments(t, x, params, u=None):
@@ -1148,51 +1024,136 @@ def _plant_arguments(t, x, params, u=None):
     return t, [a for _, a in arrays], p, single
 
 
-def plant(t, x, u, params=None):
-    """The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller.
-
-    The true plant of a sampled-data loop (the input held between samples) and of
-    :func:`tvopt_codegen.interop.plant_nlsys`.
+def control(t, s, params=None):
+    """Plant input u of the implicit trajectory planning law.
 
     Parameters
     ----------
     t : float
         Time.
-    x : array_like, shape (4,) or (4, N)
-        Plant state in ``PLANT_STATE_NAMES`` order.
-    u : array_like, shape (1,) or (1, N)
-        Plant input in ``INPUT_NAMES`` order.
+    s : array_like, shape (4,) or (4, N)
+        Closed-loop state in ``STATE_NAMES`` order.
     params : mapping, optional
-        Parameter overrides by name.
-
-    Returns
-    -------
-    numpy.ndarray, same shape as ``x``
-    """
-    t, (states, inputs), p, single = _plant_arguments(t, x, params, u)
-    dx = _plant_values(t, states, inputs, p)
-    return dx[:, 0] if single else dx
-
-
-def outputs(t, x, params=None):
-    """The outputs ``y = h(x)`` of the plant state.
-
-    Parameters
-    ----------
-    t : float
-        Time.
-    x : array_like, shape (4,) or (4, N)
-        Plant state in ``PLANT_STATE_NAMES`` order.
-    params : mapping, optional
-        Parameter overrides by name.
+        Parameter overrides by name; missing names take ``PARAMETERS`` defaults.
 
     Returns
     -------
     numpy.ndarray, shape (1,) or (1, N)
+        Plant input in ``INPUT_NAMES`` order.
+
+    Raises
+    ------
+    ControllerError
+        Where the law is undefined, a subclass naming the cause (``STATUS_*``).
     """
-    t, (states,), p, single = _plant_arguments(t, x, params)
-    y = _outputs_values(t, states, p)
-    return y[:, 0] if single else y
+    t = _time(t)
+    states, single = _columns("s", s, 4)
+    p = _parameters(params)
+    _check_inputs(t, states, p, "state")
+    value = _control_values(t, states, p)
+    return value[..., 0] if single else value
+
+
+def rhs(t, s, params=None):
+    """Time derivative of the closed-loop state, for ``scipy.integrate.solve_ivp``.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    s : array_like, shape (4,) or (4, N)
+        Closed-loop state in ``STATE_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name; missing names take ``PARAMETERS`` defaults.
+
+    Returns
+    -------
+    numpy.ndarray, shape (4,) or (4, N)
+        ``ds/dt``: plant and extension dynamics under the law, and the padding chains.
+
+    Raises
+    ------
+    ControllerError
+        Where the law is undefined, a subclass naming the cause (``STATUS_*``).
+    """
+    t = _time(t)
+    states, single = _columns("s", s, 4)
+    p = _parameters(params)
+    _check_inputs(t, states, p, "state")
+    value = _rhs_values(t, states, p)
+    return value[..., 0] if single else value
+
+
+def optimality_error(t, s, params=None):
+    """The optimality error: row j is grad^(j) f0 along the closed loop.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    s : array_like, shape (4,) or (4, N)
+        Closed-loop state in ``STATE_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name; missing names take ``PARAMETERS`` defaults.
+
+    Returns
+    -------
+    numpy.ndarray, shape (4, 1,) or (4, 1, N)
+        ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
+
+    Raises
+    ------
+    ControllerError
+        Where the law is undefined, a subclass naming the cause (``STATUS_*``).
+    """
+    t = _time(t)
+    states, single = _columns("s", s, 4)
+    p = _parameters(params)
+    _check_inputs(t, states, p, "state")
+    value = _optimality_error_values(t, states, p)
+    return value[..., 0] if single else value
+
+
+def objective(t, y, params=None):
+    """The objective f0(y, t).
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    y : array_like, shape (1,) or (1, N)
+        Outputs in ``OUTPUT_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name; missing names take ``PARAMETERS`` defaults.
+
+    Returns
+    -------
+    float, or numpy.ndarray of shape (N,)
+        f0 at each point.
+    """
+    value = _output_function(_objective_values, t, y, params)
+    return float(value) if numpy.ndim(value) == 0 else value
+
+
+def gradient(t, y, params=None):
+    """The gradient of f0 with respect to y.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    y : array_like, shape (1,) or (1, N)
+        Outputs in ``OUTPUT_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name; missing names take ``PARAMETERS`` defaults.
+
+    Returns
+    -------
+    numpy.ndarray, shape (1,) or (1, N)
+        ``grad_y f0``.
+    """
+    value = _output_function(_gradient_values, t, y, params)
+    return value
 
 
 def hessian(t, y, params=None):
@@ -1205,13 +1166,61 @@ def hessian(t, y, params=None):
     y : array_like, shape (1,) or (1, N)
         Outputs in ``OUTPUT_NAMES`` order.
     params : mapping, optional
-        Parameter overrides by name.
+        Parameter overrides by name; missing names take ``PARAMETERS`` defaults.
 
     Returns
     -------
-    numpy.ndarray, shape (1, 1) or (1, 1, N)
+    numpy.ndarray, shape (1, 1,) or (1, 1, N)
+        ``grad_yy f0``.
     """
-    return _output_function(_hessian_values, t, y, params)
+    value = _output_function(_hessian_values, t, y, params)
+    return value
+
+
+def plant(t, x, u, params=None):
+    """The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    x : array_like, shape (4,) or (4, N)
+        Plant state in ``PLANT_STATE_NAMES`` order.
+    u : array_like, shape (1,) or (1, N)
+        Plant input in ``INPUT_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name; missing names take ``PARAMETERS`` defaults.
+
+    Returns
+    -------
+    numpy.ndarray, shape (4,) or (4, N)
+        ``dx/dt``: the true plant of a sampled-data loop and of :func:`tvopt_codegen.interop.plant_nlsys`.
+    """
+    t, arrays, p, single = _plant_arguments(t, x, params, u)
+    value = _plant_values(t, *arrays, p)
+    return value[:, 0] if single else value
+
+
+def outputs(t, x, params=None):
+    """The outputs ``y = h(x)`` of the plant state.
+
+    Parameters
+    ----------
+    t : float
+        Time.
+    x : array_like, shape (4,) or (4, N)
+        Plant state in ``PLANT_STATE_NAMES`` order.
+    params : mapping, optional
+        Parameter overrides by name; missing names take ``PARAMETERS`` defaults.
+
+    Returns
+    -------
+    numpy.ndarray, shape (1,) or (1, N)
+        ``y`` in ``OUTPUT_NAMES`` order.
+    """
+    t, arrays, p, single = _plant_arguments(t, x, params)
+    value = _outputs_values(t, *arrays, p)
+    return value[:, 0] if single else value
 
 
 

@@ -138,7 +138,9 @@ class Function:
     batch : bool
         Whether it has a batched form over many points (and takes reference jets).
     doc : str
-        One line for the header and the docstrings.
+        The summary, for the header and the docstrings.
+    returns : str
+        What it returns, for the docstrings.
     """
 
     name: str
@@ -148,6 +150,7 @@ class Function:
     kernel: str
     batch: bool
     doc: str
+    returns: str
 
     def size(self, sizes: Mapping[str, int]) -> int:
         """The number of doubles of one result."""
@@ -179,73 +182,20 @@ class Function:
         return C_ARGUMENTS[self.argument]
 
 
-#: The public functions, in the order of the CPython entry point's ``kind``.
+#: The public functions, in the order of the CPython entry point's ``kind``: name,
+#: argument, what it computes, shape, kernel, batch form, summary, what it returns.
+# fmt: off
 FUNCTIONS = (
-    Function(
-        "control",
-        "state",
-        "the plant input",
-        ("n_inputs",),
-        "",
-        True,
-        "Plant input u of the implicit trajectory planning law.",
-    ),
-    Function(
-        "rhs",
-        "state",
-        "the closed-loop vector field",
-        ("n_states",),
-        "",
-        True,
-        "Time derivative of the closed-loop state, for scipy.integrate.solve_ivp.",
-    ),
-    Function(
-        "optimality_error",
-        "state",
-        "the optimality error",
-        ("k", "n_kkt"),
-        "optimality",
-        True,
-        "The optimality error: row j is grad^(j) f0 along the closed loop.",
-    ),
-    Function("objective", "output", "f0", (), "objective", True, "The objective f0(y, t)."),
-    Function(
-        "gradient",
-        "output",
-        "the gradient of f0",
-        ("n_outputs",),
-        "gradient",
-        True,
-        "The gradient of f0 with respect to y.",
-    ),
-    Function(
-        "hessian",
-        "output",
-        "the Hessian of f0",
-        ("n_outputs", "n_outputs"),
-        "hessian",
-        True,
-        "The Hessian of f0 with respect to y.",
-    ),
-    Function(
-        "plant",
-        "plant_input",
-        "the plant's vector field",
-        ("n_plant_states",),
-        "plant",
-        False,
-        "The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller.",
-    ),
-    Function(
-        "outputs",
-        "plant",
-        "the outputs",
-        ("n_outputs",),
-        "outputs",
-        False,
-        "The outputs y = h(x) of the plant state.",
-    ),
+    Function("control", "state", "the plant input", ("n_inputs",), "", True, "Plant input u of the implicit trajectory planning law.", "Plant input in ``INPUT_NAMES`` order."),  # noqa: E501
+    Function("rhs", "state", "the closed-loop vector field", ("n_states",), "", True, "Time derivative of the closed-loop state, for ``scipy.integrate.solve_ivp``.", "``ds/dt``: plant and extension dynamics under the law, and the padding chains."),  # noqa: E501
+    Function("optimality_error", "state", "the optimality error", ("k", "n_kkt"), "optimality", True, "The optimality error: row j is grad^(j) f0 along the closed loop.", "``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers)."),  # noqa: E501
+    Function("objective", "output", "f0", (), "objective", True, "The objective f0(y, t).", "f0 at each point."),  # noqa: E501
+    Function("gradient", "output", "the gradient of f0", ("n_outputs",), "gradient", True, "The gradient of f0 with respect to y.", "``grad_y f0``."),  # noqa: E501
+    Function("hessian", "output", "the Hessian of f0", ("n_outputs", "n_outputs"), "hessian", True, "The Hessian of f0 with respect to y.", "``grad_yy f0``."),  # noqa: E501
+    Function("plant", "plant_input", "the plant's vector field", ("n_plant_states",), "plant", False, "The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller.", "``dx/dt``: the true plant of a sampled-data loop and of :func:`tvopt_codegen.interop.plant_nlsys`."),  # noqa: E501
+    Function("outputs", "plant", "the outputs", ("n_outputs",), "outputs", False, "The outputs ``y = h(x)`` of the plant state.", "``y`` in ``OUTPUT_NAMES`` order."),  # noqa: E501
 )
+# fmt: on
 
 #: The C name of each kind of argument (:attr:`Function.argument`).
 C_ARGUMENTS = {

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: arm_on_line
  * spec sha256: 4194f1f0d46904245e4cb166b561f03ee23947c179614a7250471e1fb40deb16
- * content sha256: 7a2181047e5b18db05c9910ab8f9e3b73163c7c7bf5b59a9a2a1b9ccb6a3d097
+ * content sha256: ef5f2afc0a0f47eb1fbc89a949a44514391ccdd6ad1f975d7b6c7dfe6a3ecf1d
  */
 
 /*
@@ -65,7 +65,7 @@ extern const double arm_on_line_hurwitz_coefficients[ARM_ON_LINE_K];
  * plant input; params NULL for the defaults. */
 /* Plant input u of the implicit trajectory planning law. [ARM_ON_LINE_N_INPUTS] */
 int arm_on_line_control(double t, const double *s, const double *params, double *out);
-/* Time derivative of the closed-loop state, for scipy.integrate.solve_ivp. [ARM_ON_LINE_N_STATES] */
+/* Time derivative of the closed-loop state, for ``scipy.integrate.solve_ivp``. [ARM_ON_LINE_N_STATES] */
 int arm_on_line_rhs(double t, const double *s, const double *params, double *out);
 /* The optimality error: row j is grad^(j) f0 along the closed loop. [ARM_ON_LINE_K * ARM_ON_LINE_N_KKT] */
 int arm_on_line_optimality_error(double t, const double *s, const double *params, double *out);
@@ -75,9 +75,9 @@ int arm_on_line_objective(double t, const double *y, const double *params, doubl
 int arm_on_line_gradient(double t, const double *y, const double *params, double *out);
 /* The Hessian of f0 with respect to y. [ARM_ON_LINE_N_OUTPUTS * ARM_ON_LINE_N_OUTPUTS] */
 int arm_on_line_hessian(double t, const double *y, const double *params, double *out);
-/* The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller. [ARM_ON_LINE_N_PLANT_STATES] */
+/* The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller. [ARM_ON_LINE_N_PLANT_STATES] */
 int arm_on_line_plant(double t, const double *x, const double *u, const double *params, double *out);
-/* The outputs y = h(x) of the plant state. [ARM_ON_LINE_N_OUTPUTS] */
+/* The outputs ``y = h(x)`` of the plant state. [ARM_ON_LINE_N_OUTPUTS] */
 int arm_on_line_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: cc65fea5eacee368ceae0268089f9628bd2251dc08f4c862102d38051561a363
+ * content sha256: f327cc10922906a4e4b4c0ce1a9e84468d8a4730ed179a71deadcf24b4b0cdf8
  */
 
 /*
@@ -64,7 +64,7 @@ extern const double flexible_joint_hurwitz_coefficients[FLEXIBLE_JOINT_K];
  * plant input; params NULL for the defaults. */
 /* Plant input u of the implicit trajectory planning law. [FLEXIBLE_JOINT_N_INPUTS] */
 int flexible_joint_control(double t, const double *s, const double *params, double *out);
-/* Time derivative of the closed-loop state, for scipy.integrate.solve_ivp. [FLEXIBLE_JOINT_N_STATES] */
+/* Time derivative of the closed-loop state, for ``scipy.integrate.solve_ivp``. [FLEXIBLE_JOINT_N_STATES] */
 int flexible_joint_rhs(double t, const double *s, const double *params, double *out);
 /* The optimality error: row j is grad^(j) f0 along the closed loop. [FLEXIBLE_JOINT_K * FLEXIBLE_JOINT_N_KKT] */
 int flexible_joint_optimality_error(double t, const double *s, const double *params, double *out);
@@ -74,9 +74,9 @@ int flexible_joint_objective(double t, const double *y, const double *params, do
 int flexible_joint_gradient(double t, const double *y, const double *params, double *out);
 /* The Hessian of f0 with respect to y. [FLEXIBLE_JOINT_N_OUTPUTS * FLEXIBLE_JOINT_N_OUTPUTS] */
 int flexible_joint_hessian(double t, const double *y, const double *params, double *out);
-/* The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller. [FLEXIBLE_JOINT_N_PLANT_STATES] */
+/* The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller. [FLEXIBLE_JOINT_N_PLANT_STATES] */
 int flexible_joint_plant(double t, const double *x, const double *u, const double *params, double *out);
-/* The outputs y = h(x) of the plant state. [FLEXIBLE_JOINT_N_OUTPUTS] */
+/* The outputs ``y = h(x)`` of the plant state. [FLEXIBLE_JOINT_N_OUTPUTS] */
 int flexible_joint_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop

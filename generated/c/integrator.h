@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 7fd59dd5c046baaf0e1c5804d0584568f473ea0d2e4f3600a809321c70f78f77
+ * content sha256: c797e759edf1100f859abb90f2f49521336758278a8064076fd3f9b2de605253
  */
 
 /*
@@ -64,7 +64,7 @@ extern const double integrator_hurwitz_coefficients[INTEGRATOR_K];
  * plant input; params NULL for the defaults. */
 /* Plant input u of the implicit trajectory planning law. [INTEGRATOR_N_INPUTS] */
 int integrator_control(double t, const double *s, const double *params, double *out);
-/* Time derivative of the closed-loop state, for scipy.integrate.solve_ivp. [INTEGRATOR_N_STATES] */
+/* Time derivative of the closed-loop state, for ``scipy.integrate.solve_ivp``. [INTEGRATOR_N_STATES] */
 int integrator_rhs(double t, const double *s, const double *params, double *out);
 /* The optimality error: row j is grad^(j) f0 along the closed loop. [INTEGRATOR_K * INTEGRATOR_N_KKT] */
 int integrator_optimality_error(double t, const double *s, const double *params, double *out);
@@ -74,9 +74,9 @@ int integrator_objective(double t, const double *y, const double *params, double
 int integrator_gradient(double t, const double *y, const double *params, double *out);
 /* The Hessian of f0 with respect to y. [INTEGRATOR_N_OUTPUTS * INTEGRATOR_N_OUTPUTS] */
 int integrator_hessian(double t, const double *y, const double *params, double *out);
-/* The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller. [INTEGRATOR_N_PLANT_STATES] */
+/* The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller. [INTEGRATOR_N_PLANT_STATES] */
 int integrator_plant(double t, const double *x, const double *u, const double *params, double *out);
-/* The outputs y = h(x) of the plant state. [INTEGRATOR_N_OUTPUTS] */
+/* The outputs ``y = h(x)`` of the plant state. [INTEGRATOR_N_OUTPUTS] */
 int integrator_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop

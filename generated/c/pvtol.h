@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: pvtol
  * spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
- * content sha256: 0b38fdd98a6665d5c6670ab639c58dacadaa46b43041481810f3ee364faa76c2
+ * content sha256: 54215af80b46de781ab68eba149876fb8b9392991aed3d869f256c0e2302ffbb
  */
 
 /*
@@ -65,7 +65,7 @@ extern const double pvtol_hurwitz_coefficients[PVTOL_K];
  * plant input; params NULL for the defaults. */
 /* Plant input u of the implicit trajectory planning law. [PVTOL_N_INPUTS] */
 int pvtol_control(double t, const double *s, const double *params, double *out);
-/* Time derivative of the closed-loop state, for scipy.integrate.solve_ivp. [PVTOL_N_STATES] */
+/* Time derivative of the closed-loop state, for ``scipy.integrate.solve_ivp``. [PVTOL_N_STATES] */
 int pvtol_rhs(double t, const double *s, const double *params, double *out);
 /* The optimality error: row j is grad^(j) f0 along the closed loop. [PVTOL_K * PVTOL_N_KKT] */
 int pvtol_optimality_error(double t, const double *s, const double *params, double *out);
@@ -75,9 +75,9 @@ int pvtol_objective(double t, const double *y, const double *params, double *out
 int pvtol_gradient(double t, const double *y, const double *params, double *out);
 /* The Hessian of f0 with respect to y. [PVTOL_N_OUTPUTS * PVTOL_N_OUTPUTS] */
 int pvtol_hessian(double t, const double *y, const double *params, double *out);
-/* The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller. [PVTOL_N_PLANT_STATES] */
+/* The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller. [PVTOL_N_PLANT_STATES] */
 int pvtol_plant(double t, const double *x, const double *u, const double *params, double *out);
-/* The outputs y = h(x) of the plant state. [PVTOL_N_OUTPUTS] */
+/* The outputs ``y = h(x)`` of the plant state. [PVTOL_N_OUTPUTS] */
 int pvtol_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 6754cbbb60ecd4d8cfa1af8c8bf81ed739acf398752fc64a47357c251cbe2247
+ * content sha256: 67a786e5f320191651065d3ea3e22e3deb957a90dc8de54084dbdd146184b04b
  */
 
 /*
@@ -65,7 +65,7 @@ extern const double two_unicycles_barrier_hurwitz_coefficients[TWO_UNICYCLES_BAR
  * plant input; params NULL for the defaults. */
 /* Plant input u of the implicit trajectory planning law. [TWO_UNICYCLES_BARRIER_N_INPUTS] */
 int two_unicycles_barrier_control(double t, const double *s, const double *params, double *out);
-/* Time derivative of the closed-loop state, for scipy.integrate.solve_ivp. [TWO_UNICYCLES_BARRIER_N_STATES] */
+/* Time derivative of the closed-loop state, for ``scipy.integrate.solve_ivp``. [TWO_UNICYCLES_BARRIER_N_STATES] */
 int two_unicycles_barrier_rhs(double t, const double *s, const double *params, double *out);
 /* The optimality error: row j is grad^(j) f0 along the closed loop. [TWO_UNICYCLES_BARRIER_K * TWO_UNICYCLES_BARRIER_N_KKT] */
 int two_unicycles_barrier_optimality_error(double t, const double *s, const double *params, double *out);
@@ -75,9 +75,9 @@ int two_unicycles_barrier_objective(double t, const double *y, const double *par
 int two_unicycles_barrier_gradient(double t, const double *y, const double *params, double *out);
 /* The Hessian of f0 with respect to y. [TWO_UNICYCLES_BARRIER_N_OUTPUTS * TWO_UNICYCLES_BARRIER_N_OUTPUTS] */
 int two_unicycles_barrier_hessian(double t, const double *y, const double *params, double *out);
-/* The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller. [TWO_UNICYCLES_BARRIER_N_PLANT_STATES] */
+/* The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller. [TWO_UNICYCLES_BARRIER_N_PLANT_STATES] */
 int two_unicycles_barrier_plant(double t, const double *x, const double *u, const double *params, double *out);
-/* The outputs y = h(x) of the plant state. [TWO_UNICYCLES_BARRIER_N_OUTPUTS] */
+/* The outputs ``y = h(x)`` of the plant state. [TWO_UNICYCLES_BARRIER_N_OUTPUTS] */
 int two_unicycles_barrier_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_ring
  * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: 8850d86862adb51b29d585b6233c1eb27311aa22837c1dd2fed80aff1063adf1
+ * content sha256: e3fa8d22767bcd69269df4ab7438c3e085c74514ab3eb7a3ab82096b6ff40a2d
  */
 
 /*
@@ -65,7 +65,7 @@ extern const double unicycle_ring_hurwitz_coefficients[UNICYCLE_RING_K];
  * plant input; params NULL for the defaults. */
 /* Plant input u of the implicit trajectory planning law. [UNICYCLE_RING_N_INPUTS] */
 int unicycle_ring_control(double t, const double *s, const double *params, double *out);
-/* Time derivative of the closed-loop state, for scipy.integrate.solve_ivp. [UNICYCLE_RING_N_STATES] */
+/* Time derivative of the closed-loop state, for ``scipy.integrate.solve_ivp``. [UNICYCLE_RING_N_STATES] */
 int unicycle_ring_rhs(double t, const double *s, const double *params, double *out);
 /* The optimality error: row j is grad^(j) f0 along the closed loop. [UNICYCLE_RING_K * UNICYCLE_RING_N_KKT] */
 int unicycle_ring_optimality_error(double t, const double *s, const double *params, double *out);
@@ -75,9 +75,9 @@ int unicycle_ring_objective(double t, const double *y, const double *params, dou
 int unicycle_ring_gradient(double t, const double *y, const double *params, double *out);
 /* The Hessian of f0 with respect to y. [UNICYCLE_RING_N_OUTPUTS * UNICYCLE_RING_N_OUTPUTS] */
 int unicycle_ring_hessian(double t, const double *y, const double *params, double *out);
-/* The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller. [UNICYCLE_RING_N_PLANT_STATES] */
+/* The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller. [UNICYCLE_RING_N_PLANT_STATES] */
 int unicycle_ring_plant(double t, const double *x, const double *u, const double *params, double *out);
-/* The outputs y = h(x) of the plant state. [UNICYCLE_RING_N_OUTPUTS] */
+/* The outputs ``y = h(x)`` of the plant state. [UNICYCLE_RING_N_OUTPUTS] */
 int unicycle_ring_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 25beee73a156365f1db1f2ed0c7965ffaf50e6e8377ddeb22b7176f16698d96a
+ * content sha256: 7765305115b53b4aaab773cc328b6d12cb3fa1ef88001c1549f2248fcd3ce2f9
  */
 
 /*
@@ -65,7 +65,7 @@ extern const double unicycle_switch_hurwitz_coefficients[UNICYCLE_SWITCH_K];
  * plant input; params NULL for the defaults. */
 /* Plant input u of the implicit trajectory planning law. [UNICYCLE_SWITCH_N_INPUTS] */
 int unicycle_switch_control(double t, const double *s, const double *params, double *out);
-/* Time derivative of the closed-loop state, for scipy.integrate.solve_ivp. [UNICYCLE_SWITCH_N_STATES] */
+/* Time derivative of the closed-loop state, for ``scipy.integrate.solve_ivp``. [UNICYCLE_SWITCH_N_STATES] */
 int unicycle_switch_rhs(double t, const double *s, const double *params, double *out);
 /* The optimality error: row j is grad^(j) f0 along the closed loop. [UNICYCLE_SWITCH_K * UNICYCLE_SWITCH_N_KKT] */
 int unicycle_switch_optimality_error(double t, const double *s, const double *params, double *out);
@@ -75,9 +75,9 @@ int unicycle_switch_objective(double t, const double *y, const double *params, d
 int unicycle_switch_gradient(double t, const double *y, const double *params, double *out);
 /* The Hessian of f0 with respect to y. [UNICYCLE_SWITCH_N_OUTPUTS * UNICYCLE_SWITCH_N_OUTPUTS] */
 int unicycle_switch_hessian(double t, const double *y, const double *params, double *out);
-/* The plant alone, x' = f(x) + G(x) u: the spec's model, without the controller. [UNICYCLE_SWITCH_N_PLANT_STATES] */
+/* The plant alone, ``x' = f(x) + G(x) u``: the spec's model, without the controller. [UNICYCLE_SWITCH_N_PLANT_STATES] */
 int unicycle_switch_plant(double t, const double *x, const double *u, const double *params, double *out);
-/* The outputs y = h(x) of the plant state. [UNICYCLE_SWITCH_N_OUTPUTS] */
+/* The outputs ``y = h(x)`` of the plant state. [UNICYCLE_SWITCH_N_OUTPUTS] */
 int unicycle_switch_outputs(double t, const double *x, const double *params, double *out);
 
 /* Batched variants over count points stored one after another (contiguous). They stop
