@@ -83,7 +83,19 @@ ROUTINES: dict[str, Routine] = {
     "kkt_newton": Routine("c/runtime/kkt.jinja", "kkt_newton", ("kkt", "lu_det", "dot")),
     "kkt_convexity": Routine("c/runtime/kkt.jinja", "kkt_convexity", ("kkt", "eigen")),
     "kkt_path": Routine("c/runtime/kkt.jinja", "kkt_path", ("kkt_newton", "kkt_convexity")),
+    "chain_advance": Routine("c/runtime/controller.jinja", "chain_advance"),
+    "taylor_shift": Routine("c/runtime/controller.jinja", "taylor_shift"),
+    "differentiator": Routine("c/runtime/controller.jinja", "differentiator", ("taylor_shift",)),
 }
+
+
+def controller_routines(references: bool) -> tuple[str, ...]:
+    """The library routines every controller's C file emits (its plan's solves aside).
+
+    The integrator chains' advance always; with references, the Taylor shift and the
+    differentiator too. A translation unit that includes the controller has these.
+    """
+    return ("chain_advance", *(("taylor_shift", "differentiator") if references else ()))
 
 
 def closure(requested: Iterable[str], emitted: Iterable[str] = ()) -> tuple[Routine, ...]:

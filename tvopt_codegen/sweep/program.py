@@ -115,7 +115,7 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
         render_template,
         template_context,
     )
-    from tvopt_codegen.runtime import NEWTON, closure  # noqa: PLC0415
+    from tvopt_codegen.runtime import NEWTON, closure, controller_routines  # noqa: PLC0415
 
     d = kernels.derivation
     if d.model.references:
@@ -159,7 +159,7 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
                 "kkt_path" if equalities else "minimizer_path",
             ),
             # The controller's C file, which the loop includes, has its plan's routines.
-            emitted=kernels.plan.runtime,
+            emitted=(*kernels.plan.runtime, *controller_routines(bool(d.spec.references))),
         ),
         "newton_rule": NEWTON,
         "max_points": MAX_POINTS,
