@@ -90,7 +90,7 @@ def _arguments(d: Derivation) -> _Args:
         s=Arg("s", s_slots, d.state_names, "closed-loop state"),
         p=Arg("p", p_slots, tuple(q.name for q in model.params), "parameters"),
         # The law's unknowns are slots already (law.symbols names them like _slots).
-        a=Arg("a", law.a, tuple(f"a_{i}" for i in range(k)), "Hurwitz coefficients"),
+        a=Arg("a", law.a, tuple(f"a_{i}" for i in range(len(law.a))), "Hurwitz coefficients"),
         y=Arg("y", y_slots, outputs, "outputs"),
         w=Arg("w", law.w, d.extension.inputs, "inputs of the extended plant"),
         z=Arg(
@@ -207,8 +207,15 @@ def _jet_kernels(
     return jet, cholesky, optimality
 
 
-def _input_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
-    """From y_imp^(k) to the plant: b = v - p, the closed-loop field, the plant input."""
+def _input_kernels(
+    d: Derivation, args: _Args, kernel: _Make, programs: dict[str, list[Assignment]]
+) -> list[Kernel]:
+    """From y_imp^(k) to the plant: b = v - p, the closed-loop field, the plant input.
+
+    With integral action the field's last entries are ``grad f0`` (the integral states'
+    rates): the closed-loop kernel then reads the jet's program (pruned to the gradient)
+    and, with references, the reference jets.
+    """
     law, m = d.law, len(d.model.u)
     q_slots = _slots("q", m)
     arg_q = Arg("q", q_slots, tuple(f"p_{o}" for o in d.spec.outputs), "p of the decoupling")
@@ -223,11 +230,13 @@ def _input_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
         [("b", (m,), [law.v[i] - p[i] for i in range(m)], "v - p")],
         args.subs,
     )
+    integral = bool(d.integral_states)
+    program = programs["signals"] + programs["y"] + programs["jet"] if integral else []
     closed_loop = kernel(
         "closed_loop",
         "Closed-loop vector field and the plant input",
-        [args.t, args.s, args.p, args.w, args.z],
-        [],
+        [args.t, args.s, args.p, args.w, args.z, *(args.r if integral else ())],
+        program,
         [
             ("ds", (len(d.states),), law.closed_loop, "time derivative of the closed-loop state"),
             ("u", (m,), law.plant_input, "plant input"),
@@ -338,7 +347,7 @@ def lower(derivation: Derivation) -> KernelSet:
     jet_time = None
     if split is not None:
         jet_time, jet = split
-    rest = _input_kernels(d, args, kernel) + [optimality]
+    rest = _input_kernels(d, args, kernel, programs) + [optimality]
     rest += _objective_kernels(d, args, programs, kernels) + _plant_kernels(d, args, kernel)
     law = d.law
     plan = law_plan(
@@ -347,7 +356,8 @@ def lower(derivation: Derivation) -> KernelSet:
         n_outputs=len(d.spec.outputs),
         n_kkt=d.n_kkt,
         n_params=len(d.model.params),
-        k=d.k,
+        k=len(d.coefficients),
+        integral_refs=bool(d.integral_states and args.r),
         tau=0 if jet_time is None else jet_time.outputs[0].shape[0],
         hessian=0 if cholesky is None else jet.outputs[0].shape[0],
         r_blocks=law.r_blocks,

@@ -135,6 +135,7 @@ def control_law(
     states: Sequence[sp.Symbol],
     state_names: Sequence[str],
     multipliers: Sequence[Sequence[str]] = (),
+    integral: Sequence[str] = (),
 ) -> Law:
     """Write the law down from the derived quantities.
 
@@ -160,6 +161,10 @@ def control_law(
         With equalities, each multiplier's chain of states ``nu, nu', ..., nu^(k-1)``:
         the jet, the Hessian and ``rest`` are then the KKT system's, over the outputs
         and the multipliers, and ``z`` holds ``nu^(k)`` after ``y_imp^(k)``.
+    integral : sequence of str, optional
+        With integral action, the states ``z_I`` holding the integral of each entry of
+        ``grad f0``: there are then k + 1 coefficients, ``a_0`` multiplies ``z_I`` and
+        ``a_{j+1}`` multiplies ``grad^(j) f0``, so that ``col(z_I, E)' = H_I col(z_I, E)``.
 
     Returns
     -------
@@ -169,7 +174,8 @@ def control_law(
     m, k = len(plant_inputs), len(grad_jet)
     # n = m + q unknowns: y^(k), then nu^(k) of each equality.
     n = len(grad_jet[0])
-    a, w, z = symbols("a", k), symbols("w", m), symbols("z", n)
+    shift = 1 if integral else 0
+    a, w, z = symbols("a", k + shift), symbols("w", m), symbols("z", n)
     state_of = dict(zip(state_names, states, strict=True))
     value = dict(hessian_entries)
     hessian = symmetric_dense(hessian_entries, n)
@@ -177,8 +183,13 @@ def control_law(
     if not any(i == j for i, j in pattern):
         pattern = sorted({*pattern, *((i, i) for i in range(n))})
     jet_rhs = tuple(
-        sum((a[j] * grad_jet[j][i] for j in range(k)), sp.Integer(0)) - rest[i] for i in range(n)
+        sum((a[j + shift] * grad_jet[j][i] for j in range(k)), sp.Integer(0)) - rest[i]
+        for i in range(n)
     )
+    if integral:
+        jet_rhs = tuple(
+            a[0] * state_of[name] + entry for name, entry in zip(integral, jet_rhs, strict=True)
+        )
     y_imp = None
     if all(sp.sympify(e).is_Number for e in value.values()):
         # A constant Hessian (quadratic f0) is inverted once, exactly, at generation time:
@@ -197,13 +208,15 @@ def control_law(
     for index, chain in enumerate(multipliers):
         for j in range(len(chain)):
             field.append(state_of[chain[j + 1]] if j + 1 < len(chain) else z[m + index])
+    # The integral states last: each integrates its entry of grad f0 (of the KKT map).
+    field += [grad_jet[0][i] for i in range(len(integral))]
     plant_input = tuple(u if u.name in ext.states else w[j] for j, u in enumerate(plant_inputs))
     chains: list[tuple[int, int]] = []
     start = 0
     for _, count in ext.counts:
         chains.append((start, count))
         start += count
-    for chain in (*padding, *multipliers):
+    for chain in (*padding, *multipliers, *((name,) for name in integral)):
         if chain:
             chains.append((start, len(chain)))
             start += len(chain)

@@ -34,6 +34,7 @@ the plan says which step fails with which.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 from tvopt_codegen.contract import PIVOT_TOLERANCE, Status
@@ -218,6 +219,7 @@ def law_plan(
     hessian: int,
     r_blocks: tuple[tuple[int, ...], ...],
     references: int = 0,
+    integral_refs: bool = False,
 ) -> Plan:
     """The plan of the law for a controller's sizes.
 
@@ -225,7 +227,8 @@ def law_plan(
     ----------
     n_states, n_inputs, n_outputs, n_params, k : int
         Sizes of the closed-loop state, the plant input, the outputs, the parameters,
-        and the order of the error dynamics.
+        and the number of Hurwitz coefficients (the order of the error dynamics, one more
+        with integral action).
     tau : int
         Number of the jet's terms of time and parameters alone (0: the jet has none, and
         there is no ``jet_time`` kernel).
@@ -239,6 +242,9 @@ def law_plan(
     n_kkt : int, optional
         The law's unknowns: the outputs' and, with equality constraints, the
         multipliers' k-th derivatives (default: the outputs alone).
+    integral_refs : bool, optional
+        Whether the closed-loop kernel reads the reference jets (integral action on a
+        spec with references: the integral states' rates are ``grad f0``).
 
     Returns
     -------
@@ -320,4 +326,8 @@ def law_plan(
         )
     steps += _DECOUPLE
     runtime = _runtime(hessian, r_blocks)
-    return Plan(tuple(values), tuple(per_batch), tuple(steps), _CONTROL, _RHS, runtime)
+    rhs = _RHS
+    if integral_refs:
+        call = _RHS[0]
+        rhs = (dataclasses.replace(call, args=(*call.args, "refs")), *_RHS[1:])
+    return Plan(tuple(values), tuple(per_batch), tuple(steps), _CONTROL, rhs, runtime)

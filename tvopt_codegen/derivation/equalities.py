@@ -6,6 +6,7 @@ The rank checks, where the constraints' gradients are dependent, the Lagrangian
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 
 import numpy as np
@@ -166,4 +167,4 @@ def _multipliers_start(spec: Spec, model: Model, states: _States, objective: _Ob
     for chain, value in zip(states.multipliers, nu0, strict=True):
         if chain[0] not in given:
             initial[states.names.index(chain[0])] = float(value)
-    return _States(states.padding, states.names, states.symbols, tuple(initial), states.multipliers)
+    return dataclasses.replace(states, initial=tuple(initial))

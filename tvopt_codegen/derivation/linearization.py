@@ -259,6 +259,7 @@ class _States:
     symbols: tuple[sp.Symbol, ...]
     initial: tuple[float, ...]
     multipliers: tuple[tuple[str, ...], ...] = ()
+    integral: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -360,12 +361,20 @@ def _error_dynamics(spec: Spec, k: int) -> _ErrorDynamics:
         assert spec.poles is not None
         coefficients = hurwitz.coefficients_from_poles(spec.poles)
         field, given = "error_dynamics.poles", len(spec.poles)
-    if given != k:
+    kind = "poles" if spec.poles is not None else "coefficients"
+    if spec.robust.integral and given != k + 1:
+        raise AssumptionError(
+            source,
+            field,
+            f"the error dynamics have order k = {k} (the largest relative degree) and "
+            f"[robust] integral adds one per output, so give {k + 1} {kind}, not {given}",
+        )
+    if not spec.robust.integral and given != k:
         raise AssumptionError(
             source,
             field,
             f"the error dynamics have order k = {k} (the largest relative degree), so give "
-            f"{k} {'poles' if spec.poles is not None else 'coefficients'}, not {given}",
+            f"{k} {kind}, not {given}",
         )
     if spec.poles is not None:
         # The poles are exact as written; the companion eigenvalues would be rounded.
@@ -412,14 +421,40 @@ def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:
                 "constraints",
                 f"multiplier name {name!r} collides with a declared name",
             )
+    # With integral action, the integral of each entry of grad f0 (or of the KKT map):
+    # a chain of one integrator per entry, last in the state.
+    integral: tuple[str, ...] = ()
+    if spec.robust.integral:
+        integral = (
+            *(f"int_{name}" for name in spec.outputs),
+            *(f"int_nu_{c.name}" for c in spec.equalities),
+        )
+    for name in integral:
+        if name in lin.declared:
+            raise SpecError(
+                spec.source,
+                "robust.integral",
+                f"integral state {name!r} collides with a declared name",
+            )
     ext = lin.extension
-    names = (*spec.states, *ext.states, *pad_names, *(n for chain in multipliers for n in chain))
+    names = (
+        *spec.states,
+        *ext.states,
+        *pad_names,
+        *(n for chain in multipliers for n in chain),
+        *integral,
+    )
     # With a searched extension the user cannot know its states in advance: only the
     # plant states are required then (extension states start at zero unless given).
     required = len(spec.states) + (0 if spec.extension_auto else len(ext.states))
     initial = _initial_state(spec, names, required)
     return _States(
-        padding, names, tuple(sp.Symbol(n, real=True) for n in names), initial, multipliers
+        padding,
+        names,
+        tuple(sp.Symbol(n, real=True) for n in names),
+        initial,
+        multipliers,
+        integral,
     )
 
 

@@ -160,6 +160,7 @@ def derive(
         states=states.symbols,
         state_names=states.names,
         multipliers=states.multipliers,
+        integral=states.integral,
     )
     if spec.estimator is not None:
         try:
@@ -266,6 +267,7 @@ def _record(
             states=states.symbols,
             initial_state=states.initial,
             multiplier_states=states.multipliers,
+            integral_states=states.integral,
         ),
         dynamics=ErrorDynamicsStage(
             k=k,

@@ -133,6 +133,10 @@ class ClosedLoopStage:
     multiplier_states : tuple of tuple of str
         With equality constraints, each multiplier's chain of controller states
         ``nu_<name>_0 .. nu_<name>_<k-1>`` (the multiplier and its derivatives).
+    integral_states : tuple of str
+        With ``[robust] integral``, the integrals ``int_<output>`` of each entry of
+        ``grad f0`` (with equalities, of the KKT map: ``int_nu_<name>`` for ``a_j``), last
+        in the state; each is a chain of one integrator driven by that entry.
     """
 
     padding: tuple[tuple[str, ...], ...]
@@ -140,6 +144,7 @@ class ClosedLoopStage:
     states: tuple[sp.Symbol, ...]
     initial_state: tuple[float, ...]
     multiplier_states: tuple[tuple[str, ...], ...] = ()
+    integral_states: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -151,7 +156,8 @@ class ErrorDynamicsStage:
     k : int
         ``max r_i``: the order of the error dynamics.
     coefficients : tuple of float
-        ``a_0 .. a_{k-1}`` of H.
+        ``a_0 .. a_{k-1}`` of H; with integral action ``a_0 .. a_k`` of ``H_I``, the
+        companion matrix of order k + 1 over ``col(z_I, E)``.
     eigenvalues : tuple of complex
         Eigenvalues of the companion matrix.
     decay_rate : float
@@ -407,6 +413,11 @@ class Derivation:
     def multiplier_states(self) -> tuple[tuple[str, ...], ...]:
         """``closed_loop.multiplier_states``."""
         return self.closed_loop.multiplier_states
+
+    @property
+    def integral_states(self) -> tuple[str, ...]:
+        """``closed_loop.integral_states``."""
+        return self.closed_loop.integral_states
 
     @property
     def k(self) -> int:

@@ -140,6 +140,18 @@ def _fitted_rate(ts: np.ndarray, flat: np.ndarray, t_end: float) -> float:
     return float(-np.polyfit(ts[window], np.log(norms[window]), 1)[0])
 
 
+def augmented_error(d: Derivation, states: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """The error the theorem is about, one row per time: ``E``, or ``col(z_I, E)``.
+
+    With integral action the controller's integrals of ``grad f0`` come first: that is
+    the state of ``col(z_I, E)' = H_I col(z_I, E)`` (``states``: one column per time).
+    """
+    if not d.integral_states:
+        return flat
+    rows = [d.state_names.index(name) for name in d.integral_states]
+    return np.hstack([states[rows].T, flat])
+
+
 def _certify(
     d: Derivation,
     controller: types.ModuleType,
@@ -171,7 +183,7 @@ def _certify(
     error = np.linalg.norm(outputs - target, axis=0)
 
     H = hurwitz.error_matrix(d.coefficients, d.n_kkt)
-    flat = E.reshape(len(ts), -1)
+    flat = augmented_error(d, states, E.reshape(len(ts), -1))
     norm0 = float(np.linalg.norm(flat[0]))
     predicted = np.array([expm(H * t) @ flat[0] for t in ts])
     deviation = float(np.max(np.linalg.norm(flat - predicted, axis=1))) / max(norm0, 1e-300)
@@ -223,7 +235,7 @@ def _certify(
         target=target,
         error=error,
         E=E,
-        E_predicted=predicted.reshape(E.shape),
+        E_predicted=predicted[:, flat.shape[1] - E[0].size :].reshape(E.shape),
         alpha=alpha,
         alpha_exact=d.certified_rate_exact,
         c=c,
@@ -325,8 +337,7 @@ def _input_to_state(
     ``alpha`` and ``c`` of ``|expm(H t)| <= c e^{-alpha t}``: the disturbance fades from it
     as it fades from E (the estimator's start does not weigh on the end of the run).
     """
-    m = len(d.spec.outputs)
-    H = hurwitz.error_matrix(d.coefficients, m)
+    H = hurwitz.error_matrix(d.coefficients, d.n_kkt)
     horizon = float(ts[-1])
     fine = np.linspace(0.0, horizon, 10 * (len(ts) - 1) + 1)
     step = 1e-6 * max(1.0, horizon)
@@ -334,7 +345,8 @@ def _input_to_state(
     def error_at(t: float) -> np.ndarray:
         state = solution.sol(min(max(t, 0.0), horizon))
         value: np.ndarray = controller.optimality_error(t, state, params, **true(t))
-        return value.ravel()
+        row: np.ndarray = augmented_error(d, state[:, None], value.ravel()[None, :])[0]
+        return row
 
     errors = np.array([error_at(t) for t in fine])
     rates = np.array([(error_at(t + step) - error_at(t - step)) / (2 * step) for t in fine])

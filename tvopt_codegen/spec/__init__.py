@@ -24,6 +24,8 @@ from tvopt_codegen.spec.types import (
     Barrier,
     Constraint,
     Estimator,
+    Limit,
+    Robust,
     Spec,
     symbol,
 )
@@ -34,6 +36,8 @@ __all__ = [
     "Constraint",
     "ESTIMATOR_KINDS",
     "Estimator",
+    "Limit",
+    "Robust",
     "MAX_INDEX_COUNT",
     "MAX_INTEGRATORS",
     "MAX_SPEC_BYTES",

@@ -33,6 +33,8 @@ from tvopt_codegen.spec.types import (
     Barrier,
     Constraint,
     Estimator,
+    Limit,
+    Robust,
     Spec,
     symbol,
 )
@@ -57,6 +59,8 @@ _TOP_KEYS = {
     "constraints",
     "objective",
     "error_dynamics",
+    "robust",
+    "limits",
     "simulation",
 }
 
@@ -341,6 +345,8 @@ class _Reader:
         constraints = tuple(c for c in constraints if c.op != "==")
         extension, extension_auto, extension_max_total = self.read_extension(data, inputs)
         poles, coefficients = self.read_error_dynamics(data)
+        robust = self.read_robust(data)
+        limits = self.read_limits(data, inputs)
         t_final, initial_state = self.read_simulation(data)
         agents, objects = self.read_figure_layout(data, outputs, signals, references)
         return Spec(
@@ -373,6 +379,8 @@ class _Reader:
             barrier=barrier,
             allow_nonconvex=allow_nonconvex,
             equalities=equalities,
+            robust=robust,
+            limits=limits,
         )
 
     def read_title(self, data: Mapping[str, Any]) -> tuple[str, str]:
@@ -612,6 +620,62 @@ class _Reader:
                 raise self.fail(field, f"number of integrators must be 0..{MAX_INTEGRATORS}")
         counts = tuple((u, integrate[u]) for u in inputs if integrate.get(u, 0) > 0)
         return counts, auto, max_total
+
+    def read_robust(self, data: Mapping[str, Any]) -> Robust:
+        """``[robust]``: integral action and ``[robust.observer]``."""
+        table = self.sub(data, "robust", "robust")
+        self.table(table, "robust", {"integral", "observer"}, set())
+        integral = table.get("integral", False)
+        if not isinstance(integral, bool):
+            raise self.fail("robust.integral", f"expected true or false, got {clip(integral)!r}")
+        bandwidth = None
+        if "observer" in table:
+            observer = self.sub(table, "observer", "robust.observer")
+            self.table(observer, "robust.observer", {"bandwidth"}, {"bandwidth"})
+            bandwidth = self.number(observer["bandwidth"], "robust.observer.bandwidth")
+            if not bandwidth > 0:
+                raise self.fail("robust.observer.bandwidth", "must be positive (rad/s)")
+        return Robust(integral, bandwidth)
+
+    def read_limits(self, data: Mapping[str, Any], inputs: tuple[str, ...]) -> tuple[Limit, ...]:
+        """``[limits]``: each input's ``[low, high]`` (or ``L``: ``[-L, L]``), and rates."""
+        table = dict(self.sub(data, "limits", "limits"))
+        rates_table = self.sub(table, "rate", "limits.rate")
+        table.pop("rate", None)
+        ranges: dict[str, tuple[float, float]] = {}
+        for name, value in table.items():
+            field = f"limits.{name}"
+            if name not in inputs:
+                raise self.fail(field, f"{clip(name)!r} is not a plant input ({', '.join(inputs)})")
+            if isinstance(value, list):
+                if len(value) != 2:
+                    raise self.fail(field, f"expected [low, high], got {len(value)} numbers")
+                low = self.number(value[0], f"{field}[0]")
+                high = self.number(value[1], f"{field}[1]")
+                if not low < high:
+                    raise self.fail(field, f"low {low:g} must be below high {high:g}")
+            else:
+                high = self.number(value, field)
+                if not high > 0:
+                    raise self.fail(
+                        field, f"a single limit L means [-L, L]: L must be positive, got {high:g}"
+                    )
+                low = -high
+            ranges[name] = (low, high)
+        rates: dict[str, float] = {}
+        for name, value in rates_table.items():
+            field = f"limits.rate.{name}"
+            if name not in inputs:
+                raise self.fail(field, f"{clip(name)!r} is not a plant input ({', '.join(inputs)})")
+            rate = self.number(value, field)
+            if not rate > 0:
+                raise self.fail(field, f"a rate limit must be positive (per second), got {rate:g}")
+            rates[name] = rate
+        return tuple(
+            Limit(u, *ranges.get(u, (-math.inf, math.inf)), rates.get(u, math.inf))
+            for u in inputs
+            if u in ranges or u in rates
+        )
 
     def read_error_dynamics(
         self, data: Mapping[str, Any]

@@ -5,7 +5,7 @@ Names, numbers and sympy expressions; nothing in it has been derived yet.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import sympy as sp
 
@@ -20,6 +20,50 @@ TIME = sp.Symbol("t", real=True)
 def symbol(name: str) -> sp.Symbol:
     """Return the sympy symbol that stands for a declared name (always real)."""
     return sp.Symbol(name, real=True)
+
+
+@dataclass(frozen=True)
+class Robust:
+    """What the law does about a plant that is not its model (``[robust]``).
+
+    Attributes
+    ----------
+    integral : bool
+        Keep ``z_I = int grad f0 dt`` as controller states: the error dynamics take one
+        more pole per output, and a constant matched disturbance leaves ``grad f0 -> 0``.
+    observer : float or None
+        The bandwidth (rad/s) of the disturbance observer that estimates a matched input
+        disturbance ``d`` in ``x' = f + G (u + d)`` from the measured plant state and the
+        applied input; None: no observer.
+    """
+
+    integral: bool = False
+    observer: float | None = None
+
+    @property
+    def any(self) -> bool:
+        """Whether either option is on."""
+        return self.integral or self.observer is not None
+
+
+@dataclass(frozen=True)
+class Limit:
+    """One actuator's limits (``[limits]`` and ``[limits.rate]``).
+
+    Attributes
+    ----------
+    input : str
+        The plant input's name.
+    low, high : float
+        Its range (``-inf`` or ``inf`` when only a rate is given).
+    rate : float
+        The largest ``|du/dt|`` of the applied input, per second (``inf``: none).
+    """
+
+    input: str
+    low: float
+    high: float
+    rate: float = float("inf")
 
 
 @dataclass(frozen=True)
@@ -89,6 +133,11 @@ class Spec:
     equalities : tuple of Constraint
         ``[constraints]`` written with ``==``: ``a_j(y, t) = 0``, kept by the KKT system
         with a multiplier chain per equality (see :mod:`tvopt_codegen.constraints`).
+    robust : Robust
+        ``[robust]``: integral action and the disturbance observer (both off by default).
+    limits : tuple of Limit
+        ``[limits]``: the actuators' ranges and slew rates, in input order (inputs without
+        a limit are left out).
     """
 
     source: str
@@ -120,6 +169,8 @@ class Spec:
     barrier: Barrier | None = None
     allow_nonconvex: bool = False
     equalities: tuple[Constraint, ...] = ()
+    robust: Robust = field(default_factory=Robust)
+    limits: tuple[Limit, ...] = ()
 
 
 @dataclass(frozen=True)
