@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path, PurePath
 from typing import Any
@@ -26,6 +26,7 @@ from tvopt_codegen.cse import symbols_in
 from tvopt_codegen.errors import TvoptError
 from tvopt_codegen.estimator import estimator_gains
 from tvopt_codegen.ir import Kernel, KernelSet
+from tvopt_codegen.robust import GRAM_TOLERANCE, robustness
 from tvopt_codegen.spec import BUNDLED_SUFFIX
 from tvopt_codegen.stamp import HASH_PLACEHOLDER, stamp_hash
 
@@ -73,6 +74,8 @@ def environment(root: Path | None = None) -> jinja2.Environment:
     env.filters["c_string"] = c_string
     env.filters["pyrepr"] = repr
     env.filters["pytuple"] = lambda values: repr(tuple(values))
+    env.filters["pyfloats"] = float_tuple
+    env.filters["c_double"] = c_double
     # A macro's text ends with a newline, and so does the line that calls it.
     env.filters["chomp"] = lambda text: str(text).removesuffix("\n")
     # Each backend's own filters (the Python backend's register renaming, ...).
@@ -80,6 +83,21 @@ def environment(root: Path | None = None) -> jinja2.Environment:
         if backend.filters is not None:
             env.filters.update(backend.filters())
     return env
+
+
+def float_tuple(values: Iterable[float]) -> str:
+    """Floats as a Python tuple, an infinity as ``math.inf`` (``repr`` writes ``inf``)."""
+    items = [
+        repr(v) if math.isfinite(v) else ("math.inf" if v > 0 else "-math.inf") for v in values
+    ]
+    return "(" + ", ".join(items) + ("," if len(items) == 1 else "") + ")"
+
+
+def c_double(value: float) -> str:
+    """A double as C source: ``repr``, an infinity as ``INFINITY`` (from math.h)."""
+    if math.isfinite(value):
+        return repr(value)
+    return "INFINITY" if value > 0 else "-INFINITY"
 
 
 def comment_text(value: object) -> str:
@@ -357,6 +375,8 @@ def template_context(kernels: KernelSet, backend: Backend | str) -> dict[str, An
         "guard": d.spec.name.upper(),
         "r_blocks": kernels.r_blocks,
         "plan": kernels.plan,
+        "robust": robustness(d),
+        "gram_tolerance": GRAM_TOLERANCE,
         **contract_context(kernels),
         "estimator_gains": (
             estimator_gains(d.spec.estimator, d.reference_order)

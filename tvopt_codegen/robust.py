@@ -1,0 +1,86 @@
+"""What the stateful controller does about a plant that is not its model, as data.
+
+Integral action is part of the law (:mod:`tvopt_codegen.law`: the integrals of
+``grad f0`` are closed-loop states). The rest runs in the stateful controller at each
+step, in every backend the same way (the Python run-time library's ``guard`` macro and
+its C twin):
+
+- **limits**: the input applied is the commanded one clipped to ``[low, high]`` and,
+  after a first step, to the slew window ``u_last -+ rate h``;
+- **anti-windup**: while an input is clipped, the integral states stop integrating, and
+  the extension chain of a clipped prolonged input is set to the value that gives the
+  applied input (its derivatives and drive, where they push further out, to zero): every
+  controller state follows the input actually applied;
+- **disturbance observer** of a matched input disturbance ``d`` in
+  ``x' = f(x) + G(x) (u + d)``: from the measured plant state and the applied input,
+  ``r_k = (x_k - x_{k-1}) / h - (F_{k-1} + F_k) / 2`` with ``F = f(x) + G(x) u_applied``
+  (the trapezoid rule: ``r_k = G d + O(h^2)``), filtered by
+  ``sigma_k = sigma_{k-1} + (1 - e^(-beta h)) (r_k - sigma_{k-1})`` (every pole at
+  ``-beta``), and ``d_hat`` the least-squares solution of ``G(x_k) d = sigma_k``; the
+  controller commands ``u - d_hat``. ``G``'s columns come from the plant's own kernel
+  (``F(x, e_i) - F(x, 0)``): no new derivative, no symbolic inverse.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from tvopt_codegen.derivation import Derivation
+
+#: A pivot of ``G^T G`` below this fraction of its largest diagonal entry: G has lost
+#: rank at the state, and the observer keeps its last estimate.
+GRAM_TOLERANCE = 1e-12
+
+
+@dataclass(frozen=True)
+class Robustness:
+    """The stateful controller's limits, anti-windup and observer for one spec.
+
+    Attributes
+    ----------
+    low, high, rate : tuple of float
+        Per plant input (``INPUT_NAMES`` order): the range and the largest ``|du/dt|``
+        (``-inf``, ``inf`` and ``inf`` where the spec gives none).
+    observer : float or None
+        The observer's bandwidth ``beta``, rad/s; None: no observer.
+    integral_chains : tuple of int
+        Indices in ``Law.chains`` of the integral states' chains.
+    input_chains : tuple of int
+        Per plant input, the index in ``Law.chains`` of its extension chain (-1: the
+        input is not prolonged).
+    """
+
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+    rate: tuple[float, ...]
+    observer: float | None
+    integral_chains: tuple[int, ...]
+    input_chains: tuple[int, ...]
+
+    @property
+    def limited(self) -> bool:
+        """Whether any input has a limit or a rate."""
+        return any(math.isfinite(v) for v in (*self.low, *self.high, *self.rate))
+
+    @property
+    def active(self) -> bool:
+        """Whether the controller does anything beyond the nominal law at a step."""
+        return self.limited or self.observer is not None or bool(self.integral_chains)
+
+
+def robustness(derivation: Derivation) -> Robustness:
+    """The :class:`Robustness` of a derivation (its spec's ``[robust]`` and ``[limits]``)."""
+    d = derivation
+    spec = d.spec
+    limits = {limit.input: limit for limit in spec.limits}
+    inf = math.inf
+    low = tuple(limits[u].low if u in limits else -inf for u in spec.inputs)
+    high = tuple(limits[u].high if u in limits else inf for u in spec.inputs)
+    rate = tuple(limits[u].rate if u in limits else inf for u in spec.inputs)
+    extended = [name for name, _ in d.extension.counts]
+    input_chains = tuple(extended.index(u) if u in extended else -1 for u in spec.inputs)
+    chains = d.law.chains
+    count = len(d.integral_states)
+    integral_chains = tuple(range(len(chains) - count, len(chains)))
+    return Robustness(low, high, rate, spec.robust.observer, integral_chains, input_chains)
