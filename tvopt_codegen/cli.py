@@ -257,7 +257,10 @@ def _add_sweep(commands: _Commands) -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="INPUT=LIMIT",
-        help="clip a plant input to |u| <= LIMIT, or to LO:HI (repeatable)",
+        help=(
+            "clip a plant input to |u| <= LIMIT, or to LO:HI "
+            "(repeatable; default: the spec's [limits])"
+        ),
     )
     sw.add_argument(
         "--noise",

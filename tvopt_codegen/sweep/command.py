@@ -65,7 +65,8 @@ def _options(args: argparse.Namespace, program: Any, horizon: float) -> Any:
         plant_params=parse_assignments(
             args.plant_param, "--plant-param", program.param_names, "parameter"
         ),
-        limits=parse_limits(args.saturation, program.input_names),
+        # The plant's actuators: --saturation, else the spec's [limits].
+        limits=parse_limits(args.saturation, program.input_names) or program.limits,
         noise=args.noise,
         sample_time=args.sample_time,
         rtol=args.rtol,

@@ -58,6 +58,13 @@ class SweepProgram:
         the KKT point).
     n_kkt : int
         Entries of a row of the optimality error: the outputs, then the multipliers.
+    limits : tuple of (str, float, float)
+        The spec's ``[limits]`` ranges: the plant's limits unless ``--saturation`` says
+        otherwise.
+    observer : bool
+        Whether the controller has a disturbance observer (it runs in the sampled loop).
+    integral_rows : tuple of int
+        Where the integral states are in the closed-loop state (integral action).
     """
 
     name: str
@@ -76,6 +83,9 @@ class SweepProgram:
     constraints: tuple[str, ...] = ()
     equalities: tuple[str, ...] = ()
     n_kkt: int = 0
+    limits: tuple[tuple[str, float, float], ...] = ()
+    observer: bool = False
+    integral_rows: tuple[int, ...] = ()
 
     @property
     def columns(self) -> int:
@@ -86,8 +96,9 @@ class SweepProgram:
 
 #: A trajectory row's last columns, after t, s, y, y* and u: log|det R|, the certificate's
 #: m_f (with equalities, the KKT matrix's sigma_min), the barrier's margin
-#: min_i (s - g_i), max_i g_i, and max_j |a_j| (NaN where the spec has none of them).
-TAIL = ("log_det_R", "m_f", "margin", "max_constraint", "max_equality")
+#: min_i (s - g_i), max_i g_i, and max_j |a_j| (NaN where the spec has none of them), and
+#: 1 where an input was clipped (by the controller's [limits] or the plant's --saturation).
+TAIL = ("log_det_R", "m_f", "margin", "max_constraint", "max_equality", "saturated")
 
 
 def tail(rows: np.ndarray, name: str) -> np.ndarray:
@@ -190,6 +201,13 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
         constraints=tuple(c.name for c in d.model.constraints),
         equalities=tuple(c.name for c in d.model.equalities),
         n_kkt=d.n_kkt,
+        limits=tuple(
+            (limit.input, limit.low, limit.high)
+            for limit in d.spec.limits
+            if math.isfinite(limit.low) or math.isfinite(limit.high)
+        ),
+        observer=d.spec.robust.observer is not None,
+        integral_rows=tuple(d.state_names.index(name) for name in d.integral_states),
     )
 
 
@@ -220,6 +238,13 @@ def check_options(program: SweepProgram, options: SweepOptions) -> None:
             "command line",
             "--noise",
             "needs --sample-time (the noise is drawn once per measurement)",
+        )
+    elif program.observer:
+        raise SpecError(
+            "command line",
+            "--sample-time",
+            "is required: the spec's disturbance observer ([robust.observer]) runs in the "
+            "sampled controller",
         )
 
 

@@ -54,7 +54,11 @@ def _certificate(
     """
     p = loop.program
     cp = sample.cp if len(sample.cp) else np.zeros(1)
-    norm0 = float(np.linalg.norm(loop.optimality_error(sample.s0, cp)))
+    # With integral action the theorem's error is col(z_I, E).
+    integrals = sample.s0[list(p.integral_rows)]
+    norm0 = float(
+        np.hypot(np.linalg.norm(loop.optimality_error(sample.s0, cp)), np.linalg.norm(integrals))
+    )
     smallest = float(np.min(convexity))
     if not smallest > 0:
         return False
@@ -79,12 +83,7 @@ def run_sample(
     margin, largest = tail(rows, "margin"), tail(rows, "max_constraint")
     error = np.linalg.norm(y - target, axis=1) if len(rows) else np.zeros(0)
     ok = outcome == Status.OK
-    limits = {name: (lo, hi) for name, lo, hi in options.limits}
-    saturated = np.zeros(len(rows), dtype=bool)
-    for j, name in enumerate(program.input_names):
-        if name in limits:
-            lo, hi = limits[name]
-            saturated |= (u[:, j] < lo) | (u[:, j] > hi)
+    saturated = tail(rows, "saturated") > 0.5
     spacing = options.t_final / (options.points - 1)
     mismatch = bool(np.any(sample.cp != sample.pp))
     nominal = (
