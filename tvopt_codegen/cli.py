@@ -174,6 +174,14 @@ def _add_simulate(commands: _Commands) -> argparse.ArgumentParser:
         help="parameter override (repeatable)",
     )
     sim.add_argument(
+        "--plant-param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="with --sample-time: the true plant's parameter, where it is not the model's "
+        "(repeatable)",
+    )
+    sim.add_argument(
         "--method",
         default="RK45",
         choices=METHODS,
@@ -596,7 +604,18 @@ def _simulate(args: argparse.Namespace) -> int:
         raise SpecError("command line", "--convergence-order", "needs --sample-time")
     if args.sample_time is not None and not 0 < args.sample_time < math.inf:
         raise SpecError("command line", "--sample-time", "must be positive and finite")
+    if args.plant_param and args.sample_time is None:
+        raise SpecError(
+            "command line",
+            "--plant-param",
+            "needs --sample-time (the continuous run is the nominal theorem's; the sampled "
+            "controller runs on the mismatched plant)",
+        )
     derivation, kernels = _derive(args)
+    plant_params = _assignments(args.plant_param, "--plant-param")
+    unknown = sorted(set(plant_params) - {name for name, _ in derivation.spec.parameters})
+    if unknown:
+        raise SpecError("command line", "--plant-param", f"{unknown[0]!r} is not a parameter")
     options = resolve_options(
         derivation,
         args.t_final,
@@ -652,6 +671,7 @@ def _simulate(args: argparse.Namespace) -> int:
                 args.sample_time,
                 convergence_order=args.convergence_order,
                 progress=progress,
+                plant_params=dict(options.params) | plant_params,
             )
             result = sampled.continuous
     finally:

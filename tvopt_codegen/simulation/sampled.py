@@ -145,8 +145,12 @@ def sampled_run(
     h: float,
     continuous: Result,
     progress: Callable[[float, float], None] | None = None,
+    plant_params: dict[str, float] | None = None,
 ) -> SampledRun:
     """The sampled-data loop at sample time ``h`` (see the module docstring).
+
+    ``plant_params`` are the true plant's parameters where they differ from the
+    controller's (model mismatch, as a sweep sample draws it).
 
     Raises
     ------
@@ -156,7 +160,7 @@ def sampled_run(
     d = derivation
     params = dict(options.params)
     n = len(d.spec.states)
-    plant = _plant(controller, params)
+    plant = _plant(controller, params | (plant_params or {}))
     horizon = options.t_final
     count = math.ceil(horizon / h - 1e-9)
     times = np.minimum(np.arange(count + 1) * h, horizon)
@@ -259,6 +263,7 @@ def simulate_sampled(
     h: float,
     convergence_order: bool = False,
     progress: Callable[[float, float], None] | None = None,
+    plant_params: dict[str, float] | None = None,
 ) -> SampledResult:
     """The continuous run, the sampled run at ``h`` and, if asked, at ``h / 2``.
 
@@ -276,6 +281,9 @@ def simulate_sampled(
         Also run at ``h / 2`` and report the observed order.
     progress : callable, optional
         As for :func:`~tvopt_codegen.simulation.simulate`.
+    plant_params : dict, optional
+        The true plant's parameters where they differ from the controller's: the
+        sampled runs are of that plant (the continuous one stays the nominal theorem's).
 
     Returns
     -------
@@ -285,10 +293,12 @@ def simulate_sampled(
     check_sample_time(h / 2 if convergence_order else h, options.t_final)
     continuous = simulate(derivation, controller, options, progress=progress)
     failures = list(continuous.failures)
-    runs = [sampled_run(derivation, controller, options, h, continuous, progress)]
+    runs = [sampled_run(derivation, controller, options, h, continuous, progress, plant_params)]
     order = None
     if convergence_order:
-        runs.append(sampled_run(derivation, controller, options, h / 2, continuous, progress))
+        runs.append(
+            sampled_run(derivation, controller, options, h / 2, continuous, progress, plant_params)
+        )
         coarse, fine = runs[0].deviation, runs[1].deviation
         order = math.log2(coarse / fine) if coarse > 0 and fine > 0 else float("nan")
         if not order >= ORDER_FLOOR:
