@@ -38,6 +38,8 @@ ALL_SPECS = (
     str(SPECS / "hovercraft.toml"),
     # R is one full 3 x 3 block: the general LU of the run-time library.
     str(SPECS / "coupled3.toml"),
+    # Integral action, a disturbance observer, limits and a slew rate.
+    str(SPECS / "robust_pvtol.toml"),
 )
 
 

@@ -60,6 +60,7 @@ class Oracle:
         self.multipliers = [
             [d.state_names.index(f"nu_{c.name}_{j}") for j in range(k)] for c in model.equalities
         ]
+        self.integral = [d.state_names.index(name) for name in d.integral_states]
         w = sp.symbols(f"W0:{m}", real=True)
         args = [t, *d.states, *model.params, *w]
         ext = d.extension
@@ -91,7 +92,11 @@ class Oracle:
         E = self._eval(self.E, args, (k, size), n)
         hess = self._eval(self.hess, args, (size, size), n)
         rest = self._eval(self.rest, args, (size,), n)
-        c = sum(d.coefficients[j] * E[j] for j in range(k)) - rest
+        # Integral action: k + 1 coefficients, the first on the integrals of grad f0.
+        shift = 1 if self.integral else 0
+        c = sum(d.coefficients[j + shift] * E[j] for j in range(k)) - rest
+        if self.integral:
+            c = c + d.coefficients[0] * s[self.integral]
         z = np.linalg.solve(np.moveaxis(hess, -1, 0), np.moveaxis(c, -1, 0)[..., None])[..., 0].T
         v = np.array(
             [s[d.state_names.index(d.padding[i][0])] if d.padding[i] else z[i] for i in range(m)]
@@ -107,6 +112,7 @@ class Oracle:
         for i, chain in enumerate(self.multipliers):
             for j in range(k):
                 pad.append(s[chain[j + 1]] if j + 1 < k else z[m + i])
+        pad += list(E[0][: len(self.integral)])
         ds = np.vstack([field, *pad]) if pad else field
         u = np.array(
             [

@@ -58,6 +58,9 @@ def test_certificate(spec: str) -> None:
 
     H = hurwitz.error_matrix(mod.HURWITZ_COEFFICIENTS, m + len(mod.MULTIPLIER_NAMES))
     E = np.array([mod.optimality_error(t, states[:, i]).reshape(-1) for i, t in enumerate(ts)])
+    integral = [mod.STATE_NAMES.index(name) for name in getattr(mod, "INTEGRAL_NAMES", ())]
+    # With integral action the theorem is about col(z_I, E).
+    E = np.hstack([states[integral].T, E])
     E0 = E[0]
     predicted = np.array([expm(H * t) @ E0 for t in ts])
     deviation = np.max(np.linalg.norm(E - predicted, axis=1)) / np.linalg.norm(E0)

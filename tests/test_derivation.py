@@ -10,7 +10,7 @@ import sympy as sp
 
 from tvopt_codegen import hurwitz
 from tvopt_codegen.derivation import derive, jet_symbol
-from tvopt_codegen.errors import AssumptionError
+from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.ir import lower
 from tvopt_codegen.rendering import render
 from tvopt_codegen.spec import load_spec
@@ -104,7 +104,7 @@ def test_non_hurwitz_coefficients_are_rejected(tmp_path: Path, unicycle_text: st
 
 def test_wrong_number_of_poles_is_rejected(tmp_path: Path, unicycle_text: str) -> None:
     text = unicycle_text.replace("poles = [-1.0, -1.5]", "poles = [-1.0, [-2.0, 1.0]]")
-    with pytest.raises(AssumptionError, match="order k = 2 .* give 2 poles, not 3"):
+    with pytest.raises(SpecError, match="order k = 2 .* give 2 poles, not 3"):
         derive(load_spec(write_spec(tmp_path, text)))
 
 

@@ -301,16 +301,19 @@ CONTROL = [
         "not Hurwitz",
     ),
     (
-        UNICYCLE.replace("poles = [-1.0, -1.5]", "poles = [-1.0]"),
-        "error_dynamics.poles",
-        "give 2 poles, not 1",
-    ),
-    (
         UNICYCLE.replace('y2 = "x2"', 'y2 = "x2"\ny3 = "theta"'),
         "system.outputs",
         "2 inputs but 3 outputs",
     ),
 ]
+
+
+def test_a_wrong_pole_count_is_the_spec_s_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    text = UNICYCLE.replace("poles = [-1.0, -1.5]", "poles = [-1.0]")
+    spec = _spec(tmp_path, text)
+    _run(tmp_path, capsys, spec, EXIT_BAD_SPEC, "error_dynamics.poles", "give 2 poles, not 1")
 
 
 @pytest.mark.parametrize(("text", "field", "message"), CONTROL)

@@ -42,9 +42,16 @@ def test_jet_rhs_and_the_constant_inverse(spec: str) -> None:
     d = derivation(spec)
     # m: the outputs, and with equality constraints the multipliers after them.
     law, m, k = d.law, d.n_kkt, d.k
-    assert len(law.jet_rhs) == m and len(law.a) == k
+    # Integral action: one more coefficient, a_0 on the integral of grad f0.
+    shift = 1 if d.integral_states else 0
+    assert len(law.jet_rhs) == m and len(law.a) == k + shift
+    states = dict(zip(d.state_names, d.states, strict=True))
     for i in range(m):
-        expected = sum((law.a[j] * d.grad_jet[j][i] for j in range(k)), sp.Integer(0)) - d.rest[i]
+        expected = (
+            sum((law.a[j + shift] * d.grad_jet[j][i] for j in range(k)), sp.Integer(0)) - d.rest[i]
+        )
+        if shift:
+            expected += law.a[0] * states[d.integral_states[i]]
         assert sp.expand(law.jet_rhs[i] - expected) == 0
     hessian = sp.Matrix(m, m, law.hessian)
     assert hessian == hessian.T

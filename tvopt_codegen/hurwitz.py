@@ -209,3 +209,44 @@ def bound_ratio(error: np.ndarray, bound: np.ndarray) -> float:
     if not meaningful.any():
         return 0.0
     return float(np.max((error[meaningful] - TARGET_ACCURACY) / bound[meaningful]))
+
+
+def integral_split(
+    coefficients: Sequence[float], poles: Sequence[complex] | None = None
+) -> tuple[float, tuple[float, ...], tuple[float, ...]] | None:
+    """Integral action's pole, the nominal law's coefficients, and the bumpless start.
+
+    With integral action ``col(z_I, E)' = H_I col(z_I, E)`` and ``H_I`` has k + 1
+    coefficients ``c``. Factor its polynomial as ``(s - lambda) p(s)`` with ``lambda``
+    the real eigenvalue closest to zero, ``p`` with coefficients ``a`` (k of them). Then
+    the integral states on ``z_I = z*(E) = sum_j b_j E_j``, ``b_j = (a_j - c_{j+1}) / c_0``,
+    stay there, and E then moves exactly as under the law without integral action and
+    poles ``p``'s; ``delta = z_I - z*(E)`` obeys ``delta' = lambda delta``: it is where a
+    disturbance's compensation lives. A controller that starts with ``z_I = z*(E(0))`` and
+    holds ``delta`` while an input is clipped does not overshoot for the integral's sake.
+
+    Parameters
+    ----------
+    coefficients : sequence of float
+        ``c_0 .. c_k`` of ``H_I``.
+    poles : sequence of complex, optional
+        Its eigenvalues as the spec wrote them (exact); default: computed.
+
+    Returns
+    -------
+    tuple or None
+        ``(lambda, (a_0 .. a_{k-1}), (b_0 .. b_{k-1}))``; None when no eigenvalue is real.
+    """
+    values = list(poles) if poles is not None else list(eigenvalues(coefficients))
+    real = [v.real for v in values if abs(v.imag) <= 1e-12 * max(1.0, abs(v))]
+    if not real:
+        return None
+    pole = float(max(real))
+    c = [float(v) for v in coefficients]
+    k = len(c) - 1
+    a = [0.0] * k
+    a[k - 1] = c[k] - pole
+    for j in range(k - 1, 0, -1):
+        a[j - 1] = c[j] + pole * a[j]
+    b = tuple(float((a[j] - c[j + 1]) / c[0]) for j in range(k))
+    return pole, tuple(a), b

@@ -46,6 +46,12 @@ class Robustness:
         The observer's bandwidth ``beta``, rad/s; None: no observer.
     integral_chains : tuple of int
         Indices in ``Law.chains`` of the integral states' chains.
+    bumpless : tuple of float
+        ``b_0 .. b_{k-1}``: the integrals start at ``z*(E) = sum_j b_j E_j`` and, while an
+        input is clipped, hold ``delta = z_I - z*(E)`` (see
+        :func:`~tvopt_codegen.hurwitz.integral_split`).
+    integral_rows : tuple of int
+        Where the integral states are among the controller states.
     input_chains : tuple of int
         Per plant input, the index in ``Law.chains`` of its extension chain (-1: the
         input is not prolonged).
@@ -57,6 +63,8 @@ class Robustness:
     observer: float | None
     integral_chains: tuple[int, ...]
     input_chains: tuple[int, ...]
+    bumpless: tuple[float, ...] = ()
+    integral_rows: tuple[int, ...] = ()
 
     @property
     def limited(self) -> bool:
@@ -83,4 +91,14 @@ def robustness(derivation: Derivation) -> Robustness:
     chains = d.law.chains
     count = len(d.integral_states)
     integral_chains = tuple(range(len(chains) - count, len(chains)))
-    return Robustness(low, high, rate, spec.robust.observer, integral_chains, input_chains)
+    first = len(spec.states)
+    return Robustness(
+        low,
+        high,
+        rate,
+        spec.robust.observer,
+        integral_chains,
+        input_chains,
+        d.dynamics.bumpless,
+        tuple(d.state_names.index(name) - first for name in d.integral_states),
+    )

@@ -248,6 +248,8 @@ class _ErrorDynamics:
     coefficients: tuple[float, ...]
     eigenvalues: tuple[complex, ...]
     decay_rate: float
+    integral_pole: float | None = None
+    bumpless: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -362,15 +364,16 @@ def _error_dynamics(spec: Spec, k: int) -> _ErrorDynamics:
         coefficients = hurwitz.coefficients_from_poles(spec.poles)
         field, given = "error_dynamics.poles", len(spec.poles)
     kind = "poles" if spec.poles is not None else "coefficients"
+    # A count that does not match is the spec's mistake (exit 2), not the method's.
     if spec.robust.integral and given != k + 1:
-        raise AssumptionError(
+        raise SpecError(
             source,
             field,
             f"the error dynamics have order k = {k} (the largest relative degree) and "
             f"[robust] integral adds one per output, so give {k + 1} {kind}, not {given}",
         )
     if not spec.robust.integral and given != k:
-        raise AssumptionError(
+        raise SpecError(
             source,
             field,
             f"the error dynamics have order k = {k} (the largest relative degree), so give "
@@ -391,7 +394,21 @@ def _error_dynamics(spec: Spec, k: int) -> _ErrorDynamics:
             "(coefficients a_i are the last row of the companion matrix; for poles -1, -2 "
             "they are a_0 = -2, a_1 = -3)",
         )
-    return _ErrorDynamics(k, tuple(coefficients), tuple(complex(v) for v in eig), alpha)
+    pole: float | None = None
+    bumpless: tuple[float, ...] = ()
+    if spec.robust.integral:
+        split = hurwitz.integral_split(coefficients, spec.poles)
+        if split is None:
+            raise SpecError(
+                source,
+                field,
+                "integral action takes a real pole (its own) among the k + 1: every one given "
+                "is complex",
+            )
+        pole, _, bumpless = split
+    return _ErrorDynamics(
+        k, tuple(coefficients), tuple(complex(v) for v in eig), alpha, pole, bumpless
+    )
 
 
 def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:

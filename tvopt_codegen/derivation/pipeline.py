@@ -278,6 +278,8 @@ def _record(
             certified_rate=rate,
             certified_rate_exact=rate_exact,
             transient_constant=constant,
+            integral_pole=dynamics.integral_pole,
+            bumpless=dynamics.bumpless,
         ),
         objective=ObjectiveStage(
             gradient=objective.gradient,

@@ -158,6 +158,13 @@ class ErrorDynamicsStage:
     coefficients : tuple of float
         ``a_0 .. a_{k-1}`` of H; with integral action ``a_0 .. a_k`` of ``H_I``, the
         companion matrix of order k + 1 over ``col(z_I, E)``.
+    integral_pole : float or None
+        With integral action, the real eigenvalue of ``H_I`` closest to zero: the mode of
+        ``delta = z_I - z*(E)`` (see :func:`~tvopt_codegen.hurwitz.integral_split`).
+    bumpless : tuple of float
+        With integral action, ``b_0 .. b_{k-1}``: ``z*(E) = sum_j b_j E_j``, the integrals'
+        value on which E moves as under the law without them (the controller's start,
+        and what it holds while an input is clipped).
     eigenvalues : tuple of complex
         Eigenvalues of the companion matrix.
     decay_rate : float
@@ -181,6 +188,8 @@ class ErrorDynamicsStage:
     certified_rate: float
     certified_rate_exact: bool
     transient_constant: float
+    integral_pole: float | None = None
+    bumpless: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -73,6 +73,9 @@ class Options:
         Number of output times.
     tolerance : float
         Largest accepted relative deviation of E from ``expm(H t) E(0)``.
+    given : frozenset of str
+        The states whose initial value the spec or the caller gave (the others of the
+        integral action start bumplessly).
     """
 
     t_final: float
@@ -83,6 +86,7 @@ class Options:
     atol: float = 1e-12
     points: int = 401
     tolerance: float = 1e-6
+    given: frozenset[str] = frozenset()
 
 
 @dataclass(frozen=True)
@@ -208,6 +212,7 @@ def resolve_options(
         t_final=horizon,
         initial_state=tuple(state[n] for n in names),
         params=dict(params or {}),
+        given=frozenset(name for name, _ in derivation.spec.initial_state) | set(initial or {}),
         **rest,
     )
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import types
@@ -55,6 +56,7 @@ def simulate(
     if d.model.references and references is None:
         references = nominal_source(d, params)
     source = references
+    options = bumpless_start(d, controller, options, source)
     started = time.perf_counter()
     last_report = [started + 2.0]
 
@@ -105,6 +107,37 @@ def simulate(
             "simulation",
             f"the law became undefined along the run, near t = {reached[0]:.6g}: {exc}",
         ) from None
+
+
+def bumpless_start(
+    d: Derivation,
+    controller: types.ModuleType,
+    options: Options,
+    references: ReferenceSource | None = None,
+) -> Options:
+    """The options with integral states that nobody gave starting at ``z*(E(0))``.
+
+    There E moves exactly as under the law without integral action (see
+    :func:`~tvopt_codegen.hurwitz.integral_split`), as the generated Controller starts
+    when no ``z0`` is given. Unchanged without integral action.
+    """
+    if not d.integral_states:
+        return options
+    s0 = np.array(options.initial_state)
+    extra = {} if references is None else {"refs": references.jets(0.0)}
+    try:
+        error = np.asarray(
+            controller.optimality_error(0.0, s0, dict(options.params), **extra), dtype=float
+        )
+    except ArithmeticError:
+        # The law is undefined there: _check_initial_state says so, in the spec's words.
+        return options
+    start = np.asarray(d.dynamics.bumpless) @ error
+    state = list(options.initial_state)
+    for name, value in zip(d.integral_states, start, strict=True):
+        if name not in options.given:
+            state[d.state_names.index(name)] = float(value)
+    return dataclasses.replace(options, initial_state=tuple(state))
 
 
 #: Longest step of the fixed-grid integration of a loop fed with estimated references.

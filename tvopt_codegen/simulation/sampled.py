@@ -32,7 +32,7 @@ from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.simulation.references import nominal_source
 from tvopt_codegen.simulation.result import Options, Result
-from tvopt_codegen.simulation.run import simulate
+from tvopt_codegen.simulation.run import bumpless_start, simulate
 
 #: Longest Runge-Kutta step of the plant between samples.
 MAX_SUBSTEP = 1e-2
@@ -291,6 +291,10 @@ def simulate_sampled(
         Both runs and what holds under sampling.
     """
     check_sample_time(h / 2 if convergence_order else h, options.t_final)
+    references = (
+        nominal_source(derivation, dict(options.params)) if derivation.model.references else None
+    )
+    options = bumpless_start(derivation, controller, options, references)
     continuous = simulate(derivation, controller, options, progress=progress)
     failures = list(continuous.failures)
     runs = [sampled_run(derivation, controller, options, h, continuous, progress, plant_params)]

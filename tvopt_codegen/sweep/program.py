@@ -65,6 +65,8 @@ class SweepProgram:
         Whether the controller has a disturbance observer (it runs in the sampled loop).
     integral_rows : tuple of int
         Where the integral states are in the closed-loop state (integral action).
+    bumpless : tuple of float
+        ``b_j`` of the integrals' bumpless start ``z*(E) = sum_j b_j E_j``.
     """
 
     name: str
@@ -86,6 +88,12 @@ class SweepProgram:
     limits: tuple[tuple[str, float, float], ...] = ()
     observer: bool = False
     integral_rows: tuple[int, ...] = ()
+    bumpless: tuple[float, ...] = ()
+
+    @property
+    def k(self) -> int:
+        """The order of the error dynamics: the rows of E (integral action adds a coefficient)."""
+        return len(self.coefficients) - (1 if self.integral_rows else 0)
 
     @property
     def columns(self) -> int:
@@ -208,6 +216,7 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
         ),
         observer=d.spec.robust.observer is not None,
         integral_rows=tuple(d.state_names.index(name) for name in d.integral_states),
+        bumpless=tuple(float(b) for b in d.dynamics.bumpless),
     )
 
 
@@ -370,7 +379,7 @@ class Loop:
     def optimality_error(self, s: np.ndarray, params: np.ndarray) -> np.ndarray:
         """E at t = 0 (K rows of the gradient jet, or of the KKT map with equalities)."""
         width = self.program.n_kkt or len(self.program.output_names)
-        out = np.empty(len(self.program.coefficients) * width)
+        out = np.empty(self.program.k * width)
         self._error(0.0, self._ptr(np.ascontiguousarray(s)), self._ptr(params), self._ptr(out))
         return out
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -66,12 +67,32 @@ def _certificate(
     return bound_ratio(error, bound) <= 1.0
 
 
+def _bumpless(program: SweepProgram, options: SweepOptions, loop: Loop, sample: Draw) -> Draw:
+    """The draw with integral states that ``--initial`` does not set at ``z*(E(0))``.
+
+    As ``simulate`` and the generated Controller start them (see
+    :func:`~tvopt_codegen.hurwitz.integral_split`); E at the model's parameters.
+    """
+    if not program.integral_rows:
+        return sample
+    given = {name for name, _ in options.initial}
+    cp = sample.cp if len(sample.cp) else np.zeros(1)
+    width = len(program.integral_rows)
+    error = loop.optimality_error(sample.s0, cp).reshape(program.k, width)
+    start = np.asarray(program.bumpless) @ error
+    s0 = sample.s0.copy()
+    for row, value in zip(program.integral_rows, start, strict=True):
+        if program.state_names[row] not in given and np.isfinite(value):
+            s0[row] = value
+    return dataclasses.replace(sample, s0=s0)
+
+
 def run_sample(
     program: SweepProgram, options: SweepOptions, index: int, keep: bool = False
 ) -> SampleResult:
     """Run sample ``index`` and measure it; keep its trajectory when asked."""
     loop = loop_for(program)
-    sample = draw(program, options, index)
+    sample = _bumpless(program, options, loop, draw(program, options, index))
     outcome, rows, info = loop.run(options, sample)
     n, m = len(program.state_names), len(program.output_names)
     nu = len(program.input_names)
