@@ -15,15 +15,17 @@ from tvopt_codegen.cli import main
 from tvopt_codegen.errors import EXIT_BAD_SPEC, MissingExtraError
 from tvopt_codegen.fmu import build_fmu, fmi_headers, fmu_sources
 
-from .conftest import kernels, module
+from .conftest import SPECS, kernels, module
 from .test_c_backend import COMPILERS, STRICT
+
+ROBUST = str(SPECS / "robust_pvtol.toml")
 
 fmpy = pytest.importorskip("fmpy")
 from fmpy.validation import validate_fmu  # noqa: E402
 
 
 def _fmu(spec: str, fmi: int, folder: Path) -> Path:
-    path = folder / f"{spec}_fmi{fmi}.fmu"
+    path = folder / f"{Path(spec).stem}_fmi{fmi}.fmu"
     path.write_bytes(build_fmu(kernels(spec), fmi))
     return path
 
@@ -41,7 +43,8 @@ def _measured(spec: str, horizon: float, h: float) -> tuple[np.ndarray, np.ndarr
 
 @pytest.mark.parametrize("fmi", [2, 3])
 # arm_on_line: the multipliers of its equality constraint are controller states too.
-@pytest.mark.parametrize("spec", ["pvtol", "unicycle_switch", "arm_on_line"])
+# robust_pvtol: limits, integral action and an observer; its saturation flags are outputs.
+@pytest.mark.parametrize("spec", ["pvtol", "unicycle_switch", "arm_on_line", ROBUST])
 def test_fmpy_validates_and_cosimulates_it_like_controller_step(
     spec: str, fmi: int, tmp_path: Path
 ) -> None:
@@ -62,6 +65,10 @@ def test_fmpy_validates_and_cosimulates_it_like_controller_step(
         dtype=[("time", float)] + [(n, float) for n in mod.PLANT_STATE_NAMES],
     )
     names = [*mod.INPUT_NAMES, *(f"controller.{n}" for n in mod.CONTROLLER_STATE_NAMES)]
+    limited = hasattr(mod, "INPUT_LOW")
+    if limited:
+        assert all(causality[f"saturated.{n}"] == "output" for n in mod.INPUT_NAMES)
+        names += [f"saturated.{n}" for n in mod.INPUT_NAMES]
     result = fmpy.simulate_fmu(
         str(path),
         start_time=0.0,
@@ -71,13 +78,18 @@ def test_fmpy_validates_and_cosimulates_it_like_controller_step(
         output=names,
         fmi_type="CoSimulation",
     )
+
     # At time t_{k+1} the FMU shows the input its doStep(t_k, h) computed from x(t_k);
     # at 0, the input of the initialization.
+    def row(controller: object, u: np.ndarray) -> np.ndarray:
+        flags = [controller.saturated.astype(float)] if limited else []  # type: ignore[attr-defined]
+        return np.concatenate([u, controller.state, *flags])  # type: ignore[attr-defined]
+
     controller = mod.Controller(states[:, 0])
-    expected = [np.concatenate([controller.u, controller.state])]
+    expected = [row(controller, controller.u)]
     for k in range(len(times) - 1):
         u = controller.step(float(times[k]), states[:, k])
-        expected.append(np.concatenate([u, controller.state]))
+        expected.append(row(controller, u))
     got = np.array([[row[n] for n in names] for row in result])
     assert got.shape == (len(times), len(names))
     np.testing.assert_allclose(got, np.array(expected), rtol=1e-10, atol=1e-10)
@@ -138,11 +150,15 @@ def test_the_archive_is_deterministic_and_holds_sources_and_a_binary(tmp_path: P
 
 @pytest.mark.parametrize("compiler", COMPILERS)
 @pytest.mark.parametrize("fmi", [2, 3])
-def test_the_glue_compiles_under_strict_warnings(fmi: int, compiler: str, tmp_path: Path) -> None:
-    for member, text in fmu_sources(kernels("two_unicycles_barrier"), fmi).items():
+@pytest.mark.parametrize("spec", ["two_unicycles_barrier", ROBUST])
+def test_the_glue_compiles_under_strict_warnings(
+    spec: str, fmi: int, compiler: str, tmp_path: Path
+) -> None:
+    name = Path(spec).stem
+    for member, text in fmu_sources(kernels(spec), fmi).items():
         (tmp_path / Path(member).name).write_text(text)
     done = subprocess.run(
-        [compiler, *STRICT, "-c", str(tmp_path / f"two_unicycles_barrier_fmi{fmi}.c")]
+        [compiler, *STRICT, "-c", str(tmp_path / f"{name}_fmi{fmi}.c")]
         + ["-I", str(tmp_path), "-I", str(fmi_headers(fmi)), "-o", str(tmp_path / "glue.o")],
         capture_output=True,
         text=True,

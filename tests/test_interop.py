@@ -80,3 +80,60 @@ def test_without_python_control_one_line_says_what_to_install(
     assert str(info.value) == (
         "python-control is not installed: pip install 'tvopt-codegen[control]'"
     )
+
+
+def test_the_robust_controller_holds_a_mismatched_plant_in_python_control() -> None:
+    """Limits, integral action and the observer's continuous form, against a wrong plant."""
+    from .conftest import SPECS
+
+    mod = module(str(SPECS / "robust_pvtol.toml"))
+    d = derivation(str(SPECS / "robust_pvtol.toml"))
+    controller = to_nlsys(mod)
+    nx, nz = len(mod.PLANT_STATE_NAMES), len(mod.CONTROLLER_STATE_NAMES)
+    assert controller.nstates == nz + nx  # the observer's states follow z
+    plant = plant_nlsys(mod)
+    closed = control.interconnect([plant, controller], inplist=[], outlist=list(mod.OUTPUT_NAMES))
+    x0 = np.array(mod.DEFAULT_STATE[:nx])
+    z0 = np.array(mod.DEFAULT_STATE[nx:])
+    # The integrals start bumplessly, the observer at sigma = 0.
+    s0 = np.concatenate([x0, z0])
+    error = mod.optimality_error(0.0, s0)
+    for name, value in zip(mod.INTEGRAL_NAMES, np.array(d.dynamics.bumpless) @ error, strict=True):
+        z0[mod.CONTROLLER_STATE_NAMES.index(name)] = value
+    beta = mod.OBSERVER_BANDWIDTH
+    start = np.concatenate([x0, z0, beta * x0])
+    times = np.linspace(0.0, 12.0, 121)
+    # The plant is 15% heavier than the model (an interconnection hands its parameters
+    # to every system, so the true mass is fixed inside this one).
+    true = {"m": 1.15}
+    heavy_plant = control.nlsys(
+        lambda t, x, u, params: mod.plant(t, x, u, true),
+        lambda t, x, u, params: np.concatenate([x, mod.outputs(t, x, true)]),
+        inputs=list(mod.INPUT_NAMES),
+        outputs=[*mod.PLANT_STATE_NAMES, *mod.OUTPUT_NAMES],
+        states=list(mod.PLANT_STATE_NAMES),
+        name="plant",
+    )
+    target = np.array([1.5 * np.sin(0.4 * 12.0), 2 + 0.8 * np.sin(0.3 * 12.0) - 0.5 * np.cos(2.4)])
+    finals = {}
+    for key, system in (("robust", controller), ("plain", to_nlsys(module("pvtol")))):
+        heavy = control.interconnect(
+            [heavy_plant, system], inplist=[], outlist=list(mod.OUTPUT_NAMES)
+        )
+        x_start = start if key == "robust" else np.array(module("pvtol").DEFAULT_STATE)
+        response = control.input_output_response(
+            heavy, times, 0, X0=x_start, solve_ivp_kwargs={"rtol": 1e-8, "atol": 1e-10}
+        )
+        finals[key] = float(np.linalg.norm(response.outputs[:, -1] - target))
+        if key == "robust":
+            robust = response
+    # The plain law is off by the mismatch; the robust one holds the target.
+    assert finals["plain"] > 0.3
+    assert finals["robust"] < 0.01 * finals["plain"]
+    response = robust
+    # Every output of the controller is within the limits.
+    u = np.array([controller.output(t, response.states[nx:, k], response.states[:nx, k])
+                  for k, t in enumerate(times)])  # fmt: skip
+    assert np.all(u >= np.array(mod.INPUT_LOW) - 1e-12)
+    assert np.all(u <= np.array(mod.INPUT_HIGH) + 1e-12)
+    assert closed.nstates == nx + nz + nx

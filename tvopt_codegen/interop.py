@@ -62,9 +62,16 @@ def to_nlsys(module: ModuleType, name: str = "controller") -> Any:
     control.NonlinearIOSystem
         States ``z`` (``CONTROLLER_STATE_NAMES``), inputs the plant states
         (``PLANT_STATE_NAMES``), outputs the plant input (``INPUT_NAMES``); the module's
-        parameters by name.
+        parameters by name. A spec with ``[limits]`` or ``[robust]``: the output is the
+        input applied (clipped to ``INPUT_LOW`` and ``INPUT_HIGH``), the integral states
+        and a clipped prolonged input's chain stop while clipped (the continuous form of
+        the Controller's anti-windup), and a disturbance observer adds the states
+        ``observer.<plant state>`` of its continuous form (see :func:`_robust_nlsys`).
+        Slew rates act in the sampled Controller alone.
     """
     control = _control()
+    if hasattr(module, "INPUT_LOW"):
+        return _robust_nlsys(module, name, control)
     plant_states = len(module.PLANT_STATE_NAMES)
 
     def update(t: float, z: np.ndarray, x: np.ndarray, params: Any) -> np.ndarray:
@@ -76,6 +83,75 @@ def to_nlsys(module: ModuleType, name: str = "controller") -> Any:
 
     states = list(module.CONTROLLER_STATE_NAMES)
     # A controller without states is static: python-control wants no update function.
+    dynamic = {"states": states} if states else {}
+    return control.nlsys(
+        update if states else None,
+        output,
+        inputs=list(module.PLANT_STATE_NAMES),
+        outputs=list(module.INPUT_NAMES),
+        params=dict(module.PARAMETERS),
+        name=name,
+        **dynamic,
+    )
+
+
+def _robust_nlsys(module: ModuleType, name: str, control: Any) -> Any:
+    """:func:`to_nlsys` for a controller with limits, integral action or an observer.
+
+    The observer's continuous form: ``psi' = beta (beta x - psi + f(x) + G(x) u)`` with
+    ``u`` the applied input, so that ``sigma = beta x - psi`` obeys
+    ``sigma' = beta (G d - sigma)``; ``d_hat`` is the least-squares solution of
+    ``G(x) d = sigma`` (G's columns from ``plant``), and the law commands ``u - d_hat``.
+    It starts at ``psi = beta x(0)`` (``sigma = 0``): give the interconnection that
+    start for the observer's states.
+    """
+    nx, nu = len(module.PLANT_STATE_NAMES), len(module.INPUT_NAMES)
+    nz = len(module.CONTROLLER_STATE_NAMES)
+    low, high = np.array(module.INPUT_LOW), np.array(module.INPUT_HIGH)
+    beta = module.OBSERVER_BANDWIDTH
+    chains = module._CHAINS
+    integral = [chains[c][0] for c in module._INTEGRAL_CHAINS]
+    input_chains = module._INPUT_CHAINS
+
+    def estimate(t: float, x: np.ndarray, psi: np.ndarray, p: Any) -> np.ndarray:
+        if beta is None:
+            return np.zeros(nu)
+        base = np.asarray(module.plant(t, x, np.zeros(nu), p))
+        columns = np.array(
+            [np.asarray(module.plant(t, x, np.eye(nu)[i], p)) - base for i in range(nu)]
+        ).T
+        solution: np.ndarray = np.linalg.lstsq(columns, beta * x - psi, rcond=None)[0]
+        return solution
+
+    def split(t: float, w: np.ndarray, x: np.ndarray, params: Any) -> tuple[Any, ...]:
+        p = _own(module, params)
+        z, psi = w[:nz], w[nz:]
+        s = np.concatenate([x, z])
+        commanded = np.asarray(module.control(t, s, p)) - estimate(t, x, psi, p)
+        return p, s, psi, commanded, np.clip(commanded, low, high)
+
+    def update(t: float, w: np.ndarray, x: np.ndarray, params: Any) -> np.ndarray:
+        p, s, psi, commanded, applied = split(t, w, x, params)
+        dz = np.array(module.rhs(t, s, p), dtype=float)[nx:]
+        excess = commanded - applied
+        if np.any(excess != 0.0):
+            dz[integral] = 0.0
+            for i, chain in enumerate(input_chains):
+                if chain >= 0 and excess[i] != 0.0:
+                    start, length = chains[chain]
+                    block = dz[start : start + length]
+                    block[block * excess[i] > 0.0] = 0.0
+        if beta is None:
+            return dz
+        dpsi = beta * (beta * x - psi + np.asarray(module.plant(t, x, applied, p)))
+        return np.concatenate([dz, dpsi])
+
+    def output(t: float, w: np.ndarray, x: np.ndarray, params: Any) -> np.ndarray:
+        return np.asarray(split(t, w, x, params)[4])
+
+    states = list(module.CONTROLLER_STATE_NAMES)
+    if beta is not None:
+        states += [f"observer.{n}" for n in module.PLANT_STATE_NAMES]
     dynamic = {"states": states} if states else {}
     return control.nlsys(
         update if states else None,
