@@ -371,16 +371,19 @@ def format_certificate(derivation: Derivation, result: Result) -> str:
     d, r = derivation, result
     if r.references is not None and r.references.estimated:
         return _format_estimated(d, r)
+    integral = bool(d.integral_states)
+    error0 = float(np.linalg.norm(augmented_error(d, r.states[:, :1], r.E[:1].reshape(1, -1))))
     lines = [
         f"{d.spec.name}: closed loop over [0, {r.t[-1]:g}] with {r.options.method} "
         f"(rtol {r.options.rtol:g}, atol {r.options.atol:g})",
         f"  final |y - y*|            {r.error[-1]:.3e}   (initial {r.error[0]:.3e})",
         f"  decay rate of |E|         {r.fitted_rate:.4g} fitted, alpha = {r.alpha:.4g}"
         + ("" if r.alpha_exact else " (repeated poles: 10% margin)"),
-        f"  E vs expm(H t) E(0)       max relative deviation {r.deviation:.3e} "
-        f"(limit {r.options.tolerance:g})",
+        ("  col(z_I, E) vs expm(H_I t) " if integral else "  E vs expm(H t) E(0)       ")
+        + f"max relative deviation {r.deviation:.3e} (limit {r.options.tolerance:g})",
         f"  |y - y*| <= C e^(-alpha t)  max ratio {r.bound_ratio:.3g}  "
-        f"(C = {r.C:.4g}: c = {r.c:.4g}, m_f = {r.m_f:.4g}, |E(0)| = {np.linalg.norm(r.E[0]):.4g})",
+        f"(C = {r.C:.4g}: c = {r.c:.4g}, m_f = {r.m_f:.4g}, "
+        f"|{'col(z_I, E)' if integral else 'E'}(0)| = {error0:.4g})",
         f"  RHS evaluations           {r.nfev}   wall time {r.wall_time:.2f} s",
         "  certificate: " + ("PASSED" if r.passed else "FAILED: " + "; ".join(r.failures)),
     ]

@@ -70,6 +70,8 @@ class SampledRun:
         ``max |y - y*|`` over the last tenth of the horizon.
     wall_time : float
         Seconds the run took.
+    saturated_time : float
+        Time with an input clipped by the controller's ``[limits]`` (0 without limits).
     """
 
     h: float
@@ -81,6 +83,7 @@ class SampledRun:
     deviation: float
     ultimate: float
     wall_time: float
+    saturated_time: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -102,6 +105,8 @@ class SampledResult:
         order (when asked for) is at least :data:`ORDER_FLOOR`.
     failures : tuple of str
         Why not.
+    plant_params : tuple of (str, float)
+        The true plant's parameters where they are not the controller's (empty: none).
     """
 
     continuous: Result
@@ -110,6 +115,7 @@ class SampledResult:
     continuous_ultimate: float
     passed: bool
     failures: tuple[str, ...]
+    plant_params: tuple[tuple[str, float], ...] = ()
 
 
 def _plant(controller: types.ModuleType, params: dict[str, float]) -> Callable[..., Any]:
@@ -178,9 +184,12 @@ def sampled_run(
     inputs = np.empty((len(d.spec.inputs), count + 1))
     states[:, 0], inputs[:, 0] = np.concatenate([x, step.state]), step.u
     u = step.u
+    saturated_time = 0.0
     next_report = started + 2.0
     for k in range(count):
         t0, t1 = float(times[k]), float(times[k + 1])
+        if getattr(step, "saturated", None) is not None and step.saturated.any():
+            saturated_time += t1 - t0
         pieces = max(1, math.ceil((t1 - t0) / MAX_SUBSTEP - 1e-9))
         dt = (t1 - t0) / pieces
         for piece in range(pieces):
@@ -228,6 +237,7 @@ def sampled_run(
         deviation=float(np.max(distance)),
         ultimate=ultimate,
         wall_time=time.perf_counter() - started,
+        saturated_time=saturated_time,
     )
 
 
@@ -318,17 +328,29 @@ def simulate_sampled(
         continuous_ultimate=float(np.max(continuous.error[tail])),
         passed=not failures,
         failures=tuple(failures),
+        plant_params=tuple(
+            (name, value)
+            for name, value in (plant_params or {}).items()
+            if value != (dict(derivation.spec.parameters) | dict(options.params)).get(name)
+        ),
     )
 
 
 def format_sampled(derivation: Derivation, result: SampledResult) -> str:
     """The lines the sampled run adds to the continuous certificate."""
     lines = ["  under sampling (zero-order hold, controller stepped every H):"]
+    if result.plant_params:
+        mismatch = ", ".join(f"{name} = {value:g}" for name, value in result.plant_params)
+        lines.append(
+            f"    on a plant that is not the model ({mismatch}): the continuous run is the "
+            "nominal theorem's, the sampled ones are the mismatched plant's"
+        )
     for run in result.runs:
+        saturated = f"; saturated {run.saturated_time:.3g} s" if run.saturated_time else ""
         lines.append(
             f"    H = {run.h:.4g}: max |y - y_continuous| {run.deviation:.3e}; "
             f"ultimate |y - y*| {run.ultimate:.3e} (continuous {result.continuous_ultimate:.3e})"
-            f"; {len(run.t) - 1} steps in {run.wall_time:.2f} s"
+            f"{saturated}; {len(run.t) - 1} steps in {run.wall_time:.2f} s"
         )
     if result.order is not None:
         lines.append(f"    observed order in H: {result.order:.3g} (1 for a zero-order hold)")
