@@ -249,3 +249,24 @@ document.getElementById('probe').textContent = JSON.stringify(out);
     assert max(height for _, _, height in matrices) > 60  # a tall one: G, R, f~
     gaps = [r[1] for r in results if r[0] == "gap"]
     assert gaps and min(gaps) > 1.5  # pixels: a thin space, not glued together
+
+
+def test_a_robust_spec_adds_its_section_with_h_i_the_observer_and_the_limits() -> None:
+    from tvopt_codegen.report import ROBUST_HEADING
+
+    from .conftest import SPECS
+
+    spec = str(SPECS / "robust_pvtol.toml")
+    md = render_report(derivation(spec), kernels(spec), formats=("md",))["robust_pvtol_report.md"]
+    headings = re.findall(r"^## (.*)$", md, re.M)
+    expected = list(HEADINGS)
+    expected.insert(expected.index("Control law") + 1, ROBUST_HEADING)
+    assert headings == expected
+    robust = md.split("## Robustness")[1].split("## ")[0]
+    # The integral's pole, the nominal poles and the bumpless start; beta; the limits.
+    assert "| lambda: the integral's pole (real, closest to zero) | -1 |" in robust
+    assert "-3, -2.5, -2, -1.5" in robust
+    assert "bandwidth beta = 20 rad/s" in robust and "every pole of sigma at -20" in robust
+    assert "| thrust | 0 | 14.715 | 200 |" in robust and "| torque | -1 | 1 | inf |" in robust
+    # H_I is the 5 x 5 companion matrix: its last row holds the five coefficients.
+    assert "col(z_I, E)' = H_I col(z_I, E)" in md

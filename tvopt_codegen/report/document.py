@@ -21,6 +21,7 @@ from tvopt_codegen.report.sections import (
     _model,
     _objective,
     _provenance,
+    _robustness,
     _simulation,
 )
 
@@ -39,6 +40,8 @@ HEADINGS = (
     "Generated code and provenance",
     "Simulation",
 )
+#: The section a spec with [robust] or [limits] adds, after "Control law".
+ROBUST_HEADING = "Robustness"
 
 
 #: Largest simulation output the report reads: a certificate is a few KB, a figure
@@ -65,8 +68,9 @@ def read_results(folder: str | Path, name: str) -> dict[str, bytes]:
 def report_sections(
     derivation: Derivation, kernels: KernelSet, results: Mapping[str, bytes] | None = None
 ) -> tuple[Section, ...]:
-    """All sections of the report, in :data:`HEADINGS` order."""
+    """All sections of the report, in :data:`HEADINGS` order (and :data:`ROBUST_HEADING`)."""
     d = derivation
+    robust = (_robustness(d),) if d.spec.robust.any or d.spec.limits else ()
     return (
         _model(d),
         _extension(d),
@@ -74,6 +78,7 @@ def report_sections(
         _objective(d),
         _error_dynamics(d),
         _control_law(d),
+        *robust,
         _provenance(d, kernels),
         _simulation(d, results or {}),
     )

@@ -324,23 +324,32 @@ def _pole(value: complex) -> str:
 
 def _error_dynamics(d: Derivation) -> Section:
     k, m = d.k, d.n_kkt
+    order = len(d.coefficients)
     # With equalities E holds the KKT map F and its derivatives instead of grad f0's.
     first, last = ("F", f"F^({k - 1})") if d.model.equalities else ("grad f0", f"grad^({k - 1}) f0")
-    companion = sp.zeros(k, k)
-    for i in range(k - 1):
+    companion = sp.zeros(order, order)
+    for i in range(order - 1):
         companion[i, i + 1] = 1
     for j, a in enumerate(d.coefficients):
-        companion[k - 1, j] = sp.Float(a, 15)
+        companion[order - 1, j] = sp.Float(a, 15)
+    if d.integral_states:
+        law = (
+            f"With integral action z_I = int {first} dt (states "
+            f"{', '.join(d.integral_states)}), col(z_I, E) with E = col({first}, ..., {last}) "
+            f"obeys col(z_I, E)' = H_I col(z_I, E) with H_I = companion(a) kron I_{m}: one "
+            "more pole per output (see Robustness)."
+        )
+    else:
+        law = (
+            f"E = col({first}, ..., {last}) obeys E' = H E with H = companion(a) "
+            f"kron I_{m} (paper, eqs. (14)-(15))."
+        )
     entries = [
-        Entry(
-            "text",
-            text=(
-                f"E = col({first}, ..., {last}) obeys E' = H E with H = companion(a) "
-                f"kron I_{m} (paper, eqs. (14)-(15))."
-            ),
-        ),
+        Entry("text", text=law),
         _math_entry(
-            "Companion matrix, last row a_0 .. a_{k-1}:",
+            "Companion matrix, last row a_0 .. a_k:"
+            if d.integral_states
+            else "Companion matrix, last row a_0 .. a_{k-1}:",
             companion,
             _name(r"\mathrm{companion}(a)", "companion(a)"),
         ),
@@ -369,6 +378,84 @@ def _error_dynamics(d: Derivation) -> Section:
         ),
     ]
     return Section("Error dynamics", tuple(entries))
+
+
+def _robustness(d: Derivation) -> Section:
+    """Integral action, the disturbance observer and the limits, as the controller runs them."""
+    spec = d.spec
+    entries: list[Entry] = []
+    if d.integral_states:
+        pole = d.dynamics.integral_pole
+        others = [p for p in d.eigenvalues]
+        for index, value in enumerate(others):
+            if (
+                value.imag == 0
+                and pole is not None
+                and abs(value.real - pole) < 1e-9 * (1 + abs(pole))
+            ):
+                del others[index]
+                break
+        entries += [
+            Entry(
+                "text",
+                text=(
+                    "Integral action: the controller integrates each entry of the optimality "
+                    "error's first row, z_I' = grad f0, and the law adds a_0 z_I to "
+                    "Hess y_imp^(k), so that a constant matched disturbance leaves grad f0 at 0. "
+                    "H_I's polynomial is (s - lambda) p(s): on z_I = z*(E) = sum_j b_j E_j the "
+                    "error moves as under the law with p's poles alone, and delta = z_I - z*(E) "
+                    "obeys delta' = lambda delta. The Controller starts on z*(E(0)) (bumpless) "
+                    "and, while an input is clipped, keeps delta instead of integrating (no "
+                    "windup)."
+                ),
+            ),
+            Entry(
+                "table",
+                text="The integral's pole and the bumpless start.",
+                header=("quantity", "value"),
+                rows=(
+                    ("lambda: the integral's pole (real, closest to zero)", f"{pole:.6g}"),
+                    ("p's poles: the nominal response", ", ".join(_pole(v) for v in others)),
+                    ("b_0 .. b_{k-1}", ", ".join(f"{b:.10g}" for b in d.dynamics.bumpless)),
+                ),
+            ),
+        ]
+    if spec.robust.observer is not None:
+        beta = spec.robust.observer
+        entries.append(
+            Entry(
+                "text",
+                text=(
+                    f"Disturbance observer, bandwidth beta = {beta:.6g} rad/s: a matched input "
+                    "disturbance d in x' = f(x) + G(x) (u + d), from the measured plant state "
+                    "and the applied input. Each step, r = (x_k - x_{k-1}) / h - (F_{k-1} + "
+                    "F_k) / 2 with F = f(x) + G(x) u (G d to O(h^2)); sigma += (1 - "
+                    "exp(-beta h)) (r - sigma), every pole of sigma at "
+                    f"{-beta:.6g}; d_hat solves G(x) d = sigma in the least-squares sense (G's "
+                    "columns from the plant's own kernel); the controller commands u - d_hat. "
+                    "Nominally d_hat = 0 up to the trapezoid rule's O(h^2)."
+                ),
+            )
+        )
+    if spec.limits:
+        entries.append(
+            Entry(
+                "table",
+                text=(
+                    "Actuator limits: the Controller clips the commanded input to [low, high] "
+                    "and, after its first step, to within rate h of the last one; the "
+                    "integral states and a clipped prolonged input's extension chain follow "
+                    "the applied input (anti-windup); Controller.saturated, the C struct's "
+                    "saturated mask and the FMU's saturated outputs say which were clipped."
+                ),
+                header=("input", "low", "high", "rate (1/s)"),
+                rows=tuple(
+                    (limit.input, f"{limit.low:g}", f"{limit.high:g}", f"{limit.rate:g}")
+                    for limit in spec.limits
+                ),
+            )
+        )
+    return Section("Robustness", tuple(entries))
 
 
 def _control_law(d: Derivation) -> Section:
