@@ -286,3 +286,35 @@ def test_the_report_lists_references_order_and_estimator(tmp_path: Path) -> None
     assert "References measured at run time" in text
     assert "derivative q = 4" in text and "levant differentiator" in text
     assert "| ox | ox, ox', ox'', ox''', ox^(4) |" in text
+
+
+@pytest.mark.parametrize(
+    "spec",
+    [
+        "integrator_refs",
+        "unicycle_switch_refs",
+        "two_unicycles_barrier_refs",
+        "unicycle_ring_refs",
+        # A figure-eight with a wall term (a barrier): the case the linear estimator of the
+        # law's own order left at 0.8% of the initial error.
+        str(Path(__file__).resolve().parent / "specs" / "figure8_wall.toml"),
+    ],
+)
+def test_the_default_estimator_on_clean_1khz_samples_ends_within_1e3_of_the_start(
+    spec: str,
+) -> None:
+    """One derivative beyond the law's, and a first-order hold between the samples."""
+    from tvopt_codegen.simulation import resolve_options, simulate
+    from tvopt_codegen.simulation.references import exact_jets, sampled_source
+
+    d = derivation(spec)
+    assert d.spec.estimator is not None and d.spec.estimator.kind == "linear"
+    mod = module(spec)
+    assert len(mod._ESTIMATOR_GAINS) == d.reference_order + 2
+    params = dict(d.spec.parameters)
+    truth = exact_jets(d, params)
+    times = np.arange(0.0, d.spec.t_final + 5e-4, 1e-3)
+    values = np.array([truth(float(t))[:, 0] for t in times]).T
+    source = sampled_source(d, mod, {}, times, values)
+    result = simulate(d, mod, resolve_options(d, points=201), references=source)
+    assert result.error[-1] <= 1e-3 * result.error[0]

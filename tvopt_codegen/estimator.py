@@ -20,6 +20,18 @@ from tvopt_codegen.spec import Estimator
 LEVANT_LAMBDAS = (1.1, 1.5, 2.0, 3.0, 5.0, 8.0)
 
 
+def estimator_order(estimator: Estimator, order: int) -> int:
+    """The highest derivative the differentiator estimates, for a law that reads ``order``.
+
+    The linear differentiator's last state is its least accurate (its steady error on a
+    smooth signal is of the next derivative over ``bandwidth``): it estimates one
+    derivative beyond what the law reads, so that the law's highest derivative carries
+    the error of the one after next, over ``bandwidth^2``. Levant's is exact on signals
+    with a bounded next derivative and estimates ``order`` itself.
+    """
+    return order + 1 if estimator.kind == "linear" else order
+
+
 def estimator_gains(estimator: Estimator, order: int) -> tuple[float, ...]:
     """The gains the generated differentiator of order ``order`` uses.
 

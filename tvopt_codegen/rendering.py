@@ -24,7 +24,7 @@ from tvopt_codegen.backends import BACKENDS, Backend
 from tvopt_codegen.contract import CALLER_FAULTS, FUNCTIONS, PIVOT_TOLERANCE, statuses
 from tvopt_codegen.cse import symbols_in
 from tvopt_codegen.errors import TvoptError
-from tvopt_codegen.estimator import estimator_gains
+from tvopt_codegen.estimator import estimator_gains, estimator_order
 from tvopt_codegen.ir import Kernel, KernelSet
 from tvopt_codegen.robust import GRAM_TOLERANCE, robustness
 from tvopt_codegen.spec import BUNDLED_SUFFIX
@@ -379,9 +379,14 @@ def template_context(kernels: KernelSet, backend: Backend | str) -> dict[str, An
         "gram_tolerance": GRAM_TOLERANCE,
         **contract_context(kernels),
         "estimator_gains": (
-            estimator_gains(d.spec.estimator, d.reference_order)
+            estimator_gains(d.spec.estimator, estimator_order(d.spec.estimator, d.reference_order))
             if d.spec.estimator is not None
             else ()
+        ),
+        "estimator_order": (
+            estimator_order(d.spec.estimator, d.reference_order)
+            if d.spec.estimator is not None
+            else 0
         ),
         **(backend.context(kernels) if backend.context is not None else {}),
     }

@@ -48,7 +48,7 @@ from tvopt_codegen.derivation.record import (
     ObjectiveStage,
 )
 from tvopt_codegen.errors import AssumptionError
-from tvopt_codegen.estimator import estimator_gains
+from tvopt_codegen.estimator import estimator_gains, estimator_order
 from tvopt_codegen.jet import (
     fresh_symbols,
 )
@@ -164,7 +164,7 @@ def derive(
     )
     if spec.estimator is not None:
         try:
-            estimator_gains(spec.estimator, jet.reference_order)
+            estimator_gains(spec.estimator, estimator_order(spec.estimator, jet.reference_order))
         except ValueError as exc:
             raise AssumptionError(spec.source, "references.estimator.kind", str(exc)) from None
     clock.mark("law")
