@@ -8,7 +8,7 @@ INSTALLED := $(VENV)/.installed
 READY := $(VENV)/.compiled
 EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring arm_on_line
 
-.PHONY: all demo figures bench bench-derive bench-sweep sweep-example reference-noise test lint typecheck check regen check-generated update-golden clean
+.PHONY: all demo figures bench bench-derive bench-sweep sweep-example robust-example reference-noise test lint typecheck check regen check-generated update-golden clean
 
 all: test
 
@@ -71,6 +71,11 @@ sweep-example: $(READY)
 	cp build/sweep-pvtol/sweep_histograms.png docs/figures/sweep_pvtol_histograms.png
 	cp build/sweep-pvtol/sweep_worst.png docs/figures/sweep_pvtol_worst.png
 	cp build/sweep-pvtol/summary.md docs/sweep-pvtol.md
+
+## robust-example: integral action, the observer and limits judged by 1,000-sample sweeps (docs/robust.md)
+robust-example: $(READY)
+	mkdir -p docs/figures
+	$(PY) benchmarks/robust_example.py --write docs/robust.md
 
 ## reference-noise: tracking from sampled references at three noise levels (docs/references-noise.md)
 reference-noise: $(READY)

@@ -21,6 +21,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 import casadi as ca
 import numpy as np
@@ -34,6 +35,7 @@ from tvopt_codegen.rendering import render
 from tvopt_codegen.simulation import load_controller
 from tvopt_codegen.spec import load_spec
 
+ROOT = Path(__file__).resolve().parent.parent
 SPECS = ("unicycle_switch", "two_unicycles_barrier")
 CFLAGS = ["-O2", "-std=gnu99", "-fPIC"]
 BATCH_C = 100_000
@@ -351,6 +353,123 @@ def bench(name: str, folder: Path) -> dict[str, float]:
     }
 
 
+#: The robust controller's step: the bundled PVTOL with integral action (one more pole),
+#: the observer at 20 rad/s and the thrust within [0, 1.5 x hover], against its plain step.
+ROBUST_TABLES = """
+[robust]
+integral = true
+
+[robust.observer]
+bandwidth = 20.0
+
+[limits]
+thrust = [0.0, 14.715]
+"""
+ROBUST_HARNESS = r"""
+#include <stdio.h>
+#include <time.h>
+#include "pvtol.h"
+#include "robust_pvtol.h"
+
+static double now(void)
+{{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return ts.tv_sec + 1e-9 * ts.tv_nsec;
+}}
+
+/* The measured plant states of the robust closed loop on a 10% heavier plant, every
+ * millisecond over its horizon: both controllers step through the same run. */
+static const double X[{points}][6] = {{ {states} }};
+
+int main(void)
+{{
+    pvtol_controller_t plain;
+    robust_pvtol_controller_t robust;
+    double u[2], acc = 0.0, best_plain = 1e9, best_robust = 1e9, t0;
+    long i, rep;
+    for (rep = 0; rep < 15; ++rep) {{
+        pvtol_controller_init(&plain, 0.0, X[0], NULL, NULL);
+        robust_pvtol_controller_init(&robust, 0.0, X[0], NULL, NULL);
+        t0 = now();
+        for (i = 1; i < {points}; ++i) {{
+            pvtol_controller_step(&plain, 1e-3 * (double)i, X[i], u);
+            acc += u[0];
+        }}
+        if ((now() - t0) / ({points} - 1) < best_plain) {{
+            best_plain = (now() - t0) / ({points} - 1);
+        }}
+        t0 = now();
+        for (i = 1; i < {points}; ++i) {{
+            robust_pvtol_controller_step(&robust, 1e-3 * (double)i, X[i], u);
+            acc += u[0];
+        }}
+        if ((now() - t0) / ({points} - 1) < best_robust) {{
+            best_robust = (now() - t0) / ({points} - 1);
+        }}
+    }}
+    printf("robust %.6e %.6e\n", best_robust, best_plain);
+    printf("checksum %g\n", acc);
+    return 0;
+}}
+"""
+
+
+def _robust_run(module: ModuleType, horizon: float = 12.0, h: float = 1e-3) -> np.ndarray:
+    """The robust PVTOL's plant states, every ``h``, on a plant 10% heavier (RK4)."""
+    x = np.array(module.DEFAULT_STATE[:6])
+    controller = module.Controller(x)
+    plant = {"m": 1.1}
+    states = [x]
+    for k in range(1, int(round(horizon / h)) + 1):
+        u = controller.u
+
+        def f(s: np.ndarray, u: np.ndarray = u) -> np.ndarray:
+            return np.asarray(module.plant(0.0, s, u, plant))
+
+        k1 = f(x)
+        k2 = f(x + h / 2 * k1)
+        k3 = f(x + h / 2 * k2)
+        k4 = f(x + h * k3)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        controller.step(k * h, x)
+        states.append(x)
+    return np.array(states)
+
+
+def robust_step(folder: Path, tables: str = ROBUST_TABLES) -> tuple[float, float]:
+    """Seconds per C controller step: the robust PVTOL's and the plain PVTOL's."""
+    text = (ROOT / "tvopt_codegen" / "examples" / "pvtol.toml").read_text(encoding="utf-8")
+    if "integral" in tables:
+        text = text.replace("poles = [", "poles = [-0.8, ")
+    text = text.replace('name = "pvtol"', 'name = "robust_pvtol"')
+    write_files(render(lower(derive(load_spec("pvtol"))), "c"), folder)
+    robust = folder / "robust_pvtol.toml"
+    robust.write_text(text + tables, encoding="utf-8")
+    kernels = lower(derive(load_spec(str(robust))))
+    write_files(render(kernels, "c"), folder)
+    states = _robust_run(load_controller(kernels, "python"))
+    (folder / "robust.c").write_text(
+        ROBUST_HARNESS.format(
+            points=len(states),
+            states=", ".join("{" + ", ".join(repr(float(v)) for v in row) + "}" for row in states),
+        )
+    )
+    binary = folder / "robust"
+    subprocess.run(
+        ["gcc", *CFLAGS, "-o", str(binary)]
+        + [str(folder / f) for f in ("robust.c", "pvtol.c", "robust_pvtol.c")]
+        + ["-lm"],
+        check=True,
+    )
+    ours = plain = math.inf
+    for _ in range(HARNESS_RUNS):
+        out = subprocess.run([str(binary)], capture_output=True, text=True, check=True).stdout
+        values = [float(v) for v in out.splitlines()[0].split()[1:]]
+        ours, plain = min(ours, values[0]), min(plain, values[1])
+    return ours, plain
+
+
 #: Every bundled example: the NumPy module's single-state call against CasADi's.
 EXAMPLES = (
     "integrator",
@@ -415,11 +534,20 @@ def startup() -> list[tuple[str, float, str]]:
 
 
 def extra_tables(
-    single: list[tuple[str, float, float]], start: list[tuple[str, float, str]]
+    single: list[tuple[str, float, float]],
+    start: list[tuple[str, float, str]],
+    robust: tuple[float, float],
 ) -> str:
-    """The single-state call and start-up sections."""
+    """The robust controller's step, the single-state call and start-up sections."""
     peer = start[-1][1]
     lines = [
+        "### The robust controller's C step (limits, integral action, observer)",
+        "",
+        "| measure | ours | peer | ratio ours/peer | target |",
+        "|---|---|---|---|---|",
+        f"| robust_pvtol step vs the plain pvtol step, ns | {robust[0] * 1e9:.4g} | "
+        f"{robust[1] * 1e9:.4g} | {robust[0] / robust[1]:.3f} | <= 1.5 |",
+        "",
         "### NumPy backend, one state per call (`control(t, s)` with a 1-D float array)",
         "",
         "| example | ours, us | CasADi Function, us | ratio ours/peer | target |",
@@ -505,7 +633,10 @@ def main() -> int:
             folder = Path(tmp) / name
             folder.mkdir()
             results[name] = bench(name, folder)
-    text = table(results) + "\n" + extra_tables(single_state(), startup())
+        robust_folder = Path(tmp) / "robust"
+        robust_folder.mkdir()
+        robust = robust_step(robust_folder)
+    text = table(results) + "\n" + extra_tables(single_state(), startup(), robust)
     print(text)
     if args.write:
         cpu = next(

@@ -142,6 +142,11 @@ def _jet_kernels(
         ("R", (len(law.r_entries),), law.r_entries, "diagonal blocks of the decoupling matrix"),
         ("pvec", (m,), list(d.p), "p = col(L_f^{r_i} h_i)"),
     ]
+    if d.integral_states:
+        # Integral action: the integral states' rates, grad f0, computed once with the jet.
+        shared.append(
+            ("grad", (n,), [d.grad_jet[0][i] for i in range(n)], "grad f0: the integrals' rates")
+        )
     what = "grad^(j) f0" if n == m else "F^(j), F = [grad f0 + J_a^T nu; a]"
     optimality_kernel = (
         "optimality",
@@ -207,14 +212,11 @@ def _jet_kernels(
     return jet, cholesky, optimality
 
 
-def _input_kernels(
-    d: Derivation, args: _Args, kernel: _Make, programs: dict[str, list[Assignment]]
-) -> list[Kernel]:
+def _input_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
     """From y_imp^(k) to the plant: b = v - p, the closed-loop field, the plant input.
 
     With integral action the field's last entries are ``grad f0`` (the integral states'
-    rates): the closed-loop kernel then reads the jet's program (pruned to the gradient)
-    and, with references, the reference jets.
+    rates), which the jet kernel returns as ``grad``.
     """
     law, m = d.law, len(d.model.u)
     q_slots = _slots("q", m)
@@ -230,15 +232,22 @@ def _input_kernels(
         [("b", (m,), [law.v[i] - p[i] for i in range(m)], "v - p")],
         args.subs,
     )
-    integral = bool(d.integral_states)
-    program = programs["signals"] + programs["y"] + programs["jet"] if integral else []
+    count = len(d.integral_states)
+    field = list(law.closed_loop)
+    inputs = [args.t, args.s, args.p, args.w, args.z]
+    if count:
+        # The integral states' rates come from the jet kernel (its output grad).
+        g_slots = _slots("e", count)
+        labels = tuple(f"d{name}/dt" for name in d.integral_states)
+        inputs.append(Arg("grad", g_slots, labels, "grad f0: the integrals' rates"))
+        field[len(field) - count :] = g_slots
     closed_loop = kernel(
         "closed_loop",
         "Closed-loop vector field and the plant input",
-        [args.t, args.s, args.p, args.w, args.z, *(args.r if integral else ())],
-        program,
+        inputs,
+        [],
         [
-            ("ds", (len(d.states),), law.closed_loop, "time derivative of the closed-loop state"),
+            ("ds", (len(d.states),), field, "time derivative of the closed-loop state"),
             ("u", (m,), law.plant_input, "plant input"),
         ],
         args.subs,
@@ -310,7 +319,24 @@ def _plant_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
         [("y", (len(model.h),), list(model.h), "outputs")],
         subs,
     )
-    return [plant, outputs]
+    if d.spec.robust.observer is None:
+        return [plant, outputs]
+    # The disturbance observer reads the plant's motion and G itself at the same state:
+    # one kernel, one CSE (their trigonometry once), where the plant's at the unit inputs
+    # would be m + 1 calls.
+    n, m = model.G.shape
+    observer = kernel(
+        "observer",
+        "The plant's x' = f(x) + G(x) u and its input matrix G(x), row-major (the observer's)",
+        [args.t, arg_x, arg_u, args.p],
+        [],
+        [
+            ("dx", (n,), dx, "time derivative of the plant state"),
+            ("g", (n, m), [model.G[i, j] for i in range(n) for j in range(m)], "G(x)"),
+        ],
+        subs,
+    )
+    return [plant, outputs, observer]
 
 
 def lower(derivation: Derivation) -> KernelSet:
@@ -347,7 +373,7 @@ def lower(derivation: Derivation) -> KernelSet:
     jet_time = None
     if split is not None:
         jet_time, jet = split
-    rest = _input_kernels(d, args, kernel, programs) + [optimality]
+    rest = _input_kernels(d, args, kernel) + [optimality]
     rest += _objective_kernels(d, args, programs, kernels) + _plant_kernels(d, args, kernel)
     law = d.law
     plan = law_plan(
@@ -357,7 +383,7 @@ def lower(derivation: Derivation) -> KernelSet:
         n_kkt=d.n_kkt,
         n_params=len(d.model.params),
         k=len(d.coefficients),
-        integral_refs=bool(d.integral_states and args.r),
+        integral=bool(d.integral_states),
         tau=0 if jet_time is None else jet_time.outputs[0].shape[0],
         hessian=0 if cholesky is None else jet.outputs[0].shape[0],
         r_blocks=law.r_blocks,

@@ -219,7 +219,7 @@ def law_plan(
     hessian: int,
     r_blocks: tuple[tuple[int, ...], ...],
     references: int = 0,
-    integral_refs: bool = False,
+    integral: bool = False,
 ) -> Plan:
     """The plan of the law for a controller's sizes.
 
@@ -242,9 +242,9 @@ def law_plan(
     n_kkt : int, optional
         The law's unknowns: the outputs' and, with equality constraints, the
         multipliers' k-th derivatives (default: the outputs alone).
-    integral_refs : bool, optional
-        Whether the closed-loop kernel reads the reference jets (integral action on a
-        spec with references: the integral states' rates are ``grad f0``).
+    integral : bool, optional
+        Integral action: the jet kernel also returns ``grad f0`` (the integral states'
+        rates), which the closed-loop kernel reads.
 
     Returns
     -------
@@ -292,6 +292,9 @@ def law_plan(
             "that no plant input depends on could hide in w."
         )
         call_note = "y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time."
+    if integral:
+        values.append(Value("grad", n, "local", "grad", "grad f0: the integral states' rates"))
+        jet_results += ("grad",)
     values += [
         Value("z", n, "local", "z", "y_imp^(k)" + (", then nu^(k)" if n > m else "")),
         Value("r", r_entries, "local", "r", "diagonal blocks of R, each row-major"),
@@ -327,7 +330,7 @@ def law_plan(
     steps += _DECOUPLE
     runtime = _runtime(hessian, r_blocks)
     rhs = _RHS
-    if integral_refs:
+    if integral:
         call = _RHS[0]
-        rhs = (dataclasses.replace(call, args=(*call.args, "refs")), *_RHS[1:])
+        rhs = (dataclasses.replace(call, args=(*call.args, "grad")), *_RHS[1:])
     return Plan(tuple(values), tuple(per_batch), tuple(steps), _CONTROL, rhs, runtime)
