@@ -33,6 +33,7 @@ from tvopt_codegen.emit import write_files
 from tvopt_codegen.ir import KernelSet, lower
 from tvopt_codegen.rendering import render
 from tvopt_codegen.simulation import load_controller
+from tvopt_codegen.simulation.sampled import hold
 from tvopt_codegen.spec import load_spec
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -419,19 +420,13 @@ def _robust_run(module: ModuleType, horizon: float = 12.0, h: float = 1e-3) -> n
     """The robust PVTOL's plant states, every ``h``, on a plant 10% heavier (RK4)."""
     x = np.array(module.DEFAULT_STATE[:6])
     controller = module.Controller(x)
-    plant = {"m": 1.1}
     states = [x]
+
+    def plant(t: float, s: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return np.asarray(module.plant(t, s, u, {"m": 1.1}))
+
     for k in range(1, int(round(horizon / h)) + 1):
-        u = controller.u
-
-        def f(s: np.ndarray, u: np.ndarray = u) -> np.ndarray:
-            return np.asarray(module.plant(0.0, s, u, plant))
-
-        k1 = f(x)
-        k2 = f(x + h / 2 * k1)
-        k3 = f(x + h / 2 * k2)
-        k4 = f(x + h * k3)
-        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        x = hold(plant, (k - 1) * h, k * h, x, controller.u)
         controller.step(k * h, x)
         states.append(x)
     return np.array(states)

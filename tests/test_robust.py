@@ -22,6 +22,7 @@ from tvopt_codegen.derivation import derive
 from tvopt_codegen.ir import lower
 from tvopt_codegen.rendering import render
 from tvopt_codegen.simulation import load_controller, resolve_options, simulate
+from tvopt_codegen.simulation.sampled import hold
 from tvopt_codegen.spec import bundled_examples, spec_from_dict
 
 from .conftest import ROOT, SPECS, import_file
@@ -114,17 +115,12 @@ def _sampled(
     n = len(mod.PLANT_STATE_NAMES)
     x = np.array(mod.DEFAULT_STATE[:n], dtype=float)
     controller = mod.Controller(x)
+
+    def f(t: float, state: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return np.asarray(mod.plant(t, state, u, plant))
+
     for k in range(1, steps + 1):
-        u = controller.u
-
-        def f(state: np.ndarray, u: np.ndarray = u) -> np.ndarray:
-            return np.asarray(mod.plant(0.0, state, u, plant))
-
-        k1 = f(x)
-        k2 = f(x + h / 2 * k1)
-        k3 = f(x + h / 2 * k2)
-        k4 = f(x + h * k3)
-        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        x = hold(f, (k - 1) * h, k * h, x, controller.u)
         controller.step(k * h, x)
     return controller, x
 
@@ -243,19 +239,13 @@ def test_the_sampled_python_and_c_controllers_agree_to_the_bit_on_a_mismatched_p
     controllers = [py.Controller(x0), c.Controller(x0)]
     states = [x0.copy(), x0.copy()]
     h, clipped = 1e-3, 0
+
+    def f(t: float, state: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return np.asarray(py.plant(t, state, u, plant))
+
     for k in range(1, 3001):
         for j in (0, 1):
-            u = controllers[j].u
-            x = states[j]
-
-            def f(state: np.ndarray, u: np.ndarray = u) -> np.ndarray:
-                return np.asarray(py.plant(0.0, state, u, plant))
-
-            k1 = f(x)
-            k2 = f(x + h / 2 * k1)
-            k3 = f(x + h / 2 * k2)
-            k4 = f(x + h * k3)
-            states[j] = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            states[j] = hold(f, (k - 1) * h, k * h, states[j], controllers[j].u)
             controllers[j].step(k * h, states[j])
         a, b = controllers
         assert a.u.tobytes() == b.u.tobytes()
@@ -348,7 +338,13 @@ def _sweep_program(spec: str) -> Any:
 
 def test_a_sampled_sweep_runs_the_robust_controller_on_mismatched_plants() -> None:
     pytest.importorskip("pyarrow")
-    from tvopt_codegen.sweep import Distribution, SweepOptions, run_sample  # noqa: PLC0415
+    from tvopt_codegen.sweep import (  # noqa: PLC0415
+        Distribution,
+        SweepOptions,
+        format_summary,
+        run_sample,
+        summarize,
+    )
 
     program = _sweep_program(str(SPECS / "robust_pvtol.toml"))
     # The spec's [limits] are the plant's actuators by default.
@@ -365,8 +361,12 @@ def test_a_sampled_sweep_runs_the_robust_controller_on_mismatched_plants() -> No
         sample_time=0.002,
         points=121,
     )
-    rows = [run_sample(program, options, i).row for i in range(4)]
+    results = [run_sample(program, options, i) for i in range(4)]
+    rows = [result.row for result in results]
     assert all(row["status"] == "ok" for row in rows)
+    # The summary says how long the inputs were clipped.
+    text = format_summary("robust_pvtol", options, summarize(results, 4, False))
+    assert "| time an input was clipped (s) |" in text
     # Both options hold the target on a 10% wrong model: millimetres where the plain
     # law is off by metres (docs/robust.md).
     assert max(row["final_error"] for row in rows) < 5e-3

@@ -20,7 +20,7 @@ starts it where ``simulate`` does. python-control is an optional extra
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from types import ModuleType
 from typing import Any
 
@@ -81,7 +81,20 @@ def to_nlsys(module: ModuleType, name: str = "controller") -> Any:
     def output(t: float, z: np.ndarray, x: np.ndarray, params: Any) -> np.ndarray:
         return np.asarray(module.control(t, np.concatenate([x, z]), _own(module, params)))
 
-    states = list(module.CONTROLLER_STATE_NAMES)
+    return _controller_system(
+        control, module, name, list(module.CONTROLLER_STATE_NAMES), update, output
+    )
+
+
+def _controller_system(
+    control: Any,
+    module: ModuleType,
+    name: str,
+    states: list[str],
+    update: Callable[..., np.ndarray],
+    output: Callable[..., np.ndarray],
+) -> Any:
+    """A controller's ``nlsys``: the plant states in, the plant input out."""
     # A controller without states is static: python-control wants no update function.
     dynamic = {"states": states} if states else {}
     return control.nlsys(
@@ -152,16 +165,7 @@ def _robust_nlsys(module: ModuleType, name: str, control: Any) -> Any:
     states = list(module.CONTROLLER_STATE_NAMES)
     if beta is not None:
         states += [f"observer.{n}" for n in module.PLANT_STATE_NAMES]
-    dynamic = {"states": states} if states else {}
-    return control.nlsys(
-        update if states else None,
-        output,
-        inputs=list(module.PLANT_STATE_NAMES),
-        outputs=list(module.INPUT_NAMES),
-        params=dict(module.PARAMETERS),
-        name=name,
-        **dynamic,
-    )
+    return _controller_system(control, module, name, states, update, output)
 
 
 def plant_nlsys(module: ModuleType, name: str = "plant") -> Any:

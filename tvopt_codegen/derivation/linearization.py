@@ -418,26 +418,9 @@ def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:
         for name, r in zip(spec.outputs, lin.degrees, strict=True)
     )
     pad_names = [n for chain in padding for n in chain]
-    for name in pad_names:
-        if name in lin.declared:
-            raise SpecError(
-                spec.source,
-                "system.outputs",
-                f"padding state {name!r} collides with a declared name",
-            )
     # Each equality's multiplier and its first k - 1 derivatives: the controller's own
     # integrator chain, driven by nu^(k) from the KKT system.
     multipliers = tuple(tuple(f"nu_{c.name}_{j}" for j in range(k)) for c in spec.equalities)
-    for name in (
-        *(n for chain in multipliers for n in chain),
-        *(f"nu_{c.name}" for c in spec.equalities),
-    ):
-        if name in lin.declared:
-            raise SpecError(
-                spec.source,
-                "constraints",
-                f"multiplier name {name!r} collides with a declared name",
-            )
     # With integral action, the integral of each entry of grad f0 (or of the KKT map):
     # a chain of one integrator per entry, last in the state.
     integral: tuple[str, ...] = ()
@@ -446,13 +429,24 @@ def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:
             *(f"int_{name}" for name in spec.outputs),
             *(f"int_nu_{c.name}" for c in spec.equalities),
         )
-    for name in integral:
-        if name in lin.declared:
-            raise SpecError(
-                spec.source,
-                "robust.integral",
-                f"integral state {name!r} collides with a declared name",
-            )
+    generated = (
+        ("system.outputs", "padding state", pad_names),
+        (
+            "constraints",
+            "multiplier name",
+            (
+                *(n for chain in multipliers for n in chain),
+                *(f"nu_{c.name}" for c in spec.equalities),
+            ),
+        ),
+        ("robust.integral", "integral state", integral),
+    )
+    for field, kind, names_of in generated:
+        for name in names_of:
+            if name in lin.declared:
+                raise SpecError(
+                    spec.source, field, f"{kind} {name!r} collides with a declared name"
+                )
     ext = lin.extension
     names = (
         *spec.states,

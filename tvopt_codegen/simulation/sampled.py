@@ -137,6 +137,30 @@ def _plant(controller: types.ModuleType, params: dict[str, float]) -> Callable[.
     return plant
 
 
+def hold(
+    plant: Callable[[float, np.ndarray, np.ndarray], np.ndarray],
+    t0: float,
+    t1: float,
+    x: np.ndarray,
+    u: np.ndarray,
+) -> np.ndarray:
+    """The plant state at ``t1`` from ``x`` at ``t0`` under the input ``u`` held between.
+
+    Classical Runge-Kutta with steps of at most :data:`MAX_SUBSTEP` (one step for a
+    sample time below it): ``plant(t, x, u)`` is ``x'``.
+    """
+    pieces = max(1, math.ceil((t1 - t0) / MAX_SUBSTEP - 1e-9))
+    dt = (t1 - t0) / pieces
+    for piece in range(pieces):
+        t = t0 + piece * dt
+        k1 = plant(t, x, u)
+        k2 = plant(t + dt / 2, x + dt / 2 * k1, u)
+        k3 = plant(t + dt / 2, x + dt / 2 * k2, u)
+        k4 = plant(t + dt, x + dt * k3, u)
+        x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
+
+
 def _tail(t: np.ndarray, horizon: float) -> np.ndarray:
     """The last tenth of the horizon (at least the last point)."""
     tail = t >= 0.9 * horizon
@@ -190,15 +214,7 @@ def sampled_run(
         t0, t1 = float(times[k]), float(times[k + 1])
         if getattr(step, "saturated", None) is not None and step.saturated.any():
             saturated_time += t1 - t0
-        pieces = max(1, math.ceil((t1 - t0) / MAX_SUBSTEP - 1e-9))
-        dt = (t1 - t0) / pieces
-        for piece in range(pieces):
-            t = t0 + piece * dt
-            k1 = plant(t, x, u)
-            k2 = plant(t + dt / 2, x + dt / 2 * k1, u)
-            k3 = plant(t + dt / 2, x + dt / 2 * k2, u)
-            k4 = plant(t + dt, x + dt * k3, u)
-            x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        x = hold(plant, t0, t1, x, u)
         try:
             u = step.step(t1, x, **extra(t1))
         except ArithmeticError as exc:

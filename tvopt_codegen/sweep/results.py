@@ -55,6 +55,8 @@ class Summary:
     violating: int = 0
     ended_outside: int = 0
     final_equality: dict[str, float] = field(default_factory=dict)
+    #: Time with an input clipped, quantiles over the ok samples (empty: never clipped).
+    saturated: dict[str, float] = field(default_factory=dict)
 
 
 def summarize(
@@ -69,6 +71,7 @@ def summarize(
     ok = [row for row in rows if row["status"] == "ok"]
     finals = np.array([row["final_error"] for row in ok])
     settle = np.array([row["settling_1pct"] for row in ok])
+    clipped = np.array([row["time_saturated"] for row in ok])
 
     def quantiles(values: np.ndarray) -> dict[str, float]:
         if not len(values):
@@ -101,6 +104,7 @@ def summarize(
         final_equality=quantiles(np.array([row["final_equality"] for row in ok]))
         if ok and "final_equality" in ok[0]
         else {},
+        saturated=quantiles(clipped) if np.any(clipped > 0) else {},
     )
 
 
@@ -152,6 +156,7 @@ def format_summary(name: str, options: SweepOptions, summary: Summary) -> str:
                 if s.final_equality
                 else ()
             ),
+            *((("time an input was clipped (s)", s.saturated),) if s.saturated else ()),
         ):
             cells = [f"{q[k]:.3g}" if k in q else "-" for k in ("median", "p95", "p99", "max")]
             lines.append(f"| {label} | {' | '.join(cells)} | {int(q.get('never', 0))} |")
