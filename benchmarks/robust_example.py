@@ -36,6 +36,7 @@ from tvopt_codegen import sweep
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.ir import lower
 from tvopt_codegen.simulation import load_controller, resolve_options, simulate
+from tvopt_codegen.simulation.sampled import hold
 from tvopt_codegen.spec import parse_spec
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -186,17 +187,12 @@ def step_runs(folder: Path) -> dict[str, tuple[np.ndarray, np.ndarray, float]]:
         times = np.arange(1, int(round(STEP_TIME / H)) + 1) * H
         height = np.empty(len(times))
         saturated = 0.0
+
+        def f(t: float, state: np.ndarray, u: np.ndarray, plant: Any = plant) -> np.ndarray:
+            return np.asarray(plant(t, state, u, STEP_PLANT))
+
         for k, t in enumerate(times):
-            u = controller.u
-
-            def f(state: np.ndarray, u: np.ndarray = u, plant: Any = plant) -> np.ndarray:
-                return np.asarray(plant(0.0, state, u, STEP_PLANT))
-
-            k1 = f(x)
-            k2 = f(x + H / 2 * k1)
-            k3 = f(x + H / 2 * k2)
-            k4 = f(x + H * k3)
-            x = x + H / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            x = hold(f, float(t) - H, float(t), x, controller.u)
             saturated += H * bool(controller.saturated.any())
             controller.step(float(t), x)
             height[k] = x[1] - 2.0
@@ -343,8 +339,24 @@ def main() -> int:
             "`z*(E)`.\n\n"
             "![PVTOL 5 m climb](figures/robust_step.png)\n\n"
         )
+        reading = (
+            "\n## Reading the tables\n\n"
+            "- Integral action removes the offset that a constant matched disturbance "
+            "leaves; the observer estimates the disturbance itself, as fast as its "
+            "bandwidth, and also follows one that changes along the run (the arm's, whose "
+            "inertial forces move with the target); together they leave the least.\n"
+            "- The observer differentiates the measurements: noise moves its rows most, "
+            "and a noisier sensor wants a lower bandwidth.\n"
+            "- The arm's `limits` rows hold each torque to the nominal run's peak: a "
+            "heavier arm needs more than that to follow the target, so every controller "
+            "saturates for seconds and ends off the target; none diverges, and the "
+            "controller's states follow the applied input (no windup). PVTOL's thrust "
+            "limit, 1.5 x hover, rarely binds; its worst samples are the heaviest plants "
+            "during the start's transient.\n"
+        )
         args.write.write_text(
-            header + "## Sweeps\n\n" + text + step_text_md + steps + "\n", encoding="utf-8"
+            header + "## Sweeps\n\n" + text + reading + step_text_md + steps + "\n",
+            encoding="utf-8",
         )
     return 0
 
