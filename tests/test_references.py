@@ -313,8 +313,13 @@ def test_the_default_estimator_on_clean_1khz_samples_ends_within_1e3_of_the_star
     assert len(mod._ESTIMATOR_GAINS) == d.reference_order + 2
     params = dict(d.spec.parameters)
     truth = exact_jets(d, params)
-    times = np.arange(0.0, d.spec.t_final + 5e-4, 1e-3)
+    # 15 s at most: past the start's transient, and a stricter test than the horizon's
+    # end (docs/references.md gives the whole horizon's figures, made by make
+    # reference-noise).
+    horizon = min(d.spec.t_final, 15.0)
+    times = np.arange(0.0, horizon + 5e-4, 1e-3)
     values = np.array([truth(float(t))[:, 0] for t in times]).T
     source = sampled_source(d, mod, {}, times, values)
-    result = simulate(d, mod, resolve_options(d, points=201), references=source)
+    options = resolve_options(d, t_final=horizon, points=201)
+    result = simulate(d, mod, options, references=source)
     assert result.error[-1] <= 1e-3 * result.error[0]
