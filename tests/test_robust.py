@@ -421,3 +421,25 @@ def test_the_continuous_loop_holds_the_integrals_while_an_input_is_clipped() -> 
     position = rows[:, 1]
     assert abs(position[-1] - 5.0) < 1e-3
     assert n == 3
+
+
+def test_the_sampled_run_states_its_input_to_state_bound_on_a_wrong_plant() -> None:
+    """w_k of E_(k+1) = expm(H h) E_k + w_k, and |E| within the bound it gives."""
+    from tvopt_codegen.simulation.sampled import format_sampled, simulate_sampled
+
+    spec = str(SPECS / "robust_pvtol.toml")
+    d = derive(spec_from_dict(_toml(spec)))
+    controller = load_controller(lower(d), "python")
+    options = resolve_options(d, t_final=6.0, points=61)
+    nominal = simulate_sampled(d, controller, options, 0.005)
+    wrong = simulate_sampled(d, controller, options, 0.005, plant_params={"m": 1.2, "J": 0.8})
+    for result in (nominal, wrong):
+        run = result.runs[0]
+        assert result.passed, result.failures
+        assert 0.0 < run.iss_ratio <= 1.0
+        # The limits act at the start (torque within 1 N m): a disturbance of the error
+        # dynamics, as sampling and the wrong plant are.
+        assert 0.0 < run.disturbance < math.inf and run.saturated_time > 0
+    text = format_sampled(d, wrong)
+    assert "input-to-state: col(z_I, E)_(k+1) = expm(H h) col(z_I, E)_k + w_k" in text
+    assert "on a plant that is not the model (m = 1.2, J = 0.8)" in text

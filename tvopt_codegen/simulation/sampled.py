@@ -27,9 +27,12 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.linalg import expm
 
+from tvopt_codegen import hurwitz
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.errors import AssumptionError, SpecError
+from tvopt_codegen.simulation.certificate import augmented_error
 from tvopt_codegen.simulation.references import nominal_source
 from tvopt_codegen.simulation.result import Options, Result
 from tvopt_codegen.simulation.run import bumpless_start, simulate
@@ -72,6 +75,13 @@ class SampledRun:
         Seconds the run took.
     saturated_time : float
         Time with an input clipped by the controller's ``[limits]`` (0 without limits).
+    disturbance : float
+        ``sup_k |w_k| / h`` where ``E_{k+1} = expm(H h) E_k + w_k`` along the samples: what
+        sampling, a wrong plant, noise and the limits add to the error dynamics (E is
+        ``col(z_I, E)`` with integral action).
+    iss_ratio : float
+        The largest ``|E_k|`` over its input-to-state bound
+        ``c e^(-alpha t_k) |E_0| + sum_j c e^(-alpha (t_k - t_{j+1})) |w_j|``.
     """
 
     h: float
@@ -84,6 +94,8 @@ class SampledRun:
     ultimate: float
     wall_time: float
     saturated_time: float = 0.0
+    disturbance: float = float("nan")
+    iss_ratio: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -135,6 +147,43 @@ def _plant(controller: types.ModuleType, params: dict[str, float]) -> Callable[.
             return np.full(len(x), np.nan)
 
     return plant
+
+
+def _sampled_input_to_state(
+    d: Derivation,
+    controller: types.ModuleType,
+    params: dict[str, float],
+    times: np.ndarray,
+    states: np.ndarray,
+    extra: Callable[[float], dict[str, Any]],
+) -> tuple[float, float]:
+    """``sup |w_k| / h`` and the largest ``|E_k|`` over its input-to-state bound.
+
+    ``E_{k+1} = expm(H h) E_k + w_k`` defines ``w``; the bound is the variation of
+    constants in discrete time, exact for any ``w`` given ``|expm(H t)| <= c e^(-alpha t)``.
+    """
+    rows = [
+        np.asarray(
+            controller.optimality_error(float(t), states[:, k], params or None, **extra(float(t)))
+        ).ravel()
+        for k, t in enumerate(times)
+    ]
+    errors = augmented_error(d, states, np.array(rows))
+    h = float(times[1] - times[0])
+    step = expm(hurwitz.error_matrix(d.coefficients, d.n_kkt) * h)
+    w = np.linalg.norm(errors[1:] - errors[:-1] @ step.T, axis=1)
+    alpha, c = d.certified_rate, d.transient_constant
+    decay = math.exp(-alpha * h)
+    bound = np.empty(len(times))
+    bound[0] = c * float(np.linalg.norm(errors[0]))
+    forced = 0.0
+    for k in range(1, len(times)):
+        forced = forced * decay + c * float(w[k - 1])
+        bound[k] = c * math.exp(-alpha * float(times[k])) * float(np.linalg.norm(errors[0]))
+        bound[k] += forced
+    norms = np.linalg.norm(errors, axis=1)
+    ratio = float(np.max((norms - 1e-9) / np.maximum(bound, 1e-300)))
+    return float(np.max(w)) / h, ratio
 
 
 def hold(
@@ -231,6 +280,7 @@ def sampled_run(
         if progress is not None and time.perf_counter() >= next_report:
             progress(t1, horizon)
             next_report = time.perf_counter() + 0.5
+    disturbance, iss_ratio = _sampled_input_to_state(d, controller, params, times, states, extra)
     outputs = np.asarray(controller.outputs(0.0, states[:n], params or None))
     if outputs.ndim == 1:
         outputs = outputs[:, None]
@@ -254,6 +304,8 @@ def sampled_run(
         ultimate=ultimate,
         wall_time=time.perf_counter() - started,
         saturated_time=saturated_time,
+        disturbance=disturbance,
+        iss_ratio=iss_ratio,
     )
 
 
@@ -325,6 +377,12 @@ def simulate_sampled(
     failures = list(continuous.failures)
     runs = [sampled_run(derivation, controller, options, h, continuous, progress, plant_params)]
     order = None
+    failures += [
+        f"|E| exceeds its input-to-state bound along the sampled run (H = {run.h:g}) by a "
+        f"factor {run.iss_ratio:.3g}"
+        for run in runs
+        if not run.iss_ratio <= 1.0
+    ]
     if convergence_order:
         runs.append(
             sampled_run(derivation, controller, options, h / 2, continuous, progress, plant_params)
@@ -361,12 +419,17 @@ def format_sampled(derivation: Derivation, result: SampledResult) -> str:
             f"    on a plant that is not the model ({mismatch}): the continuous run is the "
             "nominal theorem's, the sampled ones are the mismatched plant's"
         )
+    error = "col(z_I, E)" if derivation.integral_states else "E"
     for run in result.runs:
         saturated = f"; saturated {run.saturated_time:.3g} s" if run.saturated_time else ""
         lines.append(
             f"    H = {run.h:.4g}: max |y - y_continuous| {run.deviation:.3e}; "
             f"ultimate |y - y*| {run.ultimate:.3e} (continuous {result.continuous_ultimate:.3e})"
             f"{saturated}; {len(run.t) - 1} steps in {run.wall_time:.2f} s"
+        )
+        lines.append(
+            f"      input-to-state: {error}_(k+1) = expm(H h) {error}_k + w_k with sup |w| / h "
+            f"{run.disturbance:.3g}; |{error}| / its bound max {run.iss_ratio:.3g}"
         )
     if result.order is not None:
         lines.append(f"    observed order in H: {result.order:.3g} (1 for a zero-order hold)")
