@@ -443,3 +443,55 @@ def test_the_sampled_run_states_its_input_to_state_bound_on_a_wrong_plant() -> N
     text = format_sampled(d, wrong)
     assert "input-to-state: col(z_I, E)_(k+1) = expm(H h) col(z_I, E)_k + w_k" in text
     assert "on a plant that is not the model (m = 1.2, J = 0.8)" in text
+
+
+@pytest.mark.parametrize("backend", ["python", "c"])
+def test_a_failed_robust_step_leaves_the_controller_as_it_was(backend: str) -> None:
+    """The observer's and the integrals' updates commit with the law's, or not at all."""
+    if backend == "c" and not any(shutil_which(cc) for cc in ("gcc", "cc", "clang")):
+        pytest.skip("no C compiler")
+    spec = str(SPECS / "robust_pvtol.toml")
+    mod = load_controller(lower(derive(spec_from_dict(_toml(spec)))), backend)
+    x = np.array(mod.DEFAULT_STATE[:6])
+    controller = mod.Controller(x)
+    for k in range(1, 50):
+        x = x + 1e-3 * np.array([0.1, 0.05, 0.02, 0.0, 0.0, 0.0])
+        controller.step(k * 1e-3, x)
+
+    def snapshot() -> tuple[Any, ...]:
+        return (
+            controller.t,
+            controller.u.tobytes(),
+            controller.state.tobytes(),
+            controller.disturbance.tobytes(),
+            controller.saturated.tolist(),
+        )
+
+    before = snapshot()
+    bad = x.copy()
+    bad[2] = np.nan
+    with pytest.raises(mod.NonFiniteInputError):
+        controller.step(0.06, bad)
+    assert snapshot() == before
+    with pytest.raises(mod.DecreasingTimeError):
+        controller.step(0.01, x)
+    assert snapshot() == before
+    # The next good step is the one it would have been.
+    again = mod.Controller(np.array(mod.DEFAULT_STATE[:6]))
+    y = np.array(mod.DEFAULT_STATE[:6])
+    for k in range(1, 50):
+        y = y + 1e-3 * np.array([0.1, 0.05, 0.02, 0.0, 0.0, 0.0])
+        again.step(k * 1e-3, y)
+    assert controller.step(0.06, x).tobytes() == again.step(0.06, y).tobytes()
+
+
+def test_the_observer_keeps_its_estimate_where_g_loses_rank() -> None:
+    spec = str(SPECS / "robust_pvtol.toml")
+    mod = load_controller(lower(derive(spec_from_dict(_toml(spec)))), "python")
+    sigma = [0.0, 0.0, 0.0, 1.0, 2.0, 3.0]
+    # G = 0: nothing to solve; the last estimate stays.
+    assert mod._estimate([0.0] * 12, sigma, [0.3, 0.4]) == [0.3, 0.4]
+    # A G of full rank: the least-squares solution (here exact: sigma = G d).
+    g = [0.0] * 12
+    g[3 * 2 + 0], g[4 * 2 + 0], g[5 * 2 + 1] = 0.0, 1.0, 2.0
+    np.testing.assert_allclose(mod._estimate(g, sigma, [0.3, 0.4]), [2.0, 1.5], rtol=1e-15)
