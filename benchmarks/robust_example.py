@@ -24,7 +24,6 @@ import argparse
 import platform
 import re
 import sys
-import tempfile
 import time
 from pathlib import Path
 from types import ModuleType
@@ -136,21 +135,9 @@ def run(
     }
 
 
-def _module(text: str, name: str, folder: Path) -> ModuleType:
-    from tvopt_codegen.rendering import render  # noqa: PLC0415
-
-    d = derive(parse_spec(f"{name}.toml", text.encode()))
-    ((file_name, code),) = render(lower(d), "python").items()
-    path = folder / f"{name}_{file_name}"
-    path.write_text(code, encoding="utf-8")
-    import importlib.util  # noqa: PLC0415
-
-    spec = importlib.util.spec_from_file_location(f"_robust_{name}", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+def _module(text: str, name: str) -> ModuleType:
+    """A fresh Python controller of the spec ``text`` (each call its own module)."""
+    return load_controller(lower(derive(parse_spec(f"{name}.toml", text.encode()))), "python")
 
 
 #: The step: PVTOL climbing 5 m, on a plant 10% heavier, the thrust within [0, 11.3] N.
@@ -168,7 +155,7 @@ def step_text(option: str) -> str:
                   "vx = 0.0, vz = 0.0, omega = 0.0, thrust = 9.81 }", text, flags=re.M)  # fmt: skip
 
 
-def step_runs(folder: Path) -> dict[str, tuple[np.ndarray, np.ndarray, float]]:
+def step_runs() -> dict[str, tuple[np.ndarray, np.ndarray, float]]:
     """z(t) - 2 and the time saturated, per variant (the Python Controller at 1 kHz)."""
     out = {}
     variants = (
@@ -178,7 +165,7 @@ def step_runs(folder: Path) -> dict[str, tuple[np.ndarray, np.ndarray, float]]:
         ("observer", "observer", True),
     )
     for label, option, anti_windup in variants:
-        module = _module(step_text(option), f"step_{option}_{anti_windup}", folder)
+        module = _module(step_text(option), f"step_{option}_{anti_windup}")
         if hasattr(module, "_ANTI_WINDUP"):
             module._ANTI_WINDUP = anti_windup
         plant = module.plant
@@ -293,8 +280,7 @@ def main() -> int:
         client.close()
         if cluster is not None:
             cluster.close()
-    with tempfile.TemporaryDirectory() as folder:
-        runs = step_runs(Path(folder))
+    runs = step_runs()
     text = tables(rows)
     steps = step_table(runs)
     print(text)

@@ -8,6 +8,7 @@ limits and slew rates the controller applies, and Python and C to the bit.
 from __future__ import annotations
 
 import math
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -20,14 +21,11 @@ import pytest
 
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.ir import lower
-from tvopt_codegen.rendering import render
 from tvopt_codegen.simulation import load_controller, resolve_options, simulate
 from tvopt_codegen.simulation.sampled import hold
 from tvopt_codegen.spec import bundled_examples, spec_from_dict
 
-from .conftest import ROOT, SPECS, import_file
-
-_BUILD: dict[str, ModuleType] = {}
+from .conftest import ROOT, SPECS
 
 
 def _example(name: str) -> dict[str, Any]:
@@ -51,13 +49,9 @@ def _with_integral(data: dict[str, Any]) -> dict[str, Any]:
     return data
 
 
-def _module(data: dict[str, Any], tmp_path: Path, key: str) -> ModuleType:
-    files = render(lower(derive(spec_from_dict(data))), "python")
-    ((name, text),) = files.items()
-    folder = tmp_path / key
-    folder.mkdir()
-    (folder / name).write_text(text, encoding="utf-8")
-    return import_file(folder / name, f"_tvopt_robust_{key}")
+def _module(data: dict[str, Any]) -> ModuleType:
+    """A fresh Python controller of the spec ``data`` (each call its own module)."""
+    return load_controller(lower(derive(spec_from_dict(data))), "python")
 
 
 @pytest.mark.parametrize("name", bundled_examples())
@@ -100,12 +94,12 @@ initial_state = { x1 = 0.0, x2 = 0.0 }
 """
 
 
-def _disturbed(tmp_path: Path, key: str, robust: dict[str, Any]) -> ModuleType:
+def _disturbed(robust: dict[str, Any]) -> ModuleType:
     data = tomllib.loads(_DISTURBED)
     if robust.get("integral"):
         data["error_dynamics"] = {"poles": [-2.0, -3.0]}
     data["robust"] = robust
-    return _module(data, tmp_path, key)
+    return _module(data)
 
 
 def _sampled(
@@ -125,11 +119,11 @@ def _sampled(
     return controller, x
 
 
-def test_a_constant_matched_disturbance_is_rejected_exactly(tmp_path: Path) -> None:
+def test_a_constant_matched_disturbance_is_rejected_exactly() -> None:
     plant = {"d1": 0.4, "d2": -0.3}
-    plain = _disturbed(tmp_path, "plain", {})
-    integral = _disturbed(tmp_path, "integral", {"integral": True})
-    observer = _disturbed(tmp_path, "observer", {"observer": {"bandwidth": 20.0}})
+    plain = _disturbed({})
+    integral = _disturbed({"integral": True})
+    observer = _disturbed({"observer": {"bandwidth": 20.0}})
     target = np.array([1.0, -0.5])
     _, x = _sampled(plain, plant, 1e-3, 10_000)
     # The plain law settles where grad f0 = -d / a_0-ish: an offset of the disturbance's size.
@@ -186,8 +180,8 @@ def _step(mod: ModuleType) -> np.ndarray:
     return np.array(path)
 
 
-def test_anti_windup_keeps_a_saturated_step_from_overshooting(tmp_path: Path) -> None:
-    mod = _module(tomllib.loads(_STEP), tmp_path, "cart")
+def test_anti_windup_keeps_a_saturated_step_from_overshooting() -> None:
+    mod = _module(tomllib.loads(_STEP))
     assert tuple(mod.INPUT_LOW) == (-2.0,) and tuple(mod.INPUT_HIGH) == (2.0,)
     with_aw = _step(mod)
     overshoot = (with_aw.max() - 5.0) / 5.0
@@ -202,10 +196,10 @@ def test_anti_windup_keeps_a_saturated_step_from_overshooting(tmp_path: Path) ->
     assert (without.max() - 5.0) / 5.0 > 3 * max(overshoot, 0.05)
 
 
-def test_limits_and_slew_rates_are_what_the_controller_applies(tmp_path: Path) -> None:
+def test_limits_and_slew_rates_are_what_the_controller_applies() -> None:
     data = tomllib.loads(_STEP)
     data["limits"] = {"force": [-1.0, 1.5], "rate": {"force": 10.0}}
-    mod = _module(data, tmp_path, "slew")
+    mod = _module(data)
     controller = mod.Controller(np.array([0.0, 0.0]))
     # At the start the law asks for more than 1.5: clipped, and said so.
     assert controller.u[0] == 1.5 and controller.saturated.tolist() == [True]
@@ -224,10 +218,8 @@ def test_limits_and_slew_rates_are_what_the_controller_applies(tmp_path: Path) -
     assert max(rates) > 9.99
 
 
-def test_the_sampled_python_and_c_controllers_agree_to_the_bit_on_a_mismatched_plant(
-    tmp_path: Path,
-) -> None:
-    if not any(shutil_which(cc) for cc in ("gcc", "cc", "clang")):
+def test_the_sampled_python_and_c_controllers_agree_to_the_bit_on_a_mismatched_plant() -> None:
+    if not any(shutil.which(cc) for cc in ("gcc", "cc", "clang")):
         pytest.skip("no C compiler")
     spec = str(SPECS / "robust_pvtol.toml")
     d = derive(spec_from_dict(_toml(spec)))
@@ -257,12 +249,6 @@ def test_the_sampled_python_and_c_controllers_agree_to_the_bit_on_a_mismatched_p
     # The thrust's matched disturbance under a 12% heavier plant: T (m0 / m - 1).
     thrust = controllers[0].u[0]
     assert controllers[0].disturbance[0] == pytest.approx(thrust * (1 / 1.12 - 1), rel=0.05)
-
-
-def shutil_which(name: str) -> str | None:
-    import shutil  # noqa: PLC0415
-
-    return shutil.which(name)
 
 
 def _toml(path: str) -> dict[str, Any]:
@@ -448,7 +434,7 @@ def test_the_sampled_run_states_its_input_to_state_bound_on_a_wrong_plant() -> N
 @pytest.mark.parametrize("backend", ["python", "c"])
 def test_a_failed_robust_step_leaves_the_controller_as_it_was(backend: str) -> None:
     """The observer's and the integrals' updates commit with the law's, or not at all."""
-    if backend == "c" and not any(shutil_which(cc) for cc in ("gcc", "cc", "clang")):
+    if backend == "c" and not any(shutil.which(cc) for cc in ("gcc", "cc", "clang")):
         pytest.skip("no C compiler")
     spec = str(SPECS / "robust_pvtol.toml")
     mod = load_controller(lower(derive(spec_from_dict(_toml(spec)))), backend)
