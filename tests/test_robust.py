@@ -474,10 +474,103 @@ def test_a_failed_robust_step_leaves_the_controller_as_it_was(backend: str) -> N
 def test_the_observer_keeps_its_estimate_where_g_loses_rank() -> None:
     spec = str(SPECS / "robust_pvtol.toml")
     mod = load_controller(lower(derive(spec_from_dict(_toml(spec)))), "python")
-    sigma = [0.0, 0.0, 0.0, 1.0, 2.0, 3.0]
+    # The observer's residual lives on the rows G acts on: vx, vz and omega.
+    assert mod._OBSERVED == (3, 4, 5)
+    sigma = [1.0, 2.0, 3.0]
     # G = 0: nothing to solve; the last estimate stays.
     assert mod._estimate([0.0] * 12, sigma, [0.3, 0.4]) == [0.3, 0.4]
     # A G of full rank: the least-squares solution (here exact: sigma = G d).
     g = [0.0] * 12
     g[3 * 2 + 0], g[4 * 2 + 0], g[5 * 2 + 1] = 0.0, 1.0, 2.0
     np.testing.assert_allclose(mod._estimate(g, sigma, [0.3, 0.4]), [2.0, 1.5], rtol=1e-15)
+
+
+def test_inputs_whose_columns_of_g_share_rows_are_solved_together() -> None:
+    from tvopt_codegen.robust import _blocks
+
+    # Inputs 0 and 2 share row 0, input 3 reaches them through row 2; input 1 is alone.
+    assert _blocks(((0,), (1,), (0, 2), (2, 4), (5,))) == ((0, 2, 3), (1,), (4,))
+    assert _blocks(((3, 4), (5,))) == ((0,), (1,))
+    assert _blocks(()) == ()
+
+
+def _arm_with_observer() -> tuple[Any, Any]:
+    table = _toml(str(ROOT / "tvopt_codegen" / "examples" / "arm_on_line.toml"))
+    table["robust"] = {"observer": {"bandwidth": 20.0}}
+    d = derive(spec_from_dict(table))
+    return d, lower(d)
+
+
+def test_the_observer_solves_a_coupled_g_by_least_squares() -> None:
+    from tvopt_codegen.robust import robustness
+
+    d, kernels = _arm_with_observer()
+    robust = robustness(d)
+    # Both torques reach both joint accelerations through M^-1: one block of two.
+    assert robust.observed_states == (2, 3)
+    assert robust.observer_blocks == ((0, 1),)
+    mod = load_controller(kernels, "python")
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        g = [0.0] * 8
+        g[4:] = rng.normal(size=4).tolist()
+        sigma = rng.normal(size=2).tolist()
+        block = np.array(g).reshape(4, 2)[[2, 3]]
+        expected = np.linalg.lstsq(block, np.array(sigma), rcond=None)[0]
+        np.testing.assert_allclose(mod._estimate(g, sigma, [9.0, 9.0]), expected, rtol=1e-12)
+    # Columns that are parallel: G has lost rank, and the last estimate stays.
+    g = [0.0, 0.0, 0.0, 0.0, 1.0, 2.0, 3.0, 6.0]
+    assert mod._estimate(g, [1.0, 1.0], [0.3, 0.4]) == [0.3, 0.4]
+
+
+def test_the_python_and_c_observers_agree_to_the_bit_on_a_coupled_g() -> None:
+    if not any(shutil.which(cc) for cc in ("gcc", "cc", "clang")):
+        pytest.skip("no C compiler")
+    _, kernels = _arm_with_observer()
+    py = load_controller(kernels, "python")
+    c = load_controller(kernels, "c")
+    plant = {"m1": 1.1, "m2": 0.45}
+    x0 = np.array(py.DEFAULT_STATE[:4])
+    controllers = [py.Controller(x0), c.Controller(x0)]
+    states = [x0.copy(), x0.copy()]
+    h = 1e-3
+
+    def f(t: float, state: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return np.asarray(py.plant(t, state, u, plant))
+
+    for k in range(1, 2001):
+        for j in (0, 1):
+            states[j] = hold(f, (k - 1) * h, k * h, states[j], controllers[j].u)
+            controllers[j].step(k * h, states[j])
+        a, b = controllers
+        assert a.u.tobytes() == b.u.tobytes()
+        assert a.disturbance.tobytes() == b.disturbance.tobytes()
+    # The estimate is the matched disturbance of the heavier and lighter links: not zero,
+    # and what the plant's own G says the model error is, to the filter's lag.
+    d_hat = controllers[0].disturbance
+    assert np.all(np.abs(d_hat) > 1e-3)
+    x, u = states[0], controllers[0].u
+    error = np.asarray(py.plant(2.0, x, u, plant)) - np.asarray(py.plant(2.0, x, u))
+    g = np.column_stack(
+        [np.asarray(py.plant(2.0, x, e)) - np.asarray(py.plant(2.0, x, 0 * e)) for e in np.eye(2)]
+    )
+    truth = np.linalg.lstsq(g[2:], error[2:], rcond=None)[0]
+    np.testing.assert_allclose(d_hat, truth, rtol=0.05, atol=5e-3)
+
+
+def test_the_law_returns_the_observers_f_and_g_on_both_of_its_paths() -> None:
+    # The jet kernel returns f(x) and G(x) beside the law: the one-point path and the
+    # array path (the one-point path's fallback) give the same, and the plant's.
+    spec = str(SPECS / "robust_pvtol.toml")
+    mod = load_controller(lower(derive(spec_from_dict(_toml(spec)))), "python")
+    s = np.array(mod.DEFAULT_STATE, dtype=float) + 0.1
+    p = np.array(list(mod.PARAMETERS.values()), dtype=float)
+    one = mod._law_1(0.3, s.tolist(), p.tolist(), True)
+    ds, u, drift, g = mod._law(0.3, s[:, None], p)
+    assert np.array(one[2]).tobytes() == drift[:, 0].tobytes()
+    assert np.array(one[3]).tobytes() == g[:, 0].tobytes()
+    x, e = s[:6], np.eye(2)
+    np.testing.assert_allclose(drift[:, 0], mod.plant(0.3, x, [0.0, 0.0]), rtol=1e-15)
+    for i in range(2):
+        column = np.asarray(mod.plant(0.3, x, e[i])) - np.asarray(mod.plant(0.3, x, 0 * e[i]))
+        np.testing.assert_allclose(g[:, 0].reshape(6, 2)[:, i], column, rtol=1e-14, atol=1e-15)

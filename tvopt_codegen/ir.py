@@ -147,6 +147,21 @@ def _jet_kernels(
         shared.append(
             ("grad", (n,), [d.grad_jet[0][i] for i in range(n)], "grad f0: the integrals' rates")
         )
+    if d.spec.robust.observer is not None:
+        # The disturbance observer reads f(x) and G(x) at the state the law is evaluated
+        # at: here they share the jet's trigonometry, where a kernel of their own would
+        # evaluate it again at every step.
+        model = d.model
+        rows, cols = model.G.shape
+        shared += [
+            ("drift", (rows,), list(model.f), "f(x): the plant's drift (the observer's)"),
+            (
+                "g",
+                (rows * cols,),
+                [model.G[i, j] for i in range(rows) for j in range(cols)],
+                "G(x), row-major (the observer's)",
+            ),
+        ]
     what = "grad^(j) f0" if n == m else "F^(j), F = [grad f0 + J_a^T nu; a]"
     optimality_kernel = (
         "optimality",
@@ -319,24 +334,7 @@ def _plant_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
         [("y", (len(model.h),), list(model.h), "outputs")],
         subs,
     )
-    if d.spec.robust.observer is None:
-        return [plant, outputs]
-    # The disturbance observer reads the plant's motion and G itself at the same state:
-    # one kernel, one CSE (their trigonometry once), where the plant's at the unit inputs
-    # would be m + 1 calls.
-    n, m = model.G.shape
-    observer = kernel(
-        "observer",
-        "The plant's x' = f(x) + G(x) u and its input matrix G(x), row-major (the observer's)",
-        [args.t, arg_x, arg_u, args.p],
-        [],
-        [
-            ("dx", (n,), dx, "time derivative of the plant state"),
-            ("g", (n, m), [model.G[i, j] for i in range(n) for j in range(m)], "G(x)"),
-        ],
-        subs,
-    )
-    return [plant, outputs, observer]
+    return [plant, outputs]
 
 
 def lower(derivation: Derivation) -> KernelSet:
@@ -384,6 +382,7 @@ def lower(derivation: Derivation) -> KernelSet:
         n_params=len(d.model.params),
         k=len(d.coefficients),
         integral=bool(d.integral_states),
+        observer=len(d.spec.states) if d.spec.robust.observer is not None else 0,
         tau=0 if jet_time is None else jet_time.outputs[0].shape[0],
         hessian=0 if cholesky is None else jet.outputs[0].shape[0],
         r_blocks=law.r_blocks,

@@ -220,6 +220,7 @@ def law_plan(
     r_blocks: tuple[tuple[int, ...], ...],
     references: int = 0,
     integral: bool = False,
+    observer: int = 0,
 ) -> Plan:
     """The plan of the law for a controller's sizes.
 
@@ -245,6 +246,10 @@ def law_plan(
     integral : bool, optional
         Integral action: the jet kernel also returns ``grad f0`` (the integral states'
         rates), which the closed-loop kernel reads.
+    observer : int, optional
+        With a disturbance observer, the number of plant states: the jet kernel also
+        returns ``drift`` (``f(x)``) and ``g`` (``G(x)``, row-major), outputs of the law
+        that the stateful controller reads and no check looks at (0: no observer).
 
     Returns
     -------
@@ -295,6 +300,13 @@ def law_plan(
     if integral:
         values.append(Value("grad", n, "local", "grad", "grad f0: the integral states' rates"))
         jet_results += ("grad",)
+    checked = jet_results
+    if observer:
+        values += [
+            Value("drift", observer, "output", "drift", "f(x), the plant's drift"),
+            Value("g", observer * n_inputs, "output", "g", "G(x), row-major"),
+        ]
+        jet_results += ("drift", "g")
     values += [
         Value("z", n, "local", "z", "y_imp^(k)" + (", then nu^(k)" if n > m else "")),
         Value("r", r_entries, "local", "r", "diagonal blocks of R, each row-major"),
@@ -308,7 +320,7 @@ def law_plan(
     steps.append(
         Step(
             "check",
-            args=jet_results,
+            args=checked,
             status=Status.NONFINITE_OUTPUT,
             what=jet_what,
             alone=jet_alone,

@@ -26,7 +26,7 @@ from tvopt_codegen.cse import symbols_in
 from tvopt_codegen.errors import TvoptError
 from tvopt_codegen.estimator import estimator_gains, estimator_order
 from tvopt_codegen.ir import Kernel, KernelSet
-from tvopt_codegen.robust import GRAM_TOLERANCE, robustness
+from tvopt_codegen.robust import GRAM_TOLERANCE, STEP_TOLERANCE, robustness
 from tvopt_codegen.spec import BUNDLED_SUFFIX
 from tvopt_codegen.stamp import HASH_PLACEHOLDER, stamp_hash
 
@@ -377,6 +377,7 @@ def template_context(kernels: KernelSet, backend: Backend | str) -> dict[str, An
         "plan": kernels.plan,
         "robust": robustness(d),
         "gram_tolerance": GRAM_TOLERANCE,
+        "step_tolerance": STEP_TOLERANCE,
         **contract_context(kernels),
         "estimator_gains": (
             estimator_gains(d.spec.estimator, estimator_order(d.spec.estimator, d.reference_order))

@@ -17,8 +17,14 @@ its C twin):
   (the trapezoid rule: ``r_k = G d + O(h^2)``), filtered by
   ``sigma_k = sigma_{k-1} + (1 - e^(-beta h)) (r_k - sigma_{k-1})`` (every pole at
   ``-beta``), and ``d_hat`` the least-squares solution of ``G(x_k) d = sigma_k``; the
-  controller commands ``u - d_hat``. ``G``'s columns come from the plant's own kernel
-  (``F(x, e_i) - F(x, 0)``): no new derivative, no symbolic inverse.
+  controller commands ``u - d_hat``. ``f(x)`` and ``G(x)`` come out of the law's jet
+  kernel, which evaluates them with the law's own trigonometry: no new derivative, no
+  symbolic inverse, no second evaluation of the plant. The residual is kept on the rows
+  ``G`` acts on (:attr:`Robustness.observed_states`): on the others ``G d`` has no
+  component. The least squares are solved per
+  block of inputs whose columns of ``G`` share a row (:attr:`Robustness.observer_blocks`),
+  over ``G``'s structural nonzeros alone: where the columns share none, as for most
+  mechanical plants, each input's estimate is one quotient.
 """
 
 from __future__ import annotations
@@ -31,6 +37,13 @@ from tvopt_codegen.derivation import Derivation
 #: A pivot of ``G^T G`` below this fraction of its largest diagonal entry: G has lost
 #: rank at the state, and the observer keeps its last estimate.
 GRAM_TOLERANCE = 1e-12
+
+#: The observer's filter gain ``1 - exp(-beta h)`` and ``1 / h`` are computed again only
+#: when the sample time moves by more than this fraction of itself. A loop at a fixed
+#: rate gives steps ``t_k - t_{k-1}`` that differ in their last digits (the times'
+#: rounding: 2e-12 of a 1 ms step at t = 10 s); recomputing an ``expm1`` and a
+#: division for them would change nothing but the cost of a step.
+STEP_TOLERANCE = 1e-9
 
 
 @dataclass(frozen=True)
@@ -55,6 +68,13 @@ class Robustness:
     input_chains : tuple of int
         Per plant input, the index in ``Law.chains`` of its extension chain (-1: the
         input is not prolonged).
+    observer_rows : tuple of tuple of int
+        Per plant input, the plant states whose row of ``G`` is not structurally zero
+        in that input's column (empty without an observer).
+    observer_blocks : tuple of tuple of int
+        The plant inputs in blocks, ascending: two inputs share a block when their
+        columns of ``G`` share a row, directly or through others. ``G^T G`` is block
+        diagonal along them, so each block's least squares are solved alone.
     """
 
     low: tuple[float, ...]
@@ -65,6 +85,22 @@ class Robustness:
     input_chains: tuple[int, ...]
     bumpless: tuple[float, ...] = ()
     integral_rows: tuple[int, ...] = ()
+    observer_rows: tuple[tuple[int, ...], ...] = ()
+    observer_blocks: tuple[tuple[int, ...], ...] = ()
+
+    @property
+    def observed_states(self) -> tuple[int, ...]:
+        """The plant states some input acts on (a row of ``G`` not structurally zero).
+
+        The observer keeps its residual, and the last state and motion it is formed
+        from, on these rows alone: on the others ``G d`` has no component, and their
+        residual would reach no estimate.
+        """
+        return tuple(sorted({k for rows in self.observer_rows for k in rows}))
+
+    def gram_rows(self, i: int, j: int) -> tuple[int, ...]:
+        """The rows that add to ``(G^T G)[i, j]``: nonzero in both columns."""
+        return tuple(k for k in self.observer_rows[i] if k in self.observer_rows[j])
 
     @property
     def limited(self) -> bool:
@@ -92,6 +128,10 @@ def robustness(derivation: Derivation) -> Robustness:
     count = len(d.integral_states)
     integral_chains = tuple(range(len(chains) - count, len(chains)))
     first = len(spec.states)
+    rows: tuple[tuple[int, ...], ...] = ()
+    if spec.robust.observer is not None:
+        n, m = d.model.G.shape
+        rows = tuple(tuple(k for k in range(n) if d.model.G[k, i] != 0) for i in range(m))
     return Robustness(
         low,
         high,
@@ -101,4 +141,25 @@ def robustness(derivation: Derivation) -> Robustness:
         input_chains,
         d.dynamics.bumpless,
         tuple(d.state_names.index(name) - first for name in d.integral_states),
+        rows,
+        _blocks(rows),
     )
+
+
+def _blocks(rows: tuple[tuple[int, ...], ...]) -> tuple[tuple[int, ...], ...]:
+    """The inputs grouped by shared rows of ``G`` (connected components), ascending."""
+    block = list(range(len(rows)))
+
+    def root(i: int) -> int:
+        while block[i] != i:
+            i = block[i]
+        return i
+
+    for i in range(len(rows)):
+        for j in range(i):
+            if set(rows[i]) & set(rows[j]):
+                block[root(i)] = root(j)
+    groups: dict[int, list[int]] = {}
+    for i in range(len(rows)):
+        groups.setdefault(root(i), []).append(i)
+    return tuple(sorted(tuple(group) for group in groups.values()))

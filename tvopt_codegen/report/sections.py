@@ -22,6 +22,7 @@ from tvopt_codegen.report.entries import (
     _smoothness,
     formula,
 )
+from tvopt_codegen.robust import robustness
 
 
 def _model(d: Derivation) -> Section:
@@ -422,6 +423,11 @@ def _robustness(d: Derivation) -> Section:
         ]
     if spec.robust.observer is not None:
         beta = spec.robust.observer
+        robust = robustness(d)
+        rows = ", ".join(spec.states[k] for k in robust.observed_states)
+        blocks = "; ".join(
+            ", ".join(spec.inputs[i] for i in block) for block in robust.observer_blocks
+        )
         entries.append(
             Entry(
                 "text",
@@ -431,9 +437,12 @@ def _robustness(d: Derivation) -> Section:
                     "and the applied input. Each step, r = (x_k - x_{k-1}) / h - (F_{k-1} + "
                     "F_k) / 2 with F = f(x) + G(x) u (G d to O(h^2)); sigma += (1 - "
                     "exp(-beta h)) (r - sigma), every pole of sigma at "
-                    f"{-beta:.6g}; d_hat solves G(x) d = sigma in the least-squares sense (G's "
-                    "columns from the plant's own kernel); the controller commands u - d_hat. "
-                    "Nominally d_hat = 0 up to the trapezoid rule's O(h^2)."
+                    f"{-beta:.6g}; d_hat solves G(x) d = sigma in the least-squares sense (f(x) "
+                    "and G(x) from the law's jet kernel); the controller commands u - d_hat. "
+                    "Nominally d_hat = 0 up to the trapezoid rule's O(h^2). The residual is kept "
+                    f"on the plant states an input acts on ({rows}: the rows of G that are not "
+                    "structurally zero), and the least squares are solved per block of inputs "
+                    f"whose columns of G share a row ({blocks})."
                 ),
             )
         )
