@@ -38,6 +38,7 @@ from tvopt_codegen.errors import (
     BudgetError,
     SpecError,
     TvoptError,
+    one_line,
 )
 from tvopt_codegen.limits import MAX_POINTS, MAX_T_FINAL, METHODS, Budget
 
@@ -57,7 +58,7 @@ class _Parser(argparse.ArgumentParser):
     """argparse, with a usage error in one line (the seven-line usage is --help's)."""
 
     def error(self, message: str) -> NoReturn:
-        sys.stderr.write(f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+        sys.stderr.write(f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
         raise SystemExit(EXIT_BAD_SPEC)
 
 
@@ -406,7 +407,7 @@ def _derive(args: argparse.Namespace) -> tuple[Derivation, KernelSet]:
         progress.close()
     args.stage_seconds = stages
     for warning in derivation.warnings:
-        print(f"tvopt-codegen: warning: {spec.source}: {warning}", file=sys.stderr)
+        print(one_line(f"tvopt-codegen: warning: {spec.source}: {warning}"), file=sys.stderr)
     return derivation, kernels
 
 
@@ -455,12 +456,20 @@ def _time_limit(seconds: float, source: list[str], progress: _DeriveProgress) ->
         yield
         return
 
+    fired = False
+
     def expire(_signum: int, _frame: object) -> None:
-        raise _Overrun
+        # Once: a budget far below the set-up's own time (1e-9 s) must not fire again
+        # in the clean-up below, where nothing would turn it into one line.
+        nonlocal fired
+        if not fired:
+            fired = True
+            raise _Overrun
 
     previous = signal.signal(signal.SIGALRM, expire)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
     try:
+        # Armed inside the try: the timer can fire before setitimer returns.
+        signal.setitimer(signal.ITIMER_REAL, seconds)
         yield
     except _Overrun:
         raise BudgetError(
@@ -773,7 +782,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout.flush()  # here, where a closed pipe is caught below, not at exit
         return code
     except TvoptError as exc:
-        print(f"tvopt-codegen: error: {exc}", file=sys.stderr)
+        print(f"tvopt-codegen: error: {one_line(str(exc))}", file=sys.stderr)
         return exc.exit_code
     except BrokenPipeError:
         # The reader went away (`check SPEC | head -1`): stop quietly, like a Unix tool,
@@ -800,7 +809,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         where = traceback.extract_tb(exc.__traceback__)[-1]
         print(
-            f"tvopt-codegen: internal error: {type(exc).__name__}: {exc} (at "
+            f"tvopt-codegen: internal error: {type(exc).__name__}: {one_line(str(exc))} (at "
             f"{Path(where.filename).name}:{where.lineno}; please report it; "
             "TVOPT_CODEGEN_DEBUG=1 shows the traceback)",
             file=sys.stderr,

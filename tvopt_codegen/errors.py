@@ -44,6 +44,25 @@ def clip(text: str, limit: int = MAX_QUOTED) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+#: Characters that would break an error's one line: the C0 controls (a newline, a tab),
+#: DEL, the C1 controls and Unicode's line and paragraph separators.
+_LINE_BREAKERS = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029]")
+
+
+def one_line(text: str) -> str:
+    r"""``text`` with every character that would end or garble a terminal line escaped.
+
+    A path may hold a newline (a file name is any bytes but ``/`` and NUL); printed as
+    is, it would split an error across lines, and a script reading the first line would
+    lose the problem. ``\n``, ``\t`` and ``\xNN`` are what Python's ``repr`` writes.
+    """
+
+    def escape(match: re.Match[str]) -> str:
+        return repr(match.group(0))[1:-1]
+
+    return _LINE_BREAKERS.sub(escape, text)
+
+
 def clip_quotes(message: str) -> str:
     """``message`` with every quoted name or value longer than :data:`MAX_QUOTED` clipped.
 

@@ -6,6 +6,7 @@ Names come before the expressions that use them; every problem is a
 
 from __future__ import annotations
 
+import difflib
 import math
 import re
 from collections.abc import Mapping
@@ -213,7 +214,8 @@ class _Reader:
             if key not in allowed:
                 hint = ", ".join(sorted(allowed))
                 raise self.fail(
-                    f"{field}.{key}" if field else key, f"unknown key (expected one of: {hint})"
+                    f"{field}.{key}" if field else key,
+                    f"unknown key{_suggestion(key, allowed)} (expected one of: {hint})",
                 )
         for key in sorted(required):
             if key not in data:
@@ -470,6 +472,15 @@ class _Reader:
             problem = name_problem(key)
             if problem:
                 raise self.fail(where, problem)
+            if isinstance(text, dict):
+                # A table here is a misspelt [constraints.barrier] far more often than a
+                # constraint written as one.
+                guess = _suggestion(key, {"barrier"})
+                raise self.fail(
+                    where,
+                    f"a table, where a constraint is a comparison string{guess}"
+                    " ([constraints.barrier] is the one table [constraints] takes)",
+                )
             if not isinstance(text, str):
                 raise self.fail(where, f"expected a comparison string, got {type(text).__name__}")
             try:
@@ -753,3 +764,9 @@ class _Reader:
             (key, self.constant(value, where, bound))
             for key, value, bound, where in self.entries(initial, "simulation.initial_state")
         )
+
+
+def _suggestion(key: str, allowed: set[str]) -> str:
+    """``: did you mean 'x'?`` for the allowed key closest to a misspelt one, or nothing."""
+    close = difflib.get_close_matches(key, sorted(allowed), n=1, cutoff=0.7)
+    return f": did you mean '{close[0]}'?" if close else ""
