@@ -129,7 +129,7 @@ def test_check_and_report_show_the_constrained_problem(
     assert main(["check", "two_unicycles_corridor"]) == 0
     out = capsys.readouterr().out
     assert "constraints: ceiling_a: qa <= -2 + 0.05*t;" in out
-    assert "kept by the barrier objective Phi = f0 - mu(t) sum log(s(t) - g_i)" in out
+    assert "kept by the barrier objective B = f0 - mu(t) sum log(s(t) - g_i)" in out
     d = derivation("two_unicycles_corridor")
     text = render_report(d, lower(d), None, ("md",))["two_unicycles_corridor_report.md"]
     assert "Constraints g_i(y, t) &lt;= 0, kept by an interior-point homotopy" in text

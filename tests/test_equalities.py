@@ -157,7 +157,7 @@ def test_dependence_at_run_time_is_a_status(tmp_path: Path, backend: str) -> Non
 
 
 def test_inequalities_and_equalities_together(tmp_path: Path) -> None:
-    """The barrier objective Phi under a moving line: the KKT law for Phi's Lagrangian,
+    """The barrier objective B under a moving line: the KKT law for B's Lagrangian,
     the barrier never reached, and y within the derived bound of SLSQP's minimiser."""
     table = (
         'line = "y1 - y2 == 1 + 0.05*t"\nceiling = "y2 <= -2.5"\n'

@@ -120,3 +120,55 @@ def test_a_path_with_a_newline_is_printed_escaped(
 def test_one_line_escapes_what_would_break_a_line_and_keeps_the_rest() -> None:
     assert one_line("a\nb\rc\td\x00e\x1bf\u2028g") == "a\\nb\\rc\\td\\x00e\\x1bf\\u2028g"
     assert one_line("café → ok 'quoted'") == "café → ok 'quoted'"
+
+
+def test_messages_name_values_in_words_not_python_reprs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    text = (ROOT / "tvopt_codegen" / "examples" / "unicycle_switch.toml").read_text()
+    spec = tmp_path / "no_extension.toml"
+    spec.write_text(text.replace("[extension]\nintegrate = { v = 1 }\n", ""))
+    assert main(["check", str(spec)]) == 3
+    err = capsys.readouterr().err
+    assert "relative degrees y1 = 1, y2 = 1" in err, err
+    assert "{" not in err.split("prolong")[0], err
+
+
+def test_the_examples_listing_is_aligned_whole_sentences_without_internal_labels() -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "tvopt_codegen", "examples"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    lines = done.stdout.splitlines()
+    names = [line.split()[0] for line in lines]
+    assert "two_unicycles_barrier_refs" in names and len(lines) == len(names)
+    starts = {
+        len(line) - len(line[len(name) :].lstrip()) for line, name in zip(lines, names, strict=True)
+    }
+    assert len(starts) == 1  # one column of summaries, past the longest name
+    for line in lines:
+        assert line.endswith("."), line  # a whole sentence, not a cut line
+        assert "issue" not in line and "{" not in line, line
+
+
+def test_a_summary_is_the_first_sentence_whatever_its_abbreviations() -> None:
+    from tvopt_codegen.spec.files import first_sentence
+
+    assert (
+        first_sentence("Two robots (paper, Sec. V-B). f0 = ...") == "Two robots (paper, Sec. V-B)."
+    )
+    assert first_sentence("The team of Fig. 3 kept\nin a corridor. More.") == (
+        "The team of Fig. 3 kept in a corridor."
+    )
+    assert first_sentence("No full stop at all") == "No full stop at all"
+
+
+def test_the_report_keeps_phi_for_the_coordinates_and_b_for_the_barrier_objective(
+    tmp_path: Path,
+) -> None:
+    assert main(["report", "two_unicycles_corridor", "--out", str(tmp_path)]) == 0
+    text = (tmp_path / "two_unicycles_corridor_report.md").read_text()
+    assert "minimiser of B = f0 - mu(t)" in text
+    assert "Phi = f0" not in text and "Coordinates Phi" in text

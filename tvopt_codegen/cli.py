@@ -16,12 +16,14 @@ import dataclasses
 import gc
 import math
 import os
+import shutil
 import signal
 import sys
+import textwrap
 import threading
 import time
 import traceback
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
@@ -703,6 +705,24 @@ def _simulate(args: argparse.Namespace) -> int:
     return 0 if passed else EXIT_CERTIFICATE
 
 
+def _print_examples(examples: Mapping[str, str]) -> None:
+    """Each example's name and summary: one column of names, summaries beside it.
+
+    On a terminal the summaries wrap to its width under their column; into a pipe each
+    example stays one line, for ``grep``.
+    """
+    column = max(map(len, examples), default=0) + 2
+    width = max(shutil.get_terminal_size().columns, column + 30)
+    for name, summary in examples.items():
+        if sys.stdout.isatty():
+            lines = textwrap.wrap(summary, width - column) or [""]
+        else:
+            lines = [summary]
+        print(f"{name:<{column}}{lines[0]}")
+        for line in lines[1:]:
+            print(" " * column + line)
+
+
 def run(argv: Sequence[str] | None = None) -> int:
     """Run the CLI and return the exit code (errors are reported on stderr)."""
     args = _parser().parse_args(argv)
@@ -710,8 +730,7 @@ def run(argv: Sequence[str] | None = None) -> int:
     if args.command == "examples":
         from tvopt_codegen.spec import bundled_examples  # noqa: PLC0415
 
-        for name, summary in bundled_examples().items():
-            print(f"{name:24s} {summary}")
+        _print_examples(bundled_examples())
         return 0
     if args.command == "simulate":
         return _simulate(args)

@@ -4,21 +4,21 @@ A spec's ``[constraints]`` ``g_i(y, t) <= 0`` (each convex in ``y``) turn the ob
 into (Fazlyab, Paternain, Preciado and Ribeiro, "Prediction-correction interior-point
 method for time-varying convex optimization", IEEE TAC 2018)::
 
-    Phi(y, t) = f0(y, t) - mu(t) * sum_i log(s(t) - g_i(y, t))
+    B(y, t) = f0(y, t) - mu(t) * sum_i log(s(t) - g_i(y, t))
     mu(t) = mu_inf + (mu_0 - mu_inf) exp(-rate t),   s(t) = s_0 exp(-rate t)
 
-``Phi`` is time-varying and strongly convex in ``y`` on its domain (``f0`` is, and each
+``B`` is time-varying and strongly convex in ``y`` on its domain (``f0`` is, and each
 ``-log(s - g_i)`` is convex where ``g_i`` is), so the paper's law applies to it unchanged,
 with ``mu`` and ``s`` differentiated exactly like any signal. What follows, and what
 ``simulate`` checks on every run:
 
-- ``E_Phi(t) = expm(H t) E_Phi(0)``: the theorem, for ``Phi``;
-- ``g_i(y(t), t) < s(t)`` at every instant: ``grad Phi`` is finite along the run (the law
+- ``E_B(t) = expm(H t) E_B(0)``: the theorem, for ``B``;
+- ``g_i(y(t), t) < s(t)`` at every instant: ``grad B`` is finite along the run (the law
   keeps it on ``expm(H t) E(0)``), and it is infinite on the barrier;
 - the distance to the constrained minimiser ``y*_s(t)`` of ``f0`` subject to
-  ``g_i <= s(t)``: ``f0(y*_Phi) - f0(y*_s) <= p mu`` (the barrier's duality gap for ``p``
-  inequalities), and with ``f0`` ``m_f``-strongly convex, ``|y*_Phi - y*_s| <=
-  sqrt(2 p mu / m_f)``; so ``|y(t) - y*_s(t)| <= |y(t) - y*_Phi(t)| + sqrt(2 p mu(t) / m_f)``.
+  ``g_i <= s(t)``: ``f0(y*_B) - f0(y*_s) <= p mu`` (the barrier's duality gap for ``p``
+  inequalities), and with ``f0`` ``m_f``-strongly convex, ``|y*_B - y*_s| <=
+  sqrt(2 p mu / m_f)``; so ``|y(t) - y*_s(t)| <= |y(t) - y*_B(t)| + sqrt(2 p mu(t) / m_f)``.
 
 The slack lets the run start outside the constraints: ``s(0)`` exceeds the largest initial
 violation, and ``s`` decays to 0 at the barrier's rate.
@@ -74,7 +74,7 @@ def initial_slack(
 def barrier_objective(
     f0: sp.Expr, constraints: Sequence[Constraint], mu: sp.Expr, slack: sp.Expr
 ) -> sp.Expr:
-    """``Phi = f0 - mu sum_i log(s - g_i)``."""
+    """``B = f0 - mu sum_i log(s - g_i)``."""
     return f0 - mu * sp.Add(*(sp.log(slack - c.g) for c in constraints))
 
 

@@ -51,7 +51,7 @@ class Model:
         The closed form the spec gives for some references, in ``t`` and the parameters.
     objective : sympy.Expr or None
         The spec's ``f0`` when ``[constraints]`` made :attr:`f0` the barrier objective
-        ``Phi`` (:mod:`tvopt_codegen.constraints`); None otherwise.
+        ``B`` (:mod:`tvopt_codegen.constraints`); None otherwise.
     constraints : tuple of Constraint
         The inequalities, ``g_i(y, t) <= 0``.
     mu, slack : sympy.Expr

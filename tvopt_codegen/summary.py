@@ -89,7 +89,7 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
     if d.model.constraints:
         listed = "; ".join(f"{c.name}: {c.text}" for c in d.model.constraints)
         lines.append(
-            f"  constraints: {listed}; kept by the barrier objective Phi = f0 - mu(t) sum "
+            f"  constraints: {listed}; kept by the barrier objective B = f0 - mu(t) sum "
             f"log(s(t) - g_i) with mu(t) = {sp.sstr(d.model.mu)}, s(t) = {sp.sstr(d.model.slack)}"
         )
     if d.model.equalities:

@@ -62,7 +62,8 @@ def _without_extension(model: Model) -> str:
             f"{len(model.u)}: the inputs cannot steer every output independently"
         )
     return (
-        f"without it, the relative degrees {degrees} sum to {sum(degrees)} < {len(model.x)} states"
+        f"without it, the relative degrees {', '.join(map(str, degrees))} sum to {sum(degrees)} "
+        f"< {len(model.x)} states"
     )
 
 
@@ -332,7 +333,7 @@ def _linearize(spec: Spec, model: Model, meter: _Meter) -> _Linearization:
             )
     assert rd.R is not None
     degrees = tuple(int(r) for r in rd.r if r is not None)
-    named = dict(zip(spec.outputs, degrees, strict=True))
+    named = ", ".join(f"{o} = {r}" for o, r in zip(spec.outputs, degrees, strict=True))
     rank = generic_rank(rd.R, sampler)
     if rank < m:
         suggestion = _suggest_prolongation(model, counts)
@@ -346,7 +347,7 @@ def _linearize(spec: Spec, model: Model, meter: _Meter) -> _Linearization:
         raise AssumptionError(
             source,
             "system.outputs",
-            f"not full-state linearizable: the relative degrees {named} sum to "
+            f"not full-state linearizable: the relative degrees ({named}) sum to "
             f"{sum(degrees)}, but the extended system has {n_ext} states (internal dynamics "
             f"of dimension {n_ext - sum(degrees)})",
         )

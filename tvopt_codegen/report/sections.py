@@ -71,9 +71,10 @@ def _model(d: Derivation) -> Section:
                 "table",
                 text=(
                     "Constraints g_i(y, t) <= 0, kept by an interior-point homotopy: the law "
-                    "tracks the minimiser of Phi = f0 - mu(t) sum_i log(s(t) - g_i), with the "
+                    "tracks the minimiser of B = f0 - mu(t) sum_i log(s(t) - g_i), with the "
                     f"weight mu(t) = {sp.sstr(model.mu)} and the slack s(t) = "
-                    f"{sp.sstr(model.slack)}. The objective below is Phi."
+                    f"{sp.sstr(model.slack)}. The objective below is B (Phi, further down, names "
+                    "the linearizing coordinates)."
                 ),
                 header=("constraint", "as written", "g_i"),
                 rows=tuple((c.name, c.text, formula(c.g)) for c in model.constraints),

@@ -411,12 +411,12 @@ def format_certificate(derivation: Derivation, result: Result) -> str:
             f"{name} {value:.3g}" for name, value in check.final[: len(d.model.constraints)]
         )
         lines[-1:-1] = [
-            "  constraints (interior-point homotopy on Phi = f0 - mu sum log(s - g_i)):",
+            "  constraints (interior-point homotopy on B = f0 - mu sum log(s - g_i)):",
             f"    min over t and i of s - g_i   {float(check.margins.min()):.3e}  (> 0: no "
             "instant on or past a barrier)",
             f"    g_i at the end (<= 0 holds)   {finals}",
             f"    |y - y*_constrained| at the end {check.distance[-1]:.3e} <= bound "
-            f"{check.bound[-1]:.3e}  (|y - y*_Phi| + sqrt(2 p mu / m_f), m_f = {check.m_f:.4g}; "
+            f"{check.bound[-1]:.3e}  (|y - y*_B| + sqrt(2 p mu / m_f), m_f = {check.m_f:.4g}; "
             "SLSQP on f0 subject to g_i <= s" + (", a_j = 0)" if d.model.equalities else ")"),
         ]
     return "\n".join(lines)

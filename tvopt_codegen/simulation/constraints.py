@@ -38,7 +38,7 @@ class RunCheck:
         ``|y(t) - y*_s(t)|`` at the checked times, ``y*_s`` found by SLSQP (scipy) on f0
         subject to ``g_i <= s(t)`` and ``a_j = 0``.
     bound : numpy.ndarray, shape (K,)
-        ``|y(t) - y*_Phi(t)| + sqrt(2 p mu(t) / m_f)`` at those times, ``m_f`` the smallest
+        ``|y(t) - y*_B(t)| + sqrt(2 p mu(t) / m_f)`` at those times, ``m_f`` the smallest
         eigenvalue of the spec's f0's Hessian along the run.
     times : numpy.ndarray, shape (K,)
         The checked times.
@@ -180,9 +180,9 @@ def check_run(
     ts, outputs : numpy.ndarray
         Output times (T,) and outputs (m, T) of the run.
     to_phi : numpy.ndarray, shape (T,)
-        ``|y(t) - y*_Phi(t)|``: the distance to the barrier objective's minimiser.
+        ``|y(t) - y*_B(t)|``: the distance to the barrier objective's minimiser.
     phi_minimisers : numpy.ndarray, shape (m, T)
-        ``y*_Phi(t)``: where the independent solver starts.
+        ``y*_B(t)``: where the independent solver starts.
     values : mapping
         Parameter values.
     references : ReferenceSource, optional
@@ -232,7 +232,7 @@ def check_run(
         gap = math.sqrt(2.0 * p * mu_of(time) / m_f) if m_f > 0 else math.inf
         # A local solve from the barrier's minimiser, within twice the gap the theory
         # allows: f0 may have other branches (a periodic barrier such as tan), and the
-        # constrained minimiser meant is the one of y*_Phi's branch. A solution on the box
+        # constrained minimiser meant is the one of y*_B's branch. A solution on the box
         # is reported: the minimiser was not where the theory puts it.
         radius = 2.0 * gap + 1e-3
         centre = phi_minimisers[:, k]

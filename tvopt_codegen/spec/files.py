@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import tomllib
 from collections.abc import Mapping
 from importlib import resources
@@ -23,13 +24,25 @@ MAX_SPEC_BYTES = 1_000_000
 BUNDLED_SUFFIX = " (bundled example)"
 
 
+#: A sentence's end: a full stop before a space or the end, but not after an abbreviation
+#: the examples use ("Sec. V-A", "Fig. 3").
+_SENTENCE_END = re.compile(r"(?<!\bSec)(?<!\bFig)(?<!\bEq)(?<!\be\.g)(?<!\bi\.e)\.(?=\s|$)")
+
+
+def first_sentence(text: str) -> str:
+    """The first sentence of a description, its lines joined (a summary never ends mid-way)."""
+    joined = " ".join(text.split())
+    match = _SENTENCE_END.search(joined)
+    return joined if match is None else joined[: match.end()]
+
+
 def bundled_examples() -> dict[str, str]:
-    """Return the bundled example specs: name -> first line of the description."""
+    """Return the bundled example specs: name -> the first sentence of the description."""
     found: dict[str, str] = {}
     for entry in sorted(resources.files("tvopt_codegen.examples").iterdir(), key=lambda e: e.name):
         if entry.name.endswith(".toml"):
             data = tomllib.loads(entry.read_text(encoding="utf-8"))
-            found[entry.name[: -len(".toml")]] = str(data.get("description", "")).splitlines()[0]
+            found[entry.name[: -len(".toml")]] = first_sentence(str(data.get("description", "")))
     return found
 
 
