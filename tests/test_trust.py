@@ -5,7 +5,9 @@ from __future__ import annotations
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 
 from tvopt_codegen.cli import main
@@ -172,3 +174,116 @@ def test_the_report_keeps_phi_for_the_coordinates_and_b_for_the_barrier_objectiv
     text = (tmp_path / "two_unicycles_corridor_report.md").read_text()
     assert "minimiser of B = f0 - mu(t)" in text
     assert "Phi = f0" not in text and "Coordinates Phi" in text
+
+
+REFS = "unicycle_switch_refs"
+
+
+def _reference_rows(rate: float, horizon: float = 20.0) -> tuple[list[str], np.ndarray]:
+    from tvopt_codegen.simulation.references import exact_jets
+
+    from .conftest import derivation
+
+    d = derivation(REFS)
+    names = [r.name for r in d.model.references]
+    jets = exact_jets(d, {})
+    times = np.arange(0.0, horizon + 0.5 / rate, 1.0 / rate)
+    table = np.array([[t, *jets(float(t))[:, 0]] for t in times])
+    return ["t", *names], table
+
+
+def _write(
+    path: Path, header: list[str], table: np.ndarray, sep: str = ",", head: str = ""
+) -> None:
+    lines = [sep.join(header)] + [sep.join(repr(float(v)) for v in row) for row in table]
+    path.write_text(head + "\n".join(lines) + "\n", encoding="utf-8")
+
+
+def _read(path: Path, **options: Any) -> tuple[np.ndarray, np.ndarray]:
+    from tvopt_codegen.simulation.references import read_reference_file
+
+    from .conftest import derivation
+
+    return read_reference_file(path, derivation(REFS), 20.0, **options)
+
+
+def test_a_reference_file_from_a_spreadsheet_reads_as_the_plain_one(tmp_path: Path) -> None:
+    header, table = _reference_rows(100.0)
+    plain = tmp_path / "plain.csv"
+    _write(plain, header, table)
+    expected = _read(plain)
+    excel = tmp_path / "excel.csv"
+    # Excel's "CSV UTF-8" (a byte-order mark), a comment line, semicolons.
+    _write(excel, header, table, sep=";", head="\ufeff# exported from the lab's logger\n")
+    got = _read(excel)
+    assert got[0].tobytes() == expected[0].tobytes() and got[1].tobytes() == expected[1].tobytes()
+    tabbed = tmp_path / "tabbed.csv"
+    _write(tabbed, header, table, sep="\t", head="\n# blank and comment lines skip\n")
+    assert _read(tabbed)[1].tobytes() == expected[1].tobytes()
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("time,a,b\n0,1,2\n", "missing column 't': expected a header t, o1x, o1y, o2x, o2y"),
+        ("time,a,b\n0,1,2\n", "found the columns time, a, b"),
+        (
+            "t;o1x;o1y;o2x;o2y\n0;1,5;2;3;4\n",
+            "line 2: o1x: expected a number, got '1,5' (a decimal comma",
+        ),
+        ("# a comment\nt,o1x,o1y,o2x,o2y\n0,1,2,3,4\n0,1,2,3,4\n", "line 4: t must increase"),
+    ],
+)
+def test_a_reference_file_that_cannot_be_read_says_what_was_found(
+    tmp_path: Path, text: str, message: str
+) -> None:
+    from tvopt_codegen.errors import SpecError
+
+    path = tmp_path / "refs.csv"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(SpecError) as caught:
+        _read(path)
+    assert message in str(caught.value), str(caught.value)
+
+
+def test_a_column_the_spec_does_not_know_is_ignored_with_a_warning(tmp_path: Path) -> None:
+    header, table = _reference_rows(100.0)
+    path = tmp_path / "refs.csv"
+    _write(path, [*header, "o3x"], np.column_stack([table, table[:, 1]]))
+    said: list[str] = []
+    _read(path, warn=said.append)
+    assert len(said) == 1 and "column 'o3x' ignored: not a reference of the spec" in said[0]
+
+
+def test_samples_the_estimator_cannot_follow_are_refused_unless_allowed(tmp_path: Path) -> None:
+    from tvopt_codegen.errors import SpecError
+
+    header, table = _reference_rows(1000.0)
+    gap = tmp_path / "gap.csv"
+    keep = (table[:, 0] < 2.5) | (table[:, 0] > 12.5)
+    _write(gap, header, table[keep])
+    with pytest.raises(SpecError, match=r"gap of 10\.002 s \(t = 2\.499 to 12\.501\)"):
+        _read(gap)
+    slow = tmp_path / "slow.csv"
+    _write(slow, *_reference_rows(1.0))
+    with pytest.raises(SpecError, match=r"samples every 1 s .* bandwidth 20 rad/s"):
+        _read(slow)
+    assert _read(gap, allow_gaps=True)[0].size == int(keep.sum())
+    assert _read(slow, allow_gaps=True)[0].size == 21
+
+
+def test_the_summary_states_the_final_error_the_bound_guarantees(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    slow = tmp_path / "slow.csv"
+    _write(slow, *_reference_rows(1.0))
+    out = tmp_path / "out"
+    assert main(["simulate", REFS, "--reference-file", str(slow), "--out", str(out)]) == 2
+    assert "--allow-gaps runs anyway" in capsys.readouterr().err
+    args = ["simulate", REFS, "--reference-file", str(slow), "--allow-gaps", "--out", str(out)]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    line = next(x for x in printed.splitlines() if "guaranteed <=" in x)
+    guaranteed = float(line.split("<=")[1].split()[0])
+    observed = float(line.rsplit("observed", 1)[1].strip(" )"))
+    assert 0 < observed <= guaranteed

@@ -212,6 +212,12 @@ def _add_simulate(commands: _Commands) -> argparse.ArgumentParser:
         metavar="SIGMA",
         help="with --reference-file: Gaussian noise of this standard deviation on every sample",
     )
+    sim.add_argument(
+        "--allow-gaps",
+        action="store_true",
+        help="with --reference-file: accept samples the estimator cannot follow (a gap of "
+        "more than 10 median intervals, or samples slower than 1/bandwidth)",
+    )
     sim.add_argument("--seed", type=int, default=0, help="seed of the noise (default 0)")
     sim.add_argument(
         "--sample-time",
@@ -611,6 +617,8 @@ def _simulate(args: argparse.Namespace) -> int:
         raise SpecError("command line", "--noise", "must be zero or positive and finite")
     if args.noise and args.reference_file is None:
         raise SpecError("command line", "--noise", "needs --reference-file")
+    if args.allow_gaps and args.reference_file is None:
+        raise SpecError("command line", "--allow-gaps", "needs --reference-file")
     if args.convergence_order and args.sample_time is None:
         raise SpecError("command line", "--convergence-order", "needs --sample-time")
     if args.sample_time is not None and not 0 < args.sample_time < math.inf:
@@ -655,7 +663,13 @@ def _simulate(args: argparse.Namespace) -> int:
     if args.reference_file is not None:
         from tvopt_codegen.simulation.references import read_reference_file  # noqa: PLC0415
 
-        samples = read_reference_file(args.reference_file, derivation, options.t_final)
+        samples = read_reference_file(
+            args.reference_file,
+            derivation,
+            options.t_final,
+            allow_gaps=args.allow_gaps,
+            warn=lambda text: print(one_line(f"tvopt-codegen: warning: {text}"), file=sys.stderr),
+        )
     prepare_folder(args.out, create=False)
     controller = load_controller(kernels, args.backend)
     references = None

@@ -188,9 +188,11 @@ def _certify(
     predicted = np.array([expm(H * t) @ flat[0] for t in ts])
     deviation = float(np.max(np.linalg.norm(flat - predicted, axis=1))) / max(norm0, 1e-300)
     estimated = references is not None and references.estimated
-    disturbance = iss_ratio = float("nan")
+    disturbance = iss_ratio = iss_final = float("nan")
     if estimated:
-        disturbance, iss_ratio = _input_to_state(d, controller, params, solution, ts, flat, true)
+        disturbance, iss_ratio, iss_final = _input_to_state(
+            d, controller, params, solution, ts, flat, true
+        )
         if not iss_ratio <= 1.0:
             failures.append(
                 f"|E| exceeds its input-to-state bound by a factor {iss_ratio:.3g} "
@@ -253,6 +255,7 @@ def _certify(
         references=references,
         disturbance=disturbance,
         iss_ratio=iss_ratio,
+        iss_final=iss_final,
         constraints=constrained,
     )
 
@@ -328,8 +331,8 @@ def _input_to_state(
     ts: np.ndarray,
     flat: np.ndarray,
     true: Callable[[float], dict[str, Any]],
-) -> tuple[float, float]:
-    """``sup |d|`` of ``E' = H E + d`` along the run, and the largest ``|E| / bound``.
+) -> tuple[float, float, float]:
+    """``sup |d|`` of ``E' = H E + d``, the largest ``|E| / bound``, and the final bound.
 
     ``E'`` by central differences of ``E`` read from the run's interpolant, on a grid ten
     times finer than the output's; the bound is the variation-of-constants one,
@@ -363,7 +366,7 @@ def _input_to_state(
     norms = np.linalg.norm(errors, axis=1)
     # 1e-9 absolute, and 1% for the trapezoid rule's error on a disturbance that jumps.
     ratio = float(np.max((norms - 1e-9) / np.maximum(1.01 * bound, 1e-300)))
-    return float(np.max(d_norm)), ratio
+    return float(np.max(d_norm)), ratio, float(bound[-1])
 
 
 def format_certificate(derivation: Derivation, result: Result) -> str:
@@ -439,6 +442,9 @@ def _format_estimated(d: Derivation, r: Result) -> str:
         f"  sup |d|                   {r.disturbance:.3e}",
         f"  |E| <= c e^(-alpha t)|E(0)| + int c e^(-alpha (t-s)) |d(s)| ds   max ratio "
         f"{r.iss_ratio:.3g}   (c = {r.c:.4g}, alpha = {r.alpha:.4g})",
+        f"  final |y - y*| guaranteed <= {r.iss_final / r.m_f:.3e}   (the bound on |E| at "
+        f"t = {r.t[-1]:g}, {r.iss_final:.3e}, over m_f = {r.m_f:.4g}; observed "
+        f"{r.error[-1]:.3e})",
         f"  RHS evaluations           {r.nfev}   wall time {r.wall_time:.2f} s",
         "  certificate: " + ("PASSED" if r.passed else "FAILED: " + "; ".join(r.failures)),
     ]

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 import types
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -21,7 +22,7 @@ import numpy as np
 import sympy as sp
 
 from tvopt_codegen.derivation import Derivation, calculus
-from tvopt_codegen.errors import SpecError
+from tvopt_codegen.errors import SpecError, clip
 
 #: Most samples a reference file may hold.
 MAX_SAMPLES = 2_000_000
@@ -97,60 +98,128 @@ def nominal_source(derivation: Derivation, params: dict[str, float]) -> Referenc
     return ReferenceSource(jets=jets, exact=jets)
 
 
+#: A gap: a sample interval this many times the file's median one.
+GAP_FACTOR = 10.0
+
+#: The sampling the linear differentiator needs: at least one sample per time constant
+#: ``1 / bandwidth`` of its poles (the median interval times the bandwidth at most this).
+RATE_LIMIT = 1.0
+
+#: The separators a reference file may use, tried on its header: comma, semicolon (a
+#: spreadsheet in a locale whose decimal mark is a comma), tab.
+_DELIMITERS = (",", ";", "\t")
+
+
 def read_reference_file(
-    path: str | Path, derivation: Derivation, horizon: float
+    path: str | Path,
+    derivation: Derivation,
+    horizon: float,
+    *,
+    allow_gaps: bool = False,
+    warn: Callable[[str], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Samples ``t, <reference>...`` from a CSV file, checked.
+
+    The file is UTF-8, with or without a byte-order mark (a spreadsheet's "CSV UTF-8");
+    lines whose first character is ``#`` and blank lines are comments; the header's
+    separator, a comma, a semicolon or a tab, is the file's.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The file.
+    derivation : Derivation
+        The spec's derivation: its references name the columns.
+    horizon : float
+        The run's end: the samples must cover ``[0, horizon]``.
+    allow_gaps : bool, optional
+        Accept samples the estimator cannot follow: a gap of more than
+        :data:`GAP_FACTOR` median intervals, or (linear estimator) a median interval
+        above ``RATE_LIMIT / bandwidth``.
+    warn : callable, optional
+        Called with a sentence for what is accepted but likely a mistake: a column that
+        is no reference of the spec.
 
     Returns
     -------
     times : numpy.ndarray, shape (T,)
     values : numpy.ndarray, shape (n_refs, T)
-        In ``REFERENCE_NAMES`` order (the file's other columns are ignored).
+        In ``REFERENCE_NAMES`` order.
 
     Raises
     ------
     SpecError
         Naming the file and the problem: unreadable, a missing column, a value that is not
         a finite number, times that do not increase, samples that do not cover
-        ``[0, horizon]``.
+        ``[0, horizon]``, a gap or a sampling too slow for the estimator (unless
+        ``allow_gaps``).
     """
     source = str(path)
     names = [r.name for r in derivation.model.references]
     try:
-        with open(path, newline="", encoding="utf-8") as handle:
-            rows = list(csv.reader(handle))
+        with open(path, newline="", encoding="utf-8-sig") as handle:
+            lines = [(n, text) for n, text in enumerate(handle.read().splitlines(), start=1)]
     except (OSError, UnicodeDecodeError) as exc:
         raise SpecError(source, "(file)", f"cannot read the reference file: {exc}") from None
-    if not rows:
-        raise SpecError(source, "(header)", "empty file: expected a header t, " + ", ".join(names))
+    lines = [(n, text) for n, text in lines if text.strip() and not text.lstrip().startswith("#")]
+    expected = "a header t, " + ", ".join(names)
+    if not lines:
+        raise SpecError(source, "(header)", f"empty file: expected {expected}")
+    head = lines[0][1]
+    delimiter = max(_DELIMITERS, key=head.count)
+    rows = list(csv.reader([text for _, text in lines], delimiter=delimiter))
+    numbers = [n for n, _ in lines]
     header = [cell.strip() for cell in rows[0]]
     for name in ("t", *names):
         if name not in header:
-            raise SpecError(source, "(header)", f"missing column {name!r}")
+            found = ", ".join(clip(cell) for cell in header[:8]) + (
+                ", ..." if len(header) > 8 else ""
+            )
+            raise SpecError(
+                source,
+                "(header)",
+                f"missing column {name!r}: expected {expected}, separated by commas, "
+                f"semicolons or tabs; found the columns {found}",
+            )
+    extra = [cell for cell in header if cell not in ("t", *names)]
+    if extra and warn is not None:
+        warn(
+            f"{source}: column{'s' if len(extra) > 1 else ''} "
+            f"{', '.join(repr(clip(c)) for c in extra)} ignored: not a reference of the spec "
+            f"({', '.join(names)})"
+        )
     if len(rows) - 1 > MAX_SAMPLES:
         raise SpecError(source, "(file)", f"more than {MAX_SAMPLES} samples")
     columns = [header.index(name) for name in ("t", *names)]
     data = np.empty((len(rows) - 1, len(columns)))
-    for line, row in enumerate(rows[1:], start=2):
+    for index, row in enumerate(rows[1:]):
+        line = numbers[index + 1]
         for k, column in enumerate(columns):
             try:
                 value = float(row[column])
             except (IndexError, ValueError):
+                cell = row[column].strip() if column < len(row) else ""
+                hint = (
+                    " (a decimal comma? write a point)"
+                    if re.fullmatch(r"[-+]?\d+,\d+", cell)
+                    else ""
+                )
                 raise SpecError(
-                    source, f"line {line}", f"{header[column]}: expected a number"
+                    source,
+                    f"line {line}",
+                    f"{header[column]}: expected a number, got {clip(cell)!r}{hint}",
                 ) from None
             if not math.isfinite(value):
                 raise SpecError(
                     source, f"line {line}", f"{header[column]} = {value!r} is not finite"
                 )
-            data[line - 2, k] = value
+            data[index, k] = value
     times = data[:, 0]
     if len(times) < 2:
         raise SpecError(source, "(file)", "expected at least two samples")
     steps = np.diff(times)
     if not np.all(steps > 0):
-        line = int(np.argmax(~(steps > 0))) + 3
+        line = numbers[int(np.argmax(~(steps > 0))) + 2]
         raise SpecError(source, f"line {line}", "t must increase from one sample to the next")
     if times[0] > 0.0 or times[-1] < horizon:
         raise SpecError(
@@ -158,7 +227,36 @@ def read_reference_file(
             "t",
             f"the samples cover [{times[0]:g}, {times[-1]:g}]; the run needs [0, {horizon:g}]",
         )
+    if not allow_gaps:
+        _check_sampling(source, derivation, times, steps)
     return times, data[:, 1:].T
+
+
+def _check_sampling(
+    source: str, derivation: Derivation, times: np.ndarray, steps: np.ndarray
+) -> None:
+    """Refuse samples the estimator cannot follow: a gap, or too slow a rate."""
+    median = float(np.median(steps))
+    widest = int(np.argmax(steps))
+    if steps[widest] > GAP_FACTOR * median:
+        raise SpecError(
+            source,
+            "t",
+            f"the samples leave a gap of {steps[widest]:g} s (t = {times[widest]:g} to "
+            f"{times[widest + 1]:g}), {steps[widest] / median:.3g} times their median interval "
+            f"{median:g} s: the estimator would extrapolate across it "
+            "(--allow-gaps runs anyway)",
+        )
+    estimator = derivation.spec.estimator
+    if estimator is not None and estimator.kind == "linear":
+        if median * estimator.bandwidth > RATE_LIMIT:
+            raise SpecError(
+                source,
+                "t",
+                f"samples every {median:g} s (median) are too slow for the estimator's "
+                f"bandwidth {estimator.bandwidth:g} rad/s: it needs one at least every "
+                f"{RATE_LIMIT / estimator.bandwidth:g} s (--allow-gaps runs anyway)",
+            )
 
 
 def sampled_source(

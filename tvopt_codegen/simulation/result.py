@@ -137,6 +137,9 @@ class Result:
     iss_ratio : float
         With estimated reference jets: ``max_t |E(t)| / (c e^{-alpha t} |E(0)| +
         (c / alpha)(1 - e^{-alpha t}) sup |d|)``, which the certificate checks is at most 1.
+    iss_final : float
+        With estimated reference jets: that bound at the end of the run; over ``m_f`` it
+        bounds the final ``|y - y*|`` (``|grad f0(y)| >= m_f |y - y*|``). NaN otherwise.
     constraints : RunCheck or None
         For a spec with ``[constraints]``: margins, final values and the distance to the
         constrained minimiser along the run
@@ -169,6 +172,7 @@ class Result:
     references: Any = None
     disturbance: float = float("nan")
     iss_ratio: float = float("nan")
+    iss_final: float = float("nan")
     constraints: Any = None
 
 
