@@ -58,6 +58,15 @@ def test_fmpy_validates_and_cosimulates_it_like_controller_step(
     assert all(causality[n] == "output" for n in mod.INPUT_NAMES)
     assert all(causality[n] == "parameter" for n in mod.PARAMETERS)
     assert all(causality[f"controller.{n}"] == "local" for n in mod.CONTROLLER_STATE_NAMES)
+    # No direct feedthrough: the outputs change only in doStep, and say so (an absent
+    # attribute would mean a dependence on every input; FMPy reads both as an empty list).
+    with zipfile.ZipFile(path) as archive:
+        structure = archive.read("modelDescription.xml").decode().split("<ModelStructure>")[1]
+    declared = (
+        structure.split("<InitialUnknown")[0] if fmi == 3 else structure.split("</Outputs>")[0]
+    )
+    count = len(mod.INPUT_NAMES) * (2 if hasattr(mod, "INPUT_LOW") else 1)
+    assert declared.count('dependencies=""') == count == len(description.outputs)
     h = 0.01
     times, states = _measured(spec, 1.5, h)
     table = np.array(
