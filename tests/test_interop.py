@@ -137,3 +137,34 @@ def test_the_robust_controller_holds_a_mismatched_plant_in_python_control() -> N
     assert np.all(u >= np.array(mod.INPUT_LOW) - 1e-12)
     assert np.all(u <= np.array(mod.INPUT_HIGH) + 1e-12)
     assert closed.nstates == nx + nz + nx
+
+
+def test_a_spec_with_references_takes_their_jets_as_inputs() -> None:
+    from tvopt_codegen.interop import reference_inputs
+    from tvopt_codegen.simulation.references import exact_jets
+
+    spec = "unicycle_switch_refs"
+    mod, d = module(spec), derivation(spec)
+    controller = to_nlsys(mod)
+    names = reference_inputs(mod)
+    assert names[:3] == ["reference_o1x_d0", "reference_o1x_d1", "reference_o1x_d2"]
+    assert controller.input_labels == [*mod.PLANT_STATE_NAMES, *names]
+    jets = exact_jets(d, {})
+    # A system that plays the nominal references as jets, named as the controller reads them.
+    source = control.nlsys(
+        None, lambda t, x, u, p: jets(t).ravel(), inputs=0, outputs=names, name="references"
+    )
+    closed = control.interconnect(
+        [plant_nlsys(mod), controller, source], inplist=[], outlist=list(mod.OUTPUT_NAMES)
+    )
+    assert closed.ninputs == 0
+    options = Options(t_final=6.0, initial_state=tuple(mod.DEFAULT_STATE), points=61)
+    reference = simulate(d, mod, options)  # the nominal closed forms' exact jets
+    response = control.input_output_response(
+        closed,
+        reference.t,
+        0,
+        X0=np.array(mod.DEFAULT_STATE),
+        solve_ivp_kwargs={"rtol": 1e-10, "atol": 1e-12},
+    )
+    np.testing.assert_allclose(response.outputs, reference.outputs, rtol=0, atol=1e-6)

@@ -16,6 +16,12 @@ names, so python-control connects the two with no connection list::
 The interconnection's state is ``[x; z]``: ``STATE_NAMES`` order, so ``DEFAULT_STATE``
 starts it where ``simulate`` does. python-control is an optional extra
 (``pip install 'tvopt-codegen[control]'``).
+
+A spec with ``[references]`` measures its references at run time: its controller system
+has the inputs ``reference_<name>_d<j>`` too (derivative ``j = 0 .. REFERENCE_ORDER`` of
+each reference; the FMU's ``reference.<name>.d<j>``, with ``_`` for the ``.`` that
+python-control reserves for ``system.signal``), which the interconnection takes from
+outside (its ``inplist``) or from a system that produces the jets.
 """
 
 from __future__ import annotations
@@ -67,23 +73,47 @@ def to_nlsys(module: ModuleType, name: str = "controller") -> Any:
         and a clipped prolonged input's chain stop while clipped (the continuous form of
         the Controller's anti-windup), and a disturbance observer adds the states
         ``observer.<plant state>`` of its continuous form (see :func:`_robust_nlsys`).
-        Slew rates act in the sampled Controller alone.
+        Slew rates act in the sampled Controller alone. A spec with ``[references]``:
+        the inputs ``reference_<name>_d<j>`` follow the plant states (see the module's
+        docstring).
     """
     control = _control()
     if hasattr(module, "INPUT_LOW"):
         return _robust_nlsys(module, name, control)
     plant_states = len(module.PLANT_STATE_NAMES)
 
-    def update(t: float, z: np.ndarray, x: np.ndarray, params: Any) -> np.ndarray:
-        ds = module.rhs(t, np.concatenate([x, z]), _own(module, params))
+    def update(t: float, z: np.ndarray, inputs: np.ndarray, params: Any) -> np.ndarray:
+        x, refs = _split_inputs(module, inputs)
+        ds = module.rhs(t, np.concatenate([x, z]), _own(module, params), **refs)
         return np.asarray(ds)[plant_states:]
 
-    def output(t: float, z: np.ndarray, x: np.ndarray, params: Any) -> np.ndarray:
-        return np.asarray(module.control(t, np.concatenate([x, z]), _own(module, params)))
+    def output(t: float, z: np.ndarray, inputs: np.ndarray, params: Any) -> np.ndarray:
+        x, refs = _split_inputs(module, inputs)
+        return np.asarray(module.control(t, np.concatenate([x, z]), _own(module, params), **refs))
 
     return _controller_system(
         control, module, name, list(module.CONTROLLER_STATE_NAMES), update, output
     )
+
+
+def reference_inputs(module: ModuleType) -> list[str]:
+    """The names of a module's reference-jet inputs, ``reference_<name>_d<j>`` (or none)."""
+    order = getattr(module, "REFERENCE_ORDER", 0)
+    return [
+        f"reference_{name}_d{j}"
+        for name in getattr(module, "REFERENCE_NAMES", ())
+        for j in range(order + 1)
+    ]
+
+
+def _split_inputs(module: ModuleType, inputs: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
+    """A controller system's input vector as the plant state and the module's ``refs``."""
+    nx = len(module.PLANT_STATE_NAMES)
+    names = getattr(module, "REFERENCE_NAMES", ())
+    if not names:
+        return inputs, {}
+    jets = np.asarray(inputs[nx:], dtype=float).reshape(len(names), module.REFERENCE_ORDER + 1)
+    return inputs[:nx], {"refs": jets}
 
 
 def _controller_system(
@@ -100,7 +130,7 @@ def _controller_system(
     return control.nlsys(
         update if states else None,
         output,
-        inputs=list(module.PLANT_STATE_NAMES),
+        inputs=[*module.PLANT_STATE_NAMES, *reference_inputs(module)],
         outputs=list(module.INPUT_NAMES),
         params=dict(module.PARAMETERS),
         name=name,
@@ -136,16 +166,17 @@ def _robust_nlsys(module: ModuleType, name: str, control: Any) -> Any:
         solution: np.ndarray = np.linalg.lstsq(columns, beta * x - psi, rcond=None)[0]
         return solution
 
-    def split(t: float, w: np.ndarray, x: np.ndarray, params: Any) -> tuple[Any, ...]:
+    def split(t: float, w: np.ndarray, inputs: np.ndarray, params: Any) -> tuple[Any, ...]:
         p = _own(module, params)
+        x, refs = _split_inputs(module, inputs)
         z, psi = w[:nz], w[nz:]
         s = np.concatenate([x, z])
-        commanded = np.asarray(module.control(t, s, p)) - estimate(t, x, psi, p)
-        return p, s, psi, commanded, np.clip(commanded, low, high)
+        commanded = np.asarray(module.control(t, s, p, **refs)) - estimate(t, x, psi, p)
+        return p, s, psi, commanded, np.clip(commanded, low, high), x, refs
 
-    def update(t: float, w: np.ndarray, x: np.ndarray, params: Any) -> np.ndarray:
-        p, s, psi, commanded, applied = split(t, w, x, params)
-        dz = np.array(module.rhs(t, s, p), dtype=float)[nx:]
+    def update(t: float, w: np.ndarray, inputs: np.ndarray, params: Any) -> np.ndarray:
+        p, s, psi, commanded, applied, x, refs = split(t, w, inputs, params)
+        dz = np.array(module.rhs(t, s, p, **refs), dtype=float)[nx:]
         excess = commanded - applied
         if np.any(excess != 0.0):
             dz[integral] = 0.0
@@ -159,8 +190,8 @@ def _robust_nlsys(module: ModuleType, name: str, control: Any) -> Any:
         dpsi = beta * (beta * x - psi + np.asarray(module.plant(t, x, applied, p)))
         return np.concatenate([dz, dpsi])
 
-    def output(t: float, w: np.ndarray, x: np.ndarray, params: Any) -> np.ndarray:
-        return np.asarray(split(t, w, x, params)[4])
+    def output(t: float, w: np.ndarray, inputs: np.ndarray, params: Any) -> np.ndarray:
+        return np.asarray(split(t, w, inputs, params)[4])
 
     states = list(module.CONTROLLER_STATE_NAMES)
     if beta is not None:
