@@ -3,14 +3,14 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec name: arm_on_line
-# spec sha256: 4194f1f0d46904245e4cb166b561f03ee23947c179614a7250471e1fb40deb16
-# content sha256: 64d45b582ad495db4f70c28f0fdb5b2a4c0578bc56fa0941bff127d4f27e213e
+# spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
+# content sha256: f163180439bb76688ba15afa53424d91fb93cc2eda581a409f8f74a9cd0fa556
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
 
 A two-link planar arm whose end effector tracks a moving target while it stays
-on a line that turns about the shoulder (issue 18: an equality constraint). The links
+on a line that turns about the shoulder (an equality constraint). The links
 are rigid with point masses at their ends, gravity acts along -y, and the joint
 torques are the inputs: M(q) q'' + c(q, q') + g(q) = tau, solved for q'' with the 2 x 2
 inverse written out. The outputs are the end effector's position (px, py); the line

@@ -3,15 +3,15 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec name: pvtol
-# spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
-# content sha256: db1966348d9431b25442b4628b7b868936f768ec66238949a84453b50aa8b890
+# spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
+# content sha256: b8ec18047e23f55616d488ac0820f779df6f62453f4a5e85ce69d60be9658a19
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
 
 Planar quadrotor (PVTOL aircraft) tracking a moving target.
 Position (x, z), attitude theta, thrust and torque; mass m and inertia J. Declared without an extension: the
-automatic search finds that the thrust must be integrated twice (relative degree {4, 4},
+automatic search finds that the thrust must be integrated twice (relative degrees 4 and 4,
 k = 4); the law is singular at zero thrust.
 
 The control law is the one of Zheng, Simpson-Porco and Mallada, "Implicit Trajectory

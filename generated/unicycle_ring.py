@@ -3,13 +3,13 @@
 # overwrite an edited file without --force.
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
-# spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
-# content sha256: 2b19f4933c8345d66381d0a48b67a4f86a12c3ab3948b0ef5a7f1f41f7adb2b8
+# spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
+# content sha256: 859754ead8a41a6ec0700b4caa13f6824f892e951513ef0972ef1641596cad69
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
 
-N unicycles tracking N moving objects, each kept near its ring neighbours (issue 7).
+N unicycles tracking N moving objects, each kept near its ring neighbours.
 f0 = sum_i |p_i - o_i|^2 + H(|p_i - p_{i+1}|^2) with the paper's barrier H(x) = alpha tan(x pi / (2 d))^2
 between neighbours on a ring (agent N-1 neighbours agent 0). Change N in [index] and nothing else.
 

@@ -2,8 +2,8 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec name: arm_on_line
- * spec sha256: 4194f1f0d46904245e4cb166b561f03ee23947c179614a7250471e1fb40deb16
- * content sha256: 17d89aaa26c3390e949d9bb15fa13942288d40ff6161ecddff7b9d75ddf67c5c
+ * spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
+ * content sha256: 43f9d37d27db55e5cb35e1ce2297e4d8ffaae23187e5f448020f507b1effe852
  */
 
 /* arm_on_line: see arm_on_line.h. The law is CSE'd straight-line code and two numerical

@@ -2,8 +2,8 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/extension.c.jinja
  * spec name: arm_on_line
- * spec sha256: 4194f1f0d46904245e4cb166b561f03ee23947c179614a7250471e1fb40deb16
- * content sha256: c0dd8af321d02fd8b9aa452533d54e84eda32d45fe681598c42fd8a4f383ec1d
+ * spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
+ * content sha256: a507829f6ca33ed455b37b29668dc919f72b68eca22effb2eb37fb353c2ff44f
  */
 
 /*

@@ -2,8 +2,8 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.h.jinja
  * spec name: arm_on_line
- * spec sha256: 4194f1f0d46904245e4cb166b561f03ee23947c179614a7250471e1fb40deb16
- * content sha256: ef5f2afc0a0f47eb1fbc89a949a44514391ccdd6ad1f975d7b6c7dfe6a3ecf1d
+ * spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
+ * content sha256: cc81d2f885f9e2b01b54d73addb2a1c5464fb6e9b1cabe7d36d5e0bab380eec3
  */
 
 /*

@@ -3,14 +3,14 @@
 # overwrite an edited file without --force.
 # template: c/wrapper.py.jinja
 # spec name: arm_on_line
-# spec sha256: 4194f1f0d46904245e4cb166b561f03ee23947c179614a7250471e1fb40deb16
-# content sha256: 1fbff697624b59ec9606150aa7cf42892d562752e62748c480abbb90fe886e1d
+# spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
+# content sha256: 5abcf22deba71c32f18b725c7a3447590193f425341514684bcd8de259ee6ea2
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
 
 A two-link planar arm whose end effector tracks a moving target while it stays
-on a line that turns about the shoulder (issue 18: an equality constraint). The links
+on a line that turns about the shoulder (an equality constraint). The links
 are rigid with point masses at their ends, gravity acts along -y, and the joint
 torques are the inputs: M(q) q'' + c(q, q') + g(q) = tau, solved for q'' with the 2 x 2
 inverse written out. The outputs are the end effector's position (px, py); the line

@@ -2,8 +2,8 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec name: pvtol
- * spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
- * content sha256: 1a8da651b889aa4e184d03f8d30578aa59b0045e35ea51dcb81bbe2250fae7ed
+ * spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
+ * content sha256: b25a61267c348b3e7d0f68b4353b5f4dd1d6a0053344b8c546c372dc6c8e394f
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical

@@ -2,8 +2,8 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/extension.c.jinja
  * spec name: pvtol
- * spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
- * content sha256: aaa6fdce506369b63d9caa7e1be3d82a6826b9f8be918d425ac9b1a5ced0acd0
+ * spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
+ * content sha256: f19058a07444abd71449861832be5810c7b9d3d11f725558a1b09872001f5a2b
  */
 
 /*

@@ -2,8 +2,8 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.h.jinja
  * spec name: pvtol
- * spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
- * content sha256: 54215af80b46de781ab68eba149876fb8b9392991aed3d869f256c0e2302ffbb
+ * spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
+ * content sha256: 76f809dbc8685f79eb95baa438f573d3c83c184ff12ab7c05f0ef05c8c1352f1
  */
 
 /*

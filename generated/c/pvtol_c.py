@@ -3,15 +3,15 @@
 # overwrite an edited file without --force.
 # template: c/wrapper.py.jinja
 # spec name: pvtol
-# spec sha256: 5ed29a93c868a88fb871f5ccf6fb20bb66469d837b514a124e3587eb801521b3
-# content sha256: 76f227ff9f86603bb51fe533efa5e53708b846eb3712c3228d86e55e2585754f
+# spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
+# content sha256: 20e82b42710efc87bde5e2592db978eed172ba47f6396abd324d81d2751289f6
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
 
 Planar quadrotor (PVTOL aircraft) tracking a moving target.
 Position (x, z), attitude theta, thrust and torque; mass m and inertia J. Declared without an extension: the
-automatic search finds that the thrust must be integrated twice (relative degree {4, 4},
+automatic search finds that the thrust must be integrated twice (relative degrees 4 and 4,
 k = 4); the law is singular at zero thrust.
 
 The control law is the one of Zheng, Simpson-Porco and Mallada, "Implicit Trajectory

@@ -2,8 +2,8 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.c.jinja
  * spec name: unicycle_ring
- * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: c9d156ee8916220c338dbfc437067efd0cf46face1f6f947c7a0b83a4e1e53b5
+ * spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
+ * content sha256: be89c0821d67d09d626593186fe81e2877291bc25972660352cf81d31d16283f
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical

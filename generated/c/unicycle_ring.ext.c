@@ -2,8 +2,8 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/extension.c.jinja
  * spec name: unicycle_ring
- * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: 36ca912ef281d487a49b38b6f276cd1c90a8b374ef26e311065985fd745b8e7b
+ * spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
+ * content sha256: d93b6706c6bafa0925250b0081efa7c0b49ae48b15b9c8860b71964ee81a8ac7
  */
 
 /*

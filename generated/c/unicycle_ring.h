@@ -2,8 +2,8 @@
  * Do not edit by hand: tvopt-codegen refuses to overwrite an edited file without --force.
  * template: c/controller.h.jinja
  * spec name: unicycle_ring
- * spec sha256: 6cc406c012ba3594b1b9ecbdf1cc20f5a1d143f372ff29779334ee9de352d924
- * content sha256: e3fa8d22767bcd69269df4ab7438c3e085c74514ab3eb7a3ab82096b6ff40a2d
+ * spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
+ * content sha256: 6cb50932bec2bbc590e281ca514571d3a731845635f83b096a8c081a7da76d49
  */
 
 /*
