@@ -321,6 +321,11 @@ def bench(name: str, folder: Path) -> dict[str, float]:
     call_cffi = _per_call(lambda: control(0.5, s_buf, p_buf, u_buf), 50_000)
     call_cffi_numpy = _per_call(cffi_numpy, 20_000)
     call_casadi = _per_call(lambda: law(0.5, state, params), 2_000)
+    # Controller.step from Python: the measured plant state at times 1 ms apart.
+    plant_state = state[: len(d.spec.states)].copy()
+    controller = ours.Controller(plant_state)
+    clock = iter(range(1, 10**9))
+    step_python = _per_call(lambda: controller.step(1e-3 * next(clock), plant_state), 20_000)
 
     rng = np.random.default_rng(0)
     many = state[:, None] + 0.01 * rng.standard_normal((len(state), BATCH_C))
@@ -347,6 +352,7 @@ def bench(name: str, folder: Path) -> dict[str, float]:
         "call_cffi": call_cffi,
         "call_cffi_numpy": call_cffi_numpy,
         "call_casadi": call_casadi,
+        "step_python": step_python,
         "batch_numpy": batch_numpy,
         "batch_casadi_py": batch_casadi_py,
         "ops_ours": ops,
@@ -580,6 +586,13 @@ def table(results: dict[str, dict[str, float]]) -> str:
         ),
         ("Python call, us (ours vs bare cffi)", "call_ours", "call_cffi", us, "<= 2.0"),
         ("Python call, us (ours vs CasADi Function)", "call_ours", "call_casadi", us, "<= 0.05"),
+        (
+            "Python `Controller.step`, us (vs our `control` call; target: step <= 2 us)",
+            "step_python",
+            "call_ours",
+            us,
+            "<= 5.0",
+        ),
         (
             "Python batch, us per state (NumPy vs CasADi map)",
             "batch_numpy",

@@ -287,3 +287,38 @@ def test_the_summary_states_the_final_error_the_bound_guarantees(
     guaranteed = float(line.split("<=")[1].split()[0])
     observed = float(line.rsplit("observed", 1)[1].strip(" )"))
     assert 0 < observed <= guaranteed
+
+
+def test_the_c_controllers_step_from_python_takes_the_entry_point_and_behaves_alike() -> None:
+    from tvopt_codegen.simulation import load_controller
+
+    from .conftest import kernels
+
+    mod = load_controller(kernels("unicycle_switch"), "c")
+    if mod._ENTRY_STEP is None:
+        pytest.skip("no Python headers: the C module calls through ctypes")
+    n = len(mod.PLANT_STATE_NAMES)
+    x0 = np.array(mod.DEFAULT_STATE[:n])
+    fast, general = mod.Controller(x0), mod.Controller(x0)
+    x = x0.copy()
+    for k in range(1, 200):
+        x = x + 1e-3 * np.array([0.3, -0.2, 0.05, 0.0][:n])
+        a = fast.step(k * 1e-3, x)  # float64 vector: the entry point
+        b = general.step(k * 1e-3, x.tolist())  # a list: the general path converts it
+        assert a.tobytes() == b.tobytes() and fast.state.tobytes() == general.state.tobytes()
+    # A strided view or a float32 vector is not taken as is: converted, same answer.
+    wide = np.repeat(x, 2)[::2]
+    assert fast.step(0.2, wide).tobytes() == general.step(0.2, x.tolist()).tobytes()
+    before = (fast.t, fast.state.tobytes(), fast.u.tobytes())
+    bad = x.copy()
+    bad[1] = np.nan
+    with pytest.raises(mod.NonFiniteInputError, match=mod.PLANT_STATE_NAMES[1]):
+        fast.step(0.3, bad)
+    with pytest.raises(mod.DecreasingTimeError, match="before the last step"):
+        fast.step(0.1, x)
+    assert (fast.t, fast.state.tobytes(), fast.u.tobytes()) == before
+    # The returned input is the caller's to keep: the next step does not overwrite it.
+    first = fast.step(0.3, x)
+    kept = first.copy()
+    fast.step(0.31, x + 0.01)
+    assert first.tobytes() == kept.tobytes()
