@@ -4,6 +4,7 @@
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
+CORE := $(VENV)/.core
 INSTALLED := $(VENV)/.installed
 READY := $(VENV)/.compiled
 EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring arm_on_line
@@ -12,8 +13,14 @@ EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_join
 
 all: test
 
-$(INSTALLED): pyproject.toml
+# The core alone (sympy, numpy, scipy, jinja2, matplotlib): all the demo needs.
+$(CORE): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet -e .
+	touch $(CORE)
+
+# Everything the tests touch: the dev tools and every optional integration.
+$(INSTALLED): $(CORE)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[dev,all]'
 	touch $(INSTALLED)
@@ -27,7 +34,9 @@ $(READY): $(INSTALLED) $(wildcard tvopt_codegen/*.py)
 	touch $(READY)
 
 ## demo: generate the bundled unicycle example into build/demo, simulate it, check the theorem
-demo: $(READY)
+## (installs the core alone; `make test` adds the rest)
+demo: $(CORE)
+	$(PY) -m compileall -q tvopt_codegen
 	mkdir -p build
 	$(PY) -m tvopt_codegen generate unicycle_switch --out build/demo
 	$(PY) -m tvopt_codegen simulate unicycle_switch --out build/demo
