@@ -322,3 +322,104 @@ def test_the_c_controllers_step_from_python_takes_the_entry_point_and_behaves_al
     kept = first.copy()
     fast.step(0.31, x + 0.01)
     assert first.tobytes() == kept.tobytes()
+
+
+GEOFENCE = """name = "geofence"
+[system]
+states = ["px", "py", "theta"]
+inputs = ["v", "omega"]
+[system.dynamics]
+px = "v*cos(theta)"
+py = "v*sin(theta)"
+theta = "omega"
+[system.outputs]
+y1 = "px"
+y2 = "py"
+[extension]
+integrate = {{ v = 1 }}
+[signals]
+ox = "4*cos(0.3*t)"
+oy = "4*sin(0.3*t)"
+[objective]
+f0 = "(y1 - ox)**2 + (y2 - oy)**2"
+[constraints]
+fence = "{fence}"
+[constraints.barrier]
+final_weight = 1e-3
+[error_dynamics]
+poles = [-1.0, -1.5]
+[simulation]
+t_final = 20.0
+initial_state = {{ px = 0.0, py = {y0}, theta = 0.0, v = 1.0 }}
+"""
+
+
+def _geofence(tmp_path: Path, y0: float, fence: str = "y1**2 + y2**2 <= 9") -> Path:
+    path = tmp_path / f"geofence{y0}.toml"
+    path.write_text(GEOFENCE.format(y0=y0, fence=fence))
+    return path
+
+
+@pytest.mark.parametrize("y0", [-1.0, -2.0, -2.5, -3.0, -3.001, -3.1])
+def test_a_disc_geofence_is_accepted_from_every_start_with_the_barriers_modulus(
+    tmp_path: Path, y0: float
+) -> None:
+    from tvopt_codegen.derivation import derive
+    from tvopt_codegen.spec import load_spec
+
+    d = derive(load_spec(str(_geofence(tmp_path, y0))))
+    # Inside {g < s(t)} the barrier objective is at least as convex as f0 (2 I).
+    assert d.convexity.m_f >= 2.0 - 1e-9, d.convexity
+
+
+@pytest.mark.parametrize("y0", [-3.0, -3.1])
+def test_a_disc_geofence_from_its_edge_and_outside_it_certifies(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], y0: float
+) -> None:
+    out = tmp_path / "out"
+    assert main(["simulate", str(_geofence(tmp_path, y0)), "--out", str(out)]) == 0
+    assert "certificate: PASSED" in capsys.readouterr().out
+
+
+def test_a_constraint_empty_over_part_of_the_horizon_is_named_with_the_interval(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    spec = _geofence(tmp_path, -1.0, "y1**2 + y2**2 <= (t - 10)**2/100 + 1 - 0.1*t")
+    assert main(["check", str(spec)]) == 3
+    err = capsys.readouterr().err
+    assert "constraints.fence: infeasible for t in [10, 20] of the horizon [0, 20]" in err, err
+    assert "convex" not in err
+
+
+def test_a_hessian_that_fails_is_blamed_on_f0_or_on_the_barrier() -> None:
+    from tvopt_codegen.derivation.convexity import _culprit
+    from tvopt_codegen.model import build_model
+    from tvopt_codegen.spec import spec_from_dict
+
+    text = GEOFENCE.format(y0=-1.0, fence="y1**2 + y2**2 <= 9")
+    import tomllib
+
+    model = build_model(spec_from_dict(tomllib.loads(text)))
+    field, cause = _culprit(model, np.array([0.0, -3.5]), 10.0)
+    assert field == "constraints" and "barrier term of the constraints fence" in cause
+    flat = tomllib.loads(text)
+    flat["objective"]["f0"] = "(y1 - ox)**4 + (y2 - oy)**2"
+    model = build_model(spec_from_dict(flat))
+    field, cause = _culprit(model, np.array([4 * np.cos(3.0), 0.0]), 10.0)
+    assert field == "objective.f0" and "f0's own Hessian" in cause
+
+
+def test_a_vacuous_bound_with_equalities_names_the_kkt_matrix(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from tvopt_codegen.simulation import certificate
+
+    monkeypatch.setattr(certificate, "_kkt_eigenvalues", lambda *args: np.array([1e-9, 1.0, 3.0]))
+    failures: list[str] = []
+    m_f = certificate._modulus(
+        None, None, {}, np.zeros(1), np.zeros((2, 1)), np.zeros((2, 1)), (object(), None, None),
+        lambda t: {}, failures,
+    )  # fmt: skip
+    assert m_f == 1e-9 and len(failures) == 1
+    assert "the KKT matrix's smallest singular value 1e-09" in failures[0]
+    assert "f0" not in failures[0].split("(")[0]

@@ -78,41 +78,53 @@ def barrier_objective(
     return f0 - mu * sp.Add(*(sp.log(slack - c.g) for c in constraints))
 
 
-def least_violation(model: Any, t: float, y0: np.ndarray) -> float:
-    """``min_y max_i g_i(y, t)`` on ``a_j(y, t) = 0``: positive when nothing is feasible.
+class Violation:
+    """``min_y max_i g_i(y, t)`` (on the equalities) at any time, and per constraint.
 
-    By SLSQP, as ``min z`` subject to ``g_i(y, t) <= z`` and the equalities, from ``y0``;
-    signals and nominal references at ``t`` (references without one at 0), parameters at
-    their defaults. When ``y0`` is feasible itself, its ``max_i g_i`` (at most 0) is
-    returned without a search: that answers the question asked, whether anything is.
+    The constraints are turned into functions of ``(y, t)`` once (signals and nominal
+    references inlined, references without one at 0, parameters at their defaults), so
+    that the horizon can be scanned at many times for the price of one lambdify.
     """
-    at = {model.t: sp.Float(t)}
-    at |= {q: sp.Float(v) for q, v in zip(model.params, model.defaults, strict=True)}
-    nominal = dict(model.nominal)
-    fixed = {r: nominal.get(r, sp.Integer(0)) for r in model.references}
-    signals = dict(model.signals)
 
-    def function(constraint: Any) -> Any:
-        expr = inline_signals(constraint.g, signals).xreplace(fixed).xreplace(at)
-        return sp.lambdify([model.y], expr, "math")
+    def __init__(self, model: Any) -> None:
+        at = {q: sp.Float(v) for q, v in zip(model.params, model.defaults, strict=True)}
+        nominal = dict(model.nominal)
+        fixed = {r: nominal.get(r, sp.Integer(0)) for r in model.references}
+        signals = dict(model.signals)
+        self.names = tuple(c.name for c in model.constraints)
+        self.m = len(model.y)
 
-    functions = [function(c) for c in model.constraints]
-    equal = [function(c) for c in model.equalities]
-    m = len(model.y)
-    at_start = max(f(y0) for f in functions)
-    if at_start <= 0 and all(f(y0) == 0 for f in equal):
-        # y0 is a feasible point already; the search (and importing scipy.optimize, a
-        # sixth of such a command) would only find a smaller value, never a positive one.
-        return float(at_start)
-    from scipy.optimize import minimize  # noqa: PLC0415 - only for an infeasible start
+        def function(constraint: Any) -> Any:
+            expr = inline_signals(constraint.g, signals).xreplace(fixed).xreplace(at)
+            return sp.lambdify([model.y, model.t], expr, "math")
 
-    start = np.append(y0, at_start + 1.0)
-    result = minimize(
-        lambda v: v[m],
-        start,
-        method="SLSQP",
-        constraints=[{"type": "ineq", "fun": lambda v, f=f: v[m] - f(v[:m])} for f in functions]
-        + [{"type": "eq", "fun": lambda v, f=f: f(v[:m])} for f in equal],
-        options={"ftol": 1e-12, "maxiter": 500},
-    )
-    return float(max(f(result.x[:m]) for f in functions))
+        self.functions = [function(c) for c in model.constraints]
+        self.equal = [function(c) for c in model.equalities]
+
+    def least(self, t: float, y0: np.ndarray, only: int | None = None) -> tuple[float, np.ndarray]:
+        """``min_y max_i g_i(y, t)`` from ``y0`` and where it is (``only``: that one alone).
+
+        By SLSQP, as ``min z`` subject to ``g_i(y, t) <= z`` and the equalities. When
+        ``y0`` is feasible itself, its ``max_i g_i`` (at most 0) is returned without a
+        search: that answers the question asked, whether anything is.
+        """
+        m = self.m
+        functions = self.functions if only is None else [self.functions[only]]
+        equal = self.equal if only is None else []
+        at_start = max(f(y0, t) for f in functions)
+        if at_start <= 0 and all(f(y0, t) == 0 for f in equal):
+            return float(at_start), y0
+        from scipy.optimize import minimize  # noqa: PLC0415 - only for an infeasible start
+
+        start = np.append(y0, at_start + 1.0)
+        result = minimize(
+            lambda v: v[m],
+            start,
+            method="SLSQP",
+            constraints=[
+                {"type": "ineq", "fun": lambda v, f=f: v[m] - f(v[:m], t)} for f in functions
+            ]
+            + [{"type": "eq", "fun": lambda v, f=f: f(v[:m], t)} for f in equal],
+            options={"ftol": 1e-12, "maxiter": 500},
+        )
+        return float(max(f(result.x[:m], t) for f in functions)), result.x[:m]

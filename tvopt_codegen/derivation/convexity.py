@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import sympy as sp
 
-from tvopt_codegen.constraints import least_violation
+from tvopt_codegen.constraints import Violation
 from tvopt_codegen.derivation.calculus import constraint_hessian_entries
 from tvopt_codegen.derivation.record import Convexity
 from tvopt_codegen.errors import AssumptionError
@@ -32,6 +32,12 @@ DEGENERATE_HESSIAN = 1e-8
 
 #: Times along the horizon at which the minimiser y*(t) is found and checked.
 _PATH_POINTS = 25
+
+
+#: Times along the horizon at which the constraints' feasibility is checked, and the
+#: least violation above which nothing satisfies them.
+_FEASIBILITY_POINTS = 41
+_INFEASIBLE = 1e-7
 
 
 #: Distances from y*(t) probed for where f0 stops being strongly convex.
@@ -179,15 +185,15 @@ def _smallest_eigenvalues(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 
 def _minimiser_path(
-    numbers: _ObjectiveNumbers, y0: Sequence[float], ts: np.ndarray
+    numbers: _ObjectiveNumbers, starts: np.ndarray, ts: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """``y*(t)`` at every time by damped Newton (all times at once), and which converged.
 
-    Each time starts from ``y0``; steps are Newton's where the Hessian is positive
-    definite, the gradient's elsewhere, halved until f0 decreases.
+    Time ``ts[k]`` starts from ``starts[k]``; steps are Newton's where the Hessian is
+    positive definite, the gradient's elsewhere, halved until f0 decreases.
     """
     points = len(ts)
-    ys = np.tile(np.asarray(y0, dtype=float), (points, 1))
+    ys = np.array(starts, dtype=float)
     converged = np.zeros(points, dtype=bool)
     with np.errstate(all="ignore"):
         # 40 steps: Newton converges in a few on a strongly convex f0; on a flat minimum
@@ -264,9 +270,16 @@ def _check_convexity(
         points = 24
         ys = np.asarray(y0) + rng.uniform(-0.1, 0.1, size=(points, m))
         ts = rng.uniform(0.0, t_final, size=points)
-        low, high = numbers.extremes(ys, ts)
+        if model.constraints:
+            # The barrier objective lives on {g_i < s(t)}: outside it the log is undefined,
+            # and the barrier term's curvature, still finite there, is negative. A sample
+            # outside says nothing about the law, which never goes there.
+            with np.errstate(all="ignore"):
+                inside = np.isfinite(numbers.value(ys, ts))
+            ys, ts = ys[inside], ts[inside]
+        low, high = numbers.extremes(ys, ts) if len(ts) else (np.empty(0), np.empty(0))
         path_ts = np.linspace(0.0, t_final, _PATH_POINTS)
-        path, converged = _minimiser_path(numbers, y0, path_ts)
+        path, converged = _continued_path(numbers, np.asarray(y0, dtype=float), path_ts)
         path_low, path_high = numbers.extremes(path, path_ts)
         path_low = np.where(converged, path_low, np.nan)
         finite = np.isfinite(low).sum() + np.isfinite(path_low).sum()
@@ -274,26 +287,43 @@ def _check_convexity(
             raise AssumptionError(
                 source,
                 "objective.f0",
-                f"the Hessian of f0 is not finite at any of {points} points near the initial "
-                "outputs (overflow or outside its domain), so strong convexity cannot be checked",
+                f"the Hessian of {_named(model)} is not finite at any of {points} points near "
+                "the initial outputs (overflow or outside its domain), so strong convexity "
+                "cannot be checked",
             )
-        scale = float(np.nanmax(np.concatenate([high, path_high, [0.0]])))
-        m_f = float(np.nanmin(np.concatenate([low, path_low])))
-        if converged.any() and np.nanmin(path_low) <= DEGENERATE_HESSIAN * scale:
-            worst = int(np.nanargmin(path_low))
+        # Degenerate against the Hessian at the point itself: a barrier steep elsewhere
+        # must not make a minimum with curvature 2 look flat.
+        ratio = np.where(converged, path_low / np.maximum(path_high, 1e-300), np.nan)
+        if converged.any() and np.nanmin(ratio) <= DEGENERATE_HESSIAN:
+            worst = int(np.nanargmin(ratio))
             where = ", ".join(
                 f"{y.name} = {value:.6g}" for y, value in zip(model.y, path[worst], strict=True)
             )
+            field, cause = _culprit(model, path[worst], float(path_ts[worst]))
             raise AssumptionError(
                 source,
-                "objective.f0",
-                "f0 is not strongly convex at its minimiser: at t = "
+                field,
+                f"{_named(model)} is not strongly convex at its minimiser: at t = "
                 f"{path_ts[worst]:.6g}, y*(t) = ({where}), the Hessian's smallest eigenvalue "
-                f"is {path_low[worst]:.3g}, below {DEGENERATE_HESSIAN:g} of its scale "
-                f"{scale:.3g} (a flat minimum such as (y - r)**4: the law divides by it)",
+                f"is {path_low[worst]:.3g}, below {DEGENERATE_HESSIAN:g} of its largest there, "
+                f"{path_high[worst]:.3g} ({cause})",
             )
         warnings += _fading_convexity(numbers, path, path_ts, path_low, converged)
+        all_low = np.concatenate([low, path_low])
+        m_f = float(np.nanmin(all_low))
         result = Convexity("sampled near y(0) and along y*(t)", m_f, int(finite))
+        if not m_f > 0:
+            index = int(np.nanargmin(all_low))
+            at_y = np.concatenate([ys, path])[index]
+            at_t = float(np.concatenate([ts, path_ts])[index])
+            field, cause = _culprit(model, at_y, at_t)
+            where = ", ".join(f"{y.name} = {v:.6g}" for y, v in zip(model.y, at_y, strict=True))
+            raise AssumptionError(
+                source,
+                field,
+                f"{_named(model)} is not strongly convex in the outputs: at t = {at_t:.6g}, "
+                f"y = ({where}), the Hessian has eigenvalue {m_f:.6g} <= 0 ({cause})",
+            )
     if not result.m_f > 0:
         raise AssumptionError(
             source,
@@ -302,6 +332,62 @@ def _check_convexity(
             f"{result.m_f:.6g} <= 0 (the method needs grad_yy f0 positive definite)",
         )
     return result, tuple(warnings)
+
+
+def _named(model: Model) -> str:
+    """What the law's objective is called in a message: f0, or the barrier objective."""
+    return "the barrier objective B = f0 - mu sum log(s - g_i)" if model.constraints else "f0"
+
+
+def _culprit(model: Model, y: np.ndarray, t: float) -> tuple[str, str]:
+    """The field to blame for a Hessian that is not positive at ``(y, t)``, and why.
+
+    Without constraints, f0. With them, f0 alone is evaluated there: when its own Hessian
+    is positive definite, the barrier's term is what fails, and the constraints are named.
+    """
+    if model.objective is None:
+        return "objective.f0", "the method needs grad_yy f0 positive definite"
+    hessian = sp.hessian(model.objective, model.y)
+    evaluate = _evaluator_at(model, np.asarray(y, dtype=float)[None, :], np.array([t]))
+    m = len(model.y)
+    with np.errstate(all="ignore"):
+        matrix = np.array(
+            [[float(np.ravel(evaluate(hessian[i, j]))[0]) for j in range(m)] for i in range(m)]
+        )
+    if not np.all(np.isfinite(matrix)):
+        return "objective.f0", "f0's own Hessian is not finite there"
+    eigenvalues = np.linalg.eigvalsh(0.5 * (matrix + matrix.T))
+    if eigenvalues[0] > DEGENERATE_HESSIAN * max(abs(eigenvalues[-1]), 1e-300):
+        names = ", ".join(c.name for c in model.constraints)
+        return (
+            "constraints",
+            f"f0 alone is strongly convex there, eigenvalue {eigenvalues[0]:.3g}: the "
+            f"barrier term of the constraints {names} is what fails",
+        )
+    return "objective.f0", f"f0's own Hessian has eigenvalue {eigenvalues[0]:.3g} there"
+
+
+def _continued_path(
+    numbers: _ObjectiveNumbers, y0: np.ndarray, ts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``y*(t)`` at every time from ``y0``; where that fails, from the nearest one found.
+
+    A start outside the barrier's domain at a later time (the slack shrinks) leaves
+    Newton nowhere to go; the minimiser found at a neighbouring time is inside.
+    """
+    path, converged = _minimiser_path(numbers, np.tile(y0, (len(ts), 1)), ts)
+    for _ in range(len(ts)):
+        if converged.all() or not converged.any():
+            break
+        done = np.flatnonzero(converged)
+        todo = np.flatnonzero(~converged)
+        nearest = done[np.abs(ts[done][None, :] - ts[todo][:, None]).argmin(axis=1)]
+        again, ok = _minimiser_path(numbers, path[nearest], ts[todo])
+        if not ok.any():
+            break
+        path[todo[ok]] = again[ok]
+        converged[todo[ok]] = True
+    return path, converged
 
 
 def _probe_directions(m: int) -> np.ndarray:
@@ -579,7 +665,7 @@ def _constraint_convexity(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str
     points = 64
     ys = y0[None, :] + rng.uniform(-2.0, 2.0, size=(points, len(y0)))
     evaluate = _evaluator_at(model, ys, rng.uniform(0.0, spec.t_final, size=points))
-    _feasible_at_the_end(spec, model, y0)
+    _feasible_over_the_horizon(spec, model, y0)
     found = nonconvex(model.constraints, model.y, evaluate, points)
     if not found:
         return ()
@@ -613,13 +699,67 @@ def _evaluator_at(model: Model, ys: np.ndarray, ts: np.ndarray) -> Evaluator:
     return evaluate
 
 
-def _feasible_at_the_end(spec: Spec, model: Model, y0: np.ndarray) -> None:
-    """Refuse constraints that no output satisfies at the end of the horizon."""
-    worst = least_violation(model, spec.t_final, y0)
-    if worst > 1e-7:
+def _feasible_over_the_horizon(spec: Spec, model: Model, y0: np.ndarray) -> None:
+    """Refuse constraints that no output satisfies at some time of the horizon.
+
+    The least violation is found at :data:`_FEASIBILITY_POINTS` times (each search
+    starting where the last one ended), the first infeasible stretch's edges refined by
+    bisection, and the constraint named when it alone holds nowhere there.
+    """
+    violation = Violation(model)
+    times = np.linspace(0.0, spec.t_final, _FEASIBILITY_POINTS)
+    worst = np.empty(len(times))
+    point = np.asarray(y0, dtype=float)
+    for k, t in enumerate(times):
+        worst[k], point = violation.least(float(t), point)
+    bad = worst > _INFEASIBLE
+    if not bad.any():
+        return
+    first = int(np.argmax(bad))
+    last = first
+    while last + 1 < len(times) and bad[last + 1]:
+        last += 1
+    start = (
+        float(times[first]) if first == 0 else _edge(violation, y0, times[first - 1], times[first])
+    )
+    end = (
+        float(times[last])
+        if last == len(times) - 1
+        else _edge(violation, y0, times[last + 1], times[last])
+    )
+    peak = first + int(np.argmax(worst[first : last + 1]))
+    alone = [
+        name
+        for i, name in enumerate(violation.names)
+        if violation.least(float(times[peak]), np.asarray(y0, dtype=float), only=i)[0] > _INFEASIBLE
+    ]
+    if last == len(times) - 1:
+        span = f"from t = {start:.4g} to the horizon's end t = {spec.t_final:g}"
+    else:
+        span = f"for t in [{start:.4g}, {end:.4g}] of the horizon [0, {spec.t_final:g}]"
+    least = f"the least violation found is {worst[peak]:.3g}, at t = {times[peak]:.4g}"
+    if len(alone) == 1:
         raise AssumptionError(
             spec.source,
-            "constraints",
-            f"infeasible at the horizon's end t = {spec.t_final:g}: every output violates a "
-            f"constraint (the least violation found is {worst:.3g})",
+            f"constraints.{alone[0]}",
+            f"infeasible {span}: no output satisfies it there ({least})",
         )
+    raise AssumptionError(
+        spec.source,
+        "constraints",
+        f"infeasible {span}: every output violates a constraint there ({least})",
+    )
+
+
+def _edge(violation: Violation, y0: np.ndarray, feasible: float, infeasible: float) -> float:
+    """Where feasibility ends between two times, by bisection (to 1e-4 of the interval)."""
+    low, high = float(feasible), float(infeasible)
+    point = np.asarray(y0, dtype=float)
+    for _ in range(14):
+        middle = 0.5 * (low + high)
+        value, found = violation.least(middle, point)
+        if value > _INFEASIBLE:
+            high = middle
+        else:
+            low, point = middle, found
+    return high

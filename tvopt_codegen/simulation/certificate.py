@@ -117,7 +117,13 @@ def _modulus(
     if not m_f > 0:
         failures.append(f"f0 is not strongly convex along the run (m_f = {m_f:.3g})")
         return float("nan")
-    if m_f <= VACUOUS_M_F * scale:
+    if m_f <= VACUOUS_M_F * scale and eq is not None:
+        failures.append(
+            f"the bound is vacuous: the KKT matrix's smallest singular value {m_f:.3g} is "
+            f"below {VACUOUS_M_F:g} of its scale {scale:.3g} along the run (the constraints "
+            "are nearly dependent or in conflict there, not f0 flat)"
+        )
+    elif m_f <= VACUOUS_M_F * scale:
         failures.append(
             f"the bound is vacuous: m_f = {m_f:.3g} is below {VACUOUS_M_F:g} of the Hessian's "
             f"scale {scale:.3g} along the run (f0 is barely strongly convex there)"
