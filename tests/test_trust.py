@@ -423,3 +423,92 @@ def test_a_vacuous_bound_with_equalities_names_the_kkt_matrix(
     assert m_f == 1e-9 and len(failures) == 1
     assert "the KKT matrix's smallest singular value 1e-09" in failures[0]
     assert "f0" not in failures[0].split("(")[0]
+
+
+def test_a_certificate_does_not_fail_on_an_integration_tolerance_alone() -> None:
+    from tvopt_codegen.simulation import Options, simulate
+
+    from .conftest import derivation, module
+
+    d, mod = derivation("unicycle_switch"), module("unicycle_switch")
+    loose = Options(
+        t_final=20.0, initial_state=tuple(mod.DEFAULT_STATE), method="RK45", rtol=1e-6, atol=1e-8
+    )
+    result = simulate(d, mod, loose)
+    assert result.passed, result.failures
+    assert result.options.method == "DOP853" and result.options.rtol == 1e-13
+    assert "RK45 at rtol 1e-06 failed" in result.reintegrated
+    assert "the integrator's error, not the law's" in result.reintegrated
+
+
+def test_a_wrong_law_still_fails_when_integrated_again() -> None:
+    import types
+
+    from tvopt_codegen.simulation import Options, simulate
+
+    from .conftest import derivation, module
+
+    d, mod = derivation("unicycle_switch"), module("unicycle_switch")
+    wrong = types.ModuleType("wrong")
+    wrong.__dict__.update(mod.__dict__)
+
+    def rhs(t: float, s: Any, params: Any = None, **jets: Any) -> Any:
+        rates = np.array(mod.rhs(t, s, params, **jets), dtype=float)
+        rates[3] *= 1.001  # the prolonged speed's drive, 0.1% off the law's
+        return rates
+
+    wrong.rhs = rhs
+    options = Options(t_final=10.0, initial_state=tuple(mod.DEFAULT_STATE))
+    result = simulate(d, wrong, options)
+    assert not result.passed
+    assert "E deviates from expm(H t) E(0)" in "; ".join(result.failures)
+    assert "it fails as well: the law's, not the integrator's" in result.reintegrated
+
+
+@pytest.mark.parametrize(
+    ("deviations", "passed", "orders"),
+    [
+        # Pre-asymptotic at H (order 0.65), then first order: H is halved again, and passes.
+        ((3.3e-2, 2.1e-2, 1.1e-2), True, 2),
+        # Not approaching at all: every halving tried, then refused.
+        ((1e-2, 1e-2, 1e-2, 1e-2), False, 3),
+    ],
+)
+def test_the_sampled_order_is_fitted_until_it_is_asymptotic(
+    monkeypatch: pytest.MonkeyPatch, deviations: tuple[float, ...], passed: bool, orders: int
+) -> None:
+    import types
+
+    from tvopt_codegen.simulation import Options, sampled
+
+    from .conftest import derivation, module
+
+    d, mod = derivation("integrator"), module("integrator")
+    steps: list[float] = []
+
+    def fake_run(d: Any, c: Any, o: Any, h: float, *rest: Any) -> Any:
+        steps.append(h)
+        return types.SimpleNamespace(
+            h=h,
+            deviation=deviations[len(steps) - 1],
+            iss_ratio=0.5,
+            saturated_time=0.0,
+            ultimate=1e-6,
+            t=np.arange(0.0, 2.0 + h / 2, h),
+            wall_time=0.1,
+            disturbance=0.3,
+        )
+
+    monkeypatch.setattr(sampled, "sampled_run", fake_run)
+    options = Options(t_final=2.0, initial_state=tuple(mod.DEFAULT_STATE))
+    result = sampled.simulate_sampled(d, mod, options, 0.01, convergence_order=True)
+    assert steps == [0.01 / 2**k for k in range(orders + 1)]
+    assert len(result.orders) == orders and result.passed is passed
+    assert result.orders[0] == pytest.approx(np.log2(3.3 / 2.1) if passed else 0.0)
+    if passed:
+        assert result.order == pytest.approx(np.log2(2.1 / 1.1))
+        assert "(H to H/2), 0.933 (H/2 to H/4) (1 for a zero-order hold): not yet asymptotic" in (
+            sampled.format_sampled(d, result)
+        )
+    else:
+        assert "observed order 0, 0, 0 from H = 0.01 to 0.00125" in result.failures[-1]

@@ -229,7 +229,8 @@ def _add_simulate(commands: _Commands) -> argparse.ArgumentParser:
     sim.add_argument(
         "--convergence-order",
         action="store_true",
-        help="with --sample-time: also run at H/2 and report the observed order in H",
+        help="with --sample-time: also run at H/2 (and at H/4, H/8 while the order is below "
+        "0.75, not yet asymptotic) and report the observed order in H",
     )
     sim.add_argument("--out", default=".", help="output folder (default: current folder)")
     sim.add_argument(

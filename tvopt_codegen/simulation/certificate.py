@@ -396,6 +396,8 @@ def format_certificate(derivation: Derivation, result: Result) -> str:
         f"  RHS evaluations           {r.nfev}   wall time {r.wall_time:.2f} s",
         "  certificate: " + ("PASSED" if r.passed else "FAILED: " + "; ".join(r.failures)),
     ]
+    if r.reintegrated:
+        lines.insert(-1, f"  integrated again: {r.reintegrated}")
     if r.constraints is not None and d.model.equalities:
         check = r.constraints
         q = len(d.model.equalities)

@@ -137,6 +137,10 @@ class Result:
     iss_ratio : float
         With estimated reference jets: ``max_t |E(t)| / (c e^{-alpha t} |E(0)| +
         (c / alpha)(1 - e^{-alpha t}) sup |d|)``, which the certificate checks is at most 1.
+    reintegrated : str
+        Empty, or, when a check failed at the requested tolerances, what happened: the
+        run was integrated again, far more accurately (this result is that run's), and
+        whether the failure was the integrator's error or the law's.
     iss_final : float
         With estimated reference jets: that bound at the end of the run; over ``m_f`` it
         bounds the final ``|y - y*|`` (``|grad f0(y)| >= m_f |y - y*|``). NaN otherwise.
@@ -174,6 +178,7 @@ class Result:
     iss_ratio: float = float("nan")
     iss_final: float = float("nan")
     constraints: Any = None
+    reintegrated: str = ""
 
 
 def resolve_options(

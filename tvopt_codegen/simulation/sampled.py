@@ -45,6 +45,9 @@ MIN_SAMPLES = 10
 MAX_SAMPLES = 2_000_000
 #: The observed order below which the sampled loop is not converging to the continuous one.
 ORDER_FLOOR = 0.75
+#: Halvings of H beyond H/2 tried when the order at (H, H/2) is below the floor: a coarse
+#: H can be pre-asymptotic (order 0.7 there, 0.94 at H/5), which is not divergence.
+EXTRA_HALVINGS = 2
 
 
 @dataclass(frozen=True)
@@ -109,7 +112,10 @@ class SampledResult:
     runs : tuple of SampledRun
         At ``H``, and at ``H/2`` when the convergence order was asked for.
     order : float or None
-        ``log2(deviation(H) / deviation(H/2))``, or None.
+        ``log2(deviation(h) / deviation(h/2))`` at the finest pair of runs, or None.
+    orders : tuple of float
+        The observed order of every consecutive pair of runs, coarsest first: more than
+        one when the first was below :data:`ORDER_FLOOR` and H was halved again.
     continuous_ultimate : float
         The continuous run's ``max |y - y*|`` over the last tenth of the horizon.
     passed : bool
@@ -128,6 +134,7 @@ class SampledResult:
     passed: bool
     failures: tuple[str, ...]
     plant_params: tuple[tuple[str, float], ...] = ()
+    orders: tuple[float, ...] = ()
 
 
 def _plant(controller: types.ModuleType, params: dict[str, float]) -> Callable[..., Any]:
@@ -383,16 +390,27 @@ def simulate_sampled(
         for run in runs
         if not run.iss_ratio <= 1.0
     ]
+    orders: list[float] = []
     if convergence_order:
-        runs.append(
-            sampled_run(derivation, controller, options, h / 2, continuous, progress, plant_params)
-        )
-        coarse, fine = runs[0].deviation, runs[1].deviation
-        order = math.log2(coarse / fine) if coarse > 0 and fine > 0 else float("nan")
+        step = h
+        while True:
+            step /= 2
+            runs.append(
+                sampled_run(
+                    derivation, controller, options, step, continuous, progress, plant_params
+                )
+            )
+            coarse, fine = runs[-2].deviation, runs[-1].deviation
+            order = math.log2(coarse / fine) if coarse > 0 and fine > 0 else float("nan")
+            orders.append(order)
+            finer = options.t_final / (step / 2) <= MAX_SAMPLES
+            if order >= ORDER_FLOOR or len(orders) > EXTRA_HALVINGS or not finer:
+                break
         if not order >= ORDER_FLOOR:
+            listed = ", ".join(f"{value:.3g}" for value in orders)
             failures.append(
                 f"the sampled loop does not approach the continuous one as H shrinks "
-                f"(observed order {order:.3g} < {ORDER_FLOOR:g})"
+                f"(observed order {listed} from H = {h:g} to {step:g}, below {ORDER_FLOOR:g})"
             )
     tail = _tail(continuous.t, options.t_final)
     return SampledResult(
@@ -407,6 +425,7 @@ def simulate_sampled(
             for name, value in (plant_params or {}).items()
             if value != (dict(derivation.spec.parameters) | dict(options.params)).get(name)
         ),
+        orders=tuple(orders),
     )
 
 
@@ -431,7 +450,16 @@ def format_sampled(derivation: Derivation, result: SampledResult) -> str:
             f"      input-to-state: {error}_(k+1) = expm(H h) {error}_k + w_k with sup |w| / h "
             f"{run.disturbance:.3g}; |{error}| / its bound max {run.iss_ratio:.3g}"
         )
-    if result.order is not None:
+    if len(result.orders) > 1:
+        pairs = ", ".join(
+            f"{value:.3g} (H/{2**k:g} to H/{2 ** (k + 1):g})" if k else f"{value:.3g} (H to H/2)"
+            for k, value in enumerate(result.orders)
+        )
+        lines.append(
+            f"    observed order in H: {pairs} (1 for a zero-order hold): not yet asymptotic "
+            "at H, so H was halved again"
+        )
+    elif result.order is not None:
         lines.append(f"    observed order in H: {result.order:.3g} (1 for a zero-order hold)")
     lines.append(
         "  sampled certificate: "
