@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: 5abcf22deba71c32f18b725c7a3447590193f425341514684bcd8de259ee6ea2
+# content sha256: e3cb9dcfbfcc67b8bc3036a84978951604c3998f5ee435acfcd4a283b0d5ed48
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -273,17 +273,18 @@ def _build():
 
 
 def _entry_point(library):
-    """The CPython entry point compiled into ``library``."""
+    """The CPython entry points compiled into ``library``: the law's call, a step."""
     loader = importlib.machinery.ExtensionFileLoader("_arm_on_line_ext", str(library))
     module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
     loader.exec_module(module)
-    return module.call
+    return module.call, module.step
 
 
 _LIBRARY, _HAS_ENTRY_POINT = _build()
 _LIB = ctypes.CDLL(str(_LIBRARY))
-#: The compiled entry point, or None when calls go through ctypes (no Python headers).
-_ENTRY = _entry_point(_LIBRARY) if _HAS_ENTRY_POINT else None
+#: The compiled entry points (the law's call, a controller step), or None when calls go
+#: through ctypes (no Python headers).
+_ENTRY, _ENTRY_STEP = _entry_point(_LIBRARY) if _HAS_ENTRY_POINT else (None, None)
 _FUNCTIONS = {}
 for _name in ('control', 'rhs', 'optimality_error', 'objective', 'gradient', 'hessian'):
     _function = getattr(_LIB, f"arm_on_line_{_name}_batch")
@@ -829,6 +830,17 @@ class Controller(_Controller):
         if status != STATUS_OK:
             self._fail(status, t, numpy.concatenate([x, z]), p)
         self._memory, self._out = memory, numpy.empty(2)
+
+    if _ENTRY_STEP is not None:
+
+        def step(self, t, x):
+            # The common case, a float and a float64 vector, straight into the C step; the
+            # general path checks, converts and raises (the C left the controller as it was).
+            if _ENTRY_STEP(self._memory, t, x, self._out) == STATUS_OK:
+                return self._out.copy()
+            return _Controller.step(self, t, x)
+
+        step.__doc__ = _Controller.step.__doc__
 
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: cea5bc24d99d688929c892185b490e75b1506beed329ceef5ae634e1cde440c6
+# content sha256: 8d984dffbb5dbe5b4ab1e376caff2b00620b2cad160363710dbd3f219a56f166
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -268,17 +268,18 @@ def _build():
 
 
 def _entry_point(library):
-    """The CPython entry point compiled into ``library``."""
+    """The CPython entry points compiled into ``library``: the law's call, a step."""
     loader = importlib.machinery.ExtensionFileLoader("_flexible_joint_ext", str(library))
     module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
     loader.exec_module(module)
-    return module.call
+    return module.call, module.step
 
 
 _LIBRARY, _HAS_ENTRY_POINT = _build()
 _LIB = ctypes.CDLL(str(_LIBRARY))
-#: The compiled entry point, or None when calls go through ctypes (no Python headers).
-_ENTRY = _entry_point(_LIBRARY) if _HAS_ENTRY_POINT else None
+#: The compiled entry points (the law's call, a controller step), or None when calls go
+#: through ctypes (no Python headers).
+_ENTRY, _ENTRY_STEP = _entry_point(_LIBRARY) if _HAS_ENTRY_POINT else (None, None)
 _FUNCTIONS = {}
 for _name in ('control', 'rhs', 'optimality_error', 'objective', 'gradient', 'hessian'):
     _function = getattr(_LIB, f"flexible_joint_{_name}_batch")
@@ -824,6 +825,17 @@ class Controller(_Controller):
         if status != STATUS_OK:
             self._fail(status, t, numpy.concatenate([x, z]), p)
         self._memory, self._out = memory, numpy.empty(1)
+
+    if _ENTRY_STEP is not None:
+
+        def step(self, t, x):
+            # The common case, a float and a float64 vector, straight into the C step; the
+            # general path checks, converts and raises (the C left the controller as it was).
+            if _ENTRY_STEP(self._memory, t, x, self._out) == STATUS_OK:
+                return self._out.copy()
+            return _Controller.step(self, t, x)
+
+        step.__doc__ = _Controller.step.__doc__
 
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))

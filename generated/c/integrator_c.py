@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 2a0154f8ada692cb8b94e005491deb79367fdfc63ed0f75f3ec727566e6ea34a
+# content sha256: 6863fa28fbd24b34246a09dd8afe8e567d9e21aefafef26e01f2dc6a28fa4f4c
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -264,17 +264,18 @@ def _build():
 
 
 def _entry_point(library):
-    """The CPython entry point compiled into ``library``."""
+    """The CPython entry points compiled into ``library``: the law's call, a step."""
     loader = importlib.machinery.ExtensionFileLoader("_integrator_ext", str(library))
     module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
     loader.exec_module(module)
-    return module.call
+    return module.call, module.step
 
 
 _LIBRARY, _HAS_ENTRY_POINT = _build()
 _LIB = ctypes.CDLL(str(_LIBRARY))
-#: The compiled entry point, or None when calls go through ctypes (no Python headers).
-_ENTRY = _entry_point(_LIBRARY) if _HAS_ENTRY_POINT else None
+#: The compiled entry points (the law's call, a controller step), or None when calls go
+#: through ctypes (no Python headers).
+_ENTRY, _ENTRY_STEP = _entry_point(_LIBRARY) if _HAS_ENTRY_POINT else (None, None)
 _FUNCTIONS = {}
 for _name in ('control', 'rhs', 'optimality_error', 'objective', 'gradient', 'hessian'):
     _function = getattr(_LIB, f"integrator_{_name}_batch")
@@ -820,6 +821,17 @@ class Controller(_Controller):
         if status != STATUS_OK:
             self._fail(status, t, numpy.concatenate([x, z]), p)
         self._memory, self._out = memory, numpy.empty(2)
+
+    if _ENTRY_STEP is not None:
+
+        def step(self, t, x):
+            # The common case, a float and a float64 vector, straight into the C step; the
+            # general path checks, converts and raises (the C left the controller as it was).
+            if _ENTRY_STEP(self._memory, t, x, self._out) == STATUS_OK:
+                return self._out.copy()
+            return _Controller.step(self, t, x)
+
+        step.__doc__ = _Controller.step.__doc__
 
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: pvtol
 # spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
-# content sha256: 20e82b42710efc87bde5e2592db978eed172ba47f6396abd324d81d2751289f6
+# content sha256: e35f7a941c5ecc6089ef624b42e38b68c93f990bd06e24c57691eae56661194b
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -274,17 +274,18 @@ def _build():
 
 
 def _entry_point(library):
-    """The CPython entry point compiled into ``library``."""
+    """The CPython entry points compiled into ``library``: the law's call, a step."""
     loader = importlib.machinery.ExtensionFileLoader("_pvtol_ext", str(library))
     module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
     loader.exec_module(module)
-    return module.call
+    return module.call, module.step
 
 
 _LIBRARY, _HAS_ENTRY_POINT = _build()
 _LIB = ctypes.CDLL(str(_LIBRARY))
-#: The compiled entry point, or None when calls go through ctypes (no Python headers).
-_ENTRY = _entry_point(_LIBRARY) if _HAS_ENTRY_POINT else None
+#: The compiled entry points (the law's call, a controller step), or None when calls go
+#: through ctypes (no Python headers).
+_ENTRY, _ENTRY_STEP = _entry_point(_LIBRARY) if _HAS_ENTRY_POINT else (None, None)
 _FUNCTIONS = {}
 for _name in ('control', 'rhs', 'optimality_error', 'objective', 'gradient', 'hessian'):
     _function = getattr(_LIB, f"pvtol_{_name}_batch")
@@ -830,6 +831,17 @@ class Controller(_Controller):
         if status != STATUS_OK:
             self._fail(status, t, numpy.concatenate([x, z]), p)
         self._memory, self._out = memory, numpy.empty(2)
+
+    if _ENTRY_STEP is not None:
+
+        def step(self, t, x):
+            # The common case, a float and a float64 vector, straight into the C step; the
+            # general path checks, converts and raises (the C left the controller as it was).
+            if _ENTRY_STEP(self._memory, t, x, self._out) == STATUS_OK:
+                return self._out.copy()
+            return _Controller.step(self, t, x)
+
+        step.__doc__ = _Controller.step.__doc__
 
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))

@@ -3,7 +3,7 @@
  * template: c/extension.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: a9310408e48affa1e5ae8fdaeaeb6b901b16db77ca23197b4d26dbe2b2b540ff
+ * content sha256: d2608bfc05b501cef8d14b93c017fc2df6c56ff185071815f7ec4b738315d71f
  */
 
 /*
@@ -18,6 +18,12 @@
  *   - None when t, s or p is not something it takes as is (not a float; not a native,
  *     aligned float64 array of the right shape): the Python module then takes its
  *     general path, which converts or raises exactly as the Python backend does.
+ *
+ * step(memory, t, x, out) steps the stateful controller whose struct is the float64
+ * array memory, with the measured plant state x, writing the input to out, and returns
+ * the status (0: OK; the controller is unchanged otherwise), or None when an argument is
+ * not something it takes as is: Controller.step then takes its general path, which
+ * checks, converts and raises as the Python backend does.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -25,6 +31,43 @@
 #include <numpy/arrayobject.h>
 
 #include "two_unicycles_barrier.h"
+
+/* A native, aligned, C-contiguous float64 vector of `size` entries (writeable if asked). */
+static int plain_vector(PyObject *object, npy_intp size, int writeable)
+{
+    if (!PyArray_Check(object))
+        return 0;
+    PyArrayObject *a = (PyArrayObject *)object;
+    return PyArray_TYPE(a) == NPY_DOUBLE && PyArray_NDIM(a) == 1 && PyArray_DIM(a, 0) == size
+        && PyArray_ISALIGNED(a) && PyArray_ISNOTSWAPPED(a) && PyArray_IS_C_CONTIGUOUS(a)
+        && (!writeable || PyArray_ISWRITEABLE(a));
+}
+
+static PyObject *step(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 4) {
+        PyErr_SetString(PyExc_TypeError, "step(memory, t, x, out) takes 4 arguments");
+        return NULL;
+    }
+    if (!PyFloat_Check(args[1]) && !PyLong_Check(args[1]))
+        Py_RETURN_NONE;
+    double t = PyFloat_AsDouble(args[1]);
+    if (t == -1.0 && PyErr_Occurred())
+        return NULL;
+    /* The struct's bytes, in a float64 array at least as large (doubles: 8-byte aligned). */
+    const npy_intp words = (npy_intp)((sizeof(two_unicycles_barrier_controller_t) + 7) / 8);
+    if (!PyArray_Check(args[0]) || PyArray_DIM((PyArrayObject *)args[0], 0) < words
+        || !plain_vector(args[0], PyArray_DIM((PyArrayObject *)args[0], 0), 1)
+        || !plain_vector(args[2], TWO_UNICYCLES_BARRIER_N_PLANT_STATES, 0)
+        || !plain_vector(args[3], TWO_UNICYCLES_BARRIER_N_INPUTS, 1))
+        Py_RETURN_NONE;
+    const int status = two_unicycles_barrier_controller_step(
+        (two_unicycles_barrier_controller_t *)PyArray_DATA((PyArrayObject *)args[0]), t,
+        (const double *)PyArray_DATA((PyArrayObject *)args[2]),
+        (double *)PyArray_DATA((PyArrayObject *)args[3]));
+    return PyLong_FromLong(status);
+}
 
 #define ROWS_MAX (TWO_UNICYCLES_BARRIER_N_STATES > TWO_UNICYCLES_BARRIER_N_OUTPUTS ? TWO_UNICYCLES_BARRIER_N_STATES : TWO_UNICYCLES_BARRIER_N_OUTPUTS)
 
@@ -146,6 +189,8 @@ static PyObject *call(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 static PyMethodDef METHODS[] = {
     {"call", (PyCFunction)(void (*)(void))call, METH_FASTCALL,
      "call(kind, t, s, p): the law at every column of s (see the file's comment)."},
+    {"step", (PyCFunction)(void (*)(void))step, METH_FASTCALL,
+     "step(memory, t, x, out): one step of the stateful controller (see the file's comment)."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 4092515ac75e999cf56ef5bc771e9591adae247e17935bc1f03941d97156ab4c
+# content sha256: 63cadf58e15a82701af540c8509fe0a9cae287cc5df6c6f253f5eb0c9eee9550
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -273,17 +273,18 @@ def _build():
 
 
 def _entry_point(library):
-    """The CPython entry point compiled into ``library``."""
+    """The CPython entry points compiled into ``library``: the law's call, a step."""
     loader = importlib.machinery.ExtensionFileLoader("_two_unicycles_barrier_ext", str(library))
     module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
     loader.exec_module(module)
-    return module.call
+    return module.call, module.step
 
 
 _LIBRARY, _HAS_ENTRY_POINT = _build()
 _LIB = ctypes.CDLL(str(_LIBRARY))
-#: The compiled entry point, or None when calls go through ctypes (no Python headers).
-_ENTRY = _entry_point(_LIBRARY) if _HAS_ENTRY_POINT else None
+#: The compiled entry points (the law's call, a controller step), or None when calls go
+#: through ctypes (no Python headers).
+_ENTRY, _ENTRY_STEP = _entry_point(_LIBRARY) if _HAS_ENTRY_POINT else (None, None)
 _FUNCTIONS = {}
 for _name in ('control', 'rhs', 'optimality_error', 'objective', 'gradient', 'hessian'):
     _function = getattr(_LIB, f"two_unicycles_barrier_{_name}_batch")
@@ -829,6 +830,17 @@ class Controller(_Controller):
         if status != STATUS_OK:
             self._fail(status, t, numpy.concatenate([x, z]), p)
         self._memory, self._out = memory, numpy.empty(4)
+
+    if _ENTRY_STEP is not None:
+
+        def step(self, t, x):
+            # The common case, a float and a float64 vector, straight into the C step; the
+            # general path checks, converts and raises (the C left the controller as it was).
+            if _ENTRY_STEP(self._memory, t, x, self._out) == STATUS_OK:
+                return self._out.copy()
+            return _Controller.step(self, t, x)
+
+        step.__doc__ = _Controller.step.__doc__
 
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))
