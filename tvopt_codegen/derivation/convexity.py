@@ -291,22 +291,35 @@ def _check_convexity(
                 "the initial outputs (overflow or outside its domain), so strong convexity "
                 "cannot be checked",
             )
-        # Degenerate against the Hessian at the point itself: a barrier steep elsewhere
-        # must not make a minimum with curvature 2 look flat.
-        ratio = np.where(converged, path_low / np.maximum(path_high, 1e-300), np.nan)
+        # Degenerate against the Hessian's scale. Without constraints, the largest
+        # eigenvalue met anywhere: a minimum flat in every direction, (y - r)**4, has a
+        # Hessian near 0 at y*(t) against 12 (y - r)**2 elsewhere. With them, against the
+        # Hessian at the point itself: the barrier's curvature near the start, steep
+        # without bound at the domain's edge, must not make a minimum with curvature 2
+        # look flat (the barrier, positive where it acts, cannot hide a flat f0 there).
+        if model.constraints:
+            scales = np.maximum(path_high, 1e-300)
+        else:
+            scales = np.full(
+                len(path_ts), float(np.nanmax(np.concatenate([high, path_high, [0.0]])))
+            )
+        ratio = np.where(converged, path_low / scales, np.nan)
         if converged.any() and np.nanmin(ratio) <= DEGENERATE_HESSIAN:
             worst = int(np.nanargmin(ratio))
             where = ", ".join(
                 f"{y.name} = {value:.6g}" for y, value in zip(model.y, path[worst], strict=True)
             )
             field, cause = _culprit(model, path[worst], float(path_ts[worst]))
+            if field == "objective.f0":
+                flat = "a flat minimum such as (y - r)**4: the law divides by it"
+                cause = flat if model.objective is None else f"{cause}; {flat}"
             raise AssumptionError(
                 source,
                 field,
                 f"{_named(model)} is not strongly convex at its minimiser: at t = "
                 f"{path_ts[worst]:.6g}, y*(t) = ({where}), the Hessian's smallest eigenvalue "
-                f"is {path_low[worst]:.3g}, below {DEGENERATE_HESSIAN:g} of its largest there, "
-                f"{path_high[worst]:.3g} ({cause})",
+                f"is {path_low[worst]:.3g}, below {DEGENERATE_HESSIAN:g} of its scale "
+                f"{scales[worst]:.3g} ({cause})",
             )
         warnings += _fading_convexity(numbers, path, path_ts, path_low, converged)
         all_low = np.concatenate([low, path_low])
