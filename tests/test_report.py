@@ -251,8 +251,8 @@ document.getElementById('probe').textContent = JSON.stringify(out);
     assert gaps and min(gaps) > 1.5  # pixels: a thin space, not glued together
 
 
-def test_a_robust_spec_adds_its_section_with_h_i_the_observer_and_the_limits() -> None:
-    from tvopt_codegen.report import ROBUST_HEADING
+def test_a_robust_spec_adds_a_section_per_option_with_h_i_the_observer_and_the_limits() -> None:
+    from tvopt_codegen.report import ROBUST_HEADINGS
 
     from .conftest import SPECS
 
@@ -260,9 +260,11 @@ def test_a_robust_spec_adds_its_section_with_h_i_the_observer_and_the_limits() -
     md = render_report(derivation(spec), kernels(spec), formats=("md",))["robust_pvtol_report.md"]
     headings = re.findall(r"^## (.*)$", md, re.M)
     expected = list(HEADINGS)
-    expected.insert(expected.index("Control law") + 1, ROBUST_HEADING)
+    at = expected.index("Control law") + 1
+    expected[at:at] = list(ROBUST_HEADINGS)
     assert headings == expected
-    robust = md.split("## Robustness")[1].split("## ")[0]
+    robust = md.split("## Integral action")[1].split("## Generated code")[0]
+    assert "## Disturbance observer" in robust and "## Actuator limits" in robust
     # The integral's pole, the nominal poles and the bumpless start; beta; the limits.
     assert "| lambda: the integral's pole (real, closest to zero) | -1 |" in robust
     assert "-3, -2.5, -2, -1.5" in robust
@@ -270,3 +272,22 @@ def test_a_robust_spec_adds_its_section_with_h_i_the_observer_and_the_limits() -
     assert "| thrust | 0 | 14.715 | 200 |" in robust and "| torque | -1 | 1 | inf |" in robust
     # H_I is the 5 x 5 companion matrix: its last row holds the five coefficients.
     assert "col(z_I, E)' = H_I col(z_I, E)" in md
+
+
+def test_a_spec_with_limits_alone_adds_the_limits_section_alone() -> None:
+    import tomllib
+
+    from tvopt_codegen.derivation import derive
+    from tvopt_codegen.ir import lower
+    from tvopt_codegen.spec import spec_from_dict
+
+    from .conftest import SPECS
+
+    table = tomllib.loads((SPECS / "robust_pvtol.toml").read_text())
+    del table["robust"]
+    table["error_dynamics"]["poles"] = table["error_dynamics"]["poles"][1:]
+    d = derive(spec_from_dict(table))
+    md = render_report(d, lower(d), formats=("md",))["robust_pvtol_report.md"]
+    headings = re.findall(r"^## (.*)$", md, re.M)
+    assert headings[headings.index("Control law") + 1] == "Actuator limits"
+    assert "Integral action" not in headings and "Disturbance observer" not in headings

@@ -40,8 +40,9 @@ HEADINGS = (
     "Generated code and provenance",
     "Simulation",
 )
-#: The section a spec with [robust] or [limits] adds, after "Control law".
-ROBUST_HEADING = "Robustness"
+#: The sections a spec with [robust] or [limits] adds after "Control law", one per option
+#: it takes, in this order.
+ROBUST_HEADINGS = ("Integral action", "Disturbance observer", "Actuator limits")
 
 
 #: Largest simulation output the report reads: a certificate is a few KB, a figure
@@ -68,9 +69,9 @@ def read_results(folder: str | Path, name: str) -> dict[str, bytes]:
 def report_sections(
     derivation: Derivation, kernels: KernelSet, results: Mapping[str, bytes] | None = None
 ) -> tuple[Section, ...]:
-    """All sections of the report, in :data:`HEADINGS` order (and :data:`ROBUST_HEADING`)."""
+    """All sections of the report, in :data:`HEADINGS` order (and :data:`ROBUST_HEADINGS`)."""
     d = derivation
-    robust = (_robustness(d),) if d.spec.robust.any or d.spec.limits else ()
+    robust = _robustness(d)
     return (
         _model(d),
         _extension(d),

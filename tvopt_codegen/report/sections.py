@@ -382,10 +382,13 @@ def _error_dynamics(d: Derivation) -> Section:
     return Section("Error dynamics", tuple(entries))
 
 
-def _robustness(d: Derivation) -> Section:
-    """Integral action, the disturbance observer and the limits, as the controller runs them."""
+def _robustness(d: Derivation) -> tuple[Section, ...]:
+    """Integral action, the disturbance observer and the limits, as the controller runs them.
+
+    One section per option the spec takes, titled as in ``ROBUST_HEADINGS``.
+    """
     spec = d.spec
-    entries: list[Entry] = []
+    sections: list[Section] = []
     if d.integral_states:
         pole = d.dynamics.integral_pole
         others = [p for p in d.eigenvalues]
@@ -397,7 +400,7 @@ def _robustness(d: Derivation) -> Section:
             ):
                 del others[index]
                 break
-        entries += [
+        integral = [
             Entry(
                 "text",
                 text=(
@@ -422,6 +425,7 @@ def _robustness(d: Derivation) -> Section:
                 ),
             ),
         ]
+        sections.append(Section("Integral action", tuple(integral)))
     if spec.robust.observer is not None:
         beta = spec.robust.observer
         robust = robustness(d)
@@ -429,43 +433,41 @@ def _robustness(d: Derivation) -> Section:
         blocks = "; ".join(
             ", ".join(spec.inputs[i] for i in block) for block in robust.observer_blocks
         )
-        entries.append(
-            Entry(
-                "text",
-                text=(
-                    f"Disturbance observer, bandwidth beta = {beta:.6g} rad/s: a matched input "
-                    "disturbance d in x' = f(x) + G(x) (u + d), from the measured plant state "
-                    "and the applied input. Each step, r = (x_k - x_{k-1}) / h - (F_{k-1} + "
-                    "F_k) / 2 with F = f(x) + G(x) u (G d to O(h^2)); sigma += (1 - "
-                    "exp(-beta h)) (r - sigma), every pole of sigma at "
-                    f"{-beta:.6g}; d_hat solves G(x) d = sigma in the least-squares sense (f(x) "
-                    "and G(x) from the law's jet kernel); the controller commands u - d_hat. "
-                    "Nominally d_hat = 0 up to the trapezoid rule's O(h^2). The residual is kept "
-                    f"on the plant states an input acts on ({rows}: the rows of G that are not "
-                    "structurally zero), and the least squares are solved per block of inputs "
-                    f"whose columns of G share a row ({blocks})."
-                ),
-            )
+        observer = Entry(
+            "text",
+            text=(
+                f"Disturbance observer, bandwidth beta = {beta:.6g} rad/s: a matched input "
+                "disturbance d in x' = f(x) + G(x) (u + d), from the measured plant state "
+                "and the applied input. Each step, r = (x_k - x_{k-1}) / h - (F_{k-1} + "
+                "F_k) / 2 with F = f(x) + G(x) u (G d to O(h^2)); sigma += (1 - "
+                "exp(-beta h)) (r - sigma), every pole of sigma at "
+                f"{-beta:.6g}; d_hat solves G(x) d = sigma in the least-squares sense (f(x) "
+                "and G(x) from the law's jet kernel); the controller commands u - d_hat. "
+                "Nominally d_hat = 0 up to the trapezoid rule's O(h^2). The residual is kept "
+                f"on the plant states an input acts on ({rows}: the rows of G that are not "
+                "structurally zero), and the least squares are solved per block of inputs "
+                f"whose columns of G share a row ({blocks})."
+            ),
         )
+        sections.append(Section("Disturbance observer", (observer,)))
     if spec.limits:
-        entries.append(
-            Entry(
-                "table",
-                text=(
-                    "Actuator limits: the Controller clips the commanded input to [low, high] "
-                    "and, after its first step, to within rate h of the last one; the "
-                    "integral states and a clipped prolonged input's extension chain follow "
-                    "the applied input (anti-windup); Controller.saturated, the C struct's "
-                    "saturated mask and the FMU's saturated outputs say which were clipped."
-                ),
-                header=("input", "low", "high", "rate (1/s)"),
-                rows=tuple(
-                    (limit.input, f"{limit.low:g}", f"{limit.high:g}", f"{limit.rate:g}")
-                    for limit in spec.limits
-                ),
-            )
+        limits = Entry(
+            "table",
+            text=(
+                "Actuator limits: the Controller clips the commanded input to [low, high] "
+                "and, after its first step, to within rate h of the last one; the "
+                "integral states and a clipped prolonged input's extension chain follow "
+                "the applied input (anti-windup); Controller.saturated, the C struct's "
+                "saturated mask and the FMU's saturated outputs say which were clipped."
+            ),
+            header=("input", "low", "high", "rate (1/s)"),
+            rows=tuple(
+                (limit.input, f"{limit.low:g}", f"{limit.high:g}", f"{limit.rate:g}")
+                for limit in spec.limits
+            ),
         )
-    return Section("Robustness", tuple(entries))
+        sections.append(Section("Actuator limits", (limits,)))
+    return tuple(sections)
 
 
 def _control_law(d: Derivation) -> Section:
