@@ -71,7 +71,7 @@ bench-sweep: $(READY)
 	$(PY) -m pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/bench_sweep.py --write benchmarks/SWEEP.md
 
-## sweep-example: the README's 1,000-sample PVTOL sweep with mass and inertia mismatch
+## sweep-example: the user guide's 1,000-sample PVTOL sweep with mass and inertia mismatch
 sweep-example: $(READY)
 	rm -rf build/sweep-pvtol
 	mkdir -p build docs/figures

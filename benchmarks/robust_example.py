@@ -10,7 +10,7 @@ with the controller stepped every millisecond (the observer is part of the sampl
 controller): clean measurements; measurement noise of sd 1e-3 on every plant state; and
 noise with actuator limits (PVTOL: thrust within [0, 1.5 x hover]; the arm: each torque
 within the nominal run's peak). The plain law's continuous sweep is the baseline the
-README quotes. Then the step figure: PVTOL climbing 5 m on a 10% heavier plant with the
+user guide quotes. Then the step figure: PVTOL climbing 5 m on a 10% heavier plant with the
 thrust limited to 11.3 N, the integral with and without anti-windup, and the observer.
 
 Each sweep is ``tvopt_codegen.sweep.run_sweep`` on one LocalCluster of 2 workers, with
@@ -307,7 +307,7 @@ def main() -> int:
             "with the target and a slow integral follows it too late; see docs/spec.md); "
             "`observer` adds "
             f"`[robust.observer] bandwidth = {BANDWIDTH:g}`; `both` both. Scenarios: "
-            "`continuous` (the plain law's continuous loop, the README's baseline); `clean` "
+            "`continuous` (the plain law's continuous loop, the user guide's baseline); `clean` "
             f"(the controller stepped every {H:g} s, exact measurements); `noise` (Gaussian "
             f"noise of sd {NOISE:g} on every measured plant state); `limits` (noise, and "
             f"`[limits]`, the plant's actuators too: {described}). Final error: "
