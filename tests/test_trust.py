@@ -512,3 +512,19 @@ def test_the_sampled_order_is_fitted_until_it_is_asymptotic(
         )
     else:
         assert "observed order 0, 0, 0 from H = 0.01 to 0.00125" in result.failures[-1]
+
+
+@pytest.mark.parametrize("method", ["RK45", "DOP853"])
+@pytest.mark.parametrize("name", ["two_unicycles_corridor", "arm_on_line"])
+def test_the_constrained_examples_certify_with_either_integrator(name: str, method: str) -> None:
+    import dataclasses
+
+    from tvopt_codegen.simulation import resolve_options, simulate
+
+    from .conftest import derivation, module
+
+    d = derivation(name)
+    options = dataclasses.replace(resolve_options(d, points=101), method=method)
+    result = simulate(d, module(name), options)
+    assert result.passed, result.failures
+    assert not result.reintegrated  # at the requested settings, not after a second run
