@@ -528,3 +528,16 @@ def test_the_constrained_examples_certify_with_either_integrator(name: str, meth
     result = simulate(d, module(name), options)
     assert result.passed, result.failures
     assert not result.reintegrated  # at the requested settings, not after a second run
+
+
+def test_docstrings_write_shapes_as_python_prints_them() -> None:
+    import re
+
+    from tvopt_codegen.ir import lower
+    from tvopt_codegen.rendering import render
+
+    from .conftest import derivation
+
+    text = render(lower(derivation("pvtol")), "python")["pvtol.py"]
+    assert "numpy.ndarray, shape (4, 2) or (4, 2, N)" in text
+    assert re.search(r"shape \(\d+, \d+,\)", text) is None
