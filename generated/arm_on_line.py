@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: f163180439bb76688ba15afa53424d91fb93cc2eda581a409f8f74a9cd0fa556
+# content sha256: 092f90e957e7813786de8bec2992d43274edc476d496930207e4a4ad0516a98e
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -1171,7 +1171,7 @@ def optimality_error(t, s, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 3,) or (2, 3, N)
+    numpy.ndarray, shape (2, 3) or (2, 3, N)
         ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
 
     Raises
@@ -1243,7 +1243,7 @@ def hessian(t, y, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 2,) or (2, 2, N)
+    numpy.ndarray, shape (2, 2) or (2, 2, N)
         ``grad_yy f0``.
     """
     value = _output_function(_hessian_values, t, y, params)

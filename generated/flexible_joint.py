@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: ac0c56dd0fa8b2c313c18d60f8934a72bcdc90c724438a2a122d546121d79bab
+# content sha256: 91606863db113e58a16134af74110dbcce58270a9e19a3a9f03e1ace27e18e1f
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -1098,7 +1098,7 @@ def optimality_error(t, s, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (4, 1,) or (4, 1, N)
+    numpy.ndarray, shape (4, 1) or (4, 1, N)
         ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
 
     Raises
@@ -1170,7 +1170,7 @@ def hessian(t, y, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (1, 1,) or (1, 1, N)
+    numpy.ndarray, shape (1, 1) or (1, 1, N)
         ``grad_yy f0``.
     """
     value = _output_function(_hessian_values, t, y, params)

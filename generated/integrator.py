@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 81efdfa866b14e1beb5c8eb02319c7a106321f33c32c81bf8295951c7af89711
+# content sha256: a4d74cb47fb0ede452f4882dcb921986e982be57f7040a9064a5e49b55342365
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -893,7 +893,7 @@ def optimality_error(t, s, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (1, 2,) or (1, 2, N)
+    numpy.ndarray, shape (1, 2) or (1, 2, N)
         ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
 
     Raises
@@ -965,7 +965,7 @@ def hessian(t, y, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 2,) or (2, 2, N)
+    numpy.ndarray, shape (2, 2) or (2, 2, N)
         ``grad_yy f0``.
     """
     value = _output_function(_hessian_values, t, y, params)

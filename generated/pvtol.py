@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
-# content sha256: b8ec18047e23f55616d488ac0820f779df6f62453f4a5e85ce69d60be9658a19
+# content sha256: 11fd92b293fe1aef0b1d623778726e7b9df862f131ef9a9dc63a4cb4612bcaaf
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -1023,7 +1023,7 @@ def optimality_error(t, s, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (4, 2,) or (4, 2, N)
+    numpy.ndarray, shape (4, 2) or (4, 2, N)
         ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
 
     Raises
@@ -1095,7 +1095,7 @@ def hessian(t, y, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 2,) or (2, 2, N)
+    numpy.ndarray, shape (2, 2) or (2, 2, N)
         ``grad_yy f0``.
     """
     value = _output_function(_hessian_values, t, y, params)

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 07e445b24ce7d9b6f38208d64da0422298a156cf051e33fb33cf80a1cc2a73d3
+# content sha256: 73604448159c308f96dc22af62898dd3f4ee08968c2054fbed2b995958a958e6
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -1362,7 +1362,7 @@ def optimality_error(t, s, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 4,) or (2, 4, N)
+    numpy.ndarray, shape (2, 4) or (2, 4, N)
         ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
 
     Raises
@@ -1434,7 +1434,7 @@ def hessian(t, y, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (4, 4,) or (4, 4, N)
+    numpy.ndarray, shape (4, 4) or (4, 4, N)
         ``grad_yy f0``.
     """
     value = _output_function(_hessian_values, t, y, params)

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
-# content sha256: 859754ead8a41a6ec0700b4caa13f6824f892e951513ef0972ef1641596cad69
+# content sha256: 9604d2b20ea7f333a3f1cb497a57c304efb895de967c330175774b59cb29e575
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -2373,7 +2373,7 @@ def optimality_error(t, s, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 8,) or (2, 8, N)
+    numpy.ndarray, shape (2, 8) or (2, 8, N)
         ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
 
     Raises
@@ -2445,7 +2445,7 @@ def hessian(t, y, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (8, 8,) or (8, 8, N)
+    numpy.ndarray, shape (8, 8) or (8, 8, N)
         ``grad_yy f0``.
     """
     value = _output_function(_hessian_values, t, y, params)

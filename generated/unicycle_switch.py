@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: e13b82cb4a6a49b54c3c00a858efb15e7ed5486d8b0252af68f54df172840d8d
+# content sha256: 24270cdc4e75d3e6162a734337cc89a58b4adc4d1689d8fb40ce7ab05ec4a324
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -989,7 +989,7 @@ def optimality_error(t, s, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 2,) or (2, 2, N)
+    numpy.ndarray, shape (2, 2) or (2, 2, N)
         ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
 
     Raises
@@ -1061,7 +1061,7 @@ def hessian(t, y, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 2,) or (2, 2, N)
+    numpy.ndarray, shape (2, 2) or (2, 2, N)
         ``grad_yy f0``.
     """
     value = _output_function(_hessian_values, t, y, params)

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: e3cb9dcfbfcc67b8bc3036a84978951604c3998f5ee435acfcd4a283b0d5ed48
+# content sha256: e3f1ac27b8f8243713d0cdbe3c9e384f6291f1a8a5942639bbe390c7b3ff8a71
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -557,7 +557,7 @@ def optimality_error(t, s, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 3,) or (2, 3, N)
+    numpy.ndarray, shape (2, 3) or (2, 3, N)
         ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
 
     Raises
@@ -629,7 +629,7 @@ def hessian(t, y, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 2,) or (2, 2, N)
+    numpy.ndarray, shape (2, 2) or (2, 2, N)
         ``grad_yy f0``.
     """
     value = _output_function(_hessian_values, t, y, params)

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 8d984dffbb5dbe5b4ab1e376caff2b00620b2cad160363710dbd3f219a56f166
+# content sha256: 78c1aa36c437ae2e4b2f5fb372dac5d337e07d135a3f0abcc1edc489ba57e217
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -552,7 +552,7 @@ def optimality_error(t, s, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (4, 1,) or (4, 1, N)
+    numpy.ndarray, shape (4, 1) or (4, 1, N)
         ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
 
     Raises
@@ -624,7 +624,7 @@ def hessian(t, y, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (1, 1,) or (1, 1, N)
+    numpy.ndarray, shape (1, 1) or (1, 1, N)
         ``grad_yy f0``.
     """
     value = _output_function(_hessian_values, t, y, params)

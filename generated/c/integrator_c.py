@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 6863fa28fbd24b34246a09dd8afe8e567d9e21aefafef26e01f2dc6a28fa4f4c
+# content sha256: 6e79e94473da12cfddae84fedc7b73d813a84ce03b10521d0a92dbe23a4cb0e5
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -548,7 +548,7 @@ def optimality_error(t, s, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (1, 2,) or (1, 2, N)
+    numpy.ndarray, shape (1, 2) or (1, 2, N)
         ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
 
     Raises
@@ -620,7 +620,7 @@ def hessian(t, y, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 2,) or (2, 2, N)
+    numpy.ndarray, shape (2, 2) or (2, 2, N)
         ``grad_yy f0``.
     """
     value = _output_function(_hessian_values, t, y, params)

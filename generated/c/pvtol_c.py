@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: pvtol
 # spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
-# content sha256: e35f7a941c5ecc6089ef624b42e38b68c93f990bd06e24c57691eae56661194b
+# content sha256: 136d857412a44e00a8c59849530c796f9ce1350a708fb057931a9d0f9c59e2af
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -558,7 +558,7 @@ def optimality_error(t, s, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (4, 2,) or (4, 2, N)
+    numpy.ndarray, shape (4, 2) or (4, 2, N)
         ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
 
     Raises
@@ -630,7 +630,7 @@ def hessian(t, y, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 2,) or (2, 2, N)
+    numpy.ndarray, shape (2, 2) or (2, 2, N)
         ``grad_yy f0``.
     """
     value = _output_function(_hessian_values, t, y, params)

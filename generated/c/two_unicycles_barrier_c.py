@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 63cadf58e15a82701af540c8509fe0a9cae287cc5df6c6f253f5eb0c9eee9550
+# content sha256: 6e07dc065a904266325e4e481687b01f8acc41d170718eefd58d8422f8699198
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -557,7 +557,7 @@ def optimality_error(t, s, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 4,) or (2, 4, N)
+    numpy.ndarray, shape (2, 4) or (2, 4, N)
         ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
 
     Raises
@@ -629,7 +629,7 @@ def hessian(t, y, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (4, 4,) or (4, 4, N)
+    numpy.ndarray, shape (4, 4) or (4, 4, N)
         ``grad_yy f0``.
     """
     value = _output_function(_hessian_values, t, y, params)

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
-# content sha256: f63c39be490c761e3e145b587e79cf3fb3cf63f4845c01eda7e41fe8394794eb
+# content sha256: cb6555e39e4e82bad3ababe9ba3ff1d6ea6f4cc8bcabe6711e924d633e3d432b
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -564,7 +564,7 @@ def optimality_error(t, s, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 8,) or (2, 8, N)
+    numpy.ndarray, shape (2, 8) or (2, 8, N)
         ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
 
     Raises
@@ -636,7 +636,7 @@ def hessian(t, y, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (8, 8,) or (8, 8, N)
+    numpy.ndarray, shape (8, 8) or (8, 8, N)
         ``grad_yy f0``.
     """
     value = _output_function(_hessian_values, t, y, params)

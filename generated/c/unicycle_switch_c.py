@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: d75b2430243295613fff47b98ac30eddb128ac90eb4a28872ac9f48ca8dbe198
+# content sha256: 094c1da08e4d6e7d94ddfe4523995c25950639672c55b50f1692d8d1325fe64f
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -553,7 +553,7 @@ def optimality_error(t, s, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 2,) or (2, 2, N)
+    numpy.ndarray, shape (2, 2) or (2, 2, N)
         ``E``; under the law ``dE/dt = H E`` (with equality constraints, row j is the j-th derivative of the KKT map ``F = [grad f0 + J_a^T nu; a]``, outputs then multipliers).
 
     Raises
@@ -625,7 +625,7 @@ def hessian(t, y, params=None):
 
     Returns
     -------
-    numpy.ndarray, shape (2, 2,) or (2, 2, N)
+    numpy.ndarray, shape (2, 2) or (2, 2, N)
         ``grad_yy f0``.
     """
     value = _output_function(_hessian_values, t, y, params)
