@@ -218,24 +218,25 @@ def test_limits_and_slew_rates_are_what_the_controller_applies() -> None:
     assert max(rates) > 9.99
 
 
-def test_the_sampled_python_and_c_controllers_agree_to_the_bit_on_a_mismatched_plant() -> None:
+def _both_backends(
+    kernels: Any, plant: dict[str, float], steps: int, h: float = 1e-3
+) -> tuple[ModuleType, list[Any], list[np.ndarray], int]:
+    """Python and C controllers stepped along the same sampled run of a mismatched plant,
+    checked equal to the bit at every step: the Python module, both controllers, both
+    plant states, and the steps at which the limits clipped an input."""
     if not any(shutil.which(cc) for cc in ("gcc", "cc", "clang")):
         pytest.skip("no C compiler")
-    spec = str(SPECS / "robust_pvtol.toml")
-    d = derive(spec_from_dict(_toml(spec)))
-    kernels = lower(d)
     py = load_controller(kernels, "python")
     c = load_controller(kernels, "c")
-    plant = {"m": 1.12, "J": 0.9}
-    x0 = np.array(py.DEFAULT_STATE[:6])
+    x0 = np.array(py.DEFAULT_STATE[: len(py.PLANT_STATE_NAMES)])
     controllers = [py.Controller(x0), c.Controller(x0)]
     states = [x0.copy(), x0.copy()]
-    h, clipped = 1e-3, 0
+    clipped = 0
 
     def f(t: float, state: np.ndarray, u: np.ndarray) -> np.ndarray:
         return np.asarray(py.plant(t, state, u, plant))
 
-    for k in range(1, 3001):
+    for k in range(1, steps + 1):
         for j in (0, 1):
             states[j] = hold(f, (k - 1) * h, k * h, states[j], controllers[j].u)
             controllers[j].step(k * h, states[j])
@@ -245,6 +246,13 @@ def test_the_sampled_python_and_c_controllers_agree_to_the_bit_on_a_mismatched_p
         assert a.disturbance.tobytes() == b.disturbance.tobytes()
         assert a.saturated.tolist() == b.saturated.tolist()
         clipped += bool(a.saturated.any())
+    return py, controllers, states, clipped
+
+
+def test_the_sampled_python_and_c_controllers_agree_to_the_bit_on_a_mismatched_plant() -> None:
+    spec = str(SPECS / "robust_pvtol.toml")
+    kernels = lower(derive(spec_from_dict(_toml(spec))))
+    _, controllers, _, clipped = _both_backends(kernels, {"m": 1.12, "J": 0.9}, 3000)
     assert clipped > 0  # the limits acted
     # The thrust's matched disturbance under a 12% heavier plant: T (m0 / m - 1).
     thrust = controllers[0].u[0]
@@ -524,27 +532,9 @@ def test_the_observer_solves_a_coupled_g_by_least_squares() -> None:
 
 
 def test_the_python_and_c_observers_agree_to_the_bit_on_a_coupled_g() -> None:
-    if not any(shutil.which(cc) for cc in ("gcc", "cc", "clang")):
-        pytest.skip("no C compiler")
     _, kernels = _arm_with_observer()
-    py = load_controller(kernels, "python")
-    c = load_controller(kernels, "c")
     plant = {"m1": 1.1, "m2": 0.45}
-    x0 = np.array(py.DEFAULT_STATE[:4])
-    controllers = [py.Controller(x0), c.Controller(x0)]
-    states = [x0.copy(), x0.copy()]
-    h = 1e-3
-
-    def f(t: float, state: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return np.asarray(py.plant(t, state, u, plant))
-
-    for k in range(1, 2001):
-        for j in (0, 1):
-            states[j] = hold(f, (k - 1) * h, k * h, states[j], controllers[j].u)
-            controllers[j].step(k * h, states[j])
-        a, b = controllers
-        assert a.u.tobytes() == b.u.tobytes()
-        assert a.disturbance.tobytes() == b.disturbance.tobytes()
+    py, controllers, states, _ = _both_backends(kernels, plant, 2000)
     # The estimate is the matched disturbance of the heavier and lighter links: not zero,
     # and what the plant's own G says the model error is, to the filter's lag.
     d_hat = controllers[0].disturbance
