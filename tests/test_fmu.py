@@ -230,3 +230,39 @@ def test_reference_jets_are_fmu_inputs(fmi: int, tmp_path: Path) -> None:
         expected.append(controller.step(t, states[:, k], refs=exact_jets(spec, t)))
     got = np.array([[row[n] for n in mod.INPUT_NAMES] for row in result])
     np.testing.assert_allclose(got, np.array(expected), rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("fmi", [2, 3])
+def test_do_step_refuses_a_step_that_does_not_move_time_forward(fmi: int, tmp_path: Path) -> None:
+    from fmpy import extract
+    from fmpy.fmi2 import FMU2Slave
+    from fmpy.fmi3 import FMU3Slave
+
+    path = _fmu("unicycle_switch", fmi, tmp_path)
+    description = fmpy.read_model_description(str(path))
+    unzipped = extract(str(path), unzipdir=str(tmp_path / "unzipped"))
+    kind = FMU2Slave if fmi == 2 else FMU3Slave
+    identifier = description.coSimulation.modelIdentifier
+    slave = kind(
+        guid=description.guid if fmi == 2 else description.instantiationToken,
+        unzipDirectory=unzipped,
+        modelIdentifier=identifier,
+        instanceName="controller",
+    )
+    slave.instantiate()
+    if fmi == 2:
+        slave.setupExperiment(startTime=0.0)
+    slave.enterInitializationMode()
+    slave.exitInitializationMode()
+    for t, h in (
+        (0.0, 0.0),
+        (0.0, -0.01),
+        (0.0, float("nan")),
+        (float("nan"), 0.01),
+        (0.0, float("inf")),
+    ):
+        with pytest.raises(Exception, match="(?i)error|status"):
+            slave.doStep(currentCommunicationPoint=t, communicationStepSize=h)
+    slave.doStep(currentCommunicationPoint=0.0, communicationStepSize=0.01)  # still usable
+    slave.terminate()
+    slave.freeInstance()

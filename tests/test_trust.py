@@ -541,3 +541,49 @@ def test_docstrings_write_shapes_as_python_prints_them() -> None:
     text = render(lower(derivation("pvtol")), "python")["pvtol.py"]
     assert "numpy.ndarray, shape (4, 2) or (4, 2, N)" in text
     assert re.search(r"shape \(\d+, \d+,\)", text) is None
+
+
+def test_the_c_controllers_failures_name_their_cause() -> None:
+    from tvopt_codegen.simulation import load_controller
+
+    from .conftest import kernels
+
+    mod = load_controller(kernels("pvtol"), "c")
+    x = np.array(mod.DEFAULT_STATE[:6])
+    controller = mod.Controller(x)
+    # Far in the future: the thrust's chain, advanced by h**2 / 2, overflows: not a parameter.
+    with pytest.raises(mod.NonFiniteInputError, match="controller states are not finite"):
+        controller.step(1e200, x)
+    assert controller.t == 0.0
+    # Another thread's step in between: the C's DECREASING_TIME is that error, not a KeyError.
+    with pytest.raises(mod.DecreasingTimeError, match="time must not decrease"):
+        mod.Controller._fail(mod.STATUS_DECREASING_TIME, 1.0, x, None, 2.0)
+
+
+def test_run_time_edges_of_the_long_jobs_round(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Issue 34: --seed -1 is a one-line usage error, not an internal error.
+    out = tmp_path / "out"
+    assert main(["simulate", "unicycle_switch", "--seed", "-1", "--out", str(out)]) == 2
+    assert "--seed: must be between 0 and 2**63 - 1" in capsys.readouterr().err
+    # A module named after a C header would shadow it: refused, exit 2.
+    text = (ROOT / "tvopt_codegen" / "examples" / "integrator.toml").read_text()
+    spec = tmp_path / "stddef.toml"
+    spec.write_text(text.replace('name = "integrator"', 'name = "stddef"'))
+    assert main(["check", str(spec)]) == 2
+    assert "would write stddef.h, which shadows the C header" in capsys.readouterr().err
+
+
+def test_a_feasible_nonconvex_constraint_from_its_stationary_point_is_not_infeasible(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Issue 34: outputs starting at the centre of y1**2 + y2**2 >= 0.01, where the
+    # least-violation search cannot move; the set is not empty.
+    text = GEOFENCE.format(y0=0.0, fence="y1**2 + y2**2 >= 0.01").replace(
+        "[constraints.barrier]", "allow_nonconvex = true\n[constraints.barrier]"
+    )
+    spec = tmp_path / "away.toml"
+    spec.write_text(text)
+    main(["check", str(spec)])
+    assert "infeasible" not in capsys.readouterr().err

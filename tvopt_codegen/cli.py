@@ -620,6 +620,8 @@ def _simulate(args: argparse.Namespace) -> int:
         raise SpecError("command line", "--noise", "needs --reference-file")
     if args.allow_gaps and args.reference_file is None:
         raise SpecError("command line", "--allow-gaps", "needs --reference-file")
+    if not 0 <= args.seed < 2**63:
+        raise SpecError("command line", "--seed", "must be between 0 and 2**63 - 1")
     if args.convergence_order and args.sample_time is None:
         raise SpecError("command line", "--convergence-order", "needs --sample-time")
     if args.sample_time is not None and not 0 < args.sample_time < math.inf:

@@ -116,15 +116,35 @@ class Violation:
             return float(at_start), y0
         from scipy.optimize import minimize  # noqa: PLC0415 - only for an infeasible start
 
-        start = np.append(y0, at_start + 1.0)
-        result = minimize(
-            lambda v: v[m],
-            start,
-            method="SLSQP",
-            constraints=[
-                {"type": "ineq", "fun": lambda v, f=f: v[m] - f(v[:m], t)} for f in functions
-            ]
-            + [{"type": "eq", "fun": lambda v, f=f: f(v[:m], t)} for f in equal],
-            options={"ftol": 1e-12, "maxiter": 500},
-        )
-        return float(max(f(result.x[:m], t) for f in functions)), result.x[:m]
+        constraints = [
+            {"type": "ineq", "fun": lambda v, f=f: v[m] - f(v[:m], t)} for f in functions
+        ] + [{"type": "eq", "fun": lambda v, f=f: f(v[:m], t)} for f in equal]
+
+        def search(point: np.ndarray) -> tuple[float, np.ndarray]:
+            start = np.append(point, max(f(point, t) for f in functions) + 1.0)
+            result = minimize(
+                lambda v: v[m],
+                start,
+                method="SLSQP",
+                constraints=constraints,
+                options={"ftol": 1e-12, "maxiter": 500},
+            )
+            return float(max(f(result.x[:m], t) for f in functions)), result.x[:m]
+
+        best = search(np.asarray(y0, dtype=float))
+        if best[0] <= 0:
+            return best
+        # Nothing found from y0: it may be a stationary point of a non-convex constraint
+        # (the centre of y1**2 + y2**2 >= r**2), where the search cannot move. A few
+        # starts around it, a step of the outputs' own scale along each axis, decide.
+        step = 0.1 * (1.0 + np.abs(np.asarray(y0, dtype=float)))
+        for axis in range(m):
+            for sign in (1.0, -1.0):
+                point = np.array(y0, dtype=float)
+                point[axis] += sign * step[axis]
+                found = search(point)
+                if found[0] < best[0]:
+                    best = found
+                if best[0] <= 0:
+                    return best
+        return best

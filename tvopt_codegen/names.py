@@ -86,9 +86,29 @@ def module_name_problem(name: object) -> str | None:
         return f"module name {name!r} is a reserved device name on Windows"
     if name in sys.stdlib_module_names or name in sys.builtin_module_names:
         return f"module name {name!r} shadows the Python standard module of that name"
+    if name in _C_HEADERS:
+        return (
+            f"module name {name!r} would write {name}.h, which shadows the C header of that "
+            "name that the generated C includes, or a header of the C standard library"
+        )
     if _installed(name):
         return f"module name {name!r} shadows the installed package of that name"
     return None
+
+
+#: The C standard library's headers and those the generated C and the FMU include, lower
+#: case (a case-insensitive file system would take fmi2functions.h for fmi2Functions.h):
+#: ``<name>.h`` beside the generated C would be found before them.
+_C_HEADERS = frozenset(
+    {
+        "assert", "complex", "ctype", "errno", "fenv", "float", "inttypes", "iso646",
+        "limits", "locale", "math", "setjmp", "signal", "stdalign", "stdarg", "stdatomic",
+        "stdbool", "stddef", "stdint", "stdio", "stdlib", "stdnoreturn", "string", "tgmath",
+        "threads", "time", "uchar", "wchar", "wctype", "python", "arrayobject",
+        "fmi2functions", "fmi2functiontypes", "fmi2typesplatform", "fmi3functions",
+        "fmi3functiontypes", "fmi3platformtypes",
+    }
+)  # fmt: skip
 
 
 _WINDOWS_DEVICES = frozenset(
