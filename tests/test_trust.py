@@ -587,3 +587,25 @@ def test_a_feasible_nonconvex_constraint_from_its_stationary_point_is_not_infeas
     spec.write_text(text)
     main(["check", str(spec)])
     assert "infeasible" not in capsys.readouterr().err
+
+
+def test_a_reference_file_is_a_regular_bounded_table(tmp_path: Path) -> None:
+    import os
+
+    from tvopt_codegen.errors import SpecError
+
+    # Issue 34: a FIFO would block, /dev/zero would fill the memory; a huge field, a
+    # column given twice.
+    fifo = tmp_path / "fifo.csv"
+    os.mkfifo(fifo)
+    for path in (fifo, Path("/dev/zero")):
+        with pytest.raises(SpecError, match="not a regular file"):
+            _read(path)
+    wide = tmp_path / "wide.csv"
+    wide.write_text("t,o1x,o1y,o2x,o2y\n0," + "1" * 200_000 + ",2,3,4\n")
+    with pytest.raises(SpecError, match="not a CSV table"):
+        _read(wide)
+    twice = tmp_path / "twice.csv"
+    twice.write_text("t,o1x,o1y,o2x,o2y,o1x\n0,1,2,3,4,5\n30,1,2,3,4,5\n")
+    with pytest.raises(SpecError, match="column 'o1x' appears more than once"):
+        _read(twice)

@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 import re
+import stat
 import types
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -26,6 +28,8 @@ from tvopt_codegen.errors import SpecError, clip
 
 #: Most samples a reference file may hold.
 MAX_SAMPLES = 2_000_000
+#: Largest reference file read: MAX_SAMPLES rows of a few numbers each, with room.
+MAX_FILE_BYTES = 256 * 2**20
 
 
 @dataclass(frozen=True)
@@ -157,8 +161,16 @@ def read_reference_file(
     source = str(path)
     names = [r.name for r in derivation.model.references]
     try:
-        with open(path, newline="", encoding="utf-8-sig") as handle:
-            lines = [(n, text) for n, text in enumerate(handle.read().splitlines(), start=1)]
+        # A regular file, read within a bound: a FIFO would block and /dev/zero or a huge
+        # file would fill the memory before any line is checked.
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            raise SpecError(source, "(file)", "not a regular file")
+        with open(path, "rb") as handle:
+            data = handle.read(MAX_FILE_BYTES + 1)
+        if len(data) > MAX_FILE_BYTES:
+            raise SpecError(source, "(file)", f"larger than {MAX_FILE_BYTES // 2**20} MiB")
+        text = data.decode("utf-8-sig")
+        lines = [(n, line) for n, line in enumerate(text.splitlines(), start=1)]
     except (OSError, UnicodeDecodeError) as exc:
         raise SpecError(source, "(file)", f"cannot read the reference file: {exc}") from None
     lines = [(n, text) for n, text in lines if text.strip() and not text.lstrip().startswith("#")]
@@ -167,9 +179,15 @@ def read_reference_file(
         raise SpecError(source, "(header)", f"empty file: expected {expected}")
     head = lines[0][1]
     delimiter = max(_DELIMITERS, key=head.count)
-    rows = list(csv.reader([text for _, text in lines], delimiter=delimiter))
+    try:
+        rows = list(csv.reader([line for _, line in lines], delimiter=delimiter))
+    except csv.Error as exc:  # a field beyond the csv module's size limit, say
+        raise SpecError(source, "(file)", f"not a CSV table: {exc}") from None
     numbers = [n for n, _ in lines]
     header = [cell.strip() for cell in rows[0]]
+    twice = sorted({cell for cell in header if header.count(cell) > 1})
+    if twice:
+        raise SpecError(source, "(header)", f"column {clip(twice[0])!r} appears more than once")
     for name in ("t", *names):
         if name not in header:
             found = ", ".join(clip(cell) for cell in header[:8]) + (
