@@ -609,3 +609,35 @@ def test_a_reference_file_is_a_regular_bounded_table(tmp_path: Path) -> None:
     twice.write_text("t,o1x,o1y,o2x,o2y,o1x\n0,1,2,3,4,5\n30,1,2,3,4,5\n")
     with pytest.raises(SpecError, match="column 'o1x' appears more than once"):
         _read(twice)
+
+
+@pytest.mark.parametrize("backend", ["python", "c"])
+def test_an_estimators_jets_at_a_time_it_cannot_reach_raise(backend: str) -> None:
+    from tvopt_codegen.simulation import load_controller
+
+    from .conftest import kernels
+
+    mod = load_controller(kernels("unicycle_switch_refs"), backend)
+    estimator = mod.ReferenceEstimator(np.array([1.0, 2.0, 3.0, 4.0]), 0.0)
+    estimator.update(0.01, np.array([1.01, 2.0, 3.0, 4.02]))
+    assert np.all(np.isfinite(estimator.jets(0.02)))
+    with pytest.raises(mod.NonFiniteInputError, match="t = nan is not finite"):
+        estimator.jets(float("nan"))
+    with pytest.raises(mod.NonFiniteOutputError, match="extrapolated to t = 1e\\+300"):
+        estimator.jets(1e300)
+
+
+def test_a_spec_file_name_with_dashes_makes_a_well_formed_fmu(tmp_path: Path) -> None:
+    import xml.etree.ElementTree as ET
+    import zipfile
+
+    from tvopt_codegen.rendering import xml_text
+
+    assert "--" not in xml_text("robot---v2 ----- -- -")
+    pytest.importorskip("fmpy")
+    spec = tmp_path / "robot---v2.toml"
+    spec.write_text((ROOT / "tvopt_codegen" / "examples" / "integrator.toml").read_text())
+    out = tmp_path / "out"
+    assert main(["export", str(spec), "--fmu", "--out", str(out)]) == 0
+    with zipfile.ZipFile(out / "integrator.fmu") as archive:
+        ET.fromstring(archive.read("modelDescription.xml"))  # well-formed

@@ -159,7 +159,10 @@ def xml_text(value: object) -> str:
     text = "".join(ch if ch.isprintable() else "?" for ch in text)
     for raw, entity in (("&", "&amp;"), ("<", "&lt;"), (">", "&gt;"), ('"', "&quot;")):
         text = text.replace(raw, entity)
-    return text.replace("--", "- -")  # never closes an XML comment
+    # Never "--" (an XML comment may not hold it): "---" takes two passes.
+    while "--" in text:
+        text = text.replace("--", "- -")
+    return text
 
 
 def docstring_text(value: object) -> str:
