@@ -641,3 +641,26 @@ def test_a_spec_file_name_with_dashes_makes_a_well_formed_fmu(tmp_path: Path) ->
     assert main(["export", str(spec), "--fmu", "--out", str(out)]) == 0
     with zipfile.ZipFile(out / "integrator.fmu") as archive:
         ET.fromstring(archive.read("modelDescription.xml"))  # well-formed
+
+
+def test_markup_and_control_characters_stay_out_of_the_reports(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    text = (ROOT / "tvopt_codegen" / "examples" / "integrator.toml").read_text()
+    folder = tmp_path / "a`b-->c"
+    folder.mkdir()
+    spec = folder / "x`y-->.toml"
+    spec.write_text(text)
+    out = tmp_path / "out"
+    assert main(["report", str(spec), "--out", str(out)]) == 0
+    md = (out / "integrator_report.md").read_text()
+    head, body = md.split("-->", 1)[0], md.split("\n# ", 1)[1]
+    assert "-->" not in head.split("<!--", 1)[1][:-1]  # the comment closes where it should
+    assert f"`` {spec} ``" in body  # a code span no backtick inside can close
+    html = (out / "integrator_report.html").read_text()
+    assert html.count("-->") == html.count("<!--")
+    # A control character in the description is refused where it was written.
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace('description = """', 'description = """\\u001b[2J', 1))
+    assert main(["check", str(bad)]) == 2
+    assert "description: holds the control character U+001B" in capsys.readouterr().err

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import re
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path, PurePath
@@ -70,6 +71,7 @@ def environment(root: Path | None = None) -> jinja2.Environment:
     env.filters["comment"] = comment_text
     env.filters["docstring"] = docstring_text
     env.filters["md"] = markdown_text
+    env.filters["md_code"] = markdown_code
     env.filters["xml"] = xml_text
     env.filters["c_string"] = c_string
     env.filters["pyrepr"] = repr
@@ -113,6 +115,18 @@ def comment_text(value: object) -> str:
     while "??" in text:  # "???/" would otherwise keep a "??/"
         text = text.replace("??", "? ?")
     return text.rstrip("\\")
+
+
+def markdown_code(value: object) -> str:
+    """``value`` as a Markdown code span that no backtick in it can close.
+
+    The fence is one backtick longer than the longest run inside (CommonMark), padded by
+    spaces; characters that are not printable show as ``?``.
+    """
+    text = "".join(ch if ch.isprintable() else "?" for ch in str(value))
+    longest = max((len(run) for run in re.findall("`+", text)), default=0)
+    fence = "`" * (longest + 1)
+    return f"{fence} {text} {fence}" if longest else f"{fence}{text}{fence}"
 
 
 def markdown_text(value: object) -> str:

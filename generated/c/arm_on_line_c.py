@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: e3f1ac27b8f8243713d0cdbe3c9e384f6291f1a8a5942639bbe390c7b3ff8a71
+# content sha256: bbc5d9580fe4f3a3e65d8d58665f68ab39869c447c0c82320811ddad18dadef2
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -53,6 +53,7 @@ import functools
 import hashlib
 import importlib.machinery
 import importlib.util
+import math
 import os
 import shutil
 import subprocess
@@ -845,12 +846,29 @@ class Controller(_Controller):
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))
         if status != STATUS_OK:
-            self._fail(status, t, x, self._memory)
+            self._fail(status, t, x, self._memory, self._t)
         return self._out.copy()
 
     @staticmethod
-    def _fail(status, t, x, p):
+    def _fail(status, t, x, p, last=None):
+        """Raise what the C's ``status`` means, as the Python backend words it (``last``:
+        the time of the step before, for a step)."""
+        if status == STATUS_DECREASING_TIME:
+            # Only another thread's step between this one's check and its C call gets
+            # here: the Python check before the call saw time move forward.
+            raise DecreasingTimeError(
+                f"t = {t!r} is before the last step's time {last!r}: time must not decrease")
         if status == STATUS_NONFINITE_INPUT:
+            if not math.isfinite(t):
+                raise NonFiniteInputError(f"t = {t!r} is not finite")
+            if not numpy.all(numpy.isfinite(x)):
+                raise NonFiniteInputError("the plant state is not finite")
+            if last is not None:
+                # t and x are finite, the parameters were checked at the start: the
+                # controller states, advanced over t - last, are what overflowed.
+                raise NonFiniteInputError(
+                    f"the controller states are not finite at t = {t!r}, {t - last!r} s after "
+                    "the last step: the step is too long for them")
             raise NonFiniteInputError("a parameter is not finite")
         _raise(status, 0, "rhs", t, x, p)
 

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: pvtol
 # spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
-# content sha256: 136d857412a44e00a8c59849530c796f9ce1350a708fb057931a9d0f9c59e2af
+# content sha256: c8ab4216318946b003cd080c304f7c98660a2f46eb6396e0dfd1e3c4e6875975
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -54,6 +54,7 @@ import functools
 import hashlib
 import importlib.machinery
 import importlib.util
+import math
 import os
 import shutil
 import subprocess
@@ -846,12 +847,29 @@ class Controller(_Controller):
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))
         if status != STATUS_OK:
-            self._fail(status, t, x, self._memory)
+            self._fail(status, t, x, self._memory, self._t)
         return self._out.copy()
 
     @staticmethod
-    def _fail(status, t, x, p):
+    def _fail(status, t, x, p, last=None):
+        """Raise what the C's ``status`` means, as the Python backend words it (``last``:
+        the time of the step before, for a step)."""
+        if status == STATUS_DECREASING_TIME:
+            # Only another thread's step between this one's check and its C call gets
+            # here: the Python check before the call saw time move forward.
+            raise DecreasingTimeError(
+                f"t = {t!r} is before the last step's time {last!r}: time must not decrease")
         if status == STATUS_NONFINITE_INPUT:
+            if not math.isfinite(t):
+                raise NonFiniteInputError(f"t = {t!r} is not finite")
+            if not numpy.all(numpy.isfinite(x)):
+                raise NonFiniteInputError("the plant state is not finite")
+            if last is not None:
+                # t and x are finite, the parameters were checked at the start: the
+                # controller states, advanced over t - last, are what overflowed.
+                raise NonFiniteInputError(
+                    f"the controller states are not finite at t = {t!r}, {t - last!r} s after "
+                    "the last step: the step is too long for them")
             raise NonFiniteInputError("a parameter is not finite")
         _raise(status, 0, "rhs", t, x, p)
 

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 6e07dc065a904266325e4e481687b01f8acc41d170718eefd58d8422f8699198
+# content sha256: 1ef1baa435220ecb75766f1c8407848fd84d27ea51eec80d4dedd8be32f4b3f6
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -53,6 +53,7 @@ import functools
 import hashlib
 import importlib.machinery
 import importlib.util
+import math
 import os
 import shutil
 import subprocess
@@ -845,12 +846,29 @@ class Controller(_Controller):
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))
         if status != STATUS_OK:
-            self._fail(status, t, x, self._memory)
+            self._fail(status, t, x, self._memory, self._t)
         return self._out.copy()
 
     @staticmethod
-    def _fail(status, t, x, p):
+    def _fail(status, t, x, p, last=None):
+        """Raise what the C's ``status`` means, as the Python backend words it (``last``:
+        the time of the step before, for a step)."""
+        if status == STATUS_DECREASING_TIME:
+            # Only another thread's step between this one's check and its C call gets
+            # here: the Python check before the call saw time move forward.
+            raise DecreasingTimeError(
+                f"t = {t!r} is before the last step's time {last!r}: time must not decrease")
         if status == STATUS_NONFINITE_INPUT:
+            if not math.isfinite(t):
+                raise NonFiniteInputError(f"t = {t!r} is not finite")
+            if not numpy.all(numpy.isfinite(x)):
+                raise NonFiniteInputError("the plant state is not finite")
+            if last is not None:
+                # t and x are finite, the parameters were checked at the start: the
+                # controller states, advanced over t - last, are what overflowed.
+                raise NonFiniteInputError(
+                    f"the controller states are not finite at t = {t!r}, {t - last!r} s after "
+                    "the last step: the step is too long for them")
             raise NonFiniteInputError("a parameter is not finite")
         _raise(status, 0, "rhs", t, x, p)
 

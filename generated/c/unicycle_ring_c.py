@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
-# content sha256: cb6555e39e4e82bad3ababe9ba3ff1d6ea6f4cc8bcabe6711e924d633e3d432b
+# content sha256: ebbb9f03a8c685c995854b498ffef59b760367d0917fbdbd0887132be451abca
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -60,6 +60,7 @@ import functools
 import hashlib
 import importlib.machinery
 import importlib.util
+import math
 import os
 import shutil
 import subprocess
@@ -852,12 +853,29 @@ class Controller(_Controller):
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))
         if status != STATUS_OK:
-            self._fail(status, t, x, self._memory)
+            self._fail(status, t, x, self._memory, self._t)
         return self._out.copy()
 
     @staticmethod
-    def _fail(status, t, x, p):
+    def _fail(status, t, x, p, last=None):
+        """Raise what the C's ``status`` means, as the Python backend words it (``last``:
+        the time of the step before, for a step)."""
+        if status == STATUS_DECREASING_TIME:
+            # Only another thread's step between this one's check and its C call gets
+            # here: the Python check before the call saw time move forward.
+            raise DecreasingTimeError(
+                f"t = {t!r} is before the last step's time {last!r}: time must not decrease")
         if status == STATUS_NONFINITE_INPUT:
+            if not math.isfinite(t):
+                raise NonFiniteInputError(f"t = {t!r} is not finite")
+            if not numpy.all(numpy.isfinite(x)):
+                raise NonFiniteInputError("the plant state is not finite")
+            if last is not None:
+                # t and x are finite, the parameters were checked at the start: the
+                # controller states, advanced over t - last, are what overflowed.
+                raise NonFiniteInputError(
+                    f"the controller states are not finite at t = {t!r}, {t - last!r} s after "
+                    "the last step: the step is too long for them")
             raise NonFiniteInputError("a parameter is not finite")
         _raise(status, 0, "rhs", t, x, p)
 

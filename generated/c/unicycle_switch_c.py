@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 094c1da08e4d6e7d94ddfe4523995c25950639672c55b50f1692d8d1325fe64f
+# content sha256: cfac04244a5d8b7baacb6256cae276b5d9497f9079f078155dac6243e87eacab
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -49,6 +49,7 @@ import functools
 import hashlib
 import importlib.machinery
 import importlib.util
+import math
 import os
 import shutil
 import subprocess
@@ -841,12 +842,29 @@ class Controller(_Controller):
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))
         if status != STATUS_OK:
-            self._fail(status, t, x, self._memory)
+            self._fail(status, t, x, self._memory, self._t)
         return self._out.copy()
 
     @staticmethod
-    def _fail(status, t, x, p):
+    def _fail(status, t, x, p, last=None):
+        """Raise what the C's ``status`` means, as the Python backend words it (``last``:
+        the time of the step before, for a step)."""
+        if status == STATUS_DECREASING_TIME:
+            # Only another thread's step between this one's check and its C call gets
+            # here: the Python check before the call saw time move forward.
+            raise DecreasingTimeError(
+                f"t = {t!r} is before the last step's time {last!r}: time must not decrease")
         if status == STATUS_NONFINITE_INPUT:
+            if not math.isfinite(t):
+                raise NonFiniteInputError(f"t = {t!r} is not finite")
+            if not numpy.all(numpy.isfinite(x)):
+                raise NonFiniteInputError("the plant state is not finite")
+            if last is not None:
+                # t and x are finite, the parameters were checked at the start: the
+                # controller states, advanced over t - last, are what overflowed.
+                raise NonFiniteInputError(
+                    f"the controller states are not finite at t = {t!r}, {t - last!r} s after "
+                    "the last step: the step is too long for them")
             raise NonFiniteInputError("a parameter is not finite")
         _raise(status, 0, "rhs", t, x, p)
 

@@ -396,6 +396,13 @@ class _Reader:
             raise self.fail("description", "expected a string")
         if len(description) > 4000:
             raise self.fail("description", "longer than 4000 characters")
+        control = next(
+            (ch for ch in description if not ch.isprintable() and ch not in "\n\t"), None
+        )
+        if control is not None:
+            # It reaches docstrings, comments and both reports: a terminal escape or a
+            # carriage return there would rewrite what a reader sees.
+            raise self.fail("description", f"holds the control character U+{ord(control):04X}")
         return name, description
 
     def read_dynamics(
