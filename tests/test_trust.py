@@ -664,3 +664,23 @@ def test_markup_and_control_characters_stay_out_of_the_reports(
     bad.write_text(text.replace('description = """', 'description = """\\u001b[2J', 1))
     assert main(["check", str(bad)]) == 2
     assert "description: holds the control character U+001B" in capsys.readouterr().err
+
+
+def test_the_c_controller_refuses_missing_reference_jets() -> None:
+    import ctypes
+
+    from tvopt_codegen.simulation import load_controller
+
+    from .conftest import kernels
+
+    mod = load_controller(kernels("unicycle_switch_refs"), "c")
+    memory = np.zeros(mod._CONTROLLER_SIZE // 8 + 1)
+    x = np.array(mod.DEFAULT_STATE[:3])
+    init = mod._LIB.unicycle_switch_refs_controller_init
+    init.argtypes = (ctypes.c_void_p, ctypes.c_double) + (ctypes.c_void_p,) * 4
+    init.restype = ctypes.c_int
+    # refs = NULL: a status, not a crash; the struct is left as it was.
+    assert (
+        init(memory.ctypes.data, 0.0, x.ctypes.data, None, None, None) == mod.STATUS_NONFINITE_INPUT
+    )
+    assert not memory.any()
