@@ -684,3 +684,28 @@ def test_the_c_controller_refuses_missing_reference_jets() -> None:
         init(memory.ctypes.data, 0.0, x.ctypes.data, None, None, None) == mod.STATUS_NONFINITE_INPUT
     )
     assert not memory.any()
+
+
+def test_the_c_controllers_step_with_reference_jets_takes_the_entry_point_too() -> None:
+    from tvopt_codegen.simulation import load_controller
+    from tvopt_codegen.simulation.references import exact_jets
+
+    from .conftest import derivation, kernels
+
+    mod = load_controller(kernels("unicycle_switch_refs"), "c")
+    if mod._ENTRY_STEP is None:
+        pytest.skip("no Python headers: the C module calls through ctypes")
+    jets = exact_jets(derivation("unicycle_switch_refs"), {})
+    x = np.array(mod.DEFAULT_STATE[:3])
+    fast, general = mod.Controller(x, refs=jets(0.0)), mod.Controller(x, refs=jets(0.0))
+    for k in range(1, 100):
+        t = k * 1e-2
+        a = fast.step(t, x, refs=jets(t))  # a float64 (4, 3) array: the entry point
+        b = general.step(t, x.tolist(), refs=jets(t).tolist())  # lists: the general path
+        assert a.tobytes() == b.tobytes() and fast.state.tobytes() == general.state.tobytes()
+    bad = jets(1.0)
+    bad[2, 1] = np.nan
+    with pytest.raises(mod.NonFiniteInputError):
+        fast.step(1.0, x, refs=bad)
+    with pytest.raises(ValueError):
+        fast.step(1.0, x, refs=jets(1.0)[:, :2])  # the wrong shape, as the general path says

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: bbc5d9580fe4f3a3e65d8d58665f68ab39869c447c0c82320811ddad18dadef2
+# content sha256: 6792b221833c996b8b84f32f29ef0c6a8e3dc17eff9bae770012ee121a54882d
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -842,6 +842,7 @@ class Controller(_Controller):
             return _Controller.step(self, t, x)
 
         step.__doc__ = _Controller.step.__doc__
+
 
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))

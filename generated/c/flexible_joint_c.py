@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 36b55cad0337fcb6dba51bd4649dff76b24ec59b4a17f0575d0d9bf976f7759a
+# content sha256: 898aa36961268566035604454539be5b3030e5943482620081df88741e9fb633
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -837,6 +837,7 @@ class Controller(_Controller):
             return _Controller.step(self, t, x)
 
         step.__doc__ = _Controller.step.__doc__
+
 
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 74ba81ca0ae5bffb06f6041afaf1a8c03714ddc4e30e69495919d4f228e118f8
+# content sha256: afb7fea3f7311580b6bc5c2764e875e907f53e033705ce34e74f51379474299f
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -833,6 +833,7 @@ class Controller(_Controller):
             return _Controller.step(self, t, x)
 
         step.__doc__ = _Controller.step.__doc__
+
 
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))

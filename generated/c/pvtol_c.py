@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: pvtol
 # spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
-# content sha256: c8ab4216318946b003cd080c304f7c98660a2f46eb6396e0dfd1e3c4e6875975
+# content sha256: fe0264bdcae6c3768072db8d2e924826c80ba25d8a560539002fad6399f7d491
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -843,6 +843,7 @@ class Controller(_Controller):
             return _Controller.step(self, t, x)
 
         step.__doc__ = _Controller.step.__doc__
+
 
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))

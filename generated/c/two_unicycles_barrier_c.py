@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 1ef1baa435220ecb75766f1c8407848fd84d27ea51eec80d4dedd8be32f4b3f6
+# content sha256: d3a7afd268bb94b871dc92a0cac7983e3ea9863c7e3176a8fdf8fc13fcf29300
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -842,6 +842,7 @@ class Controller(_Controller):
             return _Controller.step(self, t, x)
 
         step.__doc__ = _Controller.step.__doc__
+
 
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
-# content sha256: ebbb9f03a8c685c995854b498ffef59b760367d0917fbdbd0887132be451abca
+# content sha256: bd2aafb21c411bcf7b0c0abe6c19c3229728dd1d7571837ce28378ccfc91e338
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -849,6 +849,7 @@ class Controller(_Controller):
             return _Controller.step(self, t, x)
 
         step.__doc__ = _Controller.step.__doc__
+
 
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))

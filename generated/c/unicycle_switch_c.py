@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: cfac04244a5d8b7baacb6256cae276b5d9497f9079f078155dac6243e87eacab
+# content sha256: 54b477db2fa6f634070ca5058d372e6d0f9c6eb728929b2964bc79cefc8e6354
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -838,6 +838,7 @@ class Controller(_Controller):
             return _Controller.step(self, t, x)
 
         step.__doc__ = _Controller.step.__doc__
+
 
     def _move(self, t, x):
         status = _STEP(_address(self._memory), t, _address(x), _address(self._out))
