@@ -166,10 +166,10 @@ def read_reference_file(
         if not stat.S_ISREG(os.stat(path).st_mode):
             raise SpecError(source, "(file)", "not a regular file")
         with open(path, "rb") as handle:
-            data = handle.read(MAX_FILE_BYTES + 1)
-        if len(data) > MAX_FILE_BYTES:
+            raw = handle.read(MAX_FILE_BYTES + 1)
+        if len(raw) > MAX_FILE_BYTES:
             raise SpecError(source, "(file)", f"larger than {MAX_FILE_BYTES // 2**20} MiB")
-        text = data.decode("utf-8-sig")
+        text = raw.decode("utf-8-sig")
         lines = [(n, line) for n, line in enumerate(text.splitlines(), start=1)]
     except (OSError, UnicodeDecodeError) as exc:
         raise SpecError(source, "(file)", f"cannot read the reference file: {exc}") from None
