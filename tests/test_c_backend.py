@@ -316,10 +316,10 @@ def test_compiler_error_is_reported_and_nothing_cached(tmp_path: Path) -> None:
 
 
 def test_example_control_loop_from_the_guide_compiles_and_runs(tmp_path: Path) -> None:
-    """The user guide's stateful C loop, as written there, with a simulated robot around it."""
+    """docs/module.md's stateful C loop, as written there, with a simulated robot around it."""
     from .conftest import ROOT
 
-    readme = (ROOT / "docs" / "guide.md").read_text()
+    readme = (ROOT / "docs" / "module.md").read_text()
     blocks = re.findall(r"```c\n(.*?)```", readme, re.DOTALL)
     loop = next(block for block in blocks if "controller_step" in block)
     source = _write_c("unicycle_switch", tmp_path)
