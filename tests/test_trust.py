@@ -709,3 +709,24 @@ def test_the_c_controllers_step_with_reference_jets_takes_the_entry_point_too() 
         fast.step(1.0, x, refs=bad)
     with pytest.raises(ValueError):
         fast.step(1.0, x, refs=jets(1.0)[:, :2])  # the wrong shape, as the general path says
+
+
+@pytest.mark.parametrize("backend", ["python", "c"])
+def test_a_copied_controller_is_a_controller_of_its_own(backend: str) -> None:
+    import copy
+
+    from tvopt_codegen.simulation import load_controller
+
+    from .conftest import kernels
+
+    # Issue 34: copy.copy of the C Controller shared its struct with the original.
+    mod = load_controller(kernels("pvtol"), backend)
+    x = np.array(mod.DEFAULT_STATE[:6])
+    original = mod.Controller(x)
+    original.step(0.01, x)
+    for make in (copy.copy, copy.deepcopy):
+        twin = make(original)
+        before = twin.state.tobytes(), twin.t
+        original.step(original.t + 0.01, x + 0.01)
+        assert (twin.state.tobytes(), twin.t) == before  # the original's step left it alone
+        assert twin.step(original.t, x + 0.01).tobytes() == original.u.tobytes()

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: 6792b221833c996b8b84f32f29ef0c6a8e3dc17eff9bae770012ee121a54882d
+# content sha256: 405acdbe00d62d947999f802e63f2532011b87f367d18a4de478be7bf64a8d7a
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -823,6 +823,20 @@ _U_AT = 1 + 2 + 1 + 5
 
 class Controller(_Controller):
     __doc__ = _Controller.__doc__
+
+    def __copy__(self):
+        # The C struct lives in self._memory, which every step writes in place: a copy
+        # that shared it would move with the original. A copy is a controller of its own,
+        # as in the Python backend (copy and deepcopy alike).
+        other = object.__new__(type(self))
+        other.__dict__.update(self.__dict__)
+        other._memory, other._out = self._memory.copy(), self._out.copy()
+        return other
+
+    def __deepcopy__(self, memo):
+        other = self.__copy__()
+        memo[id(self)] = other
+        return other
 
     def _begin(self, t, x, z, p):
         memory = numpy.zeros(_CONTROLLER_SIZE // 8 + 1)  # doubles: 8-byte aligned

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 898aa36961268566035604454539be5b3030e5943482620081df88741e9fb633
+# content sha256: 35aa3e5d71c1efa6e9727bbdb000670374705022da4b2b87ebff7b83f6660851
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -818,6 +818,20 @@ _U_AT = 1 + 1 + 1 + 4
 
 class Controller(_Controller):
     __doc__ = _Controller.__doc__
+
+    def __copy__(self):
+        # The C struct lives in self._memory, which every step writes in place: a copy
+        # that shared it would move with the original. A copy is a controller of its own,
+        # as in the Python backend (copy and deepcopy alike).
+        other = object.__new__(type(self))
+        other.__dict__.update(self.__dict__)
+        other._memory, other._out = self._memory.copy(), self._out.copy()
+        return other
+
+    def __deepcopy__(self, memo):
+        other = self.__copy__()
+        memo[id(self)] = other
+        return other
 
     def _begin(self, t, x, z, p):
         memory = numpy.zeros(_CONTROLLER_SIZE // 8 + 1)  # doubles: 8-byte aligned

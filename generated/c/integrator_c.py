@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: afb7fea3f7311580b6bc5c2764e875e907f53e033705ce34e74f51379474299f
+# content sha256: 571adc9c85ac383ebcd9d88fa1c6d6c074f142a1a346332abb58093be5536044
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -814,6 +814,20 @@ _U_AT = 1 + 1 + 1 + 1
 
 class Controller(_Controller):
     __doc__ = _Controller.__doc__
+
+    def __copy__(self):
+        # The C struct lives in self._memory, which every step writes in place: a copy
+        # that shared it would move with the original. A copy is a controller of its own,
+        # as in the Python backend (copy and deepcopy alike).
+        other = object.__new__(type(self))
+        other.__dict__.update(self.__dict__)
+        other._memory, other._out = self._memory.copy(), self._out.copy()
+        return other
+
+    def __deepcopy__(self, memo):
+        other = self.__copy__()
+        memo[id(self)] = other
+        return other
 
     def _begin(self, t, x, z, p):
         memory = numpy.zeros(_CONTROLLER_SIZE // 8 + 1)  # doubles: 8-byte aligned

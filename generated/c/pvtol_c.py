@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: pvtol
 # spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
-# content sha256: fe0264bdcae6c3768072db8d2e924826c80ba25d8a560539002fad6399f7d491
+# content sha256: 313924d1f6068dc8f62be1e19e0bfdbbc18f099aba8fddef2acf263cd102e842
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -824,6 +824,20 @@ _U_AT = 1 + 2 + 1 + 3
 
 class Controller(_Controller):
     __doc__ = _Controller.__doc__
+
+    def __copy__(self):
+        # The C struct lives in self._memory, which every step writes in place: a copy
+        # that shared it would move with the original. A copy is a controller of its own,
+        # as in the Python backend (copy and deepcopy alike).
+        other = object.__new__(type(self))
+        other.__dict__.update(self.__dict__)
+        other._memory, other._out = self._memory.copy(), self._out.copy()
+        return other
+
+    def __deepcopy__(self, memo):
+        other = self.__copy__()
+        memo[id(self)] = other
+        return other
 
     def _begin(self, t, x, z, p):
         memory = numpy.zeros(_CONTROLLER_SIZE // 8 + 1)  # doubles: 8-byte aligned

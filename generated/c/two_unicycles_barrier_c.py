@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: d3a7afd268bb94b871dc92a0cac7983e3ea9863c7e3176a8fdf8fc13fcf29300
+# content sha256: 3016c345cc20f9f05f94e61acdb28b3c860edaf5d5c8018f4544730ed4730f26
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -823,6 +823,20 @@ _U_AT = 1 + 2 + 2 + 2
 
 class Controller(_Controller):
     __doc__ = _Controller.__doc__
+
+    def __copy__(self):
+        # The C struct lives in self._memory, which every step writes in place: a copy
+        # that shared it would move with the original. A copy is a controller of its own,
+        # as in the Python backend (copy and deepcopy alike).
+        other = object.__new__(type(self))
+        other.__dict__.update(self.__dict__)
+        other._memory, other._out = self._memory.copy(), self._out.copy()
+        return other
+
+    def __deepcopy__(self, memo):
+        other = self.__copy__()
+        memo[id(self)] = other
+        return other
 
     def _begin(self, t, x, z, p):
         memory = numpy.zeros(_CONTROLLER_SIZE // 8 + 1)  # doubles: 8-byte aligned

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
-# content sha256: bd2aafb21c411bcf7b0c0abe6c19c3229728dd1d7571837ce28378ccfc91e338
+# content sha256: bf63a24bce9b36c7d47ce34a20d76b39f68583f9145ec83ec8e32a3c987d1e95
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -830,6 +830,20 @@ _U_AT = 1 + 4 + 4 + 4
 
 class Controller(_Controller):
     __doc__ = _Controller.__doc__
+
+    def __copy__(self):
+        # The C struct lives in self._memory, which every step writes in place: a copy
+        # that shared it would move with the original. A copy is a controller of its own,
+        # as in the Python backend (copy and deepcopy alike).
+        other = object.__new__(type(self))
+        other.__dict__.update(self.__dict__)
+        other._memory, other._out = self._memory.copy(), self._out.copy()
+        return other
+
+    def __deepcopy__(self, memo):
+        other = self.__copy__()
+        memo[id(self)] = other
+        return other
 
     def _begin(self, t, x, z, p):
         memory = numpy.zeros(_CONTROLLER_SIZE // 8 + 1)  # doubles: 8-byte aligned

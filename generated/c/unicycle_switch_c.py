@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 54b477db2fa6f634070ca5058d372e6d0f9c6eb728929b2964bc79cefc8e6354
+# content sha256: 7a9f5ce4f78468d99b6bc92f9987213375c635147e05445b1a3a27af9b049125
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -819,6 +819,20 @@ _U_AT = 1 + 1 + 1 + 2
 
 class Controller(_Controller):
     __doc__ = _Controller.__doc__
+
+    def __copy__(self):
+        # The C struct lives in self._memory, which every step writes in place: a copy
+        # that shared it would move with the original. A copy is a controller of its own,
+        # as in the Python backend (copy and deepcopy alike).
+        other = object.__new__(type(self))
+        other.__dict__.update(self.__dict__)
+        other._memory, other._out = self._memory.copy(), self._out.copy()
+        return other
+
+    def __deepcopy__(self, memo):
+        other = self.__copy__()
+        memo[id(self)] = other
+        return other
 
     def _begin(self, t, x, z, p):
         memory = numpy.zeros(_CONTROLLER_SIZE // 8 + 1)  # doubles: 8-byte aligned
