@@ -730,3 +730,11 @@ def test_a_copied_controller_is_a_controller_of_its_own(backend: str) -> None:
         original.step(original.t + 0.01, x + 0.01)
         assert (twin.state.tobytes(), twin.t) == before  # the original's step left it alone
         assert twin.step(original.t, x + 0.01).tobytes() == original.u.tobytes()
+
+
+def test_an_apostrophe_in_a_message_does_not_clip_the_prose_around_it() -> None:
+    from tvopt_codegen.errors import clip_quotes
+
+    prose = "a name 'stddef' that shadows a header of that name, or one of the C library's)"
+    assert clip_quotes(prose) == prose
+    assert clip_quotes("name '" + "x" * 200 + "' is bad") == "name '" + "x" * 57 + "...' is bad"

@@ -36,7 +36,9 @@ EXIT_TERMINATED = 143
 MAX_QUOTED = 60
 
 _LONG = MAX_QUOTED + 1
-_QUOTED = re.compile(rf"'([^'\n]{{{_LONG},}})'|\"([^\"\n]{{{_LONG},}})\"")
+# A quote opens after a non-word character and closes before one: the apostrophe of
+# "library's" neither opens nor closes a quoted span (it once clipped the prose between).
+_QUOTED = re.compile(rf"(?<!\w)'([^'\n]{{{_LONG},}})'(?!\w)|(?<!\w)\"([^\"\n]{{{_LONG},}})\"(?!\w)")
 
 
 def clip(text: str, limit: int = MAX_QUOTED) -> str:
