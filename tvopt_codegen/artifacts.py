@@ -10,7 +10,6 @@ and so matplotlib: ``generate``, ``check`` and ``report`` never load it.
 from __future__ import annotations
 
 import io
-import json
 from collections.abc import Mapping
 from typing import Any
 
@@ -27,9 +26,8 @@ from tvopt_codegen.sweep import (
     Summary,
     SweepOptions,
     SweepProgram,
-    SweepRun,
     format_summary,
-    parquet_bytes,
+    record_bytes,
 )
 
 
@@ -101,31 +99,32 @@ def sampled_files(derivation: Derivation, result: SampledResult) -> dict[str, by
 def sweep_files(
     program: SweepProgram,
     options: SweepOptions,
-    spec_name: str,
-    spec_text: str,
-    extension: str,
-    run: SweepRun,
+    record: Mapping[str, Any],
     summary: Summary,
+    columns: Mapping[str, np.ndarray],
     worst: Mapping[int, np.ndarray],
 ) -> dict[str, bytes]:
-    """Everything a sweep writes at its end, in memory: table, record, summary, figures."""
-    record = {
-        "spec": spec_name,
-        "extension": extension,
-        "loop": program.key,
-        "options": options.as_dict(),
-        "finished": len(run.results),
-        "interrupted": run.interrupted,
-        "seed_rule": "sample i draws from numpy.random.default_rng(seed), seed = "
-        "SeedSequence(options.seed, spawn_key=(i,)).generate_state(1, uint64)[0] >> 1",
-    }
+    """What a sweep writes at its end beside its table, in memory: record, summary, figures.
+
+    ``columns`` are the table's statistics columns
+    (:func:`~tvopt_codegen.sweep.table.summary_columns`): the figures' histograms.
+    """
+    ok = columns["status_code"] == (
+        list(columns["status_labels"]).index("ok") if "ok" in columns["status_labels"] else -1
+    )
     files = {
-        "summary.parquet": parquet_bytes([r.row for r in run.results]),
         "summary.md": (format_summary(program.name, options, summary) + "\n").encode(),
-        RECORD: (json.dumps(record, indent=2) + "\n").encode(),
-        spec_name: spec_text.encode("utf-8"),
+        RECORD: record_bytes(record),
     }
-    files.update(sweep_figures(program, [r.row for r in run.results], worst))
+    files.update(
+        sweep_figures(
+            program,
+            summary.runs,
+            columns["final_error"][ok],
+            columns["settling_1pct"][ok],
+            worst,
+        )
+    )
     return files
 
 

@@ -39,6 +39,7 @@ from tvopt_codegen.errors import (
     EXIT_TERMINATED,
     BudgetError,
     SpecError,
+    Terminated,
     TvoptError,
     one_line,
 )
@@ -250,7 +251,8 @@ def _add_sweep(commands: _Commands) -> argparse.ArgumentParser:
         "(DIST: a number, normal(mean, sd), uniform(lo, hi) or lognormal(mu, sigma)), in "
         "compiled C on a Dask cluster; write summary.parquet, summary.md and figures to "
         "--out. `sweep --replay DIR SAMPLE_ID --out DIR2` reruns one sample of the sweep "
-        "in DIR and writes its whole trajectory.",
+        "in DIR and writes its whole trajectory; `sweep --resume DIR` runs the samples an "
+        "interrupted sweep lacks.",
     )
     sw.add_argument("spec", nargs="?", help="spec file, or the name of a bundled example")
     sw.add_argument(
@@ -259,9 +261,14 @@ def _add_sweep(commands: _Commands) -> argparse.ArgumentParser:
         metavar=("DIR", "SAMPLE_ID"),
         help="rerun sample SAMPLE_ID of the sweep written to DIR (no SPEC)",
     )
+    sw.add_argument(
+        "--resume",
+        metavar="DIR",
+        help="complete the interrupted sweep in DIR: run only its missing samples (no SPEC)",
+    )
     sw.add_argument("--samples", type=int, help="number of runs")
     sw.add_argument("--seed", type=int, default=0, help="root seed (default 0)")
-    sw.add_argument("--out", required=True, help="output folder")
+    sw.add_argument("--out", help="output folder (not with --resume: DIR is the folder)")
     for option, what in (
         ("--initial", "spread of an initial closed-loop state"),
         ("--param", "the controller's (model's) parameter"),
@@ -311,6 +318,14 @@ def _add_sweep(commands: _Commands) -> argparse.ArgumentParser:
         "--trajectories",
         action="store_true",
         help="also store every run in trajectories.zarr (xarray-readable), as runs finish",
+    )
+    sw.add_argument(
+        "--checkpoint-seconds",
+        type=float,
+        default=20.0,
+        metavar="S",
+        help="save the finished samples to DIR/parts at least every S seconds (20): a sweep "
+        "killed outright (SIGKILL, a node lost) loses at most the last S seconds",
     )
     sw.add_argument(
         "--force", action="store_true", help="replace an earlier sweep's files in --out"
@@ -752,8 +767,16 @@ def run(argv: Sequence[str] | None = None) -> int:
     if args.command == "simulate":
         return _simulate(args)
     if args.command == "sweep":
-        from tvopt_codegen.sweep.command import replay, sweep  # noqa: PLC0415
+        from tvopt_codegen.sweep.command import replay, resume, sweep  # noqa: PLC0415
 
+        if args.replay and args.resume:
+            raise SpecError("command line", "--resume", "cannot be combined with --replay")
+        if args.resume:
+            if args.out is not None:
+                raise SpecError("command line", "--out", "is DIR itself with --resume")
+            return resume(args)
+        if args.out is None:
+            raise SpecError("command line", "--out", "is required")
         return replay(args) if args.replay else sweep(args, _derive)
     if args.command == "report":
         return _report(args)
@@ -792,12 +815,8 @@ def run(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-class _Terminated(BaseException):
-    """SIGTERM, raised where the process is so that it unwinds like Ctrl-C."""
-
-
 def _on_sigterm(_signum: int, _frame: object) -> None:
-    raise _Terminated
+    raise Terminated
 
 
 #: The cyclic garbage collector's thresholds while a command runs (Python's: 700, 10, 10).
@@ -829,7 +848,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("tvopt-codegen: interrupted; no file was left half-written", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except _Terminated:
+    except Terminated:
         print("tvopt-codegen: terminated; no file was left half-written", file=sys.stderr)
         return EXIT_TERMINATED
     except (RecursionError, MemoryError) as exc:

@@ -560,13 +560,16 @@ class TrajectoryStore:
         Coordinate arrays (one dimension each, named like it).
     attrs : mapping
         The store's attributes (JSON-ready).
+    resume : bool
+        Open the store an interrupted sweep created (the same arrays) to fill the rest.
 
     Raises
     ------
     MissingExtraError
         Without zarr.
     OutputError
-        When ``path`` exists or cannot be created.
+        When ``path`` exists (or, to resume, does not hold these arrays) or cannot be
+        created.
     """
 
     def __init__(
@@ -575,6 +578,7 @@ class TrajectoryStore:
         variables: Mapping[str, tuple[tuple[str, ...], tuple[int, ...], tuple[int, ...]]],
         coords: Mapping[str, Any],
         attrs: Mapping[str, Any],
+        resume: bool = False,
     ) -> None:
         try:
             import zarr  # noqa: PLC0415
@@ -585,6 +589,9 @@ class TrajectoryStore:
                 "--trajectories needs zarr: pip install 'tvopt-codegen[sweep]'"
             ) from None
         target = Path(path)
+        if resume:
+            self._arrays = self._reopen(zarr, target, variables)
+            return
         if target.exists() or target.is_symlink():
             raise OutputError(f"{target}: already exists; refusing to replace a trajectory store")
         try:
@@ -611,7 +618,260 @@ class TrajectoryStore:
         except OSError as exc:
             raise OutputError(f"{target}: cannot create the trajectory store: {exc}") from None
 
+    @staticmethod
+    def _reopen(
+        zarr: Any,
+        target: Path,
+        variables: Mapping[str, tuple[tuple[str, ...], tuple[int, ...], tuple[int, ...]]],
+    ) -> dict[str, Any]:
+        if target.is_symlink() or not target.is_dir():
+            raise OutputError(f"{target}: the interrupted sweep's trajectory store is missing")
+        try:
+            group = zarr.open_group(str(target), mode="r+")
+            arrays = {name: group[name] for name in variables}
+        except (OSError, KeyError, ValueError) as exc:
+            raise OutputError(f"{target}: cannot reopen the trajectory store: {exc}") from None
+        for name, (_dims, shape, _chunks) in variables.items():
+            if tuple(arrays[name].shape) != tuple(shape):
+                raise OutputError(f"{target}: {name} is not this sweep's array (its shape)")
+        return arrays
+
     def write(self, start: int, values: Mapping[str, Any]) -> None:
-        """Store a block of samples beginning at sample ``start`` (first axis)."""
-        for name, block in values.items():
-            self._arrays[name][start : start + len(block)] = block
+        """Store a block of samples beginning at sample ``start`` (first axis).
+
+        Raises
+        ------
+        OutputError
+            The disk refused the write (full): the blocks written before stay.
+        """
+        try:
+            for name, block in values.items():
+                self._arrays[name][start : start + len(block)] = block
+        except OSError as exc:
+            raise OutputError(
+                f"cannot write the trajectories: {exc.strerror or exc}; the finished samples "
+                "are kept: make room, then `tvopt-codegen sweep --resume` on the folder"
+            ) from None
+
+
+def _file_digest(path: Path) -> str | None:
+    """SHA-256 of a regular file, read in blocks (a sweep's table may be gigabytes)."""
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as handle:
+            while block := handle.read(1 << 20):
+                digest.update(block)
+    except OSError:
+        return None
+    return digest.hexdigest()
+
+
+def check_replaceable(out_dir: str | Path, names: Iterator[str] | list[str], force: bool) -> None:
+    """Raise unless every file ``names`` in ``out_dir`` may be (re)written by this tool.
+
+    The rule of :func:`write_files`, asked before the content exists: a command that
+    runs for hours (a sweep) refuses a user's file at its start, not at its end. A file
+    may be replaced when it is absent, when the manifest vouches for it, or when it is
+    pristine generated text; ``force`` allows any regular file.
+    """
+    folder = Path(out_dir)
+    if not folder.is_dir():
+        return
+    manifest = _read_manifest(folder)
+    for name in names:
+        path = folder / name
+        if path.is_symlink():
+            raise OutputError(f"{path}: is a symbolic link; refusing to write through it")
+        if not path.exists():
+            continue
+        if not path.is_file():
+            raise OutputError(f"{path}: exists and is not a regular file")
+        if force or manifest.get(name) == _file_digest(path):
+            continue
+        text = read_regular_file(path, _MAX_OWN_FILE_BYTES)
+        with contextlib.suppress(UnicodeDecodeError):
+            if text is not None and is_pristine(text.decode("utf-8")):
+                continue
+        raise OutputError(
+            f"{path}: was edited by hand or not written by tvopt-codegen; refusing to "
+            "overwrite it (use --force to replace it)"
+        )
+
+
+def write_stream(
+    out_dir: str | Path, name: str, produce: Callable[[Any], object], force: bool = False
+) -> Path:
+    """Write one file that is too large to hold in memory, atomically.
+
+    ``produce`` writes the content to the binary file handle it is given (a temporary
+    beside the target); the temporary is flushed and renamed over ``name`` only when
+    ``produce`` returns, and the manifest records the file's SHA-256.
+
+    Raises
+    ------
+    OutputError
+        When the target may not be replaced (see :func:`check_replaceable`) or the disk
+        refuses the write (full, read-only).
+    """
+    folder = prepare_folder(out_dir)
+    check_replaceable(folder, [name], force)
+    target = folder / name
+    fd, temp = tempfile.mkstemp(prefix=f".{name}.{os.getpid()}-", suffix=_TEMP_SUFFIX, dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            produce(handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.chmod(temp, 0o644)
+        digest = _file_digest(Path(temp))
+        manifest = _read_manifest(folder)
+        manifest[name] = str(digest)
+        record = json.dumps(dict(sorted(manifest.items())), indent=1) + "\n"
+        with _signals_held():
+            os.replace(temp, target)
+            _write_exact(folder / MANIFEST, record.encode("utf-8"))
+            _sync_folder(folder)
+    except OSError as exc:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(temp)
+        raise OutputError(f"{target}: cannot write: {exc.strerror or exc}") from None
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(temp)
+        raise
+    return target
+
+
+class SweepFolder:
+    """A sweep's output folder while the sweep runs: locked, its rows kept as they finish.
+
+    Finished samples go to ``parts/`` (each part a whole file, published by rename), so
+    that a sweep killed by any signal leaves whole files that ``sweep --resume`` reads.
+    A lock (``flock`` on ``.tvopt-sweep.lock``, released by the kernel when the process
+    dies, even by SIGKILL) keeps a second sweep out of the folder while one runs.
+
+    Parameters
+    ----------
+    out_dir : str or pathlib.Path
+        The folder; created (one level deep) when missing.
+    names : list of str
+        The files the sweep will write there: each must be replaceable
+        (:func:`check_replaceable`) before the first sample runs.
+    force : bool
+        Replace files not written by this tool.
+
+    Raises
+    ------
+    OutputError
+        The folder cannot be created or written, another sweep holds it, or a file the
+        sweep would write belongs to the user.
+    """
+
+    LOCK = ".tvopt-sweep.lock"
+    PARTS = "parts"
+    _PART = re.compile(r"part-\d{8}-\d+\.parquet")
+
+    def __init__(self, out_dir: str | Path, names: list[str], force: bool) -> None:
+        folder = Path(out_dir)
+        self.created = not folder.exists() and not folder.is_symlink()
+        self.folder = prepare_folder(folder)
+        self._lock: int | None = None
+        try:
+            self._lock = os.open(
+                self.folder / self.LOCK, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644
+            )
+        except OSError as exc:
+            self._abandon()
+            raise OutputError(
+                f"{self.folder}: cannot write in the output folder: {exc.strerror or exc}"
+            ) from None
+        import fcntl  # noqa: PLC0415 - POSIX only, like the signals the sweep keeps
+
+        try:
+            fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(self._lock)
+            self._lock = None
+            raise OutputError(
+                f"{self.folder}: another sweep is writing to this folder; wait for it, or "
+                "choose another --out"
+            ) from None
+        try:
+            check_replaceable(self.folder, names, force)
+            parts = self.folder / self.PARTS
+            if parts.is_symlink() or (parts.exists() and not parts.is_dir()):
+                raise OutputError(f"{parts}: exists and is not the sweep's folder of parts")
+        except BaseException:
+            self.close(failed=True)
+            raise
+        self._sequence = len(self.parts())
+
+    def parts(self) -> list[Path]:
+        """The parts written so far (by this run or an interrupted one), by name."""
+        where = self.folder / self.PARTS
+        if not where.is_dir():
+            return []
+        return sorted(p for p in where.iterdir() if self._PART.fullmatch(p.name) and p.is_file())
+
+    def write_part(self, produce: Callable[[Any], object]) -> Path:
+        """Publish one part: ``produce`` writes it to a temporary, renamed when whole.
+
+        Raises
+        ------
+        OutputError
+            The disk refused the write (full, read-only); the parts already written stay.
+        """
+        where = self.folder / self.PARTS
+        try:
+            where.mkdir(exist_ok=True)
+            self._sequence += 1
+            target = where / f"part-{self._sequence:08d}-{os.getpid()}.parquet"
+            fd, temp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=_TEMP_SUFFIX, dir=where)
+            try:
+                with os.fdopen(fd, "wb") as handle:
+                    produce(handle)
+                    handle.flush()
+                    os.fsync(handle.fileno())
+                os.chmod(temp, 0o644)
+                os.replace(temp, target)
+                _sync_folder(where)
+            except BaseException:
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(temp)
+                raise
+        except OSError as exc:
+            raise OutputError(
+                f"{where}: cannot write the finished samples: {exc.strerror or exc}; those "
+                f"written so far are kept: make room, then `tvopt-codegen sweep --resume "
+                f"{self.folder}`"
+            ) from None
+        return target
+
+    def clear_parts(self) -> None:
+        """Remove the parts (the table holds them all now) and their folder if empty."""
+        where = self.folder / self.PARTS
+        for part in self.parts():
+            with contextlib.suppress(FileNotFoundError):
+                part.unlink()
+        if where.is_dir():
+            for orphan in where.glob(f".part-*{_TEMP_SUFFIX}"):
+                with contextlib.suppress(FileNotFoundError):
+                    orphan.unlink()
+            with contextlib.suppress(OSError):
+                where.rmdir()
+
+    def _abandon(self) -> None:
+        """Remove the folder if this run created it and nothing is in it."""
+        if self.created:
+            with contextlib.suppress(OSError):
+                self.folder.rmdir()
+
+    def close(self, failed: bool = False) -> None:
+        """Release the lock; after a failure, leave no empty folder behind."""
+        if self._lock is not None:
+            with contextlib.suppress(FileNotFoundError):
+                (self.folder / self.LOCK).unlink()
+            os.close(self._lock)
+            self._lock = None
+        if failed:
+            self._abandon()

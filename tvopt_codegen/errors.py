@@ -32,6 +32,14 @@ EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143
 
 
+class Terminated(BaseException):  # noqa: N818 - a signal, like KeyboardInterrupt
+    """SIGTERM, raised where the process is so that it unwinds like Ctrl-C.
+
+    What ``timeout``, SLURM, systemd and Kubernetes send to stop a job: a command that
+    keeps finished work on Ctrl-C (a sweep) keeps it on SIGTERM too.
+    """
+
+
 #: Longest name or value an error message quotes in full.
 MAX_QUOTED = 60
 

@@ -10,7 +10,7 @@ y* (dashed), each agent's path, and start points marked with stars.
 from __future__ import annotations
 
 import io
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 import matplotlib
@@ -277,14 +277,21 @@ def _trajectory_error(program: SweepProgram, trajectory: np.ndarray) -> tuple[An
 
 
 def sweep_figures(
-    program: SweepProgram, rows: Sequence[Mapping[str, Any]], worst: Mapping[int, np.ndarray]
+    program: SweepProgram,
+    runs: int,
+    finals: np.ndarray,
+    settle: np.ndarray,
+    worst: Mapping[int, np.ndarray],
 ) -> dict[str, bytes]:
-    """``sweep_histograms``: final error and settling time; ``sweep_worst``: the worst runs."""
-    ok = [row for row in rows if row["status"] == "ok"]
+    """``sweep_histograms``: final error and settling time; ``sweep_worst``: the worst runs.
+
+    ``finals`` and ``settle`` are the ok samples' final errors and settling times (NaN:
+    never settled) of the ``runs`` samples.
+    """
     fig = Figure(figsize=(9.0, 3.6))
     FigureCanvasAgg(fig)
     left, right = fig.subplots(1, 2)
-    finals = np.array([row["final_error"] for row in ok])
+    ok = finals
     if len(finals):
         positive = np.maximum(finals, 1e-16)
         low, high = np.log10(positive.min()), np.log10(positive.max())
@@ -293,8 +300,7 @@ def sweep_figures(
         left.set_xscale("log")
     left.set_xlabel("final |y - y*|")
     left.set_ylabel("samples")
-    left.set_title(f"{program.name}: {len(ok)} of {len(rows)} runs ok", fontsize=10)
-    settle = np.array([row["settling_1pct"] for row in ok])
+    left.set_title(f"{program.name}: {len(ok)} of {runs} runs ok", fontsize=10)
     settle = settle[np.isfinite(settle)]
     if len(settle):
         right.hist(settle, bins=30, color="tab:orange", edgecolor="white")

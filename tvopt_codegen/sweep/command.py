@@ -15,29 +15,43 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from tvopt_codegen.errors import EXIT_INTERRUPTED, OutputError, SpecError
+from tvopt_codegen.errors import EXIT_INTERRUPTED, EXIT_TERMINATED, OutputError, SpecError
 
 if TYPE_CHECKING:
     from tvopt_codegen.derivation import Derivation
     from tvopt_codegen.ir import KernelSet
+
+#: In a log, seconds to the first progress line, then between lines.
+LOG_FIRST = 10.0
+LOG_EVERY = 60.0
 
 #: The worst samples drawn in ``sweep_worst`` (rerun locally with their trajectories).
 WORST = 5
 
 
 class _Progress:
-    """Samples done, failures and the rate on stderr: one updating line on a terminal."""
+    """Samples done, failures and the rate on stderr.
+
+    On a terminal one updating line; in a log (a batch job's, ``--progress auto``) a line
+    a minute, the first after :data:`LOG_FIRST` seconds, so that a long job shows it runs
+    from its first minute and a short one stays quiet.
+    """
 
     def __init__(self, mode: str, total: int) -> None:
-        tty = sys.stderr.isatty()
-        self.enabled = mode == "always" or (mode == "auto" and tty)
-        self.tty = tty
+        self.tty = sys.stderr.isatty()
+        self.enabled = mode != "never"
+        self.log = mode == "auto" and not self.tty
+        self.every = LOG_EVERY if self.log else (0.2 if self.tty else 2.0)
         self.total = total
-        self.last = 0.0
+        # The first line at once, or in a log LOG_FIRST seconds after the start.
+        self.last = time.perf_counter() - LOG_EVERY + LOG_FIRST if self.log else -math.inf
 
     def __call__(self, done: int, failed: int, rate: float) -> None:
         now = time.perf_counter()
-        if not self.enabled or (done < self.total and now - self.last < (0.2 if self.tty else 2)):
+        finished = done >= self.total
+        if not self.enabled or (finished and self.log):
+            return  # a log gets the summary next
+        if not finished and now - self.last < self.every:
             return
         self.last = now
         line = f"  sweep: {done}/{self.total} samples, {failed} failed, {rate:.1f} samples/s"
@@ -76,25 +90,221 @@ def _options(args: argparse.Namespace, program: Any, horizon: float) -> Any:
     check_options(program, options)
     if args.chunk_size is not None and not 1 <= args.chunk_size <= options.samples:
         raise SpecError("command line", "--chunk-size", "must be between 1 and --samples")
+    _check_checkpoint(args)
     return options
 
 
-def _check_folder(args: argparse.Namespace) -> Path:
-    """The output folder may be used: no earlier sweep in it unless --force; never a store."""
-    from tvopt_codegen.emit import prepare_folder  # noqa: PLC0415
+def _check_checkpoint(args: argparse.Namespace) -> None:
+    if not 0 <= args.checkpoint_seconds <= 86_400:
+        raise SpecError("command line", "--checkpoint-seconds", "must be between 0 and 86400")
+
+
+#: The figures a sweep draws (each as PNG and SVG).
+FIGURES = ("sweep_histograms", "sweep_worst")
+
+
+def _names(spec_name: str) -> list[str]:
+    """Every file a sweep writes into its folder (checked before the first sample)."""
+    names = ["summary.parquet", "summary.md", "sweep.json", spec_name]
+    return names + [f"{stem}.{kind}" for stem in FIGURES for kind in ("png", "svg")]
+
+
+def _check_earlier(args: argparse.Namespace) -> None:
+    """No earlier sweep in --out unless --force (nothing written yet: only looked at)."""
+    from tvopt_codegen.emit import SweepFolder, prepare_folder  # noqa: PLC0415
     from tvopt_codegen.sweep import RECORD  # noqa: PLC0415
 
     folder = prepare_folder(args.out, create=False)
     if (folder / RECORD).exists() and not args.force:
         raise OutputError(
-            f"{folder}: already holds a sweep ({RECORD}); choose another --out, or --force "
-            "to replace its files"
+            f"{folder}: already holds a sweep ({RECORD}); `tvopt-codegen sweep --resume "
+            f"{folder}` completes an interrupted one; choose another --out, or --force to "
+            "replace its files"
+        )
+    parts = folder / SweepFolder.PARTS
+    if parts.exists() and not args.force:
+        raise OutputError(
+            f"{parts}: already exists (the parts of an interrupted sweep?); choose another "
+            "--out, or --force to replace them"
         )
     if args.trajectories and (folder / "trajectories.zarr").exists():
         raise OutputError(
             f"{folder / 'trajectories.zarr'}: already exists; move it away or choose another --out"
         )
-    return folder
+
+
+class _Parts:
+    """The client's buffer of finished chunks, written as a part every few seconds."""
+
+    def __init__(self, folder: Any, schema: Any, store: Any, program: Any, every: float) -> None:
+        self.folder, self.schema, self.store, self.program = folder, schema, store, program
+        self.every = every
+        self.batches: list[Any] = []
+        self.rows = 0
+        self.last = time.monotonic()
+
+    def add(self, results: list[Any]) -> None:
+        from tvopt_codegen.sweep import PART_ROWS, record_batch, trajectory_block  # noqa: PLC0415
+
+        if not results:
+            return
+        if self.store is not None:
+            self.store.write(int(results[0].row["sample"]), trajectory_block(self.program, results))
+        self.batches.append(record_batch([r.row for r in results], self.schema))
+        self.rows += len(results)
+        if self.rows >= PART_ROWS or time.monotonic() - self.last >= self.every:
+            self.flush()
+
+    def flush(self) -> None:
+        from tvopt_codegen.sweep import write_part  # noqa: PLC0415
+
+        if self.batches:
+            batches, schema = self.batches, self.schema
+            self.folder.write_part(lambda handle: write_part(handle, batches, schema))
+        self.batches, self.rows, self.last = [], 0, time.monotonic()
+
+
+def _run_and_publish(
+    args: argparse.Namespace,
+    folder: Any,
+    program: Any,
+    options: Any,
+    record: dict[str, Any],
+    ranges: list[range],
+    client: Any,
+    cluster: Any,
+) -> int:
+    """Run ``ranges`` (every part flushed, whatever stops it), then publish the outcome."""
+    from tvopt_codegen.emit import TrajectoryStore  # noqa: PLC0415
+    from tvopt_codegen.sweep import (  # noqa: PLC0415
+        default_chunk,
+        row_schema,
+        run_sweep,
+        trajectory_layout,
+    )
+
+    schema = row_schema(program, options)
+    run = None
+    try:
+        workers = len(client.scheduler_info().get("workers", {})) or 1
+        chunk = args.chunk_size or default_chunk(options.samples, workers)
+        store = None
+        if record["trajectories"]:
+            variables, coords, attrs = trajectory_layout(program, options, chunk)
+            store = TrajectoryStore(
+                folder.folder / "trajectories.zarr",
+                variables,
+                coords,
+                attrs,
+                resume=bool(record.get("resumed")),
+            )
+        todo = sum(len(r) for r in ranges)
+        dashboard = getattr(client, "dashboard_link", "")
+        print(
+            f"sweep: {todo} samples of {program.name} on {workers} worker"
+            f"{'s' if workers != 1 else ''}" + (f"; dashboard {dashboard}" if dashboard else ""),
+            file=sys.stderr,
+            flush=True,
+        )
+        parts = _Parts(folder, schema, store, program, args.checkpoint_seconds)
+        progress = _Progress(args.progress, todo)
+        try:
+            run = run_sweep(
+                client,
+                program,
+                options,
+                ranges=ranges,
+                chunk=chunk,
+                keep=store is not None,
+                collect=False,
+                on_results=parts.add,
+                progress=progress,
+            )
+        finally:
+            progress.close()
+            parts.flush()
+    finally:
+        _disconnect(client, cluster)
+    return _publish(args, folder, program, options, record, schema, run)
+
+
+def _publish(
+    args: argparse.Namespace,
+    folder: Any,
+    program: Any,
+    options: Any,
+    record: dict[str, Any],
+    schema: Any,
+    run: Any,
+) -> int:
+    """The table from the parts, its summary and figures; the parts go once all are in."""
+    from tvopt_codegen.emit import write_files, write_stream  # noqa: PLC0415
+    from tvopt_codegen.sweep import (  # noqa: PLC0415
+        index_parts,
+        missing,
+        run_sample,
+        summarize_columns,
+        summary_columns,
+        write_table,
+    )
+
+    pieces = index_parts(folder.parts(), schema)
+    gaps = missing(pieces, options.samples)
+    absent = sum(len(g) for g in gaps)
+    table = write_stream(
+        folder.folder,
+        "summary.parquet",
+        lambda handle: write_table(handle, pieces, schema),
+        force=args.force,
+    )
+    columns = summary_columns(table)
+    summary = summarize_columns(columns, options.samples, bool(absent), WORST)
+    worst = {
+        index: run_sample(program, options, index, keep=True).trajectory
+        for index, _ in summary.worst
+    }
+    from tvopt_codegen.artifacts import sweep_files  # noqa: PLC0415 - matplotlib on use
+
+    interrupted = run is not None and run.interrupted
+    record |= {
+        "state": "interrupted" if absent else "complete",
+        "finished": summary.runs,
+        "missing": absent,
+        "interrupted": bool(absent),
+    }
+    files = sweep_files(
+        program,
+        options,
+        record,
+        summary,
+        columns,
+        {i: t for i, t in worst.items() if t is not None},
+    )
+    write_files(files, folder.folder, force=args.force)
+    if not absent:
+        folder.clear_parts()
+    print(files["summary.md"].decode().rstrip())
+    if run is not None:
+        print(
+            f"\n{run.done} samples in {run.seconds:.2f} s "
+            f"({run.done / max(run.seconds, 1e-9):.1f} samples/s on {run.workers} workers)"
+        )
+    where = str(folder.folder).rstrip("/")
+    for name in sorted([*files, "summary.parquet", record["spec"]]) + (
+        ["trajectories.zarr"] if record["trajectories"] else []
+    ):
+        print(f"  wrote {where}/{name}")
+    if absent:
+        if interrupted:
+            print(
+                f"tvopt-codegen: {'terminated' if run.signal == 'SIGTERM' else 'interrupted'}; "
+                f"kept the {summary.runs} samples that finished, {absent} missing: "
+                f"`tvopt-codegen sweep --resume {where}` runs them",
+                file=sys.stderr,
+            )
+            return EXIT_TERMINATED if run.signal == "SIGTERM" else EXIT_INTERRUPTED
+        raise OutputError(f"{where}: {absent} samples are missing after the run")
+    return 0
 
 
 def sweep(
@@ -102,104 +312,177 @@ def sweep(
     derive: Callable[[argparse.Namespace], tuple[Derivation, KernelSet]],
 ) -> int:
     """Run ``tvopt-codegen sweep SPEC ...``; returns the exit code."""
-    from tvopt_codegen.emit import TrajectoryStore, prepare_folder, write_files  # noqa: PLC0415
+    from tvopt_codegen.emit import SweepFolder, write_files  # noqa: PLC0415
     from tvopt_codegen.spec import read_spec_bytes  # noqa: PLC0415
     from tvopt_codegen.sweep import (  # noqa: PLC0415
+        RECORD,
+        check_workers,
         connect,
-        default_chunk,
         loop_for,
-        run_sample,
-        run_sweep,
-        summarize,
+        record_bytes,
         sweep_program,
-        trajectory_block,
-        trajectory_layout,
     )
 
     if args.spec is None:
-        raise SpecError("command line", "SPEC", "sweep needs a spec (or --replay DIR SAMPLE_ID)")
+        raise SpecError(
+            "command line",
+            "SPEC",
+            "sweep needs a spec (or --replay DIR SAMPLE_ID, or --resume DIR)",
+        )
     if args.samples is None:
         raise SpecError("command line", "--samples", "is required")
     if args.samples < 1:
         raise SpecError("command line", "--samples", f"must be positive, got {args.samples}")
-    if args.workers is not None and not 1 <= args.workers <= 1024:
-        raise SpecError("command line", "--workers", "must be between 1 and 1024")
+    if args.scheduler is None:
+        check_workers(args.workers)
     _source, raw = read_spec_bytes(args.spec)
     derivation, kernels = derive(args)
     program = sweep_program(kernels)
     options = _options(args, program, derivation.spec.t_final)
-    folder = _check_folder(args)
+    _check_earlier(args)
     loop_for(program)  # a compiler error stops here, before any worker starts
-    client, cluster = connect(args.workers, args.scheduler)
+    spec_name = f"{derivation.spec.name}.toml"
+    record = _record(program, options, spec_name, args.extension, bool(args.trajectories))
+    folder = SweepFolder(args.out, _names(spec_name), args.force)
     try:
-        workers = len(client.scheduler_info().get("workers", {})) or 1
-        chunk = args.chunk_size or default_chunk(options.samples, workers)
-        prepare_folder(folder)
-        store = None
-        if args.trajectories:
-            variables, coords, attrs = trajectory_layout(program, options, chunk)
-            store = TrajectoryStore(folder / "trajectories.zarr", variables, coords, attrs)
-        dashboard = getattr(client, "dashboard_link", "")
-        print(
-            f"sweep: {options.samples} samples of {program.name} on {workers} worker"
-            f"{'s' if workers != 1 else ''}" + (f"; dashboard {dashboard}" if dashboard else ""),
-            file=sys.stderr,
-            flush=True,
-        )
-
-        def keep(results: list[Any]) -> None:
-            if store is not None and results:
-                store.write(int(results[0].row["sample"]), trajectory_block(program, results))
-
-        progress = _Progress(args.progress, options.samples)
+        # Again under the lock: a sweep that finished since the first look owns the folder.
+        _check_earlier(args)
+        client, cluster = connect(args.workers, args.scheduler)
         try:
-            run = run_sweep(
-                client,
-                program,
-                options,
-                chunk=chunk,
-                keep=store is not None,
-                on_results=keep,
-                progress=progress,
+            if args.force:
+                folder.clear_parts()  # an earlier sweep's: they are not this one's samples
+            write_files(
+                {RECORD: record_bytes(record), spec_name: raw.decode("utf-8")},
+                folder.folder,
+                force=args.force,
             )
-        finally:
-            progress.close()
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
-    summary = summarize(run.results, options.samples, run.interrupted, WORST)
-    worst = {
-        index: run_sample(program, options, index, keep=True).trajectory
-        for index, _ in summary.worst
-    }
-    from tvopt_codegen.artifacts import sweep_files  # noqa: PLC0415 - matplotlib on use
-
-    files = sweep_files(
-        program,
-        options,
-        f"{derivation.spec.name}.toml",
-        raw.decode("utf-8"),
-        args.extension,
-        run,
-        summary,
-        {i: t for i, t in worst.items() if t is not None},
-    )
-    write_files(files, folder, force=True)
-    print(files["summary.md"].decode().rstrip())
-    print(
-        f"\n{len(run.results)} samples in {run.seconds:.2f} s "
-        f"({len(run.results) / max(run.seconds, 1e-9):.1f} samples/s on {run.workers} workers)"
-    )
-    for name in sorted(files) + (["trajectories.zarr"] if args.trajectories else []):
-        print(f"  wrote {str(folder).rstrip('/')}/{name}")
-    if run.interrupted:
-        print(
-            f"tvopt-codegen: interrupted; kept the {len(run.results)} samples that finished",
-            file=sys.stderr,
+        except BaseException:
+            _disconnect(client, cluster)
+            raise
+        code = _run_and_publish(
+            args, folder, program, options, record, [range(options.samples)], client, cluster
         )
-        return EXIT_INTERRUPTED
-    return 0
+    except BaseException:
+        folder.close(failed=True)
+        raise
+    folder.close()
+    return code
+
+
+def _disconnect(client: Any, cluster: Any) -> None:
+    """Close the client, and the local cluster with its worker processes."""
+    client.close()
+    if cluster is not None:
+        cluster.close()
+
+
+def _record(
+    program: Any, options: Any, spec_name: str, extension: str, trajectories: bool
+) -> dict[str, Any]:
+    """``sweep.json`` as the sweep starts: everything ``--resume`` and ``--replay`` need."""
+    return {
+        "spec": spec_name,
+        "extension": extension,
+        "loop": program.key,
+        "options": options.as_dict(),
+        "trajectories": trajectories,
+        "state": "running",
+        "finished": 0,
+        "missing": options.samples,
+        "interrupted": False,
+        "seed_rule": "sample i draws from numpy.random.default_rng(seed), seed = "
+        "SeedSequence(options.seed, spawn_key=(i,)).generate_state(1, uint64)[0] >> 1",
+    }
+
+
+#: Largest ``sweep.json`` read, and largest spec copy.
+_MAX_RECORD = 1 << 20
+_MAX_SPEC = 1 << 22
+
+
+def _from_record(folder: Path) -> tuple[dict[str, Any], Any, str, bytes, Any]:
+    """A sweep's folder read back: its record, options, spec copy and re-derived program.
+
+    Only files inside ``folder`` are read (the record names its spec by a plain file
+    name), each within a bound, and the options pass the checks a new sweep's pass.
+    """
+    import dataclasses  # noqa: PLC0415
+    import json  # noqa: PLC0415
+
+    from tvopt_codegen.derivation import derive  # noqa: PLC0415
+    from tvopt_codegen.emit import read_regular_file  # noqa: PLC0415
+    from tvopt_codegen.ir import lower  # noqa: PLC0415
+    from tvopt_codegen.spec import parse_spec  # noqa: PLC0415
+    from tvopt_codegen.sweep import RECORD, SweepOptions, check_options, sweep_program  # noqa: PLC0415
+
+    raw = read_regular_file(folder / RECORD, _MAX_RECORD)
+    if raw is None:
+        raise SpecError(str(folder), RECORD, "not found: DIR is not a sweep's output folder")
+    try:
+        record = json.loads(raw)
+        options = SweepOptions.from_dict(record["options"])
+        spec_name = str(record["spec"])
+    except (ValueError, KeyError, TypeError, AttributeError, SpecError) as exc:
+        raise SpecError(str(folder / RECORD), "options", f"unreadable: {exc}") from None
+    if Path(spec_name).name != spec_name or not spec_name.endswith(".toml"):
+        raise SpecError(
+            str(folder / RECORD), "spec", f"{spec_name!r} is not a file name in the folder"
+        )
+    spec_bytes = read_regular_file(folder / spec_name, _MAX_SPEC)
+    if spec_bytes is None:
+        raise SpecError(str(folder), spec_name, "the sweep's copy of its spec is missing")
+    spec = parse_spec(str(folder / spec_name), spec_bytes)
+    if record.get("extension") == "auto":
+        spec = dataclasses.replace(spec, extension=(), extension_auto=True)
+    program = sweep_program(lower(derive(spec)))
+    try:
+        check_options(program, options)
+    except SpecError as exc:
+        where = "options." + exc.field.lstrip("-").replace("-", "_")
+        raise SpecError(str(folder / RECORD), where, exc.problem) from None
+    return record, options, spec_name, spec_bytes, program
+
+
+def resume(args: argparse.Namespace) -> int:
+    """Run ``tvopt-codegen sweep --resume DIR``: the samples an interrupted sweep lacks."""
+    from tvopt_codegen.emit import SweepFolder  # noqa: PLC0415
+    from tvopt_codegen.sweep import connect, index_parts, loop_for, missing, row_schema  # noqa: PLC0415
+
+    if args.spec is not None:
+        raise SpecError("command line", "--resume", "takes no SPEC (the sweep's copy is used)")
+    folder_path = Path(args.resume)
+    record, options, spec_name, _spec, program = _from_record(folder_path)
+    if program.key != record.get("loop"):
+        raise SpecError(
+            str(folder_path / "sweep.json"),
+            "loop",
+            "this tvopt-codegen builds another loop than the one that ran the sweep (another "
+            "version?); its rows would not match: run the sweep anew",
+        )
+    if args.scheduler is None:
+        from tvopt_codegen.sweep import check_workers  # noqa: PLC0415
+
+        check_workers(args.workers)
+    _check_checkpoint(args)
+    if args.chunk_size is not None and not 1 <= args.chunk_size <= options.samples:
+        raise SpecError("command line", "--chunk-size", "must be between 1 and the sweep's samples")
+    if record.get("state") == "complete":
+        print(f"sweep: {folder_path} is complete; nothing to resume", file=sys.stderr)
+        return 0
+    loop_for(program)
+    folder = SweepFolder(folder_path, _names(spec_name), args.force)
+    try:
+        schema = row_schema(program, options)
+        gaps = missing(index_parts(folder.parts(), schema), options.samples)
+        record["resumed"] = True
+        if gaps:
+            client, cluster = connect(args.workers, args.scheduler)
+            code = _run_and_publish(args, folder, program, options, record, gaps, client, cluster)
+        else:
+            code = _publish(args, folder, program, options, record, schema, None)
+    finally:
+        folder.close()
+    return code
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -211,19 +494,8 @@ def _same(a: Any, b: Any) -> bool:
 
 def replay(args: argparse.Namespace) -> int:
     """Run ``tvopt-codegen sweep --replay DIR SAMPLE_ID --out DIR2``."""
-    import json  # noqa: PLC0415
-
-    from tvopt_codegen.derivation import derive  # noqa: PLC0415
-    from tvopt_codegen.emit import prepare_folder, read_regular_file, write_files  # noqa: PLC0415
-    from tvopt_codegen.ir import lower  # noqa: PLC0415
-    from tvopt_codegen.spec import parse_spec  # noqa: PLC0415
-    from tvopt_codegen.sweep import (  # noqa: PLC0415
-        RECORD,
-        SweepOptions,
-        read_summary,
-        run_sample,
-        sweep_program,
-    )
+    from tvopt_codegen.emit import prepare_folder, write_files  # noqa: PLC0415
+    from tvopt_codegen.sweep import read_row, run_sample  # noqa: PLC0415
 
     if args.spec is not None:
         raise SpecError("command line", "--replay", "takes no SPEC (the sweep's copy is used)")
@@ -235,29 +507,15 @@ def replay(args: argparse.Namespace) -> int:
         raise SpecError(
             "command line", "--replay", f"SAMPLE_ID must be an integer, got {text!r}"
         ) from None
-    raw = read_regular_file(folder / RECORD, 1 << 20)
-    if raw is None:
-        raise SpecError(str(folder), RECORD, "not found: DIR is not a sweep's output folder")
-    try:
-        record = json.loads(raw)
-        options = SweepOptions.from_dict(record["options"])
-        spec_name = str(record["spec"])
-    except (ValueError, KeyError, TypeError) as exc:
-        raise SpecError(str(folder / RECORD), "options", f"unreadable: {exc}") from None
+    table = folder / "summary.parquet"
+    if not table.is_file() or table.is_symlink():
+        raise SpecError(str(folder), "summary.parquet", "not found: DIR holds no finished sweep")
+    record, options, _name, _spec, program = _from_record(folder)
     if not 0 <= index < options.samples:
         raise SpecError(
             "command line", "--replay", f"sample {index} is not in 0 .. {options.samples - 1}"
         )
-    spec_bytes = read_regular_file(folder / spec_name, 1 << 22)
-    if spec_bytes is None:
-        raise SpecError(str(folder), spec_name, "the sweep's copy of its spec is missing")
     prepare_folder(args.out, create=False)
-    spec = parse_spec(str(folder / spec_name), spec_bytes)
-    if record.get("extension") == "auto":
-        import dataclasses  # noqa: PLC0415
-
-        spec = dataclasses.replace(spec, extension=(), extension_auto=True)
-    program = sweep_program(lower(derive(spec)))
     if program.key != record.get("loop"):
         print(
             "tvopt-codegen: warning: this tvopt-codegen builds another loop than the sweep's "
@@ -269,13 +527,14 @@ def replay(args: argparse.Namespace) -> int:
 
     files = replay_files(program, result)
     write_files(files, args.out, force=args.force)
-    rows = {int(r["sample"]): r for r in read_summary(str(folder / "summary.parquet"))}
-    stored = rows.get(index)
+    stored = read_row(table, index)
     for key in ("status", "final_error", "max_error", "seed"):
         print(f"  {key}: {result.row[key]}")
     if stored is not None:
         same = all(_same(stored.get(key), value) for key, value in result.row.items())
         print(f"  the sweep's row {'matches' if same else 'DIFFERS from'} this run")
+    else:
+        print("  the sweep's table has no row for this sample (it was interrupted before it)")
     for name in files:
         print(f"  wrote {args.out.rstrip('/')}/{name}")
     return 0

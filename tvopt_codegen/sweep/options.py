@@ -8,6 +8,7 @@ from __future__ import annotations
 import enum
 import math
 import re
+import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -35,6 +36,10 @@ DIVERGENCE_FACTOR = 1e6
 
 #: The settling thresholds: |y - y*| stays below this fraction of its initial value.
 SETTLING = (0.01, 0.001)
+
+
+#: Standard deviations within which every draw of a normal (or lognormal) stays finite.
+DRAW_REACH = 40.0
 
 
 #: Column options of the command line, and what each distribution's parameters are.
@@ -160,6 +165,20 @@ def parse_distribution(text: str, option: str, name: str) -> Distribution:
         )
     if kind == "uniform" and not a <= b:
         raise SpecError("command line", option, f"{name}: uniform needs lo <= hi, got {text!r}")
+    # numpy raises for a uniform width beyond the largest float, and the other two give
+    # infinity: such a draw would fail every sample, so it is refused here, once.
+    if kind == "uniform":
+        reach = b - a
+    elif kind == "normal":
+        reach = abs(a) + DRAW_REACH * b
+    else:
+        reach = math.inf if a + DRAW_REACH * b > math.log(sys.float_info.max) else 1.0
+    if not math.isfinite(reach):
+        raise SpecError(
+            "command line",
+            option,
+            f"{name}: {text.strip()!r} draws numbers beyond the largest float (about 1.8e308)",
+        )
     return Distribution(kind, (a, b))
 
 

@@ -13,13 +13,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from tvopt_codegen.errors import MissingExtraError
-
 if TYPE_CHECKING:
     pass
 from tvopt_codegen.sweep.options import SweepOptions
 from tvopt_codegen.sweep.program import TAIL, SweepProgram, tail
 from tvopt_codegen.sweep.sample import SampleResult
+from tvopt_codegen.sweep.table import SUMMARY_COLUMNS
 
 
 def clopper_pearson_upper(failures: int, runs: int, confidence: float = 0.95) -> float:
@@ -57,21 +56,57 @@ class Summary:
     final_equality: dict[str, float] = field(default_factory=dict)
     #: Time with an input clipped, quantiles over the ok samples (empty: never clipped).
     saturated: dict[str, float] = field(default_factory=dict)
+    #: The first sample whose run raised, and what it raised ("" when none did).
+    first_error: str = ""
+
+
+def columns_of(rows: Sequence[Mapping[str, Any]]) -> dict[str, np.ndarray]:
+    """The statistics' columns of rows held in memory.
+
+    As :func:`~tvopt_codegen.sweep.table.summary_columns` reads them from a file.
+    """
+    labels: dict[str, int] = {}
+    codes = np.array(
+        [labels.setdefault(str(r["status"]), len(labels)) for r in rows], dtype=np.int32
+    )
+    out: dict[str, np.ndarray] = {
+        "status_code": codes,
+        "status_labels": np.array(sorted(labels, key=labels.__getitem__), dtype=object),
+    }
+    present = rows[0].keys() if rows else ("sample", "final_error", "settling_1pct")
+    for name in SUMMARY_COLUMNS:
+        if name in present and name not in ("status", "error"):
+            values = [r[name] for r in rows]
+            if name == "certificate_holds":
+                values = [bool(v) for v in values]
+            out[name] = np.array(values)
+    errors = [f"sample {r['sample']}: {r['error']}" for r in rows if r.get("error")]
+    out["first_error"] = np.array(errors[:1] or [""], dtype=object)
+    return out
 
 
 def summarize(
     results: Sequence[SampleResult], requested: int, interrupted: bool, worst: int = 5
 ) -> Summary:
-    """Outcomes, failure probability (Clopper-Pearson 95%), error quantiles, worst samples."""
-    rows = [r.row for r in results]
-    outcomes: dict[str, int] = {}
-    for row in rows:
-        outcomes[row["status"]] = outcomes.get(row["status"], 0) + 1
-    failures = sum(count for status, count in outcomes.items() if status != "ok")
-    ok = [row for row in rows if row["status"] == "ok"]
-    finals = np.array([row["final_error"] for row in ok])
-    settle = np.array([row["settling_1pct"] for row in ok])
-    clipped = np.array([row["time_saturated"] for row in ok])
+    """:func:`summarize_columns` of results held in memory."""
+    return summarize_columns(columns_of([r.row for r in results]), requested, interrupted, worst)
+
+
+def summarize_columns(
+    columns: Mapping[str, np.ndarray], requested: int, interrupted: bool, worst: int = 5
+) -> Summary:
+    """Outcomes, failure probability (Clopper-Pearson 95%), error quantiles, worst samples.
+
+    ``columns`` are the table's (:func:`~tvopt_codegen.sweep.table.summary_columns`):
+    numpy arrays, so that a sweep of 10^6 samples is summarised in a few megabytes.
+    """
+    c = columns
+    codes, labels = c["status_code"], list(c["status_labels"])
+    counts = np.bincount(codes, minlength=len(labels)) if len(codes) else np.zeros(0, int)
+    outcomes = {str(label): int(n) for label, n in zip(labels, counts, strict=True) if n}
+    runs = int(len(codes))
+    failures = runs - outcomes.get("ok", 0)
+    ok = codes == labels.index("ok") if "ok" in labels else np.zeros(runs, dtype=bool)
 
     def quantiles(values: np.ndarray) -> dict[str, float]:
         if not len(values):
@@ -84,27 +119,30 @@ def summarize(
             out["max"] = float(finite.max())
         return out
 
-    ranked = sorted(ok, key=lambda row: (-row["final_error"], row["sample"]))[:worst]
-    nominal = [row for row in ok if row["nominal"]]
+    finals = c["final_error"][ok]
+    samples = c["sample"][ok]
+    order = np.lexsort((samples, -finals))[:worst]
+    nominal = c["nominal"].astype(bool) & ok
+    clipped = c["time_saturated"][ok]
+    constrained = "violations" in c
     return Summary(
-        runs=len(rows),
+        runs=runs,
         requested=requested,
         outcomes=dict(sorted(outcomes.items(), key=lambda item: (item[0] != "ok", item[0]))),
-        failure_rate=failures / len(rows) if rows else math.nan,
-        failure_upper=clopper_pearson_upper(failures, len(rows)),
+        failure_rate=failures / runs if runs else math.nan,
+        failure_upper=clopper_pearson_upper(failures, runs),
         final_error=quantiles(finals),
-        settling={k: v for k, v in quantiles(settle).items()},
-        worst=[(int(row["sample"]), float(row["final_error"])) for row in ranked],
-        nominal=len(nominal),
-        nominal_certified=sum(bool(row["certificate_holds"]) for row in nominal),
+        settling=quantiles(c["settling_1pct"][ok]),
+        worst=[(int(samples[i]), float(finals[i])) for i in order],
+        nominal=int(nominal.sum()),
+        nominal_certified=int((c["certificate_holds"].astype(bool) & nominal).sum()),
         interrupted=interrupted,
-        constrained=bool(rows) and "violations" in rows[0],
-        violating=sum(int(row.get("violations", 0)) > 0 for row in rows),
-        ended_outside=sum(row.get("final_constraint", -1.0) > 0 for row in ok),
-        final_equality=quantiles(np.array([row["final_equality"] for row in ok]))
-        if ok and "final_equality" in ok[0]
-        else {},
+        constrained=constrained and runs > 0,
+        violating=int((c["violations"] > 0).sum()) if constrained else 0,
+        ended_outside=int((c["final_constraint"][ok] > 0).sum()) if constrained else 0,
+        final_equality=quantiles(c["final_equality"][ok]) if "final_equality" in c else {},
         saturated=quantiles(clipped) if np.any(clipped > 0) else {},
+        first_error=str(c["first_error"][0]) if "first_error" in c else "",
     )
 
 
@@ -114,7 +152,12 @@ def format_summary(name: str, options: SweepOptions, summary: Summary) -> str:
     failures = s.runs - s.outcomes.get("ok", 0)
     lines = [f"# Sweep of {name}: {s.runs} samples", ""]
     if s.interrupted:
-        lines += [f"Interrupted: {s.runs} of {s.requested} samples finished.", ""]
+        lines += [
+            f"Interrupted: {s.runs} of {s.requested} samples finished, "
+            f"{s.requested - s.runs} missing (`tvopt-codegen sweep --resume` on this folder "
+            "runs them).",
+            "",
+        ]
     spread = [f"`--initial {n}={d}`" for n, d in options.initial]
     spread += [f"`--param {n}={d}`" for n, d in options.params]
     spread += [f"`--plant-param {n}={d}`" for n, d in options.plant_params]
@@ -166,6 +209,12 @@ def format_summary(name: str, options: SweepOptions, summary: Summary) -> str:
             f"Constraints: {s.violating} of {s.runs} samples crossed the barrier (g_i >= s(t) at "
             f"some output time; the barrier claims never); {s.ended_outside} ok samples end "
             "outside a constraint (g_i > 0 at the horizon).",
+            "",
+        ]
+    if s.first_error:
+        lines += [
+            f"Samples whose run raised are recorded with status `error`; the first: "
+            f"{s.first_error}.",
             "",
         ]
     if s.nominal:
@@ -243,31 +292,14 @@ def trajectory_block(
     }
 
 
-def parquet_bytes(rows: Sequence[Mapping[str, Any]]) -> bytes:
-    """The summary table as Parquet (one row per sample, in sample order)."""
-    try:
-        import pyarrow as pa  # noqa: PLC0415
-        import pyarrow.parquet as pq  # noqa: PLC0415
-    except ImportError:
-        raise MissingExtraError(
-            "sweep writes Parquet with pyarrow: pip install 'tvopt-codegen[sweep]'"
-        ) from None
-    table = pa.Table.from_pylist(list(rows))
-    sink = pa.BufferOutputStream()
-    pq.write_table(table, sink)
-    return bytes(sink.getvalue().to_pybytes())
+def record_bytes(record: Mapping[str, Any]) -> bytes:
+    """``sweep.json``: what ``--replay`` and ``--resume`` read.
 
+    Written as the sweep starts, and again at its end with what finished.
+    """
+    import json  # noqa: PLC0415
 
-def read_summary(path: str) -> list[dict[str, Any]]:
-    """The rows of a ``summary.parquet``."""
-    try:
-        import pyarrow.parquet as pq  # noqa: PLC0415
-    except ImportError:
-        raise MissingExtraError(
-            "reading a sweep needs pyarrow: pip install 'tvopt-codegen[sweep]'"
-        ) from None
-    rows: list[dict[str, Any]] = pq.read_table(path).to_pylist()
-    return rows
+    return (json.dumps(dict(record), indent=2) + "\n").encode()
 
 
 #: The record of a sweep beside its table: what ``--replay`` reads.

@@ -16,7 +16,16 @@ from tvopt_codegen.hurwitz import bound_ratio, tracking_bound
 if TYPE_CHECKING:
     pass
 from tvopt_codegen.sweep.options import SETTLING, SweepOptions
-from tvopt_codegen.sweep.program import Draw, Loop, SweepProgram, draw, loop_for, tail
+from tvopt_codegen.sweep.program import (
+    Draw,
+    Loop,
+    SweepProgram,
+    draw,
+    loop_for,
+    sample_seed,
+    tail,
+)
+from tvopt_codegen.sweep.table import failed_row
 
 
 @dataclass(frozen=True)
@@ -151,11 +160,23 @@ def run_sample(
     row["nominal"] = nominal
     row["certificate_holds"] = _certificate(loop, sample, t, convexity, error) if nominal else None
     row |= sample.values
+    row["error"] = None
     return SampleResult(row, rows if keep else None)
 
 
 def run_chunk(
     program: SweepProgram, options: SweepOptions, indices: Sequence[int], keep: bool
 ) -> list[SampleResult]:
-    """Samples ``indices`` in this process (what one Dask task runs)."""
-    return [run_sample(program, options, i, keep) for i in indices]
+    """Samples ``indices`` in this process (what one Dask task runs).
+
+    A sample whose run raises is a row with status ``error`` and the exception's
+    message: one sample never stops the sweep (nor loses its chunk's other samples).
+    """
+    results = []
+    for index in indices:
+        try:
+            results.append(run_sample(program, options, index, keep))
+        except Exception as exc:  # noqa: BLE001 - any failure of one sample is its outcome
+            seed = sample_seed(options.seed, index)
+            results.append(SampleResult(failed_row(program, options, index, seed, exc), None))
+    return results

@@ -1,0 +1,527 @@
+"""Long sweeps that never lose work: signals, resume, the folder's rules, failures, scale."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import kernels
+from tvopt_codegen import sweep
+from tvopt_codegen.cli import main
+from tvopt_codegen.errors import (
+    EXIT_BAD_SPEC,
+    EXIT_INTERRUPTED,
+    EXIT_OUTPUT,
+    EXIT_TERMINATED,
+)
+from tvopt_codegen.sweep import SweepOptions, sweep_program
+
+pq = pytest.importorskip("pyarrow.parquet")
+distributed = pytest.importorskip("distributed")
+
+ROOT = Path(__file__).resolve().parents[1]
+#: A sweep long enough to stop in the middle, short enough for the suite (about 5 s).
+SAMPLES = 4000
+COMMON = ["--samples", str(SAMPLES), "--t-final", "3", "--chunk-size", "40"]
+COMMON += ["--initial", "x1=normal(-5, 0.3)", "--plant-param", "b=uniform(1, 2)"]
+
+
+def _command(*args: str) -> list[str]:
+    return [sys.executable, "-m", "tvopt_codegen", "sweep", *args]
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory: pytest.TempPathFactory) -> bytes:
+    """The uninterrupted sweep's table (one worker)."""
+    out = tmp_path_factory.mktemp("reference") / "out"
+    done = subprocess.run(
+        _command("unicycle_switch", *COMMON, "--workers", "1", "--out", str(out)),
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    return (out / "summary.parquet").read_bytes()
+
+
+def _start(out: Path, workers: int, *extra: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        _command(
+            "unicycle_switch",
+            *COMMON,
+            "--workers",
+            str(workers),
+            "--progress",
+            "always",
+            "--out",
+            str(out),
+            *extra,
+        ),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # a process group of its own: the test signals all of it
+    )
+
+
+def _wait_for_progress(process: subprocess.Popen[str]) -> None:
+    assert process.stderr is not None
+    for line in process.stderr:
+        if "samples/s" in line:
+            return
+    raise AssertionError("the sweep ended before it showed progress")
+
+
+@pytest.mark.parametrize(("how", "workers", "again"), [("SIGTERM", 2, 1), ("SIGKILL", 1, 2)])
+def test_a_killed_sweep_resumes_to_the_uninterrupted_table_bit_for_bit(
+    tmp_path: Path, reference: bytes, how: str, workers: int, again: int
+) -> None:
+    out = tmp_path / "out"
+    process = _start(out, workers, "--checkpoint-seconds", "0.2")
+    _wait_for_progress(process)
+    if how == "SIGKILL":
+        # A node lost: the whole job dies at once, after at least one checkpoint.
+        deadline = time.monotonic() + 60
+        while not list((out / "parts").glob("part-*.parquet")) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        os.killpg(process.pid, signal.SIGKILL)
+        process.communicate(timeout=60)
+        assert process.returncode == -signal.SIGKILL
+        assert not (out / "summary.parquet").exists()
+        kept = sum(pq.ParquetFile(p).metadata.num_rows for p in (out / "parts").iterdir())
+        assert 0 < kept < SAMPLES
+    else:
+        process.send_signal(signal.SIGTERM)  # what timeout, SLURM and systemd send
+        _, stderr = process.communicate(timeout=120)
+        assert process.returncode == EXIT_TERMINATED, stderr
+        last = stderr.strip().splitlines()[-1]
+        assert last.startswith("tvopt-codegen: terminated; kept the") and "--resume" in last
+        rows = pq.read_table(out / "summary.parquet").num_rows
+        assert 0 < rows < SAMPLES
+        record = json.loads((out / "sweep.json").read_text())
+        assert record["state"] == "interrupted" and record["missing"] == SAMPLES - rows
+        assert f"{SAMPLES - rows} missing" in (out / "summary.md").read_text()
+    resumed = subprocess.run(
+        _command("--resume", str(out), "--workers", str(again)),
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    assert (out / "summary.parquet").read_bytes() == reference
+    assert not (out / "parts").exists()
+    assert json.loads((out / "sweep.json").read_text())["state"] == "complete"
+    # Nothing left to do: a second resume says so and changes nothing.
+    again_run = subprocess.run(
+        _command("--resume", str(out)), capture_output=True, text=True, check=False
+    )
+    assert again_run.returncode == 0 and "nothing to resume" in again_run.stderr
+
+
+def test_ctrl_c_in_a_terminal_is_one_line(tmp_path: Path) -> None:
+    """A terminal sends SIGINT to the whole process group, the workers too."""
+    out = tmp_path / "out"
+    process = _start(out, 2)
+    _wait_for_progress(process)
+    os.killpg(process.pid, signal.SIGINT)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == EXIT_INTERRUPTED
+    lines = [line for line in stderr.splitlines() if not line.startswith("  sweep:")]
+    assert len(lines) == 1 and lines[0].startswith("tvopt-codegen: interrupted; kept the")
+    assert pq.read_table(out / "summary.parquet").num_rows > 0
+
+
+def test_a_users_file_in_out_is_refused_before_the_first_sample(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "summary.md").write_text("my notes\n")
+    (out / "unicycle_switch.toml").write_text("# my edited spec\n")
+    args = ["sweep", "unicycle_switch", "--samples", "4", "--workers", "1", "--out", str(out)]
+    assert main(args) == EXIT_OUTPUT
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "edited by hand" in err and "--force" in err
+    assert "sweep:" not in err  # no sample ran
+    assert sorted(p.name for p in out.iterdir()) == ["summary.md", "unicycle_switch.toml"]
+    assert (out / "summary.md").read_text() == "my notes\n"
+    # --force replaces them, as for every other command.
+    assert main([*args, "--force"]) == 0
+    assert (out / "summary.md").read_text().startswith("# Sweep of unicycle_switch")
+
+
+def test_two_sweeps_into_one_new_folder_one_is_refused(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    small = ["unicycle_switch", "--samples", "400", "--t-final", "3", "--workers", "1"]
+    both = [
+        subprocess.Popen(
+            _command(*small, "--out", str(out)),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(2)
+    ]
+    outcomes = sorted((p.wait(timeout=240), p.communicate()[1]) for p in both)
+    assert [code for code, _ in outcomes] == [0, EXIT_OUTPUT], outcomes
+    refusal = outcomes[1][1].strip()
+    assert len(refusal.splitlines()) == 1
+    assert "another sweep is writing" in refusal or "already holds a sweep" in refusal
+    assert pq.read_table(out / "summary.parquet").num_rows == 400
+
+
+def _read_only_folder(tmp_path: Path) -> Path:
+    """A folder this process cannot write in (root writes anywhere chmod allows nothing)."""
+    if os.geteuid() != 0:
+        folder = tmp_path / "locked"
+        folder.mkdir()
+        folder.chmod(0o555)
+        return folder
+    for candidate in (Path("/sys/kernel"), Path("/proc/sys")):
+        try:
+            os.close(os.open(candidate / ".tvopt-probe", os.O_CREAT | os.O_WRONLY, 0o644))
+        except OSError:
+            return candidate
+        (candidate / ".tvopt-probe").unlink()
+    pytest.skip("no read-only folder for root on this machine")
+
+
+def test_an_unwritable_out_is_refused_before_the_first_sample(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    for out in (_read_only_folder(tmp_path), Path("/proc/tvopt-sweep-out")):
+        started = time.monotonic()
+        code = main(["sweep", "unicycle_switch", "--samples", "4", "--out", str(out)])
+        err = capsys.readouterr().err.strip()
+        assert code == EXIT_OUTPUT and len(err.splitlines()) == 1, err
+        assert "cannot" in err and str(out) in err
+        assert time.monotonic() - started < 30
+        assert not (out / "sweep.json").exists()
+
+
+def test_a_full_disk_during_trajectories_is_exit_4_and_resumable(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    zarr = pytest.importorskip("zarr")
+    out = tmp_path / "out"
+    real = zarr.Array.__setitem__
+    writes = {"n": 0}
+
+    def full(self: object, key: object, value: object) -> None:
+        writes["n"] += 1
+        if writes["n"] > 12:  # the coordinates and a chunk's arrays fit; the next do not
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(self, key, value)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(zarr.Array, "__setitem__", full)
+    args = ["sweep", "unicycle_switch", "--samples", "40", "--chunk-size", "4", "--t-final", "3"]
+    args += ["--workers", "1", "--trajectories", "--out", str(out)]
+    assert main(args) == EXIT_OUTPUT
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "No space left on device" in err[-1] and "--resume" in err[-1]
+    assert (out / "sweep.json").exists() and (out / "trajectories.zarr").is_dir()
+    monkeypatch.setattr(zarr.Array, "__setitem__", real)  # space made
+    assert main(["sweep", "--resume", str(out), "--workers", "1"]) == 0
+    table = pq.read_table(out / "summary.parquet").to_pylist()
+    assert [row["sample"] for row in table] == list(range(40))
+    xr = pytest.importorskip("xarray")
+    store = xr.open_zarr(out / "trajectories.zarr", consolidated=False)
+    final = store.isel(time=-1)
+    errors = np.linalg.norm(final.output.values - final.target.values, axis=1)
+    assert np.array_equal(errors, [row["final_error"] for row in table])
+
+
+# ------------------------------------------------------------ a sample never stops it
+
+
+@pytest.mark.parametrize(
+    "dist",
+    ["x1=uniform(-1e308, 1e308)", "x1=normal(0, 1e307)", "x1=lognormal(700, 1)"],
+)
+def test_a_distribution_that_overflows_is_refused_when_parsed(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], dist: str
+) -> None:
+    out = tmp_path / "out"
+    code = main(
+        ["sweep", "unicycle_switch", "--samples", "4", "--initial", dist, "--out", str(out)]
+    )
+    err = capsys.readouterr().err.strip()
+    assert code == EXIT_BAD_SPEC and len(err.splitlines()) == 1
+    assert "--initial" in err and "beyond the largest float" in err
+    assert not out.exists()
+
+
+def test_a_sample_that_raises_is_a_row_with_its_message(monkeypatch: pytest.MonkeyPatch) -> None:
+    program = sweep_program(kernels("unicycle_switch"))
+    options = SweepOptions(samples=6, seed=3, t_final=2.0, points=21)
+    real = sweep.sample.run_sample
+
+    def flaky(p: object, o: SweepOptions, index: int, keep: bool = False) -> object:
+        if index == 4:
+            raise FloatingPointError("the draw met a wall")
+        return real(p, o, index, keep)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(sweep.sample, "run_sample", flaky)
+    results = sweep.run_chunk(program, options, range(6), False)
+    assert [r.row["status"] for r in results] == ["ok"] * 4 + ["error", "ok"]
+    failed = results[4].row
+    assert failed["error"] == "FloatingPointError: the draw met a wall"
+    assert failed["seed"] == sweep.sample_seed(3, 4) and np.isnan(failed["final_error"])
+    schema = sweep.row_schema(program, options)
+    batch = sweep.record_batch([r.row for r in results], schema)
+    assert batch.num_rows == 6 and batch.schema.equals(schema)
+    summary = sweep.summarize(results, 6, False)
+    assert summary.outcomes == {"ok": 5, "error": 1}
+    text = sweep.format_summary("unicycle_switch", options, summary)
+    assert "sample 4: FloatingPointError: the draw met a wall" in text
+
+
+def test_a_dependent_constraints_status_is_recorded(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    text = (ROOT / "tvopt_codegen" / "examples" / "unicycle_switch.toml").read_text()
+    text = text.replace('name = "unicycle_switch"', 'name = "dependent"')
+    text = text.replace("[parameters]", "[parameters]\nq = 1.0")
+    spec = tmp_path / "dependent.toml"
+    spec.write_text(text + '\n[constraints]\na = "y1 == 1"\nb = "y1 + q*y2 == 0"\n')
+    out = tmp_path / "out"
+    code = main(
+        [
+            "sweep",
+            str(spec),
+            "--samples",
+            "6",
+            "--param",
+            "q=0",
+            "--workers",
+            "1",
+            "--out",
+            str(out),
+        ]
+    )
+    assert code == 0, capsys.readouterr().err
+    statuses = pq.read_table(out / "summary.parquet").column("status").to_pylist()
+    assert statuses == ["dependent_constraints"] * 6
+
+
+# ------------------------------------------------------------------ the scheduler
+
+
+@pytest.fixture
+def silent_server() -> Iterator[str]:
+    """A server that accepts connections and never says a word."""
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        held: list[socket.socket] = []
+        stop = threading.Event()
+
+        def accept() -> None:
+            server.settimeout(0.2)
+            while not stop.is_set():
+                try:
+                    held.append(server.accept()[0])
+                except TimeoutError:
+                    continue
+
+        thread = threading.Thread(target=accept, daemon=True)
+        thread.start()
+        yield f"tcp://127.0.0.1:{server.getsockname()[1]}"
+        stop.set()
+        thread.join()
+        for connection in held:
+            connection.close()
+
+
+@pytest.fixture
+def http_server() -> Iterator[str]:
+    """A server that is not Dask's: it answers every connection with an HTTP error."""
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        stop = threading.Event()
+
+        def answer() -> None:
+            server.settimeout(0.2)
+            while not stop.is_set():
+                try:
+                    connection = server.accept()[0]
+                except TimeoutError:
+                    continue
+                with connection:
+                    connection.sendall(b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n")
+
+        thread = threading.Thread(target=answer, daemon=True)
+        thread.start()
+        yield f"tcp://127.0.0.1:{server.getsockname()[1]}"
+        stop.set()
+        thread.join()
+
+
+@pytest.fixture
+def idle_scheduler() -> Iterator[str]:
+    """A real Dask scheduler with no worker."""
+    with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=":0") as cluster:
+        yield str(cluster.scheduler_address)
+
+
+@pytest.mark.parametrize(
+    ("address", "words"),
+    [
+        ("garbage://x", "unknown scheme"),
+        ("", "is empty"),
+        ("tcp://[::1", "not HOST:PORT"),
+        ("tcp://127.0.0.1", "not HOST:PORT"),
+        ("tls://127.0.0.1:8786", "needs Dask's TLS settings"),
+        ("silent", "no answer within 2 s"),
+        ("http", "not a Dask scheduler"),
+        ("idle", "has no worker"),
+    ],
+)
+def test_a_bad_scheduler_is_one_line_in_bounded_time(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    request: pytest.FixtureRequest,
+    address: str,
+    words: str,
+) -> None:
+    monkeypatch.setattr(sweep.driver, "SCHEDULER_TIMEOUT", 2.0)
+    servers = {"silent": "silent_server", "http": "http_server", "idle": "idle_scheduler"}
+    if address in servers:
+        address = request.getfixturevalue(servers[address])
+    out = tmp_path / "out"
+    started = time.monotonic()
+    code = main(
+        ["sweep", "unicycle_switch", "--samples", "4", "--scheduler", address, "--out", str(out)]
+    )
+    elapsed = time.monotonic() - started
+    err = capsys.readouterr().err.strip()
+    assert code == EXIT_BAD_SPEC and len(err.splitlines()) == 1, err
+    assert "--scheduler" in err and words in err, err
+    assert elapsed < 30
+    assert not out.exists()
+
+
+def test_workers_beyond_the_machine_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    limit, _ = sweep.max_local_workers()
+    out = tmp_path / "out"
+    code = main(
+        ["sweep", "unicycle_switch", "--samples", "4", "--workers", "1024", "--out", str(out)]
+    )
+    err = capsys.readouterr().err.strip()
+    assert code == EXIT_BAD_SPEC and len(err.splitlines()) == 1
+    assert f"must be between 1 and {limit} on this machine" in err and "core" in err
+    assert limit <= sweep.driver.WORKERS_PER_CORE * (os.cpu_count() or 1)
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------ scale
+
+
+def test_tasks_in_flight_are_bounded_and_rows_are_not_kept() -> None:
+    program = sweep_program(kernels("unicycle_switch"))
+    options = SweepOptions(samples=80, seed=1, t_final=1.0, points=11)
+    seen: list[int] = []
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+
+        def count(results: list[sweep.SampleResult]) -> None:
+            seen.append(len([f for f in client.futures if f.startswith("run_chunk")]))
+
+        run = sweep.run_sweep(client, program, options, chunk=1, collect=False, on_results=count)
+    assert run.done == 80 and run.results == [] and len(seen) == 80
+    # At most the look-ahead of both workers, never all 80 chunks at once.
+    # (the chunk just finished is still known to the client as its callback runs).
+    assert max(seen) <= sweep.LOOKAHEAD_PER_WORKER * 2 + 1, seen
+
+
+def test_parts_merge_in_sample_order_whatever_order_they_came_in(tmp_path: Path) -> None:
+    program = sweep_program(kernels("unicycle_switch"))
+    options = SweepOptions(samples=10, seed=2, t_final=1.0, points=11)
+    schema = sweep.row_schema(program, options)
+    rows = [r.row for r in sweep.run_chunk(program, options, range(10), False)]
+
+    def part(name: str, *spans: range) -> Path:
+        path = tmp_path / name
+        with path.open("wb") as handle:
+            sweep.write_part(
+                handle, [sweep.record_batch([rows[i] for i in s], schema) for s in spans], schema
+            )
+        return path
+
+    # Chunks out of order, one kept twice (a resume raced a checkpoint), 6..7 missing.
+    pieces = sweep.index_parts(
+        [part("a", range(8, 10), range(0, 3)), part("b", range(3, 6), range(0, 3))], schema
+    )
+    assert sweep.missing(pieces, 10) == [range(6, 8)]
+    with (tmp_path / "table").open("wb") as handle:
+        assert sweep.write_table(handle, pieces, schema) == 8
+    table = pq.read_table(tmp_path / "table").to_pylist()
+    assert [r["sample"] for r in table] == [0, 1, 2, 3, 4, 5, 8, 9]
+    assert {k: repr(v) for k, v in table[8 - 2].items()} == {k: repr(v) for k, v in rows[8].items()}
+
+
+# ------------------------------------------------------------------ replay and resume
+
+
+def _finished(tmp_path: Path) -> Path:
+    out = tmp_path / "done"
+    args = ["sweep", "unicycle_switch", "--samples", "4", "--t-final", "2", "--workers", "1"]
+    assert main([*args, "--out", str(out)]) == 0
+    return out
+
+
+def test_replay_reads_only_inside_its_folder_and_checks_before_writing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = _finished(tmp_path)
+    capsys.readouterr()
+    record = json.loads((out / "sweep.json").read_text())
+    (tmp_path / "outside.toml").write_text((out / "unicycle_switch.toml").read_text())
+    replay = ["sweep", "--replay", str(out), "1", "--out", str(tmp_path / "r")]
+    for key, value, words in (
+        ("spec", "../outside.toml", "is not a file name in the folder"),
+        ("spec", str(tmp_path / "outside.toml"), "is not a file name in the folder"),
+        ("options", record["options"] | {"points": 1_000_000_000}, "options.points"),
+    ):
+        (out / "sweep.json").write_text(json.dumps(record | {key: value}))
+        assert main(replay) == EXIT_BAD_SPEC
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and words in err, err
+        assert "outside" not in capsys.readouterr().out
+    (out / "sweep.json").write_text(json.dumps(record))
+    (out / "summary.parquet").unlink()
+    assert main(replay) == EXIT_BAD_SPEC
+    assert "holds no finished sweep" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+
+
+def test_resume_refuses_a_loop_it_cannot_rebuild(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = _finished(tmp_path)
+    record = json.loads((out / "sweep.json").read_text())
+    (out / "sweep.json").write_text(json.dumps(record | {"loop": "0" * 64, "state": "running"}))
+    capsys.readouterr()
+    assert main(["sweep", "--resume", str(out)]) == EXIT_BAD_SPEC
+    assert "another loop" in capsys.readouterr().err
+    assert main(["sweep", "--resume", str(out), "--out", "x"]) == EXIT_BAD_SPEC
