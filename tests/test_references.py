@@ -323,3 +323,40 @@ def test_the_default_estimator_on_clean_1khz_samples_ends_within_1e3_of_the_star
     options = resolve_options(d, t_final=horizon, points=201)
     result = simulate(d, mod, options, references=source)
     assert result.error[-1] <= 1e-3 * result.error[0]
+
+
+@pytest.mark.parametrize("name", ["unicycle_switch_refs", "pvtol_refs"])
+def test_a_gap_the_estimator_has_forgotten_is_one_bounded_exact_step(
+    name: str, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """After a gap of 80 / bandwidth the linear differentiator's state is the steady state
+    on the samples' line: set in one step (a Unix-time gap took hours in Python, and past
+    1.2e17 s the C step count overflowed a long), the same bits in both backends, and what
+    integrating over the gap gives."""
+    import time  # noqa: PLC0415
+
+    from tvopt_codegen.estimator import FORGETTING_GAP  # noqa: PLC0415
+
+    py, c = module(name), c_module(name, tmp_path_factory)
+    if py.ESTIMATOR != "linear":
+        pytest.skip("Levant's differentiator takes one Euler step whatever the gap")
+    start = exact_jets(name, 0.0)[:, 0]
+    later = start + np.random.default_rng(5).normal(size=start.shape)
+    for gap in (1.7e9, 1e20, 1e300):
+        jets = []
+        for m in (c, py):  # the C first: it returned the stale estimate, Python hung
+            began = time.perf_counter()
+            jets.append(m.ReferenceEstimator(start).update(gap, later))
+            np.testing.assert_array_equal(jets[-1][:, 0], later)
+            np.testing.assert_array_equal(jets[-1][:, 1], (later - start) / gap)
+            assert not np.any(jets[-1][:, 2:])
+            assert time.perf_counter() - began < 0.5
+        np.testing.assert_array_equal(jets[0], jets[1])
+    # Just past the gap: the one step is what the integration in two halves gives (the
+    # middle sample on the same line, so the estimator sees the same input).
+    h = 1.01 * FORGETTING_GAP / py.ESTIMATOR_BANDWIDTH
+    for m in (py, c):
+        direct = m.ReferenceEstimator(start).update(h, later)
+        halves = m.ReferenceEstimator(start)
+        halves.update(h / 2, (start + later) / 2)
+        np.testing.assert_allclose(halves.update(h, later), direct, rtol=0, atol=1e-12)

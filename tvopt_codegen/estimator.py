@@ -16,6 +16,15 @@ import math
 
 from tvopt_codegen.spec import Estimator
 
+#: ``bandwidth * gap`` beyond which the linear differentiator has forgotten its state.
+#: Its error decays as ``p(bandwidth t) e^(-bandwidth t)`` with ``p`` of degree at most
+#: its order (7 at most): at 80, ``80^7 / 7! e^(-80)`` is below 1e-24, so after such a
+#: gap its state is the steady state on the samples' straight line (the newest sample,
+#: the line's slope, zero beyond) to rounding; the generated code sets it so, in one step
+#: instead of ``4 bandwidth gap`` RK4 steps (a Unix-time gap would take hours, and a
+#: step count beyond a C ``long`` is undefined behaviour).
+FORGETTING_GAP = 80.0
+
 #: Levant's lambda_i for differentiators of order up to 5.
 LEVANT_LAMBDAS = (1.1, 1.5, 2.0, 3.0, 5.0, 8.0)
 

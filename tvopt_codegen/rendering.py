@@ -25,7 +25,7 @@ from tvopt_codegen.backends import BACKENDS, Backend
 from tvopt_codegen.contract import CALLER_FAULTS, FUNCTIONS, PIVOT_TOLERANCE, statuses
 from tvopt_codegen.cse import symbols_in
 from tvopt_codegen.errors import TvoptError
-from tvopt_codegen.estimator import estimator_gains, estimator_order
+from tvopt_codegen.estimator import FORGETTING_GAP, estimator_gains, estimator_order
 from tvopt_codegen.ir import Kernel, KernelSet
 from tvopt_codegen.robust import GRAM_TOLERANCE, STEP_TOLERANCE, robustness
 from tvopt_codegen.spec import BUNDLED_SUFFIX
@@ -406,6 +406,7 @@ def template_context(kernels: KernelSet, backend: Backend | str) -> dict[str, An
             if d.spec.estimator is not None
             else 0
         ),
+        "estimator_gap": FORGETTING_GAP,
         **(backend.context(kernels) if backend.context is not None else {}),
     }
 
