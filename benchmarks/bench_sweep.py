@@ -196,7 +196,13 @@ def main() -> None:
     text = "\n".join(lines)
     print(text)
     if args.write:
-        Path(args.write).write_text(text, encoding="utf-8")
+        # The scale section (benchmarks/sweep_scale.py) is another run's: kept as it is.
+        path = Path(args.write)
+        kept = path.read_text(encoding="utf-8") if path.exists() else ""
+        marker = "<!-- scale: benchmarks/sweep_scale.py -->"
+        if marker in kept:
+            text = text.rstrip("\n") + "\n\n" + marker + kept.split(marker, 1)[1]
+        path.write_text(text, encoding="utf-8")
 
 
 if __name__ == "__main__":
