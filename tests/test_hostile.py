@@ -104,6 +104,9 @@ RESOURCES = [
     ("*".join(["9**64"] * 24) + " + y1", "constant too large"),
     ("sin(" * 100 + "y1" + ")" * 100, "nesting deeper than 60"),
     ("-" * 300 + "y1", "nest"),
+    # Redundant parentheses (the hostile round's 1,000 was exit 6 "out of stack"): exit 2.
+    ("(" * 1000 + "y1" + ")" * 1000 + "**2", "too many nested parentheses"),
+    ("(" * 100_000 + "y1" + ")" * 100_000 + "**2", "too many nested parentheses"),
 ]
 
 

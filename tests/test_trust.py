@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -603,8 +604,22 @@ def test_a_reference_file_is_a_regular_bounded_table(tmp_path: Path) -> None:
             _read(path)
     wide = tmp_path / "wide.csv"
     wide.write_text("t,o1x,o1y,o2x,o2y\n0," + "1" * 200_000 + ",2,3,4\n")
-    with pytest.raises(SpecError, match="not a CSV table"):
+    with pytest.raises(SpecError, match="line 2: not a CSV row: field larger than"):
         _read(wide)
+    # A file is read a line at a time: a line without end, or more rows than a run takes,
+    # stops the reading there (a 171 MB file once ran out of memory).
+    endless = tmp_path / "endless.csv"
+    endless.write_text("t,o1x,o1y,o2x,o2y\n0,1,2,3," + "4" * (2 << 20))
+    with pytest.raises(SpecError, match="line 2: longer than 1048576 characters"):
+        _read(endless)
+    many = tmp_path / "many.csv"
+    many.write_text("t,o1x,o1y,o2x,o2y\n" + "".join(f"{k},1,2,3,4\n" for k in range(1200)))
+    with pytest.MonkeyPatch.context() as patch:
+        from tvopt_codegen.simulation import references
+
+        patch.setattr(references, "MAX_SAMPLES", 1000)
+        with pytest.raises(SpecError, match="more than 1000 samples"):
+            _read(many)
     twice = tmp_path / "twice.csv"
     twice.write_text("t,o1x,o1y,o2x,o2y,o1x\n0,1,2,3,4,5\n30,1,2,3,4,5\n")
     with pytest.raises(SpecError, match="column 'o1x' appears more than once"):
@@ -730,6 +745,44 @@ def test_a_copied_controller_is_a_controller_of_its_own(backend: str) -> None:
         original.step(original.t + 0.01, x + 0.01)
         assert (twin.state.tobytes(), twin.t) == before  # the original's step left it alone
         assert twin.step(original.t, x + 0.01).tobytes() == original.u.tobytes()
+
+
+@pytest.mark.parametrize("module", ["pvtol", "pvtol_c"])
+def test_a_pickled_controller_goes_on_in_another_process(module: str) -> None:
+    """Both backends' Controllers pickle with their whole state (the C struct's memory is
+    plain doubles): unpickled in a fresh process, the next step gives the same bits."""
+    import importlib
+    import pickle
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    folders = [str(root / "generated"), str(root / "generated" / "c")]
+    sys.path[:0] = folders
+    try:
+        mod = importlib.import_module(module)
+    finally:
+        del sys.path[:2]
+    x = np.array(mod.DEFAULT_STATE[:6])
+    controller = mod.Controller(x)
+    controller.step(0.01, x)
+    data = pickle.dumps(controller)
+    expected = controller.step(0.02, x + 0.01)
+    code = (
+        "import pickle, sys, numpy\n"
+        "controller = pickle.loads(sys.stdin.buffer.read())\n"
+        f"u = controller.step(0.02, numpy.array({(x + 0.01).tolist()!r}))\n"
+        "sys.stdout.write(u.tobytes().hex())\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        input=data,
+        capture_output=True,
+        env={**os.environ, "PYTHONPATH": os.pathsep.join(folders)},
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr.decode()
+    assert bytes.fromhex(done.stdout.decode()) == expected.tobytes()
 
 
 def test_an_apostrophe_in_a_message_does_not_clip_the_prose_around_it() -> None:

@@ -16,9 +16,10 @@ import os
 import re
 import stat
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import sympy as sp
@@ -30,6 +31,10 @@ from tvopt_codegen.errors import SpecError, clip
 MAX_SAMPLES = 2_000_000
 #: Largest reference file read: MAX_SAMPLES rows of a few numbers each, with room.
 MAX_FILE_BYTES = 256 * 2**20
+#: Longest line of a reference file (a row of a few numbers, with room for comments).
+MAX_LINE_CHARACTERS = 1 << 20
+#: Rows parsed into one block of numbers at a time.
+_BLOCK_ROWS = 65_536
 
 
 @dataclass(frozen=True)
@@ -160,31 +165,70 @@ def read_reference_file(
     """
     source = str(path)
     names = [r.name for r in derivation.model.references]
+    expected = "a header t, " + ", ".join(names)
     try:
-        # A regular file, read within a bound: a FIFO would block and /dev/zero or a huge
-        # file would fill the memory before any line is checked.
-        if not stat.S_ISREG(os.stat(path).st_mode):
+        # A regular file, read a line at a time within bounds: a FIFO would block, and
+        # /dev/zero or a huge file would fill the memory before any line is checked.
+        info = os.stat(path)
+        if not stat.S_ISREG(info.st_mode):
             raise SpecError(source, "(file)", "not a regular file")
-        with open(path, "rb") as handle:
-            raw = handle.read(MAX_FILE_BYTES + 1)
-        if len(raw) > MAX_FILE_BYTES:
+        if info.st_size > MAX_FILE_BYTES:
             raise SpecError(source, "(file)", f"larger than {MAX_FILE_BYTES // 2**20} MiB")
-        text = raw.decode("utf-8-sig")
-        lines = [(n, line) for n, line in enumerate(text.splitlines(), start=1)]
+        with open(path, encoding="utf-8-sig", newline="") as handle:
+            return _parse_reference_lines(
+                source,
+                derivation,
+                horizon,
+                _content_lines(source, handle),
+                expected,
+                allow_gaps=allow_gaps,
+                warn=warn,
+            )
     except (OSError, UnicodeDecodeError) as exc:
         raise SpecError(source, "(file)", f"cannot read the reference file: {exc}") from None
-    lines = [(n, text) for n, text in lines if text.strip() and not text.lstrip().startswith("#")]
-    expected = "a header t, " + ", ".join(names)
-    if not lines:
+
+
+def _content_lines(source: str, handle: Any) -> Iterator[tuple[int, str]]:
+    """The file's numbered lines but comments and blank ones, each within a bound."""
+    number = 0
+    while True:
+        line = handle.readline(MAX_LINE_CHARACTERS + 1)
+        if not line:
+            return
+        number += 1
+        if len(line) > MAX_LINE_CHARACTERS:
+            raise SpecError(
+                source, f"line {number}", f"longer than {MAX_LINE_CHARACTERS} characters"
+            )
+        text = line.rstrip("\r\n")
+        if text.strip() and not text.lstrip().startswith("#"):
+            yield number, text
+
+
+def _parse_reference_lines(
+    source: str,
+    derivation: Derivation,
+    horizon: float,
+    lines: Iterator[tuple[int, str]],
+    expected: str,
+    *,
+    allow_gaps: bool,
+    warn: Callable[[str], None] | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`read_reference_file` on the file's content lines, one at a time."""
+    names = [r.name for r in derivation.model.references]
+    first = next(lines, None)
+    if first is None:
         raise SpecError(source, "(header)", f"empty file: expected {expected}")
-    head = lines[0][1]
-    delimiter = max(_DELIMITERS, key=head.count)
-    try:
-        rows = list(csv.reader([line for _, line in lines], delimiter=delimiter))
-    except csv.Error as exc:  # a field beyond the csv module's size limit, say
-        raise SpecError(source, "(file)", f"not a CSV table: {exc}") from None
-    numbers = [n for n, _ in lines]
-    header = [cell.strip() for cell in rows[0]]
+    delimiter = max(_DELIMITERS, key=first[1].count)
+
+    def cells(number: int, text: str) -> list[str]:
+        try:
+            return next(csv.reader([text], delimiter=delimiter), [])
+        except csv.Error as exc:  # a field beyond the csv module's size limit, say
+            raise SpecError(source, f"line {number}", f"not a CSV row: {exc}") from None
+
+    header = [cell.strip() for cell in cells(*first)]
     twice = sorted({cell for cell in header if header.count(cell) > 1})
     if twice:
         raise SpecError(source, "(header)", f"column {clip(twice[0])!r} appears more than once")
@@ -206,12 +250,16 @@ def read_reference_file(
             f"{', '.join(repr(clip(c)) for c in extra)} ignored: not a reference of the spec "
             f"({', '.join(names)})"
         )
-    if len(rows) - 1 > MAX_SAMPLES:
-        raise SpecError(source, "(file)", f"more than {MAX_SAMPLES} samples")
     columns = [header.index(name) for name in ("t", *names)]
-    data = np.empty((len(rows) - 1, len(columns)))
-    for index, row in enumerate(rows[1:]):
-        line = numbers[index + 1]
+    # Blocks of rows as they come: the memory is the samples' numbers, not the file's text.
+    blocks: list[np.ndarray] = []
+    block = np.empty((_BLOCK_ROWS, len(columns)))
+    filled = count = 0
+    previous = -math.inf
+    for line, text in lines:
+        if count == MAX_SAMPLES:
+            raise SpecError(source, "(file)", f"more than {MAX_SAMPLES} samples")
+        row = cells(line, text)
         for k, column in enumerate(columns):
             try:
                 value = float(row[column])
@@ -231,14 +279,22 @@ def read_reference_file(
                 raise SpecError(
                     source, f"line {line}", f"{header[column]} = {value!r} is not finite"
                 )
-            data[index, k] = value
+            block[filled, k] = value
+        if not block[filled, 0] > previous:
+            raise SpecError(source, f"line {line}", "t must increase from one sample to the next")
+        previous = block[filled, 0]
+        filled += 1
+        count += 1
+        if filled == _BLOCK_ROWS:
+            blocks.append(block)
+            block = np.empty((_BLOCK_ROWS, len(columns)))
+            filled = 0
+    blocks.append(block[:filled])
+    data = np.concatenate(blocks)
     times = data[:, 0]
     if len(times) < 2:
         raise SpecError(source, "(file)", "expected at least two samples")
     steps = np.diff(times)
-    if not np.all(steps > 0):
-        line = numbers[int(np.argmax(~(steps > 0))) + 2]
-        raise SpecError(source, f"line {line}", "t must increase from one sample to the next")
     if times[0] > 0.0 or times[-1] < horizon:
         raise SpecError(
             source,
