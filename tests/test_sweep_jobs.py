@@ -263,7 +263,9 @@ def test_a_distribution_that_overflows_is_refused_when_parsed(
     assert not out.exists()
 
 
-def test_a_sample_that_raises_is_a_row_with_its_message(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_sample_that_raises_is_a_row_with_its_message(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     program = sweep_program(kernels("unicycle_switch"))
     options = SweepOptions(samples=6, seed=3, t_final=2.0, points=21)
     real = sweep.sample.run_sample
@@ -286,6 +288,11 @@ def test_a_sample_that_raises_is_a_row_with_its_message(monkeypatch: pytest.Monk
     assert summary.outcomes == {"ok": 5, "error": 1}
     text = sweep.format_summary("unicycle_switch", options, summary)
     assert "sample 4: FloatingPointError: the draw met a wall" in text
+    # The table on disk, read a row group at a time, gives the same statistics.
+    table = tmp_path / "table.parquet"
+    with table.open("wb") as handle:
+        sweep.write_part(handle, [batch], schema)
+    assert sweep.tally_table(table).summary(6, False) == summary
 
 
 def test_a_dependent_constraints_status_is_recorded(

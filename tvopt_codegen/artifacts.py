@@ -101,30 +101,18 @@ def sweep_files(
     options: SweepOptions,
     record: Mapping[str, Any],
     summary: Summary,
-    columns: Mapping[str, np.ndarray],
+    histograms: tuple[np.ndarray, np.ndarray],
     worst: Mapping[int, np.ndarray],
 ) -> dict[str, bytes]:
     """What a sweep writes at its end beside its table, in memory: record, summary, figures.
 
-    ``columns`` are the table's statistics columns
-    (:func:`~tvopt_codegen.sweep.table.summary_columns`): the figures' histograms.
+    ``histograms`` are the ok samples' final errors and settling times.
     """
-    ok = columns["status_code"] == (
-        list(columns["status_labels"]).index("ok") if "ok" in columns["status_labels"] else -1
-    )
     files = {
         "summary.md": (format_summary(program.name, options, summary) + "\n").encode(),
         RECORD: record_bytes(record),
     }
-    files.update(
-        sweep_figures(
-            program,
-            summary.runs,
-            columns["final_error"][ok],
-            columns["settling_1pct"][ok],
-            worst,
-        )
-    )
+    files.update(sweep_figures(program, summary.runs, *histograms, worst))
     return files
 
 

@@ -243,8 +243,7 @@ def _publish(
         index_parts,
         missing,
         run_sample,
-        summarize_columns,
-        summary_columns,
+        tally_table,
         write_table,
     )
 
@@ -257,8 +256,8 @@ def _publish(
         lambda handle: write_table(handle, pieces, schema),
         force=args.force,
     )
-    columns = summary_columns(table)
-    summary = summarize_columns(columns, options.samples, bool(absent), WORST)
+    tally = tally_table(table, WORST)
+    summary = tally.summary(options.samples, bool(absent))
     worst = {
         index: run_sample(program, options, index, keep=True).trajectory
         for index, _ in summary.worst
@@ -277,7 +276,7 @@ def _publish(
         options,
         record,
         summary,
-        columns,
+        (tally.values("final_error"), tally.values("settling_1pct")),
         {i: t for i, t in worst.items() if t is not None},
     )
     write_files(files, folder.folder, force=args.force)

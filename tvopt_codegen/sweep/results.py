@@ -60,90 +60,134 @@ class Summary:
     first_error: str = ""
 
 
-def columns_of(rows: Sequence[Mapping[str, Any]]) -> dict[str, np.ndarray]:
-    """The statistics' columns of rows held in memory.
-
-    As :func:`~tvopt_codegen.sweep.table.summary_columns` reads them from a file.
-    """
-    labels: dict[str, int] = {}
-    codes = np.array(
-        [labels.setdefault(str(r["status"]), len(labels)) for r in rows], dtype=np.int32
-    )
-    out: dict[str, np.ndarray] = {
-        "status_code": codes,
-        "status_labels": np.array(sorted(labels, key=labels.__getitem__), dtype=object),
-    }
-    present = rows[0].keys() if rows else ("sample", "final_error", "settling_1pct")
-    for name in SUMMARY_COLUMNS:
-        if name in present and name not in ("status", "error"):
-            values = [r[name] for r in rows]
-            if name == "certificate_holds":
-                values = [bool(v) for v in values]
-            out[name] = np.array(values)
-    errors = [f"sample {r['sample']}: {r['error']}" for r in rows if r.get("error")]
-    out["first_error"] = np.array(errors[:1] or [""], dtype=object)
+def _quantiles(values: np.ndarray) -> dict[str, float]:
+    """Median, p95, p99 and max of the finite values, and how many were not finite."""
+    if not len(values):
+        return {}
+    finite = values[np.isfinite(values)]
+    out = {"never": float(len(values) - len(finite))}
+    if len(finite):
+        for label, q in (("median", 50), ("p95", 95), ("p99", 99)):
+            out[label] = float(np.percentile(finite, q))
+        out["max"] = float(finite.max())
     return out
+
+
+class Tally:
+    """A table's statistics, fed a block of rows at a time.
+
+    Counts, the nominal and constraint tallies and the worst samples are running totals;
+    only the ok samples' final errors, settling times, clipped times and final equality
+    residuals are kept (their exact quantiles need them): four numbers a sample, so that
+    a table of 10^6 rows is summarised in 32 MB, whatever its other columns.
+
+    Parameters
+    ----------
+    worst : int
+        How many of the worst samples (by final ``|y - y*|``) to keep.
+    """
+
+    KEPT = ("final_error", "settling_1pct", "time_saturated", "final_equality")
+
+    def __init__(self, worst: int = 5) -> None:
+        self.count = worst
+        self.outcomes: dict[str, int] = {}
+        self.runs = self.nominal = self.certified = self.violating = self.outside = 0
+        self.constrained = False
+        self.kept: dict[str, list[np.ndarray]] = {name: [] for name in self.KEPT}
+        self.worst: list[tuple[float, int]] = []
+        self.first_error = ""
+
+    def add(
+        self,
+        labels: Sequence[str],
+        codes: np.ndarray,
+        columns: Mapping[str, np.ndarray],
+        first_error: str = "",
+    ) -> None:
+        """Count a block: its statuses (``labels[codes]``) and its numeric columns."""
+        counts = np.bincount(codes, minlength=len(labels)) if len(codes) else ()
+        for label, n in zip(labels, counts, strict=False):
+            if n:
+                self.outcomes[label] = self.outcomes.get(label, 0) + int(n)
+        self.runs += len(codes)
+        ok = codes == labels.index("ok") if "ok" in labels else np.zeros(len(codes), bool)
+        for name in self.KEPT:
+            if name in columns:
+                self.kept[name].append(np.asarray(columns[name], dtype=float)[ok])
+        nominal = np.asarray(columns["nominal"], dtype=bool) & ok
+        self.nominal += int(nominal.sum())
+        self.certified += int(
+            (np.asarray(columns["certificate_holds"], dtype=bool) & nominal).sum()
+        )
+        if "violations" in columns:
+            self.constrained = True
+            self.violating += int((columns["violations"] > 0).sum())
+            self.outside += int((columns["final_constraint"][ok] > 0).sum())
+        finals, samples = columns["final_error"][ok], columns["sample"][ok]
+        order = np.lexsort((samples, -finals))[: self.count]
+        ranked = self.worst + [(-float(finals[i]), int(samples[i])) for i in order]
+        self.worst = sorted(ranked, key=lambda r: (math.isnan(r[0]), r))[: self.count]
+        if first_error and not self.first_error:
+            self.first_error = first_error
+
+    def values(self, name: str) -> np.ndarray:
+        """The ok samples' ``name`` (one of :attr:`KEPT`), in table order."""
+        return np.concatenate(self.kept[name]) if self.kept[name] else np.zeros(0)
+
+    def summary(self, requested: int, interrupted: bool) -> Summary:
+        """Outcomes, failure probability (Clopper-Pearson 95%), quantiles, worst samples."""
+        failures = self.runs - self.outcomes.get("ok", 0)
+        clipped = self.values("time_saturated")
+        return Summary(
+            runs=self.runs,
+            requested=requested,
+            outcomes=dict(
+                sorted(self.outcomes.items(), key=lambda item: (item[0] != "ok", item[0]))
+            ),
+            failure_rate=failures / self.runs if self.runs else math.nan,
+            failure_upper=clopper_pearson_upper(failures, self.runs),
+            final_error=_quantiles(self.values("final_error")),
+            settling=_quantiles(self.values("settling_1pct")),
+            worst=[(index, -negative) for negative, index in self.worst],
+            nominal=self.nominal,
+            nominal_certified=self.certified,
+            interrupted=interrupted,
+            constrained=self.constrained and self.runs > 0,
+            violating=self.violating,
+            ended_outside=self.outside,
+            final_equality=_quantiles(self.values("final_equality"))
+            if self.kept["final_equality"]
+            else {},
+            saturated=_quantiles(clipped) if np.any(clipped > 0) else {},
+            first_error=self.first_error,
+        )
 
 
 def summarize(
     results: Sequence[SampleResult], requested: int, interrupted: bool, worst: int = 5
 ) -> Summary:
-    """:func:`summarize_columns` of results held in memory."""
-    return summarize_columns(columns_of([r.row for r in results]), requested, interrupted, worst)
+    """The statistics of results held in memory (a file's: :func:`~.table.tally_table`)."""
+    return tally_rows([r.row for r in results], worst).summary(requested, interrupted)
 
 
-def summarize_columns(
-    columns: Mapping[str, np.ndarray], requested: int, interrupted: bool, worst: int = 5
-) -> Summary:
-    """Outcomes, failure probability (Clopper-Pearson 95%), error quantiles, worst samples.
-
-    ``columns`` are the table's (:func:`~tvopt_codegen.sweep.table.summary_columns`):
-    numpy arrays, so that a sweep of 10^6 samples is summarised in a few megabytes.
-    """
-    c = columns
-    codes, labels = c["status_code"], list(c["status_labels"])
-    counts = np.bincount(codes, minlength=len(labels)) if len(codes) else np.zeros(0, int)
-    outcomes = {str(label): int(n) for label, n in zip(labels, counts, strict=True) if n}
-    runs = int(len(codes))
-    failures = runs - outcomes.get("ok", 0)
-    ok = codes == labels.index("ok") if "ok" in labels else np.zeros(runs, dtype=bool)
-
-    def quantiles(values: np.ndarray) -> dict[str, float]:
-        if not len(values):
-            return {}
-        finite = values[np.isfinite(values)]
-        out = {"never": float(len(values) - len(finite))}
-        if len(finite):
-            for label, q in (("median", 50), ("p95", 95), ("p99", 99)):
-                out[label] = float(np.percentile(finite, q))
-            out["max"] = float(finite.max())
-        return out
-
-    finals = c["final_error"][ok]
-    samples = c["sample"][ok]
-    order = np.lexsort((samples, -finals))[:worst]
-    nominal = c["nominal"].astype(bool) & ok
-    clipped = c["time_saturated"][ok]
-    constrained = "violations" in c
-    return Summary(
-        runs=runs,
-        requested=requested,
-        outcomes=dict(sorted(outcomes.items(), key=lambda item: (item[0] != "ok", item[0]))),
-        failure_rate=failures / runs if runs else math.nan,
-        failure_upper=clopper_pearson_upper(failures, runs),
-        final_error=quantiles(finals),
-        settling=quantiles(c["settling_1pct"][ok]),
-        worst=[(int(samples[i]), float(finals[i])) for i in order],
-        nominal=int(nominal.sum()),
-        nominal_certified=int((c["certificate_holds"].astype(bool) & nominal).sum()),
-        interrupted=interrupted,
-        constrained=constrained and runs > 0,
-        violating=int((c["violations"] > 0).sum()) if constrained else 0,
-        ended_outside=int((c["final_constraint"][ok] > 0).sum()) if constrained else 0,
-        final_equality=quantiles(c["final_equality"][ok]) if "final_equality" in c else {},
-        saturated=quantiles(clipped) if np.any(clipped > 0) else {},
-        first_error=str(c["first_error"][0]) if "first_error" in c else "",
-    )
+def tally_rows(rows: Sequence[Mapping[str, Any]], worst: int = 5) -> Tally:
+    """A :class:`Tally` of rows held in memory."""
+    tally = Tally(worst)
+    labels: dict[str, int] = {}
+    codes = np.array([labels.setdefault(str(r["status"]), len(labels)) for r in rows], np.int64)
+    present = rows[0].keys() if rows else ()
+    columns = {
+        name: np.array([bool(r[name]) if name == "certificate_holds" else r[name] for r in rows])
+        for name in SUMMARY_COLUMNS
+        if name in present and name not in ("status", "error")
+    }
+    if not rows:
+        columns = {name: np.zeros(0) for name in ("sample", "final_error", "nominal")}
+        columns["certificate_holds"] = np.zeros(0)
+    errors = [f"sample {r['sample']}: {r['error']}" for r in rows if r.get("error")]
+    tally.add(list(labels), codes, columns, errors[0] if errors else "")
+    return tally
 
 
 def format_summary(name: str, options: SweepOptions, summary: Summary) -> str:
