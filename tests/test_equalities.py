@@ -233,3 +233,24 @@ def test_constraints_on_signals_of_signals(tmp_path: Path) -> None:
     )
     assert abs(result.constraints.equality[0, -1]) < 1e-6
     assert np.all(result.constraints.distance <= result.constraints.bound + 1e-6)
+
+
+def test_equalities_dependent_at_the_start_are_the_methods_assumption(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """J_a = [[1, 0], [cos(t/10), sin(t/10)]] is singular at t = 0 only: simulate is exit 3
+    (the method's assumption, not a bad spec), one line, nothing written; and the C
+    library (the FMU's log) names the status rather than "unknown status"."""
+    import ctypes
+
+    spec = _with_constraints(tmp_path, 'a = "y1 == 1"\nb = "cos(0.1*t)*y1 + sin(0.1*t)*y2 == 0"')
+    out = tmp_path / "out"
+    assert main(["simulate", str(spec), "--out", str(out)]) == EXIT_ASSUMPTION
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "dependent" in err and "t = 0" in err
+    assert not out.exists()
+    mod = load_controller(lower(derivation(ARM)), "c")
+    message = mod._LIB.arm_on_line_status_message
+    message.restype, message.argtypes = ctypes.c_char_p, (ctypes.c_int,)
+    text = message(mod.STATUS_DEPENDENT_CONSTRAINTS).decode()
+    assert text.startswith("the equality constraints' gradients are dependent")

@@ -440,6 +440,28 @@ def test_workers_beyond_the_machine_are_refused(
 # ------------------------------------------------------------------ scale
 
 
+def test_progress_in_a_log_starts_within_the_first_minute(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A batch job's log (stderr not a terminal, --progress auto): a first line after
+    LOG_FIRST seconds, then one a minute; nothing for a sweep that ends sooner."""
+    from tvopt_codegen.sweep import command
+
+    clock = {"now": 1000.0}
+    monkeypatch.setattr(command.time, "perf_counter", lambda: clock["now"])
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: False)
+    progress = command._Progress("auto", 100)
+    for seconds, done in ((1.0, 5), (9.0, 10), (11.0, 20), (30.0, 40), (71.5, 80), (75.0, 100)):
+        clock["now"] = 1000.0 + seconds
+        progress(done, 0, done / seconds)
+    progress.close()
+    lines = capsys.readouterr().err.splitlines()
+    assert [line.split(",")[0] for line in lines] == [
+        "  sweep: 20/100 samples",
+        "  sweep: 80/100 samples",
+    ]
+
+
 def test_tasks_in_flight_are_bounded_and_rows_are_not_kept() -> None:
     program = sweep_program(kernels("unicycle_switch"))
     options = SweepOptions(samples=80, seed=1, t_final=1.0, points=11)
