@@ -554,3 +554,7 @@ def test_resume_refuses_a_loop_it_cannot_rebuild(
     assert main(["sweep", "--resume", str(out)]) == EXIT_BAD_SPEC
     assert "another loop" in capsys.readouterr().err
     assert main(["sweep", "--resume", str(out), "--out", "x"]) == EXIT_BAD_SPEC
+    # What defines the sweep is its record's: an option that would silently not apply.
+    capsys.readouterr()
+    assert main(["sweep", "--resume", str(out), "--samples", "10"]) == EXIT_BAD_SPEC
+    assert "--samples: not with --resume" in capsys.readouterr().err

@@ -413,12 +413,21 @@ def _is_stamped(data: bytes) -> bool:
 
 def _write_temp(target: Path, data: bytes) -> Path:
     """Write ``data`` to a new temporary file beside ``target`` (flushed to disk)."""
+    return _produce_temp(target, lambda handle: handle.write(data))
+
+
+def _produce_temp(target: Path, produce: Callable[[Any], object]) -> Path:
+    """A new temporary beside ``target`` that ``produce`` writes into (flushed to disk).
+
+    Named ``.<target>.<pid>-<random>.tvopt-tmp``, so that :func:`recover` knows it; it is
+    removed if ``produce`` or the disk fails.
+    """
     fd, name = tempfile.mkstemp(
         prefix=f".{target.name}.{os.getpid()}-", suffix=_TEMP_SUFFIX, dir=target.parent
     )
     try:
         with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
+            produce(handle)
             handle.flush()
             os.fsync(handle.fileno())
         os.chmod(name, 0o644)
@@ -716,14 +725,10 @@ def write_stream(
     folder = prepare_folder(out_dir)
     check_replaceable(folder, [name], force)
     target = folder / name
-    fd, temp = tempfile.mkstemp(prefix=f".{name}.{os.getpid()}-", suffix=_TEMP_SUFFIX, dir=folder)
+    temp: Path | None = None
     try:
-        with os.fdopen(fd, "wb") as handle:
-            produce(handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.chmod(temp, 0o644)
-        digest = _file_digest(Path(temp))
+        temp = _produce_temp(target, produce)
+        digest = _file_digest(temp)
         manifest = _read_manifest(folder)
         manifest[name] = str(digest)
         record = json.dumps(dict(sorted(manifest.items())), indent=1) + "\n"
@@ -732,12 +737,14 @@ def write_stream(
             _write_exact(folder / MANIFEST, record.encode("utf-8"))
             _sync_folder(folder)
     except OSError as exc:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(temp)
+        if temp is not None:
+            with contextlib.suppress(FileNotFoundError):
+                temp.unlink()
         raise OutputError(f"{target}: cannot write: {exc.strerror or exc}") from None
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(temp)
+        if temp is not None:
+            with contextlib.suppress(FileNotFoundError):
+                temp.unlink()
         raise
     return target
 
@@ -826,18 +833,13 @@ class SweepFolder:
             where.mkdir(exist_ok=True)
             self._sequence += 1
             target = where / f"part-{self._sequence:08d}-{os.getpid()}.parquet"
-            fd, temp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=_TEMP_SUFFIX, dir=where)
+            temp = _produce_temp(target, produce)
             try:
-                with os.fdopen(fd, "wb") as handle:
-                    produce(handle)
-                    handle.flush()
-                    os.fsync(handle.fileno())
-                os.chmod(temp, 0o644)
                 os.replace(temp, target)
                 _sync_folder(where)
             except BaseException:
                 with contextlib.suppress(FileNotFoundError):
-                    os.unlink(temp)
+                    temp.unlink()
                 raise
         except OSError as exc:
             raise OutputError(

@@ -442,6 +442,37 @@ def _from_record(folder: Path) -> tuple[dict[str, Any], Any, str, bytes, Any]:
     return record, options, spec_name, spec_bytes, program
 
 
+#: What defines a sweep, with the value that means "not given": a resume runs the
+#: recorded sweep, and a different value would silently not apply.
+_DEFINING = {
+    "samples": None,
+    "seed": 0,
+    "initial": [],
+    "param": [],
+    "plant_param": [],
+    "saturation": [],
+    "noise": 0.0,
+    "sample_time": None,
+    "t_final": None,
+    "rtol": 1e-8,
+    "atol": 1e-10,
+    "points": 201,
+    "trajectories": False,
+}
+
+
+def _refuse_sweep_options(args: argparse.Namespace) -> None:
+    """A resume takes the sweep's own options from its record: refuse any given here."""
+    for name, unset in _DEFINING.items():
+        if getattr(args, name) != unset:
+            option = "--" + name.replace("_", "-")
+            raise SpecError(
+                "command line",
+                option,
+                "not with --resume: the sweep keeps the options it was started with",
+            )
+
+
 def resume(args: argparse.Namespace) -> int:
     """Run ``tvopt-codegen sweep --resume DIR``: the samples an interrupted sweep lacks."""
     from tvopt_codegen.emit import SweepFolder  # noqa: PLC0415
@@ -449,6 +480,7 @@ def resume(args: argparse.Namespace) -> int:
 
     if args.spec is not None:
         raise SpecError("command line", "--resume", "takes no SPEC (the sweep's copy is used)")
+    _refuse_sweep_options(args)
     folder_path = Path(args.resume)
     record, options, spec_name, _spec, program = _from_record(folder_path)
     if program.key != record.get("loop"):
