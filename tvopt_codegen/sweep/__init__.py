@@ -69,6 +69,7 @@ from tvopt_codegen.sweep.results import (
     record_bytes,
     summarize,
     tally_rows,
+    tally_table,
     trajectory_block,
     trajectory_layout,
 )
@@ -86,7 +87,6 @@ from tvopt_codegen.sweep.table import (
     record_batch,
     row_columns,
     row_schema,
-    tally_table,
     write_part,
     write_table,
 )

@@ -444,7 +444,7 @@ def _from_record(folder: Path) -> tuple[dict[str, Any], Any, str, bytes, Any]:
 
 #: What defines a sweep, with the value that means "not given": a resume runs the
 #: recorded sweep, and a different value would silently not apply.
-_DEFINING = {
+_DEFINING: dict[str, object] = {
     "samples": None,
     "seed": 0,
     "initial": [],

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -18,7 +19,7 @@ if TYPE_CHECKING:
 from tvopt_codegen.sweep.options import SweepOptions
 from tvopt_codegen.sweep.program import TAIL, SweepProgram, tail
 from tvopt_codegen.sweep.sample import SampleResult
-from tvopt_codegen.sweep.table import SUMMARY_COLUMNS
+from tvopt_codegen.sweep.table import SUMMARY_COLUMNS, pyarrow
 
 
 def clopper_pearson_upper(failures: int, runs: int, confidence: float = 0.95) -> float:
@@ -167,7 +168,7 @@ class Tally:
 def summarize(
     results: Sequence[SampleResult], requested: int, interrupted: bool, worst: int = 5
 ) -> Summary:
-    """The statistics of results held in memory (a file's: :func:`~.table.tally_table`)."""
+    """The statistics of results held in memory (a file's: :func:`tally_table`)."""
     return tally_rows([r.row for r in results], worst).summary(requested, interrupted)
 
 
@@ -334,6 +335,40 @@ def trajectory_block(
         "input": block[:, :, 1 + n + 2 * m : 1 + n + 2 * m + nu],
         **{name: tail(block, name) for name in TAIL},
     }
+
+
+def tally_table(path: Path, worst: int = 5) -> Tally:
+    """The statistics of a ``summary.parquet``, read a row group and a few columns at a time.
+
+    ``status`` is dictionary-encoded per row group, so a block costs its codes, not a
+    Python string a row; the client's memory is that of :class:`Tally`.
+    """
+    _, pq = pyarrow()
+    table = pq.ParquetFile(path)
+    present = [c for c in SUMMARY_COLUMNS if c in table.schema_arrow.names]
+    tally = Tally(worst)
+    for group in range(table.metadata.num_row_groups):
+        batch = table.read_row_group(group, columns=present)
+        encoded = batch.column("status").combine_chunks().dictionary_encode()
+        columns = {
+            name: batch.column(name).fill_null(False).to_numpy(zero_copy_only=False)
+            if name == "certificate_holds"
+            else batch.column(name).to_numpy(zero_copy_only=False)
+            for name in present
+            if name not in ("status", "error")
+        }
+        first = ""
+        if "error" in present and batch.column("error").null_count < batch.num_rows:
+            where = int(np.argmax(np.asarray(batch.column("error").is_valid())))
+            message = batch.column("error")[where].as_py()
+            first = f"sample {int(columns['sample'][where])}: {message}"
+        tally.add(
+            [str(v) for v in encoded.dictionary.to_pylist()],
+            encoded.indices.to_numpy().astype(np.int64),
+            columns,
+            first,
+        )
+    return tally
 
 
 def record_bytes(record: Mapping[str, Any]) -> bytes:

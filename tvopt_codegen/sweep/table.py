@@ -7,7 +7,7 @@ flushed, and ``--resume`` runs only the samples no part holds. The final
 ``summary.parquet`` is built from the parts in sample order, in row groups of
 :data:`TABLE_ROW_GROUP` rows whatever the chunks were: the same rows give the same
 bytes, however many times the sweep was stopped and resumed. Nothing here holds more
-than a row group of rows at once, and :func:`tally_table` reads only the columns
+than a row group of rows at once, and :func:`~.results.tally_table` reads only the columns
 the statistics need.
 
 Every column's type is fixed by the program and the options (:func:`row_schema`), not
@@ -21,16 +21,13 @@ import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from tvopt_codegen.errors import MissingExtraError, OutputError
 from tvopt_codegen.sweep.options import SweepOptions
 from tvopt_codegen.sweep.program import SweepProgram
-
-if TYPE_CHECKING:
-    from tvopt_codegen.sweep.results import Tally
 
 #: Rows of one row group of ``summary.parquet``.
 TABLE_ROW_GROUP = 65_536
@@ -246,42 +243,6 @@ SUMMARY_COLUMNS = (
     "final_equality",
     "error",
 )
-
-
-def tally_table(path: Path, worst: int = 5) -> Tally:
-    """The statistics of a ``summary.parquet``, read a row group and a few columns at a time.
-
-    ``status`` is dictionary-encoded per row group, so a block costs its codes, not a
-    Python string a row; the client's memory is that of :class:`~.results.Tally`.
-    """
-    from tvopt_codegen.sweep.results import Tally  # noqa: PLC0415 - results imports this
-
-    _, pq = pyarrow()
-    table = pq.ParquetFile(path)
-    present = [c for c in SUMMARY_COLUMNS if c in table.schema_arrow.names]
-    tally = Tally(worst)
-    for group in range(table.metadata.num_row_groups):
-        batch = table.read_row_group(group, columns=present)
-        encoded = batch.column("status").combine_chunks().dictionary_encode()
-        columns = {
-            name: batch.column(name).fill_null(False).to_numpy(zero_copy_only=False)
-            if name == "certificate_holds"
-            else batch.column(name).to_numpy(zero_copy_only=False)
-            for name in present
-            if name not in ("status", "error")
-        }
-        first = ""
-        if "error" in present and batch.column("error").null_count < batch.num_rows:
-            where = int(np.argmax(np.asarray(batch.column("error").is_valid())))
-            message = batch.column("error")[where].as_py()
-            first = f"sample {int(columns['sample'][where])}: {message}"
-        tally.add(
-            [str(v) for v in encoded.dictionary.to_pylist()],
-            encoded.indices.to_numpy().astype(np.int64),
-            columns,
-            first,
-        )
-    return tally
 
 
 def read_summary(path: str | Path) -> list[dict[str, Any]]:
