@@ -558,3 +558,23 @@ def test_resume_refuses_a_loop_it_cannot_rebuild(
     capsys.readouterr()
     assert main(["sweep", "--resume", str(out), "--samples", "10"]) == EXIT_BAD_SPEC
     assert "--samples: not with --resume" in capsys.readouterr().err
+
+
+def test_a_local_cluster_starts_from_another_thread() -> None:
+    """The workers ignore SIGINT when started from the main thread; from another (a
+    notebook's worker thread, a GUI), where no handler may be set, the cluster still starts."""
+    outcome: list[object] = []
+
+    def start() -> None:
+        try:
+            client, cluster = sweep.connect(1, None)
+            outcome.append(len(client.scheduler_info()["workers"]))
+            client.close()
+            cluster.close()
+        except Exception as exc:  # noqa: BLE001 - reported by the assertion below
+            outcome.append(exc)
+
+    thread = threading.Thread(target=start)
+    thread.start()
+    thread.join(timeout=120)
+    assert outcome == [1]

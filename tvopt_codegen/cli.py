@@ -769,9 +769,11 @@ def run(argv: Sequence[str] | None = None) -> int:
     if args.command == "sweep":
         from tvopt_codegen.sweep.command import replay, resume, sweep  # noqa: PLC0415
 
-        if args.replay and args.resume:
+        if args.replay and args.resume is not None:
             raise SpecError("command line", "--resume", "cannot be combined with --replay")
-        if args.resume:
+        if args.resume is not None:
+            if not args.resume.strip():
+                raise SpecError("command line", "--resume", "DIR is empty")
             if args.out is not None:
                 raise SpecError("command line", "--out", "is DIR itself with --resume")
             return resume(args)

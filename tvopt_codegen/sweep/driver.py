@@ -235,11 +235,14 @@ def connect(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:
     check_workers(workers)
     import os  # noqa: PLC0415
     import signal  # noqa: PLC0415
+    import threading  # noqa: PLC0415
 
     count = workers or os.cpu_count() or 1
     # The workers start while SIGINT is ignored, and keep it so (an ignored signal stays
     # ignored across exec, and Python then installs no handler of its own).
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # (Only the main thread may set a handler: from another, the workers keep SIGINT.)
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
     try:
         cluster = distributed.LocalCluster(
             n_workers=count,
@@ -249,7 +252,8 @@ def connect(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:
             silence_logs=logging.CRITICAL,
         )
     finally:
-        signal.signal(signal.SIGINT, previous)
+        if main:
+            signal.signal(signal.SIGINT, previous)
     return distributed.Client(cluster), cluster
 
 
