@@ -578,3 +578,28 @@ def test_a_local_cluster_starts_from_another_thread() -> None:
     thread.start()
     thread.join(timeout=120)
     assert outcome == [1]
+
+
+def test_a_signal_while_the_files_are_written_lets_them_finish(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """SIGTERM at the very end of a run (a batch job's wall time) is noted while the table
+    and summary are written; before that it stops the samples, and a second one stops the
+    writing too."""
+    from tvopt_codegen.errors import Terminated
+    from tvopt_codegen.sweep import command
+
+    def deliver(number: int) -> None:
+        os.kill(os.getpid(), number)
+        time.sleep(0.05)  # the handler runs between bytecodes of this thread
+
+    with command._Finishing() as finishing:
+        with pytest.raises(Terminated):
+            deliver(signal.SIGTERM)  # the samples are running: stop them
+        finishing.begin()
+        deliver(signal.SIGTERM)  # writing: noted, not raised
+        assert finishing.signal == signal.SIGTERM
+        assert "a second signal stops at once" in capsys.readouterr().err
+        with pytest.raises(KeyboardInterrupt):
+            deliver(signal.SIGINT)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler

@@ -9,13 +9,20 @@ from __future__ import annotations
 
 import argparse
 import math
+import signal
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from tvopt_codegen.errors import EXIT_INTERRUPTED, EXIT_TERMINATED, OutputError, SpecError
+from tvopt_codegen.errors import (
+    EXIT_INTERRUPTED,
+    EXIT_TERMINATED,
+    OutputError,
+    SpecError,
+    Terminated,
+)
 
 if TYPE_CHECKING:
     from tvopt_codegen.derivation import Derivation
@@ -208,24 +215,81 @@ def _run_and_publish(
         )
         parts = _Parts(folder, schema, store, program, args.checkpoint_seconds)
         progress = _Progress(args.progress, todo)
-        try:
-            run = run_sweep(
-                client,
-                program,
-                options,
-                ranges=ranges,
-                chunk=chunk,
-                keep=store is not None,
-                collect=False,
-                on_results=parts.add,
-                progress=progress,
-            )
-        finally:
-            progress.close()
-            parts.flush()
+        with _Finishing() as finishing:
+            try:
+                run = run_sweep(
+                    client,
+                    program,
+                    options,
+                    ranges=ranges,
+                    chunk=chunk,
+                    keep=store is not None,
+                    collect=False,
+                    on_results=parts.add,
+                    progress=progress,
+                )
+            finally:
+                finishing.begin()
+                progress.close()
+                parts.flush()
+                _disconnect(client, cluster)
+                client = None
+            code = _publish(args, folder, program, options, record, schema, run)
     finally:
-        _disconnect(client, cluster)
-    return _publish(args, folder, program, options, record, schema, run)
+        if client is not None:
+            _disconnect(client, cluster)
+    if finishing.signal and code == 0:
+        stopped = "interrupted" if finishing.signal == signal.SIGINT else "terminated"
+        print(
+            f"tvopt-codegen: {stopped} while writing the sweep's files; they were finished "
+            "first and are complete",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED if finishing.signal == signal.SIGINT else EXIT_TERMINATED
+    return code
+
+
+class _Finishing:
+    """Ctrl-C and SIGTERM stop the samples at once, but not the writing of what finished.
+
+    While the samples run, a signal raises (``run_sweep`` keeps what finished). From
+    :meth:`begin` on (the last part, the table, the summary) the first signal is noted
+    and the files are finished: a batch system's SIGTERM at the very end of a run would
+    otherwise leave the table without its summary. A second signal stops at once (the
+    parts stay, for ``--resume``).
+    """
+
+    def __init__(self) -> None:
+        self.signal = 0
+        self.finishing = False
+        self.previous: dict[int, Any] = {}
+
+    def __enter__(self) -> _Finishing:
+        import threading  # noqa: PLC0415
+
+        if threading.current_thread() is threading.main_thread():
+            for number in (signal.SIGINT, signal.SIGTERM):
+                self.previous[number] = signal.signal(number, self._handle)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for number, handler in self.previous.items():
+            signal.signal(number, handler)
+
+    def begin(self) -> None:
+        """From here on, the first signal is noted rather than raised."""
+        self.finishing = True
+
+    def _handle(self, number: int, _frame: object) -> None:
+        if self.finishing and not self.signal:
+            self.signal = number
+            print(
+                "tvopt-codegen: finishing the sweep's files (a second signal stops at once)",
+                file=sys.stderr,
+                flush=True,
+            )
+            return
+        raise KeyboardInterrupt if number == signal.SIGINT else Terminated
 
 
 def _publish(
