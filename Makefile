@@ -9,7 +9,7 @@ INSTALLED := $(VENV)/.installed
 READY := $(VENV)/.compiled
 EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring arm_on_line
 
-.PHONY: all demo figures bench bench-derive bench-sweep bench-sweep-scale sweep-example robust-example reference-noise test lint typecheck check regen check-generated update-golden clean
+.PHONY: all demo figures bench bench-derive bench-sweep bench-sweep-scale bench-commands sweep-example robust-example reference-noise test lint typecheck check regen check-generated update-golden clean
 
 all: test
 
@@ -80,6 +80,10 @@ bench-derive: $(READY)
 bench-sweep: $(READY)
 	$(PY) -m pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/bench_sweep.py --write benchmarks/SWEEP.md
+
+## bench-commands: cold generate, simulate and report of every bundled example (benchmarks/COMMANDS.md)
+bench-commands: $(READY)
+	$(PY) benchmarks/bench_commands.py --write benchmarks/COMMANDS.md
 
 ## bench-sweep-scale: a sweep's client memory at 10^4..10^6 samples, first progress, throughput
 bench-sweep-scale: $(READY)

@@ -30,13 +30,24 @@ _COLORS = ("tab:red", "tab:purple", "tab:orange", "tab:brown", "tab:pink", "tab:
 _OBJECT_COLORS = ("black", "tab:blue", "tab:gray", "tab:cyan")
 
 
+#: The margin around a figure's tight box, in inches (matplotlib's ``pad_inches``).
+_PAD = 0.1
+
+
 def _save(fig: Any, stem: str) -> dict[str, bytes]:
-    """Both formats, with the metadata that would make them differ between runs removed."""
+    """Both formats, with the metadata that would make them differ between runs removed.
+
+    The tight box is found once, on a layout pass that renders nothing, and given to both
+    formats: ``bbox_inches="tight"`` draws the whole figure once more for each format to
+    find it (four draws a figure instead of two; a third of a small ``simulate``).
+    """
     out = {}
     with matplotlib.rc_context({"svg.hashsalt": "tvopt-codegen"}):
+        fig.draw_without_rendering()
+        box = fig.get_tightbbox(fig.canvas.get_renderer()).padded(_PAD)
         for fmt, metadata in (("png", {"Software": None}), ("svg", {"Date": None})):
             buffer = io.BytesIO()
-            fig.savefig(buffer, format=fmt, dpi=120, bbox_inches="tight", metadata=metadata)
+            fig.savefig(buffer, format=fmt, dpi=120, bbox_inches=box, metadata=metadata)
             out[f"{stem}.{fmt}"] = buffer.getvalue()
     return out
 
