@@ -120,6 +120,31 @@ def _read_manifest(folder: Path) -> dict[str, str]:
     return {str(k): str(v) for k, v in data.items()}
 
 
+def _written_by_tool(path: Path, manifest: Mapping[str, str], current: bytes | None = None) -> bool:
+    """Whether tvopt-codegen wrote ``path`` and nobody changed it since.
+
+    The folder's manifest vouches for its SHA-256, or it is pristine generated text (its
+    stamp's hash holds). ``current`` is its content when already read; otherwise the
+    digest is taken in blocks (a sweep's table may be gigabytes) and the text read within
+    a bound.
+    """
+    digest = _digest(current) if current is not None else _file_digest(path)
+    if manifest.get(path.name) == digest:
+        return True
+    text = current if current is not None else read_regular_file(path, _MAX_OWN_FILE_BYTES)
+    try:
+        return text is not None and is_pristine(text.decode("utf-8"))
+    except UnicodeDecodeError:
+        return False
+
+
+def _not_ours(path: Path) -> OutputError:
+    return OutputError(
+        f"{path}: was edited by hand or not written by tvopt-codegen; refusing to overwrite "
+        "it (use --force to replace it)"
+    )
+
+
 def _may_replace(path: Path, data: bytes, manifest: Mapping[str, str], force: bool) -> bool:
     """Decide whether ``path`` may be (re)written; False when it already holds ``data``."""
     if path.is_symlink():
@@ -136,20 +161,11 @@ def _may_replace(path: Path, data: bytes, manifest: Mapping[str, str], force: bo
         return False
     if force:
         return True
-    try:
-        text = current.decode("utf-8")
-    except UnicodeDecodeError:
-        text = None
-    if text is not None:
-        _refuse_another_specs_file(path, text, data)
-    if manifest.get(path.name) == _digest(current):
+    with contextlib.suppress(UnicodeDecodeError):
+        _refuse_another_specs_file(path, current.decode("utf-8"), data)
+    if _written_by_tool(path, manifest, current):
         return True
-    if text is not None and is_pristine(text):
-        return True
-    raise OutputError(
-        f"{path}: was edited by hand or not written by tvopt-codegen; refusing to overwrite "
-        "it (use --force to replace it)"
-    )
+    raise _not_ours(path)
 
 
 def _refuse_another_specs_file(path: Path, current: str, data: bytes) -> None:
@@ -247,13 +263,7 @@ def _may_recover(folder: Path, temp: str, target: str, manifest: Mapping[str, st
         current = read_regular_file(path, _MAX_OWN_FILE_BYTES)
         if current is None:
             return f"{target!r} could not be read"
-        owned = manifest.get(target) == _digest(current) or target == MANIFEST
-        if not owned:
-            try:
-                owned = is_pristine(current.decode("utf-8"))
-            except UnicodeDecodeError:
-                owned = False
-        if not owned:
+        if target != MANIFEST and not _written_by_tool(path, manifest, current):
             return f"{target!r} was changed since tvopt-codegen wrote it"
     return ""
 
@@ -695,16 +705,8 @@ def check_replaceable(out_dir: str | Path, names: Iterator[str] | list[str], for
             continue
         if not path.is_file():
             raise OutputError(f"{path}: exists and is not a regular file")
-        if force or manifest.get(name) == _file_digest(path):
-            continue
-        text = read_regular_file(path, _MAX_OWN_FILE_BYTES)
-        with contextlib.suppress(UnicodeDecodeError):
-            if text is not None and is_pristine(text.decode("utf-8")):
-                continue
-        raise OutputError(
-            f"{path}: was edited by hand or not written by tvopt-codegen; refusing to "
-            "overwrite it (use --force to replace it)"
-        )
+        if not force and not _written_by_tool(path, manifest):
+            raise _not_ours(path)
 
 
 def write_stream(

@@ -23,10 +23,15 @@ from tvopt_codegen.sweep.sample import SampleResult, run_chunk
 SCHEDULER_TIMEOUT = 10.0
 
 
-def chunks(samples: int, size: int) -> Iterator[range]:
-    """Consecutive ranges of sample indices, ``size`` at a time."""
-    for start in range(0, samples, size):
-        yield range(start, min(start + size, samples))
+def chunks(samples: int | range, size: int) -> Iterator[range]:
+    """Consecutive ranges of sample indices, ``size`` at a time.
+
+    Of ``range(samples)``, or of the range given (``--resume`` splits each run of missing
+    samples).
+    """
+    span = range(samples) if isinstance(samples, int) else samples
+    for start in range(span.start, span.stop, size):
+        yield range(start, min(start + size, span.stop))
 
 
 def default_chunk(samples: int, workers: int) -> int:
@@ -310,7 +315,7 @@ def run_sweep(
     # A fresh key per sweep: a key shared with an earlier sweep on the same client could
     # still be in release when this one needs it ("lost dependencies").
     scattered = client.scatter(program, broadcast=True, hash=False)
-    pending = (piece for span in todo for piece in _split(span, size))
+    pending = (piece for span in todo for piece in chunks(span, size))
     run = SweepRun(workers=workers, dashboard=str(getattr(client, "dashboard_link", "") or ""))
     started = time.perf_counter()
 
@@ -351,9 +356,3 @@ def run_sweep(
     run.seconds = time.perf_counter() - started
     run.results.sort(key=lambda r: int(r.row["sample"]))
     return run
-
-
-def _split(span: range, size: int) -> Iterator[range]:
-    """``span`` in consecutive ranges of ``size`` samples."""
-    for start in range(span.start, span.stop, size):
-        yield range(start, min(start + size, span.stop))
