@@ -127,9 +127,18 @@ def test_output_files_load_back(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert data["E"].shape == (51, 1, 2)
     assert list(data["state_names"]) == ["x1", "x2"]
     for stem in stems:
-        assert (out / f"integrator_{stem}.png").read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
+        png = (out / f"integrator_{stem}.png").read_bytes()
+        assert png.startswith(b"\x89PNG\r\n\x1a\n")
         root = ET.fromstring((out / f"integrator_{stem}.svg").read_bytes())
         assert root.tag.endswith("svg")
+        # The PNG is cut from the one rendering along the box the SVG is written in:
+        # the same picture, 120 pixels to the SVG's 72 points per inch.
+        width, height = int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
+        points = [float(root.attrib[key].removesuffix("pt")) for key in ("width", "height")]
+        assert abs(width - points[0] * 120 / 72) <= 1 and abs(height - points[1] * 120 / 72) <= 1
+    # Log axes are labelled in plain text (10⁻³), never through mathtext.
+    svg = (out / "integrator_convergence.svg").read_text()
+    assert "10\u207b" in svg and "mathdefault" not in svg
 
 
 def test_command_line_overrides(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

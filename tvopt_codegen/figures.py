@@ -18,6 +18,8 @@ import numpy as np
 import sympy as sp
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter, NullFormatter
+from PIL import Image
 
 from tvopt_codegen.derivation import Derivation
 
@@ -32,23 +34,73 @@ _OBJECT_COLORS = ("black", "tab:blue", "tab:gray", "tab:cyan")
 
 #: The margin around a figure's tight box, in inches (matplotlib's ``pad_inches``).
 _PAD = 0.1
+#: Pixels per inch of the PNG figures.
+_DPI = 120
+
+
+_SUPERSCRIPT = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
+
+
+def _power_of_ten(value: float, _position: int | None = None) -> str:
+    """``10⁻⁴`` for a decade, in plain text; nothing between decades."""
+    if value <= 0:
+        return ""
+    exponent = np.log10(value)
+    if abs(exponent - round(exponent)) > 1e-9:
+        return ""
+    return "10" + str(round(exponent)).translate(_SUPERSCRIPT)
+
+
+def _plain_log_labels(fig: Any) -> None:
+    """Label log axes in plain text.
+
+    matplotlib's default log labels are mathtext (``$10^{-4}$``), which its parser reads
+    anew for every figure: half of drawing a small ``simulate``'s figures.
+    """
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            if axis.get_scale() == "log":
+                axis.set_major_formatter(FuncFormatter(_power_of_ten))
+                axis.set_minor_formatter(NullFormatter())
 
 
 def _save(fig: Any, stem: str) -> dict[str, bytes]:
     """Both formats, with the metadata that would make them differ between runs removed.
 
-    The tight box is found once, on a layout pass that renders nothing, and given to both
-    formats: ``bbox_inches="tight"`` draws the whole figure once more for each format to
-    find it (four draws a figure instead of two; a third of a small ``simulate``).
+    The figure is rendered once, at full size, on its Agg canvas; the tight box is found
+    on that rendering, the PNG is cut from its pixels, and the SVG is written inside the
+    same box. ``bbox_inches="tight"`` draws a figure once more per format to find the box,
+    which tripled a small ``simulate``'s drawing time.
     """
-    out = {}
-    with matplotlib.rc_context({"svg.hashsalt": "tvopt-codegen"}):
-        fig.draw_without_rendering()
-        box = fig.get_tightbbox(fig.canvas.get_renderer()).padded(_PAD)
-        for fmt, metadata in (("png", {"Software": None}), ("svg", {"Date": None})):
-            buffer = io.BytesIO()
-            fig.savefig(buffer, format=fmt, dpi=120, bbox_inches=box, metadata=metadata)
-            out[f"{stem}.{fmt}"] = buffer.getvalue()
+    _plain_log_labels(fig)
+    with matplotlib.rc_context({"svg.hashsalt": "tvopt-codegen", "svg.fonttype": "none"}):
+        fig.set_dpi(_DPI)
+        canvas = fig.canvas
+        canvas.draw()
+        box = fig.get_tightbbox(canvas.get_renderer()).padded(_PAD)
+        png = io.BytesIO()
+        Image.fromarray(_cut(np.asarray(canvas.buffer_rgba()), box)).save(
+            png, format="png", dpi=(_DPI, _DPI)
+        )
+        svg = io.BytesIO()
+        fig.savefig(svg, format="svg", dpi=_DPI, bbox_inches=box, metadata={"Date": None})
+    return {f"{stem}.png": png.getvalue(), f"{stem}.svg": svg.getvalue()}
+
+
+def _cut(pixels: np.ndarray, box: Any) -> np.ndarray:
+    """The pixels inside ``box`` (inches from the bottom left), white where it overhangs.
+
+    The padded tight box may reach past the canvas (a title at the top edge), as
+    ``bbox_inches`` allows: the overhang is blank paper.
+    """
+    height, width = pixels.shape[:2]
+    left, right = (round(v * _DPI) for v in (box.x0, box.x1))
+    top, bottom = (height - round(v * _DPI) for v in (box.y1, box.y0))
+    out = np.full((bottom - top, right - left, 4), 255, dtype=np.uint8)
+    rows = slice(max(top, 0), min(bottom, height))
+    cols = slice(max(left, 0), min(right, width))
+    inside = pixels[rows, cols]
+    out[rows.start - top :, cols.start - left :][: inside.shape[0], : inside.shape[1]] = inside
     return out
 
 
