@@ -230,3 +230,63 @@ def test_simulate_with_the_c_backend(
     assert main(["simulate", "unicycle_switch", "--out", str(tmp_path / "py")]) == 0
     py_run = np.load(tmp_path / "py" / "unicycle_switch_trajectory.npz")
     np.testing.assert_allclose(c_run["states"], py_run["states"], rtol=1e-8, atol=1e-8)
+
+
+def test_the_dormand_prince_tableau_is_scipys_bit_for_bit() -> None:
+    from scipy.integrate import RK45
+
+    from tvopt_codegen import dopri
+
+    for name in "CABEP":
+        assert np.array_equal(getattr(dopri, name), getattr(RK45, name)), name
+
+
+@pytest.mark.parametrize("spec", ["pvtol", "unicycle_switch", "two_unicycles_barrier"])
+def test_simulates_rk45_steps_and_dense_output_are_solve_ivps_bit_for_bit(spec: str) -> None:
+    from scipy.integrate import solve_ivp
+
+    from tvopt_codegen import dopri
+
+    m = module(spec)
+    start = np.array(m.DEFAULT_STATE, dtype=float)
+    ours = dopri.integrate(m.rhs, 6.0, start, 1e-8, 1e-10)
+    theirs = solve_ivp(m.rhs, (0.0, 6.0), start, rtol=1e-8, atol=1e-10, dense_output=True)
+    assert ours.success and ours.message == theirs.message
+    assert ours.nfev == theirs.nfev and len(ours.t) > 20
+    assert np.array_equal(ours.t, theirs.t) and np.array_equal(ours.y, theirs.y)
+    # Between steps, at the steps (the earlier step's quartic) and in any order.
+    probe = np.concatenate([np.linspace(0.0, 6.0, 401), ours.t[::3]])[::-1]
+    assert ours.sol is not None
+    assert np.array_equal(ours.sol(probe), theirs.sol(probe))
+    for t in (0.0, float(ours.t[5]), 2.5, 6.0):
+        assert np.array_equal(ours.sol(t), theirs.sol(t))
+
+
+def test_a_run_that_blows_up_ends_as_scipys_does() -> None:
+    from scipy.integrate import solve_ivp
+
+    from tvopt_codegen import dopri
+
+    def field(_t: float, y: np.ndarray) -> np.ndarray:
+        return y * y  # y = 1 / (1 - t): infinite at t = 1
+
+    with np.errstate(all="ignore"):
+        ours = dopri.integrate(field, 2.0, np.array([1.0]), 1e-8, 1e-10)
+        theirs = solve_ivp(field, (0.0, 2.0), [1.0], rtol=1e-8, atol=1e-10, dense_output=True)
+    assert not ours.success and ours.message == theirs.message == dopri.TOO_SMALL
+    assert np.array_equal(ours.t, theirs.t) and 0.99 < ours.t[-1] < 1.01
+    assert ours.nfev == theirs.nfev
+
+
+def test_simulate_imports_neither_scipy_integrate_nor_pyplot(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\nfrom tvopt_codegen.cli import main\n"
+        f"main(['simulate', 'pvtol', '--out', {str(tmp_path / 'run')!r}, '--points', '41'])\n"
+        "print(sorted(m for m in sys.modules if m in "
+        "('scipy.integrate', 'scipy.optimize', 'matplotlib.pyplot')))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
+    assert done.stdout.splitlines()[-1] == "[]"

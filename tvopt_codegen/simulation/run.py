@@ -12,9 +12,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.integrate import solve_ivp
-from scipy.interpolate import CubicHermiteSpline
 
+from tvopt_codegen import dopri
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.simulation.certificate import _certify
@@ -98,6 +97,12 @@ def simulate(
                 return _on_the_sample_grid(
                     tracked, run.t_final, np.array(run.initial_state), source.times
                 )
+            if run.method == "RK45":
+                return dopri.integrate(
+                    tracked, run.t_final, np.array(run.initial_state), run.rtol, run.atol
+                )
+            from scipy.integrate import solve_ivp  # noqa: PLC0415 - a third of simulate
+
             return solve_ivp(
                 tracked,
                 (0.0, run.t_final),
@@ -225,6 +230,8 @@ def _on_the_sample_grid(
         states[:, i + 1] = x
     # The last rate: the left limit of the last interval's (the jets jump at samples).
     rates[:, -1] = k4
+    from scipy.interpolate import CubicHermiteSpline  # noqa: PLC0415 - on this path only
+
     interpolant = CubicHermiteSpline(grid, states, rates, axis=1)
     return _GridSolution(grid, states, interpolant, 4 * (len(grid) - 1))
 

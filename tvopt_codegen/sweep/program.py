@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from tvopt_codegen import dopri
 from tvopt_codegen.errors import SpecError
 from tvopt_codegen.limits import START_ITERATIONS
 
@@ -123,9 +124,6 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
     SpecError
         For a spec with ``[references]`` (the compiled loop has no reference source yet).
     """
-    import scipy  # noqa: PLC0415
-    from scipy.integrate._ivp.rk import RK45  # noqa: PLC0415
-
     from tvopt_codegen.backends import BACKENDS  # noqa: PLC0415
     from tvopt_codegen.ir import check_kernels  # noqa: PLC0415
     from tvopt_codegen.rendering import (  # noqa: PLC0415
@@ -160,14 +158,7 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
         if constraints is None
         else print_kernel(constraints, backend.printer()),
         "constraint_count": len(d.model.constraints),
-        "rk": {
-            "A": RK45.A[:, :5].tolist(),
-            "B": RK45.B.tolist(),
-            "C": RK45.C.tolist(),
-            "E": RK45.E.tolist(),
-            "P": RK45.P.tolist(),
-        },
-        "scipy_version": scipy.__version__,
+        "rk": {name: getattr(dopri, name).tolist() for name in "ABCEP"},
         "sweep_statuses": list(LoopOutcome),
         # The run-time library's routines this loop calls, beyond the controller's own.
         "runtime_routines": closure(
