@@ -113,6 +113,8 @@ def _newton(
 ) -> np.ndarray:
     """Minimize f0(., t) from ``y``: damped Newton with capped steps."""
     extra = extra or {}
+    # f0 where the line search stopped is f0 at the next iterate: no second evaluation.
+    value = None
     for _ in range(iterations):
         grad = controller.gradient(t, y, params, **extra)
         hess = controller.hessian(t, y, params, **extra)
@@ -125,8 +127,10 @@ def _newton(
         size = float(np.linalg.norm(step))
         if size > NEWTON.step_cap:
             step = step * (NEWTON.step_cap / size)
-        value = controller.objective(t, y, params, **extra)
+        if value is None:
+            value = controller.objective(t, y, params, **extra)
         scale = 1.0
+        accepted = None
         while scale > NEWTON.smallest_scale:
             trial = y - scale * step
             try:
@@ -136,9 +140,11 @@ def _newton(
             if np.isfinite(trial_value) and trial_value <= value - NEWTON.armijo * scale * (
                 grad @ step
             ):
+                accepted = trial_value
                 break
             scale *= NEWTON.shrink
         y = y - scale * step
+        value = accepted
         if size * scale <= NEWTON.stop * (1.0 + float(np.linalg.norm(y))):
             break
     return y
