@@ -333,10 +333,13 @@ def test_the_transient_constant_is_the_supremum_on_its_grid() -> None:
         assert transient_constant(a, alpha) <= reference * 1.01, poles
 
 
-@pytest.mark.parametrize("name", ["integrator", "unicycle_switch", "pvtol", "flexible_joint"])
+@pytest.mark.parametrize(
+    "name", ["integrator", "unicycle_switch", "pvtol", "flexible_joint", "unicycle_ring"]
+)
 def test_the_predicted_error_is_expm_at_every_output_time(name: str) -> None:
-    """``hurwitz.flow`` steps expm(H h) over the grid (a few exponentials, not one per
-    time): it agrees with expm(H t) E(0) at each time to 1e-12 of |E(0)|."""
+    """``hurwitz.flow`` steps expm(H h) over the grid (a few exponentials of the k x k
+    companion, not one of H per time): it agrees with scipy's expm(H t) E(0) at each time
+    to 1e-12 of |E(0)|."""
     from scipy.linalg import expm
 
     from tvopt_codegen import hurwitz
@@ -345,6 +348,6 @@ def test_the_predicted_error_is_expm_at_every_output_time(name: str) -> None:
     H = hurwitz.error_matrix(d.coefficients, d.n_kkt)
     start = np.random.default_rng(7).normal(size=H.shape[0])
     for times in (np.linspace(0.0, d.spec.t_final, 401), np.sort([0.0, 0.3, 0.31, 2.0, 7.5])):
-        stepped = hurwitz.flow(H, start, times)
+        stepped = hurwitz.flow(d.coefficients, d.n_kkt, start, times)
         direct = np.array([expm(H * t) @ start for t in times])
         assert np.max(np.abs(stepped - direct)) <= 1e-12 * np.linalg.norm(start)

@@ -278,15 +278,16 @@ def test_a_run_that_blows_up_ends_as_scipys_does() -> None:
     assert ours.nfev == theirs.nfev
 
 
-def test_simulate_imports_neither_scipy_integrate_nor_pyplot(tmp_path: Path) -> None:
+def test_simulate_imports_neither_scipy_nor_pyplot(tmp_path: Path) -> None:
+    """RK45 is :mod:`tvopt_codegen.dopri`; expm(H t) of the k x k companion is mpmath's."""
     import subprocess
     import sys
 
     code = (
         "import sys\nfrom tvopt_codegen.cli import main\n"
         f"main(['simulate', 'pvtol', '--out', {str(tmp_path / 'run')!r}, '--points', '41'])\n"
-        "print(sorted(m for m in sys.modules if m in "
-        "('scipy.integrate', 'scipy.optimize', 'matplotlib.pyplot')))"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] == 'scipy' "
+        "or m == 'matplotlib.pyplot'))"
     )
     done = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
     assert done.stdout.splitlines()[-1] == "[]"

@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import io
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.figures import figures, replay_figure, sampled_figures, sweep_figures
 from tvopt_codegen.simulation import Result, columns, format_certificate
-from tvopt_codegen.simulation.sampled import SampledResult
 from tvopt_codegen.sweep import (
     RECORD,
     TAIL,
@@ -29,6 +28,10 @@ from tvopt_codegen.sweep import (
     format_summary,
     record_bytes,
 )
+
+if TYPE_CHECKING:
+    # A type only: the sampled run's module is loaded by the commands that run one.
+    from tvopt_codegen.simulation.sampled import SampledResult
 
 
 def result_files(derivation: Derivation, result: Result) -> dict[str, bytes]:

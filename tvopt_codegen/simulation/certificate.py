@@ -187,10 +187,9 @@ def _certify(
     target, eq, multipliers, kkt = _target(d, controller, options, ts, states, outputs, true)
     error = np.linalg.norm(outputs - target, axis=0)
 
-    H = hurwitz.error_matrix(d.coefficients, d.n_kkt)
     flat = augmented_error(d, states, E.reshape(len(ts), -1))
     norm0 = float(np.linalg.norm(flat[0]))
-    predicted = hurwitz.flow(H, flat[0], ts)
+    predicted = hurwitz.flow(d.coefficients, d.n_kkt, flat[0], ts)
     deviation = float(np.max(np.linalg.norm(flat - predicted, axis=1))) / max(norm0, 1e-300)
     estimated = references is not None and references.estimated
     disturbance = iss_ratio = iss_final = float("nan")
