@@ -55,7 +55,8 @@ def _target(
     Returns the target, and with equality constraints their evaluator, the multipliers
     along the run and the KKT path (``None`` otherwise).
     """
-    params = dict(options.params)
+    # No overrides is None: the module's one-point path then skips reading a mapping.
+    params = dict(options.params) or None
     if not d.model.equalities:
         return (
             minimizer_path(controller, ts, outputs[:, -1], params, true, outputs),
@@ -80,7 +81,7 @@ def _target(
 def _modulus(
     d: Derivation,
     controller: types.ModuleType,
-    params: dict[str, float],
+    params: Mapping[str, float] | None,
     ts: np.ndarray,
     outputs: np.ndarray,
     target: np.ndarray,
@@ -168,7 +169,8 @@ def _certify(
     """Sample the run and check the theorem along it."""
     # One pass over the run's samples, each check of the certificate in the order the
     # summary prints them; the heavy parts are the helpers above.
-    params = dict(options.params)
+    # No overrides is None: the module's one-point path then skips reading a mapping.
+    params = dict(options.params) or None
     given, true = _jets(references)
     failures: list[str] = []
     if not solution.success:
@@ -272,7 +274,7 @@ def _kkt_eigenvalues(
     outputs: np.ndarray,
     multipliers: np.ndarray,
     kkt: np.ndarray,
-    params: Mapping[str, float],
+    params: Mapping[str, float] | None,
     true: Callable[[float], dict[str, Any]],
 ) -> np.ndarray:
     """The KKT matrix's eigenvalues at the run's (y, nu), at (y*, nu*) and midway."""
@@ -330,7 +332,7 @@ def _constraint_check(
 def _input_to_state(
     d: Derivation,
     controller: types.ModuleType,
-    params: dict[str, float],
+    params: Mapping[str, float] | None,
     solution: Any,
     ts: np.ndarray,
     flat: np.ndarray,

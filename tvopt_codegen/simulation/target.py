@@ -20,7 +20,7 @@ def minimizer_path(
     controller: types.ModuleType,
     ts: np.ndarray,
     start: np.ndarray,
-    params: Mapping[str, float],
+    params: Mapping[str, float] | None,
     refs: Callable[[float], dict[str, Any]] | None = None,
     inside: np.ndarray | None = None,
 ) -> np.ndarray:
@@ -41,8 +41,8 @@ def minimizer_path(
         Increasing output times.
     start : numpy.ndarray
         Starting point at ``ts[-1]``.
-    params : mapping
-        Parameter overrides.
+    params : mapping or None
+        Parameter overrides (None: the defaults).
     refs : callable, optional
         ``refs(t)``: the keyword arguments that give the module the reference jets at
         ``t`` (for a spec with references).
@@ -93,7 +93,7 @@ def _defined(
     controller: types.ModuleType,
     t: float,
     y: np.ndarray,
-    params: Mapping[str, float],
+    params: Mapping[str, float] | None,
     extra: Mapping[str, Any],
 ) -> bool:
     """Whether f0 is finite at ``y`` and ``t``."""
@@ -107,7 +107,7 @@ def _newton(
     controller: types.ModuleType,
     t: float,
     y: np.ndarray,
-    params: Mapping[str, float],
+    params: Mapping[str, float] | None,
     extra: Mapping[str, Any] | None = None,
     iterations: int = NEWTON.iterations,
 ) -> np.ndarray:
@@ -155,7 +155,7 @@ def _kkt_newton(
     eq: Any,
     t: float,
     w: np.ndarray,
-    params: Mapping[str, float],
+    params: Mapping[str, float] | None,
     extra: Mapping[str, Any],
     iterations: int = NEWTON.iterations,
 ) -> np.ndarray:
@@ -227,7 +227,7 @@ def kkt_path(
     eq: Any,
     ts: np.ndarray,
     start: np.ndarray,
-    params: Mapping[str, float],
+    params: Mapping[str, float] | None,
     refs: Callable[[float], dict[str, Any]] | None = None,
 ) -> np.ndarray:
     """``(y*, nu*)(t)``: the KKT system solved at each time.
