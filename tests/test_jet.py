@@ -10,7 +10,7 @@ import pytest
 import sympy as sp
 
 from tvopt_codegen.derivation import jet_symbol
-from tvopt_codegen.jet import atomize, fresh_symbols, partial, total_derivative
+from tvopt_codegen.jet import Program, atomize, fresh_symbols, partial, total_derivative
 from tvopt_codegen.numeric import Evaluator
 
 from .conftest import EXAMPLES, derivation
@@ -152,3 +152,28 @@ def test_partial_leaves_functions_with_their_own_rule_to_sympy() -> None:
     for expr in (sp.Abs(x * y), sp.sign(x - y), sp.sign(x) * sp.Abs(x) ** 2):
         assert partial(expr, x) == sp.diff(expr, x), expr
     assert not partial(sp.sign(x), x).has(sp.Derivative)
+
+
+@pytest.mark.parametrize("name", ["unicycle_switch", "pvtol", "two_unicycles_barrier"])
+def test_inlining_once_per_assignment_gives_the_expressions_of_inlining_one_by_one(
+    name: str,
+) -> None:
+    d = derivation(name)
+    program = d.jet_program + d.rest_program
+
+    def one_by_one(expr: sp.Expr) -> sp.Expr:
+        for sym, value in reversed(program.assignments):
+            expr = expr.xreplace({sym: value})
+        return expr
+
+    for expr in [*d.grad_jet[1], *d.rest]:
+        assert program.inline(expr) == one_by_one(expr)
+
+
+def test_the_inlined_size_counts_every_read_without_building() -> None:
+    x, y, a, b = sp.symbols("x y a b", real=True)
+    program = Program(((a, x + y), (b, a * sp.sin(a))))
+    # a: Add(x, y) is 3 nodes; b: Mul(a, sin(a)) is 1 + 3 + (1 + 3); b + x: 1 + 8 + 1.
+    assert program.inlined_size(b + x) == 10
+    assert program.inlined_size(x) == 1
+    assert program.inline(b + x) == (x + y) * sp.sin(x + y) + x

@@ -36,10 +36,51 @@ class Program:
         return Program(self.assignments + other.assignments)
 
     def inline(self, expr: sp.Expr) -> sp.Expr:
-        """Substitute every assignment into ``expr`` (for tests and small reports only)."""
-        for sym, value in reversed(self.assignments):
-            expr = expr.xreplace({sym: value})
-        return expr
+        """Substitute every assignment into ``expr`` (for tests and small reports only).
+
+        Each assignment ``expr`` reads is inlined once, in program order, and reused
+        wherever it is read: substituting the assignments one by one into the whole
+        expression, last first, rebuilt it once per assignment (three fifths of a team's
+        ``report``).
+        """
+        values = dict(self.assignments)
+        memo: dict[sp.Basic, sp.Expr] = {}
+        for sym in self._read_by(expr):
+            value = values[sym]
+            memo[sym] = value.xreplace({s: memo[s] for s in value.free_symbols if s in memo})
+        return expr.xreplace({s: memo[s] for s in expr.free_symbols if s in memo})
+
+    def inlined_size(self, expr: sp.Expr) -> int:
+        """The node count of ``expr`` with every assignment inlined, without building it.
+
+        A read counts the inlined size of what it reads each time, as the inlined tree
+        would: a report asks this before inlining what it would only describe if large.
+        """
+        values = dict(self.assignments)
+        sizes: dict[sp.Basic, int] = {}
+
+        def size(e: sp.Basic) -> int:
+            if e in sizes:
+                return sizes[e]
+            return 1 + sum(size(a) for a in e.args)
+
+        for sym in self._read_by(expr):
+            sizes[sym] = size(values[sym])
+        total = size(expr)
+        release(size)
+        return total
+
+    def _read_by(self, expr: sp.Expr) -> list[sp.Basic]:
+        """The assigned symbols ``expr`` reads, directly or not, in program order."""
+        values = dict(self.assignments)
+        needed = {s for s in expr.free_symbols if s in values}
+        pending = list(needed)
+        while pending:
+            for s in values[pending.pop()].free_symbols:
+                if s in values and s not in needed:
+                    needed.add(s)
+                    pending.append(s)
+        return [sym for sym, _ in self.assignments if sym in needed]
 
 
 def release(walk: Callable[..., object]) -> None:

@@ -5,13 +5,14 @@ Each reads the derivation and re-derives nothing.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import sympy as sp
 
 from tvopt_codegen import __version__
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.ir import KernelSet
+from tvopt_codegen.jet import Program
 from tvopt_codegen.report.entries import (
     INLINE_OPS,
     Entry,
@@ -470,6 +471,26 @@ def _robustness(d: Derivation) -> tuple[Section, ...]:
     return tuple(sections)
 
 
+#: An inlined jet of more nodes than this many times INLINE_OPS is described without
+#: being built. A tree has about two nodes per operation (its leaves), and sympy's
+#: evaluation as it is built grows it by at most one product per term (a number
+#: distributed over a sum); only a cancellation it could not foresee would have shrunk
+#: such a tree under INLINE_OPS.
+_NODES_PER_OP = 3
+
+
+def _inlined(program: Program, exprs: Sequence[sp.Expr]) -> list[sp.Expr] | None:
+    """``exprs`` with the program inlined, or None where that is sure to be too long.
+
+    A team's gradient jet inlines to expressions of millions of nodes, which took most
+    of its report to build only to be described instead.
+    """
+    nodes = sum(program.inlined_size(e) for e in exprs)
+    if nodes > _NODES_PER_OP * INLINE_OPS:
+        return None
+    return [program.inline(e) for e in exprs]
+
+
 def _control_law(d: Derivation) -> Section:
     k = d.k
     theorem = (
@@ -520,8 +541,8 @@ def _control_law(d: Derivation) -> Section:
     ]
     program = d.jet_program + d.rest_program
     for j in range(1, k):
-        exprs = [program.inline(e) for e in d.grad_jet[j]]
-        if sum(sp.count_ops(e) for e in exprs) <= INLINE_OPS:
+        exprs = _inlined(program, d.grad_jet[j])
+        if exprs is not None and sum(sp.count_ops(e) for e in exprs) <= INLINE_OPS:
             entries.append(
                 _math_entry(
                     f"grad^({j}) f0, inlined for checking:",
@@ -529,8 +550,8 @@ def _control_law(d: Derivation) -> Section:
                     _name(rf"\nabla_y^{{({j})}} f_0", f"&#8711;({j})f0"),
                 )
             )
-    rest = [program.inline(e) for e in d.rest]
-    if sum(sp.count_ops(e) for e in rest) <= INLINE_OPS:
+    rest = _inlined(program, d.rest)
+    if rest is not None and sum(sp.count_ops(e) for e in rest) <= INLINE_OPS:
         entries.append(
             _math_entry(
                 f"rest = grad^({k}) f0 at y^({k}) = 0, inlined:",
