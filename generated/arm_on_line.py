@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: 092f90e957e7813786de8bec2992d43274edc476d496930207e4a4ad0516a98e
+# content sha256: 3b9f889230a1c3c898dbdd1b746a5297a56cd266dbb189f08ab6597ffd7e6016
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -586,7 +586,7 @@ def _optimality(t, s, p):
 
 
 def _objective(t, y, p):
-    """The objective f0(y, t) (kernel; 16 operations, 15 before CSE)."""
+    """The objective f0(y, t) (kernel; 16 operations, 17 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # px
     _y1 = y[1]  # py

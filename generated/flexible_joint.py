@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 91606863db113e58a16134af74110dbcce58270a9e19a3a9f03e1ace27e18e1f
+# content sha256: 8b0da5edd0f71905c2aafe94d8c8082b4bcb90cf2de5fffc515ba091a61d1f84
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -537,7 +537,7 @@ def _optimality(t, s, p):
 
 
 def _objective(t, y, p):
-    """The objective f0(y, t) (kernel; 12 operations, 13 before CSE)."""
+    """The objective f0(y, t) (kernel; 12 operations, 15 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y
     # Intermediate terms (1)

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: a4d74cb47fb0ede452f4882dcb921986e982be57f7040a9064a5e49b55342365
+# content sha256: 4dda1a78a2bbd6b4ef7aa1eaffc970e952db4734105babc06d6a1910a6849c59
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -420,7 +420,7 @@ def _optimality(t, s, p):
 
 
 def _objective(t, y, p):
-    """The objective f0(y, t) (kernel; 21 operations, 22 before CSE)."""
+    """The objective f0(y, t) (kernel; 21 operations, 24 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y1
     _y1 = y[1]  # y2

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
-# content sha256: 11fd92b293fe1aef0b1d623778726e7b9df862f131ef9a9dc63a4cb4612bcaaf
+# content sha256: a35f957094c13772524bd471e661009b2544d6c9d00cc0f786fb25b6e1fc4819
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -504,7 +504,7 @@ def _optimality(t, s, p):
 
 
 def _objective(t, y, p):
-    """The objective f0(y, t) (kernel; 17 operations, 16 before CSE)."""
+    """The objective f0(y, t) (kernel; 17 operations, 18 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # px
     _y1 = y[1]  # pz

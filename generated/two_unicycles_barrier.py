@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 73604448159c308f96dc22af62898dd3f4ee08968c2054fbed2b995958a958e6
+# content sha256: a3c402ecd8b2fe171a19aed7f6b9bc661df6266c5c07c016bebbc0be0cace9b7
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -625,7 +625,7 @@ def _optimality(t, s, p):
 
 
 def _objective(t, y, p):
-    """The objective f0(y, t) (kernel; 41 operations, 48 before CSE)."""
+    """The objective f0(y, t) (kernel; 41 operations, 55 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # pa
     _y1 = y[1]  # qa
@@ -637,7 +637,7 @@ def _objective(t, y, p):
     _t0 = (t*t)
     # Output terms
     f0 = numpy.empty((_n))  # f0
-    f0[...] = ((_y2 - 9/20*t - 1/250*_t0 + 2)*(_y2 - 9/20*t - 1/250*_t0 + 2)) + ((_y1 - 3/10*t + (1/100)*_t0 + 3)*(_y1 - 3/10*t + (1/100)*_t0 + 3)) + ((_y3 - 7/20*t + (3/250)*_t0 + 3)*(_y3 - 7/20*t + (3/250)*_t0 + 3)) + ((_y0 - 1/2*t - 1/500*_t0 + 5)*(_y0 - 1/2*t - 1/500*_t0 + 5)) + _p0*(numpy.tan((1/2)*numpy.pi*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1)*numpy.tan((1/2)*numpy.pi*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1))
+    f0[...] = ((_y2 - 9/20*t - 1/250*_t0 + 2)*(_y2 - 9/20*t - 1/250*_t0 + 2)) + ((_y1 - 3/10*t + (1/100)*_t0 + 3)*(_y1 - 3/10*t + (1/100)*_t0 + 3)) + ((_y3 - 7/20*t + (3/250)*_t0 + 3)*(_y3 - 7/20*t + (3/250)*_t0 + 3)) + ((_y0 - 1/2*t - 1/500*_t0 + 5)*(_y0 - 1/2*t - 1/500*_t0 + 5)) + _p0*(numpy.tan((1/2)*numpy.pi*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))/_p1)*numpy.tan((1/2)*numpy.pi*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))/_p1))
     return f0
 
 
@@ -821,7 +821,7 @@ def _objective_1(t, y, p):
     _p0, _p1 = p
     _t0 = (t*t)
     f0 = [
-        ((_y2 - 9/20*t - 1/250*_t0 + 2.0)*(_y2 - 9/20*t - 1/250*_t0 + 2.0)) + ((_y1 - 3/10*t + (1/100)*_t0 + 3.0)*(_y1 - 3/10*t + (1/100)*_t0 + 3.0)) + ((_y3 - 7/20*t + (3/250)*_t0 + 3.0)*(_y3 - 7/20*t + (3/250)*_t0 + 3.0)) + ((_y0 - 1/2*t - 1/500*_t0 + 5.0)*(_y0 - 1/2*t - 1/500*_t0 + 5.0)) + _p0*(float(_np_tan((1/2)*numpy.pi*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1))*float(_np_tan((1/2)*numpy.pi*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1))),
+        ((_y2 - 9/20*t - 1/250*_t0 + 2.0)*(_y2 - 9/20*t - 1/250*_t0 + 2.0)) + ((_y1 - 3/10*t + (1/100)*_t0 + 3.0)*(_y1 - 3/10*t + (1/100)*_t0 + 3.0)) + ((_y3 - 7/20*t + (3/250)*_t0 + 3.0)*(_y3 - 7/20*t + (3/250)*_t0 + 3.0)) + ((_y0 - 1/2*t - 1/500*_t0 + 5.0)*(_y0 - 1/2*t - 1/500*_t0 + 5.0)) + _p0*(float(_np_tan((1/2)*numpy.pi*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))/_p1))*float(_np_tan((1/2)*numpy.pi*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))/_p1))),
     ]
     return f0
 

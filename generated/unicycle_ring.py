@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
-# content sha256: 9604d2b20ea7f333a3f1cb497a57c304efb895de967c330175774b59cb29e575
+# content sha256: e3348ca148b1cabc4cdfc878ef3cf96c4d0218aa550f9f52fcff225104560a67
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -1029,7 +1029,7 @@ def _optimality(t, s, p):
 
 
 def _objective(t, y, p):
-    """The objective f0(y, t) (kernel; 81 operations, 115 before CSE)."""
+    """The objective f0(y, t) (kernel; 81 operations, 126 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # px_0
     _y1 = y[1]  # py_0
@@ -1052,7 +1052,7 @@ def _objective(t, y, p):
     _t5 = (1/2)*numpy.pi/_p1
     # Output terms
     f0 = numpy.empty((_n))  # f0
-    f0[...] = ((_t2 + _y4 - _t0)*(_t2 + _y4 - _t0)) + ((_t2 + _y7 - _t3)*(_t2 + _y7 - _t3)) + ((_t4 + _y2 - _t0)*(_t4 + _y2 - _t0)) + ((_t4 + _y5 - _t3)*(_t4 + _y5 - _t3)) + ((_y0 - _t0 - _t2)*(_y0 - _t0 - _t2)) + ((_y1 - _t3 - _t4)*(_y1 - _t3 - _t4)) + ((_y3 - _t2 - _t3)*(_y3 - _t2 - _t3)) + ((_y6 - _t0 - _t4)*(_y6 - _t0 - _t4)) + _p0*(numpy.tan(_t5*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3))))*numpy.tan(_t5*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3))))) + _p0*(numpy.tan(_t5*(-((_y2 - _y4)*(_y2 - _y4)) - ((_y3 - _y5)*(_y3 - _y5))))*numpy.tan(_t5*(-((_y2 - _y4)*(_y2 - _y4)) - ((_y3 - _y5)*(_y3 - _y5))))) + _p0*(numpy.tan(_t5*(-((_y4 - _y6)*(_y4 - _y6)) - ((_y5 - _y7)*(_y5 - _y7))))*numpy.tan(_t5*(-((_y4 - _y6)*(_y4 - _y6)) - ((_y5 - _y7)*(_y5 - _y7))))) + _p0*(numpy.tan(_t5*(-((_y6 - _y0)*(_y6 - _y0)) - ((_y7 - _y1)*(_y7 - _y1))))*numpy.tan(_t5*(-((_y6 - _y0)*(_y6 - _y0)) - ((_y7 - _y1)*(_y7 - _y1)))))
+    f0[...] = ((_t2 + _y4 - _t0)*(_t2 + _y4 - _t0)) + ((_t2 + _y7 - _t3)*(_t2 + _y7 - _t3)) + ((_t4 + _y2 - _t0)*(_t4 + _y2 - _t0)) + ((_t4 + _y5 - _t3)*(_t4 + _y5 - _t3)) + ((_y0 - _t0 - _t2)*(_y0 - _t0 - _t2)) + ((_y1 - _t3 - _t4)*(_y1 - _t3 - _t4)) + ((_y3 - _t2 - _t3)*(_y3 - _t2 - _t3)) + ((_y6 - _t0 - _t4)*(_y6 - _t0 - _t4)) + _p0*(numpy.tan(_t5*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3))))*numpy.tan(_t5*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3))))) + _p0*(numpy.tan(_t5*(((_y2 - _y4)*(_y2 - _y4)) + ((_y3 - _y5)*(_y3 - _y5))))*numpy.tan(_t5*(((_y2 - _y4)*(_y2 - _y4)) + ((_y3 - _y5)*(_y3 - _y5))))) + _p0*(numpy.tan(_t5*(((_y4 - _y6)*(_y4 - _y6)) + ((_y5 - _y7)*(_y5 - _y7))))*numpy.tan(_t5*(((_y4 - _y6)*(_y4 - _y6)) + ((_y5 - _y7)*(_y5 - _y7))))) + _p0*(numpy.tan(_t5*(((_y6 - _y0)*(_y6 - _y0)) + ((_y7 - _y1)*(_y7 - _y1))))*numpy.tan(_t5*(((_y6 - _y0)*(_y6 - _y0)) + ((_y7 - _y1)*(_y7 - _y1)))))
     return f0
 
 
@@ -1483,7 +1483,7 @@ def _objective_1(t, y, p):
     _t4 = _p2*float(_np_sin(_t1))
     _t5 = (1/2)*numpy.pi/_p1
     f0 = [
-        ((_t2 + _y4 - _t0)*(_t2 + _y4 - _t0)) + ((_t2 + _y7 - _t3)*(_t2 + _y7 - _t3)) + ((_t4 + _y2 - _t0)*(_t4 + _y2 - _t0)) + ((_t4 + _y5 - _t3)*(_t4 + _y5 - _t3)) + ((_y0 - _t0 - _t2)*(_y0 - _t0 - _t2)) + ((_y1 - _t3 - _t4)*(_y1 - _t3 - _t4)) + ((_y3 - _t2 - _t3)*(_y3 - _t2 - _t3)) + ((_y6 - _t0 - _t4)*(_y6 - _t0 - _t4)) + _p0*(float(_np_tan(_t5*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))))*float(_np_tan(_t5*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))))) + _p0*(float(_np_tan(_t5*(-((_y2 - _y4)*(_y2 - _y4)) - ((_y3 - _y5)*(_y3 - _y5)))))*float(_np_tan(_t5*(-((_y2 - _y4)*(_y2 - _y4)) - ((_y3 - _y5)*(_y3 - _y5)))))) + _p0*(float(_np_tan(_t5*(-((_y4 - _y6)*(_y4 - _y6)) - ((_y5 - _y7)*(_y5 - _y7)))))*float(_np_tan(_t5*(-((_y4 - _y6)*(_y4 - _y6)) - ((_y5 - _y7)*(_y5 - _y7)))))) + _p0*(float(_np_tan(_t5*(-((_y6 - _y0)*(_y6 - _y0)) - ((_y7 - _y1)*(_y7 - _y1)))))*float(_np_tan(_t5*(-((_y6 - _y0)*(_y6 - _y0)) - ((_y7 - _y1)*(_y7 - _y1)))))),
+        ((_t2 + _y4 - _t0)*(_t2 + _y4 - _t0)) + ((_t2 + _y7 - _t3)*(_t2 + _y7 - _t3)) + ((_t4 + _y2 - _t0)*(_t4 + _y2 - _t0)) + ((_t4 + _y5 - _t3)*(_t4 + _y5 - _t3)) + ((_y0 - _t0 - _t2)*(_y0 - _t0 - _t2)) + ((_y1 - _t3 - _t4)*(_y1 - _t3 - _t4)) + ((_y3 - _t2 - _t3)*(_y3 - _t2 - _t3)) + ((_y6 - _t0 - _t4)*(_y6 - _t0 - _t4)) + _p0*(float(_np_tan(_t5*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))))*float(_np_tan(_t5*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))))) + _p0*(float(_np_tan(_t5*(((_y2 - _y4)*(_y2 - _y4)) + ((_y3 - _y5)*(_y3 - _y5)))))*float(_np_tan(_t5*(((_y2 - _y4)*(_y2 - _y4)) + ((_y3 - _y5)*(_y3 - _y5)))))) + _p0*(float(_np_tan(_t5*(((_y4 - _y6)*(_y4 - _y6)) + ((_y5 - _y7)*(_y5 - _y7)))))*float(_np_tan(_t5*(((_y4 - _y6)*(_y4 - _y6)) + ((_y5 - _y7)*(_y5 - _y7)))))) + _p0*(float(_np_tan(_t5*(((_y6 - _y0)*(_y6 - _y0)) + ((_y7 - _y1)*(_y7 - _y1)))))*float(_np_tan(_t5*(((_y6 - _y0)*(_y6 - _y0)) + ((_y7 - _y1)*(_y7 - _y1)))))),
     ]
     return f0
 

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 24270cdc4e75d3e6162a734337cc89a58b4adc4d1689d8fb40ce7ab05ec4a324
+# content sha256: b3e6388744bfbfa0283a07fb6a82cb676755c75b9691a50d8f5cc0e9828249c9
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -454,7 +454,7 @@ def _optimality(t, s, p):
 
 
 def _objective(t, y, p):
-    """The objective f0(y, t) (kernel; 43 operations, 50 before CSE)."""
+    """The objective f0(y, t) (kernel; 43 operations, 55 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y1
     _y1 = y[1]  # y2

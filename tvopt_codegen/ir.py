@@ -33,7 +33,7 @@ import sympy as sp
 from tvopt_codegen.cse import Outputs, make_kernel, make_kernels, split_invariant
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.derivation.calculus import equality_calculus
-from tvopt_codegen.jet import Assignment
+from tvopt_codegen.jet import Assignment, atomize, fresh_symbols
 from tvopt_codegen.kernel import Arg, Kernel, KernelSet, Output
 from tvopt_codegen.law import symbols
 from tvopt_codegen.lie import control_affine
@@ -284,12 +284,16 @@ def _objective_kernels(
     """f0 and its first and second derivatives in y, at given outputs."""
     m = len(d.model.u)
     on_y = [args.t, args.y, args.p, *args.r]
+    # f0 in three-address form, as the gradient's program is: lowered nested, its every
+    # barrier argument was walked whole by each pass (canonical_odd, CSE).
+    f0_program, (f0,) = atomize([d.model.f0], fresh_symbols("_f0_"))
     # One program for the three: the signals, then the gradient's program (the jet's
-    # first assignments), which each kernel prunes to what it needs.
+    # first assignments) and f0's, which each kernel prunes to what it needs.
     program = programs["signals0"] + list(d.objective_program.assignments)
+    program += list(f0_program.assignments)
     return kernels(
         [
-            ("objective", "The objective f0(y, t)", on_y, [("f0", (), [d.model.f0], "f0")]),
+            ("objective", "The objective f0(y, t)", on_y, [("f0", (), [f0], "f0")]),
             (
                 "gradient",
                 "grad_y f0(y, t)",

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: arm_on_line
  * spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
- * content sha256: 43f9d37d27db55e5cb35e1ce2297e4d8ffaae23187e5f448020f507b1effe852
+ * content sha256: 910edf72a3d5a5c86e7f9340df6997f6c59146bd4b4ed6c3e027378b0d5e82b1
  */
 
 /* arm_on_line: see arm_on_line.h. The law is CSE'd straight-line code and two numerical
@@ -290,7 +290,7 @@ static void arm_on_line_k_optimality(double t, const double *s, const double *p,
 }
 
 
-/* The objective f0(y, t) (16 operations, 15 before CSE). */
+/* The objective f0(y, t) (16 operations, 17 before CSE). */
 static void arm_on_line_k_objective(double t, const double *y, const double *p, double *f0)
 {
     const double _y0 = y[0]; /* px */

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 9f58eb2a131e01005dcd93dfff42bb34a66567c7d305eb178e7a5c4213e62bf7
+ * content sha256: b442fdc098926e412fcc1b2766b3863f6a9178eeeb015428f24c6f46d7621474
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -252,7 +252,7 @@ static void flexible_joint_k_optimality(double t, const double *s, const double 
 }
 
 
-/* The objective f0(y, t) (12 operations, 13 before CSE). */
+/* The objective f0(y, t) (12 operations, 15 before CSE). */
 static void flexible_joint_k_objective(double t, const double *y, const double *p, double *f0)
 {
     const double _y0 = y[0]; /* y */

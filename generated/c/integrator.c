@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 6afd0a1bf9e55cf6755ec67594bcd383ece9cd49323f02223d2861dd0c4b7985
+ * content sha256: 1df2a7dc9e57b79bb9951fb01ade4b9b8116dd7ae8eec7d2160862ceacd9708e
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -143,7 +143,7 @@ static void integrator_k_optimality(double t, const double *s, const double *p, 
 }
 
 
-/* The objective f0(y, t) (21 operations, 22 before CSE). */
+/* The objective f0(y, t) (21 operations, 24 before CSE). */
 static void integrator_k_objective(double t, const double *y, const double *p, double *f0)
 {
     const double _y0 = y[0]; /* y1 */

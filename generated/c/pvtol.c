@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: pvtol
  * spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
- * content sha256: b25a61267c348b3e7d0f68b4353b5f4dd1d6a0053344b8c546c372dc6c8e394f
+ * content sha256: 36cd4b7fba4bfedbf25923a976cc61ffe09144c53762a740d4bee63e8dca48ee
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -230,7 +230,7 @@ static void pvtol_k_optimality(double t, const double *s, const double *p, doubl
 }
 
 
-/* The objective f0(y, t) (17 operations, 16 before CSE). */
+/* The objective f0(y, t) (17 operations, 18 before CSE). */
 static void pvtol_k_objective(double t, const double *y, const double *p, double *f0)
 {
     const double _y0 = y[0]; /* px */

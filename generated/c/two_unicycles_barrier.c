@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 385fbc2abe526b42c6f4583c654ef06cea143293aa7a0a672f74b5dfde382082
+ * content sha256: 7d4573a9e9474bc34f207e41cbb5b4d2c75f48b6b52242c11a7f8559872ce397
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -337,7 +337,7 @@ static void two_unicycles_barrier_k_optimality(double t, const double *s, const 
 }
 
 
-/* The objective f0(y, t) (41 operations, 48 before CSE). */
+/* The objective f0(y, t) (41 operations, 55 before CSE). */
 static void two_unicycles_barrier_k_objective(double t, const double *y, const double *p, double *f0)
 {
     const double _y0 = y[0]; /* pa */
@@ -347,7 +347,7 @@ static void two_unicycles_barrier_k_objective(double t, const double *y, const d
     const double _p0 = p[0]; /* alpha */
     const double _p1 = p[1]; /* d */
     const double _t0 = (t*t);
-    f0[0] = ((_y2 - 9.0/20.0*t - 1.0/250.0*_t0 + 2)*(_y2 - 9.0/20.0*t - 1.0/250.0*_t0 + 2)) + ((_y1 - 3.0/10.0*t + (1.0/100.0)*_t0 + 3)*(_y1 - 3.0/10.0*t + (1.0/100.0)*_t0 + 3)) + ((_y3 - 7.0/20.0*t + (3.0/250.0)*_t0 + 3)*(_y3 - 7.0/20.0*t + (3.0/250.0)*_t0 + 3)) + ((_y0 - 1.0/2.0*t - 1.0/500.0*_t0 + 5)*(_y0 - 1.0/2.0*t - 1.0/500.0*_t0 + 5)) + _p0*(tan((1.0/2.0)*3.141592653589793*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1)*tan((1.0/2.0)*3.141592653589793*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3)))/_p1));
+    f0[0] = ((_y2 - 9.0/20.0*t - 1.0/250.0*_t0 + 2)*(_y2 - 9.0/20.0*t - 1.0/250.0*_t0 + 2)) + ((_y1 - 3.0/10.0*t + (1.0/100.0)*_t0 + 3)*(_y1 - 3.0/10.0*t + (1.0/100.0)*_t0 + 3)) + ((_y3 - 7.0/20.0*t + (3.0/250.0)*_t0 + 3)*(_y3 - 7.0/20.0*t + (3.0/250.0)*_t0 + 3)) + ((_y0 - 1.0/2.0*t - 1.0/500.0*_t0 + 5)*(_y0 - 1.0/2.0*t - 1.0/500.0*_t0 + 5)) + _p0*(tan((1.0/2.0)*3.141592653589793*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))/_p1)*tan((1.0/2.0)*3.141592653589793*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3)))/_p1));
 }
 
 

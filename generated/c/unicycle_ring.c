@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_ring
  * spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
- * content sha256: be89c0821d67d09d626593186fe81e2877291bc25972660352cf81d31d16283f
+ * content sha256: f34b118d7ae1a347b406f569ac141b2bc647af38cc1002df253255712372d4ca
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical
@@ -734,7 +734,7 @@ static void unicycle_ring_k_optimality(double t, const double *s, const double *
 }
 
 
-/* The objective f0(y, t) (81 operations, 115 before CSE). */
+/* The objective f0(y, t) (81 operations, 126 before CSE). */
 static void unicycle_ring_k_objective(double t, const double *y, const double *p, double *f0)
 {
     const double _y0 = y[0]; /* px_0 */
@@ -755,7 +755,7 @@ static void unicycle_ring_k_objective(double t, const double *y, const double *p
     const double _t3 = (1.0/5.0)*t;
     const double _t4 = _p2*sin(_t1);
     const double _t5 = (1.0/2.0)*3.141592653589793/_p1;
-    f0[0] = ((_t2 + _y4 - _t0)*(_t2 + _y4 - _t0)) + ((_t2 + _y7 - _t3)*(_t2 + _y7 - _t3)) + ((_t4 + _y2 - _t0)*(_t4 + _y2 - _t0)) + ((_t4 + _y5 - _t3)*(_t4 + _y5 - _t3)) + ((_y0 - _t0 - _t2)*(_y0 - _t0 - _t2)) + ((_y1 - _t3 - _t4)*(_y1 - _t3 - _t4)) + ((_y3 - _t2 - _t3)*(_y3 - _t2 - _t3)) + ((_y6 - _t0 - _t4)*(_y6 - _t0 - _t4)) + _p0*(tan(_t5*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3))))*tan(_t5*(-((_y0 - _y2)*(_y0 - _y2)) - ((_y1 - _y3)*(_y1 - _y3))))) + _p0*(tan(_t5*(-((_y2 - _y4)*(_y2 - _y4)) - ((_y3 - _y5)*(_y3 - _y5))))*tan(_t5*(-((_y2 - _y4)*(_y2 - _y4)) - ((_y3 - _y5)*(_y3 - _y5))))) + _p0*(tan(_t5*(-((_y4 - _y6)*(_y4 - _y6)) - ((_y5 - _y7)*(_y5 - _y7))))*tan(_t5*(-((_y4 - _y6)*(_y4 - _y6)) - ((_y5 - _y7)*(_y5 - _y7))))) + _p0*(tan(_t5*(-((_y6 - _y0)*(_y6 - _y0)) - ((_y7 - _y1)*(_y7 - _y1))))*tan(_t5*(-((_y6 - _y0)*(_y6 - _y0)) - ((_y7 - _y1)*(_y7 - _y1)))));
+    f0[0] = ((_t2 + _y4 - _t0)*(_t2 + _y4 - _t0)) + ((_t2 + _y7 - _t3)*(_t2 + _y7 - _t3)) + ((_t4 + _y2 - _t0)*(_t4 + _y2 - _t0)) + ((_t4 + _y5 - _t3)*(_t4 + _y5 - _t3)) + ((_y0 - _t0 - _t2)*(_y0 - _t0 - _t2)) + ((_y1 - _t3 - _t4)*(_y1 - _t3 - _t4)) + ((_y3 - _t2 - _t3)*(_y3 - _t2 - _t3)) + ((_y6 - _t0 - _t4)*(_y6 - _t0 - _t4)) + _p0*(tan(_t5*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3))))*tan(_t5*(((_y0 - _y2)*(_y0 - _y2)) + ((_y1 - _y3)*(_y1 - _y3))))) + _p0*(tan(_t5*(((_y2 - _y4)*(_y2 - _y4)) + ((_y3 - _y5)*(_y3 - _y5))))*tan(_t5*(((_y2 - _y4)*(_y2 - _y4)) + ((_y3 - _y5)*(_y3 - _y5))))) + _p0*(tan(_t5*(((_y4 - _y6)*(_y4 - _y6)) + ((_y5 - _y7)*(_y5 - _y7))))*tan(_t5*(((_y4 - _y6)*(_y4 - _y6)) + ((_y5 - _y7)*(_y5 - _y7))))) + _p0*(tan(_t5*(((_y6 - _y0)*(_y6 - _y0)) + ((_y7 - _y1)*(_y7 - _y1))))*tan(_t5*(((_y6 - _y0)*(_y6 - _y0)) + ((_y7 - _y1)*(_y7 - _y1)))));
 }
 
 

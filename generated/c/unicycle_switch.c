@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 935dd5cf3b2a8ce81af569fca9a32e0534bf80ff57b8aeab00007084a9d6a7f7
+ * content sha256: f44449647eaa26e20c5bf1e74e646a5fb76c576b38bc8c02536795cbf146aab7
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -188,7 +188,7 @@ static void unicycle_switch_k_optimality(double t, const double *s, const double
 }
 
 
-/* The objective f0(y, t) (43 operations, 50 before CSE). */
+/* The objective f0(y, t) (43 operations, 55 before CSE). */
 static void unicycle_switch_k_objective(double t, const double *y, const double *p, double *f0)
 {
     const double _y0 = y[0]; /* y1 */

@@ -171,6 +171,10 @@ def _rebuild(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic:
     ``flatten`` (:func:`_sorted_args`).
     """
     if isinstance(node, sp.Function) and not all(a.is_Number for a in args):
+        if isinstance(node, _EVEN) and args[0].is_Mul and args[0].args[0] is sp.S.NegativeOne:
+            # cos(-x) = cos(x): a merge that finds x as the negation of an earlier
+            # temporary hands an even function -_t, which eval would have signed.
+            args = [-args[0]]
         return node.func(*args, evaluate=False)
     if node.is_Add or node.is_Mul:
         fast = _sorted_args(node, args)
@@ -234,6 +238,9 @@ def _negate(value: sp.Basic) -> sp.Basic:
     negated: sp.Basic = -value
     return negated
 
+
+#: Even functions: f(-x) = f(x).
+_EVEN = (sp.cos, sp.cosh, sp.sec, sp.sech)
 
 #: Odd functions: f(-x) = -f(x).
 _ODD = (sp.sin, sp.tan, sp.sinh, sp.tanh, sp.asin, sp.atan, sp.asinh, sp.atanh)
