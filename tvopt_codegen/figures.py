@@ -18,7 +18,7 @@ import numpy as np
 import sympy as sp
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from matplotlib.ticker import FuncFormatter, NullFormatter
+from matplotlib.ticker import FuncFormatter, NullLocator
 from PIL import Image
 
 from tvopt_codegen.derivation import Derivation
@@ -61,7 +61,7 @@ def _plain_log_labels(fig: Any) -> None:
         for axis in (ax.xaxis, ax.yaxis):
             if axis.get_scale() == "log":
                 axis.set_major_formatter(FuncFormatter(_power_of_ten))
-                axis.set_minor_formatter(NullFormatter())
+                axis.set_minor_locator(NullLocator())
 
 
 def _save(fig: Any, stem: str) -> dict[str, bytes]:
