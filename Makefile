@@ -81,9 +81,10 @@ bench-sweep: $(READY)
 	$(PY) -m pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/bench_sweep.py --write benchmarks/SWEEP.md
 
-## bench-commands: cold generate, simulate and report of every bundled example (benchmarks/COMMANDS.md)
+## bench-commands: cold generate, simulate and report of every bundled example (benchmarks/COMMANDS.md);
+##   BASELINE=REV measures that commit beside the checkout, run for run
 bench-commands: $(READY)
-	$(PY) benchmarks/bench_commands.py --write benchmarks/COMMANDS.md
+	$(PY) benchmarks/bench_commands.py $(if $(BASELINE),--baseline $(BASELINE)) --write benchmarks/COMMANDS.md
 
 ## bench-sweep-scale: a sweep's client memory at 10^4..10^6 samples, first progress, throughput
 bench-sweep-scale: $(READY)

@@ -7,6 +7,11 @@ machine keeps between runs (the compiled-library and template caches). The targe
 issue 33's: ``generate`` at most 0.7 s, ``simulate`` at most 1.5 s (figures and
 certificate included), ``report`` at most 1.0 s, for every bundled example.
 
+With ``--baseline REV`` every figure is measured for that commit too (its tree exported
+with ``git archive``), each baseline run right after the current one, and the table
+gives both and their ratio: this machine has slow phases of minutes in which every
+figure is up to twice as long, and a ratio of runs a few seconds apart cancels them.
+
 With ``--write FILE`` the table is written as Markdown with the command that made it.
 """
 
@@ -15,6 +20,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import subprocess
 import sys
 import tempfile
 import time
@@ -39,36 +45,90 @@ EXAMPLES = (
 TARGETS = {"generate": 0.7, "simulate": 1.5, "report": 1.0}
 
 
-def best(command: str, example: str, repeats: int) -> tuple[float, float]:
-    """Best wall time (s) and its process's peak memory (MB) over ``repeats`` cold runs."""
-    runs = []
+#: Runs the command line of the tree given first, not the installed one: the editable
+#: install's import hook, which would find the checkout's package whatever the path, is
+#: removed first. Both trees run through it, so they start alike.
+_TREE = """
+import runpy, sys
+tree = sys.argv[1]
+sys.meta_path[:] = [f for f in sys.meta_path if "__editable__" not in repr(f)]
+sys.path.insert(0, tree)
+sys.argv = ["tvopt-codegen", *sys.argv[2:]]
+runpy.run_module("tvopt_codegen", run_name="__main__", alter_sys=True)
+"""
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def export(rev: str, folder: Path) -> Path:
+    """The tree of commit ``rev`` (its package and templates), written into ``folder``."""
+    archive = subprocess.run(
+        ["git", "-C", str(ROOT), "archive", rev, "tvopt_codegen", "templates"],
+        check=True,
+        capture_output=True,
+    )
+    subprocess.run(["tar", "-x", "-C", str(folder)], input=archive.stdout, check=True)
+    return folder
+
+
+def once(tree: Path, command: str, example: str) -> tuple[float, float]:
+    """One cold run of ``command`` on ``example`` with ``tree``'s package: (s, MB)."""
+    with tempfile.TemporaryDirectory() as scratch:
+        argv = [sys.executable, "-c", _TREE, str(tree), command, example]
+        argv += ["--out", str(Path(scratch) / "out")]
+        if command == "generate":
+            argv.append("--quiet")
+        run = cold_run(argv, timeout=300)
+    return run.wall, run.peak_mb
+
+
+def best(trees: list[Path], command: str, example: str, repeats: int) -> list[tuple[float, float]]:
+    """Per tree, the best wall time (s) and its peak memory (MB) over ``repeats`` runs.
+
+    The trees take turns, run after run, so that each figure's runs share the
+    machine's phase.
+    """
+    runs: list[list[tuple[float, float]]] = [[] for _ in trees]
     for _ in range(repeats):
-        with tempfile.TemporaryDirectory() as scratch:
-            argv = [sys.executable, "-m", "tvopt_codegen", command, example]
-            argv += ["--out", str(Path(scratch) / "out")]
-            if command == "generate":
-                argv.append("--quiet")
-            runs.append(cold_run(argv, timeout=300))
-    fastest = min(runs, key=lambda r: r.wall)
-    return fastest.wall, fastest.peak_mb
+        for mine, tree in zip(runs, trees, strict=True):
+            mine.append(once(tree, command, example))
+    return [min(mine) for mine in runs]
 
 
 def main() -> None:
     """Time every command on every example; print (and write) the table."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3, help="cold runs per figure (best)")
+    parser.add_argument("--baseline", help="a commit to measure beside the checkout")
     parser.add_argument("--write", help="write the Markdown table here")
     args = parser.parse_args()
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
-    rows = []
-    for example in EXAMPLES:
-        cells = [best(command, example, args.repeats) for command in TARGETS]
-        rows.append((example, cells))
-        print(example, " ".join(f"{wall:.2f}s" for wall, _ in cells), flush=True)
+    with tempfile.TemporaryDirectory(prefix="baseline-") as tmp:
+        trees = [ROOT]
+        if args.baseline:
+            trees.append(export(args.baseline, Path(tmp)))
+        rows = []
+        for example in EXAMPLES:
+            cells = [best(trees, command, example, args.repeats) for command in TARGETS]
+            rows.append((example, cells))
+            print(example, " ".join(f"{c[0][0]:.2f}s" for c in cells), flush=True)
     met = {
-        command: sum(cells[i][0] <= target for _, cells in rows)
+        command: sum(cells[i][0][0] <= target for _, cells in rows)
         for i, (command, target) in enumerate(TARGETS.items())
     }
+    compared = ""
+    if args.baseline:
+        revision = subprocess.run(
+            ["git", "-C", str(ROOT), "rev-parse", "--short", args.baseline],
+            check=True,
+            capture_output=True,
+            text=True,
+        ).stdout.strip()
+        compared = (
+            f" Each cell: this checkout, then commit {revision} in parentheses (its runs "
+            "alternating with this checkout's), then the ratio now / then, which the "
+            "machine's phase cancels from."
+        )
     lines = [
         "# Commands, cold",
         "",
@@ -77,17 +137,23 @@ def main() -> None:
         f"template caches warm, as on a user's machine after a first run. Machine: "
         f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
         f"run at {started}. Produced by `make bench-commands` (`python "
-        "benchmarks/bench_commands.py --write benchmarks/COMMANDS.md`).",
+        "benchmarks/bench_commands.py"
+        + (f" --baseline {args.baseline}" if args.baseline else "")
+        + " --write benchmarks/COMMANDS.md`)."
+        + compared,
         "",
         "| example | generate | simulate | report |",
         "|---|---:|---:|---:|",
     ]
     for example, cells in rows:
-        lines.append(
-            f"| {example} | "
-            + " | ".join(f"{wall:.2f} s ({peak:.0f} MB)" for wall, peak in cells)
-            + " |"
-        )
+        texts = []
+        for cell in cells:
+            (wall, peak), *before = cell
+            text = f"{wall:.2f} s ({peak:.0f} MB)"
+            if before:
+                text += f" ({before[0][0]:.2f} s) {wall / before[0][0]:.2f}x"
+            texts.append(text)
+        lines.append(f"| {example} | " + " | ".join(texts) + " |")
     lines += [
         "",
         "Targets (issue 33), examples within them: "
