@@ -166,6 +166,7 @@ def _stages(spec: Path, folder: Path) -> dict[str, float]:
 
 
 def measure(names: list[str]) -> list[dict[str, float | str]]:
+    """Each spec's jet on both cores (one fresh interpreter) and its cold stage times."""
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
@@ -189,6 +190,7 @@ def measure(names: list[str]) -> list[dict[str, float | str]]:
 
 
 def table(rows: list[dict[str, float | str]]) -> str:
+    """The measurements as a Markdown table."""
     head = (
         "| spec | k | assignments | sympy jet s | SymEngine jet s | sympy / SymEngine "
         "| SymEngine -> sympy s | generate: derive s | generate: lower s |\n"
@@ -204,6 +206,7 @@ def table(rows: list[dict[str, float | str]]) -> str:
 
 
 def main() -> None:
+    """Measure the specs given (default: chain12 and rings of 8, 32, 128); print, write."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--specs", default="chain12,ring8,ring32,ring128")
     parser.add_argument("--write", type=Path, help="write the table as Markdown here")
