@@ -202,3 +202,42 @@ def test_tree_size_counts_the_tree_and_stops_past_its_limit() -> None:
     assert tree_size(expr, 10**6) == nodes
     assert tree_size(expr, 4) == 5  # at most limit + 1
     assert tree_size(x, 0) == 1
+
+
+def _every_spec() -> list[str]:
+    examples = sorted(
+        p.stem for p in (Path(__file__).parent.parent / "tvopt_codegen" / "examples").glob("*.toml")
+    )
+    return examples + sorted(str(p) for p in SPECS.glob("*.toml"))
+
+
+@pytest.mark.parametrize("spec", _every_spec())
+def test_the_determinant_is_simplified_as_sympys_simplify_would(spec: str) -> None:
+    """det R (and the equalities' Gram determinant) as factor(simplify(det)) gives it."""
+    from tvopt_codegen.derivation.equalities import _equality_jacobian
+    from tvopt_codegen.derivation.linearization import simplified_det
+
+    d = derivation(spec)
+    dets = []
+    if d.R.rows <= 4:
+        dets.append(d.R.det(method="berkowitz"))
+    if 0 < len(d.model.equalities) <= 4:
+        jacobian = sp.Matrix(_equality_jacobian(d.model))
+        dets.append((jacobian * jacobian.T).det(method="berkowitz"))
+    for det in dets:
+        assert simplified_det(det) == sp.factor(sp.simplify(det))
+
+
+def test_the_determinant_simplification_knows_trigonometry_and_fractions() -> None:
+    from tvopt_codegen.derivation.linearization import simplified_det
+
+    v, x, q = sp.symbols("v x q", real=True)
+    cases = [
+        v * sp.cos(q) ** 2 + v * sp.sin(q) ** 2,
+        (sp.cosh(x) ** 2 - sp.sinh(x) ** 2) * v,
+        (x**2 - 1) / (x - 1),
+        -sp.sin(q) * sp.cos(q + x) + sp.sin(q + x) * sp.cos(q),
+    ]
+    for det in cases:
+        assert simplified_det(det) == sp.factor(sp.simplify(det))
+    assert simplified_det(cases[0]) == v and simplified_det(cases[2]) == x + 1

@@ -13,7 +13,7 @@ import numpy as np
 import sympy as sp
 
 from tvopt_codegen.derivation.convexity import _evaluator_at
-from tvopt_codegen.derivation.linearization import _singular_set, _States
+from tvopt_codegen.derivation.linearization import _singular_set, _States, simplified_det
 from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter, tree_size
 from tvopt_codegen.derivation.objective import _Objective, _programs_of, objective_start
 from tvopt_codegen.errors import AssumptionError
@@ -103,7 +103,7 @@ def _dependent_set(model: Model) -> tuple[str, ...]:
     det = gram.det(method="berkowitz")
     if tree_size(det, _DET_SIMPLIFY_NODES) > _DET_SIMPLIFY_NODES:
         return (f"not simplified symbolically (more than {_DET_SIMPLIFY_NODES} expression nodes)",)
-    return _singular_set(sp.factor(sp.simplify(det)))
+    return _singular_set(simplified_det(det))
 
 
 def _lagrangian(
