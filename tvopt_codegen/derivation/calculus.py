@@ -30,9 +30,16 @@ def objective_gradient(model: Model) -> list[sp.Expr]:
 
 
 def objective_hessian(model: Model) -> list[list[sp.Expr]]:
-    """``grad_yy f0`` of :func:`objective_of`, row by row."""
-    objective = objective_of(model)
-    return [[sp.diff(objective, yi, yj) for yj in model.y] for yi in model.y]
+    """``grad_yy f0`` of :func:`objective_of`, row by row.
+
+    Each row differentiates one entry of the gradient, and the upper triangle is the
+    lower one's (Schwarz): second derivatives of the whole objective, entry by entry,
+    took the gradient again for each (a second of a constrained ``simulate``).
+    """
+    gradient = objective_gradient(model)
+    m = len(model.y)
+    lower = [[sp.diff(gradient[i], model.y[j]) for j in range(i + 1)] for i in range(m)]
+    return [[lower[max(i, j)][min(i, j)] for j in range(m)] for i in range(m)]
 
 
 def constraint_gradients(model: Model) -> list[list[sp.Expr]]:
