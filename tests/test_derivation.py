@@ -238,6 +238,19 @@ def test_the_determinant_simplification_knows_trigonometry_and_fractions() -> No
         (x**2 - 1) / (x - 1),
         -sp.sin(q) * sp.cos(q + x) + sp.sin(q + x) * sp.cos(q),
     ]
+    # Random 2 x 2 determinants of trigonometric entries: where trigsimp leaves some
+    # trigonometry, simplify's form is kept (the short path's was longer in one of six).
+    rng = np.random.default_rng(3)
+    atoms = [sp.sin(q), sp.cos(q), sp.sin(q + x), sp.cos(q + x), v, x, sp.Integer(1)]
+    for _ in range(4):
+        entries = [
+            sum(
+                int(rng.choice([-1, 1, 2])) * atoms[rng.integers(7)] * atoms[rng.integers(7)]
+                for _ in range(int(rng.integers(1, 3)))
+            )
+            for _ in range(4)
+        ]
+        cases.append(sp.Matrix(2, 2, entries).det(method="berkowitz"))
     for det in cases:
         assert simplified_det(det) == sp.factor(sp.simplify(det))
     assert simplified_det(cases[0]) == v and simplified_det(cases[2]) == x + 1

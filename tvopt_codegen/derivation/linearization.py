@@ -129,17 +129,21 @@ def _suggest_prolongation(model: Model, counts: dict[str, int]) -> str:
 
 
 def simplified_det(det: sp.Expr) -> sp.Expr:
-    """A determinant in lowest terms, its trigonometry reduced, factored.
+    """A determinant in lowest terms, factored: ``factor(simplify(det))`` or as short.
 
-    ``cancel``, then ``trigsimp`` where there are circular or hyperbolic functions, then
-    ``factor``: what ``factor(simplify(det))`` gave on every spec we have
-    (``tests/test_derivation.py``), in a third of the derivation's time where
-    ``simplify`` tried each of its strategies in turn (and imported
-    ``sympy.physics.units`` to look for units on the way).
+    ``cancel``, then ``trigsimp`` where there are circular or hyperbolic functions: when
+    that leaves a rational function (a unicycle's ``v cos^2 + v sin^2``, a quadrotor's
+    thrust), its factored form is what ``simplify`` would reach, in a third of a small
+    derivation's time (``simplify`` tries each of its strategies in turn, and imports
+    ``sympy.physics.units`` on the way). When trigonometry remains, ``simplify`` decides:
+    on random trigonometric determinants the short path's form was longer one time in
+    six (benchmarks/NOTES.md).
     """
     reduced = sp.cancel(det)
     if reduced.has(TrigonometricFunction, HyperbolicFunction):
         reduced = sp.trigsimp(reduced)
+        if reduced.has(TrigonometricFunction, HyperbolicFunction):
+            return sp.factor(sp.simplify(det))
     return sp.factor(reduced)
 
 
