@@ -124,3 +124,43 @@ def test_parse_agrees_with_python_arithmetic(text: str, xv: float, yv: float) ->
         return
     got = float(expr.xreplace({x: sp.Float(xv), y: sp.Float(yv)}).evalf(30))
     assert got == pytest.approx(expected, rel=1e-9, abs=1e-9)
+
+
+def test_trigonometry_of_a_multiple_of_pi_is_what_sympys_eval_gives() -> None:
+    """The parser's short cut for sin, cos, tan of pi times a symbolic factor."""
+    from tvopt_codegen.parse import _trig_of_pi_multiple
+
+    a, b, d = sp.symbols("a b d", real=True)
+    k = sp.Symbol("k", positive=True)
+    arguments = [
+        ((a - b) ** 2 + (a + b) ** 2) * sp.pi / (2 * d),
+        -sp.pi * a / 3,
+        sp.pi * (b - a),
+        sp.pi * (a - b),
+        2 * sp.pi * k,
+        sp.pi * sp.sin(a) * sp.exp(b),
+        -sp.pi * a * b / (2 * k),
+        sp.Rational(3, 2) * sp.pi * a,
+    ]
+    for func in (sp.sin, sp.cos, sp.tan):
+        for arg in arguments:
+            assert _trig_of_pi_multiple(func, arg) == func(arg), (func, arg)
+    # Not a multiple of pi with a symbolic factor: sympy evaluates as usual.
+    n = sp.Symbol("n", integer=True)
+    for arg in (sp.pi / 4, a + sp.pi, sp.pi**2 * a, sp.I * sp.pi * a, sp.pi * n, a):
+        assert _trig_of_pi_multiple(sp.tan, arg) is None
+    assert _trig_of_pi_multiple(sp.exp, sp.pi * a) is None
+
+
+def test_a_rings_barrier_parses_as_sympy_would_build_it() -> None:
+    from tvopt_codegen.spec import load_spec
+
+    spec = load_spec("unicycle_ring")
+    tans = [e for e in sp.preorder_traversal(spec.objective) if isinstance(e, sp.tan)]
+    assert len(tans) == 4
+    for term in tans:
+        assert sp.tan(term.args[0]) == term
+    names = {n: sp.Symbol(n, real=True) for n in ("px", "py", "d")}
+    parsed = parse_expression("tan(-(px - py)**2*pi/(2*d)) + cos(-pi*px/d)", names)
+    px, py, d = names.values()
+    assert parsed == sp.tan(-((px - py) ** 2) * sp.pi / (2 * d)) + sp.cos(-sp.pi * px / d)

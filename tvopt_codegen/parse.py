@@ -336,10 +336,42 @@ class _TreeBuilder:
                 column, f"{node.func.id}() takes {arity} argument(s), got {len(node.args)}"
             )
         args = [self.build(arg, depth + 1) for arg in node.args]
-        result = func(*args)
+        result = _trig_of_pi_multiple(func, args[0]) if arity == 1 else None
+        if result is None:
+            result = func(*args)
         if result.has(sp.zoo, sp.nan, sp.oo, -sp.oo):
             raise ExpressionError(column, f"{node.func.id}() is undefined for these arguments")
         return result
+
+
+#: sin, cos and tan, with the sign each gives a negated argument.
+_PI_PERIODIC: Mapping[object, int] = {sp.sin: -1, sp.cos: 1, sp.tan: -1}
+
+
+def _trig_of_pi_multiple(func: _Builder, arg: sp.Expr) -> sp.Expr | None:
+    """``func(arg)`` for sin, cos or tan of pi times a non-constant factor, as sympy gives it.
+
+    sympy's ``eval`` asks whether the factor of pi is an integer (for tan, twice) through
+    the assumptions system: 14 to 30 ms for a ring's barrier ``tan(pi*g/(2*d))``, most
+    of loading a team's spec. A spec's symbols are real and none of its functions is
+    integer-valued, so the answer is never yes, and ``eval`` then returns the function
+    unchanged after pulling out the argument's sign: done here without asking. None
+    where that does not apply (sympy evaluates as usual).
+    """
+    sign = _PI_PERIODIC.get(func)
+    if (
+        sign is None
+        or not arg.is_Mul
+        or sp.pi not in arg.args
+        or not arg.free_symbols
+        or any(a.has(sp.pi) for a in arg.args if a is not sp.pi)
+        or arg.has(sp.I)
+        or any(s.is_integer is not None for s in arg.free_symbols)
+    ):
+        return None
+    if arg.could_extract_minus_sign():
+        return sign * func(-arg, evaluate=False)
+    return func(arg, evaluate=False)
 
 
 def _describe_forbidden(node: ast.AST) -> str:
