@@ -351,3 +351,29 @@ def test_the_predicted_error_is_expm_at_every_output_time(name: str) -> None:
         stepped = hurwitz.flow(d.coefficients, d.n_kkt, start, times)
         direct = np.array([expm(H * t) @ start for t in times])
         assert np.max(np.abs(stepped - direct)) <= 1e-12 * np.linalg.norm(start)
+
+
+@pytest.mark.parametrize("name", ["integrator", "unicycle_switch", "pvtol"])
+def test_a_quadratic_objectives_minimizer_takes_two_steps_a_time(name: str) -> None:
+    """With a constant Hessian, y* is two full Newton steps at each time, from the last
+    one, and equals the continuation with substeps and line search."""
+    from tvopt_codegen.simulation.target import minimizer_path
+
+    d = derivation(name)
+    assert d.convexity.quadratic
+    mod = module(name)
+    ts = np.linspace(0.0, d.spec.t_final, 101)
+    start = np.random.default_rng(5).normal(size=len(d.spec.outputs)) * 3.0
+    general = minimizer_path(mod, ts, start, None)
+
+    calls = []
+
+    class Counting:
+        def __getattr__(self, attr: str) -> object:
+            calls.append(attr)
+            return getattr(mod, attr)
+
+    quick = minimizer_path(Counting(), ts, start, None, quadratic=True)  # type: ignore[arg-type]
+    np.testing.assert_allclose(quick, general, rtol=0, atol=1e-12 * (1 + np.abs(general).max()))
+    assert calls.count("gradient") == 2 * len(ts) and calls.count("hessian") == len(ts)
+    assert "objective" not in calls

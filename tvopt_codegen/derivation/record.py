@@ -50,6 +50,11 @@ class Convexity:
     m_f: float
     points: int
 
+    @property
+    def quadratic(self) -> bool:
+        """Whether f0 is quadratic in y: its Hessian holds parameters at most."""
+        return self.method == "constant Hessian"
+
 
 @dataclass(frozen=True)
 class LinearizationStage:

@@ -286,7 +286,7 @@ def _objective(d: Derivation) -> Section:
     conv = d.convexity
     how = (
         "the Hessian is constant, so its smallest eigenvalue is exact"
-        if conv.method == "constant Hessian"
+        if conv.quadratic
         else f"sampled at {conv.points} points (y within 0.1 of the initial outputs, t over the "
         "horizon, parameters at their defaults): an estimate, not a proof"
     )

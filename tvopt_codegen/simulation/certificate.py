@@ -59,7 +59,15 @@ def _target(
     params = dict(options.params) or None
     if not d.model.equalities:
         return (
-            minimizer_path(controller, ts, outputs[:, -1], params, true, outputs),
+            minimizer_path(
+                controller,
+                ts,
+                outputs[:, -1],
+                params,
+                true,
+                outputs,
+                quadratic=d.convexity.quadratic,
+            ),
             None,
             None,
             None,
