@@ -182,14 +182,19 @@ def _spread(runs: list[dict[str, float]]) -> str:
     return f"{min(walls):.2f}-{max(walls):.2f}"
 
 
-def ours_cold(agents: int, folder: Path, timeout: float) -> dict[str, float]:
-    """One cold ``tvopt-codegen generate`` of the ring of ``agents``."""
+def ring_spec(agents: int, folder: Path) -> Path:
+    """The bundled ``unicycle_ring`` with ``i = agents``, written into ``folder``."""
     text = (resources.files("tvopt_codegen.examples") / "unicycle_ring.toml").read_text()
     text, found = re.subn(r"(?m)^i = \d+", f"i = {agents}", text)
     assert found == 1, "the bundled unicycle_ring spec no longer has the line 'i = N'"
     spec = folder / f"ring{agents}.toml"
     spec.write_text(text, encoding="utf-8")
-    return generate_cold(spec, folder / f"out{agents}", timeout)
+    return spec
+
+
+def ours_cold(agents: int, folder: Path, timeout: float) -> dict[str, float]:
+    """One cold ``tvopt-codegen generate`` of the ring of ``agents``."""
+    return generate_cold(ring_spec(agents, folder), folder / f"out{agents}", timeout)
 
 
 def singles() -> list[tuple[Path, float]]:

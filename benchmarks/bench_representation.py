@@ -26,7 +26,6 @@ import argparse
 import json
 import os
 import platform
-import re
 import subprocess
 import sys
 import tempfile
@@ -34,7 +33,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-RING = ROOT / "tvopt_codegen" / "examples" / "unicycle_ring.toml"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_derive import generate_cold, ring_spec  # noqa: E402
 
 #: One measurement, in a fresh interpreter: prints a JSON object.
 _PROBE = r"""
@@ -135,34 +136,7 @@ def _spec(name: str, folder: Path) -> Path:
     """``chain12`` or ``ringN`` (the bundled ring with ``i = N``), as a file."""
     if name == "chain12":
         return ROOT / "benchmarks" / "chain12.toml"
-    agents = int(name.removeprefix("ring"))
-    text, found = re.subn(r"(?m)^i = \d+", f"i = {agents}", RING.read_text())
-    assert found == 1, "the bundled unicycle_ring spec no longer has the line 'i = N'"
-    path = folder / f"{name}.toml"
-    path.write_text(text)
-    return path
-
-
-def _stages(spec: Path, folder: Path) -> dict[str, float]:
-    """A cold ``generate``'s stage times (``--timings``)."""
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "tvopt_codegen",
-            "generate",
-            str(spec),
-            "--out",
-            str(folder / f"out-{spec.stem}-{time.monotonic_ns()}"),
-            "--timings",
-            "--quiet",
-        ],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    line = next(x for x in done.stderr.splitlines() + done.stdout.splitlines() if "timings:" in x)
-    return json.loads(line.split("timings:", 1)[1])
+    return ring_spec(int(name.removeprefix("ring")), folder)
 
 
 def measure(names: list[str]) -> list[dict[str, float | str]]:
@@ -179,7 +153,8 @@ def measure(names: list[str]) -> list[dict[str, float | str]]:
                 check=True,
             )
             row: dict[str, float | str] = {"spec": name, **json.loads(done.stdout)}
-            row |= {f"cli_{k}": v for k, v in _stages(spec, folder).items()}
+            stages = generate_cold(spec, folder / f"out-{name}", timeout=900.0)
+            row |= {f"cli_{k}": v for k, v in stages.items()}
             rows.append(row)
             print(
                 f"{name}: sympy {row['sympy_s']:.2f} s, symengine {row['symengine_s']:.2f} s, "
