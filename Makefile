@@ -9,7 +9,7 @@ INSTALLED := $(VENV)/.installed
 READY := $(VENV)/.compiled
 EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring arm_on_line
 
-.PHONY: all demo figures bench bench-derive bench-representation bench-sweep bench-sweep-scale bench-commands sweep-example robust-example reference-noise test lint typecheck check regen check-generated update-golden clean
+.PHONY: all demo figures bench bench-baseline bench-derive bench-representation bench-sweep bench-sweep-scale bench-commands sweep-example robust-example reference-noise test lint typecheck check regen check-generated update-golden clean
 
 all: test
 
@@ -85,6 +85,11 @@ bench-sweep: $(READY)
 ##   BASELINE=REV measures that commit beside the checkout, run for run
 bench-commands: $(READY)
 	$(PY) benchmarks/bench_commands.py $(if $(BASELINE),--baseline $(BASELINE)) --write benchmarks/COMMANDS.md
+
+## bench-baseline: cold generate of rings of 32 and 128 agents and chain12, BASELINE=REV beside the checkout
+bench-baseline: $(READY)
+	$(PY) -m pip install --quiet -e '.[bench]'
+	$(PY) benchmarks/bench_baseline.py --baseline $(BASELINE) --write benchmarks/BASELINE.md
 
 ## bench-representation: the gradient jet on sympy and on SymEngine (benchmarks/REPRESENTATION.md)
 bench-representation: $(READY)
