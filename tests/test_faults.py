@@ -349,3 +349,28 @@ def test_a_failing_c_build_writes_nothing(
     proc.communicate(timeout=120)
     assert proc.returncode == EXIT_BUILD
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
+
+
+@pytest.mark.parametrize(
+    "command",
+    [["generate"], ["report"], ["simulate"], ["export", "--fmu"]],
+)
+def test_a_missing_output_parent_is_refused_before_deriving(
+    command: list[str],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The folder is checked first: a typo in --out costs no derivation."""
+    from tvopt_codegen import cli
+
+    def derive(_args: object) -> object:
+        raise AssertionError("derived before checking --out")
+
+    monkeypatch.setattr(cli, "_derive", derive)
+    target = tmp_path / "no" / "such" / "folder"
+    name, *rest = command
+    assert main([name, "integrator", *rest, "--out", str(target)]) == EXIT_OUTPUT
+    err = capsys.readouterr().err
+    assert "does not exist" in err and err.count("\n") == 1
+    assert not (tmp_path / "no").exists()

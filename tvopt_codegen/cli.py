@@ -580,6 +580,7 @@ def _report(args: argparse.Namespace) -> int:
     from tvopt_codegen.emit import write_files  # noqa: PLC0415
     from tvopt_codegen.report import read_results, render_report  # noqa: PLC0415
 
+    _check_out(args.out)
     derivation, kernels = _derive(args)
     results = read_results(args.out, derivation.spec.name)
     formats = ("html", "md") if args.format == "both" else (args.format,)
@@ -593,13 +594,13 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from tvopt_codegen.emit import prepare_folder, write_files  # noqa: PLC0415
+    from tvopt_codegen.emit import write_files  # noqa: PLC0415
     from tvopt_codegen.fmu import build_fmu  # noqa: PLC0415
 
     if not args.fmu:
         raise SpecError("command line", "export", "nothing to export: give --fmu")
+    _check_out(args.out)
     derivation, kernels = _derive(args)
-    prepare_folder(args.out, create=False)
     name = f"{derivation.spec.name}.fmu"
     write_files({name: build_fmu(kernels, args.fmi)}, args.out, force=args.force)
     print(f"wrote {args.out.rstrip('/')}/{name} (FMI {args.fmi}.0 co-simulation)")
@@ -608,7 +609,7 @@ def _export(args: argparse.Namespace) -> int:
 
 def _simulate(args: argparse.Namespace) -> int:
     from tvopt_codegen.artifacts import result_files  # noqa: PLC0415 - matplotlib on use
-    from tvopt_codegen.emit import prepare_folder, write_files  # noqa: PLC0415
+    from tvopt_codegen.emit import write_files  # noqa: PLC0415
     from tvopt_codegen.simulation import (  # noqa: PLC0415
         format_certificate,
         load_controller,
@@ -648,6 +649,7 @@ def _simulate(args: argparse.Namespace) -> int:
             "needs --sample-time (the continuous run is the nominal theorem's; the sampled "
             "controller runs on the mismatched plant)",
         )
+    _check_out(args.out)
     derivation, kernels = _derive(args)
     plant_params = _assignments(args.plant_param, "--plant-param")
     unknown = sorted(set(plant_params) - {name for name, _ in derivation.spec.parameters})
@@ -688,7 +690,6 @@ def _simulate(args: argparse.Namespace) -> int:
             allow_gaps=args.allow_gaps,
             warn=lambda text: print(one_line(f"tvopt-codegen: warning: {text}"), file=sys.stderr),
         )
-    prepare_folder(args.out, create=False)
     controller = load_controller(kernels, args.backend)
     references = None
     if samples is not None:
@@ -755,6 +756,13 @@ def _print_examples(examples: Mapping[str, str]) -> None:
             print(" " * column + line)
 
 
+def _check_out(out: str) -> None:
+    """Refuse an unusable output folder before deriving, not after (creating nothing)."""
+    from tvopt_codegen.emit import prepare_folder  # noqa: PLC0415
+
+    prepare_folder(out, create=False)
+
+
 def run(argv: Sequence[str] | None = None) -> int:
     """Run the CLI and return the exit code (errors are reported on stderr)."""
     args = _parser().parse_args(argv)
@@ -787,6 +795,8 @@ def run(argv: Sequence[str] | None = None) -> int:
     with _without_collector():  # sympy's and numpy's imports build objects by the million
         from tvopt_codegen.summary import format_summary  # noqa: PLC0415
 
+    if args.command == "generate":
+        _check_out(args.out)
     derivation, kernels = _derive(args)
     if args.command == "check":
         print(format_summary(derivation, kernels))
