@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: 3b9f889230a1c3c898dbdd1b746a5297a56cd266dbb189f08ab6597ffd7e6016
+# content sha256: 027af7cfda88d3e410714309f60bdbfb051b6ae28fb04804328aabb876d0af18
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -93,6 +93,7 @@ STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
 STATUS_DEPENDENT_CONSTRAINTS = 6
+STATUS_MASS_MATRIX_NOT_PD = 7
 
 
 class ControllerError(ArithmeticError):
@@ -149,6 +150,12 @@ class DependentConstraintsError(ControllerError):
     status = STATUS_DEPENDENT_CONSTRAINTS
 
 
+class MassMatrixNotPositiveDefiniteError(ControllerError):
+    """The mass matrix M(q) is not positive definite: its factorization failed."""
+
+    status = STATUS_MASS_MATRIX_NOT_PD
+
+
 #: Each error status: its exception, the message's head, and what follows the column
 #: (why, then where this spec's law fails so).
 _ERRORS = {
@@ -158,6 +165,7 @@ _ERRORS = {
     STATUS_NONFINITE_OUTPUT: (NonFiniteOutputError, '{result} is not finite', ': a signal or f0 left its domain'),
     STATUS_DECREASING_TIME: (DecreasingTimeError, "the time is before the last step's time", ''),
     STATUS_DEPENDENT_CONSTRAINTS: (DependentConstraintsError, "the equality constraints' gradients are dependent", ': the KKT matrix is singular at this state and time'),
+    STATUS_MASS_MATRIX_NOT_PD: (MassMatrixNotPositiveDefiniteError, 'the mass matrix M(q) is not positive definite', ": the plant's model has no valid inertia at this state"),
 }
 
 

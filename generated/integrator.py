@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 4dda1a78a2bbd6b4ef7aa1eaffc970e952db4734105babc06d6a1910a6849c59
+# content sha256: 1dc1dfb005ca121615bacca9ce10b4ea852dc656ad02931f30dd8ee990983bbb
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -84,6 +84,7 @@ STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
 STATUS_DEPENDENT_CONSTRAINTS = 6
+STATUS_MASS_MATRIX_NOT_PD = 7
 
 
 class ControllerError(ArithmeticError):
@@ -140,6 +141,12 @@ class DependentConstraintsError(ControllerError):
     status = STATUS_DEPENDENT_CONSTRAINTS
 
 
+class MassMatrixNotPositiveDefiniteError(ControllerError):
+    """The mass matrix M(q) is not positive definite: its factorization failed."""
+
+    status = STATUS_MASS_MATRIX_NOT_PD
+
+
 #: Each error status: its exception, the message's head, and what follows the column
 #: (why, then where this spec's law fails so).
 _ERRORS = {
@@ -149,6 +156,7 @@ _ERRORS = {
     STATUS_NONFINITE_OUTPUT: (NonFiniteOutputError, '{result} is not finite', ': a signal or f0 left its domain'),
     STATUS_DECREASING_TIME: (DecreasingTimeError, "the time is before the last step's time", ''),
     STATUS_DEPENDENT_CONSTRAINTS: (DependentConstraintsError, "the equality constraints' gradients are dependent", ': the KKT matrix is singular at this state and time'),
+    STATUS_MASS_MATRIX_NOT_PD: (MassMatrixNotPositiveDefiniteError, 'the mass matrix M(q) is not positive definite', ": the plant's model has no valid inertia at this state"),
 }
 
 

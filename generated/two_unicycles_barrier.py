@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: a3c402ecd8b2fe171a19aed7f6b9bc661df6266c5c07c016bebbc0be0cace9b7
+# content sha256: affd1f176e5f18c15827da8f1221f351b461b391525234670eabae591faa327b
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -93,6 +93,7 @@ STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
 STATUS_DEPENDENT_CONSTRAINTS = 6
+STATUS_MASS_MATRIX_NOT_PD = 7
 
 
 class ControllerError(ArithmeticError):
@@ -149,6 +150,12 @@ class DependentConstraintsError(ControllerError):
     status = STATUS_DEPENDENT_CONSTRAINTS
 
 
+class MassMatrixNotPositiveDefiniteError(ControllerError):
+    """The mass matrix M(q) is not positive definite: its factorization failed."""
+
+    status = STATUS_MASS_MATRIX_NOT_PD
+
+
 #: Each error status: its exception, the message's head, and what follows the column
 #: (why, then where this spec's law fails so).
 _ERRORS = {
@@ -158,6 +165,7 @@ _ERRORS = {
     STATUS_NONFINITE_OUTPUT: (NonFiniteOutputError, '{result} is not finite', ': a signal or f0 left its domain'),
     STATUS_DECREASING_TIME: (DecreasingTimeError, "the time is before the last step's time", ''),
     STATUS_DEPENDENT_CONSTRAINTS: (DependentConstraintsError, "the equality constraints' gradients are dependent", ': the KKT matrix is singular at this state and time'),
+    STATUS_MASS_MATRIX_NOT_PD: (MassMatrixNotPositiveDefiniteError, 'the mass matrix M(q) is not positive definite', ": the plant's model has no valid inertia at this state"),
 }
 
 

@@ -40,6 +40,8 @@ ALL_SPECS = (
     str(SPECS / "coupled3.toml"),
     # Integral action, a disturbance observer, limits and a slew rate.
     str(SPECS / "robust_pvtol.toml"),
+    # A plant in mass-matrix form: M factored at run time in every kernel that needs it.
+    str(SPECS / "arm2_mass.toml"),
 )
 
 

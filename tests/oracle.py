@@ -75,6 +75,30 @@ class Oracle:
         self.R = lam(list(d.R))
         self.p = lam(list(d.p))
         self.field = lam(field)
+        self.mechanics = model.mechanics
+        if model.mechanics is not None:
+            # The mass-matrix form, independently of the derivation's Lie derivatives:
+            # y'' = J (M^-1 (F + B u)) + (dJ/dt) q', with numpy's dense solves of M.
+            mech = model.mechanics
+            q = [sp.Symbol(c, real=True) for c in mech.coordinates]
+            dq = [sp.Symbol(r, real=True) for r in mech.rates]
+            J = [[sp.diff(h, qk) for qk in q] for h in model.h]
+            curvature = [
+                sp.Add(
+                    *(
+                        sp.diff(row[kk], ql) * dq[ll] * dq[kk]
+                        for kk in range(len(q))
+                        for ll, ql in enumerate(q)
+                    )
+                )
+                for row in J
+            ]
+            self.coordinates = len(q)
+            self.mass = lam([e for row in mech.mass_matrix for e in row])
+            self.forces = lam(list(mech.forces))
+            self.gain = lam([e for row in mech.input_matrix for e in row])
+            self.jacobian = lam([e for row in J for e in row])
+            self.curvature = lam(curvature)
 
     @staticmethod
     def _eval(
@@ -101,10 +125,25 @@ class Oracle:
         v = np.array(
             [s[d.state_names.index(d.padding[i][0])] if d.padding[i] else z[i] for i in range(m)]
         )
-        R = self._eval(self.R, args, (m, m), n)
-        pv = self._eval(self.p, args, (m,), n)
+        if self.mechanics is None:
+            R = self._eval(self.R, args, (m, m), n)
+            pv = self._eval(self.p, args, (m,), n)
+        else:
+            nq = self.coordinates
+            M = np.moveaxis(self._eval(self.mass, args, (nq, nq), n), -1, 0)
+            F = self._eval(self.forces, args, (nq,), n)
+            B = self._eval(self.gain, args, (nq, m), n)
+            J = np.moveaxis(self._eval(self.jacobian, args, (m, nq), n), -1, 0)
+            acc = np.linalg.solve(M, np.moveaxis(F, -1, 0)[..., None])[..., 0]
+            W = np.linalg.solve(M, np.moveaxis(B, -1, 0))
+            R = np.moveaxis(J @ W, 0, -1)
+            pv = (J @ acc[..., None])[..., 0].T + self._eval(self.curvature, args, (m,), n)
         w = np.linalg.solve(np.moveaxis(R, -1, 0), np.moveaxis(v - pv, -1, 0)[..., None])[..., 0].T
-        field = self._eval(self.field, [t, *s, *p, *w], (len(d.extension.x),), n)
+        if self.mechanics is None:
+            field = self._eval(self.field, [t, *s, *p, *w], (len(d.extension.x),), n)
+        else:
+            accel = acc + (W @ w.T[..., None])[..., 0]
+            field = np.vstack([s[nq : 2 * nq], accel.T])
         pad = []
         for i, chain in enumerate(d.padding):
             for j in range(len(chain)):

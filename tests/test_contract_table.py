@@ -24,6 +24,8 @@ from tvopt_codegen.rendering import contract_context, render
 
 SPEC = "unicycle_switch"
 CC = shutil.which("cc") or shutil.which("gcc")
+#: The added status's value: one past the contract's last.
+FAULT = max(contract.Status) + 1
 
 
 def _wider_status() -> type[enum.IntEnum]:
@@ -43,7 +45,7 @@ def _wider_status() -> type[enum.IntEnum]:
             status.explain,
         )
     namespace["TEST_FAULT"] = (
-        7,
+        FAULT,
         "error",
         "TestFaultError",
         "A fault that only this test adds.",
@@ -82,18 +84,18 @@ def test_a_status_added_to_the_table_reaches_every_artifact(
 
     # The Python module: a constant, an exception class, a message.
     (text,) = render(lowered, "python").values()
-    assert "STATUS_TEST_FAULT = 7" in text
+    assert f"STATUS_TEST_FAULT = {FAULT}" in text
     path = tmp_path / f"{SPEC}.py"
     path.write_text(text, encoding="utf-8")
     generated = import_file(path, "_tvopt_contract_table_python")
     error = generated._error(generated.STATUS_TEST_FAULT, 3)
     assert isinstance(error, generated.TestFaultError)
-    assert isinstance(error, generated.ControllerError) and error.status == 7
+    assert isinstance(error, generated.ControllerError) and error.status == FAULT
     assert str(error) == "the test fault struck (column 3): nothing is wrong"
 
     # The C header, the C module's messages and its Python wrapper.
     c_files = render(lowered, "c")
-    assert "#define UNICYCLE_SWITCH_TEST_FAULT 7" in c_files[f"{SPEC}.h"]
+    assert f"#define UNICYCLE_SWITCH_TEST_FAULT {FAULT}" in c_files[f"{SPEC}.h"]
     assert "case UNICYCLE_SWITCH_TEST_FAULT:" in c_files[f"{SPEC}.c"]
     wrapper = c_files[f"{SPEC}_c.py"]
     assert "class TestFaultError(ControllerError):" in wrapper
@@ -106,7 +108,7 @@ def test_a_status_added_to_the_table_reaches_every_artifact(
         assert f"return {SPEC}_status_message(status);" in sources[f"sources/{SPEC}_fmi{fmi}.c"]
 
     # The sweep records a sample that ends so under the status's own name.
-    assert sweep.outcome_of(7).label == "test_fault"
+    assert sweep.outcome_of(FAULT).label == "test_fault"
     assert sweep.outcome_of(16) is sweep.LoopOutcome.DIVERGED
 
     if CC is not None:
@@ -114,7 +116,7 @@ def test_a_status_added_to_the_table_reaches_every_artifact(
             (tmp_path / name).write_text(source, encoding="utf-8")
         lib = _status_messages(tmp_path, SPEC, tmp_path)
         message = getattr(lib, f"{SPEC}_status_message")
-        assert message(7) == b"the test fault struck: nothing is wrong"
+        assert message(FAULT) == b"the test fault struck: nothing is wrong"
 
 
 @pytest.mark.skipif(CC is None, reason="no C compiler")

@@ -9,6 +9,8 @@ from types import ModuleType
 import numpy as np
 import pytest
 
+from tvopt_codegen.spec.implicit import implicit_values
+
 from .conftest import ALL_SPECS, derivation, module
 from .test_c_backend import _write_c, c_module, run_sanitized
 
@@ -207,6 +209,10 @@ def test_plant_and_outputs_are_the_model(
         u = rng.uniform(0.5, 1.5, len(model.u))
         values = {**dict(zip(model.x, x, strict=True)), **dict(zip(model.u, u, strict=True))}
         values |= {q: v for q, v in defaults.items()}
+        if model.mechanics is not None:
+            # M^-1 F and M^-1 B by numpy's dense solve (the generated code: its LDL^T).
+            solved = implicit_values(model.mechanics, values)
+            values |= {sym: float(v[0]) for sym, v in solved.items()}
         expected = (model.f + model.G * sp.Matrix(model.u)).xreplace(values)
         np.testing.assert_allclose(
             mod.plant(0.3, x, u), np.array(expected, dtype=float).ravel(), rtol=1e-13, atol=1e-14

@@ -38,7 +38,7 @@ from tvopt_codegen.kernel import Arg, Kernel, KernelSet, Output
 from tvopt_codegen.law import symbols
 from tvopt_codegen.lie import control_affine
 from tvopt_codegen.plan import law_plan
-from tvopt_codegen.sparse import cholesky_program, lu_operations
+from tvopt_codegen.sparse import cholesky_program, ldl_program, lu_operations
 
 __all__ = ["Arg", "Kernel", "KernelSet", "Output", "lower"]
 
@@ -105,7 +105,7 @@ def _arguments(d: Derivation) -> _Args:
     )
 
 
-def _programs(d: Derivation) -> dict[str, list[Assignment]]:
+def _programs(d: Derivation, mass: _Mass | None = None) -> dict[str, list[Assignment]]:
     """The derivation's straight-line programs, by what they compute."""
     model, k = d.model, d.k
     signals = range(len(model.signals))
@@ -118,7 +118,56 @@ def _programs(d: Derivation) -> dict[str, list[Assignment]]:
         "jet": list(d.jet_program.assignments),
         "hessian": list(d.hessian_program.assignments),
         "rest": list(d.rest_program.assignments),
+        "mass": [] if mass is None else mass.program,
     }
+
+
+@dataclass(frozen=True)
+class _Mass:
+    """A mass-matrix plant's run-time solve, as a program every kernel that needs it prunes.
+
+    Attributes
+    ----------
+    program : list of (sympy.Symbol, sympy.Expr)
+        ``M``, ``F`` and ``B`` in three-address form, one LDL^T of ``M`` and a solve per
+        column of ``[F B]``, ending in the assignments of ``a = M^-1 F`` and
+        ``W = M^-1 B`` to their run-time symbols.
+    entries : list of sympy.Expr
+        ``M``'s stored entries (its lower triangle's structural nonzeros).
+    pivots : list of sympy.Expr
+        The LDL^T pivots, all positive where ``M`` is positive definite.
+    """
+
+    program: list[Assignment]
+    entries: list[sp.Expr]
+    pivots: list[sp.Expr]
+
+
+def _mass(d: Derivation) -> _Mass | None:
+    """The run-time solve of a mass-matrix plant (None for ``[system.dynamics]``).
+
+    ``M`` is factored once per evaluation, never inverted: the same square-root-free
+    sparse LDL^T as the Hessian's (:func:`~tvopt_codegen.sparse.ldl_program`).
+    """
+    mech = d.model.mechanics
+    if mech is None:
+        return None
+    n = len(mech.coordinates)
+    m = len(mech.input_matrix[0])
+    pattern = [(i, j) for i in range(n) for j in range(i + 1) if mech.mass_matrix[i][j] != 0]
+    columns = [list(mech.forces)] + [[mech.input_matrix[i][j] for i in range(n)] for j in range(m)]
+    flat = [mech.mass_matrix[i][j] for i, j in pattern] + [e for c in columns for e in c]
+    program, atoms = atomize(flat, fresh_symbols("_mass"))
+    entries = list(atoms[: len(pattern)])
+    rhs = [list(atoms[len(pattern) + c * n : len(pattern) + (c + 1) * n]) for c in range(m + 1)]
+    solve, solutions, pivots = ldl_program(pattern, n, entries, rhs, prefix="_ldl")
+    assignments = list(program.assignments) + solve
+    for i in range(n):
+        targets = [mech.accelerations[i], *mech.gains[i]]
+        for c, target in enumerate(targets):
+            if isinstance(target, sp.Symbol):
+                assignments.append((target, solutions[c][i]))
+    return _Mass(assignments, entries, pivots)
 
 
 def _jet_kernels(
@@ -127,6 +176,7 @@ def _jet_kernels(
     programs: dict[str, list[Assignment]],
     kernel: _Make,
     kernels: _MakeMany,
+    mass: _Mass | None = None,
 ) -> tuple[Kernel, Kernel | None, Kernel]:
     """The jet (with R and p), its LDL^T solve, and the optimality error E.
 
@@ -135,7 +185,7 @@ def _jet_kernels(
     """
     law, m, n, k = d.law, len(d.model.u), d.n_kkt, d.k
     jet_program = programs["signals"] + programs["y"] + programs["jet"] + programs["hessian"]
-    jet_program += programs["rest"]
+    jet_program += programs["rest"] + programs["mass"]
     inputs = [args.t, args.s, args.p, args.a, *args.r]
     # R and p share their trigonometry with the output jet: one kernel, one CSE.
     shared: list[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]] = [
@@ -161,6 +211,12 @@ def _jet_kernels(
                 [model.G[i, j] for i in range(rows) for j in range(cols)],
                 "G(x), row-major (the observer's)",
             ),
+        ]
+    if mass is not None:
+        # M is factored where R and p need it; the plan's check_pd reads the pivots.
+        shared += [
+            ("mass", (len(mass.entries),), mass.entries, "stored entries of the mass matrix"),
+            ("mass_pivot", (len(mass.pivots),), mass.pivots, "pivots of M's LDL^T"),
         ]
     what = "grad^(j) f0" if n == m else "F^(j), F = [grad f0 + J_a^T nu; a]"
     optimality_kernel = (
@@ -227,7 +283,9 @@ def _jet_kernels(
     return jet, cholesky, optimality
 
 
-def _input_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
+def _input_kernels(
+    d: Derivation, args: _Args, kernel: _Make, mass: list[Assignment]
+) -> list[Kernel]:
     """From y_imp^(k) to the plant: b = v - p, the closed-loop field, the plant input.
 
     With integral action the field's last entries are ``grad f0`` (the integral states'
@@ -260,7 +318,7 @@ def _input_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
         "closed_loop",
         "Closed-loop vector field and the plant input",
         inputs,
-        [],
+        mass,
         [
             ("ds", (len(d.states),), field, "time derivative of the closed-loop state"),
             ("u", (m,), law.plant_input, "plant input"),
@@ -271,7 +329,7 @@ def _input_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
         "plant_input",
         "The plant input alone (control needs no vector field)",
         [args.t, args.s, args.p, args.w],
-        [],
+        mass,
         [("u", (m,), law.plant_input, "plant input")],
         args.subs,
     )
@@ -312,7 +370,9 @@ def _objective_kernels(
     )
 
 
-def _plant_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
+def _plant_kernels(
+    d: Derivation, args: _Args, kernel: _Make, mass: list[Assignment]
+) -> list[Kernel]:
     """The plant alone: ``x' = f(x) + G(x) u`` and ``y = h(x)``, over the plant's state."""
     model = d.model
     x_slots, u_slots = _slots("x", len(model.x)), _slots("u", len(model.u))
@@ -326,7 +386,7 @@ def _plant_kernels(d: Derivation, args: _Args, kernel: _Make) -> list[Kernel]:
         "plant",
         "The plant alone: x' = f(x) + G(x) u",
         [args.t, arg_x, arg_u, args.p],
-        [],
+        mass,
         [("dx", (len(dx),), dx, "time derivative of the plant state")],
         subs,
     )
@@ -367,16 +427,18 @@ def lower(derivation: Derivation) -> KernelSet:
     kernel = functools.partial(make_kernel, odd=odd, symbols=symbols)
     kernels = functools.partial(make_kernels, odd=odd, symbols=symbols)
     args = _arguments(d)
-    programs = _programs(d)
-    jet, cholesky, optimality = _jet_kernels(d, args, programs, kernel, kernels)
+    mass = _mass(d)
+    programs = _programs(d, mass)
+    jet, cholesky, optimality = _jet_kernels(d, args, programs, kernel, kernels, mass)
     # Everything of the jet that depends on time and parameters alone is computed once
     # per batch of states (the C backend's batch functions; a block in NumPy).
     split = split_invariant(jet, "jet_time", "The jet's terms of time and parameters alone")
     jet_time = None
     if split is not None:
         jet_time, jet = split
-    rest = _input_kernels(d, args, kernel) + [optimality]
-    rest += _objective_kernels(d, args, programs, kernels) + _plant_kernels(d, args, kernel)
+    rest = _input_kernels(d, args, kernel, programs["mass"]) + [optimality]
+    rest += _objective_kernels(d, args, programs, kernels)
+    rest += _plant_kernels(d, args, kernel, programs["mass"])
     law = d.law
     plan = law_plan(
         n_states=len(d.states),
@@ -391,6 +453,7 @@ def lower(derivation: Derivation) -> KernelSet:
         hessian=0 if cholesky is None else jet.outputs[0].shape[0],
         r_blocks=law.r_blocks,
         references=len(args.r[0].symbols) if args.r else 0,
+        mass=(0, 0) if mass is None else (len(mass.entries), len(mass.pivots)),
     )
     return KernelSet(
         d,
@@ -439,7 +502,7 @@ def check_kernels(derivation: Derivation) -> CheckKernels:
         "sweep_decoupling",
         "The decoupling matrix R(s), row-major",
         [args.t, args.s, args.p],
-        [],
+        _programs(d, _mass(d))["mass"],
         [("r", (m * m,), [d.R[i, j] for i in range(m) for j in range(m)], "decoupling matrix R")],
         args.subs,
         odd={},

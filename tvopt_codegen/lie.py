@@ -23,6 +23,13 @@ from tvopt_codegen.numeric import Evaluator
 
 Node = TypeVar("Node", bound=Hashable)
 
+#: Values of implicitly defined symbols from the sampled ones (see :class:`Sampler`).
+Implicit = Callable[[Mapping[sp.Symbol, object], int], Mapping[sp.Symbol, object]]
+
+
+class ImplicitDerivativeError(ValueError):
+    """A Lie derivative would differentiate a symbol computed at run time (``M^-1 F``)."""
+
 
 class Sampler:
     """Evaluates expressions at fixed pseudo-random points of the state space.
@@ -37,6 +44,10 @@ class Sampler:
         Number of sample points.
     seed : int
         Seed of the generator; fixed so that every run decides the same way.
+    implicit : callable, optional
+        Given the symbols' values (arrays) and the number of points, the values of
+        further symbols defined implicitly by them (a mass-matrix plant's ``M^-1 F`` and
+        ``M^-1 B``, solved numerically point by point).
     """
 
     def __init__(
@@ -45,6 +56,7 @@ class Sampler:
         fixed: Mapping[sp.Symbol, float],
         points: int = 8,
         seed: int = 20191127,
+        implicit: Implicit | None = None,
     ) -> None:
         rng = np.random.default_rng(seed)
         # Values away from 0 and +-1 avoid the special points of trigonometric and
@@ -60,6 +72,10 @@ class Sampler:
         # of their subtrees, each evaluated once.
         bound: dict[sp.Symbol, object] = {s: self.values[:, i] for i, s in enumerate(symbols)}
         bound |= {s: float(v) for s, v in self.fixed.items()}
+        if implicit is not None:
+            derived = implicit(bound, points)
+            bound |= derived
+            self._known |= derived.keys()
         self._evaluate = Evaluator(bound)
 
     def evaluate(self, expr: sp.Expr) -> np.ndarray:
@@ -282,6 +298,7 @@ def relative_degree(
     x: Sequence[sp.Symbol],
     sampler: Sampler,
     check: Callable[[sp.Expr], None] | None = None,
+    opaque: frozenset[sp.Symbol] = frozenset(),
 ) -> RelativeDegree:
     """Compute the vector relative degree (paper, Definition 1) and R, p, Phi.
 
@@ -295,11 +312,20 @@ def relative_degree(
         Decides which Lie derivatives vanish identically.
     check : callable, optional
         Called with every new Lie derivative (the derivation's budget meter).
+    opaque : frozenset of sympy.Symbol, optional
+        Symbols computed at run time, functions of the state that must not be
+        differentiated (a mass-matrix plant's ``M^-1 F`` and ``M^-1 B``).
 
     Returns
     -------
     RelativeDegree
         Per-output relative degrees, Lie derivative chains and the decoupling matrix.
+
+    Raises
+    ------
+    ImplicitDerivativeError
+        When a Lie derivative to be differentiated holds an opaque symbol; its first
+        argument is the output's index.
     """
     n = len(x)
     columns: list[list[tuple[int, sp.Expr]]] = [[] for _ in range(n)]
@@ -314,6 +340,8 @@ def relative_degree(
         chain = [hi if not sampler.is_zero(hi) else sp.Integer(0)]
         found: int | None = None
         for order in range(n):
+            if opaque and chain[-1].free_symbols & opaque:
+                raise ImplicitDerivativeError(output, order)
             nxt, row = _lie_row(chain[-1], f, columns, x)
             row = {c: e for c, e in sorted(row.items()) if e != 0 and not sampler.is_zero(e)}
             if check is not None:

@@ -7,15 +7,19 @@ no right-hand side is more than affine in the inputs.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import sympy as sp
 
 from tvopt_codegen.constraints import barrier_objective, initial_slack, schedule
-from tvopt_codegen.errors import AssumptionError, SpecError
+from tvopt_codegen.contract import PIVOT_TOLERANCE
+from tvopt_codegen.errors import AssumptionError, SpecError, clip
 from tvopt_codegen.jet import partial
 from tvopt_codegen.lie import Sampler, from_entries
-from tvopt_codegen.spec import TIME, Constraint, Spec, symbol
+from tvopt_codegen.spec import TIME, Constraint, Mechanics, Spec, symbol
+from tvopt_codegen.spec.implicit import implicit_values, mass_matrix_at
 
 
 @dataclass(frozen=True)
@@ -82,6 +86,34 @@ class Model:
     slack: sp.Expr = sp.Integer(0)
     equalities: tuple[Constraint, ...] = ()
     multipliers: tuple[sp.Symbol, ...] = ()
+
+    @property
+    def mechanics(self) -> Mechanics | None:
+        """The mass-matrix form the plant was declared in (None: ``[system.dynamics]``)."""
+        return self.spec.mechanics
+
+    @property
+    def opaque(self) -> frozenset[sp.Symbol]:
+        """Symbols of ``f`` and ``G`` computed at run time (``M^-1 F``, ``M^-1 B``)."""
+        return self.spec.mechanics.opaque if self.spec.mechanics is not None else frozenset()
+
+    def sampler(self, symbols: Sequence[sp.Symbol]) -> Sampler:
+        """A :class:`~tvopt_codegen.lie.Sampler` over ``symbols``, parameters at defaults.
+
+        It also knows the run-time symbols' values, solved numerically at its points.
+        """
+        mechanics = self.spec.mechanics
+        implicit = None
+        if mechanics is not None:
+
+            def implicit(
+                values: Mapping[sp.Symbol, object], points: int
+            ) -> Mapping[sp.Symbol, object]:
+                return implicit_values(mechanics, values, points)
+
+        return Sampler(
+            symbols, dict(zip(self.params, self.defaults, strict=True)), implicit=implicit
+        )
 
     @property
     def lagrangian(self) -> sp.Expr:
@@ -158,6 +190,8 @@ def build_model(spec: Spec) -> Model:
                         f"depends on input {str(uk)!r}",
                     )
         f_rows.append(rhs.xreplace(dict.fromkeys(u, sp.Integer(0))))
+    if spec.mechanics is not None:
+        _check_mass_matrix(spec, spec.mechanics, sampler)
     f0: sp.Expr = spec.objective
     objective = mu = slack = None
     if spec.constraints:
@@ -205,3 +239,44 @@ def build_model(spec: Spec) -> Model:
         equalities=spec.equalities,
         multipliers=tuple(sp.Symbol(f"nu_{c.name}", real=True) for c in spec.equalities),
     )
+
+
+def _check_mass_matrix(spec: Spec, mechanics: Mechanics, sampler: Sampler) -> None:
+    """``M`` is symmetric (at random points) and positive definite at the initial state.
+
+    Raises
+    ------
+    SpecError
+        When ``M[i][j]`` and ``M[j][i]`` differ.
+    AssumptionError
+        When ``M`` is not positive definite (or not finite) at the initial state with
+        the parameters at their defaults.
+    """
+    field = "system.mechanics.mass_matrix"
+    mass = mechanics.mass_matrix
+    n = len(mass)
+    for i in range(n):
+        for j in range(i):
+            if mass[i][j] != mass[j][i] and not sampler.is_zero(mass[i][j] - mass[j][i]):
+                raise SpecError(
+                    spec.source,
+                    f"{field}[{i}][{j}]",
+                    f"M is not symmetric: M[{i}][{j}] = {clip(sp.sstr(mass[i][j]))} but "
+                    f"M[{j}][{i}] = {clip(sp.sstr(mass[j][i]))}",
+                )
+    given = dict(spec.initial_state)
+    values: dict[sp.Symbol, object] = {symbol(n): v for n, v in spec.parameters}
+    values |= {symbol(name): float(given.get(name, 0.0)) for name in spec.states}
+    with np.errstate(all="ignore"):
+        start = mass_matrix_at(mechanics, values)[0]
+    where = "at the initial state" + ("" if given else " (every state 0)")
+    if not np.all(np.isfinite(start)):
+        raise AssumptionError(spec.source, field, f"M is not finite {where}")
+    smallest = float(np.linalg.eigvalsh(start)[0])
+    scale = float(np.max(np.abs(start))) if start.size else 0.0
+    if not smallest > PIVOT_TOLERANCE * scale:
+        raise AssumptionError(
+            spec.source,
+            field,
+            f"M is not positive definite {where}: its smallest eigenvalue is {smallest:.6g}",
+        )

@@ -27,6 +27,11 @@ A step's ``op`` is one of
 ``check``
     Every entry of ``args`` is finite, or the law fails with
     :attr:`Status.NONFINITE_OUTPUT`, naming ``what``.
+``check_pd``
+    A mass-matrix plant's ``M``, factored inside the jet kernel: every pivot
+    ``args[1]`` of its LDL^T exceeds :data:`PIVOT_TOLERANCE` times the largest entry of
+    ``args[0]``, or the law fails with :attr:`Status.MASS_MATRIX_NOT_PD`. An ``M`` with a
+    non-finite entry passes here and fails the finiteness check that follows.
 
 The statuses and the tolerance are the contract's (:mod:`tvopt_codegen.contract`);
 the plan says which step fails with which.
@@ -78,7 +83,7 @@ class Step:
     Attributes
     ----------
     op : str
-        ``call``, ``solve_ldl``, ``solve_lu`` or ``check``.
+        ``call``, ``solve_ldl``, ``solve_lu``, ``check`` or ``check_pd``.
     kernel : str
         The kernel a ``call`` or ``solve_ldl`` evaluates ("" otherwise).
     args, results : tuple of str
@@ -129,8 +134,9 @@ class Plan:
         closed-loop vector field and the plant input.
     runtime : tuple of str
         The run-time pieces the steps use, for backends to emit only those:
-        ``ldl`` (the check around the LDL^T kernel), ``lu_1``, ``lu_2`` and ``lu``
-        (solves of 1 x 1, unrolled 2 x 2 and larger blocks of R).
+        ``definite`` (the check of a mass matrix's pivots), ``ldl`` (the check around
+        the LDL^T kernel), ``lu_1``, ``lu_2`` and ``lu`` (solves of 1 x 1, unrolled
+        2 x 2 and larger blocks of R).
     """
 
     values: tuple[Value, ...]
@@ -196,10 +202,11 @@ def _pivots(m: int, n: int) -> tuple[tuple[int, Status], ...]:
     return ((m, Status.HESSIAN_NOT_PD),)
 
 
-def _runtime(hessian: int, r_blocks: tuple[tuple[int, ...], ...]) -> tuple[str, ...]:
+def _runtime(hessian: int, r_blocks: tuple[tuple[int, ...], ...], mass: int = 0) -> tuple[str, ...]:
     """The run-time pieces (``Plan.runtime``) a law with these solves uses."""
     sizes = {len(block) for block in r_blocks}
     return (
+        *(("definite",) if mass else ()),
         *(("ldl",) if hessian else ()),
         *(("lu_1",) if 1 in sizes else ()),
         *(("lu_2",) if 2 in sizes else ()),
@@ -221,6 +228,7 @@ def law_plan(
     references: int = 0,
     integral: bool = False,
     observer: int = 0,
+    mass: tuple[int, int] = (0, 0),
 ) -> Plan:
     """The plan of the law for a controller's sizes.
 
@@ -250,6 +258,10 @@ def law_plan(
         With a disturbance observer, the number of plant states: the jet kernel also
         returns ``drift`` (``f(x)``) and ``g`` (``G(x)``, row-major), outputs of the law
         that the stateful controller reads and no check looks at (0: no observer).
+    mass : (int, int), optional
+        For a plant in mass-matrix form, the numbers of stored entries of ``M`` and of
+        coordinates: the jet kernel factors ``M`` and also returns those entries
+        (``mass``) and the pivots (``mass_pivot``), which ``check_pd`` checks first.
 
     Returns
     -------
@@ -301,6 +313,12 @@ def law_plan(
         values.append(Value("grad", n, "local", "grad", "grad f0: the integral states' rates"))
         jet_results += ("grad",)
     checked = jet_results
+    if mass[0]:
+        values += [
+            Value("mass", mass[0], "local", "mass", "stored entries of the mass matrix M(q)"),
+            Value("mass_pivot", mass[1], "local", "mass_pivot", "pivots of M's LDL^T"),
+        ]
+        jet_results += ("mass", "mass_pivot")
     if observer:
         values += [
             Value("drift", observer, "output", "drift", "f(x), the plant's drift"),
@@ -317,6 +335,16 @@ def law_plan(
         Value("ds", n_states, "output", "ds", "time derivative of the closed-loop state"),
     ]
     steps.append(Step("call", "jet", jet_args, jet_results, note=call_note))
+    if mass[0]:
+        steps.append(
+            Step(
+                "check_pd",
+                args=("mass", "mass_pivot"),
+                status=Status.MASS_MATRIX_NOT_PD,
+                what="the mass matrix",
+                note="M(q) was factored (LDL^T) in the jet: never inverted, checked here.",
+            )
+        )
     steps.append(
         Step(
             "check",
@@ -340,7 +368,7 @@ def law_plan(
             )
         )
     steps += _DECOUPLE
-    runtime = _runtime(hessian, r_blocks)
+    runtime = _runtime(hessian, r_blocks, mass[0])
     rhs = _RHS
     if integral:
         call = _RHS[0]

@@ -155,6 +155,41 @@ def cholesky_program(
     (:func:`elimination_order`): for a ring of agents that is linear in their number
     where a dense factorization is cubic.
     """
+    program, (z,), pivots = ldl_program(entries, m, h, [c], leading)
+    return program, z, pivots
+
+
+def ldl_program(
+    entries: Sequence[tuple[int, int]],
+    m: int,
+    h: Sequence[sp.Expr],
+    rhs: Sequence[Sequence[sp.Expr]],
+    leading: int | None = None,
+    prefix: str = "_chol",
+) -> tuple[list[Assignment], list[list[sp.Expr]], list[sp.Expr]]:
+    """:func:`cholesky_program` for several right-hand sides: one factorization, a solve each.
+
+    Parameters
+    ----------
+    entries, m, leading
+        As for :func:`cholesky_program`.
+    h : sequence of sympy.Expr
+        The entries (symbols, or expressions: an entry is assigned where first used).
+    rhs : sequence of sequence of sympy.Expr
+        The right-hand sides, each of length ``m``.
+    prefix : str
+        The prefix of the program's symbols (distinct programs in one kernel need
+        distinct prefixes).
+
+    Returns
+    -------
+    assignments : list of (sympy.Symbol, sympy.Expr)
+        The factorization and the triangular solves.
+    solutions : list of list of sympy.Expr
+        One solution per right-hand side, in the matrix's own order.
+    pivots : list of sympy.Expr
+        As for :func:`cholesky_program`.
+    """
     pattern = {(i, j) for i, j in entries} | {(j, i) for i, j in entries}
     order = elimination_order(pattern, m, leading)
     position = {index: a for a, index in enumerate(order)}
@@ -163,7 +198,7 @@ def cholesky_program(
         a, b = sorted((position[i], position[j]), reverse=True)
         value[(a, b)] = symbol
     columns = _fill(pattern, order)
-    names = fresh_symbols("_chol")
+    names = fresh_symbols(prefix)
     program: list[Assignment] = []
 
     def assign(expr: sp.Expr) -> sp.Expr:
@@ -193,13 +228,15 @@ def cholesky_program(
             scaled[(a, b)] = assign(value.get((a, b), sp.Integer(0)) - dot)
             unit[(a, b)] = assign(scaled[(a, b)] * inverse[b])
             row_entries[a].append(b)
-    forward: list[sp.Expr] = []
-    for a in range(m):
-        dot = sp.Add(*(unit[(a, k)] * forward[k] for k in row_entries[a]))
-        forward.append(assign(c[order[a]] - dot))
-    backward: dict[int, sp.Expr] = {}
-    for a in reversed(range(m)):
-        dot = sp.Add(*(unit[(k, a)] * backward[k] for k in columns[a]))
-        backward[a] = assign(forward[a] * inverse[a] - dot)
-    z = [backward[position[i]] for i in range(m)]
-    return program, z, pivots
+    solutions = []
+    for c in rhs:
+        forward: list[sp.Expr] = []
+        for a in range(m):
+            dot = sp.Add(*(unit[(a, k)] * forward[k] for k in row_entries[a]))
+            forward.append(assign(c[order[a]] - dot))
+        backward: dict[int, sp.Expr] = {}
+        for a in reversed(range(m)):
+            dot = sp.Add(*(unit[(k, a)] * backward[k] for k in columns[a]))
+            backward[a] = assign(forward[a] * inverse[a] - dot)
+        solutions.append([backward[position[i]] for i in range(m)])
+    return program, solutions, pivots

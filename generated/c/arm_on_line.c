@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: arm_on_line
  * spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
- * content sha256: 910edf72a3d5a5c86e7f9340df6997f6c59146bd4b4ed6c3e027378b0d5e82b1
+ * content sha256: 2f3c570cd78ac221ed768d04c57e126616c73882c09fca80d34530d5465d52b4
  */
 
 /* arm_on_line: see arm_on_line.h. The law is CSE'd straight-line code and two numerical
@@ -744,6 +744,8 @@ const char *arm_on_line_status_message(int status)
         return "the time is before the last step's time";
     case ARM_ON_LINE_DEPENDENT_CONSTRAINTS:
         return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
+    case ARM_ON_LINE_MASS_MATRIX_NOT_PD:
+        return "the mass matrix M(q) is not positive definite: the plant's model has no valid inertia at this state";
     default:
         return "unknown status";
     }

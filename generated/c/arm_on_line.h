@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: arm_on_line
  * spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
- * content sha256: cc81d2f885f9e2b01b54d73addb2a1c5464fb6e9b1cabe7d36d5e0bab380eec3
+ * content sha256: 1fb4448937bf245342c1c6270df1307510ec29caa5a5fae582ab2a7b0f3528d4
  */
 
 /*
@@ -44,6 +44,7 @@ extern "C" {
 #define ARM_ON_LINE_NONFINITE_OUTPUT 4
 #define ARM_ON_LINE_DECREASING_TIME 5
 #define ARM_ON_LINE_DEPENDENT_CONSTRAINTS 6
+#define ARM_ON_LINE_MASS_MATRIX_NOT_PD 7
 
 int arm_on_line_n_states(void);
 int arm_on_line_n_inputs(void);

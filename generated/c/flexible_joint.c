@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: b442fdc098926e412fcc1b2766b3863f6a9178eeeb015428f24c6f46d7621474
+ * content sha256: 8b683afc6cc33fa968fa5579ac8bb5228e020c5d2c48ce3d79e8f3f3aa54d1cb
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -646,6 +646,8 @@ const char *flexible_joint_status_message(int status)
         return "the time is before the last step's time";
     case FLEXIBLE_JOINT_DEPENDENT_CONSTRAINTS:
         return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
+    case FLEXIBLE_JOINT_MASS_MATRIX_NOT_PD:
+        return "the mass matrix M(q) is not positive definite: the plant's model has no valid inertia at this state";
     default:
         return "unknown status";
     }

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: f327cc10922906a4e4b4c0ce1a9e84468d8a4730ed179a71deadcf24b4b0cdf8
+ * content sha256: c1269093cfbbdb813e44b72ef8bb95acb27577cab103c1c8264bfd8f6fd6aa5a
  */
 
 /*
@@ -44,6 +44,7 @@ extern "C" {
 #define FLEXIBLE_JOINT_NONFINITE_OUTPUT 4
 #define FLEXIBLE_JOINT_DECREASING_TIME 5
 #define FLEXIBLE_JOINT_DEPENDENT_CONSTRAINTS 6
+#define FLEXIBLE_JOINT_MASS_MATRIX_NOT_PD 7
 
 int flexible_joint_n_states(void);
 int flexible_joint_n_inputs(void);

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 1df2a7dc9e57b79bb9951fb01ade4b9b8116dd7ae8eec7d2160862ceacd9708e
+ * content sha256: 67d412d3c39cb392de271afff6716b10be090dfc01b4ee51a45d2b6a52a0c9bf
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -539,6 +539,8 @@ const char *integrator_status_message(int status)
         return "the time is before the last step's time";
     case INTEGRATOR_DEPENDENT_CONSTRAINTS:
         return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
+    case INTEGRATOR_MASS_MATRIX_NOT_PD:
+        return "the mass matrix M(q) is not positive definite: the plant's model has no valid inertia at this state";
     default:
         return "unknown status";
     }

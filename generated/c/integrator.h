@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: c797e759edf1100f859abb90f2f49521336758278a8064076fd3f9b2de605253
+ * content sha256: 9457f2cf7ace81d3a40fdecca3e533a5bfa0d0bde4c0e914f549d2353dbc57e6
  */
 
 /*
@@ -44,6 +44,7 @@ extern "C" {
 #define INTEGRATOR_NONFINITE_OUTPUT 4
 #define INTEGRATOR_DECREASING_TIME 5
 #define INTEGRATOR_DEPENDENT_CONSTRAINTS 6
+#define INTEGRATOR_MASS_MATRIX_NOT_PD 7
 
 int integrator_n_states(void);
 int integrator_n_inputs(void);

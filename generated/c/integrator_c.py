@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 571adc9c85ac383ebcd9d88fa1c6d6c074f142a1a346332abb58093be5536044
+# content sha256: 3bb7c2493ca34b58de6234935934ded409148022b5aaa13e3cc5b0bdb3ad23bd
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -95,6 +95,7 @@ STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
 STATUS_DEPENDENT_CONSTRAINTS = 6
+STATUS_MASS_MATRIX_NOT_PD = 7
 
 
 class ControllerError(ArithmeticError):
@@ -151,6 +152,12 @@ class DependentConstraintsError(ControllerError):
     status = STATUS_DEPENDENT_CONSTRAINTS
 
 
+class MassMatrixNotPositiveDefiniteError(ControllerError):
+    """The mass matrix M(q) is not positive definite: its factorization failed."""
+
+    status = STATUS_MASS_MATRIX_NOT_PD
+
+
 #: Each error status: its exception, the message's head, and what follows the column
 #: (why, then where this spec's law fails so).
 _ERRORS = {
@@ -160,6 +167,7 @@ _ERRORS = {
     STATUS_NONFINITE_OUTPUT: (NonFiniteOutputError, '{result} is not finite', ': a signal or f0 left its domain'),
     STATUS_DECREASING_TIME: (DecreasingTimeError, "the time is before the last step's time", ''),
     STATUS_DEPENDENT_CONSTRAINTS: (DependentConstraintsError, "the equality constraints' gradients are dependent", ': the KKT matrix is singular at this state and time'),
+    STATUS_MASS_MATRIX_NOT_PD: (MassMatrixNotPositiveDefiniteError, 'the mass matrix M(q) is not positive definite', ": the plant's model has no valid inertia at this state"),
 }
 
 

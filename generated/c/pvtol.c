@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: pvtol
  * spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
- * content sha256: 36cd4b7fba4bfedbf25923a976cc61ffe09144c53762a740d4bee63e8dca48ee
+ * content sha256: e587f7a69b59efba017b97e5e2750b0f53b76a63bde36088298fe3c41d4662d0
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -630,6 +630,8 @@ const char *pvtol_status_message(int status)
         return "the time is before the last step's time";
     case PVTOL_DEPENDENT_CONSTRAINTS:
         return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
+    case PVTOL_MASS_MATRIX_NOT_PD:
+        return "the mass matrix M(q) is not positive definite: the plant's model has no valid inertia at this state";
     default:
         return "unknown status";
     }

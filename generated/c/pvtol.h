@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: pvtol
  * spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
- * content sha256: 76f809dbc8685f79eb95baa438f573d3c83c184ff12ab7c05f0ef05c8c1352f1
+ * content sha256: 4fff8e96163167ed5717191480e9a095ad21eff9435d2c68ad55cf9b40ce629c
  */
 
 /*
@@ -44,6 +44,7 @@ extern "C" {
 #define PVTOL_NONFINITE_OUTPUT 4
 #define PVTOL_DECREASING_TIME 5
 #define PVTOL_DEPENDENT_CONSTRAINTS 6
+#define PVTOL_MASS_MATRIX_NOT_PD 7
 
 int pvtol_n_states(void);
 int pvtol_n_inputs(void);

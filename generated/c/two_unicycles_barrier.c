@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 7d4573a9e9474bc34f207e41cbb5b4d2c75f48b6b52242c11a7f8559872ce397
+ * content sha256: 19398c65c69e55714267182ff532d2b0dd7fed565f95b077909ececd337454b4
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -838,6 +838,8 @@ const char *two_unicycles_barrier_status_message(int status)
         return "the time is before the last step's time";
     case TWO_UNICYCLES_BARRIER_DEPENDENT_CONSTRAINTS:
         return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
+    case TWO_UNICYCLES_BARRIER_MASS_MATRIX_NOT_PD:
+        return "the mass matrix M(q) is not positive definite: the plant's model has no valid inertia at this state";
     default:
         return "unknown status";
     }

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 67a786e5f320191651065d3ea3e22e3deb957a90dc8de54084dbdd146184b04b
+ * content sha256: 88cbcae7d6f4a1866f6f4221ab26b77df805d3315a3030d994e50261e62f2849
  */
 
 /*
@@ -44,6 +44,7 @@ extern "C" {
 #define TWO_UNICYCLES_BARRIER_NONFINITE_OUTPUT 4
 #define TWO_UNICYCLES_BARRIER_DECREASING_TIME 5
 #define TWO_UNICYCLES_BARRIER_DEPENDENT_CONSTRAINTS 6
+#define TWO_UNICYCLES_BARRIER_MASS_MATRIX_NOT_PD 7
 
 int two_unicycles_barrier_n_states(void);
 int two_unicycles_barrier_n_inputs(void);

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_ring
  * spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
- * content sha256: f34b118d7ae1a347b406f569ac141b2bc647af38cc1002df253255712372d4ca
+ * content sha256: c49a39cb810cd9216a228888458d209678693fe2c0e2569c7f9d322f8a3ad4d0
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical
@@ -1427,6 +1427,8 @@ const char *unicycle_ring_status_message(int status)
         return "the time is before the last step's time";
     case UNICYCLE_RING_DEPENDENT_CONSTRAINTS:
         return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
+    case UNICYCLE_RING_MASS_MATRIX_NOT_PD:
+        return "the mass matrix M(q) is not positive definite: the plant's model has no valid inertia at this state";
     default:
         return "unknown status";
     }

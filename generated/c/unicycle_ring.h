@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_ring
  * spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
- * content sha256: 6cb50932bec2bbc590e281ca514571d3a731845635f83b096a8c081a7da76d49
+ * content sha256: a198a0befa728f20245aa37d669e38324c2997039aa544152d917020d9548d3f
  */
 
 /*
@@ -44,6 +44,7 @@ extern "C" {
 #define UNICYCLE_RING_NONFINITE_OUTPUT 4
 #define UNICYCLE_RING_DECREASING_TIME 5
 #define UNICYCLE_RING_DEPENDENT_CONSTRAINTS 6
+#define UNICYCLE_RING_MASS_MATRIX_NOT_PD 7
 
 int unicycle_ring_n_states(void);
 int unicycle_ring_n_inputs(void);

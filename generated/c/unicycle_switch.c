@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: f44449647eaa26e20c5bf1e74e646a5fb76c576b38bc8c02536795cbf146aab7
+ * content sha256: 8274e03b9d0b25ab496fdff4612568a71fea17a1c6adf9c4cf79b67f51f0fee3
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -591,6 +591,8 @@ const char *unicycle_switch_status_message(int status)
         return "the time is before the last step's time";
     case UNICYCLE_SWITCH_DEPENDENT_CONSTRAINTS:
         return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
+    case UNICYCLE_SWITCH_MASS_MATRIX_NOT_PD:
+        return "the mass matrix M(q) is not positive definite: the plant's model has no valid inertia at this state";
     default:
         return "unknown status";
     }

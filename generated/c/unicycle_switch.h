@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 7765305115b53b4aaab773cc328b6d12cb3fa1ef88001c1549f2248fcd3ce2f9
+ * content sha256: eb6ff95adb475e015e60ba410bbecf8f157e814a21bf2b46eeb2d1c9600a30e1
  */
 
 /*
@@ -44,6 +44,7 @@ extern "C" {
 #define UNICYCLE_SWITCH_NONFINITE_OUTPUT 4
 #define UNICYCLE_SWITCH_DECREASING_TIME 5
 #define UNICYCLE_SWITCH_DEPENDENT_CONSTRAINTS 6
+#define UNICYCLE_SWITCH_MASS_MATRIX_NOT_PD 7
 
 int unicycle_switch_n_states(void);
 int unicycle_switch_n_inputs(void);

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 7a9f5ce4f78468d99b6bc92f9987213375c635147e05445b1a3a27af9b049125
+# content sha256: 7abe258cc75e727abcba1f19e909e0ab8aa7d78399acc15cbc7f5a2eda9ff1ab
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -100,6 +100,7 @@ STATUS_HESSIAN_NOT_PD = 3
 STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
 STATUS_DEPENDENT_CONSTRAINTS = 6
+STATUS_MASS_MATRIX_NOT_PD = 7
 
 
 class ControllerError(ArithmeticError):
@@ -156,6 +157,12 @@ class DependentConstraintsError(ControllerError):
     status = STATUS_DEPENDENT_CONSTRAINTS
 
 
+class MassMatrixNotPositiveDefiniteError(ControllerError):
+    """The mass matrix M(q) is not positive definite: its factorization failed."""
+
+    status = STATUS_MASS_MATRIX_NOT_PD
+
+
 #: Each error status: its exception, the message's head, and what follows the column
 #: (why, then where this spec's law fails so).
 _ERRORS = {
@@ -165,6 +172,7 @@ _ERRORS = {
     STATUS_NONFINITE_OUTPUT: (NonFiniteOutputError, '{result} is not finite', ': a signal or f0 left its domain'),
     STATUS_DECREASING_TIME: (DecreasingTimeError, "the time is before the last step's time", ''),
     STATUS_DEPENDENT_CONSTRAINTS: (DependentConstraintsError, "the equality constraints' gradients are dependent", ': the KKT matrix is singular at this state and time'),
+    STATUS_MASS_MATRIX_NOT_PD: (MassMatrixNotPositiveDefiniteError, 'the mass matrix M(q) is not positive definite', ": the plant's model has no valid inertia at this state"),
 }
 
 

@@ -21,8 +21,8 @@ from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter, tree_siz
 from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.lie import (
     Extension,
+    ImplicitDerivativeError,
     RelativeDegree,
-    Sampler,
     brunovsky,
     extend,
     generic_rank,
@@ -31,14 +31,29 @@ from tvopt_codegen.lie import (
 )
 from tvopt_codegen.model import Model
 from tvopt_codegen.numeric import Evaluator
-from tvopt_codegen.spec import Spec
+from tvopt_codegen.spec import Mechanics, Spec
+from tvopt_codegen.spec.implicit import implicit_values
+
+
+def _implicit_problem(model: Model, exc: ImplicitDerivativeError) -> str:
+    """Why a mass-matrix plant cannot take the Lie derivative ``exc`` asks for."""
+    output, order = exc.args
+    return (
+        f"output {model.spec.outputs[output]!r} needs the derivative of M^-1 (its Lie "
+        f"derivative of order {order} holds M^-1 F or M^-1 B, which generated code computes "
+        "at run time): [system.mechanics] supports outputs of relative degree 2 and no "
+        "extension; write the plant in [system.dynamics] for more"
+    )
 
 
 def _linearizable(model: Model, counts: dict[str, int]) -> bool:
     """Whether the plant with these input integrators is full-state linearizable."""
     ext = extend(model.x, model.u, model.f, model.G, counts)
-    sampler = Sampler(ext.x, dict(zip(model.params, model.defaults, strict=True)))
-    rd = relative_degree(ext.f, ext.G, model.h, ext.x, sampler)
+    sampler = model.sampler(ext.x)
+    try:
+        rd = relative_degree(ext.f, ext.G, model.h, ext.x, sampler, opaque=model.opaque)
+    except ImplicitDerivativeError:
+        return False  # it would need derivatives of M^-1 (docs/spec.md)
     if rd.R is None:
         return False
     degrees = [r for r in rd.r if r is not None]
@@ -47,8 +62,11 @@ def _linearizable(model: Model, counts: dict[str, int]) -> bool:
 
 def _without_extension(model: Model) -> str:
     """Describe what the plant lacks before prolongation (for the report)."""
-    sampler = Sampler(model.x, dict(zip(model.params, model.defaults, strict=True)))
-    rd = relative_degree(model.f, model.G, model.h, model.x, sampler)
+    sampler = model.sampler(model.x)
+    try:
+        rd = relative_degree(model.f, model.G, model.h, model.x, sampler, opaque=model.opaque)
+    except ImplicitDerivativeError as exc:
+        return f"without it, {_implicit_problem(model, exc)}"
     if rd.R is None:
         missing = [str(y) for y, r in zip(model.y, rd.r, strict=True) if r is None]
         return f"without it, outputs {', '.join(missing)} have no relative degree"
@@ -171,8 +189,12 @@ def _singular_start(
     initial: Sequence[float],
     defaults: Mapping[sp.Symbol, float],
     extension_states: Sequence[str],
+    mechanics: Mechanics | None = None,
 ) -> tuple[str, ...]:
     """A warning when the spec's initial state is where the law is undefined.
+
+    A mass-matrix plant's run-time symbols (``M^-1 F``, ``M^-1 B``) are solved for
+    numerically there.
 
     An automatic extension starts its states at 0 unless the spec gives them, and 0
     is singular for any prolonged speed: the module's DEFAULT_STATE would be unusable
@@ -180,6 +202,10 @@ def _singular_start(
     """
     values: dict[sp.Symbol, Any] = {q: float(v) for q, v in defaults.items()}
     values |= {sym: float(v) for sym, v in zip(states, initial, strict=True)}
+    if mechanics is not None:
+        with np.errstate(all="ignore"):
+            solved = implicit_values(mechanics, values)
+        values |= {sym: float(v[0]) for sym, v in solved.items()}
     evaluate = Evaluator(values)
     with np.errstate(all="ignore"):
         # R's nonzero entries only: a team's R is block diagonal.
@@ -339,9 +365,16 @@ def _linearize(spec: Spec, model: Model, meter: _Meter) -> _Linearization:
                 "extension.integrate",
                 f"extension state {name!r} collides with a declared name",
             )
-    defaults = dict(zip(model.params, model.defaults, strict=True))
-    sampler = Sampler(ext.x, defaults)
-    rd: RelativeDegree = relative_degree(ext.f, ext.G, model.h, ext.x, sampler, meter)
+    sampler = model.sampler(ext.x)
+    try:
+        rd: RelativeDegree = relative_degree(
+            ext.f, ext.G, model.h, ext.x, sampler, meter, opaque=model.opaque
+        )
+    except ImplicitDerivativeError as exc:
+        where = (
+            "extension" if any(counts.values()) else f"system.outputs.{spec.outputs[exc.args[0]]}"
+        )
+        raise AssumptionError(source, where, _implicit_problem(model, exc)) from None
     m = len(model.u)
     n_ext = len(ext.x)
     for name, r in zip(spec.outputs, rd.r, strict=True):
@@ -491,9 +524,27 @@ def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:
     )
 
 
-def _decoupling(lin: _Linearization, meter: _Meter) -> _Decoupling:
-    """p, Phi and the Brunovsky pair from the Lie chains; where R fails, in words."""
+def _decoupling(
+    lin: _Linearization, meter: _Meter, mechanics: Mechanics | None = None
+) -> _Decoupling:
+    """p, Phi and the Brunovsky pair from the Lie chains; where R fails, in words.
+
+    For a mass-matrix plant R is ``J_h M^-1 B`` in the run-time symbols ``W = M^-1 B``:
+    the determinant taken is that of ``J_h B`` (R with ``W`` replaced by ``B``), which
+    is ``det R det M`` and vanishes where R is singular (``M`` is positive definite);
+    ``det_R_note`` says so.
+    """
     R, degrees, lie = lin.R, lin.degrees, lin.lie
+    note_for_det = ""
+    if mechanics is not None:
+        gains = {
+            w: mechanics.input_matrix[i][j]
+            for i, row in enumerate(mechanics.gains)
+            for j, w in enumerate(row)
+            if isinstance(w, sp.Symbol)
+        }
+        R = R.xreplace(gains)
+        note_for_det = "det(J_h B) = det R det M"
     m = len(degrees)
     p = sp.ImmutableMatrix([lie[i][degrees[i]] for i in range(m)])
     phi = sp.ImmutableMatrix([lie[i][j] for i in range(m) for j in range(degrees[i])])
@@ -516,6 +567,8 @@ def _decoupling(lin: _Linearization, meter: _Meter) -> _Decoupling:
             det_R_note = (
                 f"not simplified symbolically (more than {_DET_SIMPLIFY_NODES} expression nodes)"
             )
+    if note_for_det and det_R is not None:
+        det_R_note = note_for_det
     # R's nonzero entries: a team's R is m^2 entries, almost all zeros.
     entries = [e for _, _, e in nonzero_entries(R)]
     undefined = _undefined_set([*entries, *p], set(lin.extension.x))

@@ -118,7 +118,7 @@ def derive(
     states = _closed_loop_states(spec, lin, k)
     clock.mark("error dynamics")
     say("decoupling matrix")
-    decoupling = _decoupling(lin, meter)
+    decoupling = _decoupling(lin, meter, model.mechanics)
     clock.mark("decoupling matrix")
     say("objective")
     # A leading underscore: no user name can take it (spec.py rejects those). One
@@ -193,6 +193,7 @@ def _start_warnings(
         states.initial,
         defaults,
         states.names[len(spec.states) : len(spec.states) + len(extension.states)],
+        model.mechanics,
     )
 
 

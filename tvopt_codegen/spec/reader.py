@@ -27,6 +27,7 @@ from tvopt_codegen.parse import (
     parse_comparison,
     parse_expression,
 )
+from tvopt_codegen.spec.implicit import affine_split, implicit_dynamics, mechanics_of
 from tvopt_codegen.spec.types import (
     ESTIMATOR_KINDS,
     MAX_INTEGRATORS,
@@ -35,6 +36,7 @@ from tvopt_codegen.spec.types import (
     Constraint,
     Estimator,
     Limit,
+    Mechanics,
     Robust,
     Spec,
     symbol,
@@ -283,14 +285,28 @@ class _Reader:
 
         self.read_indices(data)
         system = self.sub(data, "system", "system")
+        mechanical = "mechanics" in system or "coordinates" in system
+        if mechanical and ("dynamics" in system or "states" in system):
+            both = "system.mechanics" if "mechanics" in system else "system.coordinates"
+            raise self.fail(
+                both,
+                "give either states with [system.dynamics] or coordinates with "
+                "[system.mechanics], not both",
+            )
         self.table(
             system,
             "system",
-            {"states", "inputs", "dynamics", "outputs"},
-            {"states", "inputs", "dynamics", "outputs"},
+            {"states", "inputs", "dynamics", "outputs", "coordinates", "mechanics"},
+            {"inputs", "outputs"}
+            | ({"coordinates", "mechanics"} if mechanical else {"states", "dynamics"}),
         )
-        states = self.name_list(system["states"], "system.states")
         inputs = self.name_list(system["inputs"], "system.inputs")
+        if mechanical:
+            coordinates = self.name_list(system["coordinates"], "system.coordinates")
+            rates = self.read_rates(system, coordinates)
+            states = coordinates + rates
+        else:
+            states = self.name_list(system["states"], "system.states")
         outputs_table = self.sub(system, "outputs", "system.outputs")
         if not outputs_table:
             raise self.fail("system.outputs", "declare at least one output")
@@ -319,7 +335,12 @@ class _Reader:
         )
 
         param_syms = {key: symbol(key) for key, _ in parameters}
-        dynamics = self.read_dynamics(system, states, inputs, param_syms)
+        mechanics = None
+        if mechanical:
+            mechanics = self.read_mechanics(system, coordinates, rates, inputs, param_syms)
+            dynamics = implicit_dynamics(mechanics, inputs)
+        else:
+            dynamics = self.read_dynamics(system, states, inputs, param_syms)
         state_names: dict[str, sp.Expr] = {n: symbol(n) for n in states} | param_syms
         output_exprs = tuple(
             self.expression(text, where, state_names, bound)
@@ -383,6 +404,7 @@ class _Reader:
             equalities=equalities,
             robust=robust,
             limits=limits,
+            mechanics=mechanics,
         )
 
     def read_title(self, data: Mapping[str, Any]) -> tuple[str, str]:
@@ -432,6 +454,92 @@ class _Reader:
             text, bound, where = dynamics_entries[state]
             dynamics.append(self.expression(text, where, plant_names, bound))
         return dynamics
+
+    def read_rates(
+        self, system: Mapping[str, Any], coordinates: tuple[str, ...]
+    ) -> tuple[str, ...]:
+        """``system.mechanics.rates``, one per coordinate; ``d<coordinate>`` by default."""
+        table = self.sub(system, "mechanics", "system.mechanics")
+        if "rates" not in table:
+            rates = tuple(f"d{name}" for name in coordinates)
+            for name in rates:
+                problem = name_problem(name)
+                if problem:
+                    raise self.fail("system.mechanics.rates", f"the default rate {problem}")
+            return rates
+        rates = self.name_list(table["rates"], "system.mechanics.rates")
+        if len(rates) != len(coordinates):
+            raise self.fail(
+                "system.mechanics.rates",
+                f"{len(rates)} rates for {len(coordinates)} coordinates (one rate each)",
+            )
+        return rates
+
+    def read_mechanics(
+        self,
+        system: Mapping[str, Any],
+        coordinates: tuple[str, ...],
+        rates: tuple[str, ...],
+        inputs: tuple[str, ...],
+        param_syms: Mapping[str, sp.Symbol],
+    ) -> Mechanics:
+        """``[system.mechanics]``: ``M(q) q'' = F(q, q') + B(q) u``, shapes and names checked.
+
+        ``M`` and ``B`` are expressions in the coordinates and parameters, ``F`` also in
+        the rates. Without ``input_matrix``, ``F`` may be affine in the inputs and ``B``
+        is its coefficient; symmetry and definiteness are the model's to check (they
+        need evaluation).
+        """
+        field = "system.mechanics"
+        table = self.sub(system, "mechanics", field)
+        self.table(
+            table,
+            field,
+            {"rates", "mass_matrix", "forces", "input_matrix"},
+            {"mass_matrix", "forces"},
+        )
+        n = len(coordinates)
+        q_names: dict[str, sp.Expr] = {c: symbol(c) for c in coordinates} | dict(param_syms)
+        state_names = q_names | {r: symbol(r) for r in rates}
+        with_inputs = "input_matrix" not in table
+        force_names = state_names | ({u: symbol(u) for u in inputs} if with_inputs else {})
+        mass = self.matrix(table["mass_matrix"], f"{field}.mass_matrix", n, n, q_names)
+        forces = self.vector(table["forces"], f"{field}.forces", n, force_names)
+        u = [symbol(name) for name in inputs]
+        if with_inputs:
+            try:
+                gain, forces = affine_split(forces, u)
+            except ValueError as exc:
+                raise self.fail(f"{field}.forces", str(exc)) from None
+        else:
+            gain = self.matrix(table["input_matrix"], f"{field}.input_matrix", n, len(u), q_names)
+        return mechanics_of(coordinates, rates, mass, forces, gain)
+
+    def matrix(
+        self, value: object, field: str, rows: int, cols: int, names: Mapping[str, sp.Expr]
+    ) -> tuple[tuple[sp.Expr, ...], ...]:
+        """A ``rows`` x ``cols`` list of lists of expressions (numbers or strings)."""
+        if not isinstance(value, list) or len(value) != rows:
+            raise self.fail(field, f"expected a list of {rows} rows")
+        return tuple(
+            tuple(self.vector(row, f"{field}[{i}]", cols, names)) for i, row in enumerate(value)
+        )
+
+    def vector(
+        self, value: object, field: str, size: int, names: Mapping[str, sp.Expr]
+    ) -> tuple[sp.Expr, ...]:
+        """A list of ``size`` expressions, each a number or an expression string."""
+        if not isinstance(value, list) or len(value) != size:
+            raise self.fail(field, f"expected a list of {size} entries")
+        entries = []
+        for j, item in enumerate(value):
+            where = f"{field}[{j}]"
+            text = item
+            if isinstance(item, int | float) and not isinstance(item, bool):
+                number = self.number(item, where)
+                text = str(item) if isinstance(item, int) else repr(number)
+            entries.append(self.expression(text, where, names))
+        return tuple(entries)
 
     def read_signals(self, entries: Any, names: dict[str, sp.Expr]) -> list[tuple[str, sp.Expr]]:
         """``[signals]``, in file order; ``names`` holds t, the parameters and references."""

@@ -67,6 +67,47 @@ class Limit:
 
 
 @dataclass(frozen=True)
+class Mechanics:
+    """A plant in mass-matrix form, ``M(q) q'' = F(q, q') + B(q) u`` (``[system.mechanics]``).
+
+    The spec's states are the coordinates, then the rates; the rates' right-hand sides
+    are ``a_i + sum_j W_ij u_j`` in the run-time symbols :attr:`accelerations` (``a =
+    M^-1 F``) and :attr:`gains` (``W = M^-1 B``), which generated code computes by
+    factoring ``M`` at each evaluation: ``M`` is never inverted symbolically.
+
+    Attributes
+    ----------
+    coordinates, rates : tuple of str
+        ``q`` and ``q'``, in order.
+    mass_matrix : tuple of tuple of sympy.Expr
+        ``M(q)``, symmetric, row by row.
+    forces : tuple of sympy.Expr
+        ``F(q, q')``, without the inputs.
+    input_matrix : tuple of tuple of sympy.Expr
+        ``B(q)``, one row per coordinate, one column per input.
+    accelerations : tuple of sympy.Expr
+        ``a = M^-1 F``, one per coordinate: a run-time symbol, or 0 where no force
+        reaches the coordinate's block of ``M``.
+    gains : tuple of tuple of sympy.Expr
+        ``W = M^-1 B``, row by row, likewise.
+    """
+
+    coordinates: tuple[str, ...]
+    rates: tuple[str, ...]
+    mass_matrix: tuple[tuple[sp.Expr, ...], ...]
+    forces: tuple[sp.Expr, ...]
+    input_matrix: tuple[tuple[sp.Expr, ...], ...]
+    accelerations: tuple[sp.Expr, ...]
+    gains: tuple[tuple[sp.Expr, ...], ...]
+
+    @property
+    def opaque(self) -> frozenset[sp.Symbol]:
+        """The run-time symbols: no derivation step may differentiate them."""
+        entries = (*self.accelerations, *(w for row in self.gains for w in row))
+        return frozenset(e for e in entries if isinstance(e, sp.Symbol))
+
+
+@dataclass(frozen=True)
 class Spec:
     """A validated spec: names, numbers and parsed expressions.
 
@@ -138,6 +179,8 @@ class Spec:
     limits : tuple of Limit
         ``[limits]``: the actuators' ranges and slew rates, in input order (inputs without
         a limit are left out).
+    mechanics : Mechanics or None
+        ``[system.mechanics]``: the plant in mass-matrix form (None: ``[system.dynamics]``).
     """
 
     source: str
@@ -171,6 +214,7 @@ class Spec:
     equalities: tuple[Constraint, ...] = ()
     robust: Robust = field(default_factory=Robust)
     limits: tuple[Limit, ...] = ()
+    mechanics: Mechanics | None = None
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,186 @@
+"""The mass-matrix form ``M(q) q'' = F(q, q') + B(q) u`` as a control-affine plant.
+
+The plant's state is ``(q, q')``; its vector field is ``f = [q'; a]``, ``G = [0; W]``
+with ``a = M^-1 F`` and ``W = M^-1 B``. Those are never formed symbolically (for a
+two-link arm sympy's ``M.inv()`` takes seconds and pages, for three links minutes):
+they are run-time symbols (:attr:`Mechanics.accelerations`, :attr:`Mechanics.gains`)
+that generated code computes by factoring ``M`` numerically at each evaluation. Where
+``M`` couples no coordinates (a team of robots), ``a_i`` and ``W_ij`` are zero unless
+``F`` or ``B`` reaches ``i``'s block of ``M``: the symbols keep that sparsity.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import sympy as sp
+
+from tvopt_codegen.jet import partial
+from tvopt_codegen.lie import connected_groups
+from tvopt_codegen.numeric import Evaluator
+from tvopt_codegen.spec.types import Mechanics
+
+
+def affine_split(
+    exprs: Sequence[sp.Expr], inputs: Sequence[sp.Symbol]
+) -> tuple[tuple[tuple[sp.Expr, ...], ...], tuple[sp.Expr, ...]]:
+    """Split expressions affine in ``inputs`` into their coefficients and the rest.
+
+    Returns
+    -------
+    coefficients : tuple of tuple of sympy.Expr
+        ``d expr_i / d u_j``, row by row.
+    rest : tuple of sympy.Expr
+        Each expression at ``u = 0``.
+
+    Raises
+    ------
+    ValueError
+        When a coefficient depends on an input (one line, naming both).
+    """
+    present = set(inputs)
+    rows = []
+    for i, expr in enumerate(exprs):
+        row = []
+        for u in inputs:
+            coefficient = partial(expr, u) if u in expr.free_symbols else sp.Integer(0)
+            if coefficient.free_symbols & present:
+                raise ValueError(
+                    f"entry {i} is not affine in the inputs: the coefficient of {u.name!r} "
+                    f"depends on {sorted(s.name for s in coefficient.free_symbols & present)}"
+                )
+            row.append(coefficient)
+        rows.append(tuple(row))
+    zero = dict.fromkeys(inputs, sp.Integer(0))
+    return tuple(rows), tuple(expr.xreplace(zero) for expr in exprs)
+
+
+def mechanics_of(
+    coordinates: tuple[str, ...],
+    rates: tuple[str, ...],
+    mass: tuple[tuple[sp.Expr, ...], ...],
+    forces: tuple[sp.Expr, ...],
+    gain: tuple[tuple[sp.Expr, ...], ...],
+) -> Mechanics:
+    """The :class:`Mechanics` record with its run-time symbols (zero where structurally zero).
+
+    ``(M^-1 v)_i`` can be nonzero only if ``v`` is nonzero somewhere in the block of
+    ``M`` (connected component of its pattern) that holds ``i``.
+    """
+    n = len(coordinates)
+    links = [(i, j) for i in range(n) for j in range(i) if mass[i][j] != 0 or mass[j][i] != 0]
+    block_of = {}
+    for number, group in enumerate(connected_groups(range(n), links)):
+        for i in group:
+            block_of[i] = number
+
+    def reaches(column: Sequence[sp.Expr]) -> set[int]:
+        return {block_of[i] for i, entry in enumerate(column) if entry != 0}
+
+    force_blocks = reaches(forces)
+    m = len(gain[0]) if gain else 0
+    gain_blocks = [reaches([gain[i][j] for i in range(n)]) for j in range(m)]
+    accelerations = tuple(
+        sp.Symbol(f"_ddq{i}", real=True) if block_of[i] in force_blocks else sp.Integer(0)
+        for i in range(n)
+    )
+    gains = tuple(
+        tuple(
+            sp.Symbol(f"_W{i}_{j}", real=True) if block_of[i] in gain_blocks[j] else sp.Integer(0)
+            for j in range(m)
+        )
+        for i in range(n)
+    )
+    return Mechanics(
+        coordinates=coordinates,
+        rates=rates,
+        mass_matrix=mass,
+        forces=forces,
+        input_matrix=gain,
+        accelerations=accelerations,
+        gains=gains,
+    )
+
+
+def implicit_dynamics(mechanics: Mechanics, inputs: Sequence[str]) -> list[sp.Expr]:
+    """The right-hand sides of ``(q, q')``: ``q_i' = rate_i``, ``rate_i' = a_i + W_i u``."""
+    u = [sp.Symbol(name, real=True) for name in inputs]
+    rows: list[sp.Expr] = [sp.Symbol(name, real=True) for name in mechanics.rates]
+    for a, gains in zip(mechanics.accelerations, mechanics.gains, strict=True):
+        rows.append(a + sp.Add(*(w * uj for w, uj in zip(gains, u, strict=True))))
+    return rows
+
+
+def _at(evaluate: Evaluator, expr: sp.Expr, points: int) -> np.ndarray:
+    value = np.asarray(evaluate(expr))
+    if np.iscomplexobj(value):
+        value = np.where(np.abs(value.imag) > 1e-12, np.nan, value.real)
+    return np.broadcast_to(np.asarray(value, dtype=float), (points,))
+
+
+def mass_matrix_at(
+    mechanics: Mechanics, values: Mapping[sp.Symbol, object], points: int = 1
+) -> np.ndarray:
+    """``M`` at ``points`` points (values: arrays of that length or floats), shape (P, n, n)."""
+    evaluate = Evaluator(values)
+    n = len(mechanics.coordinates)
+    return np.stack(
+        [
+            np.stack([_at(evaluate, mechanics.mass_matrix[i][j], points) for j in range(n)], -1)
+            for i in range(n)
+        ],
+        -2,
+    )
+
+
+def implicit_values(
+    mechanics: Mechanics, values: Mapping[sp.Symbol, object], points: int = 1
+) -> dict[sp.Symbol, np.ndarray]:
+    """The run-time symbols' values at points: ``a = M^-1 F``, ``W = M^-1 B`` solved numerically.
+
+    Parameters
+    ----------
+    mechanics : Mechanics
+        The mass-matrix form.
+    values : mapping of sympy.Symbol to array or float
+        The states and parameters (arrays of length ``points``, or floats).
+    points : int
+        How many points.
+
+    Returns
+    -------
+    dict of sympy.Symbol to numpy.ndarray
+        One array of length ``points`` per run-time symbol; NaN where ``M`` is singular
+        or an entry is undefined (the callers' samplers skip such points).
+    """
+    evaluate = Evaluator(values)
+    n = len(mechanics.coordinates)
+    mass = mass_matrix_at(mechanics, values, points)
+    m = len(mechanics.input_matrix[0]) if mechanics.input_matrix else 0
+    rhs = np.stack(
+        [
+            np.stack(
+                [_at(evaluate, mechanics.forces[i], points)]
+                + [_at(evaluate, mechanics.input_matrix[i][j], points) for j in range(m)],
+                -1,
+            )
+            for i in range(n)
+        ],
+        -2,
+    )
+    solution = np.full((points, n, m + 1), np.nan)
+    for k in range(points):
+        if np.all(np.isfinite(mass[k])) and np.all(np.isfinite(rhs[k])):
+            try:
+                solution[k] = np.linalg.solve(mass[k], rhs[k])
+            except np.linalg.LinAlgError:
+                pass  # singular here: NaN
+    out: dict[sp.Symbol, np.ndarray] = {}
+    for i in range(n):
+        if isinstance(mechanics.accelerations[i], sp.Symbol):
+            out[mechanics.accelerations[i]] = solution[:, i, 0]
+        for j in range(m):
+            if isinstance(mechanics.gains[i][j], sp.Symbol):
+                out[mechanics.gains[i][j]] = solution[:, i, j + 1]
+    return out
