@@ -42,6 +42,11 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
         f"{len(spec.inputs)} inputs ({', '.join(spec.inputs)}), "
         f"{len(spec.outputs)} outputs ({', '.join(spec.outputs)})"
     )
+    if spec.mechanics is not None:
+        size = len(spec.mechanics.coordinates)
+        lines.append(
+            f"  mass-matrix form: M ({size} x {size}) factored at run time (LDL^T), never inverted"
+        )
     if d.extension.counts:
         added = "; ".join(f"{name} integrated {count}x" for name, count in d.extension.counts)
         lines.append(
@@ -67,7 +72,8 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
         where = (
             f"singular where {'; '.join(d.singular_set)}" if d.singular_set else "never singular"
         )
-        lines.append(f"  det R = {sp.sstr(d.det_R)}; {where}")
+        what = d.det_R_note or "det R"  # det(J_h B) = det R det M for a mass-matrix plant
+        lines.append(f"  {what.split(' = ')[0]} = {sp.sstr(d.det_R)}; {where}")
     else:
         lines.append(f"  det R: {d.det_R_note}; singularity is checked at run time by pivoting")
     if d.undefined_set:

@@ -26,8 +26,72 @@ from tvopt_codegen.report.entries import (
 from tvopt_codegen.robust import robustness
 
 
+def _shown(d: Derivation) -> dict[sp.Symbol, sp.Symbol]:
+    """Display names of a mass-matrix plant's run-time symbols: ``a_i`` and ``W_i,j``.
+
+    Their own names are reserved identifiers (``_ddq0``, ``_W0_1``) that no user name
+    can take; the report shows them 1-based, as ``a = M^-1 F`` and ``W = M^-1 B``.
+    """
+    mech = d.model.mechanics
+    if mech is None:
+        return {}
+    shown = {
+        a: sp.Symbol(f"a_{i + 1}", real=True)
+        for i, a in enumerate(mech.accelerations)
+        if isinstance(a, sp.Symbol)
+    }
+    shown |= {
+        w: sp.Symbol(f"W_{i + 1},{j + 1}", real=True)
+        for i, row in enumerate(mech.gains)
+        for j, w in enumerate(row)
+        if isinstance(w, sp.Symbol)
+    }
+    return shown
+
+
+def _mechanics(d: Derivation) -> list[Entry]:
+    """The mass-matrix form: M, F, B, and how f, G, R and p are computed from them."""
+    mech = d.model.mechanics
+    if mech is None:
+        return []
+    n = len(mech.coordinates)
+    coordinates = ", ".join(mech.coordinates)
+    rates = ", ".join(mech.rates)
+    return [
+        Entry(
+            "text",
+            text=(
+                f"The plant is declared in mass-matrix form, M(q) q'' = F(q, q') + B(q) u, with "
+                f"coordinates q = ({coordinates}) and rates q' = ({rates}); its state is "
+                f"(q, q')."
+            ),
+        ),
+        _math_entry(
+            "Mass matrix (symmetric, positive definite):",
+            sp.Matrix(mech.mass_matrix),
+            _name("M(q)", "M"),
+        ),
+        _math_entry("Forces without the inputs:", sp.Matrix(mech.forces), _name("F(q, q')", "F")),
+        _math_entry("Input matrix:", sp.Matrix(mech.input_matrix), _name("B(q)", "B")),
+        Entry(
+            "text",
+            text=(
+                "M is factored at run time, never inverted: a = M^-1 F and W = M^-1 B "
+                f"(shown as a_i and W_i,j below) are computed at each evaluation by one "
+                f"sparse LDL^T of the {n} x {n} matrix M and a triangular solve per column of "
+                "[F B], in the same kernel as R and p; the generated code reports "
+                "MassMatrixNotPositiveDefiniteError where a pivot is not positive. So f = "
+                "[q'; a] and G = [0; W], R = J_h W and p = (dJ_h/dt) q' + J_h a for outputs "
+                "h(q); no Lie derivative differentiates a or W (relative degree 2 and no "
+                "extension, docs/spec.md)."
+            ),
+        ),
+    ]
+
+
 def _model(d: Derivation) -> Section:
     spec, model = d.spec, d.model
+    shown = _shown(d)
     entries = [Entry("text", text=spec.description or "(no description)")]
     entries.append(
         Entry(
@@ -41,11 +105,15 @@ def _model(d: Derivation) -> Section:
             ),
         )
     )
+    entries += _mechanics(d)
     entries.append(
-        _math_entry("Drift vector field (x' = f(x) + G(x) u):", model.f, _name("f(x)", "f"))
+        _math_entry(
+            "Drift vector field (x' = f(x) + G(x) u):", model.f.xreplace(shown), _name("f(x)", "f")
+        )
     )
+    how = "from M, F and B" if shown else "extracted by differentiation in u"
     entries.append(
-        _math_entry("Input matrix, extracted by differentiation in u:", model.G, _name("G(x)", "G"))
+        _math_entry(f"Input matrix, {how}:", model.G.xreplace(shown), _name("G(x)", "G"))
     )
     entries.append(_math_entry("Outputs:", model.h, _name("h(x)", "h")))
     if spec.parameters:
@@ -222,11 +290,21 @@ def _linearization(d: Derivation) -> Section:
     entries.append(
         _math_entry(
             "Decoupling matrix, rows L_G L_f^(r_i - 1) h_i (paper, eq. (2)):",
-            d.R,
+            d.R.xreplace(_shown(d)),
             _name("R(x)", "R"),
         )
     )
-    if d.det_R is not None:
+    if d.det_R is not None and d.det_R_note:
+        # A mass-matrix plant: det R det M, which vanishes where R is singular.
+        entries.append(
+            _math_entry(
+                "det R det M = det(J_h B), factored (M is positive definite, so R is singular "
+                "exactly where this vanishes):",
+                d.det_R,
+                _name(r"\det(J_h B)", "det(J_h B)"),
+            )
+        )
+    elif d.det_R is not None:
         entries.append(
             _math_entry("Its determinant, factored:", d.det_R, _name(r"\det R", "det R"))
         )
@@ -259,7 +337,9 @@ def _linearization(d: Derivation) -> Section:
                 "there.",
             )
         )
-    entries.append(_math_entry("p = col(L_f^(r_i) h_i):", d.p, _name("p(x)", "p")))
+    entries.append(
+        _math_entry("p = col(L_f^(r_i) h_i):", d.p.xreplace(_shown(d)), _name("p(x)", "p"))
+    )
     entries.append(
         _math_entry("Coordinates Phi (paper, Lemmas 1-2):", d.phi, _name(r"\Phi(x)", "&#934;"))
     )
