@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 CORE := $(VENV)/.core
 INSTALLED := $(VENV)/.installed
 READY := $(VENV)/.compiled
-EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring arm_on_line
+EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring arm_on_line planar_arm3
 
 .PHONY: all demo figures bench bench-baseline bench-derive bench-representation bench-sweep bench-sweep-scale bench-commands sweep-example robust-example reference-noise test lint typecheck check regen check-generated update-golden clean
 

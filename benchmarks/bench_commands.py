@@ -41,6 +41,7 @@ EXAMPLES = (
     "flexible_joint",
     "unicycle_ring",
     "arm_on_line",
+    "planar_arm3",
 )
 TARGETS = {"generate": 0.7, "simulate": 1.5, "report": 1.0}
 

@@ -45,7 +45,8 @@ def _measured(spec: str, horizon: float, h: float) -> tuple[np.ndarray, np.ndarr
 @pytest.mark.parametrize("fmi", [2, 3])
 # arm_on_line: the multipliers of its equality constraint are controller states too.
 # robust_pvtol: limits, integral action and an observer; its saturation flags are outputs.
-@pytest.mark.parametrize("spec", ["pvtol", "unicycle_switch", "arm_on_line", ROBUST])
+# planar_arm3: M factored at run time inside the FMU's controller.
+@pytest.mark.parametrize("spec", ["pvtol", "unicycle_switch", "arm_on_line", ROBUST, "planar_arm3"])
 def test_fmpy_validates_and_cosimulates_it_like_controller_step(
     spec: str, fmi: int, tmp_path: Path
 ) -> None:

@@ -18,6 +18,7 @@ from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.ir import lower
 from tvopt_codegen.report import HEADINGS, render_report
+from tvopt_codegen.report.sections import _shown
 from tvopt_codegen.spec import load_spec
 
 from .conftest import EXAMPLES, ROOT, derivation, kernels, write_spec
@@ -88,9 +89,16 @@ def test_markdown_twin_has_the_same_sections_and_math(name: str) -> None:
     d = derivation(name)
     md = render_report(d, kernels(name), formats=("md",))[f"{name}_report.md"]
     assert re.findall(r"^## (.*)$", md, re.M) == list(HEADINGS)
-    # Key quantities appear as sympy's own LaTeX of the derived objects.
-    for quantity in (d.R, d.p, d.gradient, d.hessian, d.model.f0):
+    # Key quantities appear as sympy's own LaTeX of the derived objects (a mass-matrix
+    # plant's run-time symbols under their display names, a_i and W_i,j).
+    shown = _shown(d)
+    for quantity in (d.R.xreplace(shown), d.p.xreplace(shown), d.gradient, d.hessian, d.model.f0):
         assert sp.latex(quantity, mul_symbol=r"\,") in md
+    if d.model.mechanics is not None:
+        assert "M is factored at run time, never inverted" in md
+        for matrix in (d.model.mechanics.mass_matrix, d.model.mechanics.input_matrix):
+            assert sp.latex(sp.Matrix(matrix), mul_symbol=r"\,") in md
+        assert "_W0" not in md and "_ddq" not in md
     if d.det_R is not None:
         assert sp.latex(d.det_R, mul_symbol=r"\,") in md
     # Every display formula is structurally sound LaTeX.

@@ -140,6 +140,8 @@ def test_bundled_examples_are_listed_and_load() -> None:
         "two_unicycles_corridor",
         # A two-link arm's end effector on a turning line (an equality constraint).
         "arm_on_line",
+        # A three-link arm in mass-matrix form ([system.mechanics]).
+        "planar_arm3",
     }
     for name in examples:
         spec = load_spec(name)

@@ -28,6 +28,13 @@ __all__ = ["spec_from_sympy", "spec_toml"]
 DEFAULT_POLES = (-2.0, -3.0)
 
 
+def _rate_of(coordinate: sp.Expr) -> sp.Expr:
+    """The symbol ``q'(t)`` of a coordinate ``q(t)``, as SymPy mechanics spells it."""
+    if not isinstance(coordinate, sp.core.function.AppliedUndef):
+        raise ValueError(f"coordinate {coordinate} is not a dynamic symbol")
+    return sp.physics.mechanics.dynamicsymbols(coordinate.func.__name__, 1)
+
+
 def _equations(eoms: Any) -> tuple[sp.Matrix, sp.Matrix, list[sp.Expr], dict[sp.Expr, sp.Expr]]:
     """``M``, the forcing, the coordinates and the map of each ``q_i'`` to its rate symbol.
 
@@ -37,7 +44,8 @@ def _equations(eoms: Any) -> tuple[sp.Matrix, sp.Matrix, list[sp.Expr], dict[sp.
     method = getattr(eoms, "eom_method", None)
     if method is not None and not isinstance(eoms, sp.physics.mechanics.KanesMethod):
         eoms = method  # a System: the method it formed its equations with
-    if not hasattr(eoms, "mass_matrix") or not hasattr(eoms, "forcing"):
+    kind = type(eoms)
+    if not hasattr(kind, "mass_matrix") or not hasattr(kind, "forcing"):
         raise TypeError(
             "expected a KanesMethod, a LagrangesMethod or a System after form_eoms(), got "
             f"{type(eoms).__name__}"
@@ -46,25 +54,24 @@ def _equations(eoms: Any) -> tuple[sp.Matrix, sp.Matrix, list[sp.Expr], dict[sp.
         mass, forcing = sp.Matrix(eoms.mass_matrix), sp.Matrix(eoms.forcing)
     except (AttributeError, ValueError) as exc:
         raise ValueError(f"the equations of motion are not formed yet ({exc})") from None
-    t = sp.physics.mechanics.dynamicsymbols._t
     q = list(eoms.q)
     if isinstance(eoms, sp.physics.mechanics.KanesMethod):
         speeds = list(eoms.u)
         kinematics = eoms.kindiffdict()
-        order = []
+        order: list[int] = []
         for coordinate in q:
-            rate = kinematics.get(coordinate.diff(t))
+            rate = kinematics.get(_rate_of(coordinate))
             if rate not in speeds or rate in (speeds[i] for i in order):
                 raise ValueError(
-                    f"the speeds must be the coordinates' derivatives: {coordinate.diff(t)} = "
+                    f"the speeds must be the coordinates' derivatives: {_rate_of(coordinate)} = "
                     f"{rate} is not one speed of {speeds}"
                 )
             order.append(speeds.index(rate))
         mass = mass.extract(order, order)
         forcing = forcing.extract(order, [0])
-        rates = {coordinate.diff(t): speeds[j] for coordinate, j in zip(q, order, strict=True)}
+        rates = {_rate_of(coordinate): speeds[j] for coordinate, j in zip(q, order, strict=True)}
     else:
-        rates = {coordinate.diff(t): coordinate.diff(t) for coordinate in q}
+        rates = {_rate_of(coordinate): _rate_of(coordinate) for coordinate in q}
     return mass, forcing, q, rates
 
 
@@ -88,7 +95,7 @@ def _text(expr: sp.Expr) -> str | int | float:
         return int(expr)
     if isinstance(expr, sp.Float):
         return float(expr)
-    return sp.sstr(expr, full_prec=True)
+    return str(sp.sstr(expr, full_prec=True))
 
 
 def spec_from_sympy(
@@ -154,13 +161,13 @@ def spec_from_sympy(
     coordinates = [_name(c, "coordinate") for c in q]
     # Kane's speeds keep their names; a Lagrangian's rates are d<coordinate>.
     rate_names = [
-        _name(rates[c.diff(t)], "speed") if rates[c.diff(t)] != c.diff(t) else f"d{name_}"
+        _name(rates[_rate_of(c)], "speed") if rates[_rate_of(c)] != _rate_of(c) else f"d{name_}"
         for c, name_ in zip(q, coordinates, strict=True)
     ]
     plain: dict[sp.Expr, sp.Expr] = {}
     for c, coordinate, rate in zip(q, coordinates, rate_names, strict=True):
-        plain[rates[c.diff(t)]] = sp.Symbol(rate, real=True)
-        plain[c.diff(t)] = sp.Symbol(rate, real=True)
+        plain[rates[_rate_of(c)]] = sp.Symbol(rate, real=True)
+        plain[_rate_of(c)] = sp.Symbol(rate, real=True)
         plain[c] = sp.Symbol(coordinate, real=True)
     known = set(q) | set(rates.values())
     found = sp.physics.mechanics.find_dynamicsymbols(
@@ -230,7 +237,13 @@ def spec_from_sympy(
     spec["error_dynamics"] = {"poles": [float(p) for p in poles]}
     spec["simulation"] = {"t_final": float(t_final)}
     if initial_state:
-        spec["simulation"]["initial_state"] = {k: float(v) for k, v in initial_state.items()}
+        unknown = sorted(set(initial_state) - set(coordinates) - set(rate_names))
+        if unknown:
+            raise ValueError(f"initial_state: {', '.join(unknown)} are not states")
+        # Every state, as the spec needs once one is given.
+        spec["simulation"]["initial_state"] = {
+            k: float(initial_state.get(k, 0.0)) for k in (*coordinates, *rate_names)
+        }
     return spec
 
 
