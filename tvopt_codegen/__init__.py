@@ -20,6 +20,8 @@ __version__ = "0.1.0"
 _STAGES = {
     "load_spec": "tvopt_codegen.spec",
     "spec_from_dict": "tvopt_codegen.spec",
+    "spec_from_sympy": "tvopt_codegen.mechanics",
+    "spec_toml": "tvopt_codegen.mechanics",
     "Spec": "tvopt_codegen.spec",
     "build_model": "tvopt_codegen.model",
     "Model": "tvopt_codegen.model",
@@ -42,6 +44,8 @@ __all__ = [
     "__version__",
     "load_spec",
     "spec_from_dict",
+    "spec_from_sympy",
+    "spec_toml",
     "Spec",
     "build_model",
     "Model",
