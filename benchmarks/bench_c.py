@@ -25,7 +25,6 @@ from types import ModuleType
 
 import casadi as ca
 import numpy as np
-import sympy as sp
 from cffi import FFI
 
 from tvopt_codegen.derivation import Derivation, derive
@@ -37,36 +36,13 @@ from tvopt_codegen.simulation.sampled import hold
 from tvopt_codegen.spec import load_spec
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from bench_mechanics import mechanics_table  # noqa: E402
+from casadi_peer import CFLAGS, HARNESS_RUNS, _to_casadi  # noqa: E402
+
 SPECS = ("unicycle_switch", "two_unicycles_barrier")
-CFLAGS = ["-O2", "-std=gnu99", "-fPIC"]
 BATCH_C = 100_000
 BATCH_PY_CASADI = 10_000
-HARNESS_RUNS = 5
-
-_CASADI_FUNCTIONS = {
-    "sin": ca.sin,
-    "cos": ca.cos,
-    "tan": ca.tan,
-    "asin": ca.asin,
-    "acos": ca.acos,
-    "atan": ca.atan,
-    "atan2": ca.atan2,
-    "sinh": ca.sinh,
-    "cosh": ca.cosh,
-    "tanh": ca.tanh,
-    "asinh": ca.asinh,
-    "acosh": ca.acosh,
-    "atanh": ca.atanh,
-    "exp": ca.exp,
-    "log": ca.log,
-    "sqrt": ca.sqrt,
-    "pi": math.pi,
-}
-
-
-def _to_casadi(expr: sp.Expr, symbols: list[sp.Symbol], values: list[object]) -> object:
-    """Evaluate a sympy expression on CasADi symbols (the peer starts from the same math)."""
-    return sp.lambdify(symbols, expr, modules=[_CASADI_FUNCTIONS, "math"])(*values)
 
 
 def casadi_law(d: Derivation) -> ca.Function:
@@ -645,6 +621,7 @@ def main() -> int:
         robust_folder.mkdir()
         robust = robust_step(robust_folder)
     text = table(results) + "\n" + extra_tables(single_state(), startup(), robust)
+    text += "\n" + mechanics_table()
     print(text)
     if args.write:
         cpu = next(
