@@ -94,9 +94,18 @@ class Oracle:
                 for row in J
             ]
             self.coordinates = len(q)
-            self.mass = lam([e for row in mech.mass_matrix for e in row])
-            self.forces = lam(list(mech.forces))
-            self.gain = lam([e for row in mech.input_matrix for e in row])
+            # The spec's definitions one by one, each from those before it: M, F and B
+            # read them (a URDF robot's link velocities), substituted they would swell.
+            self.definitions = [
+                (sym, sp.lambdify([*args, *(s for s, _ in mech.definitions[:i])], expr, "numpy"))
+                for i, (sym, expr) in enumerate(mech.definitions)
+            ]
+            defined = [s for s, _ in mech.definitions]
+            self.mass = sp.lambdify([*args, *defined], [e for row in mech.mass_matrix for e in row])
+            self.forces = sp.lambdify([*args, *defined], list(mech.forces))
+            self.gain = sp.lambdify(
+                [*args, *defined], [e for row in mech.input_matrix for e in row]
+            )
             self.jacobian = lam([e for row in J for e in row])
             self.curvature = lam(curvature)
 
@@ -130,9 +139,15 @@ class Oracle:
             pv = self._eval(self.p, args, (m,), n)
         else:
             nq = self.coordinates
-            M = np.moveaxis(self._eval(self.mass, args, (nq, nq), n), -1, 0)
-            F = self._eval(self.forces, args, (nq,), n)
-            B = self._eval(self.gain, args, (nq, m), n)
+            values: list[object] = []
+            for _, function in self.definitions:
+                values.append(
+                    np.broadcast_to(np.asarray(function(*args, *values), dtype=float), (n,))
+                )
+            full = [*args, *values]
+            M = np.moveaxis(self._eval(self.mass, full, (nq, nq), n), -1, 0)
+            F = self._eval(self.forces, full, (nq,), n)
+            B = self._eval(self.gain, full, (nq, m), n)
             J = np.moveaxis(self._eval(self.jacobian, args, (m, nq), n), -1, 0)
             acc = np.linalg.solve(M, np.moveaxis(F, -1, 0)[..., None])[..., 0]
             W = np.linalg.solve(M, np.moveaxis(B, -1, 0))

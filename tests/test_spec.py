@@ -142,6 +142,8 @@ def test_bundled_examples_are_listed_and_load() -> None:
         "arm_on_line",
         # A three-link arm in mass-matrix form ([system.mechanics]).
         "planar_arm3",
+        # A six-joint arm imported from a URDF file (import-urdf).
+        "ur5_tip",
     }
     for name in examples:
         spec = load_spec(name)

@@ -98,6 +98,76 @@ def _add_check(commands: _Commands) -> argparse.ArgumentParser:
     return check
 
 
+def _add_import_urdf(commands: _Commands) -> None:
+    """The ``import-urdf`` command and its options."""
+    imp = commands.add_parser(
+        "import-urdf", help="write a spec in mass-matrix form from a robot's URDF file"
+    )
+    imp.add_argument("urdf", help="the URDF file: a fixed-base serial chain")
+    imp.add_argument("--out", required=True, help="the spec file to write (.toml)")
+    imp.add_argument(
+        "--tip",
+        help="a link whose position (px, py, pz) the objective tracks; the outputs then "
+        "replace the first three joints' by it",
+    )
+    imp.add_argument(
+        "--gravity",
+        default="0,0,-9.81",
+        help="the gravity vector in the base frame, x,y,z (default: 0,0,-9.81)",
+    )
+    imp.add_argument("--name", help="the spec's name (default: the robot's)")
+    imp.add_argument(
+        "--initial",
+        default="",
+        help="initial joint positions, NAME=VALUE,... (default: the middle of each joint's "
+        "limits); the targets move about this pose",
+    )
+    imp.add_argument(
+        "--force",
+        action="store_true",
+        help="replace a spec file edited by hand or not written here",
+    )
+
+
+def _import_urdf(args: argparse.Namespace) -> int:
+    import tomllib  # noqa: PLC0415
+
+    from tvopt_codegen.emit import write_files  # noqa: PLC0415
+    from tvopt_codegen.mechanics import spec_toml  # noqa: PLC0415
+    from tvopt_codegen.model import build_model  # noqa: PLC0415
+    from tvopt_codegen.spec import spec_from_dict  # noqa: PLC0415
+    from tvopt_codegen.urdf import spec_from_urdf  # noqa: PLC0415
+
+    out = Path(args.out)
+    if out.suffix != ".toml" or not out.stem:
+        raise SpecError("command line", "--out", f"{args.out!r}: a spec file name ends in .toml")
+    _check_out(str(out.parent))
+    try:
+        gravity = [float(v) for v in args.gravity.split(",")]
+    except ValueError:
+        gravity = []
+    if len(gravity) != 3 or not all(math.isfinite(v) for v in gravity):
+        raise SpecError("command line", "--gravity", f"{args.gravity!r}: expected x,y,z numbers")
+    initial: dict[str, float] = {}
+    for item in filter(None, (part.strip() for part in args.initial.split(","))):
+        key, _, value = item.partition("=")
+        try:
+            initial[key.strip()] = float(value)
+        except ValueError:
+            raise SpecError("command line", "--initial", f"{item!r}: expected NAME=VALUE") from None
+    spec = spec_from_urdf(args.urdf, tip=args.tip, gravity=gravity, name=args.name, initial=initial)
+    text = spec_toml(spec)
+    # What is written must read back and build: M symmetric, positive definite at the start.
+    build_model(spec_from_dict(tomllib.loads(text), source=str(out)))
+    write_files({out.name: text}, out.parent, force=args.force)
+    joints = len(spec["system"]["coordinates"])
+    print(
+        f"wrote {out} ({joints} joints, {len(spec['system']['mechanics']['definitions'])} "
+        "definitions; edit its objective and initial state)"
+    )
+    return 0
+
+
 def _add_examples(commands: _Commands) -> None:
     """The ``examples`` command and its options."""
     commands.add_parser("examples", help="list the bundled example specs")
@@ -386,6 +456,7 @@ def _parser() -> argparse.ArgumentParser:
     for add in (_add_generate, _add_check):
         _derivation_options(add(commands))
     _add_examples(commands)
+    _add_import_urdf(commands)
     for add in (_add_report, _add_export, _add_simulate):
         _derivation_options(add(commands))
     _add_sweep(commands)
@@ -772,6 +843,8 @@ def run(argv: Sequence[str] | None = None) -> int:
 
         _print_examples(bundled_examples())
         return 0
+    if args.command == "import-urdf":
+        return _import_urdf(args)
     if args.command == "simulate":
         return _simulate(args)
     if args.command == "sweep":

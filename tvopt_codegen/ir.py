@@ -161,7 +161,8 @@ def _mass(d: Derivation) -> _Mass | None:
     entries = list(atoms[: len(pattern)])
     rhs = [list(atoms[len(pattern) + c * n : len(pattern) + (c + 1) * n]) for c in range(m + 1)]
     solve, solutions, pivots = ldl_program(pattern, n, entries, rhs, prefix="_ldl")
-    assignments = list(program.assignments) + solve
+    # The spec's definitions first, as written: M, F and B read them by their symbols.
+    assignments = list(mech.definitions) + list(program.assignments) + solve
     for i in range(n):
         targets = [mech.accelerations[i], *mech.gains[i]]
         for c, target in enumerate(targets):

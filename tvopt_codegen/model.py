@@ -154,6 +154,7 @@ def build_model(spec: Spec) -> Model:
         )
     # Affinity is decided by evaluation at random points first: a nonzero value proves
     # non-affinity at once, and simplify (slow on hostile input) is never reached then.
+    mechanics = spec.mechanics
     sampler = Sampler(
         (*x, *u),
         dict(
@@ -162,6 +163,11 @@ def build_model(spec: Spec) -> Model:
                 (v for _, v in spec.parameters),
                 strict=True,
             )
+        ),
+        implicit=(
+            None
+            if mechanics is None
+            else lambda values, points: implicit_values(mechanics, values, points)
         ),
     )
     G_entries: dict[tuple[int, int], sp.Expr] = {}

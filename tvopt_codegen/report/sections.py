@@ -46,6 +46,11 @@ def _shown(d: Derivation) -> dict[sp.Symbol, sp.Symbol]:
         for j, w in enumerate(row)
         if isinstance(w, sp.Symbol)
     }
+    # The definitions under the spec's names (their symbols are reserved, _let<i>).
+    shown |= {
+        symbol: sp.Symbol(name, real=True)
+        for (symbol, _), name in zip(mech.definitions, mech.definition_names, strict=True)
+    }
     return shown
 
 
@@ -57,6 +62,24 @@ def _mechanics(d: Derivation) -> list[Entry]:
     n = len(mech.coordinates)
     coordinates = ", ".join(mech.coordinates)
     rates = ", ".join(mech.rates)
+    shown = _shown(d)
+    definitions: list[Entry] = []
+    if mech.definitions:
+        # A robot's Newton-Euler vectors: hundreds of short rows, each read once.
+        definitions.append(
+            Entry(
+                "table",
+                text=(
+                    f"Definitions ({len(mech.definitions)}): named intermediate values M, F "
+                    "and B use, each computed once per evaluation, in this order."
+                ),
+                header=("name", "definition"),
+                rows=tuple(
+                    (name, formula(expr.xreplace(shown)))
+                    for (_, expr), name in zip(mech.definitions, mech.definition_names, strict=True)
+                ),
+            )
+        )
     return [
         Entry(
             "text",
@@ -66,13 +89,20 @@ def _mechanics(d: Derivation) -> list[Entry]:
                 f"(q, q')."
             ),
         ),
+        *definitions,
         _math_entry(
             "Mass matrix (symmetric, positive definite):",
-            sp.Matrix(mech.mass_matrix),
+            sp.Matrix(mech.mass_matrix).xreplace(shown),
             _name("M(q)", "M"),
         ),
-        _math_entry("Forces without the inputs:", sp.Matrix(mech.forces), _name("F(q, q')", "F")),
-        _math_entry("Input matrix:", sp.Matrix(mech.input_matrix), _name("B(q)", "B")),
+        _math_entry(
+            "Forces without the inputs:",
+            sp.Matrix(mech.forces).xreplace(shown),
+            _name("F(q, q')", "F"),
+        ),
+        _math_entry(
+            "Input matrix:", sp.Matrix(mech.input_matrix).xreplace(shown), _name("B(q)", "B")
+        ),
         Entry(
             "text",
             text=(

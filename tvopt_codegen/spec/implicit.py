@@ -62,6 +62,7 @@ def mechanics_of(
     mass: tuple[tuple[sp.Expr, ...], ...],
     forces: tuple[sp.Expr, ...],
     gain: tuple[tuple[sp.Expr, ...], ...],
+    definitions: tuple[tuple[str, sp.Symbol, sp.Expr], ...] = (),
 ) -> Mechanics:
     """The :class:`Mechanics` record with its run-time symbols (zero where structurally zero).
 
@@ -100,6 +101,8 @@ def mechanics_of(
         input_matrix=gain,
         accelerations=accelerations,
         gains=gains,
+        definitions=tuple((symbol, expr) for _, symbol, expr in definitions),
+        definition_names=tuple(name for name, _, _ in definitions),
     )
 
 
@@ -110,6 +113,19 @@ def implicit_dynamics(mechanics: Mechanics, inputs: Sequence[str]) -> list[sp.Ex
     for a, gains in zip(mechanics.accelerations, mechanics.gains, strict=True):
         rows.append(a + sp.Add(*(w * uj for w, uj in zip(gains, u, strict=True))))
     return rows
+
+
+def evaluator(mechanics: Mechanics, values: Mapping[sp.Symbol, object]) -> Evaluator:
+    """An evaluator of ``values`` that also knows the mechanics' definitions."""
+    evaluate = Evaluator(values)
+    for symbol, expr in mechanics.definitions:
+        evaluate.define(symbol, expr)
+    return evaluate
+
+
+def reserved(index: int) -> sp.Symbol:
+    """The reserved symbol of the ``index``-th definition (no spec name starts with ``_``)."""
+    return sp.Symbol(f"_let{index}", real=True)
 
 
 def _at(evaluate: Evaluator, expr: sp.Expr, points: int) -> np.ndarray:
@@ -123,7 +139,7 @@ def mass_matrix_at(
     mechanics: Mechanics, values: Mapping[sp.Symbol, object], points: int = 1
 ) -> np.ndarray:
     """``M`` at ``points`` points (values: arrays of that length or floats), shape (P, n, n)."""
-    evaluate = Evaluator(values)
+    evaluate = evaluator(mechanics, values)
     n = len(mechanics.coordinates)
     return np.stack(
         [
@@ -154,7 +170,7 @@ def implicit_values(
         One array of length ``points`` per run-time symbol; NaN where ``M`` is singular
         or an entry is undefined (the callers' samplers skip such points).
     """
-    evaluate = Evaluator(values)
+    evaluate = evaluator(mechanics, values)
     n = len(mechanics.coordinates)
     mass = mass_matrix_at(mechanics, values, points)
     m = len(mechanics.input_matrix[0]) if mechanics.input_matrix else 0
@@ -176,7 +192,10 @@ def implicit_values(
                 solution[k] = np.linalg.solve(mass[k], rhs[k])
             except np.linalg.LinAlgError:
                 pass  # singular here: NaN
-    out: dict[sp.Symbol, np.ndarray] = {}
+    # The definitions too: M, F and B read them, and a sampler evaluating those needs them.
+    out: dict[sp.Symbol, np.ndarray] = {
+        symbol: _at(evaluate, symbol, points) for symbol, _ in mechanics.definitions
+    }
     for i in range(n):
         if isinstance(mechanics.accelerations[i], sp.Symbol):
             out[mechanics.accelerations[i]] = solution[:, i, 0]

@@ -27,7 +27,7 @@ from tvopt_codegen.parse import (
     parse_comparison,
     parse_expression,
 )
-from tvopt_codegen.spec.implicit import affine_split, implicit_dynamics, mechanics_of
+from tvopt_codegen.spec.implicit import affine_split, implicit_dynamics, mechanics_of, reserved
 from tvopt_codegen.spec.types import (
     ESTIMATOR_KINDS,
     MAX_INTEGRATORS,
@@ -495,12 +495,22 @@ class _Reader:
         self.table(
             table,
             field,
-            {"rates", "mass_matrix", "forces", "input_matrix"},
+            {"rates", "mass_matrix", "forces", "input_matrix", "definitions"},
             {"mass_matrix", "forces"},
         )
         n = len(coordinates)
         q_names: dict[str, sp.Expr] = {c: symbol(c) for c in coordinates} | dict(param_syms)
         state_names = q_names | {r: symbol(r) for r in rates}
+        definitions = self.read_definitions(table, state_names, inputs)
+        defined = {name: sym for name, sym, _ in definitions}
+        # What each definition reads, transitively: M and B may not reach a rate through one.
+        rate_symbols = {symbol(r) for r in rates}
+        moving: set[sp.Symbol] = set()
+        for _, sym, expr in definitions:
+            if expr.free_symbols & (rate_symbols | moving):
+                moving.add(sym)
+        q_names = q_names | {k: v for k, v in defined.items() if v not in moving}
+        state_names = state_names | defined
         with_inputs = "input_matrix" not in table
         force_names = state_names | ({u: symbol(u) for u in inputs} if with_inputs else {})
         mass = self.matrix(table["mass_matrix"], f"{field}.mass_matrix", n, n, q_names)
@@ -513,7 +523,42 @@ class _Reader:
                 raise self.fail(f"{field}.forces", str(exc)) from None
         else:
             gain = self.matrix(table["input_matrix"], f"{field}.input_matrix", n, len(u), q_names)
-        return mechanics_of(coordinates, rates, mass, forces, gain)
+        return mechanics_of(coordinates, rates, mass, forces, gain, definitions)
+
+    def read_definitions(
+        self,
+        table: Mapping[str, Any],
+        names: Mapping[str, sp.Expr],
+        inputs: tuple[str, ...],
+    ) -> tuple[tuple[str, sp.Symbol, sp.Expr], ...]:
+        """``system.mechanics.definitions``: named intermediate values, in file order.
+
+        Each is an expression in the coordinates, rates, parameters and the definitions
+        above it, and stands for a reserved symbol (``_let<i>``): generated code computes
+        it once, and nothing substitutes it into ``M``, ``F`` or ``B``.
+        """
+        field = "system.mechanics.definitions"
+        entries = self.sub(table, "definitions", field)
+        if len(entries) > 100_000:
+            raise self.fail(field, "more than 100,000 definitions")
+        taken = {name.casefold() for name in (*names, *inputs, *self.roles)}
+        known = dict(names)
+        out = []
+        for index, (name, text) in enumerate(entries.items()):
+            where = f"{field}.{name}"
+            problem = name_problem(name)
+            if problem:
+                raise self.fail(where, problem)
+            if name.casefold() in taken:
+                raise self.fail(
+                    where, "name already declared (names must be unique, ignoring case)"
+                )
+            expr = self.expression(text, where, known)
+            sym = reserved(index)
+            known[name] = sym
+            taken.add(name.casefold())
+            out.append((name, sym, expr))
+        return tuple(out)
 
     def matrix(
         self, value: object, field: str, rows: int, cols: int, names: Mapping[str, sp.Expr]

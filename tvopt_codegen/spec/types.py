@@ -90,6 +90,12 @@ class Mechanics:
         reaches the coordinate's block of ``M``.
     gains : tuple of tuple of sympy.Expr
         ``W = M^-1 B``, row by row, likewise.
+    definitions : tuple of (sympy.Symbol, sympy.Expr)
+        Named intermediate values ``M``, ``F`` and ``B`` may use, in order, each in the
+        coordinates, rates, parameters and earlier ones (a robot's link velocities, say):
+        reserved symbols ``_let<i>``, evaluated once per evaluation, never substituted.
+    definition_names : tuple of str
+        The spec's name of each definition (for the report).
     """
 
     coordinates: tuple[str, ...]
@@ -99,6 +105,8 @@ class Mechanics:
     input_matrix: tuple[tuple[sp.Expr, ...], ...]
     accelerations: tuple[sp.Expr, ...]
     gains: tuple[tuple[sp.Expr, ...], ...]
+    definitions: tuple[tuple[sp.Symbol, sp.Expr], ...] = ()
+    definition_names: tuple[str, ...] = ()
 
     @property
     def opaque(self) -> frozenset[sp.Symbol]:

@@ -1,0 +1,321 @@
+"""import-urdf: a URDF robot's M(q) and bias forces against Pinocchio, its law against the
+oracle in both backends, the bundled ur5_tip through every command, and bad files refused.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import sympy as sp
+
+from tvopt_codegen.cli import main
+from tvopt_codegen.derivation import derive
+from tvopt_codegen.emit import write_files
+from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_OUTPUT
+from tvopt_codegen.ir import lower
+from tvopt_codegen.mechanics import spec_toml
+from tvopt_codegen.rendering import render
+from tvopt_codegen.spec import load_spec, spec_from_dict
+from tvopt_codegen.spec.implicit import evaluator, mass_matrix_at
+from tvopt_codegen.urdf import spec_from_urdf
+
+from .conftest import ROOT, import_file
+from .oracle import Oracle
+
+pytest.importorskip("yourdfpy", reason="import-urdf needs the urdf extra (yourdfpy)")
+
+UR5 = ROOT / "tests" / "robots" / "ur5_like.urdf"
+INITIAL = {"shoulder_lift": -1.2, "elbow": 1.6, "wrist_1": -1.97, "wrist_2": -1.57}
+
+#: A smaller chain with what the UR5 lacks: a prismatic joint, an axis not along z, a
+#: joint placement with roll, pitch and yaw, a rotated inertia frame, and a fixed side
+#: branch (a sensor) whose mass the chain carries.
+SLIDER = """<?xml version="1.0"?>
+<robot name="slider">
+  <link name="base"/>
+  <joint name="yaw" type="revolute">
+    <parent link="base"/><child link="post"/>
+    <origin xyz="0 0 0.3" rpy="0 0 0"/><axis xyz="0 0 1"/>
+    <limit lower="-2" upper="2" effort="10" velocity="1"/>
+  </joint>
+  <link name="post">
+    <inertial><origin xyz="0 0 0.1" rpy="0.1 0.2 0.3"/><mass value="2.0"/>
+      <inertia ixx="0.02" ixy="0.001" ixz="0.002" iyy="0.03" iyz="0.003" izz="0.01"/></inertial>
+  </link>
+  <joint name="slide" type="prismatic">
+    <parent link="post"/><child link="carriage"/>
+    <origin xyz="0.1 0 0.2" rpy="0.3 -0.2 0.5"/><axis xyz="0.6 0 0.8"/>
+    <limit lower="0" upper="0.5" effort="50" velocity="1"/>
+  </joint>
+  <link name="carriage">
+    <inertial><origin xyz="0.05 0.02 0" rpy="0 0 0"/><mass value="1.2"/>
+      <inertia ixx="0.004" ixy="0" ixz="0" iyy="0.005" iyz="0" izz="0.006"/></inertial>
+  </link>
+  <joint name="camera_mount" type="fixed">
+    <parent link="carriage"/><child link="camera"/>
+    <origin xyz="0 0.1 0" rpy="0 0 1.2"/>
+  </joint>
+  <link name="camera">
+    <inertial><origin xyz="0.01 0 0.01" rpy="0 0 0"/><mass value="0.3"/>
+      <inertia ixx="0.0003" ixy="0" ixz="0" iyy="0.0003" iyz="0" izz="0.0002"/></inertial>
+  </link>
+  <joint name="wrist" type="continuous">
+    <parent link="carriage"/><child link="hand"/>
+    <origin xyz="0.2 0 0" rpy="0 1.5707963267948966 0"/><axis xyz="0 1 0"/>
+  </joint>
+  <link name="hand">
+    <inertial><origin xyz="0 0 0.05" rpy="0 0 0"/><mass value="0.5"/>
+      <inertia ixx="0.001" ixy="0" ixz="0" iyy="0.001" iyz="0" izz="0.0005"/></inertial>
+  </link>
+</robot>
+"""
+
+
+def _pinocchio_config(model: object, q: np.ndarray) -> np.ndarray:
+    """Pinocchio's configuration of joint positions (a continuous joint is cos, sin)."""
+    import pinocchio as pin
+
+    config = pin.neutral(model)
+    for k, joint in enumerate(model.joints[1:]):  # type: ignore[attr-defined]
+        if joint.nq == 2:
+            config[joint.idx_q : joint.idx_q + 2] = np.cos(q[k]), np.sin(q[k])
+        else:
+            config[joint.idx_q] = q[k]
+    return config
+
+
+@pytest.mark.parametrize("robot", ["ur5", "slider"])
+def test_mass_matrix_and_bias_forces_equal_pinocchios(robot: str, tmp_path: Path) -> None:
+    """M(q) and -F(q, q') = C q' + g at random states, to 1e-10 relative."""
+    pin = pytest.importorskip("pinocchio", reason="the check needs Pinocchio (pin)")
+    path = UR5
+    if robot == "slider":
+        path = tmp_path / "slider.urdf"
+        path.write_text(SLIDER, encoding="utf-8")
+    spec = spec_from_dict(spec_from_urdf(path, gravity=(0.3, -0.2, -9.81)))
+    mech = spec.mechanics
+    assert mech is not None
+    model = pin.buildModelFromUrdf(str(path))
+    model.gravity.linear = np.array([0.3, -0.2, -9.81])
+    data = model.createData()
+    assert model.nv == len(mech.coordinates)
+    rng = np.random.default_rng(7)
+    params = {sp.Symbol(n, real=True): v for n, v in spec.parameters}
+    for _ in range(25):
+        q = rng.uniform(-np.pi, np.pi, model.nv)
+        v = rng.uniform(-2.0, 2.0, model.nv)
+        values = dict(params)
+        values |= {sp.Symbol(c, real=True): x for c, x in zip(mech.coordinates, q, strict=True)}
+        values |= {sp.Symbol(r, real=True): x for r, x in zip(mech.rates, v, strict=True)}
+        ours = mass_matrix_at(mech, values)[0]
+        evaluate = evaluator(mech, values)
+        forces = np.array([float(evaluate(e)) for e in mech.forces])
+        config = _pinocchio_config(model, q)
+        theirs = pin.crba(model, data, config)
+        theirs = np.triu(theirs) + np.triu(theirs, 1).T
+        bias = pin.rnea(model, data, config, v, np.zeros(model.nv))
+        np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-10 * np.abs(theirs).max())
+        np.testing.assert_allclose(-forces, bias, rtol=0, atol=1e-10 * np.abs(bias).max())
+
+
+def test_the_imported_law_matches_the_oracle_in_both_backends(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The UR5's tip-tracking law (its 340 definitions in the kernels) against numpy's."""
+    d = derive(spec_from_dict(spec_from_urdf(UR5, tip="tool0", initial=INITIAL)))
+    kernels = lower(d)
+    oracle = Oracle(d)
+    monkeypatch.setenv("TVOPT_CODEGEN_CACHE", str(tmp_path / "cache"))
+    write_files(render(kernels, "python"), tmp_path)
+    write_files(render(kernels, "c"), tmp_path)
+    python = import_file(tmp_path / "ur5_like.py", "_tvopt_ur5_py")
+    compiled = import_file(tmp_path / "ur5_like_c.py", "_tvopt_ur5_c")
+    rng = np.random.default_rng(2)
+    base = np.array(d.initial_state)[:, None]
+    states = base + np.vstack([rng.uniform(-0.4, 0.4, (6, 300)), rng.uniform(-1, 1, (6, 300))])
+    p = np.array(list(python.PARAMETERS.values()))
+    for t in (0.0, 2.1):
+        u_ref, ds_ref = oracle.law(t, states, p)
+        for mod in (python, compiled):
+            u, ds = mod.control(t, states), mod.rhs(t, states)
+            np.testing.assert_allclose(u, u_ref, rtol=1e-9, atol=1e-9 * np.abs(u_ref).max())
+            np.testing.assert_allclose(ds, ds_ref, rtol=1e-9, atol=1e-9 * np.abs(ds_ref).max())
+
+
+def test_the_bundled_example_is_what_import_urdf_writes() -> None:
+    """ur5_tip.toml is the import's output with its description written for people."""
+    fresh = spec_from_urdf(UR5, tip="tool0", name="ur5_tip", initial=INITIAL)
+    bundled = tomllib.loads(
+        (ROOT / "tvopt_codegen" / "examples" / "ur5_tip.toml").read_text(encoding="utf-8")
+    )
+    assert "import-urdf tests/robots/ur5_like.urdf" in bundled.pop("description")
+    fresh.pop("description")
+    assert tomllib.loads(spec_toml(fresh)) == bundled
+
+
+def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, TVOPT_CODEGEN_CACHE=str(cwd / "cache"))
+    return subprocess.run(
+        [sys.executable, "-m", "tvopt_codegen", *args],
+        check=False,
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+def test_ur5_tip_through_every_command(tmp_path: Path) -> None:
+    """check, generate (both backends), simulate (certificate), report, the stateful
+    controller, the FMU and a sweep, on the bundled six-joint arm."""
+    for args in (
+        ("check", "ur5_tip"),
+        ("generate", "ur5_tip", "--out", "py", "--quiet"),
+        ("generate", "ur5_tip", "--backend", "c", "--out", "c", "--quiet"),
+        ("report", "ur5_tip", "--out", "report"),
+    ):
+        run = _cli(*args, cwd=tmp_path)
+        assert run.returncode == 0, run.stderr
+    run = _cli("simulate", "ur5_tip", "--out", "sim", "--points", "101", cwd=tmp_path)
+    assert run.returncode == 0 and "certificate: PASSED" in run.stdout, run.stdout + run.stderr
+    report = (tmp_path / "report" / "ur5_tip_report.md").read_text(encoding="utf-8")
+    assert "M is factored at run time, never inverted" in report
+    assert "Definitions (340)" in report and "_let" not in report
+    # The stateful controller of the C module, stepped at 1 kHz.
+    os.environ.setdefault("TVOPT_CODEGEN_CACHE", str(tmp_path / "cache"))
+    mod = import_file(tmp_path / "c" / "ur5_tip_c.py", "_tvopt_ur5_tip_c")
+    x = np.array(mod.DEFAULT_STATE[:12])
+    controller = mod.Controller(x)
+    for k in range(1, 6):
+        u = controller.step(1e-3 * k, x)
+        assert u.shape == (6,) and np.all(np.isfinite(u))
+    if shutil.which("cc") or shutil.which("gcc"):
+        fmpy = pytest.importorskip("fmpy")
+        run = _cli("export", "ur5_tip", "--fmu", "--out", "fmu", cwd=tmp_path)
+        assert run.returncode == 0, run.stderr
+        from fmpy.validation import validate_fmu
+
+        assert validate_fmu(str(tmp_path / "fmu" / "ur5_tip.fmu")) == []
+        assert fmpy.read_model_description(str(tmp_path / "fmu" / "ur5_tip.fmu"))
+    pytest.importorskip("distributed")
+    run = _cli(
+        "sweep", "ur5_tip", "--samples", "8", "--plant-param", "m_forearm=normal(2.275, 0.2)",
+        "--t-final", "2", "--out", "sweep", cwd=tmp_path,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    summary = (tmp_path / "sweep" / "summary.md").read_text(encoding="utf-8")
+    assert "# Sweep of ur5_tip: 8 samples" in summary and "Clopper-Pearson" in summary
+
+
+def _robot(body: str) -> str:
+    return f'<?xml version="1.0"?>\n<robot name="bad">\n{body}\n</robot>\n'
+
+
+_TWO_LINKS = """
+  <link name="a"><inertial><mass value="1"/><inertia ixx="1" ixy="0" ixz="0" iyy="1" iyz="0" izz="1"/></inertial></link>
+  <link name="b"><inertial><mass value="1"/><inertia ixx="1" ixy="0" ixz="0" iyy="1" iyz="0" izz="1"/></inertial></link>
+"""  # noqa: E501
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        (
+            _robot(
+                _TWO_LINKS
+                + '<joint name="j" type="floating"><parent link="a"/><child link="b"/></joint>'
+            ),  # noqa: E501
+            "joint 'j': a floating joint (a floating base) is not supported",
+        ),
+        (
+            _robot(
+                _TWO_LINKS
+                + '<link name="c"/>'
+                + '<joint name="j1" type="revolute"><parent link="a"/><child link="b"/>'
+                '<axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>'
+                + '<joint name="j2" type="revolute"><parent link="c"/><child link="b"/>'
+                '<axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>'
+            ),
+            "joint 'j2': link 'b' has a second parent joint: a closed chain is not supported",
+        ),
+        (
+            _robot(
+                _TWO_LINKS
+                + '<link name="c"/>'
+                + '<joint name="j1" type="revolute"><parent link="a"/><child link="b"/>'
+                '<axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>'
+                + '<joint name="j2" type="revolute"><parent link="b"/><child link="c"/>'
+                '<axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/>'
+                '<mimic joint="j1"/></joint>'
+            ),
+            "joint 'j2': mimic joints are not supported",
+        ),
+        (
+            _robot(
+                _TWO_LINKS + '<joint name="j" type="continuous"><parent link="a"/><child link="b"/>'
+                '<axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>'
+            ),
+            "joint 'j': a continuous joint has no position limits",
+        ),
+        (_robot('<link name="a">'), "not well-formed XML"),
+        ('<?xml version="1.0"?>\n<!DOCTYPE r [<!ENTITY x "y">]>\n<robot name="r"/>', "ENTITY"),
+        ('<?xml version="1.0"?>\n<sdf/>', "the root element is <sdf>, not <robot>"),
+        (_robot(_TWO_LINKS), "expected one root link, found 2"),
+    ],
+    ids=["floating", "closed", "mimic", "continuous-limits", "malformed", "dtd", "root", "roots"],
+)
+def test_bad_urdf_is_one_line_and_writes_nothing(
+    text: str, problem: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "robot.urdf"
+    path.write_text(text, encoding="utf-8")
+    out = tmp_path / "out" / "robot.toml"
+    out.parent.mkdir()
+    assert main(["import-urdf", str(path), "--out", str(out)]) == EXIT_BAD_SPEC
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and problem in err and str(path) in err, err
+    assert list(out.parent.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("args", "problem"),
+    [
+        (("--tip", "nowhere"), "--tip: no link 'nowhere'"),
+        (("--gravity", "0,0"), "--gravity: '0,0': expected x,y,z numbers"),
+        (("--initial", "knee=1"), "--initial: 'knee' is not a joint"),
+        (("--initial", "elbow"), "--initial: 'elbow': expected NAME=VALUE"),
+    ],
+)
+def test_bad_options(
+    args: tuple[str, ...], problem: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "robot.toml"
+    assert main(["import-urdf", str(UR5), "--out", str(out), *args]) == EXIT_BAD_SPEC
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and problem in err, err
+    assert not out.exists()
+
+
+def test_a_second_import_never_overwrites_an_edited_spec(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "arm.toml"
+    assert main(["import-urdf", str(UR5), "--out", str(out)]) == 0
+    first = out.read_text(encoding="utf-8")
+    assert load_spec(out).mechanics is not None
+    assert main(["import-urdf", str(UR5), "--out", str(out)]) == 0  # its own file: same text
+    assert out.read_text(encoding="utf-8") == first
+    out.write_text(first.replace("t_final = 10.0", "t_final = 4.0"), encoding="utf-8")
+    assert main(["import-urdf", str(UR5), "--out", str(out)]) == EXIT_OUTPUT
+    assert "t_final = 4.0" in out.read_text(encoding="utf-8")
+    capsys.readouterr()
+    assert main(["import-urdf", str(UR5), "--out", str(out), "--force"]) == 0
+    assert out.read_text(encoding="utf-8") == first
