@@ -17,25 +17,26 @@ import math
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
-import sympy as sp
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
 
-from casadi_peer import CFLAGS, HARNESS_RUNS, _to_casadi  # noqa: E402
+from casadi_peer import CFLAGS, HARNESS_RUNS  # noqa: E402
 
 from tests.arms import planar_arm  # noqa: E402
-from tvopt_codegen.derivation import Derivation, derive  # noqa: E402
+from tests.casadi_oracle import casadi_mechanics_law  # noqa: E402
+from tvopt_codegen.derivation import derive  # noqa: E402
 from tvopt_codegen.emit import write_files  # noqa: E402
 from tvopt_codegen.ir import lower  # noqa: E402
 from tvopt_codegen.mechanics import spec_from_sympy  # noqa: E402
 from tvopt_codegen.rendering import render  # noqa: E402
 from tvopt_codegen.simulation import load_controller  # noqa: E402
-from tvopt_codegen.spec import spec_from_dict  # noqa: E402
+from tvopt_codegen.spec import Spec, load_spec, spec_from_dict  # noqa: E402
 
 LINKS = (2, 3, 6)
 
@@ -49,69 +50,6 @@ def arm_spec(links: int) -> dict[str, object]:
     return spec_from_sympy(
         kane, outputs, f0, values, name=f"planar_arm{links}", initial_state=start
     )
-
-
-def casadi_mechanics_law(d: Derivation) -> tuple[ca.Function, int]:
-    """The law for ``d``'s mass-matrix plant, built by CasADi with numeric solves of M and R.
-
-    Returns the function and its size: the SX part's instructions (M, F, B, J, the
-    curvature and y_imp'') plus the MX graph's (the two solves and the products).
-    """
-    model = d.model
-    mech = model.mechanics
-    assert mech is not None and d.k == 2
-    nq, m = len(mech.coordinates), len(model.y)
-    tS = ca.SX.sym("t")
-    XS = ca.SX.sym("X", 2 * nq)
-    PS = ca.SX.sym("P", max(1, len(model.params)))
-    base = [*model.x, *model.params]
-    values = [XS[i] for i in range(2 * nq)] + [PS[i] for i in range(len(model.params))]
-
-    def cas(expr: sp.Expr) -> ca.SX:
-        return _to_casadi(sp.sympify(expr), base, values)
-
-    M = ca.vertcat(*[ca.horzcat(*[cas(e) for e in row]) for row in mech.mass_matrix])
-    F = ca.vertcat(*[cas(e) for e in mech.forces])
-    B = ca.vertcat(*[ca.horzcat(*[cas(e) for e in row]) for row in mech.input_matrix])
-    h = ca.vertcat(*[cas(e) for e in model.h])
-    q, dq = XS[:nq], XS[nq:]
-    J = ca.jacobian(h, q)
-    velocity = ca.jtimes(h, q, dq)
-    curvature = ca.jtimes(velocity, q, dq)
-    # y_imp'' from the objective's gradient jet, as benchmarks/bench_c.py builds it.
-    signals = [
-        _to_casadi(e, [model.t, *model.params], [tS, *values[2 * nq :]]) for _, e in model.signals
-    ]
-    Y = ca.SX.sym("Y", m, 3)
-    f0 = _to_casadi(
-        model.f0,
-        [*model.y, *(s for s, _ in model.signals), *model.params, model.t],
-        [*(Y[i, 0] for i in range(m)), *signals, *values[2 * nq :], tS],
-    )
-    jet = [ca.gradient(f0, Y[:, 0])]
-    moving = ca.vertcat(tS, ca.vec(Y[:, :2]))
-    rates = ca.vertcat(1, ca.vec(Y[:, 1:]))
-    for _ in range(2):
-        jet.append(ca.jtimes(jet[-1], moving, rates))
-    rest = ca.substitute(jet[2], Y[:, 2], ca.DM.zeros(m))
-    hess = ca.hessian(f0, Y[:, 0])[0]
-    c = d.coefficients[0] * jet[0] + d.coefficients[1] * jet[1] - rest
-    state_jet = ca.vertcat(h, velocity)
-    c = ca.substitute(c, ca.vec(Y[:, :2]), state_jet)
-    hess = ca.substitute(hess, ca.vec(Y[:, :2]), state_jet)
-    z = ca.solve(hess, c)
-    parts = ca.Function("parts", [tS, XS, PS], [M, ca.horzcat(F, B), J, curvature, z])
-    t = ca.MX.sym("t")
-    X = ca.MX.sym("X", 2 * nq)
-    P = ca.MX.sym("P", max(1, len(model.params)))
-    M_, FB, J_, curv, z_ = parts(t, X, P)
-    solved = ca.solve(M_, FB, "ldl")  # M^-1 [F B], numerically: never inverted
-    accel, gain = solved[:, 0], solved[:, 1:]
-    R = ca.mtimes(J_, gain)
-    p = curv + ca.mtimes(J_, accel)
-    w = ca.solve(R, z_ - p, "qr")
-    law = ca.Function("casadi_law", [t, X, P], [w])
-    return law, parts.n_instructions() + law.n_instructions()
 
 
 HARNESS = r"""
@@ -166,9 +104,10 @@ int main(void)
 """
 
 
-def bench_arm(links: int, folder: Path) -> dict[str, float]:
+def bench_arm(spec: Spec, folder: Path) -> dict[str, float]:
     """Seconds per C `control` call, ours and CasADi's, and both operation counts."""
-    d = derive(spec_from_dict(arm_spec(links)))
+    d = derive(spec)
+    links = len(d.model.x) // 2
     kernels = lower(d)
     law, peer_ops = casadi_mechanics_law(d)
     name = d.spec.name
@@ -209,7 +148,8 @@ def mechanics_table() -> str:
     lines = [
         "### Mass-matrix plants: C `control` against CasADi with its own numeric solve",
         "",
-        "Planar arms from SymPy mechanics (Kane), joint angles as outputs. Ours factors M by a",
+        "Planar arms from SymPy mechanics (Kane), joint angles as outputs, and the bundled",
+        "URDF arm `ur5_tip` (tip position and wrist joints as outputs). Ours factors M by a",
         "generated sparse LDL^T inside the jet kernel; CasADi solves M [a W] = [F B] with its",
         "`ldl` linear solver and R w = v - p with `qr`, both in its generated C. Operations:",
         "ours, the law's kernels and R's LU; CasADi's, its SX instructions and MX nodes.",
@@ -217,18 +157,52 @@ def mechanics_table() -> str:
         "| arm | ours, ns | CasADi, ns | ratio ours/peer | target | ops ours | CasADi's |",
         "|---|---|---|---|---|---|---|",
     ]
+    arms = [(f"planar, {links} links", spec_from_dict(arm_spec(links))) for links in LINKS]
+    arms.append(("ur5_tip (URDF, 6 joints, tip position)", load_spec("ur5_tip")))
     with tempfile.TemporaryDirectory(prefix="tvopt-bench-mech-") as tmp:
-        for links in LINKS:
-            folder = Path(tmp) / f"arm{links}"
+        for index, (label, spec) in enumerate(arms):
+            folder = Path(tmp) / f"arm{index}"
             folder.mkdir()
-            r = bench_arm(links, folder)
+            r = bench_arm(spec, folder)
             lines.append(
-                f"| {links} links | {r['ours'] * 1e9:.4g} | {r['casadi'] * 1e9:.4g} | "
+                f"| {label} | {r['ours'] * 1e9:.4g} | {r['casadi'] * 1e9:.4g} | "
                 f"{r['ours'] / r['casadi']:.3f} | <= 1.0 | {r['ops_ours']:.0f} | "
                 f"{r['ops_casadi']:.0f} |"
             )
+    lines += [
+        "",
+        "Cold processes (best of 3) of what a robotics user runs first:",
+        "",
+        "| command | wall, s | target |",
+        "|---|---|---|",
+    ]
+    with tempfile.TemporaryDirectory(prefix="tvopt-bench-cold-") as tmp:
+        cli = [sys.executable, "-m", "tvopt_codegen"]
+        urdf = str(ROOT / "tests" / "robots" / "ur5_like.urdf")
+        commands = [
+            ("`import-urdf tests/robots/ur5_like.urdf --tip tool0`", [
+                *cli, "import-urdf", urdf, "--tip", "tool0", "--out", f"{tmp}/ur5.toml",
+                "--force"], "<= 5 s"),
+            ("`generate ur5_tip`", [*cli, "generate", "ur5_tip", "--out", tmp, "--quiet"],
+             "<= 10 s"),
+            ("`generate benchmarks/planar_arm6.toml`", [
+                *cli, "generate", str(ROOT / "benchmarks" / "planar_arm6.toml"), "--out", tmp,
+                "--quiet"], "<= 10 s"),
+        ]  # fmt: skip
+        for label, command, target in commands:
+            lines.append(f"| {label} | {_cold(command):.2f} | {target} |")
     lines.append("")
     return "\n".join(lines)
+
+
+def _cold(command: list[str], runs: int = 3) -> float:
+    """Best wall time of ``runs`` fresh processes, in seconds."""
+    best = math.inf
+    for _ in range(runs):
+        start = time.perf_counter()
+        subprocess.run(command, check=True, capture_output=True)
+        best = min(best, time.perf_counter() - start)
+    return best
 
 
 if __name__ == "__main__":

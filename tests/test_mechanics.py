@@ -340,3 +340,24 @@ def test_a_mass_matrix_that_loses_definiteness_at_run_time(
         assert "the mass matrix M(q) is not positive definite" in str(info.value)
         with pytest.raises(mod.MassMatrixNotPositiveDefiniteError):
             mod.rhs(0.5, states[:, 1], {"a3": -0.4})
+
+
+@pytest.mark.parametrize("spec", ["planar_arm3", "ur5_tip"])
+def test_casadis_own_law_agrees(spec: str) -> None:
+    """CasADi's AD with its ldl and qr solvers (tests/casadi_oracle.py) gives our law."""
+    pytest.importorskip("casadi", reason="the CasADi oracle needs casadi (the dev extra)")
+    from .casadi_oracle import casadi_mechanics_law
+
+    d = derive(load_spec(spec))
+    law, _ = casadi_mechanics_law(d)
+    mod = module(spec)
+    p = np.array(list(mod.PARAMETERS.values()))
+    rng = np.random.default_rng(9)
+    base = np.array(d.initial_state)
+    n = len(base) // 2
+    for t in (0.0, 1.7, 4.2):
+        for _ in range(10):
+            state = base + np.concatenate([rng.uniform(-0.3, 0.3, n), rng.uniform(-1, 1, n)])
+            ours = mod.control(t, state)
+            theirs = np.array(law(t, state, p)).ravel()
+            np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-9 * np.abs(theirs).max())

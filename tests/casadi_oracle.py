@@ -1,0 +1,112 @@
+"""CasADi's independent build of a mass-matrix plant's law, with its own numeric solves.
+
+The oracle of ``tests/oracle.py`` shares nothing with the generator but the spec's
+expressions; this one also shares no numerics: CasADi's automatic differentiation
+takes the outputs' Jacobian and curvature and the objective's gradient jet, and its
+generated-code-capable linear solvers (``ldl`` for ``M [a W] = [F B]``, ``qr`` for
+``R w = v - p``) solve, never a symbolic inverse. ``benchmarks/bench_mechanics.py``
+times its generated C against ours.
+"""
+
+from __future__ import annotations
+
+import math
+
+import casadi as ca
+import sympy as sp
+
+from tvopt_codegen.derivation import Derivation
+
+_FUNCTIONS = {
+    sp.sin: ca.sin, sp.cos: ca.cos, sp.tan: ca.tan, sp.exp: ca.exp, sp.log: ca.log,
+    sp.atan: ca.atan, sp.asin: ca.asin, sp.acos: ca.acos, sp.sinh: ca.sinh, sp.cosh: ca.cosh,
+    sp.tanh: ca.tanh,
+}  # fmt: skip
+
+
+def _to_casadi(expr: sp.Basic, table: dict[sp.Basic, object]) -> object:
+    """A sympy expression on CasADi values: ``table`` holds its symbols' (and memoizes)."""
+    if expr in table:
+        return table[expr]
+    if expr.is_Number:
+        value: object = float(expr)
+    elif expr is sp.pi:
+        value = math.pi
+    elif expr.is_Add:
+        value = sum((_to_casadi(a, table) for a in expr.args[1:]), _to_casadi(expr.args[0], table))
+    elif expr.is_Mul:
+        value = _to_casadi(expr.args[0], table)
+        for a in expr.args[1:]:
+            value = value * _to_casadi(a, table)  # type: ignore[operator]
+    elif expr.is_Pow:
+        base, exponent = expr.args
+        value = _to_casadi(base, table) ** _to_casadi(exponent, table)  # type: ignore[operator]
+    elif expr.func in _FUNCTIONS:
+        value = _FUNCTIONS[expr.func](_to_casadi(expr.args[0], table))
+    else:
+        raise ValueError(f"no CasADi twin for {expr.func}")
+    table[expr] = value
+    return value
+
+
+def casadi_mechanics_law(d: Derivation) -> tuple[ca.Function, int]:
+    """The law for ``d``'s mass-matrix plant, built by CasADi with numeric solves of M and R.
+
+    Returns the function and its size: the SX part's instructions (M, F, B, J, the
+    curvature and y_imp'') plus the MX graph's (the two solves and the products).
+    """
+    model = d.model
+    mech = model.mechanics
+    assert mech is not None and d.k == 2
+    nq, m = len(mech.coordinates), len(model.y)
+    tS = ca.SX.sym("t")
+    XS = ca.SX.sym("X", 2 * nq)
+    PS = ca.SX.sym("P", max(1, len(model.params)))
+    table: dict[sp.Basic, object] = {s: XS[i] for i, s in enumerate(model.x)}
+    table |= {p: PS[i] for i, p in enumerate(model.params)}
+    table[model.t] = tS
+    # The spec's definitions in order, each on CasADi's values of those before it.
+    for symbol, expr in mech.definitions:
+        table[symbol] = _to_casadi(sp.sympify(expr), table)
+
+    def cas(expr: sp.Expr) -> ca.SX:
+        return _to_casadi(sp.sympify(expr), table)
+
+    M = ca.vertcat(*[ca.horzcat(*[cas(e) for e in row]) for row in mech.mass_matrix])
+    F = ca.vertcat(*[cas(e) for e in mech.forces])
+    B = ca.vertcat(*[ca.horzcat(*[cas(e) for e in row]) for row in mech.input_matrix])
+    h = ca.vertcat(*[cas(e) for e in model.h])
+    q, dq = XS[:nq], XS[nq:]
+    J = ca.jacobian(h, q)
+    velocity = ca.jtimes(h, q, dq)
+    curvature = ca.jtimes(velocity, q, dq)
+    # y_imp'' from the objective's gradient jet, as benchmarks/bench_c.py builds it.
+    for symbol, expr in model.signals:
+        table[symbol] = cas(expr)
+    Y = ca.SX.sym("Y", m, 3)
+    table |= {y: Y[i, 0] for i, y in enumerate(model.y)}
+    f0 = cas(model.f0)
+    jet = [ca.gradient(f0, Y[:, 0])]
+    moving = ca.vertcat(tS, ca.vec(Y[:, :2]))
+    rates = ca.vertcat(1, ca.vec(Y[:, 1:]))
+    for _ in range(2):
+        jet.append(ca.jtimes(jet[-1], moving, rates))
+    rest = ca.substitute(jet[2], Y[:, 2], ca.DM.zeros(m))
+    hess = ca.hessian(f0, Y[:, 0])[0]
+    c = d.coefficients[0] * jet[0] + d.coefficients[1] * jet[1] - rest
+    state_jet = ca.vertcat(h, velocity)
+    c = ca.substitute(c, ca.vec(Y[:, :2]), state_jet)
+    hess = ca.substitute(hess, ca.vec(Y[:, :2]), state_jet)
+    z = ca.solve(hess, c)
+    parts = ca.Function("parts", [tS, XS, PS], [M, ca.horzcat(F, B), J, curvature, z])
+    t = ca.MX.sym("t")
+    X = ca.MX.sym("X", 2 * nq)
+    P = ca.MX.sym("P", max(1, len(model.params)))
+    M_, FB, J_, curv, z_ = parts(t, X, P)
+    solved = ca.solve(M_, FB, "ldl")  # M^-1 [F B], numerically: never inverted
+    accel, gain = solved[:, 0], solved[:, 1:]
+    R = ca.mtimes(J_, gain)
+    p = curv + ca.mtimes(J_, accel)
+    w = ca.solve(R, z_ - p, "qr")
+    law = ca.Function("casadi_law", [t, X, P], [w])
+    return law, parts.n_instructions() + law.n_instructions()
