@@ -188,11 +188,11 @@ def test_spec_from_sympy_refuses_what_it_cannot_express() -> None:
         spec_from_sympy(skewed, {"y": angle}, "y**2", {})
 
 
-@pytest.mark.parametrize("links", [3, 6])
+@pytest.mark.parametrize("links", [2, 3, 6])
 def test_planar_arms_match_the_oracle_in_both_backends(
     links: int, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The law of 3- and 6-link arms equals the oracle's (M solved densely) to 1e-9."""
+    """The law of 2-, 3- and 6-link arms equals the oracle's (M solved densely) to 1e-9."""
     d = derive(spec_from_dict(_arm_spec(links)))
     kernels = lower(d)
     oracle = Oracle(d)
@@ -361,3 +361,13 @@ def test_casadis_own_law_agrees(spec: str) -> None:
             ours = mod.control(t, state)
             theirs = np.array(law(t, state, p)).ravel()
             np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-9 * np.abs(theirs).max())
+
+
+def test_a_sweep_of_the_bundled_arm_with_a_heavier_last_link(tmp_path: Path) -> None:
+    """The compiled sweep loop factors M like the controller: 8 samples, a 10% mass spread."""
+    pytest.importorskip("distributed")
+    out = tmp_path / "sweep"
+    args = ["sweep", "planar_arm3", "--samples", "8", "--t-final", "2", "--out", str(out)]
+    assert main([*args, "--plant-param", "m3=normal(1.5, 0.15)"]) == 0
+    summary = (out / "summary.md").read_text(encoding="utf-8")
+    assert "# Sweep of planar_arm3: 8 samples" in summary and "Clopper-Pearson" in summary

@@ -269,8 +269,19 @@ _TWO_LINKS = """
         ('<?xml version="1.0"?>\n<!DOCTYPE r [<!ENTITY x "y">]>\n<robot name="r"/>', "ENTITY"),
         ('<?xml version="1.0"?>\n<sdf/>', "the root element is <sdf>, not <robot>"),
         (_robot(_TWO_LINKS), "expected one root link, found 2"),
+        (_robot("<a>" * 40 + "</a>" * 40), "elements nest 40 deep (at most 32)"),
     ],
-    ids=["floating", "closed", "mimic", "continuous-limits", "malformed", "dtd", "root", "roots"],
+    ids=[
+        "floating",
+        "closed",
+        "mimic",
+        "continuous-limits",
+        "malformed",
+        "dtd",
+        "root",
+        "roots",
+        "deep",
+    ],  # fmt: skip
 )
 def test_bad_urdf_is_one_line_and_writes_nothing(
     text: str, problem: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]

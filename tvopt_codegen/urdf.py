@@ -36,6 +36,7 @@ import sympy as sp
 from tvopt_codegen.errors import SpecError
 from tvopt_codegen.names import name_problem
 from tvopt_codegen.spec.files import MAX_SPEC_BYTES
+from tvopt_codegen.toml_shape import MAX_NESTING
 
 __all__ = ["spec_from_urdf"]
 
@@ -160,6 +161,10 @@ def _load(path: Path) -> Any:
         raise _fail(source, "(file)", f"not well-formed XML: {exc}") from None
     if root.tag != "robot":
         raise _fail(source, "(file)", f"the root element is <{root.tag}>, not <robot>")
+    # The spec's nesting limit: a robot is a few levels deep.
+    deepest = max((sum(1 for _ in node.iterancestors()) for node in root.iter()), default=0)
+    if deepest > MAX_NESTING:
+        raise _fail(source, "(file)", f"elements nest {deepest} deep (at most {MAX_NESTING})")
     try:
         # No meshes are read and no scene graph is built: the dynamics need neither.
         model = yourdfpy.URDF.load(
