@@ -38,7 +38,7 @@ from tvopt_codegen.spec import load_spec
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_mechanics import mechanics_table  # noqa: E402
-from casadi_peer import CFLAGS, HARNESS_RUNS, _to_casadi  # noqa: E402
+from casadi_peer import CFLAGS, HARNESS_RUNS, TURNS, _to_casadi  # noqa: E402
 
 SPECS = ("unicycle_switch", "two_unicycles_barrier")
 BATCH_C = 100_000
@@ -145,20 +145,7 @@ int main(void)
     for (i = 0; i < NS; ++i) s[i] = {name}_default_state[i];
     for (i = 0; i < NP; ++i) p[i] = {params}[i];
     arg[0] = &tt; arg[1] = s; arg[2] = p; res[0] = u;
-    for (rep = 0; rep < REPEATS; ++rep) {{
-        t0 = now();
-        for (i = 0; i < calls; ++i) {{ {name}_control(1e-6 * i, s, p, u); acc += u[0]; }}
-        if ((now() - t0) / calls < best_ours) best_ours = (now() - t0) / calls;
-        t0 = now();
-        for (i = 0; i < calls; ++i) {{
-            tt = 1e-6 * i;
-            casadi_law(arg, res, iw, w, 0);
-            acc += u[0];
-        }}
-        if ((now() - t0) / calls < best_casadi) best_casadi = (now() - t0) / calls;
-    }}
-    printf("loop %.6e %.6e\n", best_ours, best_casadi);
-    {{
+{turns}    {{
         /* The stateful controller's step against a control call, taking turns likewise;
            x is the plant part of s, and time moves on by 1 us per step. */
         {name}_controller_t c;
@@ -231,6 +218,7 @@ def bench(name: str, folder: Path) -> dict[str, float]:
     (folder / "harness.c").write_text(
         HARNESS.format(
             name=name,
+            turns=TURNS.format(name=name),
             P=prefix,
             np=len(params),
             batch=BATCH_C,

@@ -26,7 +26,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
 
-from casadi_peer import CFLAGS, HARNESS_RUNS  # noqa: E402
+from casadi_peer import CFLAGS, HARNESS_RUNS, TURNS  # noqa: E402
 
 from tests.arms import planar_arm  # noqa: E402
 from tests.casadi_oracle import casadi_mechanics_law  # noqa: E402
@@ -85,20 +85,7 @@ int main(void)
     for (i = 0; i < NS; ++i) s[i] = {name}_default_state[i];
     for (i = 0; i < NP; ++i) p[i] = {params}[i];
     arg[0] = &tt; arg[1] = s; arg[2] = p; res[0] = u;
-    for (rep = 0; rep < REPEATS; ++rep) {{
-        t0 = now();
-        for (i = 0; i < calls; ++i) {{ {name}_control(1e-6 * i, s, p, u); acc += u[0]; }}
-        if ((now() - t0) / calls < best_ours) best_ours = (now() - t0) / calls;
-        t0 = now();
-        for (i = 0; i < calls; ++i) {{
-            tt = 1e-6 * i;
-            casadi_law(arg, res, iw, w, 0);
-            acc += u[0];
-        }}
-        if ((now() - t0) / calls < best_casadi) best_casadi = (now() - t0) / calls;
-    }}
-    printf("loop %.6e %.6e\n", best_ours, best_casadi);
-    printf("checksum %g\n", acc);
+{turns}    printf("checksum %g\n", acc);
     return 0;
 }}
 """
@@ -123,6 +110,7 @@ def bench_arm(spec: Spec, folder: Path) -> dict[str, float]:
     (folder / "harness.c").write_text(
         HARNESS.format(
             name=name,
+            turns=TURNS.format(name=name),
             P=name.upper(),
             np=len(params),
             calls=100_000 if links < 6 else 20_000,

@@ -180,3 +180,25 @@ class Oracle:
         """E of shape (k, m + q, N)."""
         args: list[object] = [t, *s, *p, *np.zeros(self.m)]
         return self._eval(self.E, args, (self.k, self.n), s.shape[1])
+
+
+def assert_matches_oracle(
+    oracle: Oracle,
+    modules: Sequence[object],
+    states: np.ndarray,
+    times: Sequence[float],
+    tolerance: float = 1e-9,
+) -> None:
+    """Every module's ``control`` and ``rhs`` equal the oracle's at ``states`` and ``times``.
+
+    Relative to the largest entry of the oracle's values, so that near-zero entries of a
+    batch do not set the scale.
+    """
+    p = np.array(list(modules[0].PARAMETERS.values()))  # type: ignore[attr-defined]
+    for t in times:
+        u_ref, ds_ref = oracle.law(t, states, p)
+        for mod in modules:
+            u, ds = mod.control(t, states), mod.rhs(t, states)  # type: ignore[attr-defined]
+            scale_u, scale_ds = np.abs(u_ref).max(), np.abs(ds_ref).max()
+            np.testing.assert_allclose(u, u_ref, rtol=tolerance, atol=tolerance * scale_u)
+            np.testing.assert_allclose(ds, ds_ref, rtol=tolerance, atol=tolerance * scale_ds)

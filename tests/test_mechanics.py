@@ -34,7 +34,7 @@ from tvopt_codegen.spec import load_spec, spec_from_dict
 
 from .arms import planar_arm
 from .conftest import SPECS, import_file, module
-from .oracle import Oracle
+from .oracle import Oracle, assert_matches_oracle
 
 ARM2 = str(SPECS / "arm2_mass.toml")
 
@@ -203,13 +203,7 @@ def test_planar_arms_match_the_oracle_in_both_backends(
     compiled = import_file(tmp_path / f"planar{links}_c.py", f"_tvopt_arm{links}_c")
     rng = np.random.default_rng(links)
     states = np.vstack([rng.uniform(-1.5, 1.5, (links, 200)), rng.uniform(-1.0, 1.0, (links, 200))])
-    p = np.array(list(python.PARAMETERS.values()))
-    for t in (0.0, 1.3):
-        u_ref, ds_ref = oracle.law(t, states, p)
-        for mod in (python, compiled):
-            u, ds = mod.control(t, states), mod.rhs(t, states)
-            np.testing.assert_allclose(u, u_ref, rtol=1e-9, atol=1e-9 * np.abs(u_ref).max())
-            np.testing.assert_allclose(ds, ds_ref, rtol=1e-9, atol=1e-9 * np.abs(ds_ref).max())
+    assert_matches_oracle(oracle, (python, compiled), states, (0.0, 1.3))
 
 
 def _arm2() -> dict[str, Any]:

@@ -27,7 +27,7 @@ from tvopt_codegen.spec.implicit import evaluator, mass_matrix_at
 from tvopt_codegen.urdf import spec_from_urdf
 
 from .conftest import ROOT, import_file
-from .oracle import Oracle
+from .oracle import Oracle, assert_matches_oracle
 
 pytest.importorskip("yourdfpy", reason="import-urdf needs the urdf extra (yourdfpy)")
 
@@ -140,13 +140,7 @@ def test_the_imported_law_matches_the_oracle_in_both_backends(
     rng = np.random.default_rng(2)
     base = np.array(d.initial_state)[:, None]
     states = base + np.vstack([rng.uniform(-0.4, 0.4, (6, 300)), rng.uniform(-1, 1, (6, 300))])
-    p = np.array(list(python.PARAMETERS.values()))
-    for t in (0.0, 2.1):
-        u_ref, ds_ref = oracle.law(t, states, p)
-        for mod in (python, compiled):
-            u, ds = mod.control(t, states), mod.rhs(t, states)
-            np.testing.assert_allclose(u, u_ref, rtol=1e-9, atol=1e-9 * np.abs(u_ref).max())
-            np.testing.assert_allclose(ds, ds_ref, rtol=1e-9, atol=1e-9 * np.abs(ds_ref).max())
+    assert_matches_oracle(oracle, (python, compiled), states, (0.0, 2.1))
 
 
 def test_the_bundled_example_is_what_import_urdf_writes() -> None:
