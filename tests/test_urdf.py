@@ -18,7 +18,7 @@ import sympy as sp
 from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.emit import write_files
-from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_OUTPUT
+from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_OUTPUT, Terminated
 from tvopt_codegen.ir import lower
 from tvopt_codegen.mechanics import spec_toml
 from tvopt_codegen.rendering import render
@@ -297,6 +297,8 @@ def test_bad_urdf_is_one_line_and_writes_nothing(
         (("--gravity", "0,0"), "--gravity: '0,0': expected x,y,z numbers"),
         (("--initial", "knee=1"), "--initial: 'knee' is not a joint"),
         (("--initial", "elbow"), "--initial: 'elbow': expected NAME=VALUE"),
+        (("--initial", "elbow=nan"), "--initial: elbow = nan is not finite"),
+        (("--gravity", "0,0,inf"), "--gravity: '0,0,inf': expected x,y,z numbers"),
     ],
 )
 def test_bad_options(
@@ -324,3 +326,30 @@ def test_a_second_import_never_overwrites_an_edited_spec(
     capsys.readouterr()
     assert main(["import-urdf", str(UR5), "--out", str(out), "--force"]) == 0
     assert out.read_text(encoding="utf-8") == first
+
+
+@pytest.mark.parametrize(
+    ("fault", "code", "word"),
+    [(KeyboardInterrupt, 130, "interrupted"), (Terminated, 143, "terminated")],
+)
+def test_ctrl_c_or_sigterm_during_the_import_writes_nothing(
+    fault: type[BaseException],
+    code: int,
+    word: str,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Interrupted inside the Newton-Euler pass: one line, the signal's code, the folder
+    (with a file of the user's in it) as it was."""
+    (tmp_path / "keep.toml").write_text("mine", encoding="utf-8")
+
+    def interrupted(*_args: object, **_kwargs: object) -> None:
+        raise fault
+
+    monkeypatch.setattr("tvopt_codegen.urdf._newton_euler", interrupted)
+    assert main(["import-urdf", str(UR5), "--out", str(tmp_path / "arm.toml")]) == code
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and word in err and "Traceback" not in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.toml"]
+    assert (tmp_path / "keep.toml").read_text(encoding="utf-8") == "mine"
