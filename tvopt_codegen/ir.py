@@ -499,11 +499,13 @@ def check_kernels(derivation: Derivation) -> CheckKernels:
     model = d.model
     args = _arguments(d)
     m = d.R.rows
+    # R = J_h M^-1 B of a mass-matrix plant reads the run-time solve.
+    mass = _mass(d)
     decoupling = make_kernel(
         "sweep_decoupling",
         "The decoupling matrix R(s), row-major",
         [args.t, args.s, args.p],
-        _programs(d, _mass(d))["mass"],
+        [] if mass is None else mass.program,
         [("r", (m * m,), [d.R[i, j] for i in range(m) for j in range(m)], "decoupling matrix R")],
         args.subs,
         odd={},
