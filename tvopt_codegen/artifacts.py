@@ -3,20 +3,22 @@
 The verification stages (:mod:`~tvopt_codegen.simulation`, :mod:`~tvopt_codegen.simulation.sampled`,
 :mod:`~tvopt_codegen.sweep`) compute and return data; this module turns their results
 into the files a command writes, in memory (the writer, :mod:`~tvopt_codegen.emit`,
-puts them on disk). It is the only module that imports :mod:`~tvopt_codegen.figures`,
-and so matplotlib: ``generate``, ``check`` and ``report`` never load it.
+puts them on disk). It is the only module that imports :mod:`~tvopt_codegen.figures`
+(what each figure shows) and :mod:`~tvopt_codegen.drawing` (matplotlib, which draws
+them): ``generate``, ``check`` and ``report`` never load either.
 """
 
 from __future__ import annotations
 
 import io
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from tvopt_codegen.derivation import Derivation
-from tvopt_codegen.figures import figures, replay_figure, sampled_figures, sweep_figures
+from tvopt_codegen.drawing import Plot, draw, draw_all
+from tvopt_codegen.figures import figures, replay_figure, sampled_figure, sweep_figures
 from tvopt_codegen.simulation import Result, columns, format_certificate
 from tvopt_codegen.sweep import (
     RECORD,
@@ -34,10 +36,41 @@ if TYPE_CHECKING:
     from tvopt_codegen.simulation.sampled import SampledResult
 
 
-def result_files(derivation: Derivation, result: Result) -> dict[str, bytes]:
-    """Trajectories (CSV, NPZ), the certificate text, and the figures, in memory."""
+class Drawer(Protocol):
+    """Where figures are drawn: :class:`tvopt_codegen.drawing.Painter`, or here."""
+
+    def submit(self, plots: list[Plot]) -> None:
+        """Start drawing ``plots``."""
+
+    def collect(self) -> dict[str, bytes]:
+        """The files of the figures submitted last."""
+
+
+class _Here:
+    """Draws in this process, when asked for the files."""
+
+    def __init__(self) -> None:
+        self._plots: list[Plot] = []
+
+    def submit(self, plots: list[Plot]) -> None:
+        self._plots = plots
+
+    def collect(self) -> dict[str, bytes]:
+        return draw_all(self._plots)
+
+
+def result_files(
+    derivation: Derivation, result: Result, drawer: Drawer | None = None
+) -> dict[str, bytes]:
+    """Trajectories (CSV, NPZ), the certificate text, and the figures, in memory.
+
+    The figures go to ``drawer`` first (a drawing process draws them while the tables
+    are written here); by default they are drawn in this process.
+    """
     d, r = derivation, result
     name = d.spec.name
+    drawer = drawer or _Here()
+    drawer.submit(figures(d, r))
     table = np.column_stack(
         [r.t, r.states.T, r.inputs.T, r.outputs.T, r.target.T, r.E.reshape(len(r.t), -1)]
     )
@@ -64,7 +97,7 @@ def result_files(derivation: Derivation, result: Result) -> dict[str, bytes]:
         f"{name}_trajectory.npz": arrays.getvalue(),
         f"{name}_certificate.txt": (format_certificate(d, r) + "\n").encode("utf-8"),
     }
-    files.update(figures(d, r))
+    files.update(drawer.collect())
     return files
 
 
@@ -95,7 +128,7 @@ def sampled_files(derivation: Derivation, result: SampledResult) -> dict[str, by
         f"{name}_sampled.csv": text.getvalue().encode("utf-8"),
         f"{name}_sampled.npz": arrays.getvalue(),
     }
-    files.update(sampled_figures(d, result))
+    files.update(draw(sampled_figure(d, result)))
     return files
 
 
@@ -115,7 +148,7 @@ def sweep_files(
         "summary.md": (format_summary(program.name, options, summary) + "\n").encode(),
         RECORD: record_bytes(record),
     }
-    files.update(sweep_figures(program, summary.runs, *histograms, worst))
+    files.update(draw_all(sweep_figures(program, summary.runs, *histograms, worst)))
     return files
 
 
@@ -139,5 +172,5 @@ def replay_files(program: SweepProgram, result: SampleResult) -> dict[str, bytes
         f"sample_{index}.md": (
             f"# Sample {index} of a sweep of {program.name}\n\n" + "\n".join(table) + "\n"
         ).encode(),
-        **replay_figure(program, result.row, result.trajectory),
+        **draw(replay_figure(program, result.row, result.trajectory)),
     }

@@ -50,6 +50,7 @@ from tvopt_codegen.limits import MAX_POINTS, MAX_T_FINAL, METHODS, Budget
 if TYPE_CHECKING:
     from typing import TypeAlias
 
+    from tvopt_codegen.artifacts import Drawer
     from tvopt_codegen.derivation import Derivation
     from tvopt_codegen.ir import KernelSet
 
@@ -679,6 +680,14 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
+    # First: the drawing process imports matplotlib while this one loads sympy and derives.
+    from tvopt_codegen.drawing import Painter  # noqa: PLC0415
+
+    with Painter() as painter:
+        return _simulate_with(args, painter)
+
+
+def _simulate_with(args: argparse.Namespace, painter: Drawer) -> int:
     from tvopt_codegen.artifacts import result_files  # noqa: PLC0415 - matplotlib on use
     from tvopt_codegen.emit import write_files  # noqa: PLC0415
     from tvopt_codegen.simulation import (  # noqa: PLC0415
@@ -791,7 +800,7 @@ def _simulate(args: argparse.Namespace) -> int:
             result = sampled.continuous
     finally:
         progress.close()
-    files = result_files(derivation, result)
+    files = result_files(derivation, result, painter)
     text = format_certificate(derivation, result)
     passed = result.passed
     if sampled is not None:

@@ -1,7 +1,9 @@
-"""Figures of a simulated closed loop, rendered in memory (PNG and SVG).
+"""What the figures of a run, a sweep and a replay show, as data (:class:`Plot`).
 
-Drawn on ``matplotlib.figure.Figure`` with the Agg canvas, never through pyplot or
-``matplotlib.use``: a library user's plotting backend and open figures are left alone.
+Each figure is described here, where the run's results are, as the calls its panels
+make: arrays, labels and styles, nothing of matplotlib. :mod:`tvopt_codegen.drawing`
+draws the descriptions, in this process or in a drawing process started before the
+derivation (``simulate``), so that matplotlib's import does not wait for sympy's.
 
 The planar figure follows the paper's Figs. 1-3: the moving objects, the target path
 y* (dashed), each agent's path, and start points marked with stars.
@@ -9,19 +11,14 @@ y* (dashed), each agent's path, and start points marked with stars.
 
 from __future__ import annotations
 
-import io
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-import matplotlib
 import numpy as np
 import sympy as sp
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.ticker import FuncFormatter, NullLocator
-from PIL import Image
 
 from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.drawing import Panel, Plot
 
 if TYPE_CHECKING:
     from tvopt_codegen.simulation import Result
@@ -32,83 +29,16 @@ _COLORS = ("tab:red", "tab:purple", "tab:orange", "tab:brown", "tab:pink", "tab:
 _OBJECT_COLORS = ("black", "tab:blue", "tab:gray", "tab:cyan")
 
 
-#: The margin around a figure's tight box, in inches (matplotlib's ``pad_inches``).
-_PAD = 0.1
-#: Pixels per inch of the PNG figures.
-_DPI = 120
+def _axes(stem: str, width: float, height: float) -> tuple[Plot, Panel]:
+    """A one-panel figure and its panel."""
+    plot = Plot(stem, (width, height))
+    return plot, plot.panels[0]
 
 
-_SUPERSCRIPT = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
-
-
-def _power_of_ten(value: float, _position: int | None = None) -> str:
-    """``10⁻⁴`` for a decade, in plain text; nothing between decades."""
-    if value <= 0:
-        return ""
-    exponent = np.log10(value)
-    if abs(exponent - round(exponent)) > 1e-9:
-        return ""
-    return "10" + str(round(exponent)).translate(_SUPERSCRIPT)
-
-
-def _plain_log_labels(fig: Any) -> None:
-    """Label log axes in plain text.
-
-    matplotlib's default log labels are mathtext (``$10^{-4}$``), which its parser reads
-    anew for every figure: half of drawing a small ``simulate``'s figures.
-    """
-    for ax in fig.axes:
-        for axis in (ax.xaxis, ax.yaxis):
-            if axis.get_scale() == "log":
-                axis.set_major_formatter(FuncFormatter(_power_of_ten))
-                axis.set_minor_locator(NullLocator())
-
-
-def _save(fig: Any, stem: str) -> dict[str, bytes]:
-    """Both formats, with the metadata that would make them differ between runs removed.
-
-    The figure is rendered once, at full size, on its Agg canvas; the tight box is found
-    on that rendering, the PNG is cut from its pixels, and the SVG is written inside the
-    same box. ``bbox_inches="tight"`` draws a figure once more per format to find the box,
-    which tripled a small ``simulate``'s drawing time.
-    """
-    _plain_log_labels(fig)
-    with matplotlib.rc_context({"svg.hashsalt": "tvopt-codegen", "svg.fonttype": "none"}):
-        fig.set_dpi(_DPI)
-        canvas = fig.canvas
-        canvas.draw()
-        box = fig.get_tightbbox(canvas.get_renderer()).padded(_PAD)
-        png = io.BytesIO()
-        Image.fromarray(_cut(np.asarray(canvas.buffer_rgba()), box)).save(
-            png, format="png", dpi=(_DPI, _DPI)
-        )
-        svg = io.BytesIO()
-        fig.savefig(svg, format="svg", dpi=_DPI, bbox_inches=box, metadata={"Date": None})
-    return {f"{stem}.png": png.getvalue(), f"{stem}.svg": svg.getvalue()}
-
-
-def _cut(pixels: np.ndarray, box: Any) -> np.ndarray:
-    """The pixels inside ``box`` (inches from the bottom left), white where it overhangs.
-
-    The padded tight box may reach past the canvas (a title at the top edge), as
-    ``bbox_inches`` allows: the overhang is blank paper.
-    """
-    height, width = pixels.shape[:2]
-    left, right = (round(v * _DPI) for v in (box.x0, box.x1))
-    top, bottom = (height - round(v * _DPI) for v in (box.y1, box.y0))
-    out = np.full((bottom - top, right - left, 4), 255, dtype=np.uint8)
-    rows = slice(max(top, 0), min(bottom, height))
-    cols = slice(max(left, 0), min(right, width))
-    inside = pixels[rows, cols]
-    out[rows.start - top :, cols.start - left :][: inside.shape[0], : inside.shape[1]] = inside
-    return out
-
-
-def _axes(width: float, height: float) -> tuple[Figure, Any]:
-    """A figure on its own Agg canvas (no pyplot state), and its one axes."""
-    fig = Figure(figsize=(width, height))
-    FigureCanvasAgg(fig)
-    return fig, fig.subplots()
+def _two_panels(stem: str) -> tuple[Plot, Panel, Panel]:
+    """A figure of two panels over one time axis, and its panels, top first."""
+    plot = Plot(stem, (6.4, 6.0), rows=2, sharex=True)
+    return plot, plot.panels[0], plot.panels[1]
 
 
 def _signal_values(derivation: Derivation, result: Result, name: str) -> np.ndarray:
@@ -129,11 +59,11 @@ def _signal_values(derivation: Derivation, result: Result, name: str) -> np.ndar
     return np.broadcast_to(np.asarray(func(result.t, *values), dtype=float), result.t.shape)
 
 
-def trajectory_figure(derivation: Derivation, result: Result) -> Any:
+def trajectory_figure(derivation: Derivation, result: Result) -> Plot:
     """The x-y picture: objects, y*, agent paths, stars at the starts."""
     d, r = derivation, result
     index = {name: i for i, name in enumerate(d.spec.outputs)}
-    fig, ax = _axes(6.4, 5.2)
+    fig, ax = _axes(f"{d.spec.name}_paths", 6.4, 5.2)
     for j, (sx, sy) in enumerate(d.spec.objects):
         ox, oy = _signal_values(d, r, sx), _signal_values(d, r, sy)
         color = _OBJECT_COLORS[j % len(_OBJECT_COLORS)]
@@ -162,10 +92,10 @@ def trajectory_figure(derivation: Derivation, result: Result) -> Any:
     return fig
 
 
-def convergence_figure(derivation: Derivation, result: Result) -> Any:
+def convergence_figure(derivation: Derivation, result: Result) -> Plot:
     """|y - y*| and |E| on a log scale, with the theorem's bounds."""
     r = result
-    fig, ax = _axes(6.4, 4.0)
+    fig, ax = _axes(f"{derivation.spec.name}_convergence", 6.4, 4.0)
     norms = np.linalg.norm(r.E.reshape(len(r.t), -1), axis=1)
     floor = 1e-16
     ax.semilogy(r.t, np.maximum(r.error, floor), color="tab:red", lw=2, label="|y - y*|")
@@ -188,9 +118,9 @@ def convergence_figure(derivation: Derivation, result: Result) -> Any:
     return fig
 
 
-def inputs_figure(derivation: Derivation, result: Result) -> Any:
+def inputs_figure(derivation: Derivation, result: Result) -> Plot:
     """Plant inputs over time."""
-    fig, ax = _axes(6.4, 3.6)
+    fig, ax = _axes(f"{derivation.spec.name}_inputs", 6.4, 3.6)
     for i, name in enumerate(derivation.spec.inputs):
         ax.plot(result.t, result.inputs[i], lw=1.5, label=name)
     ax.set_xlabel("t")
@@ -201,16 +131,14 @@ def inputs_figure(derivation: Derivation, result: Result) -> Any:
     return fig
 
 
-def references_figure(derivation: Derivation, result: Result) -> Any:
+def references_figure(derivation: Derivation, result: Result) -> Plot:
     """References estimated from samples: samples, estimate, truth, and the error.
 
     The bottom panel shows the estimate's error per derivative order and ``|y - y*|``.
     """
     d, r = derivation, result
     source = r.references
-    fig = Figure(figsize=(6.4, 6.0))
-    FigureCanvasAgg(fig)
-    top, bottom = fig.subplots(2, 1, sharex=True)
+    fig, top, bottom = _two_panels(f"{d.spec.name}_references")
     estimated = np.array([source.jets(t) for t in r.t])  # (T, n_refs, q + 1)
     truth = np.array([source.exact(t) for t in r.t]) if source.exact is not None else None
     shown = np.linspace(0, len(source.times) - 1, min(len(source.times), 400)).astype(int)
@@ -239,7 +167,7 @@ def references_figure(derivation: Derivation, result: Result) -> Any:
     return fig
 
 
-def constraints_figure(derivation: Derivation, result: Result) -> Any:
+def constraints_figure(derivation: Derivation, result: Result) -> Plot:
     """Each constraint's two sides as the boundary moves, and how far it is from failing.
 
     Below: the margin ``s - g`` of each inequality, and ``|a|`` of each equality under
@@ -247,9 +175,7 @@ def constraints_figure(derivation: Derivation, result: Result) -> Any:
     """
     d, r = derivation, result
     check = r.constraints
-    fig = Figure(figsize=(6.4, 6.0))
-    FigureCanvasAgg(fig)
-    top, bottom = fig.subplots(2, 1, sharex=True)
+    fig, top, bottom = _two_panels(f"{d.spec.name}_constraints")
     p = len(d.model.constraints)
     for i, constraint in enumerate((*d.model.constraints, *d.model.equalities)):
         color = _COLORS[i % len(_COLORS)]
@@ -277,30 +203,28 @@ def constraints_figure(derivation: Derivation, result: Result) -> Any:
     return fig
 
 
-def figures(derivation: Derivation, result: Result) -> dict[str, bytes]:
-    """All figures of a run: ``<name>_{paths,convergence,inputs}.{png,svg}``.
+def figures(derivation: Derivation, result: Result) -> list[Plot]:
+    """All figures of a run: ``<name>_{paths,convergence,inputs}``.
 
-    And ``<name>_references`` when the references were estimated from samples.
+    And ``<name>_constraints`` for a spec with constraints, ``<name>_references`` when
+    the references were estimated from samples.
     """
-    name = derivation.spec.name
-    out: dict[str, bytes] = {}
+    plots = []
     if derivation.spec.agents:
-        out.update(_save(trajectory_figure(derivation, result), f"{name}_paths"))
-    out.update(_save(convergence_figure(derivation, result), f"{name}_convergence"))
-    out.update(_save(inputs_figure(derivation, result), f"{name}_inputs"))
+        plots.append(trajectory_figure(derivation, result))
+    plots.append(convergence_figure(derivation, result))
+    plots.append(inputs_figure(derivation, result))
     if result.constraints is not None:
-        out.update(_save(constraints_figure(derivation, result), f"{name}_constraints"))
+        plots.append(constraints_figure(derivation, result))
     if result.references is not None and result.references.estimated:
-        out.update(_save(references_figure(derivation, result), f"{name}_references"))
-    return out
+        plots.append(references_figure(derivation, result))
+    return plots
 
 
-def sampled_figure(derivation: Derivation, result: SampledResult) -> Any:
-    """The sampled outputs over the continuous ones, and their distance on a log scale."""
+def sampled_figure(derivation: Derivation, result: SampledResult) -> Plot:
+    """``<name>_sampled``: the sampled outputs over the continuous ones, their distance."""
     d, r = derivation, result
-    fig = Figure(figsize=(6.4, 6.0))
-    FigureCanvasAgg(fig)
-    top, bottom = fig.subplots(2, 1, sharex=True)
+    fig, top, bottom = _two_panels(f"{d.spec.name}_sampled")
     continuous = r.continuous
     for i, name in enumerate(d.spec.outputs):
         color = _COLORS[i % len(_COLORS)]
@@ -326,11 +250,6 @@ def sampled_figure(derivation: Derivation, result: SampledResult) -> Any:
     return fig
 
 
-def sampled_figures(derivation: Derivation, result: SampledResult) -> dict[str, bytes]:
-    """``<name>_sampled.{png,svg}``: the sampled run over the continuous one."""
-    return _save(sampled_figure(derivation, result), f"{derivation.spec.name}_sampled")
-
-
 def _trajectory_error(program: SweepProgram, trajectory: np.ndarray) -> tuple[Any, Any]:
     """Times and ``|y - y*|`` of one sweep trajectory (rows: t, s, y, y*, ...)."""
     n, m = len(program.state_names), len(program.output_names)
@@ -345,15 +264,14 @@ def sweep_figures(
     finals: np.ndarray,
     settle: np.ndarray,
     worst: Mapping[int, np.ndarray],
-) -> dict[str, bytes]:
+) -> list[Plot]:
     """``sweep_histograms``: final error and settling time; ``sweep_worst``: the worst runs.
 
     ``finals`` and ``settle`` are the ok samples' final errors and settling times (NaN:
     never settled) of the ``runs`` samples.
     """
-    fig = Figure(figsize=(9.0, 3.6))
-    FigureCanvasAgg(fig)
-    left, right = fig.subplots(1, 2)
+    histograms = Plot("sweep_histograms", (9.0, 3.6), cols=2)
+    left, right = histograms.panels
     ok = finals
     if len(finals):
         positive = np.maximum(finals, 1e-16)
@@ -371,8 +289,7 @@ def sweep_figures(
     right.set_title(f"{len(ok) - len(settle)} never settled", fontsize=10)
     for axes in (left, right):
         axes.grid(alpha=0.3)
-    out = _save(fig, "sweep_histograms")
-    fig, axes = _axes(6.4, 4.0)
+    fig, axes = _axes("sweep_worst", 6.4, 4.0)
     for rank, (index, trajectory) in enumerate(worst.items()):
         t, error = _trajectory_error(program, trajectory)
         axes.semilogy(
@@ -388,18 +305,13 @@ def sweep_figures(
     axes.grid(alpha=0.3, which="both")
     if worst:
         axes.legend(fontsize=8)
-    out.update(_save(fig, "sweep_worst"))
-    return out
+    return [histograms, fig]
 
 
-def replay_figure(
-    program: SweepProgram, row: Mapping[str, Any], trajectory: np.ndarray
-) -> dict[str, bytes]:
+def replay_figure(program: SweepProgram, row: Mapping[str, Any], trajectory: np.ndarray) -> Plot:
     """``sample_<id>``: one replayed run's outputs over their targets, and its error."""
     n, m = len(program.state_names), len(program.output_names)
-    fig = Figure(figsize=(6.4, 6.0))
-    FigureCanvasAgg(fig)
-    top, bottom = fig.subplots(2, 1, sharex=True)
+    fig, top, bottom = _two_panels(f"sample_{row['sample']}")
     t = trajectory[:, 0]
     for i, name in enumerate(program.output_names):
         color = _COLORS[i % len(_COLORS)]
@@ -414,4 +326,4 @@ def replay_figure(
     bottom.set_xlabel("t")
     bottom.set_ylabel("|y - y*|")
     bottom.grid(alpha=0.3, which="both")
-    return _save(fig, f"sample_{row['sample']}")
+    return fig

@@ -10,7 +10,7 @@ from :mod:`tvopt_codegen.derivation.calculus`; nothing here differentiates.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -63,20 +63,29 @@ class RunCheck:
     equality: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
 
+#: A function of ``(t, y, references)`` returning an array: a vector or a matrix.
+Vector = Callable[[float, np.ndarray, list[float]], np.ndarray]
+
+
 @dataclass(frozen=True)
 class _Problem:
-    """The constrained problem in numbers: f0, the g_i, their gradients, f0's domain."""
+    """The constrained problem in numbers: f0, the g_i, their gradients, f0's domain.
+
+    Each group is one function returning all its values (lambdify's printing and
+    compiling is paid per function: one per expression was most of a constrained
+    ``simulate``'s check).
+    """
 
     f0: Any
-    f0_grad: list[Any]
-    g: list[Any]
-    g_grad: list[list[Any]]
-    a: list[Any]
-    a_grad: list[list[Any]]
-    domain: list[Any]
-    domain_grad: list[list[Any]]
-    numeric: Any
-    refs_at: Any
+    f0_grad: Vector
+    g: Vector
+    g_grad: Vector
+    a: Vector
+    a_grad: Vector
+    domain: Vector
+    domain_grad: Vector
+    numeric: Callable[..., Vector]
+    refs_at: Callable[[float], list[float]]
 
 
 def _problem(model: Any, values: Mapping[sp.Symbol, float], references: Any) -> _Problem:
@@ -84,10 +93,16 @@ def _problem(model: Any, values: Mapping[sp.Symbol, float], references: Any) -> 
     t = model.t
     signals = {s: e for s, e in model.signals}
     fixed = {q: sp.Float(v) for q, v in values.items()}
+    arguments = [t, model.y, model.references]
 
-    def numeric(expr: sp.Expr) -> Any:
-        expr = inline_signals(expr, signals).xreplace(fixed)
-        return sp.lambdify([t, model.y, model.references], expr, "math")
+    def numeric(exprs: Sequence[sp.Expr], rows: int | None = None) -> Vector:
+        """All of ``exprs`` in one function: an array, ``rows`` x the rest when given."""
+        inlined = [inline_signals(e, signals).xreplace(fixed) for e in exprs]
+        shape = (len(inlined),) if rows is None else (rows, len(inlined) // max(rows, 1))
+        if not inlined:
+            return lambda _t, _y, _r: np.zeros(shape)
+        function = sp.lambdify(arguments, inlined, "math")
+        return lambda time, y, r: np.array(function(time, y, r), dtype=float).reshape(shape)
 
     def refs_at(time: float) -> list[float]:
         if not model.references or references is None:
@@ -95,22 +110,22 @@ def _problem(model: Any, values: Mapping[sp.Symbol, float], references: Any) -> 
         jets = (references.exact or references.jets)(time)
         return [float(v) for v in jets[:, 0]]
 
+    def matrix(rows: Sequence[Sequence[sp.Expr]]) -> Vector:
+        return numeric([e for row in rows for e in row], rows=len(rows))
+
     domain, domain_grad = calculus.objective_domain(model)
     equal = calculus.equality_calculus(model)
-    m = len(model.y)
+    f0 = inline_signals(calculus.objective_of(model), signals).xreplace(fixed)
     return _Problem(
-        f0=numeric(calculus.objective_of(model)),
+        f0=sp.lambdify(arguments, f0, "math"),
         # Exact gradients for the solver: f0's barriers (the paper's tan) are steep.
-        f0_grad=[numeric(e) for e in calculus.objective_gradient(model)],
-        g=[numeric(c.g) for c in model.constraints],
-        g_grad=[[numeric(e) for e in row] for row in calculus.constraint_gradients(model)],
-        a=[numeric(c.g) for c in model.equalities],
-        a_grad=[
-            [numeric(e) for e in equal.jacobian[j * m : (j + 1) * m]]
-            for j in range(len(model.equalities))
-        ],
-        domain=[numeric(e) for e in domain],
-        domain_grad=[[numeric(e) for e in row] for row in domain_grad],
+        f0_grad=numeric(calculus.objective_gradient(model)),
+        g=numeric([c.g for c in model.constraints]),
+        g_grad=matrix(calculus.constraint_gradients(model)),
+        a=numeric([c.g for c in model.equalities]),
+        a_grad=numeric(equal.jacobian, rows=len(model.equalities)),
+        domain=numeric(list(domain)),
+        domain_grad=matrix(domain_grad),
         numeric=numeric,
         refs_at=refs_at,
     )
@@ -121,40 +136,44 @@ def _minimise(
 ) -> np.ndarray:
     """f0's minimiser subject to ``g_i <= s`` and ``a_j = 0``, by SLSQP near ``centre``.
 
-    The search stays in the box of half-width ``radius`` around ``centre``.
+    The search stays in the box of half-width ``radius`` around ``centre``. Each group of
+    constraints is one vector constraint of SLSQP's (its rows in order, as the solver
+    stacks them).
     """
     from scipy.optimize import minimize  # noqa: PLC0415 - only simulate needs it
 
-    inequalities = [
-        {
-            "type": "ineq",
-            "fun": lambda y, gi=gi: s - gi(time, y, r),
-            "jac": lambda y, row=row: -np.array([d(time, y, r) for d in row]),
-        }
-        for gi, row in zip(problem.g, problem.g_grad, strict=True)
-    ] + [
-        {
-            "type": "ineq",
-            "fun": lambda y, e=e: e(time, y, r),
-            "jac": lambda y, row=row: np.array([d(time, y, r) for d in row]),
-        }
-        for e, row in zip(problem.domain, problem.domain_grad, strict=True)
-    ]
-    equal = [
-        {
-            "type": "eq",
-            "fun": lambda y, ai=ai: ai(time, y, r),
-            "jac": lambda y, row=row: np.array([d(time, y, r) for d in row]),
-        }
-        for ai, row in zip(problem.a, problem.a_grad, strict=True)
-    ]
+    constraints: list[dict[str, Any]] = []
+    if problem.g(time, centre, r).size:
+        constraints.append(
+            {
+                "type": "ineq",
+                "fun": lambda y: s - problem.g(time, y, r),
+                "jac": lambda y: -problem.g_grad(time, y, r),
+            }
+        )
+    if problem.domain(time, centre, r).size:
+        constraints.append(
+            {
+                "type": "ineq",
+                "fun": lambda y: problem.domain(time, y, r),
+                "jac": lambda y: problem.domain_grad(time, y, r),
+            }
+        )
+    if problem.a(time, centre, r).size:
+        constraints.append(
+            {
+                "type": "eq",
+                "fun": lambda y: problem.a(time, y, r),
+                "jac": lambda y: problem.a_grad(time, y, r),
+            }
+        )
     result = minimize(
         lambda y: problem.f0(time, y, r),
         centre,
-        jac=lambda y: np.array([d(time, y, r) for d in problem.f0_grad]),
+        jac=lambda y: problem.f0_grad(time, y, r),
         method="SLSQP",
         bounds=[(c - radius, c + radius) for c in centre],
-        constraints=inequalities + equal,
+        constraints=constraints,
         options={"ftol": 1e-15, "maxiter": 1000},
     )
     minimiser: np.ndarray = result.x
@@ -193,41 +212,39 @@ def check_run(
     """
     problem = _problem(model, values, references)
     t, numeric, refs_at = model.t, problem.numeric, problem.refs_at
-    g = problem.g
     fixed = {q: sp.Float(v) for q, v in values.items()}
     slack_of = sp.lambdify(t, model.slack.xreplace(fixed), "math")
     mu_of = sp.lambdify(t, model.mu.xreplace(fixed), "math")
     slack = np.array([slack_of(float(time)) for time in ts])
+    refs = [refs_at(float(time)) for time in ts]
 
-    def along(functions: Sequence[Any]) -> np.ndarray:
-        return np.array(
-            [
-                [f(float(time), outputs[:, k], refs_at(float(time))) for k, time in enumerate(ts)]
-                for f in functions
-            ],
-            dtype=float,
-        ).reshape(len(functions), len(ts))
+    def along(function: Vector) -> np.ndarray:
+        """A vector function's rows at every output time: shape (rows, T)."""
+        values = [function(float(time), outputs[:, k], refs[k]) for k, time in enumerate(ts)]
+        return np.array(values, dtype=float).reshape(len(ts), -1).T
 
-    margins = slack[None, :] - along(g)
+    margins = slack[None, :] - along(problem.g)
     equality = along(problem.a)
+    every = (*model.constraints, *model.equalities)
     end = float(ts[-1])
-    final = tuple(
-        (c.name, float(gi(end, outputs[:, -1], refs_at(end))))
-        for c, gi in zip((*model.constraints, *model.equalities), (*g, *problem.a), strict=True)
+    at_end = np.concatenate(
+        [problem.g(end, outputs[:, -1], refs[-1]), problem.a(end, outputs[:, -1], refs[-1])]
     )
+    final = tuple((c.name, float(v)) for c, v in zip(every, at_end, strict=True))
     picks = np.unique(np.linspace(0, len(ts) - 1, checked).round().astype(int))
-    hessian = [[numeric(e) for e in row] for row in calculus.objective_hessian(model)]
+    hessian = numeric(
+        [e for row in calculus.objective_hessian(model) for e in row], rows=len(model.y)
+    )
 
     def smallest(time: float, y: np.ndarray, r: list[float]) -> float:
-        matrix = np.array([[h(time, y, r) for h in row] for row in hessian], dtype=float)
-        return float(np.linalg.eigvalsh(matrix)[0])
+        return float(np.linalg.eigvalsh(hessian(time, y, r))[0])
 
     p = len(model.constraints)
-    m_f = min(smallest(float(ts[k]), outputs[:, k], refs_at(float(ts[k]))) for k in picks)
+    m_f = min(smallest(float(ts[k]), outputs[:, k], refs[k]) for k in picks)
     minimisers, distance, bound = [], [], []
     for k in picks:
         time = float(ts[k])
-        r = refs_at(time)
+        r = refs[k]
         s = slack[k]
         gap = math.sqrt(2.0 * p * mu_of(time) / m_f) if m_f > 0 else math.inf
         # A local solve from the barrier's minimiser, within twice the gap the theory
@@ -241,9 +258,8 @@ def check_run(
         minimisers.append(result_x)
         distance.append(math.inf if on_box else float(np.linalg.norm(outputs[:, k] - result_x)))
         bound.append(float(to_phi[k] + gap))
-    every = (*model.constraints, *model.equalities)
-    lhs = along([numeric(c.lhs) for c in every])
-    rhs = along([numeric(c.rhs) for c in every])
+    lhs = along(numeric([c.lhs for c in every]))
+    rhs = along(numeric([c.rhs for c in every]))
     return RunCheck(
         margins=margins,
         slack=slack,
