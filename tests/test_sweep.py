@@ -85,6 +85,40 @@ def test_continuous_loop_takes_scipys_steps_and_matches_its_states() -> None:
     assert np.max(np.abs(target.T - rows[:, c["target"]])) < 1e-10
 
 
+def test_the_target_path_jumps_where_newton_converges_and_agrees_in_both_languages() -> None:
+    """y* of a barrier's f0 by extrapolation and undamped Newton, in C as in Python.
+
+    Each row's y* is exact to f0's rounding (a Newton step from it is below 1e-12), the
+    careful substeps run only where the jump was refused, and the compiled loop's target
+    column is the Python path's.
+    """
+    name = "two_unicycles_barrier"
+    p = program(name)
+    options = SweepOptions(samples=1, seed=5, t_final=10.0, points=201)
+    outcome, rows, _info = loop_for(p).run(options, draw(p, options, 0))
+    assert outcome == Status.OK
+    c = _columns(p)
+    mod = module(name)
+    calls = {"gradient": 0}
+
+    class Counted:
+        def __getattr__(self, attribute: str) -> object:
+            if attribute == "gradient":
+                calls["gradient"] += 1
+            return getattr(mod, attribute)
+
+    ts = rows[:, 0]
+    target = minimizer_path(Counted(), ts, rows[-1, c["y"]], {})  # type: ignore[arg-type]
+    assert np.max(np.abs(target.T - rows[:, c["target"]])) < 1e-12
+    steps = [
+        np.linalg.norm(np.linalg.solve(mod.hessian(t, y, {}), mod.gradient(t, y, {})))
+        for t, y in zip(ts, target.T, strict=True)
+    ]
+    assert max(steps) < 1e-12
+    # Five damped substeps of several iterations per row took about 18 gradients a row.
+    assert calls["gradient"] < 5 * len(ts)
+
+
 def test_mismatch_and_saturation_match_an_independent_loop() -> None:
     """The true plant's parameters and clipped inputs, against solve_ivp on the model."""
     p = program("pvtol")

@@ -36,6 +36,10 @@ class NewtonRule:
         Converged when a step is below ``stop * (1 + |y|)``.
     iterations : int
         Iterations from a warm start (a row's neighbour on the path).
+    rounding : float
+        f0's relative rounding: a decrease below ``rounding * |f0|`` is not resolved, and
+        a path's jump takes such a last Newton step whole (see
+        :func:`tvopt_codegen.simulation.target.minimizer_path`).
     """
 
     step_cap: float = 0.02
@@ -44,6 +48,7 @@ class NewtonRule:
     smallest_scale: float = 1e-8
     stop: float = 1e-14
     iterations: int = 200
+    rounding: float = 16 * 2.0**-52
 
 
 #: The one Newton rule of the certificate and the sweep.

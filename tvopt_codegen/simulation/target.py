@@ -68,9 +68,17 @@ def minimizer_path(
         extra = (refs or (lambda t: {}))(t)
         if inside is not None and not _defined(controller, t, y, params, extra):
             y = np.array(inside[:, index], dtype=float)
-        return _newton(controller, t, y, params, extra, budget)
+        solved = _newton(controller, t, y, params, extra, budget)
+        assert solved is not None
+        return solved
 
-    return _backward(ts, start, step)
+    def jump(t: float, y: np.ndarray) -> np.ndarray | None:
+        extra = (refs or (lambda t: {}))(t)
+        if not _defined(controller, t, y, params, extra):
+            return None
+        return _newton(controller, t, y, params, extra, NEWTON.iterations, strict=True)
+
+    return _backward(ts, start, step, jump)
 
 
 def _quadratic_path(
@@ -94,7 +102,10 @@ def _quadratic_path(
 
 
 def _backward(
-    ts: np.ndarray, start: np.ndarray, step: Callable[[float, np.ndarray, int, int], np.ndarray]
+    ts: np.ndarray,
+    start: np.ndarray,
+    step: Callable[[float, np.ndarray, int, int], np.ndarray],
+    jump: Callable[[float, np.ndarray], np.ndarray | None] | None = None,
 ) -> np.ndarray:
     """Follow a solution backward in time from ``start`` at ``ts[-1]``, warm-starting.
 
@@ -102,12 +113,24 @@ def _backward(
     time being approached) in at most ``budget`` iterations; five substeps lie between
     output times. The first point may start far from the solution (a run that has not
     converged): its capped steps get :data:`START_ITERATIONS`, the warm starts NEWTON.iterations.
+
+    ``jump(t, w)``, when given, is tried first at each output time, from the last two
+    solutions' linear extrapolation: a solve that answers None unless it stayed where
+    Newton's method converges by itself (no step capped or cut back), and so reaches
+    the same solution the substeps would. Where it answers None the substeps run.
     """
     substeps = 5
     path = np.empty((len(start), len(ts)))
     w = np.array(start, dtype=float)
     for index in range(len(ts) - 1, -1, -1):
         later = ts[min(index + 1, len(ts) - 1)]
+        if jump is not None and index < len(ts) - 2:
+            slope = (path[:, index + 2] - w) / (ts[index + 2] - later)
+            found = jump(float(ts[index]), w + slope * (ts[index] - later))
+            if found is not None:
+                w = found
+                path[:, index] = w
+                continue
         for t in (
             np.linspace(later, ts[index], substeps + 1)[1:] if index < len(ts) - 1 else [ts[-1]]
         ):
@@ -138,8 +161,13 @@ def _newton(
     params: Mapping[str, float] | None,
     extra: Mapping[str, Any] | None = None,
     iterations: int = NEWTON.iterations,
-) -> np.ndarray:
-    """Minimize f0(., t) from ``y``: damped Newton with capped steps."""
+    strict: bool = False,
+) -> np.ndarray | None:
+    """Minimize f0(., t) from ``y``: damped Newton with capped steps.
+
+    ``strict``: None instead of a damped or capped step, a gradient step, or no
+    convergence within ``iterations`` (the caller then takes the careful way).
+    """
     extra = extra or {}
     # f0 where the line search stopped is f0 at the next iterate: no second evaluation.
     value = None
@@ -149,7 +177,15 @@ def _newton(
         try:
             step = np.linalg.solve(hess, grad)
         except np.linalg.LinAlgError:
+            if strict:
+                return None
             step = grad
+        if strict:
+            size = float(np.linalg.norm(step))
+            if size <= NEWTON.stop * (1.0 + float(np.linalg.norm(y))):
+                return y - step  # converged: f0's decrease would be below its rounding
+            if grad @ step <= 0 or size > NEWTON.step_cap:
+                return None
         if grad @ step <= 0:  # not a descent direction: fall back to the gradient
             step = grad
         size = float(np.linalg.norm(step))
@@ -165,17 +201,25 @@ def _newton(
                 trial_value = controller.objective(t, trial, params, **extra)
             except ArithmeticError:
                 trial_value = np.inf
-            if np.isfinite(trial_value) and trial_value <= value - NEWTON.armijo * scale * (
-                grad @ step
+            descent = grad @ step
+            noise = NEWTON.rounding * abs(value)
+            if np.isfinite(trial_value) and (
+                trial_value <= value - NEWTON.armijo * scale * descent
+                # A whole step whose decrease is below f0's rounding cannot be judged
+                # by it: the last step of Newton's method, taken (backtracking would
+                # shrink it until the scale ran out, leaving y short of y*).
+                or (scale == 1.0 and descent <= noise and trial_value <= value + noise)
             ):
                 accepted = trial_value
                 break
+            if strict:
+                return None
             scale *= NEWTON.shrink
         y = y - scale * step
         value = accepted
         if size * scale <= NEWTON.stop * (1.0 + float(np.linalg.norm(y))):
-            break
-    return y
+            return y
+    return None if strict else y
 
 
 def _kkt_newton(
