@@ -39,7 +39,7 @@ $(INSTALLED): $(CORE)
 # none itself, and where PYTHONDONTWRITEBYTECODE is set (this CI machine, most container
 # images) every command compiled the package's 15,000 lines anew, 0.13-0.18 s of a small
 # one. Python still checks each file against its source: an edit is never run stale.
-$(READY): $(INSTALLED) $(wildcard tvopt_codegen/*.py)
+$(READY): $(INSTALLED) $(shell find tvopt_codegen -name "*.py")
 	$(PY) -m compileall -q tvopt_codegen
 	touch $(READY)
 

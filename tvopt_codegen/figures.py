@@ -55,7 +55,9 @@ def _signal_values(derivation: Derivation, result: Result, name: str) -> np.ndar
         result.options.params.get(q.name, v)
         for q, v in zip(d.model.params, d.model.defaults, strict=True)
     ]
-    func = sp.lambdify([d.model.t, *d.model.params], expr, "numpy")
+    # NumPy's module, not the name "numpy": lambdify would then run `from numpy import *`,
+    # which imports f2py, numpy.testing and a dozen more (0.1 s of a small simulate).
+    func = sp.lambdify([d.model.t, *d.model.params], expr, modules=[np])
     return np.broadcast_to(np.asarray(func(result.t, *values), dtype=float), result.t.shape)
 
 
