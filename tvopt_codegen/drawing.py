@@ -202,6 +202,19 @@ def _warm() -> None:
     import PIL.Image  # noqa: F401, PLC0415
     import PIL.PngImagePlugin  # noqa: F401, PLC0415
 
+    # One small figure of each kind, drawn and thrown away: the fonts, the text layout's
+    # caches and the renderers' first-use set-up are then ready for the real ones.
+    practice = Plot("practice", (2.0, 2.0), rows=2)
+    top, bottom = practice.panels
+    top.plot([0.0, 1.0], [0.0, 1.0], "--", label="a")
+    top.set_title("a")
+    top.set_xlabel("t")
+    top.legend(fontsize=8)
+    top.grid(alpha=0.3)
+    bottom.semilogy([0.0, 1.0], [1e-3, 1.0], label="b")
+    bottom.legend(fontsize=7)
+    draw(practice)
+
 
 _LENGTH = struct.Struct("<Q")
 
