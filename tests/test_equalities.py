@@ -14,7 +14,8 @@ from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.errors import EXIT_ASSUMPTION, EXIT_BAD_SPEC
 from tvopt_codegen.ir import lower
-from tvopt_codegen.simulation import load_controller, resolve_options, simulate
+from tvopt_codegen.simulation import kkt_path, load_controller, resolve_options, simulate
+from tvopt_codegen.simulation.constraints import equalities
 from tvopt_codegen.spec import load_spec
 from tvopt_codegen.sweep import SweepOptions, run_sample, tail
 
@@ -188,7 +189,14 @@ def test_the_sweep_follows_the_kkt_path() -> None:
     rows = result.trajectory
     assert rows is not None and result.row["status"] == "ok"
     target = rows[:, _columns(p)["target"]].T
-    assert np.max(np.abs(target - _projection(rows[:, 0]))) < 1e-9
+    assert np.max(np.abs(target - _projection(rows[:, 0]))) < 1e-12
+    # The same path as the certificate's: its jumps and substeps, in Python.
+    d = derivation(ARM)
+    eq = equalities(d.model, dict(zip(d.model.params, d.model.defaults, strict=True)))
+    states = [1 + d.state_names.index(chain[0]) for chain in d.multiplier_states]
+    start = np.concatenate([rows[-1, _columns(p)["y"]], rows[-1, states]])
+    path = kkt_path(module(ARM), eq, rows[:, 0], start, {})
+    assert np.max(np.abs(path[: len(d.spec.outputs)] - target)) < 1e-12
     np.testing.assert_allclose(tail(rows, "m_f"), math.sqrt(2) - 1, rtol=1e-9)
     y = rows[:, _columns(p)["y"]].T
     a = np.abs(np.sum(_normal(rows[:, 0]) * y, axis=0) - 1.0)

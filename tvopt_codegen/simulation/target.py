@@ -230,13 +230,14 @@ def _kkt_newton(
     params: Mapping[str, float] | None,
     extra: Mapping[str, Any],
     iterations: int = NEWTON.iterations,
-) -> np.ndarray:
+    strict: bool = False,
+) -> np.ndarray | None:
     """Solve the KKT system ``F(y, nu, t) = 0`` from ``w = (y, nu)``: damped Newton.
 
     ``F = [grad f0 + J_a^T nu; a]`` (f0's gradient and Hessian from the module, the
     equalities from ``eq``, :func:`tvopt_codegen.simulation.constraints.equalities`), backtracking
     on ``|F|^2`` within f0's domain, the outputs' steps capped at NEWTON.step_cap like
-    :func:`_newton`'s.
+    :func:`_newton`'s. ``strict``: as :func:`_newton`'s, None unless every step is whole.
     """
     from tvopt_codegen.simulation.constraints import kkt_matrix  # noqa: PLC0415
 
@@ -259,14 +260,21 @@ def _kkt_newton(
     w = np.array(w, dtype=float)
     current = residual(w)
     if current is None:
-        return w
+        return None if strict else w
     for _ in range(iterations):
         value, matrix = current
         try:
             step = np.linalg.solve(matrix, value)
         except np.linalg.LinAlgError:
+            if strict:
+                return None
             step = np.linalg.lstsq(matrix, value, rcond=None)[0]
         size = float(np.linalg.norm(step[:m]))
+        if strict:
+            if float(np.linalg.norm(step)) <= NEWTON.stop * (1.0 + float(np.linalg.norm(w))):
+                return w - step
+            if size > NEWTON.step_cap:
+                return None
         if size > NEWTON.step_cap:
             step = step * (NEWTON.step_cap / size)
         norm = float(value @ value)
@@ -277,6 +285,8 @@ def _kkt_newton(
                 1 - NEWTON.armijo * scale
             ):
                 break
+            if strict:
+                return None
             scale *= NEWTON.shrink
         else:
             break
@@ -284,8 +294,8 @@ def _kkt_newton(
         current = trial
         assert current is not None
         if float(np.linalg.norm(step)) * scale <= NEWTON.stop * (1.0 + float(np.linalg.norm(w))):
-            break
-    return w
+            return w
+    return None if strict else w
 
 
 def _reference_values(extra: Mapping[str, Any]) -> list[float]:
@@ -314,6 +324,12 @@ def kkt_path(
 
     def step(t: float, w: np.ndarray, _index: int, budget: int) -> np.ndarray:
         extra = (refs or (lambda t: {}))(t)
-        return _kkt_newton(controller, eq, t, w, params, extra, budget)
+        solved = _kkt_newton(controller, eq, t, w, params, extra, budget)
+        assert solved is not None
+        return solved
 
-    return _backward(ts, start, step)
+    def jump(t: float, w: np.ndarray) -> np.ndarray | None:
+        extra = (refs or (lambda t: {}))(t)
+        return _kkt_newton(controller, eq, t, w, params, extra, NEWTON.iterations, strict=True)
+
+    return _backward(ts, start, step, jump)
