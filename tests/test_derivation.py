@@ -254,3 +254,23 @@ def test_the_determinant_simplification_knows_trigonometry_and_fractions() -> No
     for det in cases:
         assert simplified_det(det) == sp.factor(sp.simplify(det))
     assert simplified_det(cases[0]) == v and simplified_det(cases[2]) == x + 1
+
+
+def test_one_circular_factor_is_what_simplify_leaves_alone() -> None:
+    """The short path's monomials (an arm's l1*l2*sin(q2)): simplify gives them back."""
+    from tvopt_codegen.derivation.linearization import _one_circular_factor, simplified_det
+
+    rng = np.random.default_rng(11)
+    symbols = [*sp.symbols("l1 l2 m", positive=True), *sp.symbols("q1 q2 z", real=True)]
+    functions = [sp.sin, sp.cos, sp.tan, sp.sinh, sp.cosh, sp.tanh, sp.cot, sp.sec, sp.csc]
+    for _ in range(30):
+        chosen = rng.choice(len(symbols), size=int(rng.integers(0, 4)), replace=False)
+        powers = sp.Mul(*(symbols[i] ** int(rng.integers(-2, 4)) for i in chosen))
+        circular = functions[rng.integers(len(functions))](symbols[rng.integers(len(symbols))])
+        expr = sp.Rational(int(rng.integers(1, 10)), int(rng.integers(1, 5))) * powers * circular
+        assert _one_circular_factor(expr)
+        assert simplified_det(expr) == sp.factor(sp.simplify(expr))
+    q1, q2, l1 = symbols[3], symbols[4], symbols[0]
+    # Two functions, a function of a sum, a sum: simplify decides.
+    for expr in (sp.sin(q1) * sp.cos(q1), l1 * sp.sin(q1 + q2), sp.sin(q1) + l1):
+        assert not _one_circular_factor(expr)

@@ -160,9 +160,32 @@ def simplified_det(det: sp.Expr) -> sp.Expr:
     reduced = sp.cancel(det)
     if reduced.has(TrigonometricFunction, HyperbolicFunction):
         reduced = sp.trigsimp(reduced)
-        if reduced.has(TrigonometricFunction, HyperbolicFunction):
+        if reduced.has(TrigonometricFunction, HyperbolicFunction) and not _one_circular_factor(
+            reduced
+        ):
             return sp.factor(sp.simplify(det))
     return sp.factor(reduced)
+
+
+def _one_circular_factor(expr: sp.Expr) -> bool:
+    """Whether ``expr`` is one circular or hyperbolic function of a symbol times powers.
+
+    That is a number, powers of symbols and one ``sin(q)`` (an arm's ``l1*l2*sin(q2)``).
+    No identity shortens such a product, so ``simplify`` returns it as it is (tested), and
+    the short path's form is the one it would give.
+    """
+    functions = 0
+    for factor in sp.Mul.make_args(expr):
+        base = factor.base if factor.is_Pow and factor.exp.is_Integer else factor
+        if factor.is_Number or base.is_Symbol:
+            continue
+        if isinstance(factor, (TrigonometricFunction, HyperbolicFunction)) and (
+            factor.args[0].is_Symbol
+        ):
+            functions += 1
+            continue
+        return False
+    return functions == 1
 
 
 def _singular_set(det: sp.Expr) -> tuple[str, ...]:
