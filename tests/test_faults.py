@@ -73,6 +73,67 @@ def test_signal_during_derivation_writes_nothing(
     assert _snapshot(out) == before
 
 
+def _children(pid: int) -> list[int]:
+    """The processes ``pid`` started (Linux's /proc)."""
+    found = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        found += [int(c) for c in (task / "children").read_text().split()]
+    return found
+
+
+def _gone(pid: int, within: float) -> bool:
+    """Whether ``pid`` has ended (or is a zombie nobody needs) within ``within`` seconds."""
+    deadline = time.monotonic() + within
+    while time.monotonic() < deadline:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (FileNotFoundError, ProcessLookupError):
+            return True
+        if state == "Z":
+            return True
+        time.sleep(0.05)
+    return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux's /proc")
+@pytest.mark.parametrize(
+    ("sig", "code", "group"),
+    [
+        (signal.SIGINT, 130, True),  # Ctrl-C on a terminal: every process of the group
+        (signal.SIGTERM, 143, False),
+        (signal.SIGTERM, 143, True),
+        (signal.SIGKILL, -9, False),  # nothing runs in the command: its pipe closes
+    ],
+)
+def test_a_signal_during_simulate_leaves_no_drawing_process(
+    sig: int, code: int, group: bool, tmp_path: Path
+) -> None:
+    """simulate's drawing process (drawing.Painter) ends with the command, however it ends."""
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tvopt_codegen", "simulate", str(_slow_spec(tmp_path))]
+        + ["--out", str(out), "--max-size", "100000000"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    time.sleep(4.0)  # inside the derivation, the drawing process waiting for figures
+    assert proc.poll() is None, proc.communicate()
+    drawing = _children(proc.pid)
+    assert len(drawing) == 1
+    if group:
+        os.killpg(proc.pid, sig)
+    else:
+        proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == code, err
+    if sig != signal.SIGKILL:
+        assert err.strip().count("\n") == 0 and "Traceback" not in err
+    assert _gone(drawing[0], 10.0)
+    assert not out.exists()
+
+
 KILLER = """
 import os, signal, sys
 from tvopt_codegen import emit
