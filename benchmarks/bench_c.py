@@ -39,6 +39,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_mechanics import mechanics_table  # noqa: E402
 from casadi_peer import CFLAGS, HARNESS_RUNS, TURNS, _to_casadi  # noqa: E402
+from cold import best_wall  # noqa: E402
 
 SPECS = ("unicycle_switch", "two_unicycles_barrier")
 BATCH_C = 100_000
@@ -468,16 +469,6 @@ def single_state() -> list[tuple[str, float, float]]:
     return rows
 
 
-def _cold(command: list[str], runs: int = 5) -> float:
-    """Best wall time of ``runs`` fresh processes, in seconds."""
-    best = math.inf
-    for _ in range(runs):
-        start = time.perf_counter()
-        subprocess.run(command, check=True, capture_output=True)
-        best = min(best, time.perf_counter() - start)
-    return best
-
-
 def startup() -> list[tuple[str, float, str]]:
     """Cold ``tvopt-codegen`` processes as a user starts them, and the peer.
 
@@ -485,13 +476,13 @@ def startup() -> list[tuple[str, float, str]]:
     used to load).
     """
     cli = [sys.executable, "-m", "tvopt_codegen"]
-    peer = _cold([sys.executable, "-c", "import sympy, numpy, scipy"])
+    peer = best_wall([sys.executable, "-c", "import sympy, numpy, scipy"], 5)
     return [
-        ("`tvopt-codegen --version`", _cold([*cli, "--version"]), "<= 0.25 s"),
-        ("`tvopt-codegen --help`", _cold([*cli, "--help"]), "<= 0.25 s"),
+        ("`tvopt-codegen --version`", best_wall([*cli, "--version"], 5), "<= 0.25 s"),
+        ("`tvopt-codegen --help`", best_wall([*cli, "--help"], 5), "<= 0.25 s"),
         (
             "`tvopt-codegen check unicycle_switch`",
-            _cold([*cli, "check", "unicycle_switch"]),
+            best_wall([*cli, "check", "unicycle_switch"], 5),
             "<= 1.5 s",
         ),
         ("(peer) `python -c 'import sympy, numpy, scipy'`", peer, ""),

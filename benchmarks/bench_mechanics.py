@@ -17,7 +17,6 @@ import math
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import casadi as ca
@@ -27,6 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
 
 from casadi_peer import CFLAGS, HARNESS_RUNS, TURNS  # noqa: E402
+from cold import best_wall  # noqa: E402
 
 from tests.arms import planar_arm  # noqa: E402
 from tests.casadi_oracle import casadi_mechanics_law  # noqa: E402
@@ -178,19 +178,9 @@ def mechanics_table() -> str:
                 "--quiet"], "<= 10 s"),
         ]  # fmt: skip
         for label, command, target in commands:
-            lines.append(f"| {label} | {_cold(command):.2f} | {target} |")
+            lines.append(f"| {label} | {best_wall(command, 3):.2f} | {target} |")
     lines.append("")
     return "\n".join(lines)
-
-
-def _cold(command: list[str], runs: int = 3) -> float:
-    """Best wall time of ``runs`` fresh processes, in seconds."""
-    best = math.inf
-    for _ in range(runs):
-        start = time.perf_counter()
-        subprocess.run(command, check=True, capture_output=True)
-        best = min(best, time.perf_counter() - start)
-    return best
 
 
 if __name__ == "__main__":
