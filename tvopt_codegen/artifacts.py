@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import io
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from tvopt_codegen.derivation import Derivation
-from tvopt_codegen.drawing import Plot, draw, draw_all
+from tvopt_codegen.drawing import Painter, draw, draw_all
 from tvopt_codegen.figures import figures, replay_figure, sampled_figure, sweep_figures
 from tvopt_codegen.simulation import Result, columns, format_certificate
 from tvopt_codegen.sweep import (
@@ -36,41 +36,19 @@ if TYPE_CHECKING:
     from tvopt_codegen.simulation.sampled import SampledResult
 
 
-class Drawer(Protocol):
-    """Where figures are drawn: :class:`tvopt_codegen.drawing.Painter`, or here."""
-
-    def submit(self, plots: list[Plot]) -> None:
-        """Start drawing ``plots``."""
-
-    def collect(self) -> dict[str, bytes]:
-        """The files of the figures submitted last."""
-
-
-class _Here:
-    """Draws in this process, when asked for the files."""
-
-    def __init__(self) -> None:
-        self._plots: list[Plot] = []
-
-    def submit(self, plots: list[Plot]) -> None:
-        self._plots = plots
-
-    def collect(self) -> dict[str, bytes]:
-        return draw_all(self._plots)
-
-
 def result_files(
-    derivation: Derivation, result: Result, drawer: Drawer | None = None
+    derivation: Derivation, result: Result, painter: Painter | None = None
 ) -> dict[str, bytes]:
     """Trajectories (CSV, NPZ), the certificate text, and the figures, in memory.
 
-    The figures go to ``drawer`` first (a drawing process draws them while the tables
-    are written here); by default they are drawn in this process.
+    The figures go to ``painter`` first (its drawing process draws them while the
+    tables are written here); without one they are drawn in this process.
     """
     d, r = derivation, result
     name = d.spec.name
-    drawer = drawer or _Here()
-    drawer.submit(figures(d, r))
+    plots = figures(d, r)
+    if painter is not None:
+        painter.submit(plots)
     table = np.column_stack(
         [r.t, r.states.T, r.inputs.T, r.outputs.T, r.target.T, r.E.reshape(len(r.t), -1)]
     )
@@ -97,7 +75,7 @@ def result_files(
         f"{name}_trajectory.npz": arrays.getvalue(),
         f"{name}_certificate.txt": (format_certificate(d, r) + "\n").encode("utf-8"),
     }
-    files.update(drawer.collect())
+    files.update(painter.collect() if painter is not None else draw_all(plots))
     return files
 
 

@@ -50,8 +50,8 @@ from tvopt_codegen.limits import MAX_POINTS, MAX_T_FINAL, METHODS, Budget
 if TYPE_CHECKING:
     from typing import TypeAlias
 
-    from tvopt_codegen.artifacts import Drawer
     from tvopt_codegen.derivation import Derivation
+    from tvopt_codegen.drawing import Painter
     from tvopt_codegen.ir import KernelSet
 
     #: The subcommand table each ``_add_<command>`` adds its command to.
@@ -687,7 +687,7 @@ def _simulate(args: argparse.Namespace) -> int:
         return _simulate_with(args, painter)
 
 
-def _simulate_with(args: argparse.Namespace, painter: Drawer) -> int:
+def _simulate_with(args: argparse.Namespace, painter: Painter) -> int:
     from tvopt_codegen.artifacts import result_files  # noqa: PLC0415 - matplotlib on use
     from tvopt_codegen.emit import write_files  # noqa: PLC0415
     from tvopt_codegen.simulation import (  # noqa: PLC0415

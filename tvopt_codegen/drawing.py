@@ -291,9 +291,9 @@ def _serve(requests: int, replies: int) -> None:  # pragma: no cover - the drawi
 class Painter:
     """Draws figures in a process started now, which imports matplotlib meanwhile.
 
-    Use as a context manager around the work that produces the figures; :meth:`draw_all`
-    sends them and returns their files. Leaving the block stops the process (killed if
-    it was never given work: it was only importing).
+    Use as a context manager around the work that produces the figures; :meth:`submit`
+    sends them and :meth:`collect` returns their files. Leaving the block stops the
+    process (killed if it was never given work: it was only importing).
     """
 
     def __init__(self) -> None:
@@ -343,11 +343,6 @@ class Painter:
         files: dict[str, bytes] = reply[1]
         # The children finish in any order; the files keep the plots' order.
         return {name: files[name] for plot in plots for name in _names(plot)}
-
-    def draw_all(self, plots: Sequence[Plot]) -> dict[str, bytes]:
-        """Every figure's files, in the order given, from the drawing process if it runs."""
-        self.submit(plots)
-        return self.collect()
 
     def _reap(self, kill: bool) -> None:
         if self._pid is None:
