@@ -104,9 +104,11 @@ RESOURCES = [
     ("*".join(["9**64"] * 24) + " + y1", "constant too large"),
     ("sin(" * 100 + "y1" + ")" * 100, "nesting deeper than 60"),
     ("-" * 300 + "y1", "nest"),
-    # Redundant parentheses (the hostile round's 1,000 was exit 6 "out of stack"): exit 2.
-    ("(" * 1000 + "y1" + ")" * 1000 + "**2", "too many nested parentheses"),
-    ("(" * 100_000 + "y1" + ")" * 100_000 + "**2", "too many nested parentheses"),
+    # Parentheses that each hold a sum are nesting, however many (redundant ones parse:
+    # test_redundant_parentheses_are_flat below).
+    ("(" * 1000 + "y1" + " + 1)" * 1000 + "**2", "column 61: nesting deeper than 60"),
+    ("(" * 100_000 + "y1" + "+1)" * 100_000 + "**2", "column 61: nesting deeper than 60"),
+    ("(" * 250 + "y1" + "+1)" * 250, "nesting deeper than 60"),
 ]
 
 
@@ -115,6 +117,18 @@ def test_resource_attacks_in_expressions(
     expr: str, message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     _run(tmp_path, capsys, _spec(tmp_path, _f0(expr)), EXIT_BAD_SPEC, "objective.f0", message)
+
+
+@pytest.mark.parametrize("count", [200, 3000, 100_000])
+def test_redundant_parentheses_are_flat(
+    count: int, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The fourth hostile round's 3,000 pairs around f0 exhausted the stack (exit 6): they
+    # add nothing, so the spec is the unicycle's own and checks like it.
+    wrapped = "(" * count + F0[len('f0 = "') : -1] + ")" * count
+    assert main(["check", str(_spec(tmp_path, _f0(wrapped)))]) == 0
+    captured = capsys.readouterr()
+    assert "f0: strongly convex" in captured.out and captured.err == ""
 
 
 def test_huge_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

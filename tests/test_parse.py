@@ -60,7 +60,7 @@ def test_parses_exactly(text: str, expected: sp.Expr) -> None:
         ("log(0)", "undefined"),
         ("x # comment", "comments are not allowed"),
         ("x + \u0443", "non-ASCII character"),
-        ("(" * 200 + "x" + ")" * 200, "nest"),
+        ("(" * 200 + "x" + " + 1)" * 200, "nesting deeper than 60"),
         ("", "empty expression"),
         ("x +", "syntax error"),
         ("True", "unsupported literal"),
@@ -164,3 +164,31 @@ def test_a_rings_barrier_parses_as_sympy_would_build_it() -> None:
     parsed = parse_expression("tan(-(px - py)**2*pi/(2*d)) + cos(-pi*px/d)", names)
     px, py, d = names.values()
     assert parsed == sp.tan(-((px - py) ** 2) * sp.pi / (2 * d)) + sp.cos(-sp.pi * px / d)
+
+
+@pytest.mark.parametrize("count", [1, 199, 200, 3000, 100_000])
+def test_redundant_parentheses_are_flat(count: int) -> None:
+    # Python's tokenizer stops at 200 open parentheses; these add no node at all.
+    around = "(" * count + "x" + ")" * count
+    assert parse_expression(around, NAMES) == x
+    assert parse_expression(f"sin({around})**2 + ( ({around}) )*y", NAMES) == (
+        sp.sin(x) ** 2 + x * y
+    )
+
+
+def test_removing_redundant_parentheses_keeps_columns_and_tuples() -> None:
+    with pytest.raises(ExpressionError) as info:
+        parse_expression("((((x + zz))))", NAMES)
+    assert (info.value.column, info.value.message) == (9, "unknown name 'zz'")
+    # (y, x) is one argument, a tuple, however many parentheses wrap it.
+    with pytest.raises(ExpressionError, match=r"atan2\(\) takes 2 argument\(s\), got 1"):
+        parse_expression("atan2(((y, x)))", NAMES)
+    assert parse_expression("((x) + 1)*((y))", NAMES) == (x + 1) * y
+
+
+@pytest.mark.parametrize("depth", [61, 300, 3000])
+def test_truly_deep_parentheses_are_refused_as_nesting(depth: int) -> None:
+    # Each pair holds a sum: nothing here is redundant.
+    with pytest.raises(ExpressionError, match="nesting deeper than 60"):
+        parse_expression("(" * depth + "x" + " + 1)" * depth, NAMES)
+    assert parse_expression("(" * 50 + "x" + " + 1)" * 50, NAMES) == x + 50

@@ -28,6 +28,10 @@ MAX_CONSTANT_BITS = 4096
 _SPLIT_LENGTH = 2000
 #: Deepest nesting of operations accepted.
 MAX_DEPTH = 60
+#: Most brackets open at once in an expression that can be accepted: each nesting level
+#: of the tree holds at most one, and a long chain (see :func:`_parse_chain`) may strip
+#: MAX_DEPTH of them before its pieces are walked from depth 0.
+_MAX_BRACKETS = 2 * MAX_DEPTH + 1
 #: Largest magnitude of a numeric literal.
 MAX_LITERAL = 1e12
 #: Smallest nonzero magnitude of a numeric literal.
@@ -439,6 +443,11 @@ def parse_expression(
     # Multi-line TOML strings are welcome: line breaks become spaces (columns keep
     # their offsets) and the parentheses allow the continuation lines' indentation.
     flat = text.replace("\r", " ").replace("\n", " ").replace("\t", " ")
+    flat = _without_redundant_parentheses(flat)
+    if _deepest_allowed(flat, _MAX_BRACKETS):
+        # Sure to be refused (below), and a pure-Python tokenize of 100,000 levels to
+        # split a long chain would take seconds first.
+        raise ExpressionError(_deepest_allowed(flat), f"nesting deeper than {MAX_DEPTH}")
     builder = _TreeBuilder(names, indexing)
     expr = _parse_chain(flat, 0, builder, ("+", "-"))
     if expr.has(sp.zoo, sp.nan, sp.oo, -sp.oo):
@@ -513,6 +522,12 @@ def _parse_piece(text: str, offset: int, builder: _TreeBuilder) -> sp.Expr:
         tree = ast.parse(f"({text})", mode="eval")
     except SyntaxError as exc:
         column = max(1, (exc.offset or 2) - 1)
+        if "too many nested parentheses" in exc.msg:
+            # Python's tokenizer stops at 200 open parentheses, long after MAX_DEPTH:
+            # what is left after the redundant ones are gone is nesting, reported where
+            # it passes MAX_DEPTH as the tree walk would.
+            column = _deepest_allowed(text) or column
+            raise ExpressionError(offset + column, f"nesting deeper than {MAX_DEPTH}") from None
         raise ExpressionError(offset + column, f"syntax error: {exc.msg}") from None
     except (RecursionError, MemoryError, ValueError):
         raise ExpressionError(offset + 1, "expression too deeply nested") from None
@@ -525,14 +540,15 @@ def _parse_piece(text: str, offset: int, builder: _TreeBuilder) -> sp.Expr:
 
 
 def _parse_chain(
-    text: str, offset: int, builder: _TreeBuilder, operators: tuple[str, str]
+    text: str, offset: int, builder: _TreeBuilder, operators: tuple[str, str], depth: int = 0
 ) -> sp.Expr:
     """Parse ``text``, splitting a long chain of ``operators`` at its top level.
 
     A sum (``+ -``) or product (``* /``) of thousands of terms is associative, not
     nested: its pieces are parsed one by one and combined in one step, so neither
     Python's parser nor the nesting limit sees a deep tree. Short text takes the
-    direct route.
+    direct route. ``depth`` counts the parentheses opened on the way here: past
+    :data:`MAX_DEPTH` the expression is refused as too deep, as the tree walk would.
     """
     if len(text) < _SPLIT_LENGTH:
         return _parse_piece(text, offset, builder)
@@ -540,21 +556,25 @@ def _parse_chain(
     if stripped.startswith("(") and _closing(stripped) == len(stripped) - 1:
         # One parenthesized operand: what is inside may be a long chain itself.
         inner = text.index("(") + 1
-        return _parse_chain(text[inner : text.rindex(")")], offset + inner, builder, ("+", "-"))
+        if depth >= MAX_DEPTH:
+            raise ExpressionError(offset + inner, f"nesting deeper than {MAX_DEPTH}")
+        return _parse_chain(
+            text[inner : text.rindex(")")], offset + inner, builder, ("+", "-"), depth + 1
+        )
     pieces = _split_top_level(text, operators)
     if pieces is None:
         return _parse_piece(text, offset, builder)
     if len(pieces) == 1:
         if operators == ("+", "-"):
-            return _parse_chain(text, offset, builder, ("*", "/"))
+            return _parse_chain(text, offset, builder, ("*", "/"), depth)
         return _parse_piece(text, offset, builder)
     values = []
     for operator, start, piece in pieces:
         if operators == ("+", "-"):
-            value = _parse_chain(piece, offset + start, builder, ("*", "/"))
+            value = _parse_chain(piece, offset + start, builder, ("*", "/"), depth)
             values.append(-value if operator == "-" else value)
         else:
-            value = _parse_chain(piece, offset + start, builder, ("+", "-"))
+            value = _parse_chain(piece, offset + start, builder, ("+", "-"), depth)
             if operator == "/":
                 if value == 0:
                     raise ExpressionError(offset + start + 1, "division by zero")
@@ -562,6 +582,81 @@ def _parse_chain(
             values.append(value)
     combined = sp.Add(*values) if operators == ("+", "-") else sp.Mul(*values)
     return _bounded(combined, offset + 1)
+
+
+def _without_redundant_parentheses(text: str) -> str:
+    """``text`` with each pair of parentheses that only doubles another blanked out.
+
+    ``((a + b))`` means ``(a + b)``: an inner pair whose opening follows an opening and
+    whose closing precedes that opening's closing (spaces aside) adds nothing, and
+    Python's tokenizer counts it towards its limit of 200 open parentheses, while the
+    recursion of :func:`_parse_chain` spends a frame on it. Three thousand of them
+    around ``x`` are ``(x)``. The pairs become spaces, so every column a message names
+    stays where the user sees it. One pass with a stack; text whose parentheses do not
+    balance, or that holds a quote, is returned as it is for the parser to report.
+
+    A pair holding a comma at its own level stays: ``f((a, b))`` passes one tuple,
+    ``f(a, b)`` two arguments, and the parser must see the difference.
+    """
+    if "((" not in text.replace(" ", "") or "'" in text or '"' in text:
+        return text
+    opener = {")": "(", "]": "[", "}": "{"}
+    stack: list[tuple[str, int, bool]] = []  # (bracket, index, holds a comma)
+    closing: dict[int, int] = {}
+    comma: set[int] = set()
+    for index, char in enumerate(text):
+        if char in "([{":
+            stack.append((char, index, False))
+        elif char in ")]}":
+            if not stack or stack[-1][0] != opener[char]:
+                return text
+            bracket, start, has_comma = stack.pop()
+            if bracket == "(":
+                closing[start] = index
+                if has_comma:
+                    comma.add(start)
+        elif char == "," and stack:
+            bracket, start, _ = stack[-1]
+            stack[-1] = (bracket, start, True)
+    if stack:
+        return text
+    # The nearest non-space character before and after each position.
+    before: list[int] = []
+    last = -1
+    for index, char in enumerate(text):
+        before.append(last)
+        if char != " ":
+            last = index
+    after = [0] * len(text)
+    following = len(text)
+    for index in range(len(text) - 1, -1, -1):
+        after[index] = following
+        if text[index] != " ":
+            following = index
+    chars = list(text)
+    for start, end in closing.items():
+        outer = before[start]
+        if (
+            start not in comma
+            and outer >= 0
+            and text[outer] == "("
+            and closing.get(outer) == after[end]
+        ):
+            chars[start] = chars[end] = " "
+    return "".join(chars)
+
+
+def _deepest_allowed(text: str, limit: int = MAX_DEPTH) -> int:
+    """1-based column of the parenthesis that opens ``limit`` deep, or 0 if none does."""
+    depth = 0
+    for index, char in enumerate(text):
+        if char in "([{":
+            depth += 1
+            if depth > limit:
+                return index + 1
+        elif char in ")]}":
+            depth -= 1
+    return 0
 
 
 def _closing(text: str) -> int:
