@@ -119,6 +119,11 @@ robust-example: $(READY)
 reference-noise: $(READY)
 	$(PY) benchmarks/reference_noise.py --write docs/references-noise.md
 
+## features-doc: regenerate docs/features.md from the feature matrix (tvopt_codegen/features.py)
+.PHONY: features-doc
+features-doc: $(READY)
+	$(PY) -m tvopt_codegen.features > docs/features.md
+
 ## lint: ruff and mypy (strict) over the package
 lint: $(READY)
 	$(PY) -m ruff check tvopt_codegen tests benchmarks

@@ -882,6 +882,10 @@ def run(argv: Sequence[str] | None = None) -> int:
     derivation, kernels = _derive(args)
     if args.command == "check":
         print(format_summary(derivation, kernels))
+        from tvopt_codegen.features import target_notes  # noqa: PLC0415
+
+        for note in target_notes(derivation):  # targets that refuse this spec (docs/features.md)
+            print(one_line(note))
         return 0
     started = time.perf_counter()
     from tvopt_codegen.emit import write_files  # noqa: PLC0415

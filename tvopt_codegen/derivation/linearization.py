@@ -19,6 +19,7 @@ from sympy.functions.elementary.trigonometric import TrigonometricFunction
 from tvopt_codegen import hurwitz
 from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter, tree_size
 from tvopt_codegen.errors import AssumptionError, SpecError
+from tvopt_codegen.features import refusal_line
 from tvopt_codegen.lie import (
     Extension,
     ImplicitDerivativeError,
@@ -38,11 +39,11 @@ from tvopt_codegen.spec.implicit import implicit_values
 def _implicit_problem(model: Model, exc: ImplicitDerivativeError) -> str:
     """Why a mass-matrix plant cannot take the Lie derivative ``exc`` asks for."""
     output, order = exc.args
+    # An output above relative degree 2 is what padding would need: the table's line.
+    pair = refusal_line(("plant", "mechanics"), ("padding", "yes"))
     return (
         f"output {model.spec.outputs[output]!r} needs the derivative of M^-1 (its Lie "
-        f"derivative of order {order} holds M^-1 F or M^-1 B, which generated code computes "
-        "at run time): [system.mechanics] supports outputs of relative degree 2 and no "
-        "extension; write the plant in [system.dynamics] for more"
+        f"derivative of order {order} holds M^-1 F or M^-1 B): {pair}"
     )
 
 

@@ -49,6 +49,7 @@ from tvopt_codegen.derivation.record import (
 )
 from tvopt_codegen.errors import AssumptionError
 from tvopt_codegen.estimator import estimator_gains, estimator_order
+from tvopt_codegen.features import refuse as refuse_pairs
 from tvopt_codegen.jet import (
     fresh_symbols,
 )
@@ -106,6 +107,8 @@ def derive(
         meter.stage = stage
         meter.report()
 
+    # Two features that do not combine stop here, in one line naming both (docs/features.md).
+    refuse_pairs(spec)
     say("model")
     model = build_model(spec)
     clock.mark("model")
