@@ -75,6 +75,17 @@ def test_examples_lists_bundled_specs(capsys: pytest.CaptureFixture[str]) -> Non
         (('theta = "omega"', 'theta = "omega*v"'), EXIT_BAD_SPEC, "not affine"),
         (("integrate = { v = 1 }", ""), EXIT_ASSUMPTION, "integrate = { v = 1 }"),
         (("poles = [-1.0, -1.5]", "poles = [-1.0, 1.5]"), EXIT_ASSUMPTION, "not Hurwitz"),
+        # An integer where a boolean belongs was an internal error (exit 70).
+        (
+            ("[simulation]", "[robust]\nintegral = 1\n\n[simulation]"),
+            EXIT_BAD_SPEC,
+            "robust.integral: expected true or false, got integer 1",
+        ),
+        (
+            ("[simulation]", "[robust.observer]\nbandwith = 20.0\n\n[simulation]"),
+            EXIT_BAD_SPEC,
+            "robust.observer.bandwith: unknown key: did you mean 'bandwidth'?",
+        ),
     ],
 )
 def test_errors_exit_with_one_line_and_write_nothing(

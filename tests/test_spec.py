@@ -163,3 +163,184 @@ def test_non_square_plant_is_an_assumption_error(tmp_path: Path, unicycle_text: 
     text = _mutate(unicycle_text, 'y2 = "x2"', 'y2 = "x2"\ny3 = "theta"')
     with pytest.raises(AssumptionError, match="2 inputs but 3 outputs"):
         derive(load_spec(write_spec(tmp_path, text)))
+
+
+# A value of the wrong type anywhere: TOML's 1 is not true, true is not 1 (Python says
+# both are equal), and each message names the type and the value it got.
+WRONG_TYPES = [
+    # (old, new, field, message)
+    ("[simulation]", "[robust]\nintegral = 1\n\n[simulation]", "robust.integral", "got integer 1"),
+    ("[simulation]", "[robust]\nintegral = 0.0\n\n[simulation]", "robust.integral", "float 0.0"),
+    (
+        "[simulation]",
+        '[robust]\nintegral = "yes"\n\n[simulation]',
+        "robust.integral",
+        "expected true or false, got string 'yes'",
+    ),
+    (
+        "[simulation]",
+        "[robust]\nintegral = [true]\n\n[simulation]",
+        "robust.integral",
+        "got array [true]",
+    ),
+    (
+        "[simulation]",
+        "[robust]\nintegral = 1979-05-27\n\n[simulation]",
+        "robust.integral",
+        "got date 1979-05-27",
+    ),
+    (
+        "[simulation]",
+        "[robust]\nobserver = 1\n\n[simulation]",
+        "robust.observer",
+        "table, got integer 1",
+    ),
+    (
+        "[simulation]",
+        "[robust.observer]\nbandwidth = true\n\n[simulation]",
+        "robust.observer.bandwidth",
+        "expected a number, got boolean true",
+    ),
+    (
+        'name = "unicycle_switch"',
+        'robust = 2\nname = "unicycle_switch"',
+        "robust",
+        "table, got integer 2",
+    ),
+    (
+        "integrate = { v = 1 }",
+        "integrate = { v = true }",
+        "extension.integrate.v",
+        "expected a whole number of integrators 0..8, got boolean true",
+    ),
+    (
+        "integrate = { v = 1 }",
+        "auto = 1",
+        "extension.auto",
+        "expected true or false, got integer 1",
+    ),
+    (
+        "integrate = { v = 1 }",
+        "auto = true\nmax_total = 2.0",
+        "extension.max_total",
+        "expected a whole number 1..24, got float 2.0",
+    ),
+    ("a = 10.0", "a = true", "parameters.a", "expected a number, got boolean true"),
+    ("t_final = 20.0", "t_final = false", "simulation.t_final", "got boolean false"),
+    ("poles = [-1.0, -1.5]", "poles = [-1.0, true]", "error_dynamics.poles[1]", "boolean true"),
+    ('theta = "omega"', "theta = 1", "system.dynamics.theta", "expression string, got integer 1"),
+    ('inputs = ["v", "omega"]', 'inputs = ["v", 2]', "system.inputs[1]", "name, got integer 2"),
+    ('name = "unicycle_switch"', "name = 7", "name", "expected a string, got integer 7"),
+    (
+        'objects = [["o1x", "o1y"], ["o2x", "o2y"]]',
+        'objects = [["o1x", 1], ["o2x", "o2y"]]',
+        "simulation.objects[0]",
+        "names, got integer 1",
+    ),
+    (
+        "[simulation]",
+        '[references]\nnames = ["r"]\n[references.estimator]\nkind = 1\n\n[simulation]',
+        "references.estimator.kind",
+        "got integer 1",
+    ),
+    (
+        "[simulation]",
+        '[constraints]\nnear = "y1 <= 10"\nallow_nonconvex = 1\n\n[simulation]',
+        "constraints.allow_nonconvex",
+        "expected true or false, got integer 1",
+    ),
+    (
+        "[simulation]",
+        '[constraints]\nnear = "y1 <= 10"\n[constraints.barrier]\nrate = true\n\n[simulation]',
+        "constraints.barrier.rate",
+        "expected a number, got boolean true",
+    ),
+    (
+        "[simulation]",
+        "[limits]\nomega = [false, 1.0]\n\n[simulation]",
+        "limits.omega[0]",
+        "expected a number, got boolean false",
+    ),
+]
+
+
+@pytest.mark.parametrize(("old", "new", "field", "message"), WRONG_TYPES)
+def test_a_value_of_the_wrong_type_is_named_with_its_type(
+    tmp_path: Path, unicycle_text: str, old: str, new: str, field: str, message: str
+) -> None:
+    path = write_spec(tmp_path, _mutate(unicycle_text, old, new))
+    with pytest.raises(SpecError) as info:
+        derive(load_spec(path))
+    text = str(info.value)
+    assert text.startswith(f"{path}: {field}: "), text
+    assert message in text and "\n" not in text, text
+
+
+# A misspelt key or name at any depth gets the nearest valid one.
+MISSPELT = [
+    # (old, new, field, suggestion)
+    ("[objective]", "[objektive]", "objektive", "'objective'"),
+    ("t_final = 20.0", "t_finl = 20.0", "simulation.t_finl", "'t_final'"),
+    ("initial_state = {", "initial_stat = {", "simulation.initial_stat", "'initial_state'"),
+    ("theta = 0.0, ", "thetaa = 0.0, ", "simulation.initial_state.thetaa", "'theta'"),
+    ('theta = "omega"', 'thetta = "omega"', "system.dynamics.thetta", "'theta'"),
+    ("integrate = { v = 1 }", "integrate = { omegq = 1 }", "extension.integrate.omegq", "'omega'"),
+    ("integrate = { v = 1 }", "integrate = { v = 1 }\nauot = true", "extension.auot", "'auto'"),
+    ('["o2x", "o2y"]]', '["o2x", "o2yy"]]', "simulation.objects[1]", "'o2y'"),
+    (
+        "[simulation]",
+        "[robust.observer]\nbandwith = 20.0\n\n[simulation]",
+        "robust.observer.bandwith",
+        "'bandwidth'",
+    ),
+    (
+        "[simulation]",
+        "[robust]\nintegrall = true\n\n[simulation]",
+        "robust.integrall",
+        "'integral'",
+    ),
+    (
+        "[simulation]",
+        '[constraints]\nnear = "y1 <= 10"\n[constraints.barier]\nrate = 1.0\n\n[simulation]',
+        "constraints.barier",
+        "'barrier'",
+    ),
+    (
+        "[simulation]",
+        '[constraints]\nnear = "y1 <= 10"\n[constraints.barrier]\nrat = 1.0\n\n[simulation]',
+        "constraints.barrier.rat",
+        "'rate'",
+    ),
+    (
+        "[simulation]",
+        '[constraints]\nnear = "y1 <= 10"\nallow_nonconvx = true\n\n[simulation]',
+        "constraints.allow_nonconvx",
+        "'allow_nonconvex'",
+    ),
+    ("[simulation]", "[limits]\nomgea = 1.0\n\n[simulation]", "limits.omgea", "'omega'"),
+    ("[simulation]", "[limits.rate]\nomeg = 1.0\n\n[simulation]", "limits.rate.omeg", "'omega'"),
+    (
+        "[simulation]",
+        '[references]\nnames = ["ref"]\n[references.nominal]\nreff = "t"\n\n[simulation]',
+        "references.nominal.reff",
+        "'ref'",
+    ),
+    (
+        "[simulation]",
+        '[references]\nnames = ["r"]\n[references.estimator]\nbandwdth = 5.0\n\n[simulation]',
+        "references.estimator.bandwdth",
+        "'bandwidth'",
+    ),
+]
+
+
+@pytest.mark.parametrize(("old", "new", "field", "guess"), MISSPELT)
+def test_a_misspelt_key_at_any_depth_gets_the_nearest_valid_one(
+    tmp_path: Path, unicycle_text: str, old: str, new: str, field: str, guess: str
+) -> None:
+    path = write_spec(tmp_path, _mutate(unicycle_text, old, new))
+    with pytest.raises(SpecError) as info:
+        derive(load_spec(path))
+    text = str(info.value)
+    assert text.startswith(f"{path}: {field}: "), text
+    assert f"did you mean {guess}?" in text, text

@@ -34,6 +34,7 @@ from tvopt_codegen.model import Model
 from tvopt_codegen.numeric import Evaluator
 from tvopt_codegen.spec import Mechanics, Spec
 from tvopt_codegen.spec.implicit import implicit_values
+from tvopt_codegen.spec.reader import suggestion
 
 
 def _implicit_problem(model: Model, exc: ImplicitDerivativeError) -> str:
@@ -607,7 +608,8 @@ def _initial_state(spec: Spec, state_names: Sequence[str], required: int) -> tup
             raise SpecError(
                 spec.source,
                 f"simulation.initial_state.{key}",
-                f"not a state of the closed loop (states: {', '.join(state_names)})",
+                f"not a state of the closed loop (states: {', '.join(state_names)})"
+                f"{suggestion(key, state_names)}",
             )
     if given:
         for name in state_names[:required]:

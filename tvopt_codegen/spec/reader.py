@@ -7,9 +7,10 @@ Names come before the expressions that use them; every problem is a
 from __future__ import annotations
 
 import difflib
+import itertools
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from typing import Any
 
 import numpy as np
@@ -118,13 +119,7 @@ class _Reader:
             problem = name_problem(key)
             if problem:
                 raise self.fail(field, problem)
-            if (
-                isinstance(count, bool)
-                or not isinstance(count, int)
-                or not 1 <= count <= MAX_INDEX_COUNT
-            ):
-                raise self.fail(field, f"expected a whole number of values 1..{MAX_INDEX_COUNT}")
-            counts[key] = count
+            counts[key] = self.whole(count, field, 1, MAX_INDEX_COUNT, "number of values ")
         self.indexing = Indexing(counts, {}, {})
 
     def split(self, item: object, field: str) -> tuple[str, str | None]:
@@ -226,12 +221,26 @@ class _Reader:
     def sub(self, data: Mapping[str, Any], key: str, field: str) -> dict[str, Any]:
         value = data.get(key, {})
         if not isinstance(value, dict):
-            raise self.fail(field, f"expected a table, got {type(value).__name__}")
+            raise self.fail(field, f"expected a table, got {shown(value)}")
+        return value
+
+    def boolean(self, value: object, field: str) -> bool:
+        """``value``, which must be ``true`` or ``false`` (not 1 or 0, though Python says equal)."""
+        if not isinstance(value, bool):
+            raise self.fail(field, f"expected true or false, got {shown(value)}")
+        return value
+
+    def whole(self, value: object, field: str, low: int, high: int, what: str = "") -> int:
+        """``value``, a whole number ``low..high``; ``true`` and ``2.0`` are refused."""
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(field, f"expected a whole {what}{low}..{high}, got {shown(value)}")
+        if not low <= value <= high:
+            raise self.fail(field, f"expected a whole {what}{low}..{high}, got {clip(str(value))}")
         return value
 
     def number(self, value: object, field: str) -> float:
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise self.fail(field, f"expected a number, got {type(value).__name__} {value!r}")
+            raise self.fail(field, f"expected a number, got {shown(value)}")
         result = float(value)
         if not math.isfinite(result):
             raise self.fail(field, "expected a finite number")
@@ -242,7 +251,7 @@ class _Reader:
             raise self.fail(field, "expected a non-empty list of names")
         for index, item in enumerate(value):
             if not isinstance(item, str):
-                raise self.fail(f"{field}[{index}]", name_problem(item) or "expected a name")
+                raise self.fail(f"{field}[{index}]", f"expected a name, got {shown(item)}")
         entries = self.declare(
             self.expand([(item, None, f"{field}[{i}]") for i, item in enumerate(value)])
         )
@@ -260,7 +269,7 @@ class _Reader:
         bound: dict[str, int] | None = None,
     ) -> sp.Expr:
         if not isinstance(text, str):
-            raise self.fail(field, f"expected an expression string, got {type(text).__name__}")
+            raise self.fail(field, f"expected an expression string, got {shown(text)}")
         try:
             return parse_expression(text, names, self.bound(bound or {}))
         except ExpressionError as exc:
@@ -410,12 +419,14 @@ class _Reader:
     def read_title(self, data: Mapping[str, Any]) -> tuple[str, str]:
         """``name`` (it names the generated module) and ``description``."""
         name = data["name"]
+        if not isinstance(name, str):
+            raise self.fail("name", f"expected a string, got {shown(name)}")
         problem = module_name_problem(name)
         if problem:
             raise self.fail("name", problem)
         description = data.get("description", "")
         if not isinstance(description, str):
-            raise self.fail("description", "expected a string")
+            raise self.fail("description", f"expected a string, got {shown(description)}")
         if len(description) > 4000:
             raise self.fail("description", "longer than 4000 characters")
         control = next(
@@ -444,7 +455,9 @@ class _Reader:
         }
         for key, (_, _, where) in dynamics_entries.items():
             if key not in states:
-                raise self.fail(where, f"{key!r} is not a declared state")
+                raise self.fail(
+                    where, f"{key!r} is not a declared state{_suggestion(key, set(states))}"
+                )
         dynamics = []
         for state in states:
             if state not in dynamics_entries:
@@ -621,9 +634,7 @@ class _Reader:
         table = self.sub(data, "constraints", "constraints")
         if "constraints" not in data:
             return (), None, False
-        allow = table.get("allow_nonconvex", False)
-        if not isinstance(allow, bool):
-            raise self.fail("constraints.allow_nonconvex", f"expected true or false, got {allow!r}")
+        allow = self.boolean(table.get("allow_nonconvex", False), "constraints.allow_nonconvex")
         items = {k: v for k, v in table.items() if k not in ("barrier", "allow_nonconvex")}
         if not items:
             raise self.fail("constraints", "declare at least one constraint")
@@ -642,7 +653,9 @@ class _Reader:
                     " ([constraints.barrier] is the one table [constraints] takes)",
                 )
             if not isinstance(text, str):
-                raise self.fail(where, f"expected a comparison string, got {type(text).__name__}")
+                # A boolean under a name like allow_nonconvex is that key misspelt.
+                guess = _suggestion(key, {"allow_nonconvex"}) if isinstance(text, bool) else ""
+                raise self.fail(where, f"expected a comparison string, got {shown(text)}{guess}")
             try:
                 op, lhs, rhs = parse_comparison(text, names, self.bound(bound))
             except ExpressionError as exc:
@@ -685,7 +698,10 @@ class _Reader:
         result = []
         for key, text, bound, where in self.entries(nominal, "references.nominal"):
             if key not in references:
-                raise self.fail(where, f"{key!r} is not a declared reference")
+                raise self.fail(
+                    where,
+                    f"{key!r} is not a declared reference{_suggestion(key, set(references))}",
+                )
             result.append((key, self.expression(text, where, names, bound)))
         order = {name: i for i, name in enumerate(references)}
         return tuple(sorted(result, key=lambda item: order[item[0]]))
@@ -698,7 +714,7 @@ class _Reader:
         if kind not in ESTIMATOR_KINDS:
             raise self.fail(
                 "references.estimator.kind",
-                f"expected one of {', '.join(map(repr, ESTIMATOR_KINDS))}, got {clip(kind)!r}",
+                f"expected one of {', '.join(map(repr, ESTIMATOR_KINDS))}, got {shown(kind)}",
             )
         values = {}
         for key, default in (("bandwidth", 20.0), ("lipschitz", 1.0)):
@@ -761,21 +777,14 @@ class _Reader:
     ) -> tuple[tuple[tuple[str, int], ...], bool, int | None]:
         table = self.sub(data, "extension", "extension")
         self.table(table, "extension", {"integrate", "auto", "max_total"}, set())
-        auto = table.get("auto", False)
-        if not isinstance(auto, bool):
-            raise self.fail("extension.auto", f"expected true or false, got {auto!r}")
+        auto = self.boolean(table.get("auto", False), "extension.auto")
         max_total = table.get("max_total")
         if max_total is not None:
             if not auto:
                 raise self.fail("extension.max_total", "only meaningful with auto = true")
-            if (
-                isinstance(max_total, bool)
-                or not isinstance(max_total, int)
-                or not (1 <= max_total <= 3 * MAX_INTEGRATORS)
-            ):
-                raise self.fail(
-                    "extension.max_total", f"expected a whole number 1..{3 * MAX_INTEGRATORS}"
-                )
+            max_total = self.whole(
+                max_total, "extension.max_total", 1, 3 * MAX_INTEGRATORS, "number "
+            )
         if auto and "integrate" in table:
             raise self.fail("extension", "give either integrate or auto = true, not both")
         integrate = {}
@@ -784,11 +793,10 @@ class _Reader:
         ):
             integrate[key] = count
             if key not in inputs:
-                raise self.fail(field, f"{key!r} is not a declared input")
-            if isinstance(count, bool) or not isinstance(count, int):
-                raise self.fail(field, f"expected a whole number of integrators, got {count!r}")
-            if not 0 <= count <= MAX_INTEGRATORS:
-                raise self.fail(field, f"number of integrators must be 0..{MAX_INTEGRATORS}")
+                raise self.fail(
+                    field, f"{key!r} is not a declared input{_suggestion(key, set(inputs))}"
+                )
+            self.whole(count, field, 0, MAX_INTEGRATORS, "number of integrators ")
         counts = tuple((u, integrate[u]) for u in inputs if integrate.get(u, 0) > 0)
         return counts, auto, max_total
 
@@ -796,9 +804,7 @@ class _Reader:
         """``[robust]``: integral action and ``[robust.observer]``."""
         table = self.sub(data, "robust", "robust")
         self.table(table, "robust", {"integral", "observer"}, set())
-        integral = table.get("integral", False)
-        if not isinstance(integral, bool):
-            raise self.fail("robust.integral", f"expected true or false, got {clip(integral)!r}")
+        integral = self.boolean(table.get("integral", False), "robust.integral")
         bandwidth = None
         if "observer" in table:
             observer = self.sub(table, "observer", "robust.observer")
@@ -817,7 +823,11 @@ class _Reader:
         for name, value in table.items():
             field = f"limits.{name}"
             if name not in inputs:
-                raise self.fail(field, f"{clip(name)!r} is not a plant input ({', '.join(inputs)})")
+                raise self.fail(
+                    field,
+                    f"{clip(str(name))!r} is not a plant input ({', '.join(inputs)})"
+                    f"{_suggestion(str(name), set(inputs))}",
+                )
             if isinstance(value, list):
                 if len(value) != 2:
                     raise self.fail(field, f"expected [low, high], got {len(value)} numbers")
@@ -837,7 +847,11 @@ class _Reader:
         for name, value in rates_table.items():
             field = f"limits.rate.{name}"
             if name not in inputs:
-                raise self.fail(field, f"{clip(name)!r} is not a plant input ({', '.join(inputs)})")
+                raise self.fail(
+                    field,
+                    f"{clip(str(name))!r} is not a plant input ({', '.join(inputs)})"
+                    f"{_suggestion(str(name), set(inputs))}",
+                )
             rate = self.number(value, field)
             if not rate > 0:
                 raise self.fail(field, f"a rate limit must be positive (per second), got {rate:g}")
@@ -893,7 +907,10 @@ class _Reader:
         for index, pair in enumerate(value):
             where = f"{field}[{index}]"
             if not (isinstance(pair, list) and len(pair) == 2):
-                raise self.fail(where, "expected a pair [x, y] of names")
+                raise self.fail(where, f"expected a pair [x, y] of names, got {shown(pair)}")
+            for name in pair:
+                if not isinstance(name, str):
+                    raise self.fail(where, f"expected a pair [x, y] of names, got {shown(name)}")
             # ["px[i]", "py[i]"] stands for one pair per value of i.
             parts = [self.split(name, where) for name in pair]
             indices = {i for _, i in parts if i is not None}
@@ -907,7 +924,10 @@ class _Reader:
                 ]
                 for name in names:
                     if name not in known:
-                        raise self.fail(where, f"{name!r} is not a declared {kind}")
+                        raise self.fail(
+                            where,
+                            f"{name!r} is not a declared {kind}{_suggestion(name, known)}",
+                        )
                 result.append((names[0], names[1]))
         return tuple(result)
 
@@ -926,7 +946,59 @@ class _Reader:
         )
 
 
-def _suggestion(key: str, allowed: set[str]) -> str:
-    """``: did you mean 'x'?`` for the allowed key closest to a misspelt one, or nothing."""
+def shown(value: object) -> str:
+    """A value as an error quotes it: its TOML type and its text, clipped.
+
+    Every type check names both, since ``1`` where ``true`` belongs reads the same in a
+    message that gives the value alone; and a value may be of any type, so nothing here
+    assumes a string.
+    """
+    kinds: tuple[tuple[type, str], ...] = (
+        (bool, "boolean"),
+        (int, "integer"),
+        (float, "float"),
+        (str, "string"),
+        (list, "array"),
+        (tuple, "array"),
+        (dict, "table"),
+    )
+    kind = next((name for cls, name in kinds if isinstance(value, cls)), None)
+    if kind is None:
+        # tomllib's dates and times, or anything a Python caller put in the dict.
+        name = type(value).__name__
+        kind = {"datetime": "date-time", "date": "date", "time": "time"}.get(name, name)
+    return f"{kind} {clip(_toml_text(value, 3))}"
+
+
+def _toml_text(value: object, depth: int) -> str:
+    """``value`` written as TOML would (``true``, ``"a"``, ``[1, 2]``), nested ``depth`` deep."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return repr(clip(value))
+    if isinstance(value, list | tuple | dict):
+        if depth == 0:
+            return "[...]" if not isinstance(value, dict) else "{...}"
+        if isinstance(value, dict):
+            pairs = itertools.islice(value.items(), 8)
+            return (
+                "{ "
+                + ", ".join(f"{clip(str(k))} = {_toml_text(v, depth - 1)}" for k, v in pairs)
+                + " }"
+            )
+        return "[" + ", ".join(_toml_text(v, depth - 1) for v in itertools.islice(value, 8)) + "]"
+    text = repr(value) if isinstance(value, float) else str(value)
+    return clip(text)
+
+
+def suggestion(key: str, allowed: Iterable[str]) -> str:
+    """``: did you mean 'x'?`` for the allowed key closest to a misspelt one, or nothing.
+
+    Every place that refuses a key or a name it does not know asks this, at any depth:
+    ``constraints.barier``, ``robust.observer.bandwith``, an initial value of ``thetaa``.
+    """
     close = difflib.get_close_matches(key, sorted(allowed), n=1, cutoff=0.7)
     return f": did you mean '{close[0]}'?" if close else ""
+
+
+_suggestion = suggestion
