@@ -35,7 +35,7 @@ from tvopt_codegen.simulation import load_controller, resolve_options, simulate
 from tvopt_codegen.simulation.references import exact_jets as reference_jets
 from tvopt_codegen.spec import load_spec
 
-from .conftest import ROOT
+from .conftest import ROOT, SPECS, derivation
 from .oracle import Oracle, assert_matches_oracle
 
 FEATURES_DOC = ROOT / "docs" / "features.md"
@@ -489,9 +489,7 @@ _REFUSED = [p for p in _PAIRS if features.status(*p) == "refused"]
 def _check(path: Path, *extra: str) -> tuple[int, str, str]:
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main(
-            [*extra, str(path)] if extra[:1] != ("sweep",) else [*extra[:1], str(path), *extra[1:]]
-        )
+        code = main([extra[0], str(path), *extra[1:]])
     return code, out.getvalue(), err.getvalue()
 
 
@@ -502,7 +500,10 @@ _KNOWN = [p for p in _PAIRS if features.status(*p) == "known failure"]
     "pair",
     [
         pytest.param(
-            p, marks=pytest.mark.xfail(strict=True, reason=features.known_failure(*p).symptom)
+            p,
+            marks=pytest.mark.xfail(
+                strict=True, raises=ArithmeticError, reason=features.known_failure(*p).symptom
+            ),
         )  # type: ignore[union-attr]
         for p in _KNOWN
     ],
@@ -550,10 +551,41 @@ def test_a_refused_pair_is_refused_by_check_in_one_line(
     out_dir = tmp_path / "generated"
     code, _, err = _check(path, "generate", "--out", str(out_dir))
     assert code == EXIT_ASSUMPTION and line in err and not out_dir.exists()
+    # So do simulate and sweep, which derive the same way.
+    for command in (
+        ["simulate", "--out", str(tmp_path / "run")],
+        ["sweep", "--samples", "1", "--out", str(tmp_path / "sw")],
+    ):
+        code, _, err = _check(path, *command)
+        assert code == EXIT_ASSUMPTION and err.count("\n") == 1 and line in err, err
+    assert not (tmp_path / "run").exists() and not (tmp_path / "sw").exists()
     # So does the library.
     with pytest.raises(AssumptionError, match=r".*") as caught:
         derive(load_spec(path))
     assert line in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    ("spec", "expected"),
+    [
+        ("integrator", {}),
+        ("unicycle_switch", {"extension": "declared"}),
+        ("pvtol", {"extension": "auto"}),
+        ("arm_on_line", {"equality": "yes"}),
+        ("two_unicycles_corridor", {"extension": "declared", "inequality": "yes"}),
+        ("integrator_refs", {"references": "yes"}),
+        ("planar_arm3", {"plant": "mechanics"}),
+        (
+            str(SPECS / "robust_pvtol.toml"),
+            {"extension": "auto", "integral": "yes", "observer": "yes", "limits": "yes"},
+        ),
+        (str(SPECS / "nonuniform.toml"), {"padding": "yes"}),
+    ],
+)
+def test_the_features_a_bundled_spec_uses(spec: str, expected: dict[str, str]) -> None:
+    d = derivation(spec)
+    defaults = {axis: features.AXES[i].keys[0] for i, axis in enumerate(features.SPEC_AXES)}
+    assert features.derivation_features(d) == defaults | expected
 
 
 def test_a_spec_without_refusals_gets_no_target_notes() -> None:
