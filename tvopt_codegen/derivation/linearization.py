@@ -40,11 +40,17 @@ from tvopt_codegen.spec.reader import suggestion
 def _implicit_problem(model: Model, exc: ImplicitDerivativeError) -> str:
     """Why a mass-matrix plant cannot take the Lie derivative ``exc`` asks for."""
     output, order = exc.args
-    # An output above relative degree 2 is what padding would need: the table's line.
-    pair = refusal_line(("plant", "mechanics"), ("padding", "yes"))
-    return (
+    problem = (
         f"output {model.spec.outputs[output]!r} needs the derivative of M^-1 (its Lie "
-        f"derivative of order {order} holds M^-1 F or M^-1 B): {pair}"
+        f"derivative of order {order} holds M^-1 F or M^-1 B"
+    )
+    if len(model.h) > 1:
+        # Beside outputs of relative degree 2, it is what padding would need: the table's line.
+        return f"{problem}): {refusal_line(('plant', 'mechanics'), ('padding', 'yes'))}"
+    return (
+        f"{problem}, which generated code computes at run time): [system.mechanics] supports "
+        "outputs of relative degree 2 and no extension; write the plant in [system.dynamics] "
+        "for more"
     )
 
 
