@@ -128,6 +128,12 @@ def _add_import_urdf(commands: _Commands) -> None:
         action="store_true",
         help="replace a spec file edited by hand or not written here",
     )
+    imp.add_argument(
+        "--max-seconds",
+        type=float,
+        default=Budget.seconds,
+        help=f"time budget of the import (default {Budget.seconds:g})",
+    )
 
 
 def _import_urdf(args: argparse.Namespace) -> int:
@@ -156,16 +162,40 @@ def _import_urdf(args: argparse.Namespace) -> int:
             initial[key.strip()] = float(value)
         except ValueError:
             raise SpecError("command line", "--initial", f"{item!r}: expected NAME=VALUE") from None
-    spec = spec_from_urdf(args.urdf, tip=args.tip, gravity=gravity, name=args.name, initial=initial)
-    text = spec_toml(spec)
-    # What is written must read back and build: M symmetric, positive definite at the start.
-    build_model(spec_from_dict(tomllib.loads(text), source=str(out)))
+    if not args.max_seconds > 0:
+        raise SpecError("command line", "--max-seconds", "must be positive")
+    # The import runs the same clock as a derivation: a chain too long for it ends with
+    # exit 6 naming the stage, never runs on (spec_from_urdf refuses the longest at once).
+    progress = _DeriveProgress("never")
+    notes: list[str] = []
+
+    def stage(name: str) -> None:
+        progress.stage = f"import-urdf: {name}"
+
+    with _time_limit(args.max_seconds, [str(args.urdf)], progress):
+        spec = spec_from_urdf(
+            args.urdf,
+            tip=args.tip,
+            gravity=gravity,
+            name=args.name,
+            initial=initial,
+            notes=notes,
+            stage=stage,
+        )
+        stage("writing the spec text")
+        text = spec_toml(spec)
+        # What is written must read back and build: M symmetric, positive definite at the
+        # start.
+        stage("reading the spec back")
+        build_model(spec_from_dict(tomllib.loads(text), source=str(out)))
     write_files({out.name: text}, out.parent, force=args.force)
     joints = len(spec["system"]["coordinates"])
     print(
         f"wrote {out} ({joints} joints, {len(spec['system']['mechanics']['definitions'])} "
         "definitions; edit its objective and initial state)"
     )
+    for note in notes:
+        print(one_line(f"note: {note}"))
     return 0
 
 
