@@ -199,6 +199,37 @@ def test_a_singular_law_is_an_outcome_not_an_error() -> None:
     assert math.isnan(result.row["final_error"])
 
 
+def test_a_sweep_whose_nominal_plant_fails_at_its_start_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """PVTOL started at zero thrust: every sample would fail for the model's one reason."""
+    p = program("pvtol")
+    still = (("thrust", Distribution("fixed", (0.0,))),)
+    spread = (("m", Distribution("normal", (1.0, 0.1))),)
+    options = SweepOptions(samples=4, seed=0, t_final=2.0, initial=still, plant_params=spread)
+    assert sweep.nominal_start(p, options) is Status.SINGULAR_DECOUPLING
+    # Each sample fails alike: the table would be 100% failures as an ordinary outcome.
+    results = [run_sample(p, options, i) for i in range(4)]
+    assert {r.row["status"] for r in results} == {"singular_decoupling"}
+    # The centre of a spread start: uniform(0, 20) starts at thrust 10, where R is regular.
+    around = (("thrust", Distribution("uniform", (0.0, 20.0))),)
+    assert sweep.nominal_start(p, SweepOptions(4, 0, 2.0, initial=around)) is Status.OK
+    assert sweep.nominal_start(p, SweepOptions(4, 0, 2.0, sample_time=0.01)) is Status.OK
+    out = tmp_path / "out"
+    args = ["sweep", "pvtol", "--samples", "4", "--initial", "thrust=0", "--workers", "1"]
+    code = main([*args, "--plant-param", "m=normal(1, 0.1)", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 3 and len(err) == 1, err
+    assert "sweep: the nominal plant fails at its start" in err[0]
+    assert "singular_decoupling (the decoupling matrix R is singular)" in err[0]
+    assert not out.exists()
+    # A run that fails everywhere later on is tabulated, under a headline that says so.
+    text = sweep.format_summary("pvtol", options, sweep.summarize(results, 4, False))
+    assert text.splitlines()[2].startswith("**Every sample failed** (`singular_decoupling`)")
+    ok = sweep.summarize([run_sample(p, SweepOptions(1, 0, 2.0), 0)], 1, False)
+    assert "Every sample failed" not in sweep.format_summary("pvtol", options, ok)
+
+
 def test_nominal_samples_meet_the_certificate_and_mismatch_degrades_tracking() -> None:
     p = program("unicycle_switch")
     spread = (("x1", parse_distribution("normal(-5, 1)", "--initial", "x1")),)

@@ -25,6 +25,7 @@ from tvopt_codegen.errors import (
     EXIT_INTERRUPTED,
     EXIT_OUTPUT,
     EXIT_TERMINATED,
+    OutputError,
 )
 from tvopt_codegen.sweep import SweepOptions, sweep_program
 
@@ -497,11 +498,14 @@ def test_parts_merge_in_sample_order_whatever_order_they_came_in(tmp_path: Path)
             )
         return path
 
-    # Chunks out of order, one kept twice (a resume raced a checkpoint), 6..7 missing.
+    # Chunks out of order, 6..7 missing.
     pieces = sweep.index_parts(
-        [part("a", range(8, 10), range(0, 3)), part("b", range(3, 6), range(0, 3))], schema
+        [part("a", range(8, 10), range(0, 3)), part("b", range(3, 6))], schema, 10
     )
     assert sweep.missing(pieces, 10) == [range(6, 8)]
+    # A chunk kept twice: which copy holds the right rows is unknown, so neither is taken.
+    with pytest.raises(OutputError, match=r"/c: holds samples 0\.\.2, which a holds too"):
+        sweep.index_parts([part("a", range(8, 10), range(0, 3)), part("c", range(0, 3))], schema)
     with (tmp_path / "table").open("wb") as handle:
         assert sweep.write_table(handle, pieces, schema) == 8
     table = pq.read_table(tmp_path / "table").to_pylist()
@@ -603,3 +607,184 @@ def test_a_signal_while_the_files_are_written_lets_them_finish(
         with pytest.raises(KeyboardInterrupt):
             deliver(signal.SIGINT)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+# ------------------------------------------------------------------ parts that cannot mix
+
+#: A small sweep whose parts are one chunk each (samples 0..2, 3..5, 6..8, 9..11).
+MIXING = ["--samples", "12", "--chunk-size", "3", "--t-final", "1", "--points", "11"]
+MIXING += ["--initial", "x1=normal(-1, 0.1)", "--checkpoint-seconds", "0", "--workers", "1"]
+
+
+def _ranges_of(part: Path) -> list[list[int]]:
+    metadata = pq.ParquetFile(part).schema_arrow.metadata
+    return [list(r) for r in json.loads(metadata[b"tvopt.sweep.ranges"])]
+
+
+def _part_holding(folder: Path, start: int) -> Path:
+    """The part whose (only) chunk starts at sample ``start``."""
+    found = [p for p in sorted((folder / "parts").iterdir()) if _ranges_of(p)[0][0] == start]
+    assert len(found) == 1, found
+    return found[0]
+
+
+@pytest.fixture(scope="module")
+def mixing(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Three finished sweeps of one spec with their parts kept: seed 1, seed 2, t_final 2.
+
+    ``seed1`` is then made an interrupted sweep whose last chunk (9..11) is missing.
+    """
+    import shutil
+
+    from tvopt_codegen.emit import SweepFolder, write_files
+
+    root = tmp_path_factory.mktemp("mixing")
+    made = {}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(SweepFolder, "clear_parts", lambda self: None)
+        for name, extra in (
+            ("seed1", ["--seed", "1"]),
+            ("seed2", ["--seed", "2"]),
+            ("longer", ["--seed", "1", "--t-final", "2"]),
+        ):
+            out = root / name
+            options = [*MIXING, *extra]
+            if name == "longer":
+                options.remove("1")  # the first --t-final's value: given again in extra
+                options.remove("--t-final")
+            assert main(["sweep", "integrator", *options, "--out", str(out)]) == 0
+            assert sorted(_ranges_of(p)[0][0] for p in (out / "parts").iterdir()) == [0, 3, 6, 9]
+            made[name] = out
+    complete = root / "complete.parquet"
+    shutil.copyfile(made["seed1"] / "summary.parquet", complete)
+    made["complete"] = complete
+    _part_holding(made["seed1"], 9).unlink()
+    # As an interrupted sweep leaves its record (written by the tool: its manifest knows it).
+    record = json.loads((made["seed1"] / "sweep.json").read_text()) | {"state": "interrupted"}
+    write_files({"sweep.json": sweep.record_bytes(record)}, made["seed1"])
+    return made
+
+
+def _folder_hash(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+def _copy(mixing: dict[str, Path], tmp_path: Path) -> Path:
+    import shutil
+
+    out = tmp_path / "sweep"
+    shutil.copytree(mixing["seed1"], out)
+    return out
+
+
+def test_an_interrupted_sweep_with_its_own_parts_resumes_to_the_whole_table(
+    mixing: dict[str, Path], tmp_path: Path
+) -> None:
+    out = _copy(mixing, tmp_path)
+    assert main(["sweep", "--resume", str(out), "--workers", "1"]) == 0
+    assert (out / "summary.parquet").read_bytes() == mixing["complete"].read_bytes()
+    assert not (out / "parts").exists()
+    metadata = pq.ParquetFile(out / "summary.parquet").schema_arrow.metadata
+    assert metadata[b"tvopt.sweep.seed"] == b"1"
+
+
+def _tamper_other_seed(out: Path, mixing: dict[str, Path]) -> tuple[str, str]:
+    import shutil
+
+    part = out / "parts" / "part-00000090-1.parquet"
+    shutil.copyfile(_part_holding(mixing["seed2"], 9), part)
+    return part.name, "it is a part of another sweep: seed 2, this sweep's is 1"
+
+
+def _tamper_other_options(out: Path, mixing: dict[str, Path]) -> tuple[str, str]:
+    import shutil
+
+    part = out / "parts" / "part-00000090-1.parquet"
+    shutil.copyfile(_part_holding(mixing["longer"], 9), part)
+    return part.name, "it is a part of another sweep: other options"
+
+
+def _rewrite(part: Path, table: object) -> None:
+    # What a hand edit with pyarrow does: the schema's metadata (ranges too) is kept.
+    pq.write_table(table, part)
+
+
+def _tamper_duplicate(out: Path, mixing: dict[str, Path]) -> tuple[str, str]:
+    import pyarrow as pa
+
+    part = _part_holding(out, 3)
+    table = pq.read_table(part)
+    _rewrite(part, pa.concat_tables([table.slice(0, 2), table.slice(1, 1)]))
+    assert pq.read_table(part).column("sample").to_pylist() == [3, 4, 4]
+    return part.name, "its sample column holds sample 4 twice (row group 0; sample 5 is missing)"
+
+
+def _tamper_dropped(out: Path, mixing: dict[str, Path]) -> tuple[str, str]:
+    part = _part_holding(out, 6)
+    _rewrite(part, pq.read_table(part).slice(0, 2))
+    return part.name, "row group 0 holds 2 rows for samples 6..8 (3 samples)"
+
+
+def _tamper_overlap(out: Path, mixing: dict[str, Path]) -> tuple[str, str]:
+    import shutil
+
+    first = _part_holding(out, 3)
+    copy = out / "parts" / "part-00000090-1.parquet"
+    shutil.copyfile(first, copy)
+    return copy.name, f"holds samples 3..5, which {first.name} holds too (overlapping parts)"
+
+
+def _tamper_anonymous(out: Path, mixing: dict[str, Path]) -> tuple[str, str]:
+    # The right rows, written without the sweep's identity (by another tool).
+    program = sweep_program(kernels("integrator"))
+    record = json.loads((out / "sweep.json").read_text())
+    options = SweepOptions.from_dict(record["options"])
+    schema = sweep.row_schema(program, options)
+    rows = [r.row for r in sweep.run_chunk(program, options, range(9, 12), False)]
+    part = out / "parts" / "part-00000090-1.parquet"
+    with part.open("wb") as handle:
+        sweep.write_part(handle, [sweep.record_batch(rows, schema)], schema)
+    return part.name, "it carries no sweep identity"
+
+
+def _tamper_beyond(out: Path, mixing: dict[str, Path]) -> tuple[str, str]:
+    # A part whose recorded range and rows agree, past the sweep's last sample.
+    import pyarrow as pa
+
+    part = _part_holding(out, 6)
+    table = pq.read_table(part)
+    shifted = table.set_column(0, "sample", pa.array([12, 13, 14], pa.int64()))
+    metadata = dict(table.schema.metadata) | {b"tvopt.sweep.ranges": b"[[12,15]]"}
+    _rewrite(part, shifted.replace_schema_metadata(metadata))
+    return part.name, "row group 0's range 12..14 is not a range of 0..11"
+
+
+@pytest.mark.parametrize(
+    "tamper",
+    [
+        _tamper_other_seed,
+        _tamper_other_options,
+        _tamper_duplicate,
+        _tamper_dropped,
+        _tamper_overlap,
+        _tamper_anonymous,
+        _tamper_beyond,
+    ],
+    ids=lambda f: f.__name__.removeprefix("_tamper_"),
+)
+def test_resume_refuses_parts_that_would_mix_rows_and_changes_nothing(
+    tamper: object,
+    mixing: dict[str, Path],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    out = _copy(mixing, tmp_path)
+    name, words = tamper(out, mixing)  # type: ignore[operator]
+    before = _folder_hash(out)
+    capsys.readouterr()
+    assert main(["sweep", "--resume", str(out), "--workers", "1"]) == EXIT_OUTPUT
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert f"parts/{name}: " in err[0] and words in err[0], err[0]
+    assert err[0].endswith("nothing was changed")
+    assert _folder_hash(out) == before

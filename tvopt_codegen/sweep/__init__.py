@@ -73,10 +73,12 @@ from tvopt_codegen.sweep.results import (
     trajectory_block,
     trajectory_layout,
 )
-from tvopt_codegen.sweep.sample import SampleResult, run_chunk, run_sample
+from tvopt_codegen.sweep.sample import SampleResult, nominal_start, run_chunk, run_sample
 from tvopt_codegen.sweep.table import (
     ERROR_STATUS,
+    IDENTITY_KEYS,
     PART_ROWS,
+    RANGES_KEY,
     TABLE_ROW_GROUP,
     Piece,
     failed_row,
@@ -87,12 +89,15 @@ from tvopt_codegen.sweep.table import (
     record_batch,
     row_columns,
     row_schema,
+    sweep_identity,
+    with_identity,
     write_part,
     write_table,
 )
 
 __all__ = [
     "SampleResult",
+    "nominal_start",
     "run_chunk",
     "run_sample",
     "DISTRIBUTIONS",
@@ -100,6 +105,7 @@ __all__ = [
     "Distribution",
     "Draw",
     "ERROR_STATUS",
+    "IDENTITY_KEYS",
     "LOOKAHEAD_PER_WORKER",
     "Loop",
     "LoopOutcome",
@@ -107,6 +113,7 @@ __all__ = [
     "MAX_SAMPLES",
     "Outcome",
     "PART_ROWS",
+    "RANGES_KEY",
     "Piece",
     "RECORD",
     "SCHEDULER_TIMEOUT",
@@ -147,7 +154,9 @@ __all__ = [
     "Tally",
     "tally_rows",
     "tally_table",
+    "sweep_identity",
     "sweep_program",
+    "with_identity",
     "tail",
     "trajectory_block",
     "trajectory_layout",

@@ -185,12 +185,11 @@ def _run_and_publish(
     from tvopt_codegen.emit import TrajectoryStore  # noqa: PLC0415
     from tvopt_codegen.sweep import (  # noqa: PLC0415
         default_chunk,
-        row_schema,
         run_sweep,
         trajectory_layout,
     )
 
-    schema = row_schema(program, options)
+    schema = _schema(program, options, record)
     run = None
     try:
         workers = len(client.scheduler_info().get("workers", {})) or 1
@@ -311,7 +310,7 @@ def _publish(
         write_table,
     )
 
-    pieces = index_parts(folder.parts(), schema)
+    pieces = index_parts(folder.parts(), schema, options.samples)
     gaps = missing(pieces, options.samples)
     absent = sum(len(g) for g in gaps)
     table = write_stream(
@@ -404,8 +403,9 @@ def sweep(
     options = _options(args, program, derivation.spec.t_final)
     _check_earlier(args)
     loop_for(program)  # a compiler error stops here, before any worker starts
+    _check_nominal(derivation.spec.source, program, options)
     spec_name = f"{derivation.spec.name}.toml"
-    record = _record(program, options, spec_name, args.extension, bool(args.trajectories))
+    record = _record(program, options, spec_name, args.extension, bool(args.trajectories), raw)
     folder = SweepFolder(args.out, _names(spec_name), args.force)
     try:
         # Again under the lock: a sweep that finished since the first look owns the folder.
@@ -432,6 +432,39 @@ def sweep(
     return code
 
 
+def _check_nominal(source: str, program: Any, options: Any) -> None:
+    """Refuse a sweep whose nominal plant fails at its start (nothing run, nothing written).
+
+    Every sample would start there or near it and fail for that one reason of the
+    model's: a table of 100% failures would hide it as an ordinary outcome.
+    """
+    from tvopt_codegen.contract import Status  # noqa: PLC0415
+    from tvopt_codegen.errors import AssumptionError  # noqa: PLC0415
+    from tvopt_codegen.sweep.sample import nominal_start  # noqa: PLC0415
+
+    outcome = nominal_start(program, options)
+    if not isinstance(outcome, Status) or outcome == Status.OK:
+        return
+    start = "the spec's initial state" + (
+        " with each --initial at its centre" if options.initial else ""
+    )
+    why = outcome.text.replace("{result}", "a value of the law")
+    raise AssumptionError(
+        source,
+        "sweep",
+        f"the nominal plant fails at its start ({start}, the spec's parameters, t = 0): "
+        f"{outcome.label} ({why}); every sample would start there or near it, so nothing "
+        "was run: fix the spec (check SPEC names where the law is undefined)",
+    )
+
+
+def _schema(program: Any, options: Any, record: dict[str, Any]) -> Any:
+    """The table's schema carrying the sweep's identity (its parts must carry the same)."""
+    from tvopt_codegen.sweep import row_schema, with_identity  # noqa: PLC0415
+
+    return with_identity(row_schema(program, options), record["identity"])
+
+
 def _disconnect(client: Any, cluster: Any) -> None:
     """Close the client, and the local cluster with its worker processes."""
     client.close()
@@ -440,10 +473,18 @@ def _disconnect(client: Any, cluster: Any) -> None:
 
 
 def _record(
-    program: Any, options: Any, spec_name: str, extension: str, trajectories: bool
+    program: Any,
+    options: Any,
+    spec_name: str,
+    extension: str,
+    trajectories: bool,
+    spec: bytes,
 ) -> dict[str, Any]:
     """``sweep.json`` as the sweep starts: everything ``--resume`` and ``--replay`` need."""
+    from tvopt_codegen.sweep import sweep_identity  # noqa: PLC0415
+
     return {
+        "identity": sweep_identity(spec, options, program.key, extension),
         "spec": spec_name,
         "extension": extension,
         "loop": program.key,
@@ -540,13 +581,19 @@ def _refuse_sweep_options(args: argparse.Namespace) -> None:
 def resume(args: argparse.Namespace) -> int:
     """Run ``tvopt-codegen sweep --resume DIR``: the samples an interrupted sweep lacks."""
     from tvopt_codegen.emit import SweepFolder  # noqa: PLC0415
-    from tvopt_codegen.sweep import connect, index_parts, loop_for, missing, row_schema  # noqa: PLC0415
+    from tvopt_codegen.sweep import (  # noqa: PLC0415
+        connect,
+        index_parts,
+        loop_for,
+        missing,
+        sweep_identity,
+    )
 
     if args.spec is not None:
         raise SpecError("command line", "--resume", "takes no SPEC (the sweep's copy is used)")
     _refuse_sweep_options(args)
     folder_path = Path(args.resume)
-    record, options, spec_name, _spec, program = _from_record(folder_path)
+    record, options, spec_name, spec_bytes, program = _from_record(folder_path)
     if program.key != record.get("loop"):
         raise SpecError(
             str(folder_path / "sweep.json"),
@@ -564,11 +611,18 @@ def resume(args: argparse.Namespace) -> int:
     if record.get("state") == "complete":
         print(f"sweep: {folder_path} is complete; nothing to resume", file=sys.stderr)
         return 0
+    # The identity is the folder's own (its spec copy and options), never the record's
+    # word for it: every part must be of this sweep before anything is written.
+    record["identity"] = sweep_identity(
+        spec_bytes, options, program.key, str(record.get("extension", ""))
+    )
+    schema = _schema(program, options, record)
+    index_parts(_listed_parts(folder_path), schema, options.samples)
     loop_for(program)
     folder = SweepFolder(folder_path, _names(spec_name), args.force)
     try:
-        schema = row_schema(program, options)
-        gaps = missing(index_parts(folder.parts(), schema), options.samples)
+        # Again under the lock (a part written since the first look is checked too).
+        gaps = missing(index_parts(folder.parts(), schema, options.samples), options.samples)
         record["resumed"] = True
         if gaps:
             client, cluster = connect(args.workers, args.scheduler)
@@ -578,6 +632,16 @@ def resume(args: argparse.Namespace) -> int:
     finally:
         folder.close()
     return code
+
+
+def _listed_parts(folder: Path) -> list[Path]:
+    """The parts in ``folder``, as :meth:`SweepFolder.parts` lists them, without the lock."""
+    from tvopt_codegen.emit import SweepFolder  # noqa: PLC0415
+
+    where = folder / SweepFolder.PARTS
+    if where.is_symlink() or not where.is_dir():
+        return []
+    return sorted(p for p in where.iterdir() if SweepFolder._PART.fullmatch(p.name) and p.is_file())
 
 
 def _same(a: Any, b: Any) -> bool:

@@ -105,6 +105,18 @@ class Distribution:
             return float(rng.uniform(a, b))
         return float(rng.lognormal(a, b))
 
+    @property
+    def centre(self) -> float:
+        """The nominal value: the number, the mean, the midpoint or the median."""
+        if self.kind == "fixed":
+            return self.args[0]
+        a, b = self.args
+        if self.kind == "normal":
+            return a
+        if self.kind == "uniform":
+            return 0.5 * (a + b)
+        return math.exp(a)
+
     def __str__(self) -> str:
         if self.kind == "fixed":
             return repr(self.args[0])

@@ -196,6 +196,15 @@ def format_summary(name: str, options: SweepOptions, summary: Summary) -> str:
     s = summary
     failures = s.runs - s.outcomes.get("ok", 0)
     lines = [f"# Sweep of {name}: {s.runs} samples", ""]
+    if s.runs and not s.outcomes.get("ok"):
+        # Not an ordinary outcome: no run of the sweep is a closed loop to measure.
+        kinds = ", ".join(f"`{status}`" for status in s.outcomes)
+        lines += [
+            f"**Every sample failed** ({kinds}): the statistics below describe no closed "
+            "loop; the nominal plant started well (a sweep whose nominal start fails is "
+            "refused), so the spread or the run itself drives the law out of its domain.",
+            "",
+        ]
     if s.interrupted:
         lines += [
             f"Interrupted: {s.runs} of {s.requested} samples finished, "

@@ -15,7 +15,7 @@ from tvopt_codegen.hurwitz import bound_ratio, tracking_bound
 
 if TYPE_CHECKING:
     pass
-from tvopt_codegen.sweep.options import SETTLING, SweepOptions
+from tvopt_codegen.sweep.options import SETTLING, Outcome, SweepOptions
 from tvopt_codegen.sweep.program import (
     Draw,
     Loop,
@@ -162,6 +162,34 @@ def run_sample(
     row |= sample.values
     row["error"] = None
     return SampleResult(row, rows if keep else None)
+
+
+#: The nominal check's horizon, as a fraction of the sweep's: the law's first instants.
+NOMINAL_SPAN = 1e-9
+
+
+def nominal_start(program: SweepProgram, options: SweepOptions) -> Outcome:
+    """How the loop starts from the sweep's centre: the law's status at its first instant.
+
+    The centre is the spec's initial state with each ``--initial`` at its centre (mean,
+    midpoint, median), and the spec's parameters for the controller and the plant alike
+    (the nominal plant is the model); no noise. The loop runs for a vanishing horizon
+    (:data:`NOMINAL_SPAN` of the sweep's), so the outcome is the law's at t = 0: a
+    status other than ``OK`` means the law is undefined where every sample starts or
+    near it.
+    """
+    loop = loop_for(program)
+    s0 = np.array(program.initial_state, dtype=float)
+    for name, dist in options.initial:
+        s0[program.state_names.index(name)] = dist.centre
+    defaults = np.array(program.defaults, dtype=float)
+    centre = Draw(-1, 0, {}, s0, defaults, defaults.copy(), None)
+    centre = _bumpless(program, options, loop, centre)
+    brief = dataclasses.replace(
+        options, t_final=options.t_final * NOMINAL_SPAN, points=2, noise=0.0
+    )
+    outcome, _, _ = loop.run(brief, centre)
+    return outcome
 
 
 def run_chunk(

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from tvopt_codegen.errors import MissingExtraError, OutputError
+from tvopt_codegen.errors import MissingExtraError, OutputError, clip
 from tvopt_codegen.sweep.options import SweepOptions
 from tvopt_codegen.sweep.program import SweepProgram
 
@@ -116,9 +116,63 @@ def record_batch(rows: Sequence[Mapping[str, Any]], schema: Any) -> Any:
     return pa.RecordBatch.from_pylist(list(rows), schema=schema)
 
 
+#: The Parquet key-value metadata of a part (and of ``summary.parquet``) naming its sweep:
+#: the spec copy's SHA-256, the seed, the SHA-256 of the options that shape a row, and the
+#: compiled loop's key. A part carries them all, and its row groups' sample ranges
+#: (:data:`RANGES_KEY`): ``--resume`` merges only parts of its own sweep.
+IDENTITY_KEYS = ("tvopt.sweep.spec", "tvopt.sweep.seed", "tvopt.sweep.options", "tvopt.sweep.loop")
+#: A part's row groups' sample ranges, ``[[start, stop], ...]`` as JSON.
+RANGES_KEY = "tvopt.sweep.ranges"
+
+
+def sweep_identity(
+    spec: bytes, options: SweepOptions, loop: str, extension: str = ""
+) -> dict[str, str]:
+    """What makes two sweeps' rows interchangeable, as the parts' metadata.
+
+    ``samples`` is left out: sample ``i``'s row depends on the seed and ``i`` alone, and
+    the ranges are checked against the sweep's count. Every other option (horizon,
+    spreads, limits, noise, sample time, tolerances, output times, step budget) changes
+    rows, and so does the extension the derivation was asked for.
+    """
+    import hashlib  # noqa: PLC0415
+    import json  # noqa: PLC0415
+
+    shaping = {k: v for k, v in options.as_dict().items() if k not in ("samples", "seed")}
+    shaping["extension"] = extension
+    text = json.dumps(shaping, sort_keys=True, separators=(",", ":"))
+    return {
+        "tvopt.sweep.spec": hashlib.sha256(spec).hexdigest(),
+        "tvopt.sweep.seed": str(options.seed),
+        "tvopt.sweep.options": hashlib.sha256(text.encode()).hexdigest(),
+        "tvopt.sweep.loop": loop,
+    }
+
+
+def with_identity(schema: Any, identity: Mapping[str, str]) -> Any:
+    """``schema`` carrying a sweep's identity (:func:`sweep_identity`) as metadata."""
+    return schema.with_metadata({**(schema.metadata or {}), **identity})
+
+
+def _batch_range(batch: Any) -> list[int]:
+    """``[start, stop]`` of a chunk's batch (its samples are consecutive, in order)."""
+    samples = batch.column(batch.schema.get_field_index("sample"))
+    if not len(samples):
+        return [0, 0]
+    return [int(samples[0].as_py()), int(samples[len(samples) - 1].as_py()) + 1]
+
+
 def write_part(handle: Any, batches: Sequence[Any], schema: Any) -> None:
-    """A part: each chunk's batch as its own row group (so one chunk reads alone)."""
+    """A part: each chunk's batch as its own row group (so one chunk reads alone).
+
+    The file's metadata holds ``schema``'s (the sweep's identity) and each row group's
+    sample range, which ``--resume`` holds against the rows themselves.
+    """
+    import json  # noqa: PLC0415
+
     _, pq = pyarrow()
+    ranges = json.dumps([_batch_range(batch) for batch in batches], separators=(",", ":"))
+    schema = schema.with_metadata({**(schema.metadata or {}), RANGES_KEY: ranges})
     with pq.ParquetWriter(handle, schema) as writer:
         for batch in batches:
             writer.write_batch(batch, row_group_size=max(1, batch.num_rows))
@@ -134,49 +188,152 @@ class Piece:
     group: int
 
 
-def index_parts(paths: Sequence[Path], schema: Any) -> list[Piece]:
-    """The chunks the parts hold, by first sample; read from the files' footers only.
+class _RefusedError(Exception):
+    """Why a part cannot join this sweep's table (the caller names the file)."""
+
+
+def _identity_problem(found: Mapping[str, str], expected: Mapping[str, str]) -> str | None:
+    """Why a part's identity is not the sweep's, or None when it is."""
+    if not all(key in found for key in IDENTITY_KEYS):
+        return (
+            "it carries no sweep identity (not written by this sweep: another tool, or an "
+            "older tvopt-codegen)"
+        )
+    if found["tvopt.sweep.spec"] != expected["tvopt.sweep.spec"]:
+        return "it is a part of another sweep: another spec"
+    if found["tvopt.sweep.seed"] != expected["tvopt.sweep.seed"]:
+        return (
+            f"it is a part of another sweep: seed {clip(found['tvopt.sweep.seed'], 24)}, "
+            f"this sweep's is {expected['tvopt.sweep.seed']}"
+        )
+    if found["tvopt.sweep.options"] != expected["tvopt.sweep.options"]:
+        return (
+            "it is a part of another sweep: other options (horizon, spreads, limits, noise, "
+            "sample time, tolerances or output times)"
+        )
+    if found["tvopt.sweep.loop"] != expected["tvopt.sweep.loop"]:
+        return "it is a part of another sweep: another compiled loop (another tvopt-codegen?)"
+    return None
+
+
+def _metadata(meta: Any) -> dict[str, str]:
+    raw = meta.metadata or {}
+    return {k.decode(errors="replace"): v.decode(errors="replace") for k, v in raw.items()}
+
+
+def _ranges(found: Mapping[str, str], groups: int) -> list[tuple[int, int]]:
+    """The part's recorded sample range of each row group."""
+    import json  # noqa: PLC0415
+
+    try:
+        ranges = [(int(a), int(b)) for a, b in json.loads(found[RANGES_KEY])]
+    except (KeyError, ValueError, TypeError):
+        raise _RefusedError("it records no sample range for its row groups") from None
+    if len(ranges) != groups:
+        raise _RefusedError(
+            f"it records {len(ranges)} sample ranges for {groups} row groups (rewritten?)"
+        )
+    return ranges
+
+
+def _check_group(
+    rows: Any, group: int, span: tuple[int, int], samples: int | None, seed: int | None
+) -> None:
+    """A row group holds exactly the samples of its range, each once, with their seeds."""
+    from tvopt_codegen.sweep.program import sample_seed  # noqa: PLC0415
+
+    start, stop = span
+    if not 0 <= start < stop or (samples is not None and stop > samples):
+        whole = "" if samples is None else f" of 0..{samples - 1}"
+        raise _RefusedError(f"row group {group}'s range {start}..{stop - 1} is not a range{whole}")
+    if rows.num_rows != stop - start:
+        raise _RefusedError(
+            f"row group {group} holds {rows.num_rows} rows for samples {start}..{stop - 1} "
+            f"({stop - start} samples)"
+        )
+    held = rows.column("sample").to_numpy(zero_copy_only=False)
+    if not np.array_equal(held, np.arange(start, stop)):
+        values, counts = np.unique(held, return_counts=True)
+        absent = np.setdiff1d(np.arange(start, stop), values)
+        if np.any(counts > 1):
+            twice = int(values[np.argmax(counts > 1)])
+            lost = f"; sample {int(absent[0])} is missing" if len(absent) else ""
+            raise _RefusedError(
+                f"its sample column holds sample {twice} twice (row group {group}{lost})"
+            )
+        raise _RefusedError(
+            f"its sample column in row group {group} is not samples {start}..{stop - 1} in order"
+        )
+    if seed is not None:
+        seeds = rows.column("seed").to_numpy(zero_copy_only=False)
+        for where in {0, len(held) - 1}:
+            if int(seeds[where]) != sample_seed(seed, int(held[where])):
+                raise _RefusedError(
+                    f"sample {int(held[where])}'s seed is not this sweep's (its rows come from "
+                    "a sweep with another seed)"
+                )
+
+
+def index_parts(paths: Sequence[Path], schema: Any, samples: int | None = None) -> list[Piece]:
+    """The chunks the parts hold, by first sample, each checked against this sweep.
+
+    When ``schema`` carries the sweep's identity (:func:`with_identity`), a part must
+    carry the same (spec, seed, options, loop); its row groups must hold exactly their
+    recorded sample ranges (as many rows, each sample once, in order, the seeds of this
+    sweep's seed at both ends), within ``0 .. samples - 1``; and no two parts may hold
+    the same sample.
 
     Raises
     ------
     OutputError
-        A part that is not a table of this sweep (another schema, unreadable).
+        One line naming the first part refused and why.
     """
     _, pq = pyarrow()
+    expected = {k: v for k, v in _metadata(schema).items() if k in IDENTITY_KEYS}
+    seed = int(expected["tvopt.sweep.seed"]) if "tvopt.sweep.seed" in expected else None
     pieces: list[Piece] = []
     for path in paths:
         try:
-            meta = pq.ParquetFile(path).metadata
+            handle = pq.ParquetFile(path)
+            meta = handle.metadata
             if not meta.schema.to_arrow_schema().equals(schema):
-                raise ValueError("its columns are not this sweep's")
-            where = meta.schema.names.index("sample")
-            for group in range(meta.num_row_groups):
-                stats = meta.row_group(group).column(where).statistics
-                rows = meta.row_group(group).num_rows
-                start, stop = int(stats.min), int(stats.max) + 1
-                if stop - start != rows:
-                    raise ValueError(f"row group {group} is not a run of consecutive samples")
-                pieces.append(Piece(start, stop, path, group))
-        except (OSError, ValueError, AttributeError, TypeError) as exc:
-            raise OutputError(f"{path}: not a part of this sweep ({exc})") from None
-    pieces.sort(key=lambda p: (p.start, -p.stop))
+                raise _RefusedError("its columns are not this sweep's")
+            found = _metadata(handle.schema_arrow)
+            if expected:
+                problem = _identity_problem(found, expected)
+                if problem is not None:
+                    raise _RefusedError(problem)
+            ranges = _ranges(found, meta.num_row_groups)
+            for group, span in enumerate(ranges):
+                rows = handle.read_row_group(group, columns=["sample", "seed"])
+                _check_group(rows, group, span, samples, seed)
+                pieces.append(Piece(span[0], span[1], path, group))
+        except _RefusedError as exc:
+            raise OutputError(f"{path}: {exc}; nothing was changed") from None
+        except (OSError, ValueError, KeyError, AttributeError, TypeError) as exc:
+            problem = " ".join(str(exc).split())
+            raise OutputError(
+                f"{path}: not a part of this sweep (unreadable: {clip(problem, 120)}); "
+                "nothing was changed"
+            ) from None
+    pieces.sort(key=lambda p: (p.start, p.stop))
+    _disjoint(pieces)
     return pieces
 
 
 def _disjoint(pieces: Sequence[Piece]) -> list[Piece]:
-    """The pieces without repeats: a chunk kept twice (a resume raced a flush) counts once."""
-    kept: list[Piece] = []
-    end = 0
+    """The pieces, refused if two hold a sample (whichever holds the right rows is unknown)."""
+    end, holder = 0, None
     for piece in pieces:
-        if piece.start >= end:
-            kept.append(piece)
-            end = piece.stop
-        elif piece.stop > end:
+        if holder is not None and piece.start < end:
+            where = holder.path.name if holder.path != piece.path else "its own row groups"
             raise OutputError(
-                f"{piece.path}: holds samples {piece.start}..{piece.stop - 1}, which overlap "
-                "another part's without matching it"
+                f"{piece.path}: holds samples {piece.start}..{piece.stop - 1}, which "
+                f"{where} holds too (overlapping parts); nothing was changed"
             )
-    return kept
+        if piece.stop > end:
+            end, holder = piece.stop, piece
+    return list(pieces)
 
 
 def missing(pieces: Sequence[Piece], samples: int) -> list[range]:
