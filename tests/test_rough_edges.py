@@ -9,7 +9,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+import sympy as sp
 
+from tvopt_codegen.derivation.linearization import _singular_set, undefined_causes
 from tvopt_codegen.errors import clip_quotes
 
 from .conftest import ROOT, module, write_spec
@@ -216,3 +218,95 @@ def test_figures_leave_the_users_matplotlib_backend_alone(tmp_path: Path) -> Non
     done = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
     assert done.stdout.split()[-2:] == ["svg", "False"]
     assert (tmp_path / "run" / "integrator_convergence.png").read_bytes()[:4] == b"\x89PNG"
+
+
+EMPTY_SETS = """name = "empty_sets"
+
+[system]
+states = ["x", "y", "vx", "vy"]
+inputs = ["ax", "ay"]
+
+[system.dynamics]
+x = "vx"
+y = "vy"
+vx = "ax/sqrt(vx**2 + vy**2 + 1) + sqrt(x) + log(1 + x**2) + 1/(x - 3)"
+vy = "ay*(vx**2 - vx*vy + vy**2 + 1) + tan(y)"
+
+[system.outputs]
+px = "x"
+py = "y"
+
+[signals]
+ox = "1 + 0.1*sin(t)"
+oy = "0.2*cos(t)"
+
+[objective]
+f0 = "(px - ox)**2 + (py - oy)**2"
+
+[error_dynamics]
+poles = [-1.0, -2.0]
+
+[simulation]
+initial_state = { x = 1.0, y = 0.0, vx = 0.0, vy = 0.0 }
+"""
+
+
+def test_check_lists_only_sets_that_hold_somewhere_with_their_cause(tmp_path: Path) -> None:
+    # R's gains vx**2 + vy**2 + 1 and the definite quadratic vx**2 - vx*vy + vy**2 + 1 vanish
+    # nowhere, log(1 + x**2) is defined everywhere: check once said "singular where
+    # vx**2 + vy**2 + 1 = 0" and "undefined where vx**2 + vy**2 + 1 = 0".
+    done = _cli("check", str(write_spec(tmp_path, EMPTY_SETS)))
+    assert done.returncode == 0, done.stderr
+    det = "  det R = (vx**2 - vx*vy + vy**2 + 1)/sqrt(vx**2 + vy**2 + 1); never singular"
+    assert det in done.stdout.splitlines(), done.stdout
+    undefined = next(line for line in done.stdout.splitlines() if "undefined where" in line)
+    assert undefined == (
+        "  R or p undefined where cos(y) = 0 (the cosine under tan vanishes); "
+        "x < 0 (a square root of a negative); x - 3 = 0 (a denominator vanishes)"
+    )
+    # The law line defines each of its letters, and none is the decay rate's alpha.
+    law = next(line for line in done.stdout.splitlines() if line.startswith("  law: "))
+    assert law == (
+        "  law: u = R^-1 (v - p): R the decoupling matrix, p the drift of the outputs' "
+        "highest derivatives (their value at zero input), v = y_imp^(2), the implicit "
+        "trajectory's 2nd derivative (uniform relative degree theorem)"
+    )
+    assert "decay rate alpha = 1" in done.stdout
+
+
+def test_an_extended_plants_law_line_names_the_extended_inputs() -> None:
+    done = _cli("check", str(ROOT / "tests" / "specs" / "robust_pvtol.toml"))
+    assert done.returncode == 0, done.stderr
+    law = next(line for line in done.stdout.splitlines() if line.startswith("  law: "))
+    assert law.startswith("  law: w = R^-1 (v - p): R the decoupling matrix")
+    assert "v = y_imp^(4), the implicit trajectory's 4th derivative" in law
+    assert "w = (thrust_d2, torque), the extended plant's inputs" in law
+    assert "alpha" not in law and "beta" not in law
+
+
+def test_the_sign_tests_behind_the_sets() -> None:
+    x, y = sp.symbols("x y", real=True)
+    assert _singular_set(x**2 + y**2 + 1) == ()
+    assert _singular_set((x**2 - x * y + y**2 + 1) * (x - 1)) == ("x - 1 = 0",)
+    # (x - 1)**2 vanishes at x = 1; x**2 - 3*x*y + y**2 + 1 is indefinite.
+    assert _singular_set(x**2 - 2 * x + 1) == ("x - 1 = 0",)
+    assert _singular_set(x**2 - 3 * x * y + y**2 + 1) == ("x**2 - 3*x*y + y**2 + 1 = 0",)
+    assert _singular_set(-(x**2) - 4) == ()
+    causes = undefined_causes(
+        [
+            1 / sp.sqrt(x**2 + 1),
+            sp.log(x**2 + 1),
+            sp.sqrt((x - 1) ** 2),
+            1 / sp.sqrt(y),
+            sp.log(x),
+            1 / sp.cos(sp.atan(x)),
+            sp.cot(y),
+        ],
+        {x, y},
+    )
+    assert dict(causes) == {
+        "y = 0": "a denominator vanishes",
+        "y < 0": "a square root of a negative",
+        "x <= 0": "a log of a non-positive",
+        "sin(y) = 0": "the sine under cot vanishes",
+    }

@@ -5,6 +5,7 @@ from __future__ import annotations
 import sympy as sp
 
 from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.derivation.linearization import law_expressions, undefined_causes
 from tvopt_codegen.ir import KernelSet
 
 
@@ -17,6 +18,39 @@ def _pole(value: complex) -> str:
         return _number(value.real)
     sign = "+" if value.imag > 0 else "-"
     return f"{_number(value.real)}{sign}{_number(abs(value.imag))}i"
+
+
+def _ordinal(n: int) -> str:
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
+
+
+def _law_line(d: Derivation) -> str:
+    """The control law, every letter on it defined on the same line.
+
+    The paper writes ``u = alpha + beta R^-1 [...]``, where alpha and beta are the
+    dynamic extension's maps; beside the decay rate alpha of the error dynamics that
+    read as one letter with two meanings, so the line names the extended plant's input
+    instead.
+    """
+    trajectory = f"y_imp^({d.k}), the implicit trajectory's {_ordinal(d.k)} derivative"
+    if d.uniform:
+        v, law = trajectory, "uniform relative degree theorem"
+    else:
+        v = f"the padding chains' output, driven by {trajectory}"
+        law = "non-uniform theorem, with xi chains"
+    if d.extension.counts:
+        lhs = "w"
+        ext = (
+            f"; w = ({', '.join(d.extension.inputs)}), the extended plant's inputs (an "
+            "integrated input's last derivative, or the input itself)"
+        )
+    else:
+        lhs, ext = "u", ""
+    return (
+        f"  law: {lhs} = R^-1 (v - p): R the decoupling matrix, p the drift of the outputs' "
+        f"highest derivatives (their value at zero input), v = {v}{ext} ({law})"
+    )
 
 
 def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> str:
@@ -76,8 +110,10 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
         lines.append(f"  {what.split(' = ')[0]} = {sp.sstr(d.det_R)}; {where}")
     else:
         lines.append(f"  det R: {d.det_R_note}; singularity is checked at run time by pivoting")
-    if d.undefined_set:
-        lines.append(f"  R or p undefined where {'; '.join(d.undefined_set)}")
+    causes = undefined_causes(law_expressions(d.R, d.p, d.model.mechanics), set(d.extension.x))
+    if causes:
+        where = "; ".join(f"{condition} ({cause})" for condition, cause in causes)
+        lines.append(f"  R or p undefined where {where}")
     lines.append(
         f"  f0: strongly convex ({d.convexity.method}, m_f ~ "
         f"{_number(d.convexity.m_f)} over {d.convexity.points} point(s))"
@@ -90,8 +126,7 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
         + ")"
         + f"; decay rate alpha = {_number(d.decay_rate)}"
     )
-    law = "uniform relative degree theorem" if d.uniform else "non-uniform theorem (xi chains)"
-    lines.append(f"  law: u = alpha + beta R^-1 [v - p], v from y_imp^({d.k}) ({law})")
+    lines.append(_law_line(d))
     if d.model.constraints:
         listed = "; ".join(f"{c.name}: {c.text}" for c in d.model.constraints)
         lines.append(

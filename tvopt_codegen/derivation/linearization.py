@@ -197,20 +197,89 @@ def _one_circular_factor(expr: sp.Expr) -> bool:
 
 
 def _singular_set(det: sp.Expr) -> tuple[str, ...]:
-    """Describe where a determinant vanishes, one condition per factor of its numerator."""
+    """Describe where a determinant vanishes, one condition per factor of its numerator.
+
+    A factor that vanishes nowhere over the reals (``vx**2 + vy**2 + 1``) is no place at
+    all, and is left out: with every factor so, R is never singular.
+    """
     numerator, _ = sp.fraction(sp.together(det))
     if numerator.is_Number:
         return () if numerator != 0 else ("everywhere",)
     try:
         _, factors = sp.factor_list(numerator)
     except sp.PolynomialError:  # not a polynomial in its symbols: state it whole
-        return (f"{sp.sstr(numerator)} = 0",)
+        factors = [(numerator, 1)]
     conditions = []
     for base, _power in factors:
-        if base.is_Number:
+        if base.is_Number or _sign(base) in ("positive", "negative"):
             continue
         conditions.append(f"{sp.sstr(base)} = 0")
     return tuple(conditions)
+
+
+#: Largest expression (in nodes) whose sign is asked of sympy's assumptions: the answer
+#: only shortens a message, and it must stay cheap.
+_SIGN_NODES = 400
+#: Most symbols of a quadratic whose definiteness is decided exactly.
+_QUADRATIC_SYMBOLS = 12
+
+
+def _sign(expr: sp.Expr) -> str | None:
+    """Whether ``expr`` is ``"positive"``, ``"nonnegative"`` or ``"negative"`` everywhere.
+
+    None where that is not known cheaply.
+
+    sympy's assumptions first (every spec symbol is real: a sum of squares plus a positive
+    constant, an exponential, ``cosh``); then, for a quadratic polynomial with number
+    coefficients, the exact test: ``z^T Q z + g^T z + c`` with ``Q`` positive definite
+    has its least value ``c - g^T Q^-1 g / 4`` (``x**2 - x*y + y**2 + 1`` is positive).
+    """
+    if tree_size(expr, _SIGN_NODES) > _SIGN_NODES:
+        return None
+    for candidate in (expr, -expr):
+        if candidate.is_positive:
+            return "positive" if candidate is expr else "negative"
+    if expr.is_nonnegative:
+        return "nonnegative"
+    symbols = sorted(expr.free_symbols, key=lambda s: s.name)
+    if not symbols or len(symbols) > _QUADRATIC_SYMBOLS:
+        return None
+    try:
+        poly = sp.Poly(expr, *symbols)
+    except sp.PolynomialError:
+        return None
+    if poly.total_degree() != 2 or not all(c.is_Rational for c in poly.coeffs()):
+        return None
+    for candidate in (poly, -poly):
+        least = _least_value(candidate, symbols)
+        if least is not None:
+            if least > 0:
+                return "positive" if candidate is poly else "negative"
+            if least == 0 and candidate is poly:
+                return "nonnegative"
+    return None
+
+
+def _least_value(poly: sp.Poly, symbols: Sequence[sp.Symbol]) -> sp.Rational | None:
+    """The least value of a quadratic polynomial with a positive definite Hessian, or None."""
+    n = len(symbols)
+    quadratic = sp.zeros(n, n)
+    linear = sp.zeros(n, 1)
+    constant = sp.Integer(0)
+    for monomial, coefficient in poly.terms():
+        powers = [(i, k) for i, k in enumerate(monomial) if k]
+        if not powers:
+            constant = coefficient
+        elif len(powers) == 1 and powers[0][1] == 1:
+            linear[powers[0][0]] = coefficient
+        elif len(powers) == 1:
+            quadratic[powers[0][0], powers[0][0]] = coefficient
+        else:
+            (i, _), (j, _) = powers
+            quadratic[i, j] = quadratic[j, i] = coefficient / 2
+    if not quadratic.is_positive_definite:
+        return None
+    return constant - (linear.T * quadratic.inv() * linear)[0, 0] / 4
 
 
 def _singular_start(
@@ -275,13 +344,25 @@ _MAX_UNDEFINED = 6
 def _undefined_set(exprs: Sequence[sp.Expr], states: set[sp.Symbol]) -> tuple[str, ...]:
     """Where expressions of the states are undefined, one condition per cause.
 
+    The conditions of :func:`undefined_causes`, without their causes.
+    """
+    return tuple(condition for condition, _ in undefined_causes(exprs, states))
+
+
+def undefined_causes(
+    exprs: Sequence[sp.Expr], states: set[sp.Symbol]
+) -> tuple[tuple[str, str], ...]:
+    """Where expressions of the states are undefined: each condition and its cause.
+
     A denominator that vanishes, ``tan``/``sec`` where the cosine vanishes,
     ``cot``/``csc`` where the sine does, ``log`` of a non-positive and a root of a
     negative number: the places where R or p, and with them the law, do not exist
     although det R may not vanish there (a steering angle of pi/2, an Euler pitch of
-    pi/2). Conditions on parameters alone are not listed.
+    pi/2). Conditions on parameters alone are not listed, nor any that holds at no real
+    point (``sqrt(vx**2 + vy**2 + 1)`` is defined everywhere): see :func:`_sign`.
+    ``x**(-1/2)`` has two, ``x = 0`` (a denominator) and ``x < 0`` (a root).
     """
-    conditions: dict[str, None] = {}
+    conditions: dict[str, str] = {}
     seen: set[sp.Basic] = set()
     stack = [e for e in exprs if isinstance(e, sp.Basic)]
     while stack and len(conditions) < _MAX_UNDEFINED:
@@ -289,22 +370,36 @@ def _undefined_set(exprs: Sequence[sp.Expr], states: set[sp.Symbol]) -> tuple[st
         if node in seen or not node.free_symbols & states:
             continue
         seen.add(node)
-        condition = None
+        found: list[tuple[str, str, sp.Expr, tuple[str, ...]]] = []
         if node.is_Pow and node.exp.is_Number and node.base.free_symbols & states:
+            base = sp.sstr(node.base)
             if node.exp.is_negative:
-                condition = f"{sp.sstr(node.base)} = 0"
-            elif not node.exp.is_Integer:
-                condition = f"{sp.sstr(node.base)} < 0"
+                found.append((f"{base} = 0", "a denominator vanishes", node.base, _NONZERO))
+            if not node.exp.is_Integer:
+                root = "a square root" if getattr(node.exp, "q", 0) == 2 else "a fractional power"
+                found.append((f"{base} < 0", f"{root} of a negative", node.base, _NONNEGATIVE))
         elif isinstance(node, sp.tan | sp.sec):
-            condition = f"cos({sp.sstr(node.args[0])}) = 0"
+            name, arg = type(node).__name__, node.args[0]
+            cause = f"the cosine under {name} vanishes"
+            found.append((f"cos({sp.sstr(arg)}) = 0", cause, sp.cos(arg), _NONZERO))
         elif isinstance(node, sp.cot | sp.csc):
-            condition = f"sin({sp.sstr(node.args[0])}) = 0"
+            name, arg = type(node).__name__, node.args[0]
+            cause = f"the sine under {name} vanishes"
+            found.append((f"sin({sp.sstr(arg)}) = 0", cause, sp.sin(arg), _NONZERO))
         elif isinstance(node, sp.log):
-            condition = f"{sp.sstr(node.args[0])} <= 0"
-        if condition is not None:
-            conditions.setdefault(condition)
+            arg = node.args[0]
+            found.append((f"{sp.sstr(arg)} <= 0", "a log of a non-positive", arg, _POSITIVE))
+        for condition, cause, value, never in found:
+            if _sign(value) not in never:
+                conditions.setdefault(condition, cause)
         stack.extend(reversed(node.args))
-    return tuple(conditions)
+    return tuple(conditions.items())
+
+
+#: The signs of a value under which each kind of condition holds nowhere.
+_NONZERO = ("positive", "negative")
+_NONNEGATIVE = ("positive", "nonnegative")
+_POSITIVE = ("positive",)
 
 
 @dataclass(frozen=True)
@@ -565,17 +660,9 @@ def _decoupling(
     is ``det R det M`` and vanishes where R is singular (``M`` is positive definite);
     ``det_R_note`` says so.
     """
-    R, degrees, lie = lin.R, lin.degrees, lin.lie
-    note_for_det = ""
-    if mechanics is not None:
-        gains = {
-            w: mechanics.input_matrix[i][j]
-            for i, row in enumerate(mechanics.gains)
-            for j, w in enumerate(row)
-            if isinstance(w, sp.Symbol)
-        }
-        R = R.xreplace(gains)
-        note_for_det = "det(J_h B) = det R det M"
+    degrees, lie = lin.degrees, lin.lie
+    R = _with_gains(lin.R, mechanics)
+    note_for_det = "" if mechanics is None else "det(J_h B) = det R det M"
     m = len(degrees)
     p = sp.ImmutableMatrix([lie[i][degrees[i]] for i in range(m)])
     phi = sp.ImmutableMatrix([lie[i][j] for i in range(m) for j in range(degrees[i])])
@@ -600,10 +687,32 @@ def _decoupling(
             )
     if note_for_det and det_R is not None:
         det_R_note = note_for_det
-    # R's nonzero entries: a team's R is m^2 entries, almost all zeros.
-    entries = [e for _, _, e in nonzero_entries(R)]
-    undefined = _undefined_set([*entries, *p], set(lin.extension.x))
+    undefined = _undefined_set(law_expressions(lin.R, p, mechanics), set(lin.extension.x))
     return _Decoupling(p, phi, A, B, det_R, det_R_note, singular, undefined)
+
+
+def _with_gains(R: sp.ImmutableMatrix, mechanics: Mechanics | None) -> sp.ImmutableMatrix:
+    """R, with a mass-matrix plant's run-time symbols ``W = M^-1 B`` replaced by ``B``."""
+    if mechanics is None:
+        return R
+    gains = {
+        w: mechanics.input_matrix[i][j]
+        for i, row in enumerate(mechanics.gains)
+        for j, w in enumerate(row)
+        if isinstance(w, sp.Symbol)
+    }
+    return R.xreplace(gains)
+
+
+def law_expressions(
+    R: sp.ImmutableMatrix, p: sp.ImmutableMatrix, mechanics: Mechanics | None = None
+) -> list[sp.Expr]:
+    """R's nonzero entries and p: where any is undefined, so is the law.
+
+    What :func:`undefined_causes` is asked about, by the derivation and by ``check``
+    alike (a team's R is m^2 entries, almost all zeros).
+    """
+    return [e for _, _, e in nonzero_entries(_with_gains(R, mechanics))] + list(p)
 
 
 def _initial_state(spec: Spec, state_names: Sequence[str], required: int) -> tuple[float, ...]:
