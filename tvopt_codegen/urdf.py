@@ -57,10 +57,10 @@ _SNAP = 1e-12
 MAX_ELEMENTS = 200_000
 
 #: Most joints the import drives. The Newton-Euler definitions grow with the square of
-#: the chain and the derivation with more (32 joints: about 30 s to import and as long
-#: to check on one core); a longer chain is refused before any algebra, with the exit
-#: code of a budget, rather than run for minutes.
-MAX_JOINTS = 32
+#: the chain and the derivation with more (20 joints: 13 s to import and 11 s to check;
+#: 32 joints: 30 s and 90 s, on a loaded core): a longer chain is refused before any
+#: algebra, with the exit code of a budget, rather than run for minutes.
+MAX_JOINTS = 24
 
 #: Relative tolerance of an inertia's triangle inequality (``Ixx + Iyy >= Izz`` of the
 #: principal moments): files round their moments, a thin rod meets it with equality.
@@ -229,7 +229,8 @@ def _decode(data: bytes, source: str) -> str:
     else:
         encoding = next((name for start, name in _STARTS if data.startswith(start)), None)
     if encoding is None:
-        head = data[:200].decode("latin-1")
+        # EBCDIC writes "<?xm" as 4C 6F A7 94: its declaration is read in EBCDIC.
+        head = data[:200].decode("cp500" if data.startswith(b"\x4c\x6f\xa7\x94") else "latin-1")
         declared = _DECLARATION.match(head)
         named = _DECLARED.search(declared.group(0)) if declared else None
         encoding = named.group(1) if named else "utf-8"
