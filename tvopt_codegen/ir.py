@@ -37,7 +37,7 @@ from tvopt_codegen.jet import Assignment, atomize, fresh_symbols
 from tvopt_codegen.kernel import Arg, Kernel, KernelSet, Output
 from tvopt_codegen.law import symbols
 from tvopt_codegen.lie import control_affine
-from tvopt_codegen.plan import law_plan
+from tvopt_codegen.plan import Plan, law_plan
 from tvopt_codegen.sparse import cholesky_program, ldl_program, lu_operations
 
 __all__ = ["Arg", "Kernel", "KernelSet", "Output", "lower"]
@@ -198,6 +198,14 @@ def _jet_kernels(
         shared.append(
             ("grad", (n,), [d.grad_jet[0][i] for i in range(n)], "grad f0: the integrals' rates")
         )
+    if mass is not None:
+        # M is factored where R and p need it; the plan's check_pd reads the pivots.
+        # Before the observer's f and G: the order of the plan's results (law_plan),
+        # which binds them by position (lower checks it by name).
+        shared += [
+            ("mass", (len(mass.entries),), mass.entries, "stored entries of the mass matrix"),
+            ("mass_pivot", (len(mass.pivots),), mass.pivots, "pivots of M's LDL^T"),
+        ]
     if d.spec.robust.observer is not None:
         # The disturbance observer reads f(x) and G(x) at the state the law is evaluated
         # at: here they share the jet's trigonometry, where a kernel of their own would
@@ -212,12 +220,6 @@ def _jet_kernels(
                 [model.G[i, j] for i in range(rows) for j in range(cols)],
                 "G(x), row-major (the observer's)",
             ),
-        ]
-    if mass is not None:
-        # M is factored where R and p need it; the plan's check_pd reads the pivots.
-        shared += [
-            ("mass", (len(mass.entries),), mass.entries, "stored entries of the mass matrix"),
-            ("mass_pivot", (len(mass.pivots),), mass.pivots, "pivots of M's LDL^T"),
         ]
     what = "grad^(j) f0" if n == m else "F^(j), F = [grad f0 + J_a^T nu; a]"
     optimality_kernel = (
@@ -456,18 +458,58 @@ def lower(derivation: Derivation) -> KernelSet:
         references=len(args.r[0].symbols) if args.r else 0,
         mass=(0, 0) if mass is None else (len(mass.entries), len(mass.pivots)),
     )
+    lowered = (
+        *((jet_time,) if jet_time is not None else ()),
+        jet,
+        *((cholesky,) if cholesky is not None else ()),
+        *rest,
+    )
+    check_binding(lowered, plan)
     return KernelSet(
         d,
-        (
-            *((jet_time,) if jet_time is not None else ()),
-            jet,
-            *((cholesky,) if cholesky is not None else ()),
-            *rest,
-        ),
+        lowered,
         plan,
         law.r_blocks,
         sum(lu_operations(len(block)) for block in law.r_blocks),
     )
+
+
+#: A kernel output's name where the plan's value has another.
+_PLAN_NAMES = {"R": "r", "hessian": "hess"}
+
+
+def check_binding(kernels: Sequence[Kernel], plan: Plan) -> None:
+    """Check that every call of the plan binds each kernel output to the value it is.
+
+    The backends bind a call's ``results`` to the kernel's outputs by position. The jet
+    kernel's outputs depend on the features a spec combines (integral action, a mass
+    matrix, an observer), and each feature appends its own: two lists kept in the same
+    order by hand once put the observer's ``f(x)`` in the mass matrix's place, and the
+    law failed at every state. Checked here by name and size, such a slip is an
+    internal error at generation time, not a controller that is wrong.
+
+    Raises
+    ------
+    RuntimeError
+        Naming the kernel, the position and the two names.
+    """
+    by_name = {kernel.name: kernel for kernel in kernels}
+    for step in (*plan.per_batch, *plan.steps, *plan.control, *plan.rhs):
+        if step.op != "call":
+            continue
+        kernel = by_name[step.kernel]
+        names = tuple(_PLAN_NAMES.get(out.name, out.name) for out in kernel.outputs)
+        if names != step.results:
+            raise RuntimeError(
+                f"the plan binds kernel {step.kernel}'s outputs {names} as {step.results}"
+            )
+        for out in kernel.outputs:
+            value = plan.value(_PLAN_NAMES.get(out.name, out.name))
+            if value.size != len(out.exprs):
+                raise RuntimeError(
+                    f"kernel {step.kernel}'s output {out.name} has {len(out.exprs)} entries, "
+                    f"the plan's value {value.name} {value.size}"
+                )
 
 
 @dataclass(frozen=True)
