@@ -192,3 +192,20 @@ def test_truly_deep_parentheses_are_refused_as_nesting(depth: int) -> None:
     with pytest.raises(ExpressionError, match="nesting deeper than 60"):
         parse_expression("(" * depth + "x" + " + 1)" * depth, NAMES)
     assert parse_expression("(" * 50 + "x" + " + 1)" * 50, NAMES) == x + 50
+
+
+def test_a_misspelt_name_gets_the_nearest_known_one() -> None:
+    theta, omega = sp.symbols("theta omega", real=True)
+    names = {"theta": theta, "omega": omega}
+    with pytest.raises(ExpressionError) as info:
+        parse_expression("omega*cos(thetta)", names)
+    assert str(info.value) == "column 11: unknown name 'thetta': did you mean 'theta'?"
+    with pytest.raises(ExpressionError) as info:
+        parse_expression("2*p", names)
+    assert str(info.value) == "column 3: unknown name 'p'"
+    # pi is a name too; a 10,000-character name is no typo and is not compared.
+    with pytest.raises(ExpressionError, match="did you mean 'pi'"):
+        parse_expression("sin(pii)", names)
+    with pytest.raises(ExpressionError) as info:
+        parse_expression("theta" * 2000, names)
+    assert "did you mean" not in str(info.value)

@@ -9,6 +9,7 @@ literal magnitude and exponents are bounded so that no spec can hang the tool.
 from __future__ import annotations
 
 import ast
+import difflib
 import io
 import math
 import tokenize
@@ -216,7 +217,15 @@ class _TreeBuilder:
             return CONSTANTS[ident]
         if ident in FUNCTIONS:
             raise ExpressionError(column, f"function {ident!r} used without arguments")
-        raise ExpressionError(column, f"unknown name {ident!r}")
+        raise ExpressionError(column, f"unknown name {ident!r}{self.nearest(ident)}")
+
+    def nearest(self, ident: str) -> str:
+        """``: did you mean 'x'?`` for the known name closest to a misspelt one, or nothing."""
+        if len(ident) > 64:  # a generated name, not a typo; difflib is quadratic in length
+            return ""
+        known = [*self.names, *CONSTANTS, *self.indexing.bound]
+        close = difflib.get_close_matches(ident, known, n=1, cutoff=0.7)
+        return f": did you mean {close[0]!r}?" if close else ""
 
     def binop(self, node: ast.BinOp, depth: int, column: int) -> sp.Expr:
         if isinstance(node.op, ast.BitXor):

@@ -279,7 +279,7 @@ class _Reader:
 
     def explain_unknown(self, exc: ExpressionError, field: str) -> str:
         """``exc`` as text; a declared name used where its kind may not be, said so."""
-        found = re.fullmatch(r"unknown name '(\w+)'", exc.message)
+        found = re.match(r"unknown name '(\w+)'", exc.message)
         role = self.roles.get(found.group(1)) if found else None
         allowed = next((text for prefix, text in _ALLOWED if field.startswith(prefix)), None)
         if found is None or role is None or allowed is None:
