@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import types
@@ -377,3 +378,95 @@ def test_a_quadratic_objectives_minimizer_takes_two_steps_a_time(name: str) -> N
     np.testing.assert_allclose(quick, general, rtol=0, atol=1e-12 * (1 + np.abs(general).max()))
     assert calls.count("gradient") == 2 * len(ts) and calls.count("hessian") == len(ts)
     assert "objective" not in calls
+
+
+# ------------------------------------------------------------------ runs into singular R
+
+BEYOND_REACH = SPECS / "arm2_beyond_reach.toml"
+
+
+def _boundary_crossing() -> tuple[float, float]:
+    """When and where the exact E' = -E path of the tip leaves the arm's reach of 2.
+
+    ``y(t) = p + e^(-t) (y(0) - p)`` with ``p = (3, 0)``: the arm is straight there
+    (``q2 = 0``, ``det R = sin(q2) = 0``), pointing at ``atan2(y)``.
+    """
+    from scipy.optimize import brentq
+
+    q1, q2 = 0.3, 1.2
+    y0 = np.array([np.cos(q1) + np.cos(q1 + q2), np.sin(q1) + np.sin(q1 + q2)])
+    p = np.array([3.0, 0.0])
+
+    def tip(t: float) -> np.ndarray:
+        return p + np.exp(-t) * (y0 - p)
+
+    t_star = brentq(lambda t: np.linalg.norm(tip(t)) - 2.0, 0.0, 5.0)
+    return float(t_star), float(np.arctan2(tip(t_star)[1], tip(t_star)[0]))
+
+
+def test_a_run_into_singular_r_names_det_r_the_time_and_the_state(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    done = _cli("simulate", str(BEYOND_REACH), "--out", str(out))
+    assert done.returncode == 3, done.stderr
+    assert done.stderr.count("\n") == 1, done.stderr
+    assert "less than spacing" not in done.stderr
+    found = re.search(
+        r"simulation: det R -> 0 at t = (\S+) s \(det R = (\S+); (\S+) of its value at t = 0, "
+        r"and the integrator's step size collapsed\): the run reached the singular set of R "
+        r"\(R is singular where sin\(q2\) = 0\), where the law is undefined; "
+        r"state: q1 = (\S+), q2 = (\S+)$",
+        done.stderr.strip(),
+    )
+    assert found is not None, done.stderr
+    t, det, ratio, q1, q2 = (float(v) for v in found.groups())
+    t_star, angle = _boundary_crossing()
+    assert abs(t - t_star) < 1e-5 and abs(q1 - angle) < 1e-5
+    # det R = sin(q2) at the reported state, and far below its start sin(1.2) = 0.93.
+    assert abs(det - np.sin(q2)) < 5e-3 * abs(det) and 0 < abs(det) < 1e-4
+    assert ratio == pytest.approx(abs(det) / np.sin(1.2), rel=0.05)
+    assert not out.exists()
+
+
+def test_a_singular_pivot_along_the_run_names_det_r_and_the_state() -> None:
+    d = derive(load_spec(BEYOND_REACH))
+    real = load_controller(lower(d))
+    fake = types.ModuleType("fake")
+    fake.__dict__.update({k: v for k, v in vars(real).items() if not k.startswith("__")})
+
+    def rhs(t: float, s: np.ndarray, params: object = None) -> np.ndarray:
+        if t > 0.2:
+            raise real.SingularDecouplingError("the decoupling matrix R is singular")
+        return real.rhs(t, s, params)
+
+    fake.rhs = rhs
+    with pytest.raises(AssumptionError) as caught:
+        simulate(d, fake, resolve_options(d, points=21))
+    message = str(caught.value)
+    assert "simulation: det R -> 0 at t = 0.2" in message and "\n" not in message
+    assert "a pivot of R's LU fell below 1e-12 of its largest entry" in message
+    q1, q2 = (float(v) for v in re.findall(r"q\d = (\S+?)(?:,|$)", message))
+    det = float(re.search(r"\(det R = (\S+);", message).group(1))  # type: ignore[union-attr]
+    assert det == pytest.approx(np.sin(q2), rel=5e-3) and 0.3 < q1 < 0.5
+
+
+def test_det_r_of_a_mass_matrix_plant_is_det_j_m_inverse_b(tmp_path: Path) -> None:
+    from tvopt_codegen.simulation.run import decoupling_determinant
+
+    spec = write_spec(
+        tmp_path,
+        (SPECS / "arm2_mass.toml")
+        .read_text()
+        .replace('y1 = "q1"', 'tx = "cos(q1) + cos(q1 + q2)"')
+        .replace('y2 = "q2"', 'ty = "sin(q1) + sin(q1 + q2)"')
+        .replace("(y1 - sin(t))**2 + (y2 - 0.5*cos(t))**2", "(tx - 1)**2 + (ty - 1)**2"),
+    )
+    d = derive(load_spec(spec))
+    det = decoupling_determinant(d, {"a2": 0.7})
+    assert det is not None
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        s = rng.normal(size=4)
+        q2 = s[1]
+        a1, a2, a3 = 3.0, 0.7, 0.4
+        mass = (a1 + 2 * a2 * np.cos(q2)) * a3 - (a3 + a2 * np.cos(q2)) ** 2
+        assert det(0.0, s) == pytest.approx(np.sin(q2) / mass, rel=1e-12, abs=1e-15)

@@ -7,18 +7,25 @@ import math
 import time
 import types
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from tvopt_codegen import dopri
+from tvopt_codegen.contract import Status
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.simulation.certificate import _certify
 from tvopt_codegen.simulation.references import ReferenceSource, nominal_source
 from tvopt_codegen.simulation.result import Options, Result
+
+#: A run whose integrator stopped (its step size collapsed) where ``|det R|`` had fallen
+#: below this fraction of its value at t = 0 ran into the singular set of R: the law's
+#: failure, told in its own words, not the integrator's "required step size is less than
+#: spacing between numbers".
+DET_COLLAPSE = 1e-4
 
 #: When a check of the certificate fails, the run is integrated again with this method
 #: and these tolerances (or the user's, if tighter), and that run is the one reported:
@@ -82,9 +89,11 @@ def simulate(
 
     _check_initial_state(d, controller, options, source)
     reached = [0.0]
+    last = [np.array(options.initial_state, dtype=float)]
 
     def tracked(t: float, s: np.ndarray) -> np.ndarray:
         reached[0] = float(t)
+        last[0] = s
         return rhs(t, s)
 
     on_grid = source is not None and source.estimated and source.times is not None
@@ -116,9 +125,10 @@ def simulate(
             )
 
     try:
-        result = _certify(
-            d, controller, options, integrate(options), time.perf_counter() - started, source
-        )
+        first = integrate(options)
+        if not first.success:
+            _refuse_singular_stop(d, options, float(first.t[-1]), np.asarray(first.y)[:, -1])
+        result = _certify(d, controller, options, first, time.perf_counter() - started, source)
         accurate = dataclasses.replace(
             options,
             method=CHECK_METHOD,
@@ -129,9 +139,10 @@ def simulate(
             return result
         # A check failed: the integrator's error or the theorem's? The same run,
         # integrated far more accurately, tells them apart.
-        again = _certify(
-            d, controller, accurate, integrate(accurate), time.perf_counter() - started, source
-        )
+        second = integrate(accurate)
+        if not second.success:
+            _refuse_singular_stop(d, accurate, float(second.t[-1]), np.asarray(second.y)[:, -1])
+        again = _certify(d, controller, accurate, second, time.perf_counter() - started, source)
         verdict = (
             "it passes: the failure was the integrator's error, not the law's"
             if again.passed
@@ -145,11 +156,109 @@ def simulate(
     except ArithmeticError as exc:
         if not hasattr(exc, "status"):
             raise
+        if exc.status == Status.SINGULAR_DECOUPLING:
+            # The evaluation that failed is where R is singular: say so in R's words.
+            pivot = getattr(controller, "PIVOT_TOLERANCE", None)
+            why = (
+                f"a pivot of R's LU fell below {pivot:g} of its largest entry"
+                if pivot is not None
+                else str(exc)
+            )
+            raise AssumptionError(
+                d.spec.source,
+                "simulation",
+                _singular_message(d, options, reached[0], last[0], why),
+            ) from None
         raise AssumptionError(
             d.spec.source,
             "simulation",
             f"the law became undefined along the run, near t = {reached[0]:.6g}: {exc}",
         ) from None
+
+
+def _state_text(d: Derivation, s: np.ndarray, limit: int = 200) -> str:
+    """``name = value, ...`` of a closed-loop state, clipped to ``limit`` characters."""
+    text = ", ".join(f"{name} = {value:.6g}" for name, value in zip(d.state_names, s, strict=False))
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def decoupling_determinant(
+    d: Derivation, params: Mapping[str, float]
+) -> Callable[[float, np.ndarray], float] | None:
+    """``det R`` at a time and closed-loop state, evaluated numerically (None if it cannot be).
+
+    R is the derivation's decoupling matrix; for a mass-matrix plant its entries hold the
+    run-time solve ``W = M^-1 B``, done here with the model's ``M`` and ``B``. Built only
+    when a run fails (lambdify costs a few milliseconds).
+    """
+    import sympy as sp  # noqa: PLC0415 - only on a failed run
+
+    model = d.model
+    values = {p.name: float(v) for p, v in zip(model.params, model.defaults, strict=True)}
+    values |= {name: float(v) for name, v in params.items()}
+    args = [model.t, *d.states, *model.params]
+    try:
+        mech = model.mechanics
+        if mech is None:
+            entries = sp.lambdify([args], d.R, modules="numpy")
+
+            def matrix(t: float, s: np.ndarray, p: list[float]) -> np.ndarray:
+                return np.asarray(entries([t, *s, *p]), dtype=float)
+
+        else:
+            gains = [w for row in mech.gains for w in row]
+            mass = sp.lambdify([args], sp.Matrix(mech.mass_matrix), modules="numpy")
+            inputs = sp.lambdify([args], sp.Matrix(mech.input_matrix), modules="numpy")
+            entries = sp.lambdify([[*args, *gains]], d.R, modules="numpy")
+
+            def matrix(t: float, s: np.ndarray, p: list[float]) -> np.ndarray:
+                point = [t, *s, *p]
+                w = np.linalg.solve(
+                    np.asarray(mass(point), dtype=float), np.asarray(inputs(point), dtype=float)
+                )
+                return np.asarray(entries([*point, *w.ravel()]), dtype=float)
+
+        p = [values[q.name] for q in model.params]
+
+        def det(t: float, s: np.ndarray) -> float:
+            with np.errstate(all="ignore"):
+                return float(np.linalg.det(matrix(t, np.asarray(s, dtype=float), p)))
+
+        det(0.0, np.asarray(d.initial_state, dtype=float))  # fails here, not in a message
+    except Exception:  # noqa: BLE001 - an R this cannot evaluate: the caller says less
+        return None
+    return det
+
+
+def _singular_message(d: Derivation, options: Options, t: float, s: np.ndarray, why: str) -> str:
+    """``det R -> 0 at t = ... s (det R = ...), state: ...``: one line."""
+    det = decoupling_determinant(d, options.params)
+    value = det(t, s) if det is not None else math.nan
+    where = f" ({d.singular_text})" if d.singular_text else ""
+    return (
+        f"det R -> 0 at t = {t:.6g} s (det R = {value:.3g}; {why}): the run reached the "
+        f"singular set of R{where}, where the law is undefined; state: {_state_text(d, s)}"
+    )
+
+
+def _refuse_singular_stop(d: Derivation, options: Options, t: float, s: np.ndarray) -> None:
+    """A run whose step size collapsed on R's singular set fails in R's words.
+
+    Raises
+    ------
+    AssumptionError
+        When ``|det R|`` at the last accepted state is below :data:`DET_COLLAPSE` of its
+        value at t = 0 (any other stop is left to the certificate, which reports it).
+    """
+    det = decoupling_determinant(d, options.params)
+    if det is None:
+        return
+    start = abs(det(0.0, np.asarray(options.initial_state, dtype=float)))
+    end = abs(det(t, s))
+    if not (np.isfinite(end) and start > 0 and end <= DET_COLLAPSE * start):
+        return
+    why = f"{end / start:.2g} of its value at t = 0, and the integrator's step size collapsed"
+    raise AssumptionError(d.spec.source, "simulation", _singular_message(d, options, t, s, why))
 
 
 def bumpless_start(
