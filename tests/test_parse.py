@@ -209,3 +209,26 @@ def test_a_misspelt_name_gets_the_nearest_known_one() -> None:
     with pytest.raises(ExpressionError) as info:
         parse_expression("theta" * 2000, names)
     assert "did you mean" not in str(info.value)
+
+
+@settings(max_examples=100, deadline=None)
+@given(_trees, st.lists(st.integers(0, 400), min_size=1, max_size=6))
+def test_doubling_parentheses_changes_nothing(text: str, counts: list[int]) -> None:
+    """Any pair doubled any number of times is the same expression, past Python's 200."""
+    # Double the outermost pair and some inner ones: each "(" at index i with its ")".
+    closing: dict[int, int] = {}
+    stack: list[int] = []
+    for index, char in enumerate(text):
+        if char == "(":
+            stack.append(index)
+        elif char == ")":
+            closing[stack.pop()] = index
+    chosen = sorted(closing)[: len(counts)]
+    extra_open = {start: count for start, count in zip(chosen, counts, strict=False)}
+    extra_close = {closing[start]: count for start, count in extra_open.items()}
+    wrapped = "".join(
+        "(" * extra_open.get(i, 0) + ch + ")" * extra_close.get(i, 0) for i, ch in enumerate(text)
+    )
+    outer = counts[0]
+    wrapped = "(" * outer + wrapped + ")" * outer
+    assert parse_expression(wrapped, NAMES) == parse_expression(text, NAMES)
