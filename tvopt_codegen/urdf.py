@@ -1,8 +1,13 @@
 """A spec from a robot's URDF file: a fixed-base serial chain in mass-matrix form.
 
 :func:`spec_from_urdf` reads the file with ``yourdfpy`` (the ``urdf`` extra; the text
-is XML, parsed strictly, and never executed), checks that it describes what the method
-can control, and builds ``M(q)`` and the bias forces symbolically by the recursive
+is XML, parsed strictly, and never executed), checks it where it enters as Pinocchio,
+Drake and MuJoCo check theirs (a regular file of at most 1 MB, decoded before a DOCTYPE
+is looked for; names unique once made spec names; finite origins, axes and limits;
+positive masses; positive-definite inertias obeying the triangle inequality: see
+:func:`_check_elements`), checks that it describes what the method can control (with a
+tip, the joints beyond it are held fixed), and builds ``M(q)`` and the bias forces
+symbolically by the recursive
 Newton-Euler algorithm: the bias ``C(q, q') q' + g(q)`` is one pass at zero joint
 acceleration, column ``j`` of ``M`` one pass at unit acceleration of joint ``j`` without
 velocity and gravity. That is algebra on rotations and cross products, never a
@@ -18,7 +23,9 @@ the movable joints as coordinates (``d<joint>`` their rates), a torque or force
 tracking objective to edit: each joint follows a slow sine about its start, or, with
 ``tip``, the tip link's position follows a circle in the horizontal plane (the tip's
 ``px, py, pz`` replace the first three joints as outputs, so that the outputs still
-number the inputs).
+number the inputs). That circle is checked along the run the law makes (:func:`_tip_circle`):
+where it would come near a singularity of the decoupling matrix or out of reach, three
+other joints, a smaller circle or another plane is taken, and the notes say which.
 """
 
 from __future__ import annotations
@@ -115,6 +122,10 @@ def _identifier(name: str, prefix: str) -> str:
     return text[:48]
 
 
+class _NameTakenError(Exception):
+    """A definition's name is a joint's or link's spec name (args: the owner, the problem)."""
+
+
 class _Lets:
     """Named intermediate values, the spec's ``definitions``.
 
@@ -134,7 +145,11 @@ class _Lets:
             return expr
         owner = self.owners.get(name.casefold())
         if owner is not None:
-            raise ValueError(f"the intermediate name {name!r} is taken by {owner}'s spec name")
+            raise _NameTakenError(
+                owner,
+                f"its spec name is {name!r}, which the import also gives one of its "
+                "definitions: rename it",
+            )
         self.owners[name.casefold()] = "an intermediate"
         self.items.append((name, expr))
         return sp.Symbol(name, real=True)
@@ -1109,8 +1124,9 @@ def spec_from_urdf(
                     f"_m{j + 1}",
                 )
             )
-    except ValueError as exc:
-        raise _fail(source, "(names)", str(exc)) from None
+    except _NameTakenError as exc:
+        owner, problem = exc.args
+        raise _fail(source, owner, problem) from None
     # The lower triangle, mirrored: M is symmetric by construction, and one expression per
     # pair keeps it symmetric in the text as well.
     mass = [[columns[min(i, j)][max(i, j)] for j in range(n)] for i in range(n)]
