@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: 027af7cfda88d3e410714309f60bdbfb051b6ae28fb04804328aabb876d0af18
+# content sha256: 15dbdc0f46e12de8a73a3268d2ff422802b77ce4497d4f6b414f1da383a7ff5b
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -865,8 +865,11 @@ def _hessian_values(t, x, p):
 
 
 def _finite(values):
-    """Whether every value is finite (a sum of infinities of both signs is NaN)."""
-    return math.isfinite(sum(values))
+    """Whether every value is finite (a sum of infinities of both signs is NaN).
+
+    The sum alone would also call finite values whose sum overflows (1e308 twice) not
+    finite, where the C backend's probe (x * 0.0) does not: then each is looked at."""
+    return math.isfinite(sum(values)) or all(map(math.isfinite, values))
 
 
 def _lu_solve_1(a, b):
@@ -1428,8 +1431,11 @@ class _Controller:
 
 
 
-def _advance(z, drive, h):
-    """The controller states ``h`` seconds on, each chain's drive held (Taylor, exact)."""
+def _advance(z, drive, h, t):
+    """The controller states ``h`` seconds on, each chain's drive held (Taylor, exact).
+
+    States that overflow on the way (a step of 1e200 s) are an input of the law that is
+    not finite, as in the C controller: NonFiniteInputError, before the law is tried."""
     out = list(z)
     for chain, (start, length) in enumerate(_CHAINS):
         for j in range(length):
@@ -1438,6 +1444,10 @@ def _advance(z, drive, h):
                 total += z[start + j + l] * term
                 term *= h / (l + 1)
             out[start + j] = total + drive[chain] * term
+    if not _finite(out):
+        raise NonFiniteInputError(
+            f"the controller states are not finite at t = {t!r}, {h!r} s after the last step: "
+            "the step is too long for them")
     return out
 
 
@@ -1464,7 +1474,7 @@ class Controller(_Controller):
         self._drive = [float(ds[i]) for i in _DRIVERS]
 
     def _move(self, t, x):
-        z = numpy.array(_advance(self._z.tolist(), self._drive, t - self._t))
+        z = numpy.array(_advance(self._z.tolist(), self._drive, t - self._t, t))
         ds, u = _law_at(t, numpy.concatenate([x, z]), self._p)
         self._t, self._z, self._u = t, z, u
         self._drive = [float(ds[i]) for i in _DRIVERS]

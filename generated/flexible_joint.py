@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: e013da05b555145e50c2860119b3870e7c1bb6bf4d6a27fbf7f6aa22beb2aa1e
+# content sha256: 45e1c10b2c94a3d81a2793d574a5580e42c7e7fd03a05a9d03b3c0294cac623e
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -814,8 +814,11 @@ def _hessian_values(t, x, p):
 
 
 def _finite(values):
-    """Whether every value is finite (a sum of infinities of both signs is NaN)."""
-    return math.isfinite(sum(values))
+    """Whether every value is finite (a sum of infinities of both signs is NaN).
+
+    The sum alone would also call finite values whose sum overflows (1e308 twice) not
+    finite, where the C backend's probe (x * 0.0) does not: then each is looked at."""
+    return math.isfinite(sum(values)) or all(map(math.isfinite, values))
 
 
 def _lu_solve_1(a, b):
@@ -1355,8 +1358,11 @@ class _Controller:
 
 
 
-def _advance(z, drive, h):
-    """The controller states ``h`` seconds on, each chain's drive held (Taylor, exact)."""
+def _advance(z, drive, h, t):
+    """The controller states ``h`` seconds on, each chain's drive held (Taylor, exact).
+
+    States that overflow on the way (a step of 1e200 s) are an input of the law that is
+    not finite, as in the C controller: NonFiniteInputError, before the law is tried."""
     out = list(z)
     for chain, (start, length) in enumerate(_CHAINS):
         for j in range(length):
@@ -1365,6 +1371,10 @@ def _advance(z, drive, h):
                 total += z[start + j + l] * term
                 term *= h / (l + 1)
             out[start + j] = total + drive[chain] * term
+    if not _finite(out):
+        raise NonFiniteInputError(
+            f"the controller states are not finite at t = {t!r}, {h!r} s after the last step: "
+            "the step is too long for them")
     return out
 
 
@@ -1391,7 +1401,7 @@ class Controller(_Controller):
         self._drive = [float(ds[i]) for i in _DRIVERS]
 
     def _move(self, t, x):
-        z = numpy.array(_advance(self._z.tolist(), self._drive, t - self._t))
+        z = numpy.array(_advance(self._z.tolist(), self._drive, t - self._t, t))
         ds, u = _law_at(t, numpy.concatenate([x, z]), self._p)
         self._t, self._z, self._u = t, z, u
         self._drive = [float(ds[i]) for i in _DRIVERS]

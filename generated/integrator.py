@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 1dc1dfb005ca121615bacca9ce10b4ea852dc656ad02931f30dd8ee990983bbb
+# content sha256: 556532864960cce1500226902fba1f58440a2afe091849fade3a5d91d412fefa
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -653,8 +653,11 @@ def _hessian_values(t, x, p):
 
 
 def _finite(values):
-    """Whether every value is finite (a sum of infinities of both signs is NaN)."""
-    return math.isfinite(sum(values))
+    """Whether every value is finite (a sum of infinities of both signs is NaN).
+
+    The sum alone would also call finite values whose sum overflows (1e308 twice) not
+    finite, where the C backend's probe (x * 0.0) does not: then each is looked at."""
+    return math.isfinite(sum(values)) or all(map(math.isfinite, values))
 
 
 def _lu_solve_1(a, b):
@@ -1150,8 +1153,11 @@ class _Controller:
 
 
 
-def _advance(z, drive, h):
-    """The controller states ``h`` seconds on, each chain's drive held (Taylor, exact)."""
+def _advance(z, drive, h, t):
+    """The controller states ``h`` seconds on, each chain's drive held (Taylor, exact).
+
+    States that overflow on the way (a step of 1e200 s) are an input of the law that is
+    not finite, as in the C controller: NonFiniteInputError, before the law is tried."""
     out = list(z)
     for chain, (start, length) in enumerate(_CHAINS):
         for j in range(length):
@@ -1160,6 +1166,10 @@ def _advance(z, drive, h):
                 total += z[start + j + l] * term
                 term *= h / (l + 1)
             out[start + j] = total + drive[chain] * term
+    if not _finite(out):
+        raise NonFiniteInputError(
+            f"the controller states are not finite at t = {t!r}, {h!r} s after the last step: "
+            "the step is too long for them")
     return out
 
 
@@ -1186,7 +1196,7 @@ class Controller(_Controller):
         self._drive = [float(ds[i]) for i in _DRIVERS]
 
     def _move(self, t, x):
-        z = numpy.array(_advance(self._z.tolist(), self._drive, t - self._t))
+        z = numpy.array(_advance(self._z.tolist(), self._drive, t - self._t, t))
         ds, u = _law_at(t, numpy.concatenate([x, z]), self._p)
         self._t, self._z, self._u = t, z, u
         self._drive = [float(ds[i]) for i in _DRIVERS]

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: planar_arm3
 # spec sha256: 63d130b8bfdcabd4b35f10882f051baacdec9d17c6622b99cfadaf848ad6bddb
-# content sha256: dc7764a1c243a35a31f23f0b2ea920c0575fdb0199fcfc9e2dc57a21f4acb081
+# content sha256: 8ada5b98c66883bbb090e6cc6905a01081a9e3bee5b8c01afc4b9c6528899274
 # ruff: noqa
 
 """planar_arm3: implicit trajectory planning controller.
@@ -1002,8 +1002,11 @@ def _hessian_values(t, x, p):
 
 
 def _finite(values):
-    """Whether every value is finite (a sum of infinities of both signs is NaN)."""
-    return math.isfinite(sum(values))
+    """Whether every value is finite (a sum of infinities of both signs is NaN).
+
+    The sum alone would also call finite values whose sum overflows (1e308 twice) not
+    finite, where the C backend's probe (x * 0.0) does not: then each is looked at."""
+    return math.isfinite(sum(values)) or all(map(math.isfinite, values))
 
 
 def _lu_solve_1(a, b):
@@ -1620,8 +1623,11 @@ class _Controller:
 
 
 
-def _advance(z, drive, h):
-    """The controller states ``h`` seconds on, each chain's drive held (Taylor, exact)."""
+def _advance(z, drive, h, t):
+    """The controller states ``h`` seconds on, each chain's drive held (Taylor, exact).
+
+    States that overflow on the way (a step of 1e200 s) are an input of the law that is
+    not finite, as in the C controller: NonFiniteInputError, before the law is tried."""
     out = list(z)
     for chain, (start, length) in enumerate(_CHAINS):
         for j in range(length):
@@ -1630,6 +1636,10 @@ def _advance(z, drive, h):
                 total += z[start + j + l] * term
                 term *= h / (l + 1)
             out[start + j] = total + drive[chain] * term
+    if not _finite(out):
+        raise NonFiniteInputError(
+            f"the controller states are not finite at t = {t!r}, {h!r} s after the last step: "
+            "the step is too long for them")
     return out
 
 
@@ -1656,7 +1666,7 @@ class Controller(_Controller):
         self._drive = [float(ds[i]) for i in _DRIVERS]
 
     def _move(self, t, x):
-        z = numpy.array(_advance(self._z.tolist(), self._drive, t - self._t))
+        z = numpy.array(_advance(self._z.tolist(), self._drive, t - self._t, t))
         ds, u = _law_at(t, numpy.concatenate([x, z]), self._p)
         self._t, self._z, self._u = t, z, u
         self._drive = [float(ds[i]) for i in _DRIVERS]

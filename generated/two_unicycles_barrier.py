@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: affd1f176e5f18c15827da8f1221f351b461b391525234670eabae591faa327b
+# content sha256: b71dfb3bb133be324c8febbbba24042074c8495b7c0cdd20f440f6402cdc8474
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -1019,8 +1019,11 @@ def _hessian_values(t, x, p):
 
 
 def _finite(values):
-    """Whether every value is finite (a sum of infinities of both signs is NaN)."""
-    return math.isfinite(sum(values))
+    """Whether every value is finite (a sum of infinities of both signs is NaN).
+
+    The sum alone would also call finite values whose sum overflows (1e308 twice) not
+    finite, where the C backend's probe (x * 0.0) does not: then each is looked at."""
+    return math.isfinite(sum(values)) or all(map(math.isfinite, values))
 
 
 def _lu_solve_1(a, b):
@@ -1619,8 +1622,11 @@ class _Controller:
 
 
 
-def _advance(z, drive, h):
-    """The controller states ``h`` seconds on, each chain's drive held (Taylor, exact)."""
+def _advance(z, drive, h, t):
+    """The controller states ``h`` seconds on, each chain's drive held (Taylor, exact).
+
+    States that overflow on the way (a step of 1e200 s) are an input of the law that is
+    not finite, as in the C controller: NonFiniteInputError, before the law is tried."""
     out = list(z)
     for chain, (start, length) in enumerate(_CHAINS):
         for j in range(length):
@@ -1629,6 +1635,10 @@ def _advance(z, drive, h):
                 total += z[start + j + l] * term
                 term *= h / (l + 1)
             out[start + j] = total + drive[chain] * term
+    if not _finite(out):
+        raise NonFiniteInputError(
+            f"the controller states are not finite at t = {t!r}, {h!r} s after the last step: "
+            "the step is too long for them")
     return out
 
 
@@ -1655,7 +1665,7 @@ class Controller(_Controller):
         self._drive = [float(ds[i]) for i in _DRIVERS]
 
     def _move(self, t, x):
-        z = numpy.array(_advance(self._z.tolist(), self._drive, t - self._t))
+        z = numpy.array(_advance(self._z.tolist(), self._drive, t - self._t, t))
         ds, u = _law_at(t, numpy.concatenate([x, z]), self._p)
         self._t, self._z, self._u = t, z, u
         self._drive = [float(ds[i]) for i in _DRIVERS]

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: arm_on_line
  * spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
- * content sha256: 2f3c570cd78ac221ed768d04c57e126616c73882c09fca80d34530d5465d52b4
+ * content sha256: beeec07a594b342a497b31f55fa8f2f6826cc4a5a1258a9547262746851414f8
  */
 
 /* arm_on_line: see arm_on_line.h. The law is CSE'd straight-line code and two numerical
@@ -841,6 +841,11 @@ int arm_on_line_controller_step(arm_on_line_controller_t *c, double t, const dou
         s[i] = x[i];
     }
     arm_on_line_advance(c, t - c->t, s + ARM_ON_LINE_N_PLANT_STATES);
+    if (arm_on_line_probe(s + ARM_ON_LINE_N_PLANT_STATES, ARM_ON_LINE_N_CONTROLLER_STATES) != 0.0) {
+        /* States that overflowed over a long step: an input of the law that is not finite,
+         * before anything (z*(E), the law) is evaluated at them. */
+        return ARM_ON_LINE_NONFINITE_INPUT;
+    }
     status = arm_on_line_controller_move(c, t, s);
     if (status != ARM_ON_LINE_OK) {
         return status;

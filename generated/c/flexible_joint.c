@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 8b683afc6cc33fa968fa5579ac8bb5228e020c5d2c48ce3d79e8f3f3aa54d1cb
+ * content sha256: ecbfaa2a9528aada50411a95977a4b5ec1afc902469754d5267af2daa453a76d
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -733,6 +733,11 @@ int flexible_joint_controller_step(flexible_joint_controller_t *c, double t, con
         s[i] = x[i];
     }
     flexible_joint_advance(c, t - c->t, s + FLEXIBLE_JOINT_N_PLANT_STATES);
+    if (flexible_joint_probe(s + FLEXIBLE_JOINT_N_PLANT_STATES, FLEXIBLE_JOINT_N_CONTROLLER_STATES) != 0.0) {
+        /* States that overflowed over a long step: an input of the law that is not finite,
+         * before anything (z*(E), the law) is evaluated at them. */
+        return FLEXIBLE_JOINT_NONFINITE_INPUT;
+    }
     status = flexible_joint_controller_move(c, t, s);
     if (status != FLEXIBLE_JOINT_OK) {
         return status;

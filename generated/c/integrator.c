@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 67d412d3c39cb392de271afff6716b10be090dfc01b4ee51a45d2b6a52a0c9bf
+ * content sha256: e299c2317e3baea52aac24aeb72baf25abb7778881697e7f7d22091b27e73aa2
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -626,6 +626,11 @@ int integrator_controller_step(integrator_controller_t *c, double t, const doubl
         s[i] = x[i];
     }
     integrator_advance(c, t - c->t, s + INTEGRATOR_N_PLANT_STATES);
+    if (integrator_probe(s + INTEGRATOR_N_PLANT_STATES, INTEGRATOR_N_CONTROLLER_STATES) != 0.0) {
+        /* States that overflowed over a long step: an input of the law that is not finite,
+         * before anything (z*(E), the law) is evaluated at them. */
+        return INTEGRATOR_NONFINITE_INPUT;
+    }
     status = integrator_controller_move(c, t, s);
     if (status != INTEGRATOR_OK) {
         return status;

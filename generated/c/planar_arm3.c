@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: planar_arm3
  * spec sha256: 63d130b8bfdcabd4b35f10882f051baacdec9d17c6622b99cfadaf848ad6bddb
- * content sha256: 45661bd874e489fd23b5d186691798fdb1e5330233f0568d935e37e81c78ac1b
+ * content sha256: 63ebd684898f96c60f2aabd53e692cfa7e341e9d47c93087bd2c89b5365b8343
  */
 
 /* planar_arm3: see planar_arm3.h. The law is CSE'd straight-line code and two numerical
@@ -996,6 +996,11 @@ int planar_arm3_controller_step(planar_arm3_controller_t *c, double t, const dou
         s[i] = x[i];
     }
     planar_arm3_advance(c, t - c->t, s + PLANAR_ARM3_N_PLANT_STATES);
+    if (planar_arm3_probe(s + PLANAR_ARM3_N_PLANT_STATES, PLANAR_ARM3_N_CONTROLLER_STATES) != 0.0) {
+        /* States that overflowed over a long step: an input of the law that is not finite,
+         * before anything (z*(E), the law) is evaluated at them. */
+        return PLANAR_ARM3_NONFINITE_INPUT;
+    }
     status = planar_arm3_controller_move(c, t, s);
     if (status != PLANAR_ARM3_OK) {
         return status;

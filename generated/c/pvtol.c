@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: pvtol
  * spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
- * content sha256: e587f7a69b59efba017b97e5e2750b0f53b76a63bde36088298fe3c41d4662d0
+ * content sha256: d115e531148e30d57d28f0795df742180b913dd45d73cb1327e9b92a7657cbd5
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -727,6 +727,11 @@ int pvtol_controller_step(pvtol_controller_t *c, double t, const double *x, doub
         s[i] = x[i];
     }
     pvtol_advance(c, t - c->t, s + PVTOL_N_PLANT_STATES);
+    if (pvtol_probe(s + PVTOL_N_PLANT_STATES, PVTOL_N_CONTROLLER_STATES) != 0.0) {
+        /* States that overflowed over a long step: an input of the law that is not finite,
+         * before anything (z*(E), the law) is evaluated at them. */
+        return PVTOL_NONFINITE_INPUT;
+    }
     status = pvtol_controller_move(c, t, s);
     if (status != PVTOL_OK) {
         return status;

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 19398c65c69e55714267182ff532d2b0dd7fed565f95b077909ececd337454b4
+ * content sha256: 6eb587571fcf3267e2b531fd24fbaf3c20a782ab57c233de716785c9d730cc22
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -936,6 +936,11 @@ int two_unicycles_barrier_controller_step(two_unicycles_barrier_controller_t *c,
         s[i] = x[i];
     }
     two_unicycles_barrier_advance(c, t - c->t, s + TWO_UNICYCLES_BARRIER_N_PLANT_STATES);
+    if (two_unicycles_barrier_probe(s + TWO_UNICYCLES_BARRIER_N_PLANT_STATES, TWO_UNICYCLES_BARRIER_N_CONTROLLER_STATES) != 0.0) {
+        /* States that overflowed over a long step: an input of the law that is not finite,
+         * before anything (z*(E), the law) is evaluated at them. */
+        return TWO_UNICYCLES_BARRIER_NONFINITE_INPUT;
+    }
     status = two_unicycles_barrier_controller_move(c, t, s);
     if (status != TWO_UNICYCLES_BARRIER_OK) {
         return status;

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_ring
  * spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
- * content sha256: c49a39cb810cd9216a228888458d209678693fe2c0e2569c7f9d322f8a3ad4d0
+ * content sha256: f076523cb8667b9c19933d5b30ae1e6141ed1d7a0bc49a294d2f96fece9485a7
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical
@@ -1527,6 +1527,11 @@ int unicycle_ring_controller_step(unicycle_ring_controller_t *c, double t, const
         s[i] = x[i];
     }
     unicycle_ring_advance(c, t - c->t, s + UNICYCLE_RING_N_PLANT_STATES);
+    if (unicycle_ring_probe(s + UNICYCLE_RING_N_PLANT_STATES, UNICYCLE_RING_N_CONTROLLER_STATES) != 0.0) {
+        /* States that overflowed over a long step: an input of the law that is not finite,
+         * before anything (z*(E), the law) is evaluated at them. */
+        return UNICYCLE_RING_NONFINITE_INPUT;
+    }
     status = unicycle_ring_controller_move(c, t, s);
     if (status != UNICYCLE_RING_OK) {
         return status;

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 8274e03b9d0b25ab496fdff4612568a71fea17a1c6adf9c4cf79b67f51f0fee3
+ * content sha256: 2e94455c6bbb0d5431dc2b14772d39f2606a36aeb84cdad0d1a7a9addf148e0e
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -688,6 +688,11 @@ int unicycle_switch_controller_step(unicycle_switch_controller_t *c, double t, c
         s[i] = x[i];
     }
     unicycle_switch_advance(c, t - c->t, s + UNICYCLE_SWITCH_N_PLANT_STATES);
+    if (unicycle_switch_probe(s + UNICYCLE_SWITCH_N_PLANT_STATES, UNICYCLE_SWITCH_N_CONTROLLER_STATES) != 0.0) {
+        /* States that overflowed over a long step: an input of the law that is not finite,
+         * before anything (z*(E), the law) is evaluated at them. */
+        return UNICYCLE_SWITCH_NONFINITE_INPUT;
+    }
     status = unicycle_switch_controller_move(c, t, s);
     if (status != UNICYCLE_SWITCH_OK) {
         return status;
