@@ -108,6 +108,8 @@ HOSTILE = [
      "link 'b': inertial mass = 'heavy': expected 1 number"),
     ("mass-zero-inertia", _two(inertial=_MASSLESS_WITH_INERTIA),
      "link 'b': inertia ixx = 0.5 on a link of mass 0"),
+    ("moves-no-mass", _two(inertial='<mass value="0"/>' + _UNIT.replace("0.01", "0")),
+     "joint 'j': moves no mass (every link beyond it has mass 0): M would be singular"),
     ("inertia-nan", _two(inertial='<mass value="1"/>' + _UNIT.replace('iyy="0.01"', 'iyy="NaN"')),
      "link 'b': inertia iyy = 'NaN' is not finite"),
     ("inertia-negative", _two(inertial='<mass value="1"/>' + _UNIT.replace('ixx="0.01"', 'ixx="-0.01"')),  # noqa: E501

@@ -556,6 +556,19 @@ def _chain(
             order.append((joint.child, len(bodies) - 1))
     if len(seen) != len(links):
         raise _fail(source, "(robot)", "some links are not reached from the root: a loop")
+    # A driven joint must move some mass (every mass has a positive-definite inertia, so
+    # any one does): else its row of M is zero, and M singular everywhere.
+    carries = [body.mass != 0 for body in bodies]
+    for index in reversed(range(len(bodies))):
+        if carries[index] and bodies[index].parent >= 0:
+            carries[bodies[index].parent] = True
+    for body, moved in zip(bodies, carries, strict=True):
+        if body.coordinate >= 0 and not moved:
+            raise _fail(
+                source,
+                f"joint {body.joint!r}",
+                "moves no mass (every link beyond it has mass 0): M would be singular",
+            )
     if not movable:
         raise _fail(source, "(robot)", "no revolute, continuous or prismatic joint to drive")
     return bodies, movable, held
