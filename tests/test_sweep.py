@@ -215,6 +215,8 @@ def test_a_sweep_whose_nominal_plant_fails_at_its_start_is_refused(
     around = (("thrust", Distribution("uniform", (0.0, 20.0))),)
     assert sweep.nominal_start(p, SweepOptions(4, 0, 2.0, initial=around)) is Status.OK
     assert sweep.nominal_start(p, SweepOptions(4, 0, 2.0, sample_time=0.01)) is Status.OK
+    # The check's horizon (1e-9 of the sweep's) never underflows to 0 (then: nonfinite_input).
+    assert sweep.nominal_start(p, SweepOptions(4, 0, 5e-324)) is Status.OK
     out = tmp_path / "out"
     args = ["sweep", "pvtol", "--samples", "4", "--initial", "thrust=0", "--workers", "1"]
     code = main([*args, "--plant-param", "m=normal(1, 0.1)", "--out", str(out)])

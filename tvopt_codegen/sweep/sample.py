@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -185,9 +186,11 @@ def nominal_start(program: SweepProgram, options: SweepOptions) -> Outcome:
     defaults = np.array(program.defaults, dtype=float)
     centre = Draw(-1, 0, {}, s0, defaults, defaults.copy(), None)
     centre = _bumpless(program, options, loop, centre)
-    brief = dataclasses.replace(
-        options, t_final=options.t_final * NOMINAL_SPAN, points=2, noise=0.0
-    )
+    span = options.t_final * NOMINAL_SPAN
+    # A horizon near the smallest float would underflow to 0: then the whole (tiny) run.
+    if not span >= sys.float_info.min:
+        span = options.t_final
+    brief = dataclasses.replace(options, t_final=span, points=2, noise=0.0)
     outcome, _, _ = loop.run(brief, centre)
     return outcome
 
