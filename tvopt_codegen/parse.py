@@ -12,6 +12,7 @@ import ast
 import difflib
 import io
 import math
+import re
 import tokenize
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -609,50 +610,44 @@ def _without_redundant_parentheses(text: str) -> str:
     """
     if "((" not in text.replace(" ", "") or "'" in text or '"' in text:
         return text
-    opener = {")": "(", "]": "[", "}": "{"}
-    stack: list[tuple[str, int, bool]] = []  # (bracket, index, holds a comma)
+    closes = {")": "(", "]": "[", "}": "{"}
+    # Each open bracket and where it is; a pair's index goes in ``comma`` when a comma
+    # sits at its own level, and each "(" gets its ")" in ``closing``.
+    stack: list[tuple[str, int]] = []
     closing: dict[int, int] = {}
     comma: set[int] = set()
-    for index, char in enumerate(text):
-        if char in "([{":
-            stack.append((char, index, False))
-        elif char in ")]}":
-            if not stack or stack[-1][0] != opener[char]:
+    for match in _BRACKETS.finditer(text):
+        char, index = match.group(), match.start()
+        if char == ",":
+            if stack:
+                comma.add(stack[-1][1])
+        elif char in closes:
+            if not stack or stack[-1][0] != closes[char]:
                 return text
-            bracket, start, has_comma = stack.pop()
+            bracket, start = stack.pop()
             if bracket == "(":
                 closing[start] = index
-                if has_comma:
-                    comma.add(start)
-        elif char == "," and stack:
-            bracket, start, _ = stack[-1]
-            stack[-1] = (bracket, start, True)
+        else:
+            stack.append((char, index))
     if stack:
         return text
-    # The nearest non-space character before and after each position.
-    before: list[int] = []
-    last = -1
-    for index, char in enumerate(text):
-        before.append(last)
-        if char != " ":
-            last = index
-    after = [0] * len(text)
-    following = len(text)
-    for index in range(len(text) - 1, -1, -1):
-        after[index] = following
-        if text[index] != " ":
-            following = index
-    chars = list(text)
+    blanked = bytearray(text, "ascii")  # ASCII: parse_expression checked it
     for start, end in closing.items():
-        outer = before[start]
-        if (
-            start not in comma
-            and outer >= 0
-            and text[outer] == "("
-            and closing.get(outer) == after[end]
-        ):
-            chars[start] = chars[end] = " "
-    return "".join(chars)
+        outer = start - 1
+        while outer >= 0 and text[outer] == " ":
+            outer -= 1
+        if outer < 0 or text[outer] != "(" or start in comma:
+            continue
+        after = end + 1
+        while after < len(text) and text[after] == " ":
+            after += 1
+        if closing[outer] == after:
+            blanked[start] = blanked[end] = 32  # a space
+    return blanked.decode("ascii")
+
+
+#: The characters :func:`_without_redundant_parentheses` looks at.
+_BRACKETS = re.compile(r"[()\[\]{},]")
 
 
 def _deepest_allowed(text: str, limit: int = MAX_DEPTH) -> int:
