@@ -484,7 +484,7 @@ def _record(
     from tvopt_codegen.sweep import sweep_identity  # noqa: PLC0415
 
     return {
-        "identity": sweep_identity(spec, options, program.key, extension),
+        "identity": sweep_identity(spec, options, program.key, str(extension)),
         "spec": spec_name,
         "extension": extension,
         "loop": program.key,
