@@ -317,6 +317,12 @@ MISSPELT = [
         "constraints.allow_nonconvx",
         "'allow_nonconvex'",
     ),
+    (
+        "[simulation]",
+        '[constraints]\nnear = "y1 <= 10"\nbarier = 1.0\n\n[simulation]',
+        "constraints.barier",
+        "'barrier'",
+    ),
     ("[simulation]", "[limits]\nomgea = 1.0\n\n[simulation]", "limits.omgea", "'omega'"),
     ("[simulation]", "[limits.rate]\nomeg = 1.0\n\n[simulation]", "limits.rate.omeg", "'omega'"),
     (

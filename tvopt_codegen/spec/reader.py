@@ -653,8 +653,9 @@ class _Reader:
                     " ([constraints.barrier] is the one table [constraints] takes)",
                 )
             if not isinstance(text, str):
-                # A boolean under a name like allow_nonconvex is that key misspelt.
-                guess = _suggestion(key, {"allow_nonconvex"}) if isinstance(text, bool) else ""
+                # A value that is no comparison, under a name like allow_nonconvex or
+                # barrier, is that key misspelt.
+                guess = _suggestion(key, {"allow_nonconvex", "barrier"})
                 raise self.fail(where, f"expected a comparison string, got {shown(text)}{guess}")
             try:
                 op, lhs, rhs = parse_comparison(text, names, self.bound(bound))
