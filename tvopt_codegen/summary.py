@@ -21,6 +21,7 @@ def _pole(value: complex) -> str:
 
 
 def _ordinal(n: int) -> str:
+    """``1st``, ``2nd``, ``3rd``, ``4th``, ..., ``11th``, ``21st``."""
     suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
     return f"{n}{suffix}"
 
@@ -38,7 +39,7 @@ def _law_line(d: Derivation) -> str:
         v, law = trajectory, "uniform relative degree theorem"
     else:
         v = f"the padding chains' output, driven by {trajectory}"
-        law = "non-uniform theorem, with xi chains"
+        law = "non-uniform theorem"
     if d.extension.counts:
         lhs = "w"
         ext = (
