@@ -310,3 +310,12 @@ def test_the_sign_tests_behind_the_sets() -> None:
         "x <= 0": "a log of a non-positive",
         "sin(y) = 0": "the sine under cot vanishes",
     }
+
+
+def test_a_padded_plants_law_line_defines_v_by_the_padding_chains() -> None:
+    done = _cli("check", str(ROOT / "tests" / "specs" / "nonuniform.toml"))
+    assert done.returncode == 0, done.stderr
+    law = next(line for line in done.stdout.splitlines() if line.startswith("  law: "))
+    assert "v = the padding chains' output, driven by y_imp^(2)" in law
+    assert law.endswith("(non-uniform theorem)")
+    assert not {"alpha", "beta", "xi"} & set(law.replace(",", " ").replace("(", " ").split())
