@@ -21,7 +21,7 @@ from tvopt_codegen.cli import main
 from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_BUDGET
 from tvopt_codegen.spec import spec_from_dict
 from tvopt_codegen.spec.implicit import evaluator, mass_matrix_at
-from tvopt_codegen.urdf import MAX_JOINTS, spec_from_urdf
+from tvopt_codegen.urdf import MAX_JOINTS, MAX_LINKS, spec_from_urdf
 
 from .conftest import ROOT
 
@@ -292,6 +292,24 @@ def test_a_long_chain_is_refused_within_the_budget(
     code, err = _refused(path, tmp_path, capsys)
     assert code == EXIT_BUDGET and time.perf_counter() - started < 20, err
     assert f"stage 'chain size': 100 driven joints, more than the {MAX_JOINTS}" in err, err
+
+
+def test_thousands_of_fixed_links_are_refused_at_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One driven joint carrying 2,000 fixed links: no recursion limit, no minutes."""
+    parts = [_link("base"), _link("l0"), _joint("j0", "base", "l0")]
+    for i in range(1, 2000):
+        parts.append(f'<link name="l{i}"/>')
+        parts.append(
+            f'<joint name="f{i}" type="fixed"><parent link="l{i - 1}"/><child link="l{i}"/>'
+            '<origin xyz="0 0 0.01"/></joint>'
+        )
+    path = tmp_path / "long.urdf"
+    path.write_text(_robot(*parts), encoding="utf-8")
+    code, err = _refused(path, tmp_path, capsys)
+    assert code == EXIT_BUDGET, err
+    assert f"stage 'chain size': 2001 links, more than the {MAX_LINKS}" in err, err
 
 
 def test_the_import_stops_at_its_time_budget_naming_the_stage(

@@ -69,6 +69,10 @@ MAX_ELEMENTS = 200_000
 #: algebra, with the exit code of a budget, rather than run for minutes.
 MAX_JOINTS = 24
 
+#: Most links the chain may carry, fixed ones included: each is a few vectors in every
+#: Newton-Euler pass (a Panda with its hand is 12, a humanoid a hundred or so).
+MAX_LINKS = 256
+
 #: Relative tolerance of an inertia's triangle inequality (``Ixx + Iyy >= Izz`` of the
 #: principal moments): files round their moments, a thin rod meets it with equality.
 TRIANGLE_TOLERANCE = 1e-6
@@ -521,6 +525,7 @@ def _chain(
             driven_path.add(parents[link].name)
             link = parents[link].parent
     held = _held(joints, driven_path, source)
+    moves = _moves(roots[0], children, held)
     bodies: list[_Body] = []
     movable: list[str] = []
     order: list[tuple[str, int]] = [(roots[0], -1)]
@@ -528,7 +533,7 @@ def _chain(
     while order:
         link_name, parent = order.pop(0)
         below = children.get(link_name, [])
-        if sum(1 for j in below if _moves(j, children, held)) > 1:
+        if sum(1 for j in below if moves[j.name]) > 1:
             raise _fail(
                 source,
                 f"link {link_name!r}",
@@ -617,11 +622,30 @@ def _held(joints: Mapping[str, Any], path: set[str] | None, source: str) -> dict
     return held
 
 
-def _moves(joint: Any, children: dict[str, list[Any]], held: Mapping[str, float]) -> bool:
-    """Whether a joint or any joint below it is driven."""
-    if joint.type in _MOVABLE and joint.name not in held:
-        return True
-    return any(_moves(j, children, held) for j in children.get(joint.child, []))
+def _moves(
+    root: str, children: Mapping[str, list[Any]], held: Mapping[str, float]
+) -> dict[str, bool]:
+    """Whether each joint, or any joint below it, is driven, by joint name.
+
+    Walked without recursion: a chain of thousands of fixed links is no deeper for it.
+    """
+    order: list[Any] = []
+    stack = list(children.get(root, []))
+    seen: set[str] = set()
+    while stack:
+        joint = stack.pop()
+        if joint.name in seen:  # a loop: refused where the chain is walked
+            continue
+        seen.add(joint.name)
+        order.append(joint)
+        stack.extend(children.get(joint.child, []))
+    moves: dict[str, bool] = {}
+    for joint in reversed(order):  # every joint after the joints above it
+        below = children.get(joint.child, [])
+        moves[joint.name] = (joint.type in _MOVABLE and joint.name not in held) or any(
+            moves.get(j.name, False) for j in below
+        )
+    return moves
 
 
 def _turn(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -1071,7 +1095,8 @@ def spec_from_urdf(
         mimic joint, a branching chain, an unknown ``tip``: one line, naming the file,
         the element, the field and the value.
     BudgetError
-        A chain of more than :data:`MAX_JOINTS` driven joints, before any algebra.
+        A chain of more than :data:`MAX_JOINTS` driven joints or :data:`MAX_LINKS`
+        links, before any algebra.
     """
     path = Path(path)
     source = str(path)
@@ -1087,6 +1112,12 @@ def spec_from_urdf(
     if len(gravity) != 3 or not all(np.isfinite(gravity)):
         raise _fail(source, "--gravity", "expected three finite numbers")
     n = len(names)
+    if len(bodies) + 1 > MAX_LINKS:
+        raise BudgetError(
+            source,
+            "chain size",
+            f"{len(bodies) + 1} links, more than the {MAX_LINKS} the derivation budget allows",
+        )
     if n > MAX_JOINTS:
         raise BudgetError(
             source,
