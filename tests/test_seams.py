@@ -214,22 +214,30 @@ SEAM_SPECS = {
     ),
     "arm2, observer at 1e12": (ARM2, {"observer": {"bandwidth": 1e12}}),
     "unicycle_switch": (EXAMPLES / "unicycle_switch.toml", None),
+    # Fed with reference samples: the estimator steps with the controller.
+    "pvtol_refs, Levant": (EXAMPLES / "pvtol_refs.toml", None),
+    "integrator_refs, linear": (EXAMPLES / "integrator_refs.toml", None),
 }
 
 
 def _run(mod: ModuleType, sequence: list[tuple[float, float]]) -> list[str]:
     """Each call's outcome: ``ok`` or the exception's class; after an OK, every value the
-    controller hands out is finite."""
+    controller hands out is finite. A spec with references is fed samples (the offset's
+    too, where it is finite)."""
     n = len(mod.PLANT_STATE_NAMES)
     x0 = np.array(mod.DEFAULT_STATE[:n], dtype=float)
+    references = len(getattr(mod, "REFERENCE_NAMES", ()))
     outcomes, controller = [], None
     for t, offset in sequence:
         x = x0 + offset
+        extra = {}
+        if references:
+            extra["samples"] = np.full(references, 0.5 + (offset if math.isfinite(offset) else 0))
         try:
             if controller is None:
-                controller = mod.Controller(x, t0=t)
+                controller = mod.Controller(x, t0=t, **extra)
             else:
-                controller.step(t, x)
+                controller.step(t, x, **extra)
         except Exception as error:  # noqa: BLE001 - the class is what is compared
             outcomes.append(type(error).__name__)
             if controller is None:
