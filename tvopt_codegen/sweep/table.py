@@ -304,9 +304,14 @@ def index_parts(paths: Sequence[Path], schema: Any, samples: int | None = None) 
                 if problem is not None:
                     raise _RefusedError(problem)
             ranges = _ranges(found, meta.num_row_groups)
+            # Two columns of the whole file in one read (a row group at a time costs a
+            # read per chunk: seconds for 10^6 samples), sliced at the row groups.
+            columns = handle.read(columns=["sample", "seed"])
+            offset = 0
             for group, span in enumerate(ranges):
-                rows = handle.read_row_group(group, columns=["sample", "seed"])
-                _check_group(rows, group, span, samples, seed)
+                count = meta.row_group(group).num_rows
+                _check_group(columns.slice(offset, count), group, span, samples, seed)
+                offset += count
                 pieces.append(Piece(span[0], span[1], path, group))
         except _RefusedError as exc:
             raise OutputError(f"{path}: {exc}; nothing was changed") from None
