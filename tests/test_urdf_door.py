@@ -556,19 +556,35 @@ def test_panda_and_kinova_simulate_with_a_passing_certificate(
 # ------------------------------------------------------------------ the default objective
 
 
-def test_a_bent_scara_gets_a_circle_clear_of_its_elbow_singularity(tmp_path: Path) -> None:
+def _scara(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> list[str]:
+    out = tmp_path / "scara.toml"
+    assert main(["import-urdf", str(SCARA), "--tip", "tool", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == "", captured.err
+    return [line for line in captured.out.splitlines() if line.startswith("note: ")]
+
+
+def test_a_bent_scara_gets_a_circle_clear_of_its_elbow_singularity(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """The 0.1 m horizontal circle would stretch the elbow past straight; the import says
-    so, picks a circle that stays clear, and the run's certificate passes."""
-    run = _cli("import-urdf", str(SCARA), "--tip", "tool", "--out", "scara.toml", cwd=tmp_path)
-    assert run.returncode == 0 and run.stderr == "", run.stderr
-    notes = [line for line in run.stdout.splitlines() if line.startswith("note: ")]
-    assert len(notes) == 1, run.stdout
+    so and picks a circle that stays clear."""
+    notes = _scara(tmp_path, capsys)
+    assert len(notes) == 1, notes
     assert "would bring the tip Jacobian's inverse condition number to 0 " in notes[0]
     assert "the tip follows a 0.1 m circle in the y-z plane about the start" in notes[0]
     margin = float(notes[0].split("(margin ")[1].split(",")[0])
     assert 0.05 <= margin < 0.2, notes[0]
     text = (tmp_path / "scara.toml").read_text(encoding="utf-8")
     assert 'ox = "0.559012"' in text and 'oy = "0.215207 + 0.1*cos(0.5*t)"' in text
+
+
+@pytest.mark.slow
+def test_the_bent_scara_simulates_with_a_passing_certificate(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Imported with the default objective (the import's own choice of circle)."""
+    _scara(tmp_path, capsys)
     _simulate(tmp_path / "scara.toml", tmp_path)
 
 
