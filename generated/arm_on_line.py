@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: 15dbdc0f46e12de8a73a3268d2ff422802b77ce4497d4f6b414f1da383a7ff5b
+# content sha256: 5deb43f500b5bab9a7cd979279d09e6ac5e8f25093e0a81a190d0d246b5a9162
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -1400,7 +1400,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 4)

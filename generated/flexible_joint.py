@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 45e1c10b2c94a3d81a2793d574a5580e42c7e7fd03a05a9d03b3c0294cac623e
+# content sha256: c693617e395883e97377ded0773042e77609ae21db0468b0926232161284de4b
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -1327,7 +1327,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 4)

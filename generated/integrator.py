@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 556532864960cce1500226902fba1f58440a2afe091849fade3a5d91d412fefa
+# content sha256: ef2ef47f566c204cd2672ababb947ca761c35c994129205092d28178e7e810f6
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -1122,7 +1122,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 2)

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: planar_arm3
 # spec sha256: 63d130b8bfdcabd4b35f10882f051baacdec9d17c6622b99cfadaf848ad6bddb
-# content sha256: 8ada5b98c66883bbb090e6cc6905a01081a9e3bee5b8c01afc4b9c6528899274
+# content sha256: 2020bf51128ff1ef106cc899682c600cbedb752367583f01308d86732af895bb
 # ruff: noqa
 
 """planar_arm3: implicit trajectory planning controller.
@@ -1592,7 +1592,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 6)

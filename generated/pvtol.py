@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
-# content sha256: 6333ba607b825162425f97f9f5d8bc974ab88fb4c4a975eefd71e02f53982f73
+# content sha256: 75bb8ea2561ffa45b05cc1b3fb7af4d66624ecd84f1d80dae65743351ba37e79
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -1252,7 +1252,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 6)

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: b71dfb3bb133be324c8febbbba24042074c8495b7c0cdd20f440f6402cdc8474
+# content sha256: 56c74c801b835e3e58443d6f82caeac9bcce63ee2ee68aa336b434bad4d89980
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -1591,7 +1591,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 6)

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
-# content sha256: 062fcf465ce7c94049abfd2947c961563b1639850d20798db15bd35c3c2eeb7c
+# content sha256: cf0e48cda3157c9a93e714eb75f1d16cdaaa2da5135bbed2c4cdb25e9989ad3a
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -2602,7 +2602,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 12)

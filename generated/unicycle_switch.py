@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 8268676ae9b412de99d984f5ef1a36e6fc7b168a1bc9c954811bbe1a44316e66
+# content sha256: 6148cee3a3094267182219e18183b876852c50e4ce3e3e3b8ae43114fdf3598b
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -1218,7 +1218,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 3)

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: arm_on_line
  * spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
- * content sha256: 1fb4448937bf245342c1c6270df1307510ec29caa5a5fae582ab2a7b0f3528d4
+ * content sha256: 59e99634cc8ea8146ddbfb892086dc94ec5de9303d35f7226fbd7a450a504e29
  */
 
 /*
@@ -104,8 +104,9 @@ const char *arm_on_line_status_message(int status);
  * A step first advances the controller states z from the last step's time to t, holding
  * the input computed then (z are integrator chains: the update is exact), then evaluates
  * the law at (t, [x; z]) and writes u (ARM_ON_LINE_N_INPUTS). A step that fails (a status
- * other than OK: x or t not finite, t before the last step's time, the law undefined)
- * leaves the controller as it was. init evaluates the law at (t0, [x0; z0]).
+ * other than OK: x or t not finite, z advanced over a step so long that it overflows
+ * (NONFINITE_INPUT too), t before the last step's time, the law undefined) leaves the
+ * controller as it was. init evaluates the law at (t0, [x0; z0]).
  */
 typedef struct {
     /* time of the last step (or of init) */

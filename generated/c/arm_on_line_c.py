@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: c261f19db0fc38e1bf73b746522e98f729e4bed7ec4d9c7ee6d73765907e208e
+# content sha256: 9e155fe31fccba92b2dc8d45ae5ca55c61a3598c0a04d3440cfcbaa611aba3d7
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -784,7 +784,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 4)

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: c1269093cfbbdb813e44b72ef8bb95acb27577cab103c1c8264bfd8f6fd6aa5a
+ * content sha256: 5debc74a0aced8aa4ed276bbdf8b40d8423860171ef85d2221c83b996d45395f
  */
 
 /*
@@ -103,8 +103,9 @@ const char *flexible_joint_status_message(int status);
  * A step first advances the controller states z from the last step's time to t, holding
  * the input computed then (z are integrator chains: the update is exact), then evaluates
  * the law at (t, [x; z]) and writes u (FLEXIBLE_JOINT_N_INPUTS). A step that fails (a status
- * other than OK: x or t not finite, t before the last step's time, the law undefined)
- * leaves the controller as it was. init evaluates the law at (t0, [x0; z0]).
+ * other than OK: x or t not finite, z advanced over a step so long that it overflows
+ * (NONFINITE_INPUT too), t before the last step's time, the law undefined) leaves the
+ * controller as it was. init evaluates the law at (t0, [x0; z0]).
  */
 typedef struct {
     /* time of the last step (or of init) */

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: 4197169cd753e4d5ea658120a7781b8351ef64ad215de918527e47937d5be1d0
+# content sha256: a5062c33d33b5a7dc6f67d2eb7805eea85c558257dad61e61e6013a5906418dd
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -779,7 +779,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 4)

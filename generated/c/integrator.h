@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 9457f2cf7ace81d3a40fdecca3e533a5bfa0d0bde4c0e914f549d2353dbc57e6
+ * content sha256: 6b5910ca94bb3f8c750b36cd1b8555308ada773e695f6b6cf82e97c05a3b9aff
  */
 
 /*
@@ -103,8 +103,9 @@ const char *integrator_status_message(int status);
  * A step first advances the controller states z from the last step's time to t, holding
  * the input computed then (z are integrator chains: the update is exact), then evaluates
  * the law at (t, [x; z]) and writes u (INTEGRATOR_N_INPUTS). A step that fails (a status
- * other than OK: x or t not finite, t before the last step's time, the law undefined)
- * leaves the controller as it was. init evaluates the law at (t0, [x0; z0]).
+ * other than OK: x or t not finite, z advanced over a step so long that it overflows
+ * (NONFINITE_INPUT too), t before the last step's time, the law undefined) leaves the
+ * controller as it was. init evaluates the law at (t0, [x0; z0]).
  */
 typedef struct {
     /* time of the last step (or of init) */

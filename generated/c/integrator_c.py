@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 3bb7c2493ca34b58de6234935934ded409148022b5aaa13e3cc5b0bdb3ad23bd
+# content sha256: a6c96abbb1fede09e5cb20e98791755246519d2de8df4ec78967398d7e10b067
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -775,7 +775,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 2)

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: planar_arm3
  * spec sha256: 63d130b8bfdcabd4b35f10882f051baacdec9d17c6622b99cfadaf848ad6bddb
- * content sha256: 620b8f24ba3935211bed61342925447a395651c74787ec122da56cdc056efc82
+ * content sha256: 6d030d84090e854040e103b033d9d3ee7e3b0244b019d22676c70d74d9d01107
  */
 
 /*
@@ -103,8 +103,9 @@ const char *planar_arm3_status_message(int status);
  * A step first advances the controller states z from the last step's time to t, holding
  * the input computed then (z are integrator chains: the update is exact), then evaluates
  * the law at (t, [x; z]) and writes u (PLANAR_ARM3_N_INPUTS). A step that fails (a status
- * other than OK: x or t not finite, t before the last step's time, the law undefined)
- * leaves the controller as it was. init evaluates the law at (t0, [x0; z0]).
+ * other than OK: x or t not finite, z advanced over a step so long that it overflows
+ * (NONFINITE_INPUT too), t before the last step's time, the law undefined) leaves the
+ * controller as it was. init evaluates the law at (t0, [x0; z0]).
  */
 typedef struct {
     /* time of the last step (or of init) */

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: planar_arm3
 # spec sha256: 63d130b8bfdcabd4b35f10882f051baacdec9d17c6622b99cfadaf848ad6bddb
-# content sha256: 9f068bc49e8b1d9978f54232470f0c2f798ba41597e97bcce689eeedcb502338
+# content sha256: 78126436d8f35e387eb0afbfb3ab8606a8c05b6a5d1472b93ec4f44f41caec6b
 # ruff: noqa
 
 """planar_arm3: implicit trajectory planning controller.
@@ -784,7 +784,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 6)

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: pvtol
  * spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
- * content sha256: 4fff8e96163167ed5717191480e9a095ad21eff9435d2c68ad55cf9b40ce629c
+ * content sha256: 9a745916249f2206433d5823910d6abe8dc9e010b9626ce0aa127475fe8c8418
  */
 
 /*
@@ -104,8 +104,9 @@ const char *pvtol_status_message(int status);
  * A step first advances the controller states z from the last step's time to t, holding
  * the input computed then (z are integrator chains: the update is exact), then evaluates
  * the law at (t, [x; z]) and writes u (PVTOL_N_INPUTS). A step that fails (a status
- * other than OK: x or t not finite, t before the last step's time, the law undefined)
- * leaves the controller as it was. init evaluates the law at (t0, [x0; z0]).
+ * other than OK: x or t not finite, z advanced over a step so long that it overflows
+ * (NONFINITE_INPUT too), t before the last step's time, the law undefined) leaves the
+ * controller as it was. init evaluates the law at (t0, [x0; z0]).
  */
 typedef struct {
     /* time of the last step (or of init) */

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: pvtol
 # spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
-# content sha256: 6bbaa6fbc9d6b1948a024d7156f59af2be2a2351659d857262c7b3adc5f96d14
+# content sha256: 21536822218a03cdaa60656c81fa01df0efd95eb959d423962183c83a7e32495
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -785,7 +785,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 6)

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 88cbcae7d6f4a1866f6f4221ab26b77df805d3315a3030d994e50261e62f2849
+ * content sha256: 238e83f736a9015dc5c9c12d4eceb23fb0080922bc7a5acfcb6d6e5d0bcde864
  */
 
 /*
@@ -104,8 +104,9 @@ const char *two_unicycles_barrier_status_message(int status);
  * A step first advances the controller states z from the last step's time to t, holding
  * the input computed then (z are integrator chains: the update is exact), then evaluates
  * the law at (t, [x; z]) and writes u (TWO_UNICYCLES_BARRIER_N_INPUTS). A step that fails (a status
- * other than OK: x or t not finite, t before the last step's time, the law undefined)
- * leaves the controller as it was. init evaluates the law at (t0, [x0; z0]).
+ * other than OK: x or t not finite, z advanced over a step so long that it overflows
+ * (NONFINITE_INPUT too), t before the last step's time, the law undefined) leaves the
+ * controller as it was. init evaluates the law at (t0, [x0; z0]).
  */
 typedef struct {
     /* time of the last step (or of init) */

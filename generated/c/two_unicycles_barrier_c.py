@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: c04a3de519da5208196d547d49a267c11c5ff50398c4eddf0c4618112eb9dc6b
+# content sha256: bf4e220649782fdb63baa78741fc605c5fc937f88d677a8a510a5b51c51d9863
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -784,7 +784,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 6)

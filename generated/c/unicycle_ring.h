@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_ring
  * spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
- * content sha256: a198a0befa728f20245aa37d669e38324c2997039aa544152d917020d9548d3f
+ * content sha256: bd2ff03f55738f2c1220290c2ba46d39d547decc22f898fb3ed053f6ec640a2a
  */
 
 /*
@@ -104,8 +104,9 @@ const char *unicycle_ring_status_message(int status);
  * A step first advances the controller states z from the last step's time to t, holding
  * the input computed then (z are integrator chains: the update is exact), then evaluates
  * the law at (t, [x; z]) and writes u (UNICYCLE_RING_N_INPUTS). A step that fails (a status
- * other than OK: x or t not finite, t before the last step's time, the law undefined)
- * leaves the controller as it was. init evaluates the law at (t0, [x0; z0]).
+ * other than OK: x or t not finite, z advanced over a step so long that it overflows
+ * (NONFINITE_INPUT too), t before the last step's time, the law undefined) leaves the
+ * controller as it was. init evaluates the law at (t0, [x0; z0]).
  */
 typedef struct {
     /* time of the last step (or of init) */

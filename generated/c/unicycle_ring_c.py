@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
-# content sha256: ca9cafab99212fd2653cb5606ee37a3fff9f96049b6544bbb6657efb801722f6
+# content sha256: debb3b73c55dd898b5a5503d9c822794d37ca7d172dcb6c98de80e5b6ec1bcb3
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -791,7 +791,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 12)

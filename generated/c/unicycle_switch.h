@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: eb6ff95adb475e015e60ba410bbecf8f157e814a21bf2b46eeb2d1c9600a30e1
+ * content sha256: 6c2a24c0df8bce6599c1d600fc8e208d55edd8c9bf4ad0efc3f2a03f829b4a35
  */
 
 /*
@@ -104,8 +104,9 @@ const char *unicycle_switch_status_message(int status);
  * A step first advances the controller states z from the last step's time to t, holding
  * the input computed then (z are integrator chains: the update is exact), then evaluates
  * the law at (t, [x; z]) and writes u (UNICYCLE_SWITCH_N_INPUTS). A step that fails (a status
- * other than OK: x or t not finite, t before the last step's time, the law undefined)
- * leaves the controller as it was. init evaluates the law at (t0, [x0; z0]).
+ * other than OK: x or t not finite, z advanced over a step so long that it overflows
+ * (NONFINITE_INPUT too), t before the last step's time, the law undefined) leaves the
+ * controller as it was. init evaluates the law at (t0, [x0; z0]).
  */
 typedef struct {
     /* time of the last step (or of init) */

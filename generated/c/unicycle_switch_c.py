@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 7abe258cc75e727abcba1f19e909e0ab8aa7d78399acc15cbc7f5a2eda9ff1ab
+# content sha256: a3c35adaffee652365e68c1a971cffcf78e8b50667ed31ffbb88445a0bc6db52
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -780,7 +780,9 @@ class _Controller:
             ``ControllerError``), or ``x`` has the wrong shape.
         ControllerError
             ``NonFiniteInputError`` for a measurement or time that is not finite, or
-            where the law is undefined; the controller is then unchanged.
+            controller states that overflow over a step too long for them (as in C);
+            another subclass where the law is undefined; the controller is then
+            unchanged.
         """
         t = _time(t)
         x = _vector("x", x, 3)
