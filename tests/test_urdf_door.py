@@ -615,3 +615,66 @@ def test_a_stretched_start_says_no_circle_is_safe(
     assert len(notes) == 1 and notes[0].startswith(
         "note: no tip circle of 0.1, 0.05 or 0.02 m about the start keeps clear of a singularity"
     ), notes
+
+
+def _random_arm(seed: int) -> str:
+    """Five random joints in a chain (random axes, placements, rotated inertias), the last
+    two beyond link ``l3``, the fifth mimicking the fourth."""
+    rng = np.random.default_rng(seed)
+    parts = [_link("base")]
+    for i in range(5):
+        matrix, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        a, b = rng.uniform(0.005, 0.05, 2)
+        c = rng.uniform(abs(a - b) + 1e-3, a + b)
+        tensor = matrix @ np.diag([a, b, c]) @ matrix.T
+        inertia = " ".join(
+            f'{k}="{tensor[i_, j_]:.10f}"'
+            for k, (i_, j_) in zip(
+                ("ixx", "ixy", "ixz", "iyy", "iyz", "izz"),
+                ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)),
+                strict=True,
+            )
+        )
+        com = " ".join(f"{x:.4f}" for x in rng.uniform(-0.1, 0.1, 3))
+        rpy = " ".join(f"{x:.4f}" for x in rng.uniform(-1, 1, 3))
+        parts.append(
+            f'<link name="l{i}"><inertial><origin xyz="{com}" rpy="{rpy}"/>'
+            f'<mass value="{rng.uniform(0.3, 3):.4f}"/><inertia {inertia}/></inertial></link>'
+        )
+        kind = ("revolute", "continuous", "prismatic", "revolute", "revolute")[i]
+        axis = " ".join(f"{x:.5f}" for x in rng.normal(size=3))
+        xyz = " ".join(f"{x:.4f}" for x in rng.uniform(-0.3, 0.3, 3))
+        placement = " ".join(f"{x:.4f}" for x in rng.uniform(-1.5, 1.5, 3))
+        limit = '<limit lower="-0.7" upper="1.1" effort="10" velocity="1"/>'
+        mimic = '<mimic joint="j3" multiplier="-0.8" offset="0.05"/>' if i == 4 else ""
+        parts.append(
+            f'<joint name="j{i}" type="{kind}"><parent link="{"base" if i == 0 else f"l{i - 1}"}"/>'
+            f'<child link="l{i}"/><origin xyz="{xyz}" rpy="{placement}"/><axis xyz="{axis}"/>'
+            f"{limit}{mimic}</joint>"
+        )
+    return _robot(*parts)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_random_arms_with_held_joints_equal_pinocchio(seed: int, tmp_path: Path) -> None:
+    """Joints beyond the tip held (one mimicking the other, at multiplier * leader +
+    offset), M and the bias forces against Pinocchio's reduced model to 1e-9."""
+    path = tmp_path / "arm.urdf"
+    path.write_text(_random_arm(seed), encoding="utf-8")
+    notes: list[str] = []
+    spec = spec_from_urdf(path, tip="l2", notes=notes, gravity=(0.0, 0.0, -9.81))
+    held = {"j3": 0.2, "j4": -0.8 * 0.2 + 0.05}
+    assert spec["system"]["coordinates"] == ["j0", "j1", "j2"]
+    assert notes[0] == "held fixed beyond or beside the tip 'l2': j3 = 0.2, j4 = -0.11", notes
+    worst = _pinocchio_check(path, spec, held, 6, seed)
+    assert worst < 1e-9, worst
+
+
+def test_initial_for_a_held_joint_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "real.urdf"
+    path.write_text(REAL, encoding="utf-8")
+    code, err = _refused(path, tmp_path, capsys, "--tip", "flange", "--initial", "finger_left=0")
+    assert code == EXIT_BAD_SPEC
+    assert "--initial: 'finger_left' is held fixed beyond or beside the tip" in err, err

@@ -1135,6 +1135,8 @@ def spec_from_urdf(
         for coordinate, joint in zip(names, movable, strict=True)
     }
     for key, value in (initial or {}).items():
+        if key in {_identifier(joint, "joint") for joint in held}:
+            raise _fail(source, "--initial", f"{key!r} is held fixed beyond or beside the tip")
         if key not in start:
             raise _fail(source, "--initial", f"{key!r} is not a joint (joints: {', '.join(names)})")
         if not np.isfinite(value):
