@@ -9,7 +9,7 @@ INSTALLED := $(VENV)/.installed
 READY := $(VENV)/.compiled
 EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring arm_on_line planar_arm3
 
-.PHONY: all demo figures bench bench-baseline bench-derive bench-representation bench-sweep bench-sweep-scale bench-commands sweep-example robust-example reference-noise test lint typecheck check regen check-generated update-golden clean
+.PHONY: all demo figures bench bench-baseline bench-derive bench-representation bench-sweep bench-sweep-scale bench-commands sweep-example robust-example reference-noise fuzz test lint typecheck check regen check-generated update-golden clean
 
 all: test
 
@@ -123,6 +123,16 @@ reference-noise: $(READY)
 .PHONY: features-doc
 features-doc: $(READY)
 	$(PY) -m tvopt_codegen.features > docs/features.md
+
+## fuzz: the differential fuzzer (docs/fuzz.md): CASES random cases (default 200) drawn from SEED
+##   (default: a fresh one, printed); CASE=kind:size:features:seed replays one case; C_RATE and
+##   FMU_RATE are the shares of cases also run in C and in the FMU; LOG=file keeps one line a case
+CASES ?= 200
+C_RATE ?= 0.05
+FMU_RATE ?= 0.02
+fuzz: $(READY)
+	$(PY) -m tests.fuzzing --cases $(CASES) --c-rate $(C_RATE) --fmu-rate $(FMU_RATE) \
+	  $(if $(SEED),--seed $(SEED)) $(if $(CASE),--case $(CASE)) $(if $(LOG),--log $(LOG))
 
 ## lint: ruff and mypy (strict) over the package
 lint: $(READY)

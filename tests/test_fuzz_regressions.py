@@ -1,0 +1,151 @@
+"""Failures the differential fuzzer found (tests/fuzzing.py), each shrunk to a named case.
+
+A failure in another part of the tool is ``xfail(strict=True)`` with what fails as the
+reason, until its owner fixes it (then the strict xfail turns into a failure: remove the
+mark). Failures of the fuzzer's own harness are ordinary tests.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from .conftest import ROOT
+from .fuzzing import Case, build_spec, cases_strategy, run_case, urdf_text
+
+#: ``system:2:-:1`` of the first generator: two strict-feedback chains of length 2 whose
+#: gains are ``c0 + c1 cos(s)`` and ``c0 + c1 tanh(s)``, in coordinates with one
+#: ``x = s + c sin(s')``. det R is a product of those gains; nothing is hard about it.
+TRIG_GAINS = {
+    "name": "fz_trig_gains",
+    "system": {
+        "states": ["x1", "x2", "x3", "x4"],
+        "inputs": ["u1", "u2"],
+        "dynamics": {
+            "x1": "(x2 - 3*sin(x1)/10)*(513*cos(x1)/1250 + 57/50) + 9*sin(x1)/20",
+            "x2": "u1*(9*tanh(x2 - 3*sin(x1)/10)/100 + 141/100) + 51*u2*sin(x1)/100"
+            " + 3*((x2 - 3*sin(x1)/10)*(513*cos(x1)/1250 + 57/50) + 9*sin(x1)/20)*cos(x1)/10"
+            " - 19*sin(x2 - 3*sin(x1)/10)/100 + 33*cos(x2 - 3*sin(x1)/10)/100",
+            "x3": "(x4 + sin(x3)/50)*(3059*cos(x3)/10000 + 133/100) + sin(x3)/25",
+            "x4": "u2*(7/5 - 53*tanh(x4 + sin(x3)/50)/100)"
+            " - ((x4 + sin(x3)/50)*(3059*cos(x3)/10000 + 133/100) + sin(x3)/25)*cos(x3)/50"
+            " - sin(x3)/5 - 37*cos(x2 - 3*sin(x1)/10)/100",
+        },
+        "outputs": {"y1": "x1", "y2": "x3"},
+    },
+    "signals": {"o1": "0.5*sin(0.5*t)", "o2": "0.3*cos(0.4*t)"},
+    "objective": {"f0": "(y1 - o1)**2 + (y2 - o2)**2"},
+    "error_dynamics": {"poles": [-1.0, -2.0]},
+    "simulation": {"initial_state": {"x1": 0.1, "x2": 0.0, "x3": -0.2, "x4": 0.0}},
+}
+
+_DERIVE = """
+import json, sys, time
+from tvopt_codegen.derivation import derive
+from tvopt_codegen.limits import Budget
+from tvopt_codegen.errors import BudgetError
+start = time.perf_counter()
+try:
+    derive(json.loads(sys.argv[1]), budget=Budget(seconds=float(sys.argv[2])))
+    print("derived")
+except BudgetError as exc:
+    print("budget", str(exc))
+print(round(time.perf_counter() - start, 1))
+"""
+
+
+def _derive_within(spec: dict[str, object], budget: float, timeout: float) -> str:
+    """Derive ``spec`` in a child process; its output, or ``timeout`` when it ran over."""
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", _DERIVE, json.dumps(spec), str(budget)],
+            capture_output=True, text=True, timeout=timeout, cwd=ROOT, check=False,
+        )  # fmt: skip
+    except subprocess.TimeoutExpired:
+        return "timeout"
+    return done.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="derivation/linearization.py simplified_det: sp.simplify of a 2 x 2 det R whose "
+    "gains hold cos and tanh runs for minutes (487 s measured), so a 4-state plant fails "
+    "its 120 s budget",
+)
+def test_a_det_r_with_trigonometric_gains_derives_in_seconds() -> None:
+    assert _derive_within(TRIG_GAINS, budget=120.0, timeout=20.0).startswith("derived")
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="derivation/meter.py: the time budget is checked between sympy calls only; "
+    "one simplify inside a stage overruns Budget(seconds=2) by minutes",
+)
+def test_the_time_budget_stops_a_derivation_inside_a_stage() -> None:
+    assert _derive_within(TRIG_GAINS, budget=2.0, timeout=20.0).startswith("budget")
+
+
+# ----------------------------------------------------------------- the harness itself
+
+
+def test_a_case_string_names_its_case() -> None:
+    case = Case.parse("system:3:integral+c+unicycle:42")
+    assert case == Case("system", 3, frozenset({"integral", "c", "unicycle"}), 42)
+    assert Case.parse(str(case)) == case and str(Case("arm", 1, frozenset(), 7)) == "arm:1:-:7"
+    with pytest.raises(ValueError, match="not a fuzz case"):
+        Case.parse("robot:1:-:3")
+
+
+def test_a_case_is_the_same_spec_on_every_build(tmp_path: Path) -> None:
+    case = Case.parse("system:3:integral+limits+references+unicycle:5")
+    first, extra = build_spec(case, tmp_path)
+    again, _ = build_spec(case, tmp_path)
+    assert first == again
+    # 3 outputs: one chain of random length and the unicycle's two (2 once extended).
+    assert len(first["system"]["outputs"]) == 3 and extra["relative_degree"][1:] == (2, 2)
+    assert first["robust"]["integral"] is True and "references" in first
+
+
+def test_a_random_inertia_is_positive_definite_with_the_triangle_inequality() -> None:
+    # The first generator rotated the principal moments by two different rotations: an
+    # indefinite tensor that spec_from_urdf (rightly) refused.
+    text = urdf_text(Case("urdf", 3, frozenset(), 5), np.random.default_rng(5))
+    for block in text.split("<inertia ")[1:]:
+        values = dict(item.split("=") for item in block.split("/>")[0].split())
+        get = {k: float(v.strip('"')) for k, v in values.items()}
+        tensor = np.array(
+            [
+                [get["ixx"], get["ixy"], get["ixz"]],
+                [get["ixy"], get["iyy"], get["iyz"]],
+                [get["ixz"], get["iyz"], get["izz"]],
+            ]
+        )
+        a, b, c = np.linalg.eigvalsh(tensor)
+        assert a > 0 and c <= a + b + 1e-9
+
+
+def test_the_cli_import_takes_a_negative_gravity(tmp_path: Path) -> None:
+    # The harness once passed --gravity as three arguments; a first negative component
+    # must also not read as an option.
+    assert run_case(Case.parse("urdf:1:cli:0")) == "agrees"
+
+
+def test_c_and_the_fmu_are_drawn_rarely_not_first() -> None:
+    hypothesis = pytest.importorskip("hypothesis")
+    draws = []
+
+    @hypothesis.settings(max_examples=60, database=None, derandomize=True)
+    @hypothesis.given(cases_strategy(c_rate=0.1, fmu_rate=0.0))
+    def collect(case: Case) -> None:
+        draws.append(case)
+
+    collect()
+    assert not any("fmu" in c.features for c in draws)
+    assert "c" not in draws[0].features and sum("c" in c.features for c in draws) < 30
