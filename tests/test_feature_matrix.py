@@ -588,6 +588,20 @@ def test_the_features_a_bundled_spec_uses(spec: str, expected: dict[str, str]) -
     assert features.derivation_features(d) == defaults | expected
 
 
+def test_the_extension_search_on_a_mass_matrix_plant_that_needs_padding_says_why() -> None:
+    """[extension] auto with [system.mechanics] works (the search takes "none"); with outputs
+    that would need padding, the search has nothing to try, and the padding line says why.
+    Before, it listed 28 prolongations it had tried in vain."""
+    path = spec_file(
+        {"plant": "mechanics", "extension": "auto", "padding": "yes"}, "fm_auto_mechanics_padding"
+    )
+    with pytest.raises(AssumptionError) as caught:
+        derive(load_spec(path))
+    line = features.refusal_line(("plant", "mechanics"), ("padding", "yes"))
+    assert line in str(caught.value) and "system.outputs.py" in str(caught.value)
+    assert "tried" not in str(caught.value)
+
+
 def test_a_spec_without_refusals_gets_no_target_notes() -> None:
     d = derive(load_spec(spec_file({"integral": "yes"}, "fm_plain")))
     assert features.target_notes(d) == []

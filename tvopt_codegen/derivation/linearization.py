@@ -461,15 +461,19 @@ def _linearize(spec: Spec, model: Model, meter: _Meter) -> _Linearization:
         meter.stage = "extension search"
         meter.report()
         limit = spec.extension_max_total or len(spec.states)
+        if model.mechanics is not None:
+            # A mass-matrix plant takes no prolongation (docs/features.md): "none" is the one
+            # candidate, and when it fails the relative degree below says why in one line.
+            limit = 0
         found, tried = search_extension(model, limit)
-        if found is None:
+        if found is None and model.mechanics is None:
             raise AssumptionError(
                 source,
                 "extension.auto",
                 f"no prolongation of the inputs with at most {limit} integrators in all makes "
                 f"the plant full-state linearizable (tried {len(tried)}: {'; '.join(tried)})",
             )
-        counts = found
+        counts = found or {}
         searched = tuple(tried)
         meter.stage = "relative degree"
         meter.report()
