@@ -187,9 +187,10 @@ REFUSALS: tuple[Refusal, ...] = (
     Refusal(
         ("plant", "mechanics"),
         ("extension", "declared"),
-        "a prolonged input reaches the outputs only through the derivative of M(q)^-1 B(q), "
-        "and the mass-matrix form never differentiates M^-1 (it is factored at run time); "
-        "write the plant in [system.dynamics] to prolong an input",
+        "a prolonged input raises the outputs' relative degree to 3, and their third "
+        "derivative holds d/dt (M(q)^-1 (F + B u)), a derivative of M^-1 that the "
+        "mass-matrix form never forms (M is factored at run time); write the plant in "
+        "[system.dynamics] to prolong an input",
         "extension.integrate",
     ),
     Refusal(
@@ -207,6 +208,22 @@ REFUSALS: tuple[Refusal, ...] = (
         "the sweep's compiled closed loop has no source of reference samples; sweep the "
         "spec with the references' nominal closed forms as [signals]",
         "references",
+    ),
+)
+
+#: Working pairs whose meaning is narrower than either feature alone.
+NOTES: tuple[tuple[Feature, Feature, str], ...] = (
+    (
+        ("plant", "mechanics"),
+        ("extension", "auto"),
+        "the search has one candidate, no prolongation (a prolonged input would need the "
+        "derivative of M^-1): a fully actuated robot takes it, and outputs that need more "
+        "are refused with the padding line",
+    ),
+    (
+        ("observer", "yes"),
+        ("target", "sweep"),
+        "the observer runs in the stateful controller, so the sweep needs `--sample-time`",
     ),
 )
 
@@ -499,6 +516,9 @@ def markdown() -> str:
     lines += ["", "## Refused, and why", ""]
     for r in REFUSALS:
         lines.append(f"- **{label(r.first)} with {label(r.second)}**: {r.reason}.")
+    lines += ["", "## Working, with a note", ""]
+    for first, second, note in NOTES:
+        lines.append(f"- **{label(first)} with {label(second)}**: {note}.")
     lines += ["", "## Known failures", ""]
     if KNOWN_FAILURES:
         for k in KNOWN_FAILURES:
