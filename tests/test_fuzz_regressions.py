@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from .conftest import ROOT
-from .fuzzing import Case, build_spec, cases_strategy, run_case, urdf_text
+from .fuzzing import Case, DisagreementError, build_spec, cases_strategy, run_case, urdf_text
 
 #: ``system:2:-:1`` of the first generator: two strict-feedback chains of length 2 whose
 #: gains are ``c0 + c1 cos(s)`` and ``c0 + c1 tanh(s)``, in coordinates with one
@@ -149,3 +149,22 @@ def test_c_and_the_fmu_are_drawn_rarely_not_first() -> None:
     collect()
     assert not any("fmu" in c.features for c in draws)
     assert "c" not in draws[0].features and sum("c" in c.features for c in draws) < 30
+
+
+def test_a_law_off_by_a_millionth_is_a_disagreement(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The oracles must be able to fail: a module whose control is 1e-6 off is caught.
+    import types
+
+    from tvopt_codegen import simulation
+
+    real = simulation.load_controller
+
+    def skewed(kernels: object, backend: str = "python") -> types.ModuleType:
+        mod = real(kernels, backend)  # type: ignore[arg-type]
+        control = mod.control
+        mod.control = lambda t, s, **kw: control(t, s, **kw) * (1 + 1e-6)
+        return mod
+
+    monkeypatch.setattr(simulation, "load_controller", skewed)
+    with pytest.raises(DisagreementError, match="control at t="):
+        run_case(Case.parse("arm:2:integral:3"))
