@@ -16,6 +16,7 @@ the same spec; what the spec language cannot say is refused at the call, with on
 
 from __future__ import annotations
 
+import decimal
 import math
 import numbers
 import re
@@ -27,10 +28,10 @@ import numpy as np
 import sympy as sp
 from sympy.printing.str import StrPrinter
 
-from tvopt_codegen.errors import SpecError, clip
+from tvopt_codegen.errors import SpecError, clip, one_line
 from tvopt_codegen.names import name_problem
 from tvopt_codegen.numeric import Evaluator
-from tvopt_codegen.parse import FUNCTIONS, MAX_DEPTH
+from tvopt_codegen.parse import FUNCTIONS, MAX_DEPTH, MAX_EXPONENT, MAX_LITERAL, MIN_LITERAL
 from tvopt_codegen.spec.implicit import affine_split
 
 __all__ = ["spec_from_sympy", "spec_toml"]
@@ -117,7 +118,8 @@ def _equations(eoms: Any) -> tuple[sp.Matrix, sp.Matrix, list[sp.Expr], dict[sp.
 
 
 def _fail(field: str, problem: str) -> SpecError:
-    return SpecError(SOURCE_SYMPY, field, problem)
+    # A name may hold a newline: the message stays one line.
+    return SpecError(SOURCE_SYMPY, one_line(field), one_line(problem))
 
 
 def _symbol_name(symbol: object) -> str:
@@ -171,7 +173,20 @@ class _Printer(StrPrinter):  # type: ignore[misc]
     """
 
     def _print_Float(self, expr: sp.Float) -> str:
-        return repr(float(expr))
+        value = float(expr)
+        if value == 0 or MIN_LITERAL <= abs(value) <= MAX_LITERAL:
+            return repr(value)
+        # Beyond the reader's literals: the same decimal as an exact product it folds.
+        sign, digits, exponent = decimal.Decimal(repr(value)).as_tuple()
+        assert isinstance(exponent, int)
+        mantissa = int("".join(map(str, digits))) * (-1 if sign else 1)
+        return f"({_exact(mantissa)}*{_power_of_ten(exponent)})"
+
+    def _print_Integer(self, expr: sp.Integer) -> str:
+        return _exact(int(expr))
+
+    def _print_Rational(self, expr: sp.Rational) -> str:
+        return f"{_exact(int(expr.p))}/{_exact(int(expr.q))}"
 
     def _print_Exp1(self, expr: sp.Expr) -> str:
         return "exp(1)"
@@ -190,6 +205,31 @@ class _Printer(StrPrinter):  # type: ignore[misc]
         return "*".join(f"({self._print(sp.Mul(*g, evaluate=False))})" for g in _groups(factors))
 
 
+def _exact(number: int) -> str:
+    """An integer as text the reader folds back exactly (its literals stop at 1e12)."""
+    if abs(number) <= MAX_LITERAL:
+        return str(number)
+    chunk = 10**12
+    rest, terms, power = abs(number), [], 0
+    while rest:
+        rest, digits = divmod(rest, chunk)
+        if digits:
+            terms.append(str(digits) if power == 0 else f"{digits}*{chunk}**{power}")
+        power += 1
+    return f"({'-' if number < 0 else ''}({' + '.join(reversed(terms))}))"
+
+
+def _power_of_ten(exponent: int) -> str:
+    """``10**exponent`` in factors whose exponents the reader takes (at most 64)."""
+    step = MAX_EXPONENT if exponent > 0 else -MAX_EXPONENT
+    factors = []
+    while abs(exponent) > MAX_EXPONENT:
+        factors.append(f"10**{step}" if step > 0 else f"10**({step})")
+        exponent -= step
+    factors.append(f"10**{exponent}" if exponent >= 0 else f"10**({exponent})")
+    return "*".join(factors)
+
+
 def _groups(items: Sequence[sp.Expr]) -> list[list[sp.Expr]]:
     """``items`` in at most :data:`_GROUPS` consecutive groups of near-equal size."""
     size = -(-len(items) // _GROUPS)
@@ -201,12 +241,14 @@ _PRINTER = _Printer({"full_prec": True})
 
 def _refusal(node: sp.Basic) -> str | None:
     """Why the spec language cannot say ``node`` (one node, not its arguments), or None."""
-    if isinstance(node, sp.Symbol | sp.Integer | sp.Rational | sp.Add | sp.Mul | sp.Pow):
+    if isinstance(node, sp.Symbol | sp.Rational | sp.Add | sp.Mul | sp.Pow):
         return None
     if node is sp.pi or node is sp.E:
         return None
     if isinstance(node, sp.Float):
-        return None if node.is_finite else f"holds the non-finite number {node}"
+        # sympy's floats reach 1e400 and beyond; the spec's numbers are doubles.
+        finite = node.is_finite and math.isfinite(float(node))
+        return None if finite else f"holds the number {clip(str(node))}, which no double holds"
     if node is sp.I or isinstance(node, sp.core.numbers.ImaginaryUnit):
         return "holds the imaginary unit I (spec expressions are real)"
     if node in (sp.zoo, sp.oo, sp.S.NegativeInfinity, sp.nan):
@@ -278,9 +320,14 @@ def _sayable(expr: object, field: str) -> sp.Expr:
 
 def _text(expr: sp.Expr, field: str, *, string: bool = False) -> str | int | float:
     """An expression as spec text; an integer or a float stays a number unless ``string``."""
-    if not string and isinstance(expr, sp.Integer) and abs(int(expr)) < 2**53:
+    # A number the reader's literals take stays a number; others are folded text.
+    if not string and isinstance(expr, sp.Integer) and abs(int(expr)) <= MAX_LITERAL:
         return int(expr)
-    if not string and isinstance(expr, sp.Float):
+    if (
+        not string
+        and isinstance(expr, sp.Float)
+        and (expr == 0 or MIN_LITERAL <= abs(float(expr)) <= MAX_LITERAL)
+    ):
         return float(expr)
     try:
         return str(_PRINTER.doprint(expr))
@@ -331,7 +378,7 @@ def spec_from_sympy(
     name: str = "robot",
     description: str = "",
     signals: Mapping[str, str | sp.Expr] | None = None,
-    poles: Sequence[float] = DEFAULT_POLES,
+    poles: Sequence[float] | np.ndarray = DEFAULT_POLES,
     t_final: float = 10.0,
     initial_state: Mapping[str, float] | None = None,
     simplify: bool = False,
@@ -356,8 +403,8 @@ def spec_from_sympy(
         The spec's (and the generated module's) name, and its description.
     signals : mapping of str to str or sympy.Expr, optional
         ``[signals]``: named expressions in ``t`` and the parameters.
-    poles : sequence of float
-        ``[error_dynamics] poles``.
+    poles : sequence of float or numpy.ndarray
+        ``[error_dynamics] poles``, finite.
     t_final : float
         ``[simulation] t_final``.
     initial_state : mapping of str to float, optional
@@ -705,7 +752,7 @@ def _reads_back(
 
 
 def _toml_fail(field: str, problem: str) -> SpecError:
-    return SpecError(SOURCE_TOML, field or "(spec)", problem)
+    return SpecError(SOURCE_TOML, one_line(field) or "(spec)", one_line(problem))
 
 
 def _plain_data(value: object, field: str, depth: int) -> object:

@@ -19,7 +19,12 @@ from tvopt_codegen.errors import AssumptionError, SpecError, clip
 from tvopt_codegen.jet import partial
 from tvopt_codegen.lie import Sampler, from_entries
 from tvopt_codegen.spec import TIME, Constraint, Mechanics, Spec, symbol
-from tvopt_codegen.spec.implicit import implicit_values, mass_matrix_at
+from tvopt_codegen.spec.implicit import (
+    implicit_values,
+    mass_matrix_at,
+    problem_at_samples,
+    solved_at,
+)
 
 
 @dataclass(frozen=True)
@@ -155,6 +160,15 @@ def build_model(spec: Spec) -> Model:
     # Affinity is decided by evaluation at random points first: a nonzero value proves
     # non-affinity at once, and simplify (slow on hostile input) is never reached then.
     mechanics = spec.mechanics
+    # M, F and B at the sampler's points, kept for the checks a physics engine makes.
+    sampled: list[np.ndarray] = []
+
+    def implicit(values: Mapping[sp.Symbol, object], points: int) -> Mapping[sp.Symbol, object]:
+        assert mechanics is not None
+        solved, mass, rhs = solved_at(mechanics, values, points)
+        sampled[:] = [mass, rhs]
+        return solved
+
     sampler = Sampler(
         (*x, *u),
         dict(
@@ -164,11 +178,7 @@ def build_model(spec: Spec) -> Model:
                 strict=True,
             )
         ),
-        implicit=(
-            None
-            if mechanics is None
-            else lambda values, points: implicit_values(mechanics, values, points)
-        ),
+        implicit=None if mechanics is None else implicit,
     )
     G_entries: dict[tuple[int, int], sp.Expr] = {}
     f_rows = []
@@ -197,7 +207,7 @@ def build_model(spec: Spec) -> Model:
                     )
         f_rows.append(rhs.xreplace(dict.fromkeys(u, sp.Integer(0))))
     if spec.mechanics is not None:
-        _check_mass_matrix(spec, spec.mechanics, sampler)
+        _check_mass_matrix(spec, spec.mechanics, sampler, *sampled)
     f0: sp.Expr = spec.objective
     objective = mu = slack = None
     if spec.constraints:
@@ -247,8 +257,12 @@ def build_model(spec: Spec) -> Model:
     )
 
 
-def _check_mass_matrix(spec: Spec, mechanics: Mechanics, sampler: Sampler) -> None:
-    """``M`` is symmetric (at random points) and positive definite at the initial state.
+def _check_mass_matrix(
+    spec: Spec, mechanics: Mechanics, sampler: Sampler, at_mass: np.ndarray, at_rhs: np.ndarray
+) -> None:
+    """``M`` is symmetric (at random points), positive definite at the initial state and there.
+
+    ``at_mass`` and ``at_rhs`` are ``M`` and ``[F | B]`` at the sampler's points.
 
     Raises
     ------
@@ -256,7 +270,8 @@ def _check_mass_matrix(spec: Spec, mechanics: Mechanics, sampler: Sampler) -> No
         When ``M[i][j]`` and ``M[j][i]`` differ.
     AssumptionError
         When ``M`` is not positive definite (or not finite) at the initial state with
-        the parameters at their defaults.
+        the parameters at their defaults, or at one of the random points; or an entry of
+        ``M``, ``F`` or ``B`` is infinite at one of them.
     """
     field = "system.mechanics.mass_matrix"
     mass = mechanics.mass_matrix
@@ -286,3 +301,7 @@ def _check_mass_matrix(spec: Spec, mechanics: Mechanics, sampler: Sampler) -> No
             field,
             f"M is not positive definite {where}: its smallest eigenvalue is {smallest:.6g}",
         )
+    # Where the symmetry check sampled M: finite, and positive definite where defined.
+    problem = problem_at_samples(mechanics, at_mass, at_rhs, sampler, PIVOT_TOLERANCE)
+    if problem is not None:
+        raise AssumptionError(spec.source, *problem)

@@ -17,7 +17,7 @@ import numpy as np
 import sympy as sp
 
 from tvopt_codegen.jet import partial
-from tvopt_codegen.lie import connected_groups
+from tvopt_codegen.lie import Sampler, connected_groups
 from tvopt_codegen.numeric import Evaluator
 from tvopt_codegen.spec.types import Mechanics
 
@@ -170,6 +170,17 @@ def implicit_values(
         One array of length ``points`` per run-time symbol; NaN where ``M`` is singular
         or an entry is undefined (the callers' samplers skip such points).
     """
+    return solved_at(mechanics, values, points)[0]
+
+
+def solved_at(
+    mechanics: Mechanics, values: Mapping[sp.Symbol, object], points: int = 1
+) -> tuple[dict[sp.Symbol, np.ndarray], np.ndarray, np.ndarray]:
+    """:func:`implicit_values`, with ``M`` (shape (P, n, n)) and ``[F | B]`` (P, n, m + 1).
+
+    The matrices it solved with, for checks that need them at the same points
+    (:func:`problem_at_samples`) without evaluating them again.
+    """
     evaluate = evaluator(mechanics, values)
     n = len(mechanics.coordinates)
     mass = mass_matrix_at(mechanics, values, points)
@@ -184,7 +195,7 @@ def implicit_values(
             for i in range(n)
         ],
         -2,
-    )
+    ).reshape(points, n, m + 1)
     solution = np.full((points, n, m + 1), np.nan)
     for k in range(points):
         if np.all(np.isfinite(mass[k])) and np.all(np.isfinite(rhs[k])):
@@ -202,4 +213,86 @@ def implicit_values(
         for j in range(m):
             if isinstance(mechanics.gains[i][j], sp.Symbol):
                 out[mechanics.gains[i][j]] = solution[:, i, j + 1]
-    return out
+    return out, mass, rhs
+
+
+def problem_at_samples(
+    mechanics: Mechanics,
+    mass: np.ndarray,
+    rhs: np.ndarray,
+    sampler: Sampler,
+    tolerance: float,
+) -> tuple[str, str] | None:
+    """What a physics engine would refuse in ``M``, ``F``, ``B`` at the sampler's points.
+
+    The points are those the symmetry check samples (random states and inputs, the
+    parameters at their defaults), where :func:`solved_at` already evaluated ``M``,
+    ``F`` and ``B``: the check costs one batched eigenvalue computation. An entry that
+    is infinite at a point is refused; one that is undefined there (NaN: a square root
+    or a logarithm outside its domain) is not, as the point may lie outside the
+    robot's workspace. Where every entry of ``M`` is finite, ``M`` must be positive
+    definite: its smallest eigenvalue above ``tolerance`` times its largest entry, as
+    the generated code's LDL^T pivots must be.
+
+    Parameters
+    ----------
+    mechanics : Mechanics
+        The mass-matrix form, ``M`` already found symmetric.
+    mass, rhs : numpy.ndarray
+        ``M`` and ``[F | B]`` at the sampler's points, as :func:`solved_at` returns them.
+    sampler : Sampler
+        The points (its symbols and values), to name the failing one.
+    tolerance : float
+        The relative pivot tolerance of the generated code.
+
+    Returns
+    -------
+    tuple of (str, str) or None
+        The field (``system.mechanics.mass_matrix[i][j]`` where one entry is to blame)
+        and a one-line problem naming the point; None when every point passes.
+    """
+    n = len(mechanics.coordinates)
+    index = {s.name: k for k, s in enumerate(sampler.symbols)}
+
+    def point(k: int, names: Sequence[str]) -> str:
+        return ", ".join(f"{n} = {sampler.values[k, index[n]]:.4g}" for n in names if n in index)
+
+    coordinates = mechanics.coordinates
+    for k, i, j in zip(*np.nonzero(np.isinf(mass)), strict=True):
+        return (
+            f"system.mechanics.mass_matrix[{i}][{j}]",
+            f"M[{i}][{j}] is infinite at the sample point {point(int(k), coordinates)}",
+        )
+    for k, i, j in zip(*np.nonzero(np.isinf(rhs)), strict=True):
+        field, what, names = (
+            (f"forces[{i}]", f"F[{i}]", (*coordinates, *mechanics.rates))
+            if j == 0
+            else (f"input_matrix[{i}][{j - 1}]", f"B[{i}][{j - 1}]", coordinates)
+        )
+        return (
+            f"system.mechanics.{field}",
+            f"{what} is infinite at the sample point {point(int(k), names)}",
+        )
+    defined = np.flatnonzero(np.all(np.isfinite(mass), axis=(1, 2)))
+    if not defined.size:
+        return None
+    smallest = np.linalg.eigvalsh(mass[defined])[:, 0]
+    scale = np.max(np.abs(mass[defined]), axis=(1, 2))
+    failing = np.flatnonzero(~(smallest > tolerance * scale))
+    if not failing.size:
+        return None
+    k = int(defined[failing[0]])
+    where = point(k, coordinates)
+    diagonal = [i for i in range(n) if not mass[k, i, i] > 0]
+    if diagonal:
+        i = diagonal[0]
+        return (
+            f"system.mechanics.mass_matrix[{i}][{i}]",
+            f"M is not positive definite at the sample point {where}: M[{i}][{i}] = "
+            f"{mass[k, i, i]:.6g} (a mass or an inertia must be positive)",
+        )
+    return (
+        "system.mechanics.mass_matrix",
+        f"M is not positive definite at the sample point {where}: its smallest eigenvalue "
+        f"is {smallest[failing[0]]:.6g}",
+    )
