@@ -375,10 +375,15 @@ class CaseRun:
         if not sampled:
             assert all(r["certificate_holds"] for r in rows), rows
         # The nominal sweep ends where simulate's loop does.
-        final = _outputs(self.d)(self.result.dense(3.0)[:, None])[:, 0]
-        target = rows[0]["final_error"]
-        self.numbers["sweep_final_error"] = float(target)
-        assert np.isfinite(target) and target < 1.0 + np.linalg.norm(final)
+        final = float(rows[0]["final_error"])
+        self.numbers["sweep_final_error"] = final
+        # simulate's |y - y*| at the same time, from its own integrator and its own y*.
+        expected = float(np.interp(3.0, self.result.t, self.result.error))
+        self.numbers["sweep_vs_simulate"] = abs(final - expected)
+        # The continuous loop is simulate's to 1e-10 (measured); the sampled one (100 Hz,
+        # zero-order hold, the observer) is off by 4% at t = 3 s on the arm (measured).
+        tolerance = 0.1 * expected if sampled else 1e-6 * (1.0 + expected)
+        assert abs(final - expected) <= tolerance, (final, expected)
 
 
 def _plant(d: Derivation) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
