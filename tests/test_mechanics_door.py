@@ -200,6 +200,16 @@ def test_a_force_nested_deeper_than_the_reader_reads() -> None:
         deep = sp.sin(deep, evaluate=False)
     with pytest.raises(SpecError, match=r"forces\[0\]: the expression nests deeper than 60"):
         spec_from_sympy(pendulum(deep), {"y": THETA}, "y**2", VALUES, name="pendulum")
+    # 3000 deep, unevaluated: no RecursionError from sympy's own recursive walks first.
+    q, u = me.dynamicsymbols("q u")
+    deep = q
+    for i in range(3000):
+        deep = sp.Add(deep, sp.Mul(i + 2, q, evaluate=False), evaluate=False)
+    equations = Equations(sp.Matrix([[2]]), sp.Matrix([sp.Add(deep, u, evaluate=False)]), [q])
+    with pytest.raises(SpecError, match=r"forces\[0\]: the expression nests deeper than 60"):
+        spec_from_sympy(equations, {"y": q}, "y**2", {}, name="deep")
+    with pytest.raises(SpecError, match=r"outputs.y: the expression nests deeper than 60"):
+        spec_from_sympy(Equations(sp.Matrix([[2]]), sp.Matrix([u]), [q]), {"y": deep}, "y", {})
 
 
 @pytest.mark.parametrize(
@@ -593,3 +603,20 @@ def test_smooth_forces_always_read_back_equal(force: sp.Expr) -> None:
     assert read.mechanics is not None
     whole = read.mechanics.forces[0] + read.mechanics.input_matrix[0][0] * sp.Symbol("u", real=True)
     _agree(_plain(forcing), whole, {"k": 1.5})
+
+
+def test_outputs_and_objective_as_sympy_expressions(tmp_path: Path) -> None:
+    """A plain symbol named like a coordinate is the coordinate in outputs and f0."""
+    theta, y, t = sp.symbols("theta y t")
+    spec = spec_from_sympy(
+        pendulum(),
+        {"y": LENGTH * sp.sin(theta)},
+        (y - sp.Rational(1, 4) * sp.sin(t)) ** 2,
+        VALUES,
+        name="pendulum",
+    )
+    read = _read_back(spec, tmp_path)
+    at = {sp.Symbol("theta", real=True): 0.3, sp.Symbol("l", real=True): 0.5}
+    assert float(read.output_exprs[0].xreplace(at)) == pytest.approx(0.5 * math.sin(0.3))
+    f0 = read.objective.xreplace({sp.Symbol("y", real=True): 0.2, sp.Symbol("t", real=True): 1})
+    assert float(f0) == pytest.approx((0.2 - 0.25 * math.sin(1.0)) ** 2, rel=1e-15)

@@ -271,6 +271,26 @@ def _refusal(node: sp.Basic) -> str | None:
     )
 
 
+def _check_depth(expr: object, field: str) -> None:
+    """Nesting within the reader's limit, checked before any recursive sympy operation.
+
+    By object identity, without hashing: hashing a node hashes its arguments, and a tree
+    thousands deep would exhaust Python's recursion there.
+    """
+    if not isinstance(expr, sp.Basic):
+        return
+    deepest: dict[int, int] = {}
+    stack = [(expr, 1)]
+    while stack:
+        node, depth = stack.pop()
+        if depth > MAX_DEPTH:
+            raise _fail(field, f"the expression nests deeper than {MAX_DEPTH} operations")
+        if deepest.get(id(node), 0) >= depth:
+            continue
+        deepest[id(node)] = depth
+        stack.extend((a, depth + 1) for a in node.args)
+
+
 def _check_tree(expr: sp.Basic, field: str) -> None:
     """Every node sayable, nesting and printed size bounded; iterative (no recursion)."""
     depth: dict[sp.Basic, int] = {}
@@ -441,6 +461,20 @@ def spec_from_sympy(
         mass, forcing, q, rates = _equations(eoms)
     except (TypeError, ValueError) as exc:
         raise _fail("eoms", str(exc)) from None
+    except RecursionError:
+        raise _fail("eoms", f"an expression nests deeper than {MAX_DEPTH} operations") from None
+    for i in range(mass.rows):
+        for j in range(mass.cols):
+            _check_depth(mass[i, j], f"system.mechanics.mass_matrix[{i}][{j}]")
+    for i, entry in enumerate(forcing):
+        _check_depth(entry, f"system.mechanics.forces[{i}]")
+    if isinstance(outputs, Mapping):
+        for key, value in outputs.items():
+            _check_depth(value, f"system.outputs.{key}")
+    _check_depth(objective, "objective.f0")
+    if isinstance(signals, Mapping):
+        for key, value in signals.items():
+            _check_depth(value, f"signals.{key}")
     t = sp.physics.mechanics.dynamicsymbols._t
     coordinates = [_name(c, "system.coordinates") for c in q]
     # Kane's speeds keep their names; a Lagrangian's rates are d<coordinate>.
@@ -502,6 +536,11 @@ def spec_from_sympy(
             problem = name_problem(s.name)
             if problem:
                 raise _fail(f"parameters.{s.name}", f"a symbol of {field}: {problem}")
+            exact = {n.casefold(): n for n in (*coordinates, *rate_names, *input_names)}
+            if not field.startswith("system.mechanics") and exact.get(s.name.casefold()) == s.name:
+                # Outputs, signals and f0 may name a state by a plain symbol of its name.
+                table[s] = sp.Symbol(s.name, real=True)
+                continue
             if s.name.casefold() in states:
                 raise _fail(
                     f"parameters.{s.name}",
