@@ -265,6 +265,8 @@ def _refusal(node: sp.Basic) -> str | None:
     if type(node) in _ALLOWED_CLASSES:
         return None
     name = type(node).__name__
+    if not isinstance(node, sp.Function):
+        return f"{name} is not part of the spec language (+ - * / **, pi, {_ALLOWED_TEXT})"
     return (
         f"{name} is not a function of the spec language (its functions are smooth: "
         f"{_ALLOWED_TEXT}); write the model without it"
@@ -759,8 +761,8 @@ def _reads_back(
     """The spec, read by the project's own reader (and through TOML), is what we built."""
     from tvopt_codegen.spec import spec_from_dict  # noqa: PLC0415 - the reader imports much
 
-    spec_toml(spec)  # raises if the TOML would not read back as this mapping
     read = spec_from_dict(spec, source=SOURCE_SYMPY)
+    spec_toml(spec)  # raises if the TOML would not read back as this mapping
     mech = read.mechanics
     assert mech is not None
     pairs: list[tuple[str, sp.Expr, sp.Expr]] = []
