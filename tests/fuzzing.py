@@ -728,18 +728,22 @@ def run_case(case: Case, report: Report | None = None) -> str:
 # --------------------------------------------------------------------------- hypothesis
 
 
-def cases_strategy(c_rate: float = 0.1, fmu_rate: float = 0.03) -> Any:
-    """Hypothesis strategy of :class:`Case`; C and the FMU run on the given shares."""
+def cases_strategy(c_rate: float = 0.1, fmu_rate: float = 0.03, max_size: int = 3) -> Any:
+    """Hypothesis strategy of :class:`Case`; C and the FMU run on the given shares.
+
+    ``max_size`` bounds the chains, links and joints (a 3-joint URDF chain costs five
+    times a small plant).
+    """
     from hypothesis import strategies as st
 
     @st.composite
     def draw_case(draw: Any) -> Case:
         kind = draw(st.sampled_from(KINDS))
-        size = draw(st.integers(1, 3))
+        size = draw(st.integers(1, max_size))
         features = {f for f in FEATURES if draw(st.booleans())}
         if kind == "system" and draw(st.booleans()):
             features.add("unicycle")
-            size = draw(st.integers(2, 4))
+            size = draw(st.integers(2, max_size + 1))
             if draw(st.booleans()):
                 features.add("auto")
         if kind == "urdf" and draw(st.integers(0, 9)) == 0:

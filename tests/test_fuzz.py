@@ -20,8 +20,8 @@ from hypothesis import HealthCheck, given, settings  # noqa: E402
 pytest.importorskip("yourdfpy", reason="the URDF cases need the urdf extra")
 pytest.importorskip("pinocchio", reason="the URDF cases are checked against Pinocchio")
 
-#: About 1 s of CPU each on average (a 3-joint URDF chain takes 5).
-CASES = int(os.environ.get("FUZZ_CASES", "6"))
+#: About 1 s of CPU each, chains of at most 2 (``make fuzz`` draws up to 3).
+CASES = int(os.environ.get("FUZZ_CASES", "5"))
 
 
 def _ends_well(case: Case) -> None:
@@ -38,7 +38,7 @@ def _ends_well(case: Case) -> None:
     deadline=None,
     suppress_health_check=list(HealthCheck),
 )
-@given(cases_strategy(c_rate=0.0, fmu_rate=0.0))
+@given(cases_strategy(c_rate=0.0, fmu_rate=0.0, max_size=2))
 def test_random_cases_agree_with_the_oracle_or_are_refused(case: Case) -> None:
     _ends_well(case)
 
