@@ -616,6 +616,43 @@ def _fmu_check(kernels: Any, mod: ModuleType, x0: np.ndarray, plants: np.ndarray
     _close("FMU against Controller.step", got, np.array(expected), 1e-9)
 
 
+def _error_of(call: Any) -> str:
+    try:
+        call()
+    except Exception as exc:  # noqa: BLE001 - the class is what is compared
+        return type(exc).__name__
+    return "none"
+
+
+def _same_errors(py: ModuleType, cmod: ModuleType, d: Any, state: np.ndarray, jets: Any) -> None:
+    """Python and C raise the same error class at a non-finite and a singular state."""
+    kwargs = {"refs": jets(1.0)} if jets else {}
+    bad = {"a NaN state": state.copy()}
+    bad["a NaN state"][0] = np.nan
+    if "v" in d.state_names:  # the unicycle's prolonged speed: R is singular at v = 0
+        bad["v = 0"] = state.copy()
+        bad["v = 0"][d.state_names.index("v")] = 0.0
+    for what, s in bad.items():
+        for name in ("control", "rhs"):
+            ours = _error_of(lambda n=name, s=s: getattr(cmod, n)(1.0, s, **kwargs))
+            theirs = _error_of(lambda n=name, s=s: getattr(py, n)(1.0, s, **kwargs))
+            if ours != theirs or ours == "none":
+                raise DisagreementError(f"{name} at {what}: C raises {ours}, Python {theirs}")
+    # The stateful controller, measuring a NaN after a good start.
+    plant = len(py.PLANT_STATE_NAMES)
+    x0 = np.array(py.DEFAULT_STATE[:plant], dtype=float)
+    nan = x0.copy()
+    nan[0] = np.nan
+    classes = [
+        _error_of(lambda m=m: m.Controller(x0, **kwargs).step(1.01, nan, **kwargs))
+        for m in (cmod, py)
+    ]
+    if classes[0] != classes[1] or classes[0] == "none":
+        raise DisagreementError(
+            f"Controller.step at a NaN: C raises {classes[0]}, Python {classes[1]}"
+        )
+
+
 def build_spec(case: Case, folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     """The case's spec mapping, and what its plant is known to be.
 
@@ -719,6 +756,7 @@ def run_case(case: Case, report: Report | None = None) -> str:
                                getattr(py, name)(t, states, **kwargs), 1e-10)  # fmt: skip
                 _close("C Controller.step", _controller_run(cmod, x0, plants, times, jets),
                        steps, 1e-9)  # fmt: skip
+                _same_errors(py, cmod, d, states[:, 0], jets)
         if "fmu" in case.features:
             with report.timed("fmu"):
                 _fmu_check(kernels, py, x0, plants, times, jets, folder)
