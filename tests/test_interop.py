@@ -164,3 +164,49 @@ def test_a_spec_with_references_takes_their_jets_as_inputs() -> None:
     )
     assert closed.ninputs == 0
     _reproduces_simulate(closed, mod, d)  # simulate: the nominal closed forms' exact jets
+
+
+_STATIC_UNICYCLE = """
+name = "static_unicycle"
+[system]
+states = ["px", "py", "theta", "v"]
+inputs = ["a", "omega"]
+[system.dynamics]
+px = "v*cos(theta)"
+py = "v*sin(theta)"
+theta = "omega"
+v = "a"
+[system.outputs]
+y1 = "px"
+y2 = "py"
+[objective]
+f0 = "(y1 - 2*cos(0.3*t))**2 + (y2 - 2*sin(0.3*t))**2"
+[error_dynamics]
+poles = [-1.0, -2.0]
+[simulation]
+t_final = 6.0
+initial_state = { px = 0.0, py = 0.0, theta = 0.0, v = 1.0 }
+"""
+
+
+def test_a_static_law_undefined_at_zero_inputs_runs_and_fails_only_at_a_real_zero_state(
+    tmp_path: Any,
+) -> None:
+    """python-control's first pass hands a static controller all-zero inputs (v = 0 here,
+    where det R = v vanishes): the interconnection still reproduces simulate from v = 1,
+    and a plant state that really is all zero raises the law's error, never a number."""
+    path = tmp_path / "static_unicycle.toml"
+    path.write_text(_STATIC_UNICYCLE, encoding="utf-8")
+    mod, d = module(str(path)), derivation(str(path))
+    assert to_nlsys(mod).nstates == 0
+    closed = control.interconnect(
+        [plant_nlsys(mod), to_nlsys(mod)], inplist=[], outlist=list(mod.OUTPUT_NAMES)
+    )
+    _reproduces_simulate(closed, mod, d)
+    with pytest.raises(ArithmeticError, match="singular"):
+        control.input_output_response(closed, [0.0, 0.1], 0, X0=np.zeros(4))
+    # The controller's own output at zero inputs, asked twice in a row, is the error too.
+    alone = to_nlsys(mod)
+    with pytest.raises(ArithmeticError):
+        alone.output(0.0, [], np.zeros(4))
+        alone.output(0.0, [], np.zeros(4))

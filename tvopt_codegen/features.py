@@ -229,17 +229,7 @@ NOTES: tuple[tuple[Feature, Feature, str], ...] = (
 
 #: Pairs that fail today where they should work, each with its reproducer in
 #: ``tests/test_feature_matrix.py`` (a strict expected failure: it fails loudly once fixed).
-KNOWN_FAILURES: tuple[KnownFailure, ...] = (
-    KnownFailure(
-        ("extension", "none"),
-        ("target", "nlsys"),
-        "a controller without states (no extension, padding, integral or multiplier) is a "
-        "static system, and python-control's interconnection first evaluates it with every "
-        "input at 0, where a law such as the unicycle's (R singular at v = 0) is undefined: "
-        "input_output_response stops with SingularDecouplingError at a regular initial state",
-        "tvopt_codegen/interop.py (to_nlsys)",
-    ),
-)
+KNOWN_FAILURES: tuple[KnownFailure, ...] = ()
 
 
 def _key(a: Feature, b: Feature) -> frozenset[Feature]:

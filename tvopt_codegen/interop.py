@@ -124,9 +124,33 @@ def _controller_system(
     update: Callable[..., np.ndarray],
     output: Callable[..., np.ndarray],
 ) -> Any:
-    """A controller's ``nlsys``: the plant states in, the plant input out."""
-    # A controller without states is static: python-control wants no update function.
+    """A controller's ``nlsys``: the plant states in, the plant input out.
+
+    A controller without states is static: python-control wants no update function, and
+    its interconnection evaluates a static system's output first with the inputs it has
+    not computed yet, all zero (the first pass of its algebraic iteration). A law that is
+    undefined there (the unicycle's at v = 0) answers that one pass with zeros, which the
+    next pass, at the real plant state, replaces. NaN cannot serve: the interconnection
+    multiplies every output by its connection matrix, and 0 * NaN poisons every input.
+    A second all-zero call in a row is a real plant state of zero: the law's error is
+    raised there, so no undefined law is ever answered with a number the loop keeps.
+    """
     dynamic = {"states": states} if states else {}
+    if not states:
+        law = output
+        stale = [False]  # the last call answered the first, stale pass
+
+        def output(t: float, z: np.ndarray, inputs: np.ndarray, params: Any) -> np.ndarray:
+            first_pass = not stale[0] and not np.any(np.asarray(inputs) != 0.0)
+            stale[0] = False
+            try:
+                return law(t, z, inputs, params)
+            except ArithmeticError:
+                if not first_pass:
+                    raise
+                stale[0] = True
+                return np.zeros(len(module.INPUT_NAMES))
+
     return control.nlsys(
         update if states else None,
         output,
