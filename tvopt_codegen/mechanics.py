@@ -236,7 +236,9 @@ def _groups(items: Sequence[sp.Expr]) -> list[list[sp.Expr]]:
     return [list(items[i : i + size]) for i in range(0, len(items), size)]
 
 
-_PRINTER = _Printer({"full_prec": True})
+# Terms in sympy's own order: the printer's default order evaluates constant terms
+# with mpmath to sort them, which takes hours for sin(exp(exp(40))).
+_PRINTER = _Printer({"full_prec": True, "order": "none"})
 
 
 def _refusal(node: sp.Basic) -> str | None:
