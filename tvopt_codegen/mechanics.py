@@ -387,8 +387,10 @@ def _same(ours: sp.Expr, read: sp.Expr) -> bool:
     a = np.broadcast_to(np.asarray(evaluate(ours), dtype=complex), (points,))
     b = np.broadcast_to(np.asarray(evaluate(read), dtype=complex), (points,))
     defined = np.isfinite(a) & np.isfinite(b)
-    if defined.sum() < 3:
-        return bool(sp.simplify(ours - read) == 0)
+    if not np.array_equal(np.isfinite(a), np.isfinite(b)):
+        return False
+    if not defined.any():
+        return True  # undefined at every point, both: no simplify (minutes on a robot)
     scale = max(1.0, float(np.max(np.abs(a[defined]))))
     return bool(np.all(np.abs(a[defined] - b[defined]) <= 1e-9 * scale))
 
