@@ -274,3 +274,40 @@ def test_one_circular_factor_is_what_simplify_leaves_alone() -> None:
     # Two functions, a function of a sum, a sum: simplify decides.
     for expr in (sp.sin(q1) * sp.cos(q1), l1 * sp.sin(q1 + q2), sp.sin(q1) + l1):
         assert not _one_circular_factor(expr)
+
+
+def test_a_time_limit_inside_the_command_lines_timer_keeps_that_timer() -> None:
+    """time_limited interrupts a long call, then re-arms an outer timer with what is left;
+    an outer timer that fires first is left to fire."""
+    import signal
+    import time
+
+    from tvopt_codegen.derivation.meter import TimeLimitError, time_limited
+
+    fired: list[float] = []
+
+    def outer(_signum: int, _frame: object) -> None:
+        fired.append(time.monotonic())
+
+    previous = signal.signal(signal.SIGALRM, outer)
+    try:
+        start = time.monotonic()
+        signal.setitimer(signal.ITIMER_REAL, 0.6)
+        with pytest.raises(TimeLimitError), time_limited(0.1):
+            while True:  # a long call that never returns by itself
+                pass
+        assert time.monotonic() - start < 0.4 and not fired
+        remaining = signal.getitimer(signal.ITIMER_REAL)[0]
+        assert 0.1 < remaining < 0.55
+        while not fired and time.monotonic() - start < 3.0:
+            time.sleep(0.01)
+        assert fired and 0.5 < fired[0] - start < 1.5
+        # The outer timer fires first: time_limited leaves it alone.
+        fired.clear()
+        signal.setitimer(signal.ITIMER_REAL, 0.05)
+        with time_limited(5.0):
+            time.sleep(0.2)
+        assert fired
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)

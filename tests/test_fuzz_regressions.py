@@ -92,24 +92,18 @@ def _children(spec: str, timeout: float) -> dict[float, str]:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="derivation/linearization.py simplified_det: sp.simplify of a 2 x 2 det R whose "
-    "gains hold cos and tanh runs for minutes (487 s measured), so a 4-state plant fails "
-    "its 120 s budget",
-)
 def test_a_det_r_with_trigonometric_gains_derives_in_seconds() -> None:
-    assert _derive_within(TRIG_GAINS, budget=120.0, timeout=15.0).startswith("derived")
+    """simplify ran 487 s on this det R; past 5 s its exact short form stands."""
+    out = _derive_within(TRIG_GAINS, budget=120.0, timeout=40.0)
+    assert out.startswith("derived"), out
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="derivation/meter.py: the time budget is checked between sympy calls only; "
-    "one simplify inside a stage overruns Budget(seconds=2) by minutes",
-)
 def test_the_time_budget_stops_a_derivation_inside_a_stage() -> None:
-    assert _derive_within(TRIG_GAINS, budget=2.0, timeout=15.0).startswith("budget")
+    """Budget(seconds=2) holds inside one sympy call: BudgetError within about 2 s."""
+    out = _derive_within(TRIG_GAINS, budget=2.0, timeout=40.0)
+    assert out.startswith("budget") and "decoupling matrix" in out, out
+    assert float(out.split()[-1]) < 6.0, out
 
 
 # ----------------------------------------------------------------- the harness itself

@@ -17,7 +17,13 @@ from sympy.functions.elementary.hyperbolic import HyperbolicFunction
 from sympy.functions.elementary.trigonometric import TrigonometricFunction
 
 from tvopt_codegen import hurwitz
-from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter, tree_size
+from tvopt_codegen.derivation.meter import (
+    _DET_SIMPLIFY_NODES,
+    TimeLimitError,
+    _Meter,
+    time_limited,
+    tree_size,
+)
 from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.features import refusal_line
 from tvopt_codegen.lie import (
@@ -154,6 +160,10 @@ def _suggest_prolongation(model: Model, counts: dict[str, int]) -> str:
     return "; no prolongation of a single input by 1 or 2 integrators makes it linearizable"
 
 
+#: How long det R's simplification may take before its short form stands.
+_DET_SIMPLIFY_SECONDS = 5.0
+
+
 def simplified_det(det: sp.Expr) -> sp.Expr:
     """A determinant in lowest terms, factored: ``factor(simplify(det))`` or as short.
 
@@ -163,15 +173,22 @@ def simplified_det(det: sp.Expr) -> sp.Expr:
     derivation's time (``simplify`` tries each of its strategies in turn, and imports
     ``sympy.physics.units`` on the way). When trigonometry remains, ``simplify`` decides:
     on random trigonometric determinants the short path's form was longer one time in
-    six (benchmarks/NOTES.md).
+    six (benchmarks/NOTES.md). ``simplify`` has no bound of its own (487 s on a 2 x 2 R
+    whose gains hold ``cos`` and ``tanh`` of sums, found by the fuzzer): past
+    ``_DET_SIMPLIFY_SECONDS`` the short path's form stands. Both are det R exactly; only
+    how short it prints can then depend on the machine's speed.
     """
     reduced = sp.cancel(det)
     if reduced.has(TrigonometricFunction, HyperbolicFunction):
-        reduced = sp.trigsimp(reduced)
-        if reduced.has(TrigonometricFunction, HyperbolicFunction) and not _one_circular_factor(
-            reduced
-        ):
-            return sp.factor(sp.simplify(det))
+        try:
+            with time_limited(_DET_SIMPLIFY_SECONDS):
+                reduced = sp.trigsimp(reduced)
+                if reduced.has(
+                    TrigonometricFunction, HyperbolicFunction
+                ) and not _one_circular_factor(reduced):
+                    return sp.factor(sp.simplify(det))
+        except TimeLimitError:
+            pass
     return sp.factor(reduced)
 
 

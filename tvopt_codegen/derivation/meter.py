@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import sympy as sp
 
@@ -12,6 +15,60 @@ from tvopt_codegen.limits import Budget
 
 #: det R is simplified and factored only up to this many expression nodes.
 _DET_SIMPLIFY_NODES = 400
+
+
+class TimeLimitError(Exception):
+    """A block run under :func:`time_limited` took longer than its seconds."""
+
+
+class _Expired(BaseException):
+    """The timer's signal, raised where the interrupted call happens to be.
+
+    A BaseException, so that sympy's ``except Exception`` fallbacks inside the call
+    cannot swallow it and carry on.
+    """
+
+
+@contextlib.contextmanager
+def time_limited(seconds: float) -> Iterator[None]:
+    """Run the block for at most ``seconds``, then raise :class:`TimeLimitError`.
+
+    A single sympy call (``simplify``) can run for minutes between two budget checks;
+    the real-time timer's signal interrupts it. Only in the main thread of a POSIX
+    process, where Python delivers signals; elsewhere the block runs unlimited. A timer
+    already armed (the command line's budget) is kept: when it would fire first, it is
+    left to fire; otherwise it is re-armed afterwards with what remains of it.
+    """
+    if not hasattr(signal, "setitimer") or threading.current_thread() is not (
+        threading.main_thread()
+    ):
+        yield
+        return
+    outer_remaining = signal.getitimer(signal.ITIMER_REAL)[0]
+    if 0.0 < outer_remaining <= seconds:
+        yield
+        return
+    token = _Expired()
+
+    def expire(_signum: int, _frame: object) -> None:
+        raise token
+
+    start = time.monotonic()
+    outer_handler = signal.signal(signal.SIGALRM, expire)
+    try:
+        # Armed inside the try: the timer can fire before setitimer returns.
+        signal.setitimer(signal.ITIMER_REAL, max(seconds, 1e-6))
+        yield
+    except _Expired as exc:
+        if exc is not token:
+            raise
+        raise TimeLimitError(f"took longer than {seconds:g} s") from None
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, outer_handler)
+        if outer_remaining > 0.0:
+            left = outer_remaining - (time.monotonic() - start)
+            signal.setitimer(signal.ITIMER_REAL, max(left, 1e-6))
 
 
 def tree_size(expr: sp.Expr, limit: int) -> int:
@@ -67,6 +124,19 @@ class _Meter:
                 self.stage,
                 f"the derivation took longer than {self.budget.seconds:g} s",
             )
+
+    @contextlib.contextmanager
+    def interrupting(self) -> Iterator[None]:
+        """Hold the time budget inside any one call too: a BudgetError naming the stage."""
+        try:
+            with time_limited(self.deadline - time.perf_counter()):
+                yield
+        except TimeLimitError:
+            raise BudgetError(
+                self.source,
+                self.stage,
+                f"the derivation took longer than {self.budget.seconds:g} s",
+            ) from None
 
     def __call__(self, expr: sp.Expr) -> None:
         self.expressions += 1

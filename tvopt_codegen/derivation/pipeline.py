@@ -101,6 +101,13 @@ def derive(
     if not isinstance(spec, Spec):
         spec = spec_from_dict(spec)
     meter = _Meter(spec.source, budget or Budget(), progress)
+    # The budget holds inside each sympy call too, as the command line's timer holds it.
+    with meter.interrupting():
+        return _derive(spec, meter)
+
+
+def _derive(spec: Spec, meter: _Meter) -> Derivation:
+    """:func:`derive`'s stages, in order, metered by ``meter``."""
     clock = _Clock()
 
     def say(stage: str) -> None:
