@@ -524,7 +524,8 @@ def pinocchio_check(
     import pinocchio as pin
 
     from tvopt_codegen.spec import spec_from_dict
-    from tvopt_codegen.spec.implicit import evaluator, mass_matrix_at
+
+    from .pinocchio_check import both_at
 
     mech = spec_from_dict(spec).mechanics
     assert mech is not None
@@ -539,23 +540,9 @@ def pinocchio_check(
     for _ in range(5):
         q = rng.uniform(-np.pi, np.pi, model.nv)
         v = rng.uniform(-2.0, 2.0, model.nv)
-        values = dict(params)
-        values |= {sp.Symbol(c, real=True): x for c, x in zip(mech.coordinates, q, strict=True)}
-        values |= {sp.Symbol(r, real=True): x for r, x in zip(mech.rates, v, strict=True)}
-        ours = mass_matrix_at(mech, values)[0]
-        evaluate = evaluator(mech, values)
-        forces = np.array([float(evaluate(e)) for e in mech.forces])
-        config = pin.neutral(model)
-        for k, joint in enumerate(model.joints[1:]):
-            if joint.nq == 2:
-                config[joint.idx_q : joint.idx_q + 2] = np.cos(q[k]), np.sin(q[k])
-            else:
-                config[joint.idx_q] = q[k]
-        theirs = pin.crba(model, data, config)
-        theirs = np.triu(theirs) + np.triu(theirs, 1).T
-        bias = pin.rnea(model, data, config, v, np.zeros(model.nv))
+        ours, theirs, our_bias, bias = both_at(mech, params, model, data, q, v)
         _close("M against Pinocchio", ours, theirs, 1e-9)
-        _close("bias forces against Pinocchio", -forces, bias, 1e-9)
+        _close("bias forces against Pinocchio", our_bias, bias, 1e-9)
 
 
 def _twin(spec: dict[str, Any]) -> dict[str, Any]:

@@ -23,11 +23,11 @@ from tvopt_codegen.ir import lower
 from tvopt_codegen.mechanics import spec_toml
 from tvopt_codegen.rendering import render
 from tvopt_codegen.spec import load_spec, spec_from_dict
-from tvopt_codegen.spec.implicit import evaluator, mass_matrix_at
 from tvopt_codegen.urdf import spec_from_urdf
 
 from .conftest import ROOT, import_file
 from .oracle import Oracle, assert_matches_oracle
+from .pinocchio_check import both_at
 
 pytest.importorskip("yourdfpy", reason="import-urdf needs the urdf extra (yourdfpy)")
 
@@ -78,19 +78,6 @@ SLIDER = """<?xml version="1.0"?>
 """
 
 
-def _pinocchio_config(model: object, q: np.ndarray) -> np.ndarray:
-    """Pinocchio's configuration of joint positions (a continuous joint is cos, sin)."""
-    import pinocchio as pin
-
-    config = pin.neutral(model)
-    for k, joint in enumerate(model.joints[1:]):  # type: ignore[attr-defined]
-        if joint.nq == 2:
-            config[joint.idx_q : joint.idx_q + 2] = np.cos(q[k]), np.sin(q[k])
-        else:
-            config[joint.idx_q] = q[k]
-    return config
-
-
 @pytest.mark.parametrize("robot", ["ur5", "slider"])
 def test_mass_matrix_and_bias_forces_equal_pinocchios(robot: str, tmp_path: Path) -> None:
     """M(q) and -F(q, q') = C q' + g at random states, to 1e-10 relative."""
@@ -111,18 +98,9 @@ def test_mass_matrix_and_bias_forces_equal_pinocchios(robot: str, tmp_path: Path
     for _ in range(25):
         q = rng.uniform(-np.pi, np.pi, model.nv)
         v = rng.uniform(-2.0, 2.0, model.nv)
-        values = dict(params)
-        values |= {sp.Symbol(c, real=True): x for c, x in zip(mech.coordinates, q, strict=True)}
-        values |= {sp.Symbol(r, real=True): x for r, x in zip(mech.rates, v, strict=True)}
-        ours = mass_matrix_at(mech, values)[0]
-        evaluate = evaluator(mech, values)
-        forces = np.array([float(evaluate(e)) for e in mech.forces])
-        config = _pinocchio_config(model, q)
-        theirs = pin.crba(model, data, config)
-        theirs = np.triu(theirs) + np.triu(theirs, 1).T
-        bias = pin.rnea(model, data, config, v, np.zeros(model.nv))
+        ours, theirs, our_bias, bias = both_at(mech, params, model, data, q, v)
         np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-10 * np.abs(theirs).max())
-        np.testing.assert_allclose(-forces, bias, rtol=0, atol=1e-10 * np.abs(bias).max())
+        np.testing.assert_allclose(our_bias, bias, rtol=0, atol=1e-10 * np.abs(bias).max())
 
 
 def test_the_imported_law_matches_the_oracle_in_both_backends(

@@ -20,10 +20,10 @@ import sympy as sp
 from tvopt_codegen.cli import main
 from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_BUDGET
 from tvopt_codegen.spec import spec_from_dict
-from tvopt_codegen.spec.implicit import evaluator, mass_matrix_at
 from tvopt_codegen.urdf import MAX_JOINTS, MAX_LINKS, spec_from_urdf
 
 from .conftest import ROOT
+from .pinocchio_check import both_at
 
 pytest.importorskip("yourdfpy", reason="import-urdf needs the urdf extra (yourdfpy)")
 
@@ -416,23 +416,7 @@ def _pinocchio_check(
     for _ in range(states):
         q = rng.uniform(-np.pi, np.pi, model.nv)
         v = rng.uniform(-2.0, 2.0, model.nv)
-        values = dict(params)
-        values |= {sp.Symbol(c, real=True): x for c, x in zip(mech.coordinates, q, strict=True)}
-        values |= {sp.Symbol(r, real=True): x for r, x in zip(mech.rates, v, strict=True)}
-        ours = mass_matrix_at(mech, values)[0]
-        evaluate = evaluator(mech, values)
-        bias = -np.array([float(evaluate(e)) for e in mech.forces])
-        config = pin.neutral(model)
-        for k, coordinate in enumerate(mech.coordinates):
-            joint = model.joints[model.getJointId(coordinate)]
-            assert joint.idx_v == k
-            if joint.nq == 2:
-                config[joint.idx_q : joint.idx_q + 2] = np.cos(q[k]), np.sin(q[k])
-            else:
-                config[joint.idx_q] = q[k]
-        theirs = pin.crba(model, data, config)
-        theirs = np.triu(theirs) + np.triu(theirs, 1).T
-        their_bias = pin.rnea(model, data, config, v, np.zeros(model.nv))
+        ours, theirs, bias, their_bias = both_at(mech, params, model, data, q, v)
         worst = max(
             worst,
             float(np.abs(ours - theirs).max() / np.abs(theirs).max()),
