@@ -209,3 +209,12 @@ def test_a_seed_draws_the_same_cases_again() -> None:
 
     first = draw(7)
     assert first == draw(7) and first != draw(8)
+
+
+@pytest.mark.slow
+def test_a_drawn_chain_that_starts_singular_is_the_documented_refusal() -> None:
+    """``urdf:3:-:11`` starts stretched out, where R is singular: the derivation warns
+    (simulate's exit 3), and the case counts as that refusal, not as a failure of the
+    Controller, which raises SingularDecouplingError at its first step there."""
+    out = run_case(Case.parse("urdf:3:-:11"))
+    assert out.startswith("refused: warning: simulation.initial_state: the law is undefined")
