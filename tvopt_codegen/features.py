@@ -17,13 +17,28 @@ from __future__ import annotations
 import itertools
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from tvopt_codegen.errors import AssumptionError
 
 if TYPE_CHECKING:
-    from tvopt_codegen.derivation import Derivation
     from tvopt_codegen.spec import Spec
+
+
+class Derived(Protocol):
+    """What the table reads of a derivation: its spec and its padding chains.
+
+    A protocol, not ``Derivation``: the derivation refuses pairs through this module,
+    which therefore must not import it back (tests/test_architecture.py).
+    """
+
+    @property
+    def spec(self) -> Spec:
+        """The spec derived."""
+
+    @property
+    def padding(self) -> Sequence[Sequence[str]]:
+        """The padding chains' state names, per output (empty where none)."""
 
 #: A feature: an axis of the matrix and one of its values.
 Feature = tuple[str, str]
@@ -294,7 +309,7 @@ def spec_features(spec: Spec) -> dict[str, str]:
     }
 
 
-def derivation_features(derivation: Derivation) -> dict[str, str]:
+def derivation_features(derivation: Derived) -> dict[str, str]:
     """Every axis but the target, padding included (from the derivation's chains)."""
     found = spec_features(derivation.spec)
     found["padding"] = "yes" if any(derivation.padding) else "no"
@@ -329,7 +344,7 @@ def refusal_line(a: Feature, b: Feature) -> str:
     return found.line
 
 
-def target_notes(derivation: Derivation) -> list[str]:
+def target_notes(derivation: Derived) -> list[str]:
     """What ``check`` prints: one line per target that refuses this spec."""
     found = derivation_features(derivation)
     return [
