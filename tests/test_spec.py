@@ -264,15 +264,21 @@ WRONG_TYPES = [
 ]
 
 
+def _refusal_of(tmp_path: Path, text: str, old: str, new: str, field: str) -> str:
+    """The SpecError of the unicycle spec with ``old`` replaced by ``new``; it names ``field``."""
+    path = write_spec(tmp_path, _mutate(text, old, new))
+    with pytest.raises(SpecError) as info:
+        derive(load_spec(path))
+    message = str(info.value)
+    assert message.startswith(f"{path}: {field}: "), message
+    return message
+
+
 @pytest.mark.parametrize(("old", "new", "field", "message"), WRONG_TYPES)
 def test_a_value_of_the_wrong_type_is_named_with_its_type(
     tmp_path: Path, unicycle_text: str, old: str, new: str, field: str, message: str
 ) -> None:
-    path = write_spec(tmp_path, _mutate(unicycle_text, old, new))
-    with pytest.raises(SpecError) as info:
-        derive(load_spec(path))
-    text = str(info.value)
-    assert text.startswith(f"{path}: {field}: "), text
+    text = _refusal_of(tmp_path, unicycle_text, old, new, field)
     assert message in text and "\n" not in text, text
 
 
@@ -344,9 +350,5 @@ MISSPELT = [
 def test_a_misspelt_key_at_any_depth_gets_the_nearest_valid_one(
     tmp_path: Path, unicycle_text: str, old: str, new: str, field: str, guess: str
 ) -> None:
-    path = write_spec(tmp_path, _mutate(unicycle_text, old, new))
-    with pytest.raises(SpecError) as info:
-        derive(load_spec(path))
-    text = str(info.value)
-    assert text.startswith(f"{path}: {field}: "), text
+    text = _refusal_of(tmp_path, unicycle_text, old, new, field)
     assert f"did you mean {guess}?" in text, text
