@@ -126,12 +126,14 @@ features-doc: $(READY)
 
 ## fuzz: the differential fuzzer (docs/fuzz.md): CASES random cases (default 200) drawn from SEED
 ##   (default: a fresh one, printed); CASE=kind:size:features:seed replays one case; C_RATE and
-##   FMU_RATE are the shares of cases also run in C and in the FMU; LOG=file keeps one line a case
+##   FMU_RATE are the shares of cases also run in C and in the FMU; LOG=file keeps one line a case;
+##   WORKERS processes run the cases (default 1; the cases and their ends are the same)
 CASES ?= 200
 C_RATE ?= 0.05
 FMU_RATE ?= 0.02
+WORKERS ?= 1
 fuzz: $(READY)
-	$(PY) -m tests.fuzzing --cases $(CASES) --c-rate $(C_RATE) --fmu-rate $(FMU_RATE) \
+	$(PY) -m tests.fuzzing --cases $(CASES) --c-rate $(C_RATE) --fmu-rate $(FMU_RATE) --workers $(WORKERS) \
 	  $(if $(SEED),--seed $(SEED)) $(if $(CASE),--case $(CASE)) $(if $(LOG),--log $(LOG))
 
 ## lint: ruff and mypy (strict) over the package

@@ -554,16 +554,77 @@ def _twin(spec: dict[str, Any]) -> dict[str, Any]:
 
 def _controller_run(
     mod: ModuleType, x0: np.ndarray, plants: np.ndarray, times: np.ndarray, jets: Any
-) -> np.ndarray:
-    """Inputs and controller states of ``Controller.step`` along given plant states."""
+) -> tuple[np.ndarray, str]:
+    """Inputs and controller states of ``Controller.step`` along given plant states.
+
+    Returns the rows of the steps that succeeded and the class of the documented run-time
+    error (``ControllerError``) that stopped the run, or ``"none"``.
+    """
     kwargs = {"refs": jets(times[0])} if jets else {}
     controller = mod.Controller(x0, **kwargs)
     rows = [np.concatenate([controller.u, controller.state])]
     for k in range(1, len(times)):
         kwargs = {"refs": jets(times[k])} if jets else {}
-        u = controller.step(float(times[k]), plants[:, k], **kwargs)
+        try:
+            u = controller.step(float(times[k]), plants[:, k], **kwargs)
+        except mod.ControllerError as exc:
+            return np.array(rows), type(exc).__name__
         rows.append(np.concatenate([u, controller.state]))
-    return np.array(rows)
+    return np.array(rows), "none"
+
+
+@dataclass
+class ClosedLoop:
+    """A sampled closed loop of the Python ``Controller`` and the plant it was derived for.
+
+    ``plants[:, k]`` is what the controller measured at ``times[k]``; ``rows[k]`` its
+    input and states after that step. ``stopped`` is the documented run-time error that
+    ended the run early (``""`` when every step succeeded), ``at`` the step it came at.
+    """
+
+    plants: np.ndarray
+    times: np.ndarray
+    rows: np.ndarray
+    stopped: str = ""
+    at: int = 0
+
+
+def _closed_loop(
+    mod: ModuleType, x0: np.ndarray, times: np.ndarray, disturbance: np.ndarray, jets: Any
+) -> ClosedLoop:
+    """The controller stepped at ``times`` on its plant plus a constant ``disturbance``.
+
+    The plant is integrated by RK4 under the held input, so that the controller meets the
+    states its own inputs produce (a path that ignores them winds the integrals and the
+    observer up until the law leaves its domain, which says nothing about the tool); the
+    disturbance gives the observer and the integrals something to act on.
+    """
+    kwargs = {"refs": jets(times[0])} if jets else {}
+    controller = mod.Controller(x0, **kwargs)
+    rows = [np.concatenate([controller.u, controller.state])]
+    x, u = x0.copy(), np.asarray(controller.u, dtype=float)
+
+    def f(t: float, state: np.ndarray) -> np.ndarray:
+        return np.asarray(mod.plant(t, state, u), dtype=float).ravel() + disturbance
+
+    plants = [x0.copy()]
+    for k in range(1, len(times)):
+        t, h = float(times[k - 1]), float(times[k] - times[k - 1])
+        k1 = f(t, x)
+        k2 = f(t + h / 2, x + h / 2 * k1)
+        k3 = f(t + h / 2, x + h / 2 * k2)
+        k4 = f(t + h, x + h * k3)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        plants.append(x.copy())
+        kwargs = {"refs": jets(times[k])} if jets else {}
+        try:
+            u = np.asarray(controller.step(float(times[k]), x, **kwargs), dtype=float)
+        except mod.ControllerError as exc:
+            message = " ".join(str(exc).split())
+            return ClosedLoop(np.array(plants).T, times[: k + 1], np.array(rows),
+                              f"{type(exc).__name__}: {message}", k)  # fmt: skip
+        rows.append(np.concatenate([u, controller.state]))
+    return ClosedLoop(np.array(plants).T, times, np.array(rows))
 
 
 def _fmu_check(kernels: Any, mod: ModuleType, x0: np.ndarray, plants: np.ndarray,
@@ -730,14 +791,19 @@ def run_case(case: Case, report: Report | None = None) -> str:
         # observer, the limits and the integrals, which the law alone does not.
         x0 = np.array(py.DEFAULT_STATE[: len(py.PLANT_STATE_NAMES)], dtype=float)
         times = np.round(np.arange(0, 11) * 0.01, 6)
-        drift = rng.uniform(-0.5, 0.5, size=(len(x0), 1))
-        plants = x0[:, None] + drift * times[None, :]
+        disturbance = rng.uniform(-0.5, 0.5, size=len(x0))
         with report.timed("controller"):
-            steps = _controller_run(py, x0, plants, times, jets)
-            if not np.all(np.isfinite(steps)):
+            loop = _closed_loop(py, x0, times, disturbance, jets)
+            if not np.all(np.isfinite(loop.rows)):
                 raise DisagreementError(
                     "Controller.step returned a non-finite value without an error"
                 )
+            # The first step from a start the derivation calls regular must succeed: an
+            # error there is the "undefined everywhere" kind of seam. Later, a sampled
+            # loop (10 ms, stiff barriers, limits that exclude the nominal input) may
+            # leave the law's domain, and the documented error class is the right end.
+            if loop.stopped and loop.at == 1:
+                raise DisagreementError(f"Controller.step failed at the first step: {loop.stopped}")
         if "c" in case.features:
             with report.timed("c"):
                 cmod = load_controller(kernels, "c")
@@ -746,12 +812,25 @@ def run_case(case: Case, report: Report | None = None) -> str:
                     for name in ("control", "rhs", "optimality_error"):
                         _close(f"C {name}", getattr(cmod, name)(t, states, **kwargs),
                                getattr(py, name)(t, states, **kwargs), 1e-10)  # fmt: skip
-                _close("C Controller.step", _controller_run(cmod, x0, plants, times, jets),
-                       steps, 1e-9)  # fmt: skip
+                rows, stopped = _controller_run(cmod, x0, loop.plants, loop.times, jets)
+                if stopped != (loop.stopped.split(":")[0] or "none"):
+                    raise DisagreementError(
+                        f"Controller.step stopped with {stopped} in C, "
+                        f"{loop.stopped or 'none'} in Python"
+                    )
+                _close("C Controller.step", rows, loop.rows, 1e-9)
                 _same_errors(py, cmod, d, states[:, 0], jets)
         if "fmu" in case.features:
             with report.timed("fmu"):
-                _fmu_check(kernels, py, x0, plants, times, jets, folder)
+                # Up to the step before a documented error: the FMU reports it by failing.
+                good = len(loop.rows)
+                _fmu_check(kernels, py, x0, loop.plants[:, :good], loop.times[:good], jets,
+                           folder)  # fmt: skip
+        if loop.stopped:
+            return (
+                f"refused: run-time: the sampled closed loop left the law's domain at "
+                f"t = {loop.times[loop.at]:g} s: {loop.stopped}"
+            )
     return AGREES
 
 
@@ -802,6 +881,43 @@ def classify(case: Case, report: Report) -> tuple[str, str]:
     return "refused", outcome
 
 
+def _run_one(text: str) -> tuple[str, str, str, dict[str, float], float, float]:
+    """One case by its string, in this process or a worker's: (case, end, detail, seconds
+    by part, wall seconds, CPU seconds)."""
+    case = Case.parse(text)
+    report = Report(case)
+    begin, cpu = time.perf_counter(), time.process_time()
+    end, detail = classify(case, report)
+    return text, end, detail, report.seconds, time.perf_counter() - begin, time.process_time() - cpu
+
+
+def drawn_cases(count: int, seed: int, c_rate: float, fmu_rate: float) -> list[str]:
+    """The ``count`` distinct cases hypothesis draws from ``seed``, in its order.
+
+    Drawing is cheap and does not depend on how a case ends, so the list is the one a
+    run that executes each case as it is drawn would meet.
+    """
+    from hypothesis import HealthCheck, Phase, assume, given, settings
+    from hypothesis import seed as hypothesis_seed
+
+    cases: list[str] = []
+
+    @hypothesis_seed(seed)
+    @settings(
+        max_examples=count, database=None, deadline=None, phases=[Phase.generate],
+        suppress_health_check=list(HealthCheck),
+    )  # fmt: skip
+    @given(cases_strategy(c_rate, fmu_rate))
+    def collect(case: Case) -> None:
+        # Hypothesis mutates earlier examples and sometimes meets one again: keep each
+        # case once (a rejected draw does not count towards the budget).
+        assume(str(case) not in cases)
+        cases.append(str(case))
+
+    collect()
+    return cases
+
+
 def main(argv: list[str] | None = None) -> int:
     """``make fuzz``: run N cases from a seed (or replay one); exit 1 on any failure."""
     parser = argparse.ArgumentParser(
@@ -813,73 +929,66 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--c-rate", type=float, default=0.1)
     parser.add_argument("--fmu-rate", type=float, default=0.03)
     parser.add_argument("--log", type=Path, default=None, help="append one line per case here")
+    parser.add_argument(
+        "--workers", type=int, default=1, help="processes that run cases (the cases are the same)"
+    )
     args = parser.parse_args(argv)
+    if args.workers < 1:
+        parser.error(f"--workers: {args.workers} is not a positive count")
     os.environ.setdefault("TVOPT_CODEGEN_CACHE", tempfile.mkdtemp(prefix="tvopt-fuzz-cache-"))
     seed = args.seed if args.seed is not None else int.from_bytes(os.urandom(4), "little")
     tally: Counter[str] = Counter()
-    failures: list[tuple[Case, str]] = []
+    failures: list[tuple[str, str]] = []
     parts: Counter[str] = Counter()
     cpu_seconds = [0.0]
-    seen: set[str] = set()
     log = args.log.open("a", encoding="utf-8") if args.log else None
     started = time.perf_counter()
 
-    def one(case: Case) -> None:
-        report = Report(case)
-        begin, cpu = time.perf_counter(), time.process_time()
-        end, detail = classify(case, report)
+    def record(result: tuple[str, str, str, dict[str, float], float, float]) -> None:
+        text, end, detail, seconds, wall, cpu = result
         tally[end] += 1
-        parts.update(report.seconds)
-        cpu_seconds[0] += time.process_time() - cpu
+        parts.update(seconds)
+        cpu_seconds[0] += cpu
         # Wall and CPU time: on a shared machine the wall time says little.
-        line = (
-            f"{end:8s} {time.perf_counter() - begin:6.2f}s {time.process_time() - cpu:6.2f}cpu "
-            f"{case} {detail}"
-        )
+        line = f"{end:8s} {wall:6.2f}s {cpu:6.2f}cpu {text} {detail}"
         print(line, flush=True)
         if log:
             print(line, file=log, flush=True)
         if end == "FAILED":
-            failures.append((case, detail))
+            failures.append((text, detail))
 
     if args.case:
-        print(f"replaying {len(args.case)} case(s)", flush=True)
-        for text in args.case:
-            one(Case.parse(text))
+        texts = [str(Case.parse(text)) for text in args.case]
+        print(f"replaying {len(texts)} case(s)", flush=True)
     else:
-        from hypothesis import HealthCheck, Phase, assume, given, settings
-        from hypothesis import seed as hypothesis_seed
-
         print(f"fuzz: {args.cases} cases, seed {seed} (replay the run: --seed {seed})", flush=True)
+        texts = drawn_cases(args.cases, seed, args.c_rate, args.fmu_rate)
+    if args.workers == 1:
+        for text in texts:
+            record(_run_one(text))
+    else:
+        # Each case is a pure function of its string: workers change the order in which
+        # lines are printed, never what a case does.
+        from concurrent.futures import ProcessPoolExecutor
 
-        @hypothesis_seed(seed)
-        @settings(
-            max_examples=args.cases, database=None, deadline=None, phases=[Phase.generate],
-            suppress_health_check=list(HealthCheck),
-        )  # fmt: skip
-        @given(cases_strategy(args.c_rate, args.fmu_rate))
-        def run_all(case: Case) -> None:
-            # Hypothesis mutates earlier examples and sometimes meets one again: run each
-            # case once (a rejected draw does not count towards --cases).
-            assume(str(case) not in seen)
-            seen.add(str(case))
-            one(case)
-
-        run_all()
+        with ProcessPoolExecutor(args.workers) as pool:
+            for result in pool.map(_run_one, texts, chunksize=1):
+                record(result)
     elapsed = time.perf_counter() - started
     total = sum(tally.values())
     print(
-        f"fuzz: {total} cases in {elapsed:.0f} s ({total / max(elapsed, 1e-9):.2f} cases/s; "
-        f"{cpu_seconds[0]:.0f} s of CPU in this process, {total / max(cpu_seconds[0], 1e-9):.2f} "
-        "cases per CPU-second, compilers and subprocesses not counted): "
+        f"fuzz: {total} cases in {elapsed:.0f} s with {args.workers} worker(s) "
+        f"({total / max(elapsed, 1e-9):.2f} cases/s; {cpu_seconds[0]:.0f} s of CPU in the "
+        f"fuzzing processes, {total / max(cpu_seconds[0], 1e-9):.2f} cases per CPU-second, "
+        "compilers and subprocesses not counted): "
         + ", ".join(f"{k} {v}" for k, v in sorted(tally.items())),
         flush=True,
     )
     print(
         "time by part: " + ", ".join(f"{k} {v:.0f} s" for k, v in parts.most_common()), flush=True
     )
-    for case, detail in failures:
-        print(f"FAILED {case}: {detail}\n  replay: make fuzz CASE={case}", flush=True)
+    for text, detail in failures:
+        print(f"FAILED {text}: {detail}\n  replay: make fuzz CASE={text}", flush=True)
     if args.seed is None and not args.case:
         print(f"seed {seed}", flush=True)
     if log:

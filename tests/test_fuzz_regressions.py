@@ -18,7 +18,16 @@ import numpy as np
 import pytest
 
 from .conftest import ROOT
-from .fuzzing import Case, DisagreementError, build_spec, cases_strategy, run_case, urdf_text
+from .fuzzing import (
+    Case,
+    DisagreementError,
+    build_spec,
+    cases_strategy,
+    drawn_cases,
+    run_case,
+    urdf_text,
+)
+from .fuzzing import main as fuzz_main
 
 #: ``system:2:-:1`` of the first generator: two strict-feedback chains of length 2 whose
 #: gains are ``c0 + c1 cos(s)`` and ``c0 + c1 tanh(s)``, in coordinates with one
@@ -185,30 +194,25 @@ def test_a_law_off_by_a_millionth_is_a_disagreement(monkeypatch: pytest.MonkeyPa
 
 
 def test_a_seed_draws_the_same_cases_again() -> None:
-    # make fuzz SEED=S replays a run: hypothesis seeded, no database, generation only.
-    from hypothesis import HealthCheck, Phase, given, settings
-    from hypothesis import seed as hypothesis_seed
+    # make fuzz SEED=S replays a run: hypothesis seeded, no database, generation only;
+    # each case once.
+    first = drawn_cases(30, 7, 0.05, 0.02)
+    assert first == drawn_cases(30, 7, 0.05, 0.02) and first != drawn_cases(30, 8, 0.05, 0.02)
+    assert len(first) == len(set(first)) == 30
 
-    def draw(value: int) -> list[str]:
-        out: list[str] = []
 
-        @hypothesis_seed(value)
-        @settings(
-            max_examples=30,
-            database=None,
-            deadline=None,
-            phases=[Phase.generate],
-            suppress_health_check=list(HealthCheck),
-        )
-        @given(cases_strategy(0.05, 0.02))
-        def collect(case: Case) -> None:
-            out.append(str(case))
-
-        collect()
-        return out
-
-    first = draw(7)
-    assert first == draw(7) and first != draw(8)
+def test_workers_run_the_same_cases_with_the_same_ends(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # --workers changes the order of the lines, never what a case does.
+    cases = ["system:1:-:5", "arm:1:integral:6"]
+    ends = []
+    for workers in ("1", "2"):
+        argv = [a for c in cases for a in ("--case", c)] + ["--workers", workers]
+        assert fuzz_main(argv) == 0
+        lines = [line.split() for line in capsys.readouterr().out.splitlines()]
+        ends.append(sorted((w[3], w[0]) for w in lines if len(w) > 3 and w[3] in cases))
+    assert ends[0] == ends[1] and len(ends[0]) == 2
 
 
 @pytest.mark.slow
@@ -218,3 +222,42 @@ def test_a_drawn_chain_that_starts_singular_is_the_documented_refusal() -> None:
     Controller, which raises SingularDecouplingError at its first step there."""
     out = run_case(Case.parse("urdf:3:-:11"))
     assert out.startswith("refused: warning: simulation.initial_state: the law is undefined")
+
+
+@pytest.mark.slow
+def test_a_loop_that_leaves_the_domain_ends_in_the_same_error_in_python_and_c(
+    tmp_path: Path,
+) -> None:
+    """``system:3:auto+inequality+integral+limits+observer+references+unicycle:3`` starts
+    1.5 cm inside a barrier with ``u1`` limited to [-16.46, -6.6]. The harness first fed
+    the controller a path that ignored its inputs (x0 + drift t), which wound the
+    integrals and the observer up until the prolonged speed crossed v = 0: a finding of
+    the harness, not the tool. On the plant's own closed loop, sampled at 10 ms, the loop
+    still leaves the law's domain at 0.09 s; both backends stop there with the documented
+    SingularDecouplingError, and the case counts as that run-time end."""
+    from tvopt_codegen.derivation import derive
+    from tvopt_codegen.ir import lower
+    from tvopt_codegen.simulation import load_controller
+    from tvopt_codegen.simulation.references import exact_jets
+    from tvopt_codegen.spec import spec_from_dict
+
+    from .fuzzing import _closed_loop, _controller_run
+
+    case = Case.parse("system:3:auto+inequality+integral+limits+observer+references+unicycle:3")
+    out = run_case(case)
+    assert out.startswith("refused: run-time: the sampled closed loop left the law's domain")
+    assert "SingularDecouplingError" in out and "v = 0" in out
+    spec, _ = build_spec(case, tmp_path)
+    d = derive(spec_from_dict(spec))
+    kernels = lower(d)
+    py, cmod = load_controller(kernels, "python"), load_controller(kernels, "c")
+    jets = exact_jets(d, {})
+    x0 = np.array(py.DEFAULT_STATE[: len(py.PLANT_STATE_NAMES)], dtype=float)
+    times = np.round(np.arange(0, 11) * 0.01, 6)
+    loop = _closed_loop(py, x0, times, np.zeros(len(x0)), jets)
+    assert loop.stopped.startswith("SingularDecouplingError") and loop.at >= 2
+    # The plant answered the controller: its path is not the straight line through x0.
+    assert not np.allclose(loop.plants[:, 1], x0)
+    rows, stopped = _controller_run(cmod, x0, loop.plants, loop.times, jets)
+    assert stopped == "SingularDecouplingError"
+    np.testing.assert_allclose(rows, loop.rows, rtol=1e-9, atol=1e-9)
