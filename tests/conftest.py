@@ -110,3 +110,58 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 @pytest.fixture
 def update_golden(request: pytest.FixtureRequest) -> bool:
     return bool(request.config.getoption("--update-golden"))
+
+
+#: What enables a skipped test, by a word of its reason; a reason that matches none is a
+#: skip by design (a fragment a page marks as such, a platform the test is not for).
+_ENABLERS = (
+    ("chromium", "apt-get install chromium (as root, `.ci/run` does it)"),
+    ("clang", "apt-get install clang"),
+    ("c compiler", "apt-get install gcc"),
+    ("python headers", "apt-get install python3-dev"),
+    ("sanitizer", "apt-get install gcc (with libasan and libubsan)"),
+    ("could not import", "make .venv/.installed (pip install -e '.[dev,all]')"),
+    ("extra", "make .venv/.installed (pip install -e '.[dev,all]')"),
+    ("needs ", "make .venv/.installed (pip install -e '.[dev,all]')"),
+)
+
+
+def skip_summary(reasons: list[str]) -> str:
+    """One line: how many tests skipped, and the command that would run each group.
+
+    Parameters
+    ----------
+    reasons
+        The skip reason of each skipped test.
+
+    Returns
+    -------
+    str
+        ``""`` when nothing was skipped.
+    """
+    if not reasons:
+        return ""
+    groups: dict[str, int] = {}
+    for reason in reasons:
+        low = reason.lower()
+        enabler = next((how for word, how in _ENABLERS if word in low), "by design")
+        groups[enabler] = groups.get(enabler, 0) + 1
+    parts = [
+        f"{n} by design" if how == "by design" else f"{n} need `{how}`"
+        for how, n in sorted(groups.items(), key=lambda item: (item[0] == "by design", item[0]))
+    ]
+    return f"skipped {len(reasons)}: " + "; ".join(parts)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    """Count the skipped tests in one line, with what would run them (issue 48)."""
+    reasons = []
+    for report in terminalreporter.stats.get("skipped", []):
+        longrepr = report.longrepr
+        # A skip's longrepr is (file, line, "Skipped: reason").
+        text = longrepr[2] if isinstance(longrepr, tuple) else str(longrepr)
+        reasons.append(text.removeprefix("Skipped: "))
+    line = skip_summary(reasons)
+    if line:
+        terminalreporter.write_line(line, yellow=True)

@@ -1,0 +1,26 @@
+"""The contributor's test loop: the skip line at the end of a run (issue 48)."""
+
+from __future__ import annotations
+
+from .conftest import skip_summary
+
+
+def test_skips_are_counted_with_the_command_that_runs_them() -> None:
+    reasons = [
+        "chromium is not installed (`.ci/run` installs Debian's chromium as root)",
+        "chromium is not installed (`.ci/run` installs Debian's chromium as root)",
+        "could not import 'fmpy': No module named 'fmpy'",
+        "a fragment the page marks as such",
+        "no C compiler",
+    ]
+    line = skip_summary(reasons)
+    assert "\n" not in line
+    assert line.startswith("skipped 5: ")
+    assert "2 need `apt-get install chromium" in line
+    assert "1 need `make .venv/.installed" in line
+    assert "1 need `apt-get install gcc`" in line
+    assert line.endswith("1 by design")
+
+
+def test_a_run_without_skips_prints_nothing() -> None:
+    assert skip_summary([]) == ""
