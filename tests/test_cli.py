@@ -13,6 +13,7 @@ import pytest
 
 from tvopt_codegen import cli, summary
 from tvopt_codegen.cli import main
+from tvopt_codegen.commands import common
 from tvopt_codegen.errors import EXIT_ASSUMPTION, EXIT_BAD_SPEC, EXIT_OUTPUT
 
 from .conftest import ROOT, write_spec
@@ -267,7 +268,7 @@ def test_the_derivation_runs_without_the_cyclic_collector_and_turns_it_back_on(
     # next scan would visit all of it, for no garbage) and unfrozen when main returns.
     seen: list[bool] = []
     frozen: list[int] = []
-    real_limit, real_summary = cli._time_limit, summary.format_summary
+    real_limit, real_summary = common.time_limit, summary.format_summary
 
     def spy(*args: Any) -> Any:
         seen.append(gc.isenabled())
@@ -277,7 +278,7 @@ def test_the_derivation_runs_without_the_cyclic_collector_and_turns_it_back_on(
         frozen.append(gc.get_freeze_count())
         return real_summary(*args)
 
-    monkeypatch.setattr(cli, "_time_limit", spy)
+    monkeypatch.setattr(common, "time_limit", spy)
     monkeypatch.setattr(summary, "format_summary", summarise)
     gc.unfreeze()
     assert main(["check", "integrator"]) == 0

@@ -115,7 +115,6 @@ def test_a_toy_backend_needs_a_registry_entry_and_a_template_folder(
     monkeypatch.setattr(backends, "BACKENDS", dict(BACKENDS))
     monkeypatch.setattr("tvopt_codegen.rendering.BACKENDS", backends.BACKENDS)
     monkeypatch.setattr("tvopt_codegen.names.BACKENDS", backends.BACKENDS)
-    monkeypatch.setattr("tvopt_codegen.cli.BACKENDS", backends.BACKENDS)
     toy = backends.register(_toy(tmp_path / "templates"))
     with pytest.raises(ValueError, match="registered already"):
         backends.register(_toy(tmp_path / "other"))

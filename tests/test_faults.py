@@ -423,12 +423,12 @@ def test_a_missing_output_parent_is_refused_before_deriving(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """The folder is checked first: a typo in --out costs no derivation."""
-    from tvopt_codegen import cli
+    from tvopt_codegen.commands import common
 
     def derive(_args: object) -> object:
         raise AssertionError("derived before checking --out")
 
-    monkeypatch.setattr(cli, "_derive", derive)
+    monkeypatch.setattr(common, "derive", derive)
     target = tmp_path / "no" / "such" / "folder"
     name, *rest = command
     assert main([name, "integrator", *rest, "--out", str(target)]) == EXIT_OUTPUT

@@ -13,6 +13,7 @@ import sympy as sp
 
 from tvopt_codegen.derivation.linearization import _singular_set, undefined_causes
 from tvopt_codegen.errors import clip_quotes
+from tvopt_codegen.limits import MAX_POINTS
 
 from .conftest import ROOT, module, write_spec
 
@@ -116,7 +117,7 @@ def test_bad_simulation_numbers_are_refused_at_once(tmp_path: Path) -> None:
     for args, text in (
         (("--t-final", "inf"), "--t-final: must be positive and at most 1e+06"),
         (("--t-final", "1e300"), "--t-final: must be positive and at most 1e+06"),
-        (("--points", "300000000"), "--points: must be between 3 and 100000"),
+        (("--points", "300000000"), f"--points: must be between 3 and {MAX_POINTS}"),
         (("--rtol", "inf"), "--rtol: must be positive and finite"),
     ):
         start = time.perf_counter()

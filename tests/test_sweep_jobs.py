@@ -446,7 +446,7 @@ def test_progress_in_a_log_starts_within_the_first_minute(
 ) -> None:
     """A batch job's log (stderr not a terminal, --progress auto): a first line after
     LOG_FIRST seconds, then one a minute; nothing for a sweep that ends sooner."""
-    from tvopt_codegen.sweep import command
+    from tvopt_codegen.commands import sweep as command
 
     clock = {"now": 1000.0}
     monkeypatch.setattr(command.time, "perf_counter", lambda: clock["now"])
@@ -590,8 +590,8 @@ def test_a_signal_while_the_files_are_written_lets_them_finish(
     """SIGTERM at the very end of a run (a batch job's wall time) is noted while the table
     and summary are written; before that it stops the samples, and a second one stops the
     writing too."""
+    from tvopt_codegen.commands import sweep as command
     from tvopt_codegen.errors import Terminated
-    from tvopt_codegen.sweep import command
 
     def deliver(number: int) -> None:
         os.kill(os.getpid(), number)

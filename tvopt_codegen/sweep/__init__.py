@@ -21,6 +21,7 @@ Nothing here writes files: :mod:`tvopt_codegen.emit` does.
 
 from __future__ import annotations
 
+from tvopt_codegen.limits import MAX_POINTS
 from tvopt_codegen.sweep.driver import (
     LOOKAHEAD_PER_WORKER,
     SCHEDULER_TIMEOUT,
@@ -36,7 +37,6 @@ from tvopt_codegen.sweep.driver import (
 from tvopt_codegen.sweep.options import (
     DISTRIBUTIONS,
     DIVERGENCE_FACTOR,
-    MAX_POINTS,
     MAX_SAMPLES,
     SETTLING,
     Distribution,

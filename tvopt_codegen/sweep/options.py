@@ -11,20 +11,13 @@ import re
 import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from tvopt_codegen.contract import Status
 from tvopt_codegen.errors import SpecError
-
-if TYPE_CHECKING:
-    pass
-
-
-#: Largest number of output times of one sample (the C loop keeps its grid on the stack).
-MAX_POINTS = 10_001
-
+from tvopt_codegen.limits import DEFAULT_ATOL, DEFAULT_POINTS, DEFAULT_RTOL
 
 #: Largest number of samples of one sweep.
 MAX_SAMPLES = 100_000_000
@@ -291,9 +284,9 @@ class SweepOptions:
     limits: tuple[tuple[str, float, float], ...] = ()
     noise: float = 0.0
     sample_time: float | None = None
-    rtol: float = 1e-8
-    atol: float = 1e-10
-    points: int = 201
+    rtol: float = DEFAULT_RTOL
+    atol: float = DEFAULT_ATOL
+    points: int = DEFAULT_POINTS
     max_steps: int = 1_000_000
 
     def as_dict(self) -> dict[str, Any]:

@@ -15,13 +15,12 @@ import numpy as np
 
 from tvopt_codegen import dopri
 from tvopt_codegen.errors import SpecError
-from tvopt_codegen.limits import START_ITERATIONS
+from tvopt_codegen.limits import MAX_POINTS, RUN_OPTIONS, START_ITERATIONS
 
 if TYPE_CHECKING:
     from tvopt_codegen.ir import KernelSet
 from tvopt_codegen.sweep.options import (
     DIVERGENCE_FACTOR,
-    MAX_POINTS,
     MAX_SAMPLES,
     LoopOutcome,
     Outcome,
@@ -215,20 +214,16 @@ def check_options(program: SweepProgram, options: SweepOptions) -> None:
     """Refuse what the loop cannot run, naming the option (all before anything runs)."""
     if not 1 <= options.samples <= MAX_SAMPLES:
         raise SpecError("command line", "--samples", f"must be between 1 and {MAX_SAMPLES}")
-    if not 0 <= options.seed < 2**63:
-        raise SpecError("command line", "--seed", "must be between 0 and 2**63 - 1")
-    if not 0 < options.t_final <= 1e6:
-        raise SpecError("command line", "--t-final", "must be positive and at most 1e6")
-    if not 2 <= options.points <= MAX_POINTS:
-        raise SpecError("command line", "--points", f"must be between 2 and {MAX_POINTS}")
-    for option, value in (("--rtol", options.rtol), ("--atol", options.atol)):
-        if not 0 < value < math.inf:
-            raise SpecError("command line", option, "must be positive and finite")
+    # The bounds the command line checks (one table: tvopt_codegen.limits.RUN_OPTIONS),
+    # here too for options that come from a sweep's record or the library.
+    for name in ("seed", "t_final", "points", "rtol", "atol", "sample_time"):
+        value = getattr(options, name)
+        problem = None if value is None else RUN_OPTIONS[name].problem(value)
+        if problem is not None:
+            raise SpecError("command line", RUN_OPTIONS[name].flag, problem)
     if not 0 <= options.noise < math.inf:
         raise SpecError("command line", "--noise", "must be zero or positive and finite")
     if options.sample_time is not None:
-        if not 0 < options.sample_time < math.inf:
-            raise SpecError("command line", "--sample-time", "must be positive and finite")
         if options.t_final / options.sample_time > 10_000_000:
             raise SpecError(
                 "command line", "--sample-time", "more than 10^7 samples of the controller per run"

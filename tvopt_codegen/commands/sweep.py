@@ -1,4 +1,4 @@
-"""The ``sweep`` command: check everything, run on Dask, write the outcome (through emit).
+"""``tvopt-codegen sweep``: check everything, run on Dask, write the outcome (through emit).
 
 Every check that can fail on the user's input (options, names, distributions, the
 output folder, the compiler, the scheduler) runs before the first file is written; a
@@ -12,10 +12,10 @@ import math
 import signal
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+from tvopt_codegen.commands import common, run_options
 from tvopt_codegen.errors import (
     EXIT_INTERRUPTED,
     EXIT_TERMINATED,
@@ -23,10 +23,9 @@ from tvopt_codegen.errors import (
     SpecError,
     Terminated,
 )
+from tvopt_codegen.limits import RUN_OPTIONS
 
-if TYPE_CHECKING:
-    from tvopt_codegen.derivation import Derivation
-    from tvopt_codegen.ir import KernelSet
+HELP = "Monte-Carlo closed loops with model mismatch, saturation and noise, on Dask"
 
 #: In a log, seconds to the first progress line, then between lines.
 LOG_FIRST = 10.0
@@ -34,6 +33,101 @@ LOG_EVERY = 60.0
 
 #: The worst samples drawn in ``sweep_worst`` (rerun locally with their trajectories).
 WORST = 5
+
+
+def build(parser: argparse.ArgumentParser) -> None:
+    """The ``sweep`` command's options."""
+    parser.description = (
+        "Run SPEC's closed loop for many drawn initial states and parameters "
+        "(DIST: a number, normal(mean, sd), uniform(lo, hi) or lognormal(mu, sigma)), in "
+        "compiled C on a Dask cluster; write summary.parquet, summary.md and figures to "
+        "--out. `sweep --replay DIR SAMPLE_ID --out DIR2` reruns one sample of the sweep "
+        "in DIR and writes its whole trajectory; `sweep --resume DIR` runs the samples an "
+        "interrupted sweep lacks."
+    )
+    parser.add_argument("spec", nargs="?", help="spec file, or the name of a bundled example")
+    parser.add_argument(
+        "--replay",
+        nargs=2,
+        metavar=("DIR", "SAMPLE_ID"),
+        help="rerun sample SAMPLE_ID of the sweep written to DIR (no SPEC)",
+    )
+    parser.add_argument(
+        "--resume",
+        metavar="DIR",
+        help="complete the interrupted sweep in DIR: run only its missing samples (no SPEC)",
+    )
+    parser.add_argument("--samples", type=int, help="number of runs")
+    run_options.add(parser, "seed")
+    parser.add_argument("--out", help="output folder (not with --resume: DIR is the folder)")
+    for option, what in (
+        ("--initial", "spread of an initial closed-loop state"),
+        ("--param", "the controller's (model's) parameter"),
+        ("--plant-param", "the true plant's parameter (model mismatch)"),
+    ):
+        parser.add_argument(
+            option, action="append", default=[], metavar="NAME=DIST", help=f"{what} (repeatable)"
+        )
+    parser.add_argument(
+        "--saturation",
+        action="append",
+        default=[],
+        metavar="INPUT=LIMIT",
+        help=(
+            "clip a plant input to |u| <= LIMIT, or to LO:HI "
+            "(repeatable; default: the spec's [limits])"
+        ),
+    )
+    parser.add_argument(
+        "--noise",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="with --sample-time: Gaussian noise on every measured plant state",
+    )
+    run_options.add(parser, "sample_time", "t_final", "rtol", "atol", "points")
+    where = parser.add_mutually_exclusive_group()
+    run_options.add(where, "workers")
+    where.add_argument(
+        "--scheduler", metavar="ADDRESS", help="an existing Dask scheduler, e.g. tcp://host:8786"
+    )
+    parser.add_argument(
+        "--chunk-size", type=int, help="samples per Dask task (default: about 8 tasks a worker)"
+    )
+    parser.add_argument(
+        "--trajectories",
+        action="store_true",
+        help="also store every run in trajectories.zarr (xarray-readable), as runs finish",
+    )
+    run_options.add(parser, "checkpoint_seconds")
+    parser.add_argument(
+        "--force", action="store_true", help="replace an earlier sweep's files in --out"
+    )
+    parser.add_argument(
+        "--progress",
+        choices=("auto", "always", "never"),
+        default="auto",
+        help="show progress on stderr (auto: on a terminal)",
+    )
+    run_options.add(parser, "max_seconds", "max_size", hidden=True)
+    parser.add_argument(
+        "--extension", choices=("spec", "auto"), default="spec", help=argparse.SUPPRESS
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """A new sweep, ``--resume DIR`` or ``--replay DIR SAMPLE_ID``."""
+    if args.replay and args.resume is not None:
+        raise SpecError("command line", "--resume", "cannot be combined with --replay")
+    if args.resume is not None:
+        if not args.resume.strip():
+            raise SpecError("command line", "--resume", "DIR is empty")
+        if args.out is not None:
+            raise SpecError("command line", "--out", "is DIR itself with --resume")
+        return resume(args)
+    if args.out is None:
+        raise SpecError("command line", "--out", "is required")
+    return replay(args) if args.replay else sweep(args)
 
 
 class _Progress:
@@ -97,13 +191,7 @@ def _options(args: argparse.Namespace, program: Any, horizon: float) -> Any:
     check_options(program, options)
     if args.chunk_size is not None and not 1 <= args.chunk_size <= options.samples:
         raise SpecError("command line", "--chunk-size", "must be between 1 and --samples")
-    _check_checkpoint(args)
     return options
-
-
-def _check_checkpoint(args: argparse.Namespace) -> None:
-    if not 0 <= args.checkpoint_seconds <= 86_400:
-        raise SpecError("command line", "--checkpoint-seconds", "must be between 0 and 86400")
 
 
 #: The figures a sweep draws (each as PNG and SVG).
@@ -369,10 +457,7 @@ def _publish(
     return 0
 
 
-def sweep(
-    args: argparse.Namespace,
-    derive: Callable[[argparse.Namespace], tuple[Derivation, KernelSet]],
-) -> int:
+def sweep(args: argparse.Namespace) -> int:
     """Run ``tvopt-codegen sweep SPEC ...``; returns the exit code."""
     from tvopt_codegen.emit import SweepFolder, write_files  # noqa: PLC0415
     from tvopt_codegen.spec import read_spec_bytes  # noqa: PLC0415
@@ -398,7 +483,7 @@ def sweep(
     if args.scheduler is None:
         check_workers(args.workers)
     _source, raw = read_spec_bytes(args.spec)
-    derivation, kernels = derive(args)
+    derivation, kernels = common.derive(args)
     program = sweep_program(kernels)
     options = _options(args, program, derivation.spec.t_final)
     _check_earlier(args)
@@ -551,7 +636,7 @@ def _from_record(folder: Path) -> tuple[dict[str, Any], Any, str, bytes, Any]:
 #: recorded sweep, and a different value would silently not apply.
 _DEFINING: dict[str, object] = {
     "samples": None,
-    "seed": 0,
+    "seed": RUN_OPTIONS["seed"].default,
     "initial": [],
     "param": [],
     "plant_param": [],
@@ -559,9 +644,9 @@ _DEFINING: dict[str, object] = {
     "noise": 0.0,
     "sample_time": None,
     "t_final": None,
-    "rtol": 1e-8,
-    "atol": 1e-10,
-    "points": 201,
+    "rtol": RUN_OPTIONS["rtol"].default,
+    "atol": RUN_OPTIONS["atol"].default,
+    "points": RUN_OPTIONS["points"].default,
     "trajectories": False,
 }
 
@@ -605,7 +690,6 @@ def resume(args: argparse.Namespace) -> int:
         from tvopt_codegen.sweep import check_workers  # noqa: PLC0415
 
         check_workers(args.workers)
-    _check_checkpoint(args)
     if args.chunk_size is not None and not 1 <= args.chunk_size <= options.samples:
         raise SpecError("command line", "--chunk-size", "must be between 1 and the sweep's samples")
     if record.get("state") == "complete":

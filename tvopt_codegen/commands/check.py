@@ -1,0 +1,30 @@
+"""``tvopt-codegen check SPEC``: the derivation's summary; writes nothing."""
+
+from __future__ import annotations
+
+import argparse
+
+from tvopt_codegen.commands import common
+from tvopt_codegen.errors import one_line
+
+HELP = "print the derivation summary; writes nothing"
+
+
+def build(parser: argparse.ArgumentParser) -> None:
+    """The ``check`` command's options."""
+    parser.add_argument("spec", help="spec file, or the name of a bundled example")
+    common.derivation_options(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Print the summary, and the targets that refuse this spec (docs/features.md)."""
+    with common.without_collector():  # sympy's and numpy's imports build objects by the million
+        from tvopt_codegen.summary import format_summary  # noqa: PLC0415
+
+    derivation, kernels = common.derive(args)
+    print(format_summary(derivation, kernels))
+    from tvopt_codegen.features import target_notes  # noqa: PLC0415
+
+    for note in target_notes(derivation):
+        print(one_line(note))
+    return 0

@@ -1,0 +1,45 @@
+"""``tvopt-codegen export SPEC --fmu``: the stateful controller for other tools."""
+
+from __future__ import annotations
+
+import argparse
+
+from tvopt_codegen.commands import common
+from tvopt_codegen.errors import SpecError
+
+HELP = "export the stateful controller for other tools (an FMU)"
+
+
+def build(parser: argparse.ArgumentParser) -> None:
+    """The ``export`` command's options."""
+    parser.add_argument("spec", help="spec file, or the name of a bundled example")
+    parser.add_argument(
+        "--fmu",
+        action="store_true",
+        help="write <name>.fmu: a co-simulation FMU built from the generated C",
+    )
+    parser.add_argument(
+        "--fmi", type=int, default=2, choices=(2, 3), help="FMI version (default: 2)"
+    )
+    parser.add_argument("--out", default=".", help="output folder (default: current folder)")
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="replace files that were edited by hand or not written here",
+    )
+    common.derivation_options(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Derive, build the FMU from the generated C, write it."""
+    from tvopt_codegen.emit import write_files  # noqa: PLC0415
+    from tvopt_codegen.fmu import build_fmu  # noqa: PLC0415
+
+    if not args.fmu:
+        raise SpecError("command line", "export", "nothing to export: give --fmu")
+    common.check_out(args.out)
+    derivation, kernels = common.derive(args)
+    name = f"{derivation.spec.name}.fmu"
+    write_files({name: build_fmu(kernels, args.fmi)}, args.out, force=args.force)
+    print(f"wrote {args.out.rstrip('/')}/{name} (FMI {args.fmi}.0 co-simulation)")
+    return 0

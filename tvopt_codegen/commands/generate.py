@@ -1,0 +1,70 @@
+"""``tvopt-codegen generate SPEC``: derive the law and write the controller."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from tvopt_codegen import backends
+from tvopt_codegen.commands import common
+
+HELP = "derive the law and write the controller"
+
+
+def build(parser: argparse.ArgumentParser) -> None:
+    """The ``generate`` command's options."""
+    parser.add_argument("spec", help="spec file, or the name of a bundled example")
+    parser.add_argument("--out", default=".", help="output folder (default: current folder)")
+    parser.add_argument(
+        "--backend",
+        default="python",
+        choices=sorted(backends.BACKENDS),
+        help="target language (default: python)",
+    )
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="replace files that were edited by hand or not generated here",
+    )
+    parser.add_argument("--quiet", action="store_true", help="print nothing on success")
+    parser.add_argument(
+        "--timings",
+        action="store_true",
+        help="also print one JSON line of stage seconds and law operations on stderr "
+        "(for benchmarks/bench_derive.py)",
+    )
+    common.derivation_options(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Derive, render and write; print the summary and each file's state."""
+    with common.without_collector():  # sympy's and numpy's imports build objects by the million
+        from tvopt_codegen.summary import format_summary  # noqa: PLC0415
+
+    common.check_out(args.out)
+    derivation, kernels = common.derive(args)
+    started = time.perf_counter()
+    from tvopt_codegen.emit import write_files  # noqa: PLC0415
+    from tvopt_codegen.rendering import render  # noqa: PLC0415
+
+    with common.without_collector():
+        files = render(kernels, args.backend)
+    rendered = time.perf_counter()
+    written = write_files(files, args.out, force=args.force)
+    if args.timings:
+        import json  # noqa: PLC0415
+
+        law = ("jet_time", "jet", "cholesky", "decoupling", "closed_loop")
+        names = {k.name for k in kernels.kernels}
+        record = dict(args.stage_seconds)
+        record |= {"render": rendered - started, "write": time.perf_counter() - rendered}
+        record["ops"] = sum(kernels[n].ops for n in law if n in names) + kernels.lu_ops
+        print(f"timings: {json.dumps(record)}", file=sys.stderr)
+    if not args.quiet:
+        print(format_summary(derivation, kernels))
+        for name in files:
+            path = f"{args.out.rstrip('/')}/{name}"
+            state = "written" if any(p.name == name for p in written) else "unchanged"
+            print(f"  {state}: {path}")
+    return 0

@@ -1,0 +1,46 @@
+"""The shared run options on a command's parser, and their bounds checked in one place.
+
+Each option is declared once, in :data:`tvopt_codegen.limits.RUN_OPTIONS`; a command
+adds the ones it takes by name, and :func:`check` refuses a value out of its bounds
+with the same one line whichever command it was given to.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from tvopt_codegen.errors import SpecError
+from tvopt_codegen.limits import RUN_OPTIONS
+
+#: Where a command's arguments go: its parser or a group of it.
+Target = argparse.ArgumentParser | argparse._ActionsContainer
+
+
+def add(target: Target, *names: str, hidden: bool = False) -> None:
+    """Add the run options ``names`` (keys of ``RUN_OPTIONS``) to ``target``.
+
+    ``hidden`` options are accepted but left out of ``--help``.
+    """
+    for name in names:
+        option = RUN_OPTIONS[name]
+        text = option.help
+        if option.default is not None:
+            text += f" (default {option.default:g})"
+        target.add_argument(
+            option.flag,
+            type=option.kind,
+            default=option.default,
+            metavar=option.metavar,
+            help=argparse.SUPPRESS if hidden else text,
+        )
+
+
+def check(args: argparse.Namespace) -> None:
+    """Refuse the first run option given out of its bounds, naming it."""
+    for name, option in RUN_OPTIONS.items():
+        value: Any = getattr(args, name, None)
+        if value is not None:
+            problem = option.problem(value)
+            if problem is not None:
+                raise SpecError("command line", option.flag, problem)

@@ -1,0 +1,243 @@
+"""``tvopt-codegen simulate SPEC``: the closed loop and the theorem's certificate.
+
+The continuous loop, or with ``--sample-time`` also the stateful controller sampled
+every H seconds beside it; with ``--reference-file`` the references estimated online
+from samples.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from typing import TYPE_CHECKING
+
+from tvopt_codegen import backends
+from tvopt_codegen.commands import common, run_options
+from tvopt_codegen.errors import EXIT_CERTIFICATE, SpecError, one_line
+from tvopt_codegen.limits import METHODS
+
+if TYPE_CHECKING:
+    from tvopt_codegen.drawing import Painter
+
+HELP = "simulate the closed loop and check the theorem along the run"
+
+
+def build(parser: argparse.ArgumentParser) -> None:
+    """The ``simulate`` command's options."""
+    parser.add_argument("spec", help="spec file, or the name of a bundled example")
+    parser.add_argument(
+        "--backend",
+        default="python",
+        choices=sorted(backends.BACKENDS),
+        help="controller backend to simulate (default: python)",
+    )
+    parser.add_argument(
+        "--initial",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="initial value of a state (repeatable)",
+    )
+    parser.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="parameter override (repeatable)",
+    )
+    parser.add_argument(
+        "--plant-param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="with --sample-time: the true plant's parameter, where it is not the model's "
+        "(repeatable)",
+    )
+    parser.add_argument(
+        "--method",
+        default="RK45",
+        choices=METHODS,
+        help="solve_ivp method (default: RK45, Dormand-Prince, as in the paper)",
+    )
+    run_options.add(parser, "t_final", "rtol", "atol", "points", "seed", "sample_time")
+    parser.add_argument(
+        "--tolerance",
+        type=float,
+        default=1e-6,
+        help="largest accepted relative deviation of E from expm(Ht) E(0)",
+    )
+    parser.add_argument(
+        "--reference-file",
+        metavar="FILE.csv",
+        help="for a spec with [references]: samples t, <reference>, ... estimated online "
+        "into jets by the spec's differentiator (default: the nominal closed forms)",
+    )
+    parser.add_argument(
+        "--noise",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="with --reference-file: Gaussian noise of this standard deviation on every sample",
+    )
+    parser.add_argument(
+        "--allow-gaps",
+        action="store_true",
+        help="with --reference-file: accept samples the estimator cannot follow (a gap of "
+        "more than 10 median intervals, or samples slower than 1/bandwidth)",
+    )
+    parser.add_argument(
+        "--convergence-order",
+        action="store_true",
+        help="with --sample-time: also run at H/2 (and at H/4, H/8 while the order is below "
+        "0.75, not yet asymptotic) and report the observed order in H",
+    )
+    parser.add_argument("--out", default=".", help="output folder (default: current folder)")
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="replace files that were edited by hand or not written here",
+    )
+    common.derivation_options(parser)
+
+
+class _Progress:
+    """Simulated time on stderr: one updating line on a terminal, else one line each."""
+
+    def __init__(self) -> None:
+        self.shown = False
+
+    def __call__(self, t: float, t_final: float) -> None:
+        end = "\r" if sys.stderr.isatty() else "\n"
+        print(f"  simulated t = {t:.3f} of {t_final:g}", end=end, file=sys.stderr, flush=True)
+        self.shown = True
+
+    def close(self) -> None:
+        if self.shown and sys.stderr.isatty():
+            print(" " * 40, end="\r", file=sys.stderr, flush=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Simulate the closed loop (and the sampled one), check the certificate, write."""
+    # First: the drawing process imports matplotlib while this one loads sympy and derives.
+    from tvopt_codegen.drawing import Painter  # noqa: PLC0415
+
+    with Painter() as painter:
+        return _simulate_with(args, painter)
+
+
+def _simulate_with(args: argparse.Namespace, painter: Painter) -> int:
+    from tvopt_codegen.artifacts import result_files  # noqa: PLC0415 - matplotlib on use
+    from tvopt_codegen.emit import write_files  # noqa: PLC0415
+    from tvopt_codegen.simulation import (  # noqa: PLC0415
+        format_certificate,
+        load_controller,
+        resolve_options,
+        simulate,
+    )
+
+    # The shared run options' bounds are checked already (commands.run_options.check).
+    if not 0 < args.tolerance < math.inf:
+        raise SpecError("command line", "--tolerance", "must be positive and finite")
+    if not 0 <= args.noise < math.inf:
+        raise SpecError("command line", "--noise", "must be zero or positive and finite")
+    if args.noise and args.reference_file is None:
+        raise SpecError("command line", "--noise", "needs --reference-file")
+    if args.allow_gaps and args.reference_file is None:
+        raise SpecError("command line", "--allow-gaps", "needs --reference-file")
+    if args.convergence_order and args.sample_time is None:
+        raise SpecError("command line", "--convergence-order", "needs --sample-time")
+    if args.plant_param and args.sample_time is None:
+        raise SpecError(
+            "command line",
+            "--plant-param",
+            "needs --sample-time (the continuous run is the nominal theorem's; the sampled "
+            "controller runs on the mismatched plant)",
+        )
+    common.check_out(args.out)
+    derivation, kernels = common.derive(args)
+    plant_params = common.assignments(args.plant_param, "--plant-param")
+    unknown = sorted(set(plant_params) - {name for name, _ in derivation.spec.parameters})
+    if unknown:
+        raise SpecError("command line", "--plant-param", f"{unknown[0]!r} is not a parameter")
+    options = resolve_options(
+        derivation,
+        args.t_final,
+        common.assignments(args.initial, "--initial"),
+        common.assignments(args.param, "--param"),
+        method=args.method,
+        rtol=args.rtol,
+        atol=args.atol,
+        points=args.points,
+        tolerance=args.tolerance,
+    )
+    if args.sample_time is not None:
+        from tvopt_codegen.simulation.sampled import check_sample_time  # noqa: PLC0415
+
+        check_sample_time(
+            args.sample_time / 2 if args.convergence_order else args.sample_time,
+            options.t_final,
+        )
+    if args.reference_file is not None and not derivation.model.references:
+        raise SpecError("command line", "--reference-file", "the spec has no [references]")
+    if args.reference_file is not None and args.sample_time is not None:
+        raise SpecError(
+            "command line", "--reference-file", "not with --sample-time (one at a time, for now)"
+        )
+    samples = None
+    if args.reference_file is not None:
+        from tvopt_codegen.simulation.references import read_reference_file  # noqa: PLC0415
+
+        samples = read_reference_file(
+            args.reference_file,
+            derivation,
+            options.t_final,
+            allow_gaps=args.allow_gaps,
+            warn=lambda text: print(one_line(f"tvopt-codegen: warning: {text}"), file=sys.stderr),
+        )
+    controller = load_controller(kernels, args.backend)
+    references = None
+    if samples is not None:
+        from tvopt_codegen.simulation.references import sampled_source  # noqa: PLC0415
+
+        references = sampled_source(
+            derivation, controller, dict(options.params), *samples, args.noise, args.seed
+        )
+    progress = _Progress()
+    try:
+        if args.sample_time is None:
+            result = simulate(
+                derivation, controller, options, progress=progress, references=references
+            )
+            sampled = None
+        else:
+            from tvopt_codegen.simulation.sampled import simulate_sampled  # noqa: PLC0415
+
+            sampled = simulate_sampled(
+                derivation,
+                controller,
+                options,
+                args.sample_time,
+                convergence_order=args.convergence_order,
+                progress=progress,
+                plant_params=dict(options.params) | plant_params,
+            )
+            result = sampled.continuous
+    finally:
+        progress.close()
+    files = result_files(derivation, result, painter)
+    text = format_certificate(derivation, result)
+    passed = result.passed
+    if sampled is not None:
+        from tvopt_codegen.artifacts import sampled_files  # noqa: PLC0415
+        from tvopt_codegen.simulation.sampled import format_sampled  # noqa: PLC0415
+
+        files.update(sampled_files(derivation, sampled))
+        text += "\n" + format_sampled(derivation, sampled)
+        files[f"{derivation.spec.name}_certificate.txt"] = (text + "\n").encode("utf-8")
+        passed = sampled.passed
+    write_files(files, args.out, force=args.force)
+    print(text)
+    for name in files:
+        print(f"  wrote {args.out.rstrip('/')}/{name}")
+    return 0 if passed else EXIT_CERTIFICATE
