@@ -56,7 +56,7 @@ def environment(root: Path | None = None) -> jinja2.Environment:
     ``root`` None is the shipped ``templates/``; a backend from another package brings
     its own folder (which may still import the shipped macros).
     """
-    from tvopt_codegen.emit import template_cache  # noqa: PLC0415 - emit imports this module
+    from tvopt_codegen.emit.caches import template_cache  # noqa: PLC0415
 
     folders = [str(template_dir())] if root is None else [str(root), str(template_dir())]
     env = jinja2.Environment(

@@ -1,4 +1,4 @@
-"""Stage 6: write output files. The only module of tvopt-codegen that writes.
+"""The writer's transaction: the only way tvopt-codegen puts a file in a folder.
 
 Every file is written atomically (a temporary file in the same folder, flushed and
 then renamed over the target), so a reader or a crash sees the old file or the new
@@ -12,6 +12,11 @@ replaced only if tvopt-codegen wrote it and nobody changed it since, which is kn
 from the file's own stamp (generated code carries a content hash) or from the
 folder's manifest ``.tvopt-manifest.json`` (SHA-256 of every file the tool wrote
 there). ``force=True`` overrides both.
+
+This module needs the standard library, the stamp and the error types only: no
+template engine and no compiler, which live in :mod:`~tvopt_codegen.emit.caches`, so
+that writing a file loads neither. It prints nothing; what recovery left alone is
+returned and told to the caller's ``warn``.
 """
 
 from __future__ import annotations
@@ -23,17 +28,13 @@ import os
 import re
 import signal
 import stat
-import subprocess
-import sys
 import tempfile
 import threading
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-import jinja2
-import jinja2.bccache
-
+from tvopt_codegen.console import warning
 from tvopt_codegen.errors import OutputError
 from tvopt_codegen.stamp import is_pristine, stamped_hash, stamped_spec
 
@@ -268,7 +269,7 @@ def _may_recover(folder: Path, temp: str, target: str, manifest: Mapping[str, st
     return ""
 
 
-def recover(folder: Path, warn: Callable[[str], None] | None = None) -> None:
+def recover(folder: Path, warn: Callable[[str], None] | None = None) -> tuple[str, ...]:
     """Finish publications of processes that died mid-way; drop orphaned temporaries.
 
     Parameters
@@ -276,10 +277,15 @@ def recover(folder: Path, warn: Callable[[str], None] | None = None) -> None:
     folder : pathlib.Path
         The output folder.
     warn : callable, optional
-        Told, one line each, of journal entries left alone (see :func:`_may_recover`);
-        by default they are printed on stderr.
+        Told, one line each and as they are found, of journal entries left alone (see
+        :func:`_may_recover`).
+
+    Returns
+    -------
+    tuple of str
+        The same lines: the journal entries left alone, in the order found.
     """
-    report = warn or _print_warning
+    left: list[str] = []
     claimed: set[str] = set()
     manifest = _read_manifest(folder)
     for journal in sorted(folder.glob(f"{JOURNAL_PREFIX}*.json")):
@@ -298,7 +304,9 @@ def recover(folder: Path, warn: Callable[[str], None] | None = None) -> None:
         for temp, target in pairs:
             problem = _may_recover(folder, temp, target, manifest)
             if problem:
-                report(f"{folder}: left alone while finishing {journal.name}: {problem}")
+                left.append(f"{folder}: left alone while finishing {journal.name}: {problem}")
+                if warn is not None:
+                    warn(left[-1])
                 continue
             # Another run may be finishing the same journal right now.
             with contextlib.suppress(FileNotFoundError):
@@ -316,10 +324,7 @@ def recover(folder: Path, warn: Callable[[str], None] | None = None) -> None:
             continue
         with contextlib.suppress(FileNotFoundError):
             orphan.unlink()
-
-
-def _print_warning(message: str) -> None:
-    print(f"tvopt-codegen: warning: {message}", file=sys.stderr)
+    return tuple(left)
 
 
 @contextlib.contextmanager
@@ -336,7 +341,10 @@ def _signals_held() -> Iterator[None]:
 
 
 def write_files(
-    files: Mapping[str, Content], out_dir: str | Path, force: bool = False
+    files: Mapping[str, Content],
+    out_dir: str | Path,
+    force: bool = False,
+    warn: Callable[[str], None] = warning,
 ) -> list[Path]:
     """Write output files into ``out_dir`` as one transaction.
 
@@ -352,6 +360,11 @@ def write_files(
         The output folder; created if missing when its parent exists.
     force : bool
         Replace files that were edited by hand or not written by this tool.
+    warn : callable
+        Told, one line each, of an interrupted earlier write's journal entries that
+        recovery left alone (:func:`recover`). The default is the command line's
+        warning line (:func:`tvopt_codegen.console.warning`), for the callers that
+        pass none.
 
     Returns
     -------
@@ -368,7 +381,7 @@ def write_files(
             raise OutputError(f"{name!r}: not a plain file name")
     folder = prepare_folder(out_dir)
     try:
-        recover(folder)
+        recover(folder, warn)
     except OSError as exc:
         raise OutputError(f"{folder}: cannot repair an interrupted earlier write: {exc}") from None
     manifest = _read_manifest(folder)
@@ -463,216 +476,6 @@ def _sync_folder(folder: Path) -> None:
             os.close(fd)
 
 
-def cache_folder() -> Path:
-    """Where compiled libraries are kept: ``$TVOPT_CODEGEN_CACHE`` or ~/.cache/tvopt-codegen."""
-    explicit = os.environ.get("TVOPT_CODEGEN_CACHE")
-    return Path(explicit) if explicit else Path.home() / ".cache" / "tvopt-codegen"
-
-
-class _TemplateCache(jinja2.FileSystemBytecodeCache):
-    """jinja's compiled templates, kept across commands (a tenth of a small command).
-
-    jinja names an entry by the template's file and checks the source's checksum and
-    the interpreter's bytecode version on load, so an edited template, a user's own
-    template folder or a new Python compiles afresh; entries are published by rename.
-    """
-
-    def dump_bytecode(self, bucket: jinja2.bccache.Bucket) -> None:
-        # A cache that cannot be written (full disk, read-only home) only costs speed.
-        with contextlib.suppress(OSError):
-            super().dump_bytecode(bucket)
-
-
-def template_cache() -> jinja2.BytecodeCache | None:
-    """The bytecode cache of the templates, in :func:`cache_folder`; None if unusable."""
-    folder = cache_folder() / "templates"
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return None
-    return _TemplateCache(str(folder))
-
-
-def cached_library(sources: Mapping[str, str], main: str) -> Path:
-    """Compile ``main`` (with the other sources beside it) once per content and compiler.
-
-    The library is cached under a hash of the sources, the compiler, its version and
-    the flags; a concurrent build of the same key (two workers of one machine) publishes
-    by rename, so a reader sees a whole library or none.
-
-    Parameters
-    ----------
-    sources : mapping of str to str
-        File name to text; ``main`` is the one compiled, the others are its includes.
-    main : str
-        The translation unit.
-
-    Returns
-    -------
-    pathlib.Path
-        The shared library.
-
-    Raises
-    ------
-    BuildError
-        Without a C compiler, when the cache folder is unusable, or when compiling fails.
-    """
-    from tvopt_codegen.errors import BuildError  # noqa: PLC0415
-    from tvopt_codegen.toolchain import CFLAGS, compiler, version  # noqa: PLC0415
-
-    cc = compiler()
-    key = hashlib.sha256()
-    for part in (
-        cc,
-        version(cc),
-        "\0".join(CFLAGS),
-        *(f"{n}\0{t}" for n, t in sorted(sources.items())),
-    ):
-        key.update(hashlib.sha256(part.encode("utf-8")).digest())
-    cache = cache_folder()
-    stem = Path(main).stem
-    library = cache / f"{stem}-{key.hexdigest()[:24]}.so"
-    if library.is_file():
-        return library
-    try:
-        cache.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(prefix=f".{stem}-", dir=cache) as folder:
-            for name, text in sources.items():
-                (Path(folder) / name).write_text(text, encoding="utf-8")
-            partial = Path(folder) / "library.so"
-            command = [
-                cc,
-                *CFLAGS,
-                "-I",
-                folder,
-                "-o",
-                str(partial),
-                str(Path(folder) / main),
-                "-lm",
-            ]
-            done = subprocess.run(command, capture_output=True, text=True, check=False)
-            if done.returncode != 0:
-                detail = " ".join(done.stderr.strip().splitlines()[:3]) or "(no message)"
-                raise BuildError(f"compiling {main} with {cc} failed: {detail}")
-            os.replace(partial, library)
-    except OSError as exc:
-        raise BuildError(
-            f"the cache folder {cache} cannot be used ({exc.strerror or exc}); set "
-            "TVOPT_CODEGEN_CACHE to a writable folder"
-        ) from None
-    return library
-
-
-class TrajectoryStore:
-    """A Zarr store written block by block as a sweep's samples finish.
-
-    A crash keeps every block written before it. The store is created whole (every
-    array at full size, filled with NaN) so that xarray reads it at any moment.
-
-    Parameters
-    ----------
-    path : str or pathlib.Path
-        The store's folder; it must not exist.
-    variables : mapping of str to (tuple of str, tuple of int, tuple of int)
-        Each array's dimension names, shape and chunks.
-    coords : mapping of str to numpy.ndarray
-        Coordinate arrays (one dimension each, named like it).
-    attrs : mapping
-        The store's attributes (JSON-ready).
-    resume : bool
-        Open the store an interrupted sweep created (the same arrays) to fill the rest.
-
-    Raises
-    ------
-    MissingExtraError
-        Without zarr.
-    OutputError
-        When ``path`` exists (or, to resume, does not hold these arrays) or cannot be
-        created.
-    """
-
-    def __init__(
-        self,
-        path: str | Path,
-        variables: Mapping[str, tuple[tuple[str, ...], tuple[int, ...], tuple[int, ...]]],
-        coords: Mapping[str, Any],
-        attrs: Mapping[str, Any],
-        resume: bool = False,
-    ) -> None:
-        try:
-            import zarr  # noqa: PLC0415
-        except ImportError:
-            from tvopt_codegen.errors import MissingExtraError  # noqa: PLC0415
-
-            raise MissingExtraError(
-                "--trajectories needs zarr: pip install 'tvopt-codegen[sweep]'"
-            ) from None
-        target = Path(path)
-        if resume:
-            self._arrays = self._reopen(zarr, target, variables)
-            return
-        if target.exists() or target.is_symlink():
-            raise OutputError(f"{target}: already exists; refusing to replace a trajectory store")
-        try:
-            group = zarr.open_group(str(target), mode="w-")
-            for name, values in coords.items():
-                # Text as zarr's variable-length strings (fixed-width UTF-32 has no v3 spec).
-                kind = str if values.dtype.kind == "U" else values.dtype
-                array = group.create_array(
-                    name, shape=values.shape, dtype=kind, dimension_names=(name,)
-                )
-                array[:] = values
-            self._arrays = {
-                name: group.create_array(
-                    name,
-                    shape=shape,
-                    chunks=chunks,
-                    dtype="f8",
-                    fill_value=float("nan"),
-                    dimension_names=dims,
-                )
-                for name, (dims, shape, chunks) in variables.items()
-            }
-            group.attrs.update(dict(attrs))
-        except OSError as exc:
-            raise OutputError(f"{target}: cannot create the trajectory store: {exc}") from None
-
-    @staticmethod
-    def _reopen(
-        zarr: Any,
-        target: Path,
-        variables: Mapping[str, tuple[tuple[str, ...], tuple[int, ...], tuple[int, ...]]],
-    ) -> dict[str, Any]:
-        if target.is_symlink() or not target.is_dir():
-            raise OutputError(f"{target}: the interrupted sweep's trajectory store is missing")
-        try:
-            group = zarr.open_group(str(target), mode="r+")
-            arrays = {name: group[name] for name in variables}
-        except (OSError, KeyError, ValueError) as exc:
-            raise OutputError(f"{target}: cannot reopen the trajectory store: {exc}") from None
-        for name, (_dims, shape, _chunks) in variables.items():
-            if tuple(arrays[name].shape) != tuple(shape):
-                raise OutputError(f"{target}: {name} is not this sweep's array (its shape)")
-        return arrays
-
-    def write(self, start: int, values: Mapping[str, Any]) -> None:
-        """Store a block of samples beginning at sample ``start`` (first axis).
-
-        Raises
-        ------
-        OutputError
-            The disk refused the write (full): the blocks written before stay.
-        """
-        try:
-            for name, block in values.items():
-                self._arrays[name][start : start + len(block)] = block
-        except OSError as exc:
-            raise OutputError(
-                f"cannot write the trajectories: {exc.strerror or exc}; the finished samples "
-                "are kept: make room, then `tvopt-codegen sweep --resume` on the folder"
-            ) from None
-
-
 def _file_digest(path: Path) -> str | None:
     """SHA-256 of a regular file, read in blocks (a sweep's table may be gigabytes)."""
     digest = hashlib.sha256()
@@ -749,133 +552,3 @@ def write_stream(
                 temp.unlink()
         raise
     return target
-
-
-class SweepFolder:
-    """A sweep's output folder while the sweep runs: locked, its rows kept as they finish.
-
-    Finished samples go to ``parts/`` (each part a whole file, published by rename), so
-    that a sweep killed by any signal leaves whole files that ``sweep --resume`` reads.
-    A lock (``flock`` on ``.tvopt-sweep.lock``, released by the kernel when the process
-    dies, even by SIGKILL) keeps a second sweep out of the folder while one runs.
-
-    Parameters
-    ----------
-    out_dir : str or pathlib.Path
-        The folder; created (one level deep) when missing.
-    names : list of str
-        The files the sweep will write there: each must be replaceable
-        (:func:`check_replaceable`) before the first sample runs.
-    force : bool
-        Replace files not written by this tool.
-
-    Raises
-    ------
-    OutputError
-        The folder cannot be created or written, another sweep holds it, or a file the
-        sweep would write belongs to the user.
-    """
-
-    LOCK = ".tvopt-sweep.lock"
-    PARTS = "parts"
-    _PART = re.compile(r"part-\d{8}-\d+\.parquet")
-
-    def __init__(self, out_dir: str | Path, names: list[str], force: bool) -> None:
-        folder = Path(out_dir)
-        self.created = not folder.exists() and not folder.is_symlink()
-        self.folder = prepare_folder(folder)
-        self._lock: int | None = None
-        try:
-            self._lock = os.open(
-                self.folder / self.LOCK, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644
-            )
-        except OSError as exc:
-            self._abandon()
-            raise OutputError(
-                f"{self.folder}: cannot write in the output folder: {exc.strerror or exc}"
-            ) from None
-        import fcntl  # noqa: PLC0415 - POSIX only, like the signals the sweep keeps
-
-        try:
-            fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(self._lock)
-            self._lock = None
-            raise OutputError(
-                f"{self.folder}: another sweep is writing to this folder; wait for it, or "
-                "choose another --out"
-            ) from None
-        try:
-            check_replaceable(self.folder, names, force)
-            parts = self.folder / self.PARTS
-            if parts.is_symlink() or (parts.exists() and not parts.is_dir()):
-                raise OutputError(f"{parts}: exists and is not the sweep's folder of parts")
-        except BaseException:
-            self.close(failed=True)
-            raise
-        self._sequence = len(self.parts())
-
-    def parts(self) -> list[Path]:
-        """The parts written so far (by this run or an interrupted one), by name."""
-        where = self.folder / self.PARTS
-        if not where.is_dir():
-            return []
-        return sorted(p for p in where.iterdir() if self._PART.fullmatch(p.name) and p.is_file())
-
-    def write_part(self, produce: Callable[[Any], object]) -> Path:
-        """Publish one part: ``produce`` writes it to a temporary, renamed when whole.
-
-        Raises
-        ------
-        OutputError
-            The disk refused the write (full, read-only); the parts already written stay.
-        """
-        where = self.folder / self.PARTS
-        try:
-            where.mkdir(exist_ok=True)
-            self._sequence += 1
-            target = where / f"part-{self._sequence:08d}-{os.getpid()}.parquet"
-            temp = _produce_temp(target, produce)
-            try:
-                os.replace(temp, target)
-                _sync_folder(where)
-            except BaseException:
-                with contextlib.suppress(FileNotFoundError):
-                    temp.unlink()
-                raise
-        except OSError as exc:
-            raise OutputError(
-                f"{where}: cannot write the finished samples: {exc.strerror or exc}; those "
-                f"written so far are kept: make room, then `tvopt-codegen sweep --resume "
-                f"{self.folder}`"
-            ) from None
-        return target
-
-    def clear_parts(self) -> None:
-        """Remove the parts (the table holds them all now) and their folder if empty."""
-        where = self.folder / self.PARTS
-        for part in self.parts():
-            with contextlib.suppress(FileNotFoundError):
-                part.unlink()
-        if where.is_dir():
-            for orphan in where.glob(f".part-*{_TEMP_SUFFIX}"):
-                with contextlib.suppress(FileNotFoundError):
-                    orphan.unlink()
-            with contextlib.suppress(OSError):
-                where.rmdir()
-
-    def _abandon(self) -> None:
-        """Remove the folder if this run created it and nothing is in it."""
-        if self.created:
-            with contextlib.suppress(OSError):
-                self.folder.rmdir()
-
-    def close(self, failed: bool = False) -> None:
-        """Release the lock; after a failure, leave no empty folder behind."""
-        if self._lock is not None:
-            with contextlib.suppress(FileNotFoundError):
-                (self.folder / self.LOCK).unlink()
-            os.close(self._lock)
-            self._lock = None
-        if failed:
-            self._abandon()
