@@ -191,3 +191,133 @@ def test_only_the_derivation_stage_differentiates() -> None:
     assert not offenders, offenders
     # The scan sees what it must: the derivation's own calls.
     assert _differentiations(PACKAGE / "derivation" / "calculus.py")
+
+
+#: The writer's package, and the one module of it that may compile: templates (jinja2)
+#: or C (the toolchain).
+WRITER = PACKAGE / "emit"
+WRITER_CACHES = "tvopt_codegen.emit.caches"
+#: What finds or runs a compiler or compiles templates: the template engine, processes,
+#: the interpreter's build settings, and the project's modules that run the C compiler.
+_TOOLCHAIN = ("jinja2", "subprocess", "sysconfig", "tvopt_codegen.toolchain", "tvopt_codegen.fmu")
+#: A compiler looked up by name on PATH, as ``(module, name)``.
+_TOOLCHAIN_LOOKUPS = {("shutil", "which"), ("os", "get_exec_path")}
+_TERMINAL = {"stdout", "stderr", "__stdout__", "__stderr__"}
+
+
+def _writer_reach(path: Path, root: Path = ROOT) -> tuple[list[str], list[str]]:
+    """What in ``path`` reaches the toolchain, and what reaches the terminal, a line each.
+
+    Every import counts (module level, in functions, under ``TYPE_CHECKING``, and
+    ``importlib.import_module`` or ``__import__`` of a literal name), as do
+    ``shutil.which``-style lookups. The terminal is reached by a ``print`` call or any
+    use of ``sys.stdout`` or ``sys.stderr`` (a ``write``, a ``file=`` argument, a
+    ``from sys import``). Importing the writer's caches counts as reaching the toolchain.
+    """
+    name = _module_name(path, root)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    imported: list[tuple[int, str]] = []
+    toolchain: list[str] = []
+    terminal: list[str] = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        line = f"{path.name}:{getattr(node, 'lineno', 0)}"
+        if isinstance(node, ast.Import):
+            imported += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")
+                base = ".".join(parts[: len(parts) - node.level + 1] + ([base] if base else []))
+            imported.append((node.lineno, base))
+            for alias in node.names:
+                imported.append((node.lineno, f"{base}.{alias.name}"))
+                if (base, alias.name) in _TOOLCHAIN_LOOKUPS:
+                    toolchain.append(f"{line} imports {base}.{alias.name}")
+                if base == "sys" and alias.name in _TERMINAL:
+                    terminal.append(f"{line} imports sys.{alias.name}")
+        elif isinstance(node, ast.Call):
+            func = node.func
+            called = func.id if isinstance(func, ast.Name) else getattr(func, "attr", "")
+            if called == "print":
+                terminal.append(f"{line} calls print")
+            elif called in {"import_module", "__import__"} and node.args:
+                first = node.args[0]
+                if isinstance(first, ast.Constant) and isinstance(first.value, str):
+                    imported.append((node.lineno, first.value))
+        elif isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
+            if (node.value.id, node.attr) in _TOOLCHAIN_LOOKUPS:
+                toolchain.append(f"{line} uses {node.value.id}.{node.attr}")
+            if node.value.id == "sys" and node.attr in _TERMINAL:
+                terminal.append(f"{line} uses sys.{node.attr}")
+    toolchain += [
+        f"{path.name}:{lineno} imports {module}"
+        for lineno, module in imported
+        if any(module == m or module.startswith(f"{m}.") for m in (*_TOOLCHAIN, WRITER_CACHES))
+    ]
+    return sorted(set(toolchain)), sorted(set(terminal))
+
+
+def test_the_writer_only_writes() -> None:
+    """Only ``emit.caches`` reaches jinja2 or the compiler; nothing in ``emit`` prints.
+
+    The package's ``__init__`` re-exports the caches' names, imported on first use, so
+    it may name that module (and that module alone); the transaction and the sweep's
+    streams may not, or writing a file would load the toolchain through them.
+    """
+    modules = {_module_name(p): p for p in sorted(WRITER.glob("*.py"))}
+    assert {"transaction", "caches", "streams"} <= {m.rpartition(".")[2] for m in modules}
+    offences = []
+    for module, path in modules.items():
+        toolchain, terminal = _writer_reach(path)
+        offences += terminal
+        if module == "tvopt_codegen.emit":
+            offences += [
+                o
+                for o in toolchain
+                if not f"{o.partition(' imports ')[2]}.".startswith(f"{WRITER_CACHES}.")
+            ]
+        elif module != WRITER_CACHES:
+            offences += toolchain
+    assert not offences, offences
+    # The scan sees what it must: the caches' own jinja2, compiler and toolchain.
+    caches, _ = _writer_reach(modules[WRITER_CACHES])
+    for what in ("jinja2", "subprocess", "tvopt_codegen.toolchain"):
+        assert any(o.endswith(f"imports {what}") for o in caches), (what, caches)
+
+
+def test_the_writer_scan_sees_every_way_to_the_toolchain_or_the_terminal(
+    tmp_path: Path,
+) -> None:
+    writer = tmp_path / "tvopt_codegen" / "emit"
+    writer.mkdir(parents=True)
+    bad = writer / "bad.py"
+    bad.write_text(
+        "import importlib, shutil, sys\n"
+        "from typing import TYPE_CHECKING\n"
+        "from .caches import cached_library\n"
+        "if TYPE_CHECKING:\n"
+        "    import jinja2\n"
+        "def f():\n"
+        "    from tvopt_codegen import toolchain\n"
+        "    import subprocess as sp\n"
+        "    importlib.import_module('sysconfig')\n"
+        "    shutil.which('cc')\n"
+        "    print('x')\n"
+        "    sys.stderr.write('x')\n"
+        "    print('y', file=sys.stdout)\n"
+    )
+    toolchain, terminal = _writer_reach(bad, tmp_path)
+    for what in (
+        "imports tvopt_codegen.emit.caches",
+        "imports jinja2",
+        "imports tvopt_codegen.toolchain",
+        "imports subprocess",
+        "imports sysconfig",
+        "uses shutil.which",
+    ):
+        assert any(o.endswith(what) for o in toolchain), (what, toolchain)
+    for what in ("calls print", "uses sys.stderr", "uses sys.stdout"):
+        assert any(o.endswith(what) for o in terminal), (what, terminal)
+    clean = writer / "clean.py"
+    clean.write_text("import os\nfrom pathlib import Path\n\nos.replace(Path('a'), Path('b'))\n")
+    assert _writer_reach(clean, tmp_path) == ([], [])
