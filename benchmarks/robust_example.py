@@ -15,7 +15,7 @@ thrust limited to 11.3 N, the integral with and without anti-windup, and the obs
 
 Each sweep is ``tvopt_codegen.sweep.run_sweep`` on one LocalCluster of 2 workers, with
 the seed fixed: ``tvopt-codegen sweep SPEC --samples 1000 --seed 2026 --plant-param ...
---sample-time 0.001 [--noise 0.001]`` gives the same table, sample for sample.
+--sample-time 0.001 [--measurement-noise 0.001]`` gives the same table, sample for sample.
 """
 
 from __future__ import annotations

@@ -236,7 +236,7 @@ def test_simulate_from_samples_tracks_and_the_iss_bound_holds_at_every_noise(
     from tvopt_codegen.cli import main
 
     code = main(
-        ["simulate", name, "--reference-file", str(samples_file), "--noise", "1e-3", "--out"]
+        ["simulate", name, "--reference-file", str(samples_file), "--reference-noise", "1e-3", "--out"]
         + [str(out)]
     )
     printed = capsys.readouterr().out

@@ -377,7 +377,7 @@ def test_sweep_is_the_same_whatever_the_workers_and_chunks(
         (["--plant-param", "a=normal(1)"], "takes two numbers"),
         (["--initial", "omega=1"], "unknown state 'omega'"),
         (["--saturation", "thrust=1"], "unknown input 'thrust'"),
-        (["--noise", "0.1"], "needs --sample-time"),
+        (["--measurement-noise", "0.1"], "needs --sample-time"),
         (["--samples", "-3"], "must be positive"),
         (["--scheduler", "tcp://127.0.0.1:{port}"], "cannot reach"),
     ],

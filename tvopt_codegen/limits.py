@@ -154,6 +154,24 @@ RUN_OPTIONS: dict[str, RunOption] = {
             metavar="H",
         ),
         RunOption(
+            "--reference-noise",
+            float,
+            0.0,
+            "simulate, with --reference-file: Gaussian noise of this standard deviation on "
+            "every reference sample",
+            low=0.0,
+            metavar="SIGMA",
+        ),
+        RunOption(
+            "--measurement-noise",
+            float,
+            0.0,
+            "sweep, with --sample-time: Gaussian noise of this standard deviation on every "
+            "measured plant state",
+            low=0.0,
+            metavar="SIGMA",
+        ),
+        RunOption(
             "--seed", int, 0, "seed of the random draws", low=0, high=MAX_SEED, high_open=False
         ),
         RunOption(

@@ -36,6 +36,30 @@ def add(target: Target, *names: str, hidden: bool = False) -> None:
         )
 
 
+class _Renamed(argparse.Action):
+    """An option's old spelling: refused at once, with a one-line hint naming the new one."""
+
+    def __init__(self, option_strings: list[str], dest: str, new: str, **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, **kwargs)
+        self.new = new
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        parser.error(f"{option_string} is now {self.new}")
+
+
+def renamed(target: Target, old: str, new: str) -> None:
+    """Refuse ``old``, an option renamed: the error names ``new`` (neither in ``--help``)."""
+    target.add_argument(
+        old, nargs="?", action=_Renamed, new=new, help=argparse.SUPPRESS, dest=argparse.SUPPRESS
+    )
+
+
 def check(args: argparse.Namespace) -> None:
     """Refuse the first run option given out of its bounds, naming it."""
     for name, option in RUN_OPTIONS.items():

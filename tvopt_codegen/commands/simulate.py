@@ -73,12 +73,9 @@ def build(parser: argparse.ArgumentParser) -> None:
         help="for a spec with [references]: samples t, <reference>, ... estimated online "
         "into jets by the spec's differentiator (default: the nominal closed forms)",
     )
-    parser.add_argument(
-        "--noise",
-        type=float,
-        default=0.0,
-        metavar="SIGMA",
-        help="with --reference-file: Gaussian noise of this standard deviation on every sample",
+    run_options.add(parser, "reference_noise")
+    run_options.renamed(
+        parser, "--noise", "--reference-noise (Gaussian noise on the reference samples)"
     )
     parser.add_argument(
         "--allow-gaps",
@@ -139,10 +136,8 @@ def _simulate_with(args: argparse.Namespace, painter: Painter) -> int:
     # The shared run options' bounds are checked already (commands.run_options.check).
     if not 0 < args.tolerance < math.inf:
         raise SpecError("command line", "--tolerance", "must be positive and finite")
-    if not 0 <= args.noise < math.inf:
-        raise SpecError("command line", "--noise", "must be zero or positive and finite")
-    if args.noise and args.reference_file is None:
-        raise SpecError("command line", "--noise", "needs --reference-file")
+    if args.reference_noise and args.reference_file is None:
+        raise SpecError("command line", "--reference-noise", "needs --reference-file")
     if args.allow_gaps and args.reference_file is None:
         raise SpecError("command line", "--allow-gaps", "needs --reference-file")
     if args.convergence_order and args.sample_time is None:
@@ -201,7 +196,7 @@ def _simulate_with(args: argparse.Namespace, painter: Painter) -> int:
         from tvopt_codegen.simulation.references import sampled_source  # noqa: PLC0415
 
         references = sampled_source(
-            derivation, controller, dict(options.params), *samples, args.noise, args.seed
+            derivation, controller, dict(options.params), *samples, args.reference_noise, args.seed
         )
     progress = _Progress()
     try:

@@ -78,12 +78,9 @@ def build(parser: argparse.ArgumentParser) -> None:
             "(repeatable; default: the spec's [limits])"
         ),
     )
-    parser.add_argument(
-        "--noise",
-        type=float,
-        default=0.0,
-        metavar="SIGMA",
-        help="with --sample-time: Gaussian noise on every measured plant state",
+    run_options.add(parser, "measurement_noise")
+    run_options.renamed(
+        parser, "--noise", "--measurement-noise (Gaussian noise on the measured plant states)"
     )
     run_options.add(parser, "sample_time", "t_final", "rtol", "atol", "points")
     where = parser.add_mutually_exclusive_group()
@@ -182,7 +179,7 @@ def _options(args: argparse.Namespace, program: Any, horizon: float) -> Any:
         ),
         # The plant's actuators: --saturation, else the spec's [limits].
         limits=parse_limits(args.saturation, program.input_names) or program.limits,
-        noise=args.noise,
+        noise=args.measurement_noise,
         sample_time=args.sample_time,
         rtol=args.rtol,
         atol=args.atol,
@@ -627,7 +624,9 @@ def _from_record(folder: Path) -> tuple[dict[str, Any], Any, str, bytes, Any]:
     try:
         check_options(program, options)
     except SpecError as exc:
-        where = "options." + exc.field.lstrip("-").replace("-", "_")
+        key = exc.field.lstrip("-").replace("-", "_")
+        # The record's key of --measurement-noise is the options' own name, noise.
+        where = "options." + ("noise" if key == "measurement_noise" else key)
         raise SpecError(str(folder / RECORD), where, exc.problem) from None
     return record, options, spec_name, spec_bytes, program
 
@@ -641,7 +640,7 @@ _DEFINING: dict[str, object] = {
     "param": [],
     "plant_param": [],
     "saturation": [],
-    "noise": 0.0,
+    "measurement_noise": RUN_OPTIONS["measurement_noise"].default,
     "sample_time": None,
     "t_final": None,
     "rtol": RUN_OPTIONS["rtol"].default,

@@ -221,8 +221,9 @@ def check_options(program: SweepProgram, options: SweepOptions) -> None:
         problem = None if value is None else RUN_OPTIONS[name].problem(value)
         if problem is not None:
             raise SpecError("command line", RUN_OPTIONS[name].flag, problem)
-    if not 0 <= options.noise < math.inf:
-        raise SpecError("command line", "--noise", "must be zero or positive and finite")
+    noise = RUN_OPTIONS["measurement_noise"]
+    if noise.problem(options.noise) is not None:
+        raise SpecError("command line", noise.flag, noise.bounds)
     if options.sample_time is not None:
         if options.t_final / options.sample_time > 10_000_000:
             raise SpecError(
@@ -231,7 +232,7 @@ def check_options(program: SweepProgram, options: SweepOptions) -> None:
     elif options.noise:
         raise SpecError(
             "command line",
-            "--noise",
+            noise.flag,
             "needs --sample-time (the noise is drawn once per measurement)",
         )
     elif program.observer:

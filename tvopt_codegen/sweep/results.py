@@ -217,7 +217,7 @@ def format_summary(name: str, options: SweepOptions, summary: Summary) -> str:
     spread += [f"`--plant-param {n}={d}`" for n, d in options.plant_params]
     spread += [f"`--saturation {n}={lo:g}:{hi:g}`" for n, lo, hi in options.limits]
     if options.noise:
-        spread.append(f"`--noise {options.noise:g}`")
+        spread.append(f"`--measurement-noise {options.noise:g}`")
     loop = (
         f"sampled every {options.sample_time:g} s (zero-order hold)"
         if options.sample_time
