@@ -42,6 +42,7 @@ from tvopt_codegen.errors import (
     EXIT_TERMINATED,
     Terminated,
     TvoptError,
+    exit_codes_text,
     one_line,
 )
 
@@ -70,9 +71,7 @@ def _parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="tvopt-codegen",
         description="Generate implicit trajectory planning controllers from a spec file.",
-        epilog="Exit codes: 0 ok, 2 bad spec or usage, 3 assumptions violated, 4 output not "
-        "written, 5 certificate failed, 6 budget exceeded, 7 build failed, 70 internal error, "
-        "130 interrupted, 143 terminated.",
+        epilog=exit_codes_text(),
     )
     parser.add_argument("--version", action="version", version=f"tvopt-codegen {__version__}")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -147,7 +146,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous)
         gc.set_threshold(*collector)
-        # What _without_collector froze becomes collectable again for a caller that goes on.
+        # What common.without_collector froze becomes collectable again for a caller that goes on.
         gc.unfreeze()
 
 

@@ -31,6 +31,27 @@ EXIT_INTERRUPTED = 130
 #: Exit code after SIGTERM.
 EXIT_TERMINATED = 143
 
+#: Every exit code of ``tvopt-codegen`` and what it means, in one line each: the command
+#: line's ``--help`` prints it, and the README's table is checked against it.
+EXIT_CODES: dict[int, str] = {
+    EXIT_OK: "ok",
+    EXIT_BAD_SPEC: "bad spec or usage",
+    EXIT_ASSUMPTION: "assumptions violated",
+    EXIT_OUTPUT: "output not written",
+    EXIT_CERTIFICATE: "certificate failed",
+    EXIT_BUDGET: "budget exceeded",
+    EXIT_BUILD: "build failed",
+    EXIT_INTERNAL: "internal error",
+    EXIT_INTERRUPTED: "interrupted",
+    EXIT_BROKEN_PIPE: "stdout closed by its reader",
+    EXIT_TERMINATED: "terminated",
+}
+
+
+def exit_codes_text() -> str:
+    """The exit codes in one sentence (``tvopt-codegen --help``'s epilog)."""
+    return "Exit codes: " + ", ".join(f"{c} {m}" for c, m in EXIT_CODES.items()) + "."
+
 
 class Terminated(BaseException):  # noqa: N818 - a signal, like KeyboardInterrupt
     """SIGTERM, raised where the process is so that it unwinds like Ctrl-C.
