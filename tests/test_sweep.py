@@ -145,7 +145,13 @@ def test_mismatch_and_saturation_match_an_independent_loop() -> None:
         return ds
 
     solution = solve_ivp(
-        rhs, (0.0, 6.0), sample.s0, rtol=1e-8, atol=1e-10, t_eval=rows[:, 0], method="RK45"
+        rhs,
+        (0.0, 6.0),
+        sample.s0,
+        rtol=options.rtol,
+        atol=options.atol,
+        t_eval=rows[:, 0],
+        method="RK45",
     )
     assert np.max(np.abs(solution.y.T - rows[:, _columns(p)["s"]])) < 1e-9
     assert model.params  # m and J are the spec's parameters
