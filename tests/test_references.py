@@ -236,8 +236,8 @@ def test_simulate_from_samples_tracks_and_the_iss_bound_holds_at_every_noise(
     from tvopt_codegen.cli import main
 
     code = main(
-        ["simulate", name, "--reference-file", str(samples_file), "--reference-noise", "1e-3", "--out"]
-        + [str(out)]
+        ["simulate", name, "--reference-file", str(samples_file), "--reference-noise", "1e-3"]
+        + ["--out", str(out)]
     )
     printed = capsys.readouterr().out
     assert code == 0, printed
