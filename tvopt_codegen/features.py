@@ -40,6 +40,7 @@ class Derived(Protocol):
     def padding(self) -> Sequence[Sequence[str]]:
         """The padding chains' state names, per output (empty where none)."""
 
+
 #: A feature: an axis of the matrix and one of its values.
 Feature = tuple[str, str]
 
