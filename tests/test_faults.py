@@ -370,6 +370,25 @@ def test_recovery_never_moves_or_replaces_a_users_file(
     assert not list(out.glob(".tvopt-journal-*"))
 
 
+def test_a_library_caller_hears_of_what_recovery_left_alone_as_a_warning(
+    tmp_path: Path,
+) -> None:
+    # The writer prints nothing: without a warn of the caller's, a journal entry left
+    # alone is a RuntimeWarning, which the caller filters or records like any other.
+    out = tmp_path / "out"
+    emit.write_files({"a.txt": "one\n"}, out)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("the user's notes\n")
+    _journal(out, [["../victim.txt", "stolen.txt"]])
+    with pytest.warns(RuntimeWarning, match="left alone while finishing"):
+        emit.write_files({"a.txt": "two\n"}, out)
+    heard: list[str] = []
+    _journal(out, [["../victim.txt", "stolen.txt"]])
+    emit.write_files({"a.txt": "three\n"}, out, warn=heard.append)
+    assert len(heard) == 1 and "left alone while finishing" in heard[0]
+    assert victim.read_text() == "the user's notes\n" and (out / "a.txt").read_text() == "three\n"
+
+
 def test_a_fifo_named_like_the_manifest_or_a_journal_does_not_hang(tmp_path: Path) -> None:
     out = tmp_path / "out"
     out.mkdir()

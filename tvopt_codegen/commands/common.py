@@ -83,8 +83,17 @@ def derive(args: argparse.Namespace) -> tuple[Derivation, KernelSet]:
         progress.close()
     args.stage_seconds = stages
     for warning in derivation.warnings:
-        print(one_line(f"tvopt-codegen: warning: {spec.source}: {warning}"), file=sys.stderr)
+        warn(f"{spec.source}: {warning}")
     return derivation, kernels
+
+
+def warn(text: str) -> None:
+    """Print one of the command line's warnings: one line on stderr.
+
+    Stages do not print; what they want a person to know short of an error they return,
+    or tell a ``warn`` callable the command passes (this one).
+    """
+    print(one_line(f"tvopt-codegen: warning: {text}"), file=sys.stderr)
 
 
 @contextlib.contextmanager

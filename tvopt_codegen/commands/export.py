@@ -40,6 +40,6 @@ def run(args: argparse.Namespace) -> int:
     common.check_out(args.out)
     derivation, kernels = common.derive(args)
     name = f"{derivation.spec.name}.fmu"
-    write_files({name: build_fmu(kernels, args.fmi)}, args.out, force=args.force)
+    write_files({name: build_fmu(kernels, args.fmi)}, args.out, force=args.force, warn=common.warn)
     print(f"wrote {args.out.rstrip('/')}/{name} (FMI {args.fmi}.0 co-simulation)")
     return 0

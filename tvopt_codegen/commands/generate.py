@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     with common.without_collector():
         files = render(kernels, args.backend)
     rendered = time.perf_counter()
-    written = write_files(files, args.out, force=args.force)
+    written = write_files(files, args.out, force=args.force, warn=common.warn)
     if args.timings:
         import json  # noqa: PLC0415
 

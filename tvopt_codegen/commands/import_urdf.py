@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
         # start.
         stage("reading the spec back")
         build_model(spec_from_dict(tomllib.loads(text), source=str(out)))
-    write_files({out.name: text}, out.parent, force=args.force)
+    write_files({out.name: text}, out.parent, force=args.force, warn=common.warn)
     joints = len(spec["system"]["coordinates"])
     print(
         f"wrote {out} ({joints} joints, {len(spec['system']['mechanics']['definitions'])} "

@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     results = read_results(args.out, derivation.spec.name)
     formats = ("html", "md") if args.format == "both" else (args.format,)
     files = render_report(derivation, kernels, results, formats)
-    write_files(files, args.out, force=args.force)
+    write_files(files, args.out, force=args.force, warn=common.warn)
     for name in files:
         print(f"wrote {args.out.rstrip('/')}/{name}")
     if results:

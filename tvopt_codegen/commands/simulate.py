@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 from tvopt_codegen import backends
 from tvopt_codegen.commands import common, run_options
-from tvopt_codegen.errors import EXIT_CERTIFICATE, SpecError, one_line
+from tvopt_codegen.errors import EXIT_CERTIFICATE, SpecError
 from tvopt_codegen.limits import METHODS
 
 if TYPE_CHECKING:
@@ -188,7 +188,7 @@ def _simulate_with(args: argparse.Namespace, painter: Painter) -> int:
             derivation,
             options.t_final,
             allow_gaps=args.allow_gaps,
-            warn=lambda text: print(one_line(f"tvopt-codegen: warning: {text}"), file=sys.stderr),
+            warn=common.warn,
         )
     controller = load_controller(kernels, args.backend)
     references = None
@@ -231,7 +231,7 @@ def _simulate_with(args: argparse.Namespace, painter: Painter) -> int:
         text += "\n" + format_sampled(derivation, sampled)
         files[f"{derivation.spec.name}_certificate.txt"] = (text + "\n").encode("utf-8")
         passed = sampled.passed
-    write_files(files, args.out, force=args.force)
+    write_files(files, args.out, force=args.force, warn=common.warn)
     print(text)
     for name in files:
         print(f"  wrote {args.out.rstrip('/')}/{name}")

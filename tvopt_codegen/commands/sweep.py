@@ -427,7 +427,7 @@ def _publish(
         (tally.values("final_error"), tally.values("settling_1pct")),
         {i: t for i, t in worst.items() if t is not None},
     )
-    write_files(files, folder.folder, force=args.force)
+    write_files(files, folder.folder, force=args.force, warn=common.warn)
     if not absent:
         folder.clear_parts()
     print(files["summary.md"].decode().rstrip())
@@ -500,6 +500,7 @@ def sweep(args: argparse.Namespace) -> int:
                 {RECORD: record_bytes(record), spec_name: raw.decode("utf-8")},
                 folder.folder,
                 force=args.force,
+                warn=common.warn,
             )
         except BaseException:
             _disconnect(client, cluster)
@@ -768,7 +769,7 @@ def replay(args: argparse.Namespace) -> int:
     from tvopt_codegen.artifacts import replay_files  # noqa: PLC0415 - matplotlib on use
 
     files = replay_files(program, result)
-    write_files(files, args.out, force=args.force)
+    write_files(files, args.out, force=args.force, warn=common.warn)
     stored = read_row(table, index)
     for key in ("status", "final_error", "max_error", "seed"):
         print(f"  {key}: {result.row[key]}")

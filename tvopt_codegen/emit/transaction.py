@@ -30,11 +30,11 @@ import signal
 import stat
 import tempfile
 import threading
+import warnings
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from tvopt_codegen.console import warning
 from tvopt_codegen.errors import OutputError
 from tvopt_codegen.stamp import is_pristine, stamped_hash, stamped_spec
 
@@ -340,11 +340,16 @@ def _signals_held() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
+def _runtime_warning(text: str) -> None:
+    """A library caller's way of hearing what a command would print as a warning."""
+    warnings.warn(text, RuntimeWarning, stacklevel=4)
+
+
 def write_files(
     files: Mapping[str, Content],
     out_dir: str | Path,
     force: bool = False,
-    warn: Callable[[str], None] = warning,
+    warn: Callable[[str], None] | None = None,
 ) -> list[Path]:
     """Write output files into ``out_dir`` as one transaction.
 
@@ -362,9 +367,9 @@ def write_files(
         Replace files that were edited by hand or not written by this tool.
     warn : callable
         Told, one line each, of an interrupted earlier write's journal entries that
-        recovery left alone (:func:`recover`). The default is the command line's
-        warning line (:func:`tvopt_codegen.console.warning`), for the callers that
-        pass none.
+        recovery left alone (:func:`recover`). The commands pass their warning line;
+        without one, each is a :class:`RuntimeWarning` (the library's callers filter or
+        record them as they do any warning).
 
     Returns
     -------
@@ -381,7 +386,7 @@ def write_files(
             raise OutputError(f"{name!r}: not a plain file name")
     folder = prepare_folder(out_dir)
     try:
-        recover(folder, warn)
+        recover(folder, warn or _runtime_warning)
     except OSError as exc:
         raise OutputError(f"{folder}: cannot repair an interrupted earlier write: {exc}") from None
     manifest = _read_manifest(folder)
