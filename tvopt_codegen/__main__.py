@@ -13,10 +13,12 @@ import signal
 import sys
 import threading
 
+from tvopt_codegen.errors import EXIT_INTERRUPTED, EXIT_TERMINATED
+
 
 def _terminated_while_loading(_signum: int, _frame: object) -> None:
     print("tvopt-codegen: terminated; nothing was written", file=sys.stderr)
-    raise SystemExit(143)
+    raise SystemExit(EXIT_TERMINATED)
 
 
 def entry() -> int:
@@ -26,7 +28,7 @@ def entry() -> int:
         from tvopt_codegen.cli import main  # noqa: PLC0415 - signals are handled around it
     except KeyboardInterrupt:
         print("tvopt-codegen: interrupted; nothing was written", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     finally:
         signal.signal(signal.SIGTERM, previous)
     code = main()

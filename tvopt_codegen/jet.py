@@ -91,7 +91,7 @@ def release(walk: Callable[..., object]) -> None:
     (often the size of the program) alive until then. Called once the walk is done, this
     empties that cell, and reference counting frees the function and its memo at once:
     the command line can then run the derivation without the collector
-    (``cli._without_collector``), whose scans of the live expressions were a tenth of a
+    (``commands.common.without_collector``), whose scans of the live expressions were a tenth of a
     large team's run.
     """
     for cell in walk.__closure__ or ():

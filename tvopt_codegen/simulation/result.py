@@ -21,7 +21,7 @@ from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.emit import write_files
 from tvopt_codegen.errors import BuildError, SpecError
 from tvopt_codegen.ir import KernelSet
-from tvopt_codegen.limits import MAX_T_FINAL
+from tvopt_codegen.limits import DEFAULT_ATOL, DEFAULT_POINTS, DEFAULT_RTOL, MAX_T_FINAL
 from tvopt_codegen.rendering import render
 
 
@@ -82,9 +82,9 @@ class Options:
     initial_state: tuple[float, ...]
     params: Mapping[str, float] = field(default_factory=dict)
     method: str = "RK45"
-    rtol: float = 1e-10
-    atol: float = 1e-12
-    points: int = 401
+    rtol: float = DEFAULT_RTOL
+    atol: float = DEFAULT_ATOL
+    points: int = DEFAULT_POINTS
     tolerance: float = 1e-6
     given: frozenset[str] = frozenset()
 
