@@ -9,6 +9,7 @@ INSTALLED := $(VENV)/.installed
 READY := $(VENV)/.compiled
 EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring arm_on_line planar_arm3
 
+.PHONY: test-fast test-durations coverage-fast
 .PHONY: all demo figures bench bench-baseline bench-derive bench-representation bench-sweep bench-sweep-scale bench-commands sweep-example robust-example reference-noise fuzz test lint typecheck check regen check-generated update-golden clean
 
 all: test
@@ -64,7 +65,24 @@ figures: $(READY)
 
 ## test: the whole test suite
 test: $(READY)
-	$(PY) -m pytest
+	$(PY) -m pytest -n auto --dist worksteal
+
+## test-fast: the quick part of the suite (no test over 1.5 s in tests/durations.json), on
+##   every core: what a contributor runs after each change
+test-fast: $(READY)
+	$(PY) -m pytest -n auto --dist worksteal -m "not slow"
+
+## test-durations: the whole suite once more, writing each test's seconds to
+##   tests/durations.json (which tests are slow)
+test-durations: $(READY)
+	TVOPT_TEST_DURATIONS=tests/durations.json $(PY) -m pytest -n auto --dist worksteal
+
+## coverage-fast: which lines of the package make test-fast runs; fails if a module is left
+##   unexercised (tests/coverage_check.py)
+coverage-fast: $(READY)
+	$(PY) -m coverage run --source=tvopt_codegen -m pytest -q -p no:xdist -m "not slow"
+	$(PY) -m coverage report --sort=cover
+	$(PY) -m tests.coverage_check
 
 ## bench: C and NumPy controllers against CasADi (installs the bench extra: casadi, cffi)
 bench: $(READY)

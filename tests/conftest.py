@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+import json
 import os
+import signal
 import sys
 from pathlib import Path
 from types import ModuleType
@@ -165,3 +167,50 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
     line = skip_summary(reasons)
     if line:
         terminalreporter.write_line(line, yellow=True)
+
+
+#: A test that took longer than this (seconds, in ``tests/durations.json``) is ``slow``:
+#: ``make test`` runs it, ``make test-fast`` does not. The durations are of a whole run on
+#: both cores of this 2-core machine; ``make test-durations`` measures them again.
+SLOW_SECONDS = 1.5
+DURATIONS = Path(__file__).resolve().parent / "durations.json"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Undo what pytest-xdist's workers start with that the signal tests cannot live with.
+
+    A worker starts with SIGINT ignored, and an ignored signal stays ignored across
+    ``exec``: the command-line processes the tests interrupt would never see their Ctrl-C,
+    and a test of the handlers the tool restores would find ``SIG_IGN`` to begin with.
+    """
+    if os.environ.get("PYTEST_XDIST_WORKER") and signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark ``slow`` every test whose recorded duration is over :data:`SLOW_SECONDS`."""
+    try:
+        durations = json.loads(DURATIONS.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return
+    for item in items:
+        if durations.get(item.nodeid, 0.0) > SLOW_SECONDS:
+            item.add_marker(pytest.mark.slow)
+
+
+_MEASURED: dict[str, float] = {}
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    """Add up each test's setup, call and teardown when ``make test-durations`` asks."""
+    if os.environ.get("TVOPT_TEST_DURATIONS"):
+        _MEASURED[report.nodeid] = _MEASURED.get(report.nodeid, 0.0) + report.duration
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """Write the durations ``make test-durations`` measured (the controller's, once)."""
+    target = os.environ.get("TVOPT_TEST_DURATIONS")
+    if not target or os.environ.get("PYTEST_XDIST_WORKER") or not _MEASURED:
+        return
+    kept = {k: round(v, 2) for k, v in sorted(_MEASURED.items()) if v >= 0.5}
+    Path(target).write_text(json.dumps(kept, indent=0, sort_keys=True) + "\n", encoding="utf-8")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from .conftest import skip_summary
+from .coverage_check import unexercised
 
 
 def test_skips_are_counted_with_the_command_that_runs_them() -> None:
@@ -24,3 +25,16 @@ def test_skips_are_counted_with_the_command_that_runs_them() -> None:
 
 def test_a_run_without_skips_prints_nothing() -> None:
     assert skip_summary([]) == ""
+
+
+def test_a_module_of_which_no_line_ran_fails_the_coverage_check() -> None:
+    def summary(covered: int, statements: int) -> dict[str, dict[str, int]]:
+        return {"summary": {"covered_lines": covered, "num_statements": statements}}
+
+    report = {
+        "tvopt_codegen/lie.py": summary(40, 50),
+        "tvopt_codegen/never.py": summary(0, 12),
+        "tvopt_codegen/empty.py": summary(0, 0),
+        "tvopt_codegen/__main__.py": summary(0, 20),
+    }
+    assert unexercised(report) == ["tvopt_codegen/never.py"]
