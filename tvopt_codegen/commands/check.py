@@ -12,7 +12,7 @@ HELP = "print the derivation summary; writes nothing"
 
 def build(parser: argparse.ArgumentParser) -> None:
     """The ``check`` command's options."""
-    parser.add_argument("spec", help="spec file, or the name of a bundled example")
+    common.spec_argument(parser)
     common.derivation_options(parser)
 
 

@@ -29,6 +29,24 @@ if TYPE_CHECKING:
     from tvopt_codegen.ir import KernelSet
 
 
+def spec_argument(command: argparse.ArgumentParser) -> None:
+    """The spec every deriving command starts from."""
+    command.add_argument("spec", help="spec file, or the name of a bundled example")
+
+
+def output_options(
+    command: argparse.ArgumentParser,
+    out_help: str = "output folder (default: current folder)",
+) -> None:
+    """``--out`` (a folder, the current one by default) and ``--force``."""
+    command.add_argument("--out", default=".", help=out_help)
+    command.add_argument(
+        "--force",
+        action="store_true",
+        help="replace files that were edited by hand or not written here",
+    )
+
+
 def derivation_options(command: argparse.ArgumentParser) -> None:
     """The options of every command that derives the law (all but examples and sweep)."""
     command.add_argument(

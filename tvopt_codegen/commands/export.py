@@ -12,7 +12,7 @@ HELP = "export the stateful controller for other tools (an FMU)"
 
 def build(parser: argparse.ArgumentParser) -> None:
     """The ``export`` command's options."""
-    parser.add_argument("spec", help="spec file, or the name of a bundled example")
+    common.spec_argument(parser)
     parser.add_argument(
         "--fmu",
         action="store_true",
@@ -21,12 +21,7 @@ def build(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--fmi", type=int, default=2, choices=(2, 3), help="FMI version (default: 2)"
     )
-    parser.add_argument("--out", default=".", help="output folder (default: current folder)")
-    parser.add_argument(
-        "--force",
-        action="store_true",
-        help="replace files that were edited by hand or not written here",
-    )
+    common.output_options(parser)
     common.derivation_options(parser)
 
 

@@ -14,19 +14,14 @@ HELP = "derive the law and write the controller"
 
 def build(parser: argparse.ArgumentParser) -> None:
     """The ``generate`` command's options."""
-    parser.add_argument("spec", help="spec file, or the name of a bundled example")
-    parser.add_argument("--out", default=".", help="output folder (default: current folder)")
+    common.spec_argument(parser)
     parser.add_argument(
         "--backend",
         default="python",
         choices=sorted(backends.BACKENDS),
         help="target language (default: python)",
     )
-    parser.add_argument(
-        "--force",
-        action="store_true",
-        help="replace files that were edited by hand or not generated here",
-    )
+    common.output_options(parser)
     parser.add_argument("--quiet", action="store_true", help="print nothing on success")
     parser.add_argument(
         "--timings",

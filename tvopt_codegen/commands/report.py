@@ -11,23 +11,16 @@ HELP = "write the derivation report (HTML and Markdown)"
 
 def build(parser: argparse.ArgumentParser) -> None:
     """The ``report`` command's options."""
-    parser.add_argument("spec", help="spec file, or the name of a bundled example")
-    parser.add_argument(
-        "--out",
-        default=".",
-        help="output folder (default: current folder); "
-        "simulation results already there are included",
+    common.spec_argument(parser)
+    common.output_options(
+        parser,
+        "output folder (default: current folder); simulation results already there are included",
     )
     parser.add_argument(
         "--format",
         default="both",
         choices=("html", "md", "both"),
         help="report format (default: both)",
-    )
-    parser.add_argument(
-        "--force",
-        action="store_true",
-        help="replace files that were edited by hand or not written here",
     )
     common.derivation_options(parser)
 

@@ -25,7 +25,7 @@ HELP = "simulate the closed loop and check the theorem along the run"
 
 def build(parser: argparse.ArgumentParser) -> None:
     """The ``simulate`` command's options."""
-    parser.add_argument("spec", help="spec file, or the name of a bundled example")
+    common.spec_argument(parser)
     parser.add_argument(
         "--backend",
         default="python",
@@ -89,12 +89,7 @@ def build(parser: argparse.ArgumentParser) -> None:
         help="with --sample-time: also run at H/2 (and at H/4, H/8 while the order is below "
         "0.75, not yet asymptotic) and report the observed order in H",
     )
-    parser.add_argument("--out", default=".", help="output folder (default: current folder)")
-    parser.add_argument(
-        "--force",
-        action="store_true",
-        help="replace files that were edited by hand or not written here",
-    )
+    common.output_options(parser)
     common.derivation_options(parser)
 
 
