@@ -133,3 +133,21 @@ def test_a_shared_option_means_the_same_in_every_command(
     assert main([command, "integrator", flag, "-1", "--out", "nowhere", *extra]) == EXIT_BAD_SPEC
     err = capsys.readouterr().err
     assert err == f"tvopt-codegen: error: command line: {flag}: {option.bounds}\n"
+
+
+def test_the_how_to_adds_a_command_that_runs(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # docs/adding-a-command.md: its module, from the page's text, and its table line.
+    page = (ROOT / "docs" / "adding-a-command.md").read_text(encoding="utf-8")
+    module_text, table_line = re.findall(r"```python\n(.*?)```", page, re.S)
+    degree = types.ModuleType("degree")
+    exec(compile(module_text, "docs/adding-a-command.md", "exec"), degree.__dict__)  # noqa: S102
+    namespace = {"COMMANDS": dict(cli.COMMANDS), "degree": degree}
+    exec(table_line, namespace)  # noqa: S102
+    monkeypatch.setattr(cli, "COMMANDS", namespace["COMMANDS"])
+    assert "degree print each output's relative degree" in _help(capsys)
+    assert main(["degree", "unicycle_switch", "--progress", "never"]) == 0
+    assert capsys.readouterr().out == "y1: 2\ny2: 2\n"
+    assert main(["degree", "no_such_example"]) == EXIT_BAD_SPEC
+    assert capsys.readouterr().err.count("\n") == 1
