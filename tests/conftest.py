@@ -177,13 +177,14 @@ DURATIONS = Path(__file__).resolve().parent / "durations.json"
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """Undo what pytest-xdist's workers start with that the signal tests cannot live with.
+    """Give the suite Python's own SIGINT handler when it starts with SIGINT ignored.
 
-    A worker starts with SIGINT ignored, and an ignored signal stays ignored across
-    ``exec``: the command-line processes the tests interrupt would never see their Ctrl-C,
-    and a test of the handlers the tool restores would find ``SIG_IGN`` to begin with.
+    pytest-xdist's workers start so, and so does a run started in the background by a
+    shell without job control. An ignored signal stays ignored across ``exec``: the
+    command-line processes the signal tests interrupt would never see their Ctrl-C, and
+    the tests of the handlers the tool restores would find ``SIG_IGN`` to begin with.
     """
-    if os.environ.get("PYTEST_XDIST_WORKER") and signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
