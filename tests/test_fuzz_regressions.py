@@ -261,3 +261,38 @@ def test_a_loop_that_leaves_the_domain_ends_in_the_same_error_in_python_and_c(
     rows, stopped = _controller_run(cmod, x0, loop.plants, loop.times, jets)
     assert stopped == "SingularDecouplingError"
     np.testing.assert_allclose(rows, loop.rows, rtol=1e-9, atol=1e-9)
+
+
+#: ``system:1:equality+inequality+observer+references:23120940`` of the 2,000-case run
+#: (seed 2030): a chain of three starting 4 cm inside the barrier of ``y1 >= o1 - 0.19``,
+#: whose 10 ms sampled loop is unstable. The harness's plant overflowed at 0.1 s; on the
+#: way the output crossed the constraint at 0.06 s, and the controller went on answering.
+BARRIER_CASE = "system:1:equality+inequality+observer+references:23120940"
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="the law reads the barrier through 1/(s - g), finite past the barrier: at a "
+    "state outside {g < s}, where B = f0 - mu log(s - g) is undefined, control, rhs, "
+    "optimality_error and Controller.step answer with status OK (the generated code "
+    "checks no margin; only the sweep's check kernels compute s - g)",
+)
+def test_the_law_refuses_a_state_outside_the_barriers_domain(tmp_path: Path) -> None:
+    from tvopt_codegen.derivation import derive
+    from tvopt_codegen.ir import lower
+    from tvopt_codegen.simulation import load_controller
+    from tvopt_codegen.simulation.references import exact_jets
+    from tvopt_codegen.spec import spec_from_dict
+
+    spec, _ = build_spec(Case.parse(BARRIER_CASE), tmp_path)
+    d = derive(spec_from_dict(spec))
+    py = load_controller(lower(d), "python")
+    jets = exact_jets(d, {})
+    # o1(0) = 0.42 sin(2.95) = 0.080: the constraint keeps y1 = x1 >= -0.110.
+    inside = np.array([[-0.07], [0.3], [0.21]])
+    outside = np.array([[-0.2], [0.3], [0.21]])
+    assert np.all(np.isfinite(py.control(0.0, inside, refs=jets(0.0))))
+    with pytest.raises(py.ControllerError):
+        py.objective(0.0, outside[:1], refs=jets(0.0))  # B itself is undefined there
+    with pytest.raises(py.ControllerError):
+        py.control(0.0, outside, refs=jets(0.0))
