@@ -9,7 +9,7 @@ INSTALLED := $(VENV)/.installed
 READY := $(VENV)/.compiled
 EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring arm_on_line planar_arm3
 
-.PHONY: test-fast test-durations coverage-fast
+.PHONY: test-fast test-durations coverage-fast bench-tests
 .PHONY: all demo figures bench bench-baseline bench-derive bench-representation bench-sweep bench-sweep-scale bench-commands sweep-example robust-example reference-noise fuzz test lint typecheck check regen check-generated update-golden clean
 
 all: test
@@ -76,6 +76,10 @@ test-fast: $(READY)
 ##   tests/durations.json (which tests are slow)
 test-durations: $(READY)
 	TVOPT_TEST_DURATIONS=tests/durations.json $(PY) -m pytest -n auto --dist worksteal
+
+## bench-tests: the whole suite on one core and on every core, and make test-fast, timed
+bench-tests: $(READY)
+	$(PY) benchmarks/bench_tests.py --write benchmarks/TESTS.md
 
 ## coverage-fast: which lines of the package make test-fast runs; fails if a module is left
 ##   unexercised (tests/coverage_check.py)
