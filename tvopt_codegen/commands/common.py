@@ -34,6 +34,26 @@ def spec_argument(command: argparse.ArgumentParser) -> None:
     command.add_argument("spec", help="spec file, or the name of a bundled example")
 
 
+def backend_option(command: argparse.ArgumentParser, what: str) -> None:
+    """``--backend``: one of the registered backends, Python by default.
+
+    Parameters
+    ----------
+    command
+        The command's parser.
+    what
+        What the backend is for this command, for ``--help``.
+    """
+    from tvopt_codegen import backends  # noqa: PLC0415 - the registry, not a backend
+
+    command.add_argument(
+        "--backend",
+        default="python",
+        choices=sorted(backends.BACKENDS),
+        help=f"{what} (default: python)",
+    )
+
+
 def output_options(
     command: argparse.ArgumentParser,
     out_help: str = "output folder (default: current folder)",

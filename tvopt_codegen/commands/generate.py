@@ -6,7 +6,6 @@ import argparse
 import sys
 import time
 
-from tvopt_codegen import backends
 from tvopt_codegen.commands import common
 
 HELP = "derive the law and write the controller"
@@ -15,12 +14,7 @@ HELP = "derive the law and write the controller"
 def build(parser: argparse.ArgumentParser) -> None:
     """The ``generate`` command's options."""
     common.spec_argument(parser)
-    parser.add_argument(
-        "--backend",
-        default="python",
-        choices=sorted(backends.BACKENDS),
-        help="target language (default: python)",
-    )
+    common.backend_option(parser, "target language")
     common.output_options(parser)
     parser.add_argument("--quiet", action="store_true", help="print nothing on success")
     parser.add_argument(

@@ -12,7 +12,6 @@ import math
 import sys
 from typing import TYPE_CHECKING
 
-from tvopt_codegen import backends
 from tvopt_codegen.commands import common, run_options
 from tvopt_codegen.errors import EXIT_CERTIFICATE, SpecError
 from tvopt_codegen.limits import METHODS
@@ -26,12 +25,7 @@ HELP = "simulate the closed loop and check the theorem along the run"
 def build(parser: argparse.ArgumentParser) -> None:
     """The ``simulate`` command's options."""
     common.spec_argument(parser)
-    parser.add_argument(
-        "--backend",
-        default="python",
-        choices=sorted(backends.BACKENDS),
-        help="controller backend to simulate (default: python)",
-    )
+    common.backend_option(parser, "controller backend to simulate")
     parser.add_argument(
         "--initial",
         action="append",
