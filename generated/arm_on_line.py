@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: 5deb43f500b5bab9a7cd979279d09e6ac5e8f25093e0a81a190d0d246b5a9162
+# content sha256: a3eb2a761ca1105d49e659653b611f9e58edcdd541d37cef51d282630c937579
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -94,6 +94,7 @@ STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
 STATUS_DEPENDENT_CONSTRAINTS = 6
 STATUS_MASS_MATRIX_NOT_PD = 7
+STATUS_OUTSIDE_BARRIER = 8
 
 
 class ControllerError(ArithmeticError):
@@ -156,6 +157,12 @@ class MassMatrixNotPositiveDefiniteError(ControllerError):
     status = STATUS_MASS_MATRIX_NOT_PD
 
 
+class OutsideBarrierError(ControllerError):
+    """The outputs are past an inequality constraint's barrier, where the barrier objective is undefined."""
+
+    status = STATUS_OUTSIDE_BARRIER
+
+
 #: Each error status: its exception, the message's head, and what follows the column
 #: (why, then where this spec's law fails so).
 _ERRORS = {
@@ -166,6 +173,7 @@ _ERRORS = {
     STATUS_DECREASING_TIME: (DecreasingTimeError, "the time is before the last step's time", ''),
     STATUS_DEPENDENT_CONSTRAINTS: (DependentConstraintsError, "the equality constraints' gradients are dependent", ': the KKT matrix is singular at this state and time'),
     STATUS_MASS_MATRIX_NOT_PD: (MassMatrixNotPositiveDefiniteError, 'the mass matrix M(q) is not positive definite', ": the plant's model has no valid inertia at this state"),
+    STATUS_OUTSIDE_BARRIER: (OutsideBarrierError, "the outputs are past an inequality constraint's barrier", ': a margin s(t) - g_i(y, t) is not positive'),
 }
 
 

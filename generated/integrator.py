@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: ef2ef47f566c204cd2672ababb947ca761c35c994129205092d28178e7e810f6
+# content sha256: 5f2add7967410b93f0167e8e44fe488e21f08097cc99984fb76718fcf70a6d12
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -85,6 +85,7 @@ STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
 STATUS_DEPENDENT_CONSTRAINTS = 6
 STATUS_MASS_MATRIX_NOT_PD = 7
+STATUS_OUTSIDE_BARRIER = 8
 
 
 class ControllerError(ArithmeticError):
@@ -147,6 +148,12 @@ class MassMatrixNotPositiveDefiniteError(ControllerError):
     status = STATUS_MASS_MATRIX_NOT_PD
 
 
+class OutsideBarrierError(ControllerError):
+    """The outputs are past an inequality constraint's barrier, where the barrier objective is undefined."""
+
+    status = STATUS_OUTSIDE_BARRIER
+
+
 #: Each error status: its exception, the message's head, and what follows the column
 #: (why, then where this spec's law fails so).
 _ERRORS = {
@@ -157,6 +164,7 @@ _ERRORS = {
     STATUS_DECREASING_TIME: (DecreasingTimeError, "the time is before the last step's time", ''),
     STATUS_DEPENDENT_CONSTRAINTS: (DependentConstraintsError, "the equality constraints' gradients are dependent", ': the KKT matrix is singular at this state and time'),
     STATUS_MASS_MATRIX_NOT_PD: (MassMatrixNotPositiveDefiniteError, 'the mass matrix M(q) is not positive definite', ": the plant's model has no valid inertia at this state"),
+    STATUS_OUTSIDE_BARRIER: (OutsideBarrierError, "the outputs are past an inequality constraint's barrier", ': a margin s(t) - g_i(y, t) is not positive'),
 }
 
 

@@ -552,6 +552,26 @@ def _twin(spec: dict[str, Any]) -> dict[str, Any]:
     return twin
 
 
+def _same_answer(
+    name: str, python: Any, c: Any, t: float, states: np.ndarray, kwargs: dict[str, Any]
+) -> None:
+    """A public function in Python and C: the same values, or the same documented error."""
+    try:
+        expected = python(t, states, **kwargs)
+    except ArithmeticError as exc:  # ControllerError: the law refused (past a barrier)
+        try:
+            c(t, states, **kwargs)
+        except ArithmeticError as other:
+            if type(other).__name__ != type(exc).__name__ or str(other) != str(exc):
+                raise DisagreementError(
+                    f"C {name} at t={t}: {type(other).__name__}: {other}; "
+                    f"Python: {type(exc).__name__}: {exc}"
+                ) from other
+            return
+        raise DisagreementError(f"C {name} at t={t} answered; Python: {exc}") from exc
+    _close(f"C {name}", c(t, states, **kwargs), expected, 1e-10)
+
+
 def _controller_run(
     mod: ModuleType, x0: np.ndarray, plants: np.ndarray, times: np.ndarray, jets: Any
 ) -> tuple[np.ndarray, str]:
@@ -778,9 +798,22 @@ def run_case(case: Case, report: Report | None = None) -> str:
             p = np.array(list(py.PARAMETERS.values()), dtype=float)
             for t in np.round(rng.uniform(0, 5, 2), 3):
                 kwargs = {"refs": jets(t)} if jets else {}
-                u_ref, ds_ref = oracle.law(float(t), states, p)
-                _close(f"control at t={t}", py.control(t, states, **kwargs), u_ref, 1e-8)
-                _close(f"rhs at t={t}", py.rhs(t, states, **kwargs), ds_ref, 1e-8)
+                # Past a barrier (the slack shrinks while the samples stay near the start)
+                # the law must refuse; inside it must agree. A margin within rounding of 0
+                # is neither.
+                inside, outside = oracle.domain(float(t), states, p)
+                if outside.any():
+                    try:
+                        py.control(t, states[:, outside], **kwargs)
+                    except py.OutsideBarrierError:
+                        pass
+                    else:
+                        raise DisagreementError(f"control at t={t} past a barrier: no error")
+                if inside.any():
+                    u_ref, ds_ref = oracle.law(float(t), states[:, inside], p)
+                    within = states[:, inside]
+                    _close(f"control at t={t}", py.control(t, within, **kwargs), u_ref, 1e-8)
+                    _close(f"rhs at t={t}", py.rhs(t, within, **kwargs), ds_ref, 1e-8)
                 _close(
                     f"optimality_error at t={t}",
                     py.optimality_error(t, states, **kwargs),
@@ -810,8 +843,8 @@ def run_case(case: Case, report: Report | None = None) -> str:
                 for t in (0.0, 1.3):
                     kwargs = {"refs": jets(t)} if jets else {}
                     for name in ("control", "rhs", "optimality_error"):
-                        _close(f"C {name}", getattr(cmod, name)(t, states, **kwargs),
-                               getattr(py, name)(t, states, **kwargs), 1e-10)  # fmt: skip
+                        _same_answer(name, getattr(py, name), getattr(cmod, name), t, states,
+                                     kwargs)  # fmt: skip
                 rows, stopped = _controller_run(cmod, x0, loop.plants, loop.times, jets)
                 if stopped != (loop.stopped.split(":")[0] or "none"):
                     raise DisagreementError(

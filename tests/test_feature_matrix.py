@@ -169,6 +169,7 @@ class _WithJets:
     def __init__(self, mod: ModuleType, jets: Callable[[float], np.ndarray]) -> None:
         self.mod, self.jets = mod, jets
         self.PARAMETERS = mod.PARAMETERS
+        self.OutsideBarrierError = mod.OutsideBarrierError
 
     def control(self, t: float, s: np.ndarray) -> np.ndarray:
         return self.mod.control(t, s, refs=self.jets(t))
@@ -220,6 +221,7 @@ class CaseRun:
             oracle, law = Oracle(twin), _WithJets(self.mod, self.jets)  # type: ignore[arg-type]
         else:
             oracle, law = Oracle(d), self.mod
+        self.oracle = oracle
         states = self._points()
         assert_matches_oracle(oracle, [law], states, [0.0, 1.3, 4.0], tolerance=1e-8)
 
@@ -235,8 +237,16 @@ class CaseRun:
 
     def c(self) -> None:
         self.cmod = load_controller(self.kernels, "c")
-        states = self._points()
+        points = self._points()
+        params = np.array(list(self.mod.PARAMETERS.values()))
         for t in (0.0, 0.7, 3.1):
+            # Points past a barrier at t (the run has moved on) are refused alike.
+            inside, outside = self.oracle.domain(t, points, params)
+            if outside.any():
+                for mod in (self.cmod, self.mod):
+                    with pytest.raises(mod.OutsideBarrierError):
+                        mod.control(t, points[:, outside], **self.kw(t))
+            states = points[:, inside]
             np.testing.assert_allclose(
                 self.cmod.control(t, states, **self.kw(t)),
                 self.mod.control(t, states, **self.kw(t)),

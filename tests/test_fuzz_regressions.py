@@ -233,8 +233,10 @@ def test_a_loop_that_leaves_the_domain_ends_in_the_same_error_in_python_and_c(
     the controller a path that ignored its inputs (x0 + drift t), which wound the
     integrals and the observer up until the prolonged speed crossed v = 0: a finding of
     the harness, not the tool. On the plant's own closed loop, sampled at 10 ms, the loop
-    still leaves the law's domain at 0.09 s; both backends stop there with the documented
-    SingularDecouplingError, and the case counts as that run-time end."""
+    still leaves the law's domain: it crosses the barrier at 0.04 s, where both backends
+    stop with the documented OutsideBarrierError (before the margin check, the law went on
+    past the barrier until the speed crossed v = 0 at 0.09 s), and the case counts as that
+    run-time end."""
     from tvopt_codegen.derivation import derive
     from tvopt_codegen.ir import lower
     from tvopt_codegen.simulation import load_controller
@@ -246,7 +248,7 @@ def test_a_loop_that_leaves_the_domain_ends_in_the_same_error_in_python_and_c(
     case = Case.parse("system:3:auto+inequality+integral+limits+observer+references+unicycle:3")
     out = run_case(case)
     assert out.startswith("refused: run-time: the sampled closed loop left the law's domain")
-    assert "SingularDecouplingError" in out and "v = 0" in out
+    assert "OutsideBarrierError" in out and "t = 0.04 s" in out
     spec, _ = build_spec(case, tmp_path)
     d = derive(spec_from_dict(spec))
     kernels = lower(d)
@@ -255,11 +257,11 @@ def test_a_loop_that_leaves_the_domain_ends_in_the_same_error_in_python_and_c(
     x0 = np.array(py.DEFAULT_STATE[: len(py.PLANT_STATE_NAMES)], dtype=float)
     times = np.round(np.arange(0, 11) * 0.01, 6)
     loop = _closed_loop(py, x0, times, np.zeros(len(x0)), jets)
-    assert loop.stopped.startswith("SingularDecouplingError") and loop.at >= 2
+    assert loop.stopped.startswith("OutsideBarrierError") and loop.at >= 2
     # The plant answered the controller: its path is not the straight line through x0.
     assert not np.allclose(loop.plants[:, 1], x0)
     rows, stopped = _controller_run(cmod, x0, loop.plants, loop.times, jets)
-    assert stopped == "SingularDecouplingError"
+    assert stopped == "OutsideBarrierError"
     np.testing.assert_allclose(rows, loop.rows, rtol=1e-9, atol=1e-9)
 
 
@@ -270,14 +272,10 @@ def test_a_loop_that_leaves_the_domain_ends_in_the_same_error_in_python_and_c(
 BARRIER_CASE = "system:1:equality+inequality+observer+references:23120940"
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the law reads the barrier through 1/(s - g), finite past the barrier: at a "
-    "state outside {g < s}, where B = f0 - mu log(s - g) is undefined, control, rhs, "
-    "optimality_error and Controller.step answer with status OK (the generated code "
-    "checks no margin; only the sweep's check kernels compute s - g)",
-)
 def test_the_law_refuses_a_state_outside_the_barriers_domain(tmp_path: Path) -> None:
+    """Past a barrier the law's 1/(s - g) is finite: before the margin check, control,
+    rhs and Controller.step answered there with status OK. Now both backends raise the
+    contract's OutsideBarrierError, in a batch at the column that is outside."""
     from tvopt_codegen.derivation import derive
     from tvopt_codegen.ir import lower
     from tvopt_codegen.simulation import load_controller
@@ -286,13 +284,25 @@ def test_the_law_refuses_a_state_outside_the_barriers_domain(tmp_path: Path) -> 
 
     spec, _ = build_spec(Case.parse(BARRIER_CASE), tmp_path)
     d = derive(spec_from_dict(spec))
-    py = load_controller(lower(d), "python")
+    kernels = lower(d)
     jets = exact_jets(d, {})
+    refs = jets(0.0)
     # o1(0) = 0.42 sin(2.95) = 0.080: the constraint keeps y1 = x1 >= -0.110.
     inside = np.array([[-0.07], [0.3], [0.21]])
     outside = np.array([[-0.2], [0.3], [0.21]])
-    assert np.all(np.isfinite(py.control(0.0, inside, refs=jets(0.0))))
-    with pytest.raises(py.ControllerError):
-        py.objective(0.0, outside[:1], refs=jets(0.0))  # B itself is undefined there
-    with pytest.raises(py.ControllerError):
-        py.control(0.0, outside, refs=jets(0.0))
+    batch = np.hstack([inside, outside, inside])
+    for backend in ("python", "c"):
+        mod = load_controller(kernels, backend)
+        assert np.all(np.isfinite(mod.control(0.0, inside, refs=refs)))
+        with pytest.raises(mod.ControllerError):
+            mod.objective(0.0, outside[:1], refs=refs)  # B itself is undefined there
+        for function in (mod.control, mod.rhs):
+            with pytest.raises(mod.OutsideBarrierError, match=r"barrier \(column 0\)"):
+                function(0.0, outside, refs=refs)
+            with pytest.raises(mod.OutsideBarrierError, match=r"\(column 1\)") as caught:
+                function(0.0, batch, refs=np.repeat(refs[..., None], 3, axis=-1))
+            assert caught.value.status == mod.STATUS_OUTSIDE_BARRIER
+        # The stateful controller, stepped across the barrier, stops there.
+        controller = mod.Controller(inside[:, 0], refs=refs)
+        with pytest.raises(mod.OutsideBarrierError):
+            controller.step(0.01, outside[:, 0], refs=jets(0.01))

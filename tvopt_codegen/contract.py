@@ -71,6 +71,7 @@ class Status(enum.IntEnum):
     DECREASING_TIME = 5, "error", "DecreasingTimeError", "A stateful controller was stepped to a time before its last step's.", "the time is before the last step's time"  # noqa: E501
     DEPENDENT_CONSTRAINTS = 6, "error", "DependentConstraintsError", "The equality constraints' gradients are dependent: the KKT matrix is singular.", "the equality constraints' gradients are dependent", "the KKT matrix is singular at this state and time"  # noqa: E501
     MASS_MATRIX_NOT_PD = 7, "error", "MassMatrixNotPositiveDefiniteError", "The mass matrix M(q) is not positive definite: its factorization failed.", "the mass matrix M(q) is not positive definite", "the plant's model has no valid inertia at this state"  # noqa: E501
+    OUTSIDE_BARRIER = 8, "error", "OutsideBarrierError", "The outputs are past an inequality constraint's barrier, where the barrier objective is undefined.", "the outputs are past an inequality constraint's barrier", "a margin s(t) - g_i(y, t) is not positive"  # noqa: E501
     # fmt: on
 
     @classmethod

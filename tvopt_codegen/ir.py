@@ -198,6 +198,12 @@ def _jet_kernels(
         shared.append(
             ("grad", (n,), [d.grad_jet[0][i] for i in range(n)], "grad f0: the integrals' rates")
         )
+    if d.model.constraints:
+        # Each inequality's margin s(t) - g_i(y, t), which the plan's check_margin reads:
+        # the law sees the barrier only through 1/(s - g_i), finite past it too.
+        model = d.model
+        margins = [model.slack - sp.sympify(c.g) for c in model.constraints]
+        shared.append(("margin", (len(margins),), margins, "s(t) - g_i(y, t), each positive"))
     if mass is not None:
         # M is factored where R and p need it; the plan's check_pd reads the pivots.
         # Before the observer's f and G: the order of the plan's results (law_plan),
@@ -457,6 +463,7 @@ def lower(derivation: Derivation) -> KernelSet:
         r_blocks=law.r_blocks,
         references=len(args.r[0].symbols) if args.r else 0,
         mass=(0, 0) if mass is None else (len(mass.entries), len(mass.pivots)),
+        margins=len(d.model.constraints),
     )
     lowered = (
         *((jet_time,) if jet_time is not None else ()),

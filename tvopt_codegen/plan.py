@@ -32,6 +32,12 @@ A step's ``op`` is one of
     ``args[1]`` of its LDL^T exceeds :data:`PIVOT_TOLERANCE` times the largest entry of
     ``args[0]``, or the law fails with :attr:`Status.MASS_MATRIX_NOT_PD`. An ``M`` with a
     non-finite entry passes here and fails the finiteness check that follows.
+``check_margin``
+    With inequality constraints, every margin ``s(t) - g_i(y, t)`` in ``args[0]`` is
+    positive, or the law fails with :attr:`Status.OUTSIDE_BARRIER`. The law reads the
+    barrier only through ``1/(s - g_i)`` and its powers, finite on both sides of it:
+    without this check a state past the barrier gets a finite law with status OK. A
+    non-finite margin passes here and fails the finiteness check that follows.
 
 The statuses and the tolerance are the contract's (:mod:`tvopt_codegen.contract`);
 the plan says which step fails with which.
@@ -83,7 +89,8 @@ class Step:
     Attributes
     ----------
     op : str
-        ``call``, ``solve_ldl``, ``solve_lu``, ``check`` or ``check_pd``.
+        ``call``, ``solve_ldl``, ``solve_lu``, ``check``, ``check_pd`` or
+        ``check_margin``.
     kernel : str
         The kernel a ``call`` or ``solve_ldl`` evaluates ("" otherwise).
     args, results : tuple of str
@@ -202,11 +209,14 @@ def _pivots(m: int, n: int) -> tuple[tuple[int, Status], ...]:
     return ((m, Status.HESSIAN_NOT_PD),)
 
 
-def _runtime(hessian: int, r_blocks: tuple[tuple[int, ...], ...], mass: int = 0) -> tuple[str, ...]:
-    """The run-time pieces (``Plan.runtime``) a law with these solves uses."""
+def _runtime(
+    hessian: int, r_blocks: tuple[tuple[int, ...], ...], mass: int = 0, margins: int = 0
+) -> tuple[str, ...]:
+    """The run-time pieces (``Plan.runtime``) a law with these solves and checks uses."""
     sizes = {len(block) for block in r_blocks}
     return (
         *(("definite",) if mass else ()),
+        *(("margin",) if margins else ()),
         *(("ldl",) if hessian else ()),
         *(("lu_1",) if 1 in sizes else ()),
         *(("lu_2",) if 2 in sizes else ()),
@@ -229,6 +239,7 @@ def law_plan(
     integral: bool = False,
     observer: int = 0,
     mass: tuple[int, int] = (0, 0),
+    margins: int = 0,
 ) -> Plan:
     """The plan of the law for a controller's sizes.
 
@@ -262,6 +273,10 @@ def law_plan(
         For a plant in mass-matrix form, the numbers of stored entries of ``M`` and of
         coordinates: the jet kernel factors ``M`` and also returns those entries
         (``mass``) and the pivots (``mass_pivot``), which ``check_pd`` checks first.
+    margins : int, optional
+        The number of inequality constraints: the jet kernel also returns their margins
+        ``s(t) - g_i(y, t)`` (``margin``), which ``check_margin`` checks before the
+        finiteness check (0: none).
 
     Returns
     -------
@@ -312,6 +327,9 @@ def law_plan(
     if integral:
         values.append(Value("grad", n, "local", "grad", "grad f0: the integral states' rates"))
         jet_results += ("grad",)
+    if margins:
+        values.append(Value("margin", margins, "local", "margin", "s(t) - g_i(y, t)"))
+        jet_results += ("margin",)
     checked = jet_results
     if mass[0]:
         values += [
@@ -345,6 +363,16 @@ def law_plan(
                 note="M(q) was factored (LDL^T) in the jet: never inverted, checked here.",
             )
         )
+    if margins:
+        steps.append(
+            Step(
+                "check_margin",
+                args=("margin",),
+                status=Status.OUTSIDE_BARRIER,
+                what="the inequality constraints' margins",
+                note="Past a barrier 1/(s - g_i) is finite: the margins themselves say where y is.",
+            )
+        )
     steps.append(
         Step(
             "check",
@@ -368,7 +396,7 @@ def law_plan(
             )
         )
     steps += _DECOUPLE
-    runtime = _runtime(hessian, r_blocks, mass[0])
+    runtime = _runtime(hessian, r_blocks, mass[0], margins)
     rhs = _RHS
     if integral:
         call = _RHS[0]

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: arm_on_line
  * spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
- * content sha256: beeec07a594b342a497b31f55fa8f2f6826cc4a5a1258a9547262746851414f8
+ * content sha256: 16f6bcd37c07a70705a6c3a44c0b0a8114d7cf632c47e182d64d4844676730cc
  */
 
 /* arm_on_line: see arm_on_line.h. The law is CSE'd straight-line code and two numerical
@@ -746,6 +746,8 @@ const char *arm_on_line_status_message(int status)
         return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
     case ARM_ON_LINE_MASS_MATRIX_NOT_PD:
         return "the mass matrix M(q) is not positive definite: the plant's model has no valid inertia at this state";
+    case ARM_ON_LINE_OUTSIDE_BARRIER:
+        return "the outputs are past an inequality constraint's barrier: a margin s(t) - g_i(y, t) is not positive";
     default:
         return "unknown status";
     }

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: arm_on_line
  * spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
- * content sha256: 59e99634cc8ea8146ddbfb892086dc94ec5de9303d35f7226fbd7a450a504e29
+ * content sha256: f3f5bca9946db38c10c375fba432fc4e81cc0cce5d0962275b5615ea85d19ebd
  */
 
 /*
@@ -45,6 +45,7 @@ extern "C" {
 #define ARM_ON_LINE_DECREASING_TIME 5
 #define ARM_ON_LINE_DEPENDENT_CONSTRAINTS 6
 #define ARM_ON_LINE_MASS_MATRIX_NOT_PD 7
+#define ARM_ON_LINE_OUTSIDE_BARRIER 8
 
 int arm_on_line_n_states(void);
 int arm_on_line_n_inputs(void);

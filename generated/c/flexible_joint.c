@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: ecbfaa2a9528aada50411a95977a4b5ec1afc902469754d5267af2daa453a76d
+ * content sha256: 0a32cc7fa8fe4b2f7aca01bb03f0a496b0ad9428a60d288328cd139e6a688eb0
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -648,6 +648,8 @@ const char *flexible_joint_status_message(int status)
         return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
     case FLEXIBLE_JOINT_MASS_MATRIX_NOT_PD:
         return "the mass matrix M(q) is not positive definite: the plant's model has no valid inertia at this state";
+    case FLEXIBLE_JOINT_OUTSIDE_BARRIER:
+        return "the outputs are past an inequality constraint's barrier: a margin s(t) - g_i(y, t) is not positive";
     default:
         return "unknown status";
     }

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 5debc74a0aced8aa4ed276bbdf8b40d8423860171ef85d2221c83b996d45395f
+ * content sha256: 0c2e75a618e1cc4c20267c05899ade5cd82a30cef0e5becdfc61b36cc330a1f7
  */
 
 /*
@@ -45,6 +45,7 @@ extern "C" {
 #define FLEXIBLE_JOINT_DECREASING_TIME 5
 #define FLEXIBLE_JOINT_DEPENDENT_CONSTRAINTS 6
 #define FLEXIBLE_JOINT_MASS_MATRIX_NOT_PD 7
+#define FLEXIBLE_JOINT_OUTSIDE_BARRIER 8
 
 int flexible_joint_n_states(void);
 int flexible_joint_n_inputs(void);

@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: a5062c33d33b5a7dc6f67d2eb7805eea85c558257dad61e61e6013a5906418dd
+# content sha256: 3125ad94cf8afd4915b8f45d4fa5dfaed168654a77e9348d6e128dfe4acb059f
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -100,6 +100,7 @@ STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
 STATUS_DEPENDENT_CONSTRAINTS = 6
 STATUS_MASS_MATRIX_NOT_PD = 7
+STATUS_OUTSIDE_BARRIER = 8
 
 
 class ControllerError(ArithmeticError):
@@ -162,6 +163,12 @@ class MassMatrixNotPositiveDefiniteError(ControllerError):
     status = STATUS_MASS_MATRIX_NOT_PD
 
 
+class OutsideBarrierError(ControllerError):
+    """The outputs are past an inequality constraint's barrier, where the barrier objective is undefined."""
+
+    status = STATUS_OUTSIDE_BARRIER
+
+
 #: Each error status: its exception, the message's head, and what follows the column
 #: (why, then where this spec's law fails so).
 _ERRORS = {
@@ -172,6 +179,7 @@ _ERRORS = {
     STATUS_DECREASING_TIME: (DecreasingTimeError, "the time is before the last step's time", ''),
     STATUS_DEPENDENT_CONSTRAINTS: (DependentConstraintsError, "the equality constraints' gradients are dependent", ': the KKT matrix is singular at this state and time'),
     STATUS_MASS_MATRIX_NOT_PD: (MassMatrixNotPositiveDefiniteError, 'the mass matrix M(q) is not positive definite', ": the plant's model has no valid inertia at this state"),
+    STATUS_OUTSIDE_BARRIER: (OutsideBarrierError, "the outputs are past an inequality constraint's barrier", ': a margin s(t) - g_i(y, t) is not positive'),
 }
 
 

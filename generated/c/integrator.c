@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: e299c2317e3baea52aac24aeb72baf25abb7778881697e7f7d22091b27e73aa2
+ * content sha256: 47a94a601265cfd8cd8fc6a1a9908736e611472920eee12bc480d525b167ae01
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -541,6 +541,8 @@ const char *integrator_status_message(int status)
         return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
     case INTEGRATOR_MASS_MATRIX_NOT_PD:
         return "the mass matrix M(q) is not positive definite: the plant's model has no valid inertia at this state";
+    case INTEGRATOR_OUTSIDE_BARRIER:
+        return "the outputs are past an inequality constraint's barrier: a margin s(t) - g_i(y, t) is not positive";
     default:
         return "unknown status";
     }

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 6b5910ca94bb3f8c750b36cd1b8555308ada773e695f6b6cf82e97c05a3b9aff
+ * content sha256: c767fbf8477ad927b4f9edfe6a9b634b5d683ba5894a0bc2870788606038ba23
  */
 
 /*
@@ -45,6 +45,7 @@ extern "C" {
 #define INTEGRATOR_DECREASING_TIME 5
 #define INTEGRATOR_DEPENDENT_CONSTRAINTS 6
 #define INTEGRATOR_MASS_MATRIX_NOT_PD 7
+#define INTEGRATOR_OUTSIDE_BARRIER 8
 
 int integrator_n_states(void);
 int integrator_n_inputs(void);

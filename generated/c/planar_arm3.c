@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: planar_arm3
  * spec sha256: 63d130b8bfdcabd4b35f10882f051baacdec9d17c6622b99cfadaf848ad6bddb
- * content sha256: 63ebd684898f96c60f2aabd53e692cfa7e341e9d47c93087bd2c89b5365b8343
+ * content sha256: 8de10e05dd5e053fa90cd23b12bd287b41e3fcfcabd1a64e36065b7e00399a75
  */
 
 /* planar_arm3: see planar_arm3.h. The law is CSE'd straight-line code and two numerical
@@ -911,6 +911,8 @@ const char *planar_arm3_status_message(int status)
         return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
     case PLANAR_ARM3_MASS_MATRIX_NOT_PD:
         return "the mass matrix M(q) is not positive definite: the plant's model has no valid inertia at this state";
+    case PLANAR_ARM3_OUTSIDE_BARRIER:
+        return "the outputs are past an inequality constraint's barrier: a margin s(t) - g_i(y, t) is not positive";
     default:
         return "unknown status";
     }

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: planar_arm3
  * spec sha256: 63d130b8bfdcabd4b35f10882f051baacdec9d17c6622b99cfadaf848ad6bddb
- * content sha256: 6d030d84090e854040e103b033d9d3ee7e3b0244b019d22676c70d74d9d01107
+ * content sha256: d0cdb9cf45e39c45e2f148a2f83a525ce575e81fd03aa183912a558fa87ba4a7
  */
 
 /*
@@ -45,6 +45,7 @@ extern "C" {
 #define PLANAR_ARM3_DECREASING_TIME 5
 #define PLANAR_ARM3_DEPENDENT_CONSTRAINTS 6
 #define PLANAR_ARM3_MASS_MATRIX_NOT_PD 7
+#define PLANAR_ARM3_OUTSIDE_BARRIER 8
 
 int planar_arm3_n_states(void);
 int planar_arm3_n_inputs(void);

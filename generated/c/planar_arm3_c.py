@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: planar_arm3
 # spec sha256: 63d130b8bfdcabd4b35f10882f051baacdec9d17c6622b99cfadaf848ad6bddb
-# content sha256: 78126436d8f35e387eb0afbfb3ab8606a8c05b6a5d1472b93ec4f44f41caec6b
+# content sha256: 85a102b9c3377dcafab6e226b0688313676735fe4252ea1bd9cf92df8d203d97
 # ruff: noqa
 
 """planar_arm3: implicit trajectory planning controller.
@@ -105,6 +105,7 @@ STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
 STATUS_DEPENDENT_CONSTRAINTS = 6
 STATUS_MASS_MATRIX_NOT_PD = 7
+STATUS_OUTSIDE_BARRIER = 8
 
 
 class ControllerError(ArithmeticError):
@@ -167,6 +168,12 @@ class MassMatrixNotPositiveDefiniteError(ControllerError):
     status = STATUS_MASS_MATRIX_NOT_PD
 
 
+class OutsideBarrierError(ControllerError):
+    """The outputs are past an inequality constraint's barrier, where the barrier objective is undefined."""
+
+    status = STATUS_OUTSIDE_BARRIER
+
+
 #: Each error status: its exception, the message's head, and what follows the column
 #: (why, then where this spec's law fails so).
 _ERRORS = {
@@ -177,6 +184,7 @@ _ERRORS = {
     STATUS_DECREASING_TIME: (DecreasingTimeError, "the time is before the last step's time", ''),
     STATUS_DEPENDENT_CONSTRAINTS: (DependentConstraintsError, "the equality constraints' gradients are dependent", ': the KKT matrix is singular at this state and time'),
     STATUS_MASS_MATRIX_NOT_PD: (MassMatrixNotPositiveDefiniteError, 'the mass matrix M(q) is not positive definite', ": the plant's model has no valid inertia at this state"),
+    STATUS_OUTSIDE_BARRIER: (OutsideBarrierError, "the outputs are past an inequality constraint's barrier", ': a margin s(t) - g_i(y, t) is not positive'),
 }
 
 

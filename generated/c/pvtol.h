@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: pvtol
  * spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
- * content sha256: 9a745916249f2206433d5823910d6abe8dc9e010b9626ce0aa127475fe8c8418
+ * content sha256: e0a659c5871b965a4165599862e1087132251e4027834a45ed349845c7ed5632
  */
 
 /*
@@ -45,6 +45,7 @@ extern "C" {
 #define PVTOL_DECREASING_TIME 5
 #define PVTOL_DEPENDENT_CONSTRAINTS 6
 #define PVTOL_MASS_MATRIX_NOT_PD 7
+#define PVTOL_OUTSIDE_BARRIER 8
 
 int pvtol_n_states(void);
 int pvtol_n_inputs(void);

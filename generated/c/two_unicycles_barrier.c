@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 6eb587571fcf3267e2b531fd24fbaf3c20a782ab57c233de716785c9d730cc22
+ * content sha256: a0531b3c96a84170986fae2d85cbb109174d458aa7ec79cb94a898205e4c4b5a
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -840,6 +840,8 @@ const char *two_unicycles_barrier_status_message(int status)
         return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
     case TWO_UNICYCLES_BARRIER_MASS_MATRIX_NOT_PD:
         return "the mass matrix M(q) is not positive definite: the plant's model has no valid inertia at this state";
+    case TWO_UNICYCLES_BARRIER_OUTSIDE_BARRIER:
+        return "the outputs are past an inequality constraint's barrier: a margin s(t) - g_i(y, t) is not positive";
     default:
         return "unknown status";
     }

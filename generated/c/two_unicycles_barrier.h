@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 238e83f736a9015dc5c9c12d4eceb23fb0080922bc7a5acfcb6d6e5d0bcde864
+ * content sha256: fa899c0e0688a0976588cd7cfa5797efb61924216c0863ece1bf8eda998d43eb
  */
 
 /*
@@ -45,6 +45,7 @@ extern "C" {
 #define TWO_UNICYCLES_BARRIER_DECREASING_TIME 5
 #define TWO_UNICYCLES_BARRIER_DEPENDENT_CONSTRAINTS 6
 #define TWO_UNICYCLES_BARRIER_MASS_MATRIX_NOT_PD 7
+#define TWO_UNICYCLES_BARRIER_OUTSIDE_BARRIER 8
 
 int two_unicycles_barrier_n_states(void);
 int two_unicycles_barrier_n_inputs(void);

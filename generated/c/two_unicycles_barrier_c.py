@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: bf4e220649782fdb63baa78741fc605c5fc937f88d677a8a510a5b51c51d9863
+# content sha256: 0db6cc7f777526134929510bb3a908f1ea0610b9ed2f38243826b950067c643d
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -105,6 +105,7 @@ STATUS_NONFINITE_OUTPUT = 4
 STATUS_DECREASING_TIME = 5
 STATUS_DEPENDENT_CONSTRAINTS = 6
 STATUS_MASS_MATRIX_NOT_PD = 7
+STATUS_OUTSIDE_BARRIER = 8
 
 
 class ControllerError(ArithmeticError):
@@ -167,6 +168,12 @@ class MassMatrixNotPositiveDefiniteError(ControllerError):
     status = STATUS_MASS_MATRIX_NOT_PD
 
 
+class OutsideBarrierError(ControllerError):
+    """The outputs are past an inequality constraint's barrier, where the barrier objective is undefined."""
+
+    status = STATUS_OUTSIDE_BARRIER
+
+
 #: Each error status: its exception, the message's head, and what follows the column
 #: (why, then where this spec's law fails so).
 _ERRORS = {
@@ -177,6 +184,7 @@ _ERRORS = {
     STATUS_DECREASING_TIME: (DecreasingTimeError, "the time is before the last step's time", ''),
     STATUS_DEPENDENT_CONSTRAINTS: (DependentConstraintsError, "the equality constraints' gradients are dependent", ': the KKT matrix is singular at this state and time'),
     STATUS_MASS_MATRIX_NOT_PD: (MassMatrixNotPositiveDefiniteError, 'the mass matrix M(q) is not positive definite', ": the plant's model has no valid inertia at this state"),
+    STATUS_OUTSIDE_BARRIER: (OutsideBarrierError, "the outputs are past an inequality constraint's barrier", ': a margin s(t) - g_i(y, t) is not positive'),
 }
 
 

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_ring
  * spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
- * content sha256: bd2ff03f55738f2c1220290c2ba46d39d547decc22f898fb3ed053f6ec640a2a
+ * content sha256: 5d3365d5dc1731bb334e08a01f9d992cdcbef09d8f637f9c81d1a42b41ec0f2f
  */
 
 /*
@@ -45,6 +45,7 @@ extern "C" {
 #define UNICYCLE_RING_DECREASING_TIME 5
 #define UNICYCLE_RING_DEPENDENT_CONSTRAINTS 6
 #define UNICYCLE_RING_MASS_MATRIX_NOT_PD 7
+#define UNICYCLE_RING_OUTSIDE_BARRIER 8
 
 int unicycle_ring_n_states(void);
 int unicycle_ring_n_inputs(void);

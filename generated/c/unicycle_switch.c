@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 2e94455c6bbb0d5431dc2b14772d39f2606a36aeb84cdad0d1a7a9addf148e0e
+ * content sha256: 48d52469fe66a60442a8174f772b44631e3c1868675b0c256d3790be51c3b47a
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -593,6 +593,8 @@ const char *unicycle_switch_status_message(int status)
         return "the equality constraints' gradients are dependent: the KKT matrix is singular at this state and time";
     case UNICYCLE_SWITCH_MASS_MATRIX_NOT_PD:
         return "the mass matrix M(q) is not positive definite: the plant's model has no valid inertia at this state";
+    case UNICYCLE_SWITCH_OUTSIDE_BARRIER:
+        return "the outputs are past an inequality constraint's barrier: a margin s(t) - g_i(y, t) is not positive";
     default:
         return "unknown status";
     }

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 6c2a24c0df8bce6599c1d600fc8e208d55edd8c9bf4ad0efc3f2a03f829b4a35
+ * content sha256: c22382e2475bf06101a08a665f3612996f208f7abf9230764dd5ff162b9d22a1
  */
 
 /*
@@ -45,6 +45,7 @@ extern "C" {
 #define UNICYCLE_SWITCH_DECREASING_TIME 5
 #define UNICYCLE_SWITCH_DEPENDENT_CONSTRAINTS 6
 #define UNICYCLE_SWITCH_MASS_MATRIX_NOT_PD 7
+#define UNICYCLE_SWITCH_OUTSIDE_BARRIER 8
 
 int unicycle_switch_n_states(void);
 int unicycle_switch_n_inputs(void);
