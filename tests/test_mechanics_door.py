@@ -656,3 +656,12 @@ def test_outputs_and_objective_as_sympy_expressions(tmp_path: Path) -> None:
     assert float(read.output_exprs[0].xreplace(at)) == pytest.approx(0.5 * math.sin(0.3))
     f0 = read.objective.xreplace({sp.Symbol("y", real=True): 0.2, sp.Symbol("t", real=True): 1})
     assert float(f0) == pytest.approx((0.2 - 0.25 * math.sin(1.0)) ** 2, rel=1e-15)
+
+
+def test_a_function_of_an_infinity_is_refused_as_infinite() -> None:
+    """atan(q + zoo) is sympy's range AccumBounds(-pi/2, pi/2) (found by the test above):
+    refused as what it is, a value of an infinite argument, not as an unknown class."""
+    forcing = sp.atan(_q + sp.zoo) - sp.Symbol("k") * _q + _u
+    equations = Equations(sp.Matrix([[sp.Integer(2)]]), sp.Matrix([forcing]), [_q])
+    with pytest.raises(SpecError, match="a range from an infinite or undefined argument"):
+        spec_from_sympy(equations, {"y": _q}, "(y - sin(t))**2", {"k": 1.5}, name="robot")

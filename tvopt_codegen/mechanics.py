@@ -255,6 +255,9 @@ def _refusal(node: sp.Basic) -> str | None:
         return "holds the imaginary unit I (spec expressions are real)"
     if node in (sp.zoo, sp.oo, sp.S.NegativeInfinity, sp.nan):
         return f"holds {node}, which is infinite or undefined"
+    if isinstance(node, sp.AccumBounds):
+        # sympy's value of a function at an infinity (atan(zoo), sin(oo)): a range.
+        return f"holds {clip(sp.sstr(node))}, a range from an infinite or undefined argument"
     if isinstance(node, sp.NumberSymbol):
         return f"holds the constant {node}, which the spec language lacks (it has pi)"
     if isinstance(node, sp.Derivative):
