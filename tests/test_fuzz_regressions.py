@@ -274,8 +274,9 @@ BARRIER_CASE = "system:1:equality+inequality+observer+references:23120940"
 
 def test_the_law_refuses_a_state_outside_the_barriers_domain(tmp_path: Path) -> None:
     """Past a barrier the law's 1/(s - g) is finite: before the margin check, control,
-    rhs and Controller.step answered there with status OK. Now both backends raise the
-    contract's OutsideBarrierError, in a batch at the column that is outside."""
+    rhs, optimality_error, the gradient and Hessian of B and Controller.step answered
+    there with status OK. Now both backends raise the contract's OutsideBarrierError, in
+    a batch at the column that is outside, on the one-point path as on the array path."""
     from tvopt_codegen.derivation import derive
     from tvopt_codegen.ir import lower
     from tvopt_codegen.simulation import load_controller
@@ -294,11 +295,15 @@ def test_the_law_refuses_a_state_outside_the_barriers_domain(tmp_path: Path) -> 
     for backend in ("python", "c"):
         mod = load_controller(kernels, backend)
         assert np.all(np.isfinite(mod.control(0.0, inside, refs=refs)))
-        with pytest.raises(mod.ControllerError):
-            mod.objective(0.0, outside[:1], refs=refs)  # B itself is undefined there
-        for function in (mod.control, mod.rhs):
-            with pytest.raises(mod.OutsideBarrierError, match=r"barrier \(column 0\)"):
-                function(0.0, outside, refs=refs)
+        for function in (mod.objective, mod.gradient, mod.hessian):
+            assert np.all(np.isfinite(function(0.0, inside[:1], refs=refs)))
+            for y in (outside[:1], outside[:1, 0]):
+                with pytest.raises(mod.OutsideBarrierError, match=r"barrier \(column 0\)"):
+                    function(0.0, y, refs=refs)
+        for function in (mod.control, mod.rhs, mod.optimality_error):
+            for state in (outside, outside[:, 0]):
+                with pytest.raises(mod.OutsideBarrierError, match=r"barrier \(column 0\)"):
+                    function(0.0, state, refs=refs)
             with pytest.raises(mod.OutsideBarrierError, match=r"\(column 1\)") as caught:
                 function(0.0, batch, refs=np.repeat(refs[..., None], 3, axis=-1))
             assert caught.value.status == mod.STATUS_OUTSIDE_BARRIER

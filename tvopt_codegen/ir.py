@@ -379,6 +379,42 @@ def _objective_kernels(
     )
 
 
+def _margin_kernels(
+    d: Derivation, args: _Args, programs: dict[str, list[Assignment]], kernel: _Make
+) -> list[Kernel]:
+    """Each inequality's margin ``s(t) - g_i(y, t)`` at a state and at outputs.
+
+    The public functions of a state (``optimality_error``) and of the outputs (f0, its
+    gradient and Hessian) evaluate the barrier objective, which is undefined where a
+    margin is not positive although its derivatives, through ``1/(s - g_i)``, are finite
+    there: each checks these first, as the law checks the jet's (none without
+    inequalities).
+    """
+    model = d.model
+    if not model.constraints:
+        return []
+    margins = [model.slack - sp.sympify(c.g) for c in model.constraints]
+    output = [("margin", (len(margins),), margins, "s(t) - g_i(y, t), each positive")]
+    return [
+        kernel(
+            "margin_state",
+            "The inequalities' margins s(t) - g_i(y(x), t) at a closed-loop state",
+            [args.t, args.s, args.p, *args.r],
+            programs["signals0"] + programs["y"],
+            output,
+            args.subs,
+        ),
+        kernel(
+            "margin_output",
+            "The inequalities' margins s(t) - g_i(y, t) at outputs",
+            [args.t, args.y, args.p, *args.r],
+            programs["signals0"],
+            output,
+            args.y_subs,
+        ),
+    ]
+
+
 def _plant_kernels(
     d: Derivation, args: _Args, kernel: _Make, mass: list[Assignment]
 ) -> list[Kernel]:
@@ -447,6 +483,7 @@ def lower(derivation: Derivation) -> KernelSet:
         jet_time, jet = split
     rest = _input_kernels(d, args, kernel, programs["mass"]) + [optimality]
     rest += _objective_kernels(d, args, programs, kernels)
+    rest += _margin_kernels(d, args, programs, kernel)
     rest += _plant_kernels(d, args, kernel, programs["mass"])
     law = d.law
     plan = law_plan(
