@@ -224,6 +224,104 @@ def _runtime(
     )
 
 
+_CHECK_PD = Step(
+    "check_pd",
+    args=("mass", "mass_pivot"),
+    status=Status.MASS_MATRIX_NOT_PD,
+    what="the mass matrix",
+    note="M(q) was factored (LDL^T) in the jet: never inverted, checked here.",
+)
+
+_CHECK_MARGIN = Step(
+    "check_margin",
+    args=("margin",),
+    status=Status.OUTSIDE_BARRIER,
+    what="the inequality constraints' margins",
+    note="Past a barrier 1/(s - g_i) is finite: the margins themselves say where y is.",
+)
+
+_SOLVE_HESSIAN = Step(
+    "solve_ldl",
+    "cholesky",
+    ("hess", "jet_rhs"),
+    ("z",),
+    Status.HESSIAN_NOT_PD,
+    note="y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.",
+)
+
+
+def _jet_outputs(
+    *,
+    hessian: int,
+    n: int,
+    n_inputs: int,
+    integral: bool,
+    margins: int,
+    mass: tuple[int, int],
+    observer: int,
+) -> tuple[list[Value], tuple[str, ...], Step, str]:
+    """What the jet kernel returns, in its output order (lower checks the binding).
+
+    Returns
+    -------
+    values : list of Value
+        The values only the jet writes (``z``, ``r`` and ``pvec`` are declared by the
+        caller, which every plan has).
+    results : tuple of str
+        The jet call's results.
+    check : Step
+        The finiteness check of the results a later step does not check itself.
+    call_note : str
+        The jet call's comment.
+    """
+    values: list[Value] = []
+    if hessian:
+        values += [
+            Value("hess", hessian, "local", "hess", "stored entries of the Hessian of f0"),
+            Value("jet_rhs", n, "local", "jet_rhs", "sum a_i grad^(i) f0 - rest"),
+        ]
+        results: tuple[str, ...] = ("hess", "jet_rhs", "r", "pvec")
+        alone: tuple[str, ...] = ("hess", "r")
+        what = "the Hessian, the gradient jet, the decoupling matrix or p"
+        note = (
+            "The right-hand side and p reach b, which is checked below; an infinite Hessian "
+            "entry can leave z finite, and an entry of R no plant input depends on could hide."
+        )
+        call_note = ""
+    else:
+        results = ("z", "r", "pvec")
+        alone = ("r",)
+        what = "the gradient jet, the decoupling matrix or p"
+        note = (
+            "z and p reach b, which is checked below; R is checked here, since an entry of R "
+            "that no plant input depends on could hide in w."
+        )
+        call_note = "y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time."
+    if integral:
+        values.append(Value("grad", n, "local", "grad", "grad f0: the integral states' rates"))
+        results += ("grad",)
+    if margins:
+        values.append(Value("margin", margins, "local", "margin", "s(t) - g_i(y, t)"))
+        results += ("margin",)
+    # M's entries and pivots are checked by check_pd, the observer's f and G by no one.
+    check = Step(
+        "check", args=results, status=Status.NONFINITE_OUTPUT, what=what, alone=alone, note=note
+    )
+    if mass[0]:
+        values += [
+            Value("mass", mass[0], "local", "mass", "stored entries of the mass matrix M(q)"),
+            Value("mass_pivot", mass[1], "local", "mass_pivot", "pivots of M's LDL^T"),
+        ]
+        results += ("mass", "mass_pivot")
+    if observer:
+        values += [
+            Value("drift", observer, "output", "drift", "f(x), the plant's drift"),
+            Value("g", observer * n_inputs, "output", "g", "G(x), row-major"),
+        ]
+        results += ("drift", "g")
+    return values, results, check, call_note
+
+
 def law_plan(
     *,
     n_states: int,
@@ -301,48 +399,16 @@ def law_plan(
         values.append(Value("tau", tau, "batch", "tau", "the jet's terms of time and parameters"))
         per_batch.append(Step("call", "jet_time", ("t", "p", "a"), ("tau",)))
         jet_args += ("tau",)
-    steps: list[Step] = []
-    if hessian:
-        values += [
-            Value("hess", hessian, "local", "hess", "stored entries of the Hessian of f0"),
-            Value("jet_rhs", n, "local", "jet_rhs", "sum a_i grad^(i) f0 - rest"),
-        ]
-        jet_results: tuple[str, ...] = ("hess", "jet_rhs", "r", "pvec")
-        jet_alone: tuple[str, ...] = ("hess", "r")
-        jet_what = "the Hessian, the gradient jet, the decoupling matrix or p"
-        jet_note = (
-            "The right-hand side and p reach b, which is checked below; an infinite Hessian "
-            "entry can leave z finite, and an entry of R no plant input depends on could hide."
-        )
-        call_note = ""
-    else:
-        jet_results = ("z", "r", "pvec")
-        jet_alone = ("r",)
-        jet_what = "the gradient jet, the decoupling matrix or p"
-        jet_note = (
-            "z and p reach b, which is checked below; R is checked here, since an entry of R "
-            "that no plant input depends on could hide in w."
-        )
-        call_note = "y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time."
-    if integral:
-        values.append(Value("grad", n, "local", "grad", "grad f0: the integral states' rates"))
-        jet_results += ("grad",)
-    if margins:
-        values.append(Value("margin", margins, "local", "margin", "s(t) - g_i(y, t)"))
-        jet_results += ("margin",)
-    checked = jet_results
-    if mass[0]:
-        values += [
-            Value("mass", mass[0], "local", "mass", "stored entries of the mass matrix M(q)"),
-            Value("mass_pivot", mass[1], "local", "mass_pivot", "pivots of M's LDL^T"),
-        ]
-        jet_results += ("mass", "mass_pivot")
-    if observer:
-        values += [
-            Value("drift", observer, "output", "drift", "f(x), the plant's drift"),
-            Value("g", observer * n_inputs, "output", "g", "G(x), row-major"),
-        ]
-        jet_results += ("drift", "g")
+    jet_values, jet_results, check, call_note = _jet_outputs(
+        hessian=hessian,
+        n=n,
+        n_inputs=n_inputs,
+        integral=integral,
+        margins=margins,
+        mass=mass,
+        observer=observer,
+    )
+    values += jet_values
     values += [
         Value("z", n, "local", "z", "y_imp^(k)" + (", then nu^(k)" if n > m else "")),
         Value("r", r_entries, "local", "r", "diagonal blocks of R, each row-major"),
@@ -352,49 +418,14 @@ def law_plan(
         Value("u", n_inputs, "output", "u", "plant input"),
         Value("ds", n_states, "output", "ds", "time derivative of the closed-loop state"),
     ]
-    steps.append(Step("call", "jet", jet_args, jet_results, note=call_note))
-    if mass[0]:
-        steps.append(
-            Step(
-                "check_pd",
-                args=("mass", "mass_pivot"),
-                status=Status.MASS_MATRIX_NOT_PD,
-                what="the mass matrix",
-                note="M(q) was factored (LDL^T) in the jet: never inverted, checked here.",
-            )
-        )
-    if margins:
-        steps.append(
-            Step(
-                "check_margin",
-                args=("margin",),
-                status=Status.OUTSIDE_BARRIER,
-                what="the inequality constraints' margins",
-                note="Past a barrier 1/(s - g_i) is finite: the margins themselves say where y is.",
-            )
-        )
-    steps.append(
-        Step(
-            "check",
-            args=checked,
-            status=Status.NONFINITE_OUTPUT,
-            what=jet_what,
-            alone=jet_alone,
-            note=jet_note,
-        )
-    )
+    steps = [Step("call", "jet", jet_args, jet_results, note=call_note)]
+    # M's definiteness and the barriers' margins first: a failure of either also makes
+    # results non-finite, and the finiteness check would name the wrong cause.
+    steps += [_CHECK_PD] if mass[0] else []
+    steps += [_CHECK_MARGIN] if margins else []
+    steps.append(check)
     if hessian:
-        steps.append(
-            Step(
-                "solve_ldl",
-                "cholesky",
-                ("hess", "jet_rhs"),
-                ("z",),
-                Status.HESSIAN_NOT_PD,
-                note="y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest]: solved, never inverted.",
-                pivots=_pivots(m, n),
-            )
-        )
+        steps.append(dataclasses.replace(_SOLVE_HESSIAN, pivots=_pivots(m, n)))
     steps += _DECOUPLE
     runtime = _runtime(hessian, r_blocks, mass[0], margins)
     rhs = _RHS
