@@ -157,6 +157,56 @@ def build_model(spec: Spec) -> Model:
             f"the plant has {len(spec.inputs)} inputs but {len(spec.outputs)} outputs; the "
             "method needs as many outputs as inputs",
         )
+    sampler, sampled = _plant_sampler(spec, x, u)
+    f_rows, G_entries = _split_affine(spec, u, sampler)
+    if spec.mechanics is not None:
+        _check_mass_matrix(spec, spec.mechanics, sampler, *sampled)
+    f0, objective, mu, slack = _barrier_objective(spec)
+    return Model(
+        spec=spec,
+        x=x,
+        u=u,
+        y=tuple(symbol(n) for n in spec.outputs),
+        f=sp.ImmutableMatrix(f_rows),
+        G=from_entries(len(x), len(u), G_entries),
+        h=sp.ImmutableMatrix(spec.output_exprs),
+        params=tuple(symbol(n) for n, _ in spec.parameters),
+        defaults=tuple(v for _, v in spec.parameters),
+        signals=tuple((symbol(n), e) for n, e in spec.signals),
+        f0=f0,
+        t=TIME,
+        references=tuple(symbol(n) for n in spec.references),
+        nominal=tuple((symbol(n), e) for n, e in spec.reference_nominal),
+        objective=objective,
+        constraints=spec.constraints,
+        mu=mu if mu is not None else sp.Integer(0),
+        slack=slack if slack is not None else sp.Integer(0),
+        equalities=spec.equalities,
+        multipliers=tuple(sp.Symbol(f"nu_{c.name}", real=True) for c in spec.equalities),
+    )
+
+
+def _plant_sampler(
+    spec: Spec, x: tuple[sp.Symbol, ...], u: tuple[sp.Symbol, ...]
+) -> tuple[Sampler, list[np.ndarray]]:
+    """The sampler that decides affinity, and where it leaves ``M`` and ``[F | B]``.
+
+    Parameters
+    ----------
+    spec : Spec
+        A validated spec.
+    x, u : tuple of sympy.Symbol
+        The plant's states and inputs, the sampler's free symbols.
+
+    Returns
+    -------
+    sampler : Sampler
+        Over ``(*x, *u)`` with the parameters at their defaults; for a mechanical plant
+        it also solves the run-time symbols at its points.
+    sampled : list of numpy.ndarray
+        Empty until the sampler first evaluates a mechanical plant, then ``M`` and
+        ``[F | B]`` at its points (filled in place).
+    """
     # Affinity is decided by evaluation at random points first: a nonzero value proves
     # non-affinity at once, and simplify (slow on hostile input) is never reached then.
     mechanics = spec.mechanics
@@ -180,6 +230,35 @@ def build_model(spec: Spec) -> Model:
         ),
         implicit=None if mechanics is None else implicit,
     )
+    return sampler, sampled
+
+
+def _split_affine(
+    spec: Spec, u: tuple[sp.Symbol, ...], sampler: Sampler
+) -> tuple[list[sp.Expr], dict[tuple[int, int], sp.Expr]]:
+    """``f`` and ``G`` of the declared right-hand sides, after checking their affinity.
+
+    Parameters
+    ----------
+    spec : Spec
+        A validated spec.
+    u : tuple of sympy.Symbol
+        The plant inputs.
+    sampler : Sampler
+        Decides whether a coefficient's derivative in an input is zero.
+
+    Returns
+    -------
+    f_rows : list of sympy.Expr
+        Each right-hand side with the inputs at 0, in the states' order.
+    G_entries : dict of (int, int) to sympy.Expr
+        The nonzero entries of ``G``, by (state, input) position.
+
+    Raises
+    ------
+    SpecError
+        When a right-hand side is not affine in the inputs.
+    """
     G_entries: dict[tuple[int, int], sp.Expr] = {}
     f_rows = []
     inputs = set(u)
@@ -206,8 +285,28 @@ def build_model(spec: Spec) -> Model:
                         f"depends on input {str(uk)!r}",
                     )
         f_rows.append(rhs.xreplace(dict.fromkeys(u, sp.Integer(0))))
-    if spec.mechanics is not None:
-        _check_mass_matrix(spec, spec.mechanics, sampler, *sampled)
+    return f_rows, G_entries
+
+
+def _barrier_objective(
+    spec: Spec,
+) -> tuple[sp.Expr, sp.Expr | None, sp.Expr | None, sp.Expr | None]:
+    """The objective the method tracks: ``f0``, or with ``[constraints]`` the barrier's.
+
+    Parameters
+    ----------
+    spec : Spec
+        A validated spec.
+
+    Returns
+    -------
+    f0 : sympy.Expr
+        The spec's objective, or the barrier objective ``B`` when it has inequalities.
+    objective : sympy.Expr or None
+        The spec's objective when ``f0`` is ``B``; None otherwise.
+    mu, slack : sympy.Expr or None
+        The barrier's weight ``mu(t)`` and slack ``s(t)``; None without inequalities.
+    """
     f0: sp.Expr = spec.objective
     objective = mu = slack = None
     if spec.constraints:
@@ -233,28 +332,7 @@ def build_model(spec: Spec) -> Model:
         mu, slack = schedule(spec.barrier, s0, TIME)
         objective = f0
         f0 = barrier_objective(f0, spec.constraints, mu, slack)
-    return Model(
-        spec=spec,
-        x=x,
-        u=u,
-        y=tuple(symbol(n) for n in spec.outputs),
-        f=sp.ImmutableMatrix(f_rows),
-        G=from_entries(len(x), len(u), G_entries),
-        h=sp.ImmutableMatrix(spec.output_exprs),
-        params=tuple(symbol(n) for n, _ in spec.parameters),
-        defaults=tuple(v for _, v in spec.parameters),
-        signals=tuple((symbol(n), e) for n, e in spec.signals),
-        f0=f0,
-        t=TIME,
-        references=tuple(symbol(n) for n in spec.references),
-        nominal=tuple((symbol(n), e) for n, e in spec.reference_nominal),
-        objective=objective,
-        constraints=spec.constraints,
-        mu=mu if mu is not None else sp.Integer(0),
-        slack=slack if slack is not None else sp.Integer(0),
-        equalities=spec.equalities,
-        multipliers=tuple(sp.Symbol(f"nu_{c.name}", real=True) for c in spec.equalities),
-    )
+    return f0, objective, mu, slack
 
 
 def _check_mass_matrix(

@@ -1,0 +1,187 @@
+"""The spec reader's settings of the law and its run.
+
+``[error_dynamics]`` (poles or coefficients), ``[robust]``, ``[limits]`` (ranges and
+rates of the inputs) and ``[simulation]`` (its horizon, initial state, and the pairs
+its figures draw).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import sympy as sp
+
+from tvopt_codegen.errors import clip
+from tvopt_codegen.limits import MAX_T_FINAL
+from tvopt_codegen.parse import indexed_name
+from tvopt_codegen.spec.fields import _Fields, shown
+from tvopt_codegen.spec.fields import suggestion as _suggestion
+from tvopt_codegen.spec.types import Limit, Robust
+
+
+class _SettingsReader(_Fields):
+    """Reads ``[error_dynamics]``, ``[robust]``, ``[limits]`` and ``[simulation]``."""
+
+    def read_robust(self, data: Mapping[str, Any]) -> Robust:
+        """``[robust]``: integral action and ``[robust.observer]``."""
+        table = self.sub(data, "robust", "robust")
+        self.table(table, "robust", {"integral", "observer"}, set())
+        integral = self.boolean(table.get("integral", False), "robust.integral")
+        bandwidth = None
+        if "observer" in table:
+            observer = self.sub(table, "observer", "robust.observer")
+            self.table(observer, "robust.observer", {"bandwidth"}, {"bandwidth"})
+            bandwidth = self.number(observer["bandwidth"], "robust.observer.bandwidth")
+            if not bandwidth > 0:
+                raise self.fail("robust.observer.bandwidth", "must be positive (rad/s)")
+        return Robust(integral, bandwidth)
+
+    def read_limits(self, data: Mapping[str, Any], inputs: tuple[str, ...]) -> tuple[Limit, ...]:
+        """``[limits]``: each input's ``[low, high]`` (or ``L``: ``[-L, L]``), and rates."""
+        table = dict(self.sub(data, "limits", "limits"))
+        rates_table = self.sub(table, "rate", "limits.rate")
+        table.pop("rate", None)
+        ranges: dict[str, tuple[float, float]] = {}
+        for name, value in table.items():
+            field = f"limits.{name}"
+            if name not in inputs:
+                raise self.fail(
+                    field,
+                    f"{clip(str(name))!r} is not a plant input ({', '.join(inputs)})"
+                    f"{_suggestion(str(name), set(inputs))}",
+                )
+            if isinstance(value, list):
+                if len(value) != 2:
+                    raise self.fail(field, f"expected [low, high], got {len(value)} numbers")
+                low = self.number(value[0], f"{field}[0]")
+                high = self.number(value[1], f"{field}[1]")
+                if not low < high:
+                    raise self.fail(field, f"low {low:g} must be below high {high:g}")
+            else:
+                high = self.number(value, field)
+                if not high > 0:
+                    raise self.fail(
+                        field, f"a single limit L means [-L, L]: L must be positive, got {high:g}"
+                    )
+                low = -high
+            ranges[name] = (low, high)
+        rates: dict[str, float] = {}
+        for name, value in rates_table.items():
+            field = f"limits.rate.{name}"
+            if name not in inputs:
+                raise self.fail(
+                    field,
+                    f"{clip(str(name))!r} is not a plant input ({', '.join(inputs)})"
+                    f"{_suggestion(str(name), set(inputs))}",
+                )
+            rate = self.number(value, field)
+            if not rate > 0:
+                raise self.fail(field, f"a rate limit must be positive (per second), got {rate:g}")
+            rates[name] = rate
+        return tuple(
+            Limit(u, *ranges.get(u, (-math.inf, math.inf)), rates.get(u, math.inf))
+            for u in inputs
+            if u in ranges or u in rates
+        )
+
+    def read_error_dynamics(
+        self, data: Mapping[str, Any]
+    ) -> tuple[tuple[complex, ...] | None, tuple[float, ...] | None]:
+        table = self.sub(data, "error_dynamics", "error_dynamics")
+        self.table(table, "error_dynamics", {"poles", "coefficients"}, set())
+        if ("poles" in table) == ("coefficients" in table):
+            raise self.fail("error_dynamics", "give exactly one of 'poles' or 'coefficients'")
+        if "coefficients" in table:
+            values = table["coefficients"]
+            if not isinstance(values, list) or not values:
+                raise self.fail(
+                    "error_dynamics.coefficients", "expected a non-empty list of numbers"
+                )
+            return None, tuple(
+                self.number(v, f"error_dynamics.coefficients[{i}]") for i, v in enumerate(values)
+            )
+        values = table["poles"]
+        if not isinstance(values, list) or not values:
+            raise self.fail("error_dynamics.poles", "expected a non-empty list of poles")
+        poles: list[complex] = []
+        for index, value in enumerate(values):
+            field = f"error_dynamics.poles[{index}]"
+            if isinstance(value, list):
+                if len(value) != 2:
+                    raise self.fail(field, "a conjugate pair is written [re, im]")
+                re, im = (self.number(v, field) for v in value)
+                if im <= 0:
+                    raise self.fail(field, "the imaginary part of a pair [re, im] must be positive")
+                poles += [complex(re, im), complex(re, -im)]
+            else:
+                poles.append(complex(self.number(value, field), 0.0))
+        return tuple(poles), None
+
+    def pairs(
+        self, table: Mapping[str, Any], key: str, known: set[str], kind: str
+    ) -> tuple[tuple[str, str], ...]:
+        """Read a list of name pairs, e.g. ``agents = [["y1", "y2"]]``."""
+        value = table.get(key, [])
+        field = f"simulation.{key}"
+        if not isinstance(value, list):
+            raise self.fail(field, "expected a list of [x, y] name pairs")
+        result = []
+        for index, pair in enumerate(value):
+            where = f"{field}[{index}]"
+            if not (isinstance(pair, list) and len(pair) == 2):
+                raise self.fail(where, f"expected a pair [x, y] of names, got {shown(pair)}")
+            for name in pair:
+                if not isinstance(name, str):
+                    raise self.fail(where, f"expected a pair [x, y] of names, got {shown(name)}")
+            # ["px[i]", "py[i]"] stands for one pair per value of i.
+            parts = [self.split(name, where) for name in pair]
+            indices = {i for _, i in parts if i is not None}
+            if len(indices) > 1:
+                raise self.fail(where, "a pair may use one index only")
+            values = range(self.indexing.counts[next(iter(indices))]) if indices else [None]
+            for number in values:
+                names = [
+                    indexed_name(base, number) if i is not None and number is not None else base
+                    for base, i in parts
+                ]
+                for name in names:
+                    if name not in known:
+                        raise self.fail(
+                            where,
+                            f"{name!r} is not a declared {kind}{_suggestion(name, known)}",
+                        )
+                result.append((names[0], names[1]))
+        return tuple(result)
+
+    def read_simulation(
+        self, data: Mapping[str, Any]
+    ) -> tuple[float, tuple[tuple[str, float], ...]]:
+        table = self.sub(data, "simulation", "simulation")
+        self.table(table, "simulation", {"t_final", "initial_state", "agents", "objects"}, set())
+        t_final = self.number(table.get("t_final", 10.0), "simulation.t_final")
+        if not 0 < t_final <= MAX_T_FINAL:
+            raise self.fail("simulation.t_final", f"must be positive and at most {MAX_T_FINAL:g}")
+        initial = self.sub(table, "initial_state", "simulation.initial_state")
+        return t_final, tuple(
+            (key, self.constant(value, where, bound))
+            for key, value, bound, where in self.entries(initial, "simulation.initial_state")
+        )
+
+    def read_figure_layout(
+        self,
+        data: Mapping[str, Any],
+        outputs: tuple[str, ...],
+        signals: list[tuple[str, sp.Expr]],
+        references: tuple[str, ...],
+    ) -> tuple[tuple[tuple[str, str], ...], tuple[tuple[str, str], ...]]:
+        """``[simulation]``'s ``agents`` and ``objects``: what the figures draw as pairs."""
+        simulation = data.get("simulation", {})
+        agents = self.pairs(simulation, "agents", set(outputs), "output")
+        if not agents and len(outputs) % 2 == 0:
+            agents = tuple((outputs[i], outputs[i + 1]) for i in range(0, len(outputs), 2))
+        objects = self.pairs(
+            simulation, "objects", {name for name, _ in signals} | set(references), "signal"
+        )
+        return agents, objects
