@@ -148,6 +148,22 @@ def test_every_layer_keeps_to_its_place() -> None:
     assert "tvopt_codegen.rendering" not in graph["tvopt_codegen.emit"]
 
 
+#: The URDF import's steps (``tvopt_codegen.urdf``), lowest first; its ``__init__`` runs them.
+URDF_STEPS = ("elements", "reading", "chain", "dynamics", "objective", "mapping")
+
+
+def test_the_urdf_import_steps_only_import_the_steps_below() -> None:
+    graph = _graph(everywhere=True)
+    package = "tvopt_codegen.urdf"
+    steps = [f"{package}.{step}" for step in URDF_STEPS]
+    assert {m for m in graph if m.startswith(f"{package}.")} == set(steps)
+    for index, step in enumerate(steps):
+        inside = {m for m in graph[step] if m == package or m.startswith(f"{package}.")}
+        assert inside <= set(steps[:index]), (step, sorted(inside - set(steps[:index])))
+    # The scan sees what it must: the package runs every step.
+    assert set(steps) <= graph[package]
+
+
 def test_the_command_line_loads_the_stages_only_inside_its_commands() -> None:
     graph = _graph(everywhere=False)
     assert "tvopt_codegen.jet" in graph["tvopt_codegen.derivation.objective"]
