@@ -9,7 +9,7 @@ import types
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -99,30 +99,8 @@ def simulate(
     on_grid = source is not None and source.estimated and source.times is not None
 
     def integrate(run: Options) -> Any:
-        # A run that overflows ends in a ControllerError with its time; numpy's own
-        # warnings on the way would only add lines to that one-line message.
-        with np.errstate(all="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            if on_grid:
-                assert source is not None and source.times is not None
-                return _on_the_sample_grid(
-                    tracked, run.t_final, np.array(run.initial_state), source.times
-                )
-            if run.method == "RK45":
-                return dopri.integrate(
-                    tracked, run.t_final, np.array(run.initial_state), run.rtol, run.atol
-                )
-            from scipy.integrate import solve_ivp  # noqa: PLC0415 - a third of simulate
-
-            return solve_ivp(
-                tracked,
-                (0.0, run.t_final),
-                np.array(run.initial_state),
-                method=run.method,
-                rtol=run.rtol,
-                atol=run.atol,
-                dense_output=True,
-            )
+        times = source.times if on_grid and source is not None else None
+        return _integrate(tracked, run, times)
 
     try:
         first = integrate(options)
@@ -156,24 +134,63 @@ def simulate(
     except ArithmeticError as exc:
         if not hasattr(exc, "status"):
             raise
-        if exc.status == Status.SINGULAR_DECOUPLING:
-            # The evaluation that failed is where R is singular: say so in R's words.
-            pivot = getattr(controller, "PIVOT_TOLERANCE", None)
-            why = (
-                f"a pivot of R's LU fell below {pivot:g} of its largest entry"
-                if pivot is not None
-                else str(exc)
+        _refuse_undefined(d, controller, options, exc, reached[0], last[0])
+
+
+def _integrate(tracked: Callable[[float, np.ndarray], np.ndarray], run: Options, times: Any) -> Any:
+    """One integration of the closed loop.
+
+    On the references' sample grid (``times``), else by the package's Dormand-Prince
+    (RK45), else by scipy's other methods.
+    """
+    # A run that overflows ends in a ControllerError with its time; numpy's own
+    # warnings on the way would only add lines to that one-line message.
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        if times is not None:
+            return _on_the_sample_grid(tracked, run.t_final, np.array(run.initial_state), times)
+        if run.method == "RK45":
+            return dopri.integrate(
+                tracked, run.t_final, np.array(run.initial_state), run.rtol, run.atol
             )
-            raise AssumptionError(
-                d.spec.source,
-                "simulation",
-                _singular_message(d, options, reached[0], last[0], why),
-            ) from None
+        from scipy.integrate import solve_ivp  # noqa: PLC0415 - a third of simulate
+
+        return solve_ivp(
+            tracked,
+            (0.0, run.t_final),
+            np.array(run.initial_state),
+            method=run.method,
+            rtol=run.rtol,
+            atol=run.atol,
+            dense_output=True,
+        )
+
+
+def _refuse_undefined(
+    d: Derivation,
+    controller: types.ModuleType,
+    options: Options,
+    exc: ArithmeticError,
+    t: float,
+    s: np.ndarray,
+) -> NoReturn:
+    """The one-line refusal of a run along which the law became undefined at ``(t, s)``."""
+    if getattr(exc, "status", None) == Status.SINGULAR_DECOUPLING:
+        # The evaluation that failed is where R is singular: say so in R's words.
+        pivot = getattr(controller, "PIVOT_TOLERANCE", None)
+        why = (
+            f"a pivot of R's LU fell below {pivot:g} of its largest entry"
+            if pivot is not None
+            else str(exc)
+        )
         raise AssumptionError(
-            d.spec.source,
-            "simulation",
-            f"the law became undefined along the run, near t = {reached[0]:.6g}: {exc}",
+            d.spec.source, "simulation", _singular_message(d, options, t, s, why)
         ) from None
+    raise AssumptionError(
+        d.spec.source,
+        "simulation",
+        f"the law became undefined along the run, near t = {t:.6g}: {exc}",
+    ) from None
 
 
 def _state_text(d: Derivation, s: np.ndarray, limit: int = 200) -> str:
