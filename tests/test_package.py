@@ -3,12 +3,26 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import zipfile
 from pathlib import Path
 
 from .conftest import ROOT
+
+
+def _clean_source(tmp_path: Path) -> Path:
+    """What the wheel is built from, copied without the checkout's ignored build/ folder,
+    whose stale copies of moved modules setuptools would ship."""
+    source = tmp_path / "source"
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
+    for name in ("tvopt_codegen", "templates"):
+        shutil.copytree(ROOT / name, source / name, ignore=ignore)
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
+        if (ROOT / name).exists():
+            shutil.copy2(ROOT / name, source / name)
+    return source
 
 
 def test_installed_wheel_generates_a_bundled_example(tmp_path: Path) -> None:
@@ -23,7 +37,7 @@ def test_installed_wheel_generates_a_bundled_example(tmp_path: Path) -> None:
             "--no-deps",
             "-w",
             str(wheels),
-            str(ROOT),
+            str(_clean_source(tmp_path)),
         ],
         check=True,
         capture_output=True,
@@ -40,6 +54,17 @@ def test_installed_wheel_generates_a_bundled_example(tmp_path: Path) -> None:
         for p in (ROOT / "templates").rglob("*.jinja")
     }
     assert shipped <= names
+    # Every module of the package, and no other: pyproject lists the packages one by one,
+    # and a stale build/ folder would ship modules that no longer exist.
+    package = ROOT / "tvopt_codegen"
+    modules = {
+        f"tvopt_codegen/{p.relative_to(package).as_posix()}"
+        for p in package.rglob("*.py")
+        if "__pycache__" not in p.parts
+    }
+    shipped_modules = {n for n in names if n.startswith("tvopt_codegen/") and n.endswith(".py")}
+    assert modules - shipped_modules == set(), "modules missing from the wheel"
+    assert shipped_modules - modules == set(), "modules in the wheel but not in the checkout"
     target = tmp_path / "site"
     subprocess.run(
         [
