@@ -337,3 +337,37 @@ def test_the_writer_scan_sees_every_way_to_the_toolchain_or_the_terminal(
     clean = writer / "clean.py"
     clean.write_text("import os\nfrom pathlib import Path\n\nos.replace(Path('a'), Path('b'))\n")
     assert _writer_reach(clean, tmp_path) == ([], [])
+
+
+#: Issue 48's bounds on what a newcomer has to read at once.
+MAX_MODULE_LINES, MAX_FUNCTION_LINES = 800, 120
+
+
+def _oversized(root: Path) -> list[str]:
+    """Modules over MAX_MODULE_LINES and functions (def to last line) over MAX_FUNCTION_LINES."""
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        where = path.relative_to(root).as_posix()
+        if text.count("\n") > MAX_MODULE_LINES:
+            found.append(f"{where}: {text.count(chr(10))} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                length = (node.end_lineno or node.lineno) - node.lineno + 1
+                if length > MAX_FUNCTION_LINES:
+                    found.append(f"{where}: {node.name} has {length} lines")
+    return found
+
+
+def test_no_module_or_function_is_too_long_to_read() -> None:
+    assert _oversized(PACKAGE) == []
+
+
+def test_the_size_check_sees_a_long_function_and_a_long_module(tmp_path: Path) -> None:
+    body = "".join(f"    x{i} = {i}\n" for i in range(MAX_FUNCTION_LINES))
+    (tmp_path / "long.py").write_text(f"def f() -> None:\n{body}", encoding="utf-8")
+    (tmp_path / "big.py").write_text("x = 1\n" * (MAX_MODULE_LINES + 1), encoding="utf-8")
+    assert _oversized(tmp_path) == [
+        f"big.py: {MAX_MODULE_LINES + 1} lines",
+        f"long.py: f has {MAX_FUNCTION_LINES + 1} lines",
+    ]

@@ -164,6 +164,15 @@ def _model(d: Derivation) -> Section:
                 rows=tuple((s.name, formula(e), _smoothness(e)) for s, e in model.signals),
             )
         )
+    entries += _constraint_entries(d)
+    entries += _reference_entries(d)
+    return Section("Model", tuple(entries))
+
+
+def _constraint_entries(d: Derivation) -> list[Entry]:
+    """The model's inequality and equality constraints, as tables (none without)."""
+    model = d.model
+    entries: list[Entry] = []
     if model.constraints:
         entries.append(
             Entry(
@@ -209,6 +218,13 @@ def _model(d: Derivation) -> Section:
                 ),
             )
         )
+    return entries
+
+
+def _reference_entries(d: Derivation) -> list[Entry]:
+    """The references measured at run time and their estimator, as a table (none without)."""
+    spec, model = d.spec, d.model
+    entries: list[Entry] = []
     if model.references:
         estimator = spec.estimator
         assert estimator is not None
@@ -239,7 +255,7 @@ def _model(d: Derivation) -> Section:
                 ),
             )
         )
-    return Section("Model", tuple(entries))
+    return entries
 
 
 def _extension(d: Derivation) -> Section:
