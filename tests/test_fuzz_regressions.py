@@ -311,3 +311,38 @@ def test_the_law_refuses_a_state_outside_the_barriers_domain(tmp_path: Path) -> 
         controller = mod.Controller(inside[:, 0], refs=refs)
         with pytest.raises(mod.OutsideBarrierError):
             controller.step(0.01, outside[:, 0], refs=jets(0.01))
+
+
+#: ``arm:3:equality+inequality+limits+observer:241`` of seed 2032: the arm starts 4.6 mm
+#: inside the barrier of ``y3 >= o3 - 0.19``; the harness's constant disturbance (on every
+#: state's rate) and tau2's limit, which holds the nominal input, push y3 out within 9 ms
+#: whatever the sampling (10, 1 or 0.1 ms). The first step's OutsideBarrierError is then
+#: the plant's, not a seam: the oracle's margin confirms it.
+START_NEAR_A_BARRIER = "arm:3:equality+inequality+limits+observer:241"
+
+
+def test_a_start_pushed_across_a_barrier_at_once_is_a_documented_end() -> None:
+    out = run_case(Case.parse(START_NEAR_A_BARRIER))
+    assert out.startswith("refused: run-time: the sampled closed loop left the law's domain")
+    assert "t = 0.01 s: OutsideBarrierError" in out
+
+
+def test_a_barrier_refusal_inside_every_barrier_is_a_disagreement(tmp_path: Path) -> None:
+    """The harness believes OutsideBarrierError only where the oracle's margins agree."""
+    from tvopt_codegen.derivation import derive
+    from tvopt_codegen.spec import spec_from_dict
+
+    from .fuzzing import ClosedLoop, _crossed_a_barrier
+    from .oracle import Oracle
+
+    spec, _ = build_spec(Case.parse(START_NEAR_A_BARRIER), tmp_path)
+    d = derive(spec_from_dict(spec))
+    x0 = np.array(d.initial_state[: len(d.model.x)], dtype=float)
+    p = np.array([v for _, v in d.spec.parameters], dtype=float)
+    times = np.array([0.0, 0.01])
+    plants = np.stack([x0, x0], axis=1)  # still at the start, 4.6 mm inside
+    stopped = ClosedLoop(plants, times, np.zeros((1, 1)), "OutsideBarrierError: (made up)", 1)
+    with pytest.raises(DisagreementError, match="where the oracle's margins are"):
+        _crossed_a_barrier(Oracle(d), stopped, d, p)
+    other = ClosedLoop(plants, times, np.zeros((1, 1)), "SingularDecouplingError: x", 1)
+    assert not _crossed_a_barrier(Oracle(d), other, d, p)
