@@ -141,10 +141,10 @@ robust-example: $(READY)
 reference-noise: $(READY)
 	$(PY) benchmarks/reference_noise.py --write docs/references-noise.md
 
-## features-doc: regenerate docs/features.md from the feature matrix (tvopt_codegen/features.py)
+## features-doc: regenerate docs/features.md from the feature matrix (tvopt_codegen/spec/features.py)
 .PHONY: features-doc
 features-doc: $(READY)
-	$(PY) -m tvopt_codegen.features > docs/features.md
+	$(PY) -m tvopt_codegen.spec.features > docs/features.md
 
 ## fuzz: the differential fuzzer (docs/fuzz.md): CASES random cases (default 200) drawn from SEED
 ##   (default: a fresh one, printed); CASE=kind:size:features:seed replays one case; C_RATE and

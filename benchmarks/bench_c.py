@@ -29,8 +29,8 @@ from cffi import FFI
 
 from tvopt_codegen.derivation import Derivation, derive
 from tvopt_codegen.emit import write_files
-from tvopt_codegen.ir import KernelSet, lower
-from tvopt_codegen.rendering import render
+from tvopt_codegen.lowering.ir import KernelSet, lower
+from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.simulation import load_controller
 from tvopt_codegen.simulation.sampled import hold
 from tvopt_codegen.spec import load_spec

@@ -32,9 +32,9 @@ from tests.arms import planar_arm  # noqa: E402
 from tests.casadi_oracle import casadi_mechanics_law  # noqa: E402
 from tvopt_codegen.derivation import derive  # noqa: E402
 from tvopt_codegen.emit import write_files  # noqa: E402
-from tvopt_codegen.ir import lower  # noqa: E402
+from tvopt_codegen.lowering.ir import lower  # noqa: E402
 from tvopt_codegen.mechanics import spec_from_sympy  # noqa: E402
-from tvopt_codegen.rendering import render  # noqa: E402
+from tvopt_codegen.renderer.rendering import render  # noqa: E402
 from tvopt_codegen.simulation import load_controller  # noqa: E402
 from tvopt_codegen.spec import Spec, load_spec, spec_from_dict  # noqa: E402
 

@@ -3,7 +3,7 @@
 Run: ``make bench-representation``. Issue 33 asks whether a faster expression core
 would make building the law faster than CasADi. This measures the part of the
 derivation that repeats most, the total derivatives of f0's gradient program
-(:func:`tvopt_codegen.jet.next_derivative`: one chain rule per assignment, then the
+(:func:`tvopt_codegen.maths.jet.next_derivative`: one chain rule per assignment, then the
 result broken into three-address form again), with the same algorithm on both cores:
 
 - **sympy**: the tool's own ``next_derivative``, k - 1 times;
@@ -42,7 +42,7 @@ _PROBE = r"""
 import json, sys, time
 import sympy as sp
 import symengine as se
-from tvopt_codegen import jet
+from tvopt_codegen.maths import jet
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.spec import load_spec
 

@@ -38,7 +38,7 @@ from bench_c import casadi_closed_loop  # noqa: E402
 
 from tvopt_codegen import simulation, sweep  # noqa: E402
 from tvopt_codegen.derivation import derive  # noqa: E402
-from tvopt_codegen.ir import lower  # noqa: E402
+from tvopt_codegen.lowering.ir import lower  # noqa: E402
 from tvopt_codegen.spec import load_spec  # noqa: E402
 
 SPEC = "unicycle_switch"

@@ -33,7 +33,7 @@ import numpy as np
 
 from tvopt_codegen import sweep
 from tvopt_codegen.derivation import derive
-from tvopt_codegen.ir import lower
+from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.simulation import load_controller, resolve_options, simulate
 from tvopt_codegen.simulation.sampled import hold
 from tvopt_codegen.spec import parse_spec

@@ -19,8 +19,8 @@ import pytest
 from hypothesis import settings
 
 from tvopt_codegen.derivation import Derivation, derive
-from tvopt_codegen.ir import KernelSet, lower
-from tvopt_codegen.rendering import render
+from tvopt_codegen.lowering.ir import KernelSet, lower
+from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.spec import load_spec
 
 # CI draws the same hypothesis examples on every run: a submission lands or fails on its

@@ -669,7 +669,7 @@ def _fmu_check(kernels: Any, mod: ModuleType, x0: np.ndarray, plants: np.ndarray
     """The FMU under FMPy against the Python ``Controller`` along the same plant states."""
     import fmpy
 
-    from tvopt_codegen.fmu import build_fmu
+    from tvopt_codegen.runs.fmu import build_fmu
 
     path = folder / "case.fmu"
     path.write_bytes(build_fmu(kernels, 2))
@@ -770,7 +770,7 @@ def run_case(case: Case, report: Report | None = None) -> str:
     """
     from tvopt_codegen.derivation import derive
     from tvopt_codegen.errors import AssumptionError, SpecError
-    from tvopt_codegen.ir import lower
+    from tvopt_codegen.lowering.ir import lower
     from tvopt_codegen.simulation import load_controller
     from tvopt_codegen.simulation.references import exact_jets
     from tvopt_codegen.spec import spec_from_dict

@@ -1,8 +1,9 @@
-"""The package's structure: no import cycle between its modules, counting every import.
+"""The package's structure: its layers, and no import cycle between its modules.
 
 An import inside a function or under ``if TYPE_CHECKING`` is a dependency too: it only
-defers the loop it would close. Cycles are counted over all of them; which modules load
-at import time (the command line's speed) is checked over module-level imports alone.
+defers the loop it would close. Cycles and the layers' order are checked over all of
+them; which modules load at import time (the command line's speed) is checked over
+module-level imports alone.
 """
 
 from __future__ import annotations
@@ -119,7 +120,7 @@ def test_no_import_cycle_counting_every_import() -> None:
     cycles = _cycles(graph)
     assert not cycles, "import cycles: " + "; ".join(" <-> ".join(c) for c in cycles)
     # The graph is real: deferred and type-only imports are in it.
-    assert "tvopt_codegen.jet" in graph["tvopt_codegen.derivation.objective"]
+    assert "tvopt_codegen.maths.jet" in graph["tvopt_codegen.derivation.objective"]
     assert "tvopt_codegen.derivation" in graph["tvopt_codegen.commands.common"]
 
 
@@ -140,12 +141,119 @@ def test_the_cycle_finder_sees_deferred_and_type_only_imports(tmp_path: Path) ->
 def test_every_layer_keeps_to_its_place() -> None:
     graph = _graph(everywhere=True)
     # Load knows nothing of render: the spec reader reaches no backend module by name.
-    assert not {m for m in graph["tvopt_codegen.names"] if m.startswith("tvopt_codegen.backends.")}
+    assert not {
+        m for m in graph["tvopt_codegen.spec.names"] if m.startswith("tvopt_codegen.backends.")
+    }
     # Figures are drawn by one module on top of the verification stages.
-    importers = sorted(m for m, imported in graph.items() if "tvopt_codegen.figures" in imported)
-    assert importers == ["tvopt_codegen.artifacts"]
+    importers = sorted(
+        m for m, imported in graph.items() if "tvopt_codegen.runs.figures" in imported
+    )
+    assert importers == ["tvopt_codegen.runs.artifacts"]
     # The writer does not reach back into the renderer (the stamp is its own module).
-    assert "tvopt_codegen.rendering" not in graph["tvopt_codegen.emit"]
+    assert "tvopt_codegen.renderer.rendering" not in graph["tvopt_codegen.emit"]
+
+
+#: The package's layers, lowest first, each a tuple of paths below ``tvopt_codegen``
+#: (a module, or a package with everything in it; ``""`` is the package's ``__init__``,
+#: whose re-exports are imported on first use by name, not by an import statement). A
+#: module imports only from its own layer and the layers below it.
+LAYERS: tuple[tuple[str, ...], ...] = (
+    # What every stage shares: the contract's tables, the errors, the bounds.
+    ("", "contract", "errors", "limits"),
+    # The mathematics the derivation stands on; it reads no spec.
+    ("maths",),
+    # Load: a spec file, a SymPy mechanics model or a URDF robot -> a checked spec.
+    ("spec", "mechanics", "urdf"),
+    # The model and the derivation of the law (and what reads only the derivation).
+    ("derivation",),
+    # The law as kernels: the IR, its CSE, the plan, the printers' order.
+    ("lowering", "cse"),
+    # The writer, and the compiler lookup its library cache runs (``toolchain`` stays at
+    # the top: inside ``emit/`` it would break the rule that only ``emit.caches`` compiles).
+    ("emit", "toolchain"),
+    # Kernels printed by a backend into its templates.
+    ("renderer", "backends"),
+    # What is done with a generated controller: runs, sweeps, the FMU, figures, reports.
+    ("simulation", "sweep", "runs", "report", "interop"),
+    # The doors: the command line.
+    ("commands", "cli", "__main__"),
+)
+
+#: The imports that go up a layer, each as ``(importer, imported)`` with why it stays.
+UPWARD_IMPORTS_ALLOWED = {
+    # A spec's names may be no backend's reserved word: the reader asks the backends'
+    # registry (``backends/__init__``, which itself loads only ``backends.base``) for the
+    # words each backend, a plugin's too, reserves. It reaches no backend module.
+    ("tvopt_codegen.spec.names", "tvopt_codegen.backends"),
+}
+
+#: Issue 48: the top of the package holds at most this many modules; the rest are layers.
+MAX_TOP_LEVEL_MODULES = 12
+
+
+def _layer(
+    module: str, layers: tuple[tuple[str, ...], ...] = LAYERS, package: str = "tvopt_codegen"
+) -> int:
+    """The index in ``layers`` of ``module``'s layer; it must be in exactly one."""
+    path = module.removeprefix(package).removeprefix(".")
+    found = [
+        index
+        for index, layer in enumerate(layers)
+        for prefix in layer
+        if path == prefix or (prefix and path.startswith(f"{prefix}."))
+    ]
+    assert len(found) == 1, (module, found)
+    return found[0]
+
+
+def _upward_imports(
+    graph: dict[str, set[str]],
+    layers: tuple[tuple[str, ...], ...] = LAYERS,
+    package: str = "tvopt_codegen",
+) -> list[tuple[str, str]]:
+    """Every ``(importer, imported)`` of ``graph`` that goes from a lower layer to a higher."""
+    for module in graph:
+        _layer(module, layers, package)  # every module is in exactly one layer
+    return sorted(
+        (module, imported)
+        for module, imports in graph.items()
+        for imported in imports
+        if _layer(imported, layers, package) > _layer(module, layers, package)
+    )
+
+
+def test_a_lower_layer_never_imports_a_higher_one() -> None:
+    upward = set(_upward_imports(_graph(everywhere=True)))
+    assert upward <= UPWARD_IMPORTS_ALLOWED, sorted(upward - UPWARD_IMPORTS_ALLOWED)
+    # Every allowance is still needed: one that no longer happens is struck off.
+    assert upward == UPWARD_IMPORTS_ALLOWED, sorted(UPWARD_IMPORTS_ALLOWED - upward)
+
+
+def test_the_top_of_the_package_holds_few_modules() -> None:
+    top = sorted(p.name for p in PACKAGE.glob("*.py"))
+    assert len(top) <= MAX_TOP_LEVEL_MODULES, top
+
+
+def test_the_layer_check_sees_an_upward_import(tmp_path: Path) -> None:
+    package = tmp_path / "pkg"
+    (package / "low").mkdir(parents=True)
+    for init in (package / "__init__.py", package / "low" / "__init__.py"):
+        init.write_text("")
+    # Deferred, in a function: it counts all the same.
+    (package / "low" / "a.py").write_text("def f():\n    from pkg.high import g\n")
+    (package / "high.py").write_text("from pkg.low import a\n\n\ndef g():\n    pass\n")
+    graph = _graph(True, tmp_path, "pkg")
+    assert _upward_imports(graph, (("",), ("low",), ("high",)), "pkg") == [
+        ("pkg.low.a", "pkg.high")
+    ]
+    assert _upward_imports(graph, (("",), ("high", "low")), "pkg") == []
+    # A module in no layer, or in two, is refused.
+    for wrong in ((("",), ("low",)), (("", "low"), ("low",), ("high",))):
+        try:
+            _upward_imports(graph, wrong, "pkg")
+        except AssertionError:
+            continue
+        raise AssertionError(f"the layers {wrong} were accepted")
 
 
 #: The URDF import's steps (``tvopt_codegen.urdf``), lowest first; its ``__init__`` runs them.
@@ -166,14 +274,23 @@ def test_the_urdf_import_steps_only_import_the_steps_below() -> None:
 
 def test_the_command_line_loads_the_stages_only_inside_its_commands() -> None:
     graph = _graph(everywhere=False)
-    assert "tvopt_codegen.jet" in graph["tvopt_codegen.derivation.objective"]
+    assert "tvopt_codegen.maths.jet" in graph["tvopt_codegen.derivation.objective"]
     assert "tvopt_codegen.derivation" not in graph["tvopt_codegen.cli"]
-    assert "tvopt_codegen.figures" not in graph["tvopt_codegen.simulation"]
+    assert "tvopt_codegen.runs.figures" not in graph["tvopt_codegen.simulation"]
 
 
 #: The derivation stage: the only modules that differentiate (sympy's diff, Derivative,
 #: jacobian, hessian). Everything after it evaluates or lowers what it derived.
-DERIVATION_STAGE = ("tvopt_codegen.derivation", "tvopt_codegen.jet", "tvopt_codegen.lie")
+DERIVATION_STAGE = (
+    "tvopt_codegen.derivation",
+    "tvopt_codegen.maths.jet",
+    "tvopt_codegen.maths.lie",
+)
+#: Modules of ``derivation/`` (their layer) that are not the differentiating stage: the
+#: model is built before it, the law and the robustness read what it derived.
+NOT_DIFFERENTIATING = tuple(
+    f"tvopt_codegen.derivation.{name}" for name in ("model", "law", "robust")
+)
 _DIFFERENTIATION = {"diff", "Derivative", "jacobian", "hessian", "idiff"}
 
 
@@ -202,6 +319,7 @@ def test_only_the_derivation_stage_differentiates() -> None:
         call
         for path in sorted(PACKAGE.rglob("*.py"))
         if not _module_name(path).startswith(DERIVATION_STAGE)
+        or _module_name(path).startswith(NOT_DIFFERENTIATING)
         for call in _differentiations(path)
     ]
     assert not offenders, offenders
@@ -215,7 +333,13 @@ WRITER = PACKAGE / "emit"
 WRITER_CACHES = "tvopt_codegen.emit.caches"
 #: What finds or runs a compiler or compiles templates: the template engine, processes,
 #: the interpreter's build settings, and the project's modules that run the C compiler.
-_TOOLCHAIN = ("jinja2", "subprocess", "sysconfig", "tvopt_codegen.toolchain", "tvopt_codegen.fmu")
+_TOOLCHAIN = (
+    "jinja2",
+    "subprocess",
+    "sysconfig",
+    "tvopt_codegen.toolchain",
+    "tvopt_codegen.runs.fmu",
+)
 #: A compiler looked up by name on PATH, as ``(module, name)``.
 _TOOLCHAIN_LOOKUPS = {("shutil", "which"), ("os", "get_exec_path")}
 _TERMINAL = {"stdout", "stderr", "__stdout__", "__stderr__"}

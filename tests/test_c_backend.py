@@ -17,8 +17,8 @@ import sympy as sp
 
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.emit import write_files
-from tvopt_codegen.ir import lower
-from tvopt_codegen.rendering import render
+from tvopt_codegen.lowering.ir import lower
+from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.simulation import load_controller
 from tvopt_codegen.spec import load_spec
 
@@ -488,7 +488,7 @@ def test_sparse_outputs_are_zeros_and_their_nonzero_elements(
     nonzero elements, in every printing; its values are sympy's, the same in both
     backends, on the one-point and the batch path; the C compiles under strict warnings."""
     from tvopt_codegen.backends.c.printer import CPrinter
-    from tvopt_codegen.rendering import print_kernel
+    from tvopt_codegen.renderer.rendering import print_kernel
 
     spec = tmp_path / "ring8.toml"
     text = (ROOT / "tvopt_codegen" / "examples" / "unicycle_ring.toml").read_text()

@@ -13,7 +13,7 @@ import pytest
 
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.errors import AssumptionError
-from tvopt_codegen.ir import lower
+from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.report import render_report
 from tvopt_codegen.simulation import load_controller, resolve_options, simulate
 from tvopt_codegen.spec import load_spec
@@ -221,7 +221,7 @@ def test_the_step_exponential_matches_a_fifty_digit_reference() -> None:
     # to the last bit on companion matrices (stiff, repeated poles) and on general ones.
     import mpmath  # noqa: PLC0415 - a dependency of sympy
 
-    from tvopt_codegen.hurwitz import coefficients_from_poles, companion, exponential
+    from tvopt_codegen.maths.hurwitz import coefficients_from_poles, companion, exponential
 
     rng = np.random.default_rng(7)
     matrices = [
@@ -313,7 +313,7 @@ def test_the_transient_constant_is_the_supremum_on_its_grid() -> None:
     (its powers of one step, their norms in one batched call), against expm at each t."""
     from scipy.linalg import expm  # noqa: PLC0415
 
-    from tvopt_codegen.hurwitz import (
+    from tvopt_codegen.maths.hurwitz import (
         certified_rate,
         coefficients_from_poles,
         companion,
@@ -343,7 +343,7 @@ def test_the_predicted_error_is_expm_at_every_output_time(name: str) -> None:
     to 1e-12 of |E(0)|."""
     from scipy.linalg import expm
 
-    from tvopt_codegen import hurwitz
+    from tvopt_codegen.maths import hurwitz
 
     d = derivation(name)
     H = hurwitz.error_matrix(d.coefficients, d.n_kkt)

@@ -11,10 +11,11 @@ from typing import Any
 
 import pytest
 
-from tvopt_codegen import cli, summary
+from tvopt_codegen import cli
 from tvopt_codegen.cli import main
 from tvopt_codegen.commands import common
 from tvopt_codegen.errors import EXIT_ASSUMPTION, EXIT_BAD_SPEC, EXIT_OUTPUT
+from tvopt_codegen.runs import summary
 
 from .conftest import ROOT, write_spec
 

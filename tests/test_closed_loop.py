@@ -13,7 +13,7 @@ import sympy as sp
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
-from tvopt_codegen import hurwitz
+from tvopt_codegen.maths import hurwitz
 
 from .conftest import ALL_SPECS, derivation, module
 

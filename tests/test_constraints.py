@@ -10,7 +10,7 @@ import pytest
 from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.errors import EXIT_ASSUMPTION, EXIT_BAD_SPEC
-from tvopt_codegen.ir import lower
+from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.simulation import load_controller, resolve_options, simulate
 from tvopt_codegen.spec import load_spec
 

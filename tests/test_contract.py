@@ -18,12 +18,12 @@ import pytest
 from tvopt_codegen import backends
 from tvopt_codegen.backends import BACKENDS, Backend
 from tvopt_codegen.cli import main
+from tvopt_codegen.emit.stamp import is_pristine
 from tvopt_codegen.errors import SpecError
-from tvopt_codegen.ir import KernelSet
-from tvopt_codegen.rendering import render
+from tvopt_codegen.lowering.ir import KernelSet
+from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.simulation import load_controller
 from tvopt_codegen.spec import load_spec
-from tvopt_codegen.stamp import is_pristine
 
 from .conftest import derivation, kernels, write_spec
 from .oracle import Oracle
@@ -113,8 +113,8 @@ def test_a_toy_backend_needs_a_registry_entry_and_a_template_folder(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     monkeypatch.setattr(backends, "BACKENDS", dict(BACKENDS))
-    monkeypatch.setattr("tvopt_codegen.rendering.BACKENDS", backends.BACKENDS)
-    monkeypatch.setattr("tvopt_codegen.names.BACKENDS", backends.BACKENDS)
+    monkeypatch.setattr("tvopt_codegen.renderer.rendering.BACKENDS", backends.BACKENDS)
+    monkeypatch.setattr("tvopt_codegen.spec.names.BACKENDS", backends.BACKENDS)
     toy = backends.register(_toy(tmp_path / "templates"))
     with pytest.raises(ValueError, match="registered already"):
         backends.register(_toy(tmp_path / "other"))

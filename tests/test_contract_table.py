@@ -19,8 +19,8 @@ import pytest
 from tests.conftest import ROOT, import_file, kernels, module
 from tvopt_codegen import contract, sweep
 from tvopt_codegen.cli import main
-from tvopt_codegen.fmu import fmu_sources
-from tvopt_codegen.rendering import contract_context, render
+from tvopt_codegen.renderer.rendering import contract_context, render
+from tvopt_codegen.runs.fmu import fmu_sources
 
 SPEC = "unicycle_switch"
 CC = shutil.which("cc") or shutil.which("gcc")

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from tvopt_codegen import hurwitz
 from tvopt_codegen.derivation import derive, jet_symbol
 from tvopt_codegen.errors import AssumptionError, SpecError
-from tvopt_codegen.ir import lower
-from tvopt_codegen.rendering import render
+from tvopt_codegen.lowering.ir import lower
+from tvopt_codegen.maths import hurwitz
+from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.spec import load_spec
 
 from .conftest import SPECS, derivation, import_file, write_spec

@@ -1,4 +1,4 @@
-"""Figures drawn in a drawing process started before the derivation (tvopt_codegen.drawing)."""
+"""Figures drawn in a drawing process started before the derivation (tvopt_codegen.runs.drawing)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import threading
 import numpy as np
 import pytest
 
-from tvopt_codegen.drawing import Painter, Panel, Plot, draw, draw_all
+from tvopt_codegen.runs.drawing import Painter, Panel, Plot, draw, draw_all
 
 
 def _plots() -> list[Plot]:

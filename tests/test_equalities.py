@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from tvopt_codegen import hurwitz
 from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.errors import EXIT_ASSUMPTION, EXIT_BAD_SPEC
-from tvopt_codegen.ir import lower
+from tvopt_codegen.lowering.ir import lower
+from tvopt_codegen.maths import hurwitz
 from tvopt_codegen.simulation import kkt_path, load_controller, resolve_options, simulate
 from tvopt_codegen.simulation.constraints import equalities
 from tvopt_codegen.spec import load_spec

@@ -1,6 +1,6 @@
 """Every pair of features works or is refused up front (issue 46, item 1).
 
-The table is :mod:`tvopt_codegen.features`. Its covering cases (a strength-2 covering
+The table is :mod:`tvopt_codegen.spec.features`. Its covering cases (a strength-2 covering
 array: every working pair of feature values meets in one of them) are each built once as a
 spec and run on their targets: the closed loop's certificate, the law against the
 independent oracle of ``tests/oracle.py``, Python against C at random points and along the
@@ -26,14 +26,13 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from tvopt_codegen import features
 from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import Derivation, derive
 from tvopt_codegen.errors import EXIT_ASSUMPTION, AssumptionError
-from tvopt_codegen.ir import KernelSet, lower
+from tvopt_codegen.lowering.ir import KernelSet, lower
 from tvopt_codegen.simulation import load_controller, resolve_options, simulate
 from tvopt_codegen.simulation.references import exact_jets as reference_jets
-from tvopt_codegen.spec import load_spec
+from tvopt_codegen.spec import features, load_spec
 
 from .conftest import ROOT, SPECS, derivation
 from .oracle import Oracle, assert_matches_oracle
@@ -340,7 +339,7 @@ class CaseRun:
     def fmu(self) -> None:
         import fmpy  # noqa: PLC0415
 
-        from tvopt_codegen.fmu import build_fmu  # noqa: PLC0415
+        from tvopt_codegen.runs.fmu import build_fmu  # noqa: PLC0415
 
         mod = self.mod
         path = _FOLDER / f"{self.name}.fmu"

@@ -14,7 +14,7 @@ from scipy.integrate import solve_ivp
 
 from tvopt_codegen.cli import main
 from tvopt_codegen.errors import EXIT_BAD_SPEC, MissingExtraError
-from tvopt_codegen.fmu import build_fmu, fmi_headers, fmu_sources
+from tvopt_codegen.runs.fmu import build_fmu, fmi_headers, fmu_sources
 
 from .conftest import SPECS, kernels, module
 from .test_c_backend import COMPILERS, STRICT

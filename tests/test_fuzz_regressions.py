@@ -238,7 +238,7 @@ def test_a_loop_that_leaves_the_domain_ends_in_the_same_error_in_python_and_c(
     past the barrier until the speed crossed v = 0 at 0.09 s), and the case counts as that
     run-time end."""
     from tvopt_codegen.derivation import derive
-    from tvopt_codegen.ir import lower
+    from tvopt_codegen.lowering.ir import lower
     from tvopt_codegen.simulation import load_controller
     from tvopt_codegen.simulation.references import exact_jets
     from tvopt_codegen.spec import spec_from_dict
@@ -278,7 +278,7 @@ def test_the_law_refuses_a_state_outside_the_barriers_domain(tmp_path: Path) -> 
     there with status OK. Now both backends raise the contract's OutsideBarrierError, in
     a batch at the column that is outside, on the one-point path as on the array path."""
     from tvopt_codegen.derivation import derive
-    from tvopt_codegen.ir import lower
+    from tvopt_codegen.lowering.ir import lower
     from tvopt_codegen.simulation import load_controller
     from tvopt_codegen.simulation.references import exact_jets
     from tvopt_codegen.spec import spec_from_dict

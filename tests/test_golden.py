@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from tvopt_codegen.rendering import render
-from tvopt_codegen.stamp import is_pristine
+from tvopt_codegen.emit.stamp import is_pristine
+from tvopt_codegen.renderer.rendering import render
 
 from .conftest import EXAMPLES, ROOT, kernels
 

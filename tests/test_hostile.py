@@ -17,7 +17,7 @@ import pytest
 
 from tvopt_codegen.cli import main
 from tvopt_codegen.errors import EXIT_ASSUMPTION, EXIT_BAD_SPEC, EXIT_BUDGET
-from tvopt_codegen.names import module_name_problem
+from tvopt_codegen.spec.names import module_name_problem
 
 from .conftest import ROOT
 

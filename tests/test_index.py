@@ -10,9 +10,9 @@ import pytest
 import sympy as sp
 
 from tvopt_codegen.derivation import derive
+from tvopt_codegen.derivation.law import diagonal_blocks
 from tvopt_codegen.errors import SpecError
-from tvopt_codegen.ir import lower
-from tvopt_codegen.law import diagonal_blocks
+from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.spec import load_spec, parse_spec
 
 

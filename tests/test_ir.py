@@ -24,8 +24,8 @@ from tvopt_codegen.cse import (
     split_invariant,
 )
 from tvopt_codegen.cse.rewrite import _substitute
-from tvopt_codegen.kernel import Arg, Kernel, Output
-from tvopt_codegen.sparse import cholesky_program, elimination_order, reverse_cuthill_mckee
+from tvopt_codegen.lowering.kernel import Arg, Kernel, Output
+from tvopt_codegen.maths.sparse import cholesky_program, elimination_order, reverse_cuthill_mckee
 
 from .conftest import kernels
 
@@ -516,7 +516,7 @@ def test_lowering_leaves_no_reference_cycles_of_its_own() -> None:
     import gc
 
     from tests.conftest import derivation
-    from tvopt_codegen.ir import lower
+    from tvopt_codegen.lowering.ir import lower
 
     d = derivation("two_unicycles_barrier")
     gc.collect()

@@ -10,8 +10,8 @@ import pytest
 import sympy as sp
 
 from tvopt_codegen.derivation import jet_symbol
-from tvopt_codegen.jet import Program, atomize, fresh_symbols, partial, total_derivative
-from tvopt_codegen.numeric import Evaluator
+from tvopt_codegen.maths.jet import Program, atomize, fresh_symbols, partial, total_derivative
+from tvopt_codegen.maths.numeric import Evaluator
 
 from .conftest import EXAMPLES, derivation
 from .oracle import naive_total_derivative
@@ -134,7 +134,7 @@ def test_partial_builds_what_sympys_diff_builds(seed: int) -> None:
 def test_signal_chains_are_sympys_derivatives() -> None:
     """The derivation differentiates signals with partial: for every function a spec may
     call, four orders of the usual signal shapes are sympy's diff, expression for expression."""
-    from tvopt_codegen.parse import FUNCTIONS
+    from tvopt_codegen.spec.parse import FUNCTIONS
 
     t, a, b = sp.symbols("t a b", real=True)
     shapes = [(t - a) / b, 2 * sp.pi * t / 7 + a, sp.Float(0.3) * t**2 - 1]

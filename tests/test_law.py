@@ -1,4 +1,4 @@
-"""The law as data (tvopt_codegen.law) against the paper's formulas, term by term."""
+"""The law as data (tvopt_codegen.derivation.law) against the paper's formulas, term by term."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from tvopt_codegen.law import diagonal_blocks, symmetric_dense
+from tvopt_codegen.derivation.law import diagonal_blocks, symmetric_dense
 
 from .conftest import ALL_SPECS, SPECS, derivation
 

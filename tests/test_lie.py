@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import sympy as sp
 
-from tvopt_codegen.lie import Sampler, brunovsky, extend, generic_rank, relative_degree
+from tvopt_codegen.maths.lie import Sampler, brunovsky, extend, generic_rank, relative_degree
 
 from .conftest import derivation
 

@@ -27,9 +27,9 @@ from tvopt_codegen.errors import (
     AssumptionError,
     SpecError,
 )
-from tvopt_codegen.ir import lower
+from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.mechanics import spec_from_sympy, spec_toml
-from tvopt_codegen.rendering import render
+from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.spec import load_spec, spec_from_dict
 
 from .arms import planar_arm

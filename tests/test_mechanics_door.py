@@ -593,7 +593,7 @@ def test_a_force_infinite_away_from_the_start(
 
 def test_the_bundled_robots_pass_the_sample_checks() -> None:
     """planar_arm3 and ur5_tip: positive definite and finite at every sample point."""
-    from tvopt_codegen.model import build_model
+    from tvopt_codegen.derivation.model import build_model
 
     for name in ("planar_arm3", "ur5_tip"):
         build_model(load_spec(name))

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from tvopt_codegen.numeric import Evaluator
-from tvopt_codegen.parse import FUNCTIONS
+from tvopt_codegen.maths.numeric import Evaluator
+from tvopt_codegen.spec.parse import FUNCTIONS
 
 x, y, t = sp.symbols("x y t", real=True)
 POINTS = np.linspace(0.15, 0.85, 7)
@@ -78,7 +78,7 @@ def test_definitions_are_lazy() -> None:
 def test_a_tape_computes_the_evaluators_bits() -> None:
     """Tape (compiled once, run per call) runs Evaluator's operations in its order: the
     same bits, out-of-domain NaN included, for programs, constants and every function."""
-    from tvopt_codegen.numeric import Tape
+    from tvopt_codegen.maths.numeric import Tape
 
     a, b = sp.symbols("_a _b", real=True)
     p = sp.Symbol("p", real=True)

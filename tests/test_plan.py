@@ -1,4 +1,4 @@
-"""The execution plan (tvopt_codegen.plan): well formed for every spec, and the one
+"""The execution plan (tvopt_codegen.lowering.plan): well formed for every spec, and the one
 source of the statuses and the tolerance that every backend prints."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import re
 
 import pytest
 
-from tvopt_codegen.plan import PIVOT_TOLERANCE, Status, law_plan
-from tvopt_codegen.rendering import render
+from tvopt_codegen.lowering.plan import PIVOT_TOLERANCE, Status, law_plan
+from tvopt_codegen.renderer.rendering import render
 
 from .conftest import ALL_SPECS, kernels
 

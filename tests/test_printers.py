@@ -85,7 +85,7 @@ def test_register_renaming_keeps_every_value_and_needs_fewer_names() -> None:
 
     from tests.conftest import kernels
     from tvopt_codegen.backends.python.filters import registers
-    from tvopt_codegen.rendering import print_kernel
+    from tvopt_codegen.renderer.rendering import print_kernel
 
     for spec in ("two_unicycles_barrier", "unicycle_ring"):
         ks = kernels(spec)
@@ -128,7 +128,7 @@ def test_the_joint_printing_is_both_python_printings_for_every_example() -> None
     each must be, character for character, what its own printer prints."""
     from tests.conftest import kernels
     from tvopt_codegen.backends.python.printer import PythonJointPrinter
-    from tvopt_codegen.rendering import _translated, print_kernel
+    from tvopt_codegen.renderer.rendering import _translated, print_kernel
     from tvopt_codegen.spec import bundled_examples
 
     texts = PythonJointPrinter.texts()

@@ -278,7 +278,7 @@ def test_bad_reference_files_are_one_line_errors_that_write_nothing(
 
 
 def test_the_report_lists_references_order_and_estimator(tmp_path: Path) -> None:
-    from tvopt_codegen.ir import lower
+    from tvopt_codegen.lowering.ir import lower
     from tvopt_codegen.report import render_report
 
     d = derivation("pvtol_refs")
@@ -335,7 +335,7 @@ def test_a_gap_the_estimator_has_forgotten_is_one_bounded_exact_step(
     integrating over the gap gives."""
     import time  # noqa: PLC0415
 
-    from tvopt_codegen.estimator import FORGETTING_GAP  # noqa: PLC0415
+    from tvopt_codegen.spec.estimator import FORGETTING_GAP  # noqa: PLC0415
 
     py, c = module(name), c_module(name, tmp_path_factory)
     if py.ESTIMATOR != "linear":

@@ -16,7 +16,7 @@ import sympy as sp
 
 from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import derive
-from tvopt_codegen.ir import lower
+from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.report import HEADINGS, render_report
 from tvopt_codegen.report.sections import _shown
 from tvopt_codegen.spec import load_spec
@@ -286,7 +286,7 @@ def test_a_spec_with_limits_alone_adds_the_limits_section_alone() -> None:
     import tomllib
 
     from tvopt_codegen.derivation import derive
-    from tvopt_codegen.ir import lower
+    from tvopt_codegen.lowering.ir import lower
     from tvopt_codegen.spec import spec_from_dict
 
     from .conftest import SPECS

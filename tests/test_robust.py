@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from tvopt_codegen.derivation import derive
-from tvopt_codegen.ir import lower
+from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.simulation import load_controller, resolve_options, simulate
 from tvopt_codegen.simulation.sampled import hold
 from tvopt_codegen.spec import bundled_examples, spec_from_dict
@@ -494,7 +494,7 @@ def test_the_observer_keeps_its_estimate_where_g_loses_rank() -> None:
 
 
 def test_inputs_whose_columns_of_g_share_rows_are_solved_together() -> None:
-    from tvopt_codegen.robust import _blocks
+    from tvopt_codegen.derivation.robust import _blocks
 
     # Inputs 0 and 2 share row 0, input 3 reaches them through row 2; input 1 is alone.
     assert _blocks(((0,), (1,), (0, 2), (2, 4), (5,))) == ((0, 2, 3), (1,), (4,))
@@ -510,7 +510,7 @@ def _arm_with_observer() -> tuple[Any, Any]:
 
 
 def test_the_observer_solves_a_coupled_g_by_least_squares() -> None:
-    from tvopt_codegen.robust import robustness
+    from tvopt_codegen.derivation.robust import robustness
 
     d, kernels = _arm_with_observer()
     robust = robustness(d)

@@ -23,11 +23,11 @@ import sympy as sp
 from tvopt_codegen.derivation import derive, linearization
 from tvopt_codegen.emit import write_files
 from tvopt_codegen.errors import BudgetError, OutputError, SpecError
-from tvopt_codegen.ir import lower
 from tvopt_codegen.limits import Budget
-from tvopt_codegen.rendering import render
+from tvopt_codegen.lowering.ir import lower
+from tvopt_codegen.renderer.rendering import render
+from tvopt_codegen.runs.summary import format_summary
 from tvopt_codegen.spec import load_spec, parse_spec
-from tvopt_codegen.summary import format_summary
 
 from .conftest import EXAMPLES, ROOT, derivation, module, write_spec
 from .test_c_backend import c_module

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import ROOT, kernels, module
-from tvopt_codegen import runtime
+from tvopt_codegen.renderer import runtime
 from tvopt_codegen.simulation.target import _newton
 from tvopt_codegen.sweep import sweep_program
 
@@ -109,7 +109,7 @@ def test_a_full_three_by_three_block_is_solved_by_the_library_lu(
 
 
 def test_one_tracking_bound_for_simulate_and_the_sweep() -> None:
-    from tvopt_codegen import hurwitz
+    from tvopt_codegen.maths import hurwitz
     from tvopt_codegen.simulation import certificate
     from tvopt_codegen.sweep import sample
 

@@ -27,7 +27,7 @@ import pytest
 from tvopt_codegen.cli import main
 from tvopt_codegen.contract import Status
 from tvopt_codegen.derivation import derive
-from tvopt_codegen.ir import check_binding, lower
+from tvopt_codegen.lowering.ir import check_binding, lower
 from tvopt_codegen.simulation import load_controller
 from tvopt_codegen.simulation.sampled import hold
 from tvopt_codegen.spec import spec_from_dict

@@ -14,7 +14,7 @@ from tvopt_codegen import simulation as sim
 from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.errors import EXIT_CERTIFICATE
-from tvopt_codegen.ir import lower
+from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.spec import load_spec
 
 from .conftest import ALL_SPECS, derivation, module, write_spec
@@ -235,7 +235,7 @@ def test_simulate_with_the_c_backend(
 def test_the_dormand_prince_tableau_is_scipys_bit_for_bit() -> None:
     from scipy.integrate import RK45
 
-    from tvopt_codegen import dopri
+    from tvopt_codegen.maths import dopri
 
     for name in "CABEP":
         assert np.array_equal(getattr(dopri, name), getattr(RK45, name)), name
@@ -245,7 +245,7 @@ def test_the_dormand_prince_tableau_is_scipys_bit_for_bit() -> None:
 def test_simulates_rk45_steps_and_dense_output_are_solve_ivps_bit_for_bit(spec: str) -> None:
     from scipy.integrate import solve_ivp
 
-    from tvopt_codegen import dopri
+    from tvopt_codegen.maths import dopri
 
     m = module(spec)
     start = np.array(m.DEFAULT_STATE, dtype=float)
@@ -265,7 +265,7 @@ def test_simulates_rk45_steps_and_dense_output_are_solve_ivps_bit_for_bit(spec: 
 def test_a_run_that_blows_up_ends_as_scipys_does() -> None:
     from scipy.integrate import solve_ivp
 
-    from tvopt_codegen import dopri
+    from tvopt_codegen.maths import dopri
 
     def field(_t: float, y: np.ndarray) -> np.ndarray:
         return y * y  # y = 1 / (1 - t): infinite at t = 1
@@ -279,7 +279,7 @@ def test_a_run_that_blows_up_ends_as_scipys_does() -> None:
 
 
 def test_simulate_imports_neither_scipy_nor_pyplot(tmp_path: Path) -> None:
-    """RK45 is :mod:`tvopt_codegen.dopri`; expm(H t) of the k x k companion is mpmath's."""
+    """RK45 is :mod:`tvopt_codegen.maths.dopri`; expm(H t) of the k x k companion is mpmath's."""
     import subprocess
     import sys
 

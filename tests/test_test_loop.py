@@ -32,7 +32,7 @@ def test_a_module_of_which_no_line_ran_fails_the_coverage_check() -> None:
         return {"summary": {"covered_lines": covered, "num_statements": statements}}
 
     report = {
-        "tvopt_codegen/lie.py": summary(40, 50),
+        "tvopt_codegen/maths/lie.py": summary(40, 50),
         "tvopt_codegen/never.py": summary(0, 12),
         "tvopt_codegen/empty.py": summary(0, 0),
         "tvopt_codegen/__main__.py": summary(0, 20),

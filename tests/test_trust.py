@@ -394,7 +394,7 @@ def test_a_constraint_empty_over_part_of_the_horizon_is_named_with_the_interval(
 
 def test_a_hessian_that_fails_is_blamed_on_f0_or_on_the_barrier() -> None:
     from tvopt_codegen.derivation.convexity import _culprit
-    from tvopt_codegen.model import build_model
+    from tvopt_codegen.derivation.model import build_model
     from tvopt_codegen.spec import spec_from_dict
 
     text = GEOFENCE.format(y0=-1.0, fence="y1**2 + y2**2 <= 9")
@@ -534,8 +534,8 @@ def test_the_constrained_examples_certify_with_either_integrator(name: str, meth
 def test_docstrings_write_shapes_as_python_prints_them() -> None:
     import re
 
-    from tvopt_codegen.ir import lower
-    from tvopt_codegen.rendering import render
+    from tvopt_codegen.lowering.ir import lower
+    from tvopt_codegen.renderer.rendering import render
 
     from .conftest import derivation
 
@@ -646,7 +646,7 @@ def test_a_spec_file_name_with_dashes_makes_a_well_formed_fmu(tmp_path: Path) ->
     import xml.etree.ElementTree as ET
     import zipfile
 
-    from tvopt_codegen.rendering import xml_text
+    from tvopt_codegen.renderer.rendering import xml_text
 
     assert "--" not in xml_text("robot---v2 ----- -- -")
     pytest.importorskip("fmpy")

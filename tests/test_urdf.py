@@ -19,9 +19,9 @@ from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.emit import write_files
 from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_OUTPUT, Terminated
-from tvopt_codegen.ir import lower
+from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.mechanics import spec_toml
-from tvopt_codegen.rendering import render
+from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.spec import load_spec, spec_from_dict
 from tvopt_codegen.urdf import spec_from_urdf
 

@@ -42,7 +42,7 @@ class Backend:
     context : callable or None
         ``context(kernels)`` returns the backend's own template variables (added to the
         shared ones: ``d``, ``spec``, ``kernels``, ``prefix``, ...); ``kernels`` is the
-        :class:`~tvopt_codegen.kernel.KernelSet` being rendered. (Typed ``Any`` here: the
+        :class:`~tvopt_codegen.lowering.kernel.KernelSet` being rendered. (Typed ``Any`` here: the
         spec reader consults this registry for reserved words, so the record must not
         depend on the stages after it.)
     filters : callable or None

@@ -19,11 +19,11 @@ def build(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Print the summary, and the targets that refuse this spec (docs/features.md)."""
     with common.without_collector():  # sympy's and numpy's imports build objects by the million
-        from tvopt_codegen.summary import format_summary  # noqa: PLC0415
+        from tvopt_codegen.runs.summary import format_summary  # noqa: PLC0415
 
     derivation, kernels = common.derive(args)
     print(format_summary(derivation, kernels))
-    from tvopt_codegen.features import target_notes  # noqa: PLC0415
+    from tvopt_codegen.spec.features import target_notes  # noqa: PLC0415
 
     for note in target_notes(derivation):
         print(one_line(note))

@@ -26,7 +26,7 @@ from tvopt_codegen.limits import Budget
 
 if TYPE_CHECKING:
     from tvopt_codegen.derivation import Derivation
-    from tvopt_codegen.ir import KernelSet
+    from tvopt_codegen.lowering.ir import KernelSet
 
 
 def spec_argument(command: argparse.ArgumentParser) -> None:
@@ -91,7 +91,7 @@ def derive(args: argparse.Namespace) -> tuple[Derivation, KernelSet]:
     # From the command's start: --timings counts the imports the stages need in "load".
     clock = [getattr(args, "started", time.perf_counter())]
     from tvopt_codegen.derivation import derive  # noqa: PLC0415
-    from tvopt_codegen.ir import lower  # noqa: PLC0415
+    from tvopt_codegen.lowering.ir import lower  # noqa: PLC0415
     from tvopt_codegen.spec import load_spec  # noqa: PLC0415
 
     progress = DeriveProgress(args.progress)

@@ -28,7 +28,7 @@ def build(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Derive, build the FMU from the generated C, write it."""
     from tvopt_codegen.emit import write_files  # noqa: PLC0415
-    from tvopt_codegen.fmu import build_fmu  # noqa: PLC0415
+    from tvopt_codegen.runs.fmu import build_fmu  # noqa: PLC0415
 
     if not args.fmu:
         raise SpecError("command line", "export", "nothing to export: give --fmu")

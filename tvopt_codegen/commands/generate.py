@@ -29,13 +29,13 @@ def build(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Derive, render and write; print the summary and each file's state."""
     with common.without_collector():  # sympy's and numpy's imports build objects by the million
-        from tvopt_codegen.summary import format_summary  # noqa: PLC0415
+        from tvopt_codegen.runs.summary import format_summary  # noqa: PLC0415
 
     common.check_out(args.out)
     derivation, kernels = common.derive(args)
     started = time.perf_counter()
     from tvopt_codegen.emit import write_files  # noqa: PLC0415
-    from tvopt_codegen.rendering import render  # noqa: PLC0415
+    from tvopt_codegen.renderer.rendering import render  # noqa: PLC0415
 
     with common.without_collector():
         files = render(kernels, args.backend)

@@ -45,9 +45,9 @@ def run(args: argparse.Namespace) -> int:
     """Read the URDF, write the spec (read back and built first)."""
     import tomllib  # noqa: PLC0415
 
+    from tvopt_codegen.derivation.model import build_model  # noqa: PLC0415
     from tvopt_codegen.emit import write_files  # noqa: PLC0415
     from tvopt_codegen.mechanics import spec_toml  # noqa: PLC0415
-    from tvopt_codegen.model import build_model  # noqa: PLC0415
     from tvopt_codegen.spec import spec_from_dict  # noqa: PLC0415
     from tvopt_codegen.urdf import spec_from_urdf  # noqa: PLC0415
 

@@ -17,7 +17,7 @@ from tvopt_codegen.errors import EXIT_CERTIFICATE, SpecError
 from tvopt_codegen.limits import METHODS
 
 if TYPE_CHECKING:
-    from tvopt_codegen.drawing import Painter
+    from tvopt_codegen.runs.drawing import Painter
 
 HELP = "simulate the closed loop and check the theorem along the run"
 
@@ -106,15 +106,15 @@ class _Progress:
 def run(args: argparse.Namespace) -> int:
     """Simulate the closed loop (and the sampled one), check the certificate, write."""
     # First: the drawing process imports matplotlib while this one loads sympy and derives.
-    from tvopt_codegen.drawing import Painter  # noqa: PLC0415
+    from tvopt_codegen.runs.drawing import Painter  # noqa: PLC0415
 
     with Painter() as painter:
         return _simulate_with(args, painter)
 
 
 def _simulate_with(args: argparse.Namespace, painter: Painter) -> int:
-    from tvopt_codegen.artifacts import result_files  # noqa: PLC0415 - matplotlib on use
     from tvopt_codegen.emit import write_files  # noqa: PLC0415
+    from tvopt_codegen.runs.artifacts import result_files  # noqa: PLC0415 - matplotlib on use
     from tvopt_codegen.simulation import (  # noqa: PLC0415
         format_certificate,
         load_controller,
@@ -213,7 +213,7 @@ def _simulate_with(args: argparse.Namespace, painter: Painter) -> int:
     text = format_certificate(derivation, result)
     passed = result.passed
     if sampled is not None:
-        from tvopt_codegen.artifacts import sampled_files  # noqa: PLC0415
+        from tvopt_codegen.runs.artifacts import sampled_files  # noqa: PLC0415
         from tvopt_codegen.simulation.sampled import format_sampled  # noqa: PLC0415
 
         files.update(sampled_files(derivation, sampled))

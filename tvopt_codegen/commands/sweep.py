@@ -410,7 +410,7 @@ def _publish(
         index: run_sample(program, options, index, keep=True).trajectory
         for index, _ in summary.worst
     }
-    from tvopt_codegen.artifacts import sweep_files  # noqa: PLC0415 - matplotlib on use
+    from tvopt_codegen.runs.artifacts import sweep_files  # noqa: PLC0415 - matplotlib on use
 
     interrupted = run is not None and run.interrupted
     record |= {
@@ -598,7 +598,7 @@ def _from_record(folder: Path) -> tuple[dict[str, Any], Any, str, bytes, Any]:
 
     from tvopt_codegen.derivation import derive  # noqa: PLC0415
     from tvopt_codegen.emit import read_regular_file  # noqa: PLC0415
-    from tvopt_codegen.ir import lower  # noqa: PLC0415
+    from tvopt_codegen.lowering.ir import lower  # noqa: PLC0415
     from tvopt_codegen.spec import parse_spec  # noqa: PLC0415
     from tvopt_codegen.sweep import RECORD, SweepOptions, check_options, sweep_program  # noqa: PLC0415
 
@@ -766,7 +766,7 @@ def replay(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     result = run_sample(program, options, index, keep=True)
-    from tvopt_codegen.artifacts import replay_files  # noqa: PLC0415 - matplotlib on use
+    from tvopt_codegen.runs.artifacts import replay_files  # noqa: PLC0415 - matplotlib on use
 
     files = replay_files(program, result)
     write_files(files, args.out, force=args.force, warn=common.warn)

@@ -25,8 +25,8 @@ from tvopt_codegen.cse.rewrite import (
     operation_count,
     symbols_in,
 )
-from tvopt_codegen.jet import Assignment, fresh_symbols, release, unchanged
-from tvopt_codegen.kernel import Arg, Kernel, Output
+from tvopt_codegen.lowering.kernel import Arg, Kernel, Output
+from tvopt_codegen.maths.jet import Assignment, fresh_symbols, release, unchanged
 
 #: A kernel's outputs: (name, shape, expressions in row-major order, description).
 Outputs = Sequence[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]]

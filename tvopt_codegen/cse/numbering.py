@@ -17,7 +17,7 @@ from tvopt_codegen.cse.rewrite import (
     _substitute,
     operation_count,
 )
-from tvopt_codegen.jet import Assignment, release, unchanged
+from tvopt_codegen.maths.jet import Assignment, release, unchanged
 
 
 def _drop_aliases(

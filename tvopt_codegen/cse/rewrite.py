@@ -11,7 +11,7 @@ from collections.abc import Iterable, Mapping, Sequence
 
 import sympy as sp
 
-from tvopt_codegen.jet import release, unchanged
+from tvopt_codegen.maths.jet import release, unchanged
 
 
 def operation_count(exprs: Iterable[sp.Expr], memo: dict[sp.Basic, int] | None = None) -> int:

@@ -2,7 +2,7 @@
 
 Verification (the constraints' certificate, the KKT path), the sweep's check kernels and
 the FMU's start read these expressions; they lambdify or lower them, they never call
-``diff`` themselves. Each function takes the :class:`~tvopt_codegen.model.Model` and
+``diff`` themselves. Each function takes the :class:`~tvopt_codegen.derivation.model.Model` and
 returns plain sympy expressions (signals not inlined, parameters symbolic), in the order
 its callers index them. They are computed on demand: a ``generate`` that needs none of
 them pays for none.
@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import sympy as sp
 
-from tvopt_codegen.constraints import inline_signals
-from tvopt_codegen.model import Model
+from tvopt_codegen.derivation.model import Model
+from tvopt_codegen.spec.constraints import inline_signals
 
 
 def objective_of(model: Model) -> sp.Expr:

@@ -13,17 +13,17 @@ from typing import Any
 import numpy as np
 import sympy as sp
 
-from tvopt_codegen.constraints import Violation
 from tvopt_codegen.derivation.calculus import constraint_hessian_entries
+from tvopt_codegen.derivation.model import Model
 from tvopt_codegen.derivation.record import Convexity
 from tvopt_codegen.errors import AssumptionError
-from tvopt_codegen.jet import (
+from tvopt_codegen.maths.jet import (
     Program,
 )
-from tvopt_codegen.model import Model
-from tvopt_codegen.numeric import Evaluator, Tape
-from tvopt_codegen.sparse import reverse_cuthill_mckee
+from tvopt_codegen.maths.numeric import Evaluator, Tape
+from tvopt_codegen.maths.sparse import reverse_cuthill_mckee
 from tvopt_codegen.spec import Constraint, Spec
+from tvopt_codegen.spec.constraints import Violation
 
 #: A Hessian whose smallest eigenvalue is below this fraction of its scale (the largest
 #: eigenvalue met) is degenerate: f0 is not strongly convex there.

@@ -16,7 +16,6 @@ import sympy as sp
 from sympy.functions.elementary.hyperbolic import HyperbolicFunction
 from sympy.functions.elementary.trigonometric import TrigonometricFunction
 
-from tvopt_codegen import hurwitz
 from tvopt_codegen.derivation.meter import (
     _DET_SIMPLIFY_NODES,
     TimeLimitError,
@@ -24,9 +23,10 @@ from tvopt_codegen.derivation.meter import (
     time_limited,
     tree_size,
 )
+from tvopt_codegen.derivation.model import Model
 from tvopt_codegen.errors import AssumptionError, SpecError
-from tvopt_codegen.features import refusal_line
-from tvopt_codegen.lie import (
+from tvopt_codegen.maths import hurwitz
+from tvopt_codegen.maths.lie import (
     Extension,
     ImplicitDerivativeError,
     RelativeDegree,
@@ -36,9 +36,9 @@ from tvopt_codegen.lie import (
     nonzero_entries,
     relative_degree,
 )
-from tvopt_codegen.model import Model
-from tvopt_codegen.numeric import Evaluator
+from tvopt_codegen.maths.numeric import Evaluator
 from tvopt_codegen.spec import Mechanics, Spec
+from tvopt_codegen.spec.features import refusal_line
 from tvopt_codegen.spec.implicit import implicit_values
 from tvopt_codegen.spec.reader import suggestion
 

@@ -15,18 +15,18 @@ import sympy as sp
 from tvopt_codegen.derivation.convexity import _check_convexity
 from tvopt_codegen.derivation.linearization import _Linearization, _States
 from tvopt_codegen.derivation.meter import _Meter, tree_size
+from tvopt_codegen.derivation.model import Model
 from tvopt_codegen.derivation.record import Convexity, _sparse_hessian, jet_symbol
-from tvopt_codegen.jet import (
+from tvopt_codegen.maths.jet import (
     Program,
     atomize,
     jacobian,
     next_derivative,
     partial,
 )
-from tvopt_codegen.lie import (
+from tvopt_codegen.maths.lie import (
     nonzero_entries,
 )
-from tvopt_codegen.model import Model
 from tvopt_codegen.spec import Spec
 
 

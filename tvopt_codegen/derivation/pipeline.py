@@ -10,7 +10,6 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from tvopt_codegen import hurwitz
 from tvopt_codegen.derivation.convexity import _constraint_convexity
 from tvopt_codegen.derivation.equalities import (
     _dependent_set,
@@ -18,6 +17,7 @@ from tvopt_codegen.derivation.equalities import (
     _lagrangian,
     _multipliers_start,
 )
+from tvopt_codegen.derivation.law import Law, control_law, symmetric_dense
 from tvopt_codegen.derivation.linearization import (
     _closed_loop_states,
     _Decoupling,
@@ -31,6 +31,7 @@ from tvopt_codegen.derivation.linearization import (
     _without_extension,
 )
 from tvopt_codegen.derivation.meter import _Clock, _Meter
+from tvopt_codegen.derivation.model import Model, build_model
 from tvopt_codegen.derivation.objective import (
     _gradient_jet,
     _GradientJet,
@@ -48,15 +49,14 @@ from tvopt_codegen.derivation.record import (
     ObjectiveStage,
 )
 from tvopt_codegen.errors import AssumptionError
-from tvopt_codegen.estimator import estimator_gains, estimator_order
-from tvopt_codegen.features import refuse as refuse_pairs
-from tvopt_codegen.jet import (
+from tvopt_codegen.limits import Budget
+from tvopt_codegen.maths import hurwitz
+from tvopt_codegen.maths.jet import (
     fresh_symbols,
 )
-from tvopt_codegen.law import Law, control_law, symmetric_dense
-from tvopt_codegen.limits import Budget
-from tvopt_codegen.model import Model, build_model
 from tvopt_codegen.spec import Spec, spec_from_dict
+from tvopt_codegen.spec.estimator import estimator_gains, estimator_order
+from tvopt_codegen.spec.features import refuse as refuse_pairs
 
 
 def derive(

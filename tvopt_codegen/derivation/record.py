@@ -8,15 +8,15 @@ from dataclasses import dataclass
 
 import sympy as sp
 
-from tvopt_codegen.jet import (
+from tvopt_codegen.derivation.law import Law
+from tvopt_codegen.derivation.model import Model
+from tvopt_codegen.maths.jet import (
     Program,
 )
-from tvopt_codegen.law import Law
-from tvopt_codegen.lie import (
+from tvopt_codegen.maths.lie import (
     Extension,
     from_entries,
 )
-from tvopt_codegen.model import Model
 from tvopt_codegen.spec import Spec
 
 
@@ -165,7 +165,7 @@ class ErrorDynamicsStage:
         companion matrix of order k + 1 over ``col(z_I, E)``.
     integral_pole : float or None
         With integral action, the real eigenvalue of ``H_I`` closest to zero: the mode of
-        ``delta = z_I - z*(E)`` (see :func:`~tvopt_codegen.hurwitz.integral_split`).
+        ``delta = z_I - z*(E)`` (see :func:`~tvopt_codegen.maths.hurwitz.integral_split`).
     bumpless : tuple of float
         With integral action, ``b_0 .. b_{k-1}``: ``z*(E) = sum_j b_j E_j``, the integrals'
         value on which E moves as under the law without them (the controller's start,
@@ -207,7 +207,7 @@ class ObjectiveStage:
         ``grad_y f0`` (m, 1) over ``y``, signals, parameters and t.
     hessian_program : Program
         Assignments computing the Hessian from :attr:`jet_program` (forward mode over
-        its gradient part, :func:`~tvopt_codegen.jet.jacobian`); empty when it is
+        its gradient part, :func:`~tvopt_codegen.maths.jet.jacobian`); empty when it is
         constant.
     hessian_entries : tuple of ((int, int), sympy.Expr)
         The nonzero entries ``(i, j), i >= j`` of the lower triangle of ``grad_yy f0``,
@@ -252,7 +252,7 @@ class JetStage:
     signal_jet_values : tuple of tuple of sympy.Expr
         Those derivatives over :attr:`signal_program`, ``t`` and the parameters.
     jet_program : Program
-        Straight-line program of the gradient jet (see :mod:`tvopt_codegen.jet`).
+        Straight-line program of the gradient jet (see :mod:`tvopt_codegen.maths.jet`).
     grad_jet : tuple of tuple of sympy.Expr
         ``grad^(j) f0`` for ``j = 0 .. k-1`` over the program's symbols.
     rest_program : Program
@@ -300,7 +300,7 @@ class Derivation:
     jet : JetStage
         The jets and the gradient jet the law reads.
     law : Law
-        The control law written down from the above (:mod:`tvopt_codegen.law`):
+        The control law written down from the above (:mod:`tvopt_codegen.derivation.law`):
         everything the code generators evaluate.
     warnings : tuple of str
         What the user should know but that does not stop the derivation (f0 strongly

@@ -35,8 +35,8 @@ from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+from tvopt_codegen.emit.stamp import is_pristine, stamped_hash, stamped_spec
 from tvopt_codegen.errors import OutputError
-from tvopt_codegen.stamp import is_pristine, stamped_hash, stamped_spec
 
 #: Name of the per-folder record of what tvopt-codegen wrote.
 MANIFEST = ".tvopt-manifest.json"

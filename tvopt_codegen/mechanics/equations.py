@@ -19,9 +19,9 @@ import sympy as sp
 
 from tvopt_codegen.errors import clip
 from tvopt_codegen.mechanics.language import _fail, _name, _sayable, _symbol_name
-from tvopt_codegen.names import name_problem
-from tvopt_codegen.parse import MAX_DEPTH
 from tvopt_codegen.spec.implicit import affine_split
+from tvopt_codegen.spec.names import name_problem
+from tvopt_codegen.spec.parse import MAX_DEPTH
 
 
 def _rate_of(coordinate: sp.Expr) -> sp.Expr:

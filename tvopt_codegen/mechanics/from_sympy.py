@@ -26,7 +26,7 @@ from tvopt_codegen.mechanics.equations import (
 from tvopt_codegen.mechanics.language import _check_depths, _fail, _number, _symbol_name
 from tvopt_codegen.mechanics.printing import _text
 from tvopt_codegen.mechanics.readback import _reads_back
-from tvopt_codegen.names import name_problem
+from tvopt_codegen.spec.names import name_problem
 
 #: The poles a spec from :func:`spec_from_sympy` asks for unless told (k = 2).
 DEFAULT_POLES = (-2.0, -3.0)

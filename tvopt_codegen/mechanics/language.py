@@ -18,8 +18,8 @@ import numpy as np
 import sympy as sp
 
 from tvopt_codegen.errors import SpecError, clip, one_line
-from tvopt_codegen.names import name_problem
-from tvopt_codegen.parse import FUNCTIONS, MAX_DEPTH
+from tvopt_codegen.spec.names import name_problem
+from tvopt_codegen.spec.parse import FUNCTIONS, MAX_DEPTH
 
 #: What errors of :func:`~tvopt_codegen.mechanics.spec_from_sympy` name as their source.
 SOURCE_SYMPY = "spec_from_sympy"

@@ -14,7 +14,7 @@ import sympy as sp
 from sympy.printing.str import StrPrinter
 
 from tvopt_codegen.mechanics.language import _fail
-from tvopt_codegen.parse import MAX_DEPTH, MAX_EXPONENT, MAX_LITERAL, MIN_LITERAL
+from tvopt_codegen.spec.parse import MAX_DEPTH, MAX_EXPONENT, MAX_LITERAL, MIN_LITERAL
 
 #: Sums and products with more terms than this are printed in parenthesized groups:
 #: the reader nests a chain of n terms n deep, and refuses more than MAX_DEPTH.

@@ -15,9 +15,9 @@ import numpy as np
 import sympy as sp
 
 from tvopt_codegen.errors import clip
+from tvopt_codegen.maths.numeric import Evaluator
 from tvopt_codegen.mechanics.language import SOURCE_SYMPY, _fail
 from tvopt_codegen.mechanics.toml_text import spec_toml
-from tvopt_codegen.numeric import Evaluator
 
 
 def _rational(expr: sp.Expr) -> sp.Expr:

@@ -10,8 +10,8 @@ import sympy as sp
 from tvopt_codegen import __version__
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.emit import read_own_output
-from tvopt_codegen.ir import KernelSet
-from tvopt_codegen.rendering import render_template
+from tvopt_codegen.lowering.ir import KernelSet
+from tvopt_codegen.renderer.rendering import render_template
 from tvopt_codegen.report.entries import Section
 from tvopt_codegen.report.sections import (
     _control_law,

@@ -11,8 +11,9 @@ import sympy as sp
 
 from tvopt_codegen import __version__
 from tvopt_codegen.derivation import Derivation
-from tvopt_codegen.ir import KernelSet
-from tvopt_codegen.jet import Program
+from tvopt_codegen.derivation.robust import robustness
+from tvopt_codegen.lowering.ir import KernelSet
+from tvopt_codegen.maths.jet import Program
 from tvopt_codegen.report.entries import (
     INLINE_OPS,
     Entry,
@@ -23,7 +24,6 @@ from tvopt_codegen.report.entries import (
     _smoothness,
     formula,
 )
-from tvopt_codegen.robust import robustness
 
 
 def _shown(d: Derivation) -> dict[sp.Symbol, sp.Symbol]:

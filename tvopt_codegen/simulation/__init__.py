@@ -10,7 +10,7 @@ paper's theorems along the run:
    constant of ``|expm(H t)| <= c e^{-alpha t}`` (computed) and ``m_f`` the convexity
    modulus (estimated along the run).
 
-Nothing here writes files or draws: :func:`tvopt_codegen.artifacts.result_files` renders
+Nothing here writes files or draws: :func:`tvopt_codegen.runs.artifacts.result_files` renders
 the outputs and figures in memory for :mod:`tvopt_codegen.emit`.
 """
 

@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from tvopt_codegen import hurwitz
 from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.maths import hurwitz
 from tvopt_codegen.simulation.references import ReferenceSource
 from tvopt_codegen.simulation.result import Options, Result
 from tvopt_codegen.simulation.target import _reference_values, kkt_path, minimizer_path

@@ -1,7 +1,7 @@
 """The constraints' certificate of a run, and the equality constraints in numbers.
 
 What ``simulate`` checks of a run with ``[constraints]`` (see
-:mod:`tvopt_codegen.constraints` for the barrier objective and the claims): the margins
+:mod:`tvopt_codegen.spec.constraints` for the barrier objective and the claims): the margins
 ``s(t) - g_i``, the equalities' drift, the distance to an independent constrained
 minimiser (SLSQP), and the KKT matrix of equality constraints. Every derivative comes
 from :mod:`tvopt_codegen.derivation.calculus`; nothing here differentiates.
@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 import sympy as sp
 
-from tvopt_codegen.constraints import inline_signals
 from tvopt_codegen.derivation import calculus
+from tvopt_codegen.spec.constraints import inline_signals
 
 
 @dataclass(frozen=True)

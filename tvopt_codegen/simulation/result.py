@@ -20,9 +20,9 @@ from tvopt_codegen.backends import BACKENDS
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.emit import write_files
 from tvopt_codegen.errors import BuildError, SpecError
-from tvopt_codegen.ir import KernelSet
 from tvopt_codegen.limits import DEFAULT_ATOL, DEFAULT_POINTS, DEFAULT_RTOL, MAX_T_FINAL
-from tvopt_codegen.rendering import render
+from tvopt_codegen.lowering.ir import KernelSet
+from tvopt_codegen.renderer.rendering import render
 
 
 def load_controller(kernels: KernelSet, backend: str = "python") -> types.ModuleType:

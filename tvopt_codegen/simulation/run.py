@@ -13,10 +13,10 @@ from typing import Any, NoReturn
 
 import numpy as np
 
-from tvopt_codegen import dopri
 from tvopt_codegen.contract import Status
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.errors import AssumptionError, SpecError
+from tvopt_codegen.maths import dopri
 from tvopt_codegen.simulation.certificate import _certify
 from tvopt_codegen.simulation.references import ReferenceSource, nominal_source
 from tvopt_codegen.simulation.result import Options, Result
@@ -287,7 +287,7 @@ def bumpless_start(
     """The options with integral states that nobody gave starting at ``z*(E(0))``.
 
     There E moves exactly as under the law without integral action (see
-    :func:`~tvopt_codegen.hurwitz.integral_split`), as the generated Controller starts
+    :func:`~tvopt_codegen.maths.hurwitz.integral_split`), as the generated Controller starts
     when no ``z0`` is given. Unchanged without integral action.
     """
     if not d.integral_states:

@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from tvopt_codegen import hurwitz
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.errors import AssumptionError, SpecError
+from tvopt_codegen.maths import hurwitz
 from tvopt_codegen.simulation.certificate import augmented_error
 from tvopt_codegen.simulation.references import nominal_source
 from tvopt_codegen.simulation.result import Options, Result

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from tvopt_codegen.limits import START_ITERATIONS
-from tvopt_codegen.runtime import NEWTON
+from tvopt_codegen.renderer.runtime import NEWTON
 
 
 def minimizer_path(

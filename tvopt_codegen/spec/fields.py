@@ -20,9 +20,9 @@ import numpy as np
 import sympy as sp
 
 from tvopt_codegen.errors import SpecError, clip
-from tvopt_codegen.names import name_problem
-from tvopt_codegen.numeric import Evaluator
-from tvopt_codegen.parse import (
+from tvopt_codegen.maths.numeric import Evaluator
+from tvopt_codegen.spec.names import name_problem
+from tvopt_codegen.spec.parse import (
     NO_INDEXING,
     ExpressionError,
     Indexing,

@@ -13,8 +13,8 @@ from typing import Any
 
 from tvopt_codegen.errors import SpecError
 from tvopt_codegen.spec.reader import _Reader
+from tvopt_codegen.spec.toml_shape import ShapeError, check_shape
 from tvopt_codegen.spec.types import Spec
-from tvopt_codegen.toml_shape import ShapeError, check_shape
 
 #: Largest spec file accepted, in bytes.
 MAX_SPEC_BYTES = 1_000_000

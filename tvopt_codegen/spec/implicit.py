@@ -16,9 +16,9 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import sympy as sp
 
-from tvopt_codegen.jet import partial
-from tvopt_codegen.lie import Sampler, connected_groups
-from tvopt_codegen.numeric import Evaluator
+from tvopt_codegen.maths.jet import partial
+from tvopt_codegen.maths.lie import Sampler, connected_groups
+from tvopt_codegen.maths.numeric import Evaluator
 from tvopt_codegen.spec.types import Mechanics
 
 

@@ -11,10 +11,10 @@ from typing import Any
 
 import sympy as sp
 
-from tvopt_codegen.names import name_problem
-from tvopt_codegen.parse import ExpressionError, parse_comparison
 from tvopt_codegen.spec.fields import _Fields, shown
 from tvopt_codegen.spec.fields import suggestion as _suggestion
+from tvopt_codegen.spec.names import name_problem
+from tvopt_codegen.spec.parse import ExpressionError, parse_comparison
 from tvopt_codegen.spec.types import ESTIMATOR_KINDS, TIME, Barrier, Constraint, Estimator, symbol
 
 

@@ -12,10 +12,10 @@ from typing import Any, NamedTuple
 
 import sympy as sp
 
-from tvopt_codegen.names import name_problem
 from tvopt_codegen.spec.fields import _Entry, _Fields
 from tvopt_codegen.spec.fields import suggestion as _suggestion
 from tvopt_codegen.spec.implicit import affine_split, implicit_dynamics, mechanics_of, reserved
+from tvopt_codegen.spec.names import name_problem
 from tvopt_codegen.spec.types import MAX_INTEGRATORS, Mechanics, symbol
 
 

@@ -14,8 +14,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from tvopt_codegen.names import module_name_problem
 from tvopt_codegen.spec.fields import MAX_INDEX_COUNT, shown, suggestion
+from tvopt_codegen.spec.names import module_name_problem
 from tvopt_codegen.spec.objective import _ObjectiveReader
 from tvopt_codegen.spec.plant import _PlantReader
 from tvopt_codegen.spec.settings import _SettingsReader

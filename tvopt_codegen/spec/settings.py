@@ -15,9 +15,9 @@ import sympy as sp
 
 from tvopt_codegen.errors import clip
 from tvopt_codegen.limits import MAX_T_FINAL
-from tvopt_codegen.parse import indexed_name
 from tvopt_codegen.spec.fields import _Fields, shown
 from tvopt_codegen.spec.fields import suggestion as _suggestion
+from tvopt_codegen.spec.parse import indexed_name
 from tvopt_codegen.spec.types import Limit, Robust
 
 

@@ -173,7 +173,7 @@ class Spec:
         references).
     constraints : tuple of Constraint
         ``[constraints]``: inequalities on the outputs, kept by an interior-point
-        homotopy (see :mod:`tvopt_codegen.constraints`).
+        homotopy (see :mod:`tvopt_codegen.spec.constraints`).
     barrier : Barrier
         The homotopy's weight and slack schedule.
     allow_nonconvex : bool
@@ -181,7 +181,7 @@ class Spec:
         not affine in them (the certificate is then local only).
     equalities : tuple of Constraint
         ``[constraints]`` written with ``==``: ``a_j(y, t) = 0``, kept by the KKT system
-        with a multiplier chain per equality (see :mod:`tvopt_codegen.constraints`).
+        with a multiplier chain per equality (see :mod:`tvopt_codegen.spec.constraints`).
     robust : Robust
         ``[robust]``: integral action and the disturbance observer (both off by default).
     limits : tuple of Limit

@@ -13,12 +13,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from tvopt_codegen import dopri
 from tvopt_codegen.errors import SpecError
 from tvopt_codegen.limits import MAX_POINTS, RUN_OPTIONS, START_ITERATIONS
+from tvopt_codegen.maths import dopri
 
 if TYPE_CHECKING:
-    from tvopt_codegen.ir import KernelSet
+    from tvopt_codegen.lowering.ir import KernelSet
 from tvopt_codegen.sweep.options import (
     DIVERGENCE_FACTOR,
     MAX_SAMPLES,
@@ -124,14 +124,14 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
         For a spec with ``[references]`` (the compiled loop has no reference source yet).
     """
     from tvopt_codegen.backends import BACKENDS  # noqa: PLC0415
-    from tvopt_codegen.ir import check_kernels  # noqa: PLC0415
-    from tvopt_codegen.rendering import (  # noqa: PLC0415
+    from tvopt_codegen.lowering.ir import check_kernels  # noqa: PLC0415
+    from tvopt_codegen.renderer.rendering import (  # noqa: PLC0415
         print_kernel,
         render,
         render_template,
         template_context,
     )
-    from tvopt_codegen.runtime import NEWTON, closure, controller_routines  # noqa: PLC0415
+    from tvopt_codegen.renderer.runtime import NEWTON, closure, controller_routines  # noqa: PLC0415
 
     d = kernels.derivation
     if d.model.references:

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from tvopt_codegen.contract import Status
-from tvopt_codegen.hurwitz import bound_ratio, tracking_bound
+from tvopt_codegen.maths.hurwitz import bound_ratio, tracking_bound
 
 if TYPE_CHECKING:
     pass
@@ -61,7 +61,7 @@ def _certificate(
 
     ``m_f`` is the least eigenvalue of f0's Hessian at y, y* and their midpoint along
     the run (the C loop's last column), as :mod:`tvopt_codegen.simulation` estimates it;
-    the bound and the test are :mod:`tvopt_codegen.hurwitz`'s, which ``simulate`` asks too.
+    the bound and the test are :mod:`tvopt_codegen.maths.hurwitz`'s, which ``simulate`` asks too.
     """
     p = loop.program
     cp = sample.cp if len(sample.cp) else np.zeros(1)
@@ -81,7 +81,7 @@ def _bumpless(program: SweepProgram, options: SweepOptions, loop: Loop, sample: 
     """The draw with integral states that ``--initial`` does not set at ``z*(E(0))``.
 
     As ``simulate`` and the generated Controller start them (see
-    :func:`~tvopt_codegen.hurwitz.integral_split`); E at the model's parameters.
+    :func:`~tvopt_codegen.maths.hurwitz.integral_split`); E at the model's parameters.
     """
     if not program.integral_rows:
         return sample

@@ -18,7 +18,7 @@ import numpy as np
 import sympy as sp
 
 from tvopt_codegen.errors import BudgetError
-from tvopt_codegen.names import name_problem
+from tvopt_codegen.spec.names import name_problem
 from tvopt_codegen.urdf.chain import MAX_JOINTS, MAX_LINKS, _rest
 from tvopt_codegen.urdf.dynamics import _Lets, _text
 from tvopt_codegen.urdf.elements import _fail, _identifier

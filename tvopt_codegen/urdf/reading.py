@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from tvopt_codegen.spec.files import MAX_SPEC_BYTES
-from tvopt_codegen.toml_shape import MAX_NESTING
+from tvopt_codegen.spec.toml_shape import MAX_NESTING
 from tvopt_codegen.urdf.elements import _check_elements, _fail
 
 #: Most XML elements a URDF file may hold (the spec's own limits are on bytes and depth).

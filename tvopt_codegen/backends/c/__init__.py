@@ -9,7 +9,7 @@ from tvopt_codegen.backends.base import Backend
 if TYPE_CHECKING:
     from sympy.printing.codeprinter import CodePrinter
 
-    from tvopt_codegen.ir import KernelSet
+    from tvopt_codegen.lowering.ir import KernelSet
 
 #: Keywords of C99 (and the C11 ones a C99 compiler may reserve).
 C_KEYWORDS = frozenset(

@@ -8,7 +8,7 @@ import sympy as sp
 from sympy.printing.c import C99CodePrinter
 from sympy.printing.precedence import PRECEDENCE
 
-from tvopt_codegen.printers import CanonicalOrder
+from tvopt_codegen.lowering.printers import CanonicalOrder
 
 
 class CPrinter(CanonicalOrder, C99CodePrinter):  # type: ignore[misc]

@@ -12,7 +12,7 @@ from tvopt_codegen.backends.base import Backend
 if TYPE_CHECKING:
     from sympy.printing.codeprinter import CodePrinter
 
-    from tvopt_codegen.ir import KernelSet
+    from tvopt_codegen.lowering.ir import KernelSet
 
 
 def _printer() -> CodePrinter:

@@ -11,7 +11,7 @@ import heapq
 import re
 from typing import Any
 
-from tvopt_codegen.rendering import PrintedArg, PrintedKernel, PrintedOutput, PrintedSlot
+from tvopt_codegen.renderer.rendering import PrintedArg, PrintedKernel, PrintedOutput, PrintedSlot
 
 _NAME = re.compile(r"\b_[A-Za-z]+\d+\b")
 

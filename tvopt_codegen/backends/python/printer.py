@@ -9,7 +9,7 @@ import sympy as sp
 from sympy.printing.numpy import NumPyPrinter
 from sympy.printing.precedence import PRECEDENCE
 
-from tvopt_codegen.printers import CanonicalOrder
+from tvopt_codegen.lowering.printers import CanonicalOrder
 
 
 class PythonPrinter(CanonicalOrder, NumPyPrinter):  # type: ignore[misc]

@@ -1,0 +1,385 @@
+"""Stage 2: the control-affine plant, outputs and objective as sympy objects.
+
+``x' = f(x) + G(x) u`` is recovered from the declared right-hand sides by
+differentiation: ``G[:, j] = d rhs / d u_j`` and ``f = rhs(u = 0)``, after checking that
+no right-hand side is more than affine in the inputs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import sympy as sp
+
+from tvopt_codegen.contract import PIVOT_TOLERANCE
+from tvopt_codegen.errors import AssumptionError, SpecError, clip
+from tvopt_codegen.maths.jet import partial
+from tvopt_codegen.maths.lie import Sampler, from_entries
+from tvopt_codegen.spec import TIME, Constraint, Mechanics, Spec, symbol
+from tvopt_codegen.spec.constraints import barrier_objective, initial_slack, schedule
+from tvopt_codegen.spec.implicit import (
+    implicit_values,
+    mass_matrix_at,
+    problem_at_samples,
+    solved_at,
+)
+
+
+@dataclass(frozen=True)
+class Model:
+    """The declared system in the paper's notation (equation (1)).
+
+    Attributes
+    ----------
+    spec : Spec
+        Where the model came from.
+    x, u, y : tuple of sympy.Symbol
+        Plant states, plant inputs and output symbols, in declaration order.
+    f : sympy.ImmutableMatrix
+        Drift vector field, shape (n, 1).
+    G : sympy.ImmutableMatrix
+        Input matrix ``[g_1, ..., g_m]``, shape (n, m).
+    h : sympy.ImmutableMatrix
+        Output map, shape (m, 1).
+    params : tuple of sympy.Symbol
+        Parameters, in declaration order.
+    defaults : tuple of float
+        Default value of each parameter.
+    signals : tuple of (sympy.Symbol, sympy.Expr)
+        Each signal symbol and its expression in ``t`` and the parameters.
+    f0 : sympy.Expr
+        The objective in ``y``, the signal symbols, the parameters and ``t``.
+    t : sympy.Symbol
+        Time.
+    references : tuple of sympy.Symbol
+        References measured at run time: in signals and ``f0`` like signals, with their
+        derivatives supplied by the caller.
+    nominal : tuple of (sympy.Symbol, sympy.Expr)
+        The closed form the spec gives for some references, in ``t`` and the parameters.
+    objective : sympy.Expr or None
+        The spec's ``f0`` when ``[constraints]`` made :attr:`f0` the barrier objective
+        ``B`` (:mod:`tvopt_codegen.spec.constraints`); None otherwise.
+    constraints : tuple of Constraint
+        The inequalities, ``g_i(y, t) <= 0``.
+    mu, slack : sympy.Expr
+        The barrier's weight ``mu(t)`` and slack ``s(t)`` (0 without constraints).
+    equalities : tuple of Constraint
+        The equalities, ``a_j(y, t) = 0``.
+    multipliers : tuple of sympy.Symbol
+        Their Lagrange multipliers ``nu_<name>``, one per equality.
+    """
+
+    spec: Spec
+    x: tuple[sp.Symbol, ...]
+    u: tuple[sp.Symbol, ...]
+    y: tuple[sp.Symbol, ...]
+    f: sp.ImmutableMatrix
+    G: sp.ImmutableMatrix
+    h: sp.ImmutableMatrix
+    params: tuple[sp.Symbol, ...]
+    defaults: tuple[float, ...]
+    signals: tuple[tuple[sp.Symbol, sp.Expr], ...]
+    f0: sp.Expr
+    t: sp.Symbol
+    references: tuple[sp.Symbol, ...] = ()
+    nominal: tuple[tuple[sp.Symbol, sp.Expr], ...] = ()
+    objective: sp.Expr | None = None
+    constraints: tuple[Constraint, ...] = ()
+    mu: sp.Expr = sp.Integer(0)
+    slack: sp.Expr = sp.Integer(0)
+    equalities: tuple[Constraint, ...] = ()
+    multipliers: tuple[sp.Symbol, ...] = ()
+
+    @property
+    def mechanics(self) -> Mechanics | None:
+        """The mass-matrix form the plant was declared in (None: ``[system.dynamics]``)."""
+        return self.spec.mechanics
+
+    @property
+    def opaque(self) -> frozenset[sp.Symbol]:
+        """Symbols of ``f`` and ``G`` computed at run time (``M^-1 F``, ``M^-1 B``)."""
+        return self.spec.mechanics.opaque if self.spec.mechanics is not None else frozenset()
+
+    def sampler(self, symbols: Sequence[sp.Symbol]) -> Sampler:
+        """A :class:`~tvopt_codegen.maths.lie.Sampler` over ``symbols``, parameters at defaults.
+
+        It also knows the run-time symbols' values, solved numerically at its points.
+        """
+        mechanics = self.spec.mechanics
+        implicit = None
+        if mechanics is not None:
+
+            def implicit(
+                values: Mapping[sp.Symbol, object], points: int
+            ) -> Mapping[sp.Symbol, object]:
+                return implicit_values(mechanics, values, points)
+
+        return Sampler(
+            symbols, dict(zip(self.params, self.defaults, strict=True)), implicit=implicit
+        )
+
+    @property
+    def lagrangian(self) -> sp.Expr:
+        """``L = f0 + sum_j nu_j a_j``: :attr:`f0` itself without equalities."""
+        return self.f0 + sp.Add(
+            *(nu * c.g for nu, c in zip(self.multipliers, self.equalities, strict=True))
+        )
+
+
+def build_model(spec: Spec) -> Model:
+    """Build the control-affine model of a spec.
+
+    Parameters
+    ----------
+    spec : Spec
+        A validated spec.
+
+    Returns
+    -------
+    Model
+        The plant ``(f, G, h)``, objective and signals.
+
+    Raises
+    ------
+    SpecError
+        When a right-hand side is not affine in the inputs.
+    AssumptionError
+        When the numbers of inputs and outputs differ (the method needs a square plant).
+    """
+    x = tuple(symbol(n) for n in spec.states)
+    u = tuple(symbol(n) for n in spec.inputs)
+    if len(spec.inputs) != len(spec.outputs):
+        raise AssumptionError(
+            spec.source,
+            "system.outputs",
+            f"the plant has {len(spec.inputs)} inputs but {len(spec.outputs)} outputs; the "
+            "method needs as many outputs as inputs",
+        )
+    sampler, sampled = _plant_sampler(spec, x, u)
+    f_rows, G_entries = _split_affine(spec, u, sampler)
+    if spec.mechanics is not None:
+        _check_mass_matrix(spec, spec.mechanics, sampler, *sampled)
+    f0, objective, mu, slack = _barrier_objective(spec)
+    return Model(
+        spec=spec,
+        x=x,
+        u=u,
+        y=tuple(symbol(n) for n in spec.outputs),
+        f=sp.ImmutableMatrix(f_rows),
+        G=from_entries(len(x), len(u), G_entries),
+        h=sp.ImmutableMatrix(spec.output_exprs),
+        params=tuple(symbol(n) for n, _ in spec.parameters),
+        defaults=tuple(v for _, v in spec.parameters),
+        signals=tuple((symbol(n), e) for n, e in spec.signals),
+        f0=f0,
+        t=TIME,
+        references=tuple(symbol(n) for n in spec.references),
+        nominal=tuple((symbol(n), e) for n, e in spec.reference_nominal),
+        objective=objective,
+        constraints=spec.constraints,
+        mu=mu if mu is not None else sp.Integer(0),
+        slack=slack if slack is not None else sp.Integer(0),
+        equalities=spec.equalities,
+        multipliers=tuple(sp.Symbol(f"nu_{c.name}", real=True) for c in spec.equalities),
+    )
+
+
+def _plant_sampler(
+    spec: Spec, x: tuple[sp.Symbol, ...], u: tuple[sp.Symbol, ...]
+) -> tuple[Sampler, list[np.ndarray]]:
+    """The sampler that decides affinity, and where it leaves ``M`` and ``[F | B]``.
+
+    Parameters
+    ----------
+    spec : Spec
+        A validated spec.
+    x, u : tuple of sympy.Symbol
+        The plant's states and inputs, the sampler's free symbols.
+
+    Returns
+    -------
+    sampler : Sampler
+        Over ``(*x, *u)`` with the parameters at their defaults; for a mechanical plant
+        it also solves the run-time symbols at its points.
+    sampled : list of numpy.ndarray
+        Empty until the sampler first evaluates a mechanical plant, then ``M`` and
+        ``[F | B]`` at its points (filled in place).
+    """
+    # Affinity is decided by evaluation at random points first: a nonzero value proves
+    # non-affinity at once, and simplify (slow on hostile input) is never reached then.
+    mechanics = spec.mechanics
+    # M, F and B at the sampler's points, kept for the checks a physics engine makes.
+    sampled: list[np.ndarray] = []
+
+    def implicit(values: Mapping[sp.Symbol, object], points: int) -> Mapping[sp.Symbol, object]:
+        assert mechanics is not None
+        solved, mass, rhs = solved_at(mechanics, values, points)
+        sampled[:] = [mass, rhs]
+        return solved
+
+    sampler = Sampler(
+        (*x, *u),
+        dict(
+            zip(
+                (symbol(n) for n, _ in spec.parameters),
+                (v for _, v in spec.parameters),
+                strict=True,
+            )
+        ),
+        implicit=None if mechanics is None else implicit,
+    )
+    return sampler, sampled
+
+
+def _split_affine(
+    spec: Spec, u: tuple[sp.Symbol, ...], sampler: Sampler
+) -> tuple[list[sp.Expr], dict[tuple[int, int], sp.Expr]]:
+    """``f`` and ``G`` of the declared right-hand sides, after checking their affinity.
+
+    Parameters
+    ----------
+    spec : Spec
+        A validated spec.
+    u : tuple of sympy.Symbol
+        The plant inputs.
+    sampler : Sampler
+        Decides whether a coefficient's derivative in an input is zero.
+
+    Returns
+    -------
+    f_rows : list of sympy.Expr
+        Each right-hand side with the inputs at 0, in the states' order.
+    G_entries : dict of (int, int) to sympy.Expr
+        The nonzero entries of ``G``, by (state, input) position.
+
+    Raises
+    ------
+    SpecError
+        When a right-hand side is not affine in the inputs.
+    """
+    G_entries: dict[tuple[int, int], sp.Expr] = {}
+    f_rows = []
+    inputs = set(u)
+    for i, (state, rhs) in enumerate(zip(spec.states, spec.dynamics, strict=True)):
+        # Only the inputs that occur are differentiated: a plant of N agents has N times
+        # the inputs, each in a few equations, and a dense sweep would be quadratic.
+        present = rhs.free_symbols
+        row = {j: partial(rhs, uj) for j, uj in enumerate(u) if uj in present}
+        for j, gij in row.items():
+            if gij != 0:
+                G_entries[i, j] = gij
+            # Only the inputs that occur in the coefficient, in declaration order: a
+            # team's G is almost all zeros, and looping over every input for every
+            # entry was cubic (9 s for 128 agents).
+            occurring = gij.free_symbols & inputs
+            if not occurring:
+                continue
+            for uk in u:
+                if uk in occurring and not sampler.is_zero(partial(gij, uk)):
+                    raise SpecError(
+                        spec.source,
+                        f"system.dynamics.{state}",
+                        f"not affine in the inputs: the coefficient of {spec.inputs[j]!r} "
+                        f"depends on input {str(uk)!r}",
+                    )
+        f_rows.append(rhs.xreplace(dict.fromkeys(u, sp.Integer(0))))
+    return f_rows, G_entries
+
+
+def _barrier_objective(
+    spec: Spec,
+) -> tuple[sp.Expr, sp.Expr | None, sp.Expr | None, sp.Expr | None]:
+    """The objective the method tracks: ``f0``, or with ``[constraints]`` the barrier's.
+
+    Parameters
+    ----------
+    spec : Spec
+        A validated spec.
+
+    Returns
+    -------
+    f0 : sympy.Expr
+        The spec's objective, or the barrier objective ``B`` when it has inequalities.
+    objective : sympy.Expr or None
+        The spec's objective when ``f0`` is ``B``; None otherwise.
+    mu, slack : sympy.Expr or None
+        The barrier's weight ``mu(t)`` and slack ``s(t)``; None without inequalities.
+    """
+    f0: sp.Expr = spec.objective
+    objective = mu = slack = None
+    if spec.constraints:
+        assert spec.barrier is not None
+        # The start: outputs of the initial plant state; signals, references (nominal,
+        # else 0) and t at 0; parameters at their defaults.
+        given = dict(spec.initial_state)
+        defaults = {symbol(n): sp.Float(v) for n, v in spec.parameters}
+        start: dict[sp.Symbol, sp.Expr] = {TIME: sp.Integer(0)}
+        start |= {symbol(n): sp.Float(given.get(n, 0.0)) for n in spec.states}
+        nominal = dict(spec.reference_nominal)
+        for name in spec.references:
+            start[symbol(name)] = nominal.get(name, sp.Integer(0))
+        start |= {symbol(n): e for n, e in spec.signals}
+        values = {
+            symbol(o): e.xreplace(start).xreplace(defaults)
+            for o, e in zip(spec.outputs, spec.output_exprs, strict=True)
+        }
+        for key, value in start.items():
+            values.setdefault(key, value.xreplace(start).xreplace(defaults).xreplace(start))
+        values |= defaults
+        s0 = initial_slack(spec.constraints, spec.barrier, values)
+        mu, slack = schedule(spec.barrier, s0, TIME)
+        objective = f0
+        f0 = barrier_objective(f0, spec.constraints, mu, slack)
+    return f0, objective, mu, slack
+
+
+def _check_mass_matrix(
+    spec: Spec, mechanics: Mechanics, sampler: Sampler, at_mass: np.ndarray, at_rhs: np.ndarray
+) -> None:
+    """``M`` is symmetric (at random points), positive definite at the initial state and there.
+
+    ``at_mass`` and ``at_rhs`` are ``M`` and ``[F | B]`` at the sampler's points.
+
+    Raises
+    ------
+    SpecError
+        When ``M[i][j]`` and ``M[j][i]`` differ.
+    AssumptionError
+        When ``M`` is not positive definite (or not finite) at the initial state with
+        the parameters at their defaults, or at one of the random points; or an entry of
+        ``M``, ``F`` or ``B`` is infinite at one of them.
+    """
+    field = "system.mechanics.mass_matrix"
+    mass = mechanics.mass_matrix
+    n = len(mass)
+    for i in range(n):
+        for j in range(i):
+            if mass[i][j] != mass[j][i] and not sampler.is_zero(mass[i][j] - mass[j][i]):
+                raise SpecError(
+                    spec.source,
+                    f"{field}[{i}][{j}]",
+                    f"M is not symmetric: M[{i}][{j}] = {clip(sp.sstr(mass[i][j]))} but "
+                    f"M[{j}][{i}] = {clip(sp.sstr(mass[j][i]))}",
+                )
+    given = dict(spec.initial_state)
+    values: dict[sp.Symbol, object] = {symbol(n): v for n, v in spec.parameters}
+    values |= {symbol(name): float(given.get(name, 0.0)) for name in spec.states}
+    with np.errstate(all="ignore"):
+        start = mass_matrix_at(mechanics, values)[0]
+    where = "at the initial state" + ("" if given else " (every state 0)")
+    if not np.all(np.isfinite(start)):
+        raise AssumptionError(spec.source, field, f"M is not finite {where}")
+    smallest = float(np.linalg.eigvalsh(start)[0])
+    scale = float(np.max(np.abs(start))) if start.size else 0.0
+    if not smallest > PIVOT_TOLERANCE * scale:
+        raise AssumptionError(
+            spec.source,
+            field,
+            f"M is not positive definite {where}: its smallest eigenvalue is {smallest:.6g}",
+        )
+    # Where the symmetry check sampled M: finite, and positive definite where defined.
+    problem = problem_at_samples(mechanics, at_mass, at_rhs, sampler, PIVOT_TOLERANCE)
+    if problem is not None:
+        raise AssumptionError(spec.source, *problem)

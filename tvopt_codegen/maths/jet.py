@@ -1,0 +1,409 @@
+"""Total time derivatives of straight-line programs (forward-mode, symbolic).
+
+The paper needs ``grad^(j) f0`` for ``j <= k``: total derivatives along the output jet
+``(y, y', ..., y^(k-1))``, the signal jets and ``t`` (ARCHITECTURE.md, section 2). Taking
+them on one nested expression multiplies its size by about ten per order. Here an
+expression is a straight-line program (a list of assignments ``s_i = e_i`` whose
+right-hand sides use earlier symbols), and ``D`` is applied assignment by assignment:
+``D s_i = sum_v (d e_i / d v) D v``, each a new assignment. Sizes then grow by a small
+constant factor per order and nothing is ever expanded.
+"""
+
+from __future__ import annotations
+
+import operator
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+
+import sympy as sp
+
+Assignment = tuple[sp.Symbol, sp.Expr]
+
+
+@dataclass(frozen=True)
+class Program:
+    """Assignments in evaluation order; each right-hand side uses only earlier symbols.
+
+    Attributes
+    ----------
+    assignments : tuple of (sympy.Symbol, sympy.Expr)
+        The straight-line program.
+    """
+
+    assignments: tuple[Assignment, ...]
+
+    def __add__(self, other: Program) -> Program:
+        return Program(self.assignments + other.assignments)
+
+    def inline(self, expr: sp.Expr) -> sp.Expr:
+        """Substitute every assignment into ``expr`` (for tests and small reports only).
+
+        Each assignment ``expr`` reads is inlined once, in program order, and reused
+        wherever it is read: substituting the assignments one by one into the whole
+        expression, last first, rebuilt it once per assignment (three fifths of a team's
+        ``report``).
+        """
+        values = dict(self.assignments)
+        memo: dict[sp.Basic, sp.Expr] = {}
+        for sym in self._read_by(expr):
+            value = values[sym]
+            memo[sym] = value.xreplace({s: memo[s] for s in value.free_symbols if s in memo})
+        return expr.xreplace({s: memo[s] for s in expr.free_symbols if s in memo})
+
+    def inlined_size(self, expr: sp.Expr) -> int:
+        """The node count of ``expr`` with every assignment inlined, without building it.
+
+        A read counts the inlined size of what it reads each time, as the inlined tree
+        would: a report asks this before inlining what it would only describe if large.
+        """
+        values = dict(self.assignments)
+        sizes: dict[sp.Basic, int] = {}
+
+        def size(e: sp.Basic) -> int:
+            if e in sizes:
+                return sizes[e]
+            return 1 + sum(size(a) for a in e.args)
+
+        for sym in self._read_by(expr):
+            sizes[sym] = size(values[sym])
+        total = size(expr)
+        release(size)
+        return total
+
+    def _read_by(self, expr: sp.Expr) -> list[sp.Basic]:
+        """The assigned symbols ``expr`` reads, directly or not, in program order."""
+        values = dict(self.assignments)
+        needed = {s for s in expr.free_symbols if s in values}
+        pending = list(needed)
+        while pending:
+            for s in values[pending.pop()].free_symbols:
+                if s in values and s not in needed:
+                    needed.add(s)
+                    pending.append(s)
+        return [sym for sym, _ in self.assignments if sym in needed]
+
+
+def release(walk: Callable[..., object]) -> None:
+    """Free a recursive nested function now, with what it holds, not at a collection.
+
+    A nested function that calls itself holds itself in a closure cell: a reference
+    cycle, which only Python's cyclic collector frees, and which keeps the walk's memo
+    (often the size of the program) alive until then. Called once the walk is done, this
+    empties that cell, and reference counting frees the function and its memo at once:
+    the command line can then run the derivation without the collector
+    (``commands.common.without_collector``), whose scans of the live expressions were a tenth of a
+    large team's run.
+    """
+    for cell in walk.__closure__ or ():
+        if cell.cell_contents is walk:
+            cell.cell_contents = None
+
+
+def unchanged(node: sp.Basic, args: Sequence[sp.Basic]) -> bool:
+    """Whether ``args`` are ``node``'s own arguments, the very objects, in order.
+
+    A walk that rebuilds a tree leaves such a node as it is: rebuilding it would run
+    sympy's constructors only to give it back.
+    """
+    return len(args) == len(node.args) and all(map(operator.is_, args, node.args))
+
+
+def fresh_symbols(prefix: str) -> Iterator[sp.Symbol]:
+    """Endless numbered symbols ``prefix0, prefix1, ...`` (real)."""
+    index = 0
+    while True:
+        yield sp.Symbol(f"{prefix}{index}", real=True)
+        index += 1
+
+
+def partial(expr: sp.Expr, var: sp.Symbol) -> sp.Expr:
+    """``d expr / d var`` by the sum, product, power and chain rules, as sympy's ``diff``.
+
+    The programs' right-hand sides are single operations, where sympy's ``diff`` spends
+    most of its time in the machinery of ``Derivative`` objects. The rules here build
+    the same sums and products (sympy's constructors put them in the same canonical
+    form); anything else is left to ``diff``.
+    """
+    if expr == var:
+        return sp.Integer(1)
+    if var not in expr.free_symbols:
+        return sp.Integer(0)
+    if expr.is_Add:
+        return sp.Add(*(partial(arg, var) for arg in expr.args if var in arg.free_symbols))
+    if expr.is_Mul:
+        # Each term one product of all factors, as sympy's Leibniz rule for a first
+        # derivative builds it (Mul._eval_derivative_n_times): a number times a sum
+        # distributes only there, and the form must be the same.
+        # A product of two whose factor is the variable itself differentiates to the
+        # other factor: Mul(1, b) is b, the very object, so it is not built.
+        args = expr.args
+        terms = []
+        for i, arg in enumerate(args):
+            if var in arg.free_symbols:
+                slope = partial(arg, var)
+                if slope is sp.S.One and len(args) == 2:
+                    terms.append(args[1 - i])
+                else:
+                    terms.append(sp.Mul(*args[:i], slope, *args[i + 1 :]))
+        return sp.Add(*terms)
+    if expr.is_Pow:
+        base, exponent = expr.args
+        if exponent.is_Number:
+            # sympy's Pow._eval_derivative with a constant exponent, term for term.
+            return expr * (partial(base, var) * exponent / base)
+        return sp.diff(expr, var)
+    if isinstance(expr, sp.Function) and len(expr.args) == 1 and _chain_rule(type(expr)):
+        return expr.fdiff(1) * partial(expr.args[0], var)
+    return sp.diff(expr, var)
+
+
+def _chain_rule(func: type[sp.Function]) -> bool:
+    """Whether sympy differentiates ``func`` by the plain chain rule on its ``fdiff``.
+
+    ``Abs`` has its own rule (through the conjugate), and ``sign`` no ``fdiff`` (sympy
+    gives ``2*DiracDelta``, the default ``fdiff`` an unevaluated ``Derivative``): those
+    are left to ``diff``.
+    """
+    return (
+        func._eval_derivative is sp.Function._eval_derivative
+        and func.fdiff is not sp.Function.fdiff
+    )
+
+
+def _times(slope: sp.Expr, rate: sp.Expr) -> sp.Expr:
+    """``slope * rate``, without building a product by 1 (``Mul(1, b)`` is ``b`` itself)."""
+    if rate is sp.S.One:
+        return slope
+    if slope is sp.S.One:
+        return rate
+    return slope * rate
+
+
+def _derivative(expr: sp.Expr, rates: Mapping[sp.Symbol, sp.Expr]) -> sp.Expr:
+    """Chain rule: ``sum_v (d expr / d v) * rates[v]`` over the symbols that move.
+
+    The terms are added in one sum, and a rate of 1 (time's) multiplies nothing: adding
+    each term to a running total made every derivative pass through sympy's ``Add`` once
+    more per term, ``0 + x`` included (a fifth of a k = 12 jet's derivation).
+    """
+    terms = []
+    for var in sorted(expr.free_symbols & rates.keys(), key=lambda s: s.name):
+        slope, rate = partial(expr, var), rates[var]
+        terms.append(_times(slope, rate))
+    if len(terms) == 1:
+        return terms[0]
+    return sp.Add(*terms)
+
+
+def total_derivative(
+    program: Program,
+    outputs: Sequence[sp.Expr],
+    rates: Mapping[sp.Symbol, sp.Expr],
+    names: Iterator[sp.Symbol],
+    check: Callable[[sp.Expr], None] | None = None,
+) -> tuple[Program, tuple[sp.Expr, ...], dict[sp.Symbol, sp.Expr]]:
+    """Differentiate a program and its outputs along given rates of its free symbols.
+
+    Parameters
+    ----------
+    program : Program
+        The program defining intermediate symbols.
+    outputs : sequence of sympy.Expr
+        Expressions over the program's symbols and free symbols.
+    rates : mapping of sympy.Symbol to sympy.Expr
+        Time derivative of each free symbol that moves (e.g. ``t -> 1``,
+        ``y -> y'``). Symbols not listed are constant.
+    names : iterator of sympy.Symbol
+        Source of fresh symbols for the new assignments.
+    check : callable, optional
+        Called with every new right-hand side and output (the derivation's budget meter).
+
+    Returns
+    -------
+    program : Program
+        The new assignments only (derivatives of the program's symbols that are not
+        identically zero and not already in ``rates``); they follow ``program`` in
+        evaluation order.
+    outputs : tuple of sympy.Expr
+        The derivative of each output.
+    rates : dict of sympy.Symbol to sympy.Expr
+        ``rates`` extended with the derivative of every program symbol, so a further
+        derivative of ``program + new program`` can be taken.
+    """
+    moving: dict[sp.Symbol, sp.Expr] = dict(rates)
+    new: list[Assignment] = []
+    for sym, value in program.assignments:
+        if sym in moving:
+            continue  # differentiated by an earlier call; its rate is known
+        rate = _derivative(value, moving)
+        if rate == 0:
+            continue
+        if rate.is_Symbol or rate.is_Number:
+            moving[sym] = rate
+            continue
+        if check is not None:
+            check(rate)
+        fresh = next(names)
+        new.append((fresh, rate))
+        moving[sym] = fresh
+    derived = tuple(_derivative(sp.sympify(e), moving) for e in outputs)
+    if check is not None:
+        for e in derived:
+            check(e)
+    return Program(tuple(new)), derived, moving
+
+
+def next_derivative(
+    program: Program,
+    outputs: Sequence[sp.Expr],
+    rates: Mapping[sp.Symbol, sp.Expr],
+    names: Iterator[sp.Symbol],
+    check: Callable[[sp.Expr], None] | None = None,
+) -> tuple[Program, tuple[sp.Expr, ...], dict[sp.Symbol, sp.Expr]]:
+    """One more total derivative (:func:`total_derivative`), back in three-address form.
+
+    Each new assignment is broken into single operations again, in order (a later
+    assignment may use an earlier one's symbol), so that the derivative after this one
+    differentiates small expressions only: the k-th derivative grows linearly in k.
+    """
+    new, current, moving = total_derivative(program, outputs, rates, names, check)
+    memo: dict[sp.Expr, sp.Expr] = {}
+    pieces: list[Assignment] = []
+    for sym, value in new.assignments:
+        part, (root,) = atomize([value], names, memo)
+        pieces += [*part.assignments, (sym, root)]
+    part, current = atomize(list(current), names, memo)
+    return Program((*pieces, *part.assignments)), current, moving
+
+
+def atomize(
+    exprs: Sequence[sp.Expr], names: Iterator[sp.Symbol], memo: dict[sp.Expr, sp.Expr] | None = None
+) -> tuple[Program, tuple[sp.Expr, ...]]:
+    """Break expressions into one operation per assignment (three-address form).
+
+    Equal subtrees share one assignment (``memo``). Differentiating such a program
+    costs one small derivative per operation, so the k-th total derivative grows
+    linearly in the size of f0's gradient instead of re-walking nested subtrees.
+
+    Parameters
+    ----------
+    exprs : sequence of sympy.Expr
+        Expressions to break up.
+    names : iterator of sympy.Symbol
+        Source of names for the assignments.
+    memo : dict, optional
+        Subtree -> symbol, shared between calls that should share assignments.
+
+    Returns
+    -------
+    tuple of (Program, tuple of sympy.Expr)
+        The assignments and the outputs (each a symbol or an atom).
+    """
+    table: dict[sp.Expr, sp.Expr] = {} if memo is None else memo
+    out: list[tuple[sp.Symbol, sp.Expr]] = []
+
+    def visit(node: sp.Expr) -> sp.Expr:
+        if node.is_Atom:
+            return node
+        if node in table:
+            return table[node]
+        args = [visit(arg) for arg in node.args]
+        if node.is_Mul:
+            # Products become chains of two factors: the derivative of an n-factor
+            # product is n terms of n - 1 factors, quadratic; of a chain, linear.
+            numbers = [a for a in args if a.is_Number]
+            factors = [a for a in args if not a.is_Number]
+            while len(factors) > 2:
+                pair = sp.Mul(factors[0], factors[1])
+                if pair in table:
+                    factors = [table[pair], *factors[2:]]
+                    continue
+                symbol = next(names)
+                out.append((symbol, pair))
+                table[pair] = symbol
+                factors = [symbol, *factors[2:]]
+            args = [*numbers, *factors]
+        # Arguments that came back as they were (atoms, in the same order) leave the
+        # node as it is: rebuilding it (sympy's flatten) would only give it back.
+        rebuilt = node if unchanged(node, args) else node.func(*args)
+        if rebuilt.is_Atom:
+            table[node] = rebuilt
+            return rebuilt
+        symbol = next(names)
+        out.append((symbol, rebuilt))
+        table[node] = symbol
+        return symbol
+
+    outputs = tuple(visit(sp.sympify(e)) for e in exprs)
+    release(visit)
+    return Program(tuple(out)), outputs
+
+
+def jacobian(
+    program: Program,
+    outputs: Sequence[sp.Expr],
+    variables: Sequence[sp.Symbol],
+    names: Iterator[sp.Symbol],
+    check: Callable[[sp.Expr], None] | None = None,
+) -> tuple[Program, tuple[dict[int, sp.Expr], ...]]:
+    """Forward-mode Jacobian of a program's outputs, with sparse tangents.
+
+    Every symbol carries the nonzero entries of its gradient with respect to
+    ``variables`` (index -> expression): a variable its own unit vector, an assignment
+    ``s = e(v, ...)`` the sum ``sum_v (d e / d v) * tangent(v)``, entry by entry. Entries
+    that are not a symbol or a number become new assignments. The cost is the number of
+    nonzero tangent entries, about the program's size times the number of variables
+    each assignment depends on: for the gradient of an objective coupling each agent
+    to its neighbours, its Hessian in time linear in the number of agents.
+
+    Parameters
+    ----------
+    program : Program
+        The program (in three-address form, see :func:`atomize`, for small entries).
+    outputs : sequence of sympy.Expr
+        Expressions over the program's symbols and free symbols.
+    variables : sequence of sympy.Symbol
+        The independent variables (free symbols of the program).
+    names : iterator of sympy.Symbol
+        Source of fresh symbols for the new assignments.
+    check : callable, optional
+        Called with every new right-hand side (the derivation's budget meter).
+
+    Returns
+    -------
+    program : Program
+        The new assignments only; they follow ``program`` in evaluation order.
+    jacobian : tuple of dict of int to sympy.Expr
+        For each output, its nonzero partial derivatives by variable index.
+    """
+    tangent: dict[sp.Symbol, dict[int, sp.Expr]] = {
+        v: {j: sp.Integer(1)} for j, v in enumerate(variables)
+    }
+
+    def propagate(expr: sp.Expr) -> dict[int, sp.Expr]:
+        terms: dict[int, list[sp.Expr]] = {}
+        for var in sorted(expr.free_symbols & tangent.keys(), key=lambda s: s.name):
+            slope = partial(expr, var)
+            if slope == 0:
+                continue
+            for j, rate in tangent[var].items():
+                terms.setdefault(j, []).append(_times(slope, rate))
+        result = {j: sp.Add(*terms[j]) for j in sorted(terms)}
+        return {j: value for j, value in result.items() if value != 0}
+
+    new: list[Assignment] = []
+    for sym, value in program.assignments:
+        entries: dict[int, sp.Expr] = {}
+        for j, rate in propagate(value).items():
+            if rate.is_Symbol or rate.is_Number:
+                entries[j] = rate
+                continue
+            if check is not None:
+                check(rate)
+            fresh = next(names)
+            new.append((fresh, rate))
+            entries[j] = fresh
+        if entries:
+            tangent[sym] = entries
+    derived = tuple(propagate(sp.sympify(e)) for e in outputs)
+    return Program(tuple(new)), derived

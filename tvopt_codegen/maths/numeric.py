@@ -1,0 +1,259 @@
+"""Numeric evaluation of sympy expressions over NumPy arrays, without printing code.
+
+The derivation samples expressions at a few dozen points (is a Lie derivative
+identically zero? is the Hessian positive definite near the start?). ``lambdify``
+prints each expression to Python source and compiles it: for the Hessian of a ring of
+32 agents that printing took two seconds, longer than deriving the Hessian. Here the
+expression DAG is walked once, every distinct node evaluated once over the whole array
+of points (the Hessian's entries share most of their subtrees). Nothing is printed,
+nothing executed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Container, Iterable, Iterator, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import sympy as sp
+
+Array = Any  # a float or complex ndarray, or a Python scalar broadcast against one
+
+#: sympy function classes and their NumPy counterparts. Every function a spec may call
+#: (parse.FUNCTIONS) and the ones their derivatives introduce (Abs, sign) are here.
+_FUNCTIONS: Mapping[type[sp.Basic], Callable[..., Array]] = {
+    sp.sin: np.sin,
+    sp.cos: np.cos,
+    sp.tan: np.tan,
+    sp.asin: np.arcsin,
+    sp.acos: np.arccos,
+    sp.atan: np.arctan,
+    sp.atan2: np.arctan2,
+    sp.sinh: np.sinh,
+    sp.cosh: np.cosh,
+    sp.tanh: np.tanh,
+    sp.asinh: np.arcsinh,
+    sp.acosh: np.arccosh,
+    sp.atanh: np.arctanh,
+    sp.exp: np.exp,
+    sp.log: np.log,
+    sp.Abs: np.abs,
+    sp.sign: np.sign,
+}
+
+
+class Evaluator:
+    """Evaluates expressions for bound values of their symbols, sharing work across calls.
+
+    Parameters
+    ----------
+    values : mapping of sympy.Symbol to array or float
+        Values of the free symbols (arrays of one shape, or scalars).
+
+    Notes
+    -----
+    Results are memoized per node, so evaluating many expressions that share subtrees
+    costs the size of their DAG. Out-of-domain points give NaN (or complex values when
+    the values are complex), never an exception: callers decide what an undefined
+    sample means.
+    """
+
+    def __init__(self, values: Mapping[sp.Symbol, Array]) -> None:
+        self._memo: dict[sp.Basic, Array] = dict(values)
+        self._definitions: dict[sp.Basic, sp.Expr] = {}
+
+    def define(self, symbol: sp.Symbol, expr: sp.Expr) -> None:
+        """Let ``symbol`` stand for ``expr`` (an assignment of a straight-line program).
+
+        Evaluated on first use only: a program's assignments that the requested
+        expressions do not need cost nothing.
+        """
+        self._definitions[symbol] = expr
+
+    def __call__(self, expr: sp.Basic) -> Array:
+        """The value of ``expr`` at every point."""
+        memo = self._memo
+        if expr in memo:
+            return memo[expr]
+        with np.errstate(all="ignore"):
+            for node, defined in _post_order(expr, memo, self._definitions):
+                if defined is not None:
+                    memo[node] = memo[defined]
+                else:
+                    memo[node] = self._apply(node, [memo[arg] for arg in node.args])
+        return memo[expr]
+
+    @staticmethod
+    def _apply(node: sp.Basic, args: list[Array]) -> Array:
+        if node.is_Symbol:
+            raise ValueError(f"no value for the symbol {node}")
+        if node.is_Atom:  # a number, pi, E, I, oo or zoo
+            return _constant(node)
+        return _operation(node)(*args)
+
+
+def _post_order(
+    expr: sp.Basic, known: Container[sp.Basic], definitions: Mapping[sp.Basic, sp.Expr]
+) -> Iterator[tuple[sp.Basic, sp.Expr | None]]:
+    """The nodes of ``expr`` not ``known``, each after its arguments, with its definition.
+
+    A symbol that ``definitions`` defines comes after its definition, with it; any other
+    node with None. The caller makes each node known before taking the next. An explicit
+    stack: a long sum, or a long chain of program assignments, nests deeper than
+    Python's recursion limit.
+    """
+    stack: list[tuple[sp.Basic, bool]] = [(expr, False)]
+    while stack:
+        node, ready = stack.pop()
+        if node in known:
+            continue
+        defined = definitions.get(node) if node.is_Symbol else None
+        if ready:
+            yield node, defined
+            continue
+        stack.append((node, True))
+        children = node.args if defined is None else (defined,)
+        stack.extend((child, False) for child in children if child not in known)
+
+
+def _operation(node: sp.Basic) -> Callable[..., Array]:
+    """The NumPy operation of an expression node that is not an atom, on its args' values."""
+    if node.is_Add:
+        return _sum
+    if node.is_Mul:
+        return _product
+    if node.is_Pow:
+        return _square_root if node.exp == sp.Rational(1, 2) else _power
+    function = _FUNCTIONS.get(type(node)) or _FUNCTIONS.get(node.func)
+    if function is None:
+        raise ValueError(f"cannot evaluate {type(node).__name__} numerically")
+    return function
+
+
+def _sum(*args: Array) -> Array:
+    return _fold(np.add, args)
+
+
+def _product(*args: Array) -> Array:
+    return _fold(np.multiply, args)
+
+
+def _power(base: Array, exponent: Array) -> Array:
+    return np.power(base, exponent)
+
+
+def _square_root(base: Array, _exponent: Array) -> Array:
+    # The exponent (1/2) is an argument like any other: evaluated, and not needed.
+    return np.sqrt(base)
+
+
+class Tape:
+    """Expressions compiled once into a list of NumPy operations, run for many inputs.
+
+    :class:`Evaluator` walks the expression graph on every call; a Newton search for the
+    minimiser evaluates f0 and its derivatives hundreds of times at new points, and the
+    walk (hashing nodes, dispatching on their type) cost more than the arithmetic. Here
+    the walk is done once: a call runs the operations in order over a list of values,
+    the same operations in the same order as :class:`Evaluator`'s, so the results are
+    the same bits.
+
+    Parameters
+    ----------
+    inputs : sequence of sympy.Symbol
+        The symbols whose values each call passes, in this order.
+    outputs : sequence of sympy.Basic
+        The expressions each call returns.
+    definitions : mapping of sympy.Symbol to sympy.Expr
+        Symbols that stand for an expression (a program's assignments); only those the
+        outputs need are compiled.
+    constants : mapping of sympy.Symbol to array or float
+        Values fixed for every call (parameters at their defaults).
+    """
+
+    def __init__(
+        self,
+        inputs: Sequence[sp.Symbol],
+        outputs: Sequence[sp.Basic],
+        definitions: Mapping[sp.Symbol, sp.Expr],
+        constants: Mapping[sp.Symbol, Array],
+    ) -> None:
+        slot: dict[sp.Basic, int] = {sym: i for i, sym in enumerate(inputs)}
+        values: list[Array] = [None] * len(inputs)
+        operations: list[tuple[Callable[..., Array], tuple[int, ...], int]] = []
+        for sym, value in constants.items():
+            if sym not in slot:
+                slot[sym] = len(values)
+                values.append(value)
+
+        def place(expr: sp.Basic) -> int:
+            for node, defined in _post_order(expr, slot, definitions):
+                if defined is not None:
+                    slot[node] = slot[defined]
+                elif node.is_Symbol:
+                    raise ValueError(f"no value for the symbol {node}")
+                elif node.is_Atom:
+                    slot[node] = len(values)
+                    values.append(_constant(node))
+                else:
+                    slot[node] = len(values)
+                    values.append(None)
+                    args = tuple(slot[arg] for arg in node.args)
+                    operations.append((_operation(node), args, slot[node]))
+            return slot[expr]
+
+        self._outputs = [place(e) for e in outputs]
+        self._size = len(inputs)
+        self._values = values
+        # Each intermediate value is dropped after its last use: a batch of thousands of
+        # points keeps only the values still needed, not every node's array at once.
+        last: dict[int, int] = {}
+        for step, (_, args, _) in enumerate(operations):
+            for a in args:
+                last[a] = step
+        kept = (
+            set(self._outputs)
+            | set(range(len(inputs)))
+            | {i for i, value in enumerate(values) if value is not None}
+        )
+        dead: list[list[int]] = [[] for _ in operations]
+        for slot_index, step in last.items():
+            if slot_index not in kept:
+                dead[step].append(slot_index)
+        self._operations = [
+            (operation, args, out, tuple(dead[step]))
+            for step, (operation, args, out) in enumerate(operations)
+        ]
+
+    def __call__(self, *inputs: Array) -> list[Array]:
+        """The outputs' values for the inputs' (arrays of one shape, or scalars)."""
+        values = list(self._values)
+        values[: self._size] = inputs
+        with np.errstate(all="ignore"):
+            for operation, args, out, dead in self._operations:
+                values[out] = operation(*[values[a] for a in args])
+                for slot_index in dead:
+                    values[slot_index] = None
+        return [values[i] for i in self._outputs]
+
+
+#: Values of the numbers met so far. An evaluator's memo lives for one batch of points;
+#: the numbers recur across batches (a Newton search builds hundreds of evaluators), and
+#: sympy's ``complex()`` goes through evalf each time.
+_CONSTANTS: dict[sp.Basic, complex | float] = {}
+
+
+def _constant(node: sp.Basic) -> complex | float:
+    value = _CONSTANTS.get(node)
+    if value is None:
+        number = complex(node)
+        value = number.real if number.imag == 0 else number
+        _CONSTANTS[node] = value
+    return value
+
+
+def _fold(op: Callable[[Array, Array], Array], args: Iterable[Array]) -> Array:
+    items = iter(args)
+    total = next(items)
+    for item in items:
+        total = op(total, item)
+    return total

@@ -1,0 +1,196 @@
+"""The stateful controller as a co-simulation FMU (FMI 2.0 or 3.0), built from the C.
+
+An FMU is a zip archive: ``modelDescription.xml`` (inputs the plant states, outputs the
+plant input, the spec's parameters tunable, the controller states as locals, the model
+structure), the C sources (the C backend's ``<name>.c`` and ``<name>.h`` and the FMI
+glue, so that an importer can build it for its platform) and a shared library for this
+platform, compiled here. No Python runs inside it. Each ``doStep(tc, h)`` steps the
+controller at ``tc`` with the inputs set for ``tc``; the outputs are the input it
+returns, held over the step.
+
+The FMI headers are the importer's, by the standard's rule: they are not in the
+sources. Building the binary here takes them from FMPy (the ``fmu`` extra) or from the
+folder ``TVOPT_CODEGEN_FMI_HEADERS`` names.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import io
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import zipfile
+from pathlib import Path
+
+from tvopt_codegen.derivation import calculus
+from tvopt_codegen.errors import BuildError, MissingExtraError
+from tvopt_codegen.lowering.ir import KernelSet
+from tvopt_codegen.renderer.rendering import render, render_template, template_context
+from tvopt_codegen.toolchain import CFLAGS, compiler
+
+#: The FMI versions an FMU can be exported for.
+FMI_VERSIONS = (2, 3)
+#: Every archive member's time stamp: the FMU's bytes depend on its content alone.
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+
+
+def guid(kernels: KernelSet, fmi: int) -> str:
+    """The FMU's GUID (FMI 2) or instantiation token (FMI 3), from the spec's content."""
+    spec = kernels.derivation.spec
+    digest = hashlib.sha256(f"{spec.sha256}:{spec.name}:fmi{fmi}".encode()).hexdigest()
+    return f"{{{digest[:8]}-{digest[8:12]}-{digest[12:16]}-{digest[16:20]}-{digest[20:32]}}}"
+
+
+def platform_folder(fmi: int) -> str:
+    """The ``binaries/`` folder of this platform, in the naming of the FMI version.
+
+    Raises
+    ------
+    BuildError
+        On a platform the FMI standard has no name for here.
+    """
+    machine = platform.machine().lower()
+    arch = {"x86_64": "x86_64", "amd64": "x86_64", "aarch64": "aarch64", "arm64": "aarch64"}
+    system = {"linux": "linux", "darwin": "darwin", "win32": "windows"}.get(sys.platform)
+    if machine not in arch or system is None:
+        raise BuildError(f"no FMI platform name for {sys.platform} on {machine}")
+    if fmi == 3:
+        return f"{arch[machine]}-{system}"
+    if arch[machine] != "x86_64":
+        raise BuildError(f"FMI 2 names no platform for {sys.platform} on {machine}: use --fmi 3")
+    return {"linux": "linux64", "darwin": "darwin64", "windows": "win64"}[system]
+
+
+def fmi_headers(fmi: int) -> Path:
+    """The folder with ``fmi<fmi>Functions.h``: TVOPT_CODEGEN_FMI_HEADERS, else FMPy's.
+
+    Raises
+    ------
+    MissingExtraError
+        When neither has them.
+    """
+    wanted = f"fmi{fmi}Functions.h"
+    named = os.environ.get("TVOPT_CODEGEN_FMI_HEADERS")
+    if named:
+        if (Path(named) / wanted).is_file():
+            return Path(named)
+        raise MissingExtraError(f"TVOPT_CODEGEN_FMI_HEADERS={named!r} has no {wanted}")
+    found = importlib.util.find_spec("fmpy")
+    if found is not None and found.origin is not None:
+        folder = Path(found.origin).parent / "c-code"
+        if (folder / wanted).is_file():
+            return folder
+    raise MissingExtraError(
+        "building an FMU needs the FMI headers: pip install 'tvopt-codegen[fmu]' "
+        "(or set TVOPT_CODEGEN_FMI_HEADERS to a folder holding them)"
+    )
+
+
+def fmu_sources(kernels: KernelSet, fmi: int) -> dict[str, str]:
+    """The FMU's text members: ``modelDescription.xml`` and ``sources/`` (pure).
+
+    Parameters
+    ----------
+    kernels : KernelSet
+        The lowered controller.
+    fmi : int
+        2 or 3.
+
+    Returns
+    -------
+    dict of str to str
+        Archive member name to text.
+    """
+    if fmi not in FMI_VERSIONS:
+        raise ValueError(f"fmi must be one of {FMI_VERSIONS}, got {fmi!r}")
+    name = kernels.derivation.spec.name
+    c_files = render(kernels, "c")
+    context = template_context(kernels, "c") | {
+        "guid": guid(kernels, fmi),
+        "reference_start": reference_start(kernels),
+    }
+    return {
+        "modelDescription.xml": render_template(f"fmu/modelDescription{fmi}.xml.jinja", context),
+        f"sources/{name}.h": c_files[f"{name}.h"],
+        f"sources/{name}.c": c_files[f"{name}.c"],
+        f"sources/{name}_fmi{fmi}.c": render_template(f"fmu/fmi{fmi}.c.jinja", context),
+    }
+
+
+def reference_start(kernels: KernelSet) -> tuple[float, ...]:
+    """The reference jets at t = 0 from the nominal closed forms (0 without one), flat."""
+    d = kernels.derivation
+    model = d.model
+    defaults = dict(zip(model.params, model.defaults, strict=True))
+    return tuple(
+        float(term.xreplace(defaults).xreplace({model.t: 0}))
+        for row in calculus.nominal_jets(model, d.reference_order)
+        for term in row
+    )
+
+
+def build_fmu(kernels: KernelSet, fmi: int = 2) -> bytes:
+    """The FMU archive: sources, model description and this platform's binary.
+
+    Parameters
+    ----------
+    kernels : KernelSet
+        The lowered controller.
+    fmi : int, optional
+        2 (default) or 3.
+
+    Returns
+    -------
+    bytes
+        The ``.fmu`` file's content (deterministic for given sources and compiler).
+
+    Raises
+    ------
+    MissingExtraError
+        Without the FMI headers.
+    BuildError
+        Without a C compiler, or when it fails.
+    """
+    name = kernels.derivation.spec.name
+    members = fmu_sources(kernels, fmi)
+    headers = fmi_headers(fmi)
+    folder = platform_folder(fmi)
+    suffix = {"darwin": ".dylib", "win32": ".dll"}.get(sys.platform, ".so")
+    with tempfile.TemporaryDirectory(prefix="tvopt-fmu-") as tmp:
+        root = Path(tmp)
+        for member, text in members.items():
+            (root / member).parent.mkdir(parents=True, exist_ok=True)
+            (root / member).write_text(text, encoding="utf-8")
+        library = root / f"{name}{suffix}"
+        command = [
+            compiler(),
+            *CFLAGS,
+            "-I",
+            str(root / "sources"),
+            "-I",
+            str(headers),
+            "-o",
+            str(library),
+            str(root / "sources" / f"{name}.c"),
+            str(root / "sources" / f"{name}_fmi{fmi}.c"),
+            "-lm",
+        ]
+        done = subprocess.run(command, capture_output=True, text=True, check=False)
+        if done.returncode != 0:
+            first = (done.stderr.strip().splitlines() or ["(no message)"])[0]
+            raise BuildError(f"compiling the FMU's library failed: {first}")
+        binary = library.read_bytes()
+    archive = io.BytesIO()
+    with zipfile.ZipFile(archive, "w", zipfile.ZIP_DEFLATED) as fmu:
+        entries = {member: text.encode("utf-8") for member, text in members.items()}
+        entries[f"binaries/{folder}/{name}{suffix}"] = binary
+        for member in sorted(entries):
+            info = zipfile.ZipInfo(member, date_time=_ZIP_DATE)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            fmu.writestr(info, entries[member])
+    return archive.getvalue()

@@ -1,0 +1,159 @@
+"""The one-screen derivation summary printed by ``tvopt-codegen check``."""
+
+from __future__ import annotations
+
+import sympy as sp
+
+from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.derivation.linearization import law_expressions, undefined_causes
+from tvopt_codegen.lowering.ir import KernelSet
+
+
+def _number(value: float) -> str:
+    return f"{value:.6g}"
+
+
+def _pole(value: complex) -> str:
+    if value.imag == 0:
+        return _number(value.real)
+    sign = "+" if value.imag > 0 else "-"
+    return f"{_number(value.real)}{sign}{_number(abs(value.imag))}i"
+
+
+def _ordinal(n: int) -> str:
+    """``1st``, ``2nd``, ``3rd``, ``4th``, ..., ``11th``, ``21st``."""
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
+
+
+def _law_line(d: Derivation) -> str:
+    """The control law, every letter on it defined on the same line.
+
+    The paper writes ``u = alpha + beta R^-1 [...]``, where alpha and beta are the
+    dynamic extension's maps; beside the decay rate alpha of the error dynamics that
+    read as one letter with two meanings, so the line names the extended plant's input
+    instead.
+    """
+    trajectory = f"y_imp^({d.k}), the implicit trajectory's {_ordinal(d.k)} derivative"
+    if d.uniform:
+        v, law = trajectory, "uniform relative degree theorem"
+    else:
+        v = f"the padding chains' output, driven by {trajectory}"
+        law = "non-uniform theorem"
+    if d.extension.counts:
+        lhs = "w"
+        ext = (
+            f"; w = ({', '.join(d.extension.inputs)}), the extended plant's inputs (an "
+            "integrated input's last derivative, or the input itself)"
+        )
+    else:
+        lhs, ext = "u", ""
+    return (
+        f"  law: {lhs} = R^-1 (v - p): R the decoupling matrix, p the drift of the outputs' "
+        f"highest derivatives (their value at zero input), v = {v}{ext} ({law})"
+    )
+
+
+def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> str:
+    """Describe a derivation in a few lines a control engineer can check at a glance.
+
+    Parameters
+    ----------
+    derivation : Derivation
+        The derivation to describe.
+    kernels : KernelSet, optional
+        When given, operation counts of the generated kernels are included.
+
+    Returns
+    -------
+    str
+        The summary, lines joined by newlines, no trailing newline.
+    """
+    d = derivation
+    spec = d.spec
+    lines = [f"{spec.name}  ({spec.source})"]
+    lines.append(
+        f"  plant: {len(spec.states)} states ({', '.join(spec.states)}), "
+        f"{len(spec.inputs)} inputs ({', '.join(spec.inputs)}), "
+        f"{len(spec.outputs)} outputs ({', '.join(spec.outputs)})"
+    )
+    if spec.mechanics is not None:
+        size = len(spec.mechanics.coordinates)
+        lines.append(
+            f"  mass-matrix form: M ({size} x {size}) factored at run time (LDL^T), never inverted"
+        )
+    if d.extension.counts:
+        added = "; ".join(f"{name} integrated {count}x" for name, count in d.extension.counts)
+        lines.append(
+            f"  extension: {added}; new states {', '.join(d.extension.states)}; "
+            f"inputs of the extended plant {', '.join(d.extension.inputs)}"
+        )
+        if d.extension_search:
+            lines.append(
+                "  extension found by the automatic search after trying: "
+                + "; ".join(d.extension_search)
+            )
+    else:
+        lines.append("  extension: none (static feedback linearization)")
+    degrees = ", ".join(f"{o}: {r}" for o, r in zip(spec.outputs, d.relative_degree, strict=True))
+    kind = "uniform" if d.uniform else "non-uniform, padded"
+    lines.append(
+        f"  relative degree: {degrees}  (sum {sum(d.relative_degree)} = n; {kind}; k = {d.k})"
+    )
+    pads = [name for chain in d.padding for name in chain]
+    lines.append(f"  padding states: {', '.join(pads) if pads else 'none'}")
+    lines.append(f"  closed-loop state: {', '.join(d.state_names)}")
+    if d.det_R is not None:
+        where = (
+            f"singular where {'; '.join(d.singular_set)}" if d.singular_set else "never singular"
+        )
+        what = d.det_R_note or "det R"  # det(J_h B) = det R det M for a mass-matrix plant
+        lines.append(f"  {what.split(' = ')[0]} = {sp.sstr(d.det_R)}; {where}")
+    else:
+        lines.append(f"  det R: {d.det_R_note}; singularity is checked at run time by pivoting")
+    causes = undefined_causes(law_expressions(d.R, d.p, d.model.mechanics), set(d.extension.x))
+    if causes:
+        where = "; ".join(f"{condition} ({cause})" for condition, cause in causes)
+        lines.append(f"  R or p undefined where {where}")
+    lines.append(
+        f"  f0: strongly convex ({d.convexity.method}, m_f ~ "
+        f"{_number(d.convexity.m_f)} over {d.convexity.points} point(s))"
+    )
+    lines.append(
+        "  error dynamics: poles "
+        + ", ".join(_pole(p) for p in d.eigenvalues)
+        + "; a = ("
+        + ", ".join(_number(a) for a in d.coefficients)
+        + ")"
+        + f"; decay rate alpha = {_number(d.decay_rate)}"
+    )
+    lines.append(_law_line(d))
+    if d.model.constraints:
+        listed = "; ".join(f"{c.name}: {c.text}" for c in d.model.constraints)
+        lines.append(
+            f"  constraints: {listed}; kept by the barrier objective B = f0 - mu(t) sum "
+            f"log(s(t) - g_i) with mu(t) = {sp.sstr(d.model.mu)}, s(t) = {sp.sstr(d.model.slack)}"
+        )
+    if d.model.equalities:
+        listed = "; ".join(f"{c.name}: {c.text}" for c in d.model.equalities)
+        chains = ", ".join(chain[0] for chain in d.multiplier_states)
+        lines.append(
+            f"  equality constraints: {listed}; kept by the KKT system of L = f0 + nu^T a over "
+            f"(y, nu): the multipliers and their first {d.k - 1} derivative(s) are controller "
+            f"states ({chains}, ...), E = col(F, ..., F^({d.k - 1})) with "
+            "F = [grad f0 + J_a^T nu; a]"
+        )
+        where = "; ".join(d.dependent_set) if d.dependent_set else "nowhere"
+        lines.append(f"  KKT matrix singular (the equalities' gradients dependent) where: {where}")
+    if d.model.references and spec.estimator is not None:
+        lines.append(
+            f"  references: {', '.join(spec.references)}; every call takes their jets to "
+            f"derivative q = {d.reference_order} (refs, shape ({len(spec.references)}, "
+            f"{d.reference_order + 1})); from samples: the {spec.estimator.kind} differentiator"
+        )
+    if kernels is not None:
+        ops = ", ".join(f"{k.name} {k.ops}" for k in kernels.kernels)
+        lines.append(f"  operations after CSE: {ops}")
+    total = sum(seconds for _, seconds in d.timings)
+    lines.append(f"  derivation time: {total:.2f} s")
+    return "\n".join(lines)
