@@ -60,9 +60,9 @@ def casadi_closed_loop(d: Derivation) -> ca.Function:
 
 def _casadi_pieces(d: Derivation) -> tuple[ca.SX, ...]:
     """Time, state, parameters, the extended plant's f and G, the law's w and u."""
-    assert d.uniform, "the benchmark builds uniform-relative-degree laws only"
-    model, ext = d.model, d.extension
-    n, m, k = len(ext.x), len(model.y), d.k
+    assert d.dynamics.uniform, "the benchmark builds uniform-relative-degree laws only"
+    model, ext = d.model, d.linearization.extension
+    n, m, k = len(ext.x), len(model.y), d.dynamics.k
     t = ca.SX.sym("t")
     X = ca.SX.sym("X", n)
     P = ca.SX.sym("P", max(1, len(model.params)))
@@ -89,7 +89,7 @@ def _casadi_pieces(d: Derivation) -> tuple[ca.SX, ...]:
         jet.append(ca.jtimes(jet[-1], moving, rates))
     rest = ca.substitute(jet[k], Y[:, k], ca.DM.zeros(m))
     hess = ca.hessian(f0, Y[:, 0])[0]
-    c = sum(d.coefficients[j] * jet[j] for j in range(k)) - rest
+    c = sum(d.dynamics.coefficients[j] * jet[j] for j in range(k)) - rest
     lie = []
     rows, p = [], []
     for i in range(m):
@@ -207,7 +207,7 @@ def bench(name: str, folder: Path) -> dict[str, float]:
     kernels: KernelSet = lower(d)
     law = casadi_law(d)
     params = np.array([v for _, v in d.spec.parameters] or [0.0])
-    state = np.array(d.initial_state)
+    state = np.array(d.closed_loop.initial_state)
 
     # Both C codes, compiled with the same compiler and flags into one harness.
     write_files(render(kernels, "c"), folder)
@@ -294,8 +294,8 @@ def bench(name: str, folder: Path) -> dict[str, float]:
 
     rng = np.random.default_rng(0)
     many = state[:, None] + 0.01 * rng.standard_normal((len(state), BATCH_C))
-    for i, nm in enumerate(d.state_names):
-        if nm in d.extension.states:
+    for i, nm in enumerate(d.closed_loop.state_names):
+        if nm in d.linearization.extension.states:
             many[i] = 1.0 + 0.1 * rng.random(BATCH_C)
     batch_numpy = _per_call(lambda: numpy_backend.control(0.5, many), 1, 3) / BATCH_C
     mapped = law.map(BATCH_PY_CASADI)
@@ -459,7 +459,7 @@ def single_state() -> list[tuple[str, float, float]]:
         d = derive(load_spec(name))
         module = load_controller(lower(d), "python")
         law = casadi_law(d)
-        state = np.array(d.initial_state)
+        state = np.array(d.closed_loop.initial_state)
         params = np.array([v for _, v in d.spec.parameters] or [0.0])
         ours = peer = math.inf
         for _ in range(150):

@@ -99,7 +99,7 @@ def bench_arm(spec: Spec, folder: Path) -> dict[str, float]:
     law, peer_ops = casadi_mechanics_law(d)
     name = d.spec.name
     params = np.array([v for _, v in d.spec.parameters])
-    state = np.array(d.initial_state)
+    state = np.array(d.closed_loop.initial_state)
     ours = load_controller(kernels, "python")
     reference = np.array(law(0.5, state, params)).ravel()
     assert np.allclose(ours.control(0.5, state), reference, rtol=1e-9, atol=1e-9), "laws differ"

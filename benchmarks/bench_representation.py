@@ -47,7 +47,7 @@ from tvopt_codegen.derivation import derive
 from tvopt_codegen.spec import load_spec
 
 d = derive(load_spec(sys.argv[1]))
-k, ys = d.k, list(d.model.y)
+k, ys = d.dynamics.k, list(d.model.y)
 m = len(ys)
 chains = [[sp.Symbol(f"_y{i}_{j}", real=True) for i in range(m)] for j in range(k)]
 
@@ -60,7 +60,7 @@ def rates_after(rates, j, zero):
 start = time.perf_counter()
 names = jet.fresh_symbols("_q")
 rates = {d.model.t: sp.S.One} | dict(zip(ys, chains[0]))
-program, outputs = d.objective_program, tuple(d.grad_jet[0])
+program, outputs = d.objective.objective_program, tuple(d.jet.grad_jet[0])
 for j in range(1, k):
     new, outputs, rates = jet.next_derivative(program, outputs, rates, names)
     program = program + new
@@ -69,8 +69,8 @@ sympy_s = time.perf_counter() - start
 sympy_n = len(program.assignments)
 
 start = time.perf_counter()
-assignments = [(se.sympify(s), se.sympify(v)) for s, v in d.objective_program.assignments]
-outputs = [se.sympify(e) for e in d.grad_jet[0]]
+assignments = [(se.sympify(s), se.sympify(v)) for s, v in d.objective.objective_program.assignments]
+outputs = [se.sympify(e) for e in d.jet.grad_jet[0]]
 chains = [[se.sympify(s) for s in row] for row in chains]
 convert_s = time.perf_counter() - start
 count = [0]

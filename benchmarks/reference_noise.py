@@ -96,7 +96,9 @@ def accuracy() -> list[tuple[str, int, list[float], float]]:
         source = sampled_source(d, module, {}, times, values)
         result = simulate(d, module, resolve_options(d), references=source)
         short = Path(name).stem
-        out.append((short, d.reference_order, relative, float(result.error[-1] / result.error[0])))
+        out.append(
+            (short, d.jet.reference_order, relative, float(result.error[-1] / result.error[0]))
+        )
     return out
 
 

@@ -57,7 +57,7 @@ def casadi_mechanics_law(d: Derivation) -> tuple[ca.Function, int]:
     """
     model = d.model
     mech = model.mechanics
-    assert mech is not None and d.k == 2
+    assert mech is not None and d.dynamics.k == 2
     nq, m = len(mech.coordinates), len(model.y)
     tS = ca.SX.sym("t")
     XS = ca.SX.sym("X", 2 * nq)
@@ -93,7 +93,7 @@ def casadi_mechanics_law(d: Derivation) -> tuple[ca.Function, int]:
         jet.append(ca.jtimes(jet[-1], moving, rates))
     rest = ca.substitute(jet[2], Y[:, 2], ca.DM.zeros(m))
     hess = ca.hessian(f0, Y[:, 0])[0]
-    c = d.coefficients[0] * jet[0] + d.coefficients[1] * jet[1] - rest
+    c = d.dynamics.coefficients[0] * jet[0] + d.dynamics.coefficients[1] * jet[1] - rest
     state_jet = ca.vertcat(h, velocity)
     c = ca.substitute(c, ca.vec(Y[:, :2]), state_jet)
     hess = ca.substitute(hess, ca.vec(Y[:, :2]), state_jet)

@@ -509,10 +509,10 @@ def _close(name: str, ours: np.ndarray, ref: np.ndarray, tolerance: float) -> No
 
 def sample_states(d: Any, rng: np.random.Generator, count: int) -> np.ndarray:
     """States near the initial one; prolonged speeds kept away from zero."""
-    base = np.array(d.initial_state, dtype=float)
+    base = np.array(d.closed_loop.initial_state, dtype=float)
     states = base[:, None] + rng.uniform(-0.2, 0.2, size=(len(base), count))
-    for name in d.extension.states:
-        i = d.state_names.index(name)
+    for name in d.linearization.extension.states:
+        i = d.closed_loop.state_names.index(name)
         states[i] = base[i] * rng.uniform(0.7, 1.3, size=count)
     return states
 
@@ -652,7 +652,7 @@ def _crossed_a_barrier(oracle: Any, loop: ClosedLoop, d: Any, p: np.ndarray) -> 
     outputs are past a barrier by the oracle's own margins (raises if they are inside)."""
     if not loop.stopped.startswith("OutsideBarrierError"):
         return False
-    state = np.zeros(len(d.state_names))
+    state = np.zeros(len(d.closed_loop.state_names))
     plant = loop.plants[:, loop.at]
     state[: len(plant)] = plant  # the margins read y = h(x): the plant's states alone
     margins = oracle.margins(float(loop.times[loop.at]), state[:, None], p)[:, 0]
@@ -714,9 +714,9 @@ def _same_errors(py: ModuleType, cmod: ModuleType, d: Any, state: np.ndarray, je
     kwargs = {"refs": jets(1.0)} if jets else {}
     bad = {"a NaN state": state.copy()}
     bad["a NaN state"][0] = np.nan
-    if "v" in d.state_names:  # the unicycle's prolonged speed: R is singular at v = 0
+    if "v" in d.closed_loop.state_names:  # the unicycle's prolonged speed: R is singular at v = 0
         bad["v = 0"] = state.copy()
-        bad["v = 0"][d.state_names.index("v")] = 0.0
+        bad["v = 0"][d.closed_loop.state_names.index("v")] = 0.0
     for what, s in bad.items():
         for name in ("control", "rhs"):
             ours = _error_of(lambda n=name, s=s: getattr(cmod, n)(1.0, s, **kwargs))
@@ -801,9 +801,13 @@ def run_case(case: Case, report: Report | None = None) -> str:
         stuck = [w for w in d.warnings if "the law is undefined at the initial state" in w]
         if stuck:
             return f"refused: warning: {stuck[0]}"
-        if "relative_degree" in extra and d.relative_degree != extra["relative_degree"]:
+        if (
+            "relative_degree" in extra
+            and d.linearization.relative_degree != extra["relative_degree"]
+        ):
             raise DisagreementError(
-                f"relative degree {d.relative_degree}, built as {extra['relative_degree']}"
+                f"relative degree {d.linearization.relative_degree}, "
+                f"built as {extra['relative_degree']}"
             )
         with report.timed("python"):
             py = load_controller(kernels, "python")

@@ -34,7 +34,7 @@ class Oracle:
     def __init__(self, d: Derivation) -> None:
         self.d = d
         model = d.model
-        t, k, m = model.t, d.k, len(model.y)
+        t, k, m = model.t, d.dynamics.k, len(model.y)
         q = len(model.equalities)
         n = m + q
         self.k, self.m, self.n = k, m, n
@@ -51,20 +51,23 @@ class Oracle:
             grads.append([naive_total_derivative(g, t, jets) for g in grads[-1]])
         hess = [sp.diff(g, jets[j][0]) for g in grads[0] for j in range(n)]
         rest = [g.xreplace({jets[i][k]: 0 for i in range(n)}) for g in grads[k]]
-        state_jet = {jets[i][j]: d.y_jet_values[i][j] for i in range(m) for j in range(k)}
-        states = dict(zip(d.state_names, d.states, strict=True))
+        state_jet = {jets[i][j]: d.jet.y_jet_values[i][j] for i in range(m) for j in range(k)}
+        states = dict(zip(d.closed_loop.state_names, d.closed_loop.states, strict=True))
         state_jet |= {
             jets[m + i][j]: states[f"nu_{c.name}_{j}"]
             for i, c in enumerate(model.equalities)
             for j in range(k)
         }
         self.multipliers = [
-            [d.state_names.index(f"nu_{c.name}_{j}") for j in range(k)] for c in model.equalities
+            [d.closed_loop.state_names.index(f"nu_{c.name}_{j}") for j in range(k)]
+            for c in model.equalities
         ]
-        self.integral = [d.state_names.index(name) for name in d.integral_states]
+        self.integral = [
+            d.closed_loop.state_names.index(name) for name in d.closed_loop.integral_states
+        ]
         w = sp.symbols(f"W0:{m}", real=True)
-        args = [t, *d.states, *model.params, *w]
-        ext = d.extension
+        args = [t, *d.closed_loop.states, *model.params, *w]
+        ext = d.linearization.extension
         field = list(ext.f + ext.G * sp.Matrix(w))
 
         def lam(exprs: Sequence[sp.Expr]) -> Callable[..., list[object]]:
@@ -72,7 +75,7 @@ class Oracle:
 
         self.E = lam([g for j in range(k) for g in grads[j]])
         # The barrier's domain: s(t) - g_i(y, t) > 0 for each inequality, y from the state.
-        outputs = {yi: d.y_jet_values[i][0] for i, yi in enumerate(model.y)}
+        outputs = {yi: d.jet.y_jet_values[i][0] for i, yi in enumerate(model.y)}
         self.margin = lam(
             [
                 (model.slack - sp.sympify(c.g))
@@ -84,8 +87,8 @@ class Oracle:
         )
         self.hess = lam(hess)
         self.rest = lam(rest)
-        self.R = lam(list(d.R))
-        self.p = lam(list(d.p))
+        self.R = lam(list(d.linearization.R))
+        self.p = lam(list(d.decoupling.p))
         self.field = lam(field)
         self.mechanics = model.mechanics
         if model.mechanics is not None:
@@ -139,12 +142,17 @@ class Oracle:
         rest = self._eval(self.rest, args, (size,), n)
         # Integral action: k + 1 coefficients, the first on the integrals of grad f0.
         shift = 1 if self.integral else 0
-        c = sum(d.coefficients[j + shift] * E[j] for j in range(k)) - rest
+        c = sum(d.dynamics.coefficients[j + shift] * E[j] for j in range(k)) - rest
         if self.integral:
-            c = c + d.coefficients[0] * s[self.integral]
+            c = c + d.dynamics.coefficients[0] * s[self.integral]
         z = np.linalg.solve(np.moveaxis(hess, -1, 0), np.moveaxis(c, -1, 0)[..., None])[..., 0].T
         v = np.array(
-            [s[d.state_names.index(d.padding[i][0])] if d.padding[i] else z[i] for i in range(m)]
+            [
+                s[d.closed_loop.state_names.index(d.closed_loop.padding[i][0])]
+                if d.closed_loop.padding[i]
+                else z[i]
+                for i in range(m)
+            ]
         )
         if self.mechanics is None:
             R = self._eval(self.R, args, (m, m), n)
@@ -167,14 +175,16 @@ class Oracle:
             pv = (J @ acc[..., None])[..., 0].T + self._eval(self.curvature, args, (m,), n)
         w = np.linalg.solve(np.moveaxis(R, -1, 0), np.moveaxis(v - pv, -1, 0)[..., None])[..., 0].T
         if self.mechanics is None:
-            field = self._eval(self.field, [t, *s, *p, *w], (len(d.extension.x),), n)
+            field = self._eval(self.field, [t, *s, *p, *w], (len(d.linearization.extension.x),), n)
         else:
             accel = acc + (W @ w.T[..., None])[..., 0]
             field = np.vstack([s[nq : 2 * nq], accel.T])
         pad = []
-        for i, chain in enumerate(d.padding):
+        for i, chain in enumerate(d.closed_loop.padding):
             for j in range(len(chain)):
-                pad.append(s[d.state_names.index(chain[j + 1])] if j + 1 < len(chain) else z[i])
+                pad.append(
+                    s[d.closed_loop.state_names.index(chain[j + 1])] if j + 1 < len(chain) else z[i]
+                )
         for i, chain in enumerate(self.multipliers):
             for j in range(k):
                 pad.append(s[chain[j + 1]] if j + 1 < k else z[m + i])
@@ -182,7 +192,9 @@ class Oracle:
         ds = np.vstack([field, *pad]) if pad else field
         u = np.array(
             [
-                s[d.state_names.index(uj.name)] if uj.name in d.extension.states else w[j]
+                s[d.closed_loop.state_names.index(uj.name)]
+                if uj.name in d.linearization.extension.states
+                else w[j]
                 for j, uj in enumerate(d.model.u)
             ]
         )

@@ -61,7 +61,7 @@ def test_the_api_example_runs(tmp_path: Path) -> None:
 
 def test_a_mapping_spec_is_checked_like_a_file() -> None:
     spec = tc.load_spec("integrator")
-    assert tc.derive(spec).k == 1
+    assert tc.derive(spec).dynamics.k == 1
     with pytest.raises(SpecError, match=r"<python>: system.dynamics: missing required key"):
         tc.spec_from_dict(
             {"name": "x", "system": {"states": "x1"}, "objective": {}, "error_dynamics": {}}

@@ -113,12 +113,12 @@ def test_a_law_undefined_along_the_run_is_exit_3_not_an_internal_error() -> None
 def test_repeated_poles_are_read_from_the_poles(tmp_path: Path) -> None:
     # Distinct poles (unicycle_switch: -1, -1.5): the bound's rate is the decay rate,
     # whatever rounding the companion matrix's eigenvalues carry.
-    assert derivation("unicycle_switch").certified_rate_exact
+    assert derivation("unicycle_switch").dynamics.certified_rate_exact
     text = (ROOT / "tvopt_codegen" / "examples" / "unicycle_switch.toml").read_text()
     assert "poles = [-1.0, -1.5]" in text
     spec = write_spec(tmp_path, text.replace("poles = [-1.0, -1.5]", "poles = [-1.0, -1.0]"))
     d = derive(load_spec(spec))
-    assert not d.certified_rate_exact and d.certified_rate == pytest.approx(0.9)
+    assert not d.dynamics.certified_rate_exact and d.dynamics.certified_rate == pytest.approx(0.9)
     report = render_report(d, lower(d), formats=("md",))
     assert "(repeated poles: 10% epsilon)" in next(iter(report.values()))
     plain = derivation("unicycle_switch")
@@ -133,10 +133,17 @@ SPECS = ROOT / "tests" / "specs"
 
 def test_singular_sets_name_where_r_or_p_is_undefined(tmp_path: Path) -> None:
     car = derive(load_spec(SPECS / "kinematic_car.toml"))
-    assert car.singular_set == ("v = 0",) and car.undefined_set == ("cos(phi) = 0",)
-    assert car.singular_text == "R is singular where v = 0; R or p is undefined where cos(phi) = 0"
+    assert car.decoupling.singular_set == ("v = 0",) and car.decoupling.undefined_set == (
+        "cos(phi) = 0",
+    )
+    assert (
+        car.decoupling.singular_text
+        == "R is singular where v = 0; R or p is undefined where cos(phi) = 0"
+    )
     attitude = derive(load_spec(SPECS / "attitude.toml"))
-    assert attitude.singular_set == () and attitude.undefined_set == ("cos(pitch) = 0",)
+    assert attitude.decoupling.singular_set == () and attitude.decoupling.undefined_set == (
+        "cos(pitch) = 0",
+    )
     done = _cli("check", str(SPECS / "attitude.toml"))
     assert (
         "never singular" in done.stdout and "R or p undefined where cos(pitch) = 0" in done.stdout
@@ -160,7 +167,7 @@ def test_singular_sets_name_where_r_or_p_is_undefined(tmp_path: Path) -> None:
         mod.control(0.0, state)
     # Every bundled example has nowhere R or p is undefined (the generated code is as before).
     for name in ("integrator", "unicycle_switch", "pvtol", "flexible_joint", "unicycle_ring"):
-        assert derivation(name).undefined_set == ()
+        assert derivation(name).decoupling.undefined_set == ()
 
 
 def test_a_singular_default_state_is_warned_about(tmp_path: Path) -> None:
@@ -178,7 +185,7 @@ def test_a_singular_default_state_is_warned_about(tmp_path: Path) -> None:
     # With automatic extension the extension states may be given by name (PVTOL's thrust).
     pvtol = derivation("pvtol")
     assert pvtol.spec.extension_auto
-    assert pvtol.initial_state[pvtol.state_names.index("thrust")] == 9.81
+    assert pvtol.closed_loop.initial_state[pvtol.closed_loop.state_names.index("thrust")] == 9.81
     assert pvtol.warnings == ()
     text = (SPECS / "kinematic_car.toml").read_text()
     given = text.replace("phi = 0.0 }", "phi = 0.0, v = 1.0 }")
@@ -346,10 +353,10 @@ def test_the_predicted_error_is_expm_at_every_output_time(name: str) -> None:
     from tvopt_codegen.maths import hurwitz
 
     d = derivation(name)
-    H = hurwitz.error_matrix(d.coefficients, d.n_kkt)
+    H = hurwitz.error_matrix(d.dynamics.coefficients, d.jet.n_kkt)
     start = np.random.default_rng(7).normal(size=H.shape[0])
     for times in (np.linspace(0.0, d.spec.t_final, 401), np.sort([0.0, 0.3, 0.31, 2.0, 7.5])):
-        stepped = hurwitz.flow(d.coefficients, d.n_kkt, start, times)
+        stepped = hurwitz.flow(d.dynamics.coefficients, d.jet.n_kkt, start, times)
         direct = np.array([expm(H * t) @ start for t in times])
         assert np.max(np.abs(stepped - direct)) <= 1e-12 * np.linalg.norm(start)
 
@@ -361,7 +368,7 @@ def test_a_quadratic_objectives_minimizer_takes_two_steps_a_time(name: str) -> N
     from tvopt_codegen.simulation.target import minimizer_path
 
     d = derivation(name)
-    assert d.convexity.quadratic
+    assert d.objective.convexity.quadratic
     mod = module(name)
     ts = np.linspace(0.0, d.spec.t_final, 101)
     start = np.random.default_rng(5).normal(size=len(d.spec.outputs)) * 3.0

@@ -71,7 +71,7 @@ def test_certificate(spec: str) -> None:
         return
 
     # y = h(x) along the run, and y* from the minimizer.
-    h = sp.lambdify([*d.states, *d.model.params], list(d.model.h), "numpy")
+    h = sp.lambdify([*d.closed_loop.states, *d.model.params], list(d.model.h), "numpy")
     params = list(mod.PARAMETERS.values())
     outputs = np.array(
         [np.broadcast_to(np.asarray(v, dtype=float), ts.shape) for v in h(*states, *params)]

@@ -49,9 +49,9 @@ def test_every_backend_keeps_the_contract(
     mod = _module(backend, spec, tmp_path_factory.getbasetemp() / "cache")
     # Identity and constants.
     assert mod.BACKEND == backend
-    assert mod.STATE_NAMES == d.state_names and mod.K == d.k
+    assert mod.STATE_NAMES == d.closed_loop.state_names and mod.K == d.dynamics.k
     assert mod.OUTPUT_NAMES == d.spec.outputs and mod.INPUT_NAMES == d.spec.inputs
-    assert mod.DEFAULT_STATE == d.initial_state
+    assert mod.DEFAULT_STATE == d.closed_loop.initial_state
     # The law, against the oracle, in a batch and one state at a time.
     states = random_states(spec, 12, seed=17)
     p = np.array([v for _, v in d.spec.parameters], dtype=float)
@@ -61,7 +61,7 @@ def test_every_backend_keeps_the_contract(
     np.testing.assert_allclose(ds, ds_ref, rtol=1e-9, atol=1e-9 * np.abs(ds_ref).max())
     for j in (0, 5):
         np.testing.assert_allclose(mod.control(0.7, states[:, j]), u[:, j], rtol=1e-14, atol=0)
-    assert mod.optimality_error(0.7, states).shape == (d.k, len(d.spec.outputs), 12)
+    assert mod.optimality_error(0.7, states).shape == (d.dynamics.k, len(d.spec.outputs), 12)
     # Errors: the exception classes, their status codes and the failing column.
     assert issubclass(mod.ControllerError, ArithmeticError)
     bad = states.copy()

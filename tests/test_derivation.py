@@ -35,36 +35,36 @@ def test_raw_unicycle_is_rejected_with_the_prolongation_suggestion(
 def test_two_unicycles_det_r_is_the_product_of_speeds() -> None:
     d = derivation("two_unicycles_barrier")
     va, vb = sp.symbols("va vb", real=True)
-    assert sp.simplify(d.det_R - va * vb) == 0
-    assert set(d.singular_set) == {"va = 0", "vb = 0"}
+    assert sp.simplify(d.decoupling.det_R - va * vb) == 0
+    assert set(d.decoupling.singular_set) == {"va = 0", "vb = 0"}
 
 
 def test_nonuniform_relative_degree_is_padded() -> None:
     d = derivation(str(SPECS / "nonuniform.toml"))
-    assert d.relative_degree == (1, 2)
-    assert d.k == 2 and not d.uniform
-    assert d.padding == (("xi_y1_1",), ())
-    assert d.state_names == ("x1", "x2", "x3", "xi_y1_1")
+    assert d.linearization.relative_degree == (1, 2)
+    assert d.dynamics.k == 2 and not d.dynamics.uniform
+    assert d.closed_loop.padding == (("xi_y1_1",), ())
+    assert d.closed_loop.state_names == ("x1", "x2", "x3", "xi_y1_1")
     xi = sp.Symbol("xi_y1_1", real=True)
     x1, x2, x3 = sp.symbols("x1 x2 x3", real=True)
     # y1' is the Brunovsky input of channel 1, i.e. the padding state.
-    assert d.y_jet_values == ((x1, xi), (x2, x3))
+    assert d.jet.y_jet_values == ((x1, xi), (x2, x3))
 
 
 def test_integrator_law_is_prediction_correction() -> None:
     """k = 1: y_imp' = -Hess^-1 (P grad + grad_t) with P = -a_0 (paper, Example 1)."""
     d = derivation("integrator")
-    assert d.k == 1 and d.coefficients == (-1.0,)
+    assert d.dynamics.k == 1 and d.dynamics.coefficients == (-1.0,)
     model = d.model
     subs = dict(model.signals)
-    grad = d.gradient.xreplace(subs)
+    grad = d.objective.gradient.xreplace(subs)
     hess = d.hessian.xreplace(subs)
     grad_t = grad.diff(model.t)
     expected = -hess.inv() * (1 * grad + grad_t)
-    program = d.jet_program + d.rest_program
-    rest = sp.Matrix([program.inline(e) for e in d.rest])
-    e0 = sp.Matrix([program.inline(e) for e in d.grad_jet[0]])
-    law = hess.inv() * (d.coefficients[0] * e0 - rest)
+    program = d.jet.jet_program + d.jet.rest_program
+    rest = sp.Matrix([program.inline(e) for e in d.jet.rest])
+    e0 = sp.Matrix([program.inline(e) for e in d.jet.grad_jet[0]])
+    law = hess.inv() * (d.dynamics.coefficients[0] * e0 - rest)
     jet = {
         jet_symbol(s.name, q): sp.diff(e, model.t, q) for s, e in model.signals for q in range(3)
     }
@@ -125,18 +125,18 @@ def test_automatic_extension_finds_the_papers_prolongation(
 ) -> None:
     text = unicycle_text.replace("integrate = { v = 1 }", "auto = true")
     d = derive(load_spec(write_spec(tmp_path, text)))
-    assert d.extension.counts == (("v", 1),)
-    assert d.extension_search == ("none", "v: 1")
-    assert d.relative_degree == (2, 2)
+    assert d.linearization.extension.counts == (("v", 1),)
+    assert d.linearization.extension_search == ("none", "v: 1")
+    assert d.linearization.relative_degree == (2, 2)
 
 
 def test_automatic_extension_prolongs_pvtol_thrust_twice() -> None:
     d = derivation("pvtol")
-    assert d.extension.counts == (("thrust", 2),)
-    assert d.extension_search == ("none", "thrust: 1", "torque: 1", "thrust: 2")
-    assert d.relative_degree == (4, 4) and d.k == 4
-    assert d.state_names[-2:] == ("thrust", "thrust_d1")
-    assert d.singular_set == ("thrust = 0",)
+    assert d.linearization.extension.counts == (("thrust", 2),)
+    assert d.linearization.extension_search == ("none", "thrust: 1", "torque: 1", "thrust: 2")
+    assert d.linearization.relative_degree == (4, 4) and d.dynamics.k == 4
+    assert d.closed_loop.state_names[-2:] == ("thrust", "thrust_d1")
+    assert d.decoupling.singular_set == ("thrust = 0",)
 
 
 def test_automatic_extension_failure_lists_what_was_tried(
@@ -154,10 +154,14 @@ def test_automatic_extension_failure_lists_what_was_tried(
 
 def test_flexible_joint_is_static_with_relative_degree_four() -> None:
     d = derivation("flexible_joint")
-    assert d.extension.counts == () and d.relative_degree == (4,) and d.k == 4
-    assert d.singular_set == ("stiffness = 0",)
-    assert d.convexity.method == "sampled near y(0) and along y*(t)"
-    assert d.convexity.m_f > 2.0
+    assert (
+        d.linearization.extension.counts == ()
+        and d.linearization.relative_degree == (4,)
+        and d.dynamics.k == 4
+    )
+    assert d.decoupling.singular_set == ("stiffness = 0",)
+    assert d.objective.convexity.method == "sampled near y(0) and along y*(t)"
+    assert d.objective.convexity.m_f > 2.0
 
 
 def test_program_names_never_capture_user_names(tmp_path: Path, unicycle_text: str) -> None:
@@ -185,9 +189,9 @@ def test_program_names_never_capture_user_names(tmp_path: Path, unicycle_text: s
 def test_why_the_extension_is_needed_is_said_in_one_readable_line() -> None:
     """The note on the plant before prolongation: R written out while it is small, its
     size alone for a team (a 64-agent ring's R is 128 x 128)."""
-    small = derivation("unicycle_switch").unextended
+    small = derivation("unicycle_switch").linearization.unextended
     assert small is not None and "R = [[" in small and "generic rank 1 < 2" in small
-    team = derivation("unicycle_ring").unextended
+    team = derivation("unicycle_ring").linearization.unextended
     assert team is not None and "R (8 x 8) has generic rank 4 < 8" in team
     assert len(team) < 200
 
@@ -219,8 +223,8 @@ def test_the_determinant_is_simplified_as_sympys_simplify_would(spec: str) -> No
 
     d = derivation(spec)
     dets = []
-    if d.R.rows <= 4:
-        dets.append(d.R.det(method="berkowitz"))
+    if d.linearization.R.rows <= 4:
+        dets.append(d.linearization.R.det(method="berkowitz"))
     if 0 < len(d.model.equalities) <= 4:
         jacobian = sp.Matrix(_equality_jacobian(d.model))
         dets.append((jacobian * jacobian.T).det(method="berkowitz"))

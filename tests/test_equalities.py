@@ -104,7 +104,7 @@ def test_the_multipliers_are_controller_states_started_by_least_squares(tmp_path
     text = (ROOT / "tvopt_codegen" / "examples" / f"{ARM}.toml").read_text()
     given = text.replace("w2 = 0.0 }", "w2 = 0.0, nu_on_line_0 = 0.25 }")
     d = derive(load_spec(write_spec(tmp_path, given)))
-    assert d.initial_state[-2:] == (0.25, 0.0)
+    assert d.closed_loop.initial_state[-2:] == (0.25, 0.0)
 
 
 def test_too_many_dependent_or_curved_equalities_are_refused(
@@ -173,7 +173,7 @@ def test_inequalities_and_equalities_together(tmp_path: Path) -> None:
     assert np.all(check.distance <= check.bound + 1e-6)
     # The E check covers the multiplier's rows: E has three entries per row.
     assert result.E.shape[1:] == (2, 3)
-    H = hurwitz.error_matrix(d.coefficients, 3)
+    H = hurwitz.error_matrix(d.dynamics.coefficients, 3)
     flat = result.E.reshape(len(result.t), -1)
     predicted = expm(H * result.t[-1]) @ flat[0]
     assert np.linalg.norm(flat[-1] - predicted) <= 1e-8 * np.linalg.norm(flat[0])
@@ -193,7 +193,9 @@ def test_the_sweep_follows_the_kkt_path() -> None:
     # The same path as the certificate's: its jumps and substeps, in Python.
     d = derivation(ARM)
     eq = equalities(d.model, dict(zip(d.model.params, d.model.defaults, strict=True)))
-    states = [1 + d.state_names.index(chain[0]) for chain in d.multiplier_states]
+    states = [
+        1 + d.closed_loop.state_names.index(chain[0]) for chain in d.closed_loop.multiplier_states
+    ]
     start = np.concatenate([rows[-1, _columns(p)["y"]], rows[-1, states]])
     path = kkt_path(module(ARM), eq, rows[:, 0], start, {})
     assert np.max(np.abs(path[: len(d.spec.outputs)] - target)) < 1e-12

@@ -426,7 +426,7 @@ def _outputs(d: Derivation | None) -> Callable[[np.ndarray], np.ndarray]:
     import sympy as sp  # noqa: PLC0415
 
     assert d is not None
-    h = sp.lambdify([d.states, d.model.params], list(d.model.h), "numpy")
+    h = sp.lambdify([d.closed_loop.states, d.model.params], list(d.model.h), "numpy")
     params = [value for _, value in d.spec.parameters]
 
     def outputs(states: np.ndarray) -> np.ndarray:

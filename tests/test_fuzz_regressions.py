@@ -337,7 +337,7 @@ def test_a_barrier_refusal_inside_every_barrier_is_a_disagreement(tmp_path: Path
 
     spec, _ = build_spec(Case.parse(START_NEAR_A_BARRIER), tmp_path)
     d = derive(spec_from_dict(spec))
-    x0 = np.array(d.initial_state[: len(d.model.x)], dtype=float)
+    x0 = np.array(d.closed_loop.initial_state[: len(d.model.x)], dtype=float)
     p = np.array([v for _, v in d.spec.parameters], dtype=float)
     times = np.array([0.0, 0.01])
     plants = np.stack([x0, x0], axis=1)  # still at the start, 4.6 mm inside

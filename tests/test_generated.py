@@ -13,10 +13,10 @@ def random_states(spec: str, count: int, seed: int = 3) -> np.ndarray:
     """States near the spec's initial state: prolonged speeds kept away from zero."""
     d = derivation(spec)
     rng = np.random.default_rng(seed)
-    base = np.array(d.initial_state)
+    base = np.array(d.closed_loop.initial_state)
     states = base[:, None] + rng.uniform(-0.2, 0.2, size=(len(base), count))
-    for name in d.extension.states:
-        i = d.state_names.index(name)
+    for name in d.linearization.extension.states:
+        i = d.closed_loop.state_names.index(name)
         states[i] = rng.uniform(0.5, 1.5, size=count) * rng.choice([-1, 1], size=count)
     return states
 

@@ -100,7 +100,7 @@ poles = [-1.0, -1.5]
 
 def test_block_diagonal_decoupling_and_sparse_hessian() -> None:
     d = derive(ring(4))
-    assert diagonal_blocks(d.R) == tuple((2 * a, 2 * a + 1) for a in range(4))
+    assert diagonal_blocks(d.linearization.R) == tuple((2 * a, 2 * a + 1) for a in range(4))
     kernels = lower(d)
     assert kernels["jet"].outputs[2].shape == (16,)  # 4 blocks of 2 x 2, not 8 x 8
     # Each output couples to itself and its two ring neighbours: a sparse Hessian.

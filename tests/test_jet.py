@@ -66,10 +66,10 @@ def test_jet_program_matches_the_papers_binomial_formula(k: int, seed: int) -> N
 def test_rest_is_grad_k_without_the_hessian_term() -> None:
     """grad^(k) f0 = Hess y^(k) + rest, with rest free of y^(k)."""
     d = derivation("two_unicycles_barrier")
-    k = d.k
-    program = d.jet_program + d.rest_program
-    for e in d.rest:
-        assert not (program.inline(e).free_symbols & {ch[k] for ch in d.y_jet})
+    k = d.dynamics.k
+    program = d.jet.jet_program + d.jet.rest_program
+    for e in d.jet.rest:
+        assert not (program.inline(e).free_symbols & {ch[k] for ch in d.jet.y_jet})
 
 
 @pytest.mark.parametrize("name", EXAMPLES)
@@ -86,9 +86,9 @@ def test_hessian_program_is_the_symbolic_hessian(name: str) -> None:
     evaluate = Evaluator(values)
     for symbol, expr in model.signals:
         evaluate.define(symbol, expr)
-    for symbol, expr in (d.jet_program + d.hessian_program).assignments:
+    for symbol, expr in (d.jet.jet_program + d.objective.hessian_program).assignments:
         evaluate.define(symbol, expr)
-    entries = dict(d.hessian_entries)
+    entries = dict(d.objective.hessian_entries)
     assert all(i >= j for i, j in entries)
     for i in range(m):
         for j in range(m):
@@ -159,14 +159,14 @@ def test_inlining_once_per_assignment_gives_the_expressions_of_inlining_one_by_o
     name: str,
 ) -> None:
     d = derivation(name)
-    program = d.jet_program + d.rest_program
+    program = d.jet.jet_program + d.jet.rest_program
 
     def one_by_one(expr: sp.Expr) -> sp.Expr:
         for sym, value in reversed(program.assignments):
             expr = expr.xreplace({sym: value})
         return expr
 
-    for expr in [*d.grad_jet[1], *d.rest]:
+    for expr in [*d.jet.grad_jet[1], *d.jet.rest]:
         assert program.inline(expr) == one_by_one(expr)
 
 

@@ -19,13 +19,13 @@ def test_padded_output_takes_its_first_padding_state_as_v() -> None:
     assert law.v == (xi, law.z[1])
     # The padding chain ends in z: xi' = y_imp^(k) of that output.
     assert law.closed_loop[-1] == law.z[0]
-    assert len(law.closed_loop) == len(d.state_names)
+    assert len(law.closed_loop) == len(d.closed_loop.state_names)
 
 
 @pytest.mark.parametrize("spec", ALL_SPECS)
 def test_closed_loop_field_is_f_plus_g_w(spec: str) -> None:
     d = derivation(spec)
-    law, ext = d.law, d.extension
+    law, ext = d.law, d.linearization.extension
     w = sp.Matrix(law.w)
     dense = ext.f + ext.G * w
     n_ext = ext.G.shape[0]
@@ -41,17 +41,18 @@ def test_closed_loop_field_is_f_plus_g_w(spec: str) -> None:
 def test_jet_rhs_and_the_constant_inverse(spec: str) -> None:
     d = derivation(spec)
     # m: the outputs, and with equality constraints the multipliers after them.
-    law, m, k = d.law, d.n_kkt, d.k
+    law, m, k = d.law, d.jet.n_kkt, d.dynamics.k
     # Integral action: one more coefficient, a_0 on the integral of grad f0.
-    shift = 1 if d.integral_states else 0
+    shift = 1 if d.closed_loop.integral_states else 0
     assert len(law.jet_rhs) == m and len(law.a) == k + shift
-    states = dict(zip(d.state_names, d.states, strict=True))
+    states = dict(zip(d.closed_loop.state_names, d.closed_loop.states, strict=True))
     for i in range(m):
         expected = (
-            sum((law.a[j + shift] * d.grad_jet[j][i] for j in range(k)), sp.Integer(0)) - d.rest[i]
+            sum((law.a[j + shift] * d.jet.grad_jet[j][i] for j in range(k)), sp.Integer(0))
+            - d.jet.rest[i]
         )
         if shift:
-            expected += law.a[0] * states[d.integral_states[i]]
+            expected += law.a[0] * states[d.closed_loop.integral_states[i]]
         assert sp.expand(law.jet_rhs[i] - expected) == 0
     hessian = sp.Matrix(m, m, law.hessian)
     assert hessian == hessian.T
@@ -82,7 +83,7 @@ def test_r_blocks_hold_every_nonzero_entry_once(spec: str) -> None:
             for j in block:
                 rebuilt[i, j] = next(entries)
     assert next(entries, None) is None
-    assert rebuilt == d.R
+    assert rebuilt == d.linearization.R
 
 
 def test_diagonal_blocks_are_connected_components() -> None:

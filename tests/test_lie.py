@@ -66,15 +66,15 @@ def test_brunovsky_pair_of_non_uniform_degrees() -> None:
 
 def test_derivation_reads_r_p_and_phi_from_the_lie_chains() -> None:
     d = derivation("unicycle_switch")
-    assert d.relative_degree == (2, 2)
-    assert d.state_names == ("x1", "x2", "theta", "v")
-    assert d.det_R == v
-    assert d.singular_set == ("v = 0",)
-    assert d.p == sp.Matrix([0, 0])
-    assert list(d.phi) == [x1, v * sp.cos(theta), x2, v * sp.sin(theta)]
-    assert d.A == sp.Matrix([[0, 1, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1], [0, 0, 0, 0]])
-    assert d.B == sp.Matrix([[0, 0], [1, 0], [0, 0], [0, 1]])
-    assert d.uniform and d.k == 2 and d.padding == ((), ())
+    assert d.linearization.relative_degree == (2, 2)
+    assert d.closed_loop.state_names == ("x1", "x2", "theta", "v")
+    assert d.decoupling.det_R == v
+    assert d.decoupling.singular_set == ("v = 0",)
+    assert d.decoupling.p == sp.Matrix([0, 0])
+    assert list(d.decoupling.phi) == [x1, v * sp.cos(theta), x2, v * sp.sin(theta)]
+    assert d.decoupling.A == sp.Matrix([[0, 1, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1], [0, 0, 0, 0]])
+    assert d.decoupling.B == sp.Matrix([[0, 0], [1, 0], [0, 0], [0, 1]])
+    assert d.dynamics.uniform and d.dynamics.k == 2 and d.closed_loop.padding == ((), ())
 
 
 def test_generic_rank_by_blocks_is_the_rank_of_the_whole_matrix() -> None:

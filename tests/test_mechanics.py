@@ -347,7 +347,7 @@ def test_casadis_own_law_agrees(spec: str) -> None:
     mod = module(spec)
     p = np.array(list(mod.PARAMETERS.values()))
     rng = np.random.default_rng(9)
-    base = np.array(d.initial_state)
+    base = np.array(d.closed_loop.initial_state)
     n = len(base) // 2
     for t in (0.0, 1.7, 4.2):
         for _ in range(10):

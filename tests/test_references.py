@@ -46,7 +46,7 @@ def test_exact_jets_give_the_closed_form_controller(
 ) -> None:
     rng = np.random.default_rng(16)
     for closed, measured in _pairs(name, tmp_path_factory):
-        assert measured.REFERENCE_ORDER == derivation(f"{name}_refs").reference_order >= 1
+        assert measured.REFERENCE_ORDER == derivation(f"{name}_refs").jet.reference_order >= 1
         assert measured.STATE_NAMES == closed.STATE_NAMES
         base = np.array(closed.DEFAULT_STATE)
         m = len(closed.OUTPUT_NAMES)
@@ -310,7 +310,7 @@ def test_the_default_estimator_on_clean_1khz_samples_ends_within_1e3_of_the_star
     d = derivation(spec)
     assert d.spec.estimator is not None and d.spec.estimator.kind == "linear"
     mod = module(spec)
-    assert len(mod._ESTIMATOR_GAINS) == d.reference_order + 2
+    assert len(mod._ESTIMATOR_GAINS) == d.jet.reference_order + 2
     params = dict(d.spec.parameters)
     truth = exact_jets(d, params)
     # 15 s at most: past the start's transient, and a stricter test than the horizon's

@@ -92,15 +92,21 @@ def test_markdown_twin_has_the_same_sections_and_math(name: str) -> None:
     # Key quantities appear as sympy's own LaTeX of the derived objects (a mass-matrix
     # plant's run-time symbols under their display names, a_i and W_i,j).
     shown = _shown(d)
-    for quantity in (d.R.xreplace(shown), d.p.xreplace(shown), d.gradient, d.hessian, d.model.f0):
+    for quantity in (
+        d.linearization.R.xreplace(shown),
+        d.decoupling.p.xreplace(shown),
+        d.objective.gradient,
+        d.hessian,
+        d.model.f0,
+    ):
         assert sp.latex(quantity, mul_symbol=r"\,") in md
     if d.model.mechanics is not None:
         assert "M is factored at run time, never inverted" in md
         for matrix in (d.model.mechanics.mass_matrix, d.model.mechanics.input_matrix):
             assert sp.latex(sp.Matrix(matrix), mul_symbol=r"\,") in md
         assert "_W0" not in md and "_ddq" not in md
-    if d.det_R is not None:
-        assert sp.latex(d.det_R, mul_symbol=r"\,") in md
+    if d.decoupling.det_R is not None:
+        assert sp.latex(d.decoupling.det_R, mul_symbol=r"\,") in md
     # Every display formula is structurally sound LaTeX.
     for formula in re.findall(r"\$\$(.*?)\$\$", md, re.S):
         assert formula.count("{") == formula.count("}")

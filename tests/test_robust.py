@@ -59,8 +59,8 @@ def test_the_nominal_certificate_holds_with_integral_action(name: str) -> None:
     """col(z_I, E) follows expm(H_I t) col(z_I, E)(0) on every bundled example."""
     data = _with_integral(_example(name))
     d = derive(spec_from_dict(data))
-    assert d.integral_states
-    assert len(d.coefficients) == d.k + 1
+    assert d.closed_loop.integral_states
+    assert len(d.dynamics.coefficients) == d.dynamics.k + 1
     kernels = lower(d)
     controller = load_controller(kernels, "python")
     result = simulate(d, controller, resolve_options(d, points=101))

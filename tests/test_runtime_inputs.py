@@ -349,7 +349,7 @@ initial_state = {{ x1 = 0.1, x2 = 0.2 }}
 
 def test_det_r_message_says_why_it_was_not_expanded(tmp_path: Path) -> None:
     d = derive(load_spec(_big_det_spec(tmp_path)))
-    assert d.det_R is None
+    assert d.decoupling.det_R is None
     summary = format_summary(d, lower(d))
     assert "det R: not simplified symbolically (more than 400 expression nodes)" in summary
     assert "m > 4" not in summary

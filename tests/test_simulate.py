@@ -36,7 +36,7 @@ def test_certificate_passes_for_every_example(results: dict[str, sim.Result], sp
     assert result.deviation < 1e-6
     assert result.bound_ratio <= 1.0
     assert result.error[-1] < 1e-3 * result.error[0]
-    if derivation(spec).integral_states:
+    if derivation(spec).closed_loop.integral_states:
         # Started bumplessly, the integrals' own (slowest) mode is not excited: E decays
         # with the other poles, faster than alpha.
         assert result.fitted_rate > 1.1 * result.alpha

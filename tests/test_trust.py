@@ -370,7 +370,7 @@ def test_a_disc_geofence_is_accepted_from_every_start_with_the_barriers_modulus(
 
     d = derive(load_spec(str(_geofence(tmp_path, y0))))
     # Inside {g < s(t)} the barrier objective is at least as convex as f0 (2 I).
-    assert d.convexity.m_f >= 2.0 - 1e-9, d.convexity
+    assert d.objective.convexity.m_f >= 2.0 - 1e-9, d.objective.convexity
 
 
 @pytest.mark.parametrize("y0", [-3.0, -3.1])

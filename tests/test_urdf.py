@@ -116,7 +116,7 @@ def test_the_imported_law_matches_the_oracle_in_both_backends(
     python = import_file(tmp_path / "ur5_like.py", "_tvopt_ur5_py")
     compiled = import_file(tmp_path / "ur5_like_c.py", "_tvopt_ur5_c")
     rng = np.random.default_rng(2)
-    base = np.array(d.initial_state)[:, None]
+    base = np.array(d.closed_loop.initial_state)[:, None]
     states = base + np.vstack([rng.uniform(-0.4, 0.4, (6, 300)), rng.uniform(-1, 1, (6, 300))])
     assert_matches_oracle(oracle, (python, compiled), states, (0.0, 2.1))
 

@@ -120,6 +120,16 @@ class DecouplingStage:
     undefined_set: tuple[str, ...]
     dependent_set: tuple[str, ...] = ()
 
+    @property
+    def singular_text(self) -> str:
+        """Where the law cannot be evaluated, in words ("" when nowhere is known)."""
+        parts = []
+        if self.singular_set:
+            parts.append(f"R is singular where {'; '.join(self.singular_set)}")
+        if self.undefined_set:
+            parts.append(f"R or p is undefined where {'; '.join(self.undefined_set)}")
+        return "; ".join(parts)
+
 
 @dataclass(frozen=True)
 class ClosedLoopStage:
@@ -206,7 +216,7 @@ class ObjectiveStage:
     gradient : sympy.ImmutableMatrix
         ``grad_y f0`` (m, 1) over ``y``, signals, parameters and t.
     hessian_program : Program
-        Assignments computing the Hessian from :attr:`jet_program` (forward mode over
+        Assignments computing the Hessian from ``jet.jet_program`` (forward mode over
         its gradient part, :func:`~tvopt_codegen.maths.jet.jacobian`); empty when it is
         constant.
     hessian_entries : tuple of ((int, int), sympy.Expr)
@@ -278,6 +288,11 @@ class JetStage:
     reference_jet: tuple[tuple[sp.Symbol, ...], ...] = ()
     reference_order: int = 0
 
+    @property
+    def n_kkt(self) -> int:
+        """The law's unknowns ``y^(k)`` and, with equalities, ``nu^(k)``: m + q."""
+        return len(self.y_jet)
+
 
 @dataclass(frozen=True)
 class Derivation:
@@ -308,12 +323,13 @@ class Derivation:
     timings : tuple of (str, float)
         Seconds spent per derivation step.
 
-    Every attribute of a stage record reads through on the derivation itself
-    (``d.state_names`` is ``d.closed_loop.state_names``), as templates and readers name
-    them. With equality constraints, :attr:`y_jet`, :attr:`grad_jet`, :attr:`rest`,
-    :attr:`jet_program`, :attr:`hessian_program` and :attr:`hessian_entries` are those of
-    the Lagrangian ``L = f0 + nu^T a`` over the outputs and then the multipliers (m + q
-    entries, :attr:`n_kkt`): the law is the paper's, written for ``L``.
+    Readers name a stage's attribute by its stage (``d.closed_loop.state_names``,
+    ``d.linearization.R``): the derivation forwards none of them, so each use says which
+    stage it reads. With equality constraints, ``jet.y_jet``, ``jet.grad_jet``,
+    ``jet.rest``, ``jet.jet_program``, ``objective.hessian_program`` and
+    ``objective.hessian_entries`` are those of the Lagrangian ``L = f0 + nu^T a`` over the
+    outputs and then the multipliers (m + q entries, ``jet.n_kkt``): the law is the
+    paper's, written for ``L``.
     """
 
     spec: Spec
@@ -328,278 +344,24 @@ class Derivation:
     warnings: tuple[str, ...]
     timings: tuple[tuple[str, float], ...]
 
-    @property
-    def extension(self) -> Extension:
-        """``linearization.extension``."""
-        return self.linearization.extension
-
-    @property
-    def relative_degree(self) -> tuple[int, ...]:
-        """``linearization.relative_degree``."""
-        return self.linearization.relative_degree
-
-    @property
-    def lie(self) -> tuple[tuple[sp.Expr, ...], ...]:
-        """``linearization.lie``."""
-        return self.linearization.lie
-
-    @property
-    def R(self) -> sp.ImmutableMatrix:
-        """``linearization.R``."""
-        return self.linearization.R
-
-    @property
-    def unextended(self) -> str | None:
-        """``linearization.unextended``."""
-        return self.linearization.unextended
-
-    @property
-    def extension_search(self) -> tuple[str, ...]:
-        """``linearization.extension_search``."""
-        return self.linearization.extension_search
-
-    @property
-    def p(self) -> sp.ImmutableMatrix:
-        """``decoupling.p``."""
-        return self.decoupling.p
-
-    @property
-    def phi(self) -> sp.ImmutableMatrix:
-        """``decoupling.phi``."""
-        return self.decoupling.phi
-
-    @property
-    def A(self) -> sp.ImmutableMatrix:
-        """``decoupling.A``."""
-        return self.decoupling.A
-
-    @property
-    def B(self) -> sp.ImmutableMatrix:
-        """``decoupling.B``."""
-        return self.decoupling.B
-
-    @property
-    def det_R(self) -> sp.Expr | None:
-        """``decoupling.det_R``."""
-        return self.decoupling.det_R
-
-    @property
-    def det_R_note(self) -> str:
-        """``decoupling.det_R_note``."""
-        return self.decoupling.det_R_note
-
-    @property
-    def singular_set(self) -> tuple[str, ...]:
-        """``decoupling.singular_set``."""
-        return self.decoupling.singular_set
-
-    @property
-    def undefined_set(self) -> tuple[str, ...]:
-        """``decoupling.undefined_set``."""
-        return self.decoupling.undefined_set
-
-    @property
-    def dependent_set(self) -> tuple[str, ...]:
-        """``decoupling.dependent_set``."""
-        return self.decoupling.dependent_set
-
-    @property
-    def padding(self) -> tuple[tuple[str, ...], ...]:
-        """``closed_loop.padding``."""
-        return self.closed_loop.padding
-
-    @property
-    def state_names(self) -> tuple[str, ...]:
-        """``closed_loop.state_names``."""
-        return self.closed_loop.state_names
-
-    @property
-    def states(self) -> tuple[sp.Symbol, ...]:
-        """``closed_loop.states``."""
-        return self.closed_loop.states
-
-    @property
-    def initial_state(self) -> tuple[float, ...]:
-        """``closed_loop.initial_state``."""
-        return self.closed_loop.initial_state
-
-    @property
-    def multiplier_states(self) -> tuple[tuple[str, ...], ...]:
-        """``closed_loop.multiplier_states``."""
-        return self.closed_loop.multiplier_states
-
-    @property
-    def integral_states(self) -> tuple[str, ...]:
-        """``closed_loop.integral_states``."""
-        return self.closed_loop.integral_states
-
-    @property
-    def k(self) -> int:
-        """``dynamics.k``."""
-        return self.dynamics.k
-
-    @property
-    def coefficients(self) -> tuple[float, ...]:
-        """``dynamics.coefficients``."""
-        return self.dynamics.coefficients
-
-    @property
-    def eigenvalues(self) -> tuple[complex, ...]:
-        """``dynamics.eigenvalues``."""
-        return self.dynamics.eigenvalues
-
-    @property
-    def decay_rate(self) -> float:
-        """``dynamics.decay_rate``."""
-        return self.dynamics.decay_rate
-
-    @property
-    def uniform(self) -> bool:
-        """``dynamics.uniform``."""
-        return self.dynamics.uniform
-
-    @property
-    def certified_rate(self) -> float:
-        """``dynamics.certified_rate``."""
-        return self.dynamics.certified_rate
-
-    @property
-    def certified_rate_exact(self) -> bool:
-        """``dynamics.certified_rate_exact``."""
-        return self.dynamics.certified_rate_exact
-
-    @property
-    def transient_constant(self) -> float:
-        """``dynamics.transient_constant``."""
-        return self.dynamics.transient_constant
-
-    @property
-    def gradient(self) -> sp.ImmutableMatrix:
-        """``objective.gradient``."""
-        return self.objective.gradient
-
-    @property
-    def hessian_program(self) -> Program:
-        """``objective.hessian_program``."""
-        return self.objective.hessian_program
-
-    @property
-    def hessian_entries(self) -> tuple[tuple[tuple[int, int], sp.Expr], ...]:
-        """``objective.hessian_entries``."""
-        return self.objective.hessian_entries
-
-    @property
-    def convexity(self) -> Convexity:
-        """``objective.convexity``."""
-        return self.objective.convexity
-
-    @property
-    def objective_program(self) -> Program:
-        """``objective.objective_program``."""
-        return self.objective.objective_program
-
-    @property
-    def objective_gradient(self) -> tuple[sp.Expr, ...]:
-        """``objective.objective_gradient``."""
-        return self.objective.objective_gradient
-
-    @property
-    def objective_hessian(self) -> tuple[sp.Expr, ...]:
-        """``objective.objective_hessian``."""
-        return self.objective.objective_hessian
-
-    @property
-    def kkt_gradient(self) -> sp.ImmutableMatrix | None:
-        """``objective.kkt_gradient``."""
-        return self.objective.kkt_gradient
-
-    @property
-    def y_jet(self) -> tuple[tuple[sp.Symbol, ...], ...]:
-        """``jet.y_jet``."""
-        return self.jet.y_jet
-
-    @property
-    def y_jet_values(self) -> tuple[tuple[sp.Expr, ...], ...]:
-        """``jet.y_jet_values``."""
-        return self.jet.y_jet_values
-
-    @property
-    def signal_jet(self) -> tuple[tuple[sp.Symbol, ...], ...]:
-        """``jet.signal_jet``."""
-        return self.jet.signal_jet
-
-    @property
-    def signal_program(self) -> Program:
-        """``jet.signal_program``."""
-        return self.jet.signal_program
-
-    @property
-    def signal_jet_values(self) -> tuple[tuple[sp.Expr, ...], ...]:
-        """``jet.signal_jet_values``."""
-        return self.jet.signal_jet_values
-
-    @property
-    def jet_program(self) -> Program:
-        """``jet.jet_program``."""
-        return self.jet.jet_program
-
-    @property
-    def grad_jet(self) -> tuple[tuple[sp.Expr, ...], ...]:
-        """``jet.grad_jet``."""
-        return self.jet.grad_jet
-
-    @property
-    def rest_program(self) -> Program:
-        """``jet.rest_program``."""
-        return self.jet.rest_program
-
-    @property
-    def rest(self) -> tuple[sp.Expr, ...]:
-        """``jet.rest``."""
-        return self.jet.rest
-
-    @property
-    def reference_jet(self) -> tuple[tuple[sp.Symbol, ...], ...]:
-        """``jet.reference_jet``."""
-        return self.jet.reference_jet
-
-    @property
-    def reference_order(self) -> int:
-        """``jet.reference_order``."""
-        return self.jet.reference_order
-
-    @property
-    def n_kkt(self) -> int:
-        """The law's unknowns ``y^(k)`` and, with equalities, ``nu^(k)``: m + q."""
-        return len(self.y_jet)
-
-    @property
-    def singular_text(self) -> str:
-        """Where the law cannot be evaluated, in words ("" when nowhere is known)."""
-        parts = []
-        if self.singular_set:
-            parts.append(f"R is singular where {'; '.join(self.singular_set)}")
-        if self.undefined_set:
-            parts.append(f"R or p is undefined where {'; '.join(self.undefined_set)}")
-        return "; ".join(parts)
-
     @functools.cached_property
     def hessian(self) -> sp.ImmutableMatrix:
         """``grad_yy f0`` (m, m) as expressions, for the report and for checking.
 
-        Differentiated symbolically from :attr:`gradient` on first use (the generated
-        code never needs it: it evaluates :attr:`hessian_entries`).
+        Differentiated symbolically from ``objective.gradient`` on first use (the
+        generated code never needs it: it evaluates ``objective.hessian_entries``).
         """
-        return _sparse_hessian(self.gradient, self.model.y)
+        return _sparse_hessian(self.objective.gradient, self.model.y)
 
     @functools.cached_property
     def kkt_hessian(self) -> sp.ImmutableMatrix:
         """With equalities, the KKT matrix ``[[grad_yy L, J_a^T], [J_a, 0]]`` as expressions.
 
-        Differentiated from :attr:`kkt_gradient` on first use, for the report.
+        Differentiated from ``objective.kkt_gradient`` on first use, for the report.
         """
-        assert self.kkt_gradient is not None
-        return _sparse_hessian(self.kkt_gradient, (*self.model.y, *self.model.multipliers))
+        kkt_gradient = self.objective.kkt_gradient
+        assert kkt_gradient is not None
+        return _sparse_hessian(kkt_gradient, (*self.model.y, *self.model.multipliers))
 
 
 def _sparse_hessian(gradient: sp.MatrixBase, y: Sequence[sp.Symbol]) -> sp.ImmutableMatrix:

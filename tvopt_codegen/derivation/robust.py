@@ -122,10 +122,10 @@ def robustness(derivation: Derivation) -> Robustness:
     low = tuple(limits[u].low if u in limits else -inf for u in spec.inputs)
     high = tuple(limits[u].high if u in limits else inf for u in spec.inputs)
     rate = tuple(limits[u].rate if u in limits else inf for u in spec.inputs)
-    extended = [name for name, _ in d.extension.counts]
+    extended = [name for name, _ in d.linearization.extension.counts]
     input_chains = tuple(extended.index(u) if u in extended else -1 for u in spec.inputs)
     chains = d.law.chains
-    count = len(d.integral_states)
+    count = len(d.closed_loop.integral_states)
     integral_chains = tuple(range(len(chains) - count, len(chains)))
     first = len(spec.states)
     rows: tuple[tuple[int, ...], ...] = ()
@@ -140,7 +140,9 @@ def robustness(derivation: Derivation) -> Robustness:
         integral_chains,
         input_chains,
         d.dynamics.bumpless,
-        tuple(d.state_names.index(name) - first for name in d.integral_states),
+        tuple(
+            d.closed_loop.state_names.index(name) - first for name in d.closed_loop.integral_states
+        ),
         rows,
         _blocks(rows),
     )

@@ -71,28 +71,28 @@ class _Args:
 
 def _arguments(d: Derivation) -> _Args:
     model, law = d.model, d.law
-    m, k = len(model.u), d.k
-    s_slots, p_slots = _slots("s", len(d.states)), _slots("p", len(model.params))
+    m, k = len(model.u), d.dynamics.k
+    s_slots, p_slots = _slots("s", len(d.closed_loop.states)), _slots("p", len(model.params))
     y_slots = _slots("y", m)
     outputs = d.spec.outputs
-    subs: dict[sp.Symbol, sp.Expr] = dict(zip(d.states, s_slots, strict=True))
+    subs: dict[sp.Symbol, sp.Expr] = dict(zip(d.closed_loop.states, s_slots, strict=True))
     subs |= dict(zip(model.params, p_slots, strict=True))
     refs: tuple[Arg, ...] = ()
     if model.references:
-        q = d.reference_order
-        jets = [chain[: q + 1] for chain in d.reference_jet]
+        q = d.jet.reference_order
+        jets = [chain[: q + 1] for chain in d.jet.reference_jet]
         r_slots = _slots("r", len(jets) * (q + 1))
         subs |= dict(zip((s for chain in jets for s in chain), r_slots, strict=True))
         labels = tuple(str(symbol) for chain in jets for symbol in chain)
         refs = (Arg("refs", r_slots, labels, "reference jets, derivatives 0 .. q of each"),)
     return _Args(
         t=Arg("t", (), (), "time"),
-        s=Arg("s", s_slots, d.state_names, "closed-loop state"),
+        s=Arg("s", s_slots, d.closed_loop.state_names, "closed-loop state"),
         p=Arg("p", p_slots, tuple(q.name for q in model.params), "parameters"),
         # The law's unknowns are slots already (law.symbols names them like _slots).
         a=Arg("a", law.a, tuple(f"a_{i}" for i in range(len(law.a))), "Hurwitz coefficients"),
         y=Arg("y", y_slots, outputs, "outputs"),
-        w=Arg("w", law.w, d.extension.inputs, "inputs of the extended plant"),
+        w=Arg("w", law.w, d.linearization.extension.inputs, "inputs of the extended plant"),
         z=Arg(
             "z",
             law.z,
@@ -107,17 +107,25 @@ def _arguments(d: Derivation) -> _Args:
 
 def _programs(d: Derivation, mass: _Mass | None = None) -> dict[str, list[Assignment]]:
     """The derivation's straight-line programs, by what they compute."""
-    model, k = d.model, d.k
+    model, k = d.model, d.dynamics.k
     signals = range(len(model.signals))
     return {
-        "signals": list(d.signal_program.assignments)
-        + [(d.signal_jet[i][q], d.signal_jet_values[i][q]) for i in signals for q in range(k + 1)],
-        "signals0": list(d.signal_program.assignments)
-        + [(d.signal_jet[i][0], d.signal_jet_values[i][0]) for i in signals],
-        "y": [(d.y_jet[i][j], d.y_jet_values[i][j]) for i in range(len(d.y_jet)) for j in range(k)],
-        "jet": list(d.jet_program.assignments),
-        "hessian": list(d.hessian_program.assignments),
-        "rest": list(d.rest_program.assignments),
+        "signals": list(d.jet.signal_program.assignments)
+        + [
+            (d.jet.signal_jet[i][q], d.jet.signal_jet_values[i][q])
+            for i in signals
+            for q in range(k + 1)
+        ],
+        "signals0": list(d.jet.signal_program.assignments)
+        + [(d.jet.signal_jet[i][0], d.jet.signal_jet_values[i][0]) for i in signals],
+        "y": [
+            (d.jet.y_jet[i][j], d.jet.y_jet_values[i][j])
+            for i in range(len(d.jet.y_jet))
+            for j in range(k)
+        ],
+        "jet": list(d.jet.jet_program.assignments),
+        "hessian": list(d.objective.hessian_program.assignments),
+        "rest": list(d.jet.rest_program.assignments),
         "mass": [] if mass is None else mass.program,
     }
 
@@ -184,19 +192,20 @@ def _jet_kernels(
     The solve is left out (None) when the Hessian is constant. E reads the same gradient
     jet as the jet kernel: both are lowered together.
     """
-    law, m, n, k = d.law, len(d.model.u), d.n_kkt, d.k
+    law, m, n, k = d.law, len(d.model.u), d.jet.n_kkt, d.dynamics.k
+    grad = d.jet.grad_jet
     jet_program = programs["signals"] + programs["y"] + programs["jet"] + programs["hessian"]
     jet_program += programs["rest"] + programs["mass"]
     inputs = [args.t, args.s, args.p, args.a, *args.r]
     # R and p share their trigonometry with the output jet: one kernel, one CSE.
     shared: list[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]] = [
         ("R", (len(law.r_entries),), law.r_entries, "diagonal blocks of the decoupling matrix"),
-        ("pvec", (m,), list(d.p), "p = col(L_f^{r_i} h_i)"),
+        ("pvec", (m,), list(d.decoupling.p), "p = col(L_f^{r_i} h_i)"),
     ]
-    if d.integral_states:
+    if d.closed_loop.integral_states:
         # Integral action: the integral states' rates, grad f0, computed once with the jet.
         shared.append(
-            ("grad", (n,), [d.grad_jet[0][i] for i in range(n)], "grad f0: the integrals' rates")
+            ("grad", (n,), [grad[0][i] for i in range(n)], "grad f0: the integrals' rates")
         )
     if d.model.constraints:
         # Each inequality's margin s(t) - g_i(y, t), which the plan's check_margin reads:
@@ -232,7 +241,7 @@ def _jet_kernels(
         "optimality",
         f"Optimality error E: row j is {what}",
         [args.t, args.s, args.p, *args.r],
-        [("E", (k, n), [d.grad_jet[j][i] for j in range(k) for i in range(n)], what)],
+        [("E", (k, n), [grad[j][i] for j in range(k) for i in range(n)], what)],
     )
 
     def with_optimality(jet_doc: str, outputs: Outputs) -> tuple[Kernel, Kernel]:
@@ -249,7 +258,7 @@ def _jet_kernels(
         return jet, None, optimality
     # The Hessian goes out as the entries of its lower triangle that the law keeps.
     pattern = law.hessian_pattern
-    value = dict(d.hessian_entries)
+    value = dict(d.objective.hessian_entries)
     jet, optimality = with_optimality(
         "Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest",
         [
@@ -305,7 +314,7 @@ def _input_kernels(
     arg_q = Arg("q", q_slots, tuple(f"p_{o}" for o in d.spec.outputs), "p of the decoupling")
     # An entry of p that is a number (0 for a kinematic plant) is subtracted here as that
     # number, not read from the jet's output.
-    p = [d.p[i] if d.p[i].is_Number else q_slots[i] for i in range(m)]
+    p = [d.decoupling.p[i] if d.decoupling.p[i].is_Number else q_slots[i] for i in range(m)]
     decoupling = kernel(
         "decoupling",
         "b = v - p, so that R w = b linearizes the plant",
@@ -314,13 +323,13 @@ def _input_kernels(
         [("b", (m,), [law.v[i] - p[i] for i in range(m)], "v - p")],
         args.subs,
     )
-    count = len(d.integral_states)
+    count = len(d.closed_loop.integral_states)
     field = list(law.closed_loop)
     inputs = [args.t, args.s, args.p, args.w, args.z]
     if count:
         # The integral states' rates come from the jet kernel (its output grad).
         g_slots = _slots("e", count)
-        labels = tuple(f"d{name}/dt" for name in d.integral_states)
+        labels = tuple(f"d{name}/dt" for name in d.closed_loop.integral_states)
         inputs.append(Arg("grad", g_slots, labels, "grad f0: the integrals' rates"))
         field[len(field) - count :] = g_slots
     closed_loop = kernel(
@@ -329,7 +338,7 @@ def _input_kernels(
         inputs,
         mass,
         [
-            ("ds", (len(d.states),), field, "time derivative of the closed-loop state"),
+            ("ds", (len(d.closed_loop.states),), field, "time derivative of the closed-loop state"),
             ("u", (m,), law.plant_input, "plant input"),
         ],
         args.subs,
@@ -356,7 +365,7 @@ def _objective_kernels(
     f0_program, (f0,) = atomize([d.model.f0], fresh_symbols("_f0_"))
     # One program for the three: the signals, then the gradient's program (the jet's
     # first assignments) and f0's, which each kernel prunes to what it needs.
-    program = programs["signals0"] + list(d.objective_program.assignments)
+    program = programs["signals0"] + list(d.objective.objective_program.assignments)
     program += list(f0_program.assignments)
     return kernels(
         [
@@ -365,13 +374,13 @@ def _objective_kernels(
                 "gradient",
                 "grad_y f0(y, t)",
                 on_y,
-                [("grad", (m,), list(d.objective_gradient), "grad_y f0")],
+                [("grad", (m,), list(d.objective.objective_gradient), "grad_y f0")],
             ),
             (
                 "hessian",
                 "grad_yy f0(y, t)",
                 on_y,
-                [("hess", (m, m), d.objective_hessian, "grad_yy f0")],
+                [("hess", (m, m), d.objective.objective_hessian, "grad_yy f0")],
             ),
         ],
         program,
@@ -487,13 +496,13 @@ def lower(derivation: Derivation) -> KernelSet:
     rest += _plant_kernels(d, args, kernel, programs["mass"])
     law = d.law
     plan = law_plan(
-        n_states=len(d.states),
+        n_states=len(d.closed_loop.states),
         n_inputs=len(d.model.u),
         n_outputs=len(d.spec.outputs),
-        n_kkt=d.n_kkt,
+        n_kkt=d.jet.n_kkt,
         n_params=len(d.model.params),
-        k=len(d.coefficients),
-        integral=bool(d.integral_states),
+        k=len(d.dynamics.coefficients),
+        integral=bool(d.closed_loop.integral_states),
         observer=len(d.spec.states) if d.spec.robust.observer is not None else 0,
         tau=0 if jet_time is None else jet_time.outputs[0].shape[0],
         hessian=0 if cholesky is None else jet.outputs[0].shape[0],
@@ -584,7 +593,7 @@ def check_kernels(derivation: Derivation) -> CheckKernels:
     d = derivation
     model = d.model
     args = _arguments(d)
-    m = d.R.rows
+    m = d.linearization.R.rows
     # R = J_h M^-1 B of a mass-matrix plant reads the run-time solve.
     mass = _mass(d)
     decoupling = make_kernel(
@@ -592,7 +601,14 @@ def check_kernels(derivation: Derivation) -> CheckKernels:
         "The decoupling matrix R(s), row-major",
         [args.t, args.s, args.p],
         [] if mass is None else mass.program,
-        [("r", (m * m,), [d.R[i, j] for i in range(m) for j in range(m)], "decoupling matrix R")],
+        [
+            (
+                "r",
+                (m * m,),
+                [d.linearization.R[i, j] for i in range(m) for j in range(m)],
+                "decoupling matrix R",
+            )
+        ],
         args.subs,
         odd={},
     )

@@ -386,9 +386,9 @@ def template_context(kernels: KernelSet, backend: Backend | str) -> dict[str, An
         "tool_version": __version__,
         "sympy_version": sp.__version__,
         "spec_file": PurePath(d.spec.source.removesuffix(BUNDLED_SUFFIX)).name,
-        "extension_counts": dict(d.extension.counts),
+        "extension_counts": dict(d.linearization.extension.counts),
         "parameters": dict(d.spec.parameters),
-        "relative_degree": dict(zip(d.spec.outputs, d.relative_degree, strict=True)),
+        "relative_degree": dict(zip(d.spec.outputs, d.linearization.relative_degree, strict=True)),
         "prefix": d.spec.name,
         "guard": d.spec.name.upper(),
         "r_blocks": kernels.r_blocks,
@@ -398,12 +398,14 @@ def template_context(kernels: KernelSet, backend: Backend | str) -> dict[str, An
         "step_tolerance": STEP_TOLERANCE,
         **contract_context(kernels),
         "estimator_gains": (
-            estimator_gains(d.spec.estimator, estimator_order(d.spec.estimator, d.reference_order))
+            estimator_gains(
+                d.spec.estimator, estimator_order(d.spec.estimator, d.jet.reference_order)
+            )
             if d.spec.estimator is not None
             else ()
         ),
         "estimator_order": (
-            estimator_order(d.spec.estimator, d.reference_order)
+            estimator_order(d.spec.estimator, d.jet.reference_order)
             if d.spec.estimator is not None
             else 0
         ),
@@ -429,22 +431,24 @@ def contract_context(kernels: KernelSet) -> dict[str, Any]:
         ``pivot_tolerance``.
     """
     d = kernels.derivation
-    dependent = "it is where " + "; ".join(d.dependent_set) if d.dependent_set else ""
+    dependent = (
+        "it is where " + "; ".join(d.decoupling.dependent_set) if d.decoupling.dependent_set else ""
+    )
     return {
         "statuses": statuses(),
         "status_details": {
-            "SINGULAR_DECOUPLING": d.singular_text,
+            "SINGULAR_DECOUPLING": d.decoupling.singular_text,
             "DEPENDENT_CONSTRAINTS": dependent,
         },
         "caller_faults": CALLER_FAULTS,
         "functions": FUNCTIONS,
         "sizes": {
             "n_inputs": len(d.spec.inputs),
-            "n_states": len(d.state_names),
+            "n_states": len(d.closed_loop.state_names),
             "n_outputs": len(d.spec.outputs),
             "n_plant_states": len(d.spec.states),
-            "n_kkt": d.n_kkt,
-            "k": d.k,
+            "n_kkt": d.jet.n_kkt,
+            "k": d.dynamics.k,
         },
         "pivot_tolerance": PIVOT_TOLERANCE,
     }

@@ -189,7 +189,7 @@ def _constraint_entries(d: Derivation) -> list[Entry]:
             )
         )
     if model.equalities:
-        chains = "; ".join(", ".join(chain) for chain in d.multiplier_states)
+        chains = "; ".join(", ".join(chain) for chain in d.closed_loop.multiplier_states)
         entries.append(
             Entry(
                 "table",
@@ -205,8 +205,8 @@ def _constraint_entries(d: Derivation) -> list[Entry]:
                     f"The multipliers and their derivatives are controller states: {chains}. "
                     "K is singular (the constraints' gradients dependent) "
                     + (
-                        "where " + " or where ".join(d.dependent_set)
-                        if d.dependent_set
+                        "where " + " or where ".join(d.decoupling.dependent_set)
+                        if d.decoupling.dependent_set
                         else "nowhere: det(J_a J_a^T) never vanishes"
                     )
                     + "."
@@ -231,7 +231,7 @@ def _reference_entries(d: Derivation) -> list[Entry]:
         gain = (
             f"every pole at -{estimator.bandwidth:g} rad/s"
             if estimator.kind == "linear"
-            else f"L = {estimator.lipschitz:g} bounds derivative {d.reference_order + 1}"
+            else f"L = {estimator.lipschitz:g} bounds derivative {d.jet.reference_order + 1}"
         )
         nominal = dict(model.nominal)
         entries.append(
@@ -239,7 +239,7 @@ def _reference_entries(d: Derivation) -> list[Entry]:
                 "table",
                 text=(
                     f"References measured at run time: every call takes their jets up to "
-                    f"derivative q = {d.reference_order}, the highest the law reads "
+                    f"derivative q = {d.jet.reference_order}, the highest the law reads "
                     f"(REFERENCE_ORDER). From samples, the {estimator.kind} differentiator "
                     f"estimates them ({gain}); between samples a jet follows its Taylor "
                     "polynomial."
@@ -248,10 +248,10 @@ def _reference_entries(d: Derivation) -> list[Entry]:
                 rows=tuple(
                     (
                         r.name,
-                        ", ".join(str(s) for s in chain[: d.reference_order + 1]),
+                        ", ".join(str(s) for s in chain[: d.jet.reference_order + 1]),
                         formula(nominal[r]) if r in nominal else "(none: samples only)",
                     )
-                    for r, chain in zip(model.references, d.reference_jet, strict=True)
+                    for r, chain in zip(model.references, d.jet.reference_jet, strict=True)
                 ),
             )
         )
@@ -259,7 +259,7 @@ def _reference_entries(d: Derivation) -> list[Entry]:
 
 
 def _extension(d: Derivation) -> Section:
-    ext = d.extension
+    ext = d.linearization.extension
     entries: list[Entry] = []
     if ext.counts:
         added = "; ".join(f"input {u} integrated {q} time(s)" for u, q in ext.counts)
@@ -269,17 +269,18 @@ def _extension(d: Derivation) -> Section:
                 text=(
                     f"Dynamic extension (paper, Lemma 2, eqs. (3)-(5)): {added}. "
                     f"New states {', '.join(ext.states)}; the extended plant's inputs are "
-                    f"{', '.join(ext.inputs)}. Why: {d.unextended}."
+                    f"{', '.join(ext.inputs)}. Why: {d.linearization.unextended}."
                 ),
             )
         )
-        if d.extension_search:
+        if d.linearization.extension_search:
             entries.append(
                 Entry(
                     "text",
                     text=(
                         "Found by the automatic search (smallest total number of integrators "
-                        f"first, earlier inputs first); tried: {'; '.join(d.extension_search)}."
+                        "first, earlier inputs first); tried: "
+                        f"{'; '.join(d.linearization.extension_search)}."
                     ),
                 )
             )
@@ -301,7 +302,9 @@ def _extension(d: Derivation) -> Section:
             )
         )
     pads = [
-        (o, ", ".join(chain)) for o, chain in zip(d.spec.outputs, d.padding, strict=True) if chain
+        (o, ", ".join(chain))
+        for o, chain in zip(d.spec.outputs, d.closed_loop.padding, strict=True)
+        if chain
     ]
     if pads:
         entries.append(
@@ -309,7 +312,8 @@ def _extension(d: Derivation) -> Section:
                 "table",
                 text=(
                     "Padding chains (paper, Sec. IV-B, eq. (19)): channel i gets "
-                    f"k - r_i = {d.k} - r_i integrators xi; xi_<output>_1 is that channel's "
+                    f"k - r_i = {d.dynamics.k} - r_i integrators xi; "
+                    "xi_<output>_1 is that channel's "
                     "Brunovsky input, the last one is driven by y_imp^(k)."
                 ),
                 header=("output", "padding states"),
@@ -317,7 +321,9 @@ def _extension(d: Derivation) -> Section:
             )
         )
     else:
-        entries.append(Entry("text", text=f"No padding: every relative degree equals k = {d.k}."))
+        entries.append(
+            Entry("text", text=f"No padding: every relative degree equals k = {d.dynamics.k}.")
+        )
     return Section("Dynamic extension and padding", tuple(entries))
 
 
@@ -328,35 +334,37 @@ def _linearization(d: Derivation) -> Section:
             text="Vector relative degree of the extended plant (paper, Definition 1).",
             header=("output", "relative degree r_i", "Lie derivatives L_f^j h_i, j < r_i"),
             rows=tuple(
-                (o, str(r), formula(sp.Matrix([list(d.lie[i][:r])])))
-                for i, (o, r) in enumerate(zip(d.spec.outputs, d.relative_degree, strict=True))
+                (o, str(r), formula(sp.Matrix([list(d.linearization.lie[i][:r])])))
+                for i, (o, r) in enumerate(
+                    zip(d.spec.outputs, d.linearization.relative_degree, strict=True)
+                )
             ),
         )
     ]
     entries.append(
         _math_entry(
             "Decoupling matrix, rows L_G L_f^(r_i - 1) h_i (paper, eq. (2)):",
-            d.R.xreplace(_shown(d)),
+            d.linearization.R.xreplace(_shown(d)),
             _name("R(x)", "R"),
         )
     )
-    if d.det_R is not None and d.det_R_note:
+    if d.decoupling.det_R is not None and d.decoupling.det_R_note:
         # A mass-matrix plant: det R det M, which vanishes where R is singular.
         entries.append(
             _math_entry(
                 "det R det M = det(J_h B), factored (M is positive definite, so R is singular "
                 "exactly where this vanishes):",
-                d.det_R,
+                d.decoupling.det_R,
                 _name(r"\det(J_h B)", "det(J_h B)"),
             )
         )
-    elif d.det_R is not None:
+    elif d.decoupling.det_R is not None:
         entries.append(
-            _math_entry("Its determinant, factored:", d.det_R, _name(r"\det R", "det R"))
+            _math_entry("Its determinant, factored:", d.decoupling.det_R, _name(r"\det R", "det R"))
         )
         where = (
-            "R is singular when " + " or when ".join(d.singular_set) + "."
-            if d.singular_set
+            "R is singular when " + " or when ".join(d.decoupling.singular_set) + "."
+            if d.decoupling.singular_set
             else "R is never singular."
         )
         entries.append(
@@ -370,27 +378,34 @@ def _linearization(d: Derivation) -> Section:
         entries.append(
             Entry(
                 "text",
-                text=f"det R is {d.det_R_note}; the generated code checks every pivot at run time.",
+                text=(
+                    f"det R is {d.decoupling.det_R_note}; "
+                    "the generated code checks every pivot at run time."
+                ),
             )
         )
-    if d.undefined_set:
+    if d.decoupling.undefined_set:
         entries.append(
             Entry(
                 "text",
                 text="R or p, and with them the law, is undefined where "
-                + " or where ".join(d.undefined_set)
+                + " or where ".join(d.decoupling.undefined_set)
                 + " (a vanishing denominator, or a cosine under tan); det R says nothing "
                 "there.",
             )
         )
     entries.append(
-        _math_entry("p = col(L_f^(r_i) h_i):", d.p.xreplace(_shown(d)), _name("p(x)", "p"))
+        _math_entry(
+            "p = col(L_f^(r_i) h_i):", d.decoupling.p.xreplace(_shown(d)), _name("p(x)", "p")
+        )
     )
     entries.append(
-        _math_entry("Coordinates Phi (paper, Lemmas 1-2):", d.phi, _name(r"\Phi(x)", "&#934;"))
+        _math_entry(
+            "Coordinates Phi (paper, Lemmas 1-2):", d.decoupling.phi, _name(r"\Phi(x)", "&#934;")
+        )
     )
-    entries.append(_math_entry("Brunovsky pair, A:", d.A, _name("A", "A")))
-    entries.append(_math_entry("Brunovsky pair, B:", d.B, _name("B", "B")))
+    entries.append(_math_entry("Brunovsky pair, A:", d.decoupling.A, _name("A", "A")))
+    entries.append(_math_entry("Brunovsky pair, B:", d.decoupling.B, _name("B", "B")))
     return Section("Relative degree and linearization", tuple(entries))
 
 
@@ -404,12 +419,12 @@ def _objective(d: Derivation) -> Section:
             "b^(j)):"
             if not d.hessian.free_symbols & set(model.y)
             else "Its gradient:",
-            d.gradient,
+            d.objective.gradient,
             _name(r"\nabla_y f_0", "&#8711;f0"),
         ),
         _math_entry("Its Hessian:", d.hessian, _name(r"\nabla_{yy} f_0", "&#8711;&#178;f0")),
     ]
-    conv = d.convexity
+    conv = d.objective.convexity
     how = (
         "the Hessian is constant, so its smallest eigenvalue is exact"
         if conv.quadratic
@@ -427,12 +442,12 @@ def _objective(d: Derivation) -> Section:
         )
     )
     if model.equalities:
-        assert d.kkt_gradient is not None
+        assert d.objective.kkt_gradient is not None
         entries += [
             _math_entry(
                 "With equality constraints the law is written for L = f0 + nu^T a over (y, nu): "
                 "its gradient, the KKT map F = [grad f0 + J_a^T nu; a], is what E holds:",
-                d.kkt_gradient,
+                d.objective.kkt_gradient,
                 _name("F", "F"),
             ),
             _math_entry(
@@ -452,19 +467,20 @@ def _pole(value: complex) -> str:
 
 
 def _error_dynamics(d: Derivation) -> Section:
-    k, m = d.k, d.n_kkt
-    order = len(d.coefficients)
+    k, m = d.dynamics.k, d.jet.n_kkt
+    order = len(d.dynamics.coefficients)
     # With equalities E holds the KKT map F and its derivatives instead of grad f0's.
     first, last = ("F", f"F^({k - 1})") if d.model.equalities else ("grad f0", f"grad^({k - 1}) f0")
     companion = sp.zeros(order, order)
     for i in range(order - 1):
         companion[i, i + 1] = 1
-    for j, a in enumerate(d.coefficients):
+    for j, a in enumerate(d.dynamics.coefficients):
         companion[order - 1, j] = sp.Float(a, 15)
-    if d.integral_states:
+    if d.closed_loop.integral_states:
         law = (
             f"With integral action z_I = int {first} dt (states "
-            f"{', '.join(d.integral_states)}), col(z_I, E) with E = col({first}, ..., {last}) "
+            f"{', '.join(d.closed_loop.integral_states)}), "
+            f"col(z_I, E) with E = col({first}, ..., {last}) "
             f"obeys col(z_I, E)' = H_I col(z_I, E) with H_I = companion(a) kron I_{m}: one "
             "more pole per output (see Robustness)."
         )
@@ -477,7 +493,7 @@ def _error_dynamics(d: Derivation) -> Section:
         Entry("text", text=law),
         _math_entry(
             "Companion matrix, last row a_0 .. a_k:"
-            if d.integral_states
+            if d.closed_loop.integral_states
             else "Companion matrix, last row a_0 .. a_{k-1}:",
             companion,
             _name(r"\mathrm{companion}(a)", "companion(a)"),
@@ -487,15 +503,18 @@ def _error_dynamics(d: Derivation) -> Section:
             text="Spectrum and the constants of |expm(H t)| <= c exp(-alpha t) (paper, Theorem 3).",
             header=("quantity", "value"),
             rows=(
-                ("poles", ", ".join(_pole(p) for p in d.eigenvalues)),
-                ("coefficients a", ", ".join(f"{a:.10g}" for a in d.coefficients)),
-                ("decay rate -max Re(lambda)", f"{d.decay_rate:.6g}"),
+                ("poles", ", ".join(_pole(p) for p in d.dynamics.eigenvalues)),
+                ("coefficients a", ", ".join(f"{a:.10g}" for a in d.dynamics.coefficients)),
+                ("decay rate -max Re(lambda)", f"{d.dynamics.decay_rate:.6g}"),
                 (
                     "alpha used in the bound",
-                    f"{d.certified_rate:.6g}"
-                    + ("" if d.certified_rate_exact else " (repeated poles: 10% epsilon)"),
+                    f"{d.dynamics.certified_rate:.6g}"
+                    + ("" if d.dynamics.certified_rate_exact else " (repeated poles: 10% epsilon)"),
                 ),
-                ("c = sup_t |expm(H t)| e^(alpha t), computed", f"{d.transient_constant:.6g}"),
+                (
+                    "c = sup_t |expm(H t)| e^(alpha t), computed",
+                    f"{d.dynamics.transient_constant:.6g}",
+                ),
             ),
         ),
         Entry(
@@ -516,9 +535,9 @@ def _robustness(d: Derivation) -> tuple[Section, ...]:
     """
     spec = d.spec
     sections: list[Section] = []
-    if d.integral_states:
+    if d.closed_loop.integral_states:
         pole = d.dynamics.integral_pole
-        others = [p for p in d.eigenvalues]
+        others = [p for p in d.dynamics.eigenvalues]
         for index, value in enumerate(others):
             if (
                 value.imag == 0
@@ -618,11 +637,11 @@ def _inlined(program: Program, exprs: Sequence[sp.Expr]) -> list[sp.Expr] | None
 
 
 def _control_law(d: Derivation) -> Section:
-    k = d.k
+    k = d.dynamics.k
     theorem = (
         "Theorem 5, Control Law for Uniform Vector Relative Degree Systems: u = alpha + "
         "beta R^-1 [y_imp^(k) - p] (eq. (18))"
-        if d.uniform
+        if d.dynamics.uniform
         else "Theorem 6, Control Law for General Vector Relative Degree System: u = alpha + "
         "beta R^-1 [alpha~(xi) + beta~(xi) y_imp^(k) - p] (eq. (20)), with the padding "
         "chains of eq. (19)"
@@ -656,8 +675,8 @@ def _control_law(d: Derivation) -> Section:
                 "derivative along t, the output "
                 "jet y, y', ... and the signal jets, taken on a straight-line program (never "
                 "expanded); grad^(k) f0 = Hess y^(k) + rest, and rest is grad^(k) f0 with "
-                f"y^(k) = 0. Program size: {len(d.jet_program.assignments)} assignments for "
-                f"grad^(j), j < k, and {len(d.rest_program.assignments)} more for rest. The "
+                f"y^(k) = 0. Program size: {len(d.jet.jet_program.assignments)} assignments for "
+                f"grad^(j), j < k, and {len(d.jet.rest_program.assignments)} more for rest. The "
                 "generated code solves Hess z = sum a_i grad^(i) f0 - rest (LDL^T, a "
                 "square-root-free Cholesky, or the exact constant inverse when the Hessian is "
                 "constant) and R w = v - p (LU with partial pivoting); no symbolic inverse is "
@@ -665,9 +684,9 @@ def _control_law(d: Derivation) -> Section:
             ),
         ),
     ]
-    program = d.jet_program + d.rest_program
+    program = d.jet.jet_program + d.jet.rest_program
     for j in range(1, k):
-        exprs = _inlined(program, d.grad_jet[j])
+        exprs = _inlined(program, d.jet.grad_jet[j])
         if exprs is not None and sum(sp.count_ops(e) for e in exprs) <= INLINE_OPS:
             entries.append(
                 _math_entry(
@@ -676,7 +695,7 @@ def _control_law(d: Derivation) -> Section:
                     _name(rf"\nabla_y^{{({j})}} f_0", f"&#8711;({j})f0"),
                 )
             )
-    rest = _inlined(program, d.rest)
+    rest = _inlined(program, d.jet.rest)
     if rest is not None and sum(sp.count_ops(e) for e in rest) <= INLINE_OPS:
         entries.append(
             _math_entry(

@@ -66,7 +66,7 @@ def result_files(
         y_star=r.target,
         E=r.E,
         bound=r.bound,
-        state_names=np.array(d.state_names),
+        state_names=np.array(d.closed_loop.state_names),
         input_names=np.array(d.spec.inputs),
         output_names=np.array(d.spec.outputs),
     )
@@ -85,7 +85,7 @@ def sampled_files(derivation: Derivation, result: SampledResult) -> dict[str, by
     name = d.spec.name
     run = result.runs[0]
     table = np.column_stack([run.t, run.states.T, run.inputs.T, run.outputs.T])
-    header = ["t", *d.state_names, *(f"u_{n}" for n in d.spec.inputs)]
+    header = ["t", *d.closed_loop.state_names, *(f"u_{n}" for n in d.spec.inputs)]
     header += [f"y_{n}" for n in d.spec.outputs]
     text = io.StringIO()
     text.write(",".join(header) + "\n")
@@ -101,7 +101,7 @@ def sampled_files(derivation: Derivation, result: SampledResult) -> dict[str, by
             f"inputs{index}": each.inputs,
             f"y{index}": each.outputs,
         }
-    np.savez(arrays, state_names=np.array(d.state_names), **saved)
+    np.savez(arrays, state_names=np.array(d.closed_loop.state_names), **saved)
     files = {
         f"{name}_sampled.csv": text.getvalue().encode("utf-8"),
         f"{name}_sampled.npz": arrays.getvalue(),

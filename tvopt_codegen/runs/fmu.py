@@ -128,7 +128,7 @@ def reference_start(kernels: KernelSet) -> tuple[float, ...]:
     defaults = dict(zip(model.params, model.defaults, strict=True))
     return tuple(
         float(term.xreplace(defaults).xreplace({model.t: 0}))
-        for row in calculus.nominal_jets(model, d.reference_order)
+        for row in calculus.nominal_jets(model, d.jet.reference_order)
         for term in row
     )
 

@@ -34,16 +34,19 @@ def _law_line(d: Derivation) -> str:
     read as one letter with two meanings, so the line names the extended plant's input
     instead.
     """
-    trajectory = f"y_imp^({d.k}), the implicit trajectory's {_ordinal(d.k)} derivative"
-    if d.uniform:
+    trajectory = (
+        f"y_imp^({d.dynamics.k}), the implicit trajectory's {_ordinal(d.dynamics.k)} derivative"
+    )
+    if d.dynamics.uniform:
         v, law = trajectory, "uniform relative degree theorem"
     else:
         v = f"the padding chains' output, driven by {trajectory}"
         law = "non-uniform theorem"
-    if d.extension.counts:
+    if d.linearization.extension.counts:
         lhs = "w"
         ext = (
-            f"; w = ({', '.join(d.extension.inputs)}), the extended plant's inputs (an "
+            f"; w = ({', '.join(d.linearization.extension.inputs)}), "
+            "the extended plant's inputs (an "
             "integrated input's last derivative, or the input itself)"
         )
     else:
@@ -82,50 +85,64 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
         lines.append(
             f"  mass-matrix form: M ({size} x {size}) factored at run time (LDL^T), never inverted"
         )
-    if d.extension.counts:
-        added = "; ".join(f"{name} integrated {count}x" for name, count in d.extension.counts)
-        lines.append(
-            f"  extension: {added}; new states {', '.join(d.extension.states)}; "
-            f"inputs of the extended plant {', '.join(d.extension.inputs)}"
+    if d.linearization.extension.counts:
+        added = "; ".join(
+            f"{name} integrated {count}x" for name, count in d.linearization.extension.counts
         )
-        if d.extension_search:
+        lines.append(
+            f"  extension: {added}; new states {', '.join(d.linearization.extension.states)}; "
+            f"inputs of the extended plant {', '.join(d.linearization.extension.inputs)}"
+        )
+        if d.linearization.extension_search:
             lines.append(
                 "  extension found by the automatic search after trying: "
-                + "; ".join(d.extension_search)
+                + "; ".join(d.linearization.extension_search)
             )
     else:
         lines.append("  extension: none (static feedback linearization)")
-    degrees = ", ".join(f"{o}: {r}" for o, r in zip(spec.outputs, d.relative_degree, strict=True))
-    kind = "uniform" if d.uniform else "non-uniform, padded"
-    lines.append(
-        f"  relative degree: {degrees}  (sum {sum(d.relative_degree)} = n; {kind}; k = {d.k})"
+    degrees = ", ".join(
+        f"{o}: {r}" for o, r in zip(spec.outputs, d.linearization.relative_degree, strict=True)
     )
-    pads = [name for chain in d.padding for name in chain]
+    kind = "uniform" if d.dynamics.uniform else "non-uniform, padded"
+    lines.append(
+        f"  relative degree: {degrees}  "
+        f"(sum {sum(d.linearization.relative_degree)} = n; {kind}; k = {d.dynamics.k})"
+    )
+    pads = [name for chain in d.closed_loop.padding for name in chain]
     lines.append(f"  padding states: {', '.join(pads) if pads else 'none'}")
-    lines.append(f"  closed-loop state: {', '.join(d.state_names)}")
-    if d.det_R is not None:
+    lines.append(f"  closed-loop state: {', '.join(d.closed_loop.state_names)}")
+    if d.decoupling.det_R is not None:
         where = (
-            f"singular where {'; '.join(d.singular_set)}" if d.singular_set else "never singular"
+            f"singular where {'; '.join(d.decoupling.singular_set)}"
+            if d.decoupling.singular_set
+            else "never singular"
         )
-        what = d.det_R_note or "det R"  # det(J_h B) = det R det M for a mass-matrix plant
-        lines.append(f"  {what.split(' = ')[0]} = {sp.sstr(d.det_R)}; {where}")
+        what = (
+            d.decoupling.det_R_note or "det R"
+        )  # det(J_h B) = det R det M for a mass-matrix plant
+        lines.append(f"  {what.split(' = ')[0]} = {sp.sstr(d.decoupling.det_R)}; {where}")
     else:
-        lines.append(f"  det R: {d.det_R_note}; singularity is checked at run time by pivoting")
-    causes = undefined_causes(law_expressions(d.R, d.p, d.model.mechanics), set(d.extension.x))
+        lines.append(
+            f"  det R: {d.decoupling.det_R_note}; singularity is checked at run time by pivoting"
+        )
+    causes = undefined_causes(
+        law_expressions(d.linearization.R, d.decoupling.p, d.model.mechanics),
+        set(d.linearization.extension.x),
+    )
     if causes:
         where = "; ".join(f"{condition} ({cause})" for condition, cause in causes)
         lines.append(f"  R or p undefined where {where}")
     lines.append(
-        f"  f0: strongly convex ({d.convexity.method}, m_f ~ "
-        f"{_number(d.convexity.m_f)} over {d.convexity.points} point(s))"
+        f"  f0: strongly convex ({d.objective.convexity.method}, m_f ~ "
+        f"{_number(d.objective.convexity.m_f)} over {d.objective.convexity.points} point(s))"
     )
     lines.append(
         "  error dynamics: poles "
-        + ", ".join(_pole(p) for p in d.eigenvalues)
+        + ", ".join(_pole(p) for p in d.dynamics.eigenvalues)
         + "; a = ("
-        + ", ".join(_number(a) for a in d.coefficients)
+        + ", ".join(_number(a) for a in d.dynamics.coefficients)
         + ")"
-        + f"; decay rate alpha = {_number(d.decay_rate)}"
+        + f"; decay rate alpha = {_number(d.dynamics.decay_rate)}"
     )
     lines.append(_law_line(d))
     if d.model.constraints:
@@ -136,20 +153,21 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
         )
     if d.model.equalities:
         listed = "; ".join(f"{c.name}: {c.text}" for c in d.model.equalities)
-        chains = ", ".join(chain[0] for chain in d.multiplier_states)
+        chains = ", ".join(chain[0] for chain in d.closed_loop.multiplier_states)
         lines.append(
             f"  equality constraints: {listed}; kept by the KKT system of L = f0 + nu^T a over "
-            f"(y, nu): the multipliers and their first {d.k - 1} derivative(s) are controller "
-            f"states ({chains}, ...), E = col(F, ..., F^({d.k - 1})) with "
+            f"(y, nu): the multipliers and their first {d.dynamics.k - 1} derivative(s) "
+            "are controller "
+            f"states ({chains}, ...), E = col(F, ..., F^({d.dynamics.k - 1})) with "
             "F = [grad f0 + J_a^T nu; a]"
         )
-        where = "; ".join(d.dependent_set) if d.dependent_set else "nowhere"
+        where = "; ".join(d.decoupling.dependent_set) if d.decoupling.dependent_set else "nowhere"
         lines.append(f"  KKT matrix singular (the equalities' gradients dependent) where: {where}")
     if d.model.references and spec.estimator is not None:
         lines.append(
             f"  references: {', '.join(spec.references)}; every call takes their jets to "
-            f"derivative q = {d.reference_order} (refs, shape ({len(spec.references)}, "
-            f"{d.reference_order + 1})); from samples: the {spec.estimator.kind} differentiator"
+            f"derivative q = {d.jet.reference_order} (refs, shape ({len(spec.references)}, "
+            f"{d.jet.reference_order + 1})); from samples: the {spec.estimator.kind} differentiator"
         )
     if kernels is not None:
         ops = ", ".join(f"{k.name} {k.ops}" for k in kernels.kernels)

@@ -66,7 +66,7 @@ def _target(
                 params,
                 true,
                 outputs,
-                quadratic=d.convexity.quadratic,
+                quadratic=d.objective.convexity.quadratic,
             ),
             None,
             None,
@@ -79,7 +79,7 @@ def _target(
         for q, v in zip(d.model.params, d.model.defaults, strict=True)
     }
     eq = equalities(d.model, values)
-    rows = [d.state_names.index(chain[0]) for chain in d.multiplier_states]
+    rows = [d.closed_loop.state_names.index(chain[0]) for chain in d.closed_loop.multiplier_states]
     multipliers = states[rows]
     start = np.concatenate([outputs[:, -1], multipliers[:, -1]])
     kkt = kkt_path(controller, eq, ts, start, params, true)
@@ -160,9 +160,9 @@ def augmented_error(d: Derivation, states: np.ndarray, flat: np.ndarray) -> np.n
     With integral action the controller's integrals of ``grad f0`` come first: that is
     the state of ``col(z_I, E)' = H_I col(z_I, E)`` (``states``: one column per time).
     """
-    if not d.integral_states:
+    if not d.closed_loop.integral_states:
         return flat
-    rows = [d.state_names.index(name) for name in d.integral_states]
+    rows = [d.closed_loop.state_names.index(name) for name in d.closed_loop.integral_states]
     return np.hstack([states[rows].T, flat])
 
 
@@ -199,7 +199,7 @@ def _certify(
 
     flat = augmented_error(d, states, E.reshape(len(ts), -1))
     norm0 = float(np.linalg.norm(flat[0]))
-    predicted = hurwitz.flow(d.coefficients, d.n_kkt, flat[0], ts)
+    predicted = hurwitz.flow(d.dynamics.coefficients, d.jet.n_kkt, flat[0], ts)
     deviation = float(np.max(np.linalg.norm(flat - predicted, axis=1))) / max(norm0, 1e-300)
     estimated = references is not None and references.estimated
     disturbance = iss_ratio = iss_final = float("nan")
@@ -218,7 +218,7 @@ def _certify(
         )
 
     # The theorem's constants were computed with the derivation (the report shows them too).
-    alpha, c = d.certified_rate, d.transient_constant
+    alpha, c = d.dynamics.certified_rate, d.dynamics.transient_constant
     m_f = _modulus(
         d, controller, params, ts, outputs, target, (eq, multipliers, kkt), true, failures
     )
@@ -253,7 +253,7 @@ def _certify(
         E=E,
         E_predicted=predicted[:, flat.shape[1] - E[0].size :].reshape(E.shape),
         alpha=alpha,
-        alpha_exact=d.certified_rate_exact,
+        alpha_exact=d.dynamics.certified_rate_exact,
         c=c,
         m_f=m_f,
         C=C,
@@ -354,7 +354,7 @@ def _input_to_state(
     ``alpha`` and ``c`` of ``|expm(H t)| <= c e^{-alpha t}``: the disturbance fades from it
     as it fades from E (the estimator's start does not weigh on the end of the run).
     """
-    H = hurwitz.error_matrix(d.coefficients, d.n_kkt)
+    H = hurwitz.error_matrix(d.dynamics.coefficients, d.jet.n_kkt)
     horizon = float(ts[-1])
     fine = np.linspace(0.0, horizon, 10 * (len(ts) - 1) + 1)
     step = 1e-6 * max(1.0, horizon)
@@ -369,7 +369,7 @@ def _input_to_state(
     rates = np.array([(error_at(t + step) - error_at(t - step)) / (2 * step) for t in fine])
     d_norm = np.linalg.norm(rates - errors @ H.T, axis=1)
     d_norm[0], d_norm[-1] = d_norm[1], d_norm[-2]  # one-sided there: take the neighbours'
-    alpha, c = d.certified_rate, d.transient_constant
+    alpha, c = d.dynamics.certified_rate, d.dynamics.transient_constant
     # int_0^t e^{-alpha (t - s)} |d(s)| ds by the trapezoid rule, recursively.
     forced = np.zeros(len(fine))
     for i in range(1, len(fine)):
@@ -388,7 +388,7 @@ def format_certificate(derivation: Derivation, result: Result) -> str:
     d, r = derivation, result
     if r.references is not None and r.references.estimated:
         return _format_estimated(d, r)
-    integral = bool(d.integral_states)
+    integral = bool(d.closed_loop.integral_states)
     error0 = float(np.linalg.norm(augmented_error(d, r.states[:, :1], r.E[:1].reshape(1, -1))))
     lines = [
         f"{d.spec.name}: closed loop over [0, {r.t[-1]:g}] with {r.options.method} "

@@ -91,7 +91,7 @@ def exact_jets(derivation: Derivation, params: dict[str, float]) -> Callable[[fl
     fixed = {q: sp.Float(v) for q, v in values.items()}
     rows = [
         [term.xreplace(fixed) for term in row]
-        for row in calculus.nominal_jets(model, d.reference_order)
+        for row in calculus.nominal_jets(model, d.jet.reference_order)
     ]
     function = sp.lambdify(model.t, rows, "math")
 

@@ -196,8 +196,8 @@ def resolve_options(
         For an unknown state or parameter name, or a non-positive horizon (the field
         is the command-line option).
     """
-    names = derivation.state_names
-    state = dict(zip(names, derivation.initial_state, strict=True))
+    names = derivation.closed_loop.state_names
+    state = dict(zip(names, derivation.closed_loop.initial_state, strict=True))
     for key, value in (initial or {}).items():
         if key not in state:
             raise SpecError(
@@ -229,7 +229,7 @@ def resolve_options(
 def columns(derivation: Derivation) -> list[str]:
     """Column names of the trajectory table."""
     d = derivation
-    names = ["t", *d.state_names, *(f"u_{n}" for n in d.spec.inputs)]
+    names = ["t", *d.closed_loop.state_names, *(f"u_{n}" for n in d.spec.inputs)]
     names += [*(f"y_{n}" for n in d.spec.outputs), *(f"ystar_{n}" for n in d.spec.outputs)]
-    names += [f"E{j}_{n}" for j in range(d.k) for n in d.spec.outputs]
+    names += [f"E{j}_{n}" for j in range(d.dynamics.k) for n in d.spec.outputs]
     return names

@@ -195,7 +195,9 @@ def _refuse_undefined(
 
 def _state_text(d: Derivation, s: np.ndarray, limit: int = 200) -> str:
     """``name = value, ...`` of a closed-loop state, clipped to ``limit`` characters."""
-    text = ", ".join(f"{name} = {value:.6g}" for name, value in zip(d.state_names, s, strict=False))
+    text = ", ".join(
+        f"{name} = {value:.6g}" for name, value in zip(d.closed_loop.state_names, s, strict=False)
+    )
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
@@ -213,11 +215,11 @@ def decoupling_determinant(
     model = d.model
     values = {p.name: float(v) for p, v in zip(model.params, model.defaults, strict=True)}
     values |= {name: float(v) for name, v in params.items()}
-    args = [model.t, *d.states, *model.params]
+    args = [model.t, *d.closed_loop.states, *model.params]
     try:
         mech = model.mechanics
         if mech is None:
-            entries = sp.lambdify([args], d.R, modules="numpy")
+            entries = sp.lambdify([args], d.linearization.R, modules="numpy")
 
             def matrix(t: float, s: np.ndarray, p: list[float]) -> np.ndarray:
                 return np.asarray(entries([t, *s, *p]), dtype=float)
@@ -226,7 +228,7 @@ def decoupling_determinant(
             gains = [w for row in mech.gains for w in row]
             mass = sp.lambdify([args], sp.Matrix(mech.mass_matrix), modules="numpy")
             inputs = sp.lambdify([args], sp.Matrix(mech.input_matrix), modules="numpy")
-            entries = sp.lambdify([[*args, *gains]], d.R, modules="numpy")
+            entries = sp.lambdify([[*args, *gains]], d.linearization.R, modules="numpy")
 
             def matrix(t: float, s: np.ndarray, p: list[float]) -> np.ndarray:
                 point = [t, *s, *p]
@@ -241,7 +243,9 @@ def decoupling_determinant(
             with np.errstate(all="ignore"):
                 return float(np.linalg.det(matrix(t, np.asarray(s, dtype=float), p)))
 
-        det(0.0, np.asarray(d.initial_state, dtype=float))  # fails here, not in a message
+        det(
+            0.0, np.asarray(d.closed_loop.initial_state, dtype=float)
+        )  # fails here, not in a message
     except Exception:  # noqa: BLE001 - an R this cannot evaluate: the caller says less
         return None
     return det
@@ -251,7 +255,7 @@ def _singular_message(d: Derivation, options: Options, t: float, s: np.ndarray, 
     """``det R -> 0 at t = ... s (det R = ...), state: ...``: one line."""
     det = decoupling_determinant(d, options.params)
     value = det(t, s) if det is not None else math.nan
-    where = f" ({d.singular_text})" if d.singular_text else ""
+    where = f" ({d.decoupling.singular_text})" if d.decoupling.singular_text else ""
     return (
         f"det R -> 0 at t = {t:.6g} s (det R = {value:.3g}; {why}): the run reached the "
         f"singular set of R{where}, where the law is undefined; state: {_state_text(d, s)}"
@@ -290,7 +294,7 @@ def bumpless_start(
     :func:`~tvopt_codegen.maths.hurwitz.integral_split`), as the generated Controller starts
     when no ``z0`` is given. Unchanged without integral action.
     """
-    if not d.integral_states:
+    if not d.closed_loop.integral_states:
         return options
     s0 = np.array(options.initial_state)
     extra = {} if references is None else {"refs": references.jets(0.0)}
@@ -303,9 +307,9 @@ def bumpless_start(
         return options
     start = np.asarray(d.dynamics.bumpless) @ error
     state = list(options.initial_state)
-    for name, value in zip(d.integral_states, start, strict=True):
+    for name, value in zip(d.closed_loop.integral_states, start, strict=True):
         if name not in options.given:
-            state[d.state_names.index(name)] = float(value)
+            state[d.closed_loop.state_names.index(name)] = float(value)
     return dataclasses.replace(options, initial_state=tuple(state))
 
 
@@ -379,7 +383,8 @@ def _check_initial_state(
         if not hasattr(exc, "status"):
             raise
         where = ", ".join(
-            f"{name} = {value:.6g}" for name, value in zip(d.state_names, s0, strict=True)
+            f"{name} = {value:.6g}"
+            for name, value in zip(d.closed_loop.state_names, s0, strict=True)
         )
         if options.params:
             where += "; parameters " + ", ".join(

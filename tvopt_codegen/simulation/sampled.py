@@ -177,9 +177,11 @@ def _sampled_input_to_state(
     errors = augmented_error(d, states, np.array(rows))
     h = float(times[1] - times[0])
     # expm(H h) = expm(companion(a) h) kron I_m: only the k x k exponential is computed.
-    step = np.kron(hurwitz.exponential(hurwitz.companion(d.coefficients) * h), np.eye(d.n_kkt))
+    step = np.kron(
+        hurwitz.exponential(hurwitz.companion(d.dynamics.coefficients) * h), np.eye(d.jet.n_kkt)
+    )
     w = np.linalg.norm(errors[1:] - errors[:-1] @ step.T, axis=1)
-    alpha, c = d.certified_rate, d.transient_constant
+    alpha, c = d.dynamics.certified_rate, d.dynamics.transient_constant
     decay = math.exp(-alpha * h)
     bound = np.empty(len(times))
     bound[0] = c * float(np.linalg.norm(errors[0]))
@@ -438,7 +440,7 @@ def format_sampled(derivation: Derivation, result: SampledResult) -> str:
             f"    on a plant that is not the model ({mismatch}): the continuous run is the "
             "nominal theorem's, the sampled ones are the mismatched plant's"
         )
-    error = "col(z_I, E)" if derivation.integral_states else "E"
+    error = "col(z_I, E)" if derivation.closed_loop.integral_states else "E"
     for run in result.runs:
         saturated = f"; saturated {run.saturated_time:.3g} s" if run.saturated_time else ""
         lines.append(

@@ -25,6 +25,14 @@ if TYPE_CHECKING:
     from tvopt_codegen.spec import Spec
 
 
+class Chains(Protocol):
+    """What the table reads of the closed-loop stage: its padding chains."""
+
+    @property
+    def padding(self) -> Sequence[Sequence[str]]:
+        """The padding chains' state names, per output (empty where none)."""
+
+
 class Derived(Protocol):
     """What the table reads of a derivation: its spec and its padding chains.
 
@@ -37,8 +45,8 @@ class Derived(Protocol):
         """The spec derived."""
 
     @property
-    def padding(self) -> Sequence[Sequence[str]]:
-        """The padding chains' state names, per output (empty where none)."""
+    def closed_loop(self) -> Chains:
+        """The closed-loop stage (``Derivation.closed_loop``)."""
 
 
 #: A feature: an axis of the matrix and one of its values.
@@ -313,7 +321,7 @@ def spec_features(spec: Spec) -> dict[str, str]:
 def derivation_features(derivation: Derived) -> dict[str, str]:
     """Every axis but the target, padding included (from the derivation's chains)."""
     found = spec_features(derivation.spec)
-    found["padding"] = "yes" if any(derivation.padding) else "no"
+    found["padding"] = "yes" if any(derivation.closed_loop.padding) else "no"
     return found
 
 

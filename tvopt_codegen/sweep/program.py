@@ -150,7 +150,9 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
     context |= {
         "equalities": None if equalities is None else print_kernel(equalities, backend.printer()),
         "equality_count": len(d.model.equalities),
-        "multiplier_rows": [d.state_names.index(chain[0]) for chain in d.multiplier_states],
+        "multiplier_rows": [
+            d.closed_loop.state_names.index(chain[0]) for chain in d.closed_loop.multiplier_states
+        ],
         "tail": TAIL,
         "decoupling": print_kernel(checks.decoupling, backend.printer()),
         "constraints": None
@@ -186,26 +188,28 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
         name=name,
         key=digest.hexdigest(),
         sources=sources,
-        state_names=tuple(d.state_names),
+        state_names=tuple(d.closed_loop.state_names),
         plant_state_names=tuple(d.spec.states),
         input_names=tuple(d.spec.inputs),
         output_names=tuple(d.spec.outputs),
         param_names=tuple(n for n, _ in d.spec.parameters),
         defaults=tuple(float(v) for _, v in d.spec.parameters),
-        initial_state=tuple(float(v) for v in d.initial_state),
-        coefficients=tuple(float(a) for a in d.coefficients),
-        alpha=float(d.certified_rate),
-        c=float(d.transient_constant),
+        initial_state=tuple(float(v) for v in d.closed_loop.initial_state),
+        coefficients=tuple(float(a) for a in d.dynamics.coefficients),
+        alpha=float(d.dynamics.certified_rate),
+        c=float(d.dynamics.transient_constant),
         constraints=tuple(c.name for c in d.model.constraints),
         equalities=tuple(c.name for c in d.model.equalities),
-        n_kkt=d.n_kkt,
+        n_kkt=d.jet.n_kkt,
         limits=tuple(
             (limit.input, limit.low, limit.high)
             for limit in d.spec.limits
             if math.isfinite(limit.low) or math.isfinite(limit.high)
         ),
         observer=d.spec.robust.observer is not None,
-        integral_rows=tuple(d.state_names.index(name) for name in d.integral_states),
+        integral_rows=tuple(
+            d.closed_loop.state_names.index(name) for name in d.closed_loop.integral_states
+        ),
         bumpless=tuple(float(b) for b in d.dynamics.bumpless),
     )
 

@@ -46,7 +46,11 @@ def _context(kernels: KernelSet) -> dict[str, Any]:
         # The CPython entry point: its module name, and the size of its largest single
         # result (rhs, optimality error or Hessian).
         "extension_name": f"_{d.spec.name}_ext",
-        "result_max": max(len(d.state_names), d.k * len(d.spec.outputs), len(d.spec.outputs) ** 2),
+        "result_max": max(
+            len(d.closed_loop.state_names),
+            d.dynamics.k * len(d.spec.outputs),
+            len(d.spec.outputs) ** 2,
+        ),
     }
 
 
