@@ -121,7 +121,17 @@ def _agree(ours: sp.Expr, read: sp.Expr, values: dict[str, float]) -> None:
         b = np.broadcast_to(np.asarray(_numpy(symbols, read)(*point), dtype=complex), (6,))
     both = np.isfinite(a) & np.isfinite(b)
     assert np.array_equal(np.isfinite(a), np.isfinite(b)), (ours, read)
-    np.testing.assert_allclose(b[both], a[both], rtol=1e-12, atol=1e-12)
+    # An ill-conditioned expression (sin(1.25e15 cot(q)) turns the last bit of cot(q)
+    # against 1/tan(q) into a different value) is equal only in exact arithmetic: where
+    # the doubles differ, both are evaluated again to 60 digits at the same point.
+    apart = both & ~np.isclose(b, a, rtol=1e-12, atol=1e-12)
+    for i in np.flatnonzero(apart):
+        at = {
+            s: sp.Float(float(np.broadcast_to(v, (6,))[i]), 60)
+            for s, v in zip(symbols, point, strict=True)
+        }
+        exact_a, exact_b = complex(ours.evalf(60, subs=at)), complex(read.evalf(60, subs=at))
+        assert abs(exact_b - exact_a) <= 1e-12 * max(1.0, abs(exact_a)), (i, exact_a, exact_b)
 
 
 def _read_back(spec: dict[str, Any], tmp_path: Path) -> Spec:
@@ -665,3 +675,16 @@ def test_a_function_of_an_infinity_is_refused_as_infinite() -> None:
     equations = Equations(sp.Matrix([[sp.Integer(2)]]), sp.Matrix([forcing]), [_q])
     with pytest.raises(SpecError, match="a range from an infinite or undefined argument"):
         spec_from_sympy(equations, {"y": _q}, "(y - sin(t))**2", {"k": 1.5}, name="robot")
+
+
+def test_read_back_equal_means_equal_in_exact_arithmetic() -> None:
+    """sin(1.25e15 cot(q)) and sin(1.25e15 / tan(q)) differ as doubles (the found example
+    of the test above) and agree to 60 digits; a change of 1e-9 fails either way."""
+    q = sp.Symbol("q", real=True)
+    _agree(sp.sin(sp.Float(1.25e15) * sp.cot(q)), sp.sin(sp.Float(1.25e15) / sp.tan(q)), {})
+    with pytest.raises(AssertionError):
+        _agree(
+            sp.sin(sp.Float(1.25e15) * sp.cot(q)), sp.sin(sp.Float(1.25e15) / sp.tan(q)) + 1e-9, {}
+        )
+    with pytest.raises(AssertionError):
+        _agree(sp.sin(q), sp.sin(q) + sp.Float(1e-9), {})
