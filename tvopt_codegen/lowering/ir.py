@@ -34,6 +34,7 @@ from tvopt_codegen.cse import Outputs, make_kernel, make_kernels, split_invarian
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.derivation.calculus import equality_calculus
 from tvopt_codegen.derivation.law import symbols
+from tvopt_codegen.derivation.model import Model
 from tvopt_codegen.lowering.kernel import Arg, Kernel, KernelSet, Output
 from tvopt_codegen.lowering.plan import Plan, law_plan
 from tvopt_codegen.maths.jet import Assignment, atomize, fresh_symbols
@@ -210,9 +211,7 @@ def _jet_kernels(
     if d.model.constraints:
         # Each inequality's margin s(t) - g_i(y, t), which the plan's check_margin reads:
         # the law sees the barrier only through 1/(s - g_i), finite past it too.
-        model = d.model
-        margins = [model.slack - sp.sympify(c.g) for c in model.constraints]
-        shared.append(("margin", (len(margins),), margins, "s(t) - g_i(y, t), each positive"))
+        shared.append(_margin_output(d.model))
     if mass is not None:
         # M is factored where R and p need it; the plan's check_pd reads the pivots.
         # Before the observer's f and G: the order of the plan's results (law_plan),
@@ -388,6 +387,15 @@ def _objective_kernels(
     )
 
 
+def _margin_output(model: Model) -> tuple[str, tuple[int, ...], list[sp.Expr], str]:
+    """The output ``margin``: each inequality's ``s(t) - g_i(y, t)``.
+
+    The law's jet and the kernels of the public functions of B return it alike.
+    """
+    margins = [model.slack - sp.sympify(c.g) for c in model.constraints]
+    return ("margin", (len(margins),), margins, "s(t) - g_i(y, t), each positive")
+
+
 def _margin_kernels(
     d: Derivation, args: _Args, programs: dict[str, list[Assignment]], kernel: _Make
 ) -> list[Kernel]:
@@ -402,8 +410,7 @@ def _margin_kernels(
     model = d.model
     if not model.constraints:
         return []
-    margins = [model.slack - sp.sympify(c.g) for c in model.constraints]
-    output = [("margin", (len(margins),), margins, "s(t) - g_i(y, t), each positive")]
+    output = [_margin_output(model)]
     return [
         kernel(
             "margin_state",
