@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import sympy as sp
 
+from tvopt_codegen.derivation.rejection import Rejection, observer_field
 from tvopt_codegen.maths.lie import Extension, connected_groups, control_affine, nonzero_entries
 
 
@@ -76,6 +77,11 @@ class Law:
         each, extension chains first. A chain's last state is driven by an entry of
         ``w`` (extension) or of ``z`` (padding): its entry of :attr:`closed_loop`. Held
         constant over a sampling interval, the chain moves by a finite Taylor polynomial.
+        The extended-state observer's states are no chain: the sampled controller
+        moves them by the observer's own discrete step.
+    lumped : tuple of sympy.Expr
+        Per output, the lumped disturbance the law cancels, ``R w = v - p - lumped``:
+        the extended-state observer's ``d_hat`` state, else 0.
     """
 
     a: tuple[sp.Symbol, ...]
@@ -91,6 +97,7 @@ class Law:
     closed_loop: tuple[sp.Expr, ...]
     plant_input: tuple[sp.Expr, ...]
     chains: tuple[tuple[int, int], ...]
+    lumped: tuple[sp.Expr, ...] = ()
 
     @property
     def constant_hessian(self) -> bool:
@@ -136,6 +143,8 @@ def control_law(
     state_names: Sequence[str],
     multipliers: Sequence[Sequence[str]] = (),
     integral: Sequence[str] = (),
+    eso: Rejection | None = None,
+    outputs: Sequence[sp.Expr] = (),
 ) -> Law:
     """Write the law down from the derived quantities.
 
@@ -165,6 +174,11 @@ def control_law(
         With integral action, the states ``z_I`` holding the integral of each entry of
         ``grad f0``: there are then k + 1 coefficients, ``a_0`` multiplies ``z_I`` and
         ``a_{j+1}`` multiplies ``grad^(j) f0``, so that ``col(z_I, E)' = H_I col(z_I, E)``.
+    eso : Rejection, optional
+        The extended-state observer: its states' rows join the field (after the
+        multipliers', before the integrals') and its ``d_hat`` is cancelled.
+    outputs : sequence of sympy.Expr, optional
+        With ``eso``, ``h(x)``: what the observer measures.
 
     Returns
     -------
@@ -208,6 +222,11 @@ def control_law(
     for index, chain in enumerate(multipliers):
         for j in range(len(chain)):
             field.append(state_of[chain[j + 1]] if j + 1 < len(chain) else z[m + index])
+    lumped: tuple[sp.Expr, ...] = tuple(sp.Integer(0) for _ in range(m))
+    if eso is not None:
+        estimates = [[state_of[name] for name in chain] for chain in eso.states]
+        field += observer_field(eso, estimates, outputs, v)
+        lumped = tuple(chain[-1] for chain in estimates)
     # The integral states last: each integrates its entry of grad f0 (of the KKT map).
     field += [grad_jet[0][i] for i in range(len(integral))]
     plant_input = tuple(u if u.name in ext.states else w[j] for j, u in enumerate(plant_inputs))
@@ -216,10 +235,13 @@ def control_law(
     for _, count in ext.counts:
         chains.append((start, count))
         start += count
-    for chain in (*padding, *multipliers, *((name,) for name in integral)):
+    for chain in (*padding, *multipliers):
         if chain:
             chains.append((start, len(chain)))
             start += len(chain)
+    if eso is not None:
+        start += len(eso.names)
+    chains += [(start + j, 1) for j in range(len(integral))]
     return Law(
         a=a,
         w=w,
@@ -234,4 +256,5 @@ def control_law(
         closed_loop=tuple(field),
         plant_input=plant_input,
         chains=tuple(chains),
+        lumped=lumped,
     )

@@ -24,6 +24,7 @@ from tvopt_codegen.derivation.meter import (
     tree_size,
 )
 from tvopt_codegen.derivation.model import Model
+from tvopt_codegen.derivation.rejection import state_names
 from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.maths import hurwitz
 from tvopt_codegen.maths.lie import (
@@ -453,6 +454,8 @@ class _States:
     initial: tuple[float, ...]
     multipliers: tuple[tuple[str, ...], ...] = ()
     integral: tuple[str, ...] = ()
+    #: With ``[robust.eso]``, each output's observer states (estimates, then d_hat).
+    eso: tuple[tuple[str, ...], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -631,8 +634,11 @@ def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:
             *(f"int_{name}" for name in spec.outputs),
             *(f"int_nu_{c.name}" for c in spec.equalities),
         )
+    # The extended-state observer's estimates sit before the integrals, which stay last.
+    eso = state_names(spec.outputs, lin.degrees) if spec.robust.eso is not None else ()
     generated = (
         ("system.outputs", "padding state", pad_names),
+        ("robust.eso", "observer state", tuple(n for chain in eso for n in chain)),
         (
             "constraints",
             "multiplier name",
@@ -655,6 +661,7 @@ def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:
         *ext.states,
         *pad_names,
         *(n for chain in multipliers for n in chain),
+        *(n for chain in eso for n in chain),
         *integral,
     )
     # With a searched extension the user cannot know its states in advance: only the
@@ -668,6 +675,7 @@ def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:
         initial,
         multipliers,
         integral,
+        eso,
     )
 
 

@@ -274,9 +274,16 @@ def _gradient_jet(
         signal_chains.append(tuple(derivatives))
     state_of = dict(zip(states.names, states.symbols, strict=True))
     degrees = lin.degrees
+    # With the extended-state observer the law reads its estimates of y^(j), j < r_i,
+    # where it read Phi(x): under mismatch L_f^j h is not y^(j).
+    below = (
+        [[state_of[name] for name in chain[:-1]] for chain in states.eso]
+        if states.eso
+        else [lin.lie[i][: degrees[i]] for i in range(len(model.y))]
+    )
     y_values = tuple(
         tuple(
-            lin.lie[i][j] if j < degrees[i] else state_of[states.padding[i][j - degrees[i]]]
+            below[i][j] if j < degrees[i] else state_of[states.padding[i][j - degrees[i]]]
             for j in range(k)
         )
         for i in range(len(model.y))

@@ -6,6 +6,7 @@ reads.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -48,6 +49,7 @@ from tvopt_codegen.derivation.record import (
     LinearizationStage,
     ObjectiveStage,
 )
+from tvopt_codegen.derivation.rejection import Rejection, initial_estimates, rejection
 from tvopt_codegen.errors import AssumptionError
 from tvopt_codegen.limits import Budget
 from tvopt_codegen.maths import hurwitz
@@ -151,6 +153,10 @@ def _derive(spec: Spec, meter: _Meter) -> Derivation:
     )
     clock.mark("objective")
     say("gradient jet")
+    eso = None
+    if spec.robust.eso is not None:
+        eso = rejection(spec.robust.eso, lin.degrees, spec.outputs)
+        states = _observer_start(spec, model, lin, states)
     jet = _gradient_jet(model, k, kkt, lin, states, names, meter)
     clock.mark("gradient jet")
     say("error bound")
@@ -171,6 +177,8 @@ def _derive(spec: Spec, meter: _Meter) -> Derivation:
         state_names=states.names,
         multipliers=states.multipliers,
         integral=states.integral,
+        eso=eso,
+        outputs=tuple(model.h),
     )
     if spec.estimator is not None:
         try:
@@ -181,13 +189,34 @@ def _derive(spec: Spec, meter: _Meter) -> Derivation:
     return _record(
         spec,
         model,
-        _Stages(lin, dynamics, states, decoupling, objective, kkt, jet),
+        _Stages(lin, dynamics, states, decoupling, objective, kkt, jet, eso),
         law,
         warnings,
         (rate, rate_exact, constant),
         unextended,
         tuple(clock.marks),
     )
+
+
+def _observer_start(spec: Spec, model: Model, lin: _Linearization, states: _States) -> _States:
+    """The closed-loop start with the observer's estimates at ``Phi(x0)``, ``d_hat = 0``.
+
+    There the observer's error is zero: on the model the closed loop is the plain law's.
+    An estimate the spec's initial state gives keeps its value.
+    """
+    first = states.names.index(states.eso[0][0])
+    count = sum(len(chain) for chain in states.eso)
+    phi = [lin.lie[i][: lin.degrees[i]] for i in range(len(lin.degrees))]
+    defaults = dict(zip(model.params, model.defaults, strict=True))
+    values = initial_estimates(phi, states.symbols, states.initial, defaults, model.mechanics)
+    given = dict(spec.initial_state)
+    names = states.names[first : first + count]
+    values = tuple(
+        float(given[name]) if name in given else value
+        for name, value in zip(names, values, strict=True)
+    )
+    initial = (*states.initial[:first], *values, *states.initial[first + count :])
+    return dataclasses.replace(states, initial=initial)
 
 
 def _start_warnings(
@@ -229,6 +258,7 @@ class _Stages:
     objective: _Objective
     kkt: _Objective
     jet: _GradientJet
+    eso: Rejection | None = None
 
 
 def _record(
@@ -318,4 +348,5 @@ def _record(
         law=law,
         warnings=warnings,
         timings=timings,
+        rejection=stages.eso,
     )

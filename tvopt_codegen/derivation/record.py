@@ -10,6 +10,7 @@ import sympy as sp
 
 from tvopt_codegen.derivation.law import Law
 from tvopt_codegen.derivation.model import Model
+from tvopt_codegen.derivation.rejection import Rejection
 from tvopt_codegen.maths.jet import (
     Program,
 )
@@ -322,6 +323,9 @@ class Derivation:
         convex only near its minimiser, a singular default state), one line each.
     timings : tuple of (str, float)
         Seconds spent per derivation step.
+    rejection : Rejection or None
+        The extended-state observer (``[robust.eso]``;
+        :mod:`tvopt_codegen.derivation.rejection`), None without one.
 
     Readers name a stage's attribute by its stage (``d.closed_loop.state_names``,
     ``d.linearization.R``): the derivation forwards none of them, so each use says which
@@ -343,6 +347,7 @@ class Derivation:
     law: Law
     warnings: tuple[str, ...]
     timings: tuple[tuple[str, float], ...]
+    rejection: Rejection | None = None
 
     @functools.cached_property
     def hessian(self) -> sp.ImmutableMatrix:

@@ -33,6 +33,7 @@ import math
 from dataclasses import dataclass
 
 from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.derivation.rejection import Rejection
 
 #: A pivot of ``G^T G`` below this fraction of its largest diagonal entry: G has lost
 #: rank at the state, and the observer keeps its last estimate.
@@ -75,6 +76,11 @@ class Robustness:
         The plant inputs in blocks, ascending: two inputs share a block when their
         columns of ``G`` share a row, directly or through others. ``G^T G`` is block
         diagonal along them, so each block's least squares are solved alone.
+    eso : Rejection or None
+        The extended-state observer (``[robust.eso]``), None without one.
+    eso_rows : tuple of tuple of int
+        Per output, where the extended-state observer's states are among the
+        controller states (the estimates, then ``d_hat``).
     """
 
     low: tuple[float, ...]
@@ -87,6 +93,13 @@ class Robustness:
     integral_rows: tuple[int, ...] = ()
     observer_rows: tuple[tuple[int, ...], ...] = ()
     observer_blocks: tuple[tuple[int, ...], ...] = ()
+    eso: Rejection | None = None
+    eso_rows: tuple[tuple[int, ...], ...] = ()
+
+    @property
+    def eso_estimates(self) -> tuple[int, ...]:
+        """The rows of the observer's estimates of the outputs' derivatives (no ``d_hat``)."""
+        return tuple(row for rows in self.eso_rows for row in rows[:-1])
 
     @property
     def observed_states(self) -> tuple[int, ...]:
@@ -110,7 +123,12 @@ class Robustness:
     @property
     def active(self) -> bool:
         """Whether the controller does anything beyond the nominal law at a step."""
-        return self.limited or self.observer is not None or bool(self.integral_chains)
+        return (
+            self.limited
+            or self.observer is not None
+            or bool(self.integral_chains)
+            or self.eso is not None
+        )
 
 
 def robustness(derivation: Derivation) -> Robustness:
@@ -145,6 +163,13 @@ def robustness(derivation: Derivation) -> Robustness:
         ),
         rows,
         _blocks(rows),
+        d.rejection,
+        ()
+        if d.rejection is None
+        else tuple(
+            tuple(d.closed_loop.state_names.index(name) - first for name in chain)
+            for chain in d.rejection.states
+        ),
     )
 
 

@@ -314,12 +314,15 @@ def _input_kernels(
     # An entry of p that is a number (0 for a kinematic plant) is subtracted here as that
     # number, not read from the jet's output.
     p = [d.decoupling.p[i] if d.decoupling.p[i].is_Number else q_slots[i] for i in range(m)]
+    # With the extended-state observer, its estimate of the lumped disturbance too.
+    lumped = law.lumped or (sp.Integer(0),) * m
+    what = "v - p - d_hat" if d.rejection is not None else "v - p"
     decoupling = kernel(
         "decoupling",
-        "b = v - p, so that R w = b linearizes the plant",
+        f"b = {what}, so that R w = b linearizes the plant",
         [args.t, args.s, args.p, args.z, arg_q],
         [],
-        [("b", (m,), [law.v[i] - p[i] for i in range(m)], "v - p")],
+        [("b", (m,), [law.v[i] - p[i] - lumped[i] for i in range(m)], what)],
         args.subs,
     )
     count = len(d.closed_loop.integral_states)
@@ -459,7 +462,23 @@ def _plant_kernels(
         [("y", (len(model.h),), list(model.h), "outputs")],
         subs,
     )
-    return [plant, outputs]
+    kernels = [plant, outputs]
+    if d.rejection is not None:
+        # Where the extended-state observer starts: Phi(x), its error zero on the model.
+        rows = d.rejection.orders
+        phi = [d.linearization.lie[i][j] for i in range(len(rows)) for j in range(rows[i])]
+        names = tuple(name for chain in d.rejection.states for name in chain[:-1])
+        kernels.append(
+            kernel(
+                "eso_start",
+                "Phi(x): the extended-state observer's estimates where its error is zero",
+                [args.t, args.s, args.p],
+                mass,
+                [("eta", (len(phi),), phi, f"Phi(x) for {', '.join(names)}")],
+                args.subs,
+            )
+        )
+    return kernels
 
 
 def lower(derivation: Derivation) -> KernelSet:

@@ -25,9 +25,9 @@ class _SettingsReader(_Fields):
     """Reads ``[error_dynamics]``, ``[robust]``, ``[limits]`` and ``[simulation]``."""
 
     def read_robust(self, data: Mapping[str, Any]) -> Robust:
-        """``[robust]``: integral action and ``[robust.observer]``."""
+        """``[robust]``: integral action, ``[robust.observer]`` and ``[robust.eso]``."""
         table = self.sub(data, "robust", "robust")
-        self.table(table, "robust", {"integral", "observer"}, set())
+        self.table(table, "robust", {"integral", "observer", "eso"}, set())
         integral = self.boolean(table.get("integral", False), "robust.integral")
         bandwidth = None
         if "observer" in table:
@@ -36,7 +36,14 @@ class _SettingsReader(_Fields):
             bandwidth = self.number(observer["bandwidth"], "robust.observer.bandwidth")
             if not bandwidth > 0:
                 raise self.fail("robust.observer.bandwidth", "must be positive (rad/s)")
-        return Robust(integral, bandwidth)
+        eso = None
+        if "eso" in table:
+            block = self.sub(table, "eso", "robust.eso")
+            self.table(block, "robust.eso", {"bandwidth"}, {"bandwidth"})
+            eso = self.number(block["bandwidth"], "robust.eso.bandwidth")
+            if not eso > 0:
+                raise self.fail("robust.eso.bandwidth", "must be positive (rad/s)")
+        return Robust(integral, bandwidth, eso)
 
     def read_limits(self, data: Mapping[str, Any], inputs: tuple[str, ...]) -> tuple[Limit, ...]:
         """``[limits]``: each input's ``[low, high]`` (or ``L``: ``[-L, L]``), and rates."""

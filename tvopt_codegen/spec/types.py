@@ -35,15 +35,22 @@ class Robust:
         The bandwidth (rad/s) of the disturbance observer that estimates a matched input
         disturbance ``d`` in ``x' = f + G (u + d)`` from the measured plant state and the
         applied input; None: no observer.
+    eso : float or None
+        The bandwidth (rad/s) of the extended-state observer: per output, the output's
+        derivatives below its relative degree and the lumped disturbance at the top one,
+        estimated from the measured outputs; the law reads the estimates and cancels the
+        disturbance through ``v`` (see :mod:`tvopt_codegen.derivation.rejection`); None:
+        none.
     """
 
     integral: bool = False
     observer: float | None = None
+    eso: float | None = None
 
     @property
     def any(self) -> bool:
-        """Whether either option is on."""
-        return self.integral or self.observer is not None
+        """Whether any option is on."""
+        return self.integral or self.observer is not None or self.eso is not None
 
 
 @dataclass(frozen=True)

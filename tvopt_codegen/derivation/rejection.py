@@ -1,0 +1,206 @@
+"""The extended-state observer (``[robust.eso]``): the lumped disturbance, in the law's coordinates.
+
+The law works in the outputs' Brunovsky coordinates: output ``i`` of relative degree
+``r_i`` obeys ``y_i^(r_i) = p_i(x) + (R(x) w)_i`` on the model. On a plant that is not
+the model, and whatever row of ``x' = f + G u`` the mismatch enters, the *true*
+derivatives of ``y_i`` still form a chain of ``r_i`` integrators whose top is
+
+    y_i^(r_i) = p_i(x) + (R(x) w)_i + d_i,
+
+with one lumped term ``d_i``. The model's ``Phi(x)`` is not that chain (under mismatch
+``L_f^j h`` is not ``y^(j)``), so the observer estimates the chain from the measured
+output ``y_i = h_i(x)`` alone, with ``d_i`` as one more state (Han's extended-state
+observer, Gao's bandwidth parametrisation: every pole at ``-omega``):
+
+    eta_j' = eta_{j+1} + l_{j+1} e         (j < r_i - 1),
+    eta_{r_i-1}' = v_i + l_{r_i} e,        d_hat' = l_{r_i+1} e,
+    e = y_i - eta_0,  l_j = C(r_i + 1, j) omega^j.
+
+The law reads ``eta`` where it read ``Phi(x)`` (``y_i^(j)`` for ``j < r_i``; padding
+states above) and commands ``R w = v - p - d_hat``, so that ``y^(r) = v`` again up to
+the estimation error. On the model, started at ``eta = Phi(x)`` and ``d_hat = 0``, the
+observer's error is zero and stays zero: the closed loop is the plain law's, and so is
+its certificate (``E' = H E``).
+
+These rows are the continuous closed loop's (``simulate``, the sweep's continuous runs,
+python-control). The sampled controller runs the exact discrete twin at each step: the
+chain ``eta`` moves over the step with ``v`` held (a Taylor polynomial, exact), then
+the newest measured output corrects it with gains :func:`discrete_gains` chosen so that
+the estimation error's poles are all at ``exp(-omega h)``: the continuous design's
+poles, sampled.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import sympy as sp
+
+from tvopt_codegen.maths.numeric import Evaluator
+from tvopt_codegen.spec import Mechanics
+from tvopt_codegen.spec.implicit import implicit_values
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """The extended-state observer of one spec, as the generated controllers run it.
+
+    Attributes
+    ----------
+    bandwidth : float
+        ``omega``, rad/s: every pole of the observer's error at ``-omega``.
+    orders : tuple of int
+        Per output, its relative degree ``r_i``: the observer estimates
+        ``y_i .. y_i^(r_i - 1)`` and ``d_i``.
+    states : tuple of tuple of str
+        Per output, the controller states ``eso_<output>_0 .. eso_<output>_<r_i - 1>``
+        (the estimates of the output's derivatives), then ``eso_<output>_d`` (``d_hat``).
+    continuous : tuple of tuple of float
+        Per output, ``l_1 .. l_{r_i + 1}``, ``l_j = C(r_i + 1, j) omega^j``.
+    discrete : tuple of tuple of tuple of float
+        Per output, per gain ``j = 0 .. r_i``: the coefficients of ``gamma^1 ..
+        gamma^(r_i + 1)`` of the scaled discrete gain, ``gamma = 1 - exp(-omega h)``;
+        the gain on ``eta_j`` (``d_hat`` for ``j = r_i``) is that polynomial over
+        ``h^j``.
+    """
+
+    bandwidth: float
+    orders: tuple[int, ...]
+    states: tuple[tuple[str, ...], ...]
+    continuous: tuple[tuple[float, ...], ...]
+    discrete: tuple[tuple[tuple[float, ...], ...], ...]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Every observer state, output by output."""
+        return tuple(name for chain in self.states for name in chain)
+
+    def recovery(self, i: int) -> float:
+        """``l_{r_i} / l_{r_i + 1} = (r_i + 1) / omega``.
+
+        The sampled controller holds ``v_i`` over a step; it reads it from the closed
+        loop's rates as ``eta_{r_i-1}' - (l_{r_i} / l_{r_i+1}) d_hat'``.
+        """
+        return (self.orders[i] + 1) / self.bandwidth
+
+
+def state_names(outputs: Sequence[str], degrees: Sequence[int]) -> tuple[tuple[str, ...], ...]:
+    """The observer's states, per output: ``eso_<output>_<j>`` then ``eso_<output>_d``."""
+    return tuple(
+        (*(f"eso_{name}_{j}" for j in range(r)), f"eso_{name}_d")
+        for name, r in zip(outputs, degrees, strict=True)
+    )
+
+
+def continuous_gains(order: int, bandwidth: float) -> tuple[float, ...]:
+    """``l_1 .. l_{r+1}`` of the bandwidth parametrisation, ``(s + omega)^(r + 1)``."""
+    n = order + 1
+    return tuple(float(math.comb(n, j)) * bandwidth**j for j in range(1, n + 1))
+
+
+@functools.cache
+def discrete_gains(order: int) -> tuple[tuple[float, ...], ...]:
+    """The discrete observer's scaled gains as polynomials in ``gamma = 1 - beta``.
+
+    The chain ``(eta_0 .. eta_{r-1}, d)`` moves over a step ``h`` by ``A_d = exp(N h)``
+    (``A_d[i][j] = h^(j-i) / (j-i)!``); the newest output corrects it,
+    ``x+ = x- + L (y - x-_0)``. The error moves by ``(I - L e_0^T) A_d``; its
+    characteristic polynomial is affine in ``L``, and equating it to
+    ``(lambda - beta)^(r+1)``, ``beta = exp(-omega h)``, fixes ``L``. With
+    ``L_j = c_j(gamma) / h^j`` the equations no longer involve ``h``: ``c_j`` is solved
+    for once per order, exactly, here. In ``gamma`` (not ``beta``) the polynomials have
+    no cancellation near ``beta = 1``, where a fast sampled loop lives.
+
+    Returns
+    -------
+    tuple of tuple of float
+        Per gain ``j = 0 .. r``, the coefficients of ``gamma^1 .. gamma^(r+1)``.
+    """
+    n = order + 1
+    gamma, lam = sp.Symbol("gamma"), sp.Symbol("lambda")
+    chain = sp.Matrix(
+        n, n, lambda i, j: sp.Rational(1, math.factorial(j - i)) if j >= i else sp.Integer(0)
+    )
+    unknowns = sp.symbols(f"c0:{n}")
+    first = chain[0, :]
+    error = chain - sp.Matrix(unknowns) * first
+    polynomial = sp.Poly((lam * sp.eye(n) - error).det(method="berkowitz"), lam)
+    target = sp.Poly((lam - (1 - gamma)) ** n, lam)
+    equations = [
+        sp.expand(a - b)
+        for a, b in zip(polynomial.all_coeffs()[1:], target.all_coeffs()[1:], strict=True)
+    ]
+    solution = sp.solve(equations, unknowns, dict=True)[0]
+    out = []
+    for c in unknowns:
+        poly = sp.Poly(sp.expand(solution[c]), gamma)
+        out.append(tuple(float(poly.coeff_monomial(gamma**m)) for m in range(1, n + 1)))
+    return tuple(out)
+
+
+def rejection(bandwidth: float, degrees: Sequence[int], outputs: Sequence[str]) -> Rejection:
+    """The :class:`Rejection` of outputs of these relative degrees."""
+    return Rejection(
+        bandwidth,
+        tuple(degrees),
+        state_names(outputs, degrees),
+        tuple(continuous_gains(r, bandwidth) for r in degrees),
+        tuple(discrete_gains(r) for r in degrees),
+    )
+
+
+def observer_field(
+    rejection: Rejection,
+    estimates: Sequence[Sequence[sp.Symbol]],
+    outputs: Sequence[sp.Expr],
+    v: Sequence[sp.Expr],
+) -> list[sp.Expr]:
+    """The observer's rows of the closed-loop field, output by output.
+
+    ``estimates[i]`` are output ``i``'s observer states (the last is ``d_hat``),
+    ``outputs[i]`` is ``h_i(x)``, ``v[i]`` the law's new input.
+    """
+    field: list[sp.Expr] = []
+    for i, chain in enumerate(estimates):
+        r = rejection.orders[i]
+        gains = rejection.continuous[i]
+        error = outputs[i] - chain[0]
+        for j in range(r):
+            above = chain[j + 1] if j + 1 < r else v[i]
+            field.append(above + sp.Float(gains[j]) * error)
+        field.append(sp.Float(gains[r]) * error)
+    return field
+
+
+def initial_estimates(
+    phi: Sequence[Sequence[sp.Expr]],
+    states: Sequence[sp.Symbol],
+    initial: Sequence[float],
+    defaults: Mapping[sp.Symbol, float],
+    mechanics: Mechanics | None,
+) -> tuple[float, ...]:
+    """``Phi(x0)`` and a zero ``d_hat`` per output: where the observer's error is zero.
+
+    A value that cannot be evaluated there (the law is undefined at the start, which
+    the derivation warns about) starts at 0.
+    """
+    values: dict[sp.Symbol, Any] = {q: float(v) for q, v in defaults.items()}
+    values |= {sym: float(v) for sym, v in zip(states, initial, strict=True)}
+    if mechanics is not None:
+        with np.errstate(all="ignore"):
+            solved = implicit_values(mechanics, values)
+        values |= {sym: float(v[0]) for sym, v in solved.items()}
+    evaluate = Evaluator(values)
+    out: list[float] = []
+    for rows in phi:
+        for entry in rows:
+            with np.errstate(all="ignore"):
+                value = complex(evaluate(entry))
+            out.append(value.real if np.isfinite(value) and value.imag == 0 else 0.0)
+        out.append(0.0)
+    return tuple(out)
