@@ -77,9 +77,12 @@ test-fast: $(READY)
 test-durations: $(READY)
 	TVOPT_TEST_DURATIONS=tests/durations.json $(PY) -m pytest -n auto --dist worksteal
 
-## bench-tests: the whole suite on one core and on every core, and make test-fast, timed
+## bench-tests: the whole suite on one core and on every core, and make test-fast, timed;
+##   BASELINE=REV: make test of REV (a worktree with its own venv) and of this tree, alternated;
+##   TREE=REV measures a clean worktree of REV in place of the checkout; ROUNDS=N
 bench-tests: $(READY)
-	$(PY) benchmarks/bench_tests.py --write benchmarks/TESTS.md
+	$(PY) benchmarks/bench_tests.py $(if $(BASELINE),--baseline $(BASELINE)) \
+	  $(if $(TREE),--tree $(TREE)) $(if $(ROUNDS),--rounds $(ROUNDS)) --write benchmarks/TESTS.md
 
 ## coverage-fast: which lines of the package make test-fast runs; fails if a module is left
 ##   unexercised (tests/coverage_check.py)
