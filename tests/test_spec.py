@@ -144,6 +144,8 @@ def test_bundled_examples_are_listed_and_load() -> None:
         "planar_arm3",
         # A six-joint arm imported from a URDF file (import-urdf).
         "ur5_tip",
+        # An underactuated vehicle with drag: the extended-state observer's example.
+        "drag_vehicle",
     }
     for name in examples:
         spec = load_spec(name)
