@@ -10,6 +10,7 @@ the states ``nu_<name>_0 .. nu_<name>_<k-1>`` by name.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -53,6 +54,22 @@ class Oracle:
         rest = [g.xreplace({jets[i][k]: 0 for i in range(n)}) for g in grads[k]]
         state_jet = {jets[i][j]: d.jet.y_jet_values[i][j] for i in range(m) for j in range(k)}
         states = dict(zip(d.closed_loop.state_names, d.closed_loop.states, strict=True))
+        # With [robust.eso], y^(j) below the relative degree is the observer's estimate,
+        # the state eso_<output>_<j>, by name; its d_hat is eso_<output>_d.
+        self.eso = d.spec.robust.eso
+        degrees = d.linearization.relative_degree
+        outputs = d.spec.outputs
+        if self.eso is not None:
+            state_jet |= {
+                jets[i][j]: states[f"eso_{outputs[i]}_{j}"]
+                for i in range(m)
+                for j in range(degrees[i])
+            }
+            self.eso_rows = [
+                [d.closed_loop.state_names.index(f"eso_{o}_{j}") for j in range(degrees[i])]
+                + [d.closed_loop.state_names.index(f"eso_{o}_d")]
+                for i, o in enumerate(outputs)
+            ]
         state_jet |= {
             jets[m + i][j]: states[f"nu_{c.name}_{j}"]
             for i, c in enumerate(model.equalities)
@@ -85,6 +102,7 @@ class Oracle:
                 for c in model.constraints
             ]
         )
+        self.h = lam(list(model.h))
         self.hess = lam(hess)
         self.rest = lam(rest)
         self.R = lam(list(d.linearization.R))
@@ -173,7 +191,10 @@ class Oracle:
             W = np.linalg.solve(M, np.moveaxis(B, -1, 0))
             R = np.moveaxis(J @ W, 0, -1)
             pv = (J @ acc[..., None])[..., 0].T + self._eval(self.curvature, args, (m,), n)
-        w = np.linalg.solve(np.moveaxis(R, -1, 0), np.moveaxis(v - pv, -1, 0)[..., None])[..., 0].T
+        b = v - pv
+        if self.eso is not None:
+            b = b - np.array([s[rows[-1]] for rows in self.eso_rows])
+        w = np.linalg.solve(np.moveaxis(R, -1, 0), np.moveaxis(b, -1, 0)[..., None])[..., 0].T
         if self.mechanics is None:
             field = self._eval(self.field, [t, *s, *p, *w], (len(d.linearization.extension.x),), n)
         else:
@@ -188,6 +209,16 @@ class Oracle:
         for i, chain in enumerate(self.multipliers):
             for j in range(k):
                 pad.append(s[chain[j + 1]] if j + 1 < k else z[m + i])
+        if self.eso is not None:
+            # The observer: (s + omega)^(r+1) by the binomial gains, on e = h(x) - eta_0.
+            y = self._eval(self.h, args, (m,), n)
+            for i, rows in enumerate(self.eso_rows):
+                r = len(rows) - 1
+                e = y[i] - s[rows[0]]
+                for j in range(r + 1):
+                    gain = math.comb(r + 1, j + 1) * self.eso ** (j + 1)
+                    above = s[rows[j + 1]] if j + 1 < r else (v[i] if j + 1 == r else 0.0)
+                    pad.append(above + gain * e)
         pad += list(E[0][: len(self.integral)])
         ds = np.vstack([field, *pad]) if pad else field
         u = np.array(

@@ -140,12 +140,14 @@ def spec_text(chosen: dict[str, str], name: str) -> str:
     k = 3 if mech and ext == "declared" else 2
     poles = [-1.0, -1.5, -2.0, -2.5][: k + (value["integral"] == "yes")]
     lines += ["", "[error_dynamics]", f"poles = {poles}"]
-    if value["integral"] == "yes" or value["observer"] == "yes":
+    if "yes" in (value["integral"], value["observer"], value["eso"]):
         lines += ["", "[robust]"]
         if value["integral"] == "yes":
             lines.append("integral = true")
         if value["observer"] == "yes":
             lines += ["", "[robust.observer]", "bandwidth = 20.0"]
+        if value["eso"] == "yes":
+            lines += ["", "[robust.eso]", "bandwidth = 20.0"]
     if value["limits"] == "yes":
         lines += ["", "[limits]", f"{limited} = 40.0", "", "[limits.rate]", f"{limited} = 1000.0"]
     start = ", ".join(f"{k} = {v}" for k, v in initial.items())
@@ -322,7 +324,7 @@ class CaseRun:
             u = 0.0
         s0 = self.result.states[:, 0]
         # The observer's continuous form starts at sigma = 0: its states at bandwidth * x0.
-        observer = s0[: len(mod.PLANT_STATE_NAMES)] * getattr(mod, "OBSERVER_BANDWIDTH", 0.0)
+        observer = s0[: len(mod.PLANT_STATE_NAMES)] * (getattr(mod, "OBSERVER_BANDWIDTH", 0.0) or 0.0)
         x0 = np.concatenate([s0, observer[: closed.nstates - len(s0)]])
         response = control.input_output_response(
             closed, times, u, X0=x0, solve_ivp_kwargs={"rtol": 1e-9, "atol": 1e-11}
@@ -458,7 +460,9 @@ def test_the_committed_doc_is_the_generated_table() -> None:
 
 def test_the_covering_cases_hold_every_working_pair_and_no_other() -> None:
     every = features.pairs()
-    assert len(every) == 274
+    # 274 pairs, and 50 more with the extended-state observer (each of its two values
+    # against the 25 values of the other axes).
+    assert len(every) == 324
     for a, b in every:
         holding = [i for i, case in enumerate(CASES) if case.holds(a, b)]
         if features.status(a, b) == "works":

@@ -107,6 +107,7 @@ AXES: tuple[Axis, ...] = (
     ),
     Axis("integral", "integral action", (_OFF, ("yes", "`[robust] integral = true`"))),
     Axis("observer", "disturbance observer", (_OFF, ("yes", "`[robust.observer] bandwidth`"))),
+    Axis("eso", "extended-state observer", (_OFF, ("yes", "`[robust.eso] bandwidth`"))),
     Axis("limits", "actuator limits", (_OFF, ("yes", "`[limits]`, `[limits.rate]`"))),
     Axis("references", "references", (_OFF, ("yes", "`[references]` (the `*_refs` examples)"))),
     Axis("equality", "equality constraints", (_OFF, ("yes", '`[constraints] a = "lhs == rhs"`'))),
@@ -142,6 +143,7 @@ _LABELS: dict[Feature, str] = {
     ("padding", "yes"): "padding chains",
     ("integral", "yes"): "[robust] integral",
     ("observer", "yes"): "[robust.observer]",
+    ("eso", "yes"): "[robust.eso]",
     ("limits", "yes"): "[limits]",
     ("references", "yes"): "[references]",
     ("equality", "yes"): "equality constraints",
@@ -205,9 +207,18 @@ class KnownFailure:
     where: str
 
 
-#: Every pair that does not combine. The mathematics decides the first two; the third is
-#: a piece the sweep lacks (its compiled loop has no source of reference samples).
+#: Every pair that does not combine. The mathematics decides the first three (two
+#: observers of one mismatch; a mass-matrix plant's prolonged inputs and padding); the
+#: last is a piece the sweep lacks (its compiled loop has no source of reference samples).
 REFUSALS: tuple[Refusal, ...] = (
+    Refusal(
+        ("observer", "yes"),
+        ("eso", "yes"),
+        "both estimate the plant's mismatch and cancel it, one on the inputs and one at the "
+        "outputs' top derivatives: each would see the other's cancellation as a disturbance "
+        "to cancel; keep one (docs/robust.md says which suits a plant)",
+        "robust.eso",
+    ),
     Refusal(
         ("plant", "mechanics"),
         ("extension", "declared"),
@@ -311,6 +322,7 @@ def spec_features(spec: Spec) -> dict[str, str]:
         "extension": extension,
         "integral": used(spec.robust.integral),
         "observer": used(spec.robust.observer is not None),
+        "eso": used(spec.robust.eso is not None),
         "limits": used(bool(spec.limits)),
         "references": used(bool(spec.references)),
         "equality": used(any(c.op == "==" for c in constraints)),
