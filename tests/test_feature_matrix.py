@@ -324,7 +324,9 @@ class CaseRun:
             u = 0.0
         s0 = self.result.states[:, 0]
         # The observer's continuous form starts at sigma = 0: its states at bandwidth * x0.
-        observer = s0[: len(mod.PLANT_STATE_NAMES)] * (getattr(mod, "OBSERVER_BANDWIDTH", 0.0) or 0.0)
+        # (None, or no such name, without one.)
+        beta = getattr(mod, "OBSERVER_BANDWIDTH", None) or 0.0
+        observer = s0[: len(mod.PLANT_STATE_NAMES)] * beta
         x0 = np.concatenate([s0, observer[: closed.nstates - len(s0)]])
         response = control.input_output_response(
             closed, times, u, X0=x0, solve_ivp_kwargs={"rtol": 1e-9, "atol": 1e-11}
