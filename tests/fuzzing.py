@@ -15,8 +15,9 @@ Three kinds of case (``docs/fuzz.md``):
   Pinocchio.
 
 Each gets a random strongly convex time-varying objective and a random subset of the
-features ``integral``, ``observer``, ``limits``, ``references``, ``inequality`` and
-``equality``. The oracles: the law (``control``, ``rhs``, ``optimality_error``) against
+features ``integral``, ``observer``, ``limits``, ``references``, ``inequality``,
+``equality`` and ``eso`` (never with ``observer``: that pair is refused). The oracles: the
+law (``control``, ``rhs``, ``optimality_error``) against
 the independent :class:`tests.oracle.Oracle`; on a sample of cases the C module against
 the Python one (functions and the stateful ``Controller``) and the FMU under FMPy against
 the Python ``Controller``. A case ends in :data:`AGREES` or a documented refusal
@@ -51,7 +52,7 @@ import numpy as np
 import sympy as sp
 
 KINDS = ("system", "arm", "urdf")
-FEATURES = ("integral", "observer", "limits", "references", "inequality", "equality")
+FEATURES = ("integral", "observer", "limits", "references", "inequality", "equality", "eso")
 #: Which implementations a case runs besides the Python module and the oracle.
 TARGETS = ("c", "fmu", "cli", "unicycle", "auto")
 AGREES = "agrees"
@@ -459,6 +460,8 @@ def add_features(spec: dict[str, Any], case: Case, rng: np.random.Generator) -> 
         spec["error_dynamics"]["poles"].append(float(_num(rng, -4.0, -0.3)) - 0.001)
     if "observer" in case.features:
         robust["observer"] = {"bandwidth": float(_num(rng, 2.0, 60.0))}
+    if "eso" in case.features:
+        robust["eso"] = {"bandwidth": float(_num(rng, 5.0, 60.0))}
     if robust:
         spec["robust"] = robust
     if "limits" in case.features:
@@ -907,6 +910,9 @@ def cases_strategy(c_rate: float = 0.1, fmu_rate: float = 0.03, max_size: int = 
         kind = draw(st.sampled_from(KINDS))
         size = draw(st.integers(1, max_size))
         features = {f for f in FEATURES if draw(st.booleans())}
+        if {"observer", "eso"} <= features:
+            # Refused up front (docs/features.md): a case keeps one of the two observers.
+            features.discard(draw(st.sampled_from(("observer", "eso"))))
         if kind == "system" and draw(st.booleans()):
             features.add("unicycle")
             size = draw(st.integers(2, max_size + 1))
