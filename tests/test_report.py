@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import re
 import shutil
@@ -58,10 +59,16 @@ def _browser(html: Path, tmp_path: Path, *args: str) -> subprocess.CompletedProc
     )
 
 
+@functools.cache
+def _html(name: str) -> str:
+    """An example's HTML report, rendered once for the browser and the self-contained test."""
+    return render_report(derivation(name), kernels(name), formats=("html",))[f"{name}_report.html"]
+
+
 @pytest.mark.parametrize("name", EXAMPLES)
 def test_html_renders_in_a_browser(name: str, tmp_path: Path) -> None:
     page = tmp_path / f"{name}_report.html"
-    page.write_text(render_report(derivation(name), kernels(name), formats=("html",))[page.name])
+    page.write_text(_html(name))
     shot = tmp_path / "shot.png"
     run = _browser(page, tmp_path, "--window-size=1200,3000", f"--screenshot={shot}")
     assert run.returncode == 0, run.stderr[-2000:]
@@ -78,7 +85,7 @@ def test_html_renders_in_a_browser(name: str, tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("name", EXAMPLES)
 def test_html_is_self_contained(name: str) -> None:
-    html = render_report(derivation(name), kernels(name), formats=("html",))[f"{name}_report.html"]
+    html = _html(name)
     assert "<script" not in html
     assert not re.search(r"""(src|href)\s*=\s*["'](?!#|data:)""", html)
     assert "http://" not in html and "https://" not in html and "@import" not in html
@@ -275,7 +282,8 @@ def test_a_robust_spec_adds_a_section_per_option_with_h_i_the_observer_and_the_l
     headings = re.findall(r"^## (.*)$", md, re.M)
     expected = list(HEADINGS)
     at = expected.index("Control law") + 1
-    expected[at:at] = list(ROBUST_HEADINGS)
+    # All but the extended-state observer, which is refused beside the other observer.
+    expected[at:at] = [h for h in ROBUST_HEADINGS if h != "Extended-state observer"]
     assert headings == expected
     robust = md.split("## Integral action")[1].split("## Generated code")[0]
     assert "## Disturbance observer" in robust and "## Actuator limits" in robust
@@ -286,6 +294,25 @@ def test_a_robust_spec_adds_a_section_per_option_with_h_i_the_observer_and_the_l
     assert "| thrust | 0 | 14.715 | 200 |" in robust and "| torque | -1 | 1 | inf |" in robust
     # H_I is the 5 x 5 companion matrix: its last row holds the five coefficients.
     assert "col(z_I, E)' = H_I col(z_I, E)" in md
+
+
+def test_the_extended_state_observer_has_its_section_with_coordinates_and_poles() -> None:
+    import tomllib
+
+    from tvopt_codegen.spec import spec_from_dict
+
+    with (ROOT / "tvopt_codegen" / "examples" / "drag_vehicle.toml").open("rb") as stream:
+        data = tomllib.load(stream)
+    data["robust"] = {"eso": {"bandwidth": 20.0}}
+    d = derive(spec_from_dict(data))
+    md = render_report(d, lower(d), formats=("md",))["drag_vehicle_report.md"]
+    assert "## Extended-state observer" in md and "## Disturbance observer" not in md
+    section = md.split("## Extended-state observer")[1].split("\n## ")[0]
+    assert "omega = 20 rad/s" in section and "every pole of the estimation error at -20" in section
+    # Per output: r_i = 4, the four estimates and d_hat, l_j = C(5, j) 20^j, -20 five times.
+    row = "| x | 4 | eso_x_0, eso_x_1, eso_x_2, eso_x_3 | eso_x_d | "
+    assert row + "100, 4000, 80000, 800000, 3.2e+06 | -20 (x5) |" in section
+    assert "| y | 4 | eso_y_0, eso_y_1, eso_y_2, eso_y_3 | eso_y_d |" in section
 
 
 def test_a_spec_with_limits_alone_adds_the_limits_section_alone() -> None:

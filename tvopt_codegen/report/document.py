@@ -42,7 +42,12 @@ HEADINGS = (
 )
 #: The sections a spec with [robust] or [limits] adds after "Control law", one per option
 #: it takes, in this order.
-ROBUST_HEADINGS = ("Integral action", "Disturbance observer", "Actuator limits")
+ROBUST_HEADINGS = (
+    "Integral action",
+    "Disturbance observer",
+    "Extended-state observer",
+    "Actuator limits",
+)
 
 
 #: Largest simulation output the report reads: a certificate is a few KB, a figure
