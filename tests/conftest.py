@@ -2,16 +2,25 @@
 
 Deriving and importing a controller takes a fraction of a second; the cache below
 makes each example's derivation and module shared by every test that needs it.
+
+What is dearer than that is made once per run for every xdist worker: the run's
+folder (:func:`run_folder`) holds the compiled C libraries (``TVOPT_CODEGEN_CACHE``
+points there unless the caller set it) and whatever :func:`shared` builds (a reference
+sweep), the first worker to ask building it while the others wait on its lock.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib.util
 import json
 import os
+import shutil
 import signal
 import sys
+import tempfile
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import ModuleType
 
@@ -65,7 +74,62 @@ def kernels(spec: str) -> KernelSet:
     return lower(derivation(spec))
 
 
-_BUILD = Path(__import__("tempfile").mkdtemp(prefix="tvopt-test-modules-"))
+_BUILD = Path(tempfile.mkdtemp(prefix="tvopt-test-modules-"))
+
+#: Names the run's folder for the xdist workers, which inherit the controller's
+#: environment: the process that made the folder (the controller, or a run without
+#: xdist) is the one that removes it.
+RUN_FOLDER = "TVOPT_TEST_RUN_FOLDER"
+_MADE: list[Path] = []
+
+
+def run_folder() -> Path:
+    """The folder every process of this pytest run shares (made in :func:`pytest_configure`)."""
+    return Path(os.environ[RUN_FOLDER])
+
+
+@contextlib.contextmanager
+def _locked(path: Path) -> Iterator[None]:
+    """Hold an exclusive lock on ``path`` (made if missing) across processes."""
+    import fcntl  # noqa: PLC0415 - POSIX only, like the signal and /proc tests
+
+    with open(path, "a", encoding="utf-8") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def shared(key: str, build: Callable[[Path], None]) -> Path:
+    """A folder that ``build`` fills once per run, whichever worker asks first.
+
+    The others wait on the lock and then read what it made: an artifact that takes
+    seconds (a 4,000-sample sweep) is made once, not once per worker. A build that
+    raised leaves no mark, so the next test to ask builds it again (and fails alike).
+
+    Parameters
+    ----------
+    key
+        The artifact's name in the run's folder: one name, one recipe.
+    build
+        Fills the (empty) folder it is given.
+
+    Returns
+    -------
+    pathlib.Path
+        The filled folder; read it, do not change it.
+    """
+    folder = run_folder() / key
+    done = folder / ".done"
+    if not done.exists():
+        with _locked(run_folder() / f"{key}.lock"):
+            if not done.exists():
+                shutil.rmtree(folder, ignore_errors=True)
+                folder.mkdir()
+                build(folder)
+                done.touch()
+    return folder
 
 
 @functools.cache
@@ -188,6 +252,24 @@ def pytest_configure(config: pytest.Config) -> None:
     """
     if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    # The run's folder, made before xdist starts its workers so that they inherit it; a
+    # pytest run inside a test inherits it too, and leaves it to its maker.
+    if RUN_FOLDER not in os.environ:
+        made = Path(tempfile.mkdtemp(prefix="tvopt-test-run-"))
+        _MADE.append(made)
+        os.environ[RUN_FOLDER] = str(made)
+    # One cache of compiled libraries for the run: each generated C module, sweep loop
+    # and FMU library is compiled once, not once per worker (and not into the user's
+    # ~/.cache). The libraries are keyed by their sources, compiler and flags and
+    # published by rename, so workers that compile the same one at once both get it
+    # whole. Tests of the cache itself set a folder of their own.
+    os.environ.setdefault("TVOPT_CODEGEN_CACHE", str(run_folder() / "c-cache"))
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """Remove the run's folder, in the process that made it."""
+    for folder in _MADE:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

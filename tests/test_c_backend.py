@@ -42,7 +42,6 @@ def c_module(spec: str, tmp_path_factory: pytest.TempPathFactory) -> ModuleType:
     if spec not in _IMPORTED:
         folder = tmp_path_factory.mktemp("cmod")
         _write_c(spec, folder)
-        os.environ["TVOPT_CODEGEN_CACHE"] = str(tmp_path_factory.getbasetemp() / "cache")
         name = derivation(spec).spec.name
         _IMPORTED[spec] = import_file(folder / f"{name}_c.py", f"_tvopt_c_{name}")
     return _IMPORTED[spec]

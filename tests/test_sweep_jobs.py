@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import kernels
+from tests.conftest import kernels, shared
 from tvopt_codegen import sweep
 from tvopt_codegen.cli import main
 from tvopt_codegen.errors import (
@@ -44,17 +44,19 @@ def _command(*args: str) -> list[str]:
 
 
 @pytest.fixture(scope="module")
-def reference(tmp_path_factory: pytest.TempPathFactory) -> bytes:
-    """The uninterrupted sweep's table (one worker)."""
-    out = tmp_path_factory.mktemp("reference") / "out"
-    done = subprocess.run(
-        _command("unicycle_switch", *COMMON, "--workers", "1", "--out", str(out)),
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    assert done.returncode == 0, done.stderr
-    return (out / "summary.parquet").read_bytes()
+def reference() -> bytes:
+    """The uninterrupted sweep's table (one worker), swept once per run for every worker."""
+
+    def sweep_once(folder: Path) -> None:
+        done = subprocess.run(
+            _command("unicycle_switch", *COMMON, "--workers", "1", "--out", str(folder / "out")),
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert done.returncode == 0, done.stderr
+
+    return (shared("sweep-jobs-reference", sweep_once) / "out" / "summary.parquet").read_bytes()
 
 
 def _start(out: Path, workers: int, *extra: str) -> subprocess.Popen[str]:
