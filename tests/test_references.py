@@ -208,8 +208,15 @@ def _write_samples(path: Path, name: str, horizon: float, rate: float = 1000.0) 
             handle.write(",".join(repr(float(v)) for v in (t, *row)) + "\n")
 
 
+# The samples' run in two tests, each about 10 s: the three noise levels in one process,
+# and the command on the same samples. As one test (20-30 s) it was among the longest of
+# the suite, the last to end on two workers. Marked slow by hand: tests/durations.json
+# has only the one test's time.
+
+
+@pytest.mark.slow
 def test_simulate_from_samples_tracks_and_the_iss_bound_holds_at_every_noise(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path,
 ) -> None:
     from tvopt_codegen.simulation import resolve_options, simulate
     from tvopt_codegen.simulation.references import read_reference_file, sampled_source
@@ -231,6 +238,15 @@ def test_simulate_from_samples_tracks_and_the_iss_bound_holds_at_every_noise(
     # initial one; noise raises it, as the bound allows.
     assert finals[0] <= 1e-3
     assert finals[0] <= finals[2]
+
+
+@pytest.mark.slow
+def test_simulate_command_from_a_samples_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    name = "unicycle_switch_refs"
+    samples_file = tmp_path / "objects.csv"
+    _write_samples(samples_file, name, 20.0)
     out = tmp_path / "out"
     out.mkdir()
     from tvopt_codegen.cli import main

@@ -145,22 +145,22 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
-def test_ur5_tip_through_every_command(tmp_path: Path) -> None:
-    """check, generate (both backends), simulate (certificate), report, the stateful
-    controller, the FMU and a sweep, on the bundled six-joint arm."""
+# The bundled six-joint arm through every command: check, generate (both backends), the
+# stateful controller of the C module, report, simulate (the certificate), the FMU and a
+# sweep. Four tests, not one: each command is a process deriving the arm (seconds each),
+# and one test of all of them (28 s) was the longest of the suite, the last to end on
+# two workers. Marked slow by hand: tests/durations.json has only the one test's time.
+
+
+@pytest.mark.slow
+def test_ur5_tip_checks_and_generates_a_stepping_c_controller(tmp_path: Path) -> None:
     for args in (
         ("check", "ur5_tip"),
         ("generate", "ur5_tip", "--out", "py", "--quiet"),
         ("generate", "ur5_tip", "--backend", "c", "--out", "c", "--quiet"),
-        ("report", "ur5_tip", "--out", "report"),
     ):
         run = _cli(*args, cwd=tmp_path)
         assert run.returncode == 0, run.stderr
-    run = _cli("simulate", "ur5_tip", "--out", "sim", "--points", "101", cwd=tmp_path)
-    assert run.returncode == 0 and "certificate: PASSED" in run.stdout, run.stdout + run.stderr
-    report = (tmp_path / "report" / "ur5_tip_report.md").read_text(encoding="utf-8")
-    assert "M is factored at run time, never inverted" in report
-    assert "Definitions (340)" in report and "_let" not in report
     # The stateful controller of the C module, stepped at 1 kHz.
     os.environ.setdefault("TVOPT_CODEGEN_CACHE", str(tmp_path / "cache"))
     mod = import_file(tmp_path / "c" / "ur5_tip_c.py", "_tvopt_ur5_tip_c")
@@ -169,14 +169,34 @@ def test_ur5_tip_through_every_command(tmp_path: Path) -> None:
     for k in range(1, 6):
         u = controller.step(1e-3 * k, x)
         assert u.shape == (6,) and np.all(np.isfinite(u))
-    if shutil.which("cc") or shutil.which("gcc"):
-        fmpy = pytest.importorskip("fmpy")
-        run = _cli("export", "ur5_tip", "--fmu", "--out", "fmu", cwd=tmp_path)
-        assert run.returncode == 0, run.stderr
-        from fmpy.validation import validate_fmu
 
-        assert validate_fmu(str(tmp_path / "fmu" / "ur5_tip.fmu")) == []
-        assert fmpy.read_model_description(str(tmp_path / "fmu" / "ur5_tip.fmu"))
+
+@pytest.mark.slow
+def test_ur5_tip_reports_and_simulates_with_a_passing_certificate(tmp_path: Path) -> None:
+    run = _cli("report", "ur5_tip", "--out", "report", cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    run = _cli("simulate", "ur5_tip", "--out", "sim", "--points", "101", cwd=tmp_path)
+    assert run.returncode == 0 and "certificate: PASSED" in run.stdout, run.stdout + run.stderr
+    report = (tmp_path / "report" / "ur5_tip_report.md").read_text(encoding="utf-8")
+    assert "M is factored at run time, never inverted" in report
+    assert "Definitions (340)" in report and "_let" not in report
+
+
+@pytest.mark.slow
+def test_ur5_tip_exports_a_valid_fmu(tmp_path: Path) -> None:
+    if not (shutil.which("cc") or shutil.which("gcc")):
+        pytest.skip("an FMU needs a C compiler (cc or gcc)")
+    fmpy = pytest.importorskip("fmpy")
+    run = _cli("export", "ur5_tip", "--fmu", "--out", "fmu", cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    from fmpy.validation import validate_fmu
+
+    assert validate_fmu(str(tmp_path / "fmu" / "ur5_tip.fmu")) == []
+    assert fmpy.read_model_description(str(tmp_path / "fmu" / "ur5_tip.fmu"))
+
+
+@pytest.mark.slow
+def test_ur5_tip_sweeps(tmp_path: Path) -> None:
     pytest.importorskip("distributed")
     run = _cli(
         "sweep", "ur5_tip", "--samples", "8", "--plant-param", "m_forearm=normal(2.275, 0.2)",
