@@ -337,6 +337,17 @@ bandwidth = 20.0
 [limits]
 thrust = [0.0, 14.715]
 """
+#: The extended-state observer's step: the bundled PVTOL with [robust.eso] at 20 rad/s
+#: (five estimates per output), against its plain step.
+ESO_TABLES = """
+[robust.eso]
+bandwidth = 20.0
+"""
+#: The matched-input observer alone at 20 rad/s, for the comparison docs/robust.md makes.
+OBSERVER_TABLES = """
+[robust.observer]
+bandwidth = 20.0
+"""
 ROBUST_HARNESS = r"""
 #include <stdio.h>
 #include <time.h>
@@ -489,10 +500,27 @@ def startup() -> list[tuple[str, float, str]]:
     ]
 
 
+def eso_rows(eso: tuple[float, float], observer: tuple[float, float] | None = None) -> list[str]:
+    """The observers' steps against the plain one, as table rows."""
+    rows = [
+        f"| pvtol with [robust.eso] step vs the plain pvtol step, ns | {eso[0] * 1e9:.4g} | "
+        f"{eso[1] * 1e9:.4g} | {eso[0] / eso[1]:.3f} | <= 1.5 |",
+    ]
+    if observer is not None:
+        rows.append(
+            f"| pvtol with [robust.observer] step vs the plain pvtol step, ns | "
+            f"{observer[0] * 1e9:.4g} | {observer[1] * 1e9:.4g} | "
+            f"{observer[0] / observer[1]:.3f} | |"
+        )
+    return rows
+
+
 def extra_tables(
     single: list[tuple[str, float, float]],
     start: list[tuple[str, float, str]],
     robust: tuple[float, float],
+    eso: tuple[float, float],
+    observer: tuple[float, float],
 ) -> str:
     """The robust controller's step, the single-state call and start-up sections."""
     peer = start[-1][1]
@@ -503,6 +531,7 @@ def extra_tables(
         "|---|---|---|---|---|",
         f"| robust_pvtol step vs the plain pvtol step, ns | {robust[0] * 1e9:.4g} | "
         f"{robust[1] * 1e9:.4g} | {robust[0] / robust[1]:.3f} | <= 1.5 |",
+        *eso_rows(eso, observer),
         "",
         "### NumPy backend, one state per call (`control(t, s)` with a 1-D float array)",
         "",
@@ -589,7 +618,37 @@ def main() -> int:
     """Run the benchmark, print the table and optionally store it."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--write", type=Path, help="also store the table in this Markdown file")
+    parser.add_argument(
+        "--eso-only",
+        action="store_true",
+        help="time only the two observers' C steps against the plain one",
+    )
     args = parser.parse_args()
+    if args.eso_only:
+        with tempfile.TemporaryDirectory(prefix="tvopt-bench-") as tmp:
+            (Path(tmp) / "eso").mkdir()
+            (Path(tmp) / "observer").mkdir()
+            eso = robust_step(Path(tmp) / "eso", ESO_TABLES)
+            observer = robust_step(Path(tmp) / "observer", OBSERVER_TABLES)
+        rows = [
+            "| measure | ours | peer | ratio ours/peer | target |",
+            "|---|---|---|---|---|",
+            *eso_rows(eso, observer),
+        ]
+        print("\n".join(rows))
+        if args.write:
+            header = [
+                "# The observers' C step against the plain one",
+                "",
+                "Produced by `python benchmarks/bench_c.py --eso-only --write "
+                "benchmarks/OBSERVERS.md` (the same rows are in `make bench`'s RESULTS.md). "
+                f"Machine: {platform.machine()}, gcc {' '.join(CFLAGS)}; the best of "
+                f"{HARNESS_RUNS} runs of each harness, both controllers stepping through the "
+                "same measured states of PVTOL on a 10% heavier plant at 1 kHz, taking turns.",
+                "",
+            ]
+            args.write.write_text("\n".join(header + rows) + "\n", encoding="utf-8")
+        return 0
     results = {}
     with tempfile.TemporaryDirectory(prefix="tvopt-bench-") as tmp:
         for name in SPECS:
@@ -599,7 +658,13 @@ def main() -> int:
         robust_folder = Path(tmp) / "robust"
         robust_folder.mkdir()
         robust = robust_step(robust_folder)
-    text = table(results) + "\n" + extra_tables(single_state(), startup(), robust)
+        eso_folder = Path(tmp) / "eso"
+        eso_folder.mkdir()
+        eso = robust_step(eso_folder, ESO_TABLES)
+        observer_folder = Path(tmp) / "observer"
+        observer_folder.mkdir()
+        observer = robust_step(observer_folder, OBSERVER_TABLES)
+    text = table(results) + "\n" + extra_tables(single_state(), startup(), robust, eso, observer)
     text += "\n" + mechanics_table()
     print(text)
     if args.write:
