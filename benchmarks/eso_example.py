@@ -58,7 +58,7 @@ SPREAD = {
 SPREAD["arm2_dynamics"] = SPREAD["arm2_mass"]
 PLAN = {
     "drag_vehicle": (
-        ("plain", "integral", "observer", "both", "eso", "eso+integral"),
+        ("plain", "integral", "observer", "both", "eso", "eso+integral", "eso@10", "eso@40"),
         ("clean", "noise"),
     ),
     "pvtol": (("plain", "integral", "observer", "eso", "eso+integral"), ("clean", "noise")),
@@ -110,7 +110,9 @@ def spec_text(example: str, option: str) -> str:
         if option in ("observer", "both"):
             extra += ["", "[robust.observer]", f"bandwidth = {BANDWIDTH}"]
         if option.startswith("eso"):
-            extra += ["", "[robust.eso]", f"bandwidth = {BANDWIDTH}"]
+            # eso@B: the observer at bandwidth B instead (the noise trade-off).
+            bandwidth = float(option.split("@")[1]) if "@" in option else BANDWIDTH
+            extra += ["", "[robust.eso]", f"bandwidth = {bandwidth}"]
     return text + "\n" + "\n".join(extra) + "\n"
 
 
@@ -152,6 +154,31 @@ def run(client: Any, example: str, option: str, scenario: str, samples: int) -> 
     }
 
 
+READING = [
+    "## Reading the tables",
+    "",
+    "- **A mismatch outside the span of G** (the drag vehicle's sideways drag, no sway "
+    "input): only the extended-state observer cancels it. The matched-input observer "
+    "estimates a disturbance on the inputs and leaves the rest; integral action removes "
+    "a constant offset, and this one moves with the circling target.",
+    "- **A mismatch inside the span of G** (PVTOL's mass and inertia): both observers "
+    "cancel it; the extended-state observer's estimate of the outputs' derivatives also "
+    "takes up what the model's Phi(x) gets wrong.",
+    "- **A disturbance that moves with the target** (the arm's inertial forces): the "
+    "extended-state observer's estimate of the lumped term lags it by about its rate over "
+    "the bandwidth, the matched-input observer estimates the input disturbance, which moves "
+    "less; there the matched-input observer is the better choice. The arm in mass-matrix "
+    "form and written as `[system.dynamics]` give the same statistics.",
+    "- **Noise against bandwidth**: the extended-state observer differentiates the "
+    "measured outputs up to their relative degree, so noise reaches its top estimates "
+    "amplified by about bandwidth^r; a higher bandwidth follows a moving disturbance more "
+    "closely. The `eso@10` and `eso@40` rows show the trade on the vehicle: without noise "
+    "40 rad/s does best, with noise of sd 1e-3 on the measured state 10 rad/s does, and at "
+    "40 rad/s the noise drives the estimates, and a loop, off (the failures column).",
+    "",
+]
+
+
 def _g(value: float) -> str:
     return f"{value:.3g}"
 
@@ -170,7 +197,8 @@ def document(rows: list[dict[str, Any]], seconds: float, command: str) -> str:
         f"{NOISE:g} on every measured plant state. `observer` is `[robust.observer] "
         f"bandwidth = {BANDWIDTH:g}` (a matched input disturbance), `eso` is `[robust.eso] "
         f"bandwidth = {BANDWIDTH:g}` (the lumped disturbance at each output's top "
-        "derivative), `integral` adds `[robust] integral = true` and one pole. Final error: "
+        "derivative), `eso@B` the same at bandwidth B, `integral` adds `[robust] integral = "
+        "true` and one pole. Final error: "
         "`|y - y*|` at the end of the horizon; failures: runs whose law became undefined or "
         "that diverged, with the Clopper-Pearson 95% upper bound on the failure probability.",
         "",
@@ -201,6 +229,7 @@ def document(rows: list[dict[str, Any]], seconds: float, command: str) -> str:
                 f"{row['failures']}/{row['runs']} | {100 * row['upper']:.2g}% |"
             )
         out.append("")
+    out += READING
     return "\n".join(out)
 
 
