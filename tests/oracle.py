@@ -54,8 +54,8 @@ class Oracle:
         rest = [g.xreplace({jets[i][k]: 0 for i in range(n)}) for g in grads[k]]
         state_jet = {jets[i][j]: d.jet.y_jet_values[i][j] for i in range(m) for j in range(k)}
         states = dict(zip(d.closed_loop.state_names, d.closed_loop.states, strict=True))
-        # With [robust.eso], y^(j) below the relative degree is the observer's estimate,
-        # the state eso_<output>_<j>, by name; its d_hat is eso_<output>_d.
+        # With [robust.eso], y^(j), 1 <= j < r_i, is the observer's estimate, the state
+        # eso_<output>_<j>, by name (y itself is measured); its d_hat is eso_<output>_d.
         self.eso = d.spec.robust.eso
         degrees = d.linearization.relative_degree
         outputs = d.spec.outputs
@@ -63,7 +63,7 @@ class Oracle:
             state_jet |= {
                 jets[i][j]: states[f"eso_{outputs[i]}_{j}"]
                 for i in range(m)
-                for j in range(degrees[i])
+                for j in range(1, degrees[i])
             }
             self.eso_rows = [
                 [d.closed_loop.state_names.index(f"eso_{o}_{j}") for j in range(degrees[i])]

@@ -232,3 +232,26 @@ def test_a_bandwidth_that_is_not_positive_is_refused() -> None:
     data = _data("drag_vehicle", {"eso": {"bandwith": 5.0}})
     with pytest.raises(SpecError, match=r"robust\.eso"):
         spec_from_dict(data)
+
+
+def test_the_barriers_read_the_measured_output_not_its_estimate() -> None:
+    """With the observer, y^(j) for j >= 1 are estimates but y is the plant's h(x).
+
+    The fuzzer's case ``urdf:3:equality+eso+fmu+inequality:36935662`` stopped with
+    OutsideBarrierError where the plant's outputs were 0.11 inside the barrier: the
+    margins read the estimate eta_0, which a 10 ms loop had swung out. The barrier protects
+    the plant's outputs, and the objective's first row is theirs.
+    """
+    data = _data("drag_vehicle", ESO)
+    data["constraints"] = {"keep": "x <= 3.5"}
+    module = load_controller(lower(derive(spec_from_dict(data))), "python")
+    names = module.STATE_NAMES
+    s = np.array(module.DEFAULT_STATE)
+    assert s[names.index("px")] == 2.5 and s[names.index("eso_x_0")] == 2.5
+    estimate_out = s.copy()
+    estimate_out[names.index("eso_x_0")] = 4.0
+    assert np.all(np.isfinite(module.control(0.0, estimate_out)))
+    plant_out = s.copy()
+    plant_out[names.index("px")] = 4.0
+    with pytest.raises(module.OutsideBarrierError):
+        module.control(0.0, plant_out)

@@ -274,10 +274,15 @@ def _gradient_jet(
         signal_chains.append(tuple(derivatives))
     state_of = dict(zip(states.names, states.symbols, strict=True))
     degrees = lin.degrees
-    # With the extended-state observer the law reads its estimates of y^(j), j < r_i,
-    # where it read Phi(x): under mismatch L_f^j h is not y^(j).
+    # With the extended-state observer the law reads its estimates of y^(j), 1 <= j < r_i,
+    # where it read Phi(x): under mismatch L_f^j h is not y^(j). y itself is measured,
+    # h(x): the objective, its barriers and the optimality error's first row read the
+    # plant's own outputs, as without the observer.
     below = (
-        [[state_of[name] for name in chain[:-1]] for chain in states.eso]
+        [
+            [lin.lie[i][0], *(state_of[name] for name in chain[1:-1])]
+            for i, chain in enumerate(states.eso)
+        ]
         if states.eso
         else [lin.lie[i][: degrees[i]] for i in range(len(model.y))]
     )

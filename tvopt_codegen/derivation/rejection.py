@@ -16,9 +16,10 @@ observer, Gao's bandwidth parametrisation: every pole at ``-omega``):
     eta_{r_i-1}' = v_i + l_{r_i} e,        d_hat' = l_{r_i+1} e,
     e = y_i - eta_0,  l_j = C(r_i + 1, j) omega^j.
 
-The law reads ``eta`` where it read ``Phi(x)`` (``y_i^(j)`` for ``j < r_i``; padding
-states above) and commands ``R w = v - p - d_hat``, so that ``y^(r) = v`` again up to
-the estimation error. On the model, started at ``eta = Phi(x)`` and ``d_hat = 0``, the
+The law reads ``eta_j`` where it read ``L_f^j h_i(x)`` (``y_i^(j)`` for
+``1 <= j < r_i``; ``y_i`` itself is measured, and padding states stand above ``r_i``)
+and commands ``R w = v - p - d_hat``, so that ``y^(r) = v`` again up to the estimation
+error. On the model, started at ``eta = Phi(x)`` and ``d_hat = 0``, the
 observer's error is zero and stays zero: the closed loop is the plain law's, and so is
 its certificate (``E' = H E``).
 

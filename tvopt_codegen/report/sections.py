@@ -626,20 +626,20 @@ def _extended_state_observer(d: Derivation) -> Section:
     text = Entry(
         "text",
         text=(
-            f"Extended-state observer, bandwidth omega = {omega:.6g} rad/s. Per output y_i "
-            "of relative degree r_i, in the law's own coordinates: estimates of y_i, y_i', "
-            ".., y_i^(r_i - 1) and of the lumped disturbance d_i in y_i^(r_i) = p_i(x) + "
-            "(R(x) w)_i + d_i, which holds for the true derivatives of y_i whatever row of "
-            "the plant the mismatch enters. It measures y = h(x) alone: under mismatch "
-            "L_f^j h(x) is not y^(j). eta_j' = eta_{j+1} + l_{j+1} e, eta_{r-1}' = v + l_r e, "
-            "d_hat' = l_{r+1} e with e = y - eta_0 and l_j = C(r + 1, j) omega^j, every pole "
-            f"of the estimation error at {-omega:.6g}. The law reads eta where it read Phi(x) "
-            "and commands R w = v - p - d_hat. The sampled controller runs the exact "
-            "discrete twin: the chain moved with v held over the step (Taylor), then "
-            "corrected by the newest output with gains that put every pole at "
-            "exp(-omega h). Started at eta = Phi(x0), d_hat = 0, the error is zero on the "
-            "model and stays zero: the nominal closed loop is the plain law's, and the "
-            "certificate above holds for it."
+            f"Extended-state observer, bandwidth omega = {omega:.6g} rad/s. Per output y_i of "
+            "relative degree r_i, in the law's own coordinates: estimates of y_i, y_i', .., "
+            "y_i^(r_i - 1) and of the lumped disturbance d_i in y_i^(r_i) = p_i(x) + (R(x) "
+            "w)_i + d_i, which holds for the true derivatives of y_i whatever row of the "
+            "plant the mismatch enters. It measures y = h(x) alone: under mismatch L_f^j h(x)"
+            f" is not y^(j). eta_j' = eta_{{j+1}} + l_{{j+1}} e, eta_{{r-1}}' = v + l_r e, "
+            f"d_hat' = l_{{r+1}} e with e = y - eta_0 and l_j = C(r + 1, j) omega^j, every "
+            f"pole of the estimation error at {-omega:.6g}. The law reads the measured y and "
+            "eta_1 .. eta_(r-1) where it read Phi(x), and commands R w = v - p - d_hat. The "
+            "sampled controller runs the exact discrete twin: the chain moved with v held "
+            "over the step (Taylor), then corrected by the newest output with gains that put "
+            "every pole at exp(-omega h). Started at eta = Phi(x0), d_hat = 0, the error is "
+            "zero on the model and stays zero: the nominal closed loop is the plain law's, "
+            "and the certificate above holds for it."
         ),
     )
     rows = tuple(
