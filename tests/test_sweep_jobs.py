@@ -631,16 +631,22 @@ def _part_holding(folder: Path, start: int) -> Path:
 
 
 @pytest.fixture(scope="module")
-def mixing(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+def mixing() -> dict[str, Path]:
     """Three finished sweeps of one spec with their parts kept: seed 1, seed 2, t_final 2.
 
-    ``seed1`` is then made an interrupted sweep whose last chunk (9..11) is missing.
+    ``seed1`` is then made an interrupted sweep whose last chunk (9..11) is missing. Made
+    once per run for every worker (the tests copy what they change).
     """
+    root = shared("sweep-jobs-mixing", _sweeps_to_mix)
+    made = {name: root / name for name in ("seed1", "seed2", "longer")}
+    return made | {"complete": root / "complete.parquet"}
+
+
+def _sweeps_to_mix(root: Path) -> None:
     import shutil
 
     from tvopt_codegen.emit import SweepFolder, write_files
 
-    root = tmp_path_factory.mktemp("mixing")
     made = {}
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(SweepFolder, "clear_parts", lambda self: None)
@@ -657,14 +663,11 @@ def mixing(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
             assert main(["sweep", "integrator", *options, "--out", str(out)]) == 0
             assert sorted(_ranges_of(p)[0][0] for p in (out / "parts").iterdir()) == [0, 3, 6, 9]
             made[name] = out
-    complete = root / "complete.parquet"
-    shutil.copyfile(made["seed1"] / "summary.parquet", complete)
-    made["complete"] = complete
+    shutil.copyfile(made["seed1"] / "summary.parquet", root / "complete.parquet")
     _part_holding(made["seed1"], 9).unlink()
     # As an interrupted sweep leaves its record (written by the tool: its manifest knows it).
     record = json.loads((made["seed1"] / "sweep.json").read_text()) | {"state": "interrupted"}
     write_files({"sweep.json": sweep.record_bytes(record)}, made["seed1"])
-    return made
 
 
 def _folder_hash(folder: Path) -> dict[str, bytes]:
