@@ -86,8 +86,9 @@ def worktree(rev: str) -> Path:
     """A clean worktree of ``rev`` with its own venv, made by its own Makefile.
 
     Kept between runs (``git worktree remove`` deletes it): its venv takes minutes to
-    install. An existing worktree is moved to ``rev`` first, so a new commit of the same
-    branch is measured, not the one it was made at.
+    install. An existing worktree is moved to ``rev`` first (edits in it dropped: the
+    folder is this script's), so a new commit of the same branch is measured, not the one
+    it was made at.
     """
     sha = subprocess.run(
         ["git", "-C", str(ROOT), "rev-parse", "--verify", f"{rev}^{{commit}}"],
@@ -103,7 +104,9 @@ def worktree(rev: str) -> Path:
             capture_output=True,
         )
     else:
-        subprocess.run(["git", "-C", str(folder), "checkout", "-q", "--detach", sha], check=True)
+        subprocess.run(
+            ["git", "-C", str(folder), "checkout", "-q", "--force", "--detach", sha], check=True
+        )
     # Its own setup target: the venv, the dev and optional extras, the bytecode.
     subprocess.run(["make", "-C", str(folder), ".venv/.compiled"], check=True)
     return folder
