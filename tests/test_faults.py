@@ -43,6 +43,30 @@ def _cli(
     )
 
 
+def _into_the_derivation(pid: int, cpu_seconds: float = 2.0) -> None:
+    """Wait until process ``pid`` has run ``cpu_seconds`` of CPU: past its imports (under
+    1 s of CPU), inside the ring's derivation (8 s on this machine).
+
+    Counted in the process's own CPU time (Linux's /proc), not on the wall: a loaded
+    machine neither signals it still importing nor waits longer than needed on an idle
+    one. Without /proc, the wall: 4 s.
+    """
+    stat = Path(f"/proc/{pid}/stat")
+    if not stat.exists():
+        time.sleep(4.0)
+        return
+    tick = os.sysconf("SC_CLK_TCK")
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (FileNotFoundError, ProcessLookupError):
+            return  # it ended: the test's own check says how
+        if (int(fields[11]) + int(fields[12])) / tick >= cpu_seconds:
+            return
+        time.sleep(0.05)
+
+
 def _slow_spec(tmp_path: Path) -> Path:
     """A spec whose derivation takes many seconds: the ring of 64 unicycles."""
     text, count = re.subn(r"(?m)^i = \d+", "i = 64", RING)
@@ -64,7 +88,7 @@ def test_signal_during_derivation_writes_nothing(
     (out / "keep.txt").write_text("mine")
     before = _snapshot(out)
     proc = _cli("generate", str(_slow_spec(tmp_path)), "--out", str(out), "--max-size", "100000000")
-    time.sleep(4.0)  # past the imports, inside the derivation
+    _into_the_derivation(proc.pid)  # past the imports, inside the derivation
     assert proc.poll() is None, proc.communicate()
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
@@ -118,7 +142,7 @@ def test_a_signal_during_simulate_leaves_no_drawing_process(
         text=True,
         start_new_session=True,
     )
-    time.sleep(4.0)  # inside the derivation, the drawing process waiting for figures
+    _into_the_derivation(proc.pid)  # the drawing process waiting for figures
     assert proc.poll() is None, proc.communicate()
     drawing = _children(proc.pid)
     assert len(drawing) == 1
