@@ -523,10 +523,8 @@ def _arm_with_observer() -> tuple[Any, Any]:
 
 
 def test_the_observer_solves_a_coupled_g_by_least_squares() -> None:
-    from tvopt_codegen.derivation.robust import robustness
-
     d, kernels = _arm_with_observer()
-    robust = robustness(d)
+    robust = d.robustness
     # Both torques reach both joint accelerations through M^-1: one block of two.
     assert robust.observed_states == (2, 3)
     assert robust.observer_blocks == ((0, 1),)

@@ -130,6 +130,28 @@ def symmetric_dense(
     return tuple(dense)
 
 
+def _chains(
+    extension: Extension, chains: Sequence[Sequence[str]], observer: int, integral: int
+) -> tuple[tuple[int, int], ...]:
+    """``Law.chains``: each ``(first index among the controller states, length)``.
+
+    The extension's chains, then the padding and multiplier chains, then one per integral.
+    The ``observer`` states of the extended-state observer sit between the multipliers'
+    and the integrals' and are no chain.
+    """
+    out: list[tuple[int, int]] = []
+    start = 0
+    for _, count in extension.counts:
+        out.append((start, count))
+        start += count
+    for chain in chains:
+        if chain:
+            out.append((start, len(chain)))
+            start += len(chain)
+    start += observer
+    return (*out, *((start + j, 1) for j in range(integral)))
+
+
 def control_law(
     *,
     hessian_entries: Sequence[tuple[tuple[int, int], sp.Expr]],
@@ -230,18 +252,7 @@ def control_law(
     # The integral states last: each integrates its entry of grad f0 (of the KKT map).
     field += [grad_jet[0][i] for i in range(len(integral))]
     plant_input = tuple(u if u.name in ext.states else w[j] for j, u in enumerate(plant_inputs))
-    chains: list[tuple[int, int]] = []
-    start = 0
-    for _, count in ext.counts:
-        chains.append((start, count))
-        start += count
-    for chain in (*padding, *multipliers):
-        if chain:
-            chains.append((start, len(chain)))
-            start += len(chain)
-    if eso is not None:
-        start += len(eso.names)
-    chains += [(start + j, 1) for j in range(len(integral))]
+    chains = _chains(ext, (*padding, *multipliers), len(eso.names) if eso else 0, len(integral))
     return Law(
         a=a,
         w=w,
@@ -255,6 +266,6 @@ def control_law(
         r_entries=r_entries,
         closed_loop=tuple(field),
         plant_input=plant_input,
-        chains=tuple(chains),
+        chains=chains,
         lumped=lumped,
     )

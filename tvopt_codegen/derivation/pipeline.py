@@ -45,11 +45,13 @@ from tvopt_codegen.derivation.record import (
     DecouplingStage,
     Derivation,
     ErrorDynamicsStage,
+    EstimatorStage,
     JetStage,
     LinearizationStage,
     ObjectiveStage,
 )
 from tvopt_codegen.derivation.rejection import Rejection, initial_estimates, rejection
+from tvopt_codegen.derivation.robust import robustness
 from tvopt_codegen.errors import AssumptionError
 from tvopt_codegen.limits import Budget
 from tvopt_codegen.maths import hurwitz
@@ -180,16 +182,18 @@ def _derive(spec: Spec, meter: _Meter) -> Derivation:
         eso=eso,
         outputs=tuple(model.h),
     )
+    estimator = None
     if spec.estimator is not None:
+        order = estimator_order(spec.estimator, jet.reference_order)
         try:
-            estimator_gains(spec.estimator, estimator_order(spec.estimator, jet.reference_order))
+            estimator = EstimatorStage(order, estimator_gains(spec.estimator, order))
         except ValueError as exc:
             raise AssumptionError(spec.source, "references.estimator.kind", str(exc)) from None
     clock.mark("law")
     return _record(
         spec,
         model,
-        _Stages(lin, dynamics, states, decoupling, objective, kkt, jet, eso),
+        _Stages(lin, dynamics, states, decoupling, objective, kkt, jet, eso, estimator),
         law,
         warnings,
         (rate, rate_exact, constant),
@@ -259,6 +263,7 @@ class _Stages:
     kkt: _Objective
     jet: _GradientJet
     eso: Rejection | None = None
+    estimator: EstimatorStage | None = None
 
 
 def _record(
@@ -349,4 +354,15 @@ def _record(
         warnings=warnings,
         timings=timings,
         rejection=stages.eso,
+        robustness=robustness(
+            spec,
+            model,
+            law,
+            ext,
+            states.names,
+            states.integral,
+            dynamics.bumpless,
+            stages.eso,
+        ),
+        estimator=stages.estimator,
     )

@@ -11,6 +11,7 @@ import sympy as sp
 from tvopt_codegen.derivation.law import Law
 from tvopt_codegen.derivation.model import Model
 from tvopt_codegen.derivation.rejection import Rejection
+from tvopt_codegen.derivation.robust import Robustness
 from tvopt_codegen.maths.jet import (
     Program,
 )
@@ -161,6 +162,23 @@ class ClosedLoopStage:
     initial_state: tuple[float, ...]
     multiplier_states: tuple[tuple[str, ...], ...] = ()
     integral_states: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class EstimatorStage:
+    """The reference differentiator the generated controllers run (``[references.estimator]``).
+
+    Attributes
+    ----------
+    order : int
+        The differentiator's order: the derivatives of each reference it estimates
+        (at least the law's reference order, one beyond for the linear kind).
+    gains : tuple of float
+        Its gains (:func:`~tvopt_codegen.spec.estimator.estimator_gains`).
+    """
+
+    order: int
+    gains: tuple[float, ...]
 
 
 @dataclass(frozen=True)
@@ -326,6 +344,13 @@ class Derivation:
     rejection : Rejection or None
         The extended-state observer (``[robust.eso]``;
         :mod:`tvopt_codegen.derivation.rejection`), None without one.
+    robustness : Robustness
+        What the stateful controller does at a step beyond the law (limits, integral
+        action's chains and bumpless start, the observers' data;
+        :mod:`tvopt_codegen.derivation.robust`).
+    estimator : EstimatorStage or None
+        With references measured at run time and ``[references.estimator]``, the
+        differentiator's order and gains; None otherwise.
 
     Readers name a stage's attribute by its stage (``d.closed_loop.state_names``,
     ``d.linearization.R``): the derivation forwards none of them, so each use says which
@@ -347,7 +372,9 @@ class Derivation:
     law: Law
     warnings: tuple[str, ...]
     timings: tuple[tuple[str, float], ...]
+    robustness: Robustness
     rejection: Rejection | None = None
+    estimator: EstimatorStage | None = None
 
     @functools.cached_property
     def hessian(self) -> sp.ImmutableMatrix:

@@ -30,10 +30,14 @@ its C twin):
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
-from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.derivation.law import Law
+from tvopt_codegen.derivation.model import Model
 from tvopt_codegen.derivation.rejection import Rejection
+from tvopt_codegen.maths.lie import Extension
+from tvopt_codegen.spec import Spec
 
 #: A pivot of ``G^T G`` below this fraction of its largest diagonal entry: G has lost
 #: rank at the state, and the observer keeps its last estimate.
@@ -131,25 +135,36 @@ class Robustness:
         )
 
 
-def robustness(derivation: Derivation) -> Robustness:
-    """The :class:`Robustness` of a derivation (its spec's ``[robust]`` and ``[limits]``)."""
-    d = derivation
-    spec = d.spec
+def robustness(
+    spec: Spec,
+    model: Model,
+    law: Law,
+    extension: Extension,
+    state_names: Sequence[str],
+    integral_states: Sequence[str],
+    bumpless: tuple[float, ...],
+    rejection: Rejection | None,
+) -> Robustness:
+    """The :class:`Robustness` of a spec's ``[robust]`` and ``[limits]``: a stage record.
+
+    The derivation computes it once (:attr:`Derivation.robustness`); the templates, the
+    report, lowering and the sweep read it there.
+    """
     limits = {limit.input: limit for limit in spec.limits}
     inf = math.inf
     low = tuple(limits[u].low if u in limits else -inf for u in spec.inputs)
     high = tuple(limits[u].high if u in limits else inf for u in spec.inputs)
     rate = tuple(limits[u].rate if u in limits else inf for u in spec.inputs)
-    extended = [name for name, _ in d.linearization.extension.counts]
+    extended = [name for name, _ in extension.counts]
     input_chains = tuple(extended.index(u) if u in extended else -1 for u in spec.inputs)
-    chains = d.law.chains
-    count = len(d.closed_loop.integral_states)
+    chains = law.chains
+    count = len(integral_states)
     integral_chains = tuple(range(len(chains) - count, len(chains)))
     first = len(spec.states)
     rows: tuple[tuple[int, ...], ...] = ()
     if spec.robust.observer is not None:
-        n, m = d.model.G.shape
-        rows = tuple(tuple(k for k in range(n) if d.model.G[k, i] != 0) for i in range(m))
+        n, m = model.G.shape
+        rows = tuple(tuple(k for k in range(n) if model.G[k, i] != 0) for i in range(m))
     return Robustness(
         low,
         high,
@@ -157,18 +172,15 @@ def robustness(derivation: Derivation) -> Robustness:
         spec.robust.observer,
         integral_chains,
         input_chains,
-        d.dynamics.bumpless,
-        tuple(
-            d.closed_loop.state_names.index(name) - first for name in d.closed_loop.integral_states
-        ),
+        bumpless,
+        tuple(state_names.index(name) - first for name in integral_states),
         rows,
         _blocks(rows),
-        d.rejection,
+        rejection,
         ()
-        if d.rejection is None
+        if rejection is None
         else tuple(
-            tuple(d.closed_loop.state_names.index(name) - first for name in chain)
-            for chain in d.rejection.states
+            tuple(state_names.index(name) - first for name in chain) for chain in rejection.states
         ),
     )
 

@@ -220,7 +220,7 @@ def _jet_kernels(
             ("mass", (len(mass.entries),), mass.entries, "stored entries of the mass matrix"),
             ("mass_pivot", (len(mass.pivots),), mass.pivots, "pivots of M's LDL^T"),
         ]
-    if d.spec.robust.observer is not None:
+    if d.robustness.observer is not None:
         # The disturbance observer reads f(x) and G(x) at the state the law is evaluated
         # at: here they share the jet's trigonometry, where a kernel of their own would
         # evaluate it again at every step.
@@ -529,7 +529,7 @@ def lower(derivation: Derivation) -> KernelSet:
         n_params=len(d.model.params),
         k=len(d.dynamics.coefficients),
         integral=bool(d.closed_loop.integral_states),
-        observer=len(d.spec.states) if d.spec.robust.observer is not None else 0,
+        observer=len(d.spec.states) if d.robustness.observer is not None else 0,
         tau=0 if jet_time is None else jet_time.outputs[0].shape[0],
         hessian=0 if cholesky is None else jet.outputs[0].shape[0],
         r_blocks=law.r_blocks,

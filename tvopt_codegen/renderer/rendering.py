@@ -24,12 +24,12 @@ from tvopt_codegen import __version__
 from tvopt_codegen.backends import BACKENDS, Backend
 from tvopt_codegen.contract import CALLER_FAULTS, FUNCTIONS, PIVOT_TOLERANCE, statuses
 from tvopt_codegen.cse import symbols_in
-from tvopt_codegen.derivation.robust import GRAM_TOLERANCE, STEP_TOLERANCE, robustness
+from tvopt_codegen.derivation.robust import GRAM_TOLERANCE, STEP_TOLERANCE
 from tvopt_codegen.emit.stamp import HASH_PLACEHOLDER, stamp_hash
 from tvopt_codegen.errors import TvoptError
 from tvopt_codegen.lowering.ir import Kernel, KernelSet
 from tvopt_codegen.spec import BUNDLED_SUFFIX
-from tvopt_codegen.spec.estimator import FORGETTING_GAP, estimator_gains, estimator_order
+from tvopt_codegen.spec.estimator import FORGETTING_GAP
 
 
 class CodegenError(TvoptError):
@@ -393,22 +393,12 @@ def template_context(kernels: KernelSet, backend: Backend | str) -> dict[str, An
         "guard": d.spec.name.upper(),
         "r_blocks": kernels.r_blocks,
         "plan": kernels.plan,
-        "robust": robustness(d),
+        "robust": d.robustness,
         "gram_tolerance": GRAM_TOLERANCE,
         "step_tolerance": STEP_TOLERANCE,
         **contract_context(kernels),
-        "estimator_gains": (
-            estimator_gains(
-                d.spec.estimator, estimator_order(d.spec.estimator, d.jet.reference_order)
-            )
-            if d.spec.estimator is not None
-            else ()
-        ),
-        "estimator_order": (
-            estimator_order(d.spec.estimator, d.jet.reference_order)
-            if d.spec.estimator is not None
-            else 0
-        ),
+        "estimator_gains": d.estimator.gains if d.estimator is not None else (),
+        "estimator_order": d.estimator.order if d.estimator is not None else 0,
         "estimator_gap": FORGETTING_GAP,
         **(backend.context(kernels) if backend.context is not None else {}),
     }

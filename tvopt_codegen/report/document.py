@@ -13,6 +13,7 @@ from tvopt_codegen.emit import read_own_output
 from tvopt_codegen.lowering.ir import KernelSet
 from tvopt_codegen.renderer.rendering import render_template
 from tvopt_codegen.report.entries import Section
+from tvopt_codegen.report.robust import _robustness
 from tvopt_codegen.report.sections import (
     _control_law,
     _error_dynamics,
@@ -21,7 +22,6 @@ from tvopt_codegen.report.sections import (
     _model,
     _objective,
     _provenance,
-    _robustness,
     _simulation,
 )
 

@@ -206,7 +206,7 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
             for limit in d.spec.limits
             if math.isfinite(limit.low) or math.isfinite(limit.high)
         ),
-        observer=d.spec.robust.observer is not None,
+        observer=d.robustness.observer is not None,
         integral_rows=tuple(
             d.closed_loop.state_names.index(name) for name in d.closed_loop.integral_states
         ),
