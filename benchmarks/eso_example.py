@@ -29,12 +29,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from tvopt_codegen import sweep
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.spec import parse_spec
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from robust_example import statistics  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = ROOT / "tvopt_codegen" / "examples"
@@ -137,21 +138,7 @@ def run(client: Any, example: str, option: str, scenario: str, samples: int) -> 
     )
     sweep.check_options(program, options)
     done = sweep.run_sweep(client, program, options)
-    rows = [result.row for result in done.results]
-    ok = [row for row in rows if row["status"] == "ok"]
-    finals = np.array([row["final_error"] for row in ok])
-    failures = len(rows) - len(ok)
-    return {
-        "example": example,
-        "option": option,
-        "scenario": scenario,
-        "median": float(np.median(finals)) if ok else np.nan,
-        "p95": float(np.percentile(finals, 95)) if ok else np.nan,
-        "worst": float(finals.max()) if ok else np.nan,
-        "failures": failures,
-        "runs": len(rows),
-        "upper": sweep.clopper_pearson_upper(failures, len(rows)),
-    }
+    return {"example": example, "option": option, "scenario": scenario, **statistics(done)}
 
 
 READING = [

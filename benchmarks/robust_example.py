@@ -119,6 +119,11 @@ def run(
     )
     sweep.check_options(program, options)
     done = sweep.run_sweep(client, program, options)
+    return {"example": example, "option": option, "scenario": scenario, **statistics(done)}
+
+
+def statistics(done: Any) -> dict[str, Any]:
+    """A finished sweep's final errors (median, p95, worst), settling, saturation, failures."""
     rows = [result.row for result in done.results]
     ok = [row for row in rows if row["status"] == "ok"]
     finals = np.array([row["final_error"] for row in ok])
@@ -126,9 +131,6 @@ def run(
     saturated = np.array([row["time_saturated"] for row in rows])
     failures = len(rows) - len(ok)
     return {
-        "example": example,
-        "option": option,
-        "scenario": scenario,
         "median": float(np.median(finals)) if ok else np.nan,
         "p95": float(np.percentile(finals, 95)) if ok else np.nan,
         "worst": float(finals.max()) if ok else np.nan,
