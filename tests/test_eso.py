@@ -232,6 +232,13 @@ def test_a_bandwidth_that_is_not_positive_is_refused() -> None:
     data = _data("drag_vehicle", {"eso": {"bandwith": 5.0}})
     with pytest.raises(SpecError, match=r"robust\.eso"):
         spec_from_dict(data)
+    # Its gains are powers of the bandwidth up to r + 1: bounded where they stay doubles.
+    for bandwidth in (1e300, 1e-300):
+        data = _data("drag_vehicle", {"eso": {"bandwidth": bandwidth}})
+        with pytest.raises(
+            SpecError, match=r"robust\.eso\.bandwidth: .* is outside \[1e-06, 1e\+06\]"
+        ):
+            spec_from_dict(data)
 
 
 def test_the_barriers_read_the_measured_output_not_its_estimate() -> None:

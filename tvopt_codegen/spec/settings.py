@@ -20,6 +20,9 @@ from tvopt_codegen.spec.fields import suggestion as _suggestion
 from tvopt_codegen.spec.parse import indexed_name
 from tvopt_codegen.spec.types import Limit, Robust
 
+#: The extended-state observer's bandwidths, rad/s: its gains go up to bandwidth^(r+1).
+ESO_BANDWIDTH_RANGE = (1e-6, 1e6)
+
 
 class _SettingsReader(_Fields):
     """Reads ``[error_dynamics]``, ``[robust]``, ``[limits]`` and ``[simulation]``."""
@@ -43,6 +46,15 @@ class _SettingsReader(_Fields):
             eso = self.number(block["bandwidth"], "robust.eso.bandwidth")
             if not eso > 0:
                 raise self.fail("robust.eso.bandwidth", "must be positive (rad/s)")
+            low, high = ESO_BANDWIDTH_RANGE
+            if not low <= eso <= high:
+                # Its gains are C(r + 1, j) bandwidth^j up to j = r + 1: past these bounds
+                # they leave the doubles for outputs of high relative degree.
+                raise self.fail(
+                    "robust.eso.bandwidth",
+                    f"{eso:g} rad/s is outside [{low:g}, {high:g}]: the observer's gains "
+                    "are powers of it up to the relative degree + 1",
+                )
         return Robust(integral, bandwidth, eso)
 
     def read_limits(self, data: Mapping[str, Any], inputs: tuple[str, ...]) -> tuple[Limit, ...]:
