@@ -22,7 +22,7 @@ from tvopt_codegen.maths.jet import (
 )
 from tvopt_codegen.maths.numeric import Evaluator, Tape
 from tvopt_codegen.maths.sparse import reverse_cuthill_mckee
-from tvopt_codegen.spec import Constraint, Spec
+from tvopt_codegen.spec import Constraint
 from tvopt_codegen.spec.constraints import Violation
 
 #: A Hessian whose smallest eigenvalue is below this fraction of its scale (the largest
@@ -665,7 +665,7 @@ def nonconvex(
     return found
 
 
-def _constraint_convexity(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str, ...]:
+def _constraint_convexity(model: Model, y0: np.ndarray) -> tuple[str, ...]:
     """Refuse a constraint that is not convex in the outputs, unless the spec allows it.
 
     Each ``g_i``'s Hessian in ``y`` is sampled around the initial outputs over the
@@ -677,15 +677,16 @@ def _constraint_convexity(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str
     rng = np.random.default_rng(18)
     points = 64
     ys = y0[None, :] + rng.uniform(-2.0, 2.0, size=(points, len(y0)))
-    evaluate = _evaluator_at(model, ys, rng.uniform(0.0, spec.t_final, size=points))
-    _feasible_over_the_horizon(spec, model, y0)
+    settings = model.settings
+    evaluate = _evaluator_at(model, ys, rng.uniform(0.0, settings.t_final, size=points))
+    _feasible_over_the_horizon(model, y0)
     found = nonconvex(model.constraints, model.y, evaluate, points)
     if not found:
         return ()
     names = ", ".join(f"{name} (Hessian eigenvalue {value:.3g})" for name, value in found)
-    if not spec.allow_nonconvex:
+    if not settings.allow_nonconvex:
         raise AssumptionError(
-            spec.source,
+            settings.source,
             f"constraints.{found[0][0]}",
             f"not convex in the outputs: {names}; the barrier method needs convex "
             "inequalities (set allow_nonconvex = true to accept a local certificate)",
@@ -712,7 +713,7 @@ def _evaluator_at(model: Model, ys: np.ndarray, ts: np.ndarray) -> Evaluator:
     return evaluate
 
 
-def _feasible_over_the_horizon(spec: Spec, model: Model, y0: np.ndarray) -> None:
+def _feasible_over_the_horizon(model: Model, y0: np.ndarray) -> None:
     """Refuse constraints that no output satisfies at some time of the horizon.
 
     The least violation is found at :data:`_FEASIBILITY_POINTS` times (each search
@@ -720,7 +721,8 @@ def _feasible_over_the_horizon(spec: Spec, model: Model, y0: np.ndarray) -> None
     bisection, and the constraint named when it alone holds nowhere there.
     """
     violation = Violation(model)
-    times = np.linspace(0.0, spec.t_final, _FEASIBILITY_POINTS)
+    t_final = model.settings.t_final
+    times = np.linspace(0.0, t_final, _FEASIBILITY_POINTS)
     worst = np.empty(len(times))
     point = np.asarray(y0, dtype=float)
     for k, t in enumerate(times):
@@ -747,18 +749,18 @@ def _feasible_over_the_horizon(spec: Spec, model: Model, y0: np.ndarray) -> None
         if violation.least(float(times[peak]), np.asarray(y0, dtype=float), only=i)[0] > _INFEASIBLE
     ]
     if last == len(times) - 1:
-        span = f"from t = {start:.4g} to the horizon's end t = {spec.t_final:g}"
+        span = f"from t = {start:.4g} to the horizon's end t = {t_final:g}"
     else:
-        span = f"for t in [{start:.4g}, {end:.4g}] of the horizon [0, {spec.t_final:g}]"
+        span = f"for t in [{start:.4g}, {end:.4g}] of the horizon [0, {t_final:g}]"
     least = f"the least violation found is {worst[peak]:.3g}, at t = {times[peak]:.4g}"
     if len(alone) == 1:
         raise AssumptionError(
-            spec.source,
+            model.source,
             f"constraints.{alone[0]}",
             f"infeasible {span}: no output satisfies it there ({least})",
         )
     raise AssumptionError(
-        spec.source,
+        model.source,
         "constraints",
         f"infeasible {span}: every output violates a constraint there ({least})",
     )

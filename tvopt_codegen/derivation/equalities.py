@@ -18,7 +18,6 @@ from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter, tree_siz
 from tvopt_codegen.derivation.model import Model
 from tvopt_codegen.derivation.objective import _Objective, _programs_of, objective_start
 from tvopt_codegen.errors import AssumptionError
-from tvopt_codegen.spec import Spec
 
 
 def _equality_jacobian(model: Model) -> list[list[sp.Expr]]:
@@ -26,7 +25,7 @@ def _equality_jacobian(model: Model) -> list[list[sp.Expr]]:
     return [[sp.diff(c.g, y) for y in model.y] for c in model.equalities]
 
 
-def _equality_checks(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str, ...]:
+def _equality_checks(model: Model, y0: np.ndarray) -> tuple[str, ...]:
     """Refuse equalities the KKT law cannot keep: too many, dependent, or not affine.
 
     Equalities not affine in the outputs make the feasible set non-convex: refused
@@ -36,11 +35,12 @@ def _equality_checks(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str, ...
     """
     if not model.equalities:
         return ()
+    settings = model.settings
     q, m = len(model.equalities), len(model.y)
     names = ", ".join(c.name for c in model.equalities)
     if q > m:
         raise AssumptionError(
-            spec.source,
+            settings.source,
             "constraints",
             f"{q} equality constraints ({names}) on {m} outputs: at most {m} can be independent",
         )
@@ -51,9 +51,9 @@ def _equality_checks(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str, ...
         if any(sp.diff(c.g, yi, yj) != 0 for yi in model.y for yj in model.y)
     ]
     if curved:
-        if not spec.allow_nonconvex:
+        if not settings.allow_nonconvex:
             raise AssumptionError(
-                spec.source,
+                settings.source,
                 f"constraints.{curved[0]}",
                 f"not affine in the outputs: {', '.join(curved)}; the feasible set of a "
                 "curved equality is not convex (set allow_nonconvex = true to accept a "
@@ -65,7 +65,7 @@ def _equality_checks(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str, ...
         )
     jacobian_a = _equality_jacobian(model)
     points = 5
-    ts = np.linspace(0.0, spec.t_final, points)
+    ts = np.linspace(0.0, settings.t_final, points)
     evaluate = _evaluator_at(model, np.repeat(y0[None, :], points, axis=0), ts)
     matrices = np.zeros((points, q, m))
     for i, row in enumerate(jacobian_a):
@@ -78,7 +78,7 @@ def _equality_checks(spec: Spec, model: Model, y0: np.ndarray) -> tuple[str, ...
         if not singular[-1] > 1e-9 * max(1.0, float(singular[0])):
             where = "everywhere" if constant else f"at the initial outputs and t = {ts[index]:g}"
             raise AssumptionError(
-                spec.source,
+                settings.source,
                 "constraints",
                 f"the equality constraints {names} are dependent: their gradients in the "
                 f"outputs have rank {int(np.sum(singular > 1e-9 * singular[0]))} < {q} "
@@ -140,7 +140,7 @@ def _lagrangian(
     )
 
 
-def _multipliers_start(spec: Spec, model: Model, states: _States, objective: _Objective) -> _States:
+def _multipliers_start(model: Model, states: _States, objective: _Objective) -> _States:
     """The multiplier chains' initial values: nu(0) by least squares, its derivatives 0.
 
     ``nu(0)`` minimises ``|grad f0 + J_a^T nu|`` at the initial outputs and t = 0, so the
@@ -162,7 +162,7 @@ def _multipliers_start(spec: Spec, model: Model, states: _States, objective: _Ob
         ]
     ).reshape(q, m)
     nu0 = np.linalg.lstsq(jacobian_a.T, -g, rcond=None)[0]
-    given = dict(spec.initial_state)
+    given = dict(model.settings.initial_state)
     initial = list(states.initial)
     for chain, value in zip(states.multipliers, nu0, strict=True):
         if chain[0] not in given:

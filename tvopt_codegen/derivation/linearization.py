@@ -23,7 +23,7 @@ from tvopt_codegen.derivation.meter import (
     time_limited,
     tree_size,
 )
-from tvopt_codegen.derivation.model import Model
+from tvopt_codegen.derivation.model import Model, Settings
 from tvopt_codegen.derivation.rejection import state_names
 from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.maths import hurwitz
@@ -38,7 +38,7 @@ from tvopt_codegen.maths.lie import (
     relative_degree,
 )
 from tvopt_codegen.maths.numeric import Evaluator
-from tvopt_codegen.spec import Mechanics, Spec
+from tvopt_codegen.spec import Mechanics
 from tvopt_codegen.spec.features import refusal_line
 from tvopt_codegen.spec.implicit import implicit_values
 from tvopt_codegen.spec.reader import suggestion
@@ -48,7 +48,7 @@ def _implicit_problem(model: Model, exc: ImplicitDerivativeError) -> str:
     """Why a mass-matrix plant cannot take the Lie derivative ``exc`` asks for."""
     output, order = exc.args
     problem = (
-        f"output {model.spec.outputs[output]!r} needs the derivative of M^-1 (its Lie "
+        f"output {model.output_names[output]!r} needs the derivative of M^-1 (its Lie "
         f"derivative of order {order} holds M^-1 F or M^-1 B"
     )
     if len(model.h) > 1:
@@ -472,15 +472,17 @@ class _Decoupling:
     undefined: tuple[str, ...]
 
 
-def _linearize(spec: Spec, model: Model, meter: _Meter) -> _Linearization:
+def _linearize(model: Model, meter: _Meter) -> _Linearization:
     """Extend the plant (as given, or by search) and find its vector relative degree."""
-    source = spec.source
-    counts = dict(spec.extension)
+    settings = model.settings
+    source = settings.source
+    outputs = model.output_names
+    counts = dict(settings.extension)
     searched: tuple[str, ...] = ()
-    if spec.extension_auto:
+    if settings.extension_auto:
         meter.stage = "extension search"
         meter.report()
-        limit = spec.extension_max_total or len(spec.states)
+        limit = settings.extension_max_total or len(model.x)
         if model.mechanics is not None:
             # A mass-matrix plant takes no prolongation (docs/features.md): "none" is the one
             # candidate, and when it fails the relative degree below says why in one line.
@@ -498,18 +500,10 @@ def _linearize(spec: Spec, model: Model, meter: _Meter) -> _Linearization:
         meter.stage = "relative degree"
         meter.report()
     ext = extend(model.x, model.u, model.f, model.G, counts)
-    declared = frozenset(
-        {
-            *spec.states,
-            *spec.inputs,
-            *spec.outputs,
-            *(n for n, _ in spec.parameters),
-            *(n for n, _ in spec.signals),
-            *spec.references,
-        }
-    )
+    declared = model.declared
+    inputs = model.input_names
     for name in ext.states:
-        if name in declared and name not in spec.inputs:
+        if name in declared and name not in inputs:
             raise SpecError(
                 source,
                 "extension.integrate",
@@ -521,13 +515,11 @@ def _linearize(spec: Spec, model: Model, meter: _Meter) -> _Linearization:
             ext.f, ext.G, model.h, ext.x, sampler, meter, opaque=model.opaque
         )
     except ImplicitDerivativeError as exc:
-        where = (
-            "extension" if any(counts.values()) else f"system.outputs.{spec.outputs[exc.args[0]]}"
-        )
+        where = "extension" if any(counts.values()) else f"system.outputs.{outputs[exc.args[0]]}"
         raise AssumptionError(source, where, _implicit_problem(model, exc)) from None
     m = len(model.u)
     n_ext = len(ext.x)
-    for name, r in zip(spec.outputs, rd.r, strict=True):
+    for name, r in zip(outputs, rd.r, strict=True):
         if r is None:
             raise AssumptionError(
                 source,
@@ -537,7 +529,7 @@ def _linearize(spec: Spec, model: Model, meter: _Meter) -> _Linearization:
             )
     assert rd.R is not None
     degrees = tuple(int(r) for r in rd.r if r is not None)
-    named = ", ".join(f"{o} = {r}" for o, r in zip(spec.outputs, degrees, strict=True))
+    named = ", ".join(f"{o} = {r}" for o, r in zip(outputs, degrees, strict=True))
     rank = generic_rank(rd.R, sampler)
     if rank < m:
         suggestion = _suggest_prolongation(model, counts)
@@ -558,36 +550,37 @@ def _linearize(spec: Spec, model: Model, meter: _Meter) -> _Linearization:
     return _Linearization(ext, degrees, rd.lie, rd.R, searched, declared)
 
 
-def _error_dynamics(spec: Spec, k: int) -> _ErrorDynamics:
-    """H from the spec's poles or coefficients: of order k, and Hurwitz."""
-    source = spec.source
-    if spec.coefficients is not None:
-        coefficients = spec.coefficients
+def _error_dynamics(settings: Settings, k: int) -> _ErrorDynamics:
+    """H from the spec's poles or coefficients (``settings``): of order k, and Hurwitz."""
+    source = settings.source
+    poles = settings.poles
+    if settings.coefficients is not None:
+        coefficients = settings.coefficients
         field, given = "error_dynamics.coefficients", len(coefficients)
     else:
-        assert spec.poles is not None
-        coefficients = hurwitz.coefficients_from_poles(spec.poles)
-        field, given = "error_dynamics.poles", len(spec.poles)
-    kind = "poles" if spec.poles is not None else "coefficients"
+        assert poles is not None
+        coefficients = hurwitz.coefficients_from_poles(poles)
+        field, given = "error_dynamics.poles", len(poles)
+    kind = "poles" if poles is not None else "coefficients"
     # A count that does not match is the spec's mistake (exit 2), not the method's.
-    if spec.robust.integral and given != k + 1:
+    if settings.robust.integral and given != k + 1:
         raise SpecError(
             source,
             field,
             f"the error dynamics have order k = {k} (the largest relative degree) and "
             f"[robust] integral adds one per output, so give {k + 1} {kind}, not {given}",
         )
-    if not spec.robust.integral and given != k:
+    if not settings.robust.integral and given != k:
         raise SpecError(
             source,
             field,
             f"the error dynamics have order k = {k} (the largest relative degree), so give "
             f"{k} {kind}, not {given}",
         )
-    if spec.poles is not None:
+    if poles is not None:
         # The poles are exact as written; the companion eigenvalues would be rounded.
-        eig = np.array(sorted(spec.poles, key=lambda v: (v.real, v.imag)))
-        alpha = float(-max(v.real for v in spec.poles))
+        eig = np.array(sorted(poles, key=lambda v: (v.real, v.imag)))
+        alpha = float(-max(v.real for v in poles))
     else:
         eig = hurwitz.eigenvalues(coefficients)
         alpha = hurwitz.decay_rate(coefficients)
@@ -601,8 +594,8 @@ def _error_dynamics(spec: Spec, k: int) -> _ErrorDynamics:
         )
     pole: float | None = None
     bumpless: tuple[float, ...] = ()
-    if spec.robust.integral:
-        split = hurwitz.integral_split(coefficients, spec.poles)
+    if settings.robust.integral:
+        split = hurwitz.integral_split(coefficients, poles)
         if split is None:
             raise SpecError(
                 source,
@@ -616,26 +609,27 @@ def _error_dynamics(spec: Spec, k: int) -> _ErrorDynamics:
     )
 
 
-def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:
+def _closed_loop_states(model: Model, lin: _Linearization, k: int) -> _States:
     """Pad outputs of relative degree below k with integrator chains; order the state."""
+    settings, outputs = model.settings, model.output_names
     padding = tuple(
         tuple(f"xi_{name}_{j}" for j in range(1, k - r + 1))
-        for name, r in zip(spec.outputs, lin.degrees, strict=True)
+        for name, r in zip(outputs, lin.degrees, strict=True)
     )
     pad_names = [n for chain in padding for n in chain]
     # Each equality's multiplier and its first k - 1 derivatives: the controller's own
     # integrator chain, driven by nu^(k) from the KKT system.
-    multipliers = tuple(tuple(f"nu_{c.name}_{j}" for j in range(k)) for c in spec.equalities)
+    multipliers = tuple(tuple(f"nu_{c.name}_{j}" for j in range(k)) for c in model.equalities)
     # With integral action, the integral of each entry of grad f0 (or of the KKT map):
     # a chain of one integrator per entry, last in the state.
     integral: tuple[str, ...] = ()
-    if spec.robust.integral:
+    if settings.robust.integral:
         integral = (
-            *(f"int_{name}" for name in spec.outputs),
-            *(f"int_nu_{c.name}" for c in spec.equalities),
+            *(f"int_{name}" for name in outputs),
+            *(f"int_nu_{c.name}" for c in model.equalities),
         )
     # The extended-state observer's estimates sit before the integrals, which stay last.
-    eso = state_names(spec.outputs, lin.degrees) if spec.robust.eso is not None else ()
+    eso = state_names(outputs, lin.degrees) if settings.robust.eso is not None else ()
     generated = (
         ("system.outputs", "padding state", pad_names),
         ("robust.eso", "observer state", tuple(n for chain in eso for n in chain)),
@@ -644,7 +638,7 @@ def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:
             "multiplier name",
             (
                 *(n for chain in multipliers for n in chain),
-                *(f"nu_{c.name}" for c in spec.equalities),
+                *(f"nu_{c.name}" for c in model.equalities),
             ),
         ),
         ("robust.integral", "integral state", integral),
@@ -653,11 +647,11 @@ def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:
         for name in names_of:
             if name in lin.declared:
                 raise SpecError(
-                    spec.source, field, f"{kind} {name!r} collides with a declared name"
+                    settings.source, field, f"{kind} {name!r} collides with a declared name"
                 )
     ext = lin.extension
     names = (
-        *spec.states,
+        *model.state_names,
         *ext.states,
         *pad_names,
         *(n for chain in multipliers for n in chain),
@@ -666,8 +660,8 @@ def _closed_loop_states(spec: Spec, lin: _Linearization, k: int) -> _States:
     )
     # With a searched extension the user cannot know its states in advance: only the
     # plant states are required then (extension states start at zero unless given).
-    required = len(spec.states) + (0 if spec.extension_auto else len(ext.states))
-    initial = _initial_state(spec, names, required)
+    required = len(model.x) + (0 if settings.extension_auto else len(ext.states))
+    initial = _initial_state(settings, names, required)
     return _States(
         padding,
         names,
@@ -744,13 +738,15 @@ def law_expressions(
     return [e for _, _, e in nonzero_entries(_with_gains(R, mechanics))] + list(p)
 
 
-def _initial_state(spec: Spec, state_names: Sequence[str], required: int) -> tuple[float, ...]:
+def _initial_state(
+    settings: Settings, state_names: Sequence[str], required: int
+) -> tuple[float, ...]:
     """Order the spec's initial state; plant and extension states must all be given."""
-    given = dict(spec.initial_state)
+    given = dict(settings.initial_state)
     for key in given:
         if key not in state_names:
             raise SpecError(
-                spec.source,
+                settings.source,
                 f"simulation.initial_state.{key}",
                 f"not a state of the closed loop (states: {', '.join(state_names)})"
                 f"{suggestion(key, state_names)}",
@@ -759,7 +755,7 @@ def _initial_state(spec: Spec, state_names: Sequence[str], required: int) -> tup
         for name in state_names[:required]:
             if name not in given:
                 raise SpecError(
-                    spec.source,
+                    settings.source,
                     f"simulation.initial_state.{name}",
                     "missing (every plant and extension state needs a value)",
                 )

@@ -8,7 +8,7 @@ no right-hand side is more than affine in the inputs.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import sympy as sp
@@ -17,7 +17,16 @@ from tvopt_codegen.contract import PIVOT_TOLERANCE
 from tvopt_codegen.errors import AssumptionError, SpecError, clip
 from tvopt_codegen.maths.jet import partial
 from tvopt_codegen.maths.lie import Sampler, from_entries
-from tvopt_codegen.spec import TIME, Constraint, Mechanics, Spec, symbol
+from tvopt_codegen.spec import (
+    TIME,
+    Constraint,
+    Estimator,
+    Limit,
+    Mechanics,
+    Robust,
+    Spec,
+    symbol,
+)
 from tvopt_codegen.spec.constraints import barrier_objective, initial_slack, schedule
 from tvopt_codegen.spec.implicit import (
     implicit_values,
@@ -28,13 +37,61 @@ from tvopt_codegen.spec.implicit import (
 
 
 @dataclass(frozen=True)
+class Settings:
+    """The spec's choices for the law that the stages after :func:`build_model` read.
+
+    Copied from the :class:`~tvopt_codegen.spec.Spec` as given: the stages read the
+    model, and the spec stays the templates' and the report's.
+
+    Attributes
+    ----------
+    source : str
+        The spec's file name, for error messages.
+    poles, coefficients : tuple or None
+        ``[error_dynamics]``: the poles (complex) or the coefficients (float); one is None.
+    t_final : float
+        The horizon, ``[simulation] t_final``.
+    initial_state : tuple of (str, float)
+        ``[simulation] initial_state`` as given: closed-loop state names and values.
+    extension : tuple of (str, int)
+        ``[extension] integrate``: the integrators asked for each input.
+    extension_auto : bool
+        Whether the prolongation is searched (``[extension] auto``).
+    extension_max_total : int or None
+        The search's largest total of integrators (None: the number of plant states).
+    allow_nonconvex : bool
+        Whether a constraint that is not convex only warns.
+    robust : Robust
+        ``[robust]``: integral action, the disturbance observer, the extended-state observer.
+    limits : tuple of Limit
+        ``[limits]``: the actuators' ranges and slew rates.
+    estimator : Estimator or None
+        ``[references.estimator]``: how the references' derivatives are estimated.
+    """
+
+    source: str
+    poles: tuple[complex, ...] | None
+    coefficients: tuple[float, ...] | None
+    t_final: float
+    initial_state: tuple[tuple[str, float], ...]
+    extension: tuple[tuple[str, int], ...] = ()
+    extension_auto: bool = False
+    extension_max_total: int | None = None
+    allow_nonconvex: bool = False
+    robust: Robust = field(default_factory=Robust)
+    limits: tuple[Limit, ...] = ()
+    estimator: Estimator | None = None
+
+
+@dataclass(frozen=True)
 class Model:
     """The declared system in the paper's notation (equation (1)).
 
     Attributes
     ----------
-    spec : Spec
-        Where the model came from.
+    settings : Settings
+        The spec's choices for the law (error dynamics, horizon, initial state,
+        extension, ``[robust]``, ``[limits]``): what the later stages read of the spec.
     x, u, y : tuple of sympy.Symbol
         Plant states, plant inputs and output symbols, in declaration order.
     f : sympy.ImmutableMatrix
@@ -69,9 +126,11 @@ class Model:
         The equalities, ``a_j(y, t) = 0``.
     multipliers : tuple of sympy.Symbol
         Their Lagrange multipliers ``nu_<name>``, one per equality.
+    mechanics : Mechanics or None
+        The mass-matrix form the plant was declared in (None: ``[system.dynamics]``).
     """
 
-    spec: Spec
+    settings: Settings
     x: tuple[sp.Symbol, ...]
     u: tuple[sp.Symbol, ...]
     y: tuple[sp.Symbol, ...]
@@ -91,23 +150,53 @@ class Model:
     slack: sp.Expr = sp.Integer(0)
     equalities: tuple[Constraint, ...] = ()
     multipliers: tuple[sp.Symbol, ...] = ()
+    mechanics: Mechanics | None = None
 
     @property
-    def mechanics(self) -> Mechanics | None:
-        """The mass-matrix form the plant was declared in (None: ``[system.dynamics]``)."""
-        return self.spec.mechanics
+    def source(self) -> str:
+        """The spec's file name, for error messages."""
+        return self.settings.source
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """The plant states' declared names, in order."""
+        return tuple(q.name for q in self.x)
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        """The plant inputs' declared names, in order."""
+        return tuple(v.name for v in self.u)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        """The outputs' declared names, in order."""
+        return tuple(v.name for v in self.y)
+
+    @property
+    def declared(self) -> frozenset[str]:
+        """Every declared name: states, inputs, outputs, parameters, signals, references."""
+        return frozenset(
+            {
+                *self.state_names,
+                *self.input_names,
+                *self.output_names,
+                *(q.name for q in self.params),
+                *(s.name for s, _ in self.signals),
+                *(r.name for r in self.references),
+            }
+        )
 
     @property
     def opaque(self) -> frozenset[sp.Symbol]:
         """Symbols of ``f`` and ``G`` computed at run time (``M^-1 F``, ``M^-1 B``)."""
-        return self.spec.mechanics.opaque if self.spec.mechanics is not None else frozenset()
+        return self.mechanics.opaque if self.mechanics is not None else frozenset()
 
     def sampler(self, symbols: Sequence[sp.Symbol]) -> Sampler:
         """A :class:`~tvopt_codegen.maths.lie.Sampler` over ``symbols``, parameters at defaults.
 
         It also knows the run-time symbols' values, solved numerically at its points.
         """
-        mechanics = self.spec.mechanics
+        mechanics = self.mechanics
         implicit = None
         if mechanics is not None:
 
@@ -163,7 +252,7 @@ def build_model(spec: Spec) -> Model:
         _check_mass_matrix(spec, spec.mechanics, sampler, *sampled)
     f0, objective, mu, slack = _barrier_objective(spec)
     return Model(
-        spec=spec,
+        settings=_settings(spec),
         x=x,
         u=u,
         y=tuple(symbol(n) for n in spec.outputs),
@@ -183,6 +272,25 @@ def build_model(spec: Spec) -> Model:
         slack=slack if slack is not None else sp.Integer(0),
         equalities=spec.equalities,
         multipliers=tuple(sp.Symbol(f"nu_{c.name}", real=True) for c in spec.equalities),
+        mechanics=spec.mechanics,
+    )
+
+
+def _settings(spec: Spec) -> Settings:
+    """The spec's choices for the law, as the later stages read them."""
+    return Settings(
+        source=spec.source,
+        poles=spec.poles,
+        coefficients=spec.coefficients,
+        t_final=spec.t_final,
+        initial_state=spec.initial_state,
+        extension=spec.extension,
+        extension_auto=spec.extension_auto,
+        extension_max_total=spec.extension_max_total,
+        allow_nonconvex=spec.allow_nonconvex,
+        robust=spec.robust,
+        limits=spec.limits,
+        estimator=spec.estimator,
     )
 
 

@@ -27,7 +27,6 @@ from tvopt_codegen.maths.jet import (
 from tvopt_codegen.maths.lie import (
     nonzero_entries,
 )
-from tvopt_codegen.spec import Spec
 
 
 def _sparse_gradient(f0: sp.Expr, y: Sequence[sp.Symbol]) -> sp.ImmutableMatrix:
@@ -181,7 +180,7 @@ def _programs_of(
 
 
 def _objective(
-    spec: Spec, model: Model, states: _States, names: Iterator[sp.Symbol], meter: _Meter
+    model: Model, states: _States, names: Iterator[sp.Symbol], meter: _Meter
 ) -> _Objective:
     """The gradient of f0 as a program, its Hessian, and f0's convexity where it matters."""
     gradient, program, current, hessian_program, hessian_entries, polynomial = _programs_of(
@@ -198,8 +197,8 @@ def _objective(
         current,
         hessian_entries,
         y0,
-        spec.t_final,
-        spec.source,
+        model.settings.t_final,
+        model.source,
     )
     return _Objective(
         gradient,

@@ -124,12 +124,12 @@ def _derive(spec: Spec, meter: _Meter) -> Derivation:
     model = build_model(spec)
     clock.mark("model")
     say("relative degree")
-    lin = _linearize(spec, model, meter)
+    lin = _linearize(model, meter)
     clock.mark("relative degree")
     say("error dynamics")
-    dynamics = _error_dynamics(spec, max(lin.degrees))
+    dynamics = _error_dynamics(model.settings, max(lin.degrees))
     k = dynamics.k
-    states = _closed_loop_states(spec, lin, k)
+    states = _closed_loop_states(model, lin, k)
     clock.mark("error dynamics")
     say("decoupling matrix")
     decoupling = _decoupling(lin, meter, model.mechanics)
@@ -140,25 +140,26 @@ def _derive(spec: Spec, meter: _Meter) -> Derivation:
     names = fresh_symbols("_g")
     # Constraints first: an infeasible or non-convex one explains itself before the
     # barrier objective's convexity check would stumble on it.
-    constraint_warnings = _constraint_convexity(spec, model, objective_start(model, states))
-    objective = _objective(spec, model, states, names, meter)
-    equality_warnings = _equality_checks(spec, model, objective_start(model, states))
+    constraint_warnings = _constraint_convexity(model, objective_start(model, states))
+    objective = _objective(model, states, names, meter)
+    equality_warnings = _equality_checks(model, objective_start(model, states))
     kkt = _lagrangian(model, objective, names, meter)
-    states = _multipliers_start(spec, model, states, objective)
+    states = _multipliers_start(model, states, objective)
     ext = lin.extension
     warnings = (
         objective.warnings
-        + _start_warnings(spec, model, lin, decoupling, states)
+        + _start_warnings(model, lin, decoupling, states)
         + constraint_warnings
         + equality_warnings
         + _reference_warnings(model)
     )
     clock.mark("objective")
     say("gradient jet")
+    settings = model.settings
     eso = None
-    if spec.robust.eso is not None:
-        eso = rejection(spec.robust.eso, lin.degrees, spec.outputs)
-        states = _observer_start(spec, model, lin, states)
+    if settings.robust.eso is not None:
+        eso = rejection(settings.robust.eso, lin.degrees, model.output_names)
+        states = _observer_start(model, lin, states)
     jet = _gradient_jet(model, k, kkt, lin, states, names, meter)
     clock.mark("gradient jet")
     say("error bound")
@@ -183,12 +184,12 @@ def _derive(spec: Spec, meter: _Meter) -> Derivation:
         outputs=tuple(model.h),
     )
     estimator = None
-    if spec.estimator is not None:
-        order = estimator_order(spec.estimator, jet.reference_order)
+    if settings.estimator is not None:
+        order = estimator_order(settings.estimator, jet.reference_order)
         try:
-            estimator = EstimatorStage(order, estimator_gains(spec.estimator, order))
+            estimator = EstimatorStage(order, estimator_gains(settings.estimator, order))
         except ValueError as exc:
-            raise AssumptionError(spec.source, "references.estimator.kind", str(exc)) from None
+            raise AssumptionError(settings.source, "references.estimator.kind", str(exc)) from None
     clock.mark("law")
     return _record(
         spec,
@@ -202,7 +203,7 @@ def _derive(spec: Spec, meter: _Meter) -> Derivation:
     )
 
 
-def _observer_start(spec: Spec, model: Model, lin: _Linearization, states: _States) -> _States:
+def _observer_start(model: Model, lin: _Linearization, states: _States) -> _States:
     """The closed-loop start with the observer's estimates at ``Phi(x0)``, ``d_hat = 0``.
 
     There the observer's error is zero: on the model the closed loop is the plain law's.
@@ -213,7 +214,7 @@ def _observer_start(spec: Spec, model: Model, lin: _Linearization, states: _Stat
     phi = [lin.lie[i][: lin.degrees[i]] for i in range(len(lin.degrees))]
     defaults = dict(zip(model.params, model.defaults, strict=True))
     values = initial_estimates(phi, states.symbols, states.initial, defaults, model.mechanics)
-    given = dict(spec.initial_state)
+    given = dict(model.settings.initial_state)
     names = states.names[first : first + count]
     values = tuple(
         float(given[name]) if name in given else value
@@ -224,7 +225,7 @@ def _observer_start(spec: Spec, model: Model, lin: _Linearization, states: _Stat
 
 
 def _start_warnings(
-    spec: Spec, model: Model, lin: _Linearization, decoupling: _Decoupling, states: _States
+    model: Model, lin: _Linearization, decoupling: _Decoupling, states: _States
 ) -> tuple[str, ...]:
     """Warnings about the start: R or p singular or undefined there."""
     defaults = dict(zip(model.params, model.defaults, strict=True))
@@ -235,7 +236,7 @@ def _start_warnings(
         states.symbols,
         states.initial,
         defaults,
-        states.names[len(spec.states) : len(spec.states) + len(extension.states)],
+        states.names[len(model.x) : len(model.x) + len(extension.states)],
         model.mechanics,
     )
 
@@ -355,7 +356,6 @@ def _record(
         timings=timings,
         rejection=stages.eso,
         robustness=robustness(
-            spec,
             model,
             law,
             ext,

@@ -37,7 +37,6 @@ from tvopt_codegen.derivation.law import Law
 from tvopt_codegen.derivation.model import Model
 from tvopt_codegen.derivation.rejection import Rejection
 from tvopt_codegen.maths.lie import Extension
-from tvopt_codegen.spec import Spec
 
 #: A pivot of ``G^T G`` below this fraction of its largest diagonal entry: G has lost
 #: rank at the state, and the observer keeps its last estimate.
@@ -136,7 +135,6 @@ class Robustness:
 
 
 def robustness(
-    spec: Spec,
     model: Model,
     law: Law,
     extension: Extension,
@@ -150,26 +148,27 @@ def robustness(
     The derivation computes it once (:attr:`Derivation.robustness`); the templates, the
     report, lowering and the sweep read it there.
     """
-    limits = {limit.input: limit for limit in spec.limits}
+    settings, inputs = model.settings, model.input_names
+    limits = {limit.input: limit for limit in settings.limits}
     inf = math.inf
-    low = tuple(limits[u].low if u in limits else -inf for u in spec.inputs)
-    high = tuple(limits[u].high if u in limits else inf for u in spec.inputs)
-    rate = tuple(limits[u].rate if u in limits else inf for u in spec.inputs)
+    low = tuple(limits[u].low if u in limits else -inf for u in inputs)
+    high = tuple(limits[u].high if u in limits else inf for u in inputs)
+    rate = tuple(limits[u].rate if u in limits else inf for u in inputs)
     extended = [name for name, _ in extension.counts]
-    input_chains = tuple(extended.index(u) if u in extended else -1 for u in spec.inputs)
+    input_chains = tuple(extended.index(u) if u in extended else -1 for u in inputs)
     chains = law.chains
     count = len(integral_states)
     integral_chains = tuple(range(len(chains) - count, len(chains)))
-    first = len(spec.states)
+    first = len(model.x)
     rows: tuple[tuple[int, ...], ...] = ()
-    if spec.robust.observer is not None:
+    if settings.robust.observer is not None:
         n, m = model.G.shape
         rows = tuple(tuple(k for k in range(n) if model.G[k, i] != 0) for i in range(m))
     return Robustness(
         low,
         high,
         rate,
-        spec.robust.observer,
+        settings.robust.observer,
         integral_chains,
         input_chains,
         bumpless,
