@@ -60,7 +60,8 @@ class Settings:
     extension_max_total : int or None
         The search's largest total of integrators (None: the number of plant states).
     allow_nonconvex : bool
-        Whether a constraint that is not convex only warns.
+        Whether a non-convex inequality or a curved equality only warns (the certificate
+        then local) instead of being refused.
     robust : Robust
         ``[robust]``: integral action, the disturbance observer, the extended-state observer.
     limits : tuple of Limit
