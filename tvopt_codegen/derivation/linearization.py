@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import sympy as sp
@@ -23,7 +22,7 @@ from tvopt_codegen.derivation.meter import (
     time_limited,
     tree_size,
 )
-from tvopt_codegen.derivation.model import Model, Settings
+from tvopt_codegen.derivation.model import Model, Settings, start_evaluator
 from tvopt_codegen.derivation.rejection import state_names
 from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.maths import hurwitz
@@ -37,10 +36,8 @@ from tvopt_codegen.maths.lie import (
     nonzero_entries,
     relative_degree,
 )
-from tvopt_codegen.maths.numeric import Evaluator
 from tvopt_codegen.spec import Mechanics
 from tvopt_codegen.spec.features import refusal_line
-from tvopt_codegen.spec.implicit import implicit_values
 from tvopt_codegen.spec.reader import suggestion
 
 
@@ -318,13 +315,7 @@ def _singular_start(
     is singular for any prolonged speed: the module's DEFAULT_STATE would be unusable
     without a word.
     """
-    values: dict[sp.Symbol, Any] = {q: float(v) for q, v in defaults.items()}
-    values |= {sym: float(v) for sym, v in zip(states, initial, strict=True)}
-    if mechanics is not None:
-        with np.errstate(all="ignore"):
-            solved = implicit_values(mechanics, values)
-        values |= {sym: float(v[0]) for sym, v in solved.items()}
-    evaluate = Evaluator(values)
+    evaluate = start_evaluator(states, initial, defaults, mechanics)
     with np.errstate(all="ignore"):
         # R's nonzero entries only: a team's R is block diagonal.
         matrix = np.zeros(R.shape, dtype=complex)

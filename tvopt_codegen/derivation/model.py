@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import sympy as sp
@@ -17,6 +18,7 @@ from tvopt_codegen.contract import PIVOT_TOLERANCE
 from tvopt_codegen.errors import AssumptionError, SpecError, clip
 from tvopt_codegen.maths.jet import partial
 from tvopt_codegen.maths.lie import Sampler, from_entries
+from tvopt_codegen.maths.numeric import Evaluator
 from tvopt_codegen.spec import (
     TIME,
     Constraint,
@@ -492,3 +494,24 @@ def _check_mass_matrix(
     problem = problem_at_samples(mechanics, at_mass, at_rhs, sampler, PIVOT_TOLERANCE)
     if problem is not None:
         raise AssumptionError(spec.source, *problem)
+
+
+def start_evaluator(
+    states: Sequence[sp.Symbol],
+    initial: Sequence[float],
+    defaults: Mapping[sp.Symbol, float],
+    mechanics: Mechanics | None,
+) -> Evaluator:
+    """An evaluator of expressions at the initial state with the default parameters.
+
+    A mass-matrix plant's run-time symbols (``M^-1 F``, ``M^-1 B``) are solved for
+    numerically there. The start's warnings and the extended-state observer's start
+    evaluate the law's pieces with it.
+    """
+    values: dict[sp.Symbol, Any] = {q: float(v) for q, v in defaults.items()}
+    values |= {sym: float(v) for sym, v in zip(states, initial, strict=True)}
+    if mechanics is not None:
+        with np.errstate(all="ignore"):
+            solved = implicit_values(mechanics, values)
+        values |= {sym: float(v[0]) for sym, v in solved.items()}
+    return Evaluator(values)

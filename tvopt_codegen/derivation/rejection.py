@@ -37,14 +37,12 @@ import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import sympy as sp
 
-from tvopt_codegen.maths.numeric import Evaluator
+from tvopt_codegen.derivation.model import start_evaluator
 from tvopt_codegen.spec import Mechanics
-from tvopt_codegen.spec.implicit import implicit_values
 
 
 @dataclass(frozen=True)
@@ -190,13 +188,7 @@ def initial_estimates(
     A value that cannot be evaluated there (the law is undefined at the start, which
     the derivation warns about) starts at 0.
     """
-    values: dict[sp.Symbol, Any] = {q: float(v) for q, v in defaults.items()}
-    values |= {sym: float(v) for sym, v in zip(states, initial, strict=True)}
-    if mechanics is not None:
-        with np.errstate(all="ignore"):
-            solved = implicit_values(mechanics, values)
-        values |= {sym: float(v[0]) for sym, v in solved.items()}
-    evaluate = Evaluator(values)
+    evaluate = start_evaluator(states, initial, defaults, mechanics)
     out: list[float] = []
     for rows in phi:
         for entry in rows:
