@@ -495,3 +495,38 @@ def test_the_size_check_sees_a_long_function_and_a_long_module(tmp_path: Path) -
         f"big.py: {MAX_MODULE_LINES + 1} lines",
         f"long.py: f has {MAX_FUNCTION_LINES + 1} lines",
     ]
+
+
+#: The derivation's stages after build_model: they read the Model, never the Spec.
+MODEL_READERS = (
+    "linearization",
+    "convexity",
+    "equalities",
+    "objective",
+    "meter",
+    "robust",
+    "rejection",
+    "law",
+    "calculus",
+)
+
+
+def _spec_uses(path: Path) -> list[str]:
+    """Where a module imports or names the ``Spec`` type (docstrings do not count)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and any(a.name == "Spec" for a in node.names):
+            found.append(f"{path.name}:{node.lineno}: imports Spec")
+        elif isinstance(node, ast.Name) and node.id == "Spec":
+            found.append(f"{path.name}:{node.lineno}: names Spec")
+    return found
+
+
+def test_the_stages_after_build_model_read_the_model_not_the_spec(tmp_path: Path) -> None:
+    folder = PACKAGE / "derivation"
+    assert [use for name in MODEL_READERS for use in _spec_uses(folder / f"{name}.py")] == []
+    # The scan sees both ways in.
+    probe = tmp_path / "probe.py"
+    probe.write_text("from tvopt_codegen.spec import Spec\n\ndef f(s: Spec) -> None: ...\n")
+    assert len(_spec_uses(probe)) == 2
