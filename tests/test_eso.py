@@ -262,3 +262,33 @@ def test_the_barriers_read_the_measured_output_not_its_estimate() -> None:
     plant_out[names.index("px")] = 4.0
     with pytest.raises(module.OutsideBarrierError):
         module.control(0.0, plant_out)
+
+
+def test_a_step_that_fails_changes_nothing_in_either_backend() -> None:
+    """A step whose observer overflows (a step of 1e300 s) is an input error in Python and
+    C alike, and leaves the controller, the observer's gains included, as it was: the next
+    good step gives what it would have given without the failed one, to the bit."""
+    _, py, c = _both("drag_vehicle")
+    x = np.array(py.DEFAULT_STATE[:6])
+    controllers = [py.Controller(x), c.Controller(x), py.Controller(x)]
+    for k in range(1, 4):
+        for controller in controllers:
+            controller.step(k * 1e-3, x)
+    for controller in controllers[:2]:
+        before = controller.state.copy()
+        with pytest.raises(
+            py.NonFiniteInputError if controller is controllers[0] else c.NonFiniteInputError
+        ):
+            controller.step(1e300, x)
+        assert np.array_equal(controller.state, before)
+        assert controller.t == pytest.approx(3e-3)
+    # The untouched third controller is the reference: a step of another length, after the
+    # failed one, recomputes the gains in all three alike.
+    results = [controller.step(0.0045, x) for controller in controllers]
+    assert np.array_equal(results[0], results[2]) and np.array_equal(results[1], results[2])
+    assert np.array_equal(controllers[0].state, controllers[2].state)
+    assert np.array_equal(controllers[1].state, controllers[2].state)
+    # A state at the edge of the doubles is refused before the observer sees it.
+    for controller in controllers[:2]:
+        with pytest.raises(ArithmeticError):
+            controller.step(0.005, np.array([np.inf, *x[1:]]))
