@@ -407,7 +407,34 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(
 def test_missing_dask_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "distributed", None)
     with pytest.raises(MissingExtraError, match=r"pip install 'tvopt-codegen\[sweep\]'"):
-        sweep.connect(1, None)
+        sweep.connect(2, None)
+    # One worker is this process: no Dask needed.
+    client, cluster = sweep.connect(1, None)
+    assert isinstance(client, sweep.InlineClient) and cluster is None
+
+
+@pytest.mark.parametrize(
+    ("workers", "samples", "cores", "expected"),
+    [
+        (None, 4, 2, 1),
+        (None, 32, 2, 1),
+        (None, 33, 2, 2),
+        (None, 10**6, 2, 2),
+        (None, 100, 1, 1),
+        (3, 4, 2, 3),
+        (1, 10**6, 2, 1),
+        (None, None, 2, 2),
+    ],
+)
+def test_a_local_worker_is_started_only_for_enough_samples(
+    monkeypatch: pytest.MonkeyPatch,
+    workers: int | None,
+    samples: int | None,
+    cores: int,
+    expected: int,
+) -> None:
+    monkeypatch.setattr("os.cpu_count", lambda: cores)
+    assert sweep.local_workers(workers, samples) == expected
 
 
 def _free_port() -> int:

@@ -573,7 +573,7 @@ def test_a_local_cluster_starts_from_another_thread() -> None:
 
     def start() -> None:
         try:
-            client, cluster = sweep.connect(1, None)
+            client, cluster = sweep.connect(2, None)
             outcome.append(len(client.scheduler_info()["workers"]))
             client.close()
             cluster.close()
@@ -583,7 +583,7 @@ def test_a_local_cluster_starts_from_another_thread() -> None:
     thread = threading.Thread(target=start)
     thread.start()
     thread.join(timeout=120)
-    assert outcome == [1]
+    assert outcome == [2]
 
 
 def test_a_signal_while_the_files_are_written_lets_them_finish(

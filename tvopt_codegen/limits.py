@@ -178,8 +178,9 @@ RUN_OPTIONS: dict[str, RunOption] = {
             "--workers",
             int,
             None,
-            "workers of a new local Dask cluster (default: one per core; at most what this "
-            "machine's cores and memory run, checked by the sweep)",
+            "workers of a new local Dask cluster (default: one per core, one per 32 samples at "
+            "most; one worker runs in this process; at most what this machine's cores and "
+            "memory run, checked by the sweep)",
         ),
         RunOption(
             "--checkpoint-seconds",

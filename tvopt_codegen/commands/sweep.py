@@ -492,7 +492,7 @@ def sweep(args: argparse.Namespace) -> int:
     try:
         # Again under the lock: a sweep that finished since the first look owns the folder.
         _check_earlier(args)
-        client, cluster = connect(args.workers, args.scheduler)
+        client, cluster = connect(args.workers, args.scheduler, options.samples)
         try:
             if args.force:
                 folder.clear_parts()  # an earlier sweep's: they are not this one's samples
@@ -709,7 +709,7 @@ def resume(args: argparse.Namespace) -> int:
         gaps = missing(index_parts(folder.parts(), schema, options.samples), options.samples)
         record["resumed"] = True
         if gaps:
-            client, cluster = connect(args.workers, args.scheduler)
+            client, cluster = connect(args.workers, args.scheduler, sum(map(len, gaps)))
             code = _run_and_publish(args, folder, program, options, record, gaps, client, cluster)
         else:
             code = _publish(args, folder, program, options, record, schema, None)

@@ -1,20 +1,20 @@
-"""The Dask driver: chunks of samples on a ``LocalCluster`` or any scheduler.
+"""The Dask driver: chunks of samples on a ``LocalCluster``, any scheduler, or in-process.
 
-Results are gathered as they finish; an interruption keeps the finished samples.
+Results are gathered as they finish; an interruption keeps the finished samples. A sweep
+that one worker serves (``--workers 1``, or a few samples and no ``--workers``) runs its
+chunks in the command's own process: a local cluster costs about a second of wall time and
+a few CPU seconds of worker start-up, more than a small sweep's samples.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from tvopt_codegen.errors import MissingExtraError, SpecError, Terminated
-
-if TYPE_CHECKING:
-    pass
 from tvopt_codegen.sweep.options import SweepOptions
 from tvopt_codegen.sweep.program import SweepProgram
 from tvopt_codegen.sweep.sample import SampleResult, run_chunk
@@ -205,12 +205,53 @@ def check_scheduler(scheduler: str, timeout: float) -> None:
     del distributed
 
 
-def connect(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:
-    """A Dask client: on ``scheduler`` unchanged, else on a new ``LocalCluster``.
+#: Samples that make a local worker process worth starting, when ``--workers`` is not
+#: given: a bundled example's sample takes 10-200 ms, a worker's start 1-3 CPU seconds.
+SAMPLES_PER_LOCAL_WORKER = 32
 
-    The local cluster's worker processes ignore SIGINT: Ctrl-C in a terminal reaches the
-    whole process group, and it is the client's to stop them (one line, not a traceback
-    from each worker).
+
+class InlineClient:
+    """The cluster of one worker: the command's own process, no Dask.
+
+    Answers the few questions the sweep command asks a Dask client (its workers, its
+    dashboard) so that the command runs the same whichever it was given.
+    """
+
+    dashboard_link = ""
+
+    def scheduler_info(self) -> dict[str, Any]:
+        """One worker, this process."""
+        return {"workers": {"inline": {}}}
+
+    def close(self) -> None:
+        """Nothing to stop."""
+
+
+def local_workers(workers: int | None, samples: int | None) -> int:
+    """Worker processes for a local sweep: ``--workers``, else one per core that has work.
+
+    Without ``--workers``, a core gets a worker only for each
+    :data:`SAMPLES_PER_LOCAL_WORKER` samples (at least one worker).
+    """
+    import os  # noqa: PLC0415
+
+    if workers is not None:
+        return workers
+    cores = os.cpu_count() or 1
+    if samples is None:
+        return cores
+    return max(1, min(cores, math.ceil(samples / SAMPLES_PER_LOCAL_WORKER)))
+
+
+def connect(
+    workers: int | None, scheduler: str | None, samples: int | None = None
+) -> tuple[Any, Any]:
+    """A client: on ``scheduler`` unchanged, on a new ``LocalCluster``, or in-process.
+
+    One local worker (:func:`local_workers` of ``workers`` and ``samples``) is this
+    process: an :class:`InlineClient`, no cluster. The local cluster's worker processes
+    ignore SIGINT: Ctrl-C in a terminal reaches the whole process group, and it is the
+    client's to stop them (one line, not a traceback from each worker).
 
     Raises
     ------
@@ -218,6 +259,10 @@ def connect(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:
         A bad ``--scheduler`` (see :func:`check_scheduler`), one with no worker within
         :data:`SCHEDULER_TIMEOUT`, or a ``--workers`` the machine cannot run.
     """
+    if scheduler is None:
+        check_workers(workers)
+        if local_workers(workers, samples) == 1:
+            return InlineClient(), None
     distributed = _distributed()
     import logging  # noqa: PLC0415
 
@@ -237,12 +282,10 @@ def connect(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:
                 f"`dask worker {scheduler}`",
             ) from None
         return client, None
-    check_workers(workers)
-    import os  # noqa: PLC0415
     import signal  # noqa: PLC0415
     import threading  # noqa: PLC0415
 
-    count = workers or os.cpu_count() or 1
+    count = local_workers(workers, samples)
     # The workers start while SIGINT is ignored, and keep it so (an ignored signal stays
     # ignored across exec, and Python then installs no handler of its own).
     # (Only the main thread may set a handler: from another, the workers keep SIGINT.)
@@ -279,7 +322,7 @@ def run_sweep(
     on_results: Callable[[list[SampleResult]], None] | None = None,
     progress: Callable[[int, int, float], None] | None = None,
 ) -> SweepRun:
-    """Run the samples on ``client``'s cluster, chunk by chunk, a few chunks ahead.
+    """Run the samples on ``client``'s cluster a few chunks ahead, or here chunk by chunk.
 
     Parameters
     ----------
@@ -308,37 +351,20 @@ def run_sweep(
         ``interrupted`` after Ctrl-C or SIGTERM (the tasks in flight are cancelled; what
         finished was handed to ``on_results``).
     """
-    distributed = _distributed()
     workers = len(client.scheduler_info().get("workers", {})) or 1
     todo = list(ranges) if ranges is not None else [range(options.samples)]
     size = chunk or default_chunk(sum(len(r) for r in todo), workers)
-    # A fresh key per sweep: a key shared with an earlier sweep on the same client could
-    # still be in release when this one needs it ("lost dependencies").
-    scattered = client.scatter(program, broadcast=True, hash=False)
-    pending = (piece for span in todo for piece in chunks(span, size))
+    pieces = (piece for span in todo for piece in chunks(span, size))
     run = SweepRun(workers=workers, dashboard=str(getattr(client, "dashboard_link", "") or ""))
     started = time.perf_counter()
-
-    def submit() -> Any | None:
-        piece = next(pending, None)
-        if piece is None:
-            return None
-        return client.submit(run_chunk, scattered, options, list(piece), keep, pure=False)
-
-    first = [f for f in (submit() for _ in range(LOOKAHEAD_PER_WORKER * workers)) if f]
-    flying = set(first)
-    queue = distributed.as_completed(first)
+    if isinstance(client, InlineClient):
+        finished = (run_chunk(program, options, list(piece), keep) for piece in pieces)
+    else:
+        finished = _on_cluster(client, program, options, pieces, keep, workers)
     try:
-        for future in queue:
-            flying.discard(future)
-            results = future.result()
-            future.release()
+        for results in finished:
             if math.isnan(run.first_result):
                 run.first_result = time.perf_counter() - started
-            more = submit()
-            if more is not None:
-                flying.add(more)
-                queue.add(more)
             if collect:
                 run.results.extend(results)
             run.done += len(results)
@@ -351,8 +377,50 @@ def run_sweep(
         run.interrupted = True
         run.signal = "SIGINT" if isinstance(stop, KeyboardInterrupt) else "SIGTERM"
     finally:
-        if flying:
-            client.cancel(list(flying))
+        # Cancels the chunks in flight, wherever the interruption arrived.
+        finished.close()
     run.seconds = time.perf_counter() - started
     run.results.sort(key=lambda r: int(r.row["sample"]))
     return run
+
+
+def _on_cluster(
+    client: Any,
+    program: SweepProgram,
+    options: SweepOptions,
+    pieces: Iterator[range],
+    keep: bool,
+    workers: int,
+) -> Generator[list[SampleResult], None, None]:
+    """Each chunk's results as it finishes on ``client``'s cluster, a few chunks ahead.
+
+    Closing the generator (or an interruption while it waits) cancels the chunks in
+    flight.
+    """
+    distributed = _distributed()
+    # A fresh key per sweep: a key shared with an earlier sweep on the same client could
+    # still be in release when this one needs it ("lost dependencies").
+    scattered = client.scatter(program, broadcast=True, hash=False)
+
+    def submit() -> Any | None:
+        piece = next(pieces, None)
+        if piece is None:
+            return None
+        return client.submit(run_chunk, scattered, options, list(piece), keep, pure=False)
+
+    first = [f for f in (submit() for _ in range(LOOKAHEAD_PER_WORKER * workers)) if f]
+    flying = set(first)
+    queue = distributed.as_completed(first)
+    try:
+        for future in queue:
+            flying.discard(future)
+            results = future.result()
+            future.release()
+            more = submit()
+            if more is not None:
+                flying.add(more)
+                queue.add(more)
+            yield results
+    finally:
+        if flying:
+            client.cancel(list(flying))

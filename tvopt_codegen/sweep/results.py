@@ -26,14 +26,17 @@ def clopper_pearson_upper(failures: int, runs: int, confidence: float = 0.95) ->
     """One-sided upper confidence bound on a failure probability (exact binomial).
 
     With no failure it is ``1 - (1 - confidence)^(1/runs)``: 0 in 299 runs gives 0.99%.
+    The quantile of Beta(failures + 1, runs - failures), from ``scipy.special`` (what
+    ``scipy.stats.beta.ppf`` calls, to the bit): importing ``scipy.stats`` took 1.2 s
+    of a 6 s sweep command.
     """
-    from scipy.stats import beta  # noqa: PLC0415
+    from scipy.special import betaincinv  # noqa: PLC0415
 
     if runs == 0:
         return 1.0
     if failures >= runs:
         return 1.0
-    return float(beta.ppf(confidence, failures + 1, runs - failures))
+    return float(betaincinv(failures + 1, runs - failures, confidence))
 
 
 @dataclass(frozen=True)
