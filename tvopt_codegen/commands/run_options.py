@@ -26,11 +26,12 @@ def add(target: Target, *names: str, hidden: bool = False) -> None:
         option = RUN_OPTIONS[name]
         text = option.help
         if option.default is not None:
-            text += f" (default {option.default:g})"
+            text += f" (default {option.default_text})"
         target.add_argument(
             option.flag,
             type=option.kind,
             default=option.default,
+            choices=option.choices or None,
             metavar=option.metavar,
             help=argparse.SUPPRESS if hidden else text,
         )
