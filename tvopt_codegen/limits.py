@@ -29,6 +29,9 @@ DEFAULT_ATOL = 1e-12
 DEFAULT_POINTS = 401
 #: Integration methods of solve_ivp offered on the command line.
 METHODS = ("RK45", "DOP853", "RK23", "Radau", "BDF", "LSODA")
+#: The precisions of the generated C (``--precision``): double, the default, and single
+#: (every real a float, for a single-precision FPU; docs/precision.md).
+PRECISIONS = ("double", "single")
 
 
 @dataclass(frozen=True)
@@ -66,8 +69,8 @@ class RunOption:
     flag : str
         The option on the command line (``--rtol``).
     kind : type
-        ``int`` or ``float``.
-    default : float or None
+        ``int`` or ``float``; ``str`` for an option with :attr:`choices`.
+    default : float, str or None
         Its value when not given (None: decided by the command, e.g. the spec's).
     help : str
         Its help text, without the default (appended where there is one).
@@ -77,17 +80,25 @@ class RunOption:
         Whether ``low`` and ``high`` themselves are outside the bounds.
     metavar : str or None
         The value's name in the usage line.
+    choices : tuple of str
+        The values a word option takes (``--precision``); empty for a number.
     """
 
     flag: str
-    kind: type[int] | type[float]
-    default: float | None
+    kind: type[int] | type[float] | type[str]
+    default: float | str | None
     help: str
     low: float = -math.inf
     high: float = math.inf
     low_open: bool = False
     high_open: bool = True
     metavar: str | None = None
+    choices: tuple[str, ...] = ()
+
+    @property
+    def default_text(self) -> str:
+        """The default as ``--help`` shows it (a number in ``%g``, a word as it is)."""
+        return self.default if isinstance(self.default, str) else f"{self.default:g}"
 
     @property
     def dest(self) -> str:
@@ -107,8 +118,10 @@ class RunOption:
             return f"must be positive and at most {self.high:g}"
         return f"must be between {self.low:g} and {self.high:g}"
 
-    def problem(self, value: float) -> str | None:
+    def problem(self, value: float | str) -> str | None:
         """Why ``value`` is refused (:attr:`bounds`), or None (NaN is always refused)."""
+        if isinstance(value, str) or self.choices:
+            return None if value in self.choices else f"must be one of {', '.join(self.choices)}"
         above = value > self.low if self.low_open else value >= self.low
         below = value < self.high if self.high_open else value <= self.high
         return None if above and below else self.bounds
@@ -201,6 +214,14 @@ RUN_OPTIONS: dict[str, RunOption] = {
             low=0.0,
             low_open=True,
             high_open=False,
+        ),
+        RunOption(
+            "--precision",
+            str,
+            PRECISIONS[0],
+            "the C controller's real numbers: single makes every one a float (literals with "
+            "f, sinf, sqrtf, ...) for a single-precision FPU; C backend only (docs/precision.md)",
+            choices=PRECISIONS,
         ),
         RunOption(
             "--max-size",

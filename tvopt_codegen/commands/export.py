@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from tvopt_codegen.commands import common
+from tvopt_codegen.commands import common, run_options
 from tvopt_codegen.errors import SpecError
 
 HELP = "export the stateful controller for other tools (an FMU)"
@@ -21,6 +21,7 @@ def build(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--fmi", type=int, default=2, choices=(2, 3), help="FMI version (default: 2)"
     )
+    run_options.add(parser, "precision")
     common.output_options(parser)
     common.derivation_options(parser)
 
@@ -32,6 +33,15 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.fmu:
         raise SpecError("command line", "export", "nothing to export: give --fmu")
+    if args.precision != "double":
+        # The FMU's interface is FMI's, whose reals are doubles, and its glue calls the
+        # controller with them: single precision is for generate --backend c.
+        raise SpecError(
+            "command line",
+            "--precision",
+            f"the FMU keeps double precision (FMI's reals are doubles); for {args.precision} "
+            "precision C use generate --backend c --precision " + args.precision,
+        )
     common.check_out(args.out)
     derivation, kernels = common.derive(args)
     name = f"{derivation.spec.name}.fmu"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from tvopt_codegen.backends.base import Backend
@@ -9,6 +11,7 @@ from tvopt_codegen.backends.base import Backend
 if TYPE_CHECKING:
     from sympy.printing.codeprinter import CodePrinter
 
+    from tvopt_codegen.backends.c.precision import Precision
     from tvopt_codegen.lowering.ir import KernelSet
 
 #: Keywords of C99 (and the C11 ones a C99 compiler may reserve).
@@ -33,16 +36,33 @@ C_LIBRARY_NAMES = frozenset(
 )
 
 
-def _printer() -> CodePrinter:
-    from tvopt_codegen.backends.c.printer import CPrinter  # noqa: PLC0415 - sympy only when rendering
+def _printer(precision: Precision | None = None) -> CodePrinter:
+    from tvopt_codegen.backends.c.precision import DOUBLE  # noqa: PLC0415 - sympy only when rendering
+    from tvopt_codegen.backends.c.printer import CPrinter  # noqa: PLC0415
 
-    return CPrinter()
+    return CPrinter(precision or DOUBLE)
 
 
-def _context(kernels: KernelSet) -> dict[str, Any]:
-    """The C templates' own variables."""
+def _context(kernels: KernelSet, precision: Precision | None = None) -> dict[str, Any]:
+    """The C templates' own variables.
+
+    The precision's: ``precision`` (the record), ``real`` (the C spelling of a real
+    number: ``double``, or the header's ``<name>_real_t``), ``F`` (the suffix of a literal
+    and of a <math.h> function: ``""`` or ``"f"``) and the tolerances it tunes, which
+    replace the shared context's.
+    """
+    from tvopt_codegen.backends.c.precision import DOUBLE  # noqa: PLC0415
+
     d = kernels.derivation
+    precision = precision or DOUBLE
     return {
+        "precision": precision,
+        "real": precision.type_name(d.spec.name),
+        "F": precision.suffix,
+        "pivot_tolerance": precision.pivot_tolerance,
+        "gram_tolerance": precision.gram_tolerance,
+        "step_tolerance": precision.step_tolerance,
+        "estimator_gap": precision.forgetting_gap,
         # The CPython entry point: its module name, and the size of its largest single
         # result (rhs, optimality error or Hessian).
         "extension_name": f"_{d.spec.name}_ext",
@@ -52,6 +72,13 @@ def _context(kernels: KernelSet) -> dict[str, Any]:
             len(d.spec.outputs) ** 2,
         ),
     }
+
+
+def _filters() -> dict[str, Callable[..., Any]]:
+    """The C templates' own filters: ``c_real``, a number as a literal of the precision."""
+    from tvopt_codegen.backends.c.precision import c_real  # noqa: PLC0415 - when rendering
+
+    return {"c_real": c_real}
 
 
 #: The C backend. The Python module has the Python backend's contract exactly.
@@ -71,9 +98,48 @@ BACKEND = Backend(
     # Not <name>.py: the NumPy module of the same spec may sit in the same folder.
     module="{name}_c.py",
     context=_context,
+    filters=_filters,
     reserved=C_KEYWORDS | C_LIBRARY_NAMES,
     reserved_as=(
         ("a C keyword", C_KEYWORDS),
         ("a C library or math function name", C_LIBRARY_NAMES),
     ),
 )
+
+
+#: The C backend's file of the CPython entry point, which single precision leaves out.
+_EXTENSION_TEMPLATE = "c/extension.c.jinja"
+
+
+def with_precision(name: str) -> Backend:
+    """The C backend generating C of the precision ``name`` (``"double"`` or ``"single"``).
+
+    Double is :data:`BACKEND` itself. Single prints every real as the header's
+    ``<name>_real_t`` (a float), every literal with its ``f`` and the ``f`` functions
+    of <math.h>, with the single-precision tolerances; its Python module loads the C
+    through ctypes with ``c_float`` arrays, without the CPython entry point (which
+    trades in Python's doubles).
+
+    Raises
+    ------
+    KeyError
+        For a name that is not a precision.
+    """
+    from tvopt_codegen.backends.c.precision import PRECISIONS  # noqa: PLC0415
+
+    precision = PRECISIONS[name]
+    if not precision.single:
+        return BACKEND
+
+    def printer() -> CodePrinter:
+        return _printer(precision)
+
+    def context(kernels: KernelSet) -> dict[str, Any]:
+        return _context(kernels, precision)
+
+    return dataclasses.replace(
+        BACKEND,
+        printer=printer,
+        context=context,
+        templates=tuple(t for t in BACKEND.templates if t[0] != _EXTENSION_TEMPLATE),
+    )
