@@ -434,7 +434,8 @@ def _publish(
     if run is not None:
         print(
             f"\n{run.done} samples in {run.seconds:.2f} s "
-            f"({run.done / max(run.seconds, 1e-9):.1f} samples/s on {run.workers} workers)"
+            f"({run.done / max(run.seconds, 1e-9):.1f} samples/s on {run.workers} worker"
+            f"{'s' if run.workers != 1 else ''})"
         )
     where = str(folder.folder).rstrip("/")
     for name in sorted([*files, "summary.parquet", record["spec"]]) + (
