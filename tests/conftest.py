@@ -181,6 +181,13 @@ def update_golden(request: pytest.FixtureRequest) -> bool:
 #: What enables a skipped test, by a word of its reason; a reason that matches none is a
 #: skip by design (a fragment a page marks as such, a platform the test is not for).
 _ENABLERS = (
+    # tests/embedded/harness.py's INSTALL: the cross compilers and QEMU of the ARM tests.
+    (
+        "arm toolchain",
+        "apt-get install --no-install-recommends gcc-arm-none-eabi libnewlib-arm-none-eabi"
+        " qemu-system-arm qemu-user gcc-aarch64-linux-gnu gcc-arm-linux-gnueabihf"
+        " libc6-dev-arm64-cross libc6-dev-armhf-cross (as root, `.ci/run` does it)",
+    ),
     ("chromium", "apt-get install chromium (as root, `.ci/run` does it)"),
     ("clang", "apt-get install clang"),
     ("c compiler", "apt-get install gcc"),
