@@ -1,0 +1,358 @@
+"""Build and run the closed-loop harness (``loop.c``) on ARM targets under QEMU.
+
+One harness, five targets: the x86-64 host (the reference), arm64 and armhf Linux
+(static binaries under ``qemu-aarch64`` and ``qemu-arm``), and two bare-metal images,
+a Cortex-M4F on ``qemu-system-arm -M mps2-an386`` and a Cortex-M7 on ``mps2-an500``
+(``startup.c``, the boards' linker scripts, semihosting output). Everything is compiled
+with ``-ffp-contract=off``: no multiply-add is fused, so that double arithmetic rounds the
+same on every target and only the math library can differ.
+
+The tests (``tests/test_embedded_qemu.py``) and ``benchmarks/bench_embedded.py`` share it.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+
+#: What installs every toolchain and emulator the harness uses (Debian 12).
+APT_PACKAGES = (
+    "gcc-arm-none-eabi",
+    "libnewlib-arm-none-eabi",
+    "qemu-system-arm",
+    "qemu-user",
+    "gcc-aarch64-linux-gnu",
+    "gcc-arm-linux-gnueabihf",
+    "libc6-dev-arm64-cross",
+    "libc6-dev-armhf-cross",
+)
+INSTALL = "apt-get install --no-install-recommends " + " ".join(APT_PACKAGES)
+
+#: Every file of the harness but the generated controller.
+COMMON_FLAGS = ("-O2", "-std=c99", "-ffp-contract=off")
+
+#: The semihosting console of the bare-metal images, on QEMU's standard output (without
+#: a chardev, QEMU writes it to its standard error).
+SEMIHOSTING = (
+    "-chardev",
+    "stdio,id=semihosting",
+    "-semihosting-config",
+    "enable=on,target=native,chardev=semihosting",
+)
+
+
+@dataclass(frozen=True)
+class Target:
+    """One place the harness runs.
+
+    Attributes
+    ----------
+    name : str
+        ``host``, ``arm64``, ``armhf``, ``m4f`` or ``m7``.
+    prefix : str
+        The toolchain's prefix (``""`` for the host's gcc).
+    flags : tuple of str
+        Code generation flags (CPU, FPU, ABI).
+    link : tuple of str
+        Link flags after the objects.
+    runner : tuple of str
+        The command that runs a binary, which is appended (empty: run it directly).
+    bare : bool
+        A bare-metal image (start-up file, linker script, semihosting).
+    """
+
+    name: str
+    prefix: str
+    flags: tuple[str, ...]
+    link: tuple[str, ...]
+    runner: tuple[str, ...]
+    bare: bool = False
+
+    @property
+    def cc(self) -> str:
+        return f"{self.prefix}gcc"
+
+    def tool(self, name: str) -> str:
+        """A binutils program of the toolchain (``objcopy``, ``nm``, ``size``)."""
+        return f"{self.prefix}{name}"
+
+    def missing(self) -> list[str]:
+        """The programs of this target that are not on the PATH."""
+        programs = [self.cc, self.tool("objcopy"), self.tool("nm")]
+        if self.runner:
+            programs.append(self.runner[0])
+        return [p for p in programs if shutil.which(p) is None]
+
+
+def _bare(name: str, cpu: str, fpu: str, board: str) -> Target:
+    return Target(
+        name=name,
+        prefix="arm-none-eabi-",
+        flags=(f"-mcpu={cpu}", "-mthumb", "-mfloat-abi=hard", f"-mfpu={fpu}"),
+        link=(
+            "-nostartfiles",
+            "--specs=nosys.specs",
+            f"-L{HERE}",
+            f"-T{HERE / f'mps2_{board}.ld'}",
+            "-Wl,--gc-sections",
+            "-lm",
+        ),
+        runner=(
+            "qemu-system-arm",
+            "-M",
+            f"mps2-{board}",
+            "-display",
+            "none",
+            "-monitor",
+            "none",
+            "-serial",
+            "none",
+            *SEMIHOSTING,
+            "-kernel",
+        ),
+        bare=True,
+    )
+
+
+TARGETS = {
+    "host": Target("host", "", (), ("-lm",), ()),
+    "arm64": Target("arm64", "aarch64-linux-gnu-", (), ("-static", "-lm"), ("qemu-aarch64",)),
+    "armhf": Target("armhf", "arm-linux-gnueabihf-", (), ("-static", "-lm"), ("qemu-arm",)),
+    # The M4F's FPU is single precision only: double is emulated in software (libgcc).
+    "m4f": _bare("m4f", "cortex-m4", "fpv4-sp-d16", "an386"),
+    # The M7 of AN500 has the double-precision FPU (FPv5, 16 double registers).
+    "m7": _bare("m7", "cortex-m7", "fpv5-d16", "an500"),
+}
+
+
+def skip_reason(*names: str) -> str | None:
+    """Why the targets ``names`` cannot run here (one line saying what to install), or None."""
+    missing = sorted({p for n in names for p in TARGETS[n].missing()})
+    if not missing:
+        return None
+    return f"no ARM toolchain or QEMU ({', '.join(missing)} missing): {INSTALL}"
+
+
+def generate(spec: str, precision: str, folder: Path) -> None:
+    """Write the C backend's ``<name>.c`` and ``<name>.h`` of ``spec`` in ``precision``.
+
+    Raises
+    ------
+    LookupError
+        When this checkout's C backend has no such precision.
+    """
+    from tvopt_codegen.backends import BACKENDS  # noqa: PLC0415 - sympy only when asked
+    from tvopt_codegen.derivation import derive  # noqa: PLC0415
+    from tvopt_codegen.lowering.ir import lower  # noqa: PLC0415
+    from tvopt_codegen.renderer.rendering import render  # noqa: PLC0415
+    from tvopt_codegen.spec import load_spec  # noqa: PLC0415
+
+    backend = BACKENDS["c"]
+    if precision != "double":
+        try:
+            from tvopt_codegen.backends.c import with_precision  # noqa: PLC0415
+        except ImportError as exc:
+            raise LookupError(f"the C backend has no --precision {precision}") from exc
+        backend = with_precision(precision)
+    files = render(lower(derive(load_spec(spec))), backend)
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, text in files.items():
+        if name.endswith((".c", ".h")) and not name.endswith(".ext.c"):
+            (folder / name).write_text(text, encoding="utf-8")
+
+
+def _run(command: list[str], timeout: float = 120.0, env: dict[str, str] | None = None) -> str:
+    environment = {**os.environ, **env} if env else None
+    done = subprocess.run(
+        command, capture_output=True, text=True, timeout=timeout, check=False, env=environment
+    )
+    if done.returncode != 0:
+        raise RuntimeError(
+            f"{' '.join(command)} exited {done.returncode}:\n{done.stdout}\n{done.stderr}"
+        )
+    return done.stdout
+
+
+def compile_object(target: Target, source: Path, out: Path, *extra: str) -> Path:
+    """Compile one C file for ``target`` (the harness's flags, plus ``extra``)."""
+    _run([target.cc, *COMMON_FLAGS, *target.flags, *extra, "-c", str(source), "-o", str(out)])
+    return out
+
+
+def renamed_plant(target: Target, name: str, double: Path, out: Path) -> Path:
+    """The object ``double`` (the double-precision C) with ``harness_plant`` its only entry.
+
+    The plant runs in double whatever the controller's precision: its object is the
+    double C's with ``<name>_plant`` renamed ``harness_plant`` and every other global
+    symbol given a prefix, so that it links beside the controller's object.
+    """
+    listed = _run([target.tool("nm"), "-g", "--defined-only", "--format=posix", str(double)])
+    renames = []
+    for row in listed.splitlines():
+        symbol = row.split()[0]
+        new = "harness_plant" if symbol == f"{name}_plant" else f"harness_double_{symbol}"
+        renames.append(f"{symbol} {new}")
+    table = out.with_suffix(".renames")
+    table.write_text("\n".join(renames) + "\n", encoding="utf-8")
+    _run([target.tool("objcopy"), f"--redefine-syms={table}", str(double), str(out)])
+    return out
+
+
+@dataclass(frozen=True)
+class Loop:
+    """The closed loop's timing: RATE Hz steps, SUBSTEPS RK4 steps each, STEPS steps."""
+
+    rate: int = 100
+    steps: int = 100
+    substeps: int = 4
+    every: int = 10
+
+    def defines(self) -> list[str]:
+        return [
+            f"-DRATE={self.rate}",
+            f"-DSTEPS={self.steps}",
+            f"-DSUBSTEPS={self.substeps}",
+            f"-DEVERY={self.every}",
+        ]
+
+
+def build_loop(
+    target: Target,
+    name: str,
+    controller: Path,
+    double: Path,
+    precision: str,
+    folder: Path,
+    loop: Loop = Loop(),  # noqa: B008 - frozen
+    main: str = "loop.c",
+    defines: tuple[str, ...] = (),
+    controller_flags: tuple[str, ...] = (),
+) -> Path:
+    """Compile and link a harness program (``loop.c`` or ``bench.c``) of ``name`` for ``target``.
+
+    Parameters
+    ----------
+    controller
+        The folder of the controller's generated C (in ``precision``).
+    double
+        The folder of the double-precision generated C (the plant).
+    precision
+        ``double`` or ``single``: the type the harness gives the controller.
+    folder
+        Where the objects and the binary go.
+    loop
+        The closed loop's timing.
+    main
+        The program's file in this folder.
+    defines
+        More ``-D`` options of the program.
+    controller_flags
+        More options of the controller's compilation (``-fstack-usage``).
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    real = "double" if precision == "double" else "float"
+    double_object = compile_object(target, double / f"{name}.c", folder / "double.o", f"-I{double}")
+    if precision == "double" and not controller_flags:
+        controller_object = double_object
+    else:
+        controller_object = compile_object(
+            target,
+            controller / f"{name}.c",
+            folder / "controller.o",
+            f"-I{controller}",
+            *controller_flags,
+        )
+    objects = [
+        controller_object,
+        renamed_plant(target, name, double_object, folder / "plant.o"),
+        compile_object(
+            target,
+            HERE / main,
+            folder / "main.o",
+            f"-I{controller}",
+            f"-I{HERE}",
+            f"-DNAME={name}",
+            f"-DUNAME={name.upper()}",
+            f"-DREAL={real}",
+            *loop.defines(),
+            *defines,
+        ),
+        compile_object(target, HERE / "semihost.c", folder / "semihost.o"),
+    ]
+    if target.bare:
+        objects.append(
+            compile_object(target, HERE / "startup.c", folder / "startup.o", f"-I{HERE}")
+        )
+    binary = folder / f"{name}.elf"
+    _run([target.cc, *target.flags, *map(str, objects), "-o", str(binary), *target.link])
+    return binary
+
+
+def run(
+    target: Target,
+    binary: Path,
+    *qemu: str,
+    timeout: float = 300.0,
+    env: dict[str, str] | None = None,
+) -> str:
+    """Run ``binary`` on ``target`` and return its output.
+
+    ``qemu`` adds options to a QEMU runner (``-icount shift=0``); ``env`` adds variables
+    to the environment.
+    """
+    if not target.runner:
+        return _run([str(binary)], timeout, env)
+    return _run([target.runner[0], *qemu, *target.runner[1:], str(binary)], timeout, env)
+
+
+@dataclass(frozen=True)
+class Trace:
+    """A closed loop's records: step, time, plant state and input at each."""
+
+    steps: np.ndarray
+    t: np.ndarray
+    x: np.ndarray
+    u: np.ndarray
+
+
+def parse(text: str, n_x: int) -> Trace:
+    """Read ``loop.c``'s output (every number the 16 hex digits of a double's bits).
+
+    Raises
+    ------
+    RuntimeError
+        When a step failed or the output stops before ``end``.
+    """
+    rows = []
+    lines = text.splitlines()
+    if not lines or lines[-1] != "end":
+        raise RuntimeError(f"the loop did not finish:\n{text[-2000:]}")
+    for row in lines[:-1]:
+        words = row.split()
+        if words[0] != "s":
+            raise RuntimeError(f"the loop reported: {row}")
+        bits = np.array([int(w, 16) for w in words[2:]], dtype=np.uint64)
+        rows.append((int(words[1]), bits.view(np.float64)))
+    values = np.array([r[1] for r in rows])
+    return Trace(
+        steps=np.array([r[0] for r in rows]),
+        t=values[:, 0],
+        x=values[:, 1 : 1 + n_x],
+        u=values[:, 1 + n_x :],
+    )
+
+
+def plant_states(header: Path, name: str) -> int:
+    """``<NAME>_N_PLANT_STATES`` of a generated header."""
+    key = f"#define {name.upper()}_N_PLANT_STATES "
+    for row in header.read_text(encoding="utf-8").splitlines():
+        if row.startswith(key):
+            return int(row.removeprefix(key))
+    raise ValueError(f"{header} has no {key.strip()}")
