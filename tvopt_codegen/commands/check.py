@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from tvopt_codegen.commands import common
+from tvopt_codegen.commands import common, run_options
 from tvopt_codegen.errors import one_line
 
 HELP = "print the derivation summary; writes nothing"
@@ -13,6 +13,7 @@ HELP = "print the derivation summary; writes nothing"
 def build(parser: argparse.ArgumentParser) -> None:
     """The ``check`` command's options."""
     common.spec_argument(parser)
+    run_options.add(parser, "precision")
     common.derivation_options(parser)
 
 
@@ -27,4 +28,11 @@ def run(args: argparse.Namespace) -> int:
 
     for note in target_notes(derivation):
         print(one_line(note))
+    if args.precision != "double":
+        # Asked for: the matrices the single-precision C may not resolve at the start.
+        from tvopt_codegen.backends.c.precision import PRECISIONS  # noqa: PLC0415
+        from tvopt_codegen.backends.c.resolution import resolution_notes  # noqa: PLC0415
+
+        for note in resolution_notes(derivation, PRECISIONS[args.precision]):
+            common.warn(note)
     return 0
