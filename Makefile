@@ -9,7 +9,7 @@ INSTALLED := $(VENV)/.installed
 READY := $(VENV)/.compiled
 EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring arm_on_line planar_arm3
 
-.PHONY: test-fast test-durations coverage-fast bench-tests
+.PHONY: test-fast test-durations coverage-fast bench-tests bench-embedded
 .PHONY: all demo figures bench bench-baseline bench-derive bench-representation bench-sweep bench-sweep-scale bench-commands sweep-example robust-example eso-example reference-noise fuzz test lint typecheck check regen check-generated update-golden clean
 
 all: test
@@ -95,6 +95,13 @@ coverage-fast: $(READY)
 bench: $(READY)
 	$(PY) -m pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/bench_c.py --write benchmarks/RESULTS.md
+
+## bench-embedded: instructions per call (QEMU -icount), memory and stack of every example's C
+##   on a Cortex-M4F, double against single and against CasADi (benchmarks/EMBEDDED.md; needs
+##   .ci/run's ARM toolchain and QEMU)
+bench-embedded: $(READY)
+	$(PY) -m pip install --quiet -e '.[bench]'
+	$(PY) benchmarks/bench_embedded.py --write benchmarks/EMBEDDED.md
 
 ## bench-derive: cold generate per N = 1..256 of unicycle_ring: wall, stage shares, memory, ops, vs CasADi
 bench-derive: $(READY)

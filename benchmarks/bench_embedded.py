@@ -1,0 +1,430 @@
+"""The controller on a Cortex-M4F: instructions per call, memory and stack, double against single.
+
+Every bundled example's C controller, in double and in single precision, compiled for a
+Cortex-M4F (``-mcpu=cortex-m4 -mfpu=fpv4-sp-d16 -mfloat-abi=hard -O2 -ffp-contract=off``)
+and run bare metal under ``qemu-system-arm -M mps2-an386 -icount shift=0``, with the
+harness of ``tests/embedded`` (``bench.c``: the text there says how SysTick counts
+instructions under ``-icount``). Beside them, CasADi's generated C of the same law
+(``benchmarks/bench_c.py``'s ``casadi_law``) with ``casadi_real`` double and float.
+
+Run: ``make bench-embedded`` (needs the ARM toolchain and QEMU, ``.ci/run``'s apt-get
+line, and the ``bench`` extra for CasADi). Prints the tables and, with ``--write FILE``,
+stores them with the command, the tools' versions and the date.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from tests.embedded.harness import (  # noqa: E402
+    COMMON_FLAGS,
+    HERE,
+    TARGETS,
+    Loop,
+    build_loop,
+    compile_object,
+    generate,
+    run,
+    skip_reason,
+)
+
+#: The bundled examples (the Makefile's EXAMPLES).
+EXAMPLES = (
+    "integrator",
+    "unicycle_switch",
+    "two_unicycles_barrier",
+    "pvtol",
+    "flexible_joint",
+    "unicycle_ring",
+    "arm_on_line",
+    "planar_arm3",
+)
+#: Why the benchmarks' CasADi build (bench_c.casadi_law) has no peer of an example.
+NO_CASADI = {
+    "arm_on_line": "an equality constraint: casadi_law builds no multiplier chains, so its "
+    "law would not be this one",
+    "planar_arm3": "mass-matrix form: casadi_law takes f and G explicitly and fails on "
+    "M^-1 F's run-time symbols",
+}
+#: `control` calls timed in one interval; the closed loop's steps (100 Hz, 1 s).
+CALLS = 100
+LOOP = Loop(rate=100, steps=100, substeps=4, every=10)
+M4F = TARGETS["m4f"]
+ICOUNT = ("-icount", "shift=0")
+
+#: Undefined symbols that mean double arithmetic: libgcc's software double (AEABI) and
+#: the double functions of <math.h>.
+_DOUBLE_LIBM = frozenset(
+    "sin cos tan asin acos atan atan2 sinh cosh tanh asinh acosh atanh exp log log1p expm1 "
+    "sqrt pow fabs hypot cbrt floor ceil fmod".split()
+)
+
+
+def _double_symbols(obj: Path) -> list[str]:
+    """The symbols ``obj`` calls that compute in double."""
+    listed = subprocess.run(
+        [M4F.tool("nm"), "-u", "--format=posix", str(obj)],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    names = [row.split()[0] for row in listed.splitlines() if row.strip()]
+    return sorted(
+        n
+        for n in names
+        if n in _DOUBLE_LIBM
+        or (n.startswith("__aeabi_") and ("d" in n.removeprefix("__aeabi_")[:3]))
+    )
+
+
+def _size(path: Path) -> tuple[int, int, int]:
+    """``.text``, ``.data``, ``.bss`` of an object or image (Berkeley format)."""
+    out = subprocess.run(
+        [M4F.tool("size"), str(path)], capture_output=True, text=True, check=True
+    ).stdout
+    text, data, bss = (int(v) for v in out.splitlines()[1].split()[:3])
+    return text, data, bss
+
+
+def _records(output: str) -> dict[str, list[int]]:
+    records = {}
+    for row in output.splitlines():
+        words = row.split()
+        if words and words[0] not in ("end",):
+            if words[0].startswith("fail"):
+                raise RuntimeError(f"the benchmark reported: {row}")
+            records[words[0]] = [int(w) for w in words[1:]]
+    return records
+
+
+def _per_tick(records: dict[str, list[int]]) -> float:
+    """Instructions per SysTick tick, from the calibration loop (2 instructions an iteration)."""
+    iterations, ticks = records["calibrate"]
+    return 2 * iterations / ticks
+
+
+def _deepest_stack(callgraph: Path, roots: tuple[str, ...]) -> tuple[int, list[str]]:
+    """The largest sum of static frames along a call path from ``roots`` (-fcallgraph-info=su).
+
+    Library functions (libm, libgcc) have no frame in the file's graph: they count 0
+    here; the measured stack includes them.
+    """
+    text = callgraph.read_text(encoding="utf-8")
+    frames: dict[str, int] = {}
+    names: dict[str, str] = {}
+    for title, label in re.findall(r'node: \{ title: "([^"]+)" label: "([^"]+)"', text):
+        names[title] = label.split("\\n")[0]
+        size = re.search(r"(\d+) bytes", label)
+        frames[title] = int(size.group(1)) if size else 0
+    calls: dict[str, list[str]] = {}
+    for source, target in re.findall(r'edge: \{ sourcename: "([^"]+)" targetname: "([^"]+)"', text):
+        calls.setdefault(source, []).append(target)
+    memo: dict[str, tuple[int, list[str]]] = {}
+
+    def deepest(node: str, path: tuple[str, ...]) -> tuple[int, list[str]]:
+        if node in path:
+            raise RuntimeError(f"recursion through {names.get(node, node)}")
+        if node not in memo:
+            below = [deepest(c, (*path, node)) for c in calls.get(node, [])]
+            best = max(below, default=(0, []))
+            memo[node] = (frames.get(node, 0) + best[0], [names.get(node, node), *best[1]])
+        return memo[node]
+
+    return max(deepest(title, ()) for title in names if names[title] in roots)
+
+
+@dataclass
+class Row:
+    """One build's measures."""
+
+    example: str
+    build: str
+    control: float
+    step: float | None
+    obj: tuple[int, int, int]
+    image: tuple[int, int, int] | None
+    stack: int
+    static_stack: int | None
+    doubles: list[str]
+    per_tick: float
+
+
+def _image(folder: Path, objects: list[Path], name: str) -> Path:
+    """Link a bare-metal M4F image of ``objects`` with the start-up file and semihosting."""
+    objects = [
+        *objects,
+        compile_object(M4F, HERE / "semihost.c", folder / "semihost.o"),
+        compile_object(M4F, HERE / "startup.c", folder / "startup.o", f"-I{HERE}"),
+    ]
+    binary = folder / name
+    subprocess.run(
+        [M4F.cc, *M4F.flags, *map(str, objects), "-o", str(binary), *M4F.link],
+        check=True,
+        capture_output=True,
+    )
+    return binary
+
+
+def ours(example: str, precision: str, generated: Path, folder: Path) -> Row:
+    """Our controller of ``example`` in ``precision`` on the M4F."""
+    c_folder = generated / example / precision
+    double = generated / example / "double"
+    binary = build_loop(
+        M4F,
+        example,
+        c_folder,
+        double,
+        precision,
+        folder,
+        LOOP,
+        main="bench.c",
+        defines=(f"-DCALLS={CALLS}",),
+        controller_flags=("-fstack-usage", "-fcallgraph-info=su"),
+    )
+    records = _records(run(M4F, binary, *ICOUNT))
+    per_tick = _per_tick(records)
+    calls, ticks = records["control"]
+    steps, step_ticks = records["step"]
+    controller = folder / "controller.o"
+    real = "double" if precision == "double" else "float"
+    footprint = _image(
+        folder,
+        [
+            controller,
+            compile_object(
+                M4F,
+                HERE / "footprint.c",
+                folder / "footprint.o",
+                f"-I{c_folder}",
+                f"-I{HERE}",
+                f"-DNAME={example}",
+                f"-DUNAME={example.upper()}",
+                f"-DREAL={real}",
+            ),
+        ],
+        "footprint.elf",
+    )
+    static, _ = _deepest_stack(
+        folder / "controller.ci", (f"{example}_controller_step", f"{example}_control")
+    )
+    return Row(
+        example=example,
+        build=f"ours, {precision}",
+        control=ticks * per_tick / calls,
+        step=step_ticks * per_tick / steps,
+        obj=_size(controller),
+        image=_size(footprint),
+        stack=records["stack"][0],
+        static_stack=static,
+        doubles=_double_symbols(controller),
+        per_tick=per_tick,
+    )
+
+
+def casadi_row(example: str, real: str, folder: Path) -> Row:
+    """CasADi's generated C of ``example``'s law with ``casadi_real`` = ``real`` on the M4F."""
+    import casadi as ca  # noqa: PLC0415 - the bench extra
+    from bench_c import casadi_law  # noqa: PLC0415 - imports casadi and cffi
+
+    from tvopt_codegen.derivation import derive  # noqa: PLC0415
+    from tvopt_codegen.spec import load_spec  # noqa: PLC0415
+
+    folder.mkdir(parents=True, exist_ok=True)
+    d = derive(load_spec(example))
+    generator = ca.CodeGenerator("casadi_law", {"with_header": True, "casadi_real": real})
+    generator.add(casadi_law(d))
+    generator.generate(str(folder) + "/")
+    state = [float(v) for v in d.closed_loop.initial_state]
+    params = [float(v) for _, v in d.spec.parameters] or [0.0]
+    law = compile_object(M4F, folder / "casadi_law.c", folder / "casadi_law.o", f"-I{folder}")
+    main = compile_object(
+        M4F,
+        HERE / "casadi_bench.c",
+        folder / "casadi_bench.o",
+        f"-I{folder}",
+        f"-I{HERE}",
+        "-DSTATE={" + ", ".join(repr(v) for v in state) + "}",
+        "-DPARAMS={" + ", ".join(repr(v) for v in params) + "}",
+        f"-DCALLS={CALLS}",
+    )
+    records = _records(run(M4F, _image(folder, [law, main], "casadi.elf"), *ICOUNT))
+    calls, ticks = records["control"]
+    per_tick = _per_tick(records)
+    return Row(
+        example=example,
+        build=f"CasADi, casadi_real {real}",
+        control=ticks * per_tick / calls,
+        step=None,
+        obj=_size(law),
+        image=None,
+        stack=records["stack"][0],
+        static_stack=None,
+        doubles=_double_symbols(law),
+        per_tick=per_tick,
+    )
+
+
+def _version(command: list[str]) -> str:
+    out = subprocess.run(command, capture_output=True, text=True, check=False).stdout
+    return out.splitlines()[0] if out else "?"
+
+
+def table(rows: list[Row]) -> str:
+    """The Markdown tables: per example, each build's measures, and single against double."""
+    lines = [
+        "| example | build | instructions / `control` | instructions / `Controller` step "
+        "| object .text / .data / .bss (bytes) | image .text / .data / .bss | stack, measured "
+        "| stack, -fstack-usage path | double routines called |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        step = f"{r.step:,.0f}" if r.step is not None else "(no stateful step)"
+        image = " / ".join(f"{v:,}" for v in r.image) if r.image else ""
+        static = f"{r.static_stack:,}" if r.static_stack is not None else ""
+        more = ", ..." if len(r.doubles) > 4 else ""
+        listed = "`, `".join(r.doubles[:4])
+        doubles = f"{len(r.doubles)} (`{listed}`{more})" if r.doubles else "none"
+        lines.append(
+            f"| {r.example} | {r.build} | {r.control:,.0f} | {step} | "
+            f"{' / '.join(f'{v:,}' for v in r.obj)} | {image} | {r.stack:,} | {static} | "
+            f"{doubles} |"
+        )
+    lines += [
+        "",
+        "Single against double, and ours against CasADi's float-typedef C "
+        "(instructions per `control` call; ratio below 1: fewer):",
+        "",
+        "| example | single / double (ours) | single / double, `Controller` step | "
+        "ours single / CasADi float | ours double / CasADi double |",
+        "|---|---|---|---|---|",
+    ]
+    by = {(r.example, r.build): r for r in rows}
+    for example in dict.fromkeys(r.example for r in rows):
+        single, double = by[(example, "ours, single")], by[(example, "ours, double")]
+        cf = by.get((example, "CasADi, casadi_real float"))
+        cd = by.get((example, "CasADi, casadi_real double"))
+        assert single.step is not None and double.step is not None
+        lines.append(
+            f"| {example} | {single.control / double.control:.3f} | "
+            f"{single.step / double.step:.3f} | "
+            f"{f'{single.control / cf.control:.3f}' if cf else '(no peer)'} | "
+            f"{f'{double.control / cd.control:.3f}' if cd else '(no peer)'} |"
+        )
+    return "\n".join(lines)
+
+
+def main() -> int:
+    """Measure every example, print the tables and optionally store them."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--write", type=Path, help="also store the tables in this Markdown file")
+    parser.add_argument("--examples", nargs="*", default=list(EXAMPLES))
+    args = parser.parse_args()
+    reason = skip_reason("m4f")
+    if reason:
+        print(reason, file=sys.stderr)
+        return 1
+    rows: list[Row] = []
+    with tempfile.TemporaryDirectory(prefix="tvopt-embedded-") as tmp:
+        base = Path(tmp)
+        for example in args.examples:
+            for precision in ("double", "single"):
+                generate(example, precision, base / "c" / example / precision)
+            for precision in ("double", "single"):
+                rows.append(ours(example, precision, base / "c", base / example / precision))
+            if example not in NO_CASADI:
+                for real in ("double", "float"):
+                    rows.append(casadi_row(example, real, base / example / f"casadi-{real}"))
+            print(f"{example}: done", file=sys.stderr)
+    text = table(rows)
+    print(text)
+    if args.write:
+        args.write.write_text(_document(text, rows), encoding="utf-8")
+    return 0
+
+
+def _document(text: str, rows: list[Row]) -> str:
+    import casadi as ca  # noqa: PLC0415
+
+    single = [r for r in rows if r.build == "ours, single"]
+    double = {r.example: r for r in rows if r.build == "ours, double"}
+    by = {(r.example, r.build): r for r in rows}
+    worst = max(single, key=lambda r: r.control / double[r.example].control)
+    peers = [
+        (r.example, r.control / by[(r.example, "CasADi, casadi_real float")].control)
+        for r in single
+        if (r.example, "CasADi, casadi_real float") in by
+    ]
+    low, high = min(peers, key=lambda p: p[1]), max(peers, key=lambda p: p[1])
+    rates = sorted({round(r.per_tick, 3) for r in rows})
+    ticks = " or ".join(f"{v:g}" for v in rates)
+    header = [
+        "# The controller on a Cortex-M4F: instructions, memory, stack",
+        "",
+        "Command: `make bench-embedded` (`python benchmarks/bench_embedded.py --write "
+        "benchmarks/EMBEDDED.md`).",
+        f"Tools: {_version([M4F.cc, '--version'])}; "
+        f"{_version(['qemu-system-arm', '--version'])}; casadi {ca.__version__}; "
+        f"{time.strftime('%Y-%m-%d')}.",
+        f"Flags: `{' '.join((*COMMON_FLAGS, *M4F.flags))}`; newlib's libm, libgcc's software "
+        "double.",
+        "",
+        "**These are instructions, not cycles.** Each image runs under "
+        "`qemu-system-arm -M mps2-an386 -icount shift=0`: QEMU advances its virtual clock "
+        "by exactly 1 ns per executed instruction, and SysTick, clocked from the core clock, "
+        f"ticks every {ticks} of them (measured in each image on a loop of a known "
+        "instruction count: "
+        "`tests/embedded/bench.c`). The counts repeat exactly from run to run; they are not "
+        "cycles: QEMU models no pipeline, flash wait states or caches, nor the longer "
+        "latencies of the FPU's divide and square root. A count includes the "
+        "call, its arguments and the loop around it (a handful of instructions).",
+        "",
+        f"- `control`: {CALLS} calls at t = 0.5 s and the example's default closed-loop "
+        "state (parameters NULL: the defaults); the count per call.",
+        f"- `Controller` step: a closed loop of {LOOP.steps} steps at {LOOP.rate} Hz (the "
+        "plant integrated in double by RK4 between them) records what each step is given; "
+        "the controller is initialised again and the same steps are counted together; the "
+        "mean. A step advances the controller's states and evaluates the law.",
+        "- object: `arm-none-eabi-size` of the generated `<name>.c` alone (`.text` includes "
+        "the constants). image: a program that runs `controller_init` and one "
+        "`controller_step` and nothing else (`tests/embedded/footprint.c`), linked with "
+        "the start-up file, `--gc-sections`, newlib's libm and libgcc: what the controller "
+        "costs in flash with the library routines it pulls in.",
+        "- stack, measured: the free stack painted, then `control`, `controller_init` and "
+        "10 steps run, and the deepest word written found (libm and libgcc included). "
+        "-fstack-usage path: the largest sum of the static frames `-fstack-usage "
+        "-fcallgraph-info=su` reports along a call path from `controller_step` or "
+        "`control` within the generated file (library routines count 0 there).",
+        "- double routines called: the undefined symbols of the object that compute in "
+        "double (libgcc's `__aeabi_d*` and `<math.h>`'s double functions). On the M4F each "
+        "is software emulation.",
+        "- CasADi: `benchmarks/bench_c.py`'s `casadi_law` (the same plant, outputs and "
+        "objective, derived by CasADi's AD), generated by `casadi.CodeGenerator` with "
+        "`casadi_real` set to `double` or `float`, compiled with the same flags; its call "
+        "is `casadi_law(arg, res, iw, w, 0)` at the same state. CasADi has no stateful "
+        "controller: no step column. No CasADi peer for: "
+        + "; ".join(f"{k} ({v})" for k, v in NO_CASADI.items())
+        + ".",
+        "",
+        f"Single precision costs at most {worst.control / double[worst.example].control:.3f} "
+        f"of double's instructions per `control` call on every example (the largest ratio: "
+        f"{worst.example}), and calls no double routine. CasADi's C with `casadi_real` "
+        "float still calls double ones where it has a literal or a function of <math.h> "
+        "(the last column): our single-precision call takes "
+        f"{low[1]:.3f} ({low[0]}) to {high[1]:.3f} ({high[0]}) of its instructions.",
+        "",
+    ]
+    return "\n".join(header) + "\n" + text + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
