@@ -24,12 +24,14 @@ from __future__ import annotations
 
 import os
 import platform
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.conftest import shared
+from tests.conftest import shared, skip_summary
+from tests.embedded import harness
 from tests.embedded.harness import (
     TARGETS,
     Loop,
@@ -42,8 +44,9 @@ from tests.embedded.harness import (
     skip_reason,
 )
 
-#: Each QEMU test compiles and runs a closed loop (1-3 s); the module's total is ~30 s.
-pytestmark = pytest.mark.slow
+#: Each QEMU test compiles and runs closed loops (1-3 s; the module's total is ~25 s on
+#: one core): slow, by hand, until tests/durations.json records them.
+slow = pytest.mark.slow
 
 #: 2 s of closed loop at 100 Hz, the plant's RK4 at 400 Hz.
 LOOP = Loop(rate=100, steps=200, substeps=4, every=10)
@@ -129,14 +132,39 @@ def _host_has_fma() -> bool:
     return any(line.startswith("flags") and " fma" in line for line in text.splitlines())
 
 
-@pytest.fixture(autouse=True)
 def _x86_64_host() -> None:
     if platform.machine() != "x86_64" or os.name != "posix":
         pytest.skip("the reference loop is an x86-64 Linux build (by design)")
 
 
+def test_a_missing_toolchain_skips_with_the_line_that_installs_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(shutil, "which", lambda p: None if "qemu" in p else "/usr/bin/x")
+    reason = skip_reason("host", "m4f")
+    assert reason is not None and "qemu-system-arm missing" in reason
+    assert "gcc" not in reason.split("(")[1].split(")")[0]
+    assert skip_summary([reason]).endswith("(as root, `.ci/run` does it)`")
+    assert all(package in skip_summary([reason]) for package in harness.APT_PACKAGES)
+
+
+def test_the_loop_output_is_read_to_the_bit_and_a_failed_step_is_an_error() -> None:
+    values = [0.1, -0.0, 1e-300, 2.5, float.fromhex("0x1.fffffffffffffp-1")]
+    text = "s 7" + "".join(f" {np.float64(v).view(np.uint64):016x}" for v in values) + "\nend\n"
+    trace = parse(text, 2)
+    assert trace.steps.tolist() == [7] and trace.t.tolist() == [0.1]
+    assert trace.x.tolist() == [[-0.0, 1e-300]] and trace.u.tolist() == [values[3:]]
+    assert str(trace.x[0, 0]) == "-0.0"
+    with pytest.raises(RuntimeError, match="fail 3 2"):
+        parse("fail 3 2\nend\n", 2)
+    with pytest.raises(RuntimeError, match="did not finish"):
+        parse(text.replace("end\n", ""), 2)
+
+
+@slow
 @pytest.mark.parametrize("example", EXAMPLES)
 def test_arm64_linux_double_equals_host(example: str) -> None:
+    _x86_64_host()
     _need("host", "arm64")
     if not _host_has_fma():
         pytest.skip("this x86-64 CPU has no FMA: its libm rounds as armhf's (by design)")
@@ -145,15 +173,19 @@ def test_arm64_linux_double_equals_host(example: str) -> None:
     np.testing.assert_array_equal(_bits(arm64), _bits(host))
 
 
+@slow
 @pytest.mark.parametrize("example", EXAMPLES)
 def test_armhf_linux_double_equals_host(example: str) -> None:
+    _x86_64_host()
     _need("host", "armhf")
     host = _trace(example, "host", "double", fma=False)
     np.testing.assert_array_equal(_bits(_trace(example, "armhf", "double")), _bits(host))
 
 
+@slow
 @pytest.mark.parametrize("example", EXAMPLES)
 def test_cortex_m7_double_within_bound(example: str) -> None:
+    _x86_64_host()
     _need("host", "m7")
     host, m7 = _trace(example, "host", "double"), _trace(example, "m7", "double")
     x_bound, u_bound = BARE_DOUBLE[example]
@@ -162,8 +194,10 @@ def test_cortex_m7_double_within_bound(example: str) -> None:
     assert np.max(np.abs(m7.u - host.u)) <= u_bound
 
 
+@slow
 @pytest.mark.parametrize("example", EXAMPLES)
 def test_cortex_m4f_single_tracks_double(example: str) -> None:
+    _x86_64_host()
     _need("host", "m4f")
     host, m4f = _trace(example, "host", "double"), _trace(example, "m4f", "single")
     x_tol, u_tol = SINGLE[example]
