@@ -82,7 +82,7 @@ def build(parser: argparse.ArgumentParser) -> None:
     run_options.renamed(
         parser, "--noise", "--measurement-noise (Gaussian noise on the measured plant states)"
     )
-    run_options.add(parser, "sample_time", "t_final", "rtol", "atol", "points")
+    run_options.add(parser, "sample_time", "t_final", "rtol", "atol", "points", "precision")
     where = parser.add_mutually_exclusive_group()
     run_options.add(where, "workers")
     where.add_argument(
@@ -480,15 +480,24 @@ def sweep(args: argparse.Namespace) -> int:
         raise SpecError("command line", "--samples", f"must be positive, got {args.samples}")
     if args.scheduler is None:
         check_workers(args.workers)
+    if args.precision != "double" and args.sample_time is None:
+        raise SpecError(
+            "command line",
+            "--precision",
+            f"a {args.precision}-precision sweep steps the stateful controller: give "
+            "--sample-time H (the continuous loop runs the law in double)",
+        )
     _source, raw = read_spec_bytes(args.spec)
     derivation, kernels = common.derive(args)
-    program = sweep_program(kernels)
+    program = sweep_program(kernels, args.precision)
     options = _options(args, program, derivation.spec.t_final)
     _check_earlier(args)
     loop_for(program)  # a compiler error stops here, before any worker starts
     _check_nominal(derivation.spec.source, program, options)
     spec_name = f"{derivation.spec.name}.toml"
     record = _record(program, options, spec_name, args.extension, bool(args.trajectories), raw)
+    if args.precision != "double":
+        record["precision"] = args.precision  # the controller's; --resume builds it again
     folder = SweepFolder(args.out, _names(spec_name), args.force)
     try:
         # Again under the lock: a sweep that finished since the first look owns the folder.
@@ -622,7 +631,7 @@ def _from_record(folder: Path) -> tuple[dict[str, Any], Any, str, bytes, Any]:
     spec = parse_spec(str(folder / spec_name), spec_bytes)
     if record.get("extension") == "auto":
         spec = dataclasses.replace(spec, extension=(), extension_auto=True)
-    program = sweep_program(lower(derive(spec)))
+    program = sweep_program(lower(derive(spec)), str(record.get("precision", "double")))
     try:
         check_options(program, options)
     except SpecError as exc:
@@ -649,6 +658,7 @@ _DEFINING: dict[str, object] = {
     "atol": RUN_OPTIONS["atol"].default,
     "points": RUN_OPTIONS["points"].default,
     "trajectories": False,
+    "precision": RUN_OPTIONS["precision"].default,
 }
 
 

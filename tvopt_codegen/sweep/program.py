@@ -40,7 +40,8 @@ class SweepProgram:
     key : str
         SHA-256 of the sources: the compiled library's cache key.
     sources : tuple of (str, str)
-        File name and text: ``<name>.h``, ``<name>.c`` and ``<name>_sweep.c``.
+        File name and text: ``<name>.h``, ``<name>.c`` (with ``--precision single``
+        then ``<name>_f32.h`` and ``<name>_f32.c``) and ``<name>_sweep.c``.
     state_names, plant_state_names, input_names, output_names, param_names : tuple of str
         The closed loop's names, in the C arrays' order.
     defaults : tuple of float
@@ -115,8 +116,13 @@ def tail(rows: np.ndarray, name: str) -> np.ndarray:
     return column
 
 
-def sweep_program(kernels: KernelSet) -> SweepProgram:
+def sweep_program(kernels: KernelSet, precision: str = "double") -> SweepProgram:
     """Render the C closed loop of a lowered controller.
+
+    ``precision`` ``"single"`` steps the single-precision controller (every real a
+    float, ``generate --precision single``'s C, included under the prefix
+    ``<name>_f32``) against the true plant, the integrator and the certificate in
+    double; it needs a sampled loop (the sweep's command checks ``--sample-time``).
 
     Raises
     ------
@@ -145,6 +151,13 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
     files = render(kernels, backend)
     name = d.spec.name
     context = template_context(kernels, backend)
+    single = f"{name}_f32" if precision == "single" else None
+    extra: tuple[tuple[str, str], ...] = ()
+    if single is not None:
+        from tvopt_codegen.backends.c import with_precision  # noqa: PLC0415
+
+        floats = render(kernels, with_precision(precision, prefix=single))
+        extra = ((f"{single}.h", floats[f"{name}.h"]), (f"{single}.c", floats[f"{name}.c"]))
     checks = check_kernels(d)
     constraints, equalities = checks.constraints, checks.equalities
     context |= {
@@ -175,10 +188,13 @@ def sweep_program(kernels: KernelSet) -> SweepProgram:
         "newton_rule": NEWTON,
         "max_points": MAX_POINTS,
         "start_iterations": START_ITERATIONS,
+        # The single-precision controller's prefix, or None: the loop steps the double one.
+        "single": single,
     }
     sources = (
         (f"{name}.h", files[f"{name}.h"]),
         (f"{name}.c", files[f"{name}.c"]),
+        *extra,
         (f"{name}_sweep.c", render_template("c/sweep.c.jinja", context)),
     )
     digest = hashlib.sha256()

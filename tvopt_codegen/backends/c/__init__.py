@@ -43,21 +43,26 @@ def _printer(precision: Precision | None = None) -> CodePrinter:
     return CPrinter(precision or DOUBLE)
 
 
-def _context(kernels: KernelSet, precision: Precision | None = None) -> dict[str, Any]:
+def _context(
+    kernels: KernelSet, precision: Precision | None = None, prefix: str | None = None
+) -> dict[str, Any]:
     """The C templates' own variables.
 
     The precision's: ``precision`` (the record), ``real`` (the C spelling of a real
     number: ``double``, or the header's ``<name>_real_t``), ``F`` (the suffix of a literal
     and of a <math.h> function: ``""`` or ``"f"``) and the tolerances it tunes, which
-    replace the shared context's.
+    replace the shared context's. ``prefix`` renames the C's identifiers (``prefix``,
+    ``guard``): the sweep's loop includes a controller of each precision.
     """
     from tvopt_codegen.backends.c.precision import DOUBLE  # noqa: PLC0415
 
     d = kernels.derivation
     precision = precision or DOUBLE
+    renamed = {} if prefix is None else {"prefix": prefix, "guard": prefix.upper()}
     return {
+        **renamed,
         "precision": precision,
-        "real": precision.type_name(d.spec.name),
+        "real": precision.type_name(prefix or d.spec.name),
         "F": precision.suffix,
         "pivot_tolerance": precision.pivot_tolerance,
         "gram_tolerance": precision.gram_tolerance,
@@ -111,7 +116,7 @@ BACKEND = Backend(
 _EXTENSION_TEMPLATE = "c/extension.c.jinja"
 
 
-def with_precision(name: str) -> Backend:
+def with_precision(name: str, prefix: str | None = None) -> Backend:
     """The C backend generating C of the precision ``name`` (``"double"`` or ``"single"``).
 
     Double is :data:`BACKEND` itself. Single prints every real as the header's
@@ -119,6 +124,10 @@ def with_precision(name: str) -> Backend:
     of <math.h>, with the single-precision tolerances; its Python module loads the C
     through ctypes with ``c_float`` arrays, without the CPython entry point (which
     trades in Python's doubles).
+
+    ``prefix`` (default: the spec's name) names the C's identifiers, for a translation
+    unit that holds the controller in both precisions (the sweep's loop); the files keep
+    their names.
 
     Raises
     ------
@@ -128,18 +137,16 @@ def with_precision(name: str) -> Backend:
     from tvopt_codegen.backends.c.precision import PRECISIONS  # noqa: PLC0415
 
     precision = PRECISIONS[name]
-    if not precision.single:
+    if not precision.single and prefix is None:
         return BACKEND
 
     def printer() -> CodePrinter:
         return _printer(precision)
 
     def context(kernels: KernelSet) -> dict[str, Any]:
-        return _context(kernels, precision)
+        return _context(kernels, precision, prefix)
 
-    return dataclasses.replace(
-        BACKEND,
-        printer=printer,
-        context=context,
-        templates=tuple(t for t in BACKEND.templates if t[0] != _EXTENSION_TEMPLATE),
-    )
+    templates = BACKEND.templates
+    if precision.single:
+        templates = tuple(t for t in templates if t[0] != _EXTENSION_TEMPLATE)
+    return dataclasses.replace(BACKEND, printer=printer, context=context, templates=templates)
