@@ -68,11 +68,12 @@ def _taylor(xi: np.ndarray, h: float) -> np.ndarray:
     """Jets (n_refs, q + 1) ``h`` seconds on along their Taylor polynomials."""
     order = xi.shape[1]
     out = np.zeros_like(xi)
-    for j in range(order):
-        term = 1.0
-        for index in range(order - j):
-            out[:, j] += xi[:, j + index] * term
-            term *= h / (index + 1)
+    term = 1.0
+    # Column j adds xi[:, j + index] h^index / index! for index = 0, 1, ...: the columns
+    # side by side, each summed in that order (the same bits as one column at a time).
+    for index in range(order):
+        out[:, : order - index] += xi[:, index:] * term
+        term *= h / (index + 1)
     return out
 
 
