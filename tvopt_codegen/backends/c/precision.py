@@ -114,11 +114,14 @@ class Precision:
         Double: Python's ``repr`` (17 significant digits at most, round-trip). Single:
         the shortest text that reads back as the nearest float (written as
         ``repr`` writes it: a point or an exponent always), and the ``f`` suffix. An infinity is
-        ``INFINITY`` (a float in C99, <math.h>); NaN and a finite value beyond the
-        type's range are refused.
+        ``HUGE_VAL`` in double and ``INFINITY`` (a float in C99) in single; NaN and a finite
+        value beyond the type's range are refused.
         """
         if math.isinf(value):
-            return "INFINITY" if value > 0 else "-INFINITY"
+            # INFINITY is a float (C99): a double array takes HUGE_VAL, a double's
+            # infinity under IEEE 754, without -Wdouble-promotion's promotion.
+            text = "HUGE_VAL" if not self.single else "INFINITY"
+            return text if value > 0 else "-" + text
         if not self.single:
             return repr(value)
         if math.isnan(value) or abs(value) > FLOAT_MAX:
@@ -177,7 +180,7 @@ def c_real(context: Any, value: float) -> str:
     """The ``c_real`` filter: a number as a C literal of the template's precision.
 
     Double prints as ``pyrepr`` does (an int as an int); single as
-    :meth:`Precision.literal`. An infinity is ``INFINITY`` in both.
+    :meth:`Precision.literal`. An infinity is ``HUGE_VAL`` (double) or ``INFINITY``.
     """
     precision = context.get("precision") or DOUBLE
     if not precision.single and not isinstance(value, float):
