@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: a3eb2a761ca1105d49e659653b611f9e58edcdd541d37cef51d282630c937579
+# content sha256: 2b148543a4cd2a87970f6071b73805266a359b151dfc2a2d2b5b1cacafb7d32c
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Mapping
+from collections.abc import Callable as _Callable, Mapping
 
 import numpy
 
@@ -177,7 +177,7 @@ _ERRORS = {
 }
 
 
-def _error(status, index, result=""):
+def _error(status: int, index: int, result: str = "") -> ControllerError:
     """The exception of ``status`` at column ``index`` (``result``: what is not finite)."""
     kind, text, tail = _ERRORS[status]
     return kind(f"{text.replace('{result}', result)} (column {index}){tail}", index)
@@ -188,14 +188,16 @@ _DEFAULT_P = numpy.array(list(PARAMETERS.values()), dtype=float)
 _A = numpy.array(HURWITZ_COEFFICIENTS, dtype=float)
 
 
-def _time(t):
+def _time(t: object) -> float:
     """``t`` as a float: a real number, not an array (one time per call)."""
     if isinstance(t, (int, float, numpy.integer, numpy.floating)):
         return float(t)
     raise TypeError(f"t must be a real number, got {type(t).__name__}")
 
 
-def _columns(name, value, rows):
+def _columns(
+    name: str, value: object, rows: int
+) -> tuple[numpy.typing.NDArray[numpy.float64], bool]:
     """Return ``value`` as a float array of shape (rows, N) and whether it was 1-D."""
     array = numpy.asarray(value)
     if array.dtype.kind == "c" or (
@@ -212,7 +214,7 @@ def _columns(name, value, rows):
     raise ValueError(f"{name} must have shape ({rows},) or ({rows}, N), got {array.shape}")
 
 
-def _parameters(params):
+def _parameters(params: object) -> numpy.typing.NDArray[numpy.float64]:
     """Parameter vector in declaration order; unknown names are an error."""
     if params is None:
         return _DEFAULT_P
@@ -230,7 +232,13 @@ def _parameters(params):
     return numpy.array(values)
 
 
-def _check_inputs(t, array, p, what):
+def _check_inputs(
+    t: float,
+    array: numpy.typing.NDArray[numpy.float64],
+    p: numpy.typing.NDArray[numpy.float64],
+    what: str,
+) -> None:
+    """Raise NonFiniteInputError where ``t``, a column of ``array`` or ``p`` is not finite."""
     if not numpy.isfinite(t):
         raise NonFiniteInputError(f"t = {t!r} is not finite")
     bad = ~numpy.all(numpy.isfinite(array), axis=0)
@@ -241,7 +249,11 @@ def _check_inputs(t, array, p, what):
         raise NonFiniteInputError("a parameter is not finite")
 
 
-def _check_finite(what, *arrays):
+def _check_finite(what: str, *arrays: numpy.typing.NDArray[numpy.float64]) -> None:
+    """Raise the NONFINITE_OUTPUT error at the first column that is not finite.
+
+    A column is the last axis of each of ``arrays``; ``what`` names them in the message.
+    """
     for array in arrays:
         if array.size == 0:  # a batch of no columns
             continue
@@ -276,14 +288,16 @@ _R_GROUPS = (
 )
 
 
-def _solve_decoupling(r, b):
+def _solve_decoupling(
+    r: numpy.typing.NDArray[numpy.float64], b: numpy.typing.NDArray[numpy.float64]
+) -> numpy.typing.NDArray[numpy.float64]:
     """Solve ``R w = b`` block by block; blocks of one size are one batch."""
     count = b.shape[1]
     w = numpy.empty_like(b)
     for size, starts, rows in _R_GROUPS:
         blocks = len(starts)
         if blocks == 1:
-            a = r[starts[0]:starts[0] + size * size].reshape(size, size, count)
+            a = r[starts[0] : starts[0] + size * size].reshape(size, size, count)
             rhs = b[list(rows[0])]
         else:
             take = numpy.add.outer(numpy.array(starts), numpy.arange(size * size))
@@ -294,7 +308,9 @@ def _solve_decoupling(r, b):
     return w
 
 
-def _lu_solve(a, b, points):
+def _lu_solve(
+    a: numpy.typing.NDArray[numpy.float64], b: numpy.typing.NDArray[numpy.float64], points: int
+) -> numpy.typing.NDArray[numpy.float64]:
     """Solve ``a x = b`` by LU with partial pivoting; ``a`` (m, m, N), ``b`` (m, N).
 
     Column ``c`` belongs to point ``c % points`` of the caller's batch. Every entry is a
@@ -307,18 +323,20 @@ def _lu_solve(a, b, points):
     scale = numpy.max(numpy.abs(a.reshape(m * m, -1)), axis=0)
     for j in range(m):
         # The pivot row: the first of the largest |a[i, j]|, i >= j, like the C loop.
-        best, row = numpy.abs(lu[j][j]), None
+        best, row = numpy.abs(lu[j][j]), numpy.asarray(j)
         for i in range(j + 1, m):
             size = numpy.abs(lu[i][j])
             larger = size > best
             best = numpy.where(larger, size, best)
-            row = numpy.where(larger, i, j if row is None else row)
+            row = numpy.where(larger, i, row)
         for i in range(j + 1, m):
             swap = row == i
             if swap.any():
                 for k in range(m):
-                    lu[j][k], lu[i][k] = (numpy.where(swap, lu[i][k], lu[j][k]),
-                                          numpy.where(swap, lu[j][k], lu[i][k]))
+                    lu[j][k], lu[i][k] = (
+                        numpy.where(swap, lu[i][k], lu[j][k]),
+                        numpy.where(swap, lu[j][k], lu[i][k]),
+                    )
                 x[j], x[i] = numpy.where(swap, x[i], x[j]), numpy.where(swap, x[j], x[i])
         pivot = lu[j][j]
         bad = ~(numpy.abs(pivot) > PIVOT_TOLERANCE * scale)
@@ -796,7 +814,15 @@ def _law(t, s, p, rates=True):
 _BLOCK = 8192
 
 
-def _blockwise(function, t, s, p):
+def _blockwise(
+    function: _Callable[
+        [float, numpy.typing.NDArray[numpy.float64], numpy.typing.NDArray[numpy.float64]],
+        numpy.typing.NDArray[numpy.float64],
+    ],
+    t: float,
+    s: numpy.typing.NDArray[numpy.float64],
+    p: numpy.typing.NDArray[numpy.float64],
+) -> numpy.typing.NDArray[numpy.float64]:
     """``function(t, s, p)`` over blocks of ``_BLOCK`` columns, joined on the last axis."""
     count = s.shape[1]
     if count <= _BLOCK:
@@ -804,13 +830,21 @@ def _blockwise(function, t, s, p):
     parts = []
     for start in range(0, count, _BLOCK):
         try:
-            parts.append(_overflow_checked(function, t, s[:, start:start + _BLOCK], p))
+            parts.append(_overflow_checked(function, t, s[:, start : start + _BLOCK], p))
         except ControllerError as error:
             raise _shifted(error, start) from None
     return numpy.concatenate(parts, axis=-1)
 
 
-def _overflow_checked(function, t, s, p):
+def _overflow_checked(
+    function: _Callable[
+        [float, numpy.typing.NDArray[numpy.float64], numpy.typing.NDArray[numpy.float64]],
+        numpy.typing.NDArray[numpy.float64],
+    ],
+    t: float,
+    s: numpy.typing.NDArray[numpy.float64],
+    p: numpy.typing.NDArray[numpy.float64],
+) -> numpy.typing.NDArray[numpy.float64]:
     """``function(t, s, p)``, with a Python float's overflow reported as the C reports inf."""
     try:
         return function(t, s, p)
@@ -820,7 +854,7 @@ def _overflow_checked(function, t, s, p):
         raise _error(STATUS_NONFINITE_OUTPUT, 0, "a result") from None
 
 
-def _shifted(error, offset):
+def _shifted(error: ControllerError, offset: int) -> ControllerError:
     """``error`` of a block that starts at column ``offset``, told in whole-batch columns."""
     if error.index is None:
         return error
@@ -829,11 +863,17 @@ def _shifted(error, offset):
     return type(error)(message, index)
 
 
-def _control_values(t, s, p):
+def _control_values(
+    t: float, s: numpy.typing.NDArray[numpy.float64], p: numpy.typing.NDArray[numpy.float64]
+) -> numpy.typing.NDArray[numpy.float64]:
+    """The plant input at every column of ``s`` (the law without its rates)."""
     return _blockwise(lambda t, s, p: _law(t, s, p, rates=False)[1], t, s, p)
 
 
-def _rhs_values(t, s, p):
+def _rhs_values(
+    t: float, s: numpy.typing.NDArray[numpy.float64], p: numpy.typing.NDArray[numpy.float64]
+) -> numpy.typing.NDArray[numpy.float64]:
+    """The closed loop's rates at every column of ``s``."""
     return _blockwise(lambda t, s, p: _law(t, s, p)[0], t, s, p)
 
 
@@ -872,18 +912,19 @@ def _hessian_values(t, x, p):
 # and raises exactly as documented: the two paths never disagree.
 
 
-def _finite(values):
+def _finite(values: list[float]) -> bool:
     """Whether every value is finite (a sum of infinities of both signs is NaN).
 
     The sum alone would also call finite values whose sum overflows (1e308 twice) not
-    finite, where the C backend's probe (x * 0.0) does not: then each is looked at."""
+    finite, where the C backend's probe (x * 0.0) does not: then each is looked at.
+    """
     return math.isfinite(sum(values)) or all(map(math.isfinite, values))
 
 
-def _lu_solve_1(a, b):
+def _lu_solve_1(a: list[float], b: list[float]) -> list[float] | None:
     """Solve ``a x = b`` (``a`` row-major, m*m) as :func:`_lu_solve` does; None if singular."""
     m = len(b)
-    lu = [a[i * m:(i + 1) * m] for i in range(m)]
+    lu = [a[i * m : (i + 1) * m] for i in range(m)]
     x = list(b)
     scale = max(map(abs, a))
     for j in range(m):
@@ -899,7 +940,7 @@ def _lu_solve_1(a, b):
             return None
         for i in range(j + 1, m):
             factor = lu[i][j] / pivot
-            lu[i] = lu[i][:j + 1] + [lu[i][k] - factor * lu[j][k] for k in range(j + 1, m)]
+            lu[i] = lu[i][: j + 1] + [lu[i][k] - factor * lu[j][k] for k in range(j + 1, m)]
             x[i] -= factor * x[j]
     for j in reversed(range(m)):
         for k in range(j + 1, m):
@@ -1070,14 +1111,23 @@ _A_LIST = list(HURWITZ_COEFFICIENTS)
 _P_LIST = _DEFAULT_P.tolist()
 
 
-def _plant_values(t, x, u, p):
+def _plant_values(
+    t: float,
+    x: numpy.typing.NDArray[numpy.float64],
+    u: numpy.typing.NDArray[numpy.float64],
+    p: numpy.typing.NDArray[numpy.float64],
+) -> numpy.typing.NDArray[numpy.float64]:
+    """The plant's vector field at every column of ``x`` and ``u``, checked finite."""
     with numpy.errstate(all="ignore"):
         dx = _plant(t, x, u, p)
     _check_finite("the plant's vector field", dx)
     return dx
 
 
-def _outputs_values(t, x, p):
+def _outputs_values(
+    t: float, x: numpy.typing.NDArray[numpy.float64], p: numpy.typing.NDArray[numpy.float64]
+) -> numpy.typing.NDArray[numpy.float64]:
+    """The outputs at every column of ``x``, checked finite."""
     with numpy.errstate(all="ignore"):
         y = _outputs(t, x, p)
     _check_finite("the outputs", y)
@@ -1093,18 +1143,24 @@ def _output_function(evaluate, t, y, params):
     return value[..., 0] if single else value
 
 
-def _plant_arguments(t, x, params, u=None):
+def _plant_arguments(
+    t: object, x: object, params: object, u: object = None
+) -> tuple[
+    float, list[numpy.typing.NDArray[numpy.float64]], numpy.typing.NDArray[numpy.float64], bool
+]:
+    """The plant's arguments converted and checked: (t, [x] or [x, u], p, whether 1-D)."""
     t = _time(t)
-    states, single = _columns("x", x, 4)
+    states, single = _columns("x", x, len(PLANT_STATE_NAMES))
     p = _parameters(params)
     if not numpy.isfinite(t):
         raise NonFiniteInputError(f"t = {t!r} is not finite")
     arrays = [("plant state", states)]
     if u is not None:
-        inputs, _ = _columns("u", u, 2)
+        inputs, _ = _columns("u", u, len(INPUT_NAMES))
         if inputs.shape[1] != states.shape[1]:
             raise ValueError(
-                f"x and u must have as many columns, got {states.shape[1]} and {inputs.shape[1]}")
+                f"x and u must have as many columns, got {states.shape[1]} and {inputs.shape[1]}"
+            )
         arrays.append(("input", inputs))
     for what, array in arrays:
         bad = ~numpy.all(numpy.isfinite(array), axis=0)
@@ -1318,11 +1374,11 @@ def outputs(t, x, params=None):
 
 #: Integrator chains among the controller states: (first index, length); the last state
 #: of each is driven by its entry of ds (an input of the extended plant, or y_imp^(K)).
-_CHAINS = ((0, 2),)
+_CHAINS: tuple[tuple[int, int], ...] = ((0, 2),)
 _DRIVERS = (5,)
 
 
-def _vector(name, value, size):
+def _vector(name: str, value: object, size: int) -> numpy.typing.NDArray[numpy.float64]:
     """``value`` as a float array of shape (size,)."""
     array = numpy.asarray(value)
     if array.dtype.kind == "c":
@@ -1333,7 +1389,9 @@ def _vector(name, value, size):
     return array
 
 
-def _check_measurement(t, x, names):
+def _check_measurement(
+    t: float, x: numpy.typing.NDArray[numpy.float64], names: tuple[str, ...]
+) -> None:
     """Raise NonFiniteInputError naming ``t`` or the first entry of ``x`` that is not finite."""
     if not numpy.isfinite(t):
         raise NonFiniteInputError(f"t = {t!r} is not finite")
@@ -1341,6 +1399,50 @@ def _check_measurement(t, x, names):
     if bad.any():
         index = int(numpy.argmax(bad))
         raise NonFiniteInputError(f"{names[index]} = {float(x[index])!r} is not finite", index)
+
+
+def _measured(
+    t: object, name: str, value: object, names: tuple[str, ...], last: float, event: str
+) -> tuple[float, numpy.typing.NDArray[numpy.float64]]:
+    """A stateful object's new time and measurement, checked: ``(t, value)``.
+
+    ``value`` (named ``name``) is one entry per name of ``names``, finite, at a finite
+    time not before ``last``, the time of the last ``event`` (a step, an update).
+    """
+    t = _time(t)
+    vector = _vector(name, value, len(names))
+    _check_measurement(t, vector, names)
+    if t < last:
+        raise DecreasingTimeError(
+            f"t = {t!r} is before the last {event}'s time {last!r}: time must not decrease"
+        )
+    return t, vector
+
+
+def _start(
+    x0: object, t0: object, z0: object, params: object
+) -> tuple[
+    float,
+    numpy.typing.NDArray[numpy.float64],
+    numpy.typing.NDArray[numpy.float64],
+    numpy.typing.NDArray[numpy.float64],
+]:
+    """A controller's (re)start, checked: ``(t0, x0, z0, p)`` as floats and float arrays.
+
+    Without ``z0`` the controller states start at those of ``DEFAULT_STATE``.
+    """
+    t0 = _time(t0)
+    x = _vector("x0", x0, len(PLANT_STATE_NAMES))
+    if z0 is None:
+        z = numpy.array(DEFAULT_STATE[len(PLANT_STATE_NAMES) :], dtype=float)
+    else:
+        z = _vector("z0", z0, len(CONTROLLER_STATE_NAMES))
+    p = _parameters(params)
+    _check_measurement(t0, x, PLANT_STATE_NAMES)
+    _check_measurement(t0, z, CONTROLLER_STATE_NAMES)
+    if not numpy.all(numpy.isfinite(p)):
+        raise NonFiniteInputError("a parameter is not finite")
+    return t0, x, z, p
 
 
 class _Controller:
@@ -1373,17 +1475,7 @@ class _Controller:
 
     def reset(self, x0, t0=0.0, z0=None, params=None):
         """Start again from ``x0`` at ``t0`` (arguments as for the constructor)."""
-        t0 = _time(t0)
-        x = _vector("x0", x0, 4)
-        if z0 is None:
-            z = numpy.array(DEFAULT_STATE[4:], dtype=float)
-        else:
-            z = _vector("z0", z0, 2)
-        p = _parameters(params)
-        _check_measurement(t0, x, PLANT_STATE_NAMES)
-        _check_measurement(t0, z, CONTROLLER_STATE_NAMES)
-        if not numpy.all(numpy.isfinite(p)):
-            raise NonFiniteInputError("a parameter is not finite")
+        t0, x, z, p = _start(x0, t0, z0, params)
         self._begin(t0, x, z, p)
 
     def step(self, t, x):
@@ -1412,13 +1504,7 @@ class _Controller:
             another subclass where the law is undefined; the controller is then
             unchanged.
         """
-        t = _time(t)
-        x = _vector("x", x, 4)
-        _check_measurement(t, x, PLANT_STATE_NAMES)
-        if t < self.t:
-            raise DecreasingTimeError(
-                f"t = {t!r} is before the last step's time {self.t!r}: time must not decrease"
-            )
+        t, x = _measured(t, "x", x, PLANT_STATE_NAMES, self.t, "step")
         return self._move(t, x)
 
     @property
@@ -1441,23 +1527,25 @@ class _Controller:
 
 
 
-def _advance(z, drive, h, t):
+def _advance(z: list[float], drive: list[float], h: float, t: float) -> list[float]:
     """The controller states ``h`` seconds on, each chain's drive held (Taylor, exact).
 
     States that overflow on the way (a step of 1e200 s) are an input of the law that is
-    not finite, as in the C controller: NonFiniteInputError, before the law is tried."""
+    not finite, as in the C controller: NonFiniteInputError, before the law is tried.
+    """
     out = list(z)
     for chain, (start, length) in enumerate(_CHAINS):
         for j in range(length):
             term, total = 1.0, 0.0
-            for l in range(length - j):
-                total += z[start + j + l] * term
-                term *= h / (l + 1)
+            for k in range(length - j):
+                total += z[start + j + k] * term
+                term *= h / (k + 1)
             out[start + j] = total + drive[chain] * term
     if not _finite(out):
         raise NonFiniteInputError(
             f"the controller states are not finite at t = {t!r}, {h!r} s after the last step: "
-            "the step is too long for them")
+            "the step is too long for them"
+        )
     return out
 
 

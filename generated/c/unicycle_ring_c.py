@@ -4,7 +4,7 @@
 # template: c/wrapper.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
-# content sha256: 8746b7cf9ecfb06fc920b634a5d14e4995a69b3242d20da47a06bb18b8153fa4
+# content sha256: 64d95c61c3e956fb83ab688f55f50f3eb5ce43f0f93f028ae828a31f9ba00951
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -195,7 +195,7 @@ _ERRORS = {
 }
 
 
-def _error(status, index, result=""):
+def _error(status: int, index: int, result: str = "") -> ControllerError:
     """The exception of ``status`` at column ``index`` (``result``: what is not finite)."""
     kind, text, tail = _ERRORS[status]
     return kind(f"{text.replace('{result}', result)} (column {index}){tail}", index)
@@ -418,14 +418,16 @@ def _outputs_values(t, x, p):
     return _per_column("the outputs", 8, _OUTPUTS, t, p, x)
 
 
-def _time(t):
+def _time(t: object) -> float:
     """``t`` as a float: a real number, not an array (one time per call)."""
     if isinstance(t, (int, float, numpy.integer, numpy.floating)):
         return float(t)
     raise TypeError(f"t must be a real number, got {type(t).__name__}")
 
 
-def _columns(name, value, rows):
+def _columns(
+    name: str, value: object, rows: int
+) -> tuple[numpy.typing.NDArray[numpy.float64], bool]:
     """Return ``value`` as a float array of shape (rows, N) and whether it was 1-D."""
     array = numpy.asarray(value)
     if array.dtype.kind == "c" or (
@@ -442,7 +444,7 @@ def _columns(name, value, rows):
     raise ValueError(f"{name} must have shape ({rows},) or ({rows}, N), got {array.shape}")
 
 
-def _parameters(params):
+def _parameters(params: object) -> numpy.typing.NDArray[numpy.float64]:
     """Parameter vector in declaration order; unknown names are an error."""
     if params is None:
         return _DEFAULT_P
@@ -464,7 +466,11 @@ def _check_inputs(t, array, p, what):
     """Nothing to do here: the compiled code checks its inputs and reports NONFINITE_INPUT."""
 
 
-def _check_finite(what, *arrays):
+def _check_finite(what: str, *arrays: numpy.typing.NDArray[numpy.float64]) -> None:
+    """Raise the NONFINITE_OUTPUT error at the first column that is not finite.
+
+    A column is the last axis of each of ``arrays``; ``what`` names them in the message.
+    """
     for array in arrays:
         if array.size == 0:  # a batch of no columns
             continue
@@ -484,18 +490,24 @@ def _output_function(evaluate, t, y, params):
     return value[..., 0] if single else value
 
 
-def _plant_arguments(t, x, params, u=None):
+def _plant_arguments(
+    t: object, x: object, params: object, u: object = None
+) -> tuple[
+    float, list[numpy.typing.NDArray[numpy.float64]], numpy.typing.NDArray[numpy.float64], bool
+]:
+    """The plant's arguments converted and checked: (t, [x] or [x, u], p, whether 1-D)."""
     t = _time(t)
-    states, single = _columns("x", x, 12)
+    states, single = _columns("x", x, len(PLANT_STATE_NAMES))
     p = _parameters(params)
     if not numpy.isfinite(t):
         raise NonFiniteInputError(f"t = {t!r} is not finite")
     arrays = [("plant state", states)]
     if u is not None:
-        inputs, _ = _columns("u", u, 8)
+        inputs, _ = _columns("u", u, len(INPUT_NAMES))
         if inputs.shape[1] != states.shape[1]:
             raise ValueError(
-                f"x and u must have as many columns, got {states.shape[1]} and {inputs.shape[1]}")
+                f"x and u must have as many columns, got {states.shape[1]} and {inputs.shape[1]}"
+            )
         arrays.append(("input", inputs))
     for what, array in arrays:
         bad = ~numpy.all(numpy.isfinite(array), axis=0)
@@ -709,11 +721,11 @@ def outputs(t, x, params=None):
 
 #: Integrator chains among the controller states: (first index, length); the last state
 #: of each is driven by its entry of ds (an input of the extended plant, or y_imp^(K)).
-_CHAINS = ((0, 1), (1, 1), (2, 1), (3, 1))
+_CHAINS: tuple[tuple[int, int], ...] = ((0, 1), (1, 1), (2, 1), (3, 1))
 _DRIVERS = (12, 13, 14, 15,)
 
 
-def _vector(name, value, size):
+def _vector(name: str, value: object, size: int) -> numpy.typing.NDArray[numpy.float64]:
     """``value`` as a float array of shape (size,)."""
     array = numpy.asarray(value)
     if array.dtype.kind == "c":
@@ -724,7 +736,9 @@ def _vector(name, value, size):
     return array
 
 
-def _check_measurement(t, x, names):
+def _check_measurement(
+    t: float, x: numpy.typing.NDArray[numpy.float64], names: tuple[str, ...]
+) -> None:
     """Raise NonFiniteInputError naming ``t`` or the first entry of ``x`` that is not finite."""
     if not numpy.isfinite(t):
         raise NonFiniteInputError(f"t = {t!r} is not finite")
@@ -732,6 +746,50 @@ def _check_measurement(t, x, names):
     if bad.any():
         index = int(numpy.argmax(bad))
         raise NonFiniteInputError(f"{names[index]} = {float(x[index])!r} is not finite", index)
+
+
+def _measured(
+    t: object, name: str, value: object, names: tuple[str, ...], last: float, event: str
+) -> tuple[float, numpy.typing.NDArray[numpy.float64]]:
+    """A stateful object's new time and measurement, checked: ``(t, value)``.
+
+    ``value`` (named ``name``) is one entry per name of ``names``, finite, at a finite
+    time not before ``last``, the time of the last ``event`` (a step, an update).
+    """
+    t = _time(t)
+    vector = _vector(name, value, len(names))
+    _check_measurement(t, vector, names)
+    if t < last:
+        raise DecreasingTimeError(
+            f"t = {t!r} is before the last {event}'s time {last!r}: time must not decrease"
+        )
+    return t, vector
+
+
+def _start(
+    x0: object, t0: object, z0: object, params: object
+) -> tuple[
+    float,
+    numpy.typing.NDArray[numpy.float64],
+    numpy.typing.NDArray[numpy.float64],
+    numpy.typing.NDArray[numpy.float64],
+]:
+    """A controller's (re)start, checked: ``(t0, x0, z0, p)`` as floats and float arrays.
+
+    Without ``z0`` the controller states start at those of ``DEFAULT_STATE``.
+    """
+    t0 = _time(t0)
+    x = _vector("x0", x0, len(PLANT_STATE_NAMES))
+    if z0 is None:
+        z = numpy.array(DEFAULT_STATE[len(PLANT_STATE_NAMES) :], dtype=float)
+    else:
+        z = _vector("z0", z0, len(CONTROLLER_STATE_NAMES))
+    p = _parameters(params)
+    _check_measurement(t0, x, PLANT_STATE_NAMES)
+    _check_measurement(t0, z, CONTROLLER_STATE_NAMES)
+    if not numpy.all(numpy.isfinite(p)):
+        raise NonFiniteInputError("a parameter is not finite")
+    return t0, x, z, p
 
 
 class _Controller:
@@ -764,17 +822,7 @@ class _Controller:
 
     def reset(self, x0, t0=0.0, z0=None, params=None):
         """Start again from ``x0`` at ``t0`` (arguments as for the constructor)."""
-        t0 = _time(t0)
-        x = _vector("x0", x0, 12)
-        if z0 is None:
-            z = numpy.array(DEFAULT_STATE[12:], dtype=float)
-        else:
-            z = _vector("z0", z0, 4)
-        p = _parameters(params)
-        _check_measurement(t0, x, PLANT_STATE_NAMES)
-        _check_measurement(t0, z, CONTROLLER_STATE_NAMES)
-        if not numpy.all(numpy.isfinite(p)):
-            raise NonFiniteInputError("a parameter is not finite")
+        t0, x, z, p = _start(x0, t0, z0, params)
         self._begin(t0, x, z, p)
 
     def step(self, t, x):
@@ -803,13 +851,7 @@ class _Controller:
             another subclass where the law is undefined; the controller is then
             unchanged.
         """
-        t = _time(t)
-        x = _vector("x", x, 12)
-        _check_measurement(t, x, PLANT_STATE_NAMES)
-        if t < self.t:
-            raise DecreasingTimeError(
-                f"t = {t!r} is before the last step's time {self.t!r}: time must not decrease"
-            )
+        t, x = _measured(t, "x", x, PLANT_STATE_NAMES, self.t, "step")
         return self._move(t, x)
 
     @property

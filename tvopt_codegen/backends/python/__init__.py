@@ -38,8 +38,11 @@ def _filters() -> dict[str, Callable[..., Any]]:
         numpy_aliases,
         registers,
     )
+    from tvopt_codegen.backends.python.runtime import verbatim  # noqa: PLC0415
 
-    return {"registers": registers, "numpy_aliases": numpy_aliases}
+    # verbatim: the fixed run-time Python, from the real modules of runtime/ (the C
+    # backend's Python wrapper includes some of it too, through python/_contract.jinja).
+    return {"registers": registers, "numpy_aliases": numpy_aliases, "verbatim": verbatim}
 
 
 def _load(files: dict[str, str], module_file: str, name: str) -> types.ModuleType:
