@@ -12,8 +12,10 @@ sweep), the first worker to ask building it while the others wait on its lock.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import importlib.util
+import io
 import json
 import os
 import shutil
@@ -142,6 +144,46 @@ def module(spec: str) -> ModuleType:
     path = folder / name
     path.write_text(text, encoding="utf-8")
     return import_file(path, f"_tvopt_test_{name[:-3]}")
+
+
+@dataclasses.dataclass
+class Ran:
+    """A command line's outcome, as ``subprocess.run(..., text=True)`` would give it."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def run_main(*args: str, cwd: Path | None = None, env: dict[str, str] | None = None) -> Ran:
+    """``tvopt-codegen ARGS`` in this process, its output captured.
+
+    For tests of what a command writes and says, not of the process (signals, imports,
+    start-up): a subprocess costs a second of imports that this worker has already paid,
+    and derives with cold caches. ``cwd`` and ``env`` hold for the call only.
+    """
+    from tvopt_codegen.cli import main  # noqa: PLC0415
+
+    out, err = io.StringIO(), io.StringIO()
+    saved = {name: os.environ.get(name) for name in env or {}}
+    before = Path.cwd()
+    try:
+        os.environ.update(env or {})
+        if cwd is not None:
+            os.chdir(cwd)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = main(list(args))
+            except SystemExit as stop:  # argparse's usage errors and --help end so
+                code = stop.code if isinstance(stop.code, int) else int(stop.code is not None)
+    finally:
+        os.chdir(before)
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+    return Ran(code, out.getvalue(), err.getvalue())
 
 
 def import_file(path: Path, mod_name: str) -> ModuleType:

@@ -15,12 +15,13 @@ from tvopt_codegen.derivation.linearization import _singular_set, undefined_caus
 from tvopt_codegen.errors import clip_quotes
 from tvopt_codegen.limits import MAX_POINTS
 
-from .conftest import ROOT, module, write_spec
+from .conftest import ROOT, Ran, module, run_main, write_spec
 
 INTEGRATOR = (ROOT / "tvopt_codegen" / "examples" / "integrator.toml").read_text()
 
 
-def _cli(*args: str, **kwargs: object) -> subprocess.CompletedProcess[str]:
+def _process(*args: str, **kwargs: object) -> subprocess.CompletedProcess[str]:
+    """The command in a process of its own: for what a process does (budgets, imports)."""
     return subprocess.run(
         [sys.executable, "-m", "tvopt_codegen", *args],
         check=False,
@@ -28,6 +29,11 @@ def _cli(*args: str, **kwargs: object) -> subprocess.CompletedProcess[str]:
         text=True,
         **kwargs,  # type: ignore[call-overload]
     )
+
+
+def _cli(*args: str) -> Ran:
+    """The command in this process (what it writes and says)."""
+    return run_main(*args)
 
 
 def _with_objective(tmp_path: Path, f0: str) -> Path:
@@ -72,7 +78,7 @@ def test_the_time_budget_interrupts_a_long_sympy_call(tmp_path: Path) -> None:
     product = "*".join(f"(y1 + {k}*y2 + {k})" for k in range(1, 51))
     spec = _with_objective(tmp_path, f"0.5*(y1 - o1)**2 + 0.5*(y2 - o2)**2 + 1e-30*{product}")
     start = time.perf_counter()
-    done = _cli("check", str(spec), "--max-seconds", "2")
+    done = _process("check", str(spec), "--max-seconds", "2")
     elapsed = time.perf_counter() - start
     assert done.returncode == 6, done.stderr
     assert "derivation stage '" in done.stderr and "took longer than 2 s" in done.stderr

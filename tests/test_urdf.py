@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import subprocess
-import sys
 import tomllib
 from pathlib import Path
 
@@ -25,7 +23,7 @@ from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.spec import load_spec, spec_from_dict
 from tvopt_codegen.urdf import spec_from_urdf
 
-from .conftest import ROOT, import_file
+from .conftest import ROOT, Ran, import_file, run_main
 from .oracle import Oracle, assert_matches_oracle
 from .pinocchio_check import both_at
 
@@ -132,24 +130,17 @@ def test_the_bundled_example_is_what_import_urdf_writes() -> None:
     assert tomllib.loads(spec_toml(fresh)) == bundled
 
 
-def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    env = dict(os.environ, TVOPT_CODEGEN_CACHE=str(cwd / "cache"))
-    return subprocess.run(
-        [sys.executable, "-m", "tvopt_codegen", *args],
-        check=False,
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+def _cli(*args: str, cwd: Path) -> Ran:
+    return run_main(*args, cwd=cwd)
 
 
 # The bundled six-joint arm through every command: check, generate (both backends), the
 # stateful controller of the C module, report, simulate (the certificate), the FMU and a
-# sweep. Four tests, not one: each command is a process deriving the arm (seconds each),
-# and one test of all of them (28 s) was the longest of the suite, the last to end on
-# two workers. Marked slow by hand: tests/durations.json has only the one test's time.
+# sweep. Four tests, not one: each command derives the arm (seconds each), and one test
+# of all of them (28 s) was the longest of the suite, the last to end on two workers.
+# The commands run in the test's process (run_main): the cold process is tested
+# elsewhere, and a subprocess each cost a second of imports. Marked slow by hand:
+# tests/durations.json has only the one test's time.
 
 
 @pytest.mark.slow

@@ -22,7 +22,7 @@ from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_BUDGET
 from tvopt_codegen.spec import spec_from_dict
 from tvopt_codegen.urdf import MAX_JOINTS, MAX_LINKS, spec_from_urdf
 
-from .conftest import ROOT
+from .conftest import ROOT, run_main
 from .pinocchio_check import both_at
 
 pytest.importorskip("yourdfpy", reason="import-urdf needs the urdf extra (yourdfpy)")
@@ -510,7 +510,7 @@ def test_real_robots_equal_pinocchio(
 
 
 def _simulate(spec: Path, cwd: Path) -> str:
-    run = _cli("simulate", str(spec), "--out", "sim", "--points", "101", cwd=cwd, timeout=600)
+    run = run_main("simulate", str(spec), "--out", "sim", "--points", "101", cwd=cwd)
     assert run.returncode == 0 and "certificate: PASSED" in run.stdout, run.stdout + run.stderr
     return run.stdout
 
@@ -528,7 +528,9 @@ def test_panda_and_kinova_simulate_with_a_passing_certificate(
 ) -> None:
     assert ROBOTS is not None
     tip_args = ("--tip", tip) if tip else ()
-    run = _cli("import-urdf", str(ROBOTS / relative), "--out", "arm.toml", *tip_args, cwd=tmp_path)
+    run = run_main(
+        "import-urdf", str(ROBOTS / relative), "--out", "arm.toml", *tip_args, cwd=tmp_path
+    )
     assert run.returncode == 0 and run.stderr == "", run.stderr
     if tip:
         # At the Panda's middle pose its shoulder and upper-arm roll axes are aligned:
