@@ -232,6 +232,7 @@ _ENABLERS = (
     ),
     ("chromium", "apt-get install chromium (as root, `.ci/run` does it)"),
     ("clang", "apt-get install clang"),
+    ("cppcheck", "apt-get install cppcheck (as root, `.ci/run` does it)"),
     ("c compiler", "apt-get install gcc"),
     ("python headers", "apt-get install python3-dev"),
     ("sanitizer", "apt-get install gcc (with libasan and libubsan)"),
