@@ -21,7 +21,7 @@ from tvopt_codegen import emit
 from tvopt_codegen.cli import main
 from tvopt_codegen.errors import EXIT_BUILD, EXIT_OUTPUT
 
-from .conftest import ROOT
+from .conftest import ROOT, run_main
 
 RING = (ROOT / "tvopt_codegen" / "examples" / "unicycle_ring.toml").read_text()
 
@@ -269,25 +269,29 @@ def test_no_c_compiler(tmp_path: Path) -> None:
     empty = tmp_path / "bin"
     empty.mkdir()
     env = {"PATH": str(empty), "CC": "", "TVOPT_CODEGEN_CACHE": str(tmp_path / "c")}
-    proc = _cli("simulate", "integrator", "--backend", "c", "--out", str(tmp_path / "o"), env=env)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == EXIT_BUILD, err
+    done = run_main(
+        "simulate", "integrator", "--backend", "c", "--out", str(tmp_path / "o"), env=env
+    )
+    err = done.stderr
+    assert done.returncode == EXIT_BUILD, err
     assert err.count("\n") == 1 and "no C compiler found" in err and "Traceback" not in err
     assert not (tmp_path / "o").exists()
     # The Python backend is unaffected.
-    proc = _cli("simulate", "integrator", "--out", str(tmp_path / "py"), "--points", "21", env=env)
-    out, err = proc.communicate(timeout=120)
-    assert proc.returncode == 0, err
-    assert "certificate: PASSED" in out
+    done = run_main(
+        "simulate", "integrator", "--out", str(tmp_path / "py"), "--points", "21", env=env
+    )
+    assert done.returncode == 0, done.stderr
+    assert "certificate: PASSED" in done.stdout
 
 
 def test_compiler_error_is_one_line_and_nothing_cached(tmp_path: Path) -> None:
     cache = tmp_path / "cache"
     env = {"TVOPT_CODEGEN_CFLAGS": "-fno-such-flag", "TVOPT_CODEGEN_CACHE": str(cache)}
-    proc = _cli("simulate", "integrator", "--backend", "c", "--out", str(tmp_path / "o"), env=env)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == EXIT_BUILD, err
-    assert err.count("\n") == 1 and "failed" in err
+    done = run_main(
+        "simulate", "integrator", "--backend", "c", "--out", str(tmp_path / "o"), env=env
+    )
+    assert done.returncode == EXIT_BUILD, done.stderr
+    assert done.stderr.count("\n") == 1 and "failed" in done.stderr
     assert not list(cache.glob("*.so"))
 
 
@@ -441,17 +445,16 @@ def test_a_failing_c_build_writes_nothing(
 ) -> None:
     env = {"TVOPT_CODEGEN_CACHE": str(tmp_path / "cache"), **env}
     out = tmp_path / "o"
-    proc = _cli("simulate", "integrator", "--backend", "c", "--out", str(out), env=env)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == EXIT_BUILD, err
+    done = run_main("simulate", "integrator", "--backend", "c", "--out", str(out), env=env)
+    err = done.stderr
+    assert done.returncode == EXIT_BUILD, err
     assert err.count("\n") == 1 and message in err and "Traceback" not in err
     assert not out.exists()
     # An existing folder is left exactly as it was.
     out.mkdir()
     (out / "keep.txt").write_text("mine")
-    proc = _cli("simulate", "integrator", "--backend", "c", "--out", str(out), env=env)
-    proc.communicate(timeout=120)
-    assert proc.returncode == EXIT_BUILD
+    done = run_main("simulate", "integrator", "--backend", "c", "--out", str(out), env=env)
+    assert done.returncode == EXIT_BUILD
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
 
 
