@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
 import types
 from pathlib import Path
 
@@ -18,7 +16,7 @@ from tvopt_codegen.report import render_report
 from tvopt_codegen.simulation import load_controller, resolve_options, simulate
 from tvopt_codegen.spec import load_spec
 
-from .conftest import ROOT, derivation, module, write_spec
+from .conftest import ROOT, Ran, derivation, module, run_main, write_spec
 
 INTEGRATOR = (ROOT / "tvopt_codegen" / "examples" / "integrator.toml").read_text()
 
@@ -30,10 +28,8 @@ def _with_objective(tmp_path: Path, f0: str, name: str = "spec.toml") -> Path:
     return write_spec(tmp_path, "\n".join(lines) + "\n", name)
 
 
-def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "tvopt_codegen", *args], check=False, capture_output=True, text=True
-    )
+def _cli(*args: str) -> Ran:
+    return run_main(*args)
 
 
 def test_a_flat_minimum_is_refused_where_it_matters(tmp_path: Path) -> None:
