@@ -29,7 +29,7 @@ from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.runs.summary import format_summary
 from tvopt_codegen.spec import load_spec, parse_spec
 
-from .conftest import EXAMPLES, ROOT, derivation, module, write_spec
+from .conftest import EXAMPLES, ROOT, derivation, module, run_main, write_spec
 from .test_c_backend import c_module
 from .test_generated import random_states
 
@@ -150,24 +150,9 @@ def test_huge_times_give_the_same_outcome_in_both_backends(
 
 
 def _generate(spec: str, backend: str, out: Path) -> None:
-    """``tvopt-codegen generate`` in a fresh process; it must succeed."""
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "tvopt_codegen",
-            "generate",
-            spec,
-            "--backend",
-            backend,
-            "--out",
-            str(out),
-            "--quiet",
-        ],
-        check=False,
-        capture_output=True,
-        text=True,
-    )
+    """``tvopt-codegen generate`` (in this process: the fresh interpreters are the users'
+    of the generated files); it must succeed."""
+    done = run_main("generate", spec, "--backend", backend, "--out", str(out), "--quiet")
     assert done.returncode == 0, done.stderr
 
 
@@ -267,27 +252,17 @@ def test_report_reads_no_huge_or_foreign_results_file(tmp_path: Path) -> None:
 
 def test_report_includes_only_results_simulate_wrote_unchanged(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    assert _tvopt("simulate", "integrator", "--out", str(out), "--points", "41").returncode == 0
-    args = [
-        sys.executable,
-        "-m",
-        "tvopt_codegen",
-        "report",
-        "integrator",
-        "--out",
-        str(out),
-        "--format",
-        "md",
-        "--force",
-    ]
-    done = subprocess.run(args, capture_output=True, text=True, check=True)
-    assert "with the simulation results" in done.stdout
+    done = run_main("simulate", "integrator", "--out", str(out), "--points", "41")
+    assert done.returncode == 0, done.stderr
+    args = ["report", "integrator", "--out", str(out), "--format", "md", "--force"]
+    done = run_main(*args)
+    assert done.returncode == 0 and "with the simulation results" in done.stdout
     certificate = out / "integrator_certificate.txt"
     certificate.write_text(certificate.read_text().replace("PASSED", "PASSED (edited)"))
     for figure in out.glob("integrator_*.png"):
         figure.unlink()
-    done = subprocess.run(args, capture_output=True, text=True, check=True)
-    assert "with the simulation results" not in done.stdout
+    done = run_main(*args)
+    assert done.returncode == 0 and "with the simulation results" not in done.stdout
     assert "(edited)" not in (out / "integrator_report.md").read_text()
 
 
