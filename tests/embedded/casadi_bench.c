@@ -4,7 +4,8 @@
  *
  * Built with -DSTATE='{...}' -DPARAMS='{...}' (the example's default closed-loop state
  * and parameters, as double literals), -DCALLS=<n>, and casadi_real as CasADi's code
- * generator was told (double, or float).
+ * generator was told (double, or float). With -DREFS='{...}' (a spec with references
+ * measured at run time) the law takes the references' jets as its fourth argument.
  */
 #include "casadi_law.h"
 #include "counting.h"
@@ -13,6 +14,10 @@ static const double state[] = STATE;
 static const double parameters[] = PARAMS;
 #define NS (sizeof state / sizeof state[0])
 #define NP (sizeof parameters / sizeof parameters[0])
+#ifdef REFS
+static const double jets[] = REFS;
+#define NJ (sizeof jets / sizeof jets[0])
+#endif
 
 static casadi_real w[8192];
 static casadi_int iw[256];
@@ -23,6 +28,9 @@ int main(void)
 {
     casadi_real t = (casadi_real)0.5;
     casadi_real s[NS], p[NP], out[64];
+#ifdef REFS
+    casadi_real r[NJ];
+#endif
     casadi_int n_arg, n_res, n_iw, n_w;
     uint32_t start;
     uintptr_t sp;
@@ -41,6 +49,10 @@ int main(void)
     arg[0] = &t;
     arg[1] = s;
     arg[2] = p;
+#ifdef REFS
+    for (i = 0; i < NJ; ++i) r[i] = (casadi_real)jets[i];
+    arg[3] = r;
+#endif
     res[0] = out;
 
     sp = stack_pointer();
