@@ -22,6 +22,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -38,7 +39,8 @@ from tests.embedded.harness import (  # noqa: E402
     skip_reason,
 )
 
-#: The bundled examples (the Makefile's EXAMPLES).
+#: Every bundled example (``tvopt_codegen/examples``; main() checks that none is missing):
+#: the Makefile's EXAMPLES first, then the others, each ``*_refs`` twin last.
 EXAMPLES = (
     "integrator",
     "unicycle_switch",
@@ -48,6 +50,14 @@ EXAMPLES = (
     "unicycle_ring",
     "arm_on_line",
     "planar_arm3",
+    "drag_vehicle",
+    "two_unicycles_corridor",
+    "ur5_tip",
+    "integrator_refs",
+    "unicycle_switch_refs",
+    "two_unicycles_barrier_refs",
+    "pvtol_refs",
+    "unicycle_ring_refs",
 )
 #: Why the benchmarks' CasADi build (bench_c.casadi_law) has no peer of an example.
 NO_CASADI = {
@@ -55,6 +65,7 @@ NO_CASADI = {
     "law would not be this one",
     "planar_arm3": "mass-matrix form: casadi_law takes f and G explicitly and fails on "
     "M^-1 F's run-time symbols",
+    "ur5_tip": "mass-matrix form, as planar_arm3",
 }
 #: `control` calls timed in one interval; the closed loop's steps (100 Hz, 1 s).
 CALLS = 100
@@ -175,10 +186,68 @@ def _image(folder: Path, objects: list[Path], name: str) -> Path:
     return binary
 
 
-def ours(example: str, precision: str, generated: Path, folder: Path) -> Row:
-    """Our controller of ``example`` in ``precision`` on the M4F."""
+@dataclass(frozen=True)
+class Jets:
+    """The references' jets an example's calls take: the nominal closed forms' (exact).
+
+    Attributes
+    ----------
+    half : list of float
+        At t = 0.5 (the ``control`` calls), row after row as the C functions take them.
+    start : list of float
+        At t = 0 (the footprint program's init and step).
+    steps : list of list of float
+        At each step's time ``k / LOOP.rate`` of the closed loop.
+    """
+
+    half: list[float]
+    start: list[float]
+    steps: list[list[float]]
+
+
+def nominal_jets(example: str) -> Jets | None:
+    """The jets of ``example``'s nominal references (None: it has no references)."""
+    from tvopt_codegen.derivation import derive  # noqa: PLC0415 - sympy only when asked
+    from tvopt_codegen.simulation.references import exact_jets  # noqa: PLC0415
+    from tvopt_codegen.spec import load_spec  # noqa: PLC0415
+
+    d = derive(load_spec(example))
+    if not d.model.references:
+        return None
+    jets = exact_jets(d, {})
+
+    def at(t: float) -> list[float]:
+        return [float(v) for v in jets(t).ravel()]
+
+    return Jets(half=at(0.5), start=at(0.0), steps=[at(k / LOOP.rate) for k in range(LOOP.steps)])
+
+
+def _literal(values: list[float]) -> str:
+    """A C initializer of ``values`` (double literals that round-trip)."""
+    return "{" + ", ".join(repr(v) for v in values) + "}"
+
+
+def _refs_header(jets: Jets, folder: Path) -> Path:
+    """Write bench.c's ``refs.h``: the jets at t = 0.5 and at every step's time."""
+    width = len(jets.half)
+    rows = ",\n    ".join(_literal(row) for row in jets.steps)
+    (folder / "refs.h").write_text(
+        "/* The references' jets (the nominal closed forms'), written by bench_embedded.py. */\n"
+        f"static const REAL refs_half[{width}] = {_literal(jets.half)};\n"
+        f"static const REAL refs_steps[{len(jets.steps)}][{width}] = {{\n    {rows}\n}};\n",
+        encoding="utf-8",
+    )
+    return folder
+
+
+def ours(
+    example: str, precision: str, generated: Path, folder: Path, jets: Jets | None = None
+) -> Row:
+    """Our controller of ``example`` in ``precision`` on the M4F (``jets``: its references')."""
     c_folder = generated / example / precision
     double = generated / example / "double"
+    folder.mkdir(parents=True, exist_ok=True)
+    refs = ("-DREFS", f"-I{_refs_header(jets, folder)}") if jets else ()
     binary = build_loop(
         M4F,
         example,
@@ -188,7 +257,7 @@ def ours(example: str, precision: str, generated: Path, folder: Path) -> Row:
         folder,
         LOOP,
         main="bench.c",
-        defines=(f"-DCALLS={CALLS}",),
+        defines=(f"-DCALLS={CALLS}", *refs),
         controller_flags=("-fstack-usage", "-fcallgraph-info=su"),
     )
     records = _records(run(M4F, binary, *ICOUNT))
@@ -210,6 +279,7 @@ def ours(example: str, precision: str, generated: Path, folder: Path) -> Row:
                 f"-DNAME={example}",
                 f"-DUNAME={example.upper()}",
                 f"-DREAL={real}",
+                *((f"-DREFS={_literal(jets.start)}",) if jets else ()),
             ),
         ],
         "footprint.elf",
@@ -231,7 +301,109 @@ def ours(example: str, precision: str, generated: Path, folder: Path) -> Row:
     )
 
 
-def casadi_row(example: str, real: str, folder: Path) -> Row:
+def casadi_refs_law(d: Any) -> Any:
+    """``bench_c.casadi_law`` of a spec with references measured at run time.
+
+    The same construction (CasADi's own AD: Lie derivatives by ``jtimes``, the gradient's
+    jet by ``jtimes`` along (t, y, y', ..., r, r', ...), its symbolic ``solve``), with each
+    reference a symbol whose time derivative is the next entry of its jet. The jets are a
+    fourth argument laid out as our C functions take them: reference after reference, its
+    derivatives 0 .. REFERENCE_ORDER.
+    """
+    import casadi as ca  # noqa: PLC0415 - the bench extra
+    from casadi_peer import _to_casadi  # noqa: PLC0415
+
+    assert d.dynamics.uniform, "the benchmark builds uniform-relative-degree laws only"
+    model, ext = d.model, d.linearization.extension
+    n, m, k = len(ext.x), len(model.y), d.dynamics.k
+    refs, q = list(model.references), d.jet.reference_order
+    assert q >= k - 1, "the gradient's jet reads a reference derivative beyond the jets"
+    t = ca.SX.sym("t")
+    X = ca.SX.sym("X", n)
+    P = ca.SX.sym("P", max(1, len(model.params)))
+    jets = ca.SX.sym("J", len(refs) * (q + 1))
+    # R[i, j]: reference i's j-th derivative; those beyond q the law never reads (zero).
+    R = ca.vertcat(
+        *[
+            ca.horzcat(*[jets[i * (q + 1) + j] if j <= q else ca.SX(0) for j in range(k + 1)])
+            for i in range(len(refs))
+        ]
+    )
+    base = [*ext.x, *model.params]
+    values = [X[i] for i in range(n)] + [P[i] for i in range(len(model.params))]
+    f = ca.vertcat(*[_to_casadi(e, base, values) for e in ext.f])
+    G = ca.horzcat(
+        *[ca.vertcat(*[_to_casadi(ext.G[i, j], base, values) for i in range(n)]) for j in range(m)]
+    )
+    h = [_to_casadi(e, base, values) for e in model.h]
+    now = [t, *(R[i, 0] for i in range(len(refs))), *values[n:]]
+    signal_values = [_to_casadi(e, [model.t, *refs, *model.params], now) for _, e in model.signals]
+    Y = ca.SX.sym("Y", m, k + 1)
+    f0 = _to_casadi(
+        model.f0,
+        [*model.y, *(s for s, _ in model.signals), *refs, *model.params, model.t],
+        [*(Y[i, 0] for i in range(m)), *signal_values, *now[1:], t],
+    )
+    jet = [ca.gradient(f0, Y[:, 0])]
+    moving = ca.vertcat(t, ca.vec(Y[:, :k]), ca.vec(R[:, :k]))
+    rates = ca.vertcat(1, ca.vec(Y[:, 1:]), ca.vec(R[:, 1:]))
+    for _ in range(k):
+        jet.append(ca.jtimes(jet[-1], moving, rates))
+    rest = ca.substitute(jet[k], Y[:, k], ca.DM.zeros(m))
+    hess = ca.hessian(f0, Y[:, 0])[0]
+    c = sum(d.dynamics.coefficients[j] * jet[j] for j in range(k)) - rest
+    lie, rows, p = [], [], []
+    for i in range(m):
+        chain = [h[i]]
+        for _ in range(k):
+            chain.append(ca.jtimes(chain[-1], X, f))
+        lie.append(chain[:k])
+        rows.append(ca.mtimes(ca.jacobian(chain[k - 1], X), G))
+        p.append(chain[k])
+    state_jet = ca.vertcat(*[lie[i][j] for j in range(k) for i in range(m)])
+    c = ca.substitute(c, ca.vec(Y[:, :k]), state_jet)
+    hess = ca.substitute(hess, ca.vec(Y[:, :k]), state_jet)
+    w = ca.solve(ca.vertcat(*rows), ca.solve(hess, c) - ca.vertcat(*p))
+    index = {s.name: i for i, s in enumerate(ext.x)}
+    u = ca.vertcat(
+        *[X[index[uj.name]] if uj.name in ext.states else w[j] for j, uj in enumerate(model.u)]
+    )
+    return ca.Function("casadi_law", [t, X, P, jets], [u])
+
+
+def check_peer(example: str, jets: Jets | None) -> None:
+    """Check that CasADi's law of ``example`` is ours where the benchmark calls it.
+
+    Raises
+    ------
+    RuntimeError
+        When the two inputs differ by more than 1e-9 at t = 0.5, the default state.
+    """
+    import numpy as np  # noqa: PLC0415
+    from bench_c import casadi_law  # noqa: PLC0415 - imports casadi and cffi
+
+    from tvopt_codegen.derivation import derive  # noqa: PLC0415
+    from tvopt_codegen.lowering.ir import lower  # noqa: PLC0415
+    from tvopt_codegen.simulation import load_controller  # noqa: PLC0415
+    from tvopt_codegen.spec import load_spec  # noqa: PLC0415
+
+    d = derive(load_spec(example))
+    state = np.array(d.closed_loop.initial_state, dtype=float)
+    params = [float(v) for _, v in d.spec.parameters] or [0.0]
+    module = load_controller(lower(d), "python")
+    if jets:
+        peer = casadi_refs_law(d)(0.5, state, params, jets.half)
+        width = len(jets.half) // len(d.model.references)
+        ours_u = module.control(0.5, state, refs=np.reshape(jets.half, (-1, width)))
+    else:
+        peer = casadi_law(d)(0.5, state, params)
+        ours_u = module.control(0.5, state)
+    gap = float(np.max(np.abs(np.ravel(np.array(peer)) - np.ravel(ours_u))))
+    if not gap <= 1e-9:
+        raise RuntimeError(f"{example}: CasADi's law differs from ours by {gap:.3g}")
+
+
+def casadi_row(example: str, real: str, folder: Path, jets: Jets | None = None) -> Row:
     """CasADi's generated C of ``example``'s law with ``casadi_real`` = ``real`` on the M4F."""
     import casadi as ca  # noqa: PLC0415 - the bench extra
     from bench_c import casadi_law  # noqa: PLC0415 - imports casadi and cffi
@@ -242,7 +414,7 @@ def casadi_row(example: str, real: str, folder: Path) -> Row:
     folder.mkdir(parents=True, exist_ok=True)
     d = derive(load_spec(example))
     generator = ca.CodeGenerator("casadi_law", {"with_header": True, "casadi_real": real})
-    generator.add(casadi_law(d))
+    generator.add(casadi_refs_law(d) if jets else casadi_law(d))
     generator.generate(str(folder) + "/")
     state = [float(v) for v in d.closed_loop.initial_state]
     params = [float(v) for _, v in d.spec.parameters] or [0.0]
@@ -256,6 +428,7 @@ def casadi_row(example: str, real: str, folder: Path) -> Row:
         "-DSTATE={" + ", ".join(repr(v) for v in state) + "}",
         "-DPARAMS={" + ", ".join(repr(v) for v in params) + "}",
         f"-DCALLS={CALLS}",
+        *((f"-DREFS={_literal(jets.half)}",) if jets else ()),
     )
     records = _records(run(M4F, _image(folder, [law, main], "casadi.elf"), *ICOUNT))
     calls, ticks = records["control"]
@@ -329,6 +502,12 @@ def main() -> int:
     parser.add_argument("--write", type=Path, help="also store the tables in this Markdown file")
     parser.add_argument("--examples", nargs="*", default=list(EXAMPLES))
     args = parser.parse_args()
+    from tvopt_codegen.spec.files import bundled_examples  # noqa: PLC0415
+
+    missing = sorted(set(bundled_examples()) - set(EXAMPLES))
+    if missing:
+        print(f"bench_embedded.EXAMPLES lacks {', '.join(missing)}", file=sys.stderr)
+        return 1
     reason = skip_reason("m4f")
     if reason:
         print(reason, file=sys.stderr)
@@ -339,11 +518,13 @@ def main() -> int:
         for example in args.examples:
             for precision in ("double", "single"):
                 generate(example, precision, base / "c" / example / precision)
+            jets = nominal_jets(example)
             for precision in ("double", "single"):
-                rows.append(ours(example, precision, base / "c", base / example / precision))
+                rows.append(ours(example, precision, base / "c", base / example / precision, jets))
             if example not in NO_CASADI:
+                check_peer(example, jets)
                 for real in ("double", "float"):
-                    rows.append(casadi_row(example, real, base / example / f"casadi-{real}"))
+                    rows.append(casadi_row(example, real, base / example / f"casadi-{real}", jets))
             print(f"{example}: done", file=sys.stderr)
     text = table(rows)
     print(text)
@@ -365,6 +546,17 @@ def _document(text: str, rows: list[Row]) -> str:
         if (r.example, "CasADi, casadi_real float") in by
     ]
     low, high = min(peers, key=lambda p: p[1]), max(peers, key=lambda p: p[1])
+    worst_step = max(single, key=lambda r: (r.step or 0.0) / (double[r.example].step or 1.0))
+    promoting = [r.example for r in single if r.doubles]
+    no_double = (
+        "calls no double routine"
+        if not promoting
+        else f"calls double routines in {', '.join(promoting)}"
+    )
+    flash = {id(r): r.image[0] + r.image[1] for r in rows if r.image}
+    largest = max((r for r in rows if r.image), key=lambda r: flash[id(r)])
+    deepest = max(rows, key=lambda r: r.stack)
+    refs = [e for e in EXAMPLES if e.endswith("_refs")]
     rates = sorted({round(r.per_tick, 3) for r in rows})
     ticks = " or ".join(f"{v:g}" for v in rates)
     header = [
@@ -407,19 +599,42 @@ def _document(text: str, rows: list[Row]) -> str:
         "- double routines called: the undefined symbols of the object that compute in "
         "double (libgcc's `__aeabi_d*` and `<math.h>`'s double functions). On the M4F each "
         "is software emulation.",
+        f"- references ({', '.join(refs)}: `[references]`, measured at run time): "
+        "`control`, `controller_init` and `controller_step` take the references' jets "
+        "(docs/references.md). They are given the exact jets of the spec's nominal closed "
+        "forms (`[references.nominal]`): at t = 0.5 for `control`, at each step's time "
+        "for the closed loop's steps (`refs.h`, written per example), at t = 0 in the "
+        "footprint program. With exact jets each is the law of its closed-form twin "
+        "(`tests/test_references.py`); the jets replace the twin's closed forms of t, so "
+        "the call does not evaluate them.",
+        "- drag_vehicle: the bundled spec has no `[robust.eso]` table (its description "
+        "names the observer as the remedy for a mismatched plant, docs/robust.md), so its "
+        "C is the plain law with its integrator chain, like the others.",
+        f"- memory: the largest image ({largest.example}, {largest.build}: "
+        f"{flash[id(largest)]:,} bytes of flash; ur5_tip's generated C is "
+        "the largest source) and the deepest stack "
+        f"({deepest.example}, {deepest.build}: {deepest.stack:,} bytes) fit the board's "
+        "4 MB of code memory and 4 MB of RAM (`tests/embedded/mps2_an386.ld`) many times "
+        "over.",
         "- CasADi: `benchmarks/bench_c.py`'s `casadi_law` (the same plant, outputs and "
         "objective, derived by CasADi's AD), generated by `casadi.CodeGenerator` with "
         "`casadi_real` set to `double` or `float`, compiled with the same flags; its call "
-        "is `casadi_law(arg, res, iw, w, 0)` at the same state. CasADi has no stateful "
-        "controller: no step column. No CasADi peer for: "
+        "is `casadi_law(arg, res, iw, w, 0)` at the same state (and for the `*_refs` "
+        "examples the same jets: `casadi_refs_law` here builds the law the same way with "
+        "each reference a symbol whose time derivative is the next entry of its jet, the "
+        "jets a fourth argument). Before it is timed, each CasADi law is evaluated at that "
+        "point and checked against our controller's `control` there (1e-9). CasADi has no "
+        "stateful controller: no step column. No CasADi peer for: "
         + "; ".join(f"{k} ({v})" for k, v in NO_CASADI.items())
         + ".",
         "",
         f"Single precision costs at most {worst.control / double[worst.example].control:.3f} "
-        f"of double's instructions per `control` call on every example (the largest ratio: "
-        f"{worst.example}), and calls no double routine. CasADi's C with `casadi_real` "
-        "float still calls double ones where it has a literal or a function of <math.h> "
-        "(the last column): our single-precision call takes "
+        f"of double's instructions per `control` call on every one of the {len(single)} "
+        f"examples (the largest ratio: {worst.example}; the issue's target is 1/10), at "
+        f"most {(worst_step.step or 0.0) / (double[worst_step.example].step or 1.0):.3f} "
+        f"per `Controller` step ({worst_step.example}), and {no_double}. CasADi's C with "
+        "`casadi_real` float still calls double ones where it has a literal or a function "
+        "of <math.h> (the last column): our single-precision call takes "
         f"{low[1]:.3f} ({low[0]}) to {high[1]:.3f} ({high[0]}) of its instructions.",
         "",
     ]

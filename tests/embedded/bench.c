@@ -10,7 +10,11 @@
  * QEMU models no pipeline, cache, wait state or the FPU's and divider's latencies.
  *
  * Built like loop.c (-DNAME, -DUNAME, -DREAL, -DRATE, -DSTEPS, -DSUBSTEPS) and
- * -DCALLS=<n>. Prints, one record a line (decimal integers):
+ * -DCALLS=<n>. An example with references measured at run time ([references]) is built
+ * with -DREFS and the include path of a "refs.h" that defines the jets every call takes:
+ * refs_half[<NAME>_N_REFERENCE_JET] (at t = 0.5, for control) and
+ * refs_steps[STEPS][<NAME>_N_REFERENCE_JET] (at each step's time).
+ * Prints, one record a line (decimal integers):
  *   calibrate <iterations of a 2-instruction loop> <ticks>
  *   control <calls> <ticks>
  *   step <steps> <ticks>          the steps of a closed loop, replayed and timed together
@@ -30,6 +34,19 @@
 #define NX CONST(_N_PLANT_STATES)
 #define NU CONST(_N_INPUTS)
 #define NS CONST(_N_STATES)
+
+/* The references' jets, one more argument of control, controller_init and
+ * controller_step (docs/references.md); nothing at all without references. */
+#ifdef REFS
+#include "refs.h"
+#define REFS_HALF refs_half,
+#define REFS_STEP(k) refs_steps[k],
+#define REFS_INIT , refs_steps[0]
+#else
+#define REFS_HALF
+#define REFS_STEP(k)
+#define REFS_INIT
+#endif
 
 int harness_plant(double t, const double *x, const double *u, const double *params, double *out);
 
@@ -71,10 +88,10 @@ int main(void)
     /* The stack: control calls, init and steps at a frozen state. */
     sp = stack_pointer();
     PAINT_BELOW(sp);
-    status |= FN(_control)((REAL)0.5, s, NULL, out);
+    status |= FN(_control)((REAL)0.5, s, NULL, REFS_HALF out);
     for (i = 0; i < NX; ++i) xr[i] = (REAL)x[i];
-    status |= FN(_controller_init)(&c, (REAL)0.0, xr, NULL, NULL);
-    for (k = 0; k < 10; ++k) status |= FN(_controller_step)(&c, (REAL)(k * h), xr, ur);
+    status |= FN(_controller_init)(&c, (REAL)0.0, xr, NULL, NULL REFS_INIT);
+    for (k = 0; k < 10; ++k) status |= FN(_controller_step)(&c, (REAL)(k * h), xr, REFS_STEP(k) ur);
     put_record("stack", used_below(sp), 0ul, 0);
     if (status != 0) {
         semihost_write0("fail\n");
@@ -82,25 +99,25 @@ int main(void)
     }
 
     start = now();
-    for (k = 0; k < CALLS; ++k) status |= FN(_control)((REAL)0.5, s, NULL, out);
+    for (k = 0; k < CALLS; ++k) status |= FN(_control)((REAL)0.5, s, NULL, REFS_HALF out);
     put_record("control", (unsigned long)CALLS, elapsed(start, now()), 1);
 
     /* A closed loop, untimed, recording what each step is given; then the same steps
      * again from init, timed together (one interval: the tick's 40 instructions of
      * resolution spread over every step). */
     for (i = 0; i < NX; ++i) xr[i] = (REAL)x[i];
-    status |= FN(_controller_init)(&c, (REAL)0.0, xr, NULL, NULL);
+    status |= FN(_controller_init)(&c, (REAL)0.0, xr, NULL, NULL REFS_INIT);
     for (k = 0; k < STEPS; ++k) {
         const double t = (double)k * h;
         ts[k] = (REAL)t;
         for (i = 0; i < NX; ++i) xs[k][i] = (REAL)x[i];
-        status |= FN(_controller_step)(&c, ts[k], xs[k], ur);
+        status |= FN(_controller_step)(&c, ts[k], xs[k], REFS_STEP(k) ur);
         for (i = 0; i < NU; ++i) u[i] = (double)ur[i];
         for (j = 0; j < SUBSTEPS; ++j) status |= rk4(t + j * dt, dt, x, u);
     }
-    status |= FN(_controller_init)(&c, (REAL)0.0, xs[0], NULL, NULL);
+    status |= FN(_controller_init)(&c, (REAL)0.0, xs[0], NULL, NULL REFS_INIT);
     start = now();
-    for (k = 0; k < STEPS; ++k) status |= FN(_controller_step)(&c, ts[k], xs[k], ur);
+    for (k = 0; k < STEPS; ++k) status |= FN(_controller_step)(&c, ts[k], xs[k], REFS_STEP(k) ur);
     total = elapsed(start, now());
     put_record("step", (unsigned long)STEPS, total, 1);
     if (status != 0) {
