@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import math
 import shutil
-import subprocess
-import sys
 import tomllib
 from pathlib import Path
 from types import ModuleType
@@ -25,7 +23,7 @@ from tvopt_codegen.simulation import load_controller, resolve_options, simulate
 from tvopt_codegen.simulation.sampled import hold
 from tvopt_codegen.spec import bundled_examples, spec_from_dict
 
-from .conftest import ROOT, SPECS
+from .conftest import ROOT, SPECS, run_main
 
 
 def _example(name: str) -> dict[str, Any]:
@@ -297,12 +295,7 @@ def test_bad_robust_tables_are_one_line_errors_that_write_nothing(
     path = tmp_path / "bad.toml"
     path.write_text(_dump(data), encoding="utf-8")
     out = tmp_path / "out"
-    done = subprocess.run(
-        [sys.executable, "-m", "tvopt_codegen", "generate", str(path), "--out", str(out)],
-        capture_output=True,
-        text=True,
-        check=False,
-    )
+    done = run_main("generate", str(path), "--out", str(out))
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1, done.stderr
@@ -381,21 +374,8 @@ def test_a_sampled_sweep_runs_the_robust_controller_on_mismatched_plants() -> No
 
 
 def test_a_continuous_sweep_of_an_observer_spec_is_refused(tmp_path: Path) -> None:
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "tvopt_codegen",
-            "sweep",
-            str(SPECS / "robust_pvtol.toml"),
-            "--samples",
-            "2",
-            "--out",
-            str(tmp_path / "out"),
-        ],
-        capture_output=True,
-        text=True,
-        check=False,
+    done = run_main(
+        "sweep", str(SPECS / "robust_pvtol.toml"), "--samples", "2", "--out", str(tmp_path / "out")
     )
     assert done.returncode == 2
     assert done.stderr.count("\n") == 1
