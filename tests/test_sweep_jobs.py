@@ -33,8 +33,8 @@ pq = pytest.importorskip("pyarrow.parquet")
 distributed = pytest.importorskip("distributed")
 
 ROOT = Path(__file__).resolve().parents[1]
-#: A sweep long enough to stop in the middle, short enough for the suite (about 5 s).
-SAMPLES = 4000
+#: A sweep long enough to stop in the middle, short enough for the suite (about 2 s).
+SAMPLES = 2000
 COMMON = ["--samples", str(SAMPLES), "--t-final", "3", "--chunk-size", "40"]
 COMMON += ["--initial", "x1=normal(-5, 0.3)", "--plant-param", "b=uniform(1, 2)"]
 
