@@ -1,7 +1,11 @@
 """The strict C profile (issue 50 item 4): every bundled example's C, in both precisions.
 
 Each controller compiles without a warning under gcc and clang with :data:`STRICT`
-(``-Werror``), and clang's static analyser and cppcheck find nothing in it. So are the
+(``-Werror``, ``-Wvla``), and clang's static analyser and cppcheck find nothing in it. It
+allocates nothing on the heap, and gcc's call graph of it (``-fcallgraph-info``) has no
+cycle (recursion) and no call through a pointer. The stack bound its header states
+(``<NAME>_STACK_BOUND_BYTES``, :mod:`tvopt_codegen.backends.c.stack`) is at least what
+gcc's ``-fstack-usage`` counts along every call path, on the host and on a Cortex-M4F. So are the
 template paths no bundled example takes (:data:`VARIANTS`). The files are rendered once
 per test run and precision (``conftest.shared``) and shared with ``test_precision``. A
 tool that is missing skips with the command that installs it, except in CI (``CI`` set),
@@ -11,6 +15,7 @@ where ``.ci/run`` installs it and its absence is a failure.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import tomllib
@@ -19,12 +24,14 @@ from pathlib import Path
 import pytest
 
 from tvopt_codegen.backends.c import with_precision
+from tvopt_codegen.backends.c.stack import parse
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.lowering.ir import KernelSet, lower
 from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.spec import spec_from_dict
 
 from .conftest import ROOT, SPECS, kernels, shared
+from .embedded.harness import TARGETS, compile_object, skip_reason
 
 #: Every bundled example.
 BUNDLED = tuple(sorted(path.stem for path in (ROOT / "tvopt_codegen" / "examples").glob("*.toml")))
@@ -74,6 +81,7 @@ STRICT = (
     "-Wstrict-prototypes",
     "-Wdouble-promotion",
     "-Wfloat-conversion",
+    "-Wvla",
     "-Werror",
 )
 
@@ -136,3 +144,117 @@ def test_the_static_analysers_find_nothing(example: str, precision: str, tmp_pat
     _clean([clang, "--analyze", "-std=c99", source, "-o", str(tmp_path / "plist")], folder)
     cppcheck = _tool("cppcheck", "apt-get install cppcheck")
     _clean([cppcheck, *CPPCHECK, source], folder)
+
+
+#: A call of the C library's allocators (the controller must make none), and the comments
+#: and strings that may say "free" without calling it.
+HEAP = re.compile(r"\b(malloc|calloc|realloc|free|alloca|__builtin_alloca)\s*\(")
+_PROSE = re.compile(r'/\*.*?\*/|//[^\n]*|"(?:\\.|[^"\\])*"', re.DOTALL)
+
+#: The nodes and edges of gcc's ``-fcallgraph-info=su`` (VCG).
+_NODE = re.compile(r'node: \{ title: "([^"]+)" label: "([^"]+)"')
+_EDGE = re.compile(r'edge: \{ sourcename: "([^"]+)" targetname: "([^"]+)"')
+
+
+def _source(folder: Path) -> str:
+    """The controller's ``.c`` in ``folder`` (not the CPython entry point's)."""
+    (source,) = (p.name for p in folder.glob("*.c") if not p.name.endswith(".ext.c"))
+    return source
+
+
+def _callgraph(ci: Path) -> tuple[dict[str, tuple[str, int]], dict[str, list[str]]]:
+    """gcc's call graph: each node's function name and static frame, and each node's callees."""
+    text = ci.read_text(encoding="utf-8")
+    nodes = {}
+    for title, label in _NODE.findall(text):
+        size = re.search(r"(\d+) bytes", label)
+        nodes[title] = (label.split("\\n")[0], int(size.group(1)) if size else 0)
+    calls: dict[str, list[str]] = {}
+    for source, target in _EDGE.findall(text):
+        calls.setdefault(source, []).append(target)
+    return nodes, calls
+
+
+def _deepest(nodes: dict[str, tuple[str, int]], calls: dict[str, list[str]], root: str) -> int:
+    """The largest sum of static frames along a call path from ``root`` (acyclic graph)."""
+    below = (_deepest(nodes, calls, callee) for callee in calls.get(root, []))
+    return nodes.get(root, ("", 0))[1] + max(below, default=0)
+
+
+def stated_bounds(header: str) -> dict[str, int]:
+    """The bound the header states for each public function (its table of bounds)."""
+    table = header.split(" * Stack: ", 1)[1].split(" */", 1)[0]
+    return {name: int(n) for name, n in re.findall(r"^ \*   (\w+) +(\d+)$", table, re.MULTILINE)}
+
+
+@pytest.mark.parametrize("precision", ["double", "single"])
+@pytest.mark.parametrize("example", BUNDLED)
+def test_no_heap_no_recursion_no_function_pointers(
+    example: str, precision: str, tmp_path: Path
+) -> None:
+    folder = generated(example, precision)
+    source = _source(folder)
+    code = _PROSE.sub(" ", (folder / source).read_text(encoding="utf-8"))
+    assert not HEAP.findall(code), HEAP.findall(code)
+    gcc = _tool("gcc", "apt-get install gcc")
+    ci = tmp_path / "controller.ci"
+    _clean(
+        [gcc, *STRICT, "-fcallgraph-info=su", "-c", source, "-o", str(ci.with_suffix(".o"))], folder
+    )
+    nodes, calls = _callgraph(ci)
+    assert not [t for t in nodes if "__indirect_call" in t], "a call through a pointer"
+    # Depth-first: a node met again while still on the path closes a cycle.
+    done: set[str] = set()
+
+    def visit(node: str, path: tuple[str, ...]) -> None:
+        assert node not in path, f"recursion: {' -> '.join((*path, node))}"
+        if node not in done:
+            for callee in calls.get(node, []):
+                visit(callee, (*path, node))
+            done.add(node)
+
+    for node in nodes:
+        visit(node, ())
+
+
+def _measured(target: str, folder: Path, out: Path, *flags: str) -> dict[str, int]:
+    """gcc's deepest static stack per function of the controller compiled for ``target``."""
+    obj = compile_object(
+        TARGETS[target],
+        folder / _source(folder),
+        out / "controller.o",
+        *flags,
+        "-fcallgraph-info=su",
+    )
+    nodes, calls = _callgraph(obj.with_suffix(".ci"))
+    text = obj.with_suffix(".ci").read_text(encoding="utf-8")
+    # The C library's functions are nodes without a frame: the file defines the others.
+    defined = {title for title, label in _NODE.findall(text) if "bytes" in label}
+    return {name: _deepest(nodes, calls, t) for t, (name, _) in nodes.items() if t in defined}
+
+
+@pytest.mark.parametrize("precision", ["double", "single"])
+@pytest.mark.parametrize("example", BUNDLED)
+def test_the_stated_stack_bound_holds(example: str, precision: str, tmp_path: Path) -> None:
+    folder = generated(example, precision)
+    (header,) = folder.glob("*.h")
+    bounds = stated_bounds(header.read_text(encoding="utf-8"))
+    assert bounds[f"{example}_controller_step"] > 0
+    builds = {f"host {level}": ("host", level) for level in ("-O0", "-O2")}
+    if skip_reason("m4f") is None:
+        builds["m4f -O2"] = ("m4f", "-O2")
+    elif os.environ.get("CI"):
+        pytest.fail(f"{skip_reason('m4f')}")
+    for build, (target, level) in builds.items():
+        out = tmp_path / build.replace(" ", "")
+        out.mkdir()
+        measured = _measured(target, folder, out, level)
+        if level == "-O0":
+            # Nothing inlined: gcc's functions are the ones the bound's scanner found.
+            text = (folder / _source(folder)).read_text(encoding="utf-8")
+            found = parse(text, header.read_text(encoding="utf-8"), 8)
+            assert set(measured) == set(found), set(measured) ^ set(found)
+        for name, bound in bounds.items():
+            # A function inlined everywhere has no frame of its own: nothing to compare.
+            if name in measured:
+                assert measured[name] <= bound, (build, name, measured[name], bound)

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: arm_on_line
  * spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
- * content sha256: f3f5bca9946db38c10c375fba432fc4e81cc0cce5d0962275b5615ea85d19ebd
+ * content sha256: 3b62aa2c7a18076e5e16c8eb8fea7b95c27602faf40841c54cd1f7d675c887d0
  */
 
 /*
@@ -126,6 +126,44 @@ int arm_on_line_controller_init(arm_on_line_controller_t *c, double t0, const do
 int arm_on_line_controller_step(arm_on_line_controller_t *c, double t, const double *x, double *u);
 /* sizeof(arm_on_line_controller_t), for callers that allocate it from another language. */
 size_t arm_on_line_controller_size(void);
+
+/*
+ * Stack: a static bound, in bytes, on what each public function uses, counted by
+ * tvopt-codegen from the text of this file and arm_on_line.c (no compiler involved). The
+ * code has no recursion, heap, variable-length array or function pointer, so the bound
+ * is the largest sum of frames along a call path through arm_on_line.c's functions, a
+ * frame being its parameters and every automatic variable each in a slot of its own
+ * (pointers and size_t at 8 bytes, int at 4, a real at 8) plus 128 bytes for the
+ * return address, saved registers, spills and alignment. Not counted: the C library's
+ * functions it calls (<math.h>'s) and interrupts.
+ *   arm_on_line_n_states                  128
+ *   arm_on_line_n_inputs                  128
+ *   arm_on_line_n_outputs                 128
+ *   arm_on_line_n_params                  128
+ *   arm_on_line_k                         128
+ *   arm_on_line_control                  1300
+ *   arm_on_line_rhs                      1316
+ *   arm_on_line_optimality_error          516
+ *   arm_on_line_objective                 492
+ *   arm_on_line_gradient                  492
+ *   arm_on_line_hessian                   492
+ *   arm_on_line_control_batch            1328
+ *   arm_on_line_rhs_batch                1344
+ *   arm_on_line_optimality_error_batch    704
+ *   arm_on_line_objective_batch           680
+ *   arm_on_line_gradient_batch            680
+ *   arm_on_line_hessian_batch             680
+ *   arm_on_line_plant                     536
+ *   arm_on_line_outputs                   492
+ *   arm_on_line_status_message            132
+ *   arm_on_line_controller_size           128
+ *   arm_on_line_controller_init          1668
+ *   arm_on_line_controller_step          1572
+ */
+#define ARM_ON_LINE_STACK_BOUND_BYTES 1668
+#define ARM_ON_LINE_CONTROL_STACK_BOUND_BYTES 1300
+#define ARM_ON_LINE_CONTROLLER_INIT_STACK_BOUND_BYTES 1668
+#define ARM_ON_LINE_CONTROLLER_STEP_STACK_BOUND_BYTES 1572
 
 #ifdef __cplusplus
 }

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 0c2e75a618e1cc4c20267c05899ade5cd82a30cef0e5becdfc61b36cc330a1f7
+ * content sha256: cda526df030604a87c70d60843dd29ea3cd1a3509d0f3eb336654e37c56420d6
  */
 
 /*
@@ -125,6 +125,44 @@ int flexible_joint_controller_init(flexible_joint_controller_t *c, double t0, co
 int flexible_joint_controller_step(flexible_joint_controller_t *c, double t, const double *x, double *u);
 /* sizeof(flexible_joint_controller_t), for callers that allocate it from another language. */
 size_t flexible_joint_controller_size(void);
+
+/*
+ * Stack: a static bound, in bytes, on what each public function uses, counted by
+ * tvopt-codegen from the text of this file and flexible_joint.c (no compiler involved). The
+ * code has no recursion, heap, variable-length array or function pointer, so the bound
+ * is the largest sum of frames along a call path through flexible_joint.c's functions, a
+ * frame being its parameters and every automatic variable each in a slot of its own
+ * (pointers and size_t at 8 bytes, int at 4, a real at 8) plus 128 bytes for the
+ * return address, saved registers, spills and alignment. Not counted: the C library's
+ * functions it calls (<math.h>'s) and interrupts.
+ *   flexible_joint_n_states                  128
+ *   flexible_joint_n_inputs                  128
+ *   flexible_joint_n_outputs                 128
+ *   flexible_joint_n_params                  128
+ *   flexible_joint_k                         128
+ *   flexible_joint_control                  1148
+ *   flexible_joint_rhs                      1156
+ *   flexible_joint_optimality_error          644
+ *   flexible_joint_objective                 492
+ *   flexible_joint_gradient                  492
+ *   flexible_joint_hessian                   492
+ *   flexible_joint_control_batch            1176
+ *   flexible_joint_rhs_batch                1184
+ *   flexible_joint_optimality_error_batch    832
+ *   flexible_joint_objective_batch           680
+ *   flexible_joint_gradient_batch            680
+ *   flexible_joint_hessian_batch             680
+ *   flexible_joint_plant                     440
+ *   flexible_joint_outputs                   492
+ *   flexible_joint_status_message            132
+ *   flexible_joint_controller_size           128
+ *   flexible_joint_controller_init          1452
+ *   flexible_joint_controller_step          1380
+ */
+#define FLEXIBLE_JOINT_STACK_BOUND_BYTES 1452
+#define FLEXIBLE_JOINT_CONTROL_STACK_BOUND_BYTES 1148
+#define FLEXIBLE_JOINT_CONTROLLER_INIT_STACK_BOUND_BYTES 1452
+#define FLEXIBLE_JOINT_CONTROLLER_STEP_STACK_BOUND_BYTES 1380
 
 #ifdef __cplusplus
 }

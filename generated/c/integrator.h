@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: c767fbf8477ad927b4f9edfe6a9b634b5d683ba5894a0bc2870788606038ba23
+ * content sha256: d3808940f519b99a48e3887ce2a3baae6774491971ce32c0f92b38701a6670ad
  */
 
 /*
@@ -125,6 +125,44 @@ int integrator_controller_init(integrator_controller_t *c, double t0, const doub
 int integrator_controller_step(integrator_controller_t *c, double t, const double *x, double *u);
 /* sizeof(integrator_controller_t), for callers that allocate it from another language. */
 size_t integrator_controller_size(void);
+
+/*
+ * Stack: a static bound, in bytes, on what each public function uses, counted by
+ * tvopt-codegen from the text of this file and integrator.c (no compiler involved). The
+ * code has no recursion, heap, variable-length array or function pointer, so the bound
+ * is the largest sum of frames along a call path through integrator.c's functions, a
+ * frame being its parameters and every automatic variable each in a slot of its own
+ * (pointers and size_t at 8 bytes, int at 4, a real at 8) plus 128 bytes for the
+ * return address, saved registers, spills and alignment. Not counted: the C library's
+ * functions it calls (<math.h>'s) and interrupts.
+ *   integrator_n_states                  128
+ *   integrator_n_inputs                  128
+ *   integrator_n_outputs                 128
+ *   integrator_n_params                  128
+ *   integrator_k                         128
+ *   integrator_control                   852
+ *   integrator_rhs                       868
+ *   integrator_optimality_error          492
+ *   integrator_objective                 492
+ *   integrator_gradient                  492
+ *   integrator_hessian                   492
+ *   integrator_control_batch             880
+ *   integrator_rhs_batch                 896
+ *   integrator_optimality_error_batch    680
+ *   integrator_objective_batch           680
+ *   integrator_gradient_batch            680
+ *   integrator_hessian_batch             680
+ *   integrator_plant                     360
+ *   integrator_outputs                   492
+ *   integrator_status_message            132
+ *   integrator_controller_size           128
+ *   integrator_controller_init          1116
+ *   integrator_controller_step          1060
+ */
+#define INTEGRATOR_STACK_BOUND_BYTES 1116
+#define INTEGRATOR_CONTROL_STACK_BOUND_BYTES 852
+#define INTEGRATOR_CONTROLLER_INIT_STACK_BOUND_BYTES 1116
+#define INTEGRATOR_CONTROLLER_STEP_STACK_BOUND_BYTES 1060
 
 #ifdef __cplusplus
 }

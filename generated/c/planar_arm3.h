@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: planar_arm3
  * spec sha256: 63d130b8bfdcabd4b35f10882f051baacdec9d17c6622b99cfadaf848ad6bddb
- * content sha256: d0cdb9cf45e39c45e2f148a2f83a525ce575e81fd03aa183912a558fa87ba4a7
+ * content sha256: dcda1531081436099bd8a3c2aeb54ea535ca364907eafde86aefc7caa30f9888
  */
 
 /*
@@ -125,6 +125,44 @@ int planar_arm3_controller_init(planar_arm3_controller_t *c, double t0, const do
 int planar_arm3_controller_step(planar_arm3_controller_t *c, double t, const double *x, double *u);
 /* sizeof(planar_arm3_controller_t), for callers that allocate it from another language. */
 size_t planar_arm3_controller_size(void);
+
+/*
+ * Stack: a static bound, in bytes, on what each public function uses, counted by
+ * tvopt-codegen from the text of this file and planar_arm3.c (no compiler involved). The
+ * code has no recursion, heap, variable-length array or function pointer, so the bound
+ * is the largest sum of frames along a call path through planar_arm3.c's functions, a
+ * frame being its parameters and every automatic variable each in a slot of its own
+ * (pointers and size_t at 8 bytes, int at 4, a real at 8) plus 128 bytes for the
+ * return address, saved registers, spills and alignment. Not counted: the C library's
+ * functions it calls (<math.h>'s) and interrupts.
+ *   planar_arm3_n_states                  128
+ *   planar_arm3_n_inputs                  128
+ *   planar_arm3_n_outputs                 128
+ *   planar_arm3_n_params                  128
+ *   planar_arm3_k                         128
+ *   planar_arm3_control                  1828
+ *   planar_arm3_rhs                      1852
+ *   planar_arm3_optimality_error          492
+ *   planar_arm3_objective                 492
+ *   planar_arm3_gradient                  492
+ *   planar_arm3_hessian                   492
+ *   planar_arm3_control_batch            1856
+ *   planar_arm3_rhs_batch                1880
+ *   planar_arm3_optimality_error_batch    680
+ *   planar_arm3_objective_batch           680
+ *   planar_arm3_gradient_batch            680
+ *   planar_arm3_hessian_batch             680
+ *   planar_arm3_plant                     864
+ *   planar_arm3_outputs                   492
+ *   planar_arm3_status_message            132
+ *   planar_arm3_controller_size           128
+ *   planar_arm3_controller_init          2220
+ *   planar_arm3_controller_step          2108
+ */
+#define PLANAR_ARM3_STACK_BOUND_BYTES 2220
+#define PLANAR_ARM3_CONTROL_STACK_BOUND_BYTES 1828
+#define PLANAR_ARM3_CONTROLLER_INIT_STACK_BOUND_BYTES 2220
+#define PLANAR_ARM3_CONTROLLER_STEP_STACK_BOUND_BYTES 2108
 
 #ifdef __cplusplus
 }

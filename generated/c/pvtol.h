@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: pvtol
  * spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
- * content sha256: e0a659c5871b965a4165599862e1087132251e4027834a45ed349845c7ed5632
+ * content sha256: 9ac8c4f36fa945a28b9bb1ff7dfbf21c2a2f875277b2bc494febf362dbdb03b0
  */
 
 /*
@@ -126,6 +126,44 @@ int pvtol_controller_init(pvtol_controller_t *c, double t0, const double *x0, co
 int pvtol_controller_step(pvtol_controller_t *c, double t, const double *x, double *u);
 /* sizeof(pvtol_controller_t), for callers that allocate it from another language. */
 size_t pvtol_controller_size(void);
+
+/*
+ * Stack: a static bound, in bytes, on what each public function uses, counted by
+ * tvopt-codegen from the text of this file and pvtol.c (no compiler involved). The
+ * code has no recursion, heap, variable-length array or function pointer, so the bound
+ * is the largest sum of frames along a call path through pvtol.c's functions, a
+ * frame being its parameters and every automatic variable each in a slot of its own
+ * (pointers and size_t at 8 bytes, int at 4, a real at 8) plus 128 bytes for the
+ * return address, saved registers, spills and alignment. Not counted: the C library's
+ * functions it calls (<math.h>'s) and interrupts.
+ *   pvtol_n_states                  128
+ *   pvtol_n_inputs                  128
+ *   pvtol_n_outputs                 128
+ *   pvtol_n_params                  128
+ *   pvtol_k                         128
+ *   pvtol_control                  1036
+ *   pvtol_rhs                      1052
+ *   pvtol_optimality_error          516
+ *   pvtol_objective                 492
+ *   pvtol_gradient                  492
+ *   pvtol_hessian                   492
+ *   pvtol_control_batch            1064
+ *   pvtol_rhs_batch                1080
+ *   pvtol_optimality_error_batch    704
+ *   pvtol_objective_batch           680
+ *   pvtol_gradient_batch            680
+ *   pvtol_hessian_batch             680
+ *   pvtol_plant                     424
+ *   pvtol_outputs                   492
+ *   pvtol_status_message            132
+ *   pvtol_controller_size           128
+ *   pvtol_controller_init          1420
+ *   pvtol_controller_step          1340
+ */
+#define PVTOL_STACK_BOUND_BYTES 1420
+#define PVTOL_CONTROL_STACK_BOUND_BYTES 1036
+#define PVTOL_CONTROLLER_INIT_STACK_BOUND_BYTES 1420
+#define PVTOL_CONTROLLER_STEP_STACK_BOUND_BYTES 1340
 
 #ifdef __cplusplus
 }

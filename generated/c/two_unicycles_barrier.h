@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: fa899c0e0688a0976588cd7cfa5797efb61924216c0863ece1bf8eda998d43eb
+ * content sha256: c2f3cdb9eef60f7cd96ccf359ec4a475d1ec4ffc9aabceae8fa7485862b2fec1
  */
 
 /*
@@ -126,6 +126,44 @@ int two_unicycles_barrier_controller_init(two_unicycles_barrier_controller_t *c,
 int two_unicycles_barrier_controller_step(two_unicycles_barrier_controller_t *c, double t, const double *x, double *u);
 /* sizeof(two_unicycles_barrier_controller_t), for callers that allocate it from another language. */
 size_t two_unicycles_barrier_controller_size(void);
+
+/*
+ * Stack: a static bound, in bytes, on what each public function uses, counted by
+ * tvopt-codegen from the text of this file and two_unicycles_barrier.c (no compiler involved). The
+ * code has no recursion, heap, variable-length array or function pointer, so the bound
+ * is the largest sum of frames along a call path through two_unicycles_barrier.c's functions, a
+ * frame being its parameters and every automatic variable each in a slot of its own
+ * (pointers and size_t at 8 bytes, int at 4, a real at 8) plus 128 bytes for the
+ * return address, saved registers, spills and alignment. Not counted: the C library's
+ * functions it calls (<math.h>'s) and interrupts.
+ *   two_unicycles_barrier_n_states                  128
+ *   two_unicycles_barrier_n_inputs                  128
+ *   two_unicycles_barrier_n_outputs                 128
+ *   two_unicycles_barrier_n_params                  128
+ *   two_unicycles_barrier_k                         128
+ *   two_unicycles_barrier_control                  1500
+ *   two_unicycles_barrier_rhs                      1532
+ *   two_unicycles_barrier_optimality_error          660
+ *   two_unicycles_barrier_objective                 492
+ *   two_unicycles_barrier_gradient                  492
+ *   two_unicycles_barrier_hessian                   572
+ *   two_unicycles_barrier_control_batch            1528
+ *   two_unicycles_barrier_rhs_batch                1560
+ *   two_unicycles_barrier_optimality_error_batch    848
+ *   two_unicycles_barrier_objective_batch           680
+ *   two_unicycles_barrier_gradient_batch            680
+ *   two_unicycles_barrier_hessian_batch             760
+ *   two_unicycles_barrier_plant                     392
+ *   two_unicycles_barrier_outputs                   492
+ *   two_unicycles_barrier_status_message            132
+ *   two_unicycles_barrier_controller_size           128
+ *   two_unicycles_barrier_controller_init          1916
+ *   two_unicycles_barrier_controller_step          1820
+ */
+#define TWO_UNICYCLES_BARRIER_STACK_BOUND_BYTES 1916
+#define TWO_UNICYCLES_BARRIER_CONTROL_STACK_BOUND_BYTES 1500
+#define TWO_UNICYCLES_BARRIER_CONTROLLER_INIT_STACK_BOUND_BYTES 1916
+#define TWO_UNICYCLES_BARRIER_CONTROLLER_STEP_STACK_BOUND_BYTES 1820
 
 #ifdef __cplusplus
 }

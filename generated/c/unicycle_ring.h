@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_ring
  * spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
- * content sha256: 5d3365d5dc1731bb334e08a01f9d992cdcbef09d8f637f9c81d1a42b41ec0f2f
+ * content sha256: 7d758b4bf1ad0ec62b17583462ad7a0322bcc5615a62f2b0cf0ffc9e894b088d
  */
 
 /*
@@ -126,6 +126,44 @@ int unicycle_ring_controller_init(unicycle_ring_controller_t *c, double t0, cons
 int unicycle_ring_controller_step(unicycle_ring_controller_t *c, double t, const double *x, double *u);
 /* sizeof(unicycle_ring_controller_t), for callers that allocate it from another language. */
 size_t unicycle_ring_controller_size(void);
+
+/*
+ * Stack: a static bound, in bytes, on what each public function uses, counted by
+ * tvopt-codegen from the text of this file and unicycle_ring.c (no compiler involved). The
+ * code has no recursion, heap, variable-length array or function pointer, so the bound
+ * is the largest sum of frames along a call path through unicycle_ring.c's functions, a
+ * frame being its parameters and every automatic variable each in a slot of its own
+ * (pointers and size_t at 8 bytes, int at 4, a real at 8) plus 128 bytes for the
+ * return address, saved registers, spills and alignment. Not counted: the C library's
+ * functions it calls (<math.h>'s) and interrupts.
+ *   unicycle_ring_n_states                  128
+ *   unicycle_ring_n_inputs                  128
+ *   unicycle_ring_n_outputs                 128
+ *   unicycle_ring_n_params                  128
+ *   unicycle_ring_k                         128
+ *   unicycle_ring_control                  3076
+ *   unicycle_ring_rhs                      3140
+ *   unicycle_ring_optimality_error         1244
+ *   unicycle_ring_objective                 492
+ *   unicycle_ring_gradient                  684
+ *   unicycle_ring_hessian                  1140
+ *   unicycle_ring_control_batch            3104
+ *   unicycle_ring_rhs_batch                3168
+ *   unicycle_ring_optimality_error_batch   1432
+ *   unicycle_ring_objective_batch           680
+ *   unicycle_ring_gradient_batch            872
+ *   unicycle_ring_hessian_batch            1328
+ *   unicycle_ring_plant                     440
+ *   unicycle_ring_outputs                   492
+ *   unicycle_ring_status_message            132
+ *   unicycle_ring_controller_size           128
+ *   unicycle_ring_controller_init          3732
+ *   unicycle_ring_controller_step          3556
+ */
+#define UNICYCLE_RING_STACK_BOUND_BYTES 3732
+#define UNICYCLE_RING_CONTROL_STACK_BOUND_BYTES 3076
+#define UNICYCLE_RING_CONTROLLER_INIT_STACK_BOUND_BYTES 3732
+#define UNICYCLE_RING_CONTROLLER_STEP_STACK_BOUND_BYTES 3556
 
 #ifdef __cplusplus
 }

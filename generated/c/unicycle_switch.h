@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: c22382e2475bf06101a08a665f3612996f208f7abf9230764dd5ff162b9d22a1
+ * content sha256: 1d2ebf8da4673e1b31f4bb557c56d52295311641d106b4bd0a42a9628d93183a
  */
 
 /*
@@ -126,6 +126,44 @@ int unicycle_switch_controller_init(unicycle_switch_controller_t *c, double t0, 
 int unicycle_switch_controller_step(unicycle_switch_controller_t *c, double t, const double *x, double *u);
 /* sizeof(unicycle_switch_controller_t), for callers that allocate it from another language. */
 size_t unicycle_switch_controller_size(void);
+
+/*
+ * Stack: a static bound, in bytes, on what each public function uses, counted by
+ * tvopt-codegen from the text of this file and unicycle_switch.c (no compiler involved). The
+ * code has no recursion, heap, variable-length array or function pointer, so the bound
+ * is the largest sum of frames along a call path through unicycle_switch.c's functions, a
+ * frame being its parameters and every automatic variable each in a slot of its own
+ * (pointers and size_t at 8 bytes, int at 4, a real at 8) plus 128 bytes for the
+ * return address, saved registers, spills and alignment. Not counted: the C library's
+ * functions it calls (<math.h>'s) and interrupts.
+ *   unicycle_switch_n_states                  128
+ *   unicycle_switch_n_inputs                  128
+ *   unicycle_switch_n_outputs                 128
+ *   unicycle_switch_n_params                  128
+ *   unicycle_switch_k                         128
+ *   unicycle_switch_control                   864
+ *   unicycle_switch_rhs                       880
+ *   unicycle_switch_optimality_error          492
+ *   unicycle_switch_objective                 492
+ *   unicycle_switch_gradient                  492
+ *   unicycle_switch_hessian                   492
+ *   unicycle_switch_control_batch             892
+ *   unicycle_switch_rhs_batch                 908
+ *   unicycle_switch_optimality_error_batch    680
+ *   unicycle_switch_objective_batch           680
+ *   unicycle_switch_gradient_batch            680
+ *   unicycle_switch_hessian_batch             680
+ *   unicycle_switch_plant                     368
+ *   unicycle_switch_outputs                   492
+ *   unicycle_switch_status_message            132
+ *   unicycle_switch_controller_size           128
+ *   unicycle_switch_controller_init          1168
+ *   unicycle_switch_controller_step          1104
+ */
+#define UNICYCLE_SWITCH_STACK_BOUND_BYTES 1168
+#define UNICYCLE_SWITCH_CONTROL_STACK_BOUND_BYTES 864
+#define UNICYCLE_SWITCH_CONTROLLER_INIT_STACK_BOUND_BYTES 1168
+#define UNICYCLE_SWITCH_CONTROLLER_STEP_STACK_BOUND_BYTES 1104
 
 #ifdef __cplusplus
 }

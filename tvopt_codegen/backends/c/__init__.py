@@ -80,10 +80,15 @@ def _context(
 
 
 def _filters() -> dict[str, Callable[..., Any]]:
-    """The C templates' own filters: ``c_real``, a number as a literal of the precision."""
-    from tvopt_codegen.backends.c.precision import c_real  # noqa: PLC0415 - when rendering
+    """The C templates' own filters.
 
-    return {"c_real": c_real}
+    ``c_real``: a number as a literal of the precision; ``c_stack_bounds``: the header's
+    static stack bound per public function (:mod:`tvopt_codegen.backends.c.stack`).
+    """
+    from tvopt_codegen.backends.c.precision import c_real  # noqa: PLC0415 - when rendering
+    from tvopt_codegen.backends.c.stack import header_bounds  # noqa: PLC0415
+
+    return {"c_real": c_real, "c_stack_bounds": header_bounds}
 
 
 #: The C backend. The Python module has the Python backend's contract exactly.
