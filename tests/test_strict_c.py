@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 
 from tvopt_codegen.backends.c import with_precision
-from tvopt_codegen.backends.c.stack import parse
+from tvopt_codegen.backends.c.stack import FRAME_ALLOWANCE, bounds, parse
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.lowering.ir import KernelSet, lower
 from tvopt_codegen.renderer.rendering import render
@@ -188,7 +188,7 @@ def stated_bounds(header: str) -> dict[str, int]:
 
 
 @pytest.mark.parametrize("precision", ["double", "single"])
-@pytest.mark.parametrize("example", BUNDLED)
+@pytest.mark.parametrize("example", [*BUNDLED, *VARIANTS])
 def test_no_heap_no_recursion_no_function_pointers(
     example: str, precision: str, tmp_path: Path
 ) -> None:
@@ -234,12 +234,13 @@ def _measured(target: str, folder: Path, out: Path, *flags: str) -> dict[str, in
 
 
 @pytest.mark.parametrize("precision", ["double", "single"])
-@pytest.mark.parametrize("example", BUNDLED)
+@pytest.mark.parametrize("example", [*BUNDLED, *VARIANTS])
 def test_the_stated_stack_bound_holds(example: str, precision: str, tmp_path: Path) -> None:
     folder = generated(example, precision)
     (header,) = folder.glob("*.h")
     bounds = stated_bounds(header.read_text(encoding="utf-8"))
-    assert bounds[f"{example}_controller_step"] > 0
+    prefix = header.stem
+    assert bounds[f"{prefix}_controller_step"] > 0
     builds = {f"host {level}": ("host", level) for level in ("-O0", "-O2")}
     if skip_reason("m4f") is None:
         builds["m4f -O2"] = ("m4f", "-O2")
@@ -258,3 +259,42 @@ def test_the_stated_stack_bound_holds(example: str, precision: str, tmp_path: Pa
             # A function inlined everywhere has no frame of its own: nothing to compare.
             if name in measured:
                 assert measured[name] <= bound, (build, name, measured[name], bound)
+
+
+def test_the_stack_bound_counts_every_variable_and_refuses_recursion() -> None:
+    header = "#define N 3\ntypedef struct {\n    double t;\n    unsigned char s[N];\n} c_t;\n"
+    source = """
+/* free(x) in a comment calls nothing */
+static double leaf(const double *x, size_t n)
+{
+    double sum = 0.0, term[N * 2];
+    size_t i;
+    for (i = 0; i < n; ++i) {
+        const double v = x[i];
+        sum += v + term[i];
+    }
+    return sum;
+}
+
+int entry(c_t *c, double t)
+{
+    c_t next;
+    int status = 0;
+    next.t = t + leaf(&c->t, 1) + leaf(&t, 1);
+    *c = next;
+    return status;
+}
+"""
+    functions = parse(source, header, 8)
+    # leaf: x, n; sum, term[6], i, v. entry: c, t; next (16: 8 + 3, aligned to 8), status.
+    assert functions["leaf"].frame == FRAME_ALLOWANCE + 8 + 8 + 8 + 48 + 8 + 8
+    assert functions["entry"].frame == FRAME_ALLOWANCE + 8 + 8 + 16 + 4
+    assert functions["entry"].calls == ("leaf",)
+    assert bounds(functions) == {"entry": functions["entry"].frame + functions["leaf"].frame}
+    recursive = (
+        "static int f(int n)\n{\n    return n ? f(n - 1) : 0;\n}\nint g(void) { return f(3); }\n"
+    )
+    with pytest.raises(ValueError, match="recursion: g -> f -> f"):
+        bounds(parse(recursive, "", 8))
+    with pytest.raises(ValueError, match="unknown type: widget_t"):
+        parse("int g(void)\n{\n    widget_t w;\n    return 0;\n}\n", "", 8)

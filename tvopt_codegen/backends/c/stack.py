@@ -228,10 +228,27 @@ def _type_words(statement: list[str], sizes: _Sizes) -> tuple[list[str], list[st
     return statement[:i], statement[i:]
 
 
+#: The keywords a statement that declares nothing may start with.
+_STATEMENTS = frozenset(
+    "return if else for while do switch case default goto break continue sizeof".split()
+)
+
+
 def _is_declaration(statement: list[str], sizes: _Sizes) -> bool:
+    """Whether ``statement`` declares variables; an unknown type is an error, not a miss."""
     words, rest = _type_words(statement, sizes)
     names = [w for w in words if w not in _QUALIFIERS and w != "static"]
-    return bool(names) and bool(rest) and (rest[0] == "*" or rest[0].isidentifier())
+    if not names:
+        # Two names in a row start only a declaration: of a type the sizes do not know.
+        if (
+            len(statement) > 1
+            and statement[0] not in _STATEMENTS
+            and statement[0].isidentifier()
+            and statement[1].isidentifier()
+        ):
+            raise ValueError(f"unknown type: {statement[0]}")
+        return False
+    return bool(rest) and (rest[0] == "*" or rest[0].isidentifier())
 
 
 def parse(source: str, header: str, real_size: int) -> dict[str, Function]:
