@@ -8,7 +8,10 @@
  * the classical fourth-order Runge-Kutta method advance it.
  *
  * Built with -DNAME=<name> -DUNAME=<NAME> -DREAL=<double|float> -DSTEPS=<n> -DRATE=<Hz>
- * -DSUBSTEPS=<n> -DEVERY=<n>. The output is text, one record a line, every number the 16
+ * -DSUBSTEPS=<n> -DEVERY=<n>. An example with references measured at run time
+ * ([references]) is built with -DREFS and the include path of a "loop_refs.h" that
+ * defines refs_at[STEPS + 1][<NAME>_N_REFERENCE_JET], the references' jets at each
+ * step's time k / RATE (init takes row 0). The output is text, one record a line, every number the 16
  * hexadecimal digits of a double's bits (exact, and no printf needed on bare metal):
  *   s <k> <t> <x_0> ... <x_{n-1}> <u_0> ... <u_{m-1}>   every EVERY steps and the last
  *   fail <k> <status>                                   a step that failed
@@ -29,6 +32,17 @@
 #define CONST(suffix) CAT(UNAME, suffix)
 #define NX CONST(_N_PLANT_STATES)
 #define NU CONST(_N_INPUTS)
+
+/* The references' jets, one more argument of controller_init and controller_step
+ * (docs/references.md); nothing at all without references. */
+#ifdef REFS
+#include "loop_refs.h"
+#define REFS_STEP(k) refs_at[k],
+#define REFS_INIT , refs_at[0]
+#else
+#define REFS_STEP(k)
+#define REFS_INIT
+#endif
 
 int harness_plant(double t, const double *x, const double *u, const double *params, double *out);
 
@@ -130,12 +144,12 @@ int main(void)
         x[i] = (double)FN(_default_state)[i];
         xr[i] = (REAL)x[i];
     }
-    status = FN(_controller_init)(&c, (REAL)0.0, xr, NULL, NULL);
+    status = FN(_controller_init)(&c, (REAL)0.0, xr, NULL, NULL REFS_INIT);
     if (status != 0) return fail(-1, status);
     for (k = 0; k <= STEPS; ++k) {
         const double t = (double)k * h;
         for (i = 0; i < NX; ++i) xr[i] = (REAL)x[i];
-        status = FN(_controller_step)(&c, (REAL)t, xr, ur);
+        status = FN(_controller_step)(&c, (REAL)t, xr, REFS_STEP(k) ur);
         if (status != 0) return fail(k, status);
         for (i = 0; i < NU; ++i) u[i] = (double)ur[i];
         if (k % EVERY == 0 || k == STEPS) record(k, t, x, u);
