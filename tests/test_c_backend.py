@@ -47,8 +47,13 @@ def c_module(spec: str, tmp_path_factory: pytest.TempPathFactory) -> ModuleType:
     return _IMPORTED[spec]
 
 
+#: The specs tests/test_strict_c.py does not hold to its stricter profile (it takes every
+#: bundled example, robust_pvtol and coupled3).
+NOT_IN_STRICT_C = tuple(s for s in ALL_SPECS if s.endswith(("nonuniform.toml", "hovercraft.toml")))
+
+
 @pytest.mark.parametrize("compiler", COMPILERS)
-@pytest.mark.parametrize("spec", ALL_SPECS)
+@pytest.mark.parametrize("spec", NOT_IN_STRICT_C)
 def test_compiles_cleanly_under_strict_warnings(spec: str, compiler: str, tmp_path: Path) -> None:
     source = _write_c(spec, tmp_path)
     done = subprocess.run(
