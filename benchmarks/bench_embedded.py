@@ -5,8 +5,9 @@ Cortex-M4F (``-mcpu=cortex-m4 -mfpu=fpv4-sp-d16 -mfloat-abi=hard -O2 -ffp-contra
 and run bare metal under ``qemu-system-arm -M mps2-an386 -icount shift=0``, with the
 harness of ``tests/embedded`` (``bench.c``: the text there says how SysTick counts
 instructions under ``-icount``). Beside them, CasADi's generated C of the same law
-(``benchmarks/bench_c.py``'s ``casadi_law``) with ``casadi_real`` double and float. And
-what single precision costs in accuracy: ``loop.c``'s closed loop with the M4F's
+(``benchmarks/bench_c.py``'s ``casadi_law``; for mass-matrix plants and equalities,
+``benchmarks/casadi_peers.py``'s ``casadi_peer_law``) with ``casadi_real`` double and
+float. And what single precision costs in accuracy: ``loop.c``'s closed loop with the M4F's
 single-precision controller against the x86-64 host's double one.
 
 Run: ``make bench-embedded`` (needs the ARM toolchain and QEMU, ``.ci/run``'s apt-get
@@ -68,14 +69,10 @@ EXAMPLES = (
     "pvtol_refs",
     "unicycle_ring_refs",
 )
-#: Why the benchmarks' CasADi build (bench_c.casadi_law) has no peer of an example.
-NO_CASADI = {
-    "arm_on_line": "an equality constraint: casadi_law builds no multiplier chains, so its "
-    "law would not be this one",
-    "planar_arm3": "mass-matrix form: casadi_law takes f and G explicitly and fails on "
-    "M^-1 F's run-time symbols",
-    "ur5_tip": "mass-matrix form, as planar_arm3",
-}
+#: Examples whose CasADi peer is ``casadi_peers.casadi_peer_law`` (mass-matrix plants:
+#: ``ca.solve(M, [F B])``; an equality: the KKT law with its multiplier chains), not
+#: ``bench_c.casadi_law``, which takes f and G explicitly and has no multipliers.
+PEER_LAW = frozenset({"arm_on_line", "planar_arm3", "ur5_tip"})
 #: `control` calls timed in one interval; the closed loop's steps (100 Hz, 1 s).
 CALLS = 100
 LOOP = Loop(rate=100, steps=100, substeps=4, every=10)
@@ -514,6 +511,17 @@ def casadi_refs_law(d: Any) -> Any:
     return ca.Function("casadi_law", [t, X, P, jets], [u])
 
 
+def peer_law(example: str, d: Any) -> Any:
+    """CasADi's law of ``example`` (without references): ``casadi_law``, or ``PEER_LAW``'s."""
+    if example in PEER_LAW:
+        from casadi_peers import casadi_peer_law  # noqa: PLC0415 - imports casadi
+
+        return casadi_peer_law(d)
+    from bench_c import casadi_law  # noqa: PLC0415 - imports casadi and cffi
+
+    return casadi_law(d)
+
+
 def check_peer(example: str, jets: Jets | None) -> None:
     """Check that CasADi's law of ``example`` is ours where the benchmark calls it.
 
@@ -523,7 +531,6 @@ def check_peer(example: str, jets: Jets | None) -> None:
         When the two inputs differ by more than 1e-9 at t = 0.5, the default state.
     """
     import numpy as np  # noqa: PLC0415
-    from bench_c import casadi_law  # noqa: PLC0415 - imports casadi and cffi
 
     from tvopt_codegen.derivation import derive  # noqa: PLC0415
     from tvopt_codegen.lowering.ir import lower  # noqa: PLC0415
@@ -539,7 +546,7 @@ def check_peer(example: str, jets: Jets | None) -> None:
         width = len(jets.half) // len(d.model.references)
         ours_u = module.control(0.5, state, refs=np.reshape(jets.half, (-1, width)))
     else:
-        peer = casadi_law(d)(0.5, state, params)
+        peer = peer_law(example, d)(0.5, state, params)
         ours_u = module.control(0.5, state)
     gap = float(np.max(np.abs(np.ravel(np.array(peer)) - np.ravel(ours_u))))
     if not gap <= 1e-9:
@@ -549,7 +556,6 @@ def check_peer(example: str, jets: Jets | None) -> None:
 def casadi_row(example: str, real: str, folder: Path, jets: Jets | None = None) -> Row:
     """CasADi's generated C of ``example``'s law with ``casadi_real`` = ``real`` on the M4F."""
     import casadi as ca  # noqa: PLC0415 - the bench extra
-    from bench_c import casadi_law  # noqa: PLC0415 - imports casadi and cffi
 
     from tvopt_codegen.derivation import derive  # noqa: PLC0415
     from tvopt_codegen.spec import load_spec  # noqa: PLC0415
@@ -557,7 +563,7 @@ def casadi_row(example: str, real: str, folder: Path, jets: Jets | None = None) 
     folder.mkdir(parents=True, exist_ok=True)
     d = derive(load_spec(example))
     generator = ca.CodeGenerator("casadi_law", {"with_header": True, "casadi_real": real})
-    generator.add(casadi_refs_law(d) if jets else casadi_law(d))
+    generator.add(casadi_refs_law(d) if jets else peer_law(example, d))
     generator.generate(str(folder) + "/")
     state = [float(v) for v in d.closed_loop.initial_state]
     params = [float(v) for _, v in d.spec.parameters] or [0.0]
@@ -665,10 +671,9 @@ def main() -> int:
             jets = nominal_jets(example)
             for precision in ("double", "single"):
                 rows.append(ours(example, precision, base / "c", base / example / precision, jets))
-            if example not in NO_CASADI:
-                check_peer(example, jets)
-                for real in ("double", "float"):
-                    rows.append(casadi_row(example, real, base / example / f"casadi-{real}", jets))
+            check_peer(example, jets)
+            for real in ("double", "float"):
+                rows.append(casadi_row(example, real, base / example / f"casadi-{real}", jets))
             measures.append(accuracy(example, base / "c", base / example / "accuracy", jets))
             print(f"{example}: done", file=sys.stderr)
     text = table(rows)
@@ -772,9 +777,23 @@ def _document(text: str, rows: list[Row]) -> str:
         "each reference a symbol whose time derivative is the next entry of its jet, the "
         "jets a fourth argument). Before it is timed, each CasADi law is evaluated at that "
         "point and checked against our controller's `control` there (1e-9). CasADi has no "
-        "stateful controller: no step column. No CasADi peer for: "
-        + "; ".join(f"{k} ({v})" for k, v in NO_CASADI.items())
-        + ".",
+        "stateful controller: no step column.",
+        "- CasADi, mass-matrix plants (planar_arm3, ur5_tip) and the equality (arm_on_line): "
+        "`benchmarks/casadi_peers.py`'s `casadi_peer_law`, casadi_law's construction with "
+        "two additions. For `M(q) q'' = F + B u`, `M`, `F`, `B` (after the spec's "
+        "definitions, ur5_tip's Newton-Euler vectors) are CasADi expressions and "
+        "`[M^-1 F, M^-1 B] = ca.solve(M, [F B])`, one solve of every right-hand side: what "
+        "a CasADi user writes for forward dynamics, and what casadi_law uses for the "
+        "Hessian and R. On SX CasADi expands it: up to 3 x 3 into the adjugate over the "
+        "determinant (planar_arm3's `M`), above into a QR factorization whose C calls "
+        "`sqrt` (ur5_tip's 6 x 6 `M`); a hand-written LDL^T would be our factorization "
+        "translated, not CasADi's. For the equality, the law is the paper's law for "
+        "`L = f0 + nu a` over `(y, nu)` as our derivation defines it (docs/constraints.md): "
+        "`L`'s gradient (the KKT map) differentiated along t, the outputs' jets and the "
+        "multiplier's chain, whose states `nu_on_line_0`, `nu_on_line_1` follow the "
+        "plant's in the CasADi law's state argument as in our `control`'s, and "
+        "`(y'', nu'') = K^-1 [...]` by `ca.solve` of the 3 x 3 KKT matrix `K`; the law "
+        "returns the inputs, not `nu''`, as `control` does.",
         "",
         f"Single precision costs at most {worst.control / double[worst.example].control:.3f} "
         f"of double's instructions per `control` call on every one of the {len(single)} "
