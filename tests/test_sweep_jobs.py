@@ -87,7 +87,11 @@ def _wait_for_progress(process: subprocess.Popen[str]) -> None:
     raise AssertionError("the sweep ended before it showed progress")
 
 
-@pytest.mark.parametrize(("how", "workers", "again"), [("SIGTERM", 2, 1), ("SIGKILL", 1, 2)])
+# Each signal on a local cluster and on the in-process worker (one worker), each resumed
+# on the other.
+@pytest.mark.parametrize(
+    ("how", "workers", "again"), [("SIGTERM", 2, 1), ("SIGTERM", 1, 2), ("SIGKILL", 2, 1)]
+)
 def test_a_killed_sweep_resumes_to_the_uninterrupted_table_bit_for_bit(
     tmp_path: Path, reference: bytes, how: str, workers: int, again: int
 ) -> None:
@@ -133,10 +137,12 @@ def test_a_killed_sweep_resumes_to_the_uninterrupted_table_bit_for_bit(
     assert again_run.returncode == 0 and "nothing to resume" in again_run.stderr
 
 
-def test_ctrl_c_in_a_terminal_is_one_line(tmp_path: Path) -> None:
-    """A terminal sends SIGINT to the whole process group, the workers too."""
+@pytest.mark.parametrize("workers", [2, 1])
+def test_ctrl_c_in_a_terminal_is_one_line(tmp_path: Path, workers: int) -> None:
+    """A terminal sends SIGINT to the whole process group, the workers too (or to the one
+    process that is the worker)."""
     out = tmp_path / "out"
-    process = _start(out, 2)
+    process = _start(out, workers)
     _wait_for_progress(process)
     os.killpg(process.pid, signal.SIGINT)
     _, stderr = process.communicate(timeout=120)
