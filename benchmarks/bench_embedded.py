@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import re
 import subprocess
 import sys
 import tempfile
@@ -38,6 +37,7 @@ from tests.embedded.harness import (  # noqa: E402
     COMMON_FLAGS,
     HERE,
     TARGETS,
+    CallGraph,
     Loop,
     Trace,
     build_loop,
@@ -136,28 +136,8 @@ def _deepest_stack(callgraph: Path, roots: tuple[str, ...]) -> tuple[int, list[s
     Library functions (libm, libgcc) have no frame in the file's graph: they count 0
     here; the measured stack includes them.
     """
-    text = callgraph.read_text(encoding="utf-8")
-    frames: dict[str, int] = {}
-    names: dict[str, str] = {}
-    for title, label in re.findall(r'node: \{ title: "([^"]+)" label: "([^"]+)"', text):
-        names[title] = label.split("\\n")[0]
-        size = re.search(r"(\d+) bytes", label)
-        frames[title] = int(size.group(1)) if size else 0
-    calls: dict[str, list[str]] = {}
-    for source, target in re.findall(r'edge: \{ sourcename: "([^"]+)" targetname: "([^"]+)"', text):
-        calls.setdefault(source, []).append(target)
-    memo: dict[str, tuple[int, list[str]]] = {}
-
-    def deepest(node: str, path: tuple[str, ...]) -> tuple[int, list[str]]:
-        if node in path:
-            raise RuntimeError(f"recursion through {names.get(node, node)}")
-        if node not in memo:
-            below = [deepest(c, (*path, node)) for c in calls.get(node, [])]
-            best = max(below, default=(0, []))
-            memo[node] = (frames.get(node, 0) + best[0], [names.get(node, node), *best[1]])
-        return memo[node]
-
-    return max(deepest(title, ()) for title in names if names[title] in roots)
+    graph = CallGraph.read(callgraph)
+    return max(graph.deepest(node) for node, name in graph.names.items() if name in roots)
 
 
 @dataclass

@@ -31,7 +31,7 @@ from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.spec import spec_from_dict
 
 from .conftest import ROOT, SPECS, kernels, shared
-from .embedded.harness import TARGETS, compile_object, skip_reason
+from .embedded.harness import TARGETS, CallGraph, compile_object, skip_reason
 
 #: Every bundled example.
 BUNDLED = tuple(sorted(path.stem for path in (ROOT / "tvopt_codegen" / "examples").glob("*.toml")))
@@ -150,34 +150,11 @@ def test_the_static_analysers_find_nothing(example: str, precision: str, tmp_pat
 HEAP = re.compile(r"\b(malloc|calloc|realloc|free|alloca|__builtin_alloca)\s*\(")
 _PROSE = re.compile(r'/\*.*?\*/|//[^\n]*|"(?:\\.|[^"\\])*"', re.DOTALL)
 
-#: The nodes and edges of gcc's ``-fcallgraph-info=su`` (VCG).
-_NODE = re.compile(r'node: \{ title: "([^"]+)" label: "([^"]+)"')
-_EDGE = re.compile(r'edge: \{ sourcename: "([^"]+)" targetname: "([^"]+)"')
-
 
 def _source(folder: Path) -> str:
     """The controller's ``.c`` in ``folder`` (not the CPython entry point's)."""
     (source,) = (p.name for p in folder.glob("*.c") if not p.name.endswith(".ext.c"))
     return source
-
-
-def _callgraph(ci: Path) -> tuple[dict[str, tuple[str, int]], dict[str, list[str]]]:
-    """gcc's call graph: each node's function name and static frame, and each node's callees."""
-    text = ci.read_text(encoding="utf-8")
-    nodes = {}
-    for title, label in _NODE.findall(text):
-        size = re.search(r"(\d+) bytes", label)
-        nodes[title] = (label.split("\\n")[0], int(size.group(1)) if size else 0)
-    calls: dict[str, list[str]] = {}
-    for source, target in _EDGE.findall(text):
-        calls.setdefault(source, []).append(target)
-    return nodes, calls
-
-
-def _deepest(nodes: dict[str, tuple[str, int]], calls: dict[str, list[str]], root: str) -> int:
-    """The largest sum of static frames along a call path from ``root`` (acyclic graph)."""
-    below = (_deepest(nodes, calls, callee) for callee in calls.get(root, []))
-    return nodes.get(root, ("", 0))[1] + max(below, default=0)
 
 
 def stated_bounds(header: str) -> dict[str, int]:
@@ -188,10 +165,8 @@ def stated_bounds(header: str) -> dict[str, int]:
 
 def _frames(ci: Path) -> dict[str, int]:
     """gcc's deepest static stack per function of the file, from its ``.ci`` call graph."""
-    nodes, calls = _callgraph(ci)
-    # The C library's functions are nodes without a frame: the file defines the others.
-    defined = {t for t, label in _NODE.findall(ci.read_text(encoding="utf-8")) if "bytes" in label}
-    return {name: _deepest(nodes, calls, t) for t, (name, _) in nodes.items() if t in defined}
+    graph = CallGraph.read(ci)
+    return {graph.names[node]: graph.deepest(node)[0] for node in graph.own}
 
 
 def _measured(target: str, folder: Path, out: Path, *flags: str) -> dict[str, int]:
@@ -204,21 +179,6 @@ def _measured(target: str, folder: Path, out: Path, *flags: str) -> dict[str, in
         "-fcallgraph-info=su",
     )
     return _frames(obj.with_suffix(".ci"))
-
-
-def _no_recursion(nodes: dict[str, tuple[str, int]], calls: dict[str, list[str]]) -> None:
-    """Depth-first: a node met again while still on the path closes a cycle."""
-    done: set[str] = set()
-
-    def visit(node: str, path: tuple[str, ...]) -> None:
-        assert node not in path, f"recursion: {' -> '.join((*path, node))}"
-        if node not in done:
-            for callee in calls.get(node, []):
-                visit(callee, (*path, node))
-            done.add(node)
-
-    for node in nodes:
-        visit(node, ())
 
 
 # One test per file for what gcc's builds show, each build serving every check it can
@@ -240,9 +200,10 @@ def test_gcc_no_heap_no_recursion_no_pointer_calls_and_the_stack_bound(
     _clean(
         [gcc, *STRICT, "-fcallgraph-info=su", "-c", source, "-o", str(ci.with_suffix(".o"))], folder
     )
-    nodes, calls = _callgraph(ci)
-    assert not [t for t in nodes if "__indirect_call" in t], "a call through a pointer"
-    _no_recursion(nodes, calls)
+    graph = CallGraph.read(ci)
+    assert not [t for t in graph.names if "__indirect_call" in t], "a call through a pointer"
+    for node in graph.names:
+        graph.deepest(node)  # raises on recursion, naming the cycle
 
     (header,) = folder.glob("*.h")
     bounds = stated_bounds(header.read_text(encoding="utf-8"))

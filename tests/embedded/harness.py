@@ -13,6 +13,7 @@ The tests (``tests/test_embedded_qemu.py``) and ``benchmarks/bench_embedded.py``
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 from dataclasses import dataclass
@@ -184,6 +185,70 @@ def compile_object(target: Target, source: Path, out: Path, *extra: str) -> Path
     """Compile one C file for ``target`` (the harness's flags, plus ``extra``)."""
     _run([target.cc, *COMMON_FLAGS, *target.flags, *extra, "-c", str(source), "-o", str(out)])
     return out
+
+
+@dataclass(frozen=True)
+class CallGraph:
+    """gcc's ``-fcallgraph-info=su`` graph of one object file (VCG).
+
+    Attributes
+    ----------
+    names : dict
+        Each node's function name.
+    frames : dict
+        Each node's static frame in bytes: 0 for a function the file does not define
+        (libm, libgcc), which has no frame in the graph.
+    calls : dict
+        Each node's callees.
+    own : frozenset
+        The nodes of the file's own functions (gcc gives each a frame, 0 bytes or more).
+    """
+
+    names: dict[str, str]
+    frames: dict[str, int]
+    calls: dict[str, list[str]]
+    own: frozenset[str]
+
+    @classmethod
+    def read(cls, path: Path) -> CallGraph:
+        """The graph gcc wrote to ``path`` (the object's ``.ci`` file)."""
+        text = path.read_text(encoding="utf-8")
+        names: dict[str, str] = {}
+        frames: dict[str, int] = {}
+        own: set[str] = set()
+        for title, label in re.findall(r'node: \{ title: "([^"]+)" label: "([^"]+)"', text):
+            names[title] = label.split("\\n")[0]
+            size = re.search(r"(\d+) bytes", label)
+            frames[title] = int(size.group(1)) if size else 0
+            if size:
+                own.add(title)
+        calls: dict[str, list[str]] = {}
+        edges = r'edge: \{ sourcename: "([^"]+)" targetname: "([^"]+)"'
+        for source, target in re.findall(edges, text):
+            calls.setdefault(source, []).append(target)
+        return cls(names, frames, calls, frozenset(own))
+
+    def deepest(self, node: str) -> tuple[int, list[str]]:
+        """The largest sum of static frames along a call path from ``node``, and the path.
+
+        Raises
+        ------
+        RuntimeError
+            On recursion (a cycle in the graph), naming the cycle.
+        """
+        memo: dict[str, tuple[int, list[str]]] = {}
+
+        def visit(at: str, path: tuple[str, ...]) -> tuple[int, list[str]]:
+            if at in path:
+                cycle = " -> ".join(self.names.get(n, n) for n in (*path, at))
+                raise RuntimeError(f"recursion: {cycle}")
+            if at not in memo:
+                below = [visit(callee, (*path, at)) for callee in self.calls.get(at, [])]
+                best = max(below, default=(0, []))
+                memo[at] = (self.frames.get(at, 0) + best[0], [self.names.get(at, at), *best[1]])
+            return memo[at]
+
+        return visit(node, ())
 
 
 def renamed_plant(target: Target, name: str, double: Path, out: Path) -> Path:
