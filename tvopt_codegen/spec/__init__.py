@@ -28,6 +28,7 @@ from tvopt_codegen.spec.types import (
     Mechanics,
     Robust,
     Spec,
+    TuneSettings,
     symbol,
 )
 
@@ -45,6 +46,7 @@ __all__ = [
     "MAX_SPEC_BYTES",
     "Spec",
     "TIME",
+    "TuneSettings",
     "bundled_examples",
     "load_spec",
     "parse_spec",

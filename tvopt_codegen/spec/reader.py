@@ -6,7 +6,7 @@ Names come before the expressions that use them; every problem is a
 family of sections is read by a module of its own: ``fields`` (tables, numbers, names,
 indices, expressions), ``plant`` (``[system]``, ``[extension]``), ``objective``
 (``[references]``, ``[signals]``, ``[objective]``, ``[constraints]``) and ``settings``
-(``[error_dynamics]``, ``[robust]``, ``[limits]``, ``[simulation]``).
+(``[error_dynamics]``, ``[robust]``, ``[limits]``, ``[simulation]``, ``[tune]``).
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ _TOP_KEYS = {
     "robust",
     "limits",
     "simulation",
+    "tune",
 }
 
 
@@ -104,6 +105,7 @@ class _Reader(_PlantReader, _ObjectiveReader, _SettingsReader):
         limits = self.read_limits(data, system.inputs)
         t_final, initial_state = self.read_simulation(data)
         agents, objects = self.read_figure_layout(data, system.outputs, signals, references)
+        tune = self.read_tune(data, robust)
         return Spec(
             source=self.source,
             sha256=sha256,
@@ -137,6 +139,7 @@ class _Reader(_PlantReader, _ObjectiveReader, _SettingsReader):
             robust=robust,
             limits=limits,
             mechanics=mechanics,
+            tune=tune,
         )
 
     def read_parameters(self, data: Mapping[str, Any]) -> tuple[tuple[str, float], ...]:

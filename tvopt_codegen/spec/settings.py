@@ -1,8 +1,8 @@
 """The spec reader's settings of the law and its run.
 
 ``[error_dynamics]`` (poles or coefficients), ``[robust]``, ``[limits]`` (ranges and
-rates of the inputs) and ``[simulation]`` (its horizon, initial state, and the pairs
-its figures draw).
+rates of the inputs), ``[simulation]`` (its horizon, initial state, and the pairs
+its figures draw) and ``[tune]`` (what ``tune`` searches for; nothing else reads it).
 """
 
 from __future__ import annotations
@@ -18,14 +18,14 @@ from tvopt_codegen.limits import MAX_T_FINAL
 from tvopt_codegen.spec.fields import _Fields, shown
 from tvopt_codegen.spec.fields import suggestion as _suggestion
 from tvopt_codegen.spec.parse import indexed_name
-from tvopt_codegen.spec.types import Limit, Robust
+from tvopt_codegen.spec.types import Limit, Robust, TuneSettings
 
 #: The extended-state observer's bandwidths, rad/s: its gains go up to bandwidth^(r+1).
 ESO_BANDWIDTH_RANGE = (1e-6, 1e6)
 
 
 class _SettingsReader(_Fields):
-    """Reads ``[error_dynamics]``, ``[robust]``, ``[limits]`` and ``[simulation]``."""
+    """Reads ``[error_dynamics]``, ``[robust]``, ``[limits]``, ``[simulation]`` and ``[tune]``."""
 
     def read_robust(self, data: Mapping[str, Any]) -> Robust:
         """``[robust]``: integral action, ``[robust.observer]`` and ``[robust.eso]``."""
@@ -204,3 +204,75 @@ class _SettingsReader(_Fields):
             simulation, "objects", {name for name, _ in signals} | set(references), "signal"
         )
         return agents, objects
+
+    def read_tune(self, data: Mapping[str, Any], robust: Robust) -> TuneSettings | None:
+        """``[tune]``: what ``tune`` searches for, its types and simple bounds checked.
+
+        The objective's and the constraints' grammar is ``tvopt_codegen.tune``'s: here
+        they are non-empty strings. None without the table.
+        """
+        if "tune" not in data:
+            return None
+        table = self.sub(data, "tune", "tune")
+        self.table(
+            table,
+            "tune",
+            {"objective", "constraints", "after", "pole_range", "min_damping", "bandwidth_range"},
+            set(),
+        )
+        # Each key in the order the docs list them, so the first problem is the first key's.
+        objective = None
+        if "objective" in table:
+            objective = self.requirement(table["objective"], "tune.objective")
+        constraints = table.get("constraints", [])
+        if not isinstance(constraints, list):
+            raise self.fail(
+                "tune.constraints", f"expected a list of strings, got {shown(constraints)}"
+            )
+        requirements = tuple(
+            self.requirement(c, f"tune.constraints[{i}]") for i, c in enumerate(constraints)
+        )
+        after = None
+        if "after" in table:
+            after = self.number(table["after"], "tune.after")
+            if not after >= 0:
+                raise self.fail("tune.after", f"must be a time >= 0 (seconds), got {after:g}")
+        pole_range = self.positive_range(table, "pole_range")
+        min_damping = None
+        if "min_damping" in table:
+            min_damping = self.number(table["min_damping"], "tune.min_damping")
+            if not 0 < min_damping <= 1:
+                raise self.fail(
+                    "tune.min_damping", f"a damping ratio in (0, 1] is needed, got {min_damping:g}"
+                )
+        bandwidth_range = self.positive_range(table, "bandwidth_range")
+        if bandwidth_range is not None and robust.observer is None and robust.eso is None:
+            raise self.fail(
+                "tune.bandwidth_range",
+                "the spec has no [robust.observer] or [robust.eso] bandwidth to tune",
+            )
+        return TuneSettings(
+            objective, requirements, after, pole_range, min_damping, bandwidth_range
+        )
+
+    def requirement(self, value: object, field: str) -> str:
+        """A requirement as written: a string with something in it."""
+        if not isinstance(value, str):
+            raise self.fail(field, f"expected a string, got {shown(value)}")
+        if not value.strip():
+            raise self.fail(field, "expected a requirement, got an empty string")
+        return value
+
+    def positive_range(self, table: Mapping[str, Any], key: str) -> tuple[float, float] | None:
+        """``tune.<key> = [lo, hi]`` with ``0 < lo < hi``, or None when not given."""
+        if key not in table:
+            return None
+        field = f"tune.{key}"
+        value = table[key]
+        if not isinstance(value, list) or len(value) != 2:
+            raise self.fail(field, f"expected [lo, hi], got {shown(value)}")
+        low = self.number(value[0], f"{field}[0]")
+        high = self.number(value[1], f"{field}[1]")
+        if not 0 < low < high:
+            raise self.fail(field, f"expected 0 < lo < hi, got [{low:g}, {high:g}]")
+        return low, high

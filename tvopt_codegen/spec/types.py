@@ -54,6 +54,40 @@ class Robust:
 
 
 @dataclass(frozen=True)
+class TuneSettings:
+    """What ``tune`` searches for and within what (``[tune]``); no other command reads it.
+
+    The strings are kept as written: their grammar is ``tvopt_codegen.tune.requirements``'s.
+    A None or empty value leaves the choice to ``tune`` (its default or its command line).
+
+    Attributes
+    ----------
+    objective : str or None
+        ``tune.objective``: what the search minimises, e.g. ``"max |e| after 2"``.
+    constraints : tuple of str
+        ``tune.constraints``: requirements every accepted candidate meets.
+    after : float or None
+        ``tune.after``: seconds; the requirements judge the run from this time on.
+    pole_range : (float, float) or None
+        ``tune.pole_range``: ``(lo, hi)``, ``0 < lo < hi``, rad/s: the poles' magnitudes
+        the search may choose.
+    min_damping : float or None
+        ``tune.min_damping``: in ``(0, 1]``, the least damping ratio of a conjugate pair
+        (1: real poles only).
+    bandwidth_range : (float, float) or None
+        ``tune.bandwidth_range``: ``(lo, hi)``, ``0 < lo < hi``, rad/s: the observer's
+        (``robust.observer`` or ``robust.eso``) bandwidths the search may choose.
+    """
+
+    objective: str | None = None
+    constraints: tuple[str, ...] = ()
+    after: float | None = None
+    pole_range: tuple[float, float] | None = None
+    min_damping: float | None = None
+    bandwidth_range: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
 class Limit:
     """One actuator's limits (``[limits]`` and ``[limits.rate]``).
 
@@ -196,6 +230,8 @@ class Spec:
         a limit are left out).
     mechanics : Mechanics or None
         ``[system.mechanics]``: the plant in mass-matrix form (None: ``[system.dynamics]``).
+    tune : TuneSettings or None
+        ``[tune]``: what ``tune`` searches for (None: no such table); nothing else reads it.
     """
 
     source: str
@@ -230,6 +266,7 @@ class Spec:
     robust: Robust = field(default_factory=Robust)
     limits: tuple[Limit, ...] = ()
     mechanics: Mechanics | None = None
+    tune: TuneSettings | None = None
 
 
 @dataclass(frozen=True)
