@@ -273,6 +273,10 @@ class SweepOptions:
         Output times per run (where ``y*``, the errors and the inputs are measured).
     max_steps : int
         RK steps one run may take (accepted and rejected).
+    window : float
+        Where ``integrated_error`` and ``max_error_after`` start (seconds, at most
+        ``t_final``): the tuner's measures of the error after the transient it allows.
+        ``sweep`` keeps 0.
     """
 
     samples: int
@@ -288,6 +292,7 @@ class SweepOptions:
     atol: float = DEFAULT_ATOL
     points: int = DEFAULT_POINTS
     max_steps: int = 1_000_000
+    window: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
         """A JSON-ready record (``sweep.json``)."""
@@ -305,6 +310,7 @@ class SweepOptions:
             "atol": self.atol,
             "points": self.points,
             "max_steps": self.max_steps,
+            "window": self.window,
         }
 
     @classmethod
@@ -330,4 +336,6 @@ class SweepOptions:
             atol=float(record["atol"]),
             points=int(record["points"]),
             max_steps=int(record["max_steps"]),
+            # Records written before the window existed: 0, as their sweeps measured.
+            window=float(record.get("window", 0.0)),
         )

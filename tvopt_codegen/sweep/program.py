@@ -6,8 +6,10 @@ Its loader, and the draws of one sample (one ``SeedSequence`` child per sample).
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import hashlib
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -68,6 +70,12 @@ class SweepProgram:
         Where the integral states are in the closed-loop state (integral action).
     bumpless : tuple of float
         ``b_j`` of the integrals' bumpless start ``z*(E) = sum_j b_j E_j``.
+    observer_bandwidth : float or None
+        The disturbance observer's bandwidth, rad/s (None without an observer).
+
+    The gains (``coefficients``, ``bumpless``, ``observer_bandwidth``) are run-time values
+    of the compiled loop (:meth:`gains`): :meth:`with_gains` gives another candidate's
+    program on the same library (same ``key``).
     """
 
     name: str
@@ -90,6 +98,7 @@ class SweepProgram:
     observer: bool = False
     integral_rows: tuple[int, ...] = ()
     bumpless: tuple[float, ...] = ()
+    observer_bandwidth: float | None = None
 
     @property
     def k(self) -> int:
@@ -101,6 +110,111 @@ class SweepProgram:
         """Width of a trajectory row: t, s, y, y*, u, then the :data:`TAIL` columns."""
         n, m, nu = len(self.state_names), len(self.output_names), len(self.input_names)
         return 1 + n + 2 * m + nu + len(TAIL)
+
+    def gains(self) -> np.ndarray:
+        """The gains the compiled loop runs with, in the C's order (``<name>_set_gains``).
+
+        The Hurwitz coefficients ``a_0 ..`` (k, or k + 1 with integral action), then with
+        integral action the bumpless ``b_0 .. b_(k-1)``, then with a disturbance observer
+        its bandwidth.
+        """
+        observer = () if self.observer_bandwidth is None else (self.observer_bandwidth,)
+        return np.array((*self.coefficients, *self.bumpless, *observer), dtype=float)
+
+    def with_gains(
+        self,
+        coefficients: Sequence[float],
+        bandwidth: float | None,
+        poles: Sequence[complex] | None = None,
+    ) -> SweepProgram:
+        """The same program with other gains: its sources and ``key`` (the same library).
+
+        Parameters
+        ----------
+        coefficients : sequence of float
+            H's coefficients ``a_0 ..``
+            (:func:`~tvopt_codegen.maths.hurwitz.coefficients_from_poles`), as many as
+            the spec's (k + 1 with integral action).
+        bandwidth : float or None
+            The disturbance observer's bandwidth, rad/s; None exactly when the spec has
+            no observer.
+        poles : sequence of complex, optional
+            The poles ``coefficients`` came from: then the integral's pole is split off
+            them exactly, as the derivation does for a spec's poles (rows identical to
+            that spec's); default: from the coefficients' computed eigenvalues.
+
+        Returns
+        -------
+        SweepProgram
+            With ``coefficients``, ``alpha`` and ``c``
+            (:func:`~tvopt_codegen.maths.hurwitz.certified_rate`,
+            :func:`~tvopt_codegen.maths.hurwitz.transient_constant`), ``bumpless``
+            (:func:`~tvopt_codegen.maths.hurwitz.integral_split`) and
+            ``observer_bandwidth`` replaced.
+
+        Raises
+        ------
+        SpecError
+            When the count is not the spec's, H is not Hurwitz, integral action finds no
+            real pole, or the bandwidth is missing, extra or not a positive number.
+        """
+        from tvopt_codegen.maths import hurwitz  # noqa: PLC0415
+
+        values = tuple(float(a) for a in coefficients)
+        if len(values) != len(self.coefficients):
+            extra = " (k + 1: integral action adds one)" if self.integral_rows else ""
+            raise SpecError(
+                "command line",
+                "gains",
+                f"give {len(self.coefficients)} coefficients{extra}, not {len(values)}",
+            )
+        if not all(math.isfinite(a) for a in values):
+            raise SpecError("command line", "gains", "the coefficients must be finite")
+        if poles is not None:
+            poles = tuple(complex(p) for p in poles)
+            if hurwitz.coefficients_from_poles(poles) != values:
+                raise SpecError(
+                    "command line", "gains", "the poles are not those of the coefficients"
+                )
+        rate = hurwitz.decay_rate(values) if poles is None else -max(p.real for p in poles)
+        if not rate > 0:
+            raise SpecError(
+                "command line",
+                "gains",
+                f"H is not Hurwitz: its slowest eigenvalue has real part {-rate:.6g} >= 0",
+            )
+        bumpless: tuple[float, ...] = ()
+        if self.integral_rows:
+            split = hurwitz.integral_split(values, poles)
+            if split is None:
+                raise SpecError(
+                    "command line",
+                    "gains",
+                    "integral action takes a real pole (its own) and every eigenvalue of H "
+                    "is complex",
+                )
+            bumpless = split[2]
+        if (bandwidth is None) != (self.observer_bandwidth is None):
+            raise SpecError(
+                "command line",
+                "gains",
+                "the observer's bandwidth is needed"
+                if bandwidth is None
+                else "the spec has no disturbance observer ([robust.observer]): no bandwidth",
+            )
+        if bandwidth is not None and not (math.isfinite(bandwidth) and bandwidth > 0):
+            raise SpecError(
+                "command line", "gains", f"the observer's bandwidth must be > 0, not {bandwidth!r}"
+            )
+        alpha, _ = hurwitz.certified_rate(values)
+        return dataclasses.replace(
+            self,
+            coefficients=values,
+            alpha=alpha,
+            c=hurwitz.transient_constant(values, alpha),
+            bumpless=bumpless,
+            observer_bandwidth=None if bandwidth is None else float(bandwidth),
+        )
 
 
 #: A trajectory row's last columns, after t, s, y, y* and u: log|det R|, the certificate's
@@ -133,7 +247,6 @@ def sweep_program(kernels: KernelSet, precision: str = "double") -> SweepProgram
     from tvopt_codegen.lowering.ir import check_kernels  # noqa: PLC0415
     from tvopt_codegen.renderer.rendering import (  # noqa: PLC0415
         print_kernel,
-        render,
         render_template,
         template_context,
     )
@@ -148,15 +261,16 @@ def sweep_program(kernels: KernelSet, precision: str = "double") -> SweepProgram
             "(the nominal closed forms as signals)",
         )
     backend = BACKENDS["c"]
-    files = render(kernels, backend)
     name = d.spec.name
     context = template_context(kernels, backend)
+    files = _tunable(context, backend, name)
     single = f"{name}_f32" if precision == "single" else None
     extra: tuple[tuple[str, str], ...] = ()
     if single is not None:
         from tvopt_codegen.backends.c import with_precision  # noqa: PLC0415
 
-        floats = render(kernels, with_precision(precision, prefix=single))
+        floating = with_precision(precision, prefix=single)
+        floats = _tunable(template_context(kernels, floating), floating, name)
         extra = ((f"{single}.h", floats[f"{name}.h"]), (f"{single}.c", floats[f"{name}.c"]))
     checks = check_kernels(d)
     constraints, equalities = checks.constraints, checks.equalities
@@ -227,7 +341,26 @@ def sweep_program(kernels: KernelSet, precision: str = "double") -> SweepProgram
             d.closed_loop.state_names.index(name) for name in d.closed_loop.integral_states
         ),
         bumpless=tuple(float(b) for b in d.dynamics.bumpless),
+        observer_bandwidth=None if d.robustness.observer is None else float(d.robustness.observer),
     )
+
+
+def _tunable(context: dict[str, Any], backend: Any, name: str) -> dict[str, str]:
+    """The controller's header and C as the sweep includes them: its gains run-time values.
+
+    The templates' ``tunable`` switch: the Hurwitz coefficients, the bumpless ``b_j`` and
+    the observer's bandwidth are per-thread storage that ``<name>_set_gains`` sets (the
+    user's ``generate`` output, without the switch, keeps them constants).
+    """
+    from tvopt_codegen.renderer.rendering import render_template  # noqa: PLC0415
+
+    context = context | {"tunable": True}
+    wanted = (f"{name}.h", f"{name}.c")
+    return {
+        pattern.format(name=name): render_template(template, context, backend.template_root)
+        for template, pattern in backend.templates
+        if pattern.format(name=name) in wanted
+    }
 
 
 def check_options(program: SweepProgram, options: SweepOptions) -> None:
@@ -241,6 +374,12 @@ def check_options(program: SweepProgram, options: SweepOptions) -> None:
         problem = None if value is None else RUN_OPTIONS[name].problem(value)
         if problem is not None:
             raise SpecError("command line", RUN_OPTIONS[name].flag, problem)
+    if not 0.0 <= options.window <= options.t_final:
+        raise SpecError(
+            "command line",
+            "--window",
+            f"must be between 0 and the horizon {options.t_final!r}, not {options.window!r}",
+        )
     noise = RUN_OPTIONS["measurement_noise"]
     if noise.problem(options.noise) is not None:
         raise SpecError("command line", noise.flag, noise.bounds)
@@ -331,7 +470,7 @@ class Loop:
         pointer = ctypes.POINTER(ctypes.c_double)
         self._run = getattr(library, f"{program.name}_sweep_run")
         self._run.restype = ctypes.c_int
-        self._run.argtypes = [pointer] * 8
+        self._run.argtypes = [pointer] * 9
         self._error = getattr(library, f"{program.name}_optimality_error")
         self._error.restype = ctypes.c_int
         self._error.argtypes = [ctypes.c_double, pointer, pointer, pointer]
@@ -342,9 +481,18 @@ class Loop:
             return None
         return array.ctypes.data_as(ctypes.POINTER(ctypes.c_double))
 
-    def run(self, options: SweepOptions, sample: Draw) -> tuple[Outcome, np.ndarray, np.ndarray]:
-        """Integrate one sample: its outcome, the rows written and the run's counters."""
-        p = self.program
+    def run(
+        self, options: SweepOptions, sample: Draw, program: SweepProgram | None = None
+    ) -> tuple[Outcome, np.ndarray, np.ndarray]:
+        """Integrate one sample: its outcome, the rows written and the run's counters.
+
+        ``program`` is the candidate whose gains the run takes (:meth:`SweepProgram.gains`;
+        it must share this loop's ``key``); default: the loop's own.
+        """
+        p = self.program if program is None else program
+        if p.key != self.program.key:
+            raise ValueError(f"program {p.name!r} is not this loop's (another compiled key)")
+        gains = np.ascontiguousarray(p.gains())
         bound = DIVERGENCE_FACTOR * max(1.0, float(np.max(np.abs(sample.s0), initial=0.0)))
         settings = np.array(
             [
@@ -372,6 +520,7 @@ class Loop:
             cp, pp = np.zeros(1), np.zeros(1)
         status = self._run(
             self._ptr(settings),
+            self._ptr(gains),
             self._ptr(np.ascontiguousarray(sample.s0)),
             self._ptr(cp),
             self._ptr(pp),

@@ -54,16 +54,40 @@ def _settling(t: np.ndarray, error: np.ndarray, fraction: float) -> float:
     return float(t[last + 1]) if last + 1 < len(t) else math.nan
 
 
+def _after(t: np.ndarray, error: np.ndarray, window: float) -> tuple[float, float]:
+    """``integral |y - y*| dt`` from ``window`` to the end, and the largest ``|y - y*|`` there.
+
+    The integral is the trapezoid rule's on the output grid: exactly the integral of the
+    piecewise-linear interpolant of the error, whose value at ``window`` (between two
+    output times) is interpolated. The largest error is at output times ``>= window``.
+    """
+    inside = t >= window
+    kept_t, kept = t[inside], error[inside]
+    if not len(kept_t):
+        return math.nan, math.nan
+    if window < kept_t[0]:
+        kept_t = np.concatenate(([window], kept_t))
+        kept = np.concatenate(([np.interp(window, t, error)], kept))
+    return float(np.trapezoid(kept, kept_t)), float(np.max(error[inside]))
+
+
 def _certificate(
-    loop: Loop, sample: Draw, t: np.ndarray, convexity: np.ndarray, error: np.ndarray
+    program: SweepProgram,
+    loop: Loop,
+    sample: Draw,
+    t: np.ndarray,
+    convexity: np.ndarray,
+    error: np.ndarray,
 ) -> bool:
     """Whether ``|y - y*| <= c |E(0)| / m_f e^(-alpha t)`` held (the nominal theorem).
 
     ``m_f`` is the least eigenvalue of f0's Hessian at y, y* and their midpoint along
     the run (the C loop's last column), as :mod:`tvopt_codegen.simulation` estimates it;
     the bound and the test are :mod:`tvopt_codegen.maths.hurwitz`'s, which ``simulate`` asks too.
+    ``program``'s c and alpha (a candidate's gains), not those of the program ``loop`` was
+    loaded for (:func:`loop_for` shares a loop among the programs of one key).
     """
-    p = loop.program
+    p = program
     cp = sample.cp if len(sample.cp) else np.zeros(1)
     # With integral action the theorem's error is col(z_I, E).
     integrals = sample.s0[list(p.integral_rows)]
@@ -103,7 +127,7 @@ def run_sample(
     """Run sample ``index`` and measure it; keep its trajectory when asked."""
     loop = loop_for(program)
     sample = _bumpless(program, options, loop, draw(program, options, index))
-    outcome, rows, info = loop.run(options, sample)
+    outcome, rows, info = loop.run(options, sample, program)
     n, m = len(program.state_names), len(program.output_names)
     nu = len(program.input_names)
     t = rows[:, 0]
@@ -134,6 +158,9 @@ def run_sample(
         "settling_1pct": _settling(t, error, SETTLING[0]) if ok else math.nan,
         "settling_01pct": _settling(t, error, SETTLING[1]) if ok else math.nan,
     }
+    row["integrated_error"], row["max_error_after"] = (
+        _after(t, error, options.window) if ok else (math.nan, math.nan)
+    )
     for j, name in enumerate(program.input_names):
         row[f"max_abs_{name}"] = float(np.abs(u[:, j]).max()) if len(rows) else math.nan
     row["time_saturated"] = float(saturated[:-1].sum() * spacing) if len(rows) else 0.0
@@ -159,7 +186,9 @@ def run_sample(
     row["steps"] = int(info[2])
     row["rejected_steps"] = int(info[3])
     row["nominal"] = nominal
-    row["certificate_holds"] = _certificate(loop, sample, t, convexity, error) if nominal else None
+    row["certificate_holds"] = (
+        _certificate(program, loop, sample, t, convexity, error) if nominal else None
+    )
     row |= sample.values
     row["error"] = None
     return SampleResult(row, rows if keep else None)
@@ -191,7 +220,7 @@ def nominal_start(program: SweepProgram, options: SweepOptions) -> Outcome:
     if not span >= sys.float_info.min:
         span = options.t_final
     brief = dataclasses.replace(options, t_final=span, points=2, noise=0.0)
-    outcome, _, _ = loop.run(brief, centre)
+    outcome, _, _ = loop.run(brief, centre, program)
     return outcome
 
 

@@ -61,6 +61,8 @@ def row_columns(program: SweepProgram, options: SweepOptions) -> list[tuple[str,
         ("max_error", "float"),
         ("settling_1pct", "float"),
         ("settling_01pct", "float"),
+        ("integrated_error", "float"),
+        ("max_error_after", "float"),
     ]
     columns += [(f"max_abs_{name}", "float") for name in program.input_names]
     columns += [("time_saturated", "float"), ("min_det_ratio", "float")]
