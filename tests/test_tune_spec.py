@@ -294,8 +294,8 @@ def test_pole_items_pair_conjugates_where_the_first_stands() -> None:
 
 TUNE = """
 [tune]
-objective = "p95 max_error_after"
-constraints = ["p95 max_abs_thrust <= 14.0", "failures == 0"]
+objective = "p95(max_error)"
+constraints = ["p95(peak_thrust) <= 14.0", "failure_bound <= 0.05"]
 after = 2
 pole_range = [0.5, 8]
 min_damping = 0.5
@@ -306,8 +306,8 @@ bandwidth_range = [5.0, 50.0]
 def test_the_tune_table_is_read_as_written(tmp_path: Path) -> None:
     spec = load_spec(write_spec(tmp_path, ROBUST_PVTOL.read_text(encoding="utf-8") + TUNE))
     assert spec.tune == TuneSettings(
-        objective="p95 max_error_after",
-        constraints=("p95 max_abs_thrust <= 14.0", "failures == 0"),
+        objective="p95(max_error)",
+        constraints=("p95(peak_thrust) <= 14.0", "failure_bound <= 0.05"),
         after=2.0,
         pole_range=(0.5, 8.0),
         min_damping=0.5,
@@ -420,7 +420,7 @@ def test_generate_writes_the_same_files_with_a_tune_table(tmp_path: Path) -> Non
 
     text = (ROOT / "tvopt_codegen" / "examples" / "integrator.toml").read_text(encoding="utf-8")
     plain = write_spec(tmp_path, text, "plain.toml")
-    tuned = write_spec(tmp_path, text + '\n[tune]\nobjective = "p95 max_error_after"\n', "t.toml")
+    tuned = write_spec(tmp_path, text + '\n[tune]\nobjective = "p95(final_error)"\n', "t.toml")
     outputs = []
     for spec in (plain, tuned):
         out = tmp_path / spec.stem
