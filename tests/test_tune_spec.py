@@ -374,6 +374,10 @@ def test_a_bandwidth_range_needs_an_observer(tmp_path: Path) -> None:
         f"{path}: tune.bandwidth_range: the spec has no [robust.observer] or [robust.eso] "
         "bandwidth to tune"
     )
+    # The extended-state observer's bandwidth is tuned as well.
+    eso = ROBUST_PVTOL.read_text().replace("[robust.observer]", "[robust.eso]")
+    eso_path = write_spec(tmp_path, eso + "\n[tune]\nbandwidth_range = [1, 9]\n", "e.toml")
+    assert load_spec(eso_path).tune == TuneSettings(bandwidth_range=(1.0, 9.0))
     misspelt = write_spec(tmp_path, PVTOL.read_text() + "\n[tunee]\n", "t.toml")
     with pytest.raises(SpecError, match=r"tunee: unknown key: did you mean 'tune'\?"):
         load_spec(misspelt)
