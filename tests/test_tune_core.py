@@ -220,7 +220,7 @@ def test_integral_action_keeps_a_real_pole() -> None:
         ({"min_damping": 0.0}, "--min-damping: must be in (0, 1], got 0"),
         ({"min_damping": 1.5}, "--min-damping: must be in (0, 1], got 1.5"),
         (
-            {"min_damping": 1.0},
+            {"min_damping": 1.0, "pairs": 1},
             "--min-damping: 1 leaves no complex pair (a pair's damping is below 0.999; at 1 it "
             "is a double real pole): lower it or use 0 complex pairs",
         ),
@@ -252,8 +252,11 @@ def test_refusals_name_the_spec_field_and_an_absent_observer() -> None:
             source="arm.toml",
         )
     assert str(refused.value) == "arm.toml: tune.pole_range: LO must be below HI, got 2:1"
-    # A damping of 1 is fine when there is no pair to give it.
+    # A damping of 1 is fine when there is no pair to give it, and means real poles only.
     assert space_for([-1.0, -2.0], None, integral=False, min_damping=1.0).pairs == 0
+    real_only = space_for(POLES, None, integral=False, min_damping=1.0)
+    assert (real_only.pairs, real_only.dimension) == (0, 6)
+    assert all(p.imag == 0 for p in real_only.decode(np.full(6, 0.4)).poles)
 
 
 def test_parse_range() -> None:
@@ -402,8 +405,14 @@ def test_requirements_from_the_table_and_the_command_line() -> None:
         Objective("mean", "final_error"), (Constraint("peak_u1", "max", 3.0),), 0.0
     )
     assert cli.column("max_error") == "max_error"
-    assert requirements_from(None, "arm.toml", None, (), None, **common) == Requirements(
-        Objective("p95", "final_error"), (), 0.0
+    default = Requirements(Objective("p95", "final_error"), (), 0.0)
+    assert requirements_from(None, "arm.toml", None, (), None, **common) == default
+    # Spec.tune keeps a key left out as None (constraints as a tuple).
+    unset = {"objective": None, "constraints": (), "after": None, "pole_range": None}
+    assert requirements_from(unset, "arm.toml", None, (), None, **common) == default
+    kept = {"objective": None, "constraints": ("max(peak_u1) <= 3",), "after": None}
+    assert requirements_from(kept, "arm.toml", None, (), None, **common).constraints == (
+        Constraint("peak_u1", "max", 3.0),
     )
     bad = {
         "tune.constraints[1]": ({"constraints": ["failure_bound <= 0.5", "p95(bogus) <= 1"]},),

@@ -322,7 +322,7 @@ def requirements_from(
     ----------
     table : mapping or None
         The spec's ``[tune]`` table (keys :data:`REQUIREMENT_KEYS` are read, others are
-        the command's).
+        the command's); a key whose value is None counts as left out.
     source : str
         The spec file, for errors about the table.
     objective : str or None
@@ -348,7 +348,8 @@ def requirements_from(
         One line naming the option (``--objective``, ``--constraint``, ``--after``) or
         the field (``tune.objective``, ``tune.constraints[1]``, ``tune.after``).
     """
-    table = table or {}
+    # A key set to None (or an empty list) is one left out, as Spec.tune keeps them.
+    table = {key: value for key, value in (table or {}).items() if value is not None}
     cli = "command line"
     if objective is not None:
         goal = parse_objective(objective, "--objective", cli)
@@ -368,7 +369,7 @@ def requirements_from(
             )
     elif "constraints" in table:
         entries = table["constraints"]
-        if not isinstance(entries, list):
+        if not isinstance(entries, list | tuple):
             raise SpecError(
                 source, "tune.constraints", f"expected a list of strings, got {entries!r}"
             )

@@ -358,11 +358,13 @@ def space_for(
     magnitude : tuple of float, optional
         ``(lo, hi)`` of every pole's magnitude; default ``(min|p| / 5, max|p| * 5)``.
     min_damping : float, optional
-        Smallest damping ratio of a pair, in (0, 1]; default 0.3.
+        Smallest damping ratio of a pair, in (0, 1]; default 0.3. Above
+        :data:`MAX_PAIR_DAMPING` (1: real poles only) no pair is possible, and ``pairs``
+        defaults to 0.
     bandwidth_range : tuple of float, optional
         ``(lo, hi)`` of the bandwidth; default ``(bandwidth / 10, bandwidth * 10)``.
     pairs : int, optional
-        Number of complex pairs; default: the spec's.
+        Number of complex pairs; default: the spec's (0 when ``min_damping`` allows none).
     field_prefix : str
         How the options are named in errors: ``"--"`` gives ``--pole-range``,
         ``"tune."`` gives ``tune.pole_range``.
@@ -403,8 +405,13 @@ def space_for(
         )
     lo, hi = _checked_range(magnitude, lambda problem: fail("pole-range", problem))
 
+    if min_damping is None:
+        min_damping = DEFAULT_MIN_DAMPING
     if pairs is None:
-        pairs = sum(1 for p in poles if not _is_real(complex(p)) and complex(p).imag > 0)
+        # A damping bound no pair can meet asks for real poles only ([tune]'s documented
+        # meaning of min_damping = 1); given explicitly, the pairs are refused below.
+        spec_pairs = sum(1 for p in poles if not _is_real(complex(p)) and complex(p).imag > 0)
+        pairs = 0 if min_damping > MAX_PAIR_DAMPING else spec_pairs
     if pairs < 0:
         raise fail("complex-pairs", f"the number of pairs cannot be negative, got {pairs}")
     if 2 * pairs > count:
@@ -416,8 +423,6 @@ def space_for(
             f"(at most {(count - 1) // 2})",
         )
 
-    if min_damping is None:
-        min_damping = DEFAULT_MIN_DAMPING
     if not (math.isfinite(min_damping) and 0 < min_damping <= 1):
         raise fail("min-damping", f"must be in (0, 1], got {min_damping:g}")
     if min_damping < MIN_DAMPING_LIMIT:
