@@ -557,6 +557,16 @@ def test_a_resumed_search_ends_where_the_uninterrupted_one_does() -> None:
     assert np.array_equal(resumed.best[0], whole.best[0]) and resumed.best[1] == whole.best[1]
 
 
+def test_cma_searches_a_single_pole() -> None:
+    # One pole and no observer: d = 1, which cma handles (the integrator example's case).
+    space = space_for([-1.0], None, integral=False)
+    search = Search(cma_optimizer(space.encode(Candidate((-1 + 0j,), None)), seed=4))
+    target = space.encode(Candidate((-2 + 0j,), None))
+    _run(search, lambda x: float(abs(x[0] - target[0])), 80)
+    (pole,) = space.decode(search.best[0]).poles
+    assert abs(pole + 2) <= 2e-3 and pole.imag == 0  # from -1, to the digits kept
+
+
 def test_replay_refuses_another_runs_history() -> None:
     history = _run(Search(cma_optimizer(np.full(4, 0.5), seed=1, population=6)), _sphere, 8)
     with pytest.raises(ValueError, match="evaluation 0 of the history"):

@@ -76,7 +76,7 @@ def cma_optimizer(
     Parameters
     ----------
     start : numpy.ndarray, shape (d,)
-        The initial mean, a point of [0, 1]^d (clipped to it); d >= 2 (cma's minimum).
+        The initial mean, a point of [0, 1]^d (clipped to it); d = 1 (one pole) too.
     seed : int
         The random numbers' seed.
     population : int, optional
