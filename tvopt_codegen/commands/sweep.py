@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from tvopt_codegen.commands import common, run_options
+from tvopt_codegen.commands import common, plant, run_options
 from tvopt_codegen.errors import (
     EXIT_INTERRUPTED,
     EXIT_TERMINATED,
@@ -60,34 +60,9 @@ def build(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--samples", type=int, help="number of runs")
     run_options.add(parser, "seed")
     parser.add_argument("--out", help="output folder (not with --resume: DIR is the folder)")
-    for option, what in (
-        ("--initial", "spread of an initial closed-loop state"),
-        ("--param", "the controller's (model's) parameter"),
-        ("--plant-param", "the true plant's parameter (model mismatch)"),
-    ):
-        parser.add_argument(
-            option, action="append", default=[], metavar="NAME=DIST", help=f"{what} (repeatable)"
-        )
-    parser.add_argument(
-        "--saturation",
-        action="append",
-        default=[],
-        metavar="INPUT=LIMIT",
-        help=(
-            "clip a plant input to |u| <= LIMIT, or to LO:HI "
-            "(repeatable; default: the spec's [limits])"
-        ),
-    )
-    run_options.add(parser, "measurement_noise")
-    run_options.renamed(
-        parser, "--noise", "--measurement-noise (Gaussian noise on the measured plant states)"
-    )
-    run_options.add(parser, "sample_time", "t_final", "rtol", "atol", "points", "precision")
-    where = parser.add_mutually_exclusive_group()
-    run_options.add(where, "workers")
-    where.add_argument(
-        "--scheduler", metavar="ADDRESS", help="an existing Dask scheduler, e.g. tcp://host:8786"
-    )
+    plant.plant_options(parser)
+    run_options.add(parser, "precision")
+    plant.cluster_options(parser)
     parser.add_argument(
         "--chunk-size", type=int, help="samples per Dask task (default: about 8 tasks a worker)"
     )
@@ -161,31 +136,7 @@ class _Progress:
 
 
 def _options(args: argparse.Namespace, program: Any, horizon: float) -> Any:
-    from tvopt_codegen.sweep import (  # noqa: PLC0415
-        SweepOptions,
-        check_options,
-        parse_assignments,
-        parse_limits,
-    )
-
-    options = SweepOptions(
-        samples=args.samples,
-        seed=args.seed,
-        t_final=horizon if args.t_final is None else args.t_final,
-        initial=parse_assignments(args.initial, "--initial", program.state_names, "state"),
-        params=parse_assignments(args.param, "--param", program.param_names, "parameter"),
-        plant_params=parse_assignments(
-            args.plant_param, "--plant-param", program.param_names, "parameter"
-        ),
-        # The plant's actuators: --saturation, else the spec's [limits].
-        limits=parse_limits(args.saturation, program.input_names) or program.limits,
-        noise=args.measurement_noise,
-        sample_time=args.sample_time,
-        rtol=args.rtol,
-        atol=args.atol,
-        points=args.points,
-    )
-    check_options(program, options)
+    options = plant.plant_sweep(args, program, horizon, args.samples, args.seed)
     if args.chunk_size is not None and not 1 <= args.chunk_size <= options.samples:
         raise SpecError("command line", "--chunk-size", "must be between 1 and --samples")
     return options
@@ -316,12 +267,12 @@ def _run_and_publish(
                 finishing.begin()
                 progress.close()
                 parts.flush()
-                _disconnect(client, cluster)
+                plant.disconnect(client, cluster)
                 client = None
             code = _publish(args, folder, program, options, record, schema, run)
     finally:
         if client is not None:
-            _disconnect(client, cluster)
+            plant.disconnect(client, cluster)
     if finishing.signal and code == 0:
         stopped = "interrupted" if finishing.signal == signal.SIGINT else "terminated"
         print(
@@ -493,7 +444,7 @@ def sweep(args: argparse.Namespace) -> int:
     options = _options(args, program, derivation.spec.t_final)
     _check_earlier(args)
     loop_for(program)  # a compiler error stops here, before any worker starts
-    _check_nominal(derivation.spec.source, program, options)
+    plant.check_nominal(derivation.spec.source, program, options)
     spec_name = f"{derivation.spec.name}.toml"
     record = _record(program, options, spec_name, args.extension, bool(args.trajectories), raw)
     if args.precision != "double":
@@ -513,7 +464,7 @@ def sweep(args: argparse.Namespace) -> int:
                 warn=common.warn,
             )
         except BaseException:
-            _disconnect(client, cluster)
+            plant.disconnect(client, cluster)
             raise
         code = _run_and_publish(
             args, folder, program, options, record, [range(options.samples)], client, cluster
@@ -525,44 +476,11 @@ def sweep(args: argparse.Namespace) -> int:
     return code
 
 
-def _check_nominal(source: str, program: Any, options: Any) -> None:
-    """Refuse a sweep whose nominal plant fails at its start (nothing run, nothing written).
-
-    Every sample would start there or near it and fail for that one reason of the
-    model's: a table of 100% failures would hide it as an ordinary outcome.
-    """
-    from tvopt_codegen.contract import Status  # noqa: PLC0415
-    from tvopt_codegen.errors import AssumptionError  # noqa: PLC0415
-    from tvopt_codegen.sweep.sample import nominal_start  # noqa: PLC0415
-
-    outcome = nominal_start(program, options)
-    if not isinstance(outcome, Status) or outcome == Status.OK:
-        return
-    start = "the spec's initial state" + (
-        " with each --initial at its centre" if options.initial else ""
-    )
-    why = outcome.text.replace("{result}", "a value of the law")
-    raise AssumptionError(
-        source,
-        "sweep",
-        f"the nominal plant fails at its start ({start}, the spec's parameters, t = 0): "
-        f"{outcome.label} ({why}); every sample would start there or near it, so nothing "
-        "was run: fix the spec (check SPEC names where the law is undefined)",
-    )
-
-
 def _schema(program: Any, options: Any, record: dict[str, Any]) -> Any:
     """The table's schema carrying the sweep's identity (its parts must carry the same)."""
     from tvopt_codegen.sweep import row_schema, with_identity  # noqa: PLC0415
 
     return with_identity(row_schema(program, options), record["identity"])
-
-
-def _disconnect(client: Any, cluster: Any) -> None:
-    """Close the client, and the local cluster with its worker processes."""
-    client.close()
-    if cluster is not None:
-        cluster.close()
 
 
 def _record(
