@@ -174,7 +174,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # Kernels printed by a backend into its templates.
     ("renderer", "backends"),
     # What is done with a generated controller: runs, sweeps, the FMU, figures, reports.
-    ("simulation", "sweep", "runs", "report", "interop"),
+    ("simulation", "sweep", "runs", "report", "interop", "tune"),
     # The doors: the command line.
     ("commands", "cli", "__main__"),
 )

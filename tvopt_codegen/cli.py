@@ -32,6 +32,7 @@ from tvopt_codegen.commands import (
     run_options,
     simulate,
     sweep,
+    tune,
 )
 from tvopt_codegen.errors import (
     EXIT_BAD_SPEC,
@@ -56,6 +57,7 @@ COMMANDS: dict[str, Command] = {
     "export": export,
     "simulate": simulate,
     "sweep": sweep,
+    "tune": tune,
 }
 
 

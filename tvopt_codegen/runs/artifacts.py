@@ -11,14 +11,20 @@ them): ``generate``, ``check`` and ``report`` never load either.
 from __future__ import annotations
 
 import io
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.runs.drawing import Painter, draw, draw_all
-from tvopt_codegen.runs.figures import figures, replay_figure, sampled_figure, sweep_figures
+from tvopt_codegen.runs.figures import (
+    figures,
+    replay_figure,
+    sampled_figure,
+    sweep_figures,
+    tune_figure,
+)
 from tvopt_codegen.simulation import Result, columns, format_certificate
 from tvopt_codegen.sweep import (
     RECORD,
@@ -34,6 +40,7 @@ from tvopt_codegen.sweep import (
 if TYPE_CHECKING:
     # A type only: the sampled run's module is loaded by the commands that run one.
     from tvopt_codegen.simulation.sampled import SampledResult
+    from tvopt_codegen.tune.session import Evaluation
 
 
 def result_files(
@@ -152,3 +159,27 @@ def replay_files(program: SweepProgram, result: SampleResult) -> dict[str, bytes
         ).encode(),
         **draw(replay_figure(program, result.row, result.trajectory)),
     }
+
+
+def tune_files(
+    name: str,
+    markdown: str,
+    csv: str,
+    objective: str,
+    evaluations: Sequence[Evaluation],
+    chosen: Evaluation,
+    original: Evaluation,
+) -> dict[str, bytes]:
+    """What a tune writes beside its record and tuned spec: its tables and its figure."""
+
+    def point(e: Evaluation) -> tuple[float, float, float]:
+        return (e.score.objective, e.saturation, e.effort)
+
+    figure = tune_figure(
+        name,
+        objective,
+        [(*point(e), e.score.feasible) for e in evaluations],
+        point(original),
+        point(chosen),
+    )
+    return {"tune.md": markdown.encode(), "evaluations.csv": csv.encode(), **draw(figure)}

@@ -39,6 +39,7 @@ AXES_CALLS = frozenset(
         "set_ylabel",
         "set_title",
         "set_xscale",
+        "set_yscale",
         "set_ylim",
         "set_aspect",
         "grid",

@@ -11,7 +11,7 @@ y* (dashed), each agent's path, and start points marked with stars.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -329,3 +329,65 @@ def replay_figure(program: SweepProgram, row: Mapping[str, Any], trajectory: np.
     bottom.set_ylabel("|y - y*|")
     bottom.grid(alpha=0.3, which="both")
     return fig
+
+
+def tune_figure(
+    name: str,
+    objective: str,
+    points: Sequence[tuple[float, float, float, bool]],
+    original: tuple[float, float, float],
+    chosen: tuple[float, float, float],
+) -> Plot:
+    """``tune_tradeoff``: each candidate's objective against saturation and input effort.
+
+    ``points`` are ``(objective, mean fraction of time saturated, p95 peak |u|,
+    feasible)`` per candidate; ``original`` and ``chosen`` the spec's gains' and the
+    tuned gains' first three.
+    """
+    plot = Plot("tune_tradeoff", (10.0, 4.0), cols=2)
+    left, right = plot.panels
+    data = np.array([p[:3] for p in points], dtype=float).reshape(-1, 3)
+    feasible = np.array([p[3] for p in points], dtype=bool)
+    shown = np.isfinite(data[:, 0])
+    for axes, column, label in (
+        (left, 1, "mean fraction of time an input is clipped"),
+        (right, 2, "p95 of the peak |u|"),
+    ):
+        for keep, style, legend in (
+            (feasible & shown, {"color": "tab:blue", "marker": "o"}, "feasible"),
+            (~feasible & shown, {"color": "tab:gray", "marker": "x"}, "infeasible"),
+        ):
+            if keep.any():
+                axes.semilogy(
+                    data[keep, column],
+                    data[keep, 0],
+                    ls="none",
+                    ms=4,
+                    alpha=0.6,
+                    label=legend,
+                    **style,
+                )
+        axes.semilogy(
+            [original[column]],
+            [original[0]],
+            ls="none",
+            marker="s",
+            ms=9,
+            color="black",
+            label="the spec's gains",
+        )
+        axes.semilogy(
+            [chosen[column]],
+            [chosen[0]],
+            ls="none",
+            marker="*",
+            ms=14,
+            color="tab:red",
+            label="tuned",
+        )
+        axes.set_xlabel(label)
+        axes.grid(alpha=0.3, which="both")
+    left.set_ylabel(objective)
+    left.set_title(f"{name}: {len(points)} candidates", fontsize=10)
+    right.legend(fontsize=8)
+    return plot

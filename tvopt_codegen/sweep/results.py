@@ -194,6 +194,27 @@ def tally_rows(rows: Sequence[Mapping[str, Any]], worst: int = 5) -> Tally:
     return tally
 
 
+def describe_options(options: SweepOptions) -> list[str]:
+    """The samples' loop and spread, as Markdown lines (a sweep's summary, a tune's)."""
+    spread = [f"`--initial {n}={d}`" for n, d in options.initial]
+    spread += [f"`--param {n}={d}`" for n, d in options.params]
+    spread += [f"`--plant-param {n}={d}`" for n, d in options.plant_params]
+    spread += [f"`--saturation {n}={lo:g}:{hi:g}`" for n, lo, hi in options.limits]
+    if options.noise:
+        spread.append(f"`--measurement-noise {options.noise:g}`")
+    loop = (
+        f"sampled every {options.sample_time:g} s (zero-order hold)"
+        if options.sample_time
+        else "continuous"
+    )
+    return [
+        f"Seed {options.seed}; horizon {options.t_final:g} s; loop {loop}; RK45 rtol "
+        f"{options.rtol:g}, atol {options.atol:g}; {options.points} output times.",
+        "",
+        "Spread: " + (", ".join(spread) if spread else "none (every sample is the spec's run)"),
+    ]
+
+
 def format_summary(name: str, options: SweepOptions, summary: Summary) -> str:
     """The summary as Markdown (also what the terminal shows)."""
     s = summary
@@ -215,22 +236,8 @@ def format_summary(name: str, options: SweepOptions, summary: Summary) -> str:
             "runs them).",
             "",
         ]
-    spread = [f"`--initial {n}={d}`" for n, d in options.initial]
-    spread += [f"`--param {n}={d}`" for n, d in options.params]
-    spread += [f"`--plant-param {n}={d}`" for n, d in options.plant_params]
-    spread += [f"`--saturation {n}={lo:g}:{hi:g}`" for n, lo, hi in options.limits]
-    if options.noise:
-        spread.append(f"`--measurement-noise {options.noise:g}`")
-    loop = (
-        f"sampled every {options.sample_time:g} s (zero-order hold)"
-        if options.sample_time
-        else "continuous"
-    )
     lines += [
-        f"Seed {options.seed}; horizon {options.t_final:g} s; loop {loop}; RK45 rtol "
-        f"{options.rtol:g}, atol {options.atol:g}; {options.points} output times.",
-        "",
-        "Spread: " + (", ".join(spread) if spread else "none (every sample is the spec's run)"),
+        *describe_options(options),
         "",
         "| outcome | samples | share |",
         "|---|---:|---:|",

@@ -1,0 +1,216 @@
+"""``tvopt-codegen tune``: the search on compiled sweeps, its files, its resume, its refusals.
+
+Small tunes of the bundled PVTOL (a 4 s horizon, a handful of samples and candidates) on
+the in-process worker: what a tune writes, that the same command writes the same tuned
+spec, that a tune killed by SIGTERM and resumed ends where the uninterrupted one did, and
+that bad requirements are one line with nothing written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_TERMINATED
+
+from .conftest import ROOT, run_main
+
+pytest.importorskip("cma")
+pytest.importorskip("pyarrow")
+
+EXAMPLES = ROOT / "tvopt_codegen" / "examples"
+
+#: A small tune of PVTOL: 10% mass and inertia mismatch, noise, 100 Hz, saturated inputs.
+PVTOL = (
+    "pvtol",
+    "--samples", "12",
+    "--evaluations", "24",
+    "--population", "6",
+    "--seed", "3",
+    "--t-final", "4",
+    "--points", "41",
+    "--plant-param", "m=normal(1, 0.1)",
+    "--plant-param", "J=normal(1, 0.1)",
+    "--measurement-noise", "0.001",
+    "--sample-time", "0.01",
+    "--saturation", "thrust=0:20",
+    "--saturation", "torque=5",
+    "--check-samples", "40",
+    "--workers", "1",
+    "--progress", "never",
+)  # fmt: skip
+
+TUNED = "pvtol_tuned.toml"
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One uninterrupted small tune of PVTOL."""
+    out = tmp_path_factory.mktemp("tune") / "out"
+    ran = run_main("tune", *PVTOL, "--out", str(out))
+    assert ran.returncode == 0, ran.stderr
+    return out
+
+
+def test_a_tune_writes_a_tuned_spec_that_does_better_on_fresh_samples(reference: Path) -> None:
+    names = {p.name for p in reference.iterdir() if not p.name.startswith(".")}
+    assert {
+        "pvtol.toml",
+        TUNED,
+        "tune.json",
+        "tune.md",
+        "evaluations.csv",
+        "tune_tradeoff.png",
+        "tune_tradeoff.svg",
+    } <= names
+    record = json.loads((reference / "tune.json").read_text())
+    assert record["state"] == "complete"
+    evaluations = record["evaluations"]
+    assert len(evaluations) == 25  # the spec's gains, then 24 candidates
+    assert [e["index"] for e in evaluations] == list(range(25))
+    chosen = evaluations[record["best"]]
+    # The tuned spec is the bundled one with the chosen poles: the same law otherwise.
+    original = tomllib.loads((EXAMPLES / "pvtol.toml").read_text())
+    tuned = tomllib.loads((reference / TUNED).read_text())
+    assert tuned["error_dynamics"]["poles"] == [re for re, _ in chosen["poles"]]
+    tuned["error_dynamics"] = original["error_dynamics"]
+    assert tuned == original
+    assert (reference / "pvtol.toml").read_bytes() == (EXAMPLES / "pvtol.toml").read_bytes()
+    # Better than the spec's gains on its own samples, and on the fresh ones too.
+    fresh = record["fresh"]
+    assert fresh["samples"] == 40 and fresh["seed"] == 4
+    assert chosen["objective"] < evaluations[0]["objective"]
+    assert fresh["tuned"]["objective"] < fresh["original"]["objective"]
+    assert fresh["tuned"]["failure_bound"] <= fresh["original"]["failure_bound"]
+    text = (reference / "tune.md").read_text()
+    assert "## On 40 fresh samples (seed 4)" in text
+    assert "failure_bound <= " in text and "the spec's gains' own bound" in text
+    header = (reference / TUNED).read_text().splitlines()[:3]
+    assert header[0].startswith("# Tuned by tvopt-codegen tune (cma, 24 candidates")
+    rows = (reference / "evaluations.csv").read_text().splitlines()
+    assert len(rows) == 26 and rows[0].startswith("index,generation,position,pole0_re")
+
+
+def test_the_same_command_writes_the_same_tuned_spec(reference: Path, tmp_path: Path) -> None:
+    ran = run_main("tune", *PVTOL, "--out", str(tmp_path / "again"))
+    assert ran.returncode == 0, ran.stderr
+    for name in (TUNED, "evaluations.csv", "tune.md", "tune.json"):
+        assert (tmp_path / "again" / name).read_bytes() == (reference / name).read_bytes(), name
+
+
+def test_a_terminated_tune_resumes_to_where_the_uninterrupted_one_ended(
+    reference: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "tvopt_codegen", "tune", *PVTOL, "--out", str(out)]
+    process = subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
+    deadline = time.monotonic() + 120
+    # Wait for the spec's gains and the first generation to be recorded (of four).
+    while time.monotonic() < deadline:
+        try:
+            done = len(json.loads((out / "tune.json").read_text())["evaluations"])
+        except (OSError, ValueError, KeyError):
+            done = 0
+        if done >= 7:
+            break
+        time.sleep(0.02)
+    os.killpg(process.pid, signal.SIGTERM)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == EXIT_TERMINATED, stderr
+    last = stderr.strip().splitlines()[-1]
+    assert "terminated after" in last and "kept the best so far" in last and "--resume" in last
+    record = json.loads((out / "tune.json").read_text())
+    assert record["state"] == "interrupted"
+    assert 7 <= len(record["evaluations"]) < 25
+    assert "Interrupted" in (out / TUNED).read_text()
+    resumed = run_main("tune", "--resume", str(out), "--progress", "never")
+    assert resumed.returncode == 0, resumed.stderr
+    for name in (TUNED, "evaluations.csv", "tune.md"):
+        assert (out / name).read_bytes() == (reference / name).read_bytes(), name
+    again = run_main("tune", "--resume", str(out))
+    assert again.returncode == 0 and "nothing to resume" in again.stderr
+
+
+def test_a_resume_takes_no_new_options(reference: Path) -> None:
+    ran = run_main("tune", "--resume", str(reference), "--samples", "5")
+    assert ran.returncode == EXIT_BAD_SPEC
+    assert "--samples: not with --resume" in ran.stderr
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (("--objective", "p42(final_error)"), "--objective"),
+        (("--objective", "p95(happiness)"), "--objective"),
+        (("--constraint", "failure_bound <= 0.001"), "--constraint"),
+        (("--constraint", "mean(saturation) <= 2"), "--constraint"),
+        (("--pole-range", "5:1"), "--pole-range"),
+        (("--min-damping", "2"), "--min-damping"),
+        (("--complex-pairs", "3"), "--complex-pairs"),
+        (("--bandwidth-range", "1:10"), "--bandwidth-range"),
+        (("--after", "9"), "--after"),
+        (("--evaluations", "0"), "--evaluations"),
+    ],
+)
+def test_bad_requirements_are_one_line_and_nothing_is_written(
+    tmp_path: Path, extra: tuple[str, ...], message: str
+) -> None:
+    out = tmp_path / "out"
+    ran = run_main("tune", *PVTOL, *extra, "--out", str(out))
+    assert ran.returncode == EXIT_BAD_SPEC, ran.stderr
+    lines = ran.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], ran.stderr
+    assert not out.exists()
+
+
+def test_an_earlier_tune_is_not_replaced_without_force(reference: Path, tmp_path: Path) -> None:
+    before = {p.name: p.read_bytes() for p in reference.iterdir() if p.is_file()}
+    ran = run_main("tune", *PVTOL, "--out", str(reference))
+    assert ran.returncode == 4 and "already holds a tune" in ran.stderr
+    assert {p.name: p.read_bytes() for p in reference.iterdir() if p.is_file()} == before
+
+
+def test_the_spec_tune_table_sets_the_requirements_and_the_observer_is_tuned(
+    tmp_path: Path,
+) -> None:
+    """robust_pvtol: integral action (5 poles, one real for the integral), an observer whose
+    bandwidth is searched, and the requirements from the spec's [tune] table."""
+    text = (ROOT / "tests" / "specs" / "robust_pvtol.toml").read_text()
+    text += (
+        '\n[tune]\nobjective = "mean(integrated_error)"\nafter = 1.0\n'
+        "pole_range = [0.5, 8.0]\nbandwidth_range = [5.0, 60.0]\n"
+    )
+    spec = tmp_path / "robust.toml"
+    spec.write_text(text)
+    args = [a if a != "pvtol" else str(spec) for a in PVTOL]
+    ran = run_main("tune", *args, "--evaluations", "6", "--out", str(tmp_path / "out"))
+    assert ran.returncode == 0, ran.stderr
+    record = json.loads((tmp_path / "out" / "tune.json").read_text())
+    markdown = (tmp_path / "out" / "tune.md").read_text()
+    assert "minimise mean(integrated_error)" in markdown
+    assert "one of them the integral" in markdown and "[5, 60] rad/s" in markdown
+    bandwidths = {e["bandwidth"] for e in record["evaluations"]}
+    assert len(bandwidths) > 1 and all(5.0 <= b <= 60.0 for b in bandwidths - {20.0})
+    chosen = record["evaluations"][record["best"]]
+    tuned = tomllib.loads((tmp_path / "out" / "robust_pvtol_tuned.toml").read_text())
+    assert tuned["robust"]["observer"]["bandwidth"] == chosen["bandwidth"]
+    assert len(tuned["error_dynamics"]["poles"]) == 5
+    assert tuned["tune"]["objective"] == "mean(integrated_error)"
+
+
+def test_the_random_baseline_runs_the_same_budget(tmp_path: Path) -> None:
+    ran = run_main("tune", *PVTOL, "--method", "random", "--out", str(tmp_path / "out"))
+    assert ran.returncode == 0, ran.stderr
+    record = json.loads((tmp_path / "out" / "tune.json").read_text())
+    assert len(record["evaluations"]) == 25
+    assert "uniform random points" in (tmp_path / "out" / "tune.md").read_text()
