@@ -214,3 +214,51 @@ def test_the_random_baseline_runs_the_same_budget(tmp_path: Path) -> None:
     record = json.loads((tmp_path / "out" / "tune.json").read_text())
     assert len(record["evaluations"]) == 25
     assert "uniform random points" in (tmp_path / "out" / "tune.md").read_text()
+
+
+def test_a_candidate_asked_again_is_scored_from_its_first_sweep() -> None:
+    """Common random numbers make a sweep a function of the gains: a repeat is not rerun."""
+    import numpy as np
+
+    from tvopt_codegen.tune.requirements import requirements_from
+    from tvopt_codegen.tune.session import Search
+    from tvopt_codegen.tune.space import Candidate, space_for
+
+    space = space_for((-1 + 0j, -2 + 0j), None, integral=False)
+    requirements = requirements_from(
+        None, "test", None, (), None, samples=4, t_final=1.0, inputs=("u",)
+    )
+
+    class Repeating:
+        """Asks the same two points (one of them twice) every generation."""
+
+        def ask(self) -> list[np.ndarray]:
+            return [np.array([0.2, 0.7]), np.array([0.2, 0.7]), np.array([0.9, 0.1])]
+
+        def tell(self, xs: list[np.ndarray], values: list[float]) -> None:
+            assert len(values) == 3 and values[0] == values[1]
+
+    swept: list[Candidate] = []
+
+    def sweep(candidates: list[Candidate], done: object) -> None:
+        for j, candidate in enumerate(candidates):
+            swept.append(candidate)
+            error = -float(np.prod([p.real for p in candidate.poles]))  # a number per gains
+            rows = [
+                {"status": "ok", "final_error": error / (k + 1), "time_saturated": 0.0,
+                 "max_abs_u": 1.0, "sample": k}
+                for k in range(4)
+            ]  # fmt: skip
+            done(j, rows)  # type: ignore[operator]
+
+    search = Search(space, requirements, Repeating(), 6, 1.0, ("u",))
+    original = Candidate(poles=(-1 + 0j, -2 + 0j), bandwidth=None)
+    search.run(original, sweep, lambda evaluation: None)
+    assert len(search.evaluations) == 7
+    assert [e.index for e in search.evaluations] == list(range(7))
+    # The spec's gains, then the two distinct points once: four evaluations were copies.
+    assert len(swept) == 3
+    by_candidate: dict[Candidate, float] = {}
+    for evaluation in search.evaluations:
+        value = by_candidate.setdefault(evaluation.candidate, evaluation.score.objective)
+        assert evaluation.score.objective == value

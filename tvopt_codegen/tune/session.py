@@ -289,22 +289,55 @@ class Search:
         sweep: Sweeper,
         on_evaluation: Callable[[Evaluation], None],
     ) -> None:
-        def done(i: int, rows: list[dict[str, Any]]) -> None:
-            found = measure(self.requirements, rows, self.t_final, self.inputs)
+        # Common random numbers make a candidate's sweep a function of its gains: one
+        # asked again (CMA-ES's steps shrink below the 4 digits the gains are rounded to)
+        # is scored from its first sweep, not run again.
+        earlier = {e.candidate: e for e in self.evaluations}
+        first: dict[Candidate, int] = {}
+        for i, candidate in enumerate(candidates):
+            first.setdefault(candidate, i)
+
+        def record(i: int, source: Evaluation | None, rows: list[dict[str, Any]]) -> None:
+            if source is None:
+                found = measure(self.requirements, rows, self.t_final, self.inputs)
+                fields: dict[str, Any] = {
+                    "score": found.score,
+                    "failures": found.failures,
+                    "runs": len(rows),
+                    "saturation": found.saturation,
+                    "effort": found.effort,
+                }
+            else:
+                fields = {
+                    "score": source.score,
+                    "failures": source.failures,
+                    "runs": source.runs,
+                    "saturation": source.saturation,
+                    "effort": source.effort,
+                }
             evaluation = Evaluation(
                 index=offset + positions[i],
                 generation=generation,
                 position=positions[i],
                 x=xs[i],
                 candidate=candidates[i],
-                score=found.score,
-                failures=found.failures,
-                runs=len(rows),
-                saturation=found.saturation,
-                effort=found.effort,
+                **fields,
             )
             self.evaluations.append(evaluation)
             on_evaluation(evaluation)
 
-        sweep(candidates, done)
+        for i, candidate in enumerate(candidates):
+            if candidate in earlier:
+                record(i, earlier[candidate], [])
+        new = [i for i, c in enumerate(candidates) if c not in earlier and first[c] == i]
+
+        def done(j: int, rows: list[dict[str, Any]]) -> None:
+            i = new[j]
+            record(i, None, rows)
+            swept = self.evaluations[-1]
+            for twin in range(i + 1, len(candidates)):
+                if candidates[twin] == candidates[i]:
+                    record(twin, swept, [])
+
+        sweep([candidates[i] for i in new], done)
         self.evaluations.sort(key=lambda e: e.index)
