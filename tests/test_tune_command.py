@@ -17,9 +17,14 @@ import time
 import tomllib
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_TERMINATED
+from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_INTERRUPTED, EXIT_TERMINATED
+from tvopt_codegen.tune.requirements import requirements_from
+from tvopt_codegen.tune.search import cma_optimizer
+from tvopt_codegen.tune.session import Evaluation, Search
+from tvopt_codegen.tune.space import Candidate, space_for
 
 from .conftest import ROOT, run_main
 
@@ -106,9 +111,17 @@ def test_the_same_command_writes_the_same_tuned_spec(reference: Path, tmp_path: 
         assert (tmp_path / "again" / name).read_bytes() == (reference / name).read_bytes(), name
 
 
-def test_a_terminated_tune_resumes_to_where_the_uninterrupted_one_ended(
-    reference: Path, tmp_path: Path
+@pytest.mark.parametrize(
+    ("number", "code", "word"),
+    [
+        (signal.SIGTERM, EXIT_TERMINATED, "terminated"),
+        (signal.SIGINT, EXIT_INTERRUPTED, "interrupted"),
+    ],
+)
+def test_a_stopped_tune_keeps_the_best_and_resumes_to_the_uninterrupted_end(
+    reference: Path, tmp_path: Path, number: int, code: int, word: str
 ) -> None:
+    """SIGTERM (a batch system's wall time) and Ctrl-C (SIGINT to the terminal's group)."""
     out = tmp_path / "out"
     command = [sys.executable, "-m", "tvopt_codegen", "tune", *PVTOL, "--out", str(out)]
     process = subprocess.Popen(
@@ -124,11 +137,11 @@ def test_a_terminated_tune_resumes_to_where_the_uninterrupted_one_ended(
         if done >= 7:
             break
         time.sleep(0.02)
-    os.killpg(process.pid, signal.SIGTERM)
+    os.killpg(process.pid, number)
     _, stderr = process.communicate(timeout=120)
-    assert process.returncode == EXIT_TERMINATED, stderr
+    assert process.returncode == code, stderr
     last = stderr.strip().splitlines()[-1]
-    assert "terminated after" in last and "kept the best so far" in last and "--resume" in last
+    assert f"{word} after" in last and "kept the best so far" in last and "--resume" in last
     record = json.loads((out / "tune.json").read_text())
     assert record["state"] == "interrupted"
     assert 7 <= len(record["evaluations"]) < 25
@@ -208,22 +221,89 @@ def test_the_spec_tune_table_sets_the_requirements_and_the_observer_is_tuned(
     assert tuned["tune"]["objective"] == "mean(integrated_error)"
 
 
-def test_the_random_baseline_runs_the_same_budget(tmp_path: Path) -> None:
-    ran = run_main("tune", *PVTOL, "--method", "random", "--out", str(tmp_path / "out"))
+@pytest.mark.parametrize(
+    ("method", "words"), [("random", "uniform random points"), ("tpe", "optuna's TPE")]
+)
+def test_the_other_searches_run_the_same_budget(tmp_path: Path, method: str, words: str) -> None:
+    if method == "tpe":
+        pytest.importorskip("optuna")
+    ran = run_main("tune", *PVTOL, "--method", method, "--out", str(tmp_path / "out"))
     assert ran.returncode == 0, ran.stderr
     record = json.loads((tmp_path / "out" / "tune.json").read_text())
     assert len(record["evaluations"]) == 25
-    assert "uniform random points" in (tmp_path / "out" / "tune.md").read_text()
+    assert [e["generation"] for e in record["evaluations"][1:]] == [
+        g for g in range(4) for _ in range(6)
+    ]
+    assert words in (tmp_path / "out" / "tune.md").read_text()
+    # TPE's first trial is the spec's own gains (rounded), as CMA-ES starts there.
+    if method == "tpe":
+        assert record["evaluations"][1]["poles"] == record["evaluations"][0]["poles"]
+
+
+def _fake_rows(candidate: Candidate) -> list[dict[str, object]]:
+    """Four samples whose errors are a smooth function of the gains (no sweep)."""
+    error = float(sum((p.real + 2.0) ** 2 for p in candidate.poles)) + 0.1
+    return [
+        {"status": "ok", "final_error": error / (k + 1), "time_saturated": 0.0,
+         "max_abs_u": 1.0, "sample": k}
+        for k in range(4)
+    ]  # fmt: skip
+
+
+def _search(seed: int, history: list[Evaluation] | None = None) -> Search:
+    space = space_for((-1 + 0j, -3 + 0j), None, integral=False)
+    requirements = requirements_from(
+        None, "test", None, (), None, samples=4, t_final=1.0, inputs=("u",)
+    )
+    start = space.encode(ORIGINAL_GAINS)
+    return Search(
+        space, requirements, cma_optimizer(start, seed, 5), 20, 1.0, ("u",), history or []
+    )
+
+
+ORIGINAL_GAINS = Candidate(poles=(-1 + 0j, -3 + 0j), bandwidth=None)
+
+
+class _StopError(Exception):
+    """The fake sweep's Ctrl-C."""
+
+
+def _sweeper(stop_after: int | None, swept: list[Candidate]):  # noqa: ANN202
+    def sweep(candidates: list[Candidate], done) -> None:  # noqa: ANN001
+        # Complete them out of order, as a cluster does: the last first.
+        for j in reversed(range(len(candidates))):
+            if stop_after is not None and len(swept) >= stop_after:
+                raise _StopError
+            swept.append(candidates[j])
+            done(j, _fake_rows(candidates[j]))
+
+    return sweep
+
+
+def test_a_search_resumed_mid_generation_ends_where_the_whole_one_did() -> None:
+    """The record (the evaluations) of a search cut in its third generation, some of that
+    generation's candidates done out of order, resumed: the same evaluations, in the same
+    places, and only the missing candidates swept."""
+    whole = _search(5)
+    whole.run(ORIGINAL_GAINS, _sweeper(None, []), lambda e: None)
+    assert len(whole.evaluations) == 21
+    cut = _search(5)
+    with pytest.raises(_StopError):
+        cut.run(ORIGINAL_GAINS, _sweeper(13, []), lambda e: None)
+    kept = [Evaluation.from_dict(json.loads(json.dumps(e.as_dict()))) for e in cut.evaluations]
+    assert len(kept) == 13 and {e.generation for e in kept} == {-1, 0, 1, 2}
+    swept: list[Candidate] = []
+    resumed = _search(5, kept)
+    resumed.run(ORIGINAL_GAINS, _sweeper(None, swept), lambda e: None)
+    assert len(swept) == 21 - 13
+    assert [e.as_dict() for e in resumed.evaluations] == [e.as_dict() for e in whole.evaluations]
+    # Another seed's optimiser asks other points: the record is refused, not followed.
+    with pytest.raises(ValueError, match="another point than the record's"):
+        _search(6, kept).run(ORIGINAL_GAINS, _sweeper(None, []), lambda e: None)
 
 
 def test_a_candidate_asked_again_is_scored_from_its_first_sweep() -> None:
     """Common random numbers make a sweep a function of the gains: a repeat is not rerun."""
-    import numpy as np
-
-    from tvopt_codegen.tune.requirements import requirements_from
-    from tvopt_codegen.tune.session import Search
-    from tvopt_codegen.tune.space import Candidate, space_for
-
     space = space_for((-1 + 0j, -2 + 0j), None, integral=False)
     requirements = requirements_from(
         None, "test", None, (), None, samples=4, t_final=1.0, inputs=("u",)

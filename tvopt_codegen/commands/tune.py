@@ -30,9 +30,15 @@ from tvopt_codegen.errors import (
 )
 
 if TYPE_CHECKING:
+    from tvopt_codegen.sweep import SweepOptions, SweepProgram
+    from tvopt_codegen.tune.requirements import Requirements
     from tvopt_codegen.tune.settings import Settings
+    from tvopt_codegen.tune.space import Candidate, Space
 
 HELP = "choose the poles and observer gains against sweeps of the mismatched plant"
+
+#: The searches ``--method`` names, as ``tune.md`` names them.
+METHODS = {"cma": "CMA-ES", "tpe": "optuna's TPE", "random": "uniform random points"}
 
 #: In a log, seconds between progress lines.
 LOG_EVERY = 60.0
@@ -116,9 +122,10 @@ def build(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--method",
-        choices=("cma", "random"),
+        choices=tuple(METHODS),
         default="cma",
-        help="the search: CMA-ES, or uniform random points (the baseline) (default: cma)",
+        help="the search: CMA-ES, optuna's TPE (the tpe extra), or uniform random points "
+        "(the baseline) (default: cma)",
     )
     parser.add_argument(
         "--population", type=int, help="candidates per generation (default: CMA-ES's, 4 + 3 ln d)"
@@ -272,12 +279,12 @@ class Problem:
     name: str
     source: str
     raw: bytes
-    program: Any
-    options: Any
-    check: Any
-    space: Any
-    requirements: Any
-    original: Any
+    program: SweepProgram
+    options: SweepOptions
+    check: SweepOptions
+    space: Space
+    requirements: Requirements
+    original: Candidate
     settings: Settings
     extension: str
     #: The label of the failure bound added for the spec's own gains, if one was.
@@ -321,7 +328,8 @@ def _problem(
         inputs=program.input_names,
     )
     if requirements.after >= options.t_final:
-        raise SpecError("command line", "--after", "must be before the horizon (--t-final)")
+        # Only the spec's [tune] table can say so here: --after was checked above.
+        raise SpecError(source, "tune.after", f"must be before the horizon, {horizon:g} s")
     if requirements.after != options.window:
         options = replace(options, window=requirements.after)
         check = replace(check, window=requirements.after)
@@ -462,7 +470,7 @@ def _run(
     out = folder_path or args.out
     if not history and not force:
         _refuse_earlier(out)
-    folder = SweepFolder(out, _names(problem.name), force or bool(history))
+    folder = SweepFolder(out, _names(problem.name), force or bool(history), kind="tune")
     try:
         loop_for(problem.program)  # a compiler error stops here, before any worker starts
         plant.check_nominal(problem.source, problem.program, problem.options)
@@ -502,13 +510,19 @@ def _record_bytes(record: dict[str, Any]) -> bytes:
 
 
 def _optimizer(problem: Problem) -> Any:
-    from tvopt_codegen.tune.search import cma_optimizer, random_optimizer  # noqa: PLC0415
+    from tvopt_codegen.tune.search import (  # noqa: PLC0415
+        cma_optimizer,
+        random_optimizer,
+        tpe_optimizer,
+    )
 
     settings, space = problem.settings, problem.space
+    population = settings.population or _default_population(space.dimension)
     if settings.method == "random":
-        population = settings.population or _default_population(space.dimension)
         return random_optimizer(space.dimension, settings.seed, population)
     start = space.encode(problem.original)
+    if settings.method == "tpe":
+        return tpe_optimizer(start, settings.seed, population)
     return cma_optimizer(start, settings.seed, settings.population)
 
 
@@ -683,9 +697,7 @@ def _result_files(
         c.label + (" (the spec's gains' own bound)" if c.label == problem.default_bound else "")
         for c in problem.requirements.constraints
     ]
-    method = (
-        "CMA-ES" if problem.settings.method == "cma" else "uniform random points"
-    ) + f", seed {problem.settings.seed}"
+    method = f"{METHODS[problem.settings.method]}, seed {problem.settings.seed}"
     markdown = tune_markdown(
         problem.name,
         method,
