@@ -155,6 +155,8 @@ class SweepFolder:
         (:func:`check_replaceable`) before the first sample runs.
     force : bool
         Replace files not written by this tool.
+    kind : str
+        What holds the folder (``sweep``, ``tune``), for the message to a second one.
 
     Raises
     ------
@@ -167,7 +169,9 @@ class SweepFolder:
     PARTS = "parts"
     _PART = re.compile(r"part-\d{8}-\d+\.parquet")
 
-    def __init__(self, out_dir: str | Path, names: list[str], force: bool) -> None:
+    def __init__(
+        self, out_dir: str | Path, names: list[str], force: bool, kind: str = "sweep"
+    ) -> None:
         folder = Path(out_dir)
         self.created = not folder.exists() and not folder.is_symlink()
         self.folder = prepare_folder(folder)
@@ -189,7 +193,7 @@ class SweepFolder:
             os.close(self._lock)
             self._lock = None
             raise OutputError(
-                f"{self.folder}: another sweep is writing to this folder; wait for it, or "
+                f"{self.folder}: another {kind} is writing to this folder; wait for it, or "
                 "choose another --out"
             ) from None
         try:
