@@ -388,6 +388,6 @@ def tune_figure(
         axes.set_xlabel(label)
         axes.grid(alpha=0.3, which="both")
     left.set_ylabel(objective)
-    left.set_title(f"{name}: {len(points)} candidates", fontsize=10)
+    left.set_title(f"{name}: the spec's gains and {len(points) - 1} candidates", fontsize=10)
     right.legend(fontsize=8)
     return plot
