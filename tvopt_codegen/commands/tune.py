@@ -315,6 +315,14 @@ def _problem(
     options = plant.plant_sweep(
         args, program, horizon, settings.samples, settings.seed, window=settings.after or 0.0
     )
+    if options.sample_time is not None and options.t_final < options.sample_time:
+        # The candidate's gains would act once, at t = 0: every candidate looks alike.
+        raise SpecError(
+            "command line" if args.t_final is not None else source,
+            "--t-final" if args.t_final is not None else "simulation.t_final",
+            f"the horizon {options.t_final:g} s is shorter than one controller period "
+            f"(--sample-time {options.sample_time:g} s): the gains would act only once",
+        )
     check = replace(options, samples=settings.check_samples, seed=settings.check_seed)
     table = getattr(spec, "tune", None)
     requirements = requirements_from(
@@ -335,18 +343,27 @@ def _problem(
         check = replace(check, window=requirements.after)
     bandwidth = program.observer_bandwidth
     given = (settings.pole_range, settings.min_damping, settings.bandwidth_range)
-    ranges = table if table is not None and given == (None, None, None) else None
+    # Each bound from the command line when given there, else from the spec's [tune]
+    # table: an option overrides its own key, not the table's other keys.
+    magnitude, min_damping, bandwidth_range = given
+    if table is not None:
+        magnitude = table.pole_range if magnitude is None else magnitude
+        min_damping = table.min_damping if min_damping is None else min_damping
+        bandwidth_range = table.bandwidth_range if bandwidth_range is None else bandwidth_range
+    # A bound of the spec's [tune] table is named there, one of the command line's there;
+    # the table's bounds were checked when the spec was read, so an error that both could
+    # cause (too few poles for the pairs) is the command line's when it gave any.
+    only_table = given == (None, None, None) and (magnitude, min_damping, bandwidth_range) != given
     space = space_for(
         _spec_poles(derivation),
         bandwidth,
         integral=bool(program.integral_rows),
-        magnitude=settings.pole_range if ranges is None else ranges.pole_range,
-        min_damping=settings.min_damping if ranges is None else ranges.min_damping,
-        bandwidth_range=settings.bandwidth_range if ranges is None else ranges.bandwidth_range,
+        magnitude=magnitude,
+        min_damping=min_damping,
+        bandwidth_range=bandwidth_range,
         pairs=settings.complex_pairs,
-        # A bound of the spec's [tune] table is named there, one of the command line's there.
-        field_prefix="--" if ranges is None else "tune.",
-        source="command line" if ranges is None else source,
+        field_prefix="tune." if only_table else "--",
+        source=source if only_table else "command line",
     )
     original = Candidate(poles=_spec_poles(derivation), bandwidth=bandwidth)
     return Problem(
@@ -431,8 +448,16 @@ def _new(args: argparse.Namespace) -> int:
     )
     tuned = _tuned_name(problem.name)
     spec_path = Path(args.spec)
-    if spec_path.is_file() and (Path(args.out) / tuned).resolve() == spec_path.resolve():
-        raise OutputError(f"{spec_path}: the tuned spec would replace it; choose another --out")
+    if spec_path.is_file():
+        # Neither the tuned spec nor the tune's copy may land on the user's spec (not even
+        # with --force, which is for an earlier tune's files): the copy would claim it.
+        for kept in (tuned, f"{problem.name}.toml"):
+            if (Path(args.out) / kept).resolve() == spec_path.resolve():
+                what = "tuned spec" if kept == tuned else "copy of the spec"
+                raise OutputError(
+                    f"{spec_path}: the tune's {what} ({kept}) would replace it; "
+                    "choose another --out"
+                )
     record = {
         "kind": "tune",
         "spec": f"{problem.name}.toml",
@@ -506,7 +531,20 @@ def _refuse_earlier(out: str) -> None:
 
 def _record_bytes(record: dict[str, Any]) -> bytes:
     # Not sorted: the order of --plant-param and the others is the order of the draws.
-    return (json.dumps(record, indent=1) + "\n").encode()
+    # Strict JSON (no NaN or Infinity tokens, which other readers refuse): a fresh check
+    # whose every sample failed has an infinite objective and no input effort.
+    return (json.dumps(_strict_json(record), indent=1, allow_nan=False) + "\n").encode()
+
+
+def _strict_json(value: Any) -> Any:
+    """``value`` with every non-finite float written as its text (``"inf"``, ``"nan"``)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return repr(value)
+    if isinstance(value, dict):
+        return {k: _strict_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_strict_json(v) for v in value]
+    return value
 
 
 def _optimizer(problem: Problem) -> Any:
@@ -735,46 +773,87 @@ def _resume(args: argparse.Namespace) -> int:
     from tvopt_codegen.tune.settings import Settings  # noqa: PLC0415
 
     folder = Path(args.resume)
+    where = str(folder / RECORD)
     raw_record = read_regular_file(folder / RECORD, _MAX_RECORD)
     if raw_record is None:
         raise SpecError(str(folder), RECORD, "not found: DIR is not a tune's output folder")
     try:
         record = json.loads(raw_record)
-        settings = Settings.from_dict(record["settings"])
-        spec_name = str(record["spec"])
-        state = str(record["state"])
-        history = [Evaluation.from_dict(e) for e in record["evaluations"]]
-        options_record = record["options"]
-    except (ValueError, KeyError, TypeError, AttributeError, IndexError) as exc:
-        raise SpecError(str(folder / RECORD), "settings", f"unreadable: {exc}") from None
+    except ValueError as exc:
+        raise SpecError(where, RECORD, f"not a tune's record (cut short?): {exc}") from None
+    if not isinstance(record, dict) or record.get("kind") != "tune":
+        raise SpecError(where, "kind", "not a tune's record: DIR is not a tune's output folder")
+    state = record.get("state")
     if state == "complete":
         print(f"tvopt-codegen: {folder}: the tune is complete; nothing to resume", file=sys.stderr)
         return 0
-    if Path(spec_name).name != spec_name or not spec_name.endswith(".toml"):
-        raise SpecError(str(folder / RECORD), "spec", f"{spec_name!r} is not a file name in DIR")
+    if state not in ("running", "interrupted"):
+        raise SpecError(where, "state", f"expected running or interrupted, got {state!r}")
+    try:
+        settings = Settings.from_dict(record.get("settings"))
+    except ValueError as exc:
+        raise SpecError(where, "settings", str(exc)) from None
+    _check_recorded(settings, where)
+    evaluations = record.get("evaluations")
+    if not isinstance(evaluations, list):
+        raise SpecError(where, "evaluations", f"expected a list, got {type(evaluations).__name__}")
+    history = []
+    for i, entry in enumerate(evaluations):
+        try:
+            if not isinstance(entry, dict):
+                raise TypeError(f"expected a table, got {type(entry).__name__}")
+            history.append(Evaluation.from_dict(entry))
+        except (ValueError, KeyError, TypeError, AttributeError, IndexError) as exc:
+            raise SpecError(where, f"evaluations[{i}]", f"unreadable: {exc}") from None
+    options_record = record.get("options")
+    if not isinstance(options_record, dict):
+        raise SpecError(where, "options", "missing, or not a table")
+    spec_name = record.get("spec")
+    if (
+        not isinstance(spec_name, str)
+        or Path(spec_name).name != spec_name
+        or not spec_name.endswith(".toml")
+    ):
+        raise SpecError(where, "spec", f"{spec_name!r} is not a file name in DIR")
     raw = read_regular_file(folder / spec_name, _MAX_SPEC)
     if raw is None:
         raise SpecError(str(folder), spec_name, "the tune's copy of its spec is missing")
+    if hashlib.sha256(raw).hexdigest() != record.get("spec_sha256"):
+        raise SpecError(
+            str(folder / spec_name),
+            "spec_sha256",
+            "the tune's copy of its spec was edited or replaced since the tune started; "
+            "a resume runs the law the tune started with: restore it, or start a new tune",
+        )
     source = str(folder / spec_name)
     spec = parse_spec(source, raw)
     if record.get("extension") == "auto":
         spec = dataclasses.replace(spec, extension=(), extension_auto=True)
     derivation = derive(spec)
     kernels = lower(derivation)
-    # The recorded sweep's options, spelled back as the command line gave them.
-    replayed = _args_from_options(args, options_record)
-    problem = _problem(
-        replayed, settings, derivation, kernels, raw, str(record.get("extension")), source
-    )
+    try:
+        # The recorded sweep's options, spelled back as the command line gave them.
+        replayed = _args_from_options(args, options_record)
+        problem = _problem(
+            replayed, settings, derivation, kernels, raw, str(record.get("extension")), source
+        )
+    except SpecError as exc:
+        # A recorded value the checks refuse: the record's fault, not the command line's.
+        if exc.source != "command line":
+            raise
+        raise SpecError(where, f"settings ({exc.field})", exc.problem) from None
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise SpecError(where, "options", f"unreadable: {exc}") from None
     if problem.program.key != record.get("loop"):
         raise SpecError(
-            str(folder / RECORD),
+            where,
             "loop",
             "the compiled loop differs from the one the tune started with (another version?)",
         )
     # Compared as text: the draws follow the options' order, which dicts' == ignores.
     if json.dumps(problem.options.as_dict()) != json.dumps(options_record):
-        raise SpecError(str(folder / RECORD), "options", "do not match the tune's samples")
+        raise SpecError(where, "options", "do not match the tune's samples")
+    _check_history(problem, history, where)
     return _run(replayed, problem, record, history, force=True, folder_path=str(folder))
 
 
@@ -793,3 +872,124 @@ def _args_from_options(args: argparse.Namespace, options: dict[str, Any]) -> arg
         "points": options["points"],
     }
     return argparse.Namespace(**values)
+
+
+def _check_recorded(settings: Settings, where: str) -> None:
+    """A recorded tune's settings within the bounds its command line had (``--resume``).
+
+    A record edited by hand could otherwise ask for 10^12 candidates or a method that
+    does not exist; the requirements' grammar and the space's bounds are checked when
+    the problem is built, and their errors are turned into the record's.
+    """
+    from tvopt_codegen.sweep import MAX_SAMPLES  # noqa: PLC0415
+
+    def fail(key: str, problem: str) -> SpecError:
+        return SpecError(where, f"settings.{key}", problem)
+
+    for key, high in (
+        ("evaluations", MAX_EVALUATIONS),
+        ("samples", MAX_SAMPLES),
+        ("check_samples", MAX_SAMPLES),
+    ):
+        if not 1 <= getattr(settings, key) <= high:
+            raise fail(key, f"must be between 1 and {high}")
+    for key in ("seed", "check_seed"):
+        if not 0 <= getattr(settings, key) <= 2**63 - 1:
+            raise fail(key, "must be between 0 and 2**63 - 1")
+    if settings.method not in METHODS:
+        raise fail("method", f"expected one of {', '.join(METHODS)}, got {settings.method!r}")
+    if settings.population is not None and not 2 <= settings.population <= 1000:
+        raise fail("population", "must be between 2 and 1000")
+    if settings.complex_pairs is not None and settings.complex_pairs < 0:
+        raise fail("complex_pairs", "must be zero or positive")
+    if settings.after is not None and not (math.isfinite(settings.after) and settings.after >= 0):
+        raise fail("after", "must be zero or positive and finite")
+    if settings.min_damping is not None and not (
+        math.isfinite(settings.min_damping) and 0 < settings.min_damping <= 1
+    ):
+        raise fail("min_damping", "must be in (0, 1]")
+    for key in ("pole_range", "bandwidth_range"):
+        bounds = getattr(settings, key)
+        if bounds is not None and not (
+            all(math.isfinite(b) for b in bounds) and 0 < bounds[0] < bounds[1]
+        ):
+            raise fail(key, "expected 0 < lo < hi, both finite")
+
+
+def _check_history(problem: Problem, history: Sequence[Any], where: str) -> None:
+    """The recorded evaluations are the ones this search made, in its order.
+
+    Each is where the search put it (index, generation, position in the optimiser's
+    batches), its candidate is the decoding of its point (so inside the Hurwitz region
+    of the space, never poles typed into the record), its scores are numbers a sweep
+    gives, and a dry replay of the optimiser asks the same points: a record that is
+    not this search's is refused before anything runs or is written.
+    """
+    import numpy as np  # noqa: PLC0415
+
+    from tvopt_codegen.tune.session import ORIGINAL, ReplayError, Search  # noqa: PLC0415
+
+    samples = problem.settings.samples
+    population = _optimizer(problem).population
+    for i, e in enumerate(history):
+
+        def fail(problem_text: str, i: int = i) -> SpecError:
+            return SpecError(where, f"evaluations[{i}]", problem_text)
+
+        if e.index != i:
+            raise fail(f"index {e.index}, expected {i} (the evaluations in order, no gaps)")
+        if i == 0:
+            if (e.generation, e.position) != (ORIGINAL, 0) or e.candidate != problem.original:
+                raise fail("the first evaluation must be the spec's own gains")
+        else:
+            if e.generation < 0 or not 0 <= e.position < population:
+                raise fail(f"generation {e.generation}, position {e.position}: not this search's")
+            if e.index != 1 + e.generation * population + e.position:
+                raise fail(
+                    f"index {e.index} is not generation {e.generation}'s candidate "
+                    f"{e.position} (population {population})"
+                )
+            point = np.asarray(e.x, dtype=float)
+            if (
+                point.shape != (problem.space.dimension,)
+                or not np.all(np.isfinite(point))
+                or np.any(point < 0)
+                or np.any(point > 1)
+            ):
+                raise fail("its point is not in the search's box [0, 1]^d")
+            if problem.space.decode(point) != e.candidate:
+                raise fail("its poles and bandwidth are not its point's (edited by hand?)")
+        if not (0 <= e.failures <= e.runs == samples):
+            raise fail(f"failures {e.failures} of {e.runs} runs: expected runs = {samples}")
+        numbers = (e.score.value, *(bound for _, _, bound in e.score.constraints))
+        if not all(math.isfinite(v) for v in numbers) or math.isnan(e.score.objective):
+            raise fail("its score is not a number a sweep gives")
+    if len(history) - 1 > problem.settings.evaluations:
+        raise SpecError(
+            where, "evaluations", f"more than the tune's {problem.settings.evaluations} candidates"
+        )
+
+    class _RecordEndError(Exception):
+        """The replay reached a candidate the record lacks: the rest is the resume's."""
+
+    def no_sweep(candidates: Sequence[Any], _done: Any) -> None:
+        if candidates:
+            raise _RecordEndError
+
+    search = Search(
+        problem.space,
+        problem.requirements,
+        _optimizer(problem),
+        problem.settings.evaluations,
+        problem.options.t_final,
+        problem.program.input_names,
+        history,
+    )
+    if not history:
+        return
+    try:
+        search.run(problem.original, no_sweep, lambda _e: None)
+    except _RecordEndError:
+        pass
+    except ReplayError as exc:
+        raise SpecError(where, "evaluations", str(exc)) from None

@@ -30,6 +30,10 @@ REPLAY_TOLERANCE = 1e-12
 ORIGINAL = -1
 
 
+class ReplayError(ValueError):
+    """A recorded evaluation is not where this search puts it: the record is another's."""
+
+
 @dataclass(frozen=True)
 class Evaluation:
     """One candidate swept and scored.
@@ -257,10 +261,12 @@ class Search:
                 break
             asked = [np.asarray(x, dtype=float) for x in self.optimizer.ask()]
             for position, e in done.items():
-                if position >= len(asked) or not np.allclose(
-                    asked[position], e.x, rtol=0.0, atol=REPLAY_TOLERANCE
+                if (
+                    position >= len(asked)
+                    or e.index != offset + position
+                    or not np.allclose(asked[position], e.x, rtol=0.0, atol=REPLAY_TOLERANCE)
                 ):
-                    raise ValueError(
+                    raise ReplayError(
                         f"the optimiser asked another point than the record's (generation "
                         f"{generation}, candidate {position}): the record is not this search's"
                     )

@@ -50,25 +50,70 @@ class Settings:
         }
 
     @classmethod
-    def from_dict(cls, record: dict[str, Any]) -> Settings:
-        """The inverse of :meth:`as_dict`."""
+    def from_dict(cls, record: Any) -> Settings:
+        """The inverse of :meth:`as_dict`, each value's type checked.
 
-        def pair(value: Any) -> tuple[float, float] | None:
-            return None if value is None else (float(value[0]), float(value[1]))
+        Raises
+        ------
+        ValueError
+            ``"<key>: <problem>"`` for a key missing or of the wrong type (a record
+            edited by hand or cut short); the values' bounds are the command's to check.
+        """
+        if not isinstance(record, dict):
+            raise ValueError(f"expected a table of settings, got {type(record).__name__}")
 
+        def value(key: str) -> Any:
+            if key not in record:
+                raise ValueError(f"{key}: missing")
+            return record[key]
+
+        def integer(key: str, optional: bool = False) -> Any:
+            found = value(key)
+            if optional and found is None:
+                return None
+            if isinstance(found, bool) or not isinstance(found, int):
+                raise ValueError(f"{key}: expected an integer, got {found!r}")
+            return found
+
+        def number(found: Any, key: str) -> float:
+            if isinstance(found, bool) or not isinstance(found, (int, float)):
+                raise ValueError(f"{key}: expected a number, got {found!r}")
+            return float(found)
+
+        def optional_number(key: str) -> float | None:
+            found = value(key)
+            return None if found is None else number(found, key)
+
+        def text(found: Any, key: str) -> str:
+            if not isinstance(found, str):
+                raise ValueError(f"{key}: expected a string, got {found!r}")
+            return found
+
+        def pair(key: str) -> tuple[float, float] | None:
+            found = value(key)
+            if found is None:
+                return None
+            if not isinstance(found, list) or len(found) != 2:
+                raise ValueError(f"{key}: expected [lo, hi], got {found!r}")
+            return number(found[0], key), number(found[1], key)
+
+        constraints = value("constraints")
+        if not isinstance(constraints, list):
+            raise ValueError(f"constraints: expected a list of strings, got {constraints!r}")
+        objective = value("objective")
         return cls(
-            evaluations=int(record["evaluations"]),
-            samples=int(record["samples"]),
-            seed=int(record["seed"]),
-            check_samples=int(record["check_samples"]),
-            check_seed=int(record["check_seed"]),
-            method=str(record["method"]),
-            population=None if record["population"] is None else int(record["population"]),
-            objective=None if record["objective"] is None else str(record["objective"]),
-            constraints=tuple(str(c) for c in record["constraints"]),
-            after=None if record["after"] is None else float(record["after"]),
-            pole_range=pair(record["pole_range"]),
-            min_damping=None if record["min_damping"] is None else float(record["min_damping"]),
-            bandwidth_range=pair(record["bandwidth_range"]),
-            complex_pairs=None if record["complex_pairs"] is None else int(record["complex_pairs"]),
+            evaluations=integer("evaluations"),
+            samples=integer("samples"),
+            seed=integer("seed"),
+            check_samples=integer("check_samples"),
+            check_seed=integer("check_seed"),
+            method=text(value("method"), "method"),
+            population=integer("population", optional=True),
+            objective=None if objective is None else text(objective, "objective"),
+            constraints=tuple(text(c, "constraints") for c in constraints),
+            after=optional_number("after"),
+            pole_range=pair("pole_range"),
+            min_damping=optional_number("min_damping"),
+            bandwidth_range=pair("bandwidth_range"),
+            complex_pairs=integer("complex_pairs", optional=True),
         )
