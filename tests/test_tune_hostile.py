@@ -81,6 +81,7 @@ def refused(ran: Ran, code: int, *words: str) -> str:
         (["--pole-range", "nan:2"], "--pole-range"),
         (["--pole-range", "1:inf"], "--pole-range"),
         (["--pole-range=-1:2"], "--pole-range"),
+        (["--pole-range", "-1:2"], "--pole-range"),  # argparse's: it looks like an option
         (["--pole-range", "1:"], "--pole-range"),
         (["--pole-range", ":"], "--pole-range"),
         (["--pole-range", "1:2:3"], "--pole-range"),
