@@ -154,6 +154,51 @@ def test_a_stopped_tune_keeps_the_best_and_resumes_to_the_uninterrupted_end(
     assert again.returncode == 0 and "nothing to resume" in again.stderr
 
 
+def test_a_signal_in_the_fresh_check_keeps_the_best_and_resumes(
+    reference: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The search done, the check on fresh samples cut by SIGTERM: the best is kept, and a
+    resume replays the whole search without a sweep, checks, and ends as the reference."""
+    from tvopt_codegen.errors import Terminated
+    from tvopt_codegen.tune import evaluate
+
+    def terminated(*args: object) -> None:
+        raise Terminated
+
+    monkeypatch.setattr(evaluate, "fresh_check", terminated)
+    out = tmp_path / "out"
+    ran = run_main("tune", *PVTOL, "--out", str(out))
+    assert ran.returncode == EXIT_TERMINATED, ran.stderr
+    assert "kept the best so far" in ran.stderr.strip().splitlines()[-1]
+    record = json.loads((out / "tune.json").read_text())
+    assert record["state"] == "interrupted" and len(record["evaluations"]) == 25
+    assert "Interrupted" in (out / TUNED).read_text()
+    monkeypatch.undo()
+    resumed = run_main("tune", "--resume", str(out), "--progress", "never")
+    assert resumed.returncode == 0, resumed.stderr
+    for name in (TUNED, "evaluations.csv", "tune.md"):
+        assert (out / name).read_bytes() == (reference / name).read_bytes(), name
+
+
+def test_requirements_no_candidate_meets_are_said_not_hidden(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    args = ("--constraint", "max(peak_thrust) <= 0.01", "--evaluations", "6")
+    ran = run_main("tune", *PVTOL, *args, "--out", str(out))
+    assert ran.returncode == 0, ran.stderr
+    assert "warning: no candidate met every requirement" in ran.stderr
+    assert "No candidate met every requirement" in (out / TUNED).read_text()
+    assert "**No candidate met every requirement**" in (out / "tune.md").read_text()
+
+
+def test_a_choice_on_the_edge_of_the_box_is_said(tmp_path: Path) -> None:
+    """Poles confined to [2.6, 3] rad/s, where faster is better: the best is on the edge."""
+    out = tmp_path / "out"
+    ran = run_main("tune", *PVTOL, "--pole-range", "2.6:3", "--out", str(out))
+    assert ran.returncode == 0, ran.stderr
+    text = (out / "tune.md").read_text()
+    assert "sit on the edge of the searched box (a pole of magnitude 3" in text
+
+
 def test_a_resume_takes_no_new_options(reference: Path) -> None:
     ran = run_main("tune", "--resume", str(reference), "--samples", "5")
     assert ran.returncode == EXIT_BAD_SPEC
@@ -173,6 +218,7 @@ def test_a_resume_takes_no_new_options(reference: Path) -> None:
         (("--bandwidth-range", "1:10"), "--bandwidth-range"),
         (("--after", "9"), "--after"),
         (("--evaluations", "0"), "--evaluations"),
+        (("--check-seed", "3"), "--check-seed"),
     ],
 )
 def test_bad_requirements_are_one_line_and_nothing_is_written(

@@ -16,7 +16,7 @@ import math
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -30,25 +30,17 @@ from tvopt_codegen.errors import (
 )
 
 if TYPE_CHECKING:
-    from tvopt_codegen.sweep import SweepOptions, SweepProgram
-    from tvopt_codegen.tune.requirements import Requirements
+    from tvopt_codegen.tune.problem import Problem
+    from tvopt_codegen.tune.session import Evaluation, Search
     from tvopt_codegen.tune.settings import Settings
-    from tvopt_codegen.tune.space import Candidate, Space
 
 HELP = "choose the poles and observer gains against sweeps of the mismatched plant"
-
-#: The searches ``--method`` names, as ``tune.md`` names them.
-METHODS = {"cma": "CMA-ES", "tpe": "optuna's TPE", "random": "uniform random points"}
 
 #: In a log, seconds between progress lines.
 LOG_EVERY = 60.0
 
-#: The search's record in its folder.
-RECORD = "tune.json"
 #: What a tune writes beside its record (the tuned spec's name is ``<name>_tuned.toml``).
 FILES = ("tune.md", "evaluations.csv", "tune_tradeoff.png", "tune_tradeoff.svg")
-#: The most candidates, and samples per candidate, a tune takes.
-MAX_EVALUATIONS = 100_000
 #: Largest record read back by ``--resume`` (a long tune's history), and spec copy.
 _MAX_RECORD = 1 << 26
 _MAX_SPEC = 1 << 22
@@ -122,7 +114,7 @@ def build(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--method",
-        choices=tuple(METHODS),
+        choices=("cma", "tpe", "random"),
         default="cma",
         help="the search: CMA-ES, optuna's TPE (the tpe extra), or uniform random points "
         "(the baseline) (default: cma)",
@@ -187,6 +179,7 @@ def _count(value: int | None, option: str, default: int, high: int) -> int:
 def _settings(args: argparse.Namespace) -> Settings:
     """The command line's settings, each checked (the requirements' grammar comes later)."""
     from tvopt_codegen.sweep import MAX_SAMPLES  # noqa: PLC0415
+    from tvopt_codegen.tune.record import MAX_EVALUATIONS  # noqa: PLC0415
     from tvopt_codegen.tune.settings import Settings  # noqa: PLC0415
     from tvopt_codegen.tune.space import parse_range  # noqa: PLC0415
 
@@ -197,6 +190,10 @@ def _settings(args: argparse.Namespace) -> Settings:
         raise SpecError("command line", "--after", "must be zero or positive and finite")
     if args.check_seed is not None and not 0 <= args.check_seed <= 2**63 - 1:
         raise SpecError("command line", "--check-seed", "must be between 0 and 2**63 - 1")
+    if args.check_seed is not None and args.check_seed == args.seed:
+        raise SpecError(
+            "command line", "--check-seed", "is --seed: the check's samples would not be fresh"
+        )
     if args.complex_pairs is not None and args.complex_pairs < 0:
         raise SpecError("command line", "--complex-pairs", "must be zero or positive")
     return Settings(
@@ -272,40 +269,22 @@ def _refuse_tune_options(args: argparse.Namespace) -> None:
 # ------------------------------------------------------------------ the problem
 
 
-@dataclass
-class Problem:
-    """A tune's problem, ready to search: the loop, its samples, the space, the requirements."""
-
-    name: str
-    source: str
-    raw: bytes
-    program: SweepProgram
-    options: SweepOptions
-    check: SweepOptions
-    space: Space
-    requirements: Requirements
-    original: Candidate
-    settings: Settings
-    extension: str
-    #: The label of the failure bound added for the spec's own gains, if one was.
-    default_bound: str | None = None
-
-
 def _problem(
     args: argparse.Namespace,
     settings: Settings,
     derivation: Any,
     kernels: Any,
     raw: bytes,
-    extension: str,
     source: str,
 ) -> Problem:
     """The loop, the samples and the search's space and requirements, all checked."""
     import dataclasses  # noqa: PLC0415
 
     from tvopt_codegen.sweep import sweep_program  # noqa: PLC0415
+    from tvopt_codegen.tune.problem import Problem, spec_poles  # noqa: PLC0415
     from tvopt_codegen.tune.requirements import requirements_from  # noqa: PLC0415
     from tvopt_codegen.tune.space import Candidate, space_for  # noqa: PLC0415
+    from tvopt_codegen.tune.spec_text import tuned_text  # noqa: PLC0415
 
     spec = derivation.spec
     program = sweep_program(kernels)
@@ -355,7 +334,7 @@ def _problem(
     # cause (too few poles for the pairs) is the command line's when it gave any.
     only_table = given == (None, None, None) and (magnitude, min_damping, bandwidth_range) != given
     space = space_for(
-        _spec_poles(derivation),
+        spec_poles(derivation),
         bandwidth,
         integral=bool(program.integral_rows),
         magnitude=magnitude,
@@ -365,7 +344,10 @@ def _problem(
         field_prefix="tune." if only_table else "--",
         source=source if only_table else "command line",
     )
-    original = Candidate(poles=_spec_poles(derivation), bandwidth=bandwidth)
+    original = Candidate(poles=spec_poles(derivation), bandwidth=bandwidth)
+    # The tuned spec is the user's text rewritten: a layout the writer cannot follow is
+    # refused now, not after the search.
+    tuned_text(raw.decode("utf-8"), source, poles=original.poles, bandwidth=original.bandwidth)
     return Problem(
         spec.name,
         source,
@@ -377,26 +359,7 @@ def _problem(
         requirements,
         original,
         settings,
-        extension,
     )
-
-
-def _spec_poles(derivation: Any) -> tuple[complex, ...]:
-    """The spec's poles as it wrote them (exact); from coefficients, H's eigenvalues.
-
-    Eigenvalues computed from coefficients are cleaned as the spec would write them: a
-    root within 1e-4 of its size of the real axis is real, and a pair's members are
-    exact conjugates.
-    """
-    if derivation.spec.poles is not None:
-        return tuple(complex(p) for p in derivation.spec.poles)
-    cleaned: list[complex] = []
-    for value in sorted(derivation.dynamics.eigenvalues, key=lambda p: (p.real, -p.imag)):
-        if abs(value.imag) <= 1e-4 * abs(value):
-            cleaned.append(complex(value.real, 0.0))
-        elif value.imag > 0:
-            cleaned += [complex(value.real, value.imag), complex(value.real, -value.imag)]
-    return tuple(cleaned)
 
 
 # ------------------------------------------------------------------ running it
@@ -437,16 +400,15 @@ def _new(args: argparse.Namespace) -> int:
     """Run ``tvopt-codegen tune SPEC ...``."""
     from tvopt_codegen.spec import read_spec_bytes  # noqa: PLC0415
     from tvopt_codegen.sweep import check_workers  # noqa: PLC0415
+    from tvopt_codegen.tune.problem import tuned_name  # noqa: PLC0415
 
     settings = _settings(args)
     if args.scheduler is None:
         check_workers(args.workers)
     source, raw = read_spec_bytes(args.spec)
     derivation, kernels = common.derive(args)
-    problem = _problem(
-        args, settings, derivation, kernels, raw, args.extension, derivation.spec.source
-    )
-    tuned = _tuned_name(problem.name)
+    problem = _problem(args, settings, derivation, kernels, raw, derivation.spec.source)
+    tuned = tuned_name(problem.name)
     spec_path = Path(args.spec)
     if spec_path.is_file():
         # Neither the tuned spec nor the tune's copy may land on the user's spec (not even
@@ -472,12 +434,11 @@ def _new(args: argparse.Namespace) -> int:
     return _run(args, problem, record, history=[], force=args.force)
 
 
-def _tuned_name(name: str) -> str:
-    return f"{name}_tuned.toml"
-
-
 def _names(name: str) -> list[str]:
-    return [RECORD, f"{name}.toml", _tuned_name(name), *FILES]
+    from tvopt_codegen.tune.problem import tuned_name  # noqa: PLC0415
+    from tvopt_codegen.tune.record import RECORD  # noqa: PLC0415
+
+    return [RECORD, f"{name}.toml", tuned_name(name), *FILES]
 
 
 def _run(
@@ -491,6 +452,7 @@ def _run(
     """Lock the folder, search, check on fresh samples, write; keep the best on a signal."""
     from tvopt_codegen.emit import SweepFolder, write_files  # noqa: PLC0415
     from tvopt_codegen.sweep import connect, loop_for  # noqa: PLC0415
+    from tvopt_codegen.tune.record import RECORD, record_bytes  # noqa: PLC0415
 
     out = folder_path or args.out
     if not history and not force:
@@ -500,7 +462,7 @@ def _run(
         loop_for(problem.program)  # a compiler error stops here, before any worker starts
         plant.check_nominal(problem.source, problem.program, problem.options)
         write_files(
-            {RECORD: _record_bytes(record), f"{problem.name}.toml": problem.raw.decode("utf-8")},
+            {RECORD: record_bytes(record), f"{problem.name}.toml": problem.raw.decode("utf-8")},
             folder.folder,
             force=True,
             warn=common.warn,
@@ -519,6 +481,7 @@ def _run(
 
 def _refuse_earlier(out: str) -> None:
     from tvopt_codegen.emit import prepare_folder  # noqa: PLC0415
+    from tvopt_codegen.tune.record import RECORD  # noqa: PLC0415
 
     folder = prepare_folder(out, create=False)
     if (folder / RECORD).exists():
@@ -529,70 +492,36 @@ def _refuse_earlier(out: str) -> None:
         )
 
 
-def _record_bytes(record: dict[str, Any]) -> bytes:
-    # Not sorted: the order of --plant-param and the others is the order of the draws.
-    # Strict JSON (no NaN or Infinity tokens, which other readers refuse): a fresh check
-    # whose every sample failed has an infinite objective and no input effort.
-    return (json.dumps(_strict_json(record), indent=1, allow_nan=False) + "\n").encode()
-
-
-def _strict_json(value: Any) -> Any:
-    """``value`` with every non-finite float written as its text (``"inf"``, ``"nan"``)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return repr(value)
-    if isinstance(value, dict):
-        return {k: _strict_json(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_strict_json(v) for v in value]
-    return value
-
-
-def _optimizer(problem: Problem) -> Any:
-    from tvopt_codegen.tune.search import (  # noqa: PLC0415
-        cma_optimizer,
-        random_optimizer,
-        tpe_optimizer,
-    )
-
-    settings, space = problem.settings, problem.space
-    population = settings.population or _default_population(space.dimension)
-    if settings.method == "random":
-        return random_optimizer(space.dimension, settings.seed, population)
-    start = space.encode(problem.original)
-    if settings.method == "tpe":
-        return tpe_optimizer(start, settings.seed, population)
-    return cma_optimizer(start, settings.seed, settings.population)
-
-
-def _default_population(dimension: int) -> int:
-    """CMA-ES's default population, so that the random baseline runs the same batches."""
-    return 4 + int(3 * math.log(dimension))
-
-
 def _search_and_write(
     args: argparse.Namespace,
     problem: Problem,
     record: dict[str, Any],
-    history: Sequence[Any],
+    history: Sequence[Evaluation],
     folder: Path,
     client: Any,
 ) -> int:
-    """The search (recorded after every generation), the fresh check, the files."""
+    """The search (recorded after every generation), the fresh check, the files.
+
+    Ctrl-C or SIGTERM anywhere before the files (in the search or the fresh check) keeps
+    the best candidate so far (:func:`_interrupted`).
+    """
     from tvopt_codegen.emit import write_files  # noqa: PLC0415
     from tvopt_codegen.tune.evaluate import evaluate, fresh_check  # noqa: PLC0415
-    from tvopt_codegen.tune.session import ORIGINAL, Evaluation, Search, best  # noqa: PLC0415
+    from tvopt_codegen.tune.problem import (  # noqa: PLC0415
+        optimizer_for,
+        result_files,
+        with_default_failure_bound,
+    )
+    from tvopt_codegen.tune.record import RECORD, record_bytes  # noqa: PLC0415
+    from tvopt_codegen.tune.session import ORIGINAL, Search, best  # noqa: PLC0415
 
     def sweep(candidates: Sequence[Any], done: Any) -> None:
-        programs = [
-            problem.program.with_gains(c.coefficients, c.bandwidth, poles=c.poles)
-            for c in candidates
-        ]
-        evaluate(client, programs, problem.options, done)
+        evaluate(client, [problem.program_for(c) for c in candidates], problem.options, done)
 
     search = Search(
         problem.space,
         problem.requirements,
-        _optimizer(problem),
+        optimizer_for(problem),
         problem.settings.evaluations,
         problem.options.t_final,
         problem.program.input_names,
@@ -603,7 +532,7 @@ def _search_and_write(
 
     def checkpoint() -> None:
         record["evaluations"] = [e.as_dict() for e in search.evaluations]
-        write_files({RECORD: _record_bytes(record)}, folder, force=True, warn=common.warn)
+        write_files({RECORD: record_bytes(record)}, folder, force=True, warn=common.warn)
 
     def told(_evaluation: Evaluation) -> None:
         progress(search.searched, best(search.evaluations))
@@ -614,148 +543,75 @@ def _search_and_write(
         file=sys.stderr,
         flush=True,
     )
-    stop: BaseException | None = None
     try:
         original = search.evaluate_original(problem.original, sweep, told)
-        _add_default_failure_bound(problem, search, original)
+        requirements, problem.default_bound, scored = with_default_failure_bound(problem, original)
+        problem.requirements = requirements
+        search.with_requirements(requirements)
+        search.evaluations[search.evaluations.index(original)] = scored
         checkpoint()
-        search.run(problem.original, sweep, told, checkpoint)
-    except (KeyboardInterrupt, Terminated) as exc:
-        stop = exc
-    finally:
+        chosen = search.run(problem.original, sweep, told, checkpoint)
+        checkpoint()  # the last generation, cut by the budget, is told to no one
         progress.close()
-    if stop is not None:
+        original = next(e for e in search.evaluations if e.generation == ORIGINAL)
+        fresh = fresh_check(client, problem, original, chosen)
+    except (KeyboardInterrupt, Terminated) as stop:
+        progress.close()
         return _interrupted(problem, record, search, folder, stop)
-    chosen = best(search.evaluations)
-    original = next(e for e in search.evaluations if e.generation == ORIGINAL)
-    fresh = fresh_check(
-        client, problem.program, problem.requirements, problem.check, original, chosen
-    )
     record["state"] = "complete"
     record["evaluations"] = [e.as_dict() for e in search.evaluations]
     record["best"] = chosen.index
     record["fresh"] = fresh
-    files = _result_files(problem, search.evaluations, chosen, original, fresh, record)
+    files = result_files(problem, search.evaluations, chosen, original, fresh)
+    files[RECORD] = record_bytes(record)
     write_files(files, folder, force=True, warn=common.warn)
-    print(files["tune.md"].decode().rstrip())
+    markdown = files["tune.md"]
+    print((markdown if isinstance(markdown, str) else markdown.decode()).rstrip())
     where = str(folder).rstrip("/")
     for name in sorted(files):
         print(f"  wrote {where}/{name}")
+    if not chosen.score.feasible:
+        common.warn(
+            f"no candidate met every requirement on the tuning samples; "
+            f"{where}/{tuned_name_of(problem)} holds the least violating (see tune.md)"
+        )
     return 0
 
 
-def _add_default_failure_bound(problem: Problem, search: Any, original: Any) -> None:
-    """Without a failure-bound constraint, the tuned gains may fail no more than the spec's.
+def tuned_name_of(problem: Problem) -> str:
+    """The tuned spec's file name for ``problem``."""
+    from tvopt_codegen.tune.problem import tuned_name  # noqa: PLC0415
 
-    The bound is the spec's gains' own Clopper-Pearson bound on the tuning samples; a
-    resumed tune takes it again from the recorded evaluation of the spec's gains.
-    """
-    from tvopt_codegen.sweep.results import clopper_pearson_upper  # noqa: PLC0415
-    from tvopt_codegen.tune.requirements import parse_constraint  # noqa: PLC0415
-
-    if any(c.metric == "failure_bound" for c in problem.requirements.constraints):
-        return
-    bound = clopper_pearson_upper(original.failures, original.runs)
-    added = parse_constraint(f"failure_bound <= {bound!r}", "--constraint", samples=original.runs)
-    problem.requirements = replace(
-        problem.requirements, constraints=(*problem.requirements.constraints, added)
-    )
-    problem.default_bound = added.label
-    search.with_requirements(problem.requirements)
-    if not any(label == added.label for label, _, _ in original.score.constraints):
-        extended = replace(
-            original.score, constraints=(*original.score.constraints, (added.label, bound, bound))
-        )
-        search.evaluations[search.evaluations.index(original)] = replace(original, score=extended)
+    return tuned_name(problem.name)
 
 
 def _interrupted(
-    problem: Problem, record: dict[str, Any], search: Any, folder: Path, stop: BaseException
+    problem: Problem, record: dict[str, Any], search: Search, folder: Path, stop: BaseException
 ) -> int:
     """Keep the best so far (its spec, the tables) and the record; say how to continue."""
     from tvopt_codegen.emit import write_files  # noqa: PLC0415
-    from tvopt_codegen.tune.session import ORIGINAL, best  # noqa: PLC0415
+    from tvopt_codegen.tune.problem import result_files  # noqa: PLC0415
+    from tvopt_codegen.tune.record import RECORD, record_bytes  # noqa: PLC0415
+    from tvopt_codegen.tune.session import best  # noqa: PLC0415
 
     record["state"] = "interrupted"
     record["evaluations"] = [e.as_dict() for e in search.evaluations]
-    files: dict[str, Any] = {RECORD: _record_bytes(record)}
-    originals = [e for e in search.evaluations if e.generation == ORIGINAL]
-    if originals:
+    files: dict[str, bytes | str] = {RECORD: record_bytes(record)}
+    original = search.original
+    if original is not None:
         chosen = best(search.evaluations)
-        files |= _result_files(problem, search.evaluations, chosen, originals[0], None, record)
+        files |= result_files(problem, search.evaluations, chosen, original, None)
     # Held signals: a second one while the files are written does not cut them short.
     write_files(files, folder, force=True, warn=common.warn)
     terminated = isinstance(stop, Terminated)
     print(
         f"tvopt-codegen: {'terminated' if terminated else 'interrupted'} after "
         f"{search.searched} of {problem.settings.evaluations} candidates; kept the best so far "
-        f"in {folder / _tuned_name(problem.name)}: `tvopt-codegen tune --resume {folder}` "
+        f"in {folder / tuned_name_of(problem)}: `tvopt-codegen tune --resume {folder}` "
         "continues",
         file=sys.stderr,
     )
     return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
-
-
-def _result_files(
-    problem: Problem,
-    evaluations: Sequence[Any],
-    chosen: Any,
-    original: Any,
-    fresh: dict[str, Any] | None,
-    record: dict[str, Any],
-) -> dict[str, Any]:
-    """The tuned spec, the tables, the figure and the record, in memory."""
-    from tvopt_codegen.runs.artifacts import tune_files  # noqa: PLC0415
-    from tvopt_codegen.tune.spec_text import tuned_text  # noqa: PLC0415
-    from tvopt_codegen.tune.tables import evaluations_csv, space_text, tune_markdown  # noqa: PLC0415
-
-    header = [
-        f"Tuned by tvopt-codegen tune ({problem.settings.method}, {problem.settings.evaluations} "
-        f"candidates of {problem.settings.samples} samples, seed {problem.settings.seed}):",
-        f"  {problem.requirements.objective.label} = {chosen.score.objective:.6g} on the tuning "
-        f"samples (the spec's gains: {original.score.objective:.6g}).",
-    ]
-    if fresh is not None:
-        header.append(
-            f"  On {fresh['samples']} fresh samples (seed {fresh['seed']}): "
-            f"{fresh['tuned']['objective']:.6g} (the spec's gains: "
-            f"{fresh['original']['objective']:.6g})."
-        )
-    else:
-        header.append("  Interrupted: the best candidate so far, not checked on fresh samples.")
-    text = tuned_text(
-        problem.raw.decode("utf-8"),
-        problem.source,
-        poles=chosen.candidate.poles,
-        bandwidth=chosen.candidate.bandwidth,
-        header=header,
-    )
-    files: dict[str, Any] = {_tuned_name(problem.name): text, RECORD: _record_bytes(record)}
-    requirements = [problem.requirements.objective.label] + [
-        c.label + (" (the spec's gains' own bound)" if c.label == problem.default_bound else "")
-        for c in problem.requirements.constraints
-    ]
-    method = f"{METHODS[problem.settings.method]}, seed {problem.settings.seed}"
-    markdown = tune_markdown(
-        problem.name,
-        method,
-        requirements,
-        space_text(problem.space),
-        problem.options,
-        evaluations,
-        chosen,
-        fresh,
-    )
-    files |= tune_files(
-        problem.name,
-        markdown,
-        evaluations_csv(evaluations),
-        problem.requirements.objective.label,
-        evaluations,
-        chosen,
-        original,
-    )
-    return files
 
 
 # ------------------------------------------------------------------ --resume
@@ -769,6 +625,7 @@ def _resume(args: argparse.Namespace) -> int:
     from tvopt_codegen.emit import read_regular_file  # noqa: PLC0415
     from tvopt_codegen.lowering.ir import lower  # noqa: PLC0415
     from tvopt_codegen.spec import parse_spec  # noqa: PLC0415
+    from tvopt_codegen.tune.record import RECORD, check_history, check_recorded  # noqa: PLC0415
     from tvopt_codegen.tune.session import Evaluation  # noqa: PLC0415
     from tvopt_codegen.tune.settings import Settings  # noqa: PLC0415
 
@@ -793,7 +650,7 @@ def _resume(args: argparse.Namespace) -> int:
         settings = Settings.from_dict(record.get("settings"))
     except ValueError as exc:
         raise SpecError(where, "settings", str(exc)) from None
-    _check_recorded(settings, where)
+    check_recorded(settings, where)
     evaluations = record.get("evaluations")
     if not isinstance(evaluations, list):
         raise SpecError(where, "evaluations", f"expected a list, got {type(evaluations).__name__}")
@@ -834,9 +691,7 @@ def _resume(args: argparse.Namespace) -> int:
     try:
         # The recorded sweep's options, spelled back as the command line gave them.
         replayed = _args_from_options(args, options_record)
-        problem = _problem(
-            replayed, settings, derivation, kernels, raw, str(record.get("extension")), source
-        )
+        problem = _problem(replayed, settings, derivation, kernels, raw, source)
     except SpecError as exc:
         # A recorded value the checks refuse: the record's fault, not the command line's.
         if exc.source != "command line":
@@ -853,7 +708,7 @@ def _resume(args: argparse.Namespace) -> int:
     # Compared as text: the draws follow the options' order, which dicts' == ignores.
     if json.dumps(problem.options.as_dict()) != json.dumps(options_record):
         raise SpecError(where, "options", "do not match the tune's samples")
-    _check_history(problem, history, where)
+    check_history(problem, history, where)
     return _run(replayed, problem, record, history, force=True, folder_path=str(folder))
 
 
@@ -872,124 +727,3 @@ def _args_from_options(args: argparse.Namespace, options: dict[str, Any]) -> arg
         "points": options["points"],
     }
     return argparse.Namespace(**values)
-
-
-def _check_recorded(settings: Settings, where: str) -> None:
-    """A recorded tune's settings within the bounds its command line had (``--resume``).
-
-    A record edited by hand could otherwise ask for 10^12 candidates or a method that
-    does not exist; the requirements' grammar and the space's bounds are checked when
-    the problem is built, and their errors are turned into the record's.
-    """
-    from tvopt_codegen.sweep import MAX_SAMPLES  # noqa: PLC0415
-
-    def fail(key: str, problem: str) -> SpecError:
-        return SpecError(where, f"settings.{key}", problem)
-
-    for key, high in (
-        ("evaluations", MAX_EVALUATIONS),
-        ("samples", MAX_SAMPLES),
-        ("check_samples", MAX_SAMPLES),
-    ):
-        if not 1 <= getattr(settings, key) <= high:
-            raise fail(key, f"must be between 1 and {high}")
-    for key in ("seed", "check_seed"):
-        if not 0 <= getattr(settings, key) <= 2**63 - 1:
-            raise fail(key, "must be between 0 and 2**63 - 1")
-    if settings.method not in METHODS:
-        raise fail("method", f"expected one of {', '.join(METHODS)}, got {settings.method!r}")
-    if settings.population is not None and not 2 <= settings.population <= 1000:
-        raise fail("population", "must be between 2 and 1000")
-    if settings.complex_pairs is not None and settings.complex_pairs < 0:
-        raise fail("complex_pairs", "must be zero or positive")
-    if settings.after is not None and not (math.isfinite(settings.after) and settings.after >= 0):
-        raise fail("after", "must be zero or positive and finite")
-    if settings.min_damping is not None and not (
-        math.isfinite(settings.min_damping) and 0 < settings.min_damping <= 1
-    ):
-        raise fail("min_damping", "must be in (0, 1]")
-    for key in ("pole_range", "bandwidth_range"):
-        bounds = getattr(settings, key)
-        if bounds is not None and not (
-            all(math.isfinite(b) for b in bounds) and 0 < bounds[0] < bounds[1]
-        ):
-            raise fail(key, "expected 0 < lo < hi, both finite")
-
-
-def _check_history(problem: Problem, history: Sequence[Any], where: str) -> None:
-    """The recorded evaluations are the ones this search made, in its order.
-
-    Each is where the search put it (index, generation, position in the optimiser's
-    batches), its candidate is the decoding of its point (so inside the Hurwitz region
-    of the space, never poles typed into the record), its scores are numbers a sweep
-    gives, and a dry replay of the optimiser asks the same points: a record that is
-    not this search's is refused before anything runs or is written.
-    """
-    import numpy as np  # noqa: PLC0415
-
-    from tvopt_codegen.tune.session import ORIGINAL, ReplayError, Search  # noqa: PLC0415
-
-    samples = problem.settings.samples
-    population = _optimizer(problem).population
-    for i, e in enumerate(history):
-
-        def fail(problem_text: str, i: int = i) -> SpecError:
-            return SpecError(where, f"evaluations[{i}]", problem_text)
-
-        if e.index != i:
-            raise fail(f"index {e.index}, expected {i} (the evaluations in order, no gaps)")
-        if i == 0:
-            if (e.generation, e.position) != (ORIGINAL, 0) or e.candidate != problem.original:
-                raise fail("the first evaluation must be the spec's own gains")
-        else:
-            if e.generation < 0 or not 0 <= e.position < population:
-                raise fail(f"generation {e.generation}, position {e.position}: not this search's")
-            if e.index != 1 + e.generation * population + e.position:
-                raise fail(
-                    f"index {e.index} is not generation {e.generation}'s candidate "
-                    f"{e.position} (population {population})"
-                )
-            point = np.asarray(e.x, dtype=float)
-            if (
-                point.shape != (problem.space.dimension,)
-                or not np.all(np.isfinite(point))
-                or np.any(point < 0)
-                or np.any(point > 1)
-            ):
-                raise fail("its point is not in the search's box [0, 1]^d")
-            if problem.space.decode(point) != e.candidate:
-                raise fail("its poles and bandwidth are not its point's (edited by hand?)")
-        if not (0 <= e.failures <= e.runs == samples):
-            raise fail(f"failures {e.failures} of {e.runs} runs: expected runs = {samples}")
-        numbers = (e.score.value, *(bound for _, _, bound in e.score.constraints))
-        if not all(math.isfinite(v) for v in numbers) or math.isnan(e.score.objective):
-            raise fail("its score is not a number a sweep gives")
-    if len(history) - 1 > problem.settings.evaluations:
-        raise SpecError(
-            where, "evaluations", f"more than the tune's {problem.settings.evaluations} candidates"
-        )
-
-    class _RecordEndError(Exception):
-        """The replay reached a candidate the record lacks: the rest is the resume's."""
-
-    def no_sweep(candidates: Sequence[Any], _done: Any) -> None:
-        if candidates:
-            raise _RecordEndError
-
-    search = Search(
-        problem.space,
-        problem.requirements,
-        _optimizer(problem),
-        problem.settings.evaluations,
-        problem.options.t_final,
-        problem.program.input_names,
-        history,
-    )
-    if not history:
-        return
-    try:
-        search.run(problem.original, no_sweep, lambda _e: None)
-    except _RecordEndError:
-        pass
-    except ReplayError as exc:
-        raise SpecError(where, "evaluations", str(exc)) from None

@@ -39,7 +39,8 @@ def default_chunk(samples: int, workers: int) -> int:
     return max(1, min(256, math.ceil(samples / (8 * max(1, workers)))))
 
 
-def _distributed() -> Any:
+def distributed_module() -> Any:
+    """Dask's ``distributed``, or one line saying which extra installs it."""
     try:
         import distributed  # noqa: PLC0415
     except ImportError:
@@ -149,7 +150,7 @@ def check_scheduler(scheduler: str, timeout: float) -> None:
 
     if not scheduler.strip():
         raise _scheduler_problem(scheduler, "is empty (expected tcp://HOST:PORT)")
-    distributed = _distributed()
+    distributed = distributed_module()
     from distributed.comm.addressing import parse_address, parse_host_port  # noqa: PLC0415
     from distributed.comm.registry import get_backend  # noqa: PLC0415
 
@@ -263,7 +264,7 @@ def connect(
         check_workers(workers)
         if local_workers(workers, samples) == 1:
             return InlineClient(), None
-    distributed = _distributed()
+    distributed = distributed_module()
     import logging  # noqa: PLC0415
 
     if scheduler is not None:
@@ -397,7 +398,7 @@ def _on_cluster(
     Closing the generator (or an interruption while it waits) cancels the chunks in
     flight.
     """
-    distributed = _distributed()
+    distributed = distributed_module()
     # A fresh key per sweep: a key shared with an earlier sweep on the same client could
     # still be in release when this one needs it ("lost dependencies").
     scattered = client.scatter(program, broadcast=True, hash=False)

@@ -12,17 +12,24 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import weakref
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from tvopt_codegen.sweep.driver import LOOKAHEAD_PER_WORKER, InlineClient, _distributed, chunks
+from tvopt_codegen.sweep.driver import (
+    LOOKAHEAD_PER_WORKER,
+    InlineClient,
+    chunks,
+    distributed_module,
+)
 from tvopt_codegen.sweep.options import SweepOptions
 from tvopt_codegen.sweep.program import SweepProgram
 from tvopt_codegen.sweep.sample import run_chunk
-from tvopt_codegen.tune.requirements import Requirements, failure_bound
+from tvopt_codegen.tune.requirements import failure_bound, statistic
 from tvopt_codegen.tune.session import Evaluation, measure
+
+if TYPE_CHECKING:
+    from tvopt_codegen.tune.problem import Problem
 
 #: The columns of a sample's row the tuner keeps (the rest stay on the worker).
 KEPT = (
@@ -115,6 +122,18 @@ def evaluate(
             on_candidate(i, ordered)
 
 
+#: Each client's scattered loop, by its key: the sources reach the workers once a tune.
+_SCATTERED: weakref.WeakKeyDictionary[Any, dict[str, Any]] = weakref.WeakKeyDictionary()
+
+
+def _scattered(client: Any, program: SweepProgram) -> Any:
+    """``program`` on every worker of ``client``'s cluster, scattered once per client."""
+    held = _SCATTERED.setdefault(client, {})
+    if program.key not in held:
+        held[program.key] = client.scatter(program, broadcast=True, hash=False)
+    return held[program.key]
+
+
 def _finished(
     client: Any,
     programs: Sequence[SweepProgram],
@@ -127,8 +146,8 @@ def _finished(
         for i, piece in pieces:
             yield i, candidate_chunk(programs[i], {}, options, piece)
         return
-    distributed = _distributed()
-    base = client.scatter(programs[0], broadcast=True, hash=False)
+    cluster = distributed_module()
+    base = _scattered(client, programs[0])
     fields = [gain_fields(p) for p in programs]
     todo = iter(pieces)
     owner: dict[Any, int] = {}
@@ -143,7 +162,7 @@ def _finished(
         return future
 
     first = [f for f in (submit() for _ in range(LOOKAHEAD_PER_WORKER * workers)) if f]
-    queue = distributed.as_completed(first)
+    queue = cluster.as_completed(first)
     try:
         for future in queue:
             found = future.result()
@@ -159,26 +178,23 @@ def _finished(
 
 
 def fresh_check(
-    client: Any,
-    program: SweepProgram,
-    requirements: Requirements,
-    options: SweepOptions,
-    original: Evaluation,
-    chosen: Evaluation,
+    client: Any, problem: Problem, original: Evaluation, chosen: Evaluation
 ) -> dict[str, Any]:
     """The spec's gains and the chosen ones on fresh samples (another seed), side by side.
 
     The search chose among candidates by their scores on its own samples, so that the
-    best of many is favoured by its samples' luck; these samples have never been seen.
+    best of many is favoured by its samples' luck; these samples have never been seen
+    (``--check-seed`` is never the search's seed).
     """
-    candidates = [original.candidate, chosen.candidate]
-    programs = [program.with_gains(c.coefficients, c.bandwidth, poles=c.poles) for c in candidates]
+    options = problem.check
+    programs = [problem.program_for(e.candidate) for e in (original, chosen)]
     rows: dict[int, list[dict[str, Any]]] = {}
     evaluate(client, programs, options, rows.__setitem__)
+    inputs = problem.program.input_names
     result: dict[str, Any] = {"samples": options.samples, "seed": options.seed}
     for key, i in (("original", 0), ("tuned", 1)):
-        found = measure(requirements, rows[i], options.t_final, program.input_names)
-        finals = [row["final_error"] for row in rows[i]]
+        found = measure(problem.requirements, rows[i], options.t_final, inputs)
+        finals = [_measured(row["final_error"]) for row in rows[i]]
         result[key] = {
             "objective": found.score.objective,
             "constraints": [list(c) for c in found.score.constraints],
@@ -187,13 +203,12 @@ def fresh_check(
             "failure_bound": failure_bound(rows[i]),
             "saturation": found.saturation,
             "effort": found.effort,
-            "p95_final_error": _order_statistic(finals, 0.95),
-            "median_final_error": _order_statistic(finals, 0.5),
+            "p95_final_error": statistic(finals, "p95"),
+            "median_final_error": statistic(finals, "median"),
         }
     return result
 
 
-def _order_statistic(values: Sequence[Any], q: float) -> float:
-    """The ``q`` quantile as an order statistic, a failed sample's NaN counted as infinite."""
-    data = np.array([math.inf if v is None or math.isnan(v) else float(v) for v in values])
-    return float(np.quantile(data, q, method="inverted_cdf")) if len(data) else math.nan
+def _measured(value: Any) -> float:
+    """A sample's final error; a failed sample's (NaN) counts as infinite."""
+    return math.inf if value is None or math.isnan(value) else float(value)

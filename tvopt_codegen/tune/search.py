@@ -23,6 +23,11 @@ from tvopt_codegen.errors import SpecError
 class Optimizer(Protocol):
     """Ask for a generation of points of [0, 1]^d, tell their values (lower is better)."""
 
+    @property
+    def population(self) -> int:
+        """Points per generation."""
+        ...
+
     def ask(self) -> list[np.ndarray]:
         """The next generation's points, each of shape (d,), inside the box."""
         ...

@@ -94,36 +94,6 @@ class Candidate:
         """``a_0 .. a_{n-1}`` of H's companion matrix (:func:`coefficients_from_poles`)."""
         return coefficients_from_poles(self.poles)
 
-    @property
-    def pairs(self) -> int:
-        """How many complex conjugate pairs the poles hold."""
-        return sum(1 for p in self.poles if not _is_real(p) and p.imag > 0)
-
-    def spec_poles(self) -> list[float | list[float]]:
-        """The poles as ``[error_dynamics] poles`` writes them.
-
-        A real pole is a float; a conjugate pair is one entry ``[re, im]`` with
-        ``im > 0`` (the ``-j`` member is implied), as the spec reader expects.
-        """
-        out: list[float | list[float]] = []
-        for pole in self.poles:
-            if _is_real(pole):
-                out.append(float(pole.real))
-            elif pole.imag > 0:
-                out.append([float(pole.real), float(pole.imag)])
-        return out
-
-    def label(self) -> str:
-        """A short description for tables: ``-1.2, -3+-0.8j, bw 25``."""
-        parts = []
-        for pole in self.poles:
-            if _is_real(pole):
-                parts.append(f"{pole.real:.4g}")
-            elif pole.imag > 0:
-                parts.append(f"{pole.real:.4g}+-{pole.imag:.4g}j")
-        text = ", ".join(parts)
-        return text if self.bandwidth is None else f"{text}, bw {self.bandwidth:.4g}"
-
 
 @dataclass(frozen=True)
 class Space:

@@ -23,7 +23,7 @@ def _number(value: float) -> str:
     return "-" if value is None or math.isnan(value) else f"{value:.4g}"
 
 
-def poles_text(poles: Sequence[complex]) -> str:
+def poles_label(poles: Sequence[complex]) -> str:
     """``-1, -1.5, -2 ± 1j``: each conjugate pair once."""
     parts = []
     for p in poles:
@@ -34,7 +34,7 @@ def poles_text(poles: Sequence[complex]) -> str:
 
 
 def _gains(evaluation: Evaluation) -> str:
-    text = poles_text(evaluation.candidate.poles)
+    text = poles_label(evaluation.candidate.poles)
     if evaluation.candidate.bandwidth is not None:
         text += f"; bandwidth {evaluation.candidate.bandwidth:g}"
     return text
@@ -71,8 +71,12 @@ def tune_markdown(
     evaluations: Sequence[Evaluation],
     chosen: Evaluation,
     fresh: Mapping[str, Any] | None,
+    edges: Sequence[str] = (),
 ) -> str:
-    """``tune.md``: what was searched, the fresh check side by side, the best candidates."""
+    """``tune.md``: what was searched, the fresh check side by side, the best candidates.
+
+    ``edges`` names the chosen numbers that sit on the edge of the search's box.
+    """
     searched = [e for e in evaluations if e.generation != ORIGINAL]
     original = next(e for e in evaluations if e.generation == ORIGINAL)
     lines = [
@@ -128,6 +132,18 @@ def tune_markdown(
             f"Requirements on the fresh samples: the spec's gains "
             f"{'meet' if before['feasible'] else 'miss'} them, the tuned gains "
             f"{'meet' if after['feasible'] else 'miss'} them.",
+            "",
+        ]
+    if not chosen.score.feasible:
+        lines += [
+            "**No candidate met every requirement** on the tuning samples: the chosen gains "
+            "are the least violating. Loosen a constraint, or widen the search's ranges.",
+            "",
+        ]
+    if edges:
+        lines += [
+            "The chosen gains sit on the edge of the searched box (" + "; ".join(edges) + "): "
+            "better ones may lie beyond it (`--pole-range`, `--bandwidth-range`).",
             "",
         ]
     ranked = sorted(evaluations, key=lambda e: (e.score.value, e.index))[:LISTED]
