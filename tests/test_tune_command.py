@@ -199,6 +199,18 @@ def test_a_choice_on_the_edge_of_the_box_is_said(tmp_path: Path) -> None:
     assert "sit on the edge of the searched box (a pole of magnitude 3" in text
 
 
+def test_on_a_dask_cluster_the_search_is_the_same(reference: Path, tmp_path: Path) -> None:
+    """Two worker processes: each generation's chunks spread over them, the loop's sources
+    scattered once, every candidate's rows the in-process worker's, so the same search."""
+    pytest.importorskip("distributed")
+    args = list(PVTOL)
+    args[args.index("--workers") + 1] = "2"
+    ran = run_main("tune", *args, "--out", str(tmp_path / "out"))
+    assert ran.returncode == 0, ran.stderr
+    for name in (TUNED, "evaluations.csv", "tune.md"):
+        assert (tmp_path / "out" / name).read_bytes() == (reference / name).read_bytes(), name
+
+
 def test_a_resume_takes_no_new_options(reference: Path) -> None:
     ran = run_main("tune", "--resume", str(reference), "--samples", "5")
     assert ran.returncode == EXIT_BAD_SPEC
