@@ -121,3 +121,20 @@ def disconnect(client: Any, cluster: Any) -> None:
     client.close()
     if cluster is not None:
         cluster.close()
+
+
+def job_options(parser: argparse.ArgumentParser, kind: str) -> None:
+    """What a long job (``sweep``, ``tune``) takes beside its work: --force, --progress."""
+    parser.add_argument(
+        "--force", action="store_true", help=f"replace an earlier {kind}'s files in --out"
+    )
+    parser.add_argument(
+        "--progress",
+        choices=("auto", "always", "never"),
+        default="auto",
+        help="show progress on stderr (auto: on a terminal)",
+    )
+    run_options.add(parser, "max_seconds", "max_size", hidden=True)
+    parser.add_argument(
+        "--extension", choices=("spec", "auto"), default="spec", help=argparse.SUPPRESS
+    )

@@ -72,19 +72,7 @@ def build(parser: argparse.ArgumentParser) -> None:
         help="also store every run in trajectories.zarr (xarray-readable), as runs finish",
     )
     run_options.add(parser, "checkpoint_seconds")
-    parser.add_argument(
-        "--force", action="store_true", help="replace an earlier sweep's files in --out"
-    )
-    parser.add_argument(
-        "--progress",
-        choices=("auto", "always", "never"),
-        default="auto",
-        help="show progress on stderr (auto: on a terminal)",
-    )
-    run_options.add(parser, "max_seconds", "max_size", hidden=True)
-    parser.add_argument(
-        "--extension", choices=("spec", "auto"), default="spec", help=argparse.SUPPRESS
-    )
+    plant.job_options(parser, "sweep")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -132,19 +132,7 @@ def build(parser: argparse.ArgumentParser) -> None:
         "--check-seed", type=int, help="their seed (default: --seed + 1, never the search's)"
     )
     plant.cluster_options(parser)
-    parser.add_argument(
-        "--force", action="store_true", help="replace an earlier tune's files in --out"
-    )
-    parser.add_argument(
-        "--progress",
-        choices=("auto", "always", "never"),
-        default="auto",
-        help="show progress on stderr (auto: on a terminal)",
-    )
-    run_options.add(parser, "max_seconds", "max_size", hidden=True)
-    parser.add_argument(
-        "--extension", choices=("spec", "auto"), default="spec", help=argparse.SUPPRESS
-    )
+    plant.job_options(parser, "tune")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -508,25 +496,16 @@ def _search_and_write(
     from tvopt_codegen.emit import write_files  # noqa: PLC0415
     from tvopt_codegen.tune.evaluate import evaluate, fresh_check  # noqa: PLC0415
     from tvopt_codegen.tune.problem import (  # noqa: PLC0415
-        optimizer_for,
         result_files,
         with_default_failure_bound,
     )
     from tvopt_codegen.tune.record import RECORD, record_bytes  # noqa: PLC0415
-    from tvopt_codegen.tune.session import ORIGINAL, Search, best  # noqa: PLC0415
+    from tvopt_codegen.tune.session import ORIGINAL, best  # noqa: PLC0415
 
     def sweep(candidates: Sequence[Any], done: Any) -> None:
         evaluate(client, [problem.program_for(c) for c in candidates], problem.options, done)
 
-    search = Search(
-        problem.space,
-        problem.requirements,
-        optimizer_for(problem),
-        problem.settings.evaluations,
-        problem.options.t_final,
-        problem.program.input_names,
-        history,
-    )
+    search = problem.search(history)
     label = problem.requirements.objective.label
     progress = _Progress(args.progress, problem.settings.evaluations, label)
 

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 from tvopt_codegen.sweep.results import clopper_pearson_upper
 from tvopt_codegen.tune.requirements import Requirements, parse_constraint
 from tvopt_codegen.tune.search import Optimizer
-from tvopt_codegen.tune.session import Evaluation
+from tvopt_codegen.tune.session import Evaluation, Search
 from tvopt_codegen.tune.settings import Settings
 from tvopt_codegen.tune.space import REAL_TOLERANCE, Candidate, Space
 
@@ -66,6 +66,18 @@ class Problem:
     original: Candidate
     settings: Settings
     default_bound: str | None = None
+
+    def search(self, history: Sequence[Evaluation] = ()) -> Search:
+        """A search of this problem by a new optimiser, after ``history`` (``--resume``)."""
+        return Search(
+            self.space,
+            self.requirements,
+            optimizer_for(self),
+            self.settings.evaluations,
+            self.options.t_final,
+            self.program.input_names,
+            history,
+        )
 
     def program_for(self, candidate: Candidate) -> SweepProgram:
         """The compiled loop with ``candidate``'s gains.

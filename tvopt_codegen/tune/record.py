@@ -17,7 +17,7 @@ import numpy as np
 
 from tvopt_codegen.errors import SpecError
 from tvopt_codegen.tune.problem import METHODS, Problem, optimizer_for
-from tvopt_codegen.tune.session import ORIGINAL, Evaluation, ReplayError, Search
+from tvopt_codegen.tune.session import ORIGINAL, Evaluation, ReplayError
 from tvopt_codegen.tune.settings import Settings
 
 #: The search's record in its folder.
@@ -145,15 +145,7 @@ def check_history(problem: Problem, history: Sequence[Evaluation], where: str) -
         if candidates:
             raise _RecordEndError
 
-    search = Search(
-        problem.space,
-        problem.requirements,
-        optimizer_for(problem),
-        problem.settings.evaluations,
-        problem.options.t_final,
-        problem.program.input_names,
-        history,
-    )
+    search = problem.search(history)
     if not history:
         return
     try:
