@@ -100,13 +100,22 @@ def check_history(problem: Problem, history: Sequence[Evaluation], where: str) -
     """
     samples = problem.settings.samples
     population = optimizer_for(problem).population
+    # Every generation before the last recorded one is whole; the last may have been cut
+    # with any of its candidates done (a cluster finishes them out of order).
+    last = max((e.generation for e in history), default=ORIGINAL)
+    whole = 1 + population * max(last, 0) if last >= 0 else 1
     for i, e in enumerate(history):
 
         def fail(problem_text: str, i: int = i) -> SpecError:
             return SpecError(where, f"evaluations[{i}]", problem_text)
 
-        if e.index != i:
+        if i < whole and e.index != i:
             raise fail(f"index {e.index}, expected {i} (the evaluations in order, no gaps)")
+        if i >= whole and (e.generation != last or e.index <= history[i - 1].index):
+            raise fail(
+                f"index {e.index}: after the whole generations, only the last one's "
+                "candidates, in increasing order"
+            )
         if i == 0:
             if (e.generation, e.position) != (ORIGINAL, 0) or e.candidate != problem.original:
                 raise fail("the first evaluation must be the spec's own gains")
