@@ -9,7 +9,7 @@ INSTALLED := $(VENV)/.installed
 READY := $(VENV)/.compiled
 EXAMPLES := integrator unicycle_switch two_unicycles_barrier pvtol flexible_joint unicycle_ring arm_on_line planar_arm3
 
-.PHONY: test-fast test-durations coverage-fast bench-tests bench-embedded
+.PHONY: test-fast test-durations coverage-fast bench-tests bench-embedded tune-example
 .PHONY: all demo figures bench bench-baseline bench-derive bench-representation bench-sweep bench-sweep-scale bench-commands sweep-example robust-example eso-example reference-noise fuzz test lint typecheck check regen check-generated update-golden clean
 
 all: test
@@ -141,6 +141,13 @@ sweep-example: $(READY)
 	cp build/sweep-pvtol/sweep_histograms.png docs/figures/sweep_pvtol_histograms.png
 	cp build/sweep-pvtol/sweep_worst.png docs/figures/sweep_pvtol_worst.png
 	cp build/sweep-pvtol/summary.md docs/sweep-pvtol.md
+
+## tune-example: tune PVTOL and planar_arm3 against sweeps of the mismatched plant, CMA-ES against
+##   random search of the same budget, determinism and a SIGTERM-resume checked (benchmarks/TUNE.md,
+##   the worked example of docs/tune.md; about 10 minutes on 2 cores)
+tune-example: $(READY)
+	mkdir -p docs/figures
+	$(PY) benchmarks/bench_tune.py --write benchmarks/TUNE.md --doc docs/tune.md
 
 ## robust-example: integral action, the observer and limits judged by 1,000-sample sweeps (docs/robust.md)
 robust-example: $(READY)
