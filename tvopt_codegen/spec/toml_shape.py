@@ -59,7 +59,7 @@ def check_shape(text: str) -> None:
             end = text.find("\n", i)
             i = n if end < 0 else end
         elif ch in "\"'":
-            i, line = _skip_string(text, i, line)
+            i, line = skip_string(text, i, line)
         elif in_key and ch == ".":
             parts += 1
             if parts > MAX_KEY_PARTS:
@@ -96,8 +96,12 @@ def check_shape(text: str) -> None:
             i += 1
 
 
-def _skip_string(text: str, i: int, line: int) -> tuple[int, int]:
-    """Index after the string starting at ``i``, and the line it ends on."""
+def skip_string(text: str, i: int, line: int = 0) -> tuple[int, int]:
+    """Index after the string starting at ``i``, and the line it ends on.
+
+    Basic, literal or either multi-line; an unterminated one ends at the end of its line
+    (or of the text) and is tomllib's to report. ``tune``'s spec writer finds strings so.
+    """
     quote = text[i]
     if text.startswith(quote * 3, i):
         end = i + 3
@@ -105,7 +109,7 @@ def _skip_string(text: str, i: int, line: int) -> tuple[int, int]:
             found = text.find(quote * 3, end)
             if found < 0:
                 return len(text), line + text.count("\n", i)
-            if quote == '"' and _escaped(text, found):
+            if quote == '"' and escaped(text, found):
                 end = found + 1
                 continue
             # Up to two more quotes may belong to the string ("""a""""" ends after 5).
@@ -127,7 +131,7 @@ def _skip_string(text: str, i: int, line: int) -> tuple[int, int]:
     return end, line
 
 
-def _escaped(text: str, index: int) -> bool:
+def escaped(text: str, index: int) -> bool:
     """Whether the character at ``index`` follows an odd run of backslashes."""
     count = 0
     while index - count - 1 >= 0 and text[index - count - 1] == "\\":

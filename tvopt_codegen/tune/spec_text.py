@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from tvopt_codegen.errors import SpecError, one_line
+from tvopt_codegen.spec.toml_shape import escaped, skip_string
 
 #: Where each tuned value lives in the spec.
 POLES = ("error_dynamics", "poles")
@@ -121,7 +122,7 @@ class _Scanner:
             quote = self.text[start : start + 1]
             if quote in ("'", '"'):
                 end = self.text.find(quote, start + 1)
-                while quote == '"' and end > 0 and _escaped(self.text, end):
+                while quote == '"' and end > 0 and escaped(self.text, end):
                     end = self.text.find(quote, end + 1)
                 if end < 0 or "\n" in self.text[start:end]:
                     raise _Layout("an unterminated quoted key")
@@ -146,7 +147,7 @@ class _Scanner:
         start = self.pos
         ch = self.text[start : start + 1]
         if ch in ("'", '"'):
-            self.pos = _string_end(self.text, start)
+            self.pos = skip_string(self.text, start)[0]
             return _Value(start, self.pos, "string")
         if ch == "[":
             self.pos += 1
@@ -206,39 +207,6 @@ class _Scanner:
             self.pos = len(self.text) if end < 0 else end
         if self.pos < len(self.text) and self.text[self.pos] not in "\r\n":
             raise _Layout("more than one key or header on a line")
-
-
-def _escaped(text: str, index: int) -> bool:
-    """Whether the character at ``index`` follows an odd run of backslashes."""
-    count = 0
-    while index - count - 1 >= 0 and text[index - count - 1] == "\\":
-        count += 1
-    return count % 2 == 1
-
-
-def _string_end(text: str, start: int) -> int:
-    """The index after the string (basic, literal, or either multi-line) at ``start``."""
-    quote = text[start]
-    if text.startswith(quote * 3, start):
-        search = start + 3
-        while True:
-            found = text.find(quote * 3, search)
-            if found < 0:
-                raise _Layout("an unterminated multi-line string")
-            if quote == '"' and _escaped(text, found):
-                search = found + 1
-                continue
-            # Up to two more quotes belong to the string ('''a''''' ends after five).
-            stop = found + 3
-            while stop < len(text) and text[stop] == quote and stop - found < 5:
-                stop += 1
-            return stop
-    end = start + 1
-    while end < len(text) and text[end] not in (quote, "\n"):
-        end += 2 if quote == '"' and text[end] == "\\" else 1
-    if end >= len(text) or text[end] != quote:
-        raise _Layout("an unterminated string")
-    return end + 1
 
 
 def pole_items(poles: Sequence[complex]) -> list[PoleItem]:
