@@ -271,5 +271,5 @@ def test_integrated_error_is_the_trapezoid_of_the_kept_trajectory() -> None:
     assert record["window"] == 0.73
     del record["window"]
     assert SweepOptions.from_dict(record) == dataclasses.replace(options, window=0.0)
-    with pytest.raises(SpecError, match="--window"):
+    with pytest.raises(SpecError, match="--after"):
         check_options(base, dataclasses.replace(options, window=2.5))

@@ -8,9 +8,12 @@ nominal plant fails at its start, and run on a local cluster or a scheduler.
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from tvopt_codegen.commands import run_options
+
+if TYPE_CHECKING:
+    from tvopt_codegen.sweep import SweepOptions, SweepProgram
 
 
 def plant_options(parser: argparse.ArgumentParser) -> None:
@@ -51,12 +54,12 @@ def cluster_options(parser: argparse.ArgumentParser) -> None:
 
 def plant_sweep(
     args: argparse.Namespace,
-    program: Any,
+    program: SweepProgram,
     horizon: float,
     samples: int,
     seed: int,
     window: float = 0.0,
-) -> Any:
+) -> SweepOptions:
     """The :class:`~tvopt_codegen.sweep.SweepOptions` of :func:`plant_options`, checked.
 
     ``window``: where the errors measured after a settling time start (``tune --after``).
@@ -90,7 +93,7 @@ def plant_sweep(
     return options
 
 
-def check_nominal(source: str, program: Any, options: Any) -> None:
+def check_nominal(source: str, program: SweepProgram, options: SweepOptions) -> None:
     """Refuse a sweep whose nominal plant fails at its start (nothing run, nothing written).
 
     Every sample would start there or near it and fail for that one reason of the

@@ -377,7 +377,7 @@ def check_options(program: SweepProgram, options: SweepOptions) -> None:
     if not 0.0 <= options.window <= options.t_final:
         raise SpecError(
             "command line",
-            "--window",
+            "--after",
             f"must be between 0 and the horizon {options.t_final!r}, not {options.window!r}",
         )
     noise = RUN_OPTIONS["measurement_noise"]
