@@ -424,3 +424,15 @@ def test_a_candidate_asked_again_is_scored_from_its_first_sweep() -> None:
     for evaluation in search.evaluations:
         value = by_candidate.setdefault(evaluation.candidate, evaluation.score.objective)
         assert evaluation.score.objective == value
+
+
+def test_a_long_tune_shows_its_progress(tmp_path: Path) -> None:
+    """--progress always (what a log gets a line a minute of): candidates done, the best."""
+    args = [a for a in PVTOL if a not in ("--progress", "never")]
+    ran = run_main(
+        "tune", *args, "--evaluations", "6", "--progress", "always", "--out", str(tmp_path / "o")
+    )
+    assert ran.returncode == 0, ran.stderr
+    lines = [line for line in ran.stderr.splitlines() if line.startswith("  tune: ")]
+    assert lines[-1].startswith("  tune: 6/6 candidates, best p95(final_error) = ")
+    assert "(feasible)" in lines[-1]
