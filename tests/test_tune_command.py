@@ -436,3 +436,27 @@ def test_a_long_tune_shows_its_progress(tmp_path: Path) -> None:
     lines = [line for line in ran.stderr.splitlines() if line.startswith("  tune: ")]
     assert lines[-1].startswith("  tune: 6/6 candidates, best p95(final_error) = ")
     assert "(feasible)" in lines[-1]
+
+
+def test_a_spec_with_references_is_refused_in_one_line(tmp_path: Path) -> None:
+    """The compiled loop has no reference source yet: tune says so, as sweep does."""
+    args = ["pvtol_refs" if a == "pvtol" else a for a in PVTOL]
+    ran = run_main("tune", *args, "--out", str(tmp_path / "out"))
+    assert ran.returncode == EXIT_BAD_SPEC
+    lines = ran.stderr.strip().splitlines()
+    assert len(lines) == 1 and "references: the compiled loop of sweep and tune" in lines[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_odd_characters_in_the_paths(tmp_path: Path) -> None:
+    """A spec and an output folder whose names have spaces, quotes and accents."""
+    folder = tmp_path / "my 'robots' é"
+    folder.mkdir()
+    spec = folder / "pvtol copy.toml"
+    spec.write_text((EXAMPLES / "pvtol.toml").read_text())
+    args = [str(spec) if a == "pvtol" else a for a in PVTOL]
+    out = folder / "tuned out"
+    ran = run_main("tune", *args, "--evaluations", "6", "--out", str(out))
+    assert ran.returncode == 0, ran.stderr
+    assert tomllib.loads((out / TUNED).read_text())["name"] == "pvtol"
+    assert run_main("tune", "--resume", str(out)).returncode == 0  # complete: nothing to do

@@ -257,7 +257,8 @@ def sweep_program(kernels: KernelSet, precision: str = "double") -> SweepProgram
         raise SpecError(
             d.spec.source,
             "references",
-            "sweep does not run specs with [references] yet: sweep the spec without them "
+            "the compiled loop of sweep and tune does not run specs with [references] yet: "
+            "sweep or tune the spec without them "
             "(the nominal closed forms as signals)",
         )
     backend = BACKENDS["c"]
