@@ -1,0 +1,249 @@
+"""One symbolic API over two engines: SymEngine (fast) and SymPy (the reference).
+
+Every stage from the model to the printers builds and reads expressions through this
+module (``from tvopt_codegen import symbolic as sx``): its classes (``sx.Symbol``,
+``sx.Add``, ...), its functions (``sx.sin``, ``sx.diff``, ...) and its helpers below
+are those of the process's engine, chosen once (:mod:`tvopt_codegen.symbolic.engine`).
+Code written against it works on both engines as long as it reads the names when it
+runs (``sx.sin(x)``; never ``from tvopt_codegen.symbolic import sin``, nor an expression
+built at import time: :func:`using` switches engines within a process for the tests)
+and keeps to
+
+* the names defined here, and
+* what both engines' expressions answer to: ``.args``, ``.func(*args)`` (for a node
+  that is not an atom), ``.free_symbols``, ``.xreplace``, ``.subs``, ``.diff``,
+  ``.expand``, arithmetic, and the ``is_Add``, ``is_Mul``, ``is_Pow``, ``is_Symbol``,
+  ``is_Number``, ``is_Integer``, ``is_Rational``, ``is_Float``, ``is_Function``,
+  ``is_Atom``, ``is_zero``, ``is_negative`` flags.
+
+What only SymPy does (simplification, factoring, LaTeX and MathML, SymPy mechanics) is
+the border (:mod:`tvopt_codegen.symbolic.border`): applied to the few small expressions
+that decide something or are shown, converted there and back, never to the whole law.
+
+Adding an operation: define it here for both engines (one line each when the two agree,
+a function when they differ), with a test in ``tests/test_symbolic.py`` that runs it on
+both engines and compares the values.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterable, Iterator, Sequence
+from typing import Any
+
+from tvopt_codegen.symbolic import engine as _engine
+
+# Expressions are typed Any: the two engines' classes share no static type, and sympy's
+# own annotations do not cover its constructors' results.
+Expr = Any
+
+#: The names every engine binds here under the same spelling.
+_SAME = (
+    "Symbol Integer Rational Number Float Add Mul Pow Piecewise Derivative Function Basic "
+    "MatrixBase ImmutableMatrix Matrix Max Min Abs sign sqrt exp log sin cos tan cot sec "
+    "csc asin acos atan atan2 sinh cosh tanh coth sech csch asinh acosh atanh pi E I oo "
+    "zoo nan diff expand zeros eye sympify"
+).split()
+#: The elementary functions by the name both engines and the spec language give them.
+_FUNCTION_NAMES = (
+    "sin cos tan cot sec csc asin acos atan atan2 sinh cosh tanh coth sech csch "
+    "asinh acosh atanh exp log sqrt Abs sign Max Min"
+).split()
+
+# Bound by _bind: the process's engine and its names (declared for the type checker).
+ENGINE: str = ""
+SYMENGINE: bool = False
+_m: Any = None
+Symbol: Any
+Integer: Any
+Rational: Any
+Number: Any
+#: The engine's real floating-point number class (SymEngine's ``RealDouble``).
+Float: Any
+Add: Any
+Mul: Any
+Pow: Any
+Piecewise: Any
+Derivative: Any
+Function: Any
+Basic: Any
+MatrixBase: Any
+ImmutableMatrix: Any
+Matrix: Any
+Max: Any
+Min: Any
+Abs: Any
+sign: Any
+sqrt: Any
+exp: Any
+log: Any
+sin: Any
+cos: Any
+tan: Any
+cot: Any
+sec: Any
+csc: Any
+asin: Any
+acos: Any
+atan: Any
+atan2: Any
+sinh: Any
+cosh: Any
+tanh: Any
+coth: Any
+sech: Any
+csch: Any
+asinh: Any
+acosh: Any
+atanh: Any
+pi: Any
+E: Any
+I: Any  # noqa: E741 - the engines' own name for the imaginary unit
+oo: Any
+zoo: Any
+nan: Any
+diff: Any
+expand: Any
+zeros: Any
+eye: Any
+sympify: Any
+#: Zero and one of the engine.
+ZERO: Any
+ONE: Any
+#: The elementary functions by name.
+FUNCTIONS: dict[str, Any] = {}
+
+
+def _bind(name: str) -> None:
+    """Bind this module's names to engine ``name``'s."""
+    global ENGINE, SYMENGINE, _m, ZERO, ONE  # noqa: PLW0603 - the API is the module's names
+    # Only the chosen engine is imported: SymPy's import alone is 0.5-1.3 s.
+    if name == "symengine":
+        import symengine as module  # noqa: PLC0415
+    else:
+        import sympy as module  # noqa: PLC0415
+    ENGINE, SYMENGINE, _m = name, name == "symengine", module
+    names = globals()
+    for attribute in _SAME:
+        names[attribute] = getattr(module, attribute)
+    ZERO, ONE = module.Integer(0), module.Integer(1)
+    FUNCTIONS.clear()
+    FUNCTIONS.update((n, getattr(module, n)) for n in _FUNCTION_NAMES)
+
+
+_bind(_engine.current())
+
+
+@contextlib.contextmanager
+def using(name: str) -> Iterator[None]:
+    """Run a block on engine ``name``, then return to the process's engine (tests only).
+
+    Only code that reads this module's names when it runs (``sx.sin``, never a copy
+    taken at import) follows the switch, as every stage does.
+    """
+    before = ENGINE
+    _bind(_engine._checked(name, "using"))
+    try:
+        yield
+    finally:
+        _bind(before)
+
+
+def symbol(name: str) -> Any:
+    """A real symbol named ``name`` (SymPy's ``real=True``; SymEngine has no assumptions)."""
+    if SYMENGINE:
+        return _m.Symbol(name)
+    return _m.Symbol(name, real=True)
+
+
+def symbols(names: Iterable[str]) -> list[Any]:
+    """Real symbols, one per name, in order."""
+    return [symbol(name) for name in names]
+
+
+def real(value: float) -> Any:
+    """The double ``value`` as the engine's exact float (no decimal rounding)."""
+    if SYMENGINE:
+        return _m.RealDouble(float(value))
+    return _m.Float(float(value))
+
+
+def is_piecewise(expr: Any) -> bool:
+    """Whether ``expr`` is a ``Piecewise``."""
+    return isinstance(expr, _m.Piecewise)
+
+
+def piecewise_pairs(expr: Any) -> list[tuple[Any, Any]]:
+    """A ``Piecewise``'s ``(value, condition)`` pairs, in order, on either engine.
+
+    SymPy's arguments are the pairs; SymEngine's are the values and conditions
+    alternating.
+    """
+    if SYMENGINE:
+        args = expr.args
+        return [(args[i], args[i + 1]) for i in range(0, len(args), 2)]
+    return [(pair.expr, pair.cond) for pair in expr.args]
+
+
+def function_name(expr: Any) -> str:
+    """The name of an applied function (``sin``, ``atan2``, a user's ``f``)."""
+    if SYMENGINE and isinstance(expr, _m.FunctionSymbol):
+        return str(expr.get_name())
+    if not SYMENGINE:
+        return str(expr.func.__name__)
+    return type(expr).__name__
+
+
+def matrix(
+    rows: Sequence[Sequence[Any]] | Sequence[Any], shape: tuple[int, int] | None = None
+) -> Any:
+    """An immutable matrix of the engine, from nested rows (or a flat list and ``shape``)."""
+    if shape is not None:
+        n, m = shape
+        flat = list(rows)
+        rows = [flat[i * m : (i + 1) * m] for i in range(n)]
+    return _m.ImmutableMatrix(rows) if rows else _m.zeros(0, 0)
+
+
+def free_symbols(expr: Any) -> set[Any]:
+    """The symbols ``expr`` holds."""
+    return set(expr.free_symbols)
+
+
+def count_ops(expr: Any) -> int:
+    """The number of operations of ``expr``, as the engine counts them."""
+    return int(_m.count_ops(expr))
+
+
+def text(expr: Any) -> str:
+    """``expr`` as one line of text in the spec language's spelling (``x**2``, ``sin(x)``)."""
+    if SYMENGINE:
+        return str(expr)
+    return str(_m.sstr(expr))
+
+
+def sort_key(expr: Any) -> tuple[str, str]:
+    """A total order of expressions that is the same in every run (no hash in it)."""
+    return (type(expr).__name__, text(expr))
+
+
+__all__ = [
+    "ENGINE",
+    "Expr",
+    "FUNCTIONS",
+    "ONE",
+    "SYMENGINE",
+    "ZERO",
+    "count_ops",
+    "free_symbols",
+    "function_name",
+    "is_piecewise",
+    "matrix",
+    "piecewise_pairs",
+    "real",
+    "sort_key",
+    "symbol",
+    "symbols",
+    "text",
+    "using",
+]
