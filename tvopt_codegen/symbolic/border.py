@@ -78,11 +78,17 @@ def _to_sympy(node: Any, memo: dict[Any, Any], sp: Any) -> Any:
 
 
 def from_sympy(expr: Any, memo: dict[Any, Any] | None = None) -> Any:
-    """A SymPy expression (or matrix) as one of the process's engine."""
+    """A SymPy expression (or matrix) as one of the process's engine.
+
+    An expression already of the engine is returned as it is, so that a stage can take
+    either while the stages before it move onto the API.
+    """
     if not sx.SYMENGINE:
         return expr
     import symengine  # noqa: PLC0415 - loaded with the engine already
 
+    if isinstance(expr, symengine.Basic | symengine.MatrixBase):
+        return expr
     sp = _sympy()
     if isinstance(expr, sp.MatrixBase):
         rows, cols = expr.shape
