@@ -160,6 +160,8 @@ def test_every_layer_keeps_to_its_place() -> None:
 LAYERS: tuple[tuple[str, ...], ...] = (
     # What every stage shares: the contract's tables, the errors, the bounds.
     ("", "contract", "errors", "limits"),
+    # The one symbolic API over SymEngine and SymPy, and its border with SymPy.
+    ("symbolic",),
     # The mathematics the derivation stands on; it reads no spec.
     ("maths",),
     # Load: a spec file, a SymPy mechanics model or a URDF robot -> a checked spec.
