@@ -13,7 +13,12 @@ import signal
 import sys
 import threading
 
-from tvopt_codegen.errors import EXIT_INTERRUPTED, EXIT_TERMINATED
+from tvopt_codegen.errors import EXIT_INTERRUPTED, EXIT_TERMINATED, TvoptError, one_line
+
+#: The engines and their environment variable (tvopt_codegen.symbolic.engine's, which
+#: cannot be imported before the variable is set: importing it binds the engine).
+ENGINES = ("sympy", "symengine")
+VARIABLE = "TVOPT_CODEGEN_ENGINE"
 
 
 def _terminated_while_loading(_signum: int, _frame: object) -> None:
@@ -21,11 +26,36 @@ def _terminated_while_loading(_signum: int, _frame: object) -> None:
     raise SystemExit(EXIT_TERMINATED)
 
 
+def _engine_from_argv(argv: list[str]) -> None:
+    """Name the engine of ``--engine X`` (before the command) in the environment, early.
+
+    The symbolic API binds its engine when first imported, which loading the command
+    line does: set first, a ``--engine symengine`` process never imports SymPy for a
+    spec that needs no border. The parser still checks the value and the option's place.
+    """
+    for index, word in enumerate(argv):
+        if not word.startswith("-"):
+            return  # the command: options after it are the command's
+        value = None
+        if word == "--engine" and index + 1 < len(argv):
+            value = argv[index + 1]
+        elif word.startswith("--engine="):
+            value = word.partition("=")[2]
+        if value is not None:
+            if value in ENGINES:  # else the parser refuses it, naming --engine
+                os.environ[VARIABLE] = value
+            return
+
+
 def entry() -> int:
     """Load the command line and run it."""
+    _engine_from_argv(sys.argv[1:])
     previous = signal.signal(signal.SIGTERM, _terminated_while_loading)
     try:
         from tvopt_codegen.cli import main  # noqa: PLC0415 - signals are handled around it
+    except TvoptError as exc:  # an unknown engine in the environment, met as the API loads
+        print(f"tvopt-codegen: error: {one_line(str(exc))}", file=sys.stderr)
+        return exc.exit_code
     except KeyboardInterrupt:
         print("tvopt-codegen: interrupted; nothing was written", file=sys.stderr)
         return EXIT_INTERRUPTED

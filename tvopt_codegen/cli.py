@@ -46,6 +46,7 @@ from tvopt_codegen.errors import (
     exit_codes_text,
     one_line,
 )
+from tvopt_codegen.symbolic.engine import ENGINES, VARIABLE
 
 #: The commands, in ``--help``'s order: a new command is a module and a line here.
 COMMANDS: dict[str, Command] = {
@@ -76,6 +77,13 @@ def _parser() -> argparse.ArgumentParser:
         epilog=exit_codes_text(),
     )
     parser.add_argument("--version", action="version", version=f"tvopt-codegen {__version__}")
+    parser.add_argument(
+        "--engine",
+        choices=ENGINES,
+        default=None,
+        help=f"the symbolic engine that derives the law (default: ${VARIABLE}, else "
+        f"{ENGINES[0]}); SymPy is the reference, SymEngine the fast one",
+    )
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, command in COMMANDS.items():
         command.build(subparsers.add_parser(name, help=command.HELP))
@@ -87,7 +95,13 @@ def run(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     args.started = time.perf_counter()
     run_options.check(args)
-    return COMMANDS[args.command].run(args)
+    if args.engine is None:
+        return COMMANDS[args.command].run(args)
+    # Imported here: the symbolic API binds the environment's engine when first imported.
+    from tvopt_codegen import symbolic  # noqa: PLC0415
+
+    with symbolic.using(args.engine):
+        return COMMANDS[args.command].run(args)
 
 
 def _on_sigterm(_signum: int, _frame: object) -> None:

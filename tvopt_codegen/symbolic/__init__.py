@@ -136,13 +136,17 @@ _bind(_engine.current())
 
 @contextlib.contextmanager
 def using(name: str) -> Iterator[None]:
-    """Run a block on engine ``name``, then return to the process's engine (tests only).
+    """Run a block on engine ``name``, then return to the process's engine.
+
+    The command line's ``--engine`` runs its command in this block (so that a caller
+    that runs several commands in one process, as the tests do, gets its engine back),
+    and the tests compare the two engines with it.
 
     Only code that reads this module's names when it runs (``sx.sin``, never a copy
     taken at import) follows the switch, as every stage does.
     """
     before = ENGINE
-    _bind(_engine._checked(name, "using"))
+    _bind(_engine.checked(name, "--engine"))
     try:
         yield
     finally:

@@ -1,0 +1,144 @@
+"""The one symbolic API over SymEngine and SymPy, its engine choice and its border."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+
+from tvopt_codegen import __main__ as entry_module
+from tvopt_codegen import symbolic as sx
+from tvopt_codegen.symbolic import engine
+from tvopt_codegen.symbolic.border import from_sympy, to_sympy
+
+
+def _sample(name: str) -> tuple[object, dict[str, float]]:
+    """One expression with every kind of node, built on engine ``name``, and a point."""
+    with sx.using(name):
+        x, y, t = sx.symbols(["x", "y", "t"])
+        expr = (
+            sx.sin(x) * y**2
+            + sx.atan2(x, y) / 3
+            + sx.real(0.1) * sx.Piecewise((x, x > 0), (y, True))
+            + sx.sqrt(x**2 + 1) * sx.exp(-t)
+            + sx.pi * sx.E
+            + sx.Rational(2, 7) * sx.cosh(t) ** -1
+            + sx.Max(x, y)
+            + sx.Abs(y - x)
+            + sx.log(1 + t**2)
+            + sx.tanh(x * y)
+        )
+    return expr, {"x": 0.7, "y": -1.3, "t": 0.4}
+
+
+def _value(expr: object, point: dict[str, float]) -> float:
+    sp_expr = to_sympy(expr) if not _is_sympy(expr) else expr
+    subs = {s: point[s.name] for s in sp_expr.free_symbols}  # type: ignore[attr-defined]
+    return float(sp_expr.xreplace(subs).evalf(30))  # type: ignore[attr-defined]
+
+
+def _is_sympy(expr: object) -> bool:
+    return type(expr).__module__.startswith("sympy")
+
+
+def test_both_engines_build_the_same_expression() -> None:
+    sympy_expr, point = _sample("sympy")
+    symengine_expr, _ = _sample("symengine")
+    assert _is_sympy(sympy_expr)
+    assert type(symengine_expr).__module__.startswith("symengine")
+    with sx.using("symengine"):
+        theirs = _value(symengine_expr, point)
+    ours = _value(sympy_expr, point)
+    assert theirs == pytest.approx(ours, rel=1e-14)
+    # By hand, as a third opinion.
+    x, y, t = point["x"], point["y"], point["t"]
+    hand = (
+        math.sin(x) * y**2
+        + math.atan2(x, y) / 3
+        + 0.1 * x
+        + math.sqrt(x**2 + 1) * math.exp(-t)
+        + math.pi * math.e
+        + 2 / 7 / math.cosh(t)
+        + max(x, y)
+        + abs(y - x)
+        + math.log(1 + t**2)
+        + math.tanh(x * y)
+    )
+    assert ours == pytest.approx(hand, rel=1e-14)
+
+
+def test_the_border_round_trips_and_keeps_symbols_real() -> None:
+    symengine_expr, point = _sample("symengine")
+    with sx.using("symengine"):
+        crossed = to_sympy(symengine_expr)
+        assert all(s.is_real for s in crossed.free_symbols)
+        back = from_sympy(crossed)
+        assert back == symengine_expr
+        # An engine expression passes through, and a matrix crosses entry by entry.
+        assert from_sympy(symengine_expr) is symengine_expr
+        m = sx.matrix([[sx.symbol("x"), sx.cos(sx.symbol("y"))]])
+        assert from_sympy(to_sympy(m)) == m
+    assert _value(crossed, point) == pytest.approx(_value(_sample("sympy")[0], point), rel=1e-14)
+
+
+def test_a_symengine_double_crosses_exactly() -> None:
+    with sx.using("symengine"):
+        value = 0.1 + 0.2  # not a short decimal
+        assert float(to_sympy(sx.real(value))) == value
+        assert float(from_sympy(to_sympy(sx.real(value)))) == value
+
+
+def test_using_returns_to_the_process_engine() -> None:
+    before = sx.ENGINE
+    with sx.using("symengine"):
+        assert sx.SYMENGINE and sx.ENGINE == "symengine"
+        assert type(sx.ZERO).__module__.startswith("symengine")
+        assert set(sx.FUNCTIONS) >= {"sin", "atan2", "Max"}
+    assert sx.ENGINE == before
+    assert sx.SYMENGINE == (before == "symengine")
+    with pytest.raises(engine.EngineError, match="unknown engine 'maple'"):
+        with sx.using("maple"):
+            pass
+    assert sx.ENGINE == before
+
+
+def test_piecewise_pairs_and_function_names_agree() -> None:
+    for name in engine.ENGINES:
+        with sx.using(name):
+            x = sx.symbol("x")
+            pairs = sx.piecewise_pairs(sx.Piecewise((x, x > 0), (-x, True)))
+            assert [str(v) for v, _ in pairs] == ["x", "-x"]
+            assert sx.function_name(sx.atan2(x, sx.symbol("y"))) == "atan2"
+            assert sx.function_name(sx.Function("f")(x)) == "f"
+            assert sx.sort_key(x) == sx.sort_key(sx.symbol("x"))
+
+
+def test_the_entry_point_knows_the_engines() -> None:
+    assert entry_module.ENGINES == engine.ENGINES
+    assert entry_module.VARIABLE == engine.VARIABLE
+
+
+@pytest.mark.parametrize(
+    ("argv", "env", "message"),
+    [
+        (["--engine", "maple", "examples"], {}, "argument --engine: invalid choice: 'maple'"),
+        (["examples"], {"TVOPT_CODEGEN_ENGINE": "maple"}, "TVOPT_CODEGEN_ENGINE: unknown engine"),
+    ],
+)
+def test_an_unknown_engine_is_one_line_and_exit_2(
+    argv: list[str], env: dict[str, str], message: str
+) -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "tvopt_codegen", *argv],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **env},
+        check=False,
+        timeout=120,
+    )
+    assert done.returncode == 2
+    assert done.stderr.count("\n") == 1
+    assert message in done.stderr
