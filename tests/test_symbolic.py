@@ -15,7 +15,7 @@ from tvopt_codegen.symbolic import engine
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
 
-def _sample(name: str) -> tuple[object, dict[str, float]]:
+def _sample(name: str) -> tuple[sx.Expr, dict[str, float]]:
     """One expression with every kind of node, built on engine ``name``, and a point."""
     with sx.using(name):
         x, y, t = sx.symbols(["x", "y", "t"])
@@ -34,10 +34,10 @@ def _sample(name: str) -> tuple[object, dict[str, float]]:
     return expr, {"x": 0.7, "y": -1.3, "t": 0.4}
 
 
-def _value(expr: object, point: dict[str, float]) -> float:
+def _value(expr: sx.Expr, point: dict[str, float]) -> float:
     sp_expr = to_sympy(expr) if not _is_sympy(expr) else expr
-    subs = {s: point[s.name] for s in sp_expr.free_symbols}  # type: ignore[attr-defined]
-    return float(sp_expr.xreplace(subs).evalf(30))  # type: ignore[attr-defined]
+    subs = {s: point[s.name] for s in sp_expr.free_symbols}
+    return float(sp_expr.xreplace(subs).evalf(30))
 
 
 def _is_sympy(expr: object) -> bool:
