@@ -1,10 +1,11 @@
 """Stage 4: lower a :class:`~tvopt_codegen.derivation.Derivation` to kernels.
 
 A kernel is a named straight-line program: ordered inputs (arrays addressed by slot),
-CSE'd temporaries, and named outputs of fixed shape. Kernels hold sympy expressions
-only; printing them is the backends' job, laying out files the templates'. User names
-never reach kernel code: states are ``_s0, _s1, ...``, parameters ``_p0, ...``, and so
-on; the names survive only as labels for comments.
+CSE'd temporaries, and named outputs of fixed shape. Kernels hold the symbolic
+engine's expressions only (:mod:`tvopt_codegen.symbolic`, either engine); printing them
+is the backends' job, laying out files the templates'. User names never reach kernel
+code: states are ``_s0, _s1, ...``, parameters ``_p0, ...``, and so on; the names
+survive only as labels for comments.
 
 The generated controller evaluates the paper's law (``Derivation.law``, written down by
 :mod:`tvopt_codegen.derivation.law`) as a chain of kernels and two numerical solves (never a
@@ -28,8 +29,7 @@ import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-import sympy as sp
-
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.cse import Outputs, make_kernel, make_kernels, split_invariant
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.derivation.calculus import equality_calculus
@@ -64,8 +64,8 @@ class _Args:
     y: Arg
     w: Arg
     z: Arg
-    subs: dict[sp.Symbol, sp.Expr]
-    y_subs: dict[sp.Symbol, sp.Expr]
+    subs: dict[sx.Expr, sx.Expr]
+    y_subs: dict[sx.Expr, sx.Expr]
     #: The reference jets (one row per reference, derivatives 0 .. q), when there are any.
     r: tuple[Arg, ...] = ()
 
@@ -76,7 +76,7 @@ def _arguments(d: Derivation) -> _Args:
     s_slots, p_slots = _slots("s", len(d.closed_loop.states)), _slots("p", len(model.params))
     y_slots = _slots("y", m)
     outputs = d.spec.outputs
-    subs: dict[sp.Symbol, sp.Expr] = dict(zip(d.closed_loop.states, s_slots, strict=True))
+    subs: dict[sx.Expr, sx.Expr] = dict(zip(d.closed_loop.states, s_slots, strict=True))
     subs |= dict(zip(model.params, p_slots, strict=True))
     refs: tuple[Arg, ...] = ()
     if model.references:
@@ -137,19 +137,19 @@ class _Mass:
 
     Attributes
     ----------
-    program : list of (sympy.Symbol, sympy.Expr)
+    program : list of (Symbol, Expr)
         ``M``, ``F`` and ``B`` in three-address form, one LDL^T of ``M`` and a solve per
         column of ``[F B]``, ending in the assignments of ``a = M^-1 F`` and
         ``W = M^-1 B`` to their run-time symbols.
-    entries : list of sympy.Expr
+    entries : list of Expr
         ``M``'s stored entries (its lower triangle's structural nonzeros).
-    pivots : list of sympy.Expr
+    pivots : list of Expr
         The LDL^T pivots, all positive where ``M`` is positive definite.
     """
 
     program: list[Assignment]
-    entries: list[sp.Expr]
-    pivots: list[sp.Expr]
+    entries: list[sx.Expr]
+    pivots: list[sx.Expr]
 
 
 def _mass(d: Derivation) -> _Mass | None:
@@ -175,7 +175,7 @@ def _mass(d: Derivation) -> _Mass | None:
     for i in range(n):
         targets = [mech.accelerations[i], *mech.gains[i]]
         for c, target in enumerate(targets):
-            if isinstance(target, sp.Symbol):
+            if isinstance(target, sx.Symbol):
                 assignments.append((target, solutions[c][i]))
     return _Mass(assignments, entries, pivots)
 
@@ -199,7 +199,7 @@ def _jet_kernels(
     jet_program += programs["rest"] + programs["mass"]
     inputs = [args.t, args.s, args.p, args.a, *args.r]
     # R and p share their trigonometry with the output jet: one kernel, one CSE.
-    shared: list[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]] = [
+    shared: list[tuple[str, tuple[int, ...], Sequence[sx.Expr], str]] = [
         ("R", (len(law.r_entries),), law.r_entries, "diagonal blocks of the decoupling matrix"),
         ("pvec", (m,), list(d.decoupling.p), "p = col(L_f^{r_i} h_i)"),
     ]
@@ -264,7 +264,7 @@ def _jet_kernels(
             (
                 "hessian",
                 (len(pattern),),
-                [value.get(entry, sp.Integer(0)) for entry in pattern],
+                [value.get(entry, sx.ZERO) for entry in pattern],
                 "nonzero entries of the lower triangle of grad_yy f0",
             ),
             ("jet_rhs", (n,), law.jet_rhs, "sum_i a_i grad^(i) f0 - rest"),
@@ -315,7 +315,7 @@ def _input_kernels(
     # number, not read from the jet's output.
     p = [d.decoupling.p[i] if d.decoupling.p[i].is_Number else q_slots[i] for i in range(m)]
     # With the extended-state observer, its estimate of the lumped disturbance too.
-    lumped = law.lumped or (sp.Integer(0),) * m
+    lumped = law.lumped or (sx.ZERO,) * m
     what = "v - p - d_hat" if d.rejection is not None else "v - p"
     decoupling = kernel(
         "decoupling",
@@ -390,12 +390,12 @@ def _objective_kernels(
     )
 
 
-def _margin_output(model: Model) -> tuple[str, tuple[int, ...], list[sp.Expr], str]:
+def _margin_output(model: Model) -> tuple[str, tuple[int, ...], list[sx.Expr], str]:
     """The output ``margin``: each inequality's ``s(t) - g_i(y, t)``.
 
     The law's jet and the kernels of the public functions of B return it alike.
     """
-    margins = [model.slack - sp.sympify(c.g) for c in model.constraints]
+    margins = [model.slack - sx.sympify(c.g) for c in model.constraints]
     return ("margin", (len(margins),), margins, "s(t) - g_i(y, t), each positive")
 
 
@@ -442,7 +442,7 @@ def _plant_kernels(
     x_slots, u_slots = _slots("x", len(model.x)), _slots("u", len(model.u))
     arg_x = Arg("x", x_slots, d.spec.states, "plant state")
     arg_u = Arg("u", u_slots, d.spec.inputs, "plant input")
-    subs: dict[sp.Symbol, sp.Expr] = dict(zip(model.x, x_slots, strict=True))
+    subs: dict[sx.Expr, sx.Expr] = dict(zip(model.x, x_slots, strict=True))
     subs |= dict(zip(model.u, u_slots, strict=True))
     subs |= dict(zip(model.params, args.p.symbols, strict=True))
     dx = control_affine(model.f, model.G, model.u)
@@ -501,9 +501,9 @@ def lower(derivation: Derivation) -> KernelSet:
     d = derivation
     # One memo of odd functions for all kernels: a node's sign is decided once (by the
     # node alone, so the kernels' order does not matter).
-    odd: dict[sp.Basic, sp.Expr] = {}
+    odd: dict[sx.Expr, sx.Expr] = {}
     # And one memo of free symbols: the kernels prune the same programs.
-    symbols: dict[sp.Basic, set[sp.Basic]] = {}
+    symbols: dict[sx.Expr, set[sx.Expr]] = {}
     kernel = functools.partial(make_kernel, odd=odd, symbols=symbols)
     kernels = functools.partial(make_kernels, odd=odd, symbols=symbols)
     args = _arguments(d)
@@ -640,7 +640,7 @@ def check_kernels(derivation: Derivation) -> CheckKernels:
     )
     constraints = None
     if model.constraints:
-        values = [model.slack, *(sp.sympify(c.g) for c in model.constraints)]
+        values = [model.slack, *(sx.sympify(c.g) for c in model.constraints)]
         constraints = make_kernel(
             "sweep_constraints",
             "The barrier's slack s(t), then each constraint g_i(y, t) (<= 0 when kept)",

@@ -1,8 +1,9 @@
 """The IR's types: kernels (named straight-line programs) and a controller's set of them.
 
 A kernel is a named straight-line program: ordered inputs (arrays addressed by slot),
-CSE'd temporaries, and named outputs of fixed shape. Kernels hold sympy expressions
-only; printing them is the backends' job, laying out files the templates'.
+CSE'd temporaries, and named outputs of fixed shape. Kernels hold the symbolic engine's
+expressions only (:mod:`tvopt_codegen.symbolic`, either engine); printing them is the
+backends' job, laying out files the templates'.
 """
 
 from __future__ import annotations
@@ -10,8 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import sympy as sp
-
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.maths.jet import Assignment
 
 if TYPE_CHECKING:
@@ -27,7 +27,7 @@ class Arg:
     ----------
     name : str
         The argument's name in generated code (``t``, ``s``, ``p``, ...).
-    symbols : tuple of sympy.Symbol
+    symbols : tuple of Symbol
         The slot symbols, one per element, in order (empty for the scalar ``t``).
     labels : tuple of str
         The user's name for each slot (for comments).
@@ -36,7 +36,7 @@ class Arg:
     """
 
     name: str
-    symbols: tuple[sp.Symbol, ...]
+    symbols: tuple[sx.Expr, ...]
     labels: tuple[str, ...]
     doc: str
 
@@ -47,7 +47,7 @@ class Output:
 
     name: str
     shape: tuple[int, ...]
-    exprs: tuple[sp.Expr, ...]
+    exprs: tuple[sx.Expr, ...]
     doc: str
 
 
@@ -63,7 +63,7 @@ class Kernel:
         One-line description.
     inputs : tuple of Arg
         Inputs in call order.
-    body : tuple of (sympy.Symbol, sympy.Expr)
+    body : tuple of (Symbol, Expr)
         Temporaries ``_t0, _t1, ...`` in evaluation order.
     outputs : tuple of Output
         Outputs in return order.

@@ -3,13 +3,15 @@
 The result is ``{file name: text}``; nothing here touches the disk. Every file
 carries a stamp (tool and sympy versions, spec file name and SHA-256, template) and a
 content hash over the rest of the file, which lets the writer tell an untouched
-generated file from one a person edited.
+generated file from one a person edited. The kernels' expressions are either engine's
+(:mod:`tvopt_codegen.symbolic`): this stage imports no engine itself.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import importlib.metadata
 import math
 import re
 from collections.abc import Callable, Iterable
@@ -18,9 +20,9 @@ from pathlib import Path, PurePath
 from typing import Any
 
 import jinja2
-import sympy as sp
 
 from tvopt_codegen import __version__
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.backends import BACKENDS, Backend
 from tvopt_codegen.contract import CALLER_FAULTS, FUNCTIONS, PIVOT_TOLERANCE, statuses
 from tvopt_codegen.cse import symbols_in
@@ -267,7 +269,7 @@ def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
             for i, (sym, label) in enumerate(zip(arg.symbols, arg.labels, strict=True))
             if sym in used
         )
-        used_arg = bool(slots) or (arg.name == "t" and sp.Symbol("t", real=True) in used)
+        used_arg = bool(slots) or (arg.name == "t" and sx.symbol("t") in used)
         args.append(PrintedArg(arg.name, arg.doc, slots, used_arg, len(arg.symbols)))
     # The argument whose last axis is the batch; none for a kernel of time and
     # parameters alone (jet_time), whose outputs are the same for every state.
@@ -276,7 +278,8 @@ def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
     outputs = []
     for out in kernel.outputs:
         indices = _indices(out.shape)
-        values = [sp.sympify(e) for e in out.exprs]
+        # An output may hold a plain number (a structural zero): made an expression here.
+        values = [e if isinstance(e, sx.Basic) else sx.sympify(e) for e in out.exprs]
         zeros = sum(1 for e in values if e == 0)
         sparse = zeros >= SPARSE_OUTPUT_ZEROS and 2 * zeros >= len(values)
         elements = tuple(
@@ -384,7 +387,8 @@ def template_context(kernels: KernelSet, backend: Backend | str) -> dict[str, An
         "kernels": printed,
         **variants,
         "tool_version": __version__,
-        "sympy_version": sp.__version__,
+        # SymPy's version, read without importing it (a SymEngine run need not).
+        "sympy_version": importlib.metadata.version("sympy"),
         "spec_file": PurePath(d.spec.source.removesuffix(BUNDLED_SUFFIX)).name,
         "extension_counts": dict(d.linearization.extension.counts),
         "parameters": dict(d.spec.parameters),
