@@ -219,6 +219,40 @@ def count_ops(expr: Any) -> int:
     return int(_m.count_ops(expr))
 
 
+def det(matrix: Any) -> Any:
+    """The determinant of a square matrix by Berkowitz's division-free algorithm.
+
+    SymPy's own ``det(method="berkowitz")``; on SymEngine, whose ``det`` divides as
+    Bareiss's does, the same recursion: a polynomial in the entries on both engines.
+    """
+    if not SYMENGINE:
+        return matrix.det(method="berkowitz")
+    rows = matrix.tolist()
+    if not rows:
+        return ONE
+    return (-1) ** len(rows) * _berkowitz(rows)[-1]
+
+
+def _berkowitz(rows: list[list[Any]]) -> list[Any]:
+    """The characteristic polynomial's coefficients of ``rows``, leading 1 first."""
+    n = len(rows)
+    if n == 1:
+        return [ONE, -rows[0][0]]
+    corner, right = rows[0][0], rows[0][1:]
+    column, rest = [row[0] for row in rows[1:]], [row[1:] for row in rows[1:]]
+    # The Toeplitz matrix's diagonals: 1, -a, -R C, -R A C, -R A^2 C, ...
+    powers = [column]
+    for _ in range(n - 2):
+        last = powers[-1]
+        powers.append([_m.Add(*(a * c for a, c in zip(row, last, strict=True))) for row in rest])
+    diagonals = [ONE, -corner]
+    diagonals += [-_m.Add(*(r * c for r, c in zip(right, p, strict=True))) for p in powers]
+    below = _berkowitz(rest)
+    return [
+        _m.Add(*(diagonals[i - j] * below[j] for j in range(min(i + 1, n)))) for i in range(n + 1)
+    ]
+
+
 def text(expr: Any) -> str:
     """``expr`` as one line of text in the spec language's spelling (``x**2``, ``sin(x)``)."""
     if SYMENGINE:
@@ -239,6 +273,7 @@ __all__ = [
     "SYMENGINE",
     "ZERO",
     "count_ops",
+    "det",
     "free_symbols",
     "function_name",
     "is_piecewise",
