@@ -265,6 +265,77 @@ def sort_key(expr: Any) -> tuple[str, str]:
     return (type(expr).__name__, text(expr))
 
 
+def lambdify(args: Any, exprs: Any, modules: Any = None) -> Any:
+    """A numeric function computing ``exprs`` from the symbols ``args``.
+
+    ``args`` is a symbol, or a list of one symbol or list of symbols per positional
+    argument. SymPy's ``lambdify`` (``modules`` as it takes them) on SymPy; on SymEngine its
+    compiled ``Lambdify``, called the same way: a number per symbol, a sequence per
+    list (NumPy arrays broadcast together); a float for one expression, else an array
+    of the shape of ``exprs`` (a list, nested rows or a matrix), after the broadcast
+    shape. Where SymPy's ``math`` functions raise (``log(-1)``) SymEngine's give NaN.
+    """
+    if not SYMENGINE:
+        return _m.lambdify(args, exprs, modules)
+    return _Lambdified(args, exprs)
+
+
+class _Lambdified:
+    """SymEngine's ``Lambdify`` behind SymPy's ``lambdify``'s calling convention."""
+
+    def __init__(self, args: Any, exprs: Any) -> None:
+        self._lists = [isinstance(a, list | tuple) for a in _arguments(args)]
+        flat = [
+            s for a in _arguments(args) for s in (_flat(a) if isinstance(a, list | tuple) else [a])
+        ]
+        if isinstance(exprs, _m.MatrixBase):
+            exprs = exprs.tolist()
+        self._shape = _shape(exprs)
+        values = _flat(exprs) if self._shape else [exprs]
+        self._function = _m.Lambdify(flat, values, real=True) if values else None
+
+    def __call__(self, *values: Any) -> Any:
+        import numpy as np  # noqa: PLC0415 - loaded with SymEngine already
+
+        point = [
+            v
+            for given, is_list in zip(values, self._lists, strict=True)
+            for v in (_flat(list(given)) if is_list else [given])
+        ]
+        if any(np.ndim(v) for v in point):
+            inputs = np.stack(np.broadcast_arrays(*[np.asarray(v, dtype=float) for v in point]), -1)
+        else:
+            inputs = np.array(point, dtype=float)
+        batch = inputs.shape[:-1]
+        if self._function is None:
+            return np.zeros((*batch, *self._shape))
+        out = np.asarray(self._function(inputs), dtype=float).reshape((*batch, *self._shape))
+        return float(out) if not out.shape else out
+
+
+def _arguments(args: Any) -> list[Any]:
+    return list(args) if isinstance(args, list | tuple) else [args]
+
+
+def _flat(items: Any) -> list[Any]:
+    """The leaves of nested lists (or arrays), in row-major order."""
+    out: list[Any] = []
+    for item in items:
+        dimensions: int = getattr(item, "ndim", 0)
+        if isinstance(item, list | tuple) or dimensions:
+            out.extend(_flat(item))
+        else:
+            out.append(item)
+    return out
+
+
+def _shape(exprs: Any) -> tuple[int, ...]:
+    """The shape of nested lists of expressions (``()`` for one expression)."""
+    if not isinstance(exprs, list | tuple):
+        return ()
+    return (len(exprs), *(_shape(exprs[0]) if exprs else ()))
+
+
 __all__ = [
     "ENGINE",
     "Expr",
@@ -277,6 +348,7 @@ __all__ = [
     "free_symbols",
     "function_name",
     "is_piecewise",
+    "lambdify",
     "matrix",
     "piecewise_pairs",
     "real",
