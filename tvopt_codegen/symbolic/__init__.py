@@ -219,6 +219,40 @@ def count_ops(expr: Any) -> int:
     return int(_m.count_ops(expr))
 
 
+def is_polynomial(expr: Any, symbols: Iterable[Any]) -> bool:
+    """Whether ``expr`` is a polynomial in ``symbols``, as written (SymPy's ``is_polynomial``).
+
+    Nothing is simplified: ``(y**2 - 1)/(y - 1)`` is not one. A sum or product of
+    polynomials is, and a power of one to a nonnegative integer; a function of the
+    symbols, or a power with them in its exponent, is not.
+    """
+    if not SYMENGINE:
+        return bool(expr.is_polynomial(*symbols))
+    return _polynomial(expr, frozenset(symbols), {})
+
+
+def _polynomial(node: Any, symbols: frozenset[Any], memo: dict[Any, bool]) -> bool:
+    done = memo.get(node)
+    if done is not None:
+        return done
+    if not symbols & node.free_symbols or node.is_Symbol:
+        out = True
+    elif node.is_Add or node.is_Mul:
+        out = all(_polynomial(arg, symbols, memo) for arg in node.args)
+    elif node.is_Pow:
+        base, exponent = node.args
+        out = bool(
+            not symbols & exponent.free_symbols
+            and exponent.is_Integer
+            and exponent >= 0
+            and _polynomial(base, symbols, memo)
+        )
+    else:
+        out = False
+    memo[node] = out
+    return out
+
+
 def det(matrix: Any) -> Any:
     """The determinant of a square matrix by Berkowitz's division-free algorithm.
 
@@ -347,6 +381,7 @@ __all__ = [
     "det",
     "free_symbols",
     "function_name",
+    "is_polynomial",
     "is_piecewise",
     "lambdify",
     "matrix",
