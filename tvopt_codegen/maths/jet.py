@@ -15,9 +15,9 @@ import operator
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
-import sympy as sp
+from tvopt_codegen import symbolic as sx
 
-Assignment = tuple[sp.Symbol, sp.Expr]
+Assignment = tuple[sx.Expr, sx.Expr]
 
 
 @dataclass(frozen=True)
@@ -26,7 +26,7 @@ class Program:
 
     Attributes
     ----------
-    assignments : tuple of (sympy.Symbol, sympy.Expr)
+    assignments : tuple of (symbol, expression)
         The straight-line program.
     """
 
@@ -35,7 +35,7 @@ class Program:
     def __add__(self, other: Program) -> Program:
         return Program(self.assignments + other.assignments)
 
-    def inline(self, expr: sp.Expr) -> sp.Expr:
+    def inline(self, expr: sx.Expr) -> sx.Expr:
         """Substitute every assignment into ``expr`` (for tests and small reports only).
 
         Each assignment ``expr`` reads is inlined once, in program order, and reused
@@ -44,22 +44,22 @@ class Program:
         ``report``).
         """
         values = dict(self.assignments)
-        memo: dict[sp.Basic, sp.Expr] = {}
+        memo: dict[sx.Expr, sx.Expr] = {}
         for sym in self._read_by(expr):
             value = values[sym]
             memo[sym] = value.xreplace({s: memo[s] for s in value.free_symbols if s in memo})
         return expr.xreplace({s: memo[s] for s in expr.free_symbols if s in memo})
 
-    def inlined_size(self, expr: sp.Expr) -> int:
+    def inlined_size(self, expr: sx.Expr) -> int:
         """The node count of ``expr`` with every assignment inlined, without building it.
 
         A read counts the inlined size of what it reads each time, as the inlined tree
         would: a report asks this before inlining what it would only describe if large.
         """
         values = dict(self.assignments)
-        sizes: dict[sp.Basic, int] = {}
+        sizes: dict[sx.Expr, int] = {}
 
-        def size(e: sp.Basic) -> int:
+        def size(e: sx.Expr) -> int:
             if e in sizes:
                 return sizes[e]
             return 1 + sum(size(a) for a in e.args)
@@ -70,7 +70,7 @@ class Program:
         release(size)
         return total
 
-    def _read_by(self, expr: sp.Expr) -> list[sp.Basic]:
+    def _read_by(self, expr: sx.Expr) -> list[sx.Expr]:
         """The assigned symbols ``expr`` reads, directly or not, in program order."""
         values = dict(self.assignments)
         needed = {s for s in expr.free_symbols if s in values}
@@ -99,37 +99,45 @@ def release(walk: Callable[..., object]) -> None:
             cell.cell_contents = None
 
 
-def unchanged(node: sp.Basic, args: Sequence[sp.Basic]) -> bool:
-    """Whether ``args`` are ``node``'s own arguments, the very objects, in order.
+def unchanged(node: sx.Expr, args: Sequence[sx.Expr]) -> bool:
+    """Whether ``args`` are ``node``'s own arguments, in order.
 
     A walk that rebuilds a tree leaves such a node as it is: rebuilding it would run
-    sympy's constructors only to give it back.
+    the engine's constructors only to give it back. On SymPy they must be the very
+    objects; SymEngine hands out a new Python object for an argument at each ``.args``,
+    so there equal arguments (a comparison in C++) count.
     """
-    return len(args) == len(node.args) and all(map(operator.is_, args, node.args))
+    own = node.args
+    if len(args) != len(own):
+        return False
+    return all(map(operator.eq if sx.SYMENGINE else operator.is_, args, own))
 
 
-def fresh_symbols(prefix: str) -> Iterator[sp.Symbol]:
+def fresh_symbols(prefix: str) -> Iterator[sx.Expr]:
     """Endless numbered symbols ``prefix0, prefix1, ...`` (real)."""
     index = 0
     while True:
-        yield sp.Symbol(f"{prefix}{index}", real=True)
+        yield sx.symbol(f"{prefix}{index}")
         index += 1
 
 
-def partial(expr: sp.Expr, var: sp.Symbol) -> sp.Expr:
+def partial(expr: sx.Expr, var: sx.Expr) -> sx.Expr:
     """``d expr / d var`` by the sum, product, power and chain rules, as sympy's ``diff``.
 
     The programs' right-hand sides are single operations, where sympy's ``diff`` spends
     most of its time in the machinery of ``Derivative`` objects. The rules here build
     the same sums and products (sympy's constructors put them in the same canonical
-    form); anything else is left to ``diff``.
+    form); anything else is left to ``diff``. SymEngine's own ``diff`` is exact and
+    fast: it is used there (:func:`_symengine_partial`).
     """
+    if sx.SYMENGINE:
+        return _symengine_partial(expr, var)
     if expr == var:
-        return sp.Integer(1)
+        return sx.Integer(1)
     if var not in expr.free_symbols:
-        return sp.Integer(0)
+        return sx.Integer(0)
     if expr.is_Add:
-        return sp.Add(*(partial(arg, var) for arg in expr.args if var in arg.free_symbols))
+        return sx.Add(*(partial(arg, var) for arg in expr.args if var in arg.free_symbols))
     if expr.is_Mul:
         # Each term one product of all factors, as sympy's Leibniz rule for a first
         # derivative builds it (Mul._eval_derivative_n_times): a number times a sum
@@ -137,49 +145,111 @@ def partial(expr: sp.Expr, var: sp.Symbol) -> sp.Expr:
         # A product of two whose factor is the variable itself differentiates to the
         # other factor: Mul(1, b) is b, the very object, so it is not built.
         args = expr.args
+        one = sx.ONE
         terms = []
         for i, arg in enumerate(args):
             if var in arg.free_symbols:
                 slope = partial(arg, var)
-                if slope is sp.S.One and len(args) == 2:
+                if slope is one and len(args) == 2:
                     terms.append(args[1 - i])
                 else:
-                    terms.append(sp.Mul(*args[:i], slope, *args[i + 1 :]))
-        return sp.Add(*terms)
+                    terms.append(sx.Mul(*args[:i], slope, *args[i + 1 :]))
+        return sx.Add(*terms)
     if expr.is_Pow:
         base, exponent = expr.args
         if exponent.is_Number:
             # sympy's Pow._eval_derivative with a constant exponent, term for term.
             return expr * (partial(base, var) * exponent / base)
-        return sp.diff(expr, var)
-    if isinstance(expr, sp.Function) and len(expr.args) == 1 and _chain_rule(type(expr)):
+        return sx.diff(expr, var)
+    if isinstance(expr, sx.Function) and len(expr.args) == 1 and _chain_rule(type(expr)):
         return expr.fdiff(1) * partial(expr.args[0], var)
-    return sp.diff(expr, var)
+    return sx.diff(expr, var)
 
 
-def _chain_rule(func: type[sp.Function]) -> bool:
+def _chain_rule(func: type) -> bool:
     """Whether sympy differentiates ``func`` by the plain chain rule on its ``fdiff``.
 
     ``Abs`` has its own rule (through the conjugate), and ``sign`` no ``fdiff`` (sympy
     gives ``2*DiracDelta``, the default ``fdiff`` an unevaluated ``Derivative``): those
     are left to ``diff``.
     """
-    return (
-        func._eval_derivative is sp.Function._eval_derivative
-        and func.fdiff is not sp.Function.fdiff
+    base = sx.Function
+    return bool(
+        func._eval_derivative is base._eval_derivative  # type: ignore[attr-defined]
+        and func.fdiff is not base.fdiff  # type: ignore[attr-defined]
     )
 
 
-def _times(slope: sp.Expr, rate: sp.Expr) -> sp.Expr:
+def _symengine_partial(expr: sx.Expr, var: sx.Expr) -> sx.Expr:
+    """``d expr / d var`` on SymEngine: its ``diff``, with the rules it lacks.
+
+    SymEngine leaves ``Abs`` and ``sign`` underived (a ``Derivative``; they reach it
+    from SymPy, which writes ``sqrt(x**2)`` of a real ``x`` as ``Abs(x)``). Where the
+    expression holds one, the chain rule is applied here down to it: ``Abs(u)' =
+    sign(u) u'`` as SymPy's for a real ``u``, and ``sign(u)' = 0``, its value wherever it
+    is defined, where SymPy writes ``2*DiracDelta(u) u'``, which no stage can evaluate.
+    """
+    if not expr.atoms(sx.Abs, sx.sign):
+        return expr.diff(var)
+    if var not in expr.free_symbols:
+        return sx.ZERO
+    name = sx.function_name(expr) if expr.is_Function else ""
+    if name == "Abs":
+        (inner,) = expr.args
+        return sx.sign(inner) * _symengine_partial(inner, var)
+    if name == "sign":
+        return sx.ZERO
+    if sx.is_piecewise(expr):
+        # Only the values move (the conditions' derivative is zero where defined).
+        flat = [
+            item
+            for value, condition in sx.piecewise_pairs(expr)
+            for item in (_symengine_partial(value, var), condition)
+        ]
+        return sx.Piecewise(*zip(flat[::2], flat[1::2], strict=True))
+    # Any other node: the chain rule through its arguments, each slope SymEngine's own
+    # derivative of the node in a placeholder for that argument.
+    args = expr.args
+    holders = [sx.Symbol(f"_partial_arg{i}") for i in range(len(args))]
+    local = expr.func(*holders)
+    back = dict(zip(holders, args, strict=True))
+    terms = [
+        local.diff(holder).xreplace(back) * _symengine_partial(arg, var)
+        for holder, arg in zip(holders, args, strict=True)
+        if var in arg.free_symbols
+    ]
+    return sx.Add(*terms)
+
+
+def _times(slope: sx.Expr, rate: sx.Expr) -> sx.Expr:
     """``slope * rate``, without building a product by 1 (``Mul(1, b)`` is ``b`` itself)."""
-    if rate is sp.S.One:
+    if _is_one(rate):
         return slope
-    if slope is sp.S.One:
+    if _is_one(slope):
         return rate
     return slope * rate
 
 
-def _derivative(expr: sp.Expr, rates: Mapping[sp.Symbol, sp.Expr]) -> sp.Expr:
+def _is_one(expr: sx.Expr) -> bool:
+    """Whether ``expr`` is the integer 1 (SymPy's singleton; SymEngine's by value)."""
+    if sx.SYMENGINE:
+        return bool(expr.is_Integer and expr == sx.ONE)
+    return expr is sx.ONE
+
+
+def _rebuild(node: sx.Expr, args: Sequence[sx.Expr]) -> sx.Expr:
+    """``node``'s kind of node over ``args`` (a SymEngine ``Piecewise`` takes pairs)."""
+    if sx.SYMENGINE and sx.is_piecewise(node):
+        return sx.Piecewise(*zip(args[::2], args[1::2], strict=True))
+    return node.func(*args)
+
+
+def _expression(value: sx.Expr) -> sx.Expr:
+    """``value`` as an expression of the engine, converted only if it is not one."""
+    return value if isinstance(value, sx.Basic) else sx.sympify(value)
+
+
+def _derivative(expr: sx.Expr, rates: Mapping[sx.Expr, sx.Expr]) -> sx.Expr:
     """Chain rule: ``sum_v (d expr / d v) * rates[v]`` over the symbols that move.
 
     The terms are added in one sum, and a rate of 1 (time's) multiplies nothing: adding
@@ -192,28 +262,28 @@ def _derivative(expr: sp.Expr, rates: Mapping[sp.Symbol, sp.Expr]) -> sp.Expr:
         terms.append(_times(slope, rate))
     if len(terms) == 1:
         return terms[0]
-    return sp.Add(*terms)
+    return sx.Add(*terms)
 
 
 def total_derivative(
     program: Program,
-    outputs: Sequence[sp.Expr],
-    rates: Mapping[sp.Symbol, sp.Expr],
-    names: Iterator[sp.Symbol],
-    check: Callable[[sp.Expr], None] | None = None,
-) -> tuple[Program, tuple[sp.Expr, ...], dict[sp.Symbol, sp.Expr]]:
+    outputs: Sequence[sx.Expr],
+    rates: Mapping[sx.Expr, sx.Expr],
+    names: Iterator[sx.Expr],
+    check: Callable[[sx.Expr], None] | None = None,
+) -> tuple[Program, tuple[sx.Expr, ...], dict[sx.Expr, sx.Expr]]:
     """Differentiate a program and its outputs along given rates of its free symbols.
 
     Parameters
     ----------
     program : Program
         The program defining intermediate symbols.
-    outputs : sequence of sympy.Expr
+    outputs : sequence of expression
         Expressions over the program's symbols and free symbols.
-    rates : mapping of sympy.Symbol to sympy.Expr
+    rates : mapping of symbol to expression
         Time derivative of each free symbol that moves (e.g. ``t -> 1``,
         ``y -> y'``). Symbols not listed are constant.
-    names : iterator of sympy.Symbol
+    names : iterator of symbol
         Source of fresh symbols for the new assignments.
     check : callable, optional
         Called with every new right-hand side and output (the derivation's budget meter).
@@ -224,13 +294,13 @@ def total_derivative(
         The new assignments only (derivatives of the program's symbols that are not
         identically zero and not already in ``rates``); they follow ``program`` in
         evaluation order.
-    outputs : tuple of sympy.Expr
+    outputs : tuple of expression
         The derivative of each output.
-    rates : dict of sympy.Symbol to sympy.Expr
+    rates : dict of symbol to expression
         ``rates`` extended with the derivative of every program symbol, so a further
         derivative of ``program + new program`` can be taken.
     """
-    moving: dict[sp.Symbol, sp.Expr] = dict(rates)
+    moving: dict[sx.Expr, sx.Expr] = dict(rates)
     new: list[Assignment] = []
     for sym, value in program.assignments:
         if sym in moving:
@@ -246,7 +316,7 @@ def total_derivative(
         fresh = next(names)
         new.append((fresh, rate))
         moving[sym] = fresh
-    derived = tuple(_derivative(sp.sympify(e), moving) for e in outputs)
+    derived = tuple(_derivative(_expression(e), moving) for e in outputs)
     if check is not None:
         for e in derived:
             check(e)
@@ -255,11 +325,11 @@ def total_derivative(
 
 def next_derivative(
     program: Program,
-    outputs: Sequence[sp.Expr],
-    rates: Mapping[sp.Symbol, sp.Expr],
-    names: Iterator[sp.Symbol],
-    check: Callable[[sp.Expr], None] | None = None,
-) -> tuple[Program, tuple[sp.Expr, ...], dict[sp.Symbol, sp.Expr]]:
+    outputs: Sequence[sx.Expr],
+    rates: Mapping[sx.Expr, sx.Expr],
+    names: Iterator[sx.Expr],
+    check: Callable[[sx.Expr], None] | None = None,
+) -> tuple[Program, tuple[sx.Expr, ...], dict[sx.Expr, sx.Expr]]:
     """One more total derivative (:func:`total_derivative`), back in three-address form.
 
     Each new assignment is broken into single operations again, in order (a later
@@ -267,7 +337,7 @@ def next_derivative(
     differentiates small expressions only: the k-th derivative grows linearly in k.
     """
     new, current, moving = total_derivative(program, outputs, rates, names, check)
-    memo: dict[sp.Expr, sp.Expr] = {}
+    memo: dict[sx.Expr, sx.Expr] = {}
     pieces: list[Assignment] = []
     for sym, value in new.assignments:
         part, (root,) = atomize([value], names, memo)
@@ -277,8 +347,8 @@ def next_derivative(
 
 
 def atomize(
-    exprs: Sequence[sp.Expr], names: Iterator[sp.Symbol], memo: dict[sp.Expr, sp.Expr] | None = None
-) -> tuple[Program, tuple[sp.Expr, ...]]:
+    exprs: Sequence[sx.Expr], names: Iterator[sx.Expr], memo: dict[sx.Expr, sx.Expr] | None = None
+) -> tuple[Program, tuple[sx.Expr, ...]]:
     """Break expressions into one operation per assignment (three-address form).
 
     Equal subtrees share one assignment (``memo``). Differentiating such a program
@@ -287,22 +357,22 @@ def atomize(
 
     Parameters
     ----------
-    exprs : sequence of sympy.Expr
+    exprs : sequence of expression
         Expressions to break up.
-    names : iterator of sympy.Symbol
+    names : iterator of symbol
         Source of names for the assignments.
     memo : dict, optional
         Subtree -> symbol, shared between calls that should share assignments.
 
     Returns
     -------
-    tuple of (Program, tuple of sympy.Expr)
+    tuple of (Program, tuple of expression)
         The assignments and the outputs (each a symbol or an atom).
     """
-    table: dict[sp.Expr, sp.Expr] = {} if memo is None else memo
-    out: list[tuple[sp.Symbol, sp.Expr]] = []
+    table: dict[sx.Expr, sx.Expr] = {} if memo is None else memo
+    out: list[tuple[sx.Expr, sx.Expr]] = []
 
-    def visit(node: sp.Expr) -> sp.Expr:
+    def visit(node: sx.Expr) -> sx.Expr:
         if node.is_Atom:
             return node
         if node in table:
@@ -314,7 +384,7 @@ def atomize(
             numbers = [a for a in args if a.is_Number]
             factors = [a for a in args if not a.is_Number]
             while len(factors) > 2:
-                pair = sp.Mul(factors[0], factors[1])
+                pair = sx.Mul(factors[0], factors[1])
                 if pair in table:
                     factors = [table[pair], *factors[2:]]
                     continue
@@ -325,7 +395,7 @@ def atomize(
             args = [*numbers, *factors]
         # Arguments that came back as they were (atoms, in the same order) leave the
         # node as it is: rebuilding it (sympy's flatten) would only give it back.
-        rebuilt = node if unchanged(node, args) else node.func(*args)
+        rebuilt = node if unchanged(node, args) else _rebuild(node, args)
         if rebuilt.is_Atom:
             table[node] = rebuilt
             return rebuilt
@@ -334,18 +404,18 @@ def atomize(
         table[node] = symbol
         return symbol
 
-    outputs = tuple(visit(sp.sympify(e)) for e in exprs)
+    outputs = tuple(visit(_expression(e)) for e in exprs)
     release(visit)
     return Program(tuple(out)), outputs
 
 
 def jacobian(
     program: Program,
-    outputs: Sequence[sp.Expr],
-    variables: Sequence[sp.Symbol],
-    names: Iterator[sp.Symbol],
-    check: Callable[[sp.Expr], None] | None = None,
-) -> tuple[Program, tuple[dict[int, sp.Expr], ...]]:
+    outputs: Sequence[sx.Expr],
+    variables: Sequence[sx.Expr],
+    names: Iterator[sx.Expr],
+    check: Callable[[sx.Expr], None] | None = None,
+) -> tuple[Program, tuple[dict[int, sx.Expr], ...]]:
     """Forward-mode Jacobian of a program's outputs, with sparse tangents.
 
     Every symbol carries the nonzero entries of its gradient with respect to
@@ -360,11 +430,11 @@ def jacobian(
     ----------
     program : Program
         The program (in three-address form, see :func:`atomize`, for small entries).
-    outputs : sequence of sympy.Expr
+    outputs : sequence of expression
         Expressions over the program's symbols and free symbols.
-    variables : sequence of sympy.Symbol
+    variables : sequence of symbol
         The independent variables (free symbols of the program).
-    names : iterator of sympy.Symbol
+    names : iterator of symbol
         Source of fresh symbols for the new assignments.
     check : callable, optional
         Called with every new right-hand side (the derivation's budget meter).
@@ -373,27 +443,27 @@ def jacobian(
     -------
     program : Program
         The new assignments only; they follow ``program`` in evaluation order.
-    jacobian : tuple of dict of int to sympy.Expr
+    jacobian : tuple of dict of int to expression
         For each output, its nonzero partial derivatives by variable index.
     """
-    tangent: dict[sp.Symbol, dict[int, sp.Expr]] = {
-        v: {j: sp.Integer(1)} for j, v in enumerate(variables)
+    tangent: dict[sx.Expr, dict[int, sx.Expr]] = {
+        v: {j: sx.Integer(1)} for j, v in enumerate(variables)
     }
 
-    def propagate(expr: sp.Expr) -> dict[int, sp.Expr]:
-        terms: dict[int, list[sp.Expr]] = {}
+    def propagate(expr: sx.Expr) -> dict[int, sx.Expr]:
+        terms: dict[int, list[sx.Expr]] = {}
         for var in sorted(expr.free_symbols & tangent.keys(), key=lambda s: s.name):
             slope = partial(expr, var)
             if slope == 0:
                 continue
             for j, rate in tangent[var].items():
                 terms.setdefault(j, []).append(_times(slope, rate))
-        result = {j: sp.Add(*terms[j]) for j in sorted(terms)}
+        result = {j: sx.Add(*terms[j]) for j in sorted(terms)}
         return {j: value for j, value in result.items() if value != 0}
 
     new: list[Assignment] = []
     for sym, value in program.assignments:
-        entries: dict[int, sp.Expr] = {}
+        entries: dict[int, sx.Expr] = {}
         for j, rate in propagate(value).items():
             if rate.is_Symbol or rate.is_Number:
                 entries[j] = rate
@@ -405,5 +475,5 @@ def jacobian(
             entries[j] = fresh
         if entries:
             tangent[sym] = entries
-    derived = tuple(propagate(sp.sympify(e)) for e in outputs)
+    derived = tuple(propagate(_expression(e)) for e in outputs)
     return Program(tuple(new)), derived

@@ -1,4 +1,4 @@
-"""Numeric evaluation of sympy expressions over NumPy arrays, without printing code.
+"""Numeric evaluation of expressions (either engine's) over NumPy arrays, without printing code.
 
 The derivation samples expressions at a few dozen points (is a Lie derivative
 identically zero? is the Hessian positive definite near the start?). ``lambdify``
@@ -15,31 +15,50 @@ from collections.abc import Callable, Container, Iterable, Iterator, Mapping, Se
 from typing import Any
 
 import numpy as np
-import sympy as sp
+
+from tvopt_codegen import symbolic as sx
 
 Array = Any  # a float or complex ndarray, or a Python scalar broadcast against one
 
-#: sympy function classes and their NumPy counterparts. Every function a spec may call
+#: The NumPy counterparts of the functions by name. Every function a spec may call
 #: (parse.FUNCTIONS) and the ones their derivatives introduce (Abs, sign) are here.
-_FUNCTIONS: Mapping[type[sp.Basic], Callable[..., Array]] = {
-    sp.sin: np.sin,
-    sp.cos: np.cos,
-    sp.tan: np.tan,
-    sp.asin: np.arcsin,
-    sp.acos: np.arccos,
-    sp.atan: np.arctan,
-    sp.atan2: np.arctan2,
-    sp.sinh: np.sinh,
-    sp.cosh: np.cosh,
-    sp.tanh: np.tanh,
-    sp.asinh: np.arcsinh,
-    sp.acosh: np.arccosh,
-    sp.atanh: np.arctanh,
-    sp.exp: np.exp,
-    sp.log: np.log,
-    sp.Abs: np.abs,
-    sp.sign: np.sign,
+_NUMPY: Mapping[str, Callable[..., Array]] = {
+    "sin": np.sin,
+    "cos": np.cos,
+    "tan": np.tan,
+    "asin": np.arcsin,
+    "acos": np.arccos,
+    "atan": np.arctan,
+    "atan2": np.arctan2,
+    "sinh": np.sinh,
+    "cosh": np.cosh,
+    "tanh": np.tanh,
+    "asinh": np.arcsinh,
+    "acosh": np.arccosh,
+    "atanh": np.arctanh,
+    "exp": np.exp,
+    "log": np.log,
+    "Abs": np.abs,
+    "sign": np.sign,
 }
+
+#: The engine's function classes and their NumPy counterparts, per engine: a node is
+#: looked up by its class (a user's function named ``sin`` is no sine).
+_FUNCTIONS: dict[str, dict[type, Callable[..., Array]]] = {}
+
+
+def _functions() -> dict[type, Callable[..., Array]]:
+    """The engine's function classes and their NumPy counterparts."""
+    table = _FUNCTIONS.get(sx.ENGINE)
+    if table is None:
+        # SymEngine's exp is a function that builds a power, no class: see _operation.
+        table = {
+            sx.FUNCTIONS[name]: function
+            for name, function in _NUMPY.items()
+            if isinstance(sx.FUNCTIONS[name], type)
+        }
+        _FUNCTIONS[sx.ENGINE] = table
+    return table
 
 
 class Evaluator:
@@ -47,7 +66,7 @@ class Evaluator:
 
     Parameters
     ----------
-    values : mapping of sympy.Symbol to array or float
+    values : mapping of symbol to array or float
         Values of the free symbols (arrays of one shape, or scalars).
 
     Notes
@@ -58,11 +77,11 @@ class Evaluator:
     sample means.
     """
 
-    def __init__(self, values: Mapping[sp.Symbol, Array]) -> None:
-        self._memo: dict[sp.Basic, Array] = dict(values)
-        self._definitions: dict[sp.Basic, sp.Expr] = {}
+    def __init__(self, values: Mapping[sx.Expr, Array]) -> None:
+        self._memo: dict[sx.Expr, Array] = dict(values)
+        self._definitions: dict[sx.Expr, sx.Expr] = {}
 
-    def define(self, symbol: sp.Symbol, expr: sp.Expr) -> None:
+    def define(self, symbol: sx.Expr, expr: sx.Expr) -> None:
         """Let ``symbol`` stand for ``expr`` (an assignment of a straight-line program).
 
         Evaluated on first use only: a program's assignments that the requested
@@ -70,7 +89,7 @@ class Evaluator:
         """
         self._definitions[symbol] = expr
 
-    def __call__(self, expr: sp.Basic) -> Array:
+    def __call__(self, expr: sx.Expr) -> Array:
         """The value of ``expr`` at every point."""
         memo = self._memo
         if expr in memo:
@@ -84,7 +103,7 @@ class Evaluator:
         return memo[expr]
 
     @staticmethod
-    def _apply(node: sp.Basic, args: list[Array]) -> Array:
+    def _apply(node: sx.Expr, args: list[Array]) -> Array:
         if node.is_Symbol:
             raise ValueError(f"no value for the symbol {node}")
         if node.is_Atom:  # a number, pi, E, I, oo or zoo
@@ -93,8 +112,8 @@ class Evaluator:
 
 
 def _post_order(
-    expr: sp.Basic, known: Container[sp.Basic], definitions: Mapping[sp.Basic, sp.Expr]
-) -> Iterator[tuple[sp.Basic, sp.Expr | None]]:
+    expr: sx.Expr, known: Container[sx.Expr], definitions: Mapping[sx.Expr, sx.Expr]
+) -> Iterator[tuple[sx.Expr, sx.Expr | None]]:
     """The nodes of ``expr`` not ``known``, each after its arguments, with its definition.
 
     A symbol that ``definitions`` defines comes after its definition, with it; any other
@@ -102,7 +121,7 @@ def _post_order(
     stack: a long sum, or a long chain of program assignments, nests deeper than
     Python's recursion limit.
     """
-    stack: list[tuple[sp.Basic, bool]] = [(expr, False)]
+    stack: list[tuple[sx.Expr, bool]] = [(expr, False)]
     while stack:
         node, ready = stack.pop()
         if node in known:
@@ -116,15 +135,22 @@ def _post_order(
         stack.extend((child, False) for child in children if child not in known)
 
 
-def _operation(node: sp.Basic) -> Callable[..., Array]:
+def _operation(node: sx.Expr) -> Callable[..., Array]:
     """The NumPy operation of an expression node that is not an atom, on its args' values."""
     if node.is_Add:
         return _sum
     if node.is_Mul:
         return _product
     if node.is_Pow:
-        return _square_root if node.exp == sp.Rational(1, 2) else _power
-    function = _FUNCTIONS.get(type(node)) or _FUNCTIONS.get(node.func)
+        base, exponent = node.args
+        if exponent == sx.Rational(1, 2):
+            return _square_root
+        # SymEngine's exp(x) is the power E**x: NumPy's exp, as for SymPy's exp.
+        return _exponential if sx.SYMENGINE and base == sx.E else _power
+    functions = _functions()
+    function = functions.get(type(node))
+    if function is None and not sx.SYMENGINE:
+        function = functions.get(node.func)
     if function is None:
         raise ValueError(f"cannot evaluate {type(node).__name__} numerically")
     return function
@@ -140,6 +166,10 @@ def _product(*args: Array) -> Array:
 
 def _power(base: Array, exponent: Array) -> Array:
     return np.power(base, exponent)
+
+
+def _exponential(_base: Array, exponent: Array) -> Array:
+    return np.exp(exponent)
 
 
 def _square_root(base: Array, _exponent: Array) -> Array:
@@ -159,25 +189,25 @@ class Tape:
 
     Parameters
     ----------
-    inputs : sequence of sympy.Symbol
+    inputs : sequence of symbol
         The symbols whose values each call passes, in this order.
-    outputs : sequence of sympy.Basic
+    outputs : sequence of expression
         The expressions each call returns.
-    definitions : mapping of sympy.Symbol to sympy.Expr
+    definitions : mapping of symbol to expression
         Symbols that stand for an expression (a program's assignments); only those the
         outputs need are compiled.
-    constants : mapping of sympy.Symbol to array or float
+    constants : mapping of symbol to array or float
         Values fixed for every call (parameters at their defaults).
     """
 
     def __init__(
         self,
-        inputs: Sequence[sp.Symbol],
-        outputs: Sequence[sp.Basic],
-        definitions: Mapping[sp.Symbol, sp.Expr],
-        constants: Mapping[sp.Symbol, Array],
+        inputs: Sequence[sx.Expr],
+        outputs: Sequence[sx.Expr],
+        definitions: Mapping[sx.Expr, sx.Expr],
+        constants: Mapping[sx.Expr, Array],
     ) -> None:
-        slot: dict[sp.Basic, int] = {sym: i for i, sym in enumerate(inputs)}
+        slot: dict[sx.Expr, int] = {sym: i for i, sym in enumerate(inputs)}
         values: list[Array] = [None] * len(inputs)
         operations: list[tuple[Callable[..., Array], tuple[int, ...], int]] = []
         for sym, value in constants.items():
@@ -185,7 +215,7 @@ class Tape:
                 slot[sym] = len(values)
                 values.append(value)
 
-        def place(expr: sp.Basic) -> int:
+        def place(expr: sx.Expr) -> int:
             for node, defined in _post_order(expr, slot, definitions):
                 if defined is not None:
                     slot[node] = slot[defined]
@@ -238,14 +268,25 @@ class Tape:
 
 #: Values of the numbers met so far. An evaluator's memo lives for one batch of points;
 #: the numbers recur across batches (a Newton search builds hundreds of evaluators), and
-#: sympy's ``complex()`` goes through evalf each time.
-_CONSTANTS: dict[sp.Basic, complex | float] = {}
+#: ``complex()`` goes through SymPy's evalf each time.
+_CONSTANTS: dict[sx.Expr, complex | float] = {}
 
 
-def _constant(node: sp.Basic) -> complex | float:
+#: SymEngine's numbers without a ``complex()``, by class, at SymPy's ``complex()`` of them.
+_SPECIAL: Mapping[str, complex] = {
+    "Infinity": complex(np.inf, 0.0),
+    "NegativeInfinity": complex(-np.inf, 0.0),
+    "ComplexInfinity": complex(np.nan, np.nan),
+    "NaN": complex(np.nan, np.nan),
+}
+
+
+def _constant(node: sx.Expr) -> complex | float:
     value = _CONSTANTS.get(node)
     if value is None:
-        number = complex(node)
+        special = _SPECIAL.get(type(node).__name__) if sx.SYMENGINE else None
+        # SymEngine's infinities and NaN have no complex(): SymPy's values of them.
+        number = complex(node) if special is None else special
         value = number.real if number.imag == 0 else number
         _CONSTANTS[node] = value
     return value
