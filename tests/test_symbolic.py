@@ -116,9 +116,14 @@ def test_piecewise_pairs_and_function_names_agree() -> None:
             assert sx.sort_key(x) == sx.sort_key(sx.symbol("x"))
 
 
-def test_the_entry_point_knows_the_engines() -> None:
+def test_the_command_line_offers_the_engines_without_loading_one() -> None:
     assert entry_module.ENGINES == engine.ENGINES
-    assert entry_module.VARIABLE == engine.VARIABLE
+    done = subprocess.run(
+        [sys.executable, "-c", "import sys, tvopt_codegen.cli; print(sorted("
+         "m for m in ('sympy', 'symengine', 'tvopt_codegen.symbolic') if m in sys.modules))"],
+        capture_output=True, text=True, check=True, timeout=120,
+    )  # fmt: skip
+    assert done.stdout.strip() == "[]"
 
 
 @pytest.mark.parametrize(

@@ -14,11 +14,8 @@ import sys
 import threading
 
 from tvopt_codegen.errors import EXIT_INTERRUPTED, EXIT_TERMINATED, TvoptError, one_line
-
-#: The engines and their environment variable (tvopt_codegen.symbolic.engine's, which
-#: cannot be imported before the variable is set: importing it binds the engine).
-ENGINES = ("sympy", "symengine")
-VARIABLE = "TVOPT_CODEGEN_ENGINE"
+from tvopt_codegen.limits import ENGINE_VARIABLE as VARIABLE
+from tvopt_codegen.limits import ENGINES
 
 
 def _terminated_while_loading(_signum: int, _frame: object) -> None:

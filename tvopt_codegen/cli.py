@@ -46,7 +46,7 @@ from tvopt_codegen.errors import (
     exit_codes_text,
     one_line,
 )
-from tvopt_codegen.symbolic.engine import ENGINES, VARIABLE
+from tvopt_codegen.limits import ENGINE_VARIABLE, ENGINES
 
 #: The commands, in ``--help``'s order: a new command is a module and a line here.
 COMMANDS: dict[str, Command] = {
@@ -81,7 +81,7 @@ def _parser() -> argparse.ArgumentParser:
         "--engine",
         choices=ENGINES,
         default=None,
-        help=f"the symbolic engine that derives the law (default: ${VARIABLE}, else "
+        help=f"the symbolic engine that derives the law (default: ${ENGINE_VARIABLE}, else "
         f"{ENGINES[0]}); SymPy is the reference, SymEngine the fast one",
     )
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

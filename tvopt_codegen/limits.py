@@ -12,6 +12,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+#: The symbolic engines (``tvopt_codegen.symbolic``), the default first, and the
+#: environment variable that names one: here, below the API, so that the command line
+#: can offer them without importing it (importing it binds an engine).
+ENGINES = ("sympy", "symengine")
+ENGINE_VARIABLE = "TVOPT_CODEGEN_ENGINE"
+
 #: Longest simulation horizon: a run is integrated and sampled step by step, so a
 #: horizon of 1e300 would never end.
 MAX_T_FINAL = 1e6

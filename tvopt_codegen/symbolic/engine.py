@@ -12,12 +12,10 @@ from __future__ import annotations
 import os
 
 from tvopt_codegen.errors import SpecError
+from tvopt_codegen.limits import ENGINE_VARIABLE as VARIABLE
+from tvopt_codegen.limits import ENGINES
 
-#: The engines, the default first.
-ENGINES = ("sympy", "symengine")
-
-#: The environment variable naming the engine.
-VARIABLE = "TVOPT_CODEGEN_ENGINE"
+__all__ = ["ENGINES", "VARIABLE", "EngineError", "checked", "current"]
 
 
 class EngineError(SpecError):
