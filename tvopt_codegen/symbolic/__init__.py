@@ -287,6 +287,31 @@ def _berkowitz(rows: list[list[Any]]) -> list[Any]:
     ]
 
 
+def cse(exprs: Sequence[Any], names: Iterator[Any]) -> tuple[list[tuple[Any, Any]], list[Any]]:
+    """Common subexpressions of ``exprs``, sums' and products' common parts included.
+
+    Returns ``(replacements, reduced)`` as ``sympy.cse`` (``order="canonical"``): each
+    replacement ``(name, value)`` uses only earlier names, the names drawn from
+    ``names`` in order, skipping symbols ``exprs`` already hold. SymEngine's (in C++)
+    names its own and is renamed here; the two find comparable, not identical, sets.
+    """
+    if not SYMENGINE:
+        replacements, reduced = _m.cse(list(exprs), symbols=names, order="canonical")
+        return list(replacements), list(reduced)
+    replacements, reduced = _m.cse(list(exprs))
+    if not replacements:
+        return [], list(reduced)
+    taken = set().union(*(expr.free_symbols for expr in exprs))
+    rename: dict[Any, Any] = {}
+    for sym, _ in replacements:
+        name = next(names)
+        while name in taken:
+            name = next(names)
+        rename[sym] = name
+    renamed = [(rename[sym], value.xreplace(rename)) for sym, value in replacements]
+    return renamed, [expr.xreplace(rename) for expr in reduced]
+
+
 def text(expr: Any) -> str:
     """``expr`` as one line of text in the spec language's spelling (``x**2``, ``sin(x)``)."""
     if SYMENGINE:
@@ -378,6 +403,7 @@ __all__ = [
     "SYMENGINE",
     "ZERO",
     "count_ops",
+    "cse",
     "det",
     "free_symbols",
     "function_name",
