@@ -10,8 +10,8 @@ import dataclasses
 from collections.abc import Iterator
 
 import numpy as np
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation.convexity import _evaluator_at
 from tvopt_codegen.derivation.linearization import _singular_set, _States, simplified_det
 from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter, tree_size
@@ -20,9 +20,9 @@ from tvopt_codegen.derivation.objective import _Objective, _programs_of, objecti
 from tvopt_codegen.errors import AssumptionError
 
 
-def _equality_jacobian(model: Model) -> list[list[sp.Expr]]:
+def _equality_jacobian(model: Model) -> list[list[sx.Expr]]:
     """``J_a``: the equalities' derivatives in the outputs, (q, m)."""
-    return [[sp.diff(c.g, y) for y in model.y] for c in model.equalities]
+    return [[sx.diff(c.g, y) for y in model.y] for c in model.equalities]
 
 
 def _equality_checks(model: Model, y0: np.ndarray) -> tuple[str, ...]:
@@ -48,7 +48,7 @@ def _equality_checks(model: Model, y0: np.ndarray) -> tuple[str, ...]:
     curved = [
         c.name
         for c in model.equalities
-        if any(sp.diff(c.g, yi, yj) != 0 for yi in model.y for yj in model.y)
+        if any(sx.diff(c.g, yi, yj) != 0 for yi in model.y for yj in model.y)
     ]
     if curved:
         if not settings.allow_nonconvex:
@@ -72,7 +72,7 @@ def _equality_checks(model: Model, y0: np.ndarray) -> tuple[str, ...]:
         for j, entry in enumerate(row):
             if entry != 0:
                 matrices[:, i, j] = np.broadcast_to(np.real(evaluate(entry)), (points,))
-    constant = all(sp.sympify(e).is_Number for row in jacobian_a for e in row)
+    constant = all(sx.sympify(e).is_Number for row in jacobian_a for e in row)
     for index in range(points):
         singular = np.linalg.svd(matrices[index], compute_uv=False)
         if not singular[-1] > 1e-9 * max(1.0, float(singular[0])):
@@ -98,16 +98,16 @@ def _dependent_set(model: Model) -> tuple[str, ...]:
         return ()
     if q > 4:
         return (f"not computed symbolically (q = {q} > 4)",)
-    jacobian_a = sp.Matrix(_equality_jacobian(model))
+    jacobian_a = sx.Matrix(_equality_jacobian(model))
     gram = jacobian_a * jacobian_a.T
-    det = gram.det(method="berkowitz")
+    det = sx.det(gram)
     if tree_size(det, _DET_SIMPLIFY_NODES) > _DET_SIMPLIFY_NODES:
         return (f"not simplified symbolically (more than {_DET_SIMPLIFY_NODES} expression nodes)",)
     return _singular_set(simplified_det(det))
 
 
 def _lagrangian(
-    model: Model, objective: _Objective, names: Iterator[sp.Symbol], meter: _Meter
+    model: Model, objective: _Objective, names: Iterator[sx.Expr], meter: _Meter
 ) -> _Objective:
     """With equalities, the KKT map ``F = grad L`` over (y, nu) and its Hessian ``K``.
 
@@ -127,7 +127,7 @@ def _lagrangian(
     m = len(variables)
     value = dict(entries)
     entries = tuple(
-        sorted(value.items() | {((i, i), sp.Integer(0)) for i in range(m) if (i, i) not in value})
+        sorted(value.items() | {((i, i), sx.Integer(0)) for i in range(m) if (i, i) not in value})
     )
     return _Objective(
         gradient,

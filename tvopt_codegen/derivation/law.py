@@ -26,15 +26,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import sympy as sp
-
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation.rejection import Rejection, observer_field
 from tvopt_codegen.maths.lie import Extension, connected_groups, control_affine, nonzero_entries
 
 
-def symbols(prefix: str, count: int) -> tuple[sp.Symbol, ...]:
+def symbols(prefix: str, count: int) -> tuple[sx.Expr, ...]:
     """``_<prefix>0, _<prefix>1, ...``: real symbols no user name can take."""
-    return tuple(sp.Symbol(f"_{prefix}{i}", real=True) for i in range(count))
+    return tuple(sx.symbol(f"_{prefix}{i}") for i in range(count))
 
 
 @dataclass(frozen=True)
@@ -43,32 +42,32 @@ class Law:
 
     Attributes
     ----------
-    a, w, z : tuple of sympy.Symbol
+    a, w, z : tuple of symbol
         The Hurwitz coefficients ``a_j``, the extended plant's input ``w`` and
         ``z = y_imp^(k)`` (then ``nu^(k)`` with equalities), as they appear in the
         expressions below.
-    hessian : tuple of sympy.Expr
+    hessian : tuple of expression
         ``grad_yy f0``, (m, m) row-major, over the derivation's programs; with
         equalities the KKT matrix ``[[grad_yy L, J_a^T], [J_a, 0]]``, (m + q, m + q).
     hessian_pattern : tuple of (int, int)
         The entries ``(i, j), i >= j`` of the Hessian's lower triangle that the
         generated code stores: the structurally nonzero ones and the whole diagonal.
-    jet_rhs : tuple of sympy.Expr
+    jet_rhs : tuple of expression
         ``sum_j a_j grad^(j) f0 - rest``, so that ``Hess z = jet_rhs``.
-    y_imp : tuple of sympy.Expr or None
+    y_imp : tuple of expression or None
         ``Hess^-1 jet_rhs`` with the exact inverse of a constant Hessian (a quadratic
         f0); None when the Hessian varies and ``z`` is solved for at run time.
-    v : tuple of sympy.Expr
+    v : tuple of expression
         The new input per output: ``z_i``, or the first padding state of output i.
     r_blocks : tuple of tuple of int
         R's diagonal blocks (output indices, in order): a team of agents has one each.
-    r_entries : tuple of sympy.Expr
+    r_entries : tuple of expression
         R's entries block by block, each block row by row: the zeros between blocks
         are never stored.
-    closed_loop : tuple of sympy.Expr
+    closed_loop : tuple of expression
         The closed-loop vector field: ``f + G w`` of the extended plant, then the
         padding chains (each state's derivative is the next, the last one's ``z_i``).
-    plant_input : tuple of sympy.Expr
+    plant_input : tuple of expression
         The plant input ``u``: a prolonged input is a state of the extension, the
         others are entries of ``w``.
     chains : tuple of (int, int)
@@ -79,25 +78,25 @@ class Law:
         constant over a sampling interval, the chain moves by a finite Taylor polynomial.
         The extended-state observer's states are no chain: the sampled controller
         moves them by the observer's own discrete step.
-    lumped : tuple of sympy.Expr
+    lumped : tuple of expression
         Per output, the lumped disturbance the law cancels, ``R w = v - p - lumped``:
         the extended-state observer's ``d_hat`` state, else 0.
     """
 
-    a: tuple[sp.Symbol, ...]
-    w: tuple[sp.Symbol, ...]
-    z: tuple[sp.Symbol, ...]
-    hessian: tuple[sp.Expr, ...]
+    a: tuple[sx.Expr, ...]
+    w: tuple[sx.Expr, ...]
+    z: tuple[sx.Expr, ...]
+    hessian: tuple[sx.Expr, ...]
     hessian_pattern: tuple[tuple[int, int], ...]
-    jet_rhs: tuple[sp.Expr, ...]
-    y_imp: tuple[sp.Expr, ...] | None
-    v: tuple[sp.Expr, ...]
+    jet_rhs: tuple[sx.Expr, ...]
+    y_imp: tuple[sx.Expr, ...] | None
+    v: tuple[sx.Expr, ...]
     r_blocks: tuple[tuple[int, ...], ...]
-    r_entries: tuple[sp.Expr, ...]
-    closed_loop: tuple[sp.Expr, ...]
-    plant_input: tuple[sp.Expr, ...]
+    r_entries: tuple[sx.Expr, ...]
+    closed_loop: tuple[sx.Expr, ...]
+    plant_input: tuple[sx.Expr, ...]
     chains: tuple[tuple[int, int], ...]
-    lumped: tuple[sp.Expr, ...] = ()
+    lumped: tuple[sx.Expr, ...] = ()
 
     @property
     def constant_hessian(self) -> bool:
@@ -105,7 +104,7 @@ class Law:
         return self.y_imp is not None
 
 
-def diagonal_blocks(matrix: sp.MatrixBase) -> tuple[tuple[int, ...], ...]:
+def diagonal_blocks(matrix: sx.Expr) -> tuple[tuple[int, ...], ...]:
     """The finest symmetric block-diagonal partition of a square matrix's pattern.
 
     Rows ``i`` and ``j`` share a block when ``matrix[i, j]`` or ``matrix[j, i]`` is not
@@ -117,14 +116,14 @@ def diagonal_blocks(matrix: sp.MatrixBase) -> tuple[tuple[int, ...], ...]:
 
 
 def symmetric_dense(
-    entries: Sequence[tuple[tuple[int, int], sp.Expr]], n: int
-) -> tuple[sp.Expr, ...]:
+    entries: Sequence[tuple[tuple[int, int], sx.Expr]], n: int
+) -> tuple[sx.Expr, ...]:
     """A symmetric (n, n) matrix, row-major, from its lower entries (zero elsewhere).
 
     Zeros first, then the entries and their mirror images: a team's Hessian is n^2
     entries, almost all zero, and a lookup per entry was a fifth of a second at n = 512.
     """
-    dense: list[sp.Expr] = [sp.S.Zero] * (n * n)
+    dense: list[sx.Expr] = [sx.ZERO] * (n * n)
     for (i, j), entry in entries:
         dense[i * n + j] = dense[j * n + i] = entry
     return tuple(dense)
@@ -154,35 +153,35 @@ def _chains(
 
 def control_law(
     *,
-    hessian_entries: Sequence[tuple[tuple[int, int], sp.Expr]],
-    grad_jet: Sequence[Sequence[sp.Expr]],
-    rest: Sequence[sp.Expr],
-    R: sp.MatrixBase,
+    hessian_entries: Sequence[tuple[tuple[int, int], sx.Expr]],
+    grad_jet: Sequence[Sequence[sx.Expr]],
+    rest: Sequence[sx.Expr],
+    R: sx.Expr,
     extension: Extension,
-    plant_inputs: Sequence[sp.Symbol],
+    plant_inputs: Sequence[sx.Expr],
     padding: Sequence[Sequence[str]],
-    states: Sequence[sp.Symbol],
+    states: Sequence[sx.Expr],
     state_names: Sequence[str],
     multipliers: Sequence[Sequence[str]] = (),
     integral: Sequence[str] = (),
     eso: Rejection | None = None,
-    outputs: Sequence[sp.Expr] = (),
+    outputs: Sequence[sx.Expr] = (),
 ) -> Law:
     """Write the law down from the derived quantities.
 
     Parameters
     ----------
-    hessian_entries : sequence of ((int, int), sympy.Expr)
+    hessian_entries : sequence of ((int, int), expression)
         The nonzero entries ``(i, j), i >= j`` of the Hessian's lower triangle.
-    grad_jet : sequence of sequence of sympy.Expr
+    grad_jet : sequence of sequence of expression
         ``grad^(j) f0`` for ``j = 0 .. k-1``.
-    rest : sequence of sympy.Expr
+    rest : sequence of expression
         ``grad^(k) f0`` with ``y^(k) = 0``.
-    R : sympy.MatrixBase
+    R : matrix
         The decoupling matrix (m, m).
     extension : Extension
         The extended plant.
-    plant_inputs : sequence of sympy.Symbol
+    plant_inputs : sequence of symbol
         The plant's inputs ``u``.
     padding : sequence of sequence of str
         The padding states of each output, in chain order.
@@ -199,7 +198,7 @@ def control_law(
     eso : Rejection, optional
         The extended-state observer: its states' rows join the field (after the
         multipliers', before the integrals') and its ``d_hat`` is cancelled.
-    outputs : sequence of sympy.Expr, optional
+    outputs : sequence of expression, optional
         With ``eso``, ``h(x)``: what the observer measures.
 
     Returns
@@ -219,7 +218,7 @@ def control_law(
     if not any(i == j for i, j in pattern):
         pattern = sorted({*pattern, *((i, i) for i in range(n))})
     jet_rhs = tuple(
-        sum((a[j + shift] * grad_jet[j][i] for j in range(k)), sp.Integer(0)) - rest[i]
+        sum((a[j + shift] * grad_jet[j][i] for j in range(k)), sx.Integer(0)) - rest[i]
         for i in range(n)
     )
     if integral:
@@ -227,12 +226,12 @@ def control_law(
             a[0] * state_of[name] + entry for name, entry in zip(integral, jet_rhs, strict=True)
         )
     y_imp = None
-    if all(sp.sympify(e).is_Number for e in value.values()):
+    if all(sx.sympify(e).is_Number for e in value.values()):
         # A constant Hessian (quadratic f0) is inverted once, exactly, at generation time:
         # a constant, not a symbolic inverse of a function, and no run-time Cholesky.
         # (The derivation has checked it is nonsingular.)
-        inverse = sp.Matrix(n, n, hessian).inv()
-        y_imp = tuple(inverse * sp.Matrix(jet_rhs))
+        inverse = sx.Matrix(n, n, list(hessian)).inv()
+        y_imp = tuple(inverse * sx.Matrix(list(jet_rhs)))
     v = tuple(state_of[padding[i][0]] if padding[i] else z[i] for i in range(m))
     r_blocks = diagonal_blocks(R)
     r_entries = tuple(R[i, j] for block in r_blocks for i in block for j in block)
@@ -244,7 +243,7 @@ def control_law(
     for index, chain in enumerate(multipliers):
         for j in range(len(chain)):
             field.append(state_of[chain[j + 1]] if j + 1 < len(chain) else z[m + index])
-    lumped: tuple[sp.Expr, ...] = tuple(sp.Integer(0) for _ in range(m))
+    lumped: tuple[sx.Expr, ...] = tuple(sx.Integer(0) for _ in range(m))
     if eso is not None:
         estimates = [[state_of[name] for name in chain] for chain in eso.states]
         field += observer_field(eso, estimates, outputs, v)

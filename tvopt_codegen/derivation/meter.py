@@ -8,8 +8,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 
-import sympy as sp
-
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.errors import BudgetError
 from tvopt_codegen.limits import Budget
 
@@ -33,7 +32,7 @@ class _Expired(BaseException):
 def time_limited(seconds: float) -> Iterator[None]:
     """Run the block for at most ``seconds``, then raise :class:`TimeLimitError`.
 
-    A single sympy call (``simplify``) can run for minutes between two budget checks;
+    A single SymPy call at the border (``simplify``) can run for minutes between two budget checks;
     the real-time timer's signal interrupts it. Only in the main thread of a POSIX
     process, where Python delivers signals; elsewhere the block runs unlimited. A timer
     already armed (the command line's budget) is kept: when it would fire first, it is
@@ -71,7 +70,7 @@ def time_limited(seconds: float) -> Iterator[None]:
             signal.setitimer(signal.ITIMER_REAL, max(left, 1e-6))
 
 
-def tree_size(expr: sp.Expr, limit: int) -> int:
+def tree_size(expr: sx.Expr, limit: int) -> int:
     """Nodes of ``expr``'s tree, counting at most ``limit + 1`` (so the count is cheap).
 
     A plain stack: sympy's ``preorder_traversal`` costs a generator step per node, and
@@ -138,13 +137,14 @@ class _Meter:
                 f"the derivation took longer than {self.budget.seconds:g} s",
             ) from None
 
-    def __call__(self, expr: sp.Expr) -> None:
+    def __call__(self, expr: sx.Expr) -> None:
         self.expressions += 1
-        if isinstance(expr, sp.Basic) and not expr.args:
+        if isinstance(expr, sx.Basic) and not expr.args:
             self.nodes += 1  # an atom: most entries of a team's matrices are zeros
             return
         self.check_time()
-        size = tree_size(sp.sympify(expr), self.budget.size)
+        # Already an expression, but for a Python number from a caller's arithmetic.
+        size = tree_size(expr if isinstance(expr, sx.Basic) else sx.sympify(expr), self.budget.size)
         self.nodes += size
         if size > self.budget.size:
             raise BudgetError(
@@ -154,7 +154,7 @@ class _Meter:
                 "simplify the model or objective, or raise --max-size",
             )
 
-    def matrix(self, matrix: sp.MatrixBase) -> None:
+    def matrix(self, matrix: sx.Expr) -> None:
         for entry in matrix:
             self(entry)
 

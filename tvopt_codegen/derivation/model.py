@@ -1,33 +1,36 @@
-"""Stage 2: the control-affine plant, outputs and objective as sympy objects.
+"""Stage 2: the control-affine plant, outputs and objective as expressions of the engine.
 
 ``x' = f(x) + G(x) u`` is recovered from the declared right-hand sides by
 differentiation: ``G[:, j] = d rhs / d u_j`` and ``f = rhs(u = 0)``, after checking that
 no right-hand side is more than affine in the inputs.
+
+The spec's expressions are taken onto the process's engine here, once
+(:func:`~tvopt_codegen.symbolic.border.from_sympy`, which passes the engine's own through):
+every stage after this one reads the model's.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.contract import PIVOT_TOLERANCE
 from tvopt_codegen.errors import AssumptionError, SpecError, clip
 from tvopt_codegen.maths.jet import partial
 from tvopt_codegen.maths.lie import Sampler, from_entries
 from tvopt_codegen.maths.numeric import Evaluator
 from tvopt_codegen.spec import (
-    TIME,
     Constraint,
     Estimator,
     Limit,
     Mechanics,
     Robust,
     Spec,
-    symbol,
 )
 from tvopt_codegen.spec.constraints import barrier_objective, initial_slack, schedule
 from tvopt_codegen.spec.implicit import (
@@ -36,6 +39,10 @@ from tvopt_codegen.spec.implicit import (
     problem_at_samples,
     solved_at,
 )
+from tvopt_codegen.symbolic.border import from_sympy
+
+#: The name of time in the spec's expressions (the model's ``t``).
+_TIME = "t"
 
 
 @dataclass(frozen=True)
@@ -95,64 +102,68 @@ class Model:
     settings : Settings
         The spec's choices for the law (error dynamics, horizon, initial state,
         extension, ``[robust]``, ``[limits]``): what the later stages read of the spec.
-    x, u, y : tuple of sympy.Symbol
+    x, u, y : tuple of Symbol
         Plant states, plant inputs and output symbols, in declaration order.
-    f : sympy.ImmutableMatrix
+    f : ImmutableMatrix
         Drift vector field, shape (n, 1).
-    G : sympy.ImmutableMatrix
+    G : ImmutableMatrix
         Input matrix ``[g_1, ..., g_m]``, shape (n, m).
-    h : sympy.ImmutableMatrix
+    h : ImmutableMatrix
         Output map, shape (m, 1).
-    params : tuple of sympy.Symbol
+    params : tuple of Symbol
         Parameters, in declaration order.
     defaults : tuple of float
         Default value of each parameter.
-    signals : tuple of (sympy.Symbol, sympy.Expr)
+    signals : tuple of (Symbol, Expr)
         Each signal symbol and its expression in ``t`` and the parameters.
-    f0 : sympy.Expr
+    f0 : Expr
         The objective in ``y``, the signal symbols, the parameters and ``t``.
-    t : sympy.Symbol
+    t : Symbol
         Time.
-    references : tuple of sympy.Symbol
+    references : tuple of Symbol
         References measured at run time: in signals and ``f0`` like signals, with their
         derivatives supplied by the caller.
-    nominal : tuple of (sympy.Symbol, sympy.Expr)
+    nominal : tuple of (Symbol, Expr)
         The closed form the spec gives for some references, in ``t`` and the parameters.
-    objective : sympy.Expr or None
+    objective : Expr or None
         The spec's ``f0`` when ``[constraints]`` made :attr:`f0` the barrier objective
         ``B`` (:mod:`tvopt_codegen.spec.constraints`); None otherwise.
     constraints : tuple of Constraint
         The inequalities, ``g_i(y, t) <= 0``.
-    mu, slack : sympy.Expr
+    mu, slack : Expr
         The barrier's weight ``mu(t)`` and slack ``s(t)`` (0 without constraints).
     equalities : tuple of Constraint
         The equalities, ``a_j(y, t) = 0``.
-    multipliers : tuple of sympy.Symbol
+    multipliers : tuple of Symbol
         Their Lagrange multipliers ``nu_<name>``, one per equality.
     mechanics : Mechanics or None
         The mass-matrix form the plant was declared in (None: ``[system.dynamics]``).
+
+    Expressions and symbols are the engine's (:mod:`tvopt_codegen.symbolic`); the
+    constraints' sides and the mechanics' too.
     """
 
     settings: Settings
-    x: tuple[sp.Symbol, ...]
-    u: tuple[sp.Symbol, ...]
-    y: tuple[sp.Symbol, ...]
-    f: sp.ImmutableMatrix
-    G: sp.ImmutableMatrix
-    h: sp.ImmutableMatrix
-    params: tuple[sp.Symbol, ...]
+    x: tuple[sx.Expr, ...]
+    u: tuple[sx.Expr, ...]
+    y: tuple[sx.Expr, ...]
+    f: sx.Expr
+    G: sx.Expr
+    h: sx.Expr
+    params: tuple[sx.Expr, ...]
     defaults: tuple[float, ...]
-    signals: tuple[tuple[sp.Symbol, sp.Expr], ...]
-    f0: sp.Expr
-    t: sp.Symbol
-    references: tuple[sp.Symbol, ...] = ()
-    nominal: tuple[tuple[sp.Symbol, sp.Expr], ...] = ()
-    objective: sp.Expr | None = None
+    signals: tuple[tuple[sx.Expr, sx.Expr], ...]
+    f0: sx.Expr
+    t: sx.Expr
+    references: tuple[sx.Expr, ...] = ()
+    nominal: tuple[tuple[sx.Expr, sx.Expr], ...] = ()
+    objective: sx.Expr | None = None
     constraints: tuple[Constraint, ...] = ()
-    mu: sp.Expr = sp.Integer(0)
-    slack: sp.Expr = sp.Integer(0)
+    # The engine's zero when built, not at import: the engine is chosen later.
+    mu: sx.Expr = field(default_factory=lambda: sx.Integer(0))
+    slack: sx.Expr = field(default_factory=lambda: sx.Integer(0))
     equalities: tuple[Constraint, ...] = ()
-    multipliers: tuple[sp.Symbol, ...] = ()
+    multipliers: tuple[sx.Expr, ...] = ()
     mechanics: Mechanics | None = None
 
     @property
@@ -190,11 +201,11 @@ class Model:
         )
 
     @property
-    def opaque(self) -> frozenset[sp.Symbol]:
+    def opaque(self) -> frozenset[sx.Expr]:
         """Symbols of ``f`` and ``G`` computed at run time (``M^-1 F``, ``M^-1 B``)."""
         return self.mechanics.opaque if self.mechanics is not None else frozenset()
 
-    def sampler(self, symbols: Sequence[sp.Symbol]) -> Sampler:
+    def sampler(self, symbols: Sequence[sx.Expr]) -> Sampler:
         """A :class:`~tvopt_codegen.maths.lie.Sampler` over ``symbols``, parameters at defaults.
 
         It also knows the run-time symbols' values, solved numerically at its points.
@@ -203,9 +214,7 @@ class Model:
         implicit = None
         if mechanics is not None:
 
-            def implicit(
-                values: Mapping[sp.Symbol, object], points: int
-            ) -> Mapping[sp.Symbol, object]:
+            def implicit(values: Mapping[sx.Expr, object], points: int) -> Mapping[sx.Expr, object]:
                 return implicit_values(mechanics, values, points)
 
         return Sampler(
@@ -213,9 +222,9 @@ class Model:
         )
 
     @property
-    def lagrangian(self) -> sp.Expr:
+    def lagrangian(self) -> sx.Expr:
         """``L = f0 + sum_j nu_j a_j``: :attr:`f0` itself without equalities."""
-        return self.f0 + sp.Add(
+        return self.f0 + sx.Add(
             *(nu * c.g for nu, c in zip(self.multipliers, self.equalities, strict=True))
         )
 
@@ -240,8 +249,9 @@ def build_model(spec: Spec) -> Model:
     AssumptionError
         When the numbers of inputs and outputs differ (the method needs a square plant).
     """
-    x = tuple(symbol(n) for n in spec.states)
-    u = tuple(symbol(n) for n in spec.inputs)
+    spec = _on_engine(spec)
+    x = tuple(sx.symbol(n) for n in spec.states)
+    u = tuple(sx.symbol(n) for n in spec.inputs)
     if len(spec.inputs) != len(spec.outputs):
         raise AssumptionError(
             spec.source,
@@ -258,24 +268,69 @@ def build_model(spec: Spec) -> Model:
         settings=_settings(spec),
         x=x,
         u=u,
-        y=tuple(symbol(n) for n in spec.outputs),
-        f=sp.ImmutableMatrix(f_rows),
+        y=tuple(sx.symbol(n) for n in spec.outputs),
+        f=sx.ImmutableMatrix(f_rows),
         G=from_entries(len(x), len(u), G_entries),
-        h=sp.ImmutableMatrix(spec.output_exprs),
-        params=tuple(symbol(n) for n, _ in spec.parameters),
+        h=sx.ImmutableMatrix(list(spec.output_exprs)),
+        params=tuple(sx.symbol(n) for n, _ in spec.parameters),
         defaults=tuple(v for _, v in spec.parameters),
-        signals=tuple((symbol(n), e) for n, e in spec.signals),
+        signals=tuple((sx.symbol(n), e) for n, e in spec.signals),
         f0=f0,
-        t=TIME,
-        references=tuple(symbol(n) for n in spec.references),
-        nominal=tuple((symbol(n), e) for n, e in spec.reference_nominal),
+        t=sx.symbol(_TIME),
+        references=tuple(sx.symbol(n) for n in spec.references),
+        nominal=tuple((sx.symbol(n), e) for n, e in spec.reference_nominal),
         objective=objective,
         constraints=spec.constraints,
-        mu=mu if mu is not None else sp.Integer(0),
-        slack=slack if slack is not None else sp.Integer(0),
+        mu=mu if mu is not None else sx.Integer(0),
+        slack=slack if slack is not None else sx.Integer(0),
         equalities=spec.equalities,
-        multipliers=tuple(sp.Symbol(f"nu_{c.name}", real=True) for c in spec.equalities),
+        multipliers=tuple(sx.symbol(f"nu_{c.name}") for c in spec.equalities),
         mechanics=spec.mechanics,
+    )
+
+
+def _on_engine(spec: Spec) -> Spec:
+    """``spec`` with its expressions of the process's engine: the spec's own, if they are.
+
+    The spec reader parses with SymPy until it reads into the engine itself: then every
+    expression is converted here, once, sharing one memo, so that a subexpression common
+    to the plant and the objective converts once (:func:`from_sympy` passes the engine's
+    own expressions through). On SymPy the spec is the model's as it is.
+    """
+    if not sx.SYMENGINE:
+        return spec
+    memo: dict[Any, Any] = {}
+
+    def engine(expr: Any) -> Any:
+        return from_sympy(expr, memo)
+
+    def rows(matrix: Sequence[Sequence[Any]]) -> tuple[tuple[Any, ...], ...]:
+        return tuple(tuple(engine(e) for e in row) for row in matrix)
+
+    def constraints(given: Sequence[Constraint]) -> tuple[Constraint, ...]:
+        return tuple(dataclasses.replace(c, lhs=engine(c.lhs), rhs=engine(c.rhs)) for c in given)
+
+    mechanics = spec.mechanics
+    if mechanics is not None:
+        mechanics = dataclasses.replace(
+            mechanics,
+            mass_matrix=rows(mechanics.mass_matrix),
+            forces=tuple(engine(e) for e in mechanics.forces),
+            input_matrix=rows(mechanics.input_matrix),
+            accelerations=tuple(engine(e) for e in mechanics.accelerations),
+            gains=rows(mechanics.gains),
+            definitions=tuple((engine(s), engine(e)) for s, e in mechanics.definitions),
+        )
+    return dataclasses.replace(
+        spec,
+        dynamics=tuple(engine(e) for e in spec.dynamics),
+        output_exprs=tuple(engine(e) for e in spec.output_exprs),
+        signals=tuple((n, engine(e)) for n, e in spec.signals),
+        objective=engine(spec.objective),
+        reference_nominal=tuple((n, engine(e)) for n, e in spec.reference_nominal),
+        constraints=constraints(spec.constraints),
+        equalities=constraints(spec.equalities),
+        mechanics=mechanics,
     )
 
 
@@ -298,7 +353,7 @@ def _settings(spec: Spec) -> Settings:
 
 
 def _plant_sampler(
-    spec: Spec, x: tuple[sp.Symbol, ...], u: tuple[sp.Symbol, ...]
+    spec: Spec, x: tuple[sx.Expr, ...], u: tuple[sx.Expr, ...]
 ) -> tuple[Sampler, list[np.ndarray]]:
     """The sampler that decides affinity, and where it leaves ``M`` and ``[F | B]``.
 
@@ -306,7 +361,7 @@ def _plant_sampler(
     ----------
     spec : Spec
         A validated spec.
-    x, u : tuple of sympy.Symbol
+    x, u : tuple of Symbol
         The plant's states and inputs, the sampler's free symbols.
 
     Returns
@@ -324,7 +379,7 @@ def _plant_sampler(
     # M, F and B at the sampler's points, kept for the checks a physics engine makes.
     sampled: list[np.ndarray] = []
 
-    def implicit(values: Mapping[sp.Symbol, object], points: int) -> Mapping[sp.Symbol, object]:
+    def implicit(values: Mapping[sx.Expr, object], points: int) -> Mapping[sx.Expr, object]:
         assert mechanics is not None
         solved, mass, rhs = solved_at(mechanics, values, points)
         sampled[:] = [mass, rhs]
@@ -334,7 +389,7 @@ def _plant_sampler(
         (*x, *u),
         dict(
             zip(
-                (symbol(n) for n, _ in spec.parameters),
+                (sx.symbol(n) for n, _ in spec.parameters),
                 (v for _, v in spec.parameters),
                 strict=True,
             )
@@ -345,24 +400,24 @@ def _plant_sampler(
 
 
 def _split_affine(
-    spec: Spec, u: tuple[sp.Symbol, ...], sampler: Sampler
-) -> tuple[list[sp.Expr], dict[tuple[int, int], sp.Expr]]:
+    spec: Spec, u: tuple[sx.Expr, ...], sampler: Sampler
+) -> tuple[list[sx.Expr], dict[tuple[int, int], sx.Expr]]:
     """``f`` and ``G`` of the declared right-hand sides, after checking their affinity.
 
     Parameters
     ----------
     spec : Spec
         A validated spec.
-    u : tuple of sympy.Symbol
+    u : tuple of Symbol
         The plant inputs.
     sampler : Sampler
         Decides whether a coefficient's derivative in an input is zero.
 
     Returns
     -------
-    f_rows : list of sympy.Expr
+    f_rows : list of Expr
         Each right-hand side with the inputs at 0, in the states' order.
-    G_entries : dict of (int, int) to sympy.Expr
+    G_entries : dict of (int, int) to Expr
         The nonzero entries of ``G``, by (state, input) position.
 
     Raises
@@ -370,7 +425,7 @@ def _split_affine(
     SpecError
         When a right-hand side is not affine in the inputs.
     """
-    G_entries: dict[tuple[int, int], sp.Expr] = {}
+    G_entries: dict[tuple[int, int], sx.Expr] = {}
     f_rows = []
     inputs = set(u)
     for i, (state, rhs) in enumerate(zip(spec.states, spec.dynamics, strict=True)):
@@ -395,13 +450,13 @@ def _split_affine(
                         f"not affine in the inputs: the coefficient of {spec.inputs[j]!r} "
                         f"depends on input {str(uk)!r}",
                     )
-        f_rows.append(rhs.xreplace(dict.fromkeys(u, sp.Integer(0))))
+        f_rows.append(rhs.xreplace(dict.fromkeys(u, sx.Integer(0))))
     return f_rows, G_entries
 
 
 def _barrier_objective(
     spec: Spec,
-) -> tuple[sp.Expr, sp.Expr | None, sp.Expr | None, sp.Expr | None]:
+) -> tuple[sx.Expr, sx.Expr | None, sx.Expr | None, sx.Expr | None]:
     """The objective the method tracks: ``f0``, or with ``[constraints]`` the barrier's.
 
     Parameters
@@ -411,36 +466,37 @@ def _barrier_objective(
 
     Returns
     -------
-    f0 : sympy.Expr
+    f0 : Expr
         The spec's objective, or the barrier objective ``B`` when it has inequalities.
-    objective : sympy.Expr or None
+    objective : Expr or None
         The spec's objective when ``f0`` is ``B``; None otherwise.
-    mu, slack : sympy.Expr or None
+    mu, slack : Expr or None
         The barrier's weight ``mu(t)`` and slack ``s(t)``; None without inequalities.
     """
-    f0: sp.Expr = spec.objective
+    f0: sx.Expr = spec.objective
     objective = mu = slack = None
     if spec.constraints:
         assert spec.barrier is not None
+        time = sx.symbol(_TIME)
         # The start: outputs of the initial plant state; signals, references (nominal,
         # else 0) and t at 0; parameters at their defaults.
         given = dict(spec.initial_state)
-        defaults = {symbol(n): sp.Float(v) for n, v in spec.parameters}
-        start: dict[sp.Symbol, sp.Expr] = {TIME: sp.Integer(0)}
-        start |= {symbol(n): sp.Float(given.get(n, 0.0)) for n in spec.states}
+        defaults = {sx.symbol(n): sx.real(v) for n, v in spec.parameters}
+        start: dict[sx.Expr, sx.Expr] = {time: sx.Integer(0)}
+        start |= {sx.symbol(n): sx.real(given.get(n, 0.0)) for n in spec.states}
         nominal = dict(spec.reference_nominal)
         for name in spec.references:
-            start[symbol(name)] = nominal.get(name, sp.Integer(0))
-        start |= {symbol(n): e for n, e in spec.signals}
+            start[sx.symbol(name)] = nominal.get(name, sx.Integer(0))
+        start |= {sx.symbol(n): e for n, e in spec.signals}
         values = {
-            symbol(o): e.xreplace(start).xreplace(defaults)
+            sx.symbol(o): e.xreplace(start).xreplace(defaults)
             for o, e in zip(spec.outputs, spec.output_exprs, strict=True)
         }
         for key, value in start.items():
             values.setdefault(key, value.xreplace(start).xreplace(defaults).xreplace(start))
         values |= defaults
         s0 = initial_slack(spec.constraints, spec.barrier, values)
-        mu, slack = schedule(spec.barrier, s0, TIME)
+        mu, slack = schedule(spec.barrier, s0, time)
         objective = f0
         f0 = barrier_objective(f0, spec.constraints, mu, slack)
     return f0, objective, mu, slack
@@ -471,12 +527,12 @@ def _check_mass_matrix(
                 raise SpecError(
                     spec.source,
                     f"{field}[{i}][{j}]",
-                    f"M is not symmetric: M[{i}][{j}] = {clip(sp.sstr(mass[i][j]))} but "
-                    f"M[{j}][{i}] = {clip(sp.sstr(mass[j][i]))}",
+                    f"M is not symmetric: M[{i}][{j}] = {clip(sx.text(mass[i][j]))} but "
+                    f"M[{j}][{i}] = {clip(sx.text(mass[j][i]))}",
                 )
     given = dict(spec.initial_state)
-    values: dict[sp.Symbol, object] = {symbol(n): v for n, v in spec.parameters}
-    values |= {symbol(name): float(given.get(name, 0.0)) for name in spec.states}
+    values: dict[sx.Expr, object] = {sx.symbol(n): v for n, v in spec.parameters}
+    values |= {sx.symbol(name): float(given.get(name, 0.0)) for name in spec.states}
     with np.errstate(all="ignore"):
         start = mass_matrix_at(mechanics, values)[0]
     where = "at the initial state" + ("" if given else " (every state 0)")
@@ -497,9 +553,9 @@ def _check_mass_matrix(
 
 
 def start_evaluator(
-    states: Sequence[sp.Symbol],
+    states: Sequence[sx.Expr],
     initial: Sequence[float],
-    defaults: Mapping[sp.Symbol, float],
+    defaults: Mapping[sx.Expr, float],
     mechanics: Mechanics | None,
 ) -> Evaluator:
     """An evaluator of expressions at the initial state with the default parameters.
@@ -508,7 +564,7 @@ def start_evaluator(
     numerically there. The start's warnings and the extended-state observer's start
     evaluate the law's pieces with it.
     """
-    values: dict[sp.Symbol, Any] = {q: float(v) for q, v in defaults.items()}
+    values: dict[sx.Expr, Any] = {q: float(v) for q, v in defaults.items()}
     values |= {sym: float(v) for sym, v in zip(states, initial, strict=True)}
     if mechanics is not None:
         with np.errstate(all="ignore"):

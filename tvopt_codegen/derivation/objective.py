@@ -10,8 +10,8 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation.convexity import _check_convexity
 from tvopt_codegen.derivation.linearization import _Linearization, _States
 from tvopt_codegen.derivation.meter import _Meter, tree_size
@@ -29,38 +29,34 @@ from tvopt_codegen.maths.lie import (
 )
 
 
-def _sparse_gradient(f0: sp.Expr, y: Sequence[sp.Symbol]) -> sp.ImmutableMatrix:
+def _sparse_gradient(f0: sx.Expr, y: Sequence[sx.Expr]) -> sx.Expr:
     """Gradient of ``f0``, differentiating only where a variable occurs.
 
     A sum over agents is split into its terms once; each gradient entry sums the
     derivatives of the terms that contain its output: for N agents coupled to their
     neighbours this is linear in N where differentiating the whole sum is quadratic.
     """
-    terms = sp.Add.make_args(f0)
-    by_output: dict[sp.Symbol, list[sp.Expr]] = {yi: [] for yi in y}
+    terms = f0.args if f0.is_Add else (f0,)
+    by_output: dict[sx.Expr, list[sx.Expr]] = {yi: [] for yi in y}
     for term in terms:
         for yi in term.free_symbols & by_output.keys():
             by_output[yi].append(term)
-    return sp.ImmutableMatrix([sp.Add(*(partial(term, yi) for term in by_output[yi])) for yi in y])
+    return sx.ImmutableMatrix([sx.Add(*(partial(term, yi) for term in by_output[yi])) for yi in y])
 
 
-def _polynomial_hessian(
-    gradient: sp.MatrixBase, y: Sequence[sp.Symbol]
-) -> sp.ImmutableMatrix | None:
+def _polynomial_hessian(gradient: sx.Expr, y: Sequence[sx.Expr]) -> sx.Expr | None:
     """The Hessian as expressions when the gradient is polynomial in ``y``, else ``None``.
 
     Quadratic objectives, the common case, have a Hessian free of ``y``: a matrix of
     numbers is inverted once at generation time, and one of parameters is checked for
     convexity exactly, at their defaults, instead of by sampling.
     """
-    if not all(g.is_polynomial(*y) for g in gradient):
+    if not all(sx.is_polynomial(g, y) for g in gradient):
         return None
     return _sparse_hessian(gradient, y)
 
 
-def _affine_split(
-    gradient: sp.MatrixBase, hessian: sp.MatrixBase, y: Sequence[sp.Symbol]
-) -> sp.ImmutableMatrix:
+def _affine_split(gradient: sx.Expr, hessian: sx.Expr, y: Sequence[sx.Expr]) -> sx.Expr:
     """The gradient of a quadratic f0 written ``Hess y + b(t)``, ``b`` its value at y = 0.
 
     The same function, in the form whose time derivatives are cheapest: ``y^(j)`` enters
@@ -70,19 +66,19 @@ def _affine_split(
     operations that depend on the state drop from 118 to 72; the rest depend on time
     and parameters alone, which a batch of states at one time shares.
     """
-    at_zero = {yi: sp.Integer(0) for yi in y}
+    at_zero = {yi: sx.Integer(0) for yi in y}
     # The Hessian's nonzero entries by row: a team's is almost all zeros.
-    rows: list[list[sp.Expr]] = [[] for _ in y]
+    rows: list[list[sx.Expr]] = [[] for _ in y]
     for i, j, entry in nonzero_entries(hessian):
         rows[i].append(entry * y[j])
-    return sp.ImmutableMatrix(
-        [sp.Add(*rows[i]) + gi.xreplace(at_zero) for i, gi in enumerate(gradient)]
+    return sx.ImmutableMatrix(
+        [sx.Add(*rows[i]) + gi.xreplace(at_zero) for i, gi in enumerate(gradient)]
     )
 
 
 def _signal_derivatives(
-    expr: sp.Expr, t: sp.Symbol, k: int, meter: Callable[[sp.Expr], None]
-) -> list[sp.Expr] | None:
+    expr: sx.Expr, t: sx.Expr, k: int, meter: Callable[[sx.Expr], None]
+) -> list[sx.Expr] | None:
     """A signal and its first ``k`` time derivatives as expressions, unless they swell.
 
     Differentiated as expressions, the usual signals (polynomials, a tanh switch)
@@ -94,7 +90,7 @@ def _signal_derivatives(
     limit = 4 * tree_size(expr, 10**6) + 50
     chain = [expr]
     for _ in range(k):
-        # jet.partial builds sympy's diff's very expression, without its Derivative
+        # jet.partial builds SymPy's diff's very expression, without its Derivative
         # machinery (two milliseconds a signal and order, for every agent of a team).
         derivative = partial(chain[-1], t)
         if tree_size(derivative, limit) > limit:
@@ -108,11 +104,11 @@ def _signal_derivatives(
 class _Objective:
     """The gradient of f0 as a program, its Hessian, and the convexity evidence."""
 
-    gradient: sp.ImmutableMatrix
+    gradient: sx.Expr
     program: Program
-    current: tuple[sp.Expr, ...]
+    current: tuple[sx.Expr, ...]
     hessian_program: Program
-    hessian_entries: tuple[tuple[tuple[int, int], sp.Expr], ...]
+    hessian_entries: tuple[tuple[tuple[int, int], sx.Expr], ...]
     convexity: Convexity
     warnings: tuple[str, ...]
 
@@ -121,28 +117,28 @@ class _Objective:
 class _GradientJet:
     """``grad^(j) f0`` for ``j < k``, ``rest``, and the jets of y, signals and references."""
 
-    reference_jet: tuple[tuple[sp.Symbol, ...], ...]
+    reference_jet: tuple[tuple[sx.Expr, ...], ...]
     reference_order: int
-    y_jet: tuple[tuple[sp.Symbol, ...], ...]
-    y_values: tuple[tuple[sp.Expr, ...], ...]
-    signal_jet: tuple[tuple[sp.Symbol, ...], ...]
+    y_jet: tuple[tuple[sx.Expr, ...], ...]
+    y_values: tuple[tuple[sx.Expr, ...], ...]
+    signal_jet: tuple[tuple[sx.Expr, ...], ...]
     signal_program: Program
-    signal_values: tuple[tuple[sp.Expr, ...], ...]
+    signal_values: tuple[tuple[sx.Expr, ...], ...]
     program: Program
-    grad_jet: tuple[tuple[sp.Expr, ...], ...]
+    grad_jet: tuple[tuple[sx.Expr, ...], ...]
     rest_program: Program
-    rest: tuple[sp.Expr, ...]
+    rest: tuple[sx.Expr, ...]
 
 
 def _programs_of(
-    expr: sp.Expr, variables: Sequence[sp.Symbol], names: Iterator[sp.Symbol], meter: _Meter
+    expr: sx.Expr, variables: Sequence[sx.Expr], names: Iterator[sx.Expr], meter: _Meter
 ) -> tuple[
-    sp.ImmutableMatrix,
+    sx.Expr,
     Program,
-    tuple[sp.Expr, ...],
+    tuple[sx.Expr, ...],
     Program,
-    tuple[tuple[tuple[int, int], sp.Expr], ...],
-    sp.ImmutableMatrix | None,
+    tuple[tuple[tuple[int, int], sx.Expr], ...],
+    sx.Expr | None,
 ]:
     """The gradient of ``expr`` in ``variables`` as a program, and its Hessian's entries.
 
@@ -180,15 +176,15 @@ def _programs_of(
 
 
 def _objective(
-    model: Model, states: _States, names: Iterator[sp.Symbol], meter: _Meter
+    model: Model, states: _States, names: Iterator[sx.Expr], meter: _Meter
 ) -> _Objective:
     """The gradient of f0 as a program, its Hessian, and f0's convexity where it matters."""
     gradient, program, current, hessian_program, hessian_entries, polynomial = _programs_of(
         model.f0, model.y, names, meter
     )
     defaults = dict(zip(model.params, model.defaults, strict=True))
-    values = {sym: sp.Float(v) for sym, v in zip(states.symbols, states.initial, strict=True)}
-    values |= {q: sp.Float(v) for q, v in defaults.items()}
+    values = {sym: sx.real(v) for sym, v in zip(states.symbols, states.initial, strict=True)}
+    values |= {q: sx.real(v) for q, v in defaults.items()}
     y0 = [float(h.xreplace(values)) for h in model.h]
     convexity, warnings = _check_convexity(
         model,
@@ -217,7 +213,7 @@ def _gradient_jet(
     objective: _Objective,
     lin: _Linearization,
     states: _States,
-    names: Iterator[sp.Symbol],
+    names: Iterator[sx.Expr],
     meter: _Meter,
 ) -> _GradientJet:
     """Total time derivatives of the gradient up to order k (the paper's lemma).
@@ -232,15 +228,15 @@ def _gradient_jet(
         tuple(jet_symbol(r.name, q) for q in range(k + 1)) for r in model.references
     )
     reference_rates = {chain[j]: chain[j + 1] for chain in reference_jet for j in range(k)}
-    rates: dict[sp.Symbol, sp.Expr] = {model.t: sp.Integer(1)} | reference_rates
+    rates: dict[sx.Expr, sx.Expr] = {model.t: sx.Integer(1)} | reference_rates
     for chain in (*y_jet, *signal_jet):
         for j in range(k):
             rates[chain[j]] = chain[j + 1]
     program = objective.program
-    current: Sequence[sp.Expr] = objective.current
+    current: Sequence[sx.Expr] = objective.current
     grad_jet = [tuple(current)]
     rest_program = Program(())
-    rest: tuple[sp.Expr, ...] = ()
+    rest: tuple[sx.Expr, ...] = ()
     for order in range(1, k + 1):
         new, current, rates = next_derivative(program, current, rates, names, meter)
         if order < k:
@@ -248,11 +244,11 @@ def _gradient_jet(
             grad_jet.append(tuple(current))
         else:
             # grad^(k) is affine in y^(k) with slope Hess: dropping y^(k) leaves the rest.
-            drop = {chain[k]: sp.Integer(0) for chain in y_jet}
+            drop = {chain[k]: sx.Integer(0) for chain in y_jet}
             rest_program = Program(tuple((s, e.xreplace(drop)) for s, e in new.assignments))
             rest = tuple(e.xreplace(drop) for e in current)
     signal_program = Program(())
-    signal_chains: list[tuple[sp.Expr, ...]] = []
+    signal_chains: list[tuple[sx.Expr, ...]] = []
     measured = set(model.references)
     for _, expr in model.signals:
         # A signal of references moves with their jets: differentiated as a program.
@@ -264,7 +260,7 @@ def _gradient_jet(
             # linear in its size per order, like the gradient.
             part, chain = atomize([expr], names)
             derivatives = [chain[0]]
-            signal_rates: dict[sp.Symbol, sp.Expr] = {model.t: sp.Integer(1)} | reference_rates
+            signal_rates: dict[sx.Expr, sx.Expr] = {model.t: sx.Integer(1)} | reference_rates
             for _ in range(k):
                 new, chain, signal_rates = next_derivative(part, chain, signal_rates, names, meter)
                 part = part + new
@@ -293,13 +289,13 @@ def _gradient_jet(
         for i in range(len(model.y))
     ) + tuple(tuple(state_of[name] for name in chain) for chain in states.multipliers)
     # The highest derivative of a reference that the law or the optimality error reads.
-    used: set[sp.Basic] = set()
+    used: set[sx.Expr] = set()
     for part in (program, rest_program, signal_program):
         for _, value in part.assignments:
             used |= value.free_symbols
     for exprs in (*grad_jet, rest, *signal_chains):
         for value in exprs:
-            used |= sp.sympify(value).free_symbols
+            used |= sx.sympify(value).free_symbols
     order = max(
         (j for chain in reference_jet for j, symbol in enumerate(chain) if symbol in used),
         default=0,
@@ -321,6 +317,6 @@ def _gradient_jet(
 
 def objective_start(model: Model, states: _States) -> np.ndarray:
     """The outputs at the initial state, parameters at their defaults."""
-    values = {sym: sp.Float(v) for sym, v in zip(states.symbols, states.initial, strict=True)}
-    values |= {q: sp.Float(v) for q, v in zip(model.params, model.defaults, strict=True)}
+    values = {sym: sx.real(v) for sym, v in zip(states.symbols, states.initial, strict=True)}
+    values |= {q: sx.real(v) for q, v in zip(model.params, model.defaults, strict=True)}
     return np.array([float(h.xreplace(values)) for h in model.h])

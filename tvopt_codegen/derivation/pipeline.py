@@ -105,7 +105,8 @@ def derive(
     if not isinstance(spec, Spec):
         spec = spec_from_dict(spec)
     meter = _Meter(spec.source, budget or Budget(), progress)
-    # The budget holds inside each sympy call too, as the command line's timer holds it.
+    # The budget holds inside each call too (SymPy's at the border), as the command line's
+    # timer holds it.
     with meter.interrupting():
         return _derive(spec, meter)
 

@@ -6,8 +6,7 @@ import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import sympy as sp
-
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation.law import Law
 from tvopt_codegen.derivation.model import Model
 from tvopt_codegen.derivation.rejection import Rejection
@@ -22,15 +21,15 @@ from tvopt_codegen.maths.lie import (
 from tvopt_codegen.spec import Spec
 
 
-def jet_symbol(name: str, order: int) -> sp.Symbol:
+def jet_symbol(name: str, order: int) -> sx.Expr:
     """The symbol for the ``order``-th time derivative of ``name`` (y1, y1', y1'', ...).
 
     The primes cannot occur in user names, so jet symbols never collide with them.
     """
     if order == 0:
-        return sp.Symbol(name, real=True)
+        return sx.symbol(name)
     mark = "'" * order if order <= 3 else f"^({order})"
-    return sp.Symbol(f"{name}{mark}", real=True)
+    return sx.symbol(f"{name}{mark}")
 
 
 @dataclass(frozen=True)
@@ -68,9 +67,9 @@ class LinearizationStage:
         The extended plant (equal to the plant when nothing is prolonged).
     relative_degree : tuple of int
         ``r_i`` per output, of the extended system.
-    lie : tuple of tuple of sympy.Expr
+    lie : tuple of tuple of expression
         ``lie[i][j] = L_f^j h_i``, ``j = 0 .. r_i``.
-    R : sympy.ImmutableMatrix
+    R : matrix
         Decoupling matrix (m, m).
     unextended : str or None
         Why the extension is needed: what the plant lacks without it (``None`` when
@@ -82,8 +81,8 @@ class LinearizationStage:
 
     extension: Extension
     relative_degree: tuple[int, ...]
-    lie: tuple[tuple[sp.Expr, ...], ...]
-    R: sp.ImmutableMatrix
+    lie: tuple[tuple[sx.Expr, ...], ...]
+    R: sx.Expr
     unextended: str | None
     extension_search: tuple[str, ...]
 
@@ -94,11 +93,11 @@ class DecouplingStage:
 
     Attributes
     ----------
-    p, phi : sympy.ImmutableMatrix
+    p, phi : matrix
         ``p = col(L_f^{r_i} h_i)`` and the coordinates ``Phi``.
-    A, B : sympy.ImmutableMatrix
+    A, B : matrix
         Brunovsky pair of the extended system.
-    det_R : sympy.Expr or None
+    det_R : expression or None
         ``det R`` factored, when computed symbolically (m <= 4).
     det_R_note : str
         Why ``det_R`` is None (empty when it was computed), for the summary and report.
@@ -112,11 +111,11 @@ class DecouplingStage:
         KKT matrix is singular), in words; empty where nowhere (or without equalities).
     """
 
-    p: sp.ImmutableMatrix
-    phi: sp.ImmutableMatrix
-    A: sp.ImmutableMatrix
-    B: sp.ImmutableMatrix
-    det_R: sp.Expr | None
+    p: sx.Expr
+    phi: sx.Expr
+    A: sx.Expr
+    B: sx.Expr
+    det_R: sx.Expr | None
     det_R_note: str
     singular_set: tuple[str, ...]
     undefined_set: tuple[str, ...]
@@ -143,7 +142,7 @@ class ClosedLoopStage:
         Names of the padding states ``xi_<output>_<j>`` per output.
     state_names : tuple of str
         Closed-loop state order: plant, extension, padding, multiplier chains.
-    states : tuple of sympy.Symbol
+    states : tuple of symbol
         Symbols of ``state_names``.
     initial_state : tuple of float
         Default initial state in :attr:`state_names` order.
@@ -158,7 +157,7 @@ class ClosedLoopStage:
 
     padding: tuple[tuple[str, ...], ...]
     state_names: tuple[str, ...]
-    states: tuple[sp.Symbol, ...]
+    states: tuple[sx.Expr, ...]
     initial_state: tuple[float, ...]
     multiplier_states: tuple[tuple[str, ...], ...] = ()
     integral_states: tuple[str, ...] = ()
@@ -232,13 +231,13 @@ class ObjectiveStage:
 
     Attributes
     ----------
-    gradient : sympy.ImmutableMatrix
+    gradient : matrix
         ``grad_y f0`` (m, 1) over ``y``, signals, parameters and t.
     hessian_program : Program
         Assignments computing the Hessian from ``jet.jet_program`` (forward mode over
         its gradient part, :func:`~tvopt_codegen.maths.jet.jacobian`); empty when it is
         constant.
-    hessian_entries : tuple of ((int, int), sympy.Expr)
+    hessian_entries : tuple of ((int, int), expression)
         The nonzero entries ``(i, j), i >= j`` of the lower triangle of ``grad_yy f0``,
         over the programs' symbols (numbers when the Hessian is constant). The
         generated code reads the Hessian from these.
@@ -248,20 +247,20 @@ class ObjectiveStage:
         The program of f0's own gradient and Hessian (over the outputs): the generated
         ``gradient`` and ``hessian`` functions evaluate it. With equalities the jet's
         programs are the KKT system's instead.
-    objective_gradient, objective_hessian : tuple of sympy.Expr
+    objective_gradient, objective_hessian : tuple of expression
         f0's gradient (m) and Hessian ((m, m), row-major) over that program.
-    kkt_gradient : sympy.ImmutableMatrix or None
+    kkt_gradient : matrix or None
         With equalities, the KKT map ``F = [grad f0 + J_a^T nu; a]`` over (y, nu).
     """
 
-    gradient: sp.ImmutableMatrix
+    gradient: sx.Expr
     hessian_program: Program
-    hessian_entries: tuple[tuple[tuple[int, int], sp.Expr], ...]
+    hessian_entries: tuple[tuple[tuple[int, int], sx.Expr], ...]
     convexity: Convexity
     objective_program: Program = Program(())
-    objective_gradient: tuple[sp.Expr, ...] = ()
-    objective_hessian: tuple[sp.Expr, ...] = ()
-    kkt_gradient: sp.ImmutableMatrix | None = None
+    objective_gradient: tuple[sx.Expr, ...] = ()
+    objective_hessian: tuple[sx.Expr, ...] = ()
+    kkt_gradient: sx.Expr | None = None
 
 
 @dataclass(frozen=True)
@@ -270,41 +269,41 @@ class JetStage:
 
     Attributes
     ----------
-    y_jet : tuple of tuple of sympy.Symbol
+    y_jet : tuple of tuple of symbol
         ``y_jet[i][j]`` is the symbol of ``y_i^(j)``, ``j = 0 .. k``.
-    y_jet_values : tuple of tuple of sympy.Expr
+    y_jet_values : tuple of tuple of expression
         ``y_i^(j)`` for ``j < k`` as a function of the closed-loop state.
-    signal_jet : tuple of tuple of sympy.Symbol
+    signal_jet : tuple of tuple of symbol
         ``signal_jet[l][q]`` is the symbol of the q-th derivative of signal l.
     signal_program : Program
         Straight-line program of the signals and their time derivatives.
-    signal_jet_values : tuple of tuple of sympy.Expr
+    signal_jet_values : tuple of tuple of expression
         Those derivatives over :attr:`signal_program`, ``t`` and the parameters.
     jet_program : Program
         Straight-line program of the gradient jet (see :mod:`tvopt_codegen.maths.jet`).
-    grad_jet : tuple of tuple of sympy.Expr
+    grad_jet : tuple of tuple of expression
         ``grad^(j) f0`` for ``j = 0 .. k-1`` over the program's symbols.
     rest_program : Program
         Extra assignments used by :attr:`rest` only.
-    rest : tuple of sympy.Expr
+    rest : tuple of expression
         ``grad^(k) f0`` with ``y^(k) = 0``, so ``grad^(k) f0 = Hess y^(k) + rest``.
-    reference_jet : tuple of tuple of sympy.Symbol
+    reference_jet : tuple of tuple of symbol
         ``reference_jet[l][q]``: the q-th derivative of reference l, ``q = 0 .. k``
         (supplied by the caller, never derived).
     reference_order : int
         The highest derivative of a reference the law reads (0 without references).
     """
 
-    y_jet: tuple[tuple[sp.Symbol, ...], ...]
-    y_jet_values: tuple[tuple[sp.Expr, ...], ...]
-    signal_jet: tuple[tuple[sp.Symbol, ...], ...]
+    y_jet: tuple[tuple[sx.Expr, ...], ...]
+    y_jet_values: tuple[tuple[sx.Expr, ...], ...]
+    signal_jet: tuple[tuple[sx.Expr, ...], ...]
     signal_program: Program
-    signal_jet_values: tuple[tuple[sp.Expr, ...], ...]
+    signal_jet_values: tuple[tuple[sx.Expr, ...], ...]
     jet_program: Program
-    grad_jet: tuple[tuple[sp.Expr, ...], ...]
+    grad_jet: tuple[tuple[sx.Expr, ...], ...]
     rest_program: Program
-    rest: tuple[sp.Expr, ...]
-    reference_jet: tuple[tuple[sp.Symbol, ...], ...] = ()
+    rest: tuple[sx.Expr, ...]
+    reference_jet: tuple[tuple[sx.Expr, ...], ...] = ()
     reference_order: int = 0
 
     @property
@@ -377,7 +376,7 @@ class Derivation:
     estimator: EstimatorStage | None = None
 
     @functools.cached_property
-    def hessian(self) -> sp.ImmutableMatrix:
+    def hessian(self) -> sx.Expr:
         """``grad_yy f0`` (m, m) as expressions, for the report and for checking.
 
         Differentiated symbolically from ``objective.gradient`` on first use (the
@@ -386,7 +385,7 @@ class Derivation:
         return _sparse_hessian(self.objective.gradient, self.model.y)
 
     @functools.cached_property
-    def kkt_hessian(self) -> sp.ImmutableMatrix:
+    def kkt_hessian(self) -> sx.Expr:
         """With equalities, the KKT matrix ``[[grad_yy L, J_a^T], [J_a, 0]]`` as expressions.
 
         Differentiated from ``objective.kkt_gradient`` on first use, for the report.
@@ -396,19 +395,19 @@ class Derivation:
         return _sparse_hessian(kkt_gradient, (*self.model.y, *self.model.multipliers))
 
 
-def _sparse_hessian(gradient: sp.MatrixBase, y: Sequence[sp.Symbol]) -> sp.ImmutableMatrix:
+def _sparse_hessian(gradient: sx.Expr, y: Sequence[sx.Expr]) -> sx.Expr:
     """Hessian from the gradient, differentiating each entry only by outputs it contains.
 
     Filled symmetrically from the upper triangle (equal by Schwarz, and then equal as
     expressions too).
     """
     m = len(y)
-    entries: dict[tuple[int, int], sp.Expr] = {}
+    entries: dict[tuple[int, int], sx.Expr] = {}
     for i, gi in enumerate(gradient):
         free = gi.free_symbols
         for j in range(i, m):
             if y[j] in free:
-                value = sp.diff(gi, y[j])
+                value = sx.diff(gi, y[j])
                 if value != 0:
                     entries[(i, j)] = entries[(j, i)] = value
     return from_entries(m, m, entries)
