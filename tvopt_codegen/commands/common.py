@@ -1,7 +1,7 @@
 """What the commands that derive share: their options, the derivation and its clock.
 
 ``derive`` loads, derives and lowers the spec a command names, within the time budget
-(a real-time timer that stops even a single long sympy call) and with its progress on
+(a real-time timer that stops even a single long SymPy call) and with its progress on
 stderr; it runs without the cyclic garbage collector, whose scans of the live
 expressions were a tenth of a large derivation for no garbage.
 """
@@ -170,10 +170,12 @@ class Overrun(BaseException):
 def time_limit(seconds: float, source: list[str], progress: DeriveProgress) -> Iterator[None]:
     """Stop loading, deriving and lowering after ``seconds``, wherever they are.
 
-    The derivation checks its budget as it builds expressions, but a single sympy
+    The derivation checks its budget as it builds expressions, but a single SymPy
     call (a simplification, an exact power) can run far past it between two checks:
     a timer signal interrupts it within the budget. Only in the main thread, where
-    Python delivers signals.
+    Python delivers signals, and only between Python's own steps: a single SymEngine
+    call, which is C++, is interrupted when it returns (an ``expand`` of 0.7 s fired
+    at 0.2 s stops at 0.7 s).
     """
     if threading.current_thread() is not threading.main_thread():
         yield

@@ -1,0 +1,357 @@
+"""Lowering and rendering on both engines: the same kernels, the same numbers.
+
+Each bundled example is lowered on SymPy (the reference) and on SymEngine, and every
+kernel of the two is evaluated in floats at the same random inputs (its temporaries,
+then its outputs, by a walk of this file's own that reads nothing of either engine's
+numerics): the outputs agree to 1e-12 relative. The two engines' CSE may name and order
+temporaries differently, so only the kernels' interfaces and values are compared.
+
+The derivation given to SymEngine's lowering is the SymPy one converted at the border
+(:func:`tvopt_codegen.symbolic.border.from_sympy`, deep through the derivation's
+records), so that these tests are of lowering alone.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import random
+import types
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy
+import pytest
+
+from tvopt_codegen import symbolic as sx
+from tvopt_codegen.derivation import Derivation, derive
+from tvopt_codegen.lowering.ir import Kernel, KernelSet, check_kernels, lower
+from tvopt_codegen.lowering.plan import Plan
+from tvopt_codegen.simulation import load_controller
+from tvopt_codegen.spec import load_spec
+from tvopt_codegen.symbolic import border
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "tvopt_codegen" / "examples"
+#: PVTOL, the unicycle's switching objective and the arm's mass matrix (its LDL^T in the
+#: jet), then the integrator's Hessian (the cholesky kernel) and its reference jets.
+NAMES = ("pvtol", "unicycle_switch", "planar_arm3", "integrator", "integrator_refs")
+RELATIVE = 1e-12
+
+
+@functools.cache
+def sympy_derivation(name: str) -> Derivation:
+    """The example ``name`` derived on SymPy (the process's default engine)."""
+    with sx.using("sympy"):
+        return derive(load_spec(EXAMPLES / f"{name}.toml"))
+
+
+def converted(value: Any, memo: dict[Any, Any], seen: dict[int, Any]) -> Any:
+    """``value`` with every SymPy expression and matrix in it made SymEngine's.
+
+    Walks dataclasses (their fields set in place of a copy, frozen or not), tuples,
+    lists and dicts; anything else that is not SymPy's is kept as it is.
+    """
+    import sympy  # noqa: PLC0415 - the reference engine, converted from
+
+    done = seen.get(id(value))
+    if done is not None:
+        return done
+    out: Any = value
+    if isinstance(value, sympy.Basic | sympy.MatrixBase):
+        out = border.from_sympy(value, memo)
+    elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+        out = object.__new__(type(value))
+        seen[id(value)] = out
+        for field in dataclasses.fields(value):
+            if hasattr(value, field.name):
+                item = converted(getattr(value, field.name), memo, seen)
+                object.__setattr__(out, field.name, item)
+    elif isinstance(value, tuple) and hasattr(value, "_fields"):
+        out = type(value)(*(converted(v, memo, seen) for v in value))
+    elif isinstance(value, tuple | list):
+        out = type(value)(converted(v, memo, seen) for v in value)
+    elif isinstance(value, dict):
+        out = {converted(k, memo, seen): converted(v, memo, seen) for k, v in value.items()}
+    seen[id(value)] = out
+    return out
+
+
+@functools.cache
+def symengine_derivation(name: str) -> Derivation:
+    """The SymPy derivation of ``name`` with its expressions converted to SymEngine."""
+    source = sympy_derivation(name)
+    with sx.using("symengine"):
+        result: Derivation = converted(source, {}, {})
+    return result
+
+
+@functools.cache
+def lowered(name: str, engine: str) -> KernelSet:
+    """The example's kernels on ``engine``."""
+    with sx.using(engine):
+        if engine == "sympy":
+            return lower(sympy_derivation(name))
+        return lower(symengine_derivation(name))
+
+
+# The float walk: what a backend's printer would make of a kernel, read from the tree.
+
+_UNARY: dict[str, Callable[[float], float]] = {
+    "sin": math.sin,
+    "cos": math.cos,
+    "tan": math.tan,
+    "asin": math.asin,
+    "acos": math.acos,
+    "atan": math.atan,
+    "sinh": math.sinh,
+    "cosh": math.cosh,
+    "tanh": math.tanh,
+    "asinh": math.asinh,
+    "acosh": math.acosh,
+    "atanh": math.atanh,
+    "exp": math.exp,
+    "log": math.log,
+    "sqrt": math.sqrt,
+    "Abs": abs,
+    "sign": lambda v: float((v > 0) - (v < 0)),
+    "cot": lambda v: 1 / math.tan(v),
+    "sec": lambda v: 1 / math.cos(v),
+    "csc": lambda v: 1 / math.sin(v),
+    "coth": lambda v: 1 / math.tanh(v),
+    "sech": lambda v: 1 / math.cosh(v),
+    "csch": lambda v: 1 / math.sinh(v),
+}
+_RELATIONS: dict[str, Callable[[float, float], bool]] = {
+    "StrictLessThan": lambda a, b: a < b,
+    "LessThan": lambda a, b: a <= b,
+    "StrictGreaterThan": lambda a, b: a > b,
+    "GreaterThan": lambda a, b: a >= b,
+    "Equality": lambda a, b: a == b,
+    "Unequality": lambda a, b: a != b,
+}
+
+
+def value(node: Any, env: Mapping[Any, float], memo: dict[Any, Any]) -> Any:
+    """``node`` in floats (a bool for a condition), its symbols' values in ``env``."""
+    done = memo.get(node)
+    if done is not None:
+        return done
+    kind = type(node).__name__
+    if node.is_Symbol:
+        out: Any = env[node]
+    elif kind in ("BooleanTrue", "BooleanAtom") and bool(node):
+        out = True
+    elif kind in ("BooleanTrue", "BooleanFalse", "BooleanAtom"):
+        out = kind == "BooleanTrue"
+    elif node.is_Number or node in (sx.pi, sx.E):
+        out = float(node)
+    elif sx.is_piecewise(node):
+        out = math.nan
+        for piece, condition in sx.piecewise_pairs(node):
+            if value(condition, env, memo):
+                out = value(piece, env, memo)
+                break
+    else:
+        args = [value(arg, env, memo) for arg in node.args]
+        if node.is_Add:
+            out = math.fsum(args)
+        elif node.is_Mul:
+            out = math.prod(args)
+        elif node.is_Pow:
+            out = _power(*args)
+        elif kind in _RELATIONS:
+            out = _RELATIONS[kind](*args)
+        elif kind == "And":
+            out = all(args)
+        elif kind == "Or":
+            out = any(args)
+        elif kind == "Not":
+            out = not args[0]
+        else:
+            name = sx.function_name(node)
+            if name == "atan2":
+                out = math.atan2(*args)
+            elif name in ("Max", "Min"):
+                out = max(args) if name == "Max" else min(args)
+            else:
+                out = _UNARY[name](*args)
+    memo[node] = out
+    return out
+
+
+def _power(base: float, exponent: float) -> float:
+    try:
+        return float(base**exponent)
+    except (OverflowError, ZeroDivisionError):
+        return math.inf
+
+
+def run(kernel: Kernel, inputs: Mapping[str, float], tau: list[float]) -> dict[str, list[float]]:
+    """Evaluate ``kernel`` at slot values given by slot name: its outputs, flat.
+
+    The jet's input ``tau`` (what ``jet_time`` returns, an engine's CSE decides its
+    entries) is given by position.
+    """
+    env: dict[Any, float] = {}
+    for arg in kernel.inputs:
+        if arg.name == "tau":
+            env.update(zip(arg.symbols, tau, strict=True))
+            continue
+        for symbol in arg.symbols or (sx.symbol("t"),):
+            env[symbol] = inputs[str(symbol)]
+    memo: dict[Any, Any] = {}
+    for target, expr in kernel.body:
+        env[target] = value(expr, env, memo)
+    return {
+        out.name: [float(value(sx.sympify(e), env, memo)) for e in out.exprs]
+        for out in kernel.outputs
+    }
+
+
+def run_all(kernels: Sequence[Kernel], point: Mapping[str, float]) -> dict[str, list[float]]:
+    """Every kernel's outputs at ``point`` (by ``kernel.output``), the jet after jet_time."""
+    results: dict[str, list[float]] = {}
+    tau: list[float] = []
+    for kernel in kernels:
+        for output, values in run(kernel, point, tau).items():
+            results[f"{kernel.name}.{output}"] = values
+        if kernel.name == "jet_time":
+            tau = results["jet_time.tau"]
+    return results
+
+
+def interface(kernel: Kernel) -> tuple[Any, ...]:
+    """What a caller of ``kernel`` sees: its inputs' slots and its outputs' shapes.
+
+    ``tau`` aside, whose entries are what each engine's CSE finds to hoist.
+    """
+    return (
+        kernel.name,
+        tuple(
+            (arg.name, tuple(map(str, arg.symbols)), arg.labels)
+            for arg in kernel.inputs
+            if arg.name != "tau"
+        ),
+        tuple((out.name, out.shape) for out in kernel.outputs if out.name != "tau"),
+    )
+
+
+def without_tau(plan: Plan) -> Plan:
+    """``plan`` with the size of ``tau`` (an engine's CSE's choice) set to 0."""
+    values = tuple(dataclasses.replace(v, size=0) if v.name == "tau" else v for v in plan.values)
+    return dataclasses.replace(plan, values=values)
+
+
+def random_points(kernels: Sequence[Kernel], seed: int, count: int) -> Iterator[dict[str, float]]:
+    """``count`` random values of every slot of ``kernels``, by name (positive, away from 0)."""
+    rng = random.Random(seed)
+    names = sorted(
+        {
+            str(symbol)
+            for kernel in kernels
+            for arg in kernel.inputs
+            if arg.name != "tau"
+            for symbol in (arg.symbols or (sx.symbol("t"),))
+        }
+    )
+    for _ in range(count):
+        yield {name: rng.uniform(0.3, 1.2) for name in names}
+
+
+def assert_close(name: str, expected: list[float], actual: list[float]) -> None:
+    """Equal to :data:`RELATIVE` of the output's largest entry (NaN where NaN)."""
+    assert len(expected) == len(actual), name
+    scale = max((abs(v) for v in expected if math.isfinite(v)), default=0.0)
+    for i, (want, got) in enumerate(zip(expected, actual, strict=True)):
+        if math.isnan(want):
+            assert math.isnan(got), f"{name}[{i}]: {got} where SymPy gives NaN"
+            continue
+        tolerance = RELATIVE * max(abs(want), scale, 1e-300)
+        assert abs(want - got) <= tolerance, f"{name}[{i}]: {got} against {want}"
+
+
+def assert_same_values(
+    reference: Sequence[Kernel], fast: Sequence[Kernel], seed: int, count: int
+) -> int:
+    """Both kernel sets at ``count`` random points agree; the number of values compared."""
+    compared = 0
+    for point in random_points(reference, seed, count):
+        with sx.using("sympy"):
+            expected = run_all(reference, point)
+        with sx.using("symengine"):
+            actual = run_all(fast, point)
+        assert expected.keys() == actual.keys()
+        for output, values in expected.items():
+            if output != "jet_time.tau":
+                assert_close(output, values, actual[output])
+                compared += len(values)
+    return compared
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_every_kernel_agrees_on_both_engines(name: str) -> None:
+    reference, fast = lowered(name, "sympy"), lowered(name, "symengine")
+    assert [interface(k) for k in fast.kernels] == [interface(k) for k in reference.kernels]
+    assert without_tau(fast.plan) == without_tau(reference.plan)
+    assert (fast.r_blocks, fast.lu_ops) == (reference.r_blocks, reference.lu_ops)
+    with sx.using("symengine"):
+        # Every expression of SymEngine's kernels is SymEngine's: none left over.
+        body = [v for k in fast.kernels for _, v in k.body]
+        outputs = [e for k in fast.kernels for out in k.outputs for e in out.exprs]
+        assert all(isinstance(e, sx.Basic) for e in body + outputs)
+    entries = sum(len(o.exprs) for k in reference.kernels for o in k.outputs if o.name != "tau")
+    compared = assert_same_values(reference.kernels, fast.kernels, seed=len(name), count=3)
+    assert compared == 3 * entries > 0
+
+
+@pytest.mark.parametrize("name", ["planar_arm3", "integrator"])
+def test_check_kernels_agree_on_both_engines(name: str) -> None:
+    # The sweep's det R reads the whole R, through the mass matrix's solve on the arm.
+    with sx.using("sympy"):
+        reference = check_kernels(sympy_derivation(name))
+    with sx.using("symengine"):
+        fast = check_kernels(symengine_derivation(name))
+    assert interface(fast.decoupling) == interface(reference.decoupling)
+    assert (fast.constraints, fast.equalities) == (None, None)
+    assert (reference.constraints, reference.equalities) == (None, None)
+    compared = assert_same_values([reference.decoupling], [fast.decoupling], seed=3, count=3)
+    assert compared == 3 * len(reference.decoupling.outputs[0].exprs) > 0
+
+
+def loaded(kernels: KernelSet, engine: str) -> types.ModuleType:
+    """The Python backend's controller of ``kernels``, rendered on ``engine``."""
+    with sx.using(engine):
+        return load_controller(kernels, "python")
+
+
+@pytest.mark.parametrize("name", ["pvtol", "planar_arm3", "integrator"])
+def test_rendered_controllers_agree_on_both_engines(name: str) -> None:
+    # Rendering prints SymEngine's kernels through the backends' printers: the
+    # generated modules compute the same law, batch of states by batch of states.
+    reference = loaded(lowered(name, "sympy"), "sympy")
+    fast = loaded(lowered(name, "symengine"), "symengine")
+    rng = numpy.random.default_rng(len(name))
+    start = numpy.array(reference.DEFAULT_STATE)
+    states = start[:, None] + rng.uniform(-0.2, 0.2, (len(start), 4))
+    plant = states[: len(reference.PLANT_STATE_NAMES)]
+    inputs = rng.uniform(-1.0, 1.0, (len(reference.INPUT_NAMES), 4))
+    outputs = reference.outputs(0.3, plant)
+    calls: list[tuple[str, tuple[Any, ...]]] = [
+        ("control", (0.3, states)),
+        ("rhs", (0.3, states)),
+        ("optimality_error", (0.3, states)),
+        ("objective", (0.3, outputs)),
+        ("gradient", (0.3, outputs)),
+        ("hessian", (0.3, outputs)),
+        ("plant", (0.3, plant, inputs)),
+        ("outputs", (0.3, plant)),
+    ]
+    for function, args in calls:
+        want = numpy.asarray(getattr(reference, function)(*args))
+        got = numpy.asarray(getattr(fast, function)(*args))
+        assert want.shape == got.shape, function
+        assert numpy.all(numpy.isfinite(want)), function
+        scale = numpy.max(numpy.abs(want))
+        assert numpy.max(numpy.abs(got - want)) <= RELATIVE * max(scale, 1e-300), function
