@@ -1,11 +1,14 @@
 """Stage 1: read a spec file, validate it, and parse its expressions.
 
-The result, :class:`Spec`, holds names, numbers and sympy expressions; nothing in it
-has been derived yet. Every problem is a :class:`~tvopt_codegen.errors.SpecError`
+The result, :class:`Spec`, holds names, numbers and expressions of the process's engine
+(:mod:`tvopt_codegen.symbolic`; reading a spec imports no SymPy on SymEngine); nothing
+in it has been derived yet. Every problem is a :class:`~tvopt_codegen.errors.SpecError`
 naming the file, the field and the problem.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 from tvopt_codegen.spec.files import (
     BUNDLED_SUFFIX,
@@ -20,7 +23,7 @@ from tvopt_codegen.spec.reader import MAX_INDEX_COUNT
 from tvopt_codegen.spec.types import (
     ESTIMATOR_KINDS,
     MAX_INTEGRATORS,
-    TIME,
+    TIME_NAME,
     Barrier,
     Constraint,
     Estimator,
@@ -30,7 +33,16 @@ from tvopt_codegen.spec.types import (
     Spec,
     TuneSettings,
     symbol,
+    time_symbol,
 )
+
+
+def __getattr__(name: str) -> Any:
+    # ``TIME``, the symbol for time, of the engine in use when asked (see spec.types).
+    if name == "TIME":
+        return time_symbol()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "BUNDLED_SUFFIX",
@@ -46,6 +58,7 @@ __all__ = [
     "MAX_SPEC_BYTES",
     "Spec",
     "TIME",
+    "TIME_NAME",
     "TuneSettings",
     "bundled_examples",
     "load_spec",
@@ -53,4 +66,5 @@ __all__ = [
     "read_spec_bytes",
     "spec_from_dict",
     "symbol",
+    "time_symbol",
 ]

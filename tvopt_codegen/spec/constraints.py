@@ -27,20 +27,21 @@ violation, and ``s`` decays to 0 at the barrier's rate.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from fractions import Fraction
 from typing import Any
 
 import numpy as np
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.spec import Barrier, Constraint
 
 #: The slack's start above the largest initial violation: twice it, plus this.
 SLACK_MARGIN = 0.1
 
 
-def inline_signals(expr: sp.Expr, signals: Mapping[sp.Symbol, sp.Expr]) -> sp.Expr:
+def inline_signals(expr: sx.Expr, signals: Mapping[sx.Expr, sx.Expr]) -> sx.Expr:
     """``expr`` with every signal replaced by its definition, signals of signals too."""
-    expr = sp.sympify(expr)
+    expr = sx.sympify(expr)
     for _ in range(len(signals) + 1):
         if not expr.free_symbols & signals.keys():
             break
@@ -48,18 +49,33 @@ def inline_signals(expr: sp.Expr, signals: Mapping[sp.Symbol, sp.Expr]) -> sp.Ex
     return expr
 
 
-def schedule(barrier: Barrier, slack: float, t: sp.Symbol) -> tuple[sp.Expr, sp.Expr]:
+def _exact(value: float) -> sx.Expr:
+    """``value`` as an exact number: SymPy's ``nsimplify`` on SymPy, else its decimal.
+
+    ``nsimplify`` finds the simplest number within the double's precision (``1/3`` for
+    0.333...); SymEngine has none, and the double's shortest decimal as a rational
+    (:mod:`tvopt_codegen.spec.parse` reads literals so) agrees with it to that precision.
+    """
+    if not sx.SYMENGINE:
+        import sympy  # noqa: PLC0415 - the SymPy engine's own; loaded with it already
+
+        return sympy.nsimplify(value)
+    exact = Fraction(repr(float(value)))
+    return sx.Rational(exact.numerator, exact.denominator)
+
+
+def schedule(barrier: Barrier, slack: float, t: sx.Expr) -> tuple[sx.Expr, sx.Expr]:
     """``mu(t)`` and ``s(t)`` as expressions in ``t`` (exact: they are differentiated)."""
-    decay = sp.exp(-sp.nsimplify(barrier.rate) * t)
-    mu_inf = sp.nsimplify(barrier.final_weight)
-    mu = mu_inf + (sp.nsimplify(barrier.initial_weight) - mu_inf) * decay
-    return mu, sp.nsimplify(slack) * decay
+    decay = sx.exp(-_exact(barrier.rate) * t)
+    mu_inf = _exact(barrier.final_weight)
+    mu = mu_inf + (_exact(barrier.initial_weight) - mu_inf) * decay
+    return mu, _exact(slack) * decay
 
 
 def initial_slack(
     constraints: Sequence[Constraint],
     barrier: Barrier,
-    values: Mapping[sp.Symbol, sp.Expr],
+    values: Mapping[sx.Expr, sx.Expr],
 ) -> float:
     """``s(0)``: given, or 0 for a strictly feasible start, else above the violation.
 
@@ -67,15 +83,15 @@ def initial_slack(
     """
     if barrier.initial_slack is not None:
         return barrier.initial_slack
-    worst = max(float(sp.sympify(c.g).xreplace(dict(values))) for c in constraints)
+    worst = max(float(sx.sympify(c.g).xreplace(dict(values))) for c in constraints)
     return 0.0 if worst < 0 else 2.0 * worst + SLACK_MARGIN
 
 
 def barrier_objective(
-    f0: sp.Expr, constraints: Sequence[Constraint], mu: sp.Expr, slack: sp.Expr
-) -> sp.Expr:
+    f0: sx.Expr, constraints: Sequence[Constraint], mu: sx.Expr, slack: sx.Expr
+) -> sx.Expr:
     """``B = f0 - mu sum_i log(s - g_i)``."""
-    return f0 - mu * sp.Add(*(sp.log(slack - c.g) for c in constraints))
+    return f0 - mu * sx.Add(*(sx.log(slack - c.g) for c in constraints))
 
 
 class Violation:
@@ -83,20 +99,22 @@ class Violation:
 
     The constraints are turned into functions of ``(y, t)`` once (signals and nominal
     references inlined, references without one at 0, parameters at their defaults), so
-    that the horizon can be scanned at many times for the price of one lambdify.
+    that the horizon can be scanned at many times for the price of one compilation.
     """
 
     def __init__(self, model: Any) -> None:
-        at = {q: sp.Float(v) for q, v in zip(model.params, model.defaults, strict=True)}
+        at = {q: sx.real(v) for q, v in zip(model.params, model.defaults, strict=True)}
         nominal = dict(model.nominal)
-        fixed = {r: nominal.get(r, sp.Integer(0)) for r in model.references}
+        fixed = {r: nominal.get(r, sx.ZERO) for r in model.references}
         signals = dict(model.signals)
         self.names = tuple(c.name for c in model.constraints)
         self.m = len(model.y)
 
         def function(constraint: Any) -> Any:
             expr = inline_signals(constraint.g, signals).xreplace(fixed).xreplace(at)
-            return sp.lambdify([model.y, model.t], expr, "math")
+            # SymPy's math-module lambdify, or SymEngine's compiled Lambdify (NaN outside
+            # a function's domain, where math raises).
+            return sx.lambdify([model.y, model.t], expr, "math")
 
         self.functions = [function(c) for c in model.constraints]
         self.equal = [function(c) for c in model.equalities]

@@ -17,8 +17,8 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 import numpy as np
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.errors import SpecError, clip
 from tvopt_codegen.maths.numeric import Evaluator
 from tvopt_codegen.spec.names import name_problem
@@ -234,9 +234,9 @@ class _Fields:
         self,
         text: object,
         field: str,
-        names: Mapping[str, sp.Expr],
+        names: Mapping[str, sx.Expr],
         bound: dict[str, int] | None = None,
-    ) -> sp.Expr:
+    ) -> sx.Expr:
         if not isinstance(text, str):
             raise self.fail(field, f"expected an expression string, got {shown(text)}")
         try:

@@ -2,7 +2,7 @@
 
 The plant's state is ``(q, q')``; its vector field is ``f = [q'; a]``, ``G = [0; W]``
 with ``a = M^-1 F`` and ``W = M^-1 B``. Those are never formed symbolically (for a
-two-link arm sympy's ``M.inv()`` takes seconds and pages, for three links minutes):
+two-link arm SymPy's ``M.inv()`` takes seconds and pages, for three links minutes):
 they are run-time symbols (:attr:`Mechanics.accelerations`, :attr:`Mechanics.gains`)
 that generated code computes by factoring ``M`` numerically at each evaluation. Where
 ``M`` couples no coordinates (a team of robots), ``a_i`` and ``W_ij`` are zero unless
@@ -14,8 +14,8 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 import numpy as np
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.maths.jet import partial
 from tvopt_codegen.maths.lie import Sampler, connected_groups
 from tvopt_codegen.maths.numeric import Evaluator
@@ -23,15 +23,15 @@ from tvopt_codegen.spec.types import Mechanics
 
 
 def affine_split(
-    exprs: Sequence[sp.Expr], inputs: Sequence[sp.Symbol]
-) -> tuple[tuple[tuple[sp.Expr, ...], ...], tuple[sp.Expr, ...]]:
+    exprs: Sequence[sx.Expr], inputs: Sequence[sx.Expr]
+) -> tuple[tuple[tuple[sx.Expr, ...], ...], tuple[sx.Expr, ...]]:
     """Split expressions affine in ``inputs`` into their coefficients and the rest.
 
     Returns
     -------
-    coefficients : tuple of tuple of sympy.Expr
+    coefficients : tuple of tuple of Expr
         ``d expr_i / d u_j``, row by row.
-    rest : tuple of sympy.Expr
+    rest : tuple of Expr
         Each expression at ``u = 0``.
 
     Raises
@@ -44,7 +44,7 @@ def affine_split(
     for i, expr in enumerate(exprs):
         row = []
         for u in inputs:
-            coefficient = partial(expr, u) if u in expr.free_symbols else sp.Integer(0)
+            coefficient = partial(expr, u) if u in expr.free_symbols else sx.ZERO
             if coefficient.free_symbols & present:
                 raise ValueError(
                     f"entry {i} is not affine in the inputs: the coefficient of {u.name!r} "
@@ -52,17 +52,17 @@ def affine_split(
                 )
             row.append(coefficient)
         rows.append(tuple(row))
-    zero = dict.fromkeys(inputs, sp.Integer(0))
+    zero = dict.fromkeys(inputs, sx.ZERO)
     return tuple(rows), tuple(expr.xreplace(zero) for expr in exprs)
 
 
 def mechanics_of(
     coordinates: tuple[str, ...],
     rates: tuple[str, ...],
-    mass: tuple[tuple[sp.Expr, ...], ...],
-    forces: tuple[sp.Expr, ...],
-    gain: tuple[tuple[sp.Expr, ...], ...],
-    definitions: tuple[tuple[str, sp.Symbol, sp.Expr], ...] = (),
+    mass: tuple[tuple[sx.Expr, ...], ...],
+    forces: tuple[sx.Expr, ...],
+    gain: tuple[tuple[sx.Expr, ...], ...],
+    definitions: tuple[tuple[str, sx.Expr, sx.Expr], ...] = (),
 ) -> Mechanics:
     """The :class:`Mechanics` record with its run-time symbols (zero where structurally zero).
 
@@ -76,20 +76,18 @@ def mechanics_of(
         for i in group:
             block_of[i] = number
 
-    def reaches(column: Sequence[sp.Expr]) -> set[int]:
+    def reaches(column: Sequence[sx.Expr]) -> set[int]:
         return {block_of[i] for i, entry in enumerate(column) if entry != 0}
 
     force_blocks = reaches(forces)
     m = len(gain[0]) if gain else 0
     gain_blocks = [reaches([gain[i][j] for i in range(n)]) for j in range(m)]
     accelerations = tuple(
-        sp.Symbol(f"_ddq{i}", real=True) if block_of[i] in force_blocks else sp.Integer(0)
-        for i in range(n)
+        sx.symbol(f"_ddq{i}") if block_of[i] in force_blocks else sx.ZERO for i in range(n)
     )
     gains = tuple(
         tuple(
-            sp.Symbol(f"_W{i}_{j}", real=True) if block_of[i] in gain_blocks[j] else sp.Integer(0)
-            for j in range(m)
+            sx.symbol(f"_W{i}_{j}") if block_of[i] in gain_blocks[j] else sx.ZERO for j in range(m)
         )
         for i in range(n)
     )
@@ -106,16 +104,16 @@ def mechanics_of(
     )
 
 
-def implicit_dynamics(mechanics: Mechanics, inputs: Sequence[str]) -> list[sp.Expr]:
+def implicit_dynamics(mechanics: Mechanics, inputs: Sequence[str]) -> list[sx.Expr]:
     """The right-hand sides of ``(q, q')``: ``q_i' = rate_i``, ``rate_i' = a_i + W_i u``."""
-    u = [sp.Symbol(name, real=True) for name in inputs]
-    rows: list[sp.Expr] = [sp.Symbol(name, real=True) for name in mechanics.rates]
+    u = sx.symbols(inputs)
+    rows: list[sx.Expr] = sx.symbols(mechanics.rates)
     for a, gains in zip(mechanics.accelerations, mechanics.gains, strict=True):
-        rows.append(a + sp.Add(*(w * uj for w, uj in zip(gains, u, strict=True))))
+        rows.append(a + sx.Add(*(w * uj for w, uj in zip(gains, u, strict=True))))
     return rows
 
 
-def evaluator(mechanics: Mechanics, values: Mapping[sp.Symbol, object]) -> Evaluator:
+def evaluator(mechanics: Mechanics, values: Mapping[sx.Expr, object]) -> Evaluator:
     """An evaluator of ``values`` that also knows the mechanics' definitions."""
     evaluate = Evaluator(values)
     for symbol, expr in mechanics.definitions:
@@ -123,12 +121,12 @@ def evaluator(mechanics: Mechanics, values: Mapping[sp.Symbol, object]) -> Evalu
     return evaluate
 
 
-def reserved(index: int) -> sp.Symbol:
+def reserved(index: int) -> sx.Expr:
     """The reserved symbol of the ``index``-th definition (no spec name starts with ``_``)."""
-    return sp.Symbol(f"_let{index}", real=True)
+    return sx.symbol(f"_let{index}")
 
 
-def _at(evaluate: Evaluator, expr: sp.Expr, points: int) -> np.ndarray:
+def _at(evaluate: Evaluator, expr: sx.Expr, points: int) -> np.ndarray:
     value = np.asarray(evaluate(expr))
     if np.iscomplexobj(value):
         value = np.where(np.abs(value.imag) > 1e-12, np.nan, value.real)
@@ -136,7 +134,7 @@ def _at(evaluate: Evaluator, expr: sp.Expr, points: int) -> np.ndarray:
 
 
 def mass_matrix_at(
-    mechanics: Mechanics, values: Mapping[sp.Symbol, object], points: int = 1
+    mechanics: Mechanics, values: Mapping[sx.Expr, object], points: int = 1
 ) -> np.ndarray:
     """``M`` at ``points`` points (values: arrays of that length or floats), shape (P, n, n)."""
     evaluate = evaluator(mechanics, values)
@@ -151,22 +149,22 @@ def mass_matrix_at(
 
 
 def implicit_values(
-    mechanics: Mechanics, values: Mapping[sp.Symbol, object], points: int = 1
-) -> dict[sp.Symbol, np.ndarray]:
+    mechanics: Mechanics, values: Mapping[sx.Expr, object], points: int = 1
+) -> dict[sx.Expr, np.ndarray]:
     """The run-time symbols' values at points: ``a = M^-1 F``, ``W = M^-1 B`` solved numerically.
 
     Parameters
     ----------
     mechanics : Mechanics
         The mass-matrix form.
-    values : mapping of sympy.Symbol to array or float
+    values : mapping of Symbol to array or float
         The states and parameters (arrays of length ``points``, or floats).
     points : int
         How many points.
 
     Returns
     -------
-    dict of sympy.Symbol to numpy.ndarray
+    dict of Symbol to numpy.ndarray
         One array of length ``points`` per run-time symbol; NaN where ``M`` is singular
         or an entry is undefined (the callers' samplers skip such points).
     """
@@ -174,8 +172,8 @@ def implicit_values(
 
 
 def solved_at(
-    mechanics: Mechanics, values: Mapping[sp.Symbol, object], points: int = 1
-) -> tuple[dict[sp.Symbol, np.ndarray], np.ndarray, np.ndarray]:
+    mechanics: Mechanics, values: Mapping[sx.Expr, object], points: int = 1
+) -> tuple[dict[sx.Expr, np.ndarray], np.ndarray, np.ndarray]:
     """:func:`implicit_values`, with ``M`` (shape (P, n, n)) and ``[F | B]`` (P, n, m + 1).
 
     The matrices it solved with, for checks that need them at the same points
@@ -204,14 +202,14 @@ def solved_at(
             except np.linalg.LinAlgError:
                 pass  # singular here: NaN
     # The definitions too: M, F and B read them, and a sampler evaluating those needs them.
-    out: dict[sp.Symbol, np.ndarray] = {
+    out: dict[sx.Expr, np.ndarray] = {
         symbol: _at(evaluate, symbol, points) for symbol, _ in mechanics.definitions
     }
     for i in range(n):
-        if isinstance(mechanics.accelerations[i], sp.Symbol):
+        if mechanics.accelerations[i].is_Symbol:
             out[mechanics.accelerations[i]] = solution[:, i, 0]
         for j in range(m):
-            if isinstance(mechanics.gains[i][j], sp.Symbol):
+            if mechanics.gains[i][j].is_Symbol:
                 out[mechanics.gains[i][j]] = solution[:, i, j + 1]
     return out, mass, rhs
 

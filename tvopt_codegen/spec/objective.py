@@ -9,13 +9,19 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-import sympy as sp
-
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.spec.fields import _Fields, shown
 from tvopt_codegen.spec.fields import suggestion as _suggestion
 from tvopt_codegen.spec.names import name_problem
 from tvopt_codegen.spec.parse import ExpressionError, parse_comparison
-from tvopt_codegen.spec.types import ESTIMATOR_KINDS, TIME, Barrier, Constraint, Estimator, symbol
+from tvopt_codegen.spec.types import (
+    ESTIMATOR_KINDS,
+    Barrier,
+    Constraint,
+    Estimator,
+    symbol,
+    time_symbol,
+)
 
 
 class _ObjectiveReader(_Fields):
@@ -54,10 +60,10 @@ class _ObjectiveReader(_Fields):
         self,
         data: Mapping[str, Any],
         outputs: tuple[str, ...],
-        signals: list[tuple[str, sp.Expr]],
-        reference_syms: dict[str, sp.Symbol],
-        param_syms: dict[str, sp.Symbol],
-    ) -> tuple[sp.Expr, dict[str, sp.Expr]]:
+        signals: list[tuple[str, sx.Expr]],
+        reference_syms: dict[str, sx.Expr],
+        param_syms: dict[str, sx.Expr],
+    ) -> tuple[sx.Expr, dict[str, sx.Expr]]:
         """``[objective]``: ``f0``, and the names it (and every constraint) may use.
 
         Parameters
@@ -66,16 +72,16 @@ class _ObjectiveReader(_Fields):
             The whole spec document.
         outputs : tuple of str
             The outputs' names.
-        signals : list of (str, sympy.Expr)
+        signals : list of (str, Expr)
             The signals, as :meth:`read_signals` read them.
-        reference_syms, param_syms : dict of str to sympy.Symbol
+        reference_syms, param_syms : dict of str to Symbol
             The references' and parameters' symbols, by name.
 
         Returns
         -------
-        objective : sympy.Expr
+        objective : Expr
             ``f0``.
-        names : dict of str to sympy.Expr
+        names : dict of str to Expr
             ``t``, the parameters, outputs, signals and references, by name.
 
         Raises
@@ -85,8 +91,8 @@ class _ObjectiveReader(_Fields):
         """
         objective_table = self.sub(data, "objective", "objective")
         self.table(objective_table, "objective", {"f0"}, {"f0"})
-        objective_names: dict[str, sp.Expr] = (
-            {"t": TIME}
+        objective_names: dict[str, sx.Expr] = (
+            {"t": time_symbol()}
             | param_syms
             | {o: symbol(o) for o in outputs}
             | {key: symbol(key) for key, _ in signals}
@@ -95,9 +101,9 @@ class _ObjectiveReader(_Fields):
         objective = self.expression(objective_table["f0"], "objective.f0", objective_names)
         return objective, objective_names
 
-    def read_signals(self, entries: Any, names: dict[str, sp.Expr]) -> list[tuple[str, sp.Expr]]:
+    def read_signals(self, entries: Any, names: dict[str, sx.Expr]) -> list[tuple[str, sx.Expr]]:
         """``[signals]``, in file order; ``names`` holds t, the parameters and references."""
-        signals: list[tuple[str, sp.Expr]] = []
+        signals: list[tuple[str, sx.Expr]] = []
         for key, text, bound, where in entries:
             expr = self.expression(text, where, names, bound)
             signals.append((key, expr))
@@ -107,7 +113,7 @@ class _ObjectiveReader(_Fields):
         return signals
 
     def read_constraints(
-        self, data: Mapping[str, Any], names: Mapping[str, sp.Expr]
+        self, data: Mapping[str, Any], names: Mapping[str, sx.Expr]
     ) -> tuple[tuple[Constraint, ...], Barrier | None, bool]:
         """``[constraints]``: one comparison per key, the barrier, ``allow_nonconvex``."""
         table = self.sub(data, "constraints", "constraints")
@@ -170,11 +176,11 @@ class _ObjectiveReader(_Fields):
         self,
         table: Mapping[str, Any],
         references: tuple[str, ...],
-        param_syms: Mapping[str, sp.Expr],
-    ) -> tuple[tuple[str, sp.Expr], ...]:
+        param_syms: Mapping[str, sx.Expr],
+    ) -> tuple[tuple[str, sx.Expr], ...]:
         """The ``nominal`` closed forms, in t and the parameters, by reference name."""
         nominal = self.sub(table, "nominal", "references.nominal") if table else {}
-        names = {"t": TIME} | dict(param_syms)
+        names = {"t": time_symbol()} | dict(param_syms)
         result = []
         for key, text, bound, where in self.entries(nominal, "references.nominal"):
             if key not in references:

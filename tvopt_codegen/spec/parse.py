@@ -1,9 +1,11 @@
-"""Safe parsing of spec expressions into sympy objects.
+"""Safe parsing of spec expressions into the process's engine's expressions.
 
 Spec text is never handed to ``eval``, ``exec``, ``sympify`` or ``parse_expr``: those
 run Python. Instead :func:`parse_expression` parses with ``ast.parse(mode="eval")``,
-walks an allow-list of node types, and builds sympy objects directly. Size, nesting,
-literal magnitude and exponents are bounded so that no spec can hang the tool.
+walks an allow-list of node types, and builds expressions directly through
+:mod:`tvopt_codegen.symbolic` (SymEngine's or SymPy's, the same on both: decimals are
+exact rationals on either). Size, nesting, literal magnitude and exponents are bounded
+so that no spec can hang the tool.
 """
 
 from __future__ import annotations
@@ -14,10 +16,11 @@ import io
 import math
 import re
 import tokenize
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
+from fractions import Fraction
 
-import sympy as sp
+from tvopt_codegen import symbolic as sx
 
 #: Longest expression text accepted, in characters.
 MAX_EXPRESSION_LENGTH = 1_000_000
@@ -41,31 +44,75 @@ MIN_LITERAL = 1e-30
 #: Largest magnitude of a numeric exponent.
 MAX_EXPONENT = 64
 
-_Builder = Callable[..., sp.Expr]
+_Builder = Callable[..., sx.Expr]
 
 #: The functions a spec may call, with their arity. All are smooth on the interior of
 #: their domain, which the method needs (f0 must be C-infinity).
-FUNCTIONS: Mapping[str, tuple[_Builder, int]] = {
-    "sin": (sp.sin, 1),
-    "cos": (sp.cos, 1),
-    "tan": (sp.tan, 1),
-    "asin": (sp.asin, 1),
-    "acos": (sp.acos, 1),
-    "atan": (sp.atan, 1),
-    "atan2": (sp.atan2, 2),
-    "sinh": (sp.sinh, 1),
-    "cosh": (sp.cosh, 1),
-    "tanh": (sp.tanh, 1),
-    "asinh": (sp.asinh, 1),
-    "acosh": (sp.acosh, 1),
-    "atanh": (sp.atanh, 1),
-    "exp": (sp.exp, 1),
-    "log": (sp.log, 1),
-    "sqrt": (sp.sqrt, 1),
+ARITIES: Mapping[str, int] = {
+    "sin": 1,
+    "cos": 1,
+    "tan": 1,
+    "asin": 1,
+    "acos": 1,
+    "atan": 1,
+    "atan2": 2,
+    "sinh": 1,
+    "cosh": 1,
+    "tanh": 1,
+    "asinh": 1,
+    "acosh": 1,
+    "atanh": 1,
+    "exp": 1,
+    "log": 1,
+    "sqrt": 1,
 }
 
-#: Named constants a spec may use.
-CONSTANTS: Mapping[str, sp.Expr] = {"pi": sp.pi}
+
+class _EngineFunctions(Mapping[str, tuple[_Builder, int]]):
+    """Each spec function's name -> (the engine's function, arity), read when asked.
+
+    Looked up at each access, not at import: the engine may change within a process
+    (:func:`tvopt_codegen.symbolic.using`), and importing this module builds nothing.
+    """
+
+    def __getitem__(self, name: str) -> tuple[_Builder, int]:
+        return sx.FUNCTIONS[name], ARITIES[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(ARITIES)
+
+    def __len__(self) -> int:
+        return len(ARITIES)
+
+    def __contains__(self, name: object) -> bool:
+        return name in ARITIES
+
+
+class _EngineConstants(Mapping[str, sx.Expr]):
+    """Each named constant -> the engine's value, read when asked (as the functions are)."""
+
+    _NAMES = ("pi",)
+
+    def __getitem__(self, name: str) -> sx.Expr:
+        if name not in self._NAMES:
+            raise KeyError(name)
+        return getattr(sx, name)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._NAMES)
+
+    def __len__(self) -> int:
+        return len(self._NAMES)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._NAMES
+
+
+#: The functions a spec may call: name -> (the engine's function, arity).
+FUNCTIONS: Mapping[str, tuple[_Builder, int]] = _EngineFunctions()
+
+#: Named constants a spec may use: name -> the engine's value.
+CONSTANTS: Mapping[str, sx.Expr] = _EngineConstants()
 
 
 @dataclass(frozen=True)
@@ -79,8 +126,8 @@ class ExpressionError(Exception):
         return f"column {self.column}: {self.message}"
 
 
-def _literal(value: object, column: int) -> sp.Expr:
-    """Turn a Python literal from the parse tree into an exact sympy number."""
+def _literal(value: object, column: int) -> sx.Expr:
+    """Turn a Python literal from the parse tree into an exact number of the engine."""
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise ExpressionError(column, f"unsupported literal {value!r}")
     if isinstance(value, float) and not math.isfinite(value):
@@ -91,14 +138,16 @@ def _literal(value: object, column: int) -> sp.Expr:
     if magnitude and magnitude < MIN_LITERAL:
         raise ExpressionError(column, f"number {value!r} is below {MIN_LITERAL:g} in magnitude")
     if isinstance(value, int):
-        return sp.Integer(value)
+        return sx.Integer(value)
     # The shortest repr of a float is the decimal the user wrote (up to trailing
     # zeros); keeping it as a rational keeps the derivation exact and the report
-    # readable, and printing p/q rounds to the same double as the literal.
-    return sp.Rational(repr(value))
+    # readable, and printing p/q rounds to the same double as the literal. The same
+    # rational on both engines: 0.0 is zero (1/0.0 is refused), 2.0 an integer exponent.
+    exact = Fraction(repr(value))
+    return sx.Rational(exact.numerator, exact.denominator)
 
 
-def _power(base: sp.Expr, exponent: sp.Expr, column: int) -> sp.Expr:
+def _power(base: sx.Expr, exponent: sx.Expr, column: int) -> sx.Expr:
     """Build ``base**exponent``, refusing numeric exponents that could explode."""
     if exponent.is_Number:
         if abs(exponent) > MAX_EXPONENT:
@@ -106,16 +155,16 @@ def _power(base: sp.Expr, exponent: sp.Expr, column: int) -> sp.Expr:
         if base.is_Number and base == 0 and exponent.is_negative:
             raise ExpressionError(column, "zero raised to a negative power")
         if base.is_Rational and exponent.is_Integer:
-            # Checked before sympy folds it: (((9**64)**64)**64)**64 has 10^8 digits.
+            # Checked before the engine folds it: (((9**64)**64)**64)**64 has 10^8 digits.
             bits = abs(int(exponent)) * max(_bits(base), 1)
             if bits > MAX_CONSTANT_BITS:
                 raise _too_large(column, bits)
-    return _bounded(sp.Pow(base, exponent), column)
+    return _bounded(sx.Pow(base, exponent), column)
 
 
-def _bits(number: sp.Expr) -> int:
+def _bits(number: sx.Expr) -> int:
     """Bits of the larger of a rational's numerator and denominator."""
-    p, q = sp.fraction(number)
+    p, q = number.as_numer_denom()
     return max(abs(int(p)).bit_length(), abs(int(q)).bit_length())
 
 
@@ -125,7 +174,7 @@ def _too_large(column: int, bits: int) -> ExpressionError:
     )
 
 
-def _bounded(value: sp.Expr, column: int) -> sp.Expr:
+def _bounded(value: sx.Expr, column: int) -> sx.Expr:
     """``value``, unless constant folding made an exact number too large to be useful."""
     if value.is_Rational:
         bits = _bits(value)
@@ -172,14 +221,14 @@ NO_INDEXING = Indexing({}, {}, {})
 
 
 class _TreeBuilder:
-    """Walks a parse tree and builds the sympy expression, rejecting anything else."""
+    """Walks a parse tree and builds the engine's expression, rejecting anything else."""
 
-    def __init__(self, names: Mapping[str, sp.Expr], indexing: Indexing) -> None:
+    def __init__(self, names: Mapping[str, sx.Expr], indexing: Indexing) -> None:
         self.names = names
         self.indexing = indexing
         self.sum_terms = 0
 
-    def build(self, node: ast.AST, depth: int) -> sp.Expr:
+    def build(self, node: ast.AST, depth: int) -> sx.Expr:
         # The source was wrapped in one pair of parentheses: offsets are already 1-based.
         column = max(1, getattr(node, "col_offset", 1))
         if depth > MAX_DEPTH:
@@ -203,9 +252,9 @@ class _TreeBuilder:
             return self.subscript(node, column)
         raise ExpressionError(column, _describe_forbidden(node))
 
-    def name(self, ident: str, column: int) -> sp.Expr:
+    def name(self, ident: str, column: int) -> sx.Expr:
         if ident in self.indexing.bound:
-            return sp.Integer(self.indexing.bound[ident])
+            return sx.Integer(self.indexing.bound[ident])
         if ident in self.indexing.counts:
             raise ExpressionError(
                 column,
@@ -228,7 +277,7 @@ class _TreeBuilder:
         close = difflib.get_close_matches(ident, known, n=1, cutoff=0.7)
         return f": did you mean {close[0]!r}?" if close else ""
 
-    def binop(self, node: ast.BinOp, depth: int, column: int) -> sp.Expr:
+    def binop(self, node: ast.BinOp, depth: int, column: int) -> sx.Expr:
         if isinstance(node.op, ast.BitXor):
             raise ExpressionError(column, "'^' is not a power; write '**'")
         left = self.build(node.left, depth + 1)
@@ -247,7 +296,7 @@ class _TreeBuilder:
             return _power(left, right, column)
         raise ExpressionError(column, f"operator {type(node.op).__name__} is not allowed")
 
-    def subscript(self, node: ast.Subscript, column: int) -> sp.Expr:
+    def subscript(self, node: ast.Subscript, column: int) -> sx.Expr:
         """``x[k]``: the member ``k mod len(x)`` of an indexed family."""
         families = self.indexing.families
         if not isinstance(node.value, ast.Name) or node.value.id not in families:
@@ -303,7 +352,7 @@ class _TreeBuilder:
             and node.args[0].id in self.indexing.counts
         )
 
-    def indexed_sum(self, node: ast.Call, depth: int, column: int) -> sp.Expr:
+    def indexed_sum(self, node: ast.Call, depth: int, column: int) -> sx.Expr:
         """``sum(i, body)``: body added up over every value of the index ``i``."""
         counts = self.indexing.counts
         if len(node.args) != 2 or node.keywords or not isinstance(node.args[0], ast.Name):
@@ -325,16 +374,16 @@ class _TreeBuilder:
                 terms.append(self.build(node.args[1], depth + 1))
         finally:
             self.indexing = outer
-        return sp.Add(*terms)
+        return sx.Add(*terms)
 
-    def call(self, node: ast.Call, depth: int, column: int) -> sp.Expr:
+    def call(self, node: ast.Call, depth: int, column: int) -> sx.Expr:
         if isinstance(node.func, ast.Name) and self.indexing.counts:
             if node.func.id == "sum":
                 return self.indexed_sum(node, depth, column)
             if node.func.id == "len":
                 if not self.is_len(node):
                     raise ExpressionError(column, "len() takes one index name")
-                return sp.Integer(self.integer(node, column))
+                return sx.Integer(self.integer(node, column))
         if not isinstance(node.func, ast.Name) or node.func.id not in FUNCTIONS:
             what = ast.unparse(node.func)
             what = what if len(what) <= 40 else what[:37] + "..."
@@ -353,16 +402,12 @@ class _TreeBuilder:
         result = _trig_of_pi_multiple(func, args[0]) if arity == 1 else None
         if result is None:
             result = func(*args)
-        if result.has(sp.zoo, sp.nan, sp.oo, -sp.oo):
+        if result.has(sx.zoo, sx.nan, sx.oo, -sx.oo):
             raise ExpressionError(column, f"{node.func.id}() is undefined for these arguments")
         return result
 
 
-#: sin, cos and tan, with the sign each gives a negated argument.
-_PI_PERIODIC: Mapping[object, int] = {sp.sin: -1, sp.cos: 1, sp.tan: -1}
-
-
-def _trig_of_pi_multiple(func: _Builder, arg: sp.Expr) -> sp.Expr | None:
+def _trig_of_pi_multiple(func: _Builder, arg: sx.Expr) -> sx.Expr | None:
     """``func(arg)`` for sin, cos or tan of pi times a non-constant factor, as sympy gives it.
 
     sympy's ``eval`` asks whether the factor of pi is an integer (for tan, twice) through
@@ -370,16 +415,21 @@ def _trig_of_pi_multiple(func: _Builder, arg: sp.Expr) -> sp.Expr | None:
     of loading a team's spec. A spec's symbols are real and none of its functions is
     integer-valued, so the answer is never yes, and ``eval`` then returns the function
     unchanged after pulling out the argument's sign: done here without asking. None
-    where that does not apply (sympy evaluates as usual).
+    where that does not apply (sympy evaluates as usual), and always on SymEngine, which
+    has no assumptions to ask.
     """
-    sign = _PI_PERIODIC.get(func)
+    if sx.SYMENGINE:
+        return None
+    # sin, cos and tan, with the sign each gives a negated argument.
+    sign = {sx.sin: -1, sx.cos: 1, sx.tan: -1}.get(func)
+    pi = sx.pi
     if (
         sign is None
         or not arg.is_Mul
-        or sp.pi not in arg.args
+        or pi not in arg.args
         or not arg.free_symbols
-        or any(a.has(sp.pi) for a in arg.args if a is not sp.pi)
-        or arg.has(sp.I)
+        or any(a.has(pi) for a in arg.args if a is not pi)
+        or arg.has(sx.I)
         or any(s.is_integer is not None for s in arg.free_symbols)
     ):
         return None
@@ -413,24 +463,25 @@ def _describe_forbidden(node: ast.AST) -> str:
 
 
 def parse_expression(
-    text: str, names: Mapping[str, sp.Expr], indexing: Indexing = NO_INDEXING
-) -> sp.Expr:
-    """Parse one spec expression into sympy without evaluating any Python.
+    text: str, names: Mapping[str, sx.Expr], indexing: Indexing = NO_INDEXING
+) -> sx.Expr:
+    """Parse one spec expression into the engine's without evaluating any Python.
 
     Parameters
     ----------
     text : str
         The expression as written in the spec, e.g. ``"v*cos(theta)"``.
-    names : Mapping[str, sympy.Expr]
-        The names the expression may use and the sympy objects they stand for.
+    names : Mapping[str, Expr]
+        The names the expression may use and the expressions they stand for.
     indexing : Indexing, optional
         Indices of a spec with repeated parts: then ``x[i + 1]``, ``sum(i, ...)`` and
         ``len(i)`` are understood.
 
     Returns
     -------
-    sympy.Expr
-        The expression, exact (decimal literals become rationals).
+    Expr
+        The expression, of the process's engine, exact (decimal literals become
+        rationals).
 
     Raises
     ------
@@ -460,14 +511,14 @@ def parse_expression(
         raise ExpressionError(_deepest_allowed(flat), f"nesting deeper than {MAX_DEPTH}")
     builder = _TreeBuilder(names, indexing)
     expr = _parse_chain(flat, 0, builder, ("+", "-"))
-    if expr.has(sp.zoo, sp.nan, sp.oo, -sp.oo):
+    if expr.has(sx.zoo, sx.nan, sx.oo, -sx.oo):
         raise ExpressionError(1, "expression is infinite or undefined")
     return expr
 
 
 def parse_comparison(
-    text: str, names: Mapping[str, sp.Expr], indexing: Indexing = NO_INDEXING
-) -> tuple[str, sp.Expr, sp.Expr]:
+    text: str, names: Mapping[str, sx.Expr], indexing: Indexing = NO_INDEXING
+) -> tuple[str, sx.Expr, sx.Expr]:
     """Parse one constraint, ``lhs <= rhs``, ``lhs >= rhs`` or ``lhs == rhs``.
 
     The comparison is found at the top level (outside parentheses); each side is parsed
@@ -477,8 +528,8 @@ def parse_comparison(
     -------
     op : str
         ``"<="``, ``">="`` or ``"=="``.
-    lhs, rhs : sympy.Expr
-        The two sides.
+    lhs, rhs : Expr
+        The two sides, of the process's engine.
 
     Raises
     ------
@@ -526,7 +577,7 @@ def parse_comparison(
     return op, lhs, rhs
 
 
-def _parse_piece(text: str, offset: int, builder: _TreeBuilder) -> sp.Expr:
+def _parse_piece(text: str, offset: int, builder: _TreeBuilder) -> sx.Expr:
     """Parse ``text``, which starts at column ``offset + 1`` of the expression."""
     try:
         tree = ast.parse(f"({text})", mode="eval")
@@ -551,7 +602,7 @@ def _parse_piece(text: str, offset: int, builder: _TreeBuilder) -> sp.Expr:
 
 def _parse_chain(
     text: str, offset: int, builder: _TreeBuilder, operators: tuple[str, str], depth: int = 0
-) -> sp.Expr:
+) -> sx.Expr:
     """Parse ``text``, splitting a long chain of ``operators`` at its top level.
 
     A sum (``+ -``) or product (``* /``) of thousands of terms is associative, not
@@ -590,7 +641,7 @@ def _parse_chain(
                     raise ExpressionError(offset + start + 1, "division by zero")
                 value = 1 / value
             values.append(value)
-    combined = sp.Add(*values) if operators == ("+", "-") else sp.Mul(*values)
+    combined = sx.Add(*values) if operators == ("+", "-") else sx.Mul(*values)
     return _bounded(combined, offset + 1)
 
 

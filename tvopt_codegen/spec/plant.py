@@ -10,8 +10,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
-import sympy as sp
-
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.spec.fields import _Entry, _Fields
 from tvopt_codegen.spec.fields import suggestion as _suggestion
 from tvopt_codegen.spec.implicit import affine_split, implicit_dynamics, mechanics_of, reserved
@@ -112,24 +111,24 @@ class _PlantReader(_Fields):
         )
 
     def read_plant(
-        self, system: _System, param_syms: dict[str, sp.Symbol]
-    ) -> tuple[list[sp.Expr], Mechanics | None, tuple[sp.Expr, ...]]:
+        self, system: _System, param_syms: dict[str, sx.Expr]
+    ) -> tuple[list[sx.Expr], Mechanics | None, tuple[sx.Expr, ...]]:
         """The plant's expressions: right-hand sides (or mechanics) and outputs.
 
         Parameters
         ----------
         system : _System
             What :meth:`read_system_names` read.
-        param_syms : dict of str to sympy.Symbol
+        param_syms : dict of str to Symbol
             The parameters' symbols, by name.
 
         Returns
         -------
-        dynamics : list of sympy.Expr
+        dynamics : list of Expr
             One right-hand side per state, in the states' order.
         mechanics : Mechanics or None
             The mass-matrix form, for a plant given by ``[system.mechanics]``.
-        output_exprs : tuple of sympy.Expr
+        output_exprs : tuple of Expr
             Each output's expression in the states and parameters.
 
         Raises
@@ -145,7 +144,7 @@ class _PlantReader(_Fields):
             dynamics = implicit_dynamics(mechanics, system.inputs)
         else:
             dynamics = self.read_dynamics(system.table, system.states, system.inputs, param_syms)
-        state_names: dict[str, sp.Expr] = {n: symbol(n) for n in system.states} | param_syms
+        state_names: dict[str, sx.Expr] = {n: symbol(n) for n in system.states} | param_syms
         output_exprs = tuple(
             self.expression(text, where, state_names, bound)
             for _, text, bound, where in system.output_entries
@@ -157,10 +156,10 @@ class _PlantReader(_Fields):
         system: Mapping[str, Any],
         states: tuple[str, ...],
         inputs: tuple[str, ...],
-        param_syms: Mapping[str, sp.Symbol],
-    ) -> list[sp.Expr]:
+        param_syms: Mapping[str, sx.Expr],
+    ) -> list[sx.Expr]:
         """``[system.dynamics]``: one right-hand side per state, in the states' order."""
-        plant_names: dict[str, sp.Expr] = {n: symbol(n) for n in (*states, *inputs)}
+        plant_names: dict[str, sx.Expr] = {n: symbol(n) for n in (*states, *inputs)}
         plant_names |= param_syms
         dynamics_table = self.sub(system, "dynamics", "system.dynamics")
         dynamics_entries = {
@@ -208,7 +207,7 @@ class _PlantReader(_Fields):
         coordinates: tuple[str, ...],
         rates: tuple[str, ...],
         inputs: tuple[str, ...],
-        param_syms: Mapping[str, sp.Symbol],
+        param_syms: Mapping[str, sx.Expr],
     ) -> Mechanics:
         """``[system.mechanics]``: ``M(q) q'' = F(q, q') + B(q) u``, shapes and names checked.
 
@@ -226,13 +225,13 @@ class _PlantReader(_Fields):
             {"mass_matrix", "forces"},
         )
         n = len(coordinates)
-        q_names: dict[str, sp.Expr] = {c: symbol(c) for c in coordinates} | dict(param_syms)
+        q_names: dict[str, sx.Expr] = {c: symbol(c) for c in coordinates} | dict(param_syms)
         state_names = q_names | {r: symbol(r) for r in rates}
         definitions = self.read_definitions(table, state_names, inputs)
         defined = {name: sym for name, sym, _ in definitions}
         # What each definition reads, transitively: M and B may not reach a rate through one.
         rate_symbols = {symbol(r) for r in rates}
-        moving: set[sp.Symbol] = set()
+        moving: set[sx.Expr] = set()
         for _, sym, expr in definitions:
             if expr.free_symbols & (rate_symbols | moving):
                 moving.add(sym)
@@ -255,9 +254,9 @@ class _PlantReader(_Fields):
     def read_definitions(
         self,
         table: Mapping[str, Any],
-        names: Mapping[str, sp.Expr],
+        names: Mapping[str, sx.Expr],
         inputs: tuple[str, ...],
-    ) -> tuple[tuple[str, sp.Symbol, sp.Expr], ...]:
+    ) -> tuple[tuple[str, sx.Expr, sx.Expr], ...]:
         """``system.mechanics.definitions``: named intermediate values, in file order.
 
         Each is an expression in the coordinates, rates, parameters and the definitions
@@ -288,8 +287,8 @@ class _PlantReader(_Fields):
         return tuple(out)
 
     def matrix(
-        self, value: object, field: str, rows: int, cols: int, names: Mapping[str, sp.Expr]
-    ) -> tuple[tuple[sp.Expr, ...], ...]:
+        self, value: object, field: str, rows: int, cols: int, names: Mapping[str, sx.Expr]
+    ) -> tuple[tuple[sx.Expr, ...], ...]:
         """A ``rows`` x ``cols`` list of lists of expressions (numbers or strings)."""
         if not isinstance(value, list) or len(value) != rows:
             raise self.fail(field, f"expected a list of {rows} rows")
@@ -298,8 +297,8 @@ class _PlantReader(_Fields):
         )
 
     def vector(
-        self, value: object, field: str, size: int, names: Mapping[str, sp.Expr]
-    ) -> tuple[sp.Expr, ...]:
+        self, value: object, field: str, size: int, names: Mapping[str, sx.Expr]
+    ) -> tuple[sx.Expr, ...]:
         """A list of ``size`` expressions, each a number or an expression string."""
         if not isinstance(value, list) or len(value) != size:
             raise self.fail(field, f"expected a list of {size} entries")

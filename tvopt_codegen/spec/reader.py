@@ -19,7 +19,7 @@ from tvopt_codegen.spec.names import module_name_problem
 from tvopt_codegen.spec.objective import _ObjectiveReader
 from tvopt_codegen.spec.plant import _PlantReader
 from tvopt_codegen.spec.settings import _SettingsReader
-from tvopt_codegen.spec.types import TIME, Spec, symbol
+from tvopt_codegen.spec.types import Spec, symbol, time_symbol
 
 # Imported from here before the reader was split into modules.
 __all__ = ["MAX_INDEX_COUNT", "shown", "suggestion"]
@@ -91,7 +91,9 @@ class _Reader(_PlantReader, _ObjectiveReader, _SettingsReader):
         reference_syms = {name: symbol(name) for name in references}
         nominal = self.read_nominal(references_table, references, param_syms)
         estimator = self.read_estimator(references_table) if references else None
-        signals = self.read_signals(signal_entries, {"t": TIME} | param_syms | reference_syms)
+        signals = self.read_signals(
+            signal_entries, {"t": time_symbol()} | param_syms | reference_syms
+        )
         objective, objective_names = self.read_objective(
             data, system.outputs, signals, reference_syms, param_syms
         )

@@ -11,8 +11,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-import sympy as sp
-
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.errors import clip
 from tvopt_codegen.limits import MAX_T_FINAL
 from tvopt_codegen.spec.fields import _Fields, shown
@@ -192,7 +191,7 @@ class _SettingsReader(_Fields):
         self,
         data: Mapping[str, Any],
         outputs: tuple[str, ...],
-        signals: list[tuple[str, sp.Expr]],
+        signals: list[tuple[str, sx.Expr]],
         references: tuple[str, ...],
     ) -> tuple[tuple[tuple[str, str], ...], tuple[tuple[str, str], ...]]:
         """``[simulation]``'s ``agents`` and ``objects``: what the figures draw as pairs."""

@@ -1,25 +1,38 @@
 """What a read spec is: :class:`Spec` and its parts (constraints, barrier, estimator).
 
-Names, numbers and sympy expressions; nothing in it has been derived yet.
+Names, numbers and expressions of the process's engine; nothing in it has been derived
+yet.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import sympy as sp
+from tvopt_codegen import symbolic as sx
 
 #: Most integrators one input may be prolonged by.
 MAX_INTEGRATORS = 8
 
+#: The name of time in every expression.
+TIME_NAME = "t"
 
-#: The symbol for time in every expression.
-TIME = sp.Symbol("t", real=True)
+
+def symbol(name: str) -> sx.Expr:
+    """Return the symbol that stands for a declared name (always real), of the engine."""
+    return sx.symbol(name)
 
 
-def symbol(name: str) -> sp.Symbol:
-    """Return the sympy symbol that stands for a declared name (always real)."""
-    return sp.Symbol(name, real=True)
+def time_symbol() -> sx.Expr:
+    """The symbol for time in every expression, of the engine in use now."""
+    return sx.symbol(TIME_NAME)
+
+
+def __getattr__(name: str) -> sx.Expr:
+    # ``TIME`` is built when asked, of the engine in use then: a symbol built at import
+    # would fix the engine (and import it) before anyone chose one.
+    if name == "TIME":
+        return time_symbol()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 @dataclass(frozen=True)
@@ -120,18 +133,18 @@ class Mechanics:
     ----------
     coordinates, rates : tuple of str
         ``q`` and ``q'``, in order.
-    mass_matrix : tuple of tuple of sympy.Expr
+    mass_matrix : tuple of tuple of Expr
         ``M(q)``, symmetric, row by row.
-    forces : tuple of sympy.Expr
+    forces : tuple of Expr
         ``F(q, q')``, without the inputs.
-    input_matrix : tuple of tuple of sympy.Expr
+    input_matrix : tuple of tuple of Expr
         ``B(q)``, one row per coordinate, one column per input.
-    accelerations : tuple of sympy.Expr
+    accelerations : tuple of Expr
         ``a = M^-1 F``, one per coordinate: a run-time symbol, or 0 where no force
         reaches the coordinate's block of ``M``.
-    gains : tuple of tuple of sympy.Expr
+    gains : tuple of tuple of Expr
         ``W = M^-1 B``, row by row, likewise.
-    definitions : tuple of (sympy.Symbol, sympy.Expr)
+    definitions : tuple of (Symbol, Expr)
         Named intermediate values ``M``, ``F`` and ``B`` may use, in order, each in the
         coordinates, rates, parameters and earlier ones (a robot's link velocities, say):
         reserved symbols ``_let<i>``, evaluated once per evaluation, never substituted.
@@ -141,19 +154,19 @@ class Mechanics:
 
     coordinates: tuple[str, ...]
     rates: tuple[str, ...]
-    mass_matrix: tuple[tuple[sp.Expr, ...], ...]
-    forces: tuple[sp.Expr, ...]
-    input_matrix: tuple[tuple[sp.Expr, ...], ...]
-    accelerations: tuple[sp.Expr, ...]
-    gains: tuple[tuple[sp.Expr, ...], ...]
-    definitions: tuple[tuple[sp.Symbol, sp.Expr], ...] = ()
+    mass_matrix: tuple[tuple[sx.Expr, ...], ...]
+    forces: tuple[sx.Expr, ...]
+    input_matrix: tuple[tuple[sx.Expr, ...], ...]
+    accelerations: tuple[sx.Expr, ...]
+    gains: tuple[tuple[sx.Expr, ...], ...]
+    definitions: tuple[tuple[sx.Expr, sx.Expr], ...] = ()
     definition_names: tuple[str, ...] = ()
 
     @property
-    def opaque(self) -> frozenset[sp.Symbol]:
+    def opaque(self) -> frozenset[sx.Expr]:
         """The run-time symbols: no derivation step may differentiate them."""
         entries = (*self.accelerations, *(w for row in self.gains for w in row))
-        return frozenset(e for e in entries if isinstance(e, sp.Symbol))
+        return frozenset(e for e in entries if e.is_Symbol)
 
 
 @dataclass(frozen=True)
@@ -170,16 +183,16 @@ class Spec:
         Module name and free text.
     states, inputs, outputs : tuple of str
         Declared names, in declaration order.
-    dynamics : tuple of sympy.Expr
+    dynamics : tuple of Expr
         Right-hand side of each state equation, in state order.
-    output_exprs : tuple of sympy.Expr
+    output_exprs : tuple of Expr
         Each output as an expression in the states and parameters.
     parameters : tuple of (str, float)
         Parameter names and default values.
-    signals : tuple of (str, sympy.Expr)
+    signals : tuple of (str, Expr)
         Time signals as explicit expressions in ``t`` and the parameters (references
         to earlier signals already substituted).
-    objective : sympy.Expr
+    objective : Expr
         ``f0`` in the output symbols, signal symbols, parameters and ``t``.
     extension : tuple of (str, int)
         Inputs to prolong and their number of integrators, in input order.
@@ -206,7 +219,7 @@ class Spec:
     references : tuple of str
         Targets measured at run time (``[references] names``): used in signals and the
         objective like signals, their derivative jets supplied with every call.
-    reference_nominal : tuple of (str, sympy.Expr)
+    reference_nominal : tuple of (str, Expr)
         A closed form in ``t`` and the parameters for some references (``nominal``): the
         convexity check, ``simulate`` without samples and the report use it.
     estimator : Estimator or None
@@ -240,12 +253,12 @@ class Spec:
     description: str
     states: tuple[str, ...]
     inputs: tuple[str, ...]
-    dynamics: tuple[sp.Expr, ...]
+    dynamics: tuple[sx.Expr, ...]
     outputs: tuple[str, ...]
-    output_exprs: tuple[sp.Expr, ...]
+    output_exprs: tuple[sx.Expr, ...]
     parameters: tuple[tuple[str, float], ...]
-    signals: tuple[tuple[str, sp.Expr], ...]
-    objective: sp.Expr
+    signals: tuple[tuple[str, sx.Expr], ...]
+    objective: sx.Expr
     extension: tuple[tuple[str, int], ...]
     poles: tuple[complex, ...] | None
     coefficients: tuple[float, ...] | None
@@ -257,7 +270,7 @@ class Spec:
     extension_max_total: int | None = None
     indices: tuple[tuple[str, int], ...] = ()
     references: tuple[str, ...] = ()
-    reference_nominal: tuple[tuple[str, sp.Expr], ...] = ()
+    reference_nominal: tuple[tuple[str, sx.Expr], ...] = ()
     estimator: Estimator | None = None
     constraints: tuple[Constraint, ...] = ()
     barrier: Barrier | None = None
@@ -279,7 +292,7 @@ class Constraint:
         Its key in the spec.
     op : str
         ``"<="``, ``">="`` or ``"=="``.
-    lhs, rhs : sympy.Expr
+    lhs, rhs : Expr
         The two sides, in outputs, signals, references, parameters and ``t``.
     text : str
         As written.
@@ -287,12 +300,12 @@ class Constraint:
 
     name: str
     op: str
-    lhs: sp.Expr
-    rhs: sp.Expr
+    lhs: sx.Expr
+    rhs: sx.Expr
     text: str
 
     @property
-    def g(self) -> sp.Expr:
+    def g(self) -> sx.Expr:
         """``g(y, t) <= 0`` (``a(y, t) = 0`` for an equality): ``lhs - rhs`` or its negative."""
         return self.rhs - self.lhs if self.op == ">=" else self.lhs - self.rhs
 
