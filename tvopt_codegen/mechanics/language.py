@@ -38,8 +38,11 @@ _RECIPROCALS: tuple[tuple[type[sp.Function], Callable[[sp.Expr], sp.Expr]], ...]
     (sp.coth, lambda a: sp.cosh(a) / sp.sinh(a)),
 )
 
-#: The sympy classes of the spec language's functions (sqrt is a power in sympy).
-_ALLOWED_CLASSES = frozenset(f for f, _ in FUNCTIONS.values() if isinstance(f, type))
+#: The sympy classes of the spec language's functions (sqrt is a power in sympy): SymPy's
+#: whatever the engine, as what this module checks comes from SymPy.
+_ALLOWED_CLASSES = frozenset(
+    getattr(sp, name) for name in FUNCTIONS if isinstance(getattr(sp, name), type)
+)
 _ALLOWED_TEXT = ", ".join(sorted(FUNCTIONS))
 
 

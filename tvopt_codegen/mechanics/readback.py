@@ -1,8 +1,9 @@
 """The last check of :func:`~tvopt_codegen.mechanics.spec_from_sympy`: the spec reads back.
 
 The spec mapping is read by the project's own reader (and written as TOML and read
-again), and every expression it reads is compared with the one that was written: equal
-as trees, else equal at random points. A difference is one
+again), and every expression it reads (of the process's engine, brought to SymPy at the
+border) is compared with the one that was written: equal as trees, else equal at random
+points. A difference is one
 :class:`~tvopt_codegen.errors.SpecError` naming the field, and no spec is returned.
 """
 
@@ -18,6 +19,7 @@ from tvopt_codegen.errors import clip
 from tvopt_codegen.maths.numeric import Evaluator
 from tvopt_codegen.mechanics.language import SOURCE_SYMPY, _fail
 from tvopt_codegen.mechanics.toml_text import spec_toml
+from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
 
 def _rational(expr: sp.Expr) -> sp.Expr:
@@ -44,9 +46,11 @@ def _same(ours: sp.Expr, read: sp.Expr) -> bool:
         s: rng.uniform(0.3, 1.7, points) * np.where(rng.uniform(size=points) < 0.5, -1, 1)
         for s in symbols
     }
-    evaluate = Evaluator(values)
-    a = np.broadcast_to(np.asarray(evaluate(ours), dtype=complex), (points,))
-    b = np.broadcast_to(np.asarray(evaluate(read), dtype=complex), (points,))
+    # The evaluator reads the engine's expressions: SymPy's, or ours brought over.
+    memo: dict[Any, Any] = {}
+    evaluate = Evaluator({from_sympy(s, memo): v for s, v in values.items()})
+    a = np.broadcast_to(np.asarray(evaluate(from_sympy(ours, memo)), dtype=complex), (points,))
+    b = np.broadcast_to(np.asarray(evaluate(from_sympy(read, memo)), dtype=complex), (points,))
     defined = np.isfinite(a) & np.isfinite(b)
     if not np.array_equal(np.isfinite(a), np.isfinite(b)):
         return False
@@ -70,22 +74,29 @@ def _reads_back(
     spec_toml(spec)  # raises if the TOML would not read back as this mapping
     mech = read.mechanics
     assert mech is not None
+    # The reader builds the engine's expressions; ours are SymPy's (identity on SymPy).
+    memo: dict[Any, Any] = {}
+
+    def sympy_of(expr: Any) -> sp.Expr:
+        return to_sympy(expr, memo)
+
     pairs: list[tuple[str, sp.Expr, sp.Expr]] = []
     for i, row in enumerate(mass):
         for j, entry in enumerate(row):
-            pairs.append((f"mass_matrix[{i}][{j}]", entry, mech.mass_matrix[i][j]))
+            pairs.append((f"mass_matrix[{i}][{j}]", entry, sympy_of(mech.mass_matrix[i][j])))
     for i, entry in enumerate(forces):
-        pairs.append((f"forces[{i}]", entry, mech.forces[i]))
+        pairs.append((f"forces[{i}]", entry, sympy_of(mech.forces[i])))
     for i, gains in enumerate(gain):
         for j, entry in enumerate(gains):
-            pairs.append((f"input_matrix[{i}][{j}]", entry, mech.input_matrix[i][j]))
+            pairs.append((f"input_matrix[{i}][{j}]", entry, sympy_of(mech.input_matrix[i][j])))
     for where, ours, theirs in pairs:
         if not _same(ours, theirs):
             raise _fail(
                 f"system.mechanics.{where}",
                 f"{clip(sp.sstr(ours))} would read back as {clip(sp.sstr(theirs))}",
             )
-    for (key, value), read_expr in zip(outputs.items(), read.output_exprs, strict=True):
+    for (key, value), read_output in zip(outputs.items(), read.output_exprs, strict=True):
+        read_expr = sympy_of(read_output)
         if not isinstance(value, str) and not _same(value, read_expr):
             raise _fail(
                 f"system.outputs.{key}",
