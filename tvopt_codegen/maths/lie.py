@@ -16,15 +16,16 @@ from dataclasses import dataclass
 from typing import TypeVar
 
 import numpy as np
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.maths.jet import partial
 from tvopt_codegen.maths.numeric import Evaluator
+from tvopt_codegen.symbolic.border import to_sympy
 
 Node = TypeVar("Node", bound=Hashable)
 
 #: Values of implicitly defined symbols from the sampled ones (see :class:`Sampler`).
-Implicit = Callable[[Mapping[sp.Symbol, object], int], Mapping[sp.Symbol, object]]
+Implicit = Callable[[Mapping[sx.Expr, object], int], Mapping[sx.Expr, object]]
 
 
 class ImplicitDerivativeError(ValueError):
@@ -36,9 +37,9 @@ class Sampler:
 
     Parameters
     ----------
-    symbols : sequence of sympy.Symbol
+    symbols : sequence of symbol
         The symbols to draw values for (states).
-    fixed : mapping of sympy.Symbol to float
+    fixed : mapping of symbol to float
         Symbols with fixed values (parameters at their defaults).
     points : int
         Number of sample points.
@@ -52,8 +53,8 @@ class Sampler:
 
     def __init__(
         self,
-        symbols: Sequence[sp.Symbol],
-        fixed: Mapping[sp.Symbol, float],
+        symbols: Sequence[sx.Expr],
+        fixed: Mapping[sx.Expr, float],
         points: int = 8,
         seed: int = 20191127,
         implicit: Implicit | None = None,
@@ -70,7 +71,7 @@ class Sampler:
         self._known = set(self.symbols) | self.fixed.keys()
         # One evaluator for the sampler's life: successive Lie derivatives share most
         # of their subtrees, each evaluated once.
-        bound: dict[sp.Symbol, object] = {s: self.values[:, i] for i, s in enumerate(symbols)}
+        bound: dict[sx.Expr, object] = {s: self.values[:, i] for i, s in enumerate(symbols)}
         bound |= {s: float(v) for s, v in self.fixed.items()}
         if implicit is not None:
             derived = implicit(bound, points)
@@ -78,9 +79,9 @@ class Sampler:
             self._known |= derived.keys()
         self._evaluate = Evaluator(bound)
 
-    def evaluate(self, expr: sp.Expr) -> np.ndarray:
+    def evaluate(self, expr: sx.Expr) -> np.ndarray:
         """Return the values of ``expr`` at the sample points (NaN where undefined)."""
-        expr = sp.sympify(expr)
+        expr = _expression(expr)
         unknown = sorted(expr.free_symbols - self._known, key=lambda s: s.name)
         if unknown:
             raise ValueError(f"cannot sample {expr}: unknown symbols {unknown}")
@@ -90,7 +91,7 @@ class Sampler:
             out = np.where(np.abs(out.imag) > 1e-12, np.nan, out.real)
         return np.asarray(out, dtype=float)
 
-    def is_zero(self, expr: sp.Expr, tol: float = 1e-9) -> bool:
+    def is_zero(self, expr: sx.Expr, tol: float = 1e-9) -> bool:
         """Decide whether ``expr`` is identically zero.
 
         Structurally zero expressions are zero. Otherwise the expression is zero when
@@ -99,21 +100,33 @@ class Sampler:
         """
         if expr == 0:
             return True
-        if not sp.sympify(expr).free_symbols:
-            return bool(sp.simplify(expr) == 0)
+        if not _expression(expr).free_symbols:
+            return _simplifies_to_zero(expr)
         values = self.evaluate(expr)
         finite = values[np.isfinite(values)]
         if len(finite) < 3:
-            return bool(sp.simplify(expr) == 0)
+            return _simplifies_to_zero(expr)
         return bool(np.all(np.abs(finite) <= tol))
 
 
+def _expression(value: sx.Expr) -> sx.Expr:
+    """``value`` as an expression of the engine, converted only if it is not one."""
+    return value if isinstance(value, sx.Basic) else sx.sympify(value)
+
+
+def _simplifies_to_zero(expr: sx.Expr) -> bool:
+    """Whether SymPy's ``simplify`` makes ``expr`` zero (the border: a small expression)."""
+    import sympy  # noqa: PLC0415 - simplification is SymPy's alone
+
+    return bool(sympy.simplify(to_sympy(_expression(expr))) == 0)
+
+
 def _lie_row(
-    expr: sp.Expr,
-    f: sp.MatrixBase,
-    columns: Sequence[Sequence[tuple[int, sp.Expr]]],
-    x: Sequence[sp.Symbol],
-) -> tuple[sp.Expr, dict[int, sp.Expr]]:
+    expr: sx.Expr,
+    f: sx.Expr,
+    columns: Sequence[Sequence[tuple[int, sx.Expr]]],
+    x: Sequence[sx.Expr],
+) -> tuple[sx.Expr, dict[int, sx.Expr]]:
     """Return ``L_f expr`` and the row ``L_G expr`` from one sparse gradient of ``expr``.
 
     Only the states that occur in ``expr`` are differentiated, and only the nonzero
@@ -121,9 +134,9 @@ def _lie_row(
     the dense sweep is quadratic in N, this one linear. The row is its entries by
     column, the columns no state of ``expr`` reaches left out.
     """
-    free = sp.sympify(expr).free_symbols
-    drift = sp.Integer(0)
-    row: dict[int, sp.Expr] = {}
+    free = _expression(expr).free_symbols
+    drift = sx.Integer(0)
+    row: dict[int, sx.Expr] = {}
     for i, xi in enumerate(x):
         if xi not in free:
             continue
@@ -131,43 +144,50 @@ def _lie_row(
         if f[i] != 0:
             drift += slope * f[i]
         for c, gic in columns[i]:
-            row[c] = row.get(c, sp.Integer(0)) + slope * gic
+            row[c] = row.get(c, sx.Integer(0)) + slope * gic
     return drift, row
 
 
-def from_entries(
-    rows: int, cols: int, entries: Mapping[tuple[int, int], sp.Expr]
-) -> sp.ImmutableMatrix:
+def from_entries(rows: int, cols: int, entries: Mapping[tuple[int, int], sx.Expr]) -> sx.Expr:
     """The dense matrix of the given entries, zeros elsewhere.
 
     Written into a matrix of zeros: a matrix built from nested lists sympifies every
     entry, 0.26 s for a team's 768 x 512 G, where its 768 nonzero entries take 0.01 s.
     """
-    matrix = sp.zeros(rows, cols)
+    matrix = sx.zeros(rows, cols)
     for (i, j), value in entries.items():
         matrix[i, j] = value
     return matrix.as_immutable()
 
 
-def nonzero_entries(matrix: sp.MatrixBase) -> list[tuple[int, int, sp.Expr]]:
+def nonzero_entries(matrix: sx.Expr) -> list[tuple[int, int, sx.Expr]]:
     """``(i, j, entry)`` of a matrix's nonzero entries, row by row.
 
     Read from its dictionary of keys: a team's matrices (G, R) are block diagonal, and
     visiting every entry is quadratic in the team's size.
     """
+    if sx.SYMENGINE:
+        # SymEngine's matrices are dense: every entry is read, in C++ as far as it goes
+        # (its zero is the integer 0, as SymPy's ``!= 0`` keeps a float 0.0).
+        return [
+            (i, j, e)
+            for i, row in enumerate(matrix.tolist())
+            for j, e in enumerate(row)
+            if not (e.is_zero and e.is_Integer)
+        ]
     return [(i, j, e) for (i, j), e in sorted(matrix.todok().items()) if e != 0]
 
 
-def control_affine(f: sp.MatrixBase, G: sp.MatrixBase, inputs: Sequence[sp.Expr]) -> list[sp.Expr]:
+def control_affine(f: sx.Expr, G: sx.Expr, inputs: Sequence[sx.Expr]) -> list[sx.Expr]:
     """``f + G u`` entry by entry, over G's nonzero entries only.
 
     A team's G is block diagonal: the dense product costs n m^2 sympy multiplications
     (half a second at 32 agents).
     """
-    terms: list[list[sp.Expr]] = [[] for _ in range(G.shape[0])]
+    terms: list[list[sx.Expr]] = [[] for _ in range(G.shape[0])]
     for i, j, entry in nonzero_entries(G):
         terms[i].append(entry * inputs[j])
-    return [sp.Add(f[i], *terms[i]) for i in range(G.shape[0])]
+    return [sx.Add(f[i], *terms[i]) for i in range(G.shape[0])]
 
 
 @dataclass(frozen=True)
@@ -180,9 +200,9 @@ class Extension:
         Names of the added states, in input order (``v``, ``v_d1``, ...).
     inputs : tuple of str
         Names of the inputs of the extended system (``v_d2`` for ``v`` integrated twice).
-    x : tuple of sympy.Symbol
+    x : tuple of symbol
         All states of the extended system: plant states, then added states.
-    f, G : sympy.ImmutableMatrix
+    f, G : matrix
         Drift and input matrix of the extended system.
     counts : tuple of (str, int)
         The integrators per prolonged input.
@@ -190,9 +210,9 @@ class Extension:
 
     states: tuple[str, ...]
     inputs: tuple[str, ...]
-    x: tuple[sp.Symbol, ...]
-    f: sp.ImmutableMatrix
-    G: sp.ImmutableMatrix
+    x: tuple[sx.Expr, ...]
+    f: sx.Expr
+    G: sx.Expr
     counts: tuple[tuple[str, int], ...]
 
 
@@ -202,10 +222,10 @@ def extension_state_names(input_name: str, count: int) -> list[str]:
 
 
 def extend(
-    x: Sequence[sp.Symbol],
-    u: Sequence[sp.Symbol],
-    f: sp.MatrixBase,
-    G: sp.MatrixBase,
+    x: Sequence[sx.Expr],
+    u: Sequence[sx.Expr],
+    f: sx.Expr,
+    G: sx.Expr,
     counts: Mapping[str, int],
 ) -> Extension:
     """Prolong inputs by integrator chains (the paper's dynamic extension).
@@ -215,9 +235,9 @@ def extend(
 
     Parameters
     ----------
-    x, u : sequence of sympy.Symbol
+    x, u : sequence of symbol
         Plant states and inputs.
-    f, G : sympy.MatrixBase
+    f, G : matrix
         Plant drift (n, 1) and input matrix (n, m).
     counts : mapping of str to int
         Integrators per input name; inputs not named are not prolonged.
@@ -231,28 +251,28 @@ def extend(
     drift = list(f)
     # G's nonzero entries by column: visiting every entry for every prolonged input was
     # quadratic in the team's size.
-    column: dict[int, list[tuple[int, sp.Expr]]] = {}
+    column: dict[int, list[tuple[int, sx.Expr]]] = {}
     for i, j, entry in nonzero_entries(G):
         column.setdefault(j, []).append((i, entry))
     new_states: list[str] = []
     new_inputs: list[str] = []
-    chain_rows: list[tuple[list[sp.Expr], int | None]] = []
+    chain_rows: list[tuple[list[sx.Expr], int | None]] = []
     for j, uj in enumerate(u):
         q = counts.get(uj.name, 0)
         if q == 0:
             new_inputs.append(uj.name)
             continue
         names = extension_state_names(uj.name, q)
-        chain = [sp.Symbol(nm, real=True) for nm in names]
+        chain = [sx.symbol(nm) for nm in names]
         for i, entry in column.get(j, []):
             drift[i] = drift[i] + entry * chain[0]
         new_states += names
         new_inputs.append(f"{uj.name}_d{q}")
         for level in range(q):
-            nxt = chain[level + 1] if level + 1 < q else sp.Integer(0)
+            nxt = chain[level + 1] if level + 1 < q else sx.Integer(0)
             chain_rows.append(([nxt], j if level + 1 == q else None))
     total = n + len(new_states)
-    G_ext = sp.zeros(total, len(u))
+    G_ext = sx.zeros(total, len(u))
     for j, entries in column.items():
         if counts.get(u[j].name, 0) == 0:
             for i, entry in entries:
@@ -261,12 +281,12 @@ def extend(
         if col is not None:
             G_ext[n + offset, col] = 1
     drift += [row[0] for row, _ in chain_rows]
-    x_ext = tuple(x) + tuple(sp.Symbol(nm, real=True) for nm in new_states)
+    x_ext = tuple(x) + tuple(sx.symbol(nm) for nm in new_states)
     return Extension(
         states=tuple(new_states),
         inputs=tuple(new_inputs),
         x=x_ext,
-        f=sp.ImmutableMatrix(drift),
+        f=sx.ImmutableMatrix(drift),
         G=G_ext.as_immutable(),
         counts=tuple((uj.name, counts[uj.name]) for uj in u if counts.get(uj.name, 0) > 0),
     )
@@ -280,39 +300,39 @@ class RelativeDegree:
     ----------
     r : tuple of int or None
         Relative degree per output; ``None`` where none exists within ``n``.
-    lie : tuple of tuple of sympy.Expr
+    lie : tuple of tuple of expression
         ``lie[i][j] = L_f^j h_i`` for ``j = 0 .. r_i`` (the last entry is ``p_i``).
-    R : sympy.ImmutableMatrix or None
+    R : matrix or None
         Decoupling matrix (rows ``L_G L_f^{r_i - 1} h_i``); ``None`` if some r_i is None.
     """
 
     r: tuple[int | None, ...]
-    lie: tuple[tuple[sp.Expr, ...], ...]
-    R: sp.ImmutableMatrix | None
+    lie: tuple[tuple[sx.Expr, ...], ...]
+    R: sx.Expr | None
 
 
 def relative_degree(
-    f: sp.MatrixBase,
-    G: sp.MatrixBase,
-    h: sp.MatrixBase,
-    x: Sequence[sp.Symbol],
+    f: sx.Expr,
+    G: sx.Expr,
+    h: sx.Expr,
+    x: Sequence[sx.Expr],
     sampler: Sampler,
-    check: Callable[[sp.Expr], None] | None = None,
-    opaque: frozenset[sp.Symbol] = frozenset(),
+    check: Callable[[sx.Expr], None] | None = None,
+    opaque: frozenset[sx.Expr] = frozenset(),
 ) -> RelativeDegree:
     """Compute the vector relative degree (paper, Definition 1) and R, p, Phi.
 
     Parameters
     ----------
-    f, G, h : sympy.MatrixBase
+    f, G, h : matrix
         Drift (n, 1), input matrix (n, m) and outputs (m, 1).
-    x : sequence of sympy.Symbol
+    x : sequence of symbol
         State symbols.
     sampler : Sampler
         Decides which Lie derivatives vanish identically.
     check : callable, optional
         Called with every new Lie derivative (the derivation's budget meter).
-    opaque : frozenset of sympy.Symbol, optional
+    opaque : frozenset of symbol, optional
         Symbols computed at run time, functions of the state that must not be
         differentiated (a mass-matrix plant's ``M^-1 F`` and ``M^-1 B``).
 
@@ -328,16 +348,16 @@ def relative_degree(
         argument is the output's index.
     """
     n = len(x)
-    columns: list[list[tuple[int, sp.Expr]]] = [[] for _ in range(n)]
+    columns: list[list[tuple[int, sx.Expr]]] = [[] for _ in range(n)]
     for i, c, entry in nonzero_entries(G):
         columns[i].append((c, entry))
     degrees: list[int | None] = []
-    chains: list[tuple[sp.Expr, ...]] = []
+    chains: list[tuple[sx.Expr, ...]] = []
     # R's nonzero entries: a team's R is m^2 entries, almost all zeros, and a dense row
     # per Lie derivative made this stage quadratic in the team's size.
-    entries: dict[tuple[int, int], sp.Expr] = {}
+    entries: dict[tuple[int, int], sx.Expr] = {}
     for output, hi in enumerate(h):
-        chain = [hi if not sampler.is_zero(hi) else sp.Integer(0)]
+        chain = [hi if not sampler.is_zero(hi) else sx.Integer(0)]
         found: int | None = None
         for order in range(n):
             if opaque and chain[-1].free_symbols & opaque:
@@ -348,7 +368,7 @@ def relative_degree(
                 check(nxt)
                 for entry in row.values():
                     check(entry)
-            chain.append(sp.Integer(0) if sampler.is_zero(nxt) else nxt)
+            chain.append(sx.Integer(0) if sampler.is_zero(nxt) else nxt)
             if row:
                 found = order + 1
                 entries |= {(output, c): e for c, e in row.items()}
@@ -360,12 +380,12 @@ def relative_degree(
     return RelativeDegree(r=tuple(degrees), lie=tuple(chains), R=R)
 
 
-def brunovsky(degrees: Sequence[int]) -> tuple[sp.ImmutableMatrix, sp.ImmutableMatrix]:
+def brunovsky(degrees: Sequence[int]) -> tuple[sx.Expr, sx.Expr]:
     """Return the Brunovsky canonical pair (A, B) for chains of the given lengths."""
     # Ones written into zeros: sympy's diag of many blocks takes seconds for a team, and
     # a matrix built from a list sympifies every zero (0.3 s for 256 outputs).
     n = sum(degrees)
-    a, b = sp.zeros(n, n), sp.zeros(n, len(degrees))
+    a, b = sx.zeros(n, n), sx.zeros(n, len(degrees))
     offset = 0
     for chain, r in enumerate(degrees):
         for i in range(r - 1):
@@ -412,7 +432,7 @@ def _coupled_blocks(entries: Sequence[tuple[int, int]]) -> list[tuple[list[int],
     ]
 
 
-def generic_rank(matrix: sp.MatrixBase, sampler: Sampler) -> int:
+def generic_rank(matrix: sx.Expr, sampler: Sampler) -> int:
     """Generic rank of a matrix function: its largest numerical rank at the samples.
 
     The rank at a point counts the singular values above ``1e-9`` of the point's largest

@@ -12,8 +12,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.maths.jet import Assignment, fresh_symbols
 
 
@@ -114,10 +114,10 @@ def reverse_cuthill_mckee(pattern: set[tuple[int, int]], m: int) -> tuple[int, .
 def cholesky_program(
     entries: Sequence[tuple[int, int]],
     m: int,
-    h: Sequence[sp.Symbol],
-    c: Sequence[sp.Symbol],
+    h: Sequence[sx.Expr],
+    c: Sequence[sx.Expr],
     leading: int | None = None,
-) -> tuple[list[Assignment], list[sp.Expr], list[sp.Expr]]:
+) -> tuple[list[Assignment], list[sx.Expr], list[sx.Expr]]:
     """A straight-line sparse, square-root-free Cholesky (LDL^T) solve of ``Hess z = c``.
 
     Parameters
@@ -127,7 +127,7 @@ def cholesky_program(
         order of its input symbols ``h``.
     m : int
         The matrix size.
-    h, c : sequence of sympy.Symbol
+    h, c : sequence of symbol
         Symbols of the entries and of the right-hand side.
     leading : int, optional
         Eliminate indices below this first (see :func:`elimination_order`): the pivots
@@ -136,11 +136,11 @@ def cholesky_program(
 
     Returns
     -------
-    assignments : list of (sympy.Symbol, sympy.Expr)
+    assignments : list of (symbol, expression)
         The factorization and both triangular solves, one small expression each.
-    z : list of sympy.Expr
+    z : list of expression
         The solution, in the matrix's own order.
-    pivots : list of sympy.Expr
+    pivots : list of expression
         ``D_b = A_bb - sum_k L_bk^2 D_k`` of each elimination step, the squares of the
         pivots of the classical Cholesky factor: the matrix is positive definite (to the
         tolerance) when every one is positive, checked by the caller before the result
@@ -162,20 +162,20 @@ def cholesky_program(
 def ldl_program(
     entries: Sequence[tuple[int, int]],
     m: int,
-    h: Sequence[sp.Expr],
-    rhs: Sequence[Sequence[sp.Expr]],
+    h: Sequence[sx.Expr],
+    rhs: Sequence[Sequence[sx.Expr]],
     leading: int | None = None,
     prefix: str = "_chol",
-) -> tuple[list[Assignment], list[list[sp.Expr]], list[sp.Expr]]:
+) -> tuple[list[Assignment], list[list[sx.Expr]], list[sx.Expr]]:
     """:func:`cholesky_program` for several right-hand sides: one factorization, a solve each.
 
     Parameters
     ----------
     entries, m, leading
         As for :func:`cholesky_program`.
-    h : sequence of sympy.Expr
+    h : sequence of expression
         The entries (symbols, or expressions: an entry is assigned where first used).
-    rhs : sequence of sequence of sympy.Expr
+    rhs : sequence of sequence of expression
         The right-hand sides, each of length ``m``.
     prefix : str
         The prefix of the program's symbols (distinct programs in one kernel need
@@ -183,17 +183,17 @@ def ldl_program(
 
     Returns
     -------
-    assignments : list of (sympy.Symbol, sympy.Expr)
+    assignments : list of (symbol, expression)
         The factorization and the triangular solves.
-    solutions : list of list of sympy.Expr
+    solutions : list of list of expression
         One solution per right-hand side, in the matrix's own order.
-    pivots : list of sympy.Expr
+    pivots : list of expression
         As for :func:`cholesky_program`.
     """
     pattern = {(i, j) for i, j in entries} | {(j, i) for i, j in entries}
     order = elimination_order(pattern, m, leading)
     position = {index: a for a, index in enumerate(order)}
-    value: dict[tuple[int, int], sp.Expr] = {}
+    value: dict[tuple[int, int], sx.Expr] = {}
     for symbol, (i, j) in zip(h, entries, strict=True):
         a, b = sorted((position[i], position[j]), reverse=True)
         value[(a, b)] = symbol
@@ -201,7 +201,7 @@ def ldl_program(
     names = fresh_symbols(prefix)
     program: list[Assignment] = []
 
-    def assign(expr: sp.Expr) -> sp.Expr:
+    def assign(expr: sx.Expr) -> sx.Expr:
         if expr.is_Atom:
             return expr
         symbol = next(names)
@@ -210,33 +210,33 @@ def ldl_program(
 
     # scaled[(a, k)] = L[a, k] * D[k]: formed once, it turns every later dot product
     # into plain multiply-adds.
-    unit: dict[tuple[int, int], sp.Expr] = {}
-    scaled: dict[tuple[int, int], sp.Expr] = {}
+    unit: dict[tuple[int, int], sx.Expr] = {}
+    scaled: dict[tuple[int, int], sx.Expr] = {}
     row_entries: list[list[int]] = [[] for _ in range(m)]  # columns k < a with L[a, k] != 0
-    inverse: list[sp.Expr] = []
-    pivots: list[sp.Expr] = []
+    inverse: list[sx.Expr] = []
+    pivots: list[sx.Expr] = []
     for b in range(m):
         pivot = assign(
-            value.get((b, b), sp.Integer(0))
-            - sp.Add(*(unit[(b, k)] * scaled[(b, k)] for k in row_entries[b]))
+            value.get((b, b), sx.Integer(0))
+            - sx.Add(*(unit[(b, k)] * scaled[(b, k)] for k in row_entries[b]))
         )
         pivots.append(pivot)
         inverse.append(assign(1 / pivot))
         for a in columns[b]:
             shared = set(row_entries[a]) & set(row_entries[b])
-            dot = sp.Add(*(unit[(a, k)] * scaled[(b, k)] for k in sorted(shared)))
-            scaled[(a, b)] = assign(value.get((a, b), sp.Integer(0)) - dot)
+            dot = sx.Add(*(unit[(a, k)] * scaled[(b, k)] for k in sorted(shared)))
+            scaled[(a, b)] = assign(value.get((a, b), sx.Integer(0)) - dot)
             unit[(a, b)] = assign(scaled[(a, b)] * inverse[b])
             row_entries[a].append(b)
     solutions = []
     for c in rhs:
-        forward: list[sp.Expr] = []
+        forward: list[sx.Expr] = []
         for a in range(m):
-            dot = sp.Add(*(unit[(a, k)] * forward[k] for k in row_entries[a]))
+            dot = sx.Add(*(unit[(a, k)] * forward[k] for k in row_entries[a]))
             forward.append(assign(c[order[a]] - dot))
-        backward: dict[int, sp.Expr] = {}
+        backward: dict[int, sx.Expr] = {}
         for a in reversed(range(m)):
-            dot = sp.Add(*(unit[(k, a)] * backward[k] for k in columns[a]))
+            dot = sx.Add(*(unit[(k, a)] * backward[k] for k in columns[a]))
             backward[a] = assign(forward[a] * inverse[a] - dot)
         solutions.append([backward[position[i]] for i in range(m)])
     return program, solutions, pivots
