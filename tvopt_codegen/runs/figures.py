@@ -15,8 +15,8 @@ from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.runs.drawing import Panel, Plot
 
@@ -57,7 +57,7 @@ def _signal_values(derivation: Derivation, result: Result, name: str) -> np.ndar
     ]
     # NumPy's module, not the name "numpy": lambdify would then run `from numpy import *`,
     # which imports f2py, numpy.testing and a dozen more (0.1 s of a small simulate).
-    func = sp.lambdify([d.model.t, *d.model.params], expr, modules=[np])
+    func = sx.lambdify([d.model.t, *d.model.params], expr, modules=[np])
     return np.broadcast_to(np.asarray(func(result.t, *values), dtype=float), result.t.shape)
 
 
@@ -66,10 +66,10 @@ def trajectory_figure(derivation: Derivation, result: Result) -> Plot:
     d, r = derivation, result
     index = {name: i for i, name in enumerate(d.spec.outputs)}
     fig, ax = _axes(f"{d.spec.name}_paths", 6.4, 5.2)
-    for j, (sx, sy) in enumerate(d.spec.objects):
-        ox, oy = _signal_values(d, r, sx), _signal_values(d, r, sy)
+    for j, (x_name, y_name) in enumerate(d.spec.objects):
+        ox, oy = _signal_values(d, r, x_name), _signal_values(d, r, y_name)
         color = _OBJECT_COLORS[j % len(_OBJECT_COLORS)]
-        ax.plot(ox, oy, color=color, lw=1.5, label=f"object {j + 1} ({sx}, {sy})")
+        ax.plot(ox, oy, color=color, lw=1.5, label=f"object {j + 1} ({x_name}, {y_name})")
         ax.plot(ox[0], oy[0], "*", color=color, ms=12)
     for j, (nx, ny) in enumerate(d.spec.agents):
         ix, iy = index[nx], index[ny]

@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import sympy as sp
-
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.derivation.linearization import law_expressions, undefined_causes
 from tvopt_codegen.lowering.ir import KernelSet
@@ -120,7 +119,7 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
         what = (
             d.decoupling.det_R_note or "det R"
         )  # det(J_h B) = det R det M for a mass-matrix plant
-        lines.append(f"  {what.split(' = ')[0]} = {sp.sstr(d.decoupling.det_R)}; {where}")
+        lines.append(f"  {what.split(' = ')[0]} = {sx.text(d.decoupling.det_R)}; {where}")
     else:
         lines.append(
             f"  det R: {d.decoupling.det_R_note}; singularity is checked at run time by pivoting"
@@ -149,7 +148,7 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
         listed = "; ".join(f"{c.name}: {c.text}" for c in d.model.constraints)
         lines.append(
             f"  constraints: {listed}; kept by the barrier objective B = f0 - mu(t) sum "
-            f"log(s(t) - g_i) with mu(t) = {sp.sstr(d.model.mu)}, s(t) = {sp.sstr(d.model.slack)}"
+            f"log(s(t) - g_i) with mu(t) = {sx.text(d.model.mu)}, s(t) = {sx.text(d.model.slack)}"
         )
     if d.model.equalities:
         listed = "; ".join(f"{c.name}: {c.text}" for c in d.model.equalities)

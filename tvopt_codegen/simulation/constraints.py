@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import calculus
 from tvopt_codegen.spec.constraints import inline_signals
 
@@ -88,20 +88,20 @@ class _Problem:
     refs_at: Callable[[float], list[float]]
 
 
-def _problem(model: Any, values: Mapping[sp.Symbol, float], references: Any) -> _Problem:
+def _problem(model: Any, values: Mapping[sx.Expr, float], references: Any) -> _Problem:
     """Lambdify the problem of :func:`check_run` (signals and parameters substituted)."""
     t = model.t
     signals = {s: e for s, e in model.signals}
-    fixed = {q: sp.Float(v) for q, v in values.items()}
+    fixed = {q: sx.real(v) for q, v in values.items()}
     arguments = [t, model.y, model.references]
 
-    def numeric(exprs: Sequence[sp.Expr], rows: int | None = None) -> Vector:
+    def numeric(exprs: Sequence[sx.Expr], rows: int | None = None) -> Vector:
         """All of ``exprs`` in one function: an array, ``rows`` x the rest when given."""
         inlined = [inline_signals(e, signals).xreplace(fixed) for e in exprs]
         shape = (len(inlined),) if rows is None else (rows, len(inlined) // max(rows, 1))
         if not inlined:
             return lambda _t, _y, _r: np.zeros(shape)
-        function = sp.lambdify(arguments, inlined, "math")
+        function = sx.lambdify(arguments, inlined, "math")
         return lambda time, y, r: np.array(function(time, y, r), dtype=float).reshape(shape)
 
     def refs_at(time: float) -> list[float]:
@@ -110,14 +110,14 @@ def _problem(model: Any, values: Mapping[sp.Symbol, float], references: Any) -> 
         jets = (references.exact or references.jets)(time)
         return [float(v) for v in jets[:, 0]]
 
-    def matrix(rows: Sequence[Sequence[sp.Expr]]) -> Vector:
+    def matrix(rows: Sequence[Sequence[sx.Expr]]) -> Vector:
         return numeric([e for row in rows for e in row], rows=len(rows))
 
     domain, domain_grad = calculus.objective_domain(model)
     equal = calculus.equality_calculus(model)
     f0 = inline_signals(calculus.objective_of(model), signals).xreplace(fixed)
     return _Problem(
-        f0=sp.lambdify(arguments, f0, "math"),
+        f0=sx.lambdify(arguments, f0, "math"),
         # Exact gradients for the solver: f0's barriers (the paper's tan) are steep.
         f0_grad=numeric(calculus.objective_gradient(model)),
         g=numeric([c.g for c in model.constraints]),
@@ -186,7 +186,7 @@ def check_run(
     outputs: np.ndarray,
     to_phi: np.ndarray,
     phi_minimisers: np.ndarray,
-    values: Mapping[sp.Symbol, float],
+    values: Mapping[sx.Expr, float],
     references: Any = None,
     checked: int = 41,
 ) -> RunCheck:
@@ -212,9 +212,9 @@ def check_run(
     """
     problem = _problem(model, values, references)
     t, numeric, refs_at = model.t, problem.numeric, problem.refs_at
-    fixed = {q: sp.Float(v) for q, v in values.items()}
-    slack_of = sp.lambdify(t, model.slack.xreplace(fixed), "math")
-    mu_of = sp.lambdify(t, model.mu.xreplace(fixed), "math")
+    fixed = {q: sx.real(v) for q, v in values.items()}
+    slack_of = sx.lambdify(t, model.slack.xreplace(fixed), "math")
+    mu_of = sx.lambdify(t, model.mu.xreplace(fixed), "math")
     slack = np.array([slack_of(float(time)) for time in ts])
     refs = [refs_at(float(time)) for time in ts]
 
@@ -296,15 +296,15 @@ class Equalities:
     curvature: Any
 
 
-def equalities(model: Any, values: Mapping[sp.Symbol, float]) -> Equalities:
+def equalities(model: Any, values: Mapping[sx.Expr, float]) -> Equalities:
     """Lambdify the equalities of ``model`` (signals and the parameters ``values`` substituted)."""
     signals = {s: e for s, e in model.signals}
-    fixed = {q: sp.Float(v) for q, v in values.items()}
+    fixed = {q: sx.real(v) for q, v in values.items()}
     m, q = len(model.y), len(model.equalities)
 
-    def numeric(exprs: Sequence[sp.Expr]) -> Any:
+    def numeric(exprs: Sequence[sx.Expr]) -> Any:
         exprs = [inline_signals(e, signals).xreplace(fixed) for e in exprs]
-        return sp.lambdify([model.t, model.y, model.references], exprs, "math")
+        return sx.lambdify([model.t, model.y, model.references], exprs, "math")
 
     equal = calculus.equality_calculus(model)
     value = numeric(equal.values)

@@ -22,8 +22,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import Derivation, calculus
 from tvopt_codegen.errors import SpecError, clip
 
@@ -89,12 +89,12 @@ def exact_jets(derivation: Derivation, params: dict[str, float]) -> Callable[[fl
             f"{', '.join(missing)} have no nominal closed form: give --reference-file",
         )
     values = {q: params.get(q.name, v) for q, v in zip(model.params, model.defaults, strict=True)}
-    fixed = {q: sp.Float(v) for q, v in values.items()}
+    fixed = {q: sx.real(v) for q, v in values.items()}
     rows = [
         [term.xreplace(fixed) for term in row]
         for row in calculus.nominal_jets(model, d.jet.reference_order)
     ]
-    function = sp.lambdify(model.t, rows, "math")
+    function = sx.lambdify(model.t, rows, "math")
 
     def jets(t: float) -> np.ndarray:
         return np.array(function(float(t)), dtype=float)

@@ -13,6 +13,7 @@ from typing import Any, NoReturn
 
 import numpy as np
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.contract import Status
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.errors import AssumptionError, SpecError
@@ -210,8 +211,6 @@ def decoupling_determinant(
     run-time solve ``W = M^-1 B``, done here with the model's ``M`` and ``B``. Built only
     when a run fails (lambdify costs a few milliseconds).
     """
-    import sympy as sp  # noqa: PLC0415 - only on a failed run
-
     model = d.model
     values = {p.name: float(v) for p, v in zip(model.params, model.defaults, strict=True)}
     values |= {name: float(v) for name, v in params.items()}
@@ -219,16 +218,16 @@ def decoupling_determinant(
     try:
         mech = model.mechanics
         if mech is None:
-            entries = sp.lambdify([args], d.linearization.R, modules="numpy")
+            entries = sx.lambdify([args], d.linearization.R, modules="numpy")
 
             def matrix(t: float, s: np.ndarray, p: list[float]) -> np.ndarray:
                 return np.asarray(entries([t, *s, *p]), dtype=float)
 
         else:
             gains = [w for row in mech.gains for w in row]
-            mass = sp.lambdify([args], sp.Matrix(mech.mass_matrix), modules="numpy")
-            inputs = sp.lambdify([args], sp.Matrix(mech.input_matrix), modules="numpy")
-            entries = sp.lambdify([[*args, *gains]], d.linearization.R, modules="numpy")
+            mass = sx.lambdify([args], sx.matrix(mech.mass_matrix), modules="numpy")
+            inputs = sx.lambdify([args], sx.matrix(mech.input_matrix), modules="numpy")
+            entries = sx.lambdify([[*args, *gains]], d.linearization.R, modules="numpy")
 
             def matrix(t: float, s: np.ndarray, p: list[float]) -> np.ndarray:
                 point = [t, *s, *p]
