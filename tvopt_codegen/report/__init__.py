@@ -16,6 +16,8 @@ The report reads the derivation; it never re-derives anything.
 
 from __future__ import annotations
 
+from typing import Any
+
 from tvopt_codegen.report.document import (
     FORMATS,
     HEADINGS,
@@ -32,7 +34,6 @@ from tvopt_codegen.report.entries import (
     SPARSE_AT,
     Entry,
     Math,
-    ReportMathMLPrinter,
     Section,
     formula,
 )
@@ -55,3 +56,12 @@ __all__ = [
     "render_report",
     "report_sections",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """``ReportMathMLPrinter``, made (and SymPy imported) when first asked for."""
+    if name == "ReportMathMLPrinter":
+        from tvopt_codegen.report import entries  # noqa: PLC0415 - SymPy on demand only
+
+        return entries.ReportMathMLPrinter
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

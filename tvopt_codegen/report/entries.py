@@ -1,17 +1,23 @@
 """The report's building blocks, as data the templates lay out.
 
 Paragraphs, equations (MathML and LaTeX), tables and figures.
+
+The report is the border with SymPy (:mod:`tvopt_codegen.symbolic.border`): SymPy prints
+its LaTeX and MathML, so what it shows, and only that, is converted to SymPy here, when
+it is shown; SymPy is imported then, never when the module is (``simulate`` on SymEngine
+imports this package without SymPy).
 """
 
 from __future__ import annotations
 
 import base64
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import sympy as sp
-from sympy.printing.mathml import MathMLPresentationPrinter
+from tvopt_codegen import symbolic as sx
+from tvopt_codegen.symbolic.border import to_sympy
 
 #: Equations longer than this (LaTeX characters) are folded, shown in full on demand.
 FOLD_AT = 600
@@ -26,8 +32,8 @@ SPARSE_AT = 64
 INLINE_OPS = 400
 
 
-#: Functions that are smooth (analytic) on the whole real line.
-ENTIRE = (sp.sin, sp.cos, sp.exp, sp.sinh, sp.cosh, sp.tanh, sp.atan, sp.asinh)
+#: Functions that are smooth (analytic) on the whole real line, by name.
+ENTIRE = ("sin", "cos", "exp", "sinh", "cosh", "tanh", "atan", "asinh")
 
 
 @dataclass(frozen=True)
@@ -79,46 +85,65 @@ class Section:
         return self.title.lower().replace(" ", "-")
 
 
-class ReportMathMLPrinter(MathMLPresentationPrinter):  # type: ignore[misc]
-    """Presentation MathML as a browser shows it well without a math font.
+@functools.cache
+def _printer_class() -> Any:
+    """The report's MathML printer class, made on first use (it subclasses SymPy's)."""
+    from sympy.printing.mathml import MathMLPresentationPrinter  # noqa: PLC0415 - the border
 
-    Customizations are listed on each override; everything else is sympy's printer.
+    class ReportMathMLPrinter(MathMLPresentationPrinter):  # type: ignore[misc]
+        """Presentation MathML as a browser shows it well without a math font.
+
+        Customizations are listed on each override; everything else is sympy's printer.
+        """
+
+        def _print_MatrixBase(self, m: Any) -> Any:
+            """Customizations.
+
+            * No ``<mo>[</mo>`` fences: they stretch beside a tall matrix only with an
+              OpenType MATH font, which most readers lack. The table gets the class
+              ``matrix``, whose brackets the page draws in CSS at any height.
+            """
+            saved = self._settings["mat_delim"]
+            self._settings["mat_delim"] = ""
+            try:
+                table = super()._print_MatrixBase(m)
+            finally:
+                self._settings["mat_delim"] = saved
+            table.setAttribute("class", "matrix")
+            return table
+
+        def _print_Mul(self, expr: Any) -> Any:
+            """Customizations.
+
+            * The invisible times beside a multi-letter name or a function gets a thin
+              space on both sides: ``wheelbase cos(phi)``, ``jx jy``, never
+              ``wheelbasecos(phi)`` or ``jxjy``.
+            """
+            row = super()._print_Mul(expr)
+            children = [c for c in row.childNodes if c.nodeType == c.ELEMENT_NODE]
+            for before, node, after in zip(children, children[1:], children[2:], strict=False):
+                if (
+                    node.tagName == "mo"
+                    and _text(node) == "&InvisibleTimes;"
+                    and (_wide(before) or _wide(after))
+                ):
+                    node.setAttribute("lspace", "0.1667em")
+                    node.setAttribute("rspace", "0.1667em")
+            return row
+
+    # Named as the module's attribute that hands it out, not after this function.
+    ReportMathMLPrinter.__qualname__ = "ReportMathMLPrinter"
+    return ReportMathMLPrinter
+
+
+def __getattr__(name: str) -> Any:
+    """``ReportMathMLPrinter``, SymPy's MathML printer as the report customizes it.
+
+    Made when first asked for, so that importing this module imports no SymPy.
     """
-
-    def _print_MatrixBase(self, m: sp.MatrixBase) -> Any:
-        """Customizations.
-
-        * No ``<mo>[</mo>`` fences: they stretch beside a tall matrix only with an
-          OpenType MATH font, which most readers lack. The table gets the class
-          ``matrix``, whose brackets the page draws in CSS at any height.
-        """
-        saved = self._settings["mat_delim"]
-        self._settings["mat_delim"] = ""
-        try:
-            table = super()._print_MatrixBase(m)
-        finally:
-            self._settings["mat_delim"] = saved
-        table.setAttribute("class", "matrix")
-        return table
-
-    def _print_Mul(self, expr: sp.Mul) -> Any:
-        """Customizations.
-
-        * The invisible times beside a multi-letter name or a function gets a thin
-          space on both sides: ``wheelbase cos(phi)``, ``jx jy``, never
-          ``wheelbasecos(phi)`` or ``jxjy``.
-        """
-        row = super()._print_Mul(expr)
-        children = [c for c in row.childNodes if c.nodeType == c.ELEMENT_NODE]
-        for before, node, after in zip(children, children[1:], children[2:], strict=False):
-            if (
-                node.tagName == "mo"
-                and _text(node) == "&InvisibleTimes;"
-                and (_wide(before) or _wide(after))
-            ):
-                node.setAttribute("lspace", "0.1667em")
-                node.setAttribute("rspace", "0.1667em")
-        return row
+    if name == "ReportMathMLPrinter":
+        return _printer_class()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _text(node: Any) -> str:
@@ -139,8 +164,36 @@ def _wide(node: Any) -> bool:
 _LATEX = {"mul_symbol": r"\,"}
 
 
+def _sympy() -> Any:
+    import sympy  # noqa: PLC0415 - the report is the border: SymPy when it is shown
+
+    return sympy
+
+
+def shown(expr: object) -> Any:
+    """``expr`` as SymPy prints it: an engine expression or matrix converted, else sympified.
+
+    Only what the report shows comes here, one expression or matrix at a time (an
+    inlined gradient jet only under :data:`INLINE_OPS`); on the SymPy engine it is
+    ``sympify`` as it always was.
+    """
+    if sx.SYMENGINE and isinstance(expr, sx.Basic | sx.MatrixBase):
+        return to_sympy(expr)
+    return _sympy().sympify(expr)
+
+
+def plain(expr: object) -> str:
+    """``expr`` (small: a weight, a slack) as SymPy's one-line text, on either engine."""
+    return str(_sympy().sstr(shown(expr)))
+
+
+def count_ops(expr: object) -> int:
+    """SymPy's operation count of what ``expr`` shows (the inlining cap's measure)."""
+    return int(_sympy().count_ops(shown(expr)))
+
+
 def _mathml(value: object) -> str:
-    printer = ReportMathMLPrinter()
+    printer = _printer_class()()
     return str(printer.doprint(value))
 
 
@@ -149,14 +202,14 @@ def formula(expr: object, lhs: tuple[str, str] | None = None) -> Math:
 
     Parameters
     ----------
-    expr : sympy object
-        The right-hand side.
+    expr : expression, matrix or number
+        The right-hand side, of either engine (converted by :func:`shown`).
     lhs : tuple of (str, str), optional
         The left-hand side as (LaTeX, MathML).
     """
-    value = sp.sympify(expr)
+    value = shown(expr)
     # A thin space between factors: "jx\,jy" is two names where "jx jy" reads as jxjy.
-    latex = sp.latex(value, **_LATEX)
+    latex = _sympy().latex(value, **_LATEX)
     markup = _mathml(value)
     if lhs is not None:
         latex = f"{lhs[0]} = {latex}"
@@ -170,8 +223,8 @@ def _name(latex: str, text: str) -> tuple[str, str]:
 
 
 def _math_entry(text: str, expr: object, lhs: tuple[str, str] | None = None) -> Entry:
-    value = sp.sympify(expr)
-    if lhs is not None and isinstance(value, sp.MatrixBase):
+    value = shown(expr)
+    if lhs is not None and isinstance(value, _sympy().MatrixBase):
         size = value.rows * value.cols
         nonzero = [
             ((i, j), value[i, j])
@@ -201,12 +254,13 @@ def _math_entry(text: str, expr: object, lhs: tuple[str, str] | None = None) -> 
     return Entry("math", text=text, math=formula(value, lhs))
 
 
-def _entries(nonzero: Sequence[tuple[tuple[int, int], sp.Expr]], lhs: tuple[str, str]) -> Math:
-    """``[M]_ij = value`` for each listed entry, one per line, in both notations."""
-    latex = (
+def _entries(nonzero: Sequence[tuple[tuple[int, int], Any]], lhs: tuple[str, str]) -> Math:
+    """``[M]_ij = value`` for each listed entry (SymPy's), one per line, in both notations."""
+    latex = _sympy().latex
+    text = (
         r"\begin{aligned}"
         + r" \\ ".join(
-            rf"\left[{lhs[0]}\right]_{{{i + 1}, {j + 1}}} &= {sp.latex(e, **_LATEX)}"
+            rf"\left[{lhs[0]}\right]_{{{i + 1}, {j + 1}}} &= {latex(e, **_LATEX)}"
             for (i, j), e in nonzero
         )
         + r"\end{aligned}"
@@ -217,12 +271,12 @@ def _entries(nonzero: Sequence[tuple[tuple[int, int], sp.Expr]], lhs: tuple[str,
         f"<mtd><mo>=</mo></mtd><mtd>{_mathml(e)}</mtd></mtr>"
         for (i, j), e in nonzero
     )
-    return Math(latex, f"<mtable>{rows}</mtable>")
+    return Math(text, f"<mtable>{rows}</mtable>")
 
 
-def _smoothness(expr: sp.Expr) -> str:
-    used = sorted({type(f).__name__ for f in expr.atoms(sp.Function)})
-    restricted = [f for f in used if not any(f == g.__name__ for g in ENTIRE)]
+def _smoothness(expr: sx.Expr) -> str:
+    used = sorted({type(f).__name__ for f in shown(expr).atoms(_sympy().Function)})
+    restricted = [f for f in used if f not in ENTIRE]
     if not used:
         return "polynomial in t: C-infinity"
     if not restricted:

@@ -7,9 +7,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
-import sympy as sp
-
 from tvopt_codegen import __version__
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.lowering.ir import KernelSet
 from tvopt_codegen.maths.jet import Program
@@ -21,11 +20,14 @@ from tvopt_codegen.report.entries import (
     _math_entry,
     _name,
     _smoothness,
+    count_ops,
     formula,
+    plain,
+    shown,
 )
 
 
-def _shown(d: Derivation) -> dict[sp.Symbol, sp.Symbol]:
+def _shown(d: Derivation) -> dict[sx.Expr, sx.Expr]:
     """Display names of a mass-matrix plant's run-time symbols: ``a_i`` and ``W_i,j``.
 
     Their own names are reserved identifiers (``_ddq0``, ``_W0_1``) that no user name
@@ -35,19 +37,19 @@ def _shown(d: Derivation) -> dict[sp.Symbol, sp.Symbol]:
     if mech is None:
         return {}
     shown = {
-        a: sp.Symbol(f"a_{i + 1}", real=True)
+        a: sx.symbol(f"a_{i + 1}")
         for i, a in enumerate(mech.accelerations)
-        if isinstance(a, sp.Symbol)
+        if isinstance(a, sx.Symbol)
     }
     shown |= {
-        w: sp.Symbol(f"W_{i + 1},{j + 1}", real=True)
+        w: sx.symbol(f"W_{i + 1},{j + 1}")
         for i, row in enumerate(mech.gains)
         for j, w in enumerate(row)
-        if isinstance(w, sp.Symbol)
+        if isinstance(w, sx.Symbol)
     }
     # The definitions under the spec's names (their symbols are reserved, _let<i>).
     shown |= {
-        symbol: sp.Symbol(name, real=True)
+        symbol: sx.symbol(name)
         for (symbol, _), name in zip(mech.definitions, mech.definition_names, strict=True)
     }
     return shown
@@ -91,16 +93,16 @@ def _mechanics(d: Derivation) -> list[Entry]:
         *definitions,
         _math_entry(
             "Mass matrix (symmetric, positive definite):",
-            sp.Matrix(mech.mass_matrix).xreplace(shown),
+            sx.matrix(mech.mass_matrix).xreplace(shown),
             _name("M(q)", "M"),
         ),
         _math_entry(
             "Forces without the inputs:",
-            sp.Matrix(mech.forces).xreplace(shown),
+            sx.matrix([[f] for f in mech.forces]).xreplace(shown),
             _name("F(q, q')", "F"),
         ),
         _math_entry(
-            "Input matrix:", sp.Matrix(mech.input_matrix).xreplace(shown), _name("B(q)", "B")
+            "Input matrix:", sx.matrix(mech.input_matrix).xreplace(shown), _name("B(q)", "B")
         ),
         Entry(
             "text",
@@ -179,8 +181,8 @@ def _constraint_entries(d: Derivation) -> list[Entry]:
                 text=(
                     "Constraints g_i(y, t) <= 0, kept by an interior-point homotopy: the law "
                     "tracks the minimiser of B = f0 - mu(t) sum_i log(s(t) - g_i), with the "
-                    f"weight mu(t) = {sp.sstr(model.mu)} and the slack s(t) = "
-                    f"{sp.sstr(model.slack)}. The objective below is B (Phi, further down, names "
+                    f"weight mu(t) = {plain(model.mu)} and the slack s(t) = "
+                    f"{plain(model.slack)}. The objective below is B (Phi, further down, names "
                     "the linearizing coordinates)."
                 ),
                 header=("constraint", "as written", "g_i"),
@@ -333,7 +335,7 @@ def _linearization(d: Derivation) -> Section:
             text="Vector relative degree of the extended plant (paper, Definition 1).",
             header=("output", "relative degree r_i", "Lie derivatives L_f^j h_i, j < r_i"),
             rows=tuple(
-                (o, str(r), formula(sp.Matrix([list(d.linearization.lie[i][:r])])))
+                (o, str(r), formula(sx.matrix([list(d.linearization.lie[i][:r])])))
                 for i, (o, r) in enumerate(
                     zip(d.spec.outputs, d.linearization.relative_degree, strict=True)
                 )
@@ -470,6 +472,9 @@ def _error_dynamics(d: Derivation) -> Section:
     order = len(d.dynamics.coefficients)
     # With equalities E holds the KKT map F and its derivatives instead of grad f0's.
     first, last = ("F", f"F^({k - 1})") if d.model.equalities else ("grad f0", f"grad^({k - 1}) f0")
+    # Shown only, from floats: built in SymPy, which prints it, on either engine.
+    import sympy as sp  # noqa: PLC0415 - the report is the border
+
     companion = sp.zeros(order, order)
     for i in range(order - 1):
         companion[i, i + 1] = 1
@@ -535,8 +540,8 @@ def _error_dynamics(d: Derivation) -> Section:
 _NODES_PER_OP = 3
 
 
-def _inlined(program: Program, exprs: Sequence[sp.Expr]) -> list[sp.Expr] | None:
-    """``exprs`` with the program inlined, or None where that is sure to be too long.
+def _inlined(program: Program, exprs: Sequence[sx.Expr]) -> list[sx.Expr] | None:
+    """``exprs`` with the program inlined, in SymPy, or None where that is sure to be too long.
 
     A team's gradient jet inlines to expressions of millions of nodes, which took most
     of its report to build only to be described instead.
@@ -544,10 +549,12 @@ def _inlined(program: Program, exprs: Sequence[sp.Expr]) -> list[sp.Expr] | None
     nodes = sum(program.inlined_size(e) for e in exprs)
     if nodes > _NODES_PER_OP * INLINE_OPS:
         return None
-    return [program.inline(e) for e in exprs]
+    return [shown(program.inline(e)) for e in exprs]
 
 
 def _control_law(d: Derivation) -> Section:
+    import sympy as sp  # noqa: PLC0415 - the report is the border: SymPy prints it
+
     k = d.dynamics.k
     theorem = (
         "Theorem 5, Control Law for Uniform Vector Relative Degree Systems: u = alpha + "
@@ -598,7 +605,7 @@ def _control_law(d: Derivation) -> Section:
     program = d.jet.jet_program + d.jet.rest_program
     for j in range(1, k):
         exprs = _inlined(program, d.jet.grad_jet[j])
-        if exprs is not None and sum(sp.count_ops(e) for e in exprs) <= INLINE_OPS:
+        if exprs is not None and sum(count_ops(e) for e in exprs) <= INLINE_OPS:
             entries.append(
                 _math_entry(
                     f"grad^({j}) f0, inlined for checking:",
@@ -607,7 +614,7 @@ def _control_law(d: Derivation) -> Section:
                 )
             )
     rest = _inlined(program, d.jet.rest)
-    if rest is not None and sum(sp.count_ops(e) for e in rest) <= INLINE_OPS:
+    if rest is not None and sum(count_ops(e) for e in rest) <= INLINE_OPS:
         entries.append(
             _math_entry(
                 f"rest = grad^({k}) f0 at y^({k}) = 0, inlined:",
@@ -619,6 +626,8 @@ def _control_law(d: Derivation) -> Section:
 
 
 def _provenance(d: Derivation, kernels: KernelSet) -> Section:
+    import sympy  # noqa: PLC0415 - the report is the border: SymPy prints it
+
     rows = tuple((k.name, k.doc, str(k.ops_before_cse), str(k.ops)) for k in kernels.kernels)
     times = tuple((stage, f"{seconds * 1e3:.1f}") for stage, seconds in d.timings)
     return Section(
@@ -645,7 +654,7 @@ def _provenance(d: Derivation, kernels: KernelSet) -> Section:
                     ("spec", d.spec.source),
                     ("spec sha256", d.spec.sha256),
                     ("tvopt-codegen", __version__),
-                    ("sympy", sp.__version__),
+                    ("sympy", sympy.__version__),
                 ),
             ),
         ),
