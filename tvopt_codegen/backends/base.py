@@ -8,8 +8,8 @@ from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
-if TYPE_CHECKING:  # sympy loads in a second; the registry is read by --help too
-    from sympy.printing.codeprinter import CodePrinter
+if TYPE_CHECKING:  # the engine loads in a second; the registry is read by --help too
+    from tvopt_codegen.lowering.printers import ExpressionPrinter, JointPrinter
 
 
 @dataclass(frozen=True)
@@ -23,7 +23,8 @@ class Backend:
     description : str
         One line for ``--help``.
     printer : callable
-        Builds the expression printer (a sympy ``CodePrinter`` subclass); called when
+        Builds the expression printer (an
+        :class:`~tvopt_codegen.lowering.printers.ExpressionPrinter`); called when
         rendering, so that registering a backend imports no printer.
     templates : tuple of (str, str)
         Template path (under ``templates/``) and output file name pattern, where
@@ -65,11 +66,11 @@ class Backend:
 
     name: str
     description: str
-    printer: Callable[[], CodePrinter]
+    printer: Callable[[], ExpressionPrinter]
     templates: tuple[tuple[str, str], ...]
     module: str
-    variants: tuple[tuple[str, Callable[[], CodePrinter]], ...] = ()
-    joint: Callable[[], CodePrinter] | None = None
+    variants: tuple[tuple[str, Callable[[], ExpressionPrinter]], ...] = ()
+    joint: Callable[[], JointPrinter] | None = None
     context: Callable[[Any], dict[str, Any]] | None = None
     filters: Callable[[], dict[str, Callable[..., Any]]] | None = None
     load: Callable[[dict[str, str], str, str], ModuleType] | None = None

@@ -9,10 +9,9 @@ from typing import TYPE_CHECKING, Any
 from tvopt_codegen.backends.base import Backend
 
 if TYPE_CHECKING:
-    from sympy.printing.codeprinter import CodePrinter
-
     from tvopt_codegen.backends.c.precision import Precision
     from tvopt_codegen.lowering.ir import KernelSet
+    from tvopt_codegen.lowering.printers import ExpressionPrinter
 
 #: Keywords of C99 (and the C11 ones a C99 compiler may reserve).
 C_KEYWORDS = frozenset(
@@ -36,8 +35,8 @@ C_LIBRARY_NAMES = frozenset(
 )
 
 
-def _printer(precision: Precision | None = None) -> CodePrinter:
-    from tvopt_codegen.backends.c.precision import DOUBLE  # noqa: PLC0415 - sympy only when rendering
+def _printer(precision: Precision | None = None) -> ExpressionPrinter:
+    from tvopt_codegen.backends.c.precision import DOUBLE  # noqa: PLC0415 - only when rendering
     from tvopt_codegen.backends.c.printer import CPrinter  # noqa: PLC0415
 
     return CPrinter(precision or DOUBLE)
@@ -145,7 +144,7 @@ def with_precision(name: str, prefix: str | None = None) -> Backend:
     if not precision.single and prefix is None:
         return BACKEND
 
-    def printer() -> CodePrinter:
+    def printer() -> ExpressionPrinter:
         return _printer(precision)
 
     def context(kernels: KernelSet) -> dict[str, Any]:

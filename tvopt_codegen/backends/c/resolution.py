@@ -21,8 +21,8 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.backends.c.precision import Precision
 from tvopt_codegen.derivation.model import start_evaluator
 
@@ -51,8 +51,8 @@ def start_conditions(d: Derivation) -> list[tuple[str, float]]:
     evaluate = start_evaluator(
         d.closed_loop.states, d.closed_loop.initial_state, defaults, model.mechanics
     )
-    time = sp.Symbol("t", real=True)
-    evaluate.define(time, sp.Integer(0))
+    time = sx.symbol("t")
+    evaluate.define(time, sx.Integer(0))
     for symbol, expr in model.signals:
         evaluate.define(symbol, expr)
     for program in (d.jet.signal_program, d.jet.jet_program, d.objective.hessian_program):

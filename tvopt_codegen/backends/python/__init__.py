@@ -10,24 +10,23 @@ from typing import TYPE_CHECKING, Any
 from tvopt_codegen.backends.base import Backend
 
 if TYPE_CHECKING:
-    from sympy.printing.codeprinter import CodePrinter
-
     from tvopt_codegen.lowering.ir import KernelSet
+    from tvopt_codegen.lowering.printers import ExpressionPrinter, JointPrinter
 
 
-def _printer() -> CodePrinter:
-    from tvopt_codegen.backends.python.printer import PythonPrinter  # noqa: PLC0415 - sympy only when rendering
+def _printer() -> ExpressionPrinter:
+    from tvopt_codegen.backends.python.printer import PythonPrinter  # noqa: PLC0415 - only when rendering
 
     return PythonPrinter()
 
 
-def _scalar_printer() -> CodePrinter:
+def _scalar_printer() -> ExpressionPrinter:
     from tvopt_codegen.backends.python.printer import PythonScalarPrinter  # noqa: PLC0415
 
     return PythonScalarPrinter()
 
 
-def _joint_printer() -> CodePrinter:
+def _joint_printer() -> JointPrinter:
     from tvopt_codegen.backends.python.printer import PythonJointPrinter  # noqa: PLC0415
 
     return PythonJointPrinter()

@@ -3,62 +3,176 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
-import sympy as sp
-from sympy.printing.numpy import NumPyPrinter
-from sympy.printing.precedence import PRECEDENCE
+from tvopt_codegen import symbolic as sx
+from tvopt_codegen.lowering.printers import (
+    MUL,
+    RELATIONS,
+    ExpressionPrinter,
+    UnprintableError,
+    float_digits,
+)
 
-from tvopt_codegen.lowering.printers import CanonicalOrder
+#: The NumPy ufunc of each function an expression may apply, by the name both engines
+#: give it; ``Abs`` is Python's ``abs`` (any number's), ``Max`` and ``Min`` are printed
+#: apart.
+NUMPY_FUNCTIONS = {
+    "sin": "numpy.sin",
+    "cos": "numpy.cos",
+    "tan": "numpy.tan",
+    "asin": "numpy.arcsin",
+    "acos": "numpy.arccos",
+    "atan": "numpy.arctan",
+    "atan2": "numpy.arctan2",
+    "sinh": "numpy.sinh",
+    "cosh": "numpy.cosh",
+    "tanh": "numpy.tanh",
+    "asinh": "numpy.arcsinh",
+    "acosh": "numpy.arccosh",
+    "atanh": "numpy.arctanh",
+    "exp": "numpy.exp",
+    "log": "numpy.log",
+    "sign": "numpy.sign",
+    "floor": "numpy.floor",
+    "ceiling": "numpy.ceil",
+    "Abs": "abs",
+}
+
+#: NumPy's name of each relation of a condition.
+_RELATIONS = {
+    "<": "less",
+    "<=": "less_equal",
+    ">": "greater",
+    ">=": "greater_equal",
+    "==": "equal",
+    "!=": "not_equal",
+}
+
+#: Python's keywords: a symbol so named prints with ``_`` appended, as SymPy's printer
+#: had it (spec names never are one).
+_RESERVED = frozenset(
+    "and as assert break class continue def del elif else except finally for from global "
+    "if import in is lambda not or pass raise return try while with yield None False "
+    "nonlocal True".split()
+)
 
 
-class PythonPrinter(CanonicalOrder, NumPyPrinter):  # type: ignore[misc]
+class PythonPrinter(ExpressionPrinter):
     """NumPy printer for kernel bodies, strict about anything it cannot translate.
 
     Kernel expressions are elementwise over a batch of states, so every function
-    maps to its ``numpy`` ufunc. Strict mode makes an untranslatable node an error at
-    generation time instead of broken code at run time.
+    maps to its ``numpy`` ufunc; a node with no translation is an error at generation
+    time instead of broken code at run time. What SymPy's NumPy printer wrote, as the
+    golden files hold it, with these choices:
+
+    * Small integer powers are products (``x*x``), and their reciprocals ``1/(x*x)``:
+      exact for squares, as the C backend writes them, and the same bits whether ``x``
+      is a NumPy array or a Python float (``float.__pow__`` calls libm's ``pow``, NumPy
+      its own, and they differ in the last bit).
+    * Every other power is ``numpy.power(x, e)``, one routine for arrays and scalars
+      alike; square roots are ``numpy.sqrt``.
     """
 
-    def __init__(self) -> None:
-        super().__init__(
-            {
-                "strict": True,
-                "fully_qualified_modules": True,
-                "allow_unknown_functions": False,
-                "order": "none",
-            }
-        )
+    reserved_words: ClassVar[frozenset[str]] = _RESERVED
 
-    def _print_Pow(self, expr: sp.Pow, rational: bool = False) -> str:
-        """Customizations.
+    # -- numbers ---------------------------------------------------------------------
 
-        * Small integer powers are products (``x*x``), and their reciprocals
-          ``1/(x*x)``: exact for squares, as the C backend writes them, and the same
-          bits whether ``x`` is a NumPy array or a Python float (``float.__pow__``
-          calls libm's ``pow``, NumPy its own, and they differ in the last bit).
-        * Every other power is ``numpy.power(x, e)``, one routine for arrays and
-          scalars alike; square roots stay ``numpy.sqrt``.
-        * ``x**-1`` is ``1/x``: NumPyPrinter writes ``x**(-1.0)``.
-        """
-        exp = expr.exp
-        if exp.is_Integer and 1 <= abs(int(exp)) <= 4:
-            base = self.parenthesize(expr.base, PRECEDENCE["Mul"])
-            product = "*".join([base] * abs(int(exp)))
-            if exp > 0:
-                return f"({product})" if abs(int(exp)) > 1 else product
-            one = self._print(sp.S.One)
-            return f"{one}/{base}" if exp == -1 else f"{one}/({product})"
-        if exp == sp.S.Half:
-            return self._call(f"numpy.sqrt({self._print(expr.base)})")
-        if exp == -sp.S.Half:
-            one = self._print(sp.S.One)
-            return f"{one}/{self._call(f'numpy.sqrt({self._print(expr.base)})')}"
-        return self._call(f"numpy.power({self._print(expr.base)}, {self._print(exp)})")
+    def _print_Integer(self, expr: Any) -> str:
+        return str(int(expr))
+
+    def _print_Rational(self, expr: Any) -> str:
+        return f"{int(expr.p)}/{int(expr.q)}"
+
+    def _print_Float(self, expr: Any) -> str:
+        # SymPy's Float of a double: 15 significant digits, trailing zeros dropped
+        # inside an expression.
+        return float_digits(float(expr), 15, strip_zeros=True)
+
+    def _print_top(self, expr: Any) -> str:
+        if expr.is_Float:  # a lone Float kept its zeros (2.50000000000000)
+            return float_digits(float(expr), 15, strip_zeros=False)
+        return self._print(expr)
+
+    def _print_Pi(self, expr: Any) -> str:
+        return "numpy.pi"
+
+    def _print_Exp1(self, expr: Any) -> str:
+        return "numpy.e"
+
+    # -- operations ------------------------------------------------------------------
+
+    def _power(self, base: Any, exponent: Any) -> str:
+        if exponent.is_Integer and 1 <= abs(int(exponent)) <= 4:
+            n = int(exponent)
+            text = self.parenthesize(base, MUL)
+            product = "*".join([text] * abs(n))
+            if n > 0:
+                return f"({product})" if n > 1 else product
+            one = self._print(sx.ONE)
+            return f"{one}/{text}" if n == -1 else f"{one}/({product})"
+        if _is_half(exponent, 1):
+            return self._call(f"numpy.sqrt({self._print(base)})")
+        if _is_half(exponent, -1):
+            return f"{self._print(sx.ONE)}/{self._call(f'numpy.sqrt({self._print(base)})')}"
+        return self._call(f"numpy.power({self._print(base)}, {self._print(exponent)})")
+
+    def _function(self, name: str, args: tuple[Any, ...]) -> str:
+        if name in ("Max", "Min"):
+            if len(args) == 1:
+                return self._print(args[0])
+            ufunc = "numpy.maximum" if name == "Max" else "numpy.minimum"
+            return f"functools.reduce({ufunc}, [{', '.join(self._print(a) for a in args)}])"
+        known = NUMPY_FUNCTIONS.get(name)
+        if known is None:
+            raise UnprintableError(f"NumPy has no function {name!r}")
+        return self._called(f"{known}({', '.join(self._print(a) for a in args)})")
+
+    _print_Max = _print_Min = ExpressionPrinter._print_Function
+
+    def _print_Piecewise(self, expr: Any) -> str:
+        """``numpy.select`` of the pieces (NaN where none holds)."""
+        pairs = sx.piecewise_pairs(expr)
+        conditions = ",".join(self._print(c) for _, c in pairs)
+        values = ",".join(self._print(v) for v, _ in pairs)
+        return self._called(f"numpy.select([{conditions}], [{values}], default=numpy.nan)")
+
+    def _print_BooleanTrue(self, expr: Any) -> str:
+        return "True"
+
+    def _print_Relational(self, expr: Any) -> str:
+        lhs, rhs = expr.args
+        ufunc = _RELATIONS[RELATIONS[type(expr).__name__]]
+        return f"numpy.{ufunc}({self._print(lhs)}, {self._print(rhs)})"
+
+    _print_StrictLessThan = _print_LessThan = _print_StrictGreaterThan = _print_Relational
+    _print_GreaterThan = _print_Equality = _print_Unequality = _print_Relational
+
+    def _print_And(self, expr: Any) -> str:
+        return f"numpy.logical_and.reduce(({','.join(self._print(a) for a in expr.args)}))"
+
+    def _print_Or(self, expr: Any) -> str:
+        return f"numpy.logical_or.reduce(({','.join(self._print(a) for a in expr.args)}))"
+
+    def _print_Not(self, expr: Any) -> str:
+        return f"numpy.logical_not({self._print(expr.args[0])})"
+
+    def _called(self, text: str) -> str:
+        """A function node's text: a NumPy call is one the scalar printer converts."""
+        return self._call(text) if text.startswith("numpy.") else text
 
     def _call(self, text: str) -> str:
         """A call of a NumPy function, as printed (the scalar printer converts it)."""
         return text
+
+
+def _is_half(exponent: Any, sign: int) -> bool:
+    """Whether ``exponent`` is the rational ``sign/2`` (a float 0.5 is a power)."""
+    return bool(
+        exponent.is_Rational
+        and not exponent.is_Integer
+        and (int(exponent.p), int(exponent.q)) == (sign, 2)
+    )
 
 
 class PythonScalarPrinter(PythonPrinter):
@@ -66,37 +180,19 @@ class PythonScalarPrinter(PythonPrinter):
 
     The one-point kernels run on Python floats. A NumPy function returns a NumPy
     scalar, on which every later operation costs about three times a float's; the
-    value is the same, so it is converted at once. The function stays NumPy's: its
-    bits then equal those of the batch path (libm's ``math`` functions differ from
-    NumPy's vectorized ones in the last bit).
+    value is the same, so it is converted at once, through the module's alias
+    ``_np_<name>`` of ``numpy.<name>`` (one global lookup instead of a global and an
+    attribute: the template defines the aliases the code uses). The function stays
+    NumPy's: its bits then equal those of the batch path (libm's ``math`` functions
+    differ from NumPy's vectorized ones in the last bit). Integers print as floats
+    (``2.0``): CPython's fast path multiplies two floats, not an int and a float; the
+    value is the same (an int converts exactly).
     """
 
-    def _print(self, expr: Any, **kwargs: Any) -> str:
-        """Customizations.
-
-        * A function printed as a NumPy call is wrapped in ``float(...)`` and calls the
-          module's alias ``_np_<name>`` of ``numpy.<name>`` (one global lookup instead of
-          a global and an attribute: the template defines the aliases the code uses).
-        """
-        text: str = super()._print(expr, **kwargs)
-        if isinstance(expr, sp.Function) and text.startswith("numpy."):
-            return f"float(_np_{text.removeprefix('numpy.')})"
-        return text
-
     def _call(self, text: str) -> str:
-        """Customizations.
-
-        * ``numpy.power`` and ``numpy.sqrt`` from powers are wrapped in ``float(...)``,
-          through their aliases.
-        """
         return f"float(_np_{text.removeprefix('numpy.')})"
 
-    def _print_Integer(self, expr: sp.Integer) -> str:
-        """Customizations.
-
-        * Integers print as floats (``2.0``): CPython's fast path multiplies two floats,
-          not an int and a float; the value is the same (an int converts exactly).
-        """
+    def _print_Integer(self, expr: Any) -> str:
         return f"{int(expr)}.0"
 
 
@@ -125,29 +221,10 @@ class PythonJointPrinter(PythonPrinter):
     example.
     """
 
-    def _print(self, expr: Any, **kwargs: Any) -> str:
-        """Customizations.
-
-        * A function printed as a NumPy call is marked, as the scalar printer wraps it.
-        """
-        text: str = super()._print(expr, **kwargs)
-        if isinstance(expr, sp.Function) and text.startswith("numpy."):
-            return self._call(text)
-        return text
-
     def _call(self, text: str) -> str:
-        """Customizations.
-
-        * ``numpy.power`` and ``numpy.sqrt`` from powers are marked, as the scalar printer
-          wraps them.
-        """
         return f"{_CALL}{text.removeprefix('numpy.')}{_END}"
 
-    def _print_Integer(self, expr: sp.Integer) -> str:
-        """Customizations.
-
-        * An integer's end is marked, where the scalar printer adds ``.0``.
-        """
+    def _print_Integer(self, expr: Any) -> str:
         return f"{int(expr)}{_INTEGER}"
 
     @staticmethod
