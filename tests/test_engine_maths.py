@@ -42,6 +42,8 @@ from tvopt_codegen.maths.sparse import cholesky_program, ldl_program
 from tvopt_codegen.spec.parse import FUNCTIONS
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
+from .conftest import derivation
+
 RTOL = 1e-12
 POINTS = 6
 
@@ -312,6 +314,81 @@ def test_an_exact_constant_is_decided_by_simplification_on_both_engines() -> Non
         assert sampler.is_zero(sx.Integer(0))
     sampler = Sampler([sp.Symbol("x", real=True)], {})
     assert sampler.is_zero(zero) and not sampler.is_zero(nonzero)
+
+
+SPECS = ["pvtol", "two_unicycles_barrier"]
+
+
+def _spec_jet(gradient: Sequence[Any], jets: Sequence[Sequence[Any]], k: int) -> tuple[Any, ...]:
+    """A spec's gradient jet to order ``k - 1`` on the current engine, along its jets."""
+    names: Iterator[Any] = fresh_symbols("_e")
+    rates: dict[Any, Any] = {sx.symbol("t"): sx.Integer(1)}
+    for chain in jets:
+        for j in range(k):
+            rates[sx.symbol(chain[j].name)] = sx.symbol(chain[j + 1].name)
+    program, current = atomize(list(gradient), names)
+    jet = [tuple(current)]
+    for _ in range(k - 1):
+        new, current, rates = next_derivative(program, current, rates, names)
+        program = program + new
+        jet.append(tuple(current))
+    return program, jet
+
+
+@pytest.mark.parametrize("spec", SPECS)
+def test_an_example_specs_jet_is_the_derivations_on_both_engines(spec: str) -> None:
+    """The derivation's grad^(j) f0 (SymPy), and the jet of its gradient on each engine."""
+    d = derivation(spec)
+    k = len(d.jet.grad_jet)
+    jets = [*d.jet.y_jet, *d.jet.signal_jet]
+    rng = np.random.default_rng(5)
+    values = _values([s.name for chain in jets for s in chain] + ["t"], rng, -1.0, 1.0)
+    values |= {
+        p.name: np.full(POINTS, v) for p, v in zip(d.model.params, d.model.defaults, strict=True)
+    }
+    # Away from the barrier's singular set: the outputs where the spec starts, moved a little.
+    for y, start in zip(d.model.y, d.model.h, strict=True):
+        initial = dict(zip(d.model.x, d.closed_loop.initial_state, strict=False))
+        values[y.name] = float(start.subs(initial)) + rng.uniform(-0.1, 0.1, POINTS)
+    flat = [e for level in d.jet.grad_jet for e in level]
+    reference = _evaluate(flat, values, d.jet.jet_program.assignments)
+    gradient = list(d.objective.gradient)
+    program, jet = _spec_jet(gradient, jets, k)
+    expected = _evaluate([e for level in jet for e in level], values, program.assignments)
+    _close(reference, expected)
+    converted = _symengine(gradient)
+    with sx.using("symengine"):
+        program_se, jet_se = _spec_jet(converted, jets, k)
+        got = _evaluate([e for level in jet_se for e in level], values, program_se.assignments)
+    _close(expected, got)
+
+
+@pytest.mark.parametrize("spec", SPECS)
+def test_an_example_specs_relative_degree_is_the_derivations_on_both_engines(spec: str) -> None:
+    d = derivation(spec)
+    m = d.model
+    counts = dict(d.linearization.extension.counts)
+    fixed = dict(zip(m.params, m.defaults, strict=True))
+    system = (m.x, m.u, m.f, m.G, m.h, fixed)
+    results = []
+    for engine, (x, u, f, G, h, params) in (("sympy", system), ("symengine", _symengine(system))):
+        with sx.using(engine):
+            ext = extend(x, u, f, G, counts)
+            sampler = Sampler(ext.x, params)
+            rd = relative_degree(ext.f, ext.G, h, ext.x, sampler)
+            assert rd.R is not None
+            rank = generic_rank(rd.R, sampler)
+            names = [s.name for s in ext.x] + [p.name for p in params]
+            values = _values(names, np.random.default_rng(6), -1.2, 1.2)
+            values |= {p.name: np.full(POINTS, v) for p, v in params.items()}
+            exprs = [e for chain in rd.lie for e in chain] + [
+                e for _, _, e in nonzero_entries(rd.R)
+            ]
+            results.append((rd.r, rank, _evaluate(exprs, values)))
+    (r, rank, expected), (r_se, rank_se, got) = results
+    assert r == r_se == d.linearization.relative_degree
+    assert rank == rank_se == len(r)
+    _close(expected, got)
 
 
 # --- sparse -------------------------------------------------------------------------------
