@@ -13,6 +13,7 @@ records), so that these tests are of lowering alone.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import functools
 import math
@@ -26,7 +27,9 @@ import numpy
 import pytest
 
 from tvopt_codegen import symbolic as sx
+from tvopt_codegen.commands import common
 from tvopt_codegen.derivation import Derivation, derive
+from tvopt_codegen.errors import BudgetError
 from tvopt_codegen.lowering.ir import Kernel, KernelSet, check_kernels, lower
 from tvopt_codegen.lowering.plan import Plan
 from tvopt_codegen.simulation import load_controller
@@ -88,12 +91,24 @@ def symengine_derivation(name: str) -> Derivation:
 
 
 @functools.cache
-def lowered(name: str, engine: str) -> KernelSet:
-    """The example's kernels on ``engine``."""
+def symengine_derived(name: str) -> Derivation:
+    """The example ``name`` derived on SymEngine from the start."""
+    with sx.using("symengine"):
+        return derive(load_spec(EXAMPLES / f"{name}.toml"))
+
+
+#: SymEngine's derivation: SymPy's converted at the border (lowering alone under test),
+#: or SymEngine's own (the whole pipeline).
+SOURCES = {"converted": symengine_derivation, "derived": symengine_derived}
+
+
+@functools.cache
+def lowered(name: str, engine: str, source: str = "converted") -> KernelSet:
+    """The example's kernels on ``engine`` (SymEngine's from ``source``)."""
     with sx.using(engine):
         if engine == "sympy":
             return lower(sympy_derivation(name))
-        return lower(symengine_derivation(name))
+        return lower(SOURCES[source](name))
 
 
 # The float walk: what a backend's printer would make of a kernel, read from the tree.
@@ -290,9 +305,10 @@ def assert_same_values(
     return compared
 
 
+@pytest.mark.parametrize("source", SOURCES)
 @pytest.mark.parametrize("name", NAMES)
-def test_every_kernel_agrees_on_both_engines(name: str) -> None:
-    reference, fast = lowered(name, "sympy"), lowered(name, "symengine")
+def test_every_kernel_agrees_on_both_engines(name: str, source: str) -> None:
+    reference, fast = lowered(name, "sympy"), lowered(name, "symengine", source)
     assert [interface(k) for k in fast.kernels] == [interface(k) for k in reference.kernels]
     assert without_tau(fast.plan) == without_tau(reference.plan)
     assert (fast.r_blocks, fast.lu_ops) == (reference.r_blocks, reference.lu_ops)
@@ -306,13 +322,14 @@ def test_every_kernel_agrees_on_both_engines(name: str) -> None:
     assert compared == 3 * entries > 0
 
 
+@pytest.mark.parametrize("source", SOURCES)
 @pytest.mark.parametrize("name", ["planar_arm3", "integrator"])
-def test_check_kernels_agree_on_both_engines(name: str) -> None:
+def test_check_kernels_agree_on_both_engines(name: str, source: str) -> None:
     # The sweep's det R reads the whole R, through the mass matrix's solve on the arm.
     with sx.using("sympy"):
         reference = check_kernels(sympy_derivation(name))
     with sx.using("symengine"):
-        fast = check_kernels(symengine_derivation(name))
+        fast = check_kernels(SOURCES[source](name))
     assert interface(fast.decoupling) == interface(reference.decoupling)
     assert (fast.constraints, fast.equalities) == (None, None)
     assert (reference.constraints, reference.equalities) == (None, None)
@@ -331,7 +348,7 @@ def test_rendered_controllers_agree_on_both_engines(name: str) -> None:
     # Rendering prints SymEngine's kernels through the backends' printers: the
     # generated modules compute the same law, batch of states by batch of states.
     reference = loaded(lowered(name, "sympy"), "sympy")
-    fast = loaded(lowered(name, "symengine"), "symengine")
+    fast = loaded(lowered(name, "symengine", "derived"), "symengine")
     rng = numpy.random.default_rng(len(name))
     start = numpy.array(reference.DEFAULT_STATE)
     states = start[:, None] + rng.uniform(-0.2, 0.2, (len(start), 4))
@@ -355,3 +372,35 @@ def test_rendered_controllers_agree_on_both_engines(name: str) -> None:
         assert numpy.all(numpy.isfinite(want)), function
         scale = numpy.max(numpy.abs(want))
         assert numpy.max(numpy.abs(got - want)) <= RELATIVE * max(scale, 1e-300), function
+
+
+def derive_args(name: str, **options: Any) -> argparse.Namespace:
+    """A deriving command's arguments for the example ``name``."""
+    values: dict[str, Any] = {
+        "spec": str(EXAMPLES / f"{name}.toml"),
+        "extension": "spec",
+        "progress": "never",
+        "max_seconds": 120.0,
+        "max_size": 20_000,
+    }
+    return argparse.Namespace(**(values | options))
+
+
+def test_the_commands_budgets_hold_on_symengine(capsys: pytest.CaptureFixture[str]) -> None:
+    # The size budget counts SymEngine's nodes as SymPy's: pvtol's largest expression
+    # is between 5 and 20,000 nodes on both engines.
+    for engine in ("sympy", "symengine"):
+        with sx.using(engine):
+            _, kernels = common.derive(derive_args("pvtol", progress="always"))
+            assert all(isinstance(e, sx.Basic) for e in kernels["jet"].outputs[0].exprs)
+            with pytest.raises(BudgetError, match="past 5 nodes"):
+                common.derive(derive_args("pvtol", max_size=5))
+            with pytest.raises(BudgetError, match="longer than 1e-06 s"):
+                common.derive(derive_args("pvtol", max_seconds=1e-6))
+        lines = capsys.readouterr().err.splitlines()
+        assert lines[-1].startswith("  deriving: kernels and CSE, ")
+        expressions, nodes = (
+            int(lines[-1].split(", ")[1].split()[0]),
+            int(lines[-1].split("(")[1].split()[0]),
+        )
+        assert nodes > expressions > 10, engine
