@@ -4,9 +4,9 @@
 differentiation: ``G[:, j] = d rhs / d u_j`` and ``f = rhs(u = 0)``, after checking that
 no right-hand side is more than affine in the inputs.
 
-The spec's expressions are taken onto the process's engine here, once
-(:func:`~tvopt_codegen.symbolic.border.from_sympy`, which passes the engine's own through):
-every stage after this one reads the model's.
+Every stage after this one reads the model's expressions, of the process's engine
+(:mod:`tvopt_codegen.symbolic`): a spec's SymPy expressions (a :class:`Spec` built by
+hand) are taken onto it here, once.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from tvopt_codegen.spec import (
     Mechanics,
     Robust,
     Spec,
+    time_symbol,
 )
 from tvopt_codegen.spec.constraints import barrier_objective, initial_slack, schedule
 from tvopt_codegen.spec.implicit import (
@@ -40,9 +41,6 @@ from tvopt_codegen.spec.implicit import (
     solved_at,
 )
 from tvopt_codegen.symbolic.border import from_sympy
-
-#: The name of time in the spec's expressions (the model's ``t``).
-_TIME = "t"
 
 
 @dataclass(frozen=True)
@@ -276,7 +274,7 @@ def build_model(spec: Spec) -> Model:
         defaults=tuple(v for _, v in spec.parameters),
         signals=tuple((sx.symbol(n), e) for n, e in spec.signals),
         f0=f0,
-        t=sx.symbol(_TIME),
+        t=time_symbol(),
         references=tuple(sx.symbol(n) for n in spec.references),
         nominal=tuple((sx.symbol(n), e) for n, e in spec.reference_nominal),
         objective=objective,
@@ -292,10 +290,11 @@ def build_model(spec: Spec) -> Model:
 def _on_engine(spec: Spec) -> Spec:
     """``spec`` with its expressions of the process's engine: the spec's own, if they are.
 
-    The spec reader parses with SymPy until it reads into the engine itself: then every
-    expression is converted here, once, sharing one memo, so that a subexpression common
-    to the plant and the objective converts once (:func:`from_sympy` passes the engine's
-    own expressions through). On SymPy the spec is the model's as it is.
+    The reader parses into the engine; a :class:`Spec` built by hand may hold SymPy's
+    expressions all the same. Those are converted here, once, sharing one memo, so that
+    a subexpression common to the plant and the objective converts once
+    (:func:`from_sympy` passes the engine's own through, at the price of a type check).
+    On SymPy the spec is the model's as it is.
     """
     if not sx.SYMENGINE:
         return spec
@@ -477,7 +476,7 @@ def _barrier_objective(
     objective = mu = slack = None
     if spec.constraints:
         assert spec.barrier is not None
-        time = sx.symbol(_TIME)
+        time = time_symbol()
         # The start: outputs of the initial plant state; signals, references (nominal,
         # else 0) and t at 0; parameters at their defaults.
         given = dict(spec.initial_state)
