@@ -126,21 +126,22 @@ def _lie_row(
     f: sx.Expr,
     columns: Sequence[Sequence[tuple[int, sx.Expr]]],
     x: Sequence[sx.Expr],
+    position: Mapping[sx.Expr, int],
 ) -> tuple[sx.Expr, dict[int, sx.Expr]]:
     """Return ``L_f expr`` and the row ``L_G expr`` from one sparse gradient of ``expr``.
 
     Only the states that occur in ``expr`` are differentiated, and only the nonzero
     entries of G are visited (``columns[i]`` lists them for state ``i``): for N agents
     the dense sweep is quadratic in N, this one linear. The row is its entries by
-    column, the columns no state of ``expr`` reaches left out.
+    column, the columns no state of ``expr`` reaches left out. The states are found by
+    their index (``position``), in state order, not by a pass over all of them: that
+    pass was quadratic in the team's size too.
     """
     free = _expression(expr).free_symbols
     drift = sx.Integer(0)
     row: dict[int, sx.Expr] = {}
-    for i, xi in enumerate(x):
-        if xi not in free:
-            continue
-        slope = partial(expr, xi)
+    for i in sorted(position[s] for s in free if s in position):
+        slope = partial(expr, x[i])
         if f[i] != 0:
             drift += slope * f[i]
         for c, gic in columns[i]:
@@ -157,7 +158,20 @@ def from_entries(rows: int, cols: int, entries: Mapping[tuple[int, int], sx.Expr
     matrix = sx.zeros(rows, cols)
     for (i, j), value in entries.items():
         matrix[i, j] = value
-    return matrix.as_immutable()
+    return _immutable(matrix)
+
+
+def _immutable(matrix: sx.Expr) -> sx.Expr:
+    """An immutable copy of a mutable matrix.
+
+    SymEngine's ``as_immutable`` reads every entry into Python (0.7 s for a team's
+    1024 x 512 G); joining the matrix below an immutable row and dropping that row is
+    one copy in C++.
+    """
+    rows, cols = matrix.shape
+    if not sx.SYMENGINE or rows == 0 or cols == 0:
+        return matrix.as_immutable()
+    return sx.ImmutableMatrix([[0] * cols]).col_join(matrix)[1:, :]
 
 
 def nonzero_entries(matrix: sx.Expr) -> list[tuple[int, int, sx.Expr]]:
@@ -167,15 +181,40 @@ def nonzero_entries(matrix: sx.Expr) -> list[tuple[int, int, sx.Expr]]:
     visiting every entry is quadratic in the team's size.
     """
     if sx.SYMENGINE:
-        # SymEngine's matrices are dense: every entry is read, in C++ as far as it goes
-        # (its zero is the integer 0, as SymPy's ``!= 0`` keeps a float 0.0).
-        return [
-            (i, j, e)
-            for i, row in enumerate(matrix.tolist())
-            for j, e in enumerate(row)
-            if not (e.is_zero and e.is_Integer)
-        ]
+        found: list[tuple[int, int, sx.Expr]] = []
+        _dense_nonzero(matrix, 0, 0, found)
+        return sorted(found, key=lambda entry: entry[:2])
     return [(i, j, e) for (i, j), e in sorted(matrix.todok().items()) if e != 0]
+
+
+def _dense_nonzero(
+    matrix: sx.Expr, row: int, col: int, found: list[tuple[int, int, sx.Expr]]
+) -> None:
+    """Append the nonzero entries of a SymEngine matrix, offset by ``(row, col)``.
+
+    SymEngine's matrices are dense, and reading an entry into Python costs a
+    microsecond (half a second for a team's 768 x 512 G). Halves that equal a zero
+    matrix (a comparison in C++) are skipped, so only the blocks around the nonzero
+    entries are read. Zero is the integer 0, as for SymPy's ``!= 0``: a float 0.0 is
+    an entry.
+    """
+    rows, cols = matrix.shape
+    if rows == 0 or cols == 0 or matrix == sx.zeros(rows, cols):
+        return
+    if rows * cols <= 16:
+        for i, entries in enumerate(matrix.tolist()):
+            for j, e in enumerate(entries):
+                if not (e.is_Integer and e.is_zero):
+                    found.append((row + i, col + j, e))
+        return
+    if rows >= cols:
+        half = rows // 2
+        _dense_nonzero(matrix[:half, :], row, col, found)
+        _dense_nonzero(matrix[half:, :], row + half, col, found)
+    else:
+        half = cols // 2
+        _dense_nonzero(matrix[:, :half], row, col, found)
+        _dense_nonzero(matrix[:, half:], row, col + half, found)
 
 
 def control_affine(f: sx.Expr, G: sx.Expr, inputs: Sequence[sx.Expr]) -> list[sx.Expr]:
@@ -287,7 +326,7 @@ def extend(
         inputs=tuple(new_inputs),
         x=x_ext,
         f=sx.ImmutableMatrix(drift),
-        G=G_ext.as_immutable(),
+        G=_immutable(G_ext),
         counts=tuple((uj.name, counts[uj.name]) for uj in u if counts.get(uj.name, 0) > 0),
     )
 
@@ -348,6 +387,7 @@ def relative_degree(
         argument is the output's index.
     """
     n = len(x)
+    position = {xi: i for i, xi in enumerate(x)}
     columns: list[list[tuple[int, sx.Expr]]] = [[] for _ in range(n)]
     for i, c, entry in nonzero_entries(G):
         columns[i].append((c, entry))
@@ -362,7 +402,7 @@ def relative_degree(
         for order in range(n):
             if opaque and chain[-1].free_symbols & opaque:
                 raise ImplicitDerivativeError(output, order)
-            nxt, row = _lie_row(chain[-1], f, columns, x)
+            nxt, row = _lie_row(chain[-1], f, columns, x, position)
             row = {c: e for c, e in sorted(row.items()) if e != 0 and not sampler.is_zero(e)}
             if check is not None:
                 check(nxt)
@@ -392,7 +432,7 @@ def brunovsky(degrees: Sequence[int]) -> tuple[sx.Expr, sx.Expr]:
             a[offset + i, offset + i + 1] = 1
         b[offset + r - 1, chain] = 1
         offset += r
-    return a.as_immutable(), b.as_immutable()
+    return _immutable(a), _immutable(b)
 
 
 def connected_groups(nodes: Iterable[Node], links: Iterable[tuple[Node, Node]]) -> list[list[Node]]:
