@@ -195,8 +195,8 @@ def _dense_nonzero(
     SymEngine's matrices are dense, and reading an entry into Python costs a
     microsecond (half a second for a team's 768 x 512 G). Halves that equal a zero
     matrix (a comparison in C++) are skipped, so only the blocks around the nonzero
-    entries are read. Zero is the integer 0, as for SymPy's ``!= 0``: a float 0.0 is
-    an entry.
+    entries are read. A float 0.0 is no entry, as SymPy's matrix of entries
+    (:func:`from_entries`) keeps none.
     """
     rows, cols = matrix.shape
     if rows == 0 or cols == 0 or matrix == sx.zeros(rows, cols):
@@ -204,7 +204,7 @@ def _dense_nonzero(
     if rows * cols <= 16:
         for i, entries in enumerate(matrix.tolist()):
             for j, e in enumerate(entries):
-                if not (e.is_Integer and e.is_zero):
+                if not e.is_zero:
                     found.append((row + i, col + j, e))
         return
     if rows >= cols:
