@@ -111,12 +111,11 @@ class ExpressionPrinter:
         if expr.is_Add:
             return ADD
         if expr.is_Mul:
-            first = expr.args[0]
-            return ADD if first.is_Number and first.is_negative else MUL
+            return ADD if negative_number(expr.args[0]) else MUL
         if expr.is_Pow:
             return FUNC if _is_e(expr.args[0]) else POW
         if expr.is_Number:
-            if expr.is_negative:
+            if negative_number(expr):
                 return ADD
             return MUL if expr.is_Rational and not expr.is_Integer else ATOM
         if expr.is_Symbol or expr.is_Atom:
@@ -164,18 +163,18 @@ class ExpressionPrinter:
         coefficient = args[0] if args[0].is_Number else None
         factors = self._ordered(args[1:] if coefficient is not None else args)
         sign = ""
-        if coefficient is not None and coefficient.is_negative:
+        if coefficient is not None and negative_number(coefficient):
             sign, coefficient = "-", -coefficient
-        if coefficient is not None and not coefficient == 1:
+        if coefficient is not None and not (coefficient.is_Integer and int(coefficient) == 1):
             factors.insert(0, coefficient)
         numerator: list[str] = []
         denominator: list[str] = []
         lone: Any = None
         for factor in factors:
             exponent = factor.args[1] if factor.is_Pow else None
-            if exponent is not None and exponent.is_Rational and exponent.is_negative:
+            if exponent is not None and exponent.is_Rational and exponent.p < 0:
                 base = factor.args[0]
-                if exponent == -1:
+                if exponent.p == -1 and exponent.q == 1:
                     text = self.parenthesize(base, level)
                     # A product to the power -1 keeps its brackets (SymPy's #14160).
                     bracketed = base.is_Mul and len(base.args) != 1
@@ -234,8 +233,20 @@ class JointPrinter(Protocol):
 
 def negative_term(term: Any) -> bool:
     """Whether a term prints with a leading minus sign."""
-    coefficient = term.args[0] if term.is_Mul else term
-    return bool(coefficient.is_Number and coefficient.is_negative)
+    return negative_number(term.args[0] if term.is_Mul else term)
+
+
+def negative_number(expr: Any) -> bool:
+    """Whether ``expr`` is a number below zero.
+
+    Read from the number's value: SymPy's ``is_negative`` runs its assumption system on
+    first use, a third of printing time for a large controller.
+    """
+    if expr.is_Rational:
+        return bool(expr.p < 0)
+    if expr.is_Float:
+        return float(expr) < 0
+    return bool(expr.is_Number and expr.is_negative)
 
 
 def _is_e(expr: Any) -> bool:
