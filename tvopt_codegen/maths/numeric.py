@@ -95,11 +95,11 @@ class Evaluator:
         if expr in memo:
             return memo[expr]
         with np.errstate(all="ignore"):
-            for node, defined in _post_order(expr, memo, self._definitions):
+            for node, defined, children in _post_order(expr, memo, self._definitions):
                 if defined is not None:
                     memo[node] = memo[defined]
                 else:
-                    memo[node] = self._apply(node, [memo[arg] for arg in node.args])
+                    memo[node] = self._apply(node, [memo[arg] for arg in children])
         return memo[expr]
 
     @staticmethod
@@ -113,26 +113,33 @@ class Evaluator:
 
 def _post_order(
     expr: sx.Expr, known: Container[sx.Expr], definitions: Mapping[sx.Expr, sx.Expr]
-) -> Iterator[tuple[sx.Expr, sx.Expr | None]]:
+) -> Iterator[tuple[sx.Expr, sx.Expr | None, tuple[sx.Expr, ...]]]:
     """The nodes of ``expr`` not ``known``, each after its arguments, with its definition.
 
     A symbol that ``definitions`` defines comes after its definition, with it; any other
-    node with None. The caller makes each node known before taking the next. An explicit
-    stack: a long sum, or a long chain of program assignments, nests deeper than
-    Python's recursion limit.
+    node with None and its arguments (read once: SymEngine builds a new tuple of new
+    Python objects at each ``.args``). The caller makes each node known before taking
+    the next. An explicit stack: a long sum, or a long chain of program assignments,
+    nests deeper than Python's recursion limit.
     """
-    stack: list[tuple[sx.Expr, bool]] = [(expr, False)]
+    # (node, None, ()) is a node to expand; (node, definition, children) one expanded.
+    expand = None
+    stack: list[tuple[sx.Expr, Any, tuple[sx.Expr, ...]]] = [(expr, expand, ())]
     while stack:
-        node, ready = stack.pop()
+        node, defined, children = stack.pop()
         if node in known:
             continue
-        defined = definitions.get(node) if node.is_Symbol else None
-        if ready:
-            yield node, defined
+        if defined is not expand:
+            yield node, (None if defined is _NONE else defined), children
             continue
-        stack.append((node, True))
+        defined = definitions.get(node) if node.is_Symbol else None
         children = node.args if defined is None else (defined,)
-        stack.extend((child, False) for child in children if child not in known)
+        stack.append((node, _NONE if defined is None else defined, children))
+        stack.extend((child, expand, ()) for child in children if child not in known)
+
+
+#: The definition of a node that has none, once expanded (None marks one to expand).
+_NONE = object()
 
 
 def _operation(node: sx.Expr) -> Callable[..., Array]:
@@ -216,7 +223,7 @@ class Tape:
                 values.append(value)
 
         def place(expr: sx.Expr) -> int:
-            for node, defined in _post_order(expr, slot, definitions):
+            for node, defined, children in _post_order(expr, slot, definitions):
                 if defined is not None:
                     slot[node] = slot[defined]
                 elif node.is_Symbol:
@@ -227,7 +234,7 @@ class Tape:
                 else:
                     slot[node] = len(values)
                     values.append(None)
-                    args = tuple(slot[arg] for arg in node.args)
+                    args = tuple(slot[arg] for arg in children)
                     operations.append((_operation(node), args, slot[node]))
             return slot[expr]
 
