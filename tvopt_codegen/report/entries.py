@@ -177,9 +177,14 @@ def shown(expr: object) -> Any:
     inlined gradient jet only under :data:`INLINE_OPS`); on the SymPy engine it is
     ``sympify`` as it always was.
     """
+    sp = _sympy()
     if sx.SYMENGINE and isinstance(expr, sx.Basic | sx.MatrixBase):
-        return to_sympy(expr)
-    return _sympy().sympify(expr)
+        value = to_sympy(expr)
+        # The border keeps a double's every bit (17 digits); shown, it has the 15 digits
+        # of a SymPy float read from the spec (0.1, not 0.10000000000000001).
+        floats = value.atoms(sp.Float)
+        return value.xreplace({f: sp.Float(float(f), 15) for f in floats}) if floats else value
+    return sp.sympify(expr)
 
 
 def plain(expr: object) -> str:

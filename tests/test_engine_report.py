@@ -1,0 +1,389 @@
+"""The report, the summary and simulate's numeric helpers on both engines: the same numbers.
+
+Each example is derived on SymPy (the reference); its records are converted to SymEngine
+at the border (:func:`tvopt_codegen.symbolic.border.from_sympy`, deep through the
+derivation), so that these tests are of the report, the summary and the simulation's
+helpers alone. On SymEngine the report converts what it shows back to SymPy: every
+displayed expression must equal the SymPy engine's at random points (1e-12 relative),
+and every word around them must be the same.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import functools
+import os
+import re
+import subprocess
+import sys
+import types
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+import sympy as sp
+
+from tvopt_codegen import symbolic as sx
+from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.report import Math, Section, entries, report_sections, sections
+from tvopt_codegen.runs.figures import _signal_values
+from tvopt_codegen.runs.summary import format_summary
+from tvopt_codegen.simulation import constraints
+from tvopt_codegen.simulation.references import exact_jets, nominal_source
+from tvopt_codegen.simulation.run import decoupling_determinant
+from tvopt_codegen.symbolic.border import from_sympy
+
+from .conftest import ROOT, derivation, kernels
+
+RELATIVE = 1e-12
+
+#: The plain law, an extension, a mass-matrix plant, a barrier objective, inequality
+#: constraints (mu(t) and s(t) in words) and an equality (the KKT law).
+REPORTED = (
+    "integrator",
+    "pvtol",
+    "planar_arm3",
+    "two_unicycles_barrier",
+    "two_unicycles_corridor",
+    "arm_on_line",
+)
+
+
+def _converted(value: Any, memo: dict[Any, Any]) -> Any:
+    """``value`` with every SymPy expression in it (records, tuples, dicts) SymEngine's."""
+    if isinstance(value, sp.Basic | sp.MatrixBase):
+        return from_sympy(value, memo)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        out = copy.copy(value)
+        names = {f.name for f in dataclasses.fields(value)}
+        for name in names:
+            object.__setattr__(out, name, _converted(getattr(value, name), memo))
+        # functools.cached_property values were computed from the SymPy fields.
+        for key in [k for k in vars(out) if k not in names]:
+            del vars(out)[key]
+        return out
+    if isinstance(value, tuple) and hasattr(value, "_fields"):
+        return type(value)(*(_converted(v, memo) for v in value))
+    if isinstance(value, tuple | list | frozenset | set):
+        return type(value)(_converted(v, memo) for v in value)
+    if isinstance(value, dict):
+        return {_converted(k, memo): _converted(v, memo) for k, v in value.items()}
+    return value
+
+
+@functools.cache
+def symengine_derivation(name: str) -> Derivation:
+    """The SymPy derivation of ``name``, its expressions converted to SymEngine."""
+    with sx.using("symengine"):
+        converted: Derivation = _converted(derivation(name), {})
+    return converted
+
+
+def _no_timings(d: Derivation) -> Derivation:
+    return dataclasses.replace(d, timings=tuple((stage, 0.0) for stage, _ in d.timings))
+
+
+def _assert_same_values(reference: list[Any], other: list[Any], what: str) -> None:
+    """SymPy values (expressions, matrices, numbers) equal at random points, pairwise."""
+    assert len(other) == len(reference), what
+
+    def flat(values: list[Any]) -> list[Any]:
+        out: list[Any] = []
+        for value in values:
+            out.extend(list(value) if isinstance(value, sp.MatrixBase) else [value])
+        return out
+
+    shapes = [getattr(v, "shape", ()) for v in reference]
+    assert [getattr(v, "shape", ()) for v in other] == shapes, what
+    left, right = flat(reference), flat(other)
+    symbols = sorted(
+        set().union(*(sp.sympify(e).free_symbols for e in left + right)), key=lambda s: s.name
+    )
+    rng = np.random.default_rng(49)
+    # Positive and away from the integers: logs, roots and tan's poles stay defined.
+    points = rng.uniform(0.3, 1.3, size=(3, len(symbols)))
+    a = sp.lambdify(symbols, left, modules="numpy")
+    b = sp.lambdify(symbols, right, modules="numpy")
+    with np.errstate(all="ignore"):
+        for point in points:
+            expected = np.array(np.broadcast_arrays(*a(*point)), dtype=complex).ravel()
+            got = np.array(np.broadcast_arrays(*b(*point)), dtype=complex).ravel()
+            assert np.isfinite(expected).mean() > 0.5, what  # the points say something
+            np.testing.assert_allclose(
+                got,
+                expected,
+                rtol=RELATIVE,
+                atol=RELATIVE * (1 + np.nanmax(np.abs(expected))),
+                err_msg=what,
+            )
+
+
+def _recorded(
+    d: Derivation, monkeypatch: pytest.MonkeyPatch
+) -> tuple[list[Any], tuple[Section, ...]]:
+    """The report's sections of ``d``, and every value it showed (SymPy's), in order."""
+    shown: list[Any] = []
+    original = entries.shown
+
+    def recording(expr: object) -> Any:
+        value = original(expr)
+        shown.append(value)
+        return value
+
+    with monkeypatch.context() as patch:
+        patch.setattr(entries, "shown", recording)
+        patch.setattr(sections, "shown", recording)
+        built = report_sections(_no_timings(d), kernels(d.spec.name), None)
+    return shown, built
+
+
+def _words(built: tuple[Section, ...]) -> Iterator[object]:
+    """Everything a section says but its formulas (whose values are compared instead)."""
+    for section in built:
+        yield section.title
+        for entry in section.entries:
+            yield (entry.kind, entry.text, entry.header, entry.name, entry.math is None)
+            for row in entry.rows:
+                yield tuple("<math>" if isinstance(cell, Math) else cell for cell in row)
+
+
+@pytest.mark.parametrize("name", REPORTED)
+def test_the_report_shows_the_same_on_both_engines(
+    name: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    reference, built = _recorded(derivation(name), monkeypatch)
+    with sx.using("symengine"):
+        shown, other = _recorded(symengine_derivation(name), monkeypatch)
+        # What the report shows is SymPy's, converted from SymEngine's at the border.
+        assert not any(isinstance(v, sx.Basic | sx.MatrixBase) for v in shown)
+    assert len(reference) > 10
+    _assert_same_values(reference, shown, name)
+    assert list(_words(other)) == list(_words(built))
+    # Floats are shown as the spec wrote them (15 digits), not as the double's 17.
+    assert not re.search(r"\d\.\d{16}", "".join(str(w) for w in _words(other)))
+
+
+def test_the_report_module_shows_an_engine_expression() -> None:
+    """formula() on a SymEngine expression: SymPy's LaTeX of the same expression."""
+    x, y = sp.symbols("x y", real=True)
+    expr = sp.sin(x) * y**2 / 10 + sp.Rational(1, 3) * sp.atan2(y, x)
+    with sx.using("symengine"):
+        converted = from_sympy(expr)
+        assert isinstance(converted, sx.Basic)
+        math = entries.formula(converted)
+        ops = entries.count_ops(converted)
+    assert math == entries.formula(expr)
+    assert ops == sp.count_ops(expr)
+    assert entries.plain(expr) == sp.sstr(expr)
+
+
+def _tokens(line: str) -> list[str]:
+    return re.split(r"; | = | where ", line)
+
+
+def _parsed(text: str) -> Any:
+    return sp.parse_expr(text, transformations="all") if text else sp.Integer(0)
+
+
+@pytest.mark.parametrize("name", REPORTED)
+def test_the_summary_says_the_same_on_both_engines(name: str) -> None:
+    """Line for line the same words; the expressions (SymEngine orders terms its own way)
+    the same at random points."""
+    expected = format_summary(_no_timings(derivation(name)), kernels(name)).splitlines()
+    with sx.using("symengine"):
+        got = format_summary(_no_timings(symengine_derivation(name)), kernels(name)).splitlines()
+    assert len(got) == len(expected)
+    differing = [(a, b) for a, b in zip(expected, got, strict=True) if a != b]
+    for a, b in differing:
+        left, right = _tokens(a), _tokens(b)
+        assert len(left) == len(right), (a, b)
+        pairs = [(p, q) for p, q in zip(left, right, strict=True) if p != q]
+        _assert_same_values(
+            [_parsed(p) for p, _ in pairs], [_parsed(q) for _, q in pairs], f"{a!r} / {b!r}"
+        )
+    # Only the order of an expression's terms may differ, never a line's words.
+    assert len(differing) <= 2
+
+
+def test_lambdify_gives_the_same_numbers_on_both_engines() -> None:
+    """sx.lambdify's calling conventions on SymEngine are SymPy's, with SymPy's numbers."""
+    d, e = derivation("pvtol"), symengine_derivation("pvtol")
+    rng = np.random.default_rng(7)
+    states = rng.uniform(0.2, 1.2, len(d.closed_loop.states))
+    params = [float(v) for v in d.model.defaults]
+
+    def values(source: Derivation) -> list[Any]:
+        m = source.model
+        t, x, p = m.t, list(source.closed_loop.states), list(m.params)
+        # A matrix (numpy), a list from list arguments (math), one expression of a
+        # broadcast time, nested rows of one symbol, and a Piecewise.
+        matrix = sx.lambdify([[t, *x, *p]], source.linearization.R, modules="numpy")
+        column = [source.decoupling.p[i, 0] for i in range(source.decoupling.p.shape[0])]
+        listed = sx.lambdify([t, x, p], column, "math")
+        scalar = sx.lambdify([t, *p], sx.sin(t) * p[0] + t**2 / p[-1])
+        rows = sx.lambdify(t, [[t, 2 * t], [sx.sin(t), sx.exp(-t)]], "math")
+        switch = sx.Piecewise((t**2, t < 1), (sx.log(t), True))
+        piecewise = sx.lambdify([t], [switch, sx.atan2(t, 1 - t)], "math")
+        times = np.linspace(0.0, 2.0, 5)
+        return [
+            np.asarray(matrix([0.4, *states, *params]), dtype=float),
+            np.asarray(listed(0.4, states, params), dtype=float),
+            np.asarray(scalar(times, *params), dtype=float),
+            np.asarray(rows(0.9), dtype=float),
+            np.asarray(piecewise(0.5), dtype=float),
+            np.asarray(piecewise(1.5), dtype=float),
+        ]
+
+    expected = values(d)
+    with sx.using("symengine"):
+        got = values(e)
+        assert isinstance(sx.lambdify([sx.symbol("t")], sx.symbol("t") ** 2)(3.0), float)
+        assert sx.lambdify(sx.symbol("t"), [])(1.0).shape == (0,)
+    for a, b in zip(expected, got, strict=True):
+        assert b.shape == a.shape
+        np.testing.assert_allclose(b, a, rtol=RELATIVE, atol=1e-15)
+
+
+@pytest.mark.parametrize("name", ["pvtol_refs", "two_unicycles_barrier_refs"])
+def test_exact_jets_are_the_same_on_both_engines(name: str) -> None:
+    expected = exact_jets(derivation(name), {"g": 9.81} if name == "pvtol_refs" else {})
+    with sx.using("symengine"):
+        got = exact_jets(symengine_derivation(name), {"g": 9.81} if name == "pvtol_refs" else {})
+    for t in (0.0, 0.7, 2.3, 11.0):
+        np.testing.assert_allclose(got(t), expected(t), rtol=RELATIVE, atol=1e-14)
+
+
+@pytest.mark.parametrize("name", ["pvtol", "planar_arm3"])
+def test_det_r_is_the_same_on_both_engines(name: str) -> None:
+    d = derivation(name)
+    expected = decoupling_determinant(d, {})
+    with sx.using("symengine"):
+        got = decoupling_determinant(symengine_derivation(name), {})
+    assert expected is not None and got is not None
+    rng = np.random.default_rng(3)
+    start = np.asarray(d.closed_loop.initial_state, dtype=float)
+    for _ in range(4):
+        state = start + rng.uniform(-0.5, 0.5, start.shape)
+        np.testing.assert_allclose(got(0.3, state), expected(0.3, state), rtol=1e-12)
+
+
+def test_signal_values_are_the_same_on_both_engines() -> None:
+    name = "two_unicycles_barrier"
+    result = types.SimpleNamespace(
+        t=np.linspace(0.0, 5.0, 11), options=types.SimpleNamespace(params={}), references=None
+    )
+    signals = [x for pair in derivation(name).spec.objects for x in pair]
+    expected = [_signal_values(derivation(name), result, s) for s in signals]  # type: ignore[arg-type]
+    with sx.using("symengine"):
+        e = symengine_derivation(name)
+        got = [_signal_values(e, result, s) for s in signals]  # type: ignore[arg-type]
+    np.testing.assert_allclose(got, expected, rtol=RELATIVE, atol=1e-15)
+
+
+def _problem_values(d: Derivation, t: float, y: np.ndarray) -> list[np.ndarray]:
+    model = d.model
+    values = dict(zip(model.params, model.defaults, strict=True))
+    problem = constraints._problem(model, values, None)
+    out = [
+        np.atleast_1d(np.asarray(getattr(problem, f)(t, y, []), dtype=float))
+        for f in ("f0", "f0_grad", "g", "g_grad", "a", "a_grad", "domain", "domain_grad")
+    ]
+    if model.equalities:
+        equal = constraints.equalities(model, values)
+        nu = np.linspace(0.5, 1.5, len(model.equalities))
+        out += [equal.value(t, y, []), equal.jacobian_a(t, y, []), equal.curvature(t, y, [], nu)]
+    return out
+
+
+@pytest.mark.parametrize("name", ["arm_on_line", "two_unicycles_corridor"])
+def test_the_constraints_in_numbers_are_the_same_on_both_engines(name: str) -> None:
+    d = derivation(name)
+    rng = np.random.default_rng(11)
+    for t in (0.0, 1.3):
+        y = rng.uniform(0.2, 0.9, len(d.model.y))
+        expected = _problem_values(d, t, y)
+        with sx.using("symengine"):
+            got = _problem_values(symengine_derivation(name), t, y)
+        for a, b in zip(expected, got, strict=True):
+            assert b.shape == a.shape
+            np.testing.assert_allclose(b, a, rtol=RELATIVE, atol=1e-14)
+    assert any(a.size for a in expected)
+
+
+def test_the_constraints_certificate_is_the_same_on_both_engines() -> None:
+    """check_run along a made-up path near a figure eight under a wall: its margins, the
+    references' values, m_f and the SLSQP minimisers' distances."""
+    name = str(ROOT / "tests" / "specs" / "figure8_wall.toml")
+    ts = np.linspace(0.0, 12.0, 9)
+
+    def check(source: Derivation) -> Any:
+        references = nominal_source(source, {})
+        # The references' own path below the wall, which cuts the top of it.
+        minimisers = np.array([references.jets(t)[:, 0] for t in ts]).T
+        minimisers[1] = np.minimum(minimisers[1], 1.2)
+        outputs = minimisers + 1e-3
+        to_phi = np.linalg.norm(outputs - minimisers, axis=0)
+        values = dict(zip(source.model.params, source.model.defaults, strict=True))
+        return constraints.check_run(
+            source.model, ts, outputs, to_phi, minimisers, values, references, 5
+        )
+
+    expected = check(derivation(name))
+    with sx.using("symengine"):
+        got = check(symengine_derivation(name))
+    for field in ("margins", "slack", "lhs", "rhs", "bound", "times", "equality"):
+        np.testing.assert_allclose(
+            getattr(got, field), getattr(expected, field), rtol=RELATIVE, atol=1e-14
+        )
+    assert got.m_f == pytest.approx(expected.m_f, rel=RELATIVE)
+    assert [n for n, _ in got.final] == [n for n, _ in expected.final]
+    np.testing.assert_allclose([v for _, v in got.final], [v for _, v in expected.final])
+    # SLSQP's stopping point, from functions equal to the last bits: within its tolerance.
+    assert np.isfinite(expected.distance).all()
+    np.testing.assert_allclose(got.distance, expected.distance, rtol=1e-6, atol=1e-9)
+
+
+def test_on_symengine_these_helpers_import_no_sympy(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The summary and simulate's helpers run on SymEngine with SymPy unimportable."""
+    with sx.using("symengine"):
+        derived = {n: symengine_derivation(n) for n in ("pvtol", "pvtol_refs", "arm_on_line")}
+        with monkeypatch.context() as patch:
+            patch.setitem(sys.modules, "sympy", None)
+            with pytest.raises(ImportError):
+                import sympy  # noqa: F401, PLC0415 - the block works
+            assert "R(x)" not in format_summary(derived["pvtol"])
+            assert decoupling_determinant(derived["pvtol"], {}) is not None
+            exact_jets(derived["pvtol_refs"], {})(0.5)
+            _problem_values(derived["arm_on_line"], 0.2, np.array([0.4, 0.6]))
+
+
+def test_importing_simulation_runs_and_report_on_symengine_imports_no_sympy() -> None:
+    modules = (
+        "tvopt_codegen.simulation",
+        "tvopt_codegen.simulation.constraints",
+        "tvopt_codegen.simulation.sampled",
+        "tvopt_codegen.runs.artifacts",
+        "tvopt_codegen.runs.figures",
+        "tvopt_codegen.runs.fmu",
+        "tvopt_codegen.runs.summary",
+        "tvopt_codegen.report",
+    )
+    code = (
+        "import importlib, sys\n"
+        f"for name in {modules!r}:\n"
+        "    importlib.import_module(name)\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] == 'sympy'))\n"
+    )
+    env = {**os.environ, "TVOPT_CODEGEN_ENGINE": "symengine"}
+    ran = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=ROOT,
+        timeout=120,
+        check=True,
+    )
+    assert ran.stdout.strip() == "[]"
