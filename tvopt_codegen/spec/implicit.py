@@ -40,11 +40,14 @@ def affine_split(
         When a coefficient depends on an input (one line, naming both).
     """
     present = set(inputs)
+    # Zero of the inputs' own engine: the mechanics door splits SymPy's expressions
+    # whatever the process's engine is, and must get SymPy's zero back.
+    zero = {u: u * 0 for u in inputs}
     rows = []
     for i, expr in enumerate(exprs):
         row = []
         for u in inputs:
-            coefficient = partial(expr, u) if u in expr.free_symbols else sx.ZERO
+            coefficient = partial(expr, u) if u in expr.free_symbols else zero[u]
             if coefficient.free_symbols & present:
                 raise ValueError(
                     f"entry {i} is not affine in the inputs: the coefficient of {u.name!r} "
@@ -52,7 +55,6 @@ def affine_split(
                 )
             row.append(coefficient)
         rows.append(tuple(row))
-    zero = dict.fromkeys(inputs, sx.ZERO)
     return tuple(rows), tuple(expr.xreplace(zero) for expr in exprs)
 
 
