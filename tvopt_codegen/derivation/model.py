@@ -449,7 +449,8 @@ def _split_affine(
                         f"not affine in the inputs: the coefficient of {spec.inputs[j]!r} "
                         f"depends on input {str(uk)!r}",
                     )
-        f_rows.append(rhs.xreplace(dict.fromkeys(u, sx.Integer(0))))
+        # Only the inputs it holds: SymEngine copies the whole mapping into each call.
+        f_rows.append(rhs.xreplace(dict.fromkeys(inputs & present, sx.Integer(0))))
     return f_rows, G_entries
 
 

@@ -66,14 +66,12 @@ def _affine_split(gradient: sx.Expr, hessian: sx.Expr, y: Sequence[sx.Expr]) -> 
     operations that depend on the state drop from 118 to 72; the rest depend on time
     and parameters alone, which a batch of states at one time shares.
     """
-    at_zero = {yi: sx.Integer(0) for yi in y}
+    at_zero = _dropping(set(y))
     # The Hessian's nonzero entries by row: a team's is almost all zeros.
     rows: list[list[sx.Expr]] = [[] for _ in y]
     for i, j, entry in nonzero_entries(hessian):
         rows[i].append(entry * y[j])
-    return sx.ImmutableMatrix(
-        [sx.Add(*rows[i]) + gi.xreplace(at_zero) for i, gi in enumerate(gradient)]
-    )
+    return sx.ImmutableMatrix([sx.Add(*rows[i]) + at_zero(gi) for i, gi in enumerate(gradient)])
 
 
 def _signal_derivatives(
