@@ -11,8 +11,8 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation.calculus import constraint_hessian_entries
 from tvopt_codegen.derivation.model import Model
 from tvopt_codegen.derivation.record import Convexity
@@ -71,19 +71,19 @@ class _ObjectiveNumbers:
         self,
         model: Model,
         program: Program,
-        gradient: Sequence[sp.Expr],
-        entries: Sequence[tuple[tuple[int, int], sp.Expr]],
-        defaults: Mapping[sp.Symbol, float],
+        gradient: Sequence[sx.Expr],
+        entries: Sequence[tuple[tuple[int, int], sx.Expr]],
+        defaults: Mapping[sx.Expr, float],
     ) -> None:
         self.model, self.program, self.gradient = model, program, gradient
         self.entries, self.defaults = entries, defaults
 
-    def _tape(self, outputs: Sequence[sp.Expr]) -> Tape:
+    def _tape(self, outputs: Sequence[sx.Expr]) -> Tape:
         """``outputs`` compiled over (y_1 .. y_m, t): parameters at their defaults."""
         nominal = dict(self.model.nominal)
         definitions = nominal | dict(self.model.signals) | dict(self.program.assignments)
         # A reference without a nominal closed form is unknown here: taken at 0.
-        constants: dict[sp.Symbol, Any] = dict(self.defaults)
+        constants: dict[sx.Expr, Any] = dict(self.defaults)
         constants |= {r: 0.0 for r in self.model.references if r not in nominal}
         return Tape([*self.model.y, self.model.t], outputs, definitions, constants)
 
@@ -231,10 +231,10 @@ def _minimiser_path(
 
 def _check_convexity(
     model: Model,
-    polynomial: sp.ImmutableMatrix | None,
+    polynomial: sx.Expr | None,
     program: Program,
-    gradient: Sequence[sp.Expr],
-    entries: Sequence[tuple[tuple[int, int], sp.Expr]],
+    gradient: Sequence[sx.Expr],
+    entries: Sequence[tuple[tuple[int, int], sx.Expr]],
     y0: Sequence[float],
     t_final: float,
     source: str,
@@ -360,12 +360,12 @@ def _culprit(model: Model, y: np.ndarray, t: float) -> tuple[str, str]:
     """
     if model.objective is None:
         return "objective.f0", "the method needs grad_yy f0 positive definite"
-    hessian = sp.hessian(model.objective, model.y)
+    hessian = _hessian(model.objective, model.y)
     evaluate = _evaluator_at(model, np.asarray(y, dtype=float)[None, :], np.array([t]))
     m = len(model.y)
     with np.errstate(all="ignore"):
         matrix = np.array(
-            [[float(np.ravel(evaluate(hessian[i, j]))[0]) for j in range(m)] for i in range(m)]
+            [[float(np.ravel(evaluate(hessian[i][j]))[0]) for j in range(m)] for i in range(m)]
         )
     if not np.all(np.isfinite(matrix)):
         return "objective.f0", "f0's own Hessian is not finite there"
@@ -378,6 +378,20 @@ def _culprit(model: Model, y: np.ndarray, t: float) -> tuple[str, str]:
             f"barrier term of the constraints {names} is what fails",
         )
     return "objective.f0", f"f0's own Hessian has eigenvalue {eigenvalues[0]:.3g} there"
+
+
+def _hessian(f: sx.Expr, variables: Sequence[sx.Expr]) -> list[list[sx.Expr]]:
+    """The Hessian of ``f``, rows of entries: ``f.diff(v_i).diff(v_j)``, as ``sympy.hessian``.
+
+    The upper triangle is differentiated, in SymPy's order, and mirrored.
+    """
+    n = len(variables)
+    out: list[list[sx.Expr]] = [[sx.ZERO] * n for _ in range(n)]
+    for i in range(n):
+        first = f.diff(variables[i])
+        for j in range(i, n):
+            out[i][j] = out[j][i] = first.diff(variables[j])
+    return out
 
 
 def _continued_path(
@@ -638,7 +652,7 @@ def _fading_convexity(
 
 def nonconvex(
     constraints: Sequence[Constraint],
-    outputs: Sequence[sp.Symbol],
+    outputs: Sequence[sx.Expr],
     evaluate: Evaluator,
     points: int,
 ) -> list[tuple[str, float]]:
@@ -651,7 +665,7 @@ def nonconvex(
     m = len(outputs)
     for constraint in constraints:
         matrices = np.zeros((points, m, m))
-        for i, j, second in constraint_hessian_entries(sp.sympify(constraint.g), tuple(outputs)):
+        for i, j, second in constraint_hessian_entries(sx.sympify(constraint.g), tuple(outputs)):
             value = np.broadcast_to(np.real(evaluate(second)), (points,))
             matrices[:, i, j] = matrices[:, j, i] = value
         finite = np.all(np.isfinite(matrices), axis=(1, 2))
@@ -700,7 +714,7 @@ def _evaluator_at(model: Model, ys: np.ndarray, ts: np.ndarray) -> Evaluator:
     Parameters at their defaults, signals and nominal references defined (references
     without one at 0).
     """
-    values: dict[sp.Symbol, Any] = {y: ys[:, i] for i, y in enumerate(model.y)}
+    values: dict[sx.Expr, Any] = {y: ys[:, i] for i, y in enumerate(model.y)}
     values[model.t] = ts
     values |= {q: float(v) for q, v in zip(model.params, model.defaults, strict=True)}
     nominal = dict(model.nominal)

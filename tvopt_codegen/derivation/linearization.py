@@ -9,12 +9,11 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-import sympy as sp
-from sympy.functions.elementary.hyperbolic import HyperbolicFunction
-from sympy.functions.elementary.trigonometric import TrigonometricFunction
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation.meter import (
     _DET_SIMPLIFY_NODES,
     TimeLimitError,
@@ -39,6 +38,28 @@ from tvopt_codegen.maths.lie import (
 from tvopt_codegen.spec import Mechanics
 from tvopt_codegen.spec.features import refusal_line
 from tvopt_codegen.spec.reader import suggestion
+from tvopt_codegen.symbolic.border import from_sympy, to_sympy
+
+
+def _sympy() -> Any:
+    """SymPy, for the border's few small expressions (det R, signs of factors)."""
+    import sympy  # noqa: PLC0415 - only the decisions need it, and only when they run
+
+    return sympy
+
+
+def _circular() -> tuple[Any, ...]:
+    """SymPy's classes of circular and hyperbolic functions."""
+    sp = _sympy()
+    return (
+        sp.functions.elementary.trigonometric.TrigonometricFunction,
+        sp.functions.elementary.hyperbolic.HyperbolicFunction,
+    )
+
+
+def _rows_text(matrix: sx.Expr) -> str:
+    """A matrix's rows as text, ``[[a, b], [c, d]]``, as ``sstr`` writes a nested list."""
+    return "[" + ", ".join(f"[{', '.join(map(sx.text, row))}]" for row in matrix.tolist()) + "]"
 
 
 def _implicit_problem(model: Model, exc: ImplicitDerivativeError) -> str:
@@ -86,9 +107,8 @@ def _without_extension(model: Model) -> str:
     degrees = [int(r) for r in rd.r if r is not None]
     if rank < len(model.u):
         # A team's R is written out only while it is small enough to read.
-        shown = (
-            f"R = {sp.sstr(rd.R.tolist())}" if rd.R.rows <= 4 else f"R ({rd.R.rows} x {rd.R.cols})"
-        )
+        rows, cols = rd.R.shape
+        shown = f"R = {_rows_text(rd.R)}" if rows <= 4 else f"R ({rows} x {cols})"
         return (
             f"without it, the decoupling matrix {shown} has generic rank {rank} < "
             f"{len(model.u)}: the inputs cannot steer every output independently"
@@ -162,7 +182,7 @@ def _suggest_prolongation(model: Model, counts: dict[str, int]) -> str:
 _DET_SIMPLIFY_SECONDS = 5.0
 
 
-def simplified_det(det: sp.Expr) -> sp.Expr:
+def simplified_det(det: sx.Expr) -> sx.Expr:
     """A determinant in lowest terms, factored: ``factor(simplify(det))`` or as short.
 
     ``cancel``, then ``trigsimp`` where there are circular or hyperbolic functions: when
@@ -175,49 +195,54 @@ def simplified_det(det: sp.Expr) -> sp.Expr:
     whose gains hold ``cos`` and ``tanh`` of sums, found by the fuzzer): past
     ``_DET_SIMPLIFY_SECONDS`` the short path's form stands. Both are det R exactly; only
     how short it prints can then depend on the machine's speed.
+
+    A border stage: ``det`` (an expression of the engine, small: the caller bounds its
+    size) is simplified in SymPy and its factored form converted back.
     """
+    sp, circular = _sympy(), _circular()
+    det = to_sympy(det)
     reduced = sp.cancel(det)
-    if reduced.has(TrigonometricFunction, HyperbolicFunction):
+    if reduced.has(*circular):
         try:
             with time_limited(_DET_SIMPLIFY_SECONDS):
                 reduced = sp.trigsimp(reduced)
-                if reduced.has(
-                    TrigonometricFunction, HyperbolicFunction
-                ) and not _one_circular_factor(reduced):
-                    return sp.factor(sp.simplify(det))
+                if reduced.has(*circular) and not _one_circular_factor(reduced):
+                    return from_sympy(sp.factor(sp.simplify(det)))
         except TimeLimitError:
             pass
-    return sp.factor(reduced)
+    return from_sympy(sp.factor(reduced))
 
 
-def _one_circular_factor(expr: sp.Expr) -> bool:
+def _one_circular_factor(expr: sx.Expr) -> bool:
     """Whether ``expr`` is one circular or hyperbolic function of a symbol times powers.
 
     That is a number, powers of symbols and one ``sin(q)`` (an arm's ``l1*l2*sin(q2)``).
     No identity shortens such a product, so ``simplify`` returns it as it is (tested), and
-    the short path's form is the one it would give.
+    the short path's form is the one it would give. ``expr`` is SymPy's.
     """
+    sp, circular = _sympy(), _circular()
     functions = 0
     for factor in sp.Mul.make_args(expr):
         base = factor.base if factor.is_Pow and factor.exp.is_Integer else factor
         if factor.is_Number or base.is_Symbol:
             continue
-        if isinstance(factor, (TrigonometricFunction, HyperbolicFunction)) and (
-            factor.args[0].is_Symbol
-        ):
+        if isinstance(factor, circular) and factor.args[0].is_Symbol:
             functions += 1
             continue
         return False
     return functions == 1
 
 
-def _singular_set(det: sp.Expr) -> tuple[str, ...]:
+def _singular_set(det: sx.Expr) -> tuple[str, ...]:
     """Describe where a determinant vanishes, one condition per factor of its numerator.
 
     A factor that vanishes nowhere over the reals (``vx**2 + vy**2 + 1``) is no place at
-    all, and is left out: with every factor so, R is never singular.
+    all, and is left out: with every factor so, R is never singular. A border stage:
+    ``det`` (small, simplified) is factored in SymPy, and the conditions are written as
+    SymPy writes them, the same text on either engine.
     """
-    numerator, _ = sp.fraction(sp.together(det))
+    sp = _sympy()
+    numerator, _ = sp.fraction(sp.together(to_sympy(det)))
     if numerator.is_Number:
         return () if numerator != 0 else ("everywhere",)
     try:
@@ -239,7 +264,7 @@ _SIGN_NODES = 400
 _QUADRATIC_SYMBOLS = 12
 
 
-def _sign(expr: sp.Expr) -> str | None:
+def _sign(expr: sx.Expr) -> str | None:
     """Whether ``expr`` is ``"positive"``, ``"nonnegative"`` or ``"negative"`` everywhere.
 
     None where that is not known cheaply.
@@ -248,7 +273,9 @@ def _sign(expr: sp.Expr) -> str | None:
     constant, an exponential, ``cosh``); then, for a quadratic polynomial with number
     coefficients, the exact test: ``z^T Q z + g^T z + c`` with ``Q`` positive definite
     has its least value ``c - g^T Q^-1 g / 4`` (``x**2 - x*y + y**2 + 1`` is positive).
+    ``expr`` is SymPy's (:func:`_engine_sign` takes the engine's).
     """
+    sp = _sympy()
     if tree_size(expr, _SIGN_NODES) > _SIGN_NODES:
         return None
     for candidate in (expr, -expr):
@@ -275,8 +302,19 @@ def _sign(expr: sp.Expr) -> str | None:
     return None
 
 
-def _least_value(poly: sp.Poly, symbols: Sequence[sp.Symbol]) -> sp.Rational | None:
-    """The least value of a quadratic polynomial with a positive definite Hessian, or None."""
+def _engine_sign(expr: sx.Expr, memo: dict[Any, Any]) -> str | None:
+    """:func:`_sign` of an expression of the engine (``memo``: the border's, shared)."""
+    if tree_size(expr, _SIGN_NODES) > _SIGN_NODES:
+        return None
+    return _sign(to_sympy(expr, memo))
+
+
+def _least_value(poly: Any, symbols: Sequence[Any]) -> Any:
+    """The least value of a quadratic polynomial with a positive definite Hessian, or None.
+
+    SymPy's ``Poly`` and ``Rational``.
+    """
+    sp = _sympy()
     n = len(symbols)
     quadratic = sp.zeros(n, n)
     linear = sp.zeros(n, 1)
@@ -298,11 +336,11 @@ def _least_value(poly: sp.Poly, symbols: Sequence[sp.Symbol]) -> sp.Rational | N
 
 
 def _singular_start(
-    R: sp.ImmutableMatrix,
-    p: sp.ImmutableMatrix,
-    states: Sequence[sp.Symbol],
+    R: sx.Expr,
+    p: sx.Expr,
+    states: Sequence[sx.Expr],
     initial: Sequence[float],
-    defaults: Mapping[sp.Symbol, float],
+    defaults: Mapping[sx.Expr, float],
     extension_states: Sequence[str],
     mechanics: Mechanics | None = None,
 ) -> tuple[str, ...]:
@@ -350,7 +388,7 @@ def _singular_start(
 _MAX_UNDEFINED = 6
 
 
-def _undefined_set(exprs: Sequence[sp.Expr], states: set[sp.Symbol]) -> tuple[str, ...]:
+def _undefined_set(exprs: Sequence[sx.Expr], states: set[sx.Expr]) -> tuple[str, ...]:
     """Where expressions of the states are undefined, one condition per cause.
 
     The conditions of :func:`undefined_causes`, without their causes.
@@ -358,9 +396,7 @@ def _undefined_set(exprs: Sequence[sp.Expr], states: set[sp.Symbol]) -> tuple[st
     return tuple(condition for condition, _ in undefined_causes(exprs, states))
 
 
-def undefined_causes(
-    exprs: Sequence[sp.Expr], states: set[sp.Symbol]
-) -> tuple[tuple[str, str], ...]:
+def undefined_causes(exprs: Sequence[sx.Expr], states: set[sx.Expr]) -> tuple[tuple[str, str], ...]:
     """Where expressions of the states are undefined: each condition and its cause.
 
     A denominator that vanishes, ``tan``/``sec`` where the cosine vanishes,
@@ -370,36 +406,41 @@ def undefined_causes(
     pi/2). Conditions on parameters alone are not listed, nor any that holds at no real
     point (``sqrt(vx**2 + vy**2 + 1)`` is defined everywhere): see :func:`_sign`.
     ``x**(-1/2)`` has two, ``x = 0`` (a denominator) and ``x < 0`` (a root).
+
+    The walk is the engine's; only the values whose sign is asked (small ones) cross
+    the border, each shared subexpression once.
     """
     conditions: dict[str, str] = {}
-    seen: set[sp.Basic] = set()
-    stack = [e for e in exprs if isinstance(e, sp.Basic)]
+    seen: set[Any] = set()
+    memo: dict[Any, Any] = {}
+    stack = [e for e in exprs if isinstance(e, sx.Basic)]
     while stack and len(conditions) < _MAX_UNDEFINED:
         node = stack.pop()
         if node in seen or not node.free_symbols & states:
             continue
         seen.add(node)
-        found: list[tuple[str, str, sp.Expr, tuple[str, ...]]] = []
+        found: list[tuple[str, str, sx.Expr, tuple[str, ...]]] = []
+        name = sx.function_name(node) if node.is_Function else ""
         if node.is_Pow and node.exp.is_Number and node.base.free_symbols & states:
-            base = sp.sstr(node.base)
+            base = sx.text(node.base)
             if node.exp.is_negative:
                 found.append((f"{base} = 0", "a denominator vanishes", node.base, _NONZERO))
             if not node.exp.is_Integer:
                 root = "a square root" if getattr(node.exp, "q", 0) == 2 else "a fractional power"
                 found.append((f"{base} < 0", f"{root} of a negative", node.base, _NONNEGATIVE))
-        elif isinstance(node, sp.tan | sp.sec):
-            name, arg = type(node).__name__, node.args[0]
-            cause = f"the cosine under {name} vanishes"
-            found.append((f"cos({sp.sstr(arg)}) = 0", cause, sp.cos(arg), _NONZERO))
-        elif isinstance(node, sp.cot | sp.csc):
-            name, arg = type(node).__name__, node.args[0]
-            cause = f"the sine under {name} vanishes"
-            found.append((f"sin({sp.sstr(arg)}) = 0", cause, sp.sin(arg), _NONZERO))
-        elif isinstance(node, sp.log):
+        elif name in ("tan", "sec"):
             arg = node.args[0]
-            found.append((f"{sp.sstr(arg)} <= 0", "a log of a non-positive", arg, _POSITIVE))
+            cause = f"the cosine under {name} vanishes"
+            found.append((f"cos({sx.text(arg)}) = 0", cause, sx.cos(arg), _NONZERO))
+        elif name in ("cot", "csc"):
+            arg = node.args[0]
+            cause = f"the sine under {name} vanishes"
+            found.append((f"sin({sx.text(arg)}) = 0", cause, sx.sin(arg), _NONZERO))
+        elif name == "log":
+            arg = node.args[0]
+            found.append((f"{sx.text(arg)} <= 0", "a log of a non-positive", arg, _POSITIVE))
         for condition, cause, value, never in found:
-            if _sign(value) not in never:
+            if _engine_sign(value, memo) not in never:
                 conditions.setdefault(condition, cause)
         stack.extend(reversed(node.args))
     return tuple(conditions.items())
@@ -417,8 +458,8 @@ class _Linearization:
 
     extension: Extension
     degrees: tuple[int, ...]
-    lie: tuple[tuple[sp.Expr, ...], ...]
-    R: sp.ImmutableMatrix
+    lie: tuple[tuple[sx.Expr, ...], ...]
+    R: sx.Expr
     searched: tuple[str, ...]
     declared: frozenset[str]
 
@@ -441,7 +482,7 @@ class _States:
 
     padding: tuple[tuple[str, ...], ...]
     names: tuple[str, ...]
-    symbols: tuple[sp.Symbol, ...]
+    symbols: tuple[sx.Expr, ...]
     initial: tuple[float, ...]
     multipliers: tuple[tuple[str, ...], ...] = ()
     integral: tuple[str, ...] = ()
@@ -453,11 +494,11 @@ class _States:
 class _Decoupling:
     """R, p, Phi, the Brunovsky pair, and where R is singular or R and p undefined."""
 
-    p: sp.ImmutableMatrix
-    phi: sp.ImmutableMatrix
-    A: sp.ImmutableMatrix
-    B: sp.ImmutableMatrix
-    det_R: sp.Expr | None
+    p: sx.Expr
+    phi: sx.Expr
+    A: sx.Expr
+    B: sx.Expr
+    det_R: sx.Expr | None
     det_R_note: str
     singular: tuple[str, ...]
     undefined: tuple[str, ...]
@@ -656,7 +697,7 @@ def _closed_loop_states(model: Model, lin: _Linearization, k: int) -> _States:
     return _States(
         padding,
         names,
-        tuple(sp.Symbol(n, real=True) for n in names),
+        tuple(sx.symbol(n) for n in names),
         initial,
         multipliers,
         integral,
@@ -678,16 +719,16 @@ def _decoupling(
     R = _with_gains(lin.R, mechanics)
     note_for_det = "" if mechanics is None else "det(J_h B) = det R det M"
     m = len(degrees)
-    p = sp.ImmutableMatrix([lie[i][degrees[i]] for i in range(m)])
-    phi = sp.ImmutableMatrix([lie[i][j] for i in range(m) for j in range(degrees[i])])
+    p = sx.matrix([[lie[i][degrees[i]]] for i in range(m)])
+    phi = sx.matrix([[lie[i][j]] for i in range(m) for j in range(degrees[i])])
     A, B = brunovsky(degrees)
-    det_R: sp.Expr | None = None
+    det_R: sx.Expr | None = None
     det_R_note = ""
     singular: tuple[str, ...] = ()
     if m > 4:
         det_R_note = f"not expanded symbolically (m = {m} > 4)"
     else:
-        det = R.det(method="berkowitz")
+        det = sx.det(R)
         meter(det)
         # Simplifying is exact but can be slow on large entries: only small ones.
         if tree_size(det, _DET_SIMPLIFY_NODES) <= _DET_SIMPLIFY_NODES:
@@ -705,7 +746,7 @@ def _decoupling(
     return _Decoupling(p, phi, A, B, det_R, det_R_note, singular, undefined)
 
 
-def _with_gains(R: sp.ImmutableMatrix, mechanics: Mechanics | None) -> sp.ImmutableMatrix:
+def _with_gains(R: sx.Expr, mechanics: Mechanics | None) -> sx.Expr:
     """R, with a mass-matrix plant's run-time symbols ``W = M^-1 B`` replaced by ``B``."""
     if mechanics is None:
         return R
@@ -713,14 +754,12 @@ def _with_gains(R: sp.ImmutableMatrix, mechanics: Mechanics | None) -> sp.Immuta
         w: mechanics.input_matrix[i][j]
         for i, row in enumerate(mechanics.gains)
         for j, w in enumerate(row)
-        if isinstance(w, sp.Symbol)
+        if isinstance(w, sx.Symbol)
     }
     return R.xreplace(gains)
 
 
-def law_expressions(
-    R: sp.ImmutableMatrix, p: sp.ImmutableMatrix, mechanics: Mechanics | None = None
-) -> list[sp.Expr]:
+def law_expressions(R: sx.Expr, p: sx.Expr, mechanics: Mechanics | None = None) -> list[sx.Expr]:
     """R's nonzero entries and p: where any is undefined, so is the law.
 
     What :func:`undefined_causes` is asked about, by the derivation and by ``check``

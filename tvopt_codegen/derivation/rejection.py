@@ -39,8 +39,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation.model import start_evaluator
 from tvopt_codegen.spec import Mechanics
 
@@ -115,11 +115,16 @@ def discrete_gains(order: int) -> tuple[tuple[float, ...], ...]:
     for once per order, exactly, here. In ``gamma`` (not ``beta``) the polynomials have
     no cancellation near ``beta = 1``, where a fast sampled loop lives.
 
+    Numbers of no expression of the derivation's, solved for in SymPy's exact rationals
+    whichever the engine (the border's kind of work: ``solve`` and ``Poly``).
+
     Returns
     -------
     tuple of tuple of float
         Per gain ``j = 0 .. r``, the coefficients of ``gamma^1 .. gamma^(r+1)``.
     """
+    import sympy as sp  # noqa: PLC0415 - exact linear algebra, once per order
+
     n = order + 1
     gamma, lam = sp.Symbol("gamma"), sp.Symbol("lambda")
     chain = sp.Matrix(
@@ -155,32 +160,32 @@ def rejection(bandwidth: float, degrees: Sequence[int], outputs: Sequence[str]) 
 
 def observer_field(
     rejection: Rejection,
-    estimates: Sequence[Sequence[sp.Symbol]],
-    outputs: Sequence[sp.Expr],
-    v: Sequence[sp.Expr],
-) -> list[sp.Expr]:
+    estimates: Sequence[Sequence[sx.Expr]],
+    outputs: Sequence[sx.Expr],
+    v: Sequence[sx.Expr],
+) -> list[sx.Expr]:
     """The observer's rows of the closed-loop field, output by output.
 
     ``estimates[i]`` are output ``i``'s observer states (the last is ``d_hat``),
     ``outputs[i]`` is ``h_i(x)``, ``v[i]`` the law's new input.
     """
-    field: list[sp.Expr] = []
+    field: list[sx.Expr] = []
     for i, chain in enumerate(estimates):
         r = rejection.orders[i]
         gains = rejection.continuous[i]
         error = outputs[i] - chain[0]
         for j in range(r):
             above = chain[j + 1] if j + 1 < r else v[i]
-            field.append(above + sp.Float(gains[j]) * error)
-        field.append(sp.Float(gains[r]) * error)
+            field.append(above + sx.real(gains[j]) * error)
+        field.append(sx.real(gains[r]) * error)
     return field
 
 
 def initial_estimates(
-    phi: Sequence[Sequence[sp.Expr]],
-    states: Sequence[sp.Symbol],
+    phi: Sequence[Sequence[sx.Expr]],
+    states: Sequence[sx.Expr],
     initial: Sequence[float],
-    defaults: Mapping[sp.Symbol, float],
+    defaults: Mapping[sx.Expr, float],
     mechanics: Mechanics | None,
 ) -> tuple[float, ...]:
     """``Phi(x0)`` and a zero ``d_hat`` per output: where the observer's error is zero.

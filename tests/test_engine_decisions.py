@@ -1,0 +1,329 @@
+"""The stages that decide things, on both engines: the same decisions, the same numbers.
+
+det R (Berkowitz's determinant, its factored form and singular set), where the law is
+undefined, the objective's Hessian, the constraints' convexity, the extended-state
+observer's rows and the disturbance observer's rows of ``G``. Each takes the inputs a
+SymPy derivation of a bundled example gives it, converted with ``from_sympy`` under
+SymEngine, and must decide as on SymPy and give the same numbers (1e-12 relative).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import pytest
+import sympy as sp
+
+from tvopt_codegen import symbolic as sx
+from tvopt_codegen.derivation.convexity import _evaluator_at, _hessian, nonconvex
+from tvopt_codegen.derivation.linearization import (
+    _decoupling,
+    _Linearization,
+    _rows_text,
+    _singular_set,
+    _with_gains,
+    law_expressions,
+    simplified_det,
+    undefined_causes,
+)
+from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter, tree_size
+from tvopt_codegen.derivation.record import Derivation
+from tvopt_codegen.derivation.rejection import discrete_gains, observer_field, rejection
+from tvopt_codegen.derivation.robust import robustness
+from tvopt_codegen.limits import Budget
+from tvopt_codegen.symbolic.border import from_sympy, to_sympy
+
+from .conftest import SPECS, derivation
+
+#: Bundled examples with det R expanded (m <= 4), two with a mass matrix.
+EXAMPLES = (
+    "pvtol",
+    "unicycle_switch",
+    "two_unicycles_barrier",
+    "planar_arm3",
+    "drag_vehicle",
+    "arm_on_line",
+)
+#: Test plants whose law is undefined somewhere (a denominator, tan) or whose det R
+#: holds the spec's decimals.
+UNDEFINED = (str(SPECS / "attitude.toml"), str(SPECS / "kinematic_car.toml"), "arm_on_line")
+DECIMALS = str(SPECS / "coupled3.toml")
+
+
+def _values(exprs: Sequence[Any], seed: int) -> np.ndarray:
+    """SymPy expressions' values at 16 random points in [0.5, 1.5] of every symbol."""
+    symbols = sorted(set().union(*(e.free_symbols for e in exprs)), key=str)
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(0.5, 1.5, size=(16, len(symbols)))
+    function = sp.lambdify(symbols, list(exprs), "numpy")
+    return np.array([np.broadcast_to(function(*row), (len(exprs),)) for row in points], float)
+
+
+def _same_numbers(reference: Sequence[Any], symengine: Sequence[Any]) -> None:
+    """Both lists of SymPy expressions (the second converted back) agree at random points."""
+    assert len(reference) == len(symengine)
+    together = [*reference, *symengine]
+    values = _values(together, 3)
+    first, second = values[:, : len(reference)], values[:, len(reference) :]
+    assert np.all(np.isfinite(first))
+    np.testing.assert_allclose(second, first, rtol=1e-12, atol=1e-12 * np.abs(first).max())
+
+
+def _on_symengine(function: Callable[[], Any]) -> Any:
+    with sx.using("symengine"):
+        return function()
+
+
+def _converted(values: Any) -> Any:
+    """A tuple or matrix of SymPy expressions as one of the engine (nested tuples kept)."""
+    if isinstance(values, tuple):
+        return tuple(_converted(v) for v in values)
+    return from_sympy(values)
+
+
+def _mechanics(d: Derivation) -> Any:
+    """The spec's mechanics with the expressions :func:`_with_gains` reads converted."""
+    mechanics = d.model.mechanics
+    if mechanics is None:
+        return None
+    return dataclasses.replace(
+        mechanics,
+        input_matrix=_converted(mechanics.input_matrix),
+        gains=_converted(mechanics.gains),
+    )
+
+
+def _symengine_det(matrix: Any) -> Any:
+    with sx.using("symengine"):
+        return to_sympy(sx.det(from_sympy(matrix)))
+
+
+def test_the_determinant_is_sympys_on_both_engines() -> None:
+    x, y, z = sp.symbols("x y z", real=True)
+    rng = np.random.default_rng(5)
+    pool = [0, 0, 1, x, x * sp.sin(y), z**2 + 1, x * y - 3, sp.Rational(1, 3), 1 / (x + y)]
+    for n in (0, 1, 2, 2, 3, 3, 4, 4, 5):
+        entries = [pool[k] for k in rng.integers(0, len(pool), size=n * n)]
+        matrix = sp.ImmutableMatrix(n, n, entries)
+        reference = matrix.det(method="berkowitz")
+        assert sx.det(matrix) == reference  # SymPy's own on SymPy
+        found = _symengine_det(matrix)
+        # Up to 3 x 3 written out and simplified as SymPy does: the very expression.
+        assert found == reference if n <= 3 else sp.cancel(found - reference) == 0, n
+    # Block triangular: the product of the strongly connected blocks' determinants.
+    blocks = sp.ImmutableMatrix(
+        [[x, 1, 0, 0, y], [2, z, 0, 0, 0], [x, 0, y, 1, 0], [0, 0, 3, x, 0], [0, 0, 0, 0, z]]
+    )
+    assert sp.factor(_symengine_det(blocks)) == sp.factor((x * z - 2) * (x * y - 3) * z)
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_det_r_and_its_singular_set_are_decided_alike(name: str) -> None:
+    d = derivation(name)
+    R = d.linearization.R
+    reference = sx.det(_with_gains(R, d.model.mechanics))
+    simplified = simplified_det(reference)
+    singular = _singular_set(simplified)
+    # What the derivation itself found, through the same functions.
+    assert simplified == d.decoupling.det_R and singular == d.decoupling.singular_set
+    assert singular  # every one of these plants has a singular set
+
+    def run() -> tuple[Any, Any, bool, tuple[str, ...]]:
+        det = sx.det(_with_gains(from_sympy(R), _mechanics(d)))
+        small = tree_size(det, _DET_SIMPLIFY_NODES) <= _DET_SIMPLIFY_NODES
+        short = simplified_det(det)
+        assert isinstance(short, sx.Basic)  # back on the engine, for the stages after
+        return to_sympy(det), to_sympy(short), small, _singular_set(short)
+
+    det, short, small, found = _on_symengine(run)
+    assert found == singular
+    assert small == (tree_size(reference, _DET_SIMPLIFY_NODES) <= _DET_SIMPLIFY_NODES)
+    # The factored form: the same expression once in SymPy (SymPy's Mul spreads a
+    # number over a sum there: (2800*c - 240)/1000 comes back as 14*c/5 - 6/25).
+    assert sp.cancel(short - simplified) == 0
+    _same_numbers([reference, simplified], [det, short])
+
+
+def test_det_r_of_decimal_gains_is_factored_to_the_same_text() -> None:
+    """The spec's decimals are doubles on SymEngine: the singular set's text is the same."""
+    test_det_r_and_its_singular_set_are_decided_alike(DECIMALS)
+
+
+@pytest.mark.parametrize("name", UNDEFINED)
+def test_the_law_is_undefined_at_the_same_places(name: str) -> None:
+    d = derivation(name)
+    exprs = law_expressions(d.linearization.R, d.decoupling.p, d.model.mechanics)
+    states = set(d.linearization.extension.x)
+    reference = undefined_causes(exprs, states)
+    assert reference  # each plant has a place where its law is undefined
+
+    def run() -> tuple[tuple[str, str], ...]:
+        return undefined_causes([from_sympy(e) for e in exprs], {from_sympy(s) for s in states})
+
+    found = _on_symengine(run)
+    assert [cause for _, cause in found] == [cause for _, cause in reference]
+    # The conditions' text is each engine's; the expressions in them are the same.
+    names = {str(s): s for e in exprs for s in e.free_symbols}
+    for (mine, _), (theirs, _) in zip(found, reference, strict=True):
+        left, relation, zero = mine.rsplit(" ", 2)
+        other, other_relation, _ = theirs.rsplit(" ", 2)
+        assert (relation, zero) == (other_relation, "0")
+        assert sp.simplify(sp.sympify(left, locals=names) - sp.sympify(other, locals=names)) == 0
+
+
+@pytest.mark.parametrize("name", (*EXAMPLES, *UNDEFINED[:2]))
+def test_the_decoupling_stage_gives_the_same_record(name: str) -> None:
+    d = derivation(name)
+    lin = _Linearization(
+        d.linearization.extension,
+        d.linearization.relative_degree,
+        d.linearization.lie,
+        d.linearization.R,
+        (),
+        frozenset(),
+    )
+    reference = _decoupling(lin, _Meter(name, Budget()), d.model.mechanics)
+
+    def run() -> Any:
+        ext = lin.extension
+        converted = dataclasses.replace(
+            lin,
+            extension=dataclasses.replace(
+                ext, x=_converted(ext.x), f=from_sympy(ext.f), G=from_sympy(ext.G)
+            ),
+            lie=_converted(lin.lie),
+            R=from_sympy(lin.R),
+        )
+        found = _decoupling(converted, _Meter(name, Budget()), _mechanics(d))
+        assert isinstance(found.p, sx.MatrixBase) and isinstance(found.phi, sx.MatrixBase)
+        return dataclasses.replace(
+            found,
+            p=to_sympy(found.p),
+            phi=to_sympy(found.phi),
+            det_R=None if found.det_R is None else to_sympy(found.det_R),
+        )
+
+    found = _on_symengine(run)
+    assert found.p.shape == reference.p.shape and found.phi.shape == reference.phi.shape
+    assert (found.A, found.B) == (reference.A, reference.B)
+    assert (found.det_R_note, found.singular) == (reference.det_R_note, reference.singular)
+    assert len(found.undefined) == len(reference.undefined)
+    assert (found.det_R is None) == (reference.det_R is None)
+    mine = [*found.p, *found.phi, *([found.det_R] if found.det_R is not None else [])]
+    theirs = [*reference.p, *reference.phi, *([reference.det_R] if found.det_R is not None else [])]
+    _same_numbers(theirs, mine)
+
+
+def test_a_decoupling_matrix_is_written_as_sympy_writes_it() -> None:
+    R = derivation("two_unicycles_barrier").linearization.R
+    assert _rows_text(R) == sp.sstr(R.tolist())
+
+
+@pytest.mark.parametrize("name", ("pvtol", "two_unicycles_corridor", "arm_on_line"))
+def test_the_objectives_hessian_is_the_same(name: str) -> None:
+    d = derivation(name)
+    # With [constraints], the barrier objective: logs of the slacks.
+    f0, outputs = d.model.f0, d.model.y
+    reference = sp.hessian(f0, outputs)
+    assert _hessian(f0, outputs) == reference.tolist()  # SymPy's order, entry by entry
+    found = _on_symengine(
+        lambda: [to_sympy(e) for row in _hessian(from_sympy(f0), _converted(outputs)) for e in row]
+    )
+    # The objective's signals and nominal references, as numbers: t and the symbols.
+    definitions = dict(d.model.signals) | dict(d.model.nominal)
+    closed = [sp.sympify(e).subs(definitions) for e in (*reference, *found)]
+    _same_numbers(closed[: len(found)], closed[len(found) :])
+
+
+@pytest.mark.parametrize("name", ("two_unicycles_corridor", str(SPECS / "figure8_wall.toml")))
+def test_constraint_convexity_is_decided_alike(name: str) -> None:
+    d = derivation(name)
+    model = d.model
+    assert model.constraints
+    rng = np.random.default_rng(18)
+    points = 32
+    y0 = np.array([0.3 * (i + 1) for i in range(len(model.y))])
+    ys = y0[None, :] + rng.uniform(-2.0, 2.0, size=(points, len(y0)))
+    ts = rng.uniform(0.0, model.settings.t_final, size=points)
+    # Beside the spec's (linear), a curved convex constraint and a concave one: the check
+    # must name the concave one alone, on both engines.
+    first, second = model.y[0], model.y[1]
+    disc = dataclasses.replace(
+        model.constraints[0],
+        name="disc",
+        op="<=",
+        lhs=first**2 + first * second + second**2,
+        rhs=sp.Integer(9),
+    )
+    dome = dataclasses.replace(
+        model.constraints[0],
+        name="dome",
+        op=">=",
+        lhs=sp.cos(first) + second**2,
+        rhs=sp.Integer(-5),
+    )
+    constraints = (*model.constraints, disc, dome)
+    reference = nonconvex(constraints, model.y, _evaluator_at(model, ys, ts), points)
+
+    def run() -> list[tuple[str, float]]:
+        converted = dataclasses.replace(
+            model,
+            y=_converted(model.y),
+            t=from_sympy(model.t),
+            params=_converted(model.params),
+            references=_converted(model.references),
+            nominal=tuple((from_sympy(s), from_sympy(e)) for s, e in model.nominal),
+            signals=tuple((from_sympy(s), from_sympy(e)) for s, e in model.signals),
+        )
+        mine = tuple(
+            dataclasses.replace(c, lhs=from_sympy(c.lhs), rhs=from_sympy(c.rhs))
+            for c in constraints
+        )
+        return nonconvex(mine, converted.y, _evaluator_at(converted, ys, ts), points)
+
+    found = _on_symengine(run)
+    assert [n for n, _ in found] == [n for n, _ in reference]
+    assert [name for name, _ in reference] == ["dome"]
+    np.testing.assert_allclose([v for _, v in found], [v for _, v in reference], rtol=1e-12)
+
+
+def test_the_observer_rows_are_the_same() -> None:
+    d = derivation(str(SPECS / "robust_pvtol.toml"))
+    degrees = d.linearization.relative_degree
+    outputs = d.model.output_names
+    observer = rejection(7.5, degrees, outputs)
+    assert observer.discrete == tuple(discrete_gains(r) for r in degrees)
+    chains = [[sp.Symbol(name, real=True) for name in chain] for chain in observer.states]
+    v = sp.symbols(f"v0:{len(degrees)}", real=True)
+    h = list(d.model.h)
+    reference = observer_field(observer, chains, h, v)
+
+    def run() -> list[Any]:
+        estimates = [[from_sympy(s) for s in chain] for chain in chains]
+        rows = observer_field(observer, estimates, [from_sympy(e) for e in h], _converted(v))
+        assert all(isinstance(row, sx.Basic) for row in rows)
+        return [to_sympy(row) for row in rows]
+
+    found = _on_symengine(run)
+    assert len(found) == sum(r + 1 for r in degrees)
+    _same_numbers(reference, found)
+
+
+@pytest.mark.parametrize("name", ("pvtol", "planar_arm3"))
+def test_the_disturbance_observers_rows_of_g_are_the_same(name: str) -> None:
+    d = derivation(name)
+    model = d.model
+    settings = dataclasses.replace(
+        model.settings, robust=dataclasses.replace(model.settings.robust, observer=5.0)
+    )
+    model = dataclasses.replace(model, settings=settings)
+    arguments = (d.law, d.linearization.extension, d.closed_loop.state_names, (), (), None)
+    reference = robustness(model, *arguments)
+    assert reference.observer_rows and any(reference.observer_rows)
+    found = _on_symengine(
+        lambda: robustness(dataclasses.replace(model, G=from_sympy(model.G)), *arguments)
+    )
+    assert found == reference
