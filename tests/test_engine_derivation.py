@@ -136,8 +136,13 @@ def _programs(d: Derivation) -> list[tuple[sx.Expr, sx.Expr]]:
     ]
 
 
-def _law_parts(d: Derivation) -> dict[str, list[sx.Expr]]:
-    """What the code generators evaluate, by name."""
+def _law_parts(d: Derivation, engine: str) -> dict[str, list[sx.Expr]]:
+    """What the code generators evaluate, by name (the derivation is ``engine``'s)."""
+    with sx.using(engine):
+        return _parts(d)
+
+
+def _parts(d: Derivation) -> dict[str, list[sx.Expr]]:
     law = d.law
     return {
         "closed loop": list(law.closed_loop),
@@ -155,6 +160,7 @@ def _law_parts(d: Derivation) -> dict[str, list[sx.Expr]]:
         "y_imp": list(law.y_imp or ()),
         "phi": list(d.decoupling.phi),
         "lie": [e for row in d.linearization.lie for e in row],
+        "Hessian as expressions": list(d.hessian),
     }
 
 
@@ -190,7 +196,9 @@ def test_the_law_is_the_same_function_on_both_engines(name: str) -> None:
     assert fast.jet.reference_order == reference.jet.reference_order
     for engine, d in (("sympy", reference), ("symengine", fast)):
         assert {type(e).__module__.split(".")[0] for e in d.law.closed_loop} == {engine}
-    parts = {engine: _law_parts(d) for engine, d in (("sympy", reference), ("symengine", fast))}
+    parts = {
+        engine: _law_parts(d, engine) for engine, d in (("sympy", reference), ("symengine", fast))
+    }
     values = {
         engine: {
             what: _evaluate(engine, exprs, _programs(d), undefined=True)
@@ -327,10 +335,15 @@ def test_equality_calculus_and_the_kkt_law_on_both_engines() -> None:
     assert fast.decoupling.dependent_set == () or len(fast.decoupling.dependent_set) == len(
         reference.decoupling.dependent_set
     )
+    for engine, d in (("sympy", reference), ("symengine", fast)):
+        with sx.using(engine):
+            out[engine] = list(d.kkt_hessian)
+        assert len(out[engine]) == d.jet.n_kkt**2
+    _same(_evaluate("sympy", out["sympy"]), _evaluate("symengine", out["symengine"]), "KKT")
     for what in ("closed loop", "jet right-hand side", "Hessian", "R"):
         _same(
-            _evaluate("sympy", _law_parts(reference)[what], _programs(reference)),
-            _evaluate("symengine", _law_parts(fast)[what], _programs(fast)),
+            _evaluate("sympy", _law_parts(reference, "sympy")[what], _programs(reference)),
+            _evaluate("symengine", _law_parts(fast, "symengine")[what], _programs(fast)),
             f"on_a_line: {what}",
         )
 
@@ -401,7 +414,9 @@ def test_a_spec_of_sympy_expressions_is_taken_onto_the_engine(name: str) -> None
     fast = _derived(name, "symengine")
     for what in ("closed loop", "R", "p", "jet right-hand side"):
         _same(
-            _evaluate("symengine", _law_parts(d)[what], _programs(d), undefined=True),
-            _evaluate("symengine", _law_parts(fast)[what], _programs(fast), undefined=True),
+            _evaluate("symengine", _law_parts(d, "symengine")[what], _programs(d), undefined=True),
+            _evaluate(
+                "symengine", _law_parts(fast, "symengine")[what], _programs(fast), undefined=True
+            ),
             f"{name}: {what}",
         )
