@@ -8,45 +8,56 @@ from __future__ import annotations
 import itertools
 from collections.abc import Mapping, Sequence
 
-import sympy as sp
-
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.cse.numbering import (
     SMALL_PROGRAM_OPS,
     _inline_single_use,
     _number,
     _prune,
     _reduce,
+    numbered,
     ordered_cse,
 )
 from tvopt_codegen.cse.rewrite import (
+    _expr,
     _rebuild,
+    _replace_all,
+    _same,
     _substitute,
+    _unchanged,
     canonical_odd,
     operation_count,
     symbols_in,
 )
 from tvopt_codegen.lowering.kernel import Arg, Kernel, Output
-from tvopt_codegen.maths.jet import Assignment, fresh_symbols, release, unchanged
+from tvopt_codegen.maths.jet import Assignment, release
 
 #: A kernel's outputs: (name, shape, expressions in row-major order, description).
-Outputs = Sequence[tuple[str, tuple[int, ...], Sequence[sp.Expr], str]]
+Outputs = Sequence[tuple[str, tuple[int, ...], Sequence[sx.Expr], str]]
 
 
 def _prepare(
     assignments: Sequence[Assignment],
-    exprs: Sequence[sp.Expr],
-    subs: Mapping[sp.Symbol, sp.Expr],
-    odd: dict[sp.Basic, sp.Expr] | None,
-    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
-) -> tuple[list[Assignment], list[sp.Expr]]:
+    exprs: Sequence[sx.Expr],
+    subs: Mapping[sx.Expr, sx.Expr],
+    odd: dict[sx.Expr, sx.Expr] | None,
+    symbols: dict[sx.Expr, set[sx.Expr]] | None = None,
+) -> tuple[list[Assignment], list[sx.Expr]]:
     """What ``exprs`` need of the program, with slots substituted and odd functions signed."""
     # Only what the outputs need: the gradient kernel, say, reads the jet's first part.
     assignments = _prune(assignments, exprs, symbols)
-    slots: dict[sp.Basic, sp.Basic] = {}
-    signs: dict[sp.Basic, sp.Expr] = {} if odd is None else odd
+    slots: dict[sx.Expr, sx.Expr] = {}
+    signs: dict[sx.Expr, sx.Expr] = {} if odd is None else odd
     # Slots are symbols: substituting and signing odd functions is one pass.
     if not all(value.is_Atom for value in subs.values()):
         subs = {sym: canonical_odd(value, signs) for sym, value in subs.items()}
+    if sx.SYMENGINE:
+        # One walk in C++ for the whole program. The slots' values are symbols, or the
+        # signals' expressions of time, seldom under a coefficient (_replace_all).
+        values = _replace_all([value for _, value in assignments] + list(exprs), subs, signs)
+        n = len(assignments)
+        program = [(sym, value) for (sym, _), value in zip(assignments, values[:n], strict=True)]
+        return program, values[n:]
     program = [(sym, _substitute(value, subs, slots, signs)) for sym, value in assignments]
     return program, [_substitute(e, subs, slots, signs) for e in exprs]
 
@@ -57,7 +68,7 @@ def _package(
     inputs: Sequence[Arg],
     outputs: Outputs,
     body: Sequence[Assignment],
-    reduced: Sequence[sp.Expr],
+    reduced: Sequence[sx.Expr],
     before: int,
 ) -> Kernel:
     """The kernel of a CSE'd program, its outputs cut to their shapes; checks its symbols."""
@@ -67,7 +78,7 @@ def _package(
         packed.append(Output(out_name, shape, tuple(reduced[start : start + len(exprs)]), out_doc))
         start += len(exprs)
     allowed = {s for arg in inputs for s in arg.symbols} | {sym for sym, _ in body}
-    allowed.add(sp.Symbol("t", real=True))
+    allowed.add(sx.symbol("t"))
     stray = symbols_in([v for _, v in body] + list(reduced)) - allowed
     if stray:
         raise AssertionError(f"kernel {name}: unbound symbols {sorted(map(str, stray))}")
@@ -82,11 +93,11 @@ def _package(
     )
 
 
-def _flat(outputs: Outputs) -> list[sp.Expr]:
+def _flat(outputs: Outputs) -> list[sx.Expr]:
     return [e for _, _, exprs, _ in outputs for e in exprs]
 
 
-def _symbolic(outputs: Outputs) -> tuple[list[sp.Expr], list[int]]:
+def _symbolic(outputs: Outputs) -> tuple[list[sx.Expr], list[int]]:
     """A kernel's output expressions that are not numbers, and their places in ``_flat``.
 
     Numbers need no substitution, CSE or inlining, but each pass did its per-expression
@@ -95,11 +106,11 @@ def _symbolic(outputs: Outputs) -> tuple[list[sp.Expr], list[int]]:
     and gradient's kernels together.
     """
     flat = _flat(outputs)
-    where = [i for i, e in enumerate(flat) if not isinstance(e, sp.Number)]
+    where = [i for i, e in enumerate(flat) if not isinstance(e, sx.Number)]
     return [flat[i] for i in where], where
 
 
-def _scatter(outputs: Outputs, where: Sequence[int], reduced: Sequence[sp.Expr]) -> list[sp.Expr]:
+def _scatter(outputs: Outputs, where: Sequence[int], reduced: Sequence[sx.Expr]) -> list[sx.Expr]:
     """The outputs, flat, with the reduced expressions put back at ``where``."""
     flat = _flat(outputs)
     for i, expr in zip(where, reduced, strict=True):
@@ -113,10 +124,10 @@ def make_kernel(
     inputs: Sequence[Arg],
     assignments: Sequence[Assignment],
     outputs: Outputs,
-    subs: Mapping[sp.Symbol, sp.Expr],
-    odd: dict[sp.Basic, sp.Expr] | None = None,
+    subs: Mapping[sx.Expr, sx.Expr],
+    odd: dict[sx.Expr, sx.Expr] | None = None,
     search: bool = True,
-    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
+    symbols: dict[sx.Expr, set[sx.Expr]] | None = None,
 ) -> Kernel:
     """Substitute slot symbols, CSE, and package a kernel.
 
@@ -135,9 +146,9 @@ def make_kernel(
 def make_kernels(
     kernels: Sequence[tuple[str, str, Sequence[Arg], Outputs]],
     assignments: Sequence[Assignment],
-    subs: Mapping[sp.Symbol, sp.Expr],
-    odd: dict[sp.Basic, sp.Expr] | None = None,
-    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
+    subs: Mapping[sx.Expr, sx.Expr],
+    odd: dict[sx.Expr, sx.Expr] | None = None,
+    symbols: dict[sx.Expr, set[sx.Expr]] | None = None,
 ) -> list[Kernel]:
     """Kernels (name, doc, inputs, outputs) over one program, lowered together when large.
 
@@ -160,7 +171,7 @@ def make_kernels(
     )
     ends = list(itertools.accumulate(sizes))
     parts = [flat[end - size : end] for size, end in zip(sizes, ends, strict=True)]
-    counts: dict[sp.Basic, int] = {}
+    counts: dict[sx.Expr, int] = {}
     programs = [_prune(program, part, symbols) for part in parts]
     befores = [
         operation_count([v for _, v in mine] + part, counts)
@@ -213,8 +224,8 @@ def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel
         ``tau``), or None when nothing would be shared.
     """
     invariant_args = [arg for arg in kernel.inputs if arg.name in _INVARIANT_INPUTS]
-    given: set[sp.Basic] = {sym for arg in invariant_args for sym in arg.symbols}
-    given.add(sp.Symbol("t", real=True))
+    given: set[sx.Expr] = {sym for arg in invariant_args for sym in arg.symbols}
+    given.add(sx.symbol("t"))
     invariant = set(given)
     time_body: list[Assignment] = []
     for sym, value in kernel.body:
@@ -223,13 +234,13 @@ def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel
             time_body.append((sym, value))
     if not time_body:
         return None
-    names = fresh_symbols("_h")
-    shared: dict[sp.Expr, sp.Symbol] = {}  # invariant value -> the state part's name for it
-    memo: dict[sp.Basic, sp.Expr] = {}
+    names = numbered("_h")
+    shared: dict[sx.Expr, sx.Expr] = {}  # invariant value -> the state part's name for it
+    memo: dict[sx.Expr, sx.Expr] = {}
 
-    known: dict[sp.Basic, bool] = {}
+    known: dict[sx.Expr, bool] = {}
 
-    def fixed(node: sp.Basic) -> bool:
+    def fixed(node: sx.Expr) -> bool:
         # Bottom-up and memoized: sympy's free_symbols walks the whole subtree on every
         # call, which made hoisting quadratic in an expression's depth.
         if not node.args:
@@ -239,7 +250,7 @@ def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel
             found = known[node] = all(fixed(arg) for arg in node.args)
         return found
 
-    def share(node: sp.Expr) -> sp.Expr:
+    def share(node: sx.Expr) -> sx.Expr:
         # Numbers and the inputs themselves are at hand in the state part already.
         if node.is_Number or node in given:
             return node
@@ -247,28 +258,31 @@ def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel
             shared[node] = node if node in invariant else next(names)
         return shared[node]
 
-    def hoist(node: sp.Basic) -> sp.Expr:
+    same = _same()
+
+    def hoist(node: sx.Expr) -> sx.Expr:
         if node.is_Atom:
             return share(node) if node.is_Symbol and node in invariant else node
         if node in memo:
             return memo[node]
+        own = node.args
         if fixed(node):
             new = share(node)
-        elif (node.is_Add or node.is_Mul) and any(fixed(a) for a in node.args):
+        elif (node.is_Add or node.is_Mul) and any(fixed(a) for a in own):
             # (x + t + 1) -> x + _h0: the invariant terms or factors become one.
-            part = [a for a in node.args if fixed(a)]
-            rest = [hoist(a) for a in node.args if not fixed(a)]
+            part = [a for a in own if fixed(a)]
+            rest = [hoist(a) for a in own if not fixed(a)]
             new = _rebuild(node, [*rest, share(_rebuild(node, part))])
         else:
-            args = [hoist(a) for a in node.args]
+            args = [hoist(a) for a in own]
             # Nothing hoisted below: the node as it is (rebuilding would give it back).
-            new = node if unchanged(node, args) else _rebuild(node, args)
+            new = node if _unchanged(same, own, args) else _rebuild(node, args)
         memo[node] = new
         return new
 
     state_body = tuple((sym, hoist(value)) for sym, value in kernel.body if sym not in invariant)
     state_outputs = tuple(
-        Output(out.name, out.shape, tuple(hoist(sp.sympify(e)) for e in out.exprs), out.doc)
+        Output(out.name, out.shape, tuple(hoist(_expr(e)) for e in out.exprs), out.doc)
         for out in kernel.outputs
     )
     release(hoist)

@@ -5,30 +5,41 @@ Value numbering, merging equal values and inlining values used once.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 
-import sympy as sp
-
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.cse.rewrite import (
     _NEGATED_TERMS,
+    _expr,
     _negate,
     _negated_atom,
     _rebuild,
+    _replace_all,
+    _same,
     _substitute,
+    _unchanged,
     operation_count,
 )
-from tvopt_codegen.maths.jet import Assignment, release, unchanged
+from tvopt_codegen.maths.jet import Assignment, release
+
+
+def numbered(prefix: str) -> Iterator[sx.Expr]:
+    """Endless real symbols ``prefix0, prefix1, ...`` of the engine."""
+    index = 0
+    while True:
+        yield sx.symbol(f"{prefix}{index}")
+        index += 1
 
 
 def _drop_aliases(
-    assignments: Sequence[Assignment], outputs: Sequence[sp.Expr]
-) -> tuple[list[Assignment], list[sp.Expr]]:
+    assignments: Sequence[Assignment], outputs: Sequence[sx.Expr]
+) -> tuple[list[Assignment], list[sx.Expr]]:
     """Substitute assignments whose value is a bare symbol or constant, or its negation."""
-    alias: dict[sp.Symbol, sp.Expr] = {}
+    alias: dict[sx.Expr, sx.Expr] = {}
     kept: list[Assignment] = []
     # One memo for the whole program: in evaluation order a node can only hold symbols
     # assigned before it, whose aliases are all decided when it is first met.
-    memo: dict[sp.Basic, sp.Basic] = {}
+    memo: dict[sx.Expr, sx.Expr] = {}
     for sym, raw in assignments:
         value = _substitute(raw, alias, memo)
         if value.is_Atom or _negated_atom(value):
@@ -40,23 +51,30 @@ def _drop_aliases(
 
 def _prune(
     assignments: Sequence[Assignment],
-    outputs: Sequence[sp.Expr],
-    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
+    outputs: Sequence[sx.Expr],
+    symbols: dict[sx.Expr, set[sx.Expr]] | None = None,
 ) -> list[Assignment]:
     """Drop assignments that no output needs (signal orders a kernel does not use).
 
     ``symbols`` (expression -> its free symbols) may span calls over the same program:
     sympy walks the tree anew each time it is asked.
     """
-    known: dict[sp.Basic, set[sp.Basic]] = {} if symbols is None else symbols
+    known: dict[sx.Expr, set[sx.Expr]] = {} if symbols is None else symbols
 
-    def free(expr: sp.Basic) -> set[sp.Basic]:
+    def free(expr: sx.Expr) -> set[sx.Expr]:
         found = known.get(expr)
         if found is None:
-            found = known[expr] = sp.sympify(expr).free_symbols
+            found = known[expr] = _expr(expr).free_symbols
         return found
 
-    needed: set[sp.Basic] = set()
+    if sx.SYMENGINE:
+        # SymEngine's free_symbols is one walk in C++, shared nodes once; a dictionary
+        # hit on an expression that is equal but not the same object compares the two
+        # trees whole, which cost more than the walk (ten times, on a chain's jet).
+        def free(expr: sx.Expr) -> set[sx.Expr]:  # noqa: F811
+            return set(_expr(expr).free_symbols)
+
+    needed: set[sx.Expr] = set()
     for e in outputs:
         needed |= free(e)
     kept: list[Assignment] = []
@@ -72,8 +90,8 @@ SMALL_PROGRAM_OPS = 1000
 
 
 def ordered_cse(
-    assignments: Sequence[Assignment], outputs: Sequence[sp.Expr], search: bool = True
-) -> tuple[tuple[Assignment, ...], tuple[sp.Expr, ...]]:
+    assignments: Sequence[Assignment], outputs: Sequence[sx.Expr], search: bool = True
+) -> tuple[tuple[Assignment, ...], tuple[sx.Expr, ...]]:
     """CSE a straight-line program and its outputs, keeping evaluation order valid.
 
     One ``sympy.cse`` pass sees every right-hand side and output. A common
@@ -104,28 +122,28 @@ def ordered_cse(
 
 def _reduce(
     assignments: Sequence[Assignment],
-    outputs: Sequence[sp.Expr],
+    outputs: Sequence[sx.Expr],
     search: bool,
-    symbols: dict[sp.Basic, set[sp.Basic]] | None = None,
-) -> tuple[list[Assignment], list[sp.Expr]]:
+    symbols: dict[sx.Expr, set[sx.Expr]] | None = None,
+) -> tuple[list[Assignment], list[sx.Expr]]:
     """:func:`ordered_cse` up to naming: temporaries in evaluation order, reduced outputs.
 
     ``symbols`` is :func:`_prune`'s memo of free symbols, when the caller has one.
     """
     kept, outs = _drop_aliases(_prune(assignments, outputs, symbols), outputs)
     exprs = [value for _, value in kept] + outs
-    names = sp.numbered_symbols("_cse", real=True)
+    names = numbered("_cse")
     if search and operation_count(exprs) <= SMALL_PROGRAM_OPS:
-        # sympy's cse also finds common parts of sums and products (a*b in a*b*c and
-        # a*b*d): worth its superlinear time on the programs of a few agents only.
-        replacements, reduced = sp.cse(exprs, symbols=names, order="canonical")
+        # The engine's cse also finds common parts of sums and products (a*b in a*b*c
+        # and a*b*d): worth its superlinear time on the programs of a few agents only.
+        replacements, reduced = sx.cse(exprs, names)
     else:
         replacements, reduced = _value_numbering(exprs, names)
     defined = dict(replacements)
     order: list[Assignment] = []
-    emitted: set[sp.Symbol] = set()
+    emitted: set[sx.Expr] = set()
 
-    def need(expr: sp.Expr) -> None:
+    def need(expr: sx.Expr) -> None:
         # Not free_symbols & defined.keys() - emitted: "-" binds first, and the difference
         # of the two large sets, once per value, was quadratic in the program's size.
         missing = [s for s in expr.free_symbols if s in defined and s not in emitted]
@@ -156,23 +174,31 @@ def _reduce(
 
 
 def _number(
-    order: Sequence[Assignment], outs: Sequence[sp.Expr]
-) -> tuple[tuple[Assignment, ...], tuple[sp.Expr, ...]]:
+    order: Sequence[Assignment], outs: Sequence[sx.Expr]
+) -> tuple[tuple[Assignment, ...], tuple[sx.Expr, ...]]:
     """Rename the temporaries ``_t0, _t1, ...`` in evaluation order."""
-    renames: dict[sp.Symbol, sp.Expr] = {}
+    if sx.SYMENGINE:
+        names = [sx.symbol(f"_t{index}") for index in range(len(order))]
+        # Each value holds only symbols renamed before it: one renaming of all at once.
+        values = _replace_all(
+            [value for _, value in order] + list(outs),
+            {sym: name for (sym, _), name in zip(order, names, strict=True)},
+        )
+        return tuple(zip(names, values[: len(order)], strict=True)), tuple(values[len(order) :])
+    renames: dict[sx.Expr, sx.Expr] = {}
     body: list[Assignment] = []
     # One memo, as in _drop_aliases: a node holds only symbols renamed before it is met.
-    memo: dict[sp.Basic, sp.Basic] = {}
+    memo: dict[sx.Expr, sx.Expr] = {}
     for index, (sym, value) in enumerate(order):
-        new = sp.Symbol(f"_t{index}", real=True)
+        new = sx.symbol(f"_t{index}")
         body.append((new, _substitute(value, renames, memo)))
         renames[sym] = new
     return tuple(body), tuple(_substitute(e, renames, memo) for e in outs)
 
 
 def _value_numbering(
-    exprs: Sequence[sp.Expr], names: Iterable[sp.Symbol]
-) -> tuple[list[Assignment], list[sp.Expr]]:
+    exprs: Sequence[sx.Expr], names: Iterable[sx.Expr]
+) -> tuple[list[Assignment], list[sx.Expr]]:
     """Common subexpression elimination by value numbering, linear in the DAG size.
 
     Every compound subexpression that occurs more than once becomes a temporary. This
@@ -182,14 +208,14 @@ def _value_numbering(
     such subsets are already separate assignments, so little is lost.
     """
     names = iter(names)
-    seen: set[sp.Basic] = set()
-    repeated: set[sp.Basic] = set()
+    seen: set[sx.Expr] = set()
+    repeated: set[sx.Expr] = set()
 
-    def worth(node: sp.Basic) -> bool:
+    def worth(node: sx.Expr) -> bool:
         # A negated symbol or number is not worth a temporary: printing it is free.
         return not (node.is_Atom or _negated_atom(node))
 
-    def find(node: sp.Basic) -> None:
+    def find(node: sx.Expr) -> None:
         stack = [node]
         while stack:
             current = stack.pop()
@@ -204,15 +230,17 @@ def _value_numbering(
     for expr in exprs:
         find(expr)
     replacements: list[Assignment] = []
-    built: dict[sp.Basic, sp.Expr] = {}
+    built: dict[sx.Expr, sx.Expr] = {}
+    same = _same()
 
-    def build(node: sp.Basic) -> sp.Expr:
+    def build(node: sx.Expr) -> sx.Expr:
         if node.is_Atom:
             return node
         if node in built:
             return built[node]
-        args = [build(arg) for arg in node.args]
-        new = node if unchanged(node, args) else _rebuild(node, args)
+        own = node.args
+        args = [build(arg) for arg in own]
+        new = node if _unchanged(same, own, args) else _rebuild(node, args)
         if node in repeated:
             sym = next(names)
             replacements.append((sym, new))
@@ -220,14 +248,14 @@ def _value_numbering(
         built[node] = new
         return new
 
-    reduced = [build(sp.sympify(e)) for e in exprs]
+    reduced = [build(_expr(e)) for e in exprs]
     release(build)
     return replacements, reduced
 
 
 def _merge_equal(
-    order: list[Assignment], outputs: list[sp.Expr]
-) -> tuple[list[Assignment], list[sp.Expr]]:
+    order: list[Assignment], outputs: list[sx.Expr]
+) -> tuple[list[Assignment], list[sx.Expr]]:
     """Merge temporaries that compute the same value as an earlier one, or its negation.
 
     CSE compares expressions, not values, before its own replacements: two products
@@ -241,11 +269,11 @@ def _merge_equal(
     leaves them where the program computed a value found elsewhere first, a merge where
     ``a - b`` meets ``b - a``, and inlining where terms cancel.
     """
-    first: dict[sp.Basic, sp.Symbol] = {}
-    rename: dict[sp.Symbol, sp.Expr] = {}
+    first: dict[sx.Expr, sx.Expr] = {}
+    rename: dict[sx.Expr, sx.Expr] = {}
     # A node is rewritten once: a renamed symbol is only used after its assignment,
     # so no node seen before a rename can contain it.
-    memo: dict[sp.Basic, sp.Basic] = {}
+    memo: dict[sx.Expr, sx.Expr] = {}
     kept: list[Assignment] = []
     for sym, raw in order:
         value = _substitute(raw, rename, memo)
@@ -267,7 +295,7 @@ def _merge_equal(
     return kept, [_substitute(e, rename, memo) for e in outputs]
 
 
-def _occurrences(expr: sp.Basic) -> dict[sp.Symbol, int]:
+def _occurrences(expr: sx.Expr) -> dict[sx.Expr, int]:
     """How often each symbol occurs in ``expr`` as a tree: ``x*x`` uses ``x`` twice.
 
     A plain stack walk: sympy's ``preorder_traversal`` costs a generator step per node,
@@ -275,7 +303,7 @@ def _occurrences(expr: sp.Basic) -> dict[sp.Symbol, int]:
     """
     # A plain dict: building a Counter (a Python-level __init__) for every value of a
     # program was a tenth of inlining's time.
-    found: dict[sp.Symbol, int] = {}
+    found: dict[sx.Expr, int] = {}
     stack = [expr]
     while stack:
         node = stack.pop()
@@ -288,8 +316,8 @@ def _occurrences(expr: sp.Basic) -> dict[sp.Symbol, int]:
 
 
 def _inline_single_use(
-    order: list[Assignment], outputs: list[sp.Expr]
-) -> tuple[list[Assignment], list[sp.Expr]]:
+    order: list[Assignment], outputs: list[sx.Expr]
+) -> tuple[list[Assignment], list[sx.Expr]]:
     """Substitute temporaries used exactly once back into their one user; drop the unused.
 
     The jet is derived in three-address form (one operation per assignment), which
@@ -304,11 +332,11 @@ def _inline_single_use(
     into the expressions the last one changed, until no temporary is used once.
     """
     n = len(order)
-    values: list[sp.Expr] = [value for _, value in order] + list(outputs)
+    values: list[sx.Expr] = [value for _, value in order] + list(outputs)
     position = {sym: i for i, (sym, _) in enumerate(order)}
     counts = [_occurrences(value) for value in values]
-    uses: dict[sp.Symbol, int] = {}
-    holders: dict[sp.Symbol, set[int]] = {}
+    uses: dict[sx.Expr, int] = {}
+    holders: dict[sx.Expr, set[int]] = {}
     for i, count in enumerate(counts):
         for sym, times in count.items():
             uses[sym] = uses.get(sym, 0) + times
@@ -316,12 +344,12 @@ def _inline_single_use(
     gone: set[int] = set()
     wave = {i for i, (sym, _) in enumerate(order) if uses.get(sym, 0) <= 1}
     while wave:
-        inline: dict[sp.Symbol, sp.Expr] = {}
+        inline: dict[sx.Expr, sx.Expr] = {}
         # One memo for the wave: in evaluation order a node holds only earlier
         # symbols, whose values are final when it is first met (as in _drop_aliases).
-        memo: dict[sp.Basic, sp.Basic] = {}
+        memo: dict[sx.Expr, sx.Expr] = {}
         users: set[int] = set()
-        changed: set[sp.Symbol] = set()
+        changed: set[sx.Expr] = set()
         for i in sorted(wave):
             sym = order[i][0]
             inline[sym] = _substitute(values[i], inline, memo)
@@ -353,5 +381,5 @@ def _inline_single_use(
     return kept, values[n:]
 
 
-def _cse_index(sym: sp.Symbol) -> int:
+def _cse_index(sym: sx.Expr) -> int:
     return int(sym.name[len("_cse") :])

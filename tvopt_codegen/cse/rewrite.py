@@ -1,20 +1,46 @@
-"""Tree rewriting that keeps sympy's canonical form.
+"""Tree rewriting that keeps the engine's canonical form.
 
 Operation counts, free symbols, substitution by splicing, and odd functions of mirrored
-arguments merged (:func:`canonical_odd`).
+arguments merged (:func:`canonical_odd`), on either engine of :mod:`tvopt_codegen.symbolic`.
+On SymPy, rebuilding a node is the expensive part, and :func:`_rebuild` avoids its
+constructors where they would find nothing to do; SymEngine's cost a microsecond and are
+called as they are.
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Iterable, Mapping, Sequence
+import operator
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any
 
-import sympy as sp
+from tvopt_codegen import symbolic as sx
+from tvopt_codegen.maths.jet import release
 
-from tvopt_codegen.maths.jet import release, unchanged
+
+def _expr(value: Any) -> sx.Expr:
+    """``value`` as an expression: numbers the callers pass as Python ints converted."""
+    return value if isinstance(value, sx.Basic) else sx.sympify(value)
 
 
-def operation_count(exprs: Iterable[sp.Expr], memo: dict[sp.Basic, int] | None = None) -> int:
+def _same() -> Callable[[Any, Any], bool]:
+    """How a walk tells a node's rebuilt argument from its own: ``is`` on SymPy.
+
+    SymEngine hands out a new Python object for each argument on every ``.args``: an
+    argument left alone is equal to the node's, not the same object. Its ``==`` checks
+    the C++ pointers first, so that comparison costs no walk.
+    """
+    return operator.eq if sx.SYMENGINE else operator.is_
+
+
+def _unchanged(
+    same: Callable[[Any, Any], bool], old: Sequence[sx.Expr], new: Sequence[sx.Expr]
+) -> bool:
+    """Whether ``new`` are ``old`` (a node's arguments), by ``same`` (:func:`_same`)."""
+    return len(new) == len(old) and all(map(same, new, old))
+
+
+def operation_count(exprs: Iterable[sx.Expr], memo: dict[sx.Expr, int] | None = None) -> int:
     """Count the arithmetic operations and function calls that printing ``exprs`` costs.
 
     A sum or product of ``n`` terms is ``n - 1`` operations (a factor ``-1`` is the
@@ -25,9 +51,9 @@ def operation_count(exprs: Iterable[sp.Expr], memo: dict[sp.Basic, int] | None =
     ``count_ops`` walks each expression anew. ``memo`` (a node -> the operations below
     it) may span calls over the same nodes (the kernels cut from one program).
     """
-    below: dict[sp.Basic, int] = {} if memo is None else memo
+    below: dict[sx.Expr, int] = {} if memo is None else memo
 
-    def own(node: sp.Basic, parent: str) -> int:
+    def own(node: sx.Expr, parent: str) -> int:
         if node.is_Number:
             if parent == "mul":
                 return 0
@@ -43,7 +69,7 @@ def operation_count(exprs: Iterable[sp.Expr], memo: dict[sp.Basic, int] | None =
             return 0 if parent == "mul" else 1
         return 1
 
-    def count(node: sp.Basic) -> int:
+    def count(node: sx.Expr) -> int:
         # A node's own operations depend on its parent's kind; those of its subtree
         # do not, and are what the memo keeps. Leaves have no subtree, and symbols cost
         # nothing: only numbers among them are looked at (half the calls were symbols).
@@ -59,21 +85,21 @@ def operation_count(exprs: Iterable[sp.Expr], memo: dict[sp.Basic, int] | None =
             below[node] = total
         return total
 
-    exprs = [sp.sympify(e) for e in exprs]
+    exprs = [_expr(e) for e in exprs]
     total = sum(own(e, "") + count(e) for e in exprs)
     release(count)
     return total
 
 
-def symbols_in(exprs: Iterable[sp.Basic]) -> set[sp.Basic]:
+def symbols_in(exprs: Iterable[sx.Expr]) -> set[sx.Expr]:
     """The symbols of all ``exprs``, each distinct subtree visited once.
 
     ``free_symbols`` builds a set at every node of every tree, anew for each
     expression; a kernel's expressions share most of their subtrees.
     """
-    seen: set[sp.Basic] = set()
-    found: set[sp.Basic] = set()
-    stack = [sp.sympify(e) for e in exprs]
+    seen: set[sx.Expr] = set()
+    found: set[sx.Expr] = set()
+    stack = [_expr(e) for e in exprs]
     while stack:
         node = stack.pop()
         if node in seen:
@@ -87,12 +113,17 @@ def symbols_in(exprs: Iterable[sp.Basic]) -> set[sp.Basic]:
     return found
 
 
-#: The canonical order of a sum's terms or a product's factors: sympy's own
-#: (``Add.flatten`` and ``Mul.flatten`` sort with ``Basic.compare``).
-_CANONICAL = functools.cmp_to_key(sp.Basic.compare)
+@functools.cache
+def _canonical() -> Any:
+    """The canonical order of a sum's terms or a product's factors: SymPy's own.
+
+    ``Add.flatten`` and ``Mul.flatten`` sort with ``Basic.compare``; only SymPy's
+    rebuilding (:func:`_sorted_args`) asks, so only SymPy's is ever kept here.
+    """
+    return functools.cmp_to_key(sx.Basic.compare)
 
 
-def _sorted_args(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic | None:
+def _sorted_args(node: sx.Expr, args: Sequence[sx.Expr]) -> sx.Expr | None:
     """``Add(*args)`` or ``Mul(*args)`` without ``flatten``, when nothing would combine.
 
     Substitution mostly renames (a state symbol for its slot, a temporary for its final
@@ -107,13 +138,13 @@ def _sorted_args(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic | None:
     ``exp(b + 1)``), a zero product, a
     coefficient beside a sum in a product (which ``flatten`` may distribute), or a term
     that is a product holding a product (which ``flatten`` rebuilds). The result is then
-    the very object ``flatten`` would build.
+    the very object ``flatten`` would build. SymPy only.
     """
     is_add = node.is_Add
     seq = list(args)
-    coefficient: sp.Basic = sp.S.Zero if is_add else sp.S.One
-    seen: set[sp.Basic] = set()
-    rest: list[sp.Basic] = []
+    coefficient: sx.Expr = sx.ZERO if is_add else sx.ONE
+    seen: set[sx.Expr] = set()
+    rest: list[sx.Expr] = []
     has_sum = False
     for arg in seq:  # grows while iterating: spliced arguments come last, as in flatten
         if arg.is_Number:
@@ -121,7 +152,7 @@ def _sorted_args(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic | None:
                 return None
             coefficient = coefficient + arg if is_add else coefficient * arg
             continue
-        if not arg.is_commutative or arg is sp.S.ComplexInfinity:
+        if not arg.is_commutative or arg is sx.zoo:
             return None  # zoo is no Number, and absorbs every term as flatten builds it
         if arg.is_Add if is_add else arg.is_Mul:
             seq.extend(arg.args)
@@ -151,16 +182,16 @@ def _sorted_args(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic | None:
         if coefficient == 0 or (coefficient != 1 and has_sum):
             return None
         keep = coefficient != 1
-    rest.sort(key=_CANONICAL)
+    rest.sort(key=_canonical())
     if keep:
         rest.insert(0, coefficient)
     if len(rest) < 2:
         return rest[0] if rest else None
-    result: sp.Basic = node.func._from_args(rest)
+    result: sx.Expr = node.func._from_args(rest)
     return result
 
 
-def _rebuild(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic:
+def _rebuild(node: sx.Expr, args: Sequence[sx.Expr]) -> sx.Expr:
     """``node.func(*args)``, without re-running a function's ``eval`` on symbolic args.
 
     Rebuilding ``tan(pi*g/(2*d))`` after a substitution makes sympy look for multiples
@@ -169,9 +200,14 @@ def _rebuild(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic:
     for its value, never gives ``eval`` anything new to simplify; numbers still
     evaluate (``sin(0)`` is 0). Sums and products that only need re-sorting skip
     ``flatten`` (:func:`_sorted_args`).
+
+    On SymEngine, whose constructors cost a microsecond and never search for multiples
+    of pi, the node's own constructor (a ``Piecewise`` from its pairs).
     """
-    if isinstance(node, sp.Function) and not all(a.is_Number for a in args):
-        if isinstance(node, _EVEN) and args[0].is_Mul and args[0].args[0] is sp.S.NegativeOne:
+    if sx.SYMENGINE:
+        return _rebuild_symengine(node, args)
+    if isinstance(node, sx.Function) and not all(a.is_Number for a in args):
+        if isinstance(node, _even()) and args[0].is_Mul and args[0].args[0] is sx.Integer(-1):
             # cos(-x) = cos(x): a merge that finds x as the negation of an earlier
             # temporary hands an even function -_t, which eval would have signed.
             args = [-args[0]]
@@ -183,42 +219,123 @@ def _rebuild(node: sp.Basic, args: Sequence[sp.Basic]) -> sp.Basic:
     return node.func(*args)
 
 
+def _rebuild_symengine(node: sx.Expr, args: Sequence[sx.Expr]) -> sx.Expr:
+    """SymEngine's ``node.func(*args)``: a ``Piecewise`` takes pairs, a relation its class.
+
+    A product is distributed as SymPy's is (:func:`_distributed`).
+    """
+    if node.is_Mul:
+        return _distributed(sx.Mul(*args))
+    if sx.is_piecewise(node):
+        return sx.Piecewise(*zip(args[::2], args[1::2], strict=True))
+    try:
+        func = node.func
+    except AttributeError:  # relations and logic have no func: their class builds them
+        func = type(node)
+    return func(*args)
+
+
+def _distributed(product: sx.Expr) -> sx.Expr:
+    """``c*(a + b)`` as ``c*a + c*b`` for a rational ``c``, as SymPy's ``Mul`` builds it.
+
+    SymEngine keeps the product. Inlining a temporary into ``a + 2*_t`` then leaves
+    ``a + 2*(a + b)`` where SymPy collects ``3*a + 2*b``, and terms that cancel (most
+    of a chain's jet, where half the kernel's temporaries vanish so) stay.
+    """
+    if product.is_Mul:
+        factors = product.args
+        if len(factors) == 2 and factors[0].is_Rational and factors[1].is_Add:
+            coefficient = factors[0]
+            return sx.Add(*[_distributed(coefficient * term) for term in factors[1].args])
+    return product
+
+
 def _substitute(
-    expr: sp.Basic,
-    mapping: Mapping[sp.Basic, sp.Basic],
-    memo: dict[sp.Basic, sp.Basic] | None = None,
-    odd: dict[sp.Basic, sp.Expr] | None = None,
-) -> sp.Basic:
+    expr: sx.Expr,
+    mapping: Mapping[sx.Expr, sx.Expr],
+    memo: dict[sx.Expr, sx.Expr] | None = None,
+    odd: dict[sx.Expr, sx.Expr] | None = None,
+) -> sx.Expr:
     """``expr.xreplace(mapping)`` with :func:`_rebuild`; ``memo`` may span many calls.
 
     With ``odd`` (a memo of odd functions -> their signed forms), every odd function of
     the result gets its canonical sign (:func:`canonical_odd`) as it is rebuilt: the
     substituted tree is not walked a second time to sign it.
     """
-    if isinstance(expr, sp.Basic) and not expr.args and expr not in mapping:
+    if isinstance(expr, sx.Basic) and not expr.args and expr not in mapping:
         return expr  # a number or a symbol left alone: most of a team's Hessian
-    table: dict[sp.Basic, sp.Basic] = {} if memo is None else memo
+    table: dict[sx.Expr, sx.Expr] = {} if memo is None else memo
+    same = _same()
+    odd_functions = _odd()
 
-    def visit(node: sp.Basic) -> sp.Basic:
+    def visit(node: sx.Expr) -> sx.Expr:
         if node in mapping:
             return mapping[node]
-        if not node.args:
+        own = node.args
+        if not own:
             return node
         if node in table:
             return table[node]
-        args = [visit(arg) for arg in node.args]
-        new = node if unchanged(node, args) else _rebuild(node, args)
-        if odd is not None and isinstance(new, _ODD):
+        args = [visit(arg) for arg in own]
+        new = node if _unchanged(same, own, args) else _rebuild(node, args)
+        if odd is not None and isinstance(new, odd_functions):
             new = _signed_odd(new, odd)
         table[node] = new
         return new
 
-    result = visit(sp.sympify(expr))
+    result = visit(_expr(expr))
     release(visit)
     return result
 
 
-def _negated_atom(value: sp.Basic) -> bool:
+def _replace_all(
+    exprs: Sequence[sx.Expr],
+    mapping: Mapping[sx.Expr, sx.Expr],
+    odd: dict[sx.Expr, sx.Expr] | None = None,
+) -> list[sx.Expr]:
+    """``[e.xreplace(mapping) for e in exprs]`` in one walk of SymEngine's, in C++.
+
+    Odd functions are signed with ``odd`` as :func:`_substitute` signs them. SymEngine
+    only.
+
+    The expressions are packed as the arguments of one function, which SymEngine keeps
+    in order and walks once, its nodes shared by several expressions rebuilt once: a
+    Python walk costs a few microseconds a node on SymEngine (each ``.args`` makes new
+    Python objects, each dictionary hit compares two of them), this a fraction of one.
+    SymEngine's constructors rebuild the nodes, which do not distribute a number over a
+    sum (:func:`_distributed`): for renaming symbols, and for substituting the slots.
+    """
+    if not exprs:
+        return []
+    packed = sx.Function("_cse_pack")(*exprs)
+    if mapping:
+        packed = packed.xreplace(dict(mapping))
+    if odd is not None:
+        found = packed.atoms(*_odd())
+        if found:
+            signed = {node: _signed_nested(node, odd) for node in found}
+            changed = {node: new for node, new in signed.items() if new != node}
+            if changed:
+                packed = packed.xreplace(changed)
+    return list(packed.args)
+
+
+def _signed_nested(node: sx.Expr, odd: dict[sx.Expr, sx.Expr]) -> sx.Expr:
+    """The odd function ``node``, signed, and the odd functions inside it, inner first.
+
+    As :func:`_substitute` decides them as it rebuilds.
+    """
+    inner = node.args[0].atoms(*_odd())
+    if inner:
+        changed = {i: new for i in inner if (new := _signed_nested(i, odd)) != i}
+        if changed:
+            node = node.func(node.args[0].xreplace(changed))
+            if not isinstance(node, _odd()):  # SymEngine signed it itself
+                return node
+    return _signed_odd(node, odd)
+
+
+def _negated_atom(value: sx.Expr) -> bool:
     """Whether ``value`` is ``-x`` for a symbol or constant ``x`` (printing it costs nothing)."""
     return bool(
         value.is_Mul and len(value.args) == 2 and value.args[0] == -1 and value.args[1].is_Atom
@@ -229,24 +346,32 @@ def _negated_atom(value: sp.Basic) -> bool:
 _NEGATED_TERMS = 4
 
 
-def _negate(value: sp.Basic) -> sp.Basic:
-    """``-value``; a sum's terms negated and re-sorted without ``flatten`` where possible."""
+def _negate(value: sx.Expr) -> sx.Expr:
+    """``-value``, a sum's terms negated (SymEngine keeps ``-(a - b)`` as a product).
+
+    On SymPy, the terms are re-sorted without ``flatten`` where possible.
+    """
     if value.is_Add:
+        if sx.SYMENGINE:
+            return sx.Add(*[-term for term in value.args])
         fast = _sorted_args(value, [-term for term in value.args])
         if fast is not None:
             return fast
-    negated: sp.Basic = -value
+    negated: sx.Expr = -value
     return negated
 
 
-#: Even functions: f(-x) = f(x).
-_EVEN = (sp.cos, sp.cosh, sp.sec, sp.sech)
-
-#: Odd functions: f(-x) = -f(x).
-_ODD = (sp.sin, sp.tan, sp.sinh, sp.tanh, sp.asin, sp.atan, sp.asinh, sp.atanh)
+def _even() -> tuple[Any, ...]:
+    """The engine's even functions: f(-x) = f(x)."""
+    return (sx.cos, sx.cosh, sx.sec, sx.sech)
 
 
-def canonical_odd(expr: sp.Expr, memo: dict[sp.Basic, sp.Expr] | None = None) -> sp.Expr:
+def _odd() -> tuple[Any, ...]:
+    """The engine's odd functions: f(-x) = -f(x)."""
+    return (sx.sin, sx.tan, sx.sinh, sx.tanh, sx.asin, sx.atan, sx.asinh, sx.atanh)
+
+
+def canonical_odd(expr: sx.Expr, memo: dict[sx.Expr, sx.Expr] | None = None) -> sx.Expr:
     """Write every odd function with the sign of its argument pulled out.
 
     sympy keeps ``tanh((a - t)/b)`` and ``tanh((t - a)/b)`` apart (neither argument
@@ -257,17 +382,17 @@ def canonical_odd(expr: sp.Expr, memo: dict[sp.Basic, sp.Expr] | None = None) ->
     ``memo`` (an odd function -> its signed form) may be shared between calls: the
     kernels of one controller repeat the same trigonometry, and each is decided once.
     """
-    signs: dict[sp.Basic, sp.Expr] = {} if memo is None else memo
-    expr = sp.sympify(expr)
+    signs: dict[sx.Expr, sx.Expr] = {} if memo is None else memo
+    expr = _expr(expr)
     # With a shared memo, no search for odd functions first: atoms() walks the whole
     # tree on every call, where the memo makes each node's decision a lookup.
-    if memo is None and not expr.atoms(*_ODD):
+    if memo is None and not expr.atoms(*_odd()):
         return expr
     # A substitution of nothing that signs odd functions as it rebuilds: one walk.
     return _substitute(expr, {}, None, signs)
 
 
-def _signed_odd(node: sp.Expr, memo: dict[sp.Basic, sp.Expr]) -> sp.Expr:
+def _signed_odd(node: sx.Expr, memo: dict[sx.Expr, sx.Expr]) -> sx.Expr:
     """An odd function whose argument is already canonical, with its sign decided.
 
     ``memo`` holds the odd functions decided so far, with their signed forms.
@@ -276,34 +401,76 @@ def _signed_odd(node: sp.Expr, memo: dict[sp.Basic, sp.Expr]) -> sp.Expr:
     if known is not None:
         return known
     signed = node
-    if _flips(node):
+    if sx.SYMENGINE:
+        mirrored = _mirrored_symengine(node)
+        if mirrored is not None:
+            signed = -mirrored
+    elif _flips(node):
         # Not re-evaluated: eval would find nothing the original's did not.
         signed = -node.func(_negated_argument(node.args[0]), evaluate=False)
     memo[node] = signed
     return signed
 
 
-def _negated_argument(arg: sp.Expr) -> sp.Expr:
+def _negated_argument(arg: sx.Expr) -> sx.Expr:
     """``-arg``, the sign distributed into a sum factor: -(a - t)/b becomes (t - a)/b."""
     if arg.is_Mul:
         for i, factor in enumerate(arg.args):
             if factor.is_Add:
-                return sp.Mul(*arg.args[:i], -factor, *arg.args[i + 1 :])
-    return -arg
+                return sx.Mul(*arg.args[:i], _negated_sum(factor), *arg.args[i + 1 :])
+    return _negated_sum(arg) if arg.is_Add else -arg
 
 
-def _flips(e: sp.Expr) -> bool:
-    """Whether the odd function ``e`` is written with its argument negated, canonically."""
+def _negated_sum(value: sx.Expr) -> sx.Expr:
+    """``-value`` for a sum, its terms negated (SymPy distributes the sign itself)."""
+    if sx.SYMENGINE:
+        return sx.Add(*[-term for term in value.args])
+    return -value
+
+
+def _flips(e: sx.Expr) -> bool:
+    """Whether the odd function ``e`` is written with its argument negated, canonically.
+
+    SymPy only; SymEngine's is :func:`_mirrored_symengine`.
+    """
     arg = e.args[0]
     other = _negated_argument(arg)
     if other.could_extract_minus_sign():
         return False
-    expanded = sp.expand(arg)
+    expanded = sx.expand(arg)
     # Expanding is canonical: with exact coefficients, the negation's expansion is the
     # expansion's terms negated, and one expansion (half of this decision's time) is
     # saved. Floats may round apart in the two expansions: both are made.
-    if expanded.has(sp.Float):
-        negated = sp.expand(other)
+    if expanded.has(sx.Float):
+        negated = sx.expand(other)
     else:
         negated = _negate(expanded)
-    return bool(sp.default_sort_key(negated) < sp.default_sort_key(expanded))
+    # SymPy's own order, as the golden kernels were made with it.
+    from sympy import default_sort_key  # noqa: PLC0415 - loaded with the engine already
+
+    return bool(default_sort_key(negated) < default_sort_key(expanded))
+
+
+def _mirrored_symengine(e: sx.Expr) -> sx.Expr | None:
+    """``f(-x)`` for the odd function ``e = f(x)`` when that is its canonical spelling.
+
+    SymEngine signs ``f(-x)`` itself where the argument "extracts" a minus sign (a
+    negative coefficient), as SymPy does, and keeps ``tanh((a - t)/b)`` and
+    ``tanh((t - a)/b)`` apart as SymPy does. Of such a pair the argument whose expansion
+    has the smaller :func:`~tvopt_codegen.symbolic.sort_key` (text, the same in every
+    run) is kept. None when ``e`` is canonical already, or SymEngine signs the mirror.
+    """
+    arg = e.args[0]
+    other = _negated_argument(arg)
+    mirrored = e.func(other)
+    if mirrored.is_Mul:  # SymEngine pulled the sign out again: e is its canonical form
+        return None
+    expanded = sx.expand(arg)
+    # As on SymPy: exact coefficients negate exactly, floats may round apart.
+    if expanded.atoms(sx.Float):
+        negated = sx.expand(other)
+    else:
+        negated = _negate(expanded)
+    if sx.sort_key(negated) < sx.sort_key(expanded):
+        return mirrored
+    return None
