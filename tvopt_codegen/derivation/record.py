@@ -1,4 +1,9 @@
-"""The record of a derivation: what the code generators and the report read."""
+"""The record of a derivation: what the code generators and the report read.
+
+Its expressions, symbols and matrices are the process's engine's
+(:mod:`tvopt_codegen.symbolic`, typed ``sx.Expr``): a reader that needs SymPy (the
+report's LaTeX) converts the few it shows at the border.
+"""
 
 from __future__ import annotations
 
