@@ -12,7 +12,9 @@ layout of sums and products is shared: it is what SymPy's code printers wrote, k
 character for character (the generated files are golden), with the terms in SymPy's
 canonical order as it stands, the constant moved to the end and a positive term first
 (``1 - x``, not ``-x + 1``). On SymEngine, whose order of arguments follows its hashes,
-the terms and factors are sorted by their text: the same text in every run.
+the terms and factors are sorted as SymPy sorts them when it builds a sum or a product
+(:func:`canonical_key`): the same text in every run, and the same text as SymPy's for
+the same tree.
 """
 
 from __future__ import annotations
@@ -59,7 +61,8 @@ class ExpressionPrinter:
     reserved_words: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(self) -> None:
-        self._memo: dict[Any, tuple[Any, str]] = {}
+        self._memo: dict[Any, tuple[Any, str, float]] = {}
+        self._keys: dict[Any, tuple[Any, ...]] = {}
         self._methods: dict[type, Callable[[Any], str]] = {}
         self._sorted = False
 
@@ -81,14 +84,17 @@ class ExpressionPrinter:
 
     def _print(self, expr: Any) -> str:
         """The text of one node, printed once."""
+        return self._entry(expr)[1]
+
+    def _entry(self, expr: Any) -> tuple[Any, str, float]:
+        """A node, its text and its precedence, computed once."""
         key = expr if self._sorted else id(expr)
         known = self._memo.get(key)
-        if known is not None:
-            return known[1]
-        text = self._method(type(expr))(expr)
-        # The node itself is kept with its text: an identity is not reused while it lives.
-        self._memo[key] = (expr, text)
-        return text
+        if known is None:
+            # The node itself is kept: an identity is not reused while it lives.
+            known = (expr, self._method(type(expr))(expr), self.precedence(expr))
+            self._memo[key] = known
+        return known
 
     def _method(self, kind: type) -> Callable[[Any], str]:
         """The printing method of a node class: by its name, or its nearest base's."""
@@ -129,16 +135,23 @@ class ExpressionPrinter:
 
     def parenthesize(self, expr: Any, level: float) -> str:
         """``expr``'s text, in brackets unless it binds more strongly than ``level``."""
-        text = self._print(expr)
-        return f"({text})" if self.precedence(expr) <= level else text
+        _, text, precedence = self._entry(expr)
+        return f"({text})" if precedence <= level else text
 
     # -- sums and products ---------------------------------------------------------------
 
     def _ordered(self, args: tuple[Any, ...]) -> list[Any]:
-        """Arguments in the engine's order, or by their text where that follows hashes."""
-        if not self._sorted:
+        """Arguments in the engine's order, or in SymPy's where that follows hashes."""
+        if not self._sorted or len(args) < 2:
             return list(args)
-        return sorted(args, key=self._print)
+        return sorted(args, key=self._key)
+
+    def _key(self, expr: Any) -> tuple[Any, ...]:
+        """:func:`canonical_key` of a node, computed once."""
+        key = self._keys.get(expr)
+        if key is None:
+            key = self._keys[expr] = canonical_key(expr, self._key)
+        return key
 
     def _print_Add(self, expr: Any) -> str:
         args = self._ordered(expr.args)
@@ -172,9 +185,9 @@ class ExpressionPrinter:
         lone: Any = None
         for factor in factors:
             exponent = factor.args[1] if factor.is_Pow else None
-            if exponent is not None and exponent.is_Rational and exponent.p < 0:
+            if exponent is not None and exponent.is_Rational and negative_number(exponent):
                 base = factor.args[0]
-                if exponent.p == -1 and exponent.q == 1:
+                if exponent.is_Integer and int(exponent) == -1:
                     text = self.parenthesize(base, level)
                     # A product to the power -1 keeps its brackets (SymPy's #14160).
                     bracketed = base.is_Mul and len(base.args) != 1
@@ -231,6 +244,44 @@ class JointPrinter(Protocol):
         """Functions from the marked text to each printing's, by variant key."""
 
 
+#: SymPy's order of node classes (``sympy.core.basic.ordering_of_classes``) for those a
+#: kernel holds; the others (the functions, named in lower case) follow, by name.
+_CLASS_ORDER = {
+    name: rank
+    for rank, name in enumerate(
+        "Zero One Half Infinity NaN NegativeOne NegativeInfinity Integer Rational Float "
+        "Exp1 Pi ImaginaryUnit Symbol Wild Pow Mul Add Derivative Integral".split()
+    )
+}
+#: SymEngine's names of classes SymPy names otherwise.
+_SYMPY_NAMES = {"RealDouble": "Float"}
+
+
+def canonical_key(expr: Any, key: Callable[[Any], tuple[Any, ...]]) -> tuple[Any, ...]:
+    """The place of ``expr`` in SymPy's order of the arguments of a sum or a product.
+
+    SymPy sorts them by ``Basic.compare``: the class (by its rank in SymPy's list of
+    classes, else by name), then the number of its parts, then the parts in turn (a
+    symbol's name, a number's value, a node's arguments, those of a sum or a product
+    sorted). ``key`` gives the key of an argument (a memoised call of this function).
+    """
+    name = type(expr).__name__
+    name = _SYMPY_NAMES.get(name, name)
+    rank = _CLASS_ORDER.get(name, len(_CLASS_ORDER))
+    parts: tuple[Any, ...]
+    if expr.is_Symbol:
+        parts = (expr.name,)
+    elif expr.is_Rational:
+        parts = (int(expr.p),) if expr.is_Integer else (int(expr.p), int(expr.q))
+    elif expr.is_Float:
+        parts = (float(expr),)
+    elif expr.is_Add or expr.is_Mul:
+        parts = tuple(sorted(key(arg) for arg in expr.args))
+    else:
+        parts = tuple(key(arg) for arg in expr.args)
+    return (rank, name if rank == len(_CLASS_ORDER) else "", len(parts), *parts)
+
+
 def negative_term(term: Any) -> bool:
     """Whether a term prints with a leading minus sign."""
     return negative_number(term.args[0] if term.is_Mul else term)
@@ -239,10 +290,11 @@ def negative_term(term: Any) -> bool:
 def negative_number(expr: Any) -> bool:
     """Whether ``expr`` is a number below zero.
 
-    Read from the number's value: SymPy's ``is_negative`` runs its assumption system on
-    first use, a third of printing time for a large controller.
+    SymPy's ``is_negative`` runs its assumption system on first use (a third of printing
+    time for a large controller): its rationals are read from their numerator.
+    SymEngine's answers at once (and makes its numerator a Python int slowly).
     """
-    if expr.is_Rational:
+    if expr.is_Rational and not sx.SYMENGINE:
         return bool(expr.p < 0)
     if expr.is_Float:
         return float(expr) < 0
