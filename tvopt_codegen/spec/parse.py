@@ -11,6 +11,7 @@ so that no spec can hang the tool.
 from __future__ import annotations
 
 import ast
+import cmath
 import difflib
 import io
 import math
@@ -149,6 +150,8 @@ def _literal(value: object, column: int) -> sx.Expr:
 
 def _power(base: sx.Expr, exponent: sx.Expr, column: int) -> sx.Expr:
     """Build ``base**exponent``, refusing numeric exponents that could explode."""
+    if sx.SYMENGINE and not base.is_Number and _is_zero(base):
+        base = sx.ZERO  # what SymPy built: sqrt(8) - 2*sqrt(2) is 0 there
     if exponent.is_Number:
         if abs(exponent) > MAX_EXPONENT:
             raise ExpressionError(column, f"exponent {exponent} exceeds {MAX_EXPONENT}")
@@ -159,7 +162,71 @@ def _power(base: sx.Expr, exponent: sx.Expr, column: int) -> sx.Expr:
             bits = abs(int(exponent)) * max(_bits(base), 1)
             if bits > MAX_CONSTANT_BITS:
                 raise _too_large(column, bits)
+    elif sx.SYMENGINE and base.is_Number and base == 0:
+        return _zero_to_the(exponent)
     return _bounded(sx.Pow(base, exponent), column)
+
+
+def _zero_to_the(exponent: sx.Expr) -> sx.Expr:
+    """``0**exponent`` as SymPy has it (``zoo**x`` for ``0**(-x)``), on SymEngine.
+
+    SymPy asks the exponent's sign of its assumptions, which SymEngine has not: the one
+    expression no sane spec holds crosses the border, so that both engines refuse it.
+    """
+    from tvopt_codegen.symbolic.border import from_sympy, to_sympy  # noqa: PLC0415
+
+    zero = sx.ZERO
+    return from_sympy(to_sympy(zero) ** to_sympy(exponent))
+
+
+#: Where :func:`_is_zero` evaluates an expression: one value per symbol in name order,
+#: irrational-looking so that no spec's own constant sits there.
+_PROBE = (0.5772156649015329, 0.6180339887498949)
+
+
+def _is_zero(value: sx.Expr) -> bool:
+    """Whether ``value`` is zero as SymPy would have built it.
+
+    SymPy folds while it builds (``sqrt(8)`` is ``2*sqrt(2)``, ``exp(log(2))`` is 2), so
+    ``sqrt(8) - 2*sqrt(2)`` is 0 there, SymEngine keeps it: on SymEngine a value that is
+    nearly zero at a fixed point is rebuilt in SymPy (the border, for that one small
+    expression) and asked; anything else is not zero, as on SymPy.
+    """
+    if value == 0:
+        return True
+    if not sx.SYMENGINE:
+        return False
+    names = sorted(value.free_symbols, key=str)
+    point = {s: sx.real(_PROBE[0] + _PROBE[1] * k) for k, s in enumerate(names)}
+    try:
+        number = complex((value.subs(point) if point else value).n())
+    except (TypeError, ValueError, RuntimeError, ZeroDivisionError):
+        return False
+    if not cmath.isfinite(number) or abs(number) > 1e-9:
+        return False
+    from tvopt_codegen.symbolic.border import to_sympy  # noqa: PLC0415
+
+    return bool(to_sympy(value) == 0)
+
+
+def _distributed(value: sx.Expr) -> sx.Expr:
+    """A number times a sum as SymPy writes it, the number multiplying each term.
+
+    SymPy distributes ``2*(x + 1)``, ``-(x + 1)`` and ``(x + 1)/2`` when it builds them
+    (its canonical form); SymEngine keeps the product. The parser does it on SymEngine
+    too, so that what SymPy's form cancels (``2*(x + 1) - 2*x - 2`` is 0, and dividing
+    by it is refused) cancels on both. Only a product of exactly a rational and a sum,
+    as SymPy's rule.
+    """
+    if not sx.SYMENGINE or not value.is_Mul:
+        return value
+    args = value.args
+    if len(args) != 2:
+        return value
+    number, other = (args[0], args[1]) if args[0].is_Number else (args[1], args[0])
+    if not number.is_Rational or not other.is_Add:
+        return value
+    return sx.Add(*(number * term for term in other.args))
 
 
 def _bits(number: sx.Expr) -> int:
@@ -240,7 +307,7 @@ class _TreeBuilder:
         if isinstance(node, ast.UnaryOp):
             operand = self.build(node.operand, depth + 1)
             if isinstance(node.op, ast.USub):
-                return -operand
+                return _distributed(-operand)
             if isinstance(node.op, ast.UAdd):
                 return operand
             raise ExpressionError(column, f"operator {type(node.op).__name__} is not allowed")
@@ -287,11 +354,11 @@ class _TreeBuilder:
         if isinstance(node.op, ast.Sub):
             return _bounded(left - right, column)
         if isinstance(node.op, ast.Mult):
-            return _bounded(left * right, column)
+            return _bounded(_distributed(left * right), column)
         if isinstance(node.op, ast.Div):
-            if right == 0:
+            if _is_zero(right):
                 raise ExpressionError(column, "division by zero")
-            return _bounded(left / right, column)
+            return _bounded(_distributed(left / right), column)
         if isinstance(node.op, ast.Pow):
             return _power(left, right, column)
         raise ExpressionError(column, f"operator {type(node.op).__name__} is not allowed")
@@ -402,9 +469,21 @@ class _TreeBuilder:
         result = _trig_of_pi_multiple(func, args[0]) if arity == 1 else None
         if result is None:
             result = func(*args)
-        if result.has(sx.zoo, sx.nan, sx.oo, -sx.oo):
+        if result.has(sx.zoo, sx.nan, sx.oo, -sx.oo) or _at_a_pole(node.func.id, args):
             raise ExpressionError(column, f"{node.func.id}() is undefined for these arguments")
         return result
+
+
+def _at_a_pole(name: str, args: list[sx.Expr]) -> bool:
+    """Whether a function is infinite at these arguments where SymEngine does not say so.
+
+    SymPy evaluates ``atanh(1)`` to ``oo`` and ``atan(I)`` to ``I*oo`` (refused as
+    undefined); SymEngine keeps them unevaluated: asked here, on SymEngine only.
+    """
+    if not sx.SYMENGINE or name not in ("atanh", "atan"):
+        return False
+    poles = (sx.ONE, -sx.ONE) if name == "atanh" else (sx.I, -sx.I)
+    return args[0] in poles
 
 
 def _trig_of_pi_multiple(func: _Builder, arg: sx.Expr) -> sx.Expr | None:
@@ -633,15 +712,15 @@ def _parse_chain(
     for operator, start, piece in pieces:
         if operators == ("+", "-"):
             value = _parse_chain(piece, offset + start, builder, ("*", "/"), depth)
-            values.append(-value if operator == "-" else value)
+            values.append(_distributed(-value) if operator == "-" else value)
         else:
             value = _parse_chain(piece, offset + start, builder, ("+", "-"), depth)
             if operator == "/":
-                if value == 0:
+                if _is_zero(value):
                     raise ExpressionError(offset + start + 1, "division by zero")
                 value = 1 / value
             values.append(value)
-    combined = sx.Add(*values) if operators == ("+", "-") else sx.Mul(*values)
+    combined = sx.Add(*values) if operators == ("+", "-") else _distributed(sx.Mul(*values))
     return _bounded(combined, offset + 1)
 
 
