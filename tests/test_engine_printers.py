@@ -66,6 +66,12 @@ CASES: dict[str, Case] = {
         lambda x, y, z: sx.Integer(2) * x + sx.real(2.0) * y,
         lambda x, y, z: 2 * x + 2.0 * y,
     ),
+    "floats in order": (
+        lambda x, y, z: (
+            sx.sin(sx.real(1.5) * x) + sx.sin(sx.real(2.0) * x) + sx.cos(sx.real(0.5) * y)
+        ),
+        lambda x, y, z: math.sin(1.5 * x) + math.sin(2.0 * x) + math.cos(0.5 * y),
+    ),
     "big integer": (lambda x, y, z: sx.Integer(2**30) * x, lambda x, y, z: 2**30 * x),
     "pi and E": (lambda x, y, z: sx.pi * x / 4 + sx.E, lambda x, y, z: math.pi * x / 4 + math.e),
     "sin": (lambda x, y, z: sx.sin(x), lambda x, y, z: math.sin(x)),

@@ -274,7 +274,9 @@ def canonical_key(expr: Any, key: Callable[[Any], tuple[Any, ...]]) -> tuple[Any
     elif expr.is_Rational:
         parts = (int(expr.p),) if expr.is_Integer else (int(expr.p), int(expr.q))
     elif expr.is_Float:
-        parts = (float(expr),)
+        from mpmath.libmp import from_float  # noqa: PLC0415 - only a float needs it
+
+        parts = (from_float(float(expr)), 53)  # SymPy's Float: its mpf and precision
     elif expr.is_Add or expr.is_Mul:
         parts = tuple(sorted(key(arg) for arg in expr.args))
     else:
