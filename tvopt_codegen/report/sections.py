@@ -655,10 +655,20 @@ def _provenance(d: Derivation, kernels: KernelSet) -> Section:
                     ("spec sha256", d.spec.sha256),
                     ("tvopt-codegen", __version__),
                     ("sympy", sympy.__version__),
+                    *_engine_rows(),
                 ),
             ),
         ),
     )
+
+
+def _engine_rows() -> tuple[tuple[str, str], ...]:
+    """The engine that derived, when it is not SymPy (which prints the report either way)."""
+    if not sx.SYMENGINE:
+        return ()
+    import symengine  # noqa: PLC0415 - loaded with the engine already
+
+    return (("symengine (derivation)", str(symengine.__version__)),)
 
 
 def _simulation(d: Derivation, results: Mapping[str, bytes]) -> Section:
