@@ -286,21 +286,13 @@ def _gradient_jet(
         )
         for i in range(len(model.y))
     ) + tuple(tuple(state_of[name] for name in chain) for chain in states.multipliers)
-    # The highest derivative of a reference that the law or the optimality error reads.
-    used: set[sx.Expr] = set()
-    for part in (program, rest_program, signal_program):
-        for _, value in part.assignments:
-            used |= value.free_symbols
-    for exprs in (*grad_jet, rest, *signal_chains):
-        for value in exprs:
-            used |= sx.sympify(value).free_symbols
-    order = max(
-        (j for chain in reference_jet for j, symbol in enumerate(chain) if symbol in used),
-        default=0,
-    )
     return _GradientJet(
         reference_jet,
-        order,
+        _reference_order(
+            reference_jet,
+            (program, rest_program, signal_program),
+            (*grad_jet, rest, *signal_chains),
+        ),
         y_jet,
         y_values,
         signal_jet,
@@ -310,6 +302,31 @@ def _gradient_jet(
         tuple(grad_jet),
         rest_program,
         rest,
+    )
+
+
+def _reference_order(
+    reference_jet: Sequence[Sequence[sx.Expr]],
+    programs: Sequence[Program],
+    outputs: Sequence[Sequence[sx.Expr]],
+) -> int:
+    """The highest derivative of a reference that the law or the optimality error reads.
+
+    0 without references, the programs unread: on SymEngine each expression's symbols
+    are a new Python set, a tenth of a long jet's time.
+    """
+    if not reference_jet:
+        return 0
+    used: set[sx.Expr] = set()
+    for part in programs:
+        for _, value in part.assignments:
+            used |= value.free_symbols
+    for exprs in outputs:
+        for value in exprs:
+            used |= sx.sympify(value).free_symbols
+    return max(
+        (j for chain in reference_jet for j, symbol in enumerate(chain) if symbol in used),
+        default=0,
     )
 
 
