@@ -64,7 +64,7 @@ class ExpressionPrinter:
         self._memo: dict[Any, tuple[Any, str, float]] = {}
         self._keys: dict[Any, tuple[Any, ...]] = {}
         self._methods: dict[type, Callable[[Any], str]] = {}
-        self._sorted = False
+        self._by_value = False
 
     # -- the walk ----------------------------------------------------------------------
 
@@ -73,9 +73,10 @@ class ExpressionPrinter:
         if isinstance(expr, int | float):
             expr = sx.sympify(expr)
         # SymEngine builds a new Python object for every argument it hands out: its nodes
-        # are kept by value. SymPy's are the objects themselves, kept by identity (by
-        # value, 2 and 2.0 would be one node).
-        self._sorted = sx.SYMENGINE
+        # are kept by value (and its arguments, in its hashes' order, put in SymPy's).
+        # SymPy's are the objects themselves, kept by identity (by value, 2 and 2.0
+        # would be one node).
+        self._by_value = sx.SYMENGINE
         return self._print_top(expr)
 
     def _print_top(self, expr: Any) -> str:
@@ -88,7 +89,7 @@ class ExpressionPrinter:
 
     def _entry(self, expr: Any) -> tuple[Any, str, float]:
         """A node, its text and its precedence, computed once."""
-        key = expr if self._sorted else id(expr)
+        key = expr if self._by_value else id(expr)
         known = self._memo.get(key)
         if known is None:
             # The node itself is kept: an identity is not reused while it lives.
@@ -142,7 +143,7 @@ class ExpressionPrinter:
 
     def _ordered(self, args: tuple[Any, ...]) -> list[Any]:
         """Arguments in the engine's order, or in SymPy's where that follows hashes."""
-        if not self._sorted or len(args) < 2:
+        if not self._by_value or len(args) < 2:
             return list(args)
         return sorted(args, key=self._key)
 
