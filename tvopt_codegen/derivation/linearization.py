@@ -407,8 +407,8 @@ def undefined_causes(exprs: Sequence[sx.Expr], states: set[sx.Expr]) -> tuple[tu
     point (``sqrt(vx**2 + vy**2 + 1)`` is defined everywhere): see :func:`_sign`.
     ``x**(-1/2)`` has two, ``x = 0`` (a denominator) and ``x < 0`` (a root).
 
-    The walk is the engine's; only the values whose sign is asked (small ones) cross
-    the border, each shared subexpression once.
+    The walk is the engine's; only the values whose sign is asked (small ones) and
+    those a condition writes cross the border, each shared subexpression once.
     """
     conditions: dict[str, str] = {}
     seen: set[Any] = set()
@@ -422,7 +422,7 @@ def undefined_causes(exprs: Sequence[sx.Expr], states: set[sx.Expr]) -> tuple[tu
         found: list[tuple[str, str, sx.Expr, tuple[str, ...]]] = []
         name = sx.function_name(node) if node.is_Function else ""
         if node.is_Pow and node.exp.is_Number and node.base.free_symbols & states:
-            base = sx.text(node.base)
+            base = _condition_text(node.base, memo)
             if node.exp.is_negative:
                 found.append((f"{base} = 0", "a denominator vanishes", node.base, _NONZERO))
             if not node.exp.is_Integer:
@@ -431,19 +431,31 @@ def undefined_causes(exprs: Sequence[sx.Expr], states: set[sx.Expr]) -> tuple[tu
         elif name in ("tan", "sec"):
             arg = node.args[0]
             cause = f"the cosine under {name} vanishes"
-            found.append((f"cos({sx.text(arg)}) = 0", cause, sx.cos(arg), _NONZERO))
+            found.append((f"cos({_condition_text(arg, memo)}) = 0", cause, sx.cos(arg), _NONZERO))
         elif name in ("cot", "csc"):
             arg = node.args[0]
             cause = f"the sine under {name} vanishes"
-            found.append((f"sin({sx.text(arg)}) = 0", cause, sx.sin(arg), _NONZERO))
+            found.append((f"sin({_condition_text(arg, memo)}) = 0", cause, sx.sin(arg), _NONZERO))
         elif name == "log":
             arg = node.args[0]
-            found.append((f"{sx.text(arg)} <= 0", "a log of a non-positive", arg, _POSITIVE))
+            text = _condition_text(arg, memo)
+            found.append((f"{text} <= 0", "a log of a non-positive", arg, _POSITIVE))
         for condition, cause, value, never in found:
             if _engine_sign(value, memo) not in never:
                 conditions.setdefault(condition, cause)
         stack.extend(reversed(node.args))
     return tuple(conditions.items())
+
+
+def _condition_text(expr: sx.Expr, memo: dict[Any, Any]) -> str:
+    """``expr`` as SymPy writes it, on either engine: the generated code quotes it.
+
+    SymEngine orders a sum's terms its own way; the condition's text, in the generated
+    module's and the C file's messages, is the same as on SymPy (golden files).
+    """
+    if not sx.SYMENGINE:
+        return sx.text(expr)
+    return str(_sympy().sstr(to_sympy(expr, memo)))
 
 
 #: The signs of a value under which each kind of condition holds nowhere.
