@@ -35,6 +35,8 @@ def _drop_aliases(
     assignments: Sequence[Assignment], outputs: Sequence[sx.Expr]
 ) -> tuple[list[Assignment], list[sx.Expr]]:
     """Substitute assignments whose value is a bare symbol or constant, or its negation."""
+    if sx.SYMENGINE:
+        return _drop_aliases_in_rounds(assignments, outputs)
     alias: dict[sx.Expr, sx.Expr] = {}
     kept: list[Assignment] = []
     # One memo for the whole program: in evaluation order a node can only hold symbols
@@ -295,15 +297,68 @@ def _merge_equal(
     return kept, [_substitute(e, rename, memo) for e in outputs]
 
 
-def _occurrences(expr: sx.Expr) -> dict[sx.Expr, int]:
-    """How often each symbol occurs in ``expr`` as a tree: ``x*x`` uses ``x`` twice.
+def _drop_aliases_in_rounds(
+    order: Sequence[Assignment], outputs: Sequence[sx.Expr]
+) -> tuple[list[Assignment], list[sx.Expr]]:
+    """:func:`_drop_aliases` on SymEngine: aliases found in rounds, substituted in C++.
 
-    A plain stack walk: sympy's ``preorder_traversal`` costs a generator step per node,
-    and this counts every value of a program (a fifth of inlining's time).
+    Substituting each value as it is met is a Python walk of its nodes, microseconds
+    each on SymEngine. Here each round finds the values that are aliases, then
+    substitutes them into every value at once (:func:`_replace_all`: an alias is a
+    symbol, a number or a negated one, nothing for a number to distribute over), until
+    a round finds none: a value that becomes an alias only once an earlier one is
+    substituted (``a + b`` with ``b = -a``) waits for the next round. The program
+    arrives in three-address form, where that is rare: one round, or two. (Merging equal
+    values, whose matches turn up the next ones a level at a time, a dozen levels in a
+    chain's jet, stays one pass: :func:`_merge_equal`.)
+    """
+    symbols = [sym for sym, _ in order]
+    values = [value for _, value in order]
+    rename: dict[sx.Expr, sx.Expr] = {}
+    kept = list(range(len(order)))
+    while True:
+        found = {
+            symbols[i]: values[i] for i in kept if values[i].is_Atom or _negated_atom(values[i])
+        }
+        if not found:
+            break
+        # An alias may be of a symbol aliased in the same round, always an earlier one:
+        # in evaluation order, one lookup each resolves them all.
+        rename.update(found)
+        for sym in symbols:
+            target = rename.get(sym)
+            if target is not None:
+                rename[sym] = _resolved(target, rename)
+        kept = [i for i in kept if symbols[i] not in found]
+        fresh = _replace_all([values[i] for i in kept], rename)
+        for i, value in zip(kept, fresh, strict=True):
+            values[i] = value
+    return [(symbols[i], values[i]) for i in kept], _replace_all(list(outputs), rename)
+
+
+def _resolved(target: sx.Expr, rename: dict[sx.Expr, sx.Expr]) -> sx.Expr:
+    """``target`` (a symbol, a number, or a negated one) with its symbol renamed."""
+    if target.is_Symbol:
+        return rename.get(target, target)
+    if _negated_atom(target):
+        inner = rename.get(target.args[1])
+        if inner is not None:
+            return -inner
+    return target
+
+
+def _occurrences(expr: sx.Expr, position: dict[sx.Expr, int]) -> dict[int, int]:
+    """How often each temporary occurs in ``expr`` as a tree: ``x*x`` uses ``x`` twice.
+
+    Temporaries are counted by their place in the program (``position``): the counts
+    are then kept by integer, where a symbol as key cost a comparison of two SymEngine
+    objects at every hit (each ``.args`` gives new ones). A plain stack walk: sympy's
+    ``preorder_traversal`` costs a generator step per node, and this counts every value
+    of a program (a fifth of inlining's time).
     """
     # A plain dict: building a Counter (a Python-level __init__) for every value of a
     # program was a tenth of inlining's time.
-    found: dict[sx.Expr, int] = {}
+    found: dict[int, int] = {}
     stack = [expr]
     while stack:
         node = stack.pop()
@@ -311,7 +366,9 @@ def _occurrences(expr: sx.Expr) -> dict[sx.Expr, int]:
         if args:
             stack.extend(args)
         elif node.is_Symbol:
-            found[node] = found.get(node, 0) + 1
+            i = position.get(node)
+            if i is not None:
+                found[i] = found.get(i, 0) + 1
     return found
 
 
@@ -328,55 +385,51 @@ def _inline_single_use(
     Inlining can collect terms: ``a + 2*(a + b)`` becomes ``3*a + 3*b``, and ``a``,
     used twice before, is now used once. A pass over the whole program finds one level
     of such temporaries at a time (a k = 12 jet needed a dozen). Here every
-    expression's symbol counts are kept; after the first wave, each wave substitutes
-    into the expressions the last one changed, until no temporary is used once.
+    expression's counts of temporaries are kept; after the first wave, each wave
+    substitutes into the expressions the last one changed, until no temporary is used
+    once.
     """
     n = len(order)
     values: list[sx.Expr] = [value for _, value in order] + list(outputs)
     position = {sym: i for i, (sym, _) in enumerate(order)}
-    counts = [_occurrences(value) for value in values]
-    uses: dict[sx.Expr, int] = {}
-    holders: dict[sx.Expr, set[int]] = {}
+    counts = [_occurrences(value, position) for value in values]
+    uses = [0] * n
+    holders: list[set[int]] = [set() for _ in range(n)]
     for i, count in enumerate(counts):
-        for sym, times in count.items():
-            uses[sym] = uses.get(sym, 0) + times
-            holders.setdefault(sym, set()).add(i)
+        for j, times in count.items():
+            uses[j] += times
+            holders[j].add(i)
     gone: set[int] = set()
-    wave = {i for i, (sym, _) in enumerate(order) if uses.get(sym, 0) <= 1}
+    wave = {i for i in range(n) if uses[i] <= 1}
     while wave:
         inline: dict[sx.Expr, sx.Expr] = {}
         # One memo for the wave: in evaluation order a node holds only earlier
         # symbols, whose values are final when it is first met (as in _drop_aliases).
         memo: dict[sx.Expr, sx.Expr] = {}
         users: set[int] = set()
-        changed: set[sx.Expr] = set()
+        changed: set[int] = set()
         for i in sorted(wave):
-            sym = order[i][0]
-            inline[sym] = _substitute(values[i], inline, memo)
-            users |= holders.get(sym, set())
+            inline[order[i][0]] = _substitute(values[i], inline, memo)
+            users |= holders[i]
             gone.add(i)
             changed |= counts[i].keys()
-            for other, times in counts[i].items():
-                uses[other] -= times
-                holders[other].discard(i)
+            for j, times in counts[i].items():
+                uses[j] -= times
+                holders[j].discard(i)
         for user in sorted(users - gone):
             before = counts[user]
             values[user] = _substitute(values[user], inline, memo)
-            after = counts[user] = _occurrences(values[user])
-            for other in before.keys() | after.keys():
-                was, now = before.get(other, 0), after.get(other, 0)
+            after = counts[user] = _occurrences(values[user], position)
+            for j in before.keys() | after.keys():
+                was, now = before.get(j, 0), after.get(j, 0)
                 if was != now:
-                    uses[other] = uses.get(other, 0) + now - was
-                    changed.add(other)
+                    uses[j] += now - was
+                    changed.add(j)
                 if not now:
-                    holders[other].discard(user)
+                    holders[j].discard(user)
                 elif not was:
-                    holders.setdefault(other, set()).add(user)
-        wave = {
-            j
-            for j in (position.get(sym) for sym in changed)
-            if j is not None and j not in gone and uses.get(order[j][0], 0) <= 1
-        }
+                    holders[j].add(user)
+        wave = {j for j in changed if j not in gone and uses[j] <= 1}
     kept = [(order[i][0], values[i]) for i in range(n) if i not in gone]
     return kept, values[n:]
 
