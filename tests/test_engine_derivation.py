@@ -16,6 +16,7 @@ import tomllib
 import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -25,6 +26,7 @@ from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import Derivation, calculus, derive
 from tvopt_codegen.derivation.law import control_law, diagonal_blocks
 from tvopt_codegen.derivation.model import build_model
+from tvopt_codegen.errors import SpecError
 from tvopt_codegen.maths.lie import Extension
 from tvopt_codegen.maths.numeric import Evaluator
 from tvopt_codegen.spec import load_spec
@@ -420,3 +422,29 @@ def test_a_spec_of_sympy_expressions_is_taken_onto_the_engine(name: str) -> None
             ),
             f"{name}: {what}",
         )
+
+
+def _example(name: str) -> dict[str, Any]:
+    with (EXAMPLES / f"{name}.toml").open("rb") as file:
+        return tomllib.load(file)
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_the_model_refuses_alike_on_both_engines(engine: str) -> None:
+    # Not affine in the inputs: the message names the input, on either engine.
+    data = _example("pvtol")
+    data["system"]["dynamics"]["vx"] = "-thrust*torque*sin(theta)/m"
+    with sx.using(engine), pytest.raises(SpecError) as affine:
+        derive(data)
+    assert str(affine.value).endswith(
+        "system.dynamics.vx: not affine in the inputs: the coefficient of 'thrust' depends on "
+        "input 'torque'"
+    )
+    # A mass matrix that is not symmetric: both entries quoted (SymEngine's own spelling).
+    data = _example("planar_arm3")
+    data["system"]["mechanics"]["mass_matrix"][1][0] = "l1*l2*m2*sin(q2)"
+    with sx.using(engine), pytest.raises(SpecError) as mass:
+        derive(data)
+    message = str(mass.value)
+    assert "system.mechanics.mass_matrix[1][0]: M is not symmetric: M[1][0] = " in message
+    assert "*sin(q2) but M[0][1] = " in message
