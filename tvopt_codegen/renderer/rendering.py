@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import importlib.metadata
 import math
 import re
 from collections.abc import Callable, Iterable
@@ -387,8 +386,8 @@ def template_context(kernels: KernelSet, backend: Backend | str) -> dict[str, An
         "kernels": printed,
         **variants,
         "tool_version": __version__,
-        # SymPy's version, read without importing it (a SymEngine run need not).
-        "sympy_version": importlib.metadata.version("sympy"),
+        # The engine that derived the law, and its version (read without importing SymPy).
+        "engine": sx.engine_version(),
         "spec_file": PurePath(d.spec.source.removesuffix(BUNDLED_SUFFIX)).name,
         "extension_counts": dict(d.linearization.extension.counts),
         "parameters": dict(d.spec.parameters),

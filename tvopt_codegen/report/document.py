@@ -6,6 +6,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from tvopt_codegen import __version__
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.emit import read_own_output
 from tvopt_codegen.lowering.ir import KernelSet
@@ -107,15 +108,13 @@ def render_report(
     formats : sequence of str
         ``"html"``, ``"md"`` or both.
     """
-    import sympy  # noqa: PLC0415 - the report is the border: SymPy when it is written
-
     sections = report_sections(derivation, kernels, results)
     context = {
         "d": derivation,
         "spec": derivation.spec,
         "sections": sections,
         "tool_version": __version__,
-        "sympy_version": sympy.__version__,
+        "engine": sx.engine_version(),
     }
     return {
         f"{derivation.spec.name}_report.{fmt}": render_template(FORMATS[fmt], context)

@@ -28,6 +28,7 @@ both engines and compares the values.
 from __future__ import annotations
 
 import contextlib
+import importlib.metadata
 from collections.abc import Iterable, Iterator, Sequence
 from typing import Any
 
@@ -360,6 +361,14 @@ def cse(exprs: Sequence[Any], names: Iterator[Any]) -> tuple[list[tuple[Any, Any
     return renamed, [expr.xreplace(rename) for expr in reduced]
 
 
+def engine_version() -> str:
+    """The engine and its version, as the file stamp names them (``sympy 1.14.0``).
+
+    Read from the package's metadata: the stamp of a SymEngine run imports no SymPy.
+    """
+    return f"{ENGINE} {importlib.metadata.version(ENGINE)}"
+
+
 def text(expr: Any) -> str:
     """``expr`` as one line of text in the spec language's spelling (``x**2``, ``sin(x)``)."""
     if SYMENGINE:
@@ -451,6 +460,7 @@ __all__ = [
     "SYMENGINE",
     "ZERO",
     "count_ops",
+    "engine_version",
     "cse",
     "det",
     "free_symbols",
