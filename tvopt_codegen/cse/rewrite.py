@@ -337,9 +337,23 @@ def _signed_nested(node: sx.Expr, odd: dict[sx.Expr, sx.Expr]) -> sx.Expr:
 
 def _negated_atom(value: sx.Expr) -> bool:
     """Whether ``value`` is ``-x`` for a symbol or constant ``x`` (printing it costs nothing)."""
-    return bool(
-        value.is_Mul and len(value.args) == 2 and value.args[0] == -1 and value.args[1].is_Atom
-    )
+    if not value.is_Mul:
+        return False
+    # One .args (SymEngine builds them anew each time), compared with the engine's -1:
+    # comparing with Python's converts it first, four microseconds on SymEngine.
+    args = value.args
+    return bool(len(args) == 2 and args[0] == _minus_one() and args[1].is_Atom)
+
+
+_MINUS_ONE: dict[str, sx.Expr] = {}
+
+
+def _minus_one() -> sx.Expr:
+    """The engine's -1, made once per engine."""
+    one = _MINUS_ONE.get(sx.ENGINE)
+    if one is None:
+        one = _MINUS_ONE[sx.ENGINE] = sx.Integer(-1)
+    return one
 
 
 #: Sums up to this many terms are looked up negated too (:func:`_merge_equal`).
