@@ -53,7 +53,11 @@ def operation_count(exprs: Iterable[sx.Expr], memo: dict[sx.Expr, int] | None = 
     """
     below: dict[sx.Expr, int] = {} if memo is None else memo
 
-    def own(node: sx.Expr, parent: str) -> int:
+    minus_one = _minus_one()
+
+    # Each takes the node's arguments, fetched once: SymEngine builds them anew on every
+    # .args, and a node's were asked for three times.
+    def own(node: sx.Expr, parent: str, args: Sequence[sx.Expr]) -> int:
         if node.is_Number:
             if parent == "mul":
                 return 0
@@ -61,15 +65,16 @@ def operation_count(exprs: Iterable[sx.Expr], memo: dict[sx.Expr, int] | None = 
         if node.is_Atom:
             return 0
         if node.is_Add:
-            return len(node.args) - 1
+            return len(args) - 1
         if node.is_Mul:
-            negated = parent == "add" and node.args[0].is_Number and node.args[0].is_negative
-            return len(node.args) - 1 - int(bool(negated) and node.args[0] == -1)
-        if node.is_Pow and node.exp == -1:
+            first = args[0]
+            negated = parent == "add" and first.is_Number and first.is_negative
+            return len(args) - 1 - int(bool(negated) and first == minus_one)
+        if node.is_Pow and args[1] == minus_one:
             return 0 if parent == "mul" else 1
         return 1
 
-    def count(node: sx.Expr) -> int:
+    def count(node: sx.Expr, args: Sequence[sx.Expr]) -> int:
         # A node's own operations depend on its parent's kind; those of its subtree
         # do not, and are what the memo keeps. Leaves have no subtree, and symbols cost
         # nothing: only numbers among them are looked at (half the calls were symbols).
@@ -77,16 +82,20 @@ def operation_count(exprs: Iterable[sx.Expr], memo: dict[sx.Expr, int] | None = 
         if total is None:
             kind = "mul" if node.is_Mul else "add" if node.is_Add else ""
             total = 0
-            for arg in node.args:
-                if arg.args:
-                    total += own(arg, kind) + count(arg)
+            for arg in args:
+                sub = arg.args
+                if sub:
+                    total += own(arg, kind, sub) + count(arg, sub)
                 elif arg.is_Number:
-                    total += own(arg, kind)
+                    total += own(arg, kind, sub)
             below[node] = total
         return total
 
-    exprs = [_expr(e) for e in exprs]
-    total = sum(own(e, "") + count(e) for e in exprs)
+    total = 0
+    for e in exprs:
+        node = _expr(e)
+        args = node.args
+        total += own(node, "", args) + count(node, args)
     release(count)
     return total
 
