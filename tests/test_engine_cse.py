@@ -338,3 +338,17 @@ def test_symengine_kernels_do_not_depend_on_the_hash_seed() -> None:
         check=True,
     ).stdout
     assert "tanh" in here and there.strip() == here
+
+
+def test_symengine_symbols_in_is_the_union_of_free_symbols() -> None:
+    with sx.using("symengine"):
+        x, y, z, t = sx.symbols(["x", "y", "z", "t"])
+        exprs = [x * y + sx.sin(z), sx.Integer(2), sx.tanh((t - x) / y) ** 2, 3]
+        assert cse.symbols_in(exprs) == {x, y, z, t}
+        assert cse.symbols_in([]) == set()
+        out = [("o", (1,), [x * y], "")]
+        given = [Arg("s", (x, y), ("x", "y"), "")]
+        assert cse.make_kernel("k", "", given, [], out, {}).ops == 1
+        # A kernel reading y, which it is not given, is refused.
+        with pytest.raises(AssertionError, match=r"unbound symbols \['y'\]"):
+            cse.make_kernel("k", "", [Arg("s", (x,), ("x",), "")], [], out, {})

@@ -104,11 +104,14 @@ def symbols_in(exprs: Iterable[sx.Expr]) -> set[sx.Expr]:
     """The symbols of all ``exprs``, each distinct subtree visited once.
 
     ``free_symbols`` builds a set at every node of every tree, anew for each
-    expression; a kernel's expressions share most of their subtrees.
+    expression; a kernel's expressions share most of their subtrees. SymEngine's is
+    one walk in C++ over them all, packed as one function's arguments (_replace_all).
     """
+    stack = [_expr(e) for e in exprs]
+    if sx.SYMENGINE:
+        return set(sx.Function("_cse_pack")(*stack).free_symbols) if stack else set()
     seen: set[sx.Expr] = set()
     found: set[sx.Expr] = set()
-    stack = [_expr(e) for e in exprs]
     while stack:
         node = stack.pop()
         if node in seen:
