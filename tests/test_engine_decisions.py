@@ -40,6 +40,7 @@ from tvopt_codegen.derivation.robust import robustness
 from tvopt_codegen.errors import AssumptionError
 from tvopt_codegen.limits import Budget
 from tvopt_codegen.spec import load_spec, spec_from_dict
+from tvopt_codegen.symbolic import linalg
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
 from .conftest import SPECS, derivation
@@ -104,7 +105,7 @@ def _mechanics(d: Derivation) -> Any:
 
 def _symengine_det(matrix: Any) -> Any:
     with sx.using("symengine"):
-        return to_sympy(sx.det(from_sympy(matrix)))
+        return to_sympy(linalg.det(from_sympy(matrix)))
 
 
 def test_the_determinant_is_sympys_on_both_engines() -> None:
@@ -117,7 +118,7 @@ def test_the_determinant_is_sympys_on_both_engines() -> None:
         entries = [pool[k] for k in rng.integers(0, choices, size=n * n)]
         matrix = sp.ImmutableMatrix(n, n, entries)
         reference = matrix.det(method="berkowitz")
-        assert sx.det(matrix) == reference  # SymPy's own on SymPy
+        assert linalg.det(matrix) == reference  # SymPy's own on SymPy
         found = _symengine_det(matrix)
         if n <= 3:  # written out and simplified as SymPy does: the very expression
             assert found == reference, n
@@ -134,7 +135,7 @@ def test_the_determinant_is_sympys_on_both_engines() -> None:
 def test_det_r_and_its_singular_set_are_decided_alike(name: str) -> None:
     d = derivation(name)
     R = d.linearization.R
-    reference = sx.det(_with_gains(R, d.model.mechanics))
+    reference = linalg.det(_with_gains(R, d.model.mechanics))
     simplified = simplified_det(reference)
     singular = _singular_set(simplified)
     # What the derivation itself found, through the same functions.
@@ -142,7 +143,7 @@ def test_det_r_and_its_singular_set_are_decided_alike(name: str) -> None:
     assert singular  # every one of these plants has a singular set
 
     def run() -> tuple[Any, Any, bool, tuple[str, ...]]:
-        det = sx.det(_with_gains(from_sympy(R), _mechanics(d)))
+        det = linalg.det(_with_gains(from_sympy(R), _mechanics(d)))
         small = tree_size(det, _DET_SIMPLIFY_NODES) <= _DET_SIMPLIFY_NODES
         short = simplified_det(det)
         assert isinstance(short, sx.Basic)  # back on the engine, for the stages after

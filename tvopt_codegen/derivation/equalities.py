@@ -18,6 +18,7 @@ from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter, tree_siz
 from tvopt_codegen.derivation.model import Model
 from tvopt_codegen.derivation.objective import _Objective, _programs_of, objective_start
 from tvopt_codegen.errors import AssumptionError
+from tvopt_codegen.symbolic import linalg
 
 
 def _equality_jacobian(model: Model) -> list[list[sx.Expr]]:
@@ -100,7 +101,7 @@ def _dependent_set(model: Model) -> tuple[str, ...]:
         return (f"not computed symbolically (q = {q} > 4)",)
     jacobian_a = sx.Matrix(_equality_jacobian(model))
     gram = jacobian_a * jacobian_a.T
-    det = sx.det(gram)
+    det = linalg.det(gram)
     if tree_size(det, _DET_SIMPLIFY_NODES) > _DET_SIMPLIFY_NODES:
         return (f"not simplified symbolically (more than {_DET_SIMPLIFY_NODES} expression nodes)",)
     return _singular_set(simplified_det(det))

@@ -38,6 +38,7 @@ from tvopt_codegen.maths.lie import (
 from tvopt_codegen.spec import Mechanics
 from tvopt_codegen.spec.features import refusal_line
 from tvopt_codegen.spec.reader import suggestion
+from tvopt_codegen.symbolic import linalg
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
 
@@ -740,7 +741,7 @@ def _decoupling(
     if m > 4:
         det_R_note = f"not expanded symbolically (m = {m} > 4)"
     else:
-        det = sx.det(R)
+        det = linalg.det(R)
         meter(det)
         # Simplifying is exact but can be slow on large entries: only small ones.
         if tree_size(det, _DET_SIMPLIFY_NODES) <= _DET_SIMPLIFY_NODES:
