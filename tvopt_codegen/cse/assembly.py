@@ -133,7 +133,7 @@ def make_kernel(
 
     ``odd`` is the :func:`canonical_odd` memo shared by one controller's kernels, and
     ``symbols`` the memo of free symbols (:func:`_prune`): the kernels read the same
-    programs. ``search=False`` skips sympy's search for common sub-sums
+    programs. ``search=False`` skips the engine's search for common sub-sums
     (:func:`ordered_cse`).
     """
     exprs, where = _symbolic(outputs)
@@ -160,7 +160,7 @@ def make_kernels(
     for value numbering alone (:data:`SMALL_PROGRAM_OPS`), the program and all outputs
     are reduced once, and each kernel keeps what its outputs need, inlining what is
     then used once. Smaller kernels are made one by one, as :func:`make_kernel` would:
-    sympy's fuller search suits them, and a union could pass its size limit.
+    the engine's fuller search suits them, and a union could pass its size limit.
     """
     symbolic = [_symbolic(outputs) for *_, outputs in kernels]
     sizes = [len(exprs) for exprs, _ in symbolic]

@@ -59,7 +59,8 @@ def _prune(
     """Drop assignments that no output needs (signal orders a kernel does not use).
 
     ``symbols`` (expression -> its free symbols) may span calls over the same program:
-    sympy walks the tree anew each time it is asked.
+    sympy walks the tree anew each time it is asked. SymEngine's walk is in C++ and
+    is not memoised (see below).
     """
     known: dict[sx.Expr, set[sx.Expr]] = {} if symbols is None else symbols
 
@@ -87,7 +88,7 @@ def _prune(
     return kept[::-1]
 
 
-#: Programs up to this many operations get sympy's full cse; larger ones value numbering.
+#: Programs up to this many operations get the engine's full cse; larger ones value numbering.
 SMALL_PROGRAM_OPS = 1000
 
 
@@ -96,27 +97,29 @@ def ordered_cse(
 ) -> tuple[tuple[Assignment, ...], tuple[sx.Expr, ...]]:
     """CSE a straight-line program and its outputs, keeping evaluation order valid.
 
-    One ``sympy.cse`` pass sees every right-hand side and output. A common
-    subexpression found in an assignment only uses symbols defined before it, so each
-    extracted temporary is emitted just before its first use. Temporaries are then
-    renamed ``_t0, _t1, ...`` in emission order, which makes the text deterministic.
+    One pass of the engine's ``cse`` (:func:`~tvopt_codegen.symbolic.cse`) sees every
+    right-hand side and output. A common subexpression found in an assignment only uses
+    symbols defined before it, so each extracted temporary is emitted just before its
+    first use. Temporaries are then renamed ``_t0, _t1, ...`` in emission order, which
+    makes the text deterministic (on SymEngine too: its argument order comes from its
+    C++ hashes of the expressions, the same in every run, never Python's).
 
     Parameters
     ----------
-    assignments : sequence of (sympy.Symbol, sympy.Expr)
+    assignments : sequence of (symbol, expression)
         The program; right-hand sides use only earlier symbols and the inputs.
-    outputs : sequence of sympy.Expr
+    outputs : sequence of expressions
         Output expressions over the program and the inputs.
     search : bool
-        Allow sympy's ``cse`` (on programs up to :data:`SMALL_PROGRAM_OPS`), which also
-        finds common parts of sums and products. A program built one operation per
+        Allow the engine's ``cse`` (on programs up to :data:`SMALL_PROGRAM_OPS`), which
+        also finds common parts of sums and products. A program built one operation per
         assignment (the Cholesky solve) has none to find: value numbering suffices.
 
     Returns
     -------
-    body : tuple of (sympy.Symbol, sympy.Expr)
+    body : tuple of (symbol, expression)
         The temporaries in evaluation order.
-    outputs : tuple of sympy.Expr
+    outputs : tuple of expressions
         The reduced outputs.
     """
     return _number(*_reduce(assignments, outputs, search))
