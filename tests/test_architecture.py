@@ -502,6 +502,7 @@ def test_the_size_check_sees_a_long_function_and_a_long_module(tmp_path: Path) -
 #: The derivation's stages after build_model: they read the Model, never the Spec.
 MODEL_READERS = (
     "linearization",
+    "singularity",
     "convexity",
     "equalities",
     "objective",

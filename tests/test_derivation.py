@@ -219,7 +219,7 @@ def _every_spec() -> list[str]:
 def test_the_determinant_is_simplified_as_sympys_simplify_would(spec: str) -> None:
     """det R (and the equalities' Gram determinant) as factor(simplify(det)) gives it."""
     from tvopt_codegen.derivation.equalities import _equality_jacobian
-    from tvopt_codegen.derivation.linearization import simplified_det
+    from tvopt_codegen.derivation.singularity import simplified_det
 
     d = derivation(spec)
     dets = []
@@ -233,7 +233,7 @@ def test_the_determinant_is_simplified_as_sympys_simplify_would(spec: str) -> No
 
 
 def test_the_determinant_simplification_knows_trigonometry_and_fractions() -> None:
-    from tvopt_codegen.derivation.linearization import simplified_det
+    from tvopt_codegen.derivation.singularity import simplified_det
 
     v, x, q = sp.symbols("v x q", real=True)
     cases = [
@@ -262,7 +262,7 @@ def test_the_determinant_simplification_knows_trigonometry_and_fractions() -> No
 
 def test_one_circular_factor_is_what_simplify_leaves_alone() -> None:
     """The short path's monomials (an arm's l1*l2*sin(q2)): simplify gives them back."""
-    from tvopt_codegen.derivation.linearization import _one_circular_factor, simplified_det
+    from tvopt_codegen.derivation.singularity import _one_circular_factor, simplified_det
 
     rng = np.random.default_rng(11)
     symbols = [*sp.symbols("l1 l2 m", positive=True), *sp.symbols("q1 q2 z", real=True)]

@@ -26,17 +26,15 @@ from tvopt_codegen.derivation.linearization import (
     _decoupling,
     _Linearization,
     _rows_text,
-    _singular_set,
     _with_gains,
     law_expressions,
-    simplified_det,
-    undefined_causes,
 )
 from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter, tree_size
 from tvopt_codegen.derivation.model import build_model
 from tvopt_codegen.derivation.record import Derivation
 from tvopt_codegen.derivation.rejection import discrete_gains, observer_field, rejection
 from tvopt_codegen.derivation.robust import robustness
+from tvopt_codegen.derivation.singularity import _singular_set, simplified_det, undefined_causes
 from tvopt_codegen.errors import AssumptionError
 from tvopt_codegen.limits import Budget
 from tvopt_codegen.spec import load_spec, spec_from_dict

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import sympy as sp
 
-from tvopt_codegen.derivation.linearization import _singular_set, undefined_causes
+from tvopt_codegen.derivation.singularity import _singular_set, undefined_causes
 from tvopt_codegen.errors import clip_quotes
 from tvopt_codegen.limits import MAX_POINTS
 

@@ -9,6 +9,7 @@ implicit law ``y_imp^(k)`` (equation y_kth_derivative_solution) feeding
 
 One module per concept: :mod:`.record` (the :class:`Derivation` readers see),
 :mod:`.linearization` (extension, relative degree, R and p, the closed-loop states),
+:mod:`.singularity` (det R simplified, where R is singular or R and p undefined),
 :mod:`.objective` (f0's programs and the gradient jet), :mod:`.convexity` (the numerical
 checks of strong convexity), :mod:`.equalities` (equality constraints and the
 Lagrangian), :mod:`.meter` (the budgets) and :mod:`.pipeline` (:func:`derive`, which runs

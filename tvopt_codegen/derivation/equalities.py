@@ -13,10 +13,11 @@ import numpy as np
 
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation.convexity import _evaluator_at
-from tvopt_codegen.derivation.linearization import _singular_set, _States, simplified_det
+from tvopt_codegen.derivation.linearization import _States
 from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter, tree_size
 from tvopt_codegen.derivation.model import Model
 from tvopt_codegen.derivation.objective import _Objective, _programs_of, objective_start
+from tvopt_codegen.derivation.singularity import _singular_set, simplified_det
 from tvopt_codegen.errors import AssumptionError
 from tvopt_codegen.symbolic import linalg
 

@@ -1,28 +1,22 @@
 """Linearization: dynamic extension, relative degree, R, p and the closed-loop states.
 
 The dynamic extension (and its search), the vector relative degree, the decoupling matrix
-R and p, the Brunovsky form, the closed-loop states, and where R or p is singular or
-undefined (Lemmas 1-2, Section IV-B of the paper).
+R and p, the Brunovsky form and the closed-loop states (Lemmas 1-2, Section IV-B of the
+paper). Where R or p is singular or undefined is :mod:`.singularity`'s to say.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from tvopt_codegen import symbolic as sx
-from tvopt_codegen.derivation.meter import (
-    _DET_SIMPLIFY_NODES,
-    TimeLimitError,
-    _Meter,
-    time_limited,
-    tree_size,
-)
+from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter, tree_size
 from tvopt_codegen.derivation.model import Model, Settings, start_evaluator
 from tvopt_codegen.derivation.rejection import state_names
+from tvopt_codegen.derivation.singularity import _singular_set, _undefined_set, simplified_det
 from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.maths import hurwitz
 from tvopt_codegen.maths.lie import (
@@ -39,23 +33,6 @@ from tvopt_codegen.spec import Mechanics
 from tvopt_codegen.spec.features import refusal_line
 from tvopt_codegen.spec.reader import suggestion
 from tvopt_codegen.symbolic import linalg
-from tvopt_codegen.symbolic.border import from_sympy, to_sympy
-
-
-def _sympy() -> Any:
-    """SymPy, for the border's few small expressions (det R, signs of factors)."""
-    import sympy  # noqa: PLC0415 - only the decisions need it, and only when they run
-
-    return sympy
-
-
-def _circular() -> tuple[Any, ...]:
-    """SymPy's classes of circular and hyperbolic functions."""
-    sp = _sympy()
-    return (
-        sp.functions.elementary.trigonometric.TrigonometricFunction,
-        sp.functions.elementary.hyperbolic.HyperbolicFunction,
-    )
 
 
 def _rows_text(matrix: sx.Expr) -> str:
@@ -179,163 +156,6 @@ def _suggest_prolongation(model: Model, counts: dict[str, int]) -> str:
     return "; no prolongation of a single input by 1 or 2 integrators makes it linearizable"
 
 
-#: How long det R's simplification may take before its short form stands.
-_DET_SIMPLIFY_SECONDS = 5.0
-
-
-def simplified_det(det: sx.Expr) -> sx.Expr:
-    """A determinant in lowest terms, factored: ``factor(simplify(det))`` or as short.
-
-    ``cancel``, then ``trigsimp`` where there are circular or hyperbolic functions: when
-    that leaves a rational function (a unicycle's ``v cos^2 + v sin^2``, a quadrotor's
-    thrust), its factored form is what ``simplify`` would reach, in a third of a small
-    derivation's time (``simplify`` tries each of its strategies in turn, and imports
-    ``sympy.physics.units`` on the way). When trigonometry remains, ``simplify`` decides:
-    on random trigonometric determinants the short path's form was longer one time in
-    six (benchmarks/NOTES.md). ``simplify`` has no bound of its own (487 s on a 2 x 2 R
-    whose gains hold ``cos`` and ``tanh`` of sums, found by the fuzzer): past
-    ``_DET_SIMPLIFY_SECONDS`` the short path's form stands. Both are det R exactly; only
-    how short it prints can then depend on the machine's speed.
-
-    A border stage: ``det`` (an expression of the engine, small: the caller bounds its
-    size) is simplified in SymPy and its factored form converted back.
-    """
-    sp, circular = _sympy(), _circular()
-    det = to_sympy(det)
-    reduced = sp.cancel(det)
-    if reduced.has(*circular):
-        try:
-            with time_limited(_DET_SIMPLIFY_SECONDS):
-                reduced = sp.trigsimp(reduced)
-                if reduced.has(*circular) and not _one_circular_factor(reduced):
-                    return from_sympy(sp.factor(sp.simplify(det)))
-        except TimeLimitError:
-            pass
-    return from_sympy(sp.factor(reduced))
-
-
-def _one_circular_factor(expr: sx.Expr) -> bool:
-    """Whether ``expr`` is one circular or hyperbolic function of a symbol times powers.
-
-    That is a number, powers of symbols and one ``sin(q)`` (an arm's ``l1*l2*sin(q2)``).
-    No identity shortens such a product, so ``simplify`` returns it as it is (tested), and
-    the short path's form is the one it would give. ``expr`` is SymPy's.
-    """
-    sp, circular = _sympy(), _circular()
-    functions = 0
-    for factor in sp.Mul.make_args(expr):
-        base = factor.base if factor.is_Pow and factor.exp.is_Integer else factor
-        if factor.is_Number or base.is_Symbol:
-            continue
-        if isinstance(factor, circular) and factor.args[0].is_Symbol:
-            functions += 1
-            continue
-        return False
-    return functions == 1
-
-
-def _singular_set(det: sx.Expr) -> tuple[str, ...]:
-    """Describe where a determinant vanishes, one condition per factor of its numerator.
-
-    A factor that vanishes nowhere over the reals (``vx**2 + vy**2 + 1``) is no place at
-    all, and is left out: with every factor so, R is never singular. A border stage:
-    ``det`` (small, simplified) is factored in SymPy, and the conditions are written as
-    SymPy writes them, the same text on either engine.
-    """
-    sp = _sympy()
-    numerator, _ = sp.fraction(sp.together(to_sympy(det)))
-    if numerator.is_Number:
-        return () if numerator != 0 else ("everywhere",)
-    try:
-        _, factors = sp.factor_list(numerator)
-    except sp.PolynomialError:  # not a polynomial in its symbols: state it whole
-        factors = [(numerator, 1)]
-    conditions = []
-    for base, _power in factors:
-        if base.is_Number or _sign(base) in ("positive", "negative"):
-            continue
-        conditions.append(f"{sp.sstr(base)} = 0")
-    return tuple(conditions)
-
-
-#: Largest expression (in nodes) whose sign is asked of sympy's assumptions: the answer
-#: only shortens a message, and it must stay cheap.
-_SIGN_NODES = 400
-#: Most symbols of a quadratic whose definiteness is decided exactly.
-_QUADRATIC_SYMBOLS = 12
-
-
-def _sign(expr: sx.Expr) -> str | None:
-    """Whether ``expr`` is ``"positive"``, ``"nonnegative"`` or ``"negative"`` everywhere.
-
-    None where that is not known cheaply.
-
-    sympy's assumptions first (every spec symbol is real: a sum of squares plus a positive
-    constant, an exponential, ``cosh``); then, for a quadratic polynomial with number
-    coefficients, the exact test: ``z^T Q z + g^T z + c`` with ``Q`` positive definite
-    has its least value ``c - g^T Q^-1 g / 4`` (``x**2 - x*y + y**2 + 1`` is positive).
-    ``expr`` is SymPy's (:func:`_engine_sign` takes the engine's).
-    """
-    sp = _sympy()
-    if tree_size(expr, _SIGN_NODES) > _SIGN_NODES:
-        return None
-    for candidate in (expr, -expr):
-        if candidate.is_positive:
-            return "positive" if candidate is expr else "negative"
-    if expr.is_nonnegative:
-        return "nonnegative"
-    symbols = sorted(expr.free_symbols, key=lambda s: s.name)
-    if not symbols or len(symbols) > _QUADRATIC_SYMBOLS:
-        return None
-    try:
-        poly = sp.Poly(expr, *symbols)
-    except sp.PolynomialError:
-        return None
-    if poly.total_degree() != 2 or not all(c.is_Rational for c in poly.coeffs()):
-        return None
-    for candidate in (poly, -poly):
-        least = _least_value(candidate, symbols)
-        if least is not None:
-            if least > 0:
-                return "positive" if candidate is poly else "negative"
-            if least == 0 and candidate is poly:
-                return "nonnegative"
-    return None
-
-
-def _engine_sign(expr: sx.Expr, memo: dict[Any, Any]) -> str | None:
-    """:func:`_sign` of an expression of the engine (``memo``: the border's, shared)."""
-    if tree_size(expr, _SIGN_NODES) > _SIGN_NODES:
-        return None
-    return _sign(to_sympy(expr, memo))
-
-
-def _least_value(poly: Any, symbols: Sequence[Any]) -> Any:
-    """The least value of a quadratic polynomial with a positive definite Hessian, or None.
-
-    SymPy's ``Poly`` and ``Rational``.
-    """
-    sp = _sympy()
-    n = len(symbols)
-    quadratic = sp.zeros(n, n)
-    linear = sp.zeros(n, 1)
-    constant = sp.Integer(0)
-    for monomial, coefficient in poly.terms():
-        powers = [(i, k) for i, k in enumerate(monomial) if k]
-        if not powers:
-            constant = coefficient
-        elif len(powers) == 1 and powers[0][1] == 1:
-            linear[powers[0][0]] = coefficient
-        elif len(powers) == 1:
-            quadratic[powers[0][0], powers[0][0]] = coefficient
-        else:
-            (i, _), (j, _) = powers
-            quadratic[i, j] = quadratic[j, i] = coefficient / 2
-    if not quadratic.is_positive_definite:
-        return None
-    return constant - (linear.T * quadratic.inv() * linear)[0, 0] / 4
-
-
 def _singular_start(
     R: sx.Expr,
     p: sx.Expr,
@@ -383,86 +203,6 @@ def _singular_start(
         f"simulation.initial_state: the law is undefined at the initial state ({where}): "
         f"{what}{hint}; DEFAULT_STATE cannot be simulated as it is",
     )
-
-
-#: At most this many conditions are listed where R or p is undefined.
-_MAX_UNDEFINED = 6
-
-
-def _undefined_set(exprs: Sequence[sx.Expr], states: set[sx.Expr]) -> tuple[str, ...]:
-    """Where expressions of the states are undefined, one condition per cause.
-
-    The conditions of :func:`undefined_causes`, without their causes.
-    """
-    return tuple(condition for condition, _ in undefined_causes(exprs, states))
-
-
-def undefined_causes(exprs: Sequence[sx.Expr], states: set[sx.Expr]) -> tuple[tuple[str, str], ...]:
-    """Where expressions of the states are undefined: each condition and its cause.
-
-    A denominator that vanishes, ``tan``/``sec`` where the cosine vanishes,
-    ``cot``/``csc`` where the sine does, ``log`` of a non-positive and a root of a
-    negative number: the places where R or p, and with them the law, do not exist
-    although det R may not vanish there (a steering angle of pi/2, an Euler pitch of
-    pi/2). Conditions on parameters alone are not listed, nor any that holds at no real
-    point (``sqrt(vx**2 + vy**2 + 1)`` is defined everywhere): see :func:`_sign`.
-    ``x**(-1/2)`` has two, ``x = 0`` (a denominator) and ``x < 0`` (a root).
-
-    The walk is the engine's; only the values whose sign is asked (small ones) and
-    those a condition writes cross the border, each shared subexpression once.
-    """
-    conditions: dict[str, str] = {}
-    seen: set[Any] = set()
-    memo: dict[Any, Any] = {}
-    stack = [e for e in exprs if isinstance(e, sx.Basic)]
-    while stack and len(conditions) < _MAX_UNDEFINED:
-        node = stack.pop()
-        if node in seen or not node.free_symbols & states:
-            continue
-        seen.add(node)
-        found: list[tuple[str, str, sx.Expr, tuple[str, ...]]] = []
-        name = sx.function_name(node) if node.is_Function else ""
-        if node.is_Pow and node.exp.is_Number and node.base.free_symbols & states:
-            base = _condition_text(node.base, memo)
-            if node.exp.is_negative:
-                found.append((f"{base} = 0", "a denominator vanishes", node.base, _NONZERO))
-            if not node.exp.is_Integer:
-                root = "a square root" if getattr(node.exp, "q", 0) == 2 else "a fractional power"
-                found.append((f"{base} < 0", f"{root} of a negative", node.base, _NONNEGATIVE))
-        elif name in ("tan", "sec"):
-            arg = node.args[0]
-            cause = f"the cosine under {name} vanishes"
-            found.append((f"cos({_condition_text(arg, memo)}) = 0", cause, sx.cos(arg), _NONZERO))
-        elif name in ("cot", "csc"):
-            arg = node.args[0]
-            cause = f"the sine under {name} vanishes"
-            found.append((f"sin({_condition_text(arg, memo)}) = 0", cause, sx.sin(arg), _NONZERO))
-        elif name == "log":
-            arg = node.args[0]
-            text = _condition_text(arg, memo)
-            found.append((f"{text} <= 0", "a log of a non-positive", arg, _POSITIVE))
-        for condition, cause, value, never in found:
-            if _engine_sign(value, memo) not in never:
-                conditions.setdefault(condition, cause)
-        stack.extend(reversed(node.args))
-    return tuple(conditions.items())
-
-
-def _condition_text(expr: sx.Expr, memo: dict[Any, Any]) -> str:
-    """``expr`` as SymPy writes it, on either engine: the generated code quotes it.
-
-    SymEngine orders a sum's terms its own way; the condition's text, in the generated
-    module's and the C file's messages, is the same as on SymPy (golden files).
-    """
-    if not sx.SYMENGINE:
-        return sx.text(expr)
-    return str(_sympy().sstr(to_sympy(expr, memo)))
-
-
-#: The signs of a value under which each kind of condition holds nowhere.
-_NONZERO = ("positive", "negative")
-_NONNEGATIVE = ("positive", "nonnegative")
-_POSITIVE = ("positive",)
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import Derivation
-from tvopt_codegen.derivation.linearization import law_expressions, undefined_causes
+from tvopt_codegen.derivation.linearization import law_expressions
+from tvopt_codegen.derivation.singularity import undefined_causes
 from tvopt_codegen.lowering.ir import KernelSet
 
 
