@@ -128,7 +128,7 @@ def test_parse_agrees_with_python_arithmetic(text: str, xv: float, yv: float) ->
 
 def test_trigonometry_of_a_multiple_of_pi_is_what_sympys_eval_gives() -> None:
     """The parser's short cut for sin, cos, tan of pi times a symbolic factor."""
-    from tvopt_codegen.spec.parse import _trig_of_pi_multiple
+    from tvopt_codegen.spec.folding import _trig_of_pi_multiple
 
     a, b, d = sp.symbols("a b d", real=True)
     k = sp.Symbol("k", positive=True)

@@ -11,17 +11,24 @@ so that no spec can hang the tool.
 from __future__ import annotations
 
 import ast
-import cmath
 import difflib
 import io
 import math
 import re
 import tokenize
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from fractions import Fraction
 
 from tvopt_codegen import symbolic as sx
+from tvopt_codegen.spec.folding import (
+    _at_a_pole,
+    _Builder,
+    _distributed,
+    _is_zero,
+    _trig_of_pi_multiple,
+    _zero_to_the,
+)
 
 #: Longest expression text accepted, in characters.
 MAX_EXPRESSION_LENGTH = 1_000_000
@@ -44,8 +51,6 @@ MAX_LITERAL = 1e12
 MIN_LITERAL = 1e-30
 #: Largest magnitude of a numeric exponent.
 MAX_EXPONENT = 64
-
-_Builder = Callable[..., sx.Expr]
 
 #: The functions a spec may call, with their arity. All are smooth on the interior of
 #: their domain, which the method needs (f0 must be C-infinity).
@@ -165,68 +170,6 @@ def _power(base: sx.Expr, exponent: sx.Expr, column: int) -> sx.Expr:
     elif sx.SYMENGINE and base.is_Number and base == 0:
         return _zero_to_the(exponent)
     return _bounded(sx.Pow(base, exponent), column)
-
-
-def _zero_to_the(exponent: sx.Expr) -> sx.Expr:
-    """``0**exponent`` as SymPy has it (``zoo**x`` for ``0**(-x)``), on SymEngine.
-
-    SymPy asks the exponent's sign of its assumptions, which SymEngine has not: the one
-    expression no sane spec holds crosses the border, so that both engines refuse it.
-    """
-    from tvopt_codegen.symbolic.border import from_sympy, to_sympy  # noqa: PLC0415
-
-    zero = sx.ZERO
-    return from_sympy(to_sympy(zero) ** to_sympy(exponent))
-
-
-#: Where :func:`_is_zero` evaluates an expression: one value per symbol in name order,
-#: irrational-looking so that no spec's own constant sits there.
-_PROBE = (0.5772156649015329, 0.6180339887498949)
-
-
-def _is_zero(value: sx.Expr) -> bool:
-    """Whether ``value`` is zero as SymPy would have built it.
-
-    SymPy folds while it builds (``sqrt(8)`` is ``2*sqrt(2)``, ``exp(log(2))`` is 2), so
-    ``sqrt(8) - 2*sqrt(2)`` is 0 there, SymEngine keeps it: on SymEngine a value that is
-    nearly zero at a fixed point is rebuilt in SymPy (the border, for that one small
-    expression) and asked; anything else is not zero, as on SymPy.
-    """
-    if value == 0:
-        return True
-    if not sx.SYMENGINE:
-        return False
-    names = sorted(value.free_symbols, key=str)
-    point = {s: sx.real(_PROBE[0] + _PROBE[1] * k) for k, s in enumerate(names)}
-    try:
-        number = complex((value.subs(point) if point else value).n())
-    except (TypeError, ValueError, RuntimeError, ZeroDivisionError):
-        return False
-    if not cmath.isfinite(number) or abs(number) > 1e-9:
-        return False
-    from tvopt_codegen.symbolic.border import to_sympy  # noqa: PLC0415
-
-    return bool(to_sympy(value) == 0)
-
-
-def _distributed(value: sx.Expr) -> sx.Expr:
-    """A number times a sum as SymPy writes it, the number multiplying each term.
-
-    SymPy distributes ``2*(x + 1)``, ``-(x + 1)`` and ``(x + 1)/2`` when it builds them
-    (its canonical form); SymEngine keeps the product. The parser does it on SymEngine
-    too, so that what SymPy's form cancels (``2*(x + 1) - 2*x - 2`` is 0, and dividing
-    by it is refused) cancels on both. Only a product of exactly a rational and a sum,
-    as SymPy's rule.
-    """
-    if not sx.SYMENGINE or not value.is_Mul:
-        return value
-    args = value.args
-    if len(args) != 2:
-        return value
-    number, other = (args[0], args[1]) if args[0].is_Number else (args[1], args[0])
-    if not number.is_Rational or not other.is_Add:
-        return value
-    return sx.Add(*(number * term for term in other.args))
 
 
 def _bits(number: sx.Expr) -> int:
@@ -472,49 +415,6 @@ class _TreeBuilder:
         if result.has(sx.zoo, sx.nan, sx.oo, -sx.oo) or _at_a_pole(node.func.id, args):
             raise ExpressionError(column, f"{node.func.id}() is undefined for these arguments")
         return result
-
-
-def _at_a_pole(name: str, args: list[sx.Expr]) -> bool:
-    """Whether a function is infinite at these arguments where SymEngine does not say so.
-
-    SymPy evaluates ``atanh(1)`` to ``oo`` and ``atan(I)`` to ``I*oo`` (refused as
-    undefined); SymEngine keeps them unevaluated: asked here, on SymEngine only.
-    """
-    if not sx.SYMENGINE or name not in ("atanh", "atan"):
-        return False
-    poles = (sx.ONE, -sx.ONE) if name == "atanh" else (sx.I, -sx.I)
-    return args[0] in poles
-
-
-def _trig_of_pi_multiple(func: _Builder, arg: sx.Expr) -> sx.Expr | None:
-    """``func(arg)`` for sin, cos or tan of pi times a non-constant factor, as sympy gives it.
-
-    sympy's ``eval`` asks whether the factor of pi is an integer (for tan, twice) through
-    the assumptions system: 14 to 30 ms for a ring's barrier ``tan(pi*g/(2*d))``, most
-    of loading a team's spec. A spec's symbols are real and none of its functions is
-    integer-valued, so the answer is never yes, and ``eval`` then returns the function
-    unchanged after pulling out the argument's sign: done here without asking. None
-    where that does not apply (sympy evaluates as usual), and always on SymEngine, which
-    has no assumptions to ask.
-    """
-    if sx.SYMENGINE:
-        return None
-    # sin, cos and tan, with the sign each gives a negated argument.
-    sign = {sx.sin: -1, sx.cos: 1, sx.tan: -1}.get(func)
-    pi = sx.pi
-    if (
-        sign is None
-        or not arg.is_Mul
-        or pi not in arg.args
-        or not arg.free_symbols
-        or any(a.has(pi) for a in arg.args if a is not pi)
-        or arg.has(sx.I)
-        or any(s.is_integer is not None for s in arg.free_symbols)
-    ):
-        return None
-    if arg.could_extract_minus_sign():
-        return sign * func(-arg, evaluate=False)
-    return func(arg, evaluate=False)
 
 
 def _describe_forbidden(node: ast.AST) -> str:
