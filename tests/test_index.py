@@ -121,7 +121,8 @@ def test_operations_grow_linearly_with_the_agents() -> None:
 @pytest.mark.parametrize(
     ("old", "new", "field", "problem"),
     [
-        ("i = 4 ", "i = 0 ", "index.i", "1..256"),
+        ("i = 4 ", "i = 0 ", "index.i", "1..4096"),
+        ("i = 4 ", "i = 4097 ", "index.i", "1..4096"),
         ("i = 4 ", 'i = "N" ', "index.i", "whole number"),
         ('"x[i]" = "v[i]*cos(theta[i])"', '"x[j]" = "v[i]*cos(theta[i])"', "x[j]", "unknown index"),
         ('"x[i]" = "v[i]*cos(theta[i])"', '"x[i]" = "v[i]*cos(theta[i + 0.5])"', "x[i]", "integer"),

@@ -31,7 +31,9 @@ from tvopt_codegen.spec.parse import (
 )
 
 #: Most values one index may take.
-MAX_INDEX_COUNT = 256
+#: The derivation's budgets (--max-seconds, --max-size), not this bound, limit how large a
+#: team can be: on SymEngine a ring of 1,024 agents derives in seconds.
+MAX_INDEX_COUNT = 4096
 
 
 #: An indexed name in a key or a list: ``base[i]``.
