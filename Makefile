@@ -103,10 +103,12 @@ bench-embedded: $(READY)
 	$(PY) -m pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/bench_embedded.py --write benchmarks/EMBEDDED.md
 
-## bench-derive: cold generate per N = 1..256 of unicycle_ring: wall, stage shares, memory, ops, vs CasADi
+## bench-derive: cold generate per N = 1..256 of unicycle_ring: wall, stage shares, memory, ops, vs CasADi;
+##   ENGINE=symengine|sympy, SIZES=32,128,1024, ROUNDS=1 narrow it
 bench-derive: $(READY)
 	$(PY) -m pip install --quiet -e '.[bench]'
-	$(PY) benchmarks/bench_derive.py --write benchmarks/DERIVE.md
+	$(PY) benchmarks/bench_derive.py $(if $(ENGINE),--engine $(ENGINE)) $(if $(SIZES),--sizes $(SIZES)) \
+	  $(if $(ROUNDS),--rounds $(ROUNDS)) --write benchmarks/DERIVE.md
 
 ## bench-sweep: sweep throughput on unicycle_switch vs simulate per sample and CasADi's cvodes map
 bench-sweep: $(READY)
@@ -114,9 +116,11 @@ bench-sweep: $(READY)
 	$(PY) benchmarks/bench_sweep.py --write benchmarks/SWEEP.md
 
 ## bench-commands: cold generate, simulate and report of every bundled example (benchmarks/COMMANDS.md);
-##   BASELINE=REV measures that commit beside the checkout, run for run
+##   BASELINE=REV measures that commit beside the checkout, run for run; ENGINES=symengine,sympy
+##   runs the checkout on each engine in turn
 bench-commands: $(READY)
-	$(PY) benchmarks/bench_commands.py $(if $(BASELINE),--baseline $(BASELINE)) --write benchmarks/COMMANDS.md
+	$(PY) benchmarks/bench_commands.py $(if $(BASELINE),--baseline $(BASELINE)) \
+	  $(if $(ENGINES),--engines $(ENGINES)) --write benchmarks/COMMANDS.md
 
 ## bench-baseline: cold generate of rings of 32 and 128 agents and chain12, BASELINE=REV beside the checkout
 bench-baseline: $(READY)

@@ -12,6 +12,10 @@ with ``git archive``), each baseline run right after the current one, and the ta
 gives both and their ratio: this machine has slow phases of minutes in which every
 figure is up to twice as long, and a ratio of runs a few seconds apart cancels them.
 
+With ``--engines A,B`` the checkout runs on each symbolic engine in turn (``--engine``
+before the command), the first engine's figure first and the others' in parentheses
+with their ratio, measured alternately as a baseline is.
+
 With ``--write FILE`` the table is written as Markdown with the command that made it.
 """
 
@@ -42,8 +46,11 @@ EXAMPLES = (
     "unicycle_ring",
     "arm_on_line",
     "planar_arm3",
+    "drag_vehicle",
+    "ur5_tip",
 )
-TARGETS = {"generate": 0.7, "simulate": 1.5, "report": 1.0}
+#: Issue 49's targets (issue 33's, with report at 1.5 s).
+TARGETS = {"generate": 0.7, "simulate": 1.5, "report": 1.5}
 
 
 #: Runs the command line of the tree given first, not the installed one: the editable
@@ -78,10 +85,16 @@ def export(rev: str, folder: Path) -> Path:
     return folder
 
 
-def once(tree: Path, command: str, example: str) -> tuple[float, float]:
-    """One cold run of ``command`` on ``example`` with ``tree``'s package: (s, MB)."""
+#: A configuration: a package tree and the engine it runs on (None: the CLI's default).
+Setup = tuple[Path, str | None]
+
+
+def once(setup: Setup, command: str, example: str) -> tuple[float, float]:
+    """One cold run of ``command`` on ``example`` with a tree and engine: (s, MB)."""
+    tree, engine = setup
     with tempfile.TemporaryDirectory() as scratch:
-        argv = [sys.executable, "-c", _TREE, str(tree), command, example]
+        argv = [sys.executable, "-c", _TREE, str(tree)]
+        argv += ([] if engine is None else ["--engine", engine]) + [command, example]
         argv += ["--out", str(Path(scratch) / "out")]
         if command == "generate":
             argv.append("--quiet")
@@ -89,7 +102,7 @@ def once(tree: Path, command: str, example: str) -> tuple[float, float]:
     return run.wall, run.peak_mb
 
 
-def best(trees: list[Path], command: str, example: str, repeats: int) -> list[tuple[float, float]]:
+def best(trees: list[Setup], command: str, example: str, repeats: int) -> list[tuple[float, float]]:
     """Per tree, the best wall time (s) and its peak memory (MB) over ``repeats`` runs.
 
     The trees take turns, run after run, so that each figure's runs share the
@@ -108,12 +121,14 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="cold runs per figure (best)")
     parser.add_argument("--baseline", help="a commit to measure beside the checkout")
     parser.add_argument("--write", help="write the Markdown table here")
+    parser.add_argument("--engines", help="symbolic engines to run the checkout on, first first")
     args = parser.parse_args()
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    engines: list[str | None] = list(args.engines.split(",")) if args.engines else [None]
     with tempfile.TemporaryDirectory(prefix="baseline-") as tmp:
-        trees = [ROOT]
+        trees: list[Setup] = [(ROOT, engine) for engine in engines]
         if args.baseline:
-            trees.append(export(args.baseline, Path(tmp)))
+            trees.append((export(args.baseline, Path(tmp)), None))
         rows = []
         for example in EXAMPLES:
             cells = [best(trees, command, example, args.repeats) for command in TARGETS]
@@ -124,6 +139,12 @@ def main() -> None:
         for i, (command, target) in enumerate(TARGETS.items())
     }
     compared = ""
+    if args.engines:
+        first, *others = engines
+        compared += (
+            f" Each cell: this checkout on {first}, then on {', '.join(map(str, others))} in "
+            "parentheses (their runs alternating), each with the ratio first / other."
+        )
     if args.baseline:
         revision = subprocess.run(
             ["git", "-C", str(ROOT), "rev-parse", "--short", args.baseline],
@@ -146,6 +167,7 @@ def main() -> None:
         f"run at {started}. Produced by `make bench-commands` (`python "
         "benchmarks/bench_commands.py"
         + (f" --baseline {args.baseline}" if args.baseline else "")
+        + (f" --engines {args.engines}" if args.engines else "")
         + " --write benchmarks/COMMANDS.md`)."
         + compared,
         "",
@@ -157,13 +179,13 @@ def main() -> None:
         for cell in cells:
             (wall, peak), *before = cell
             text = f"{wall:.2f} s ({peak:.0f} MB)"
-            if before:
-                text += f" ({before[0][0]:.2f} s) {wall / before[0][0]:.2f}x"
+            for other, _ in before:
+                text += f" ({other:.2f} s) {wall / other:.2f}x"
             texts.append(text)
         lines.append(f"| {example} | " + " | ".join(texts) + " |")
     lines += [
         "",
-        "Targets (issue 33), examples within them: "
+        "Targets (issue 49), examples within them: "
         + "; ".join(
             f"`{command}` at most {target:g} s: {met[command]} of {len(rows)}"
             for command, target in TARGETS.items()

@@ -34,6 +34,7 @@ with ``--write FILE``, stores it with the command, the machine and the date.
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import json
 import math
 import os
@@ -139,12 +140,18 @@ def casadi(agents: int) -> tuple[float, int]:
     return seconds, int(law.n_instructions())
 
 
+#: The symbolic engine our processes derive on (``--engine``; the CLI's default if None).
+ENGINE: list[str | None] = [None]
+
+
 def generate_cold(spec: Path, out: Path, timeout: float) -> dict[str, float]:
     """One cold ``tvopt-codegen generate`` of ``spec``: wall, stages, memory, operations."""
+    engine = [] if ENGINE[0] is None else ["--engine", ENGINE[0]]
     command = [
         sys.executable,
         "-m",
         "tvopt_codegen",
+        *engine,
         "generate",
         str(spec),
         "--out",
@@ -286,7 +293,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timeout", type=float, default=900.0, help="s per cold process")
     parser.add_argument("--rounds", type=int, default=ROUNDS, help="sweeps (odd)")
     parser.add_argument("--write", type=Path, help="also store the table in this file")
+    parser.add_argument(
+        "--engine", choices=("sympy", "symengine"), help="our symbolic engine (default: the CLI's)"
+    )
     args = parser.parse_args(argv)
+    ENGINE[0] = args.engine
     sizes = [int(s) for s in args.sizes.split(",")]
     if args.rounds < 1 or args.rounds % 2 == 0:
         parser.error("--rounds must be odd (each figure is a median)")
@@ -326,7 +337,11 @@ def main(argv: list[str] | None = None) -> int:
         machine = (
             f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
         )
-        versions = f"sympy {sp.__version__}, casadi {ca.__version__}"
+        engine = args.engine or "the command line's default"
+        versions = (
+            f"ours on {engine} (sympy {sp.__version__}, symengine "
+            f"{importlib.metadata.version('symengine')}), casadi {ca.__version__}"
+        )
         args.write.write_text(
             "# Derivation scaling: unicycle_ring, N agents, cold processes\n\n"
             f"Command: `{command}`  \nMachine: {machine}; {versions}  \n"
@@ -338,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
             "unrecorded run that warms the file cache; the range is the rounds' fastest "
             "and slowest. The stages' shares of its wall time "
             "come from `--timings` (start-up: the interpreter and the command line's "
-            "imports; load: the spec, with sympy's "
+            "imports; load: the spec, with the engine's "
             "import; derive; lower: kernels and CSE; render; write). Peak memory is the "
             "process's maximum resident set. CasADi: the same law built directly in SX "
             "(relative degree, Lie derivatives, gradient jet, solves, Function), in a cold "
