@@ -101,12 +101,20 @@ class Sampler:
         if expr == 0:
             return True
         if not _expression(expr).free_symbols:
+            # A constant clearly away from zero is not zero: no need of SymPy's simplify
+            # (whose import alone is most of a small SymEngine run).
+            if _expression(expr).is_Number or abs(complex(_expression(expr))) > _CLEARLY_NONZERO:
+                return False
             return _simplifies_to_zero(expr)
         values = self.evaluate(expr)
         finite = values[np.isfinite(values)]
         if len(finite) < 3:
             return _simplifies_to_zero(expr)
         return bool(np.all(np.abs(finite) <= tol))
+
+
+#: A constant whose value is farther than this from zero is nonzero whatever the rounding.
+_CLEARLY_NONZERO = 1e-6
 
 
 def _expression(value: sx.Expr) -> sx.Expr:
