@@ -9,12 +9,15 @@ import itertools
 from collections.abc import Mapping, Sequence
 
 from tvopt_codegen import symbolic as sx
+from tvopt_codegen.cse.dag import Dag
 from tvopt_codegen.cse.numbering import (
     SMALL_PROGRAM_OPS,
     _inline_single_use,
     _number,
+    _number_dag,
     _prune,
     _reduce,
+    _reduce_dag,
     numbered,
     ordered_cse,
 )
@@ -70,8 +73,12 @@ def _package(
     body: Sequence[Assignment],
     reduced: Sequence[sx.Expr],
     before: int,
+    ops: int | None = None,
 ) -> Kernel:
-    """The kernel of a CSE'd program, its outputs cut to their shapes; checks its symbols."""
+    """The kernel of a CSE'd program, its outputs cut to their shapes; checks its symbols.
+
+    ``ops`` is its operation count when the caller has it (:meth:`.Dag.operations`).
+    """
     packed: list[Output] = []
     start = 0
     for out_name, shape, exprs, out_doc in outputs:
@@ -88,7 +95,7 @@ def _package(
         tuple(inputs),
         tuple(body),
         tuple(packed),
-        operation_count([v for _, v in body] + list(reduced)),
+        operation_count([v for _, v in body] + list(reduced)) if ops is None else ops,
         before,
     )
 
@@ -138,6 +145,17 @@ def make_kernel(
     """
     exprs, where = _symbolic(outputs)
     program, flat = _prepare(assignments, exprs, subs, odd, symbols)
+    if sx.SYMENGINE:
+        dag = Dag()
+        ids = [(dag.intern(sym), dag.intern(value)) for sym, value in program]
+        outs = [dag.intern(_expr(e)) for e in flat]
+        before = dag.operations([v for _, v in dag.needed(ids, outs)] + outs)
+        order, outs = _reduce_dag(dag, ids, outs, search)
+        body, reduced = _number_dag(dag, order, outs)
+        ops = dag.operations([v for _, v in order] + outs)
+        return _package(
+            name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before, ops
+        )
     before = operation_count([v for _, v in program] + flat)
     body, reduced = ordered_cse(program, flat, search)
     return _package(name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before)
@@ -170,6 +188,8 @@ def make_kernels(
         assignments, [e for exprs, _ in symbolic for e in exprs], subs, odd, symbols
     )
     ends = list(itertools.accumulate(sizes))
+    if sx.SYMENGINE:
+        return _make_kernels_dag(kernels, program, flat, sizes, ends, [w for _, w in symbolic])
     parts = [flat[end - size : end] for size, end in zip(sizes, ends, strict=True)]
     counts: dict[sx.Expr, int] = {}
     programs = [_prune(program, part, symbols) for part in parts]
@@ -199,6 +219,58 @@ def make_kernels(
         body, reduced = _number(*_inline_single_use(_prune(order, mine, symbols), mine))
         made.append(
             _package(name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before)
+        )
+    return made
+
+
+def _make_kernels_dag(
+    kernels: Sequence[tuple[str, str, Sequence[Arg], Outputs]],
+    program: Sequence[Assignment],
+    flat: Sequence[sx.Expr],
+    sizes: Sequence[int],
+    ends: Sequence[int],
+    wheres: Sequence[Sequence[int]],
+) -> list[Kernel]:
+    """:func:`make_kernels` on SymEngine, its program read once into a :class:`.Dag`.
+
+    The same steps, on the DAG's integer ids; expressions are built for what the
+    kernels hold, and where inlining collects terms.
+    """
+    dag = Dag()
+    ids = [(dag.intern(sym), dag.intern(value)) for sym, value in program]
+    outs = [dag.intern(_expr(e)) for e in flat]
+    parts = [outs[end - size : end] for size, end in zip(sizes, ends, strict=True)]
+    programs = [dag.needed(ids, part) for part in parts]
+    befores = [
+        dag.operations([v for _, v in mine] + part)
+        for mine, part in zip(programs, parts, strict=True)
+    ]
+    made = []
+    if len(kernels) < 2 or min(befores) <= SMALL_PROGRAM_OPS:
+        for (name, doc, inputs, outputs), mine, part, where, before in zip(
+            kernels, programs, parts, wheres, befores, strict=True
+        ):
+            order, reduced_ids = _reduce_dag(dag, mine, part, True)
+            body, reduced = _number_dag(dag, order, reduced_ids)
+            ops = dag.operations([v for _, v in order] + reduced_ids)
+            made.append(
+                _package(
+                    name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before, ops
+                )
+            )
+        return made
+    whole, whole_outs = _reduce_dag(dag, ids, outs, False)
+    for (name, doc, inputs, outputs), size, end, where, before in zip(
+        kernels, sizes, ends, wheres, befores, strict=True
+    ):
+        mine_outs = whole_outs[end - size : end]
+        order, reduced_ids = dag.inline_single_use(dag.needed(whole, mine_outs), mine_outs)
+        body, reduced = _number_dag(dag, order, reduced_ids)
+        ops = dag.operations([v for _, v in order] + reduced_ids)
+        made.append(
+            _package(
+                name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before, ops
+            )
         )
     return made
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator, Sequence
 
 from tvopt_codegen import symbolic as sx
+from tvopt_codegen.cse.dag import Dag, Program
 from tvopt_codegen.cse.rewrite import (
     _NEGATED_TERMS,
     _expr,
@@ -122,7 +123,61 @@ def ordered_cse(
     outputs : tuple of expressions
         The reduced outputs.
     """
+    if sx.SYMENGINE:
+        dag = Dag()
+        program = [(dag.intern(sym), dag.intern(_expr(value))) for sym, value in assignments]
+        order, outs = _reduce_dag(dag, program, [dag.intern(_expr(e)) for e in outputs], search)
+        return _number_dag(dag, order, outs)
     return _number(*_reduce(assignments, outputs, search))
+
+
+def _reduce_dag(
+    dag: Dag, program: Program, outputs: Sequence[int], search: bool
+) -> tuple[Program, list[int]]:
+    """:func:`_reduce` on SymEngine, over the ids of ``dag``: the same steps, on ints."""
+    kept, outs = dag.drop_aliases(dag.needed(program, outputs), outputs)
+    exprs = [value for _, value in kept] + outs
+    names = numbered("_cse")
+    if search and dag.operations(exprs) <= SMALL_PROGRAM_OPS:
+        found, cut = sx.cse([dag.expression(e) for e in exprs], names)
+        replacements = [(dag.intern(sym), dag.intern(value)) for sym, value in found]
+        reduced = [dag.intern(e) for e in cut]
+    else:
+        replacements, reduced = dag.value_numbering(exprs, names)
+    defined = dict(replacements)
+    order: Program = []
+    emitted: set[int] = set()
+
+    def need(expr: int) -> None:
+        missing = [s for s in dag.leaves(expr, defined) if s not in emitted]
+        for sym in sorted(missing, key=lambda s: _cse_index(dag.expr[s])):
+            need(defined[sym])
+            if sym not in emitted:
+                emitted.add(sym)
+                order.append((sym, defined[sym]))
+
+    for (sym, _), value in zip(kept, reduced[: len(kept)], strict=True):
+        need(value)
+        order.append((sym, value))
+    for value in reduced[len(kept) :]:
+        need(value)
+    release(need)
+    outs = list(reduced[len(kept) :])
+    while True:
+        order, outs = dag.merge_equal(order, outs)
+        size = len(order)
+        order, outs = dag.inline_single_use(order, outs)
+        if len(order) == size:
+            break
+    return order, outs
+
+
+def _number_dag(
+    dag: Dag, order: Program, outs: Sequence[int]
+) -> tuple[tuple[Assignment, ...], tuple[sx.Expr, ...]]:
+    """:func:`_number` of a program on ids: its expressions, temporaries renamed."""
+    expr = dag.expression
+    return _number([(expr(s), expr(v)) for s, v in order], [expr(e) for e in outs])
 
 
 def _reduce(

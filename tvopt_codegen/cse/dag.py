@@ -1,0 +1,460 @@
+"""The CSE on SymEngine over a hash-consed DAG of integer node ids (issue 49).
+
+On SymEngine every ``.args`` builds new Python objects, and a dictionary hit between
+two distinct but equal expressions compares their trees in C++: the Python walks of
+:mod:`tvopt_codegen.cse.numbering` cost microseconds a node. Here a program is read
+once into a :class:`Dag`, where a node is an integer and equal subtrees share one id
+(keyed on the node's kind and its children's ids, cheap tuples of ints). Pruning,
+alias dropping, value numbering, merging, single-use counting and operation counts
+then work on ints. The engine is called only where a node's children change: the
+node is rebuilt by its constructor (:func:`~tvopt_codegen.cse.rewrite._rebuild`), so
+terms collect and cancel as they do in the expression walks, and the result is read
+back into the table. The passes are those of :mod:`~tvopt_codegen.cse.numbering`,
+step for step: the same kernels, in less time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+from tvopt_codegen import symbolic as sx
+from tvopt_codegen.cse.rewrite import _NEGATED_TERMS, _rebuild_symengine
+
+#: A program on ids: (symbol's id, value's id) in evaluation order.
+Program = list[tuple[int, int]]
+
+# A node's kind, for the passes' tests (is it a sum, a product, a number?).
+_SYMBOL, _NUMBER, _ADD, _MUL, _POW, _OTHER = range(6)
+
+
+class Dag:
+    """Expressions of one engine as integer ids, equal subtrees one id.
+
+    ``expr[i]`` is an expression of node ``i`` (None until asked for, for a node made
+    by a rename: :meth:`expression`), ``args[i]`` its children's ids (empty for a
+    leaf), ``kind[i]`` one of the kinds above. For numbers, ``cost[i]`` is what the
+    number costs alone (a negative or a fraction: one operation).
+    """
+
+    def __init__(self) -> None:
+        self.expr: list[sx.Expr | None] = []
+        self.args: list[tuple[int, ...]] = []
+        self.kind: list[int] = []
+        self.cost: list[int] = []
+        # An expression object -> its id: SymEngine's == compares pointers first, so a
+        # hit on an object of the table's own nodes (a rebuilt node's children) is cheap.
+        self._ids: dict[sx.Expr, int] = {}
+        # A compound node's (class, name, children) -> its id; sums' and products'
+        # children sorted, as SymEngine may order equal ones' terms apart.
+        self._keys: dict[tuple[Any, ...], int] = {}
+        # A node's class, its key's head (class, and a function's name), and the node
+        # whose constructor builds it (itself, unless made by a rename: :meth:`rebuild`).
+        self._class: list[Any] = []
+        self._head: list[tuple[Any, ...]] = []
+        self._template: list[int] = []
+        self.minus_one = self.intern(sx.Integer(-1))
+        self._below: dict[int, int] = {}
+
+    def intern(self, expr: sx.Expr) -> int:
+        """The id of ``expr``, its new nodes added."""
+        found = self._ids.get(expr)
+        if found is not None:
+            return found
+        args = expr.args
+        if not args:
+            key: tuple[Any, ...] = (expr,)
+            i = self._keys.get(key)
+            if i is None:
+                i = self._add(key, expr, ())
+        else:
+            children = tuple([self.intern(arg) for arg in args])
+            if expr.is_Add or expr.is_Mul:
+                head: tuple[Any, ...] = (type(expr),)
+                key = (type(expr), *sorted(children))
+            else:
+                # An undefined function's class is not its name.
+                head = (type(expr), sx.function_name(expr)) if expr.is_Function else (type(expr),)
+                key = (*head, *children)
+            i = self._keys.get(key)
+            if i is None:
+                i = self._add(key, expr, children)
+                self._head[i] = head
+        self._ids[expr] = i
+        return i
+
+    def _add(self, key: tuple[Any, ...], expr: sx.Expr, children: tuple[int, ...]) -> int:
+        i = len(self.expr)
+        self._keys[key] = i
+        self.expr.append(expr)
+        self.args.append(children)
+        cost = 0
+        if children:
+            kind = _ADD if expr.is_Add else _MUL if expr.is_Mul else _POW if expr.is_Pow else _OTHER
+        elif expr.is_Number:
+            kind = _NUMBER
+            negative = expr.is_negative is True
+            cost = int(negative) + int(bool(expr.is_Rational and not expr.is_Integer))
+        else:
+            kind = _SYMBOL if expr.is_Symbol else _OTHER
+        self.kind.append(kind)
+        self.cost.append(cost)
+        self._template.append(i)
+        self._class.append(type(expr))
+        self._head.append(())
+        return i
+
+    def rebuild(self, i: int, children: tuple[int, ...]) -> int:
+        """Node ``i`` with ``children``, by its engine's constructor (terms collect).
+
+        Where the constructor would find nothing to do (:meth:`_renamed`) the node is
+        made on ids alone, its expression built when it is asked for (:meth:`expression`).
+        """
+        if self._renamed(i, children):
+            kind = self.kind[i]
+            if kind in (_ADD, _MUL):
+                key: tuple[Any, ...] = (self._class[i], *sorted(children))
+            else:
+                key = (*self._head[i], *children)
+            found = self._keys.get(key)
+            if found is not None:
+                return found
+            j = len(self.expr)
+            self._keys[key] = j
+            self.expr.append(None)
+            self.args.append(children)
+            self.kind.append(kind)
+            self.cost.append(0)
+            self._template.append(self._template[i])
+            self._class.append(self._class[i])
+            self._head.append(self._head[i])
+            return j
+        expression = self.expression
+        built = _rebuild_symengine(expression(i), [expression(c) for c in children])
+        return self.intern(built)
+
+    def expression(self, i: int) -> sx.Expr:
+        """The expression of node ``i``, built from its children's if it has none yet."""
+        built = self.expr[i]
+        if built is None:
+            expression = self.expression
+            template = self.expr[self._template[i]]
+            built = _rebuild_symengine(template, [expression(c) for c in self.args[i]])
+            self.expr[i] = built
+            self._ids[built] = i
+        return built
+
+    def _renamed(self, i: int, children: tuple[int, ...]) -> bool:
+        """Whether node ``i`` with ``children`` is what its constructor would build.
+
+        So when each changed child is a symbol (a rename) that equals no other child,
+        nor in a sum another term's symbol (``2*s + s``), nor in a product another
+        factor's base (``s*s**2``): a function of distinct symbols does not evaluate.
+        """
+        kind, args, old = self.kind, self.args, self.args[i]
+        changed = [c for c, o in zip(children, old, strict=True) if c != o]
+        if any(kind[c] != _SYMBOL for c in changed) or len(set(children)) < len(children):
+            return False
+        k = kind[i]
+        if k == _ADD:
+            taken = {
+                args[c][1]
+                for c in children
+                if kind[c] == _MUL and len(args[c]) == 2 and kind[args[c][0]] == _NUMBER
+            }
+        elif k == _MUL:
+            taken = {args[c][0] for c in children if kind[c] == _POW}
+        else:
+            return k == _POW or bool(self.expression(self._template[i]).is_Function)
+        return not any(c in taken for c in changed)
+
+    def negated_atom(self, i: int) -> bool:
+        """Whether node ``i`` is ``-x`` for a leaf ``x`` (printing it costs nothing)."""
+        args = self.args[i]
+        return (
+            self.kind[i] == _MUL
+            and len(args) == 2
+            and args[0] == self.minus_one
+            and not self.args[args[1]]
+        )
+
+    def _find(self, key: tuple[Any, ...]) -> int | None:
+        """The sum or product ``key`` (its class, its children's ids), if it is a node."""
+        kind, *children = key
+        return self._keys.get((kind, *sorted(children)))
+
+    def negation(self, i: int) -> int | None:
+        """The node ``-i`` as :func:`~.rewrite._negate` writes it, None if there is none.
+
+        Read off the table, without building: SymEngine's ``-`` of a product negates its
+        coefficient, and :func:`~.rewrite._negate` of a sum negates its terms. A sum
+        whose negated terms are not all nodes already cannot be one itself: a value
+        that no earlier node equals cannot equal an earlier value (:meth:`merge_equal`).
+        """
+        if self.kind[i] == _ADD:
+            terms = []
+            for term in self.args[i]:
+                negated = self._negated_term(term)
+                if negated is None:
+                    return None
+                terms.append(negated)
+            return self._find((sx.Add, *terms))
+        return self._negated_term(i)
+
+    def _negated_term(self, i: int) -> int | None:
+        """``-i`` for a node that is not a sum (SymEngine keeps ``-(a + b)`` a product)."""
+        kind, args = self.kind[i], self.args[i]
+        if kind == _NUMBER:
+            return self.intern(-self.expression(i))
+        if kind == _MUL and self.kind[args[0]] == _NUMBER:
+            coefficient = self.intern(-self.expression(args[0]))
+            if self.expression(coefficient) == 1:
+                rest = args[1:]
+                return rest[0] if len(rest) == 1 else self._find((sx.Mul, *rest))
+            return self._find((sx.Mul, coefficient, *args[1:]))
+        if kind == _MUL:
+            return self._find((sx.Mul, self.minus_one, *args))
+        return self._find((sx.Mul, self.minus_one, i))
+
+    def trivial(self, i: int) -> bool:
+        """A leaf or a negated one: not worth a temporary."""
+        return not self.args[i] or self.negated_atom(i)
+
+    def substitute(self, i: int, mapping: dict[int, int], memo: dict[int, int]) -> int:
+        """Node ``i`` with ``mapping`` applied, as :func:`~.rewrite._substitute` does."""
+        args = self.args
+
+        def visit(node: int) -> int:
+            target = mapping.get(node)
+            if target is not None:
+                return target
+            own = args[node]
+            if not own:
+                return node
+            done = memo.get(node)
+            if done is not None:
+                return done
+            new = tuple([visit(c) for c in own])
+            done = node if new == own else self.rebuild(node, new)
+            memo[node] = done
+            return done
+
+        return visit(i)
+
+    def operations(self, roots: Iterable[int]) -> int:
+        """:func:`~.rewrite.operation_count` of the nodes ``roots`` (memoised per DAG)."""
+        args, kind, cost = self.args, self.kind, self.cost
+        below = self._below
+        minus_one = self.minus_one
+
+        def own(node: int, parent: int) -> int:
+            k = kind[node]
+            if k == _NUMBER:
+                return 0 if parent == _MUL else cost[node]
+            a = args[node]
+            if not a:
+                return 0
+            if k == _ADD:
+                return len(a) - 1
+            if k == _MUL:
+                first = a[0]
+                negated = parent == _ADD and first == minus_one
+                return len(a) - 1 - int(negated)
+            if k == _POW and a[1] == minus_one:
+                return 0 if parent == _MUL else 1
+            return 1
+
+        def count(node: int) -> int:
+            total = below.get(node)
+            if total is None:
+                k = kind[node]
+                parent = k if k in (_ADD, _MUL) else _OTHER
+                total = 0
+                for arg in args[node]:
+                    if args[arg]:
+                        total += own(arg, parent) + count(arg)
+                    elif kind[arg] == _NUMBER:
+                        total += own(arg, parent)
+                below[node] = total
+            return total
+
+        return sum(own(r, _OTHER) + count(r) for r in roots)
+
+    def needed(self, program: Program, outputs: Sequence[int]) -> Program:
+        """:func:`~.numbering._prune` on ids: the assignments the outputs need."""
+        args = self.args
+        seen: set[int] = set()
+
+        def mark(root: int) -> None:
+            stack = [root]
+            while stack:
+                node = stack.pop()
+                if node in seen:
+                    continue
+                seen.add(node)
+                stack.extend(args[node])
+
+        for out in outputs:
+            mark(out)
+        kept: Program = []
+        for sym, value in reversed(program):
+            if sym in seen:
+                kept.append((sym, value))
+                mark(value)
+        return kept[::-1]
+
+    def drop_aliases(self, program: Program, outputs: Sequence[int]) -> tuple[Program, list[int]]:
+        """:func:`~.numbering._drop_aliases` on ids."""
+        alias: dict[int, int] = {}
+        memo: dict[int, int] = {}
+        kept: Program = []
+        for sym, raw in program:
+            value = self.substitute(raw, alias, memo)
+            if self.trivial(value):
+                alias[sym] = value
+            else:
+                kept.append((sym, value))
+        return kept, [self.substitute(e, alias, memo) for e in outputs]
+
+    def value_numbering(
+        self, exprs: Sequence[int], names: Iterable[sx.Expr]
+    ) -> tuple[Program, list[int]]:
+        """:func:`~.numbering._value_numbering` on ids: repeated compound nodes named."""
+        args = self.args
+        names = iter(names)
+        seen: set[int] = set()
+        repeated: set[int] = set()
+        for expr in exprs:
+            stack = [expr]
+            while stack:
+                node = stack.pop()
+                if self.trivial(node):
+                    continue
+                if node in seen:
+                    repeated.add(node)
+                    continue
+                seen.add(node)
+                stack.extend(args[node])
+        replacements: Program = []
+        built: dict[int, int] = {}
+
+        def build(node: int) -> int:
+            own = args[node]
+            if not own:
+                return node
+            done = built.get(node)
+            if done is not None:
+                return done
+            new = tuple([build(c) for c in own])
+            done = node if new == own else self.rebuild(node, new)
+            if node in repeated:
+                sym = self.intern(next(names))
+                replacements.append((sym, done))
+                done = sym
+            built[node] = done
+            return done
+
+        return replacements, [build(e) for e in exprs]
+
+    def leaves(self, root: int, wanted: dict[int, int]) -> list[int]:
+        """The leaves of ``root`` that are keys of ``wanted``, each once."""
+        args = self.args
+        seen: set[int] = set()
+        found: list[int] = []
+        stack = [root]
+        while stack:
+            node = stack.pop()
+            if node in seen:
+                continue
+            seen.add(node)
+            own = args[node]
+            if own:
+                stack.extend(own)
+            elif node in wanted:
+                found.append(node)
+        return found
+
+    def merge_equal(self, order: Program, outputs: list[int]) -> tuple[Program, list[int]]:
+        """:func:`~.numbering._merge_equal` on ids."""
+        first: dict[int, int] = {}
+        rename: dict[int, int] = {}
+        memo: dict[int, int] = {}
+        kept: Program = []
+        for sym, raw in order:
+            value = self.substitute(raw, rename, memo)
+            if self.trivial(value):
+                rename[sym] = value
+                continue
+            same = first.get(value)
+            if same is not None:
+                rename[sym] = same
+                continue
+            if not (self.kind[value] == _ADD and len(self.args[value]) > _NEGATED_TERMS):
+                opposite = self.negation(value)
+                negated = None if opposite is None else first.get(opposite)
+                if negated is not None:
+                    rename[sym] = self.intern(-self.expression(negated))
+                    continue
+            first[value] = sym
+            kept.append((sym, value))
+        return kept, [self.substitute(e, rename, memo) for e in outputs]
+
+    def occurrences(self, root: int, position: dict[int, int]) -> dict[int, int]:
+        """:func:`~.numbering._occurrences` on ids: each temporary's uses in ``root``."""
+        args = self.args
+        found: dict[int, int] = {}
+        stack = [root]
+        while stack:
+            node = stack.pop()
+            own = args[node]
+            if own:
+                stack.extend(own)
+            else:
+                i = position.get(node)
+                if i is not None:
+                    found[i] = found.get(i, 0) + 1
+        return found
+
+    def inline_single_use(self, order: Program, outputs: list[int]) -> tuple[Program, list[int]]:
+        """:func:`~.numbering._inline_single_use` on ids."""
+        n = len(order)
+        values = [value for _, value in order] + list(outputs)
+        position = {sym: i for i, (sym, _) in enumerate(order)}
+        counts = [self.occurrences(value, position) for value in values]
+        uses = [0] * n
+        holders: list[set[int]] = [set() for _ in range(n)]
+        for i, count in enumerate(counts):
+            for j, times in count.items():
+                uses[j] += times
+                holders[j].add(i)
+        gone: set[int] = set()
+        wave = {i for i in range(n) if uses[i] <= 1}
+        while wave:
+            inline: dict[int, int] = {}
+            memo: dict[int, int] = {}
+            users: set[int] = set()
+            changed: set[int] = set()
+            for i in sorted(wave):
+                inline[order[i][0]] = self.substitute(values[i], inline, memo)
+                users |= holders[i]
+                gone.add(i)
+                changed |= counts[i].keys()
+                for j, times in counts[i].items():
+                    uses[j] -= times
+                    holders[j].discard(i)
+            for user in sorted(users - gone):
+                before = counts[user]
+                values[user] = self.substitute(values[user], inline, memo)
+                after = counts[user] = self.occurrences(values[user], position)
+                for j in before.keys() | after.keys():
+                    was, now = before.get(j, 0), after.get(j, 0)
+                    if was != now:
+                        uses[j] += now - was
+                        changed.add(j)
+                    if not now:
+                        holders[j].discard(user)
+                    elif not was:
+                        holders[j].add(user)
+            wave = {j for j in changed if j not in gone and uses[j] <= 1}
+        kept = [(order[i][0], values[i]) for i in range(n) if i not in gone]
+        return kept, values[n:]
