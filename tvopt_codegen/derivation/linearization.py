@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tvopt_codegen import symbolic as sx
-from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter, tree_size
+from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter
 from tvopt_codegen.derivation.model import Model, Settings, start_evaluator
 from tvopt_codegen.derivation.rejection import state_names
 from tvopt_codegen.derivation.singularity import _singular_set, _undefined_set, simplified_det
@@ -481,10 +481,10 @@ def _decoupling(
     if m > 4:
         det_R_note = f"not expanded symbolically (m = {m} > 4)"
     else:
-        det = linalg.det(R)
-        meter(det)
         # Simplifying is exact but can be slow on large entries: only small ones.
-        if tree_size(det, _DET_SIMPLIFY_NODES) <= _DET_SIMPLIFY_NODES:
+        det, small = linalg.sized_det(R, _DET_SIMPLIFY_NODES)
+        meter(det)
+        if small:
             det_R = simplified_det(det)
             # Charge the simplification's time to this stage, not to the next one.
             meter.check_time()

@@ -17,6 +17,7 @@ does so that the generated files quote the same text on either engine.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from fractions import Fraction
 from typing import Any
 
 from tvopt_codegen import symbolic as sx
@@ -59,8 +60,14 @@ def simplified_det(det: sx.Expr) -> sx.Expr:
     how short it prints can then depend on the machine's speed.
 
     A border stage: ``det`` (an expression of the engine, small: the caller bounds its
-    size) is simplified in SymPy and its factored form converted back.
+    size) is simplified in SymPy and its factored form converted back. On SymEngine, a
+    determinant that is a number times powers of symbols, sines and cosines is found
+    without SymPy (:func:`_monomial`), as SymPy finds it.
     """
+    if sx.SYMENGINE:
+        found = _monomial(det)
+        if found is not None:
+            return _monomial_expr(*found)
     sp, circular = _sympy(), _circular()
     det = to_sympy(det)
     reduced = sp.cancel(det)
@@ -101,8 +108,13 @@ def _singular_set(det: sx.Expr) -> tuple[str, ...]:
     A factor that vanishes nowhere over the reals (``vx**2 + vy**2 + 1``) is no place at
     all, and is left out: with every factor so, R is never singular. A border stage:
     ``det`` (small, simplified) is factored in SymPy, and the conditions are written as
-    SymPy writes them, the same text on either engine.
+    SymPy writes them, the same text on either engine (on SymEngine, a monomial's
+    without SymPy: :func:`_monomial_conditions`).
     """
+    if sx.SYMENGINE:
+        found = _monomial(det, expand_angles=False)
+        if found is not None:
+            return _monomial_conditions(*found)
     sp = _sympy()
     numerator, _ = sp.fraction(sp.together(to_sympy(det)))
     if numerator.is_Number:
@@ -235,7 +247,9 @@ def undefined_causes(exprs: Sequence[sx.Expr], states: set[sx.Expr]) -> tuple[tu
         found: list[tuple[str, str, sx.Expr, tuple[str, ...]]] = []
         name = sx.function_name(node) if node.is_Function else ""
         if node.is_Pow and node.exp.is_Number and node.base.free_symbols & states:
-            base = _condition_text(node.base, memo)
+            # Written only for a condition: a square's base needs no text (nor SymPy).
+            if node.exp.is_negative or not node.exp.is_Integer:
+                base = _condition_text(node.base, memo)
             if node.exp.is_negative:
                 found.append((f"{base} = 0", "a denominator vanishes", node.base, _NONZERO))
             if not node.exp.is_Integer:
@@ -275,3 +289,206 @@ def _condition_text(expr: sx.Expr, memo: dict[Any, Any]) -> str:
 _NONZERO = ("positive", "negative")
 _NONNEGATIVE = ("positive", "nonnegative")
 _POSITIVE = ("positive",)
+
+
+# det R without SymPy (SymEngine): a determinant is a Laurent polynomial in its atoms
+# (symbols, and the sine and cosine of each angle a sum of angles expands to), reduced
+# by sin^2 + cos^2 = 1; when that leaves one term, the term is det R in lowest terms and
+# its atoms in the numerator are the singular set. A monomial is stored as
+# ((atom, exponent), ...) by atom number, a polynomial as {monomial: coefficient}.
+_Monomial = tuple[tuple[int, int], ...]
+_Poly = dict[_Monomial, Fraction]
+
+
+class _Atoms:
+    """The atoms of one determinant: symbols, ``sin(s)`` and ``cos(s)`` of a symbol ``s``."""
+
+    def __init__(self) -> None:
+        self.exprs: list[Any] = []
+        self.kinds: list[tuple[str, str]] = []  # ("", name), ("sin", name), ("cos", name)
+        self._index: dict[tuple[str, str], int] = {}
+
+    def index(self, kind: str, symbol: Any) -> int:
+        key = (kind, str(symbol))
+        found = self._index.get(key)
+        if found is None:
+            found = self._index[key] = len(self.exprs)
+            self.exprs.append(symbol if not kind else getattr(sx, kind)(symbol))
+            self.kinds.append(key)
+        return found
+
+    def variable(self, kind: str, symbol: Any) -> _Poly:
+        return {((self.index(kind, symbol), 1),): Fraction(1)}
+
+
+def _times(a: _Monomial, b: _Monomial) -> _Monomial:
+    powers = dict(a)
+    for atom, k in b:
+        powers[atom] = powers.get(atom, 0) + k
+    return tuple(sorted((atom, k) for atom, k in powers.items() if k))
+
+
+def _product(p: _Poly, q: _Poly) -> _Poly:
+    out: _Poly = {}
+    for a, x in p.items():
+        for b, y in q.items():
+            key = _times(a, b)
+            out[key] = out.get(key, Fraction(0)) + x * y
+    return {key: c for key, c in out.items() if c}
+
+
+def _sum(p: _Poly, q: _Poly, sign: int = 1) -> _Poly:
+    out = dict(p)
+    for key, c in q.items():
+        out[key] = out.get(key, Fraction(0)) + sign * c
+    return {key: c for key, c in out.items() if c}
+
+
+#: Most terms a polynomial may reach on the way (beyond, SymPy decides).
+_MONOMIAL_TERMS = 400
+
+
+def _laurent(node: Any, atoms: _Atoms, angles: bool, memo: dict[Any, _Poly | None]) -> _Poly | None:
+    """``node`` as a Laurent polynomial in its atoms, or None where it is not one."""
+    if node in memo:
+        return memo[node]
+    out: _Poly | None = None
+    if node.is_Rational:
+        numerator, denominator = node.as_numer_denom()
+        value = Fraction(int(numerator), int(denominator))
+        out = {(): value} if value else {}
+    elif node.is_Symbol:
+        out = atoms.variable("", node)
+    elif node.is_Add or node.is_Mul:
+        out = {} if node.is_Add else {(): Fraction(1)}
+        for arg in node.args:
+            part = _laurent(arg, atoms, angles, memo)
+            if part is None or len(out) > _MONOMIAL_TERMS:
+                out = None
+                break
+            out = _sum(out, part) if node.is_Add else _product(out, part)
+    elif node.is_Pow and node.args[1].is_Integer:
+        base = _laurent(node.args[0], atoms, angles, memo)
+        k = int(node.args[1])
+        if base is not None and k < 0 and len(base) == 1:
+            ((monomial, c),) = base.items()
+            base, k = {tuple((a, -e) for a, e in monomial): 1 / c}, -k
+        if base is not None and k >= 0:
+            out = {(): Fraction(1)}
+            for _ in range(k):
+                out = _product(out, base)
+    elif node.is_Function and sx.function_name(node) in ("sin", "cos"):
+        out = _circular_of(sx.function_name(node), node.args[0], atoms, angles)
+    memo[node] = out
+    return out
+
+
+def _circular_of(name: str, arg: Any, atoms: _Atoms, angles: bool) -> _Poly | None:
+    """``sin`` or ``cos`` of a symbol, or (``angles``) of a sum of integer multiples of them."""
+    if arg.is_Symbol:
+        return atoms.variable(name, arg)
+    if not angles:
+        return None
+    sine: _Poly = {}
+    cosine: _Poly = {(): Fraction(1)}
+    for term in arg.args if arg.is_Add else (arg,):
+        if term.is_Symbol:
+            k, symbol = 1, term
+        elif (
+            term.is_Mul
+            and len(term.args) == 2
+            and term.args[0].is_Integer
+            and term.args[1].is_Symbol
+        ):
+            k, symbol = int(term.args[0]), term.args[1]
+        else:
+            return None
+        if abs(k) > 4:
+            return None
+        one_sin, one_cos = atoms.variable("sin", symbol), atoms.variable("cos", symbol)
+        for _ in range(abs(k)):  # the angle sum's rule, once per multiple
+            sine, cosine = (
+                _sum(_product(sine, one_cos), _product(cosine, one_sin), 1 if k > 0 else -1),
+                _sum(_product(cosine, one_cos), _product(sine, one_sin), -1 if k > 0 else 1),
+            )
+    return sine if name == "sin" else cosine
+
+
+def _pythagoras(p: _Poly, atoms: _Atoms, kind: str) -> _Poly:
+    """``p`` with every ``kind``'s square (``sin`` or ``cos``) written as 1 minus the other's."""
+    other = "cos" if kind == "sin" else "sin"
+    out: _Poly = {}
+    work = list(p.items())
+    while work:
+        monomial, c = work.pop()
+        powers = dict(monomial)
+        atom = next((a for a, k in monomial if atoms.kinds[a][0] == kind and k >= 2), None)
+        if atom is None:
+            out[monomial] = out.get(monomial, Fraction(0)) + c
+            continue
+        powers[atom] -= 2
+        lower = tuple(sorted((a, k) for a, k in powers.items() if k))
+        work.append((lower, c))
+        work.append((_times(lower, ((atoms.index(other, atoms.exprs[atom].args[0]), 2),)), -c))
+    return {key: c for key, c in out.items() if c}
+
+
+def _monomial(
+    det: sx.Expr, expand_angles: bool = True
+) -> tuple[Fraction, list[tuple[Any, int, tuple[str, str]]]] | None:
+    """A determinant as a number times powers of atoms, each angle under one sine or cosine.
+
+    Tries det as it is, then with every ``sin^2`` written ``1 - cos^2``, then every
+    ``cos^2`` written ``1 - sin^2`` (a unicycle's ``v sin^2 + v cos^2`` is ``v``; an
+    arm's ``sin(q1 + q2) cos(q1) - sin(q1) cos(q1 + q2)``, its angles expanded, is
+    ``sin(q2)``). One angle under both a sine and a cosine is left to SymPy, which might
+    write ``sin(q) cos(q)`` as ``sin(2 q)/2`` or ``sin/cos`` as ``tan``.
+    """
+    atoms = _Atoms()
+    poly = _laurent(det, atoms, expand_angles, {})
+    if poly is None:
+        return None
+    for candidate in (poly, _pythagoras(poly, atoms, "sin"), _pythagoras(poly, atoms, "cos")):
+        if len(candidate) > 1:
+            continue
+        if not candidate:
+            return Fraction(0), []
+        ((monomial, c),) = candidate.items()
+        angles = [atoms.kinds[a][1] for a, _ in monomial if atoms.kinds[a][0]]
+        if len(angles) != len(set(angles)):
+            continue
+        return c, [(atoms.exprs[a], k, atoms.kinds[a]) for a, k in monomial]
+    return None
+
+
+def _monomial_expr(c: Fraction, powers: list[tuple[Any, int, tuple[str, str]]]) -> sx.Expr:
+    """``c`` times the powers, an expression of the engine."""
+    out = sx.Rational(c.numerator, c.denominator)
+    for atom, k, _ in powers:
+        out *= atom**k
+    return out
+
+
+def _monomial_conditions(
+    c: Fraction, powers: list[tuple[Any, int, tuple[str, str]]]
+) -> tuple[str, ...]:
+    """The singular set of ``c`` times the powers, as :func:`_singular_set` writes it.
+
+    SymPy's ``factor_list`` gives a monomial's atoms in the order of its ``Mul``, stably
+    sorted by exponent: there a symbol comes before a power, a power before a function
+    (``cos`` before ``sin``), and like with like by name (a power by its base).
+    """
+    if not c:
+        return ("everywhere",)
+
+    def atom_key(kind: tuple[str, str]) -> tuple[int, str, str]:
+        return (2, kind[0], kind[1]) if kind[0] else (0, "", kind[1])
+
+    def key(item: tuple[Any, int, tuple[str, str]]) -> tuple[int, tuple[Any, ...]]:
+        _, k, kind = item
+        return (k, atom_key(kind) if k == 1 else (1, atom_key(kind), k))
+
+    numerator = sorted((item for item in powers if item[1] > 0), key=key)
+    return tuple(
+        f"{kind[0]}({kind[1]}) = 0" if kind[0] else f"{kind[1]} = 0" for _, _, kind in numerator
+    )

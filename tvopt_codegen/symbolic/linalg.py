@@ -11,7 +11,7 @@ from typing import Any
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
-__all__ = ["det"]
+__all__ = ["det", "sized_det"]
 
 
 def det(matrix: Any) -> Any:
@@ -33,6 +33,9 @@ def det(matrix: Any) -> Any:
     if n == 1:
         return rows[0][0]
     if n <= 3:
+        expanded = _expanded(rows)
+        if expanded is not None and not expanded[1]:
+            return expanded[0]  # a polynomial in its atoms: SymPy only expands it
         # The border, for one small expression (SymPy's private step, as of SymPy 1.14).
         from sympy.matrices.utilities import _dotprodsimp  # noqa: PLC0415
 
@@ -42,6 +45,107 @@ def det(matrix: Any) -> Any:
         sub = [[rows[i][j] for j in block] for i in block]
         product *= (-1) ** len(sub) * _berkowitz(sub)[-1]
     return product
+
+
+def sized_det(matrix: Any, nodes: int) -> tuple[Any, bool]:
+    """A determinant equal to :func:`det`'s, and whether :func:`det`'s has at most ``nodes`` nodes.
+
+    On SymPy, :func:`det` itself. On SymEngine a 2 x 2 or 3 x 3 determinant with
+    denominators is not simplified through the border when it need not be: SymPy's
+    ``dotprodsimp`` expands it and puts it over one denominator (``cancel``), and when
+    every denominator is a power of a symbol or of a function, the expansion's terms
+    and atoms bound the size of what ``cancel`` can write, so the expansion stands for
+    it (det R is then simplified from the expansion, without SymPy: a quadrotor's
+    ``(T sin^2 + T cos^2)/(J m^2)``). Where the bound says nothing, :func:`det`'s own.
+    """
+    if sx.SYMENGINE and 2 <= len(matrix.tolist()) <= 3:
+        expanded = _expanded(matrix.tolist())
+        if expanded is not None:
+            value, fractions = expanded
+            size = _size(value, nodes)
+            if not fractions:
+                return value, size <= nodes
+            if max(size, _cancelled_bound(value)) <= nodes:
+                return value, True
+    value = det(matrix)
+    return value, _size(value, nodes) <= nodes
+
+
+def _expanded(rows: list[list[Any]]) -> tuple[Any, bool] | None:
+    """A small determinant written out and expanded as SymPy's ``dotprodsimp`` expands it.
+
+    Returns the expansion and whether it has denominators (where ``dotprodsimp`` goes
+    on to ``cancel``), or None where the expansion might not be SymPy's: a double
+    (SymPy's 15 digits), a power to a fraction, a denominator that is a sum.
+    """
+    written = _written_out(rows)
+    # dotprodsimp expands sums, products and powers only (an entry alone stays as it is).
+    simple = not (written.is_Add or written.is_Mul or written.is_Pow)
+    expanded = written if simple else sx.expand(_deep_expanded(written, {}))
+    fractions = False
+    stack = [expanded]
+    while stack:
+        node = stack.pop()
+        if node.is_Float:
+            return None
+        if node.is_Pow:
+            base, exponent = node.args
+            if not exponent.is_Integer:
+                return None
+            if exponent.is_negative:
+                if not (base.is_Symbol or base.is_Function):
+                    return None
+                fractions = True
+        stack.extend(node.args)
+    return expanded, fractions
+
+
+def _deep_expanded(expr: Any, memo: dict[Any, Any]) -> Any:
+    """``expr`` with every function's arguments expanded (SymPy's ``expand(deep=True)``)."""
+    done = memo.get(expr)
+    if done is not None:
+        return done
+    if not expr.args:
+        out = expr
+    elif expr.is_Function:
+        out = expr.func(*[sx.expand(_deep_expanded(arg, memo)) for arg in expr.args])
+    else:
+        out = expr.func(*[_deep_expanded(arg, memo) for arg in expr.args])
+    memo[expr] = out
+    return out
+
+
+def _cancelled_bound(expanded: Any) -> int:
+    """Most nodes SymPy's ``cancel`` can write for an expansion over monomial denominators.
+
+    ``cancel`` writes ``c P / Q``: ``P`` has at most as many terms as the expansion, each
+    a number times powers of the expansion's atoms (symbols and functions), and ``Q``
+    is powers of those atoms.
+    """
+    terms = expanded.args if expanded.is_Add else (expanded,)
+    atoms: set[Any] = set()
+    stack = list(terms)
+    while stack:
+        node = stack.pop()
+        if node.is_Symbol or node.is_Function or not node.args:
+            if not node.is_Number:
+                atoms.add(node)
+        else:
+            stack.extend(node.args)
+    powers = sum(2 + _size(atom, 10_000) for atom in atoms)
+    return 4 + (len(terms) + 1) * (2 + powers)
+
+
+def _size(expr: Any, limit: int) -> int:
+    """Nodes of ``expr``'s tree, counting at most ``limit + 1`` (the derivation's ``tree_size``)."""
+    count = 0
+    stack = [expr]
+    while stack:
+        count += 1
+        if count > limit:
+            break
+        stack.extend(stack.pop().args)
+    return count
 
 
 def _written_out(rows: list[list[Any]]) -> Any:
