@@ -1,0 +1,240 @@
+"""det R on SymEngine without SymPy: the same records, and no SymPy for the bundled examples.
+
+On SymEngine, det R, its factored form and its singular set are decided without SymPy
+where det R is a number times powers of symbols, sines and cosines once its angles are
+expanded and ``sin^2 + cos^2 = 1`` applied (:func:`singularity._monomial`), and a small
+determinant with monomial denominators is not simplified through the border
+(:func:`linalg.sized_det`); elsewhere the border decides, as before. Every bundled
+example but one is derived, lowered and rendered on SymEngine in a process that cannot
+import SymPy; every example and test spec gives the decoupling record SymPy gives:
+the singular and undefined sets' text, det R's note, and det R at random points.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import subprocess
+import sys
+from typing import Any
+
+import numpy as np
+import pytest
+import sympy as sp
+
+from tvopt_codegen import symbolic as sx
+from tvopt_codegen.derivation.singularity import _monomial, _singular_set, simplified_det
+from tvopt_codegen.symbolic import linalg
+from tvopt_codegen.symbolic.border import from_sympy, to_sympy
+
+from .conftest import ROOT, SPECS, derivation
+
+EXAMPLES = sorted(p.stem for p in (ROOT / "tvopt_codegen" / "examples").glob("*.toml"))
+TEST_SPECS = sorted(str(p) for p in SPECS.glob("*.toml"))
+#: Examples whose law still crosses the border on SymEngine: arm_on_line's det R has a
+#: denominator that is a sum (``m1 + m2 sin(q2)^2``: SymPy's ``cancel``), its law is
+#: undefined where that vanishes (written as SymPy writes a sum), and its equality's
+#: Gram determinant is likewise a rational function.
+BORDER = ("arm_on_line",)
+
+#: Run in a fresh process on SymEngine: derive, lower and render (Python) each bundled
+#: example with SymPy's import refused, then the rest with it allowed; print the records.
+_SCRIPT = """
+import json, sys
+class Refuse:
+    def find_spec(self, name, path=None, target=None):
+        if name == "sympy" or name.startswith("sympy."):
+            raise ImportError("SymPy refused: " + name)
+        return None
+from tvopt_codegen import symbolic as sx
+from tvopt_codegen.spec import load_spec
+from tvopt_codegen.derivation import derive
+from tvopt_codegen.lowering.ir import lower
+from tvopt_codegen.renderer.rendering import render
+free, rest = json.loads(sys.argv[1]), json.loads(sys.argv[2])
+records = {}
+def record(name):
+    d = derive(load_spec(name))
+    render(lower(d), "python")
+    dec = d.decoupling
+    records[name] = [list(dec.singular_set), list(dec.undefined_set), dec.det_R_note,
+                     None if dec.det_R is None else sx.text(dec.det_R)]
+guard = Refuse()
+sys.meta_path.insert(0, guard)
+for name in free:
+    record(name)
+assert "sympy" not in sys.modules
+sys.meta_path.remove(guard)
+for name in rest:
+    record(name)
+print(json.dumps(records))
+"""
+
+
+@functools.cache
+def _symengine_records() -> dict[str, list[Any]]:
+    """Every example's and test spec's decoupling record, derived in a SymEngine process."""
+    free = [name for name in EXAMPLES if name not in BORDER]
+    rest = [*BORDER, *TEST_SPECS]
+    env = {**os.environ, "TVOPT_CODEGEN_ENGINE": "symengine"}
+    ran = subprocess.run(
+        [sys.executable, "-c", _SCRIPT, json.dumps(free), json.dumps(rest)],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=ROOT,
+        check=False,
+        timeout=600,
+    )
+    assert ran.returncode == 0, ran.stderr[-3000:]
+    records: dict[str, list[Any]] = json.loads(ran.stdout.splitlines()[-1])
+    return records
+
+
+def _values(exprs: list[Any], seed: int) -> np.ndarray:
+    """SymPy expressions' values at 16 random points in [0.5, 1.5] of every symbol."""
+    symbols = sorted(set().union(*(e.free_symbols for e in exprs)), key=str)
+    rng = np.random.default_rng(seed)
+    function = sp.lambdify(symbols, exprs, "numpy")
+    rows = [function(*point) for point in rng.uniform(0.5, 1.5, size=(16, len(symbols)))]
+    return np.array([np.broadcast_to(row, (len(exprs),)) for row in rows], float)
+
+
+def _same_numbers(reference: Any, found: Any) -> None:
+    first, second = _values([reference, found], 7).T
+    assert np.all(np.isfinite(first)) and np.any(first != 0)
+    np.testing.assert_allclose(second, first, rtol=1e-12, atol=1e-12 * np.abs(first).max())
+
+
+@pytest.mark.parametrize("name", [*EXAMPLES, *TEST_SPECS])
+def test_the_decoupling_record_is_sympys(name: str) -> None:
+    """Singular and undefined sets' text, det R's note and det R's values, as on SymPy."""
+    singular, undefined, note, det_text = _symengine_records()[name]
+    reference = derivation(name).decoupling
+    assert tuple(singular) == reference.singular_set
+    assert tuple(undefined) == reference.undefined_set
+    assert note == reference.det_R_note
+    assert (det_text is None) == (reference.det_R is None)
+    if det_text is not None:
+        symbols = {s.name: s for s in reference.det_R.free_symbols}
+        found = sp.sympify(det_text, locals=symbols)
+        if found.free_symbols or reference.det_R.free_symbols:
+            _same_numbers(reference.det_R, found)
+        else:
+            assert found == reference.det_R
+
+
+def test_the_bundled_examples_need_no_sympy() -> None:
+    """The examples named free were derived with SymPy's import refused (the script's assert)."""
+    records = _symengine_records()
+    assert set(EXAMPLES) <= set(records)
+    assert {"pvtol", "planar_arm3", "two_unicycles_corridor", "flexible_joint"} <= set(
+        EXAMPLES
+    ) - set(BORDER)
+
+
+def _monomials(count: int, seed: int) -> list[Any]:
+    """Random numbers times powers of symbols and of a sine or cosine of other symbols."""
+    names = ["a", "b", "Z", "l1", "l10", "l2", "q", "q2", "theta", "v"]
+    symbols = [sp.Symbol(n, real=True) for n in names]
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(count):
+        chosen = rng.permutation(len(symbols))[: rng.integers(1, 6)]
+        term = sp.Rational(int(rng.choice([-3, -1, 1, 2, 5])), int(rng.choice([1, 1, 4])))
+        for i in chosen:
+            atom = symbols[i]
+            kind = rng.integers(0, 3)
+            if kind:
+                atom = (sp.sin if kind == 1 else sp.cos)(atom)
+            term *= atom ** int(rng.choice([-2, -1, 1, 1, 1, 2, 3]))
+        out.append(term)
+    return out
+
+
+def test_a_monomials_singular_set_is_written_in_sympys_order() -> None:
+    """factor_list's order: by exponent, then the Mul's (symbols, powers, cos, sin, names)."""
+    for expr in _monomials(150, 11):
+        reference = _singular_set(expr)
+        with sx.using("symengine"):
+            converted = from_sympy(expr)
+            assert _monomial(converted, expand_angles=False) is not None  # decided natively
+            found = _singular_set(converted)
+            short = to_sympy(simplified_det(converted))
+        assert found == reference, expr
+        assert short == sp.factor(expr), expr
+
+
+def test_pythagoras_and_angle_sums_collapse_to_sympys_monomial() -> None:
+    v, w, q1, q2, m, J = sp.symbols("v w q1 q2 m J", real=True)
+    s1, c1, s12, c12 = sp.sin(q1), sp.cos(q1), sp.sin(q1 + q2), sp.cos(q1 + q2)
+    cases = [
+        v * s1**2 + v * c1**2,  # a unicycle
+        (w * s1**2 + w * c1**2) / (J * m**2),  # a quadrotor
+        (v * s1**2 + v * c1**2) * (w * sp.sin(q2) ** 2 + w * sp.cos(q2) ** 2),  # two
+        -s1 * c12 + s12 * c1,  # an arm: sin(q2)
+        v * s1**4 + 2 * v * s1**2 * c1**2 + v * c1**4,  # (sin^2 + cos^2)^2 = 1
+        v - v * c1**2,  # v sin(q1)^2, by the other rewrite
+        sp.cos(2 * q1) + 2 * s1**2,  # cos(2 q1) = 1 - 2 sin^2
+    ]
+    for det in cases:
+        reference = simplified_det(det)
+        with sx.using("symengine"):
+            converted = from_sympy(det)
+            assert _monomial(converted) is not None, det
+            found = to_sympy(simplified_det(converted))
+            singular = _singular_set(simplified_det(converted))
+        assert sp.simplify(found - reference) == 0, det
+        assert singular == _singular_set(reference), det
+
+
+def test_what_sympy_might_write_otherwise_is_left_to_it() -> None:
+    """One angle under a sine and a cosine (sin(2 q)/2, tan), a sum that stays: the border."""
+    q, r, c = sp.symbols("q r c", real=True)
+    for det in (
+        sp.sin(q) * sp.cos(q),
+        sp.sin(q) / sp.cos(q),
+        sp.sin(q + r),
+        2 * c + sp.sin(q),
+        sp.tan(q) * c,
+        sp.exp(q),
+        c**2 - 1,
+        1 / (c + 1),
+    ):
+        with sx.using("symengine"):
+            converted = from_sympy(det)
+            assert _monomial(converted) is None, det
+            found = to_sympy(simplified_det(converted))
+            singular = _singular_set(simplified_det(converted))
+        assert sp.simplify(found - simplified_det(det)) == 0
+        assert singular == _singular_set(simplified_det(det)), det
+
+
+def test_a_small_determinant_is_sympys_and_sized_alike() -> None:
+    """Written out and expanded without SymPy where it has no denominators: SymPy's own.
+
+    With monomial denominators, ``sized_det`` keeps the expansion (equal in value) and
+    its size bound decides as SymPy's ``cancel`` form's size does.
+    """
+    x, y, z = sp.symbols("x y z", real=True)
+    pool = [0, 0, 1, -1, x, x * sp.sin(y), z**2 + 1, x * y - 3, sp.Rational(1, 3), 1 / x]
+    pool += [sp.cos(x * (y + 1)), y / (x * z), sp.sin(x) ** 2, 1 / (x + y), x**-2 * y]
+    rng = np.random.default_rng(23)
+    native = 0
+    for _ in range(150):
+        n = int(rng.integers(2, 4))
+        matrix = sp.ImmutableMatrix(n, n, [pool[k] for k in rng.integers(0, len(pool), n * n)])
+        reference = matrix.det(method="berkowitz")
+        small = linalg._size(reference, 400) <= 400
+        with sx.using("symengine"):
+            converted = from_sympy(matrix)
+            expanded = linalg._expanded(converted.tolist())
+            found = to_sympy(linalg.det(converted))
+            sized, decided = linalg.sized_det(converted, 400)
+            sized = to_sympy(sized)
+        native += expanded is not None and not expanded[1]
+        assert found == reference
+        assert decided == small
+        assert sp.expand(sp.cancel(sized - reference)) == 0
+    assert native > 20  # the path without SymPy was taken
