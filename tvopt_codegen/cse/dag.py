@@ -53,6 +53,8 @@ class Dag:
         self._class: list[Any] = []
         self._head: list[tuple[Any, ...]] = []
         self._template: list[int] = []
+        self._types: dict[Any, tuple[int, bool]] = {}
+        self._leaf_cost = 0
         self.minus_one = self.intern(sx.Integer(-1))
         self._below: dict[int, int] = {}
 
@@ -62,46 +64,65 @@ class Dag:
         if found is not None:
             return found
         args = expr.args
+        cls = type(expr)
         if not args:
-            key: tuple[Any, ...] = (expr,)
-            i = self._keys.get(key)
-            if i is None:
-                i = self._add(key, expr, ())
+            # A leaf equal to one in the table was found above: this one is new.
+            i = self._new(expr, (), self._leaf_kind(expr), cls, (), len(self.expr))
         else:
-            children = tuple([self.intern(arg) for arg in args])
-            if expr.is_Add or expr.is_Mul:
-                head: tuple[Any, ...] = (type(expr),)
-                key = (type(expr), *sorted(children))
+            info = self._types.get(cls)
+            if info is None:
+                info = self._types[cls] = self._describe(expr)
+            kind, commutative = info
+            intern = self.intern
+            children = tuple([intern(arg) for arg in args])
+            if commutative:
+                head: tuple[Any, ...] = (cls,)
+                key: tuple[Any, ...] = (cls, *sorted(children))
             else:
                 # An undefined function's class is not its name.
-                head = (type(expr), sx.function_name(expr)) if expr.is_Function else (type(expr),)
+                head = (cls, sx.function_name(expr)) if expr.is_Function else (cls,)
                 key = (*head, *children)
-            i = self._keys.get(key)
-            if i is None:
-                i = self._add(key, expr, children)
-                self._head[i] = head
+            i = self._keys.get(key, -1)
+            if i < 0:
+                i = self._keys[key] = self._new(expr, children, kind, cls, head, len(self.expr))
         self._ids[expr] = i
         return i
 
-    def _add(self, key: tuple[Any, ...], expr: sx.Expr, children: tuple[int, ...]) -> int:
+    @staticmethod
+    def _describe(expr: sx.Expr) -> tuple[int, bool]:
+        """A compound node's kind, and whether its children's order is immaterial."""
+        if expr.is_Add:
+            return _ADD, True
+        if expr.is_Mul:
+            return _MUL, True
+        return (_POW if expr.is_Pow else _OTHER), False
+
+    def _leaf_kind(self, expr: sx.Expr) -> int:
+        """A leaf's kind; a number's cost alone is kept (:meth:`operations`)."""
+        if expr.is_Number:
+            negative = expr.is_negative is True
+            self._leaf_cost = int(negative) + int(bool(expr.is_Rational and not expr.is_Integer))
+            return _NUMBER
+        return _SYMBOL if expr.is_Symbol else _OTHER
+
+    def _new(
+        self,
+        expr: sx.Expr | None,
+        children: tuple[int, ...],
+        kind: int,
+        cls: Any,
+        head: tuple[Any, ...],
+        template: int,
+    ) -> int:
+        """A new node; ``template`` is the node whose constructor builds it."""
         i = len(self.expr)
-        self._keys[key] = i
         self.expr.append(expr)
         self.args.append(children)
-        cost = 0
-        if children:
-            kind = _ADD if expr.is_Add else _MUL if expr.is_Mul else _POW if expr.is_Pow else _OTHER
-        elif expr.is_Number:
-            kind = _NUMBER
-            negative = expr.is_negative is True
-            cost = int(negative) + int(bool(expr.is_Rational and not expr.is_Integer))
-        else:
-            kind = _SYMBOL if expr.is_Symbol else _OTHER
         self.kind.append(kind)
-        self.cost.append(cost)
-        self._template.append(i)
-        self._class.append(type(expr))
-        self._head.append(())
+        self.cost.append(self._leaf_cost if kind == _NUMBER else 0)
+        self._template.append(template)
+        self._class.append(cls)
+        self._head.append(head)
         return i
 
     def rebuild(self, i: int, children: tuple[int, ...]) -> int:
@@ -119,15 +140,9 @@ class Dag:
             found = self._keys.get(key)
             if found is not None:
                 return found
-            j = len(self.expr)
-            self._keys[key] = j
-            self.expr.append(None)
-            self.args.append(children)
-            self.kind.append(kind)
-            self.cost.append(0)
-            self._template.append(self._template[i])
-            self._class.append(self._class[i])
-            self._head.append(self._head[i])
+            j = self._keys[key] = self._new(
+                None, children, kind, self._class[i], self._head[i], self._template[i]
+            )
             return j
         expression = self.expression
         built = _rebuild_symengine(expression(i), [expression(c) for c in children])
