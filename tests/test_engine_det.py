@@ -116,13 +116,13 @@ def test_the_decoupling_record_is_sympys(name: str) -> None:
     assert tuple(undefined) == reference.undefined_set
     assert note == reference.det_R_note
     assert (det_text is None) == (reference.det_R is None)
-    if det_text is not None:
-        symbols = {s.name: s for s in reference.det_R.free_symbols}
-        found = sp.sympify(det_text, locals=symbols)
-        if found.free_symbols or reference.det_R.free_symbols:
-            _same_numbers(reference.det_R, found)
+    det = reference.det_R
+    if det_text is not None and det is not None:
+        found = sp.sympify(det_text, locals={s.name: s for s in det.free_symbols})
+        if found.free_symbols or det.free_symbols:
+            _same_numbers(det, found)
         else:
-            assert found == reference.det_R
+            assert found == det
 
 
 def test_the_bundled_examples_need_no_sympy() -> None:
