@@ -370,13 +370,16 @@ def _laurent(node: Any, atoms: _Atoms, angles: bool, memo: dict[Any, _Poly | Non
     elif node.is_Pow and node.args[1].is_Integer:
         base = _laurent(node.args[0], atoms, angles, memo)
         k = int(node.args[1])
-        if base is not None and k < 0 and len(base) == 1:
+        if base is not None and len(base) == 1:  # a term's power: its exponents times k
             ((monomial, c),) = base.items()
-            base, k = {tuple((a, -e) for a, e in monomial): 1 / c}, -k
-        if base is not None and k >= 0:
+            out = {tuple((a, e * k) for a, e in monomial if k): c**k}
+        elif base is not None and k >= 0:
             out = {(): Fraction(1)}
             for _ in range(k):
                 out = _product(out, base)
+                if len(out) > _MONOMIAL_TERMS:
+                    out = None
+                    break
     elif node.is_Function and sx.function_name(node) in ("sin", "cos"):
         out = _circular_of(sx.function_name(node), node.args[0], atoms, angles)
     memo[node] = out
