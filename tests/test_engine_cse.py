@@ -456,3 +456,9 @@ def test_dag_renames_build_what_the_constructor_builds() -> None:
             renamed = dag.substitute(node, {dag.intern(x): dag.intern(target)}, {})
             assert (dag.expr[renamed] is None) == on_ids, before
             assert dag.expression(renamed) == after
+        # A negated symbol: its sign goes to a product's coefficient, a sum's term.
+        for before, after in [(3 * x * y, -3 * w * y), (x + z, z - w), (x * z, -w * z)]:
+            renamed = dag.substitute(dag.intern(before), {dag.intern(x): dag.intern(-w)}, {})
+            assert dag.expr[renamed] is None, before
+            assert dag.expression(renamed) == after
+            assert dag.intern(after) == renamed

@@ -55,7 +55,9 @@ class Dag:
         self._template: list[int] = []
         self._types: dict[Any, tuple[int, bool]] = {}
         self._leaf_cost = 0
+        self._negated: dict[int, int] = {}  # a number -> its negation
         self.minus_one = self.intern(sx.Integer(-1))
+        self.one = self.intern(sx.Integer(1))
         self._below: dict[int, int] = {}
 
     def intern(self, expr: sx.Expr) -> int:
@@ -128,10 +130,12 @@ class Dag:
     def rebuild(self, i: int, children: tuple[int, ...]) -> int:
         """Node ``i`` with ``children``, by its engine's constructor (terms collect).
 
-        Where the constructor would find nothing to do (:meth:`_renamed`) the node is
-        made on ids alone, its expression built when it is asked for (:meth:`expression`).
+        Where the constructor would find nothing to do but splice (:meth:`_plain`) the
+        node is made on ids alone, its expression built when asked for (:meth:`expression`).
         """
-        if self._renamed(i, children):
+        plain = self._plain(i, children)
+        if plain is not None:
+            children = plain
             kind = self.kind[i]
             if kind in (_ADD, _MUL):
                 key: tuple[Any, ...] = (self._class[i], *sorted(children))
@@ -159,29 +163,71 @@ class Dag:
             self._ids[built] = i
         return built
 
-    def _renamed(self, i: int, children: tuple[int, ...]) -> bool:
-        """Whether node ``i`` with ``children`` is what its constructor would build.
+    def _plain(self, i: int, children: tuple[int, ...]) -> tuple[int, ...] | None:
+        """Node ``i``'s children as its constructor would keep them, None if it would do more.
 
-        So when each changed child is a symbol (a rename) that equals no other child,
-        nor in a sum another term's symbol (``2*s + s``), nor in a product another
-        factor's base (``s*s**2``): a function of distinct symbols does not evaluate.
+        A sum keeps its terms when none that changed is a number or a sum and no two
+        share their factors (``2*s + s``, ``s - s`` collect). A product keeps its factors
+        when those that changed are symbols or negated ones (the signs go to its
+        coefficient) and no two share a base (``s*s**2``). Another node keeps symbols
+        for symbols, all distinct (``atan2(s, s)`` evaluates).
         """
-        kind, args, old = self.kind, self.args, self.args[i]
+        kind, old = self.kind, self.args[i]
         changed = [c for c, o in zip(children, old, strict=True) if c != o]
-        if any(kind[c] != _SYMBOL for c in changed) or len(set(children)) < len(children):
-            return False
         k = kind[i]
         if k == _ADD:
-            taken = {
-                args[c][1]
-                for c in children
-                if kind[c] == _MUL and len(args[c]) == 2 and kind[args[c][0]] == _NUMBER
-            }
-        elif k == _MUL:
-            taken = {args[c][0] for c in children if kind[c] == _POW}
-        else:
-            return k == _POW or bool(self.expression(self._template[i]).is_Function)
-        return not any(c in taken for c in changed)
+            if any(kind[c] in (_ADD, _NUMBER) for c in changed):
+                return None
+            terms = {self._term(c) for c in children}
+            return children if len(terms) == len(children) else None
+        if k == _MUL:
+            return self._plain_product(i, children, changed)
+        if any(kind[c] != _SYMBOL for c in changed) or len(set(children)) < len(children):
+            return None
+        if k == _POW or self.expression(self._template[i]).is_Function:
+            return children
+        return None
+
+    def _plain_product(
+        self, i: int, children: tuple[int, ...], changed: list[int]
+    ) -> tuple[int, ...] | None:
+        """:meth:`_plain` for a product: the factors, a negated symbol's sign moved out."""
+        kind, args = self.kind, self.args
+        if not all(kind[c] == _SYMBOL or self._negated_symbol(c) for c in changed):
+            return None
+        coefficient = children[0] if kind[children[0]] == _NUMBER else self.one
+        factors = [c for c in children if kind[c] != _NUMBER]
+        if len(factors) + (coefficient != self.one) != len(children):
+            return None  # a number that changed, or two
+        flips = 0
+        for n, c in enumerate(factors):
+            if self._negated_symbol(c):
+                factors[n] = args[c][1]
+                flips += 1
+        bases = [args[c][0] if kind[c] == _POW else c for c in factors]
+        if len(set(bases)) < len(bases):
+            return None
+        if flips % 2:
+            coefficient = self._negated_number(coefficient)
+        if coefficient == self.one:
+            return tuple(factors) if len(factors) > 1 else None
+        return (coefficient, *factors)
+
+    def _term(self, i: int) -> tuple[int, ...]:
+        """A sum's term ``i`` as the constructor collects it: without its coefficient."""
+        args = self.args[i]
+        if self.kind[i] == _MUL:
+            return tuple(sorted(c for c in args if self.kind[c] != _NUMBER))
+        return (i,)
+
+    def _negated_symbol(self, i: int) -> bool:
+        args = self.args[i]
+        return (
+            self.kind[i] == _MUL
+            and len(args) == 2
+            and args[0] == self.minus_one
+            and self.kind[args[1]] == _SYMBOL
+        )
 
     def negated_atom(self, i: int) -> bool:
         """Whether node ``i`` is ``-x`` for a leaf ``x`` (printing it costs nothing)."""
@@ -192,6 +238,12 @@ class Dag:
             and args[0] == self.minus_one
             and not self.args[args[1]]
         )
+
+    def _negated_number(self, i: int) -> int:
+        negated = self._negated.get(i)
+        if negated is None:
+            negated = self._negated[i] = self.intern(-self.expression(i))
+        return negated
 
     def _find(self, key: tuple[Any, ...]) -> int | None:
         """The sum or product ``key`` (its class, its children's ids), if it is a node."""
@@ -220,10 +272,10 @@ class Dag:
         """``-i`` for a node that is not a sum (SymEngine keeps ``-(a + b)`` a product)."""
         kind, args = self.kind[i], self.args[i]
         if kind == _NUMBER:
-            return self.intern(-self.expression(i))
+            return self._negated_number(i)
         if kind == _MUL and self.kind[args[0]] == _NUMBER:
-            coefficient = self.intern(-self.expression(args[0]))
-            if self.expression(coefficient) == 1:
+            coefficient = self._negated_number(args[0])
+            if coefficient == self.one:
                 rest = args[1:]
                 return rest[0] if len(rest) == 1 else self._find((sx.Mul, *rest))
             return self._find((sx.Mul, coefficient, *args[1:]))
