@@ -24,7 +24,12 @@ import pytest
 import sympy as sp
 
 from tvopt_codegen import symbolic as sx
-from tvopt_codegen.derivation.singularity import _monomial, _singular_set, simplified_det
+from tvopt_codegen.derivation.singularity import (
+    _monomial,
+    _monomial_conditions,
+    _singular_set,
+    simplified_det,
+)
 from tvopt_codegen.symbolic import linalg
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
@@ -177,6 +182,8 @@ def test_pythagoras_and_angle_sums_collapse_to_sympys_monomial() -> None:
         v * s1**4 + 2 * v * s1**2 * c1**2 + v * c1**4,  # (sin^2 + cos^2)^2 = 1
         v - v * c1**2,  # v sin(q1)^2, by the other rewrite
         sp.cos(2 * q1) + 2 * s1**2,  # cos(2 q1) = 1 - 2 sin^2
+        sp.sin(w / 10) ** 2 + sp.cos(w / 10) ** 2,  # a time-varying line's Gram determinant
+        w * sp.sin(q1 / 10) / sp.cos(q2 + w / 3),  # SymPy writes the angle: its singular set
     ]
     for det in cases:
         reference = simplified_det(det)
@@ -187,6 +194,9 @@ def test_pythagoras_and_angle_sums_collapse_to_sympys_monomial() -> None:
             singular = _singular_set(simplified_det(converted))
         assert sp.simplify(found - reference) == 0, det
         assert singular == _singular_set(reference), det
+    with sx.using("symengine"):
+        found = _monomial(from_sympy(cases[-1]), expand_angles=False)
+        assert found is not None and _monomial_conditions(*found) is None
 
 
 def test_what_sympy_might_write_otherwise_is_left_to_it() -> None:

@@ -113,8 +113,9 @@ def _singular_set(det: sx.Expr) -> tuple[str, ...]:
     """
     if sx.SYMENGINE:
         found = _monomial(det, expand_angles=False)
-        if found is not None:
-            return _monomial_conditions(*found)
+        native = None if found is None else _monomial_conditions(*found)
+        if native is not None:
+            return native
     sp = _sympy()
     numerator, _ = sp.fraction(sp.together(to_sympy(det)))
     if numerator.is_Number:
@@ -298,27 +299,36 @@ _POSITIVE = ("positive",)
 # ((atom, exponent), ...) by atom number, a polynomial as {monomial: coefficient}.
 _Monomial = tuple[tuple[int, int], ...]
 _Poly = dict[_Monomial, Fraction]
+#: An atom's kind: ``("", name)``, ``("sin", name)``, or ``("cos", None)`` past a symbol.
+_Kind = tuple[str, str | None]
+#: An atom, its exponent and its kind.
+_Power = tuple[Any, int, _Kind]
 
 
 class _Atoms:
-    """The atoms of one determinant: symbols, ``sin(s)`` and ``cos(s)`` of a symbol ``s``."""
+    """The atoms of one determinant: symbols, and ``sin(u)`` and ``cos(u)`` of an angle ``u``.
+
+    ``kinds[i]`` is ``("", name)`` for a symbol, ``("sin", name)`` or ``("cos", name)``
+    for a function of a symbol, and ``("sin", None)`` for one of any other angle (a
+    time-varying line's ``t/10``), which can be simplified but not written as SymPy does.
+    """
 
     def __init__(self) -> None:
         self.exprs: list[Any] = []
-        self.kinds: list[tuple[str, str]] = []  # ("", name), ("sin", name), ("cos", name)
-        self._index: dict[tuple[str, str], int] = {}
+        self.kinds: list[_Kind] = []
+        self._index: dict[tuple[str, Any], int] = {}
 
-    def index(self, kind: str, symbol: Any) -> int:
-        key = (kind, str(symbol))
+    def index(self, kind: str, arg: Any) -> int:
+        key = (kind, arg)
         found = self._index.get(key)
         if found is None:
             found = self._index[key] = len(self.exprs)
-            self.exprs.append(symbol if not kind else getattr(sx, kind)(symbol))
-            self.kinds.append(key)
+            self.exprs.append(arg if not kind else getattr(sx, kind)(arg))
+            self.kinds.append((kind, str(arg) if arg.is_Symbol else None))
         return found
 
-    def variable(self, kind: str, symbol: Any) -> _Poly:
-        return {((self.index(kind, symbol), 1),): Fraction(1)}
+    def variable(self, kind: str, arg: Any) -> _Poly:
+        return {((self.index(kind, arg), 1),): Fraction(1)}
 
 
 def _times(a: _Monomial, b: _Monomial) -> _Monomial:
@@ -387,11 +397,15 @@ def _laurent(node: Any, atoms: _Atoms, angles: bool, memo: dict[Any, _Poly | Non
 
 
 def _circular_of(name: str, arg: Any, atoms: _Atoms, angles: bool) -> _Poly | None:
-    """``sin`` or ``cos`` of a symbol, or (``angles``) of a sum of integer multiples of them."""
-    if arg.is_Symbol:
+    """``sin`` or ``cos`` of an angle; (``angles``) of a sum of multiples of symbols, expanded."""
+    if arg.is_Symbol or not angles:
         return atoms.variable(name, arg)
-    if not angles:
-        return None
+    expanded = _angle_sum(name, arg, atoms)
+    return atoms.variable(name, arg) if expanded is None else expanded
+
+
+def _angle_sum(name: str, arg: Any, atoms: _Atoms) -> _Poly | None:
+    """``sin`` or ``cos`` of a sum of integer multiples of symbols, in their sines and cosines."""
     sine: _Poly = {}
     cosine: _Poly = {(): Fraction(1)}
     for term in arg.args if arg.is_Add else (arg,):
@@ -436,9 +450,7 @@ def _pythagoras(p: _Poly, atoms: _Atoms, kind: str) -> _Poly:
     return {key: c for key, c in out.items() if c}
 
 
-def _monomial(
-    det: sx.Expr, expand_angles: bool = True
-) -> tuple[Fraction, list[tuple[Any, int, tuple[str, str]]]] | None:
+def _monomial(det: sx.Expr, expand_angles: bool = True) -> tuple[Fraction, list[_Power]] | None:
     """A determinant as a number times powers of atoms, each angle under one sine or cosine.
 
     Tries det as it is, then with every ``sin^2`` written ``1 - cos^2``, then every
@@ -457,14 +469,14 @@ def _monomial(
         if not candidate:
             return Fraction(0), []
         ((monomial, c),) = candidate.items()
-        angles = [atoms.kinds[a][1] for a, _ in monomial if atoms.kinds[a][0]]
+        angles = [atoms.exprs[a].args[0] for a, _ in monomial if atoms.kinds[a][0]]
         if len(angles) != len(set(angles)):
             continue
         return c, [(atoms.exprs[a], k, atoms.kinds[a]) for a, k in monomial]
     return None
 
 
-def _monomial_expr(c: Fraction, powers: list[tuple[Any, int, tuple[str, str]]]) -> sx.Expr:
+def _monomial_expr(c: Fraction, powers: list[_Power]) -> sx.Expr:
     """``c`` times the powers, an expression of the engine."""
     out = sx.Rational(c.numerator, c.denominator)
     for atom, k, _ in powers:
@@ -472,26 +484,29 @@ def _monomial_expr(c: Fraction, powers: list[tuple[Any, int, tuple[str, str]]]) 
     return out
 
 
-def _monomial_conditions(
-    c: Fraction, powers: list[tuple[Any, int, tuple[str, str]]]
-) -> tuple[str, ...]:
+def _monomial_conditions(c: Fraction, powers: list[_Power]) -> tuple[str, ...] | None:
     """The singular set of ``c`` times the powers, as :func:`_singular_set` writes it.
 
     SymPy's ``factor_list`` gives a monomial's atoms in the order of its ``Mul``, stably
     sorted by exponent: there a symbol comes before a power, a power before a function
-    (``cos`` before ``sin``), and like with like by name (a power by its base).
+    (``cos`` before ``sin``), and like with like by name (a power by its base). None
+    where the numerator holds a function of an angle other than a symbol (SymPy writes
+    that angle).
     """
     if not c:
         return ("everywhere",)
+    numerator = [item for item in powers if item[1] > 0]
+    if any(kind[1] is None for _, _, kind in numerator):
+        return None
 
-    def atom_key(kind: tuple[str, str]) -> tuple[int, str, str]:
-        return (2, kind[0], kind[1]) if kind[0] else (0, "", kind[1])
+    def atom_key(kind: _Kind) -> tuple[int, str, str]:
+        return (2, kind[0], str(kind[1])) if kind[0] else (0, "", str(kind[1]))
 
-    def key(item: tuple[Any, int, tuple[str, str]]) -> tuple[int, tuple[Any, ...]]:
+    def key(item: _Power) -> tuple[int, tuple[Any, ...]]:
         _, k, kind = item
         return (k, atom_key(kind) if k == 1 else (1, atom_key(kind), k))
 
-    numerator = sorted((item for item in powers if item[1] > 0), key=key)
+    numerator.sort(key=key)
     return tuple(
         f"{kind[0]}({kind[1]}) = 0" if kind[0] else f"{kind[1]} = 0" for _, _, kind in numerator
     )
