@@ -235,6 +235,10 @@ def test_symengine_kernels_compute_sympys_values_in_as_many_operations(
         got = {seed: dict(_values(kernels, seed)) for seed in range(2)}
     assert _text(kernels) == _text(again)
     assert [k.name for k in kernels] == [k.name for k in reference]
+    for kernel in kernels:
+        # Counted on the DAG's ids, as operation_count counts the kernel's expressions.
+        exprs = [v for _, v in kernel.body] + [e for out in kernel.outputs for e in out.exprs]
+        assert kernel.ops == cse.operation_count(exprs), kernel.name
     for seed in range(2):
         for name, want in _values(reference, seed):
             scale = max((abs(v) for v in want), default=0.0)
@@ -402,6 +406,24 @@ def test_dag_cse_computes_the_expression_walks_values_in_as_few_operations() -> 
             assert str((body, outs)) == str(again)
             searched = cse.ordered_cse(program, outputs)
             assert _program_values(*searched, point) == pytest.approx(want, rel=1e-12)
+
+
+def test_dag_nodes_made_on_ids_are_what_their_expressions_are() -> None:
+    """Nodes made on ids (renames, spliced sums and products) count the operations of
+    the expressions the engine builds for them, and read back as themselves."""
+    with sx.using("symengine"):
+        for seed in range(3):
+            program, outputs = _dag_program(seed, 50)
+            dag = Dag()
+            ids = [(dag.intern(sym), dag.intern(value)) for sym, value in program]
+            numbering._reduce_dag(dag, ids, [dag.intern(e) for e in outputs], False)
+            made = [i for i, e in enumerate(dag.expr) if e is None]
+            assert made, seed
+            for i in made:
+                expr = dag.expression(i)
+                assert dag.operations([i]) == cse.operation_count([expr]), expr
+                fresh = Dag()
+                assert fresh.operations([fresh.intern(expr)]) == dag.operations([i])
 
 
 def test_dag_shares_equal_subtrees_and_tells_functions_apart() -> None:

@@ -117,6 +117,11 @@ def _symbolic(outputs: Outputs) -> tuple[list[sx.Expr], list[int]]:
     return [flat[i] for i in where], where
 
 
+def _constant_ops(outputs: Outputs) -> int:
+    """What a kernel's outputs that are numbers cost (a fraction or a negative: one)."""
+    return operation_count([e for e in _flat(outputs) if isinstance(e, sx.Number)])
+
+
 def _scatter(outputs: Outputs, where: Sequence[int], reduced: Sequence[sx.Expr]) -> list[sx.Expr]:
     """The outputs, flat, with the reduced expressions put back at ``where``."""
     flat = _flat(outputs)
@@ -152,7 +157,7 @@ def make_kernel(
         before = dag.operations([v for _, v in dag.needed(ids, outs)] + outs)
         order, outs = _reduce_dag(dag, ids, outs, search)
         body, reduced = _number_dag(dag, order, outs)
-        ops = dag.operations([v for _, v in order] + outs)
+        ops = dag.operations([v for _, v in order] + outs) + _constant_ops(outputs)
         return _package(
             name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before, ops
         )
@@ -252,7 +257,7 @@ def _make_kernels_dag(
         ):
             order, reduced_ids = _reduce_dag(dag, mine, part, True)
             body, reduced = _number_dag(dag, order, reduced_ids)
-            ops = dag.operations([v for _, v in order] + reduced_ids)
+            ops = dag.operations([v for _, v in order] + reduced_ids) + _constant_ops(outputs)
             made.append(
                 _package(
                     name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before, ops
@@ -266,7 +271,7 @@ def _make_kernels_dag(
         mine_outs = whole_outs[end - size : end]
         order, reduced_ids = dag.inline_single_use(dag.needed(whole, mine_outs), mine_outs)
         body, reduced = _number_dag(dag, order, reduced_ids)
-        ops = dag.operations([v for _, v in order] + reduced_ids)
+        ops = dag.operations([v for _, v in order] + reduced_ids) + _constant_ops(outputs)
         made.append(
             _package(
                 name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before, ops

@@ -56,8 +56,11 @@ class Dag:
         self._types: dict[Any, tuple[int, bool]] = {}
         self._leaf_cost = 0
         self._negated: dict[int, int] = {}  # a number -> its negation
+        self._counts: dict[int, dict[int, int]] = {}  # a node -> its symbols' uses
         self.minus_one = self.intern(sx.Integer(-1))
         self.one = self.intern(sx.Integer(1))
+        self.zero = self.intern(sx.Integer(0))
+        self._numbers: dict[tuple[int, int, bool], int] = {}  # (a, b, sum?) -> a + b or a*b
         self._below: dict[int, int] = {}
 
     def intern(self, expr: sx.Expr) -> int:
@@ -166,52 +169,79 @@ class Dag:
     def _plain(self, i: int, children: tuple[int, ...]) -> tuple[int, ...] | None:
         """Node ``i``'s children as its constructor would keep them, None if it would do more.
 
-        A sum keeps its terms when none that changed is a number or a sum and no two
-        share their factors (``2*s + s``, ``s - s`` collect). A product keeps its factors
-        when those that changed are symbols or negated ones (the signs go to its
-        coefficient) and no two share a base (``s*s**2``). Another node keeps symbols
+        A sum splices the sums among its terms and adds up its numbers, then keeps its
+        terms when no two share their factors (``2*s + s``, ``s - s`` collect). A
+        product splices the products among its factors and multiplies its numbers,
+        then keeps its factors when no two share a base (``s*s**2``), none is a power
+        of a number (``2*2**s``), and no rational coefficient is left with one sum
+        (which :func:`~.rewrite._distributed` distributes). Another node keeps symbols
         for symbols, all distinct (``atan2(s, s)`` evaluates).
         """
-        kind, old = self.kind, self.args[i]
-        changed = [c for c, o in zip(children, old, strict=True) if c != o]
+        kind = self.kind
         k = kind[i]
         if k == _ADD:
-            if any(kind[c] in (_ADD, _NUMBER) for c in changed):
-                return None
-            terms = {self._term(c) for c in children}
-            return children if len(terms) == len(children) else None
+            return self._plain_sum(children)
         if k == _MUL:
-            return self._plain_product(i, children, changed)
+            return self._plain_product(children)
+        old = self.args[i]
+        changed = [c for c, o in zip(children, old, strict=True) if c != o]
         if any(kind[c] != _SYMBOL for c in changed) or len(set(children)) < len(children):
             return None
         if k == _POW or self.expression(self._template[i]).is_Function:
             return children
         return None
 
-    def _plain_product(
-        self, i: int, children: tuple[int, ...], changed: list[int]
-    ) -> tuple[int, ...] | None:
-        """:meth:`_plain` for a product: the factors, a negated symbol's sign moved out."""
+    def _plain_sum(self, children: tuple[int, ...]) -> tuple[int, ...] | None:
+        """:meth:`_plain` for a sum."""
         kind, args = self.kind, self.args
-        if not all(kind[c] == _SYMBOL or self._negated_symbol(c) for c in changed):
+        number = self.zero
+        terms: list[int] = []
+        for c in children:
+            for term in args[c] if kind[c] == _ADD else (c,):
+                if kind[term] == _NUMBER:
+                    number = self._arithmetic(number, term, True)
+                else:
+                    terms.append(term)
+        if len(terms) < 2 or len({self._term(c) for c in terms}) < len(terms):
             return None
-        coefficient = children[0] if kind[children[0]] == _NUMBER else self.one
-        factors = [c for c in children if kind[c] != _NUMBER]
-        if len(factors) + (coefficient != self.one) != len(children):
-            return None  # a number that changed, or two
-        flips = 0
-        for n, c in enumerate(factors):
-            if self._negated_symbol(c):
-                factors[n] = args[c][1]
-                flips += 1
-        bases = [args[c][0] if kind[c] == _POW else c for c in factors]
-        if len(set(bases)) < len(bases):
+        return tuple(terms) if number == self.zero else (number, *terms)
+
+    def _plain_product(self, children: tuple[int, ...]) -> tuple[int, ...] | None:
+        """:meth:`_plain` for a product."""
+        kind, args = self.kind, self.args
+        number = self.one
+        factors: list[int] = []
+        for c in children:
+            for factor in args[c] if kind[c] == _MUL else (c,):
+                if kind[factor] == _NUMBER:
+                    number = self._arithmetic(number, factor, False)
+                else:
+                    factors.append(factor)
+        bases = []
+        for c in factors:
+            if kind[c] == _POW:
+                base = args[c][0]
+                if kind[base] == _NUMBER:
+                    return None
+                bases.append(base)
+            else:
+                bases.append(c)
+        if len(set(bases)) < len(bases) or number == self.zero or not factors:
             return None
-        if flips % 2:
-            coefficient = self._negated_number(coefficient)
-        if coefficient == self.one:
+        if number == self.one:
             return tuple(factors) if len(factors) > 1 else None
-        return (coefficient, *factors)
+        if len(factors) == 1 and kind[factors[0]] == _ADD:
+            return None  # a number times a sum: distributed
+        return (number, *factors)
+
+    def _arithmetic(self, a: int, b: int, add: bool) -> int:
+        """The number ``a + b`` (or ``a*b``), as the engine computes it."""
+        key = (a, b, add)
+        found = self._numbers.get(key)
+        if found is None:
+            x, y = self.expression(a), self.expression(b)
+            found = self._numbers[key] = self.intern(x + y if add else x * y)
+        return found
 
     def _term(self, i: int) -> tuple[int, ...]:
         """A sum's term ``i`` as the constructor collects it: without its coefficient."""
@@ -219,15 +249,6 @@ class Dag:
         if self.kind[i] == _MUL:
             return tuple(sorted(c for c in args if self.kind[c] != _NUMBER))
         return (i,)
-
-    def _negated_symbol(self, i: int) -> bool:
-        args = self.args[i]
-        return (
-            self.kind[i] == _MUL
-            and len(args) == 2
-            and args[0] == self.minus_one
-            and self.kind[args[1]] == _SYMBOL
-        )
 
     def negated_atom(self, i: int) -> bool:
         """Whether node ``i`` is ``-x`` for a leaf ``x`` (printing it costs nothing)."""
@@ -467,19 +488,30 @@ class Dag:
         return kept, [self.substitute(e, rename, memo) for e in outputs]
 
     def occurrences(self, root: int, position: dict[int, int]) -> dict[int, int]:
-        """:func:`~.numbering._occurrences` on ids: each temporary's uses in ``root``."""
-        args = self.args
+        """:func:`~.numbering._occurrences` on ids: each temporary's uses in ``root``.
+
+        Temporaries are counted by their place in the program (``position``, symbol ->
+        place), from the symbols' counts in ``root``, which are kept: the kernels cut
+        from one program count the same values again.
+        """
+        counts = self._counts.get(root)
+        if counts is None:
+            args, kind = self.args, self.kind
+            counts = {}
+            stack = [root]
+            while stack:
+                node = stack.pop()
+                own = args[node]
+                if own:
+                    stack.extend(own)
+                elif kind[node] == _SYMBOL:
+                    counts[node] = counts.get(node, 0) + 1
+            self._counts[root] = counts
         found: dict[int, int] = {}
-        stack = [root]
-        while stack:
-            node = stack.pop()
-            own = args[node]
-            if own:
-                stack.extend(own)
-            else:
-                i = position.get(node)
-                if i is not None:
-                    found[i] = found.get(i, 0) + 1
+        for sym, times in counts.items():
+            i = position.get(sym)
+            if i is not None:
+                found[i] = times
         return found
 
     def inline_single_use(self, order: Program, outputs: list[int]) -> tuple[Program, list[int]]:
