@@ -244,6 +244,10 @@ def test_a_small_determinant_is_sympys_and_sized_alike() -> None:
             sized, decided = linalg.sized_det(converted, 400)
             sized = to_sympy(sized)
         native += expanded is not None and not expanded[1]
+        if expanded is not None:  # SymPy's size exactly, or a bound of its cancel form's
+            size = linalg._size(reference, 10_000)
+            own = linalg._size(expanded[0], 10_000)  # on SymEngine
+            assert own == size if not expanded[1] else linalg._cancelled_bound(expanded[0]) >= size
         assert found == reference
         assert decided == small
         assert sp.expand(sp.cancel(sized - reference)) == 0
