@@ -457,30 +457,37 @@ def test_dag_negation_reads_opposites_off_the_table() -> None:
         assert dag.negation(dag.intern(sx.sin(z))) == minus_sine
 
 
-def test_dag_renames_build_what_the_constructor_builds() -> None:
-    """A rename to a fresh symbol is made on ids (its expression built when asked); one
-    that makes terms or factors meet (x + 2*y, x*y**2 with x -> y) is built by the
-    constructor, which collects them."""
+def test_dag_substitutions_build_what_the_constructor_builds() -> None:
+    """A substitution that only renames, splices sums or products, or collects like
+    terms with rational coefficients is made on ids (its expression built when asked);
+    one that would make factors meet (x*y**2 with x -> y), cancel a sum whole or give a
+    function equal arguments is built by the engine's constructor."""
     with sx.using("symengine"):
         x, y, z, w = sx.symbols(["x", "y", "z", "w"])
         dag = Dag()
         cases = [
-            (x + sx.sin(z), w + sx.sin(z), True),
-            (x * y * z, w * y * z, True),
-            (sx.atan2(x, z), sx.atan2(w, z), True),
-            (x + 2 * y, 3 * y, False),
-            (x * y**2, y**3, False),
-            (x - y, sx.Integer(0), False),
+            (x + sx.sin(z), w, w + sx.sin(z), True),
+            (x * y * z, w, w * y * z, True),
+            (sx.atan2(x, z), w, sx.atan2(w, z), True),
+            (3 * x * y, -w, -3 * w * y, True),  # a sign goes to the coefficient
+            (x + z, -w, z - w, True),
+            (x + 2 * y + z, y, 3 * y + z, True),  # like terms collected
+            (x + 2 * w * z, w * z, 3 * w * z, True),
+            (y * x, y + z, y * (y + z), True),
+            (x - y + z, y - z, sx.Integer(0) + y - y, False),
+            (x * y**2, y, y**3, False),
+            (sx.atan2(x, y), y, sx.atan2(y, y), False),
+            (x + 0.5 * y, y, 1.5 * y, False),  # a float's sum is the engine's
         ]
-        for before, after, on_ids in cases:
+        for before, value, after, on_ids in cases:
             node = dag.intern(before)
-            target = w if on_ids else y
-            renamed = dag.substitute(node, {dag.intern(x): dag.intern(target)}, {})
-            assert (dag.expr[renamed] is None) == on_ids, before
-            assert dag.expression(renamed) == after
-        # A negated symbol: its sign goes to a product's coefficient, a sum's term.
-        for before, after in [(3 * x * y, -3 * w * y), (x + z, z - w), (x * z, -w * z)]:
-            renamed = dag.substitute(dag.intern(before), {dag.intern(x): dag.intern(-w)}, {})
-            assert dag.expr[renamed] is None, before
-            assert dag.expression(renamed) == after
-            assert dag.intern(after) == renamed
+            made = dag.substitute(node, {dag.intern(x): dag.intern(value)}, {})
+            assert (dag.expr[made] is None) == on_ids, before
+            assert dag.expression(made) == after, before
+            assert dag.intern(after) == made
+        # Splicing: a product into a product, a sum into a sum, numbers folded.
+        node = dag.intern(2 * x * z + 1)
+        made = dag.substitute(node, {dag.intern(x): dag.intern(3 * w * y)}, {})
+        assert dag.expression(made) == 6 * w * y * z + 1
+        made = dag.substitute(dag.intern(x + y + 1), {dag.intern(x): dag.intern(z + 2)}, {})
+        assert dag.expression(made) == y + z + 3

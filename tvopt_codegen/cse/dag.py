@@ -61,6 +61,9 @@ class Dag:
         self.one = self.intern(sx.Integer(1))
         self.zero = self.intern(sx.Integer(0))
         self._numbers: dict[tuple[int, int, bool], int] = {}  # (a, b, sum?) -> a + b or a*b
+        self._rational: dict[int, bool] = {}  # a number -> whether it is rational
+        # A product, whose constructor builds the products made on ids (_product).
+        self._mul = self.intern(sx.Integer(2) * sx.symbol("_dag"))
         self._below: dict[int, int] = {}
 
     def intern(self, expr: sx.Expr) -> int:
@@ -138,8 +141,10 @@ class Dag:
         """
         plain = self._plain(i, children)
         if plain is not None:
-            children = plain
             kind = self.kind[i]
+            if len(plain) == 1 and kind in (_ADD, _MUL):
+                return plain[0]  # a sum of one term, a product of one factor: that one
+            children = plain
             if kind in (_ADD, _MUL):
                 key: tuple[Any, ...] = (self._class[i], *sorted(children))
             else:
@@ -169,6 +174,9 @@ class Dag:
     def _plain(self, i: int, children: tuple[int, ...]) -> tuple[int, ...] | None:
         """Node ``i``'s children as its constructor would keep them, None if it would do more.
 
+        A sum's or product's one child alone is what its constructor returns (``-1*-s``
+        is ``s``).
+
         A sum splices the sums among its terms and adds up its numbers, then keeps its
         terms when no two share their factors (``2*s + s``, ``s - s`` collect). A
         product splices the products among its factors and multiplies its numbers,
@@ -192,19 +200,72 @@ class Dag:
         return None
 
     def _plain_sum(self, children: tuple[int, ...]) -> tuple[int, ...] | None:
-        """:meth:`_plain` for a sum."""
+        """:meth:`_plain` for a sum, like terms collected as SymEngine's ``Add`` does.
+
+        Only rational coefficients are added up here: a float's sum is the engine's.
+        """
         kind, args = self.kind, self.args
         number = self.zero
-        terms: list[int] = []
+        terms: dict[tuple[int, ...], int] = {}  # a term's factors -> the term
+        coefficients: dict[tuple[int, ...], int] = {}  # ... -> its coefficient, collected
         for c in children:
             for term in args[c] if kind[c] == _ADD else (c,):
                 if kind[term] == _NUMBER:
                     number = self._arithmetic(number, term, True)
-                else:
-                    terms.append(term)
-        if len(terms) < 2 or len({self._term(c) for c in terms}) < len(terms):
+                    continue
+                key = self._term(term)
+                own = args[term][0] if key != (term,) and kind[args[term][0]] == _NUMBER else None
+                coefficient = self.one if own is None else own
+                if key not in terms:
+                    terms[key] = term
+                    coefficients[key] = coefficient
+                    continue
+                known = coefficients[key]
+                if not (self._is_rational(known) and self._is_rational(coefficient)):
+                    return None
+                coefficients[key] = self._arithmetic(known, coefficient, True)
+                terms[key] = -1  # rebuilt below
+        kept: list[int] = []
+        for key, term in terms.items():
+            coefficient = coefficients[key]
+            if term >= 0:
+                kept.append(term)
+            elif coefficient == self.zero:
+                continue
+            elif coefficient == self.one and len(key) == 1:
+                if kind[key[0]] == _ADD:
+                    return None  # a sum as a term: the engine splices it
+                kept.append(key[0])
+            else:
+                made = self._product(key if coefficient == self.one else (coefficient, *key))
+                if made is None:
+                    return None
+                kept.append(made)
+        if not kept:
             return None
-        return tuple(terms) if number == self.zero else (number, *terms)
+        return tuple(kept) if number == self.zero else (number, *kept)
+
+    def _is_rational(self, number: int) -> bool:
+        found = self._rational.get(number)
+        if found is None:
+            found = self._rational[number] = bool(self.expression(number).is_Rational)
+        return found
+
+    def _product(self, children: tuple[int, ...]) -> int | None:
+        """The product of ``children`` (a coefficient first, then factors), made on ids.
+
+        None where the engine would do more (:meth:`_plain_product`).
+        """
+        plain = self._plain_product(children)
+        if plain != children:
+            return None
+        key = (self._class[self._mul], *sorted(children))
+        found = self._keys.get(key)
+        if found is None:
+            found = self._keys[key] = self._new(
+                None, children, _MUL, self._class[self._mul], self._head[self._mul], self._mul
+            )
+        return found
 
     def _plain_product(self, children: tuple[int, ...]) -> tuple[int, ...] | None:
         """:meth:`_plain` for a product."""
@@ -229,7 +290,7 @@ class Dag:
         if len(set(bases)) < len(bases) or number == self.zero or not factors:
             return None
         if number == self.one:
-            return tuple(factors) if len(factors) > 1 else None
+            return tuple(factors)
         if len(factors) == 1 and kind[factors[0]] == _ADD:
             return None  # a number times a sum: distributed
         return (number, *factors)
