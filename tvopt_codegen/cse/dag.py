@@ -4,13 +4,20 @@ On SymEngine every ``.args`` builds new Python objects, and a dictionary hit bet
 two distinct but equal expressions compares their trees in C++: the Python walks of
 :mod:`tvopt_codegen.cse.numbering` cost microseconds a node. Here a program is read
 once into a :class:`Dag`, where a node is an integer and equal subtrees share one id
-(keyed on the node's kind and its children's ids, cheap tuples of ints). Pruning,
-alias dropping, value numbering, merging, single-use counting and operation counts
-then work on ints. The engine is called only where a node's children change: the
-node is rebuilt by its constructor (:func:`~tvopt_codegen.cse.rewrite._rebuild`), so
-terms collect and cancel as they do in the expression walks, and the result is read
-back into the table. The passes are those of :mod:`~tvopt_codegen.cse.numbering`,
-step for step: the same kernels, in less time.
+(keyed on the node's class and its children's ids, cheap tuples of ints). Pruning,
+alias dropping, value numbering, merging (negations looked up on ids), single-use
+counting and operation counts then work on ints.
+
+Where a substitution changes a node's children, the node is made on ids when its
+constructor would only rename, splice nested sums or products, fold numbers or
+collect like terms with rational coefficients (:meth:`Dag._plain`); its expression
+is built when asked for, by the constructor, from its children's. Anything else
+(distributing a number over a sum, factors of one base meeting, a sum cancelling
+whole, a function's arguments becoming equal, float coefficients) is left to the
+engine's constructor (:func:`~tvopt_codegen.cse.rewrite._rebuild_symengine`) and the
+result read back into the table. The passes are those of
+:mod:`~tvopt_codegen.cse.numbering`, step for step: kernels of the same size, in less
+time.
 """
 
 from __future__ import annotations
