@@ -473,3 +473,22 @@ def test_the_read_back_comparison_evaluates_on_either_engine() -> None:
                 True,
                 False,
             ]
+
+
+@pytest.mark.parametrize(
+    "text", ["x**(1+sqrt(-4))", "(x+1)**(2000*sqrt(-1))", "0**sqrt(-4)", "(x+1)**(3*sqrt(-1)+70)"]
+)
+def test_complex_exponents_are_decided_alike_on_both_engines(text: str) -> None:
+    """SymEngine counts 2*I as a number and SymPy does not: the exponent bound is for reals."""
+    outcomes = []
+    for engine in ("sympy", "symengine"):
+        with sx.using(engine):
+            try:
+                expr = parse_expression(text, {"x": sx.symbol("x")})
+            except ExpressionError as error:
+                outcomes.append(("refused", str(error)))
+            else:
+                crossed = to_sympy(expr)
+                value = complex(crossed.subs({s: 0.7 for s in crossed.free_symbols}).evalf())
+                outcomes.append(("value", f"{value:.12g}"))
+    assert outcomes[0] == outcomes[1]
