@@ -420,3 +420,28 @@ def test_the_whole_derivation_decides_alike_on_symengine(name: str) -> None:
     np.testing.assert_allclose(d.objective.convexity.m_f, reference.objective.convexity.m_f, 1e-12)
     assert det is not None and theirs.det_R is not None
     _same_numbers([theirs.det_R], [det])
+
+
+def test_undefined_conditions_are_found_in_sympy_s_order_on_both_engines() -> None:
+    """Which conditions are listed, and in which order, is the same on both engines.
+
+    The walk visits arguments in SymPy's order on SymEngine too (whose own order follows
+    its hashes): with more conditions than are kept, the kept ones must not depend on it.
+    """
+    found = []
+    for engine in ("sympy", "symengine"):
+        with sx.using(engine):
+            a, b, c, d, e, f, g, x = sx.symbols(list("abcdefgx"))
+            expr = (
+                a / (b + 1)
+                + sx.tan(c) * d
+                + sx.log(e)
+                + 1 / (f - 2)
+                + sx.sqrt(g)
+                + 1 / (x * a + 3)
+                + sx.cot(b * c)
+                + 1 / (d + e)
+            )
+            found.append(undefined_causes([expr], {a, b, c, d, e, f, g, x}))
+    assert found[0] == found[1]
+    assert len(found[0]) == 6  # the cut at _MAX_UNDEFINED is reached

@@ -23,6 +23,7 @@ from typing import Any
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation.meter import TimeLimitError, time_limited, tree_size
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
+from tvopt_codegen.symbolic.order import sympy_ordered
 
 
 def _sympy() -> Any:
@@ -239,6 +240,7 @@ def undefined_causes(exprs: Sequence[sx.Expr], states: set[sx.Expr]) -> tuple[tu
     conditions: dict[str, str] = {}
     seen: set[Any] = set()
     memo: dict[Any, Any] = {}
+    keys: dict[Any, tuple[Any, ...]] = {}
     stack = [e for e in exprs if isinstance(e, sx.Basic)]
     while stack and len(conditions) < _MAX_UNDEFINED:
         node = stack.pop()
@@ -271,7 +273,9 @@ def undefined_causes(exprs: Sequence[sx.Expr], states: set[sx.Expr]) -> tuple[tu
         for condition, cause, value, never in found:
             if _engine_sign(value, memo) not in never:
                 conditions.setdefault(condition, cause)
-        stack.extend(reversed(node.args))
+        # In SymPy's order of arguments on both engines: which conditions are found
+        # first, and kept within _MAX_UNDEFINED, reaches the generated files.
+        stack.extend(reversed(sympy_ordered(node.args, keys)))
     return tuple(conditions.items())
 
 
