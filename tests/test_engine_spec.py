@@ -492,3 +492,15 @@ def test_complex_exponents_are_decided_alike_on_both_engines(text: str) -> None:
                 value = complex(crossed.subs({s: 0.7 for s in crossed.free_symbols}).evalf())
                 outcomes.append(("value", f"{value:.12g}"))
     assert outcomes[0] == outcomes[1]
+
+
+def test_a_constraint_is_infinitely_violated_outside_its_domain_on_both_engines() -> None:
+    """SymPy's lambdify raises where SymEngine's gives NaN: both read as +inf."""
+    from tvopt_codegen.spec.constraints import _violated_outside_domain
+
+    for engine in ("sympy", "symengine"):
+        with sx.using(engine):
+            y, t = sx.symbol("y"), sx.symbol("t")
+            g = _violated_outside_domain(sx.lambdify([[y], t], sx.log(y) - t, "math"))
+            assert g([-1.0], 0.0) == math.inf
+            assert g([math.e], 1.0) == pytest.approx(0.0, abs=1e-15)

@@ -26,6 +26,7 @@ violation, and ``s`` decays to 0 at the barrier's rate.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from fractions import Fraction
 from typing import Any
@@ -94,6 +95,23 @@ def barrier_objective(
     return f0 - mu * sx.Add(*(sx.log(slack - c.g) for c in constraints))
 
 
+def _violated_outside_domain(g: Any) -> Any:
+    """``g``, infinitely violated where it is undefined, alike on both engines.
+
+    SymPy's math-module lambdify raises outside a function's domain and SymEngine's
+    compiled one gives NaN, which compares false both ways and would pass for feasible.
+    """
+
+    def value(y: Any, t: float) -> float:
+        try:
+            found = float(g(y, t))
+        except (ValueError, ZeroDivisionError, OverflowError):
+            return math.inf
+        return found if math.isfinite(found) else math.inf
+
+    return value
+
+
 class Violation:
     """``min_y max_i g_i(y, t)`` (on the equalities) at any time, and per constraint.
 
@@ -112,9 +130,7 @@ class Violation:
 
         def function(constraint: Any) -> Any:
             expr = inline_signals(constraint.g, signals).xreplace(fixed).xreplace(at)
-            # SymPy's math-module lambdify, or SymEngine's compiled Lambdify (NaN outside
-            # a function's domain, where math raises).
-            return sx.lambdify([model.y, model.t], expr, "math")
+            return _violated_outside_domain(sx.lambdify([model.y, model.t], expr, "math"))
 
         self.functions = [function(c) for c in model.constraints]
         self.equal = [function(c) for c in model.equalities]
