@@ -117,7 +117,7 @@ def test_piecewise_pairs_and_function_names_agree() -> None:
 
 
 def test_the_command_line_offers_the_engines_without_loading_one() -> None:
-    assert entry_module.ENGINES == engine.ENGINES
+    assert entry_module.ENGINES == engine.ENGINES  # type: ignore[attr-defined]
     done = subprocess.run(
         [sys.executable, "-c", "import sys, tvopt_codegen.cli; print(sorted("
          "m for m in ('sympy', 'symengine', 'tvopt_codegen.symbolic') if m in sys.modules))"],
@@ -147,3 +147,44 @@ def test_an_unknown_engine_is_one_line_and_exit_2(
     assert done.returncode == 2
     assert done.stderr.count("\n") == 1
     assert message in done.stderr
+
+
+def test_a_user_function_named_like_a_builtin_stays_the_user_s() -> None:
+    import sympy as sp
+
+    with sx.using("symengine"):
+        x = sp.Symbol("x", real=True)
+        crossed = from_sympy(sp.Function("gamma")(x))
+        assert sx.function_name(crossed) == "gamma"
+        assert crossed != from_sympy(sp.gamma(x))
+
+
+def test_is_polynomial_cse_and_lambdify_agree_on_both_engines() -> None:
+    import itertools
+
+    results = []
+    for name in engine.ENGINES:
+        with sx.using(name):
+            x, y = sx.symbols(["x", "y"])
+            polynomial = [
+                sx.is_polynomial(e, [x, y])
+                for e in (x**2 * y + 3, x / y, sx.sin(x) * y, x ** sx.Rational(1, 2), 2**x)
+            ]
+            exprs = [sx.sin(x + y) * sx.cos(x + y), (x + y) ** 2 + sx.sin(x + y)]
+            names = (sx.symbol(f"_c{i}") for i in itertools.count())
+            replacements, reduced = sx.cse(exprs, names)
+            # The reduced expressions, with the replacements substituted back in order,
+            # are the expressions.
+            values = dict(replacements)
+            for _ in replacements:
+                reduced = [e.xreplace(values) for e in reduced]
+            assert [sx.expand(a - b) for a, b in zip(reduced, exprs, strict=True)] == [0, 0]
+            assert replacements  # x + y is common
+            f = sx.lambdify([x, y], exprs)
+            scalar = sx.lambdify([x, y], exprs[0], "math")
+            results.append((polynomial, [float(v) for v in f(0.3, -1.1)], float(scalar(0.3, -1.1))))
+    assert results[0][0] == results[1][0] == [True, False, False, False, False]
+    np = pytest.importorskip("numpy")
+    np.testing.assert_allclose(results[0][1], results[1][1], rtol=1e-14)
+    assert results[0][2] == pytest.approx(math.sin(-0.8) * math.cos(-0.8), rel=1e-14)
+    assert results[1][2] == pytest.approx(results[0][2], rel=1e-14)

@@ -199,26 +199,9 @@ def function_name(expr: Any) -> str:
     return type(expr).__name__
 
 
-def matrix(
-    rows: Sequence[Sequence[Any]] | Sequence[Any], shape: tuple[int, int] | None = None
-) -> Any:
-    """An immutable matrix of the engine, from nested rows (or a flat list and ``shape``)."""
-    if shape is not None:
-        n, m = shape
-        flat = list(rows)
-        rows = [flat[i * m : (i + 1) * m] for i in range(n)]
-    return _m.ImmutableMatrix(rows) if rows else _m.zeros(0, 0)
-
-
-def free_symbols(expr: Any) -> set[Any]:
-    """The symbols ``expr`` holds."""
-    return set(expr.free_symbols)
-
-
-def count_ops(expr: Any) -> int:
-    """The number of operations of ``expr``, as the engine counts them."""
-    return int(_m.count_ops(expr))
-
+def matrix(rows: Sequence[Sequence[Any]]) -> Any:
+    """An immutable matrix of the engine, from nested rows (0 x 0 when there are none)."""
+    return _m.ImmutableMatrix(rows) if rows else _m.ImmutableMatrix(_m.zeros(0, 0))
 
 def is_polynomial(expr: Any, symbols: Iterable[Any]) -> bool:
     """Whether ``expr`` is a polynomial in ``symbols``, as written (SymPy's ``is_polynomial``).
@@ -377,10 +360,8 @@ __all__ = [
     "ONE",
     "SYMENGINE",
     "ZERO",
-    "count_ops",
     "engine_version",
     "cse",
-    "free_symbols",
     "function_name",
     "is_polynomial",
     "is_piecewise",

@@ -127,12 +127,11 @@ def _from_sympy(node: Any, memo: dict[Any, Any], sp: Any, se: Any) -> Any:
             out = se.Mul(*args)
         elif node.is_Pow:
             out = se.Pow(*args)
+        elif isinstance(node.func, sp.core.function.UndefinedFunction):
+            # First: a user's function named gamma or beta is not SymEngine's.
+            out = se.Function(node.func.__name__)(*args)
         elif isinstance(node, sp.Function) and hasattr(se, node.func.__name__):
             out = getattr(se, node.func.__name__)(*args)
-        elif isinstance(node, sp.Function) and isinstance(
-            node.func, sp.core.function.UndefinedFunction
-        ):  # noqa: E501
-            out = se.Function(node.func.__name__)(*args)
         else:
             out = se.sympify(node.func(*[sp.sympify(a) for a in node.args]))
     memo[node] = out
