@@ -192,11 +192,14 @@ def _evaluate(expr: Any, env: dict[str, float], memo: dict[Any, Any]) -> Any:
 
 
 def _run(kernel: Kernel, seed: int, given: dict[str, list[float]] | None = None) -> list[float]:
-    """The kernel's outputs, flat, at random inputs (``given`` arrays by argument name)."""
-    rng = random.Random(seed)
+    """The kernel's outputs, flat, at random inputs (``given`` arrays by argument name).
+
+    Each input is drawn by its name: the jet and its ``jet_time`` (which reads a subset
+    of the jet's inputs, in another order) see the same parameters and time.
+    """
     env = {"t": 0.37}
     for arg in kernel.inputs:
-        drawn = [rng.uniform(0.2, 1.2) for _ in arg.symbols]
+        drawn = [random.Random(f"{seed} {sym}").uniform(0.2, 1.2) for sym in arg.symbols]
         env.update(zip(map(str, arg.symbols), (given or {}).get(arg.name, drawn), strict=True))
     for sym, value in kernel.body:
         env[str(sym)] = _evaluate(value, env, {})
@@ -211,7 +214,7 @@ def _values(kernels: list[Kernel], seed: int) -> Iterator[tuple[str, list[float]
     for kernel in kernels:
         # tau holds the terms of time and parameters as each engine's sums and products
         # split them (split_invariant): other terms, checked through the jet that adds
-        # them up.
+        # them up, at the jet's own time and parameters (_run).
         if kernel.name != "jet_time":
             yield kernel.name, _run(kernel, seed, tau)
 
