@@ -252,3 +252,23 @@ def test_a_small_determinant_is_sympys_and_sized_alike() -> None:
         assert decided == small
         assert sp.expand(sp.cancel(sized - reference)) == 0
     assert native > 20  # the path without SymPy was taken
+
+
+def test_a_4x4_det_is_simplified_or_not_alike_on_both_engines() -> None:
+    """Near the size limit, SymPy's own 4 x 4 det decides (SymEngine's terms differ)."""
+    import random
+
+    from tvopt_codegen.symbolic import linalg
+
+    rng = random.Random(4)
+    syms = sp.symbols("a b c d e f", real=True)
+
+    def entry() -> Any:
+        a, b = rng.choice(syms), rng.choice(syms)
+        return rng.choice([0, a, a * b, sp.sin(a), 1 + a, a - b, a**2 + b, 2 * a * sp.cos(b)])
+
+    for _ in range(60):
+        matrix = sp.ImmutableMatrix(4, 4, [entry() for _ in range(16)])
+        small = linalg._size(matrix.det(method="berkowitz"), 400) <= 400
+        with sx.using("symengine"):
+            assert linalg.sized_det(from_sympy(matrix), 400)[1] == small

@@ -68,7 +68,13 @@ def sized_det(matrix: Any, nodes: int) -> tuple[Any, bool]:
             if max(size, _cancelled_bound(value)) <= nodes:
                 return value, True
     value = det(matrix)
-    return value, _size(value, nodes) <= nodes
+    size = _size(value, 2 * nodes)
+    if sx.SYMENGINE and len(matrix.tolist()) >= 4 and nodes // 2 < size <= 2 * nodes:
+        # A 4 x 4's Berkowitz terms come out otherwise on SymEngine than on SymPy: near
+        # the limit, the size of SymPy's own (of a small matrix, at the border) decides,
+        # so that both engines simplify det R, or not, alike.
+        return value, _size(to_sympy(matrix).det(method="berkowitz"), nodes) <= nodes
+    return value, size <= nodes
 
 
 def _expanded(rows: list[list[Any]]) -> tuple[Any, bool] | None:
