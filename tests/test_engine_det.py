@@ -260,14 +260,14 @@ def test_a_4x4_det_is_simplified_or_not_alike_on_both_engines() -> None:
 
     from tvopt_codegen.symbolic import linalg
 
-    rng = random.Random(4)
+    rng = random.Random(11)  # its first 30 draws hold four matrices that once split
     syms = sp.symbols("a b c d e f", real=True)
 
     def entry() -> Any:
         a, b = rng.choice(syms), rng.choice(syms)
         return rng.choice([0, a, a * b, sp.sin(a), 1 + a, a - b, a**2 + b, 2 * a * sp.cos(b)])
 
-    for _ in range(60):
+    for _ in range(30):
         matrix = sp.ImmutableMatrix(4, 4, [entry() for _ in range(16)])
         small = linalg._size(matrix.det(method="berkowitz"), 400) <= 400
         with sx.using("symengine"):
