@@ -236,7 +236,7 @@ def test_a_small_determinant_is_sympys_and_sized_alike() -> None:
         n = int(rng.integers(2, 4))
         matrix = sp.ImmutableMatrix(n, n, [pool[k] for k in rng.integers(0, len(pool), n * n)])
         reference = matrix.det(method="berkowitz")
-        small = linalg._size(reference, 400) <= 400
+        small = sx.tree_size(reference, 400) <= 400
         with sx.using("symengine"):
             converted = from_sympy(matrix)
             expanded = linalg._expanded(converted.tolist())
@@ -245,8 +245,8 @@ def test_a_small_determinant_is_sympys_and_sized_alike() -> None:
             sized = to_sympy(sized)
         native += expanded is not None and not expanded[1]
         if expanded is not None:  # SymPy's size exactly, or a bound of its cancel form's
-            size = linalg._size(reference, 10_000)
-            own = linalg._size(expanded[0], 10_000)  # on SymEngine
+            size = sx.tree_size(reference, 10_000)
+            own = sx.tree_size(expanded[0], 10_000)  # on SymEngine
             assert own == size if not expanded[1] else linalg._cancelled_bound(expanded[0]) >= size
         assert found == reference
         assert decided == small
@@ -269,6 +269,6 @@ def test_a_4x4_det_is_simplified_or_not_alike_on_both_engines() -> None:
 
     for _ in range(30):
         matrix = sp.ImmutableMatrix(4, 4, [entry() for _ in range(16)])
-        small = linalg._size(matrix.det(method="berkowitz"), 400) <= 400
+        small = sx.tree_size(matrix.det(method="berkowitz"), 400) <= 400
         with sx.using("symengine"):
             assert linalg.sized_det(from_sympy(matrix), 400)[1] == small

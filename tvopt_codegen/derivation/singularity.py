@@ -22,20 +22,13 @@ from typing import Any
 
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation.meter import TimeLimitError, time_limited, tree_size
-from tvopt_codegen.symbolic.border import from_sympy, to_sympy
+from tvopt_codegen.symbolic.border import from_sympy, sympy, to_sympy
 from tvopt_codegen.symbolic.order import sympy_ordered
-
-
-def _sympy() -> Any:
-    """SymPy, for the border's few small expressions (det R, signs of factors)."""
-    import sympy  # noqa: PLC0415 - only the decisions need it, and only when they run
-
-    return sympy
 
 
 def _circular() -> tuple[Any, ...]:
     """SymPy's classes of circular and hyperbolic functions."""
-    sp = _sympy()
+    sp = sympy()
     return (
         sp.functions.elementary.trigonometric.TrigonometricFunction,
         sp.functions.elementary.hyperbolic.HyperbolicFunction,
@@ -69,7 +62,7 @@ def simplified_det(det: sx.Expr) -> sx.Expr:
         found = _monomial(det)
         if found is not None:
             return _monomial_expr(*found)
-    sp, circular = _sympy(), _circular()
+    sp, circular = sympy(), _circular()
     det = to_sympy(det)
     reduced = sp.cancel(det)
     if reduced.has(*circular):
@@ -90,7 +83,7 @@ def _one_circular_factor(expr: sx.Expr) -> bool:
     No identity shortens such a product, so ``simplify`` returns it as it is (tested), and
     the short path's form is the one it would give. ``expr`` is SymPy's.
     """
-    sp, circular = _sympy(), _circular()
+    sp, circular = sympy(), _circular()
     functions = 0
     for factor in sp.Mul.make_args(expr):
         base = factor.base if factor.is_Pow and factor.exp.is_Integer else factor
@@ -117,7 +110,7 @@ def _singular_set(det: sx.Expr) -> tuple[str, ...]:
         native = None if found is None else _monomial_conditions(*found)
         if native is not None:
             return native
-    sp = _sympy()
+    sp = sympy()
     numerator, _ = sp.fraction(sp.together(to_sympy(det)))
     if numerator.is_Number:
         return () if numerator != 0 else ("everywhere",)
@@ -151,7 +144,7 @@ def _sign(expr: sx.Expr) -> str | None:
     has its least value ``c - g^T Q^-1 g / 4`` (``x**2 - x*y + y**2 + 1`` is positive).
     ``expr`` is SymPy's (:func:`_engine_sign` takes the engine's).
     """
-    sp = _sympy()
+    sp = sympy()
     if tree_size(expr, _SIGN_NODES) > _SIGN_NODES:
         return None
     for candidate in (expr, -expr):
@@ -190,7 +183,7 @@ def _least_value(poly: Any, symbols: Sequence[Any]) -> Any:
 
     SymPy's ``Poly`` and ``Rational``.
     """
-    sp = _sympy()
+    sp = sympy()
     n = len(symbols)
     quadratic = sp.zeros(n, n)
     linear = sp.zeros(n, 1)
@@ -287,7 +280,7 @@ def _condition_text(expr: sx.Expr, memo: dict[Any, Any]) -> str:
     """
     if not sx.SYMENGINE:
         return sx.text(expr)
-    return str(_sympy().sstr(to_sympy(expr, memo)))
+    return str(sympy().sstr(to_sympy(expr, memo)))
 
 
 #: The signs of a value under which each kind of condition holds nowhere.

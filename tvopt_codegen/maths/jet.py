@@ -262,11 +262,6 @@ def _rebuild(node: sx.Expr, args: Sequence[sx.Expr]) -> sx.Expr:
     return node.func(*args)
 
 
-def _expression(value: sx.Expr) -> sx.Expr:
-    """``value`` as an expression of the engine, converted only if it is not one."""
-    return value if isinstance(value, sx.Basic) else sx.sympify(value)
-
-
 def _derivative(expr: sx.Expr, rates: Mapping[sx.Expr, sx.Expr]) -> sx.Expr:
     """Chain rule: ``sum_v (d expr / d v) * rates[v]`` over the symbols that move.
 
@@ -344,7 +339,7 @@ def total_derivative(
         fresh = next(names)
         new.append((fresh, rate))
         moving[sym] = fresh
-    derived = tuple(_derivative(_expression(e), moving) for e in outputs)
+    derived = tuple(_derivative(sx.as_expr(e), moving) for e in outputs)
     if check is not None:
         for e in derived:
             check(e)
@@ -432,7 +427,7 @@ def atomize(
         table[node] = symbol
         return symbol
 
-    outputs = tuple(visit(_expression(e)) for e in exprs)
+    outputs = tuple(visit(sx.as_expr(e)) for e in exprs)
     release(visit)
     return Program(tuple(out)), outputs
 
@@ -503,5 +498,5 @@ def jacobian(
             entries[j] = fresh
         if entries:
             tangent[sym] = entries
-    derived = tuple(propagate(_expression(e)) for e in outputs)
+    derived = tuple(propagate(sx.as_expr(e)) for e in outputs)
     return Program(tuple(new)), derived

@@ -81,7 +81,7 @@ class Sampler:
 
     def evaluate(self, expr: sx.Expr) -> np.ndarray:
         """Return the values of ``expr`` at the sample points (NaN where undefined)."""
-        expr = _expression(expr)
+        expr = sx.as_expr(expr)
         unknown = sorted(expr.free_symbols - self._known, key=lambda s: s.name)
         if unknown:
             raise ValueError(f"cannot sample {expr}: unknown symbols {unknown}")
@@ -100,10 +100,10 @@ class Sampler:
         """
         if expr == 0:
             return True
-        if not _expression(expr).free_symbols:
+        if not sx.as_expr(expr).free_symbols:
             # A constant clearly away from zero is not zero: no need of SymPy's simplify
             # (whose import alone is most of a small SymEngine run).
-            if _expression(expr).is_Number or abs(complex(_expression(expr))) > _CLEARLY_NONZERO:
+            if sx.as_expr(expr).is_Number or abs(complex(sx.as_expr(expr))) > _CLEARLY_NONZERO:
                 return False
             return _simplifies_to_zero(expr)
         values = self.evaluate(expr)
@@ -117,16 +117,11 @@ class Sampler:
 _CLEARLY_NONZERO = 1e-6
 
 
-def _expression(value: sx.Expr) -> sx.Expr:
-    """``value`` as an expression of the engine, converted only if it is not one."""
-    return value if isinstance(value, sx.Basic) else sx.sympify(value)
-
-
 def _simplifies_to_zero(expr: sx.Expr) -> bool:
     """Whether SymPy's ``simplify`` makes ``expr`` zero (the border: a small expression)."""
     import sympy  # noqa: PLC0415 - simplification is SymPy's alone
 
-    return bool(sympy.simplify(to_sympy(_expression(expr))) == 0)
+    return bool(sympy.simplify(to_sympy(sx.as_expr(expr))) == 0)
 
 
 def _lie_row(
@@ -145,7 +140,7 @@ def _lie_row(
     their index (``position``), in state order, not by a pass over all of them: that
     pass was quadratic in the team's size too.
     """
-    free = _expression(expr).free_symbols
+    free = sx.as_expr(expr).free_symbols
     drift = sx.Integer(0)
     row: dict[int, sx.Expr] = {}
     for i in sorted(position[s] for s in free if s in position):

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from tvopt_codegen import symbolic as sx
-from tvopt_codegen.symbolic.border import to_sympy
+from tvopt_codegen.symbolic.border import sympy, to_sympy
 
 #: Equations longer than this (LaTeX characters) are folded, shown in full on demand.
 FOLD_AT = 600
@@ -164,12 +164,6 @@ def _wide(node: Any) -> bool:
 _LATEX = {"mul_symbol": r"\,"}
 
 
-def _sympy() -> Any:
-    import sympy  # noqa: PLC0415 - the report is the border: SymPy when it is shown
-
-    return sympy
-
-
 def shown(expr: object) -> Any:
     """``expr`` as SymPy prints it: an engine expression or matrix converted, else sympified.
 
@@ -177,7 +171,7 @@ def shown(expr: object) -> Any:
     inlined gradient jet only under :data:`INLINE_OPS`); on the SymPy engine it is
     ``sympify`` as it always was.
     """
-    sp = _sympy()
+    sp = sympy()
     if sx.SYMENGINE and isinstance(expr, sx.Basic | sx.MatrixBase):
         value = to_sympy(expr)
         # The border keeps a double's every bit (17 digits); shown, it has the 15 digits
@@ -189,12 +183,12 @@ def shown(expr: object) -> Any:
 
 def plain(expr: object) -> str:
     """``expr`` (small: a weight, a slack) as SymPy's one-line text, on either engine."""
-    return str(_sympy().sstr(shown(expr)))
+    return str(sympy().sstr(shown(expr)))
 
 
 def count_ops(expr: object) -> int:
     """SymPy's operation count of what ``expr`` shows (the inlining cap's measure)."""
-    return int(_sympy().count_ops(shown(expr)))
+    return int(sympy().count_ops(shown(expr)))
 
 
 def _mathml(value: object) -> str:
@@ -214,7 +208,7 @@ def formula(expr: object, lhs: tuple[str, str] | None = None) -> Math:
     """
     value = shown(expr)
     # A thin space between factors: "jx\,jy" is two names where "jx jy" reads as jxjy.
-    latex = _sympy().latex(value, **_LATEX)
+    latex = sympy().latex(value, **_LATEX)
     markup = _mathml(value)
     if lhs is not None:
         latex = f"{lhs[0]} = {latex}"
@@ -229,7 +223,7 @@ def _name(latex: str, text: str) -> tuple[str, str]:
 
 def _math_entry(text: str, expr: object, lhs: tuple[str, str] | None = None) -> Entry:
     value = shown(expr)
-    if lhs is not None and isinstance(value, _sympy().MatrixBase):
+    if lhs is not None and isinstance(value, sympy().MatrixBase):
         size = value.rows * value.cols
         nonzero = [
             ((i, j), value[i, j])
@@ -261,7 +255,7 @@ def _math_entry(text: str, expr: object, lhs: tuple[str, str] | None = None) -> 
 
 def _entries(nonzero: Sequence[tuple[tuple[int, int], Any]], lhs: tuple[str, str]) -> Math:
     """``[M]_ij = value`` for each listed entry (SymPy's), one per line, in both notations."""
-    latex = _sympy().latex
+    latex = sympy().latex
     text = (
         r"\begin{aligned}"
         + r" \\ ".join(
@@ -280,7 +274,7 @@ def _entries(nonzero: Sequence[tuple[tuple[int, int], Any]], lhs: tuple[str, str
 
 
 def _smoothness(expr: sx.Expr) -> str:
-    used = sorted({type(f).__name__ for f in shown(expr).atoms(_sympy().Function)})
+    used = sorted({type(f).__name__ for f in shown(expr).atoms(sympy().Function)})
     restricted = [f for f in used if f not in ENTIRE]
     if not used:
         return "polynomial in t: C-infinity"

@@ -203,6 +203,7 @@ def matrix(rows: Sequence[Sequence[Any]]) -> Any:
     """An immutable matrix of the engine, from nested rows (0 x 0 when there are none)."""
     return _m.ImmutableMatrix(rows) if rows else _m.ImmutableMatrix(_m.zeros(0, 0))
 
+
 def is_polynomial(expr: Any, symbols: Iterable[Any]) -> bool:
     """Whether ``expr`` is a polynomial in ``symbols``, as written (SymPy's ``is_polynomial``).
 
@@ -268,6 +269,27 @@ def engine_version() -> str:
     Read from the package's metadata: the stamp of a SymEngine run imports no SymPy.
     """
     return f"{ENGINE} {importlib.metadata.version(ENGINE)}"
+
+
+def as_expr(value: Any) -> Any:
+    """``value`` as an expression of the engine (a Python number converted, else as is)."""
+    return value if isinstance(value, _m.Basic) else _m.sympify(value)
+
+
+def tree_size(expr: Any, limit: int) -> int:
+    """Nodes of ``expr``'s tree, counting at most ``limit + 1`` (so the count is cheap).
+
+    A plain stack: sympy's ``preorder_traversal`` costs a generator step per node, and
+    the budget meter sizes every expression the derivation builds.
+    """
+    count = 0
+    stack = [expr]
+    while stack:
+        count += 1
+        if count > limit:
+            break
+        stack.extend(stack.pop().args)
+    return count
 
 
 def text(expr: Any) -> str:
@@ -360,6 +382,7 @@ __all__ = [
     "ONE",
     "SYMENGINE",
     "ZERO",
+    "as_expr",
     "engine_version",
     "cse",
     "function_name",
@@ -373,5 +396,6 @@ __all__ = [
     "symbol",
     "symbols",
     "text",
+    "tree_size",
     "using",
 ]

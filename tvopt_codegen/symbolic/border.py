@@ -20,17 +20,18 @@ from typing import Any
 from tvopt_codegen import symbolic as sx
 
 
-def _sympy() -> Any:
-    import sympy  # noqa: PLC0415 - the border is the only place that needs it
+def sympy() -> Any:
+    """SymPy, imported when the border is first crossed (its import is 0.5-1.3 s)."""
+    import sympy as module  # noqa: PLC0415 - the border is the only place that needs it
 
-    return sympy
+    return module
 
 
 def to_sympy(expr: Any, memo: dict[Any, Any] | None = None) -> Any:
     """``expr`` (an expression or a matrix) as a SymPy expression, real symbols kept real."""
     if not sx.SYMENGINE:
         return expr
-    sp = _sympy()
+    sp = sympy()
     if isinstance(expr, sx.MatrixBase):
         rows, cols = expr.shape
         return sp.ImmutableMatrix(
@@ -89,7 +90,7 @@ def from_sympy(expr: Any, memo: dict[Any, Any] | None = None) -> Any:
 
     if isinstance(expr, symengine.Basic | symengine.MatrixBase):
         return expr
-    sp = _sympy()
+    sp = sympy()
     if isinstance(expr, sp.MatrixBase):
         rows, cols = expr.shape
         return symengine.ImmutableMatrix(
@@ -138,4 +139,4 @@ def _from_sympy(node: Any, memo: dict[Any, Any], sp: Any, se: Any) -> Any:
     return out
 
 
-__all__ = ["from_sympy", "to_sympy"]
+__all__ = ["from_sympy", "sympy", "to_sympy"]

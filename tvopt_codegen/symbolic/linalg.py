@@ -62,18 +62,18 @@ def sized_det(matrix: Any, nodes: int) -> tuple[Any, bool]:
         expanded = _expanded(matrix.tolist())
         if expanded is not None:
             value, fractions = expanded
-            size = _size(value, nodes)
+            size = sx.tree_size(value, nodes)
             if not fractions:
                 return value, size <= nodes
             if max(size, _cancelled_bound(value)) <= nodes:
                 return value, True
     value = det(matrix)
-    size = _size(value, 2 * nodes)
+    size = sx.tree_size(value, 2 * nodes)
     if sx.SYMENGINE and len(matrix.tolist()) >= 4 and nodes // 2 < size <= 2 * nodes:
         # A 4 x 4's Berkowitz terms come out otherwise on SymEngine than on SymPy: near
         # the limit, the size of SymPy's own (of a small matrix, at the border) decides,
         # so that both engines simplify det R, or not, alike.
-        return value, _size(to_sympy(matrix).det(method="berkowitz"), nodes) <= nodes
+        return value, sx.tree_size(to_sympy(matrix).det(method="berkowitz"), nodes) <= nodes
     return value, size <= nodes
 
 
@@ -138,20 +138,8 @@ def _cancelled_bound(expanded: Any) -> int:
                 atoms.add(node)
         else:
             stack.extend(node.args)
-    powers = sum(2 + _size(atom, 10_000) for atom in atoms)
+    powers = sum(2 + sx.tree_size(atom, 10_000) for atom in atoms)
     return 4 + (len(terms) + 1) * (2 + powers)
-
-
-def _size(expr: Any, limit: int) -> int:
-    """Nodes of ``expr``'s tree, counting at most ``limit + 1`` (the derivation's ``tree_size``)."""
-    count = 0
-    stack = [expr]
-    while stack:
-        count += 1
-        if count > limit:
-            break
-        stack.extend(stack.pop().args)
-    return count
 
 
 def _written_out(rows: list[list[Any]]) -> Any:
