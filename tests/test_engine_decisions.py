@@ -157,7 +157,7 @@ def test_det_r_and_its_singular_set_are_decided_alike(name: str) -> None:
 
 
 def test_det_r_of_decimal_gains_is_factored_to_the_same_text() -> None:
-    """The spec's decimals are doubles on SymEngine: the singular set's text is the same."""
+    """Decimal gains (exact rationals on both engines) give the same singular set's text."""
     test_det_r_and_its_singular_set_are_decided_alike(DECIMALS)
 
 
@@ -220,6 +220,7 @@ def test_the_decoupling_stage_gives_the_same_record(name: str) -> None:
 
 
 def test_a_decoupling_matrix_is_written_as_sympy_writes_it() -> None:
+    """On SymPy, as sstr writes it (SymEngine's messages keep its own order of terms)."""
     R = derivation("two_unicycles_barrier").linearization.R
     assert _rows_text(R) == sp.sstr(R.tolist())
 
