@@ -136,12 +136,13 @@ def _reduce_dag(
 ) -> tuple[Program, list[int]]:
     """:func:`_reduce` on SymEngine, over the ids of ``dag``: the same steps, on ints.
 
-    A program small enough for the engine's search (:data:`SMALL_PROGRAM_OPS`) is
-    searched once more after inlining, its temporaries named ``prefix`` apart from the
-    first search's. Inlining flattens products: SymEngine's derivation associates
-    ``pi*p0*g/p1`` as ``pi*(g/p1)`` times ``p0``, each a temporary used once, and the
-    products that result share ``pi*p0/p1``, which only a search of the inlined
-    program finds (a ring of four unicycles: 1920 operations, 1616 so; SymPy's 1735).
+    A program that may be searched and, inlined, is small enough for the engine's
+    search (:data:`SMALL_PROGRAM_OPS`) is searched (once more) after inlining, its
+    temporaries named ``prefix`` apart from the first search's. Inlining flattens
+    products: SymEngine's derivation associates ``pi*p0*g/p1`` as ``pi*(g/p1)`` times
+    ``p0``, each a temporary used once, and the products that result share
+    ``pi*p0/p1``, which only a search of the inlined program finds (a ring of four
+    unicycles: 1920 operations, 1616 so; SymPy's 1735).
     """
     kept, outs = dag.drop_aliases(dag.needed(program, outputs), outputs)
     exprs = [value for _, value in kept] + outs
@@ -178,7 +179,11 @@ def _reduce_dag(
         order, outs = dag.inline_single_use(order, outs)
         if len(order) == size:
             break
-    if searched and prefix == "_cse":
+    if (
+        search
+        and prefix == "_cse"
+        and dag.operations([value for _, value in order] + outs) <= SMALL_PROGRAM_OPS
+    ):
         return _reduce_dag(dag, order, outs, search, "_cse_again")
     return order, outs
 
