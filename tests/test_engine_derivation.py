@@ -32,43 +32,19 @@ from tvopt_codegen.maths.numeric import Evaluator
 from tvopt_codegen.spec import load_spec
 from tvopt_codegen.symbolic.border import to_sympy
 
+from .engine_cases import ON_A_LINE
+
 EXAMPLES = Path(__file__).resolve().parents[1] / "tvopt_codegen" / "examples"
 ENGINES = ("sympy", "symengine")
 #: Sample points per comparison.
 POINTS = 16
 
 
-#: A small plant under a time-varying equality, its f0 not quadratic: the KKT law.
-_ON_A_LINE = """
-name = "on_a_line"
-[system]
-states = ["x1", "x2"]
-inputs = ["u1", "u2"]
-[system.dynamics]
-x1 = "u1"
-x2 = "u2"
-[system.outputs]
-y1 = "x1"
-y2 = "x2"
-[parameters]
-w = 2.0
-[objective]
-f0 = "log(cosh(y1 - 1)) + 0.5*w*(y2 - sin(t))**2 + 0.1*y1**2"
-[constraints]
-line = "cos(0.1*t)*y1 + sin(0.1*t)*y2 == 1 + 0.1*t"
-[error_dynamics]
-poles = [-1.0]
-[simulation]
-t_final = 5.0
-initial_state = { x1 = 0.5, x2 = 0.2 }
-"""
-
-
 @functools.cache
 def _derived(name: str, engine: str) -> Derivation:
     with sx.using(engine):
         if name == "on_a_line":
-            return derive(tomllib.loads(_ON_A_LINE))
+            return derive(tomllib.loads(ON_A_LINE))
         return derive(load_spec(str(EXAMPLES / f"{name}.toml")))
 
 

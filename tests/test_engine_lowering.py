@@ -38,6 +38,8 @@ from tvopt_codegen.simulation import load_controller
 from tvopt_codegen.spec import Spec, spec_from_dict
 from tvopt_codegen.symbolic import border
 
+from .engine_cases import ON_A_LINE
+
 TESTS = Path(__file__).resolve().parent
 EXAMPLES = TESTS.parent / "tvopt_codegen" / "examples"
 #: PVTOL, the unicycle's switching objective and the arm's mass matrix (its LDL^T in the
@@ -57,37 +59,11 @@ NAMES = (
 )
 RELATIVE = 1e-12
 
-#: A small plant held on a moving line (an equality) with an objective that is not
-#: quadratic: the KKT law, its multiplier's pivots, the sweep's equality kernel.
-_ON_A_LINE = """
-name = "on_a_line"
-[system]
-states = ["x1", "x2"]
-inputs = ["u1", "u2"]
-[system.dynamics]
-x1 = "u1"
-x2 = "u2"
-[system.outputs]
-y1 = "x1"
-y2 = "x2"
-[parameters]
-w = 2.0
-[objective]
-f0 = "log(cosh(y1 - 1)) + 0.5*w*(y2 - sin(t))**2 + 0.1*y1**2"
-[constraints]
-line = "cos(0.1*t)*y1 + sin(0.1*t)*y2 == 1 + 0.1*t"
-[error_dynamics]
-poles = [-1.0]
-[simulation]
-t_final = 5.0
-initial_state = { x1 = 0.5, x2 = 0.2 }
-"""
-
 
 def spec(name: str) -> Spec:
     """The spec ``name`` on the process's engine: an example, a test spec, or one above."""
     if name == "on_a_line":
-        return spec_from_dict(tomllib.loads(_ON_A_LINE))
+        return spec_from_dict(tomllib.loads(ON_A_LINE))
     if name == "unicycle_eso":
         with (EXAMPLES / "unicycle_switch.toml").open("rb") as stream:
             data = tomllib.load(stream)

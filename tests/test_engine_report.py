@@ -15,9 +15,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import functools
-import os
 import re
-import subprocess
 import sys
 import types
 from collections.abc import Iterator
@@ -46,6 +44,7 @@ from tvopt_codegen.spec import load_spec
 from tvopt_codegen.symbolic.border import from_sympy
 
 from .conftest import ROOT, derivation, kernels
+from .engine_cases import run_on_symengine
 
 RELATIVE = 1e-12
 
@@ -461,14 +460,6 @@ def test_importing_simulation_runs_and_report_on_symengine_imports_no_sympy() ->
         "    importlib.import_module(name)\n"
         "print(sorted(m for m in sys.modules if m.split('.')[0] == 'sympy'))\n"
     )
-    env = {**os.environ, "TVOPT_CODEGEN_ENGINE": "symengine"}
-    ran = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=ROOT,
-        timeout=120,
-        check=True,
-    )
+    ran = run_on_symengine(code)
+    assert ran.returncode == 0, ran.stderr[-2000:]
     assert ran.stdout.strip() == "[]"

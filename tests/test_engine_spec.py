@@ -12,9 +12,6 @@ from __future__ import annotations
 
 import cmath
 import math
-import os
-import subprocess
-import sys
 from collections.abc import Callable, Iterator
 from types import SimpleNamespace
 from typing import Any
@@ -34,7 +31,7 @@ from tvopt_codegen.spec.implicit import implicit_values, mass_matrix_at
 from tvopt_codegen.spec.parse import ExpressionError, Indexing, parse_expression
 from tvopt_codegen.symbolic.border import to_sympy
 
-from .conftest import ROOT
+from .engine_cases import run_on_symengine
 
 EXAMPLES = sorted(bundled_examples())
 RELATIVE = 1e-12
@@ -378,16 +375,7 @@ def test_a_symengine_process_reads_specs_without_sympy() -> None:
         "assert 'sympy' not in sys.modules, sorted(m for m in sys.modules if 'sympy' in m)[:5]\n"
         "print('ok')\n"
     )
-    env = {**os.environ, "TVOPT_CODEGEN_ENGINE": "symengine"}
-    done = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=ROOT,
-        timeout=120,
-        check=False,
-    )
+    done = run_on_symengine(code)
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]
 
 
