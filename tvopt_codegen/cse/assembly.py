@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.cse.dag import Dag
@@ -256,12 +257,8 @@ def _make_kernels_dag(
             kernels, programs, parts, wheres, befores, strict=True
         ):
             order, reduced_ids = _reduce_dag(dag, mine, part, True)
-            body, reduced = _number_dag(dag, order, reduced_ids)
-            ops = dag.operations([v for _, v in order] + reduced_ids) + _constant_ops(outputs)
             made.append(
-                _package(
-                    name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before, ops
-                )
+                _dag_kernel(dag, order, reduced_ids, (name, doc, inputs, outputs), where, before)
             )
         return made
     whole, whole_outs = _reduce_dag(dag, ids, outs, False)
@@ -270,14 +267,27 @@ def _make_kernels_dag(
     ):
         mine_outs = whole_outs[end - size : end]
         order, reduced_ids = dag.inline_single_use(dag.needed(whole, mine_outs), mine_outs)
-        body, reduced = _number_dag(dag, order, reduced_ids)
-        ops = dag.operations([v for _, v in order] + reduced_ids) + _constant_ops(outputs)
         made.append(
-            _package(
-                name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before, ops
-            )
+            _dag_kernel(dag, order, reduced_ids, (name, doc, inputs, outputs), where, before)
         )
     return made
+
+
+def _dag_kernel(
+    dag: Dag,
+    order: Any,
+    reduced_ids: list[int],
+    kernel: tuple[str, str, Any, Any],
+    where: Sequence[int],
+    before: int,
+) -> Kernel:
+    """A kernel from its program on the DAG: numbered, counted and packaged."""
+    name, doc, inputs, outputs = kernel
+    body, reduced = _number_dag(dag, order, reduced_ids)
+    ops = dag.operations([v for _, v in order] + reduced_ids) + _constant_ops(outputs)
+    return _package(
+        name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before, ops
+    )
 
 
 #: Inputs that are the same for every state of a batch (one time, one parameter vector).

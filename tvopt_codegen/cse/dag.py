@@ -22,7 +22,7 @@ time.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 from tvopt_codegen import symbolic as sx
@@ -584,44 +584,60 @@ class Dag:
 
     def inline_single_use(self, order: Program, outputs: list[int]) -> tuple[Program, list[int]]:
         """:func:`~.numbering._inline_single_use` on ids."""
-        n = len(order)
-        values = [value for _, value in order] + list(outputs)
-        position = {sym: i for i, (sym, _) in enumerate(order)}
-        counts = [self.occurrences(value, position) for value in values]
-        uses = [0] * n
-        holders: list[set[int]] = [set() for _ in range(n)]
-        for i, count in enumerate(counts):
-            for j, times in count.items():
-                uses[j] += times
-                holders[j].add(i)
-        gone: set[int] = set()
-        wave = {i for i in range(n) if uses[i] <= 1}
-        while wave:
-            inline: dict[int, int] = {}
-            memo: dict[int, int] = {}
-            users: set[int] = set()
-            changed: set[int] = set()
-            for i in sorted(wave):
-                inline[order[i][0]] = self.substitute(values[i], inline, memo)
-                users |= holders[i]
-                gone.add(i)
-                changed |= counts[i].keys()
-                for j, times in counts[i].items():
-                    uses[j] -= times
-                    holders[j].discard(i)
-            for user in sorted(users - gone):
-                before = counts[user]
-                values[user] = self.substitute(values[user], inline, memo)
-                after = counts[user] = self.occurrences(values[user], position)
-                for j in before.keys() | after.keys():
-                    was, now = before.get(j, 0), after.get(j, 0)
-                    if was != now:
-                        uses[j] += now - was
-                        changed.add(j)
-                    if not now:
-                        holders[j].discard(user)
-                    elif not was:
-                        holders[j].add(user)
-            wave = {j for j in changed if j not in gone and uses[j] <= 1}
-        kept = [(order[i][0], values[i]) for i in range(n) if i not in gone]
-        return kept, values[n:]
+        return inline_waves(order, outputs, self.substitute, self.occurrences)
+
+
+def inline_waves(
+    order: Sequence[tuple[Any, Any]],
+    outputs: Sequence[Any],
+    substitute: Callable[[Any, dict[Any, Any], dict[Any, Any]], Any],
+    occurrences: Callable[[Any, dict[Any, int]], dict[int, int]],
+) -> tuple[list[tuple[Any, Any]], list[Any]]:
+    """Inline temporaries used once, wave after wave (:func:`.numbering._inline_single_use`).
+
+    The one algorithm for both representations: expressions (``substitute`` and
+    ``occurrences`` of :mod:`.numbering`) and the DAG's ids (:class:`Dag`'s).
+    """
+    n = len(order)
+    values: list[Any] = [value for _, value in order] + list(outputs)
+    position = {sym: i for i, (sym, _) in enumerate(order)}
+    counts = [occurrences(value, position) for value in values]
+    uses = [0] * n
+    holders: list[set[int]] = [set() for _ in range(n)]
+    for i, count in enumerate(counts):
+        for j, times in count.items():
+            uses[j] += times
+            holders[j].add(i)
+    gone: set[int] = set()
+    wave = {i for i in range(n) if uses[i] <= 1}
+    while wave:
+        inline: dict[Any, Any] = {}
+        # One memo for the wave: in evaluation order a node holds only earlier
+        # symbols, whose values are final when it is first met (as in _drop_aliases).
+        memo: dict[Any, Any] = {}
+        users: set[int] = set()
+        changed: set[int] = set()
+        for i in sorted(wave):
+            inline[order[i][0]] = substitute(values[i], inline, memo)
+            users |= holders[i]
+            gone.add(i)
+            changed |= counts[i].keys()
+            for j, times in counts[i].items():
+                uses[j] -= times
+                holders[j].discard(i)
+        for user in sorted(users - gone):
+            before = counts[user]
+            values[user] = substitute(values[user], inline, memo)
+            after = counts[user] = occurrences(values[user], position)
+            for j in before.keys() | after.keys():
+                was, now = before.get(j, 0), after.get(j, 0)
+                if was != now:
+                    uses[j] += now - was
+                    changed.add(j)
+                if not now:
+                    holders[j].discard(user)
+                elif not was:
+                    holders[j].add(user)
+        wave = {j for j in changed if j not in gone and uses[j] <= 1}
+    kept = [(order[i][0], values[i]) for i in range(n) if i not in gone]
+    return kept, values[n:]

@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator, Sequence
 
 from tvopt_codegen import symbolic as sx
-from tvopt_codegen.cse.dag import Dag, Program
+from tvopt_codegen.cse.dag import Dag, Program, inline_waves
 from tvopt_codegen.cse.rewrite import (
     _NEGATED_TERMS,
     _expr,
@@ -463,49 +463,7 @@ def _inline_single_use(
     substitutes into the expressions the last one changed, until no temporary is used
     once.
     """
-    n = len(order)
-    values: list[sx.Expr] = [value for _, value in order] + list(outputs)
-    position = {sym: i for i, (sym, _) in enumerate(order)}
-    counts = [_occurrences(value, position) for value in values]
-    uses = [0] * n
-    holders: list[set[int]] = [set() for _ in range(n)]
-    for i, count in enumerate(counts):
-        for j, times in count.items():
-            uses[j] += times
-            holders[j].add(i)
-    gone: set[int] = set()
-    wave = {i for i in range(n) if uses[i] <= 1}
-    while wave:
-        inline: dict[sx.Expr, sx.Expr] = {}
-        # One memo for the wave: in evaluation order a node holds only earlier
-        # symbols, whose values are final when it is first met (as in _drop_aliases).
-        memo: dict[sx.Expr, sx.Expr] = {}
-        users: set[int] = set()
-        changed: set[int] = set()
-        for i in sorted(wave):
-            inline[order[i][0]] = _substitute(values[i], inline, memo)
-            users |= holders[i]
-            gone.add(i)
-            changed |= counts[i].keys()
-            for j, times in counts[i].items():
-                uses[j] -= times
-                holders[j].discard(i)
-        for user in sorted(users - gone):
-            before = counts[user]
-            values[user] = _substitute(values[user], inline, memo)
-            after = counts[user] = _occurrences(values[user], position)
-            for j in before.keys() | after.keys():
-                was, now = before.get(j, 0), after.get(j, 0)
-                if was != now:
-                    uses[j] += now - was
-                    changed.add(j)
-                if not now:
-                    holders[j].discard(user)
-                elif not was:
-                    holders[j].add(user)
-        wave = {j for j in changed if j not in gone and uses[j] <= 1}
-    kept = [(order[i][0], values[i]) for i in range(n) if i not in gone]
-    return kept, values[n:]
+    return inline_waves(order, outputs, _substitute, _occurrences)
 
 
 def _cse_index(sym: sx.Expr, prefix: str = "_cse") -> int:
