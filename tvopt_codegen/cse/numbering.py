@@ -5,7 +5,8 @@ Value numbering, merging equal values and inlining values used once.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import Any
 
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.cse.dag import Dag, Program, inline_waves
@@ -155,30 +156,14 @@ def _reduce_dag(
     else:
         replacements, reduced = dag.value_numbering(exprs, names)
     defined = dict(replacements)
-    order: Program = []
-    emitted: set[int] = set()
 
-    def need(expr: int) -> None:
-        missing = [s for s in dag.leaves(expr, defined) if s not in emitted]
-        for sym in sorted(missing, key=lambda s: _cse_index(dag.expr[s], prefix)):
-            need(defined[sym])
-            if sym not in emitted:
-                emitted.add(sym)
-                order.append((sym, defined[sym]))
+    def missing(expr: int, emitted: set[int]) -> list[int]:
+        return [s for s in dag.leaves(expr, defined) if s not in emitted]
 
-    for (sym, _), value in zip(kept, reduced[: len(kept)], strict=True):
-        need(value)
-        order.append((sym, value))
-    for value in reduced[len(kept) :]:
-        need(value)
-    release(need)
-    outs = list(reduced[len(kept) :])
-    while True:
-        order, outs = dag.merge_equal(order, outs)
-        size = len(order)
-        order, outs = dag.inline_single_use(order, outs)
-        if len(order) == size:
-            break
+    order, outs = _emitted(
+        kept, reduced, defined, missing, lambda s: _cse_index(dag.expr[s], prefix)
+    )
+    order, outs = _merged_and_inlined(order, outs, dag.merge_equal, dag.inline_single_use)
     if (
         search
         and prefix == "_cse"
@@ -216,14 +201,36 @@ def _reduce(
     else:
         replacements, reduced = _value_numbering(exprs, names)
     defined = dict(replacements)
-    order: list[Assignment] = []
-    emitted: set[sx.Expr] = set()
 
-    def need(expr: sx.Expr) -> None:
+    def missing(expr: sx.Expr, emitted: set[sx.Expr]) -> list[sx.Expr]:
         # Not free_symbols & defined.keys() - emitted: "-" binds first, and the difference
         # of the two large sets, once per value, was quadratic in the program's size.
-        missing = [s for s in expr.free_symbols if s in defined and s not in emitted]
-        for sym in sorted(missing, key=_cse_index):
+        return [s for s in expr.free_symbols if s in defined and s not in emitted]
+
+    order, outs = _emitted(kept, reduced, defined, missing, _cse_index)
+    order, outs = _merged_and_inlined(order, outs, _merge_equal, _inline_single_use)
+    return order, outs
+
+
+def _emitted(
+    kept: Sequence[tuple[Any, Any]],
+    reduced: Sequence[Any],
+    defined: dict[Any, Any],
+    missing: Callable[[Any, set[Any]], list[Any]],
+    index: Callable[[Any], int],
+) -> tuple[list[tuple[Any, Any]], list[Any]]:
+    """The reduced program in evaluation order, each temporary before its first reader.
+
+    ``kept`` are the program's assignments and ``reduced`` their values then the
+    outputs, after the search; ``defined`` the search's temporaries, ``missing`` those an
+    expression reads that are not yet emitted, ``index`` their order. The same steps on
+    expressions (SymPy's path) and on the DAG's ids (SymEngine's).
+    """
+    order: list[tuple[Any, Any]] = []
+    emitted: set[Any] = set()
+
+    def need(expr: Any) -> None:
+        for sym in sorted(missing(expr, emitted), key=index):
             need(defined[sym])
             if sym not in emitted:
                 emitted.add(sym)
@@ -235,18 +242,28 @@ def _reduce(
     for value in reduced[len(kept) :]:
         need(value)
     release(need)
-    outs = list(reduced[len(kept) :])
-    # Merging equal values can leave a temporary with one use, and inlining can make
-    # two values equal: alternate to a fixed point (two rounds in practice). Each pass
-    # reaches its own fixed point, and inlining changes the program exactly when it
-    # removes a temporary: a round whose inlining removed none ends the loop.
+    return order, list(reduced[len(kept) :])
+
+
+def _merged_and_inlined(
+    order: list[tuple[Any, Any]],
+    outs: list[Any],
+    merge: Callable[..., tuple[list[tuple[Any, Any]], list[Any]]],
+    inline: Callable[..., tuple[list[tuple[Any, Any]], list[Any]]],
+) -> tuple[list[tuple[Any, Any]], list[Any]]:
+    """Merge equal values and inline single uses, alternately, to a fixed point.
+
+    Merging equal values can leave a temporary with one use, and inlining can make two
+    values equal (two rounds in practice). Each pass reaches its own fixed point, and
+    inlining changes the program exactly when it removes a temporary: a round whose
+    inlining removed none ends the loop.
+    """
     while True:
-        order, outs = _merge_equal(order, outs)
+        order, outs = merge(order, outs)
         size = len(order)
-        order, outs = _inline_single_use(order, outs)
+        order, outs = inline(order, outs)
         if len(order) == size:
-            break
-    return order, outs
+            return order, outs
 
 
 def _number(
