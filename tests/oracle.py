@@ -10,14 +10,19 @@ the states ``nu_<name>_0 .. nu_<name>_<k-1>`` by name.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 import pytest
 import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import Derivation
+from tvopt_codegen.symbolic.border import to_sympy
 
 
 def naive_total_derivative(expr: sp.Expr, t: sp.Symbol, jets: list[list[sp.Symbol]]) -> sp.Expr:
@@ -29,10 +34,51 @@ def naive_total_derivative(expr: sp.Expr, t: sp.Symbol, jets: list[list[sp.Symbo
     return out
 
 
+def sympy_twin(d: Any) -> Any:
+    """``d`` with every SymEngine expression in it converted to SymPy (as it is on SymPy).
+
+    The oracle computes with SymPy whatever engine derived the law: its inputs cross
+    the border once, through one memo, so that a symbol is the same object everywhere.
+    """
+    if not sx.SYMENGINE:
+        return d
+    memo: dict[Any, Any] = {}
+    seen: dict[int, Any] = {}
+
+    def convert(value: Any) -> Any:
+        if isinstance(value, sx.Basic | sx.MatrixBase):
+            return to_sympy(value, memo)
+        key = id(value)
+        if key in seen:
+            return seen[key]
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            changes = {
+                f.name: convert(getattr(value, f.name)) for f in dataclasses.fields(value) if f.init
+            }
+            out = copy.copy(value)
+            for name, new in changes.items():
+                object.__setattr__(out, name, new)
+        elif isinstance(value, tuple) and type(value) is tuple:
+            out = tuple(convert(v) for v in value)
+        elif isinstance(value, list):
+            out = [convert(v) for v in value]
+        elif isinstance(value, dict):
+            out = {convert(k): convert(v) for k, v in value.items()}
+        elif isinstance(value, frozenset | set):
+            out = type(value)(convert(v) for v in value)
+        else:
+            out = value
+        seen[key] = out
+        return out
+
+    return convert(d)
+
+
 class Oracle:
     """Numerical functions of the law for one derivation, vectorized over states."""
 
     def __init__(self, d: Derivation) -> None:
+        d = sympy_twin(d)
         self.d = d
         model = d.model
         t, k, m = model.t, d.dynamics.k, len(model.y)
