@@ -42,6 +42,7 @@ from tvopt_codegen.symbolic import linalg
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
 from .conftest import SPECS, derivation
+from .test_trust import GEOFENCE as TRUST_GEOFENCE
 
 #: Bundled examples with det R expanded (m <= 4), two with a mass matrix.
 EXAMPLES = (
@@ -333,34 +334,7 @@ def test_the_disturbance_observers_rows_of_g_are_the_same(name: str) -> None:
 
 
 #: A unicycle kept inside a disc while it follows a point on a circle (tests/test_trust.py's).
-GEOFENCE = """name = "geofence"
-[system]
-states = ["px", "py", "theta"]
-inputs = ["v", "omega"]
-[system.dynamics]
-px = "v*cos(theta)"
-py = "v*sin(theta)"
-theta = "omega"
-[system.outputs]
-y1 = "px"
-y2 = "py"
-[extension]
-integrate = { v = 1 }
-[signals]
-ox = "4*cos(0.3*t)"
-oy = "4*sin(0.3*t)"
-[objective]
-f0 = "(y1 - ox)**2 + (y2 - oy)**2"
-[constraints]
-fence = "y1**2 + y2**2 <= 9"
-[constraints.barrier]
-final_weight = 1e-3
-[error_dynamics]
-poles = [-1.0, -1.5]
-[simulation]
-t_final = 20.0
-initial_state = { px = 0.0, py = -1.0, theta = 0.0, v = 1.0 }
-"""
+GEOFENCE = TRUST_GEOFENCE.format(fence="y1**2 + y2**2 <= 9", y0=-1.0)
 
 
 def _refusal(data: dict[str, Any]) -> str:
