@@ -9,7 +9,6 @@ every run.
 
 from __future__ import annotations
 
-import math
 import os
 import random
 import subprocess
@@ -28,6 +27,7 @@ from tvopt_codegen.lowering.kernel import Arg, Kernel
 from tvopt_codegen.symbolic.border import from_sympy
 
 from .conftest import ROOT, derivation
+from .engine_cases import float_value
 
 #: A recorded call: its kind (``kernel``, ``kernels``, ``split``), arguments, result.
 Call = tuple[str, tuple[Any, ...], Any]
@@ -131,66 +131,6 @@ def _recorded(calls: list[Call]) -> list[Kernel]:
     return kernels
 
 
-_FUNCTIONS: dict[str, Callable[..., float]] = {
-    "sin": math.sin,
-    "cos": math.cos,
-    "tan": math.tan,
-    "sinh": math.sinh,
-    "cosh": math.cosh,
-    "tanh": math.tanh,
-    "asin": math.asin,
-    "acos": math.acos,
-    "atan": math.atan,
-    "atan2": math.atan2,
-    "exp": math.exp,
-    "log": math.log,
-    "Abs": abs,
-    "sign": lambda v: float((v > 0) - (v < 0)),
-    "Max": max,
-    "Min": min,
-}
-_RELATIONS: dict[str, Callable[[float, float], bool]] = {
-    "StrictLessThan": lambda a, b: a < b,
-    "LessThan": lambda a, b: a <= b,
-    "StrictGreaterThan": lambda a, b: a > b,
-    "GreaterThan": lambda a, b: a >= b,
-}
-_CONSTANTS = {"pi": math.pi, "E": math.e, "True": True, "true": True}
-
-
-def _evaluate(expr: Any, env: dict[str, float], memo: dict[Any, Any]) -> Any:
-    """``expr`` in floats, symbols read from ``env`` by name (either engine)."""
-    if expr in memo:
-        return memo[expr]
-    kind = type(expr).__name__
-    if expr.is_Symbol:
-        value: Any = env[str(expr)]
-    elif expr.is_Number:
-        value = float(expr)
-    elif not expr.args:
-        value = _CONSTANTS[str(expr)]
-    elif sx.is_piecewise(expr):
-        value = next(
-            _evaluate(v, env, memo) for v, c in sx.piecewise_pairs(expr) if _evaluate(c, env, memo)
-        )
-    else:
-        args = [_evaluate(arg, env, memo) for arg in expr.args]
-        if expr.is_Add:
-            value = math.fsum(args)
-        elif expr.is_Mul:
-            value = math.prod(args)
-        elif expr.is_Pow:
-            value = args[0] ** args[1]
-        elif kind in _RELATIONS:
-            value = _RELATIONS[kind](*args)
-        elif kind in ("And", "Or"):
-            value = all(args) if kind == "And" else any(args)
-        else:
-            value = _FUNCTIONS[sx.function_name(expr)](*args)
-    memo[expr] = value
-    return value
-
-
 def _run(kernel: Kernel, seed: int, given: dict[str, list[float]] | None = None) -> list[float]:
     """The kernel's outputs, flat, at random inputs (``given`` arrays by argument name).
 
@@ -202,9 +142,9 @@ def _run(kernel: Kernel, seed: int, given: dict[str, list[float]] | None = None)
         drawn = [random.Random(f"{seed} {sym}").uniform(0.2, 1.2) for sym in arg.symbols]
         env.update(zip(map(str, arg.symbols), (given or {}).get(arg.name, drawn), strict=True))
     for sym, value in kernel.body:
-        env[str(sym)] = _evaluate(value, env, {})
+        env[str(sym)] = float_value(value, env, {}, str)
     memo: dict[Any, Any] = {}
-    return [_evaluate(e, env, memo) for out in kernel.outputs for e in out.exprs]
+    return [float_value(e, env, memo, str) for out in kernel.outputs for e in out.exprs]
 
 
 def _values(kernels: list[Kernel], seed: int) -> Iterator[tuple[str, list[float]]]:
@@ -271,12 +211,12 @@ def test_symengine_merges_mirrored_differences_and_odd_functions() -> None:
         point = {"t": 0.3, "x": 1.7, "y": -0.4, "z": 0.9, "a": 0.2}
         env = dict(point)
         for sym, value in program:
-            env[str(sym)] = _evaluate(value, env, {})
-        want = [_evaluate(o, env, {}) for o in outputs]
+            env[str(sym)] = float_value(value, env, {}, str)
+        want = [float_value(o, env, {}, str) for o in outputs]
         env = dict(point)
         for sym, value in body:
-            env[str(sym)] = _evaluate(value, env, {})
-        assert [_evaluate(o, env, {}) for o in outs] == pytest.approx(want, rel=1e-14)
+            env[str(sym)] = float_value(value, env, {}, str)
+        assert [float_value(o, env, {}, str) for o in outs] == pytest.approx(want, rel=1e-14)
 
 
 def test_symengine_inlining_collects_terms_as_sympy_does() -> None:
@@ -383,8 +323,8 @@ def _dag_program(seed: int, size: int) -> tuple[list[tuple[Any, Any]], list[Any]
 def _program_values(program: Any, outputs: Any, point: dict[str, float]) -> list[float]:
     env = dict(point)
     for sym, value in program:
-        env[str(sym)] = _evaluate(value, env, {})
-    return [_evaluate(o, env, {}) for o in outputs]
+        env[str(sym)] = float_value(value, env, {}, str)
+    return [float_value(o, env, {}, str) for o in outputs]
 
 
 def test_dag_cse_computes_the_expression_walks_values_in_as_few_operations() -> None:

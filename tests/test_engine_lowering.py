@@ -21,7 +21,7 @@ import math
 import random
 import tomllib
 import types
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +38,7 @@ from tvopt_codegen.simulation import load_controller
 from tvopt_codegen.spec import Spec, spec_from_dict
 from tvopt_codegen.symbolic import border
 
-from .engine_cases import ON_A_LINE
+from .engine_cases import ON_A_LINE, float_value
 
 TESTS = Path(__file__).resolve().parent
 EXAMPLES = TESTS.parent / "tvopt_codegen" / "examples"
@@ -141,98 +141,6 @@ def lowered(name: str, engine: str, source: str = "converted") -> KernelSet:
         return lower(SOURCES[source](name))
 
 
-# The float walk: what a backend's printer would make of a kernel, read from the tree.
-
-_UNARY: dict[str, Callable[[float], float]] = {
-    "sin": math.sin,
-    "cos": math.cos,
-    "tan": math.tan,
-    "asin": math.asin,
-    "acos": math.acos,
-    "atan": math.atan,
-    "sinh": math.sinh,
-    "cosh": math.cosh,
-    "tanh": math.tanh,
-    "asinh": math.asinh,
-    "acosh": math.acosh,
-    "atanh": math.atanh,
-    "exp": math.exp,
-    "log": math.log,
-    "sqrt": math.sqrt,
-    "Abs": abs,
-    "sign": lambda v: float((v > 0) - (v < 0)),
-    "cot": lambda v: 1 / math.tan(v),
-    "sec": lambda v: 1 / math.cos(v),
-    "csc": lambda v: 1 / math.sin(v),
-    "coth": lambda v: 1 / math.tanh(v),
-    "sech": lambda v: 1 / math.cosh(v),
-    "csch": lambda v: 1 / math.sinh(v),
-}
-_RELATIONS: dict[str, Callable[[float, float], bool]] = {
-    "StrictLessThan": lambda a, b: a < b,
-    "LessThan": lambda a, b: a <= b,
-    "StrictGreaterThan": lambda a, b: a > b,
-    "GreaterThan": lambda a, b: a >= b,
-    "Equality": lambda a, b: a == b,
-    "Unequality": lambda a, b: a != b,
-}
-
-
-def value(node: Any, env: Mapping[Any, float], memo: dict[Any, Any]) -> Any:
-    """``node`` in floats (a bool for a condition), its symbols' values in ``env``."""
-    done = memo.get(node)
-    if done is not None:
-        return done
-    kind = type(node).__name__
-    if node.is_Symbol:
-        out: Any = env[node]
-    elif kind in ("BooleanTrue", "BooleanAtom") and bool(node):
-        out = True
-    elif kind in ("BooleanTrue", "BooleanFalse", "BooleanAtom"):
-        out = kind == "BooleanTrue"
-    elif node.is_Number or node in (sx.pi, sx.E):
-        out = float(node)
-    elif sx.is_piecewise(node):
-        out = math.nan
-        for piece, condition in sx.piecewise_pairs(node):
-            if value(condition, env, memo):
-                out = value(piece, env, memo)
-                break
-    else:
-        args = [value(arg, env, memo) for arg in node.args]
-        if node.is_Add:
-            out = math.fsum(args)
-        elif node.is_Mul:
-            out = math.prod(args)
-        elif node.is_Pow:
-            out = _power(*args)
-        elif kind in _RELATIONS:
-            out = _RELATIONS[kind](*args)
-        elif kind == "And":
-            out = all(args)
-        elif kind == "Or":
-            out = any(args)
-        elif kind == "Not":
-            out = not args[0]
-        else:
-            name = sx.function_name(node)
-            if name == "atan2":
-                out = math.atan2(*args)
-            elif name in ("Max", "Min"):
-                out = max(args) if name == "Max" else min(args)
-            else:
-                out = _UNARY[name](*args)
-    memo[node] = out
-    return out
-
-
-def _power(base: float, exponent: float) -> float:
-    try:
-        return float(base**exponent)
-    except (OverflowError, ZeroDivisionError):
-        return math.inf
-
-
 def run(kernel: Kernel, inputs: Mapping[str, float], tau: list[float]) -> dict[str, list[float]]:
     """Evaluate ``kernel`` at slot values given by slot name: its outputs, flat.
 
@@ -248,9 +156,9 @@ def run(kernel: Kernel, inputs: Mapping[str, float], tau: list[float]) -> dict[s
             env[symbol] = inputs[str(symbol)]
     memo: dict[Any, Any] = {}
     for target, expr in kernel.body:
-        env[target] = value(expr, env, memo)
+        env[target] = float_value(expr, env, memo)
     return {
-        out.name: [float(value(sx.sympify(e), env, memo)) for e in out.exprs]
+        out.name: [float(float_value(sx.sympify(e), env, memo)) for e in out.exprs]
         for out in kernel.outputs
     }
 
