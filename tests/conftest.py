@@ -29,6 +29,7 @@ from types import ModuleType
 import pytest
 from hypothesis import settings
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import Derivation, derive
 from tvopt_codegen.lowering.ir import KernelSet, lower
 from tvopt_codegen.renderer.rendering import render
@@ -66,14 +67,39 @@ ALL_SPECS = (
 )
 
 
-@functools.cache
 def derivation(spec: str) -> Derivation:
+    """``spec``'s derivation on the engine in use, derived once per engine."""
+    return _derivation(spec, sx.ENGINE)
+
+
+def kernels(spec: str) -> KernelSet:
+    """``spec``'s kernels on the engine in use, lowered once per engine."""
+    return _kernels(spec, sx.ENGINE)
+
+
+@functools.cache
+def _derivation(spec: str, engine: str) -> Derivation:
     return derive(load_spec(spec))
 
 
 @functools.cache
-def kernels(spec: str) -> KernelSet:
-    return lower(derivation(spec))
+def _kernels(spec: str, engine: str) -> KernelSet:
+    return lower(_derivation(spec, engine))
+
+
+@pytest.fixture(autouse=True)
+def _engine_of_the_test(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Run a test marked ``engine("sympy")`` on that engine, the default on any other.
+
+    SymEngine is the default; the tests that hold SymPy's own trees (the reference
+    engine's texts, hand-built SymPy expressions) name the engine they were written on.
+    """
+    marker = request.node.get_closest_marker("engine")
+    if marker is None:
+        yield
+        return
+    with sx.using(marker.args[0]):
+        yield
 
 
 _BUILD = Path(tempfile.mkdtemp(prefix="tvopt-test-modules-"))

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 #: The symbolic engines (``tvopt_codegen.symbolic``), the default first, and the
 #: environment variable that names one: here, below the API, so that the command line
 #: can offer them without importing it (importing it binds an engine).
-ENGINES = ("sympy", "symengine")
+ENGINES = ("symengine", "sympy")
 ENGINE_VARIABLE = "TVOPT_CODEGEN_ENGINE"
 
 #: Longest simulation horizon: a run is integrated and sampled step by step, so a
