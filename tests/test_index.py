@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.derivation.law import diagonal_blocks
 from tvopt_codegen.errors import SpecError
 from tvopt_codegen.lowering.ir import lower
-from tvopt_codegen.spec import load_spec, parse_spec
+from tvopt_codegen.spec import Spec, load_spec, parse_spec
 
 
 def ring_text(agents: int) -> str:
@@ -21,7 +22,7 @@ def ring_text(agents: int) -> str:
     return re.sub(r"(?m)^i = \d+", f"i = {agents}", text)
 
 
-def ring(agents: int) -> object:
+def ring(agents: int) -> Spec:
     return parse_spec("ring.toml", ring_text(agents).encode())
 
 
@@ -42,8 +43,8 @@ def test_ring_expands_agent_by_agent() -> None:
 
 def test_sum_wraps_around_the_ring() -> None:
     spec = ring(3)
-    barriers = [atom.free_symbols for atom in spec.objective.atoms(sp.tan)]
-    pairs = {frozenset(s.name for s in free if s.name.startswith("px")) for free in barriers}
+    barriers = [atom.free_symbols for atom in spec.objective.atoms(sx.tan)]
+    pairs = {frozenset(str(s) for s in free if str(s).startswith("px")) for free in barriers}
     # One barrier per ring neighbour pair, the last agent's with the first one included.
     assert pairs == {
         frozenset({"px_0", "px_1"}),
