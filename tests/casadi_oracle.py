@@ -10,41 +10,49 @@ times its generated C against ours.
 
 from __future__ import annotations
 
-import math
+from typing import Any
 
 import casadi as ca
-import sympy as sp
 
 from tvopt_codegen.derivation import Derivation
 
+#: CasADi's functions by the lower-case name of the engine's function class: SymPy's
+#: ``sin``, SymEngine's ``Sin``.
 _FUNCTIONS = {
-    sp.sin: ca.sin, sp.cos: ca.cos, sp.tan: ca.tan, sp.exp: ca.exp, sp.log: ca.log,
-    sp.atan: ca.atan, sp.asin: ca.asin, sp.acos: ca.acos, sp.sinh: ca.sinh, sp.cosh: ca.cosh,
-    sp.tanh: ca.tanh,
+    "sin": ca.sin, "cos": ca.cos, "tan": ca.tan, "exp": ca.exp, "log": ca.log,
+    "atan": ca.atan, "asin": ca.asin, "acos": ca.acos, "sinh": ca.sinh, "cosh": ca.cosh,
+    "tanh": ca.tanh,
 }  # fmt: skip
 
 
-def _to_casadi(expr: sp.Basic, table: dict[sp.Basic, object]) -> object:
-    """A sympy expression on CasADi values: ``table`` holds its symbols' (and memoizes)."""
+def _to_casadi(expr: Any, table: dict[Any, Any]) -> Any:
+    """An expression of either engine on CasADi values: ``table`` holds its symbols' (and memoizes).
+
+    Read through what both engines' trees answer to (``is_Add``, ``.args``, the class's
+    name), not through the product's ``sx``: the oracle shares the spec's expressions
+    only. SymEngine writes ``exp(x)`` as the power ``E**x``: ``E`` is a constant atom.
+    """
     if expr in table:
         return table[expr]
     if expr.is_Number:
-        value: object = float(expr)
-    elif expr is sp.pi:
-        value = math.pi
+        value: Any = float(expr)
+    elif expr.is_Symbol:
+        raise ValueError(f"no CasADi value for the symbol {expr}")
+    elif expr.is_Atom:  # pi, E
+        value = float(expr)
     elif expr.is_Add:
         value = sum((_to_casadi(a, table) for a in expr.args[1:]), _to_casadi(expr.args[0], table))
     elif expr.is_Mul:
         value = _to_casadi(expr.args[0], table)
         for a in expr.args[1:]:
-            value = value * _to_casadi(a, table)  # type: ignore[operator]
+            value = value * _to_casadi(a, table)
     elif expr.is_Pow:
         base, exponent = expr.args
-        value = _to_casadi(base, table) ** _to_casadi(exponent, table)  # type: ignore[operator]
-    elif expr.func in _FUNCTIONS:
-        value = _FUNCTIONS[expr.func](_to_casadi(expr.args[0], table))
+        value = _to_casadi(base, table) ** _to_casadi(exponent, table)
+    elif expr.is_Function and type(expr).__name__.lower() in _FUNCTIONS:
+        value = _FUNCTIONS[type(expr).__name__.lower()](_to_casadi(expr.args[0], table))
     else:
-        raise ValueError(f"no CasADi twin for {expr.func}")
+        raise ValueError(f"no CasADi twin for {type(expr).__name__}")
     table[expr] = value
     return value
 
@@ -62,15 +70,17 @@ def casadi_mechanics_law(d: Derivation) -> tuple[ca.Function, int]:
     tS = ca.SX.sym("t")
     XS = ca.SX.sym("X", 2 * nq)
     PS = ca.SX.sym("P", max(1, len(model.params)))
-    table: dict[sp.Basic, object] = {s: XS[i] for i, s in enumerate(model.x)}
+    # Keyed by the derivation's own symbols, of the engine it was derived on.
+    table: dict[Any, Any] = {s: XS[i] for i, s in enumerate(model.x)}
     table |= {p: PS[i] for i, p in enumerate(model.params)}
     table[model.t] = tS
     # The spec's definitions in order, each on CasADi's values of those before it.
     for symbol, expr in mech.definitions:
-        table[symbol] = _to_casadi(sp.sympify(expr), table)
+        table[symbol] = _to_casadi(expr, table)
 
-    def cas(expr: sp.Expr) -> ca.SX:
-        return _to_casadi(sp.sympify(expr), table)
+    def cas(expr: Any) -> ca.SX:
+        value: ca.SX = _to_casadi(expr, table)
+        return value
 
     M = ca.vertcat(*[ca.horzcat(*[cas(e) for e in row]) for row in mech.mass_matrix])
     F = ca.vertcat(*[cas(e) for e in mech.forces])

@@ -11,7 +11,6 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-import sympy as sp
 
 from tvopt_codegen.spec import Mechanics
 from tvopt_codegen.spec.implicit import evaluator, mass_matrix_at
@@ -19,9 +18,9 @@ from tvopt_codegen.spec.implicit import evaluator, mass_matrix_at
 
 def configuration(model: Any, q: np.ndarray) -> np.ndarray:
     """Pinocchio's configuration of joint positions ``q``, joint by joint in order."""
-    import pinocchio as pin
+    import pinocchio as pin  # type: ignore[import-untyped]
 
-    config = pin.neutral(model)
+    config: np.ndarray = pin.neutral(model)
     for k, joint in enumerate(model.joints[1:]):
         assert joint.idx_v == k
         if joint.nq == 2:
@@ -33,7 +32,7 @@ def configuration(model: Any, q: np.ndarray) -> np.ndarray:
 
 def both_at(
     mech: Mechanics,
-    params: Mapping[sp.Symbol, float],
+    params: Mapping[Any, float],
     model: Any,
     data: Any,
     q: np.ndarray,
@@ -41,14 +40,19 @@ def both_at(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(M ours, M Pinocchio's, bias ours, bias Pinocchio's)`` at positions ``q``, rates ``v``.
 
+    ``params`` maps the spec's parameters, by name or by symbol of either engine, to
+    their values.
+
     The bias forces are ``M q'' - B u`` at zero input: ours ``-F``, Pinocchio's RNEA at
     zero acceleration.
     """
     import pinocchio as pin
 
-    values = dict(params)
-    values |= {sp.Symbol(c, real=True): x for c, x in zip(mech.coordinates, q, strict=True)}
-    values |= {sp.Symbol(r, real=True): x for r, x in zip(mech.rates, v, strict=True)}
+    # Keyed by name: ``params`` by names or by either engine's symbols, as the product's
+    # evaluators take them (the fuzzer's are SymPy's, the spec's expressions SymEngine's).
+    values: dict[Any, float] = dict(params)
+    values |= dict(zip(mech.coordinates, q, strict=True))
+    values |= dict(zip(mech.rates, v, strict=True))
     ours = mass_matrix_at(mech, values)[0]
     evaluate = evaluator(mech, values)
     bias = -np.array([float(evaluate(e)) for e in mech.forces])

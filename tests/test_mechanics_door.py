@@ -26,6 +26,7 @@ from tvopt_codegen.cli import main
 from tvopt_codegen.errors import EXIT_ASSUMPTION, SpecError
 from tvopt_codegen.mechanics import spec_from_sympy, spec_toml
 from tvopt_codegen.spec import Spec, load_spec, spec_from_dict
+from tvopt_codegen.symbolic.border import to_sympy
 
 from .conftest import SPECS
 
@@ -102,7 +103,13 @@ def _numpy(symbols: list[sp.Symbol], expr: sp.Expr) -> Any:
 
 
 def _agree(ours: sp.Expr, read: sp.Expr, values: dict[str, float]) -> None:
-    """Equal at six random points (parameters at their values), to 1e-12 relative."""
+    """Equal at six random points (parameters at their values), to 1e-12 relative.
+
+    ``read`` is the spec's expression, of the process's engine: it crosses to SymPy (real
+    symbols of the same names, numbers exact) so that both go through SymPy's printer.
+    """
+    if not isinstance(read, sp.Basic):
+        read = to_sympy(read)
     # The user's floats as the doubles they are (sympy prints a Float to 15 digits).
     ours = ours.xreplace({f: sp.Rational(repr(float(f))) for f in ours.atoms(sp.Float)})
 

@@ -8,11 +8,12 @@ import os
 import shutil
 import tomllib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
-import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.emit import write_files
@@ -21,6 +22,7 @@ from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.mechanics import spec_toml
 from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.spec import load_spec, spec_from_dict
+from tvopt_codegen.spec.implicit import implicit_values, mass_matrix_at
 from tvopt_codegen.urdf import spec_from_urdf
 
 from .conftest import ROOT, Ran, import_file, run_main
@@ -92,13 +94,57 @@ def test_mass_matrix_and_bias_forces_equal_pinocchios(robot: str, tmp_path: Path
     data = model.createData()
     assert model.nv == len(mech.coordinates)
     rng = np.random.default_rng(7)
-    params = {sp.Symbol(n, real=True): v for n, v in spec.parameters}
+    # By name, as the spec holds them: the product keys them by its engine's symbols.
+    params = dict(spec.parameters)
     for _ in range(25):
         q = rng.uniform(-np.pi, np.pi, model.nv)
         v = rng.uniform(-2.0, 2.0, model.nv)
         ours, theirs, our_bias, bias = both_at(mech, params, model, data, q, v)
         np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-10 * np.abs(theirs).max())
         np.testing.assert_allclose(our_bias, bias, rtol=0, atol=1e-10 * np.abs(bias).max())
+
+
+@pytest.mark.parametrize("engine", ["symengine", "sympy"])
+def test_the_doors_values_are_taken_by_name_or_by_either_engines_symbol(
+    engine: str, tmp_path: Path
+) -> None:
+    """M and M^-1 F of the URDF door's spec at the door's own parameter mapping.
+
+    Its parameters are a name-to-value mapping; a SymPy user keys values by SymPy's
+    symbols while the spec's expressions are SymEngine's (the default engine), and the
+    other way round. Each keying gives the numbers the engine's own symbols give, never
+    "no value for the symbol Ixx_..." for a symbol the caller did give.
+    """
+    import symengine
+    import sympy
+
+    path = tmp_path / "slider.urdf"
+    path.write_text(SLIDER, encoding="utf-8")
+    with sx.using(engine):
+        door = spec_from_urdf(path, gravity=(0.3, -0.2, -9.81))
+        mech = spec_from_dict(door).mechanics
+        assert mech is not None
+        rng = np.random.default_rng(3)
+        by_name: dict[str, object] = dict(door["parameters"])
+        by_name |= {s: rng.uniform(-2.0, 2.0, 4) for s in (*mech.coordinates, *mech.rates)}
+        keyings: dict[str, dict[Any, object]] = {
+            "engine": {sx.symbol(k): v for k, v in by_name.items()},
+            "name": by_name,
+            "sympy": {sympy.Symbol(k, real=True): v for k, v in by_name.items()},
+            "symengine": {symengine.Symbol(k): v for k, v in by_name.items()},
+        }
+        mass = {how: mass_matrix_at(mech, values, 4) for how, values in keyings.items()}
+        accel = {how: implicit_values(mech, values, 4) for how, values in keyings.items()}
+        with pytest.raises(TypeError, match="a name or a symbol"):
+            mass_matrix_at(mech, {**by_name, 1.5: 2.0}, 4)
+    # Real numbers: a positive definite M, finite accelerations that move.
+    assert np.all(np.linalg.eigvalsh(mass["engine"]) > 0)
+    assert any(np.all(np.isfinite(a)) and np.ptp(a) > 0 for a in accel["engine"].values())
+    for how in keyings:
+        np.testing.assert_array_equal(mass[how], mass["engine"], err_msg=how)
+        assert accel[how].keys() == accel["engine"].keys()
+        for symbol, value in accel["engine"].items():
+            np.testing.assert_array_equal(accel[how][symbol], value, err_msg=how)
 
 
 def test_the_imported_law_matches_the_oracle_in_both_backends(

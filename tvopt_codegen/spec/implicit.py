@@ -12,6 +12,7 @@ that generated code computes by factoring ``M`` numerically at each evaluation. 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import cast
 
 import numpy as np
 
@@ -115,12 +116,51 @@ def implicit_dynamics(mechanics: Mechanics, inputs: Sequence[str]) -> list[sx.Ex
     return rows
 
 
-def evaluator(mechanics: Mechanics, values: Mapping[sx.Expr, object]) -> Evaluator:
-    """An evaluator of ``values`` that also knows the mechanics' definitions."""
-    evaluate = Evaluator(values)
+def evaluator(mechanics: Mechanics, values: Mapping[sx.Expr | str, object]) -> Evaluator:
+    """An evaluator of ``values`` that also knows the mechanics' definitions.
+
+    ``values`` may be keyed by the engine's symbols, by names, or by the other engine's
+    symbols (see :func:`engine_keyed`).
+    """
+    evaluate = Evaluator(engine_keyed(values))
     for symbol, expr in mechanics.definitions:
         evaluate.define(symbol, expr)
     return evaluate
+
+
+def engine_keyed(values: Mapping[sx.Expr | str, object]) -> Mapping[sx.Expr, object]:
+    """``values`` keyed by the process engine's symbols.
+
+    A caller's values for a spec's symbols are its own: a name (a spec's parameters are
+    name-value pairs), or a symbol of either engine (a SymPy user's ``Symbol("m",
+    real=True)`` while the spec's expressions are SymEngine's). Keyed by another engine's
+    symbol they would match nothing, and the evaluator would name a symbol the caller
+    did give a value ("no value for the symbol m"). Names and the other engine's symbols
+    become the engine's real symbol of that name; the engine's own keys stay as they are.
+
+    Raises
+    ------
+    TypeError
+        For a key that is neither a name nor an expression of the engine nor another
+        engine's symbol.
+    """
+    if all(isinstance(key, sx.Basic) for key in values):
+        return cast("Mapping[sx.Expr, object]", values)
+    keyed: dict[sx.Expr, object] = {}
+    for key, value in values.items():
+        if isinstance(key, str):
+            keyed[sx.symbol(key)] = value
+        elif isinstance(key, sx.Basic):
+            keyed[key] = value
+        elif getattr(key, "is_Symbol", False) is True and isinstance(
+            getattr(key, "name", None), str
+        ):
+            keyed[sx.symbol(key.name)] = value
+        else:
+            raise TypeError(
+                f"a value's key must be a name or a symbol, not {key!r} ({type(key).__name__})"
+            )
+    return keyed
 
 
 def reserved(index: int) -> sx.Expr:
@@ -136,9 +176,12 @@ def _at(evaluate: Evaluator, expr: sx.Expr, points: int) -> np.ndarray:
 
 
 def mass_matrix_at(
-    mechanics: Mechanics, values: Mapping[sx.Expr, object], points: int = 1
+    mechanics: Mechanics, values: Mapping[sx.Expr | str, object], points: int = 1
 ) -> np.ndarray:
-    """``M`` at ``points`` points (values: arrays of that length or floats), shape (P, n, n)."""
+    """``M`` at ``points`` points (values: arrays of that length or floats), shape (P, n, n).
+
+    ``values`` is keyed as :func:`evaluator` takes it: names or either engine's symbols.
+    """
     evaluate = evaluator(mechanics, values)
     n = len(mechanics.coordinates)
     return np.stack(
@@ -151,7 +194,7 @@ def mass_matrix_at(
 
 
 def implicit_values(
-    mechanics: Mechanics, values: Mapping[sx.Expr, object], points: int = 1
+    mechanics: Mechanics, values: Mapping[sx.Expr | str, object], points: int = 1
 ) -> dict[sx.Expr, np.ndarray]:
     """The run-time symbols' values at points: ``a = M^-1 F``, ``W = M^-1 B`` solved numerically.
 
@@ -159,8 +202,9 @@ def implicit_values(
     ----------
     mechanics : Mechanics
         The mass-matrix form.
-    values : mapping of Symbol to array or float
-        The states and parameters (arrays of length ``points``, or floats).
+    values : mapping of Symbol or str to array or float
+        The states and parameters (arrays of length ``points``, or floats), keyed by
+        name or by either engine's symbols (:func:`engine_keyed`).
     points : int
         How many points.
 
@@ -174,13 +218,14 @@ def implicit_values(
 
 
 def solved_at(
-    mechanics: Mechanics, values: Mapping[sx.Expr, object], points: int = 1
+    mechanics: Mechanics, values: Mapping[sx.Expr | str, object], points: int = 1
 ) -> tuple[dict[sx.Expr, np.ndarray], np.ndarray, np.ndarray]:
     """:func:`implicit_values`, with ``M`` (shape (P, n, n)) and ``[F | B]`` (P, n, m + 1).
 
     The matrices it solved with, for checks that need them at the same points
     (:func:`problem_at_samples`) without evaluating them again.
     """
+    values = engine_keyed(values)
     evaluate = evaluator(mechanics, values)
     n = len(mechanics.coordinates)
     mass = mass_matrix_at(mechanics, values, points)
