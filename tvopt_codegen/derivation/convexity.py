@@ -199,6 +199,7 @@ def _minimiser_path(
         # 40 steps: Newton converges in a few on a strongly convex f0; on a flat minimum
         # ((y - r)**4: linear, by 2/3 a step) they leave a Hessian ~1e-13 of its scale.
         first: np.ndarray | None = None
+        value: np.ndarray | None = None
         for _ in range(40):
             grads, newton, usable = numbers.newton(ys, ts)
             norms = np.linalg.norm(grads, axis=1)
@@ -213,20 +214,56 @@ def _minimiser_path(
             converged |= norms <= 1e-8 * first
             if converged.all():
                 break
-            value = numbers.value(ys, ts)
-            scale = np.ones(points)
-            accepted = converged.copy()
-            for _halving in range(30):
-                trial = ys - scale[:, None] * steps
-                better = numbers.value(trial, ts) < value
-                accepted |= better
-                if accepted.all():
-                    break
-                scale = np.where(accepted, scale, 0.5 * scale)
+            if value is None:
+                value = numbers.value(ys, ts)
+            scale, accepted, reached = _backtrack(numbers, ys, ts, steps, value, converged)
             if not (accepted & ~converged).any():
                 break  # no point moves any more
             ys = np.where(accepted[:, None], ys - scale[:, None] * steps, ys)
+            # f0 at the points moved to was met on the way: not evaluated again.
+            value = np.where(accepted, reached, value)
     return ys, converged
+
+
+#: Step sizes tried per point and Newton iteration: the step, then its halvings.
+_HALVINGS = 30
+
+
+def _backtrack(
+    numbers: _ObjectiveNumbers,
+    ys: np.ndarray,
+    ts: np.ndarray,
+    steps: np.ndarray,
+    value: np.ndarray,
+    converged: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each point's step scale, whether one was found, and f0 there.
+
+    The scale is the first of 1, 1/2, ..., 2^-29 at which f0 falls below ``value`` (1 for
+    a converged point, which takes its last step whatever it does). The full steps are
+    tried at once, then every halving of the points they did not improve at once: f0's
+    evaluation costs per call far more than per point, and halving one level per call
+    took 30 calls an iteration wherever one point could not improve (a point outside the
+    barrier's domain), two thirds of a constrained spec's convexity check.
+    """
+    full = numbers.value(ys - steps, ts)
+    scale = np.ones(len(ts))
+    accepted = converged | (full < value)
+    reached = full.copy()
+    pending = np.flatnonzero(~accepted)
+    if pending.size:
+        halvings = 0.5 ** np.arange(1, _HALVINGS)
+        trial = ys[pending][None, :, :] - halvings[:, None, None] * steps[pending][None, :, :]
+        values = numbers.value(
+            trial.reshape(-1, ys.shape[1]), np.tile(ts[pending], len(halvings))
+        ).reshape(len(halvings), len(pending))
+        better = values < value[pending]
+        found = better.any(axis=0)
+        first = better.argmax(axis=0)
+        scale[pending] = np.where(found, halvings[first], scale[pending])
+        accepted[pending] = found
+        reached[pending] = values[first, np.arange(len(pending))]
+    return scale, accepted, reached
 
 
 def _check_convexity(
