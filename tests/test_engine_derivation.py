@@ -424,3 +424,22 @@ def test_the_model_refuses_alike_on_both_engines(engine: str) -> None:
     message = str(mass.value)
     assert "system.mechanics.mass_matrix[1][0]: M is not symmetric: M[1][0] = " in message
     assert "*sin(q2) but M[0][1] = " in message
+
+
+def test_the_oracle_reads_either_engines_derivation_on_either_engine() -> None:
+    """tests/oracle.py's law (SymPy's, lambdified) is the same from SymPy's derivation and
+    from SymEngine's, whichever engine is in use when the oracle is built."""
+    from .fuzzing import sample_states  # noqa: PLC0415
+    from .oracle import Oracle  # noqa: PLC0415
+
+    reference, fast = _derived("pvtol", "sympy"), _derived("pvtol", "symengine")
+    states = sample_states(reference, np.random.default_rng(3), 8)
+    p = np.array(reference.model.defaults, dtype=float)
+    with sx.using("sympy"):
+        want = Oracle(reference).law(0.7, states, p)
+    assert np.abs(want[0]).max() > 0.1
+    for engine in ENGINES:
+        with sx.using(engine):
+            got = Oracle(fast).law(0.7, states, p)
+        for a, b in zip(want, got, strict=True):
+            np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12 * np.abs(a).max())

@@ -325,15 +325,18 @@ def test_a_controller_prints_alike_from_either_engine() -> None:
     from tests.conftest import kernels
     from tvopt_codegen.symbolic.border import from_sympy
 
-    expressions = [
-        value
-        for kernel in kernels("pvtol").kernels
-        for value in [v for _, v in kernel.body] + [e for o in kernel.outputs for e in o.exprs]
-    ]
+    with sx.using("sympy"):  # SymPy's kernels, whichever engine is the default
+        expressions = [
+            value
+            for kernel in kernels("pvtol").kernels
+            for value in [v for _, v in kernel.body] + [e for o in kernel.outputs for e in o.exprs]
+        ]
     assert len(expressions) > 50
+    assert all(type(e).__module__.startswith("sympy") for e in expressions)
     for make in (CPrinter, PythonJointPrinter):
-        printer = make()
-        want = [printer.doprint(e) for e in expressions]
+        with sx.using("sympy"):
+            printer = make()
+            want = [printer.doprint(e) for e in expressions]
         with sx.using("symengine"):
             memo: dict[Any, Any] = {}
             converted = [from_sympy(e, memo) for e in expressions]
