@@ -66,26 +66,35 @@ class RunCheck:
 #: A function of ``(t, y, references)`` returning an array: a vector or a matrix.
 Vector = Callable[[float, np.ndarray, list[float]], np.ndarray]
 
+#: The groups of :attr:`_Problem.solver`'s values, in its order.
+_F0, _F0_GRAD, _G, _G_GRAD, _DOMAIN, _DOMAIN_GRAD, _A, _A_GRAD = range(8)
+
 
 @dataclass(frozen=True)
 class _Problem:
-    """The constrained problem in numbers: f0, the g_i, their gradients, f0's domain.
+    """The constrained problem in numbers: the g_i and a_j along a run, all of it for SLSQP.
 
-    Each group is one function returning all its values (lambdify's printing and
-    compiling is paid per function: one per expression was most of a constrained
-    ``simulate``'s check).
+    Each is one function returning all its values (lambdify's printing and compiling is
+    paid per function: one per expression was most of a constrained ``simulate``'s check).
+
+    Attributes
+    ----------
+    g, a : callable
+        The inequalities' ``g_i`` and the equalities' ``a_j`` at ``(t, y, r)``.
+    numeric : callable
+        Lambdifies expressions of ``(t, y, r)`` the same way (see :func:`_problem`).
+    refs_at : callable
+        The references' values at a time.
+    solver : callable
+        Everything SLSQP asks for at ``(t, y, r)``, in one call: the groups numbered
+        ``_F0`` to ``_A_GRAD``, matrices as (rows, m).
     """
 
-    f0: Any
-    f0_grad: Vector
     g: Vector
-    g_grad: Vector
     a: Vector
-    a_grad: Vector
-    domain: Vector
-    domain_grad: Vector
     numeric: Callable[..., Vector]
     refs_at: Callable[[float], list[float]]
+    solver: Callable[[float, np.ndarray, list[float]], tuple[np.ndarray, ...]]
 
 
 def _problem(model: Any, values: Mapping[sx.Expr, float], references: Any) -> _Problem:
@@ -110,25 +119,64 @@ def _problem(model: Any, values: Mapping[sx.Expr, float], references: Any) -> _P
         jets = (references.exact or references.jets)(time)
         return [float(v) for v in jets[:, 0]]
 
-    def matrix(rows: Sequence[Sequence[sx.Expr]]) -> Vector:
-        return numeric([e for row in rows for e in row], rows=len(rows))
-
     domain, domain_grad = calculus.objective_domain(model)
     equal = calculus.equality_calculus(model)
-    f0 = inline_signals(calculus.objective_of(model), signals).xreplace(fixed)
+    p, q = len(model.constraints), len(model.equalities)
+    # What the solver asks for at a point, in the order _F0 .. _A_GRAD, each with its
+    # rows when a matrix: f0, its gradient (exact: f0's barriers, the paper's tan, are
+    # steep), the g_i and their gradients, f0's domain and its gradient, the a_j and
+    # their Jacobian.
+    groups: list[tuple[list[sx.Expr], int | None]] = [
+        ([calculus.objective_of(model)], None),
+        (list(calculus.objective_gradient(model)), None),
+        ([c.g for c in model.constraints], None),
+        ([e for row in calculus.constraint_gradients(model) for e in row], p),
+        (list(domain), None),
+        ([e for row in domain_grad for e in row], len(domain)),
+        ([c.g for c in model.equalities], None),
+        (list(equal.jacobian), q),
+    ]
+    everything = numeric([e for exprs, _ in groups for e in exprs])
+    ends = np.cumsum([0, *(len(exprs) for exprs, _ in groups)])
+    m = len(model.y)
+
+    def solver(time: float, y: np.ndarray, r: list[float]) -> tuple[np.ndarray, ...]:
+        values = everything(time, y, r)
+        return tuple(
+            values[start:end] if rows is None else values[start:end].reshape(rows, m)
+            for start, end, (_, rows) in zip(ends[:-1], ends[1:], groups, strict=True)
+        )
+
     return _Problem(
-        f0=sx.lambdify(arguments, f0, "math"),
-        # Exact gradients for the solver: f0's barriers (the paper's tan) are steep.
-        f0_grad=numeric(calculus.objective_gradient(model)),
         g=numeric([c.g for c in model.constraints]),
-        g_grad=matrix(calculus.constraint_gradients(model)),
         a=numeric([c.g for c in model.equalities]),
-        a_grad=numeric(equal.jacobian, rows=len(model.equalities)),
-        domain=numeric(list(domain)),
-        domain_grad=matrix(domain_grad),
         numeric=numeric,
         refs_at=refs_at,
+        solver=solver,
     )
+
+
+class _AtPoint:
+    """The solver's functions of ``y`` at one time: one evaluation of them all per point.
+
+    SLSQP asks for f0, each group of constraints and their gradients one at a time, at
+    the same ``y``: one lambdified call each was most of the check's time. Here the last
+    point's values are kept, and a new point evaluates every group in one call.
+    """
+
+    def __init__(self, problem: _Problem, time: float, r: list[float]) -> None:
+        self._problem, self._time, self._r = problem, time, r
+        self._key: bytes | None = None
+        self._values: tuple[np.ndarray, ...] = ()
+
+    def __call__(self, y: np.ndarray, group: int) -> np.ndarray:
+        """Group ``group`` of :attr:`_Problem.solver`'s at ``y`` (a copy: the solver's own)."""
+        point = np.asarray(y, dtype=float)
+        key = point.tobytes()
+        if key != self._key:
+            self._values = self._problem.solver(self._time, point, self._r)
+            self._key = key
+        return self._values[group].copy()
 
 
 def _minimise(
@@ -142,35 +190,36 @@ def _minimise(
     """
     from scipy.optimize import minimize  # noqa: PLC0415 - only simulate needs it
 
+    at = _AtPoint(problem, time, r)
     constraints: list[dict[str, Any]] = []
-    if problem.g(time, centre, r).size:
+    if at(centre, _G).size:
         constraints.append(
             {
                 "type": "ineq",
-                "fun": lambda y: s - problem.g(time, y, r),
-                "jac": lambda y: -problem.g_grad(time, y, r),
+                "fun": lambda y: s - at(y, _G),
+                "jac": lambda y: -at(y, _G_GRAD),
             }
         )
-    if problem.domain(time, centre, r).size:
+    if at(centre, _DOMAIN).size:
         constraints.append(
             {
                 "type": "ineq",
-                "fun": lambda y: problem.domain(time, y, r),
-                "jac": lambda y: problem.domain_grad(time, y, r),
+                "fun": lambda y: at(y, _DOMAIN),
+                "jac": lambda y: at(y, _DOMAIN_GRAD),
             }
         )
-    if problem.a(time, centre, r).size:
+    if at(centre, _A).size:
         constraints.append(
             {
                 "type": "eq",
-                "fun": lambda y: problem.a(time, y, r),
-                "jac": lambda y: problem.a_grad(time, y, r),
+                "fun": lambda y: at(y, _A),
+                "jac": lambda y: at(y, _A_GRAD),
             }
         )
     result = minimize(
-        lambda y: problem.f0(time, y, r),
+        lambda y: float(at(y, _F0)[0]),
         centre,
-        jac=lambda y: problem.f0_grad(time, y, r),
+        jac=lambda y: at(y, _F0_GRAD),
         method="SLSQP",
         bounds=[(c - radius, c + radius) for c in centre],
         constraints=constraints,
