@@ -3,11 +3,11 @@
 Each example is derived on SymPy (the reference) and on SymEngine two ways: derived
 there (``derived``), and converted from SymPy's derivation at the border
 (``converted``: :func:`tvopt_codegen.symbolic.border.from_sympy`, deep through the
-records), which tests these modules apart from the derivation's port. On SymEngine the
-report converts what it shows back to SymPy: every displayed expression must equal the
-SymPy engine's at random points (1e-12 relative), and every word around them must be the
-same but where a derivation on SymEngine words it its own way (the order of an
-expression's terms, a straight-line program's length).
+records), which tests these modules apart from the derivation's port. The report prints
+either engine's expressions itself (:mod:`tvopt_codegen.report.printing`): every
+displayed expression must equal the SymPy engine's at random points (1e-12 relative),
+and every word around them must be the same but where a derivation on SymEngine words
+it its own way (the order of an expression's terms, a straight-line program's length).
 """
 
 from __future__ import annotations
@@ -34,7 +34,6 @@ from tvopt_codegen.report import (
     document,
     entries,
     report_sections,
-    sections,
 )
 from tvopt_codegen.runs.figures import _signal_values
 from tvopt_codegen.runs.summary import format_summary
@@ -160,8 +159,8 @@ ENGINE_ROW = "symengine (derivation)"
 
 
 def _recorded(d: Derivation) -> tuple[list[tuple[bool, Any]], tuple[Section, ...]]:
-    """The report's sections of ``d``, and every value it showed (SymPy's) in order, each
-    with whether the control law showed it.
+    """The report's sections of ``d``, and every value it showed (of ``d``'s engine) in
+    order, each with whether the control law showed it.
 
     The kernels are SymPy's on both engines: their operation counts are the lowering's,
     not the report's, to compare.
@@ -184,7 +183,6 @@ def _recorded(d: Derivation) -> tuple[list[tuple[bool, Any]], tuple[Section, ...
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(entries, "shown", recording)
-        patch.setattr(sections, "shown", recording)
         patch.setattr(document, "_control_law", recording_law)
         built = report_sections(_no_timings(d), sympy_kernels(d.spec.name), None)
     return shown, built
@@ -223,9 +221,11 @@ def test_the_report_shows_the_same_on_both_engines(name: str, source: str) -> No
     law = source == "converted"
     reference, built = _without_law(_reference(name), law)
     with sx.using("symengine"):
-        shown, other = _without_law(_recorded(symengine_derivation(name, source)), law)
-        # What the report shows is SymPy's, converted from SymEngine's at the border.
-        assert not any(isinstance(v, sx.Basic | sx.MatrixBase) for v in shown)
+        printed, other = _without_law(_recorded(symengine_derivation(name, source)), law)
+        # What the report shows is SymEngine's own (printed without crossing to SymPy),
+        # converted here to compare it with SymPy's.
+        assert any(isinstance(v, sx.Basic | sx.MatrixBase) for v in printed)
+        shown = [entries.as_sympy(v) for v in printed]
     assert len(reference) > 10
     _assert_same_values(reference, shown, name)
     _assert_same_words(tuple(_words(built)), tuple(_words(other)), source)
@@ -256,15 +256,19 @@ def _assert_same_words(expected: object, got: object, source: str) -> None:
 
 
 def test_the_report_module_shows_an_engine_expression() -> None:
-    """formula() on a SymEngine expression: SymPy's LaTeX of the same expression."""
+    """formula() of one expression built on either engine: the same text, SymPy's LaTeX."""
     x, y = sp.symbols("x y", real=True)
     expr = sp.sin(x) * y**2 / 10 + sp.Rational(1, 3) * sp.atan2(y, x)
+    with sx.using("sympy"):
+        expected = entries.formula(expr)
+        ops = entries.count_ops(expr)
     with sx.using("symengine"):
         converted = from_sympy(expr)
         assert isinstance(converted, sx.Basic)
         math = entries.formula(converted)
-        ops = entries.count_ops(converted)
-    assert math == entries.formula(expr)
+        assert entries.count_ops(converted) == ops
+    assert math == expected
+    assert math.latex == sp.latex(expr, order="none", mul_symbol=r"\,")
     assert ops == sp.count_ops(expr)
     assert entries.plain(expr) == sp.sstr(expr)
 
@@ -396,10 +400,10 @@ def _problem_values(d: Derivation, t: float, y: np.ndarray) -> list[np.ndarray]:
     model = d.model
     values = dict(zip(model.params, model.defaults, strict=True))
     problem = constraints._problem(model, values, None)
-    out = [
-        np.atleast_1d(np.asarray(getattr(problem, f)(t, y, []), dtype=float))
-        for f in ("f0", "f0_grad", "g", "g_grad", "a", "a_grad", "domain", "domain_grad")
-    ]
+    # Everything SLSQP asks for (f0, the g_i, the domain, the a_j, with their
+    # gradients), then the g_i and a_j the run's margins read.
+    out = [np.atleast_1d(np.asarray(v, dtype=float)) for v in problem.solver(t, y, [])]
+    out += [np.atleast_1d(np.asarray(f(t, y, []), dtype=float)) for f in (problem.g, problem.a)]
     if model.equalities:
         equal = constraints.equalities(model, values)
         nu = np.linspace(0.5, 1.5, len(model.equalities))

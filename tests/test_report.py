@@ -15,10 +15,12 @@ from xml.etree import ElementTree
 import pytest
 import sympy as sp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.cli import main
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.report import HEADINGS, render_report
+from tvopt_codegen.report.entries import as_sympy
 from tvopt_codegen.report.sections import _shown
 from tvopt_codegen.spec import load_spec
 
@@ -40,6 +42,15 @@ BROWSER_FLAGS = [
     "--v=0",
 ]
 GOLDEN = ROOT / "tests" / "golden"
+
+
+def _latex(expr: object) -> str:
+    """SymPy's LaTeX of ``expr`` (of either engine), as the report writes it.
+
+    A sum's terms and a product's factors in the order of their arguments (SymPy's
+    ``order="none"``), which is the same from either engine; a thin space between factors.
+    """
+    return str(sp.latex(as_sympy(expr), order="none", mul_symbol=r"\,"))
 
 
 def _fixed(name: str):  # noqa: ANN202 - a Derivation with timings that do not vary
@@ -96,8 +107,9 @@ def test_markdown_twin_has_the_same_sections_and_math(name: str) -> None:
     d = derivation(name)
     md = render_report(d, kernels(name), formats=("md",))[f"{name}_report.md"]
     assert re.findall(r"^## (.*)$", md, re.M) == list(HEADINGS)
-    # Key quantities appear as sympy's own LaTeX of the derived objects (a mass-matrix
-    # plant's run-time symbols under their display names, a_i and W_i,j).
+    # Key quantities appear as SymPy's own LaTeX of the derived objects (a mass-matrix
+    # plant's run-time symbols under their display names, a_i and W_i,j), which the
+    # report prints without SymPy.
     shown = _shown(d)
     for quantity in (
         d.linearization.R.xreplace(shown),
@@ -106,14 +118,14 @@ def test_markdown_twin_has_the_same_sections_and_math(name: str) -> None:
         d.hessian,
         d.model.f0,
     ):
-        assert sp.latex(quantity, mul_symbol=r"\,") in md
+        assert _latex(quantity) in md
     if d.model.mechanics is not None:
         assert "M is factored at run time, never inverted" in md
         for matrix in (d.model.mechanics.mass_matrix, d.model.mechanics.input_matrix):
-            assert sp.latex(sp.Matrix(matrix), mul_symbol=r"\,") in md
+            assert _latex(sx.matrix(matrix)) in md
         assert "_W0" not in md and "_ddq" not in md
     if d.decoupling.det_R is not None:
-        assert sp.latex(d.decoupling.det_R, mul_symbol=r"\,") in md
+        assert _latex(d.decoupling.det_R) in md
     # Every display formula is structurally sound LaTeX.
     for formula in re.findall(r"\$\$(.*?)\$\$", md, re.S):
         assert formula.count("{") == formula.count("}")
@@ -197,11 +209,11 @@ def test_large_sparse_matrices_are_listed_by_entry(tmp_path: Path) -> None:
     entry = r"\left[\nabla_{{yy}} f_0\right]_{{{}, {}}} &= {}"
     listed = [(i, j) for i in range(m) for j in range(i + 1) if hess[i, j] != 0]
     for i, j in listed[:5] + listed[-5:]:
-        assert entry.format(i + 1, j + 1, sp.latex(hess[i, j], mul_symbol=r"\,")) in md
+        assert entry.format(i + 1, j + 1, _latex(hess[i, j])) in md
     i, j = next((i, j) for i in range(m) for j in range(i) if hess[i, j] == 0)
     assert entry.format(i + 1, j + 1, "") not in md
     assert r"\left[\nabla_{yy} f_0\right]_{1, 2} &=" not in md  # upper triangle: not listed
-    assert sp.latex(hess, mul_symbol=r"\,") not in md  # not the dense matrix
+    assert _latex(hess) not in md  # not the dense matrix
     assert f"Decoupling matrix, rows L_G L_f^(r_i - 1) h_i (paper, eq. (2)) ({m} x {m}, its" in md
     # The MathML tables are well-formed XML, with HTML's named entities (&pi;) known to it.
     tables = re.findall(r"<math[^>]*><mtable><mtr><mtd><msub>.*?</math>", html, re.S)

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from tvopt_codegen import symbolic as sx
+from tvopt_codegen.report import printing
 from tvopt_codegen.symbolic.border import sympy, to_sympy
 
 #: Equations longer than this (LaTeX characters) are folded, shown in full on demand.
@@ -160,22 +161,34 @@ def _wide(node: Any) -> bool:
     return node.tagName == "mi" and len(text) > 1 and not text.startswith("&")
 
 
-#: The report's LaTeX settings: a thin space between factors.
-_LATEX = {"mul_symbol": r"\,"}
+#: The report's LaTeX settings: a thin space between factors, a sum's terms and a
+#: product's factors in the order of its arguments (what :mod:`printing` prints).
+_LATEX = {"mul_symbol": r"\,", "order": "none"}
 
 
 def shown(expr: object) -> Any:
-    """``expr`` as SymPy prints it: an engine expression or matrix converted, else sympified.
+    """``expr`` as the report shows it: an expression or matrix of the engine.
 
-    Only what the report shows comes here, one expression or matrix at a time (an
-    inlined gradient jet only under :data:`INLINE_OPS`); on the SymPy engine it is
-    ``sympify`` as it always was.
+    Every formula passes here (the tests record what the report shows through it). A
+    Python number becomes the engine's; anything else (a SymPy expression while
+    SymEngine derives) is kept and printed by SymPy.
+    """
+    if isinstance(expr, sx.Basic | sx.MatrixBase):
+        return expr
+    if isinstance(expr, int | float):
+        return sx.as_expr(expr)
+    return expr
+
+
+def as_sympy(expr: object) -> Any:
+    """``expr`` as SymPy's: converted at the border, floats with a spec's 15 digits.
+
+    The border keeps a double's every bit (17 digits); shown, it has the 15 digits of a
+    SymPy float read from the spec (0.1, not 0.10000000000000001).
     """
     sp = sympy()
     if sx.SYMENGINE and isinstance(expr, sx.Basic | sx.MatrixBase):
         value = to_sympy(expr)
-        # The border keeps a double's every bit (17 digits); shown, it has the 15 digits
-        # of a SymPy float read from the spec (0.1, not 0.10000000000000001).
         floats = value.atoms(sp.Float)
         return value.xreplace({f: sp.Float(float(f), 15) for f in floats}) if floats else value
     return sp.sympify(expr)
@@ -183,17 +196,44 @@ def shown(expr: object) -> Any:
 
 def plain(expr: object) -> str:
     """``expr`` (small: a weight, a slack) as SymPy's one-line text, on either engine."""
-    return str(sympy().sstr(shown(expr)))
+    return str(sympy().sstr(as_sympy(expr)))
 
 
 def count_ops(expr: object) -> int:
     """SymPy's operation count of what ``expr`` shows (the inlining cap's measure)."""
-    return int(sympy().count_ops(shown(expr)))
+    value = shown(expr)
+    if _native(value):
+        try:
+            return printing.count_ops(value)
+        except printing.Unprintable:
+            pass
+    return int(sympy().count_ops(as_sympy(value)))
+
+
+def _native(value: object) -> bool:
+    """Whether the report's own printers take ``value`` (an expression of the engine)."""
+    return isinstance(value, sx.Basic | sx.MatrixBase)
+
+
+def _latex(value: object) -> str:
+    """``value``'s LaTeX: the report's printer, SymPy's for what it does not print."""
+    if _native(value):
+        try:
+            return printing.latex(value)
+        except printing.Unprintable:
+            pass
+    return str(sympy().latex(as_sympy(value), **_LATEX))
 
 
 def _mathml(value: object) -> str:
-    printer = _printer_class()()
-    return str(printer.doprint(value))
+    """``value``'s presentation MathML: the report's printer, else SymPy's as customized."""
+    if _native(value):
+        try:
+            return printing.mathml(value)
+        except printing.Unprintable:
+            pass
+    printer = _printer_class()({"order": "none"})
+    return str(printer.doprint(as_sympy(value)))
 
 
 def formula(expr: object, lhs: tuple[str, str] | None = None) -> Math:
@@ -202,14 +242,12 @@ def formula(expr: object, lhs: tuple[str, str] | None = None) -> Math:
     Parameters
     ----------
     expr : expression, matrix or number
-        The right-hand side, of either engine (converted by :func:`shown`).
+        The right-hand side, of either engine.
     lhs : tuple of (str, str), optional
         The left-hand side as (LaTeX, MathML).
     """
     value = shown(expr)
-    # A thin space between factors: "jx\,jy" is two names where "jx jy" reads as jxjy.
-    latex = sympy().latex(value, **_LATEX)
-    markup = _mathml(value)
+    latex, markup = _latex(value), _mathml(value)
     if lhs is not None:
         latex = f"{lhs[0]} = {latex}"
         markup = f"<mrow>{lhs[1]}<mo>=</mo>{markup}</mrow>"
@@ -223,25 +261,20 @@ def _name(latex: str, text: str) -> tuple[str, str]:
 
 def _math_entry(text: str, expr: object, lhs: tuple[str, str] | None = None) -> Entry:
     value = shown(expr)
-    if lhs is not None and isinstance(value, sympy().MatrixBase):
-        size = value.rows * value.cols
-        nonzero = [
-            ((i, j), value[i, j])
-            for i in range(value.rows)
-            for j in range(value.cols)
-            if value[i, j] != 0
-        ]
+    if lhs is not None and isinstance(value, sx.MatrixBase):
+        rows, cols = value.shape
+        size = rows * cols
+        nonzero = [((i, j), value[i, j]) for i in range(rows) for j in range(cols)]
+        nonzero = [(at, e) for at, e in nonzero if e != 0]
         if size > SPARSE_AT and 2 * len(nonzero) <= size:
             zeros = size - len(nonzero)
             # Structurally symmetric (a Hessian is, entry by entry): the lower triangle says
             # it all.
-            symmetric = value.rows == value.cols and all(
-                value[j, i] == e for (i, j), e in nonzero if i != j
-            )
+            symmetric = rows == cols and all(value[j, i] == e for (i, j), e in nonzero if i != j)
             if symmetric:
                 nonzero = [((i, j), e) for (i, j), e in nonzero if i >= j]
             text = (
-                f"{text.rstrip(':')} ({value.rows} x {value.cols}, "
+                f"{text.rstrip(':')} ({rows} x {cols}, "
                 + (
                     "symmetric; the nonzero entries of its lower triangle"
                     if symmetric
@@ -254,13 +287,11 @@ def _math_entry(text: str, expr: object, lhs: tuple[str, str] | None = None) -> 
 
 
 def _entries(nonzero: Sequence[tuple[tuple[int, int], Any]], lhs: tuple[str, str]) -> Math:
-    """``[M]_ij = value`` for each listed entry (SymPy's), one per line, in both notations."""
-    latex = sympy().latex
+    """``[M]_ij = value`` for each listed entry, one per line, in both notations."""
     text = (
         r"\begin{aligned}"
         + r" \\ ".join(
-            rf"\left[{lhs[0]}\right]_{{{i + 1}, {j + 1}}} &= {latex(e, **_LATEX)}"
-            for (i, j), e in nonzero
+            rf"\left[{lhs[0]}\right]_{{{i + 1}, {j + 1}}} &= {_latex(e)}" for (i, j), e in nonzero
         )
         + r"\end{aligned}"
     )
@@ -273,8 +304,26 @@ def _entries(nonzero: Sequence[tuple[tuple[int, int], Any]], lhs: tuple[str, str
     return Math(text, f"<mtable>{rows}</mtable>")
 
 
+def _functions(expr: sx.Expr) -> set[str]:
+    """The names of the functions applied in ``expr`` (``exp`` for a power of e)."""
+    found: set[str] = set()
+    seen: set[Any] = set()
+    stack = [expr]
+    while stack:
+        node = stack.pop()
+        if node in seen:
+            continue
+        seen.add(node)
+        if node.is_Pow and type(node.args[0]).__name__ == "Exp1":
+            found.add("exp")
+        elif node.is_Function:
+            found.add("Piecewise" if sx.is_piecewise(node) else sx.function_name(node))
+        stack.extend(node.args)
+    return found
+
+
 def _smoothness(expr: sx.Expr) -> str:
-    used = sorted({type(f).__name__ for f in shown(expr).atoms(sympy().Function)})
+    used = sorted(_functions(expr))
     restricted = [f for f in used if f not in ENTIRE]
     if not used:
         return "polynomial in t: C-infinity"

@@ -5,6 +5,7 @@ Each reads the derivation and re-derives nothing.
 
 from __future__ import annotations
 
+import importlib.metadata
 from collections.abc import Mapping, Sequence
 
 from tvopt_codegen import __version__
@@ -23,7 +24,6 @@ from tvopt_codegen.report.entries import (
     count_ops,
     formula,
     plain,
-    shown,
 )
 
 
@@ -55,6 +55,18 @@ def _shown(d: Derivation) -> dict[sx.Expr, sx.Expr]:
     return shown
 
 
+def _replaced(exprs: Sequence[sx.Expr], names: dict[sx.Expr, sx.Expr]) -> list[sx.Expr]:
+    """``exprs`` under their display ``names``, in one substitution.
+
+    One per expression cost a robot's report a third of a second: each passes the
+    hundreds of names to the engine anew.
+    """
+    if not exprs:
+        return []
+    column = sx.matrix([[e] for e in exprs]).xreplace(names)
+    return [column[i, 0] for i in range(len(exprs))]
+
+
 def _mechanics(d: Derivation) -> list[Entry]:
     """The mass-matrix form: M, F, B, and how f, G, R and p are computed from them."""
     mech = d.model.mechanics
@@ -76,8 +88,12 @@ def _mechanics(d: Derivation) -> list[Entry]:
                 ),
                 header=("name", "definition"),
                 rows=tuple(
-                    (name, formula(expr.xreplace(shown)))
-                    for (_, expr), name in zip(mech.definitions, mech.definition_names, strict=True)
+                    (name, formula(expr))
+                    for expr, name in zip(
+                        _replaced([e for _, e in mech.definitions], shown),
+                        mech.definition_names,
+                        strict=True,
+                    )
                 ),
             )
         )
@@ -472,14 +488,18 @@ def _error_dynamics(d: Derivation) -> Section:
     order = len(d.dynamics.coefficients)
     # With equalities E holds the KKT map F and its derivatives instead of grad f0's.
     first, last = ("F", f"F^({k - 1})") if d.model.equalities else ("grad f0", f"grad^({k - 1}) f0")
-    # Shown only, from floats: built in SymPy, which prints it, on either engine.
-    import sympy as sp  # noqa: PLC0415 - the report is the border
-
-    companion = sp.zeros(order, order)
-    for i in range(order - 1):
-        companion[i, i + 1] = 1
-    for j, a in enumerate(d.dynamics.coefficients):
-        companion[order - 1, j] = sp.Float(a, 15)
+    # Shown only: ones above the diagonal, the coefficients (floats) in the last row.
+    companion = sx.matrix(
+        [
+            [
+                sx.real(d.dynamics.coefficients[j])
+                if i == order - 1
+                else (sx.ONE if j == i + 1 else sx.ZERO)
+                for j in range(order)
+            ]
+            for i in range(order)
+        ]
+    )
     if d.closed_loop.integral_states:
         law = (
             f"With integral action z_I = int {first} dt (states "
@@ -541,7 +561,7 @@ _NODES_PER_OP = 3
 
 
 def _inlined(program: Program, exprs: Sequence[sx.Expr]) -> list[sx.Expr] | None:
-    """``exprs`` with the program inlined, in SymPy, or None where that is sure to be too long.
+    """``exprs`` with the program inlined, or None where that is sure to be too long.
 
     A team's gradient jet inlines to expressions of millions of nodes, which took most
     of its report to build only to be described instead.
@@ -549,12 +569,10 @@ def _inlined(program: Program, exprs: Sequence[sx.Expr]) -> list[sx.Expr] | None
     nodes = sum(program.inlined_size(e) for e in exprs)
     if nodes > _NODES_PER_OP * INLINE_OPS:
         return None
-    return [shown(program.inline(e)) for e in exprs]
+    return [program.inline(e) for e in exprs]
 
 
 def _control_law(d: Derivation) -> Section:
-    import sympy as sp  # noqa: PLC0415 - the report is the border: SymPy prints it
-
     k = d.dynamics.k
     theorem = (
         "Theorem 5, Control Law for Uniform Vector Relative Degree Systems: u = alpha + "
@@ -609,7 +627,7 @@ def _control_law(d: Derivation) -> Section:
             entries.append(
                 _math_entry(
                     f"grad^({j}) f0, inlined for checking:",
-                    sp.Matrix(exprs),
+                    sx.matrix([[e] for e in exprs]),
                     _name(rf"\nabla_y^{{({j})}} f_0", f"&#8711;({j})f0"),
                 )
             )
@@ -618,7 +636,7 @@ def _control_law(d: Derivation) -> Section:
         entries.append(
             _math_entry(
                 f"rest = grad^({k}) f0 at y^({k}) = 0, inlined:",
-                sp.Matrix(rest),
+                sx.matrix([[e] for e in rest]),
                 _name(r"\mathrm{rest}", "rest"),
             )
         )
@@ -626,8 +644,6 @@ def _control_law(d: Derivation) -> Section:
 
 
 def _provenance(d: Derivation, kernels: KernelSet) -> Section:
-    import sympy  # noqa: PLC0415 - the report is the border: SymPy prints it
-
     rows = tuple((k.name, k.doc, str(k.ops_before_cse), str(k.ops)) for k in kernels.kernels)
     times = tuple((stage, f"{seconds * 1e3:.1f}") for stage, seconds in d.timings)
     return Section(
@@ -654,7 +670,8 @@ def _provenance(d: Derivation, kernels: KernelSet) -> Section:
                     ("spec", d.spec.source),
                     ("spec sha256", d.spec.sha256),
                     ("tvopt-codegen", __version__),
-                    ("sympy", sympy.__version__),
+                    # Read from its metadata: a report on SymEngine may import no SymPy.
+                    ("sympy", importlib.metadata.version("sympy")),
                     *_engine_rows(),
                 ),
             ),
@@ -663,7 +680,7 @@ def _provenance(d: Derivation, kernels: KernelSet) -> Section:
 
 
 def _engine_rows() -> tuple[tuple[str, str], ...]:
-    """The engine that derived, when it is not SymPy (which prints the report either way)."""
+    """The engine that derived, when it is not SymPy."""
     if not sx.SYMENGINE:
         return ()
     import symengine  # noqa: PLC0415 - loaded with the engine already
