@@ -156,7 +156,7 @@ def make_kernel(
         ids = [(dag.intern(sym), dag.intern(value)) for sym, value in program]
         outs = [dag.intern(_expr(e)) for e in flat]
         before = dag.operations([v for _, v in dag.needed(ids, outs)] + outs)
-        order, outs = _reduce_dag(dag, ids, outs, search)
+        order, outs = dag.factored(*_reduce_dag(dag, ids, outs, search))
         body, reduced = _number_dag(dag, order, outs)
         ops = dag.operations([v for _, v in order] + outs) + _constant_ops(outputs)
         return _package(
@@ -283,11 +283,24 @@ def _dag_kernel(
 ) -> Kernel:
     """A kernel from its program on the DAG: numbered, counted and packaged."""
     name, doc, inputs, outputs = kernel
+    order, reduced_ids = dag.factored(order, reduced_ids)
     body, reduced = _number_dag(dag, order, reduced_ids)
     ops = dag.operations([v for _, v in order] + reduced_ids) + _constant_ops(outputs)
     return _package(
         name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before, ops
     )
+
+
+def _kept(node: sx.Expr, args: Sequence[sx.Expr]) -> sx.Expr:
+    """:func:`~.rewrite._rebuild`, a number times a sum kept whole on SymEngine.
+
+    The kernel's last pass wrote sums of terms with one coefficient as ``c*(...)``
+    (:meth:`.Dag.factored`); hoisting a sum's invariant terms must not distribute the
+    ``c`` again. SymPy's constructor distributes it itself.
+    """
+    if sx.SYMENGINE and node.is_Mul:
+        return sx.Mul(*args)
+    return _rebuild(node, args)
 
 
 #: Inputs that are the same for every state of a batch (one time, one parameter vector).
@@ -355,15 +368,15 @@ def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel
         own = node.args
         if fixed(node):
             new = share(node)
-        elif (node.is_Add or node.is_Mul) and any(fixed(a) for a in own):
+        elif (node.is_Add or node.is_Mul) and any(fixed(a) and not a.is_Number for a in own):
             # (x + t + 1) -> x + _h0: the invariant terms or factors become one.
             part = [a for a in own if fixed(a)]
             rest = [hoist(a) for a in own if not fixed(a)]
-            new = _rebuild(node, [*rest, share(_rebuild(node, part))])
+            new = _kept(node, [*rest, share(_rebuild(node, part))])
         else:
             args = [hoist(a) for a in own]
             # Nothing hoisted below: the node as it is (rebuilding would give it back).
-            new = node if _unchanged(same, own, args) else _rebuild(node, args)
+            new = node if _unchanged(same, own, args) else _kept(node, args)
         memo[node] = new
         return new
 

@@ -64,6 +64,7 @@ class Dag:
         self._leaf_cost = 0
         self._negated: dict[int, int] = {}  # a number -> its negation
         self._counts: dict[int, dict[int, int]] = {}  # a node -> its symbols' uses
+        self._add = type(sx.symbol("_dag") + sx.symbol("_dag_"))
         self.minus_one = self.intern(sx.Integer(-1))
         self.one = self.intern(sx.Integer(1))
         self.zero = self.intern(sx.Integer(0))
@@ -74,12 +75,19 @@ class Dag:
         self._below: dict[int, int] = {}
 
     def intern(self, expr: sx.Expr) -> int:
-        """The id of ``expr``, its new nodes added."""
-        found = self._ids.get(expr)
-        if found is not None:
-            return found
-        args = expr.args
+        """The id of ``expr``, its new nodes added.
+
+        A sum is not looked up by its expression: SymEngine's hash of ``a + b`` combines
+        its terms' so that sums of neighbouring symbols collide (683 sums of one hash on
+        a ring of 128 agents), and every colliding entry is compared in C++. Its terms'
+        ids, looked up, key it instead.
+        """
         cls = type(expr)
+        if cls is not self._add:
+            found = self._ids.get(expr)
+            if found is not None:
+                return found
+        args = expr.args
         if not args:
             # A leaf equal to one in the table was found above: this one is new.
             i = self._new(expr, (), self._leaf_kind(expr), cls, (), len(self.expr))
@@ -100,6 +108,8 @@ class Dag:
             i = self._keys.get(key, -1)
             if i < 0:
                 i = self._keys[key] = self._new(expr, children, kind, cls, head, len(self.expr))
+            if cls is self._add:
+                return i
         self._ids[expr] = i
         return i
 
@@ -147,6 +157,10 @@ class Dag:
         node is made on ids alone, its expression built when asked for (:meth:`expression`).
         """
         plain = self._plain(i, children)
+        if plain is None and self.kind[i] == _MUL:
+            distributed = self._distributed(children)
+            if distributed is not None:
+                return distributed
         if plain is not None:
             kind = self.kind[i]
             if len(plain) == 1 and kind in (_ADD, _MUL):
@@ -175,7 +189,8 @@ class Dag:
             template = self.expr[self._template[i]]
             built = _rebuild_symengine(template, [expression(c) for c in self.args[i]])
             self.expr[i] = built
-            self._ids[built] = i
+            if type(built) is not self._add:
+                self._ids[built] = i
         return built
 
     def _plain(self, i: int, children: tuple[int, ...]) -> tuple[int, ...] | None:
@@ -302,6 +317,65 @@ class Dag:
             return None  # a number times a sum: distributed
         return (number, *factors)
 
+    def _distributed(self, children: tuple[int, ...]) -> int | None:
+        """The product of ``children`` when it is a rational times one sum, distributed.
+
+        As :func:`~.rewrite._distributed` distributes it: ``c*(a + b)`` is ``c*a + c*b``,
+        each term's coefficient multiplied, a term that is itself a number times a sum
+        distributed in turn, the terms then collected (:meth:`_plain_sum`). Made on ids: a
+        k = 12 chain's inlining distributes thousands of such products, and the engine
+        built each one's whole tree first. None where the engine would do more, or where
+        the product is not a rational times one sum.
+        """
+        kind, args = self.kind, self.args
+        number = self.one
+        factors: list[int] = []
+        for c in children:
+            for factor in args[c] if kind[c] == _MUL else (c,):
+                if kind[factor] == _NUMBER:
+                    number = self._arithmetic(number, factor, False)
+                else:
+                    factors.append(factor)
+        if (
+            len(factors) != 1
+            or kind[factors[0]] != _ADD
+            or number in (self.one, self.zero)
+            or not self._is_rational(number)
+        ):
+            return None
+        total = factors[0]
+        terms: list[int] = []
+        for term in args[total]:
+            if kind[term] == _NUMBER:
+                terms.append(self._arithmetic(number, term, False))
+                continue
+            scaled = (number, *(args[term] if kind[term] == _MUL else (term,)))
+            plain = self._plain_product(scaled)
+            if plain is None:
+                made = self._distributed(scaled)
+                if made is None:
+                    return None
+            elif len(plain) == 1:
+                made = plain[0]
+            else:
+                made = self._node(plain, _MUL, self._mul)
+            terms.append(made)
+        kept = self._plain_sum(tuple(terms))
+        if kept is None:
+            return None
+        return kept[0] if len(kept) == 1 else self._node(kept, _ADD, total)
+
+    def _node(self, children: tuple[int, ...], kind: int, like: int) -> int:
+        """The sum or product of ``children`` (kept as they are), of node ``like``'s class."""
+        cls = self._class[like]
+        key = (cls, *sorted(children))
+        found = self._keys.get(key)
+        if found is None:
+            found = self._keys[key] = self._new(
+                None, children, kind, cls, self._head[like], self._template[like]
+            )
+        return found
+
     def _arithmetic(self, a: int, b: int, add: bool) -> int:
         """The number ``a + b`` (or ``a*b``), as the engine computes it."""
         key = (a, b, add)
@@ -396,6 +470,124 @@ class Dag:
             return done
 
         return visit(i)
+
+    def distribute(self, program: Program, outputs: Sequence[int]) -> tuple[Program, list[int]]:
+        """Every rational times a sum in ``program`` and ``outputs`` distributed, as SymPy's.
+
+        SymEngine keeps ``c*(a + b)`` (and ``-(a + b)``) as a product where SymPy's
+        ``Mul`` distributes it: a negated sum then costs a negation of its own, outside
+        a sum, and like terms across the two stay apart (:meth:`_distributed`).
+        """
+        args, kind = self.args, self.kind
+        memo: dict[int, int] = {}
+
+        def visit(node: int) -> int:
+            own = args[node]
+            if not own:
+                return node
+            done = memo.get(node)
+            if done is not None:
+                return done
+            new = tuple([visit(c) for c in own])
+            done = node if new == own else self.rebuild(node, new)
+            if kind[done] == _MUL and len(args[done]) == 2:
+                distributed = self._distributed(args[done])
+                if distributed is not None:
+                    done = distributed
+            memo[node] = done
+            return done
+
+        return [(sym, visit(value)) for sym, value in program], [visit(e) for e in outputs]
+
+    def factored(self, program: Program, outputs: Sequence[int]) -> tuple[Program, list[int]]:
+        """A program's sums whose terms share one rational coefficient, written ``c*(...)``.
+
+        A sum such as ``2*a*b + 2*c*d`` (five operations) is ``2*(a*b + c*d)`` (four),
+        and in a product with a coefficient of its own the ``2`` merges into that one:
+        SymEngine's derivative of a square leaves many (a ring's barriers, whose chain
+        rule doubles every term). Only sums that are values, terms or factors are
+        rewritten, not a function's argument or a power's base (whose signs and
+        expansion are the engine's), and only exact coefficients (a float's product
+        rounds). Nodes are rebuilt by the engine's constructors, which keep ``c*(a + b)``
+        whole (:meth:`_distributed` is not applied here: this is the kernel's last pass).
+        """
+        args, kind = self.args, self.kind
+        memo: dict[int, int] = {}
+
+        def visit(node: int) -> int:
+            own = args[node]
+            k = kind[node]
+            if not own or k not in (_ADD, _MUL):
+                return node
+            done = memo.get(node)
+            if done is not None:
+                return done
+            new = tuple([visit(c) for c in own])
+            done = node
+            if new != own:
+                exprs = [self.expression(c) for c in new]
+                done = self.intern(sx.Add(*exprs) if k == _ADD else sx.Mul(*exprs))
+            if kind[done] == _ADD:
+                done = self._common_coefficient(done)
+            memo[node] = done
+            return done
+
+        return [(sym, visit(value)) for sym, value in program], [visit(e) for e in outputs]
+
+    def _unscaled(self, product: int, values: dict[int, int]) -> int:
+        """``c*_t*...`` as ``x*...`` where ``_t = k*x``, ``c*k = 1``, ``x`` a leaf.
+
+        A temporary ``_t = 2*x`` that has several uses, one of them ``(1/2)*_t``: that
+        one is ``x`` itself (``values``: the temporaries' values so far).
+        """
+        kind, args = self.kind, self.args
+        factors = args[product]
+        coefficient = factors[0]
+        if kind[coefficient] != _NUMBER or not self._is_rational(coefficient):
+            return product
+        for factor in factors[1:]:
+            value = values.get(factor)
+            # Only for x a leaf: (1/2)*_t is one operation, x*... may be more.
+            if (
+                value is None
+                or kind[value] != _MUL
+                or len(args[value]) != 2
+                or args[args[value][1]]
+            ):
+                continue
+            scale = args[value][0]
+            if kind[scale] == _NUMBER and self._arithmetic(coefficient, scale, False) == self.one:
+                rest = [self.expression(f) for f in factors[1:] if f != factor]
+                return self.intern(sx.Mul(*rest, self.expression(args[value][1])))
+        return product
+
+    def _common_coefficient(self, total: int) -> int:
+        """The sum ``total`` as ``c*(...)`` when all its terms' coefficients are ``+-c``."""
+        kind, args = self.kind, self.args
+        common = None
+        for term in args[total]:
+            if kind[term] == _NUMBER:
+                coefficient = term
+            elif kind[term] == _MUL and kind[args[term][0]] == _NUMBER:
+                coefficient = args[term][0]
+            else:
+                return total
+            if not self._is_rational(coefficient):
+                return total
+            if self.cost[coefficient]:  # a negative or a fraction: compare magnitudes
+                value = self.expression(coefficient)
+                magnitude = self.intern(-value if value.is_negative else value)
+            else:
+                magnitude = coefficient
+            if magnitude == self.one or (common is not None and magnitude != common):
+                return total
+            common = magnitude
+        if common is None:
+            return total
+        c = self.expression(common)
+        inverse = 1 / c
+        inner = sx.Add(*[self.expression(term) * inverse for term in args[total]])
+        return self.intern(sx.Mul(c, inner))
 
     def operations(self, roots: Iterable[int]) -> int:
         """:func:`~.rewrite.operation_count` of the nodes ``roots`` (memoised per DAG)."""
@@ -536,8 +728,11 @@ class Dag:
         rename: dict[int, int] = {}
         memo: dict[int, int] = {}
         kept: Program = []
+        values: dict[int, int] = {}
         for sym, raw in order:
             value = self.substitute(raw, rename, memo)
+            if self.kind[value] == _MUL:
+                value = self._unscaled(value, values)
             if self.trivial(value):
                 rename[sym] = value
                 continue
@@ -552,6 +747,7 @@ class Dag:
                     rename[sym] = self.intern(-self.expression(negated))
                     continue
             first[value] = sym
+            values[sym] = value
             kept.append((sym, value))
         return kept, [self.substitute(e, rename, memo) for e in outputs]
 

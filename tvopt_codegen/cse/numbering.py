@@ -145,7 +145,7 @@ def _reduce_dag(
     ``pi*p0/p1``, which only a search of the inlined program finds (a ring of four
     unicycles: 1920 operations, 1616 so; SymPy's 1735).
     """
-    kept, outs = dag.drop_aliases(dag.needed(program, outputs), outputs)
+    kept, outs = dag.drop_aliases(*dag.distribute(dag.needed(program, outputs), outputs))
     exprs = [value for _, value in kept] + outs
     names = numbered(prefix)
     searched = search and dag.operations(exprs) <= SMALL_PROGRAM_OPS
