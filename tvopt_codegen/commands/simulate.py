@@ -8,6 +8,7 @@ from samples.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 from typing import TYPE_CHECKING
@@ -108,11 +109,13 @@ def run(args: argparse.Namespace) -> int:
     # First: the drawing process imports matplotlib while this one loads sympy and derives.
     from tvopt_codegen.runs.drawing import Painter  # noqa: PLC0415
 
-    with Painter() as painter:
-        return _simulate_with(args, painter)
+    with Painter() as painter, contextlib.ExitStack() as stack:
+        return _simulate_with(args, painter, stack)
 
 
-def _simulate_with(args: argparse.Namespace, painter: Painter) -> int:
+def _simulate_with(
+    args: argparse.Namespace, painter: Painter, stack: contextlib.ExitStack[bool | None]
+) -> int:
     from tvopt_codegen.emit import write_files  # noqa: PLC0415
     from tvopt_codegen.runs.artifacts import result_files  # noqa: PLC0415 - matplotlib on use
     from tvopt_codegen.simulation import (  # noqa: PLC0415
@@ -155,6 +158,13 @@ def _simulate_with(args: argparse.Namespace, painter: Painter) -> int:
         points=args.points,
         tolerance=args.tolerance,
     )
+    side = None
+    if args.sample_time is None and (derivation.model.constraints or derivation.model.equalities):
+        # Next: a process that imports scipy.optimize for the constraints' check and gets
+        # its problem ready while this one loads the controller and integrates.
+        from tvopt_codegen.simulation.constraints import minimiser_process  # noqa: PLC0415
+
+        side = stack.enter_context(minimiser_process(derivation.model, options.params))
     if args.sample_time is not None:
         from tvopt_codegen.simulation.sampled import check_sample_time  # noqa: PLC0415
 
@@ -191,7 +201,12 @@ def _simulate_with(args: argparse.Namespace, painter: Painter) -> int:
     try:
         if args.sample_time is None:
             result = simulate(
-                derivation, controller, options, progress=progress, references=references
+                derivation,
+                controller,
+                options,
+                progress=progress,
+                references=references,
+                side=side,
             )
             sampled = None
         else:

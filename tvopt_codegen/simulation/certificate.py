@@ -17,6 +17,7 @@ from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.maths import hurwitz
 from tvopt_codegen.simulation.references import ReferenceSource
 from tvopt_codegen.simulation.result import Options, Result
+from tvopt_codegen.simulation.side import Side
 from tvopt_codegen.simulation.target import _reference_values, kkt_path, minimizer_path
 
 #: The certificate is vacuous when the convexity modulus along the run is below this
@@ -173,8 +174,12 @@ def _certify(
     solution: Any,
     wall: float,
     references: ReferenceSource | None = None,
+    side: Side | None = None,
 ) -> Result:
-    """Sample the run and check the theorem along it."""
+    """Sample the run and check the theorem along it.
+
+    ``side``: see :func:`tvopt_codegen.simulation.constraints.check_run`.
+    """
     # One pass over the run's samples, each check of the certificate in the order the
     # summary prints them; the heavy parts are the helpers above.
     # No overrides is None: the module's one-point path then skips reading a mapping.
@@ -231,7 +236,9 @@ def _certify(
     ratio = hurwitz.bound_ratio(error, bound)
     if not estimated and not ratio <= 1.0:
         failures.append(f"|y - y*| exceeds the bound C e^(-alpha t) by a factor {ratio:.3g}")
-    constrained = _constraint_check(d, options, ts, outputs, error, target, references, failures)
+    constrained = _constraint_check(
+        d, options, ts, outputs, error, target, references, failures, side
+    )
     if constrained is not None and d.model.equalities:
         # a is the KKT map's last rows: |a(y(t), t)| <= |E(t)| <= c e^(-alpha t) |E(0)|.
         drift = np.linalg.norm(constrained.equality, axis=0)
@@ -311,17 +318,18 @@ def _constraint_check(
     target: np.ndarray,
     references: ReferenceSource | None,
     failures: list[str],
+    side: Side | None = None,
 ) -> Any:
     """For a spec with constraints: check them along the run, adding to ``failures``."""
     if not d.model.constraints and not d.model.equalities:
         return None
-    from tvopt_codegen.simulation.constraints import check_run  # noqa: PLC0415
+    from tvopt_codegen.simulation.constraints import (  # noqa: PLC0415
+        check_run,
+        parameter_values,
+    )
 
-    values = {
-        q: options.params.get(q.name, v)
-        for q, v in zip(d.model.params, d.model.defaults, strict=True)
-    }
-    constrained = check_run(d.model, ts, outputs, error, target, values, references)
+    values = parameter_values(d.model, options.params)
+    constrained = check_run(d.model, ts, outputs, error, target, values, references, side=side)
     worst = float(constrained.margins.min()) if constrained.margins.size else math.inf
     if not worst > 0:
         where = np.unravel_index(int(np.argmin(constrained.margins)), constrained.margins.shape)

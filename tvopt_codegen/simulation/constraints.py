@@ -18,6 +18,7 @@ import numpy as np
 
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import calculus
+from tvopt_codegen.simulation.side import Side
 from tvopt_codegen.spec.constraints import inline_signals
 
 
@@ -229,6 +230,42 @@ def _minimise(
     return minimiser
 
 
+def parameter_values(model: Any, params: Mapping[str, float]) -> dict[sx.Expr, float]:
+    """The model's parameters at ``params`` (by name), the others at their defaults."""
+    return {q: params.get(q.name, v) for q, v in zip(model.params, model.defaults, strict=True)}
+
+
+def _values_key(values: Mapping[sx.Expr, float]) -> tuple[tuple[str, float], ...]:
+    """``values`` as plain data, to tell a side process which problem is meant."""
+    return tuple((sx.text(q), float(v)) for q, v in values.items())
+
+
+def minimiser_process(model: Any, params: Mapping[str, float]) -> Side:
+    """A process that gets :func:`check_run`'s SLSQP solves ready, started now.
+
+    It imports ``scipy.optimize`` and lambdifies the problem at ``params`` (see
+    :func:`parameter_values`) while this process integrates the run; :func:`check_run`
+    then sends it the solves. A request at other parameter values lambdifies them anew.
+    """
+    built = parameter_values(model, params)
+
+    def start() -> Callable[[Any], list[np.ndarray]]:
+        from scipy.optimize import minimize  # noqa: F401, PLC0415 - why the process is there
+
+        problems = {_values_key(built): _problem(model, built, None)}
+
+        def solve(request: tuple[Any, list[Any]]) -> list[np.ndarray]:
+            key, tasks = request
+            if key not in problems:
+                names = {sx.text(q): q for q in model.params}
+                problems[key] = _problem(model, {names[n]: v for n, v in key}, None)
+            return [_minimise(problems[key], *task) for task in tasks]
+
+        return solve
+
+    return Side(start)
+
+
 def check_run(
     model: Any,
     ts: np.ndarray,
@@ -238,6 +275,7 @@ def check_run(
     values: Mapping[sx.Expr, float],
     references: Any = None,
     checked: int = 41,
+    side: Side | None = None,
 ) -> RunCheck:
     """Check a run against its constraints (see the module docstring).
 
@@ -258,6 +296,9 @@ def check_run(
     checked : int, optional
         Times at which the constrained minimiser is found (evenly spread, the last one
         the end of the run).
+    side : Side, optional
+        A :func:`minimiser_process` of the model, which finds them (else, or where it
+        fails, they are found here: the same numbers).
     """
     problem = _problem(model, values, references)
     t, numeric, refs_at = model.t, problem.numeric, problem.refs_at
@@ -290,21 +331,23 @@ def check_run(
 
     p = len(model.constraints)
     m_f = min(smallest(float(ts[k]), outputs[:, k], refs[k]) for k in picks)
-    minimisers, distance, bound = [], [], []
+    tasks, gaps = [], []
     for k in picks:
         time = float(ts[k])
-        r = refs[k]
-        s = slack[k]
         gap = math.sqrt(2.0 * p * mu_of(time) / m_f) if m_f > 0 else math.inf
         # A local solve from the barrier's minimiser, within twice the gap the theory
         # allows: f0 may have other branches (a periodic barrier such as tan), and the
         # constrained minimiser meant is the one of y*_B's branch. A solution on the box
         # is reported: the minimiser was not where the theory puts it.
         radius = 2.0 * gap + 1e-3
-        centre = phi_minimisers[:, k]
-        result_x = _minimise(problem, time, r, s, centre, radius)
+        tasks.append((time, refs[k], float(slack[k]), phi_minimisers[:, k], radius))
+        gaps.append(gap)
+    found = side.ask((_values_key(values), tasks)) if side is not None else None
+    if found is None:
+        found = [_minimise(problem, *task) for task in tasks]
+    distance, bound = [], []
+    for k, (*_, centre, radius), result_x, gap in zip(picks, tasks, found, gaps, strict=True):
         on_box = bool(np.any(np.abs(result_x - centre) >= radius * (1 - 1e-9)))
-        minimisers.append(result_x)
         distance.append(math.inf if on_box else float(np.linalg.norm(outputs[:, k] - result_x)))
         bound.append(float(to_phi[k] + gap))
     lhs = along(numeric([c.lhs for c in every]))

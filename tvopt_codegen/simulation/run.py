@@ -21,6 +21,7 @@ from tvopt_codegen.maths import dopri
 from tvopt_codegen.simulation.certificate import _certify
 from tvopt_codegen.simulation.references import ReferenceSource, nominal_source
 from tvopt_codegen.simulation.result import Options, Result
+from tvopt_codegen.simulation.side import Side
 
 #: A run whose integrator stopped (its step size collapsed) where ``|det R|`` had fallen
 #: below this fraction of its value at t = 0 ran into the singular set of R: the law's
@@ -42,6 +43,7 @@ def simulate(
     options: Options,
     progress: Callable[[float, float], None] | None = None,
     references: ReferenceSource | None = None,
+    side: Side | None = None,
 ) -> Result:
     """Integrate the closed loop and check the theorem along the run.
 
@@ -59,6 +61,11 @@ def simulate(
     references : ReferenceSource, optional
         The reference jets, for a spec with references (default: the exact jets of the
         nominal closed forms).
+    side : Side, optional
+        For a spec with constraints, a
+        :func:`~tvopt_codegen.simulation.constraints.minimiser_process` of its model
+        started before the run: it finds the constrained minimisers the certificate
+        compares the run with (the same numbers as without it, sooner).
 
     Returns
     -------
@@ -107,7 +114,9 @@ def simulate(
         first = integrate(options)
         if not first.success:
             _refuse_singular_stop(d, options, float(first.t[-1]), np.asarray(first.y)[:, -1])
-        result = _certify(d, controller, options, first, time.perf_counter() - started, source)
+        result = _certify(
+            d, controller, options, first, time.perf_counter() - started, source, side
+        )
         accurate = dataclasses.replace(
             options,
             method=CHECK_METHOD,
@@ -121,7 +130,9 @@ def simulate(
         second = integrate(accurate)
         if not second.success:
             _refuse_singular_stop(d, accurate, float(second.t[-1]), np.asarray(second.y)[:, -1])
-        again = _certify(d, controller, accurate, second, time.perf_counter() - started, source)
+        again = _certify(
+            d, controller, accurate, second, time.perf_counter() - started, source, side
+        )
         verdict = (
             "it passes: the failure was the integrator's error, not the law's"
             if again.passed
