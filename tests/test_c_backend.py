@@ -489,10 +489,12 @@ def test_sparse_outputs_are_zeros_and_their_nonzero_elements(
     tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
 ) -> None:
     """An eight-agent ring's Hessian (16 x 16, 160 zeros) is printed as zeros and its 96
-    nonzero elements, in every printing; its values are sympy's, the same in both
-    backends, on the one-point and the batch path; the C compiles under strict warnings."""
+    nonzero elements, in every printing; its values are sympy's (the Hessian crossed to
+    SymPy at the border and lambdified there), the same in both backends, on the
+    one-point and the batch path; the C compiles under strict warnings."""
     from tvopt_codegen.backends.c.printer import CPrinter
     from tvopt_codegen.renderer.rendering import print_kernel
+    from tvopt_codegen.symbolic.border import to_sympy
 
     spec = tmp_path / "ring8.toml"
     text = (ROOT / "tvopt_codegen" / "examples" / "unicycle_ring.toml").read_text()
@@ -507,7 +509,8 @@ def test_sparse_outputs_are_zeros_and_their_nonzero_elements(
     rng = np.random.default_rng(8)
     ys = rng.uniform(-3.0, 3.0, size=(16, 5))
     values = dict(zip(d.model.params, d.model.defaults, strict=True))
-    exact = sp.lambdify([d.model.t, *d.model.y], d.hessian.xreplace(values), "numpy")
+    arguments = [to_sympy(s) for s in (d.model.t, *d.model.y)]
+    exact = sp.lambdify(arguments, to_sympy(d.hessian.xreplace(values)), "numpy")
     for column in range(5):
         expected = np.array(exact(1.5, *ys[:, column]), dtype=float)
         one = python.hessian(1.5, ys[:, column])
