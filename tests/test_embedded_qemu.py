@@ -15,7 +15,8 @@ in double (``qemu-system-arm -M mps2-an500``) and a Cortex-M4F in single precisi
   turned off (``GLIBC_TUNABLES=glibc.cpu.hwcaps=-FMA,-AVX2``). Measured: without the
   tunable, armhf differs from the host in the last bits on planar_arm3 and flexible_joint.
 - Bare metal's math library is newlib's: the M7's double loop differs from the host's
-  by at most the bound per example below (measured, with a margin of about 10).
+  by at most the bound per example below (measured, with a margin of about 10), and
+  never less than a few ulps of the quantity's size (:data:`ULPS`).
 - The M4F's single-precision controller against the same double plant tracks the host's
   double loop within the tolerance per example below (measured, margin about 10).
 """
@@ -56,16 +57,33 @@ NO_FMA = {"GLIBC_TUNABLES": "glibc.cpu.hwcaps=-FMA,-AVX2"}
 
 #: The Cortex-M7's double loop (newlib's libm) against the host's: the largest
 #: difference of the plant state and of the input over the records, bounded at about 10
-#: times what was measured (2026-12-05, QEMU 7.2, arm-none-eabi-gcc 12.2, newlib 4.3):
-#: pvtol 0 and 3.5e-18, planar_arm3 2.4e-15 and 3.6e-14, arm_on_line 6.9e-17 and
-#: 5.3e-15, unicycle_switch 0 and 1.3e-16, flexible_joint 1.4e-17 and 2.2e-16.
+#: times what was measured (2026-12-05, QEMU 7.2, arm-none-eabi-gcc 12.2, newlib 4.3, the
+#: C of the SymEngine engine): pvtol 0 and 1.8e-16, planar_arm3 1.6e-15 and 6.8e-14,
+#: arm_on_line 1.1e-16 and 3.6e-15, unicycle_switch 2.2e-16 and 0, flexible_joint
+#: 1.4e-17 and 1.1e-16 (on SymPy's C: pvtol 0 and 3.5e-18, planar_arm3 2.4e-15 and
+#: 3.6e-14, arm_on_line 6.9e-17 and 5.3e-15, unicycle_switch 0 and 1.3e-16,
+#: flexible_joint 1.4e-17 and 2.2e-16). At most a few ulps either way (see ULPS).
 BARE_DOUBLE = {
-    "pvtol": (1e-16, 1e-16),
+    "pvtol": (1e-16, 2e-15),
     "planar_arm3": (3e-14, 4e-13),
     "arm_on_line": (1e-15, 6e-14),
-    "unicycle_switch": (1e-16, 2e-15),
+    "unicycle_switch": (2e-15, 2e-15),
     "flexible_joint": (2e-16, 3e-15),
 }
+
+#: No M7 bound is below this many units in the last place of the quantity's largest
+#: magnitude over the records (the states' 0.5-5, the inputs' 1.5-30). Ten times a
+#: measured 0, or a thousandth of an ulp, would demand bit equality, which newlib's libm
+#: does not promise: a last-bit difference at one record is what a change of the
+#: generated C's rounding order gives (the engine's CSE form changed it: pvtol's input
+#: 1.8e-16 at a scale of 10.4, unicycle_switch's state 2.2e-16, one ulp of 1.27).
+ULPS = 4
+
+
+def _m7_bound(table: float, host: np.ndarray) -> float:
+    """``table``, or :data:`ULPS` ulps of the largest magnitude in ``host`` if more."""
+    return max(table, ULPS * float(np.spacing(np.max(np.abs(host)))))
+
 
 #: The Cortex-M4F's single-precision loop against the host's double one: the largest
 #: difference of the plant state and of the input, at about 10 times what was measured:
@@ -190,8 +208,8 @@ def test_cortex_m7_double_within_bound(example: str) -> None:
     host, m7 = _trace(example, "host", "double"), _trace(example, "m7", "double")
     x_bound, u_bound = BARE_DOUBLE[example]
     np.testing.assert_array_equal(m7.t, host.t)
-    assert np.max(np.abs(m7.x - host.x)) <= x_bound
-    assert np.max(np.abs(m7.u - host.u)) <= u_bound
+    assert np.max(np.abs(m7.x - host.x)) <= _m7_bound(x_bound, host.x)
+    assert np.max(np.abs(m7.u - host.u)) <= _m7_bound(u_bound, host.u)
 
 
 @slow
