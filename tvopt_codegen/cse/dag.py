@@ -817,7 +817,8 @@ def inline_waves(
             inline[order[i][0]] = substitute(values[i], inline, memo)
             users |= holders[i]
             gone.add(i)
-            changed |= counts[i].keys()
+            # update, not |=: a set |= a dict's keys copies the set, each time.
+            changed.update(counts[i])
             for j, times in counts[i].items():
                 uses[j] -= times
                 holders[j].discard(i)
