@@ -256,21 +256,24 @@ def _assert_same_words(expected: object, got: object, source: str) -> None:
 
 
 def test_the_report_module_shows_an_engine_expression() -> None:
-    """formula() of one expression built on either engine: the same text, SymPy's LaTeX."""
+    """formula() and plain() of one expression built on either engine: the same text,
+    SymPy's LaTeX and sstr (in the order of the arguments)."""
     x, y = sp.symbols("x y", real=True)
     expr = sp.sin(x) * y**2 / 10 + sp.Rational(1, 3) * sp.atan2(y, x)
     with sx.using("sympy"):
         expected = entries.formula(expr)
         ops = entries.count_ops(expr)
+        text = entries.plain(expr)
     with sx.using("symengine"):
         converted = from_sympy(expr)
         assert isinstance(converted, sx.Basic)
         math = entries.formula(converted)
         assert entries.count_ops(converted) == ops
+        assert entries.plain(converted) == text
     assert math == expected
     assert math.latex == sp.latex(expr, order="none", mul_symbol=r"\,")
     assert ops == sp.count_ops(expr)
-    assert entries.plain(expr) == sp.sstr(expr)
+    assert text == sp.sstr(expr, order="none") == "atan2(y, x)/3 + y**2*sin(x)/10"
 
 
 #: The jet's program's length in the control law's words.

@@ -1,11 +1,12 @@
-"""The report's own LaTeX and MathML printers and operation count, against SymPy's.
+"""The report's own printers (LaTeX, MathML, text) and operation count, against SymPy's.
 
 The report prints either engine's expressions without SymPy
 (:mod:`tvopt_codegen.report.printing`). Its LaTeX must be SymPy's ``latex(expr,
-order="none", mul_symbol=r"\\,")`` character for character, its operation count SymPy's
-``count_ops``, on every expression a real derivation shows; its MathML SymPy's markup
-(as the report customizes it) where SymPy keeps the factors in the same order, and the
-same names and numbers where it arranges them its own way.
+order="none", mul_symbol=r"\\,")`` and its text SymPy's ``sstr(expr, order="none")``
+character for character, its operation count SymPy's ``count_ops``, on every expression
+a real derivation shows; its MathML SymPy's markup (as the report customizes it) where
+SymPy keeps the factors in the same order, and the same names and numbers where it
+arranges them its own way.
 """
 
 from __future__ import annotations
@@ -99,6 +100,19 @@ def test_latex_is_sympys_character_for_character(name: str, engine: str) -> None
 
 @pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("name", SPECS)
+def test_text_is_sympys_character_for_character(name: str, engine: str) -> None:
+    """The one-line text (a barrier's weight mu(t) and slack s(t)) is SymPy's ``sstr``."""
+    with sx.using(engine):
+        d = derivation(name)
+        exprs = [e for e in _shown_expressions(d) if not isinstance(e, sx.MatrixBase)]
+        if d.model.constraints:
+            exprs += [d.model.mu, d.model.slack]
+        for expr in exprs:
+            assert printing.text(expr) == sp.sstr(entries.as_sympy(expr), order="none"), expr
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+@pytest.mark.parametrize("name", SPECS)
 def test_operation_counts_are_sympys(name: str, engine: str) -> None:
     with sx.using(engine):
         for expr in _shown_expressions(derivation(name)):
@@ -168,10 +182,14 @@ def test_simple_expressions_print_as_sympy_does_and_the_same_on_both_engines(eng
     with sx.using(engine):
         printed = [(printing.latex(e), printing.mathml(e)) for e in _simple()]
         expected = [(_sympy_latex(e), _sympy_mathml(e)) for e in _simple()]
+        texts = [printing.text(e) for e in _simple()[:-1]]
+        assert texts == [sp.sstr(entries.as_sympy(e), order="none") for e in _simple()[:-1]]
     assert printed == expected
     with sx.using("sympy"):
         reference = [(printing.latex(e), printing.mathml(e)) for e in _simple()]
+        assert [printing.text(e) for e in _simple()[:-1]] == texts
     assert printed == reference
+    assert "0.100000000000000" in texts and "-3*x/4" in texts and "1/sqrt(x)" in texts
     # Some of them, spelled out.
     latex = dict(zip([str(e) for e in _simple()], [t for t, _ in printed], strict=True))
     assert latex[str(sx.real(2.5e-7))] == r"2.5 \cdot 10^{-7}"

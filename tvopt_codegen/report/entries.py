@@ -195,8 +195,18 @@ def as_sympy(expr: object) -> Any:
 
 
 def plain(expr: object) -> str:
-    """``expr`` (small: a weight, a slack) as SymPy's one-line text, on either engine."""
-    return str(sympy().sstr(as_sympy(expr)))
+    """``expr`` (small: a weight, a slack) as SymPy's one-line text, on either engine.
+
+    SymPy's ``sstr(expr, order="none")``: the report's own printer, SymPy's for a node it
+    does not print.
+    """
+    value = shown(expr)
+    if _native(value):
+        try:
+            return printing.text(value)
+        except printing.Unprintable:
+            pass
+    return str(sympy().sstr(as_sympy(value), order="none"))
 
 
 def count_ops(expr: object) -> int:
