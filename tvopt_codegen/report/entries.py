@@ -2,10 +2,11 @@
 
 Paragraphs, equations (MathML and LaTeX), tables and figures.
 
-The report is the border with SymPy (:mod:`tvopt_codegen.symbolic.border`): SymPy prints
-its LaTeX and MathML, so what it shows, and only that, is converted to SymPy here, when
-it is shown; SymPy is imported then, never when the module is (``simulate`` on SymEngine
-imports this package without SymPy).
+The report prints what it shows itself, from either engine's expressions
+(:mod:`tvopt_codegen.report.printing`: SymPy's LaTeX, MathML and text, in the order of
+the arguments). Only a node those printers do not print is converted to SymPy
+(:mod:`tvopt_codegen.symbolic.border`) and printed there, SymPy imported then, never when
+the module is (``simulate`` and a report on SymEngine import no SymPy).
 """
 
 from __future__ import annotations
