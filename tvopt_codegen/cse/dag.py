@@ -451,20 +451,23 @@ class Dag:
         return not self.args[i] or self.negated_atom(i)
 
     def substitute(self, i: int, mapping: dict[int, int], memo: dict[int, int]) -> int:
-        """Node ``i`` with ``mapping`` applied, as :func:`~.rewrite._substitute` does."""
+        """Node ``i`` with ``mapping`` applied, as :func:`~.rewrite._substitute` does.
+
+        ``mapping``'s keys are leaves (the program's symbols): a compound node is
+        looked up in ``memo`` only, and a leaf child is mapped where it is met, without
+        a call of its own (most of a three-address program's children are leaves).
+        """
         args = self.args
+        get = mapping.get
+        if not args[i]:
+            return get(i, i)
 
         def visit(node: int) -> int:
-            target = mapping.get(node)
-            if target is not None:
-                return target
-            own = args[node]
-            if not own:
-                return node
             done = memo.get(node)
             if done is not None:
                 return done
-            new = tuple([visit(c) for c in own])
+            own = args[node]
+            new = tuple([visit(c) if args[c] else get(c, c) for c in own])
             done = node if new == own else self.rebuild(node, new)
             memo[node] = done
             return done
@@ -744,7 +747,7 @@ class Dag:
                 opposite = self.negation(value)
                 negated = None if opposite is None else first.get(opposite)
                 if negated is not None:
-                    rename[sym] = self.intern(-self.expression(negated))
+                    rename[sym] = self._node((self.minus_one, negated), _MUL, self._mul)
                     continue
             first[value] = sym
             values[sym] = value
