@@ -13,6 +13,7 @@ from tvopt_codegen import cse
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.cse.dag import Dag
 from tvopt_codegen.cse.rewrite import _distributed
+from tvopt_codegen.lowering.kernel import Arg
 
 from .engine_cases import float_value
 
@@ -136,3 +137,43 @@ def test_dag_keeps_sums_of_colliding_hashes_apart() -> None:
         assert all(dag.expression(i) == s for i, s in zip(ids, sums, strict=True))
         nested = dag.intern(sx.sin(sums[7]) * sums[7])
         assert dag.args[nested] == tuple(sorted((ids[7], dag.intern(sx.sin(sums[7])))))
+
+
+def test_kernels_sign_mirrored_odd_functions_read_into_the_dag() -> None:
+    """tanh((a - t)/x) and tanh((t - a)/x), their symbols renamed to slots: the kernels
+    (one, and two over one program) sign them on the DAG, evaluate one tanh and compute
+    the program's values."""
+    with sx.using("symengine"):
+        t, a, x, y, z, e, f = sx.symbols(["t", "a", "x", "y", "z", "_e", "_f"])
+        p0, p1, s0, s1 = sx.symbols(["_p0", "_p1", "_s0", "_s1"])
+        inputs = [
+            Arg("t", (), (), "time"),
+            Arg("s", (s0, s1), ("y", "z"), "state"),
+            Arg("p", (p0, p1), ("a", "x"), "parameters"),
+        ]
+        program = [(e, sx.tanh((a - t) / x)), (f, sx.tanh((t - a) / x))]
+        exprs = [e * z + f * y, e * y - f * z + sx.sinh(t - a)]
+        subs = {a: p0, x: p1, y: s0, z: s1}
+        env = {"t": 0.3, "a": 0.2, "x": 1.7, "y": -0.4, "z": 0.9}
+        for sym, value in program:
+            env[str(sym)] = _value(value, env)
+        want = [_value(o, env) for o in exprs]
+        slots = {"t": 0.3, "_p0": 0.2, "_p1": 1.7, "_s0": -0.4, "_s1": 0.9}
+        one = cse.make_kernel("k", "", inputs, program, [("o", (2,), exprs, "")], subs, odd={})
+        two = cse.make_kernels(
+            [("k1", "", inputs, [("o", (1,), exprs[:1], "")])]
+            + [("k2", "", inputs, [("o", (1,), exprs[1:], "")])],
+            program,
+            subs,
+            odd={},
+        )
+        for kernels in ([one], two):
+            got: list[float] = []
+            for kernel in kernels:
+                values = dict(slots)
+                for sym, value in kernel.body:
+                    values[str(sym)] = _value(value, values)
+                got += [_value(o, values) for out in kernel.outputs for o in out.exprs]
+                text = " ".join(str(v) for _, v in kernel.body) + str(kernel.outputs)
+                assert text.count("tanh(") == 1, text
+            assert got == pytest.approx(want, rel=1e-14)

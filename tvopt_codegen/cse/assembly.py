@@ -47,7 +47,10 @@ def _prepare(
     odd: dict[sx.Expr, sx.Expr] | None,
     symbols: dict[sx.Expr, set[sx.Expr]] | None = None,
 ) -> tuple[list[Assignment], list[sx.Expr]]:
-    """What ``exprs`` need of the program, with slots substituted and odd functions signed."""
+    """What ``exprs`` need of the program, with slots substituted and odd functions signed.
+
+    On SymEngine the odd functions are left to :meth:`.Dag.signed_odd`.
+    """
     # Only what the outputs need: the gradient kernel, say, reads the jet's first part.
     assignments = _prune(assignments, exprs, symbols)
     slots: dict[sx.Expr, sx.Expr] = {}
@@ -57,8 +60,9 @@ def _prepare(
         subs = {sym: canonical_odd(value, signs) for sym, value in subs.items()}
     if sx.SYMENGINE:
         # One walk in C++ for the whole program. The slots' values are symbols, or the
-        # signals' expressions of time, seldom under a coefficient (_replace_all).
-        values = _replace_all([value for _, value in assignments] + list(exprs), subs, signs)
+        # signals' expressions of time, seldom under a coefficient (_replace_all). Odd
+        # functions are signed on the DAG the program is read into (Dag.signed_odd).
+        values = _replace_all([value for _, value in assignments] + list(exprs), subs)
         n = len(assignments)
         program = [(sym, value) for (sym, _), value in zip(assignments, values[:n], strict=True)]
         return program, values[n:]
@@ -155,6 +159,7 @@ def make_kernel(
         dag = Dag()
         ids = [(dag.intern(sym), dag.intern(value)) for sym, value in program]
         outs = [dag.intern(_expr(e)) for e in flat]
+        ids, outs = dag.signed_odd(ids, outs, {} if odd is None else odd)
         before = dag.operations([v for _, v in dag.needed(ids, outs)] + outs)
         order, outs = dag.factored(*_reduce_dag(dag, ids, outs, search))
         body, reduced = _number_dag(dag, order, outs)
@@ -195,7 +200,8 @@ def make_kernels(
     )
     ends = list(itertools.accumulate(sizes))
     if sx.SYMENGINE:
-        return _make_kernels_dag(kernels, program, flat, sizes, ends, [w for _, w in symbolic])
+        wheres = [w for _, w in symbolic]
+        return _make_kernels_dag(kernels, program, flat, sizes, ends, wheres, odd)
     parts = [flat[end - size : end] for size, end in zip(sizes, ends, strict=True)]
     counts: dict[sx.Expr, int] = {}
     programs = [_prune(program, part, symbols) for part in parts]
@@ -236,15 +242,17 @@ def _make_kernels_dag(
     sizes: Sequence[int],
     ends: Sequence[int],
     wheres: Sequence[Sequence[int]],
+    odd: dict[sx.Expr, sx.Expr] | None,
 ) -> list[Kernel]:
     """:func:`make_kernels` on SymEngine, its program read once into a :class:`.Dag`.
 
     The same steps, on the DAG's integer ids; expressions are built for what the
-    kernels hold, and where inlining collects terms.
+    kernels hold, and where inlining collects terms. ``odd`` is :func:`make_kernel`'s.
     """
     dag = Dag()
     ids = [(dag.intern(sym), dag.intern(value)) for sym, value in program]
     outs = [dag.intern(_expr(e)) for e in flat]
+    ids, outs = dag.signed_odd(ids, outs, {} if odd is None else odd)
     parts = [outs[end - size : end] for size, end in zip(sizes, ends, strict=True)]
     programs = [dag.needed(ids, part) for part in parts]
     befores = [
