@@ -675,23 +675,21 @@ class Dag:
         """:func:`~.numbering._prune` on ids: the assignments the outputs need."""
         args = self.args
         seen: set[int] = set()
-
-        def mark(root: int) -> None:
-            stack = [root]
+        # One walk of the nodes the outputs and the kept values hold, each node once; a
+        # kept value's nodes are pushed on the one stack (no call per assignment).
+        stack = list(outputs)
+        kept: Program = []
+        for sym, value in [(-1, -1), *reversed(program)]:
+            if sym >= 0:
+                if sym not in seen:
+                    continue
+                kept.append((sym, value))
+                stack.append(value)
             while stack:
                 node = stack.pop()
-                if node in seen:
-                    continue
-                seen.add(node)
-                stack.extend(args[node])
-
-        for out in outputs:
-            mark(out)
-        kept: Program = []
-        for sym, value in reversed(program):
-            if sym in seen:
-                kept.append((sym, value))
-                mark(value)
+                if node not in seen:
+                    seen.add(node)
+                    stack.extend(args[node])
         return kept[::-1]
 
     def drop_aliases(self, program: Program, outputs: Sequence[int]) -> tuple[Program, list[int]]:
@@ -794,13 +792,8 @@ class Dag:
             kept.append((sym, value))
         return kept, [self.substitute(e, rename, memo) for e in outputs]
 
-    def occurrences(self, root: int, position: dict[int, int]) -> dict[int, int]:
-        """:func:`~.numbering._occurrences` on ids: each temporary's uses in ``root``.
-
-        Temporaries are counted by their place in the program (``position``, symbol ->
-        place), from the symbols' counts in ``root``, which are kept: the kernels cut
-        from one program count the same values again.
-        """
+    def _symbol_counts(self, root: int) -> dict[int, int]:
+        """How often each symbol occurs in ``root``'s tree (kept per root)."""
         counts = self._counts.get(root)
         if counts is None:
             args, kind = self.args, self.kind
@@ -814,6 +807,16 @@ class Dag:
                 elif kind[node] == _SYMBOL:
                     counts[node] = counts.get(node, 0) + 1
             self._counts[root] = counts
+        return counts
+
+    def occurrences(self, root: int, position: dict[int, int]) -> dict[int, int]:
+        """:func:`~.numbering._occurrences` on ids: each temporary's uses in ``root``.
+
+        Temporaries are counted by their place in the program (``position``, symbol ->
+        place), from the symbols' counts in ``root``, which are kept: the kernels cut
+        from one program count the same values again.
+        """
+        counts = self._symbol_counts(root)
         found: dict[int, int] = {}
         for sym, times in counts.items():
             i = position.get(sym)
