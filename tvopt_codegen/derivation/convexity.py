@@ -17,9 +17,7 @@ from tvopt_codegen.derivation.calculus import constraint_hessian_entries
 from tvopt_codegen.derivation.model import Model
 from tvopt_codegen.derivation.record import Convexity
 from tvopt_codegen.errors import AssumptionError
-from tvopt_codegen.maths.jet import (
-    Program,
-)
+from tvopt_codegen.maths.jet import Program
 from tvopt_codegen.maths.numeric import Evaluator, Tape
 from tvopt_codegen.maths.sparse import reverse_cuthill_mckee
 from tvopt_codegen.spec import Constraint
@@ -216,54 +214,25 @@ def _minimiser_path(
                 break
             if value is None:
                 value = numbers.value(ys, ts)
-            scale, accepted, reached = _backtrack(numbers, ys, ts, steps, value, converged)
+            # The full steps, then all halvings (2^-1 .. 2^-29) of the points they did not
+            # improve in one call: 30 calls where a point cannot improve (out of the domain).
+            full = numbers.value(ys - steps, ts)
+            scale, reached = np.ones(points), full
+            accepted = converged | (full < value)
+            todo = np.flatnonzero(~accepted)
+            if todo.size:
+                halvings = 0.5 ** np.arange(1, 30)[:, None, None]
+                trial = (ys[todo] - halvings * steps[todo]).reshape(-1, ys.shape[1])
+                values = numbers.value(trial, np.tile(ts[todo], 29)).reshape(29, -1)
+                better = values < value[todo]
+                level, accepted[todo] = better.argmax(axis=0), better.any(axis=0)
+                scale[todo] = np.where(accepted[todo], halvings[level, 0, 0], 1.0)
+                reached[todo] = values[level, np.arange(todo.size)]
             if not (accepted & ~converged).any():
                 break  # no point moves any more
             ys = np.where(accepted[:, None], ys - scale[:, None] * steps, ys)
-            # f0 at the points moved to was met on the way: not evaluated again.
-            value = np.where(accepted, reached, value)
+            value = np.where(accepted, reached, value)  # f0 there was met on the way
     return ys, converged
-
-
-#: Step sizes tried per point and Newton iteration: the step, then its halvings.
-_HALVINGS = 30
-
-
-def _backtrack(
-    numbers: _ObjectiveNumbers,
-    ys: np.ndarray,
-    ts: np.ndarray,
-    steps: np.ndarray,
-    value: np.ndarray,
-    converged: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each point's step scale, whether one was found, and f0 there.
-
-    The scale is the first of 1, 1/2, ..., 2^-29 at which f0 falls below ``value`` (1 for
-    a converged point, which takes its last step whatever it does). The full steps are
-    tried at once, then every halving of the points they did not improve at once: f0's
-    evaluation costs per call far more than per point, and halving one level per call
-    took 30 calls an iteration wherever one point could not improve (a point outside the
-    barrier's domain), two thirds of a constrained spec's convexity check.
-    """
-    full = numbers.value(ys - steps, ts)
-    scale = np.ones(len(ts))
-    accepted = converged | (full < value)
-    reached = full.copy()
-    pending = np.flatnonzero(~accepted)
-    if pending.size:
-        halvings = 0.5 ** np.arange(1, _HALVINGS)
-        trial = ys[pending][None, :, :] - halvings[:, None, None] * steps[pending][None, :, :]
-        values = numbers.value(
-            trial.reshape(-1, ys.shape[1]), np.tile(ts[pending], len(halvings))
-        ).reshape(len(halvings), len(pending))
-        better = values < value[pending]
-        found = better.any(axis=0)
-        first = better.argmax(axis=0)
-        scale[pending] = np.where(found, halvings[first], scale[pending])
-        accepted[pending] = found
-        reached[pending] = values[first, np.arange(len(pending))]
-    return scale, accepted, reached
 
 
 def _check_convexity(
