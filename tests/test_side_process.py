@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tvopt_codegen.runs.side import Side, can_fork
 from tvopt_codegen.simulation import resolve_options, simulate
 from tvopt_codegen.simulation.constraints import minimiser_process
-from tvopt_codegen.simulation.side import Side, can_fork
 
 from .conftest import derivation, module
 

@@ -15,9 +15,9 @@ import numpy as np
 
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.maths import hurwitz
+from tvopt_codegen.runs.side import Side
 from tvopt_codegen.simulation.references import ReferenceSource
 from tvopt_codegen.simulation.result import Options, Result
-from tvopt_codegen.simulation.side import Side
 from tvopt_codegen.simulation.target import _reference_values, kkt_path, minimizer_path
 
 #: The certificate is vacuous when the convexity modulus along the run is below this

@@ -18,7 +18,7 @@ import numpy as np
 
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import calculus
-from tvopt_codegen.simulation.side import Side
+from tvopt_codegen.runs.side import Side
 from tvopt_codegen.spec.constraints import inline_signals
 
 

@@ -18,10 +18,10 @@ from tvopt_codegen.contract import Status
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.maths import dopri
+from tvopt_codegen.runs.side import Side
 from tvopt_codegen.simulation.certificate import _certify
 from tvopt_codegen.simulation.references import ReferenceSource, nominal_source
 from tvopt_codegen.simulation.result import Options, Result
-from tvopt_codegen.simulation.side import Side
 
 #: A run whose integrator stopped (its step size collapsed) where ``|det R|`` had fallen
 #: below this fraction of its value at t = 0 ran into the singular set of R: the law's

@@ -1,4 +1,5 @@
-"""A process forked beside this one to answer requests, and the pipes' messages.
+"""A process forked beside this one to answer requests, and the pipes' messages (the
+drawing process's too).
 
 ``simulate`` starts one for the constraints' SLSQP check as soon as the derivation
 exists (:func:`tvopt_codegen.simulation.constraints.minimiser_process`): it imports
