@@ -18,7 +18,11 @@ from tvopt_codegen.errors import EXIT_CERTIFICATE, SpecError
 from tvopt_codegen.limits import METHODS
 
 if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from tvopt_codegen.derivation import Derivation
     from tvopt_codegen.runs.drawing import Painter
+    from tvopt_codegen.runs.side import Side
 
 HELP = "simulate the closed loop and check the theorem along the run"
 
@@ -113,6 +117,25 @@ def run(args: argparse.Namespace) -> int:
         return _simulate_with(args, painter, stack)
 
 
+def _side_process(
+    args: argparse.Namespace,
+    derivation: Derivation,
+    params: Mapping[str, float],
+    stack: contextlib.ExitStack[bool | None],
+) -> Side | None:
+    """For a continuous run with constraints, their SLSQP check's process, started now.
+
+    It imports scipy.optimize and gets the problem ready while this process loads the
+    controller and integrates; ``stack`` stops it.
+    """
+    model = derivation.model
+    if args.sample_time is not None or not (model.constraints or model.equalities):
+        return None
+    from tvopt_codegen.simulation.constraints import minimiser_process  # noqa: PLC0415
+
+    return stack.enter_context(minimiser_process(model, params))
+
+
 def _simulate_with(
     args: argparse.Namespace, painter: Painter, stack: contextlib.ExitStack[bool | None]
 ) -> int:
@@ -158,13 +181,7 @@ def _simulate_with(
         points=args.points,
         tolerance=args.tolerance,
     )
-    side = None
-    if args.sample_time is None and (derivation.model.constraints or derivation.model.equalities):
-        # Next: a process that imports scipy.optimize for the constraints' check and gets
-        # its problem ready while this one loads the controller and integrates.
-        from tvopt_codegen.simulation.constraints import minimiser_process  # noqa: PLC0415
-
-        side = stack.enter_context(minimiser_process(derivation.model, options.params))
+    side = _side_process(args, derivation, options.params, stack)
     if args.sample_time is not None:
         from tvopt_codegen.simulation.sampled import check_sample_time  # noqa: PLC0415
 
@@ -200,14 +217,7 @@ def _simulate_with(
     progress = _Progress()
     try:
         if args.sample_time is None:
-            result = simulate(
-                derivation,
-                controller,
-                options,
-                progress=progress,
-                references=references,
-                side=side,
-            )
+            result = simulate(derivation, controller, options, progress, references, side)
             sampled = None
         else:
             from tvopt_codegen.simulation.sampled import simulate_sampled  # noqa: PLC0415
