@@ -177,3 +177,26 @@ def test_kernels_sign_mirrored_odd_functions_read_into_the_dag() -> None:
                 text = " ".join(str(v) for _, v in kernel.body) + str(kernel.outputs)
                 assert text.count("tanh(") == 1, text
             assert got == pytest.approx(want, rel=1e-14)
+
+
+def test_kernels_over_one_program_refuse_a_symbol_they_are_not_given() -> None:
+    """The kernels cut from one program read their symbols off the DAG: the program's
+    temporaries are bound, a symbol the inputs do not give is refused, by name."""
+    with sx.using("symengine"):
+        x, y, stray, g = sx.symbols(["x", "y", "_stray", "_g"])
+        inputs = [Arg("s", (x, y), ("x", "y"), "state")]
+        program = [(g, sx.sin(x) * y)]
+        kernels = cse.make_kernels(
+            [("k1", "", inputs, [("o", (1,), [g + x], "")])]
+            + [("k2", "", inputs, [("o", (1,), [g * y], "")])],
+            program,
+            {},
+        )
+        assert [k.ops for k in kernels] == [3, 3]
+        with pytest.raises(AssertionError, match=r"kernel k2: unbound symbols \['_stray'\]"):
+            cse.make_kernels(
+                [("k1", "", inputs, [("o", (1,), [g + x], "")])]
+                + [("k2", "", inputs, [("o", (1,), [g * stray], "")])],
+                program,
+                {},
+            )

@@ -79,19 +79,24 @@ def _package(
     reduced: Sequence[sx.Expr],
     before: int,
     ops: int | None = None,
+    reads: set[sx.Expr] | None = None,
 ) -> Kernel:
     """The kernel of a CSE'd program, its outputs cut to their shapes; checks its symbols.
 
-    ``ops`` is its operation count when the caller has it (:meth:`.Dag.operations`).
+    ``ops`` is its operation count when the caller has it (:meth:`.Dag.operations`), and
+    ``reads`` the symbols it reads besides its temporaries (:meth:`.Dag.reads`).
     """
     packed: list[Output] = []
     start = 0
     for out_name, shape, exprs, out_doc in outputs:
         packed.append(Output(out_name, shape, tuple(reduced[start : start + len(exprs)]), out_doc))
         start += len(exprs)
-    allowed = {s for arg in inputs for s in arg.symbols} | {sym for sym, _ in body}
+    allowed = {s for arg in inputs for s in arg.symbols}
     allowed.add(sx.symbol("t"))
-    stray = symbols_in([v for _, v in body] + list(reduced)) - allowed
+    if reads is None:
+        allowed |= {sym for sym, _ in body}
+        reads = symbols_in([v for _, v in body] + list(reduced))
+    stray = reads - allowed
     if stray:
         raise AssertionError(f"kernel {name}: unbound symbols {sorted(map(str, stray))}")
     return Kernel(
@@ -164,9 +169,9 @@ def make_kernel(
         order, outs = dag.factored(*_reduce_dag(dag, ids, outs, search))
         body, reduced = _number_dag(dag, order, outs)
         ops = dag.operations([v for _, v in order] + outs) + _constant_ops(outputs)
-        return _package(
-            name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before, ops
-        )
+        reads = dag.reads(order, outs)
+        flat = _scatter(outputs, where, reduced)
+        return _package(name, doc, inputs, outputs, body, flat, before, ops, reads)
     before = operation_count([v for _, v in program] + flat)
     body, reduced = ordered_cse(program, flat, search)
     return _package(name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before)
@@ -294,9 +299,9 @@ def _dag_kernel(
     order, reduced_ids = dag.factored(order, reduced_ids)
     body, reduced = _number_dag(dag, order, reduced_ids)
     ops = dag.operations([v for _, v in order] + reduced_ids) + _constant_ops(outputs)
-    return _package(
-        name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before, ops
-    )
+    reads = dag.reads(order, reduced_ids)
+    flat = _scatter(outputs, where, reduced)
+    return _package(name, doc, inputs, outputs, body, flat, before, ops, reads)
 
 
 def _kept(node: sx.Expr, args: Sequence[sx.Expr]) -> sx.Expr:

@@ -692,6 +692,31 @@ class Dag:
                     stack.extend(args[node])
         return kept[::-1]
 
+    def reads(self, program: Program, outputs: Sequence[int]) -> set[sx.Expr]:
+        """The symbols ``program`` and ``outputs`` read besides the program's own.
+
+        One walk of the ids, each node once, for :func:`~.assembly._package`'s check of
+        unbound symbols: SymEngine's ``free_symbols`` of the kernel's expressions walked
+        them in C++, its set of seen nodes slowed by the sums' colliding hashes
+        (:meth:`intern`).
+        """
+        args, kind = self.args, self.kind
+        seen: set[int] = set()
+        stack = [value for _, value in program] + list(outputs)
+        found: set[int] = set()
+        while stack:
+            node = stack.pop()
+            if node in seen:
+                continue
+            seen.add(node)
+            own = args[node]
+            if own:
+                stack.extend(own)
+            elif kind[node] == _SYMBOL:
+                found.add(node)
+        found.difference_update(sym for sym, _ in program)
+        return {self.expression(i) for i in found}
+
     def drop_aliases(self, program: Program, outputs: Sequence[int]) -> tuple[Program, list[int]]:
         """:func:`~.numbering._drop_aliases` on ids."""
         alias: dict[int, int] = {}
