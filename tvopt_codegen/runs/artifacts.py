@@ -26,20 +26,12 @@ from tvopt_codegen.runs.figures import (
     tune_figure,
 )
 from tvopt_codegen.simulation import Result, columns, format_certificate
-from tvopt_codegen.sweep import (
-    RECORD,
-    TAIL,
-    SampleResult,
-    Summary,
-    SweepOptions,
-    SweepProgram,
-    format_summary,
-    record_bytes,
-)
 
 if TYPE_CHECKING:
-    # A type only: the sampled run's module is loaded by the commands that run one.
+    # Types only: the sampled run's module and the sweep's are loaded by the commands
+    # that run them (``simulate`` has no use for the sweep's: 15 ms of its imports).
     from tvopt_codegen.simulation.sampled import SampledResult
+    from tvopt_codegen.sweep import SampleResult, Summary, SweepOptions, SweepProgram
     from tvopt_codegen.tune.session import Evaluation
 
 
@@ -129,6 +121,8 @@ def sweep_files(
 
     ``histograms`` are the ok samples' final errors and settling times.
     """
+    from tvopt_codegen.sweep import RECORD, format_summary, record_bytes  # noqa: PLC0415
+
     files = {
         "summary.md": (format_summary(program.name, options, summary) + "\n").encode(),
         RECORD: record_bytes(record),
@@ -139,6 +133,8 @@ def sweep_files(
 
 def replay_files(program: SweepProgram, result: SampleResult) -> dict[str, bytes]:
     """One replayed sample: its trajectory as CSV, its row as Markdown, and a figure."""
+    from tvopt_codegen.sweep import TAIL  # noqa: PLC0415
+
     assert result.trajectory is not None
     index = int(result.row["sample"])
     header = (
