@@ -355,12 +355,16 @@ def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel
 
     def fixed(node: sx.Expr) -> bool:
         # Bottom-up and memoized: sympy's free_symbols walks the whole subtree on every
-        # call, which made hoisting quadratic in an expression's depth.
-        if not node.args:
-            return not node.is_Symbol or node in invariant
+        # call, which made hoisting quadratic in an expression's depth. Leaves too: a
+        # look-up costs less than SymEngine's .args, made anew at each call.
         found = known.get(node)
         if found is None:
-            found = known[node] = all(fixed(arg) for arg in node.args)
+            args = node.args
+            if args:
+                found = all(fixed(arg) for arg in args)
+            else:
+                found = not node.is_Symbol or node in invariant
+            known[node] = found
         return found
 
     def share(node: sx.Expr) -> sx.Expr:
@@ -376,15 +380,19 @@ def split_invariant(kernel: Kernel, name: str, doc: str) -> tuple[Kernel, Kernel
     def hoist(node: sx.Expr) -> sx.Expr:
         if node.is_Atom:
             return share(node) if node.is_Symbol and node in invariant else node
-        if node in memo:
-            return memo[node]
+        done = memo.get(node)
+        if done is not None:
+            return done
         own = node.args
-        if fixed(node):
+        flags = [fixed(a) for a in own]
+        if all(flags):
             new = share(node)
-        elif (node.is_Add or node.is_Mul) and any(fixed(a) and not a.is_Number for a in own):
+        elif (node.is_Add or node.is_Mul) and any(
+            f and not a.is_Number for a, f in zip(own, flags, strict=True)
+        ):
             # (x + t + 1) -> x + _h0: the invariant terms or factors become one.
-            part = [a for a in own if fixed(a)]
-            rest = [hoist(a) for a in own if not fixed(a)]
+            part = [a for a, f in zip(own, flags, strict=True) if f]
+            rest = [hoist(a) for a, f in zip(own, flags, strict=True) if not f]
             new = _kept(node, [*rest, share(_rebuild(node, part))])
         else:
             args = [hoist(a) for a in own]
