@@ -1,63 +1,143 @@
-"""``simulate``'s side process: the constraints' SLSQP solves, found beside the run."""
+"""``simulate``'s work beside the run: the SLSQP solves, and figures drawn while it is certified.
+
+Each test runs in a fresh interpreter: a process is forked only while one thread runs,
+which a test process that has run a Dask sweep no longer is.
+"""
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
+import subprocess
+import sys
+import textwrap
 
-from tvopt_codegen.runs.side import Side, can_fork
-from tvopt_codegen.simulation import resolve_options, simulate
-from tvopt_codegen.simulation.constraints import minimiser_process
+from tvopt_codegen.runs.drawing import Plot
 
-from .conftest import derivation, module
 
-pytestmark = pytest.mark.skipif(not can_fork(), reason="no process can be forked here")
+def _fresh(body: str) -> None:
+    """Run ``body`` in a new interpreter (with numpy as np and this module's helpers)."""
+    code = "import numpy as np\nfrom tests.test_side_process import _corridor, _plot\n"
+    code += textwrap.dedent(body)
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=False
+    )
+    assert done.returncode == 0, done.stderr
+
+
+def _corridor() -> tuple[object, object]:
+    """The corridor team's derivation and generated module (two constraints)."""
+    from .conftest import derivation, module
+
+    return derivation("two_unicycles_corridor"), module("two_unicycles_corridor")
+
+
+def _plot(stem: str, slope: float) -> Plot:
+    plot = Plot(stem, (4.0, 3.0))
+    plot.panels[0].plot([0.0, 1.0], [0.0, slope], label=f"slope {slope}")
+    plot.panels[0].legend(fontsize=8)
+    return plot
 
 
 def test_the_side_process_finds_the_minimisers_this_one_would() -> None:
-    d = derivation("two_unicycles_corridor")
-    controller = module("two_unicycles_corridor")
-    options = resolve_options(d)
-    with minimiser_process(d.model, options.params) as side:
-        assert side.running
-        beside = simulate(d, controller, options, side=side)
-        # Still running: it answered (a failed request stops it, and the run works here).
-        assert side.running
-    here = simulate(d, controller, options)
-    assert beside.constraints is not None and here.constraints is not None
-    np.testing.assert_array_equal(beside.constraints.distance, here.constraints.distance)
-    np.testing.assert_array_equal(beside.constraints.bound, here.constraints.bound)
-    assert beside.passed and np.all(np.isfinite(beside.constraints.distance))
+    _fresh(
+        """
+        from tvopt_codegen.simulation import resolve_options, simulate
+        from tvopt_codegen.simulation.constraints import minimiser_process
+
+        d, controller = _corridor()
+        options = resolve_options(d)
+        with minimiser_process(d.model, options.params) as side:
+            assert side.running
+            beside = simulate(d, controller, options, side=side)
+            # Still running: it answered (a failed request stops it; the work is done here).
+            assert side.running
+        here = simulate(d, controller, options)
+        np.testing.assert_array_equal(beside.constraints.distance, here.constraints.distance)
+        np.testing.assert_array_equal(beside.constraints.bound, here.constraints.bound)
+        assert beside.passed and np.all(np.isfinite(beside.constraints.distance))
+        """
+    )
 
 
 def test_a_request_at_other_parameter_values_is_solved_at_those() -> None:
-    d = derivation("two_unicycles_corridor")
-    controller = module("two_unicycles_corridor")
-    name, default = d.model.params[-1].name, float(d.model.defaults[-1])
-    options = resolve_options(d, params={name: 1.1 * default})
-    # Started at the defaults, asked at the run's values: it lambdifies those anew.
-    with minimiser_process(d.model, {}) as side:
-        beside = simulate(d, controller, options, side=side)
-        assert side.running
-    here = simulate(d, controller, options)
-    assert beside.constraints is not None and here.constraints is not None
-    np.testing.assert_array_equal(beside.constraints.distance, here.constraints.distance)
+    _fresh(
+        """
+        from tvopt_codegen.simulation import resolve_options, simulate
+        from tvopt_codegen.simulation.constraints import minimiser_process
+
+        d, controller = _corridor()
+        name, default = d.model.params[-1].name, float(d.model.defaults[-1])
+        options = resolve_options(d, params={name: 1.1 * default})
+        # Started at the defaults, asked at the run's values: it lambdifies those anew.
+        with minimiser_process(d.model, {}) as side:
+            beside = simulate(d, controller, options, side=side)
+            assert side.running
+        here = simulate(d, controller, options)
+        np.testing.assert_array_equal(beside.constraints.distance, here.constraints.distance)
+        """
+    )
 
 
 def test_a_side_process_answers_and_a_failed_one_answers_none() -> None:
-    with Side(lambda: lambda request: (request[0] * 2, np.arange(request[1]))) as side:
-        doubled, numbers = side.ask((21, 3))
-        assert doubled == 42 and numbers.tolist() == [0, 1, 2]
-        assert side.ask(("x", 2))[0] == "xx"
-        assert side.running
-        # A request that fails there is refused, and the process stops.
-        assert side.ask((None, 1)) is None
-        assert not side.running
-        assert side.ask((1, 1)) is None
+    _fresh(
+        """
+        from tvopt_codegen.runs.side import Side
 
-    def broken() -> object:
-        raise ImportError("no scipy here")
+        with Side(lambda: lambda request: (request[0] * 2, np.arange(request[1]))) as side:
+            doubled, numbers = side.ask((21, 3))
+            assert doubled == 42 and numbers.tolist() == [0, 1, 2]
+            assert side.ask(("x", 2))[0] == "xx"
+            assert side.running
+            # A request that fails there is refused, and the process stops.
+            assert side.ask((None, 1)) is None
+            assert not side.running
+            assert side.ask((1, 1)) is None
 
-    with Side(broken) as side:
-        assert side.ask((1, 1)) is None
-        assert not side.running
+        def broken():
+            raise ImportError("no scipy here")
+
+        with Side(broken) as side:
+            assert side.ask((1, 1)) is None
+            assert not side.running
+        """
+    )
+
+
+def test_figures_sent_in_batches_come_back_in_order_and_the_last_of_a_stem_counts() -> None:
+    _fresh(
+        """
+        from tvopt_codegen.runs.drawing import Painter, draw_all
+
+        with Painter() as painter:
+            assert painter._pid is not None
+            painter.submit([_plot("a", 1.0), _plot("b", 2.0)])
+            painter.submit([_plot("c", 3.0)])
+            painter.submit([_plot("a", -1.0)])  # drawn again: this one counts
+            there = painter.collect()
+        expected = draw_all([_plot("a", -1.0), _plot("b", 2.0), _plot("c", 3.0)])
+        assert list(there) == list(expected) and there == expected
+        assert there["a.png"] != draw_all([_plot("a", 1.0)])["a.png"]
+        """
+    )
+
+
+def test_the_run_alone_is_drawn_early_and_the_files_are_the_same() -> None:
+    _fresh(
+        """
+        from tvopt_codegen.runs.artifacts import result_files, submit_early
+        from tvopt_codegen.runs.drawing import Painter
+        from tvopt_codegen.simulation import resolve_options, simulate
+
+        d, controller = _corridor()
+        runs, stems = [], []
+        with Painter() as painter:
+            def early(run):
+                runs.append(run)
+                stems.extend(submit_early(d, run, painter))
+
+            result = simulate(d, controller, resolve_options(d), early=early)
+            assert len(runs) == 1 and runs[0].outputs is result.outputs
+            assert stems == ["two_unicycles_corridor_paths", "two_unicycles_corridor_inputs"]
+            files = result_files(d, result, painter, stems)
+        assert files == result_files(d, result) and list(files) == list(result_files(d, result))
+        """
+    )

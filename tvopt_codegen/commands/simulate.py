@@ -23,6 +23,8 @@ if TYPE_CHECKING:
     from tvopt_codegen.derivation import Derivation
     from tvopt_codegen.runs.drawing import Painter
     from tvopt_codegen.runs.side import Side
+    from tvopt_codegen.simulation import Result
+    from tvopt_codegen.simulation.result import Trajectories
 
 HELP = "simulate the closed loop and check the theorem along the run"
 
@@ -106,6 +108,24 @@ class _Progress:
     def close(self) -> None:
         if self.shown and sys.stderr.isatty():
             print(" " * 40, end="\r", file=sys.stderr, flush=True)
+
+
+class _Early:
+    """Sends a run's figures of the run alone to the painter before it is certified."""
+
+    def __init__(self, derivation: Derivation, painter: Painter) -> None:
+        self._derivation, self._painter = derivation, painter
+        self._runs: dict[str, Trajectories] = {}
+
+    def __call__(self, run: Trajectories) -> None:
+        from tvopt_codegen.runs.artifacts import submit_early  # noqa: PLC0415
+
+        for stem in submit_early(self._derivation, run, self._painter):
+            self._runs[stem] = run
+
+    def stems(self, result: Result) -> set[str]:
+        """The stems sent from ``result``'s run (not from one a failed check replaced)."""
+        return {stem for stem, run in self._runs.items() if run.outputs is result.outputs}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -214,10 +234,10 @@ def _simulate_with(
         references = sampled_source(
             derivation, controller, dict(options.params), *samples, args.reference_noise, args.seed
         )
-    progress = _Progress()
+    progress, early = _Progress(), _Early(derivation, painter)
     try:
         if args.sample_time is None:
-            result = simulate(derivation, controller, options, progress, references, side)
+            result = simulate(derivation, controller, options, progress, references, side, early)
             sampled = None
         else:
             from tvopt_codegen.simulation.sampled import simulate_sampled  # noqa: PLC0415
@@ -234,7 +254,7 @@ def _simulate_with(
             result = sampled.continuous
     finally:
         progress.close()
-    files = result_files(derivation, result, painter)
+    files = result_files(derivation, result, painter, early.stems(result))
     text = format_certificate(derivation, result)
     passed = result.passed
     if sampled is not None:

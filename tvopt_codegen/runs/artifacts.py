@@ -11,7 +11,7 @@ them): ``generate``, ``check`` and ``report`` never load either.
 from __future__ import annotations
 
 import io
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -19,6 +19,7 @@ import numpy as np
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.runs.drawing import Painter, draw, draw_all
 from tvopt_codegen.runs.figures import (
+    early_figures,
     figures,
     replay_figure,
     sampled_figure,
@@ -28,6 +29,8 @@ from tvopt_codegen.runs.figures import (
 from tvopt_codegen.simulation import Result, columns, format_certificate
 
 if TYPE_CHECKING:
+    from tvopt_codegen.simulation.result import Trajectories
+
     # Types only: the sampled run's module and the sweep's are loaded by the commands
     # that run them (``simulate`` has no use for the sweep's: 15 ms of its imports).
     from tvopt_codegen.simulation.sampled import SampledResult
@@ -35,19 +38,34 @@ if TYPE_CHECKING:
     from tvopt_codegen.tune.session import Evaluation
 
 
+def submit_early(derivation: Derivation, run: Trajectories, painter: Painter) -> tuple[str, ...]:
+    """Send ``painter`` the figures of ``run`` alone, before it is certified; their stems.
+
+    Those of :func:`~tvopt_codegen.runs.figures.early_figures`: paths and inputs. Pass
+    the stems to :func:`result_files` when the result is this run's.
+    """
+    plots = early_figures(derivation, run)
+    painter.submit(plots)
+    return tuple(plot.stem for plot in plots)
+
+
 def result_files(
-    derivation: Derivation, result: Result, painter: Painter | None = None
+    derivation: Derivation,
+    result: Result,
+    painter: Painter | None = None,
+    submitted: Collection[str] = (),
 ) -> dict[str, bytes]:
     """Trajectories (CSV, NPZ), the certificate text, and the figures, in memory.
 
     The figures go to ``painter`` first (its drawing process draws them while the
-    tables are written here); without one they are drawn in this process.
+    tables are written here), but for those of stems ``submitted`` already, from this
+    run (:func:`submit_early`); without a painter they are drawn in this process.
     """
     d, r = derivation, result
     name = d.spec.name
     plots = figures(d, r)
     if painter is not None:
-        painter.submit(plots)
+        painter.submit([plot for plot in plots if plot.stem not in submitted])
     table = np.column_stack(
         [r.t, r.states.T, r.inputs.T, r.outputs.T, r.target.T, r.E.reshape(len(r.t), -1)]
     )
@@ -74,7 +92,8 @@ def result_files(
         f"{name}_trajectory.npz": arrays.getvalue(),
         f"{name}_certificate.txt": (format_certificate(d, r) + "\n").encode("utf-8"),
     }
-    files.update(painter.collect() if painter is not None else draw_all(plots))
+    drawn = painter.collect() if painter is not None else draw_all(plots)
+    files.update({each: drawn[each] for plot in plots for each in plot.file_names()})
     return files
 
 

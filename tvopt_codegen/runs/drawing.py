@@ -101,6 +101,10 @@ class Plot:
     def __post_init__(self) -> None:
         self.panels.extend(Panel() for _ in range(self.rows * self.cols - len(self.panels)))
 
+    def file_names(self) -> tuple[str, str]:
+        """The names of the figure's files: ``<stem>.png`` and ``<stem>.svg``."""
+        return f"{self.stem}.png", f"{self.stem}.svg"
+
 
 #: The margin around a figure's tight box, in inches (matplotlib's ``pad_inches``).
 _PAD = 0.1
@@ -203,6 +207,10 @@ def _load() -> None:
     import PIL.PngImagePlugin  # noqa: F401, PLC0415
 
 
+#: What :meth:`Painter.collect` sends once every figure has been.
+_DONE = "done"
+
+
 def _fork_one(plot: Plot) -> tuple[int, int]:
     """A process drawing ``plot``: its pid and the pipe its files come back on."""
     read, write = os.pipe()
@@ -231,10 +239,13 @@ def _serve(requests: int, replies: int) -> None:  # pragma: no cover - the drawi
     # processes inherit took 0.15 s and saved them 0.02-0.03 s each, and a small run's
     # figures arrive as matplotlib's import ends.
     _load()
-    plots = receive(requests)
-    if plots is None:
-        return
-    children = [_fork_one(plot) for plot in plots]
+    # Each batch is drawn as it comes (a run's first figures while it is certified).
+    children: list[tuple[int, int]] = []
+    while (batch := receive(requests)) != _DONE:
+        if batch is None:
+            return  # the command is gone
+        children += [_fork_one(plot) for plot in batch]
+    # In the order sent: a figure sent again (the run integrated again) is the last one.
     files: dict[str, bytes] = {}
     failed = None
     for pid, read in children:
@@ -280,20 +291,27 @@ class Painter:
         self._pid = pid
 
     def submit(self, plots: Sequence[Plot]) -> None:
-        """Send the figures to be drawn; :meth:`collect` returns their files."""
-        self._plots = list(plots)
-        if self._pid is not None and self._plots:
+        """Send figures to be drawn now; more may follow, and :meth:`collect` returns all.
+
+        A figure sent again (the same stem) is drawn again, and its last drawing counts.
+        """
+        plots = list(plots)
+        self._plots += plots
+        if self._pid is not None and plots:
             try:
-                send(self._requests, self._plots)
+                send(self._requests, plots)
             except OSError:
                 self._reap(kill=True)
 
     def collect(self) -> dict[str, bytes]:
-        """The files of the figures last submitted, in their order, however drawn."""
-        plots, self._plots = self._plots, []
+        """The files of the figures submitted, in their order, however drawn."""
+        # The last of each stem, in the order the stems were first sent.
+        plots = list({plot.stem: plot for plot in self._plots}.values())
+        self._plots = []
         if self._pid is None or not plots:
             return draw_all(plots)
         try:
+            send(self._requests, _DONE)
             reply = receive(self._replies)
         except OSError:
             reply = None
@@ -302,7 +320,7 @@ class Painter:
             return draw_all(plots)
         files: dict[str, bytes] = reply[1]
         # The children finish in any order; the files keep the plots' order.
-        return {name: files[name] for plot in plots for name in _names(plot)}
+        return {name: files[name] for plot in plots for name in plot.file_names()}
 
     def _reap(self, kill: bool) -> None:
         if self._pid is None:
@@ -322,7 +340,3 @@ class Painter:
 
     def __exit__(self, *_exc: object) -> None:
         self._reap(kill=True)
-
-
-def _names(plot: Plot) -> tuple[str, str]:
-    return f"{plot.stem}.png", f"{plot.stem}.svg"

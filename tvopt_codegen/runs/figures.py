@@ -12,7 +12,7 @@ y* (dashed), each agent's path, and start points marked with stars.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 import numpy as np
 
@@ -22,6 +22,10 @@ from tvopt_codegen.runs.drawing import Panel, Plot
 
 if TYPE_CHECKING:
     from tvopt_codegen.simulation import Result
+    from tvopt_codegen.simulation.result import Trajectories
+
+    #: A run as the figures of the run alone read it: certified or not yet.
+    Run: TypeAlias = Result | Trajectories
     from tvopt_codegen.simulation.sampled import SampledResult
     from tvopt_codegen.sweep import SweepProgram
 
@@ -41,7 +45,7 @@ def _two_panels(stem: str) -> tuple[Plot, Panel, Panel]:
     return plot, plot.panels[0], plot.panels[1]
 
 
-def _signal_values(derivation: Derivation, result: Result, name: str) -> np.ndarray:
+def _signal_values(derivation: Derivation, result: Run, name: str) -> np.ndarray:
     d = derivation
     references = [r.name for r in d.model.references]
     if name in references and result.references is not None:
@@ -61,7 +65,7 @@ def _signal_values(derivation: Derivation, result: Result, name: str) -> np.ndar
     return np.broadcast_to(np.asarray(func(result.t, *values), dtype=float), result.t.shape)
 
 
-def trajectory_figure(derivation: Derivation, result: Result) -> Plot:
+def trajectory_figure(derivation: Derivation, result: Run) -> Plot:
     """The x-y picture: objects, y*, agent paths, stars at the starts."""
     d, r = derivation, result
     index = {name: i for i, name in enumerate(d.spec.outputs)}
@@ -120,7 +124,7 @@ def convergence_figure(derivation: Derivation, result: Result) -> Plot:
     return fig
 
 
-def inputs_figure(derivation: Derivation, result: Result) -> Plot:
+def inputs_figure(derivation: Derivation, result: Run) -> Plot:
     """Plant inputs over time."""
     fig, ax = _axes(f"{derivation.spec.name}_inputs", 6.4, 3.6)
     for i, name in enumerate(derivation.spec.inputs):
@@ -203,6 +207,16 @@ def constraints_figure(derivation: Derivation, result: Result) -> Plot:
     bottom.grid(alpha=0.3, which="both")
     bottom.legend(fontsize=7)
     return fig
+
+
+def early_figures(derivation: Derivation, run: Run) -> list[Plot]:
+    """The figures of :func:`figures` that show the run alone, not its certificate.
+
+    ``<name>_paths`` (with agents) and ``<name>_inputs``: drawn while the run is
+    certified, from the arrays its :class:`Result` then holds.
+    """
+    plots = [trajectory_figure(derivation, run)] if derivation.spec.agents else []
+    return [*plots, inputs_figure(derivation, run)]
 
 
 def figures(derivation: Derivation, result: Result) -> list[Plot]:

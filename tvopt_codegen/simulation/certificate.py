@@ -17,7 +17,7 @@ from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.maths import hurwitz
 from tvopt_codegen.runs.side import Side
 from tvopt_codegen.simulation.references import ReferenceSource
-from tvopt_codegen.simulation.result import Options, Result
+from tvopt_codegen.simulation.result import Options, Result, Trajectories
 from tvopt_codegen.simulation.target import _reference_values, kkt_path, minimizer_path
 
 #: The certificate is vacuous when the convexity modulus along the run is below this
@@ -175,10 +175,12 @@ def _certify(
     wall: float,
     references: ReferenceSource | None = None,
     side: Side | None = None,
+    early: Callable[[Trajectories], None] | None = None,
 ) -> Result:
     """Sample the run and check the theorem along it.
 
-    ``side``: see :func:`tvopt_codegen.simulation.constraints.check_run`.
+    ``side``: see :func:`tvopt_codegen.simulation.constraints.check_run`; ``early`` is
+    given the sampled run before the checks.
     """
     # One pass over the run's samples, each check of the certificate in the order the
     # summary prints them; the heavy parts are the helpers above.
@@ -200,6 +202,8 @@ def _certify(
     # y = h(x) by the generated module's own outputs (h holds no t).
     outputs = np.asarray(controller.outputs(0.0, states[: len(d.spec.states)], params))
     target, eq, multipliers, kkt = _target(d, controller, options, ts, states, outputs, true)
+    if early is not None:
+        early(Trajectories(options, ts, states, inputs, outputs, target, references))
     error = np.linalg.norm(outputs - target, axis=0)
 
     flat = augmented_error(d, states, E.reshape(len(ts), -1))

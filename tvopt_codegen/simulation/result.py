@@ -90,6 +90,33 @@ class Options:
 
 
 @dataclass(frozen=True)
+class Trajectories:
+    """A run sampled at its output times, before the certificate is checked along it.
+
+    What :func:`~tvopt_codegen.simulation.run.simulate` hands its ``early`` callback:
+    the figures that show the run alone are drawn from it while the run is certified.
+    The arrays are the :class:`Result`'s own (the same objects).
+
+    Attributes
+    ----------
+    options : Options
+        As the :class:`Result`'s.
+    t, states, inputs, outputs, target : numpy.ndarray
+        As the :class:`Result`'s.
+    references : ReferenceSource or None
+        As the :class:`Result`'s.
+    """
+
+    options: Options
+    t: np.ndarray
+    states: np.ndarray
+    inputs: np.ndarray
+    outputs: np.ndarray
+    target: np.ndarray
+    references: Any = None
+
+
+@dataclass(frozen=True)
 class Result:
     """A simulated closed loop and its certificate.
 

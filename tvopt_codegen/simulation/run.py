@@ -21,7 +21,7 @@ from tvopt_codegen.maths import dopri
 from tvopt_codegen.runs.side import Side
 from tvopt_codegen.simulation.certificate import _certify
 from tvopt_codegen.simulation.references import ReferenceSource, nominal_source
-from tvopt_codegen.simulation.result import Options, Result
+from tvopt_codegen.simulation.result import Options, Result, Trajectories
 
 #: A run whose integrator stopped (its step size collapsed) where ``|det R|`` had fallen
 #: below this fraction of its value at t = 0 ran into the singular set of R: the law's
@@ -44,6 +44,7 @@ def simulate(
     progress: Callable[[float, float], None] | None = None,
     references: ReferenceSource | None = None,
     side: Side | None = None,
+    early: Callable[[Trajectories], None] | None = None,
 ) -> Result:
     """Integrate the closed loop and check the theorem along the run.
 
@@ -66,6 +67,10 @@ def simulate(
         :func:`~tvopt_codegen.simulation.constraints.minimiser_process` of its model
         started before the run: it finds the constrained minimisers the certificate
         compares the run with (the same numbers as without it, sooner).
+    early : callable, optional
+        Given each run integrated, sampled at the output times, before the theorem is
+        checked along it (the figures of the run alone are drawn meanwhile). A failed
+        check integrates again: the second run is given too, and is the one returned.
 
     Returns
     -------
@@ -115,7 +120,7 @@ def simulate(
         if not first.success:
             _refuse_singular_stop(d, options, float(first.t[-1]), np.asarray(first.y)[:, -1])
         result = _certify(
-            d, controller, options, first, time.perf_counter() - started, source, side
+            d, controller, options, first, time.perf_counter() - started, source, side, early
         )
         accurate = dataclasses.replace(
             options,
@@ -131,7 +136,7 @@ def simulate(
         if not second.success:
             _refuse_singular_stop(d, accurate, float(second.t[-1]), np.asarray(second.y)[:, -1])
         again = _certify(
-            d, controller, accurate, second, time.perf_counter() - started, source, side
+            d, controller, accurate, second, time.perf_counter() - started, source, side, early
         )
         verdict = (
             "it passes: the failure was the integrator's error, not the law's"
