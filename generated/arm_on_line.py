@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: b1c8bf883463c914cae05ad33b8ab57e8974adb4aaaa916bf6eeb9a8515bb6fd
+# content sha256: d7753bc7eb156142fad19bd3f03197d56c42b813b93dfbcbd577d974898c81df
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -503,8 +503,8 @@ def _cholesky(h, c):
     _t1 = _h2*_t0
     _t2 = 1/_h1
     _t3 = _h3*_t2
-    _t4 = _h4 - (_h2*_t1 + _h3*_t3)
-    _t5 = (_c2 - (_c0*_t1 + _c1*_t3))/_t4
+    _t4 = _h4 - _h2*_t1 - _h3*_t3
+    _t5 = (_c2 - _c0*_t1 - _c1*_t3)/_t4
     # Output terms
     z = numpy.empty((3, _n))  # y_imp^(k), then nu^(k)
     z[0] = _c0*_t0 - _t1*_t5
@@ -1053,8 +1053,8 @@ def _law_1(t, s, p, rates):
     _r9 = _r2*_r8
     _r10 = 1.0/_r1
     _r11 = _r3*_r10
-    _r2 = _r4 - (_r2*_r9 + _r3*_r11)
-    _r3 = (_r7 - (_r5*_r9 + _r6*_r11))/_r2
+    _r2 = _r4 - _r2*_r9 - _r3*_r11
+    _r3 = (_r7 - _r5*_r9 - _r6*_r11)/_r2
     z = [_r5*_r8 - _r9*_r3, _r6*_r10 - _r11*_r3, _r3]
     pivot = [_r0, _r1, -_r2]
     # max(max, -min) is max(map(abs, ...)) without a Python call per entry.

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: b97fe8b2c54bbf13577bae41548d40d9a52fca670493a026538c59c43bd5a38b
+# content sha256: 51b9178ade16df327084d3326ced95ba2422c7746ab94c5c85e223f0cf5fffb3
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -454,7 +454,7 @@ def _optimality(t, s, p):
 
 
 def _objective(t, y, p):
-    """The objective f0(y, t) (kernel; 21 operations, 24 before CSE)."""
+    """The objective f0(y, t) (kernel; 20 operations, 24 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y1
     _y1 = y[1]  # y2
@@ -463,7 +463,7 @@ def _objective(t, y, p):
     _t0 = (t*t)
     # Output terms
     f0 = numpy.empty((_n))  # f0
-    f0[...] = (1/2)*((_y0 - 4/5*t + (1/20)*_t0 - 2)*(_y0 - 4/5*t + (1/20)*_t0 - 2)) + (1/2)*_p0*((_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1)*(_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1))
+    f0[...] = (1/2)*(((_y0 - 4/5*t + (1/20)*_t0 - 2)*(_y0 - 4/5*t + (1/20)*_t0 - 2)) + _p0*((_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1)*(_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1)))
     return f0
 
 
@@ -537,7 +537,7 @@ def _objective_1(t, y, p):
     _p0, = p
     _t0 = (t*t)
     f0 = [
-        (1/2)*((_y0 - 4/5*t + (1/20)*_t0 - 2.0)*(_y0 - 4/5*t + (1/20)*_t0 - 2.0)) + (1/2)*_p0*((_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1.0)*(_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1.0)),
+        (1/2)*(((_y0 - 4/5*t + (1/20)*_t0 - 2.0)*(_y0 - 4/5*t + (1/20)*_t0 - 2.0)) + _p0*((_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1.0)*(_y1 - 1/2*t - 1/50*_t0 + (1/1000)*(t*t*t) + 1.0))),
     ]
     return f0
 

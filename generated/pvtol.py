@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
-# content sha256: 433398f9aef2eba77f1ed1c51dda0bd31987a44fa49cd7bc6b0d851be08dfa50
+# content sha256: 3f749ed974a89ae59c4dbe529ec394ec7dfa2198963f95a91f2364963fff534a
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -358,27 +358,27 @@ def _jet_time(t, p, a):
     _t7 = numpy.sin(_t5)
     _t8 = numpy.cos(_t3)
     _t9 = 1/_p1
-    _t18 = (1/2)*_a0
-    _t19 = (1/2)*_a3
-    _t20 = (1/2)*_a1
-    _t21 = (1/2)*_a2
+    _t18 = (1/2)*_a2
+    _t19 = (1/2)*_a1
+    _t20 = (1/2)*_a3
+    _t21 = (1/2)*_a0
     _t22 = 1/_p2
     # Output terms
     tau = numpy.empty((16, ))  # terms of time and parameters
     tau[0] = _t9
-    tau[1] = (24/125)*_t2
-    tau[2] = _t19
-    tau[3] = (12/25)*_t1
-    tau[4] = _t21
-    tau[5] = -3*_t1
-    tau[6] = _t18
-    tau[7] = -6/5*_t2
-    tau[8] = _t20
+    tau[1] = (12/25)*_t1
+    tau[2] = _t18
+    tau[3] = (24/125)*_t2
+    tau[4] = _t20
+    tau[5] = -6/5*_t2
+    tau[6] = _t19
+    tau[7] = -3*_t1
+    tau[8] = _t21
     tau[9] = (24/625)*_t1
-    tau[10] = -12/25*_t8 - 1/5*_t7
-    tau[11] = _t6 - 8/5*_t4 - 4
-    tau[12] = (1/125)*_t7 + (27/625)*_t8
-    tau[13] = (18/125)*_t4 - 2*_p0 - 1/25*_t6
+    tau[10] = (1/125)*_t7 + (27/625)*_t8
+    tau[11] = (18/125)*_t4 - 2*_p0 - 1/25*_t6
+    tau[12] = _t6 - 8/5*_t4 - 4
+    tau[13] = -12/25*_t8 - 1/5*_t7
     tau[14] = (81/12500)*_t4 - 1/1250*_t6
     tau[15] = -_t22
     return tau
@@ -397,13 +397,13 @@ def _jet(t, s, p, a, tau):
     _s7 = s[7]  # thrust_d1
     _t9 = tau[0]  # jet_time tau[0]
     _h0 = tau[1]  # jet_time tau[1]
-    _t19 = tau[2]  # jet_time tau[2]
+    _t18 = tau[2]  # jet_time tau[2]
     _h1 = tau[3]  # jet_time tau[3]
-    _t21 = tau[4]  # jet_time tau[4]
+    _t20 = tau[4]  # jet_time tau[4]
     _h2 = tau[5]  # jet_time tau[5]
-    _t18 = tau[6]  # jet_time tau[6]
+    _t19 = tau[6]  # jet_time tau[6]
     _h3 = tau[7]  # jet_time tau[7]
-    _t20 = tau[8]  # jet_time tau[8]
+    _t21 = tau[8]  # jet_time tau[8]
     _h4 = tau[9]  # jet_time tau[9]
     _h5 = tau[10]  # jet_time tau[10]
     _h6 = tau[11]  # jet_time tau[11]
@@ -422,8 +422,8 @@ def _jet(t, s, p, a, tau):
     _t17 = _s7*_t12
     # Output terms
     z = numpy.empty((2, _n))  # y_imp^(k)
-    z[0] = _h4 + _t18*(_h2 + 2*_s0) + _t19*(_h0 + 2*_t15) + _t20*(_h3 + 2*_s3) + _t21*(_h1 - 2*_t11)
-    z[1] = _h9 + _t18*(_h6 + 2*_s1) + _t19*(_h7 - 2*_t16 + 2*_t17) + _t20*(_h5 + 2*_s4) + _t21*(_h8 + 2*_t13)
+    z[0] = _h4 + _t18*(_h0 - 2*_t11) + _t19*(_h2 + 2*_s3) + _t20*(_h1 + 2*_t15) + _t21*(_h3 + 2*_s0)
+    z[1] = _h9 + _t18*(_h6 + 2*_t13) + _t19*(_h8 + 2*_s4) + _t20*(_h5 - 2*_t16 + 2*_t17) + _t21*(_h7 + 2*_s1)
     R = numpy.empty((4, _n))  # diagonal blocks of the decoupling matrix
     R[0] = -_t10
     R[1] = _h10*_t13
@@ -887,12 +887,12 @@ def _law_1(t, s, p, rates):
     _r11 = float(_np_sin(_r11))
     _r9 = float(_np_cos(_r9))
     _r1 = 1.0/_r1
-    _r3 = (1/2)*_r3
-    _r6 = (1/2)*_r6
-    _r4 = (1/2)*_r4
     _r5 = (1/2)*_r5
+    _r4 = (1/2)*_r4
+    _r6 = (1/2)*_r6
+    _r3 = (1/2)*_r3
     _r2 = 1.0/_r2
-    tau = [_r1, (24/125)*_r7, _r6, (12/25)*_r8, _r5, -3.0*_r8, _r3, -6/5*_r7, _r4, (24/625)*_r8, -12/25*_r9 - 1/5*_r11, _r12 - 8/5*_r10 - 4.0, (1/125)*_r11 + (27/625)*_r9, (18/125)*_r10 - 2.0*_r0 - 1/25*_r12, (81/12500)*_r10 - 1/1250*_r12, -_r2]
+    tau = [_r1, (12/25)*_r8, _r5, (24/125)*_r7, _r6, -6/5*_r7, _r4, -3.0*_r8, _r3, (24/625)*_r8, (1/125)*_r11 + (27/625)*_r9, (18/125)*_r10 - 2.0*_r0 - 1/25*_r12, _r12 - 8/5*_r10 - 4.0, -12/25*_r9 - 1/5*_r11, (81/12500)*_r10 - 1/1250*_r12, -_r2]
     # y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time.
     # jet: y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (55 operations)
     _r0, _r1, _r2, _r3, _r4, _r5, _r6, _r7 = s
@@ -905,7 +905,7 @@ def _law_1(t, s, p, rates):
     _r26 = -_r8 - _r5*_r6
     _r27 = _r5*_r25
     _r7 = _r7*_r2
-    z = [_r17 + _r14*(_r13 + 2.0*_r0) + _r10*(_r9 + 2.0*_r26) + _r16*(_r15 + 2.0*_r3) + _r12*(_r11 - 2.0*_r25), _r22 + _r14*(_r19 + 2.0*_r1) + _r10*(_r20 - 2.0*_r27 + 2.0*_r7) + _r16*(_r18 + 2.0*_r4) + _r12*(_r21 + 2.0*_r6)]
+    z = [_r17 + _r10*(_r9 - 2.0*_r25) + _r14*(_r13 + 2.0*_r3) + _r12*(_r11 + 2.0*_r26) + _r16*(_r15 + 2.0*_r0), _r22 + _r10*(_r19 + 2.0*_r6) + _r14*(_r21 + 2.0*_r4) + _r12*(_r18 - 2.0*_r27 + 2.0*_r7) + _r16*(_r20 + 2.0*_r1)]
     r = [-_r24, _r23*_r6, _r2, _r23*_r25]
     pvec = [_r5*(_r27 - _r7) - _r5*_r7, _r5*_r26 - _r5*_r8]
     # z and p reach b, which is checked below; R is checked here, since an entry of R

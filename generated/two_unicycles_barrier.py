@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: b7af0cf5bab1125f70f731541466ea1053d1ceece6b2892b2efa7c77c9e0b95a
+# content sha256: 84cb9599ef859f5b0b3a469b317383a9f62fbea55e2619c26e9cfdc1ec66150b
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -375,7 +375,7 @@ def _jet_time(t, p, a):
 
 
 def _jet(t, s, p, a, tau):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 165 operations, 369 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 164 operations, 369 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # xa
     _s1 = s[1]  # ya
@@ -442,7 +442,7 @@ def _jet(t, s, p, a, tau):
     _t45 = 2*_t21
     _t46 = _t39*_t45 + _t18*_t20*_t41
     _t47 = _t18*(_t43 + _t20*_t42) + _t40*_t45
-    _t48 = _t38*(2*(_t23*_t23) + 2*(_t24*_t24)) + _t18*_t27*_t28
+    _t48 = 2*_t38*((_t23*_t23) + (_t24*_t24)) + _t18*_t27*_t28
     _t49 = 2*(_t28*_t28) + _t18*_t48
     _t50 = 2*_t29
     _t51 = 2*_t36
@@ -510,19 +510,19 @@ def _cholesky(h, c):
     _t7 = _t5*_t6
     _t8 = _h7 - _h1*_t3
     _t9 = _t5*_t8
-    _t10 = _h5 - (_h3*_t2 + _t6*_t7)
+    _t10 = _h5 - _h3*_t2 - _t6*_t7
     _t11 = 1/_t10
-    _t12 = _h8 - (_h3*_t3 + _t6*_t9)
+    _t12 = _h8 - _h3*_t3 - _t6*_t9
     _t13 = _t11*_t12
-    _t14 = _h9 - (_h6*_t3 + _t12*_t13 + _t8*_t9)
+    _t14 = _h9 - _h6*_t3 - _t12*_t13 - _t8*_t9
     _t15 = _c1 - _c0*_t1
-    _t16 = _c2 - (_c0*_t2 + _t15*_t7)
-    _t17 = (_c3 - (_c0*_t3 + _t13*_t16 + _t15*_t9))/_t14
+    _t16 = _c2 - _c0*_t2 - _t15*_t7
+    _t17 = (_c3 - _c0*_t3 - _t13*_t16 - _t15*_t9)/_t14
     _t18 = _t11*_t16 - _t13*_t17
-    _t19 = _t15*_t5 - (_t17*_t9 + _t18*_t7)
+    _t19 = _t15*_t5 - _t17*_t9 - _t18*_t7
     # Output terms
     z = numpy.empty((4, _n))  # y_imp^(k)
-    z[0] = _c0*_t0 - (_t1*_t19 + _t17*_t3 + _t18*_t2)
+    z[0] = _c0*_t0 - _t1*_t19 - _t17*_t3 - _t18*_t2
     z[1] = _t19
     z[2] = _t18
     z[3] = _t17
@@ -596,7 +596,7 @@ def _plant_input(t, s, p, w):
 
 
 def _optimality(t, s, p):
-    """Optimality error E: row j is grad^(j) f0 (kernel; 109 operations, 157 before CSE)."""
+    """Optimality error E: row j is grad^(j) f0 (kernel; 108 operations, 157 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # xa
     _s1 = s[1]  # ya
@@ -630,7 +630,7 @@ def _optimality(t, s, p):
     _t18 = _t17*_t9
     _t19 = _t1 - _t3
     _t20 = _t2 - _t4
-    _t21 = _t10*_t8*(2*_t19*_t6 + 2*_t20*_t7)
+    _t21 = 2*_t10*_t8*(_t19*_t6 + _t20*_t7)
     _t22 = 2*_t9
     _t23 = _t21*_t22
     _t24 = _t10*_t11
@@ -813,7 +813,7 @@ def _optimality_1(t, s, p):
     _t18 = _t17*_t9
     _t19 = _t1 - _t3
     _t20 = _t2 - _t4
-    _t21 = _t10*_t8*(2.0*_t19*_t6 + 2.0*_t20*_t7)
+    _t21 = 2.0*_t10*_t8*(_t19*_t6 + _t20*_t7)
     _t22 = 2.0*_t9
     _t23 = _t21*_t22
     _t24 = _t10*_t11
@@ -1135,7 +1135,7 @@ def _law_1(t, s, p, rates):
     _r3 = (1/2)*numpy.pi*_r1
     _r0 = numpy.pi*_r0*_r1
     tau = [_r3, _r0, 10.0 - t - 1/250*_r2, -1/125*t - 1.0, (1/50)*_r2 - 3/5*t + 6.0, (1/25)*t - 3/5, 4.0 - 9/10*t - 1/125*_r2, -2/125*t - 9/10, (3/125)*_r2 - 7/10*t + 6.0, (6/125)*t - 7/10]
-    # jet: Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (165 operations)
+    # jet: Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (164 operations)
     _r0, _r1, _r2, _r3, _r4, _r5, _r6, _r7 = s
     _r8, _r9 = _A_LIST
     _r10, _r11, _r12, _r13, _r14, _r15, _r16, _r17, _r18, _r19 = tau
@@ -1183,7 +1183,7 @@ def _law_1(t, s, p, rates):
     _r32 = 2.0*_r32
     _r24 = _r24*_r32 + _r26*_r31*_r46
     _r11 = _r26*(_r11 + _r31*_r47) + _r25*_r32
-    _r10 = _r10*(2.0*(_r34*_r34) + 2.0*(_r35*_r35)) + _r26*_r36*_r37
+    _r10 = 2.0*_r10*((_r34*_r34) + (_r35*_r35)) + _r26*_r36*_r37
     _r34 = 2.0*(_r37*_r37) + _r26*_r10
     _r35 = 2.0*_r38
     _r36 = 2.0*_r44
@@ -1211,17 +1211,17 @@ def _law_1(t, s, p, rates):
     _r19 = _r18*_r4
     _r1 = _r7 - _r1*_r17
     _r7 = _r18*_r1
-    _r5 = _r5 - (_r3*_r16 + _r4*_r19)
+    _r5 = _r5 - _r3*_r16 - _r4*_r19
     _r20 = 1.0/_r5
-    _r3 = _r8 - (_r3*_r17 + _r4*_r7)
+    _r3 = _r8 - _r3*_r17 - _r4*_r7
     _r4 = _r20*_r3
-    _r1 = _r9 - (_r6*_r17 + _r3*_r4 + _r1*_r7)
+    _r1 = _r9 - _r6*_r17 - _r3*_r4 - _r1*_r7
     _r3 = _r11 - _r10*_r15
-    _r6 = _r12 - (_r10*_r16 + _r3*_r19)
-    _r8 = (_r13 - (_r10*_r17 + _r4*_r6 + _r3*_r7))/_r1
+    _r6 = _r12 - _r10*_r16 - _r3*_r19
+    _r8 = (_r13 - _r10*_r17 - _r4*_r6 - _r3*_r7)/_r1
     _r4 = _r20*_r6 - _r4*_r8
-    _r3 = _r3*_r18 - (_r8*_r7 + _r4*_r19)
-    z = [_r10*_r14 - (_r15*_r3 + _r8*_r17 + _r4*_r16), _r3, _r4, _r8]
+    _r3 = _r3*_r18 - _r8*_r7 - _r4*_r19
+    z = [_r10*_r14 - _r15*_r3 - _r8*_r17 - _r4*_r16, _r3, _r4, _r8]
     pivot = [_r0, _r2, _r5, _r1]
     # max(max, -min) is max(map(abs, ...)) without a Python call per entry.
     if not min(pivot) > PIVOT_TOLERANCE * max(max(hess), -min(hess)):

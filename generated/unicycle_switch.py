@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 463e2cd0ec27d266a6d57d908039b77ca4897ab6ad9e0accabcb7f467fcd712e
+# content sha256: 6d6b1c6462843a3110daa58a58bfdf2bd2e74b576a3df64f2575e1e566bfe18f
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -334,7 +334,7 @@ def _lu_solve(
     return numpy.array(x)
 
 def _jet_time(t, p, a):
-    """The jet's terms of time and parameters alone (kernel; 112 operations, 112 before CSE)."""
+    """The jet's terms of time and parameters alone (kernel; 111 operations, 111 before CSE)."""
     _p0 = p[0]  # a
     _p1 = p[1]  # b
     _a0 = a[0]  # a_0
@@ -342,7 +342,7 @@ def _jet_time(t, p, a):
     # Intermediate terms (23)
     _t0 = 1/_p1
     _t1 = numpy.tanh(_t0*(t - _p0))
-    _t2 = 1/2 - 1/2*_t1
+    _t2 = (1/2)*(1 - _t1)
     _t3 = 1 - (_t1*_t1)
     _t4 = (t*t)
     _t5 = -1/100*_t4
@@ -360,24 +360,24 @@ def _jet_time(t, p, a):
     _t21 = 2*_t20
     _t22 = 2*_t2
     _t23 = -_t0*_t3
-    _t24 = (1/2)*_a0
-    _t25 = (1/2)*_a1
+    _t24 = (1/2)*_a1
+    _t25 = (1/2)*_a0
     _t26 = _t1*_t3/(_p1*_p1)
     # Output terms
     tau = numpy.empty((8, ))  # terms of time and parameters
-    tau[0] = -_t12*_t21 - _t22*_t6
+    tau[0] = _t12*_t23 - _t13*_t21 - _t22*_t8 - _t23*_t6
     tau[1] = _t24
-    tau[2] = _t12*_t23 - _t13*_t21 - _t22*_t8 - _t23*_t6
+    tau[2] = -_t12*_t21 - _t22*_t6
     tau[3] = _t25
     tau[4] = _t23*_t8 - 1/50*_t2 - 1/50*_t20 + _t26*_t6 - _t12*_t26 - _t13*_t23
-    tau[5] = -_t10*_t22 - _t14*_t21
-    tau[6] = _t14*_t23 - _t10*_t23 - _t11*_t22 - _t15*_t21
+    tau[5] = _t14*_t23 - _t10*_t23 - _t11*_t22 - _t15*_t21
+    tau[6] = -_t10*_t22 - _t14*_t21
     tau[7] = _t10*_t26 + _t11*_t23 + (1/2)*_t21*((3/2500)*t - 3/100) + (1/2)*_t22*(1/25 - 3/500*t) - _t14*_t26 - _t15*_t23
     return tau
 
 
 def _jet(t, s, p, a, tau):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 21 operations, 82 before CSE)."""
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 21 operations, 83 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2
@@ -398,8 +398,8 @@ def _jet(t, s, p, a, tau):
     _t19 = _s3*_t18
     # Output terms
     z = numpy.empty((2, _n))  # y_imp^(k)
-    z[0] = _h2 + _t24*(_h0 + 2*_s0) + _t25*(_h1 + 2*_t17)
-    z[1] = _h5 + _t24*(_h3 + 2*_s1) + _t25*(_h4 + 2*_t19)
+    z[0] = _h2 + _t24*(_h0 + 2*_t17) + _t25*(_h1 + 2*_s0)
+    z[1] = _h5 + _t24*(_h3 + 2*_t19) + _t25*(_h4 + 2*_s1)
     R = numpy.empty((4, _n))  # diagonal blocks of the decoupling matrix
     R[0] = _t16
     R[1] = -_t19
@@ -488,14 +488,14 @@ def _optimality(t, s, p):
 
 
 def _objective(t, y, p):
-    """The objective f0(y, t) (kernel; 42 operations, 55 before CSE)."""
+    """The objective f0(y, t) (kernel; 41 operations, 55 before CSE)."""
     _n = y.shape[1]
     _y0 = y[0]  # y1
     _y1 = y[1]  # y2
     _p0 = p[0]  # a
     _p1 = p[1]  # b
     # Intermediate terms (4)
-    _t0 = 1/2 - 1/2*numpy.tanh((t - _p0)/_p1)
+    _t0 = (1/2)*(1 - numpy.tanh((t - _p0)/_p1))
     _t1 = (t*t)
     _t2 = (t*t*t)
     _t3 = _y0 + (1/100)*_t1
@@ -600,7 +600,7 @@ def _objective_1(t, y, p):
     """The objective f0(y, t) (one point; lists in, lists out)."""
     _y0, _y1 = y
     _p0, _p1 = p
-    _t0 = 1/2 - 1/2*float(_np_tanh((t - _p0)/_p1))
+    _t0 = (1/2)*(1.0 - float(_np_tanh((t - _p0)/_p1)))
     _t1 = (t*t)
     _t2 = (t*t*t)
     _t3 = _y0 + (1/100)*_t1
@@ -835,12 +835,12 @@ def _solve_decoupling_1(r, b):
 
 def _law_1(t, s, p, rates):
     """:func:`_law` for one point: (ds/dt or None, u), or None to take the array path."""
-    # jet_time: The jet's terms of time and parameters alone (112 operations)
+    # jet_time: The jet's terms of time and parameters alone (111 operations)
     _r0, _r1 = p
     _r2, _r3 = _A_LIST
     _r4 = 1.0/_r1
     _r0 = float(_np_tanh(_r4*(t - _r0)))
-    _r5 = 1/2 - 1/2*_r0
+    _r5 = (1/2)*(1.0 - _r0)
     _r6 = 1.0 - (_r0*_r0)
     _r7 = (t*t)
     _r8 = -1/100*_r7
@@ -858,10 +858,10 @@ def _law_1(t, s, p, rates):
     _r16 = 2.0*_r15
     _r17 = 2.0*_r5
     _r4 = -_r4*_r6
-    _r2 = (1/2)*_r2
     _r3 = (1/2)*_r3
+    _r2 = (1/2)*_r2
     _r0 = _r0*_r6/(_r1*_r1)
-    tau = [-_r8*_r16 - _r17*_r9, _r2, _r8*_r4 - _r10*_r16 - _r17*_r11 - _r4*_r9, _r3, _r4*_r11 - 1/50*_r5 - 1/50*_r15 + _r0*_r9 - _r8*_r0 - _r10*_r4, -_r13*_r17 - _r12*_r16, _r12*_r4 - _r13*_r4 - _r14*_r17 - _r7*_r16, _r13*_r0 + _r14*_r4 + (1/2)*_r16*((3/2500)*t - 3/100) + (1/2)*_r17*(1/25 - 3/500*t) - _r12*_r0 - _r7*_r4]
+    tau = [_r8*_r4 - _r10*_r16 - _r17*_r11 - _r4*_r9, _r3, -_r8*_r16 - _r17*_r9, _r2, _r4*_r11 - 1/50*_r5 - 1/50*_r15 + _r0*_r9 - _r8*_r0 - _r10*_r4, _r12*_r4 - _r13*_r4 - _r14*_r17 - _r7*_r16, -_r13*_r17 - _r12*_r16, _r13*_r0 + _r14*_r4 + (1/2)*_r16*((3/2500)*t - 3/100) + (1/2)*_r17*(1/25 - 3/500*t) - _r12*_r0 - _r7*_r4]
     # y_imp^(k): the constant Hessian of f0 was inverted exactly at generation time.
     # jet: y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (21 operations)
     _r0, _r1, _r2, _r3 = s
@@ -870,7 +870,7 @@ def _law_1(t, s, p, rates):
     _r13 = _r3*_r12
     _r2 = float(_np_sin(_r2))
     _r3 = _r3*_r2
-    z = [_r8 + _r5*(_r4 + 2.0*_r0) + _r7*(_r6 + 2.0*_r13), _r11 + _r5*(_r9 + 2.0*_r1) + _r7*(_r10 + 2.0*_r3)]
+    z = [_r8 + _r5*(_r4 + 2.0*_r13) + _r7*(_r6 + 2.0*_r0), _r11 + _r5*(_r9 + 2.0*_r3) + _r7*(_r10 + 2.0*_r1)]
     r = [_r12, -_r3, _r2, _r13]
     pvec = [0.0, 0.0]
     # z and p reach b, which is checked below; R is checked here, since an entry of R

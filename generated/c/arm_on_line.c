@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: arm_on_line
  * spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
- * content sha256: 14976130691933213f2bc9d5a91178d459e61fef1e705ce94eb853237cc15658
+ * content sha256: f4ded79a2b2baf4f889e45ba2502a59f4a88da7dc3859c39275b7a79c16320c7
  */
 
 /* arm_on_line: see arm_on_line.h. The law is CSE'd straight-line code and two numerical
@@ -181,8 +181,8 @@ static void arm_on_line_k_cholesky(const double *h, const double *c, double *z, 
     const double _t1 = _h2*_t0;
     const double _t2 = (1.0/_h1);
     const double _t3 = _h3*_t2;
-    const double _t4 = _h4 - (_h2*_t1 + _h3*_t3);
-    const double _t5 = (_c2 - (_c0*_t1 + _c1*_t3))/_t4;
+    const double _t4 = _h4 - _h2*_t1 - _h3*_t3;
+    const double _t5 = (_c2 - _c0*_t1 - _c1*_t3)/_t4;
     z[0] = _c0*_t0 - _t1*_t5;
     z[1] = _c1*_t2 - _t3*_t5;
     z[2] = _t5;

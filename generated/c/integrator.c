@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: 53b05194358466ad767c21b43274c4f8bb3e83794b8f6c11a80a85a54245c0e2
+ * content sha256: f17af15913bbf47b45c66e3174c36a2719e5dcbc107f2dc9c8f521228c45569a
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -143,14 +143,14 @@ static void integrator_k_optimality(double t, const double *s, const double *p, 
 }
 
 
-/* The objective f0(y, t) (21 operations, 24 before CSE). */
+/* The objective f0(y, t) (20 operations, 24 before CSE). */
 static void integrator_k_objective(double t, const double *y, const double *p, double *f0)
 {
     const double _y0 = y[0]; /* y1 */
     const double _y1 = y[1]; /* y2 */
     const double _p0 = p[0]; /* w */
     const double _t0 = (t*t);
-    f0[0] = (1.0/2.0)*((_y0 - 4.0/5.0*t + (1.0/20.0)*_t0 - 2)*(_y0 - 4.0/5.0*t + (1.0/20.0)*_t0 - 2)) + (1.0/2.0)*_p0*((_y1 - 1.0/2.0*t - 1.0/50.0*_t0 + (1.0/1000.0)*(t*t*t) + 1)*(_y1 - 1.0/2.0*t - 1.0/50.0*_t0 + (1.0/1000.0)*(t*t*t) + 1));
+    f0[0] = (1.0/2.0)*(((_y0 - 4.0/5.0*t + (1.0/20.0)*_t0 - 2)*(_y0 - 4.0/5.0*t + (1.0/20.0)*_t0 - 2)) + _p0*((_y1 - 1.0/2.0*t - 1.0/50.0*_t0 + (1.0/1000.0)*(t*t*t) + 1)*(_y1 - 1.0/2.0*t - 1.0/50.0*_t0 + (1.0/1000.0)*(t*t*t) + 1)));
 }
 
 

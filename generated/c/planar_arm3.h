@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: planar_arm3
  * spec sha256: 63d130b8bfdcabd4b35f10882f051baacdec9d17c6622b99cfadaf848ad6bddb
- * content sha256: 61fd41f7856b8496cac4dc2bbd5f8c8714fce9eea40ffac06db809788d197606
+ * content sha256: 7ffcafc9d905f88bfef5ae02db8525484193f37b7ef7b503de80890f05bc1ee1
  */
 
 /*
@@ -152,7 +152,7 @@ size_t planar_arm3_controller_size(void);
  *   planar_arm3_objective_batch           680
  *   planar_arm3_gradient_batch            680
  *   planar_arm3_hessian_batch             680
- *   planar_arm3_plant                     864
+ *   planar_arm3_plant                     872
  *   planar_arm3_outputs                   492
  *   planar_arm3_status_message            132
  *   planar_arm3_controller_size           128

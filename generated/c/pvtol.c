@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: pvtol
  * spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
- * content sha256: efbb9b66e599055e107093defec8431168241f3ee9403e70d8fd8456ff6beedb
+ * content sha256: ab10ff0e2baba0c4717d40c558a52a370ce32e6f80967b605bc8666cccbfb5c0
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -59,25 +59,25 @@ static void pvtol_k_jet_time(double t, const double *p, const double *a, double 
     const double _t7 = sin(_t5);
     const double _t8 = cos(_t3);
     const double _t9 = (1.0/_p1);
-    const double _t18 = (1.0/2.0)*_a0;
-    const double _t19 = (1.0/2.0)*_a3;
-    const double _t20 = (1.0/2.0)*_a1;
-    const double _t21 = (1.0/2.0)*_a2;
+    const double _t18 = (1.0/2.0)*_a2;
+    const double _t19 = (1.0/2.0)*_a1;
+    const double _t20 = (1.0/2.0)*_a3;
+    const double _t21 = (1.0/2.0)*_a0;
     const double _t22 = (1.0/_p2);
     tau[0] = _t9;
-    tau[1] = (24.0/125.0)*_t2;
-    tau[2] = _t19;
-    tau[3] = (12.0/25.0)*_t1;
-    tau[4] = _t21;
-    tau[5] = -3*_t1;
-    tau[6] = _t18;
-    tau[7] = -6.0/5.0*_t2;
-    tau[8] = _t20;
+    tau[1] = (12.0/25.0)*_t1;
+    tau[2] = _t18;
+    tau[3] = (24.0/125.0)*_t2;
+    tau[4] = _t20;
+    tau[5] = -6.0/5.0*_t2;
+    tau[6] = _t19;
+    tau[7] = -3*_t1;
+    tau[8] = _t21;
     tau[9] = (24.0/625.0)*_t1;
-    tau[10] = -12.0/25.0*_t8 - 1.0/5.0*_t7;
-    tau[11] = _t6 - 8.0/5.0*_t4 - 4;
-    tau[12] = (1.0/125.0)*_t7 + (27.0/625.0)*_t8;
-    tau[13] = (18.0/125.0)*_t4 - 2*_p0 - 1.0/25.0*_t6;
+    tau[10] = (1.0/125.0)*_t7 + (27.0/625.0)*_t8;
+    tau[11] = (18.0/125.0)*_t4 - 2*_p0 - 1.0/25.0*_t6;
+    tau[12] = _t6 - 8.0/5.0*_t4 - 4;
+    tau[13] = -12.0/25.0*_t8 - 1.0/5.0*_t7;
     tau[14] = (81.0/12500.0)*_t4 - 1.0/1250.0*_t6;
     tau[15] = -_t22;
 }
@@ -99,13 +99,13 @@ static void pvtol_k_jet(double t, const double *s, const double *p, const double
     (void)a;
     const double _t9 = tau[0]; /* jet_time tau[0] */
     const double _h0 = tau[1]; /* jet_time tau[1] */
-    const double _t19 = tau[2]; /* jet_time tau[2] */
+    const double _t18 = tau[2]; /* jet_time tau[2] */
     const double _h1 = tau[3]; /* jet_time tau[3] */
-    const double _t21 = tau[4]; /* jet_time tau[4] */
+    const double _t20 = tau[4]; /* jet_time tau[4] */
     const double _h2 = tau[5]; /* jet_time tau[5] */
-    const double _t18 = tau[6]; /* jet_time tau[6] */
+    const double _t19 = tau[6]; /* jet_time tau[6] */
     const double _h3 = tau[7]; /* jet_time tau[7] */
-    const double _t20 = tau[8]; /* jet_time tau[8] */
+    const double _t21 = tau[8]; /* jet_time tau[8] */
     const double _h4 = tau[9]; /* jet_time tau[9] */
     const double _h5 = tau[10]; /* jet_time tau[10] */
     const double _h6 = tau[11]; /* jet_time tau[11] */
@@ -121,8 +121,8 @@ static void pvtol_k_jet(double t, const double *s, const double *p, const double
     const double _t15 = -_t14 - _s5*_t13;
     const double _t16 = _s5*_t11;
     const double _t17 = _s7*_t12;
-    z[0] = _h4 + _t18*(_h2 + 2*_s0) + _t19*(_h0 + 2*_t15) + _t20*(_h3 + 2*_s3) + _t21*(_h1 - 2*_t11);
-    z[1] = _h9 + _t18*(_h6 + 2*_s1) + _t19*(_h7 - 2*_t16 + 2*_t17) + _t20*(_h5 + 2*_s4) + _t21*(_h8 + 2*_t13);
+    z[0] = _h4 + _t18*(_h0 - 2*_t11) + _t19*(_h2 + 2*_s3) + _t20*(_h1 + 2*_t15) + _t21*(_h3 + 2*_s0);
+    z[1] = _h9 + _t18*(_h6 + 2*_t13) + _t19*(_h8 + 2*_s4) + _t20*(_h5 - 2*_t16 + 2*_t17) + _t21*(_h7 + 2*_s1);
     R[0] = -_t10;
     R[1] = _h10*_t13;
     R[2] = _t12;

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 9c6263a4c89da6ac80785b092504d7f9d97b3891147bbc69b47f23635f5320a1
+ * content sha256: 45c689b622a6894e123b188310cc65bb5363f0d094b6206e0bb4c90ee73cc4ea
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -62,7 +62,7 @@ static void two_unicycles_barrier_k_jet_time(double t, const double *p, const do
 }
 
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (165 operations, 369 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (164 operations, 369 before CSE). */
 static void two_unicycles_barrier_k_jet(double t, const double *s, const double *p, const double *a, const double *tau, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     (void)t;
@@ -131,7 +131,7 @@ static void two_unicycles_barrier_k_jet(double t, const double *s, const double 
     const double _t45 = 2*_t21;
     const double _t46 = _t39*_t45 + _t18*_t20*_t41;
     const double _t47 = _t18*(_t43 + _t20*_t42) + _t40*_t45;
-    const double _t48 = _t38*(2*(_t23*_t23) + 2*(_t24*_t24)) + _t18*_t27*_t28;
+    const double _t48 = 2*_t38*((_t23*_t23) + (_t24*_t24)) + _t18*_t27*_t28;
     const double _t49 = 2*(_t28*_t28) + _t18*_t48;
     const double _t50 = 2*_t29;
     const double _t51 = 2*_t36;
@@ -193,17 +193,17 @@ static void two_unicycles_barrier_k_cholesky(const double *h, const double *c, d
     const double _t7 = _t5*_t6;
     const double _t8 = _h7 - _h1*_t3;
     const double _t9 = _t5*_t8;
-    const double _t10 = _h5 - (_h3*_t2 + _t6*_t7);
+    const double _t10 = _h5 - _h3*_t2 - _t6*_t7;
     const double _t11 = (1.0/_t10);
-    const double _t12 = _h8 - (_h3*_t3 + _t6*_t9);
+    const double _t12 = _h8 - _h3*_t3 - _t6*_t9;
     const double _t13 = _t11*_t12;
-    const double _t14 = _h9 - (_h6*_t3 + _t12*_t13 + _t8*_t9);
+    const double _t14 = _h9 - _h6*_t3 - _t12*_t13 - _t8*_t9;
     const double _t15 = _c1 - _c0*_t1;
-    const double _t16 = _c2 - (_c0*_t2 + _t15*_t7);
-    const double _t17 = (_c3 - (_c0*_t3 + _t13*_t16 + _t15*_t9))/_t14;
+    const double _t16 = _c2 - _c0*_t2 - _t15*_t7;
+    const double _t17 = (_c3 - _c0*_t3 - _t13*_t16 - _t15*_t9)/_t14;
     const double _t18 = _t11*_t16 - _t13*_t17;
-    const double _t19 = _t15*_t5 - (_t17*_t9 + _t18*_t7);
-    z[0] = _c0*_t0 - (_t1*_t19 + _t17*_t3 + _t18*_t2);
+    const double _t19 = _t15*_t5 - _t17*_t9 - _t18*_t7;
+    z[0] = _c0*_t0 - _t1*_t19 - _t17*_t3 - _t18*_t2;
     z[1] = _t19;
     z[2] = _t18;
     z[3] = _t17;
@@ -277,7 +277,7 @@ static void two_unicycles_barrier_k_plant_input(double t, const double *s, const
 }
 
 
-/* Optimality error E: row j is grad^(j) f0 (109 operations, 157 before CSE). */
+/* Optimality error E: row j is grad^(j) f0 (108 operations, 157 before CSE). */
 static void two_unicycles_barrier_k_optimality(double t, const double *s, const double *p, double *E)
 {
     const double _s0 = s[0]; /* xa */
@@ -311,7 +311,7 @@ static void two_unicycles_barrier_k_optimality(double t, const double *s, const 
     const double _t18 = _t17*_t9;
     const double _t19 = _t1 - _t3;
     const double _t20 = _t2 - _t4;
-    const double _t21 = _t10*_t8*(2*_t19*_t6 + 2*_t20*_t7);
+    const double _t21 = 2*_t10*_t8*(_t19*_t6 + _t20*_t7);
     const double _t22 = 2*_t9;
     const double _t23 = _t21*_t22;
     const double _t24 = _t10*_t11;

@@ -3,7 +3,7 @@
  * template: c/controller.h.jinja
  * spec name: unicycle_ring
  * spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
- * content sha256: b44994112af214460c189d920558c58676f1e5d1f2e51d3bf7601e67067d4001
+ * content sha256: 185ebbbef787171dc51b0e8adb6b893aac3080418904dc457a7fe9d38fd2f103
  */
 
 /*
@@ -141,15 +141,15 @@ size_t unicycle_ring_controller_size(void);
  *   unicycle_ring_n_outputs                 128
  *   unicycle_ring_n_params                  128
  *   unicycle_ring_k                         128
- *   unicycle_ring_control                  3132
- *   unicycle_ring_rhs                      3196
- *   unicycle_ring_optimality_error         1252
+ *   unicycle_ring_control                  3148
+ *   unicycle_ring_rhs                      3212
+ *   unicycle_ring_optimality_error         1260
  *   unicycle_ring_objective                 492
  *   unicycle_ring_gradient                  684
  *   unicycle_ring_hessian                  1148
- *   unicycle_ring_control_batch            3160
- *   unicycle_ring_rhs_batch                3224
- *   unicycle_ring_optimality_error_batch   1440
+ *   unicycle_ring_control_batch            3176
+ *   unicycle_ring_rhs_batch                3240
+ *   unicycle_ring_optimality_error_batch   1448
  *   unicycle_ring_objective_batch           680
  *   unicycle_ring_gradient_batch            872
  *   unicycle_ring_hessian_batch            1336
@@ -157,13 +157,13 @@ size_t unicycle_ring_controller_size(void);
  *   unicycle_ring_outputs                   492
  *   unicycle_ring_status_message            132
  *   unicycle_ring_controller_size           128
- *   unicycle_ring_controller_init          3788
- *   unicycle_ring_controller_step          3612
+ *   unicycle_ring_controller_init          3804
+ *   unicycle_ring_controller_step          3628
  */
-#define UNICYCLE_RING_STACK_BOUND_BYTES 3788
-#define UNICYCLE_RING_CONTROL_STACK_BOUND_BYTES 3132
-#define UNICYCLE_RING_CONTROLLER_INIT_STACK_BOUND_BYTES 3788
-#define UNICYCLE_RING_CONTROLLER_STEP_STACK_BOUND_BYTES 3612
+#define UNICYCLE_RING_STACK_BOUND_BYTES 3804
+#define UNICYCLE_RING_CONTROL_STACK_BOUND_BYTES 3148
+#define UNICYCLE_RING_CONTROLLER_INIT_STACK_BOUND_BYTES 3804
+#define UNICYCLE_RING_CONTROLLER_STEP_STACK_BOUND_BYTES 3628
 
 #ifdef __cplusplus
 }

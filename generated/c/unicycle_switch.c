@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: faec5c5cb7ac3b7549626eaddec4e9ad257f9df9dfa9e43bea466321c2047a9b
+ * content sha256: 0ed38b645a90686b7f08cee2c33d96446b5a242cd331ca8aa92f1742ce9f1971
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -39,7 +39,7 @@ const char *const unicycle_switch_plant_state_names[UNICYCLE_SWITCH_N_PLANT_STAT
 const char *const unicycle_switch_controller_state_names[UNICYCLE_SWITCH_N_CONTROLLER_STATES] = {"v"};
 const double unicycle_switch_hurwitz_coefficients[UNICYCLE_SWITCH_K] = {-1.5, -2.5};
 
-/* The jet's terms of time and parameters alone (112 operations, 112 before CSE). */
+/* The jet's terms of time and parameters alone (111 operations, 111 before CSE). */
 static void unicycle_switch_k_jet_time(double t, const double *p, const double *a, double *tau)
 {
     const double _p0 = p[0]; /* a */
@@ -48,7 +48,7 @@ static void unicycle_switch_k_jet_time(double t, const double *p, const double *
     const double _a1 = a[1]; /* a_1 */
     const double _t0 = (1.0/_p1);
     const double _t1 = tanh(_t0*(t - _p0));
-    const double _t2 = 1.0/2.0 - 1.0/2.0*_t1;
+    const double _t2 = (1.0/2.0)*(1 - _t1);
     const double _t3 = 1 - (_t1*_t1);
     const double _t4 = (t*t);
     const double _t5 = -1.0/100.0*_t4;
@@ -66,21 +66,21 @@ static void unicycle_switch_k_jet_time(double t, const double *p, const double *
     const double _t21 = 2*_t20;
     const double _t22 = 2*_t2;
     const double _t23 = -_t0*_t3;
-    const double _t24 = (1.0/2.0)*_a0;
-    const double _t25 = (1.0/2.0)*_a1;
+    const double _t24 = (1.0/2.0)*_a1;
+    const double _t25 = (1.0/2.0)*_a0;
     const double _t26 = _t1*_t3/(_p1*_p1);
-    tau[0] = -_t12*_t21 - _t22*_t6;
+    tau[0] = _t12*_t23 - _t13*_t21 - _t22*_t8 - _t23*_t6;
     tau[1] = _t24;
-    tau[2] = _t12*_t23 - _t13*_t21 - _t22*_t8 - _t23*_t6;
+    tau[2] = -_t12*_t21 - _t22*_t6;
     tau[3] = _t25;
     tau[4] = _t23*_t8 - 1.0/50.0*_t2 - 1.0/50.0*_t20 + _t26*_t6 - _t12*_t26 - _t13*_t23;
-    tau[5] = -_t10*_t22 - _t14*_t21;
-    tau[6] = _t14*_t23 - _t10*_t23 - _t11*_t22 - _t15*_t21;
+    tau[5] = _t14*_t23 - _t10*_t23 - _t11*_t22 - _t15*_t21;
+    tau[6] = -_t10*_t22 - _t14*_t21;
     tau[7] = _t10*_t26 + _t11*_t23 + (1.0/2.0)*_t21*((3.0/2500.0)*t - 3.0/100.0) + (1.0/2.0)*_t22*(1.0/25.0 - 3.0/500.0*t) - _t14*_t26 - _t15*_t23;
 }
 
 
-/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (21 operations, 82 before CSE). */
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (21 operations, 83 before CSE). */
 static void unicycle_switch_k_jet(double t, const double *s, const double *p, const double *a, const double *tau, double *z, double *R, double *pvec)
 {
     (void)t;
@@ -102,8 +102,8 @@ static void unicycle_switch_k_jet(double t, const double *s, const double *p, co
     const double _t17 = _s3*_t16;
     const double _t18 = sin(_s2);
     const double _t19 = _s3*_t18;
-    z[0] = _h2 + _t24*(_h0 + 2*_s0) + _t25*(_h1 + 2*_t17);
-    z[1] = _h5 + _t24*(_h3 + 2*_s1) + _t25*(_h4 + 2*_t19);
+    z[0] = _h2 + _t24*(_h0 + 2*_t17) + _t25*(_h1 + 2*_s0);
+    z[1] = _h5 + _t24*(_h3 + 2*_t19) + _t25*(_h4 + 2*_s1);
     R[0] = _t16;
     R[1] = -_t19;
     R[2] = _t18;
@@ -188,14 +188,14 @@ static void unicycle_switch_k_optimality(double t, const double *s, const double
 }
 
 
-/* The objective f0(y, t) (42 operations, 55 before CSE). */
+/* The objective f0(y, t) (41 operations, 55 before CSE). */
 static void unicycle_switch_k_objective(double t, const double *y, const double *p, double *f0)
 {
     const double _y0 = y[0]; /* y1 */
     const double _y1 = y[1]; /* y2 */
     const double _p0 = p[0]; /* a */
     const double _p1 = p[1]; /* b */
-    const double _t0 = 1.0/2.0 - 1.0/2.0*tanh((t - _p0)/_p1);
+    const double _t0 = (1.0/2.0)*(1 - tanh((t - _p0)/_p1));
     const double _t1 = (t*t);
     const double _t2 = (t*t*t);
     const double _t3 = _y0 + (1.0/100.0)*_t1;
