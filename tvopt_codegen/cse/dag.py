@@ -18,6 +18,14 @@ engine's constructor (:func:`~tvopt_codegen.cse.rewrite._rebuild_symengine`) and
 result read back into the table. The passes are those of
 :mod:`~tvopt_codegen.cse.numbering`, step for step: kernels of the same size, in less
 time.
+
+Three passes are SymEngine's own, for its forms where SymPy's differ: a rational times
+a sum is distributed when the program is read (:meth:`Dag.distribute`; SymPy's ``Mul``
+does it, SymEngine keeps ``-(a + b)``), a kernel's sums whose terms share one
+coefficient are written ``c*(...)`` last (:meth:`Dag.factored`), and merging reads
+``(1/2)*_t`` of ``_t = 2*x`` as ``x`` (:meth:`Dag.merge_equal`). Odd functions are
+signed (:meth:`Dag.signed_odd`) and a kernel's symbols read (:meth:`Dag.reads`) on the
+table, not by SymEngine's walks of the expressions.
 """
 
 from __future__ import annotations
