@@ -9,6 +9,7 @@ from :mod:`tvopt_codegen.derivation.calculus`; nothing here differentiates.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -89,6 +90,8 @@ class _Problem:
     solver : callable
         Everything SLSQP asks for at ``(t, y, r)``, in one call: the groups numbered
         ``_F0`` to ``_A_GRAD``, matrices as (rows, m).
+    prepare : callable
+        Lambdifies :attr:`solver`'s function now (else on its first call).
     """
 
     g: Vector
@@ -96,6 +99,7 @@ class _Problem:
     numeric: Callable[..., Vector]
     refs_at: Callable[[float], list[float]]
     solver: Callable[[float, np.ndarray, list[float]], tuple[np.ndarray, ...]]
+    prepare: Callable[[], object]
 
 
 def _problem(model: Any, values: Mapping[sx.Expr, float], references: Any) -> _Problem:
@@ -137,12 +141,13 @@ def _problem(model: Any, values: Mapping[sx.Expr, float], references: Any) -> _P
         ([c.g for c in model.equalities], None),
         (list(equal.jacobian), q),
     ]
-    everything = numeric([e for exprs, _ in groups for e in exprs])
+    # Lambdified on first use: not where a side process does the solves.
+    everything = functools.cache(lambda: numeric([e for exprs, _ in groups for e in exprs]))
     ends = np.cumsum([0, *(len(exprs) for exprs, _ in groups)])
     m = len(model.y)
 
     def solver(time: float, y: np.ndarray, r: list[float]) -> tuple[np.ndarray, ...]:
-        values = everything(time, y, r)
+        values = everything()(time, y, r)
         return tuple(
             values[start:end] if rows is None else values[start:end].reshape(rows, m)
             for start, end, (_, rows) in zip(ends[:-1], ends[1:], groups, strict=True)
@@ -154,6 +159,7 @@ def _problem(model: Any, values: Mapping[sx.Expr, float], references: Any) -> _P
         numeric=numeric,
         refs_at=refs_at,
         solver=solver,
+        prepare=everything,
     )
 
 
@@ -252,7 +258,9 @@ def minimiser_process(model: Any, params: Mapping[str, float]) -> Side:
     def start() -> Callable[[Any], list[np.ndarray]]:
         from scipy.optimize import minimize  # noqa: F401, PLC0415 - why the process is there
 
-        problems = {_values_key(built): _problem(model, built, None)}
+        first = _problem(model, built, None)
+        first.prepare()
+        problems = {_values_key(built): first}
 
         def solve(request: tuple[Any, list[Any]]) -> list[np.ndarray]:
             key, tasks = request
