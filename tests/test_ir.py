@@ -614,12 +614,6 @@ def test_a_number_beside_a_sum_is_distributed_exactly_where_sympy_does() -> None
         assert built == expected, (expr, built, expected)
 
 
-@pytest.mark.xfail(
-    sx.SYMENGINE,
-    reason="cse/dag.py's recursive walks (Dag.substitute's visit, Dag.operations' count, "
-    "Dag.value_numbering's build) are not released (jet.release): product bug, reported",
-    strict=True,
-)
 def test_lowering_leaves_no_reference_cycles_of_its_own() -> None:
     """The command line runs the derivation and lowering without the cyclic collector:
     every recursive walk of ours releases itself (jet.release), so what it built is

@@ -481,7 +481,9 @@ class Dag:
             memo[node] = done
             return done
 
-        return visit(i)
+        result = visit(i)
+        release(visit)
+        return result
 
     def signed_odd(
         self, program: Program, outputs: Sequence[int], memo: dict[sx.Expr, sx.Expr]
@@ -548,7 +550,10 @@ class Dag:
             memo[node] = done
             return done
 
-        return [(sym, visit(value)) for sym, value in program], [visit(e) for e in outputs]
+        new_program = [(sym, visit(value)) for sym, value in program]
+        new_outputs = [visit(e) for e in outputs]
+        release(visit)
+        return new_program, new_outputs
 
     def factored(self, program: Program, outputs: Sequence[int]) -> tuple[Program, list[int]]:
         """A program's sums whose terms share one rational coefficient, written ``c*(...)``.
@@ -583,7 +588,10 @@ class Dag:
             memo[node] = done
             return done
 
-        return [(sym, visit(value)) for sym, value in program], [visit(e) for e in outputs]
+        new_program = [(sym, visit(value)) for sym, value in program]
+        new_outputs = [visit(e) for e in outputs]
+        release(visit)
+        return new_program, new_outputs
 
     def _unscaled(self, product: int, values: dict[int, int]) -> int:
         """``c*_t*...`` as ``x*...`` where ``_t = k*x``, ``c*k = 1``, ``x`` a leaf.
@@ -677,7 +685,9 @@ class Dag:
                 below[node] = total
             return total
 
-        return sum(own(r, _OTHER) + count(r) for r in roots)
+        total = sum(own(r, _OTHER) + count(r) for r in roots)
+        release(count)
+        return total
 
     def needed(self, program: Program, outputs: Sequence[int]) -> Program:
         """:func:`~.numbering._prune` on ids: the assignments the outputs need."""
@@ -776,7 +786,9 @@ class Dag:
             built[node] = done
             return done
 
-        return replacements, [build(e) for e in exprs]
+        built_exprs = [build(e) for e in exprs]
+        release(build)
+        return replacements, built_exprs
 
     def leaves(self, root: int, wanted: dict[int, int]) -> list[int]:
         """The leaves of ``root`` that are keys of ``wanted``, each once."""
