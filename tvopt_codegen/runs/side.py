@@ -1,5 +1,6 @@
-"""A process forked beside this one to answer requests, and the pipes' messages (the
-drawing process's too).
+"""A process forked beside this one to answer requests, and the pipes' messages.
+
+The drawing process (:mod:`tvopt_codegen.runs.drawing`) talks on the same pipes.
 
 ``simulate`` starts one for the constraints' SLSQP check as soon as the derivation
 exists (:func:`tvopt_codegen.simulation.constraints.minimiser_process`): it imports
