@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import math
 import os
+import random
 import subprocess
 import sys
+from typing import Any
 
 import pytest
 
@@ -192,3 +194,29 @@ def test_is_polynomial_cse_and_lambdify_agree_on_both_engines() -> None:
     np.testing.assert_allclose(results[0][1], results[1][1], rtol=1e-14)
     assert results[0][2] == pytest.approx(math.sin(-0.8) * math.cos(-0.8), rel=1e-14)
     assert results[1][2] == pytest.approx(results[0][2], rel=1e-14)
+
+
+def test_symengines_arguments_sort_into_sympys_order_with_exp_and_user_functions() -> None:
+    """canonical_key ranks SymEngine's E**x as SymPy's function exp, and a user's
+    applied function by its name, as SymPy orders the arguments of sums and products."""
+    from tvopt_codegen.symbolic.order import sympy_ordered
+
+    names = ["t", "x", "y", "z"]
+    rng = random.Random(7)
+
+    def build() -> list[Any]:
+        t, x, y, z = sx.symbols(names)
+        f = sx.Function("f")
+        leaves = [t, x, y + z, sx.exp(t), sx.exp(x + y), f(x), sx.sin(y), x**2, sx.Integer(3)]
+        return [sx.Mul(*rng.sample(leaves, 4)) for _ in range(3)] + [
+            sx.Add(*rng.sample(leaves, 4)) for _ in range(3)
+        ]
+
+    state = rng.getstate()
+    with sx.using("symengine"):
+        ours = [[sx.text(a) for a in sympy_ordered(e.args)] for e in build()]
+    rng.setstate(state)
+    with sx.using("sympy"):
+        theirs = [[sx.text(a) for a in e.args] for e in build()]
+    assert [sorted(o) for o in ours] == [sorted(t) for t in theirs]  # the same terms
+    assert ours == theirs

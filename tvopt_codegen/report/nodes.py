@@ -8,7 +8,6 @@ in SymPy's order of its arguments, and remembers it for every formula of a repor
 
 from __future__ import annotations
 
-import functools
 import re
 from typing import Any
 
@@ -71,21 +70,11 @@ class Shared:
     def key(self, expr: Any) -> tuple[Any, ...]:
         """SymPy's place of ``expr`` among a sum's or a product's arguments.
 
-        :func:`~tvopt_codegen.symbolic.order.canonical_key`, but for two nodes SymPy
-        names otherwise: SymEngine's power of E is SymPy's function ``exp`` (after a
-        sum, not before it as a power), and an applied function of the user's is of
-        the class of its name.
+        :func:`~tvopt_codegen.symbolic.order.canonical_key`, memoised.
         """
         found = self.keys.get(expr)
         if found is None:
-            if is_exp(expr):
-                found = (_function_rank(), "exp", 1, self.key(exp_argument(expr)))
-            elif node_name(expr) == "FunctionSymbol":
-                parts = tuple(self.key(arg) for arg in expr.args)
-                found = (_function_rank(), sx.function_name(expr), len(parts), *parts)
-            else:
-                found = canonical_key(expr, self.key)
-            self.keys[expr] = found
+            found = self.keys[expr] = canonical_key(expr, self.key)
         return found
 
     def form(self, expr: Any) -> Any:
@@ -98,13 +87,6 @@ class Shared:
     def size(self) -> int:
         """How many entries the memo holds."""
         return len(self.keys) + len(self.orders) + len(self.latex) + len(self.mathml)
-
-
-@functools.cache
-def _function_rank() -> int:
-    """canonical_key's rank of a function: after every class SymPy ranks."""
-    rank: int = canonical_key(sx.sin(sx.Symbol("x")), lambda arg: ())[0]
-    return rank
 
 
 #: Nodes remembered at most (a few hundred MB at worst), then forgotten all at once.

@@ -25,6 +25,7 @@ _CLASS_ORDER = {
         "Exp1 Pi ImaginaryUnit Symbol Wild Pow Mul Add Derivative Integral".split()
     )
 }
+_POW = _CLASS_ORDER["Pow"]
 #: SymEngine's names of classes SymPy names otherwise.
 _SYMPY_NAMES = {"RealDouble": "Float"}
 
@@ -41,6 +42,15 @@ def canonical_key(expr: Any, key: Callable[[Any], tuple[Any, ...]]) -> tuple[Any
     name = _SYMPY_NAMES.get(name, name)
     rank = _CLASS_ORDER.get(name, len(_CLASS_ORDER))
     parts: tuple[Any, ...]
+    if sx.SYMENGINE:
+        # Two nodes SymPy names otherwise: SymEngine's exp(x) is the power E**x, SymPy's
+        # the function exp (after sums and products among a node's arguments); a user's
+        # applied function is a FunctionSymbol, in SymPy of the class of its name.
+        if rank == _POW and expr.args[0] == sx.E:
+            return (len(_CLASS_ORDER), "exp", 1, key(expr.args[1]))
+        if name == "FunctionSymbol":
+            parts = tuple(key(arg) for arg in expr.args)
+            return (len(_CLASS_ORDER), sx.function_name(expr), len(parts), *parts)
     if expr.is_Symbol:
         parts = (expr.name,)
     elif expr.is_Rational:
