@@ -298,8 +298,8 @@ class Dag:
             )
         return found
 
-    def _plain_product(self, children: tuple[int, ...]) -> tuple[int, ...] | None:
-        """:meth:`_plain` for a product."""
+    def _number_and_factors(self, children: tuple[int, ...]) -> tuple[int, list[int]]:
+        """The product of ``children``'s numbers, and its other factors (products flattened)."""
         kind, args = self.kind, self.args
         number = self.one
         factors: list[int] = []
@@ -309,6 +309,12 @@ class Dag:
                     number = self._arithmetic(number, factor, False)
                 else:
                     factors.append(factor)
+        return number, factors
+
+    def _plain_product(self, children: tuple[int, ...]) -> tuple[int, ...] | None:
+        """:meth:`_plain` for a product."""
+        kind, args = self.kind, self.args
+        number, factors = self._number_and_factors(children)
         bases = []
         for c in factors:
             if kind[c] == _POW:
@@ -337,14 +343,7 @@ class Dag:
         the product is not a rational times one sum.
         """
         kind, args = self.kind, self.args
-        number = self.one
-        factors: list[int] = []
-        for c in children:
-            for factor in args[c] if kind[c] == _MUL else (c,):
-                if kind[factor] == _NUMBER:
-                    number = self._arithmetic(number, factor, False)
-                else:
-                    factors.append(factor)
+        number, factors = self._number_and_factors(children)
         if (
             len(factors) != 1
             or kind[factors[0]] != _ADD
