@@ -50,6 +50,7 @@ import casadi as ca
 import sympy as sp
 from cold import cold_run
 
+from tvopt_codegen.limits import ENGINES
 from tvopt_codegen.spec import bundled_examples
 
 SIZES = (1, 2, 4, 8, 16, 32, 64, 128, 256)
@@ -237,8 +238,10 @@ def singles_table(runs: dict[Path, list[dict[str, float]]]) -> str:
     return "\n".join(lines)
 
 
-def casadi_cold(agents: int, timeout: float) -> tuple[float, float, int]:
-    """CasADi in a fresh interpreter: wall, the pipeline's seconds, ``n_instructions``.
+def casadi_cold(agents: int, timeout: float) -> tuple[float, float, int, float]:
+    """CasADi in a fresh interpreter: wall, the pipeline's seconds, ``n_instructions``, MB.
+
+    The peak memory is the interpreter's own maximum resident set, as ours is.
 
     The wall time includes the imports, as ours does; the pipeline is timed inside.
     """
@@ -249,13 +252,13 @@ def casadi_cold(agents: int, timeout: float) -> tuple[float, float, int]:
     )
     run = cold_run([sys.executable, "-c", code], timeout)
     seconds, instructions = run.stdout.split()
-    return run.wall, float(seconds), int(instructions)
+    return run.wall, float(seconds), int(instructions), run.peak_mb
 
 
 def ring_table(
     ours: dict[int, list[dict[str, float]]],
     cold: dict[int, list[float]],
-    inside: dict[int, list[tuple[float, int]]],
+    inside: dict[int, list[tuple[float, int, float]]],
 ) -> str:
     """Per N: our median run, CasADi's medians, and the median of the rounds' ratios.
 
@@ -264,9 +267,9 @@ def ring_table(
     """
     lines = [
         "| N | CLI wall s | range s | s per agent | start-up | load | derive | lower | render "
-        "| write | peak MB | ours ops | CasADi s (cold) | CasADi s (pipeline) | CasADi instr. "
-        "| wall ours/CasADi cold | ops ours/CasADi |",
-        "|" + "---|" * 17,
+        "| write | peak MB | ours ops | CasADi s (cold) | CasADi s (pipeline) | CasADi peak MB "
+        "| CasADi instr. | wall ours/CasADi cold | ops ours/CasADi |",
+        "|" + "---|" * 18,
     ]
     for agents, runs in ours.items():
         r = _median(runs)
@@ -275,13 +278,14 @@ def ring_table(
             for k in ("startup", "load", "derive", "lower", "render", "write")
         )
         ca_cold = sorted(cold[agents])[len(runs) // 2]
-        ca_s = sorted(s for s, _ in inside[agents])[len(runs) // 2]
+        ca_s = sorted(s for s, _, _ in inside[agents])[len(runs) // 2]
+        ca_mb = sorted(mb for _, _, mb in inside[agents])[len(runs) // 2]
         ca_ops = inside[agents][0][1]
         ratio = sorted(o["wall"] / c for o, c in zip(runs, cold[agents], strict=True))
         lines.append(
             f"| {agents} | {r['wall']:.2f} | {_spread(runs)} | {r['wall'] / agents:.3f} "
             f"| {shares} | {r['memory']:.0f} | {int(r['ops'])} | {ca_cold:.2f} | {ca_s:.3f} "
-            f"| {ca_ops} | {ratio[len(ratio) // 2]:.1f} | {r['ops'] / ca_ops:.2f} |"
+            f"| {ca_mb:.0f} | {ca_ops} | {ratio[len(ratio) // 2]:.1f} | {r['ops'] / ca_ops:.2f} |"
         )
     return "\n".join(lines)
 
@@ -303,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--rounds must be odd (each figure is a median)")
     ours: dict[int, list[dict[str, float]]] = {n: [] for n in sizes}
     cold: dict[int, list[float]] = {n: [] for n in sizes}
-    inside: dict[int, list[tuple[float, int]]] = {n: [] for n in sizes}
+    inside: dict[int, list[tuple[float, int, float]]] = {n: [] for n in sizes}
     single: dict[Path, list[dict[str, float]]] = {spec: [] for spec, _ in singles()}
     with tempfile.TemporaryDirectory(prefix="bench-derive-") as tmp:
         folder = Path(tmp)
@@ -315,9 +319,9 @@ def main(argv: list[str] | None = None) -> int:
             for agents in sizes:
                 r = ours_cold(agents, folder, args.timeout)
                 ours[agents].append(r)
-                wall, seconds, instructions = casadi_cold(agents, args.timeout)
+                wall, seconds, instructions, peak = casadi_cold(agents, args.timeout)
                 cold[agents].append(wall)
-                inside[agents].append((seconds, instructions))
+                inside[agents].append((seconds, instructions, peak))
                 print(
                     f"round {round_}: N = {agents}: {r['wall']:.2f} s, CasADi cold "
                     f"{cold[agents][-1]:.2f} s",
@@ -337,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
         machine = (
             f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
         )
-        engine = args.engine or "the command line's default"
+        engine = args.engine or f"{ENGINES[0]}, the command line's default"
         versions = (
             f"ours on {engine} (sympy {sp.__version__}, symengine "
             f"{importlib.metadata.version('symengine')}), casadi {ca.__version__}"
