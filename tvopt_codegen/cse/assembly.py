@@ -22,6 +22,7 @@ from tvopt_codegen.cse.numbering import (
     numbered,
     ordered_cse,
 )
+from tvopt_codegen.cse.programs import inline_single_use, needed, symbols_read
 from tvopt_codegen.cse.rewrite import (
     _expr,
     _rebuild,
@@ -84,7 +85,7 @@ def _package(
     """The kernel of a CSE'd program, its outputs cut to their shapes; checks its symbols.
 
     ``ops`` is its operation count when the caller has it (:meth:`.Dag.operations`), and
-    ``reads`` the symbols it reads besides its temporaries (:meth:`.Dag.reads`).
+    ``reads`` the symbols it reads besides its temporaries (:func:`.programs.symbols_read`).
     """
     packed: list[Output] = []
     start = 0
@@ -165,11 +166,11 @@ def make_kernel(
         ids = [(dag.intern(sym), dag.intern(value)) for sym, value in program]
         outs = [dag.intern(_expr(e)) for e in flat]
         ids, outs = dag.signed_odd(ids, outs, {} if odd is None else odd)
-        before = dag.operations([v for _, v in dag.needed(ids, outs)] + outs)
+        before = dag.operations([v for _, v in needed(dag, ids, outs)] + outs)
         order, outs = dag.factored(*_reduce_dag(dag, ids, outs, search))
         body, reduced = _number_dag(dag, order, outs)
         ops = dag.operations([v for _, v in order] + outs) + _constant_ops(outputs)
-        reads = dag.reads(order, outs)
+        reads = symbols_read(dag, order, outs)
         flat = _scatter(outputs, where, reduced)
         return _package(name, doc, inputs, outputs, body, flat, before, ops, reads)
     before = operation_count([v for _, v in program] + flat)
@@ -259,7 +260,7 @@ def _make_kernels_dag(
     outs = [dag.intern(_expr(e)) for e in flat]
     ids, outs = dag.signed_odd(ids, outs, {} if odd is None else odd)
     parts = [outs[end - size : end] for size, end in zip(sizes, ends, strict=True)]
-    programs = [dag.needed(ids, part) for part in parts]
+    programs = [needed(dag, ids, part) for part in parts]
     befores = [
         dag.operations([v for _, v in mine] + part)
         for mine, part in zip(programs, parts, strict=True)
@@ -279,7 +280,7 @@ def _make_kernels_dag(
         kernels, sizes, ends, wheres, befores, strict=True
     ):
         mine_outs = whole_outs[end - size : end]
-        order, reduced_ids = dag.inline_single_use(dag.needed(whole, mine_outs), mine_outs)
+        order, reduced_ids = inline_single_use(dag, needed(dag, whole, mine_outs), mine_outs)
         made.append(
             _dag_kernel(dag, order, reduced_ids, (name, doc, inputs, outputs), where, before)
         )
@@ -299,7 +300,7 @@ def _dag_kernel(
     order, reduced_ids = dag.factored(order, reduced_ids)
     body, reduced = _number_dag(dag, order, reduced_ids)
     ops = dag.operations([v for _, v in order] + reduced_ids) + _constant_ops(outputs)
-    reads = dag.reads(order, reduced_ids)
+    reads = symbols_read(dag, order, reduced_ids)
     flat = _scatter(outputs, where, reduced)
     return _package(name, doc, inputs, outputs, body, flat, before, ops, reads)
 

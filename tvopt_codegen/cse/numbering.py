@@ -5,11 +5,20 @@ Value numbering, merging equal values and inlining values used once.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
 from tvopt_codegen import symbolic as sx
-from tvopt_codegen.cse.dag import Dag, Program, inline_waves
+from tvopt_codegen.cse.dag import Dag, Program
+from tvopt_codegen.cse.programs import (
+    drop_aliases,
+    inline_single_use,
+    inline_waves,
+    leaves,
+    needed,
+    value_numbering,
+)
 from tvopt_codegen.cse.rewrite import (
     _NEGATED_TERMS,
     _expr,
@@ -145,7 +154,7 @@ def _reduce_dag(
     ``pi*p0/p1``, which only a search of the inlined program finds (a ring of four
     unicycles: 1920 operations, 1616 so; SymPy's 1735).
     """
-    kept, outs = dag.drop_aliases(*dag.distribute(dag.needed(program, outputs), outputs))
+    kept, outs = drop_aliases(dag, *dag.distribute(needed(dag, program, outputs), outputs))
     exprs = [value for _, value in kept] + outs
     names = numbered(prefix)
     searched = search and dag.operations(exprs) <= SMALL_PROGRAM_OPS
@@ -154,16 +163,18 @@ def _reduce_dag(
         replacements = [(dag.intern(sym), dag.intern(value)) for sym, value in found]
         reduced = [dag.intern(e) for e in cut]
     else:
-        replacements, reduced = dag.value_numbering(exprs, names)
+        replacements, reduced = value_numbering(dag, exprs, names)
     defined = dict(replacements)
 
     def missing(expr: int, emitted: set[int]) -> list[int]:
-        return [s for s in dag.leaves(expr, defined) if s not in emitted]
+        return [s for s in leaves(dag, expr, defined) if s not in emitted]
 
     order, outs = _emitted(
         kept, reduced, defined, missing, lambda s: _cse_index(dag.expr[s], prefix)
     )
-    order, outs = _merged_and_inlined(order, outs, dag.merge_equal, dag.inline_single_use)
+    order, outs = _merged_and_inlined(
+        order, outs, dag.merge_equal, functools.partial(inline_single_use, dag)
+    )
     if (
         search
         and prefix == "_cse"
