@@ -196,6 +196,11 @@ def time_limit(seconds: float, source: list[str], progress: DeriveProgress) -> I
         # Armed inside the try: the timer can fire before setitimer returns.
         signal.setitimer(signal.ITIMER_REAL, seconds)
         yield
+        if fired:
+            # The signal landed where an exception cannot propagate (a garbage
+            # collector's callback, a __del__: Python prints it and goes on): the
+            # budget still ran out, and what the block made must not be written.
+            raise Overrun
     except Overrun:
         raise BudgetError(
             source[0], progress.stage, f"the derivation took longer than {seconds:g} s"
