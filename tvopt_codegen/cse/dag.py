@@ -30,7 +30,7 @@ expressions. The passes over a program on ids are :mod:`~tvopt_codegen.cse.progr
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 from tvopt_codegen import symbolic as sx
@@ -518,10 +518,7 @@ class Dag:
                 found = done[node] = node if new == own else self.rebuild(node, new)
             return found
 
-        signed_program = [(sym, visit(value)) for sym, value in program]
-        signed_outputs = [visit(e) for e in outputs]
-        release(visit)
-        return signed_program, signed_outputs
+        return _walked(program, outputs, visit)
 
     def distribute(self, program: Program, outputs: Sequence[int]) -> tuple[Program, list[int]]:
         """Every rational times a sum in ``program`` and ``outputs`` distributed, as SymPy's.
@@ -549,10 +546,7 @@ class Dag:
             memo[node] = done
             return done
 
-        new_program = [(sym, visit(value)) for sym, value in program]
-        new_outputs = [visit(e) for e in outputs]
-        release(visit)
-        return new_program, new_outputs
+        return _walked(program, outputs, visit)
 
     def factored(self, program: Program, outputs: Sequence[int]) -> tuple[Program, list[int]]:
         """A program's sums whose terms share one rational coefficient, written ``c*(...)``.
@@ -587,10 +581,7 @@ class Dag:
             memo[node] = done
             return done
 
-        new_program = [(sym, visit(value)) for sym, value in program]
-        new_outputs = [visit(e) for e in outputs]
-        release(visit)
-        return new_program, new_outputs
+        return _walked(program, outputs, visit)
 
     def _unscaled(self, product: int, values: dict[int, int]) -> int:
         """``c*_t*...`` as ``x*...`` where ``_t = k*x``, ``c*k = 1``, ``x`` a leaf.
@@ -733,3 +724,13 @@ class Dag:
                     counts[node] = counts.get(node, 0) + 1
             self._counts[root] = counts
         return counts
+
+
+def _walked(
+    program: Program, outputs: Sequence[int], visit: Callable[[int], int]
+) -> tuple[Program, list[int]]:
+    """``program``'s values and ``outputs`` through the recursive walk ``visit``, then freed."""
+    walked = [(sym, visit(value)) for sym, value in program]
+    walked_outputs = [visit(e) for e in outputs]
+    release(visit)
+    return walked, walked_outputs

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from tvopt_codegen.runs.side import can_fork, receive, send
+from tvopt_codegen.runs.side import can_fork, receive, send, stop
 
 #: The calls a panel may record: the ``matplotlib.axes.Axes`` methods the figures use.
 AXES_CALLS = frozenset(
@@ -330,14 +330,7 @@ class Painter:
         if self._pid is None:
             return
         pid, self._pid = self._pid, None
-        for fd in (self._requests, self._replies):
-            with contextlib.suppress(OSError):
-                os.close(fd)
-        if kill:
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signal.SIGKILL)
-        with contextlib.suppress(ChildProcessError):
-            os.waitpid(pid, 0)
+        stop(pid, (self._requests, self._replies), kill)
 
     def __enter__(self) -> Painter:
         return self

@@ -117,19 +117,25 @@ class Side:
         if self._pid is None:
             return
         pid, self._pid = self._pid, None
-        for fd in (self._requests, self._replies):
-            with contextlib.suppress(OSError):
-                os.close(fd)
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(pid, signal.SIGKILL)
-        with contextlib.suppress(ChildProcessError):
-            os.waitpid(pid, 0)
+        stop(pid, (self._requests, self._replies), kill=True)
 
     def __enter__(self) -> Side:
         return self
 
     def __exit__(self, *_exc: object) -> None:
         self.close()
+
+
+def stop(pid: int, pipes: tuple[int, ...], kill: bool) -> None:
+    """Close a side process's ``pipes``, kill it if asked, and reap it."""
+    for fd in pipes:
+        with contextlib.suppress(OSError):
+            os.close(fd)
+    if kill:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    with contextlib.suppress(ChildProcessError):
+        os.waitpid(pid, 0)
 
 
 def _serve(
