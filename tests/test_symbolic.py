@@ -220,3 +220,25 @@ def test_symengines_arguments_sort_into_sympys_order_with_exp_and_user_functions
         theirs = [[sx.text(a) for a in e.args] for e in build()]
     assert [sorted(o) for o in ours] == [sorted(t) for t in theirs]  # the same terms
     assert ours == theirs
+
+
+def test_lambdify_takes_a_batch_of_points_in_a_list_argument_on_both_engines() -> None:
+    """A list argument whose entries are arrays (or an array of shape (size, batch)) is a
+    batch of points, as SymPy's lambdify takes it; the values are the same on both engines
+    (the result's batch axes first, the expressions' shape last)."""
+    import numpy as np
+
+    rows = np.array([[1.0, 3.0, -2.0], [2.0, 4.0, 0.5]])
+    for engine_name in ("symengine", "sympy"):
+        with sx.using(engine_name):
+            x, y, t = sx.symbols(["x", "y", "t"])
+            f = sx.lambdify([[x, y], t], [x * y + t, sx.sin(x) - y])
+            batched = np.asarray(f(rows, 0.5), dtype=float)
+            listed = np.asarray(f([rows[0], rows[1]], 0.5), dtype=float)
+            single = np.asarray(f([rows[0, 1], rows[1, 1]], 0.5), dtype=float)
+        if engine_name == "sympy":  # SymPy's list of per-expression arrays
+            batched, listed = batched.T, listed.T
+        expected = np.stack([rows[0] * rows[1] + 0.5, np.sin(rows[0]) - rows[1]], -1)
+        np.testing.assert_allclose(batched, expected, rtol=1e-15)
+        np.testing.assert_allclose(listed, expected, rtol=1e-15)
+        np.testing.assert_allclose(single, expected[1], rtol=1e-15)

@@ -347,11 +347,16 @@ class _Lambdified:
             # were four fifths of a call (a solver calls it thousands of times).
             out = np.asarray(self._function(vector), dtype=float).reshape(self._shape)
             return float(out) if not out.shape else out
-        point = [
-            v
-            for given, is_list in zip(values, self._lists, strict=True)
-            for v in (_flat(list(given)) if is_list else [given])
-        ]
+        point: list[Any] = []
+        for given, size in zip(values, self._sizes, strict=True):
+            if size is None:
+                point.append(given)
+            elif size == -1:
+                point.extend(_flat(list(given)))
+            else:
+                # A flat list's entries, each a number or a batch of them (its rows when
+                # the argument is an array of shape (size, ...)): not flattened further.
+                point.extend(list(given))
         if any(np.ndim(v) for v in point):
             inputs = np.stack(np.broadcast_arrays(*[np.asarray(v, dtype=float) for v in point]), -1)
         else:
