@@ -9,7 +9,7 @@ its algebra (reading, rebuilding, negation, merging) are :class:`~.dag.Dag`'s.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
 from tvopt_codegen import symbolic as sx
@@ -47,20 +47,9 @@ def symbols_read(dag: Dag, program: Program, outputs: Sequence[int]) -> set[sx.E
     them in C++, its set of seen nodes slowed by the sums' colliding hashes
     (:meth:`.Dag.intern`).
     """
-    args, kind = dag.args, dag.kind
-    seen: set[int] = set()
-    stack = [value for _, value in program] + list(outputs)
-    found: set[int] = set()
-    while stack:
-        node = stack.pop()
-        if node in seen:
-            continue
-        seen.add(node)
-        own = args[node]
-        if own:
-            stack.extend(own)
-        elif kind[node] == _SYMBOL:
-            found.add(node)
+    kind = dag.kind
+    roots = [value for _, value in program] + list(outputs)
+    found = {leaf for leaf in _leaves(dag, roots) if kind[leaf] == _SYMBOL}
     found.difference_update(sym for sym, _ in program)
     return {dag.expression(i) for i in found}
 
@@ -124,10 +113,14 @@ def value_numbering(
 
 def leaves(dag: Dag, root: int, wanted: dict[int, int]) -> list[int]:
     """The leaves of ``root`` that are keys of ``wanted``, each once."""
+    return [leaf for leaf in _leaves(dag, [root]) if leaf in wanted]
+
+
+def _leaves(dag: Dag, roots: list[int]) -> Iterator[int]:
+    """The leaves under ``roots``, each once (one walk on one stack, each node once)."""
     args = dag.args
     seen: set[int] = set()
-    found: list[int] = []
-    stack = [root]
+    stack = roots
     while stack:
         node = stack.pop()
         if node in seen:
@@ -136,9 +129,8 @@ def leaves(dag: Dag, root: int, wanted: dict[int, int]) -> list[int]:
         own = args[node]
         if own:
             stack.extend(own)
-        elif node in wanted:
-            found.append(node)
-    return found
+        else:
+            yield node
 
 
 def occurrences(dag: Dag, root: int, position: dict[int, int]) -> dict[int, int]:

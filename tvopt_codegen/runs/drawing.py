@@ -18,14 +18,13 @@ import contextlib
 import io
 import os
 import signal
-import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from tvopt_codegen.runs.side import can_fork, receive, send, stop
+from tvopt_codegen.runs.side import can_fork, fork, receive, send, stop
 
 #: The calls a panel may record: the ``matplotlib.axes.Axes`` methods the figures use.
 AXES_CALLS = frozenset(
@@ -277,22 +276,7 @@ class Painter:
         self._plots: list[Plot] = []
         if not can_fork():
             return
-        requests_read, self._requests = os.pipe()
-        self._replies, replies_write = os.pipe()
-        for stream in (sys.stdout, sys.stderr):
-            with contextlib.suppress(Exception):
-                stream.flush()  # or the child would flush the same buffered text again
-        pid = os.fork()
-        if pid == 0:  # pragma: no cover - the drawing process
-            try:
-                os.close(self._requests)
-                os.close(self._replies)
-                _serve(requests_read, replies_write)
-            finally:
-                os._exit(0)
-        os.close(requests_read)
-        os.close(replies_write)
-        self._pid = pid
+        self._pid, self._requests, self._replies = fork(_serve)
 
     def submit(self, plots: Sequence[Plot]) -> None:
         """Send figures to be drawn now; more may follow, and :meth:`collect` returns all.

@@ -76,22 +76,9 @@ class Side:
         self._requests = self._replies = -1
         if not can_fork():
             return
-        requests_read, self._requests = os.pipe()
-        self._replies, replies_write = os.pipe()
-        for stream in (sys.stdout, sys.stderr):
-            with contextlib.suppress(Exception):
-                stream.flush()  # or the child would flush the same buffered text again
-        pid = os.fork()
-        if pid == 0:  # pragma: no cover - the side process, measured by its answers
-            try:
-                os.close(self._requests)
-                os.close(self._replies)
-                _serve(start, requests_read, replies_write)
-            finally:
-                os._exit(0)
-        os.close(requests_read)
-        os.close(replies_write)
-        self._pid = pid
+        self._pid, self._requests, self._replies = fork(
+            lambda requests, replies: _serve(start, requests, replies)
+        )
 
     @property
     def running(self) -> bool:
@@ -124,6 +111,30 @@ class Side:
 
     def __exit__(self, *_exc: object) -> None:
         self.close()
+
+
+def fork(serve: Callable[[int, int], None]) -> tuple[int, int, int]:
+    """Fork a process that runs ``serve(requests, replies)`` on two pipes, then exits.
+
+    Returns its pid, the end to write requests to and the end to read replies from.
+    The caller checks :func:`can_fork` first.
+    """
+    requests_read, requests_write = os.pipe()
+    replies_read, replies_write = os.pipe()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()  # or the child would flush the same buffered text again
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the side process, measured by its answers
+        try:
+            os.close(requests_write)
+            os.close(replies_read)
+            serve(requests_read, replies_write)
+        finally:
+            os._exit(0)
+    os.close(requests_read)
+    os.close(replies_write)
+    return pid, requests_write, replies_read
 
 
 def stop(pid: int, pipes: tuple[int, ...], kill: bool) -> None:
