@@ -481,3 +481,41 @@ def test_a_missing_output_parent_is_refused_before_deriving(
     err = capsys.readouterr().err
     assert "does not exist" in err and err.count("\n") == 1
     assert not (tmp_path / "no").exists()
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux's /proc")
+@pytest.mark.parametrize(
+    ("sig", "code", "group"),
+    [(signal.SIGINT, 130, True), (signal.SIGTERM, 143, False)],
+)
+def test_a_signal_while_the_constraints_side_process_runs_ends_both_side_processes(
+    sig: int, code: int, group: bool, tmp_path: Path
+) -> None:
+    """A constrained spec's simulate runs two side processes (the painter and the SLSQP
+    solver, runs/side.py) while it integrates: a signal then ends the command in one line,
+    both side processes with it, and nothing is written."""
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tvopt_codegen", "simulate", "two_unicycles_corridor"]
+        + ["--out", str(out), "--t-final", "300", "--rtol", "1e-12"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    deadline = time.monotonic() + 60
+    side: list[int] = []
+    while len(side) < 2 and proc.poll() is None and time.monotonic() < deadline:
+        side = _children(proc.pid)
+        time.sleep(0.01)
+    assert len(side) == 2 and proc.poll() is None, proc.communicate()
+    if group:
+        os.killpg(proc.pid, sig)
+    else:
+        proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == code, err
+    last = [line for line in err.splitlines() if "simulated t =" not in line]
+    assert len(last) == 1 and "Traceback" not in err, err
+    assert all(_gone(pid, 10.0) for pid in side)
+    assert not out.exists()
