@@ -22,6 +22,7 @@ from typing import Any
 
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation.meter import TimeLimitError, time_limited, tree_size
+from tvopt_codegen.derivation.trigpoly import lowest
 from tvopt_codegen.symbolic.border import from_sympy, sympy, to_sympy
 from tvopt_codegen.symbolic.order import sympy_ordered
 
@@ -56,12 +57,18 @@ def simplified_det(det: sx.Expr) -> sx.Expr:
     A border stage: ``det`` (an expression of the engine, small: the caller bounds its
     size) is simplified in SymPy and its factored form converted back. On SymEngine, a
     determinant that is a number times powers of symbols, sines and cosines is found
-    without SymPy (:func:`_monomial`), as SymPy finds it.
+    without SymPy (:func:`_monomial`), as SymPy finds it, and so is one that is such a
+    monomial over one irreducible polynomial in symbols and a sine or cosine squared
+    (a two-link arm's: :func:`.trigpoly.lowest`, which accepts only the shape whose
+    SymPy form it writes).
     """
     if sx.SYMENGINE:
         found = _monomial(det)
         if found is not None:
             return _monomial_expr(*found)
+        shaped = lowest(det)
+        if shaped is not None:
+            return shaped.expr()
     sp, circular = sympy(), _circular()
     det = to_sympy(det)
     reduced = sp.cancel(det)
@@ -106,7 +113,7 @@ def _singular_set(det: sx.Expr) -> tuple[str, ...]:
     without SymPy: :func:`_monomial_conditions`).
     """
     if sx.SYMENGINE:
-        found = _monomial(det, expand_angles=False)
+        found = _monomial(_numerator(det), expand_angles=False)
         native = None if found is None else _monomial_conditions(*found)
         if native is not None:
             return native
@@ -124,6 +131,37 @@ def _singular_set(det: sx.Expr) -> tuple[str, ...]:
             continue
         conditions.append(f"{sp.sstr(base)} = 0")
     return tuple(conditions)
+
+
+def _numerator(det: sx.Expr) -> sx.Expr:
+    """``det``'s numerator as SymPy's ``fraction(together(det))`` has it, where that is plain.
+
+    Where ``det`` is a product of factors and powers of polynomials (no fraction inside a
+    power's base), ``together`` leaves it as it is and the numerator is the product of
+    the factors that are not a negative power (``sin(q2)`` of an arm's
+    ``sin(q2)/(l1 l2 m2 (m1 + m2 sin(q2)^2))``); elsewhere ``det`` itself, which
+    :func:`_monomial` reads as before.
+    """
+    factors = det.args if det.is_Mul else (det,)
+    numerator = sx.ONE
+    for factor in factors:
+        if factor.is_Pow and factor.args[1].is_Integer and factor.args[1].is_negative:
+            if not _polynomial(factor.args[0]):
+                return det
+        else:
+            numerator *= factor
+    return numerator
+
+
+def _polynomial(expr: sx.Expr) -> bool:
+    """Whether ``expr`` has no negative or fractional power anywhere (``together`` keeps it)."""
+    stack = [expr]
+    while stack:
+        node = stack.pop()
+        if node.is_Pow and not (node.args[1].is_Integer and not node.args[1].is_negative):
+            return False
+        stack.extend(node.args)
+    return True
 
 
 #: Largest expression (in nodes) whose sign is asked of sympy's assumptions: the answer

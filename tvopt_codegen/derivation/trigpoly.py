@@ -1,0 +1,500 @@
+"""Rational trigonometric determinants in lowest terms without SymPy, where SymPy's form is sure.
+
+A determinant such as a two-link arm's det R, ``sin(q2)/(l1 l2 m2 (m1 + m2 sin(q2)^2))``,
+is a rational function in symbols and in the sine and cosine of angles. SymPy writes it
+as ``factor(simplify(det))`` (:func:`.singularity.simplified_det`); importing SymPy for
+that alone cost more than the rest of ``generate arm_on_line``. This module reads such a
+determinant as a quotient of polynomials with rational coefficients in its atoms
+(symbols, ``s = sin(a)`` and ``c = cos(a)`` of a symbol ``a``, angle sums expanded),
+reduces both by ``s^2 + c^2 = 1``, cancels their monomial and numeric contents and an
+exact polynomial quotient, and accepts what is left only in one shape, the one whose
+SymPy form is known:
+
+    ``k * M / (D * P)``: ``k`` a rational, ``M`` a product of powers of symbols and of
+    sines and cosines (one function per angle), ``D`` a product of powers of symbols,
+    ``P`` a primitive polynomial of two or more terms with integer coefficients in
+    symbols and the square of the sine or cosine of at most one angle, provably
+    irreducible.
+
+Why that shape is SymPy's: ``factor`` reads its argument as a rational function of its
+generators (``sin(a)`` and ``cos(a)`` are two), so its output is the canonical factored
+form of that function: the numeric content out, each irreducible factor primitive with
+a positive leading coefficient in lex order of SymPy's sorted generators
+(``polyutils._sort_gens``). The one choice left to ``simplify`` is how the trigonometry
+is written; for ``P`` in ``sin^2`` or in ``cos^2`` it takes the form with fewer terms
+(``m1 + m2 - m2 cos^2`` is ``m1 + m2 sin^2``), and where both have as many terms it keeps
+whichever it was given, so that case is refused here. ``tests/test_det_native.py``
+holds the result to SymPy's, tree and text, on every bundled example and test spec and
+on random determinants of the shape and beside it.
+
+Everything else (a numerator that is a sum, two polynomial factors, an angle under a sine
+and a cosine in ``M``, a sine in ``D``, a function of anything but a symbol) returns
+None: SymPy decides, as before.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from fractions import Fraction
+from math import gcd, lcm
+from typing import Any
+
+from tvopt_codegen import symbolic as sx
+
+#: A monomial: ``((atom, exponent), ...)`` by atom number, exponents positive.
+Monomial = tuple[tuple[int, int], ...]
+#: A polynomial: its monomials' rational coefficients, none zero.
+Poly = dict[Monomial, Fraction]
+
+#: Most terms a polynomial may reach on the way (beyond, SymPy decides).
+MAX_TERMS = 400
+#: Largest multiple of an angle whose sine or cosine is expanded.
+_MAX_MULTIPLE = 4
+#: Largest integer power multiplied out.
+_MAX_POWER = 64
+
+
+class Atoms:
+    """The atoms of one determinant: symbols, and ``sin(a)`` and ``cos(a)`` of a symbol ``a``.
+
+    ``kinds[i]`` is ``""`` for a symbol, ``"sin"`` or ``"cos"``; ``names[i]`` the
+    symbol's or the angle's name.
+    """
+
+    def __init__(self) -> None:
+        self.exprs: list[Any] = []
+        self.kinds: list[str] = []
+        self.names: list[str] = []
+        self._index: dict[tuple[str, str], int] = {}
+
+    def index(self, kind: str, symbol: Any) -> int:
+        """The number of ``symbol`` (kind ``""``) or of its sine or cosine."""
+        key = (kind, str(symbol))
+        found = self._index.get(key)
+        if found is None:
+            found = self._index[key] = len(self.exprs)
+            self.exprs.append(symbol if not kind else getattr(sx, kind)(symbol))
+            self.kinds.append(kind)
+            self.names.append(str(symbol))
+        return found
+
+    def variable(self, kind: str, symbol: Any) -> Poly:
+        """The polynomial of one atom (``kind`` as in :meth:`index`)."""
+        return {((self.index(kind, symbol), 1),): Fraction(1)}
+
+    def partner(self, atom: int) -> int:
+        """The cosine of a sine's angle, or the sine of a cosine's."""
+        other = "cos" if self.kinds[atom] == "sin" else "sin"
+        return self.index(other, self.exprs[atom].args[0])
+
+    def text(self, atom: int) -> str:
+        """The atom as SymPy's ``str`` writes a generator (its sort key reads it)."""
+        kind, name = self.kinds[atom], self.names[atom]
+        return f"{kind}({name})" if kind else name
+
+
+def times(a: Monomial, b: Monomial) -> Monomial:
+    """The product of two monomials (negative exponents allowed: a quotient)."""
+    powers = dict(a)
+    for atom, k in b:
+        powers[atom] = powers.get(atom, 0) + k
+    return tuple(sorted((atom, k) for atom, k in powers.items() if k))
+
+
+def product(p: Poly, q: Poly) -> Poly:
+    """The product of two polynomials."""
+    out: Poly = {}
+    for a, x in p.items():
+        for b, y in q.items():
+            key = times(a, b)
+            out[key] = out.get(key, Fraction(0)) + x * y
+    return {key: c for key, c in out.items() if c}
+
+
+def add(p: Poly, q: Poly, sign: int = 1) -> Poly:
+    """``p + q`` (``sign`` 1) or ``p - q`` (``sign`` -1)."""
+    out = dict(p)
+    for key, c in q.items():
+        out[key] = out.get(key, Fraction(0)) + sign * c
+    return {key: c for key, c in out.items() if c}
+
+
+def _scaled(p: Poly, c: Fraction, monomial: Monomial = ()) -> Poly:
+    return {times(key, monomial): c * value for key, value in p.items()}
+
+
+ONE: Poly = {(): Fraction(1)}
+#: A rational function: numerator and denominator (never the zero polynomial).
+Rational = tuple[Poly, Poly]
+
+
+def rational(node: Any, atoms: Atoms, memo: dict[Any, Rational | None]) -> Rational | None:
+    """``node`` as a quotient of polynomials in its atoms, or None where it is not one."""
+    if node in memo:
+        return memo[node]
+    out: Rational | None = None
+    if node.is_Rational:
+        numerator, denominator = node.as_numer_denom()
+        value = Fraction(int(numerator), int(denominator))
+        out = ({(): value} if value else {}, ONE)
+    elif node.is_Symbol:
+        out = (atoms.variable("", node), ONE)
+    elif node.is_Add or node.is_Mul:
+        out = ({}, ONE) if node.is_Add else (ONE, ONE)
+        for arg in node.args:
+            part = rational(arg, atoms, memo)
+            if part is None:
+                return _remember(memo, node, None)
+            out = (
+                _sum(out, part)
+                if node.is_Add
+                else (product(out[0], part[0]), product(out[1], part[1]))
+            )
+            if max(len(out[0]), len(out[1])) > MAX_TERMS:
+                return _remember(memo, node, None)
+    elif node.is_Pow and node.args[1].is_Integer:
+        base = rational(node.args[0], atoms, memo)
+        k = int(node.args[1])
+        if base is None or (k < 0 and not base[0]) or abs(k) > _MAX_POWER:
+            return _remember(memo, node, None)
+        numerator, denominator = base if k >= 0 else (base[1], base[0])
+        out = (ONE, ONE)
+        for _ in range(abs(k)):
+            out = (product(out[0], numerator), product(out[1], denominator))
+            if max(len(out[0]), len(out[1])) > MAX_TERMS:
+                return _remember(memo, node, None)
+    elif node.is_Function and sx.function_name(node) in ("sin", "cos"):
+        found = _circular(sx.function_name(node), node.args[0], atoms)
+        out = None if found is None else (found, ONE)
+    return _remember(memo, node, out)
+
+
+def _remember(memo: dict[Any, Rational | None], node: Any, out: Rational | None) -> Rational | None:
+    memo[node] = out
+    return out
+
+
+def _sum(p: Rational, q: Rational) -> Rational:
+    if p[1] == q[1]:  # one denominator: no growth
+        return add(p[0], q[0]), p[1]
+    return add(product(p[0], q[1]), product(q[0], p[1])), product(p[1], q[1])
+
+
+def _circular(name: str, arg: Any, atoms: Atoms) -> Poly | None:
+    """``sin`` or ``cos`` of a sum of integer multiples of symbols, in their sines and cosines."""
+    sine: Poly = {}
+    cosine: Poly = ONE
+    for term in arg.args if arg.is_Add else (arg,):
+        if term.is_Symbol:
+            k, symbol = 1, term
+        elif (
+            term.is_Mul
+            and len(term.args) == 2
+            and term.args[0].is_Integer
+            and term.args[1].is_Symbol
+        ):
+            k, symbol = int(term.args[0]), term.args[1]
+        else:
+            return None
+        if abs(k) > _MAX_MULTIPLE:
+            return None
+        one_sin, one_cos = atoms.variable("sin", symbol), atoms.variable("cos", symbol)
+        for _ in range(abs(k)):  # the angle sum's rule, once per multiple
+            sine, cosine = (
+                add(product(sine, one_cos), product(cosine, one_sin), 1 if k > 0 else -1),
+                add(product(cosine, one_cos), product(sine, one_sin), -1 if k > 0 else 1),
+            )
+    return sine if name == "sin" else cosine
+
+
+def reduced(p: Poly, atoms: Atoms, kinds: dict[str, str]) -> Poly:
+    """``p`` modulo ``sin^2 + cos^2 = 1``: each angle's ``kinds[angle]`` squared rewritten.
+
+    With ``kinds[a] == "cos"`` every ``cos(a)^2`` becomes ``1 - sin(a)^2``, so ``cos(a)``
+    is left to the power 0 or 1 (and the other way round): a normal form, so that a
+    polynomial is zero on the circle exactly when its reduced form is empty.
+    """
+    out: Poly = {}
+    work = list(p.items())
+    while work:
+        monomial, c = work.pop()
+        atom = next(
+            (
+                a
+                for a, k in monomial
+                if atoms.kinds[a] and k >= 2 and kinds.get(atoms.names[a]) == atoms.kinds[a]
+            ),
+            None,
+        )
+        if atom is None:
+            out[monomial] = out.get(monomial, Fraction(0)) + c
+            continue
+        powers = dict(monomial)
+        powers[atom] -= 2
+        lower = tuple(sorted((a, k) for a, k in powers.items() if k))
+        work.append((lower, c))
+        work.append((times(lower, ((atoms.partner(atom), 2),)), -c))
+    return {key: c for key, c in out.items() if c}
+
+
+def _content(p: Poly) -> tuple[Fraction, Monomial, Poly]:
+    """``p`` as a positive rational times a monomial times a primitive integer polynomial."""
+    common: dict[int, int] | None = None
+    for monomial in p:
+        powers = dict(monomial)
+        common = (
+            powers if common is None else {a: min(k, powers.get(a, 0)) for a, k in common.items()}
+        )
+    content = tuple(sorted((a, k) for a, k in (common or {}).items() if k))
+    numerators = gcd(*(c.numerator for c in p.values()))
+    denominators = lcm(*(c.denominator for c in p.values()))
+    number = Fraction(numerators, denominators)
+    inverse = tuple((a, -k) for a, k in content)
+    return number, content, {times(key, inverse): c / number for key, c in p.items()}
+
+
+def _dense(monomial: Monomial, n: int) -> tuple[int, ...]:
+    powers = dict(monomial)
+    return tuple(powers.get(a, 0) for a in range(n))
+
+
+def exact_quotient(p: Poly, q: Poly) -> Poly | None:
+    """``p / q`` where ``q`` divides ``p`` in the polynomial ring, else None.
+
+    Division by the lex-leading term: exact division always succeeds so, and a leading
+    term that does not divide (or a remainder) proves ``q`` does not divide ``p``.
+    """
+    n = 1 + max((a for m in (*p, *q) for a, _ in m), default=0)
+
+    def lead(r: Poly) -> Monomial:
+        return max(r, key=lambda m: _dense(m, n))
+
+    top = lead(q)
+    quotient: Poly = {}
+    rest = dict(p)
+    for _ in range(4 * MAX_TERMS):
+        if not rest:
+            return quotient
+        head = lead(rest)
+        powers = dict(head)
+        for a, k in top:
+            powers[a] = powers.get(a, 0) - k
+        if any(k < 0 for k in powers.values()):
+            return None
+        step = tuple(sorted((a, k) for a, k in powers.items() if k))
+        c = rest[head] / q[top]
+        quotient[step] = c
+        rest = add(rest, _scaled(q, c, step), -1)
+    return None
+
+
+@dataclass(frozen=True)
+class Lowest:
+    """A determinant in the accepted shape ``k * M / (D * P)`` (see the module's docstring).
+
+    ``numerator`` and ``denominator`` are ``M`` and ``D`` as ``(atom, exponent)``;
+    ``factor`` is ``P`` as written (``None`` for a monomial determinant).
+    """
+
+    atoms: Atoms
+    number: Fraction
+    numerator: Monomial
+    denominator: Monomial
+    factor: Poly | None
+
+    def expr(self) -> sx.Expr:
+        """The determinant as an expression of the engine, SymPy's ``factor`` tree."""
+        out = sx.Rational(self.number.numerator, self.number.denominator)
+        for atom, k in self.numerator:
+            out *= self.atoms.exprs[atom] ** k
+        for atom, k in self.denominator:
+            out *= self.atoms.exprs[atom] ** -k
+        if self.factor is not None:
+            out *= poly_expr(self.factor, self.atoms) ** -1
+        return out
+
+    def conditions(self) -> list[tuple[Any, int, tuple[str, str | None]]]:
+        """The numerator's atoms as :func:`.singularity._monomial_conditions` reads them."""
+        return [
+            (self.atoms.exprs[a], k, (self.atoms.kinds[a], self.atoms.names[a]))
+            for a, k in self.numerator
+        ]
+
+
+def poly_expr(p: Poly, atoms: Atoms) -> sx.Expr:
+    """A polynomial as an expression of the engine."""
+    out = sx.Integer(0)
+    for monomial, c in p.items():
+        term = sx.Rational(c.numerator, c.denominator)
+        for atom, k in monomial:
+            term *= atoms.exprs[atom] ** k
+        out += term
+    return out
+
+
+def lowest(det: sx.Expr) -> Lowest | None:
+    """``det`` in the accepted shape, equal to it exactly, or None (SymPy decides)."""
+    atoms = Atoms()
+    found = rational(det, atoms, {})
+    if found is None or not found[0] or not found[1]:
+        return None
+    angles = sorted({atoms.names[a] for a, kind in enumerate(atoms.kinds) if kind})
+    if len(angles) > 3:
+        return None
+    # Each angle's square rewritten one way or the other: the numerator is a monomial in
+    # at most one of them (cos^2 or 1 - sin^2); every way is tried.
+    for mask in range(2 ** len(angles)):
+        kinds = {a: ("cos" if mask >> i & 1 else "sin") for i, a in enumerate(angles)}
+        shaped = _shaped(found, atoms, kinds)
+        if shaped is not None:
+            return shaped
+    return None
+
+
+def _shaped(found: Rational, atoms: Atoms, kinds: dict[str, str]) -> Lowest | None:
+    numerator, denominator = (reduced(p, atoms, kinds) for p in found)
+    if not numerator or not denominator:
+        return None
+    top_number, top_monomial, top = _content(numerator)
+    bottom_number, bottom_monomial, bottom = _content(denominator)
+    if len(top) > 1 and len(bottom) > 1:  # a common factor, where one divides the other
+        smaller, larger = (top, bottom) if len(top) <= len(bottom) else (bottom, top)
+        quotient = exact_quotient(larger, smaller)
+        if quotient is None:
+            return None
+        number, monomial, rest = _content(quotient)
+        if smaller is top:
+            top, bottom = ONE, rest
+            bottom_number *= number
+            bottom_monomial = times(bottom_monomial, monomial)
+        else:
+            top, bottom = rest, ONE
+            top_number *= number
+            top_monomial = times(top_monomial, monomial)
+    if len(top) > 1:  # a polynomial factor in the numerator: its text is SymPy's to write
+        return None
+    ((_, top_sign),) = top.items()  # what is left of a monomial: 1 or -1
+    powers = dict(top_monomial)
+    for a, k in bottom_monomial:
+        powers[a] = powers.get(a, 0) - k
+    number = top_sign * top_number / bottom_number
+    up = tuple(sorted((a, k) for a, k in powers.items() if k > 0))
+    down = tuple(sorted((a, -k) for a, k in powers.items() if k < 0))
+    if any(atoms.kinds[a] for a, _ in down):  # a sine or cosine below: tan, cot, csc, sec
+        return None
+    up_angles = [atoms.names[a] for a, _ in up if atoms.kinds[a]]
+    if len(up_angles) != len(set(up_angles)):  # sin(a) cos(a): sin(2 a)/2 to SymPy
+        return None
+    factor: Poly | None = None
+    if len(bottom) > 1:
+        factor = _written(bottom, atoms)
+        if factor is None:
+            return None
+        leading = _sign_of_leading(factor, atoms)
+        if not leading:
+            return None
+        if leading < 0:
+            factor = {m: -c for m, c in factor.items()}
+            number = -number
+    else:
+        ((_, bottom_sign),) = bottom.items()
+        number *= bottom_sign
+    lowest = Lowest(atoms, number, up, down, factor)
+    if not _equal(found, lowest, atoms):
+        return None
+    return lowest
+
+
+def _written(p: Poly, atoms: Atoms) -> Poly | None:
+    """``P`` as SymPy's ``simplify`` writes it: in sin^2 or cos^2, the shorter; or None.
+
+    ``p`` is primitive, without monomial content, reduced. None where ``p`` holds more
+    than one angle, an odd power of a sine or cosine, two forms of one length, or where
+    its irreducibility is not proved (:func:`_irreducible`).
+    """
+    trig = {atoms.names[a] for m in p for a, _ in m if atoms.kinds[a]}
+    if len(trig) > 1:
+        return None
+    if not trig:
+        return p if _irreducible(p) else None
+    if any(atoms.kinds[a] and k % 2 for m in p for a, k in m):
+        return None
+    (angle,) = trig
+    # p has only one function of the angle (the other one's square was reduced away).
+    forms = [reduced(p, atoms, {angle: kind}) for kind in ("sin", "cos")]
+    forms.sort(key=len)
+    if len(forms[0]) == len(forms[1]):
+        return None
+    shortest = forms[0]
+    if any(atoms.kinds[a] and k % 2 for m in shortest for a, k in m):
+        return None
+    return shortest if _irreducible(shortest) else None
+
+
+def _irreducible(p: Poly) -> bool:
+    """Whether ``p`` (primitive, no monomial content) is provably irreducible.
+
+    When ``p = A x + B`` for an atom ``x`` of degree 1, with ``A`` one term and no atom of
+    ``A`` dividing every term of ``B``: a factor free of ``x`` would divide ``A`` (so be
+    a monomial) and ``B`` (so hold no atom of ``A``), so be a number, and ``p`` is
+    primitive.
+    """
+    atoms = {a for m in p for a, _ in m}
+    for x in sorted(atoms):
+        degrees = [dict(m).get(x, 0) for m in p]
+        if max(degrees) != 1:
+            continue
+        with_x = [m for m, d in zip(p, degrees, strict=True) if d == 1]
+        without = [m for m, d in zip(p, degrees, strict=True) if d == 0]
+        if len(with_x) != 1 or not without:
+            continue
+        coefficient_atoms = {a for a, _ in with_x[0] if a != x}
+        if all(any(a not in dict(m) for m in without) for a in coefficient_atoms):
+            return True
+    return False
+
+
+_GEN = re.compile(r"^(.*?)(\d*)$", re.MULTILINE)
+#: SymPy's preferred generator order (``sympy.polys.polyutils._gens_order``, 1.14).
+_GENS_ORDER = {
+    **{letter: 301 + i for i, letter in enumerate("abcdefghijklmno")},
+    **{letter: 216 + i for i, letter in enumerate("pqrstuvw")},
+    "x": 124,
+    "y": 125,
+    "z": 126,
+}
+
+
+def _gen_key(text: str) -> tuple[int, str, int]:
+    """SymPy's ``_sort_gens`` key of a generator written ``text``."""
+    match = _GEN.match(text)
+    name, index = match.groups() if match else (text, "")
+    return (_GENS_ORDER.get(name, 1000), name, int(index) if index else 0)
+
+
+def _sign_of_leading(p: Poly, atoms: Atoms) -> int:
+    """The sign of ``p``'s leading coefficient in lex order of SymPy's sorted generators.
+
+    0 where two generators share a key (their order would be SymPy's input's).
+    """
+    present = sorted({a for m in p for a, _ in m}, key=lambda a: _gen_key(atoms.text(a)))
+    keys = [_gen_key(atoms.text(a)) for a in present]
+    if len(set(keys)) != len(keys):
+        return 0
+    lead = max(p, key=lambda m: tuple(dict(m).get(a, 0) for a in present))
+    return 1 if p[lead] > 0 else -1
+
+
+def _equal(found: Rational, lowest: Lowest, atoms: Atoms) -> bool:
+    """Whether ``lowest`` is the determinant exactly.
+
+    That is, ``N * bottom - top * D`` is zero on the circle (its reduced form is empty).
+    """
+    top: Poly = {lowest.numerator: lowest.number}
+    bottom: Poly = {lowest.denominator: Fraction(1)}
+    if lowest.factor is not None:
+        bottom = product(bottom, lowest.factor)
+    kinds = {atoms.names[a]: "cos" for a, kind in enumerate(atoms.kinds) if kind}
+    difference = add(product(found[0], bottom), product(top, found[1]), -1)
+    return not reduced(difference, atoms, kinds)
