@@ -10,6 +10,7 @@ so the jets at time t use the samples up to t only.
 
 from __future__ import annotations
 
+import bisect
 import csv
 import math
 import os
@@ -64,16 +65,27 @@ class ReferenceSource:
     noise: float = 0.0
 
 
-def _taylor(xi: np.ndarray, h: float) -> np.ndarray:
-    """Jets (n_refs, q + 1) ``h`` seconds on along their Taylor polynomials."""
-    order = xi.shape[1]
-    out = np.zeros_like(xi)
-    term = 1.0
-    # Column j adds xi[:, j + index] h^index / index! for index = 0, 1, ...: the columns
-    # side by side, each summed in that order (the same bits as one column at a time).
-    for index in range(order):
-        out[:, : order - index] += xi[:, index:] * term
-        term *= h / (index + 1)
+def _taylor(xi: list[list[float]], h: float) -> list[list[float]]:
+    """Jets (n_refs rows of q + 1) ``h`` seconds on along their Taylor polynomials.
+
+    On Python floats, not arrays: a run on the sample grid asks for four jets of a few
+    numbers per RK4 step, and NumPy's cost per call was most of their time. The same
+    IEEE operations in the same order as a column at a time on arrays, so the same bits.
+    """
+    order = len(xi[0]) if xi else 0
+    terms = [1.0] * order
+    for index in range(1, order):
+        terms[index] = terms[index - 1] * (h / index)
+    out = []
+    for row in xi:
+        shifted = []
+        # Entry j: 0.0 + xi[j] h^0/0! + xi[j + 1] h^1/1! + ..., summed in that order.
+        for j in range(order):
+            total = 0.0
+            for index in range(order - j):
+                total += row[j + index] * terms[index]
+            shifted.append(total)
+        out.append(shifted)
     return out
 
 
@@ -354,11 +366,18 @@ def sampled_source(
     estimates = [estimator.jets(float(times[0]))]
     for index in range(1, len(times)):
         estimates.append(estimator.update(float(times[index]), samples[:, index]))
-    stack = np.array(estimates)
+    # Python lists: each call reads one estimate and returns a few numbers (see _taylor).
+    grid: list[float] = np.asarray(times, dtype=float).tolist()
+    stack: list[list[list[float]]] = np.array(estimates, dtype=float).tolist()
+    # RK4 asks twice at each step's midpoint (and a step's end is often the next one's
+    # start): the last answer, again.
+    last: list[Any] = [None, None]
 
     def jets(t: float) -> np.ndarray:
-        index = max(int(np.searchsorted(times, t, side="right")) - 1, 0)
-        return _taylor(stack[index], float(t) - float(times[index]))
+        if t != last[0]:
+            index = max(bisect.bisect_right(grid, t) - 1, 0)
+            last[0], last[1] = t, _taylor(stack[index], float(t) - grid[index])
+        return np.array(last[1], dtype=float)
 
     try:
         exact: Callable[[float], np.ndarray] | None = exact_jets(derivation, params)

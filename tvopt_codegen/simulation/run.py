@@ -360,7 +360,12 @@ def _on_the_sample_grid(
     knots = [0.0]
     for end in (*inside.tolist(), horizon):
         pieces = max(1, math.ceil((end - knots[-1]) / MAX_GRID_STEP - 1e-9))
-        knots += list(np.linspace(knots[-1], end, pieces + 1)[1:])
+        if pieces == 1:
+            # linspace's last point is its end exactly: one sample interval, one step,
+            # without an array per sample (20,000 of them for 20 s at 1 kHz).
+            knots.append(end)
+        else:
+            knots += np.linspace(knots[-1], end, pieces + 1)[1:].tolist()
     grid = np.array(knots)
     states = np.empty((len(start), len(grid)))
     rates = np.empty_like(states)
