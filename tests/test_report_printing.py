@@ -11,8 +11,9 @@ arranges them its own way.
 
 from __future__ import annotations
 
+import functools
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 from xml.etree import ElementTree
 
@@ -42,13 +43,47 @@ SPECS = (
 ENGINES = ("symengine", "sympy")
 
 
-def _sympy_latex(expr: Any) -> str:
-    return str(sp.latex(entries.as_sympy(expr), order="none", mul_symbol=r"\,"))
+def _remembered(read: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    """``read`` of SymPy's form of an expression, worked out once per SymPy expression.
+
+    SymPy's printers are the reference and the dearest part of these tests (a robot's
+    590 expressions); both engines' derivations of a spec show the same SymPy
+    expressions, so each is printed by SymPy once, not once per engine and test.
+    """
+    cache: dict[Any, Any] = {}
+
+    def remembered(expr: Any) -> Any:
+        value = entries.as_sympy(expr)
+        try:
+            return cache[value]
+        except KeyError:
+            cache[value] = found = read(value)
+            return found
+        except TypeError:  # a mutable matrix: not a key
+            return read(value)
+
+    return remembered
 
 
-def _sympy_mathml(expr: Any) -> str:
+@_remembered
+def _sympy_latex(value: Any) -> str:
+    return str(sp.latex(value, order="none", mul_symbol=r"\,"))
+
+
+@_remembered
+def _sympy_mathml(value: Any) -> str:
     printer = entries._printer_class()({"order": "none"})
-    return str(printer.doprint(entries.as_sympy(expr)))
+    return str(printer.doprint(value))
+
+
+@_remembered
+def _sympy_text(value: Any) -> str:
+    return str(sp.sstr(value, order="none"))
+
+
+@_remembered
+def _sympy_count_ops(value: Any) -> Any:
+    return sp.count_ops(value)
 
 
 def _shown_expressions(d: Derivation) -> Iterator[Any]:
@@ -83,16 +118,19 @@ def _shown_expressions(d: Derivation) -> Iterator[Any]:
                 yield program.inline(e)
 
 
-def _on(engine: str, name: str) -> list[Any]:
+@functools.cache
+def _on(engine: str, name: str) -> tuple[Any, ...]:
+    """What the report shows of ``name``'s derivation on ``engine``, listed once for all
+    four printers' tests (the robot's inlined jets take a while)."""
     with sx.using(engine):
-        return list(_shown_expressions(derivation(name)))
+        return tuple(_shown_expressions(derivation(name)))
 
 
 @pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("name", SPECS)
 def test_latex_is_sympys_character_for_character(name: str, engine: str) -> None:
     with sx.using(engine):
-        shown = list(_shown_expressions(derivation(name)))
+        shown = _on(engine, name)
         assert len(shown) > 20
         for expr in shown:
             assert printing.latex(expr) == _sympy_latex(expr), expr
@@ -104,20 +142,20 @@ def test_text_is_sympys_character_for_character(name: str, engine: str) -> None:
     """The one-line text (a barrier's weight mu(t) and slack s(t)) is SymPy's ``sstr``."""
     with sx.using(engine):
         d = derivation(name)
-        exprs = [e for e in _shown_expressions(d) if not isinstance(e, sx.MatrixBase)]
+        exprs = [e for e in _on(engine, name) if not isinstance(e, sx.MatrixBase)]
         if d.model.constraints:
             exprs += [d.model.mu, d.model.slack]
         for expr in exprs:
-            assert printing.text(expr) == sp.sstr(entries.as_sympy(expr), order="none"), expr
+            assert printing.text(expr) == _sympy_text(expr), expr
 
 
 @pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("name", SPECS)
 def test_operation_counts_are_sympys(name: str, engine: str) -> None:
     with sx.using(engine):
-        for expr in _shown_expressions(derivation(name)):
+        for expr in _on(engine, name):
             if not isinstance(expr, sx.MatrixBase):
-                assert printing.count_ops(expr) == sp.count_ops(entries.as_sympy(expr)), expr
+                assert printing.count_ops(expr) == _sympy_count_ops(expr), expr
 
 
 def _leaves(markup: str) -> set[tuple[str, str]]:
@@ -132,7 +170,7 @@ def test_mathml_has_sympys_names_and_numbers_and_is_well_formed(name: str, engin
     distributes a number over a sum in a numerator: the structure may differ, the names
     and numbers may not."""
     with sx.using(engine):
-        for expr in _shown_expressions(derivation(name)):
+        for expr in _on(engine, name):
             markup = printing.mathml(expr)
             assert _leaves(markup) == _leaves(_sympy_mathml(expr)), expr
             ElementTree.fromstring(f"<math>{re.sub(r'&[A-Za-z]+;', '', markup)}</math>")
