@@ -536,3 +536,20 @@ def test_sparse_outputs_are_zeros_and_their_nonzero_elements(
             check=False,
         )
         assert done.returncode == 0 and done.stderr == "", done.stderr
+
+
+def test_the_compiler_version_is_asked_once_per_binary(tmp_path: Path) -> None:
+    """Each cached library's key holds ``cc --version``: asked once per compiler binary and
+    process (a cached library then costs no process), and again when the binary changes."""
+    from tvopt_codegen.toolchain import version
+
+    log = tmp_path / "asked"
+    cc = tmp_path / "cc"
+    cc.write_text(f"#!/bin/sh\necho x >> {log}\necho 'cc 1.0'\n", encoding="utf-8")
+    cc.chmod(0o755)
+    assert version(str(cc)) == version(str(cc)) == "cc 1.0\n"
+    assert log.read_text(encoding="utf-8").count("x") == 1
+    cc.write_text(f"#!/bin/sh\necho x >> {log}\necho 'cc 2.0.1'\n", encoding="utf-8")
+    os.utime(cc, ns=(cc.stat().st_atime_ns, cc.stat().st_mtime_ns + 1_000_000_000))
+    assert version(str(cc)) == "cc 2.0.1\n"
+    assert log.read_text(encoding="utf-8").count("x") == 2

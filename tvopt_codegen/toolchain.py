@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 import subprocess
@@ -35,5 +36,24 @@ def compiler() -> str:
 
 
 def version(cc: str) -> str:
-    """What ``cc --version`` says (part of every build's cache key)."""
+    """What ``cc --version`` says (part of every build's cache key).
+
+    Asked once per compiler binary and process: a library already in the cache costs no
+    process. The binary's identity (inode, size, modification time) is part of the
+    memo's key, so a compiler replaced while the process runs is asked again.
+    """
+    try:
+        status = os.stat(cc)
+    except OSError:
+        # Nothing to identify: ask every time, as the compiler's absence will be reported.
+        return _ask(cc)
+    return _version(cc, status.st_ino, status.st_size, status.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=16)
+def _version(cc: str, inode: int, size: int, modified: int) -> str:
+    return _ask(cc)
+
+
+def _ask(cc: str) -> str:
     return subprocess.run([cc, "--version"], capture_output=True, text=True, check=False).stdout
