@@ -342,7 +342,8 @@ def test_a_barrier_refusal_inside_every_barrier_is_a_disagreement(tmp_path: Path
     times = np.array([0.0, 0.01])
     plants = np.stack([x0, x0], axis=1)  # still at the start, 4.6 mm inside
     stopped = ClosedLoop(plants, times, np.zeros((1, 1)), "OutsideBarrierError: (made up)", 1)
+    oracle = Oracle(d)  # its functions are pure: one for both loops (each costs a second)
     with pytest.raises(DisagreementError, match="where the oracle's margins are"):
-        _crossed_a_barrier(Oracle(d), stopped, d, p)
+        _crossed_a_barrier(oracle, stopped, d, p)
     other = ClosedLoop(plants, times, np.zeros((1, 1)), "SingularDecouplingError: x", 1)
-    assert not _crossed_a_barrier(Oracle(d), other, d, p)
+    assert not _crossed_a_barrier(oracle, other, d, p)
