@@ -145,6 +145,11 @@ class _ObjectiveNumbers:
         m = len(self.model.y)
         return _SparseHessians([ij for ij, _ in self.entries], m) if m > _SPARSE_PROBE else None
 
+    @functools.cached_property
+    def gershgorin(self) -> _Gershgorin:
+        """Bounds on the Hessian's smallest eigenvalue from its stored entries."""
+        return _Gershgorin([ij for ij, _ in self.entries], len(self.model.y))
+
     def extremes(self, ys: np.ndarray, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The Hessian's smallest and largest |eigenvalue| at each point (NaN if not finite)."""
         if self.sparse is None:
@@ -180,6 +185,97 @@ def _smallest_eigenvalues(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]
         low[finite] = eig[:, 0]
         high[finite] = np.max(np.abs(eig), axis=1)
     return low, high
+
+
+#: The screens of the fading probe settle a verdict only this far beyond rounding: the
+#: margin is this many times (m + 1)^2 eps ||H||, above Cholesky's backward error
+#: ((m + 1)^2 u ||H||, Higham Thm 10.3 and Demmel's converse, Thm 10.7), LAPACK's symmetric
+#: eigenvalues' (a modest p(m) eps ||H||) and a row sum's rounding (m eps ||H||) together.
+_SCREEN_MARGIN = 8.0
+
+
+class _Gershgorin:
+    """Bounds on the smallest eigenvalue of one sparse symmetric pattern's matrices.
+
+    Every eigenvalue lies in a Gershgorin disc, so the smallest is at least
+    ``min_i (h_ii - sum_{j != i} |h_ij|)``; and it is at most every diagonal entry (a
+    Rayleigh quotient). Both come from the stored entries in O(entries), where an
+    eigenvalue decomposition is O(m^3) a matrix.
+    """
+
+    def __init__(self, entries: Sequence[tuple[int, int]], m: int) -> None:
+        lower = np.array(entries, dtype=np.int64).reshape(-1, 2)
+        on = lower[:, 0] == lower[:, 1]
+        self.m = m
+        self.diagonal, self.diagonal_rows = np.flatnonzero(on), lower[on, 0]
+        self.off, self.ends = np.flatnonzero(~on), lower[~on]
+
+    def screen(self, values: np.ndarray, threshold: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Where the smallest eigenvalue is surely above or below a threshold, and the margin.
+
+        ``values`` (E, P) are the points' stored entries, ``threshold`` (P) positive.
+        Returns where the smallest eigenvalue is surely above ``threshold``, where surely
+        below ``-threshold``, and the margin used (each (P,)). "Surely" beyond rounding:
+        LAPACK's smallest eigenvalue and a Cholesky factorization of
+        ``H - (threshold + margin) I`` agree with the verdict (NaN or infinite entries,
+        or a norm that overflows, settle nothing).
+        """
+        points = values.shape[1]
+        diagonal = np.zeros((self.m, points))
+        diagonal[self.diagonal_rows] = values[self.diagonal]
+        radius = np.zeros((self.m, points))
+        magnitude = np.abs(values[self.off])
+        np.add.at(radius, self.ends[:, 0], magnitude)
+        np.add.at(radius, self.ends[:, 1], magnitude)
+        with np.errstate(all="ignore"):
+            # The largest row sum of |H| bounds its spectral norm (H symmetric).
+            norm = (radius + np.abs(diagonal)).max(axis=0, initial=0.0)
+            margin = _SCREEN_MARGIN * (self.m + 1) ** 2 * np.finfo(float).eps * (norm + threshold)
+            above = (diagonal - radius).min(axis=0, initial=np.inf) > threshold + margin
+            below = diagonal.min(axis=0, initial=np.inf) < -threshold - margin
+        settled = np.isfinite(margin)
+        return above & settled, below & settled, margin
+
+
+def _fading_dense(
+    bounds: _Gershgorin,
+    dense: Callable[[np.ndarray], np.ndarray],
+    values: np.ndarray,
+    threshold: np.ndarray,
+    candidates: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where the Hessian's smallest eigenvalue is in (-threshold, threshold), and its value.
+
+    ``values`` (E, P) are the candidates' stored entries of ``bounds``' pattern, ``dense``
+    builds their matrices; the eigenvalue is returned where it was computed (NaN
+    elsewhere). The verdict is LAPACK's smallest eigenvalue's, ``|low| < threshold``,
+    asked of it only where cheaper evidence leaves it open: Gershgorin's bounds
+    (:class:`_Gershgorin`), then a Cholesky factorization of ``H - (threshold + margin)
+    I``, which exists at every point where f0 is strongly convex, the common case. Each
+    screen decides only beyond rounding, so the verdicts are the eigenvalues' to the bit.
+    """
+    points = values.shape[1]
+    fading = np.zeros(points, dtype=bool)
+    low = np.full(points, np.nan)
+    # |NaN| < threshold is False: no threshold (a NaN at y*), no fading.
+    open_ = candidates & np.all(np.isfinite(values), axis=0) & (threshold > 0)
+    above, below, margin = bounds.screen(values, threshold)
+    open_ &= ~above & ~below
+    index = np.flatnonzero(open_ & np.isfinite(threshold + margin))
+    if index.size:
+        eye = np.eye(bounds.m)
+        shifted = dense(values[:, index])
+        shifted -= (threshold[index] + margin[index])[:, None, None] * eye
+        for point, matrix in zip(index, shifted, strict=True):
+            try:
+                factor = np.linalg.cholesky(matrix)
+            except np.linalg.LinAlgError:
+                continue
+            open_[point] = not np.all(np.isfinite(factor))
+    if open_.any():
+        low[open_], _ = _smallest_eigenvalues(dense(values[:, open_]))
+        fading[open_] = np.abs(low[open_]) < threshold[open_]
+    return fading, low
 
 
 def _minimiser_path(
@@ -586,7 +682,8 @@ def _fading_sparse(
     Sparse factorizations per candidate point: ``H - threshold I`` not definite (one
     factorization where it is, at every point where f0 is strongly convex), then
     ``H + threshold I`` definite; a dense eigenvalue decomposition where SuperLU would
-    not keep a symmetric order.
+    not keep a symmetric order. Gershgorin's bounds settle most points first, beyond
+    rounding (:class:`_Gershgorin`), as the factorizations would.
     """
     m = points.shape[1]
     sparse = _SparseHessians([ij for ij, _ in numbers.entries], m)
@@ -595,7 +692,10 @@ def _fading_sparse(
     for start in range(0, len(points), chunk):
         part = slice(start, start + chunk)
         values = numbers.hessian_entries(points[part], times[part])
-        for offset in np.nonzero(candidates[part])[0]:
+        # Surely above: H - threshold I is definite. Surely below: a diagonal entry of
+        # H + threshold I is negative, and no factorization gets past it.
+        surely_above, surely_below, _ = numbers.gershgorin.screen(values, threshold[part])
+        for offset in np.nonzero(candidates[part] & ~surely_above & ~surely_below)[0]:
             column, tau = values[:, offset], float(threshold[start + offset])
             if not np.all(np.isfinite(column)):
                 continue
@@ -637,13 +737,22 @@ def _fading_convexity(
         low = np.full(len(points), np.nan)
         low[at] = numbers.extremes(points[None, at], times[None, at])[0][0]
     else:
-        low = np.empty(len(points))
+        # The first fading point in the probes' order is the one named: the chunks are
+        # taken in that order, and the search stops at the first chunk that has one.
         chunk = max(count, _PROBE_BYTES // (8 * m * m))
         for start in range(0, len(points), chunk):
             part = slice(start, start + chunk)
-            low[part], _ = numbers.extremes(points[part], times[part])
-        fading = candidates & (np.abs(low) < 1e-6 * reference)
-        if not fading.any():
+            _, values = numbers._gradients_and_entries(points[part], times[part])
+            found, found_low = _fading_dense(
+                numbers.gershgorin, numbers._dense, values, 1e-6 * reference[part], candidates[part]
+            )
+            if found.any():
+                fading = np.zeros(len(points), dtype=bool)
+                fading[part] = found
+                low = np.full(len(points), np.nan)
+                low[part] = found_low
+                break
+        else:
             return []
     at = int(np.argmax(fading))  # the first in the order distance, direction, time
     distance, when = probes[at // count][0], ts[at % count]
