@@ -32,24 +32,40 @@ def _plots() -> list[Plot]:
     return [one, two, three]
 
 
-def _fresh(body: str) -> None:
-    """Run ``body`` in a new interpreter, with this module's plots.
+@pytest.fixture(scope="module")
+def drawn_here() -> dict[str, bytes]:
+    """The plots' files drawn in this process, once for the module's tests."""
+    return draw_all(_plots())
+
+
+def _fresh(body: str, expected: dict[str, bytes] | None = None) -> None:
+    """Run ``body`` in a new interpreter, with this module's plots (and ``expected``, the
+    files drawn in this process, as ``expected``).
 
     A drawing process is forked only while one thread runs, which a test process that
     has run a Dask sweep no longer is.
     """
-    code = "import os, signal, time\nfrom tests.test_drawing import Painter, _plots, draw_all\n"
+    code = "import os, pickle, signal, sys, time\n"
+    code += "from tests.test_drawing import Painter, _plots, draw_all\n"
+    code += "expected = pickle.loads(sys.stdin.buffer.read())\n"
     code += textwrap.dedent(body)
     done = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False
+        [sys.executable, "-c", code],
+        input=pickle.dumps(expected),
+        capture_output=True,
+        timeout=120,
+        check=False,
     )
-    assert done.returncode == 0, done.stderr
+    assert done.returncode == 0, done.stderr.decode()
 
 
-def test_a_drawing_process_draws_the_same_bytes_in_the_plots_order() -> None:
-    here = draw_all(_plots())
+def test_a_drawing_process_draws_the_same_bytes_in_the_plots_order(
+    drawn_here: dict[str, bytes],
+) -> None:
+    # The drawing process's files against this process's: the same bytes whichever
+    # process draws (the one drawing here serves the module's other tests too).
     stems = ("decay", "waves", "histogram")
-    assert list(here) == [f"{stem}.{kind}" for stem in stems for kind in ("png", "svg")]
+    assert list(drawn_here) == [f"{stem}.{kind}" for stem in stems for kind in ("png", "svg")]
     _fresh(
         """
         with Painter() as painter:
@@ -57,15 +73,16 @@ def test_a_drawing_process_draws_the_same_bytes_in_the_plots_order() -> None:
             assert pid is not None
             painter.submit(_plots())
             there = painter.collect()
-        assert list(there) == list(draw_all(_plots()))
-        assert there == draw_all(_plots())
+        assert list(there) == list(expected)
+        assert there == expected
         try:
             os.kill(pid, 0)
         except ProcessLookupError:
             pass  # reaped
         else:
             raise AssertionError("the drawing process outlived its block")
-        """
+        """,
+        drawn_here,
     )
 
 
@@ -78,7 +95,9 @@ def test_plots_travel_without_sympy_and_panels_refuse_unknown_calls() -> None:
         Panel().imshow(np.eye(2))
 
 
-def test_a_drawing_process_that_dies_leaves_the_drawing_here() -> None:
+def test_a_drawing_process_that_dies_leaves_the_drawing_here(
+    drawn_here: dict[str, bytes],
+) -> None:
     _fresh(
         """
         with Painter() as painter:
@@ -87,8 +106,9 @@ def test_a_drawing_process_that_dies_leaves_the_drawing_here() -> None:
             time.sleep(0.05)
             painter.submit(_plots())
             files = painter.collect()
-        assert files == draw_all(_plots())
-        """
+        assert files == expected
+        """,
+        drawn_here,
     )
 
 
@@ -111,7 +131,7 @@ def test_a_painter_never_given_work_is_stopped_at_once() -> None:
     )
 
 
-def test_no_fork_while_other_threads_run() -> None:
+def test_no_fork_while_other_threads_run(drawn_here: dict[str, bytes]) -> None:
     release = threading.Event()
     worker = threading.Thread(target=release.wait)
     worker.start()
@@ -119,7 +139,7 @@ def test_no_fork_while_other_threads_run() -> None:
         with Painter() as painter:
             assert painter._pid is None
             painter.submit(_plots())
-            assert painter.collect() == draw_all(_plots())
+            assert painter.collect() == drawn_here
     finally:
         release.set()
         worker.join()
