@@ -445,7 +445,12 @@ def _free_port() -> int:
 
 def test_a_real_scheduler_and_two_workers_give_the_local_table(tmp_path: Path) -> None:
     """`dask scheduler` and two `dask worker` processes, reached through --scheduler; the
-    workers compile the loop themselves (their own cache) from the sources they receive."""
+    workers compile the loop themselves (their own cache) from the sources they receive.
+
+    The workers start with the scheduler (a worker retries until the scheduler listens)
+    and without a nanny (a nanny is one more cold interpreter per worker, which spawns
+    the worker and takes seconds to stop it): the sweep meets the same two workers.
+    """
     dask = Path(sys.executable).parent / "dask"
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
@@ -469,30 +474,22 @@ def test_a_real_scheduler_and_two_workers_give_the_local_table(tmp_path: Path) -
         )
     ]
     try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            with socket.socket() as probe:
-                if probe.connect_ex(("127.0.0.1", port)) == 0:
-                    break
-            time.sleep(0.2)
         for _ in range(2):
             processes.append(
                 subprocess.Popen(
-                    [
-                        str(dask),
-                        "worker",
-                        address,
-                        "--nthreads",
-                        "1",
-                        "--nworkers",
-                        "1",
-                        "--no-dashboard",
-                    ],
+                    [str(dask), "worker", address, "--nthreads", "1", "--no-nanny"]
+                    + ["--no-dashboard"],
                     stdout=logs,
                     stderr=logs,
                     env=env,
                 )
             )
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            with socket.socket() as probe:
+                if probe.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            time.sleep(0.05)
         from distributed import Client
 
         with Client(address, timeout="30s") as client:
