@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import convexity
 from tvopt_codegen.derivation.convexity import (
     _PROBE_DISTANCES,
@@ -22,6 +23,7 @@ from tvopt_codegen.derivation.convexity import (
     _SparseHessians,
 )
 from tvopt_codegen.derivation.pipeline import derive
+from tvopt_codegen.maths.numeric import Tape
 
 EPS = float(np.finfo(float).eps)
 
@@ -223,3 +225,26 @@ def test_the_fading_warning_is_the_one_of_every_eigenvalue(
     assert new == old
     assert bool(new) is warned
     assert list(derivation.warnings) == new
+
+
+def test_a_restricted_tape_gives_the_full_tapes_bits() -> None:
+    """``Tape.only`` runs the operations its outputs need, the same ones in the same
+    order: the convexity check's Hessian tape is its derivatives' tape restricted, one
+    walk of the expressions instead of two."""
+    x, y, t = (sx.symbol(name) for name in ("x", "y", "t"))
+    a, b = sx.symbol("a"), sx.symbol("b")
+    definitions = {a: sx.sin(x * y) + t, b: sx.exp(a) * sx.cos(y) - a**3}
+    outputs = [a + x, b * y, sx.tan(b) / (1 + x**2), sx.Integer(2), y]
+    full = Tape([x, y, t], outputs, definitions, {})
+    rng = np.random.default_rng(2)
+    point = [rng.normal(size=50) for _ in range(3)]
+    every = full(*point)
+    for indices in ([0], [1, 2], [2, 0], [3], [4, 1], []):
+        part = full.only(indices)
+        got = part(*point)
+        assert len(got) == len(indices)
+        for index, value in zip(indices, got, strict=True):
+            np.testing.assert_array_equal(value, every[index])
+        assert len(part._operations) <= len(full._operations)
+    # Only what an output needs runs: x + a needs neither b nor tan.
+    assert len(full.only([0])._operations) < len(full.only([2])._operations)

@@ -91,7 +91,9 @@ class _ObjectiveNumbers:
 
     @functools.cached_property
     def _hessian(self) -> Tape:
-        return self._tape([expr for _, expr in self.entries])
+        # The derivatives' tape, restricted: one walk of the expressions, not two.
+        gradients = len(self.gradient)
+        return self._derivatives.only(range(gradients, gradients + len(self.entries)))
 
     @functools.cached_property
     def _derivatives(self) -> Tape:
@@ -742,7 +744,7 @@ def _fading_convexity(
         chunk = max(count, _PROBE_BYTES // (8 * m * m))
         for start in range(0, len(points), chunk):
             part = slice(start, start + chunk)
-            _, values = numbers._gradients_and_entries(points[part], times[part])
+            values = numbers.hessian_entries(points[part], times[part])
             found, found_low = _fading_dense(
                 numbers.gershgorin, numbers._dense, values, 1e-6 * reference[part], candidates[part]
             )

@@ -241,6 +241,12 @@ class Tape:
         self._outputs = [place(e) for e in outputs]
         self._size = len(inputs)
         self._values = values
+        self._operations = self._scheduled(operations)
+
+    def _scheduled(
+        self, operations: Sequence[tuple[Callable[..., Array], tuple[int, ...], int]]
+    ) -> list[tuple[Callable[..., Array], tuple[int, ...], int, tuple[int, ...]]]:
+        """``operations`` with the slots each frees once it has run."""
         # Each intermediate value is dropped after its last use: a batch of thousands of
         # points keeps only the values still needed, not every node's array at once.
         last: dict[int, int] = {}
@@ -249,17 +255,35 @@ class Tape:
                 last[a] = step
         kept = (
             set(self._outputs)
-            | set(range(len(inputs)))
-            | {i for i, value in enumerate(values) if value is not None}
+            | set(range(self._size))
+            | {i for i, value in enumerate(self._values) if value is not None}
         )
         dead: list[list[int]] = [[] for _ in operations]
         for slot_index, step in last.items():
             if slot_index not in kept:
                 dead[step].append(slot_index)
-        self._operations = [
+        return [
             (operation, args, out, tuple(dead[step]))
             for step, (operation, args, out) in enumerate(operations)
         ]
+
+    def only(self, indices: Sequence[int]) -> Tape:
+        """The tape of the outputs at ``indices`` alone, running only what they need.
+
+        The same operations in the same order, so the same bits, without compiling the
+        expressions again (the walk over a team's Hessian is most of a tape's cost).
+        """
+        tape = Tape.__new__(Tape)
+        tape._size, tape._values = self._size, self._values
+        tape._outputs = [self._outputs[i] for i in indices]
+        needed = set(tape._outputs)
+        kept: list[tuple[Callable[..., Array], tuple[int, ...], int]] = []
+        for operation, args, out, _ in reversed(self._operations):
+            if out in needed:
+                kept.append((operation, args, out))
+                needed.update(args)
+        tape._operations = tape._scheduled(kept[::-1])
+        return tape
 
     def __call__(self, *inputs: Array) -> list[Array]:
         """The outputs' values for the inputs' (arrays of one shape, or scalars)."""
