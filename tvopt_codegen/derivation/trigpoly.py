@@ -13,8 +13,8 @@ SymPy form is known:
     ``k * M / (D * P)``: ``k`` a rational, ``M`` a product of powers of symbols and of
     sines and cosines (one function per angle), ``D`` a product of powers of symbols,
     ``P`` a primitive polynomial of two or more terms with integer coefficients in
-    symbols and the square of the sine or cosine of at most one angle, provably
-    irreducible.
+    symbols and the square of the sine or cosine of at most one angle (no higher
+    power), provably irreducible.
 
 Why that shape is SymPy's: ``factor`` reads its argument as a rational function of its
 generators (``sin(a)`` and ``cos(a)`` are two), so its output is the canonical factored
@@ -335,6 +335,8 @@ def poly_expr(p: Poly, atoms: Atoms) -> sx.Expr:
 
 def lowest(det: sx.Expr) -> Lowest | None:
     """``det`` in the accepted shape, equal to it exactly, or None (SymPy decides)."""
+    if _angle_sums(det, {}) is None:
+        return None
     atoms = Atoms()
     found = rational(det, atoms, {})
     if found is None or not found[0] or not found[1]:
@@ -350,6 +352,34 @@ def lowest(det: sx.Expr) -> Lowest | None:
         if shaped is not None:
             return shaped
     return None
+
+
+def _angle_sums(node: Any, memo: dict[Any, bool | None]) -> bool | None:
+    """Whether ``node`` holds a sine or cosine of a sum of angles; None where not plainly.
+
+    Plainly: never under a power (a square, a denominator) nor two in one product.
+    SymPy's ``simplify`` writes an arm's ``sin(q1 + q2) cos(q1) - cos(q1 + q2) sin(q1)``
+    as ``sin(q2)``, and so the expansion here agrees with it, but not always its square
+    (``-3 (...)^2 / (-2 - 2 l1 x)`` stays as it is: found by the tests), nor a product
+    of two, which it may write with ``cos(2 q2)``.
+    """
+    if node in memo:
+        return memo[node]
+    out: bool | None = False
+    if node.is_Function and sx.function_name(node) in ("sin", "cos"):
+        out = not node.args[0].is_Symbol
+    elif node.args:
+        parts = [_angle_sums(arg, memo) for arg in node.args]
+        if any(part is None for part in parts):
+            out = None
+        elif node.is_Pow and parts[0] and node.args[1] != 1:
+            out = None
+        elif node.is_Mul and sum(bool(part) for part in parts) > 1:
+            out = None
+        else:
+            out = any(parts)
+    memo[node] = out
+    return out
 
 
 def _shaped(found: Rational, atoms: Atoms, kinds: dict[str, str]) -> Lowest | None:
@@ -410,15 +440,17 @@ def _written(p: Poly, atoms: Atoms) -> Poly | None:
     """``P`` as SymPy's ``simplify`` writes it: in sin^2 or cos^2, the shorter; or None.
 
     ``p`` is primitive, without monomial content, reduced. None where ``p`` holds more
-    than one angle, an odd power of a sine or cosine, two forms of one length, or where
-    its irreducibility is not proved (:func:`_irreducible`).
+    than one angle, a power of a sine or cosine other than the square, two forms of one
+    length, or where its irreducibility is not proved (:func:`_irreducible`).
     """
     trig = {atoms.names[a] for m in p for a, _ in m if atoms.kinds[a]}
     if len(trig) > 1:
         return None
     if not trig:
         return p if _irreducible(p) else None
-    if any(atoms.kinds[a] and k % 2 for m in p for a, k in m):
+    if any(atoms.kinds[a] and k != 2 for m in p for a, k in m):
+        # Beyond a square, simplify keeps the expansion of (1 - sin^2)^2 rather than
+        # cos^4, though shorter: not a rule of fewer terms (found by the tests).
         return None
     (angle,) = trig
     # p has only one function of the angle (the other one's square was reduced away).
@@ -427,8 +459,6 @@ def _written(p: Poly, atoms: Atoms) -> Poly | None:
     if len(forms[0]) == len(forms[1]):
         return None
     shortest = forms[0]
-    if any(atoms.kinds[a] and k % 2 for m in shortest for a, k in m):
-        return None
     return shortest if _irreducible(shortest) else None
 
 
