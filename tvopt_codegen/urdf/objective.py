@@ -17,7 +17,7 @@ from collections.abc import Callable, Mapping, Sequence
 import numpy as np
 import sympy as sp
 
-from tvopt_codegen.urdf.chain import _Body, _turn
+from tvopt_codegen.urdf.chain import _Body
 from tvopt_codegen.urdf.dynamics import _placements, _position, _text
 
 #: The default objective's circle is kept where the tip Jacobian (of the first three
@@ -26,7 +26,15 @@ SAFE_CONDITION = 0.05
 
 
 class _Kinematics:
-    """The tip's position and its Jacobian at a configuration, numerically."""
+    """The tip's position and its Jacobian at a configuration, numerically.
+
+    Called thousands of times by :func:`_circle_margin` (Newton's method at each of a
+    run's 301 points, for each circle tried): what does not depend on the configuration
+    is worked out once here, and the cross products are written out. Each number is made
+    by the same floating-point operations as :func:`~tvopt_codegen.urdf.chain._turn` and
+    ``numpy.cross`` would make it, so the margins, and the circle chosen, are the same to
+    the last bit.
+    """
 
     def __init__(self, bodies: Sequence[_Body], tip: str, n: int) -> None:
         index = next(i for i, body in enumerate(bodies) if body.link == tip)
@@ -35,36 +43,48 @@ class _Kinematics:
             path.append(bodies[index])
             index = bodies[index].parent
         self.n = n
-        self.parts = [
-            (
-                np.array(body.rotation.tolist(), dtype=float),
-                np.array(body.offset.tolist(), dtype=float).ravel(),
-                np.array(body.axis.tolist(), dtype=float).ravel(),
-                body.kind,
-                body.coordinate,
+        self.parts = []
+        for body in reversed(path):
+            axis = np.array(body.axis.tolist(), dtype=float).ravel()
+            x, y, z = axis
+            self.parts.append(
+                (
+                    np.array(body.rotation.tolist(), dtype=float),
+                    np.array(body.offset.tolist(), dtype=float).ravel(),
+                    axis,
+                    body.kind,
+                    body.coordinate,
+                    # _turn's constant terms: the identity, the cross-product matrix of
+                    # the axis, and its outer product with itself.
+                    np.eye(3),
+                    np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]]),
+                    np.outer(axis, axis),
+                )
             )
-            for body in reversed(path)
-        ]
 
     def __call__(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         turn = np.eye(3)
         at = np.zeros(3)
         axes: list[tuple[int, np.ndarray, np.ndarray | None]] = []
-        for rotation, offset, axis, kind, coordinate in self.parts:
+        for rotation, offset, axis, kind, coordinate, eye, cross, outer in self.parts:
             at = at + turn @ offset
             turn = turn @ rotation
             if kind == "revolute":
                 axes.append((coordinate, turn @ axis, at))
-                turn = turn @ _turn(axis, float(q[coordinate]))
+                angle = float(q[coordinate])
+                c, s = math.cos(angle), math.sin(angle)
+                turn = turn @ (c * eye + s * cross + (1 - c) * outer)
             elif kind == "prismatic":
                 direction = turn @ axis
                 axes.append((coordinate, direction, None))
                 at = at + direction * float(q[coordinate])
         jacobian = np.zeros((3, self.n))
         for coordinate, direction, pivot in axes:
-            jacobian[:, coordinate] = (
-                direction if pivot is None else np.cross(direction, at - pivot)
-            )
+            if pivot is None:
+                jacobian[:, coordinate] = direction
+                continue
+            (a0, a1, a2), (b0, b1, b2) = direction.tolist(), (at - pivot).tolist()
+            jacobian[:, coordinate] = (a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0)
         return at, jacobian
 
 
