@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import shutil
 import subprocess
 import sys
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.cli import main
 from tvopt_codegen.errors import EXIT_BAD_SPEC, MissingExtraError
 from tvopt_codegen.runs.fmu import build_fmu, fmi_headers, fmu_sources
@@ -26,20 +28,40 @@ from fmpy.validation import validate_fmu  # noqa: E402
 
 
 def _fmu(spec: str, fmi: int, folder: Path) -> Path:
+    """``spec``'s FMU for FMI ``fmi``, written in ``folder`` (a file of the test's own)."""
     path = folder / f"{Path(spec).stem}_fmi{fmi}.fmu"
-    path.write_bytes(build_fmu(kernels(spec), fmi))
+    path.write_bytes(_archive(spec, fmi, sx.ENGINE))
     return path
 
 
+@functools.cache
+def _archive(spec: str, fmi: int, engine: str) -> bytes:
+    # Built (and its C compiled) once per engine: the archive is deterministic for given
+    # sources and compiler (test_the_archive_is_deterministic_and_holds_sources_and_a_binary
+    # builds one twice), so the tests that simulate the same FMU share its bytes.
+    return build_fmu(kernels(spec), fmi)
+
+
 def _measured(spec: str, horizon: float, h: float) -> tuple[np.ndarray, np.ndarray]:
-    """Plant states along the continuous closed loop, at the communication points."""
+    """Plant states along the continuous closed loop, at the communication points.
+
+    Integrated once per engine (both FMI versions are fed the same loop); read-only.
+    """
+    return _integrated(spec, horizon, h, sx.ENGINE)
+
+
+@functools.cache
+def _integrated(spec: str, horizon: float, h: float, engine: str) -> tuple[np.ndarray, np.ndarray]:
     mod = module(spec)
     times = np.round(np.arange(0.0, horizon + h / 2, h), 12)
     run = solve_ivp(
         mod.rhs, (0.0, horizon), np.array(mod.DEFAULT_STATE), dense_output=True, rtol=1e-10,
         atol=1e-12,
     )  # fmt: skip
-    return times, run.sol(times)[: len(mod.PLANT_STATE_NAMES)]
+    states = run.sol(times)[: len(mod.PLANT_STATE_NAMES)]
+    times.setflags(write=False)
+    states.setflags(write=False)
+    return times, states
 
 
 @pytest.mark.parametrize("fmi", [2, 3])
