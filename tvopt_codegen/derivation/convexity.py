@@ -200,8 +200,9 @@ class _Gershgorin:
     """Bounds on the smallest eigenvalue of one sparse symmetric pattern's matrices.
 
     Every eigenvalue lies in a Gershgorin disc, so the smallest is at least
-    ``min_i (h_ii - sum_{j != i} |h_ij|)``; and it is at most every diagonal entry (a
-    Rayleigh quotient). Both come from the stored entries in O(entries), where an
+    ``min_i (h_ii - sum_{j != i} |h_ij|)``; and it is at most every diagonal entry and
+    the smallest eigenvalue of every 2 x 2 principal submatrix of a stored entry
+    (Cauchy's interlacing). All come from the stored entries in O(entries), where an
     eigenvalue decomposition is O(m^3) a matrix.
     """
 
@@ -234,7 +235,12 @@ class _Gershgorin:
             norm = (radius + np.abs(diagonal)).max(axis=0, initial=0.0)
             margin = _SCREEN_MARGIN * (self.m + 1) ** 2 * np.finfo(float).eps * (norm + threshold)
             above = (diagonal - radius).min(axis=0, initial=np.inf) > threshold + margin
-            below = diagonal.min(axis=0, initial=np.inf) < -threshold - margin
+            first, second = diagonal[self.ends[:, 0]], diagonal[self.ends[:, 1]]
+            pairs = 0.5 * (first + second) - np.hypot(0.5 * (first - second), values[self.off])
+            lowest = np.minimum(
+                diagonal.min(axis=0, initial=np.inf), pairs.min(axis=0, initial=np.inf)
+            )
+            below = lowest < -threshold - margin
         settled = np.isfinite(margin)
         return above & settled, below & settled, margin
 
@@ -694,8 +700,8 @@ def _fading_sparse(
     for start in range(0, len(points), chunk):
         part = slice(start, start + chunk)
         values = numbers.hessian_entries(points[part], times[part])
-        # Surely above: H - threshold I is definite. Surely below: a diagonal entry of
-        # H + threshold I is negative, and no factorization gets past it.
+        # Surely above: H - threshold I is definite. Surely below: a diagonal entry or a
+        # 2 x 2 principal submatrix of H + threshold I is not, and neither is the whole.
         surely_above, surely_below, _ = numbers.gershgorin.screen(values, threshold[part])
         for offset in np.nonzero(candidates[part] & ~surely_above & ~surely_below)[0]:
             column, tau = values[:, offset], float(threshold[start + offset])
