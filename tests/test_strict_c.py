@@ -7,13 +7,14 @@ cycle (recursion) and no call through a pointer. The stack bound its header stat
 (``<NAME>_STACK_BOUND_BYTES``, :mod:`tvopt_codegen.backends.c.stack`) is at least what
 gcc's ``-fstack-usage`` counts along every call path, on the host and on a Cortex-M4F. So are the
 template paths no bundled example takes (:data:`VARIANTS`). The files are rendered once
-per test run and precision (``conftest.shared``) and shared with ``test_precision``. A
-tool that is missing skips with the command that installs it, except in CI (``CI`` set),
-where ``.ci/run`` installs it and its absence is a failure.
+per test run and precision (``conftest.shared``) and shared with ``test_precision`` and
+``test_embedded_qemu``. A tool that is missing skips with the command that installs it,
+except in CI (``CI`` set), where ``.ci/run`` installs it and its absence is a failure.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import shutil
@@ -23,6 +24,7 @@ from pathlib import Path
 
 import pytest
 
+from tvopt_codegen import symbolic as sx
 from tvopt_codegen.backends.c import with_precision
 from tvopt_codegen.backends.c.stack import FRAME_ALLOWANCE, bounds, parse
 from tvopt_codegen.derivation import derive
@@ -54,9 +56,15 @@ VARIANTS: dict[str, tuple[Path, dict[str, object]]] = {
 
 
 def _kernels(spec: str) -> KernelSet:
-    """A bundled example's kernels, or a variant's (:data:`VARIANTS`)."""
+    """A bundled example's kernels, or a variant's (:data:`VARIANTS`), once per engine."""
     if spec not in VARIANTS:
         return kernels(spec)
+    return _variant(spec, sx.ENGINE)
+
+
+@functools.cache
+def _variant(spec: str, engine: str) -> KernelSet:
+    # Both precisions render the same kernels: derived once, not once per precision.
     path, changes = VARIANTS[spec]
     with path.open("rb") as stream:
         data = tomllib.load(stream)
