@@ -38,12 +38,12 @@ from tests.embedded.harness import (
     Loop,
     Trace,
     build_loop,
-    generate,
     parse,
     plant_states,
     run,
     skip_reason,
 )
+from tests.test_strict_c import generated
 
 #: Each QEMU test compiles and runs closed loops (1-3 s; the module's total is ~25 s on
 #: one core): slow, by hand, until tests/durations.json records them.
@@ -107,8 +107,13 @@ def _need(*targets: str) -> None:
 
 
 def _c(example: str, precision: str) -> Path:
-    """The example's generated C in ``precision``, made once per run."""
-    return shared(f"embedded-c-{example}-{precision}", lambda f: generate(example, precision, f))
+    """The example's generated C in ``precision``, made once per run.
+
+    The folder ``test_strict_c`` and ``test_precision`` check and load (rendered from the
+    run's cached kernels): the harness compiles exactly the C those tests hold to the
+    strict profile, and no example is derived again for it.
+    """
+    return generated(example, precision)
 
 
 def _trace(example: str, target: str, precision: str, fma: bool = True) -> Trace:
