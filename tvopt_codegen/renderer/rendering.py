@@ -306,6 +306,13 @@ def _indices(shape: tuple[int, ...]) -> list[tuple[int, ...]]:
     return [(i, *r) for i in range(shape[0]) for r in rest]
 
 
+#: The context variable through which one controller's templates share what they have
+#: rendered already: ``{template name: text before its hash}``. The C header's stack
+#: bound renders the C source to parse it (:func:`~tvopt_codegen.backends.c.stack.header_bounds`);
+#: the source is then not rendered twice.
+RENDERED = "rendered_texts"
+
+
 def render_template(template_name: str, context: dict[str, Any], root: Path | None = None) -> str:
     """Render one template and fill in its content hash.
 
@@ -325,7 +332,10 @@ def render_template(template_name: str, context: dict[str, Any], root: Path | No
     """
     full = {**context, "content_hash": HASH_PLACEHOLDER, "template_name": template_name}
     try:
-        text = environment(root).get_template(template_name).render(full)
+        # A text another template of the same controller rendered already (RENDERED).
+        text: str | None = context.get(RENDERED, {}).get(template_name)
+        if text is None:
+            text = environment(root).get_template(template_name).render(full)
     except jinja2.TemplateError as exc:
         raise CodegenError(f"template {template_name}: {exc}") from exc
     return text.replace(HASH_PLACEHOLDER, stamp_hash(text), 1)
@@ -464,7 +474,7 @@ def render(kernels: KernelSet, backend: Backend | str) -> dict[str, str]:
     """
     if isinstance(backend, str):
         backend = BACKENDS[backend]
-    context = template_context(kernels, backend)
+    context = {**template_context(kernels, backend), RENDERED: {}}
     name = kernels.derivation.spec.name
     return {
         pattern.format(name=name): render_template(template_name, context, backend.template_root)

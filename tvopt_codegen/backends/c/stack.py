@@ -24,6 +24,7 @@ declare or call), so a small scanner suffices; it is deterministic and needs no 
 from __future__ import annotations
 
 import ast
+import itertools
 import operator
 import re
 from collections.abc import Callable, Mapping
@@ -63,9 +64,8 @@ _SCALARS = {
 #: Words of a declaration that are not its type's name.
 _QUALIFIERS = frozenset({"const", "volatile", "register", "restrict", "signed"})
 
-_TOKEN = re.compile(
-    r"(?P<id>[A-Za-z_]\w*)|(?P<num>\d[\w.]*)|(?P<op>->|\+\+|--|<<|>>|[<>=!]=|&&|\|\||\S)"
-)
+#: A token: a name, a number, an operator (no groups: ``findall`` lists the tokens).
+_TOKEN = re.compile(r"[A-Za-z_]\w*|\d[\w.]*|->|\+\+|--|<<|>>|[<>=!]=|&&|\|\||\S")
 _COMMENT = re.compile(r"/\*.*?\*/|//[^\n]*", re.DOTALL)
 _STRING = re.compile(r'"(?:\\.|[^"\\])*"|\'(?:\\.|[^\'\\])*\'')
 _DEFINE = re.compile(r"^[ \t]*#[ \t]*define[ \t]+(\w+)[ \t]+(.+?)[ \t]*$", re.MULTILINE)
@@ -109,7 +109,7 @@ def _clean(text: str) -> str:
 
 
 def _tokens(text: str) -> list[str]:
-    return [m.group(0) for m in _TOKEN.finditer(text)]
+    return _TOKEN.findall(text)
 
 
 class _Sizes:
@@ -161,7 +161,12 @@ class _Sizes:
         """Size and alignment of each declarator of a declaration (after its type)."""
         sizes = []
         for part in _split(tokens, ","):
-            head = _split(part, "=")[0]
+            head = part
+            if "=" in part:
+                # An initializer: the head ends at the first "=" unless a bracket
+                # precedes it (where the general split finds the one outside).
+                end = part.index("=")
+                head = part[:end] if _BRACKETS.isdisjoint(part[:end]) else _split(part, "=")[0]
             size, align = (_WIDE, _WIDE) if "*" in head else base
             count = 1
             i = 0
@@ -187,19 +192,29 @@ class _Sizes:
         self.structs[name] = (-(-offset // widest) * widest, widest)
 
 
+#: The tokens that open or close a bracket.
+_BRACKETS = frozenset("()[]{}")
+
+
 def _split(tokens: list[str], separator: str) -> list[list[str]]:
     """``tokens`` split at ``separator`` outside parentheses, brackets and braces."""
-    parts: list[list[str]] = [[]]
+    if separator not in tokens:
+        return [list(tokens)]
+    # Only brackets and separators move the split: the loop visits those alone (a
+    # kernel's declaration is a long expression).
+    parts: list[list[str]] = []
     depth = 0
-    for token in tokens:
+    start = 0
+    for i in [i for i, t in enumerate(tokens) if t in _BRACKETS or t == separator]:
+        token = tokens[i]
         if token in "([{":
             depth += 1
         elif token in ")]}":
             depth -= 1
-        if token == separator and depth == 0:
-            parts.append([])
-        else:
-            parts[-1].append(token)
+        elif depth == 0:
+            parts.append(tokens[start:i])
+            start = i + 1
+    parts.append(tokens[start:])
     return parts
 
 
@@ -208,11 +223,33 @@ def _closing(tokens: list[str], start: int) -> int:
     pairs = {"(": ")", "[": "]", "{": "}"}
     opening, closing = tokens[start], pairs[tokens[start]]
     depth = 0
-    for i in range(start, len(tokens)):
-        depth += (tokens[i] == opening) - (tokens[i] == closing)
-        if depth == 0:
-            return i
+    for i, token in enumerate(itertools.islice(tokens, start, None), start):
+        if token == opening:
+            depth += 1
+        elif token == closing:
+            depth -= 1
+            if depth == 0:
+                return i
     raise ValueError(f"unbalanced {opening}")
+
+
+def _closings(tokens: list[str]) -> dict[int, int]:
+    """The index of the bracket closing each one that opens, as :func:`_closing` finds it.
+
+    One pass over the brackets alone, a stack per kind (each kind is counted apart), for
+    the scan of a whole file: :func:`_closing` from each function's brace would walk its
+    body token by token.
+    """
+    pairs = {")": "(", "]": "[", "}": "{"}
+    open_at: dict[str, list[int]] = {"(": [], "[": [], "{": []}
+    closings: dict[int, int] = {}
+    for i in [i for i, t in enumerate(tokens) if t in _BRACKETS]:
+        token = tokens[i]
+        if token in open_at:
+            open_at[token].append(i)
+        elif open_at[pairs[token]]:
+            closings[open_at[pairs[token]].pop()] = i
+    return closings
 
 
 def _type_words(statement: list[str], sizes: _Sizes) -> tuple[list[str], list[str]]:
@@ -281,6 +318,13 @@ def parse(source: str, header: str, real_size: int) -> dict[str, Function]:
         sizes.add_struct(name, body)
     tokens = _tokens(_DIRECTIVE.sub(" ", source))
     functions: dict[str, tuple[bool, int, list[str]]] = {}
+    closings = _closings(tokens)
+
+    def closing(i: int) -> int:
+        if i not in closings:
+            raise ValueError(f"unbalanced {tokens[i]}")
+        return closings[i]
+
     start = 0
     i = 0
     while i < len(tokens):
@@ -288,9 +332,9 @@ def parse(source: str, header: str, real_size: int) -> dict[str, Function]:
         if token == ";":
             start = i + 1
         elif token in "([":
-            i = _closing(tokens, i)
+            i = closing(i)
         elif token == "{":
-            end = _closing(tokens, i)
+            end = closing(i)
             signature = tokens[start:i]
             if signature and signature[-1] == ")" and "=" not in signature:
                 opening = len(signature) - 1
@@ -330,21 +374,27 @@ def _frame(parameters: list[str], body: list[str], sizes: _Sizes) -> int:
         for parameter in _split(parameters, ","):
             words, rest = _type_words(parameter, sizes)
             total += sum(size for size, _ in sizes.declarators(sizes.type_size(words), rest))
-    statement: list[str] = []
     depth = 0
-    for token in body:
+    start = 0
+    # Only these tokens end a statement or move the depth: the loop visits those alone.
+    for i in [i for i, t in enumerate(body) if t in _STATEMENT_MARKS]:
+        token = body[i]
         # A statement starts after ; { or } outside parentheses (a for's header holds ;).
         if depth == 0 and token in ";{}":
+            statement = body[start:i]
             if statement and statement[0] != "static" and _is_declaration(statement, sizes):
                 words, rest = _type_words(statement, sizes)
                 total += sum(
                     -(-size // 4) * 4 for size, _ in sizes.declarators(sizes.type_size(words), rest)
                 )
-            statement = []
+            start = i + 1
             continue
         depth += (token == "(") - (token == ")")
-        statement.append(token)
     return total
+
+
+#: The tokens :func:`_frame` reads: the ends of statements and parentheses.
+_STATEMENT_MARKS = frozenset(";{}()")
 
 
 def bounds(functions: Mapping[str, Function]) -> dict[str, int]:
@@ -392,4 +442,11 @@ def header_bounds(context: jinja2.runtime.Context, precision: Precision) -> dict
         context.environment.get_template(name).render({**variables, "template_name": name})
         for name in _PAIR
     )
+    # The source reads no stack bound: this text is the file's, before its hash. The
+    # renderer takes it from here instead of rendering it again (the header's is not).
+    from tvopt_codegen.renderer.rendering import RENDERED  # noqa: PLC0415 - rendering now
+
+    rendered = context.get(RENDERED)
+    if isinstance(rendered, dict):
+        rendered[_PAIR[1]] = source
     return stack_bounds(source, header, 4 if precision.single else 8)
