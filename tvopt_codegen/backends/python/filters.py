@@ -13,7 +13,8 @@ from typing import Any
 
 from tvopt_codegen.renderer.rendering import PrintedArg, PrintedKernel, PrintedOutput, PrintedSlot
 
-_NAME = re.compile(r"\b_[A-Za-z]+\d+\b")
+#: A slot's or temporary's name, captured: ``split`` puts the names at odd places.
+_NAME = re.compile(r"\b(_[A-Za-z]+\d+)\b")
 
 
 _ALIAS = re.compile(r"\b_np_([A-Za-z_][A-Za-z0-9_]*)\(")
@@ -41,25 +42,31 @@ def registers(kernel: PrintedKernel) -> PrintedKernel:
     names as values live at once; each kernel's names are dead when its outputs are built,
     so consecutive kernels share them.
     """
-    statements: list[tuple[list[str], str]] = [
-        ([slot.symbol for slot in arg.slots], "") for arg in kernel.args if arg.slots
+    # Each code split once at the names it reads (text, name, text, ...): read for the
+    # names' last reads and joined again renamed.
+    body_pieces = [_NAME.split(code) for _, code in kernel.body]
+    output_pieces = [[_NAME.split(code) for _, _, code in out.elements] for out in kernel.outputs]
+    statements: list[tuple[list[str], list[str]]] = [
+        ([slot.symbol for slot in arg.slots], []) for arg in kernel.args if arg.slots
     ]
-    statements += [([name], code) for name, code in kernel.body]
-    statements += [([], " ".join(code for _, _, code in out.elements)) for out in kernel.outputs]
+    statements += [
+        ([name], pieces[1::2]) for (name, _), pieces in zip(kernel.body, body_pieces, strict=True)
+    ]
+    statements += [([], [n for p in out for n in p[1::2]]) for out in output_pieces]
     own = {slot.symbol for arg in kernel.args for slot in arg.slots}
     own |= {name for name, _ in kernel.body}
     last: dict[str, int] = {}
-    for index, (_, code) in enumerate(statements):
-        for name in _NAME.findall(code):
+    for index, (_, reads) in enumerate(statements):
+        for name in reads:
             if name in own:
                 last[name] = index
     mapping: dict[str, str] = {}
     free: list[int] = []
     count = 0
-    for index, (targets, code) in enumerate(statements):
+    for index, (targets, reads) in enumerate(statements):
         # Names read here for the last time free their register before the targets take
         # one: the right-hand side is evaluated before the assignment.
-        for name in dict.fromkeys(_NAME.findall(code)):
+        for name in dict.fromkeys(reads):
             if last.get(name) == index and name in mapping:
                 heapq.heappush(free, int(mapping[name][2:]))
         for name in targets:
@@ -71,8 +78,9 @@ def registers(kernel: PrintedKernel) -> PrintedKernel:
             if name not in last:  # never read: its register is free again at once
                 heapq.heappush(free, number)
 
-    def rename(code: str) -> str:
-        return _NAME.sub(lambda m: mapping.get(m.group(0), m.group(0)), code)
+    def rename(pieces: list[str]) -> str:
+        pieces[1::2] = [mapping.get(name, name) for name in pieces[1::2]]
+        return "".join(pieces)
 
     # Every name is assigned once (the kernels are in SSA form), so one renaming holds
     # for the whole kernel: a register is reused only after its name's last read.
@@ -91,12 +99,18 @@ def registers(kernel: PrintedKernel) -> PrintedKernel:
             out.name,
             out.doc,
             out.shape,
-            tuple((index, flat, rename(code)) for index, flat, code in out.elements),
+            tuple(
+                (index, flat, rename(pieces))
+                for (index, flat, _), pieces in zip(out.elements, split, strict=True)
+            ),
             out.sparse,
         )
-        for out in kernel.outputs
+        for out, split in zip(kernel.outputs, output_pieces, strict=True)
     )
-    body = tuple((mapping[name], rename(code)) for name, code in kernel.body)
+    body = tuple(
+        (mapping[name], rename(pieces))
+        for (name, _), pieces in zip(kernel.body, body_pieces, strict=True)
+    )
     return PrintedKernel(
         kernel.name,
         kernel.doc,
