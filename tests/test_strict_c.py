@@ -237,6 +237,25 @@ def test_gcc_no_heap_no_recursion_no_pointer_calls_and_the_stack_bound(
                 assert measured[name] <= bound, (build, name, measured[name], bound)
 
 
+def test_the_strict_profile_covers_a_sparse_output() -> None:
+    """A sparse output (its zeros, then its nonzero elements) is among the C held to the
+    profile: ur5_tip's Hessian. test_c_backend's eight-agent ring checks the sparse
+    printing's values and leaves its strict compilation to this file."""
+    from tvopt_codegen.backends.c.printer import CPrinter  # noqa: PLC0415
+    from tvopt_codegen.renderer.rendering import print_kernel  # noqa: PLC0415
+
+    assert "ur5_tip" in BUNDLED
+    (hessian,) = [k for k in _kernels("ur5_tip").kernels if k.name == "hessian"]
+    (output,) = print_kernel(hessian, CPrinter()).outputs
+    assert output.sparse and 0 < len(output.elements) < output.size
+    for precision in ("double", "single"):
+        folder = generated("ur5_tip", precision)
+        code = (folder / _source(folder)).read_text(encoding="utf-8")
+        # The sparse form's zeroing loop, as the C template prints it.
+        assert f"for (zero = 0; zero < {output.size}; ++zero)" in code, precision
+        assert "/* the nonzero elements below */" in code, precision
+
+
 def test_the_stack_bound_counts_every_variable_and_refuses_recursion() -> None:
     header = "#define N 3\ntypedef struct {\n    double t;\n    unsigned char s[N];\n} c_t;\n"
     source = """
