@@ -113,6 +113,19 @@ def unchanged(node: sx.Expr, args: Sequence[sx.Expr]) -> bool:
     return all(map(operator.eq if sx.SYMENGINE else operator.is_, args, own))
 
 
+def _same(args: Sequence[sx.Expr], own: Sequence[sx.Expr]) -> bool:
+    """:func:`unchanged` on arguments read once: an atom a walk gives back is the object.
+
+    ``own`` is the node's ``.args``, read by the caller already (on SymEngine each read
+    builds new Python objects).
+    """
+    if len(args) != len(own):
+        return False
+    if sx.SYMENGINE:
+        return all(a is b or a == b for a, b in zip(args, own, strict=True))
+    return all(a is b for a, b in zip(args, own, strict=True))
+
+
 def fresh_symbols(prefix: str) -> Iterator[sx.Expr]:
     """Endless numbered symbols ``prefix0, prefix1, ...`` (real)."""
     index = 0
@@ -400,7 +413,8 @@ def atomize(
             return node
         if node in table:
             return table[node]
-        args = [visit(arg) for arg in node.args]
+        own = node.args
+        args = [visit(arg) for arg in own]
         if node.is_Mul:
             # Products become chains of two factors: the derivative of an n-factor
             # product is n terms of n - 1 factors, quadratic; of a chain, linear.
@@ -418,7 +432,7 @@ def atomize(
             args = [*numbers, *factors]
         # Arguments that came back as they were (atoms, in the same order) leave the
         # node as it is: rebuilding it (sympy's flatten) would only give it back.
-        rebuilt = node if unchanged(node, args) else _rebuild(node, args)
+        rebuilt = node if _same(args, own) else _rebuild(node, args)
         if rebuilt.is_Atom:
             table[node] = rebuilt
             return rebuilt

@@ -235,7 +235,7 @@ class Tape:
                     slot[node] = len(values)
                     values.append(None)
                     args = tuple(slot[arg] for arg in children)
-                    operations.append((_operation(node), args, slot[node]))
+                    operations.append((_binary(_operation(node), len(args)), args, slot[node]))
             return slot[expr]
 
         self._outputs = [place(e) for e in outputs]
@@ -321,6 +321,15 @@ def _constant(node: sx.Expr) -> complex | float:
         value = number.real if number.imag == 0 else number
         _CONSTANTS[node] = value
     return value
+
+
+def _binary(operation: Callable[..., Array], count: int) -> Callable[..., Array]:
+    """NumPy's own ufunc for a sum or product of two: the fold's one step, without it."""
+    if count == 2 and operation is _sum:
+        return np.add
+    if count == 2 and operation is _product:
+        return np.multiply
+    return operation
 
 
 def _fold(op: Callable[[Array, Array], Array], args: Iterable[Array]) -> Array:
