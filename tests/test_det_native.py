@@ -26,7 +26,7 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 from tvopt_codegen import symbolic as sx
-from tvopt_codegen.derivation import derive, equalities, linearization, trigpoly
+from tvopt_codegen.derivation import derive, equalities, linearization, singularity, trigpoly
 from tvopt_codegen.derivation.singularity import _monomial, _singular_set, simplified_det
 from tvopt_codegen.spec import load_spec
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
@@ -338,3 +338,24 @@ def test_generate_arm_on_line_imports_no_sympy() -> None:
     ran = _symengine_run([_GENERATE])
     assert ran.returncode == 0, ran.stderr[-2000:]
     assert ran.stdout.splitlines()[-1] == "[]", ran.stdout
+
+
+def test_the_singular_set_reads_a_plain_numerator_natively() -> None:
+    """Over a polynomial, a numerator of atoms is read without SymPy; a sum above is SymPy's."""
+    s, c = sp.sin(q1), sp.cos(q1)
+    for det, native in (
+        (s / (a + b), True),
+        (a * b**2 * s**2 / (x * (m1 + m2 * s**2)), True),
+        (1 / (a + b), True),
+        (3 * a / (1 + x) ** 2, True),
+        ((a * s**2 + a * c**2) / (a + b), False),  # factor_list keeps sin^2 + cos^2
+        ((a + b) * s / (1 + x), False),
+        (s / (1 + 1 / x), False),  # together moves x above
+    ):
+        with sx.using("sympy"):
+            reference = _singular_set(det)
+        with sx.using("symengine"):
+            converted = from_sympy(det)
+            numerator = singularity._numerator(converted)
+            assert (numerator != converted or not converted.is_Mul) == native, det
+            assert _singular_set(converted) == reference, det

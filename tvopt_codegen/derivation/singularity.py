@@ -109,8 +109,8 @@ def _singular_set(det: sx.Expr) -> tuple[str, ...]:
     A factor that vanishes nowhere over the reals (``vx**2 + vy**2 + 1``) is no place at
     all, and is left out: with every factor so, R is never singular. A border stage:
     ``det`` (small, simplified) is factored in SymPy, and the conditions are written as
-    SymPy writes them, the same text on either engine (on SymEngine, a monomial's
-    without SymPy: :func:`_monomial_conditions`).
+    SymPy writes them, the same text on either engine (on SymEngine, where the
+    numerator is a monomial, without SymPy: :func:`_numerator`, :func:`_monomial_conditions`).
     """
     if sx.SYMENGINE:
         found = _monomial(_numerator(det), expand_angles=False)
@@ -139,8 +139,8 @@ def _numerator(det: sx.Expr) -> sx.Expr:
     Where ``det`` is a product of factors and powers of polynomials (no fraction inside a
     power's base), ``together`` leaves it as it is and the numerator is the product of
     the factors that are not a negative power (``sin(q2)`` of an arm's
-    ``sin(q2)/(l1 l2 m2 (m1 + m2 sin(q2)^2))``); elsewhere ``det`` itself, which
-    :func:`_monomial` reads as before.
+    ``sin(q2)/(l1 l2 m2 (m1 + m2 sin(q2)^2))``), when none of those is a sum; elsewhere
+    ``det`` itself, which :func:`_monomial` reads as before.
     """
     factors = det.args if det.is_Mul else (det,)
     numerator = sx.ONE
@@ -148,6 +148,8 @@ def _numerator(det: sx.Expr) -> sx.Expr:
         if factor.is_Pow and factor.args[1].is_Integer and factor.args[1].is_negative:
             if not _polynomial(factor.args[0]):
                 return det
+        elif factor.is_Add or (factor.is_Pow and factor.args[0].is_Add):
+            return det  # a sum above: factor_list's, not rewritten by sin^2 + cos^2 = 1
         else:
             numerator *= factor
     return numerator
