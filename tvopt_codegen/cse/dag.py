@@ -42,6 +42,7 @@ Program = list[tuple[int, int]]
 
 # A node's kind, for the passes' tests (is it a sum, a product, a number?).
 _SYMBOL, _NUMBER, _ADD, _MUL, _POW, _OTHER = range(6)
+_COMPOUND = (_ADD, _MUL)
 
 
 class Dag:
@@ -82,6 +83,8 @@ class Dag:
         # A product, whose constructor builds the products made on ids (_product).
         self._mul = self.intern(sx.Integer(2) * sx.symbol("_dag"))
         self._below: dict[int, int] = {}
+        self._splits: dict[int, tuple[tuple[int, ...], int]] = {}  # a term -> _split's
+        self._factored: dict[int, int] = {}  # a sum or product -> factored's rewrite
 
     def intern(self, expr: sx.Expr) -> int:
         """The id of ``expr``, its new nodes added.
@@ -105,8 +108,7 @@ class Dag:
             if info is None:
                 info = self._types[cls] = self._describe(expr)
             kind, commutative = info
-            intern = self.intern
-            children = tuple([intern(arg) for arg in args])
+            children = self._children(args)
             if commutative:
                 head: tuple[Any, ...] = (cls,)
                 key: tuple[Any, ...] = (cls, *sorted(children))
@@ -121,6 +123,21 @@ class Dag:
                 return i
         self._ids[expr] = i
         return i
+
+    def _children(self, args: Sequence[sx.Expr]) -> tuple[int, ...]:
+        """The ids of a node's children, those already in the table looked up in place.
+
+        Most children of a three-address program's values are symbols and numbers met
+        before: a look-up here, where a call of :meth:`intern` for each was a third of
+        reading a program.
+        """
+        add, get, intern = self._add, self._ids.get, self.intern
+        children: list[int] = []
+        append = children.append
+        for arg in args:
+            found = None if type(arg) is add else get(arg)
+            append(intern(arg) if found is None else found)
+        return tuple(children)
 
     @staticmethod
     def _describe(expr: sx.Expr) -> tuple[int, bool]:
@@ -236,6 +253,7 @@ class Dag:
         Only rational coefficients are added up here: a float's sum is the engine's.
         """
         kind, args = self.kind, self.args
+        splits = self._splits
         number = self.zero
         terms: dict[tuple[int, ...], int] = {}  # a term's factors -> the term
         coefficients: dict[tuple[int, ...], int] = {}  # ... -> its coefficient, collected
@@ -244,9 +262,8 @@ class Dag:
                 if kind[term] == _NUMBER:
                     number = self._arithmetic(number, term, True)
                     continue
-                key = self._term(term)
-                own = args[term][0] if key != (term,) and kind[args[term][0]] == _NUMBER else None
-                coefficient = self.one if own is None else own
+                split = splits.get(term)
+                key, coefficient = self._split(term) if split is None else split
                 if key not in terms:
                     terms[key] = term
                     coefficients[key] = coefficient
@@ -275,6 +292,19 @@ class Dag:
         if not kept:
             return None
         return tuple(kept) if number == self.zero else (number, *kept)
+
+    def _split(self, term: int) -> tuple[tuple[int, ...], int]:
+        """A sum's term as :meth:`_plain_sum` collects it: its factors, its coefficient.
+
+        Kept per node: inlining rebuilds a sum each time a term of it changes, and
+        its other terms are split again each time (a k = 12 chain's sums, a dozen
+        times over).
+        """
+        key = self._term(term)
+        first = self.args[term][0] if key != (term,) else -1
+        coefficient = first if first >= 0 and self.kind[first] == _NUMBER else self.one
+        split = self._splits[term] = (key, coefficient)
+        return split
 
     def _is_rational(self, number: int) -> bool:
         found = self._rational.get(number)
@@ -465,24 +495,25 @@ class Dag:
         looked up in ``memo`` only, and a leaf child is mapped where it is met, without
         a call of its own (most of a three-address program's children are leaves).
         """
-        args = self.args
-        get = mapping.get
-        if not args[i]:
-            return get(i, i)
+        if not self.args[i]:
+            return mapping.get(i, i)
+        # A method, not a nested function: the passes call this once per value of a
+        # program (150 thousand times on a ring of 128 agents), most of them a node of
+        # leaves, and making and releasing a closure for each cost more than the walk.
+        return self._substituted(i, mapping.get, memo)
 
-        def visit(node: int) -> int:
-            done = memo.get(node)
-            if done is not None:
-                return done
-            own = args[node]
-            new = tuple([visit(c) if args[c] else get(c, c) for c in own])
-            done = node if new == own else self.rebuild(node, new)
-            memo[node] = done
+    def _substituted(self, node: int, get: Callable[..., int], memo: dict[int, int]) -> int:
+        """:meth:`substitute`'s walk of a compound ``node``; ``get`` the mapping's."""
+        done = memo.get(node)
+        if done is not None:
             return done
-
-        result = visit(i)
-        release(visit)
-        return result
+        args = self.args
+        own = args[node]
+        visit = self._substituted
+        new = tuple([visit(c, get, memo) if args[c] else get(c, c) for c in own])
+        done = node if new == own else self.rebuild(node, new)
+        memo[node] = done
+        return done
 
     def signed_odd(
         self, program: Program, outputs: Sequence[int], memo: dict[sx.Expr, sx.Expr]
@@ -537,10 +568,17 @@ class Dag:
             done = memo.get(node)
             if done is not None:
                 return done
-            new = tuple([visit(c) for c in own])
+            new = tuple([visit(c) if args[c] else c for c in own])
             done = node if new == own else self.rebuild(node, new)
-            if kind[done] == _MUL and len(args[done]) == 2:
-                distributed = self._distributed(args[done])
+            pair = args[done]
+            # A product of two is a rational times a sum only with a sum (or a product
+            # holding one) among them: most are a number times a symbol, asked for nothing.
+            if (
+                kind[done] == _MUL
+                and len(pair) == 2
+                and (kind[pair[0]] in _COMPOUND or kind[pair[1]] in _COMPOUND)
+            ):
+                distributed = self._distributed(pair)
                 if distributed is not None:
                     done = distributed
             memo[node] = done
@@ -559,9 +597,12 @@ class Dag:
         expansion are the engine's), and only exact coefficients (a float's product
         rounds). Nodes are rebuilt by the engine's constructors, which keep ``c*(a + b)``
         whole (:meth:`_distributed` is not applied here: this is the kernel's last pass).
+
+        A node's result is the table's, kept across calls: the kernels cut from one
+        reduced program (the jet's and the optimality error's) share most of their nodes.
         """
         args, kind = self.args, self.kind
-        memo: dict[int, int] = {}
+        memo = self._factored
 
         def visit(node: int) -> int:
             own = args[node]
@@ -571,7 +612,7 @@ class Dag:
             done = memo.get(node)
             if done is not None:
                 return done
-            new = tuple([visit(c) for c in own])
+            new = tuple([visit(c) if kind[c] in _COMPOUND else c for c in own])
             done = node
             if new != own:
                 exprs = [self.expression(c) for c in new]
