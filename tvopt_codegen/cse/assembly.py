@@ -129,8 +129,22 @@ def _symbolic(outputs: Outputs) -> tuple[list[sx.Expr], list[int]]:
 
 
 def _constant_ops(outputs: Outputs) -> int:
-    """What a kernel's outputs that are numbers cost (a fraction or a negative: one)."""
-    return operation_count([e for e in _flat(outputs) if isinstance(e, sx.Number)])
+    """What a kernel's outputs that are numbers cost (a fraction or a negative: one).
+
+    Counted once per distinct number: a team's Hessian is 65 thousand entries at 128
+    agents, almost all zero, and counting each as an expression took a second.
+    """
+    # Keyed with the class too: a float and a rational may compare equal, not cost so.
+    costs: dict[tuple[type, sx.Expr], int] = {}
+    total = 0
+    for e in _flat(outputs):
+        if isinstance(e, sx.Number):
+            key = (type(e), e)
+            cost = costs.get(key)
+            if cost is None:
+                cost = costs[key] = operation_count([e])
+            total += cost
+    return total
 
 
 def _scatter(outputs: Outputs, where: Sequence[int], reduced: Sequence[sx.Expr]) -> list[sx.Expr]:
@@ -166,8 +180,9 @@ def make_kernel(
         ids = [(dag.intern(sym), dag.intern(value)) for sym, value in program]
         outs = [dag.intern(_expr(e)) for e in flat]
         ids, outs = dag.signed_odd(ids, outs, {} if odd is None else odd)
-        before = dag.operations([v for _, v in needed(dag, ids, outs)] + outs)
-        order, outs = dag.factored(*_reduce_dag(dag, ids, outs, search))
+        ids = needed(dag, ids, outs)
+        before = dag.operations([v for _, v in ids] + outs)
+        order, outs = dag.factored(*_reduce_dag(dag, ids, outs, search, pruned=True))
         body, reduced = _number_dag(dag, order, outs)
         ops = dag.operations([v for _, v in order] + outs) + _constant_ops(outputs)
         reads = symbols_read(dag, order, outs)
@@ -270,12 +285,16 @@ def _make_kernels_dag(
         for (name, doc, inputs, outputs), mine, part, where, before in zip(
             kernels, programs, parts, wheres, befores, strict=True
         ):
-            order, reduced_ids = _reduce_dag(dag, mine, part, True)
+            order, reduced_ids = _reduce_dag(dag, mine, part, True, pruned=True)
             made.append(
                 _dag_kernel(dag, order, reduced_ids, (name, doc, inputs, outputs), where, before)
             )
         return made
-    whole, whole_outs = _reduce_dag(dag, ids, outs, False)
+    # What all outputs need is what one of the kernels needs: the program filtered,
+    # where a walk of its DAG again was the largest of the walks.
+    wanted = {sym for mine in programs for sym, _ in mine}
+    union = [(sym, value) for sym, value in ids if sym in wanted]
+    whole, whole_outs = _reduce_dag(dag, union, outs, False, pruned=True)
     for (name, doc, inputs, outputs), size, end, where, before in zip(
         kernels, sizes, ends, wheres, befores, strict=True
     ):

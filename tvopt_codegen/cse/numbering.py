@@ -142,7 +142,12 @@ def ordered_cse(
 
 
 def _reduce_dag(
-    dag: Dag, program: Program, outputs: Sequence[int], search: bool, prefix: str = "_cse"
+    dag: Dag,
+    program: Program,
+    outputs: Sequence[int],
+    search: bool,
+    prefix: str = "_cse",
+    pruned: bool = False,
 ) -> tuple[Program, list[int]]:
     """:func:`_reduce` on SymEngine, over the ids of ``dag``: the same steps, on ints.
 
@@ -153,8 +158,14 @@ def _reduce_dag(
     ``p0``, each a temporary used once, and the products that result share
     ``pi*p0/p1``, which only a search of the inlined program finds (a ring of four
     unicycles: 1920 operations, 1616 so; SymPy's 1735).
+
+    ``pruned`` says that ``program`` is what ``outputs`` need already
+    (:func:`.programs.needed`): the callers that counted its operations first have
+    walked it, and a walk of a jet's DAG is not free.
     """
-    kept, outs = drop_aliases(dag, *dag.distribute(needed(dag, program, outputs), outputs))
+    if not pruned:
+        program = needed(dag, program, outputs)
+    kept, outs = drop_aliases(dag, *dag.distribute(program, outputs))
     exprs = [value for _, value in kept] + outs
     names = numbered(prefix)
     searched = search and dag.operations(exprs) <= SMALL_PROGRAM_OPS

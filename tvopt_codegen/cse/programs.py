@@ -20,21 +20,22 @@ from tvopt_codegen.maths.jet import release
 def needed(dag: Dag, program: Program, outputs: Sequence[int]) -> Program:
     """:func:`~.numbering._prune` on ids: the assignments the outputs need."""
     args = dag.args
-    seen: set[int] = set()
+    # Marks by id (the table's ids are dense): cheaper than a set's hashing.
+    seen = bytearray(len(args))
     # One walk of the nodes the outputs and the kept values hold, each node once; a
     # kept value's nodes are pushed on the one stack (no call per assignment).
     stack = list(outputs)
     kept: Program = []
     for sym, value in [(-1, -1), *reversed(program)]:
         if sym >= 0:
-            if sym not in seen:
+            if not seen[sym]:
                 continue
             kept.append((sym, value))
             stack.append(value)
         while stack:
             node = stack.pop()
-            if node not in seen:
-                seen.add(node)
+            if not seen[node]:
+                seen[node] = 1
                 stack.extend(args[node])
     return kept[::-1]
 
@@ -112,8 +113,30 @@ def value_numbering(
 
 
 def leaves(dag: Dag, root: int, wanted: dict[int, int]) -> list[int]:
-    """The leaves of ``root`` that are keys of ``wanted``, each once."""
-    return [leaf for leaf in _leaves(dag, [root]) if leaf in wanted]
+    """The leaves of ``root`` that are keys of ``wanted``, each once, in :func:`_leaves`' order.
+
+    Its own loop, not a filter of :func:`_leaves`: it is asked of every value of a
+    program (:func:`.numbering._emitted`), and a generator's step per leaf was most of it.
+    """
+    if not wanted:
+        return []
+    args = dag.args
+    if not args[root]:
+        return [root] if root in wanted else []
+    seen: set[int] = set()
+    found: list[int] = []
+    stack = [root]
+    while stack:
+        node = stack.pop()
+        if node in seen:
+            continue
+        seen.add(node)
+        own = args[node]
+        if own:
+            stack.extend(own)
+        elif node in wanted:
+            found.append(node)
+    return found
 
 
 def _leaves(dag: Dag, roots: list[int]) -> Iterator[int]:
