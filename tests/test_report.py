@@ -24,7 +24,7 @@ from tvopt_codegen.report.entries import as_sympy
 from tvopt_codegen.report.sections import _shown
 from tvopt_codegen.spec import load_spec
 
-from .conftest import EXAMPLES, ROOT, derivation, kernels, write_spec
+from .conftest import EXAMPLES, ROOT, derivation, kernels, shared, write_spec
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 BROWSER_FLAGS = [
@@ -76,19 +76,57 @@ def _html(name: str) -> str:
     return render_report(derivation(name), kernels(name), formats=("html",))[f"{name}_report.html"]
 
 
+def _paint_every_example(folder: Path) -> None:
+    """Each example's HTML report in its own browser, painted and its DOM dumped.
+
+    A launch is seconds of waiting for a fraction of a second of work: the examples'
+    browsers run at once, each with its own profile, and each leaves its screenshot, its
+    DOM (stdout), its log (stderr) and its exit status in the example's folder.
+    """
+    assert CHROMIUM is not None
+    started: dict[str, subprocess.Popen[bytes]] = {}
+    try:
+        for name in EXAMPLES:
+            here = folder / name
+            here.mkdir()
+            page = here / f"{name}_report.html"
+            page.write_text(_html(name))
+            with (here / "dom.html").open("wb") as dom, (here / "stderr").open("wb") as log:
+                started[name] = subprocess.Popen(
+                    [CHROMIUM, *BROWSER_FLAGS, f"--user-data-dir={here / 'profile'}",
+                     "--window-size=1200,3000", f"--screenshot={here / 'shot.png'}",
+                     "--dump-dom", page.as_uri()],
+                    stdout=dom, stderr=log,
+                )  # fmt: skip
+        for name, child in started.items():
+            (folder / name / "returncode").write_text(str(child.wait(timeout=120)))
+    finally:
+        for child in started.values():
+            if child.poll() is None:
+                child.kill()
+                child.wait()
+
+
+@pytest.fixture(scope="module")
+def painted() -> Path:
+    """Every example's report as a browser showed it (made once per run, see above)."""
+    if CHROMIUM is None:
+        pytest.skip("chromium is not installed (`.ci/run` installs Debian's chromium as root)")
+    return shared("report-in-a-browser", _paint_every_example)
+
+
 @pytest.mark.parametrize("name", EXAMPLES)
-def test_html_renders_in_a_browser(name: str, tmp_path: Path) -> None:
-    page = tmp_path / f"{name}_report.html"
-    page.write_text(_html(name))
-    shot = tmp_path / "shot.png"
-    # One launch both paints the page and dumps its DOM: a launch is most of the test.
-    run = _browser(page, tmp_path, "--window-size=1200,3000", f"--screenshot={shot}", "--dump-dom")
-    assert run.returncode == 0, run.stderr[-2000:]
+def test_html_renders_in_a_browser(name: str, painted: Path) -> None:
+    here = painted / name
+    # One launch both painted the page and dumped its DOM.
+    stderr = (here / "stderr").read_text(encoding="utf-8", errors="replace")
+    assert (here / "returncode").read_text() == "0", stderr[-2000:]
+    shot = here / "shot.png"
     assert shot.read_bytes().startswith(b"\x89PNG") and shot.stat().st_size > 50_000
-    console = [line for line in run.stderr.splitlines() if "CONSOLE" in line]
+    console = [line for line in stderr.splitlines() if "CONSOLE" in line]
     assert console == []
-    assert "ERR_NAME_NOT_RESOLVED" not in run.stderr and "net::ERR" not in run.stderr
-    dom = run.stdout
+    assert "ERR_NAME_NOT_RESOLVED" not in stderr and "net::ERR" not in stderr
+    dom = (here / "dom.html").read_text(encoding="utf-8")
     headings = re.findall(r"<h2>(.*?)</h2>", dom)
     assert headings == list(HEADINGS)
     assert dom.count("<math") >= 15
