@@ -75,6 +75,10 @@ def _check_elements(root: Any, source: str) -> None:
     or joint, the field and the value.
     """
     seen: dict[str, dict[str, str]] = {"link": {}, "joint": {}}
+    # Each spec name's element, the other way round: a file's thousands of names are
+    # checked in one pass, not one pass each (a spec name is refused the second time it
+    # is made, so it has one owner).
+    owner: dict[str, dict[str, str]] = {"link": {}, "joint": {}}
     for kind, prefix in (("link", "link"), ("joint", "joint")):
         for number, element in enumerate(root.findall(kind), start=1):
             name = element.get("name")
@@ -84,7 +88,7 @@ def _check_elements(root: Any, source: str) -> None:
             if name in seen[kind]:
                 raise _fail(source, where, f"two {kind}s are named {name!r}")
             spec_name = _identifier(name, prefix).casefold()
-            other = next((o for o, n in seen[kind].items() if n == spec_name), None)
+            other = owner[kind].get(spec_name)
             if other is not None:
                 raise _fail(
                     source,
@@ -94,6 +98,7 @@ def _check_elements(root: Any, source: str) -> None:
                     "'_', names are cut at 48 and compared ignoring case): rename one",
                 )
             seen[kind][name] = spec_name
+            owner[kind][spec_name] = name
     for link in root.findall("link"):
         _check_inertial(link, source)
     for joint in root.findall("joint"):
