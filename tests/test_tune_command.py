@@ -21,6 +21,8 @@ import numpy as np
 import pytest
 
 from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_INTERRUPTED, EXIT_TERMINATED
+from tvopt_codegen.maths import hurwitz
+from tvopt_codegen.sweep.program import transient_constant
 from tvopt_codegen.tune.requirements import requirements_from
 from tvopt_codegen.tune.search import cma_optimizer
 from tvopt_codegen.tune.session import Evaluation, Search
@@ -105,10 +107,24 @@ def test_a_tune_writes_a_tuned_spec_that_does_better_on_fresh_samples(reference:
 
 
 def test_the_same_command_writes_the_same_tuned_spec(reference: Path, tmp_path: Path) -> None:
+    # Every candidate's transient constant computed again too, as in another process.
+    transient_constant.cache_clear()
     ran = run_main("tune", *PVTOL, "--out", str(tmp_path / "again"))
     assert ran.returncode == 0, ran.stderr
     for name in (TUNED, "evaluations.csv", "tune.md", "tune.json"):
         assert (tmp_path / "again" / name).read_bytes() == (reference / name).read_bytes(), name
+
+
+def test_a_candidates_transient_constant_is_computed_once_per_process() -> None:
+    """A tune's candidate met again (its fresh check, another tune of the same seed) gets
+    the transient constant already computed: the same float as hurwitz's."""
+    values = hurwitz.coefficients_from_poles([-0.5, -3.0, -6.0, -9.0])
+    alpha, _ = hurwitz.certified_rate(values)
+    transient_constant.cache_clear()
+    first = transient_constant(tuple(values), alpha)
+    assert first == hurwitz.transient_constant(values, alpha) and first > 10
+    assert transient_constant(tuple(values), alpha) == first
+    assert transient_constant.cache_info().hits == 1
 
 
 @pytest.mark.parametrize(
