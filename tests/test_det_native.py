@@ -329,9 +329,9 @@ sys.exit(code)
 
 @pytest.mark.xfail(
     strict=True,
-    reason="det R is native, but two more steps still import SymPy for arm_on_line: "
-    "symbolic/linalg.det (_dotprodsimp, a denominator that is a sum) and "
-    "singularity.undefined_causes (the undefined condition written and its sign asked)",
+    reason="det R, its singular set and the undefined set are native; symbolic/linalg.det "
+    "still crosses the border for arm_on_line's det R (_dotprodsimp: a denominator that "
+    "is a sum), which is not this module's to change",
 )
 def test_generate_arm_on_line_imports_no_sympy() -> None:
     """``generate arm_on_line`` in a SymEngine process leaves SymPy unimported."""
@@ -359,3 +359,100 @@ def test_the_singular_set_reads_a_plain_numerator_natively() -> None:
             numerator = singularity._numerator(converted)
             assert (numerator != converted or not converted.is_Mul) == native, det
             assert _singular_set(converted) == reference, det
+
+
+_GENERATE_BESIDE_LINALG = """
+import sys, tempfile
+class Refuse:
+    def find_spec(self, name, path=None, target=None):
+        if name == "sympy" or name.startswith("sympy."):
+            raise ImportError("SymPy refused: " + name)
+        return None
+from tvopt_codegen import symbolic as sx
+from tvopt_codegen.symbolic import linalg
+own = linalg.det
+def det(matrix):  # a small one's plain expansion: equal in value to the border's
+    rows = matrix.tolist()
+    return sx.expand(linalg._written_out(rows)) if 2 <= len(rows) <= 3 else own(matrix)
+linalg.det = det
+sys.meta_path.insert(0, Refuse())
+from tvopt_codegen.cli import main
+code = main(["generate", "arm_on_line", "--out", sys.argv[1], "--quiet"])
+assert "sympy" not in sys.modules
+sys.exit(code)
+"""
+
+
+def test_generate_arm_on_line_needs_sympy_for_nothing_but_linalg(tmp_path: Any) -> None:
+    """With linalg.det's border crossing taken away, generate imports no SymPy and writes
+    generated/arm_on_line.py byte for byte: det R, its singular set and the undefined
+    set (a denominator's text and sign) are all decided natively."""
+    ran = _symengine_run([_GENERATE_BESIDE_LINALG, str(tmp_path)])
+    assert ran.returncode == 0, ran.stderr[-2000:]
+    written = (tmp_path / "arm_on_line.py").read_text()
+    assert written == (ROOT / "generated" / "arm_on_line.py").read_text()
+    assert "R or p is undefined where l2**2*m2*(l1**2*(m1 + m2)" in written
+
+
+# ------------------------------------------------------------------ a condition's text
+def _random_tree(rng: Any, depth: int) -> Any:
+    """A random SymEngine tree of sums, products, powers, numbers, symbols, sin and cos."""
+    symbols = sx.symbols(["a", "b", "x", "y", "l1", "l2", "m1", "m10", "m2", "q2", "theta", "Z"])
+    if depth == 0 or rng.random() < 0.1:
+        r = rng.random()
+        if r < 0.15:
+            number = rng.choice([-3, -2, -1, 1, 2, 5])
+            return rng.choice([sx.Integer(number), sx.Rational(1, 2)])
+        if r < 0.35:
+            return rng.choice([sx.sin, sx.cos])(rng.choice(symbols))
+        return rng.choice(symbols)
+    r = rng.random()
+    if r < 0.45:
+        return sum((_random_tree(rng, depth - 1) for _ in range(rng.randint(2, 4))), sx.ZERO)
+    if r < 0.85:
+        out = sx.ONE
+        for _ in range(rng.randint(2, 3)):
+            out *= _random_tree(rng, depth - 1)
+        return out
+    return _random_tree(rng, depth - 1) ** rng.randint(2, 3)
+
+
+def test_a_conditions_text_is_sympys() -> None:
+    """sympy_text writes 600 random trees as SymPy's sstr does, or declines (rationals)."""
+    import random  # noqa: PLC0415
+
+    rng = random.Random(7)
+    written = 0
+    with sx.using("symengine"):
+        for _ in range(600):
+            tree = _random_tree(rng, rng.randint(1, 3))
+            text = trigpoly.sympy_text(tree)
+            if text is not None:
+                written += 1
+                assert text == sp.sstr(to_sympy(tree)), tree
+        arm = sx.sympify(
+            "l2**2*m2*(l1**2*(m1 + m2) + 2*l1*l2*m2*cos(q2) + l2**2*m2)"
+            " - (l1*l2*m2*cos(q2) + l2**2*m2)**2"
+        )
+        assert trigpoly.sympy_text(arm) == sp.sstr(to_sympy(arm))
+        assert trigpoly.sympy_text(2 * (arm.args[0] + 1)) is None  # SymPy distributes 2
+    assert written > 300
+
+
+def test_a_value_of_both_signs_has_none() -> None:
+    """indefinite finds both signs only where there are: SymPy's sign is then None."""
+    with sx.using("symengine"):
+        x, y, q = sx.symbols(["x", "y", "q"])
+        assert trigpoly.indefinite(x * y) and trigpoly.indefinite(x - sx.cos(q))
+        for never in (x**2 + 1, sx.sin(q) ** 2 + sx.cos(q) ** 2, (x - y) ** 2, 2 + sx.cos(q)):
+            assert not trigpoly.indefinite(never), never
+        import random  # noqa: PLC0415
+
+        rng = random.Random(3)
+        both = 0
+        for _ in range(60):
+            tree = _random_tree(rng, 2)
+            if trigpoly.indefinite(tree):
+                both += 1
+                assert singularity._sign(to_sympy(tree)) is None, tree
+    assert both > 20

@@ -39,10 +39,10 @@ from .conftest import ROOT, SPECS, derivation
 
 EXAMPLES = sorted(p.stem for p in (ROOT / "tvopt_codegen" / "examples").glob("*.toml"))
 TEST_SPECS = sorted(str(p) for p in SPECS.glob("*.toml"))
-#: Examples whose law still crosses the border on SymEngine: arm_on_line's det R has a
-#: denominator that is a sum (``m1 + m2 sin(q2)^2``: SymPy's ``cancel``), its law is
-#: undefined where that vanishes (written as SymPy writes a sum), and its equality's
-#: Gram determinant is likewise a rational function.
+#: Examples whose derivation still crosses the border on SymEngine: arm_on_line's det R
+#: is written out by SymPy's ``dotprodsimp`` (``symbolic/linalg.det``: a denominator that
+#: is a sum). Its simplification, singular set and undefined set are native
+#: (``trigpoly``; ``tests/test_det_native.py`` holds them without that one crossing).
 BORDER = ("arm_on_line",)
 
 #: Run in a fresh process on SymEngine: derive, lower and render (Python) each bundled

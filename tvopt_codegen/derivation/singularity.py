@@ -22,7 +22,7 @@ from typing import Any
 
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation.meter import TimeLimitError, time_limited, tree_size
-from tvopt_codegen.derivation.trigpoly import lowest
+from tvopt_codegen.derivation.trigpoly import indefinite, lowest, sympy_text
 from tvopt_codegen.symbolic.border import from_sympy, sympy, to_sympy
 from tvopt_codegen.symbolic.order import sympy_ordered
 
@@ -212,8 +212,15 @@ def _sign(expr: sx.Expr) -> str | None:
 
 
 def _engine_sign(expr: sx.Expr, memo: dict[Any, Any]) -> str | None:
-    """:func:`_sign` of an expression of the engine (``memo``: the border's, shared)."""
+    """:func:`_sign` of an expression of the engine (``memo``: the border's, shared).
+
+    On SymEngine, a value seen to take both signs (:func:`.trigpoly.indefinite`: an
+    arm's dynamics' denominator, whose parameters may be of any sign) has none, as
+    SymPy's sound tests would find, without SymPy.
+    """
     if tree_size(expr, _SIGN_NODES) > _SIGN_NODES:
+        return None
+    if sx.SYMENGINE and indefinite(expr):
         return None
     return _sign(to_sympy(expr, memo))
 
@@ -320,7 +327,8 @@ def _condition_text(expr: sx.Expr, memo: dict[Any, Any]) -> str:
     """
     if not sx.SYMENGINE:
         return sx.text(expr)
-    return str(sympy().sstr(to_sympy(expr, memo)))
+    native = sympy_text(expr)  # a polynomial in symbols, sines and cosines: no SymPy
+    return native if native is not None else str(sympy().sstr(to_sympy(expr, memo)))
 
 
 #: The signs of a value under which each kind of condition holds nowhere.

@@ -528,3 +528,223 @@ def _equal(found: Rational, lowest: Lowest, atoms: Atoms) -> bool:
     kinds = {atoms.names[a]: "cos" for a, kind in enumerate(atoms.kinds) if kind}
     difference = add(product(found[0], bottom), product(top, found[1]), -1)
     return not reduced(difference, atoms, kinds)
+
+
+# SymPy's text of a condition, without SymPy. A condition where R or p is undefined quotes
+# an expression (a dynamics' denominator) as SymPy's default ``sstr`` writes it: a sum's
+# terms in SymPy's ``as_ordered_terms`` order (descending lex in its generators, sorted by
+# ``sort_key``), a product's factors by ``sort_key``. Written here for integers, symbols,
+# sines and cosines of symbols, sums, products and positive integer powers (an arm's
+# ``l2**2*m2*(l1**2*(m1 + m2) + ...) - (l1*l2*m2*cos(q2) + l2**2*m2)**2``): None
+# elsewhere, and where SymPy's constructors would rebuild the tree otherwise (a number
+# times one sum, which SymPy distributes; a power of a sum with a negative term).
+
+_SortKey = tuple[Any, ...]
+_NUMBER_CLASS = (1, 0, "Number")
+_ONE_KEY: _SortKey = (_NUMBER_CLASS, (0, ()), (), Fraction(1))
+_FUNCTION_CLASS = {"sin": (4, 20, "sin"), "cos": (4, 21, "cos")}
+#: SymPy's printing precedences (``sympy.printing.precedence.PRECEDENCE``).
+_ADD, _MUL, _POW = 40, 50, 60
+
+
+def _plain(node: Any, memo: dict[Any, bool]) -> bool:
+    """Whether ``node`` is in the class printed here, as SymPy would hold it."""
+    if node in memo:
+        return memo[node]
+    if node.is_Integer or node.is_Symbol:
+        out = True
+    elif node.is_Function:
+        out = sx.function_name(node) in _FUNCTION_CLASS and node.args[0].is_Symbol
+    elif node.is_Pow:
+        base, k = node.args
+        out = bool(k.is_Integer and int(k) >= 2 and _plain(base, memo) and not base.is_Integer)
+        if out and base.is_Add:  # SymPy keeps the sign of a sum's power as given: be sure
+            out = all(_coefficient(term) > 0 for term in base.args)
+    elif node.is_Mul:
+        numbers = [arg for arg in node.args if arg.is_Number]
+        out = len(numbers) <= 1 and all(n.is_Integer for n in numbers)
+        out = out and all(_plain(arg, memo) for arg in node.args)
+        if out and len(node.args) == 2 and numbers and any(arg.is_Add for arg in node.args):
+            out = False  # SymPy distributes a number over a sum
+    elif node.is_Add:
+        out = all(_plain(arg, memo) for arg in node.args)
+    else:
+        out = False
+    memo[node] = out
+    return out
+
+
+def _coefficient(term: Any) -> Fraction:
+    """A term's number (1 where it has none)."""
+    if term.is_Number:
+        return Fraction(int(term))
+    if term.is_Mul:
+        for arg in term.args:
+            if arg.is_Number:
+                return Fraction(int(arg))
+    return Fraction(1)
+
+
+def _split(term: Any) -> tuple[Fraction, list[Any]]:
+    """``as_coeff_Mul`` and ``Mul.make_args`` of the rest: the number and the factors."""
+    if term.is_Number:
+        return Fraction(int(term)), []
+    factors = list(term.args) if term.is_Mul else [term]
+    number = Fraction(1)
+    rest = []
+    for factor in factors:
+        if factor.is_Number:
+            number *= int(factor)
+        else:
+            rest.append(factor)
+    return number, rest
+
+
+def _sort_key(node: Any, memo: dict[Any, _SortKey]) -> _SortKey:
+    """SymPy's ``Expr.sort_key`` (default order) of a node of the class."""
+    if node in memo:
+        return memo[node]
+    if node.is_Integer:
+        out: _SortKey = (_NUMBER_CLASS, (0, ()), (), Fraction(int(node)))
+    elif node.is_Symbol:
+        out = ((2, 0, "Symbol"), (1, (str(node),)), _ONE_KEY, Fraction(1))
+    else:
+        number, factors = _split(node) if node.is_Mul else (Fraction(1), [node])
+        rest = factors[0] if len(factors) == 1 else None
+        exponent = _ONE_KEY
+        if rest is not None and rest.is_Pow:
+            rest, k = rest.args
+            exponent = _sort_key(k, memo)
+        if rest is not None and rest.is_Symbol:
+            args: tuple[Any, ...] = (str(rest),)
+            kind = (2, 0, "Symbol")
+        elif rest is None:  # a product of several factors
+            args = tuple(sorted(_sort_key(f, memo) for f in factors))
+            kind = (3, 0, "Mul")
+        elif rest.is_Add:
+            args = tuple(_sort_key(t, memo) for t in _ordered_terms(rest, memo))
+            kind = (3, 1, "Add")
+        else:  # sin or cos of a symbol
+            args = tuple(_sort_key(a, memo) for a in rest.args)
+            kind = _FUNCTION_CLASS[sx.function_name(rest)]
+        out = (kind, (len(args), args), exponent, number)
+    memo[node] = out
+    return out
+
+
+def _ordered_terms(node: Any, memo: dict[Any, _SortKey]) -> list[Any]:
+    """SymPy's ``Add.as_ordered_terms()`` of a sum of the class."""
+    terms = list(node.args)
+    numbers = [t for t in terms if t.is_Number]
+    others = [t for t in terms if not t.is_Number]
+    if len(terms) == 2 and numbers and others[0].is_Mul:
+        number, factors = _split(others[0])
+        if len(others[0].args) == 2 and number < 0 < int(numbers[0]):
+            return [numbers[0], others[0]]  # ``1 - x``: the number first
+    powers: list[dict[Any, int]] = []
+    for term in terms:
+        _, factors = _split(term)
+        powers.append(
+            {(f.args[0] if f.is_Pow else f): (int(f.args[1]) if f.is_Pow else 1) for f in factors}
+        )
+    gens = sorted({g for p in powers for g in p}, key=lambda g: _sort_key(g, memo))
+    order = sorted(
+        range(len(terms)),
+        key=lambda i: (tuple(-powers[i].get(g, 0) for g in gens), _split(terms[i])[0]),
+    )
+    return [terms[i] for i in order]
+
+
+def _precedence(node: Any) -> int:
+    if node.is_Add:
+        return _ADD
+    if node.is_Mul:
+        return _ADD if _split(node)[0] < 0 else _MUL
+    if node.is_Integer:
+        return _ADD if int(node) < 0 else 1000
+    if node.is_Pow:
+        return _POW
+    return 1000 if node.is_Symbol else 70
+
+
+def _text(node: Any, memo: dict[Any, _SortKey]) -> str:
+    """SymPy's ``sstr`` of a node of the class."""
+    if node.is_Integer or node.is_Symbol:
+        return str(int(node)) if node.is_Integer else str(node)
+    if node.is_Function:
+        return f"{sx.function_name(node)}({_text(node.args[0], memo)})"
+    if node.is_Pow:
+        base, k = node.args
+        inner = _text(base, memo)
+        return f"({inner})**{int(k)}" if _precedence(base) <= _POW else f"{inner}**{int(k)}"
+    if node.is_Mul:
+        number, factors = _split(node)
+        sign = "-" if number < 0 else ""
+        items = ([sx.Integer(abs(int(number)))] if abs(number) != 1 else []) + sorted(
+            factors, key=lambda f: _sort_key(f, memo)
+        )
+        level = _precedence(node)
+        parts = [
+            f"({_text(f, memo)})" if _precedence(f) <= level else _text(f, memo) for f in items
+        ]
+        return sign + "*".join(parts)
+    out = []
+    for term in _ordered_terms(node, memo):
+        text = _text(term, memo)
+        sign = "+"
+        if text.startswith("-"):
+            sign, text = "-", text[1:]
+        out.extend([sign, text])
+    first = out.pop(0)
+    return ("" if first == "+" else first) + " ".join(out)
+
+
+def sympy_text(expr: sx.Expr) -> str | None:
+    """``expr`` as SymPy's ``sstr`` writes it, or None outside the class written here."""
+    if not _plain(expr, {}):
+        return None
+    return _text(expr, {})
+
+
+def indefinite(expr: sx.Expr, points: int = 64) -> bool:
+    """Whether ``expr`` is seen to take both signs at real points (then no sign is known).
+
+    A rational function in symbols and sines and cosines of symbols, evaluated at fixed
+    pseudo-random points; a value counts only well away from its rounding error. Where
+    ``expr`` is positive at one real point and negative at another, no sound test calls
+    it positive, negative or non-negative: SymPy's assumptions would answer None.
+    """
+    import math  # noqa: PLC0415 - only here
+    import random  # noqa: PLC0415 - only here
+
+    atoms = Atoms()
+    found = rational(expr, atoms, {})
+    if found is None:
+        return False
+    draw = random.Random(49)
+    signs: set[int] = set()
+    for _ in range(points):
+        values: dict[str, float] = {}
+        for name in atoms.names:
+            values.setdefault(name, draw.uniform(-2.0, 2.0))
+        atom_values = [
+            values[name] if not kind else getattr(math, kind)(values[name])
+            for kind, name in zip(atoms.kinds, atoms.names, strict=True)
+        ]
+        parts = []
+        for poly in found:
+            total = scale = 0.0
+            for monomial, c in poly.items():
+                term = float(c)
+                for atom, k in monomial:
+                    term *= atom_values[atom] ** k
+                total += term
+                scale += abs(term)
+            parts.append((total, scale))
+        (top, top_scale), (bottom, bottom_scale) = parts
+        if abs(top) <= 1e-9 * top_scale or abs(bottom) <= 1e-9 * bottom_scale:
+            continue
+        signs.add(1 if (top > 0) == (bottom > 0) else -1)
+        if len(signs) == 2:
+            return True
+    return False
