@@ -30,6 +30,11 @@ on random determinants of the shape and beside it.
 Everything else (a numerator that is a sum, two polynomial factors, an angle under a sine
 and a cosine in ``M``, a sine in ``D``, a function of anything but a symbol) returns
 None: SymPy decides, as before.
+
+Two more of the derivation's border crossings are answered here for such polynomials:
+:func:`sympy_text`, a condition's text as SymPy's ``sstr`` writes it (where R or p is
+undefined: an arm's dynamics' denominator), and :func:`indefinite`, whether a value
+takes both signs (then SymPy's sound tests find no sign).
 """
 
 from __future__ import annotations
