@@ -11,7 +11,6 @@ constant factor per order and nothing is ever expanded.
 
 from __future__ import annotations
 
-import operator
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -107,10 +106,7 @@ def unchanged(node: sx.Expr, args: Sequence[sx.Expr]) -> bool:
     objects; SymEngine hands out a new Python object for an argument at each ``.args``,
     so there equal arguments (a comparison in C++) count.
     """
-    own = node.args
-    if len(args) != len(own):
-        return False
-    return all(map(operator.eq if sx.SYMENGINE else operator.is_, args, own))
+    return _same(args, node.args)
 
 
 def _same(args: Sequence[sx.Expr], own: Sequence[sx.Expr]) -> bool:
@@ -373,13 +369,14 @@ def next_derivative(
     differentiates small expressions only: the k-th derivative grows linearly in k.
     """
     new, current, moving = total_derivative(program, outputs, rates, names, check)
-    memo: dict[sx.Expr, sx.Expr] = {}
-    pieces: list[Assignment] = []
+    # One walker for every assignment, its pieces written just before it: a walk per
+    # assignment (a closure, a program and their release each) was a fifth of this.
+    walker = _Atomizer(names, {})
     for sym, value in new.assignments:
-        part, (root,) = atomize([value], names, memo)
-        pieces += [*part.assignments, (sym, root)]
-    part, current = atomize(list(current), names, memo)
-    return Program((*pieces, *part.assignments)), current, moving
+        root = walker.visit(sx.as_expr(value))
+        walker.out.append((sym, root))
+    current = tuple(walker.visit(sx.as_expr(e)) for e in current)
+    return Program(tuple(walker.out)), current, moving
 
 
 def atomize(
@@ -405,16 +402,30 @@ def atomize(
     tuple of (Program, tuple of expression)
         The assignments and the outputs (each a symbol or an atom).
     """
-    table: dict[sx.Expr, sx.Expr] = {} if memo is None else memo
-    out: list[tuple[sx.Expr, sx.Expr]] = []
+    walker = _Atomizer(names, {} if memo is None else memo)
+    outputs = tuple(walker.visit(sx.as_expr(e)) for e in exprs)
+    return Program(tuple(walker.out)), outputs
 
-    def visit(node: sx.Expr) -> sx.Expr:
+
+class _Atomizer:
+    """The walk of :func:`atomize`: its memo of subtrees, the names, the assignments so far.
+
+    A method, not a nested function: nothing to release after the walk (no cycle).
+    """
+
+    def __init__(self, names: Iterator[sx.Expr], table: dict[sx.Expr, sx.Expr]) -> None:
+        self.names, self.table = names, table
+        self.out: list[Assignment] = []
+
+    def visit(self, node: sx.Expr) -> sx.Expr:
+        """``node`` as an atom or the symbol of its assignment, its pieces assigned first."""
         if node.is_Atom:
             return node
+        table = self.table
         if node in table:
             return table[node]
         own = node.args
-        args = [visit(arg) for arg in own]
+        args = [self.visit(arg) for arg in own]
         if node.is_Mul:
             # Products become chains of two factors: the derivative of an n-factor
             # product is n terms of n - 1 factors, quadratic; of a chain, linear.
@@ -425,8 +436,8 @@ def atomize(
                 if pair in table:
                     factors = [table[pair], *factors[2:]]
                     continue
-                symbol = next(names)
-                out.append((symbol, pair))
+                symbol = next(self.names)
+                self.out.append((symbol, pair))
                 table[pair] = symbol
                 factors = [symbol, *factors[2:]]
             args = [*numbers, *factors]
@@ -436,14 +447,10 @@ def atomize(
         if rebuilt.is_Atom:
             table[node] = rebuilt
             return rebuilt
-        symbol = next(names)
-        out.append((symbol, rebuilt))
+        symbol = next(self.names)
+        self.out.append((symbol, rebuilt))
         table[node] = symbol
         return symbol
-
-    outputs = tuple(visit(sx.as_expr(e)) for e in exprs)
-    release(visit)
-    return Program(tuple(out)), outputs
 
 
 def jacobian(
