@@ -42,6 +42,11 @@ RELATIONS = {
 }
 
 
+#: The parts of a node's record in a printer's memo: the node, its text and precedence
+#: (None until printed), its arguments and its :func:`canonical_key` (None until asked).
+_NODE, _TEXT, _LEVEL, _ARGS, _KEY = range(5)
+
+
 class UnprintableError(NotImplementedError):
     """An expression node the printer's language has no spelling for (a bug upstream)."""
 
@@ -62,9 +67,14 @@ class ExpressionPrinter:
     reserved_words: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(self) -> None:
-        self._memo: dict[Any, tuple[Any, str, float]] = {}
-        self._keys: dict[Any, tuple[Any, ...]] = {}
+        #: One record per node (:data:`_NODE`, :data:`_TEXT`, ...): one lookup of the
+        #: node gives all the walk keeps of it.
+        self._memo: dict[Any, list[Any]] = {}
         self._methods: dict[type, Callable[[Any], str]] = {}
+        #: The precedence of the node classes whose precedence is their class's alone.
+        self._levels: dict[type, float] = {}
+        #: The record of the node whose method runs (until it prints another).
+        self._current: list[Any] = [None]
         self._by_value = False
 
     # -- the walk ----------------------------------------------------------------------
@@ -86,17 +96,57 @@ class ExpressionPrinter:
 
     def _print(self, expr: Any) -> str:
         """The text of one node, printed once."""
-        return self._entry(expr)[1]
+        record = self._record(expr)
+        text: str | None = record[_TEXT]
+        return text if text is not None else str(self._printed(record)[_TEXT])
 
-    def _entry(self, expr: Any) -> tuple[Any, str, float]:
-        """A node, its text and its precedence, computed once."""
+    def _record(self, expr: Any) -> list[Any]:
+        """The record of a node: made at first sight, its parts filled when asked."""
         key = expr if self._by_value else id(expr)
-        known = self._memo.get(key)
-        if known is None:
+        record = self._memo.get(key)
+        if record is None:
             # The node itself is kept: an identity is not reused while it lives.
-            known = (expr, self._method(type(expr))(expr), self.precedence(expr))
-            self._memo[key] = known
-        return known
+            record = self._memo[key] = [expr, None, 0.0, None, None]
+        return record
+
+    def _printed(self, record: list[Any]) -> list[Any]:
+        """``record`` with its node's text and precedence."""
+        if record[_TEXT] is None:
+            expr = record[_NODE]
+            kind = type(expr)
+            method = self._methods.get(kind) or self._method(kind)
+            level = self._levels.get(kind)
+            # The method's first question is the node's arguments (_arguments).
+            self._current = record
+            text = method(expr)
+            record[_LEVEL] = self.precedence(expr) if level is None else level
+            record[_TEXT] = text
+        return record
+
+    def _entry(self, expr: Any) -> list[Any]:
+        """A node's record with its text and precedence, computed once."""
+        record = self._record(expr)
+        return record if record[_TEXT] is not None else self._printed(record)
+
+    def _arguments(self, expr: Any) -> tuple[Any, ...]:
+        """A node's arguments, read once per node.
+
+        Each ``.args`` of a SymEngine node builds new Python objects for its arguments
+        (a microsecond or more); the walk asks for a node's arguments when it prints
+        the node, when it prints its parent and when it orders it. SymPy's are a
+        tuple the node holds.
+        """
+        if not self._by_value:
+            return expr.args  # type: ignore[no-any-return]
+        current = self._current
+        return self._record_args(current if current[_NODE] is expr else self._record(expr))
+
+    @staticmethod
+    def _record_args(record: list[Any]) -> tuple[Any, ...]:
+        args: tuple[Any, ...] | None = record[_ARGS]
+        if args is None:
+            args = record[_ARGS] = record[_NODE].args
+        return args
 
     def _method(self, kind: type) -> Callable[[Any], str]:
         """The printing method of a node class: by its name, or its nearest base's."""
@@ -116,95 +166,122 @@ class ExpressionPrinter:
 
     def precedence(self, expr: Any) -> float:
         """How strongly ``expr``'s text binds (SymPy's precedence of the node)."""
-        if expr.is_Add:
-            return ADD
         if expr.is_Mul:
-            return ADD if negative_number(expr.args[0]) else MUL
+            return ADD if negative_number(self._arguments(expr)[0]) else MUL
         if expr.is_Pow:
-            return FUNC if _is_e(expr.args[0]) else POW
+            return FUNC if _is_e(self._arguments(expr)[0]) else POW
         if expr.is_Number:
             if negative_number(expr):
                 return ADD
             return MUL if expr.is_Rational and not expr.is_Integer else ATOM
-        if expr.is_Symbol or expr.is_Atom:
-            return ATOM
-        if expr.is_Function:
-            return FUNC
-        name = type(expr).__name__
-        if name in RELATIONS:
-            return RELATIONAL
-        return {"And": AND, "Or": OR, "Not": NOT}.get(name, ATOM)
+        # The rest binds as its class does: asked once per class.
+        if expr.is_Add:
+            level = ADD
+        elif expr.is_Symbol or expr.is_Atom:
+            level = ATOM
+        elif expr.is_Function:
+            level = FUNC
+        else:
+            name = type(expr).__name__
+            if name in RELATIONS:
+                level = RELATIONAL
+            else:
+                level = {"And": AND, "Or": OR, "Not": NOT}.get(name, ATOM)
+        self._levels[type(expr)] = level
+        return level
 
     def parenthesize(self, expr: Any, level: float) -> str:
         """``expr``'s text, in brackets unless it binds more strongly than ``level``."""
-        _, text, precedence = self._entry(expr)
-        return f"({text})" if precedence <= level else text
+        record = self._entry(expr)
+        text: str = record[_TEXT]
+        return f"({text})" if record[_LEVEL] <= level else text
 
     # -- sums and products ---------------------------------------------------------------
 
-    def _ordered(self, args: tuple[Any, ...]) -> list[Any]:
-        """Arguments in the engine's order, or in SymPy's where that follows hashes."""
-        if not self._by_value or len(args) < 2:
-            return list(args)
-        return sorted(args, key=self._key)
+    def _ordered(self, args: tuple[Any, ...]) -> list[list[Any]]:
+        """The arguments' records, in the engine's order or in SymPy's where that follows hashes."""
+        records = [self._record(arg) for arg in args]
+        if self._by_value and len(records) > 1:
+            records.sort(key=self._record_key)
+        return records
 
     def _key(self, expr: Any) -> tuple[Any, ...]:
         """:func:`canonical_key` of a node, computed once."""
-        key = self._keys.get(expr)
+        return self._record_key(self._record(expr))
+
+    def _record_key(self, record: list[Any]) -> tuple[Any, ...]:
+        key: tuple[Any, ...] | None = record[_KEY]
         if key is None:
-            key = self._keys[expr] = canonical_key(expr, self._key)
+            key = record[_KEY] = canonical_key(record[_NODE], self._key)
         return key
 
+    def _negative_term(self, record: list[Any]) -> bool:
+        """Whether a term prints with a leading minus sign (:func:`negative_term`)."""
+        term = record[_NODE]
+        return negative_number(self._record_args(record)[0] if term.is_Mul else term)
+
     def _print_Add(self, expr: Any) -> str:
-        args = self._ordered(expr.args)
-        terms = [a for a in args if not a.is_Number] + [a for a in args if a.is_Number]
-        if negative_term(terms[0]):
-            first = next((i for i, term in enumerate(terms) if not negative_term(term)), 0)
+        terms = self._ordered(self._arguments(expr))
+        numbers = [r for r in terms if r[_NODE].is_Number]
+        if numbers:
+            terms = [r for r in terms if not r[_NODE].is_Number] + numbers
+        if self._negative_term(terms[0]):
+            first = next((i for i, term in enumerate(terms) if not self._negative_term(term)), 0)
             terms.insert(0, terms.pop(first))
         pieces: list[str] = []
-        for term in terms:
-            text = self._print(term)
+        printed = self._printed
+        for record in terms:
+            text = record[_TEXT]
+            if text is None:
+                text = printed(record)[_TEXT]
             sign = "+"
-            if text.startswith("-") and not term.is_Add:
+            if record[_NODE].is_Add:
+                text = f"({text})"
+            elif text[0] == "-":
                 sign, text = "-", text[1:]
-            pieces += [sign, f"({text})" if term.is_Add else text]
+            pieces += [sign, text]
         first_sign = pieces.pop(0)
         return ("" if first_sign == "+" else first_sign) + " ".join(pieces)
 
     def _print_Mul(self, expr: Any) -> str:
         """A product: its coefficient's sign first, negative powers as a denominator."""
-        args = expr.args
-        level = self.precedence(expr)
+        args = self._arguments(expr)
         coefficient = args[0] if args[0].is_Number else None
         factors = self._ordered(args[1:] if coefficient is not None else args)
         sign = ""
+        level: float = MUL
         if coefficient is not None and negative_number(coefficient):
-            sign, coefficient = "-", -coefficient
+            sign, coefficient, level = "-", -coefficient, ADD
         if coefficient is not None and not (coefficient.is_Integer and int(coefficient) == 1):
-            factors.insert(0, coefficient)
-        numerator: list[str] = []
+            factors.insert(0, self._record(coefficient))
+        numerator: list[list[Any]] = []
         denominator: list[str] = []
-        lone: Any = None
-        for factor in factors:
-            exponent = factor.args[1] if factor.is_Pow else None
+        for record in factors:
+            factor = record[_NODE]
+            exponent = self._record_args(record)[1] if factor.is_Pow else None
             if exponent is not None and exponent.is_Rational and negative_number(exponent):
-                base = factor.args[0]
+                base = self._record_args(record)[0]
                 if exponent.is_Integer and int(exponent) == -1:
                     text = self.parenthesize(base, level)
                     # A product to the power -1 keeps its brackets (SymPy's #14160).
-                    bracketed = base.is_Mul and len(base.args) != 1
+                    bracketed = base.is_Mul and len(self._arguments(base)) != 1
                     denominator.append(f"({text})" if bracketed else text)
                 else:
                     denominator.append(self._power(base, -exponent))
             else:
-                numerator.append(factor)
-                lone = factor
+                numerator.append(record)
         if not numerator:
             numerator_text = [self._print(sx.ONE)]
-        elif len(numerator) == 1 and sign:
-            numerator_text = [self.parenthesize(lone, _NEGATED)]
         else:
-            numerator_text = [self.parenthesize(factor, level) for factor in numerator]
+            if len(numerator) == 1 and sign:
+                level = _NEGATED
+            numerator_text = []
+            printed = self._printed
+            for record in numerator:
+                if record[_TEXT] is None:
+                    printed(record)
+                text = record[_TEXT]
+                numerator_text.append(f"({text})" if record[_LEVEL] <= level else text)
         text = sign + "*".join(numerator_text)
         if len(denominator) == 1:
             return f"{text}/{denominator[0]}"
@@ -213,7 +290,7 @@ class ExpressionPrinter:
         return text
 
     def _print_Pow(self, expr: Any) -> str:
-        base, exponent = expr.args
+        base, exponent = self._arguments(expr)
         if _is_e(base):  # SymEngine's exp(x) is E**x
             return self._function("exp", (exponent,))
         return self._power(base, exponent)
@@ -225,7 +302,7 @@ class ExpressionPrinter:
     # -- functions and leaves ----------------------------------------------------------
 
     def _print_Function(self, expr: Any) -> str:
-        return self._function(sx.function_name(expr), tuple(expr.args))
+        return self._function(sx.function_name(expr), tuple(self._arguments(expr)))
 
     def _function(self, name: str, args: tuple[Any, ...]) -> str:
         """An applied function ``name`` of ``args``."""
