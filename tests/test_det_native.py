@@ -456,3 +456,20 @@ def test_a_value_of_both_signs_has_none() -> None:
                 both += 1
                 assert singularity._sign(to_sympy(tree)) is None, tree
     assert both > 20
+
+
+def test_cancels_view_keeps_angle_sums_as_atoms() -> None:
+    """Atoms(expand_angles=False) reads functions as SymPy's cancel does: the arm's det R is
+    two terms in four atoms over its monomial content times a polynomial of three terms."""
+    with sx.using("symengine"):
+        atoms = trigpoly.Atoms(expand_angles=False)
+        found = trigpoly.rational(from_sympy(ARM_DET), atoms, {})
+        assert found is not None
+        numerator, denominator = found
+        assert len(numerator) == 2 and len(atoms.exprs) >= 4
+        number, monomial, rest = trigpoly.content(denominator)
+        assert number == 1 and len(monomial) == 3 and len(rest) == 3  # l1 l2 m2 (...)
+        assert any(not e.is_Symbol and not e.args[0].is_Symbol for e in atoms.exprs)
+        plain = trigpoly.Atoms()
+        assert trigpoly.rational(from_sympy(ARM_DET), plain, {}) is not None
+        assert all(e.is_Symbol or e.args[0].is_Symbol for e in plain.exprs)  # expanded

@@ -67,7 +67,10 @@ class Atoms:
     symbol's or the angle's name.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, expand_angles: bool = True) -> None:
+        #: Whether ``sin(q1 + q2)`` is expanded in ``sin(q1)``, ``cos(q1)``, ... (else it is
+        #: an atom of its own, as SymPy's ``cancel`` and ``factor`` read it).
+        self.expand_angles = expand_angles
         self.exprs: list[Any] = []
         self.kinds: list[str] = []
         self.names: list[str] = []
@@ -188,6 +191,8 @@ def _sum(p: Rational, q: Rational) -> Rational:
 
 def _circular(name: str, arg: Any, atoms: Atoms) -> Poly | None:
     """``sin`` or ``cos`` of a sum of integer multiples of symbols, in their sines and cosines."""
+    if not atoms.expand_angles:
+        return atoms.variable(name, arg)
     sine: Poly = {}
     cosine: Poly = ONE
     for term in arg.args if arg.is_Add else (arg,):
@@ -243,7 +248,7 @@ def reduced(p: Poly, atoms: Atoms, kinds: dict[str, str]) -> Poly:
     return {key: c for key, c in out.items() if c}
 
 
-def _content(p: Poly) -> tuple[Fraction, Monomial, Poly]:
+def content(p: Poly) -> tuple[Fraction, Monomial, Poly]:
     """``p`` as a positive rational times a monomial times a primitive integer polynomial."""
     common: dict[int, int] | None = None
     for monomial in p:
@@ -391,14 +396,14 @@ def _shaped(found: Rational, atoms: Atoms, kinds: dict[str, str]) -> Lowest | No
     numerator, denominator = (reduced(p, atoms, kinds) for p in found)
     if not numerator or not denominator:
         return None
-    top_number, top_monomial, top = _content(numerator)
-    bottom_number, bottom_monomial, bottom = _content(denominator)
+    top_number, top_monomial, top = content(numerator)
+    bottom_number, bottom_monomial, bottom = content(denominator)
     if len(top) > 1 and len(bottom) > 1:  # a common factor, where one divides the other
         smaller, larger = (top, bottom) if len(top) <= len(bottom) else (bottom, top)
         quotient = exact_quotient(larger, smaller)
         if quotient is None:
             return None
-        number, monomial, rest = _content(quotient)
+        number, monomial, rest = content(quotient)
         if smaller is top:
             top, bottom = ONE, rest
             bottom_number *= number
