@@ -58,16 +58,16 @@ class Dag:
         self.expr: list[sx.Expr | None] = []
         self.args: list[tuple[int, ...]] = []
         self.kind: list[int] = []
-        self.cost: list[int] = []
+        self.cost: dict[int, int] = {}
         # An expression object -> its id: SymEngine's == compares pointers first, so a
         # hit on an object of the table's own nodes (a rebuilt node's children) is cheap.
         self._ids: dict[sx.Expr, int] = {}
         # A compound node's (class, name, children) -> its id; sums' and products'
         # children sorted, as SymEngine may order equal ones' terms apart.
         self._keys: dict[tuple[Any, ...], int] = {}
-        # A node's class, its key's head (class, and a function's name), and the node
-        # whose constructor builds it (itself, unless made by a rename: :meth:`rebuild`).
-        self._class: list[Any] = []
+        # A compound node's key's head (its class, and a function's name; a leaf's is
+        # empty), and the node whose constructor builds it (itself, unless made by a
+        # rename: :meth:`rebuild`).
         self._head: list[tuple[Any, ...]] = []
         self._template: list[int] = []
         self._types: dict[Any, tuple[int, bool]] = {}
@@ -102,7 +102,7 @@ class Dag:
         args = expr.args
         if not args:
             # A leaf equal to one in the table was found above: this one is new.
-            i = self._new(expr, (), self._leaf_kind(expr), cls, (), len(self.expr))
+            i = self._new(expr, (), self._leaf_kind(expr), (), len(self.expr))
         else:
             info = self._types.get(cls)
             if info is None:
@@ -118,7 +118,7 @@ class Dag:
                 key = (*head, *children)
             i = self._keys.get(key, -1)
             if i < 0:
-                i = self._keys[key] = self._new(expr, children, kind, cls, head, len(self.expr))
+                i = self._keys[key] = self._new(expr, children, kind, head, len(self.expr))
             if cls is self._add:
                 return i
         self._ids[expr] = i
@@ -161,7 +161,6 @@ class Dag:
         expr: sx.Expr | None,
         children: tuple[int, ...],
         kind: int,
-        cls: Any,
         head: tuple[Any, ...],
         template: int,
     ) -> int:
@@ -170,9 +169,9 @@ class Dag:
         self.expr.append(expr)
         self.args.append(children)
         self.kind.append(kind)
-        self.cost.append(self._leaf_cost if kind == _NUMBER else 0)
+        if kind == _NUMBER:
+            self.cost[i] = self._leaf_cost
         self._template.append(template)
-        self._class.append(cls)
         self._head.append(head)
         return i
 
@@ -193,15 +192,13 @@ class Dag:
                 return plain[0]  # a sum of one term, a product of one factor: that one
             children = plain
             if kind in (_ADD, _MUL):
-                key: tuple[Any, ...] = (self._class[i], *sorted(children))
+                key: tuple[Any, ...] = (self._head[i][0], *sorted(children))
             else:
                 key = (*self._head[i], *children)
             found = self._keys.get(key)
             if found is not None:
                 return found
-            j = self._keys[key] = self._new(
-                None, children, kind, self._class[i], self._head[i], self._template[i]
-            )
+            j = self._keys[key] = self._new(None, children, kind, self._head[i], self._template[i])
             return j
         expression = self.expression
         built = _rebuild_symengine(expression(i), [expression(c) for c in children])
@@ -320,12 +317,11 @@ class Dag:
         plain = self._plain_product(children)
         if plain != children:
             return None
-        key = (self._class[self._mul], *sorted(children))
+        head = self._head[self._mul]
+        key = (head[0], *sorted(children))
         found = self._keys.get(key)
         if found is None:
-            found = self._keys[key] = self._new(
-                None, children, _MUL, self._class[self._mul], self._head[self._mul], self._mul
-            )
+            found = self._keys[key] = self._new(None, children, _MUL, head, self._mul)
         return found
 
     def _number_and_factors(self, children: tuple[int, ...]) -> tuple[int, list[int]]:
@@ -405,12 +401,12 @@ class Dag:
 
     def _node(self, children: tuple[int, ...], kind: int, like: int) -> int:
         """The sum or product of ``children`` (kept as they are), of node ``like``'s class."""
-        cls = self._class[like]
+        cls = self._head[like][0]
         key = (cls, *sorted(children))
         found = self._keys.get(key)
         if found is None:
             found = self._keys[key] = self._new(
-                None, children, kind, cls, self._head[like], self._template[like]
+                None, children, kind, self._head[like], self._template[like]
             )
         return found
 
@@ -527,8 +523,8 @@ class Dag:
         """
         odd = set(_odd())
         mapping: dict[int, int] = {}
-        for i, cls in enumerate(self._class):
-            if cls in odd:
+        for i, head in enumerate(self._head):
+            if head and head[0] in odd:
                 expr = self.expression(i)
                 signed = _signed_nested(expr, memo)
                 if signed != expr:

@@ -9,6 +9,7 @@ its algebra (reading, rebuilding, negation, merging) are :class:`~.dag.Dag`'s.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
@@ -163,22 +164,15 @@ def occurrences(dag: Dag, root: int, position: dict[int, int]) -> dict[int, int]
     place), from the symbols' counts in ``root``, which are kept: the kernels cut
     from one program count the same values again.
     """
-    counts = dag.symbol_counts(root)
-    found: dict[int, int] = {}
-    for sym, times in counts.items():
-        i = position.get(sym)
-        if i is not None:
-            found[i] = times
-    return found
+    get = position.get
+    return {
+        i: times for sym, times in dag.symbol_counts(root).items() if (i := get(sym)) is not None
+    }
 
 
 def inline_single_use(dag: Dag, order: Program, outputs: list[int]) -> tuple[Program, list[int]]:
     """:func:`~.numbering._inline_single_use` on ids."""
-
-    def counted(root: int, position: dict[int, int]) -> dict[int, int]:
-        return occurrences(dag, root, position)
-
-    return inline_waves(order, outputs, dag.substitute, counted)
+    return inline_waves(order, outputs, dag.substitute, functools.partial(occurrences, dag))
 
 
 def inline_waves(
