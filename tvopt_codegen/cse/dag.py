@@ -706,9 +706,11 @@ class Dag:
                 total = 0
                 for arg in args[node]:
                     if args[arg]:
-                        total += own(arg, parent) + count(arg)
-                    elif kind[arg] == _NUMBER:
-                        total += own(arg, parent)
+                        # A shared child is counted already: looked up, not called.
+                        sub = below.get(arg)
+                        total += own(arg, parent) + (count(arg) if sub is None else sub)
+                    elif kind[arg] == _NUMBER and parent != _MUL:
+                        total += cost[arg]
                 below[node] = total
             return total
 
