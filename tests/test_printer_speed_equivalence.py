@@ -9,6 +9,7 @@ and splitting, and the Python backend's register renaming.
 from __future__ import annotations
 
 import heapq
+import itertools
 import re
 from typing import Any
 
@@ -186,3 +187,38 @@ def test_register_renaming_splits_once_and_renames_as_a_substitution(kernels: Ke
             code != old for (_, code), (_, old) in zip(fast.body, printed.body, strict=True)
         )
     assert renamed > 10  # the kernels' temporaries were renamed, not left alone
+
+
+def test_the_scanners_short_way_for_a_temporary_sizes_it_as_the_general_way(
+    kernels: KernelSet,
+) -> None:
+    """``const <real> tN = ...;`` sized from its first tokens: the size the general path gives."""
+    files = render(
+        kernels,
+        "c",
+    )
+    name = kernels.derivation.spec.name
+    header, source = stack._clean(files[f"{name}.h"]), stack._clean(files[f"{name}.c"])
+    defines = dict(stack._DEFINE.findall(header))
+    defines.update(stack._DEFINE.findall(source))
+    reals = frozenset(re.findall(r"typedef\s+(?:double|float)\s+(\w+)\s*;", header + source))
+    sizes = stack._Sizes(8, defines, reals)
+    tokens = stack._tokens(stack._DIRECTIVE.sub(" ", source))
+    short = 0
+    # The statements between semicolons and braces, as _frame cuts a body (a for's
+    # header is cut too, and is no declaration either way).
+    for ends, group in itertools.groupby(tokens, key=lambda t: t in (";", "{", "}")):
+        statement = list(group)
+        if ends:
+            continue
+        size = stack._scalar_declaration(statement, sizes)
+        if size is None:
+            continue
+        short += 1
+        assert stack._is_declaration(statement, sizes)
+        words, rest = stack._type_words(statement, sizes)
+        assert sizes.declarators(sizes.type_size(words), rest) == [(size, size)]
+    assert short > 100
+    # Not taken where a second declarator, a pointer or an array follows.
+    for text in ("const double a = 1, b = 2", "const double *p = q", "const int n[2] = {1, 2}"):
+        assert stack._scalar_declaration(stack._tokens(text), sizes) is None

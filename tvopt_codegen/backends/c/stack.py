@@ -382,7 +382,10 @@ def _frame(parameters: list[str], body: list[str], sizes: _Sizes) -> int:
         # A statement starts after ; { or } outside parentheses (a for's header holds ;).
         if depth == 0 and token in ";{}":
             statement = body[start:i]
-            if statement and statement[0] != "static" and _is_declaration(statement, sizes):
+            scalar = _scalar_declaration(statement, sizes)
+            if scalar is not None:
+                total += -(-scalar // 4) * 4
+            elif statement and statement[0] != "static" and _is_declaration(statement, sizes):
                 words, rest = _type_words(statement, sizes)
                 total += sum(
                     -(-size // 4) * 4 for size, _ in sizes.declarators(sizes.type_size(words), rest)
@@ -395,6 +398,31 @@ def _frame(parameters: list[str], body: list[str], sizes: _Sizes) -> int:
 
 #: The tokens :func:`_frame` reads: the ends of statements and parentheses.
 _STATEMENT_MARKS = frozenset(";{}()")
+
+
+def _scalar_declaration(statement: list[str], sizes: _Sizes) -> int | None:
+    """The size of ``const <scalar type> <name> = <expression>``, one declarator; else None.
+
+    A kernel's body is thousands of these (one per temporary): sized here from their
+    first four tokens, as :func:`_is_declaration` and :meth:`_Sizes.declarators` size
+    them, without reading the expression but for a comma (a second declarator).
+    """
+    if len(statement) < 5 or statement[0] != "const" or statement[3] != "=":
+        return None
+    kind, name = statement[1], statement[2]
+    if (
+        kind not in sizes.scalars
+        or kind == "char"
+        or kind in sizes.structs
+        or not name.isidentifier()
+        or name in _QUALIFIERS
+        or name in sizes.scalars
+        or name in sizes.structs
+        or name in {"char", "static", "struct"}
+        or "," in statement
+    ):
+        return None
+    return sizes.scalars[kind]
 
 
 def bounds(functions: Mapping[str, Function]) -> dict[str, int]:
