@@ -279,12 +279,14 @@ def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
         indices = _indices(out.shape)
         # An output may hold a plain number (a structural zero): made an expression here.
         values = [e if isinstance(e, sx.Basic) else sx.sympify(e) for e in out.exprs]
-        zeros = sum(1 for e in values if e == 0)
+        # Asked once per element: a SymEngine comparison with 0 converts the 0 each time.
+        zero = [e == 0 for e in values]
+        zeros = sum(zero)
         sparse = zeros >= SPARSE_OUTPUT_ZEROS and 2 * zeros >= len(values)
         elements = tuple(
             (", ".join(map(str, index)) if index else "...", flat, printer.doprint(e))
             for flat, (index, e) in enumerate(zip(indices, values, strict=True))
-            if not (sparse and e == 0)
+            if not (sparse and zero[flat])
         )
         outputs.append(PrintedOutput(out.name, out.doc, out.shape, elements, sparse))
     return PrintedKernel(
