@@ -30,6 +30,7 @@ import pytest
 from hypothesis import settings
 
 from tvopt_codegen import symbolic as sx
+from tvopt_codegen.__main__ import one_blas_thread
 from tvopt_codegen.derivation import Derivation, derive
 from tvopt_codegen.lowering.ir import KernelSet, lower
 from tvopt_codegen.renderer.rendering import render
@@ -342,6 +343,10 @@ def pytest_configure(config: pytest.Config) -> None:
     # published by rename, so workers that compile the same one at once both get it
     # whole. Tests of the cache itself set a folder of their own.
     os.environ.setdefault("TVOPT_CODEGEN_CACHE", str(run_folder() / "c-cache"))
+    # One BLAS thread in each worker, as the command line asks for itself (set before
+    # xdist starts the workers, whose NumPy loads after): two workers of two BLAS
+    # threads each fought over the machine's two cores.
+    one_blas_thread()
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
