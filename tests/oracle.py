@@ -10,6 +10,7 @@ the states ``nu_<name>_0 .. nu_<name>_<k-1>`` by name.
 
 from __future__ import annotations
 
+import collections
 import copy
 import dataclasses
 import math
@@ -81,10 +82,36 @@ def _to_sympy_twin(d: Any) -> Any:
     return convert(d)
 
 
+#: The oracles last built, by their derivation (kept alive here, so its id stays its own).
+_BUILT: collections.OrderedDict[int, tuple[Derivation, Oracle]] = collections.OrderedDict()
+#: How many: a run's shared derivations are a few dozen; fuzzed ones come and go.
+_KEPT = 48
+
+
 class Oracle:
-    """Numerical functions of the law for one derivation, vectorized over states."""
+    """Numerical functions of the law for one derivation, vectorized over states.
+
+    Built once per derivation object: its functions are pure (nothing is assigned after
+    ``__init__``), and building one (SymPy's derivatives and lambdify) costs a second on
+    a team, for every file that checks a module against the same shared derivation.
+    """
+
+    def __new__(cls, d: Derivation) -> Oracle:
+        hit = _BUILT.get(id(d))
+        if hit is not None and hit[0] is d:
+            _BUILT.move_to_end(id(d))
+            return hit[1]
+        return super().__new__(cls)
 
     def __init__(self, d: Derivation) -> None:
+        if "d" in vars(self):
+            return  # the memo's: built already
+        self._build(d)
+        _BUILT[id(d)] = (d, self)
+        while len(_BUILT) > _KEPT:
+            _BUILT.popitem(last=False)
+
+    def _build(self, d: Derivation) -> None:
         d = sympy_twin(d)
         self.d = d
         model = d.model
