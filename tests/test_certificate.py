@@ -240,6 +240,26 @@ def test_the_step_exponential_matches_a_fifty_digit_reference() -> None:
             assert error < 1e-15, (matrix, error)
 
 
+def test_the_step_exponential_is_kept_per_matrix_and_handed_out_as_a_fresh_array() -> None:
+    # The memo hands out the bits a fresh computation gives, keyed by the matrix's bits:
+    # a matrix one ulp away is computed anew, and an answer changed by its caller is not
+    # what the next caller gets.
+    from tvopt_codegen.maths import hurwitz
+
+    matrix = hurwitz.companion(hurwitz.coefficients_from_poles([-1.0, -2.0, -3.0])) * 0.025
+    hurwitz._exponential.cache_clear()
+    first = hurwitz.exponential(matrix)
+    assert hurwitz._exponential.cache_info().misses == 1
+    first[0, 0] = np.nan
+    again = hurwitz.exponential(matrix.copy())
+    assert hurwitz._exponential.cache_info().hits == 1
+    hurwitz._exponential.cache_clear()
+    assert np.array_equal(again, hurwitz.exponential(matrix))  # the same bits, recomputed
+    nudged = hurwitz.exponential(np.nextafter(matrix, 1.0))
+    assert hurwitz._exponential.cache_info().misses == 2
+    assert not np.array_equal(nudged, again)
+
+
 def _ring_and_star(m: int) -> list[tuple[list[tuple[int, int]], bool]]:
     """Two lower patterns of m outputs, and whether each is a narrow band: a ring (in its
     reverse Cuthill-McKee order) is, a star coupling every output to the first is not,

@@ -8,6 +8,7 @@ The paper writes ``H = companion(a_0, ..., a_{k-1}) kron I_m`` with last row
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from fractions import Fraction
 
@@ -118,12 +119,25 @@ def exponential(matrix: np.ndarray) -> np.ndarray:
     -------
     numpy.ndarray, shape (k, k)
     """
+    matrix = np.ascontiguousarray(matrix, dtype=float)
+    return np.array(_exponential(matrix.shape, matrix.tobytes()))
+
+
+@functools.lru_cache(maxsize=256)
+def _exponential(shape: tuple[int, ...], data: bytes) -> tuple[tuple[float, ...], ...]:
+    """:func:`exponential` of the matrix whose floats are ``data``, once per process.
+
+    A run's grid has a handful of distinct steps, 5-9 ms each with mpmath, and a process
+    that simulates again (a sweep's worker, a notebook, the test suite) meets the same
+    ones; the answer is a pure function of the bits, so it is kept.
+    """
     import mpmath  # noqa: PLC0415 - loaded with sympy; named here, where it is used
 
+    values = np.frombuffer(data, dtype=float).reshape(shape)
     with mpmath.workdps(40):
-        exact = mpmath.expm(mpmath.matrix(matrix.tolist()))
-        return np.array(
-            [[float(exact[i, j]) for j in range(exact.cols)] for i in range(exact.rows)]
+        exact = mpmath.expm(mpmath.matrix(values.tolist()))
+        return tuple(
+            tuple(float(exact[i, j]) for j in range(exact.cols)) for i in range(exact.rows)
         )
 
 
