@@ -53,6 +53,34 @@ def _both(name: str, eso: bool = True) -> tuple[Any, ModuleType, ModuleType]:
     return _CACHE[key]
 
 
+@pytest.mark.parametrize("order", [1, 2, 3])
+def test_the_discrete_gains_are_sympys_exact_solution(order: int) -> None:
+    # discrete_gains solves in Fractions; SymPy's solve of the same equations (the way
+    # it was computed before, 10 s at order 5) is the reference, float for float.
+    import sympy as sp
+
+    n = order + 1
+    gamma, lam = sp.Symbol("gamma"), sp.Symbol("lambda")
+    chain = sp.Matrix(n, n, lambda i, j: sp.Rational(1, math.factorial(j - i)) if j >= i else 0)
+    unknowns = sp.symbols(f"c0:{n}")
+    error = chain - sp.Matrix(unknowns) * chain[0, :]
+    polynomial = sp.Poly((lam * sp.eye(n) - error).det(method="berkowitz"), lam)
+    target = sp.Poly((lam - (1 - gamma)) ** n, lam)
+    equations = [
+        sp.expand(a - b)
+        for a, b in zip(polynomial.all_coeffs()[1:], target.all_coeffs()[1:], strict=True)
+    ]
+    solution = sp.solve(equations, unknowns, dict=True)[0]
+    want = tuple(
+        tuple(
+            float(sp.Poly(sp.expand(solution[c]), gamma).coeff_monomial(gamma**m))
+            for m in range(1, n + 1)
+        )
+        for c in unknowns
+    )
+    assert discrete_gains(order) == want
+
+
 @pytest.mark.parametrize("order", [1, 2, 3, 4, 5])
 @pytest.mark.parametrize("h", [1e-3, 0.01, 0.2])
 def test_the_discrete_gains_put_every_pole_of_the_error_at_exp_minus_omega_h(

@@ -37,6 +37,7 @@ import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from fractions import Fraction
 
 import numpy as np
 
@@ -115,36 +116,81 @@ def discrete_gains(order: int) -> tuple[tuple[float, ...], ...]:
     for once per order, exactly, here. In ``gamma`` (not ``beta``) the polynomials have
     no cancellation near ``beta = 1``, where a fast sampled loop lives.
 
-    Numbers of no expression of the derivation's, solved for in SymPy's exact rationals
-    whichever the engine (the border's kind of work: ``solve`` and ``Poly``).
+    Solved in exact rationals (:class:`fractions.Fraction`): the characteristic
+    polynomial is affine in ``c``, so its coefficients at ``c = 0`` and at each unit
+    vector give a constant linear system, whose right-hand side is the target's
+    coefficients, polynomials in ``gamma``. SymPy's ``solve`` of the same equations took
+    5-23 s at order 5 and loaded SymPy into an observer's SymEngine derivation; the
+    floats are the same (each an exact rational, correctly rounded).
 
     Returns
     -------
     tuple of tuple of float
         Per gain ``j = 0 .. r``, the coefficients of ``gamma^1 .. gamma^(r+1)``.
     """
-    import sympy as sp  # noqa: PLC0415 - exact linear algebra, once per order
-
     n = order + 1
-    gamma, lam = sp.Symbol("gamma"), sp.Symbol("lambda")
-    chain = sp.Matrix(
-        n, n, lambda i, j: sp.Rational(1, math.factorial(j - i)) if j >= i else sp.Integer(0)
-    )
-    unknowns = sp.symbols(f"c0:{n}")
-    first = chain[0, :]
-    error = chain - sp.Matrix(unknowns) * first
-    polynomial = sp.Poly((lam * sp.eye(n) - error).det(method="berkowitz"), lam)
-    target = sp.Poly((lam - (1 - gamma)) ** n, lam)
-    equations = [
-        sp.expand(a - b)
-        for a, b in zip(polynomial.all_coeffs()[1:], target.all_coeffs()[1:], strict=True)
+    chain = [
+        [Fraction(1, math.factorial(j - i)) if j >= i else Fraction(0) for j in range(n)]
+        for i in range(n)
     ]
-    solution = sp.solve(equations, unknowns, dict=True)[0]
-    out = []
-    for c in unknowns:
-        poly = sp.Poly(sp.expand(solution[c]), gamma)
-        out.append(tuple(float(poly.coeff_monomial(gamma**m)) for m in range(1, n + 1)))
-    return tuple(out)
+
+    def characteristic(c: Sequence[Fraction]) -> list[Fraction]:
+        """``lambda^(n-1) .. lambda^0``'s coefficients of ``det(lambda I - (A - c A[0]))``."""
+        error = [[chain[i][j] - c[i] * chain[0][j] for j in range(n)] for i in range(n)]
+        return _characteristic(error)[1:]
+
+    zero = [Fraction(0)] * n
+    base = characteristic(zero)
+    columns = [
+        [
+            a - b
+            for a, b in zip(
+                characteristic([Fraction(int(i == j)) for i in range(n)]), base, strict=True
+            )
+        ]
+        for j in range(n)
+    ]
+    # (lambda - 1 + gamma)^n: lambda^(n-k)'s coefficient is C(n, k) (gamma - 1)^k, whose
+    # gamma^m coefficient is C(n, k) C(k, m) (-1)^(k-m).
+    target = [
+        [Fraction(math.comb(n, k) * math.comb(k, m) * (-1) ** (k - m)) for m in range(n + 1)]
+        for k in range(1, n + 1)
+    ]
+    rhs = [[t - (base[k] if m == 0 else 0) for m, t in enumerate(target[k])] for k in range(n)]
+    solution = _solve([[columns[j][k] for j in range(n)] for k in range(n)], rhs)
+    return tuple(tuple(float(x) for x in row[1:]) for row in solution)
+
+
+def _characteristic(matrix: list[list[Fraction]]) -> list[Fraction]:
+    """``det(lambda I - matrix)``'s coefficients, ``lambda^n`` first (Faddeev-LeVerrier)."""
+    n = len(matrix)
+    coefficients = [Fraction(1)]
+    power = [[Fraction(int(i == j)) for j in range(n)] for i in range(n)]  # M_0 = I
+    for k in range(1, n + 1):
+        product = [
+            [sum((matrix[i][m] * power[m][j] for m in range(n)), Fraction(0)) for j in range(n)]
+            for i in range(n)
+        ]
+        c = -sum((product[i][i] for i in range(n)), Fraction(0)) / k
+        coefficients.append(c)
+        power = [[product[i][j] + (c if i == j else 0) for j in range(n)] for i in range(n)]
+    return coefficients
+
+
+def _solve(matrix: list[list[Fraction]], rhs: list[list[Fraction]]) -> list[list[Fraction]]:
+    """``X`` with ``matrix X = rhs``, by Gauss-Jordan elimination in exact rationals."""
+    n = len(matrix)
+    rows = [list(matrix[i]) + list(rhs[i]) for i in range(n)]
+    for col in range(n):
+        pivot = next(r for r in range(col, n) if rows[r][col] != 0)
+        rows[col], rows[pivot] = rows[pivot], rows[col]
+        lead = rows[col][col]
+        rows[col] = [x / lead for x in rows[col]]
+        for r in range(n):
+            if r != col and rows[r][col] != 0:
+                factor = rows[r][col]
+                rows[r] = [x - factor * y for x, y in zip(rows[r], rows[col], strict=True)]
+    return [row[n:] for row in rows]
 
 
 def rejection(bandwidth: float, degrees: Sequence[int], outputs: Sequence[str]) -> Rejection:
