@@ -39,6 +39,7 @@ takes both signs (then SymPy's sound tests find no sign).
 
 from __future__ import annotations
 
+import itertools
 import re
 from dataclasses import dataclass
 from fractions import Fraction
@@ -538,6 +539,262 @@ def _equal(found: Rational, lowest: Lowest, atoms: Atoms) -> bool:
     kinds = {atoms.names[a]: "cos" for a, kind in enumerate(atoms.kinds) if kind}
     difference = add(product(found[0], bottom), product(top, found[1]), -1)
     return not reduced(difference, atoms, kinds)
+
+
+# SymPy's ``dotprodsimp`` of a small determinant, without SymPy. SymPy writes a 2 x 2 or
+# 3 x 3 determinant out, expands it and, when the expansion has a fraction and six
+# operations or more, puts it over one denominator with ``cancel``, its functions read as
+# independent generators (dummies): ``P/Q``, ``P`` and ``Q`` expanded polynomials with
+# integer coefficients and no common factor, ``Q``'s leading coefficient positive in lex
+# order of SymPy's sorted generators. That form is unique once the common factor is known
+# and the leading coefficient's sign is sure; it is found here where both are: every
+# denominator in the expansion is a monomial times a polynomial proved irreducible
+# (:func:`_irreducible`; a mass-matrix arm's ``m1 + m2 - m2 cos(q2)^2``), so that the
+# common factor is a monomial, a number and powers of those polynomials, each found by
+# exact division.
+
+#: Most functions in a denominator whose order among SymPy's dummies is tried.
+_MAX_DUMMIES = 5
+#: SymPy's ``_sort_gens`` key of its dummies (``str(Dummy())`` is ``_Dummy_<n>``).
+_DUMMY_NAME = "_Dummy_"
+#: ``dotprodsimp`` cancels from this many operations on (its ``count_ops_alg``).
+_CANCEL_OPS = 6
+
+
+def cancelled(written: sx.Expr, expanded: sx.Expr) -> sx.Expr | None:
+    """SymPy's ``dotprodsimp`` of a determinant with denominators, from its expansion.
+
+    ``written`` is the determinant written out, its functions' arguments expanded, and
+    ``expanded`` the whole expanded as ``dotprodsimp`` expands it, with a denominator
+    somewhere. Returns what ``dotprodsimp`` returns, ``cancel``'s ``P/Q`` as an
+    expression of the engine built as SymPy's converts, or None where that is not sure:
+    an atom other than a symbol or a sine or cosine of a sum of symbols with positive
+    coefficients, a denominator not proved a monomial times irreducible polynomials,
+    too few operations to be sure ``dotprodsimp`` cancels, or a sign that depends on the
+    order of SymPy's dummies.
+    """
+    plain: dict[Any, bool] = {}
+    if not (_plain_functions(written, plain) and _plain_functions(expanded, plain)):
+        return None
+    atoms = Atoms(expand_angles=False)
+    memo: dict[Any, Rational | None] = {}
+    primes = _denominator_primes((written, expanded), atoms, memo)
+    if primes is None:
+        return None
+    terms: list[_Term] = []
+    for term in expanded.args if expanded.is_Add else (expanded,):
+        found = rational(term, atoms, memo)
+        below = None if found is None else _factored(found[1], primes)
+        if found is None or below is None:
+            return None
+        number, monomial, exponents = below
+        terms.append((_scaled(found[0], 1 / number), monomial, exponents))
+    if _operations_at_least(terms) < _CANCEL_OPS:
+        return None
+    lowest_terms = _lowest_terms(terms, primes)
+    if lowest_terms is None:
+        return None
+    top, bottom = lowest_terms
+    sign = _leading_sign(bottom, atoms)
+    if not sign:
+        return None
+    if sign < 0:
+        top, bottom = _scaled(top, Fraction(-1)), _scaled(bottom, Fraction(-1))
+    if len(bottom) == 1 and () in bottom:
+        # Over a number SymPy's ``P/q`` distributes ``1/q`` over P's terms.
+        return poly_expr(_scaled(top, 1 / bottom[()]), atoms)
+    return poly_expr(top, atoms) * poly_expr(bottom, atoms) ** -1
+
+
+#: A term of the expansion: its numerator, and its denominator's monomial and exponents of
+#: the primes (a number times a monomial times powers of irreducible polynomials, the
+#: number moved above).
+_Term = tuple[Poly, Monomial, tuple[int, ...]]
+
+
+def _plain_functions(node: Any, memo: dict[Any, bool]) -> bool:
+    """Whether every function is a sine or cosine of a polynomial with positive coefficients.
+
+    Such an argument is written alike by both engines (neither takes a sign out of it),
+    so that the functions are the same generators to both; and it holds no fraction,
+    which ``dotprodsimp`` would not look into.
+    """
+    if node in memo:
+        return memo[node]
+    if node.is_Function:
+        out = sx.function_name(node) in ("sin", "cos") and _positive_polynomial(node.args[0])
+    else:
+        out = all(_plain_functions(arg, memo) for arg in node.args)
+    memo[node] = out
+    return out
+
+
+def _positive_polynomial(arg: Any) -> bool:
+    """Whether ``arg`` is a sum of positive multiples of products of powers of symbols."""
+    if not arg.free_symbols:
+        return False
+    for term in arg.args if arg.is_Add else (arg,):
+        for factor in term.args if term.is_Mul else (term,):
+            if factor.is_Number:
+                if not (factor.is_Rational and factor > 0):
+                    return False
+            elif factor.is_Pow:
+                base, k = factor.args
+                if not (base.is_Symbol and k.is_Integer and k > 0):
+                    return False
+            elif not factor.is_Symbol:
+                return False
+    return True
+
+
+def _denominator_primes(
+    trees: tuple[sx.Expr, ...], atoms: Atoms, memo: dict[Any, Rational | None]
+) -> list[Poly] | None:
+    """The denominators' polynomial factors proved irreducible, once each up to sign.
+
+    Each denominator (a negative power's base, in the determinant as written and as
+    expanded) is a number times a monomial times a primitive polynomial; where that
+    polynomial has two terms or more and is proved irreducible (:func:`_irreducible`),
+    it is one of the primes (an expansion's ``(m1 + m2 - m2 cos^2)^2``, multiplied
+    out, is not proved, but the entry's own denominator is). None where a denominator
+    is not a polynomial.
+    """
+    primes: list[Poly] = []
+    seen: set[Any] = set()
+    stack = list(trees)
+    while stack:
+        node = stack.pop()
+        if node in seen:
+            continue
+        seen.add(node)
+        if node.is_Pow and node.args[1].is_negative:
+            base = rational(node.args[0], atoms, memo)
+            if base is None or base[1] != ONE:
+                return None
+            _, _, rest = content(base[0])
+            negated = _scaled(rest, Fraction(-1))
+            if len(rest) > 1 and _irreducible(rest) and rest not in primes:
+                if negated not in primes:
+                    primes.append(rest)
+        stack.extend(node.args)
+    return primes
+
+
+def _factored(p: Poly, primes: list[Poly]) -> tuple[Fraction, Monomial, tuple[int, ...]] | None:
+    """``p`` as a signed number, a monomial and the primes' exponents, or None if it is not."""
+    number, monomial, rest = content(p)
+    exponents = []
+    for prime in primes:
+        k = 0
+        while len(rest) > 1:
+            quotient = exact_quotient(rest, prime)
+            if quotient is None:
+                break
+            rest, k = quotient, k + 1
+        exponents.append(k)
+    if len(rest) != 1 or () not in rest:  # a factor that is none of the primes
+        return None
+    return number * rest[()], monomial, tuple(exponents)
+
+
+def _operations_at_least(terms: list[_Term]) -> int:
+    """A lower bound on ``count_ops_alg`` of SymPy's expansion of the determinant.
+
+    SymPy's expansion is a sum of terms, each a number times a monomial over a
+    denominator: its terms over one denominator (up to a number) sum to one polynomial,
+    so they are at least as many as that polynomial's terms. A sum of ``n`` terms counts
+    ``n - 1`` operations at least, a term over a monomial at least one (the division),
+    and a term over a sum at least two (the division and the sum below).
+    """
+    groups: dict[tuple[Monomial, tuple[int, ...]], Poly] = {}
+    for numerator, monomial, exponents in terms:
+        key = (monomial, exponents)
+        groups[key] = add(groups.get(key, {}), numerator)
+    count = sum(len(numerator) for numerator in groups.values())
+    divisions = sum(
+        len(numerator) * (2 if any(exponents) else 1 if monomial else 0)
+        for (monomial, exponents), numerator in groups.items()
+    )
+    return count - 1 + divisions
+
+
+def _lowest_terms(terms: list[_Term], primes: list[Poly]) -> Rational | None:
+    """The sum of the terms as ``P/Q`` in lowest terms over the integers, or None.
+
+    Over the least common denominator (a monomial times powers of the primes), the
+    common factor of numerator and denominator is their numbers' and monomials' common
+    part times each prime to the least of its multiplicities, each counted by exact
+    division: the primes are irreducible and pairwise not associate.
+    """
+    most = [max(exponents[i] for _, _, exponents in terms) for i in range(len(primes))]
+    below: dict[int, int] = {}
+    for _, monomial, _ in terms:
+        for atom, k in monomial:
+            below[atom] = max(below.get(atom, 0), k)
+    lcd_monomial = tuple(sorted(below.items()))
+    total: Poly = {}
+    for numerator, monomial, exponents in terms:
+        part = _scaled(numerator, Fraction(1), times(lcd_monomial, _inverse(monomial)))
+        for prime, k, top_k in zip(primes, exponents, most, strict=True):
+            for _ in range(top_k - k):
+                part = product(part, prime)
+                if len(part) > MAX_TERMS:
+                    return None
+        total = add(total, part)
+    if not total:
+        return None
+    top_number, top_monomial, top = content(total)
+    bottom: Poly = ONE
+    for prime, k in zip(primes, most, strict=True):
+        for _ in range(k):
+            quotient = exact_quotient(top, prime) if len(top) > 1 else None
+            if quotient is None:
+                bottom = product(bottom, prime)
+            else:
+                top = quotient
+    common = tuple((a, min(k, below[a])) for a, k in top_monomial if a in below)
+    ratio = top_number  # over a denominator of number 1
+    numerator = _scaled(top, Fraction(ratio.numerator), times(top_monomial, _inverse(common)))
+    denominator = _scaled(
+        bottom, Fraction(ratio.denominator), times(lcd_monomial, _inverse(common))
+    )
+    lcd: Poly = {lcd_monomial: Fraction(1)}
+    for prime, k in zip(primes, most, strict=True):
+        for _ in range(k):
+            lcd = product(lcd, prime)
+    if add(product(numerator, lcd), product(denominator, total), -1):
+        return None  # not the sum: a guard, never expected
+    return numerator, denominator
+
+
+def _inverse(monomial: Monomial) -> Monomial:
+    return tuple((atom, -k) for atom, k in monomial)
+
+
+def _leading_sign(p: Poly, atoms: Atoms) -> int:
+    """The sign of ``p``'s leading coefficient in lex order of SymPy's sorted generators.
+
+    ``cancel``'s generators are the symbols and a dummy per function, sorted by
+    ``_sort_gens``; the dummies' order among themselves is that in which ``dotprodsimp``
+    met the functions, so every order of them is tried: 0 where the sign depends on it.
+    """
+    present = sorted({a for m in p for a, _ in m})
+    functions = [a for a in present if atoms.kinds[a]]
+    symbols = [a for a in present if not atoms.kinds[a]]
+    keys = {a: _gen_key(atoms.names[a]) for a in symbols}
+    if len(set(keys.values())) < len(keys) or len(functions) > _MAX_DUMMIES:
+        return 0  # two symbols of one key (x1, x01): SymPy's order is its input's
+    if any(key[1] == _DUMMY_NAME for key in keys.values()):
+        return 0
+    dummy = (1000, _DUMMY_NAME, 0)
+    before = sorted((a for a in symbols if keys[a] < dummy), key=keys.__getitem__)
+    after = sorted((a for a in symbols if keys[a] > dummy), key=keys.__getitem__)
+    signs = set()
+    for order in itertools.permutations(functions):
+        gens = [*before, *order, *after]
+        lead = max(p, key=lambda m: tuple(dict(m).get(a, 0) for a in gens))
+        signs.add(1 if p[lead] > 0 else -1)
+    return signs.pop() if len(signs) == 1 else 0
 
 
 # SymPy's text of a condition, without SymPy. A condition where R or p is undefined quotes

@@ -34,8 +34,15 @@ def det(matrix: Any) -> Any:
         return rows[0][0]
     if n <= 3:
         expanded = _expanded(rows)
-        if expanded is not None and not expanded[1]:
+        if expanded is not None and expanded[1] == _POLYNOMIAL:
             return expanded[0]  # a polynomial in its atoms: SymPy only expands it
+        if expanded is not None:
+            # dotprodsimp's cancel, where its form is sure (a mass-matrix arm's det R).
+            from tvopt_codegen.derivation.trigpoly import cancelled  # noqa: PLC0415
+
+            found = cancelled(_deep_expanded(_written_out(rows), {}), expanded[0])
+            if found is not None:
+                return found
         # The border, for one small expression (SymPy's private step, as of SymPy 1.14).
         from sympy.matrices.utilities import _dotprodsimp  # noqa: PLC0415
 
@@ -56,14 +63,16 @@ def sized_det(matrix: Any, nodes: int) -> tuple[Any, bool]:
     every denominator is a power of a symbol or of a function, the expansion's terms
     and atoms bound the size of what ``cancel`` can write, so the expansion stands for
     it (det R is then simplified from the expansion, without SymPy: a quadrotor's
-    ``(T sin^2 + T cos^2)/(J m^2)``). Where the bound says nothing, :func:`det`'s own.
+    ``(T sin^2 + T cos^2)/(J m^2)``). Where the bound says nothing, :func:`det`'s own,
+    which writes ``cancel``'s form itself where it is sure of it (a denominator that is
+    a sum: a mass-matrix arm's).
     """
     if sx.SYMENGINE and 2 <= len(matrix.tolist()) <= 3:
         expanded = _expanded(matrix.tolist())
-        if expanded is not None:
-            value, fractions = expanded
+        if expanded is not None and expanded[1] != _SUMS:
+            value, below = expanded
             size = sx.tree_size(value, nodes)
-            if not fractions:
+            if below == _POLYNOMIAL:
                 return value, size <= nodes
             if max(size, _cancelled_bound(value)) <= nodes:
                 return value, True
@@ -77,18 +86,24 @@ def sized_det(matrix: Any, nodes: int) -> tuple[Any, bool]:
     return value, size <= nodes
 
 
-def _expanded(rows: list[list[Any]]) -> tuple[Any, bool] | None:
+#: What an expansion has below (:func:`_expanded`): no denominator, powers of symbols and
+#: functions only, or some other denominator (a sum).
+_POLYNOMIAL, _MONOMIALS, _SUMS = "polynomial", "monomials", "sums"
+
+
+def _expanded(rows: list[list[Any]]) -> tuple[Any, str] | None:
     """A small determinant written out and expanded as SymPy's ``dotprodsimp`` expands it.
 
-    Returns the expansion and whether it has denominators (where ``dotprodsimp`` goes
-    on to ``cancel``), or None where the expansion might not be SymPy's: a double
-    (SymPy's 15 digits), a power to a fraction, a denominator that is a sum.
+    Returns the expansion and what its denominators are (``_POLYNOMIAL``: none, where
+    ``dotprodsimp`` stops; ``_MONOMIALS``; ``_SUMS``: a denominator that is a sum, where
+    the expansion is SymPy's in value only), or None where it might not be SymPy's even
+    so: a double (SymPy's 15 digits), a power to a fraction.
     """
     written = _written_out(rows)
     # dotprodsimp expands sums, products and powers only (an entry alone stays as it is).
     simple = not (written.is_Add or written.is_Mul or written.is_Pow)
     expanded = written if simple else sx.expand(_deep_expanded(written, {}))
-    fractions = False
+    below = _POLYNOMIAL
     stack = [expanded]
     while stack:
         node = stack.pop()
@@ -98,12 +113,10 @@ def _expanded(rows: list[list[Any]]) -> tuple[Any, bool] | None:
             base, exponent = node.args
             if not exponent.is_Integer:
                 return None
-            if exponent.is_negative:
-                if not (base.is_Symbol or base.is_Function):
-                    return None
-                fractions = True
+            if exponent.is_negative and below != _SUMS:
+                below = _MONOMIALS if base.is_Symbol or base.is_Function else _SUMS
         stack.extend(node.args)
-    return expanded, fractions
+    return expanded, below
 
 
 def _deep_expanded(expr: Any, memo: dict[Any, Any]) -> Any:
