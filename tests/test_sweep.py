@@ -447,9 +447,10 @@ def test_a_real_scheduler_and_two_workers_give_the_local_table(tmp_path: Path) -
     """`dask scheduler` and two `dask worker` processes, reached through --scheduler; the
     workers compile the loop themselves (their own cache) from the sources they receive.
 
-    The workers start with the scheduler (a worker retries until the scheduler listens)
-    and without a nanny (a nanny is one more cold interpreter per worker, which spawns
-    the worker and takes seconds to stop it): the sweep meets the same two workers.
+    The workers start without a nanny (a nanny is one more cold interpreter per worker,
+    which spawns the worker and takes seconds to stop it): the sweep meets the same two
+    workers. They start once the scheduler listens: started with it, a worker's
+    connection retries back off exponentially (with jitter) and once took 20 s more.
     """
     dask = Path(sys.executable).parent / "dask"
     port = _free_port()
@@ -474,6 +475,12 @@ def test_a_real_scheduler_and_two_workers_give_the_local_table(tmp_path: Path) -
         )
     ]
     try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            with socket.socket() as probe:
+                if probe.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            time.sleep(0.05)
         for _ in range(2):
             processes.append(
                 subprocess.Popen(
@@ -484,12 +491,6 @@ def test_a_real_scheduler_and_two_workers_give_the_local_table(tmp_path: Path) -
                     env=env,
                 )
             )
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            with socket.socket() as probe:
-                if probe.connect_ex(("127.0.0.1", port)) == 0:
-                    break
-            time.sleep(0.05)
         from distributed import Client
 
         with Client(address, timeout="30s") as client:
