@@ -318,26 +318,36 @@ def test_the_arms_det_is_decided_in_a_process_that_refuses_sympy() -> None:
 
 
 _GENERATE = """
-import sys, tempfile
+import sys
+class Refuse:
+    def find_spec(self, name, path=None, target=None):
+        if name == "sympy" or name.startswith("sympy."):
+            raise ImportError("SymPy refused: " + name)
+        return None
+sys.meta_path.insert(0, Refuse())
 from tvopt_codegen.cli import main
-with tempfile.TemporaryDirectory() as out:
-    code = main(["generate", "arm_on_line", "--out", out])
+for backend in ("python", "c"):
+    code = main(["generate", "arm_on_line", "--backend", backend, "--out", sys.argv[1], "--quiet"])
+    assert code == 0, code
 print(sorted(m for m in sys.modules if m.split(".")[0] == "sympy")[:3])
-sys.exit(code)
 """
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="det R, its singular set and the undefined set are native; symbolic/linalg.det "
-    "still crosses the border for arm_on_line's det R (_dotprodsimp: a denominator that "
-    "is a sum), which is not this module's to change",
-)
-def test_generate_arm_on_line_imports_no_sympy() -> None:
-    """``generate arm_on_line`` in a SymEngine process leaves SymPy unimported."""
-    ran = _symengine_run([_GENERATE])
+def test_generate_arm_on_line_imports_no_sympy(tmp_path: Any) -> None:
+    """``generate arm_on_line`` on both backends, in a SymEngine process that cannot import
+    SymPy, writes generated/arm_on_line.py and generated/c/arm_on_line* byte for byte:
+    det R (symbolic/linalg), its simplified form and singular set, and the undefined set
+    (a denominator's text and sign) are all decided natively."""
+    ran = _symengine_run([_GENERATE, str(tmp_path)])
     assert ran.returncode == 0, ran.stderr[-2000:]
     assert ran.stdout.splitlines()[-1] == "[]", ran.stdout
+    written = (tmp_path / "arm_on_line.py").read_text()
+    assert written == (ROOT / "generated" / "arm_on_line.py").read_text()
+    assert "R or p is undefined where l2**2*m2*(l1**2*(m1 + m2)" in written
+    golden = sorted((ROOT / "generated" / "c").glob("arm_on_line*"))
+    assert len(golden) == 4
+    for path in golden:
+        assert (tmp_path / path.name).read_bytes() == path.read_bytes(), path.name
 
 
 def test_the_singular_set_reads_a_plain_numerator_natively() -> None:
@@ -359,39 +369,6 @@ def test_the_singular_set_reads_a_plain_numerator_natively() -> None:
             numerator = singularity._numerator(converted)
             assert (numerator != converted or not converted.is_Mul) == native, det
             assert _singular_set(converted) == reference, det
-
-
-_GENERATE_BESIDE_LINALG = """
-import sys, tempfile
-class Refuse:
-    def find_spec(self, name, path=None, target=None):
-        if name == "sympy" or name.startswith("sympy."):
-            raise ImportError("SymPy refused: " + name)
-        return None
-from tvopt_codegen import symbolic as sx
-from tvopt_codegen.symbolic import linalg
-own = linalg.det
-def det(matrix):  # a small one's plain expansion: equal in value to the border's
-    rows = matrix.tolist()
-    return sx.expand(linalg._written_out(rows)) if 2 <= len(rows) <= 3 else own(matrix)
-linalg.det = det
-sys.meta_path.insert(0, Refuse())
-from tvopt_codegen.cli import main
-code = main(["generate", "arm_on_line", "--out", sys.argv[1], "--quiet"])
-assert "sympy" not in sys.modules
-sys.exit(code)
-"""
-
-
-def test_generate_arm_on_line_needs_sympy_for_nothing_but_linalg(tmp_path: Any) -> None:
-    """With linalg.det's border crossing taken away, generate imports no SymPy and writes
-    generated/arm_on_line.py byte for byte: det R, its singular set and the undefined
-    set (a denominator's text and sign) are all decided natively."""
-    ran = _symengine_run([_GENERATE_BESIDE_LINALG, str(tmp_path)])
-    assert ran.returncode == 0, ran.stderr[-2000:]
-    written = (tmp_path / "arm_on_line.py").read_text()
-    assert written == (ROOT / "generated" / "arm_on_line.py").read_text()
-    assert "R or p is undefined where l2**2*m2*(l1**2*(m1 + m2)" in written
 
 
 # ------------------------------------------------------------------ a condition's text

@@ -4,9 +4,10 @@ On SymEngine, det R, its factored form and its singular set are decided without 
 where det R is a number times powers of symbols, sines and cosines once its angles are
 expanded and ``sin^2 + cos^2 = 1`` applied (:func:`singularity._monomial`), and a small
 determinant with monomial denominators is not simplified through the border
-(:func:`linalg.sized_det`); elsewhere the border decides, as before. Every bundled
-example but one is derived, lowered and rendered on SymEngine in a process that cannot
-import SymPy; every example and test spec gives the decoupling record SymPy gives:
+(:func:`linalg.sized_det`), and one over a sum is put over one denominator as SymPy's
+``dotprodsimp`` does (:func:`trigpoly.cancelled`); elsewhere the border decides, as
+before. Every bundled example is derived, lowered and rendered on SymEngine in a process
+that cannot import SymPy; every example and test spec gives the decoupling record SymPy gives:
 the singular and undefined sets' text, det R's note, and det R at random points.
 The reference is SymPy's, named (``sx.using("sympy")``): whichever engine is the
 process's default.
@@ -39,11 +40,11 @@ from .conftest import ROOT, SPECS, derivation
 
 EXAMPLES = sorted(p.stem for p in (ROOT / "tvopt_codegen" / "examples").glob("*.toml"))
 TEST_SPECS = sorted(str(p) for p in SPECS.glob("*.toml"))
-#: Examples whose derivation still crosses the border on SymEngine: arm_on_line's det R
-#: is written out by SymPy's ``dotprodsimp`` (``symbolic/linalg.det``: a denominator that
-#: is a sum). Its simplification, singular set and undefined set are native
-#: (``trigpoly``; ``tests/test_det_native.py`` holds them without that one crossing).
-BORDER = ("arm_on_line",)
+#: Examples whose derivation still crosses the border on SymEngine: none. arm_on_line's
+#: det R, a denominator that is a sum, is written as SymPy's ``dotprodsimp`` writes it
+#: (``trigpoly.cancelled``, ``tests/test_linalg_native.py``), simplified and its singular
+#: and undefined sets found natively (``tests/test_det_native.py``).
+BORDER: tuple[str, ...] = ()
 
 #: Run in a fresh process on SymEngine: derive, lower and render (Python) each bundled
 #: example with SymPy's import refused, then the rest with it allowed; print the records.
@@ -137,9 +138,9 @@ def test_the_bundled_examples_need_no_sympy() -> None:
     """The examples named free were derived with SymPy's import refused (the script's assert)."""
     records = _symengine_records()
     assert set(EXAMPLES) <= set(records)
-    assert {"pvtol", "planar_arm3", "two_unicycles_corridor", "flexible_joint"} <= set(
-        EXAMPLES
-    ) - set(BORDER)
+    assert {"pvtol", "planar_arm3", "two_unicycles_corridor", "arm_on_line"} <= set(EXAMPLES) - set(
+        BORDER
+    )
 
 
 def _monomials(count: int, seed: int) -> list[Any]:
