@@ -124,7 +124,7 @@ def _deep_expanded(expr: Any, memo: dict[Any, Any]) -> Any:
     done = memo.get(expr)
     if done is not None:
         return done
-    if not expr.args:
+    if not expr.args or expr.is_Number:  # SymEngine's zoo has an argument, and no func
         out = expr
     elif expr.is_Function:
         out = expr.func(*[sx.expand(_deep_expanded(arg, memo)) for arg in expr.args])
