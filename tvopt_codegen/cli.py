@@ -44,7 +44,9 @@ from tvopt_codegen.errors import (
     Terminated,
     TvoptError,
     exit_codes_text,
+    forget_signals,
     one_line,
+    signal_raised,
 )
 from tvopt_codegen.limits import ENGINE_VARIABLE, ENGINES
 
@@ -105,7 +107,11 @@ def run(argv: Sequence[str] | None = None) -> int:
 
 
 def _on_sigterm(_signum: int, _frame: object) -> None:
-    raise Terminated
+    signal_raised(Terminated)
+
+
+def _on_sigint(_signum: int, _frame: object) -> None:
+    signal_raised(KeyboardInterrupt)
 
 
 #: The cyclic garbage collector's thresholds while a command runs (Python's: 700, 10, 10).
@@ -118,7 +124,14 @@ GC_THRESHOLDS = (10000, 10, 10)
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Console-script entry point: run, and map every outcome to one line and an exit code."""
+    forget_signals()
     previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    # Python's own handler, remembering: a Ctrl-C swallowed by compiled code is raised
+    # again at the next check (errors.raise_pending_signal). Left alone where SIGINT is
+    # ignored (a job started with nohup) or handled by the caller.
+    interrupt = signal.getsignal(signal.SIGINT)
+    if interrupt is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _on_sigint)
     collector = gc.get_threshold()
     gc.set_threshold(*GC_THRESHOLDS)
     try:
@@ -161,6 +174,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INTERNAL
     finally:
         signal.signal(signal.SIGTERM, previous)
+        if interrupt is signal.default_int_handler:
+            signal.signal(signal.SIGINT, interrupt)
+        forget_signals()
         gc.set_threshold(*collector)
         # What common.without_collector froze becomes collectable again for a caller that goes on.
         gc.unfreeze()

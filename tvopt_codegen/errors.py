@@ -7,6 +7,7 @@ line and exits with :attr:`TvoptError.exit_code`.
 from __future__ import annotations
 
 import re
+from typing import NoReturn
 
 #: Exit code of a successful run.
 EXIT_OK = 0
@@ -59,6 +60,40 @@ class Terminated(BaseException):  # noqa: N818 - a signal, like KeyboardInterrup
     What ``timeout``, SLURM, systemd and Kubernetes send to stop a job: a command that
     keeps finished work on Ctrl-C (a sweep) keeps it on SIGTERM too.
     """
+
+
+#: Ctrl-C's or SIGTERM's exception raised by the command line's handlers and not yet
+#: known to have ended the command or been handled (:func:`raise_pending_signal`).
+_PENDING: list[type[BaseException]] = []
+
+
+def signal_raised(kind: type[BaseException]) -> NoReturn:
+    """Remember and raise ``kind`` (``KeyboardInterrupt``, :class:`Terminated`): a handler's.
+
+    Compiled code that catches every exception (NumPy's random module as it first loads,
+    SymEngine's matrix iterator) can swallow the exception the handler raises inside it,
+    and the command would run on to its end and write its files: remembered, it is
+    raised again at the next :func:`raise_pending_signal`.
+    """
+    _PENDING.append(kind)
+    raise kind
+
+
+def raise_pending_signal() -> None:
+    """Raise again a signal's exception that was raised and then swallowed, if any.
+
+    Called where the work is checked (the derivation's meter, the integrator's progress)
+    and before anything is written.
+    """
+    if _PENDING:
+        kind = _PENDING[0]
+        _PENDING.clear()
+        raise kind
+
+
+def forget_signals() -> None:
+    """The signal's exception reached code that handles it: nothing is pending."""
+    _PENDING.clear()
 
 
 #: Longest name or value an error message quotes in full.

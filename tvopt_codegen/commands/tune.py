@@ -27,6 +27,7 @@ from tvopt_codegen.errors import (
     OutputError,
     SpecError,
     Terminated,
+    forget_signals,
 )
 
 if TYPE_CHECKING:
@@ -535,6 +536,7 @@ def _search_and_write(
         original = next(e for e in search.evaluations if e.generation == ORIGINAL)
         fresh = fresh_check(client, problem, original, chosen)
     except (KeyboardInterrupt, Terminated) as stop:
+        forget_signals()  # handled here: the evaluations so far are kept and written
         progress.close()
         return _interrupted(problem, record, search, folder, stop)
     record["state"] = "complete"

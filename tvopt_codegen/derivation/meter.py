@@ -9,7 +9,7 @@ import time
 from collections.abc import Callable, Iterator
 
 from tvopt_codegen import symbolic as sx
-from tvopt_codegen.errors import BudgetError
+from tvopt_codegen.errors import BudgetError, raise_pending_signal
 from tvopt_codegen.limits import Budget
 
 #: det R is simplified and factored only up to this many expression nodes.
@@ -95,13 +95,19 @@ class _Meter:
 
     def report(self) -> None:
         """Tell the progress callback the stage, expressions and nodes so far, and time."""
+        raise_pending_signal()
         if self.progress is not None:
             now = time.perf_counter()
             self.last_report = now
             self.progress(self.stage, self.expressions, self.nodes, now - self.start)
 
     def check_time(self) -> None:
-        """Report progress now and then; raise when the time budget is spent."""
+        """Report progress now and then; raise when the time budget is spent.
+
+        Or a signal whose exception compiled code swallowed
+        (:func:`~tvopt_codegen.errors.signal_raised`): it is raised again here.
+        """
+        raise_pending_signal()
         now = time.perf_counter()
         if now - self.last_report > 0.5:
             self.report()

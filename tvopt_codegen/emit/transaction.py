@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from tvopt_codegen.emit.stamp import is_pristine, stamped_hash, stamped_spec
-from tvopt_codegen.errors import OutputError
+from tvopt_codegen.errors import OutputError, raise_pending_signal
 
 #: Name of the per-folder record of what tvopt-codegen wrote.
 MANIFEST = ".tvopt-manifest.json"
@@ -381,6 +381,7 @@ def write_files(
     OutputError
         When the folder cannot be used or a file may not be replaced.
     """
+    raise_pending_signal()  # a Ctrl-C that compiled code swallowed still writes nothing
     for name in files:
         if Path(name).name != name or name in {"", ".", "..", MANIFEST} or name.startswith("."):
             raise OutputError(f"{name!r}: not a plain file name")
@@ -532,6 +533,7 @@ def write_stream(
         When the target may not be replaced (see :func:`check_replaceable`) or the disk
         refuses the write (full, read-only).
     """
+    raise_pending_signal()
     folder = prepare_folder(out_dir)
     check_replaceable(folder, [name], force)
     target = folder / name

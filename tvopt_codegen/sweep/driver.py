@@ -14,7 +14,7 @@ from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from tvopt_codegen.errors import MissingExtraError, SpecError, Terminated
+from tvopt_codegen.errors import MissingExtraError, SpecError, Terminated, forget_signals
 from tvopt_codegen.sweep.options import SweepOptions
 from tvopt_codegen.sweep.program import SweepProgram
 from tvopt_codegen.sweep.sample import SampleResult, run_chunk
@@ -375,6 +375,7 @@ def run_sweep(
             if progress is not None:
                 progress(run.done, run.failed, run.done / max(time.perf_counter() - started, 1e-9))
     except (KeyboardInterrupt, Terminated) as stop:
+        forget_signals()  # handled here: the finished rows are kept and written
         run.interrupted = True
         run.signal = "SIGINT" if isinstance(stop, KeyboardInterrupt) else "SIGTERM"
     finally:
