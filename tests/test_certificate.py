@@ -283,7 +283,7 @@ def test_sparse_definiteness_agrees_with_eigenvalues_banded_or_not() -> None:
     """The fading probe's definiteness test: a narrow band (a ring, in its reverse
     Cuthill-McKee order) by banded Cholesky, a wide pattern by SuperLU; both give the
     verdict of the smallest eigenvalue, on both sides of it."""
-    from tvopt_codegen.derivation.convexity import _BAND_LIMIT, _SparseHessians
+    from tvopt_codegen.derivation.hessians import _BAND_LIMIT, _SparseHessians
 
     rng = np.random.default_rng(11)
     m = 90
@@ -302,7 +302,7 @@ def test_sparse_eigenvalues_and_newton_steps_agree_with_dense_algebra() -> None:
     """A team's convexity check and Newton search: banded eigenvalues and banded LU of
     the permuted matrix (a ring), dense ones for a wide pattern (a star), against numpy's
     dense eigvalsh and solve; a singular or non-finite matrix is reported unusable."""
-    from tvopt_codegen.derivation.convexity import _BAND_LIMIT, _SparseHessians
+    from tvopt_codegen.derivation.hessians import _BAND_LIMIT, _SparseHessians
 
     rng = np.random.default_rng(5)
     m = 90

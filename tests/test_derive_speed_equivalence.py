@@ -15,12 +15,11 @@ import pytest
 
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import convexity
-from tvopt_codegen.derivation.convexity import (
+from tvopt_codegen.derivation.convexity import _PROBE_DISTANCES, _probe_directions
+from tvopt_codegen.derivation.hessians import (
     _BAND_LIMIT,
-    _PROBE_DISTANCES,
     _fading_dense,
     _Gershgorin,
-    _probe_directions,
     _SparseHessians,
 )
 from tvopt_codegen.derivation.pipeline import derive
