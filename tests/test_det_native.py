@@ -1,6 +1,6 @@
 """det R over one polynomial factor without SymPy (issue 49): SymPy's tree and text, or SymPy.
 
-:func:`trigpoly.lowest` writes a determinant that is a number times powers of symbols,
+:func:`trigforms.lowest` writes a determinant that is a number times powers of symbols,
 sines and cosines over one irreducible polynomial in symbols and a sine or cosine
 squared (a two-link arm's ``sin(q2)/(l1 l2 m2 (m1 + m2 sin(q2)^2))``) as SymPy's
 ``factor(simplify(det))`` does, and refuses the rest. Each test holds what the native
@@ -26,9 +26,10 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 from tvopt_codegen import symbolic as sx
-from tvopt_codegen.derivation import derive, equalities, linearization, singularity, trigpoly
+from tvopt_codegen.derivation import derive, equalities, linearization, singularity
 from tvopt_codegen.derivation.singularity import _monomial, _singular_set, simplified_det
 from tvopt_codegen.spec import load_spec
+from tvopt_codegen.symbolic import trigforms, trigpoly
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
 from .conftest import ROOT, SPECS
@@ -65,7 +66,7 @@ def _recorded() -> dict[str, list[Any]]:
 
 def _native(det: Any) -> bool:
     """Whether SymEngine's simplified_det decides ``det`` (SymEngine's) without SymPy."""
-    return _monomial(det) is not None or trigpoly.lowest(det) is not None
+    return _monomial(det) is not None or trigforms.lowest(det) is not None
 
 
 def _compare(det: Any, refused: bool = False) -> tuple[Any, tuple[str, ...]]:
@@ -117,7 +118,7 @@ def test_arm_on_line_det_is_native_and_sympys() -> None:
     with sx.using("symengine"):
         det = from_sympy(ARM_DET)
         assert _monomial(det) is None  # not the monomial path: a sum below
-        assert trigpoly.lowest(det) is not None
+        assert trigforms.lowest(det) is not None
     reference, singular = _compare(det)
     assert sp.sstr(reference) == "sin(q2)/(l1*l2*m2*(m1 + m2*sin(q2)**2))"
     assert singular == ("sin(q2) = 0",)
@@ -128,7 +129,7 @@ def test_arm_on_line_derivation_takes_the_native_path() -> None:
     """The determinant arm_on_line's derivation really hands over is the native path's."""
     dets = _recorded()["arm_on_line"]
     with sx.using("symengine"):
-        assert any(trigpoly.lowest(d) is not None and _monomial(d) is None for d in dets)
+        assert any(trigforms.lowest(d) is not None and _monomial(d) is None for d in dets)
         assert all(_native(d) for d in dets)  # det R and the equality's Gram determinant
 
 
@@ -261,7 +262,7 @@ def test_beside_the_shape_sympy_decides() -> None:
     ):
         with sx.using("symengine"):
             converted = from_sympy(det)
-            assert trigpoly.lowest(converted) is None, det
+            assert trigforms.lowest(converted) is None, det
         _compare(converted, refused=True)
 
 
@@ -280,10 +281,10 @@ def test_exact_quotient_and_irreducibility_rule() -> None:
         assert trigpoly.exact_quotient(product, poly(a + b)) == poly(m1 + m2 * a**2)
         assert trigpoly.exact_quotient(product, poly(a - b)) is None
         assert trigpoly.exact_quotient(poly(a**2 + b), poly(a + b)) is None
-        assert trigpoly._irreducible(poly(m1 + m2 * a**2))
-        assert trigpoly._irreducible(poly(a * m1 + b))
-        assert not trigpoly._irreducible(poly(a * m1 + a * b))  # a divides it: not proved
-        assert not trigpoly._irreducible(poly(m1**2 - m2**2))  # (m1 - m2)(m1 + m2)
+        assert trigpoly.irreducible(poly(m1 + m2 * a**2))
+        assert trigpoly.irreducible(poly(a * m1 + b))
+        assert not trigpoly.irreducible(poly(a * m1 + a * b))  # a divides it: not proved
+        assert not trigpoly.irreducible(poly(m1**2 - m2**2))  # (m1 - m2)(m1 + m2)
 
 
 # ------------------------------------------------------------------ processes
@@ -415,7 +416,7 @@ def test_a_conditions_text_is_sympys() -> None:
     with sx.using("symengine"):
         for _ in range(600):
             tree = _random_tree(rng, rng.randint(1, 3))
-            text = trigpoly.sympy_text(tree)
+            text = trigforms.sympy_text(tree)
             if text is not None:
                 written += 1
                 assert text == sp.sstr(to_sympy(tree)), tree
@@ -423,8 +424,8 @@ def test_a_conditions_text_is_sympys() -> None:
             "l2**2*m2*(l1**2*(m1 + m2) + 2*l1*l2*m2*cos(q2) + l2**2*m2)"
             " - (l1*l2*m2*cos(q2) + l2**2*m2)**2"
         )
-        assert trigpoly.sympy_text(arm) == sp.sstr(to_sympy(arm))
-        assert trigpoly.sympy_text(2 * (arm.args[0] + 1)) is None  # SymPy distributes 2
+        assert trigforms.sympy_text(arm) == sp.sstr(to_sympy(arm))
+        assert trigforms.sympy_text(2 * (arm.args[0] + 1)) is None  # SymPy distributes 2
     assert written > 300
 
 
@@ -432,16 +433,16 @@ def test_a_value_of_both_signs_has_none() -> None:
     """indefinite finds both signs only where there are: SymPy's sign is then None."""
     with sx.using("symengine"):
         x, y, q = sx.symbols(["x", "y", "q"])
-        assert trigpoly.indefinite(x * y) and trigpoly.indefinite(x - sx.cos(q))
+        assert trigforms.indefinite(x * y) and trigforms.indefinite(x - sx.cos(q))
         for never in (x**2 + 1, sx.sin(q) ** 2 + sx.cos(q) ** 2, (x - y) ** 2, 2 + sx.cos(q)):
-            assert not trigpoly.indefinite(never), never
+            assert not trigforms.indefinite(never), never
         import random  # noqa: PLC0415
 
         rng = random.Random(3)
         both = 0
         for _ in range(60):
             tree = _random_tree(rng, 2)
-            if trigpoly.indefinite(tree):
+            if trigforms.indefinite(tree):
                 both += 1
                 assert singularity._sign(to_sympy(tree)) is None, tree
     assert both > 20

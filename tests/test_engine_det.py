@@ -5,7 +5,7 @@ where det R is a number times powers of symbols, sines and cosines once its angl
 expanded and ``sin^2 + cos^2 = 1`` applied (:func:`singularity._monomial`), and a small
 determinant with monomial denominators is not simplified through the border
 (:func:`linalg.sized_det`), and one over a sum is put over one denominator as SymPy's
-``dotprodsimp`` does (:func:`trigpoly.cancelled`); elsewhere the border decides, as
+``dotprodsimp`` does (:func:`trigforms.cancelled`); elsewhere the border decides, as
 before. Every bundled example is derived, lowered and rendered on SymEngine in a process
 that cannot import SymPy; every example and test spec gives the decoupling record SymPy gives:
 the singular and undefined sets' text, det R's note, and det R at random points.
@@ -42,7 +42,7 @@ EXAMPLES = sorted(p.stem for p in (ROOT / "tvopt_codegen" / "examples").glob("*.
 TEST_SPECS = sorted(str(p) for p in SPECS.glob("*.toml"))
 #: Examples whose derivation still crosses the border on SymEngine: none. arm_on_line's
 #: det R, a denominator that is a sum, is written as SymPy's ``dotprodsimp`` writes it
-#: (``trigpoly.cancelled``, ``tests/test_linalg_native.py``), simplified and its singular
+#: (``trigforms.cancelled``, ``tests/test_linalg_native.py``), simplified and its singular
 #: and undefined sets found natively (``tests/test_det_native.py``).
 BORDER: tuple[str, ...] = ()
 

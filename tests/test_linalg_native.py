@@ -2,13 +2,13 @@
 
 On SymEngine, :func:`linalg.det` of a 2 x 2 or 3 x 3 matrix whose expansion has a
 denominator that is a sum (a mass-matrix arm's det R) builds ``cancel``'s ``P/Q`` itself
-(:func:`trigpoly.cancelled`) where it is sure of it, and crosses the border otherwise.
+(:func:`trigforms.cancelled`) where it is sure of it, and crosses the border otherwise.
 Each test holds the native path to the border's, on the same SymEngine matrix: the same
 tree (so the same ``--max-size`` meter, the same ``small`` decision of
 :func:`linalg.sized_det` at every size limit, and the same input to ``simplified_det``),
 and the determinant's value at random points against NumPy's determinant of the
 matrix's values. The border's path is the product's own with the native path switched
-off (``trigpoly.cancelled`` answering None).
+off (``trigforms.cancelled`` answering None).
 """
 
 from __future__ import annotations
@@ -24,14 +24,13 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 from tvopt_codegen import symbolic as sx
-from tvopt_codegen.derivation import trigpoly
 from tvopt_codegen.derivation.equalities import _equality_jacobian
 from tvopt_codegen.derivation.linearization import _linearize, _with_gains
 from tvopt_codegen.derivation.meter import _DET_SIMPLIFY_NODES, _Meter
 from tvopt_codegen.derivation.model import build_model
 from tvopt_codegen.limits import Budget
 from tvopt_codegen.spec import load_spec
-from tvopt_codegen.symbolic import linalg
+from tvopt_codegen.symbolic import linalg, trigforms
 
 from .conftest import ROOT, SPECS
 
@@ -43,7 +42,7 @@ TEST_SPECS = sorted(str(p) for p in SPECS.glob("*.toml"))
 def _border() -> Iterator[None]:
     """The product with its native ``cancel`` switched off: SymPy's ``dotprodsimp`` decides."""
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(trigpoly, "cancelled", lambda written, expanded: None)
+        patch.setattr(trigforms, "cancelled", lambda written, expanded: None)
         yield
 
 
@@ -54,7 +53,7 @@ def _taken(matrix: Any) -> bool:
     if expanded is None or expanded[1] == linalg._POLYNOMIAL:
         return False
     deep = linalg._deep_expanded(linalg._written_out(rows), {})
-    return trigpoly.cancelled(deep, expanded[0]) is not None
+    return trigforms.cancelled(deep, expanded[0]) is not None
 
 
 def _same_value(matrix: Any, value: Any, seed: int) -> None:

@@ -22,9 +22,10 @@ from typing import Any
 
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation.meter import TimeLimitError, time_limited, tree_size
-from tvopt_codegen.derivation.trigpoly import indefinite, lowest, sympy_text
 from tvopt_codegen.symbolic.border import from_sympy, sympy, to_sympy
 from tvopt_codegen.symbolic.order import sympy_ordered
+from tvopt_codegen.symbolic.trigforms import indefinite, lowest, sympy_text
+from tvopt_codegen.symbolic.trigpoly import Poly, add, product, times
 
 
 def _circular() -> tuple[Any, ...]:
@@ -59,7 +60,7 @@ def simplified_det(det: sx.Expr) -> sx.Expr:
     determinant that is a number times powers of symbols, sines and cosines is found
     without SymPy (:func:`_monomial`), as SymPy finds it, and so is one that is such a
     monomial over one irreducible polynomial in symbols and a sine or cosine squared
-    (a two-link arm's: :func:`.trigpoly.lowest`, which accepts only the shape whose
+    (a two-link arm's: :func:`.trigforms.lowest`, which accepts only the shape whose
     SymPy form it writes).
     """
     if sx.SYMENGINE:
@@ -214,7 +215,7 @@ def _sign(expr: sx.Expr) -> str | None:
 def _engine_sign(expr: sx.Expr, memo: dict[Any, Any]) -> str | None:
     """:func:`_sign` of an expression of the engine (``memo``: the border's, shared).
 
-    On SymEngine, a value seen to take both signs (:func:`.trigpoly.indefinite`: an
+    On SymEngine, a value seen to take both signs (:func:`.trigforms.indefinite`: an
     arm's dynamics' denominator, whose parameters may be of any sign) has none, as
     SymPy's sound tests would find, without SymPy.
     """
@@ -340,10 +341,8 @@ _POSITIVE = ("positive",)
 # det R without SymPy (SymEngine): a determinant is a Laurent polynomial in its atoms
 # (symbols, and the sine and cosine of each angle a sum of angles expands to), reduced
 # by sin^2 + cos^2 = 1; when that leaves one term, the term is det R in lowest terms and
-# its atoms in the numerator are the singular set. A monomial is stored as
-# ((atom, exponent), ...) by atom number, a polynomial as {monomial: coefficient}.
-_Monomial = tuple[tuple[int, int], ...]
-_Poly = dict[_Monomial, Fraction]
+# its atoms in the numerator are the singular set. Monomials and polynomials, and their
+# arithmetic, are :mod:`.trigpoly`'s (its own atoms differ: a function of any angle here).
 #: An atom's kind: ``("", name)``, ``("sin", name)``, or ``("cos", None)`` past a symbol.
 _Kind = tuple[str, str | None]
 #: An atom, its exponent and its kind.
@@ -372,42 +371,19 @@ class _Atoms:
             self.kinds.append((kind, str(arg) if arg.is_Symbol else None))
         return found
 
-    def variable(self, kind: str, arg: Any) -> _Poly:
+    def variable(self, kind: str, arg: Any) -> Poly:
         return {((self.index(kind, arg), 1),): Fraction(1)}
-
-
-def _times(a: _Monomial, b: _Monomial) -> _Monomial:
-    powers = dict(a)
-    for atom, k in b:
-        powers[atom] = powers.get(atom, 0) + k
-    return tuple(sorted((atom, k) for atom, k in powers.items() if k))
-
-
-def _product(p: _Poly, q: _Poly) -> _Poly:
-    out: _Poly = {}
-    for a, x in p.items():
-        for b, y in q.items():
-            key = _times(a, b)
-            out[key] = out.get(key, Fraction(0)) + x * y
-    return {key: c for key, c in out.items() if c}
-
-
-def _sum(p: _Poly, q: _Poly, sign: int = 1) -> _Poly:
-    out = dict(p)
-    for key, c in q.items():
-        out[key] = out.get(key, Fraction(0)) + sign * c
-    return {key: c for key, c in out.items() if c}
 
 
 #: Most terms a polynomial may reach on the way (beyond, SymPy decides).
 _MONOMIAL_TERMS = 400
 
 
-def _laurent(node: Any, atoms: _Atoms, angles: bool, memo: dict[Any, _Poly | None]) -> _Poly | None:
+def _laurent(node: Any, atoms: _Atoms, angles: bool, memo: dict[Any, Poly | None]) -> Poly | None:
     """``node`` as a Laurent polynomial in its atoms, or None where it is not one."""
     if node in memo:
         return memo[node]
-    out: _Poly | None = None
+    out: Poly | None = None
     if node.is_Rational:
         numerator, denominator = node.as_numer_denom()
         value = Fraction(int(numerator), int(denominator))
@@ -421,7 +397,7 @@ def _laurent(node: Any, atoms: _Atoms, angles: bool, memo: dict[Any, _Poly | Non
             if part is None or len(out) > _MONOMIAL_TERMS:
                 out = None
                 break
-            out = _sum(out, part) if node.is_Add else _product(out, part)
+            out = add(out, part) if node.is_Add else product(out, part)
     elif node.is_Pow and node.args[1].is_Integer:
         base = _laurent(node.args[0], atoms, angles, memo)
         k = int(node.args[1])
@@ -431,7 +407,7 @@ def _laurent(node: Any, atoms: _Atoms, angles: bool, memo: dict[Any, _Poly | Non
         elif base is not None and k >= 0:
             out = {(): Fraction(1)}
             for _ in range(k):
-                out = _product(out, base)
+                out = product(out, base)
                 if len(out) > _MONOMIAL_TERMS:
                     out = None
                     break
@@ -441,7 +417,7 @@ def _laurent(node: Any, atoms: _Atoms, angles: bool, memo: dict[Any, _Poly | Non
     return out
 
 
-def _circular_of(name: str, arg: Any, atoms: _Atoms, angles: bool) -> _Poly | None:
+def _circular_of(name: str, arg: Any, atoms: _Atoms, angles: bool) -> Poly | None:
     """``sin`` or ``cos`` of an angle; (``angles``) of a sum of multiples of symbols, expanded."""
     if arg.is_Symbol or not angles:
         return atoms.variable(name, arg)
@@ -449,10 +425,10 @@ def _circular_of(name: str, arg: Any, atoms: _Atoms, angles: bool) -> _Poly | No
     return atoms.variable(name, arg) if expanded is None else expanded
 
 
-def _angle_sum(name: str, arg: Any, atoms: _Atoms) -> _Poly | None:
+def _angle_sum(name: str, arg: Any, atoms: _Atoms) -> Poly | None:
     """``sin`` or ``cos`` of a sum of integer multiples of symbols, in their sines and cosines."""
-    sine: _Poly = {}
-    cosine: _Poly = {(): Fraction(1)}
+    sine: Poly = {}
+    cosine: Poly = {(): Fraction(1)}
     for term in arg.args if arg.is_Add else (arg,):
         if term.is_Symbol:
             k, symbol = 1, term
@@ -470,16 +446,16 @@ def _angle_sum(name: str, arg: Any, atoms: _Atoms) -> _Poly | None:
         one_sin, one_cos = atoms.variable("sin", symbol), atoms.variable("cos", symbol)
         for _ in range(abs(k)):  # the angle sum's rule, once per multiple
             sine, cosine = (
-                _sum(_product(sine, one_cos), _product(cosine, one_sin), 1 if k > 0 else -1),
-                _sum(_product(cosine, one_cos), _product(sine, one_sin), -1 if k > 0 else 1),
+                add(product(sine, one_cos), product(cosine, one_sin), 1 if k > 0 else -1),
+                add(product(cosine, one_cos), product(sine, one_sin), -1 if k > 0 else 1),
             )
     return sine if name == "sin" else cosine
 
 
-def _pythagoras(p: _Poly, atoms: _Atoms, kind: str) -> _Poly:
+def _pythagoras(p: Poly, atoms: _Atoms, kind: str) -> Poly:
     """``p`` with every ``kind``'s square (``sin`` or ``cos``) written as 1 minus the other's."""
     other = "cos" if kind == "sin" else "sin"
-    out: _Poly = {}
+    out: Poly = {}
     work = list(p.items())
     while work:
         monomial, c = work.pop()
@@ -491,7 +467,7 @@ def _pythagoras(p: _Poly, atoms: _Atoms, kind: str) -> _Poly:
         powers[atom] -= 2
         lower = tuple(sorted((a, k) for a, k in powers.items() if k))
         work.append((lower, c))
-        work.append((_times(lower, ((atoms.index(other, atoms.exprs[atom].args[0]), 2),)), -c))
+        work.append((times(lower, ((atoms.index(other, atoms.exprs[atom].args[0]), 2),)), -c))
     return {key: c for key, c in out.items() if c}
 
 

@@ -38,7 +38,7 @@ def det(matrix: Any) -> Any:
             return expanded[0]  # a polynomial in its atoms: SymPy only expands it
         if expanded is not None:
             # dotprodsimp's cancel, where its form is sure (a mass-matrix arm's det R).
-            from tvopt_codegen.derivation.trigpoly import cancelled  # noqa: PLC0415
+            from tvopt_codegen.symbolic.trigforms import cancelled  # noqa: PLC0415
 
             found = cancelled(_deep_expanded(_written_out(rows), {}), expanded[0])
             if found is not None:

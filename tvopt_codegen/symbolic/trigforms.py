@@ -5,7 +5,8 @@ is a rational function in symbols and in the sine and cosine of angles. SymPy wr
 as ``factor(simplify(det))`` (:func:`.singularity.simplified_det`); importing SymPy for
 that alone cost more than the rest of ``generate arm_on_line``. This module reads such a
 determinant as a quotient of polynomials with rational coefficients in its atoms
-(symbols, ``s = sin(a)`` and ``c = cos(a)`` of a symbol ``a``, angle sums expanded),
+(symbols, ``s = sin(a)`` and ``c = cos(a)`` of a symbol ``a``, angle sums expanded:
+:mod:`.trigpoly`),
 reduces both by ``s^2 + c^2 = 1``, cancels their monomial and numeric contents and an
 exact polynomial quotient, and accepts what is left only in one shape, the one whose
 SymPy form is known:
@@ -43,261 +44,28 @@ import itertools
 import re
 from dataclasses import dataclass
 from fractions import Fraction
-from math import gcd, lcm
 from typing import Any
 
 from tvopt_codegen import symbolic as sx
-
-#: A monomial: ``((atom, exponent), ...)`` by atom number, exponents positive.
-Monomial = tuple[tuple[int, int], ...]
-#: A polynomial: its monomials' rational coefficients, none zero.
-Poly = dict[Monomial, Fraction]
-
-#: Most terms a polynomial may reach on the way (beyond, SymPy decides).
-MAX_TERMS = 400
-#: Largest multiple of an angle whose sine or cosine is expanded.
-_MAX_MULTIPLE = 4
-#: Largest integer power multiplied out.
-_MAX_POWER = 64
-
-
-class Atoms:
-    """The atoms of one determinant: symbols, and ``sin(a)`` and ``cos(a)`` of a symbol ``a``.
-
-    ``kinds[i]`` is ``""`` for a symbol, ``"sin"`` or ``"cos"``; ``names[i]`` the
-    symbol's or the angle's name.
-    """
-
-    def __init__(self, expand_angles: bool = True) -> None:
-        #: Whether ``sin(q1 + q2)`` is expanded in ``sin(q1)``, ``cos(q1)``, ... (else it is
-        #: an atom of its own, as SymPy's ``cancel`` and ``factor`` read it).
-        self.expand_angles = expand_angles
-        self.exprs: list[Any] = []
-        self.kinds: list[str] = []
-        self.names: list[str] = []
-        self._index: dict[tuple[str, str], int] = {}
-
-    def index(self, kind: str, symbol: Any) -> int:
-        """The number of ``symbol`` (kind ``""``) or of its sine or cosine."""
-        key = (kind, str(symbol))
-        found = self._index.get(key)
-        if found is None:
-            found = self._index[key] = len(self.exprs)
-            self.exprs.append(symbol if not kind else getattr(sx, kind)(symbol))
-            self.kinds.append(kind)
-            self.names.append(str(symbol))
-        return found
-
-    def variable(self, kind: str, symbol: Any) -> Poly:
-        """The polynomial of one atom (``kind`` as in :meth:`index`)."""
-        return {((self.index(kind, symbol), 1),): Fraction(1)}
-
-    def partner(self, atom: int) -> int:
-        """The cosine of a sine's angle, or the sine of a cosine's."""
-        other = "cos" if self.kinds[atom] == "sin" else "sin"
-        return self.index(other, self.exprs[atom].args[0])
-
-    def text(self, atom: int) -> str:
-        """The atom as SymPy's ``str`` writes a generator (its sort key reads it)."""
-        kind, name = self.kinds[atom], self.names[atom]
-        return f"{kind}({name})" if kind else name
-
-
-def times(a: Monomial, b: Monomial) -> Monomial:
-    """The product of two monomials (negative exponents allowed: a quotient)."""
-    powers = dict(a)
-    for atom, k in b:
-        powers[atom] = powers.get(atom, 0) + k
-    return tuple(sorted((atom, k) for atom, k in powers.items() if k))
-
-
-def product(p: Poly, q: Poly) -> Poly:
-    """The product of two polynomials."""
-    out: Poly = {}
-    for a, x in p.items():
-        for b, y in q.items():
-            key = times(a, b)
-            out[key] = out.get(key, Fraction(0)) + x * y
-    return {key: c for key, c in out.items() if c}
-
-
-def add(p: Poly, q: Poly, sign: int = 1) -> Poly:
-    """``p + q`` (``sign`` 1) or ``p - q`` (``sign`` -1)."""
-    out = dict(p)
-    for key, c in q.items():
-        out[key] = out.get(key, Fraction(0)) + sign * c
-    return {key: c for key, c in out.items() if c}
-
-
-def _scaled(p: Poly, c: Fraction, monomial: Monomial = ()) -> Poly:
-    return {times(key, monomial): c * value for key, value in p.items()}
-
-
-ONE: Poly = {(): Fraction(1)}
-#: A rational function: numerator and denominator (never the zero polynomial).
-Rational = tuple[Poly, Poly]
-
-
-def rational(node: Any, atoms: Atoms, memo: dict[Any, Rational | None]) -> Rational | None:
-    """``node`` as a quotient of polynomials in its atoms, or None where it is not one."""
-    if node in memo:
-        return memo[node]
-    out: Rational | None = None
-    if node.is_Rational:
-        numerator, denominator = node.as_numer_denom()
-        value = Fraction(int(numerator), int(denominator))
-        out = ({(): value} if value else {}, ONE)
-    elif node.is_Symbol:
-        out = (atoms.variable("", node), ONE)
-    elif node.is_Add or node.is_Mul:
-        out = ({}, ONE) if node.is_Add else (ONE, ONE)
-        for arg in node.args:
-            part = rational(arg, atoms, memo)
-            if part is None:
-                return _remember(memo, node, None)
-            out = (
-                _sum(out, part)
-                if node.is_Add
-                else (product(out[0], part[0]), product(out[1], part[1]))
-            )
-            if max(len(out[0]), len(out[1])) > MAX_TERMS:
-                return _remember(memo, node, None)
-    elif node.is_Pow and node.args[1].is_Integer:
-        base = rational(node.args[0], atoms, memo)
-        k = int(node.args[1])
-        if base is None or (k < 0 and not base[0]) or abs(k) > _MAX_POWER:
-            return _remember(memo, node, None)
-        numerator, denominator = base if k >= 0 else (base[1], base[0])
-        out = (ONE, ONE)
-        for _ in range(abs(k)):
-            out = (product(out[0], numerator), product(out[1], denominator))
-            if max(len(out[0]), len(out[1])) > MAX_TERMS:
-                return _remember(memo, node, None)
-    elif node.is_Function and sx.function_name(node) in ("sin", "cos"):
-        found = _circular(sx.function_name(node), node.args[0], atoms)
-        out = None if found is None else (found, ONE)
-    return _remember(memo, node, out)
-
-
-def _remember(memo: dict[Any, Rational | None], node: Any, out: Rational | None) -> Rational | None:
-    memo[node] = out
-    return out
-
-
-def _sum(p: Rational, q: Rational) -> Rational:
-    if p[1] == q[1]:  # one denominator: no growth
-        return add(p[0], q[0]), p[1]
-    return add(product(p[0], q[1]), product(q[0], p[1])), product(p[1], q[1])
-
-
-def _circular(name: str, arg: Any, atoms: Atoms) -> Poly | None:
-    """``sin`` or ``cos`` of a sum of integer multiples of symbols, in their sines and cosines."""
-    if not atoms.expand_angles:
-        return atoms.variable(name, arg)
-    sine: Poly = {}
-    cosine: Poly = ONE
-    for term in arg.args if arg.is_Add else (arg,):
-        if term.is_Symbol:
-            k, symbol = 1, term
-        elif (
-            term.is_Mul
-            and len(term.args) == 2
-            and term.args[0].is_Integer
-            and term.args[1].is_Symbol
-        ):
-            k, symbol = int(term.args[0]), term.args[1]
-        else:
-            return None
-        if abs(k) > _MAX_MULTIPLE:
-            return None
-        one_sin, one_cos = atoms.variable("sin", symbol), atoms.variable("cos", symbol)
-        for _ in range(abs(k)):  # the angle sum's rule, once per multiple
-            sine, cosine = (
-                add(product(sine, one_cos), product(cosine, one_sin), 1 if k > 0 else -1),
-                add(product(cosine, one_cos), product(sine, one_sin), -1 if k > 0 else 1),
-            )
-    return sine if name == "sin" else cosine
-
-
-def reduced(p: Poly, atoms: Atoms, kinds: dict[str, str]) -> Poly:
-    """``p`` modulo ``sin^2 + cos^2 = 1``: each angle's ``kinds[angle]`` squared rewritten.
-
-    With ``kinds[a] == "cos"`` every ``cos(a)^2`` becomes ``1 - sin(a)^2``, so ``cos(a)``
-    is left to the power 0 or 1 (and the other way round): a normal form, so that a
-    polynomial is zero on the circle exactly when its reduced form is empty.
-    """
-    out: Poly = {}
-    work = list(p.items())
-    while work:
-        monomial, c = work.pop()
-        atom = next(
-            (
-                a
-                for a, k in monomial
-                if atoms.kinds[a] and k >= 2 and kinds.get(atoms.names[a]) == atoms.kinds[a]
-            ),
-            None,
-        )
-        if atom is None:
-            out[monomial] = out.get(monomial, Fraction(0)) + c
-            continue
-        powers = dict(monomial)
-        powers[atom] -= 2
-        lower = tuple(sorted((a, k) for a, k in powers.items() if k))
-        work.append((lower, c))
-        work.append((times(lower, ((atoms.partner(atom), 2),)), -c))
-    return {key: c for key, c in out.items() if c}
-
-
-def content(p: Poly) -> tuple[Fraction, Monomial, Poly]:
-    """``p`` as a positive rational times a monomial times a primitive integer polynomial."""
-    common: dict[int, int] | None = None
-    for monomial in p:
-        powers = dict(monomial)
-        common = (
-            powers if common is None else {a: min(k, powers.get(a, 0)) for a, k in common.items()}
-        )
-    content = tuple(sorted((a, k) for a, k in (common or {}).items() if k))
-    numerators = gcd(*(c.numerator for c in p.values()))
-    denominators = lcm(*(c.denominator for c in p.values()))
-    number = Fraction(numerators, denominators)
-    inverse = tuple((a, -k) for a, k in content)
-    return number, content, {times(key, inverse): c / number for key, c in p.items()}
-
-
-def _dense(monomial: Monomial, n: int) -> tuple[int, ...]:
-    powers = dict(monomial)
-    return tuple(powers.get(a, 0) for a in range(n))
-
-
-def exact_quotient(p: Poly, q: Poly) -> Poly | None:
-    """``p / q`` where ``q`` divides ``p`` in the polynomial ring, else None.
-
-    Division by the lex-leading term: exact division always succeeds so, and a leading
-    term that does not divide (or a remainder) proves ``q`` does not divide ``p``.
-    """
-    n = 1 + max((a for m in (*p, *q) for a, _ in m), default=0)
-
-    def lead(r: Poly) -> Monomial:
-        return max(r, key=lambda m: _dense(m, n))
-
-    top = lead(q)
-    quotient: Poly = {}
-    rest = dict(p)
-    for _ in range(4 * MAX_TERMS):
-        if not rest:
-            return quotient
-        head = lead(rest)
-        powers = dict(head)
-        for a, k in top:
-            powers[a] = powers.get(a, 0) - k
-        if any(k < 0 for k in powers.values()):
-            return None
-        step = tuple(sorted((a, k) for a, k in powers.items() if k))
-        c = rest[head] / q[top]
-        quotient[step] = c
-        rest = add(rest, _scaled(q, c, step), -1)
-    return None
+from tvopt_codegen.symbolic.trigpoly import (
+    MAX_TERMS,
+    ONE,
+    Atoms,
+    Monomial,
+    Poly,
+    Rational,
+    add,
+    content,
+    exact_quotient,
+    inverse,
+    irreducible,
+    poly_expr,
+    product,
+    rational,
+    reduced,
+    scaled,
+    times,
+)
 
 
 @dataclass(frozen=True)
@@ -331,17 +99,6 @@ class Lowest:
             (self.atoms.exprs[a], k, (self.atoms.kinds[a], self.atoms.names[a]))
             for a, k in self.numerator
         ]
-
-
-def poly_expr(p: Poly, atoms: Atoms) -> sx.Expr:
-    """A polynomial as an expression of the engine."""
-    out = sx.Integer(0)
-    for monomial, c in p.items():
-        term = sx.Rational(c.numerator, c.denominator)
-        for atom, k in monomial:
-            term *= atoms.exprs[atom] ** k
-        out += term
-    return out
 
 
 def lowest(det: sx.Expr) -> Lowest | None:
@@ -452,13 +209,13 @@ def _written(p: Poly, atoms: Atoms) -> Poly | None:
 
     ``p`` is primitive, without monomial content, reduced. None where ``p`` holds more
     than one angle, a power of a sine or cosine other than the square, two forms of one
-    length, or where its irreducibility is not proved (:func:`_irreducible`).
+    length, or where its irreducibility is not proved (:func:`.trigpoly.irreducible`).
     """
     trig = {atoms.names[a] for m in p for a, _ in m if atoms.kinds[a]}
     if len(trig) > 1:
         return None
     if not trig:
-        return p if _irreducible(p) else None
+        return p if irreducible(p) else None
     if any(atoms.kinds[a] and k != 2 for m in p for a, k in m):
         # Beyond a square, simplify keeps the expansion of (1 - sin^2)^2 rather than
         # cos^4, though shorter: not a rule of fewer terms (found by the tests).
@@ -470,30 +227,7 @@ def _written(p: Poly, atoms: Atoms) -> Poly | None:
     if len(forms[0]) == len(forms[1]):
         return None
     shortest = forms[0]
-    return shortest if _irreducible(shortest) else None
-
-
-def _irreducible(p: Poly) -> bool:
-    """Whether ``p`` (primitive, no monomial content) is provably irreducible.
-
-    When ``p = A x + B`` for an atom ``x`` of degree 1, with ``A`` one term and no atom of
-    ``A`` dividing every term of ``B``: a factor free of ``x`` would divide ``A`` (so be
-    a monomial) and ``B`` (so hold no atom of ``A``), so be a number, and ``p`` is
-    primitive.
-    """
-    atoms = {a for m in p for a, _ in m}
-    for x in sorted(atoms):
-        degrees = [dict(m).get(x, 0) for m in p]
-        if max(degrees) != 1:
-            continue
-        with_x = [m for m, d in zip(p, degrees, strict=True) if d == 1]
-        without = [m for m, d in zip(p, degrees, strict=True) if d == 0]
-        if len(with_x) != 1 or not without:
-            continue
-        coefficient_atoms = {a for a, _ in with_x[0] if a != x}
-        if all(any(a not in dict(m) for m in without) for a in coefficient_atoms):
-            return True
-    return False
+    return shortest if irreducible(shortest) else None
 
 
 _GEN = re.compile(r"^(.*?)(\d*)$", re.MULTILINE)
@@ -549,7 +283,7 @@ def _equal(found: Rational, lowest: Lowest, atoms: Atoms) -> bool:
 # order of SymPy's sorted generators. That form is unique once the common factor is known
 # and the leading coefficient's sign is sure; it is found here where both are: every
 # denominator in the expansion is a monomial times a polynomial proved irreducible
-# (:func:`_irreducible`; a mass-matrix arm's ``m1 + m2 - m2 cos(q2)^2``), so that the
+# (:func:`.trigpoly.irreducible`; a mass-matrix arm's ``m1 + m2 - m2 cos(q2)^2``), so that the
 # common factor is a monomial, a number and powers of those polynomials, each found by
 # exact division.
 
@@ -588,7 +322,7 @@ def cancelled(written: sx.Expr, expanded: sx.Expr) -> sx.Expr | None:
         if found is None or below is None:
             return None
         number, monomial, exponents = below
-        terms.append((_scaled(found[0], 1 / number), monomial, exponents))
+        terms.append((scaled(found[0], 1 / number), monomial, exponents))
     if _operations_at_least(terms) < _CANCEL_OPS:
         return None
     lowest_terms = _lowest_terms(terms, primes)
@@ -599,10 +333,10 @@ def cancelled(written: sx.Expr, expanded: sx.Expr) -> sx.Expr | None:
     if not sign:
         return None
     if sign < 0:
-        top, bottom = _scaled(top, Fraction(-1)), _scaled(bottom, Fraction(-1))
+        top, bottom = scaled(top, Fraction(-1)), scaled(bottom, Fraction(-1))
     if len(bottom) == 1 and () in bottom:
         # Over a number SymPy's ``P/q`` distributes ``1/q`` over P's terms.
-        return poly_expr(_scaled(top, 1 / bottom[()]), atoms)
+        return poly_expr(scaled(top, 1 / bottom[()]), atoms)
     return poly_expr(top, atoms) * poly_expr(bottom, atoms) ** -1
 
 
@@ -654,7 +388,7 @@ def _denominator_primes(
 
     Each denominator (a negative power's base, in the determinant as written and as
     expanded) is a number times a monomial times a primitive polynomial; where that
-    polynomial has two terms or more and is proved irreducible (:func:`_irreducible`),
+    polynomial has two terms or more and is proved irreducible (:func:`.trigpoly.irreducible`),
     it is one of the primes (an expansion's ``(m1 + m2 - m2 cos^2)^2``, multiplied
     out, is not proved, but the entry's own denominator is). None where a denominator
     is not a polynomial.
@@ -672,8 +406,8 @@ def _denominator_primes(
             if base is None or base[1] != ONE:
                 return None
             _, _, rest = content(base[0])
-            negated = _scaled(rest, Fraction(-1))
-            if len(rest) > 1 and _irreducible(rest) and rest not in primes:
+            negated = scaled(rest, Fraction(-1))
+            if len(rest) > 1 and irreducible(rest) and rest not in primes:
                 if negated not in primes:
                     primes.append(rest)
         stack.extend(node.args)
@@ -734,7 +468,7 @@ def _lowest_terms(terms: list[_Term], primes: list[Poly]) -> Rational | None:
     lcd_monomial = tuple(sorted(below.items()))
     total: Poly = {}
     for numerator, monomial, exponents in terms:
-        part = _scaled(numerator, Fraction(1), times(lcd_monomial, _inverse(monomial)))
+        part = scaled(numerator, Fraction(1), times(lcd_monomial, inverse(monomial)))
         for prime, k, top_k in zip(primes, exponents, most, strict=True):
             for _ in range(top_k - k):
                 part = product(part, prime)
@@ -754,10 +488,8 @@ def _lowest_terms(terms: list[_Term], primes: list[Poly]) -> Rational | None:
                 top = quotient
     common = tuple((a, min(k, below[a])) for a, k in top_monomial if a in below)
     ratio = top_number  # over a denominator of number 1
-    numerator = _scaled(top, Fraction(ratio.numerator), times(top_monomial, _inverse(common)))
-    denominator = _scaled(
-        bottom, Fraction(ratio.denominator), times(lcd_monomial, _inverse(common))
-    )
+    numerator = scaled(top, Fraction(ratio.numerator), times(top_monomial, inverse(common)))
+    denominator = scaled(bottom, Fraction(ratio.denominator), times(lcd_monomial, inverse(common)))
     lcd: Poly = {lcd_monomial: Fraction(1)}
     for prime, k in zip(primes, most, strict=True):
         for _ in range(k):
@@ -765,10 +497,6 @@ def _lowest_terms(terms: list[_Term], primes: list[Poly]) -> Rational | None:
     if add(product(numerator, lcd), product(denominator, total), -1):
         return None  # not the sum: a guard, never expected
     return numerator, denominator
-
-
-def _inverse(monomial: Monomial) -> Monomial:
-    return tuple((atom, -k) for atom, k in monomial)
 
 
 def _leading_sign(p: Poly, atoms: Atoms) -> int:
