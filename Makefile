@@ -67,7 +67,7 @@ figures: $(READY)
 test: $(READY)
 	$(PY) -m pytest -n auto --dist worksteal
 
-## test-fast: the quick part of the suite (no test over 0.5 s in tests/durations.json), on
+## test-fast: the quick part of the suite (no test over 0.2 s in tests/durations.json), on
 ##   every core: what a contributor runs after each change
 test-fast: $(READY)
 	$(PY) -m pytest -n auto --dist worksteal -m "not slow"
