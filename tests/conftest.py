@@ -310,6 +310,16 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
         terminalreporter.write_line(line, yellow=True)
 
 
+#: Python text of an import hook that refuses SymPy, for scripts run in a fresh process
+#: (``sys.meta_path.insert(0, Refuse())``): what must run without SymPy proves it there.
+REFUSE_SYMPY = """
+class Refuse:
+    def find_spec(self, name, path=None, target=None):
+        if name == "sympy" or name.startswith("sympy."):
+            raise ImportError("SymPy refused: " + name)
+        return None
+"""
+
 #: A test that took longer than this (seconds, in ``tests/durations.json``) is ``slow``:
 #: ``make test`` runs it, ``make test-fast`` does not. The durations are of a whole run on
 #: both cores of this 2-core machine with warm caches; ``make test-durations`` measures

@@ -32,7 +32,7 @@ from tvopt_codegen.spec import load_spec
 from tvopt_codegen.symbolic import trigforms, trigpoly
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
-from .conftest import ROOT, SPECS
+from .conftest import REFUSE_SYMPY, ROOT, SPECS
 
 EXAMPLES = sorted(p.stem for p in (ROOT / "tvopt_codegen" / "examples").glob("*.toml"))
 TEST_SPECS = sorted(str(p) for p in SPECS.glob("*.toml"))
@@ -288,13 +288,10 @@ def test_exact_quotient_and_irreducibility_rule() -> None:
 
 
 # ------------------------------------------------------------------ processes
-_DET_ONLY = """
-import json, sys
-class Refuse:
-    def find_spec(self, name, path=None, target=None):
-        if name == "sympy" or name.startswith("sympy."):
-            raise ImportError("SymPy refused: " + name)
-        return None
+_DET_ONLY = (
+    "import json, sys\n"
+    + REFUSE_SYMPY
+    + """
 sys.meta_path.insert(0, Refuse())
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation.singularity import _singular_set, simplified_det
@@ -303,6 +300,7 @@ found = simplified_det(det)
 print(json.dumps([sx.text(found), list(_singular_set(found))]))
 assert "sympy" not in sys.modules
 """
+)
 
 
 def _symengine_run(args: list[str]) -> subprocess.CompletedProcess[str]:
@@ -330,13 +328,10 @@ def test_the_arms_det_is_decided_in_a_process_that_refuses_sympy() -> None:
     assert singular == ["sin(q2) = 0"]
 
 
-_GENERATE = """
-import sys
-class Refuse:
-    def find_spec(self, name, path=None, target=None):
-        if name == "sympy" or name.startswith("sympy."):
-            raise ImportError("SymPy refused: " + name)
-        return None
+_GENERATE = (
+    "import sys\n"
+    + REFUSE_SYMPY
+    + """
 sys.meta_path.insert(0, Refuse())
 from tvopt_codegen.cli import main
 for backend in ("python", "c"):
@@ -344,6 +339,7 @@ for backend in ("python", "c"):
     assert code == 0, code
 print(sorted(m for m in sys.modules if m.split(".")[0] == "sympy")[:3])
 """
+)
 
 
 def test_generate_arm_on_line_imports_no_sympy(tmp_path: Any) -> None:

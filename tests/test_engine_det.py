@@ -36,7 +36,7 @@ from tvopt_codegen.derivation.singularity import (
 from tvopt_codegen.symbolic import linalg
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
-from .conftest import ROOT, SPECS, derivation
+from .conftest import REFUSE_SYMPY, ROOT, SPECS, derivation
 
 EXAMPLES = sorted(p.stem for p in (ROOT / "tvopt_codegen" / "examples").glob("*.toml"))
 TEST_SPECS = sorted(str(p) for p in SPECS.glob("*.toml"))
@@ -48,13 +48,10 @@ BORDER: tuple[str, ...] = ()
 
 #: Run in a fresh process on SymEngine: derive, lower and render (Python) each bundled
 #: example with SymPy's import refused, then the rest with it allowed; print the records.
-_SCRIPT = """
-import json, sys
-class Refuse:
-    def find_spec(self, name, path=None, target=None):
-        if name == "sympy" or name.startswith("sympy."):
-            raise ImportError("SymPy refused: " + name)
-        return None
+_SCRIPT = (
+    "import json, sys\n"
+    + REFUSE_SYMPY
+    + """
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.spec import load_spec
 from tvopt_codegen.derivation import derive
@@ -78,6 +75,7 @@ for name in rest:
     record(name)
 print(json.dumps(records))
 """
+)
 
 
 @functools.cache

@@ -119,6 +119,17 @@ def _gone(pid: int, within: float) -> bool:
     return False
 
 
+def _signalled(proc: subprocess.Popen[str], sig: int, group: bool) -> str:
+    """Send ``sig`` to the command (or to its whole group, as a terminal's Ctrl-C does);
+    its stderr once it has ended."""
+    if group:
+        os.killpg(proc.pid, sig)
+    else:
+        proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    return err
+
+
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux's /proc")
 @pytest.mark.parametrize(
     ("sig", "code", "group"),
@@ -146,11 +157,7 @@ def test_a_signal_during_simulate_leaves_no_drawing_process(
     assert proc.poll() is None, proc.communicate()
     drawing = _children(proc.pid)
     assert len(drawing) == 1
-    if group:
-        os.killpg(proc.pid, sig)
-    else:
-        proc.send_signal(sig)
-    _, err = proc.communicate(timeout=60)
+    err = _signalled(proc, sig, group)
     assert proc.returncode == code, err
     if sig != signal.SIGKILL:
         assert err.strip().count("\n") == 0 and "Traceback" not in err
@@ -509,11 +516,7 @@ def test_a_signal_while_the_constraints_side_process_runs_ends_both_side_process
         side = _children(proc.pid)
         time.sleep(0.01)
     assert len(side) == 2 and proc.poll() is None, proc.communicate()
-    if group:
-        os.killpg(proc.pid, sig)
-    else:
-        proc.send_signal(sig)
-    _, err = proc.communicate(timeout=60)
+    err = _signalled(proc, sig, group)
     assert proc.returncode == code, err
     last = [line for line in err.splitlines() if "simulated t =" not in line]
     assert len(last) == 1 and "Traceback" not in err, err

@@ -25,7 +25,7 @@ from tvopt_codegen.derivation.meter import TimeLimitError, time_limited, tree_si
 from tvopt_codegen.symbolic.border import from_sympy, sympy, to_sympy
 from tvopt_codegen.symbolic.order import sympy_ordered
 from tvopt_codegen.symbolic.trigforms import indefinite, lowest, sympy_text
-from tvopt_codegen.symbolic.trigpoly import Poly, add, product, times
+from tvopt_codegen.symbolic.trigpoly import Poly, add, angle_sum, product, times
 
 
 def _circular() -> tuple[Any, ...]:
@@ -421,35 +421,8 @@ def _circular_of(name: str, arg: Any, atoms: _Atoms, angles: bool) -> Poly | Non
     """``sin`` or ``cos`` of an angle; (``angles``) of a sum of multiples of symbols, expanded."""
     if arg.is_Symbol or not angles:
         return atoms.variable(name, arg)
-    expanded = _angle_sum(name, arg, atoms)
+    expanded = angle_sum(name, arg, atoms.variable)
     return atoms.variable(name, arg) if expanded is None else expanded
-
-
-def _angle_sum(name: str, arg: Any, atoms: _Atoms) -> Poly | None:
-    """``sin`` or ``cos`` of a sum of integer multiples of symbols, in their sines and cosines."""
-    sine: Poly = {}
-    cosine: Poly = {(): Fraction(1)}
-    for term in arg.args if arg.is_Add else (arg,):
-        if term.is_Symbol:
-            k, symbol = 1, term
-        elif (
-            term.is_Mul
-            and len(term.args) == 2
-            and term.args[0].is_Integer
-            and term.args[1].is_Symbol
-        ):
-            k, symbol = int(term.args[0]), term.args[1]
-        else:
-            return None
-        if abs(k) > 4:
-            return None
-        one_sin, one_cos = atoms.variable("sin", symbol), atoms.variable("cos", symbol)
-        for _ in range(abs(k)):  # the angle sum's rule, once per multiple
-            sine, cosine = (
-                add(product(sine, one_cos), product(cosine, one_sin), 1 if k > 0 else -1),
-                add(product(cosine, one_cos), product(sine, one_sin), -1 if k > 0 else 1),
-            )
-    return sine if name == "sin" else cosine
 
 
 def _pythagoras(p: Poly, atoms: _Atoms, kind: str) -> Poly:

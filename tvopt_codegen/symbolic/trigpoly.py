@@ -17,6 +17,7 @@ None past it: the caller then lets SymPy decide.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from fractions import Fraction
 from math import gcd, lcm
 from typing import Any
@@ -171,6 +172,16 @@ def _circular(name: str, arg: Any, atoms: Atoms) -> Poly | None:
     """``sin`` or ``cos`` of a sum of integer multiples of symbols, in their sines and cosines."""
     if not atoms.expand_angles:
         return atoms.variable(name, arg)
+    return angle_sum(name, arg, atoms.variable)
+
+
+def angle_sum(name: str, arg: Any, variable: Callable[[str, Any], Poly]) -> Poly | None:
+    """``sin`` or ``cos`` of a sum of integer multiples of symbols, in their sines and cosines.
+
+    ``variable(kind, symbol)`` is the polynomial of ``sin(symbol)`` or ``cos(symbol)`` in
+    the caller's atoms. None where a term is not an integer multiple (at most
+    ``_MAX_MULTIPLE``) of a symbol.
+    """
     sine: Poly = {}
     cosine: Poly = ONE
     for term in arg.args if arg.is_Add else (arg,):
@@ -187,7 +198,7 @@ def _circular(name: str, arg: Any, atoms: Atoms) -> Poly | None:
             return None
         if abs(k) > _MAX_MULTIPLE:
             return None
-        one_sin, one_cos = atoms.variable("sin", symbol), atoms.variable("cos", symbol)
+        one_sin, one_cos = variable("sin", symbol), variable("cos", symbol)
         for _ in range(abs(k)):  # the angle sum's rule, once per multiple
             sine, cosine = (
                 add(product(sine, one_cos), product(cosine, one_sin), 1 if k > 0 else -1),
