@@ -22,6 +22,7 @@ from tvopt_codegen.errors import (
     OutputError,
     SpecError,
     Terminated,
+    signal_raised,
 )
 from tvopt_codegen.limits import RUN_OPTIONS
 
@@ -312,7 +313,9 @@ class _Finishing:
                 flush=True,
             )
             return
-        raise KeyboardInterrupt if number == signal.SIGINT else Terminated
+        # Remembered, as the command line's own handlers do: compiled code that swallows
+        # it does not let the sweep run on (errors.raise_pending_signal).
+        signal_raised(KeyboardInterrupt if number == signal.SIGINT else Terminated)
 
 
 def _publish(
