@@ -43,7 +43,7 @@ from tests.embedded.harness import (
     run,
     skip_reason,
 )
-from tests.test_strict_c import generated
+from tests.test_strict_c import generated, m4f_object
 
 #: Each QEMU test compiles and runs closed loops (1-3 s; the module's total is ~25 s on
 #: one core): slow, by hand, until tests/durations.json records them.
@@ -123,6 +123,12 @@ def _trace(example: str, target: str, precision: str, fma: bool = True) -> Trace
     """
 
     def build(folder: Path) -> None:
+        # The M4F's objects are test_strict_c's (the same C, flags and compiler, built once
+        # per run for its stack check); every target's start-up objects are built once.
+        objects: dict[str, Path] = {}
+        if target == "m4f":
+            objects = {"double": m4f_object(example, "double")}
+            objects["controller"] = m4f_object(example, precision)
         binary = build_loop(
             TARGETS[target],
             example,
@@ -131,6 +137,8 @@ def _trace(example: str, target: str, precision: str, fma: bool = True) -> Trace
             precision,
             folder,
             LOOP,
+            objects=objects,
+            support=_support(target),
         )
         (folder / "out").write_text(run(TARGETS[target], binary), encoding="utf-8")
         if target == "host":
@@ -141,6 +149,16 @@ def _trace(example: str, target: str, precision: str, fma: bool = True) -> Trace
     folder = shared(f"embedded-run-{example}-{target}-{precision}", build)
     n_x = plant_states(_c(example, "double") / f"{example}.h", example)
     return parse((folder / ("out" if fma else "out-no-fma")).read_text(encoding="utf-8"), n_x)
+
+
+def _support(target: str) -> list[Path]:
+    """The start-up objects of ``target`` (:func:`harness.support_objects`), once per run."""
+
+    def build(folder: Path) -> None:
+        harness.support_objects(TARGETS[target], folder)
+
+    folder = shared(f"embedded-support-{target}", build)
+    return sorted(folder.glob("*.o"))
 
 
 def _bits(trace: Trace) -> np.ndarray:

@@ -16,6 +16,7 @@ import os
 import re
 import shutil
 import subprocess
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -299,6 +300,8 @@ def build_loop(
     main: str = "loop.c",
     defines: tuple[str, ...] = (),
     controller_flags: tuple[str, ...] = (),
+    objects: Mapping[str, Path] | None = None,
+    support: Sequence[Path] | None = None,
 ) -> Path:
     """Compile and link a harness program (``loop.c`` or ``bench.c``) of ``name`` for ``target``.
 
@@ -320,11 +323,23 @@ def build_loop(
         More ``-D`` options of the program.
     controller_flags
         More options of the controller's compilation (``-fstack-usage``).
+    objects
+        Objects already compiled for ``target`` with the harness's flags, by role:
+        ``double`` (the double-precision C) and ``controller`` (the C in ``precision``);
+        a role not given is compiled here.
+    support
+        The start-up objects (:func:`support_objects`) already compiled for ``target``;
+        compiled here if not given.
     """
     folder.mkdir(parents=True, exist_ok=True)
     real = "double" if precision == "double" else "float"
-    double_object = compile_object(target, double / f"{name}.c", folder / "double.o", f"-I{double}")
-    if precision == "double" and not controller_flags:
+    given = dict(objects or {})
+    double_object = given.get("double") or compile_object(
+        target, double / f"{name}.c", folder / "double.o", f"-I{double}"
+    )
+    if "controller" in given:
+        controller_object = given["controller"]
+    elif precision == "double" and not controller_flags:
         controller_object = double_object
     else:
         controller_object = compile_object(
@@ -334,7 +349,7 @@ def build_loop(
             f"-I{controller}",
             *controller_flags,
         )
-    objects = [
+    linked = [
         controller_object,
         renamed_plant(target, name, double_object, folder / "plant.o"),
         compile_object(
@@ -349,15 +364,23 @@ def build_loop(
             *loop.defines(),
             *defines,
         ),
-        compile_object(target, HERE / "semihost.c", folder / "semihost.o"),
+        *(support_objects(target, folder) if support is None else support),
     ]
-    if target.bare:
-        objects.append(
-            compile_object(target, HERE / "startup.c", folder / "startup.o", f"-I{HERE}")
-        )
     binary = folder / f"{name}.elf"
-    _run([target.cc, *target.flags, *map(str, objects), "-o", str(binary), *target.link])
+    _run([target.cc, *target.flags, *map(str, linked), "-o", str(binary), *target.link])
     return binary
+
+
+def support_objects(target: Target, folder: Path) -> list[Path]:
+    """The harness's files every program of ``target`` links, compiled into ``folder``.
+
+    ``semihost.c`` (the output), and on bare metal ``startup.c`` (the vector table and
+    reset handler): the same objects for every example, so they may be compiled once.
+    """
+    built = [compile_object(target, HERE / "semihost.c", folder / "semihost.o")]
+    if target.bare:
+        built.append(compile_object(target, HERE / "startup.c", folder / "startup.o", f"-I{HERE}"))
+    return built
 
 
 def run(
