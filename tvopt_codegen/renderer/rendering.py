@@ -279,8 +279,10 @@ def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
         indices = _indices(out.shape)
         # An output may hold a plain number (a structural zero): made an expression here.
         values = [e if isinstance(e, sx.Basic) else sx.sympify(e) for e in out.exprs]
-        # Asked once per element: a SymEngine comparison with 0 converts the 0 each time.
-        zero = [e == 0 for e in values]
+        # Asked once per element, of the engine's own zero: a comparison with the int 0
+        # converts it each time (through the numbers ABCs, 4x the comparison itself).
+        nought = sx.ZERO
+        zero = [e == nought for e in values]
         zeros = sum(zero)
         sparse = zeros >= SPARSE_OUTPUT_ZEROS and 2 * zeros >= len(values)
         elements = tuple(

@@ -25,18 +25,24 @@ _CLASS_ORDER = {
         "Exp1 Pi ImaginaryUnit Symbol Wild Pow Mul Add Derivative Integral".split()
     )
 }
-_POW = _CLASS_ORDER["Pow"]
+_POW, _E = _CLASS_ORDER["Pow"], _CLASS_ORDER["Exp1"]
 #: SymEngine's names of classes SymPy names otherwise.
 _SYMPY_NAMES = {"RealDouble": "Float"}
 
 
-def canonical_key(expr: Any, key: Callable[[Any], tuple[Any, ...]]) -> tuple[Any, ...]:
+def canonical_key(
+    expr: Any, key: Callable[[Any], tuple[Any, ...]], args: Sequence[Any] | None = None
+) -> tuple[Any, ...]:
     """The place of ``expr`` in SymPy's order of the arguments of a sum or a product.
 
     SymPy sorts them by ``Basic.compare``: the class (by its rank in SymPy's list of
     classes, else by name), then the number of its parts, then the parts in turn (a
     symbol's name, a number's value, a node's arguments, those of a sum or a product
     sorted). ``key`` gives the key of an argument (a memoised call of this function).
+    ``args`` are ``expr``'s arguments as ``key`` takes them (by default ``expr.args``): a
+    caller that keeps its own record of each argument passes those, so that neither the
+    arguments (new Python objects at each SymEngine ``.args``) nor their records are
+    looked up again.
     """
     name = type(expr).__name__
     name = _SYMPY_NAMES.get(name, name)
@@ -45,11 +51,17 @@ def canonical_key(expr: Any, key: Callable[[Any], tuple[Any, ...]]) -> tuple[Any
     if sx.SYMENGINE:
         # Two nodes SymPy names otherwise: SymEngine's exp(x) is the power E**x, SymPy's
         # the function exp (after sums and products among a node's arguments); a user's
-        # applied function is a FunctionSymbol, in SymPy of the class of its name.
-        if rank == _POW and expr.args[0] == sx.E:
-            return (len(_CLASS_ORDER), "exp", 1, key(expr.args[1]))
+        # applied function is a FunctionSymbol, in SymPy of the class of its name. E is
+        # the one node of its rank: its key tells.
+        if rank == _POW:
+            if args is None:
+                args = expr.args
+            base = key(args[0])
+            if base[0] == _E:
+                return (len(_CLASS_ORDER), "exp", 1, key(args[1]))
+            return (rank, "", 2, base, key(args[1]))
         if name == "FunctionSymbol":
-            parts = tuple(key(arg) for arg in expr.args)
+            parts = tuple(key(arg) for arg in (expr.args if args is None else args))
             return (len(_CLASS_ORDER), sx.function_name(expr), len(parts), *parts)
     if expr.is_Symbol:
         parts = (expr.name,)
@@ -60,9 +72,9 @@ def canonical_key(expr: Any, key: Callable[[Any], tuple[Any, ...]]) -> tuple[Any
 
         parts = (from_float(float(expr)), 53)  # SymPy's Float: its mpf and precision
     elif expr.is_Add or expr.is_Mul:
-        parts = tuple(sorted(key(arg) for arg in expr.args))
+        parts = tuple(sorted(key(arg) for arg in (expr.args if args is None else args)))
     else:
-        parts = tuple(key(arg) for arg in expr.args)
+        parts = tuple(key(arg) for arg in (expr.args if args is None else args))
     return (rank, name if rank == len(_CLASS_ORDER) else "", len(parts), *parts)
 
 
