@@ -115,7 +115,7 @@ def _plain_leaves(dag: Dag, root: int) -> set[int]:
 
 @pytest.mark.parametrize("seed", range(6))
 def test_reading_a_program_keeps_one_id_per_value(seed: int) -> None:
-    """Children looked up in place (Dag._children) give the ids a call per child gives:
+    """Children looked up in place (in Dag.intern) give the ids a call per child gives:
     equal subtrees one id, each id's expression the subtree, whatever the reading order."""
     with sx.using("symengine"):
         program, outputs = _random_program(seed)

@@ -93,51 +93,56 @@ class Dag:
         its terms' so that sums of neighbouring symbols collide (683 sums of one hash on
         a ring of 128 agents), and every colliding entry is compared in C++. Its terms'
         ids, looked up, key it instead.
+
+        Reading a program is a call of this per value and per new child: the children's
+        look-up and the new node's lists are written out here, where the calls of
+        helpers for them were a third of its time.
         """
         cls = type(expr)
-        if cls is not self._add:
-            found = self._ids.get(expr)
+        add = self._add
+        ids = self._ids
+        if cls is not add:
+            found = ids.get(expr)
             if found is not None:
                 return found
         args = expr.args
         if not args:
             # A leaf equal to one in the table was found above: this one is new.
             i = self._new(expr, (), self._leaf_kind(expr), (), len(self.expr))
+            ids[expr] = i
+            return i
+        info = self._types.get(cls)
+        if info is None:
+            info = self._types[cls] = self._describe(expr)
+        kind, commutative = info
+        # Most children of a three-address program's values are symbols and numbers met
+        # before: looked up in place, a call of intern only for the others.
+        get, intern = ids.get, self.intern
+        children = tuple(
+            [
+                intern(arg) if type(arg) is add or (known := get(arg)) is None else known
+                for arg in args
+            ]
+        )
+        if commutative:
+            head: tuple[Any, ...] = (cls,)
+            key: tuple[Any, ...] = (cls, *sorted(children))
         else:
-            info = self._types.get(cls)
-            if info is None:
-                info = self._types[cls] = self._describe(expr)
-            kind, commutative = info
-            children = self._children(args)
-            if commutative:
-                head: tuple[Any, ...] = (cls,)
-                key: tuple[Any, ...] = (cls, *sorted(children))
-            else:
-                # An undefined function's class is not its name.
-                head = (cls, sx.function_name(expr)) if expr.is_Function else (cls,)
-                key = (*head, *children)
-            i = self._keys.get(key, -1)
-            if i < 0:
-                i = self._keys[key] = self._new(expr, children, kind, head, len(self.expr))
-            if cls is self._add:
-                return i
-        self._ids[expr] = i
+            # An undefined function's class is not its name.
+            head = (cls, sx.function_name(expr)) if expr.is_Function else (cls,)
+            key = (*head, *children)
+        keys = self._keys
+        i = keys.get(key, -1)
+        if i < 0:
+            i = keys[key] = len(self.expr)
+            self.expr.append(expr)
+            self.args.append(children)
+            self.kind.append(kind)
+            self._template.append(i)
+            self._head.append(head)
+        if cls is not add:
+            ids[expr] = i
         return i
-
-    def _children(self, args: Sequence[sx.Expr]) -> tuple[int, ...]:
-        """The ids of a node's children, those already in the table looked up in place.
-
-        Most children of a three-address program's values are symbols and numbers met
-        before: a look-up here, where a call of :meth:`intern` for each was a third of
-        reading a program.
-        """
-        add, get, intern = self._add, self._ids.get, self.intern
-        children: list[int] = []
-        append = children.append
-        for arg in args:
-            found = None if type(arg) is add else get(arg)
-            append(intern(arg) if found is None else found)
-        return tuple(children)
 
     @staticmethod
     def _describe(expr: sx.Expr) -> tuple[int, bool]:
@@ -493,23 +498,36 @@ class Dag:
         """
         if not self.args[i]:
             return mapping.get(i, i)
+        done = memo.get(i)
+        if done is not None:
+            return done
         # A method, not a nested function: the passes call this once per value of a
         # program (150 thousand times on a ring of 128 agents), most of them a node of
         # leaves, and making and releasing a closure for each cost more than the walk.
         return self._substituted(i, mapping.get, memo)
 
     def _substituted(self, node: int, get: Callable[..., int], memo: dict[int, int]) -> int:
-        """:meth:`substitute`'s walk of a compound ``node``; ``get`` the mapping's."""
-        done = memo.get(node)
-        if done is not None:
-            return done
+        """:meth:`substitute`'s walk of a compound ``node`` not in ``memo``; ``get`` the mapping's.
+
+        A child in ``memo`` already (a shared one) is looked up in place, not called.
+        """
         args = self.args
         own = args[node]
         visit = self._substituted
-        new = tuple([visit(c, get, memo) if args[c] else get(c, c) for c in own])
-        done = node if new == own else self.rebuild(node, new)
-        memo[node] = done
-        return done
+        recall = memo.get
+        new = tuple(
+            [
+                (
+                    get(c, c)
+                    if not args[c]
+                    else (done if (done := recall(c)) is not None else visit(c, get, memo))
+                )
+                for c in own
+            ]
+        )
+        made = node if new == own else self.rebuild(node, new)
+        memo[node] = made
+        return made
 
     def signed_odd(
         self, program: Program, outputs: Sequence[int], memo: dict[sx.Expr, sx.Expr]

@@ -278,12 +278,18 @@ def _merged_and_inlined(
     Merging equal values can leave a temporary with one use, and inlining can make two
     values equal (two rounds in practice). Each pass reaches its own fixed point, and
     inlining changes the program exactly when it removes a temporary: a round whose
-    inlining removed none ends the loop.
+    inlining removed none ends the loop. So does a merge that changed nothing after an
+    inlining: that inlining's fixed point is the program still, and inlining it again
+    (a pass over every value) would find nothing; most kernels end so.
     """
+    inlined = False
     while True:
-        order, outs = merge(order, outs)
-        size = len(order)
-        order, outs = inline(order, outs)
+        merged, merged_outs = merge(order, outs)
+        if inlined and merged == order and merged_outs == outs:
+            return merged, merged_outs
+        size = len(merged)
+        order, outs = inline(merged, merged_outs)
+        inlined = True
         if len(order) == size:
             return order, outs
 
@@ -293,7 +299,7 @@ def _number(
 ) -> tuple[tuple[Assignment, ...], tuple[sx.Expr, ...]]:
     """Rename the temporaries ``_t0, _t1, ...`` in evaluation order."""
     if sx.SYMENGINE:
-        names = [sx.symbol(f"_t{index}") for index in range(len(order))]
+        names = _temporaries(len(order))
         # Each value holds only symbols renamed before it: one renaming of all at once.
         values = _replace_all(
             [value for _, value in order] + list(outs),
@@ -309,6 +315,18 @@ def _number(
         body.append((new, _substitute(value, renames, memo)))
         renames[sym] = new
     return tuple(body), tuple(_substitute(e, renames, memo) for e in outs)
+
+
+#: The symbols ``_t0, _t1, ...`` made so far, by engine: every kernel's temporaries are
+#: named from 0, and making the symbols anew for each kernel was a hundredth of lowering.
+_NAMES: dict[bool, list[sx.Expr]] = {}
+
+
+def _temporaries(count: int) -> list[sx.Expr]:
+    """The engine's symbols ``_t0 .. _t{count - 1}``."""
+    names = _NAMES.setdefault(sx.SYMENGINE, [])
+    names.extend(sx.symbol(f"_t{index}") for index in range(len(names), count))
+    return names[:count]
 
 
 def _value_numbering(
