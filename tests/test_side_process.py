@@ -1,26 +1,62 @@
 """``simulate``'s work beside the run: the SLSQP solves, and figures drawn while it is certified.
 
-Each test runs in a fresh interpreter: a process is forked only while one thread runs,
-which a test process that has run a Dask sweep no longer is.
+Each test's body runs in a fresh interpreter: a process is forked only while one thread
+runs, which a test process that has run a Dask sweep no longer is. The bodies share one
+interpreter, run once per pytest run (``shared``): a cold interpreter and the corridor's
+derivation once, not five times. Each runs only while that interpreter has one thread
+(checked before it), and each test reports its own body's failure.
 """
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
-import textwrap
+from pathlib import Path
 
 from tvopt_codegen.runs.drawing import Plot
 
+from .conftest import shared
 
-def _fresh(body: str) -> None:
-    """Run ``body`` in a new interpreter (with numpy as np and this module's helpers)."""
-    code = "import numpy as np\nfrom tests.test_side_process import _corridor, _plot\n"
-    code += textwrap.dedent(body)
+#: Every test's body by its test's name (with numpy as np and this module's helpers).
+BODIES: dict[str, str] = {}
+
+RUNNER = """
+import json, sys, textwrap, threading, traceback
+import numpy as np
+from tests.test_side_process import BODIES, _corridor, _plot
+outcomes = {}
+for name, body in BODIES.items():
+    try:
+        assert threading.active_count() == 1, f"{threading.active_count()} threads before it"
+        code = compile(textwrap.dedent(body), name, "exec")
+        exec(code, {"np": np, "_corridor": _corridor, "_plot": _plot})
+        outcomes[name] = None
+    except BaseException:
+        outcomes[name] = traceback.format_exc()
+with open(sys.argv[1], "w") as handle:
+    json.dump(outcomes, handle)
+"""
+
+
+def _run_bodies(folder: Path) -> None:
+    """Every body in one new interpreter; its outcomes (a traceback or null) in JSON."""
     done = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=False
+        [sys.executable, "-c", RUNNER, str(folder / "outcomes.json")],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
     )
     assert done.returncode == 0, done.stderr
+
+
+def _fresh(name: str) -> None:
+    """Test ``name``'s body, run in a fresh interpreter, passed."""
+    outcomes = json.loads(
+        (shared("side-process-bodies", _run_bodies) / "outcomes.json").read_text()
+    )
+    assert outcomes[name] is None, outcomes[name]
 
 
 def _corridor() -> tuple[object, object]:
@@ -38,8 +74,10 @@ def _plot(stem: str, slope: float) -> Plot:
 
 
 def test_the_side_process_finds_the_minimisers_this_one_would() -> None:
-    _fresh(
-        """
+    _fresh("test_the_side_process_finds_the_minimisers_this_one_would")
+
+
+BODIES["test_the_side_process_finds_the_minimisers_this_one_would"] = """
         from tvopt_codegen.simulation import resolve_options, simulate
         from tvopt_codegen.simulation.constraints import minimiser_process
 
@@ -55,12 +93,13 @@ def test_the_side_process_finds_the_minimisers_this_one_would() -> None:
         np.testing.assert_array_equal(beside.constraints.bound, here.constraints.bound)
         assert beside.passed and np.all(np.isfinite(beside.constraints.distance))
         """
-    )
 
 
 def test_a_request_at_other_parameter_values_is_solved_at_those() -> None:
-    _fresh(
-        """
+    _fresh("test_a_request_at_other_parameter_values_is_solved_at_those")
+
+
+BODIES["test_a_request_at_other_parameter_values_is_solved_at_those"] = """
         from tvopt_codegen.simulation import resolve_options, simulate
         from tvopt_codegen.simulation.constraints import minimiser_process
 
@@ -74,12 +113,13 @@ def test_a_request_at_other_parameter_values_is_solved_at_those() -> None:
         here = simulate(d, controller, options)
         np.testing.assert_array_equal(beside.constraints.distance, here.constraints.distance)
         """
-    )
 
 
 def test_a_side_process_answers_and_a_failed_one_answers_none() -> None:
-    _fresh(
-        """
+    _fresh("test_a_side_process_answers_and_a_failed_one_answers_none")
+
+
+BODIES["test_a_side_process_answers_and_a_failed_one_answers_none"] = """
         from tvopt_codegen.runs.side import Side
 
         with Side(lambda: lambda request: (request[0] * 2, np.arange(request[1]))) as side:
@@ -99,12 +139,13 @@ def test_a_side_process_answers_and_a_failed_one_answers_none() -> None:
             assert side.ask((1, 1)) is None
             assert not side.running
         """
-    )
 
 
 def test_figures_sent_in_batches_come_back_in_order_and_the_last_of_a_stem_counts() -> None:
-    _fresh(
-        """
+    _fresh("test_figures_sent_in_batches_come_back_in_order_and_the_last_of_a_stem_counts")
+
+
+BODIES["test_figures_sent_in_batches_come_back_in_order_and_the_last_of_a_stem_counts"] = """
         from tvopt_codegen.runs.drawing import Painter, draw_all
 
         with Painter() as painter:
@@ -117,12 +158,13 @@ def test_figures_sent_in_batches_come_back_in_order_and_the_last_of_a_stem_count
         assert list(there) == list(expected) and there == expected
         assert there["a.png"] != draw_all([_plot("a", 1.0)])["a.png"]
         """
-    )
 
 
 def test_the_run_alone_is_drawn_early_and_the_files_are_the_same() -> None:
-    _fresh(
-        """
+    _fresh("test_the_run_alone_is_drawn_early_and_the_files_are_the_same")
+
+
+BODIES["test_the_run_alone_is_drawn_early_and_the_files_are_the_same"] = """
         from tvopt_codegen.runs.artifacts import result_files, submit_early
         from tvopt_codegen.runs.drawing import Painter
         from tvopt_codegen.simulation import resolve_options, simulate
@@ -140,4 +182,3 @@ def test_the_run_alone_is_drawn_early_and_the_files_are_the_same() -> None:
             files = result_files(d, result, painter, stems)
         assert files == result_files(d, result) and list(files) == list(result_files(d, result))
         """
-    )
