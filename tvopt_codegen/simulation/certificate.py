@@ -16,6 +16,7 @@ import numpy as np
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.maths import hurwitz
 from tvopt_codegen.runs.side import Side
+from tvopt_codegen.simulation.direct import point_function, point_kernel
 from tvopt_codegen.simulation.references import ReferenceSource
 from tvopt_codegen.simulation.result import Options, Result, Trajectories
 from tvopt_codegen.simulation.target import _reference_values, kkt_path, minimizer_path
@@ -111,9 +112,10 @@ def _modulus(
             _kkt_eigenvalues(d, controller, eq, ts, outputs, multipliers, kkt, params, true)
         )
     else:
+        hessian = point_function(controller, "hessian", params)
         eigenvalues = np.array(
             [
-                np.linalg.eigvalsh(controller.hessian(t, point, params, **true(t)))
+                np.linalg.eigvalsh(hessian(t, point, **true(t)))
                 for i, t in enumerate(ts)
                 for point in (outputs[:, i], target[:, i], 0.5 * (outputs[:, i] + target[:, i]))
             ]
@@ -193,12 +195,13 @@ def _certify(
     t_end = float(solution.t[-1])
     ts = np.linspace(0.0, t_end, options.points)
     states = solution.sol(ts)
-    inputs = np.array(
-        [controller.control(t, states[:, i], params, **given(t)) for i, t in enumerate(ts)]
-    ).T
-    E = np.array(
-        [controller.optimality_error(t, states[:, i], params, **true(t)) for i, t in enumerate(ts)]
-    )
+    # The module's one-point kernels where it has them (simulation.direct): the same
+    # numbers as its public functions, without their checks of these arrays.
+    control = point_function(controller, "control", params)
+    optimality_error = point_function(controller, "optimality_error", params)
+    with np.errstate(all="ignore"):
+        inputs = np.array([control(t, states[:, i], **given(t)) for i, t in enumerate(ts)]).T
+        E = np.array([optimality_error(t, states[:, i], **true(t)) for i, t in enumerate(ts)])
     # y = h(x) by the generated module's own outputs (h holds no t).
     outputs = np.asarray(controller.outputs(0.0, states[: len(d.spec.states)], params))
     target, eq, multipliers, kkt = _target(d, controller, options, ts, states, outputs, true)
@@ -370,15 +373,38 @@ def _input_to_state(
     horizon = float(ts[-1])
     fine = np.linspace(0.0, horizon, 10 * (len(ts) - 1) + 1)
     step = 1e-6 * max(1.0, horizon)
-
-    def error_at(t: float) -> np.ndarray:
-        state = solution.sol(min(max(t, 0.0), horizon))
-        value: np.ndarray = controller.optimality_error(t, state, params, **true(t))
-        row: np.ndarray = augmented_error(d, state[:, None], value.ravel()[None, :])[0]
-        return row
-
-    errors = np.array([error_at(t) for t in fine])
-    rates = np.array([(error_at(t + step) - error_at(t - step)) / (2 * step) for t in fine])
+    # E at every fine time and a step on either side, as rows: the run's state read
+    # from its interpolant (at all times at once where that is each time's value to
+    # the bit), E by the module's one-point kernel where it answers (simulation.direct).
+    base: list[float] = fine.tolist()
+    times = [*base, *(t + step for t in base), *(t - step for t in base)]
+    clamped = [min(max(t, 0.0), horizon) for t in times]
+    if getattr(solution, "pointwise", False):
+        states = np.asarray(solution.sol(np.array(clamped)), dtype=float)
+        columns = [states[:, i] for i in range(len(times))]
+    else:
+        columns = [np.asarray(solution.sol(t), dtype=float) for t in clamped]
+    kernel = point_kernel(controller, "optimality_error", params)
+    rows = []
+    with np.errstate(all="ignore"):
+        for t, state in zip(times, columns, strict=True):
+            extra = true(t)
+            value: Any = None
+            if kernel is not None and state.ndim == 1:
+                refs = extra.get("refs")
+                jets = None if refs is None else np.asarray(refs, dtype=float).ravel().tolist()
+                value = kernel(t, state.tolist(), jets)
+            if value is None:
+                value = np.asarray(
+                    controller.optimality_error(t, state, params, **extra), dtype=float
+                ).ravel()
+            rows.append(value)
+    flat = np.array(rows, dtype=float)
+    if d.closed_loop.integral_states:
+        flat = augmented_error(d, np.column_stack(columns), flat)
+    count = len(fine)
+    errors = flat[:count]
+    rates = (flat[count : 2 * count] - flat[2 * count :]) / (2 * step)
     d_norm = np.linalg.norm(rates - errors @ H.T, axis=1)
     d_norm[0], d_norm[-1] = d_norm[1], d_norm[-2]  # one-sided there: take the neighbours'
     alpha, c = d.dynamics.certified_rate, d.dynamics.transient_constant

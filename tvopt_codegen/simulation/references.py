@@ -55,6 +55,10 @@ class ReferenceSource:
         (n_refs, T), for figures.
     noise : float
         Standard deviation of the noise added to the samples.
+    flat : callable or None
+        ``flat(t)``: the same numbers as ``jets(t)``, row after row in a new list of
+        floats (what a generated module's one-point kernel takes), when the source has
+        them so; None: ``jets(t).ravel().tolist()``.
     """
 
     jets: Callable[[float], np.ndarray]
@@ -63,6 +67,14 @@ class ReferenceSource:
     times: np.ndarray | None = None
     samples: np.ndarray | None = None
     noise: float = 0.0
+    flat: Callable[[float], list[float]] | None = None
+
+    def flat_jets(self, t: float) -> list[float]:
+        """The jets at ``t`` row after row, as floats (see ``flat``)."""
+        if self.flat is not None:
+            return self.flat(t)
+        values: list[float] = self.jets(t).ravel().tolist()
+        return values
 
 
 def _taylor(xi: list[list[float]], h: float) -> list[list[float]]:
@@ -370,19 +382,33 @@ def sampled_source(
     grid: list[float] = np.asarray(times, dtype=float).tolist()
     stack: list[list[list[float]]] = np.array(estimates, dtype=float).tolist()
     # RK4 asks twice at each step's midpoint (and a step's end is often the next one's
-    # start): the last answer, again.
-    last: list[Any] = [None, None]
+    # start): the last answer, again. Kept as rows and flat, the two forms asked for.
+    last: list[Any] = [None, None, None]
 
-    def jets(t: float) -> np.ndarray:
+    def at(t: float) -> None:
         if t != last[0]:
             index = max(bisect.bisect_right(grid, t) - 1, 0)
-            last[0], last[1] = t, _taylor(stack[index], float(t) - grid[index])
+            rows = _taylor(stack[index], float(t) - grid[index])
+            last[0], last[1], last[2] = t, rows, [value for row in rows for value in row]
+
+    def jets(t: float) -> np.ndarray:
+        at(t)
         return np.array(last[1], dtype=float)
+
+    def flat(t: float) -> list[float]:
+        at(t)
+        return list(last[2])
 
     try:
         exact: Callable[[float], np.ndarray] | None = exact_jets(derivation, params)
     except SpecError:
         exact = None
     return ReferenceSource(
-        jets=jets, exact=exact, estimated=True, times=times, samples=samples, noise=noise
+        jets=jets,
+        exact=exact,
+        estimated=True,
+        times=times,
+        samples=samples,
+        noise=noise,
+        flat=flat,
     )

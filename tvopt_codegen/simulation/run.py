@@ -20,6 +20,7 @@ from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.maths import dopri
 from tvopt_codegen.runs.side import Side
 from tvopt_codegen.simulation.certificate import _certify
+from tvopt_codegen.simulation.direct import point_kernel
 from tvopt_codegen.simulation.references import ReferenceSource, nominal_source
 from tvopt_codegen.simulation.result import Options, Result, Trajectories
 
@@ -84,36 +85,15 @@ def simulate(
     source = references
     options = bumpless_start(d, controller, options, source)
     started = time.perf_counter()
-    last_report = [started + 2.0]
-
-    overrides = params or None  # None: the module's one-point path skips the mapping
-
-    def rhs(t: float, s: np.ndarray) -> np.ndarray:
-        if progress is not None:
-            now = time.perf_counter()
-            if now >= last_report[0]:
-                progress(float(t), options.t_final)
-                last_report[0] = now + 0.5
-        if source is not None:
-            jets: np.ndarray = controller.rhs(t, s, overrides, refs=source.jets(t))
-            return jets
-        result: np.ndarray = controller.rhs(t, s, overrides)
-        return result
-
     _check_initial_state(d, controller, options, source)
-    reached = [0.0]
-    last = [np.array(options.initial_state, dtype=float)]
-
-    def tracked(t: float, s: np.ndarray) -> np.ndarray:
-        reached[0] = float(t)
-        last[0] = s
-        return rhs(t, s)
+    # No overrides is None: the module's one-point path then skips reading a mapping.
+    field = _Field(controller, params or None, source, progress, options, started)
 
     on_grid = source is not None and source.estimated and source.times is not None
 
     def integrate(run: Options) -> Any:
         times = source.times if on_grid and source is not None else None
-        return _integrate(tracked, run, times)
+        return _integrate(field, run, times, field.lists)
 
     try:
         first = integrate(options)
@@ -151,20 +131,97 @@ def simulate(
     except ArithmeticError as exc:
         if not hasattr(exc, "status"):
             raise
-        _refuse_undefined(d, controller, options, exc, reached[0], last[0])
+        state = np.asarray(field.last, dtype=float)
+        _refuse_undefined(d, controller, options, exc, field.reached, state)
 
 
-def _integrate(tracked: Callable[[float, np.ndarray], np.ndarray], run: Options, times: Any) -> Any:
+class _Field:
+    """The closed loop's field ``rhs(t, s)`` as the integrators ask for it.
+
+    On arrays (``field(t, s)``) or on lists of floats (``field.lists``), by the kernel
+    behind the module's ``rhs`` where it has one (:mod:`~tvopt_codegen.simulation.direct`:
+    the same numbers, without the public function's checks of arrays made here), else
+    by ``rhs`` itself. It keeps the last point asked for (a refusal names it) and
+    reports progress at most twice a second once a run has taken two seconds.
+    """
+
+    def __init__(
+        self,
+        controller: types.ModuleType,
+        overrides: Mapping[str, float] | None,
+        source: ReferenceSource | None,
+        progress: Callable[[float, float], None] | None,
+        options: Options,
+        started: float,
+    ) -> None:
+        self.controller, self.overrides, self.source = controller, overrides, source
+        self.progress, self.horizon = progress, options.t_final
+        self.next_report = started + 2.0
+        self.direct = point_kernel(controller, "rhs", overrides)
+        self.reached = 0.0
+        self.last: Any = np.array(options.initial_state, dtype=float)
+
+    def _report(self, t: float) -> None:
+        if self.progress is None:
+            return
+        now = time.perf_counter()
+        if now >= self.next_report:
+            self.progress(float(t), self.horizon)
+            self.next_report = now + 0.5
+
+    def _public(self, t: float, s: np.ndarray) -> np.ndarray:
+        if self.source is not None:
+            refs = self.source.jets(t)
+            jets: np.ndarray = self.controller.rhs(t, s, self.overrides, refs=refs)
+            return jets
+        result: np.ndarray = self.controller.rhs(t, s, self.overrides)
+        return result
+
+    def _rhs_list(self, t: float, s: list[float]) -> list[float]:
+        self._report(t)
+        if self.direct is not None:
+            jets = None if self.source is None else self.source.flat_jets(t)
+            values = self.direct(float(t), s, jets)
+            if values is not None:
+                return values
+        answer: list[float] = self._public(t, np.array(s, dtype=float)).tolist()
+        return answer
+
+    def lists(self, t: float, s: list[float]) -> list[float]:
+        """``rhs`` on a list of floats, as a list of floats."""
+        self.reached, self.last = float(t), s
+        return self._rhs_list(t, s)
+
+    def __call__(self, t: float, s: np.ndarray) -> np.ndarray:
+        """``rhs`` on an array, as an array."""
+        self.reached, self.last = float(t), s
+        if self.direct is not None and s.ndim == 1:
+            return np.array(self._rhs_list(t, s.tolist()))
+        self._report(t)
+        return self._public(t, s)
+
+
+def _integrate(
+    tracked: Callable[[float, np.ndarray], np.ndarray],
+    run: Options,
+    times: Any,
+    tracked_list: Callable[[float, list[float]], list[float]] | None = None,
+) -> Any:
     """One integration of the closed loop.
 
     On the references' sample grid (``times``), else by the package's Dormand-Prince
-    (RK45), else by scipy's other methods.
+    (RK45), else by scipy's other methods. ``tracked_list`` is ``tracked`` on lists of
+    floats, for the sample grid's loop.
     """
     # A run that overflows ends in a ControllerError with its time; numpy's own
     # warnings on the way would only add lines to that one-line message.
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         if times is not None:
+            if tracked_list is not None:
+                return _on_the_sample_grid_lists(
+                    tracked_list, run.t_final, np.array(run.initial_state), times
+                )
             return _on_the_sample_grid(tracked, run.t_final, np.array(run.initial_state), times)
         if run.method == "RK45":
             return dopri.integrate(
@@ -334,7 +391,11 @@ MAX_GRID_STEP = 1e-2
 
 @dataclass(frozen=True)
 class _GridSolution:
-    """What ``solve_ivp`` returns, for a run integrated on the reference samples' grid."""
+    """What ``solve_ivp`` returns, for a run integrated on the reference samples' grid.
+
+    ``pointwise``: ``sol`` (a piecewise polynomial) at an array of times is ``sol`` at
+    each of them, to the bit, so the certificate may ask for all at once.
+    """
 
     t: np.ndarray
     y: np.ndarray
@@ -342,6 +403,26 @@ class _GridSolution:
     nfev: int
     success: bool = True
     message: str = "the end of the horizon was reached"
+    pointwise: bool = True
+
+
+def _sample_grid(horizon: float, sample_times: np.ndarray) -> np.ndarray:
+    """The steps' ends of a run on the reference samples' grid.
+
+    Every sample inside the horizon, the horizon, and points between two samples more
+    than :data:`MAX_GRID_STEP` apart.
+    """
+    inside = sample_times[(sample_times > 0.0) & (sample_times < horizon)]
+    knots = [0.0]
+    for end in (*inside.tolist(), horizon):
+        pieces = max(1, math.ceil((end - knots[-1]) / MAX_GRID_STEP - 1e-9))
+        if pieces == 1:
+            # linspace's last point is its end exactly: one sample interval, one step,
+            # without an array per sample (20,000 of them for 20 s at 1 kHz).
+            knots.append(end)
+        else:
+            knots += np.linspace(knots[-1], end, pieces + 1)[1:].tolist()
+    return np.array(knots)
 
 
 def _on_the_sample_grid(
@@ -356,17 +437,7 @@ def _on_the_sample_grid(
     smooth between them, where an adaptive method would spend its steps rediscovering
     each jump.
     """
-    inside = sample_times[(sample_times > 0.0) & (sample_times < horizon)]
-    knots = [0.0]
-    for end in (*inside.tolist(), horizon):
-        pieces = max(1, math.ceil((end - knots[-1]) / MAX_GRID_STEP - 1e-9))
-        if pieces == 1:
-            # linspace's last point is its end exactly: one sample interval, one step,
-            # without an array per sample (20,000 of them for 20 s at 1 kHz).
-            knots.append(end)
-        else:
-            knots += np.linspace(knots[-1], end, pieces + 1)[1:].tolist()
-    grid = np.array(knots)
+    grid = _sample_grid(horizon, sample_times)
     states = np.empty((len(start), len(grid)))
     rates = np.empty_like(states)
     x = start.astype(float)
@@ -386,6 +457,47 @@ def _on_the_sample_grid(
 
     interpolant = CubicHermiteSpline(grid, states, rates, axis=1)
     return _GridSolution(grid, states, interpolant, 4 * (len(grid) - 1))
+
+
+def _on_the_sample_grid_lists(
+    rhs: Callable[[float, list[float]], list[float]],
+    horizon: float,
+    start: np.ndarray,
+    sample_times: np.ndarray,
+) -> _GridSolution:
+    """:func:`_on_the_sample_grid` on lists of floats, for a field that takes and gives them.
+
+    A step's arrays of a few numbers cost NumPy more per operation than the arithmetic:
+    here each entry takes the same IEEE operations in the same order as there
+    (``x + h / 6 * (k1 + 2 k2 + 2 k3 + k4)`` entry by entry), so the run is the same bits.
+    """
+    grid = _sample_grid(horizon, sample_times)
+    knots: list[float] = grid.tolist()
+    x: list[float] = start.astype(float).tolist()
+    states = [x]
+    rates = []
+    k4 = x
+    for i in range(len(knots) - 1):
+        t, h = knots[i], knots[i + 1] - knots[i]
+        half, sixth = h / 2, h / 6
+        k1 = rhs(t, x)
+        rates.append(k1)
+        k2 = rhs(t + half, [a + half * b for a, b in zip(x, k1, strict=True)])
+        k3 = rhs(t + half, [a + half * b for a, b in zip(x, k2, strict=True)])
+        k4 = rhs(t + h, [a + h * b for a, b in zip(x, k3, strict=True)])
+        x = [
+            a + sixth * (b + 2 * c + 2 * e + f)
+            for a, b, c, e, f in zip(x, k1, k2, k3, k4, strict=True)
+        ]
+        states.append(x)
+    # The last rate: the left limit of the last interval's (the jets jump at samples).
+    rates.append(k4)
+    from scipy.interpolate import CubicHermiteSpline  # noqa: PLC0415 - on this path only
+
+    table = np.array(states, dtype=float).T
+    slopes = np.array(rates, dtype=float).T
+    interpolant = CubicHermiteSpline(grid, table, slopes, axis=1)
+    return _GridSolution(grid, table, interpolant, 4 * (len(grid) - 1))
 
 
 def _check_initial_state(

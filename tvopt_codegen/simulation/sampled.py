@@ -32,6 +32,7 @@ from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.maths import hurwitz
 from tvopt_codegen.simulation.certificate import augmented_error
+from tvopt_codegen.simulation.direct import plant_kernel, point_function
 from tvopt_codegen.simulation.references import nominal_source
 from tvopt_codegen.simulation.result import Options, Result
 from tvopt_codegen.simulation.run import bumpless_start, simulate
@@ -140,11 +141,19 @@ def _plant(controller: types.ModuleType, params: dict[str, float]) -> Callable[.
     """The true plant ``f(x) + G(x) u``: the generated module's own ``plant`` at ``params``.
 
     Where it is not finite the state becomes NaN, and the controller's next step reports
-    it (NonFiniteInputError), as a run leaving the plant's domain is reported.
+    it (NonFiniteInputError), as a run leaving the plant's domain is reported. The
+    kernel behind ``plant`` answers where the module has one (simulation.direct): the
+    same numbers, without the public function's checks on every call (most of its cost).
+    Call it under ``numpy.errstate(all="ignore")``, as ``plant`` calls its kernel.
     """
     given = params or None
+    kernel = plant_kernel(controller, given)
 
     def plant(t: float, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        if kernel is not None:
+            dx = kernel(t, x, u)
+            if dx is not None:
+                return dx
         try:
             return np.asarray(controller.plant(t, x, u, given), dtype=float)
         except ArithmeticError as exc:
@@ -168,12 +177,12 @@ def _sampled_input_to_state(
     ``E_{k+1} = expm(H h) E_k + w_k`` defines ``w``; the bound is the variation of
     constants in discrete time, exact for any ``w`` given ``|expm(H t)| <= c e^(-alpha t)``.
     """
-    rows = [
-        np.asarray(
-            controller.optimality_error(float(t), states[:, k], params or None, **extra(float(t)))
-        ).ravel()
-        for k, t in enumerate(times)
-    ]
+    optimality_error = point_function(controller, "optimality_error", params or None)
+    with np.errstate(all="ignore"):
+        rows = [
+            np.asarray(optimality_error(float(t), states[:, k], **extra(float(t)))).ravel()
+            for k, t in enumerate(times)
+        ]
     errors = augmented_error(d, states, np.array(rows))
     h = float(times[1] - times[0])
     # expm(H h) = expm(companion(a) h) kron I_m: only the k x k exponential is computed.
@@ -272,7 +281,8 @@ def sampled_run(
         t0, t1 = float(times[k]), float(times[k + 1])
         if getattr(step, "saturated", None) is not None and step.saturated.any():
             saturated_time += t1 - t0
-        x = hold(plant, t0, t1, x, u)
+        with np.errstate(all="ignore"):  # the plant's kernel's, as plant's own
+            x = hold(plant, t0, t1, x, u)
         try:
             u = step.step(t1, x, **extra(t1))
         except ArithmeticError as exc:
