@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import json
 import math
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -21,7 +19,7 @@ from tests.conftest import derivation, kernels, module
 from tvopt_codegen import sweep
 from tvopt_codegen.cli import main
 from tvopt_codegen.contract import Status
-from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_INTERRUPTED, MissingExtraError, SpecError
+from tvopt_codegen.errors import EXIT_BAD_SPEC, MissingExtraError, SpecError
 from tvopt_codegen.simulation import minimizer_path
 from tvopt_codegen.sweep import (
     Distribution,
@@ -518,72 +516,6 @@ def test_a_real_scheduler_and_two_workers_give_the_local_table(tmp_path: Path) -
                 process.kill()
                 process.wait()
         logs.close()
-
-
-def test_ctrl_c_stops_the_workers_and_keeps_what_finished(tmp_path: Path) -> None:
-    out = tmp_path / "out"
-    command = [
-        sys.executable,
-        "-m",
-        "tvopt_codegen",
-        "sweep",
-        "unicycle_switch",
-        "--samples",
-        "200000",
-        "--chunk-size",
-        "100",
-        "--workers",
-        "2",
-        "--progress",
-        "always",
-        "--out",
-        str(out),
-    ]
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    assert process.stderr is not None
-    for line in process.stderr:  # wait until samples are finishing
-        if "samples/s" in line:
-            break
-    workers = _descendants(process.pid)
-    assert workers, "the local cluster runs its workers as child processes"
-    process.send_signal(signal.SIGINT)
-    stdout, stderr = process.communicate(timeout=120)
-    assert process.returncode == EXIT_INTERRUPTED, stderr
-    assert "interrupted; kept the" in stderr
-    rows = _table(out)
-    assert 0 < len(rows) < 200000 and all(r["status"] == "ok" for r in rows)
-    record = json.loads((out / "sweep.json").read_text())
-    assert record["interrupted"] is True and record["finished"] == len(rows)
-    assert "Interrupted:" in (out / "summary.md").read_text()
-    # No worker outlives the command.
-    deadline = time.monotonic() + 20
-    while time.monotonic() < deadline and any(_alive(pid) for pid in workers):
-        time.sleep(0.2)
-    assert not [pid for pid in workers if _alive(pid)]
-
-
-def _descendants(pid: int) -> list[int]:
-    found: list[int] = []
-    todo = [pid]
-    while todo:
-        listed = subprocess.run(
-            ["ps", "-o", "pid=", "--ppid", str(todo.pop())],
-            capture_output=True,
-            text=True,
-            check=False,
-        ).stdout.split()
-        found += [int(p) for p in listed]
-        todo += [int(p) for p in listed]
-    return found
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    state = Path(f"/proc/{pid}/stat")
-    return not (state.exists() and state.read_text().split(") ")[-1].startswith("Z"))
 
 
 def test_constraints_are_measured_on_every_run() -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
@@ -111,9 +112,11 @@ def test_a_killed_sweep_resumes_to_the_uninterrupted_table_bit_for_bit(
         kept = sum(pq.ParquetFile(p).metadata.num_rows for p in (out / "parts").iterdir())
         assert 0 < kept < SAMPLES
     else:
+        running = _descendants(process.pid)
         process.send_signal(signal.SIGTERM)  # what timeout, SLURM and systemd send
         _, stderr = process.communicate(timeout=120)
         assert process.returncode == EXIT_TERMINATED, stderr
+        _no_worker_outlives(running)  # the command, signalled alone, stops its workers
         last = stderr.strip().splitlines()[-1]
         assert last.startswith("tvopt-codegen: terminated; kept the") and "--resume" in last
         rows = pq.read_table(out / "summary.parquet").num_rows
@@ -141,16 +144,58 @@ def test_a_killed_sweep_resumes_to_the_uninterrupted_table_bit_for_bit(
 @pytest.mark.parametrize("workers", [2, 1])
 def test_ctrl_c_in_a_terminal_is_one_line(tmp_path: Path, workers: int) -> None:
     """A terminal sends SIGINT to the whole process group, the workers too (or to the one
-    process that is the worker)."""
+    process that is the worker): one line, the finished samples kept, no worker left.
+
+    (A signal to the command alone, with workers: the SIGTERM case of
+    test_a_killed_sweep_resumes_to_the_uninterrupted_table_bit_for_bit.)
+    """
     out = tmp_path / "out"
     process = _start(out, workers)
     _wait_for_progress(process)
+    workers_running = _descendants(process.pid)
+    if workers > 1:
+        assert workers_running, "the local cluster runs its workers as child processes"
     os.killpg(process.pid, signal.SIGINT)
     _, stderr = process.communicate(timeout=120)
-    assert process.returncode == EXIT_INTERRUPTED
+    assert process.returncode == EXIT_INTERRUPTED, stderr
     lines = [line for line in stderr.splitlines() if not line.startswith("  sweep:")]
     assert len(lines) == 1 and lines[0].startswith("tvopt-codegen: interrupted; kept the")
-    assert pq.read_table(out / "summary.parquet").num_rows > 0
+    rows = pq.read_table(out / "summary.parquet").column("status").to_pylist()
+    assert 0 < len(rows) < SAMPLES and set(rows) == {"ok"}
+    record = json.loads((out / "sweep.json").read_text())
+    assert record["interrupted"] is True and record["finished"] == len(rows)
+    assert "Interrupted:" in (out / "summary.md").read_text()
+    _no_worker_outlives(workers_running)
+
+
+def _descendants(pid: int) -> list[int]:
+    """Every process ``pid`` started, and theirs (Linux's /proc)."""
+    found: list[int] = []
+    todo = [pid]
+    while todo:
+        parent = todo.pop()
+        for task in Path(f"/proc/{parent}/task").glob("*"):
+            with contextlib.suppress(OSError):
+                children = [int(c) for c in (task / "children").read_text().split()]
+                found += children
+                todo += children
+    return found
+
+
+def _no_worker_outlives(pids: list[int]) -> None:
+    """Each of ``pids`` ends (or is a zombie nobody needs) within 20 s of its command."""
+
+    def alive(pid: int) -> bool:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            return False
+        return state != "Z"
+
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and any(alive(pid) for pid in pids):
+        time.sleep(0.05)
+    assert not [pid for pid in pids if alive(pid)]
 
 
 def test_a_users_file_in_out_is_refused_before_the_first_sample(
