@@ -25,9 +25,9 @@ from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.renderer.rendering import render
-from tvopt_codegen.spec import Spec, load_spec, spec_from_dict
+from tvopt_codegen.spec import Spec, spec_from_dict
 
-from .conftest import ROOT, SPECS, import_file
+from .conftest import ROOT, SPECS, derivation, import_file, kernels
 from .fuzzing import Case, build_spec, sample_states
 
 EXAMPLES = sorted(p.stem for p in (ROOT / "tvopt_codegen" / "examples").glob("*.toml"))
@@ -50,11 +50,7 @@ _BUILD = Path(tempfile.mkdtemp(prefix="tvopt-engine-guard-"))
 _COUNT = itertools.count()
 
 
-def _spec(kind: str, name: str) -> Spec:
-    if kind == "example":
-        return load_spec(name)
-    if kind == "test":
-        return load_spec(SPECS / name)
+def _fuzzed_spec(name: str) -> Spec:
     folder = _BUILD / f"case{next(_COUNT)}"
     folder.mkdir()
     mapping, _ = build_spec(Case.parse(name), folder)
@@ -63,10 +59,21 @@ def _spec(kind: str, name: str) -> Spec:
 
 @functools.cache
 def generated_module(kind: str, name: str, engine: str) -> tuple[ModuleType, Any]:
-    """The generated Python controller for a spec, derived on ``engine``, and its derivation."""
+    """The generated Python controller for a spec, derived on ``engine``, and its derivation.
+
+    An example's or test spec's derivation and kernels are conftest's, once per engine and
+    worker: the same spec on the same engine is derived alike wherever it is asked for,
+    and test_engine_det, test_report_printing and test_golden ask for these on SymPy, and
+    most files on SymEngine.
+    """
     with sx.using(engine):
-        d = derive(_spec(kind, name))
-        files = render(lower(d), "python")
+        if kind == "fuzzed":
+            d = derive(_fuzzed_spec(name))
+            files = render(lower(d), "python")
+        else:
+            key = name if kind == "example" else str(SPECS / name)
+            d = derivation(key)
+            files = render(kernels(key), "python")
     # The law was built by the engine named, not converted from the other's.
     assert type(d.closed_loop.states[0]).__module__.split(".")[0] == engine
     ((filename, text),) = files.items()

@@ -43,6 +43,24 @@ SPECS = (
 ENGINES = ("symengine", "sympy")
 
 
+#: Each expression's SymPy form, by the expression's engine and the expression: the four
+#: printers' tests read the same expressions, and a SymEngine one crosses the border once,
+#: not once per printer (the conversion was a fifth of this file's time).
+_CONVERTED: dict[tuple[str, Any], Any] = {}
+
+
+def _as_sympy(expr: Any) -> Any:
+    """``entries.as_sympy(expr)``, converted once per expression."""
+    key = (type(expr).__module__.split(".")[0], expr)
+    try:
+        return _CONVERTED[key]
+    except KeyError:
+        _CONVERTED[key] = value = entries.as_sympy(expr)
+        return value
+    except TypeError:  # a mutable matrix: not a key
+        return entries.as_sympy(expr)
+
+
 def _remembered(read: Callable[[Any], Any]) -> Callable[[Any], Any]:
     """``read`` of SymPy's form of an expression, worked out once per SymPy expression.
 
@@ -53,7 +71,7 @@ def _remembered(read: Callable[[Any], Any]) -> Callable[[Any], Any]:
     cache: dict[Any, Any] = {}
 
     def remembered(expr: Any) -> Any:
-        value = entries.as_sympy(expr)
+        value = _as_sympy(expr)
         try:
             return cache[value]
         except KeyError:
