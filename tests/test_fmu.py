@@ -166,9 +166,24 @@ def test_a_failing_step_is_an_fmi_error_with_the_reason(tmp_path: Path) -> None:
     assert any("a plant state or a parameter is not finite" in m for m in messages), messages
 
 
-def test_the_archive_is_deterministic_and_holds_sources_and_a_binary(tmp_path: Path) -> None:
+def test_the_archive_is_deterministic_and_holds_sources_and_a_binary(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Two compilations (each into an empty cache of its own), the same bytes; then the
+    # library comes from the cache, with no compiler run, and the archive is the same.
+    monkeypatch.setenv("TVOPT_CODEGEN_CACHE", str(tmp_path / "cache-1"))
     first = build_fmu(kernels("integrator"), 3)
+    monkeypatch.setenv("TVOPT_CODEGEN_CACHE", str(tmp_path / "cache-2"))
     assert build_fmu(kernels("integrator"), 3) == first
+    assert [p.suffix for p in (tmp_path / "cache-2").iterdir()] == [".so"]
+
+    def no_compiler(*args: object) -> bytes:
+        raise AssertionError("compiled again")
+
+    monkeypatch.setattr("tvopt_codegen.runs.fmu._compile", no_compiler)
+    assert build_fmu(kernels("integrator"), 3) == first
+    with pytest.raises(AssertionError, match="compiled again"):
+        build_fmu(kernels("integrator"), 2)  # other sources: another library
     path = tmp_path / "integrator.fmu"
     path.write_bytes(first)
     with zipfile.ZipFile(path) as archive:
