@@ -193,6 +193,17 @@ def transient_constant(coefficients: Sequence[float], alpha: float) -> float:
     float
         The constant c (at least 1, the value at t = 0).
     """
+    return _transient_constant(tuple(float(a) for a in coefficients), float(alpha))
+
+
+@functools.lru_cache(maxsize=256)
+def _transient_constant(coefficients: tuple[float, ...], alpha: float) -> float:
+    """:func:`transient_constant`, once per gains and rate in a process.
+
+    It takes 10-90 ms (up to 20,000 grid points), and every derivation asks it: a
+    process that derives again specs with the same poles (the test suite, a notebook,
+    a tune's candidates) gets the value already computed, a pure function of the bits.
+    """
     matrix = companion(coefficients)
     fastest = float(np.max(np.abs(eigenvalues(coefficients))))
     horizon = 40.0 / alpha
