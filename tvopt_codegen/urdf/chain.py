@@ -66,6 +66,29 @@ def _matrix(values: np.ndarray) -> sp.Matrix:
     return sp.Matrix(rows, cols, [_snap(float(v)) for v in values.ravel()])
 
 
+def _product(a: sp.Matrix, b: sp.Matrix) -> sp.Matrix:
+    """``a * b`` of 3 x 3 matrices as ``sp.Matrix`` forms it, without its bookkeeping.
+
+    Each entry is one ``Add`` of the products of nonzero entries in order, as SymPy's
+    sparse product sums them (its domains and its checks for infinities cost more than
+    the algebra here), so the expressions are the same.
+    """
+    entries = []
+    for i in range(3):
+        for j in range(3):
+            terms = [
+                a[i, k] * b[k, j]
+                for k in range(3)
+                if not (_exact_zero(a[i, k]) or _exact_zero(b[k, j]))
+            ]
+            entries.append(sp.Add(*terms) if terms else sp.S.Zero)
+    return sp.Matrix(3, 3, entries)
+
+
+def _exact_zero(e: sp.Expr) -> bool:
+    return bool(e.is_Number and e == 0)
+
+
 def _chain(
     robot: Any, source: str, tip: str | None
 ) -> tuple[list[_Body], list[str], dict[str, float]]:
@@ -344,7 +367,7 @@ def _body(
             ]
         )
         turn = _matrix(placement[:3, :3])
-        inertia = own if turn == sp.eye(3) else turn * own * turn.T
+        inertia = own if turn == sp.eye(3) else _product(_product(turn, own), turn.T)
     return _Body(
         link=link.name,
         joint=joint.name,
