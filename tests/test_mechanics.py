@@ -8,6 +8,7 @@ planar arms of 3 and 6 links built with SymPy mechanics, in both backends.
 from __future__ import annotations
 
 import copy
+import functools
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -32,21 +33,38 @@ from tvopt_codegen.mechanics import spec_from_sympy, spec_toml
 from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.spec import load_spec, spec_from_dict
 
-from .arms import planar_arm
+from .arms import planar_arm as _planar_arm
 from .conftest import SPECS, import_file, module
 from .oracle import Oracle, assert_matches_oracle
 
 ARM2 = str(SPECS / "arm2_mass.toml")
 
 
-def _arm_spec(links: int, **options: Any) -> dict[str, Any]:
+@functools.cache
+def _kane(links: int) -> tuple[me.KanesMethod, list[sp.Expr], dict[sp.Symbol, float]]:
+    # Kane's method once per arm in a process: several tests read the same equations
+    # (nothing here changes a KanesMethod), and forming them is most of what they cost.
+    return _planar_arm(links)
+
+
+def planar_arm(links: int) -> tuple[me.KanesMethod, list[sp.Expr], dict[sp.Symbol, float]]:
+    """tests.arms.planar_arm, its equations formed once (the values a fresh dict)."""
+    kane, q, values = _kane(links)
+    return kane, list(q), dict(values)
+
+
+@functools.cache
+def _default_arm_spec(links: int) -> dict[str, Any]:
     kane, q, values = planar_arm(links)
     outputs = {f"y{i + 1}": q[i] for i in range(links)}
     f0 = " + ".join(f"(y{i + 1} - 0.3*sin(t + {i}))**2" for i in range(links))
     start = {f"q{i + 1}": 0.1 * (i + 1) for i in range(links)}
-    return spec_from_sympy(
-        kane, outputs, f0, values, name=f"planar{links}", initial_state=start, **options
-    )
+    return spec_from_sympy(kane, outputs, f0, values, name=f"planar{links}", initial_state=start)
+
+
+def _arm_spec(links: int) -> dict[str, Any]:
+    """The planar arm's spec (spec_from_sympy once per arm; each caller its own copy)."""
+    return copy.deepcopy(_default_arm_spec(links))
 
 
 def _plain(expr: sp.Expr) -> sp.Expr:
