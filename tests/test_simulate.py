@@ -291,3 +291,110 @@ def test_simulate_imports_neither_scipy_nor_pyplot(tmp_path: Path) -> None:
     )
     done = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
     assert done.stdout.splitlines()[-1] == "[]"
+
+
+@pytest.mark.parametrize(
+    "spec", ["unicycle_switch", "unicycle_switch_refs", "arm_on_line", "planar_arm3"]
+)
+def test_the_kernels_simulate_calls_give_the_public_functions_bits(spec: str) -> None:
+    """simulation.direct: the kernels behind rhs, control, optimality_error, hessian and
+    plant answer with the public functions' own numbers, with and without parameter
+    overrides; where the public function refuses (a state that is not finite), the kernel
+    declines and the public function's documented error is what a loop meets."""
+    from tvopt_codegen.simulation import direct
+    from tvopt_codegen.simulation.references import exact_jets
+
+    d, mod = derivation(spec), module(spec)
+    rng = np.random.default_rng(11)
+    base = np.array(mod.DEFAULT_STATE, dtype=float)
+    jets = exact_jets(d, {}) if getattr(mod, "REFERENCE_NAMES", ()) else None
+    first = next(iter(mod.PARAMETERS), None)
+    for params in (None, {} if first is None else {first: 1.25 * mod.PARAMETERS[first]}):
+        given = params or None
+        for name in ("rhs", "control", "optimality_error", "hessian"):
+            kernel = direct.point_kernel(mod, name, given)
+            function = direct.point_function(mod, name, given)
+            assert kernel is not None, name
+            for t in (0.0, 1.7):
+                refs = None if jets is None else jets(t)
+                extra = {} if refs is None else {"refs": refs}
+                point = base + 0.05 * rng.standard_normal(len(base))
+                if name == "hessian":
+                    point = point[: len(mod.OUTPUT_NAMES)]
+                want = getattr(mod, name)(t, point, given, **extra)
+                assert np.array_equal(function(t, point, **extra), want), name
+                flat = None if refs is None else refs.ravel().tolist()
+                assert np.array_equal(np.reshape(kernel(t, point.tolist(), flat), want.shape), want)
+        plant = direct.plant_kernel(mod, given)
+        assert plant is not None
+        n, m = len(mod.PLANT_STATE_NAMES), len(mod.INPUT_NAMES)
+        x, u = base[:n] + 0.1, rng.standard_normal(m)
+        assert np.array_equal(plant(0.5, x, u), mod.plant(0.5, x, u, given))
+        assert plant(0.5, np.full(n, np.nan), u) is None
+    bad = base.copy()
+    bad[0] = np.nan
+    refs = None if jets is None else jets(0.0)
+    flat = None if refs is None else refs.ravel().tolist()
+    assert direct.point_kernel(mod, "rhs", None)(0.0, bad.tolist(), flat) is None  # type: ignore[misc]
+    with pytest.raises(mod.NonFiniteInputError):
+        direct.point_function(mod, "rhs", None)(0.0, bad, *(() if refs is None else (refs,)))
+
+
+def test_only_a_generated_python_modules_own_functions_have_kernels(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    """The C backend's module, and a module whose public function was replaced (a fake,
+    a wrapper that counts calls), are called through their public functions."""
+    import types
+
+    from tvopt_codegen.simulation import direct
+
+    from .test_c_backend import c_module
+
+    c = c_module("pvtol", tmp_path_factory)
+    assert direct.point_kernel(c, "rhs", None) is None and direct.plant_kernel(c, None) is None
+    real = module("pvtol")
+    fake = types.ModuleType("fake")
+    fake.__dict__.update({k: v for k, v in vars(real).items() if not k.startswith("__")})
+    assert direct.point_kernel(fake, "rhs", None) is not None  # the module's own rhs
+    fake.rhs = lambda t, s, params=None: real.rhs(t, s, params)
+    fake.plant = lambda t, x, u, params=None: real.plant(t, x, u, params)
+    assert direct.point_kernel(fake, "rhs", None) is None
+    assert direct.plant_kernel(fake, None) is None
+    assert direct.point_kernel(real, "rhs", {"nope": 1.0}) is None  # rhs says why
+
+
+def test_the_sample_grid_steps_on_lists_as_on_arrays() -> None:
+    """The run on the reference samples' grid steps on lists of floats: the same bits as
+    its form on arrays, states, rates and interpolant."""
+    from tvopt_codegen.simulation import direct, run
+    from tvopt_codegen.simulation.references import exact_jets, sampled_source
+
+    spec = "unicycle_switch_refs"
+    d, mod = derivation(spec), module(spec)
+    truth = exact_jets(d, {})
+    times = np.arange(0.0, 1.0 + 5e-4, 1e-3)
+    values = np.array([truth(float(t))[:, 0] for t in times]).T
+    source = sampled_source(d, mod, {}, times, values, 1e-3, seed=2)
+
+    def field(t: float, s: np.ndarray) -> np.ndarray:
+        return np.asarray(mod.rhs(t, s, None, refs=source.jets(t)))
+
+    kernel = direct.point_kernel(mod, "rhs", None)
+    assert kernel is not None
+
+    def lists(t: float, s: list[float]) -> list[float]:
+        answer = kernel(t, s, source.flat_jets(t))
+        assert answer is not None
+        return answer
+
+    start = np.array(mod.DEFAULT_STATE, dtype=float)
+    # Samples farther apart than MAX_GRID_STEP are stepped between too.
+    sparse = np.concatenate([times[:300], times[320::50]])
+    for grid in (times, sparse):
+        arrays = run._on_the_sample_grid(field, 0.9, start, grid)
+        on_lists = run._on_the_sample_grid_lists(lists, 0.9, start, grid)
+        assert np.array_equal(arrays.t, on_lists.t) and len(arrays.t) > 100
+        assert np.array_equal(arrays.y, on_lists.y)
+        probe = np.linspace(0.0, 0.9, 333)
+        assert np.array_equal(arrays.sol(probe), on_lists.sol(probe))
