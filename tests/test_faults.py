@@ -43,9 +43,10 @@ def _cli(
     )
 
 
-def _into_the_derivation(pid: int, cpu_seconds: float = 2.0) -> None:
-    """Wait until process ``pid`` has run ``cpu_seconds`` of CPU: past its imports (under
-    1 s of CPU), inside the ring's derivation (8 s on this machine).
+def _into_the_derivation(pid: int, cpu_seconds: float = 1.0) -> None:
+    """Wait until process ``pid`` has run ``cpu_seconds`` of CPU: past its imports (the
+    command loads lazily: ``generate`` and ``simulate`` call ``derive`` after 0.2-0.3 s
+    of CPU here, the painter already started), inside the ring's derivation (8 s here).
 
     Counted in the process's own CPU time (Linux's /proc), not on the wall: a loaded
     machine neither signals it still importing nor waits longer than needed on an idle
