@@ -118,7 +118,8 @@ def _same(args: Sequence[sx.Expr], own: Sequence[sx.Expr]) -> bool:
     if len(args) != len(own):
         return False
     if sx.SYMENGINE:
-        return all(a is b or a == b for a, b in zip(args, own, strict=True))
+        # A tuple comparison asks ``a is b or a == b`` of each pair, in C.
+        return tuple(args) == tuple(own)
     return all(a is b for a, b in zip(args, own, strict=True))
 
 
@@ -334,11 +335,13 @@ def total_derivative(
     """
     moving: dict[sx.Expr, sx.Expr] = dict(rates)
     new: list[Assignment] = []
+    # The engine's zero: comparing with the int 0 converts it at every assignment.
+    zero = sx.ZERO
     for sym, value in program.assignments:
         if sym in moving:
             continue  # differentiated by an earlier call; its rate is known
         rate = _derivative(value, moving)
-        if rate == 0:
+        if rate == zero:
             continue
         if rate.is_Symbol or rate.is_Number:
             moving[sym] = rate
@@ -422,8 +425,10 @@ class _Atomizer:
         if node.is_Atom:
             return node
         table = self.table
-        if node in table:
-            return table[node]
+        # One lookup (a SymEngine node hashes and compares in a microsecond).
+        known = table.get(node)
+        if known is not None:
+            return known
         own = node.args
         args = [self.visit(arg) for arg in own]
         if node.is_Mul:
@@ -433,8 +438,9 @@ class _Atomizer:
             factors = [a for a in args if not a.is_Number]
             while len(factors) > 2:
                 pair = sx.Mul(factors[0], factors[1])
-                if pair in table:
-                    factors = [table[pair], *factors[2:]]
+                known = table.get(pair)
+                if known is not None:
+                    factors = [known, *factors[2:]]
                     continue
                 symbol = next(self.names)
                 self.out.append((symbol, pair))
@@ -494,16 +500,18 @@ def jacobian(
         v: {j: sx.Integer(1)} for j, v in enumerate(variables)
     }
 
+    zero = sx.ZERO  # the engine's: comparing with the int 0 converts it each time
+
     def propagate(expr: sx.Expr) -> dict[int, sx.Expr]:
         terms: dict[int, list[sx.Expr]] = {}
         for var in sorted(expr.free_symbols & tangent.keys(), key=lambda s: s.name):
             slope = partial(expr, var)
-            if slope == 0:
+            if slope == zero:
                 continue
             for j, rate in tangent[var].items():
                 terms.setdefault(j, []).append(_times(slope, rate))
         result = {j: sx.Add(*terms[j]) for j in sorted(terms)}
-        return {j: value for j, value in result.items() if value != 0}
+        return {j: value for j, value in result.items() if value != zero}
 
     new: list[Assignment] = []
     for sym, value in program.assignments:

@@ -258,8 +258,18 @@ class PrintedKernel:
 
 def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
     """Print every expression of a kernel with the backend's printer."""
+    # Each output's elements as expressions (an output may hold a plain number, a
+    # structural zero) and which are zero, asked once per element of the engine's own
+    # zero: a comparison with the int 0 converts it each time (4x the comparison).
+    nought = sx.ZERO
+    columns = []
+    for out in kernel.outputs:
+        values = [e if isinstance(e, sx.Basic) else sx.sympify(e) for e in out.exprs]
+        columns.append((values, [e == nought for e in values]))
+    # The zeros read no symbol: a team's Hessian is almost all zeros.
     used = symbols_in(
-        [value for _, value in kernel.body] + [e for o in kernel.outputs for e in o.exprs]
+        [value for _, value in kernel.body]
+        + [e for values, zero in columns for e, z in zip(values, zero, strict=True) if not z]
     )
     args = []
     for arg in kernel.inputs:
@@ -275,14 +285,8 @@ def print_kernel(kernel: Kernel, printer: Any) -> PrintedKernel:
     batch = next((arg.name for arg in kernel.inputs if arg.name in ("s", "y", "h", "x")), "")
     body = tuple((sym.name, printer.doprint(value)) for sym, value in kernel.body)
     outputs = []
-    for out in kernel.outputs:
+    for out, (values, zero) in zip(kernel.outputs, columns, strict=True):
         indices = _indices(out.shape)
-        # An output may hold a plain number (a structural zero): made an expression here.
-        values = [e if isinstance(e, sx.Basic) else sx.sympify(e) for e in out.exprs]
-        # Asked once per element, of the engine's own zero: a comparison with the int 0
-        # converts it each time (through the numbers ABCs, 4x the comparison itself).
-        nought = sx.ZERO
-        zero = [e == nought for e in values]
         zeros = sum(zero)
         sparse = zeros >= SPARSE_OUTPUT_ZEROS and 2 * zeros >= len(values)
         elements = tuple(
