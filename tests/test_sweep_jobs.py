@@ -520,21 +520,47 @@ def test_progress_in_a_log_starts_within_the_first_minute(
     ]
 
 
-def test_tasks_in_flight_are_bounded_and_rows_are_not_kept() -> None:
+@pytest.fixture(scope="module")
+def cluster_from_a_thread() -> Iterator[list[object]]:
+    """``sweep.connect(2, None)`` called from another thread than the main one: the
+    client of its two-worker local cluster, or what it raised (a list of one).
+
+    One cluster for the module's two tests of a local cluster: each start is two cold
+    worker processes.
+    """
+    outcome: list[object] = []
+    made: list[tuple[object, object]] = []
+
+    def start() -> None:
+        try:
+            client, cluster = sweep.connect(2, None)
+            made.append((client, cluster))
+            outcome.append(client)
+        except Exception as exc:  # noqa: BLE001 - reported by the tests' assertions
+            outcome.append(exc)
+
+    thread = threading.Thread(target=start)
+    thread.start()
+    thread.join(timeout=120)
+    yield outcome
+    for client, cluster in made:
+        client.close()  # type: ignore[attr-defined]
+        cluster.close()  # type: ignore[attr-defined]
+
+
+def test_tasks_in_flight_are_bounded_and_rows_are_not_kept(
+    cluster_from_a_thread: list[object],
+) -> None:
     program = sweep_program(kernels("unicycle_switch"))
     options = SweepOptions(samples=80, seed=1, t_final=1.0, points=11)
     seen: list[int] = []
-    with (
-        distributed.LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
-        ) as cluster,
-        distributed.Client(cluster) as client,
-    ):
+    [client] = cluster_from_a_thread
+    assert isinstance(client, distributed.Client), client
 
-        def count(results: list[sweep.SampleResult]) -> None:
-            seen.append(len([f for f in client.futures if f.startswith("run_chunk")]))
+    def count(results: list[sweep.SampleResult]) -> None:
+        seen.append(len([f for f in client.futures if f.startswith("run_chunk")]))
 
-        run = sweep.run_sweep(client, program, options, chunk=1, collect=False, on_results=count)
+    run = sweep.run_sweep(client, program, options, chunk=1, collect=False, on_results=count)
     assert run.done == 80 and run.results == [] and len(seen) == 80
     # At most the look-ahead of both workers, never all 80 chunks at once.
     # (the chunk just finished is still known to the client as its callback runs).
@@ -621,24 +647,12 @@ def test_resume_refuses_a_loop_it_cannot_rebuild(
     assert "--samples: not with --resume" in capsys.readouterr().err
 
 
-def test_a_local_cluster_starts_from_another_thread() -> None:
+def test_a_local_cluster_starts_from_another_thread(cluster_from_a_thread: list[object]) -> None:
     """The workers ignore SIGINT when started from the main thread; from another (a
     notebook's worker thread, a GUI), where no handler may be set, the cluster still starts."""
-    outcome: list[object] = []
-
-    def start() -> None:
-        try:
-            client, cluster = sweep.connect(2, None)
-            outcome.append(len(client.scheduler_info()["workers"]))
-            client.close()
-            cluster.close()
-        except Exception as exc:  # noqa: BLE001 - reported by the assertion below
-            outcome.append(exc)
-
-    thread = threading.Thread(target=start)
-    thread.start()
-    thread.join(timeout=120)
-    assert outcome == [2]
+    [client] = cluster_from_a_thread
+    assert isinstance(client, distributed.Client), client
+    assert len(client.scheduler_info()["workers"]) == 2
 
 
 def test_a_signal_while_the_files_are_written_lets_them_finish(
