@@ -17,6 +17,8 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -32,7 +34,7 @@ from tvopt_codegen.spec import load_spec
 from tvopt_codegen.symbolic import trigforms, trigpoly
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
-from .conftest import REFUSE_SYMPY, ROOT, SPECS
+from .conftest import REFUSE_SYMPY, ROOT, SPECS, run_folder
 
 EXAMPLES = sorted(p.stem for p in (ROOT / "tvopt_codegen" / "examples").glob("*.toml"))
 TEST_SPECS = sorted(str(p) for p in SPECS.glob("*.toml"))
@@ -64,6 +66,19 @@ def _recorded() -> dict[str, list[Any]]:
     return out
 
 
+@functools.cache
+def _reference(given: Any) -> tuple[Any, tuple[str, ...]]:
+    """SymPy's branch on ``given`` (SymPy's): its simplified determinant and singular set.
+
+    Once per determinant: the arm's det R is SymPy's to simplify in three tests (its own,
+    the arm_on_line spec's recorded det, the process that refuses SymPy), half a second
+    each; SymPy's simplify is a function of its input alone.
+    """
+    with sx.using("sympy"):
+        reference = simplified_det(given)
+        return reference, _singular_set(reference)
+
+
 def _native(det: Any) -> bool:
     """Whether SymEngine's simplified_det decides ``det`` (SymEngine's) without SymPy."""
     return _monomial(det) is not None or trigforms.lowest(det) is not None
@@ -80,9 +95,7 @@ def _compare(det: Any, refused: bool = False) -> tuple[Any, tuple[str, ...]]:
     """
     with sx.using("symengine"):
         given = to_sympy(det)  # real symbols, as the border makes them
-    with sx.using("sympy"):
-        reference = simplified_det(given)
-        reference_singular = _singular_set(reference)
+    reference, reference_singular = _reference(given)
     with sx.using("symengine"):
         if refused:
             assert not _native(det), det
@@ -288,25 +301,45 @@ def test_exact_quotient_and_irreducibility_rule() -> None:
 
 
 # ------------------------------------------------------------------ processes
-_DET_ONLY = (
-    "import json, sys\n"
+#: One SymEngine process that cannot import SymPy for both tests below (a cold process is
+#: a second of imports): the arm's det R decided, then ``generate arm_on_line`` on both
+#: backends. Each part reports its own failure, so that each test sees only its own.
+_SYMPY_FREE = (
+    "import json, sys, traceback\n"
     + REFUSE_SYMPY
     + """
 sys.meta_path.insert(0, Refuse())
-from tvopt_codegen import symbolic as sx
-from tvopt_codegen.derivation.singularity import _singular_set, simplified_det
-det = sx.sympify(sys.argv[1])
-found = simplified_det(det)
-print(json.dumps([sx.text(found), list(_singular_set(found))]))
-assert "sympy" not in sys.modules
+out = {}
+try:
+    from tvopt_codegen import symbolic as sx
+    from tvopt_codegen.derivation.singularity import _singular_set, simplified_det
+    det = sx.sympify(sys.argv[1])
+    found = simplified_det(det)
+    out["det"] = [sx.text(found), list(_singular_set(found))]
+    assert "sympy" not in sys.modules
+except BaseException:
+    out["det failed"] = traceback.format_exc()
+try:
+    from tvopt_codegen.cli import main
+    for backend in ("python", "c"):
+        code = main(["generate", "arm_on_line", "--backend", backend, "--out", sys.argv[2],
+                     "--quiet"])
+        assert code == 0, code
+    out["sympy modules"] = sorted(m for m in sys.modules if m.split(".")[0] == "sympy")[:3]
+except BaseException:
+    out["generate failed"] = traceback.format_exc()
+print(json.dumps(out))
 """
 )
 
 
-def _symengine_run(args: list[str]) -> subprocess.CompletedProcess[str]:
+@functools.cache
+def _sympy_free_run() -> tuple[dict[str, Any], Path]:
+    """What the SymPy-refusing process found, and the folder it generated into."""
+    folder = Path(tempfile.mkdtemp(prefix="det-native-", dir=run_folder()))  # removed at the end
     env = {**os.environ, "TVOPT_CODEGEN_ENGINE": "symengine"}
-    return subprocess.run(
-        [sys.executable, "-c", *args],
+    ran = subprocess.run(
+        [sys.executable, "-c", _SYMPY_FREE, str(ARM_DET), str(folder)],
         capture_output=True,
         text=True,
         env=env,
@@ -314,49 +347,37 @@ def _symengine_run(args: list[str]) -> subprocess.CompletedProcess[str]:
         check=False,
         timeout=300,
     )
+    assert ran.returncode == 0, ran.stderr[-2000:]
+    found: dict[str, Any] = json.loads(ran.stdout.splitlines()[-1])
+    return found, folder
 
 
 def test_the_arms_det_is_decided_in_a_process_that_refuses_sympy() -> None:
     """simplified_det and the singular set of the arm's det R import no SymPy."""
-    ran = _symengine_run([_DET_ONLY, str(ARM_DET)])
-    assert ran.returncode == 0, ran.stderr[-2000:]
-    text, singular = json.loads(ran.stdout.splitlines()[-1])
+    found, _ = _sympy_free_run()
+    assert "det failed" not in found, found["det failed"][-2000:]
+    text, singular = found["det"]
+    reference, _ = _reference(ARM_DET)
     with sx.using("symengine"):
-        with sx.using("sympy"):
-            reference = simplified_det(ARM_DET)
         assert text == sx.text(from_sympy(reference))
     assert singular == ["sin(q2) = 0"]
 
 
-_GENERATE = (
-    "import sys\n"
-    + REFUSE_SYMPY
-    + """
-sys.meta_path.insert(0, Refuse())
-from tvopt_codegen.cli import main
-for backend in ("python", "c"):
-    code = main(["generate", "arm_on_line", "--backend", backend, "--out", sys.argv[1], "--quiet"])
-    assert code == 0, code
-print(sorted(m for m in sys.modules if m.split(".")[0] == "sympy")[:3])
-"""
-)
-
-
-def test_generate_arm_on_line_imports_no_sympy(tmp_path: Any) -> None:
+def test_generate_arm_on_line_imports_no_sympy() -> None:
     """``generate arm_on_line`` on both backends, in a SymEngine process that cannot import
     SymPy, writes generated/arm_on_line.py and generated/c/arm_on_line* byte for byte:
     det R (symbolic/linalg), its simplified form and singular set, and the undefined set
     (a denominator's text and sign) are all decided natively."""
-    ran = _symengine_run([_GENERATE, str(tmp_path)])
-    assert ran.returncode == 0, ran.stderr[-2000:]
-    assert ran.stdout.splitlines()[-1] == "[]", ran.stdout
-    written = (tmp_path / "arm_on_line.py").read_text()
+    found, folder = _sympy_free_run()
+    assert "generate failed" not in found, found["generate failed"][-2000:]
+    assert found["sympy modules"] == [], found
+    written = (folder / "arm_on_line.py").read_text()
     assert written == (ROOT / "generated" / "arm_on_line.py").read_text()
     assert "R or p is undefined where l2**2*m2*(l1**2*(m1 + m2)" in written
     golden = sorted((ROOT / "generated" / "c").glob("arm_on_line*"))
     assert len(golden) == 4
     for path in golden:
-        assert (tmp_path / path.name).read_bytes() == path.read_bytes(), path.name
+        assert (folder / path.name).read_bytes() == path.read_bytes(), path.name
 
 
 def test_the_singular_set_reads_a_plain_numerator_natively() -> None:

@@ -42,6 +42,9 @@ BROWSER_FLAGS = [
     "--v=0",
 ]
 GOLDEN = ROOT / "tests" / "golden"
+#: The car whose det R holds a name and a cosine side by side, derived once (conftest's)
+#: for both tests that read its report.
+CAR = str(ROOT / "tests" / "specs" / "kinematic_car.toml")
 
 
 def _latex(expr: object) -> str:
@@ -280,8 +283,7 @@ def test_markup_in_the_description_stays_text_in_both_reports(tmp_path: Path) ->
 
 
 def test_matrices_have_css_brackets_and_names_keep_apart() -> None:
-    d = derive(load_spec(ROOT / "tests" / "specs" / "kinematic_car.toml"))
-    files = render_report(d, lower(d))
+    files = render_report(derivation(CAR), kernels(CAR))
     html, md = files["kinematic_car_report.html"], files["kinematic_car_report.md"]
     assert '<mtable class="matrix">' in html and "<mo>[</mo><mtable" not in html
     assert "mtable.matrix {" in html  # the brackets, drawn at any height
@@ -290,8 +292,9 @@ def test_matrices_have_css_brackets_and_names_keep_apart() -> None:
 
 
 def test_brackets_stretch_and_names_are_spaced_in_a_browser(tmp_path: Path) -> None:
-    d = derive(load_spec(ROOT / "tests" / "specs" / "kinematic_car.toml"))
-    html = render_report(d, lower(d), formats=("html",))["kinematic_car_report.html"]
+    html = render_report(derivation(CAR), kernels(CAR), formats=("html",))[
+        "kinematic_car_report.html"
+    ]
     # Measured in the page: each matrix's bracket borders span its height, and in det R
     # the name "wheelbase" and the "cos" that follows it have a visible gap.
     probe = """<pre id="probe"></pre><script>

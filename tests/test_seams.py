@@ -33,6 +33,7 @@ from tvopt_codegen.simulation.sampled import hold
 from tvopt_codegen.spec import spec_from_dict
 
 from .conftest import ROOT, SPECS, import_file
+from .conftest import kernels as shared_kernels
 
 pytestmark = pytest.mark.skipif(
     not any(shutil.which(cc) for cc in ("gcc", "cc", "clang")), reason="no C compiler"
@@ -53,10 +54,18 @@ _CACHE: dict[str, tuple[Any, ModuleType, ModuleType]] = {}
 
 
 def _both(path: Path, robust: dict[str, Any] | None = None) -> tuple[Any, ModuleType, ModuleType]:
-    """(kernels, Python module, C module) of the spec at ``path`` with ``[robust]``."""
+    """(kernels, Python module, C module) of the spec at ``path`` with ``[robust]``.
+
+    The spec as its file has it (``robust`` None) is conftest's, derived and lowered once
+    per worker for every test that asks, and its C library (which differs only in the
+    stamp's file name) is compiled once per run for them all.
+    """
     key = f"{path}|{robust!r}"
     if key not in _CACHE:
-        kernels = lower(derive(spec_from_dict(_table(path, robust))))
+        if robust is None:
+            kernels = shared_kernels(path.stem if path.parent == EXAMPLES else str(path))
+        else:
+            kernels = lower(derive(spec_from_dict(_table(path, robust))))
         _CACHE[key] = (
             kernels,
             load_controller(kernels, "python"),
