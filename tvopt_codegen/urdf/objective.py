@@ -109,6 +109,7 @@ def _circle_margin(
     radius: float,
     plane: tuple[int, int],
     solved: Sequence[int],
+    enough: float = -math.inf,
 ) -> tuple[float, float]:
     """The tip Jacobian's smallest inverse condition number along a run, and at its start.
 
@@ -119,6 +120,10 @@ def _circle_margin(
     others are their own outputs. The Jacobian is the tip's with respect to the solved
     joints: the decoupling matrix is singular exactly where it is. An unreachable point,
     or a jump between two points (a change of branch), counts as 0.
+
+    The run stops once the smallest falls below ``enough``: a caller that only asks
+    whether the circle keeps clear of that margin has its answer (the number returned
+    is then that of the run so far, an upper bound of the whole run's).
     """
     n = kinematics.n
     chosen = list(solved)
@@ -154,6 +159,8 @@ def _circle_margin(
         ratio = float(values[-1] / values[0]) if values[0] > 0 else 0.0
         first = ratio if math.isnan(first) else first
         worst = min(worst, ratio)
+        if worst < enough:
+            break
     return worst, first
 
 
@@ -183,7 +190,10 @@ def _tip_circle(
     for radius in (0.1, 0.05, 0.02):
         for plane, axes in _PLANES.items():
             for solved in [(0, 1, 2), *triples[:6]]:
-                margin, first = _circle_margin(kinematics, start, radius, axes, solved)
+                # The default's margin is told whatever it is; another circle's only
+                # if it keeps clear, so its run can stop once it does not.
+                enough = SAFE_CONDITION if not math.isnan(default) else -math.inf
+                margin, first = _circle_margin(kinematics, start, radius, axes, solved, enough)
                 if math.isnan(default):
                     default = margin
                 if margin < SAFE_CONDITION:
