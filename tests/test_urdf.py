@@ -177,6 +177,38 @@ def test_the_bundled_example_is_what_import_urdf_writes() -> None:
     assert tomllib.loads(spec_toml(fresh)) == bundled
 
 
+def test_the_import_prints_every_expression_as_sstr_does(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The import's own printer (sstr's rules without its cost) writes what sp.sstr writes.
+
+    Every definition, entry of M, force and tip coordinate of the slider (a prismatic
+    joint, an axis off z, rolled placements, a rotated inertia, a fixed side branch), so
+    that the bundled examples stay what sstr made them.
+    """
+    import sympy
+
+    import tvopt_codegen.urdf.mapping
+    import tvopt_codegen.urdf.objective
+    from tvopt_codegen.urdf.dynamics import _text
+
+    printed: list[tuple[sympy.Expr, str]] = []
+
+    def recorded(expr: sympy.Expr) -> str:
+        text = _text(expr)
+        printed.append((expr, text))
+        return text
+
+    monkeypatch.setattr(tvopt_codegen.urdf.mapping, "_text", recorded)
+    monkeypatch.setattr(tvopt_codegen.urdf.objective, "_text", recorded)
+    path = tmp_path / "slider.urdf"
+    path.write_text(SLIDER, encoding="utf-8")
+    spec_from_urdf(path, tip="hand", gravity=(0.3, -0.2, -9.81))
+    assert len(printed) > 100
+    for expr, text in printed:
+        assert text == sympy.sstr(expr), expr
+
+
 def _cli(*args: str, cwd: Path) -> Ran:
     return run_main(*args, cwd=cwd)
 
