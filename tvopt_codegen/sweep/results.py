@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 from tvopt_codegen.sweep.options import SweepOptions
 from tvopt_codegen.sweep.program import TAIL, SweepProgram, tail
 from tvopt_codegen.sweep.sample import SampleResult
-from tvopt_codegen.sweep.table import SUMMARY_COLUMNS, pyarrow
+from tvopt_codegen.sweep.table import SUMMARY_COLUMNS, pyarrow, to_numpy
 
 
 def clopper_pearson_upper(failures: int, runs: int, confidence: float = 0.95) -> float:
@@ -370,24 +370,29 @@ def tally_table(path: Path, worst: int = 5) -> Tally:
         batch = table.read_row_group(group, columns=present)
         encoded = batch.column("status").combine_chunks().dictionary_encode()
         columns = {
-            name: batch.column(name).fill_null(False).to_numpy(zero_copy_only=False)
+            name: _null_as_false(to_numpy(batch.column(name)))
             if name == "certificate_holds"
-            else batch.column(name).to_numpy(zero_copy_only=False)
+            else to_numpy(batch.column(name))
             for name in present
             if name not in ("status", "error")
         }
         first = ""
         if "error" in present and batch.column("error").null_count < batch.num_rows:
-            where = int(np.argmax(np.asarray(batch.column("error").is_valid())))
+            where = int(np.argmax(to_numpy(batch.column("error").is_valid())))
             message = batch.column("error")[where].as_py()
             first = f"sample {int(columns['sample'][where])}: {message}"
         tally.add(
             [str(v) for v in encoded.dictionary.to_pylist()],
-            encoded.indices.to_numpy().astype(np.int64),
+            to_numpy(encoded.indices).astype(np.int64),
             columns,
             first,
         )
     return tally
+
+
+def _null_as_false(values: np.ndarray) -> np.ndarray:
+    """A boolean column's values, a null (``None`` in an object array) as False."""
+    return values if values.dtype == bool else np.array([v is True for v in values], dtype=bool)
 
 
 def record_bytes(record: Mapping[str, Any]) -> bytes:

@@ -113,9 +113,77 @@ def row_schema(program: SweepProgram, options: SweepOptions) -> Any:
 
 
 def record_batch(rows: Sequence[Mapping[str, Any]], schema: Any) -> Any:
-    """One chunk's rows as a ``pyarrow.RecordBatch`` of the table's schema."""
+    """One chunk's rows as a ``pyarrow.RecordBatch`` of the table's schema.
+
+    Built from NumPy buffers, as ``RecordBatch.from_pylist`` builds it (a ``None`` or a
+    missing key is a null): pyarrow's conversions from Python and to NumPy import pandas
+    at their first call, to test for its types (a quarter of a second of a sweep
+    command's CPU, for a library the command never uses).
+    """
     pa, _ = pyarrow()
-    return pa.RecordBatch.from_pylist(list(rows), schema=schema)
+    columns = [_column(pa, f.type, [row.get(f.name) for row in rows]) for f in schema]
+    return pa.RecordBatch.from_arrays(columns, schema=schema)
+
+
+def _column(pa: Any, kind: Any, values: list[Any]) -> Any:
+    """One column of :func:`record_batch`: an int64, float64, string or bool array."""
+    count = len(values)
+    missing = np.fromiter((v is None for v in values), bool, count)
+    nulls = int(missing.sum())
+    valid = pa.py_buffer(np.packbits(~missing, bitorder="little")) if nulls else None
+    if kind == pa.string():
+        encoded = [b"" if v is None else v.encode() for v in values]
+        offsets = np.zeros(count + 1, np.int32)
+        np.cumsum([len(e) for e in encoded], out=offsets[1:])
+        buffers = [valid, pa.py_buffer(offsets), pa.py_buffer(b"".join(encoded))]
+    elif kind == pa.bool_():
+        bits = np.fromiter((bool(v) for v in values), bool, count)
+        buffers = [valid, pa.py_buffer(np.packbits(bits, bitorder="little"))]
+    else:
+        dtype = np.int64 if kind == pa.int64() else np.float64
+        data = np.array([0 if v is None else v for v in values], dtype=dtype)
+        buffers = [valid, pa.py_buffer(data)]
+    return pa.Array.from_buffers(kind, count, buffers, null_count=nulls)
+
+
+#: NumPy's type of each Arrow type of a sweep's number and boolean columns (and codes).
+_NUMPY_TYPES: dict[str, Any] = {
+    "int8": np.int8,
+    "int16": np.int16,
+    "int32": np.int32,
+    "int64": np.int64,
+    "double": np.float64,
+    "bool": np.bool_,
+}
+
+
+def to_numpy(column: Any) -> np.ndarray:
+    """An ``Array`` or ``ChunkedArray`` of numbers or booleans as NumPy's, from its buffers.
+
+    What ``to_numpy(zero_copy_only=False)`` gives (a null is NaN, an int column with
+    nulls is float, a bool one object with ``None``), without its import of pandas (see
+    :func:`record_batch`).
+    """
+    name = str(column.type)
+    chunks = column.chunks if hasattr(column, "chunks") else [column]
+    parts = [_chunk_to_numpy(chunk, name) for chunk in chunks]
+    if not parts:
+        return np.empty(0, _NUMPY_TYPES[name])
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+
+def _chunk_to_numpy(chunk: Any, name: str) -> np.ndarray:
+    count = len(chunk)
+    if chunk.null_count:
+        return np.array(chunk.to_pylist(), dtype=object if name == "bool" else np.float64)
+    dtype = np.dtype(_NUMPY_TYPES[name])
+    if count == 0:
+        return np.empty(0, dtype)
+    data = chunk.buffers()[1]
+    if name == "bool":
+        bits = np.unpackbits(np.frombuffer(data, np.uint8), bitorder="little")
+        return bits[chunk.offset : chunk.offset + count].astype(bool)
+    return np.frombuffer(data, dtype, count=count, offset=chunk.offset * dtype.itemsize)
 
 
 #: The Parquet key-value metadata of a part (and of ``summary.parquet``) naming its sweep:
@@ -253,7 +321,7 @@ def _check_group(
             f"row group {group} holds {rows.num_rows} rows for samples {start}..{stop - 1} "
             f"({stop - start} samples)"
         )
-    held = rows.column("sample").to_numpy(zero_copy_only=False)
+    held = to_numpy(rows.column("sample"))
     if not np.array_equal(held, np.arange(start, stop)):
         values, counts = np.unique(held, return_counts=True)
         absent = np.setdiff1d(np.arange(start, stop), values)
@@ -267,7 +335,7 @@ def _check_group(
             f"its sample column in row group {group} is not samples {start}..{stop - 1} in order"
         )
     if seed is not None:
-        seeds = rows.column("seed").to_numpy(zero_copy_only=False)
+        seeds = to_numpy(rows.column("seed"))
         for where in {0, len(held) - 1}:
             if int(seeds[where]) != sample_seed(seed, int(held[where])):
                 raise _RefusedError(
@@ -412,7 +480,7 @@ SUMMARY_COLUMNS = (
 def read_summary(path: str | Path) -> list[dict[str, Any]]:
     """The rows of a (small) ``summary.parquet`` as dicts."""
     _, pq = pyarrow()
-    rows: list[dict[str, Any]] = pq.read_table(path).to_pylist()
+    rows: list[dict[str, Any]] = pq.ParquetFile(path).read().to_pylist()
     return rows
 
 
@@ -429,7 +497,7 @@ def read_row(path: str | Path, index: int) -> dict[str, Any] | None:
         if stats is None or not int(stats.min) <= index <= int(stats.max):
             continue
         rows = table.read_row_group(group)
-        hits = np.nonzero(rows.column("sample").to_numpy() == index)[0]
+        hits = np.nonzero(to_numpy(rows.column("sample")) == index)[0]
         if len(hits):
             found: dict[str, Any] = rows.slice(int(hits[0]), 1).to_pylist()[0]
             return found
