@@ -6,7 +6,9 @@ against Pinocchio, and a default objective that keeps clear of singularities.
 from __future__ import annotations
 
 import codecs
+import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -22,7 +24,7 @@ from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_BUDGET
 from tvopt_codegen.spec import spec_from_dict
 from tvopt_codegen.urdf import MAX_JOINTS, MAX_LINKS, spec_from_urdf
 
-from .conftest import ROOT, run_main
+from .conftest import ROOT, Ran, run_main, shared
 from .pinocchio_check import both_at
 
 pytest.importorskip("yourdfpy", reason="import-urdf needs the urdf extra (yourdfpy)")
@@ -491,6 +493,34 @@ REAL_ROBOTS = [
 ]  # fmt: skip
 
 
+#: The robots that are simulated too, by (URDF path, --tip): imported once a run by the
+#: command line (:func:`_imported`), whose file both tests read.
+SIMULATED = [
+    ("panda_description/urdf/panda.urdf", "panda_link8"),
+    ("kinova_description/robots/kinova.urdf", None),
+]
+
+
+def _imported(relative: str, tip: str | None) -> tuple[Path, Ran]:
+    """``import-urdf`` of an example-robot-data robot, once a run: the spec file it wrote
+    and what it said (a second import of the same robot would make the same file)."""
+    assert ROBOTS is not None
+    robots = ROBOTS
+
+    def build(folder: Path) -> None:
+        tip_args = ("--tip", tip) if tip else ()
+        run = run_main(
+            "import-urdf", str(robots / relative), "--out", "arm.toml", *tip_args, cwd=folder
+        )
+        said = [run.returncode, run.stdout, run.stderr]
+        (folder / "ran.json").write_text(json.dumps(said), encoding="utf-8")
+
+    key = "urdf_door_" + Path(relative).stem + (f"_{tip}" if tip else "")
+    folder = shared(key, build)
+    code, out, err = json.loads((folder / "ran.json").read_text(encoding="utf-8"))
+    return folder / "arm.toml", Ran(code, out, err)
+
+
 @needs_robots
 @pytest.mark.parametrize(
     ("relative", "tip", "held"), [r[1:] for r in REAL_ROBOTS], ids=[r[0] for r in REAL_ROBOTS]
@@ -503,7 +533,16 @@ def test_real_robots_equal_pinocchio(
     assert ROBOTS is not None
     path = ROBOTS / relative
     notes: list[str] = []
-    spec = spec_from_urdf(path, tip=tip, notes=notes)
+    if (relative, tip) in SIMULATED:
+        # The file the command wrote, which the simulation test reads too: one import.
+        written, run = _imported(relative, tip)
+        assert run.returncode == 0 and run.stderr == "", run.stderr
+        spec = tomllib.loads(written.read_text(encoding="utf-8"))
+        notes = [
+            n.removeprefix("note: ") for n in run.stdout.splitlines() if n.startswith("note: ")
+        ]
+    else:
+        spec = spec_from_urdf(path, tip=tip, notes=notes)
     if held:
         listed = ", ".join(f"{k} = {v:g}" for k, v in held.items())
         assert f"held fixed beyond or beside the tip {tip!r}: {listed}" in notes
@@ -519,25 +558,17 @@ def _simulate(spec: Path, cwd: Path) -> str:
 
 @pytest.mark.slow
 @needs_robots
-@pytest.mark.parametrize(
-    ("relative", "tip"),
-    [("panda_description/urdf/panda.urdf", "panda_link8"),
-     ("kinova_description/robots/kinova.urdf", None)],
-    ids=["panda", "kinova"],
-)  # fmt: skip
+@pytest.mark.parametrize(("relative", "tip"), SIMULATED, ids=["panda", "kinova"])
 def test_panda_and_kinova_simulate_with_a_passing_certificate(
     relative: str, tip: str | None, tmp_path: Path
 ) -> None:
-    assert ROBOTS is not None
-    tip_args = ("--tip", tip) if tip else ()
-    run = run_main(
-        "import-urdf", str(ROBOTS / relative), "--out", "arm.toml", *tip_args, cwd=tmp_path
-    )
+    written, run = _imported(relative, tip)
     assert run.returncode == 0 and run.stderr == "", run.stderr
     if tip:
         # At the Panda's middle pose its shoulder and upper-arm roll axes are aligned:
         # the import lets the tip replace shoulder, shoulder pitch and elbow instead.
         assert "replacing panda_joint1, panda_joint2, panda_joint4 as outputs" in run.stdout
+    shutil.copy(written, tmp_path / "arm.toml")
     _simulate(tmp_path / "arm.toml", tmp_path)
 
 
