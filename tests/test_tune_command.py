@@ -28,7 +28,7 @@ from tvopt_codegen.tune.search import cma_optimizer
 from tvopt_codegen.tune.session import Evaluation, Search
 from tvopt_codegen.tune.space import Candidate, space_for
 
-from .conftest import ROOT, run_main
+from .conftest import ROOT, run_main, shared
 
 pytest.importorskip("cma")
 pytest.importorskip("pyarrow")
@@ -59,12 +59,14 @@ TUNED = "pvtol_tuned.toml"
 
 
 @pytest.fixture(scope="module")
-def reference(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """One uninterrupted small tune of PVTOL."""
-    out = tmp_path_factory.mktemp("tune") / "out"
-    ran = run_main("tune", *PVTOL, "--out", str(out))
-    assert ran.returncode == 0, ran.stderr
-    return out
+def reference() -> Path:
+    """One uninterrupted small tune of PVTOL, tuned once per run for every worker."""
+
+    def tune_once(folder: Path) -> None:
+        ran = run_main("tune", *PVTOL, "--out", str(folder / "out"))
+        assert ran.returncode == 0, ran.stderr
+
+    return shared("tune-command-reference", tune_once) / "out"
 
 
 def test_a_tune_writes_a_tuned_spec_that_does_better_on_fresh_samples(reference: Path) -> None:
@@ -199,6 +201,8 @@ def test_a_signal_in_the_fresh_check_keeps_the_best_and_resumes(
 def test_requirements_no_candidate_meets_are_said_not_hidden(tmp_path: Path) -> None:
     out = tmp_path / "out"
     args = ("--constraint", "max(peak_thrust) <= 0.01", "--evaluations", "6")
+    # A thrust of 0.01 holds no PVTOL up, whatever the samples: 4 of each show it.
+    args += ("--samples", "4", "--check-samples", "4")
     ran = run_main("tune", *PVTOL, *args, "--out", str(out))
     assert ran.returncode == 0, ran.stderr
     assert "warning: no candidate met every requirement" in ran.stderr
@@ -325,7 +329,9 @@ def test_the_spec_tune_table_sets_the_requirements_and_the_observer_is_tuned(
 def test_the_other_searches_run_the_same_budget(tmp_path: Path, method: str, words: str) -> None:
     if method == "tpe":
         pytest.importorskip("optuna")
-    ran = run_main("tune", *PVTOL, "--method", method, "--out", str(tmp_path / "out"))
+    # The budget and the method's words do not depend on the samples: 4 of each.
+    fewer = ("--samples", "4", "--check-samples", "4")
+    ran = run_main("tune", *PVTOL, *fewer, "--method", method, "--out", str(tmp_path / "out"))
     assert ran.returncode == 0, ran.stderr
     record = json.loads((tmp_path / "out" / "tune.json").read_text())
     assert len(record["evaluations"]) == 25
@@ -471,6 +477,7 @@ def test_odd_characters_in_the_paths(tmp_path: Path) -> None:
     spec = folder / "pvtol copy.toml"
     spec.write_text((EXAMPLES / "pvtol.toml").read_text())
     args = [str(spec) if a == "pvtol" else a for a in PVTOL]
+    args += ["--samples", "4", "--check-samples", "4"]  # the paths are the subject
     out = folder / "tuned out"
     ran = run_main("tune", *args, "--evaluations", "6", "--out", str(out))
     assert ran.returncode == 0, ran.stderr

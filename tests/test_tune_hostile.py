@@ -24,7 +24,7 @@ import pytest
 from tvopt_codegen.errors import EXIT_BAD_SPEC, EXIT_OUTPUT, SpecError
 from tvopt_codegen.tune.space import space_for
 
-from .conftest import ROOT, SPECS, Ran, run_main
+from .conftest import ROOT, SPECS, Ran, run_main, shared
 
 pytest.importorskip("cma")
 pytest.importorskip("pyarrow")
@@ -287,12 +287,15 @@ def test_out_in_a_read_only_folder(tmp_path: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def finished(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """One tiny complete tune of PVTOL (6 candidates in generations of 3)."""
-    out = tmp_path_factory.mktemp("tune") / "out"
-    ran = run_main("tune", "pvtol", *TINY, "--out", str(out))
-    assert ran.returncode == 0, ran.stderr
-    return out
+def finished() -> Path:
+    """One tiny complete tune of PVTOL (6 candidates in generations of 3), tuned once per
+    run for every worker (the tests copy it, or check that it is left as it was)."""
+
+    def tune_once(folder: Path) -> None:
+        ran = run_main("tune", "pvtol", *TINY, "--out", str(folder / "out"))
+        assert ran.returncode == 0, ran.stderr
+
+    return shared("tune-hostile-finished", tune_once) / "out"
 
 
 def interrupted_copy(finished: Path, folder: Path, keep: int = 4) -> Path:
