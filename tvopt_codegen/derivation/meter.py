@@ -133,12 +133,17 @@ class _Meter:
 
     def __call__(self, expr: sx.Expr) -> None:
         self.expressions += 1
-        if isinstance(expr, sx.Basic) and not expr.args:
-            self.nodes += 1  # an atom: most entries of a team's matrices are zeros
-            return
+        if isinstance(expr, sx.Basic):
+            args = expr.args
+            if not args:
+                self.nodes += 1  # an atom: most entries of a team's matrices are zeros
+                return
+        else:  # a Python number from a caller's arithmetic
+            expr = sx.as_expr(expr)
+            args = expr.args
         self.check_time()
-        # Already an expression, but for a Python number from a caller's arithmetic.
-        size = tree_size(sx.as_expr(expr), self.budget.size)
+        # The arguments read above are walked, not read again.
+        size = tree_size(expr, self.budget.size, args)
         self.nodes += size
         if size > self.budget.size:
             raise BudgetError(

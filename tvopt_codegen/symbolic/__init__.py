@@ -276,19 +276,24 @@ def as_expr(value: Any) -> Any:
     return value if isinstance(value, _m.Basic) else _m.sympify(value)
 
 
-def tree_size(expr: Any, limit: int) -> int:
+def tree_size(expr: Any, limit: int, args: Sequence[Any] | None = None) -> int:
     """Nodes of ``expr``'s tree, counting at most ``limit + 1`` (so the count is cheap).
 
     A plain stack: sympy's ``preorder_traversal`` costs a generator step per node, and
-    the budget meter sizes every expression the derivation builds.
+    the budget meter sizes every expression the derivation builds. ``args`` are
+    ``expr``'s arguments when the caller has read them already (each SymEngine ``.args``
+    builds new Python objects).
     """
-    count = 0
-    stack = [expr]
+    if limit < 1:
+        return 1
+    stack = list(expr.args if args is None else args)
+    pop, push = stack.pop, stack.extend
+    count = 1
     while stack:
         count += 1
         if count > limit:
             break
-        stack.extend(stack.pop().args)
+        push(pop().args)
     return count
 
 
