@@ -181,7 +181,7 @@ def make_kernel(
     program, flat = _prepare(assignments, exprs, subs, odd, symbols)
     if sx.SYMENGINE:
         dag = Dag()
-        ids = [(dag.intern(sym), dag.intern(value)) for sym, value in program]
+        ids = dag.read(program)
         outs = [dag.intern(_expr(e)) for e in flat]
         ids, outs = dag.signed_odd(ids, outs, {} if odd is None else odd)
         ids = needed(dag, ids, outs)
@@ -275,7 +275,7 @@ def _make_kernels_dag(
     kernels hold, and where inlining collects terms. ``odd`` is :func:`make_kernel`'s.
     """
     dag = Dag()
-    ids = [(dag.intern(sym), dag.intern(value)) for sym, value in program]
+    ids = dag.read(program)
     outs = [dag.intern(_expr(e)) for e in flat]
     ids, outs = dag.signed_odd(ids, outs, {} if odd is None else odd)
     parts = [outs[end - size : end] for size, end in zip(sizes, ends, strict=True)]

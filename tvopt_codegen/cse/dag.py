@@ -75,6 +75,7 @@ class Dag:
         self._negated: dict[int, int] = {}  # a number -> its negation
         self._counts: dict[int, dict[int, int]] = {}  # a node -> its symbols' uses
         self._add = type(sx.symbol("_dag") + sx.symbol("_dag_"))
+        self._symbol = type(sx.symbol("_dag"))
         self.minus_one = self.intern(sx.Integer(-1))
         self.one = self.intern(sx.Integer(1))
         self.zero = self.intern(sx.Integer(0))
@@ -85,6 +86,7 @@ class Dag:
         self._below: dict[int, int] = {}
         self._splits: dict[int, tuple[tuple[int, ...], int]] = {}  # a term -> _split's
         self._factored: dict[int, int] = {}  # a sum or product -> factored's rewrite
+        self._magnitudes: dict[int, int] = {}  # a number -> its absolute value
 
     def intern(self, expr: sx.Expr) -> int:
         """The id of ``expr``, its new nodes added.
@@ -143,6 +145,27 @@ class Dag:
         if cls is not add:
             ids[expr] = i
         return i
+
+    def read(self, program: Iterable[tuple[sx.Expr, sx.Expr]]) -> Program:
+        """The ids of a program's (symbol, value) pairs, in order.
+
+        Its symbols are most of the leaves it adds, each new: added as symbols without
+        asking the engine what they are (each ``.args`` and ``is_...`` makes new Python
+        objects), which was a tenth of reading a ring's jet.
+        """
+        intern, ids, new = self.intern, self._ids, self._new
+        symbol = self._symbol
+        read: Program = []
+        append = read.append
+        for sym, value in program:
+            if type(sym) is symbol:
+                i = ids.get(sym)
+                if i is None:
+                    i = ids[sym] = new(sym, (), _SYMBOL, (), len(self.expr))
+            else:
+                i = intern(sym)
+            append((i, intern(value)))
+        return read
 
     @staticmethod
     def _describe(expr: sx.Expr) -> tuple[int, bool]:
@@ -486,8 +509,15 @@ class Dag:
         return self._find((sx.Mul, self.minus_one, i))
 
     def trivial(self, i: int) -> bool:
-        """A leaf or a negated one: not worth a temporary."""
-        return not self.args[i] or self.negated_atom(i)
+        """A leaf or a negated one: not worth a temporary.
+
+        :meth:`negated_atom` written out: every pass asks this of every value.
+        """
+        args = self.args
+        own = args[i]
+        return not own or (
+            self.kind[i] == _MUL and len(own) == 2 and own[0] == self.minus_one and not args[own[1]]
+        )
 
     def substitute(self, i: int, mapping: dict[int, int], memo: dict[int, int]) -> int:
         """Node ``i`` with ``mapping`` applied, as :func:`~.rewrite._substitute` does.
@@ -679,8 +709,7 @@ class Dag:
             if not self._is_rational(coefficient):
                 return total
             if self.cost[coefficient]:  # a negative or a fraction: compare magnitudes
-                value = self.expression(coefficient)
-                magnitude = self.intern(-value if value.is_negative else value)
+                magnitude = self._magnitude(coefficient)
             else:
                 magnitude = coefficient
             if magnitude == self.one or (common is not None and magnitude != common):
@@ -692,6 +721,14 @@ class Dag:
         inverse = 1 / c
         inner = sx.Add(*[self.expression(term) * inverse for term in args[total]])
         return self.intern(sx.Mul(c, inner))
+
+    def _magnitude(self, number: int) -> int:
+        """The node ``|number|``, kept per number: the sums of a kernel share a few."""
+        found = self._magnitudes.get(number)
+        if found is None:
+            value = self.expression(number)
+            found = self._magnitudes[number] = self.intern(-value if value.is_negative else value)
+        return found
 
     def operations(self, roots: Iterable[int]) -> int:
         """:func:`~.rewrite.operation_count` of the nodes ``roots`` (memoised per DAG)."""
@@ -723,10 +760,22 @@ class Dag:
                 parent = k if k in (_ADD, _MUL) else _OTHER
                 total = 0
                 for arg in args[node]:
-                    if args[arg]:
+                    a = args[arg]
+                    if a:
+                        # own(arg, parent) written out for a compound child: a call
+                        # per edge was a third of the count.
+                        k = kind[arg]
+                        if k == _ADD:
+                            total += len(a) - 1
+                        elif k == _MUL:
+                            total += len(a) - 1 - (parent == _ADD and a[0] == minus_one)
+                        elif k == _POW and a[1] == minus_one:
+                            total += parent != _MUL
+                        else:
+                            total += 1
                         # A shared child is counted already: looked up, not called.
                         sub = below.get(arg)
-                        total += own(arg, parent) + (count(arg) if sub is None else sub)
+                        total += count(arg) if sub is None else sub
                     elif kind[arg] == _NUMBER and parent != _MUL:
                         total += cost[arg]
                 below[node] = total

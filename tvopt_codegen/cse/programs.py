@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
 from tvopt_codegen import symbolic as sx
-from tvopt_codegen.cse.dag import _SYMBOL, Dag, Program
+from tvopt_codegen.cse.dag import _MUL, _SYMBOL, Dag, Program
 from tvopt_codegen.maths.jet import release
 
 
@@ -74,7 +74,8 @@ def value_numbering(
     dag: Dag, exprs: Sequence[int], names: Iterable[sx.Expr]
 ) -> tuple[Program, list[int]]:
     """:func:`~.numbering._value_numbering` on ids: repeated compound nodes named."""
-    args = dag.args
+    args, kind = dag.args, dag.kind
+    minus_one = dag.minus_one
     names = iter(names)
     seen: set[int] = set()
     repeated: set[int] = set()
@@ -82,13 +83,18 @@ def value_numbering(
         stack = [expr]
         while stack:
             node = stack.pop()
-            if dag.trivial(node):
+            own = args[node]
+            # Dag.trivial written out (a leaf, or minus a leaf): a call of it and of
+            # negated_atom for every node, leaves too, was a third of this walk.
+            if not own or (
+                kind[node] == _MUL and len(own) == 2 and own[0] == minus_one and not args[own[1]]
+            ):
                 continue
             if node in seen:
                 repeated.add(node)
                 continue
             seen.add(node)
-            stack.extend(args[node])
+            stack.extend(own)
     replacements: Program = []
     built: dict[int, int] = {}
 
