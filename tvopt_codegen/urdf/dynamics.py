@@ -265,6 +265,10 @@ class _UnprintedError(Exception):
     """An expression outside what :class:`_Printer` prints as ``sp.sstr`` would."""
 
 
+#: Most sort keys and float texts :class:`_Printer` keeps between calls.
+_REMEMBERED = 100_000
+
+
 class _Printer:
     """``sp.sstr`` for what an import prints, at a fraction of its cost.
 
@@ -285,6 +289,10 @@ class _Printer:
         self.sympy._print_level = 2
 
     def __call__(self, expr: sp.Expr) -> str:
+        if len(self.keys) + len(self.floats) > _REMEMBERED:
+            # A long-lived process (a fuzzer, a test worker) imports robot after robot.
+            self.keys.clear()
+            self.floats.clear()
         if expr.is_Symbol:
             return str(expr.name)
         if expr.is_Add or expr.is_Mul or expr.is_Pow or expr.is_Function:
