@@ -96,9 +96,11 @@ class _Meter:
     def report(self) -> None:
         """Tell the progress callback the stage, expressions and nodes so far, and time."""
         raise_pending_signal()
+        now = time.perf_counter()
+        # Kept without a callback too: check_time would otherwise call this at every
+        # expression once the first half second is past.
+        self.last_report = now
         if self.progress is not None:
-            now = time.perf_counter()
-            self.last_report = now
             self.progress(self.stage, self.expressions, self.nodes, now - self.start)
 
     def check_time(self) -> None:

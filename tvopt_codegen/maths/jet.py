@@ -430,7 +430,9 @@ class _Atomizer:
         if known is not None:
             return known
         own = node.args
-        args = [self.visit(arg) for arg in own]
+        visit = self.visit
+        # An atom is its own result: asked here, not in a call per atom.
+        args = [arg if arg.is_Atom else visit(arg) for arg in own]
         if node.is_Mul:
             # Products become chains of two factors: the derivative of an n-factor
             # product is n terms of n - 1 factors, quadratic; of a chain, linear.
@@ -504,8 +506,11 @@ def jacobian(
 
     def propagate(expr: sx.Expr) -> dict[int, sx.Expr]:
         terms: dict[int, list[sx.Expr]] = {}
+        # On SymEngine, whether its own diff suffices is asked once per expression, not
+        # once per variable (partial asks it at each call).
+        plain = sx.SYMENGINE and not _underived(expr)
         for var in sorted(expr.free_symbols & tangent.keys(), key=lambda s: s.name):
-            slope = partial(expr, var)
+            slope = expr.diff(var) if plain else partial(expr, var)
             if slope == zero:
                 continue
             for j, rate in tangent[var].items():
