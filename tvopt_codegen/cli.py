@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import gc
+import importlib
 import os
 import signal
 import sys
@@ -18,22 +19,10 @@ import time
 import traceback
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn, cast
 
 from tvopt_codegen import __version__
-from tvopt_codegen.commands import (
-    Command,
-    check,
-    examples,
-    export,
-    generate,
-    import_urdf,
-    report,
-    run_options,
-    simulate,
-    sweep,
-    tune,
-)
+from tvopt_codegen.commands import Command, run_options
 from tvopt_codegen.errors import (
     EXIT_BAD_SPEC,
     EXIT_BROKEN_PIPE,
@@ -50,18 +39,76 @@ from tvopt_codegen.errors import (
 )
 from tvopt_codegen.limits import ENGINE_VARIABLE, ENGINES
 
+
+class _Deferred:
+    """A command module of this package, imported when first asked for its help, options or run.
+
+    A process runs one command: importing the other eight (``tune``'s hashlib and json,
+    ``sweep``'s, ...) only to build parsers it never uses cost every command's start-up.
+    """
+
+    def __init__(self, module: str) -> None:
+        self._name = f"tvopt_codegen.commands.{module}"
+
+    def _module(self) -> Command:
+        return cast(Command, importlib.import_module(self._name))
+
+    @property
+    def HELP(self) -> str:  # noqa: N802 - the module's attribute, by its name
+        """The module's line in ``--help``."""
+        return self._module().HELP
+
+    def build(self, parser: argparse.ArgumentParser) -> None:
+        """The module's ``build``."""
+        self._module().build(parser)
+
+    def run(self, args: argparse.Namespace) -> int:
+        """The module's ``run``."""
+        return self._module().run(args)
+
+
 #: The commands, in ``--help``'s order: a new command is a module and a line here.
 COMMANDS: dict[str, Command] = {
-    "generate": generate,
-    "check": check,
-    "examples": examples,
-    "import-urdf": import_urdf,
-    "report": report,
-    "export": export,
-    "simulate": simulate,
-    "sweep": sweep,
-    "tune": tune,
+    "generate": _Deferred("generate"),
+    "check": _Deferred("check"),
+    "examples": _Deferred("examples"),
+    "import-urdf": _Deferred("import_urdf"),
+    "report": _Deferred("report"),
+    "export": _Deferred("export"),
+    "simulate": _Deferred("simulate"),
+    "sweep": _Deferred("sweep"),
+    "tune": _Deferred("tune"),
 }
+
+
+class _Commands(argparse._SubParsersAction):  # type: ignore[type-arg]
+    """The commands' parsers, each given its options when its command is the one named.
+
+    ``--help`` reads every command's line; a command line builds the options of the
+    command it names only (argparse hands a command's words to its parser here, after
+    the options before it were read), so the other commands' modules stay unimported.
+    """
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        name = values[0]
+        if name in self._name_parser_map and name not in self.built:
+            self.built.add(name)
+            COMMANDS[name].build(self._name_parser_map[name])
+        super().__call__(parser, namespace, values, option_string)
+
+    built: set[str]
+
+    def describe(self) -> None:
+        """Give each command its line of ``--help`` (importing every command's module)."""
+        for choice in self._choices_actions:
+            if choice.help is None:
+                choice.help = COMMANDS[choice.dest].HELP
 
 
 class _Parser(argparse.ArgumentParser):
@@ -70,6 +117,13 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         sys.stderr.write(f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
         raise SystemExit(EXIT_BAD_SPEC)
+
+    def format_help(self) -> str:
+        """The help, with each command's line read from its module first."""
+        for action in self._actions:
+            if isinstance(action, _Commands):
+                action.describe()
+        return super().format_help()
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -86,9 +140,14 @@ def _parser() -> argparse.ArgumentParser:
         help=f"the symbolic engine that derives the law (default: ${ENGINE_VARIABLE}, else "
         f"{ENGINES[0]}); SymPy is the reference, SymEngine the fast one",
     )
-    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name, command in COMMANDS.items():
-        command.build(subparsers.add_parser(name, help=command.HELP))
+    parser.register("action", "parsers", _Commands)
+    subparsers = cast(
+        _Commands,
+        parser.add_subparsers(dest="command", required=True, metavar="COMMAND"),
+    )
+    subparsers.built = set()
+    for name in COMMANDS:
+        subparsers.add_parser(name, help=None)  # its line: describe, for --help alone
     return parser
 
 

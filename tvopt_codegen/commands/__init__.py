@@ -17,8 +17,9 @@ from typing import Protocol
 class Command(Protocol):
     """What ``cli`` needs of a command module."""
 
-    #: The command's line in ``tvopt-codegen --help``.
-    HELP: str
+    @property
+    def HELP(self) -> str:  # noqa: N802 - a module's constant
+        """The command's line in ``tvopt-codegen --help``."""
 
     def build(self, parser: argparse.ArgumentParser) -> None:
         """Add the command's arguments (and its description) to its own parser."""

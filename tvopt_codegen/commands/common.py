@@ -44,14 +44,29 @@ def backend_option(command: argparse.ArgumentParser, what: str) -> None:
     what
         What the backend is for this command, for ``--help``.
     """
-    from tvopt_codegen import backends  # noqa: PLC0415 - the registry, not a backend
+    option = command.add_argument("--backend", default="python", help=f"{what} (default: python)")
+    # Set after add_argument, which lists choices to check a metavar: the registry is
+    # read when the option is given or shown, not whenever the parser is built.
+    option.choices = _BackendNames()
 
-    command.add_argument(
-        "--backend",
-        default="python",
-        choices=sorted(backends.BACKENDS),
-        help=f"{what} (default: python)",
-    )
+
+class _BackendNames:
+    """The registered backends' names, sorted, read from the registry when asked.
+
+    The registry finds the backends other packages declare as it is first read (an
+    entry-point scan): a command that names no backend and prints no help never reads it.
+    """
+
+    def _names(self) -> list[str]:
+        from tvopt_codegen import backends  # noqa: PLC0415 - the registry, not a backend
+
+        return sorted(backends.BACKENDS)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._names()
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names())
 
 
 def output_options(

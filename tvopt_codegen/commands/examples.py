@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import textwrap
 from collections.abc import Mapping
@@ -29,6 +28,8 @@ def print_examples(examples: Mapping[str, str]) -> None:
     On a terminal the summaries wrap to its width under their column; into a pipe each
     example stays one line, for ``grep``.
     """
+    import shutil  # noqa: PLC0415 - with bz2 and lzma: loaded by this command alone
+
     column = max(map(len, examples), default=0) + 2
     width = max(shutil.get_terminal_size().columns, column + 30)
     for name, summary in examples.items():
