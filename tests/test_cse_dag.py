@@ -11,6 +11,7 @@ import pytest
 
 from tvopt_codegen import cse
 from tvopt_codegen import symbolic as sx
+from tvopt_codegen.cse.coefficients import factored
 from tvopt_codegen.cse.dag import Dag
 from tvopt_codegen.cse.rewrite import _distributed
 from tvopt_codegen.lowering.kernel import Arg
@@ -84,7 +85,7 @@ def test_dag_writes_sums_of_one_coefficient_as_a_product() -> None:
         for expr, want, saved in cases:
             dag = Dag()
             node = dag.intern(expr)
-            program, (out,) = dag.factored([(dag.intern(y), node)], [dag.intern(y + x)])
+            program, (out,) = factored(dag, [(dag.intern(y), node)], [dag.intern(y + x)])
             ((_, made),) = program
             built = dag.expression(made)
             if want is not None:

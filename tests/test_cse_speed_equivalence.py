@@ -17,6 +17,7 @@ import pytest
 from tvopt_codegen import cse
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.cse import assembly, numbering, programs
+from tvopt_codegen.cse.coefficients import factored
 from tvopt_codegen.cse.dag import Dag, Program
 
 from .engine_cases import float_value
@@ -197,7 +198,7 @@ def test_a_program_marked_pruned_reduces_as_the_whole_one(seed: int) -> None:
 
 @pytest.mark.parametrize("seed", range(4))
 def test_factored_kept_across_kernels_is_factored_afresh(seed: int) -> None:
-    """Dag.factored keeps its rewrite of a node for the next kernel of the table: the
+    """coefficients.factored keeps its rewrite of a node for the next kernel of the table: the
     second kernel's program comes out as in a table of its own, in ids' expressions and
     in numbers, with no more operations than before."""
     with sx.using("symengine"):
@@ -205,12 +206,12 @@ def test_factored_kept_across_kernels_is_factored_afresh(seed: int) -> None:
         doubled = [(s, 2 * v) for s, v in program]
         shared = Dag()
         first_ids, first_outs = _on_ids(shared, doubled, outputs)
-        shared.factored(first_ids, first_outs)
+        factored(shared, first_ids, first_outs)
         second_ids, second_outs = _on_ids(shared, doubled, outputs[::-1])
-        kept, kept_outs = shared.factored(second_ids, second_outs)
+        kept, kept_outs = factored(shared, second_ids, second_outs)
         fresh = Dag()
         ids, outs = _on_ids(fresh, doubled, outputs[::-1])
-        alone, alone_outs = fresh.factored(ids, outs)
+        alone, alone_outs = factored(fresh, ids, outs)
         for (_, a), (_, b) in zip(kept, alone, strict=True):
             assert shared.expression(a) == fresh.expression(b)
         for a, b in zip(kept_outs, alone_outs, strict=True):

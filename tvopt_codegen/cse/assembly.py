@@ -10,6 +10,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from tvopt_codegen import symbolic as sx
+from tvopt_codegen.cse.coefficients import factored
 from tvopt_codegen.cse.dag import Dag
 from tvopt_codegen.cse.numbering import (
     SMALL_PROGRAM_OPS,
@@ -186,7 +187,7 @@ def make_kernel(
         ids, outs = dag.signed_odd(ids, outs, {} if odd is None else odd)
         ids = needed(dag, ids, outs)
         before = dag.operations([v for _, v in ids] + outs)
-        order, outs = dag.factored(*_reduce_dag(dag, ids, outs, search, pruned=True))
+        order, outs = factored(dag, *_reduce_dag(dag, ids, outs, search, pruned=True))
         body, reduced = _number_dag(dag, order, outs)
         ops = dag.operations([v for _, v in order] + outs) + _constant_ops(outputs)
         reads = symbols_read(dag, order, outs)
@@ -320,7 +321,7 @@ def _dag_kernel(
 ) -> Kernel:
     """A kernel from its program on the DAG: numbered, counted and packaged."""
     name, doc, inputs, outputs = kernel
-    order, reduced_ids = dag.factored(order, reduced_ids)
+    order, reduced_ids = factored(dag, order, reduced_ids)
     body, reduced = _number_dag(dag, order, reduced_ids)
     ops = dag.operations([v for _, v in order] + reduced_ids) + _constant_ops(outputs)
     reads = symbols_read(dag, order, reduced_ids)
@@ -332,7 +333,7 @@ def _kept(node: sx.Expr, args: Sequence[sx.Expr]) -> sx.Expr:
     """:func:`~.rewrite._rebuild`, a number times a sum kept whole on SymEngine.
 
     The kernel's last pass wrote sums of terms with one coefficient as ``c*(...)``
-    (:meth:`.Dag.factored`); hoisting a sum's invariant terms must not distribute the
+    (:func:`~.coefficients.factored`); hoisting a sum's invariant terms must not distribute the
     ``c`` again. SymPy's constructor distributes it itself.
     """
     if sx.SYMENGINE and node.is_Mul:

@@ -22,7 +22,7 @@ time.
 Three passes are SymEngine's own, for its forms where SymPy's differ: a rational times
 a sum is distributed when the program is read (:meth:`Dag.distribute`; SymPy's ``Mul``
 does it, SymEngine keeps ``-(a + b)``), a kernel's sums whose terms share one
-coefficient are written ``c*(...)`` last (:meth:`Dag.factored`), and merging reads
+coefficient are written ``c*(...)`` last (:func:`~.coefficients.factored`), and merging reads
 ``(1/2)*_t`` of ``_t = 2*x`` as ``x`` (:meth:`Dag.merge_equal`). Odd functions are
 signed (:meth:`Dag.signed_odd`) on the table, not by SymEngine's walks of the
 expressions. The passes over a program on ids are :mod:`~tvopt_codegen.cse.programs`'.
@@ -85,8 +85,8 @@ class Dag:
         self._mul = self.intern(sx.Integer(2) * sx.symbol("_dag"))
         self._below: dict[int, int] = {}
         self._splits: dict[int, tuple[tuple[int, ...], int]] = {}  # a term -> _split's
-        self._factored: dict[int, int] = {}  # a sum or product -> factored's rewrite
-        self._magnitudes: dict[int, int] = {}  # a number -> its absolute value
+        self.factorings: dict[int, int] = {}  # a sum or product -> factored's rewrite
+        self.magnitudes: dict[int, int] = {}  # a number -> its absolute value
 
     def intern(self, expr: sx.Expr) -> int:
         """The id of ``expr``, its new nodes added.
@@ -294,7 +294,7 @@ class Dag:
                     coefficients[key] = coefficient
                     continue
                 known = coefficients[key]
-                if not (self._is_rational(known) and self._is_rational(coefficient)):
+                if not (self.is_rational(known) and self.is_rational(coefficient)):
                     return None
                 coefficients[key] = self._arithmetic(known, coefficient, True)
                 terms[key] = -1  # rebuilt below
@@ -331,7 +331,8 @@ class Dag:
         split = self._splits[term] = (key, coefficient)
         return split
 
-    def _is_rational(self, number: int) -> bool:
+    def is_rational(self, number: int) -> bool:
+        """Whether the number node ``number`` is exact (kept per node)."""
         found = self._rational.get(number)
         if found is None:
             found = self._rational[number] = bool(self.expression(number).is_Rational)
@@ -402,7 +403,7 @@ class Dag:
             len(factors) != 1
             or kind[factors[0]] != _ADD
             or number in (self.one, self.zero)
-            or not self._is_rational(number)
+            or not self.is_rational(number)
         ):
             return None
         total = factors[0]
@@ -593,7 +594,7 @@ class Dag:
                 found = done[node] = node if new == own else self.rebuild(node, new)
             return found
 
-        return _walked(program, outputs, visit)
+        return walked(program, outputs, visit)
 
     def distribute(self, program: Program, outputs: Sequence[int]) -> tuple[Program, list[int]]:
         """Every rational times a sum in ``program`` and ``outputs`` distributed, as SymPy's.
@@ -628,45 +629,7 @@ class Dag:
             memo[node] = done
             return done
 
-        return _walked(program, outputs, visit)
-
-    def factored(self, program: Program, outputs: Sequence[int]) -> tuple[Program, list[int]]:
-        """A program's sums whose terms share one rational coefficient, written ``c*(...)``.
-
-        A sum such as ``2*a*b + 2*c*d`` (five operations) is ``2*(a*b + c*d)`` (four),
-        and in a product with a coefficient of its own the ``2`` merges into that one:
-        SymEngine's derivative of a square leaves many (a ring's barriers, whose chain
-        rule doubles every term). Only sums that are values, terms or factors are
-        rewritten, not a function's argument or a power's base (whose signs and
-        expansion are the engine's), and only exact coefficients (a float's product
-        rounds). Nodes are rebuilt by the engine's constructors, which keep ``c*(a + b)``
-        whole (:meth:`_distributed` is not applied here: this is the kernel's last pass).
-
-        A node's result is the table's, kept across calls: the kernels cut from one
-        reduced program (the jet's and the optimality error's) share most of their nodes.
-        """
-        args, kind = self.args, self.kind
-        memo = self._factored
-
-        def visit(node: int) -> int:
-            own = args[node]
-            k = kind[node]
-            if not own or k not in (_ADD, _MUL):
-                return node
-            done = memo.get(node)
-            if done is not None:
-                return done
-            new = tuple([visit(c) if kind[c] in _COMPOUND else c for c in own])
-            done = node
-            if new != own:
-                exprs = [self.expression(c) for c in new]
-                done = self.intern(sx.Add(*exprs) if k == _ADD else sx.Mul(*exprs))
-            if kind[done] == _ADD:
-                done = self._common_coefficient(done)
-            memo[node] = done
-            return done
-
-        return _walked(program, outputs, visit)
+        return walked(program, outputs, visit)
 
     def _unscaled(self, product: int, values: dict[int, int]) -> int:
         """``c*_t*...`` as ``x*...`` where ``_t = k*x``, ``c*k = 1``, ``x`` a leaf.
@@ -677,7 +640,7 @@ class Dag:
         kind, args = self.kind, self.args
         factors = args[product]
         coefficient = factors[0]
-        if kind[coefficient] != _NUMBER or not self._is_rational(coefficient):
+        if kind[coefficient] != _NUMBER or not self.is_rational(coefficient):
             return product
         for factor in factors[1:]:
             value = values.get(factor)
@@ -694,41 +657,6 @@ class Dag:
                 rest = [self.expression(f) for f in factors[1:] if f != factor]
                 return self.intern(sx.Mul(*rest, self.expression(args[value][1])))
         return product
-
-    def _common_coefficient(self, total: int) -> int:
-        """The sum ``total`` as ``c*(...)`` when all its terms' coefficients are ``+-c``."""
-        kind, args = self.kind, self.args
-        common = None
-        for term in args[total]:
-            if kind[term] == _NUMBER:
-                coefficient = term
-            elif kind[term] == _MUL and kind[args[term][0]] == _NUMBER:
-                coefficient = args[term][0]
-            else:
-                return total
-            if not self._is_rational(coefficient):
-                return total
-            if self.cost[coefficient]:  # a negative or a fraction: compare magnitudes
-                magnitude = self._magnitude(coefficient)
-            else:
-                magnitude = coefficient
-            if magnitude == self.one or (common is not None and magnitude != common):
-                return total
-            common = magnitude
-        if common is None:
-            return total
-        c = self.expression(common)
-        inverse = 1 / c
-        inner = sx.Add(*[self.expression(term) * inverse for term in args[total]])
-        return self.intern(sx.Mul(c, inner))
-
-    def _magnitude(self, number: int) -> int:
-        """The node ``|number|``, kept per number: the sums of a kernel share a few."""
-        found = self._magnitudes.get(number)
-        if found is None:
-            value = self.expression(number)
-            found = self._magnitudes[number] = self.intern(-value if value.is_negative else value)
-        return found
 
     def operations(self, roots: Iterable[int]) -> int:
         """:func:`~.rewrite.operation_count` of the nodes ``roots`` (memoised per DAG)."""
@@ -832,7 +760,7 @@ class Dag:
         return counts
 
 
-def _walked(
+def walked(
     program: Program, outputs: Sequence[int], visit: Callable[[int], int]
 ) -> tuple[Program, list[int]]:
     """``program``'s values and ``outputs`` through the recursive walk ``visit``, then freed."""
