@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import os
 import subprocess
@@ -154,15 +155,56 @@ def test_python_dash_m_and_console_script(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     assert "k = 1" in done.stdout
     bad = subprocess.run(
-        [sys.executable, "-m", "tvopt_codegen", "check", "no_such_spec"],
+        [sys.executable, "-X", "importtime", "-m", "tvopt_codegen", "check", "no_such_spec"],
         capture_output=True,
         text=True,
         cwd=tmp_path,
         check=False,
     )
     assert bad.returncode == EXIT_BAD_SPEC
-    assert "Traceback" not in bad.stderr
-    assert bad.stderr.count("\n") == 1
+    said = [line for line in bad.stderr.splitlines() if not line.startswith("import time:")]
+    assert len(said) == 1 and "Traceback" not in said[0] and "no_such_spec" in said[0]
+    # A command imports its own module of the table, and reads no backend it did not
+    # need: no entry-point scan (importlib.metadata) for a spec that was not found.
+    loaded = {line.rpartition("|")[2].strip() for line in bad.stderr.splitlines()}
+    commands = {m for m in loaded if m.startswith("tvopt_codegen.commands.")}
+    assert commands == {f"tvopt_codegen.commands.{m}" for m in ("check", "common", "run_options")}
+    assert "importlib.metadata" not in loaded and "tvopt_codegen.backends" in loaded
+
+
+def test_the_backends_other_packages_declare_are_found_when_first_looked_up(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from importlib import metadata  # noqa: PLC0415
+
+    from tvopt_codegen import backends  # noqa: PLC0415
+
+    python = backends.BACKENDS["python"]
+    plugin = dataclasses.replace(python, name="plugin")
+    asked: list[str] = []
+
+    class Point:
+        name = "plugin"
+
+        def load(self) -> backends.Backend:
+            return plugin
+
+    def entry_points(group: str) -> list[Point]:
+        asked.append(group)
+        return [Point()]
+
+    monkeypatch.setattr(metadata, "entry_points", entry_points)
+    registry = backends._Registry()
+    monkeypatch.setattr(backends, "BACKENDS", registry)
+    assert not asked  # made, not read
+    assert sorted(registry) == ["c", "plugin", "python"]
+    assert registry["plugin"] is plugin and registry["python"] is python
+    assert asked == [backends.ENTRY_POINT_GROUP]  # once
+    # The parser's --backend offers it, read from the registry when given.
+    with pytest.raises(SystemExit) as stop:
+        main(["generate", "integrator", "--backend", "nosuch"])
+    assert stop.value.code == EXIT_BAD_SPEC
+    assert "(choose from 'c', 'plugin', 'python')" in capsys.readouterr().err
 
 
 def test_demo_spec_file_path_works(tmp_path: Path) -> None:

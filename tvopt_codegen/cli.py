@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import gc
-import importlib
 import os
 import signal
 import sys
@@ -51,7 +50,8 @@ class _Deferred:
         self._name = f"tvopt_codegen.commands.{module}"
 
     def _module(self) -> Command:
-        return cast(Command, importlib.import_module(self._name))
+        # __import__ rather than importlib.import_module: -X importtime lists it.
+        return cast(Command, __import__(self._name, fromlist=["run"]))
 
     @property
     def HELP(self) -> str:  # noqa: N802 - the module's attribute, by its name
