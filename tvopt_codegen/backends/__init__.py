@@ -11,7 +11,10 @@ packages declare, and by :func:`register`. See ``docs/backends.md``.
 from __future__ import annotations
 
 import importlib
+import importlib.machinery
+import os
 import pkgutil
+import sys
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
@@ -109,17 +112,55 @@ def register(backend: Backend) -> Backend:
 
 
 def _discover() -> None:
-    from importlib import metadata  # noqa: PLC0415 - 0.03 s, when a backend is first looked up
-
     for info in sorted(pkgutil.iter_modules(__path__), key=lambda i: i.name):
         if info.name != "base":
             module = importlib.import_module(f"{__name__}.{info.name}")
             if isinstance(getattr(module, "BACKEND", None), Backend):
                 register(module.BACKEND)
+    if not _maybe_declared():
+        return
+    from importlib import metadata  # noqa: PLC0415 - 0.03 s: only where a package may declare one
+
     for point in sorted(metadata.entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
         backend = point.load()
         if isinstance(backend, Backend):
             register(backend)
+
+
+def _maybe_declared() -> bool:
+    """Whether an installed package may declare an entry point of :data:`ENTRY_POINT_GROUP`.
+
+    False only when none can: the path finder is the only finder of distributions and
+    no ``entry_points.txt`` of the metadata folders it reads (``*.dist-info``,
+    ``*.egg-info`` in each folder of ``sys.path``) names the group. Listing them takes a
+    millisecond; ``importlib.metadata`` takes 0.03 s to import, which every ``generate``
+    paid (the spec's names are checked against every backend's reserved words).
+    """
+    finders = [f for f in sys.meta_path if hasattr(f, "find_distributions")]
+    if finders != [importlib.machinery.PathFinder]:
+        return True  # another finder's distributions: importlib.metadata asks it
+    group = ENTRY_POINT_GROUP.encode()
+    for entry in sys.path:
+        folder = entry or "."
+        if not os.path.isdir(folder):
+            if os.path.exists(folder):
+                return True  # a zip file on the path: importlib.metadata reads inside it
+            continue
+        try:
+            names = os.listdir(folder)
+        except OSError:
+            return True
+        for name in names:
+            if name.lower().endswith(("dist-info", "egg-info")):
+                try:
+                    with open(os.path.join(folder, name, "entry_points.txt"), "rb") as file:
+                        if group in file.read():
+                            return True
+                except (FileNotFoundError, NotADirectoryError):
+                    continue
+                except OSError:
+                    return True
+    return False
 
 
 __all__ = ["BACKENDS", "ENTRY_POINT_GROUP", "Backend", "register"]
