@@ -15,7 +15,6 @@ import os
 import signal
 import sys
 import time
-import traceback
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn, cast
@@ -223,6 +222,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as exc:
         if os.environ.get("TVOPT_CODEGEN_DEBUG"):
             raise
+        import traceback  # noqa: PLC0415 - with linecache and tokenize: for this line alone
+
         where = traceback.extract_tb(exc.__traceback__)[-1]
         print(
             f"tvopt-codegen: internal error: {type(exc).__name__}: {one_line(str(exc))} (at "

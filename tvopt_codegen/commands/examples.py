@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import textwrap
 from collections.abc import Mapping
 
 HELP = "list the bundled example specs"
@@ -29,6 +28,7 @@ def print_examples(examples: Mapping[str, str]) -> None:
     example stays one line, for ``grep``.
     """
     import shutil  # noqa: PLC0415 - with bz2 and lzma: loaded by this command alone
+    import textwrap  # noqa: PLC0415 - --help reads this module's HELP
 
     column = max(map(len, examples), default=0) + 2
     width = max(shutil.get_terminal_size().columns, column + 30)
