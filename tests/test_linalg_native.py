@@ -173,6 +173,18 @@ def _chosen() -> list[tuple[Any, bool]]:
         ),
         # tan is not read: the border.
         (sx.Matrix([[(x + y + z) / (a + sx.tan(q1)), 0], [0, 1]]), False),
+        # Only numbers over the sum (3/(a (J + a x)^2) once expanded): dotprodsimp does not
+        # read the expansion as a rational function and leaves it uncancelled (drawn by
+        # hypothesis; the native path had written it over one denominator).
+        (
+            sx.Matrix(
+                [
+                    [m1 * c2 + 2 * c1 * theta, 1 / (J + a * x)],
+                    [-3 / (a * (J + a * x)), -m2 * s1 - 3 * m2 * c2],
+                ]
+            ),
+            False,
+        ),
     ]
 
 

@@ -307,6 +307,8 @@ def cancelled(written: sx.Expr, expanded: sx.Expr) -> sx.Expr | None:
     too few operations to be sure ``dotprodsimp`` cancels, or a sign that depends on the
     order of SymPy's dummies.
     """
+    if not _may_hold_fractions(expanded):
+        return None
     plain: dict[Any, bool] = {}
     if not (_plain_functions(written, plain) and _plain_functions(expanded, plain)):
         return None
@@ -344,6 +346,35 @@ def cancelled(written: sx.Expr, expanded: sx.Expr) -> sx.Expr | None:
 #: the primes (a number times a monomial times powers of irreducible polynomials, the
 #: number moved above).
 _Term = tuple[Poly, Monomial, tuple[int, ...]]
+
+
+def _may_hold_fractions(expanded: sx.Expr) -> bool:
+    """Whether ``dotprodsimp`` reads the expansion as a rational function (its ``ratfunc``).
+
+    Its ``count_ops_alg`` says so only where a term is a bare negative power (``1/Q``) or
+    a fraction with more than a number above (``x/Q``); a term such as ``3/Q`` or
+    ``-1/Q`` it splits into its integer numerator and its denominator, and never looks
+    at the power. An expansion of such terms and polynomials only is left as it is,
+    uncancelled: ``P + 3/Q``, not ``(P Q + 3)/Q``.
+    """
+    for term in expanded.args if expanded.is_Add else (expanded,):
+        if term.is_Pow:
+            if not term.args[1].is_Number or term.args[1].is_negative:
+                return True
+            continue
+        if not term.is_Mul:
+            continue
+        above = below = False
+        for factor in term.args:
+            if factor.is_Number:
+                continue
+            if factor.is_Pow and factor.args[1].is_Number and factor.args[1].is_negative:
+                below = True
+            else:
+                above = True
+        if above and below:
+            return True
+    return False
 
 
 def _plain_functions(node: Any, memo: dict[Any, bool]) -> bool:
