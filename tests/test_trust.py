@@ -757,10 +757,13 @@ def test_a_pickled_controller_goes_on_in_another_process(module: str) -> None:
     root = Path(__file__).resolve().parents[1]
     folders = [str(root / "generated"), str(root / "generated" / "c")]
     sys.path[:0] = folders
+    # No bytecode beside the committed files (test_golden holds generated/ to them).
+    writes, sys.dont_write_bytecode = sys.dont_write_bytecode, True
     try:
         mod = importlib.import_module(module)
     finally:
         del sys.path[:2]
+        sys.dont_write_bytecode = writes
     x = np.array(mod.DEFAULT_STATE[:6])
     controller = mod.Controller(x)
     controller.step(0.01, x)
@@ -776,7 +779,7 @@ def test_a_pickled_controller_goes_on_in_another_process(module: str) -> None:
         [sys.executable, "-c", code],
         input=data,
         capture_output=True,
-        env={**os.environ, "PYTHONPATH": os.pathsep.join(folders)},
+        env={**os.environ, "PYTHONPATH": os.pathsep.join(folders), "PYTHONDONTWRITEBYTECODE": "1"},
         check=False,
     )
     assert done.returncode == 0, done.stderr.decode()
