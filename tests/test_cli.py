@@ -178,8 +178,19 @@ def test_the_backends_other_packages_declare_are_found_when_first_looked_up(
     from tvopt_codegen import backends  # noqa: PLC0415
 
     python = backends.BACKENDS["python"]
-    # None declared on this path: the registry reads no package's metadata.
+    # None declared on this path: the registry reads no package's metadata, whether the
+    # standard library's path finder finds the distributions or the importlib_metadata
+    # backport's, which takes its place once a library imports it.
     assert not backends._maybe_declared()
+
+    # Another finder of distributions: importlib.metadata would ask it, and so is asked.
+    class Finder:
+        def find_distributions(self, context: object = None) -> list[object]:
+            return []
+
+    with monkeypatch.context() as patched:
+        patched.setattr(sys, "meta_path", [*sys.meta_path, Finder()])
+        assert backends._maybe_declared()
     # An installed package that declares one, through its metadata's entry points.
     (tmp_path / "toy_plugin.py").write_text(
         "import dataclasses\n"

@@ -137,7 +137,9 @@ def _maybe_declared() -> bool:
     paid (the spec's names are checked against every backend's reserved words).
     """
     finders = [f for f in sys.meta_path if hasattr(f, "find_distributions")]
-    if finders != [importlib.machinery.PathFinder]:
+    if len(finders) != 1 or not (
+        finders[0] is importlib.machinery.PathFinder or _backport_path_finder(finders[0])
+    ):
         return True  # another finder's distributions: importlib.metadata asks it
     group = ENTRY_POINT_GROUP.encode()
     for entry in sys.path:
@@ -161,6 +163,17 @@ def _maybe_declared() -> bool:
                 except OSError:
                     return True
     return False
+
+
+def _backport_path_finder(finder: object) -> bool:
+    """Whether ``finder`` is the importlib_metadata backport's path finder.
+
+    Imported (by a library that supports older Pythons), the backport takes the path
+    finder's ``find_distributions`` away and finds distributions itself, in the same
+    metadata folders of ``sys.path``.
+    """
+    kind = type(finder)
+    return kind.__name__ == "MetadataPathFinder" and kind.__module__ == "importlib_metadata"
 
 
 __all__ = ["BACKENDS", "ENTRY_POINT_GROUP", "Backend", "register"]
