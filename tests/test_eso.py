@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import tomllib
-from collections.abc import Callable
 from types import ModuleType
 from typing import Any
 
@@ -22,7 +21,7 @@ from tvopt_codegen.derivation.rejection import continuous_gains, discrete_gains
 from tvopt_codegen.errors import SpecError
 from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.simulation import load_controller, resolve_options, simulate
-from tvopt_codegen.simulation.direct import plant_kernel
+from tvopt_codegen.simulation.direct import plant_function
 from tvopt_codegen.simulation.sampled import hold
 from tvopt_codegen.spec import spec_from_dict
 
@@ -142,18 +141,6 @@ def test_on_the_model_the_observer_is_the_plain_law_and_its_certificate_holds() 
     assert result.deviation < 1e-6
 
 
-def _plant(module: ModuleType, params: dict[str, float]) -> Callable[..., np.ndarray]:
-    """``module.plant`` at ``params``, for ``hold``: a Python module's by the kernel behind
-    it (simulation.direct: its numbers without the per-call checks, most of a run here)."""
-    kernel = plant_kernel(module, params)
-
-    def plant(t: float, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        dx = None if kernel is None else kernel(t, x, u)
-        return np.asarray(module.plant(t, x, u, params)) if dx is None else dx
-
-    return plant
-
-
 def _run(
     module: ModuleType, h: float, steps: int, params: dict[str, float], plant: ModuleType
 ) -> np.ndarray:
@@ -161,7 +148,7 @@ def _run(
     system: the C controller's runs take the Python module's plant, the same model)."""
     x = np.array(module.DEFAULT_STATE[: len(module.PLANT_STATE_NAMES)])
     controller = module.Controller(x)
-    field = _plant(plant, params)
+    field = plant_function(plant, params)
     with np.errstate(all="ignore"):
         for k in range(1, steps + 1):
             x = hold(field, (k - 1) * h, k * h, x, controller.u)
@@ -175,7 +162,7 @@ def test_python_and_c_step_to_the_bit_on_a_mismatched_plant() -> None:
     a, b = py.Controller(x), c.Controller(x)
     assert np.array_equal(a.state, b.state)
     h = 1e-3
-    field = _plant(py, HEAVIER)
+    field = plant_function(py, HEAVIER)
     for k in range(1, 801):
         with np.errstate(all="ignore"):
             x = hold(field, (k - 1) * h, k * h, x, a.u)
@@ -247,7 +234,7 @@ def test_a_mass_matrix_plant_gets_what_its_dynamics_twin_gets() -> None:
     # its Python module's kernel: the same model as the C module's plant, a tenth the cost.
     twins = [load_controller(kernels, "python") for kernels in lowered]
     heavier = {"a1": 3.3, "a2": 0.55, "a3": 0.44}
-    fields = [_plant(twin_module, heavier) for twin_module in twins]
+    fields = [plant_function(twin_module, heavier) for twin_module in twins]
     h = 1e-3
     x = [np.array(m.DEFAULT_STATE[:4]) for m in modules]
     controllers = [m.Controller(xi) for m, xi in zip(modules, x, strict=True)]

@@ -20,7 +20,7 @@ import pytest
 from tvopt_codegen.derivation import derive
 from tvopt_codegen.lowering.ir import lower
 from tvopt_codegen.simulation import load_controller, resolve_options, simulate
-from tvopt_codegen.simulation.direct import plant_kernel
+from tvopt_codegen.simulation.direct import plant_function
 from tvopt_codegen.simulation.sampled import hold
 from tvopt_codegen.spec import bundled_examples, spec_from_dict
 
@@ -101,18 +101,6 @@ def _disturbed(robust: dict[str, Any]) -> ModuleType:
     return _module(data)
 
 
-def _true_plant(mod: ModuleType, plant: dict[str, float]) -> Any:
-    """``mod.plant`` at ``plant``, for ``hold``: by the kernel behind it (simulation.direct:
-    its bits, without the per-call checks that were most of a sampled run's time)."""
-    kernel = plant_kernel(mod, plant)
-
-    def f(t: float, state: np.ndarray, u: np.ndarray) -> np.ndarray:
-        dx = None if kernel is None else kernel(t, state, u)
-        return np.asarray(mod.plant(t, state, u, plant)) if dx is None else dx
-
-    return f
-
-
 def _sampled(
     mod: ModuleType, plant: dict[str, float], h: float, steps: int
 ) -> tuple[Any, np.ndarray]:
@@ -120,7 +108,7 @@ def _sampled(
     n = len(mod.PLANT_STATE_NAMES)
     x = np.array(mod.DEFAULT_STATE[:n], dtype=float)
     controller = mod.Controller(x)
-    f = _true_plant(mod, plant)
+    f = plant_function(mod, plant)
     for k in range(1, steps + 1):
         with np.errstate(all="ignore"):
             x = hold(f, (k - 1) * h, k * h, x, controller.u)
@@ -257,7 +245,7 @@ def _both_backends(
     controllers = [py.Controller(x0), c.Controller(x0)]
     states = [x0.copy(), x0.copy()]
     clipped = 0
-    f = _true_plant(py, plant)
+    f = plant_function(py, plant)
     for k in range(1, steps + 1):
         for j in (0, 1):
             with np.errstate(all="ignore"):

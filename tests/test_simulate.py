@@ -331,6 +331,12 @@ def test_the_kernels_simulate_calls_give_the_public_functions_bits(spec: str) ->
         x, u = base[:n] + 0.1, rng.standard_normal(m)
         assert np.array_equal(plant(0.5, x, u), mod.plant(0.5, x, u, given))
         assert plant(0.5, np.full(n, np.nan), u) is None
+        # plant_function: the kernel's bits, and the public function's error where it
+        # declines.
+        field = direct.plant_function(mod, given)
+        assert np.array_equal(field(0.5, x, u), mod.plant(0.5, x, u, given))
+        with pytest.raises(mod.NonFiniteInputError):
+            field(0.5, np.full(n, np.nan), u)
     bad = base.copy()
     bad[0] = np.nan
     refs = None if jets is None else jets(0.0)

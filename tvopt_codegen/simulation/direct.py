@@ -220,3 +220,23 @@ def plant_kernel(
         return column
 
     return evaluate
+
+
+def plant_function(
+    controller: types.ModuleType, params: Mapping[str, float] | None
+) -> Callable[[float, np.ndarray, np.ndarray], np.ndarray]:
+    """``controller.plant`` with ``params`` bound: ``f(t, x, u)``.
+
+    By its kernel where it answers (:func:`plant_kernel`), else by the public function,
+    which answers or raises as documented: the same numbers either way.
+    """
+    kernel = plant_kernel(controller, params)
+
+    def plant(t: float, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        if kernel is not None:
+            dx = kernel(t, x, u)
+            if dx is not None:
+                return dx
+        return np.asarray(controller.plant(t, x, u, params), dtype=float)
+
+    return plant

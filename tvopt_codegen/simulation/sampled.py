@@ -32,7 +32,7 @@ from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.errors import AssumptionError, SpecError
 from tvopt_codegen.maths import hurwitz
 from tvopt_codegen.simulation.certificate import augmented_error
-from tvopt_codegen.simulation.direct import plant_kernel, point_function
+from tvopt_codegen.simulation.direct import plant_function, point_function
 from tvopt_codegen.simulation.references import nominal_source
 from tvopt_codegen.simulation.result import Options, Result
 from tvopt_codegen.simulation.run import bumpless_start, simulate
@@ -146,16 +146,11 @@ def _plant(controller: types.ModuleType, params: dict[str, float]) -> Callable[.
     same numbers, without the public function's checks on every call (most of its cost).
     Call it under ``numpy.errstate(all="ignore")``, as ``plant`` calls its kernel.
     """
-    given = params or None
-    kernel = plant_kernel(controller, given)
+    function = plant_function(controller, params or None)
 
     def plant(t: float, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        if kernel is not None:
-            dx = kernel(t, x, u)
-            if dx is not None:
-                return dx
         try:
-            return np.asarray(controller.plant(t, x, u, given), dtype=float)
+            return function(t, x, u)
         except ArithmeticError as exc:
             if not hasattr(exc, "status"):
                 raise
