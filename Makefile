@@ -73,7 +73,7 @@ PYTEST := PYTHONDONTWRITEBYTECODE= $(PY) -m pytest
 test: $(READY)
 	$(PYTEST) -n auto --dist worksteal
 
-## test-fast: the quick part of the suite (no test over 0.2 s in tests/durations.json), on
+## test-fast: the quick part of the suite (no test over 0.1 s in tests/durations.json), on
 ##   every core: what a contributor runs after each change
 test-fast: $(READY)
 	$(PYTEST) -n auto --dist worksteal -m "not slow"

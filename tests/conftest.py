@@ -345,11 +345,12 @@ class Refuse:
 #: them again. At 0.5 s the quick part took 69 s against the whole suite's 386-407 s,
 #: 0.17; once the suite's dearest tests got cheaper (2026-12-05 afternoon) more of them
 #: fell under 0.5 s, and the quick part took 92 s of 363 s, 0.25; at 0.3 s 76 s of 351 s,
-#: 0.22: hence 0.2 s.
-SLOW_SECONDS = 0.2
+#: 0.22: hence 0.2 s. Cheaper again (2026-12-05 evening), the quick part at 0.2 s took 56 s
+#: of 223 s, 0.25: hence 0.1 s.
+SLOW_SECONDS = 0.1
 #: The least duration ``durations.json`` records (moving the threshold below it needs a
 #: new ``make test-durations``).
-RECORDED_SECONDS = 0.2
+RECORDED_SECONDS = 0.1
 DURATIONS = Path(__file__).resolve().parent / "durations.json"
 
 
@@ -388,13 +389,24 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Mark ``slow`` every test whose recorded duration is over :data:`SLOW_SECONDS`."""
+    """Mark ``slow`` every test whose recorded duration is over :data:`SLOW_SECONDS`, and
+    every case of a parametrized test one of whose cases is.
+
+    The cases of one test share what they build (a compiled controller, one Chromium for
+    every example): the case that ran first recorded the whole cost, and in ``make
+    test-fast`` without it another would pay it (7 s for a browser's).
+    """
     try:
         durations = json.loads(DURATIONS.read_text(encoding="utf-8"))
     except FileNotFoundError:
         return
+    slow = {
+        (item.path, getattr(item, "originalname", item.name))
+        for item in items
+        if durations.get(item.nodeid, 0.0) > SLOW_SECONDS
+    }
     for item in items:
-        if durations.get(item.nodeid, 0.0) > SLOW_SECONDS:
+        if (item.path, getattr(item, "originalname", item.name)) in slow:
             item.add_marker(pytest.mark.slow)
 
 

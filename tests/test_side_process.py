@@ -14,9 +14,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tvopt_codegen.runs.drawing import Plot
 
 from .conftest import shared
+
+#: One interpreter runs every test's body (a few seconds, paid by whichever test asks
+#: first): the whole file is ``make test``'s.
+pytestmark = pytest.mark.slow
 
 #: Every test's body by its test's name (with numpy as np and this module's helpers).
 BODIES: dict[str, str] = {}
