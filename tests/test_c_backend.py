@@ -260,6 +260,31 @@ def test_compiled_library_cache(tmp_path: Path) -> None:
     assert not [p for p in cache.iterdir() if p.name.startswith(".")]  # nothing half-built
 
 
+def test_kept_bytes_build_once_and_an_unusable_cache_only_costs_the_build(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """emit.caches.kept_bytes (the FMU's library): built once, then read; the key
+    follows every part; a cache folder that is a file builds every time."""
+    from tvopt_codegen.emit.caches import build_key, kept_bytes
+
+    builds: list[int] = []
+
+    def build() -> bytes:
+        builds.append(1)
+        return b"\x00library\xff"
+
+    monkeypatch.setenv("TVOPT_CODEGEN_CACHE", str(tmp_path / "cache"))
+    key = build_key(["a\0text"])
+    assert kept_bytes(f"x-{key}", build) == kept_bytes(f"x-{key}", build) == b"\x00library\xff"
+    assert len(builds) == 1
+    assert [p.name for p in (tmp_path / "cache").iterdir()] == [f"x-{key}"]  # nothing partial
+    assert build_key(["a\0other"]) != key and build_key(["a", "\0text"]) != key
+    (tmp_path / "file").write_text("not a folder")
+    monkeypatch.setenv("TVOPT_CODEGEN_CACHE", str(tmp_path / "file"))
+    assert kept_bytes("y", build) == kept_bytes("y", build) == b"\x00library\xff"
+    assert len(builds) == 3
+
+
 def test_two_processes_importing_at_once(tmp_path: Path) -> None:
     folder, cache = tmp_path / "gen", tmp_path / "cache"
     _write_c("integrator", folder)

@@ -2,7 +2,8 @@
 
 Both live in one cache folder (``$TVOPT_CODEGEN_CACHE`` or ``~/.cache/tvopt-codegen``)
 and outlast a command: :func:`cached_library` compiles C sources once per content and
-compiler (the sweep's loop on every worker of a machine), :func:`template_cache` keeps
+compiler (the sweep's loop on every worker of a machine), :func:`kept_bytes` keeps what
+another build makes under its :func:`build_key` (an FMU's library), :func:`template_cache` keeps
 jinja's compiled templates (a tenth of a small command).
 
 This is the only module of :mod:`tvopt_codegen.emit` that imports jinja2 or runs the
@@ -18,7 +19,7 @@ import hashlib
 import os
 import subprocess
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 
 import jinja2
@@ -55,6 +56,46 @@ def template_cache() -> jinja2.BytecodeCache | None:
     return _TemplateCache(str(folder))
 
 
+def build_key(parts: Iterable[str]) -> str:
+    """The cache key of a build: the compiler, its version and flags, then ``parts``.
+
+    A hex digest over each part's own digest, so that no two splits of one text collide.
+    """
+    from tvopt_codegen.toolchain import CFLAGS, compiler, version  # noqa: PLC0415
+
+    cc = compiler()
+    key = hashlib.sha256()
+    for part in (cc, version(cc), "\0".join(CFLAGS), *parts):
+        key.update(hashlib.sha256(part.encode("utf-8")).digest())
+    return key.hexdigest()
+
+
+def kept_bytes(name: str, build: Callable[[], bytes]) -> bytes:
+    """The bytes ``build`` makes, kept in :func:`cache_folder` under ``name`` (its key).
+
+    Read when kept; otherwise built and published by rename, so that a concurrent reader
+    (another worker) sees the whole file or none. A cache that cannot be read or written
+    only costs the build.
+    """
+    try:
+        kept = cache_folder() / name
+        if kept.is_file():
+            return kept.read_bytes()
+    except OSError:
+        return build()
+    data = build()
+    with contextlib.suppress(OSError):
+        kept.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=kept.parent, prefix=".", delete=False) as handle:
+            partial = Path(handle.name)
+            handle.write(data)
+        try:
+            os.replace(partial, kept)
+        finally:
+            partial.unlink(missing_ok=True)
+    return data
+
+
 def cached_library(sources: Mapping[str, str], main: str) -> Path:
     """Compile ``main`` (with the other sources beside it) once per content and compiler.
 
@@ -80,20 +121,13 @@ def cached_library(sources: Mapping[str, str], main: str) -> Path:
         Without a C compiler, when the cache folder is unusable, or when compiling fails.
     """
     from tvopt_codegen.errors import BuildError  # noqa: PLC0415
-    from tvopt_codegen.toolchain import CFLAGS, compiler, version  # noqa: PLC0415
+    from tvopt_codegen.toolchain import CFLAGS, compiler  # noqa: PLC0415
 
     cc = compiler()
-    key = hashlib.sha256()
-    for part in (
-        cc,
-        version(cc),
-        "\0".join(CFLAGS),
-        *(f"{n}\0{t}" for n, t in sorted(sources.items())),
-    ):
-        key.update(hashlib.sha256(part.encode("utf-8")).digest())
+    key = build_key(f"{n}\0{t}" for n, t in sorted(sources.items()))
     cache = cache_folder()
     stem = Path(main).stem
-    library = cache / f"{stem}-{key.hexdigest()[:24]}.so"
+    library = cache / f"{stem}-{key[:24]}.so"
     if library.is_file():
         return library
     try:

@@ -15,7 +15,6 @@ folder ``TVOPT_CODEGEN_FMI_HEADERS`` names.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import importlib.util
 import io
@@ -28,11 +27,11 @@ import zipfile
 from pathlib import Path
 
 from tvopt_codegen.derivation import calculus
-from tvopt_codegen.emit.caches import cache_folder
+from tvopt_codegen.emit.caches import build_key, kept_bytes
 from tvopt_codegen.errors import BuildError, MissingExtraError
 from tvopt_codegen.lowering.ir import KernelSet
 from tvopt_codegen.renderer.rendering import render, render_template, template_context
-from tvopt_codegen.toolchain import CFLAGS, compiler, version
+from tvopt_codegen.toolchain import CFLAGS, compiler
 
 #: The FMI versions an FMU can be exported for.
 FMI_VERSIONS = (2, 3)
@@ -175,47 +174,23 @@ def build_fmu(kernels: KernelSet, fmi: int = 2) -> bytes:
     return archive.getvalue()
 
 
-def _library_key(members: dict[str, str], fmi: int, headers: Path, suffix: str) -> str:
-    """The FMU library's cache key, a hex digest.
-
-    What the library is a function of: the compiler, its version and flags, the sources,
-    the FMI headers they include and the platform's suffix.
-    """
-    cc = compiler()
-    key = hashlib.sha256()
-    parts = [cc, version(cc), "\0".join(CFLAGS), f"fmi{fmi}{suffix}"]
-    parts += [f"{member}\0{text}" for member, text in sorted(members.items())]
-    for header in sorted(headers.glob(f"fmi{fmi}*.h")):
-        parts.append(f"{header.name}\0{header.read_text(encoding='utf-8', errors='replace')}")
-    for part in parts:
-        key.update(hashlib.sha256(part.encode("utf-8")).digest())
-    return key.hexdigest()
-
-
 def _library(name: str, members: dict[str, str], fmi: int, headers: Path, suffix: str) -> bytes:
     """The FMU's shared library for this platform: compiled once per content, then kept.
 
-    The library is a function of its key (:func:`_library_key`; the archive is
-    deterministic for given sources and compiler), so an export again of the same
-    controller, or another process's (a test run's workers), reads it from the cache
-    folder of the compiled libraries instead of running the compiler. A cache that
-    cannot be read or written only costs the compilation.
+    The library is a function of the compiler, its version and flags, the sources, the
+    FMI headers they include and the platform's suffix (the archive is deterministic for
+    given sources and compiler), so an export again of the same controller, or another
+    process's (a test run's workers), reads it from the cache folder of the compiled
+    libraries instead of running the compiler.
     """
-    try:
-        cached = cache_folder() / f"fmu-{_library_key(members, fmi, headers, suffix)[:32]}{suffix}"
-        if cached.is_file():
-            return cached.read_bytes()
-    except OSError:
-        cached = None
-    binary = _compile(name, members, fmi, headers, suffix)
-    if cached is not None:
-        with contextlib.suppress(OSError):
-            cached.parent.mkdir(parents=True, exist_ok=True)
-            # Published by rename: a concurrent reader sees a whole library or none.
-            with tempfile.NamedTemporaryFile(dir=cached.parent, delete=False) as handle:
-                handle.write(binary)
-            os.replace(handle.name, cached)
-    return binary
+    parts = [f"fmi{fmi}{suffix}"]
+    parts += [f"{member}\0{text}" for member, text in sorted(members.items())]
+    for header in sorted(headers.glob(f"fmi{fmi}*.h")):
+        parts.append(f"{header.name}\0{header.read_text(encoding='utf-8', errors='replace')}")
+    return kept_bytes(
+        f"fmu-{build_key(parts)[:32]}{suffix}",
+        lambda: _compile(name, members, fmi, headers, suffix),
+    )
 
 
 def _compile(name: str, members: dict[str, str], fmi: int, headers: Path, suffix: str) -> bytes:
