@@ -12,6 +12,8 @@ interrupted one stood (:class:`tvopt_codegen.tune.session.Search` replays it).
 
 from __future__ import annotations
 
+import sys
+import warnings
 from collections.abc import Sequence
 from typing import Any, Protocol
 
@@ -127,8 +129,6 @@ class _Refusing:
     """An import hook refusing ``names`` (and their submodules) that are not loaded yet."""
 
     def __init__(self, names: Sequence[str]) -> None:
-        import sys  # noqa: PLC0415
-
         self.names = [n for n in names if n not in sys.modules]
 
     def find_spec(self, name: str, path: object = None, target: object = None) -> None:
@@ -144,9 +144,6 @@ def _import_cma() -> Any:
     sampling and updates use NumPy only (a tune's records are the same bytes). Pyplot
     unloaded also leaves the user's matplotlib backend unchosen.
     """
-    import sys  # noqa: PLC0415
-    import warnings  # noqa: PLC0415
-
     loaded = sys.modules.get("cma")
     if loaded is not None:
         return loaded
