@@ -554,3 +554,46 @@ def test_constraints_are_measured_on_every_run() -> None:
     assert np.all(np.isnan(sweep.tail(rows, "max_equality")))
     assert row["violations"] == 0 and row["min_margin"] == pytest.approx(margin.min(), abs=1e-12)
     assert row["min_margin"] > 0 and row["final_constraint"] <= 0
+
+
+def test_the_tables_buffers_are_pyarrows_conversions() -> None:
+    """sweep.table builds its batches and reads its columns from NumPy buffers (pyarrow's
+    own conversions import pandas): the same arrays as ``from_pylist`` and ``to_numpy``,
+    with nulls, non-ASCII text, infinities, NaN, empty chunks and a sliced chunk."""
+    import pyarrow as pa
+
+    from tvopt_codegen.sweep.table import record_batch, to_numpy
+
+    schema = pa.schema(
+        [("n", pa.int64()), ("x", pa.float64()), ("s", pa.string()), ("b", pa.bool_())]
+    )
+    rows = [
+        {"n": 3, "x": math.inf, "s": "ok", "b": True},
+        {"n": -(2**62), "x": math.nan, "s": None, "b": None},
+        {"n": 0, "x": -0.0, "s": "é ∞ \\n", "b": False},
+        {"x": 5e-324, "s": "", "b": True},  # a missing key is a null, as from_pylist has it
+    ]
+    for chosen in (rows, rows[:1], []):
+        ours, theirs = (
+            record_batch(chosen, schema),
+            pa.RecordBatch.from_pylist(chosen, schema=schema),
+        )
+        assert ours.schema == theirs.schema and ours.num_rows == theirs.num_rows
+        for mine, reference in zip(ours.columns, theirs.columns, strict=True):
+            # repr: NaN is NaN, -0.0 is -0.0 (Arrow's equals takes NaN for unequal).
+            assert [repr(v) for v in mine.to_pylist()] == [repr(v) for v in reference.to_pylist()]
+            assert mine.null_count == reference.null_count
+            mine.validate(full=True)
+    batch = record_batch(rows, schema)
+    for name in ("n", "x", "b"):
+        column = batch.column(name)
+        for array in (column, column.slice(1, 2), pa.chunked_array([column, column.slice(2)])):
+            want = array.to_numpy(zero_copy_only=False)
+            got = to_numpy(array)
+            assert got.dtype == want.dtype, name
+            assert [repr(v) for v in got.tolist()] == [repr(v) for v in want.tolist()], name
+    clean = record_batch([r for r in rows if r.get("n") is not None and r["b"] is not None], schema)
+    for name in ("n", "b"):
+        sliced = clean.column(name).slice(1)
+        assert np.array_equal(to_numpy(sliced), sliced.to_numpy(zero_copy_only=False))
+        assert to_numpy(pa.chunked_array([], type=clean.column(name).type)).size == 0
