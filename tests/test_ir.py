@@ -606,6 +606,25 @@ def test_substituting_and_signing_odd_functions_in_one_pass(
     assert _substitute(expr, mapping, {}, {}) == two_passes
 
 
+@pytest.mark.parametrize("engine_name", ["symengine", "sympy"])
+def test_an_odd_function_whose_new_argument_gives_up_its_sign_is_signed_once(
+    engine_name: str,
+) -> None:
+    """The constructor pulls a minus out of the substituted argument (sin(-2.5 (a + c))
+    is built as -sin(2.5 (a + c))): the one-pass walk signs the sine under that minus as
+    canonical_odd does in a second walk (hypothesis found the float case; a symbol
+    gives it too). Before, the one pass left -sin(2.5 (a + c)) where canonical_odd
+    writes sin(2.5 (-a - c)), and CSE saw two sines."""
+    with sx.using(engine_name):
+        a, b, c = sx.symbols(["a", "b", "c"])
+        expr = sx.sin(b * (a + c))
+        for value in (sx.real(-2.5), -a):
+            mapping = {b: value}
+            one = _substitute(expr, mapping, {}, {})
+            assert one == canonical_odd(_substitute(expr, mapping), {}), value
+            assert canonical_odd(one, {}) == one, value
+
+
 def test_a_number_beside_a_sum_is_distributed_exactly_where_sympy_does() -> None:
     """Substitution distributes a number over a sum where flatten does (a product of two
     arguments, or of the number and the sum alone), and nowhere else: on either engine

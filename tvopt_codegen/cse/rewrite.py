@@ -292,6 +292,13 @@ def _substitute(
         new = node if _unchanged(same, own, args) else _rebuild(node, args)
         if odd is not None and isinstance(new, odd_functions):
             new = _signed_odd(new, odd)
+        elif odd is not None and isinstance(node, odd_functions):
+            # The constructor pulled a minus sign out of the new argument
+            # (sin(-2.5*(a + c)) -> -sin(2.5*(a + c))): the odd function under that
+            # sign is signed as canonical_odd would sign it in a second walk.
+            inner = -new
+            if isinstance(inner, odd_functions):
+                new = -_signed_odd(inner, odd)
         table[node] = new
         return new
 
