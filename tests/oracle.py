@@ -209,11 +209,27 @@ class Oracle:
             self.coordinates = len(q)
             # The spec's definitions one by one, each from those before it: M, F and B
             # read them (a URDF robot's link velocities), substituted they would swell.
-            self.definitions = [
-                (sym, sp.lambdify([*args, *(s for s, _ in mech.definitions[:i])], expr, "numpy"))
-                for i, (sym, expr) in enumerate(mech.definitions)
-            ]
+            # Each is a function of the arguments and earlier definitions it reads, by
+            # position: lambdify's cost grows with its argument list, and a robot's few
+            # hundred definitions each given all before it took most of its oracle.
             defined = [s for s, _ in mech.definitions]
+            position = {a: i for i, a in enumerate(args)}
+            earlier: dict[sp.Symbol, int] = {}
+            self.definitions = []
+            for i, (sym, expr) in enumerate(mech.definitions):
+                free = sp.sympify(expr).free_symbols
+                read = [a for a in args if a in free]
+                before = [s for s in defined[:i] if s in free]
+                function = sp.lambdify([*read, *before], expr, "numpy")
+                self.definitions.append(
+                    (
+                        sym,
+                        tuple(position[a] for a in read),
+                        tuple(earlier[s] for s in before),
+                        function,
+                    )
+                )
+                earlier[sym] = i
             self.mass = sp.lambdify([*args, *defined], [e for row in mech.mass_matrix for e in row])
             self.forces = sp.lambdify([*args, *defined], list(mech.forces))
             self.gain = sp.lambdify(
@@ -258,10 +274,9 @@ class Oracle:
         else:
             nq = self.coordinates
             values: list[object] = []
-            for _, function in self.definitions:
-                values.append(
-                    np.broadcast_to(np.asarray(function(*args, *values), dtype=float), (n,))
-                )
+            for _, read, before, function in self.definitions:
+                value = function(*(args[i] for i in read), *(values[i] for i in before))
+                values.append(np.broadcast_to(np.asarray(value, dtype=float), (n,)))
             full = [*args, *values]
             M = np.moveaxis(self._eval(self.mass, full, (nq, nq), n), -1, 0)
             F = self._eval(self.forces, full, (nq,), n)
