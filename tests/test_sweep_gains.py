@@ -107,8 +107,10 @@ def test_pvtol_candidate_runs_as_the_spec_with_its_poles() -> None:
     # One library: the candidate's key is the spec's, not the rewritten spec's.
     assert candidate.key == base.key != edited.key
     assert candidate.sources == base.sources
-    for field in ("coefficients", "alpha", "c", "bumpless", "observer_bandwidth"):
+    for field in ("coefficients", "alpha", "bumpless", "observer_bandwidth"):
         assert getattr(candidate, field) == getattr(edited, field), field
+    # c is computed when a certificate first asks it: the rewritten spec's, to the bit.
+    assert candidate.c is None and candidate.transient() == edited.c
     assert candidate.coefficients == (-120.0, -154.0, -71.0, -14.0)
     assert np.array_equal(candidate.gains(), [-120.0, -154.0, -71.0, -14.0])
     options = SweepOptions(
@@ -137,8 +139,10 @@ def test_robust_pvtol_candidate_runs_as_the_spec_with_its_poles_and_bandwidth() 
     edited = program(ROBUST, _robust_edits())
     candidate = _candidate(base, ROBUST_POLES, ROBUST_BANDWIDTH)
     assert candidate.key == base.key
-    for field in ("coefficients", "alpha", "c", "bumpless", "observer_bandwidth"):
+    for field in ("coefficients", "alpha", "bumpless", "observer_bandwidth"):
         assert getattr(candidate, field) == getattr(edited, field), field
+    # c is computed when a certificate first asks it: the rewritten spec's, to the bit.
+    assert candidate.c is None and candidate.transient() == edited.c
     assert candidate.observer_bandwidth == 35.0 and base.observer_bandwidth == 20.0
     # Coefficients, then b_0 .. b_3, then the bandwidth.
     assert np.array_equal(

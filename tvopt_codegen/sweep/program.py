@@ -53,8 +53,11 @@ class SweepProgram:
         The spec's closed-loop initial state.
     coefficients : tuple of float
         The Hurwitz coefficients of H.
-    alpha, c : float
-        The certificate's constants: ``|expm(H t)| <= c e^(-alpha t)``.
+    alpha : float
+        The certificate's rate: ``|expm(H t)| <= c e^(-alpha t)``.
+    c : float or None
+        The certificate's constant; None for a candidate's gains (:meth:`with_gains`)
+        until a nominal sample's certificate asks it (:meth:`transient`).
     constraints : tuple of str
         The names of the spec's inequalities (their values are measured on the run).
     equalities : tuple of str
@@ -91,7 +94,7 @@ class SweepProgram:
     initial_state: tuple[float, ...]
     coefficients: tuple[float, ...]
     alpha: float
-    c: float
+    c: float | None
     constraints: tuple[str, ...] = ()
     equalities: tuple[str, ...] = ()
     n_kkt: int = 0
@@ -111,6 +114,17 @@ class SweepProgram:
         """Width of a trajectory row: t, s, y, y*, u, then the :data:`TAIL` columns."""
         n, m, nu = len(self.state_names), len(self.output_names), len(self.input_names)
         return 1 + n + 2 * m + nu + len(TAIL)
+
+    def transient(self) -> float:
+        """The certificate's constant c: the spec's, or computed now for a candidate's gains.
+
+        Only a nominal sample's certificate reads it, and a tune's samples are seldom
+        nominal (mismatch, noise, a sample time): computed for every candidate, it was
+        about half of a small tune's CPU (:func:`transient_constant`, 50-90 ms each).
+        """
+        if self.c is not None:
+            return self.c
+        return transient_constant(self.coefficients, self.alpha)
 
     def gains(self) -> np.ndarray:
         """The gains the compiled loop runs with, in the C's order (``<name>_set_gains``).
@@ -147,9 +161,9 @@ class SweepProgram:
         Returns
         -------
         SweepProgram
-            With ``coefficients``, ``alpha`` and ``c``
-            (:func:`~tvopt_codegen.maths.hurwitz.certified_rate`,
-            :func:`~tvopt_codegen.maths.hurwitz.transient_constant`), ``bumpless``
+            With ``coefficients`` and ``alpha``
+            (:func:`~tvopt_codegen.maths.hurwitz.certified_rate`), ``c`` None (computed
+            when asked: :meth:`transient`), ``bumpless``
             (:func:`~tvopt_codegen.maths.hurwitz.integral_split`) and
             ``observer_bandwidth`` replaced.
 
@@ -212,7 +226,7 @@ class SweepProgram:
             self,
             coefficients=values,
             alpha=alpha,
-            c=transient_constant(values, alpha),
+            c=None,
             bumpless=bumpless,
             observer_bandwidth=None if bandwidth is None else float(bandwidth),
         )
@@ -222,11 +236,10 @@ class SweepProgram:
 def transient_constant(coefficients: tuple[float, ...], alpha: float) -> float:
     """:func:`~tvopt_codegen.maths.hurwitz.transient_constant`, once per gains in a process.
 
-    It takes 50-90 ms for a candidate of a 4-pole spec (up to 20,000 grid points), about
-    two thirds of a small tune's CPU. A tune builds its best candidate's program again
-    for the check on fresh samples, and a notebook or a test process tunes the same
-    candidates again (the same seed): those get the value already computed, the same
-    float.
+    It takes 50-90 ms for a candidate of a 4-pole spec (up to 20,000 grid points), and
+    is asked only by a nominal sample's certificate (:meth:`SweepProgram.transient`): a
+    candidate met again (its fresh check, a notebook or a test process that tunes the
+    same candidates with the same seed) gets the value already computed, the same float.
     """
     from tvopt_codegen.maths import hurwitz  # noqa: PLC0415
 

@@ -97,7 +97,7 @@ def _certificate(
     smallest = float(np.min(convexity))
     if not smallest > 0:
         return False
-    _, bound = tracking_bound(t, p.c, p.alpha, norm0, smallest)
+    _, bound = tracking_bound(t, p.transient(), p.alpha, norm0, smallest)
     return bound_ratio(error, bound) <= 1.0
 
 
