@@ -43,10 +43,12 @@ def _cli(
     )
 
 
-def _into_the_derivation(pid: int, cpu_seconds: float = 1.0) -> None:
+def _into_the_derivation(pid: int, cpu_seconds: float = 0.5) -> None:
     """Wait until process ``pid`` has run ``cpu_seconds`` of CPU: past its imports (the
-    command loads lazily: ``generate`` and ``simulate`` call ``derive`` after 0.2-0.3 s
-    of CPU here, the painter already started), inside the ring's derivation (8 s here).
+    command loads lazily: ``generate`` and ``simulate`` call ``derive`` after 0.17-0.22 s
+    of CPU here, measured 2026-12-05, the painter already started), inside the ring's
+    derivation (8 s here). Twice that and more is margin enough: every CPU second waited
+    beyond it is a second of derivation each of these tests' processes spent for nothing.
 
     Counted in the process's own CPU time (Linux's /proc), not on the wall: a loaded
     machine neither signals it still importing nor waits longer than needed on an idle
