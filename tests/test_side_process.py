@@ -9,6 +9,7 @@ derivation once, not five times. Each runs only while that interpreter has one t
 
 from __future__ import annotations
 
+import functools
 import json
 import subprocess
 import sys
@@ -17,8 +18,6 @@ from pathlib import Path
 import pytest
 
 from tvopt_codegen.runs.drawing import Plot
-
-from .conftest import shared
 
 #: One interpreter runs every test's body (a few seconds, paid by whichever test asks
 #: first): the whole file is ``make test``'s.
@@ -59,17 +58,42 @@ def _run_bodies(folder: Path) -> None:
 
 def _fresh(name: str) -> None:
     """Test ``name``'s body, run in a fresh interpreter, passed."""
+    # Imported here, not at the top: the runner imports this module, and conftest's
+    # pytest plugins and hypothesis were a quarter of a second of its start-up.
+    from .conftest import shared  # noqa: PLC0415
+
     outcomes = json.loads(
         (shared("side-process-bodies", _run_bodies) / "outcomes.json").read_text()
     )
     assert outcomes[name] is None, outcomes[name]
 
 
+@functools.cache
 def _corridor() -> tuple[object, object]:
-    """The corridor team's derivation and generated module (two constraints)."""
-    from .conftest import derivation, module
+    """The corridor team's derivation and generated module (two constraints).
 
-    return derivation("two_unicycles_corridor"), module("two_unicycles_corridor")
+    Made as conftest's ``derivation`` and ``module`` make them, without importing conftest
+    (see :func:`_fresh`): derived, lowered, rendered to a private folder and imported.
+    """
+    import importlib.util  # noqa: PLC0415
+    import tempfile  # noqa: PLC0415
+
+    from tvopt_codegen.derivation import derive  # noqa: PLC0415
+    from tvopt_codegen.lowering.ir import lower  # noqa: PLC0415
+    from tvopt_codegen.renderer.rendering import render  # noqa: PLC0415
+    from tvopt_codegen.spec import load_spec  # noqa: PLC0415
+
+    d = derive(load_spec("two_unicycles_corridor"))
+    ((name, text),) = render(lower(d), "python").items()
+    with tempfile.TemporaryDirectory(prefix="tvopt-side-") as folder:  # loaded, then gone
+        path = Path(folder) / name
+        path.write_text(text, encoding="utf-8")
+        found = importlib.util.spec_from_file_location(f"_tvopt_side_{name[:-3]}", path)
+        assert found is not None and found.loader is not None
+        controller = importlib.util.module_from_spec(found)
+        sys.modules[found.name] = controller
+        found.loader.exec_module(controller)
+    return d, controller
 
 
 def _plot(stem: str, slope: float) -> Plot:
@@ -186,5 +210,7 @@ BODIES["test_the_run_alone_is_drawn_early_and_the_files_are_the_same"] = """
             assert len(runs) == 1 and runs[0].outputs is result.outputs
             assert stems == ["two_unicycles_corridor_paths", "two_unicycles_corridor_inputs"]
             files = result_files(d, result, painter, stems)
-        assert files == result_files(d, result) and list(files) == list(result_files(d, result))
+        # Drawn here once (half a second of figures): the same bytes, in the same order.
+        alone = result_files(d, result)
+        assert files == alone and list(files) == list(alone)
         """
