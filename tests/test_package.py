@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import importlib.metadata
 import os
-import shutil
 import subprocess
 import sys
 import tomllib
@@ -17,19 +16,7 @@ from tvopt_codegen import symbolic as sx
 from tvopt_codegen.limits import ENGINE_VARIABLE
 
 from .conftest import ROOT, run_main
-
-
-def _clean_source(tmp_path: Path) -> Path:
-    """What the wheel is built from, copied without the checkout's ignored build/ folder,
-    whose stale copies of moved modules setuptools would ship."""
-    source = tmp_path / "source"
-    ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
-    for name in ("tvopt_codegen", "templates"):
-        shutil.copytree(ROOT / name, source / name, ignore=ignore)
-    for name in ("pyproject.toml", "README.md", "LICENSE"):
-        if (ROOT / name).exists():
-            shutil.copy2(ROOT / name, source / name)
-    return source
+from .test_packaging import built_wheel
 
 
 def _build_requirements_are_installed() -> None:
@@ -47,24 +34,8 @@ def _build_requirements_are_installed() -> None:
 
 def test_installed_wheel_generates_a_bundled_example(tmp_path: Path) -> None:
     _build_requirements_are_installed()
-    wheels = tmp_path / "wheels"
-    subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pip",
-            "wheel",
-            "--quiet",
-            "--no-deps",
-            "--no-build-isolation",
-            "-w",
-            str(wheels),
-            str(_clean_source(tmp_path)),
-        ],
-        check=True,
-        capture_output=True,
-    )
-    (wheel,) = wheels.glob("tvopt_codegen-*.whl")
+    # The run's one build of the wheel (test_packaging's, whose warnings it checks).
+    wheel, _ = built_wheel()
     names = set(zipfile.ZipFile(wheel).namelist())
     assert "tvopt_codegen/templates/python/controller.py.jinja" in names
     assert "tvopt_codegen/examples/unicycle_switch.toml" in names

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -10,21 +11,27 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import ROOT
+from .conftest import ROOT, shared
 
 
-def test_the_wheel_builds_without_warnings_and_ships_every_template(tmp_path: Path) -> None:
-    pytest.importorskip("setuptools", minversion="77")
-    source = tmp_path / "source"
-    source.mkdir()
-    for name in ("pyproject.toml", "README.md"):
-        shutil.copy(ROOT / name, source / name)
+def _build_wheel(folder: Path) -> None:
+    """The wheel of a clean copy of the checkout, built once per run for both wheel tests.
+
+    A copy without the checkout's ignored build/ folder, whose stale copies of moved
+    modules setuptools would ship. Built by the declared backend in this environment
+    (pip's ``--no-build-isolation`` calls the same hook, a second build that pip's own
+    start-up made twice as dear), with every warning shown, as pip's isolated build shows
+    them to a user: the folder keeps the wheel, the build's output and its exit status.
+    """
+    source = folder / "source"
     ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
-    for folder in ("tvopt_codegen", "templates"):
-        shutil.copytree(ROOT / folder, source / folder, ignore=ignore)
-    out = tmp_path / "wheel"
+    for name in ("tvopt_codegen", "templates"):
+        shutil.copytree(ROOT / name, source / name, ignore=ignore)
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
+        if (ROOT / name).exists():
+            shutil.copy2(ROOT / name, source / name)
+    out = folder / "wheel"
     out.mkdir()
-    # Every warning shown, as pip's isolated build shows them to a user.
     build = subprocess.run(
         [
             sys.executable,
@@ -39,10 +46,24 @@ def test_the_wheel_builds_without_warnings_and_ships_every_template(tmp_path: Pa
         timeout=300,
         check=False,
     )
-    assert build.returncode == 0, build.stderr[-2000:]
-    log = build.stdout + build.stderr
+    (folder / "build.json").write_text(
+        json.dumps({"returncode": build.returncode, "log": build.stdout + build.stderr})
+    )
+
+
+def built_wheel() -> tuple[Path, str]:
+    """The run's wheel of the checkout and its build's output (it must have built)."""
+    folder = shared("wheel-of-the-checkout", _build_wheel)
+    build = json.loads((folder / "build.json").read_text())
+    assert build["returncode"] == 0, build["log"][-2000:]
+    (wheel,) = (folder / "wheel").glob("tvopt_codegen-*.whl")
+    return wheel, build["log"]
+
+
+def test_the_wheel_builds_without_warnings_and_ships_every_template() -> None:
+    pytest.importorskip("setuptools", minversion="77")
+    wheel, log = built_wheel()
     assert "BuildBackendWarning" not in log and "absent from" not in log, log[-3000:]
-    (wheel,) = out.glob("*.whl")
     members = set(zipfile.ZipFile(wheel).namelist())
     templates = {
         "tvopt_codegen/templates/" + p.relative_to(ROOT / "templates").as_posix()
