@@ -246,11 +246,16 @@ def test_a_name_of_the_wrong_kind_is_said_to_be_not_allowed(tmp_path: Path) -> N
 
 def _imported_by(*args: str, then: Sequence[Sequence[str]] = ()) -> set[str]:
     """The modules a command loads, on the default engine (SymEngine): with ``then``,
-    those it and the commands ``then`` run after it in the same process load together."""
-    code = "import sys\nfrom tvopt_codegen.cli import main\n"
+    those it and the commands ``then`` run after it in the same process load together.
+
+    Every command must succeed (exit 0, or ``SystemExit(0)`` for ``--help``): one that
+    stopped early would load less than it does.
+    """
+    code = "import sys\nfrom tvopt_codegen.cli import main\ncodes = []\n"
     for command in (list(args), *map(list, then)):
-        code += f"try:\n    main({command!r})\nexcept SystemExit:\n    pass\n"
-    code += "print(' '.join(sorted(sys.modules)))"
+        code += f"try:\n    codes.append(main({command!r}))\n"
+        code += "except SystemExit as stop:\n    codes.append(stop.code)\n"
+    code += "print(codes)\nprint(' '.join(sorted(sys.modules)))"
     done = subprocess.run(
         [sys.executable, "-c", code],
         check=True,
@@ -258,7 +263,9 @@ def _imported_by(*args: str, then: Sequence[Sequence[str]] = ()) -> set[str]:
         text=True,
         env={**os.environ, ENGINE_VARIABLE: "symengine"},
     )
-    return set(done.stdout.strip().splitlines()[-1].split())  # the last line: the modules
+    *_, codes, modules = done.stdout.strip().splitlines()  # the last two lines
+    assert codes == str([0] * (1 + len(then))), (codes, done.stderr)
+    return set(modules.split())
 
 
 def test_help_and_version_load_none_of_the_heavy_libraries() -> None:
@@ -271,27 +278,24 @@ def test_generate_check_and_report_load_no_matplotlib_or_integrator(tmp_path: Pa
     # SymPy only where a command crosses the border (issue 49): not unicycle_switch's
     # det R, v cos^2 + v sin^2, which SymEngine reduces and whose singular set it finds
     # itself, nor a controller that needs none of SymPy, nor the report, which prints its
-    # LaTeX and MathML itself.
-    generated: set[str] = set()
-    for args, sympy_loaded in (
-        (["check", "unicycle_switch"], False),
-        (["generate", "integrator", "--out", str(tmp_path / "g"), "--quiet"], False),
-        (["report", "integrator", "--out", str(tmp_path / "r")], False),
-    ):
-        loaded = _imported_by(*args)
-        assert "symengine" in loaded, args  # the command derived, on the default engine
-        assert ("sympy" in loaded) == sympy_loaded, args
-        assert not {"matplotlib", "scipy.integrate"} & loaded, args
-        if args[0] == "generate":
-            generated = loaded
-    # A controller needs no scipy at all (a fifth of a small command to import), a team's
-    # with its fill-reducing order neither (the integrator's: the process above).
-    assert "scipy" not in generated, "integrator"
-    loaded = _imported_by("generate", "unicycle_ring", "--out", str(tmp_path / "ring"), "--quiet")
-    assert "scipy" not in loaded, "unicycle_ring"
-    # Nor SLSQP's search, where the constraints hold at the start already.
-    loaded = _imported_by("check", "two_unicycles_corridor")
-    assert "scipy.optimize" not in loaded
+    # LaTeX and MathML itself. One process for the five commands (a cold interpreter each
+    # was four more seconds of start-up): what none of them loaded, together, each did
+    # not load; the first derives, so SymEngine is loaded by then.
+    loaded = _imported_by(
+        "check",
+        "unicycle_switch",
+        then=[
+            ["generate", "integrator", "--out", str(tmp_path / "g"), "--quiet"],
+            ["report", "integrator", "--out", str(tmp_path / "r")],
+            # A controller needs no scipy at all (a fifth of a small command to import),
+            # a team's with its fill-reducing order neither.
+            ["generate", "unicycle_ring", "--out", str(tmp_path / "ring"), "--quiet"],
+            # Nor SLSQP's search, where the constraints hold at the start already.
+            ["check", "two_unicycles_corridor"],
+        ],
+    )
+    assert "symengine" in loaded and "sympy" not in loaded
+    assert not {"matplotlib", "scipy", "scipy.integrate", "scipy.optimize"} & loaded
 
 
 def test_figures_leave_the_users_matplotlib_backend_alone(tmp_path: Path) -> None:
