@@ -20,10 +20,28 @@ from typing import Any
 import numpy as np
 import pytest
 import sympy as sp
+from sympy.printing.numpy import NumPyPrinter
 
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.symbolic.border import to_sympy
+
+
+def lambdified(args: Sequence[Any], expr: Any) -> Callable[..., Any]:
+    """``sympy.lambdify(args, expr, "numpy")``, printing sums and products in their stored
+    order, not sorted: the sorting was half of the printing, and the order of the terms
+    moves a value by rounding only (the oracle's comparisons allow 1e-12 and more)."""
+    printer = NumPyPrinter(
+        {
+            # lambdify's own settings for "numpy" (sympy.utilities.lambdify), and the order.
+            "fully_qualified_modules": False,
+            "inline": True,
+            "allow_unknown_functions": True,
+            "user_functions": {},
+            "order": "none",
+        }
+    )
+    return sp.lambdify(args, expr, "numpy", printer=printer)  # type: ignore[no-any-return]
 
 
 def naive_total_derivative(expr: sp.Expr, t: sp.Symbol, jets: list[list[sp.Symbol]]) -> sp.Expr:
@@ -168,7 +186,7 @@ class Oracle:
         field = list(ext.f + ext.G * sp.Matrix(w))
 
         def lam(exprs: Sequence[sp.Expr]) -> Callable[..., list[object]]:
-            return sp.lambdify(args, [sp.sympify(e).xreplace(state_jet) for e in exprs], "numpy")
+            return lambdified(args, [sp.sympify(e).xreplace(state_jet) for e in exprs])
 
         self.E = lam([g for j in range(k) for g in grads[j]])
         # The barrier's domain: s(t) - g_i(y, t) > 0 for each inequality, y from the state.
@@ -220,7 +238,7 @@ class Oracle:
                 free = sp.sympify(expr).free_symbols
                 read = [a for a in args if a in free]
                 before = [s for s in defined[:i] if s in free]
-                function = sp.lambdify([*read, *before], expr, "numpy")
+                function = lambdified([*read, *before], expr)
                 self.definitions.append(
                     (
                         sym,
@@ -230,11 +248,9 @@ class Oracle:
                     )
                 )
                 earlier[sym] = i
-            self.mass = sp.lambdify([*args, *defined], [e for row in mech.mass_matrix for e in row])
-            self.forces = sp.lambdify([*args, *defined], list(mech.forces))
-            self.gain = sp.lambdify(
-                [*args, *defined], [e for row in mech.input_matrix for e in row]
-            )
+            self.mass = lambdified([*args, *defined], [e for row in mech.mass_matrix for e in row])
+            self.forces = lambdified([*args, *defined], list(mech.forces))
+            self.gain = lambdified([*args, *defined], [e for row in mech.input_matrix for e in row])
             self.jacobian = lam([e for row in J for e in row])
             self.curvature = lam(curvature)
 
