@@ -2,14 +2,22 @@
 
 from __future__ import annotations
 
+import base64
+import contextlib
 import dataclasses
+import fcntl
 import functools
 import json
+import os
 import re
+import select
 import shutil
 import subprocess
+import sys
+import time
 from html.entities import html5
 from pathlib import Path
+from typing import IO, Any, cast
 from xml.etree import ElementTree
 
 import pytest
@@ -61,75 +69,218 @@ def _fixed(name: str):  # noqa: ANN202 - a Derivation with timings that do not v
     return dataclasses.replace(d, timings=tuple((stage, 0.0) for stage, _ in d.timings))
 
 
-def _browser(html: Path, tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    if CHROMIUM is None:
-        pytest.skip("chromium is not installed (`.ci/run` installs Debian's chromium as root)")
-    return subprocess.run(
-        [CHROMIUM, *BROWSER_FLAGS, f"--user-data-dir={tmp_path / 'profile'}", *args, html.as_uri()],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
-
-
 @functools.cache
 def _html(name: str) -> str:
     """An example's HTML report, rendered once for the browser and the self-contained test."""
     return render_report(derivation(name), kernels(name), formats=("html",))[f"{name}_report.html"]
 
 
-def _paint_every_example(folder: Path) -> None:
-    """Each example's HTML report in its own browser, painted and its DOM dumped.
+#: Moves the DevTools pipe's ends to descriptors 3 and 4, where the browser reads and
+#: writes them, and starts the browser in their place.
+TRAMPOLINE = """import os, sys
+os.dup2(int(sys.argv[1]), 3)
+os.dup2(int(sys.argv[2]), 4)
+os.execv(sys.argv[3], sys.argv[3:])
+"""
 
-    A launch is seconds of waiting for a fraction of a second of work: the examples'
-    browsers run at once, each with its own profile, and each leaves its screenshot, its
-    DOM (stdout), its log (stderr) and its exit status in the example's folder.
+
+class _DevTools:
+    """One headless Chromium, driven over its DevTools pipe (fds 3 and 4, NUL-ended JSON).
+
+    Each page is a tab of this one browser: a launch was 0.75 s of CPU for a few hundredths
+    of painting, nine launches per run. ``timeout`` bounds the whole session.
+    """
+
+    def __init__(self, command: list[str], stderr: IO[bytes], timeout: float) -> None:
+        to_browser, self._write = os.pipe()
+        self._read, from_browser = os.pipe()
+        # The browser's ends above 4 (pytest's captures hold low descriptors, and a pipe
+        # end at 3 or 4 would be overwritten by the other's move), moved to 3 and 4 by
+        # an interpreter that then becomes the browser.
+        ends = [fcntl.fcntl(end, fcntl.F_DUPFD_CLOEXEC, 5) for end in (to_browser, from_browser)]
+        for end in (to_browser, from_browser):
+            os.close(end)
+        self._deadline = time.monotonic() + timeout
+        self.process = subprocess.Popen(
+            [sys.executable, "-S", "-c", TRAMPOLINE, *map(str, ends), *command],
+            pass_fds=ends,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=stderr,
+        )
+        for end in ends:
+            os.close(end)
+        self._buffer = b""
+        self._sent = 0
+        self.events: list[dict[str, Any]] = []
+
+    def _message(self) -> dict[str, Any]:
+        while b"\0" not in self._buffer:
+            left = self._deadline - time.monotonic()
+            if left <= 0 or not select.select([self._read], [], [], left)[0]:
+                raise TimeoutError("the browser did not answer in time")
+            chunk = os.read(self._read, 1 << 20)
+            if not chunk:
+                raise EOFError("the browser closed its DevTools pipe")
+            self._buffer += chunk
+        message, _, self._buffer = self._buffer.partition(b"\0")
+        return cast(dict[str, Any], json.loads(message))
+
+    def call(self, method: str, session: str | None = None, **params: Any) -> dict[str, Any]:
+        """Send a command (to a tab's ``session``) and return its result; events are kept."""
+        self._sent += 1
+        message: dict[str, Any] = {"id": self._sent, "method": method, "params": params}
+        if session is not None:
+            message["sessionId"] = session
+        os.write(self._write, json.dumps(message).encode() + b"\0")
+        while True:
+            answer = self._message()
+            if answer.get("id") == self._sent:
+                assert "error" not in answer, (method, answer["error"])
+                return cast(dict[str, Any], answer["result"])
+            self.events.append(answer)
+
+    def wait_for(self, method: str, session: str) -> None:
+        """Read until the tab's event ``method`` has come."""
+        while not any(
+            e.get("method") == method and e.get("sessionId") == session for e in self.events
+        ):
+            self.events.append(self._message())
+
+    def close(self) -> int:
+        """Close the browser; its exit status."""
+        with contextlib.suppress(EOFError):  # it may end before it answers
+            self.call("Browser.close")
+        code = self.process.wait(timeout=max(1.0, self._deadline - time.monotonic()))
+        os.close(self._write)
+        os.close(self._read)
+        return code
+
+    def kill(self) -> None:
+        """End the browser if it still runs (a failed session)."""
+        if self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()
+
+
+#: What a page says that the tests read as a fault: its console, an uncaught exception,
+#: and the browser's log of it (a resource that failed to load: ``net::ERR_...``).
+SAID = ("Runtime.consoleAPICalled", "Runtime.exceptionThrown", "Log.entryAdded")
+
+
+def _paint(browser: _DevTools, page: Path, here: Path) -> None:
+    """``page`` in a new tab of ``browser``, painted at 1200 x 3000 after its load event:
+    its screenshot, its DOM and what it said (as ``--screenshot`` and ``--dump-dom``)."""
+    target = browser.call("Target.createTarget", url="about:blank")["targetId"]
+    session = browser.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
+    for domain in ("Page", "Runtime", "Log"):
+        browser.call(f"{domain}.enable", session)
+    # The size --window-size gives --screenshot (a tab's own viewport is the window's
+    # less its frame): the same PNG, byte for byte.
+    browser.call(
+        "Emulation.setDeviceMetricsOverride",
+        session,
+        width=1200,
+        height=3000,
+        deviceScaleFactor=1,
+        mobile=False,
+    )
+    browser.call("Page.navigate", session, url=page.as_uri())
+    browser.wait_for("Page.loadEventFired", session)
+    dom = browser.call(
+        "Runtime.evaluate",
+        session,
+        expression="document.documentElement.outerHTML",
+        returnByValue=True,
+    )
+    (here / "dom.html").write_text(dom["result"]["value"], encoding="utf-8")
+    shot = browser.call("Page.captureScreenshot", session, format="png")
+    (here / "shot.png").write_bytes(base64.b64decode(shot["data"]))
+    browser.call("Target.closeTarget", targetId=target)
+    ours = [e for e in browser.events if e.get("sessionId") == session]
+    (here / "said.json").write_text(json.dumps([e for e in ours if e.get("method") in SAID]))
+    browser.events = [e for e in browser.events if e.get("sessionId") != session]
+
+
+#: The car's report with a script that measures its matrices' brackets and the gap after
+#: "wheelbase" in det R, and writes what it found into the page.
+PROBE = """<pre id="probe"></pre><script>
+const out = [];
+for (const t of document.querySelectorAll('mtable.matrix')) {
+  const s = getComputedStyle(t), r = t.getBoundingClientRect();
+  out.push(['matrix', parseFloat(s.borderLeftWidth) > 0 && parseFloat(s.borderRightWidth) > 0,
+            r.height]);
+}
+for (const mi of document.querySelectorAll('mi')) {
+  if (mi.textContent !== 'wheelbase') continue;
+  const next = mi.nextElementSibling;
+  if (!next || next.tagName.toLowerCase() !== 'mo' || !next.nextElementSibling) continue;
+  const a = mi.getBoundingClientRect(), b = next.nextElementSibling.getBoundingClientRect();
+  out.push(['gap', b.left - a.right]);
+}
+document.getElementById('probe').textContent = JSON.stringify(out);
+</script></body>"""
+#: The probed car's folder among the painted pages (no example's name).
+CAR_PROBE = "kinematic_car_probe"
+
+
+def _paint_every_example(folder: Path) -> None:
+    """Each example's HTML report, and the probed car's, painted and its DOM read.
+
+    One browser for all of them (a tab each): each page's folder gets its screenshot,
+    its DOM and what it said; the folder gets the browser's log (stderr) and its exit
+    status.
     """
     assert CHROMIUM is not None
-    started: dict[str, subprocess.Popen[bytes]] = {}
-    try:
-        for name in EXAMPLES:
-            here = folder / name
-            here.mkdir()
-            page = here / f"{name}_report.html"
-            page.write_text(_html(name))
-            with (here / "dom.html").open("wb") as dom, (here / "stderr").open("wb") as log:
-                started[name] = subprocess.Popen(
-                    [CHROMIUM, *BROWSER_FLAGS, f"--user-data-dir={here / 'profile'}",
-                     "--window-size=1200,3000", f"--screenshot={here / 'shot.png'}",
-                     "--dump-dom", page.as_uri()],
-                    stdout=dom, stderr=log,
-                )  # fmt: skip
-        for name, child in started.items():
-            (folder / name / "returncode").write_text(str(child.wait(timeout=120)))
-    finally:
-        for child in started.values():
-            if child.poll() is None:
-                child.kill()
-                child.wait()
+    pages = {name: _html(name) for name in EXAMPLES}
+    car = render_report(derivation(CAR), kernels(CAR), formats=("html",))
+    pages[CAR_PROBE] = car["kinematic_car_report.html"].replace("</body>", PROBE)
+    with (folder / "stderr").open("wb") as log:
+        browser = _DevTools(
+            [CHROMIUM, *BROWSER_FLAGS, f"--user-data-dir={folder / 'profile'}",
+             "--window-size=1200,3000", "--remote-debugging-pipe"],
+            log,
+            timeout=120,
+        )  # fmt: skip
+        try:
+            for name, html in pages.items():
+                here = folder / name
+                here.mkdir()
+                page = here / f"{name}_report.html"
+                page.write_text(html)
+                _paint(browser, page, here)
+            (folder / "returncode").write_text(str(browser.close()))
+        finally:
+            browser.kill()
 
 
 @pytest.fixture(scope="module")
 def painted() -> Path:
-    """Every example's report as a browser showed it (made once per run, see above)."""
+    """Every example's report (and the probed car's) as a browser showed it (made once per
+    run, see above)."""
     if CHROMIUM is None:
         pytest.skip("chromium is not installed (`.ci/run` installs Debian's chromium as root)")
     return shared("report-in-a-browser", _paint_every_example)
 
 
-@pytest.mark.parametrize("name", EXAMPLES)
-def test_html_renders_in_a_browser(name: str, painted: Path) -> None:
-    here = painted / name
-    # One launch both painted the page and dumped its DOM.
-    stderr = (here / "stderr").read_text(encoding="utf-8", errors="replace")
-    assert (here / "returncode").read_text() == "0", stderr[-2000:]
-    shot = here / "shot.png"
-    assert shot.read_bytes().startswith(b"\x89PNG") and shot.stat().st_size > 50_000
+def _shown_without_fault(painted: Path, name: str) -> str:
+    """The DOM of page ``name`` after checking that the browser ended well and that no
+    page said anything (the log is the browser's: any page's fault fails every test)."""
+    stderr = (painted / "stderr").read_text(encoding="utf-8", errors="replace")
+    assert (painted / "returncode").read_text() == "0", stderr[-2000:]
     console = [line for line in stderr.splitlines() if "CONSOLE" in line]
     assert console == []
     assert "ERR_NAME_NOT_RESOLVED" not in stderr and "net::ERR" not in stderr
-    dom = (here / "dom.html").read_text(encoding="utf-8")
+    said = json.loads((painted / name / "said.json").read_text())
+    assert said == []  # its console, an exception, a resource that failed to load
+    return (painted / name / "dom.html").read_text(encoding="utf-8")
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_html_renders_in_a_browser(name: str, painted: Path) -> None:
+    dom = _shown_without_fault(painted, name)
+    shot = painted / name / "shot.png"
+    assert shot.read_bytes().startswith(b"\x89PNG") and shot.stat().st_size > 50_000
     headings = re.findall(r"<h2>(.*?)</h2>", dom)
     assert headings == list(HEADINGS)
     assert dom.count("<math") >= 15
@@ -291,31 +442,10 @@ def test_matrices_have_css_brackets_and_names_keep_apart() -> None:
     assert r"\mathtt" not in md and r"wheelbase\," in md  # det R = v^2/(wheelbase cos^2)
 
 
-def test_brackets_stretch_and_names_are_spaced_in_a_browser(tmp_path: Path) -> None:
-    html = render_report(derivation(CAR), kernels(CAR), formats=("html",))[
-        "kinematic_car_report.html"
-    ]
-    # Measured in the page: each matrix's bracket borders span its height, and in det R
-    # the name "wheelbase" and the "cos" that follows it have a visible gap.
-    probe = """<pre id="probe"></pre><script>
-const out = [];
-for (const t of document.querySelectorAll('mtable.matrix')) {
-  const s = getComputedStyle(t), r = t.getBoundingClientRect();
-  out.push(['matrix', parseFloat(s.borderLeftWidth) > 0 && parseFloat(s.borderRightWidth) > 0,
-            r.height]);
-}
-for (const mi of document.querySelectorAll('mi')) {
-  if (mi.textContent !== 'wheelbase') continue;
-  const next = mi.nextElementSibling;
-  if (!next || next.tagName.toLowerCase() !== 'mo' || !next.nextElementSibling) continue;
-  const a = mi.getBoundingClientRect(), b = next.nextElementSibling.getBoundingClientRect();
-  out.push(['gap', b.left - a.right]);
-}
-document.getElementById('probe').textContent = JSON.stringify(out);
-</script></body>"""
-    page = tmp_path / "car.html"
-    page.write_text(html.replace("</body>", probe))
-    dom = _browser(page, tmp_path, "--window-size=1200,3000", "--dump-dom").stdout
+def test_brackets_stretch_and_names_are_spaced_in_a_browser(painted: Path) -> None:
+    # Measured in the page (PROBE): each matrix's bracket borders span its height, and in
+    # det R the name "wheelbase" and the "cos" that follows it have a visible gap.
+    dom = _shown_without_fault(painted, CAR_PROBE)
     found = re.search(r'<pre id="probe">(.*?)</pre>', dom)
     assert found is not None, dom[-500:]
     results = json.loads(found.group(1).replace("&quot;", '"'))
