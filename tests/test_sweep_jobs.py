@@ -520,13 +520,12 @@ def test_progress_in_a_log_starts_within_the_first_minute(
     ]
 
 
-@pytest.fixture(scope="module")
-def cluster_from_a_thread() -> Iterator[list[object]]:
+@contextlib.contextmanager
+def _cluster_from_a_thread() -> Iterator[list[object]]:
     """``sweep.connect(2, None)`` called from another thread than the main one: the
-    client of its two-worker local cluster, or what it raised (a list of one).
-
-    One cluster for the module's two tests of a local cluster: each start is two cold
-    worker processes.
+    client of its two-worker local cluster, or what it raised (a list of one); closed
+    on leaving (an idle cluster costs its workers' and scheduler's ticks, about 0.07 s of
+    CPU a second: not kept to the module's end).
     """
     outcome: list[object] = []
     made: list[tuple[object, object]] = []
@@ -542,25 +541,31 @@ def cluster_from_a_thread() -> Iterator[list[object]]:
     thread = threading.Thread(target=start)
     thread.start()
     thread.join(timeout=120)
-    yield outcome
-    for client, cluster in made:
-        client.close()  # type: ignore[attr-defined]
-        cluster.close()  # type: ignore[attr-defined]
+    try:
+        yield outcome
+    finally:
+        for client, cluster in made:
+            client.close()  # type: ignore[attr-defined]
+            cluster.close()  # type: ignore[attr-defined]
 
 
-def test_tasks_in_flight_are_bounded_and_rows_are_not_kept(
-    cluster_from_a_thread: list[object],
-) -> None:
+def test_a_local_cluster_from_another_thread_bounds_the_tasks_in_flight() -> None:
+    """The workers ignore SIGINT when started from the main thread; from another (a
+    notebook's worker thread, a GUI), where no handler may be set, the cluster still
+    starts. On it (one start for both checks: two cold worker processes), the tasks in
+    flight are bounded and rows are not kept."""
     program = sweep_program(kernels("unicycle_switch"))
     options = SweepOptions(samples=80, seed=1, t_final=1.0, points=11)
     seen: list[int] = []
-    [client] = cluster_from_a_thread
-    assert isinstance(client, distributed.Client), client
+    with _cluster_from_a_thread() as outcome:
+        [client] = outcome
+        assert isinstance(client, distributed.Client), client
+        assert len(client.scheduler_info()["workers"]) == 2
 
-    def count(results: list[sweep.SampleResult]) -> None:
-        seen.append(len([f for f in client.futures if f.startswith("run_chunk")]))
+        def count(results: list[sweep.SampleResult]) -> None:
+            seen.append(len([f for f in client.futures if f.startswith("run_chunk")]))
 
-    run = sweep.run_sweep(client, program, options, chunk=1, collect=False, on_results=count)
+        run = sweep.run_sweep(client, program, options, chunk=1, collect=False, on_results=count)
     assert run.done == 80 and run.results == [] and len(seen) == 80
     # At most the look-ahead of both workers, never all 80 chunks at once.
     # (the chunk just finished is still known to the client as its callback runs).
@@ -645,14 +650,6 @@ def test_resume_refuses_a_loop_it_cannot_rebuild(
     capsys.readouterr()
     assert main(["sweep", "--resume", str(out), "--samples", "10"]) == EXIT_BAD_SPEC
     assert "--samples: not with --resume" in capsys.readouterr().err
-
-
-def test_a_local_cluster_starts_from_another_thread(cluster_from_a_thread: list[object]) -> None:
-    """The workers ignore SIGINT when started from the main thread; from another (a
-    notebook's worker thread, a GUI), where no handler may be set, the cluster still starts."""
-    [client] = cluster_from_a_thread
-    assert isinstance(client, distributed.Client), client
-    assert len(client.scheduler_info()["workers"]) == 2
 
 
 def test_a_signal_while_the_files_are_written_lets_them_finish(
