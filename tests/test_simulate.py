@@ -404,3 +404,43 @@ def test_the_sample_grid_steps_on_lists_as_on_arrays() -> None:
         assert np.array_equal(arrays.y, on_lists.y)
         probe = np.linspace(0.0, 0.9, 333)
         assert np.array_equal(arrays.sol(probe), on_lists.sol(probe))
+
+
+def test_the_unrolled_taylor_shifts_are_the_loops_bits() -> None:
+    """references._taylor's written-out forms (jets of 2 to 5 entries) give the general
+    loop's bits, its order of operations kept: signed zeros, infinities, NaN, overflow."""
+    from tvopt_codegen.simulation import references
+
+    def loop(xi: list[list[float]], h: float) -> list[list[float]]:
+        """The general loop, as it was before the written-out forms."""
+        order = len(xi[0]) if xi else 0
+        terms = [1.0] * order
+        for index in range(1, order):
+            terms[index] = terms[index - 1] * (h / index)
+        out = []
+        for row in xi:
+            shifted = []
+            for j in range(order):
+                total = 0.0
+                for index in range(order - j):
+                    total += row[j + index] * terms[index]
+                shifted.append(total)
+            out.append(shifted)
+        return out
+
+    special = [0.0, -0.0, np.inf, -np.inf, np.nan, 1e308, -1e308, 5e-324, 1.0]
+    rng = np.random.default_rng(4)
+    for order in range(1, 8):
+        for _ in range(300):
+            xi = [
+                [
+                    float(rng.choice(special))
+                    if rng.random() < 0.3
+                    else float(rng.standard_normal() * 10.0 ** rng.integers(-5, 5))
+                    for _ in range(order)
+                ]
+                for _ in range(int(rng.integers(0, 4)))
+            ]
+            h = float(rng.choice([0.0, -0.0, 1e-3, -2.5e-4, 1e300, np.inf, 0.37]))
+            got, want = references._taylor(xi, h), loop(xi, h)
+            assert np.array(got).tobytes() == np.array(want).tobytes(), (xi, h)

@@ -88,6 +88,9 @@ def _taylor(xi: list[list[float]], h: float) -> list[list[float]]:
     terms = [1.0] * order
     for index in range(1, order):
         terms[index] = terms[index - 1] * (h / index)
+    unrolled = _UNROLLED.get(order)
+    if unrolled is not None:
+        return unrolled(xi, terms)
     out = []
     for row in xi:
         shifted = []
@@ -99,6 +102,57 @@ def _taylor(xi: list[list[float]], h: float) -> list[list[float]]:
             shifted.append(total)
         out.append(shifted)
     return out
+
+
+# _taylor's loops written out for the usual jet lengths (q + 1 = 2 to 5): a run on the
+# sample grid shifts a jet at every other call of the field, and the loops' bookkeeping
+# cost three times their arithmetic. Each entry is the loop's sum in the loop's order,
+# ``0.0 + a + b t1 + ...`` (``a * 1.0`` is ``a`` for every float), so the same bits.
+
+
+def _shift2(xi: list[list[float]], terms: list[float]) -> list[list[float]]:
+    t1 = terms[1]
+    return [[0.0 + a + b * t1, 0.0 + b] for a, b in xi]
+
+
+def _shift3(xi: list[list[float]], terms: list[float]) -> list[list[float]]:
+    _, t1, t2 = terms
+    return [[0.0 + a + b * t1 + c * t2, 0.0 + b + c * t1, 0.0 + c] for a, b, c in xi]
+
+
+def _shift4(xi: list[list[float]], terms: list[float]) -> list[list[float]]:
+    _, t1, t2, t3 = terms
+    return [
+        [
+            0.0 + a + b * t1 + c * t2 + d * t3,
+            0.0 + b + c * t1 + d * t2,
+            0.0 + c + d * t1,
+            0.0 + d,
+        ]
+        for a, b, c, d in xi
+    ]
+
+
+def _shift5(xi: list[list[float]], terms: list[float]) -> list[list[float]]:
+    _, t1, t2, t3, t4 = terms
+    return [
+        [
+            0.0 + a + b * t1 + c * t2 + d * t3 + e * t4,
+            0.0 + b + c * t1 + d * t2 + e * t3,
+            0.0 + c + d * t1 + e * t2,
+            0.0 + d + e * t1,
+            0.0 + e,
+        ]
+        for a, b, c, d, e in xi
+    ]
+
+
+_UNROLLED: dict[int, Callable[[list[list[float]], list[float]], list[list[float]]]] = {
+    2: _shift2,
+    3: _shift3,
+    4: _shift4,
+    5: _shift5,
+}
 
 
 def exact_jets(derivation: Derivation, params: dict[str, float]) -> Callable[[float], np.ndarray]:
