@@ -516,3 +516,22 @@ def test_a_spec_with_limits_alone_adds_the_limits_section_alone() -> None:
     headings = re.findall(r"^## (.*)$", md, re.M)
     assert headings[headings.index("Control law") + 1] == "Actuator limits"
     assert "Integral action" not in headings and "Disturbance observer" not in headings
+
+
+def test_the_provenance_names_sympys_version_without_loading_it_or_its_metadata(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import importlib.metadata
+    import importlib.util
+
+    from tvopt_codegen.report import sections
+
+    installed = importlib.metadata.version("sympy")
+    assert sections._sympy_version() == installed == sp.__version__  # loaded: its own
+    # Not loaded (a report on SymEngine): read from its release.py, found, not imported.
+    monkeypatch.delitem(sys.modules, "sympy")
+    assert sections._sympy_version() == installed
+    assert "sympy" not in sys.modules
+    # Where SymPy's files do not say: its metadata.
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)
+    assert sections._sympy_version() == installed
