@@ -236,12 +236,19 @@ def test_simulate_from_samples_tracks_and_the_iss_bound_holds_at_every_noise(
     samples_file: Path,
 ) -> None:
     """No noise and noise 1e-2 here; 1e-3 (the same draw, seed 1) is the command's run in
-    test_simulate_command_from_a_samples_file, whose exit code 0 is the same certificate."""
+    test_simulate_command_from_a_samples_file, whose exit code 0 is the same certificate.
+
+    The run without noise is also this spec's case of
+    test_the_default_estimator_on_clean_1khz_samples_ends_within_1e3_of_the_start: the
+    same 1 kHz samples of the nominal closed forms (written with repr, read back to the
+    bit), the same estimator and grid, so its first 15 s are that test's run."""
     from tvopt_codegen.simulation import resolve_options, simulate
     from tvopt_codegen.simulation.references import read_reference_file, sampled_source
 
     name = "unicycle_switch_refs"
     d, mod = derivation(name), module(name)
+    assert d.spec.estimator is not None and d.spec.estimator.kind == "linear"
+    assert len(mod._ESTIMATOR_GAINS) == d.jet.reference_order + 2
     options = resolve_options(d)
     times, values = read_reference_file(samples_file, d, options.t_final)
     finals = []
@@ -251,6 +258,11 @@ def test_simulate_from_samples_tracks_and_the_iss_bound_holds_at_every_noise(
         assert result.passed, result.failures
         assert result.iss_ratio <= 1.0 and result.disturbance > 0
         finals.append(result.error[-1] / result.error[0])
+        if noise == 0.0:
+            # The default estimator's check at 15 s (an output time of the run).
+            at = int(np.searchsorted(result.t, 15.0))
+            assert result.t[at] == 15.0
+            assert result.error[at] <= 1e-3 * result.error[0]
     # 1 kHz samples of the closed form, no noise: the final error is below 1e-3 of the
     # initial one; noise raises it, as the bound allows.
     assert finals[0] <= 1e-3
@@ -329,7 +341,9 @@ def test_the_report_lists_references_order_and_estimator(tmp_path: Path) -> None
     "spec",
     [
         "integrator_refs",
-        "unicycle_switch_refs",
+        # unicycle_switch_refs: its run on the same samples is the noiseless one of
+        # test_simulate_from_samples_tracks_and_the_iss_bound_holds_at_every_noise, which
+        # makes this test's checks on it at 15 s.
         "two_unicycles_barrier_refs",
         "unicycle_ring_refs",
         # A figure-eight with a wall term (a barrier): the case the linear estimator of the
