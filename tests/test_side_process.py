@@ -30,6 +30,12 @@ RUNNER = """
 import json, sys, textwrap, threading, traceback
 import numpy as np
 from tests.test_side_process import BODIES, _corridor, _plot
+# What the forked side processes import first, loaded before them, as conftest's
+# _side_processes_forked_warm does in every worker: each fork inherits it (0.4 s of
+# their CPU here); they still fork, solve and draw.
+import scipy.optimize
+from tvopt_codegen.runs import drawing
+drawing._load()
 outcomes = {}
 for name, body in BODIES.items():
     try:
