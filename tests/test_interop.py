@@ -126,8 +126,12 @@ def test_the_robust_controller_holds_a_mismatched_plant_in_python_control() -> N
             [heavy_plant, system], inplist=[], outlist=list(mod.OUTPUT_NAMES)
         )
         x_start = start if key == "robust" else np.array(module("pvtol").DEFAULT_STATE)
+        # The solver at rtol 1e-6: the robust run ends 3.5014e-5 off the target against
+        # 3.5043e-5 at rtol 1e-8 (the plain one 3.4753 at both), a change a millionth of
+        # the bound it is held to (1% of the plain one's), in a third of the steps through
+        # python-control (3.3 s -> 1.2 s CPU).
         response = control.input_output_response(
-            heavy, times, 0, X0=x_start, solve_ivp_kwargs={"rtol": 1e-8, "atol": 1e-10}
+            heavy, times, 0, X0=x_start, solve_ivp_kwargs={"rtol": 1e-6, "atol": 1e-8}
         )
         finals[key] = float(np.linalg.norm(response.outputs[:, -1] - target))
         if key == "robust":
