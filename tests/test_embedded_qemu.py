@@ -43,7 +43,7 @@ from tests.embedded.harness import (
     run,
     skip_reason,
 )
-from tests.test_strict_c import generated, m4f_object
+from tests.test_strict_c import generated, host_object, m4f_object
 
 #: Each QEMU test compiles and runs closed loops (1-3 s; the module's total is ~25 s on
 #: one core): slow, by hand, until tests/durations.json records them.
@@ -123,12 +123,17 @@ def _trace(example: str, target: str, precision: str, fma: bool = True) -> Trace
     """
 
     def build(folder: Path) -> None:
-        # The M4F's objects are test_strict_c's (the same C, flags and compiler, built once
-        # per run for its stack check); every target's start-up objects are built once.
+        # The M4F's objects and the host's are test_strict_c's (the same C, flags and
+        # compiler, built once per run for its stack and strict checks); every target's
+        # start-up objects are built once.
         objects: dict[str, Path] = {}
         if target == "m4f":
             objects = {"double": m4f_object(example, "double")}
             objects["controller"] = m4f_object(example, precision)
+        elif target == "host" and precision == "double":
+            strict = host_object(example, "double")
+            if strict is not None:  # else compiled here, the strict test saying why not there
+                objects = {"double": strict}
         binary = build_loop(
             TARGETS[target],
             example,

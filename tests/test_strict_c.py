@@ -8,8 +8,10 @@ cycle (recursion) and no call through a pointer. The stack bound its header stat
 gcc's ``-fstack-usage`` counts along every call path, on the host and on a Cortex-M4F. So are the
 template paths no bundled example takes (:data:`VARIANTS`). The files are rendered once
 per test run and precision (``conftest.shared``) and shared with ``test_precision`` and
-``test_embedded_qemu``. A tool that is missing skips with the command that installs it,
-except in CI (``CI`` set), where ``.ci/run`` installs it and its absence is a failure.
+``test_embedded_qemu``, and so are gcc's -O2 builds of them for the host and the Cortex-M4F
+(``test_embedded_qemu`` links their objects). A tool that is missing skips with the command
+that installs it, except in CI (``CI`` set), where ``.ci/run`` installs it and its absence
+is a failure.
 """
 
 from __future__ import annotations
@@ -33,7 +35,14 @@ from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.spec import spec_from_dict
 
 from .conftest import ROOT, SPECS, kernels, shared
-from .embedded.harness import TARGETS, CallGraph, compile_object, skip_reason
+from .embedded.harness import (
+    COMMON_FLAGS,
+    TARGETS,
+    CallGraph,
+    assemble,
+    compile_assembly,
+    skip_reason,
+)
 
 #: Every bundled example.
 BUNDLED = tuple(sorted(path.stem for path in (ROOT / "tvopt_codegen" / "examples").glob("*.toml")))
@@ -235,41 +244,100 @@ def _frames(ci: Path) -> dict[str, int]:
     return {graph.names[node]: graph.deepest(node)[0] for node in graph.own}
 
 
-def m4f_object(example: str, precision: str) -> Path:
+def m4f_build(example: str, precision: str) -> Path:
     """The controller compiled for the Cortex-M4F at -O2 (the harness's flags), once per run.
 
-    gcc's call graph is beside it (``controller.ci``, ``-fcallgraph-info=su``, which
-    changes no byte of the object): the stack check below reads the graph, and
-    test_embedded_qemu links the object into its M4F loop instead of compiling it again.
+    The folder holds its assembly (``controller.s``) and gcc's call graph beside it
+    (``controller.ci``, ``-fcallgraph-info=su``, which changes no byte of the code): the
+    stack check below reads the graph; :func:`m4f_object` assembles the object that
+    test_embedded_qemu links into its M4F loop, for the examples it runs alone.
     """
 
     def build(out: Path) -> None:
         folder = generated(example, precision)
-        target = TARGETS["m4f"]
-        compile_object(
-            target, folder / _source(folder), out / "controller.o", "-fcallgraph-info=su"
+        compile_assembly(
+            TARGETS["m4f"], folder / _source(folder), out / "controller.s", "-fcallgraph-info=su"
         )
 
-    return shared(f"m4f-{precision}-{example}", build) / "controller.o"
+    return shared(f"m4f-{precision}-{example}", build)
+
+
+def m4f_object(example: str, precision: str) -> Path:
+    """The object of :func:`m4f_build`, once per run: the bytes ``-c`` would have made."""
+
+    def build(out: Path) -> None:
+        assemble(
+            TARGETS["m4f"], m4f_build(example, precision) / "controller.s", out / "controller.o"
+        )
+
+    return shared(f"m4f-object-{precision}-{example}", build) / "controller.o"
+
+
+#: The harness's code generation flags (tests/embedded/harness.py) that :data:`STRICT` does
+#: not give: gcc's strict build is then the harness's host build as well (contraction
+#: needs a fused multiply-add, which x86-64's baseline does not have: no byte changes).
+HARNESS_ONLY = tuple(flag for flag in COMMON_FLAGS if flag not in STRICT)
+
+
+def host_build(example: str, precision: str) -> Path:
+    """gcc's strict -O2 build of the controller for the host, once per run.
+
+    The folder holds what gcc printed (``printed``: nothing, or the reason the build
+    failed), and when it compiled, the assembly (``controller.s``) and gcc's call graph
+    (``controller.ci``). Read by the strict test below, and assembled by
+    :func:`host_object` for test_embedded_qemu's host loop.
+    """
+    gcc = _tool("gcc", "apt-get install gcc")
+
+    def build(out: Path) -> None:
+        folder = generated(example, precision)
+        assembly = out / "controller.s"
+        command = [gcc, *STRICT, *HARNESS_ONLY, "-fcallgraph-info=su", "-S", _source(folder)]
+        done = subprocess.run(
+            [*command, "-o", str(assembly)], cwd=folder, capture_output=True, text=True, check=False
+        )
+        printed = (done.stdout + done.stderr).strip()
+        if done.returncode != 0:
+            printed = printed or f"gcc exited {done.returncode}"
+            assembly.unlink(missing_ok=True)
+        (out / "printed").write_text(printed, encoding="utf-8")
+
+    return shared(f"host-{precision}-{example}", build)
+
+
+def host_object(example: str, precision: str) -> Path | None:
+    """The object of :func:`host_build` (the bytes ``-c`` would have made), or None when
+    gcc's strict build failed (the strict test reports why)."""
+    built = host_build(example, precision)
+    if not (built / "controller.s").is_file():
+        return None
+
+    def build(out: Path) -> None:
+        assemble(TARGETS["host"], built / "controller.s", out / "controller.o")
+
+    return shared(f"host-object-{precision}-{example}", build) / "controller.o"
 
 
 def _measured(target: str, folder: Path, out: Path, *flags: str) -> dict[str, int]:
-    """gcc's deepest static stack per function of the controller compiled for ``target``."""
-    obj = compile_object(
+    """gcc's deepest static stack per function of the controller compiled for ``target``
+    (to assembly: the graph is gcc's, and no object is needed)."""
+    assembly = compile_assembly(
         TARGETS[target],
         folder / _source(folder),
-        out / "controller.o",
+        out / "controller.s",
         *flags,
         "-fcallgraph-info=su",
     )
-    return _frames(obj.with_suffix(".ci"))
+    return _frames(assembly.with_suffix(".ci"))
 
 
 # One test per file for what gcc's builds show, each build serving every check it can
 # (a build of every example in both precisions is a few tenths of a second): gcc's strict
 # -O2 build is warning-free and its call graph has no call through a pointer and no cycle;
 # the stated stack bound holds above gcc's frames at -O0 (nothing inlined: the bound's
-# scanner found exactly gcc's functions), -O2 and on the Cortex-M4F.
+# scanner found exactly gcc's functions), -O2 and on the Cortex-M4F. The builds stop at
+# assembly: gcc's diagnostics and call graph are its compiler's, not the assembler's (the
+# controller has no inline assembly: BACKEND_DIAGNOSED).
 @pytest.mark.parametrize("precision", ["double", "single"])
 @pytest.mark.parametrize("example", [*BUNDLED, *VARIANTS])
 def test_gcc_no_heap_no_recursion_no_pointer_calls_and_the_stack_bound(
@@ -279,11 +347,10 @@ def test_gcc_no_heap_no_recursion_no_pointer_calls_and_the_stack_bound(
     source = _source(folder)
     code = _PROSE.sub(" ", (folder / source).read_text(encoding="utf-8"))
     assert not HEAP.findall(code), HEAP.findall(code)
-    gcc = _tool("gcc", "apt-get install gcc")
-    ci = tmp_path / "controller.ci"
-    _clean(
-        [gcc, *STRICT, "-fcallgraph-info=su", "-c", source, "-o", str(ci.with_suffix(".o"))], folder
-    )
+    built = host_build(example, precision)
+    printed = (built / "printed").read_text(encoding="utf-8")
+    assert (built / "controller.s").is_file() and not printed, printed[:3000]
+    ci = built / "controller.ci"
     graph = CallGraph.read(ci)
     assert not [t for t in graph.names if "__indirect_call" in t], "a call through a pointer"
     for node in graph.names:
@@ -301,7 +368,7 @@ def test_gcc_no_heap_no_recursion_no_pointer_calls_and_the_stack_bound(
     found = parse(text, header.read_text(encoding="utf-8"), 8)
     assert set(builds["host -O0"]) == set(found), set(builds["host -O0"]) ^ set(found)
     if skip_reason("m4f") is None:
-        builds["m4f -O2"] = _frames(m4f_object(example, precision).with_suffix(".ci"))
+        builds["m4f -O2"] = _frames(m4f_build(example, precision) / "controller.ci")
     elif os.environ.get("CI"):
         pytest.fail(f"{skip_reason('m4f')}")
     for build, measured in builds.items():

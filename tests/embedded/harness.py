@@ -188,6 +188,23 @@ def compile_object(target: Target, source: Path, out: Path, *extra: str) -> Path
     return out
 
 
+def compile_assembly(target: Target, source: Path, out: Path, *extra: str) -> Path:
+    """Compile one C file for ``target`` to assembly, as :func:`compile_object` compiles it.
+
+    For a build read for what the compiler reports (``-fcallgraph-info``, warnings): the
+    assembler's run is skipped, and :func:`assemble` makes the very object
+    :func:`compile_object` would (gcc's ``-c`` is this, then the assembler).
+    """
+    _run([target.cc, *COMMON_FLAGS, *target.flags, *extra, "-S", str(source), "-o", str(out)])
+    return out
+
+
+def assemble(target: Target, assembly: Path, out: Path) -> Path:
+    """The object of ``assembly`` (:func:`compile_assembly`'s) for ``target``."""
+    _run([target.cc, *target.flags, "-c", str(assembly), "-o", str(out)])
+    return out
+
+
 @dataclass(frozen=True)
 class CallGraph:
     """gcc's ``-fcallgraph-info=su`` graph of one object file (VCG).
