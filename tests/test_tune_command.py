@@ -57,6 +57,11 @@ PVTOL = (
 
 TUNED = "pvtol_tuned.toml"
 
+#: A resume's own options: on the in-process worker, as the tune it resumes. Without
+#: --workers it would start a local cluster of two cold interpreters for these few
+#: samples (what a cluster gives: test_on_a_dask_cluster_the_search_is_the_same).
+RESUME = ("--workers", "1", "--progress", "never")
+
 
 @pytest.fixture(scope="module")
 def reference() -> Path:
@@ -166,7 +171,7 @@ def test_a_stopped_tune_keeps_the_best_and_resumes_to_the_uninterrupted_end(
     assert record["state"] == "interrupted"
     assert 7 <= len(record["evaluations"]) < 25
     assert "Interrupted" in (out / TUNED).read_text()
-    resumed = run_main("tune", "--resume", str(out), "--progress", "never")
+    resumed = run_main("tune", "--resume", str(out), *RESUME)
     assert resumed.returncode == 0, resumed.stderr
     for name in (TUNED, "evaluations.csv", "tune.md"):
         assert (out / name).read_bytes() == (reference / name).read_bytes(), name
@@ -194,7 +199,7 @@ def test_a_signal_in_the_fresh_check_keeps_the_best_and_resumes(
     assert record["state"] == "interrupted" and len(record["evaluations"]) == 25
     assert "Interrupted" in (out / TUNED).read_text()
     monkeypatch.undo()
-    resumed = run_main("tune", "--resume", str(out), "--progress", "never")
+    resumed = run_main("tune", "--resume", str(out), *RESUME)
     assert resumed.returncode == 0, resumed.stderr
     for name in (TUNED, "evaluations.csv", "tune.md"):
         assert (out / name).read_bytes() == (reference / name).read_bytes(), name
@@ -251,7 +256,7 @@ def test_a_record_cut_mid_generation_out_of_order_resumes(reference: Path, tmp_p
         del record[key]
     record |= {"evaluations": kept, "state": "interrupted"}
     (out / "tune.json").write_text(json.dumps(record, indent=1) + "\n")
-    ran = run_main("tune", "--resume", str(out), "--progress", "never")
+    ran = run_main("tune", "--resume", str(out), *RESUME)
     assert ran.returncode == 0, ran.stderr
     for name in (TUNED, "evaluations.csv", "tune.md"):
         assert (out / name).read_bytes() == (reference / name).read_bytes(), name
