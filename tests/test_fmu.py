@@ -169,21 +169,40 @@ def test_a_failing_step_is_an_fmi_error_with_the_reason(tmp_path: Path) -> None:
 def test_the_archive_is_deterministic_and_holds_sources_and_a_binary(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    from tvopt_codegen.runs.fmu import _run_compiler as run_compiler  # noqa: PLC0415
+
     # Two compilations (each into an empty cache of its own), the same bytes; then the
     # library comes from the cache, with no compiler run, and the archive is the same.
     monkeypatch.setenv("TVOPT_CODEGEN_CACHE", str(tmp_path / "cache-1"))
     first = build_fmu(kernels("integrator"), 3)
     monkeypatch.setenv("TVOPT_CODEGEN_CACHE", str(tmp_path / "cache-2"))
     assert build_fmu(kernels("integrator"), 3) == first
-    assert [p.suffix for p in (tmp_path / "cache-2").iterdir()] == [".so"]
+    # The library and the controller's object it was linked from.
+    kept = sorted((tmp_path / "cache-2").iterdir(), key=lambda p: p.suffix)
+    assert [p.suffix for p in kept] == [".o", ".so"]
+    compiled: list[list[str]] = []
 
     def no_compiler(*args: object) -> bytes:
         raise AssertionError("compiled again")
 
-    monkeypatch.setattr("tvopt_codegen.runs.fmu._compile", no_compiler)
-    assert build_fmu(kernels("integrator"), 3) == first
-    with pytest.raises(AssertionError, match="compiled again"):
-        build_fmu(kernels("integrator"), 2)  # other sources: another library
+    def counted(command: list[str]) -> None:
+        compiled.append(command)
+        run_compiler(command)
+
+    with monkeypatch.context() as patch:
+        patch.setattr("tvopt_codegen.runs.fmu._compile", no_compiler)
+        assert build_fmu(kernels("integrator"), 3) == first
+        with pytest.raises(AssertionError, match="compiled again"):
+            build_fmu(kernels("integrator"), 2)  # other sources: another library
+    # FMI 2's library links FMI 3's controller object: one run of the compiler, on the
+    # glue alone, and the archive is the one a cold cache makes.
+    with monkeypatch.context() as patch:
+        patch.setattr("tvopt_codegen.runs.fmu._run_compiler", counted)
+        second = build_fmu(kernels("integrator"), 2)
+    assert len(compiled) == 1 and not any(c.endswith("integrator.c") for c in compiled[0])
+    assert [p.suffix for p in (tmp_path / "cache-2").iterdir()].count(".o") == 1
+    monkeypatch.setenv("TVOPT_CODEGEN_CACHE", str(tmp_path / "cache-3"))
+    assert build_fmu(kernels("integrator"), 2) == second
     path = tmp_path / "integrator.fmu"
     path.write_bytes(first)
     with zipfile.ZipFile(path) as archive:
