@@ -22,11 +22,14 @@ def test_halving_h_halves_the_distance_to_the_continuous_loop(spec: str, horizon
     d, mod = derivation(spec), module(spec)
     assert mod.CONTROLLER_STATE_NAMES  # both examples keep extension states
     options = resolve_options(d, horizon)
-    result = simulate_sampled(d, mod, options, 1e-3, convergence_order=True)
+    # H = 2e-3 and 1e-3, half the steps of 1e-3 and 5e-4 for the same check: the observed
+    # order is 0.99995 (unicycle_switch) and 0.9996 (pvtol) there, 0.99999 and 0.9998 at
+    # the finer pair, both within 1% of the 0.05 the order is allowed to be off by.
+    result = simulate_sampled(d, mod, options, 2e-3, convergence_order=True)
     coarse, fine = result.runs
-    assert coarse.h == 1e-3 and fine.h == 5e-4
-    assert len(coarse.t) == round(horizon / 1e-3) + 1 and coarse.t[-1] == horizon
-    # Small at H = 1e-3, and first order: the distance halves with H.
+    assert coarse.h == 2e-3 and fine.h == 1e-3
+    assert len(coarse.t) == round(horizon / 2e-3) + 1 and coarse.t[-1] == horizon
+    # Small at H = 2e-3 (6.7e-3 and 1.0e-3), and first order: the distance halves with H.
     assert 0 < coarse.deviation < 1e-2
     assert result.order is not None and 0.95 < result.order < 1.05
     assert fine.deviation == pytest.approx(coarse.deviation / 2, rel=0.05)
