@@ -479,6 +479,7 @@ RING = (ROOT / "tvopt_codegen" / "examples" / "unicycle_ring.toml").read_text()
 TOWER = "exp(exp(exp(exp(exp(exp(exp(exp(i))))))))"
 
 
+@pytest.mark.slow  # its 3 s budget (tests/durations.json knows its cases by their old ids)
 def test_bombs_answer_within_the_budget(tmp_path: Path) -> None:
     # 256 agents: minutes of derivation, stopped at the budget. A process of its own: the
     # budget's real-time timer and the swollen derivation are the process's.
