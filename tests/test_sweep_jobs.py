@@ -85,7 +85,7 @@ def _wait_for_progress(process: subprocess.Popen[str]) -> None:
 
 
 # Each signal on a local cluster and on the in-process worker (one worker), each resumed
-# on the other.
+# on the other (two workers: a scheduler's, in this process).
 @pytest.mark.parametrize(
     ("how", "workers", "again"), [("SIGTERM", 2, 1), ("SIGTERM", 1, 2), ("SIGKILL", 2, 1)]
 )
@@ -126,10 +126,20 @@ def test_a_killed_sweep_resumes_to_the_uninterrupted_table_bit_for_bit(
         assert f"{SAMPLES - rows} missing" in (out / "summary.md").read_text()
     # The resumes run in this process: what they read is the folder the killed process
     # left, and no state of it (a cold interpreter each would add its imports only).
+    # Two workers are threads of this process behind a scheduler (--scheduler): rows from
+    # worker processes are the killed local cluster's parts (the SIGTERM-2-1 and SIGKILL
+    # cases), and a local cluster here was two more cold interpreters.
     capsys.readouterr()
-    assert main(["sweep", "--resume", str(out), "--workers", str(again)]) == 0, (
-        capsys.readouterr().err
-    )
+    with contextlib.ExitStack() as stack:
+        where = ["--workers", "1"]
+        if again > 1:
+            cluster = stack.enter_context(
+                distributed.LocalCluster(
+                    n_workers=again, threads_per_worker=1, processes=False, dashboard_address=":0"
+                )
+            )
+            where = ["--scheduler", str(cluster.scheduler_address)]
+        assert main(["sweep", "--resume", str(out), *where]) == 0, capsys.readouterr().err
     assert (out / "summary.parquet").read_bytes() == reference
     assert not (out / "parts").exists()
     assert json.loads((out / "sweep.json").read_text())["state"] == "complete"
