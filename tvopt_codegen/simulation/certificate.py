@@ -113,13 +113,14 @@ def _modulus(
         )
     else:
         hessian = point_function(controller, "hessian", params)
-        eigenvalues = np.array(
-            [
-                np.linalg.eigvalsh(hessian(t, point, **true(t)))
-                for i, t in enumerate(ts)
-                for point in (outputs[:, i], target[:, i], 0.5 * (outputs[:, i] + target[:, i]))
-            ]
-        )
+        matrices = []
+        for i, t in enumerate(ts):
+            extra = true(t)
+            for point in (outputs[:, i], target[:, i], 0.5 * (outputs[:, i] + target[:, i])):
+                matrices.append(hessian(t, point, **extra))
+        # One call on the stack: LAPACK's solver on each matrix, as one call per matrix
+        # (the same values), without NumPy's cost per call, most of it for a small m.
+        eigenvalues = np.linalg.eigvalsh(np.array(matrices, dtype=float))
     m_f = float(eigenvalues.min())
     scale = float(np.abs(eigenvalues).max())
     if eq is not None and not m_f > 0:
