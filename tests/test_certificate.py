@@ -401,9 +401,19 @@ def test_a_quadratic_objectives_minimizer_takes_two_steps_a_time(name: str) -> N
     calls = []
 
     class Counting:
+        """The module, its f0, gradient and Hessian counted per evaluation (wrapped, they
+        are what minimizer_path calls: simulation.direct keeps a replaced function)."""
+
         def __getattr__(self, attr: str) -> object:
-            calls.append(attr)
-            return getattr(mod, attr)
+            value = getattr(mod, attr)
+            if attr not in ("objective", "gradient", "hessian"):
+                return value
+
+            def counted(*args: object, **kwargs: object) -> object:
+                calls.append(attr)
+                return value(*args, **kwargs)
+
+            return counted
 
     quick = minimizer_path(Counting(), ts, start, None, quadratic=True)  # type: ignore[arg-type]
     np.testing.assert_allclose(quick, general, rtol=0, atol=1e-12 * (1 + np.abs(general).max()))

@@ -14,6 +14,39 @@ import numpy as np
 
 from tvopt_codegen.limits import START_ITERATIONS
 from tvopt_codegen.renderer.runtime import NEWTON
+from tvopt_codegen.simulation.direct import point_function
+
+
+class _AtOnePoint:
+    """A module's ``objective``, ``gradient`` and ``hessian`` with ``params`` bound.
+
+    Called as the module's own (``f(t, y, params, **extra)``, the ``params`` given then
+    ignored), by :func:`~tvopt_codegen.simulation.direct.point_function`: the module's
+    numbers to the bit, and its errors, without its checks of the arguments on every
+    call, which were most of a Newton iteration's cost for a small spec.
+    """
+
+    def __init__(self, controller: types.ModuleType, params: Mapping[str, float] | None):
+        self._functions = {
+            name: point_function(controller, name, params)
+            for name in ("objective", "gradient", "hessian")
+        }
+
+    def objective(self, t: float, y: np.ndarray, params: Any = None, **extra: Any) -> Any:
+        """f0 at ``(t, y)``."""
+        return self._functions["objective"](t, y, **extra)
+
+    def gradient(self, t: float, y: np.ndarray, params: Any = None, **extra: Any) -> Any:
+        """The gradient of f0 at ``(t, y)``."""
+        return self._functions["gradient"](t, y, **extra)
+
+    def hessian(self, t: float, y: np.ndarray, params: Any = None, **extra: Any) -> Any:
+        """The Hessian of f0 at ``(t, y)``."""
+        return self._functions["hessian"](t, y, **extra)
+
+
+#: What the Newton iterations below evaluate f0 by: a module, or its one-point functions.
+_Objective = types.ModuleType | _AtOnePoint
 
 
 def minimizer_path(
@@ -61,28 +94,29 @@ def minimizer_path(
     numpy.ndarray, shape (m, T)
         ``y*`` at each time.
     """
+    functions = _AtOnePoint(controller, params)
     if quadratic:
-        return _quadratic_path(controller, ts, start, params, refs)
+        return _quadratic_path(functions, ts, start, params, refs)
 
     def step(t: float, y: np.ndarray, index: int, budget: int) -> np.ndarray:
         extra = (refs or (lambda t: {}))(t)
-        if inside is not None and not _defined(controller, t, y, params, extra):
+        if inside is not None and not _defined(functions, t, y, params, extra):
             y = np.array(inside[:, index], dtype=float)
-        solved = _newton(controller, t, y, params, extra, budget)
+        solved = _newton(functions, t, y, params, extra, budget)
         assert solved is not None
         return solved
 
     def jump(t: float, y: np.ndarray) -> np.ndarray | None:
         extra = (refs or (lambda t: {}))(t)
-        if not _defined(controller, t, y, params, extra):
+        if not _defined(functions, t, y, params, extra):
             return None
-        return _newton(controller, t, y, params, extra, NEWTON.iterations, strict=True)
+        return _newton(functions, t, y, params, extra, NEWTON.iterations, strict=True)
 
     return _backward(ts, start, step, jump)
 
 
 def _quadratic_path(
-    controller: types.ModuleType,
+    controller: _Objective,
     ts: np.ndarray,
     start: np.ndarray,
     params: Mapping[str, float] | None,
@@ -141,7 +175,7 @@ def _backward(
 
 
 def _defined(
-    controller: types.ModuleType,
+    controller: _Objective,
     t: float,
     y: np.ndarray,
     params: Mapping[str, float] | None,
@@ -155,7 +189,7 @@ def _defined(
 
 
 def _newton(
-    controller: types.ModuleType,
+    controller: _Objective,
     t: float,
     y: np.ndarray,
     params: Mapping[str, float] | None,
