@@ -31,7 +31,7 @@ from tvopt_codegen.sweep import (
     run_sample,
     sweep_program,
 )
-from tvopt_codegen.sweep.program import check_options
+from tvopt_codegen.sweep.program import check_options, compiled_sources
 from tvopt_codegen.sweep.table import failed_row
 
 PVTOL = ROOT / "tvopt_codegen" / "examples" / "pvtol.toml"
@@ -208,6 +208,25 @@ def test_two_threads_run_one_loop_with_their_own_gains() -> None:
     for key, rows in found.items():
         assert len(rows) == 15
         assert all(_same(row, expected[key]) for row in rows)
+
+
+def test_a_spec_that_differs_by_its_stamp_alone_is_not_compiled_again() -> None:
+    """A copy of the spec under another name (or with another [tune] table) differs in its
+    files' stamp comments alone: the library compiled is the same, the sweep's identity
+    (``key``) still tells the two apart, and a change below the stamp is compiled."""
+    base = program(PVTOL)
+    compiled = compiled_sources(base)
+    assert compiled.keys() == {name for name, _ in base.sources}
+    assert all(not text.startswith("/* Generated") for text in compiled.values())
+    assert not any("sha256" in text.split("*/", 1)[0] for text in compiled.values())
+    renamed = tuple(
+        (n, t.replace(" from pvtol.toml.", " from pvtol copy.toml.", 1)) for n, t in base.sources
+    )
+    copy = dataclasses.replace(base, sources=renamed, key="another sweep")
+    assert copy.sources != base.sources and compiled_sources(copy) == compiled
+    name, text = base.sources[-1]
+    edited = dataclasses.replace(base, sources=(*base.sources[:-1], (name, text + "\n/* */\n")))
+    assert compiled_sources(edited)[name] == compiled[name] + "\n/* */\n"
 
 
 def test_with_gains_refuses_what_the_loop_cannot_run() -> None:
