@@ -168,8 +168,9 @@ class _DevTools:
 SAID = ("Runtime.consoleAPICalled", "Runtime.exceptionThrown", "Log.entryAdded")
 
 
-def _open(browser: _DevTools, page: Path) -> tuple[str, str]:
-    """``page`` loading in a new tab of ``browser``, at 1200 x 3000: its target and session."""
+def _paint(browser: _DevTools, page: Path, here: Path) -> None:
+    """``page`` in a new tab of ``browser``, painted at 1200 x 3000 after its load event:
+    its screenshot, its DOM and what it said (as ``--screenshot`` and ``--dump-dom``)."""
     target = browser.call("Target.createTarget", url="about:blank")["targetId"]
     session = browser.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
     for domain in ("Page", "Runtime", "Log"):
@@ -185,12 +186,6 @@ def _open(browser: _DevTools, page: Path) -> tuple[str, str]:
         mobile=False,
     )
     browser.call("Page.navigate", session, url=page.as_uri())
-    return target, session
-
-
-def _collect(browser: _DevTools, target: str, session: str, here: Path) -> None:
-    """The tab's page after its load event: its screenshot, its DOM and what it said (as
-    ``--screenshot`` and ``--dump-dom`` give them), into ``here``; the tab closed."""
     browser.wait_for("Page.loadEventFired", session)
     dom = browser.call(
         "Runtime.evaluate",
@@ -232,9 +227,9 @@ CAR_PROBE = "kinematic_car_probe"
 def _paint_every_example(folder: Path) -> None:
     """Each example's HTML report, and the probed car's, painted and its DOM read.
 
-    One browser for all of them (a tab each, loading together): each page's folder gets
-    its screenshot, its DOM and what it said; the folder gets the browser's log (stderr)
-    and its exit status.
+    One browser for all of them (a tab each): each page's folder gets its screenshot,
+    its DOM and what it said; the folder gets the browser's log (stderr) and its exit
+    status.
     """
     assert CHROMIUM is not None
     pages = {name: _html(name) for name in EXAMPLES}
@@ -248,16 +243,12 @@ def _paint_every_example(folder: Path) -> None:
             timeout=120,
         )  # fmt: skip
         try:
-            # Every tab loads at once (their renderers on both cores), then each is read.
-            tabs = {}
             for name, html in pages.items():
                 here = folder / name
                 here.mkdir()
                 page = here / f"{name}_report.html"
                 page.write_text(html)
-                tabs[name] = _open(browser, page)
-            for name, (target, session) in tabs.items():
-                _collect(browser, target, session, folder / name)
+                _paint(browser, page, here)
             (folder / "returncode").write_text(str(browser.close()))
         finally:
             browser.kill()
