@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import gc
 import importlib.util
 import io
 import json
@@ -408,6 +409,25 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if (item.path, getattr(item, "originalname", item.name)) in slow:
             item.add_marker(pytest.mark.slow)
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Freeze what collection left alive (the libraries and the test modules)."""
+    gc.freeze()
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None) -> None:
+    """Freeze what a test leaves alive once its fixtures are torn down.
+
+    That is the run's caches (derivations, kernels, modules, compiled functions, SymPy's
+    own), which grow to hundreds of megabytes in a worker: the collector's full passes
+    rescanned all of it, 58 s of the whole suite's 216 s in-process CPU (46 s in 55
+    passes of the oldest generation, measured with gc.callbacks). Frozen objects are
+    never scanned again; a test's own garbage is still collected while the test runs,
+    and a cycle that outlives its test stays until the worker ends.
+    """
+    gc.freeze()
 
 
 _MEASURED: dict[str, float] = {}
