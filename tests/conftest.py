@@ -395,7 +395,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
     The cases of one test share what they build (a compiled controller, one Chromium for
     every example): the case that ran first recorded the whole cost, and in ``make
-    test-fast`` without it another would pay it (7 s for a browser's).
+    test-fast`` without it another would pay it (a few seconds for the browser).
     """
     try:
         durations = json.loads(DURATIONS.read_text(encoding="utf-8"))
