@@ -13,8 +13,10 @@ with the table's line.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import io
+import json
 import tempfile
 import traceback
 from collections.abc import Callable
@@ -34,7 +36,7 @@ from tvopt_codegen.simulation import load_controller, resolve_options, simulate
 from tvopt_codegen.simulation.references import exact_jets as reference_jets
 from tvopt_codegen.spec import features, load_spec
 
-from .conftest import ROOT, SPECS, derivation
+from .conftest import ROOT, SPECS, derivation, shared
 from .oracle import Oracle, assert_matches_oracle
 
 FEATURES_DOC = ROOT / "docs" / "features.md"
@@ -440,8 +442,7 @@ def _outputs(d: Derivation | None) -> Callable[[np.ndarray], np.ndarray]:
     return outputs
 
 
-@functools.cache
-def case_run(index: int) -> CaseRun:
+def _run_case(index: int) -> CaseRun:
     run = CaseRun(index)
     run.run("python", run.python)
     if "python" in run.failures:
@@ -451,6 +452,34 @@ def case_run(index: int) -> CaseRun:
         if target in run.case.targets:
             run.run(target, getattr(run, target))
     return run
+
+
+@dataclasses.dataclass(frozen=True)
+class Verdict:
+    """What one covering case's run found: each target's failure, the passed, its numbers."""
+
+    failures: dict[str, str]
+    passed: set[str]
+    numbers: dict[str, float]
+
+
+@functools.cache
+def case_run(index: int) -> Verdict:
+    """Covering case ``index`` run once per pytest run, whichever worker asks first.
+
+    Its per-pair tests land on every xdist worker, and each ran the whole case (derive,
+    simulate, the oracle, the targets) again: the first worker runs it under the run
+    folder's lock and writes what it found, the others wait and read it (the run folder
+    is this run's, so nothing outlives it).
+    """
+
+    def build(folder: Path) -> None:
+        run = _run_case(index)
+        found = {"failures": run.failures, "passed": sorted(run.passed), "numbers": run.numbers}
+        (folder / "verdict.json").write_text(json.dumps(found), encoding="utf-8")
+
+    found = json.loads((shared(f"feature-matrix-case{index}", build) / "verdict.json").read_text())
+    return Verdict(found["failures"], set(found["passed"]), found["numbers"])
 
 
 # ------------------------------------------------------------------ the table itself
