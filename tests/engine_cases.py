@@ -3,11 +3,12 @@ and a Python run on SymEngine."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import subprocess
 import sys
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 from tvopt_codegen import symbolic as sx
@@ -39,6 +40,40 @@ poles = [-1.0]
 t_final = 5.0
 initial_state = { x1 = 0.5, x2 = 0.2 }
 """
+
+
+@contextlib.contextmanager
+def remembered_simplify() -> Iterator[None]:
+    """SymPy's top-level ``simplify`` worked out once per expression, for the block.
+
+    A test that compares ``simplified_det`` with ``factor(simplify(det))`` asks SymPy for
+    the same ``simplify(det)`` as the branch it checks took (a few tenths of a second
+    each): ``simplify`` is a function of its input alone, so the second answer is the
+    first. The product reads ``sympy.simplify`` at each call (``border.sympy()``), and so
+    does a test that writes ``sp.simplify``; SymPy's own inner calls are not touched. A
+    call that raised (the product's time limit) is not remembered.
+    """
+    import sympy  # noqa: PLC0415 - only the tests that compare with SymPy need it
+
+    original = sympy.simplify
+    known: dict[Any, Any] = {}
+
+    def simplify(expr: Any, *args: Any, **kwargs: Any) -> Any:
+        if args or kwargs:
+            return original(expr, *args, **kwargs)
+        try:
+            return known[expr]
+        except KeyError:
+            known[expr] = found = original(expr)
+            return found
+        except TypeError:  # a mutable matrix: not a key
+            return original(expr)
+
+    sympy.simplify = simplify
+    try:
+        yield
+    finally:
+        sympy.simplify = original
 
 
 def run_on_symengine(code: str) -> subprocess.CompletedProcess[str]:
