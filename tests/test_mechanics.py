@@ -34,7 +34,7 @@ from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.spec import load_spec, spec_from_dict
 
 from .arms import planar_arm as _planar_arm
-from .conftest import SPECS, import_file, module
+from .conftest import SPECS, derivation, import_file, module
 from .oracle import Oracle, assert_matches_oracle
 
 ARM2 = str(SPECS / "arm2_mass.toml")
@@ -360,7 +360,7 @@ def test_casadis_own_law_agrees(spec: str) -> None:
     pytest.importorskip("casadi", reason="the CasADi oracle needs casadi (the dev extra)")
     from .casadi_oracle import casadi_mechanics_law
 
-    d = derive(load_spec(spec))
+    d = derivation(spec)  # the one module(spec) is generated from: derived once
     law, _ = casadi_mechanics_law(d)
     mod = module(spec)
     p = np.array(list(mod.PARAMETERS.values()))
