@@ -4,16 +4,18 @@ and a Python run on SymEngine."""
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import os
 import subprocess
 import sys
 from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
 from typing import Any
 
 from tvopt_codegen import symbolic as sx
 
-from .conftest import ROOT
+from .conftest import REFUSE_SYMPY, ROOT, shared
 
 #: A small plant held on a moving line (an equality) with an objective that is not
 #: quadratic: the KKT law, its multiplier's pivots, the sweep's equality kernel.
@@ -74,6 +76,124 @@ def remembered_simplify() -> Iterator[None]:
         yield
     finally:
         sympy.simplify = original
+
+
+#: The bundled examples and test specs.
+EXAMPLES = sorted(p.stem for p in (ROOT / "tvopt_codegen" / "examples").glob("*.toml"))
+#: Examples whose derivation still crosses the border on SymEngine: none. arm_on_line's
+#: det R, a denominator that is a sum, is written as SymPy's ``dotprodsimp`` writes it
+#: (``trigforms.cancelled``, ``tests/test_linalg_native.py``), simplified and its singular
+#: and undefined sets found natively (``tests/test_det_native.py``).
+BORDER: tuple[str, ...] = ()
+#: The arm's det R as the derivation hands it to simplified_det, as SymPy prints it
+#: (``test_det_native.ARM_DET``, which checks the two are one).
+ARM_DET_TEXT = (
+    "(-sin(q1)*cos(q1 + q2) + sin(q1 + q2)*cos(q1))/"
+    "(l1*l2*m1*m2 - l1*l2*m2**2*cos(q2)**2 + l1*l2*m2**2)"
+)
+
+#: One SymEngine process for three files' checks that SymPy is not needed (a cold
+#: process is a quarter of a second of imports, and each ran its own): with SymPy's
+#: import refused, the arm's det R decided (test_det_native), ``generate arm_on_line`` on
+#: both backends (test_det_native), every bundled example derived, lowered and rendered
+#: (test_engine_det); then with the refusal lifted (as test_report_printing's own process
+#: ran it: an import that a fallback would swallow under the refusal is seen),
+#: ``report ur5_tip`` and the modules it imported; last, with SymPy allowed, the
+#: ``BORDER`` examples. Each part reports its own failure, so each test sees only its own.
+_SYMPY_FREE = (
+    "import json, sys, tempfile, traceback\n"
+    + REFUSE_SYMPY
+    + """
+args = json.loads(sys.argv[1])
+out = {}
+def sympy_modules():
+    return sorted(m for m in sys.modules if m.split(".")[0] == "sympy")[:3]
+guard = Refuse()
+sys.meta_path.insert(0, guard)
+try:
+    from tvopt_codegen import symbolic as sx
+    from tvopt_codegen.derivation.singularity import _singular_set, simplified_det
+    det = sx.sympify(args["det"])
+    found = simplified_det(det)
+    out["det"] = [sx.text(found), list(_singular_set(found))]
+    assert "sympy" not in sys.modules
+except BaseException:
+    out["det failed"] = traceback.format_exc()
+try:
+    from tvopt_codegen.cli import main
+    for backend in ("python", "c"):
+        code = main(["generate", "arm_on_line", "--backend", backend, "--out", args["out"],
+                     "--quiet"])
+        assert code == 0, code
+    out["sympy modules"] = sympy_modules()
+except BaseException:
+    out["generate failed"] = traceback.format_exc()
+records = {}
+def record(name):
+    from tvopt_codegen import symbolic as sx
+    from tvopt_codegen.spec import load_spec
+    from tvopt_codegen.derivation import derive
+    from tvopt_codegen.lowering.ir import lower
+    from tvopt_codegen.renderer.rendering import render
+    d = derive(load_spec(name))
+    render(lower(d), "python")
+    dec = d.decoupling
+    records[name] = [list(dec.singular_set), list(dec.undefined_set), dec.det_R_note,
+                     None if dec.det_R is None else sx.text(dec.det_R)]
+try:
+    for name in args["free"]:
+        record(name)
+    assert "sympy" not in sys.modules
+except BaseException:
+    out["records failed"] = traceback.format_exc()
+sys.meta_path.remove(guard)
+try:
+    from tvopt_codegen.cli import main
+    main(["report", "ur5_tip", "--out", tempfile.mkdtemp()])
+    out["report's sympy modules"] = sorted(
+        m for m in sys.modules if m.split(".")[0] == "sympy")
+except BaseException:
+    out["report failed"] = traceback.format_exc()
+try:
+    for name in args["border"]:
+        record(name)
+except BaseException:
+    out["records failed"] = traceback.format_exc()
+out["records"] = records
+print(json.dumps(out))
+"""
+)
+
+
+def sympy_free_run() -> tuple[dict[str, Any], Path]:
+    """What the SymPy-refusing process found, and the folder it generated into.
+
+    Once per run, whichever worker asks first (conftest's ``shared``): its parts are
+    test_det_native's, test_engine_det's and test_report_printing's.
+    """
+
+    def build(folder: Path) -> None:
+        args = {
+            "det": ARM_DET_TEXT,
+            "out": str(folder / "generated"),
+            "free": [name for name in EXAMPLES if name not in BORDER],
+            "border": list(BORDER),
+        }
+        ran = subprocess.run(
+            [sys.executable, "-c", _SYMPY_FREE, json.dumps(args)],
+            capture_output=True,
+            text=True,
+            env={**os.environ, "TVOPT_CODEGEN_ENGINE": "symengine"},
+            cwd=ROOT,
+            check=False,
+            timeout=600,
+        )
+        assert ran.returncode == 0, ran.stderr[-3000:]
+        (folder / "found.json").write_text(ran.stdout.splitlines()[-1], encoding="utf-8")
+
+    folder = shared("sympy-free-run", build)
+    found: dict[str, Any] = json.loads((folder / "found.json").read_text(encoding="utf-8"))
+    return found, folder / "generated"
 
 
 def run_on_symengine(code: str) -> subprocess.CompletedProcess[str]:

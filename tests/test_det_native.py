@@ -13,12 +13,6 @@ points; and that the native path is the one taken for arm_on_line.
 from __future__ import annotations
 
 import functools
-import json
-import os
-import subprocess
-import sys
-import tempfile
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -34,7 +28,8 @@ from tvopt_codegen.spec import load_spec
 from tvopt_codegen.symbolic import trigforms, trigpoly
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
-from .conftest import REFUSE_SYMPY, ROOT, SPECS, run_folder
+from .conftest import ROOT, SPECS
+from .engine_cases import ARM_DET_TEXT, sympy_free_run
 
 EXAMPLES = sorted(p.stem for p in (ROOT / "tvopt_codegen" / "examples").glob("*.toml"))
 TEST_SPECS = sorted(str(p) for p in SPECS.glob("*.toml"))
@@ -301,60 +296,16 @@ def test_exact_quotient_and_irreducibility_rule() -> None:
 
 
 # ------------------------------------------------------------------ processes
-#: One SymEngine process that cannot import SymPy for both tests below (a cold process is
-#: a second of imports): the arm's det R decided, then ``generate arm_on_line`` on both
-#: backends. Each part reports its own failure, so that each test sees only its own.
-_SYMPY_FREE = (
-    "import json, sys, traceback\n"
-    + REFUSE_SYMPY
-    + """
-sys.meta_path.insert(0, Refuse())
-out = {}
-try:
-    from tvopt_codegen import symbolic as sx
-    from tvopt_codegen.derivation.singularity import _singular_set, simplified_det
-    det = sx.sympify(sys.argv[1])
-    found = simplified_det(det)
-    out["det"] = [sx.text(found), list(_singular_set(found))]
-    assert "sympy" not in sys.modules
-except BaseException:
-    out["det failed"] = traceback.format_exc()
-try:
-    from tvopt_codegen.cli import main
-    for backend in ("python", "c"):
-        code = main(["generate", "arm_on_line", "--backend", backend, "--out", sys.argv[2],
-                     "--quiet"])
-        assert code == 0, code
-    out["sympy modules"] = sorted(m for m in sys.modules if m.split(".")[0] == "sympy")[:3]
-except BaseException:
-    out["generate failed"] = traceback.format_exc()
-print(json.dumps(out))
-"""
-)
-
-
-@functools.cache
-def _sympy_free_run() -> tuple[dict[str, Any], Path]:
-    """What the SymPy-refusing process found, and the folder it generated into."""
-    folder = Path(tempfile.mkdtemp(prefix="det-native-", dir=run_folder()))  # removed at the end
-    env = {**os.environ, "TVOPT_CODEGEN_ENGINE": "symengine"}
-    ran = subprocess.run(
-        [sys.executable, "-c", _SYMPY_FREE, str(ARM_DET), str(folder)],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=ROOT,
-        check=False,
-        timeout=300,
-    )
-    assert ran.returncode == 0, ran.stderr[-2000:]
-    found: dict[str, Any] = json.loads(ran.stdout.splitlines()[-1])
-    return found, folder
+# One SymEngine process that cannot import SymPy for both tests below, and for
+# test_engine_det's and test_report_printing's checks (engine_cases.sympy_free_run): the
+# arm's det R decided, then ``generate arm_on_line`` on both backends. Each part reports
+# its own failure, so that each test sees only its own.
 
 
 def test_the_arms_det_is_decided_in_a_process_that_refuses_sympy() -> None:
     """simplified_det and the singular set of the arm's det R import no SymPy."""
-    found, _ = _sympy_free_run()
+    assert str(ARM_DET) == ARM_DET_TEXT  # the process decides this very determinant
+    found, _ = sympy_free_run()
     assert "det failed" not in found, found["det failed"][-2000:]
     text, singular = found["det"]
     reference, _ = _reference(ARM_DET)
@@ -368,7 +319,7 @@ def test_generate_arm_on_line_imports_no_sympy() -> None:
     SymPy, writes generated/arm_on_line.py and generated/c/arm_on_line* byte for byte:
     det R (symbolic/linalg), its simplified form and singular set, and the undefined set
     (a denominator's text and sign) are all decided natively."""
-    found, folder = _sympy_free_run()
+    found, folder = sympy_free_run()
     assert "generate failed" not in found, found["generate failed"][-2000:]
     assert found["sympy modules"] == [], found
     written = (folder / "arm_on_line.py").read_text()

@@ -17,9 +17,6 @@ from __future__ import annotations
 
 import functools
 import json
-import os
-import subprocess
-import sys
 from typing import Any
 
 import numpy as np
@@ -37,47 +34,10 @@ from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.symbolic import linalg
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
-from .conftest import REFUSE_SYMPY, ROOT, SPECS, derivation, kernels
-from .engine_cases import remembered_simplify
+from .conftest import SPECS, derivation, kernels
+from .engine_cases import BORDER, EXAMPLES, remembered_simplify, sympy_free_run
 
-EXAMPLES = sorted(p.stem for p in (ROOT / "tvopt_codegen" / "examples").glob("*.toml"))
 TEST_SPECS = sorted(str(p) for p in SPECS.glob("*.toml"))
-#: Examples whose derivation still crosses the border on SymEngine: none. arm_on_line's
-#: det R, a denominator that is a sum, is written as SymPy's ``dotprodsimp`` writes it
-#: (``trigforms.cancelled``, ``tests/test_linalg_native.py``), simplified and its singular
-#: and undefined sets found natively (``tests/test_det_native.py``).
-BORDER: tuple[str, ...] = ()
-
-#: Run in a fresh process on SymEngine: derive, lower and render (Python) each bundled
-#: example with SymPy's import refused, then the rest with it allowed; print the records.
-_SCRIPT = (
-    "import json, sys\n"
-    + REFUSE_SYMPY
-    + """
-from tvopt_codegen import symbolic as sx
-from tvopt_codegen.spec import load_spec
-from tvopt_codegen.derivation import derive
-from tvopt_codegen.lowering.ir import lower
-from tvopt_codegen.renderer.rendering import render
-free, rest = json.loads(sys.argv[1]), json.loads(sys.argv[2])
-records = {}
-def record(name):
-    d = derive(load_spec(name))
-    render(lower(d), "python")
-    dec = d.decoupling
-    records[name] = [list(dec.singular_set), list(dec.undefined_set), dec.det_R_note,
-                     None if dec.det_R is None else sx.text(dec.det_R)]
-guard = Refuse()
-sys.meta_path.insert(0, guard)
-for name in free:
-    record(name)
-assert "sympy" not in sys.modules
-sys.meta_path.remove(guard)
-for name in rest:
-    record(name)
-print(json.dumps(records))
-"""
-)
 
 
 def _record(name: str) -> list[Any]:
@@ -98,26 +58,15 @@ def _record(name: str) -> list[Any]:
 def _symengine_records() -> dict[str, list[Any]]:
     """Every example's and test spec's decoupling record, derived on SymEngine.
 
-    The examples (and any in ``BORDER``) in a SymEngine process that refuses SymPy's
-    import for the examples; the test specs, whose derivation may use SymPy, in this
-    one (as that process did with SymPy allowed): most test files derive and lower them
-    on SymEngine already (conftest's ``derivation`` and ``kernels``), and a second
-    process derived them again (0.75 s).
+    The examples (and any in ``BORDER``) in the SymEngine process that refuses SymPy's
+    import for the examples (``engine_cases.sympy_free_run``); the test specs, whose
+    derivation may use SymPy, in this one (as that process did with SymPy allowed): most
+    test files derive and lower them on SymEngine already (conftest's ``derivation`` and
+    ``kernels``), and a second process derived them again (0.75 s).
     """
-    free = [name for name in EXAMPLES if name not in BORDER]
-    rest = [*BORDER]
-    env = {**os.environ, "TVOPT_CODEGEN_ENGINE": "symengine"}
-    ran = subprocess.run(
-        [sys.executable, "-c", _SCRIPT, json.dumps(free), json.dumps(rest)],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=ROOT,
-        check=False,
-        timeout=600,
-    )
-    assert ran.returncode == 0, ran.stderr[-3000:]
-    records: dict[str, list[Any]] = json.loads(ran.stdout.splitlines()[-1])
+    found, _ = sympy_free_run()
+    assert "records failed" not in found, found["records failed"][-3000:]
+    records: dict[str, list[Any]] = dict(found["records"])
     # Through JSON, as the process's records are (a tuple would not compare as a list).
     records.update({name: json.loads(json.dumps(_record(name))) for name in TEST_SPECS})
     return records

@@ -273,15 +273,15 @@ def test_a_node_it_does_not_print_falls_back_to_sympy() -> None:
 
 
 def test_the_report_of_a_robot_imports_no_sympy() -> None:
-    """ur5_tip's report (341 definitions, six matrices) prints everything itself."""
-    from .engine_cases import run_on_symengine
+    """ur5_tip's report (341 definitions, six matrices) prints everything itself.
 
-    code = (
-        "import sys, tempfile\n"
-        "from tvopt_codegen.cli import main\n"
-        "main(['report', 'ur5_tip', '--out', tempfile.mkdtemp()])\n"
-        "print(sorted(m for m in sys.modules if m.split('.')[0] == 'sympy'))\n"
-    )
-    ran = run_on_symengine(code)
-    assert ran.returncode == 0, ran.stderr[-2000:]
-    assert ran.stdout.strip().splitlines()[-1] == "[]"
+    ``report ur5_tip`` in a fresh SymEngine process, SymPy's import allowed, and the SymPy
+    modules loaded after it: that process is shared with test_det_native's and
+    test_engine_det's checks (``engine_cases.sympy_free_run``), whose parts before it
+    could not import SymPy.
+    """
+    from .engine_cases import sympy_free_run
+
+    found, _ = sympy_free_run()
+    assert "report failed" not in found, found["report failed"][-2000:]
+    assert found["report's sympy modules"] == []
