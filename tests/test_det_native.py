@@ -267,6 +267,9 @@ def test_beside_the_shape_sympy_decides() -> None:
         a / ((m1 + m2 * s**2) * (a + b)),  # two factors
         a / (m1 + m2 * sp.sin(q2) ** 2 + b * s**2),  # two angles
         a / (m1 + m2 * sp.sin(x / 10) ** 2),  # an angle that is not a symbol
+        # 2 cos^2 below: SymPy writes cos(2 q2) + 1 (drawn; and -2 sin^2 as cos(2 q2) - 1)
+        2 * b**2 * l1 * sp.cos(theta) / (-l2 * m2**2 * m1 - 2 * sp.cos(q2) ** 2),
+        a / (m1 - 2 * sp.sin(q2) ** 2),
     ):
         with sx.using("symengine"):
             converted = from_sympy(det)

@@ -227,6 +227,11 @@ def _written(p: Poly, atoms: Atoms) -> Poly | None:
     if len(forms[0]) == len(forms[1]):
         return None
     shortest = forms[0]
+    if any(abs(c) == 2 and len(m) == 1 for m, c in shortest.items() if m and atoms.kinds[m[0][0]]):
+        # 2 cos^2 and -2 sin^2 are 1 + cos(2 q) and cos(2 q) - 1, which simplify may
+        # write instead (it does for a + 2 cos^2, not for a - 2 cos^2: the sign SymPy's
+        # factor leaves decides; found by hypothesis): SymPy's to write.
+        return None
     return shortest if irreducible(shortest) else None
 
 
