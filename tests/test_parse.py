@@ -301,3 +301,20 @@ def test_doubling_parentheses_changes_nothing(text: str, counts: list[int]) -> N
     outer = counts[0]
     wrapped = "(" * outer + wrapped + ")" * outer
     assert parse_expression(wrapped, _names()) == parse_expression(text, _names())
+
+
+@pytest.mark.parametrize("engine_name", ["symengine", "sympy"])
+def test_a_difference_multiplies_its_minus_into_a_sum_as_sympy_does(engine_name: str) -> None:
+    """x - (x + y) is -y, whether the text is parsed whole or, past 2,000 characters, as
+    a chain of pieces (hypothesis found SymEngine's whole parse keeping x - (x + y)
+    where the chain wrote -y); a product keeps its sum, as in SymPy."""
+    with sx.using(engine_name):
+        x, y = sx.symbols(["x", "y"])
+        names = {"x": x, "y": y}
+        deep = "(" * 1000 + "x - (x + y)" + ")" * 1000
+        assert len(deep) > 2000
+        assert parse_expression("x - (x + y)", names) == -y
+        assert parse_expression(deep, names) == -y
+        assert parse_expression("1 - 2*(x - y)", names) == 1 - 2 * x + 2 * y
+        kept = parse_expression("x - x*(x + y)", names)
+        assert kept == x - x * (x + y) and kept != x - x**2 - x * y

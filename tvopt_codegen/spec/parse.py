@@ -297,7 +297,9 @@ class _TreeBuilder:
         if isinstance(node.op, ast.Add):
             return _bounded(left + right, column)
         if isinstance(node.op, ast.Sub):
-            return _bounded(left - right, column)
+            # left + (-1)*right, the minus multiplied into a sum as SymPy does (and as a
+            # long chain's pieces are): x - (x + y) is -y on both engines.
+            return _bounded(left + _distributed(-right), column)
         if isinstance(node.op, ast.Mult):
             return _bounded(_distributed(left * right), column)
         if isinstance(node.op, ast.Div):
