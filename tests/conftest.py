@@ -391,7 +391,8 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Mark ``slow`` every test whose recorded duration is over :data:`SLOW_SECONDS`, and
-    every case of a parametrized test one of whose cases is.
+    every case of a parametrized test one of whose cases is; order the modules by their
+    recorded time, dearest first.
 
     The cases of one test share what they build (a compiled controller, one Chromium for
     every example): the case that ran first recorded the whole cost, and in ``make
@@ -409,6 +410,14 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if (item.path, getattr(item, "originalname", item.name)) in slow:
             item.add_marker(pytest.mark.slow)
+    # The dearest modules first, each module's tests together and in order (its fixtures
+    # are set up once): the workers share out the cheap ones at the end, where a dear
+    # module last in the alphabet left one worker running alone.
+    weight: dict[Path, float] = {}
+    for item in items:
+        weight[item.path] = weight.get(item.path, 0.0) + durations.get(item.nodeid, 0.0)
+    first = {path: index for index, path in enumerate(dict.fromkeys(i.path for i in items))}
+    items.sort(key=lambda item: (-weight[item.path], first[item.path]))
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:

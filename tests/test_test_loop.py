@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
+import pytest
+
 from .conftest import skip_summary
 from .coverage_check import unexercised
 
@@ -58,3 +63,41 @@ def test_what_a_test_leaves_alive_is_frozen_out_of_the_collectors_passes() -> No
     frozen = gc.get_freeze_count()
     pytest_runtest_teardown(None, None)  # type: ignore[arg-type]
     assert not scanned() and gc.get_freeze_count() > frozen
+
+
+def test_the_dearest_modules_run_first_each_in_its_own_order(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """conftest orders the modules by their recorded seconds, dearest first, and keeps
+    each module's tests together in their order (their fixtures are set up once)."""
+    from . import conftest  # noqa: PLC0415
+
+    class Item:
+        def __init__(self, module: str, name: str) -> None:
+            self.path, self.name, self.nodeid = Path(module), name, f"{module}::{name}"
+            self.markers: list[object] = []
+
+        def add_marker(self, marker: object) -> None:
+            self.markers.append(marker)
+
+    items = [
+        Item("tests/test_a.py", "one"),
+        Item("tests/test_a.py", "two"),
+        Item("tests/test_b.py", "one"),
+        Item("tests/test_c.py", "one"),
+        Item("tests/test_c.py", "two"),
+    ]
+    recorded = {"tests/test_a.py::two": 0.5, "tests/test_b.py::one": 3.0}
+    recorded |= {"tests/test_c.py::one": 0.4, "tests/test_c.py::two": 0.4}
+    durations = tmp_path / "durations.json"
+    durations.write_text(json.dumps(recorded), encoding="utf-8")
+    monkeypatch.setattr(conftest, "DURATIONS", durations)
+    conftest.pytest_collection_modifyitems(None, items)  # type: ignore[arg-type]
+    assert [i.nodeid for i in items] == [
+        "tests/test_b.py::one",
+        "tests/test_c.py::one",
+        "tests/test_c.py::two",
+        "tests/test_a.py::one",
+        "tests/test_a.py::two",
+    ]
+    assert [bool(i.markers) for i in items] == [True, True, True, False, True]  # slow
