@@ -414,21 +414,8 @@ def test_the_unrolled_taylor_shifts_are_the_loops_bits() -> None:
     from tvopt_codegen.simulation import references
 
     def loop(xi: list[list[float]], h: float) -> list[list[float]]:
-        """The general loop, as it was before the written-out forms."""
-        order = len(xi[0]) if xi else 0
-        terms = [1.0] * order
-        for index in range(1, order):
-            terms[index] = terms[index - 1] * (h / index)
-        out = []
-        for row in xi:
-            shifted = []
-            for j in range(order):
-                total = 0.0
-                for index in range(order - j):
-                    total += row[j + index] * terms[index]
-                shifted.append(total)
-            out.append(shifted)
-        return out
+        """The general loop (every jet length _UNROLLED has no form for), on h's terms."""
+        return references._shifted(xi, references._terms(len(xi[0]) if xi else 0, h))
 
     special = [0.0, -0.0, np.inf, -np.inf, np.nan, 1e308, -1e308, 5e-324, 1.0]
     rng = np.random.default_rng(4)

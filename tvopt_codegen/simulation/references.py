@@ -85,12 +85,28 @@ def _taylor(xi: list[list[float]], h: float) -> list[list[float]]:
     IEEE operations in the same order as a column at a time on arrays, so the same bits.
     """
     order = len(xi[0]) if xi else 0
-    terms = [1.0] * order
-    for index in range(1, order):
-        terms[index] = terms[index - 1] * (h / index)
+    terms = _terms(order, h)
     unrolled = _UNROLLED.get(order)
     if unrolled is not None:
         return unrolled(xi, terms)
+    return _shifted(xi, terms)
+
+
+def _terms(order: int, h: float) -> list[float]:
+    """``h^i / i!`` for ``i < order``, each from the one before (the shifts' weights)."""
+    terms = [1.0] * order
+    for index in range(1, order):
+        terms[index] = terms[index - 1] * (h / index)
+    return terms
+
+
+def _shifted(xi: list[list[float]], terms: list[float]) -> list[list[float]]:
+    """The general shift, any jet length: entry j of a row is ``sum xi[j + i] terms[i]``.
+
+    ``terms[i]`` is ``h^i / i!``; the written-out forms of :data:`_UNROLLED` are held to
+    this loop's bits (tests/test_simulate.py).
+    """
+    order = len(terms)
     out = []
     for row in xi:
         shifted = []
