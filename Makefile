@@ -214,4 +214,4 @@ update-golden: $(READY)
 check: lint test
 
 clean:
-	rm -rf build .pytest_cache .mypy_cache .ruff_cache
+	rm -rf build .pytest_cache .mypy_cache .ruff_cache .test-cache

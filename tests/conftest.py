@@ -4,9 +4,11 @@ Deriving and importing a controller takes a fraction of a second; the cache belo
 makes each example's derivation and module shared by every test that needs it.
 
 What is dearer than that is made once per run for every xdist worker: the run's
-folder (:func:`run_folder`) holds the compiled C libraries (``TVOPT_CODEGEN_CACHE``
-points there unless the caller set it) and whatever :func:`shared` builds (a reference
-sweep), the first worker to ask building it while the others wait on its lock.
+folder (:func:`run_folder`) holds whatever :func:`shared` builds (a reference sweep), the
+first worker to ask building it while the others wait on its lock. What a compiler makes
+outlasts the run, keyed by everything it read (:func:`kept_folder`, ``.test-cache/``):
+the compiled C libraries (``TVOPT_CODEGEN_CACHE`` points there unless the caller set it)
+and the strict profile's compiler and analyser runs (``tests/toolcache.py``).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import shutil
 import signal
 import sys
 import tempfile
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import ModuleType
@@ -371,12 +374,14 @@ def pytest_configure(config: pytest.Config) -> None:
         made = Path(tempfile.mkdtemp(prefix="tvopt-test-run-"))
         _MADE.append(made)
         os.environ[RUN_FOLDER] = str(made)
-    # One cache of compiled libraries for the run: each generated C module, sweep loop
-    # and FMU library is compiled once, not once per worker (and not into the user's
+    # One cache of compiled libraries: each generated C module, sweep loop and FMU
+    # library is compiled once, not once per worker or per run (and not into the user's
     # ~/.cache). The libraries are keyed by their sources, compiler and flags and
     # published by rename, so workers that compile the same one at once both get it
     # whole. Tests of the cache itself set a folder of their own.
-    os.environ.setdefault("TVOPT_CODEGEN_CACHE", str(run_folder() / "c-cache"))
+    kept = kept_folder()
+    libraries = kept / "c-cache" if kept is not None else run_folder() / "c-cache"
+    os.environ.setdefault("TVOPT_CODEGEN_CACHE", str(libraries))
     # One BLAS thread in each worker, as the command line asks for itself (set before
     # xdist starts the workers, whose NumPy loads after): two workers of two BLAS
     # threads each fought over the machine's two cores.
@@ -384,9 +389,43 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
-    """Remove the run's folder, in the process that made it."""
+    """Remove the run's folder, in the process that made it, and stale kept entries."""
     for folder in _MADE:
         shutil.rmtree(folder, ignore_errors=True)
+    kept = kept_folder()
+    if _MADE and kept is not None:
+        _prune(kept, KEPT_DAYS * 86400.0)
+
+
+#: Names the folder the suite keeps across runs; ``off`` keeps nothing past a run.
+TEST_CACHE = "TVOPT_TEST_CACHE"
+#: A kept entry not written for this many days is removed at the end of a run (the next
+#: run that needs it makes it again): the folder does not grow without end.
+KEPT_DAYS = 30
+
+
+def kept_folder() -> Path | None:
+    """The folder that outlasts a run: compiled libraries and kept tool runs, or None.
+
+    ``.test-cache/`` in the checkout unless ``TVOPT_TEST_CACHE`` names another (``off``:
+    none, and the libraries go to the run's folder). Everything in it is keyed by what
+    made it (sources, flags, the tool's file): see ``tests/toolcache.py``. ``make clean``
+    removes it; CI starts from a clean clone, so every run there is a cold one.
+    """
+    value = os.environ.get(TEST_CACHE, str(ROOT / ".test-cache"))
+    return None if value in ("", "off") else Path(value)
+
+
+def _prune(folder: Path, age: float) -> None:
+    """Remove the entries of ``folder``'s subfolders last written over ``age`` seconds ago."""
+    now = time.time()
+    for entry in folder.glob("*/*"):
+        with contextlib.suppress(OSError):
+            if now - entry.stat().st_mtime > age:
+                if entry.is_dir():
+                    shutil.rmtree(entry, ignore_errors=True)
+                else:
+                    entry.unlink()
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -34,15 +34,16 @@ from tvopt_codegen.lowering.ir import KernelSet, lower
 from tvopt_codegen.renderer.rendering import render
 from tvopt_codegen.spec import spec_from_dict
 
-from .conftest import ROOT, SPECS, kernels, shared
+from .conftest import ROOT, SPECS, kept_folder, kernels, shared
 from .embedded.harness import (
     COMMON_FLAGS,
     TARGETS,
     CallGraph,
     assemble,
-    compile_assembly,
+    assembly_command,
     skip_reason,
 )
+from .toolcache import kept_run
 
 #: Every bundled example.
 BUNDLED = tuple(sorted(path.stem for path in (ROOT / "tvopt_codegen" / "examples").glob("*.toml")))
@@ -133,9 +134,18 @@ def _tool(name: str, install: str) -> str:
     return found
 
 
+def _run(
+    command: list[str], folder: Path, writes: tuple[Path, ...] = ()
+) -> subprocess.CompletedProcess[str]:
+    """Run ``command`` in the generated ``folder`` (which it reads whole), or give back
+    what it did on the same files in an earlier run (``tests/toolcache.py``)."""
+    reads = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+    return kept_run(command, reads=reads, writes=writes, cwd=folder, cache=kept_folder())
+
+
 def _clean(command: list[str], folder: Path) -> None:
     """Run ``command`` in ``folder``; it must succeed and print nothing."""
-    done = subprocess.run(command, cwd=folder, capture_output=True, text=True, check=False)
+    done = _run(command, folder)
     report = (done.stdout + done.stderr).strip()
     assert done.returncode == 0 and not report, report[:3000]
 
@@ -211,11 +221,11 @@ def test_clang_reports_every_strict_warning_without_generating_code(tmp_path: Pa
 
 @pytest.mark.parametrize("precision", ["double", "single"])
 @pytest.mark.parametrize("example", [*BUNDLED, *VARIANTS])
-def test_the_static_analysers_find_nothing(example: str, precision: str, tmp_path: Path) -> None:
+def test_the_static_analysers_find_nothing(example: str, precision: str) -> None:
     folder = generated(example, precision)
     (source,) = (p.name for p in folder.glob("*.c") if not p.name.endswith(".ext.c"))
     clang = _tool("clang", "apt-get install clang")
-    _clean([clang, "--analyze", "-std=c99", source, "-o", str(tmp_path / "plist")], folder)
+    _clean([clang, "--analyze", "-std=c99", source, "-o", "/dev/null"], folder)
     cppcheck = _tool("cppcheck", "apt-get install cppcheck")
     _clean([cppcheck, *CPPCHECK, source], folder)
 
@@ -255,9 +265,12 @@ def m4f_build(example: str, precision: str) -> Path:
 
     def build(out: Path) -> None:
         folder = generated(example, precision)
-        compile_assembly(
-            TARGETS["m4f"], folder / _source(folder), out / "controller.s", "-fcallgraph-info=su"
+        assembly = out / "controller.s"
+        command = assembly_command(
+            TARGETS["m4f"], folder / _source(folder), assembly, "-fcallgraph-info=su"
         )
+        done = _run(command, folder, (assembly, out / "controller.ci"))
+        assert done.returncode == 0, done.stderr[:3000]
 
     return shared(f"m4f-{precision}-{example}", build)
 
@@ -293,9 +306,7 @@ def host_build(example: str, precision: str) -> Path:
         folder = generated(example, precision)
         assembly = out / "controller.s"
         command = [gcc, *STRICT, *HARNESS_ONLY, "-fcallgraph-info=su", "-S", _source(folder)]
-        done = subprocess.run(
-            [*command, "-o", str(assembly)], cwd=folder, capture_output=True, text=True, check=False
-        )
+        done = _run([*command, "-o", str(assembly)], folder, (assembly, out / "controller.ci"))
         printed = (done.stdout + done.stderr).strip()
         if done.returncode != 0:
             printed = printed or f"gcc exited {done.returncode}"
@@ -321,14 +332,13 @@ def host_object(example: str, precision: str) -> Path | None:
 def _measured(target: str, folder: Path, out: Path, *flags: str) -> dict[str, int]:
     """gcc's deepest static stack per function of the controller compiled for ``target``
     (to assembly: the graph is gcc's, and no object is needed)."""
-    assembly = compile_assembly(
-        TARGETS[target],
-        folder / _source(folder),
-        out / "controller.s",
-        *flags,
-        "-fcallgraph-info=su",
+    assembly = out / "controller.s"
+    command = assembly_command(
+        TARGETS[target], folder / _source(folder), assembly, *flags, "-fcallgraph-info=su"
     )
-    return _frames(assembly.with_suffix(".ci"))
+    done = _run(command, folder, (assembly, out / "controller.ci"))
+    assert done.returncode == 0, done.stderr[:3000]
+    return _frames(out / "controller.ci")
 
 
 # One test per file for what gcc's builds show, each build serving every check it can

@@ -188,6 +188,11 @@ def compile_object(target: Target, source: Path, out: Path, *extra: str) -> Path
     return out
 
 
+def assembly_command(target: Target, source: Path, out: Path, *extra: str) -> list[str]:
+    """The command of :func:`compile_assembly` (for a caller that runs it its own way)."""
+    return [target.cc, *COMMON_FLAGS, *target.flags, *extra, "-S", str(source), "-o", str(out)]
+
+
 def compile_assembly(target: Target, source: Path, out: Path, *extra: str) -> Path:
     """Compile one C file for ``target`` to assembly, as :func:`compile_object` compiles it.
 
@@ -195,7 +200,7 @@ def compile_assembly(target: Target, source: Path, out: Path, *extra: str) -> Pa
     assembler's run is skipped, and :func:`assemble` makes the very object
     :func:`compile_object` would (gcc's ``-c`` is this, then the assembler).
     """
-    _run([target.cc, *COMMON_FLAGS, *target.flags, *extra, "-S", str(source), "-o", str(out)])
+    _run(assembly_command(target, source, out, *extra))
     return out
 
 
