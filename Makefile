@@ -85,10 +85,12 @@ test-durations: $(READY)
 
 ## bench-tests: the whole suite on one core and on every core, and make test-fast, timed;
 ##   BASELINE=REV: make test of REV (a worktree with its own venv) and of this tree, alternated;
-##   TREE=REV measures a clean worktree of REV in place of the checkout; ROUNDS=N
+##   TREE=REV measures a clean worktree of REV in place of the checkout; ROUNDS=N;
+##   COLD=1 also runs both with nothing kept from earlier runs (compiled libraries, .test-cache)
 bench-tests: $(READY)
 	$(PY) benchmarks/bench_tests.py $(if $(BASELINE),--baseline $(BASELINE)) \
-	  $(if $(TREE),--tree $(TREE)) $(if $(ROUNDS),--rounds $(ROUNDS)) --write benchmarks/TESTS.md
+	  $(if $(TREE),--tree $(TREE)) $(if $(ROUNDS),--rounds $(ROUNDS)) $(if $(COLD),--cold) \
+	  --write benchmarks/TESTS.md
 
 ## coverage-fast: which lines of the package make test-fast runs; fails if a module is left
 ##   unexercised (tests/coverage_check.py)
