@@ -9,9 +9,11 @@ gcc's ``-fstack-usage`` counts along every call path, on the host and on a Corte
 template paths no bundled example takes (:data:`VARIANTS`). The files are rendered once
 per test run and precision (``conftest.shared``) and shared with ``test_precision`` and
 ``test_embedded_qemu``, and so are gcc's -O2 builds of them for the host and the Cortex-M4F
-(``test_embedded_qemu`` links their objects). A tool that is missing skips with the command
-that installs it, except in CI (``CI`` set), where ``.ci/run`` installs it and its absence
-is a failure.
+(``test_embedded_qemu`` links their objects). Every compiler and analyser run here is kept
+across runs of the suite (``tests/toolcache.py``): one whose program, arguments and files
+are those of an earlier run gives back that run's output and verdict. A tool that is
+missing skips with the command that installs it, except in CI (``CI`` set), where
+``.ci/run`` installs it and its absence is a failure.
 """
 
 from __future__ import annotations
