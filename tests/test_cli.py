@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gc
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -55,6 +56,37 @@ def test_check_prints_summary_and_writes_nothing(
     assert "extension: va integrated 1x; vb integrated 1x" in text
     assert "poles -1.5, -1" in text
     assert snapshot(tmp_path) == before
+
+
+def test_a_long_list_in_the_summary_shows_its_ends_and_its_length(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A ring of 13 agents (39 states, 26 outputs: over summary.LISTED): every list's
+    first and last items and how many there are, each line a line; 8 agents' 24 states
+    whole."""
+    bundled = (ROOT / "tvopt_codegen" / "examples" / "unicycle_ring.toml").read_text()
+    for agents in (8, 13):
+        spec = tmp_path / f"ring{agents}.toml"
+        spec.write_text(re.sub(r"(?m)^i = \d+", f"i = {agents}", bundled), encoding="utf-8")
+        assert main(["check", str(spec)]) == 0
+        lines = capsys.readouterr().out.splitlines()
+        (plant,) = [line for line in lines if line.startswith("  plant: ")]
+        (state,) = [line for line in lines if line.startswith("  closed-loop state: ")]
+        (degree,) = [line for line in lines if line.startswith("  relative degree: ")]
+        if agents == 8:
+            # 24 states and 16 outputs whole; 32 closed-loop states (the speeds added) not.
+            assert "..." not in plant + degree
+            assert "x_7, y_7, theta_7), 16 inputs" in plant
+            assert state.endswith(", ..., v_5, v_6, v_7 (32 in all)")
+            continue
+        assert plant.startswith(
+            "  plant: 39 states (x_0, y_0, theta_0, x_1, y_1, theta_1, x_2, y_2, theta_2, "
+            "..., x_12, y_12, theta_12 (39 in all)), 26 inputs (v_0, omega_0,"
+        )
+        assert state.endswith(", ..., v_10, v_11, v_12 (52 in all)")
+        assert degree.startswith("  relative degree: px_0: 2, py_0: 2, px_1: 2,")
+        assert ", ..., py_11: 2, px_12: 2, py_12: 2 (26 in all)  (sum 52 = n;" in degree
+        assert max(map(len, lines)) < 600  # the extension line: 13 integrations whole
 
 
 def test_examples_lists_bundled_specs(capsys: pytest.CaptureFixture[str]) -> None:

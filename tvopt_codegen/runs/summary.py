@@ -2,11 +2,27 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.derivation.linearization import law_expressions
 from tvopt_codegen.derivation.singularity import undefined_causes
 from tvopt_codegen.lowering.ir import KernelSet
+
+#: The most items a list of the summary shows whole; a longer one (a ring of 128 agents
+#: has 384 states) shows its first :data:`HEAD` and last :data:`TAIL` and its length, so
+#: that each line stays a line (the report lists every item).
+LISTED = 24
+HEAD, TAIL = 9, 3
+
+
+def _listed(items: Sequence[str], separator: str = ", ") -> str:
+    """``items`` joined, or their first and last few and how many there are."""
+    if len(items) <= LISTED:
+        return separator.join(items)
+    shown = [*items[:HEAD], "...", *items[-TAIL:]]
+    return f"{separator.join(shown)} ({len(items)} in all)"
 
 
 def _number(value: float) -> str:
@@ -45,7 +61,7 @@ def _law_line(d: Derivation) -> str:
     if d.linearization.extension.counts:
         lhs = "w"
         ext = (
-            f"; w = ({', '.join(d.linearization.extension.inputs)}), "
+            f"; w = ({_listed(d.linearization.extension.inputs)}), "
             "the extended plant's inputs (an "
             "integrated input's last derivative, or the input itself)"
         )
@@ -76,9 +92,9 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
     spec = d.spec
     lines = [f"{spec.name}  ({spec.source})"]
     lines.append(
-        f"  plant: {len(spec.states)} states ({', '.join(spec.states)}), "
-        f"{len(spec.inputs)} inputs ({', '.join(spec.inputs)}), "
-        f"{len(spec.outputs)} outputs ({', '.join(spec.outputs)})"
+        f"  plant: {len(spec.states)} states ({_listed(spec.states)}), "
+        f"{len(spec.inputs)} inputs ({_listed(spec.inputs)}), "
+        f"{len(spec.outputs)} outputs ({_listed(spec.outputs)})"
     )
     if spec.mechanics is not None:
         size = len(spec.mechanics.coordinates)
@@ -86,12 +102,13 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
             f"  mass-matrix form: M ({size} x {size}) factored at run time (LDL^T), never inverted"
         )
     if d.linearization.extension.counts:
-        added = "; ".join(
-            f"{name} integrated {count}x" for name, count in d.linearization.extension.counts
+        added = _listed(
+            [f"{name} integrated {count}x" for name, count in d.linearization.extension.counts],
+            "; ",
         )
         lines.append(
-            f"  extension: {added}; new states {', '.join(d.linearization.extension.states)}; "
-            f"inputs of the extended plant {', '.join(d.linearization.extension.inputs)}"
+            f"  extension: {added}; new states {_listed(d.linearization.extension.states)}; "
+            f"inputs of the extended plant {_listed(d.linearization.extension.inputs)}"
         )
         if d.linearization.extension_search:
             lines.append(
@@ -100,8 +117,8 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
             )
     else:
         lines.append("  extension: none (static feedback linearization)")
-    degrees = ", ".join(
-        f"{o}: {r}" for o, r in zip(spec.outputs, d.linearization.relative_degree, strict=True)
+    degrees = _listed(
+        [f"{o}: {r}" for o, r in zip(spec.outputs, d.linearization.relative_degree, strict=True)]
     )
     kind = "uniform" if d.dynamics.uniform else "non-uniform, padded"
     lines.append(
@@ -109,8 +126,8 @@ def format_summary(derivation: Derivation, kernels: KernelSet | None = None) -> 
         f"(sum {sum(d.linearization.relative_degree)} = n; {kind}; k = {d.dynamics.k})"
     )
     pads = [name for chain in d.closed_loop.padding for name in chain]
-    lines.append(f"  padding states: {', '.join(pads) if pads else 'none'}")
-    lines.append(f"  closed-loop state: {', '.join(d.closed_loop.state_names)}")
+    lines.append(f"  padding states: {_listed(pads) if pads else 'none'}")
+    lines.append(f"  closed-loop state: {_listed(d.closed_loop.state_names)}")
     if d.decoupling.det_R is not None:
         where = (
             f"singular where {'; '.join(d.decoupling.singular_set)}"
