@@ -608,7 +608,14 @@ def test_substituting_and_signing_odd_functions_in_one_pass(
     walk: the same tree as substituting, then canonical_odd."""
     from tvopt_codegen.cse.rewrite import _substitute
 
-    two_passes = canonical_odd(_substitute(expr, mapping), {})
+    try:
+        two_passes = canonical_odd(_substitute(expr, mapping), {})
+    except RuntimeError:
+        # A pole under a function, sin(a + 1/(2 + 2a)) at a = -1: SymEngine's constructor
+        # refuses sin(zoo) (SymPy's is nan). The one pass refuses it alike.
+        with pytest.raises(RuntimeError, match="infinite"):
+            _substitute(expr, mapping, {}, {})
+        return
     assert _substitute(expr, mapping, {}, {}) == two_passes
 
 
