@@ -130,3 +130,38 @@ def test_real_gcc_warnings_are_kept_with_this_runs_paths(tmp_path: Path) -> None
     assert str(tmp_path / "a" / "w.c") in printed[0] and str(tmp_path / "a") not in printed[1]
     assert printed[1] == printed[0].replace(str(tmp_path / "a"), str(tmp_path / "b"))
     assert len(list((cache / "tools").iterdir())) == 1
+
+
+def test_an_unusable_cache_folder_only_costs_the_tools_time(
+    tool: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """A cache that cannot be written (a file where its folder should be: a read-only
+    checkout, a full disk alike) runs the tool every time, with its own verdict."""
+    _, log = tool
+    cache = tmp_path / "cache"
+    cache.write_text("not a folder", encoding="utf-8")
+    for run in ("run1", "run2"):
+        assert _compile(tmp_path / run, "int x;\n", cache)[::2] == (
+            0,
+            f"compiled from {tmp_path / run / 'x.c'}\n",
+        )
+    code, error, _ = _compile(tmp_path / "run3", "int x; /* WARN */\n", cache)
+    assert code == 1 and "said WARN" in error
+    assert _runs(log) == 3
+
+
+def test_a_run_that_succeeds_without_writing_a_named_file_is_an_error(
+    tool: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """Nothing is kept for it: a caller would read a file the tool never made."""
+    source, out, other = tmp_path / "x.c", tmp_path / "x.s", tmp_path / "x.ci"
+    source.write_text("int x;\n", encoding="utf-8")
+    cache = tmp_path / "cache"
+    with pytest.raises(FileNotFoundError, match=r"succeeded without writing .*x\.ci"):
+        kept_run(
+            ["cc-standin", str(source), str(out)],
+            reads=[source],
+            writes=[out, other],
+            cache=cache,
+        )
+    assert not (cache / "tools").exists()

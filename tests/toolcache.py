@@ -23,6 +23,7 @@ uses this: it times the tools.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -132,30 +133,51 @@ def kept_run(
     for path in reads:
         key.update(hashlib.sha256(path.read_bytes()).digest())
     entry = cache / "tools" / key.hexdigest()
-    record = entry / "record.json"
-    if record.is_file():
-        kept = json.loads(record.read_text(encoding="utf-8"))
-        for index, path in enumerate(writes):
-            if (entry / str(index)).is_file():
-                path.write_bytes(_restored(entry / str(index), pairs))
-        return subprocess.CompletedProcess(
-            list(command),
-            kept["returncode"],
-            _specific(kept["stdout"], pairs),
-            _specific(kept["stderr"], pairs),
-        )
+    kept = _read(entry, writes, pairs)
+    if kept is not None:
+        return subprocess.CompletedProcess(list(command), *kept)
     done = subprocess.run(
         list(command), cwd=cwd, capture_output=True, text=True, timeout=timeout, check=False
     )
+    missing = [path for path in writes if not path.is_file()]
+    if done.returncode == 0 and missing:
+        raise FileNotFoundError(f"{command[0]} succeeded without writing {missing[0]}")
+    # A cache that cannot be written (a read-only checkout, a full disk) only costs the
+    # next run its tool's time, as the product's library cache does.
+    with contextlib.suppress(OSError):
+        _publish(entry, done, writes, pairs)
+    return done
+
+
+def _read(
+    entry: Path, writes: Sequence[Path], pairs: list[tuple[str, str]]
+) -> tuple[int, str, str] | None:
+    """A kept run's exit code and printed text, its files written again; None if not kept
+    (or unreadable: then the tool runs)."""
+    try:
+        kept = json.loads((entry / "record.json").read_text(encoding="utf-8"))
+        for index, path in enumerate(writes):
+            if (entry / str(index)).is_file():
+                path.write_bytes(_restored(entry / str(index), pairs))
+    except (OSError, ValueError):
+        return None
+    return kept["returncode"], _specific(kept["stdout"], pairs), _specific(kept["stderr"], pairs)
+
+
+def _publish(
+    entry: Path,
+    done: subprocess.CompletedProcess[str],
+    writes: Sequence[Path],
+    pairs: list[tuple[str, str]],
+) -> None:
+    """Keep ``done`` and the files it wrote as ``entry``, published by rename: a worker
+    reading at the same time sees a whole entry or none."""
     entry.parent.mkdir(parents=True, exist_ok=True)
-    # Published by rename: a worker reading at the same time sees a whole entry or none.
     partial = Path(tempfile.mkdtemp(prefix=".", dir=entry.parent))
     try:
         for index, path in enumerate(writes):
             if path.is_file():
                 (partial / str(index)).write_bytes(_kept(path, pairs))
-            elif done.returncode == 0:
-                raise FileNotFoundError(f"{command[0]} succeeded without writing {path}")
         text = {
             "returncode": done.returncode,
             "stdout": _generic(done.stdout, pairs),
@@ -168,4 +190,3 @@ def kept_run(
             pass  # another worker published the same entry first: theirs is as good
     finally:
         shutil.rmtree(partial, ignore_errors=True)
-    return done
