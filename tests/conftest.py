@@ -29,6 +29,7 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import pytest
 from hypothesis import settings
@@ -203,6 +204,30 @@ class Ran:
     returncode: int
     stdout: str
     stderr: str
+
+
+def remembered(
+    read: Callable[[Any], Any], key: Callable[[Any], Any] = lambda value: value
+) -> Callable[[Any], Any]:
+    """``read`` worked out once per ``key(value)``, for a ``read`` that is a function of
+    its value alone (SymPy's simplify, its printers, a conversion to SymPy).
+
+    A value that cannot be a key (a mutable matrix) is read each time; a read that raised
+    is not remembered.
+    """
+    known: dict[Any, Any] = {}
+
+    def once(value: Any) -> Any:
+        name = key(value)
+        try:
+            return known[name]
+        except KeyError:
+            known[name] = found = read(value)
+            return found
+        except TypeError:  # not hashable: not a key
+            return read(value)
+
+    return once
 
 
 def run_main(*args: str, cwd: Path | None = None, env: dict[str, str] | None = None) -> Ran:

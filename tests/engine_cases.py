@@ -15,7 +15,7 @@ from typing import Any
 
 from tvopt_codegen import symbolic as sx
 
-from .conftest import REFUSE_SYMPY, ROOT, shared
+from .conftest import REFUSE_SYMPY, ROOT, remembered, shared
 
 #: A small plant held on a moving line (an equality) with an objective that is not
 #: quadratic: the KKT law, its multiplier's pivots, the sweep's equality kernel.
@@ -58,18 +58,10 @@ def remembered_simplify() -> Iterator[None]:
     import sympy  # noqa: PLC0415 - only the tests that compare with SymPy need it
 
     original = sympy.simplify
-    known: dict[Any, Any] = {}
+    once = remembered(original)
 
     def simplify(expr: Any, *args: Any, **kwargs: Any) -> Any:
-        if args or kwargs:
-            return original(expr, *args, **kwargs)
-        try:
-            return known[expr]
-        except KeyError:
-            known[expr] = found = original(expr)
-            return found
-        except TypeError:  # a mutable matrix: not a key
-            return original(expr)
+        return original(expr, *args, **kwargs) if args or kwargs else once(expr)
 
     sympy.simplify = simplify
     try:

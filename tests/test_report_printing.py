@@ -25,7 +25,7 @@ from tvopt_codegen.derivation import Derivation
 from tvopt_codegen.report import entries, printing
 from tvopt_codegen.report.sections import _shown
 
-from .conftest import derivation
+from .conftest import derivation, remembered
 
 #: A plain law, signals (tanh, polynomials), a barrier (tan, pi, alpha), a mass-matrix
 #: plant (sines and cosines, a_i and W_i,j), an equality, a robot (341 definitions).
@@ -43,22 +43,12 @@ SPECS = (
 ENGINES = ("symengine", "sympy")
 
 
-#: Each expression's SymPy form, by the expression's engine and the expression: the four
-#: printers' tests read the same expressions, and a SymEngine one crosses the border once,
-#: not once per printer (the conversion was a fifth of this file's time).
-_CONVERTED: dict[tuple[str, Any], Any] = {}
-
-
-def _as_sympy(expr: Any) -> Any:
-    """``entries.as_sympy(expr)``, converted once per expression."""
-    key = (type(expr).__module__.split(".")[0], expr)
-    try:
-        return _CONVERTED[key]
-    except KeyError:
-        _CONVERTED[key] = value = entries.as_sympy(expr)
-        return value
-    except TypeError:  # a mutable matrix: not a key
-        return entries.as_sympy(expr)
+#: Each expression's SymPy form, once per expression and its engine (the four printers'
+#: tests read the same expressions, and a SymEngine one crosses the border once, not once
+#: per printer: the conversion was a fifth of this file's time).
+_as_sympy = remembered(
+    entries.as_sympy, key=lambda expr: (type(expr).__module__.split(".")[0], expr)
+)
 
 
 def _remembered(read: Callable[[Any], Any]) -> Callable[[Any], Any]:
@@ -68,19 +58,8 @@ def _remembered(read: Callable[[Any], Any]) -> Callable[[Any], Any]:
     590 expressions); both engines' derivations of a spec show the same SymPy
     expressions, so each is printed by SymPy once, not once per engine and test.
     """
-    cache: dict[Any, Any] = {}
-
-    def remembered(expr: Any) -> Any:
-        value = _as_sympy(expr)
-        try:
-            return cache[value]
-        except KeyError:
-            cache[value] = found = read(value)
-            return found
-        except TypeError:  # a mutable matrix: not a key
-            return read(value)
-
-    return remembered
+    once = remembered(read)
+    return lambda expr: once(_as_sympy(expr))
 
 
 @_remembered
