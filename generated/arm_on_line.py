@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: arm_on_line
 # spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
-# content sha256: d7753bc7eb156142fad19bd3f03197d56c42b813b93dfbcbd577d974898c81df
+# content sha256: 4009c07d323d3b139416c5e862864e1b7b13e62b52d5c3cb2b78e278a70a489c
 # ruff: noqa
 
 """arm_on_line: implicit trajectory planning controller.
@@ -387,9 +387,9 @@ def _jet_time(t, p, a):
     tau[7] = _t15
     tau[8] = _t16
     tau[9] = (3/10)*_t2
-    tau[10] = -_t18
-    tau[11] = -3/5*_t1 - 9/5
-    tau[12] = -_t16
+    tau[10] = -3/5*_t1 - 9/5
+    tau[11] = -_t16
+    tau[12] = -_t18
     tau[13] = -3/20*_t1
     tau[14] = -_t17
     tau[15] = _t17
@@ -403,7 +403,7 @@ def _jet_time(t, p, a):
 
 
 def _jet(t, s, p, a, tau):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 145 operations, 796 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 145 operations, 790 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # q1
     _s1 = s[1]  # q2
@@ -473,9 +473,9 @@ def _jet(t, s, p, a, tau):
     hessian[3] = _t15
     hessian[4] = 0
     jet_rhs = numpy.empty((3, _n))  # sum_i a_i grad^(i) f0 - rest
-    jet_rhs[0] = _h8 + _a0*(_h6 + 2*_t6 + _s4*_t14) + _a1*(_h4 + _t37 + _s4*_t16 + _s5*_t14) + _h5*_s4 + _h7*_t38
+    jet_rhs[0] = _h8 + _a0*(_h5 + 2*_t6 + _s4*_t14) + _a1*(_h4 + _t37 + _s4*_t16 + _s5*_t14) + _h6*_t38 + _h7*_s4
     jet_rhs[1] = _h13 + _a0*(_h11 - 2*_t8 + _s4*_t15) + _a1*(_h10 + _t39 + _s4*_t17 + _s5*_t15) + _h12*_s4 + _h9*_t38
-    jet_rhs[2] = _a0*(_h14*_t8 + _t14*_t6 - 1) + _a1*(_h9*_t8 + _t10*_t14 + _t12*_t15 + _t16*_t6) + _h5*_t6 + _h7*_t37 + _h9*_t39 + _t19*_t8
+    jet_rhs[2] = _a0*(_h14*_t8 + _t14*_t6 - 1) + _a1*(_h9*_t8 + _t10*_t14 + _t12*_t15 + _t16*_t6) + _h6*_t37 + _h7*_t6 + _h9*_t39 + _t19*_t8
     R = numpy.empty((4, _n))  # diagonal blocks of the decoupling matrix
     R[0] = _t20*_t27 + _t25*_t28
     R[1] = -_t24*_t28 - _t25*_t27
@@ -1004,7 +1004,7 @@ def _law_1(t, s, p, rates):
     _r13 = _r1*(_r3*_r3)
     _r0 = _r0 + _r1
     _r3 = _r1*_r2*_r3
-    tau = [-_r2, _r3, _r13 + _r0*(_r2*_r2), _r13, -_r1*_r4, -_r4*_r0, _r8, _r7, _r9, (3/10)*_r5, -_r11, -3/5*_r6 - 9/5, -_r9, -3/20*_r6, -_r10, _r10, -3/10*_r6, -3/5*_r5 - 7/5, -_r12, -3/20*_r5, -_r7, _r12]
+    tau = [-_r2, _r3, _r13 + _r0*(_r2*_r2), _r13, -_r1*_r4, -_r4*_r0, _r8, _r7, _r9, (3/10)*_r5, -3/5*_r6 - 9/5, -_r9, -_r11, -3/20*_r6, -_r10, _r10, -3/10*_r6, -3/5*_r5 - 7/5, -_r12, -3/20*_r5, -_r7, _r12]
     # jet: Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (145 operations)
     _r0, _r1, _r2, _r3, _r4, _r5 = s
     _, _, _r6, _r7, _ = p
@@ -1038,7 +1038,7 @@ def _law_1(t, s, p, rates):
     _r15 = 2.0*_r5
     _r42 = 2.0*_r36
     hess = [2.0, 2.0, _r16, _r17, 0.0]
-    jet_rhs = [_r23 + _r8*(_r21 + 2.0*_r34 + _r4*_r16) + _r9*(_r19 + _r11 + _r4*_r18 + _r5*_r16) + _r20*_r4 + _r22*_r15, _r29 + _r8*(_r27 - 2.0*_r0 + _r4*_r17) + _r9*(_r26 + _r42 + _r4*_r25 + _r5*_r17) + _r28*_r4 + _r24*_r15, _r8*(_r30*_r0 + _r16*_r34 - 1.0) + _r9*(_r24*_r0 + _r32*_r16 + _r36*_r17 + _r18*_r34) + _r20*_r34 + _r22*_r11 + _r24*_r42 + _r31*_r0]
+    jet_rhs = [_r23 + _r8*(_r20 + 2.0*_r34 + _r4*_r16) + _r9*(_r19 + _r11 + _r4*_r18 + _r5*_r16) + _r21*_r15 + _r22*_r4, _r29 + _r8*(_r27 - 2.0*_r0 + _r4*_r17) + _r9*(_r26 + _r42 + _r4*_r25 + _r5*_r17) + _r28*_r4 + _r24*_r15, _r8*(_r30*_r0 + _r16*_r34 - 1.0) + _r9*(_r24*_r0 + _r32*_r16 + _r36*_r17 + _r18*_r34) + _r21*_r11 + _r22*_r34 + _r24*_r42 + _r31*_r0]
     r = [_r13*_r39 + _r37*_r40, -_r12*_r40 - _r37*_r39, _r13*_r41 - _r37*_r38, _r12*_r38 - _r37*_r41]
     pvec = [_r2*(_r2*(-_r6 - _r33) - _r35) + _r3*(-_r35 - _r2*_r33) + _r39*_r14 - _r40*_r1, _r2*_r32 + _r3*(_r10 - _r2*_r7) + _r41*_r14 + _r38*_r1]
     # The right-hand side and p reach b, which is checked below; an infinite Hessian

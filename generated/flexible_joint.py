@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: flexible_joint
 # spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
-# content sha256: f21a430094448bafe0022db565417608971606874e21a5a5a3580b82baa549d9
+# content sha256: 3373814f67cf3af40de40f69cfba625699ba3134bd26a47157d2a7ae6fe2a515
 # ruff: noqa
 
 """flexible_joint: implicit trajectory planning controller.
@@ -381,7 +381,7 @@ def _jet_time(t, p, a):
 
 
 def _jet(t, s, p, a, tau):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 163 operations, 301 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 163 operations, 300 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # q1
     _s1 = s[1]  # w1

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: integrator
 # spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
-# content sha256: 51b9178ade16df327084d3326ced95ba2422c7746ab94c5c85e223f0cf5fffb3
+# content sha256: 27b26032fe2466ed2a10574579f3edea5b578641791e5b884af83328090299cb
 # ruff: noqa
 
 """integrator: implicit trajectory planning controller.
@@ -356,7 +356,7 @@ def _jet_time(t, p, a):
 
 
 def _jet(t, s, p, a, tau):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 7 operations, 12 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 7 operations, 11 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2

@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: planar_arm3
 # spec sha256: 63d130b8bfdcabd4b35f10882f051baacdec9d17c6622b99cfadaf848ad6bddb
-# content sha256: 2a4a143499d80168c254c9ba953b89f85f999c259784f47b858e358687b6c02f
+# content sha256: 4f19ca1cea459b9f974249b0fdf51ef1a21d102f9fe18434fa8591c9dd698932
 # ruff: noqa
 
 """planar_arm3: implicit trajectory planning controller.
@@ -417,7 +417,7 @@ def _jet_time(t, p, a):
 
 
 def _jet(t, s, p, a, tau):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 255 operations, 675 before CSE)."""
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 255 operations, 672 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # q1
     _s1 = s[1]  # q2

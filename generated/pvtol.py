@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: pvtol
 # spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
-# content sha256: 3f749ed974a89ae59c4dbe529ec394ec7dfa2198963f95a91f2364963fff534a
+# content sha256: 42b78cdc4cf25a50f52eb2fd6149a515c8ca7636b3dc1ddb01b02670bba787a0
 # ruff: noqa
 
 """pvtol: implicit trajectory planning controller.
@@ -385,7 +385,7 @@ def _jet_time(t, p, a):
 
 
 def _jet(t, s, p, a, tau):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 55 operations, 141 before CSE)."""
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 55 operations, 139 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x
     _s1 = s[1]  # z

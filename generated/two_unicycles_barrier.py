@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: two_unicycles_barrier
 # spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
-# content sha256: 84cb9599ef859f5b0b3a469b317383a9f62fbea55e2619c26e9cfdc1ec66150b
+# content sha256: fa761e018a7f3905fcaec77afbb23e484764cb93d3be48bd2d76b874b437d397
 # ruff: noqa
 
 """two_unicycles_barrier: implicit trajectory planning controller.
@@ -375,7 +375,7 @@ def _jet_time(t, p, a):
 
 
 def _jet(t, s, p, a, tau):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 164 operations, 369 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 164 operations, 353 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # xa
     _s1 = s[1]  # ya
@@ -444,10 +444,10 @@ def _jet(t, s, p, a, tau):
     _t47 = _t18*(_t43 + _t20*_t42) + _t40*_t45
     _t48 = 2*_t38*((_t23*_t23) + (_t24*_t24)) + _t18*_t27*_t28
     _t49 = 2*(_t28*_t28) + _t18*_t48
-    _t50 = 2*_t29
-    _t51 = 2*_t36
-    _t52 = _t18*(_t16*_t49 + _t30*_t50) + _t31*_t51 + _t32*_t48
-    _t53 = _t18*(_t20*_t49 + _t34*_t50) + _t35*_t51 + _t45*_t48
+    _t50 = 2*_t36
+    _t51 = 2*_t29
+    _t52 = _t18*(_t16*_t49 + _t30*_t51) + _t31*_t50 + _t32*_t48
+    _t53 = _t18*(_t20*_t49 + _t34*_t51) + _t35*_t50 + _t45*_t48
     # Output terms
     hessian = numpy.empty((10, _n))  # nonzero entries of the lower triangle of grad_yy f0
     hessian[0] = _t44 + 2
@@ -1185,10 +1185,10 @@ def _law_1(t, s, p, rates):
     _r11 = _r26*(_r11 + _r31*_r47) + _r25*_r32
     _r10 = 2.0*_r10*((_r34*_r34) + (_r35*_r35)) + _r26*_r36*_r37
     _r34 = 2.0*(_r37*_r37) + _r26*_r10
-    _r35 = 2.0*_r38
-    _r36 = 2.0*_r44
-    _r37 = _r26*(_r28*_r34 + _r39*_r35) + _r40*_r36 + _r29*_r10
-    _r10 = _r26*(_r31*_r34 + _r42*_r35) + _r43*_r36 + _r32*_r10
+    _r35 = 2.0*_r44
+    _r36 = 2.0*_r38
+    _r37 = _r26*(_r28*_r34 + _r39*_r36) + _r40*_r35 + _r29*_r10
+    _r10 = _r26*(_r31*_r34 + _r42*_r36) + _r43*_r35 + _r32*_r10
     hess = [_r27 + 2.0, _r24, _r11 + 2.0, -_r27, -_r29*_r25 - _r28*_r26*_r47, _r27 + 2.0, -_r24, -_r11, _r24, _r11 + 2.0]
     jet_rhs = [_r8*(_r12 + _r30 + 2.0*_r0) - _r37 + _r9*(_r13 + _r41 + 2.0*_r21) + 1/125, _r8*(_r14 + _r33 + 2.0*_r1) - _r10 + _r9*(_r15 + _r45 + 2.0*_r6) - 1/25, _r37 + _r8*(_r16 - _r30 + 2.0*_r3) + _r9*(_r17 - _r41 + 2.0*_r23) + 2/125, _r10 + _r8*(_r18 - _r33 + 2.0*_r4) + _r9*(_r19 - _r45 + 2.0*_r7) - 6/125]
     r = [_r20, -_r6, _r2, _r21, _r22, -_r7, _r5, _r23]

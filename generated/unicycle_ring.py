@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
-# content sha256: 62d15c5f8ab5d51deea0ee7df04bef36a36850419e2e8daeb6f636cb2e6f48ea
+# content sha256: 9f94567c628d38caf20c33c8afdb795adfa3a825116e487629475f18901795aa
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -411,7 +411,7 @@ def _jet_time(t, p, a):
 
 
 def _jet(t, s, p, a, tau):
-    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 542 operations, 1388 before CSE)."""
+    """Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (kernel; 542 operations, 1324 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x_0
     _s1 = s[1]  # y_0
@@ -628,11 +628,11 @@ def _jet(t, s, p, a, tau):
     _t176 = _t103*_t174 + _t171*_t53 + _t50*(_t102*_t173 + _t172*_t52)
     _t177 = _t108*_t110 + _h0*_t58*((_t106*_t106) + (_t107*_t107))
     _t178 = 2*(_t109*_t109) + _t177*_t61
-    _t179 = 2*_t177
-    _t180 = 2*_t110
-    _t181 = 4*_t109
-    _t182 = _t112*_t181 + _t179*_t60 + _t61*(_t111*_t180 + _t178*_t59)
-    _t183 = _t116*_t181 + _t179*_t64 + _t61*(_t115*_t180 + _t178*_t63)
+    _t179 = 2*_t110
+    _t180 = 4*_t109
+    _t181 = 2*_t177
+    _t182 = _t112*_t180 + _t181*_t60 + _t61*(_t111*_t179 + _t178*_t59)
+    _t183 = _t116*_t180 + _t181*_t64 + _t61*(_t115*_t179 + _t178*_t63)
     _t184 = _t124 + 2
     _t185 = _t133 + 2
     _t186 = _t154 + 2
@@ -2191,9 +2191,9 @@ def _law_1(t, s, p, rates):
     _r23 = _r129*_r70 + _r23*_r82 + _r79*(_r128*_r68 + _r67*_r81)
     _r20 = _r134*_r136 + _r20*_r86*((_r132*_r132) + (_r133*_r133))
     _r67 = 2.0*(_r135*_r135) + _r20*_r89
-    _r20 = 2.0*_r20
     _r68 = 2.0*_r136
     _r70 = 4.0*_r135
+    _r20 = 2.0*_r20
     _r76 = _r138*_r70 + _r20*_r88 + _r89*(_r137*_r68 + _r67*_r87)
     _r20 = _r142*_r70 + _r20*_r92 + _r89*(_r141*_r68 + _r67*_r91)
     _r67 = _r146 + 2.0

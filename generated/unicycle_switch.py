@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_switch
 # spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
-# content sha256: 6d6b1c6462843a3110daa58a58bfdf2bd2e74b576a3df64f2575e1e566bfe18f
+# content sha256: d0ef4c50c6b1cbc13b4b4e3060856cf2a2373d2c1f5185d5e26a6c5df22f4f05
 # ruff: noqa
 
 """unicycle_switch: implicit trajectory planning controller.
@@ -377,7 +377,7 @@ def _jet_time(t, p, a):
 
 
 def _jet(t, s, p, a, tau):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 21 operations, 83 before CSE)."""
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 21 operations, 81 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # x1
     _s1 = s[1]  # x2

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: arm_on_line
  * spec sha256: 78c207914f743d96af89e6ff0b499c083a4a2d001e794aec6a657f5fe36d0dc8
- * content sha256: f4ded79a2b2baf4f889e45ba2502a59f4a88da7dc3859c39275b7a79c16320c7
+ * content sha256: 1a8446e00c296e5385558c1c29eec5fdac956830d0442498fe0269102add3da8
  */
 
 /* arm_on_line: see arm_on_line.h. The law is CSE'd straight-line code and two numerical
@@ -71,9 +71,9 @@ static void arm_on_line_k_jet_time(double t, const double *p, const double *a, d
     tau[7] = _t15;
     tau[8] = _t16;
     tau[9] = (3.0/10.0)*_t2;
-    tau[10] = -_t18;
-    tau[11] = -3.0/5.0*_t1 - 9.0/5.0;
-    tau[12] = -_t16;
+    tau[10] = -3.0/5.0*_t1 - 9.0/5.0;
+    tau[11] = -_t16;
+    tau[12] = -_t18;
     tau[13] = -3.0/20.0*_t1;
     tau[14] = -_t17;
     tau[15] = _t17;
@@ -86,7 +86,7 @@ static void arm_on_line_k_jet_time(double t, const double *p, const double *a, d
 }
 
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (145 operations, 796 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (145 operations, 790 before CSE). */
 static void arm_on_line_k_jet(double t, const double *s, const double *p, const double *a, const double *tau, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     (void)t;
@@ -154,9 +154,9 @@ static void arm_on_line_k_jet(double t, const double *s, const double *p, const 
     hessian[2] = _t14;
     hessian[3] = _t15;
     hessian[4] = 0;
-    jet_rhs[0] = _h8 + _a0*(_h6 + 2*_t6 + _s4*_t14) + _a1*(_h4 + _t37 + _s4*_t16 + _s5*_t14) + _h5*_s4 + _h7*_t38;
+    jet_rhs[0] = _h8 + _a0*(_h5 + 2*_t6 + _s4*_t14) + _a1*(_h4 + _t37 + _s4*_t16 + _s5*_t14) + _h6*_t38 + _h7*_s4;
     jet_rhs[1] = _h13 + _a0*(_h11 - 2*_t8 + _s4*_t15) + _a1*(_h10 + _t39 + _s4*_t17 + _s5*_t15) + _h12*_s4 + _h9*_t38;
-    jet_rhs[2] = _a0*(_h14*_t8 + _t14*_t6 - 1) + _a1*(_h9*_t8 + _t10*_t14 + _t12*_t15 + _t16*_t6) + _h5*_t6 + _h7*_t37 + _h9*_t39 + _t19*_t8;
+    jet_rhs[2] = _a0*(_h14*_t8 + _t14*_t6 - 1) + _a1*(_h9*_t8 + _t10*_t14 + _t12*_t15 + _t16*_t6) + _h6*_t37 + _h7*_t6 + _h9*_t39 + _t19*_t8;
     R[0] = _t20*_t27 + _t25*_t28;
     R[1] = -_t24*_t28 - _t25*_t27;
     R[2] = _t20*_t29 - _t25*_t30;

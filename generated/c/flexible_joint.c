@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: flexible_joint
  * spec sha256: 69a6d87357b58b57fbf25c4017e0339cb7909f5e0541053760fd72026198a949
- * content sha256: 910ce87c41b2d023017963e7d22ba157816e80b124e24a956e2fc1aa534ba77a
+ * content sha256: df1745a9e82ca130104dc63af20c8253a5a2f10b2636510c18b1b326906b0089
  */
 
 /* flexible_joint: see flexible_joint.h. The law is CSE'd straight-line code and two numerical
@@ -72,7 +72,7 @@ static void flexible_joint_k_jet_time(double t, const double *p, const double *a
 }
 
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (163 operations, 301 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (163 operations, 300 before CSE). */
 static void flexible_joint_k_jet(double t, const double *s, const double *p, const double *a, const double *tau, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     (void)t;

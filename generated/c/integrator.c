@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: integrator
  * spec sha256: 40576c18c294af3887c9624f66ecc50b110ad7b4f1bad6668712c370fd5a52df
- * content sha256: f17af15913bbf47b45c66e3174c36a2719e5dcbc107f2dc9c8f521228c45569a
+ * content sha256: 271d873026cf7c0dc48c9303ec84c3281d8c8acaa06ed55e56bf440e074237fa
  */
 
 /* integrator: see integrator.h. The law is CSE'd straight-line code and two numerical
@@ -51,7 +51,7 @@ static void integrator_k_jet_time(double t, const double *p, const double *a, do
 }
 
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (7 operations, 12 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (7 operations, 11 before CSE). */
 static void integrator_k_jet(double t, const double *s, const double *p, const double *a, const double *tau, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     (void)t;

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: planar_arm3
  * spec sha256: 63d130b8bfdcabd4b35f10882f051baacdec9d17c6622b99cfadaf848ad6bddb
- * content sha256: 45e47422bf5062206062b526c6c7eb656dacbecc2c8f0b8c89d117535e34902d
+ * content sha256: bdb64f4b5ec1b3056b48c828beb14702062d910fcbef6f90b3d23d1a91ca9fa0
  */
 
 /* planar_arm3: see planar_arm3.h. The law is CSE'd straight-line code and two numerical
@@ -100,7 +100,7 @@ static void planar_arm3_k_jet_time(double t, const double *p, const double *a, d
 }
 
 
-/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (255 operations, 675 before CSE). */
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (255 operations, 672 before CSE). */
 static void planar_arm3_k_jet(double t, const double *s, const double *p, const double *a, const double *tau, double *z, double *R, double *pvec, double *mass, double *mass_pivot)
 {
     (void)t;

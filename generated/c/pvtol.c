@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: pvtol
  * spec sha256: be710ed125f8f03510224cfb26b640a15fbf0f4c2fc658d5bca920cecbeb917f
- * content sha256: ab10ff0e2baba0c4717d40c558a52a370ce32e6f80967b605bc8666cccbfb5c0
+ * content sha256: 3a3733f715c552714719be7fec8fc1cac258f9c5747af3131590af9d34f97239
  */
 
 /* pvtol: see pvtol.h. The law is CSE'd straight-line code and two numerical
@@ -83,7 +83,7 @@ static void pvtol_k_jet_time(double t, const double *p, const double *a, double 
 }
 
 
-/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (55 operations, 141 before CSE). */
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (55 operations, 139 before CSE). */
 static void pvtol_k_jet(double t, const double *s, const double *p, const double *a, const double *tau, double *z, double *R, double *pvec)
 {
     (void)t;

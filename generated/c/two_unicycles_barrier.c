@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: two_unicycles_barrier
  * spec sha256: f52afcd756f689ff7e23a1d65625d59ce126c2602ce6dc62039f52e88519699e
- * content sha256: 45c689b622a6894e123b188310cc65bb5363f0d094b6206e0bb4c90ee73cc4ea
+ * content sha256: f19326bc87d0952411545b4380dc15074b51a199561863797773223b374ad5ac
  */
 
 /* two_unicycles_barrier: see two_unicycles_barrier.h. The law is CSE'd straight-line code and two numerical
@@ -62,7 +62,7 @@ static void two_unicycles_barrier_k_jet_time(double t, const double *p, const do
 }
 
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (164 operations, 369 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (164 operations, 353 before CSE). */
 static void two_unicycles_barrier_k_jet(double t, const double *s, const double *p, const double *a, const double *tau, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     (void)t;
@@ -133,10 +133,10 @@ static void two_unicycles_barrier_k_jet(double t, const double *s, const double 
     const double _t47 = _t18*(_t43 + _t20*_t42) + _t40*_t45;
     const double _t48 = 2*_t38*((_t23*_t23) + (_t24*_t24)) + _t18*_t27*_t28;
     const double _t49 = 2*(_t28*_t28) + _t18*_t48;
-    const double _t50 = 2*_t29;
-    const double _t51 = 2*_t36;
-    const double _t52 = _t18*(_t16*_t49 + _t30*_t50) + _t31*_t51 + _t32*_t48;
-    const double _t53 = _t18*(_t20*_t49 + _t34*_t50) + _t35*_t51 + _t45*_t48;
+    const double _t50 = 2*_t36;
+    const double _t51 = 2*_t29;
+    const double _t52 = _t18*(_t16*_t49 + _t30*_t51) + _t31*_t50 + _t32*_t48;
+    const double _t53 = _t18*(_t20*_t49 + _t34*_t51) + _t35*_t50 + _t45*_t48;
     hessian[0] = _t44 + 2;
     hessian[1] = _t46;
     hessian[2] = _t47 + 2;

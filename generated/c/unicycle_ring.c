@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_ring
  * spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
- * content sha256: 98121d26dab806713ad6d6a44caf01b469d90c3ef311384456383d5565204e25
+ * content sha256: 9bc56335bb6644b1fba4c026718bb83bd9e64b5aef496a3bc3b06e5f138e6d5c
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical
@@ -91,7 +91,7 @@ static void unicycle_ring_k_jet_time(double t, const double *p, const double *a,
 }
 
 
-/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (542 operations, 1388 before CSE). */
+/* Hessian of f0 and the right-hand side of Hess y_imp^(k) = sum a_i grad^(i) - rest (542 operations, 1324 before CSE). */
 static void unicycle_ring_k_jet(double t, const double *s, const double *p, const double *a, const double *tau, double *hessian, double *jet_rhs, double *R, double *pvec)
 {
     (void)t;
@@ -310,11 +310,11 @@ static void unicycle_ring_k_jet(double t, const double *s, const double *p, cons
     const double _t176 = _t103*_t174 + _t171*_t53 + _t50*(_t102*_t173 + _t172*_t52);
     const double _t177 = _t108*_t110 + _h0*_t58*((_t106*_t106) + (_t107*_t107));
     const double _t178 = 2*(_t109*_t109) + _t177*_t61;
-    const double _t179 = 2*_t177;
-    const double _t180 = 2*_t110;
-    const double _t181 = 4*_t109;
-    const double _t182 = _t112*_t181 + _t179*_t60 + _t61*(_t111*_t180 + _t178*_t59);
-    const double _t183 = _t116*_t181 + _t179*_t64 + _t61*(_t115*_t180 + _t178*_t63);
+    const double _t179 = 2*_t110;
+    const double _t180 = 4*_t109;
+    const double _t181 = 2*_t177;
+    const double _t182 = _t112*_t180 + _t181*_t60 + _t61*(_t111*_t179 + _t178*_t59);
+    const double _t183 = _t116*_t180 + _t181*_t64 + _t61*(_t115*_t179 + _t178*_t63);
     const double _t184 = _t124 + 2;
     const double _t185 = _t133 + 2;
     const double _t186 = _t154 + 2;

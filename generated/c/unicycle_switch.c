@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_switch
  * spec sha256: 2878f03771fc7198ac6275c6ac6ef44a732e984a25524d983623ec594c8ccb0b
- * content sha256: 0ed38b645a90686b7f08cee2c33d96446b5a242cd331ca8aa92f1742ce9f1971
+ * content sha256: 22b18259b903dbdae390187f59d462cbe4ecf159a021ca8625ee235d8e4c58a8
  */
 
 /* unicycle_switch: see unicycle_switch.h. The law is CSE'd straight-line code and two numerical
@@ -80,7 +80,7 @@ static void unicycle_switch_k_jet_time(double t, const double *p, const double *
 }
 
 
-/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (21 operations, 83 before CSE). */
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (21 operations, 81 before CSE). */
 static void unicycle_switch_k_jet(double t, const double *s, const double *p, const double *a, const double *tau, double *z, double *R, double *pvec)
 {
     (void)t;

@@ -23,6 +23,7 @@ from tvopt_codegen.maths.jet import (
     jacobian,
     next_derivative,
     partial,
+    without_atoms,
 )
 from tvopt_codegen.maths.lie import (
     nonzero_entries,
@@ -240,8 +241,9 @@ def _gradient_jet(
         else:
             # grad^(k) is affine in y^(k) with slope Hess: dropping y^(k) leaves the rest.
             drop = _dropping({chain[k] for chain in y_jet})
-            rest_program = Program(tuple((s, drop(e)) for s, e in new.assignments))
-            rest = tuple(drop(e) for e in current)
+            rest_program, rest = without_atoms(
+                [(s, drop(e)) for s, e in new.assignments], [drop(e) for e in current]
+            )
     signal_program = Program(())
     signal_chains: list[tuple[sx.Expr, ...]] = []
     measured = set(model.references)

@@ -374,12 +374,49 @@ def next_derivative(
     new, current, moving = total_derivative(program, outputs, rates, names, check)
     # One walker for every assignment, its pieces written just before it: a walk per
     # assignment (a closure, a program and their release each) was a fifth of this.
-    walker = _Atomizer(names, {})
+    walker = _Atomizer(names, {}, {})
+    alias = walker.alias
     for sym, value in new.assignments:
         root = walker.visit(sx.as_expr(value))
-        walker.out.append((sym, root))
+        if root.is_Atom:
+            # A rate that is a subtree assigned already (or a number): its symbol stands
+            # for it wherever it is read, where an assignment of one symbol to another
+            # was a third of a team's jet, walked by every pass of lowering after.
+            alias[sym] = root
+        else:
+            walker.out.append((sym, root))
     current = tuple(walker.visit(sx.as_expr(e)) for e in current)
+    if alias:
+        moving = {sym: alias.get(rate, rate) for sym, rate in moving.items()}
     return Program(tuple(walker.out)), current, moving
+
+
+def without_atoms(
+    assignments: Sequence[Assignment], outputs: Sequence[sx.Expr]
+) -> tuple[Program, tuple[sx.Expr, ...]]:
+    """``assignments`` without those whose value is an atom, that atom put where they are read.
+
+    Setting a program's highest derivatives to zero (the jet's rest) leaves assignments
+    of zero and of one symbol to another; every pass of lowering would walk them.
+    """
+    alias: dict[sx.Expr, sx.Expr] = {}
+    kept: list[Assignment] = []
+
+    def replaced(expr: sx.Expr) -> sx.Expr:
+        if not alias:
+            return expr
+        if expr.is_Atom:
+            return alias.get(expr, expr)
+        held = {s: alias[s] for s in expr.free_symbols if s in alias}
+        return expr.xreplace(held) if held else expr
+
+    for sym, raw in assignments:
+        value = replaced(sx.as_expr(raw))
+        if value.is_Atom:
+            alias[sym] = value
+        else:
+            kept.append((sym, value))
+    return Program(tuple(kept)), tuple(replaced(sx.as_expr(e)) for e in outputs)
 
 
 def atomize(
@@ -416,14 +453,22 @@ class _Atomizer:
     A method, not a nested function: nothing to release after the walk (no cycle).
     """
 
-    def __init__(self, names: Iterator[sx.Expr], table: dict[sx.Expr, sx.Expr]) -> None:
+    def __init__(
+        self,
+        names: Iterator[sx.Expr],
+        table: dict[sx.Expr, sx.Expr],
+        alias: dict[sx.Expr, sx.Expr] | None = None,
+    ) -> None:
         self.names, self.table = names, table
+        #: Symbols that stand for an atom (:func:`next_derivative`), replaced where met.
+        self.alias: dict[sx.Expr, sx.Expr] = {} if alias is None else alias
         self.out: list[Assignment] = []
 
     def visit(self, node: sx.Expr) -> sx.Expr:
         """``node`` as an atom or the symbol of its assignment, its pieces assigned first."""
+        alias = self.alias
         if node.is_Atom:
-            return node
+            return alias.get(node, node) if alias else node
         table = self.table
         # One lookup (a SymEngine node hashes and compares in a microsecond).
         known = table.get(node)
@@ -432,7 +477,11 @@ class _Atomizer:
         own = node.args
         visit = self.visit
         # An atom is its own result: asked here, not in a call per atom.
-        args = [arg if arg.is_Atom else visit(arg) for arg in own]
+        if alias:
+            get = alias.get
+            args = [get(arg, arg) if arg.is_Atom else visit(arg) for arg in own]
+        else:
+            args = [arg if arg.is_Atom else visit(arg) for arg in own]
         if node.is_Mul:
             # Products become chains of two factors: the derivative of an n-factor
             # product is n terms of n - 1 factors, quadratic; of a chain, linear.
