@@ -12,7 +12,15 @@ import sympy as sp
 
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.derivation import jet_symbol
-from tvopt_codegen.maths.jet import Program, atomize, fresh_symbols, partial, total_derivative
+from tvopt_codegen.maths.jet import (
+    Program,
+    atomize,
+    fresh_symbols,
+    next_derivative,
+    partial,
+    total_derivative,
+    without_atoms,
+)
 from tvopt_codegen.maths.numeric import Evaluator
 from tvopt_codegen.symbolic.border import to_sympy
 
@@ -73,6 +81,44 @@ def test_rest_is_grad_k_without_the_hessian_term() -> None:
     program = d.jet.jet_program + d.jet.rest_program
     for e in d.jet.rest:
         assert not (program.inline(e).free_symbols & {ch[k] for ch in d.jet.y_jet})
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_next_derivative_assigns_no_atom_and_keeps_the_values(k: int) -> None:
+    """A rate that atomizes to an atom (a subtree met before, a number) is no assignment.
+
+    ``(y - t)**2 * (y - t)``'s derivative meets ``y - t`` again, and ``t**2 + y``'s
+    second derivative is a number: each was an assignment of one atom, walked by every
+    pass of lowering. The values are total_derivative's all the same, at random points.
+    """
+    t, y = sx.symbol("t"), sx.symbol("y")
+    jet = [jet_symbol("y", j) for j in range(k + 1)]
+    exprs = [(y - t) ** 2 * (y - t) + sx.sin(y - t), t**2 + y * t]
+    rates = {t: sx.Integer(1)} | {jet[j]: jet[j + 1] for j in range(k)}
+    names = fresh_symbols("q")
+    program, current = atomize(exprs, names)
+    plain_program, plain, plain_rates = program, current, dict(rates)
+    for _ in range(k):
+        new, current, rates = next_derivative(program, current, rates, names)
+        assert not any(value.is_Atom for _, value in new.assignments)
+        program = program + new
+        more, plain, plain_rates = total_derivative(plain_program, plain, plain_rates, names)
+        plain_program = plain_program + more
+    rng = np.random.default_rng(3)
+    for _ in range(4):
+        point = {s: sx.real(rng.uniform(-1, 1)) for s in [t, *jet]}
+        ours = [float(program.inline(e).xreplace(point)) for e in current]
+        theirs = [float(plain_program.inline(e).xreplace(point)) for e in plain]
+        assert np.allclose(ours, theirs, rtol=1e-12, atol=1e-12)
+
+
+def test_without_atoms_substitutes_what_an_assignment_of_an_atom_stood_for() -> None:
+    a, b, c, d, x = (sx.symbol(n) for n in "abcdx")
+    program, outputs = without_atoms(
+        [(a, sx.Integer(0)), (b, a), (c, x * b + x), (d, c * c)], [d + b, c]
+    )
+    assert program.assignments == ((d, x * x),)
+    assert outputs == (d, x)
 
 
 @pytest.mark.parametrize("name", EXAMPLES)
