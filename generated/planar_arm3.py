@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: planar_arm3
 # spec sha256: 63d130b8bfdcabd4b35f10882f051baacdec9d17c6622b99cfadaf848ad6bddb
-# content sha256: 4f19ca1cea459b9f974249b0fdf51ef1a21d102f9fe18434fa8591c9dd698932
+# content sha256: 8ec0fa282745404176d70a7d99606f09d6dda20d5d0a0ea780a2d189ca3ee0ba
 # ruff: noqa
 
 """planar_arm3: implicit trajectory planning controller.
@@ -417,7 +417,7 @@ def _jet_time(t, p, a):
 
 
 def _jet(t, s, p, a, tau):
-    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 255 operations, 672 before CSE)."""
+    """y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (kernel; 255 operations, 669 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # q1
     _s1 = s[1]  # q2
@@ -583,7 +583,7 @@ def _decoupling(t, s, p, z, q):
 
 
 def _closed_loop(t, s, p, w, z):
-    """Closed-loop vector field and the plant input (kernel; 179 operations, 225 before CSE)."""
+    """Closed-loop vector field and the plant input (kernel; 179 operations, 222 before CSE)."""
     _n = s.shape[1]
     _s0 = s[0]  # q1
     _s1 = s[1]  # q2
@@ -767,7 +767,7 @@ def _hessian(t, y, p):
 
 
 def _plant(t, x, u, p):
-    """The plant alone: x' = f(x) + G(x) u (kernel; 179 operations, 225 before CSE)."""
+    """The plant alone: x' = f(x) + G(x) u (kernel; 179 operations, 222 before CSE)."""
     _n = x.shape[1]
     _x0 = x[0]  # q1
     _x1 = x[1]  # q2

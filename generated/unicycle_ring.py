@@ -4,7 +4,7 @@
 # template: python/controller.py.jinja
 # spec name: unicycle_ring
 # spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
-# content sha256: 9f94567c628d38caf20c33c8afdb795adfa3a825116e487629475f18901795aa
+# content sha256: a8bb724d45d4589fd2c94e2787de31e21b6e387a9a1d92ccb7d02008fe83a37a
 # ruff: noqa
 
 """unicycle_ring: implicit trajectory planning controller.
@@ -706,7 +706,7 @@ def _jet(t, s, p, a, tau):
 
 
 def _cholesky(h, c):
-    """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (kernel; 259 operations, 264 before CSE)."""
+    """Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (kernel; 259 operations, 260 before CSE)."""
     _n = h.shape[1]
     _h0 = h[0]  # H[0, 0]
     _h1 = h[1]  # H[1, 0]

@@ -346,6 +346,26 @@ def test_cholesky_program_solves_a_sparse_system(seed: int) -> None:
     assert product == pytest.approx(np.linalg.det(dense), rel=1e-12)
 
 
+def test_cholesky_program_subtracts_each_product_on_its_own() -> None:
+    """``a - l*s - l'*s'``, never ``a - (l*s + l'*s')``: SymEngine keeps the second a
+    negated sum, which lowering would distribute again at every elimination step."""
+    m = 7
+    pattern = {(i, i) for i in range(m)} | {(i, i - 1) for i in range(1, m)} | {(m - 1, 0)}
+    entries = sorted(pattern)
+    h = sx.symbols([f"_h{e}" for e in range(len(entries))])
+    c = sx.symbols([f"_c{i}" for i in range(m)])
+    program, _, _ = cholesky_program(entries, m, h, c)
+    negated_sums = [
+        value
+        for _, value in program
+        for node in [value, *value.args]
+        if node.is_Mul and any(arg.is_Add for arg in node.args)
+    ]
+    assert negated_sums == []
+    # The dots are there: a fill-in's elimination subtracts two products at once.
+    assert max(len(value.args) for _, value in program if value.is_Add) >= 3
+
+
 def test_cholesky_pivots_turn_negative_for_an_indefinite_matrix() -> None:
     h = sx.symbols([f"_h{i}" for i in range(3)])
     c = sx.symbols([f"_c{i}" for i in range(2)])

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: planar_arm3
  * spec sha256: 63d130b8bfdcabd4b35f10882f051baacdec9d17c6622b99cfadaf848ad6bddb
- * content sha256: bdb64f4b5ec1b3056b48c828beb14702062d910fcbef6f90b3d23d1a91ca9fa0
+ * content sha256: 97cc87ffb94395adc0da21239aeff85ef02812b31c425ababd06fd119b75de2b
  */
 
 /* planar_arm3: see planar_arm3.h. The law is CSE'd straight-line code and two numerical
@@ -100,7 +100,7 @@ static void planar_arm3_k_jet_time(double t, const double *p, const double *a, d
 }
 
 
-/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (255 operations, 672 before CSE). */
+/* y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian (255 operations, 669 before CSE). */
 static void planar_arm3_k_jet(double t, const double *s, const double *p, const double *a, const double *tau, double *z, double *R, double *pvec, double *mass, double *mass_pivot)
 {
     (void)t;
@@ -261,7 +261,7 @@ static void planar_arm3_k_decoupling(double t, const double *s, const double *p,
 }
 
 
-/* Closed-loop vector field and the plant input (179 operations, 225 before CSE). */
+/* Closed-loop vector field and the plant input (179 operations, 222 before CSE). */
 static void planar_arm3_k_closed_loop(double t, const double *s, const double *p, const double *w, const double *z, double *ds, double *u)
 {
     (void)t;
@@ -438,7 +438,7 @@ static void planar_arm3_k_hessian(double t, const double *y, const double *p, do
 }
 
 
-/* The plant alone: x' = f(x) + G(x) u (179 operations, 225 before CSE). */
+/* The plant alone: x' = f(x) + G(x) u (179 operations, 222 before CSE). */
 static void planar_arm3_k_plant(double t, const double *x, const double *u, const double *p, double *dx)
 {
     (void)t;

@@ -3,7 +3,7 @@
  * template: c/controller.c.jinja
  * spec name: unicycle_ring
  * spec sha256: 970c795bb49b4095764a4e97bb88538d854561ba71527c5c507cf10b2b80eaea
- * content sha256: 9bc56335bb6644b1fba4c026718bb83bd9e64b5aef496a3bc3b06e5f138e6d5c
+ * content sha256: eab1c8ecf74d63f43385f94b557127a5413f8f0ed634b2231ada8f1bc1313901
  */
 
 /* unicycle_ring: see unicycle_ring.h. The law is CSE'd straight-line code and two numerical
@@ -382,7 +382,7 @@ static void unicycle_ring_k_jet(double t, const double *s, const double *p, cons
 }
 
 
-/* Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (259 operations, 264 before CSE). */
+/* Sparse LDL^T (square-root-free Cholesky) solve of Hess z = c (z = y_imp^(k)) and its pivots (259 operations, 260 before CSE). */
 static void unicycle_ring_k_cholesky(const double *h, const double *c, double *z, double *pivot)
 {
     const double _h0 = h[0]; /* H[0, 0] */

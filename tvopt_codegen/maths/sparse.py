@@ -9,7 +9,7 @@ with partial pivoting at run time, block by diagonal block, whose cost
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -159,6 +159,16 @@ def cholesky_program(
     return program, z, pivots
 
 
+def minus(first: sx.Expr, products: Iterable[tuple[sx.Expr, sx.Expr]]) -> sx.Expr:
+    """``first - sum(a*b)``, each product negated on its own: ``first - a*b - c*d``.
+
+    SymEngine keeps ``x - (a*b + c*d)`` as a negated sum, which lowering distributes again
+    (:meth:`.Dag.distribute`, a rebuild of every elimination step); SymPy's ``Mul``
+    distributes it itself. Built distributed, both engines give the same sum at once.
+    """
+    return sx.Add(first, *(-(a * b) for a, b in products))
+
+
 def ldl_program(
     entries: Sequence[tuple[int, int]],
     m: int,
@@ -217,26 +227,28 @@ def ldl_program(
     pivots: list[sx.Expr] = []
     for b in range(m):
         pivot = assign(
-            value.get((b, b), sx.Integer(0))
-            - sx.Add(*(unit[(b, k)] * scaled[(b, k)] for k in row_entries[b]))
+            minus(
+                value.get((b, b), sx.Integer(0)),
+                ((unit[(b, k)], scaled[(b, k)]) for k in row_entries[b]),
+            )
         )
         pivots.append(pivot)
         inverse.append(assign(1 / pivot))
         for a in columns[b]:
             shared = set(row_entries[a]) & set(row_entries[b])
-            dot = sx.Add(*(unit[(a, k)] * scaled[(b, k)] for k in sorted(shared)))
-            scaled[(a, b)] = assign(value.get((a, b), sx.Integer(0)) - dot)
+            dot = ((unit[(a, k)], scaled[(b, k)]) for k in sorted(shared))
+            scaled[(a, b)] = assign(minus(value.get((a, b), sx.Integer(0)), dot))
             unit[(a, b)] = assign(scaled[(a, b)] * inverse[b])
             row_entries[a].append(b)
     solutions = []
     for c in rhs:
         forward: list[sx.Expr] = []
         for a in range(m):
-            dot = sx.Add(*(unit[(a, k)] * forward[k] for k in row_entries[a]))
-            forward.append(assign(c[order[a]] - dot))
+            dot = ((unit[(a, k)], forward[k]) for k in row_entries[a])
+            forward.append(assign(minus(c[order[a]], dot)))
         backward: dict[int, sx.Expr] = {}
         for a in reversed(range(m)):
-            dot = sx.Add(*(unit[(k, a)] * backward[k] for k in columns[a]))
-            backward[a] = assign(forward[a] * inverse[a] - dot)
+            dot = ((unit[(k, a)], backward[k]) for k in columns[a])
+            backward[a] = assign(minus(forward[a] * inverse[a], dot))
         solutions.append([backward[position[i]] for i in range(m)])
     return program, solutions, pivots
