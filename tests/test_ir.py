@@ -34,7 +34,7 @@ from tvopt_codegen.lowering.kernel import Arg, Kernel, Output
 from tvopt_codegen.maths.sparse import cholesky_program, elimination_order, reverse_cuthill_mckee
 from tvopt_codegen.symbolic.border import from_sympy, to_sympy
 
-from .conftest import kernels
+from .conftest import derivation, kernels
 
 
 def _txya() -> list[Any]:
@@ -701,3 +701,78 @@ def test_lowering_leaves_no_reference_cycles_of_its_own() -> None:
         gc.garbage.clear()
         gc.enable()
     assert ours == []
+
+
+def _kernel_values(kernel: Kernel, inputs: dict[Any, float]) -> list[float]:
+    """A kernel's outputs, flat, at ``inputs`` (symbol -> float), each value evaluated once."""
+    env: dict[Any, float] = {}
+
+    def value(expr: sx.Expr) -> float:
+        expr = sx.as_expr(expr)
+        point = {s: sx.real(env[s] if s in env else inputs[s]) for s in expr.free_symbols}
+        return float(expr.xreplace(point))
+
+    for sym, expr in kernel.body:
+        env[sym] = value(expr)
+    return [value(e) for out in kernel.outputs for e in out.exprs]
+
+
+def test_f0s_gradient_and_hessian_cut_from_the_jet_program_are_the_objectives_own(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Outputs that are states: the gradient and Hessian kernels at outputs are cut from
+    the jet's program (lowered once, in one union with the jet), their state slots read
+    as the outputs'. They compute what the objective's own program lowered apart
+    computes, at no more operations; a spec whose outputs are functions of the state,
+    or whose gradient is the KKT map's, lowers them apart."""
+    from tvopt_codegen.derivation.pipeline import derive  # noqa: PLC0415
+    from tvopt_codegen.lowering import ir  # noqa: PLC0415
+    from tvopt_codegen.spec import parse_spec  # noqa: PLC0415
+
+    from .conftest import ROOT  # noqa: PLC0415
+
+    raw = (ROOT / "tvopt_codegen" / "examples" / "unicycle_ring.toml").read_bytes()
+    # 32 agents: the jet and E are large enough to be lowered as one union, and f0, its
+    # gradient and its Hessian would be one too, lowered apart.
+    ring = derive(parse_spec("ring32.toml", raw.replace(b"\ni = 4 ", b"\ni = 32 ", 1)))
+    assert ir._outputs_as_states(ring, ir._arguments(ring)) is not None
+    calls: list[list[str]] = []
+    make_kernels = ir.make_kernels
+
+    def counted(kernels: Any, *args: Any, **options: Any) -> list[Kernel]:
+        made = make_kernels(kernels, *args, **options)
+        calls.append([k.name for k in made])
+        return made
+
+    monkeypatch.setattr(ir, "make_kernels", counted)
+    cut = {k.name: k for k in ir.lower(ring).kernels}
+    # The riders came with the jet; f0 alone was lowered apart.
+    assert calls == [["jet", "optimality", "gradient", "hessian"], ["objective"]]
+    monkeypatch.setattr(ir, "_outputs_as_states", lambda d, args: None)
+    apart = {k.name: k for k in ir.lower(ring).kernels}
+    monkeypatch.undo()
+    assert [k for k in cut] == [k for k in apart]
+    assert all(cut[name].ops == apart[name].ops for name in ("jet", "optimality"))
+    rng = np.random.default_rng(11)
+    for name in ("objective", "gradient", "hessian"):
+        ours, theirs = cut[name], apart[name]
+        assert ours.inputs == theirs.inputs
+        assert ours.ops <= theirs.ops
+        for _ in range(2):
+            point = {s: rng.uniform(-2.0, 2.0) for arg in ours.inputs for s in arg.symbols}
+            point[sx.symbol("t")] = rng.uniform(0.0, 5.0)
+            np.testing.assert_allclose(
+                _kernel_values(ours, point), _kernel_values(theirs, point), rtol=1e-12, atol=1e-12
+            )
+    # At 16 agents f0's kernel is small enough for the engine's search: the three are
+    # lowered apart, as they would be without riders, and searched.
+    calls.clear()
+    monkeypatch.setattr(ir, "make_kernels", counted)
+    small = derive(parse_spec("ring16.toml", raw.replace(b"\ni = 4 ", b"\ni = 16 ", 1)))
+    ir.lower(small)
+    monkeypatch.undo()
+    assert calls == [["jet", "optimality"], ["objective", "gradient", "hessian"]]
+    # y = h(x) a function of the state (the arm's tip), and equalities (the KKT map).
+    for spec in ("planar_arm3", "arm_on_line"):
+        d = derivation(spec)
+        assert ir._outputs_as_states(d, ir._arguments(d)) is None

@@ -41,6 +41,10 @@ from tvopt_codegen.maths.jet import Assignment, release
 #: A kernel's outputs: (name, shape, expressions in row-major order, description).
 Outputs = Sequence[tuple[str, tuple[int, ...], Sequence[sx.Expr], str]]
 
+#: A kernel cut from another's program (:func:`make_kernels`): name, doc, inputs,
+#: outputs over that program's arguments, and the renaming of those to its own inputs.
+Rider = tuple[str, str, Sequence[Arg], Outputs, Mapping[sx.Expr, sx.Expr]]
+
 
 def _prepare(
     assignments: Sequence[Assignment],
@@ -204,10 +208,21 @@ def make_kernels(
     subs: Mapping[sx.Expr, sx.Expr],
     odd: dict[sx.Expr, sx.Expr] | None = None,
     symbols: dict[sx.Expr, set[sx.Expr]] | None = None,
+    riders: Sequence[Rider] = (),
+    companions: Sequence[tuple[str, str, Sequence[Arg], Outputs]] = (),
 ) -> list[Kernel]:
     """Kernels (name, doc, inputs, outputs) over one program, lowered together when large.
 
     ``odd`` and ``symbols`` are memos one controller's kernels share (:func:`make_kernel`).
+
+    ``riders`` are kernels cut from the same program whose outputs the program's
+    arguments compute under other names (:data:`Rider`: f0's gradient and Hessian at
+    outputs that are states, from the jet's program of the state): they ride the
+    kernels' union, their inputs renamed last, and follow them in the result, when
+    both the kernels and the riders with their ``companions`` (the kernels lowered
+    apart with them, here f0's: counted, never made) would be lowered as a union
+    (:func:`_lowered_together`). Otherwise they are left out of the result, to be
+    lowered apart with their companions, and change nothing.
 
     The jet kernel and the optimality error read the same gradient jet; lowered apart,
     each substitutes, numbers and inlines it anew (a third of lowering's time on a ring
@@ -217,6 +232,10 @@ def make_kernels(
     then used once. Smaller kernels are made one by one, as :func:`make_kernel` would:
     the engine's fuller search suits them, and a union could pass its size limit.
     """
+    primary = (len(kernels), len(riders))
+    kernels = [*kernels, *(rider[:4] for rider in riders), *companions]
+    renames: list[Mapping[sx.Expr, sx.Expr] | None] = [None] * len(kernels)
+    renames[primary[0] : sum(primary)] = [rider[4] for rider in riders]
     symbolic = [_symbolic(outputs) for *_, outputs in kernels]
     sizes = [len(exprs) for exprs, _ in symbolic]
     # The kernels cut from one program share its nodes: each is walked once.
@@ -225,9 +244,9 @@ def make_kernels(
         assignments, [e for exprs, _ in symbolic for e in exprs], subs, odd, symbols
     )
     ends = list(itertools.accumulate(sizes))
+    wheres = [where for _, where in symbolic]
     if sx.SYMENGINE:
-        wheres = [w for _, w in symbolic]
-        return _make_kernels_dag(kernels, program, flat, sizes, ends, wheres, odd)
+        return _make_kernels_dag(kernels, program, flat, sizes, ends, wheres, odd, renames, primary)
     parts = [flat[end - size : end] for size, end in zip(sizes, ends, strict=True)]
     counts: dict[sx.Expr, int] = {}
     programs = [_prune(program, part, symbols) for part in parts]
@@ -235,11 +254,12 @@ def make_kernels(
         operation_count([v for _, v in mine] + part, counts)
         for mine, part in zip(programs, parts, strict=True)
     ]
-    wheres = [where for _, where in symbolic]
-    if len(kernels) < 2 or min(befores) <= SMALL_PROGRAM_OPS:
-        made = []
+    union, count = _lowered_together(befores, primary)
+    kernels, befores = kernels[:count], befores[:count]
+    made = []
+    if not union:
         for (name, doc, inputs, outputs), mine, part, where, before in zip(
-            kernels, programs, parts, wheres, befores, strict=True
+            kernels, programs[:count], parts[:count], wheres[:count], befores, strict=True
         ):
             body, reduced = ordered_cse(mine, part)
             made.append(
@@ -248,17 +268,32 @@ def make_kernels(
                 )
             )
         return made
-    order, outs = _reduce(program, flat, search=False, symbols=symbols)
-    made = []
-    for (name, doc, inputs, outputs), size, end, where, before in zip(
-        kernels, sizes, ends, wheres, befores, strict=True
+    order, outs = _reduce(program, flat[: ends[count - 1]], search=False, symbols=symbols)
+    for (name, doc, inputs, outputs), size, end, where, before, rename in zip(
+        kernels, sizes[:count], ends[:count], wheres[:count], befores, renames[:count], strict=True
     ):
         mine = outs[end - size : end]
-        body, reduced = _number(*_inline_single_use(_prune(order, mine, symbols), mine))
+        body, reduced = _number(*_inline_single_use(_prune(order, mine, symbols), mine), rename)
         made.append(
             _package(name, doc, inputs, outputs, body, _scatter(outputs, where, reduced), before)
         )
     return made
+
+
+def _lowered_together(befores: Sequence[int], primary: tuple[int, int]) -> tuple[bool, int]:
+    """Whether :func:`make_kernels`' kernels are lowered as one union, and how many are made.
+
+    ``befores`` are the operation counts before CSE of the kernels, then of the riders
+    and their companions; ``primary`` the numbers of kernels and riders. The riders
+    ride a union only, and only when lowered apart with their companions they would be
+    a union too: a kernel small enough for the engine's search gets it as it would
+    apart (f0's gradient at 24 agents: 608 operations so, 921 cut from the jet's union).
+    """
+    kernels, riders = primary
+    union = kernels >= 2 and min(befores[:kernels]) > SMALL_PROGRAM_OPS
+    group = befores[kernels:]
+    ride = union and riders > 0 and len(group) >= 2 and min(group) > SMALL_PROGRAM_OPS
+    return union, kernels + riders if ride else kernels
 
 
 def _make_kernels_dag(
@@ -269,11 +304,15 @@ def _make_kernels_dag(
     ends: Sequence[int],
     wheres: Sequence[Sequence[int]],
     odd: dict[sx.Expr, sx.Expr] | None,
+    renames: Sequence[Mapping[sx.Expr, sx.Expr] | None],
+    primary: tuple[int, int],
 ) -> list[Kernel]:
     """:func:`make_kernels` on SymEngine, its program read once into a :class:`.Dag`.
 
     The same steps, on the DAG's integer ids; expressions are built for what the
-    kernels hold, and where inlining collects terms. ``odd`` is :func:`make_kernel`'s.
+    kernels hold, and where inlining collects terms. ``odd`` is :func:`make_kernel`'s;
+    ``primary`` the numbers of kernels and riders (their inputs renamed by
+    ``renames``), companions after them.
     """
     dag = Dag()
     ids = dag.read(program)
@@ -285,29 +324,27 @@ def _make_kernels_dag(
         dag.operations([v for _, v in mine] + part)
         for mine, part in zip(programs, parts, strict=True)
     ]
+    union, count = _lowered_together(befores, primary)
+    kernels, programs, befores = kernels[:count], programs[:count], befores[:count]
     made = []
-    if len(kernels) < 2 or min(befores) <= SMALL_PROGRAM_OPS:
-        for (name, doc, inputs, outputs), mine, part, where, before in zip(
-            kernels, programs, parts, wheres, befores, strict=True
+    if not union:
+        for kernel, mine, part, where, before in zip(
+            kernels, programs, parts[:count], wheres[:count], befores, strict=True
         ):
             order, reduced_ids = _reduce_dag(dag, mine, part, True, pruned=True)
-            made.append(
-                _dag_kernel(dag, order, reduced_ids, (name, doc, inputs, outputs), where, before)
-            )
+            made.append(_dag_kernel(dag, order, reduced_ids, kernel, where, before))
         return made
     # What all outputs need is what one of the kernels needs: the program filtered,
     # where a walk of its DAG again was the largest of the walks.
     wanted = {sym for mine in programs for sym, _ in mine}
-    union = [(sym, value) for sym, value in ids if sym in wanted]
-    whole, whole_outs = _reduce_dag(dag, union, outs, False, pruned=True)
-    for (name, doc, inputs, outputs), size, end, where, before in zip(
-        kernels, sizes, ends, wheres, befores, strict=True
+    union_program = [(sym, value) for sym, value in ids if sym in wanted]
+    whole, whole_outs = _reduce_dag(dag, union_program, outs[: ends[count - 1]], False, pruned=True)
+    for kernel, size, end, where, before, rename in zip(
+        kernels, sizes[:count], ends[:count], wheres[:count], befores, renames[:count], strict=True
     ):
         mine_outs = whole_outs[end - size : end]
         order, reduced_ids = inline_single_use(dag, needed(dag, whole, mine_outs), mine_outs)
-        made.append(
-            _dag_kernel(dag, order, reduced_ids, (name, doc, inputs, outputs), where, before)
-        )
+        made.append(_dag_kernel(dag, order, reduced_ids, kernel, where, before, rename))
     return made
 
 
@@ -318,13 +355,19 @@ def _dag_kernel(
     kernel: tuple[str, str, Any, Any],
     where: Sequence[int],
     before: int,
+    rename: Mapping[sx.Expr, sx.Expr] | None = None,
 ) -> Kernel:
-    """A kernel from its program on the DAG: numbered, counted and packaged."""
+    """A kernel from its program on the DAG: numbered, counted and packaged.
+
+    ``rename`` renames its inputs (a rider's: :func:`make_kernels`).
+    """
     name, doc, inputs, outputs = kernel
     order, reduced_ids = factored(dag, order, reduced_ids)
-    body, reduced = _number_dag(dag, order, reduced_ids)
+    body, reduced = _number_dag(dag, order, reduced_ids, rename)
     ops = dag.operations([v for _, v in order] + reduced_ids) + _constant_ops(outputs)
     reads = symbols_read(dag, order, reduced_ids)
+    if rename:
+        reads = {rename.get(sym, sym) for sym in reads}
     flat = _scatter(outputs, where, reduced)
     return _package(name, doc, inputs, outputs, body, flat, before, ops, reads)
 

@@ -6,7 +6,7 @@ Value numbering, merging equal values and inlining values used once.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 from tvopt_codegen import symbolic as sx
@@ -196,11 +196,14 @@ def _reduce_dag(
 
 
 def _number_dag(
-    dag: Dag, order: Program, outs: Sequence[int]
+    dag: Dag,
+    order: Program,
+    outs: Sequence[int],
+    rename: Mapping[sx.Expr, sx.Expr] | None = None,
 ) -> tuple[tuple[Assignment, ...], tuple[sx.Expr, ...]]:
     """:func:`_number` of a program on ids: its expressions, temporaries renamed."""
     expr = dag.expression
-    return _number([(expr(s), expr(v)) for s, v in order], [expr(e) for e in outs])
+    return _number([(expr(s), expr(v)) for s, v in order], [expr(e) for e in outs], rename)
 
 
 def _reduce(
@@ -295,18 +298,24 @@ def _merged_and_inlined(
 
 
 def _number(
-    order: Sequence[Assignment], outs: Sequence[sx.Expr]
+    order: Sequence[Assignment],
+    outs: Sequence[sx.Expr],
+    rename: Mapping[sx.Expr, sx.Expr] | None = None,
 ) -> tuple[tuple[Assignment, ...], tuple[sx.Expr, ...]]:
-    """Rename the temporaries ``_t0, _t1, ...`` in evaluation order."""
+    """Rename the temporaries ``_t0, _t1, ...`` in evaluation order.
+
+    ``rename`` renames inputs in the same walk: a kernel cut from another's program
+    (:func:`.assembly.make_kernels`' riders) reads its own arguments' symbols.
+    """
     if sx.SYMENGINE:
         names = _temporaries(len(order))
         # Each value holds only symbols renamed before it: one renaming of all at once.
+        mapping = {sym: name for (sym, _), name in zip(order, names, strict=True)}
         values = _replace_all(
-            [value for _, value in order] + list(outs),
-            {sym: name for (sym, _), name in zip(order, names, strict=True)},
+            [value for _, value in order] + list(outs), mapping | dict(rename or {})
         )
         return tuple(zip(names, values[: len(order)], strict=True)), tuple(values[len(order) :])
-    renames: dict[sx.Expr, sx.Expr] = {}
+    renames: dict[sx.Expr, sx.Expr] = dict(rename or {})
     body: list[Assignment] = []
     # One memo, as in _drop_aliases: a node holds only symbols renamed before it is met.
     memo: dict[sx.Expr, sx.Expr] = {}

@@ -180,24 +180,67 @@ def _mass(d: Derivation) -> _Mass | None:
     return _Mass(assignments, entries, pivots)
 
 
-def _jet_kernels(
-    d: Derivation,
-    args: _Args,
-    programs: dict[str, list[Assignment]],
-    kernel: _Make,
-    kernels: _MakeMany,
-    mass: _Mass | None = None,
-) -> tuple[Kernel, Kernel | None, Kernel]:
-    """The jet (with R and p), its LDL^T solve, and the optimality error E.
+def _outputs_as_states(d: Derivation, args: _Args) -> dict[sx.Expr, sx.Expr] | None:
+    """Each output's state slot -> its output slot, when every output is a distinct state.
 
-    The solve is left out (None) when the Hessian is constant. E reads the same gradient
-    jet as the jet kernel: both are lowered together.
+    Then f0's gradient and Hessian at outputs are the jet program's own, its state slots
+    read as the outputs' (:func:`_objective_riders`). None otherwise: with equalities
+    (the jet's gradient is the KKT map's), or an output that is a function of the state.
     """
-    law, m, n, k = d.law, len(d.model.u), d.jet.n_kkt, d.dynamics.k
+    model = d.model
+    if model.equalities:
+        return None
+    slots: dict[sx.Expr, sx.Expr] = {}
+    for i, (y, y_slot) in enumerate(zip(model.y, args.y.symbols, strict=True)):
+        value = d.jet.y_jet_values[i][0]
+        slot = args.subs.get(value) if isinstance(value, sx.Symbol) else None
+        if d.jet.y_jet[i][0] != y or slot is None or slot in slots:
+            return None
+        slots[slot] = y_slot
+    return slots
+
+
+@dataclass(frozen=True)
+class _Objective:
+    """f0 in three-address form (its program and result), and its kernels' specifications."""
+
+    program: list[Assignment]
+    kernels: dict[str, tuple[str, str, list[Arg], Outputs]]
+
+
+def _objective_outputs(d: Derivation, args: _Args) -> _Objective:
+    """f0, its gradient and its Hessian at outputs, as :func:`make_kernels` takes them.
+
+    f0 in three-address form, as the gradient's program is: lowered nested, its every
+    barrier argument was walked whole by each pass (canonical_odd, CSE).
+    """
+    m = len(d.model.u)
+    on_y = [args.t, args.y, args.p, *args.r]
+    f0_program, (f0,) = atomize([d.model.f0], fresh_symbols("_f0_"))
+    kernels: dict[str, tuple[str, str, list[Arg], Outputs]] = {
+        "objective": ("objective", "The objective f0(y, t)", on_y, [("f0", (), [f0], "f0")]),
+        "gradient": (
+            "gradient",
+            "grad_y f0(y, t)",
+            on_y,
+            [("grad", (m,), list(d.objective.objective_gradient), "grad_y f0")],
+        ),
+        "hessian": (
+            "hessian",
+            "grad_yy f0(y, t)",
+            on_y,
+            [("hess", (m, m), d.objective.objective_hessian, "grad_yy f0")],
+        ),
+    }
+    return _Objective(list(f0_program.assignments), kernels)
+
+
+def _shared_outputs(
+    d: Derivation, mass: _Mass | None
+) -> list[tuple[str, tuple[int, ...], Sequence[sx.Expr], str]]:
+    """The jet kernel's outputs besides its law: R and p, and each feature's own."""
+    law, m, n = d.law, len(d.model.u), d.jet.n_kkt
     grad = d.jet.grad_jet
-    jet_program = programs["signals"] + programs["y"] + programs["jet"] + programs["hessian"]
-    jet_program += programs["rest"] + programs["mass"]
-    inputs = [args.t, args.s, args.p, args.a, *args.r]
     # R and p share their trigonometry with the output jet: one kernel, one CSE.
     shared: list[tuple[str, tuple[int, ...], Sequence[sx.Expr], str]] = [
         ("R", (len(law.r_entries),), law.r_entries, "diagonal blocks of the decoupling matrix"),
@@ -235,6 +278,32 @@ def _jet_kernels(
                 "G(x), row-major (the observer's)",
             ),
         ]
+    return shared
+
+
+def _jet_kernels(
+    d: Derivation,
+    args: _Args,
+    programs: dict[str, list[Assignment]],
+    kernel: _Make,
+    kernels: _MakeMany,
+    mass: _Mass | None,
+    objective: _Objective,
+) -> tuple[Kernel, Kernel | None, Kernel, dict[str, Kernel]]:
+    """The jet (with R and p), its LDL^T solve, the optimality error E, and riders.
+
+    The solve is left out (None) when the Hessian is constant. E reads the same gradient
+    jet as the jet kernel: both are lowered together. When the outputs are states
+    (:func:`_outputs_as_states`), f0, its gradient and its Hessian at outputs may be
+    cut from the same program (:func:`.make_kernels`' riders, returned by name), where
+    lowering the objective's program again for them was a sixth of a team's run.
+    """
+    law, m, n, k = d.law, len(d.model.u), d.jet.n_kkt, d.dynamics.k
+    grad = d.jet.grad_jet
+    jet_program = programs["signals"] + programs["y"] + programs["jet"] + programs["hessian"]
+    jet_program += programs["rest"] + programs["mass"]
+    inputs = [args.t, args.s, args.p, args.a, *args.r]
+    shared = _shared_outputs(d, mass)
     what = "grad^(j) f0" if n == m else "F^(j), F = [grad f0 + J_a^T nu; a]"
     optimality_kernel = (
         "optimality",
@@ -243,10 +312,26 @@ def _jet_kernels(
         [("E", (k, n), [grad[j][i] for j in range(k) for i in range(n)], what)],
     )
 
+    as_states = _outputs_as_states(d, args)
+    riders, companions = [], []
+    if as_states is not None:
+        specs = objective.kernels
+        riders = [(*specs[name], as_states) for name in ("gradient", "hessian")]
+        # f0's kernel is lowered apart, searched when small (a union with the jet
+        # cost both more operations); its size counts in whether the riders ride.
+        companions = [specs["objective"]]
+        jet_program = jet_program + objective.program
+    ridden: dict[str, Kernel] = {}
+
     def with_optimality(jet_doc: str, outputs: Outputs) -> tuple[Kernel, Kernel]:
-        jet, optimality = kernels(
-            [("jet", jet_doc, inputs, outputs), optimality_kernel], jet_program, args.subs
+        jet, optimality, *cut = kernels(
+            [("jet", jet_doc, inputs, outputs), optimality_kernel],
+            jet_program,
+            args.subs,
+            riders=riders,
+            companions=companions,
         )
+        ridden.update((made.name, made) for made in cut)
         return jet, optimality
 
     if law.y_imp is not None:
@@ -254,7 +339,7 @@ def _jet_kernels(
             "y_imp^(k) = Hess^-1 [sum a_i grad^(i) f0 - rest] for the constant Hessian",
             [("z", (n,), law.y_imp, args.z.doc), *shared],
         )
-        return jet, None, optimality
+        return jet, None, optimality, ridden
     # The Hessian goes out as the entries of its lower triangle that the law keeps.
     pattern = law.hessian_pattern
     value = dict(d.objective.hessian_entries)
@@ -297,7 +382,7 @@ def _jet_kernels(
         {},
         search=False,  # one operation per assignment already: nothing to find
     )
-    return jet, cholesky, optimality
+    return jet, cholesky, optimality, ridden
 
 
 def _input_kernels(
@@ -357,37 +442,24 @@ def _input_kernels(
 
 
 def _objective_kernels(
-    d: Derivation, args: _Args, programs: dict[str, list[Assignment]], kernels: _MakeMany
+    d: Derivation,
+    args: _Args,
+    programs: dict[str, list[Assignment]],
+    kernels: _MakeMany,
+    objective: _Objective,
+    ridden: dict[str, Kernel],
 ) -> list[Kernel]:
-    """f0 and its first and second derivatives in y, at given outputs."""
-    m = len(d.model.u)
-    on_y = [args.t, args.y, args.p, *args.r]
-    # f0 in three-address form, as the gradient's program is: lowered nested, its every
-    # barrier argument was walked whole by each pass (canonical_odd, CSE).
-    f0_program, (f0,) = atomize([d.model.f0], fresh_symbols("_f0_"))
+    """f0 and its first and second derivatives in y, at given outputs.
+
+    Those the jet's program gave already (``ridden``, by name) are not lowered again.
+    """
     # One program for the three: the signals, then the gradient's program (the jet's
     # first assignments) and f0's, which each kernel prunes to what it needs.
     program = programs["signals0"] + list(d.objective.objective_program.assignments)
-    program += list(f0_program.assignments)
-    return kernels(
-        [
-            ("objective", "The objective f0(y, t)", on_y, [("f0", (), [f0], "f0")]),
-            (
-                "gradient",
-                "grad_y f0(y, t)",
-                on_y,
-                [("grad", (m,), list(d.objective.objective_gradient), "grad_y f0")],
-            ),
-            (
-                "hessian",
-                "grad_yy f0(y, t)",
-                on_y,
-                [("hess", (m, m), d.objective.objective_hessian, "grad_yy f0")],
-            ),
-        ],
-        program,
-        args.y_subs,
-    )
+    program += objective.program
+    wanted = [spec for name, spec in objective.kernels.items() if name not in ridden]
+    made = iter(kernels(wanted, program, args.y_subs))
+    return [ridden.get(name) or next(made) for name in objective.kernels]
 
 
 def _margin_output(model: Model) -> tuple[str, tuple[int, ...], list[sx.Expr], str]:
@@ -509,7 +581,10 @@ def lower(derivation: Derivation) -> KernelSet:
     args = _arguments(d)
     mass = _mass(d)
     programs = _programs(d, mass)
-    jet, cholesky, optimality = _jet_kernels(d, args, programs, kernel, kernels, mass)
+    objective = _objective_outputs(d, args)
+    jet, cholesky, optimality, ridden = _jet_kernels(
+        d, args, programs, kernel, kernels, mass, objective
+    )
     # Everything of the jet that depends on time and parameters alone is computed once
     # per batch of states (the C backend's batch functions; a block in NumPy).
     split = split_invariant(jet, "jet_time", "The jet's terms of time and parameters alone")
@@ -517,7 +592,7 @@ def lower(derivation: Derivation) -> KernelSet:
     if split is not None:
         jet_time, jet = split
     rest = _input_kernels(d, args, kernel, programs["mass"]) + [optimality]
-    rest += _objective_kernels(d, args, programs, kernels)
+    rest += _objective_kernels(d, args, programs, kernels, objective, ridden)
     rest += _margin_kernels(d, args, programs, kernel)
     rest += _plant_kernels(d, args, kernel, programs["mass"])
     law = d.law
