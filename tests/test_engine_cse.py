@@ -44,7 +44,9 @@ def _record(spec: str, monkeypatch: pytest.MonkeyPatch) -> list[Call]:
         def call(*args: Any, **options: Any) -> Any:
             result = function(*args, **options)
             search = (options.get("search", True),) if kind == "kernel" else ()
-            calls.append((kind, (*args, *search), result))
+            # A group's riders and companions (make_kernels' options) are replayed too.
+            riding = (options,) if kind == "kernels" else ()
+            calls.append((kind, (*args, *search, *riding), result))
             return result
 
         return call
@@ -98,15 +100,22 @@ def _replay(calls: list[Call]) -> list[Kernel]:
             kernels.append(kernel)
         elif kind == "kernels":
             specs, program, subs = args[:3]
+            options = args[-1]
+
+            def spec(name: str, doc: str, inputs: Any, outputs: Any) -> Any:
+                return (name, doc, [_arg(a, convert) for a in inputs], _outputs(outputs, convert))
+
             group = cse.make_kernels(
-                [
-                    (name, doc, [_arg(a, convert) for a in inputs], _outputs(outputs, convert))
-                    for name, doc, inputs, outputs in specs
-                ],
+                [spec(*entry) for entry in specs],
                 [(convert(s), convert(v)) for s, v in program],
                 {convert(s): convert(v) for s, v in subs.items()},
                 odd,
                 symbols,
+                riders=[
+                    (*spec(*rider[:4]), {convert(a): convert(b) for a, b in rider[4].items()})
+                    for rider in options.get("riders", ())
+                ],
+                companions=[spec(*entry) for entry in options.get("companions", ())],
             )
             made.update((id(old), new) for old, new in zip(result, group, strict=True))
             kernels.extend(group)
