@@ -454,8 +454,11 @@ def _objective_kernels(
     Those the jet's program gave already (``ridden``, by name) are not lowered again.
     """
     # One program for the three: the signals, then the gradient's program (the jet's
-    # first assignments) and f0's, which each kernel prunes to what it needs.
-    program = programs["signals0"] + list(d.objective.objective_program.assignments)
+    # first assignments) and f0's, which each kernel prunes to what it needs. f0's
+    # kernel alone reads no assignment of the gradient's: they are not read at all.
+    program = list(programs["signals0"])
+    if not ridden:
+        program += d.objective.objective_program.assignments
     program += objective.program
     wanted = [spec for name, spec in objective.kernels.items() if name not in ridden]
     made = iter(kernels(wanted, program, args.y_subs))
