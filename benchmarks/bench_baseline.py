@@ -22,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_commands import ROOT, export, once  # noqa: E402
+from bench_commands import ROOT, Setup, export, once  # noqa: E402
 from bench_derive import ring_spec  # noqa: E402
 
 
@@ -39,7 +39,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         (folder / "tree").mkdir()
-        trees = [ROOT, export(args.baseline, folder / "tree")]
+        # Each on the command line's default engine (bench_commands' setups).
+        trees: list[Setup] = [(ROOT, None), (export(args.baseline, folder / "tree"), None)]
         for name in args.specs.split(","):
             if name == "chain12":
                 spec = ROOT / "benchmarks" / "chain12.toml"
