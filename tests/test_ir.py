@@ -17,6 +17,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from tvopt_codegen import cse
 from tvopt_codegen import symbolic as sx
 from tvopt_codegen.cse import (
     assembly,
@@ -737,7 +738,7 @@ def test_f0s_gradient_and_hessian_cut_from_the_jet_program_are_the_objectives_ow
     ring = derive(parse_spec("ring32.toml", raw.replace(b"\ni = 4 ", b"\ni = 32 ", 1)))
     assert ir._outputs_as_states(ring, ir._arguments(ring)) is not None
     calls: list[list[str]] = []
-    make_kernels = ir.make_kernels
+    make_kernels = cse.make_kernels  # the function lower calls, by its name in ir
 
     def counted(kernels: Any, *args: Any, **options: Any) -> list[Kernel]:
         made = make_kernels(kernels, *args, **options)
@@ -776,3 +777,82 @@ def test_f0s_gradient_and_hessian_cut_from_the_jet_program_are_the_objectives_ow
     for spec in ("planar_arm3", "arm_on_line"):
         d = derivation(spec)
         assert ir._outputs_as_states(d, ir._arguments(d)) is None
+
+
+_RING_FEATURES = {
+    "integral": "[robust]\nintegral = true\n",
+    "observer": "[robust.observer]\nbandwidth = 20.0\n",
+    "eso": "[robust.eso]\nbandwidth = 20.0\n",
+    "limits": "[limits]\nomega_0 = 2.0\nomega_3 = 2.0\n",
+}
+
+
+@pytest.mark.parametrize(
+    "spec",
+    [
+        "unicycle_ring",
+        "unicycle_ring_refs",
+        "two_unicycles_barrier",
+        "two_unicycles_corridor",
+        "flexible_joint",
+        "figure8_wall.toml",
+        "nonuniform.toml",
+        *(f"unicycle_ring+{feature}" for feature in _RING_FEATURES),
+    ],
+)
+def test_riders_beside_every_feature_compute_the_objectives_own_kernels(
+    spec: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With every kernel taken for large (the union's threshold at 0), the riders ride on
+    small specs too: beside references, constraints, padding chains, integral action, the
+    disturbance observer, the extended-state observer and limits, f0 and its derivatives
+    at outputs equal those lowered apart, at random inputs."""
+    from tvopt_codegen.cse import assembly  # noqa: PLC0415
+    from tvopt_codegen.derivation.pipeline import derive  # noqa: PLC0415
+    from tvopt_codegen.lowering import ir  # noqa: PLC0415
+    from tvopt_codegen.spec import parse_spec  # noqa: PLC0415
+
+    from .conftest import ROOT, SPECS  # noqa: PLC0415
+
+    if "+" in spec:
+        base, feature = spec.split("+")
+        raw = (ROOT / "tvopt_codegen" / "examples" / f"{base}.toml").read_text(encoding="utf-8")
+        raw = raw.replace("[simulation]", _RING_FEATURES[feature] + "\n[simulation]", 1)
+        if feature == "integral":  # one more pole per output
+            raw = raw.replace("poles = [-1.0, -1.5]", "poles = [-1.0, -1.5, -2.0]", 1)
+        d = derive(parse_spec(f"{spec}.toml", raw.encode()))
+    else:
+        d = derivation(str(SPECS / spec) if spec.endswith(".toml") else spec)
+    args = ir._arguments(d)
+    as_states = ir._outputs_as_states(d, args)
+    assert as_states is not None
+    monkeypatch.setattr(assembly, "SMALL_PROGRAM_OPS", 0)
+    calls: list[list[str]] = []
+    make_kernels = cse.make_kernels  # the function lower calls, by its name in ir
+
+    def counted(kernels: Any, *args: Any, **options: Any) -> list[Kernel]:
+        made = make_kernels(kernels, *args, **options)
+        calls.append([k.name for k in made])
+        return made
+
+    monkeypatch.setattr(ir, "make_kernels", counted)
+    cut = {k.name: k for k in ir.lower(d).kernels}
+    assert calls[0][2:] == ["gradient", "hessian"]
+    monkeypatch.setattr(ir, "_outputs_as_states", lambda d, args: None)
+    apart = {k.name: k for k in ir.lower(d).kernels}
+    # Near the start, where the spec's barriers are defined: each output at its state's
+    # initial value, the parameters at their defaults, plus a little noise.
+    start = dict(zip(args.s.symbols, d.closed_loop.initial_state, strict=True))
+    given = {y: start[s] for s, y in as_states.items()}
+    given |= {p: float(v) for p, v in zip(args.p.symbols, d.model.defaults, strict=True)}
+    rng = np.random.default_rng(5)
+    for name in ("objective", "gradient", "hessian"):
+        point = {
+            s: given.get(s, 0.5) + rng.uniform(-0.01, 0.01)
+            for arg in cut[name].inputs
+            for s in arg.symbols
+        }
+        point[sx.symbol("t")] = 0.0
+        theirs = _kernel_values(apart[name], point)
+        ours = _kernel_values(cut[name], point)
+        np.testing.assert_allclose(ours, theirs, rtol=1e-12, atol=1e-12)
