@@ -184,7 +184,7 @@ def _outputs_as_states(d: Derivation, args: _Args) -> dict[sx.Expr, sx.Expr] | N
     """Each output's state slot -> its output slot, when every output is a distinct state.
 
     Then f0's gradient and Hessian at outputs are the jet program's own, its state slots
-    read as the outputs' (:func:`_objective_riders`). None otherwise: with equalities
+    read as the outputs' (the riders of :func:`_jet_kernels`). None otherwise: with equalities
     (the jet's gradient is the KKT map's), or an output that is a function of the state.
     """
     model = d.model
@@ -201,14 +201,14 @@ def _outputs_as_states(d: Derivation, args: _Args) -> dict[sx.Expr, sx.Expr] | N
 
 
 @dataclass(frozen=True)
-class _Objective:
+class _ObjectiveKernels:
     """f0 in three-address form (its program and result), and its kernels' specifications."""
 
     program: list[Assignment]
     kernels: dict[str, tuple[str, str, list[Arg], Outputs]]
 
 
-def _objective_outputs(d: Derivation, args: _Args) -> _Objective:
+def _objective_outputs(d: Derivation, args: _Args) -> _ObjectiveKernels:
     """f0, its gradient and its Hessian at outputs, as :func:`make_kernels` takes them.
 
     f0 in three-address form, as the gradient's program is: lowered nested, its every
@@ -232,7 +232,7 @@ def _objective_outputs(d: Derivation, args: _Args) -> _Objective:
             [("hess", (m, m), d.objective.objective_hessian, "grad_yy f0")],
         ),
     }
-    return _Objective(list(f0_program.assignments), kernels)
+    return _ObjectiveKernels(list(f0_program.assignments), kernels)
 
 
 def _shared_outputs(
@@ -288,15 +288,15 @@ def _jet_kernels(
     kernel: _Make,
     kernels: _MakeMany,
     mass: _Mass | None,
-    objective: _Objective,
+    objective: _ObjectiveKernels,
 ) -> tuple[Kernel, Kernel | None, Kernel, dict[str, Kernel]]:
     """The jet (with R and p), its LDL^T solve, the optimality error E, and riders.
 
     The solve is left out (None) when the Hessian is constant. E reads the same gradient
     jet as the jet kernel: both are lowered together. When the outputs are states
-    (:func:`_outputs_as_states`), f0, its gradient and its Hessian at outputs may be
-    cut from the same program (:func:`.make_kernels`' riders, returned by name), where
-    lowering the objective's program again for them was a sixth of a team's run.
+    (:func:`_outputs_as_states`), f0's gradient and Hessian at outputs may be cut from
+    the same program (:func:`.make_kernels`' riders, returned by name), where lowering
+    the objective's program again for them was a sixth of a team's run.
     """
     law, m, n, k = d.law, len(d.model.u), d.jet.n_kkt, d.dynamics.k
     grad = d.jet.grad_jet
@@ -446,7 +446,7 @@ def _objective_kernels(
     args: _Args,
     programs: dict[str, list[Assignment]],
     kernels: _MakeMany,
-    objective: _Objective,
+    objective: _ObjectiveKernels,
     ridden: dict[str, Kernel],
 ) -> list[Kernel]:
     """f0 and its first and second derivatives in y, at given outputs.

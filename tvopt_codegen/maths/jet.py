@@ -374,7 +374,7 @@ def next_derivative(
     new, current, moving = total_derivative(program, outputs, rates, names, check)
     # One walker for every assignment, its pieces written just before it: a walk per
     # assignment (a closure, a program and their release each) was a fifth of this.
-    walker = _Atomizer(names, {}, {})
+    walker = _Atomizer(names, {})
     alias = walker.alias
     for sym, value in new.assignments:
         root = walker.visit(sx.as_expr(value))
@@ -453,15 +453,10 @@ class _Atomizer:
     A method, not a nested function: nothing to release after the walk (no cycle).
     """
 
-    def __init__(
-        self,
-        names: Iterator[sx.Expr],
-        table: dict[sx.Expr, sx.Expr],
-        alias: dict[sx.Expr, sx.Expr] | None = None,
-    ) -> None:
+    def __init__(self, names: Iterator[sx.Expr], table: dict[sx.Expr, sx.Expr]) -> None:
         self.names, self.table = names, table
         #: Symbols that stand for an atom (:func:`next_derivative`), replaced where met.
-        self.alias: dict[sx.Expr, sx.Expr] = {} if alias is None else alias
+        self.alias: dict[sx.Expr, sx.Expr] = {}
         self.out: list[Assignment] = []
 
     def visit(self, node: sx.Expr) -> sx.Expr:

@@ -159,7 +159,7 @@ def cholesky_program(
     return program, z, pivots
 
 
-def minus(first: sx.Expr, products: Iterable[tuple[sx.Expr, sx.Expr]]) -> sx.Expr:
+def _minus(first: sx.Expr, products: Iterable[tuple[sx.Expr, sx.Expr]]) -> sx.Expr:
     """``first - sum(a*b)``, each product negated on its own: ``first - a*b - c*d``.
 
     SymEngine keeps ``x - (a*b + c*d)`` as a negated sum, which lowering distributes again
@@ -227,7 +227,7 @@ def ldl_program(
     pivots: list[sx.Expr] = []
     for b in range(m):
         pivot = assign(
-            minus(
+            _minus(
                 value.get((b, b), sx.Integer(0)),
                 ((unit[(b, k)], scaled[(b, k)]) for k in row_entries[b]),
             )
@@ -237,7 +237,7 @@ def ldl_program(
         for a in columns[b]:
             shared = set(row_entries[a]) & set(row_entries[b])
             dot = ((unit[(a, k)], scaled[(b, k)]) for k in sorted(shared))
-            scaled[(a, b)] = assign(minus(value.get((a, b), sx.Integer(0)), dot))
+            scaled[(a, b)] = assign(_minus(value.get((a, b), sx.Integer(0)), dot))
             unit[(a, b)] = assign(scaled[(a, b)] * inverse[b])
             row_entries[a].append(b)
     solutions = []
@@ -245,10 +245,10 @@ def ldl_program(
         forward: list[sx.Expr] = []
         for a in range(m):
             dot = ((unit[(a, k)], forward[k]) for k in row_entries[a])
-            forward.append(assign(minus(c[order[a]], dot)))
+            forward.append(assign(_minus(c[order[a]], dot)))
         backward: dict[int, sx.Expr] = {}
         for a in reversed(range(m)):
             dot = ((unit[(k, a)], backward[k]) for k in columns[a])
-            backward[a] = assign(minus(forward[a] * inverse[a], dot))
+            backward[a] = assign(_minus(forward[a] * inverse[a], dot))
         solutions.append([backward[position[i]] for i in range(m)])
     return program, solutions, pivots
