@@ -718,6 +718,21 @@ def _kernel_values(kernel: Kernel, inputs: dict[Any, float]) -> list[float]:
     return [value(e) for out in kernel.outputs for e in out.exprs]
 
 
+def _kernel_groups(monkeypatch: pytest.MonkeyPatch) -> list[list[str]]:
+    """The names of the kernels each of ``lower``'s calls of make_kernels makes, as it goes."""
+    from tvopt_codegen.lowering import ir  # noqa: PLC0415
+
+    calls: list[list[str]] = []
+
+    def counted(kernels: Any, *args: Any, **options: Any) -> list[Kernel]:
+        made = cse.make_kernels(kernels, *args, **options)
+        calls.append([k.name for k in made])
+        return made
+
+    monkeypatch.setattr(ir, "make_kernels", counted)
+    return calls
+
+
 def test_f0s_gradient_and_hessian_cut_from_the_jet_program_are_the_objectives_own(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -737,15 +752,7 @@ def test_f0s_gradient_and_hessian_cut_from_the_jet_program_are_the_objectives_ow
     # gradient and its Hessian would be one too, lowered apart.
     ring = derive(parse_spec("ring32.toml", raw.replace(b"\ni = 4 ", b"\ni = 32 ", 1)))
     assert ir._outputs_as_states(ring, ir._arguments(ring)) is not None
-    calls: list[list[str]] = []
-    make_kernels = cse.make_kernels  # the function lower calls, by its name in ir
-
-    def counted(kernels: Any, *args: Any, **options: Any) -> list[Kernel]:
-        made = make_kernels(kernels, *args, **options)
-        calls.append([k.name for k in made])
-        return made
-
-    monkeypatch.setattr(ir, "make_kernels", counted)
+    calls = _kernel_groups(monkeypatch)
     cut = {k.name: k for k in ir.lower(ring).kernels}
     # The riders came with the jet; f0 alone was lowered apart.
     assert calls == [["jet", "optimality", "gradient", "hessian"], ["objective"]]
@@ -767,8 +774,7 @@ def test_f0s_gradient_and_hessian_cut_from_the_jet_program_are_the_objectives_ow
             )
     # At 16 agents f0's kernel is small enough for the engine's search: the three are
     # lowered apart, as they would be without riders, and searched.
-    calls.clear()
-    monkeypatch.setattr(ir, "make_kernels", counted)
+    calls = _kernel_groups(monkeypatch)
     small = derive(parse_spec("ring16.toml", raw.replace(b"\ni = 4 ", b"\ni = 16 ", 1)))
     ir.lower(small)
     monkeypatch.undo()
@@ -827,15 +833,7 @@ def test_riders_beside_every_feature_compute_the_objectives_own_kernels(
     as_states = ir._outputs_as_states(d, args)
     assert as_states is not None
     monkeypatch.setattr(assembly, "SMALL_PROGRAM_OPS", 0)
-    calls: list[list[str]] = []
-    make_kernels = cse.make_kernels  # the function lower calls, by its name in ir
-
-    def counted(kernels: Any, *args: Any, **options: Any) -> list[Kernel]:
-        made = make_kernels(kernels, *args, **options)
-        calls.append([k.name for k in made])
-        return made
-
-    monkeypatch.setattr(ir, "make_kernels", counted)
+    calls = _kernel_groups(monkeypatch)
     cut = {k.name: k for k in ir.lower(d).kernels}
     assert calls[0][2:] == ["gradient", "hessian"]
     monkeypatch.setattr(ir, "_outputs_as_states", lambda d, args: None)
